@@ -1,0 +1,155 @@
+"""Strict, friendly YAML validation shared by every file the project reads.
+
+Pure Python (PyYAML only). Every problem becomes a :class:`ConfigError` whose message is one line
+naming the file, the key and what is allowed, so command-line tools can print it and exit 2
+instead of showing a traceback.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any, Iterable, Mapping
+
+import yaml
+
+
+class ConfigError(ValueError):
+    """A configuration file or parameter is wrong; the message is one line, ready to print."""
+
+
+def load_yaml(path: str | Path) -> dict:
+    """Read a YAML mapping, turning every failure into a one-line :class:`ConfigError`."""
+    p = Path(path)
+    if not p.is_file():
+        raise ConfigError(f"{p}: file not found")
+    try:
+        data = yaml.safe_load(p.read_text())
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" (line {mark.line + 1})" if mark is not None else ""
+        raise ConfigError(f"{p}: not valid YAML{where}") from None
+    if not isinstance(data, dict):
+        raise ConfigError(f"{p}: expected a mapping at the top level, got {type(data).__name__}")
+    return data
+
+
+class Section:
+    """A view on one mapping of a YAML file that checks keys and values as they are read.
+
+    ``where`` is the file and the dotted key path, used in every error message.
+    """
+
+    def __init__(self, data: Any, where: str, allowed: Iterable[str] | None = None):
+        if not isinstance(data, Mapping):
+            raise ConfigError(f"{where}: expected a mapping, got {type(data).__name__}")
+        self.data = dict(data)
+        self.where = where
+        if allowed is not None:
+            allowed = list(allowed)
+            unknown = sorted(set(self.data) - set(allowed))
+            if unknown:
+                raise ConfigError(
+                    f"{where}: unknown key '{unknown[0]}' (allowed: {', '.join(allowed)})"
+                )
+
+    def has(self, key: str) -> bool:
+        return key in self.data
+
+    def _raw(self, key: str, default: Any) -> Any:
+        if key in self.data:
+            return self.data[key]
+        if default is _REQUIRED:
+            raise ConfigError(f"{self.where}: missing key '{key}'")
+        return default
+
+    def number(
+        self,
+        key: str,
+        default: Any = None,
+        *,
+        lo: float | None = None,
+        hi: float | None = None,
+        lo_open: bool = False,
+        hi_open: bool = False,
+        unit: str = "",
+    ) -> float:
+        """A finite float in [lo, hi] (open ends if asked); ``default=REQUIRED`` makes it required."""
+        value = self._raw(key, default)
+        if value is None:
+            return None  # type: ignore[return-value]
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"{self.where}.{key}: expected a number, got {value!r}")
+        value = float(value)
+        rng = _range_text(lo, hi, lo_open, hi_open, unit)
+        if not math.isfinite(value):
+            raise ConfigError(f"{self.where}.{key}: must be finite, allowed {rng}")
+        if lo is not None and (value < lo or (lo_open and value == lo)):
+            raise ConfigError(f"{self.where}.{key}: {value:g} is out of range, allowed {rng}")
+        if hi is not None and (value > hi or (hi_open and value == hi)):
+            raise ConfigError(f"{self.where}.{key}: {value:g} is out of range, allowed {rng}")
+        return value
+
+    def integer(self, key: str, default: Any = None, *, lo: int | None = None,
+                hi: int | None = None) -> int:
+        value = self._raw(key, default)
+        if value is None:
+            return None  # type: ignore[return-value]
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"{self.where}.{key}: expected an integer, got {value!r}")
+        if (lo is not None and value < lo) or (hi is not None and value > hi):
+            raise ConfigError(
+                f"{self.where}.{key}: {value} is out of range, allowed {_range_text(lo, hi)}"
+            )
+        return value
+
+    def string(self, key: str, default: Any = None, *, choices: Iterable[str] | None = None) -> str:
+        value = self._raw(key, default)
+        if value is None:
+            return None  # type: ignore[return-value]
+        if not isinstance(value, str):
+            raise ConfigError(f"{self.where}.{key}: expected a string, got {value!r}")
+        if choices is not None:
+            choices = list(choices)
+            if value not in choices:
+                raise ConfigError(
+                    f"{self.where}.{key}: unknown value '{value}' (allowed: {', '.join(choices)})"
+                )
+        return value
+
+    def boolean(self, key: str, default: Any = None) -> bool:
+        value = self._raw(key, default)
+        if not isinstance(value, bool):
+            raise ConfigError(f"{self.where}.{key}: expected true or false, got {value!r}")
+        return value
+
+    def section(self, key: str, allowed: Iterable[str] | None = None, default: Any = None
+                ) -> "Section":
+        value = self._raw(key, default)
+        return Section(value if value is not None else {}, f"{self.where}.{key}", allowed)
+
+    def sections(self, key: str, allowed: Iterable[str] | None = None, default: Any = None
+                 ) -> list["Section"]:
+        value = self._raw(key, default)
+        if value is None:
+            return []
+        if not isinstance(value, list):
+            raise ConfigError(f"{self.where}.{key}: expected a list, got {type(value).__name__}")
+        return [Section(item, f"{self.where}.{key}[{i}]", allowed) for i, item in enumerate(value)]
+
+
+class _Required:
+    def __repr__(self) -> str:  # pragma: no cover - cosmetic
+        return "REQUIRED"
+
+
+_REQUIRED = _Required()
+REQUIRED: Any = _REQUIRED
+
+
+def _range_text(lo, hi, lo_open=False, hi_open=False, unit="") -> str:
+    left = "(" if lo_open or lo is None else "["
+    right = ")" if hi_open or hi is None else "]"
+    lo_s = "-inf" if lo is None else f"{lo:g}"
+    hi_s = "inf" if hi is None else f"{hi:g}"
+    return f"{left}{lo_s}, {hi_s}{right}{(' ' + unit) if unit else ''}"

@@ -1,0 +1,264 @@
+"""The train and the line as the railway describes them: frozen dataclasses with SI units.
+
+One model class serves both the world (the simulator integrates it) and the estimators (they
+discretise it), so simulated truth and filter assumptions cannot silently diverge. The simulator's
+effects (``train_sim.effects``) produce a *modified copy* of these objects with
+:func:`dataclasses.replace`; the estimators only ever see what ``train.yaml``/``line.yaml`` say.
+
+Longitudinal dynamics (mass point, issue #3)::
+
+    (1 + lambda) M dv/dt = F_drive - (a + b v + c v^2) - M g sin(theta(x)),    dx/dt = v
+
+Pure module: numpy + PyYAML only.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from .config import REQUIRED, ConfigError, Section, load_yaml
+
+G = 9.80665  # m/s^2, standard gravity
+
+
+@dataclass(frozen=True)
+class Davis:
+    """Davis running resistance R(v) = a + b v + c v^2 in newtons (whole train)."""
+
+    a: float  # N
+    b: float  # N/(m/s)
+    c: float  # N/(m/s)^2
+
+    def force(self, v):
+        """Resistance in N opposing motion; ``v`` in m/s (scalar or array), v >= 0."""
+        return self.a + self.b * v + self.c * v * v
+
+
+@dataclass(frozen=True)
+class Brake:
+    """Brake/traction actuator after Zheng et al. (2015) eq. (1)-(3)."""
+
+    time_constant: float  # s, first-order lag tau
+    delay: float  # s, transport delay T (estimators use Pade with lambda = 2/T)
+    braking_rate: float = 1.0  # -, f: achieved braking = f * commanded braking (1 = nominal)
+
+
+@dataclass(frozen=True)
+class Performance:
+    """Limits the driver/ATO works with (extra keys of train.yaml, all optional)."""
+
+    max_traction: float = 1.0  # m/s^2, largest traction command
+    service_brake: float = 0.8  # m/s^2, service braking the ATO plans with (magnitude)
+    emergency_brake: float = 1.2  # m/s^2, emergency braking (magnitude, nominal f)
+    max_jerk: float = 0.75  # m/s^3, comfort limit on command changes
+
+
+@dataclass(frozen=True)
+class TrainParams:
+    """The train as the railway believes it to be (``train.yaml``)."""
+
+    mass: float  # kg, total (tare + load)
+    rotary_allowance: float  # -, lambda: effective mass = (1 + lambda) * mass
+    davis: Davis
+    brake: Brake
+    odometer_speed_std: float = 0.1  # m/s, odometer speed noise (1 sigma)
+    odometer_distance_std: float = 0.0  # m, per-sample noise on counted distance (extra key)
+    balise_position_std: float = 1.0  # m, balise reading noise (extra key)
+    performance: Performance = field(default_factory=Performance)
+    name: str = "train"
+
+    @property
+    def effective_mass(self) -> float:
+        """kg, (1 + lambda) M."""
+        return (1.0 + self.rotary_allowance) * self.mass
+
+    def resistance_accel(self, v):
+        """m/s^2, deceleration from Davis resistance: R(v) / ((1 + lambda) M)."""
+        return self.davis.force(v) / self.effective_mass
+
+    def with_changes(self, **kw) -> "TrainParams":
+        return replace(self, **kw)
+
+
+@dataclass(frozen=True)
+class GradientSection:
+    start: float  # m
+    end: float  # m
+    permille: float  # per mille, positive = uphill in the running direction
+
+
+@dataclass(frozen=True)
+class Balise:
+    id: int
+    position: float  # m, surveyed position of the reference mark
+
+
+@dataclass(frozen=True)
+class Station:
+    name: str
+    position: float  # m, stopping point (the train's reference end stops here)
+    dwell: float = 30.0  # s, planned dwell time (extra key)
+
+
+@dataclass(frozen=True)
+class SpeedLimit:
+    start: float  # m
+    end: float  # m
+    speed: float  # m/s
+
+
+@dataclass(frozen=True)
+class Line:
+    """The line map as the railway knows it (``line.yaml``)."""
+
+    name: str
+    length: float  # m
+    balises: tuple[Balise, ...] = ()
+    gradients: tuple[GradientSection, ...] = ()
+    stations: tuple[Station, ...] = ()
+    speed_limits: tuple[SpeedLimit, ...] = ()
+    max_speed: float = 22.23  # m/s, line speed where no section limit applies (extra key)
+
+    def gradient_permille(self, x):
+        """Gradient in per mille at position(s) ``x`` (m); 0 outside every section."""
+        x = np.asarray(x, dtype=float)
+        out = np.zeros_like(x)
+        for sec in self.gradients:  # few sections: a loop over sections, vectorised over x
+            out = np.where((x >= sec.start) & (x < sec.end), sec.permille, out)
+        return out if out.ndim else float(out)
+
+    def gradient_accel(self, x):
+        """m/s^2 per unit mass: g sin(theta(x)), with tan(theta) = permille / 1000.
+
+        The dynamics divide this by (1 + lambda): M g sin(theta) / ((1 + lambda) M).
+        """
+        p = np.asarray(self.gradient_permille(x), dtype=float) / 1000.0
+        out = G * p / np.sqrt(1.0 + p * p)  # sin(atan(p)) without the trig calls
+        return out if out.ndim else float(out)
+
+    def speed_limit(self, x) -> float:
+        """m/s, the most restrictive limit at position ``x``."""
+        lim = self.max_speed
+        for s in self.speed_limits:
+            if s.start <= x < s.end:
+                lim = min(lim, s.speed)
+        return lim
+
+    def balise_by_id(self, balise_id: int) -> Balise | None:
+        for b in self.balises:
+            if b.id == balise_id:
+                return b
+        return None
+
+    def with_changes(self, **kw) -> "Line":
+        return replace(self, **kw)
+
+
+# ---------------------------------------------------------------------------------------------
+# Loading with validation. Top-level extra keys are allowed (CONTRACT.md: "extra keys allowed");
+# nested mappings with a fixed meaning are strict, so a typo in `davis: {A: ...}` is caught.
+# ---------------------------------------------------------------------------------------------
+
+TRAIN_KEYS = ("mass", "rotary_allowance", "davis", "brake", "odometer")
+
+
+def train_from_dict(data: dict, where: str = "train.yaml") -> TrainParams:
+    s = Section(data, where)
+    davis = s.section("davis", ("a", "b", "c"), default=REQUIRED)
+    brake = s.section("brake", ("time_constant", "delay", "braking_rate"), default=REQUIRED)
+    odo = s.section("odometer", ("speed_std", "distance_std"), default={})
+    bal = s.section("balise", ("position_std",), default={})
+    perf = s.section(
+        "performance", ("max_traction", "service_brake", "emergency_brake", "max_jerk"), default={}
+    )
+    dflt = Performance()
+    return TrainParams(
+        name=s.string("name", "train"),
+        mass=s.number("mass", REQUIRED, lo=0.0, lo_open=True, unit="kg"),
+        rotary_allowance=s.number("rotary_allowance", REQUIRED, lo=0.0, hi=1.0),
+        davis=Davis(
+            a=davis.number("a", REQUIRED, lo=0.0, unit="N"),
+            b=davis.number("b", REQUIRED, lo=0.0, unit="N s/m"),
+            c=davis.number("c", REQUIRED, lo=0.0, unit="N s^2/m^2"),
+        ),
+        brake=Brake(
+            time_constant=brake.number("time_constant", REQUIRED, lo=0.0, lo_open=True, unit="s"),
+            delay=brake.number("delay", REQUIRED, lo=0.0, unit="s"),
+            braking_rate=brake.number("braking_rate", 1.0, lo=0.0, hi=2.0),
+        ),
+        odometer_speed_std=odo.number("speed_std", 0.1, lo=0.0, unit="m/s"),
+        odometer_distance_std=odo.number("distance_std", 0.0, lo=0.0, unit="m"),
+        balise_position_std=bal.number("position_std", 1.0, lo=0.0, lo_open=True, unit="m"),
+        performance=Performance(
+            max_traction=perf.number("max_traction", dflt.max_traction, lo=0.0, lo_open=True),
+            service_brake=perf.number("service_brake", dflt.service_brake, lo=0.0, lo_open=True),
+            emergency_brake=perf.number(
+                "emergency_brake", dflt.emergency_brake, lo=0.0, lo_open=True
+            ),
+            max_jerk=perf.number("max_jerk", dflt.max_jerk, lo=0.0, lo_open=True),
+        ),
+    )
+
+
+def line_from_dict(data: dict, where: str = "line.yaml") -> Line:
+    s = Section(data, where)
+    length = s.number("length", REQUIRED, lo=0.0, lo_open=True, unit="m")
+    balises = tuple(
+        Balise(id=b.integer("id", REQUIRED, lo=0), position=b.number("position", REQUIRED))
+        for b in s.sections("balises", ("id", "position"), default=[])
+    )
+    ids = [b.id for b in balises]
+    if len(set(ids)) != len(ids):
+        raise ConfigError(f"{where}.balises: balise ids must be unique")
+    grads = []
+    for g in s.sections("gradients", ("start", "end", "permille"), default=[]):
+        start, end = g.number("start", REQUIRED), g.number("end", REQUIRED)
+        if end <= start:
+            raise ConfigError(f"{g.where}: end ({end:g}) must be greater than start ({start:g})")
+        grads.append(GradientSection(start, end, g.number("permille", REQUIRED, lo=-60, hi=60)))
+    grads.sort(key=lambda g: g.start)
+    for a, b in zip(grads, grads[1:]):
+        if b.start < a.end:
+            raise ConfigError(f"{where}.gradients: sections [{a.start:g}, {a.end:g}) and "
+                              f"[{b.start:g}, {b.end:g}) overlap")
+    stations = tuple(
+        Station(
+            name=st.string("name", REQUIRED),
+            position=st.number("position", REQUIRED, lo=0.0, hi=length),
+            dwell=st.number("dwell", 30.0, lo=0.0, unit="s"),
+        )
+        for st in s.sections("stations", ("name", "position", "dwell"), default=[])
+    )
+    limits = tuple(
+        SpeedLimit(sl.number("start", REQUIRED), sl.number("end", REQUIRED),
+                   sl.number("speed", REQUIRED, lo=0.0, lo_open=True, unit="m/s"))
+        for sl in s.sections("speed_limits", ("start", "end", "speed"), default=[])
+    )
+    return Line(
+        name=s.string("name", "line"),
+        length=length,
+        balises=tuple(sorted(balises, key=lambda b: b.position)),
+        gradients=tuple(grads),
+        stations=tuple(sorted(stations, key=lambda st: st.position)),
+        speed_limits=limits,
+        max_speed=s.number("max_speed", 22.23, lo=0.0, lo_open=True, unit="m/s"),
+    )
+
+
+def load_train(path: str | Path) -> TrainParams:
+    return train_from_dict(load_yaml(path), str(path))
+
+
+def load_line(path: str | Path) -> Line:
+    return line_from_dict(load_yaml(path), str(path))
+
+
+def braking_distance(v: float, decel: float) -> float:
+    """m, distance to stop from ``v`` (m/s) at constant deceleration ``decel`` (m/s^2 > 0)."""
+    if decel <= 0:
+        return math.inf
+    return v * v / (2.0 * decel)
