@@ -23,11 +23,6 @@ setup(
     license="Apache-2.0",
     entry_points={
         "console_scripts": [
-            "robust_filter = train_estimation.nodes.robust_filter:main",
-            "gsma_estimator = train_estimation.nodes.gsma_estimator:main",
-            "recorder = train_estimation.nodes.recorder:main",
-            "check_bag = train_estimation.tools.check_bag:main",
-            "identify = train_estimation.tools.identify:main",
         ],
     },
 )

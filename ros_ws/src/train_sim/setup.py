@@ -28,7 +28,6 @@ setup(
         "console_scripts": [
             "simulator = train_sim.nodes.simulator:main",
             "zone_controller = train_sim.nodes.zone_controller:main",
-            "generate = train_sim.generate:main",
         ],
     },
 )

@@ -8,8 +8,9 @@ instead of showing a traceback.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable, Mapping
 from pathlib import Path
-from typing import Any, Iterable, Mapping
+from typing import Any
 
 import yaml
 
@@ -74,7 +75,7 @@ class Section:
         hi_open: bool = False,
         unit: str = "",
     ) -> float:
-        """A finite float in [lo, hi] (open ends if asked); ``default=REQUIRED`` makes it required."""
+        """A finite float in [lo, hi] (open ends if asked); ``default=REQUIRED``: required."""
         value = self._raw(key, default)
         if value is None:
             return None  # type: ignore[return-value]
@@ -124,12 +125,12 @@ class Section:
         return value
 
     def section(self, key: str, allowed: Iterable[str] | None = None, default: Any = None
-                ) -> "Section":
+                ) -> Section:
         value = self._raw(key, default)
         return Section(value if value is not None else {}, f"{self.where}.{key}", allowed)
 
     def sections(self, key: str, allowed: Iterable[str] | None = None, default: Any = None
-                 ) -> list["Section"]:
+                 ) -> list[Section]:
         value = self._raw(key, default)
         if value is None:
             return []

@@ -1,0 +1,207 @@
+"""Pytest fixtures shared by every test of the project (unit, integration, bag tests).
+
+ROS isolation is done here, at import time, before any test or fixture can start rclpy or a
+node process, so that no test depends on the developer's shell:
+
+- ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST`` (DDS discovery and traffic stay on loopback);
+- ``ROS_DOMAIN_ID``: one random id per test session in [1, 100] (``TRAIN_ROS_DOMAIN_ID``
+  overrides it), so two test runs on one machine do not see each other's nodes;
+- ``ROS_LOG_DIR`` inside the repo's ignored ``.cache/`` folder.
+
+Fixtures:
+- ``ros_env``: the environment (a dict) every node process gets;
+- ``launch``: start node processes; every process is stopped by its PID at teardown
+  (SIGINT, then SIGTERM, then SIGKILL), also when the test fails;
+- ``ros_node``: an rclpy node inside the test process, for probing topics and waiting for
+  discovery (matched publishers/subscribers) instead of sleeping blindly.
+"""
+
+from __future__ import annotations
+
+import os
+import random
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parent
+
+_domain = os.environ.get("TRAIN_ROS_DOMAIN_ID")
+if not _domain:
+    _domain = str(random.SystemRandom().randint(1, 100))
+os.environ["ROS_DOMAIN_ID"] = _domain
+os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+os.environ.pop("ROS_STATIC_PEERS", None)
+os.environ.setdefault("ROS_LOG_DIR", str(REPO / ".cache" / "ros_log"))
+Path(os.environ["ROS_LOG_DIR"]).mkdir(parents=True, exist_ok=True)
+
+
+def pytest_report_header(config):
+    return (f"ROS_DOMAIN_ID={os.environ['ROS_DOMAIN_ID']} "
+            f"ROS_AUTOMATIC_DISCOVERY_RANGE={os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE']}")
+
+
+def _have_ros() -> bool:
+    try:
+        import ament_index_python  # noqa: F401
+        import rclpy  # noqa: F401
+    except Exception:
+        return False
+    return True
+
+
+@pytest.fixture(scope="session")
+def ros_env() -> dict:
+    """The environment for node processes: the test session's isolated ROS settings."""
+    if not _have_ros():
+        pytest.fail("rclpy is not importable: run the tests with ./run test (it sets up ROS 2)")
+    env = dict(os.environ)
+    env["PYTHONUNBUFFERED"] = "1"
+    return env
+
+
+def executable(pkg: str, exe: str) -> str:
+    """Resolve PKG EXE exactly the way `ros2 run` does: get_package_prefix(pkg)/lib/pkg/exe."""
+    from ament_index_python.packages import get_package_prefix
+
+    path = Path(get_package_prefix(pkg)) / "lib" / pkg / exe
+    if not os.access(path, os.X_OK):
+        raise FileNotFoundError(f"{path} is not an executable (is ros_ws built?)")
+    return str(path)
+
+
+class Launcher:
+    """Starts processes and remembers their PIDs; ``stop_all`` ends exactly those."""
+
+    def __init__(self, env: dict, logdir: Path):
+        self.env = env
+        self.logdir = logdir
+        self.procs: list[tuple[str, subprocess.Popen]] = []
+
+    def start(self, cmd: list[str], name: str | None = None, env: dict | None = None
+              ) -> subprocess.Popen:
+        name = name or Path(cmd[0]).name
+        out = open(self.logdir / f"{name}.{len(self.procs)}.log", "wb")
+        proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT,
+                                env={**self.env, **(env or {})}, cwd=str(REPO))
+        out.close()
+        proc.log_path = Path(out.name)  # type: ignore[attr-defined]
+        self.procs.append((name, proc))
+        return proc
+
+    def node(self, pkg: str, exe: str, *args: str, name: str | None = None,
+             env: dict | None = None) -> subprocess.Popen:
+        return self.start([executable(pkg, exe), *args], name=name or exe, env=env)
+
+    @staticmethod
+    def stop(proc: subprocess.Popen, timeout: float = 10.0) -> int | None:
+        """SIGINT, then SIGTERM, then SIGKILL, each to this PID only."""
+        for sig, wait in ((signal.SIGINT, timeout), (signal.SIGTERM, 5.0), (signal.SIGKILL, 5.0)):
+            if proc.poll() is not None:
+                break
+            try:
+                os.kill(proc.pid, sig)
+            except ProcessLookupError:
+                break
+            try:
+                proc.wait(wait)
+            except subprocess.TimeoutExpired:
+                continue
+        return proc.poll()
+
+    def stop_all(self) -> None:
+        for _, proc in reversed(self.procs):
+            self.stop(proc)
+
+    def logs(self) -> str:
+        parts = []
+        for name, proc in self.procs:
+            text = Path(proc.log_path).read_text(errors="replace")  # type: ignore[attr-defined]
+            parts.append(f"----- {name} (pid {proc.pid}, rc {proc.poll()}) -----\n{text[-4000:]}")
+        return "\n".join(parts)
+
+
+@pytest.fixture
+def launch(ros_env, tmp_path, request):
+    launcher = Launcher(ros_env, tmp_path)
+    yield launcher
+    launcher.stop_all()
+    rep = getattr(request.node, "rep_call", None)
+    if rep is not None and rep.failed:
+        sys.stderr.write(launcher.logs())
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item, call):
+    outcome = yield
+    rep = outcome.get_result()
+    setattr(item, f"rep_{rep.when}", rep)
+
+
+class RosProbe:
+    """An rclpy node in the test process with helpers that wait on the ROS graph."""
+
+    def __init__(self):
+        import rclpy
+        from rclpy.executors import SingleThreadedExecutor
+
+        self.rclpy = rclpy
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context)
+        self.node = rclpy.create_node(f"test_probe_{os.getpid()}", context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+
+    def spin_for(self, seconds: float) -> None:
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            self.executor.spin_once(timeout_sec=min(0.05, max(0.0, end - time.monotonic())))
+
+    def wait_until(self, predicate, timeout: float = 20.0, what: str = "condition") -> None:
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            if predicate():
+                return
+            self.executor.spin_once(timeout_sec=0.05)
+        raise TimeoutError(f"timed out after {timeout:.0f} s waiting for {what}")
+
+    def wait_for_publishers(self, topic: str, count: int = 1, timeout: float = 20.0) -> None:
+        self.wait_until(lambda: self.node.count_publishers(topic) >= count, timeout,
+                        f"{count} publisher(s) on {topic}")
+
+    def wait_for_subscribers(self, topic: str, count: int = 1, timeout: float = 20.0) -> None:
+        self.wait_until(lambda: self.node.count_subscribers(topic) >= count, timeout,
+                        f"{count} subscriber(s) on {topic}")
+
+    def collect(self, msg_type, topic: str, qos: int = 1000) -> list:
+        """Subscribe now; the returned list fills while the probe spins."""
+        box: list = []
+        self.node.create_subscription(msg_type, topic, box.append, qos)
+        return box
+
+    def close(self) -> None:
+        self.executor.shutdown()
+        self.node.destroy_node()
+        self.rclpy.shutdown(context=self.context)
+
+
+@pytest.fixture
+def ros_node(ros_env):
+    probe = RosProbe()
+    yield probe
+    probe.close()
+
+
+@pytest.fixture(scope="session")
+def repo() -> Path:
+    return REPO
+
+
+@pytest.fixture(scope="session")
+def ruff_bin() -> str | None:
+    return shutil.which("ruff")

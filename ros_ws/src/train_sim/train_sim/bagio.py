@@ -1,0 +1,242 @@
+"""rosbag2 (MCAP storage) reading and writing without ROS, with the project's message types.
+
+Pure module (rosbags, no rclpy): the offline generator, the bag tools and the tests all use it.
+
+- :func:`typestore` registers the CONTRACT.md messages from the ``.msg`` files of
+  ``train_interfaces`` (found through the ament index, else in the source tree), so definitions
+  are embedded in every bag written, exactly as a ROS 2 recorder would.
+- :class:`BagWriter` writes dict-valued messages (CONTRACT.md field names) or raw CDR bytes.
+- :func:`read_bag` reads a bag into per-topic lists of ``(t_recv_ns, stamp_s, fields)``.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+
+PKG = "train_interfaces"
+MSG_NAMES = ("OdometerReading", "BaliseReading", "ControlCommand", "TrainState",
+             "MovementAuthority")
+TOPIC_TYPES = {
+    "odometer": "train_interfaces/msg/OdometerReading",
+    "balise": "train_interfaces/msg/BaliseReading",
+    "control": "train_interfaces/msg/ControlCommand",
+    "ground_truth": "train_interfaces/msg/TrainState",
+    "estimate/robust": "train_interfaces/msg/TrainState",
+    "estimate/gsma": "train_interfaces/msg/TrainState",
+    "movement_authority": "train_interfaces/msg/MovementAuthority",
+}
+HEADER_DEF = "builtin_interfaces/Time stamp\nstring frame_id\n"
+TIME_DEF = "int32 sec\nuint32 nanosec\n"
+SEP = "=" * 80 + "\n"
+
+
+class BagError(RuntimeError):
+    """The bag is unreadable or lacks what was asked; the message is one line."""
+
+
+def msg_dir() -> Path:
+    """Where the train_interfaces .msg files are: the installed share dir, else the source."""
+    try:
+        from ament_index_python.packages import get_package_share_directory
+
+        d = Path(get_package_share_directory(PKG)) / "msg"
+        if d.is_dir():
+            return d
+    except Exception:  # not installed / no ament index: use the source tree
+        pass
+    d = Path(__file__).resolve().parents[2] / PKG / "msg"
+    if d.is_dir():
+        return d
+    raise BagError(f"cannot find the {PKG} .msg files (build ros_ws or set AMENT_PREFIX_PATH)")
+
+
+@lru_cache(maxsize=1)
+def msg_texts() -> dict[str, str]:
+    d = msg_dir()
+    return {f"{PKG}/msg/{n}": (d / f"{n}.msg").read_text() for n in MSG_NAMES}
+
+
+def msgdef(msgtype: str) -> str:
+    """The ros2msg definition text embedded in bags (the format rosbag2 writes)."""
+    return (msg_texts()[msgtype] + SEP + "MSG: std_msgs/Header\n" + HEADER_DEF + SEP
+            + "MSG: builtin_interfaces/Time\n" + TIME_DEF)
+
+
+@lru_cache(maxsize=1)
+def typestore():
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+    ts = get_typestore(Stores.ROS2_KILTED)
+    types = {}
+    for name, text in msg_texts().items():
+        types.update(get_types_from_msg(text, name))
+    ts.register(types)
+    return ts
+
+
+def _build(ts, msgtype: str, fields: dict, stamp: float, frame_id: str = "track"):
+    cls = ts.types[msgtype]
+    time_cls = ts.types["builtin_interfaces/msg/Time"]
+    header_cls = ts.types["std_msgs/msg/Header"]
+    sec, nsec = divmod(int(round(stamp * 1e9)), 1_000_000_000)
+    kw = {"header": header_cls(stamp=time_cls(sec=sec, nanosec=nsec), frame_id=frame_id)}
+    for name in cls.__dataclass_fields__:
+        if name in ("header", "__msgtype__"):
+            continue
+        value = fields[name]
+        if name == "covariance":
+            value = np.asarray(value, dtype=np.float64).reshape(16)
+        elif isinstance(value, (np.floating, np.integer, np.bool_)):
+            value = value.item()
+        kw[name] = value
+    return cls(**kw)
+
+
+def serialize(msgtype: str, fields: dict, stamp: float, frame_id: str = "track") -> bytes:
+    ts = typestore()
+    return bytes(ts.serialize_cdr(_build(ts, msgtype, fields, stamp, frame_id), msgtype))
+
+
+def deserialize(msgtype: str, data: bytes) -> tuple[float, dict]:
+    """(stamp in s, fields dict without the header) of a CDR message."""
+    msg = typestore().deserialize_cdr(data, msgtype)
+    fields = {k: getattr(msg, k) for k in msg.__dataclass_fields__
+              if k not in ("header", "__msgtype__")}
+    stamp = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
+    return stamp, fields
+
+
+class BagWriter:
+    """A rosbag2 bag with MCAP storage; topics are created on first use."""
+
+    def __init__(self, path: str | os.PathLike, namespace: str = "/train"):
+        from rosbags.rosbag2 import StoragePlugin, Writer
+
+        self.path = Path(path)
+        if self.path.exists():
+            raise BagError(f"{self.path} exists already: choose a new bag directory")
+        self.namespace = namespace.rstrip("/")
+        self.writer = Writer(self.path, version=9, storage_plugin=StoragePlugin.MCAP)
+        self.writer.open()
+        self.connections: dict[str, object] = {}
+        self.counts: dict[str, int] = {}
+
+    def full_topic(self, topic: str) -> str:
+        return topic if topic.startswith("/") else f"{self.namespace}/{topic}"
+
+    def connection(self, topic: str, msgtype: str):
+        name = self.full_topic(topic)
+        conn = self.connections.get(name)
+        if conn is None:
+            if msgtype in msg_texts():
+                conn = self.writer.add_connection(name, msgtype, msgdef=msgdef(msgtype),
+                                                  rihs01=typestore().hash_rihs01(msgtype))
+            else:
+                conn = self.writer.add_connection(name, msgtype, typestore=typestore())
+            self.connections[name] = conn
+            self.counts[name] = 0
+        return conn
+
+    def write_raw(self, topic: str, msgtype: str, t_ns: int, data: bytes) -> None:
+        self.writer.write(self.connection(topic, msgtype), int(t_ns), data)
+        self.counts[self.full_topic(topic)] += 1
+
+    def write(self, topic: str, stamp: float, fields: dict, t_ns: int | None = None,
+              msgtype: str | None = None) -> None:
+        msgtype = msgtype or TOPIC_TYPES[topic.split(f"{self.namespace}/")[-1].lstrip("/")]
+        t_ns = int(round(stamp * 1e9)) if t_ns is None else t_ns
+        self.write_raw(topic, msgtype, t_ns, serialize(msgtype, fields, stamp))
+
+    def close(self) -> None:
+        if self.writer is not None:
+            self.writer.close()
+            self.writer = None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+@dataclass
+class Bag:
+    """A bag read into memory: per topic (relative name), a list of (t_ns, stamp_s, fields)."""
+
+    path: Path
+    namespace: str
+    topics: dict[str, list[tuple[int, float, dict]]] = field(default_factory=dict)
+    types: dict[str, str] = field(default_factory=dict)
+    skipped: dict[str, str] = field(default_factory=dict)  # topic -> why it was not read
+
+    def series(self, topic: str, key: str) -> np.ndarray:
+        return np.array([f[key] for _, _, f in self.topics.get(topic, [])], dtype=float)
+
+    def stamps(self, topic: str) -> np.ndarray:
+        return np.array([s for _, s, _ in self.topics.get(topic, [])], dtype=float)
+
+    def recv_times(self, topic: str) -> np.ndarray:
+        return np.array([t for t, _, _ in self.topics.get(topic, [])], dtype=float) * 1e-9
+
+
+def read_bag(path: str | os.PathLike, namespace: str | None = None) -> Bag:
+    """Read every CONTRACT.md topic of a rosbag2/MCAP bag (a directory or a .mcap file).
+
+    Works on bags written by rosbags, by rosbag2 and by the ``mcap`` writer with ROS 2 schemas.
+    Topics of other types are listed in ``Bag.skipped`` with the reason.
+    """
+    from rosbags.highlevel import AnyReader
+
+    p = Path(path)
+    if not p.exists():
+        raise BagError(f"{p}: no such bag")
+    paths = [p]
+    try:
+        reader = AnyReader(paths, default_typestore=typestore())
+        reader.open()
+    except Exception as exc:
+        raise BagError(f"{p}: unreadable bag ({type(exc).__name__}: {exc})") from None
+    try:
+        conns = list(reader.connections)
+        if namespace is None:
+            namespace = _guess_namespace([c.topic for c in conns])
+        bag = Bag(path=p, namespace=namespace)
+        usable = []
+        for c in conns:
+            rel = c.topic[len(namespace) + 1:] if c.topic.startswith(namespace + "/") else c.topic
+            if c.msgtype not in msg_texts() and c.msgtype != "rosgraph_msgs/msg/Clock":
+                bag.skipped[c.topic] = f"type {c.msgtype} is not a CONTRACT.md type"
+                continue
+            if c.msgtype == "rosgraph_msgs/msg/Clock":
+                continue
+            bag.types[rel] = c.msgtype
+            bag.topics.setdefault(rel, [])
+            usable.append((c, rel))
+        rel_of = {c.id: rel for c, rel in usable}
+        for conn, t_ns, raw in reader.messages(connections=[c for c, _ in usable]):
+            try:
+                stamp, fields = deserialize(conn.msgtype, raw)
+            except Exception as exc:
+                bag.skipped.setdefault(conn.topic, f"undecodable message ({exc})")
+                continue
+            bag.topics[rel_of[conn.id]].append((t_ns, stamp, fields))
+    except BagError:
+        raise
+    except Exception as exc:
+        raise BagError(f"{p}: unreadable bag ({type(exc).__name__}: {exc})") from None
+    finally:
+        reader.close()
+    return bag
+
+
+def _guess_namespace(topics: list[str]) -> str:
+    for t in topics:
+        for rel in TOPIC_TYPES:
+            if t.endswith("/" + rel):
+                return t[: -len(rel) - 1] or ""
+    return ""

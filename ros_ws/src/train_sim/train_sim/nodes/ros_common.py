@@ -1,0 +1,177 @@
+"""ROS-layer helpers shared by every node of the project (this module imports rclpy).
+
+- message <-> plain dict conversion (the core speaks dicts with CONTRACT.md's field names);
+- stamps: seconds (float) <-> builtin_interfaces/Time;
+- argument handling so every executable answers ``--help`` without starting ROS;
+- a ``run_node`` wrapper that spins until SIGINT/SIGTERM and shuts down cleanly.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import signal
+import sys
+from collections.abc import Callable
+
+import numpy as np
+
+TYPES = {
+    "OdometerReading": "train_interfaces.msg.OdometerReading",
+    "BaliseReading": "train_interfaces.msg.BaliseReading",
+    "ControlCommand": "train_interfaces.msg.ControlCommand",
+    "TrainState": "train_interfaces.msg.TrainState",
+    "MovementAuthority": "train_interfaces.msg.MovementAuthority",
+}
+
+# CONTRACT.md topic -> message type name
+TOPIC_TYPES = {
+    "odometer": "OdometerReading",
+    "balise": "BaliseReading",
+    "control": "ControlCommand",
+    "ground_truth": "TrainState",
+    "estimate/robust": "TrainState",
+    "estimate/gsma": "TrainState",
+    "movement_authority": "MovementAuthority",
+}
+
+
+def msg_class(name: str):
+    """The message class for a short name ('TrainState') or a full 'pkg/msg/Name'."""
+    short = name.rsplit("/", 1)[-1]
+    module, cls = TYPES[short].rsplit(".", 1)
+    return getattr(__import__(module, fromlist=[cls]), cls)
+
+
+def stamp_to_sec(stamp) -> float:
+    return stamp.sec + stamp.nanosec * 1e-9
+
+
+def sec_to_stamp(t: float, stamp=None):
+    """Fill a builtin_interfaces/Time from seconds (rounded to the nanosecond)."""
+    from builtin_interfaces.msg import Time
+
+    stamp = stamp if stamp is not None else Time()
+    ns = int(round(t * 1e9))
+    stamp.sec, stamp.nanosec = divmod(ns, 1_000_000_000)
+    return stamp
+
+
+def msg_to_dict(msg) -> dict:
+    """Recursively turn a ROS message into a dict (arrays become lists)."""
+    out = {}
+    for field in msg.get_fields_and_field_types():
+        value = getattr(msg, field)
+        if hasattr(value, "get_fields_and_field_types"):
+            value = msg_to_dict(value)
+        elif isinstance(value, np.ndarray):
+            value = value.tolist()
+        elif isinstance(value, (list, tuple)):
+            value = list(value)
+        out[field] = value
+    return out
+
+
+def dict_to_msg(data: dict, msg):
+    """Fill ``msg`` from a dict with the message's field names (nested dicts for sub-messages)."""
+    for field, value in data.items():
+        current = getattr(msg, field)
+        if hasattr(current, "get_fields_and_field_types"):
+            dict_to_msg(value, current)
+        elif isinstance(current, np.ndarray):
+            setattr(msg, field, np.asarray(value, dtype=current.dtype))
+        else:
+            setattr(msg, field, value)
+    return msg
+
+
+def fields_to_msg(type_name: str, stamp: float, fields: dict, frame_id: str = "track"):
+    """A message of ``type_name`` with header stamped at ``stamp`` (s) and the core's fields."""
+    msg = msg_class(type_name)()
+    sec_to_stamp(stamp, msg.header.stamp)
+    msg.header.frame_id = frame_id
+    for key, value in fields.items():
+        current = getattr(msg, key)
+        if isinstance(current, np.ndarray):
+            setattr(msg, key, np.asarray(value, dtype=current.dtype))
+        elif isinstance(current, bool):
+            setattr(msg, key, bool(value))
+        elif isinstance(current, int):
+            setattr(msg, key, int(value))
+        elif isinstance(current, float):
+            setattr(msg, key, float(value))
+        else:
+            setattr(msg, key, value)
+    return msg
+
+
+def nan_cov() -> list[float]:
+    return [math.nan] * 16
+
+
+def parse_cli(description: str, argv: list[str] | None = None,
+              extra: Callable[[argparse.ArgumentParser], None] | None = None):
+    """Parse our own options; everything after --ros-args is left for rclpy.
+
+    ``--help`` is answered here, before rclpy starts, so it works without a ROS graph.
+    """
+    argv = list(sys.argv[1:] if argv is None else argv)
+    ros_args: list[str] = []
+    if "--ros-args" in argv:
+        i = argv.index("--ros-args")
+        argv, ros_args = argv[:i], argv[i:]
+    parser = argparse.ArgumentParser(
+        description=description,
+        epilog="ROS arguments follow --ros-args, e.g. --ros-args -r __ns:=/train "
+               "-p use_sim_time:=true --params-file FILE",
+    )
+    if extra is not None:
+        extra(parser)
+    args = parser.parse_args(argv)
+    return args, ros_args
+
+
+def run_node(factory: Callable, ros_args: list[str]) -> int:
+    """Create the node with ``factory(context_args)``, spin until SIGINT/SIGTERM, clean up.
+
+    Returns the process exit code: 0 on a clean stop, 2 if the node refused its parameters.
+    """
+    import rclpy
+    from rclpy.executors import ExternalShutdownException
+
+    # Our own SIGINT/SIGTERM handlers stop the loop, so close() can flush before shutdown.
+    rclpy.init(args=["node", *ros_args],
+               signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
+    stop = {"flag": False}
+
+    def _on_signal(signum, frame):
+        stop["flag"] = True
+
+    signal.signal(signal.SIGINT, _on_signal)
+    signal.signal(signal.SIGTERM, _on_signal)
+    node = None
+    code = 0
+    try:
+        node = factory()
+        while rclpy.ok() and not stop["flag"]:
+            rclpy.spin_once(node, timeout_sec=0.05)
+            if getattr(node, "finished", False):
+                break
+    except ParameterError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        code = 2
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            close = getattr(node, "close", None)
+            if close is not None:
+                close()
+            node.destroy_node()
+        if rclpy.ok():
+            rclpy.shutdown()
+    return code
+
+
+class ParameterError(ValueError):
+    """A node parameter is invalid: the node refuses to start (exit code 2, one-line reason)."""

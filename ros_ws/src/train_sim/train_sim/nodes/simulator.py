@@ -1,0 +1,105 @@
+"""`simulator`: the train world (ROS layer of train_sim.world).
+
+Steps the pure :class:`train_sim.world.World` at ``rate_factor`` times real time and publishes
+what it emits: ``odometer`` and ``balise`` after the lossy radio link, ``control`` (the ATO's
+command) and ``ground_truth``, each stamped with its sample time, plus ``/clock`` (the world's
+time) so every other node can run with ``use_sim_time``. Subscribes ``movement_authority`` and
+hands it to the ATO. Same scenario and seed, same message contents as the offline generator.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+
+from train_sim.nodes.ros_common import (
+    TOPIC_TYPES,
+    ParameterError,
+    fields_to_msg,
+    msg_class,
+    parse_cli,
+    run_node,
+    sec_to_stamp,
+)
+
+DESCRIPTION = __doc__.splitlines()[0]
+
+
+def build_node():
+    from rcl_interfaces.msg import ParameterDescriptor
+    from rclpy.node import Node
+    from rosgraph_msgs.msg import Clock
+
+    from train_interfaces.msg import MovementAuthority
+    from train_sim.config import ConfigError
+    from train_sim.scenario import load_scenario
+    from train_sim.world import World
+
+    class SimulatorNode(Node):
+        def __init__(self):
+            super().__init__("simulator")
+
+            def declare(name, default, text):
+                return self.declare_parameter(
+                    name, default, ParameterDescriptor(description=text)).value
+
+            scenario = declare("scenario", "metro_demo", "scenario name or path to its YAML")
+            seed = declare("seed", -1, "random seed; -1 = the scenario's own seed")
+            self.rate_factor = declare("rate_factor", 1.0,
+                                       "-, simulated seconds per wall-clock second")
+            duration = declare("duration", -1.0, "s, simulated time; -1 = the scenario's")
+            self.step = declare("wall_step", 0.01, "s, wall-clock period of the stepping timer")
+            self.exit_at_end = declare("exit_at_end", True, "stop the node when the run ends")
+            if not (self.rate_factor > 0 and self.step > 0):
+                raise ParameterError("rate_factor and wall_step must be > 0")
+            try:
+                self.sc = load_scenario(scenario)
+            except ConfigError as exc:
+                raise ParameterError(str(exc)) from None
+            self.duration = self.sc.duration if duration < 0 else duration
+            self.world = World(self.sc, None if seed < 0 else seed)
+            self.pubs = {t: self.create_publisher(msg_class(TOPIC_TYPES[t]), t, 100)
+                         for t in ("odometer", "balise", "control", "ground_truth")}
+            self.clock_pub = self.create_publisher(Clock, "/clock", 10)
+            self.create_subscription(MovementAuthority, "movement_authority", self.on_ma, 10)
+            self.counts = dict.fromkeys(self.pubs, 0)
+            self.t_sim = 0.0
+            self.wall0 = None
+            self.finished = False
+            self.timer = self.create_timer(self.step, self.tick)
+            self.get_logger().info(
+                f"scenario {self.sc.name}, seed {self.world.seed}, {self.duration:.0f} s at "
+                f"{self.rate_factor:g}x real time")
+
+        def on_ma(self, msg) -> None:
+            self.world.set_movement_authority(msg.end_of_authority, msg.permitted_speed,
+                                              msg.emergency_brake)
+
+        def tick(self) -> None:
+            now = time.monotonic()
+            if self.wall0 is None:
+                self.wall0 = now
+            target = min((now - self.wall0) * self.rate_factor, self.duration)
+            if target <= self.t_sim:
+                return
+            for topic, stamp, fields in self.world.advance(target):
+                self.pubs[topic].publish(fields_to_msg(TOPIC_TYPES[topic], stamp, fields))
+                self.counts[topic] += 1
+            self.t_sim = target
+            clock = Clock()
+            sec_to_stamp(self.t_sim, clock.clock)
+            self.clock_pub.publish(clock)
+            if self.t_sim >= self.duration and not self.finished:
+                self.get_logger().info(f"run ended at {self.t_sim:.1f} s; published {self.counts}")
+                self.finished = self.exit_at_end
+
+    return SimulatorNode()
+
+
+def main(argv=None) -> int:
+    _, ros_args = parse_cli(DESCRIPTION + " Parameters: see config/simulator.yaml.", argv)
+    return run_node(build_node, ros_args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

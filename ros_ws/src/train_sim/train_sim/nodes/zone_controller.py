@@ -1,0 +1,127 @@
+"""`zone_controller`: movement authorities for one or more trains (ROS layer of train_sim.zone).
+
+Subscribes ``<train>/<state_topic>`` (TrainState) for every entry of ``trains`` and publishes
+``<train>/movement_authority`` (MovementAuthority) at ``rate`` Hz. An entry of ``trains`` is a
+namespace: "" means the node's own namespace (relative names), "/train2" an absolute one.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+
+from train_sim.nodes.ros_common import ParameterError, parse_cli, run_node, stamp_to_sec
+
+DESCRIPTION = __doc__.splitlines()[0]
+
+
+def build_node():
+    from rcl_interfaces.msg import ParameterDescriptor
+    from rclpy.node import Node
+
+    from train_interfaces.msg import MovementAuthority, TrainState
+    from train_sim.model import load_line
+    from train_sim.zone import TrainReport, ZoneController, ZoneParams
+
+    class ZoneControllerNode(Node):
+        def __init__(self):
+            super().__init__("zone_controller")
+
+            def declare(name, default, text):
+                return self.declare_parameter(
+                    name, default, ParameterDescriptor(description=text)).value
+
+            d = ZoneParams()
+            trains = declare("trains", [""], "train namespaces ('' = this node's namespace)")
+            state_topic = declare("state_topic", "estimate/robust",
+                                  "TrainState topic of each train, relative to its namespace")
+            line_file = declare("line_file", "", "line.yaml; its length is a danger point")
+            danger = declare("danger_points", [-1.0],
+                             "m, fixed danger points (red signals); [-1.0] = none")
+            params = ZoneParams(
+                k_sigma=declare("k_sigma", d.k_sigma, "-, confidence interval half-width in sigma"),
+                stale_timeout=declare("stale_timeout", d.stale_timeout,
+                                      "s, estimates older than this: emergency brake"),
+                emergency_decel=declare("emergency_decel", d.emergency_decel,
+                                        "m/s^2, emergency braking at nominal braking rate"),
+                train_length=declare("train_length", d.train_length, "m, front to rear"),
+                margin=declare("margin", d.margin, "m, kept before each hazard"),
+                permitted_speed=declare("permitted_speed", d.permitted_speed, "m/s"),
+            )
+            rate = declare("rate", 1.0, "Hz, movement authority publication rate")
+            for name in ("k_sigma", "stale_timeout", "emergency_decel", "rate"):
+                value = rate if name == "rate" else getattr(params, name)
+                if not (math.isfinite(value) and value > 0):
+                    raise ParameterError(f"parameter {name}: {value} must be > 0")
+            points = [p for p in danger if p >= 0]
+            if line_file:
+                try:
+                    line = load_line(line_file)
+                except Exception as exc:  # ConfigError: already a one-line reason
+                    raise ParameterError(str(exc)) from None
+                points.append(line.length)
+            self.zone = ZoneController(ZoneParams(**{**params.__dict__,
+                                                     "danger_points": tuple(points)}))
+            self.trains = [self._train_id(t) for t in trains]
+            self.pubs = {}
+            for ns, tid in zip(trains, self.trains):
+                prefix = f"{ns.rstrip('/')}/" if ns else ""
+                self.create_subscription(
+                    TrainState, f"{prefix}{state_topic}",
+                    lambda msg, tid=tid: self.on_state(tid, msg), 50)
+                self.pubs[tid] = self.create_publisher(
+                    MovementAuthority, f"{prefix}movement_authority", 10)
+            self.msg_type = MovementAuthority
+            self.last_reason: dict[str, str] = {}
+            self.timer = self.create_timer(1.0 / rate, self.publish)
+            self.get_logger().info(
+                f"zone controller for {self.trains} on '{state_topic}', "
+                f"danger points {points}, k={params.k_sigma}")
+
+        def _train_id(self, ns: str) -> str:
+            if not ns:
+                return self.get_namespace()
+            return ns if ns.startswith("/") else f"{self.get_namespace().rstrip('/')}/{ns}"
+
+        def now(self) -> float:
+            return self.get_clock().now().nanoseconds * 1e-9
+
+        def on_state(self, tid: str, msg) -> None:
+            cov = msg.covariance
+            rep = TrainReport(
+                t_received=self.now(), stamp=stamp_to_sec(msg.header.stamp),
+                position=msg.position, velocity=msg.velocity,
+                var_position=float(cov[0]), var_velocity=float(cov[5]),
+                braking_rate=msg.braking_rate, var_braking_rate=float(cov[15]))
+            reason = self.zone.report(tid, rep)
+            if reason:
+                self.get_logger().warning(f"{tid}: report rejected: {reason}",
+                                          throttle_duration_sec=5.0)
+
+        def publish(self) -> None:
+            now = self.now()
+            for auth in self.zone.authorities(now, self.trains):
+                msg = self.msg_type()
+                msg.header.stamp = self.get_clock().now().to_msg()
+                msg.header.frame_id = "track"
+                msg.train_id = auth.train_id
+                msg.end_of_authority = float(auth.end_of_authority)
+                msg.permitted_speed = float(auth.permitted_speed)
+                msg.emergency_brake = auth.emergency_brake
+                self.pubs[auth.train_id].publish(msg)
+                if auth.reason != self.last_reason.get(auth.train_id, ""):
+                    log = self.get_logger().warning if auth.reason else self.get_logger().info
+                    log(f"{auth.train_id}: emergency brake "
+                        f"{'SET: ' + auth.reason if auth.reason else 'released'}")
+                    self.last_reason[auth.train_id] = auth.reason
+
+    return ZoneControllerNode()
+
+
+def main(argv=None) -> int:
+    _, ros_args = parse_cli(DESCRIPTION + " Parameters: see config/zone_controller.yaml.", argv)
+    return run_node(build_node, ros_args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,137 @@
+"""Zone-controller logic (pure): movement authorities from trains' position estimates.
+
+Each train reports a ``TrainState`` (position of its front end, velocity, covariance, and a braking
+rate where one is estimated). Like an ETCS confidence interval, the zone controller keeps each
+train's position as an interval::
+
+    [x - k sigma_x,  x + k sigma_x]        (front end; rear end = front - train_length)
+
+and grants movement authority (end of authority, EoA) up to the nearest danger point ahead:
+
+- the configured danger points (a red signal, an occupied block, the end of the line), and
+- the worst-case rear of the train ahead: ``x_lead - k sigma_lead - train_length`` minus a margin.
+
+It sets ``emergency_brake`` when the worst-case front plus the braking distance at the worst-case
+speed passes the EoA::
+
+    x + k sigma_x + (v + k sigma_v)^2 / (2 f_low b_emergency) > EoA,
+
+where ``f_low = max(f_hat - k sigma_f, f_min)`` is the estimated braking rate's lower bound when
+a braking rate is published (``braking_rate`` finite) and 1 (nominal) otherwise.
+
+A train whose reports are older than ``stale_timeout`` is unsafe: it gets the emergency brake,
+and so does every train behind it (its rear can no longer be bounded from recent data).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+
+@dataclass(frozen=True)
+class ZoneParams:
+    k_sigma: float = 3.0  # -, width of the confidence interval in standard deviations
+    stale_timeout: float = 3.0  # s, reports older than this make the train unsafe
+    emergency_decel: float = 1.2  # m/s^2, guaranteed emergency braking at nominal braking rate
+    train_length: float = 120.0  # m, front to rear
+    margin: float = 20.0  # m, kept between an EoA and the hazard it protects
+    danger_points: tuple[float, ...] = ()  # m, fixed hazards (red signals, end of line)
+    permitted_speed: float = 22.23  # m/s, speed granted with every authority
+    min_braking_rate: float = 0.2  # -, floor for the braking-rate lower bound
+
+
+@dataclass
+class TrainReport:
+    t_received: float  # s, zone-controller clock when the report arrived
+    stamp: float  # s, sample time of the estimate
+    position: float  # m, front end
+    velocity: float  # m/s
+    var_position: float  # m^2
+    var_velocity: float  # (m/s)^2
+    braking_rate: float = math.nan  # -, NaN where not estimated
+    var_braking_rate: float = math.nan
+
+
+@dataclass(frozen=True)
+class Authority:
+    train_id: str
+    end_of_authority: float  # m
+    permitted_speed: float  # m/s
+    emergency_brake: bool
+    reason: str  # why the brake is set ("" when it is not)
+
+
+@dataclass
+class ZoneController:
+    params: ZoneParams
+    reports: dict[str, TrainReport] = field(default_factory=dict)
+    rejected: dict[str, int] = field(default_factory=dict)
+
+    def report(self, train_id: str, rep: TrainReport) -> str:
+        """Store a train's report; returns "" if accepted or the reason it was rejected."""
+        vals = (rep.position, rep.velocity, rep.var_position, rep.var_velocity)
+        reason = ""
+        if not all(math.isfinite(v) for v in vals):
+            reason = "non-finite position, velocity or variance"
+        elif rep.var_position < 0 or rep.var_velocity < 0:
+            reason = "negative variance"
+        else:
+            last = self.reports.get(train_id)
+            if last is not None and rep.stamp < last.stamp:
+                reason = "out-of-order stamp"
+        if reason:
+            self.rejected[reason] = self.rejected.get(reason, 0) + 1
+            return reason
+        self.reports[train_id] = rep
+        return ""
+
+    def _bounds(self, rep: TrainReport) -> tuple[float, float, float, float]:
+        """(worst-case front, worst-case rear, worst-case speed, braking-rate lower bound)."""
+        p = self.params
+        sx = math.sqrt(max(rep.var_position, 0.0))
+        sv = math.sqrt(max(rep.var_velocity, 0.0))
+        front = rep.position + p.k_sigma * sx
+        rear = rep.position - p.k_sigma * sx - p.train_length
+        speed = max(rep.velocity, 0.0) + p.k_sigma * sv
+        f_low = 1.0
+        if math.isfinite(rep.braking_rate):
+            sf = math.sqrt(rep.var_braking_rate) if math.isfinite(rep.var_braking_rate) else 0.0
+            f_low = max(rep.braking_rate - p.k_sigma * sf, p.min_braking_rate)
+        return front, rear, speed, f_low
+
+    def authorities(self, now: float, train_ids: list[str]) -> list[Authority]:
+        """One authority per train in ``train_ids`` at zone-controller time ``now`` (s)."""
+        p = self.params
+        stale = {
+            tid: (tid not in self.reports) or (now - self.reports[tid].t_received > p.stale_timeout)
+            for tid in train_ids
+        }
+        out = []
+        for tid in train_ids:
+            rep = self.reports.get(tid)
+            if rep is None:
+                out.append(Authority(tid, -math.inf, 0.0, True, "no estimate received yet"))
+                continue
+            front, _, speed, f_low = self._bounds(rep)
+            hazards = [(d - p.margin, f"danger point at {d:.1f} m") for d in p.danger_points
+                       if d - p.margin >= rep.position - p.k_sigma * math.sqrt(rep.var_position)]
+            reason = ""
+            for other in train_ids:
+                orep = self.reports.get(other)
+                if other == tid or orep is None or orep.position <= rep.position:
+                    continue
+                _, orear, _, _ = self._bounds(orep)
+                hazards.append((orear - p.margin, f"rear of {other}"))
+                if stale[other]:
+                    reason = f"train ahead ({other}) has stale estimates"
+            eoa, what = min(hazards, default=(math.inf, "open line"))
+            if stale[tid]:
+                reason = f"estimates stale for {now - rep.t_received:.1f} s (> {p.stale_timeout} s)"
+            elif not reason:
+                stop_dist = speed * speed / (2.0 * f_low * p.emergency_decel)
+                if front + stop_dist > eoa:
+                    reason = (f"worst-case stop {front + stop_dist:.1f} m passes EoA {eoa:.1f} m "
+                              f"({what})")
+            out.append(Authority(tid, eoa, p.permitted_speed, bool(reason), reason))
+        return out
