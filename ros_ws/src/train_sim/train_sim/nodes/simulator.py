@@ -9,8 +9,10 @@ hands it to the ATO. Same scenario and seed, same message contents as the offlin
 
 from __future__ import annotations
 
+import json
 import sys
 import time
+from pathlib import Path
 
 from train_sim.nodes.ros_common import (
     TOPIC_TYPES,
@@ -33,6 +35,7 @@ def build_node():
     from train_interfaces.msg import MovementAuthority
     from train_sim.config import ConfigError
     from train_sim.scenario import load_scenario
+    from train_sim.summary import run_summary
     from train_sim.world import World
 
     class SimulatorNode(Node):
@@ -50,6 +53,10 @@ def build_node():
             duration = declare("duration", -1.0, "s, simulated time; -1 = the scenario's")
             self.step = declare("wall_step", 0.01, "s, wall-clock period of the stepping timer")
             self.exit_at_end = declare("exit_at_end", True, "stop the node when the run ends")
+            self.summary_file = declare("summary_file", "",
+                                        "write the run's summary (JSON) here at the end; '' = no")
+            self.wait_subs = declare("wait_for_subscribers", 0,
+                                     "start only when odometer has this many subscribers")
             if not (self.rate_factor > 0 and self.step > 0):
                 raise ParameterError("rate_factor and wall_step must be > 0")
             try:
@@ -66,6 +73,7 @@ def build_node():
             self.t_sim = 0.0
             self.wall0 = None
             self.finished = False
+            self.done = False
             self.timer = self.create_timer(self.step, self.tick)
             self.get_logger().info(
                 f"scenario {self.sc.name}, seed {self.world.seed}, {self.duration:.0f} s at "
@@ -78,6 +86,10 @@ def build_node():
         def tick(self) -> None:
             now = time.monotonic()
             if self.wall0 is None:
+                # Discovery, not a blind sleep: recorders and estimators must be matched before
+                # the first sample, or they would miss the start of the run.
+                if self.pubs["odometer"].get_subscription_count() < self.wait_subs:
+                    return
                 self.wall0 = now
             target = min((now - self.wall0) * self.rate_factor, self.duration)
             if target <= self.t_sim:
@@ -89,8 +101,12 @@ def build_node():
             clock = Clock()
             sec_to_stamp(self.t_sim, clock.clock)
             self.clock_pub.publish(clock)
-            if self.t_sim >= self.duration and not self.finished:
+            if self.t_sim >= self.duration and not self.done:
+                self.done = True
                 self.get_logger().info(f"run ended at {self.t_sim:.1f} s; published {self.counts}")
+                if self.summary_file:
+                    summary = run_summary(self.world.result())
+                    Path(self.summary_file).write_text(json.dumps(summary, indent=1))
                 self.finished = self.exit_at_end
 
     return SimulatorNode()

@@ -1,0 +1,183 @@
+"""The main job (`./run demo`): metro_demo end to end, then a short report.
+
+Starts the simulator, the estimators, the zone controller and the recorder as separate processes
+(each resolved as `ros2 run` would), waits for the simulator to finish its run, stops every
+process it started by PID, checks the recorded bag offline and prints a report.
+
+Pure orchestration (subprocess): no rclpy in this process. Exit code 0 when every process ran and
+stopped cleanly and the checks passed, 1 otherwise.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+NS = "/train"
+
+
+def executable(pkg: str, exe: str) -> Path | None:
+    from ament_index_python.packages import PackageNotFoundError, get_package_prefix
+
+    try:
+        path = Path(get_package_prefix(pkg)) / "lib" / pkg / exe
+    except PackageNotFoundError:
+        return None
+    return path if os.access(path, os.X_OK) else None
+
+
+class Processes:
+    """Processes this job started, stopped by PID only."""
+
+    def __init__(self, logdir: Path):
+        self.logdir = logdir
+        self.procs: dict[str, subprocess.Popen] = {}
+
+    def start(self, name: str, cmd: list[str]) -> subprocess.Popen:
+        log = open(self.logdir / f"{name}.log", "wb")
+        proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT)
+        log.close()
+        self.procs[name] = proc
+        return proc
+
+    def stop(self, name: str, timeout: float = 15.0) -> int | None:
+        proc = self.procs[name]
+        for sig, wait in ((signal.SIGINT, timeout), (signal.SIGTERM, 5.0), (signal.SIGKILL, 5.0)):
+            if proc.poll() is not None:
+                break
+            os.kill(proc.pid, sig)
+            try:
+                proc.wait(wait)
+            except subprocess.TimeoutExpired:
+                continue
+        return proc.returncode
+
+    def stop_all(self) -> dict[str, int | None]:
+        return {name: self.stop(name) for name in reversed(list(self.procs))}
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="main_job", description=__doc__.splitlines()[0])
+    p.add_argument("--scenario", default="metro_demo", help="scenario name (default metro_demo)")
+    p.add_argument("--rate-factor", type=float, default=20.0,
+                   help="simulated seconds per wall second (default 20)")
+    p.add_argument("--duration", type=float, default=-1.0,
+                   help="s of simulated time (default: the scenario's)")
+    p.add_argument("--out", default=None, help="output folder (default out/demo-<time>)")
+    args = p.parse_args(argv)
+
+    repo = Path(os.environ.get("TRAIN_REPO", Path.cwd()))
+    out = Path(args.out) if args.out else repo / "out" / time.strftime("demo-%Y%m%d-%H%M%S")
+    out.mkdir(parents=True, exist_ok=True)
+    logs = out / "logs"
+    logs.mkdir(exist_ok=True)
+    bag = out / "bag"
+    summary_file = out / "simulator_summary.json"
+    ros = ["--ros-args", "-r", f"__ns:={NS}", "-p", "use_sim_time:=true"]
+
+    from train_sim.scenario import data_root
+
+    line_file = None
+    share = data_root()
+    from train_sim.scenario import load_scenario
+
+    sc = load_scenario(args.scenario)
+    for cand in (share / "config" / "lines" / f"{sc.line.name}.yaml",):
+        if cand.is_file():
+            line_file = cand
+
+    plan: list[tuple[str, str, str, list[str]]] = [
+        ("train_estimation", "recorder", "recorder", ["-p", f"bag:={bag}"]),
+        ("train_estimation", "robust_filter", "robust_filter", []),
+        ("train_estimation", "gsma_estimator", "gsma_estimator", []),
+    ]
+    consumers = [(pkg, exe, name, extra) for pkg, exe, name, extra in plan
+                 if executable(pkg, exe) is not None]
+    state_topic = ("estimate/robust" if any(e == "robust_filter" for _, e, _, _ in consumers)
+                   else "ground_truth")
+    zc_extra = ["-p", f"state_topic:={state_topic}"]
+    if line_file is not None:
+        zc_extra += ["-p", f"line_file:={line_file}"]
+    sim_extra = ["-p", f"scenario:={args.scenario}", "-p", f"rate_factor:={args.rate_factor}",
+                 "-p", f"duration:={args.duration}", "-p", f"summary_file:={summary_file}",
+                 "-p", f"wait_for_subscribers:={len(consumers)}"]
+
+    procs = Processes(logs)
+    t0 = time.monotonic()
+    failed: list[str] = []
+    try:
+        for pkg, exe, name, extra in consumers:
+            procs.start(name, [str(executable(pkg, exe)), *ros, *extra])
+        procs.start("zone_controller",
+                    [str(executable("train_sim", "zone_controller")), *ros, *zc_extra])
+        # The simulator is the clock: it must not run on sim time itself.
+        sim = procs.start("simulator", [str(executable("train_sim", "simulator")), "--ros-args",
+                                        "-r", f"__ns:={NS}", *sim_extra])
+        print(f"main job: {args.scenario} at {args.rate_factor:g}x real time; "
+              f"processes {list(procs.procs)}; logs in {logs}", flush=True)
+        limit = (sc.duration if args.duration < 0 else args.duration) / args.rate_factor + 120
+        while sim.poll() is None:
+            if time.monotonic() - t0 > limit:
+                failed.append("simulator (did not finish in time)")
+                break
+            for name, proc in procs.procs.items():
+                if name != "simulator" and proc.poll() is not None:
+                    failed.append(f"{name} (exited early with {proc.returncode})")
+            if failed:
+                break
+            time.sleep(0.2)
+    except KeyboardInterrupt:
+        failed.append("interrupted")
+    finally:
+        codes = procs.stop_all()
+    wall = time.monotonic() - t0
+    for name, code in codes.items():
+        if code not in (0, None) and not any(f.startswith(name) for f in failed):
+            failed.append(f"{name} (exit code {code})")
+
+    print(f"\n=== main job report ({wall:.1f} s wall) ===")
+    if summary_file.is_file():
+        s = json.loads(summary_file.read_text())
+        print(format_sim_summary(s))
+    else:
+        failed.append("simulator summary missing")
+    if bag.exists():
+        check = subprocess.run([sys.executable, "-m", "train_estimation.tools.check_bag", str(bag),
+                                "--out", str(out / "check")], text=True, capture_output=True)
+        print(check.stdout)
+        if check.returncode != 0:
+            failed.append(f"check_bag (exit {check.returncode}: {check.stderr.strip()[-300:]})")
+    print(f"outputs: {out}")
+    if failed:
+        print("FAILED: " + "; ".join(failed))
+        return 1
+    print("all processes ran and stopped cleanly")
+    return 0
+
+
+def format_sim_summary(s: dict) -> str:
+    lines = [f"scenario {s.get('scenario')} seed {s.get('seed')}: {s.get('t_end', 0):.0f} s "
+             f"simulated"]
+    stops = s.get("stops", [])
+    if stops:
+        lines.append(f"stations served: {len(stops)}")
+        lines.append("  station          stopping error (m, + = overshoot)")
+        for st in stops:
+            lines.append(f"  {st['station']:<16} {st['stopping_error']:+8.2f}")
+    else:
+        lines.append("stations served: 0")
+    lines.append(f"emergency brakes: {s.get('emergency_brakes', 0)}")
+    for topic, d in s.get("link", {}).items():
+        lines.append(f"{topic}: {d['sent']} sent, {d['dropped']} dropped "
+                     f"({d['received_fraction']:.3f} received)")
+    return "\n".join(lines)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
