@@ -24,6 +24,7 @@ setup(
     entry_points={
         "console_scripts": [
             "recorder = train_estimation.nodes.recorder:main",
+            "check_bag = train_estimation.tools.check_bag:main",
         ],
     },
 )

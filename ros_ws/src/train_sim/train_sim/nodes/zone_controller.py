@@ -110,9 +110,12 @@ def build_node():
                 msg.emergency_brake = auth.emergency_brake
                 self.pubs[auth.train_id].publish(msg)
                 if auth.reason != self.last_reason.get(auth.train_id, ""):
-                    log = self.get_logger().warning if auth.reason else self.get_logger().info
-                    log(f"{auth.train_id}: emergency brake "
-                        f"{'SET: ' + auth.reason if auth.reason else 'released'}")
+                    # (rclpy wants one severity per call site: two calls, not one)
+                    if auth.reason:
+                        self.get_logger().warning(f"{auth.train_id}: emergency brake SET: "
+                                                  f"{auth.reason}")
+                    else:
+                        self.get_logger().info(f"{auth.train_id}: emergency brake released")
                     self.last_reason[auth.train_id] = auth.reason
 
     return ZoneControllerNode()
