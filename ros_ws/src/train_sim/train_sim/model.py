@@ -80,7 +80,7 @@ class TrainParams:
         """m/s^2, deceleration from Davis resistance: R(v) / ((1 + lambda) M)."""
         return self.davis.force(v) / self.effective_mass
 
-    def with_changes(self, **kw) -> "TrainParams":
+    def with_changes(self, **kw) -> TrainParams:
         return replace(self, **kw)
 
 
@@ -154,7 +154,7 @@ class Line:
                 return b
         return None
 
-    def with_changes(self, **kw) -> "Line":
+    def with_changes(self, **kw) -> Line:
         return replace(self, **kw)
 
 

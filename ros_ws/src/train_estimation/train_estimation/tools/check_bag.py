@@ -8,7 +8,8 @@ position, velocity and braking-rate error against ``ground_truth`` (RMSE, 95th p
 consistency (NEES of position/velocity against truth, with its 95% acceptance fraction), the
 estimate latency (receive time minus stamp), and per topic the received fraction from sequence
 gaps, gaps and out-of-order or duplicate stamps. Thresholds name a key of ``summary.json`` with
-dots, e.g. ``estimators.robust_filter.position.rmse<=5`` or ``topics.odometer.received_fraction>=0.8``.
+dots, e.g. ``estimators.robust_filter.position.rmse<=5`` or
+``topics.odometer.received_fraction>=0.8``.
 
 Exit code: 0 every threshold passed, 1 a threshold failed, 2 the bag is unreadable or lacks what
 was asked (one-line reason). Writes ``DIR/summary.json`` and PNG plots beside it.
