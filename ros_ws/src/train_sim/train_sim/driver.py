@@ -1,0 +1,209 @@
+"""Driver / ATO: runs a timetable over the line with the braking it *believes* in.
+
+Every ``control_period`` the ATO reads the train's position and speed (it is assumed perfectly
+localised, so stopping errors isolate the braking model) and issues a target acceleration
+a_Tar (> 0 traction, < 0 braking). It knows only the believed train (``train.yaml``) and line
+(``line.yaml``) and its own belief ``f_b`` of the braking rate (nominal 1; a benchmark may feed it
+an estimate through :meth:`Driver.set_braking_rate_belief`).
+
+Dead-time compensation. The actuator delays a command by T and lags it by tau, so the ATO acts on
+a *predicted* state (x_p, v_p) at t + H, H = T_b + tau_b + control_period, obtained by running its
+believed actuator (the commands already in the delay line, f_b) and the believed dynamics forward.
+
+Braking curve. The plan deceleration is a_plan = margin * f_b * a_service (a service-brake command
+is believed to deliver f_b * a_service; ``margin`` < 1 leaves feedback authority). With d_p the
+distance from x_p to the stopping point s, the deceleration still needed is
+
+    a_req = v_p^2 / (2 d_p)          (constant deceleration to go; self-correcting: if the train
+                                       brakes less than planned, d_p shrinks faster than v_p^2)
+
+Braking starts when a_req >= a_plan (the target speed sqrt(2 a_plan d_p) is reached) and then
+commands the a_hat giving a net deceleration a_req under the believed resistance and gradient,
+a_Tar = a_hat / f_b, limited to the service brake. Once the predicted stop falls inside the
+horizon (v_p = 0) the command is frozen: on the curve it is already constant, and the frozen
+command stops the train at s. With the true f equal to f_b stops are within a few centimetres;
+with f < f_b the service-brake limit is reached and the train overshoots: the stopping error.
+
+Cruise: a_hat = K (v_target - v_p) + believed resistance and gradient, with v_target the lowest
+of the speed limit at x and x_p minus ``speed_margin``, the movement authority's permitted speed,
+braking curves to lower limits ahead and sqrt(2 a_plan d_p) to the stopping point.
+
+Movement authority: the stopping point is min(next station, end_of_authority - ma_margin); a stop
+short of a station because of the authority is not a station stop, the train waits. Emergency
+brake: a_Tar = -emergency_brake (through the same actuator) while the flag is set; every rising
+edge is counted. At rest the ATO holds the train with a_Tar = -hold_brake.
+
+Pure module: the standard library and the shared model only.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from .actuator import Actuator
+from .dynamics import GradientLookup
+from .model import Line, TrainParams
+
+DRIVER_MODES = ("ato", "open_loop")
+
+
+@dataclass(frozen=True)
+class TimetableStop:
+    station: str  # name of the station in line.yaml
+    position: float  # m, stopping point
+    dwell: float  # s, dwell time
+
+
+@dataclass(frozen=True)
+class DriverParams:
+    mode: str = "ato"  # "ato" (timetable) or "open_loop" (a_Tar profile)
+    control_period: float = 0.1  # s, ATO cycle
+    braking_rate_belief: float = 1.0  # -, f the ATO plans with
+    brake_margin: float = 0.85  # -, a_plan = margin * f_b * service_brake
+    speed_margin: float = 0.5  # m/s, cruise below the limit by this much
+    speed_gain: float = 0.0  # 1/s, cruise feedback gain K; 0 = automatic 0.5 / H
+    stop_tolerance: float = 1.0  # m, at rest closer than this (or beyond) = arrived
+    ma_margin: float = 5.0  # m, aim to stop this far before the end of authority
+    hold_brake: float = 0.3  # m/s^2, holding brake command magnitude at rest
+    initial_dwell: float = 0.0  # s, wait at the start before departing
+    profile: tuple[tuple[float, float], ...] = ()  # open_loop: ((t s, a_Tar m/s^2), ...)
+
+
+class Driver:
+    """The ATO. Call :meth:`update` every control period with the train's state."""
+
+    def __init__(self, line: Line, train: TrainParams, params: DriverParams,
+                 timetable: tuple[TimetableStop, ...], start_position: float,
+                 start_speed: float = 0.0, t0: float = 0.0, a0: float = 0.0, u0: float = 0.0):
+        self.line, self.train, self.p = line, train, params
+        b = train.brake
+        self._act = Actuator(b.time_constant, b.delay, a0=a0, u0=u0, t0=t0)  # believed actuator
+        self.f_belief = float(params.braking_rate_belief)
+        self.horizon = b.delay + b.time_constant + params.control_period
+        self.gain = params.speed_gain or 0.5 / self.horizon
+        m_eff = train.effective_mass
+        self._ra, self._rb, self._rc = (train.davis.a / m_eff, train.davis.b / m_eff,
+                                        train.davis.c / m_eff)
+        self._grad = GradientLookup(line, train.rotary_allowance)
+        self.eoa = math.inf  # m
+        self.permitted_speed = math.inf  # m/s
+        self.emergency = False
+        self.emergency_brakes = 0
+        self.stops: list[dict] = []
+        self.queue = [s for s in timetable if s.position > start_position + params.stop_tolerance]
+        self.a_cmd = float(u0)
+        self.braking = False
+        if start_speed > 0.0:
+            self.mode, self.dwell_end = "run", t0
+        else:
+            self.mode, self.dwell_end = "dwell", t0 + params.initial_dwell
+        self._profile = sorted(params.profile)
+
+    # -- inputs from outside ---------------------------------------------------------------------
+    def set_braking_rate_belief(self, f: float) -> None:
+        """Plan with braking rate ``f`` (e.g. an online estimate) instead of the nominal one."""
+        if not (math.isfinite(f) and f > 0.0):
+            raise ValueError(f"braking rate belief must be finite and > 0, got {f!r}")
+        self.f_belief = float(f)
+
+    def set_movement_authority(self, end_of_authority: float, permitted_speed: float,
+                               emergency_brake: bool) -> None:
+        if emergency_brake and not self.emergency:
+            self.emergency_brakes += 1
+        self.emergency = bool(emergency_brake)
+        self.eoa = float(end_of_authority)
+        self.permitted_speed = float(permitted_speed)
+
+    # -- the control law -------------------------------------------------------------------------
+    def update(self, t: float, x: float, v: float, stopped: bool) -> float:
+        """a_Tar (m/s^2) to issue at time ``t`` given position ``x`` and speed ``v``."""
+        self._act.advance(t, self.f_belief)
+        a = self._decide(t, x, v, stopped)
+        self._act.command(t, a)
+        self.a_cmd = a
+        return a
+
+    def _resist(self, x: float, v: float) -> float:
+        """Believed resistance + gradient deceleration at (x, v), m/s^2."""
+        return self._ra + (self._rb + self._rc * v) * v + self._grad(x)
+
+    def _to_command(self, a_hat: float) -> float:
+        perf = self.train.performance
+        if a_hat >= 0.0:
+            return min(a_hat, perf.max_traction)
+        return max(a_hat / self.f_belief, -perf.service_brake)
+
+    def _predict(self, x: float, v: float) -> tuple[float, float]:
+        """Believed (x, v) at t + H: delay line and lag exact, motion by trapezoid steps."""
+        act = self._act.copy()
+        n = max(3, math.ceil(self.horizon / 0.1))
+        h = self.horizon / n
+        for _ in range(n):
+            a_start = act.a
+            a_end = act.advance(act.t + h, self.f_belief)
+            dv = h * (0.5 * (a_start + a_end) - self._resist(x, v))
+            v_new = v + dv
+            if v_new <= 0.0:  # stops inside this sub-step
+                frac = v / (v - v_new) if v > v_new else 0.0
+                return x + 0.5 * v * frac * h, 0.0
+            x += 0.5 * h * (v + v_new)
+            v = v_new
+        return x, v
+
+    def _target_speed(self, x: float, xp: float, dp: float, a_plan: float) -> float:
+        line = self.line
+        vt = min(line.speed_limit(x), line.speed_limit(xp), self.permitted_speed)
+        for sl in line.speed_limits:  # braking curves to lower limits ahead
+            if sl.start > x and sl.speed < vt:
+                vt = min(vt, math.sqrt(sl.speed**2 + 2.0 * a_plan * max(sl.start - xp, 0.0)))
+        vt -= self.p.speed_margin
+        vt = min(vt, math.sqrt(2.0 * a_plan * max(dp, 0.0)))
+        return max(vt, 0.0)
+
+    def _decide(self, t: float, x: float, v: float, stopped: bool) -> float:
+        p, perf = self.p, self.train.performance
+        if self.emergency:
+            return -perf.emergency_brake
+        if p.mode == "open_loop":
+            a = self.a_cmd
+            for ti, ai in self._profile:
+                if ti <= t + 1e-9:
+                    a = ai
+            return a
+        hold = -min(p.hold_brake, perf.service_brake)
+        if self.mode == "dwell":
+            if t + 1e-9 < self.dwell_end or not self.queue:
+                return hold
+            self.mode, self.braking = "run", False
+        if self.mode == "finished":
+            return hold
+        st = self.queue[0]
+        s_ma = self.eoa - p.ma_margin
+        is_station = st.position <= s_ma
+        s = st.position if is_station else s_ma
+        if stopped:
+            if s - x <= p.stop_tolerance:
+                if is_station:
+                    self.stops.append({"station": st.station, "position": st.position,
+                                       "stop_position": x, "stopping_error": x - st.position,
+                                       "t": t})
+                    self.queue.pop(0)
+                    self.mode = "dwell" if self.queue else "finished"
+                    self.dwell_end = t + st.dwell
+                return hold
+            self.braking = False  # at rest short of the stopping point: re-plan and creep on
+        xp, vp = self._predict(x, v)
+        dp = s - xp
+        a_plan = p.brake_margin * self.f_belief * perf.service_brake
+        if vp > 0.0:
+            a_req = vp * vp / (2.0 * dp) if dp > 0.0 else math.inf
+            if self.braking and a_req < 0.5 * a_plan:
+                self.braking = False  # target moved away (authority extended): cruise again
+            if self.braking or a_req >= a_plan:
+                self.braking = True
+                return self._to_command(-a_req + self._resist(xp, vp))
+        elif self.braking:
+            return self.a_cmd  # predicted stop inside the horizon: freeze the command
+        vt = self._target_speed(x, xp, dp, a_plan)
+        return self._to_command(self.gain * (vt - vp) + self._resist(xp, vp))

@@ -1,0 +1,149 @@
+"""Longitudinal train dynamics: mass point, Davis resistance, line gradient, standstill logic.
+
+Newton's law along the track (Wen et al. 2017 eq. (1)-(3); model.py)::
+
+    (1 + lambda) M dv/dt = F_drive - (a + b v + c v^2) - M g sin(theta(x)),      dx/dt = v
+
+written per unit effective mass (the form Zheng et al. eq. (2) uses, v' = a_hat + d(t))::
+
+    dv/dt = kappa * a_hat - (a + b v + c v^2) / ((1 + lambda) M) - g sin(theta(x)) / (1 + lambda)
+
+``a_hat`` is the actuator output (actuator.py). The traction/brake controller turns a_hat into a
+force for the train *it believes in*, F_drive = (1 + lambda_b) M_b a_hat, so on the true train
+the drive acceleration is ``kappa * a_hat`` with kappa = (1 + lambda_b) M_b / ((1 + lambda) M).
+Without a ``mass`` effect kappa = 1 and this is exactly Zheng's a_hat. This is what makes a wrong
+mass visible in traction and braking, not only in the resistance term.
+
+Integration: classical RK4 on (x, v) with step h <= 10 ms; a_hat comes from the actuator's
+closed form at the RK4 stage times (t, t + h/2, t + h), so the actuator is integrated exactly.
+
+Standstill (the issue's "stops and stays stopped"):
+
+* Resistance only opposes motion; the train never moves backwards. When v reaches 0 inside a
+  step the stopping instant is located (secant on the RK4 solution), the train is put at rest
+  there, and the rest of the step is spent at rest.
+* A train at rest starts again only when the forward force exceeds the static resistance:
+  kappa * a_hat - g sin(theta) / (1 + lambda) > a / ((1 + lambda) M).
+* Roll-back: **never**. A stopped CBTC train is held by its brake (the ATO applies a holding
+  brake whenever it is at rest), and we extend this to the rare case of a train that coasts to
+  a stop on an up-grade without braking: it is held too. This keeps v >= 0 and the odometer's
+  counted distance monotone.
+
+Pure module: the standard library (bisect, math) in the hot loop; scalars only.
+"""
+
+from __future__ import annotations
+
+import math
+from bisect import bisect_right
+from dataclasses import dataclass
+
+from .model import G, Line, TrainParams
+
+
+class GradientLookup:
+    """Fast scalar lookup of g sin(theta(x)) / (1 + lambda) (m/s^2), piecewise constant in x."""
+
+    def __init__(self, line: Line, rotary_allowance: float):
+        bounds: list[float] = []
+        values: list[float] = [0.0]
+        k = 1.0 / (1.0 + rotary_allowance)
+        for sec in sorted(line.gradients, key=lambda s: s.start):
+            p = sec.permille / 1000.0
+            acc = k * G * p / math.sqrt(1.0 + p * p)  # sin(atan(p)), as Line.gradient_accel
+            if bounds and abs(bounds[-1] - sec.start) < 1e-12:
+                values[-1] = acc
+            else:
+                bounds.append(sec.start)
+                values.append(acc)
+            bounds.append(sec.end)
+            values.append(0.0)
+        self.bounds = bounds
+        self.values = values
+
+    def __call__(self, x: float) -> float:
+        return self.values[bisect_right(self.bounds, x)]
+
+
+@dataclass
+class MotionState:
+    x: float  # m, position of the train's reference end along the track
+    v: float  # m/s, speed (>= 0)
+    stopped: bool  # held at rest (v == 0)
+
+
+class Dynamics:
+    """RK4 integrator of the true train on the true line (scalar state, lean inner loop)."""
+
+    def __init__(self, train: TrainParams, line: Line, believed_train: TrainParams | None = None):
+        m_eff = train.effective_mass
+        self.ra = train.davis.a / m_eff  # m/s^2
+        self.rb = train.davis.b / m_eff  # 1/s
+        self.rc = train.davis.c / m_eff  # 1/m
+        self.static = self.ra  # m/s^2, static resistance a / ((1+lambda) M) to break away
+        believed = believed_train if believed_train is not None else train
+        self.kappa = believed.effective_mass / m_eff
+        self.grad = GradientLookup(line, train.rotary_allowance)
+
+    def accel(self, x: float, v: float, a_hat: float) -> float:
+        """dv/dt of a moving train (v >= 0); resistance evaluated at max(v, 0)."""
+        if v < 0.0:
+            v = 0.0
+        return self.kappa * a_hat - (self.ra + (self.rb + self.rc * v) * v) - self.grad(x)
+
+    def can_start(self, x: float, a_hat: float) -> bool:
+        """Breakaway test for a train at rest: forward force beats static resistance."""
+        return self.kappa * a_hat - self.grad(x) > self.static
+
+    def _rk4(self, x, v, a0, a_mid, a_end, h):
+        f = self.accel
+        h2 = 0.5 * h
+        k1 = f(x, v, a0)
+        v2 = v + h2 * k1
+        k2 = f(x + h2 * v, v2, a_mid)
+        v3 = v + h2 * k2
+        k3 = f(x + h2 * v2, v3, a_mid)
+        v4 = v + h * k3
+        k4 = f(x + h * v3, v4, a_end)
+        return (x + h * (v + 2.0 * v2 + 2.0 * v3 + v4) / 6.0,
+                v + h * (k1 + 2.0 * k2 + 2.0 * k3 + k4) / 6.0)
+
+    def step(self, s: MotionState, h: float, a0: float, a_mid: float, a_end: float,
+             ue: float, tau: float) -> None:
+        """Advance ``s`` by ``h`` given the actuator's a_hat at t, t + h/2, t + h.
+
+        ``ue`` and ``tau`` describe the lag's closed form a_hat(t + r) = ue + (a0 - ue) e^{-r/tau},
+        used when the step has to be cut at the stopping instant.
+        """
+        if s.stopped:
+            # Held at rest; release when the forward force at the step start beats static
+            # resistance (10 ms resolution on the breakaway instant).
+            if not self.can_start(s.x, a0):
+                return
+            s.stopped = False
+        x1, v1 = self._rk4(s.x, s.v, a0, a_mid, a_end, h)
+        if v1 > 0.0:
+            s.x, s.v = x1, v1
+            return
+        # v reaches 0 inside the step: find the stopping instant r in (0, h] by secant iteration
+        # on v(r) of the RK4 solution (v is nearly linear over 10 ms), then stop there.
+        v0 = s.v
+        if v0 <= 0.0:  # was at rest and could not really start
+            s.v, s.stopped = 0.0, True
+            return
+        lo, vlo, hi, vhi = 0.0, v0, h, v1
+        xr = s.x
+        for _ in range(4):
+            r = lo + (hi - lo) * vlo / (vlo - vhi)
+            r = min(max(r, 1e-12), h)
+            er = math.exp(-0.5 * r / tau)
+            am = ue + (a0 - ue) * er
+            ae = ue + (am - ue) * er
+            xr, vr = self._rk4(s.x, v0, a0, am, ae, r)
+            if abs(vr) < 1e-10:
+                break
+            if vr > 0.0:
+                lo, vlo = r, vr
+            else:
+                hi, vhi = r, vr
+        s.x, s.v, s.stopped = xr, 0.0, True

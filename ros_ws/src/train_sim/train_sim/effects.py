@@ -1,0 +1,261 @@
+"""Effects: the ways the real world differs from ``line.yaml``/``train.yaml``.
+
+One effect per cause of CONTRACT.md's ``diagnose`` table; every effect is off unless the scenario
+switches it on. The world runs with ``true_line``/``true_train``/``true_link`` built here with
+:func:`dataclasses.replace` on the believed objects; estimators only ever get the believed ones.
+Each effect changes the data in exactly one documented way:
+
+=================  ================================================================================
+effect             what changes (and nothing else, for the same seed)
+=================  ================================================================================
+gradient           true gradient on [start, end) = mapped gradient + ``permille`` (an unmapped
+                   section when the map says 0 there). Changes the motion only.
+resistance         true Davis coefficients a, b, c (N). Changes the motion only.
+braking_rate       true braking rate f(t): ``linear`` from f_start at t_start to f_end at t_end
+                   (Zheng eq. (23), f_k = f_0 - 0.005 k, is f_start = 1, f_end = 1 - 0.005 t_end),
+                   held outside; or ``step`` from f_start to f_end at t_step. Motion only.
+odometer_scale     odometer distance and speed are ``scale`` x the axle-free truth (wheel wear:
+                   scale = nominal / true wheel diameter). Odometer values only.
+wheel_slip         during each interval [t0, t1] the axle speed is (1 + slip_fraction) v (slip if
+                   > 0, slide if < 0); the counted distance integrates the axle speed, so it keeps
+                   the excess afterwards. Odometer values only.
+bursty_link        both topics' links become Gilbert-Elliott with p_good_bad, p_bad_good
+                   (loss_good, loss_bad default 0 and 1). Which messages are received only.
+brake_delay        true actuator transport delay T (s), for traction and braking commands alike
+                   (one delay line, Zheng eq. (1)). Motion only.
+mass               true mass M (kg). The drive force is computed for the believed mass
+                   (dynamics.py), so traction, braking and resistance accelerations all change.
+clock_drift        the train's clock runs at rate (1 + drift): odometer, balise and control stamps
+                   are t (1 + drift); ground truth stays on true time. Stamps only.
+=================  ================================================================================
+
+Pure module: PyYAML-free (validation uses :mod:`train_sim.config` sections).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields, replace
+
+from .config import REQUIRED, ConfigError, Section
+from .link import LinkParams
+from .model import Brake, Davis, GradientSection, Line, TrainParams
+
+
+@dataclass(frozen=True)
+class GradientEffect:
+    start: float  # m
+    end: float  # m
+    permille: float  # per mille, added to the mapped gradient on [start, end)
+
+
+@dataclass(frozen=True)
+class ResistanceEffect:
+    a: float  # N
+    b: float  # N s/m
+    c: float  # N s^2/m^2
+
+
+@dataclass(frozen=True)
+class BrakingRateEffect:
+    f_start: float  # -, braking rate at t_start (linear) / before t_step (step)
+    f_end: float  # -, braking rate at t_end (linear) / from t_step on (step)
+    mode: str = "linear"  # "linear" or "step"
+    t_start: float = 0.0  # s, start of the linear drift
+    t_end: float | None = None  # s, end of the linear drift (default: scenario duration)
+    t_step: float = 0.0  # s, time of the step (mode "step")
+
+    def value(self, t: float) -> float:
+        """f(t)."""
+        if self.mode == "step":
+            return self.f_end if t >= self.t_step else self.f_start
+        t1 = self.t_end if self.t_end is not None else self.t_start
+        if t <= self.t_start or t1 <= self.t_start:
+            return self.f_start if t <= self.t_start else self.f_end
+        if t >= t1:
+            return self.f_end
+        return self.f_start + (self.f_end - self.f_start) * (t - self.t_start) / (t1 - self.t_start)
+
+
+@dataclass(frozen=True)
+class OdometerScaleEffect:
+    scale: float  # -, odometer reading / truth
+
+
+@dataclass(frozen=True)
+class WheelSlipEffect:
+    intervals: tuple[tuple[float, float], ...]  # s, [(t0, t1), ...] episodes
+    slip_fraction: float = 0.1  # -, axle speed = (1 + slip_fraction) v during an episode
+
+    def factor(self, t: float) -> float:
+        for t0, t1 in self.intervals:
+            if t0 <= t < t1:
+                return 1.0 + self.slip_fraction
+        return 1.0
+
+
+@dataclass(frozen=True)
+class BurstyLinkEffect:
+    p_good_bad: float  # -, per message
+    p_bad_good: float  # -, per message
+    loss_good: float = 0.0  # -
+    loss_bad: float = 1.0  # -
+
+
+@dataclass(frozen=True)
+class BrakeDelayEffect:
+    delay: float  # s, true transport delay T
+
+
+@dataclass(frozen=True)
+class MassEffect:
+    mass: float  # kg, true total mass
+
+
+@dataclass(frozen=True)
+class ClockDriftEffect:
+    drift: float  # s per s: train stamp = t (1 + drift)
+
+
+@dataclass(frozen=True)
+class Effects:
+    """All effects of a scenario; None = off."""
+
+    gradient: GradientEffect | None = None
+    resistance: ResistanceEffect | None = None
+    braking_rate: BrakingRateEffect | None = None
+    odometer_scale: OdometerScaleEffect | None = None
+    wheel_slip: WheelSlipEffect | None = None
+    bursty_link: BurstyLinkEffect | None = None
+    brake_delay: BrakeDelayEffect | None = None
+    mass: MassEffect | None = None
+    clock_drift: ClockDriftEffect | None = None
+
+    def active(self) -> list[str]:
+        return [f.name for f in fields(self) if getattr(self, f.name) is not None]
+
+
+EFFECT_NAMES = tuple(f.name for f in fields(Effects))
+
+
+# ------------------------------------------------------------------------------------------------
+# The true world from the believed one
+# ------------------------------------------------------------------------------------------------
+
+def true_line(line: Line, eff: Effects) -> Line:
+    """The line with the unmapped gradient section added (piecewise constant, re-split)."""
+    g = eff.gradient
+    if g is None:
+        return line
+    cuts = sorted({g.start, g.end, *(s.start for s in line.gradients),
+                   *(s.end for s in line.gradients)})
+    sections = []
+    for a, b in zip(cuts, cuts[1:]):
+        mid = 0.5 * (a + b)
+        value = float(line.gradient_permille(mid)) + (g.permille if g.start <= mid < g.end else 0)
+        if value != 0.0 or any(s.start <= mid < s.end for s in line.gradients):
+            sections.append(GradientSection(a, b, value))
+    return replace(line, gradients=tuple(sections))
+
+
+def true_train(train: TrainParams, eff: Effects) -> TrainParams:
+    t = train
+    if eff.resistance is not None:
+        r = eff.resistance
+        t = replace(t, davis=Davis(r.a, r.b, r.c))
+    brake = t.brake
+    if eff.brake_delay is not None:
+        brake = replace(brake, delay=eff.brake_delay.delay)
+    if eff.braking_rate is not None:
+        brake = replace(brake, braking_rate=eff.braking_rate.f_start)
+    if brake is not t.brake:
+        t = replace(t, brake=Brake(brake.time_constant, brake.delay, brake.braking_rate))
+    if eff.mass is not None:
+        t = replace(t, mass=eff.mass.mass)
+    return t
+
+
+def true_link(link: LinkParams, eff: Effects) -> LinkParams:
+    b = eff.bursty_link
+    if b is None:
+        return link
+    return LinkParams(model="gilbert_elliott", p=link.p, r=link.r, p_good_bad=b.p_good_bad,
+                      p_bad_good=b.p_bad_good, loss_good=b.loss_good, loss_bad=b.loss_bad)
+
+
+def braking_rate_at(eff: Effects, train: TrainParams, t: float) -> float:
+    """True braking rate f(t): the effect's schedule, else the (true) train's braking_rate."""
+    if eff.braking_rate is not None:
+        return eff.braking_rate.value(t)
+    return train.brake.braking_rate
+
+
+# ------------------------------------------------------------------------------------------------
+# Parsing (strict: unknown effect, unknown field, missing key, out-of-range value)
+# ------------------------------------------------------------------------------------------------
+
+def parse_effects(sec: Section, duration: float) -> Effects:
+    """Effects from the scenario's ``effects:`` mapping ({name: {parameters}})."""
+    for name in sec.data:
+        if name not in EFFECT_NAMES:
+            raise ConfigError(f"{sec.where}: unknown effect '{name}' "
+                              f"(allowed: {', '.join(EFFECT_NAMES)})")
+    kw = {}
+    if sec.has("gradient"):
+        s = sec.section("gradient", ("start", "end", "permille"))
+        start, end = s.number("start", REQUIRED, lo=0.0, unit="m"), s.number("end", REQUIRED)
+        if end <= start:
+            raise ConfigError(f"{s.where}.end: {end:g} must be greater than start ({start:g})")
+        kw["gradient"] = GradientEffect(start, end,
+                                        s.number("permille", REQUIRED, lo=-60.0, hi=60.0))
+    if sec.has("resistance"):
+        s = sec.section("resistance", ("a", "b", "c"))
+        kw["resistance"] = ResistanceEffect(s.number("a", REQUIRED, lo=0.0, unit="N"),
+                                            s.number("b", REQUIRED, lo=0.0, unit="N s/m"),
+                                            s.number("c", REQUIRED, lo=0.0, unit="N s^2/m^2"))
+    if sec.has("braking_rate"):
+        s = sec.section("braking_rate",
+                        ("f_start", "f_end", "mode", "t_start", "t_end", "t_step"))
+        mode = s.string("mode", "linear", choices=("linear", "step"))
+        t_start = s.number("t_start", 0.0, lo=0.0, unit="s")
+        t_end = s.number("t_end", duration, lo=t_start, unit="s")
+        kw["braking_rate"] = BrakingRateEffect(
+            f_start=s.number("f_start", REQUIRED, lo=0.0, hi=2.0),
+            f_end=s.number("f_end", REQUIRED, lo=0.0, hi=2.0),
+            mode=mode, t_start=t_start, t_end=t_end,
+            t_step=s.number("t_step", REQUIRED if mode == "step" else 0.0, lo=0.0, unit="s"))
+    if sec.has("odometer_scale"):
+        s = sec.section("odometer_scale", ("scale",))
+        kw["odometer_scale"] = OdometerScaleEffect(
+            s.number("scale", REQUIRED, lo=0.5, hi=1.5))
+    if sec.has("wheel_slip"):
+        s = sec.section("wheel_slip", ("intervals", "slip_fraction"))
+        raw = s._raw("intervals", REQUIRED)
+        ok = isinstance(raw, list) and raw and all(
+            isinstance(iv, list) and len(iv) == 2
+            and all(isinstance(u, (int, float)) and not isinstance(u, bool) for u in iv)
+            and 0 <= iv[0] < iv[1] for iv in raw)
+        if not ok:
+            raise ConfigError(f"{s.where}.intervals: expected a non-empty list of [t0, t1] "
+                              f"with 0 <= t0 < t1 (s), got {raw!r}")
+        kw["wheel_slip"] = WheelSlipEffect(
+            intervals=tuple((float(a), float(b)) for a, b in sorted(raw)),
+            slip_fraction=s.number("slip_fraction", 0.1, lo=-0.9, hi=1.0))
+    if sec.has("bursty_link"):
+        s = sec.section("bursty_link", ("p_good_bad", "p_bad_good", "loss_good", "loss_bad"))
+        kw["bursty_link"] = BurstyLinkEffect(
+            p_good_bad=s.number("p_good_bad", REQUIRED, lo=0.0, hi=1.0),
+            p_bad_good=s.number("p_bad_good", REQUIRED, lo=0.0, hi=1.0, lo_open=True),
+            loss_good=s.number("loss_good", 0.0, lo=0.0, hi=1.0),
+            loss_bad=s.number("loss_bad", 1.0, lo=0.0, hi=1.0))
+    if sec.has("brake_delay"):
+        s = sec.section("brake_delay", ("delay",))
+        kw["brake_delay"] = BrakeDelayEffect(s.number("delay", REQUIRED, lo=0.0, hi=10.0,
+                                                      unit="s"))
+    if sec.has("mass"):
+        s = sec.section("mass", ("mass",))
+        kw["mass"] = MassEffect(s.number("mass", REQUIRED, lo=0.0, lo_open=True, unit="kg"))
+    if sec.has("clock_drift"):
+        s = sec.section("clock_drift", ("drift",))
+        kw["clock_drift"] = ClockDriftEffect(s.number("drift", REQUIRED, lo=-0.1, hi=0.1,
+                                                      unit="s/s"))
+    return Effects(**kw)
