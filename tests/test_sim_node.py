@@ -87,3 +87,49 @@ def test_stale_estimates_trigger_the_emergency_brake(launch, ros_node):
     n_before = len(mas)
     ros_node.wait_until(lambda: any(m.emergency_brake for m in mas[n_before:]), timeout=20,
                         what="the emergency brake after the estimates stopped")
+
+
+def test_node_publishes_exactly_what_the_offline_generator_produces(launch, ros_node):
+    """Same scenario and seed: the live node's messages equal simulate()'s, field for field."""
+    from train_interfaces.msg import BaliseReading, ControlCommand, OdometerReading, TrainState
+    from train_sim.nodes.ros_common import msg_to_dict, stamp_to_sec
+    from train_sim.world import simulate
+
+    ns, seed, duration = "/det", 11, 40.0
+    types = {"odometer": OdometerReading, "balise": BaliseReading, "control": ControlCommand,
+             "ground_truth": TrainState}
+    boxes = {t: ros_node.collect(cls, f"{ns}/{t}") for t, cls in types.items()}
+    sim = launch.node("train_sim", "simulator", "--ros-args", "-r", f"__ns:={ns}",
+                      "-p", "scenario:=metro_demo", "-p", f"seed:={seed}",
+                      "-p", "rate_factor:=40.0", "-p", f"duration:={duration}",
+                      "-p", "wait_for_subscribers:=1")
+    ros_node.wait_until(lambda: sim.poll() is not None, timeout=60, what="the simulator run")
+    ros_node.spin_for(1.0)
+    assert sim.returncode == 0, launch.logs()
+
+    res = simulate(load_scenario("metro_demo"), seed=seed, duration=duration)
+    expected = {t: [] for t in types}
+    for topic, stamp, fields in res.events():
+        expected[topic].append((stamp, fields))
+    for topic, box in boxes.items():
+        assert len(box) == len(expected[topic]), topic
+        for msg, (stamp, fields) in zip(box, expected[topic]):
+            assert abs(stamp_to_sec(msg.header.stamp) - stamp) < 1e-9
+            got = msg_to_dict(msg)
+            for key, value in fields.items():
+                if isinstance(value, str):
+                    assert got[key] == value, (topic, key)
+                    continue
+                assert np.array_equal(np.asarray(got[key], dtype=float),
+                                      np.asarray(value, dtype=float), equal_nan=True), \
+                    (topic, key, got[key], value)
+
+
+def test_bad_scenario_is_refused_with_one_line_and_exit_code_2(launch, tmp_path):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("name: bad\nline: metro_demo\ntrain: metro_b6\nduration: -5\n")
+    sim = launch.node("train_sim", "simulator", "--ros-args", "-p", f"scenario:={bad}")
+    assert sim.wait(30) == 2
+    text = sim.log_path.read_text().strip().splitlines()
+    assert text and text[-1].startswith("error: ") and "bad.yaml" in text[-1], text
+    assert "Traceback" not in "\n".join(text)
