@@ -1,0 +1,120 @@
+"""Batched Kalman filter over a leading particle axis, with measurement masks.
+
+Shapes: ``x (N, n)``, ``P (N, n, n)``; model matrices may carry a leading axis of N or 1
+(broadcast), so particles with their own model (one braking rate each) and particles sharing
+one model are the same code path.
+
+Predict::
+
+    x' = Phi x + Bu,          P' = Phi P Phi^T + Qd          (symmetrised)
+
+Update with the rows ``mask`` of ``y = H x + e``, ``e ~ N(0, diag(R))``. With a *diagonal* R the
+joint update equals the sequential update by one scalar row at a time (the rows' noises are
+independent, so conditioning on them one after the other is exact), and the log predictive
+likelihood factorises into the scalar ones (chain rule)::
+
+    for each used row h, variance r:
+        s = h P h^T + r,   k = P h^T / s,   e = y_h - h x
+        x <- x + k e,      P <- P - (P h^T)(P h^T)^T / s      (symmetric by construction)
+        log p += -1/2 (log 2 pi + log s + e^2 / s)
+
+No matrix inverse, no per-particle LAPACK call: a few vectorised array operations per row,
+which is what keeps a step of 1350 particles well under a millisecond. The summed log
+predictive likelihood ``log N(y_m; H_m x', H_m P' H_m^T + R_m)`` is the Rao-Blackwellised
+particle weight (Zheng eq. (12), (17); Q-GRBPF eq. (3)-(5)). ``test_braking_kf.py`` checks all
+of this against a dense joint-Gaussian solve.
+
+Pure: numpy only.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["predict", "update", "log_normalize", "mixture_moments"]
+
+_LOG2PI = float(np.log(2.0 * np.pi))
+
+
+def _sym(P):
+    return 0.5 * (P + np.swapaxes(P, -1, -2))
+
+
+def predict(x, P, Phi, Bu, Qd):
+    """One prediction step for every particle (see module docstring).
+
+    ``Phi (N or 1, n, n)``, ``Bu (N or 1, n)``, ``Qd (n, n)``.
+    """
+    if Phi.shape[0] == x.shape[0]:
+        x_new = np.matmul(Phi, x[:, :, None])[:, :, 0] + Bu
+    else:
+        x_new = x @ Phi[0].T + Bu
+    P_new = np.matmul(np.matmul(Phi, P), np.swapaxes(Phi, -1, -2)) + Qd
+    return x_new, _sym(P_new)
+
+
+def update(x, P, y, H, R, mask):
+    """Sequential exact update of every particle with the rows ``mask`` of ``y``.
+
+    ``y (p,)``, ``H (p, n)``, ``R (p,)`` variances (> 0), ``mask (p,)`` bool (missing
+    components are skipped). Returns ``(x+, P+, loglik (N,))``; with no row used,
+    ``(x, P, 0)``.
+    """
+    mask = np.asarray(mask, dtype=bool)
+    H = np.asarray(H, dtype=float)
+    R = np.asarray(R, dtype=float)
+    y = np.asarray(y, dtype=float)
+    loglik = np.zeros(x.shape[0])
+    for j in np.flatnonzero(mask):  # rows (at most a handful), not particles
+        h = H[j]
+        nz = np.flatnonzero(h)
+        if nz.size == 1 and h[nz[0]] == 1.0:  # selector row: no matmul needed
+            i = nz[0]
+            Ph = P[:, :, i]  # (N, n)
+            e = y[j] - x[:, i]
+        else:
+            Ph = P @ h
+            e = y[j] - x @ h
+        s = Ph @ h + R[j]  # (N,)
+        k = Ph / s[:, None]
+        x = x + k * e[:, None]
+        # P - s k k^T = P - (Ph)(Ph)^T / s: elements (i, j) and (j, i) are the same products, so
+        # P stays exactly symmetric (the "symmetrised" form; Joseph's form would cost three
+        # outer products per row, ~2x the time of the whole update, for no gain at R > 0)
+        P = P - (Ph[:, :, None] * Ph[:, None, :]) / s[:, None, None]
+        loglik = loglik - 0.5 * (_LOG2PI + np.log(s) + e * e / s)
+    return x, P, loglik
+
+
+def log_normalize(logw):
+    """Normalised weights and ``log sum exp`` of log-weights, underflow-safe.
+
+    Returns ``(w, logZ)``; ``w`` sums to one. Entries of ``-inf`` get weight 0. Raises
+    ``ValueError`` if no entry is finite (nothing to normalise) or any entry is NaN/+inf.
+    """
+    logw = np.asarray(logw, dtype=float)
+    if logw.size == 0:
+        raise ValueError("no particles")
+    if np.any(np.isnan(logw)) or np.any(logw == np.inf):
+        raise ValueError("NaN or +inf log-weight")
+    m = np.max(logw)
+    if not np.isfinite(m):
+        raise ValueError("all log-weights are -inf")
+    e = np.exp(logw - m)
+    s = e.sum()
+    return e / s, float(m + np.log(s))
+
+
+def mixture_moments(w, means, covs=None):
+    """Mean and covariance of the mixture ``sum_i w_i N(means_i, covs_i)``.
+
+    ``cov = sum_i w_i (covs_i + (m_i - m)(m_i - m)^T)`` (law of total covariance). ``covs``
+    None means point masses.
+    """
+    w = np.asarray(w, dtype=float)
+    m = w @ means
+    dev = means - m
+    cov = np.einsum("k,ki,kj->ij", w, dev, dev)
+    if covs is not None:
+        cov = cov + np.einsum("k,kij->ij", w, covs)
+    return m, 0.5 * (cov + cov.T)
