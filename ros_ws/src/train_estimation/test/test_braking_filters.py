@@ -277,7 +277,8 @@ def test_bad_input_is_rejected_counted_and_leaves_state_untouched():
             dict(a_tar=np.nan, y=y[1], t=2.0),
             dict(a_tar=-1.0, y=[np.nan, 1.0, 1.0], t=2.0),
             dict(a_tar=-1.0, y=[np.inf, 1.0, 1.0], t=2.0),
-            dict(a_tar=-1.0, y=y[1], t=1.0),  # duplicate stamp
+            dict(a_tar=-1.0, y=None, t=1.0),  # empty step to the same stamp (a same-stamp
+            # reading is a dt = 0 update; duplicate readings are caught by seq in the adapter)
             dict(a_tar=-1.0, y=y[1], t=0.5),  # out of order
             dict(a_tar=-1.0, y=y[1], t=np.inf),
             dict(a_tar=-1.0, y=y[1][:2], t=2.0),

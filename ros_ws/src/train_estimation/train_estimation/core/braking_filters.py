@@ -334,7 +334,10 @@ class RaoBlackwellFilter:
                 return (f"non-finite time stamp: {t!r}", *bad)
             if self._t is None:
                 dt = 0.0
-            elif tf <= self._t:
+            elif tf < self._t or (tf == self._t and y is None):
+                # A reading stamped at the time of the previous step (two sensors sampled at
+                # one instant, or a command and a reading of the same cycle) is an update with
+                # dt = 0; only an earlier stamp, or an empty step to the same time, is refused.
                 return (f"out-of-order or duplicate time stamp: {tf!r} <= {self._t!r}", *bad)
             else:
                 dt = tf - self._t

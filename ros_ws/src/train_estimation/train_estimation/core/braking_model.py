@@ -82,6 +82,8 @@ class BrakingParams:
     ahat_var: float = 0.0  # m^2/s^5, PSD of extra white noise on a_hat (0 = none)
     meas_var: tuple[float, float, float] = (0.25, 0.09, 1e-4)  # m^2, (m/s)^2, (m/s^2)^2: D, v, a_z
     standstill_speed: float | None = None  # m/s; |v| at or below with a_Tar <= 0 = standstill
+    min_brake: float = 0.0  # m/s^2; braking commands weaker than this do not inform f (a tiny
+    #   brake trim during cruising says more about unmodelled resistance than about f)
     #   (None: never; the paper's open-loop toy lets v go negative and must keep estimating f)
 
     @property
@@ -235,7 +237,7 @@ class BrakingModel:
 
     def gate(self, u, x_mean) -> bool:
         a_tar = float(u[0])
-        if not a_tar < 0.0:
+        if not a_tar < -self.params.min_brake:
             return False
         vs = self.params.standstill_speed
         return not (vs is not None and abs(float(x_mean[1])) <= vs)
