@@ -24,6 +24,8 @@ setup(
     entry_points={
         "console_scripts": [
             "recorder = train_estimation.nodes.recorder:main",
+            "robust_filter = train_estimation.nodes.robust_filter:main",
+            "gsma_estimator = train_estimation.nodes.gsma_estimator:main",
             "check_bag = train_estimation.tools.check_bag:main",
         ],
     },

@@ -68,6 +68,8 @@ class Scenario:
     link: LinkParams  # configured link model
     true_link: LinkParams  # the one the world uses (bursty_link effect)
     effects: Effects
+    line_path: str = ""  # the line.yaml file the estimators are given
+    train_path: str = ""  # the train.yaml file the estimators are given
 
     def with_effects(self, effects: Effects) -> Scenario:
         """The same scenario with other effects (true models recomputed)."""
@@ -104,8 +106,9 @@ def load_scenario(name_or_path: str | Path) -> Scenario:
 def scenario_from_dict(data: dict, where: str, base_dir: Path | str = ".") -> Scenario:
     base = Path(base_dir)
     s = Section(data, where, SCENARIO_KEYS)
-    line = load_line(_resolve(s.string("line", REQUIRED), "lines", base))
-    train = load_train(_resolve(s.string("train", REQUIRED), "trains", base))
+    line_path = _resolve(s.string("line", REQUIRED), "lines", base)
+    train_path = _resolve(s.string("train", REQUIRED), "trains", base)
+    line, train = load_line(line_path), load_train(train_path)
     duration = s.number("duration", REQUIRED, lo=0.0, lo_open=True, hi=1e6, unit="s")
 
     st = s.section("start", ("position", "speed", "acceleration", "target_acceleration"),
@@ -176,6 +179,8 @@ def scenario_from_dict(data: dict, where: str, base_dir: Path | str = ".") -> Sc
     return Scenario(
         name=s.string("name", Path(where).stem),
         path=where,
+        line_path=str(line_path),
+        train_path=str(train_path),
         line=line,
         train=train,
         true_line=true_line(line, effects),

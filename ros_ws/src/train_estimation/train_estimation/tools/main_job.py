@@ -81,29 +81,32 @@ def main(argv=None) -> int:
     summary_file = out / "simulator_summary.json"
     ros = ["--ros-args", "-r", f"__ns:={NS}", "-p", "use_sim_time:=true"]
 
-    from train_sim.scenario import data_root
-
-    line_file = None
-    share = data_root()
+    from train_sim.config import ConfigError
     from train_sim.scenario import load_scenario
 
-    sc = load_scenario(args.scenario)
-    for cand in (share / "config" / "lines" / f"{sc.line.name}.yaml",):
-        if cand.is_file():
-            line_file = cand
+    try:
+        sc = load_scenario(args.scenario)
+    except ConfigError as exc:
+        print(f"main_job: {exc}", file=sys.stderr)
+        return 2
+    line_file, train_file = sc.line_path, sc.train_path
 
+    # Estimates of time t are output at sim time t + delay; at rate factor r that is delay / r
+    # of wall time for the readings of t to cross DDS and the executor: keep it ~50 ms of wall.
+    delay = max(0.05, 0.05 * args.rate_factor)
+    est = ["-p", f"output_delay:={delay}", "-p", f"initial_position:={sc.start_position}",
+           "-p", f"odometer_rate:={sc.odometer_rate}", "-p", f"line_file:={line_file}",
+           "-p", f"train_file:={train_file}"]
     plan: list[tuple[str, str, str, list[str]]] = [
         ("train_estimation", "recorder", "recorder", ["-p", f"bag:={bag}"]),
-        ("train_estimation", "robust_filter", "robust_filter", []),
-        ("train_estimation", "gsma_estimator", "gsma_estimator", []),
+        ("train_estimation", "robust_filter", "robust_filter", est),
+        ("train_estimation", "gsma_estimator", "gsma_estimator", est),
     ]
     consumers = [(pkg, exe, name, extra) for pkg, exe, name, extra in plan
                  if executable(pkg, exe) is not None]
     state_topic = ("estimate/robust" if any(e == "robust_filter" for _, e, _, _ in consumers)
                    else "ground_truth")
-    zc_extra = ["-p", f"state_topic:={state_topic}"]
-    if line_file is not None:
-        zc_extra += ["-p", f"line_file:={line_file}"]
+    zc_extra = ["-p", f"state_topic:={state_topic}", "-p", f"line_file:={line_file}"]
     sim_extra = ["-p", f"scenario:={args.scenario}", "-p", f"rate_factor:={args.rate_factor}",
                  "-p", f"duration:={args.duration}", "-p", f"summary_file:={summary_file}",
                  "-p", f"wait_for_subscribers:={len(consumers)}"]

@@ -1,0 +1,141 @@
+"""The ROS layer shared by `robust_filter` and `gsma_estimator`.
+
+Callbacks only enqueue (``EstimatorRunner.push``). A steady wall-clock timer moves the runner to
+``now - output_delay`` on the node's clock (sim time under ``use_sim_time``), which steps the core
+in stamp order and returns one estimate per odometer period; each is published as a TrainState
+stamped with its sample time. Rejected input is logged with its reason (throttled) and counted;
+the counts are logged at shutdown.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+from train_sim.nodes.ros_common import ParameterError, stamp_to_sec
+
+
+def declare_common(node) -> dict:
+    """Parameters every estimator node has (documented in config/*.yaml)."""
+    from rcl_interfaces.msg import ParameterDescriptor
+
+    def declare(name, default, text):
+        return node.declare_parameter(name, default, ParameterDescriptor(description=text)).value
+
+    return {
+        "line_file": declare("line_file", "", "line.yaml; '' = metro_demo's line"),
+        "train_file": declare("train_file", "", "train.yaml; '' = metro_demo's train"),
+        "initial_position": declare("initial_position", math.nan,
+                                    "m, position at start (odometer origin); NaN = first "
+                                    "station of the line"),
+        "initial_position_std": declare("initial_position_std", 5.0, "m"),
+        "odometer_rate": declare("odometer_rate", 10.0, "Hz, output rate = odometer rate"),
+        "output_delay": declare("output_delay", 0.05,
+                                "s, an estimate of time t is output at clock t + delay"),
+    }
+
+
+def load_models(common: dict):
+    """(train, line, StartState) from the file parameters; ParameterError with one line if bad."""
+    from train_estimation.core.estimators import StartState
+    from train_sim.config import ConfigError
+    from train_sim.model import load_line, load_train
+    from train_sim.scenario import data_root
+
+    root = data_root() / "config"
+    line_file = common["line_file"] or str(root / "lines" / "metro_demo.yaml")
+    train_file = common["train_file"] or str(root / "trains" / "metro_b6.yaml")
+    try:
+        line, train = load_line(line_file), load_train(train_file)
+    except ConfigError as exc:
+        raise ParameterError(str(exc)) from None
+    x0 = common["initial_position"]
+    if not math.isfinite(x0):
+        x0 = line.stations[0].position if line.stations else 0.0
+    for key in ("initial_position_std", "odometer_rate"):
+        if not (math.isfinite(common[key]) and common[key] > 0):
+            raise ParameterError(f"parameter {key}: {common[key]} must be > 0")
+    if not (math.isfinite(common["output_delay"]) and common["output_delay"] >= 0):
+        raise ParameterError(f"parameter output_delay: {common['output_delay']} must be >= 0")
+    return train, line, StartState(position=x0, position_std=common["initial_position_std"])
+
+
+def build_estimator_node(name: str, topic: str, make_adapter: Callable):
+    """A node that feeds ``make_adapter(node, train, line, start, common)`` through a runner."""
+    from rclpy.clock import Clock, ClockType
+    from rclpy.node import Node
+
+    from train_estimation.core.runner import EstimatorRunner
+    from train_interfaces.msg import (
+        BaliseReading,
+        ControlCommand,
+        OdometerReading,
+        TrainState,
+    )
+
+    class EstimatorNode(Node):
+        def __init__(self):
+            super().__init__(name)
+            common = declare_common(self)
+            train, line, start = load_models(common)
+            try:
+                self.adapter = make_adapter(self, train, line, start, common)
+            except ValueError as exc:
+                raise ParameterError(str(exc)) from None
+            self.runner = EstimatorRunner(self.adapter, 1.0 / common["odometer_rate"])
+            self.delay = common["output_delay"]
+            self.pub = self.create_publisher(TrainState, topic, 50)
+            self.create_subscription(OdometerReading, "odometer", self.on_odometer, 200)
+            self.create_subscription(BaliseReading, "balise", self.on_balise, 50)
+            self.create_subscription(ControlCommand, "control", self.on_control, 200)
+            self.timer = self.create_timer(0.005, self.tick,
+                                           clock=Clock(clock_type=ClockType.STEADY_TIME))
+            self.n_reported = 0
+            self.get_logger().info(
+                f"{self.adapter.source} on {line.name} / {train.name}, start at "
+                f"{start.position:.1f} m, output {common['odometer_rate']:g} Hz on '{topic}'")
+
+        def _push(self, kind: str, msg, fields: dict) -> None:
+            reason = self.runner.push(kind, stamp_to_sec(msg.header.stamp), fields)
+            if reason:
+                self.get_logger().warning(f"{kind} rejected: {reason}", throttle_duration_sec=2.0)
+
+        def on_odometer(self, msg) -> None:
+            self._push("odometer", msg, {"seq": msg.seq, "distance": msg.distance,
+                                         "speed": msg.speed, "speed_variance": msg.speed_variance})
+
+        def on_balise(self, msg) -> None:
+            self._push("balise", msg, {"seq": msg.seq, "balise_id": msg.balise_id,
+                                       "position": msg.position,
+                                       "position_variance": msg.position_variance})
+
+        def on_control(self, msg) -> None:
+            self._push("control", msg, {"target_acceleration": msg.target_acceleration})
+
+        def tick(self) -> None:
+            now = self.get_clock().now().nanoseconds * 1e-9
+            if now <= 0.0:  # no /clock yet under use_sim_time
+                return
+            for out in self.runner.advance_to(now - self.delay):
+                msg = TrainState()
+                msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(
+                    int(round(out.stamp * 1e9)), 1_000_000_000)
+                msg.header.frame_id = "track"
+                msg.source = self.adapter.source
+                msg.position, msg.velocity = out.position, out.velocity
+                msg.acceleration, msg.braking_rate = out.acceleration, out.braking_rate
+                msg.covariance = list(out.covariance)
+                msg.measurement_used = out.measurement_used
+                self.pub.publish(msg)
+            total = sum(self.runner.rejected.values())
+            if total > self.n_reported:  # the core refused input: say why (throttled)
+                kind, stamp, why = self.runner.last_reasons[-1]
+                self.n_reported = total
+                self.get_logger().warning(f"{kind} at {stamp:.3f} s rejected: {why} "
+                                          f"({total} rejected so far)", throttle_duration_sec=2.0)
+
+        def close(self) -> None:
+            self.get_logger().info(f"accepted {dict(self.runner.accepted)}; "
+                                   f"rejected {dict(self.runner.rejected) or 'none'}")
+
+    return EstimatorNode()
