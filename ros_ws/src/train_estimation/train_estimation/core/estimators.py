@@ -132,6 +132,8 @@ class BrakingConfig:
     q_max: int = 500  # Q, prune when the branched count exceeds it
     rbpf_particles: int = 250  # RBPF particle count
     rbpf_p_move: float = 0.1  # RBPF sticky kernel: probability of moving to a neighbour value
+    branch_p_move: float = 0.1  # GSMA/SMA children prior: P(move to a neighbour value); -1 =
+    #   the paper's uniform prior over the children, which forgets f at every branching
     qgrbpf_particles: int = 50
     qgrbpf_q_theta: float = 1e-4  # 1/s, random-walk variance of f per second (Q-GRBPF)
     transition_interval: float = 1.0  # s between f transitions, whatever the message rate
@@ -166,12 +168,17 @@ class BrakingAdapter:
             meas_var=(cfg.distance_variance, train.odometer_speed_std ** 2, 1.0),
             standstill_speed=cfg.standstill_speed, min_brake=cfg.min_brake))
         values = np.asarray(cfg.values, dtype=float)
+        M, p = len(values), cfg.branch_p_move
         if cfg.algorithm == "gsma":
+            # children: the group of three neighbours; prior stay 1 - p, each neighbour p / 2
             self.filt = GSMA(self.fam, values, n_init=cfg.n_init, n_keep=cfg.n_keep,
-                             q_max=cfg.q_max)
+                             q_max=cfg.q_max,
+                             transition=None if p < 0 else sticky_transition(M, p))
         elif cfg.algorithm == "sma":
+            # children: every value (the paper's SMA); prior stay 1 - p, the rest p / (M - 1)
+            full = (1 - p) * np.eye(M) + p / (M - 1) * (1 - np.eye(M))
             self.filt = SMA(self.fam, values, n_init=cfg.n_init, n_keep=cfg.n_keep,
-                            q_max=cfg.q_max)
+                            q_max=cfg.q_max, transition=None if p < 0 else full)
         elif cfg.algorithm == "rbpf":
             self.filt = DiscreteRBPF(self.fam, values,
                                      sticky_transition(len(values), cfg.rbpf_p_move),

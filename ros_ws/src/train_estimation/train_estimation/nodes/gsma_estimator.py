@@ -32,6 +32,8 @@ def make_adapter(node, train, line, start, common):
         n_init=declare("n_init", d.n_init, "N0, initial particles"),
         n_keep=declare("n_keep", d.n_keep, "N, particles kept after pruning"),
         q_max=declare("q_max", d.q_max, "Q, prune when the count exceeds it"),
+        branch_p_move=declare("branch_p_move", d.branch_p_move,
+                              "GSMA/SMA: prior P(child = a neighbour value); -1 = uniform"),
         rbpf_particles=declare("rbpf_particles", d.rbpf_particles, "RBPF particle count"),
         rbpf_p_move=declare("rbpf_p_move", d.rbpf_p_move, "RBPF: P(move to a neighbour)"),
         qgrbpf_particles=declare("qgrbpf_particles", d.qgrbpf_particles, "Q-GRBPF particles"),

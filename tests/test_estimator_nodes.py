@@ -1,0 +1,88 @@
+"""Estimator nodes on the live simulator (localhost-only ROS graph)."""
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from train_sim.scenario import load_scenario
+
+pytestmark = pytest.mark.ros
+REPO = Path(__file__).resolve().parents[1]
+CONFIG = REPO / "ros_ws" / "src" / "train_estimation" / "config"
+
+
+def run_live(launch, ros_node, ns, scenario, duration, rate, nodes, topics, sim_extra=()):
+    """Start the given estimator nodes and a simulator; collect ``topics`` until it ends."""
+    from train_interfaces.msg import TrainState
+
+    sc = load_scenario(scenario)
+    boxes = {t: ros_node.collect(TrainState, f"{ns}/{t}") for t in topics}
+    common = ["-p", "use_sim_time:=true", "-p", f"line_file:={sc.line_path}",
+              "-p", f"train_file:={sc.train_path}", "-p", f"initial_position:={sc.start_position}",
+              "-p", f"odometer_rate:={sc.odometer_rate}",
+              "-p", f"output_delay:={max(0.05, 0.05 * rate)}"]
+    for exe, extra in nodes:
+        # a params file first: the -p overrides after it win (later arguments override)
+        launch.node("train_estimation", exe, "--ros-args", "-r", f"__ns:={ns}", *extra, *common)
+    ros_node.wait_for_subscribers(f"{ns}/odometer", len(nodes))
+    sim = launch.node("train_sim", "simulator", "--ros-args", "-r", f"__ns:={ns}",
+                      "-p", f"scenario:={scenario}", "-p", f"rate_factor:={rate}",
+                      "-p", f"duration:={duration}", "-p", f"wait_for_subscribers:={len(nodes)}",
+                      *sim_extra)
+    ros_node.wait_until(lambda: sim.poll() is not None, timeout=duration / rate + 90,
+                        what="the simulator run")
+    ros_node.spin_for(2.0)
+    assert sim.returncode == 0, launch.logs()
+    return sc, boxes
+
+
+def test_robust_filter_tracks_truth_within_its_bound(launch, ros_node):
+    """simulator + robust_filter + zone controller on metro_demo: |error| <= 3 sqrt(Sigma_xx)."""
+    from train_interfaces.msg import TrainState
+
+    ns = "/rf"
+    truth = ros_node.collect(TrainState, f"{ns}/ground_truth")
+    launch.node("train_sim", "zone_controller", "--ros-args", "-r", f"__ns:={ns}",
+                "-p", "use_sim_time:=true", "-p", "state_topic:=estimate/robust")
+    sc, boxes = run_live(
+        launch, ros_node, ns, "metro_demo", 240.0, 20.0,
+        [("robust_filter", ["--params-file", str(CONFIG / "robust_filter.yaml")])],
+        ["estimate/robust"])
+    est = boxes["estimate/robust"]
+    assert len(est) >= 0.98 * 240.0 * sc.odometer_rate, launch.logs()
+    assert all(m.source == "robust_filter" for m in est)
+    t_truth = np.array([m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec for m in truth])
+    x_truth = np.array([m.position for m in truth])
+    t = np.array([m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec for m in est])
+    x = np.array([m.position for m in est])
+    sx = np.sqrt([m.covariance[0] for m in est])
+    err = x - np.interp(t, t_truth, x_truth)
+    inside = np.abs(err) <= 3 * sx
+    assert inside.mean() >= 0.99, f"{inside.mean():.4f} of steps within 3 sigma"
+    assert all(math.isnan(m.braking_rate) for m in est)
+    assert np.all(np.diff(t) > 0)
+
+
+def test_gsma_converges_to_the_degraded_braking_rate(launch, ros_node):
+    """Live simulator, brakes at f = 0.7: after three braking phases |f_hat - 0.7| < 0.05."""
+    from train_sim.world import simulate
+
+    ns = "/gsma"
+    sc, boxes = run_live(
+        launch, ros_node, ns, "metro_degraded", 480.0, 20.0,
+        [("gsma_estimator", ["--params-file", str(CONFIG / "gsma_estimator.yaml")])],
+        ["estimate/gsma"])
+    est = boxes["estimate/gsma"]
+    assert est and all(m.source == "gsma" for m in est)
+    # the third braking phase ends when the train stops at the third station
+    stops = simulate(sc, duration=480.0).stops
+    assert len(stops) == 3, stops
+    t_third = stops[2]["t"]
+    after = [m for m in est if m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec > t_third]
+    assert after, "no estimate after the third stop"
+    f_true = sc.true_train.brake.braking_rate if sc.effects.braking_rate is None else \
+        sc.effects.braking_rate.value(t_third)
+    assert abs(after[0].braking_rate - f_true) < 0.05, (after[0].braking_rate, f_true)
+    assert all(np.isfinite(m.covariance[15]) and m.covariance[15] >= 0 for m in est)
