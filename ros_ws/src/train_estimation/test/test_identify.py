@@ -1,0 +1,104 @@
+"""Tests of the SI front end (identify.py) on synthetic runs of the same model (si_synth)."""
+
+import os
+import sys
+
+import numpy as np
+import pytest
+
+from train_estimation.core.identify import IdentificationError, SIData, identify
+from train_sim.model import Davis, Line
+
+sys.path.insert(0, os.path.dirname(__file__))
+from si_synth import METRO, hilly_line, simulate_run  # noqa: E402
+
+LINE = hilly_line()
+
+
+def _data(run, **drop):
+    kw = {k: v for k, v in run.items() if k != "truth_v"}
+    kw.update(drop)
+    return SIData(**kw)
+
+
+@pytest.fixture(scope="module")
+def c_plus_30():
+    true = METRO.with_changes(davis=Davis(METRO.davis.a, METRO.davis.b, 1.3 * METRO.davis.c))
+    run = simulate_run(true, LINE, np.random.default_rng(11), 2400.0)
+    return true, identify(_data(run), LINE, METRO)
+
+
+def test_identify_recovers_c_plus_30_percent_within_10_percent(c_plus_30):
+    true, res = c_plus_30
+    assert res.identifiable["davis.c"]
+    assert abs(res.values["davis.c"] / true.davis.c - 1) < 0.10
+    # the reported SE is honest: the error is within 3 SE
+    assert abs(res.values["davis.c"] - true.davis.c) < 3 * res.std_errors["davis.c"]
+
+
+def test_identify_other_parameters_and_mass_flags(c_plus_30):
+    true, res = c_plus_30
+    assert abs(res.values["mass"] / true.mass - 1) < 0.02
+    assert abs(res.values["braking_rate"] - 1.0) < 0.02
+    assert abs(res.values["rotary_allowance"] - true.rotary_allowance) < 0.03
+    assert res.train.davis.c == pytest.approx(res.values["davis.c"])
+    assert "assuming" in res.reasons["mass"]
+
+
+def test_mass_not_identifiable_without_force_calibration():
+    from train_estimation.core.identify import SIConfig
+
+    run = simulate_run(METRO, LINE, np.random.default_rng(12), 900.0)
+    res = identify(_data(run), LINE, METRO, SIConfig(fit_traction_gain=False))
+    assert not res.identifiable["mass"] and res.values["mass"] == METRO.mass
+    assert np.isnan(res.std_errors["mass"])
+
+
+def test_flat_line_rotary_allowance_not_identifiable():
+    flat = Line(name="flat", length=60000.0, balises=LINE.balises)
+    run = simulate_run(METRO, flat, np.random.default_rng(13), 900.0)
+    res = identify(_data(run), flat, METRO)
+    assert not res.identifiable["rotary_allowance"]
+    assert "gradient" in res.reasons["rotary_allowance"]
+    assert res.values["rotary_allowance"] == pytest.approx(METRO.rotary_allowance)
+
+
+def test_missing_series():
+    run = simulate_run(METRO, LINE, np.random.default_rng(14), 300.0)
+    with pytest.raises(IdentificationError) as e:
+        identify(_data(run, ctrl_t=np.array([]), ctrl_a_tar=np.array([])), LINE, METRO)
+    assert "control" in e.value.missing and "davis.c" in e.value.unidentifiable
+    with pytest.raises(IdentificationError) as e:
+        identify(_data(run, balise_t=None, balise_position=None), LINE, METRO)
+    assert any("balise" in m for m in e.value.missing)
+
+
+def test_too_short():
+    run = simulate_run(METRO, LINE, np.random.default_rng(15), 60.0)
+    with pytest.raises(IdentificationError, match="too short"):
+        identify(_data(run), LINE, METRO)
+
+
+def test_never_moves():
+    run = simulate_run(METRO, LINE, np.random.default_rng(16), 400.0, never_moves=True)
+    with pytest.raises(IdentificationError, match="never moves") as e:
+        identify(_data(run), LINE, METRO)
+    assert "mass" in e.value.unidentifiable
+
+
+def test_only_cruises():
+    run = simulate_run(METRO, LINE, np.random.default_rng(17), 600.0, cruise_only=True)
+    with pytest.raises(IdentificationError, match="only cruises"):
+        identify(_data(run), LINE, METRO)
+
+
+def test_bad_stamps_and_nan():
+    run = simulate_run(METRO, LINE, np.random.default_rng(18), 300.0)
+    t = run["odo_t"].copy()
+    t[5] = t[4]
+    with pytest.raises(IdentificationError, match="strictly increasing"):
+        identify(_data(run, odo_t=t), LINE, METRO)
+    sp = run["odo_speed"].copy()
+    sp[3] = np.nan
+    with pytest.raises(IdentificationError, match="NaN"):
+        identify(_data(run, odo_speed=sp), LINE, METRO)

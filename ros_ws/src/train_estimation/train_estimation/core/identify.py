@@ -1,0 +1,595 @@
+"""System identification front end: fit the train's longitudinal parameters from
+odometer, balise and control time series (plain arrays; the ``identify`` CLI reads the bag).
+
+Model (train_sim.model, issue #3; actuator after Zheng et al. 2015 eq. (1))::
+
+    ds/dt = v
+    dv/dt = k a_tr(t) + k f a_br(t) - (a + b v + c v^2) / M_eff
+            - g sin(theta(s0 + s)) / (1 + lambda) + w
+    a_tr, a_br = first-order lag (tau) of max/min(a_Tar(t - T_delay), 0)     (m/s^2)
+    M_eff = (1 + lambda) M,   k = M_prior / M  (traction gain)
+
+The drive *force* is the command times the *believed* effective mass (train_sim dynamics.py and
+effects.py "mass": the controller computes the force for train.yaml's mass), so a train of true
+mass M accelerates by k = M_prior / M per unit of actuator output. k is the traction gain; the
+braking column carries k f.
+
+f multiplies the braking command before the lag; the lag is linear, so lag(f min(a, 0)) =
+f lag(min(a, 0)) and f enters linearly. Stopping, standing and starting (brake holding,
+the start-up transient) are not described by the model: intervals whose reference speed reaches
+below ``standstill_speed`` get zero regressors and a large process noise, so the filter follows
+the measurements there and those intervals carry no information on the parameters.
+
+What the data can identify (no force is measured):
+
+* alpha = a / M_eff, beta = b / M_eff, gamma = c / M_eff (m/s^2, 1/s, 1/m): the *specific*
+  resistance. Identifiable when the speed range is wide (beta, gamma need speeds spread over a
+  range; at one cruising speed only the sum alpha + beta v + gamma v^2 is determined).
+* kappa = 1 / (1 + lambda): the gain on the known gradient acceleration g sin(theta). It is
+  identifiable only if the gradient *varies* along the run (a constant grade is a constant
+  acceleration, indistinguishable from alpha) and the variation is large against the noise.
+* k f (braking gain): identifiable when the run contains braking; f = (k f) / k.
+* k (traction gain): identifiable from traction phases. M = M_prior / k is identifiable ONLY
+  under the force-calibration assumption above (the applied force is exactly the command times
+  the believed mass). Without it (if the command were an acceleration delivered whatever the
+  mass) M cancels, k = 1, and only alpha, beta, gamma are determined: a, b, c in N scale with the
+  assumed mass. ``fit_traction_gain=False`` encodes that assumption (k = 1, M = prior, a, b, c in
+  N given the prior mass). ``mass_if_davis_nominal`` reports the alternative "Davis forces as
+  in train.yaml, only the resistance per mass changed" (one scale on the prior specific
+  resistance, gains as fitted), which is observationally equivalent to scaling a, b, c.
+
+Estimator: the velocity regressors (-v, -v^2, -g sin theta(s)) are evaluated on a reference
+trajectory (RTS-smoothed speed/position, re-linearised ``outer_iterations`` times); the model is
+then linear-Gaussian in the state with a drift *linear in the parameters*, so the exact maximum
+likelihood estimate is a generalised least squares computed with one Kalman filter run on the data
+and on one sensitivity column per parameter ("augmented Kalman filter", de Jong 1991). The
+standard errors are the exact inverse information of that linear model. This is the fixed point of
+the exact-EM variant of ``hybrid_em`` (Kalman E-step on a linearised model), reached directly.
+Noise: the speed variance from the messages (or train.yaml), the process-noise PSD q and the
+distance noise r_s by maximising the profile likelihood (Nelder-Mead on logs).
+
+Pure: numpy/scipy only.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import minimize
+from scipy.signal import lfilter
+
+from train_sim.model import Davis, Line, TrainParams
+
+__all__ = [
+    "IdentificationError",
+    "SIData",
+    "SIConfig",
+    "SIResult",
+    "PARAM_NAMES",
+    "actuator_output",
+    "identify",
+]
+
+PARAM_NAMES = ("traction_gain", "brake_gain", "alpha", "beta", "gamma", "kappa")
+LOG2PI = np.log(2.0 * np.pi)
+
+
+class IdentificationError(ValueError):
+    """The data cannot support the fit. ``missing``: series/excitation that is absent;
+    ``unidentifiable``: parameters that cannot be identified from these data."""
+
+    def __init__(self, reason: str, missing=(), unidentifiable=()):
+        self.reason = reason
+        self.missing = tuple(missing)
+        self.unidentifiable = tuple(unidentifiable)
+        msg = reason
+        if self.missing:
+            msg += f" | missing: {', '.join(self.missing)}"
+        if self.unidentifiable:
+            msg += f" | cannot identify: {', '.join(self.unidentifiable)}"
+        super().__init__(msg)
+
+
+ALL_PHYSICAL = ("davis.a", "davis.b", "davis.c", "mass", "rotary_allowance", "braking_rate")
+
+
+@dataclass(frozen=True)
+class SIData:
+    """Measured series (one run). Stamps in s on one clock, strictly increasing per series."""
+
+    odo_t: np.ndarray  # s, odometer sample stamps
+    odo_distance: np.ndarray  # m, distance counted since the run started
+    odo_speed: np.ndarray  # m/s
+    ctrl_t: np.ndarray  # s, control command stamps
+    ctrl_a_tar: np.ndarray  # m/s^2, a_Tar (> 0 traction, < 0 braking), held until the next one
+    balise_t: np.ndarray | None = None  # s, balise passing stamps
+    balise_position: np.ndarray | None = None  # m, surveyed positions of those balises
+    odo_speed_variance: np.ndarray | None = None  # (m/s)^2 per sample; None: train.yaml
+
+
+@dataclass(frozen=True)
+class SIConfig:
+    max_rate: float = 2.0  # Hz, odometer samples are decimated to at most this rate
+    grid_dt: float = 0.1  # s, grid for the actuator and the regressor integrals
+    outer_iterations: int = 3  # re-linearisations about the smoothed trajectory
+    standstill_speed: float = 1.0  # m/s, intervals reaching below this are not modelled
+    standstill_q: float = 1.0  # (m/s^2)^2 s, process noise PSD there (the KF just follows data)
+    min_duration: float = 120.0  # s
+    min_samples: int = 50
+    min_speed: float = 1.0  # m/s, the train must exceed this to count as moving
+    min_speed_range: float = 3.0  # m/s, 5-95 % spread of moving speeds (else "only cruises")
+    min_brake: float = 0.05  # m/s^2, |a_Tar| below this is not braking
+    min_gradient_spread: float = 1e-3  # m/s^2, std of g sin(theta) over the run for kappa
+    rel_se_max: float = 0.25  # a parameter is identifiable if SE < rel_se_max * |prior|
+    fit_traction_gain: bool = True  # k = M_prior / M; False: k = 1 (mass not identifiable)
+    min_distance_var: float = 1e-4  # m^2, floor for the distance noise variance
+
+
+@dataclass(frozen=True)
+class SIResult:
+    """Fit result. Values of non-identifiable parameters are the prior's, flagged False."""
+
+    train: TrainParams  # prior with the identified values substituted
+    values: dict  # name -> fitted value (PARAM_NAMES and physical names)
+    std_errors: dict  # name -> standard error (nan where fixed at the prior)
+    identifiable: dict  # name -> bool
+    reasons: dict  # name -> why it is / is not identifiable
+    covariance: np.ndarray  # covariance of the free specific parameters (order: free_names)
+    free_names: tuple
+    mass_if_davis_nominal: tuple  # (kg, SE kg): mass explaining the data if a, b, c (N) = prior
+    diagnostics: dict = field(default_factory=dict)
+    series: dict = field(default_factory=dict)  # t, measured and smoothed speed for plots
+
+
+# ---------------------------------------------------------------------------------------------
+
+
+def actuator_output(t_grid, ctrl_t, ctrl_a, tau: float, delay: float):
+    """(traction, braking) actuator outputs on ``t_grid`` (uniform): delayed zero-order-hold
+    command split at zero, each through the first-order lag tau (exact discretisation).
+
+    The command before the first stamp is 0 (Zheng eq. (1): a_Tar(t - T) = 0 for t <= T).
+    """
+    t_grid = np.asarray(t_grid, float)
+    dt = t_grid[1] - t_grid[0]
+    i = np.searchsorted(ctrl_t, t_grid - delay, side="right") - 1
+    cmd = np.where(i >= 0, ctrl_a[np.clip(i, 0, None)], 0.0)
+    e = np.exp(-dt / tau)
+    out = []
+    for part in (np.maximum(cmd, 0.0), np.minimum(cmd, 0.0)):
+        # y[k] = e y[k-1] + (1 - e) x[k-1]: exact for a command held over each grid step
+        out.append(lfilter([0.0, 1.0 - e], [1.0, -e], part))
+    return out[0], out[1]
+
+
+def _moving_average(x, width):
+    if width <= 1:
+        return x.copy()
+    k = np.ones(width) / width
+    pad = width // 2
+    xp = np.concatenate([np.full(pad, x[0]), x, np.full(width - 1 - pad, x[-1])])
+    return np.convolve(xp, k, mode="valid")
+
+
+def _validate(data: SIData, line: Line):
+    missing = []
+    for name, arrs in (("odometer", (data.odo_t, data.odo_distance, data.odo_speed)),
+                       ("control", (data.ctrl_t, data.ctrl_a_tar))):
+        if any(a is None or np.size(a) == 0 for a in arrs):
+            missing.append(name)
+    no_balise = data.balise_t is None or np.size(data.balise_t) == 0
+    if missing:
+        raise IdentificationError("required series are missing", missing, ALL_PHYSICAL)
+    out = {}
+    for name in ("odo_t", "odo_distance", "odo_speed", "ctrl_t", "ctrl_a_tar"):
+        a = np.asarray(getattr(data, name), float).ravel()
+        if not np.all(np.isfinite(a)):
+            raise IdentificationError(f"{name} contains NaN or inf", (), ALL_PHYSICAL)
+        out[name] = a
+    if not (out["odo_t"].size == out["odo_distance"].size == out["odo_speed"].size):
+        raise IdentificationError("odometer arrays differ in length", (), ALL_PHYSICAL)
+    if out["ctrl_t"].size != out["ctrl_a_tar"].size:
+        raise IdentificationError("control arrays differ in length", (), ALL_PHYSICAL)
+    for name in ("odo_t", "ctrl_t"):
+        if np.any(np.diff(out[name]) <= 0):
+            raise IdentificationError(f"{name} stamps are not strictly increasing "
+                                      "(out of order or duplicated)", (), ALL_PHYSICAL)
+    if data.odo_speed_variance is not None:
+        sv = np.asarray(data.odo_speed_variance, float).ravel()
+        if sv.size != out["odo_t"].size or np.any(~np.isfinite(sv)) or np.any(sv <= 0):
+            raise IdentificationError("odo_speed_variance must be finite, > 0, one per sample",
+                                      (), ALL_PHYSICAL)
+        out["odo_speed_variance"] = sv
+    if not no_balise:
+        bt = np.asarray(data.balise_t, float).ravel()
+        bp = np.asarray(data.balise_position, float).ravel()
+        if bt.size != bp.size or not (np.all(np.isfinite(bt)) and np.all(np.isfinite(bp))):
+            raise IdentificationError("balise arrays differ in length or are not finite", (),
+                                      ALL_PHYSICAL)
+        out["balise_t"], out["balise_position"] = bt, bp
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# Augmented Kalman filter (exact GLS for a drift linear in the parameters)
+# ---------------------------------------------------------------------------------------------
+
+
+def _aug_kf(Y, dt, Bv, Bs, base_v, base_s, q, r_s, r_v):
+    """Run the KF on x = (s, v), x_{k+1} = A x_k + [Bs; Bv] theta + [base_s; base_v] + w.
+
+    Y (n, 2) measurements (distance, speed) at the n stamps, dt (n-1,), Bv/Bs (n-1, p) parameter
+    columns, base_* (n-1,) known input, r_v (n,). Returns (W, logdet) with
+    W = sum_k E_k^T S_k^{-1} E_k over columns [data, theta_1..p]: the log-likelihood at theta is
+    -0.5 (logdet + z^T W z), z = [1, theta].
+    """
+    n, p = Y.shape[0], Bv.shape[1]
+    Xs = np.zeros(p + 1)
+    Xv = np.zeros(p + 1)
+    Xs[0], Xv[0] = Y[0, 0], Y[0, 1]
+    p00, p01, p11 = r_s, 0.0, float(r_v[0])
+    W = np.zeros((p + 1, p + 1))
+    logdet = 0.0
+    colv = np.concatenate([base_v[:, None], Bv], axis=1)
+    cols = np.concatenate([base_s[:, None], Bs], axis=1)
+    for k in range(1, n):
+        h = dt[k - 1]
+        # predict: A = [[1, h], [0, 1]]; Q = q [[h^3/3, h^2/2], [h^2/2, h]] (white jerk-free
+        # acceleration noise with PSD q)
+        Xs = Xs + h * Xv + cols[k - 1]
+        Xv = Xv + colv[k - 1]
+        qk = q[k - 1]
+        p00, p01, p11 = (p00 + 2 * h * p01 + h * h * p11 + qk * h ** 3 / 3.0,
+                         p01 + h * p11 + qk * h * h / 2.0, p11 + qk * h)
+        s00, s01, s11 = p00 + r_s, p01, p11 + r_v[k]
+        det = s00 * s11 - s01 * s01
+        i00, i01, i11 = s11 / det, -s01 / det, s00 / det
+        es = -Xs
+        ev = -Xv
+        es[0] += Y[k, 0]
+        ev[0] += Y[k, 1]
+        # W += E^T S^-1 E with E = [es; ev]
+        ts = i00 * es + i01 * ev
+        tv = i01 * es + i11 * ev
+        W += np.outer(es, ts) + np.outer(ev, tv)
+        logdet += np.log(det) + 2 * LOG2PI
+        # update: K = P S^-1
+        k00, k01 = p00 * i00 + p01 * i01, p00 * i01 + p01 * i11
+        k10, k11 = p01 * i00 + p11 * i01, p01 * i01 + p11 * i11
+        Xs = Xs + k00 * es + k01 * ev
+        Xv = Xv + k10 * es + k11 * ev
+        # P = (I - K) P (symmetric 2x2)
+        n00 = (1 - k00) * p00 - k01 * p01
+        n01 = (1 - k00) * p01 - k01 * p11
+        n11 = -k10 * p01 + (1 - k11) * p11
+        p00, p01, p11 = n00, n01, n11
+    return W, logdet
+
+
+def _gls(W, logdet):
+    """theta maximising -0.5 z^T W z (z = [1, theta]); returns theta, cov, loglik."""
+    Wtt, wt0 = W[1:, 1:], W[1:, 0]
+    d = np.sqrt(np.clip(np.diag(Wtt), 1e-300, None))
+    A = Wtt / np.outer(d, d)
+    cond = np.linalg.cond(A)
+    if not np.isfinite(cond) or cond > 1e12:
+        raise np.linalg.LinAlgError(f"information matrix singular (condition {cond:.3g})")
+    Ai = np.linalg.inv(A)
+    cov = Ai / np.outer(d, d)
+    theta = -cov @ wt0
+    z = np.concatenate([[1.0], theta])
+    return theta, cov, -0.5 * (logdet + z @ W @ z), cond
+
+
+def _kf_rts(Y, dt, drift_v, drift_s, q, r_s, r_v):
+    """Plain KF + RTS for x = (s, v) with known drift; returns smoothed (s, v) at the stamps."""
+    n = Y.shape[0]
+    m = np.zeros((n, 2))
+    P = np.zeros((n, 2, 2))
+    mp = np.zeros((n, 2))
+    Pp = np.zeros((n, 2, 2))
+    A = np.zeros((n, 2, 2))
+    m[0] = Y[0]
+    P[0] = np.diag([r_s, r_v[0]])
+    for k in range(1, n):
+        h = dt[k - 1]
+        A[k] = [[1.0, h], [0.0, 1.0]]
+        Q = q[k - 1] * np.array([[h ** 3 / 3, h * h / 2], [h * h / 2, h]])
+        mp[k] = A[k] @ m[k - 1] + [drift_s[k - 1], drift_v[k - 1]]
+        Pp[k] = A[k] @ P[k - 1] @ A[k].T + Q
+        S = Pp[k] + np.diag([r_s, r_v[k]])
+        K = Pp[k] @ np.linalg.inv(S)
+        m[k] = mp[k] + K @ (Y[k] - mp[k])
+        P[k] = (np.eye(2) - K) @ Pp[k]
+    ms = m.copy()
+    Ps = P.copy()
+    for k in range(n - 2, -1, -1):
+        C = P[k] @ A[k + 1].T @ np.linalg.inv(Pp[k + 1])
+        ms[k] = m[k] + C @ (ms[k + 1] - mp[k + 1])
+        Ps[k] = P[k] + C @ (Ps[k + 1] - Pp[k + 1]) @ C.T
+    return ms
+
+
+class _QVec:
+    """Per-interval process-noise PSD: exp(log q) where modelled, ``big`` where held."""
+
+    def __init__(self, held, big):
+        self.held, self.big = held, big
+
+    def __call__(self, lq):
+        return np.where(self.held, self.big, np.exp(lq))
+
+
+# ---------------------------------------------------------------------------------------------
+
+
+def identify(data: SIData, line: Line, prior: TrainParams, config: SIConfig = SIConfig(),
+             progress: Callable[[int, int, str], None] | None = None) -> SIResult:
+    """Fit braking rate f, specific Davis resistance (alpha, beta, gamma) and kappa = 1/(1+lambda)
+    from one run; map them to train.yaml quantities given the prior mass.
+
+    Raises :class:`IdentificationError` (with what is missing and which parameters cannot be
+    identified) for missing series, too short runs, a train that never moves or only cruises.
+    ``progress(step, total, what)`` is called as the fit proceeds.
+    """
+    cfg = config
+    d = _validate(data, line)
+    has_grad = any(g.permille != 0 for g in line.gradients)
+    t_all = d["odo_t"]
+    duration = t_all[-1] - t_all[0] if t_all.size else 0.0
+    if t_all.size < cfg.min_samples or duration < cfg.min_duration:
+        raise IdentificationError(
+            f"run too short: {t_all.size} odometer samples over {duration:.1f} s (need >= "
+            f"{cfg.min_samples} samples and >= {cfg.min_duration:g} s)", ("longer run",),
+            ALL_PHYSICAL)
+    vmax = float(np.max(d["odo_speed"]))
+    if vmax < cfg.min_speed:
+        raise IdentificationError(
+            f"the train never moves (max speed {vmax:.2f} m/s < {cfg.min_speed:g} m/s)",
+            ("motion",), ALL_PHYSICAL)
+    moving = d["odo_speed"] > cfg.min_speed
+    lo, hi = np.percentile(d["odo_speed"][moving], [5, 95])
+    if hi - lo < cfg.min_speed_range:
+        raise IdentificationError(
+            f"the train only cruises: moving speeds span {lo:.1f}-{hi:.1f} m/s (< "
+            f"{cfg.min_speed_range:g} m/s); only the total resistance at that speed is "
+            "determined, a, b and c cannot be separated", ("speed variation (accelerate/brake)",),
+            ALL_PHYSICAL)
+
+    if has_grad and "balise_t" not in d:
+        raise IdentificationError("no balise readings: the run cannot be placed on the line's "
+                                  "gradients", ("balise",), ALL_PHYSICAL)
+
+    # ---- decimate the odometer -------------------------------------------------------------
+    step = max(1, int(round(1.0 / (cfg.max_rate * np.median(np.diff(t_all))))))
+    sel = np.arange(0, t_all.size, step)
+    t = t_all[sel]
+    Y = np.stack([d["odo_distance"][sel], d["odo_speed"][sel]], axis=1)
+    if "odo_speed_variance" in d:
+        r_v = d["odo_speed_variance"][sel]
+    else:
+        r_v = np.full(t.size, prior.odometer_speed_std ** 2)
+    r_v = np.maximum(r_v, 1e-8)
+    dt = np.diff(t)
+
+    # ---- position on the line --------------------------------------------------------------
+    if "balise_t" in d:
+        inside = (d["balise_t"] >= t_all[0]) & (d["balise_t"] <= t_all[-1])
+        if not np.any(inside) and has_grad:
+            raise IdentificationError("no balise reading falls inside the odometer record",
+                                      ("balise inside the run",), ALL_PHYSICAL)
+        offs = d["balise_position"][inside] - np.interp(d["balise_t"][inside], t_all,
+                                                        d["odo_distance"])
+        s0 = float(np.median(offs)) if offs.size else 0.0
+    else:
+        s0 = 0.0
+
+    # ---- grid quantities -------------------------------------------------------------------
+    tg = np.arange(t[0], t[-1] + cfg.grid_dt, cfg.grid_dt)
+    a_tr, a_br = actuator_output(tg, d["ctrl_t"], d["ctrl_a_tar"], prior.brake.time_constant,
+                                 prior.brake.delay)
+    braking_seen = bool(np.any(d["ctrl_a_tar"] < -cfg.min_brake))
+    lam0 = prior.rotary_allowance
+    meff0 = prior.effective_mass
+    prior_vals = {"traction_gain": 1.0, "brake_gain": prior.brake.braking_rate,
+                  "alpha": prior.davis.a / meff0, "beta": prior.davis.b / meff0,
+                  "gamma": prior.davis.c / meff0, "kappa": 1.0 / (1.0 + lam0)}
+
+    def build(v_ref_g, s_ref_g):
+        """Regressor columns on the grid -> interval integrals at the stamps."""
+        mv = (v_ref_g >= cfg.standstill_speed).astype(float)
+        # an interval is modelled only if the train moves throughout it
+        cm = np.concatenate([[0.0], np.cumsum(1.0 - mv)])
+        ig = np.searchsorted(tg, t)
+        held_k = (cm[np.minimum(ig[1:] + 1, tg.size)] - cm[ig[:-1]]) > 0
+        gs = line.gradient_accel(s0 + s_ref_g) if has_grad else np.zeros_like(tg)
+        R = np.stack([a_tr, a_br, -np.ones_like(tg), -v_ref_g, -v_ref_g ** 2, -gs], axis=1)
+        R *= mv[:, None]
+        # cumulative integrals I1 = int r, I2 = int tau r (trapezoid on the grid)
+        inc = 0.5 * (R[1:] + R[:-1]) * cfg.grid_dt
+        tm = 0.5 * (tg[1:] + tg[:-1])
+        I1 = np.concatenate([np.zeros((1, 6)), np.cumsum(inc, axis=0)])
+        I2 = np.concatenate([np.zeros((1, 6)), np.cumsum(inc * tm[:, None], axis=0)])
+        J1 = np.stack([np.interp(t, tg, I1[:, j]) for j in range(6)], axis=1)
+        J2 = np.stack([np.interp(t, tg, I2[:, j]) for j in range(6)], axis=1)
+        Bv = np.diff(J1, axis=0)
+        Bs = t[1:, None] * Bv - np.diff(J2, axis=0)  # int (t_{k+1} - tau) r dtau
+        Bv[held_k] = 0.0
+        Bs[held_k] = 0.0
+        return Bv, Bs, gs, mv, held_k
+
+    # initial reference: lightly smoothed measured speed, measured distance
+    width = max(1, int(round(2.0 / np.median(dt))))
+    v_ref = np.clip(_moving_average(Y[:, 1], width), 0.0, None)
+    s_ref = Y[:, 0]
+
+    grad_spread = 0.0
+    free = {"traction_gain": cfg.fit_traction_gain, "brake_gain": braking_seen,
+            "alpha": True, "beta": True, "gamma": True, "kappa": True}
+    reasons = {}
+    if not cfg.fit_traction_gain:
+        reasons["traction_gain"] = "fixed at 1 (fit_traction_gain=False): mass not identifiable"
+    if not braking_seen:
+        reasons["brake_gain"] = "no braking in the run: f not identifiable, prior kept"
+    log_q, log_rs = np.log(1e-4), np.log(max(prior.odometer_distance_std ** 2,
+                                             cfg.min_distance_var))
+    total_steps = cfg.outer_iterations + 2
+    fit = None
+    for outer in range(cfg.outer_iterations):
+        v_ref_g = np.interp(tg, t, v_ref)
+        s_ref_g = np.interp(tg, t, s_ref)
+        Bv, Bs, gs, mv, held_k = build(v_ref_g, s_ref_g)
+        qvec = _QVec(held_k, cfg.standstill_q)
+        if outer == 0:
+            grad_spread = float(np.std(gs[mv > 0])) if np.any(mv > 0) else 0.0
+            if grad_spread < cfg.min_gradient_spread:
+                free["kappa"] = False
+                reasons["kappa"] = (f"gradient acceleration varies too little along the run "
+                                    f"(std {grad_spread:.2g} m/s^2): lambda not identifiable "
+                                    "(confounded with a), prior kept")
+
+        def fit_with(free_now, lq, lrs, Bv=Bv, Bs=Bs, qvec=qvec):
+            names = [k for k in PARAM_NAMES if free_now[k]]
+            fixed = [k for k in PARAM_NAMES if not free_now[k]]
+            jf = [PARAM_NAMES.index(k) for k in names]
+            jx = [PARAM_NAMES.index(k) for k in fixed]
+            thx = np.array([prior_vals[k] for k in fixed])
+            base_v = Bv[:, jx] @ thx if jx else np.zeros(len(dt))
+            base_s = Bs[:, jx] @ thx if jx else np.zeros(len(dt))
+            W, ld = _aug_kf(Y, dt, Bv[:, jf], Bs[:, jf], base_v, base_s, qvec(lq),
+                            np.exp(lrs), r_v)
+            th, cov, ll, cond = _gls(W, ld)
+            return names, th, cov, ll, cond
+
+        if outer == 0:  # noise by profile likelihood (once; the linearisation barely moves it)
+            def negll(z):
+                try:
+                    return -fit_with(free, z[0], z[1])[3]
+                except np.linalg.LinAlgError:
+                    return np.inf
+            opt = minimize(negll, np.array([log_q, log_rs]), method="Nelder-Mead",
+                           options={"xatol": 0.05, "fatol": 0.05, "maxfev": 60})
+            log_q = float(np.clip(opt.x[0], np.log(1e-12), np.log(10.0)))
+            log_rs = float(max(opt.x[1], np.log(cfg.min_distance_var)))
+        # elimination: fix the worst-determined parameter at the prior until all pass
+        while True:
+            try:
+                names, th, cov, ll, cond = fit_with(free, log_q, log_rs)
+            except np.linalg.LinAlgError as exc:
+                raise IdentificationError(f"no excitation: {exc}", ("excitation",),
+                                          ALL_PHYSICAL) from exc
+            se = np.sqrt(np.diag(cov))
+            rel = np.array([se[i] / max(abs(prior_vals[k]), 1e-12) for i, k in enumerate(names)])
+            bad = [(rel[i], k) for i, k in enumerate(names) if rel[i] > cfg.rel_se_max]
+            if not bad:
+                break
+            worst = max(bad)[1]
+            free[worst] = False
+            reasons[worst] = (f"relative standard error {max(bad)[0]:.2f} > {cfg.rel_se_max:g}: "
+                              "not identifiable from this run, prior kept")
+            if not any(free[k] for k in ("alpha", "beta", "gamma")):
+                raise IdentificationError(
+                    "no resistance parameter is identifiable from this run",
+                    ("excitation",), ("davis.a", "davis.b", "davis.c", "mass"))
+        fit = (names, th, cov, ll, cond, Bv, Bs)
+        # re-linearise about the smoothed trajectory under the fit
+        vals = dict(prior_vals)
+        vals.update(dict(zip(names, th)))
+        thv = np.array([vals[k] for k in PARAM_NAMES])
+        sm = _kf_rts(Y, dt, Bv @ thv, Bs @ thv, qvec(log_q), np.exp(log_rs), r_v)
+        s_ref, v_ref = sm[:, 0], np.clip(sm[:, 1], 0.0, None)
+        if progress is not None:
+            progress(outer + 1, total_steps, f"linearisation {outer + 1}/{cfg.outer_iterations}")
+
+    names, th, cov, ll, cond, Bv, Bs = fit
+    vals = dict(prior_vals)
+    vals.update(dict(zip(names, th)))
+    ses = {k: float("nan") for k in PARAM_NAMES}
+    ses.update({k: float(s) for k, s in zip(names, np.sqrt(np.diag(cov)))})
+    ident = {k: bool(free[k]) for k in PARAM_NAMES}
+    for k in names:
+        reasons.setdefault(k, f"identified, relative SE {ses[k] / abs(prior_vals[k]):.3f}")
+
+    # ---- physical quantities ---------------------------------------------------------------
+    kap = vals["kappa"]
+    lam = 1.0 / kap - 1.0
+    se_lam = ses["kappa"] / kap ** 2 if ident["kappa"] else float("nan")
+    kg = vals["traction_gain"]
+    mass = prior.mass / kg
+    se_mass = prior.mass * ses["traction_gain"] / kg ** 2 if ident["traction_gain"] else np.nan
+    f_hat = vals["brake_gain"] / kg
+    se_f = float("nan")
+    if ident["brake_gain"]:
+        # delta method for f = (k f) / k with the joint covariance of the free gains
+        gradf = np.zeros(len(names))
+        gradf[names.index("brake_gain")] = 1.0 / kg
+        if ident["traction_gain"]:
+            gradf[names.index("traction_gain")] = -vals["brake_gain"] / kg ** 2
+        se_f = float(np.sqrt(gradf @ cov @ gradf))
+    meff = (1.0 + lam) * mass
+    davis = Davis(a=vals["alpha"] * meff, b=vals["beta"] * meff, c=vals["gamma"] * meff)
+    values = dict(vals)
+    values.update({"davis.a": davis.a, "davis.b": davis.b, "davis.c": davis.c,
+                   "mass": mass, "rotary_allowance": lam, "braking_rate": f_hat})
+    std = dict(ses)
+    std.update({"davis.a": ses["alpha"] * meff, "davis.b": ses["beta"] * meff,
+                "davis.c": ses["gamma"] * meff, "mass": se_mass, "rotary_allowance": se_lam,
+                "braking_rate": se_f})
+    ident.update({"davis.a": ident["alpha"], "davis.b": ident["beta"], "davis.c": ident["gamma"],
+                  "mass": ident["traction_gain"], "rotary_allowance": ident["kappa"],
+                  "braking_rate": ident["brake_gain"]})
+    mass_note = (" (in N: alpha M_eff with the fitted mass)" if ident["traction_gain"]
+                 else " (in N given the prior mass)")
+    reasons.update({
+        "davis.a": reasons["alpha"] + mass_note,
+        "davis.b": reasons["beta"] + mass_note,
+        "davis.c": reasons["gamma"] + mass_note,
+        "mass": (("identified as M_prior / traction_gain, assuming the drive force is the "
+                  "command times the believed mass") if ident["traction_gain"] else
+                 ("not identifiable: " + reasons["traction_gain"])),
+        "rotary_allowance": reasons["kappa"], "braking_rate": reasons["brake_gain"]})
+
+    # mass hypothesis: resistance = k * prior specific resistance, k = M_eff,prior / M_eff
+    free_m = {k: (free[k] if k in ("brake_gain", "kappa") else False)
+              for k in PARAM_NAMES}
+    jx = [PARAM_NAMES.index(k) for k in PARAM_NAMES if not free_m[k] and k not in
+          ("alpha", "beta", "gamma")]
+    jf = [PARAM_NAMES.index(k) for k in PARAM_NAMES if free_m[k]]
+    res_col = (Bv[:, 2:5] @ np.array([prior_vals["alpha"], prior_vals["beta"],
+                                      prior_vals["gamma"]]))
+    res_col_s = (Bs[:, 2:5] @ np.array([prior_vals["alpha"], prior_vals["beta"],
+                                        prior_vals["gamma"]]))
+    thx = np.array([prior_vals[PARAM_NAMES[j]] for j in jx])
+    W, ld = _aug_kf(Y, dt, np.concatenate([Bv[:, jf], res_col[:, None]], axis=1),
+                    np.concatenate([Bs[:, jf], res_col_s[:, None]], axis=1),
+                    Bv[:, jx] @ thx, Bs[:, jx] @ thx, qvec(log_q), np.exp(log_rs), r_v)
+    thm, covm, llm, _ = _gls(W, ld)
+    kscale, se_k = thm[-1], float(np.sqrt(covm[-1, -1]))
+    m_eq = prior.mass / kscale
+    mass_hyp = (float(m_eq), float(prior.mass * se_k / kscale ** 2))
+
+    train = prior.with_changes(
+        davis=davis if any(ident[k] for k in ("alpha", "beta", "gamma")) else prior.davis,
+        rotary_allowance=float(lam) if ident["kappa"] else prior.rotary_allowance,
+        brake=prior.brake.__class__(time_constant=prior.brake.time_constant,
+                                    delay=prior.brake.delay,
+                                    braking_rate=float(f_hat)),
+        mass=float(mass),
+    )
+    if progress is not None:
+        progress(total_steps, total_steps, "done")
+    resid = Y[:, 1] - v_ref
+    return SIResult(
+        train=train, values=values, std_errors=std, identifiable=ident, reasons=reasons,
+        covariance=cov, free_names=tuple(names), mass_if_davis_nominal=mass_hyp,
+        diagnostics={"samples_used": int(t.size), "duration_s": float(duration),
+                     "position_offset_m": s0, "process_noise_psd": float(np.exp(log_q)),
+                     "distance_noise_var": float(np.exp(log_rs)), "loglik": float(ll),
+                     "loglik_mass_hypothesis": float(llm), "condition": float(cond),
+                     "speed_range": (float(lo), float(hi)), "gradient_spread": grad_spread,
+                     "speed_residual_rms": float(np.sqrt(np.mean(resid ** 2)))},
+        series={"t": t, "speed_measured": Y[:, 1], "speed_smoothed": v_ref,
+                "distance_smoothed": s_ref},
+    )
