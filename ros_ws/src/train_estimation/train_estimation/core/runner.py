@@ -58,6 +58,7 @@ class EstimatorRunner:
     rejected: Counter = field(default_factory=Counter)
     accepted: Counter = field(default_factory=Counter)
     last_reasons: list = field(default_factory=list)  # (kind, stamp, reason), most recent last
+    high: dict = field(default_factory=dict)  # kind -> largest stamp pushed (the watermark)
     _k: int | None = None  # index of the next output time
     _n: int = 0  # insertion counter: FIFO among equal stamps and kinds
 
@@ -68,6 +69,7 @@ class EstimatorRunner:
         if not (isinstance(stamp, float | int) and math.isfinite(stamp)):
             return self._reject(kind, float("nan"), "non_finite_stamp")
         heapq.heappush(self.queue, (float(stamp), KIND_ORDER[kind], self._n, kind, fields))
+        self.high[kind] = max(self.high.get(kind, -math.inf), float(stamp))
         self._n += 1
         return ""
 
@@ -105,6 +107,22 @@ class EstimatorRunner:
             out.append(self.adapter.output(tk))
             self._k += 1
         return out
+
+    def ready_time(self, now: float, delay: float, fallback: float) -> float:
+        """Latest output time a live node can emit at clock ``now`` without racing its inputs.
+
+        Output time t needs every reading stamped <= t. Each topic arrives in order, so the
+        largest stamp pushed per topic (its watermark) says how far that topic is complete.
+        ``control`` is not sent over the lossy link: its watermark is the data's own clock.
+        The odometer is complete up to its watermark, or -- when samples were lost -- up to
+        ``fallback`` seconds behind the control watermark. Without control messages the node's
+        clock stands in for it. ``now - delay`` is an upper bound in every case. Driven by the
+        data rather than by the clock, a node emits what the offline replay of the same
+        messages emits, however the executor interleaves /clock and the subscriptions.
+        """
+        lead = self.high.get("control", now - delay)
+        odo = self.high.get("odometer", -math.inf)
+        return min(now - delay, lead, max(odo, lead - fallback))
 
     def drain(self) -> list[Output]:
         """Process everything queued (offline use): estimates up to the last item's stamp."""

@@ -116,7 +116,10 @@ def build_estimator_node(name: str, topic: str, make_adapter: Callable):
             now = self.get_clock().now().nanoseconds * 1e-9
             if now <= 0.0:  # no /clock yet under use_sim_time
                 return
-            for out in self.runner.advance_to(now - self.delay):
+            # Outputs wait for the inputs' watermarks (or 4 x delay for a lost sample), so the
+            # node computes exactly what the offline replay of the same messages computes.
+            for out in self.runner.advance_to(self.runner.ready_time(now, self.delay,
+                                                                      4 * self.delay)):
                 msg = TrainState()
                 msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(
                     int(round(out.stamp * 1e9)), 1_000_000_000)

@@ -70,6 +70,8 @@ def main(argv=None) -> int:
     p.add_argument("--duration", type=float, default=-1.0,
                    help="s of simulated time (default: the scenario's)")
     p.add_argument("--out", default=None, help="output folder (default out/demo-<time>)")
+    p.add_argument("--estimators", default="robust_filter,gsma_estimator",
+                   help="comma-separated estimator nodes to run (default both)")
     args = p.parse_args(argv)
 
     repo = Path(os.environ.get("TRAIN_REPO", Path.cwd()))
@@ -102,8 +104,9 @@ def main(argv=None) -> int:
         ("train_estimation", "robust_filter", "robust_filter", est),
         ("train_estimation", "gsma_estimator", "gsma_estimator", est),
     ]
+    wanted = {"recorder", *filter(None, args.estimators.split(","))}
     consumers = [(pkg, exe, name, extra) for pkg, exe, name, extra in plan
-                 if executable(pkg, exe) is not None]
+                 if name in wanted and executable(pkg, exe) is not None]
     state_topic = ("estimate/robust" if any(e == "robust_filter" for _, e, _, _ in consumers)
                    else "ground_truth")
     zc_extra = ["-p", f"state_topic:={state_topic}", "-p", f"line_file:={line_file}"]
