@@ -35,6 +35,13 @@ if [ -f "${TRAIN_REPO}/ros_ws/install/setup.bash" ]; then
     unset _train_nounset
 fi
 
+# `ros2 run PKG EXE` runs <prefix>/lib/PKG/EXE; there is no ros2 command on the pip set-up, so
+# put those folders on PATH: `simulator --ros-args ...` then works as `ros2 run` would.
+for _d in "${TRAIN_REPO}"/ros_ws/install/*/lib/train_*; do
+    [ -d "${_d}" ] && PATH="${_d}:${PATH}"
+done
+unset _d
+export PATH
 export ROS_LOG_DIR="${TRAIN_REPO}/.cache/ros_log"
 mkdir -p "${ROS_LOG_DIR}"
 export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST

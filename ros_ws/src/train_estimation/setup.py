@@ -27,6 +27,7 @@ setup(
             "robust_filter = train_estimation.nodes.robust_filter:main",
             "gsma_estimator = train_estimation.nodes.gsma_estimator:main",
             "check_bag = train_estimation.tools.check_bag:main",
+            "identify = train_estimation.tools.identify:main",
         ],
     },
 )

@@ -1,0 +1,172 @@
+"""`identify`: fit a train's parameters from a bag and write a fitted train.yaml.
+
+    identify --bag BAG --line line.yaml --train train.yaml --out fitted_train.yaml
+
+Reads ``odometer``, ``balise`` and ``control`` from the bag (CONTRACT.md format; ground truth,
+if present, is not used), fits the Davis coefficients, mass, rotary allowance and braking rate
+as far as the data identify them (train.identify), and writes ``train.yaml`` with the fitted
+values, their standard errors as comments and an ``identification`` block of extra keys, plus a
+plot of the fit beside it (``<out>.png``). Parameters the data cannot identify keep the prior
+value and are marked so. A bag that lacks what the fit needs gets a one-line reason naming what
+is missing and which parameters cannot be identified, exit code 2, and no output file.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from train_sim.bagio import BagError, read_bag
+from train_sim.config import ConfigError
+from train_sim.model import TrainParams, load_line, load_train
+
+
+def bag_to_data(bag):
+    from train_estimation.core.identify import IdentificationError, SIData
+
+    missing = [t for t in ("odometer", "control") if not bag.topics.get(t)]
+    if missing:
+        raise IdentificationError(
+            f"the bag has no {' and no '.join(missing)} messages (topics: "
+            f"{sorted(bag.topics) or 'none'})", missing=missing,
+            unidentifiable=("davis.a", "davis.b", "davis.c", "mass", "rotary_allowance",
+                            "braking_rate"))
+    bal = bag.topics.get("balise", [])
+    return SIData(
+        odo_t=bag.stamps("odometer"), odo_distance=bag.series("odometer", "distance"),
+        odo_speed=bag.series("odometer", "speed"),
+        odo_speed_variance=bag.series("odometer", "speed_variance"),
+        ctrl_t=bag.stamps("control"), ctrl_a_tar=bag.series("control", "target_acceleration"),
+        balise_t=np.array([s for _, s, _ in bal]) if bal else None,
+        balise_position=np.array([f["position"] for _, _, f in bal]) if bal else None)
+
+
+def train_to_yaml(train: TrainParams, res, prior: TrainParams, source: str) -> str:
+    """The fitted train.yaml text: CONTRACT.md keys, SEs as comments, extras as a block."""
+    se, ok = res.std_errors, res.identifiable
+
+    def note(name):
+        s = se.get(name, math.nan)
+        if not ok.get(name, False):
+            return "not identifiable from this run: prior kept"
+        return f"fitted, standard error {s:.4g}" if math.isfinite(s) else "fitted"
+
+    d = train.davis
+    lines = [
+        f"# train.yaml fitted by `identify` from {source}",
+        f"# prior: {prior.name}; values the data cannot identify keep the prior's value.",
+        f"name: {train.name}",
+        f"mass: {train.mass:.6g}                 # kg, {note('mass')}",
+        f"rotary_allowance: {train.rotary_allowance:.6g}    # -, {note('rotary_allowance')}",
+        "davis:                       # resistance a + b v + c v^2, in N",
+        f"  a: {d.a:.6g}                  # N, {note('davis.a')}",
+        f"  b: {d.b:.6g}                  # N/(m/s), {note('davis.b')}",
+        f"  c: {d.c:.6g}                  # N/(m/s)^2, {note('davis.c')}",
+        "brake:",
+        f"  time_constant: {train.brake.time_constant:g}   # s, from the prior",
+        f"  delay: {train.brake.delay:g}           # s, from the prior",
+        f"  braking_rate: {train.brake.braking_rate:.4g}    # -, {note('braking_rate')}",
+        f"odometer: {{speed_std: {train.odometer_speed_std:g}, "
+        f"distance_std: {train.odometer_distance_std:g}}}   # m/s, m (prior)",
+        f"balise: {{position_std: {train.balise_position_std:g}}}   # m (prior)",
+        "performance:                 # ATO limits (prior)",
+        f"  max_traction: {train.performance.max_traction:g}",
+        f"  service_brake: {train.performance.service_brake:g}",
+        f"  emergency_brake: {train.performance.emergency_brake:g}",
+        f"  max_jerk: {train.performance.max_jerk:g}",
+    ]
+    extra = {"identification": {
+        "standard_errors": {k: float(v) for k, v in se.items()
+                            if k in ok and isinstance(v, float | int) and math.isfinite(v)},
+        "identifiable": {k: bool(v) for k, v in ok.items()},
+        "reasons": {k: str(v) for k, v in res.reasons.items()},
+        "mass_if_davis_nominal_kg": [float(x) for x in res.mass_if_davis_nominal],
+    }}
+    return "\n".join(lines) + "\n# extra keys (CONTRACT.md allows them): what the fit knows\n" \
+        + yaml.safe_dump(extra, sort_keys=False, width=100)
+
+
+def plot_fit(res, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    s = res.series
+    fig, axes = plt.subplots(2, 1, figsize=(10, 6), sharex=True)
+    axes[0].plot(s["t"], s["speed_measured"], ".", ms=2, label="odometer speed")
+    axes[0].plot(s["t"], s["speed_smoothed"], lw=1, label="model fit (smoothed)")
+    axes[0].set_ylabel("speed (m/s)")
+    axes[0].legend(fontsize=8)
+    axes[1].plot(s["t"], s["speed_measured"] - s["speed_smoothed"], lw=0.6)
+    axes[1].set_ylabel("residual (m/s)")
+    axes[1].set_xlabel("time (s)")
+    for ax in axes:
+        ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+class Progress:
+    """A one-line text progress bar on stderr."""
+
+    def __init__(self, width: int = 30):
+        self.width = width
+
+    def __call__(self, step: int, total: int, what: str) -> None:
+        frac = step / max(total, 1)
+        bar = "#" * int(round(frac * self.width))
+        sys.stderr.write(f"\ridentify [{bar:<{self.width}}] {100 * frac:5.1f}% {what:<30}")
+        if step >= total:
+            sys.stderr.write("\n")
+        sys.stderr.flush()
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="identify", description=__doc__.splitlines()[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter,
+                                epilog="\n".join(__doc__.splitlines()[2:]))
+    p.add_argument("--bag", required=True, help="rosbag2 (MCAP) with odometer, balise, control")
+    p.add_argument("--line", required=True, help="line.yaml of the line the train ran on")
+    p.add_argument("--train", required=True, help="train.yaml: the prior")
+    p.add_argument("--out", required=True, help="fitted train.yaml to write")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    args = p.parse_args(argv)
+    from train_estimation.core.identify import IdentificationError, identify
+
+    try:
+        line, prior = load_line(args.line), load_train(args.train)
+        data = bag_to_data(read_bag(args.bag))
+        res = identify(data, line, prior, progress=None if args.quiet else Progress())
+    except (ConfigError, BagError) as exc:
+        print(f"identify: {exc}", file=sys.stderr)
+        return 2
+    except IdentificationError as exc:
+        print(f"identify: cannot fit {args.bag}: {exc}", file=sys.stderr)
+        return 2
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(train_to_yaml(res.train, res, prior, args.bag))
+    plot = out.with_suffix(".png")
+    plot_fit(res, plot)
+    load_train(out)  # what we wrote must be a valid train.yaml
+    print(f"{'parameter':<18}{'prior':>14}{'fitted':>14}{'std err':>12}  identifiable")
+    for name, get in (("davis.a", lambda t: t.davis.a), ("davis.b", lambda t: t.davis.b),
+                      ("davis.c", lambda t: t.davis.c), ("mass", lambda t: t.mass),
+                      ("rotary_allowance", lambda t: t.rotary_allowance),
+                      ("braking_rate", lambda t: t.brake.braking_rate)):
+        se = res.std_errors.get(name, math.nan)
+        print(f"{name:<18}{get(prior):>14.6g}{get(res.train):>14.6g}{se:>12.4g}  "
+              f"{'yes' if res.identifiable.get(name) else 'no'}")
+    print(f"wrote {out} and {plot}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

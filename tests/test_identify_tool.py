@@ -1,0 +1,65 @@
+"""`identify` on generated bags: recovers a changed Davis c; refuses data that cannot fit."""
+
+import dataclasses
+
+import pytest
+
+from train_estimation.tools import identify as tool
+from train_sim.bagio import BagWriter
+from train_sim.effects import ResistanceEffect
+from train_sim.generate import generate
+from train_sim.model import load_train
+from train_sim.scenario import load_scenario
+
+
+@pytest.fixture(scope="module")
+def crh3():
+    return load_scenario("crh3_high_speed")
+
+
+def run_tool(sc, bag, out):
+    return tool.main(["--bag", str(bag), "--line", sc.line_path, "--train", sc.train_path,
+                      "--out", str(out), "--quiet"])
+
+
+def test_identify_recovers_c_plus_30_percent(crh3, tmp_path, capsys):
+    d = crh3.train.davis
+    sc = crh3.with_effects(dataclasses.replace(
+        crh3.effects, resistance=ResistanceEffect(a=d.a, b=d.b, c=1.3 * d.c)))
+    generate(sc, tmp_path / "bag", measured=True)
+    assert run_tool(sc, tmp_path / "bag", tmp_path / "fitted.yaml") == 0
+    fitted = load_train(tmp_path / "fitted.yaml")
+    assert abs(fitted.davis.c - 1.3 * d.c) <= 0.10 * 1.3 * d.c, fitted.davis
+    assert (tmp_path / "fitted.png").stat().st_size > 5000
+    assert "standard error" in (tmp_path / "fitted.yaml").read_text()
+
+
+def test_identify_refuses_a_bag_without_control(crh3, tmp_path, capsys):
+    res = generate(crh3, tmp_path / "full", measured=True, duration=300.0)
+    with BagWriter(tmp_path / "nocontrol") as w:
+        for topic, stamp, fields in res.events():
+            if topic in ("odometer", "balise"):
+                w.write(topic, stamp, fields)
+    assert run_tool(crh3, tmp_path / "nocontrol", tmp_path / "x.yaml") == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "control" in err and "cannot identify" in err
+    assert not (tmp_path / "x.yaml").exists()
+
+
+@pytest.mark.parametrize("duration,expect", [(30.0, "too short")])
+def test_identify_refuses_too_short_a_run(crh3, tmp_path, capsys, duration, expect):
+    generate(crh3, tmp_path / "short", measured=True, duration=duration)
+    assert run_tool(crh3, tmp_path / "short", tmp_path / "x.yaml") == 2
+    assert expect in capsys.readouterr().err
+    assert not (tmp_path / "x.yaml").exists()
+
+
+def test_identify_refuses_a_train_that_never_moves(crh3, tmp_path, capsys):
+    # the driver dwells for the whole run: 300 s of odometer samples at standstill
+    still = crh3.with_changes(duration=300.0,
+                              driver=dataclasses.replace(crh3.driver, initial_dwell=1000.0))
+    generate(still, tmp_path / "still", measured=True)
+    assert run_tool(crh3, tmp_path / "still", tmp_path / "x.yaml") == 2
+    err = capsys.readouterr().err
+    assert "never moves" in err and "cannot identify" in err, err
+    assert not (tmp_path / "x.yaml").exists()
