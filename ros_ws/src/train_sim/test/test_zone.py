@@ -60,3 +60,13 @@ def test_bad_reports_are_rejected_and_counted():
     assert zc.report("A", rep(0.5, 11.0, 1.0)) == "out-of-order stamp"
     assert zc.reports["A"].position == 10.0
     assert sum(zc.rejected.values()) == 2
+
+
+def test_no_authority_while_another_train_is_not_localised():
+    zc = ZoneController(P)
+    zc.report("B", rep(0.0, 1000.0, 10.0))
+    (a,) = zc.authorities(0.5, ["B"])
+    assert not a.emergency_brake
+    auth = {x.train_id: x for x in zc.authorities(0.5, ["A", "B"])}
+    assert auth["B"].emergency_brake and "unknown" in auth["B"].reason
+    assert auth["A"].emergency_brake

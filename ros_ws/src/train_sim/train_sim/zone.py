@@ -20,7 +20,8 @@ where ``f_low = max(f_hat - k sigma_f, f_min)`` is the estimated braking rate's 
 a braking rate is published (``braking_rate`` finite) and 1 (nominal) otherwise.
 
 A train whose reports are older than ``stale_timeout`` is unsafe: it gets the emergency brake,
-and so does every train behind it (its rear can no longer be bounded from recent data).
+and so does every train behind it (its rear can no longer be bounded from recent data). While a
+supervised train has not reported at all, no other train gets an authority (it may be anywhere).
 """
 
 from __future__ import annotations
@@ -119,7 +120,12 @@ class ZoneController:
             reason = ""
             for other in train_ids:
                 orep = self.reports.get(other)
-                if other == tid or orep is None or orep.position <= rep.position:
+                if other == tid:
+                    continue
+                if orep is None:  # a supervised train not yet localised may be anywhere ahead
+                    reason = f"position of {other} unknown"
+                    continue
+                if orep.position <= rep.position:
                     continue
                 _, orear, _, _ = self._bounds(orep)
                 hazards.append((orear - p.margin, f"rear of {other}"))

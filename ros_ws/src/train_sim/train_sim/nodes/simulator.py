@@ -57,6 +57,11 @@ def build_node():
                                         "write the run's summary (JSON) here at the end; '' = no")
             self.wait_subs = declare("wait_for_subscribers", 0,
                                      "start only when odometer has this many subscribers")
+            self.publish_clock = declare("publish_clock", True,
+                                         "publish /clock (one simulator per ROS graph should)")
+            self.start_at = declare("start_at", 0.0,
+                                    "wall time (s since the epoch) to start at; 0 = at once. "
+                                    "Several simulators given one start_at share a time base")
             if not (self.rate_factor > 0 and self.step > 0):
                 raise ParameterError("rate_factor and wall_step must be > 0")
             try:
@@ -90,6 +95,10 @@ def build_node():
                 # the first sample, or they would miss the start of the run.
                 if self.pubs["odometer"].get_subscription_count() < self.wait_subs:
                     return
+                if self.start_at > 0:
+                    if time.time() < self.start_at:
+                        return
+                    now -= time.time() - self.start_at  # the shared instant, not this tick
                 self.wall0 = now
             target = min((now - self.wall0) * self.rate_factor, self.duration)
             if target <= self.t_sim:
@@ -98,9 +107,10 @@ def build_node():
                 self.pubs[topic].publish(fields_to_msg(TOPIC_TYPES[topic], stamp, fields))
                 self.counts[topic] += 1
             self.t_sim = target
-            clock = Clock()
-            sec_to_stamp(self.t_sim, clock.clock)
-            self.clock_pub.publish(clock)
+            if self.publish_clock:
+                clock = Clock()
+                sec_to_stamp(self.t_sim, clock.clock)
+                self.clock_pub.publish(clock)
             if self.t_sim >= self.duration and not self.done:
                 self.done = True
                 self.get_logger().info(f"run ended at {self.t_sim:.1f} s; published {self.counts}")
