@@ -76,7 +76,7 @@ def estimator_report(bag: Bag, topic: str, source: str, truth: dict | None) -> d
     used = np.array([f["measurement_used"] for _, _, f in rows], dtype=bool)
     rep: dict = {"topic": topic, "count": len(rows),
                  "measurement_used_fraction": float(used.mean()) if len(rows) else 0.0}
-    lat = recv - stamp
+    lat = recv - stamp  # in the recorder's clock: bag (sim) time, not wall time
     rep["latency_s"] = {"median": float(np.median(lat)), "p99": float(np.percentile(lat, 99))}
     series = {"stamp": stamp, "x": x, "v": v, "f": f_hat, "cov": cov}
     if truth is not None and len(rows):
@@ -89,6 +89,10 @@ def estimator_report(bag: Bag, topic: str, source: str, truth: dict | None) -> d
         rep["velocity"] = _stats(ev)
         if np.any(np.isfinite(f_hat)):
             rep["braking_rate"] = _stats(ef)
+            last = np.flatnonzero(inside)[-1]
+            rep["braking_rate_final"] = {"t": float(stamp[last]), "estimate": float(f_hat[last]),
+                                         "std": float(np.sqrt(max(cov[last, 3, 3], 0.0))),
+                                         "truth": float(ft[last])}
         c = cov[inside][:, :2, :2]
         ok = np.all(np.isfinite(c.reshape(len(c), -1)), axis=1)
         if ok.any():
@@ -254,7 +258,7 @@ def format_report(summary: dict) -> str:
                      f"{h.get('out_of_order', 0):>12}  {h.get('max_gap_s', 0):>11.2f}")
     if summary["estimators"]:
         lines.append("estimator       pos RMSE  pos p95  pos max  vel RMSE  f RMSE  NEES  "
-                     "in 3sig  latency p50/p99 (ms)")
+                     "in 3sig  latency p50/p99 (ms, bag time)")
         for name, r in summary["estimators"].items():
             p, v, f = r.get("position", {}), r.get("velocity", {}), r.get("braking_rate", {})
             g = lambda d, k: f"{d[k]:.3f}" if k in d else "-"  # noqa: E731
@@ -264,6 +268,11 @@ def format_report(summary: dict) -> str:
                 f"{g(v, 'rmse'):>9} {g(f, 'rmse'):>7} {'-' if nees is None else f'{nees:.2f}':>5}"
                 f"  {r.get('position_within_3sigma', float('nan')):7.3f}  "
                 f"{1e3 * r['latency_s']['median']:.1f}/{1e3 * r['latency_s']['p99']:.1f}")
+        for name, r in summary["estimators"].items():
+            fb = r.get("braking_rate_final")
+            if fb:
+                lines.append(f"{name}: braking rate at {fb['t']:.0f} s: {fb['estimate']:.3f} "
+                             f"+- {fb['std']:.3f} (truth {fb['truth']:.3f})")
     for k, why in summary.get("skipped", {}).items():
         lines.append(f"not used: {k}: {why}")
     return "\n".join(lines)
