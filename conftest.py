@@ -21,7 +21,6 @@ from __future__ import annotations
 import os
 import random
 import shutil
-import signal
 import subprocess
 import sys
 import time
@@ -101,18 +100,9 @@ class Launcher:
     @staticmethod
     def stop(proc: subprocess.Popen, timeout: float = 10.0) -> int | None:
         """SIGINT, then SIGTERM, then SIGKILL, each to this PID only."""
-        for sig, wait in ((signal.SIGINT, timeout), (signal.SIGTERM, 5.0), (signal.SIGKILL, 5.0)):
-            if proc.poll() is not None:
-                break
-            try:
-                os.kill(proc.pid, sig)
-            except ProcessLookupError:
-                break
-            try:
-                proc.wait(wait)
-            except subprocess.TimeoutExpired:
-                continue
-        return proc.poll()
+        from train_sim.procs import stop_process
+
+        return stop_process(proc, timeout)
 
     def stop_all(self) -> None:
         for _, proc in reversed(self.procs):

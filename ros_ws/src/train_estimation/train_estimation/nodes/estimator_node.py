@@ -12,15 +12,13 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 
-from train_sim.nodes.ros_common import ParameterError, stamp_to_sec
+from train_sim.nodes.ros_common import ParameterError, declarer, stamp_to_sec
 
 
 def declare_common(node) -> dict:
     """Parameters every estimator node has (documented in config/*.yaml)."""
-    from rcl_interfaces.msg import ParameterDescriptor
 
-    def declare(name, default, text):
-        return node.declare_parameter(name, default, ParameterDescriptor(description=text)).value
+    declare = declarer(node)
 
     return {
         "line_file": declare("line_file", "", "line.yaml; '' = metro_demo's line"),

@@ -9,18 +9,16 @@ from __future__ import annotations
 
 import sys
 
-from train_sim.nodes.ros_common import parse_cli, run_node
+from train_sim.nodes.ros_common import declarer, parse_cli, run_node
 
 DESCRIPTION = __doc__.splitlines()[0]
 
 
 def make_adapter(node, train, line, start, common):
-    from rcl_interfaces.msg import ParameterDescriptor
 
     from train_estimation.core.estimators import ALGORITHMS, BrakingAdapter, BrakingConfig
 
-    def declare(name, default, text):
-        return node.declare_parameter(name, default, ParameterDescriptor(description=text)).value
+    declare = declarer(node)
 
     d = BrakingConfig()
     algorithm = declare("algorithm", d.algorithm, f"one of {', '.join(ALGORITHMS)}")

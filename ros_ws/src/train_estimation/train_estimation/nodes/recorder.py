@@ -11,7 +11,14 @@ from __future__ import annotations
 
 import sys
 
-from train_sim.nodes.ros_common import TOPIC_TYPES, ParameterError, msg_class, parse_cli, run_node
+from train_sim.nodes.ros_common import (
+    TOPIC_TYPES,
+    ParameterError,
+    declarer,
+    msg_class,
+    parse_cli,
+    run_node,
+)
 
 DESCRIPTION = __doc__.splitlines()[0]
 DEFAULT_TOPICS = ["odometer", "balise", "control", "ground_truth", "estimate/robust",
@@ -19,7 +26,6 @@ DEFAULT_TOPICS = ["odometer", "balise", "control", "ground_truth", "estimate/rob
 
 
 def build_node():
-    from rcl_interfaces.msg import ParameterDescriptor
     from rclpy.node import Node
 
     from train_sim.bagio import BagError, BagWriter
@@ -28,9 +34,7 @@ def build_node():
         def __init__(self):
             super().__init__("recorder")
 
-            def declare(name, default, text):
-                return self.declare_parameter(
-                    name, default, ParameterDescriptor(description=text)).value
+            declare = declarer(self)
 
             topics = declare("topics", DEFAULT_TOPICS, "topics to record (CONTRACT.md names)")
             bag = declare("bag", "", "bag directory to create (must not exist)")

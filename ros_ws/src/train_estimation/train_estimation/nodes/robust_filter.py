@@ -10,18 +10,16 @@ from __future__ import annotations
 import math
 import sys
 
-from train_sim.nodes.ros_common import parse_cli, run_node
+from train_sim.nodes.ros_common import declarer, parse_cli, run_node
 
 DESCRIPTION = __doc__.splitlines()[0]
 
 
 def make_adapter(node, train, line, start, common):
-    from rcl_interfaces.msg import ParameterDescriptor
 
     from train_estimation.core.estimators import RobustAdapter, RobustConfig
 
-    def declare(name, default, text):
-        return node.declare_parameter(name, default, ParameterDescriptor(description=text)).value
+    declare = declarer(node)
 
     d = RobustConfig()
     eps = declare("epsilon", -1.0, "eq. (21) epsilon > 0; -1 = per-step minimiser")

@@ -13,11 +13,12 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import signal
 import subprocess
 import sys
 import time
 from pathlib import Path
+
+from train_sim.procs import stop_process
 
 NS = "/train"
 
@@ -47,16 +48,7 @@ class Processes:
         return proc
 
     def stop(self, name: str, timeout: float = 15.0) -> int | None:
-        proc = self.procs[name]
-        for sig, wait in ((signal.SIGINT, timeout), (signal.SIGTERM, 5.0), (signal.SIGKILL, 5.0)):
-            if proc.poll() is not None:
-                break
-            os.kill(proc.pid, sig)
-            try:
-                proc.wait(wait)
-            except subprocess.TimeoutExpired:
-                continue
-        return proc.returncode
+        return stop_process(self.procs[name], timeout)
 
     def stop_all(self) -> dict[str, int | None]:
         return {name: self.stop(name) for name in reversed(list(self.procs))}

@@ -17,6 +17,7 @@ import time
 from train_sim.nodes.ros_common import (
     TOPIC_TYPES,
     ParameterError,
+    declarer,
     fields_to_msg,
     msg_class,
     parse_cli,
@@ -28,7 +29,6 @@ DESCRIPTION = __doc__.splitlines()[0]
 
 
 def build_node():
-    from rcl_interfaces.msg import ParameterDescriptor
     from rclpy.node import Node
     from rosgraph_msgs.msg import Clock
 
@@ -38,9 +38,7 @@ def build_node():
         def __init__(self):
             super().__init__("player")
 
-            def declare(name, default, text):
-                return self.declare_parameter(
-                    name, default, ParameterDescriptor(description=text)).value
+            declare = declarer(self)
 
             bag = declare("bag", "", "bag directory (rosbag2, MCAP) to play")
             topics = declare("topics", ["control", "odometer", "balise", "ground_truth"],

@@ -109,6 +109,16 @@ def nan_cov() -> list[float]:
     return [math.nan] * 16
 
 
+def declarer(node):
+    """``declare(name, default, text) -> value``: declare_parameter with a descriptor."""
+    from rcl_interfaces.msg import ParameterDescriptor
+
+    def declare(name, default, text):
+        return node.declare_parameter(name, default, ParameterDescriptor(description=text)).value
+
+    return declare
+
+
 def parse_cli(description: str, argv: list[str] | None = None,
               extra: Callable[[argparse.ArgumentParser], None] | None = None):
     """Parse our own options; everything after --ros-args is left for rclpy.

@@ -17,6 +17,7 @@ from pathlib import Path
 from train_sim.nodes.ros_common import (
     TOPIC_TYPES,
     ParameterError,
+    declarer,
     fields_to_msg,
     msg_class,
     parse_cli,
@@ -28,7 +29,6 @@ DESCRIPTION = __doc__.splitlines()[0]
 
 
 def build_node():
-    from rcl_interfaces.msg import ParameterDescriptor
     from rclpy.node import Node
     from rosgraph_msgs.msg import Clock
 
@@ -42,9 +42,7 @@ def build_node():
         def __init__(self):
             super().__init__("simulator")
 
-            def declare(name, default, text):
-                return self.declare_parameter(
-                    name, default, ParameterDescriptor(description=text)).value
+            declare = declarer(self)
 
             scenario = declare("scenario", "metro_demo", "scenario name or path to its YAML")
             seed = declare("seed", -1, "random seed; -1 = the scenario's own seed")

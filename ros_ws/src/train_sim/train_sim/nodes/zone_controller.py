@@ -10,13 +10,12 @@ from __future__ import annotations
 import math
 import sys
 
-from train_sim.nodes.ros_common import ParameterError, parse_cli, run_node, stamp_to_sec
+from train_sim.nodes.ros_common import ParameterError, declarer, parse_cli, run_node, stamp_to_sec
 
 DESCRIPTION = __doc__.splitlines()[0]
 
 
 def build_node():
-    from rcl_interfaces.msg import ParameterDescriptor
     from rclpy.node import Node
 
     from train_interfaces.msg import MovementAuthority, TrainState
@@ -27,9 +26,7 @@ def build_node():
         def __init__(self):
             super().__init__("zone_controller")
 
-            def declare(name, default, text):
-                return self.declare_parameter(
-                    name, default, ParameterDescriptor(description=text)).value
+            declare = declarer(self)
 
             d = ZoneParams()
             trains = declare("trains", [""], "train namespaces ('' = this node's namespace)")
