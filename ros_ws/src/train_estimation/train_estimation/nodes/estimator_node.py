@@ -82,10 +82,10 @@ def build_estimator_node(name: str, topic: str, make_adapter: Callable):
                 raise ParameterError(str(exc)) from None
             self.runner = EstimatorRunner(self.adapter, 1.0 / common["odometer_rate"])
             self.delay = common["output_delay"]
-            self.pub = self.create_publisher(TrainState, topic, 50)
-            self.create_subscription(OdometerReading, "odometer", self.on_odometer, 200)
-            self.create_subscription(BaliseReading, "balise", self.on_balise, 50)
-            self.create_subscription(ControlCommand, "control", self.on_control, 200)
+            self.pub = self.create_publisher(TrainState, topic, 1000)
+            self.create_subscription(OdometerReading, "odometer", self.on_odometer, 2000)
+            self.create_subscription(BaliseReading, "balise", self.on_balise, 200)
+            self.create_subscription(ControlCommand, "control", self.on_control, 2000)
             self.timer = self.create_timer(0.005, self.tick,
                                            clock=Clock(clock_type=ClockType.STEADY_TIME))
             self.n_reported = 0

@@ -54,7 +54,8 @@ def build_node():
             self.summary_file = declare("summary_file", "",
                                         "write the run's summary (JSON) here at the end; '' = no")
             self.wait_subs = declare("wait_for_subscribers", 0,
-                                     "start only when odometer has this many subscribers")
+                                     "start only when odometer and control have this many "
+                                     "subscribers each")
             self.publish_clock = declare("publish_clock", True,
                                          "publish /clock (one simulator per ROS graph should)")
             self.start_at = declare("start_at", 0.0,
@@ -68,7 +69,9 @@ def build_node():
                 raise ParameterError(str(exc)) from None
             self.duration = self.sc.duration if duration < 0 else duration
             self.world = World(self.sc, None if seed < 0 else seed)
-            self.pubs = {t: self.create_publisher(msg_class(TOPIC_TYPES[t]), t, 100)
+            # deep queues: at 20x real time a subscriber that stalls for a second must not lose
+            # samples (a lost control command would corrupt every estimator downstream)
+            self.pubs = {t: self.create_publisher(msg_class(TOPIC_TYPES[t]), t, 2000)
                          for t in ("odometer", "balise", "control", "ground_truth")}
             self.clock_pub = self.create_publisher(Clock, "/clock", 10)
             self.create_subscription(MovementAuthority, "movement_authority", self.on_ma, 10)
@@ -91,7 +94,8 @@ def build_node():
             if self.wall0 is None:
                 # Discovery, not a blind sleep: recorders and estimators must be matched before
                 # the first sample, or they would miss the start of the run.
-                if self.pubs["odometer"].get_subscription_count() < self.wait_subs:
+                if min(self.pubs[t].get_subscription_count() for t in ("odometer", "control")) \
+                        < self.wait_subs:
                     return
                 if self.start_at > 0:
                     if time.time() < self.start_at:
