@@ -288,7 +288,11 @@ class RaoBlackwellFilter:
                     since = 0.0
                 else:
                     s = self._transition(s, False, rng, dt)
-                Phi, Bu, Qd = fam.matrices(s.theta, u, dt, informative)
+                if informative or not hasattr(fam, "hold_gain"):
+                    Phi, Bu, Qd = fam.matrices(s.theta, u, dt, informative)
+                else:
+                    hold = fam.hold_gain(u, self._last.x_mean, float(self._last.theta_mean[0]))
+                    Phi, Bu, Qd = fam.matrices(s.theta, u, dt, informative, hold=hold)
                 x, P = predict(s.x, s.P, Phi, Bu, Qd)
                 s = _Set(s.theta, x, P, s.logw, s.idx, s.extra)
             x, P, loglik = update(s.x, s.P, y_arr, fam.H, R, mask_arr)

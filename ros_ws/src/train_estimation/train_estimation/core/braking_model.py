@@ -242,11 +242,28 @@ class BrakingModel:
         vs = self.params.standstill_speed
         return not (vs is not None and abs(float(x_mean[1])) <= vs)
 
-    def matrices(self, theta, u, dt: float, informative: bool):
-        """``Phi (K,4,4)``, ``Bu (K,4)``, ``Qd (4,4)``; ``K = len(theta)`` if informative else 1."""
+    def hold_gain(self, u, x_mean, f_mean: float) -> float:
+        """Gain of a step that does not inform f (one model shared by every particle).
+
+        Traction or coasting: 1 (f scales braking only). Braking at standstill: 0 (the train is
+        held; the brake produces no acceleration). A weak brake trim while moving (below
+        ``min_brake``): the current estimate of f -- the brake acts, we just learn nothing.
+        """
+        if float(u[0]) >= 0.0:
+            return 1.0
+        vs = self.params.standstill_speed
+        if vs is not None and abs(float(x_mean[1])) <= vs:
+            return 0.0
+        return float(f_mean)
+
+    def matrices(self, theta, u, dt: float, informative: bool, hold: float | None = None):
+        """``Phi (K,4,4)``, ``Bu (K,4)``, ``Qd (4,4)``; ``K = len(theta)`` if informative else 1
+        (with gain ``hold`` if given, else 1 for traction and 0 for braking)."""
         u = np.asarray(u, dtype=float)
         if informative:
             f = np.asarray(theta, dtype=float).reshape(-1)
+        elif hold is not None:
+            f = np.array([float(hold)])
         else:
             f = np.array([1.0 if u[0] >= 0.0 else 0.0])
         Phi, Bd, Qd = discretize(f, self.params, dt)
