@@ -154,7 +154,10 @@ def actuator_output(t_grid, ctrl_t, ctrl_a, tau: float, delay: float):
     """
     t_grid = np.asarray(t_grid, float)
     dt = t_grid[1] - t_grid[0]
-    i = np.searchsorted(ctrl_t, t_grid - delay, side="right") - 1
+    # The grid, the delay and the command stamps often sit on one lattice (0.1 s): without a
+    # tolerance, round-off puts some grid points one command late, a 0.1 s jitter of the input
+    # that biased a, c and f on metro_demo (found by benchmarks/bench_identify.py).
+    i = np.searchsorted(ctrl_t, t_grid - delay + 1e-9, side="right") - 1
     cmd = np.where(i >= 0, ctrl_a[np.clip(i, 0, None)], 0.0)
     e = np.exp(-dt / tau)
     out = []
@@ -387,7 +390,7 @@ def identify(data: SIData, line: Line, prior: TrainParams, config: SIConfig = SI
         s0 = 0.0
 
     # ---- grid quantities -------------------------------------------------------------------
-    tg = np.arange(t[0], t[-1] + cfg.grid_dt, cfg.grid_dt)
+    tg = t[0] + cfg.grid_dt * np.arange(int(np.floor((t[-1] - t[0]) / cfg.grid_dt + 1e-9)) + 1)
     a_tr, a_br = actuator_output(tg, d["ctrl_t"], d["ctrl_a_tar"], prior.brake.time_constant,
                                  prior.brake.delay)
     braking_seen = bool(np.any(d["ctrl_a_tar"] < -cfg.min_brake))
