@@ -34,11 +34,11 @@ full timetable, or skip B, or skip C (express), dwells U(15, 45) s; both: speed 
 limit U(0.5, 4) m/s (metro) / U(0.5, 25) m/s (crh3), braking margin U(0.70, 0.95). ``--holdout
 seed`` gives the literal "another seed only" variant.
 
-Known issue (found with this script, identify.py as of issue 6): on metro_demo the fit was
-biased even with no effect (8 seeds: a -40 %, c +31 %, f +0.7 %, |z| up to 7) because identify's
-delayed-command lookup lands one 0.1 s step late at ~11 % of its grid points (floating-point
-round-off, see ``si_data``). ``--nudge-control-stamps 1e-6`` shows the fit with that sidestepped
-(a +0.7 %, c -1.5 %, |z| <= 2.4); once the core has a tolerance both runs agree.
+Found with this script and fixed in identify.py: on metro_demo the fit was biased even with no
+effect (8 seeds: a -40 %, c +31 %, f +0.7 %, |z| up to 7) because the delayed-command lookup
+landed one 0.1 s step late at ~11 % of its grid points (floating-point round-off). The core now
+looks up with a tolerance; ``--nudge-control-stamps 1e-6`` (control stamps 1 us earlier) is kept
+as a check that the default and nudged runs agree.
 
 Usage: bench_identify.py [--seeds 8] [--quick] [--holdout varied|seed] [--scenarios ...]
                          [--nudge-control-stamps 1e-6]
@@ -125,10 +125,8 @@ def holdout_scenario(sc: Scenario, seed: int, mode: str) -> Scenario:
 def si_data(res, nudge: float = 0.0) -> SIData:
     """What a bag holds: received odometer and balise samples, all control commands.
 
-    ``nudge`` (s, diagnostic only, default 0) is subtracted from the control stamps: the core's
-    actuator_output looks the delayed command up with searchsorted(ctrl_t, t_grid - delay) on
-    the same 0.1 s lattice, and round-off puts ~11 % of metro_demo's grid points one command
-    late; 1 us earlier stamps make the lookup consistent (what a tolerance in the core would do).
+    ``nudge`` (s, diagnostic only, default 0) is subtracted from the control stamps: with the
+    core's lookup tolerance, the result must not change (it did before the fix).
     """
     o, b, c = res.odometer, res.balise, res.control
     m, mb = o["received"], b["received"]
