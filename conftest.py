@@ -66,12 +66,12 @@ def ros_env() -> dict:
 
 def executable(pkg: str, exe: str) -> str:
     """Resolve PKG EXE exactly the way `ros2 run` does: get_package_prefix(pkg)/lib/pkg/exe."""
-    from ament_index_python.packages import get_package_prefix
+    from train_sim.procs import resolve_executable
 
-    path = Path(get_package_prefix(pkg)) / "lib" / pkg / exe
-    if not os.access(path, os.X_OK):
-        raise FileNotFoundError(f"{path} is not an executable (is ros_ws built?)")
-    return str(path)
+    path = resolve_executable(pkg, exe)
+    if path is None:
+        raise FileNotFoundError(f"{pkg}/{exe} is not an installed executable (is ros_ws built?)")
+    return path
 
 
 class Launcher:

@@ -7,6 +7,17 @@ import signal
 import subprocess
 
 
+def resolve_executable(pkg: str, exe: str) -> str | None:
+    """``ros2 run PKG EXE`` resolution: get_package_prefix(PKG)/lib/PKG/EXE, or None."""
+    from ament_index_python.packages import PackageNotFoundError, get_package_prefix
+
+    try:
+        path = os.path.join(get_package_prefix(pkg), "lib", pkg, exe)
+    except PackageNotFoundError:
+        return None
+    return path if os.access(path, os.X_OK) else None
+
+
 def stop_process(proc: subprocess.Popen, timeout: float = 10.0) -> int | None:
     """SIGINT (a node closes its bag, logs its counters), then SIGTERM, then SIGKILL.
 

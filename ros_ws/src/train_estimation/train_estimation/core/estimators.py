@@ -17,8 +17,14 @@ from train_sim.model import Line, TrainParams
 
 from .braking_filters import GSMA, QGRBPF, SMA, DiscreteRBPF, sticky_transition
 from .braking_model import BrakingModel, BrakingParams
-from .robust_filter import BaliseReading, FilterParams, OdometerReading, RobustFilter
-from .runner import Output, covariance16
+from .robust_filter import (
+    BaliseReading,
+    FilterParams,
+    OdometerReading,
+    RobustFilter,
+    covariance16,
+)
+from .runner import Output
 from .wen_model import WenModel
 
 NAN16 = (math.nan,) * 16
@@ -108,7 +114,7 @@ class RobustAdapter:
         x, P = self.f.estimate()
         return Output(stamp=t, position=float(x[0]), velocity=float(x[1]),
                       acceleration=math.nan, braking_rate=math.nan,
-                      covariance=covariance16(P, (0, 1)),
+                      covariance=tuple(covariance16(P)),
                       measurement_used=self.f.pop_measurement_used())
 
     @property

@@ -21,8 +21,6 @@ from collections import Counter
 from dataclasses import dataclass, field
 from typing import Protocol
 
-import numpy as np
-
 KIND_ORDER = {"control": 0, "odometer": 1, "balise": 2}
 
 
@@ -130,10 +128,3 @@ class EstimatorRunner:
             return []
         return self.advance_to(max(item[0] for item in self.queue))
 
-
-def covariance16(P: np.ndarray, dims: tuple[int, ...]) -> tuple:
-    """A 4x4 NaN matrix with ``P`` placed on the state indices ``dims``, flattened."""
-    full = np.full((4, 4), math.nan)
-    idx = np.asarray(dims)
-    full[np.ix_(idx, idx)] = P
-    return tuple(float(v) for v in full.ravel())

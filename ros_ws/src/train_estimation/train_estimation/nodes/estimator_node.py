@@ -12,7 +12,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 
-from train_sim.nodes.ros_common import ParameterError, declarer, stamp_to_sec
+from train_sim.nodes.ros_common import ParameterError, declarer, sec_to_stamp, stamp_to_sec
 
 
 def declare_common(node) -> dict:
@@ -119,8 +119,7 @@ def build_estimator_node(name: str, topic: str, make_adapter: Callable):
             for out in self.runner.advance_to(self.runner.ready_time(now, self.delay,
                                                                       4 * self.delay)):
                 msg = TrainState()
-                msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(
-                    int(round(out.stamp * 1e9)), 1_000_000_000)
+                sec_to_stamp(out.stamp, msg.header.stamp)
                 msg.header.frame_id = "track"
                 msg.source = self.adapter.source
                 msg.position, msg.velocity = out.position, out.velocity

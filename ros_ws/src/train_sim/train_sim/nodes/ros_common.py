@@ -9,31 +9,18 @@
 from __future__ import annotations
 
 import argparse
-import math
 import signal
 import sys
 from collections.abc import Callable
 
 import numpy as np
 
-TYPES = {
-    "OdometerReading": "train_interfaces.msg.OdometerReading",
-    "BaliseReading": "train_interfaces.msg.BaliseReading",
-    "ControlCommand": "train_interfaces.msg.ControlCommand",
-    "TrainState": "train_interfaces.msg.TrainState",
-    "MovementAuthority": "train_interfaces.msg.MovementAuthority",
-}
+from train_sim import bagio
 
-# CONTRACT.md topic -> message type name
-TOPIC_TYPES = {
-    "odometer": "OdometerReading",
-    "balise": "BaliseReading",
-    "control": "ControlCommand",
-    "ground_truth": "TrainState",
-    "estimate/robust": "TrainState",
-    "estimate/gsma": "TrainState",
-    "movement_authority": "MovementAuthority",
-}
+# short message name -> Python class path; CONTRACT.md topic -> short message name (one table,
+# bagio's, serves the bag tools and the nodes)
+TYPES = {n: f"train_interfaces.msg.{n}" for n in bagio.MSG_NAMES}
+TOPIC_TYPES = {t: full.rsplit("/", 1)[-1] for t, full in bagio.TOPIC_TYPES.items()}
 
 
 def msg_class(name: str):
@@ -103,10 +90,6 @@ def fields_to_msg(type_name: str, stamp: float, fields: dict, frame_id: str = "t
         else:
             setattr(msg, key, value)
     return msg
-
-
-def nan_cov() -> list[float]:
-    return [math.nan] * 16
 
 
 def declarer(node):

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 import sys
+from dataclasses import replace
 
 from train_sim.nodes.ros_common import ParameterError, declarer, parse_cli, run_node, stamp_to_sec
 
@@ -57,8 +58,7 @@ def build_node():
                 except Exception as exc:  # ConfigError: already a one-line reason
                     raise ParameterError(str(exc)) from None
                 points.append(line.length)
-            self.zone = ZoneController(ZoneParams(**{**params.__dict__,
-                                                     "danger_points": tuple(points)}))
+            self.zone = ZoneController(replace(params, danger_points=tuple(points)))
             self.trains = [self._train_id(t) for t in trains]
             self.pubs = {}
             for ns, tid in zip(trains, self.trains):
