@@ -13,7 +13,8 @@ REPO = Path(__file__).resolve().parents[1]
 CONFIG = REPO / "ros_ws" / "src" / "train_estimation" / "config"
 
 
-def run_live(launch, ros_node, ns, scenario, duration, rate, nodes, topics, sim_extra=()):
+def run_live(launch, ros_node, ns, scenario, duration, rate, nodes, topics, sim_extra=(),
+             truth_readers=0):
     """Start the given estimator nodes and a simulator; collect ``topics`` until it ends."""
     from train_interfaces.msg import TrainState
 
@@ -30,7 +31,7 @@ def run_live(launch, ros_node, ns, scenario, duration, rate, nodes, topics, sim_
     sim = launch.node("train_sim", "simulator", "--ros-args", "-r", f"__ns:={ns}",
                       "-p", f"scenario:={scenario}", "-p", f"rate_factor:={rate}",
                       "-p", f"duration:={duration}", "-p", f"wait_for_subscribers:={len(nodes)}",
-                      *sim_extra)
+                      "-p", f"wait_for_truth_subscribers:={truth_readers}", *sim_extra)
     ros_node.wait_until(lambda: sim.poll() is not None, timeout=duration / rate + 90,
                         what="the simulator run")
     ros_node.spin_for(2.0)
@@ -49,7 +50,7 @@ def test_robust_filter_tracks_truth_within_its_bound(launch, ros_node):
     sc, boxes = run_live(
         launch, ros_node, ns, "metro_demo", 240.0, 20.0,
         [("robust_filter", ["--params-file", str(CONFIG / "robust_filter.yaml")])],
-        ["estimate/robust"])
+        ["estimate/robust"], truth_readers=1)
     est = boxes["estimate/robust"]
     assert len(est) >= 0.98 * 240.0 * sc.odometer_rate, launch.logs()
     assert all(m.source == "robust_filter" for m in est)
@@ -58,8 +59,12 @@ def test_robust_filter_tracks_truth_within_its_bound(launch, ros_node):
     t = np.array([m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec for m in est])
     x = np.array([m.position for m in est])
     sx = np.sqrt([m.covariance[0] for m in est])
-    err = x - np.interp(t, t_truth, x_truth)
-    inside = np.abs(err) <= 3 * sx
+    # compare only where this probe has ground truth: under load its ground_truth subscription
+    # can be matched after the run started, and np.interp would extrapolate a constant there
+    covered = (t >= t_truth[0]) & (t <= t_truth[-1])
+    assert covered.mean() >= 0.9, (t_truth[0], t_truth[-1])
+    err = (x - np.interp(t, t_truth, x_truth))[covered]
+    inside = np.abs(err) <= 3 * sx[covered]
     assert inside.mean() >= 0.99, f"{inside.mean():.4f} of steps within 3 sigma"
     assert all(math.isnan(m.braking_rate) for m in est)
     assert np.all(np.diff(t) > 0)

@@ -40,7 +40,8 @@ def test_simulator_with_zone_controller(launch, ros_node):
     ros_node.wait_for_subscribers(f"{NS}/ground_truth", 2)  # this probe and the controller
     sim = launch.node("train_sim", "simulator", "--ros-args", "-r", f"__ns:={NS}",
                       "-p", "scenario:=metro_demo", "-p", f"rate_factor:={RATE}",
-                      "-p", f"duration:={DURATION}", "-p", "wait_for_subscribers:=1")
+                      "-p", f"duration:={DURATION}", "-p", "wait_for_subscribers:=1",
+                      "-p", "wait_for_truth_subscribers:=2")
     ros_node.wait_until(lambda: sim.poll() is not None, timeout=DURATION / RATE + 60,
                         what="the simulator to finish its run")
     ros_node.spin_for(1.0)
@@ -111,7 +112,7 @@ def test_node_publishes_exactly_what_the_offline_generator_produces(launch, ros_
     sim = launch.node("train_sim", "simulator", "--ros-args", "-r", f"__ns:={ns}",
                       "-p", "scenario:=metro_demo", "-p", f"seed:={seed}",
                       "-p", "rate_factor:=40.0", "-p", f"duration:={duration}",
-                      "-p", "wait_for_subscribers:=1")
+                      "-p", "wait_for_subscribers:=1", "-p", "wait_for_truth_subscribers:=1")
     ros_node.wait_until(lambda: sim.poll() is not None, timeout=60, what="the simulator run")
     ros_node.spin_for(1.0)
     assert sim.returncode == 0, launch.logs()

@@ -18,19 +18,10 @@ import sys
 import time
 from pathlib import Path
 
+from train_sim.procs import resolve_executable as executable
 from train_sim.procs import stop_process
 
 NS = "/train"
-
-
-def executable(pkg: str, exe: str) -> Path | None:
-    from ament_index_python.packages import PackageNotFoundError, get_package_prefix
-
-    try:
-        path = Path(get_package_prefix(pkg)) / "lib" / pkg / exe
-    except PackageNotFoundError:
-        return None
-    return path if os.access(path, os.X_OK) else None
 
 
 class Processes:
@@ -99,12 +90,14 @@ def main(argv=None) -> int:
     wanted = {"recorder", *filter(None, args.estimators.split(","))}
     consumers = [(pkg, exe, name, extra) for pkg, exe, name, extra in plan
                  if name in wanted and executable(pkg, exe) is not None]
+    bag_recorded = any(name == "recorder" for _, _, name, _ in consumers)
     state_topic = ("estimate/robust" if any(e == "robust_filter" for _, e, _, _ in consumers)
                    else "ground_truth")
     zc_extra = ["-p", f"state_topic:={state_topic}", "-p", f"line_file:={line_file}"]
     sim_extra = ["-p", f"scenario:={args.scenario}", "-p", f"rate_factor:={args.rate_factor}",
                  "-p", f"duration:={args.duration}", "-p", f"summary_file:={summary_file}",
-                 "-p", f"wait_for_subscribers:={len(consumers)}"]
+                 "-p", f"wait_for_subscribers:={len(consumers)}",
+                 "-p", f"wait_for_truth_subscribers:={int(bag_recorded)}"]
 
     procs = Processes(logs)
     t0 = time.monotonic()

@@ -56,6 +56,8 @@ def build_node():
             self.wait_subs = declare("wait_for_subscribers", 0,
                                      "start only when odometer and control have this many "
                                      "subscribers each")
+            self.wait_truth = declare("wait_for_truth_subscribers", 0,
+                                      "and ground_truth has this many subscribers")
             self.publish_clock = declare("publish_clock", True,
                                          "publish /clock (one simulator per ROS graph should)")
             self.start_at = declare("start_at", 0.0,
@@ -95,7 +97,8 @@ def build_node():
                 # Discovery, not a blind sleep: recorders and estimators must be matched before
                 # the first sample, or they would miss the start of the run.
                 if min(self.pubs[t].get_subscription_count() for t in ("odometer", "control")) \
-                        < self.wait_subs:
+                        < self.wait_subs or \
+                        self.pubs["ground_truth"].get_subscription_count() < self.wait_truth:
                     return
                 if self.start_at > 0:
                     if time.time() < self.start_at:
