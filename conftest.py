@@ -66,7 +66,7 @@ def ros_env() -> dict:
 
 def executable(pkg: str, exe: str) -> str:
     """Resolve PKG EXE exactly the way `ros2 run` does: get_package_prefix(pkg)/lib/pkg/exe."""
-    from train_sim.procs import resolve_executable
+    from train_core.procs import resolve_executable
 
     path = resolve_executable(pkg, exe)
     if path is None:
@@ -100,7 +100,7 @@ class Launcher:
     @staticmethod
     def stop(proc: subprocess.Popen, timeout: float = 10.0) -> int | None:
         """SIGINT, then SIGTERM, then SIGKILL, each to this PID only."""
-        from train_sim.procs import stop_process
+        from train_core.procs import stop_process
 
         return stop_process(proc, timeout)
 

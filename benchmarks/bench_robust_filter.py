@@ -45,6 +45,9 @@ for _p in (ROOT / "ros_ws/src/train_sim", ROOT / "ros_ws/src/train_estimation"):
     if str(_p) not in sys.path:
         sys.path.insert(0, str(_p))
 
+from train_core.effects import Effects, ResistanceEffect  # noqa: E402
+from train_core.link import LinkParams  # noqa: E402
+
 from train_estimation.core.robust_filter import (  # noqa: E402
     BaliseReading,
     FilterParams,
@@ -54,8 +57,6 @@ from train_estimation.core.robust_filter import (  # noqa: E402
     RobustFilter,
 )
 from train_estimation.core.wen_model import WenModel  # noqa: E402
-from train_sim.effects import Effects, ResistanceEffect  # noqa: E402
-from train_sim.link import LinkParams  # noqa: E402
 from train_sim.scenario import load_scenario  # noqa: E402
 from train_sim.world import simulate  # noqa: E402
 

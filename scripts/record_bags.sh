@@ -4,9 +4,9 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 tmp=$(mktemp -d)
-python -m train_estimation.tools.main_job --scenario metro_demo --duration 120 \
+python -m train_bringup.main_job --scenario metro_demo --duration 120 \
     --rate-factor 10 --out "$tmp/metro"
-python -m train_estimation.tools.main_job --scenario wen2017_subway --rate-factor 10 \
+python -m train_bringup.main_job --scenario wen2017_subway --rate-factor 10 \
     --estimators robust_filter --out "$tmp/wen"
 rm -rf bags/metro_demo_short bags/wen2017_subway
 cp -r "$tmp/metro/bag" bags/metro_demo_short

@@ -5,9 +5,9 @@ import math
 
 import numpy as np
 import pytest
+from train_core.bagio import BagWriter, msgdef, read_bag
 
 from train_estimation.tools import check_bag
-from train_sim.bagio import BagWriter, msgdef, read_bag
 from train_sim.generate import generate
 from train_sim.scenario import load_scenario
 

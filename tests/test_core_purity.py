@@ -1,17 +1,23 @@
 """Core modules are pure: importing them must not pull in rclpy or any message package.
 
-Everything under ``train_sim`` and ``train_estimation`` except the ``nodes`` sub-packages is core
-(the offline tools included: they read bags with rosbags, not with ROS).
+Everything under ``train_core``, ``train_sim`` and ``train_estimation`` except the ``nodes``
+sub-packages and ``train_core.ros`` (the nodes' message helpers) is core (the offline tools
+included: they read bags with rosbags, not with ROS).
+
+The packages depend in one direction only (README's diagram): train_core <- train_sim,
+train_estimation <- train_bringup. Checked on the import statements of the package code.
 """
 
 import json
 import pkgutil
+import re
 import subprocess
 import sys
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-SRC = [REPO / "ros_ws" / "src" / "train_sim", REPO / "ros_ws" / "src" / "train_estimation"]
+SRC = [REPO / "ros_ws" / "src" / p for p in ("train_core", "train_sim", "train_estimation")]
+ROS_LAYER = ("train_core.ros",)
 
 
 def core_modules() -> list[str]:
@@ -19,7 +25,8 @@ def core_modules() -> list[str]:
     for root in SRC:
         pkg = root.name
         for info in pkgutil.walk_packages([str(root / pkg)], prefix=f"{pkg}."):
-            if ".nodes" in info.name or info.name.endswith("__main__"):
+            if (".nodes" in info.name or info.name.endswith("__main__")
+                    or info.name in ROS_LAYER):
                 continue
             mods.append(info.name)
     return sorted(mods)
@@ -27,7 +34,8 @@ def core_modules() -> list[str]:
 
 def test_there_are_core_modules():
     mods = core_modules()
-    assert "train_sim.model" in mods and "train_sim.config" in mods
+    assert "train_core.model" in mods and "train_core.config" in mods
+    assert "train_sim.world" in mods and "train_estimation.core.identify" in mods
 
 
 def test_core_modules_do_not_import_ros():
@@ -53,3 +61,24 @@ print(json.dumps(bad))
     assert out.returncode == 0, out.stderr[-3000:]
     bad = json.loads(out.stdout.strip().splitlines()[-1])
     assert bad == {}, f"core module imports ROS: {bad}"
+
+
+# package -> the project packages it may import (train_interfaces only through train_core.ros)
+ALLOWED = {
+    "train_core": {"train_core", "train_interfaces"},
+    "train_sim": {"train_core", "train_sim", "train_interfaces"},
+    "train_estimation": {"train_core", "train_estimation", "train_interfaces"},
+    "train_bringup": {"train_core", "train_sim", "train_estimation", "train_bringup"},
+}
+
+
+def test_dependency_direction():
+    """shared -> sim / estimation -> bringup, no arrow back and none between sim and estimation."""
+    pat = re.compile(r"^\s*(?:from|import)\s+(train_[a-z_]+)", re.M)
+    bad = []
+    for pkg, allowed in ALLOWED.items():
+        for f in sorted((REPO / "ros_ws" / "src" / pkg / pkg).rglob("*.py")):
+            for used in set(pat.findall(f.read_text())):
+                if used not in allowed:
+                    bad.append(f"{f.relative_to(REPO)} imports {used}")
+    assert bad == []

@@ -3,12 +3,12 @@
 import dataclasses
 
 import pytest
+from train_core.bagio import BagWriter
+from train_core.effects import ResistanceEffect
+from train_core.model import load_train
 
 from train_estimation.tools import identify as tool
-from train_sim.bagio import BagWriter
-from train_sim.effects import ResistanceEffect
 from train_sim.generate import generate
-from train_sim.model import load_train
 from train_sim.scenario import load_scenario
 
 

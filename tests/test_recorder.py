@@ -3,8 +3,7 @@
 import signal
 
 import pytest
-
-from train_sim.bagio import read_bag
+from train_core.bagio import read_bag
 
 pytestmark = pytest.mark.ros
 NS = "/rec"

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from train_core.bagio import read_bag
 
 from train_estimation.core.estimators import (
     BrakingAdapter,
@@ -20,7 +21,6 @@ from train_estimation.core.estimators import (
     StartState,
 )
 from train_estimation.core.replay import replay
-from train_sim.bagio import read_bag
 from train_sim.scenario import load_scenario
 
 pytestmark = pytest.mark.ros

@@ -10,8 +10,7 @@ import zlib
 from pathlib import Path
 
 import pytest
-
-from train_sim.nodes.ros_common import TYPES, msg_class, msg_to_dict
+from train_core.ros import TYPES, msg_class, msg_to_dict
 
 TOOL = str(Path(__file__).parent / "helpers" / "topic_tool.py")
 
@@ -82,7 +81,7 @@ def test_message_roundtrip_between_processes(type_name, launch, tmp_path):
     for s, g in zip(sent, got):
         assert _same(s, g), f"sent {s}\n got {g}"
     # and the in-process conversion is the identity on these messages
-    from train_sim.nodes.ros_common import dict_to_msg
+    from train_core.ros import dict_to_msg
 
     for s in sent:
         assert _same(s, msg_to_dict(dict_to_msg(s, cls())))

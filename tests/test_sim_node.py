@@ -4,8 +4,8 @@ import math
 
 import numpy as np
 import pytest
+from train_core.link import bernoulli_received_probability
 
-from train_sim.link import bernoulli_received_probability
 from train_sim.scenario import load_scenario
 
 pytestmark = pytest.mark.ros
@@ -101,8 +101,9 @@ def test_stale_estimates_trigger_the_emergency_brake(launch, ros_node):
 
 def test_node_publishes_exactly_what_the_offline_generator_produces(launch, ros_node):
     """Same scenario and seed: the live node's messages equal simulate()'s, field for field."""
+    from train_core.ros import msg_to_dict, stamp_to_sec
+
     from train_interfaces.msg import BaliseReading, ControlCommand, OdometerReading, TrainState
-    from train_sim.nodes.ros_common import msg_to_dict, stamp_to_sec
     from train_sim.world import simulate
 
     ns, seed, duration = "/det", 11, 40.0

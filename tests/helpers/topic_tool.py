@@ -10,7 +10,7 @@ import argparse
 import json
 import sys
 
-from train_sim.nodes.ros_common import dict_to_msg, msg_class, msg_to_dict, parse_cli, run_node
+from train_core.ros import dict_to_msg, msg_class, msg_to_dict, parse_cli, run_node
 
 
 def main(argv=None) -> int:

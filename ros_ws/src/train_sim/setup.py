@@ -15,8 +15,6 @@ setup(
         (f"share/{PKG}", ["package.xml"]),
         (f"share/{PKG}/scenarios", glob("scenarios/*.yaml")),
         (f"share/{PKG}/config", glob("config/*.yaml")),
-        (f"share/{PKG}/config/lines", glob("config/lines/*.yaml")),
-        (f"share/{PKG}/config/trains", glob("config/trains/*.yaml")),
     ],
     install_requires=["setuptools"],
     zip_safe=True,

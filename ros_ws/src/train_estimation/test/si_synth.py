@@ -1,4 +1,4 @@
-"""Synthetic runs for the identification tests: the model of train_sim.model integrated finely,
+"""Synthetic runs for the identification tests: the model of train_core.model integrated finely,
 with the delayed first-order-lag actuator and a simple station-to-station driver (pure numpy)."""
 
 from __future__ import annotations
@@ -7,8 +7,7 @@ import bisect
 import math
 
 import numpy as np
-
-from train_sim.model import Balise, Brake, Davis, GradientSection, Line, TrainParams
+from train_core.model import Balise, Brake, Davis, GradientSection, Line, TrainParams
 
 METRO = TrainParams(mass=288000.0, rotary_allowance=0.16,
                     davis=Davis(a=3481.8, b=144.92, c=8.52),

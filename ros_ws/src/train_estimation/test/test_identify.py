@@ -5,9 +5,9 @@ import sys
 
 import numpy as np
 import pytest
+from train_core.model import Davis, Line
 
 from train_estimation.core.identify import IdentificationError, SIData, identify
-from train_sim.model import Davis, Line
 
 sys.path.insert(0, os.path.dirname(__file__))
 from si_synth import METRO, hilly_line, simulate_run  # noqa: E402

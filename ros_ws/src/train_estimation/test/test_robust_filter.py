@@ -10,6 +10,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from scipy.stats import norm
+from train_core.model import Balise, Brake, Davis, GradientSection, Line, TrainParams
 
 from train_estimation.core.robust_filter import (
     BaliseReading,
@@ -28,7 +29,6 @@ from train_estimation.core.robust_filter import (
     robust_update,
 )
 from train_estimation.core.wen_model import DiscreteWen, WenModel
-from train_sim.model import Balise, Brake, Davis, GradientSection, Line, TrainParams
 
 TRAIN = TrainParams(mass=288e3, rotary_allowance=0.16, davis=Davis(3481.8036, 144.9154, 8.5212),
                     brake=Brake(0.4, 1.2))

@@ -4,10 +4,10 @@ import math
 
 import numpy as np
 import pytest
+from train_core.model import Brake, Davis, GradientSection, Line, TrainParams
 
 from train_estimation.core.discretize import van_loan, zoh
 from train_estimation.core.wen_model import Actuator, WenModel
-from train_sim.model import Brake, Davis, GradientSection, Line, TrainParams
 
 TRAIN = TrainParams(mass=288e3, rotary_allowance=0.16, davis=Davis(3481.8036, 144.9154, 8.5212),
                     brake=Brake(0.4, 1.2))

@@ -3,8 +3,7 @@ without the effect)."""
 
 import numpy as np
 import pytest
-
-from train_sim.effects import (
+from train_core.effects import (
     BrakeDelayEffect,
     BrakingRateEffect,
     BurstyLinkEffect,
@@ -16,6 +15,7 @@ from train_sim.effects import (
     ResistanceEffect,
     WheelSlipEffect,
 )
+
 from train_sim.scenario import load_scenario
 from train_sim.world import simulate
 

@@ -11,8 +11,7 @@ import math
 import numpy as np
 import pytest
 from scipy import stats
-
-from train_sim.link import Link, LinkParams, bernoulli_received_probability, burst_lengths
+from train_core.link import Link, LinkParams, bernoulli_received_probability, burst_lengths
 
 Z = 4.5
 N = 100_000

@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 from scipy.integrate import quad
 from scipy.optimize import brentq
+from train_core.actuator import Actuator, effective_input, step_response
+from train_core.dynamics import Dynamics, MotionState
+from train_core.effects import Effects
+from train_core.model import Brake, Davis, G, GradientSection, Line, TrainParams
 
-from train_sim.actuator import Actuator, effective_input, step_response
-from train_sim.dynamics import Dynamics, MotionState
-from train_sim.effects import Effects
-from train_sim.model import Brake, Davis, G, GradientSection, Line, TrainParams
 from train_sim.scenario import load_scenario
 from train_sim.world import simulate
 

@@ -5,13 +5,14 @@ import shutil
 
 import pytest
 import yaml
+from train_core.config import ConfigError
+from train_core.effects import EFFECT_NAMES
+from train_core.files import share_dir
 
-from train_sim.config import ConfigError
-from train_sim.effects import EFFECT_NAMES
 from train_sim.scenario import data_root, load_scenario
 
 SCEN = data_root() / "scenarios"
-CONF = data_root() / "config"
+CONF = share_dir("train_core", "config") / "config"
 
 
 @pytest.fixture()

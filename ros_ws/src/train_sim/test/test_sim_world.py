@@ -5,8 +5,8 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from train_core.effects import BrakingRateEffect, Effects
 
-from train_sim.effects import BrakingRateEffect, Effects
 from train_sim.scenario import load_scenario
 from train_sim.world import World, simulate
 

@@ -41,9 +41,9 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from .actuator import Actuator
-from .dynamics import GradientLookup
-from .model import Line, TrainParams
+from train_core.actuator import Actuator
+from train_core.dynamics import GradientLookup
+from train_core.model import Line, TrainParams
 
 DRIVER_MODES = ("ato", "open_loop")
 

@@ -14,8 +14,8 @@ import argparse
 import sys
 import time
 
-from train_sim.bagio import BagError, BagWriter
-from train_sim.config import ConfigError
+from train_core.bagio import BagError, BagWriter
+from train_core.config import ConfigError
 
 
 def generate(scenario, out, seed=None, duration=None, namespace="/train", measured=False):

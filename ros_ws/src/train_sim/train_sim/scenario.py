@@ -2,11 +2,11 @@
 
 ``load_scenario("metro_demo")`` reads ``<share>/scenarios/metro_demo.yaml``; a path (anything with
 a ``/`` or ending in ``.yaml``) is read as is. Inside a scenario, ``line:`` and ``train:`` are
-either bare names (``config/lines/<name>.yaml``, ``config/trains/<name>.yaml`` of the package) or
+either bare names (``config/lines/<name>.yaml``, ``config/trains/<name>.yaml`` of train_core) or
 paths relative to the scenario file.
 
-Validation is strict (:mod:`train_sim.config`): a missing key, a value out of range, an unknown
-effect or an unknown field raises :class:`~train_sim.config.ConfigError` with a one-line message
+Validation is strict (:mod:`train_core.config`): a missing key, a value out of range, an unknown
+effect or an unknown field raises :class:`~train_core.config.ConfigError` with a one-line message
 naming the file, the key and what is allowed.
 
 Pure module: PyYAML + the shared model.
@@ -15,34 +15,24 @@ Pure module: PyYAML + the shared model.
 from __future__ import annotations
 
 import math
-import os
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-from .config import REQUIRED, ConfigError, Section, load_yaml
+from train_core.config import REQUIRED, ConfigError, Section, load_yaml
+from train_core.effects import Effects, parse_effects, true_line, true_link, true_train
+from train_core.files import config_file, share_dir
+from train_core.link import MODELS, LinkParams
+from train_core.model import Line, TrainParams, load_line, load_train
+
 from .driver import DRIVER_MODES, DriverParams, TimetableStop
-from .effects import Effects, parse_effects, true_line, true_link, true_train
-from .link import MODELS, LinkParams
-from .model import Line, TrainParams, load_line, load_train
 
 SCENARIO_KEYS = ("name", "description", "line", "train", "seed", "duration", "start", "sensors",
                  "integration", "driver", "timetable", "link", "effects")
 
 
 def data_root() -> Path:
-    """Directory holding ``scenarios/`` and ``config/`` (source tree or installed share)."""
-    env = os.environ.get("TRAIN_SIM_SHARE")
-    if env:
-        return Path(env)
-    src = Path(__file__).resolve().parent.parent
-    if (src / "scenarios").is_dir():
-        return src
-    try:  # installed with colcon: <prefix>/share/train_sim
-        from ament_index_python.packages import get_package_share_directory
-
-        return Path(get_package_share_directory("train_sim"))
-    except Exception:  # pragma: no cover - no ROS environment
-        return src
+    """Directory holding train_sim's ``scenarios/`` (source tree or installed share)."""
+    return share_dir("train_sim", "scenarios")
 
 
 @dataclass(frozen=True)
@@ -87,7 +77,7 @@ def _resolve(ref: str, kind: str, base: Path) -> Path:
     if "/" in ref or ref.endswith(".yaml"):
         p = Path(ref)
         return p if p.is_absolute() else (base / p)
-    return data_root() / "config" / kind / f"{ref}.yaml"
+    return config_file(kind, ref)
 
 
 def scenario_path(name_or_path: str | Path) -> Path:

@@ -27,8 +27,7 @@ from __future__ import annotations
 from bisect import bisect_right
 
 import numpy as np
-
-from .model import Balise
+from train_core.model import Balise
 
 
 class Odometer:

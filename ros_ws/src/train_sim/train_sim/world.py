@@ -32,12 +32,12 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from train_core.actuator import Actuator
+from train_core.dynamics import Dynamics, MotionState
+from train_core.effects import braking_rate_at
+from train_core.link import Link
 
-from .actuator import Actuator
 from .driver import Driver
-from .dynamics import Dynamics, MotionState
-from .effects import braking_rate_at
-from .link import Link
 from .scenario import Scenario
 from .sensors import BaliseReader, Odometer
 

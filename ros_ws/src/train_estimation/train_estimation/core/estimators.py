@@ -12,8 +12,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-
-from train_sim.model import Line, TrainParams
+from train_core.model import Line, TrainParams
 
 from .braking_filters import GSMA, QGRBPF, SMA, DiscreteRBPF, sticky_transition
 from .braking_model import BrakingModel, BrakingParams

@@ -56,8 +56,7 @@ from dataclasses import dataclass, field
 from functools import cached_property, lru_cache
 
 import numpy as np
-
-from train_sim.model import Line, TrainParams
+from train_core.model import Line, TrainParams
 
 from .discretize import zoh
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 
-from train_sim.nodes.ros_common import ParameterError, declarer, sec_to_stamp, stamp_to_sec
+from train_core.ros import ParameterError, declarer, sec_to_stamp, stamp_to_sec
 
 
 def declare_common(node) -> dict:
@@ -35,14 +35,14 @@ def declare_common(node) -> dict:
 
 def load_models(common: dict):
     """(train, line, StartState) from the file parameters; ParameterError with one line if bad."""
-    from train_estimation.core.estimators import StartState
-    from train_sim.config import ConfigError
-    from train_sim.model import load_line, load_train
-    from train_sim.scenario import data_root
+    from train_core.config import ConfigError
+    from train_core.files import config_file
+    from train_core.model import load_line, load_train
 
-    root = data_root() / "config"
-    line_file = common["line_file"] or str(root / "lines" / "metro_demo.yaml")
-    train_file = common["train_file"] or str(root / "trains" / "metro_b6.yaml")
+    from train_estimation.core.estimators import StartState
+
+    line_file = common["line_file"] or str(config_file("lines", "metro_demo"))
+    train_file = common["train_file"] or str(config_file("trains", "metro_b6"))
     try:
         line, train = load_line(line_file), load_train(train_file)
     except ConfigError as exc:

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import sys
 
-from train_sim.nodes.ros_common import (
+from train_core.ros import (
     TOPIC_TYPES,
     ParameterError,
     declarer,
@@ -27,8 +27,7 @@ DEFAULT_TOPICS = ["odometer", "balise", "control", "ground_truth", "estimate/rob
 
 def build_node():
     from rclpy.node import Node
-
-    from train_sim.bagio import BagError, BagWriter
+    from train_core.bagio import BagError, BagWriter
 
     class Recorder(Node):
         def __init__(self):

@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 import sys
 
-from train_sim.nodes.ros_common import declarer, parse_cli, run_node
+from train_core.ros import declarer, parse_cli, run_node
 
 DESCRIPTION = __doc__.splitlines()[0]
 

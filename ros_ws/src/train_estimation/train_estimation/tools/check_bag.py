@@ -25,8 +25,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
-
-from train_sim.bagio import Bag, BagError, read_bag
+from train_core.bagio import Bag, BagError, read_bag
 
 ESTIMATE_PREFIX = "estimate/"
 CHI2_95 = {1: 3.841, 2: 5.991}  # 95% quantiles of chi-square with 1 and 2 degrees of freedom
@@ -295,8 +294,8 @@ def main(argv=None) -> int:
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     args = p.parse_args(argv)
     try:
-        from train_sim.config import ConfigError
-        from train_sim.model import load_line, load_train
+        from train_core.config import ConfigError
+        from train_core.model import load_line, load_train
 
         if args.line:
             load_line(args.line)

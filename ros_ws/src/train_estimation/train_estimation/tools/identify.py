@@ -20,10 +20,9 @@ from pathlib import Path
 
 import numpy as np
 import yaml
-
-from train_sim.bagio import BagError, read_bag
-from train_sim.config import ConfigError
-from train_sim.model import TrainParams, load_line, load_train
+from train_core.bagio import BagError, read_bag
+from train_core.config import ConfigError
+from train_core.model import TrainParams, load_line, load_train
 
 
 def bag_to_data(bag):

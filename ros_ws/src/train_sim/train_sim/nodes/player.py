@@ -14,7 +14,7 @@ from __future__ import annotations
 import sys
 import time
 
-from train_sim.nodes.ros_common import (
+from train_core.ros import (
     TOPIC_TYPES,
     ParameterError,
     declarer,
@@ -31,8 +31,7 @@ DESCRIPTION = __doc__.splitlines()[0]
 def build_node():
     from rclpy.node import Node
     from rosgraph_msgs.msg import Clock
-
-    from train_sim.bagio import BagError, read_bag
+    from train_core.bagio import BagError, read_bag
 
     class Player(Node):
         def __init__(self):

@@ -14,7 +14,7 @@ import sys
 import time
 from pathlib import Path
 
-from train_sim.nodes.ros_common import (
+from train_core.ros import (
     TOPIC_TYPES,
     ParameterError,
     declarer,
@@ -31,9 +31,9 @@ DESCRIPTION = __doc__.splitlines()[0]
 def build_node():
     from rclpy.node import Node
     from rosgraph_msgs.msg import Clock
+    from train_core.config import ConfigError
 
     from train_interfaces.msg import MovementAuthority
-    from train_sim.config import ConfigError
     from train_sim.scenario import load_scenario
     from train_sim.summary import run_summary
     from train_sim.world import World

@@ -11,16 +11,16 @@ import math
 import sys
 from dataclasses import replace
 
-from train_sim.nodes.ros_common import ParameterError, declarer, parse_cli, run_node, stamp_to_sec
+from train_core.ros import ParameterError, declarer, parse_cli, run_node, stamp_to_sec
 
 DESCRIPTION = __doc__.splitlines()[0]
 
 
 def build_node():
     from rclpy.node import Node
+    from train_core.model import load_line
 
     from train_interfaces.msg import MovementAuthority, TrainState
-    from train_sim.model import load_line
     from train_sim.zone import TrainReport, ZoneController, ZoneParams
 
     class ZoneControllerNode(Node):

@@ -29,7 +29,7 @@ clock_drift        the train's clock runs at rate (1 + drift): odometer, balise 
                    are t (1 + drift); ground truth stays on true time. Stamps only.
 =================  ================================================================================
 
-Pure module: PyYAML-free (validation uses :mod:`train_sim.config` sections).
+Pure module: PyYAML-free (validation uses :mod:`train_core.config` sections).
 """
 
 from __future__ import annotations

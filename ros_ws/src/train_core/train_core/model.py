@@ -2,7 +2,7 @@
 
 One model class serves both the world (the simulator integrates it) and the estimators (they
 discretise it), so simulated truth and filter assumptions cannot silently diverge. The simulator's
-effects (``train_sim.effects``) produce a *modified copy* of these objects with
+effects (``train_core.effects``) produce a *modified copy* of these objects with
 :func:`dataclasses.replace`; the estimators only ever see what ``train.yaml``/``line.yaml`` say.
 
 Longitudinal dynamics (mass point, issue #3)::

@@ -18,8 +18,8 @@ import sys
 import time
 from pathlib import Path
 
-from train_sim.procs import resolve_executable as executable
-from train_sim.procs import stop_process
+from train_core.procs import resolve_executable as executable
+from train_core.procs import stop_process
 
 NS = "/train"
 
@@ -66,7 +66,8 @@ def main(argv=None) -> int:
     summary_file = out / "simulator_summary.json"
     ros = ["--ros-args", "-r", f"__ns:={NS}", "-p", "use_sim_time:=true"]
 
-    from train_sim.config import ConfigError
+    from train_core.config import ConfigError
+
     from train_sim.scenario import load_scenario
 
     try:

@@ -15,7 +15,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from train_sim import bagio
+from train_core import bagio
 
 # short message name -> Python class path; CONTRACT.md topic -> short message name (one table,
 # bagio's, serves the bag tools and the nodes)
