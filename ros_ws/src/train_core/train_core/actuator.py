@@ -38,58 +38,88 @@ def effective_input(u: float, f: float) -> float:
 
 
 class Actuator:
-    """Exact delay ``T`` followed by a first-order lag ``tau`` (Zheng eq. (1)), scalar state.
+    """Exact delay followed by a first-order lag ``tau`` (Zheng eq. (1)), scalar state.
 
     ``a0`` is the output at ``t0``; ``u0`` the command that was issued before ``t0`` and fills the
     delay line (Zheng Sec. 4 starts mid-braking with a_hat(0) = -1 m/s^2 and the pipe full of -1;
     a train at rest starts with a0 = u0 = 0).
+
+    Traction and braking have their own transport delay (``delay`` and ``brake_delay``, default
+    the same): the drive and the brake are separate chains on a real train (the brake's is
+    pneumatic and often slower; CONTRACT.md's ``brake_delay`` cause). A command is split at zero,
+    its traction part max(a_Tar, 0) enters the traction pipe and its braking part min(a_Tar, 0)
+    the brake pipe; the lag's input is the sum of the two delayed parts, the braking one scaled
+    by f. With equal delays this is exactly eq. (1) (one of the two parts is always 0).
     """
 
     def __init__(self, time_constant: float, delay: float, a0: float = 0.0, u0: float = 0.0,
-                 t0: float = 0.0):
+                 t0: float = 0.0, brake_delay: float | None = None):
         if not time_constant > 0.0:
             raise ValueError("time_constant must be > 0")
         if not delay >= 0.0:
             raise ValueError("delay must be >= 0")
+        brake_delay = delay if brake_delay is None else float(brake_delay)
+        if not brake_delay >= 0.0:
+            raise ValueError("brake_delay must be >= 0")
         self.tau = float(time_constant)
         self.delay = float(delay)
+        self.brake_delay = brake_delay
         self.t = float(t0)
         self.a = float(a0)  # m/s^2, output a_hat(t)
-        self.u = float(u0)  # m/s^2, delayed command a_Tar(t - T) in force at self.t
+        self.u_tr = max(float(u0), 0.0)  # m/s^2, delayed traction part in force at self.t
+        self.u_br = min(float(u0), 0.0)  # m/s^2, delayed braking part in force at self.t
         self.last_command = float(u0)  # most recent command issued (not yet necessarily active)
-        self._pipe: deque[tuple[float, float]] = deque()  # (activation time, command)
+        self._pipe: deque[tuple[float, float]] = deque()  # traction: (activation time, part)
+        self._bpipe: deque[tuple[float, float]] = deque()  # braking: (activation time, part)
+
+    @property
+    def u(self) -> float:
+        """m/s^2, the delayed command in force (traction part + braking part, before f)."""
+        return self.u_tr + self.u_br
+
+    def effective(self, f: float) -> float:
+        """u_eff of eq. (1) now: traction part + f * braking part."""
+        return self.u_tr + f * self.u_br
 
     def copy(self) -> Actuator:
         new = Actuator.__new__(Actuator)
-        new.tau, new.delay, new.t, new.a, new.u = self.tau, self.delay, self.t, self.a, self.u
-        new.last_command = self.last_command
+        new.__dict__.update(self.__dict__)
         new._pipe = deque(self._pipe)
+        new._bpipe = deque(self._bpipe)
         return new
 
     def command(self, t: float, a_tar: float) -> None:
-        """Issue a_Tar at time ``t`` (>= self.t); it becomes the input at ``t + T``."""
+        """Issue a_Tar at time ``t`` (>= self.t); its traction part becomes the input at
+        ``t + delay``, its braking part at ``t + brake_delay``."""
         self.last_command = float(a_tar)
-        t_act = t + self.delay
-        if self._pipe and t_act < self._pipe[-1][0] - _EPS:
-            raise ValueError("commands must be issued in time order")
-        self._pipe.append((t_act, float(a_tar)))
+        for pipe, part, d in ((self._pipe, max(float(a_tar), 0.0), self.delay),
+                              (self._bpipe, min(float(a_tar), 0.0), self.brake_delay)):
+            t_act = t + d
+            if pipe and t_act < pipe[-1][0] - _EPS:
+                raise ValueError("commands must be issued in time order")
+            pipe.append((t_act, part))
         self._activate()
 
     def _activate(self) -> None:
-        pipe = self._pipe
-        while pipe and pipe[0][0] <= self.t + _EPS:
-            self.u = pipe.popleft()[1]
+        t = self.t + _EPS
+        pipe, bpipe = self._pipe, self._bpipe
+        while pipe and pipe[0][0] <= t:
+            self.u_tr = pipe.popleft()[1]
+        while bpipe and bpipe[0][0] <= t:
+            self.u_br = bpipe.popleft()[1]
 
     def next_switch(self) -> float:
         """Next time (> self.t) at which the delayed input changes; inf if none is pending."""
-        return self._pipe[0][0] if self._pipe else math.inf
+        a = self._pipe[0][0] if self._pipe else math.inf
+        b = self._bpipe[0][0] if self._bpipe else math.inf
+        return a if a < b else b
 
     def segment(self, h: float, f: float) -> tuple[float, float, float]:
         """Advance by ``h`` with constant input (caller ensures no switch inside (t, t + h)).
 
         Returns (a_hat(t), a_hat(t + h/2), a_hat(t + h)) -- the values RK4 needs.
         """
-        ue = self.u if self.u >= 0.0 else f * self.u
+        ue = self.u_tr + f * self.u_br
         a0 = self.a
         e = math.exp(-0.5 * h / self.tau)
         a_mid = ue + (a0 - ue) * e

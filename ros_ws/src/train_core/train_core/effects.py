@@ -21,12 +21,13 @@ wheel_slip         during each interval [t0, t1] the axle speed is (1 + slip_fra
                    the excess afterwards. Odometer values only.
 bursty_link        both topics' links become Gilbert-Elliott with p_good_bad, p_bad_good
                    (loss_good, loss_bad default 0 and 1). Which messages are received only.
-brake_delay        true actuator transport delay T (s), for traction and braking commands alike
-                   (one delay line, Zheng eq. (1)). Motion only.
+brake_delay        true transport delay (s) of *braking* commands; traction keeps train.yaml's
+                   delay (the brake is its own chain, actuator.py). Motion only.
 mass               true mass M (kg). The drive force is computed for the believed mass
                    (dynamics.py), so traction, braking and resistance accelerations all change.
-clock_drift        the train's clock runs at rate (1 + drift): odometer, balise and control stamps
-                   are t (1 + drift); ground truth stays on true time. Stamps only.
+clock_drift        the train's clock runs at rate (1 + drift): odometer and balise stamps are
+                   epoch + t (1 + drift); control and ground truth stay on the reference clock
+                   (true time). Stamps only.
 =================  ================================================================================
 
 Pure module: PyYAML-free (validation uses :mod:`train_core.config` sections).
@@ -162,9 +163,7 @@ def true_train(train: TrainParams, eff: Effects) -> TrainParams:
     if eff.resistance is not None:
         r = eff.resistance
         t = replace(t, davis=Davis(r.a, r.b, r.c))
-    brake = t.brake
-    if eff.brake_delay is not None:
-        brake = replace(brake, delay=eff.brake_delay.delay)
+    brake = t.brake  # brake_delay is not here: it delays braking only (World's actuator)
     if eff.braking_rate is not None:
         brake = replace(brake, braking_rate=eff.braking_rate.f_start)
     if brake is not t.brake:

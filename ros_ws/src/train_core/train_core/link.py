@@ -19,6 +19,16 @@ Two models, both seeded through an explicit ``np.random.Generator``:
 One :class:`Link` per topic (odometer, balise), each with its own generator, so that a change in
 one topic's traffic never shifts another topic's random stream.
 
+Besides losses a link has:
+
+* **latency**: a received message arrives ``latency + jitter * E`` seconds after it was sent,
+  E ~ Exp(1) drawn per message from a *separate* generator (so switching latency on never changes
+  which messages are lost). With jitter larger than the sample period, messages overtake each
+  other: the receiver sees them out of order, as over a real radio.
+* **outages** (a tunnel): no message of the topic is received while the train is inside one of
+  the windows [t0, t1) (true time, s). The loss draw is still made, so the rest of the run's
+  losses do not shift.
+
 Pure module: numpy only.
 """
 
@@ -47,6 +57,12 @@ class LinkParams:
     p_bad_good: float = 1.0  # -, per-message probability B -> G (gilbert_elliott)
     loss_good: float = 0.0  # -, probability a message is lost in the good state
     loss_bad: float = 1.0  # -, probability a message is lost in the bad state
+    latency: float = 0.0  # s, fixed part of the transmission delay of a received message
+    jitter: float = 0.0  # s, mean of the exponential random part of the delay
+    outages: tuple[tuple[float, float], ...] = ()  # s, [t0, t1) windows with nothing received
+
+    def in_outage(self, t: float) -> bool:
+        return any(t0 <= t < t1 for t0, t1 in self.outages)
 
     @property
     def received_probability(self) -> float:
@@ -66,11 +82,13 @@ class LinkParams:
 class Link:
     """One topic's lossy link. ``transmit()`` returns True when the message arrives."""
 
-    def __init__(self, params: LinkParams, rng: np.random.Generator):
+    def __init__(self, params: LinkParams, rng: np.random.Generator,
+                 delay_rng: np.random.Generator | None = None):
         if params.model not in MODELS:
             raise ValueError(f"unknown link model {params.model!r} (allowed: {', '.join(MODELS)})")
         self.params = params
         self.rng = rng
+        self.delay_rng = delay_rng if delay_rng is not None else np.random.default_rng(0)
         self.sent = 0
         self.dropped = 0
         self._p_recv = params.received_probability
@@ -93,6 +111,20 @@ class Link:
         if not ok:
             self.dropped += 1
         return bool(ok)
+
+    def send(self, t: float) -> float | None:
+        """A message sent at true time ``t``: its arrival time, or None when it is lost."""
+        ok = self.transmit()
+        if self.params.outages and self.params.in_outage(t):
+            if ok:
+                self.dropped += 1
+            return None
+        if not ok:
+            return None
+        p = self.params
+        if p.jitter > 0.0:
+            return t + p.latency + p.jitter * float(self.delay_rng.standard_exponential())
+        return t + p.latency
 
     def transmit_many(self, n: int) -> np.ndarray:
         """Fates of ``n`` consecutive messages (bool array); same stream as n calls to transmit."""

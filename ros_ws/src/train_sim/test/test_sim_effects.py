@@ -34,7 +34,8 @@ def run(sc, **effects):
 
 def same(a: dict, b: dict, keys=None):
     keys = keys or a.keys()
-    return all(np.array_equal(a[k], b[k]) for k in keys)
+    # t_recv is NaN for the messages the link lost
+    return all(np.array_equal(a[k], b[k], equal_nan=a[k].dtype.kind == "f") for k in keys)
 
 
 def odo_noise(res, x0):
@@ -82,8 +83,10 @@ def test_clock_drift_changes_only_train_stamps(base):
     for topic in ("odometer", "balise", "control"):
         a, b = getattr(r0, topic), getattr(r1, topic)
         assert same(a, b, [k for k in a if k != "stamp"])
-        assert np.allclose(b["stamp"], b["t"] * (1 + d), rtol=0, atol=1e-12)
         assert np.array_equal(a["stamp"], a["t"])
+        # CONTRACT.md: control stays on the reference clock; the sensors' stamps drift
+        expect = b["t"] if topic == "control" else b["t"] * (1 + d)
+        assert np.allclose(b["stamp"], expect, rtol=0, atol=1e-12)
     gt = [s for topic, s, _ in r1.events() if topic == "ground_truth"]
     assert np.array_equal(gt, r1.truth["t"])
 
@@ -94,7 +97,7 @@ def test_bursty_link_changes_only_which_messages_arrive(base):
     assert same(r0.truth, r1.truth) and same(r0.control, r1.control)
     for topic in ("odometer", "balise"):
         a, b = getattr(r0, topic), getattr(r1, topic)
-        assert same(a, b, [k for k in a if k != "received"])
+        assert same(a, b, [k for k in a if k not in ("received", "t_recv")])
     assert not np.array_equal(r0.odometer["received"], r1.odometer["received"])
     # Bursty: the mean loss-burst length is near 1/p_bad_good = 5, not Bernoulli's 1/0.875.
     rec = r1.odometer["received"]
@@ -151,16 +154,30 @@ def test_mass_effect_scales_drive_acceleration(base):
                        r0.truth["acceleration"][rest] * sc.train.mass / m_true, rtol=1e-12)
 
 
-def test_brake_delay_effect_delays_the_actuator(base):
+def test_brake_delay_effect_delays_braking_commands_only(base):
     sc, r0 = base
-    T1 = 1.8
+    T, T1 = sc.train.brake.delay, 1.8
     r1 = run(sc, brake_delay=BrakeDelayEffect(T1))
     dynamics_effect_checks(sc, r0, r1)
     t, a0, a1 = r0.truth["t"], r0.truth["acceleration"], r1.truth["acceleration"]
-    # Departure command at 10 s: the output moves at 10 + T (1.2 s believed, 1.8 s true).
-    window = (t > 10.0 + sc.train.brake.delay + 0.05) & (t < 10.0 + T1 - 1e-9)
-    assert np.all(np.abs(a1[window] - a1[t == 10.0]) < 1e-6)
-    assert np.max(np.abs(a0[window] - a0[t == 10.0])) > 0.05
+    # At 10 s the ATO replaces the holding brake (-0.3) by traction. Traction acts after T in
+    # both runs; the brake's release is a braking-chain change, so it comes after T1 in r1: in
+    # between r1 pulls against the still applied holding brake.
+    # (the holding brake applied at 0 s also acts 0.6 s later in r1; from 5 s on that lag
+    # transient is below 0.3 exp(-(5 - 1.8) / 0.4) = 1e-4 m/s^2)
+    same_part = (t >= 5.0) & (t <= 10.0 + T)
+    assert np.allclose(a0[same_part], a1[same_part], rtol=0, atol=1.1e-4)
+    window = (t > 10.0 + T + 0.05) & (t < 10.0 + T1 - 1e-9)
+    diff = a0[window] - a1[window]
+    assert np.all(diff > 0.0) and diff.max() > 0.1
+    # Traction alone is not delayed: a command series without braking gives identical output.
+    from train_core.actuator import Actuator
+    x, y = Actuator(0.4, T), Actuator(0.4, T, brake_delay=T1)
+    for k in range(100):
+        for act in (x, y):
+            act.advance(0.1 * k)
+            act.command(0.1 * k, 0.5 * (k > 10))
+    assert x.advance(12.0) == y.advance(12.0)
 
 
 def test_braking_rate_effect_drift_and_step(base):

@@ -126,7 +126,10 @@ def test_effects_parse_and_build_true_models(tmp_scenario):
     sc = load_scenario(tmp_scenario(lambda d: d.update(effects=eff)))
     assert sorted(sc.effects.active()) == sorted(EFFECT_NAMES)
     assert sc.train.mass == 288000.0 and sc.true_train.mass == 320000.0
-    assert sc.true_train.davis.a == 4000.0 and sc.true_train.brake.delay == 1.6
+    # brake_delay delays braking commands only: the world's actuator takes it from the effect,
+    # the train's (traction) delay stays as train.yaml says
+    assert sc.true_train.davis.a == 4000.0 and sc.true_train.brake.delay == 1.2
+    assert sc.effects.brake_delay.delay == 1.6
     assert sc.effects.braking_rate.value(sc.duration) == 0.7
     assert sc.true_link.model == "gilbert_elliott" and sc.link.model == "bernoulli"
     assert sc.true_line.gradient_permille(1100.0) == 12.0 + 8.0

@@ -2,10 +2,17 @@
 
     python -m train_sim.generate --scenario metro_demo --seed 3 --out bags/x
 
+    python -m train_sim.generate --scenario metro_demo --model out/diag/model --out bags/y
+
 Uses the same :class:`train_sim.world.World` as the ``simulator`` node, so the same scenario and
 seed give the same messages. The bag holds what the train sends after the radio link
 (``odometer``, ``balise``), ``control`` and ``ground_truth``; ``--measured`` leaves ground truth
-out (a "measured data" bag, CONTRACT.md).
+out (a "measured data" bag, CONTRACT.md). Each message's log time is its arrival time on the
+reference clock (the link's latency included), as a recorder on the ground would log it.
+
+``--model DIR`` runs a model written by ``diagnose`` (``DIR/line.yaml``, ``DIR/train.yaml``,
+``DIR/effects.yaml``): the scenario's driver, timetable, link and seed with that line, train and
+those effects (:func:`train_sim.scenario.with_model`).
 """
 
 from __future__ import annotations
@@ -24,10 +31,10 @@ def generate(scenario, out, seed=None, duration=None, namespace="/train", measur
 
     res = simulate(scenario, seed=seed, duration=duration)
     with BagWriter(out, namespace=namespace) as writer:
-        for topic, stamp, fields in res.events():
+        for t_recv, topic, stamp, fields in res.received_events():
             if measured and topic == "ground_truth":
                 continue
-            writer.write(topic, stamp, fields)
+            writer.write(topic, stamp, fields, t_ns=int(round(t_recv * 1e9)))
     return res
 
 
@@ -39,11 +46,16 @@ def main(argv=None) -> int:
     p.add_argument("--out", required=True, help="bag directory to create (must not exist)")
     p.add_argument("--namespace", default="/train", help="topic namespace (default /train)")
     p.add_argument("--measured", action="store_true", help="leave ground_truth out")
+    p.add_argument("--model", default=None, metavar="DIR",
+                   help="run the model in DIR (line.yaml, train.yaml, effects.yaml, as written "
+                        "by diagnose into OUT/model) instead of the scenario's line/train/effects")
     args = p.parse_args(argv)
-    from train_sim.scenario import load_scenario
+    from train_sim.scenario import load_scenario, with_model
 
     try:
         sc = load_scenario(args.scenario)
+        if args.model:
+            sc = with_model(sc, args.model)
         t0 = time.perf_counter()
         res = generate(sc, args.out, args.seed, args.duration, args.namespace, args.measured)
     except (ConfigError, BagError) as exc:

@@ -58,6 +58,7 @@ class Scenario:
     link: LinkParams  # configured link model
     true_link: LinkParams  # the one the world uses (bursty_link effect)
     effects: Effects
+    stamp_epoch: float = 0.0  # s, the train clock's reading at true time 0 (odometer, balise)
     line_path: str = ""  # the line.yaml file the estimators are given
     train_path: str = ""  # the train.yaml file the estimators are given
 
@@ -108,8 +109,9 @@ def scenario_from_dict(data: dict, where: str, base_dir: Path | str = ".") -> Sc
     a0 = st.number("acceleration", 0.0, lo=-5.0, hi=5.0, unit="m/s^2")
     u0 = st.number("target_acceleration", 0.0, lo=-5.0, hi=5.0, unit="m/s^2")
 
-    sens = s.section("sensors", ("odometer_rate",), default={})
+    sens = s.section("sensors", ("odometer_rate", "stamp_epoch"), default={})
     rate = sens.number("odometer_rate", 10.0, lo=0.0, lo_open=True, hi=1000.0, unit="Hz")
+    epoch = sens.number("stamp_epoch", 0.0, lo=0.0, hi=4.0e9, unit="s")
     integ = s.section("integration", ("max_step",), default={})
     max_step = integ.number("max_step", 0.01, lo=0.0, lo_open=True, hi=0.01, unit="s")
 
@@ -151,7 +153,7 @@ def scenario_from_dict(data: dict, where: str, base_dir: Path | str = ".") -> Sc
                               f"('{b.station}' is not beyond '{a.station}')")
 
     ln = s.section("link", ("model", "p", "r", "p_good_bad", "p_bad_good", "loss_good",
-                            "loss_bad"), default={})
+                            "loss_bad", "latency", "jitter", "outages"), default={})
     link = LinkParams(
         model=ln.string("model", "bernoulli", choices=MODELS),
         p=ln.number("p", 0.5, lo=0.0, hi=1.0),
@@ -160,6 +162,9 @@ def scenario_from_dict(data: dict, where: str, base_dir: Path | str = ".") -> Sc
         p_bad_good=ln.number("p_bad_good", 1.0, lo=0.0, hi=1.0, lo_open=True),
         loss_good=ln.number("loss_good", 0.0, lo=0.0, hi=1.0),
         loss_bad=ln.number("loss_bad", 1.0, lo=0.0, hi=1.0),
+        latency=ln.number("latency", 0.0, lo=0.0, hi=10.0, unit="s"),
+        jitter=ln.number("jitter", 0.0, lo=0.0, hi=10.0, unit="s"),
+        outages=_intervals(ln, "outages"),
     )
     effects = parse_effects(s.section("effects", default={}), duration)
     if effects.gradient is not None and effects.gradient.end > line.length:
@@ -188,7 +193,23 @@ def scenario_from_dict(data: dict, where: str, base_dir: Path | str = ".") -> Sc
         link=link,
         true_link=true_link(link, effects),
         effects=effects,
+        stamp_epoch=epoch,
     )
+
+
+def _intervals(sec: Section, key: str) -> tuple[tuple[float, float], ...]:
+    """A list of [t0, t1] windows (s, 0 <= t0 < t1), empty when the key is absent."""
+    raw = sec.data.get(key)
+    if raw is None:
+        return ()
+    ok = isinstance(raw, list) and all(
+        isinstance(iv, list) and len(iv) == 2
+        and all(isinstance(u, (int, float)) and not isinstance(u, bool) for u in iv)
+        and 0 <= iv[0] < iv[1] for iv in raw)
+    if not ok:
+        raise ConfigError(f"{sec.where}.{key}: expected a list of [t0, t1] with 0 <= t0 < t1 "
+                          f"(s), got {raw!r}")
+    return tuple((float(a), float(b)) for a, b in sorted(raw))
 
 
 def _profile(d: Section, mode: str) -> tuple[tuple[float, float], ...]:
@@ -206,3 +227,22 @@ def _profile(d: Section, mode: str) -> tuple[tuple[float, float], ...]:
         raise ConfigError(f"{d.where}.profile: expected a list of [t (s, >= 0), a_Tar "
                           f"(m/s^2, in [-5, 5])], got {raw!r}")
     return tuple((float(a), float(b)) for a, b in raw)
+
+
+def with_model(sc: Scenario, model_dir: str | Path) -> Scenario:
+    """``sc`` with the line, train and effects of a model directory (``diagnose``'s
+    ``OUT/model``: ``line.yaml``, ``train.yaml`` and optionally ``effects.yaml``, a mapping
+    {effect: {parameters}} as in a scenario's ``effects:``). The model is both what the world
+    runs and what the estimators are given; its effects are the fitted ones."""
+    d = Path(model_dir)
+    for name in ("line.yaml", "train.yaml"):
+        if not (d / name).is_file():
+            raise ConfigError(f"{d}: missing {name} (a model directory holds line.yaml, "
+                              "train.yaml and optionally effects.yaml)")
+    line = load_line(d / "line.yaml")
+    train = load_train(d / "train.yaml")
+    eff_path = d / "effects.yaml"
+    raw = load_yaml(eff_path) if eff_path.is_file() else {}
+    effects = parse_effects(Section(raw or {}, str(eff_path)), sc.duration)
+    return replace(sc, line=line, train=train, line_path=str(d / "line.yaml"),
+                   train_path=str(d / "train.yaml")).with_effects(effects)

@@ -16,28 +16,40 @@ Time line (true time t, s, from 0):
   delayed command.
 
 At equal times the order is: ATO cycle, then ground_truth, control, odometer. Messages are
-returned in order of true time. The train's messages are stamped with its clock, t (1 + drift)
-(clock_drift effect; drift 0 otherwise); ground truth is stamped with true time.
+returned in order of true time.
 
-Randomness: one ``np.random.SeedSequence(seed)`` spawns four independent streams: odometer
-noise, balise detection offsets, odometer link, balise link. Effects that do not touch a stream
-leave its draws unchanged, so runs with and without an effect differ only where documented.
+Clocks (CONTRACT.md, ``diagnose``): the reference clock is true time t; ``ground_truth`` and
+``control`` are stamped with it. ``odometer`` and ``balise`` are stamped by the train's own clock,
+``stamp_epoch + t (1 + drift)`` (scenario ``sensors.stamp_epoch``, default 0; clock_drift
+effect, default 0). A received message arrives at ``t_recv`` = t + the link's latency (default
+0): :meth:`World.deliver` hands messages out in arrival order, as a receiver (and a recorder's
+log time) sees them.
+
+Commands come from the ATO (closed loop) or, open loop, from a recorded series
+(:func:`open_loop`): the same integration serves both.
+
+Randomness: one ``np.random.SeedSequence(seed)`` spawns six independent streams: odometer
+noise, balise detection offsets, odometer link, balise link, odometer latency, balise latency.
+Effects that do not touch a stream leave its draws unchanged, so runs with and without an effect
+differ only where documented.
 
 Pure module: numpy + the package's pure modules.
 """
 
 from __future__ import annotations
 
+import heapq
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from train_core.actuator import Actuator
 from train_core.dynamics import Dynamics, MotionState
-from train_core.effects import braking_rate_at
-from train_core.link import Link
+from train_core.effects import Effects, braking_rate_at, true_line, true_link, true_train
+from train_core.link import Link, LinkParams
+from train_core.model import Line, TrainParams
 
-from .driver import Driver
+from .driver import Driver, DriverParams
 from .scenario import Scenario
 from .sensors import BaliseReader, Odometer
 
@@ -53,8 +65,8 @@ class SimResult:
     seed: int
     duration: float  # s
     truth: dict  # t, position, velocity, acceleration, braking_rate
-    odometer: dict  # t, stamp, seq, distance, speed, speed_variance, received
-    balise: dict  # t, stamp, seq, balise_id, position, position_variance, received
+    odometer: dict  # t, stamp, seq, distance, speed, speed_variance, received, t_recv
+    balise: dict  # t, stamp, seq, balise_id, position, position_variance, received, t_recv
     control: dict  # t, stamp, target_acceleration
     stops: list  # dicts: station, position, stop_position, stopping_error (m), t (s)
     emergency_brakes: int  # rising edges of the emergency-brake flag
@@ -63,38 +75,57 @@ class SimResult:
     _events: list = field(default_factory=list, repr=False)
 
     def events(self) -> list:
-        """Time-ordered (topic, stamp_s, fields) of the messages received, as the node sends."""
-        return list(self._events)
+        """(topic, stamp_s, fields) of the messages received, in order of sending (true time)."""
+        return [e[1:] for e in self._events]
+
+    def received_events(self) -> list:
+        """(t_recv, topic, stamp_s, fields) in order of arrival (reference clock, s): what a
+        receiver sees, out of order where the link's jitter reorders messages."""
+        return sorted(self._events, key=lambda e: e[0])  # stable: ties keep sending order
 
 
 class World:
     """The world of one scenario and seed, advanced in true time."""
 
-    def __init__(self, scenario: Scenario, seed: int | None = None):
+    def __init__(self, scenario: Scenario, seed: int | None = None,
+                 commands: tuple[np.ndarray, np.ndarray] | None = None):
+        """``commands = (t, a_Tar)``: replay this recorded series open loop (each a_Tar issued at
+        its time t, s, true time of this world) instead of running the ATO."""
         sc = scenario
         self.scenario = sc
         self.seed = int(sc.seed if seed is None else seed)
-        s_odo, s_bal, s_lodo, s_lbal = np.random.SeedSequence(self.seed).spawn(4)
+        s_odo, s_bal, s_lodo, s_lbal, s_dodo, s_dbal = np.random.SeedSequence(self.seed).spawn(6)
         tt, eff = sc.true_train, sc.effects
         self.effects = eff
         self.act = Actuator(tt.brake.time_constant, tt.brake.delay,
-                            a0=sc.start_acceleration, u0=sc.start_target_acceleration)
+                            a0=sc.start_acceleration, u0=sc.start_target_acceleration,
+                            brake_delay=eff.brake_delay.delay if eff.brake_delay else None)
         self.dyn = Dynamics(tt, sc.true_line, sc.train)
         self.state = MotionState(sc.start_position, sc.start_speed, sc.start_speed == 0.0)
-        self.driver = Driver(sc.line, sc.train, sc.driver, sc.timetable, sc.start_position,
-                             sc.start_speed, a0=sc.start_acceleration,
-                             u0=sc.start_target_acceleration)
+        if commands is None:
+            self.driver = Driver(sc.line, sc.train, sc.driver, sc.timetable, sc.start_position,
+                                 sc.start_speed, a0=sc.start_acceleration,
+                                 u0=sc.start_target_acceleration)
+            self._cmd_t = self._cmd_a = None
+        else:
+            self.driver = None
+            ct, ca = (np.asarray(c, dtype=float) for c in commands)
+            order = np.argsort(ct, kind="stable")
+            self._cmd_t, self._cmd_a = ct[order].tolist(), ca[order].tolist()
         self.odometer = Odometer(sc.train.odometer_speed_std, sc.train.odometer_distance_std,
                                  np.random.default_rng(s_odo))
         self.balise_reader = BaliseReader(sc.line.balises, sc.train.balise_position_std,
                                           np.random.default_rng(s_bal), sc.start_position)
-        self.links = {"odometer": Link(sc.true_link, np.random.default_rng(s_lodo)),
-                      "balise": Link(sc.true_link, np.random.default_rng(s_lbal))}
+        self.links = {"odometer": Link(sc.true_link, np.random.default_rng(s_lodo),
+                                       np.random.default_rng(s_dodo)),
+                      "balise": Link(sc.true_link, np.random.default_rng(s_lbal),
+                                     np.random.default_rng(s_dbal))}
         self.t = 0.0
         self.a_tar = sc.start_target_acceleration
         self.axle_distance = 0.0  # m, distance the axle counted since the start
         self._scale = eff.odometer_scale.scale if eff.odometer_scale else 1.0
         self._drift = eff.clock_drift.drift if eff.clock_drift else 0.0
+        self._epoch = sc.stamp_epoch
         self._slip = eff.wheel_slip
         self._slip_times = sorted({t for iv in self._slip.intervals for t in iv}) if self._slip \
             else []
@@ -105,16 +136,24 @@ class World:
         self._k_ctrl = 0
         self._due_done = False  # events at self.t processed
         self._log = {k: [] for k in ("truth", "odometer", "balise", "control")}
-        self._events: list = []
+        self._events: list = []  # (t_recv, topic, stamp, fields), in order of sending
+        self._pending: list = []  # heap of (t_recv, n, topic, stamp, fields) not yet delivered
+        self._n_sent = 0
 
     # -- inputs ----------------------------------------------------------------------------------
     def set_movement_authority(self, end_of_authority: float, permitted_speed: float,
                                emergency_brake: bool) -> None:
         """Hand the zone controller's authority to the ATO (takes effect at its next cycle)."""
-        self.driver.set_movement_authority(end_of_authority, permitted_speed, emergency_brake)
+        if self.driver is not None:
+            self.driver.set_movement_authority(end_of_authority, permitted_speed, emergency_brake)
 
     def set_braking_rate_belief(self, f: float) -> None:
-        self.driver.set_braking_rate_belief(f)
+        if self.driver is not None:
+            self.driver.set_braking_rate_belief(f)
+
+    def train_stamp(self, t: float) -> float:
+        """The train clock's reading at true time ``t`` (s)."""
+        return self._epoch + t * (1.0 + self._drift)
 
     def braking_rate(self, t: float) -> float:
         """True braking rate f(t)."""
@@ -139,7 +178,7 @@ class World:
                     break
                 self._due(out)
                 self._due_done = True
-            t_sample, t_ctrl = self._k_sample / self._rate, self._k_ctrl * self._period
+            t_sample, t_ctrl = self._k_sample / self._rate, self._next_command_time()
             t_next = min(t_sample, t_ctrl, self.act.next_switch(), self._next_slip())
             # Snap to the canonical sample/cycle time when another event coincides with it
             # up to round-off (e.g. 10.0 + 1.2 vs 112 / 10), so times never depend on it.
@@ -150,8 +189,27 @@ class World:
                 break
             self._integrate(t_next, out)
             self._due_done = False
+        for e in out:
+            heapq.heappush(self._pending, (e[0], self._n_sent, *e[1:]))
+            self._n_sent += 1
         self._events.extend(out)
+        return [e[1:] for e in out]
+
+    def deliver(self, t_end: float) -> list:
+        """(topic, stamp, fields) of the messages that have arrived by ``t_end`` (reference
+        clock) and were not delivered before, in order of arrival. Without link latency this is
+        exactly what :meth:`advance` returned."""
+        out = []
+        pend = self._pending
+        while pend and pend[0][0] <= t_end + _EPS:
+            e = heapq.heappop(pend)
+            out.append(e[2:])
         return out
+
+    def _next_command_time(self) -> float:
+        if self.driver is not None:
+            return self._k_ctrl * self._period
+        return self._cmd_t[self._k_ctrl] if self._k_ctrl < len(self._cmd_t) else math.inf
 
     def _next_slip(self) -> float:
         for ts in self._slip_times:
@@ -168,11 +226,10 @@ class World:
         tau = act.tau
         factor = self._scale * (self._slip.factor(t_start + 0.5 * span) if self._slip else 1.0)
         f_const = self._f_const
-        u = act.u  # constant over the whole span (it ends at the next input change)
         for i in range(n):
             t0 = t_start + i * h
             f = f_const if f_const is not None else self.braking_rate(t0 + 0.5 * h)
-            ue = u if u >= 0.0 else f * u
+            ue = act.effective(f)  # constant over the span (it ends at the next input change)
             a0, a_mid, a_end = act.segment(h, f)
             x0 = st.x
             dyn.step(st, h, a0, a_mid, a_end, ue, tau)
@@ -187,8 +244,11 @@ class World:
 
     def _due(self, out: list) -> None:
         t = self.t
-        if self._k_ctrl * self._period <= t + _EPS:
-            self.a_tar = self.driver.update(t, self.state.x, self.state.v, self.state.stopped)
+        while self._next_command_time() <= t + _EPS:
+            if self.driver is not None:
+                self.a_tar = self.driver.update(t, self.state.x, self.state.v, self.state.stopped)
+            else:
+                self.a_tar = self._cmd_a[self._k_ctrl]
             self.act.command(t, self.a_tar)
             self._k_ctrl += 1
         if self._k_sample / self._rate <= t + _EPS:
@@ -201,29 +261,34 @@ class World:
         acc = self.dyn.kappa * self.act.a
         f = self.braking_rate(t)
         self._log["truth"].append((t, st.x, st.v, acc, f))
-        out.append(("ground_truth", t, {
+        out.append((t, "ground_truth", t, {
             "source": "truth", "position": st.x, "velocity": st.v, "acceleration": acc,
             "braking_rate": f, "covariance": TRUTH_COVARIANCE, "measurement_used": False}))
-        stamp = t * (1.0 + self._drift)
-        self._log["control"].append((t, stamp, self.a_tar))
-        out.append(("control", stamp, {"target_acceleration": self.a_tar}))
+        # control is on the reference clock (CONTRACT.md): the ATO's command as issued
+        self._log["control"].append((t, t, self.a_tar))
+        out.append((t, "control", t, {"target_acceleration": self.a_tar}))
         slip = self._slip.factor(t) if self._slip else 1.0
         seq, dist, speed, var = self.odometer.sample(self.axle_distance,
                                                      self._scale * slip * st.v)
-        ok = self.links["odometer"].transmit()
-        self._log["odometer"].append((t, stamp, seq, dist, speed, var, ok))
+        stamp = self.train_stamp(t)
+        t_recv = self.links["odometer"].send(t)
+        ok = t_recv is not None
+        self._log["odometer"].append((t, stamp, seq, dist, speed, var, ok,
+                                      t_recv if ok else math.nan))
         if ok:
-            out.append(("odometer", stamp, {"seq": seq, "distance": dist, "speed": speed,
-                                            "speed_variance": var}))
+            out.append((t_recv, "odometer", stamp, {"seq": seq, "distance": dist,
+                                                    "speed": speed, "speed_variance": var}))
 
     def _emit_balise(self, t: float, balise, out: list) -> None:
         seq, bid, pos, var = self.balise_reader.reading(balise)
-        stamp = t * (1.0 + self._drift)
-        ok = self.links["balise"].transmit()
-        self._log["balise"].append((t, stamp, seq, bid, pos, var, ok))
+        stamp = self.train_stamp(t)
+        t_recv = self.links["balise"].send(t)
+        ok = t_recv is not None
+        self._log["balise"].append((t, stamp, seq, bid, pos, var, ok,
+                                    t_recv if ok else math.nan))
         if ok:
-            out.append(("balise", stamp, {"seq": seq, "balise_id": bid, "position": pos,
-                                          "position_variance": var}))
+            out.append((t_recv, "balise", stamp, {"seq": seq, "balise_id": bid, "position": pos,
+                                                  "position_variance": var}))
 
     # -- results ---------------------------------------------------------------------------------
     def result(self) -> SimResult:
@@ -238,14 +303,14 @@ class World:
                         ("t", "position", "velocity", "acceleration", "braking_rate"), (f8,) * 5),
             odometer=table(self._log["odometer"],
                            ("t", "stamp", "seq", "distance", "speed", "speed_variance",
-                            "received"), (f8, f8, u4, f8, f8, f8, b)),
+                            "received", "t_recv"), (f8, f8, u4, f8, f8, f8, b, f8)),
             balise=table(self._log["balise"],
                          ("t", "stamp", "seq", "balise_id", "position", "position_variance",
-                          "received"), (f8, f8, u4, u4, f8, f8, b)),
+                          "received", "t_recv"), (f8, f8, u4, u4, f8, f8, b, f8)),
             control=table(self._log["control"], ("t", "stamp", "target_acceleration"),
                           (f8,) * 3),
-            stops=[dict(s) for s in self.driver.stops],
-            emergency_brakes=self.driver.emergency_brakes,
+            stops=[dict(s) for s in self.driver.stops] if self.driver else [],
+            emergency_brakes=self.driver.emergency_brakes if self.driver else 0,
             dropped={k: ln.dropped for k, ln in self.links.items()},
             sent={k: ln.sent for k, ln in self.links.items()},
             _events=list(self._events),
@@ -258,3 +323,79 @@ def simulate(scenario: Scenario, seed: int | None = None, duration: float | None
     world = World(scenario, seed)
     world.advance(scenario.duration if duration is None else float(duration))
     return world.result()
+
+
+def open_loop(line: Line, train: TrainParams, commands: tuple, *, effects: Effects = Effects(),
+              believed_train: TrainParams | None = None, t0: float = 0.0,
+              duration: float, x0: float, v0: float = 0.0, odometer_rate: float = 10.0,
+              link: LinkParams = LinkParams(p=0.0), seed: int = 0, max_step: float = 0.01,
+              warmup: float = 30.0) -> SimResult:
+    """The simulator open loop: ``line``/``train`` (+ ``effects``) driven by a recorded command
+    series instead of the ATO, from true time ``t0`` for ``duration`` s.
+
+    ``commands = (t, a_Tar)`` (s, m/s^2, any times; those before ``t0`` fill the actuator's delay
+    line and set its output at t0 by running the actuator alone over ``warmup`` s, which forgets
+    the unknown earlier state exactly enough: exp(-warmup / tau)). The world's train is
+    ``train`` with ``effects`` applied; ``believed_train`` is the train the controller converts
+    commands into force for (default ``train``; the ``mass`` effect makes them differ). The
+    result's times are true times (t0 + world time); motion, ground truth and sensor readings
+    come from the same :class:`World` as a closed-loop run (``link`` default: lossless).
+    """
+    from .scenario import Scenario
+
+    ct = np.asarray(commands[0], dtype=float)
+    ca = np.asarray(commands[1], dtype=float)
+    believed = believed_train if believed_train is not None else train
+    # Effects with a time axis are given in absolute time: shift them into the world's frame.
+    eff = effects
+    if eff.braking_rate is not None:
+        br = eff.braking_rate
+        eff = replace_effect(eff, braking_rate=type(br)(
+            br.f_start, br.f_end, br.mode, br.t_start - t0,
+            None if br.t_end is None else br.t_end - t0, br.t_step - t0))
+    if eff.wheel_slip is not None:
+        ws = eff.wheel_slip
+        eff = replace_effect(eff, wheel_slip=type(ws)(
+            tuple((a - t0, b - t0) for a, b in ws.intervals), ws.slip_fraction))
+    tt = true_train(train, eff)
+    # Actuator state at t0: the commands issued before t0 through the true actuator alone.
+    before = ct < t0
+    brake_delay = eff.brake_delay.delay if eff.brake_delay else None
+    act = Actuator(tt.brake.time_constant, tt.brake.delay, t0=-warmup, brake_delay=brake_delay)
+    f_of = (lambda t: eff.braking_rate.value(t)) if eff.braking_rate else (
+        lambda t: tt.brake.braking_rate)
+    for t_i, a_i in zip(ct[before] - t0, ca[before]):
+        if t_i >= -warmup:
+            act.advance(t_i, f_of(t_i))
+            act.command(t_i, a_i)
+        else:  # long before: only the latest such command is still in force
+            act.u_tr, act.u_br = max(a_i, 0.0), min(a_i, 0.0)
+    act.advance(0.0, f_of(0.0))
+    sc = Scenario(
+        name="open_loop", path="", line=line, train=believed,
+        true_line=true_line(line, eff), true_train=tt, seed=seed, duration=duration,
+        start_position=x0, start_speed=v0, start_acceleration=act.a,
+        start_target_acceleration=0.0, odometer_rate=odometer_rate, max_step=max_step,
+        driver=DriverParams(), timetable=(), link=link, true_link=true_link(link, eff),
+        effects=eff)
+    world = World(sc, seed, commands=(ct[~before] - t0, ca[~before]))
+    act.t = 0.0
+    world.act = act
+    world.advance(duration)
+    res = world.result()
+    return _shift(res, t0)
+
+
+def replace_effect(eff: Effects, **kw) -> Effects:
+    return replace(eff, **kw)
+
+
+def _shift(res: SimResult, t0: float) -> SimResult:
+    if t0 == 0.0:
+        return res
+    for tab in (res.truth, res.odometer, res.balise, res.control):
+        for k in ("t", "t_recv"):
+            if k in tab:
+                tab[k] = tab[k] + t0
+    res.duration = res.duration + t0
+    return res

@@ -108,7 +108,9 @@ def build_node():
             target = min((now - self.wall0) * self.rate_factor, self.duration)
             if target <= self.t_sim:
                 return
-            for topic, stamp, fields in self.world.advance(target):
+            self.world.advance(target)
+            # deliver what has arrived by now: with link latency, later than it was sent
+            for topic, stamp, fields in self.world.deliver(target):
                 self.pubs[topic].publish(fields_to_msg(TOPIC_TYPES[topic], stamp, fields))
                 self.counts[topic] += 1
             self.t_sim = target
