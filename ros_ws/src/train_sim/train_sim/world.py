@@ -325,10 +325,14 @@ def simulate(scenario: Scenario, seed: int | None = None, duration: float | None
     return world.result()
 
 
-def open_loop(line: Line, train: TrainParams, commands: tuple, *, effects: Effects = Effects(),
+NO_EFFECTS = Effects()
+LOSSLESS = LinkParams(p=0.0)  # every message received, no latency
+
+
+def open_loop(line: Line, train: TrainParams, commands: tuple, *, effects: Effects = NO_EFFECTS,
               believed_train: TrainParams | None = None, t0: float = 0.0,
               duration: float, x0: float, v0: float = 0.0, odometer_rate: float = 10.0,
-              link: LinkParams = LinkParams(p=0.0), seed: int = 0, max_step: float = 0.01,
+              link: LinkParams = LOSSLESS, seed: int = 0, max_step: float = 0.01,
               warmup: float = 30.0) -> SimResult:
     """The simulator open loop: ``line``/``train`` (+ ``effects``) driven by a recorded command
     series instead of the ATO, from true time ``t0`` for ``duration`` s.
