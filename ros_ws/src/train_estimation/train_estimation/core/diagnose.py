@@ -1045,7 +1045,7 @@ class _Stage:
         chosen, quad_now = [], base_quad
         while best_iv:
             trials = []
-            for m, (a, b, col) in enumerate(best_iv):
+            for m, (_a, _b, col) in enumerate(best_iv):
                 M = np.stack([u, e1] + [c[2] for c in chosen] + [col], axis=1)
                 trials.append((gls(kf.W, M)[2], m))
             q_new, m = min(trials)
