@@ -136,11 +136,13 @@ class Diagnosis:
 
 @dataclass
 class _Run:
-    """The run on one time axis: seconds since the first odometer stamp, train clock."""
+    """The run on one time axis: seconds since the first odometer sample on the reference
+    clock (``odo_stamp``: the same on the train's clock, for the clock test and the report)."""
 
     t_first: float  # s, first odometer stamp (train clock)
     duration: float  # s
     odo_t: np.ndarray
+    odo_stamp: np.ndarray
     odo_d: np.ndarray
     odo_v: np.ndarray
     odo_rv: np.ndarray
@@ -211,7 +213,10 @@ def _prepare(data: DiagData, line: Line, cfg: DiagConfig) -> _Run:
         raise DiagnoseError("control arrays differ in length")
     okc = np.isfinite(ctrl_s) & np.isfinite(ctrl_a)
     order = np.argsort(ctrl_s[okc], kind="stable")
-    ctrl_t = (ctrl_s[okc][order] - alpha) / beta  # onto the train clock, since t_first
+    # The motion is analysed on the reference clock (true seconds, so accelerations are not
+    # scaled by a drifting train clock): odometer/balise times beta * (stamp - t_first), control
+    # stamps less alpha. Times reported in parameters go back to the stamp clock (/ beta).
+    ctrl_t = ctrl_s[okc][order] - alpha
     ctrl_a = ctrl_a[okc][order]
     keepc = np.concatenate([[True], np.diff(ctrl_t) > 0]) if ctrl_t.size else ctrl_t
     ctrl_t, ctrl_a = ctrl_t[keepc], ctrl_a[keepc]
@@ -233,8 +238,8 @@ def _prepare(data: DiagData, line: Line, cfg: DiagConfig) -> _Run:
                          "line.yaml's is used")
             bp = np.where(contra, [known.get(int(i), p) for i, p in zip(bid, bp)], bp)
     ob = np.argsort(bal_s[okb], kind="stable")
-    bal_t = bal_s[okb][ob] - t_first
-    t_end = float(s_odo[-1] - t_first)
+    bal_t = beta * (bal_s[okb][ob] - t_first)
+    t_end = float(beta * (s_odo[-1] - t_first))
     inside = (bal_t > 0) & (bal_t < t_end)
     bal_t = bal_t[inside]
     if bal_t.size == 0:
@@ -251,7 +256,8 @@ def _prepare(data: DiagData, line: Line, cfg: DiagConfig) -> _Run:
         raise DiagnoseError("the control commands do not overlap the odometer record")
 
     return _Run(
-        t_first=t_first, duration=t_end, odo_t=x, odo_d=fields["odo_distance"][idx],
+        t_first=t_first, duration=t_end, odo_t=beta * x, odo_stamp=x,
+        odo_d=fields["odo_distance"][idx],
         odo_v=v, odo_rv=fields["odo_speed_variance"][idx], odo_seq=_unwrap(seq[idx]),
         odo_recv=r_odo, ctrl_t=ctrl_t, ctrl_a=ctrl_a, bal_t=bal_t,
         bal_p=bp[okb][ob][inside], bal_r=br[okb][ob][inside], bal_id=bid[okb][ob][inside],
@@ -277,7 +283,7 @@ def clock_test(run: _Run, n_params_penalty: float | None = None) -> dict:
     Null: beta = 1 (no drift); alternative: beta free. Gaussian jitter with its variance
     profiled; floor 1 us^2 (time resolution) so a jitter-free log does not divide by zero.
     drift = 1 / beta - 1 (stamp rate minus 1, CONTRACT.md)."""
-    s, r = run.odo_t, run.odo_recv
+    s, r = run.odo_stamp, run.odo_recv
     n = s.size
     res0 = r - s
     rss0 = float(np.sum((res0 - res0.mean()) ** 2))
@@ -1203,9 +1209,10 @@ def diagnose(data: DiagData, line: Line, train: TrainParams, config: DiagConfig 
     ranking = []
     last = stage_results[-1]["scores"]
     seen = set()
+    beta = run.clock["beta"]
     for a in accepted:
         ranking.append({"cause": a["cause"], "score": _r(a["score"]),
-                        "parameters": _clean(a["parameters"])})
+                        "parameters": _report(a["cause"], a["parameters"], beta)})
         seen.add(a["cause"])
     rest = []
     for cause in CAUSES:
@@ -1213,7 +1220,7 @@ def diagnose(data: DiagData, line: Line, train: TrainParams, config: DiagConfig 
             continue
         sc = last.get(cause, first_scores[cause])
         rest.append({"cause": cause, "score": _r(sc["score"]),
-                     "parameters": _clean(sc["parameters"])})
+                     "parameters": _report(cause, sc["parameters"], beta)})
     rest.append({"cause": "none", "score": 0.0, "parameters": {}})
     rest.sort(key=lambda r: -r["score"])
     ranking += rest
@@ -1277,6 +1284,15 @@ def _extend_null(null: _Null, cause: str, res: dict, mo: _Motion) -> None:
     elif cause == "wheel_slip":
         for (t0, t1), eps in zip(p["intervals"], ex.get("slip_fraction", [])):
             null.slip.append((t0, t1, eps))
+
+
+def _report(cause: str, params: dict, beta: float) -> dict:
+    """Parameters as CONTRACT.md reports them: times on the train's stamp clock (the analysis
+    runs on the reference clock, t_ref = beta t_stamp)."""
+    p = _clean(params)
+    if cause == "wheel_slip":
+        p["intervals"] = [[a / beta, b / beta] for a, b in p.get("intervals", [])]
+    return p
 
 
 def _r(x):
