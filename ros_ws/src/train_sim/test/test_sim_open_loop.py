@@ -74,3 +74,19 @@ def test_outage_and_epoch(closed):
     assert np.array_equal(o0["received"][~inside], o1["received"][~inside])
     assert np.allclose(o1["stamp"], 1.7e9 + o1["t"], rtol=0, atol=1e-6)
     assert np.array_equal(r1.control["stamp"], r1.control["t"])  # reference clock
+
+
+def test_core_replay_equals_the_world(closed):
+    """train_core.motion.replay (physics only, what diagnose predicts with) gives the World's
+    motion for the same commands."""
+    from train_core.motion import replay
+
+    sc, ref = closed
+    c, tr = ref.control, ref.truth
+    t0 = 60.0
+    k0 = int(np.flatnonzero(np.isclose(tr["t"], t0))[0])
+    sel = (tr["t"] >= t0) & (tr["t"] <= t0 + 60.0 + 1e-9)
+    x, v = replay(sc.line, sc.train, c["t"], c["target_acceleration"], t0, tr["t"][sel],
+                  tr["position"][k0], tr["velocity"][k0])
+    assert np.max(np.abs(v - tr["velocity"][sel])) < 1e-6
+    assert np.max(np.abs(x - tr["position"][sel])) < 1e-5

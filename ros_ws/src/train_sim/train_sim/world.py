@@ -44,10 +44,10 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 from train_core.actuator import Actuator
-from train_core.dynamics import Dynamics, MotionState
 from train_core.effects import Effects, braking_rate_at, true_line, true_link, true_train
 from train_core.link import Link, LinkParams
 from train_core.model import Line, TrainParams
+from train_core.motion import Motion, warm_actuator
 
 from .driver import Driver, DriverParams
 from .scenario import Scenario
@@ -97,11 +97,13 @@ class World:
         s_odo, s_bal, s_lodo, s_lbal, s_dodo, s_dbal = np.random.SeedSequence(self.seed).spawn(6)
         tt, eff = sc.true_train, sc.effects
         self.effects = eff
-        self.act = Actuator(tt.brake.time_constant, tt.brake.delay,
-                            a0=sc.start_acceleration, u0=sc.start_target_acceleration,
-                            brake_delay=eff.brake_delay.delay if eff.brake_delay else None)
-        self.dyn = Dynamics(tt, sc.true_line, sc.train)
-        self.state = MotionState(sc.start_position, sc.start_speed, sc.start_speed == 0.0)
+        act = Actuator(tt.brake.time_constant, tt.brake.delay,
+                       a0=sc.start_acceleration, u0=sc.start_target_acceleration,
+                       brake_delay=eff.brake_delay.delay if eff.brake_delay else None)
+        self._f_const = None if eff.braking_rate else tt.brake.braking_rate
+        self.motion = Motion(tt, sc.true_line, sc.train, act, sc.start_position,
+                             sc.start_speed, sc.max_step,
+                             None if self._f_const is not None else self.braking_rate)
         if commands is None:
             self.driver = Driver(sc.line, sc.train, sc.driver, sc.timetable, sc.start_position,
                                  sc.start_speed, a0=sc.start_acceleration,
@@ -129,7 +131,6 @@ class World:
         self._slip = eff.wheel_slip
         self._slip_times = sorted({t for iv in self._slip.intervals for t in iv}) if self._slip \
             else []
-        self._f_const = None if eff.braking_rate else tt.brake.braking_rate
         self._rate = sc.odometer_rate
         self._period = sc.driver.control_period
         self._k_sample = 0
@@ -160,6 +161,18 @@ class World:
         if self._f_const is not None:
             return self._f_const
         return braking_rate_at(self.effects, self.scenario.true_train, t)
+
+    @property
+    def act(self) -> Actuator:
+        return self.motion.act
+
+    @property
+    def state(self):
+        return self.motion.state
+
+    @property
+    def dyn(self):
+        return self.motion.dyn
 
     # -- stepping --------------------------------------------------------------------------------
     def advance(self, t_end: float) -> list:
@@ -219,28 +232,18 @@ class World:
 
     def _integrate(self, t_next: float, out: list) -> None:
         t_start = self.t
-        span = t_next - t_start
-        n = max(1, math.ceil(span / self.scenario.max_step - 1e-9))
-        h = span / n
-        act, dyn, st, br = self.act, self.dyn, self.state, self.balise_reader
-        tau = act.tau
-        factor = self._scale * (self._slip.factor(t_start + 0.5 * span) if self._slip else 1.0)
-        f_const = self._f_const
-        for i in range(n):
-            t0 = t_start + i * h
-            f = f_const if f_const is not None else self.braking_rate(t0 + 0.5 * h)
-            ue = act.effective(f)  # constant over the span (it ends at the next input change)
-            a0, a_mid, a_end = act.segment(h, f)
-            x0 = st.x
-            dyn.step(st, h, a0, a_mid, a_end, ue, tau)
-            if st.x > x0:
-                self.axle_distance += factor * (st.x - x0)
-                if st.x >= br.next_trigger:
-                    for tb, bal in br.crossings(t0, x0, t0 + h, st.x):
-                        self._emit_balise(tb, bal, out)
+        br = self.balise_reader
+        factor = self._scale * (self._slip.factor(0.5 * (t_start + t_next)) if self._slip
+                                else 1.0)
+
+        def visit(t0, h, x0, x1):
+            self.axle_distance += factor * (x1 - x0)
+            if x1 >= br.next_trigger:
+                for tb, bal in br.crossings(t0, x0, t0 + h, x1):
+                    self._emit_balise(tb, bal, out)
+
+        self.motion.integrate(t_next, visit)
         self.t = t_next
-        act.t = t_next  # no round-off drift between the actuator and the world clock
-        act._activate()
 
     def _due(self, out: list) -> None:
         t = self.t
@@ -258,7 +261,7 @@ class World:
     # -- messages --------------------------------------------------------------------------------
     def _emit_sample(self, t: float, out: list) -> None:
         st = self.state
-        acc = self.dyn.kappa * self.act.a
+        acc = self.motion.drive_acceleration
         f = self.braking_rate(t)
         self._log["truth"].append((t, st.x, st.v, acc, f))
         out.append((t, "ground_truth", t, {
@@ -347,7 +350,7 @@ def open_loop(line: Line, train: TrainParams, commands: tuple, *, effects: Effec
     """
     from .scenario import Scenario
 
-    ct = np.asarray(commands[0], dtype=float)
+    ct = np.asarray(commands[0], dtype=float) - t0  # the world's frame: t0 -> 0
     ca = np.asarray(commands[1], dtype=float)
     believed = believed_train if believed_train is not None else train
     # Effects with a time axis are given in absolute time: shift them into the world's frame.
@@ -363,18 +366,10 @@ def open_loop(line: Line, train: TrainParams, commands: tuple, *, effects: Effec
             tuple((a - t0, b - t0) for a, b in ws.intervals), ws.slip_fraction))
     tt = true_train(train, eff)
     # Actuator state at t0: the commands issued before t0 through the true actuator alone.
-    before = ct < t0
     brake_delay = eff.brake_delay.delay if eff.brake_delay else None
-    act = Actuator(tt.brake.time_constant, tt.brake.delay, t0=-warmup, brake_delay=brake_delay)
-    f_of = (lambda t: eff.braking_rate.value(t)) if eff.braking_rate else (
-        lambda t: tt.brake.braking_rate)
-    for t_i, a_i in zip(ct[before] - t0, ca[before]):
-        if t_i >= -warmup:
-            act.advance(t_i, f_of(t_i))
-            act.command(t_i, a_i)
-        else:  # long before: only the latest such command is still in force
-            act.u_tr, act.u_br = max(a_i, 0.0), min(a_i, 0.0)
-    act.advance(0.0, f_of(0.0))
+    f_of = (lambda t: eff.braking_rate.value(t)) if eff.braking_rate else None
+    act = warm_actuator(tt, ct, ca, 0.0, warmup, brake_delay, f_of)
+    before = ct < 0.0
     sc = Scenario(
         name="open_loop", path="", line=line, train=believed,
         true_line=true_line(line, eff), true_train=tt, seed=seed, duration=duration,
@@ -382,9 +377,8 @@ def open_loop(line: Line, train: TrainParams, commands: tuple, *, effects: Effec
         start_target_acceleration=0.0, odometer_rate=odometer_rate, max_step=max_step,
         driver=DriverParams(), timetable=(), link=link, true_link=true_link(link, eff),
         effects=eff)
-    world = World(sc, seed, commands=(ct[~before] - t0, ca[~before]))
-    act.t = 0.0
-    world.act = act
+    world = World(sc, seed, commands=(ct[~before], ca[~before]))
+    world.motion.act = act
     world.advance(duration)
     res = world.result()
     return _shift(res, t0)

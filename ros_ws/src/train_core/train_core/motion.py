@@ -1,0 +1,127 @@
+"""The train's motion under its actuator: the one integration loop of the project.
+
+:class:`Motion` advances the true train on the true line (``dynamics.Dynamics``, RK4 with the
+standstill rule) driven by an :class:`~train_core.actuator.Actuator` whose input is constant
+between the caller's event times. The simulator's :class:`train_sim.world.World` steps it between
+its events (ATO cycles, samples, actuator switches) and reads the axle and the balises in its
+``visit`` hook; :func:`replay` drives it with a recorded command series (open loop, no sensors),
+which is how ``diagnose`` predicts the speed a model gives for the commands a train received.
+
+Pure module: the standard library and numpy.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import numpy as np
+
+from .actuator import Actuator
+from .dynamics import Dynamics, MotionState
+from .model import Line, TrainParams
+
+_EPS = 1e-9  # s
+
+
+class Motion:
+    """True motion of one train; ``f_of_t(t)`` is the true braking rate (s -> -)."""
+
+    def __init__(self, train: TrainParams, line: Line, believed: TrainParams, act: Actuator,
+                 x0: float, v0: float, max_step: float = 0.01,
+                 f_of_t: Callable[[float], float] | None = None):
+        self.act = act
+        self.dyn = Dynamics(train, line, believed)
+        self.state = MotionState(float(x0), float(v0), v0 == 0.0)
+        self.max_step = float(max_step)
+        self.f_const = train.brake.braking_rate if f_of_t is None else None
+        self.f_of_t = f_of_t
+        self.t = act.t
+
+    def integrate(self, t_next: float,
+                  visit: Callable[[float, float, float, float], None] | None = None) -> None:
+        """Advance to ``t_next`` in equal RK4 steps <= max_step; the actuator's delayed input
+        must not change inside (t, t_next) (the caller cuts at ``act.next_switch()``).
+        ``visit(t0, h, x0, x1)`` is called after every step in which the train moved."""
+        t_start = self.t
+        span = t_next - t_start
+        n = max(1, math.ceil(span / self.max_step - 1e-9))
+        h = span / n
+        act, dyn, st = self.act, self.dyn, self.state
+        tau = act.tau
+        f_const = self.f_const
+        for i in range(n):
+            t0 = t_start + i * h
+            f = f_const if f_const is not None else self.f_of_t(t0 + 0.5 * h)
+            ue = act.effective(f)  # constant over the span (it ends at the next input change)
+            a0, a_mid, a_end = act.segment(h, f)
+            x0 = st.x
+            dyn.step(st, h, a0, a_mid, a_end, ue, tau)
+            if visit is not None and st.x > x0:
+                visit(t0, h, x0, st.x)
+        self.t = t_next
+        act.t = t_next  # no round-off drift between the actuator and the caller's clock
+        act._activate()
+
+    @property
+    def drive_acceleration(self) -> float:
+        """m/s^2, kappa a_hat: the control acceleration on the true train."""
+        return self.dyn.kappa * self.act.a
+
+
+def warm_actuator(train: TrainParams, t_cmd, a_cmd, t0: float, warmup: float = 30.0,
+                  brake_delay: float | None = None,
+                  f_of_t: Callable[[float], float] | None = None) -> Actuator:
+    """The actuator's state at ``t0`` from the commands issued before it (the delay lines
+    filled, the lag run over ``warmup`` s: the unknown earlier output is forgotten to within
+    exp(-warmup / tau)). Times in the returned actuator are shifted so that t0 -> 0."""
+    f_of = f_of_t or (lambda t: train.brake.braking_rate)
+    act = Actuator(train.brake.time_constant, train.brake.delay, t0=-warmup,
+                   brake_delay=brake_delay)
+    t_cmd = np.asarray(t_cmd, dtype=float)
+    a_cmd = np.asarray(a_cmd, dtype=float)
+    for t_i, a_i in zip(t_cmd[t_cmd < t0] - t0, a_cmd[t_cmd < t0]):
+        if t_i >= -warmup:
+            act.advance(t_i, f_of(t_i + t0))
+            act.command(t_i, a_i)
+        else:  # long before: only the latest such command is still in force
+            act.u_tr, act.u_br = max(a_i, 0.0), min(a_i, 0.0)
+    act.advance(0.0, f_of(t0))
+    act.t = 0.0
+    return act
+
+
+def replay(line: Line, train: TrainParams, t_cmd, a_cmd, t0: float, t_out,
+           x0: float, v0: float, believed: TrainParams | None = None,
+           brake_delay: float | None = None, f_of_t: Callable[[float], float] | None = None,
+           max_step: float = 0.01) -> tuple[np.ndarray, np.ndarray]:
+    """Open-loop motion from (x0, v0) at ``t0`` under the recorded commands (t_cmd, a_cmd):
+    position and speed at the times ``t_out`` (>= t0, increasing). ``train`` is the true train
+    (its braking rate unless ``f_of_t`` is given), ``believed`` the one the controller makes
+    forces for (default ``train``), ``brake_delay`` the braking chain's delay (default the
+    train's delay)."""
+    t_cmd = np.asarray(t_cmd, dtype=float)
+    a_cmd = np.asarray(a_cmd, dtype=float)
+    shifted_f = None if f_of_t is None else (lambda t: f_of_t(t + t0))
+    act = warm_actuator(train, t_cmd, a_cmd, t0, brake_delay=brake_delay, f_of_t=f_of_t)
+    mot = Motion(train, line, believed or train, act, x0, v0, max_step, shifted_f)
+    after = t_cmd >= t0
+    cmds = list(zip((t_cmd[after] - t0).tolist(), a_cmd[after].tolist()))
+    t_rel = np.asarray(t_out, dtype=float) - t0
+    xs = np.empty(t_rel.size)
+    vs = np.empty(t_rel.size)
+    k = 0
+    for i, tr in enumerate(t_rel):
+        while True:
+            t_c = cmds[k][0] if k < len(cmds) else math.inf
+            t_next = min(tr, t_c, act.next_switch())
+            if t_next > mot.t + _EPS:
+                mot.integrate(t_next)
+            if k < len(cmds) and cmds[k][0] <= mot.t + _EPS:
+                act.command(mot.t, cmds[k][1])
+                k += 1
+                continue
+            if mot.t >= tr - _EPS:
+                break
+        xs[i], vs[i] = mot.state.x, mot.state.v
+    return xs, vs
