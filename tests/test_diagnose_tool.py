@@ -383,3 +383,19 @@ def test_hidden_effect_is_found(cause, size, seed, tmp_path, capsys):
     if sc.train.davis != case.scenario.train.davis:
         in_model.add("resistance")
     assert set(case.causes) <= in_model, in_model
+
+
+def test_a_negative_davis_fit_is_written_as_the_closest_nonnegative_curve(metro, tmp_path):
+    acc = [{"cause": "resistance", "parameters": {"a": 5000.0, "b": -100.0, "c": 14.0}}]
+    dg = Diagnosis(cause="resistance", parameters=acc[0]["parameters"],
+                   ranking=[{"cause": "resistance", "score": 5.0,
+                             "parameters": acc[0]["parameters"]}],
+                   untestable=[], evidence={}, gain={}, accepted=acc)
+    data = fake_data()
+    data.odo_speed[:] = np.linspace(0.0, 20.0, data.odo_speed.size)
+    tool.write_model(tmp_path, dg, metro.line_path, metro.train_path, data)
+    d = with_model(metro, tmp_path / "model").train.davis
+    assert min(d.a, d.b, d.c) >= 0.0
+    v = np.linspace(0.0, 20.0, 50)
+    fit = 5000.0 - 100.0 * v + 14.0 * v * v
+    assert np.max(np.abs(d.force(v) - fit)) < 0.1 * np.max(fit)

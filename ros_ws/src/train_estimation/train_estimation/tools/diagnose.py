@@ -162,6 +162,26 @@ def slip_fraction(a: dict, dg, data, t_first: float) -> float:
     return float(np.mean(ratios)) if ratios else 0.0
 
 
+def davis_nonnegative(abc, data) -> tuple[list[float], bool]:
+    """Davis (a, b, c) with every coefficient >= 0, as train.yaml requires. A fit with a negative
+    coefficient is replaced by the non-negative a + b v + c v^2 closest to its curve (least
+    squares) over the speeds of the run, so the resistance the data showed is kept."""
+    abc = [float(x) for x in abc]
+    if min(abc) >= 0.0:
+        return abc, False
+    from scipy.optimize import nnls
+
+    speeds = np.asarray(data.odo_speed, float)
+    v_max = float(np.nanmax(speeds)) if speeds.size and np.isfinite(speeds).any() else 20.0
+    v = np.linspace(0.0, max(v_max, 1.0), 200)
+    A = np.stack([np.ones_like(v), v, v * v], axis=1)
+    target = A @ np.array(abc)
+    # scale the columns so the three coefficients are equally well conditioned
+    sc = np.abs(A).max(axis=0)
+    x, _ = nnls(A / sc, target)
+    return [float(u) for u in x / sc], True
+
+
 def write_model(out: Path, dg, line_path: str, train_path: str, data) -> dict:
     """DIR/model: line.yaml (+ fitted gradient section), train.yaml (+ fitted Davis), and
     effects.yaml (the other accepted causes, in a scenario's ``effects:`` syntax).
@@ -195,8 +215,11 @@ def write_model(out: Path, dg, line_path: str, train_path: str, data) -> dict:
                 notes.append(f"gradient: {p['permille']:+.2f} per mille added on "
                              f"[{start:.0f}, {end:.0f}) m")
         elif c == "resistance":
-            train_d["davis"] = {"a": float(p["a"]), "b": float(p["b"]), "c": float(p["c"])}
-            notes.append("resistance: fitted Davis a, b, c in train.yaml")
+            abc, projected = davis_nonnegative((p["a"], p["b"], p["c"]), data)
+            train_d["davis"] = {"a": abc[0], "b": abc[1], "c": abc[2]}
+            notes.append("resistance: fitted Davis a, b, c in train.yaml" + (
+                " (a negative coefficient was projected onto a, b, c >= 0 over the run's "
+                "speeds)" if projected else ""))
         elif c == "mass":
             effects["mass"] = {"mass": float(p["mass"])}
             notes.append("mass: true mass in effects.yaml (the drive force stays computed for "
