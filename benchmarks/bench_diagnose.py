@@ -163,14 +163,19 @@ def tables(results: list[dict], sizes, args) -> str:
                      is not None and r["gain"].get("after") is not None]
             b = [r["gain"]["before"] for r in named]
             a = [r["gain"]["after"] for r in named]
-            red = [r for r in named if r["gain"]["before"] > 0
-                   and 1 - r["gain"]["after"] / r["gain"]["before"] >= 0.3]
+            higher_better = bool(named) and "likelihood" in named[0]["gain"].get("metric", "")
+            if higher_better:  # log-likelihood per sample: better = higher (no 30 % target)
+                red = [r for r in named if r["gain"]["after"] > r["gain"]["before"]]
+            else:
+                red = [r for r in named if r["gain"]["before"] > 0
+                       and 1 - r["gain"]["after"] / r["gain"]["before"] >= 0.3]
             metric = named[0]["gain"].get("metric", "")[:40] if named else "-"
             md.append(f"| {c} | {size} | {len(rows)} | "
                       + (f"{np.median(errs):.2f}" if errs else "-") + " | "
                       + pct(sum(e <= 0.2 for e in errs), len(errs)) + f" | {metric} | "
                       + (f"{np.median(b):.3g} -> {np.median(a):.3g}" if named else "-") + " | "
-                      + pct(len(red), len(named)) + " |")
+                      + pct(len(red), len(named)) + (" (higher is better: improved)"
+                                                     if higher_better else "") + " |")
     t = np.array([r["time"] for r in ok])
     d = np.array([r["duration"] for r in ok])
     if t.size:

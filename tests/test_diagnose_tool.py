@@ -99,9 +99,20 @@ def test_too_short_and_never_moving_give_one_line_and_exit_2(metro, tmp_path, ca
         duration=300.0, driver=dataclasses.replace(metro.driver, initial_dwell=1000.0)))
     assert run_tool(write_bag(tmp_path / "still", still), metro.line_path, metro.train_path,
                     tmp_path / "o2") == 2
-    line = one_error_line(capsys)
-    assert "never moves" in line or "no balise" in line, line  # standing: no balise passed
-    assert not (tmp_path / "o1").exists() and not (tmp_path / "o2").exists()
+    assert "balise" in one_error_line(capsys)  # standing: no balise passed
+    # the same standstill with two balise readings in it (so only the motion is missing)
+    with BagWriter(tmp_path / "still_b") as w:
+        for t_recv, topic, stamp, fields in still.received_events():
+            if topic in ("odometer", "control"):
+                w.write(topic, stamp, fields, t_ns=int(round(t_recv * 1e9)))
+        t_epoch = still.odometer["stamp"][0]
+        for k, b in enumerate(metro.line.balises[1:3]):
+            fields = {"seq": k, "balise_id": b.id, "position": b.position,
+                      "position_variance": 1.0}
+            w.write("balise", t_epoch + 100.0 + k, fields, t_ns=int((100.0 + k) * 1e9))
+    assert run_tool(tmp_path / "still_b", metro.line_path, metro.train_path, tmp_path / "o3") == 2
+    assert "never moves" in one_error_line(capsys)
+    assert not any((tmp_path / f"o{i}").exists() for i in (1, 2, 3))
 
 
 def test_unreadable_bag_and_bad_yaml_give_one_line_and_exit_2(metro, metro_run, tmp_path,
