@@ -36,6 +36,13 @@ def test_installed_executables_are_contract_names():
         assert name in CONTRACT[pkg], f"{pkg}/{name} is not a CONTRACT.md executable"
 
 
+def test_every_contract_executable_is_installed():
+    found = set(all_executables())
+    for pkg in PACKAGES:
+        for name in sorted(CONTRACT[pkg]):
+            assert (pkg, name) in found, f"{pkg}/{name} (CONTRACT.md) is not installed"
+
+
 @pytest.mark.parametrize("pkg,exe", all_executables())
 def test_executable_answers_help(pkg, exe, ros_env):
     path = Path(get_package_prefix(pkg)) / "lib" / pkg / exe

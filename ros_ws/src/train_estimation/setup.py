@@ -28,6 +28,7 @@ setup(
             "gsma_estimator = train_estimation.nodes.gsma_estimator:main",
             "check_bag = train_estimation.tools.check_bag:main",
             "identify = train_estimation.tools.identify:main",
+            "diagnose = train_estimation.tools.diagnose:main",
         ],
     },
 )

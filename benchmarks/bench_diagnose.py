@@ -1,0 +1,245 @@
+#!/usr/bin/env python3
+"""Benchmark of `diagnose` (issue 10's targets) on generated measured bags.
+
+    ./run bench diagnose --cases N [--seed S] [--jobs 1] [--sizes plain,subtle] [--pairs N]
+
+Cases come from ``train_sim.cases.make_case`` (varied lines, trains, links, clocks and driving
+styles; the hidden effect placed where the run exercises it): N per cause at each size, N with
+no effect and N pairs of two different causes (plain size). Each case is simulated into a
+measured bag (no ground truth) and the ``diagnose`` executable's entry point runs on it exactly
+as a user would (--bag, --line, --train, --out); the report is then compared with the truth.
+
+Printed (and written to benchmarks/out/diagnose.md, raw results to diagnose.json):
+- confusion matrix per size: true cause (rows) against the reported cause (columns);
+- right-cause rate per size (target >= 95 % plain, >= 85 % subtle) and `none` on nominal data
+  (target >= 95 %; 1 - this is the false-alarm rate);
+- pairs: both true causes in the first two of the ranking (target >= 80 %);
+- main-parameter error |estimate - true| / |true - nominal| per cause (train_sim.cases
+  main_error; the estimate is the true cause's entry in the ranking, whatever rank it has):
+  median and the fraction within 0.2 (target: within 20 %);
+- gain per cause where the cause was named: the report's before -> after (median) and the
+  fraction of cases with a reduction >= 30 % (target for motion causes, held-out speed RMSE);
+- time per bag (diagnose only, target < 10 s for a 10-minute bag on this 2-core machine).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import io
+import json
+import os
+import sys
+import tempfile
+import time
+from concurrent.futures import ProcessPoolExecutor
+
+import numpy as np
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+OUT = os.path.join(HERE, "out")
+
+from train_sim.cases import CAUSES, describe, main_error, make_case  # noqa: E402
+
+MOTION = ("gradient", "resistance", "braking_rate", "brake_delay", "mass")
+LABELS = CAUSES + ("none",)
+
+
+def case_list(n: int, sizes, n_pairs: int, seed: int) -> list[dict]:
+    """The case specifications (deterministic in seed): index -> (causes, size)."""
+    specs = []
+    for size in sizes:
+        for c in CAUSES:
+            specs += [{"causes": (c,), "size": size} for _ in range(n)]
+    specs += [{"causes": (), "size": "plain"} for _ in range(n)]
+    rng = np.random.default_rng([seed, 99])
+    for _ in range(n_pairs):
+        a, b = rng.choice(len(CAUSES), size=2, replace=False)
+        specs.append({"causes": (CAUSES[a], CAUSES[b]), "size": "plain"})
+    for i, s in enumerate(specs):
+        s["index"], s["seed"] = i, seed
+    return specs
+
+
+def run_case(spec: dict) -> dict:
+    """Make the case, simulate the measured bag, run diagnose, score the report."""
+    from train_core.bagio import read_bag
+
+    from train_estimation.tools import diagnose as tool
+    from train_sim.generate import generate
+
+    rng = np.random.default_rng([spec["seed"], spec["index"]])
+    case = make_case(rng, spec["causes"] or None, spec["size"])
+    out = {**spec, "causes": list(spec["causes"]), "family": case.family,
+           "describe": describe(case), "duration": case.scenario.duration}
+    with tempfile.TemporaryDirectory(prefix="bench_diag_") as d:
+        paths = case.write(os.path.join(d, "case"))
+        bag = os.path.join(d, "bag")
+        generate(case.scenario, bag, measured=True)
+        stamps = np.array([s for _, s, _ in read_bag(bag).topics["odometer"]])
+        truth = case.truth_in_bag(float(stamps.min()), float(stamps.max()))
+        t0 = time.perf_counter()
+        buf_out, buf_err = io.StringIO(), io.StringIO()
+        with contextlib.redirect_stdout(buf_out), contextlib.redirect_stderr(buf_err):
+            rc = tool.main(["--bag", bag, "--line", str(paths["line"]), "--train",
+                            str(paths["train"]), "--out", os.path.join(d, "diag"), "--quiet"])
+        out["time"] = time.perf_counter() - t0
+        out["rc"] = rc
+        if rc != 0:
+            out["error"] = buf_err.getvalue().strip()
+            return out
+        rep = json.load(open(os.path.join(d, "diag", "report.json")))
+    out["reported"] = rep["cause"]
+    out["ranking"] = [r["cause"] for r in rep["ranking"]]
+    out["untestable"] = [u["cause"] for u in rep["untestable"]]
+    out["gain"] = rep.get("gain", {})
+    out["errors"] = {}
+    for c in case.causes:
+        est = next((r["parameters"] for r in rep["ranking"] if r["cause"] == c), None)
+        if est:
+            try:
+                out["errors"][c] = main_error(c, est, truth[c], case.nominal[c], case.v_ref)
+            except (KeyError, ZeroDivisionError, TypeError):
+                out["errors"][c] = None
+    return out
+
+
+# ------------------------------------------------------------------------------------------------
+# Tables
+# ------------------------------------------------------------------------------------------------
+
+def pct(k, n):
+    return f"{100.0 * k / n:.0f} % ({k}/{n})" if n else "-"
+
+
+def tables(results: list[dict], sizes, args) -> str:
+    md = []
+    ok = [r for r in results if r.get("rc") == 0]
+    failed = [r for r in results if r.get("rc") != 0]
+    md.append(f"# diagnose benchmark: {args.cases} case(s) per cause and size, {args.cases} "
+              f"nominal, {args.pairs} pairs, seed {args.seed}\n")
+    md.append(f"{len(results)} bags, {len(failed)} refused (exit != 0).\n")
+    short = {c: c[:6] for c in LABELS}
+    for size in sizes:
+        single = [r for r in ok if len(r["causes"]) == 1 and r["size"] == size]
+        md.append(f"\n## Confusion matrix, {size} (rows: hidden cause, columns: reported)\n")
+        md.append("| hidden \\ reported | " + " | ".join(short[c] for c in LABELS) + " | right |")
+        md.append("|---" * (len(LABELS) + 2) + "|")
+        right_all = 0
+        for c in CAUSES:
+            rows = [r for r in single if r["causes"][0] == c]
+            cnt = [sum(r["reported"] == p for r in rows) for p in LABELS]
+            right = sum(r["reported"] == c for r in rows)
+            right_all += right
+            md.append(f"| {c} | " + " | ".join(str(k) if k else "." for k in cnt)
+                      + f" | {pct(right, len(rows))} |")
+        target = 95 if size == "plain" else 85
+        md.append(f"\nright cause, {size}: **{pct(right_all, len(single))}** "
+                  f"(target >= {target} %)\n")
+    nominal = [r for r in ok if not r["causes"]]
+    nn = sum(r["reported"] == "none" for r in nominal)
+    md.append(f"\n`none` on nominal data: **{pct(nn, len(nominal))}** (target >= 95 %); "
+              f"false-alarm rate {pct(len(nominal) - nn, len(nominal))}; false alarms: "
+              + (", ".join(sorted({r['reported'] for r in nominal if r['reported'] != 'none'}))
+                 or "none") + "\n")
+    pairs = [r for r in ok if len(r["causes"]) == 2]
+    top2 = sum(set(r["ranking"][:2]) == set(r["causes"]) for r in pairs)
+    md.append(f"\npairs, both causes first and second: **{pct(top2, len(pairs))}** "
+              f"(target >= 80 %)\n")
+    for r in pairs:
+        md.append(f"- {'+'.join(r['causes'])}: ranking {', '.join(r['ranking'][:3])}")
+    md.append("\n## Main parameter and gain per cause (single-cause bags)\n")
+    md.append("main-parameter error = |estimate - true| / |true - nominal| (train_sim.cases."
+              "main_error; estimate: the true cause's entry in the ranking). gain: the report's "
+              "before -> after where the cause was named.\n")
+    md.append("| cause | size | n | error median | error <= 0.2 | gain metric | before -> after "
+              "(median) | reduction >= 30 % |")
+    md.append("|---|---|---|---|---|---|---|---|")
+    for c in CAUSES:
+        for size in sizes:
+            rows = [r for r in ok if r["causes"] == [c] and r["size"] == size]
+            errs = [r["errors"].get(c) for r in rows if r["errors"].get(c) is not None]
+            named = [r for r in rows if r["reported"] == c and r["gain"].get("before")
+                     is not None and r["gain"].get("after") is not None]
+            b = [r["gain"]["before"] for r in named]
+            a = [r["gain"]["after"] for r in named]
+            higher_better = bool(named) and "likelihood" in named[0]["gain"].get("metric", "")
+            if higher_better:  # log-likelihood per sample: better = higher (no 30 % target)
+                red = [r for r in named if r["gain"]["after"] > r["gain"]["before"]]
+            else:
+                red = [r for r in named if r["gain"]["before"] > 0
+                       and 1 - r["gain"]["after"] / r["gain"]["before"] >= 0.3]
+            metric = named[0]["gain"].get("metric", "")[:40] if named else "-"
+            md.append(f"| {c} | {size} | {len(rows)} | "
+                      + (f"{np.median(errs):.2f}" if errs else "-") + " | "
+                      + pct(sum(e <= 0.2 for e in errs), len(errs)) + f" | {metric} | "
+                      + (f"{np.median(b):.3g} -> {np.median(a):.3g}" if named else "-") + " | "
+                      + pct(len(red), len(named)) + (" (higher is better: improved)"
+                                                     if higher_better else "") + " |")
+    t = np.array([r["time"] for r in ok])
+    d = np.array([r["duration"] for r in ok])
+    if t.size:
+        md.append(f"\ntime per bag (diagnose only, {args.jobs} job(s) on this machine): mean "
+                  f"{t.mean():.1f} s, median {np.median(t):.1f} s, max {t.max():.1f} s; per 10 "
+                  f"minutes of data: {np.mean(t / d * 600):.1f} s (target < 10 s)\n")
+    if failed:
+        md.append("\n## Refused bags\n")
+        for r in failed:
+            md.append(f"- {r['describe']}: {r.get('error', '')[:200]}")
+    return "\n".join(md) + "\n"
+
+
+class Bar:
+    def __init__(self, total: int, width: int = 30):
+        self.total, self.width, self.t0 = total, width, time.perf_counter()
+
+    def __call__(self, done: int, what: str = "") -> None:
+        frac = done / max(self.total, 1)
+        el = time.perf_counter() - self.t0
+        eta = el / done * (self.total - done) if done else 0.0
+        sys.stderr.write(f"\rbench diagnose [{'#' * int(round(frac * self.width)):<{self.width}}]"
+                         f" {done}/{self.total} {el:5.0f} s, eta {eta:4.0f} s {what:<30}")
+        if done >= self.total:
+            sys.stderr.write("\n")
+        sys.stderr.flush()
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="bench_diagnose", description=__doc__.splitlines()[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter,
+                                epilog="\n".join(__doc__.splitlines()[2:]))
+    p.add_argument("--cases", type=int, default=2, help="cases per cause and size (default 2)")
+    p.add_argument("--pairs", type=int, default=None, help="pairs (default: --cases x 3)")
+    p.add_argument("--seed", type=int, default=0, help="seed of every case (default 0)")
+    p.add_argument("--jobs", type=int, default=1, help="parallel processes (default 1)")
+    p.add_argument("--sizes", default="plain,subtle", help="sizes (default plain,subtle)")
+    args = p.parse_args(argv)
+    if args.pairs is None:
+        args.pairs = 3 * args.cases
+    sizes = [s for s in args.sizes.split(",") if s]
+    specs = case_list(args.cases, sizes, args.pairs, args.seed)
+    bar = Bar(len(specs))
+    results = []
+    bar(0)
+    if args.jobs <= 1:
+        for s in specs:
+            results.append(run_case(s))
+            bar(len(results), f"{'+'.join(s['causes']) or 'none'} {s['size']}")
+    else:
+        with ProcessPoolExecutor(max_workers=args.jobs) as ex:
+            for r in ex.map(run_case, specs):
+                results.append(r)
+                bar(len(results), f"{'+'.join(r['causes']) or 'none'} {r['size']}")
+    md = tables(results, sizes, args)
+    print(md)
+    os.makedirs(OUT, exist_ok=True)
+    with open(os.path.join(OUT, "diagnose.md"), "w") as f:
+        f.write(md)
+    with open(os.path.join(OUT, "diagnose.json"), "w") as f:
+        json.dump(results, f, indent=1, default=str)
+    print(f"wrote {os.path.join(OUT, 'diagnose.md')} and diagnose.json")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,583 @@
+"""`diagnose`: find what the simulation of a train gets wrong in measured data and name the cause.
+
+    diagnose --bag BAG --line line.yaml --train train.yaml --out DIR
+
+Reads the bag's ``odometer``, ``balise`` and ``control`` topics (a ``ground_truth`` topic, if
+present, is never used), aligns the believed model (line.yaml, train.yaml) with the data, fits
+one extended model per cause (CONTRACT.md ``diagnose``: gradient, resistance, braking_rate,
+odometer_scale, wheel_slip, bursty_link, brake_delay, mass, clock_drift) and ranks them.
+
+Output (DIR is created):
+  DIR/report.json   cause, parameters, ranking, untestable, evidence, gain (CONTRACT.md)
+  DIR/model/        line.yaml, train.yaml, effects.yaml: the believed model extended by every
+                    accepted cause; run it with
+                    python -m train_sim.generate --scenario S --model DIR/model --out BAG
+  DIR/*.png         residual acceleration against position (with the line profile and the
+                    fitted gradient section), against speed and against the commands; the
+                    speed trace with slip episodes; f(t); the loss-run histogram
+
+How to read the report:
+  cause        the best-supported cause ("none": the believed model explains the data)
+  ranking      every cause tested, best first, "none" among them. The score of a cause is
+               the BIC-penalised log-likelihood ratio 2 (ll_cause - ll_null) - k ln n (k: its
+               parameter count, n: the number of measurements); > 0 means the data support
+               the cause, "none" has score 0. With two effects the greedy refit ranks the
+               second cause (scored on top of the first) second.
+  untestable   causes the data cannot test, with the reason (e.g. no braking, no balises)
+  evidence     per cause: its score alone, log-likelihood gain, parameter count, n, the fit
+               alone and the standard errors of its parameters
+  gain         how much better the extended model predicts data not used for the fit, with
+               the metric named (held-out speed RMSE for motion causes, balise position error
+               for the odometer scale, stamp residual for the clock, log-likelihood per
+               sample for the link)
+Times in parameters are seconds since the first odometer stamp, on the train's stamp clock.
+
+Exit status: 0 when a diagnosis was made (including "none"); 2 with one line on stderr saying
+what is missing when the input is unusable (unreadable bag, no control, no odometer, no
+balises, too short, never moving, missing or malformed YAML).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import yaml
+from train_core.bagio import BagError, read_bag
+from train_core.config import ConfigError, load_yaml
+from train_core.effects import Effects, GradientEffect, true_line
+from train_core.model import line_from_dict, load_line, load_train, train_from_dict
+
+REPORT_KEYS = ("cause", "parameters", "ranking", "untestable", "evidence", "gain")
+USED_TOPICS = ("odometer", "balise", "control")  # never ground_truth
+
+
+# ------------------------------------------------------------------------------------------------
+# Bag -> DiagData
+# ------------------------------------------------------------------------------------------------
+
+def bag_to_data(bag):
+    """The core's DiagData from a read bag: odometer, balise and control only."""
+    from train_estimation.core.diagnose import DiagData
+
+    def col(topic, key, dtype=float):
+        return np.array([f[key] for _, _, f in bag.topics.get(topic, [])], dtype=dtype)
+
+    def stamps(topic):
+        return np.array([s for _, s, _ in bag.topics.get(topic, [])], dtype=float)
+
+    def recv(topic):
+        return np.array([t for t, _, _ in bag.topics.get(topic, [])], dtype=float) * 1e-9
+
+    return DiagData(
+        odo_stamp=stamps("odometer"), odo_recv=recv("odometer"),
+        odo_seq=col("odometer", "seq", np.int64), odo_distance=col("odometer", "distance"),
+        odo_speed=col("odometer", "speed"),
+        odo_speed_variance=col("odometer", "speed_variance"),
+        ctrl_stamp=stamps("control"), ctrl_a_tar=col("control", "target_acceleration"),
+        balise_stamp=stamps("balise"), balise_recv=recv("balise"),
+        balise_id=col("balise", "balise_id", np.int64),
+        balise_position=col("balise", "position"),
+        balise_variance=col("balise", "position_variance"))
+
+
+def read_measured(path) -> tuple:
+    """(DiagData, bag) from a bag path; only the topics diagnose uses are touched."""
+    bag = read_bag(path)
+    bag.topics = {k: v for k, v in bag.topics.items() if k in USED_TOPICS}
+    return bag_to_data(bag), bag
+
+
+# ------------------------------------------------------------------------------------------------
+# Report
+# ------------------------------------------------------------------------------------------------
+
+def jsonable(obj):
+    """Plain JSON types: numpy scalars/arrays to Python, NaN/inf to null, tuples to lists."""
+    if isinstance(obj, dict):
+        return {str(k): jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return jsonable(obj.tolist())
+    if isinstance(obj, (bool, np.bool_)):
+        return bool(obj)
+    if isinstance(obj, (int, np.integer)):
+        return int(obj)
+    if isinstance(obj, (float, np.floating)):
+        v = float(obj)
+        return v if math.isfinite(v) else None
+    if obj is None or isinstance(obj, str):
+        return obj
+    return str(obj)
+
+
+def report_dict(dg) -> dict:
+    """CONTRACT.md report: exactly cause, parameters, ranking, untestable, evidence, gain."""
+    return jsonable({"cause": dg.cause, "parameters": dg.parameters, "ranking": dg.ranking,
+                     "untestable": dg.untestable, "evidence": dg.evidence, "gain": dg.gain})
+
+
+# ------------------------------------------------------------------------------------------------
+# The extended model (DIR/model)
+# ------------------------------------------------------------------------------------------------
+
+def accepted_causes(dg) -> list[dict]:
+    """[{"cause", "parameters", ...}] of the causes the diagnosis accepted (score > 0)."""
+    acc = [a for a in (dg.accepted or []) if a.get("cause") not in (None, "none")]
+    if not acc and dg.cause != "none":
+        acc = [{"cause": dg.cause, "parameters": dg.parameters}]
+    return acc
+
+
+def slip_fraction(a: dict, dg, data, t_first: float) -> float:
+    """The slip fraction of the accepted wheel_slip (one value for all episodes, as the
+    simulator's effect has): from the fit if the core reports it, else measured from the
+    odometer speed inside the episodes against the speed just around them."""
+    for src in (a.get("extra", {}), a.get("parameters", {}),
+                (dg.evidence or {}).get("wheel_slip", {})):
+        v = src.get("slip_fraction") if isinstance(src, dict) else None
+        if v is not None and not isinstance(v, dict):
+            vals = [float(x) for x in np.atleast_1d(v) if x is not None and math.isfinite(x)]
+            if vals and all(abs(x) < 1.0 for x in vals):
+                return float(np.mean(vals))
+    t = np.asarray(data.odo_stamp, float) - t_first
+    v = np.asarray(data.odo_speed, float)
+    order = np.argsort(t)
+    t, v = t[order], v[order]
+    ratios = []
+    for t0, t1 in a["parameters"].get("intervals", []):
+        inside = (t >= t0) & (t < t1)
+        around = ((t >= t0 - 3.0) & (t < t0)) | ((t >= t1) & (t < t1 + 3.0))
+        if inside.any() and around.sum() >= 2:
+            ref = np.interp(t[inside], t[around], v[around])
+            ok = ref > 1.0
+            if ok.any():
+                ratios.append(float(np.mean(v[inside][ok] / ref[ok] - 1.0)))
+    return float(np.mean(ratios)) if ratios else 0.0
+
+
+def davis_nonnegative(abc, data) -> tuple[list[float], bool]:
+    """Davis (a, b, c) with every coefficient >= 0, as train.yaml requires. A fit with a negative
+    coefficient is replaced by the non-negative a + b v + c v^2 closest to its curve (least
+    squares) over the speeds of the run, so the resistance the data showed is kept."""
+    abc = [float(x) for x in abc]
+    if min(abc) >= 0.0:
+        return abc, False
+    from scipy.optimize import nnls
+
+    speeds = np.asarray(data.odo_speed, float)
+    v_max = float(np.nanmax(speeds)) if speeds.size and np.isfinite(speeds).any() else 20.0
+    v = np.linspace(0.0, max(v_max, 1.0), 200)
+    A = np.stack([np.ones_like(v), v, v * v], axis=1)
+    target = A @ np.array(abc)
+    # scale the columns so the three coefficients are equally well conditioned
+    sc = np.abs(A).max(axis=0)
+    x, _ = nnls(A / sc, target)
+    return [float(u) for u in x / sc], True
+
+
+def write_model(out: Path, dg, line_path: str, train_path: str, data) -> dict:
+    """DIR/model: line.yaml (+ fitted gradient section), train.yaml (+ fitted Davis), and
+    effects.yaml (the other accepted causes, in a scenario's ``effects:`` syntax).
+
+    ``mass`` goes into effects.yaml, not train.yaml: CONTRACT.md's mass cause keeps the drive
+    force computed for the believed mass, which is what train.yaml's mass is in the simulator;
+    the effect makes the world's train heavier or lighter exactly as in the data."""
+    d = out / "model"
+    d.mkdir(parents=True, exist_ok=True)
+    line_d = load_yaml(line_path)
+    train_d = load_yaml(train_path)
+    line = line_from_dict(line_d, line_path)
+    effects: dict = {}
+    notes = []
+    t_first = float(np.min(data.odo_stamp)) if len(data.odo_stamp) else 0.0
+    duration = float(np.ptp(data.odo_stamp)) if len(data.odo_stamp) else 0.0
+    drift = 0.0
+    for a in accepted_causes(dg):
+        if a["cause"] == "clock_drift":
+            drift = float(a["parameters"]["drift"])
+    for a in accepted_causes(dg):
+        c, p = a["cause"], a["parameters"]
+        if c == "gradient":
+            start, end = max(0.0, float(p["start"])), min(line.length, float(p["end"]))
+            if end > start:
+                line = true_line(line, Effects(gradient=GradientEffect(start, end,
+                                                                       float(p["permille"]))))
+                line_d["gradients"] = [{"start": float(s.start), "end": float(s.end),
+                                        "permille": round(float(s.permille), 4)}
+                                       for s in line.gradients]
+                notes.append(f"gradient: {p['permille']:+.2f} per mille added on "
+                             f"[{start:.0f}, {end:.0f}) m")
+        elif c == "resistance":
+            abc, projected = davis_nonnegative((p["a"], p["b"], p["c"]), data)
+            train_d["davis"] = {"a": abc[0], "b": abc[1], "c": abc[2]}
+            notes.append("resistance: fitted Davis a, b, c in train.yaml" + (
+                " (a negative coefficient was projected onto a, b, c >= 0 over the run's "
+                "speeds)" if projected else ""))
+        elif c == "mass":
+            effects["mass"] = {"mass": float(p["mass"])}
+            notes.append("mass: true mass in effects.yaml (the drive force stays computed for "
+                         "train.yaml's believed mass, as in the data)")
+        elif c == "braking_rate":
+            effects["braking_rate"] = {"f_start": float(p["f_start"]), "f_end": float(p["f_end"]),
+                                       "t_start": 0.0,
+                                       "t_end": round(duration / (1.0 + drift), 3)}
+        elif c == "brake_delay":
+            effects["brake_delay"] = {"delay": float(p["delay"])}
+        elif c == "odometer_scale":
+            effects["odometer_scale"] = {"scale": float(p["scale"])}
+        elif c == "wheel_slip":
+            ivs = [[round(float(t0) / (1.0 + drift), 3), round(float(t1) / (1.0 + drift), 3)]
+                   for t0, t1 in p.get("intervals", []) if t1 > t0 >= 0.0]
+            if ivs:
+                effects["wheel_slip"] = {"intervals": ivs, "slip_fraction": round(
+                    float(np.clip(slip_fraction(a, dg, data, t_first), -0.9, 1.0)), 5)}
+        elif c == "bursty_link":
+            effects["bursty_link"] = {"p_good_bad": float(p["p_good_bad"]),
+                                      "p_bad_good": float(max(p["p_bad_good"], 1e-6))}
+        elif c == "clock_drift":
+            effects["clock_drift"] = {"drift": float(p["drift"])}
+    head = ("# written by diagnose: the believed {what} extended by the accepted causes\n"
+            "# ({causes}); times are seconds from the start of the run\n")
+    causes = ", ".join(a["cause"] for a in accepted_causes(dg)) or "none"
+    (d / "line.yaml").write_text(head.format(what="line", causes=causes)
+                                 + yaml.safe_dump(jsonable(line_d), sort_keys=False))
+    (d / "train.yaml").write_text(head.format(what="train", causes=causes)
+                                  + yaml.safe_dump(jsonable(train_d), sort_keys=False))
+    (d / "effects.yaml").write_text(
+        head.format(what="model's effects (train_sim scenario `effects:` syntax)",
+                    causes=causes)
+        + (yaml.safe_dump(jsonable(effects), sort_keys=False) if effects else "{}\n"))
+    # what we wrote must load (the simulator reads these files)
+    from train_core.config import Section
+    from train_core.effects import parse_effects
+
+    line_from_dict(load_yaml(d / "line.yaml"), str(d / "line.yaml"))
+    train_from_dict(load_yaml(d / "train.yaml"), str(d / "train.yaml"))
+    parse_effects(Section(load_yaml(d / "effects.yaml"), str(d / "effects.yaml")),
+                  max(duration, 1.0))
+    return {"dir": d, "effects": effects, "notes": notes}
+
+
+# ------------------------------------------------------------------------------------------------
+# Plots (take Diagnosis.series; each plot only when its series exist)
+# ------------------------------------------------------------------------------------------------
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _get(s: dict, *keys):
+    vals = [s.get(k) for k in keys]
+    if any(v is None for v in vals):
+        return None
+    arrs = [np.asarray(v, dtype=float) for v in vals]
+    n = min(a.size for a in arrs)
+    return [a[:n] for a in arrs] if n > 0 else None
+
+
+def _binned(x, y, bins):
+    ok = np.isfinite(x) & np.isfinite(y)
+    x, y = x[ok], y[ok]
+    if x.size == 0:
+        return np.array([]), np.array([]), np.array([])
+    edges = np.linspace(x.min(), x.max(), bins + 1)
+    idx = np.clip(np.digitize(x, edges) - 1, 0, bins - 1)
+    cnt = np.bincount(idx, minlength=bins)
+    mean = np.bincount(idx, weights=y, minlength=bins) / np.maximum(cnt, 1)
+    sq = np.bincount(idx, weights=y * y, minlength=bins) / np.maximum(cnt, 1)
+    sem = np.sqrt(np.maximum(sq - mean**2, 0.0) / np.maximum(cnt, 1))
+    c = 0.5 * (edges[1:] + edges[:-1])
+    keep = cnt >= 3
+    return c[keep], mean[keep], sem[keep]
+
+
+def plot_position(s: dict, path: Path, dg=None) -> bool:
+    """Residual acceleration against track position above the line's gradient profile, with the
+    fitted gradient section drawn in."""
+    xy = _get(s, "position", "residual_accel")
+    if xy is None:
+        return False
+    plt = _plt()
+    x, r = xy
+    fig, (a0, a1) = plt.subplots(2, 1, figsize=(10, 6), sharex=True,
+                                 gridspec_kw={"height_ratios": [2, 1]})
+    a0.plot(x, r, ".", ms=1, alpha=0.15, color="0.5", label="residual (believed model)")
+    span = float(np.nanmax(x) - np.nanmin(x)) if np.isfinite(x).any() else 0.0
+    c, m, e = _binned(x, r, max(10, int(span // 100)))
+    if c.size:
+        a0.fill_between(c, m - 2 * e, m + 2 * e, color="C0", alpha=0.25, step="mid")
+        a0.step(c, m, where="mid", lw=1.2, color="C0", label="mean per 100 m, +-2 SE")
+        lim = 1.5 * float(np.max(np.abs(m) + 2 * e))
+        a0.set_ylim(-lim, lim)
+    a0.axhline(0, color="k", lw=0.6)
+    a0.set_ylabel("residual accel. (m/s^2)")
+    prof = s.get("line_gradient") or []
+    for st, en, pm in prof:
+        a1.plot([st, en], [pm, pm], color="C2", lw=1.5)
+    sec = s.get("gradient_section")
+    if sec is not None:
+        st, en, pm = sec
+        for ax in (a0, a1):
+            ax.axvspan(st, en, color="C3", alpha=0.15)
+        a1.plot([st, en], [pm, pm], color="C3", lw=2.5, label=f"fitted: {pm:+.2f} per mille "
+                f"on [{st:.0f}, {en:.0f}) m")
+        # the residual a missing section leaves: -g sin(theta) / (1 + lambda), about
+        a0.plot([st, en], [-9.81e-3 * pm] * 2, color="C3", lw=2, label="fitted section's effect")
+        a1.legend(fontsize=8)
+    for name, pos in s.get("stations") or []:
+        a1.axvline(pos, color="0.6", lw=0.6, ls=":")
+        a1.text(pos, a1.get_ylim()[1] if prof else 0, str(name), fontsize=7, va="top")
+    a1.set_ylabel("gradient (per mille)")
+    a1.set_xlabel("track position (m)")
+    a0.legend(fontsize=8, loc="upper right")
+    a0.set_title(_title(dg, "residual acceleration along the line"))
+    for ax in (a0, a1):
+        ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return True
+
+
+def plot_speed(s: dict, path: Path, dg=None) -> bool:
+    """Residual acceleration against speed (resistance, mass) and against the commanded
+    traction and braking (mass, braking rate)."""
+    xy = _get(s, "speed", "residual_accel")
+    if xy is None:
+        return False
+    plt = _plt()
+    v, r = xy
+    panels = [("speed (m/s)", v)]
+    for key, label in (("commanded_traction", "traction command through the actuator (m/s^2)"),
+                       ("commanded_braking", "braking command through the actuator (m/s^2)")):
+        xs = _get(s, key, "residual_accel")
+        if xs is not None:
+            panels.append((label, xs[0]))
+    fig, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels), 4), sharey=True)
+    axes = np.atleast_1d(axes)
+    lim = 0.0
+    for ax, (label, x) in zip(axes, panels):
+        n = min(x.size, r.size)
+        ax.plot(x[:n], r[:n], ".", ms=1, alpha=0.15, color="0.5")
+        sel = np.abs(x[:n]) > 1e-3 if "command" in label else np.ones(n, bool)
+        c, m, e = _binned(x[:n][sel], r[:n][sel], 20)
+        if c.size:
+            ax.errorbar(c, m, yerr=2 * e, fmt="o-", ms=3, color="C0", label="binned mean +-2 SE")
+            lim = max(lim, 1.5 * float(np.max(np.abs(m) + 2 * e)))
+    if lim > 0:
+        axes[0].set_ylim(-lim, lim)
+        ax.axhline(0, color="k", lw=0.6)
+        ax.set_xlabel(label)
+        ax.grid(alpha=0.3)
+    axes[0].set_ylabel("residual accel. (m/s^2)")
+    axes[0].legend(fontsize=8)
+    fig.suptitle(_title(dg, "residual acceleration against speed and commands"), fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return True
+
+
+def plot_speed_trace(s: dict, path: Path, dg=None) -> bool:
+    """The odometer speed against time with the slip episodes and f(t) if fitted."""
+    tv = _get(s, "odo_t", "odo_speed")
+    if tv is None:
+        return False
+    plt = _plt()
+    t, v = tv
+    has_f = s.get("f_t") is not None
+    fig, axes = plt.subplots(2 if has_f else 1, 1, figsize=(10, 6 if has_f else 3.5),
+                             sharex=True)
+    axes = np.atleast_1d(axes)
+    axes[0].plot(t, v, lw=0.7, label="odometer speed")
+    ref = _get(s, "t", "speed")
+    if ref is not None:
+        axes[0].plot(ref[0], ref[1], lw=0.7, color="C1", alpha=0.8, label="reference speed")
+    for i, (t0, t1) in enumerate(s.get("slip_intervals") or []):
+        axes[0].axvspan(t0, t1, color="C3", alpha=0.3, label="fitted slip episodes" if i == 0
+                        else None)
+    axes[0].set_ylabel("speed (m/s)")
+    axes[0].legend(fontsize=8)
+    if has_f:
+        ft = s["f_t"]
+        axes[1].plot(np.asarray(ft[0]), np.asarray(ft[1]), color="C3", lw=2, label="fitted f(t)")
+        axes[1].axhline(1.0, color="k", lw=0.6, ls="--", label="nominal f = 1")
+        axes[1].set_ylabel("braking rate f")
+        axes[1].legend(fontsize=8)
+    axes[-1].set_xlabel("time since the first odometer stamp (s)")
+    for ax in axes:
+        ax.grid(alpha=0.3)
+    axes[0].set_title(_title(dg, "speed trace"))
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return True
+
+
+def plot_loss_runs(s: dict, path: Path, dg=None) -> bool:
+    """Histogram of the lengths of runs of lost odometer samples against the geometric law of
+    independent (Bernoulli) losses and of the fitted two-state chain."""
+    runs = s.get("loss_runs")
+    if runs is None or len(runs) == 0:
+        return False
+    plt = _plt()
+    runs = np.asarray(runs, dtype=int)
+    k = np.arange(1, max(int(runs.max()), 5) + 1)
+    fig, ax = plt.subplots(figsize=(6, 4))
+    counts = np.bincount(runs, minlength=k[-1] + 1)[1:]
+    ax.bar(k, counts / runs.size, color="0.6", label=f"data ({runs.size} runs)")
+    q = s.get("loss_fraction")
+    if q is not None and 0 < q < 1:
+        ax.plot(k, (1 - q) * q ** (k - 1), "o-", color="C0", ms=3,
+                label=f"independent losses (p = {q:.3f})")
+    p_bg = None
+    for r in (dg.ranking if dg is not None else []):
+        if r.get("cause") == "bursty_link":
+            p_bg = r.get("parameters", {}).get("p_bad_good")
+    if p_bg:
+        ax.plot(k, p_bg * (1 - p_bg) ** (k - 1), "s-", color="C3", ms=3,
+                label=f"two-state chain (p_bad_good = {p_bg:.3f})")
+    ax.set_yscale("log")
+    ax.set_xlabel("length of a run of lost odometer samples")
+    ax.set_ylabel("fraction of runs")
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    ax.set_title(_title(dg, "loss runs"))
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return True
+
+
+PLOTS = (("residual_position.png", plot_position), ("residual_speed.png", plot_speed),
+         ("speed_trace.png", plot_speed_trace), ("loss_runs.png", plot_loss_runs))
+
+
+def _title(dg, what: str) -> str:
+    return f"{what} -- cause: {dg.cause}" if dg is not None else what
+
+
+def write_plots(series: dict, out: Path, dg=None) -> list[Path]:
+    written = []
+    for name, fn in PLOTS:
+        try:
+            if fn(series or {}, out / name, dg):
+                written.append(out / name)
+        except (ValueError, TypeError, KeyError, IndexError) as exc:  # a plot never kills a run
+            print(f"diagnose: plot {name} skipped ({type(exc).__name__}: {exc})",
+                  file=sys.stderr)
+    return written
+
+
+# ------------------------------------------------------------------------------------------------
+# Summary and CLI
+# ------------------------------------------------------------------------------------------------
+
+def _fmt_params(p: dict) -> str:
+    parts = []
+    for k, v in p.items():
+        if isinstance(v, float):
+            parts.append(f"{k}={v:.4g}")
+        elif isinstance(v, list):
+            parts.append(f"{k}=" + ",".join(
+                "[" + ",".join(f"{x:.1f}" if isinstance(x, float) else str(x) for x in iv) + "]"
+                if isinstance(iv, list) else str(iv) for iv in v[:4]) + ("..." if len(v) > 4
+                                                                         else ""))
+        else:
+            parts.append(f"{k}={v}")
+    return " ".join(parts)
+
+
+def summary(dg, bag_path, data, elapsed: float, model: dict) -> list[str]:
+    n_odo, n_bal = len(data.odo_stamp), len(data.balise_stamp)
+    dur = float(np.ptp(data.odo_stamp)) if n_odo else 0.0
+    out = [f"diagnose {bag_path}: {dur:.0f} s, {n_odo} odometer samples, {n_bal} balise "
+           f"readings, {elapsed:.1f} s",
+           f"{'rank':<5}{'cause':<16}{'score':>10}  parameters"]
+    for i, r in enumerate(dg.ranking[:6]):
+        out.append(f"{i + 1:<5}{r['cause']:<16}{r['score']:>10.1f}  "
+                   f"{_fmt_params(r.get('parameters', {}))}")
+    if len(dg.ranking) > 6:
+        out.append(f"     ... {len(dg.ranking) - 6} more in report.json")
+    for u in dg.untestable:
+        out.append(f"untestable: {u['cause']} ({u['why']})")
+    g = dg.gain or {}
+    if g.get("before") is not None and g.get("after") is not None:
+        out.append(f"gain: {g.get('metric')}: {g['before']:.4g} -> {g['after']:.4g}")
+    notes = list(model.get("notes", []))
+    if model.get("effects"):
+        notes.append("effects.yaml: " + ", ".join(model["effects"]))
+    if notes:
+        out.append("model: " + "; ".join(notes))
+    out.append(f"cause: {dg.cause}")
+    return out
+
+
+class Progress:
+    """A one-line text progress bar on stderr."""
+
+    def __init__(self, width: int = 30):
+        self.width = width
+
+    def __call__(self, step: int, total: int, what: str) -> None:
+        frac = min(max(step / max(total, 1), 0.0), 1.0)
+        bar = "#" * int(round(frac * self.width))
+        sys.stderr.write(f"\rdiagnose [{bar:<{self.width}}] {100 * frac:5.1f}% {what:<36}")
+        if step >= total:
+            sys.stderr.write("\n")
+        sys.stderr.flush()
+
+
+def _one_line(exc) -> str:
+    return " ".join(str(exc).split())
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="diagnose", description=__doc__.splitlines()[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter,
+                                epilog="\n".join(__doc__.splitlines()[2:]))
+    p.add_argument("--bag", required=True,
+                   help="measured data: rosbag2 (MCAP) with odometer, balise and control")
+    p.add_argument("--line", required=True, help="line.yaml as the railway believes it")
+    p.add_argument("--train", required=True, help="train.yaml as the railway believes it")
+    p.add_argument("--out", required=True,
+                   help="output directory: report.json, plots and model/ (created)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    args = p.parse_args(argv)
+    from train_estimation.core.diagnose import DiagnoseError, diagnose
+
+    t0 = time.perf_counter()
+    try:
+        line, train = load_line(args.line), load_train(args.train)
+        data, _ = read_measured(args.bag)
+        dg = diagnose(data, line, train, progress=None if args.quiet else Progress())
+    except (ConfigError, BagError) as exc:
+        print(f"diagnose: {_one_line(exc)}", file=sys.stderr)
+        return 2
+    except DiagnoseError as exc:
+        print(f"diagnose: cannot diagnose {args.bag}: {_one_line(exc)}", file=sys.stderr)
+        return 2
+    elapsed = time.perf_counter() - t0
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "report.json").write_text(json.dumps(report_dict(dg), indent=1) + "\n")
+    model = write_model(out, dg, args.line, args.train, data)
+    write_plots(dg.series, out, dg)
+    print("\n".join(summary(dg, args.bag, data, elapsed, model)))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
