@@ -10,6 +10,7 @@ hands it to the ATO. Same scenario and seed, same message contents as the offlin
 from __future__ import annotations
 
 import json
+import math
 import sys
 import time
 from pathlib import Path
@@ -63,14 +64,27 @@ def build_node():
             self.start_at = declare("start_at", 0.0,
                                     "wall time (s since the epoch) to start at; 0 = at once. "
                                     "Several simulators given one start_at share a time base")
+            startup_eb = declare("start_with_emergency_brake", False,
+                                 "the train starts braked, as one no zone controller has "
+                                 "localised yet, until an authority without the brake arrives")
+            self.linger = declare("end_linger", 0.0,
+                                  "s of simulated time /clock keeps running after the run ends, "
+                                  "so estimators release their last estimates")
             if not (self.rate_factor > 0 and self.step > 0):
                 raise ParameterError("rate_factor and wall_step must be > 0")
+            if not (math.isfinite(self.linger) and self.linger >= 0):
+                raise ParameterError(f"parameter end_linger: {self.linger} must be >= 0")
             try:
                 self.sc = load_scenario(scenario)
             except ConfigError as exc:
                 raise ParameterError(str(exc)) from None
             self.duration = self.sc.duration if duration < 0 else duration
             self.world = World(self.sc, None if seed < 0 else seed)
+            if startup_eb:
+                # No authority yet: the expected start-up state of a train under a zone
+                # controller. Set here, at t = 0, not when the controller's first message happens
+                # to arrive, so the run does not depend on discovery and wall-clock timing.
+                self.world.set_movement_authority(-math.inf, 0.0, True)
             # deep queues: at 20x real time a subscriber that stalls for a second must not lose
             # samples (a lost control command would corrupt every estimator downstream)
             self.pubs = {t: self.create_publisher(msg_class(TOPIC_TYPES[t]), t, 2000)
@@ -105,12 +119,13 @@ def build_node():
                         return
                     now -= time.time() - self.start_at  # the shared instant, not this tick
                 self.wall0 = now
-            target = min((now - self.wall0) * self.rate_factor, self.duration)
+            target = min((now - self.wall0) * self.rate_factor, self.duration + self.linger)
             if target <= self.t_sim:
                 return
-            for topic, stamp, fields in self.world.advance(target):
-                self.pubs[topic].publish(fields_to_msg(TOPIC_TYPES[topic], stamp, fields))
-                self.counts[topic] += 1
+            if self.t_sim < self.duration:
+                for topic, stamp, fields in self.world.advance(min(target, self.duration)):
+                    self.pubs[topic].publish(fields_to_msg(TOPIC_TYPES[topic], stamp, fields))
+                    self.counts[topic] += 1
             self.t_sim = target
             if self.publish_clock:
                 clock = Clock()
@@ -118,10 +133,13 @@ def build_node():
                 self.clock_pub.publish(clock)
             if self.t_sim >= self.duration and not self.done:
                 self.done = True
-                self.get_logger().info(f"run ended at {self.t_sim:.1f} s; published {self.counts}")
+                self.get_logger().info(f"run ended at {self.duration:.1f} s; published "
+                                       f"{self.counts}")
                 if self.summary_file:
                     summary = run_summary(self.world.result())
+                    summary["startup_emergency_brakes"] = self.world.driver.startup_emergency_brakes
                     Path(self.summary_file).write_text(json.dumps(summary, indent=1))
+            if self.done and self.t_sim >= self.duration + self.linger:
                 self.finished = self.exit_at_end
 
     return SimulatorNode()
