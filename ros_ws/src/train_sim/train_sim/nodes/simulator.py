@@ -24,6 +24,7 @@ from train_sim.nodes.ros_common import (
     parse_cli,
     run_node,
     sec_to_stamp,
+    stamp_to_sec,
 )
 
 DESCRIPTION = __doc__.splitlines()[0]
@@ -72,8 +73,19 @@ def build_node():
                                   "so estimators release their last estimates")
             if not (self.rate_factor > 0 and self.step > 0):
                 raise ParameterError("rate_factor and wall_step must be > 0")
+            self.max_lead = declare("max_lead", 0.0,
+                                    "s; > 0: simulated time runs at most this far ahead of the "
+                                    "newest message stamp on every pace_topics topic; 0 = off")
+            pace_topics = declare("pace_topics", ["estimate/robust"],
+                                  "topics whose progress paces the world when max_lead > 0")
             if not (math.isfinite(self.linger) and self.linger >= 0):
                 raise ParameterError(f"parameter end_linger: {self.linger} must be >= 0")
+            if not (math.isfinite(self.max_lead) and self.max_lead >= 0):
+                raise ParameterError(f"parameter max_lead: {self.max_lead} must be >= 0")
+            unknown = [t for t in pace_topics if t not in TOPIC_TYPES]
+            if self.max_lead > 0 and unknown:
+                raise ParameterError(f"parameter pace_topics: unknown {unknown} "
+                                     f"(allowed: {sorted(TOPIC_TYPES)})")
             try:
                 self.sc = load_scenario(scenario)
             except ConfigError as exc:
@@ -91,6 +103,17 @@ def build_node():
                          for t in ("odometer", "balise", "control", "ground_truth")}
             self.clock_pub = self.create_publisher(Clock, "/clock", 10)
             self.create_subscription(MovementAuthority, "movement_authority", self.on_ma, 10)
+            # Pacing (a lock-step co-simulation): a consumer that stalls for some wall time
+            # (a loaded machine) holds the world back instead of seeing its data arrive late in
+            # simulated time, where a zone controller would judge it stale and brake the train.
+            self.paced = {}
+            if self.max_lead > 0:
+                for topic in pace_topics:
+                    self.paced[topic] = 0.0
+                    self.create_subscription(
+                        msg_class(TOPIC_TYPES[topic]), topic,
+                        lambda msg, topic=topic: self.on_paced(topic, msg), 100)
+            self.last_wall = None
             self.counts = dict.fromkeys(self.pubs, 0)
             self.t_sim = 0.0
             self.wall0 = None
@@ -104,6 +127,9 @@ def build_node():
         def on_ma(self, msg) -> None:
             self.world.set_movement_authority(msg.end_of_authority, msg.permitted_speed,
                                               msg.emergency_brake)
+
+        def on_paced(self, topic: str, msg) -> None:
+            self.paced[topic] = max(self.paced[topic], stamp_to_sec(msg.header.stamp))
 
         def tick(self) -> None:
             now = time.monotonic()
@@ -119,7 +145,13 @@ def build_node():
                         return
                     now -= time.time() - self.start_at  # the shared instant, not this tick
                 self.wall0 = now
-            target = min((now - self.wall0) * self.rate_factor, self.duration + self.linger)
+            if self.paced:  # advance by wall time elapsed, up to the slowest paced topic
+                last, self.last_wall = self.last_wall or now, now
+                target = min(self.t_sim + (now - last) * self.rate_factor,
+                             min(self.paced.values()) + self.max_lead)
+            else:
+                target = (now - self.wall0) * self.rate_factor
+            target = min(target, self.duration + self.linger)
             if target <= self.t_sim:
                 return
             if self.t_sim < self.duration:
