@@ -317,6 +317,7 @@ _step = st.tuples(
 )
 
 
+@pytest.mark.filterwarnings("error::RuntimeWarning")  # an overflow is a failure, not noise
 @hyp.settings(max_examples=25, deadline=None, derandomize=True)
 @hyp.given(st.sampled_from(["rbpf", "rbpf_opt", "sma", "gsma", "qgrbpf", "rbpf_rw"]),
            st.lists(_step, min_size=1, max_size=25), st.integers(0, 2**31 - 1))

@@ -104,6 +104,18 @@ def _scaled(values: list[np.ndarray], margin: float = 1.1) -> float:
     return margin * float(vals.max()) or 1.0
 
 
+def band(s: dict, kind: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(curve, band low, band high) of one panel: kind "x"/"v" = error and +-3 sigma about 0,
+    "f" = braking-rate estimate and its 3-sigma interval clipped to the physical range."""
+    if kind == "f":
+        sf = _sigma(s["cov"], 3)
+        y = s["f"]
+        return y, np.clip(y - 3 * sf, *F_RANGE), np.clip(y + 3 * sf, *F_RANGE)
+    i, key = (0, "x") if kind == "x" else (1, "v")
+    sd = _sigma(s["cov"], i)
+    return s[key] - s[key + "t"], -3 * sd, 3 * sd
+
+
 def plot_time(path: Path, series: dict, truth: dict | None, mk: dict, title: str) -> None:
     import matplotlib
 
@@ -131,16 +143,7 @@ def plot_time(path: Path, series: dict, truth: dict | None, mk: dict, title: str
         s = series[name]
         t = s["stamp"]
         c = colors[name]
-        if kind == "f":
-            sf = _sigma(s["cov"], 3)
-            y = s["f"]
-            lo = np.clip(y - 3 * sf, *F_RANGE)
-            hi = np.clip(y + 3 * sf, *F_RANGE)
-        else:
-            i, key = (0, "x") if kind == "x" else (1, "v")
-            sd = _sigma(s["cov"], i)
-            y = s[key] - s[key + "t"]
-            lo, hi = -3 * sd, 3 * sd
+        y, lo, hi = band(s, kind)
         steady = t >= t_ss
         for col, (a, b) in enumerate(((t0, t_ss), (t_ss, t1))):
             ax = axes[r, col]
