@@ -202,7 +202,7 @@ def format_sim_summary(s: dict, reasons: list[str] = ()) -> str:
                      "movement authority,\n    which needs a position report (expected, not an "
                      "incident); released at departure")
     if reasons:
-        lines.append("  zone controller's reasons (its log): " + "; ".join(reasons))
+        lines.append("  the zone controller set the brake for (its log): " + "; ".join(reasons))
     for topic, d in s.get("link", {}).items():
         lines.append(f"{topic}: {d['sent']} sent, {d['dropped']} dropped "
                      f"({d['received_fraction']:.3f} received)")
