@@ -94,6 +94,12 @@ def main(argv=None) -> int:
     bag_recorded = any(name == "recorder" for _, _, name, _ in consumers)
     state_topic = ("estimate/robust" if any(e == "robust_filter" for _, e, _, _ in consumers)
                    else "ground_truth")
+    # An estimator outputs only once its readers are matched (the recorder, the pacing
+    # simulator, the zone controller for the state topic): none misses the first estimates.
+    consumers = [(pkg, exe, name, extra if name == "recorder" else
+                  [*extra, "-p", "wait_for_subscribers:="
+                   f"{int(bag_recorded) + 1 + int(exe == 'robust_filter')}"])
+                 for pkg, exe, name, extra in consumers]
     zc_extra = ["-p", f"state_topic:={state_topic}", "-p", f"line_file:={line_file}"]
     # Reproducible runs (same scenario and seed, same bag whatever the machine's load):
     # - the train starts braked with no authority (the zone controller's expected start-up
