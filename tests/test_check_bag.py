@@ -97,7 +97,7 @@ def test_reads_bags_written_by_the_mcap_writer(tmp_path):
 
 def test_line_reports_errors_by_position(bag_with_estimate, tmp_path, capsys):
     """--line makes a difference: errors by section, at each station stop, around balises."""
-    from train_sim.model import load_line
+    from train_core.model import load_line
 
     bag, res = bag_with_estimate
     sc = load_scenario("metro_demo")

@@ -5,8 +5,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from train_sim.bagio import read_bag
+from train_core.bagio import read_bag
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
@@ -15,7 +14,7 @@ SAME = ("ground_truth", "control", "odometer", "balise", "estimate/robust", "est
 
 
 def _demo(launch, out: Path) -> str:
-    proc = launch.start([sys.executable, "-m", "train_estimation.tools.main_job",
+    proc = launch.start([sys.executable, "-m", "train_bringup.main_job",
                          "--duration", str(DURATION), "--out", str(out)], name=out.name)
     proc.wait(timeout=240)
     report = Path(proc.log_path).read_text()

@@ -185,7 +185,7 @@ def _markers(bag: Bag, truth: dict | None, line) -> dict:
 def check(bag_path: str, out_dir: Path | None = None, expected_received: float | None = None,
           plots: bool = True, line=None, rate_factor: float | None = None,
           title: str | None = None) -> dict:
-    """Check one bag; ``line`` is a :class:`train_sim.model.Line` (errors by position)."""
+    """Check one bag; ``line`` is a :class:`train_core.model.Line` (errors by position)."""
     bag = read_bag(bag_path)
     if not bag.topics:
         raise CheckError(f"{bag_path}: no CONTRACT.md topics in the bag ({bag.skipped or 'empty'})")
