@@ -24,7 +24,7 @@ def _events(rng, n=40, with_balise=True):
     r_v = np.where(kind == 1, rng.uniform(0.5, 2.0, n), rng.uniform(0.01, 0.05, n))
     held = np.zeros(n, bool)
     held[[3, 4]] = True
-    return D._Events(t=t, kind=kind, y_d=y_d, y_v=y_v, r_v=r_v, held=held,
+    return D.Events(t=t, kind=kind, y_d=y_d, y_v=y_v, r_v=r_v, held=held,
                      odo=np.flatnonzero(kind == 0), bal=np.flatnonzero(kind == 1))
 
 

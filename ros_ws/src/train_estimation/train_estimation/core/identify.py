@@ -61,6 +61,8 @@ from scipy.optimize import minimize
 from scipy.signal import lfilter
 from train_core.model import Davis, Line, TrainParams
 
+from .augmented_kf import Events, augmented_kf
+
 __all__ = [
     "IdentificationError",
     "SIData",
@@ -224,54 +226,27 @@ def _validate(data: SIData, line: Line):
 
 
 def _aug_kf(Y, dt, Bv, Bs, base_v, base_s, q, r_s, r_v):
-    """Run the KF on x = (s, v), x_{k+1} = A x_k + [Bs; Bv] theta + [base_s; base_v] + w.
+    """The KF on x = (s, v), x_{k+1} = A x_k + [Bs; Bv] theta + [base_s; base_v] + w, carrying
+    the parameter columns (augmented_kf.augmented_kf, odometer readings only).
 
     Y (n, 2) measurements (distance, speed) at the n stamps, dt (n-1,), Bv/Bs (n-1, p) parameter
-    columns, base_* (n-1,) known input, r_v (n,). Returns (W, logdet) with
-    W = sum_k E_k^T S_k^{-1} E_k over columns [data, theta_1..p]: the log-likelihood at theta is
-    -0.5 (logdet + z^T W z), z = [1, theta].
+    columns, base_* (n-1,) known input, q (n-1,) process-noise PSD per interval, r_v (n,).
+    Returns (W, logdet) with W = sum_k E_k^T S_k^{-1} E_k over columns [data, theta_1..p]: the
+    log-likelihood at theta is -0.5 (logdet + z^T W z), z = [1, theta] (logdet includes the
+    2 pi terms).
     """
     n, p = Y.shape[0], Bv.shape[1]
-    Xs = np.zeros(p + 1)
-    Xv = np.zeros(p + 1)
-    Xs[0], Xv[0] = Y[0, 0], Y[0, 1]
-    p00, p01, p11 = r_s, 0.0, float(r_v[0])
-    W = np.zeros((p + 1, p + 1))
-    logdet = 0.0
-    colv = np.concatenate([base_v[:, None], Bv], axis=1)
-    cols = np.concatenate([base_s[:, None], Bs], axis=1)
-    for k in range(1, n):
-        h = dt[k - 1]
-        # predict: A = [[1, h], [0, 1]]; Q = q [[h^3/3, h^2/2], [h^2/2, h]] (white jerk-free
-        # acceleration noise with PSD q)
-        Xs = Xs + h * Xv + cols[k - 1]
-        Xv = Xv + colv[k - 1]
-        qk = q[k - 1]
-        p00, p01, p11 = (p00 + 2 * h * p01 + h * h * p11 + qk * h ** 3 / 3.0,
-                         p01 + h * p11 + qk * h * h / 2.0, p11 + qk * h)
-        s00, s01, s11 = p00 + r_s, p01, p11 + r_v[k]
-        det = s00 * s11 - s01 * s01
-        i00, i01, i11 = s11 / det, -s01 / det, s00 / det
-        es = -Xs
-        ev = -Xv
-        es[0] += Y[k, 0]
-        ev[0] += Y[k, 1]
-        # W += E^T S^-1 E with E = [es; ev]
-        ts = i00 * es + i01 * ev
-        tv = i01 * es + i11 * ev
-        W += np.outer(es, ts) + np.outer(ev, tv)
-        logdet += np.log(det) + 2 * LOG2PI
-        # update: K = P S^-1
-        k00, k01 = p00 * i00 + p01 * i01, p00 * i01 + p01 * i11
-        k10, k11 = p01 * i00 + p11 * i01, p01 * i01 + p11 * i11
-        Xs = Xs + k00 * es + k01 * ev
-        Xv = Xv + k10 * es + k11 * ev
-        # P = (I - K) P (symmetric 2x2)
-        n00 = (1 - k00) * p00 - k01 * p01
-        n01 = (1 - k00) * p01 - k01 * p11
-        n11 = -k10 * p01 + (1 - k11) * p11
-        p00, p01, p11 = n00, n01, n11
-    return W, logdet
+    t = np.concatenate([[0.0], np.cumsum(dt)])
+    ev = Events(t=t, kind=np.zeros(n, np.int8), y_d=Y[:, 0], y_v=Y[:, 1],
+                r_v=np.asarray(r_v, float), held=np.zeros(n, bool),
+                odo=np.arange(n), bal=np.array([], int))
+    zero = np.zeros((1, p + 1))
+    Bv_ = np.concatenate([zero, np.concatenate([base_v[:, None], Bv], axis=1)])
+    Bs_ = np.concatenate([zero, np.concatenate([base_s[:, None], Bs], axis=1)])
+    M0 = np.zeros((n, p + 1))
+    res = augmented_kf(ev, 0.0, r_s, Bv_, Bs_, M0, M0, M0, 0.0,
+                       q_per_event=np.concatenate([[0.0], q]))
+    return res.W, res.logdet + res.m * LOG2PI
 
 
 def _gls(W, logdet):
