@@ -52,6 +52,34 @@ class KFResult:
         return -0.5 * (self.logdet + self.m * LOG2PI + z @ self.W @ z)
 
 
+def predict_cov(p00: float, p01: float, p11: float, h: float, q: float):
+    """P <- A P A^T + Q for A = [[1, h], [0, 1]], Q = q [[h^3/3, h^2/2], [h^2/2, h]] (white
+    acceleration noise of PSD q over h seconds); P symmetric 2x2 as (p00, p01, p11)."""
+    return (p00 + 2 * h * p01 + h * h * p11 + q * h ** 3 / 3.0,
+            p01 + h * p11 + q * h * h / 2.0, p11 + q * h)
+
+
+def odometer_update(p00: float, p01: float, p11: float, r_s: float, r_v: float):
+    """An odometer reading of (s, v) with noise diag(r_s, r_v): S = P + R, its inverse
+    (i00, i01, i11), det S, the gain K = P S^-1 (k00, k01, k10, k11) and the updated P."""
+    s00, s01, s11 = p00 + r_s, p01, p11 + r_v
+    det = s00 * s11 - s01 * s01
+    i00, i01, i11 = s11 / det, -s01 / det, s00 / det
+    k00, k01 = p00 * i00 + p01 * i01, p00 * i01 + p01 * i11
+    k10, k11 = p01 * i00 + p11 * i01, p01 * i01 + p11 * i11
+    n00 = (1 - k00) * p00 - k01 * p01
+    n01 = (1 - k00) * p01 - k01 * p11
+    n11 = -k10 * p01 + (1 - k11) * p11
+    return (s00, s01, s11, det, (i00, i01, i11), (k00, k01, k10, k11), (n00, n01, n11))
+
+
+def balise_update(p00: float, p01: float, p11: float, r_b: float):
+    """A balise reading of s with noise r_b: S, the gain (k0, k1) and the updated P."""
+    s = p00 + r_b
+    k0, k1 = p00 / s, p01 / s
+    return s, (k0, k1), ((1 - k0) * p00, (1 - k0) * p01, p11 - k1 * p01)
+
+
 def augmented_kf(ev: Events, q: float, r_s: float, Bv, Bs, Md, Mv, Mb, q_held: float,
                  keep_innov: bool = False, update: np.ndarray | None = None,
                  q_per_event: np.ndarray | None = None) -> KFResult:
@@ -86,13 +114,12 @@ def augmented_kf(ev: Events, q: float, r_s: float, Bv, Bs, Md, Mv, Mb, q_held: f
         qk = qs[k] if qs is not None else (q_held if held[k] else q)
         Xs = Xs + h * Xv + Bs[k]
         Xv = Xv + Bv[k]
-        p00, p01, p11 = (p00 + 2 * h * p01 + h * h * p11 + qk * h ** 3 / 3.0,
-                         p01 + h * p11 + qk * h * h / 2.0, p11 + qk * h)
+        p00, p01, p11 = predict_cov(p00, p01, p11, h, qk)
         if not upd[k]:
             continue
         if kinds[k] == 0:
-            s00, s01, s11 = p00 + r_s, p01, p11 + rv[k]
-            det = s00 * s11 - s01 * s01
+            s00, s01, s11, det, _, (k00, k01, k10, k11), pn = odometer_update(
+                p00, p01, p11, r_s, rv[k])
             es = -Xs - Md[k]
             ev_ = -Xv - Mv[k]
             es[0] += yd[k]
@@ -111,17 +138,11 @@ def augmented_kf(ev: Events, q: float, r_s: float, Bv, Bs, Md, Mv, Mb, q_held: f
                 E0[k] = (ev_[0], es[0])
                 E1[k] = (ev_[1], es[1])
                 S_v[k] = s11
-            i00, i01, i11 = s11 / det, -s01 / det, s00 / det
-            k00, k01 = p00 * i00 + p01 * i01, p00 * i01 + p01 * i11
-            k10, k11 = p01 * i00 + p11 * i01, p01 * i01 + p11 * i11
             Xs = Xs + k00 * es + k01 * ev_
             Xv = Xv + k10 * es + k11 * ev_
-            n00 = (1 - k00) * p00 - k01 * p01
-            n01 = (1 - k00) * p01 - k01 * p11
-            n11 = -k10 * p01 + (1 - k11) * p11
-            p00, p01, p11 = n00, n01, n11
+            p00, p01, p11 = pn
         else:
-            s = p00 + rv[k]
+            s, (k0, k1), pn = balise_update(p00, p01, p11, rv[k])
             eb = -Xs - Mb[k]
             eb[0] += yd[k]
             Z[row] = eb / math.sqrt(s)
@@ -131,10 +152,9 @@ def augmented_kf(ev: Events, q: float, r_s: float, Bv, Bs, Md, Mv, Mb, q_held: f
             if keep_innov:
                 E0[k] = (np.nan, eb[0])
                 E1[k] = (np.nan, eb[1])
-            k0, k1 = p00 / s, p01 / s
             Xs = Xs + k0 * eb
             Xv = Xv + k1 * eb
-            p00, p01, p11 = (1 - k0) * p00, (1 - k0) * p01, p11 - k1 * p01
+            p00, p01, p11 = pn
     Z = Z[:row]
     return KFResult(W=Z.T @ Z, logdet=logdet, m=m, E0=E0, E1=E1, S_v=S_v)
 

@@ -59,7 +59,15 @@ import numpy as np
 from scipy.optimize import minimize_scalar
 from train_core.model import G, Line, TrainParams
 
-from .augmented_kf import LOG2PI, Events, augmented_kf, gls
+from .augmented_kf import (
+    LOG2PI,
+    Events,
+    augmented_kf,
+    balise_update,
+    gls,
+    odometer_update,
+    predict_cov,
+)
 from .identify import actuator_output
 
 CAUSES = ("gradient", "resistance", "braking_rate", "odometer_scale", "wheel_slip",
@@ -447,12 +455,10 @@ def _kf2_loglik(ev: Events, q: float, r_s: float, bv, bs, md, mv, q_held: float)
         xs0 += h * xv0 + bs[k]
         xv0 += bv[k]
         xs1 += h * xv1
-        p00, p01, p11 = (p00 + 2 * h * p01 + h * h * p11 + qk * h ** 3 / 3.0,
-                         p01 + h * p11 + qk * h * h / 2.0, p11 + qk * h)
+        p00, p01, p11 = predict_cov(p00, p01, p11, h, qk)
         if kind[k] == 0:
-            s00, s01, s11 = p00 + r_s, p01, p11 + rv[k]
-            det = s00 * s11 - s01 * s01
-            i00, i01, i11 = s11 / det, -s01 / det, s00 / det
+            _, _, _, det, (i00, i01, i11), (k00, k01, k10, k11), pn = odometer_update(
+                p00, p01, p11, r_s, rv[k])
             es0, ev0 = yd[k] - xs0 - md[k], yv[k] - xv0 - mv[k]
             es1, ev1 = -xs1, -xv1
             w00 += es0 * (i00 * es0 + i01 * ev0) + ev0 * (i01 * es0 + i11 * ev0)
@@ -460,30 +466,24 @@ def _kf2_loglik(ev: Events, q: float, r_s: float, bv, bs, md, mv, q_held: float)
             w11 += es1 * (i00 * es1 + i01 * ev1) + ev1 * (i01 * es1 + i11 * ev1)
             logdet += math.log(det)
             m += 2
-            k00, k01 = p00 * i00 + p01 * i01, p00 * i01 + p01 * i11
-            k10, k11 = p01 * i00 + p11 * i01, p01 * i01 + p11 * i11
             xs0 += k00 * es0 + k01 * ev0
             xv0 += k10 * es0 + k11 * ev0
             xs1 += k00 * es1 + k01 * ev1
             xv1 += k10 * es1 + k11 * ev1
-            n00 = (1 - k00) * p00 - k01 * p01
-            n01 = (1 - k00) * p01 - k01 * p11
-            n11 = -k10 * p01 + (1 - k11) * p11
-            p00, p01, p11 = n00, n01, n11
+            p00, p01, p11 = pn
         else:
-            s = p00 + rv[k]
+            s, (k0, k1), pn = balise_update(p00, p01, p11, rv[k])
             e0, e1 = yd[k] - xs0, -xs1 - 1.0
             w00 += e0 * e0 / s
             w01 += e0 * e1 / s
             w11 += e1 * e1 / s
             logdet += math.log(s)
             m += 1
-            k0, k1 = p00 / s, p01 / s
             xs0 += k0 * e0
             xv0 += k1 * e0
             xs1 += k0 * e1
             xv1 += k1 * e1
-            p00, p01, p11 = (1 - k0) * p00, (1 - k0) * p01, p11 - k1 * p01
+            p00, p01, p11 = pn
     quad = w00 - w01 * w01 / w11 if w11 > 0 else w00
     return -0.5 * (logdet + m * LOG2PI + quad)
 
