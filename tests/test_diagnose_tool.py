@@ -163,8 +163,7 @@ def full_diagnosis() -> Diagnosis:
         {"cause": "resistance", "parameters": {"a": 4000.0, "b": 160.0, "c": 9.5}},
         {"cause": "braking_rate", "parameters": {"f_start": 0.95, "f_end": 0.85}},
         {"cause": "odometer_scale", "parameters": {"scale": 1.01}},
-        {"cause": "wheel_slip", "parameters": {"intervals": [[50.0, 52.0], [120.0, 122.5]]},
-         "extra": {"slip_fraction": [0.1, 0.12]}},
+        {"cause": "wheel_slip", "parameters": {"intervals": [[50.0, 52.0], [120.0, 122.5]]}},
         {"cause": "bursty_link", "parameters": {"p_good_bad": 0.03, "p_bad_good": 0.2}},
         {"cause": "brake_delay", "parameters": {"delay": 1.6}},
         {"cause": "mass", "parameters": {"mass": 310000.0}},
@@ -173,7 +172,9 @@ def full_diagnosis() -> Diagnosis:
     ranking = [{"cause": a["cause"], "score": 10.0 - i, "parameters": a["parameters"]}
                for i, a in enumerate(acc)] + [{"cause": "none", "score": 0.0, "parameters": {}}]
     return Diagnosis(cause="gradient", parameters=acc[0]["parameters"], ranking=ranking,
-                     untestable=[], evidence={}, gain={}, accepted=acc, series={})
+                     untestable=[], gain={}, accepted=acc, series={},
+                     # where the core reports the fitted slip fraction of each episode
+                     evidence={"wheel_slip": {"details": {"slip_fraction": [0.1, 0.12]}}})
 
 
 def fake_data(duration=600.0, rate=10.0):

@@ -139,8 +139,9 @@ def slip_fraction(a: dict, dg, data, t_first: float) -> float:
     """The slip fraction of the accepted wheel_slip (one value for all episodes, as the
     simulator's effect has): from the fit if the core reports it, else measured from the
     odometer speed inside the episodes against the speed just around them."""
-    for src in (a.get("extra", {}), a.get("parameters", {}),
-                (dg.evidence or {}).get("wheel_slip", {})):
+    ev = (dg.evidence or {}).get("wheel_slip", {})
+    for src in (a.get("extra", {}), a.get("details", {}), a.get("parameters", {}),
+                ev.get("details", {}) if isinstance(ev, dict) else {}, ev):
         v = src.get("slip_fraction") if isinstance(src, dict) else None
         if v is not None and not isinstance(v, dict):
             vals = [float(x) for x in np.atleast_1d(v) if x is not None and math.isfinite(x)]
