@@ -320,8 +320,9 @@ def plot_position(s: dict, path: Path, dg=None) -> bool:
     if c.size:
         a0.fill_between(c, m - 2 * e, m + 2 * e, color="C0", alpha=0.25, step="mid")
         a0.step(c, m, where="mid", lw=1.2, color="C0", label="mean per 100 m, +-2 SE")
-        lim = 1.5 * float(np.max(np.abs(m) + 2 * e))
-        a0.set_ylim(-lim, lim)
+        lim = 1.5 * float(np.percentile(np.abs(m) + 2 * e, 90))  # a few sparse bins may clip
+        if lim > 0:
+            a0.set_ylim(-lim, lim)
     a0.axhline(0, color="k", lw=0.6)
     a0.set_ylabel("residual accel. (m/s^2)")
     prof = s.get("line_gradient") or []
@@ -376,7 +377,7 @@ def plot_speed(s: dict, path: Path, dg=None) -> bool:
         c, m, e = _binned(x[:n][sel], r[:n][sel], 20)
         if c.size:
             ax.errorbar(c, m, yerr=2 * e, fmt="o-", ms=3, color="C0", label="binned mean +-2 SE")
-            lim = max(lim, 1.5 * float(np.max(np.abs(m) + 2 * e)))
+            lim = max(lim, 1.5 * float(np.percentile(np.abs(m) + 2 * e, 90)))
     if lim > 0:
         axes[0].set_ylim(-lim, lim)
         ax.axhline(0, color="k", lw=0.6)
