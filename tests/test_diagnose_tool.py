@@ -444,3 +444,19 @@ def test_a_negative_davis_fit_is_written_as_the_closest_nonnegative_curve(metro,
     v = np.linspace(0.0, 20.0, 50)
     fit = 5000.0 - 100.0 * v + 14.0 * v * v
     assert np.max(np.abs(d.force(v) - fit)) < 0.1 * np.max(fit)
+
+
+def test_a_fit_the_files_cannot_hold_is_left_out_of_the_model_with_a_note(metro, tmp_path):
+    acc = [{"cause": "gradient", "parameters": {"start": 2400.0, "end": 2800.0,
+                                                "permille": -90.0}},
+           {"cause": "odometer_scale", "parameters": {"scale": 3.0}},
+           {"cause": "mass", "parameters": {"mass": 300000.0}}]
+    dg = Diagnosis(cause="gradient", parameters=acc[0]["parameters"],
+                   ranking=[{"cause": a["cause"], "score": 1.0, "parameters": a["parameters"]}
+                            for a in acc], untestable=[], evidence={}, gain={}, accepted=acc)
+    model = tool.write_model(tmp_path, dg, metro.line_path, metro.train_path, fake_data())
+    sc = with_model(metro, tmp_path / "model")
+    assert sc.line == metro.line and sc.effects.active() == ["mass"]
+    text = " ".join(model["notes"])
+    assert "gradient not in the model" in text and "odometer_scale not in the model" in text
+    assert "gradient not in the model" in (tmp_path / "model" / "line.yaml").read_text()
