@@ -93,3 +93,56 @@ def test_reads_bags_written_by_the_mcap_writer(tmp_path):
     s = check_bag.check(str(path))
     assert s["topics"]["odometer"]["received_fraction"] == 1.0
     json.dumps(s, default=float)
+
+
+def test_line_reports_errors_by_position(bag_with_estimate, tmp_path, capsys):
+    """--line makes a difference: errors by section, at each station stop, around balises."""
+    from train_core.model import load_line
+
+    bag, res = bag_with_estimate
+    sc = load_scenario("metro_demo")
+    s = check_bag.check(str(bag), tmp_path, line=load_line(sc.line_path))
+    bp = s["by_position"]["fake"]
+    a_b = bp["sections"][0]
+    assert (a_b["from"], a_b["to"]) == ("A", "B") and a_b["n"] > 300  # running from 10 s
+    n = a_b["n"]
+    assert abs(a_b["position_rmse"] - SIGMA_X) < 4.5 * SIGMA_X * math.sqrt(1 / (2 * n))
+    assert [st["station"] for st in bp["stops"]] == ["A"]  # the 60 s run waits at A only
+    passed = [b for b in sc.line.balises
+              if sc.start_position < b.position < res.truth["position"][-1]]
+    assert len(bp["balises"]) == len(passed) > 0
+    assert (tmp_path / "error_over_position.png").stat().st_size > 10_000
+    assert check_bag.main([str(bag), "--no-plots"]) == 0
+    without = capsys.readouterr().out
+    assert check_bag.main([str(bag), "--no-plots", "--line", str(sc.line_path)]) == 0
+    with_line = capsys.readouterr().out
+    assert "errors by position" not in without
+    assert "errors by position on line metro_demo" in with_line and "A -> B" in with_line
+
+
+def test_latency_is_labelled_and_converted_to_wall_time(bag_with_estimate, capsys):
+    bag, _ = bag_with_estimate
+    assert check_bag.main([str(bag), "--no-plots"]) == 0
+    out = capsys.readouterr().out
+    assert "latency p50/p99 (ms, bag time)" in out and " 2.0/2.0" in out
+    assert check_bag.main([str(bag), "--no-plots", "--rate-factor", "20"]) == 0
+    out = capsys.readouterr().out
+    assert "latency p50/p99 (ms, wall)" in out and " 0.1/0.1" in out and "/ 20 = wall" in out
+    assert check_bag.main([str(bag), "--no-plots", "--rate-factor", "0"]) == 2
+
+
+def test_plot_bands_are_clipped_and_startup_is_separated():
+    from train_estimation.tools.bag_plots import F_RANGE, band, startup_end
+
+    t = np.arange(0.0, 100.0, 0.1)
+    cov = np.zeros((t.size, 4, 4))
+    cov[:, 0, 0] = (0.2 + 5.0 * np.exp(-t)) ** 2  # 5 m at start, 0.2 m after a few seconds
+    cov[:, 3, 3] = 0.3**2
+    s = {"stamp": t, "cov": cov, "f": np.where(t < 50, 0.5, 1.9), "x": t, "xt": t, "v": t,
+         "vt": t}
+    f, lo, hi = band(s, "f")
+    assert lo.min() == F_RANGE[0] and hi.max() == F_RANGE[1]  # 0.5 - 0.9 and 1.9 + 0.9
+    assert np.all(lo <= f) and np.all(f <= hi)
+    t_ss = startup_end({"e": s}, 0.0, 100.0)
+    sx = np.sqrt(cov[:, 0, 0])
+    assert np.all(sx[t >= t_ss] <= 2 * np.median(sx)) and t_ss < 25.0

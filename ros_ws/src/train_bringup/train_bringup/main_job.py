@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import subprocess
 import sys
 import time
@@ -94,11 +95,31 @@ def main(argv=None) -> int:
     bag_recorded = any(name == "recorder" for _, _, name, _ in consumers)
     state_topic = ("estimate/robust" if any(e == "robust_filter" for _, e, _, _ in consumers)
                    else "ground_truth")
+    # An estimator outputs only once its readers are matched (the recorder, the pacing
+    # simulator, the zone controller for the state topic): none misses the first estimates.
+    consumers = [(pkg, exe, name, extra if name == "recorder" else
+                  [*extra, "-p", "wait_for_subscribers:="
+                   f"{int(bag_recorded) + 1 + int(exe == 'robust_filter')}"])
+                 for pkg, exe, name, extra in consumers]
     zc_extra = ["-p", f"state_topic:={state_topic}", "-p", f"line_file:={line_file}"]
+    # Reproducible runs (same scenario and seed, same bag whatever the machine's load):
+    # - the train starts braked with no authority (the zone controller's expected start-up
+    #   state), set at t = 0 rather than whenever the controller's first message arrives;
+    # - the world is paced by the estimates and authorities it receives (at most `lead` ahead
+    #   of their stamps: enough for an estimate's output delay and the controller's 1 s period,
+    #   less than its 3 s staleness limit): a process stalled for some wall time holds the world
+    #   back instead of being judged stale in simulated time (a brake that depends on the load);
+    # - /clock runs on past the end until the estimators have released their last estimates.
+    topics = {"robust_filter": "estimate/robust", "gsma_estimator": "estimate/gsma"}
+    pace = [topics[name] for _, _, name, _ in consumers if name in topics]
+    pace.append("movement_authority")
+    lead = delay + 1.2
     sim_extra = ["-p", f"scenario:={args.scenario}", "-p", f"rate_factor:={args.rate_factor}",
                  "-p", f"duration:={args.duration}", "-p", f"summary_file:={summary_file}",
                  "-p", f"wait_for_subscribers:={len(consumers)}",
-                 "-p", f"wait_for_truth_subscribers:={int(bag_recorded)}"]
+                 "-p", f"wait_for_truth_subscribers:={int(bag_recorded)}",
+                 "-p", "start_with_emergency_brake:=true", "-p", f"end_linger:={2 * delay}",
+                 "-p", f"max_lead:={lead}", "-p", f"pace_topics:=[{','.join(pace)}]"]
 
     procs = Processes(logs)
     t0 = time.monotonic()
@@ -136,12 +157,15 @@ def main(argv=None) -> int:
     print(f"\n=== main job report ({wall:.1f} s wall) ===")
     if summary_file.is_file():
         s = json.loads(summary_file.read_text())
-        print(format_sim_summary(s))
+        print(format_sim_summary(s, brake_reasons(logs / "zone_controller.log")))
     else:
         failed.append("simulator summary missing")
     if bag.exists():
+        title = f"{args.scenario} seed {sc.seed}"
         check = subprocess.run([sys.executable, "-m", "train_estimation.tools.check_bag", str(bag),
-                                "--out", str(out / "check")], text=True, capture_output=True)
+                                "--out", str(out / "check"), "--line", str(line_file),
+                                "--rate-factor", str(args.rate_factor), "--title", title],
+                               text=True, capture_output=True)
         print(check.stdout)
         if check.returncode != 0:
             failed.append(f"check_bag (exit {check.returncode}: {check.stderr.strip()[-300:]})")
@@ -153,7 +177,20 @@ def main(argv=None) -> int:
     return 0
 
 
-def format_sim_summary(s: dict) -> str:
+def brake_reasons(log: Path) -> list[str]:
+    """Distinct reasons the zone controller gave for setting the emergency brake (its log)."""
+    if not log.is_file():
+        return []
+    seen = []
+    for line in log.read_text(errors="replace").splitlines():
+        if "emergency brake SET:" in line:
+            why = re.sub(r"\d+\.\d+", "#", line.split("emergency brake SET:", 1)[1].strip())
+            if why not in seen:
+                seen.append(why)
+    return seen
+
+
+def format_sim_summary(s: dict, reasons: list[str] = ()) -> str:
     lines = [f"scenario {s.get('scenario')} seed {s.get('seed')}: {s.get('t_end', 0):.0f} s "
              f"simulated"]
     stops = s.get("stops", [])
@@ -164,7 +201,15 @@ def format_sim_summary(s: dict) -> str:
             lines.append(f"  {st['station']:<16} {st['stopping_error']:+8.2f}")
     else:
         lines.append("stations served: 0")
-    lines.append(f"emergency brakes: {s.get('emergency_brakes', 0)}")
+    startup = int(s.get("startup_emergency_brakes", 0))
+    incidents = int(s.get("emergency_brakes", 0)) - startup
+    lines.append(f"emergency brakes: {incidents} during the run (incidents)")
+    if startup:
+        lines.append("  + start-up: the train starts braked until the zone controller's first "
+                     "movement authority,\n    which needs a position report (expected, not an "
+                     "incident); released at departure")
+    if reasons:
+        lines.append("  the zone controller set the brake for (its log): " + "; ".join(reasons))
     for topic, d in s.get("link", {}).items():
         lines.append(f"{topic}: {d['sent']} sent, {d['dropped']} dropped "
                      f"({d['received_fraction']:.3f} received)")

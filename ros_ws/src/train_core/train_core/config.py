@@ -91,6 +91,22 @@ class Section:
             raise ConfigError(f"{self.where}.{key}: {value:g} is out of range, allowed {rng}")
         return value
 
+    def intervals(self, key: str, default: Any = None) -> tuple[tuple[float, float], ...]:
+        """A list of time windows [[t0, t1], ...] (s, 0 <= t0 < t1), sorted; ``default`` when
+        absent (REQUIRED: a missing key or an empty list is an error)."""
+        raw = self._raw(key, default)
+        if key not in self.data:
+            return default
+        ok = isinstance(raw, list) and (bool(raw) or default is not _REQUIRED) and all(
+            isinstance(iv, list) and len(iv) == 2
+            and all(isinstance(u, (int, float)) and not isinstance(u, bool) for u in iv)
+            and 0 <= iv[0] < iv[1] for iv in raw)
+        if not ok:
+            what = "a non-empty list" if default is _REQUIRED else "a list"
+            raise ConfigError(f"{self.where}.{key}: expected {what} of [t0, t1] with "
+                              f"0 <= t0 < t1 (s), got {raw!r}")
+        return tuple((float(a), float(b)) for a, b in sorted(raw))
+
     def integer(self, key: str, default: Any = None, *, lo: int | None = None,
                 hi: int | None = None) -> int:
         value = self._raw(key, default)

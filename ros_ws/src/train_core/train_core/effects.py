@@ -228,16 +228,8 @@ def parse_effects(sec: Section, duration: float) -> Effects:
             s.number("scale", REQUIRED, lo=0.5, hi=1.5))
     if sec.has("wheel_slip"):
         s = sec.section("wheel_slip", ("intervals", "slip_fraction"))
-        raw = s._raw("intervals", REQUIRED)
-        ok = isinstance(raw, list) and raw and all(
-            isinstance(iv, list) and len(iv) == 2
-            and all(isinstance(u, (int, float)) and not isinstance(u, bool) for u in iv)
-            and 0 <= iv[0] < iv[1] for iv in raw)
-        if not ok:
-            raise ConfigError(f"{s.where}.intervals: expected a non-empty list of [t0, t1] "
-                              f"with 0 <= t0 < t1 (s), got {raw!r}")
         kw["wheel_slip"] = WheelSlipEffect(
-            intervals=tuple((float(a), float(b)) for a, b in sorted(raw)),
+            intervals=s.intervals("intervals", REQUIRED),
             slip_fraction=s.number("slip_fraction", 0.1, lo=-0.9, hi=1.0))
     if sec.has("bursty_link"):
         s = sec.section("bursty_link", ("p_good_bad", "p_bad_good", "loss_good", "loss_bad"))

@@ -305,7 +305,10 @@ def test_bad_input_is_rejected_counted_and_leaves_state_untouched():
 hyp = pytest.importorskip("hypothesis")
 st = pytest.importorskip("hypothesis.strategies")
 
-_value = st.one_of(st.floats(-50, 50), st.sampled_from([np.nan, np.inf, -np.inf, 1e200, -1e200]))
+# Gross outliers are +-1e6 (no sensor reads that): absurd but inside what float64 arithmetic is
+# meant for. +-1e200 used to be here: its squared innovation overflowed to inf in the Kalman
+# update (a RuntimeWarning at batched_kf.py), so the filter "survived" it only through overflow.
+_value = st.one_of(st.floats(-50, 50), st.sampled_from([np.nan, np.inf, -np.inf, 1e6, -1e6]))
 _step = st.tuples(
     st.one_of(st.floats(-1.5, 1.0), st.sampled_from([np.nan, np.inf])),  # a_tar
     st.lists(_value, min_size=3, max_size=3),  # y
@@ -314,6 +317,7 @@ _step = st.tuples(
 )
 
 
+@pytest.mark.filterwarnings("error::RuntimeWarning")  # an overflow is a failure, not noise
 @hyp.settings(max_examples=25, deadline=None, derandomize=True)
 @hyp.given(st.sampled_from(["rbpf", "rbpf_opt", "sma", "gsma", "qgrbpf", "rbpf_rw"]),
            st.lists(_step, min_size=1, max_size=25), st.integers(0, 2**31 - 1))

@@ -163,7 +163,8 @@ def test_link_likelihoods():
 
 
 def _run(stamps, recv):
-    return D._Run(t_first=0.0, duration=float(stamps[-1]), odo_t=stamps, odo_d=stamps,
+    return D._Run(t_first=0.0, duration=float(stamps[-1]), odo_t=stamps, odo_stamp=stamps,
+                  odo_d=stamps,
                   odo_v=np.ones_like(stamps), odo_rv=np.ones_like(stamps),
                   odo_seq=np.arange(stamps.size), odo_recv=recv, ctrl_t=stamps,
                   ctrl_a=np.zeros_like(stamps), bal_t=stamps[:2], bal_p=stamps[:2],

@@ -31,7 +31,11 @@ braking curves to lower limits ahead and sqrt(2 a_plan d_p) to the stopping poin
 Movement authority: the stopping point is min(next station, end_of_authority - ma_margin); a stop
 short of a station because of the authority is not a station stop, the train waits. Emergency
 brake: a_Tar = -emergency_brake (through the same actuator) while the flag is set; every rising
-edge is counted. At rest the ATO holds the train with a_Tar = -hold_brake.
+edge is counted, and those before the first authority without it (the start-up state of a train
+no zone controller has localised yet) are also counted apart as ``startup_emergency_brakes``. A
+brake released while the train dwells at rest stays applied until the dwell ends: the moment a
+release reaches the train (a radio message, racing a wall clock in the live simulator) then
+changes nothing it does. At rest the ATO holds the train with a_Tar = -hold_brake.
 
 Pure module: the standard library and the shared model only.
 """
@@ -90,6 +94,9 @@ class Driver:
         self.permitted_speed = math.inf  # m/s
         self.emergency = False
         self.emergency_brakes = 0
+        self.startup_emergency_brakes = 0  # rising edges before the first authority without one
+        self.authorised = False  # an authority without the emergency brake has been received
+        self._eb_applied = False  # the brake is still on (released at rest: until departure)
         self.stops: list[dict] = []
         self.queue = [s for s in timetable if s.position > start_position + params.stop_tolerance]
         self.a_cmd = float(u0)
@@ -111,6 +118,8 @@ class Driver:
                                emergency_brake: bool) -> None:
         if emergency_brake and not self.emergency:
             self.emergency_brakes += 1
+            self.startup_emergency_brakes += not self.authorised
+        self.authorised |= not emergency_brake
         self.emergency = bool(emergency_brake)
         self.eoa = float(end_of_authority)
         self.permitted_speed = float(permitted_speed)
@@ -164,7 +173,12 @@ class Driver:
     def _decide(self, t: float, x: float, v: float, stopped: bool) -> float:
         p, perf = self.p, self.train.performance
         if self.emergency:
+            self._eb_applied = True
             return -perf.emergency_brake
+        if self._eb_applied:
+            if stopped and self.mode == "dwell" and t + 1e-9 < self.dwell_end:
+                return -perf.emergency_brake  # released during a dwell: applied until departure
+            self._eb_applied = False
         if p.mode == "open_loop":
             a = self.a_cmd
             for ti, ai in self._profile:

@@ -164,7 +164,7 @@ def scenario_from_dict(data: dict, where: str, base_dir: Path | str = ".") -> Sc
         loss_bad=ln.number("loss_bad", 1.0, lo=0.0, hi=1.0),
         latency=ln.number("latency", 0.0, lo=0.0, hi=10.0, unit="s"),
         jitter=ln.number("jitter", 0.0, lo=0.0, hi=10.0, unit="s"),
-        outages=_intervals(ln, "outages"),
+        outages=ln.intervals("outages", ()),
     )
     effects = parse_effects(s.section("effects", default={}), duration)
     if effects.gradient is not None and effects.gradient.end > line.length:
@@ -195,21 +195,6 @@ def scenario_from_dict(data: dict, where: str, base_dir: Path | str = ".") -> Sc
         effects=effects,
         stamp_epoch=epoch,
     )
-
-
-def _intervals(sec: Section, key: str) -> tuple[tuple[float, float], ...]:
-    """A list of [t0, t1] windows (s, 0 <= t0 < t1), empty when the key is absent."""
-    raw = sec.data.get(key)
-    if raw is None:
-        return ()
-    ok = isinstance(raw, list) and all(
-        isinstance(iv, list) and len(iv) == 2
-        and all(isinstance(u, (int, float)) and not isinstance(u, bool) for u in iv)
-        and 0 <= iv[0] < iv[1] for iv in raw)
-    if not ok:
-        raise ConfigError(f"{sec.where}.{key}: expected a list of [t0, t1] with 0 <= t0 < t1 "
-                          f"(s), got {raw!r}")
-    return tuple((float(a), float(b)) for a, b in sorted(raw))
 
 
 def _profile(d: Section, mode: str) -> tuple[tuple[float, float], ...]:

@@ -54,7 +54,7 @@ from .scenario import Scenario
 from .sensors import BaliseReader, Odometer
 
 _EPS = 1e-9  # s
-TRUTH_COVARIANCE = (0.0,) * 16  # ground truth is exact
+TRUTH_COVARIANCE = (math.nan,) * 16  # CONTRACT.md: NaN where not estimated (truth is not)
 
 
 @dataclass

@@ -108,8 +108,8 @@ class DiagConfig:
     gradient_bin: float = 25.0  # m, finest resolution of the gradient-section search
     max_bins: int = 240  # at most this many position bins (coarser bins on long runs)
     min_section: float = 100.0  # m, shortest gradient section considered
-    shift_grid: tuple = (-0.2, 0.4, 0.05)  # s, command-time offsets (nuisance): lo, hi, step
-    delay_grid: tuple = (0.0, 1.6, 0.05)  # s, extra braking delays tested: lo, hi, step
+    shift_grid: tuple = (-0.2, 0.4, 0.025)  # s, command-time offsets (nuisance): lo, hi, step
+    delay_grid: tuple = (0.0, 1.6, 0.025)  # s, extra braking delays tested: lo, hi, step
     slip_threshold: float = 3.0  # |standardised speed innovation| that opens a slip candidate
     max_slip_candidates: int = 8
     stages: int = 3  # greedy stages (causes put into the null one after the other)
@@ -136,11 +136,13 @@ class Diagnosis:
 
 @dataclass
 class _Run:
-    """The run on one time axis: seconds since the first odometer stamp, train clock."""
+    """The run on one time axis: seconds since the first odometer sample on the reference
+    clock (``odo_stamp``: the same on the train's clock, for the clock test and the report)."""
 
     t_first: float  # s, first odometer stamp (train clock)
     duration: float  # s
     odo_t: np.ndarray
+    odo_stamp: np.ndarray
     odo_d: np.ndarray
     odo_v: np.ndarray
     odo_rv: np.ndarray
@@ -211,7 +213,10 @@ def _prepare(data: DiagData, line: Line, cfg: DiagConfig) -> _Run:
         raise DiagnoseError("control arrays differ in length")
     okc = np.isfinite(ctrl_s) & np.isfinite(ctrl_a)
     order = np.argsort(ctrl_s[okc], kind="stable")
-    ctrl_t = (ctrl_s[okc][order] - alpha) / beta  # onto the train clock, since t_first
+    # The motion is analysed on the reference clock (true seconds, so accelerations are not
+    # scaled by a drifting train clock): odometer/balise times beta * (stamp - t_first), control
+    # stamps less alpha. Times reported in parameters go back to the stamp clock (/ beta).
+    ctrl_t = ctrl_s[okc][order] - alpha
     ctrl_a = ctrl_a[okc][order]
     keepc = np.concatenate([[True], np.diff(ctrl_t) > 0]) if ctrl_t.size else ctrl_t
     ctrl_t, ctrl_a = ctrl_t[keepc], ctrl_a[keepc]
@@ -233,8 +238,8 @@ def _prepare(data: DiagData, line: Line, cfg: DiagConfig) -> _Run:
                          "line.yaml's is used")
             bp = np.where(contra, [known.get(int(i), p) for i, p in zip(bid, bp)], bp)
     ob = np.argsort(bal_s[okb], kind="stable")
-    bal_t = bal_s[okb][ob] - t_first
-    t_end = float(s_odo[-1] - t_first)
+    bal_t = beta * (bal_s[okb][ob] - t_first)
+    t_end = float(beta * (s_odo[-1] - t_first))
     inside = (bal_t > 0) & (bal_t < t_end)
     bal_t = bal_t[inside]
     if bal_t.size == 0:
@@ -251,7 +256,8 @@ def _prepare(data: DiagData, line: Line, cfg: DiagConfig) -> _Run:
         raise DiagnoseError("the control commands do not overlap the odometer record")
 
     return _Run(
-        t_first=t_first, duration=t_end, odo_t=x, odo_d=fields["odo_distance"][idx],
+        t_first=t_first, duration=t_end, odo_t=beta * x, odo_stamp=x,
+        odo_d=fields["odo_distance"][idx],
         odo_v=v, odo_rv=fields["odo_speed_variance"][idx], odo_seq=_unwrap(seq[idx]),
         odo_recv=r_odo, ctrl_t=ctrl_t, ctrl_a=ctrl_a, bal_t=bal_t,
         bal_p=bp[okb][ob][inside], bal_r=br[okb][ob][inside], bal_id=bid[okb][ob][inside],
@@ -277,7 +283,7 @@ def clock_test(run: _Run, n_params_penalty: float | None = None) -> dict:
     Null: beta = 1 (no drift); alternative: beta free. Gaussian jitter with its variance
     profiled; floor 1 us^2 (time resolution) so a jitter-free log does not divide by zero.
     drift = 1 / beta - 1 (stamp rate minus 1, CONTRACT.md)."""
-    s, r = run.odo_t, run.odo_recv
+    s, r = run.odo_stamp, run.odo_recv
     n = s.size
     res0 = r - s
     rss0 = float(np.sum((res0 - res0.mean()) ** 2))
@@ -441,6 +447,8 @@ class _KF:
     logdet: float
     m: int  # scalar measurements
     E0: np.ndarray | None = None  # (n_ev, 2) innovations of column 0 (speed, distance/balise)
+    E1: np.ndarray | None = None  # (n_ev, 2) the same for column 1 (s0): innovation at s0 is
+    #                               E0 + s0 E1
     S_v: np.ndarray | None = None  # innovation variance of the speed (odometer events)
 
     def loglik(self, z: np.ndarray) -> float:
@@ -466,6 +474,7 @@ def augmented_kf(ev: _Events, q: float, r_s: float, Bv, Bs, Md, Mv, Mb, q_held: 
     p00, p01, p11 = r_s, 0.0, float(ev.r_v[0])
     logdet, m, row = 0.0, 0, 0
     E0 = np.zeros((n, 2)) if keep_innov else None
+    E1 = np.zeros((n, 2)) if keep_innov else None
     S_v = np.full(n, np.nan) if keep_innov else None
     dts = np.diff(ev.t, prepend=ev.t[0]).tolist()
     kinds, held = ev.kind.tolist(), ev.held.tolist()
@@ -499,6 +508,7 @@ def augmented_kf(ev: _Events, q: float, r_s: float, Bv, Bs, Md, Mv, Mb, q_held: 
             m += 2
             if keep_innov:
                 E0[k] = (ev_[0], es[0])
+                E1[k] = (ev_[1], es[1])
                 S_v[k] = s11
             i00, i01, i11 = s11 / det, -s01 / det, s00 / det
             k00, k01 = p00 * i00 + p01 * i01, p00 * i01 + p01 * i11
@@ -519,12 +529,13 @@ def augmented_kf(ev: _Events, q: float, r_s: float, Bv, Bs, Md, Mv, Mb, q_held: 
             m += 1
             if keep_innov:
                 E0[k] = (np.nan, eb[0])
+                E1[k] = (np.nan, eb[1])
             k0, k1 = p00 / s, p01 / s
             Xs = Xs + k0 * eb
             Xv = Xv + k1 * eb
             p00, p01, p11 = (1 - k0) * p00, (1 - k0) * p01, p11 - k1 * p01
     Z = Z[:row]
-    return _KF(W=Z.T @ Z, logdet=logdet, m=m, E0=E0, S_v=S_v)
+    return _KF(W=Z.T @ Z, logdet=logdet, m=m, E0=E0, E1=E1, S_v=S_v)
 
 
 def _kf2_loglik(ev: _Events, q: float, r_s: float, bv, bs, md, mv, q_held: float) -> float:
@@ -862,7 +873,7 @@ class _Stage:
         """Best common command-time offset under the null (both chains re-timed): (s, ll)."""
         best = (-math.inf, 0.0)
         for s in self.mo.shifts:
-            fixed = self._retime(s, 0.0)
+            fixed = self._retime(float(s), 0.0)
             ll = self.fit(fixed, [])[2]
             best = max(best, (ll, float(s)))
         return best[1], best[0]
@@ -981,7 +992,8 @@ class _Stage:
         profiled at the decimated odometer rate (per-sample columns, contiguous sums)."""
         mo, cfg, ev = self.mo, self.cfg, self.mo.ev
         o = ev.odo
-        nu = self.kf.E0[o, 0] / np.sqrt(self.kf.S_v[o])
+        s0_hat = self.fit({}, [])[3]
+        nu = (self.kf.E0[o, 0] + s0_hat * self.kf.E1[o, 0]) / np.sqrt(self.kf.S_v[o])
         t = ev.t[o]
         cands = []
         for k in np.flatnonzero(np.abs(nu) > cfg.slip_threshold):
@@ -1020,26 +1032,42 @@ class _Stage:
         e1 = np.zeros(nc + 2)
         e1[1] = 1.0
         base_quad = gls(kf.W, np.stack([u, e1], axis=1))[2]
-        found = []
         pen = 3 * math.log(self.n_meas)
+        # each candidate's best interval alone ...
+        best_iv = []
         for c in range(len(cands)):
             idx = np.array([2 + j for j, (cc, _) in enumerate(cols) if cc == c])
             if idx.size == 0:
                 continue
             quad, a, b, eps, se = best_section(kf.W, u, e1, idx, 1)
-            dll = 0.5 * (base_quad - quad)
-            if 2 * dll - pen > 0:
+            if 2 * 0.5 * (base_quad - quad) - pen > 0:
+                col = np.zeros(nc + 2)
+                col[idx[a:b]] = 1.0
                 i0 = cols[idx[a] - 2][1]
                 i1 = cols[idx[b - 1] - 2][1] + 1
-                found.append((dll, float(t[i0]), float(t[i1]), eps, se))
-        if not found:
+                best_iv.append((float(t[i0]), float(t[i1]), col))
+        # ... then forward selection by the joint fit: every episode's distance excess persists,
+        # so episodes compete for the same evidence and their gains must not be added up
+        chosen, quad_now = [], base_quad
+        while best_iv:
+            trials = []
+            for m, (_a, _b, col) in enumerate(best_iv):
+                M = np.stack([u, e1] + [c[2] for c in chosen] + [col], axis=1)
+                trials.append((gls(kf.W, M)[2], m))
+            q_new, m = min(trials)
+            if (quad_now - q_new) - pen <= 0:
+                break
+            chosen.append(best_iv.pop(m))
+            quad_now = q_new
+        if not chosen:
             return null_ll, 3, {"intervals": []}, {}, {"candidates": len(cands)}
-        found.sort(key=lambda f: f[1])
-        total = sum(f[0] for f in found)
-        return null_ll + total, 3 * len(found), \
-            {"intervals": [[f[1], f[2]] for f in found]}, \
-            {"slip_fraction": [f[4] for f in found]}, \
-            {"slip_fraction": [f[3] for f in found], "candidates": len(cands)}
+        chosen.sort(key=lambda c: c[0])
+        th, cov, _ = gls(kf.W, np.stack([u, e1] + [c[2] for c in chosen], axis=1))
+        eps = th[1:].tolist()
+        se = np.sqrt(np.clip(np.diag(cov)[1:], 0, None)).tolist()
+        return null_ll + 0.5 * (base_quad - quad_now), 3 * len(chosen), \
+            {"intervals": [[c[0], c[1]] for c in chosen]}, {"slip_fraction": se}, \
+            {"slip_fraction": eps, "candidates": len(cands)}
 
 
 def best_section(W: np.ndarray, u: np.ndarray, e1: np.ndarray, idx: np.ndarray, min_len: int):
@@ -1113,9 +1141,12 @@ def diagnose(data: DiagData, line: Line, train: TrainParams, config: DiagConfig 
     for stage_i in range(cfg.stages):
         tick(3 + 2 * stage_i, f"stage {stage_i + 1}: noise and filter")
         st = _Stage(mo, null, cfg)
-        if stage_i == 0:
+        # the common command-time offset (nuisance) is re-estimated under every stage's null:
+        # estimated under a null that misses a large effect it can be far off, and a wrong
+        # offset would then pass for a brake delay
+        if not null.brake_extra:
             s_hat, _ = st.nuisance_shift()
-            if s_hat != 0.0:
+            if s_hat != null.shift:
                 null.shift = s_hat
                 st = _Stage(mo, null, cfg, noise=(st.q, st.r_s))
         tick(4 + 2 * stage_i, f"stage {stage_i + 1}: causes")
@@ -1178,9 +1209,10 @@ def diagnose(data: DiagData, line: Line, train: TrainParams, config: DiagConfig 
     ranking = []
     last = stage_results[-1]["scores"]
     seen = set()
+    beta = run.clock["beta"]
     for a in accepted:
         ranking.append({"cause": a["cause"], "score": _r(a["score"]),
-                        "parameters": _clean(a["parameters"])})
+                        "parameters": _report(a["cause"], a["parameters"], beta)})
         seen.add(a["cause"])
     rest = []
     for cause in CAUSES:
@@ -1188,7 +1220,7 @@ def diagnose(data: DiagData, line: Line, train: TrainParams, config: DiagConfig 
             continue
         sc = last.get(cause, first_scores[cause])
         rest.append({"cause": cause, "score": _r(sc["score"]),
-                     "parameters": _clean(sc["parameters"])})
+                     "parameters": _report(cause, sc["parameters"], beta)})
     rest.append({"cause": "none", "score": 0.0, "parameters": {}})
     rest.sort(key=lambda r: -r["score"])
     ranking += rest
@@ -1252,6 +1284,15 @@ def _extend_null(null: _Null, cause: str, res: dict, mo: _Motion) -> None:
     elif cause == "wheel_slip":
         for (t0, t1), eps in zip(p["intervals"], ex.get("slip_fraction", [])):
             null.slip.append((t0, t1, eps))
+
+
+def _report(cause: str, params: dict, beta: float) -> dict:
+    """Parameters as CONTRACT.md reports them: times on the train's stamp clock (the analysis
+    runs on the reference clock, t_ref = beta t_stamp)."""
+    p = _clean(params)
+    if cause == "wheel_slip":
+        p["intervals"] = [[a / beta, b / beta] for a, b in p.get("intervals", [])]
+    return p
 
 
 def _r(x):

@@ -30,6 +30,9 @@ def declare_common(node) -> dict:
         "odometer_rate": declare("odometer_rate", 10.0, "Hz, output rate = odometer rate"),
         "output_delay": declare("output_delay", 0.05,
                                 "s, an estimate of time t is output at clock t + delay"),
+        "wait_for_subscribers": declare("wait_for_subscribers", 0,
+                                        "output nothing until the estimate topic has this many "
+                                        "subscribers (a recorder sees every estimate)"),
     }
 
 
@@ -82,6 +85,7 @@ def build_estimator_node(name: str, topic: str, make_adapter: Callable):
                 raise ParameterError(str(exc)) from None
             self.runner = EstimatorRunner(self.adapter, 1.0 / common["odometer_rate"])
             self.delay = common["output_delay"]
+            self.wait_subs = common["wait_for_subscribers"]
             self.pub = self.create_publisher(TrainState, topic, 1000)
             self.create_subscription(OdometerReading, "odometer", self.on_odometer, 2000)
             self.create_subscription(BaliseReading, "balise", self.on_balise, 200)
@@ -114,6 +118,10 @@ def build_estimator_node(name: str, topic: str, make_adapter: Callable):
             now = self.get_clock().now().nanoseconds * 1e-9
             if now <= 0.0:  # no /clock yet under use_sim_time
                 return
+            if self.wait_subs:  # discovery, as the simulator's wait_for_subscribers: readers
+                if self.pub.get_subscription_count() < self.wait_subs:  # that match late
+                    return  # would miss the first estimates (inputs stay queued meanwhile)
+                self.wait_subs = 0
             # Outputs wait for the inputs' watermarks (or 4 x delay for a lost sample), so the
             # node computes exactly what the offline replay of the same messages computes.
             for out in self.runner.advance_to(self.runner.ready_time(now, self.delay,

@@ -1,15 +1,20 @@
 """`check_bag`: offline checks of a recorded bag (no running ROS needed).
 
-    check_bag BAG [--line line.yaml --train train.yaml] [--out DIR]
+    check_bag BAG [--line line.yaml] [--train train.yaml] [--out DIR] [--title TEXT]
               [--threshold KEY<=VALUE ...] [--thresholds FILE.yaml] [--expected-received P]
+              [--rate-factor R]
 
 Reports per estimator in the bag (grouped by TrainState ``source`` on the ``estimate/*`` topics):
 position, velocity and braking-rate error against ``ground_truth`` (RMSE, 95th percentile, max),
 consistency (NEES of position/velocity against truth, with its 95% acceptance fraction), the
-estimate latency (receive time minus stamp), and per topic the received fraction from sequence
-gaps, gaps and out-of-order or duplicate stamps. Thresholds name a key of ``summary.json`` with
-dots, e.g. ``estimators.robust_filter.position.rmse<=5`` or
-``topics.odometer.received_fraction>=0.8``.
+estimate latency (the recorder's receive time minus the sample stamp, in bag time: simulated
+time when the run was recorded with use_sim_time; ``--rate-factor`` converts it to wall time),
+and per topic the received fraction from sequence gaps, gaps and out-of-order or duplicate
+stamps. With ``--line``: errors by position too (position RMSE on each section between
+stations, the error at rest at each station, |error| just before and 1 s after each balise
+passage), and the plots mark stations and balises (without it, balises from the bag's readings).
+Thresholds name a key of ``summary.json`` with dots, e.g.
+``estimators.robust_filter.position.rmse<=5`` or ``topics.odometer.received_fraction>=0.8``.
 
 Exit code: 0 every threshold passed, 1 a threshold failed, 2 the bag is unreadable or lacks what
 was asked (one-line reason). Writes ``DIR/summary.json`` and PNG plots beside it.
@@ -64,7 +69,8 @@ def topic_health(bag: Bag, topic: str) -> dict:
     return out
 
 
-def estimator_report(bag: Bag, topic: str, source: str, truth: dict | None) -> dict:
+def estimator_report(bag: Bag, topic: str, source: str, truth: dict | None,
+                     rate_factor: float | None = None) -> dict:
     rows = [(t, s, f) for t, s, f in bag.topics[topic] if f["source"] == source]
     stamp = np.array([s for _, s, _ in rows])
     recv = np.array([t for t, _, _ in rows]) * 1e-9
@@ -76,7 +82,14 @@ def estimator_report(bag: Bag, topic: str, source: str, truth: dict | None) -> d
     rep: dict = {"topic": topic, "count": len(rows),
                  "measurement_used_fraction": float(used.mean()) if len(rows) else 0.0}
     lat = recv - stamp  # in the recorder's clock: bag (sim) time, not wall time
-    rep["latency_s"] = {"median": float(np.median(lat)), "p99": float(np.percentile(lat, 99))}
+    rep["latency_s"] = {"median": float(np.median(lat)), "p99": float(np.percentile(lat, 99)),
+                        "clock": "bag"}
+    if rate_factor:
+        # at rate factor r one wall second is r bag seconds (the recorder's clock is /clock,
+        # which advances in steps of the simulator's wall_step * r: that is the resolution)
+        rep["latency_wall_s"] = {"median": float(np.median(lat)) / rate_factor,
+                                 "p99": float(np.percentile(lat, 99)) / rate_factor,
+                                 "rate_factor": rate_factor}
     series = {"stamp": stamp, "x": x, "v": v, "f": f_hat, "cov": cov}
     if truth is not None and len(rows):
         inside = (stamp >= truth["t"][0]) & (stamp <= truth["t"][-1])
@@ -116,8 +129,63 @@ def truth_series(bag: Bag) -> dict | None:
     return {"t": t[order], "x": get("position"), "v": get("velocity"), "f": get("braking_rate")}
 
 
+def by_position(series: dict, truth: dict, line) -> dict:
+    """Errors located on the line: sections between stations, stops, balise passages."""
+    stations = sorted(line.stations, key=lambda st: st.position)
+    xm = np.maximum.accumulate(truth["x"])  # the train never rolls back
+    passages = []
+    for bal in sorted(line.balises, key=lambda b: b.position):
+        i = int(np.searchsorted(xm, bal.position))
+        if 0 < i < len(truth["t"]):
+            passages.append((bal, float(truth["t"][i])))
+    out = {}
+    for name, s in series.items():
+        if "xt" not in s:
+            continue
+        ok = s["inside"]
+        t, xt, vt = s["stamp"][ok], s["xt"][ok], s["vt"][ok]
+        ex, ev = (s["x"] - s["xt"])[ok], (s["v"] - s["vt"])[ok]
+        sections = []
+        for a, b in zip(stations, stations[1:]):
+            m = (xt >= a.position) & (xt < b.position) & (vt > 0.0)
+            st = {"from": a.name, "to": b.name, "n": int(m.sum())}
+            if m.any():
+                st.update(position_rmse=float(np.sqrt(np.mean(ex[m] ** 2))),
+                          position_max=float(np.abs(ex[m]).max()),
+                          velocity_rmse=float(np.sqrt(np.mean(ev[m] ** 2))))
+            sections.append(st)
+        stops = []
+        for st in stations:
+            m = (np.abs(xt - st.position) < 10.0) & (vt <= 1e-6)
+            if m.any():
+                stops.append({"station": st.name, "n": int(m.sum()),
+                              "position_error": float(np.median(ex[m]))})
+        bal = []
+        for b, tb in passages:
+            before = np.flatnonzero(t < tb)
+            after = np.flatnonzero(t >= tb + 1.0)
+            if before.size and after.size:
+                bal.append({"id": b.id, "position": b.position, "t": tb,
+                            "error_before": float(abs(ex[before[-1]])),
+                            "error_after": float(abs(ex[after[0]]))})
+        out[name] = {"sections": sections, "stops": stops, "balises": bal}
+    return out
+
+
+def _markers(bag: Bag, truth: dict | None, line) -> dict:
+    from train_estimation.tools.bag_plots import markers
+
+    control = None
+    if bag.topics.get("control"):
+        control = {"t": bag.stamps("control"), "a": bag.series("control", "target_acceleration")}
+    bal = [(s, f["balise_id"]) for _, s, f in bag.topics.get("balise", [])]
+    return markers(truth, line, bal, control)
+
+
 def check(bag_path: str, out_dir: Path | None = None, expected_received: float | None = None,
-          plots: bool = True) -> dict:
+          plots: bool = True, line=None, rate_factor: float | None = None,
+          title: str | None = None) -> dict:
+    """Check one bag; ``line`` is a :class:`train_core.model.Line` (errors by position)."""
     bag = read_bag(bag_path)
     if not bag.topics:
         raise CheckError(f"{bag_path}: no CONTRACT.md topics in the bag ({bag.skipped or 'empty'})")
@@ -140,68 +208,40 @@ def check(bag_path: str, out_dir: Path | None = None, expected_received: float |
         if not topic.startswith(ESTIMATE_PREFIX):
             continue
         for source in sorted({f["source"] for _, _, f in bag.topics[topic]}):
-            rep = estimator_report(bag, topic, source, truth)
+            rep = estimator_report(bag, topic, source, truth, rate_factor)
             series[source] = rep.pop("_series")
             summary["estimators"][source] = rep
+    if line is not None and truth is not None:
+        summary["line"] = line.name
+        summary["by_position"] = by_position(series, truth, line)
     if out_dir is not None:
         out_dir.mkdir(parents=True, exist_ok=True)
         (out_dir / "summary.json").write_text(json.dumps(summary, indent=1, default=float))
         if plots and series:
-            summary["plots"] = make_plots(out_dir, series, truth)
+            title = title or f"{Path(bag_path).name} ({bag.namespace or '/'})"
+            mk = _markers(bag, truth, line)
+            mk["line"] = line
+            bal = ([b.position for b in line.balises] if line is not None else
+                   sorted({float(f["position"]) for _, _, f in bag.topics.get("balise", [])}))
+            summary["plots"] = make_plots(out_dir, series, truth, mk, bal, title)
             (out_dir / "summary.json").write_text(json.dumps(summary, indent=1, default=float))
     return summary
 
 
-def make_plots(out_dir: Path, series: dict, truth: dict | None) -> list[str]:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+def make_plots(out_dir: Path, series: dict, truth: dict | None, mk: dict,
+               balise_positions: list, title: str) -> list[str]:
+    from train_estimation.tools.bag_plots import plot_position, plot_time
 
     files = []
-    fig, axes = plt.subplots(3, 1, figsize=(10, 10), sharex=True)
-    for name, s in series.items():
-        t = s["stamp"]
-        sx = np.sqrt(np.maximum(s["cov"][:, 0, 0], 0))
-        sv = np.sqrt(np.maximum(s["cov"][:, 1, 1], 0))
-        if "xt" in s:
-            (ln,) = axes[0].plot(t, s["x"] - s["xt"], lw=0.8, label=f"{name} error")
-            axes[0].fill_between(t, -3 * sx, 3 * sx, color=ln.get_color(), alpha=0.15)
-            (ln,) = axes[1].plot(t, s["v"] - s["vt"], lw=0.8, label=f"{name} error")
-            axes[1].fill_between(t, -3 * sv, 3 * sv, color=ln.get_color(), alpha=0.15)
-        if np.any(np.isfinite(s["f"])):
-            sf = np.sqrt(np.maximum(s["cov"][:, 3, 3], 0))
-            (ln,) = axes[2].plot(t, s["f"], lw=0.8, label=name)
-            axes[2].fill_between(t, s["f"] - 3 * sf, s["f"] + 3 * sf, color=ln.get_color(),
-                                 alpha=0.15)
-    if truth is not None:
-        axes[2].plot(truth["t"], truth["f"], "k--", lw=1, label="truth")
-    axes[0].set_ylabel("position error (m)\nband: +-3 sigma")
-    axes[1].set_ylabel("velocity error (m/s)\nband: +-3 sigma")
-    axes[2].set_ylabel("braking rate f")
-    axes[2].set_xlabel("time (s)")
-    for ax in axes:
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=8, loc="upper right")
-    fig.tight_layout()
     path = out_dir / "estimates_vs_truth.png"
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    files.append(str(path))
-    if truth is not None:
-        fig, ax = plt.subplots(figsize=(10, 4))
-        for name, s in series.items():
-            if "xt" in s:
-                ax.plot(s["xt"], np.abs(s["x"] - s["xt"]), ".", ms=2, label=name)
-        ax.set_xlabel("position along the line (m)")
-        ax.set_ylabel("|position error| (m)")
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=8)
-        fig.tight_layout()
-        path = out_dir / "error_over_position.png"
-        fig.savefig(path, dpi=90)
-        plt.close(fig)
+    plot_time(path, series, truth, mk, title)
+    if path.exists():
         files.append(str(path))
+    if truth is not None:
+        path = out_dir / "error_over_position.png"
+        plot_position(path, series, mk.get("line"), balise_positions, title)
+        if path.exists():
+            files.append(str(path))
     return files
 
 
@@ -256,9 +296,11 @@ def format_report(summary: dict) -> str:
         lines.append(f"{t:<20} {h['count']:>6}  {'' if rf is None else f'{rf:8.3f}':>8}  "
                      f"{h.get('out_of_order', 0):>12}  {h.get('max_gap_s', 0):>11.2f}")
     if summary["estimators"]:
+        wall = all("latency_wall_s" in r for r in summary["estimators"].values())
         lines.append("estimator       pos RMSE  pos p95  pos max  vel RMSE  f RMSE  NEES  "
-                     "in 3sig  latency p50/p99 (ms, bag time)")
+                     "in 3sig  latency p50/p99 (ms" + (", wall)" if wall else ", bag time)"))
         for name, r in summary["estimators"].items():
+            lat = r["latency_wall_s"] if wall else r["latency_s"]
             p, v, f = r.get("position", {}), r.get("velocity", {}), r.get("braking_rate", {})
             g = lambda d, k: f"{d[k]:.3f}" if k in d else "-"  # noqa: E731
             nees = r.get("nees", {}).get("mean")
@@ -266,15 +308,58 @@ def format_report(summary: dict) -> str:
                 f"{name:<14} {g(p, 'rmse'):>9} {g(p, 'p95'):>8} {g(p, 'max'):>8} "
                 f"{g(v, 'rmse'):>9} {g(f, 'rmse'):>7} {'-' if nees is None else f'{nees:.2f}':>5}"
                 f"  {r.get('position_within_3sigma', float('nan')):7.3f}  "
-                f"{1e3 * r['latency_s']['median']:.1f}/{1e3 * r['latency_s']['p99']:.1f}")
+                f"{1e3 * lat['median']:.1f}/{1e3 * lat['p99']:.1f}")
         for name, r in summary["estimators"].items():
             fb = r.get("braking_rate_final")
             if fb:
                 lines.append(f"{name}: braking rate at {fb['t']:.0f} s: {fb['estimate']:.3f} "
                              f"+- {fb['std']:.3f} (truth {fb['truth']:.3f})")
+        if wall:
+            rf = next(iter(summary["estimators"].values()))["latency_wall_s"]["rate_factor"]
+            lines.append(f"(units: m, m/s; latency = sample stamp to the recorder, incl. the "
+                         f"estimators' output_delay; bag time / {rf:g} = wall time)")
+        else:
+            lines.append("(units: m, m/s; latency = sample stamp to the recorder, in the bag's "
+                         "clock: simulated time if recorded with use_sim_time)")
+    if summary.get("by_position"):
+        lines += format_by_position(summary)
     for k, why in summary.get("skipped", {}).items():
         lines.append(f"not used: {k}: {why}")
     return "\n".join(lines)
+
+
+def format_by_position(summary: dict) -> list[str]:
+    bp = summary["by_position"]
+    names = list(bp)
+    w = max(14, *(len(n) + 1 for n in names))
+    lines = [f"errors by position on line {summary.get('line')} (m; sections: RMSE while "
+             "running, stations: error at rest)",
+             f"{'':<12}" + "".join(f"{n:>{w}}" for n in names)]
+    first = bp[names[0]]
+    for k, sec in enumerate(first["sections"]):
+        row = f"{sec['from'] + ' -> ' + sec['to']:<12}"
+        for n in names:
+            v = bp[n]["sections"][k].get("position_rmse")
+            row += f"{'-' if v is None else f'{v:.3f}':>{w}}"
+        lines.append(row)
+    for st in first["stops"]:
+        row = f"{'at ' + st['station']:<12}"
+        for n in names:
+            stops = {x["station"]: x for x in bp[n]["stops"]}
+            v = stops.get(st["station"], {}).get("position_error")
+            row += f"{'-' if v is None else f'{v:+.3f}':>{w}}"
+        lines.append(row)
+    parts = []
+    for n in names:
+        b = bp[n]["balises"]
+        if b:
+            before = np.mean([x["error_before"] for x in b])
+            after = np.mean([x["error_after"] for x in b])
+            parts.append(f"{n} {before:.3f} -> {after:.3f}")
+    if parts:
+        lines.append(f"balise passages ({len(first['balises'])}): mean |position error| just "
+                     "before -> 1 s after: " + "; ".join(parts))
+    return lines
 
 
 def main(argv=None) -> int:
@@ -282,8 +367,9 @@ def main(argv=None) -> int:
                                 formatter_class=argparse.RawDescriptionHelpFormatter,
                                 epilog="\n".join(__doc__.splitlines()[2:]))
     p.add_argument("bag", help="rosbag2 directory (MCAP) or .mcap file")
-    p.add_argument("--line", help="line.yaml (checked for validity; positions are reported "
-                                  "against it)")
+    p.add_argument("--line", help="line.yaml: adds errors by position (sections between "
+                                  "stations, each station stop, balise passages) to the report "
+                                  "and marks stations and balises on the plots")
     p.add_argument("--train", help="train.yaml (checked for validity)")
     p.add_argument("--out", help="folder for summary.json and plots")
     p.add_argument("--threshold", action="append", default=[], metavar="KEY<=VALUE",
@@ -292,20 +378,26 @@ def main(argv=None) -> int:
     p.add_argument("--expected-received", type=float, default=None,
                    help="received fraction the link is configured for (e.g. 0.875)")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
+    p.add_argument("--rate-factor", type=float, default=None,
+                   help="simulated s per wall s of the recorded run: latency in wall time")
+    p.add_argument("--title", default=None, help="title of the plots (default: the bag name)")
     args = p.parse_args(argv)
     try:
         from train_core.config import ConfigError
         from train_core.model import load_line, load_train
 
-        if args.line:
-            load_line(args.line)
+        line = load_line(args.line) if args.line else None
         if args.train:
             load_train(args.train)
         thresholds = [parse_threshold(t) for t in args.threshold]
         if args.thresholds:
             thresholds += load_thresholds(args.thresholds)
+        if args.rate_factor is not None and not (math.isfinite(args.rate_factor)
+                                                  and args.rate_factor > 0):
+            raise CheckError(f"--rate-factor {args.rate_factor}: must be > 0")
         summary = check(args.bag, Path(args.out) if args.out else None, args.expected_received,
-                        plots=not args.no_plots)
+                        plots=not args.no_plots, line=line, rate_factor=args.rate_factor,
+                        title=args.title)
         results = evaluate(summary, thresholds)
     except (BagError, CheckError, ConfigError, OSError) as exc:
         print(f"check_bag: {exc}", file=sys.stderr)

@@ -10,6 +10,7 @@ hands it to the ATO. Same scenario and seed, same message contents as the offlin
 from __future__ import annotations
 
 import json
+import math
 import sys
 import time
 from pathlib import Path
@@ -23,6 +24,7 @@ from train_core.ros import (
     parse_cli,
     run_node,
     sec_to_stamp,
+    stamp_to_sec,
 )
 
 DESCRIPTION = __doc__.splitlines()[0]
@@ -63,20 +65,55 @@ def build_node():
             self.start_at = declare("start_at", 0.0,
                                     "wall time (s since the epoch) to start at; 0 = at once. "
                                     "Several simulators given one start_at share a time base")
+            startup_eb = declare("start_with_emergency_brake", False,
+                                 "the train starts braked, as one no zone controller has "
+                                 "localised yet, until an authority without the brake arrives")
+            self.linger = declare("end_linger", 0.0,
+                                  "s of simulated time /clock keeps running after the run ends, "
+                                  "so estimators release their last estimates")
             if not (self.rate_factor > 0 and self.step > 0):
                 raise ParameterError("rate_factor and wall_step must be > 0")
+            self.max_lead = declare("max_lead", 0.0,
+                                    "s; > 0: simulated time runs at most this far ahead of the "
+                                    "newest message stamp on every pace_topics topic; 0 = off")
+            pace_topics = declare("pace_topics", ["estimate/robust"],
+                                  "topics whose progress paces the world when max_lead > 0")
+            if not (math.isfinite(self.linger) and self.linger >= 0):
+                raise ParameterError(f"parameter end_linger: {self.linger} must be >= 0")
+            if not (math.isfinite(self.max_lead) and self.max_lead >= 0):
+                raise ParameterError(f"parameter max_lead: {self.max_lead} must be >= 0")
+            unknown = [t for t in pace_topics if t not in TOPIC_TYPES]
+            if self.max_lead > 0 and unknown:
+                raise ParameterError(f"parameter pace_topics: unknown {unknown} "
+                                     f"(allowed: {sorted(TOPIC_TYPES)})")
             try:
                 self.sc = load_scenario(scenario)
             except ConfigError as exc:
                 raise ParameterError(str(exc)) from None
             self.duration = self.sc.duration if duration < 0 else duration
             self.world = World(self.sc, None if seed < 0 else seed)
+            if startup_eb:
+                # No authority yet: the expected start-up state of a train under a zone
+                # controller. Set here, at t = 0, not when the controller's first message happens
+                # to arrive, so the run does not depend on discovery and wall-clock timing.
+                self.world.set_movement_authority(-math.inf, 0.0, True)
             # deep queues: at 20x real time a subscriber that stalls for a second must not lose
             # samples (a lost control command would corrupt every estimator downstream)
             self.pubs = {t: self.create_publisher(msg_class(TOPIC_TYPES[t]), t, 2000)
                          for t in ("odometer", "balise", "control", "ground_truth")}
             self.clock_pub = self.create_publisher(Clock, "/clock", 10)
             self.create_subscription(MovementAuthority, "movement_authority", self.on_ma, 10)
+            # Pacing (a lock-step co-simulation): a consumer that stalls for some wall time
+            # (a loaded machine) holds the world back instead of seeing its data arrive late in
+            # simulated time, where a zone controller would judge it stale and brake the train.
+            self.paced = {}
+            if self.max_lead > 0:
+                for topic in pace_topics:
+                    self.paced[topic] = 0.0
+                    self.create_subscription(
+                        msg_class(TOPIC_TYPES[topic]), topic,
+                        lambda msg, topic=topic: self.on_paced(topic, msg), 100)
+            self.last_wall = None
             self.counts = dict.fromkeys(self.pubs, 0)
             self.t_sim = 0.0
             self.wall0 = None
@@ -90,6 +127,9 @@ def build_node():
         def on_ma(self, msg) -> None:
             self.world.set_movement_authority(msg.end_of_authority, msg.permitted_speed,
                                               msg.emergency_brake)
+
+        def on_paced(self, topic: str, msg) -> None:
+            self.paced[topic] = max(self.paced[topic], stamp_to_sec(msg.header.stamp))
 
         def tick(self) -> None:
             now = time.monotonic()
@@ -105,10 +145,17 @@ def build_node():
                         return
                     now -= time.time() - self.start_at  # the shared instant, not this tick
                 self.wall0 = now
-            target = min((now - self.wall0) * self.rate_factor, self.duration)
+            if self.paced:  # advance by wall time elapsed, up to the slowest paced topic
+                last, self.last_wall = self.last_wall or now, now
+                target = min(self.t_sim + (now - last) * self.rate_factor,
+                             min(self.paced.values()) + self.max_lead)
+            else:
+                target = (now - self.wall0) * self.rate_factor
+            target = min(target, self.duration + self.linger)
             if target <= self.t_sim:
                 return
-            self.world.advance(target)
+            if self.t_sim < self.duration:
+                self.world.advance(min(target, self.duration))
             # deliver what has arrived by now: with link latency, later than it was sent
             for topic, stamp, fields in self.world.deliver(target):
                 self.pubs[topic].publish(fields_to_msg(TOPIC_TYPES[topic], stamp, fields))
@@ -120,10 +167,13 @@ def build_node():
                 self.clock_pub.publish(clock)
             if self.t_sim >= self.duration and not self.done:
                 self.done = True
-                self.get_logger().info(f"run ended at {self.t_sim:.1f} s; published {self.counts}")
+                self.get_logger().info(f"run ended at {self.duration:.1f} s; published "
+                                       f"{self.counts}")
                 if self.summary_file:
                     summary = run_summary(self.world.result())
+                    summary["startup_emergency_brakes"] = self.world.driver.startup_emergency_brakes
                     Path(self.summary_file).write_text(json.dumps(summary, indent=1))
+            if self.done and self.t_sim >= self.duration + self.linger:
                 self.finished = self.exit_at_end
 
     return SimulatorNode()

@@ -85,6 +85,8 @@ def build_node():
 
         def on_state(self, tid: str, msg) -> None:
             cov = msg.covariance
+            if msg.source == "truth":  # exact: its covariance is NaN (not estimated), read as 0
+                cov = [0.0 if math.isnan(c) else c for c in cov]
             rep = TrainReport(
                 t_received=self.now(), stamp=stamp_to_sec(msg.header.stamp),
                 position=msg.position, velocity=msg.velocity,

@@ -1,0 +1,92 @@
+"""The main job (`./run demo`): its report says what happened, and a run is reproducible."""
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from train_core.bagio import read_bag
+
+pytestmark = [pytest.mark.ros, pytest.mark.slow]
+
+DURATION = 50.0  # s: the start-up (braked, initial dwell of 10 s), departure, a balise
+SAME = ("ground_truth", "control", "odometer", "balise", "estimate/robust", "estimate/gsma")
+
+
+def _demo(launch, out: Path) -> str:
+    proc = launch.start([sys.executable, "-m", "train_bringup.main_job",
+                         "--duration", str(DURATION), "--out", str(out)], name=out.name)
+    proc.wait(timeout=240)
+    report = Path(proc.log_path).read_text()
+    assert proc.returncode == 0, report
+    return report
+
+
+def test_demo_is_reproducible_and_its_report_explains_itself(launch, tmp_path):
+    """Two runs of one scenario and seed give the same bag, message for message and bit for
+    bit (only the zone controller's wall-timed authority stamps differ), whatever the load:
+    the world starts braked, not when a first authority happens to arrive, and is paced by the
+    estimates, so a stalled process cannot be judged stale in simulated time."""
+    reports = [_demo(launch, tmp_path / name) for name in ("run1", "run2")]
+    bags = [read_bag(tmp_path / name / "bag") for name in ("run1", "run2")]
+    for topic in SAME:
+        a, b = ([(s, f) for _, s, f in bag.topics[topic]] for bag in bags)
+        assert len(a) == len(b) > 0, topic
+        for (sa, fa), (sb, fb) in zip(a, b):
+            assert sa == sb and fa.keys() == fb.keys(), (topic, sa, sb)
+            assert all(np.array_equal(fa[k], fb[k], equal_nan=not isinstance(fa[k], str))
+                       for k in fa), (topic, sa, fa, fb)
+    for bag in bags:  # every sample has its estimate: none lost at the start or at the end
+        assert len(bag.topics["estimate/gsma"]) == len(bag.topics["ground_truth"])
+        assert len(bag.topics["estimate/robust"]) == len(bag.topics["ground_truth"])
+    for rep in reports:
+        assert "emergency brakes: 0 during the run (incidents)" in rep
+        assert "start-up: the train starts braked until the zone controller's first" in rep
+        assert "latency p50/p99 (ms, wall)" in rep and "/ 20 = wall time" in rep
+        assert "errors by position on line metro_demo" in rep
+    check = tmp_path / "run1" / "check"
+    assert (check / "estimates_vs_truth.png").stat().st_size > 10_000
+    assert (check / "error_over_position.png").stat().st_size > 10_000
+
+
+def test_paced_simulator_waits_for_its_consumers(launch, ros_node):
+    """With max_lead, simulated time stops max_lead ahead of the newest paced stamp and moves
+    on when the consumer catches up, and /clock runs end_linger past the end of the run."""
+    from rosgraph_msgs.msg import Clock
+
+    from train_interfaces.msg import TrainState
+
+    ns = "/paced"
+    clock = ros_node.collect(Clock, "/clock")
+    truth = ros_node.collect(TrainState, f"{ns}/ground_truth")
+    pub = ros_node.node.create_publisher(TrainState, f"{ns}/estimate/robust", 10)
+    sim = launch.node("train_sim", "simulator", "--ros-args", "-r", f"__ns:={ns}",
+                      "-p", "rate_factor:=50.0", "-p", "duration:=20.0", "-p", "max_lead:=2.0",
+                      "-p", "pace_topics:=[estimate/robust]", "-p", "end_linger:=1.5",
+                      "-p", "wait_for_truth_subscribers:=1")
+    ros_node.wait_for_subscribers(f"{ns}/estimate/robust", 1)
+
+    def sim_time() -> float:  # the world's progress, seen in its ground truth
+        return max((m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec for m in truth),
+                   default=-1.0)
+
+    ros_node.wait_until(lambda: sim_time() >= 2.0 - 1e-9, timeout=30, what="truth at 2 s")
+    ros_node.spin_for(1.0)  # 50 s of simulated time at 50x, were it free running
+    assert sim_time() == pytest.approx(2.0, abs=1e-9) and sim.poll() is None
+
+    def estimate(stamp: float) -> None:
+        msg = TrainState()
+        msg.header.stamp.sec = int(stamp)
+        msg.source = "test"
+        pub.publish(msg)
+
+    estimate(7.0)
+    ros_node.wait_until(lambda: sim_time() >= 9.0 - 1e-9, timeout=30, what="truth at 9 s")
+    ros_node.spin_for(1.0)
+    assert sim_time() == pytest.approx(9.0, abs=1e-9) and sim.poll() is None
+    estimate(30.0)
+    ros_node.wait_until(lambda: sim.poll() is not None, timeout=30, what="the run to end")
+    ros_node.spin_for(0.3)
+    assert sim.returncode == 0 and sim_time() == pytest.approx(20.0, abs=1e-9)
+    last_clock = max(m.clock.sec + 1e-9 * m.clock.nanosec for m in clock)
+    assert last_clock == pytest.approx(21.5, abs=1e-9)  # duration + end_linger
