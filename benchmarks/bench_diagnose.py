@@ -62,6 +62,20 @@ def case_list(n: int, sizes, n_pairs: int, seed: int) -> list[dict]:
 
 
 def run_case(spec: dict) -> dict:
+    """run_case_ with a crash recorded (reproduce: make_case(default_rng([seed, index])))."""
+    try:
+        return run_case_(spec)
+    except Exception as exc:  # a crash is a result too: counted and listed, never hidden
+        import traceback
+
+        return {**spec, "causes": list(spec["causes"]), "rc": "crash", "time": 0.0,
+                "duration": 0.0, "describe": f"seed [{spec['seed']}, {spec['index']}] "
+                f"{'+'.join(spec['causes']) or 'none'} {spec['size']}",
+                "error": f"{type(exc).__name__}: {exc} at "
+                         f"{traceback.extract_tb(exc.__traceback__)[-1].name}"}
+
+
+def run_case_(spec: dict) -> dict:
     """Make the case, simulate the measured bag, run diagnose, score the report."""
     from train_core.bagio import read_bag
 
@@ -118,7 +132,9 @@ def tables(results: list[dict], sizes, args) -> str:
     failed = [r for r in results if r.get("rc") != 0]
     md.append(f"# diagnose benchmark: {args.cases} case(s) per cause and size, {args.cases} "
               f"nominal, {args.pairs} pairs, seed {args.seed}\n")
-    md.append(f"{len(results)} bags, {len(failed)} refused (exit != 0).\n")
+    crashed = [r for r in failed if r.get("rc") == "crash"]
+    md.append(f"{len(results)} bags, {len(failed) - len(crashed)} refused (exit != 0), "
+              f"{len(crashed)} crashed.\n")
     short = {c: c[:6] for c in LABELS}
     for size in sizes:
         single = [r for r in ok if len(r["causes"]) == 1 and r["size"] == size]
@@ -183,7 +199,7 @@ def tables(results: list[dict], sizes, args) -> str:
                   f"{t.mean():.1f} s, median {np.median(t):.1f} s, max {t.max():.1f} s; per 10 "
                   f"minutes of data: {np.mean(t / d * 600):.1f} s (target < 10 s)\n")
     if failed:
-        md.append("\n## Refused bags\n")
+        md.append("\n## Refused or crashed bags\n")
         for r in failed:
             md.append(f"- {r['describe']}: {r.get('error', '')[:200]}")
     return "\n".join(md) + "\n"

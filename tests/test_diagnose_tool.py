@@ -163,8 +163,7 @@ def full_diagnosis() -> Diagnosis:
         {"cause": "resistance", "parameters": {"a": 4000.0, "b": 160.0, "c": 9.5}},
         {"cause": "braking_rate", "parameters": {"f_start": 0.95, "f_end": 0.85}},
         {"cause": "odometer_scale", "parameters": {"scale": 1.01}},
-        {"cause": "wheel_slip", "parameters": {"intervals": [[50.0, 52.0], [120.0, 122.5]]},
-         "extra": {"slip_fraction": [0.1, 0.12]}},
+        {"cause": "wheel_slip", "parameters": {"intervals": [[50.0, 52.0], [120.0, 122.5]]}},
         {"cause": "bursty_link", "parameters": {"p_good_bad": 0.03, "p_bad_good": 0.2}},
         {"cause": "brake_delay", "parameters": {"delay": 1.6}},
         {"cause": "mass", "parameters": {"mass": 310000.0}},
@@ -173,7 +172,9 @@ def full_diagnosis() -> Diagnosis:
     ranking = [{"cause": a["cause"], "score": 10.0 - i, "parameters": a["parameters"]}
                for i, a in enumerate(acc)] + [{"cause": "none", "score": 0.0, "parameters": {}}]
     return Diagnosis(cause="gradient", parameters=acc[0]["parameters"], ranking=ranking,
-                     untestable=[], evidence={}, gain={}, accepted=acc, series={})
+                     untestable=[], gain={}, accepted=acc, series={},
+                     # where the core reports the fitted slip fraction of each episode
+                     evidence={"wheel_slip": {"details": {"slip_fraction": [0.1, 0.12]}}})
 
 
 def fake_data(duration=600.0, rate=10.0):
@@ -308,9 +309,24 @@ def test_summary_last_line_is_the_cause(metro, tmp_path, capsys, diagnosed):
 # Hide an effect and find it (train_sim.cases: varied lines, trains, links, drivers)
 # ------------------------------------------------------------------------------------------------
 
-# (cause(s), size, seed): seeds fixed in advance, not picked for passing.
-HIDDEN = [(c, "plain", 200 + i) for i, c in enumerate(CAUSES)] + [
-    (None, "plain", 230), (("gradient", "mass"), "plain", 231)]
+# (cause(s), size, seed): seeds fixed in advance, not picked for passing. Known failures of the
+# core are marked xfail(strict): the mark must go when the core is fixed.
+KNOWN = {("odometer_scale", 203): "core: a 1.6 % odometer scale on a line with few balises (7 "
+                                  "readings) is explained as wheel-slip episodes (score 17744) "
+                                  "and the scale fit gives 1.001 instead of 0.984",
+         ("gradient", 240): "core: subtle section (-2.29 per mille on [3594, 4044) m) found as "
+                            "-1.78 on [3487, 4104): permille within 4 SE but the start 107 m "
+                            "off (the same height change spread over a longer section)"}
+SPECS = [(c, "plain", 200 + i) for i, c in enumerate(CAUSES)] + [
+    (None, "plain", 230), (("gradient", "mass"), "plain", 231), ("gradient", "subtle", 240),
+    ("brake_delay", "subtle", 241)]
+HIDDEN = [pytest.param(c, s, n, marks=[pytest.mark.xfail(reason=KNOWN[(c, n)], strict=True)]
+                       if (c, n) in KNOWN else []) for c, s, n in SPECS]
+
+
+def _id(p):
+    c, s, n = p.values if hasattr(p, "values") else p
+    return f"{'+'.join(c) if isinstance(c, tuple) else c}-{s}-{n}"
 
 # main parameter of each cause and the tolerance when the fit gives no standard error for it
 MAIN = {"gradient": "permille", "resistance": None, "braking_rate": None,
@@ -329,9 +345,12 @@ def _se(evidence: dict, cause: str, key: str) -> float:
 def check_parameters(cause: str, est: dict, truth: dict, evidence: dict, v_ref: float) -> None:
     """|estimate - true| within Z standard errors (as the fit reports them); section ends and
     slip edges, which have no standard error, within the search resolution."""
-    if cause == "gradient":
+    if cause == "gradient":  # permille first (below), then the ends
+        se = _se(evidence, cause, "permille")
+        assert abs(est["permille"] - truth["permille"]) <= Z * se, (est, truth, se)
         assert abs(est["start"] - truth["start"]) <= 100.0, (est, truth)
         assert abs(est["end"] - truth["end"]) <= 100.0, (est, truth)
+        return
     if cause == "wheel_slip":
         assert len(est["intervals"]) == len(truth["intervals"]), (est, truth)
         for (a0, a1), (b0, b1) in zip(est["intervals"], truth["intervals"]):
@@ -358,9 +377,7 @@ def check_parameters(cause: str, est: dict, truth: dict, evidence: dict, v_ref: 
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("cause,size,seed", HIDDEN,
-                         ids=[f"{'+'.join(c) if isinstance(c, tuple) else c}-{s}-{n}"
-                              for c, s, n in HIDDEN])
+@pytest.mark.parametrize("cause,size,seed", HIDDEN, ids=[_id(p) for p in HIDDEN])
 def test_hidden_effect_is_found(cause, size, seed, tmp_path, capsys):
     case = make_case(np.random.default_rng(seed), cause, size)
     paths = case.write(tmp_path / "case")
@@ -396,6 +413,23 @@ def test_hidden_effect_is_found(cause, size, seed, tmp_path, capsys):
     assert set(case.causes) <= in_model, in_model
 
 
+def test_plots_draw_what_the_series_hold(tmp_path):
+    assert tool.write_plots({}, tmp_path) == []
+    rng = np.random.default_rng(0)
+    t = np.arange(0.0, 300.0, 0.5)
+    x = 10.0 * t
+    s = {"t": t, "position": x, "speed": np.full_like(t, 10.0),
+         "residual_accel": rng.normal(0, 0.05, t.size), "odo_t": t, "odo_speed": 10 + 0 * t,
+         "line_gradient": [(0.0, 1000.0, 5.0), (1000.0, 3000.0, -2.0)],
+         "gradient_section": (1200.0, 1500.0, 4.0), "stations": [("A", 100.0)],
+         "slip_intervals": [[50.0, 52.0]], "f_t": ([0.0, 300.0], [0.95, 0.9]),
+         "loss_runs": np.array([1, 1, 2, 5, 1, 3]), "loss_fraction": 0.1}
+    names = {p.name for p in tool.write_plots(s, tmp_path)}
+    assert names == {"residual_position.png", "residual_speed.png", "speed_trace.png",
+                     "loss_runs.png"}
+    assert all((tmp_path / n).stat().st_size > 5000 for n in names)
+
+
 def test_a_negative_davis_fit_is_written_as_the_closest_nonnegative_curve(metro, tmp_path):
     acc = [{"cause": "resistance", "parameters": {"a": 5000.0, "b": -100.0, "c": 14.0}}]
     dg = Diagnosis(cause="resistance", parameters=acc[0]["parameters"],
@@ -410,3 +444,19 @@ def test_a_negative_davis_fit_is_written_as_the_closest_nonnegative_curve(metro,
     v = np.linspace(0.0, 20.0, 50)
     fit = 5000.0 - 100.0 * v + 14.0 * v * v
     assert np.max(np.abs(d.force(v) - fit)) < 0.1 * np.max(fit)
+
+
+def test_a_fit_the_files_cannot_hold_is_left_out_of_the_model_with_a_note(metro, tmp_path):
+    acc = [{"cause": "gradient", "parameters": {"start": 2400.0, "end": 2800.0,
+                                                "permille": -90.0}},
+           {"cause": "odometer_scale", "parameters": {"scale": 3.0}},
+           {"cause": "mass", "parameters": {"mass": 300000.0}}]
+    dg = Diagnosis(cause="gradient", parameters=acc[0]["parameters"],
+                   ranking=[{"cause": a["cause"], "score": 1.0, "parameters": a["parameters"]}
+                            for a in acc], untestable=[], evidence={}, gain={}, accepted=acc)
+    model = tool.write_model(tmp_path, dg, metro.line_path, metro.train_path, fake_data())
+    sc = with_model(metro, tmp_path / "model")
+    assert sc.line == metro.line and sc.effects.active() == ["mass"]
+    text = " ".join(model["notes"])
+    assert "gradient not in the model" in text and "odometer_scale not in the model" in text
+    assert "gradient not in the model" in (tmp_path / "model" / "line.yaml").read_text()

@@ -139,8 +139,9 @@ def slip_fraction(a: dict, dg, data, t_first: float) -> float:
     """The slip fraction of the accepted wheel_slip (one value for all episodes, as the
     simulator's effect has): from the fit if the core reports it, else measured from the
     odometer speed inside the episodes against the speed just around them."""
-    for src in (a.get("extra", {}), a.get("parameters", {}),
-                (dg.evidence or {}).get("wheel_slip", {})):
+    ev = (dg.evidence or {}).get("wheel_slip", {})
+    for src in (a.get("extra", {}), a.get("details", {}), a.get("parameters", {}),
+                ev.get("details", {}) if isinstance(ev, dict) else {}, ev):
         v = src.get("slip_fraction") if isinstance(src, dict) else None
         if v is not None and not isinstance(v, dict):
             vals = [float(x) for x in np.atleast_1d(v) if x is not None and math.isfinite(x)]
@@ -188,32 +189,56 @@ def write_model(out: Path, dg, line_path: str, train_path: str, data) -> dict:
 
     ``mass`` goes into effects.yaml, not train.yaml: CONTRACT.md's mass cause keeps the drive
     force computed for the believed mass, which is what train.yaml's mass is in the simulator;
-    the effect makes the world's train heavier or lighter exactly as in the data."""
+    the effect makes the world's train heavier or lighter exactly as in the data.
+
+    A fitted value the files cannot hold (e.g. a gradient beyond line.yaml's +-60 per mille) is
+    left out of the model with a note (printed in the summary and written into the files'
+    header), never clipped silently: the report keeps the fit as it is."""
+    from train_core.config import Section
+    from train_core.effects import parse_effects
+
     d = out / "model"
     d.mkdir(parents=True, exist_ok=True)
     line_d = load_yaml(line_path)
     train_d = load_yaml(train_path)
     line = line_from_dict(line_d, line_path)
     effects: dict = {}
-    notes = []
+    notes, skipped = [], []
     t_first = float(np.min(data.odo_stamp)) if len(data.odo_stamp) else 0.0
     duration = float(np.ptp(data.odo_stamp)) if len(data.odo_stamp) else 0.0
     drift = 0.0
     for a in accepted_causes(dg):
         if a["cause"] == "clock_drift":
             drift = float(a["parameters"]["drift"])
+
+    def effect(name: str, params: dict) -> None:
+        try:  # the simulator's parser decides what an effects.yaml may hold
+            parse_effects(Section({name: jsonable(params)}, "effects.yaml"), max(duration, 1.0))
+        except ConfigError as exc:
+            skipped.append(f"{name} not in the model ({_one_line(exc)})")
+            return
+        effects[name] = params
+
     for a in accepted_causes(dg):
         c, p = a["cause"], a["parameters"]
         if c == "gradient":
             start, end = max(0.0, float(p["start"])), min(line.length, float(p["end"]))
-            if end > start:
-                line = true_line(line, Effects(gradient=GradientEffect(start, end,
+            if end <= start:
+                skipped.append(f"gradient not in the model (section [{p['start']:.0f}, "
+                               f"{p['end']:.0f}) m is outside the line)")
+                continue
+            new_line = true_line(line, Effects(gradient=GradientEffect(start, end,
                                                                        float(p["permille"]))))
-                line_d["gradients"] = [{"start": float(s.start), "end": float(s.end),
-                                        "permille": round(float(s.permille), 4)}
-                                       for s in line.gradients]
-                notes.append(f"gradient: {p['permille']:+.2f} per mille added on "
-                             f"[{start:.0f}, {end:.0f}) m")
+            grads = [{"start": float(s.start), "end": float(s.end),
+                      "permille": round(float(s.permille), 4)} for s in new_line.gradients]
+            try:
+                line_from_dict({**line_d, "gradients": grads}, "line.yaml")
+            except ConfigError as exc:
+                skipped.append(f"gradient not in the model ({_one_line(exc)})")
+                continue
+            line, line_d["gradients"] = new_line, grads
+            notes.append(f"gradient: {p['permille']:+.2f} per mille added on "
+                         f"[{start:.0f}, {end:.0f}) m")
         elif c == "resistance":
             abc, projected = davis_nonnegative((p["a"], p["b"], p["c"]), data)
             train_d["davis"] = {"a": abc[0], "b": abc[1], "c": abc[2]}
@@ -221,30 +246,31 @@ def write_model(out: Path, dg, line_path: str, train_path: str, data) -> dict:
                 " (a negative coefficient was projected onto a, b, c >= 0 over the run's "
                 "speeds)" if projected else ""))
         elif c == "mass":
-            effects["mass"] = {"mass": float(p["mass"])}
-            notes.append("mass: true mass in effects.yaml (the drive force stays computed for "
-                         "train.yaml's believed mass, as in the data)")
+            effect("mass", {"mass": float(p["mass"])})
         elif c == "braking_rate":
-            effects["braking_rate"] = {"f_start": float(p["f_start"]), "f_end": float(p["f_end"]),
-                                       "t_start": 0.0,
-                                       "t_end": round(duration / (1.0 + drift), 3)}
+            effect("braking_rate", {"f_start": float(p["f_start"]), "f_end": float(p["f_end"]),
+                                    "t_start": 0.0, "t_end": round(duration / (1.0 + drift), 3)})
         elif c == "brake_delay":
-            effects["brake_delay"] = {"delay": float(p["delay"])}
+            effect("brake_delay", {"delay": float(p["delay"])})
         elif c == "odometer_scale":
-            effects["odometer_scale"] = {"scale": float(p["scale"])}
+            effect("odometer_scale", {"scale": float(p["scale"])})
         elif c == "wheel_slip":
             ivs = [[round(float(t0) / (1.0 + drift), 3), round(float(t1) / (1.0 + drift), 3)]
                    for t0, t1 in p.get("intervals", []) if t1 > t0 >= 0.0]
             if ivs:
-                effects["wheel_slip"] = {"intervals": ivs, "slip_fraction": round(
-                    float(np.clip(slip_fraction(a, dg, data, t_first), -0.9, 1.0)), 5)}
+                effect("wheel_slip", {"intervals": ivs, "slip_fraction": round(
+                    float(np.clip(slip_fraction(a, dg, data, t_first), -0.9, 1.0)), 5)})
         elif c == "bursty_link":
-            effects["bursty_link"] = {"p_good_bad": float(p["p_good_bad"]),
-                                      "p_bad_good": float(max(p["p_bad_good"], 1e-6))}
+            effect("bursty_link", {"p_good_bad": float(p["p_good_bad"]),
+                                   "p_bad_good": float(max(p["p_bad_good"], 1e-6))})
         elif c == "clock_drift":
-            effects["clock_drift"] = {"drift": float(p["drift"])}
+            effect("clock_drift", {"drift": float(p["drift"])})
+    if "mass" in effects:
+        notes.append("mass: true mass in effects.yaml (the drive force stays computed for "
+                     "train.yaml's believed mass, as in the data)")
     head = ("# written by diagnose: the believed {what} extended by the accepted causes\n"
-            "# ({causes}); times are seconds from the start of the run\n")
+            "# ({causes}); times are seconds from the start of the run\n"
+            + "".join(f"# {s}\n" for s in skipped))
     causes = ", ".join(a["cause"] for a in accepted_causes(dg)) or "none"
     (d / "line.yaml").write_text(head.format(what="line", causes=causes)
                                  + yaml.safe_dump(jsonable(line_d), sort_keys=False))
@@ -255,14 +281,11 @@ def write_model(out: Path, dg, line_path: str, train_path: str, data) -> dict:
                     causes=causes)
         + (yaml.safe_dump(jsonable(effects), sort_keys=False) if effects else "{}\n"))
     # what we wrote must load (the simulator reads these files)
-    from train_core.config import Section
-    from train_core.effects import parse_effects
-
     line_from_dict(load_yaml(d / "line.yaml"), str(d / "line.yaml"))
     train_from_dict(load_yaml(d / "train.yaml"), str(d / "train.yaml"))
     parse_effects(Section(load_yaml(d / "effects.yaml"), str(d / "effects.yaml")),
                   max(duration, 1.0))
-    return {"dir": d, "effects": effects, "notes": notes}
+    return {"dir": d, "effects": effects, "notes": notes + skipped}
 
 
 # ------------------------------------------------------------------------------------------------
@@ -319,8 +342,9 @@ def plot_position(s: dict, path: Path, dg=None) -> bool:
     if c.size:
         a0.fill_between(c, m - 2 * e, m + 2 * e, color="C0", alpha=0.25, step="mid")
         a0.step(c, m, where="mid", lw=1.2, color="C0", label="mean per 100 m, +-2 SE")
-        lim = 1.5 * float(np.max(np.abs(m) + 2 * e))
-        a0.set_ylim(-lim, lim)
+        lim = 1.5 * float(np.percentile(np.abs(m) + 2 * e, 90))  # a few sparse bins may clip
+        if lim > 0:
+            a0.set_ylim(-lim, lim)
     a0.axhline(0, color="k", lw=0.6)
     a0.set_ylabel("residual accel. (m/s^2)")
     prof = s.get("line_gradient") or []
@@ -375,7 +399,7 @@ def plot_speed(s: dict, path: Path, dg=None) -> bool:
         c, m, e = _binned(x[:n][sel], r[:n][sel], 20)
         if c.size:
             ax.errorbar(c, m, yerr=2 * e, fmt="o-", ms=3, color="C0", label="binned mean +-2 SE")
-            lim = max(lim, 1.5 * float(np.max(np.abs(m) + 2 * e)))
+            lim = max(lim, 1.5 * float(np.percentile(np.abs(m) + 2 * e, 90)))
     if lim > 0:
         axes[0].set_ylim(-lim, lim)
         ax.axhline(0, color="k", lw=0.6)
