@@ -122,6 +122,7 @@ class DiagConfig:
     max_slip_candidates: int = 8
     stages: int = 3  # greedy stages (causes put into the null one after the other)
     gain_block: float = 30.0  # s, alternating fit/held-out blocks for the gain
+    gain_min_change: float = 0.05  # m/s, RMS change of a block's prediction that counts
     noise_refits: int = 2  # best causes of a stage whose score is recomputed at their own noise
 
 
@@ -1280,7 +1281,7 @@ def _gain_motion(cause: str, mo: _Motion, st: _Stage, cfg: DiagConfig) -> dict:
     extended, line_ext, brake_delay, f_of_t = _extended(cause, params, mo, believed)
     s0 = mo.s0
     nb = int(block.max()) + 1
-    sq_b, sq_a, cnt = [], [], []
+    sq_b, sq_a, cnt, moved = [], [], [], []
     for b in range(1, nb, 2):
         t0, t1 = b * cfg.gain_block, (b + 1) * cfg.gain_block
         sel = (run.odo_t >= t0) & (run.odo_t < t1)
@@ -1303,21 +1304,29 @@ def _gain_motion(cause: str, mo: _Motion, st: _Stage, cfg: DiagConfig) -> dict:
         sq_b.append(float(np.sum((vb - y) ** 2)))
         sq_a.append(float(np.sum((va - y) ** 2)))
         cnt.append(int(sel.sum()))
-        # blocks the extension changes
-    sq_b, sq_a, cnt = np.array(sq_b), np.array(sq_a), np.array(cnt)
+        moved.append(float(np.sqrt(np.mean((va - vb) ** 2))))
+    sq_b, sq_a, cnt, moved = np.array(sq_b), np.array(sq_a), np.array(cnt), np.array(moved)
     if cnt.sum() == 0:
         return {"metric": "held-out speed RMSE (m/s)", "before": None, "after": None}
-    before = float(np.sqrt(sq_b.sum() / cnt.sum()))
-    after = float(np.sqrt(sq_a.sum() / cnt.sum()))
-    changed = np.abs(sq_b - sq_a) / cnt > 0.0025  # mean-square change > (0.05 m/s)^2
-    out = {"metric": "held-out speed RMSE (m/s): recorded commands replayed open loop over "
-                     f"alternate {cfg.gain_block:g} s blocks (cause fitted on the others)",
-           "before": before, "after": after, "blocks": int(cnt.size),
+    all_b = float(np.sqrt(sq_b.sum() / cnt.sum()))
+    all_a = float(np.sqrt(sq_a.sum() / cnt.sum()))
+    # The blocks where the extension changes the prediction (selected on the two models'
+    # predictions alone, never on their errors): a local effect (a 300 m section) is diluted
+    # to nothing in a whole-run RMSE dominated by the odometer's noise elsewhere.
+    changed = moved > cfg.gain_min_change
+    out = {"metric": "held-out speed RMSE (m/s): the recorded commands replayed open loop "
+                     f"over alternate {cfg.gain_block:g} s blocks (cause fitted on the others), "
+                     "in the blocks where the extended model's prediction moves by > "
+                     f"{cfg.gain_min_change:g} m/s RMS",
+           "blocks": int(cnt.size), "changed_blocks": int(changed.sum()),
+           "before_all_blocks": all_b, "after_all_blocks": all_a,
            "fitted_on_half": _clean(params)}
     if changed.any():
-        out["before_changed_blocks"] = float(np.sqrt(sq_b[changed].sum() / cnt[changed].sum()))
-        out["after_changed_blocks"] = float(np.sqrt(sq_a[changed].sum() / cnt[changed].sum()))
-        out["changed_blocks"] = int(changed.sum())
+        out["before"] = float(np.sqrt(sq_b[changed].sum() / cnt[changed].sum()))
+        out["after"] = float(np.sqrt(sq_a[changed].sum() / cnt[changed].sum()))
+    else:
+        out["before"] = out["after"] = None
+        out["note"] = "the cause fitted on half the data changes no held-out block"
     return out
 
 
