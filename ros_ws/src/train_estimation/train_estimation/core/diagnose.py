@@ -113,6 +113,10 @@ class DiagConfig:
     min_brake: float = 0.05  # m/s^2, |a_Tar| above this counts as braking
     standstill_speed: float = 1.0  # m/s, intervals reaching below this are not modelled
     standstill_q: float = 1.0  # (m/s^2)^2 s, process noise there (the filter follows data)
+    # (m/s^2)^2 s, smallest process-noise PSD: a real train has unmodelled accelerations (wind,
+    # adhesion, track) of a few mm/s^2; without a floor a noise-free simulator drives q to 0
+    # and any small mismatch of timing or discretisation passes for a second cause
+    q_floor: float = 1e-5
     gradient_bin: float = 25.0  # m, finest resolution of the gradient-section search
     max_bins: int = 240  # at most this many position bins (coarser bins on long runs)
     min_section: float = 100.0  # m, shortest gradient section considered
@@ -705,10 +709,12 @@ class _Stage:
 
         if start is None:
             lq, lr = math.log(1e-4), math.log(max(float(np.median(self.mo.run.odo_rv)), 1e-4))
-            q_lo, q_hi, r_lo, r_hi = math.log(1e-9), math.log(1.0), math.log(1e-6), math.log(25)
+            q_lo, q_hi, r_lo, r_hi = (math.log(cfg.q_floor), math.log(1.0), math.log(1e-6),
+                                      math.log(25))
         else:
             lq, lr = math.log(start[0]), math.log(start[1])
-            q_lo, q_hi, r_lo, r_hi = lq - 4.0, lq + 2.0, lr - 3.0, lr + 3.0
+            q_lo, q_hi, r_lo, r_hi = (max(lq - 4.0, math.log(cfg.q_floor)), lq + 2.0, lr - 3.0,
+                                      lr + 3.0)
         opts = {"xatol": 0.1, "maxiter": 14}
         lq = minimize_scalar(lambda x: -ll(x, lr), bounds=(q_lo, q_hi), method="bounded",
                              options=opts).x
