@@ -99,26 +99,45 @@ def test_stale_estimates_trigger_the_emergency_brake(launch, ros_node):
                         what="the emergency brake after the estimates stopped")
 
 
-def test_node_publishes_exactly_what_the_offline_generator_produces(launch, ros_node):
-    """Same scenario and seed: the live node's messages equal simulate()'s, field for field."""
+@pytest.mark.parametrize("with_model", [False, True])
+def test_node_publishes_exactly_what_the_offline_generator_produces(launch, ros_node, tmp_path,
+                                                                    with_model):
+    """Same scenario and seed: the live node's messages equal simulate()'s, field for field;
+    also when it runs a model directory as diagnose writes it (`model` parameter)."""
+    import shutil
+
+    import yaml
+    from train_core.files import config_file
     from train_core.ros import msg_to_dict, stamp_to_sec
 
     from train_interfaces.msg import BaliseReading, ControlCommand, OdometerReading, TrainState
+    from train_sim.scenario import with_model as run_model
     from train_sim.world import simulate
 
-    ns, seed, duration = "/det", 11, 40.0
+    ns, seed, duration = f"/det{int(with_model)}", 11, 40.0
+    extra, sc = [], load_scenario("metro_demo")
+    if with_model:
+        shutil.copy(config_file("lines", "metro_demo"), tmp_path / "line.yaml")
+        shutil.copy(config_file("trains", "metro_b6"), tmp_path / "train.yaml")
+        (tmp_path / "effects.yaml").write_text(yaml.safe_dump(
+            {"gradient": {"start": 120.0, "end": 400.0, "permille": 6.0},
+             "mass": {"mass": 300000.0}}))
+        extra = ["-p", f"model:={tmp_path}"]
+        sc = run_model(sc, tmp_path)
+        assert sc.effects.active() == ["gradient", "mass"]
     types = {"odometer": OdometerReading, "balise": BaliseReading, "control": ControlCommand,
              "ground_truth": TrainState}
     boxes = {t: ros_node.collect(cls, f"{ns}/{t}") for t, cls in types.items()}
     sim = launch.node("train_sim", "simulator", "--ros-args", "-r", f"__ns:={ns}",
                       "-p", "scenario:=metro_demo", "-p", f"seed:={seed}",
                       "-p", "rate_factor:=40.0", "-p", f"duration:={duration}",
-                      "-p", "wait_for_subscribers:=1", "-p", "wait_for_truth_subscribers:=1")
+                      "-p", "wait_for_subscribers:=1", "-p", "wait_for_truth_subscribers:=1",
+                      *extra)
     ros_node.wait_until(lambda: sim.poll() is not None, timeout=60, what="the simulator run")
     ros_node.spin_for(1.0)
     assert sim.returncode == 0, launch.logs()
 
-    res = simulate(load_scenario("metro_demo"), seed=seed, duration=duration)
+    res = simulate(sc, seed=seed, duration=duration)
     expected = {t: [] for t in types}
     for topic, stamp, fields in res.events():
         expected[topic].append((stamp, fields))

@@ -36,7 +36,7 @@ def build_node():
     from train_core.config import ConfigError
 
     from train_interfaces.msg import MovementAuthority
-    from train_sim.scenario import load_scenario
+    from train_sim.scenario import load_scenario, with_model
     from train_sim.summary import run_summary
     from train_sim.world import World
 
@@ -47,6 +47,9 @@ def build_node():
             declare = declarer(self)
 
             scenario = declare("scenario", "metro_demo", "scenario name or path to its YAML")
+            model_dir = declare("model", "", "a model directory written by diagnose (DIR/model: "
+                                "line.yaml, train.yaml, effects.yaml) to run instead of the "
+                                "scenario's line, train and effects; empty = the scenario's")
             seed = declare("seed", -1, "random seed; -1 = the scenario's own seed")
             self.rate_factor = declare("rate_factor", 1.0,
                                        "-, simulated seconds per wall-clock second")
@@ -88,6 +91,8 @@ def build_node():
                                      f"(allowed: {sorted(TOPIC_TYPES)})")
             try:
                 self.sc = load_scenario(scenario)
+                if model_dir:
+                    self.sc = with_model(self.sc, model_dir)
             except ConfigError as exc:
                 raise ParameterError(str(exc)) from None
             self.duration = self.sc.duration if duration < 0 else duration
