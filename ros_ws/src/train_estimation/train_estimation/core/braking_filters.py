@@ -66,6 +66,7 @@ import numpy as np
 from scipy.special import ndtr
 
 from .batched_kf import log_normalize, mixture_moments, predict, update
+from .braking_model import augmented_model
 
 __all__ = [
     "Estimate",
@@ -76,6 +77,7 @@ __all__ = [
     "QGRBPF",
     "RandomWalkRBPF",
     "OracleKF",
+    "BrakingKF",
     "systematic_resample",
     "effective_sample_size",
     "neighbour_groups",
@@ -288,11 +290,7 @@ class RaoBlackwellFilter:
                     since = 0.0
                 else:
                     s = self._transition(s, False, rng, dt)
-                if informative or not hasattr(fam, "hold_gain"):
-                    Phi, Bu, Qd = fam.matrices(s.theta, u, dt, informative)
-                else:
-                    hold = fam.hold_gain(u, self._last.x_mean, float(self._last.theta_mean[0]))
-                    Phi, Bu, Qd = fam.matrices(s.theta, u, dt, informative, hold=hold)
+                Phi, Bu, Qd = self._model(s, u, dt, informative)
                 x, P = predict(s.x, s.P, Phi, Bu, Qd)
                 s = _Set(s.theta, x, P, s.logw, s.idx, s.extra)
             x, P, loglik = update(s.x, s.P, y_arr, fam.H, R, mask_arr)
@@ -394,6 +392,15 @@ class RaoBlackwellFilter:
                         bool(used), float(log_ev))
 
     # -- hooks -----------------------------------------------------------------------------
+    def _model(self, s: _Set, u, dt: float, informative: bool):
+        """``(Phi, Bu, Qd)`` of this step for every particle (``family.matrices``); a step that
+        cannot inform theta uses one model shared by all particles (``family.hold_gain``)."""
+        fam = self.family
+        if informative or not hasattr(fam, "hold_gain"):
+            return fam.matrices(s.theta, u, dt, informative)
+        hold = fam.hold_gain(u, self._last.x_mean, float(self._last.theta_mean[0]))
+        return fam.matrices(s.theta, u, dt, informative, hold=hold)
+
     def _transition(self, s: _Set, informative: bool, rng, dt: float) -> _Set:
         """Parameter transition before the KF prediction (identity by default / when frozen or
         not due). ``dt``: time the transition covers (since the last one, for random walks)."""
@@ -715,3 +722,91 @@ class OracleKF(RaoBlackwellFilter):
         if self._pending is None:
             return s
         return _Set(self._pending.copy(), s.x, s.P, s.logw)
+
+
+# ----------------------------------------------------------------------------------------------
+# the exact reference: one Kalman filter with f in the state
+
+
+class _AugmentedFamily:
+    """``BrakingModel`` seen with f as a fifth KF state (``braking_model.augmented_model``).
+
+    Only what the common step needs: ``n`` = 5, no particle parameter (``d`` = 0), the
+    measurement rows padded with a zero f column, the braking model's gates.
+    """
+
+    n = 5
+    d = 0
+    report_index = (0, 1, 2, 4)  # D, v, a_hat, f
+
+    def __init__(self, family):
+        self.base = family
+        self.params = family.params
+        self.H = np.hstack([family.H, np.zeros((family.H.shape[0], 1))])
+        self.R = family.R
+
+    def default_dt(self) -> float:
+        return self.base.default_dt()
+
+    def gate(self, u, x_mean) -> bool:
+        return self.base.gate(u, x_mean)
+
+    def hold_gain(self, u, x_mean, f_mean: float) -> float:
+        return self.base.hold_gain(u, x_mean, f_mean)
+
+
+class BrakingKF(RaoBlackwellFilter):
+    """Kalman filter on ``(D, v, a_hat, a_z, f)`` with f a random walk: the exact Bayesian
+    estimator of the braking model for a Gaussian prior on f, given the known command (see
+    ``braking_model.augmented_model``; exact when ``a_z`` is known, i.e. its variance is 0 --
+    ``a_z`` is the Pade response to the command, so in the live system it is). One "particle";
+    the common step (validation, rejection, gating, ``batched_kf.predict`` / ``update``) is the
+    base class's.
+
+    ``f_prior = (mean, std)`` of f at reset (``reset(theta0=...)`` overrides the mean);
+    ``q_theta`` (1/s): random-walk variance of f per second of *informative* time (frozen
+    otherwise, like the particle filters).
+    """
+
+    name = "kf"
+
+    def __init__(self, family, q_theta: float = 1e-4, f_prior=(1.0, 0.15)):
+        if not (np.isfinite(q_theta) and q_theta >= 0):
+            raise ValueError(f"q_theta must be finite and >= 0, got {q_theta!r}")
+        m, sd = (float(v) for v in f_prior)
+        if not (np.isfinite(m) and np.isfinite(sd) and sd >= 0):
+            raise ValueError(f"f_prior must be a finite (mean, std >= 0), got {f_prior!r}")
+        super().__init__(_AugmentedFamily(family))
+        self.q_theta = float(q_theta)
+        self.f_prior = (m, sd)
+
+    def reset(self, x0, P0, rng=None, theta0=None, t0=None) -> Estimate:
+        """``x0 (4,)``, ``P0 (4, 4)``: (D, v, a_hat, a_z) as for the particle filters; f starts
+        at ``N(theta0 or f_prior mean, f_prior std^2)``, uncorrelated with the rest."""
+        x0 = np.asarray(x0, dtype=float).reshape(4)
+        P0 = np.asarray(P0, dtype=float).reshape(4, 4)
+        m = self.f_prior[0] if theta0 is None else float(np.mean(theta0))
+        z = np.append(x0, m)
+        Pz = np.zeros((5, 5))
+        Pz[:4, :4] = P0
+        Pz[4, 4] = self.f_prior[1] ** 2
+        est = super().reset(z, Pz, None, np.zeros((1, 0)), t0)
+        return est
+
+    def _theta_from_values(self, values):
+        return np.zeros((1, 0)), None
+
+    def _model(self, s, u, dt, informative):
+        hold = None
+        if not informative:
+            hold = self.family.hold_gain(u, self._last.x_mean, float(self._last.theta_mean[0]))
+        F, b, Q = augmented_model(self.family.params, u, dt, float(s.x[0, 3]), informative,
+                                  hold, self.q_theta)
+        return F[None], b[None], Q
+
+    def _summary(self, s, accepted, reason, informative, used, log_ev, t=None) -> Estimate:
+        x, P = s.x[0], s.P[0]
+        ri = list(self.family.report_index)
+        return Estimate(accepted, reason, self._t if t is None else float(t), x[ri],
+                        P[np.ix_(ri, ri)], x[:4], P[:4, :4], x[4:], P[4:, 4:], 1, 1.0,
+                        bool(informative), bool(used), float(log_ev))
