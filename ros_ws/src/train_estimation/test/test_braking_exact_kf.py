@@ -89,7 +89,8 @@ def test_kf_equals_dense_joint_gaussian_with_random_walk_f():
 
 def test_static_f_posterior_equals_grid_integration():
     """q = 0: p(f | y) ∝ N(f; prior) p(y | f), p(y | f) from a KF *with f fixed* (one per
-    grid value, 4 states, the particle filters' code path). Its moments on a fine grid must equal the KF's (Gaussian)."""
+    grid value, 4 states, the particle filters' code path). Its moments on a fine grid must
+    equal the KF's (Gaussian)."""
     params = BrakingParams(meas_var=(0.25, 0.09, 1e-4))
     fam = BrakingModel(params)
     K = 25
