@@ -78,6 +78,8 @@ __all__ = [
     "RandomWalkRBPF",
     "OracleKF",
     "BrakingKF",
+    "grid_prior",
+    "cell_variance",
     "systematic_resample",
     "effective_sample_size",
     "neighbour_groups",
@@ -231,8 +233,10 @@ class RaoBlackwellFilter:
         else:
             theta, idx = self._theta_from_values(np.asarray(theta0, dtype=float))
         N = theta.shape[0]
+        lw0 = self._initial_logw(N) if theta0 is None else None
         self._s = _Set(theta=theta, x=np.repeat(x0[None], N, axis=0),
-                       P=np.repeat(P0[None], N, axis=0), logw=np.full(N, -np.log(N)), idx=idx)
+                       P=np.repeat(P0[None], N, axis=0),
+                       logw=np.full(N, -np.log(N)) if lw0 is None else lw0, idx=idx)
         self._t = None if t0 is None else float(t0)
         self.rejected = Counter()
         self.n_steps = 0
@@ -246,6 +250,10 @@ class RaoBlackwellFilter:
 
     def _initial_theta(self, rng):
         raise NotImplementedError
+
+    def _initial_logw(self, N):
+        """Initial normalised log-weights of the initial draw; None: uniform."""
+        return None
 
     # -- properties ------------------------------------------------------------------------
     @property
@@ -384,6 +392,9 @@ class RaoBlackwellFilter:
         z = np.concatenate([s.x, s.theta], axis=1)
         zc = np.zeros((z.shape[0], n + dth, n + dth))
         zc[:, :n, :n] = s.P
+        tv = self._theta_var(s)
+        if tv is not None:
+            zc[:, n:, n:] = tv
         m, c = mixture_moments(w, z, zc)
         ri = list(fam.report_index) + list(range(n, n + dth))
         return Estimate(accepted, reason, self._t if t is None else float(t), m[ri],
@@ -392,6 +403,11 @@ class RaoBlackwellFilter:
                         bool(used), float(log_ev))
 
     # -- hooks -----------------------------------------------------------------------------
+    def _theta_var(self, s: _Set):
+        """Per-particle variance of theta around the particle's value, ``(N, d, d)``, or None
+        (point masses)."""
+        return None
+
     def _model(self, s: _Set, u, dt: float, informative: bool):
         """``(Phi, Bu, Qd)`` of this step for every particle (``family.matrices``); a step that
         cannot inform theta uses one model shared by all particles (``family.hold_gain``)."""
@@ -421,18 +437,70 @@ class RaoBlackwellFilter:
 # discrete parameter set
 
 
+def grid_prior(values, prior) -> np.ndarray:
+    """Probabilities of the discrete values under ``prior = (mean, std)``: the Gaussian's mass
+    on each value's cell (the half-way points to its neighbours; the outer cells are open, so
+    the tails pile on the end values). ``prior`` None: uniform (Zheng Section 4)."""
+    v = np.asarray(values, dtype=float).reshape(-1)
+    if prior is None:
+        return np.full(v.size, 1.0 / v.size)
+    m, sd = (float(a) for a in prior)
+    if not (np.isfinite(m) and np.isfinite(sd) and sd > 0):
+        raise ValueError(f"prior must be a finite (mean, std > 0), got {prior!r}")
+    order = np.argsort(v)
+    vs = v[order]
+    edges = np.concatenate([[-np.inf], 0.5 * (vs[1:] + vs[:-1]), [np.inf]])
+    p_sorted = np.diff(ndtr((edges - m) / sd))
+    p = np.empty_like(p_sorted)
+    p[order] = p_sorted
+    if not p.sum() > 0:
+        raise ValueError("prior has no mass on the discrete set")
+    return p / p.sum()
+
+
+def cell_variance(values) -> np.ndarray:
+    """Variance ``h^2 / 12`` of a uniform spread over each value's cell, ``h`` the distance
+    between the half-way points to its neighbours (an end value: twice its inner half-width).
+    A discrete value stands for a continuous f anywhere in its cell (Sheppard's correction):
+    without it a grid posterior on one value reports std 0 while f can be up to h / 2 away.
+    One value: 0 (no grid, nothing to spread)."""
+    v = np.asarray(values, dtype=float).reshape(-1)
+    if v.size < 2:
+        return np.zeros(v.size)
+    order = np.argsort(v)
+    vs = v[order]
+    half = 0.5 * np.diff(vs)
+    lo = np.concatenate([[half[0]], half])
+    hi = np.concatenate([half, [half[-1]]])
+    out = np.empty(v.size)
+    out[order] = (lo + hi) ** 2 / 12.0
+    return out
+
+
 class _DiscreteBase(RaoBlackwellFilter):
-    def __init__(self, family, values, n_init: int):
+    def __init__(self, family, values, n_init: int, prior=None, cell_var: bool = True):
         super().__init__(family)
         self.values = np.asarray(values, dtype=float).reshape(-1)
         if self.values.size == 0 or not np.all(np.isfinite(self.values)):
             raise ValueError("values must be a non-empty finite set")
         self.n_init = int(n_init)
+        self.prior_p = grid_prior(self.values, prior)
+        self.prior = prior
+        self._cell_var = cell_variance(self.values) if cell_var else np.zeros(self.values.size)
 
     def _initial_theta(self, rng):
-        # Zheng Section 4: initial particles sampled in the discrete space (uniform prior).
-        idx = rng.integers(0, self.values.size, self.n_init)
+        # Zheng Section 4: initial particles sampled in the discrete space (uniform prior);
+        # with ``prior`` = (mean, std) from the Gaussian's mass on each value's cell.
+        if self.prior is None:
+            idx = rng.integers(0, self.values.size, self.n_init)
+        else:
+            idx = rng.choice(self.values.size, self.n_init, p=self.prior_p)
         return self.values[idx][:, None], idx
+
+    def _theta_var(self, s):
+        if s.idx is None:
+            return None
+        return self._cell_var[s.idx][:, None, None]
 
     def _theta_from_values(self, values):
         v = values.reshape(-1)
@@ -452,8 +520,9 @@ class DiscreteRBPF(_DiscreteBase):
     name = "rbpf"
 
     def __init__(self, family, values, transition, n_particles: int = 250,
-                 proposal: str = "prior", ess_frac: float = 0.5):
-        super().__init__(family, values, n_particles)
+                 proposal: str = "prior", ess_frac: float = 0.5, prior=None,
+                 cell_var: bool = True):
+        super().__init__(family, values, n_particles, prior, cell_var)
         T = np.asarray(transition, dtype=float)
         M = self.values.size
         if T.shape != (M, M) or np.any(T < 0) or not np.allclose(T.sum(axis=1), 1.0):
@@ -518,6 +587,24 @@ class DiscreteRBPF(_DiscreteBase):
         return _Set(s.theta[a], s.x[a], s.P[a], np.full(N, -np.log(N)), s.idx[a])
 
 
+def _merge_by_value(s: _Set, values) -> _Set:
+    """Collapse the particles that share a value into one Gaussian (moment matching: weight sum,
+    weighted mean, law of total covariance). Particles on one value have the same model from now
+    on, so their KF states only differ by their past; merging them keeps the mixture's first two
+    moments per value and bounds the particle count by the number of values (GPB1-style)."""
+    w, _ = log_normalize(s.logw)
+    present = np.flatnonzero(np.bincount(s.idx, weights=w, minlength=values.size) > 0)
+    G = (s.idx[None, :] == present[:, None]) * w[None, :]  # (K, N) weights per value
+    W = G.sum(axis=1)
+    Gn = G / W[:, None]
+    x = Gn @ s.x
+    dev = s.x[None, :, :] - x[:, None, :]  # (K, N, n)
+    P = np.einsum("kj,jab->kab", Gn, s.P) + np.einsum("kj,kja,kjb->kab", Gn, dev, dev)
+    lw = np.log(W)
+    return _Set(values[present][:, None], x, 0.5 * (P + np.swapaxes(P, -1, -2)),
+                lw - _lse_norm(lw)[1], present)
+
+
 class _BranchingFilter(_DiscreteBase):
     """SMA/GSMA: branch every particle to its allowed children, keep the best ``n_keep`` when
     the count exceeds ``q_max`` (Zheng 3.4-3.5). ``kernel[j, m] >= 0``: value j may go to value
@@ -525,8 +612,9 @@ class _BranchingFilter(_DiscreteBase):
     over the allowed children for a 0/1 kernel, as in the paper)."""
 
     def __init__(self, family, values, kernel, n_init: int = 50, n_keep: int = 50,
-                 q_max: int = 500):
-        super().__init__(family, values, n_init)
+                 q_max: int = 500, prior=None, cell_var: bool = True, merge: bool = False):
+        super().__init__(family, values, n_init, prior, cell_var)
+        self.merge = bool(merge)
         kernel = np.asarray(kernel, dtype=float)
         M = self.values.size
         if kernel.shape != (M, M) or np.any(kernel < 0) or not np.all((kernel > 0).any(axis=1)):
@@ -547,16 +635,35 @@ class _BranchingFilter(_DiscreteBase):
         return _Set(self.values[child][:, None], s.x[parent], s.P[parent],
                     lw - _lse_norm(lw)[1], child)
 
-    def _reduce(self, s, loglik, informative, rng):
-        lw = s.logw + loglik
-        _, logz = _lse_norm(lw)
-        lw = lw - logz
-        if informative and lw.size > self.q_max:
+    def _initial_theta(self, rng):
+        if not self.merge:
+            return super()._initial_theta(rng)
+        # merged form: one hypothesis per value, weighted by the prior (see _initial_logw)
+        idx = np.arange(self.values.size)
+        return self.values[:, None], idx
+
+    def _initial_logw(self, N):
+        if not self.merge:
+            return None
+        with np.errstate(divide="ignore"):
+            lw = np.log(self.prior_p)
+        return lw - _lse_norm(lw)[1]
+
+    def _after(self, s, informative, rng):
+        # Reduction happens *after* the estimate of this step is formed (base step): the
+        # estimate uses every evaluated branch. Pruning before it (as the paper's loop reads)
+        # throws away the branches' probability mass and reports a too narrow f posterior --
+        # with all kept particles on one value, a variance of exactly 0.
+        if not informative:
+            return s
+        if self.merge:
+            return _merge_by_value(s, self.values)
+        if s.logw.size > self.q_max:
             # keep the n_keep largest weights; sorted by index for reproducibility
-            keep = np.sort(np.argpartition(-lw, self.n_keep - 1)[: self.n_keep])
-            lw = lw[keep] - _lse_norm(lw[keep])[1]
-            return _Set(s.theta[keep], s.x[keep], s.P[keep], lw, s.idx[keep]), logz
-        return _Set(s.theta, s.x, s.P, lw, s.idx), logz
+            keep = np.sort(np.argpartition(-s.logw, self.n_keep - 1)[: self.n_keep])
+            lw = s.logw[keep] - _lse_norm(s.logw[keep])[1]
+            return _Set(s.theta[keep], s.x[keep], s.P[keep], lw, s.idx[keep])
+        return s
 
 
 class SMA(_BranchingFilter):
@@ -567,10 +674,10 @@ class SMA(_BranchingFilter):
     name = "sma"
 
     def __init__(self, family, values, n_init: int = 50, n_keep: int = 50, q_max: int = 500,
-                 transition=None):
+                 transition=None, prior=None, cell_var: bool = True, merge: bool = False):
         M = np.asarray(values).size
         kernel = np.ones((M, M)) if transition is None else transition
-        super().__init__(family, values, kernel, n_init, n_keep, q_max)
+        super().__init__(family, values, kernel, n_init, n_keep, q_max, prior, cell_var, merge)
 
 
 class GSMA(_BranchingFilter):
@@ -582,7 +689,8 @@ class GSMA(_BranchingFilter):
     name = "gsma"
 
     def __init__(self, family, values, groups=None, n_init: int = 50, n_keep: int = 50,
-                 q_max: int = 500, transition=None):
+                 q_max: int = 500, transition=None, prior=None, cell_var: bool = True,
+                 merge: bool = False):
         vals = np.asarray(values, dtype=float).reshape(-1)
         groups = neighbour_groups(vals.size) if groups is None else [tuple(g) for g in groups]
         means = np.array([vals[list(g)].mean() for g in groups])
@@ -593,7 +701,7 @@ class GSMA(_BranchingFilter):
             member[j, list(groups[closest[j]])] = 1.0
         kernel = member if transition is None else member * np.asarray(transition, dtype=float)
         self.groups = groups
-        super().__init__(family, vals, kernel, n_init, n_keep, q_max)
+        super().__init__(family, vals, kernel, n_init, n_keep, q_max, prior, cell_var, merge)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -601,8 +709,13 @@ class GSMA(_BranchingFilter):
 
 
 class _ContinuousBase(RaoBlackwellFilter):
-    def __init__(self, family, bounds, n_particles: int, q_theta):
+    def __init__(self, family, bounds, n_particles: int, q_theta, prior=None):
         super().__init__(family)
+        if prior is not None:
+            m, sd = (float(a) for a in np.broadcast_to(np.asarray(prior, float), (2,)))
+            if not (np.isfinite(m) and np.isfinite(sd) and sd > 0):
+                raise ValueError(f"prior must be a finite (mean, std > 0), got {prior!r}")
+        self.prior = prior
         b = np.asarray(bounds, dtype=float).reshape(-1, 2)
         if b.shape[0] != family.d or not np.all(b[:, 1] > b[:, 0]):
             raise ValueError("bounds: one (lo, hi) with lo < hi per parameter")
@@ -614,8 +727,13 @@ class _ContinuousBase(RaoBlackwellFilter):
             raise ValueError("q_theta must be positive semi-definite")
 
     def _initial_theta(self, rng):
-        # Q-GRBPF step 1: uniform in [theta_min, theta_max]
-        return self.lo + (self.hi - self.lo) * rng.random((self.n, self.family.d)), None
+        # Q-GRBPF step 1: uniform in [theta_min, theta_max]; with ``prior`` = (mean, std):
+        # N(mean, std^2) reflected into the bounds
+        if self.prior is None:
+            return self.lo + (self.hi - self.lo) * rng.random((self.n, self.family.d)), None
+        m, sd = self.prior
+        th = m + sd * rng.standard_normal((self.n, self.family.d))
+        return _reflect(th, self.lo, self.hi), None
 
 
 class QGRBPF(_ContinuousBase):
@@ -641,8 +759,9 @@ class QGRBPF(_ContinuousBase):
 
     name = "qgrbpf"
 
-    def __init__(self, family, bounds, n_particles: int = 50, q_theta=0.0, min_var=1e-8):
-        super().__init__(family, bounds, n_particles, q_theta)
+    def __init__(self, family, bounds, n_particles: int = 50, q_theta=0.0, min_var=1e-8,
+                 prior=None):
+        super().__init__(family, bounds, n_particles, q_theta, prior)
         self.min_var = float(min_var)
 
     def _transition(self, s, informative, rng, dt):
@@ -673,8 +792,8 @@ class RandomWalkRBPF(_ContinuousBase):
     name = "rbpf_rw"
 
     def __init__(self, family, bounds, n_particles: int = 250, q_theta=1e-4,
-                 ess_frac: float = 0.5):
-        super().__init__(family, bounds, n_particles, q_theta)
+                 ess_frac: float = 0.5, prior=None):
+        super().__init__(family, bounds, n_particles, q_theta, prior)
         self.ess_frac = float(ess_frac)
         ev, V = np.linalg.eigh(self.q_theta)
         self._L = V * np.sqrt(np.clip(ev, 0.0, None))
