@@ -108,7 +108,8 @@ def fmt(a, digits: int = 3) -> str:
 def open_loop(sc, algorithms, seeds, plot_seed):
     """Per algorithm: dict of per-seed metric arrays; plus the traces to plot."""
     cfg = BrakingConfig()
-    metrics = {a: {k: [] for k in ("mae", "mae_after", "mae_brake", "final", "cover")}
+    metrics = {a: {k: [] for k in ("mae", "mae_after", "mae_brake", "final", "cover", "nees",
+                                   "step_ms")}
                for a in algorithms}
     abs_err = {a: [] for a in algorithms}  # per seed, on the common output grid
     trace = {}
@@ -123,7 +124,9 @@ def open_loop(sc, algorithms, seeds, plot_seed):
             for topic, stamp, fields in events:
                 if topic in INPUT_TOPICS:
                     runner.push(topic, stamp, fields)
+            t_run = time.perf_counter()
             outs = runner.advance_to(sc.duration)
+            t_run = time.perf_counter() - t_run
             assert not runner.rejected, f"{alg} seed {seed}: rejected {dict(runner.rejected)}"
             t = np.array([o.stamp for o in outs])
             f_hat = np.array([o.braking_rate for o in outs])
@@ -139,6 +142,10 @@ def open_loop(sc, algorithms, seeds, plot_seed):
             m["final"].append(abs(e[-1]))
             m["cover"].append(np.mean(np.abs(e[after]) <= 2 * sd[after]) if after.any()
                               else math.nan)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                m["nees"].append(np.mean(e[after] ** 2 / sd[after] ** 2) if after.any()
+                                 else math.nan)
+            m["step_ms"].append(1e3 * t_run / max(len(outs), 1))
             abs_err[alg].append((t, np.abs(e)))
             if seed == plot_seed:
                 trace[alg] = (t, f_hat, sd, f_true, ts_s, brk)
@@ -150,11 +157,15 @@ def open_loop_table(metrics, n_seeds) -> str:
              f"mean [2.5 %, 97.5 %] over {n_seeds} seeds",
              "",
              "| algorithm | MAE whole run | MAE after stop at B | MAE while braking | "
-             "final abs error (t = 600 s) | share abs error <= 2 sigma after B |",
-             "|---|---|---|---|---|---|"]
+             "final abs error (t = 600 s) | share abs error <= 2 sigma after B | NEES after B | "
+             "MAE after B / kf | time per output (ms) |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    ref = np.mean(metrics["kf"]["mae_after"]) if "kf" in metrics else math.nan
     for alg, m in metrics.items():
         lines.append(f"| {alg} | {fmt(m['mae'])} | {fmt(m['mae_after'])} | "
-                     f"{fmt(m['mae_brake'])} | {fmt(m['final'])} | {fmt(m['cover'], 2)} |")
+                     f"{fmt(m['mae_brake'])} | {fmt(m['final'])} | {fmt(m['cover'], 2)} | "
+                     f"{fmt(m['nees'], 2)} | {np.mean(m['mae_after']) / ref:.2f} | "
+                     f"{fmt(m['step_ms'], 3)} |")
     return "\n".join(lines)
 
 
