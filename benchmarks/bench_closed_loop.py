@@ -215,6 +215,7 @@ def closed_loop(sc, source: str, rule: str, seed: int, std_max: float) -> dict:
     belief = NOMINAL_F  # what the ATO currently plans with (the scenario's nominal belief)
     was_braking = False
     onset = {}  # station -> |belief - f| when braking for it started
+    cal = []  # (t, f_hat, var, f_true) of every output: calibration in the loop
     for k in range(1, n + 1):
         t = k / rate  # the world's own sample grid: chunks end on sample times
         msgs = world.advance(t)
@@ -230,6 +231,8 @@ def closed_loop(sc, source: str, rule: str, seed: int, std_max: float) -> dict:
                 if topic in INPUT_TOPICS:
                     runner.push(topic, stamp, fields)
             outs = runner.advance_to(t)
+            cal += [(o.stamp, o.braking_rate, o.covariance[15], world.braking_rate(o.stamp))
+                    for o in outs]
             if outs:
                 o = outs[-1]
                 var = o.covariance[15]
@@ -246,8 +249,17 @@ def closed_loop(sc, source: str, rule: str, seed: int, std_max: float) -> dict:
     errs = {s["station"]: s["stopping_error"] for s in res.stops}
     t_d = next((s["t"] for s in res.stops if s["station"] == STATIONS[-1]), math.nan)
     rejected = dict(runner.rejected) if runner is not None else {}
+    cover = nees = math.nan
+    if cal and res.stops:
+        c = np.array(cal)
+        c = c[c[:, 0] >= res.stops[0]["t"]]  # after the first braking phase, as in open loop
+        if c.size:
+            e2 = (c[:, 1] - c[:, 3]) ** 2
+            cover = float(np.mean(e2 <= 4.0 * c[:, 2]))
+            with np.errstate(divide="ignore", invalid="ignore"):
+                nees = float(np.mean(e2 / c[:, 2]))
     return {"err": errs, "t_D": t_d, "onset": onset, "rejected": rejected,
-            "emergency": res.emergency_brakes}
+            "emergency": res.emergency_brakes, "cover": cover, "nees": nees}
 
 
 def closed_loop_table(rows, n_seeds, std_max) -> str:
@@ -255,8 +267,9 @@ def closed_loop_table(rows, n_seeds, std_max) -> str:
              f"(ATO takes f_hat when its std < {std_max})",
              "",
              "| ATO belief | rule | B | C | D | all stations | max abs error | "
-             "abs(f_belief - f) at brake onset | arrival at D (s) |",
-             "|---|---|---|---|---|---|---|---|---|"]
+             "abs(f_belief - f) at brake onset | arrival at D (s) | 2-sigma coverage of f "
+             "after B | NEES after B |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for (source, rule), runs in rows.items():
         per = {s: np.array([abs(r["err"].get(s, math.nan)) for r in runs]) for s in STATIONS}
         allst = np.nanmean(np.column_stack([per[s] for s in STATIONS]), axis=1)
@@ -265,7 +278,8 @@ def closed_loop_table(rows, n_seeds, std_max) -> str:
         t_d = np.array([r["t_D"] for r in runs])
         lines.append(f"| {source} | {rule} | {fmt(per['B'], 2)} | {fmt(per['C'], 2)} | "
                      f"{fmt(per['D'], 2)} | {fmt(allst, 2)} | {fmt(mx, 2)} | {fmt(ons, 3)} | "
-                     f"{fmt(t_d, 1)} |")
+                     f"{fmt(t_d, 1)} | {fmt([r['cover'] for r in runs], 2)} | "
+                     f"{fmt([r['nees'] for r in runs], 2)} |")
     return "\n".join(lines)
 
 
