@@ -75,14 +75,13 @@ def test_every_prior_is_centred_on_the_given_mean_with_the_given_spread(name):
 
 
 def test_adapter_prior_follows_train_yaml():
-    from train_sim.scenario import load_scenario
-
     from train_estimation.core.estimators import (
         ALGORITHMS,
         BrakingAdapter,
         BrakingConfig,
         StartState,
     )
+    from train_sim.scenario import load_scenario
 
     sc = load_scenario("metro_demo")
     for f0 in (1.0, 0.8):
