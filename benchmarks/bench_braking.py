@@ -79,6 +79,7 @@ def make_filters(fam, prior=PRIOR, q_f=Q_F):
         "GSMA Q=N": GSMA(fam, VALUES, n_init=50, n_keep=50, q_max=50, **pr),
         "GSMA sticky merged": GSMA(fam, VALUES, transition=STICKY, merge=True, **pr),
         "Q-GRBPF N=50": QGRBPF(fam, [(0.0, 1.0)], 50, q_theta=q_f, **pr),
+        "Q-GRBPF GH-3": QGRBPF(fam, [(0.0, 1.0)], 3, q_theta=q_f, quadrature=True, **pr),
         REF: BrakingKF(fam, q_theta=q_f, f_prior=prior),
         "oracle KF": OracleKF(fam),
     }
@@ -290,6 +291,7 @@ def fixed_factory(fam):
     return {
         "SMA sticky merged": SMA(fam, VALUES, transition=STICKY, merge=True, **pr),
         "GSMA sticky merged": GSMA(fam, VALUES, transition=STICKY, merge=True, **pr),
+        "Q-GRBPF GH-3": QGRBPF(fam, [(0.0, 1.0)], 3, q_theta=Q_F, quadrature=True, **pr),
         REF: BrakingKF(fam, q_theta=Q_F, f_prior=PRIOR),
     }
 
@@ -326,7 +328,8 @@ def sweep(seeds, out: Path):
     print("|---|---|---|---|---|")
     for num, den, paper in (("GSMA", "SMA", "0.30"), ("GSMA sticky merged", "SMA", "0.30"),
                             ("GSMA sticky merged", "SMA sticky merged", "0.30"),
-                            ("Q-GRBPF", "RW-RBPF", "0.44")):
+                            ("Q-GRBPF", "RW-RBPF", "0.44"), ("Q-GRBPF GH-3", "RW-RBPF", "0.44"),
+                            (REF, "RW-RBPF", "")):
         target = 1.05 * max(min(m for *_, m in pts[num]), min(m for *_, m in pts[den]))
         tn, td = time_at(pts[num], target), time_at(pts[den], target)
         r = f"{tn / td:.2f}" if tn and td else "n/a"
@@ -464,7 +467,9 @@ def main(argv=None):
           "Q = 500, uniform prior over children (the paper); GSMA Q=N prunes to 50 every "
           "step; GSMA sticky merged: sticky prior over the group's children, particles on one "
           "value merged into one Gaussian after each step (at most 11 x 3 KFs per step); "
-          f"Q-GRBPF: 50 particles on [0, 1], random walk {Q_F} per step; {REF}: one KF on "
+          f"Q-GRBPF: 50 particles on [0, 1], random walk {Q_F} per step; Q-GRBPF GH-3: the "
+          "same Gaussian over f represented by 3 Gauss-Hermite nodes, KF states from the joint "
+          f"Gaussian's conditional (no random draw, no resampling); {REF}: one KF on "
           f"(D, v, a_hat, a_z, f), f a random walk {Q_F} per step (the exact Bayesian estimator "
           "for that prior, the information limit); oracle KF: told the true f.")
     timing = None

@@ -55,19 +55,20 @@ def _filters(fam, prior, n=4000):
         "gsma_merged": GSMA(fam, vals, prior=prior, merge=True),
         "qgrbpf": QGRBPF(fam, [(0.0, 2.0)], n, prior=prior),  # bounds far from the prior
         "rbpf_rw": RandomWalkRBPF(fam, [(0.0, 2.0)], n, prior=prior),
+        "qgrbpf_gh": QGRBPF(fam, [(0.0, 2.0)], 5, prior=prior, quadrature=True),
         "kf": BrakingKF(fam, f_prior=prior),
     }
 
 
 @pytest.mark.parametrize("name", ["rbpf", "sma", "gsma", "gsma_merged", "qgrbpf", "rbpf_rw",
-                                  "kf"])
+                                  "qgrbpf_gh", "kf"])
 def test_every_prior_is_centred_on_the_given_mean_with_the_given_spread(name):
     fam = BrakingModel(BrakingParams())
     for prior in ((1.0, 0.15), (0.7, 0.1)):
         e = _filters(fam, prior)[name].reset(X0, P0, np.random.default_rng(1))
         # On a grid of h = 0.1 the values' variance is sigma^2 + h^2 / 12 (Sheppard: rounding
         # adds an error independent of f), and the reported variance adds the cell's h^2 / 12.
-        sd = prior[1] if name in ("qgrbpf", "rbpf_rw", "kf") else np.hypot(prior[1],
+        sd = prior[1] if name in ("qgrbpf", "rbpf_rw", "qgrbpf_gh", "kf") else np.hypot(prior[1],
                                                                           0.1 / np.sqrt(6))
         # Monte Carlo: 4000 draws, std error of the mean 0.15 / 63, of the std ~1 %
         assert e.mean[3] == pytest.approx(prior[0], abs=0.012), e.mean[3]
@@ -172,3 +173,33 @@ def test_merged_gsma_with_one_value_equals_the_kf_of_that_value():
         eg, er = g.step(-1.0, y[k], None, rng), r.step(-1.0, y[k], None, rng)
         np.testing.assert_allclose(eg.mean, er.mean, atol=1e-10)
         np.testing.assert_allclose(eg.cov, er.cov, atol=1e-10)
+
+
+def test_quadrature_qgrbpf_nodes_carry_the_joint_gaussian():
+    """One deterministic redraw: the Gauss-Hermite nodes with their conditional KF states have
+    the mixture's mean and covariance of (x, theta), theta's variance widened by q dt."""
+    fam = BrakingModel(BrakingParams())
+    q = QGRBPF(fam, [(-5.0, 5.0)], 5, q_theta=0.01, quadrature=True)
+    rng = np.random.default_rng(2)
+    N, n = 30, 4
+    G = rng.standard_normal((N, n, n))
+    th = 0.6 + 0.1 * rng.standard_normal(N)
+    x = rng.standard_normal((N, n)) + 0.5 * th[:, None]  # x correlated with theta
+    s = _Set(th[:, None], x, 0.1 * G @ np.swapaxes(G, 1, 2), np.log(rng.dirichlet(np.ones(N))))
+    out = q._transition(s, True, None, 2.0)
+    assert out.theta.shape == (5, 1)
+
+    def joint(st, extra=0.0):
+        w, _ = log_normalize(st.logw)
+        z = np.concatenate([st.x, st.theta], axis=1)
+        zc = np.zeros((z.shape[0], n + 1, n + 1))
+        zc[:, :n, :n] = st.P
+        m, c = mixture_moments(w, z, zc)
+        c[n, n] += extra
+        return m, c
+
+    m0, c0 = joint(s, 0.01 * 2.0 + q.min_var)
+    m1, c1 = joint(out)
+    np.testing.assert_allclose(m1, m0, atol=1e-12)
+    np.testing.assert_allclose(c1, c0, atol=1e-12)
+    assert q._transition(s, False, None, 2.0) is s  # frozen when not informative

@@ -760,13 +760,31 @@ class QGRBPF(_ContinuousBase):
     name = "qgrbpf"
 
     def __init__(self, family, bounds, n_particles: int = 50, q_theta=0.0, min_var=1e-8,
-                 prior=None):
+                 prior=None, quadrature: bool = False):
         super().__init__(family, bounds, n_particles, q_theta, prior)
         self.min_var = float(min_var)
+        self.quadrature = bool(quadrature)
+        if self.quadrature:
+            if family.d != 1:
+                raise ValueError("quadrature: one parameter only")
+            z, wq = np.polynomial.hermite_e.hermegauss(self.n)  # nodes/weights for N(0, 1)
+            self._gh = (z, np.log(wq / wq.sum()))
+
+    def _initial_theta(self, rng):
+        if not self.quadrature:
+            return super()._initial_theta(rng)
+        m, sd = self.prior if self.prior is not None else (
+            0.5 * (self.lo[0] + self.hi[0]), (self.hi[0] - self.lo[0]) / np.sqrt(12.0))
+        return np.clip(m + sd * self._gh[0], self.lo, self.hi)[:, None], None
+
+    def _initial_logw(self, N):
+        return self._gh[1].copy() if self.quadrature else None
 
     def _transition(self, s, informative, rng, dt):
         if not informative:
             return s  # frozen: keep particles and weights
+        if self.quadrature:
+            return self._transition_quadrature(s, dt)
         N, dth = self.n, self.family.d
         w, _ = log_normalize(s.logw)
         mu, cov = mixture_moments(w, s.theta)  # eq. (7), (8)
@@ -783,6 +801,32 @@ class QGRBPF(_ContinuousBase):
         cdf[-1] = 1.0
         anc = order[np.minimum(np.searchsorted(cdf, ndtr(z[:, 0]), side="left"), w.size - 1)]
         return _Set(theta, s.x[anc], s.P[anc], np.full(N, -np.log(N)))
+
+    def _transition_quadrature(self, s, dt):
+        """Deterministic form (``quadrature=True``): the Gaussian of eq. (7)-(9) over
+        ``(x, theta)`` jointly, represented by ``N`` Gauss-Hermite nodes in theta; no random
+        draw and no resampling search. The KF state of node j is the Gaussian conditional
+        ``E[x | theta_j] = x_bar + C_x,theta / var (theta_j - theta_hat)`` with the conditional
+        covariance ``Sigma_x - C C^T / var`` (``var`` includes the random-walk step, which is
+        independent of x). The nodes' weighted mixture then has exactly the joint Gaussian's
+        mean and covariance. Because theta enters the braking model linearly, few nodes suffice.
+        """
+        w, _ = log_normalize(s.logw)
+        th = s.theta[:, 0]
+        mu = w @ th
+        dth = th - mu
+        var = w @ (dth * dth) + self.q_theta[0, 0] * dt + self.min_var
+        xm = w @ s.x
+        dx = s.x - xm
+        cxt = (w * dth) @ dx  # (n,) Cov(x, theta)
+        Sx = np.einsum("k,kij->ij", w, s.P) + (w[:, None] * dx).T @ dx
+        beta = cxt / var
+        Pc = Sx - np.outer(cxt, beta)
+        z, lw = self._gh
+        theta = np.clip(mu + np.sqrt(var) * z, self.lo[0], self.hi[0])
+        x = xm + (theta - mu)[:, None] * beta[None, :]
+        P = np.repeat(0.5 * (Pc + Pc.T)[None], z.size, axis=0)
+        return _Set(theta[:, None], x, P, lw.copy())
 
 
 class RandomWalkRBPF(_ContinuousBase):
