@@ -295,6 +295,68 @@ def signed_table(rows) -> str:
 
 
 # ----------------------------------------------------------------------------------------------
+# 3. step fault
+
+STEP_T, STEP_F = 200.0, 0.6
+
+
+def step_fault_section(sc, algorithms, seeds, std_max) -> str:
+    """The scenario with its braking-rate effect replaced by a step 1.0 -> 0.6 at t = 200 s
+    (after the stop at B, before braking for C: the step can only be seen once the train brakes
+    again). Open loop: time to detect (the first output after the step with f_hat below the
+    midpoint 0.8), MAE and 2-sigma coverage after the step; closed loop ("hold" rule): parking."""
+    import dataclasses
+
+    from train_sim.effects import BrakingRateEffect
+
+    eff = BrakingRateEffect(1.0, STEP_F, mode="step", t_step=STEP_T)
+    scf = dataclasses.replace(sc, effects=dataclasses.replace(sc.effects, braking_rate=eff))
+    mid = 0.5 * (1.0 + STEP_F)
+    rows = []
+    for alg in algorithms:
+        ttd, mae, cov, park = [], [], [], []
+        for seed in seeds:
+            world = World(scf, seed)
+            events = world.advance(scf.duration)
+            runner = make_runner(scf, alg, seed)
+            for topic, stamp, fields in events:
+                if topic in INPUT_TOPICS:
+                    runner.push(topic, stamp, fields)
+            outs = runner.advance_to(scf.duration)
+            t = np.array([o.stamp for o in outs])
+            f_hat = np.array([o.braking_rate for o in outs])
+            sd = np.sqrt(np.array([o.covariance[15] for o in outs]))
+            f_true = np.array([world.braking_rate(x) for x in t])
+            after = t >= STEP_T
+            hit = np.flatnonzero(after & (f_hat <= mid))
+            ttd.append(t[hit[0]] - STEP_T if hit.size else math.nan)
+            e = np.abs(f_hat - f_true)[after]
+            mae.append(np.mean(e))
+            cov.append(np.mean(e <= 2 * sd[after]))
+            r = closed_loop(scf, alg, "hold", seed, std_max)
+            park.append([abs(r["err"].get(st, math.nan)) for st in STATIONS])
+        park = np.array(park)
+        rows.append((alg, ttd, mae, cov, park))
+    ref = np.mean(dict((a, m) for a, _, m, _, _ in rows).get("kf", [math.nan]))
+    base = [closed_loop(scf, "nominal", "-", s, std_max) for s in seeds]
+    orc = [closed_loop(scf, "oracle", "-", s, std_max) for s in seeds]
+    lines = [f"### Step fault: f = 1.0 -> {STEP_F} at t = {STEP_T:.0f} s (after B; seen only "
+             f"when braking for C), mean [2.5 %, 97.5 %] over {len(seeds)} seeds",
+             "",
+             "| algorithm | time to detect (s, f_hat < 0.8) | MAE after the step | / kf | "
+             "2-sigma coverage after | abs stopping error C (m, hold) | D (m, hold) |",
+             "|---|---|---|---|---|---|---|"]
+    for alg, ttd, mae, cov, park in rows:
+        lines.append(f"| {alg} | {fmt(ttd, 1)} | {fmt(mae)} | {np.mean(mae) / ref:.2f} | "
+                     f"{fmt(cov, 2)} | {fmt(park[:, 1], 2)} | {fmt(park[:, 2], 2)} |")
+    for name, runs in (("nominal f = 1", base), ("oracle (true f)", orc)):
+        c = [abs(r["err"].get("C", math.nan)) for r in runs]
+        d = [abs(r["err"].get("D", math.nan)) for r in runs]
+        lines.append(f"| {name} | | | | | {fmt(c, 2)} | {fmt(d, 2)} |")
+    return "\n".join(lines)
+
+
+# ----------------------------------------------------------------------------------------------
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
@@ -309,6 +371,8 @@ def main(argv=None):
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "out"))
     ap.add_argument("--skip-open-loop", action="store_true")
     ap.add_argument("--skip-closed-loop", action="store_true")
+    ap.add_argument("--step-fault", action="store_true",
+                    help="also: f steps 1.0 -> 0.6 at t = 200 s (brake cylinder failure)")
     args = ap.parse_args(argv)
     n_seeds = 3 if args.quick else args.seeds
     seeds = list(range(n_seeds))
@@ -373,6 +437,10 @@ def main(argv=None):
             print("\n" + "\n".join(notes))
             sections.append("\n".join(notes))
         print(f"\n(closed loop {time.perf_counter() - t1:.0f} s)")
+    if args.step_fault:
+        tab = step_fault_section(sc, algorithms, seeds, args.std_max)
+        print("\n" + tab, flush=True)
+        sections.append(tab)
     (out_dir / "bench_closed_loop.md").write_text("\n\n".join(sections) + "\n")
 
 
