@@ -33,9 +33,24 @@ Algorithms (theta = braking rate f):
   parameter posterior (2) (7)-(8), new parameters drawn from ``N(theta_hat, P + Q_theta dt)``
   (3) (9), the KF states paired with them by the paper's search algorithm (5) (17) (see
   ``QGRBPF``), KF update (4) and prediction (6). No weight-based resampling step of its own.
+  ``quadrature=True``: the same Gaussian over theta carried by N Gauss-Hermite nodes whose KF
+  states are the joint Gaussian's conditional -- no random draw, no resampling, few particles.
 * ``RandomWalkRBPF`` -- continuous theta, Gaussian random-walk kernel, systematic resampling:
   the "RBPF" the Q-GRBPF paper compares with.
-* ``OracleKF`` -- one Kalman filter told the true theta_k: the limit every algorithm aims at.
+* ``BrakingKF`` -- one Kalman filter on (D, v, a_hat, a_z, f), f a random walk: the exact
+  Bayesian estimator of the braking model (f enters linearly given the known command;
+  ``braking_model.augmented_model``), the reference every table compares with.
+* ``OracleKF`` -- one Kalman filter told the true theta_k.
+
+**Priors and calibration (issue 15).** ``prior = (mean, std)``: discrete algorithms draw their
+initial values from the Gaussian's mass on each value's cell (``grid_prior``), continuous ones
+from the Gaussian (reflected into the bounds); None = the papers' uniform prior. A discrete
+value stands for its cell, so each particle carries the cell's variance ``h^2 / 12``
+(``cell_variance``) in the reported f variance, and SMA/GSMA form the estimate from *every*
+evaluated branch before pruning to the N best (``_after``) -- otherwise the reported f variance
+collapses to exactly 0 whenever the survivors share one value. ``merge=True`` (SMA/GSMA) replaces
+pruning by merging the particles of each value into one Gaussian (at most values x children KFs
+per step).
 
 **Standstill, coasting, traction.** When ``informative`` is False (``BrakingModel.gate``: no
 braking command, or standstill) every particle has the same model, so the likelihood is flat in
