@@ -203,3 +203,37 @@ def test_quadrature_qgrbpf_nodes_carry_the_joint_gaussian():
     np.testing.assert_allclose(m1, m0, atol=1e-12)
     np.testing.assert_allclose(c1, c0, atol=1e-12)
     assert q._transition(s, False, None, 2.0) is s  # frozen when not informative
+
+
+hyp = pytest.importorskip("hypothesis")
+st = pytest.importorskip("hypothesis.strategies")
+
+_value = st.one_of(st.floats(-50, 50), st.sampled_from([np.nan, np.inf, -np.inf, 1e200]))
+_step = st.tuples(
+    st.one_of(st.floats(-1.5, 1.0), st.sampled_from([np.nan, np.inf])),  # a_tar
+    st.lists(_value, min_size=3, max_size=3),  # y
+    st.lists(st.booleans(), min_size=3, max_size=3),  # mask
+    st.one_of(st.floats(-0.5, 3.0), st.sampled_from([np.nan, 0.0])),  # dt (may be bad)
+)
+
+
+@hyp.settings(max_examples=25, deadline=None, derandomize=True)
+@hyp.given(st.sampled_from(["kf", "gsma_merged", "qgrbpf_gh"]),
+           st.lists(_step, min_size=1, max_size=25), st.integers(0, 2**31 - 1))
+def test_new_filters_survive_random_inputs(name, steps, seed):
+    fam = BrakingModel(BrakingParams(standstill_speed=0.05))
+    filt = {"kf": BrakingKF(fam, q_theta=1e-3),
+            "gsma_merged": GSMA(fam, VALUES, prior=(1.0, 0.15), merge=True),
+            "qgrbpf_gh": QGRBPF(fam, [(0.0, 1.0)], 3, q_theta=1e-3, prior=(1.0, 0.15),
+                                quadrature=True)}[name]
+    rng = np.random.default_rng(seed)
+    filt.reset(X0, P0, rng, t0=0.0)
+    t = 0.0
+    for a, y, mask, dt in steps:
+        with np.errstate(over="ignore", invalid="ignore"):
+            e = filt.step(a, y, mask, rng, t=t + dt)
+        if e.accepted:
+            t += dt
+        assert np.all(np.isfinite(e.mean)) and np.all(np.isfinite(e.cov))
+        assert e.cov[3, 3] >= 0.0
+        assert filt.t == pytest.approx(t)
