@@ -1,9 +1,12 @@
 #!/usr/bin/env python3
-"""Braking-rate estimation benchmark (issue 5): Zheng et al. (2015) Tables 1-2, the Q-GRBPF
-paper's two-state example, and per-step timing. Prints markdown tables.
+"""Braking-rate estimation benchmark (issues 5, 15): Zheng et al. (2015) Tables 1-2, the exact
+reference KF and every algorithm's error as a ratio to it, f calibration (2-sigma coverage,
+NEES), a random-walk f drawn from the KF's own prior (the information limit), a step fault
+(time to detect), f MAE against time per step over particle counts (plot), the Q-GRBPF paper's
+two-state example, and per-step timing. Prints markdown tables.
 
     PYTHONPATH=ros_ws/src/train_sim:ros_ws/src/train_estimation \\
-        python3 benchmarks/bench_braking.py [--seeds 100] [--quick]
+        python3 benchmarks/bench_braking.py [--seeds 50] [--quick] [--sweep-only]
 
 Data: open-loop toy generated from the exact discrete model itself (ZOH of eq. (4), dt = 1 s)
 with Section 4's settings: f_k = 1 - 0.005 k, k = 1..150, tau = 0.4 s, lambda = 1.6667
@@ -33,6 +36,7 @@ from train_estimation.core.braking_filters import (  # noqa: E402
     GSMA,
     QGRBPF,
     SMA,
+    BrakingKF,
     DiscreteRBPF,
     OracleKF,
     RandomWalkRBPF,
@@ -59,97 +63,310 @@ PAPER_T1 = {"RBPF": (0.105, 0.305, 0.185, 0.095, 0.0001),
             "GSMA": (0.023, 0.304, 0.180, 0.036, 0.0001)}
 
 
-def make_filters(fam):
-    """The algorithms at the paper's settings (Section 4) plus documented variants."""
+PRIOR = (1.0, 0.15)  # f prior of every estimator: train.yaml's braking_rate, std 0.15
+Q_F = 1e-3  # f random walk per step for the KF and the continuous filters (the sticky kernel's
+#   variance: P(move) 0.1 x (0.1)^2 = 1e-3 per step)
+STICKY = sticky_transition(11, 0.1)
+REF = "KF (exact)"
+
+
+def make_filters(fam, prior=PRIOR, q_f=Q_F):
+    """The algorithms at the paper's settings (Section 4) plus documented variants; every one
+    with the f prior ``prior`` (mean, std)."""
+    pr = dict(prior=prior)
     return {
-        "RBPF static (paper)": DiscreteRBPF(fam, VALUES, np.eye(11), 250),
-        "RBPF sticky p=0.1": DiscreteRBPF(fam, VALUES, sticky_transition(11, 0.1), 250),
-        "SMA": SMA(fam, VALUES, n_init=50, n_keep=50, q_max=500),
-        "GSMA": GSMA(fam, VALUES, n_init=50, n_keep=50, q_max=500),
-        "GSMA Q=N": GSMA(fam, VALUES, n_init=50, n_keep=50, q_max=50),
-        "Q-GRBPF N=50": QGRBPF(fam, [(0.0, 1.0)], 50, q_theta=1e-4),
+        "RBPF static (paper)": DiscreteRBPF(fam, VALUES, np.eye(11), 250, **pr),
+        "RBPF sticky": DiscreteRBPF(fam, VALUES, STICKY, 250, **pr),
+        "SMA": SMA(fam, VALUES, n_init=50, n_keep=50, q_max=500, **pr),
+        "GSMA": GSMA(fam, VALUES, n_init=50, n_keep=50, q_max=500, **pr),
+        "GSMA Q=N": GSMA(fam, VALUES, n_init=50, n_keep=50, q_max=50, **pr),
+        "GSMA sticky merged": GSMA(fam, VALUES, transition=STICKY, merge=True, **pr),
+        "Q-GRBPF N=50": QGRBPF(fam, [(0.0, 1.0)], 50, q_theta=q_f, **pr),
+        "Q-GRBPF GH-3": QGRBPF(fam, [(0.0, 1.0)], 3, q_theta=q_f, quadrature=True, **pr),
+        REF: BrakingKF(fam, q_theta=q_f, f_prior=prior),
         "oracle KF": OracleKF(fam),
     }
 
 
-def run_toy(sd, seeds):
-    """MAE per seed and algorithm; per-step times (s) per algorithm."""
+RW_PRIOR, RW_Q = (0.5, 0.1), 2.5e-4
+
+
+def random_walk_truth(seed):
+    """f from the KF's own prior: f_0 ~ N(0.5, 0.1^2), f_k = f_{k-1} + N(0, 2.5e-4) (reflected
+    into [0, 1], which a path reaches in about 1 seed in 100)."""
+    rng = np.random.default_rng(50_000 + seed)
+    f = RW_PRIOR[0] + RW_PRIOR[1] * rng.standard_normal() + np.cumsum(
+        np.sqrt(RW_Q) * rng.standard_normal(K_STEPS))
+    f = np.abs(f)
+    return np.where(f > 1.0, 2.0 - f, f)
+
+
+def ramp():
+    return 1.0 - 0.005 * np.arange(1, K_STEPS + 1)  # eq. (23)
+
+
+def step_fault(k_step=50, f_after=0.6):
+    """Brake cylinder failure: f = 1 up to step ``k_step``, ``f_after`` from the next step on."""
+    return np.where(np.arange(1, K_STEPS + 1) <= k_step, 1.0, f_after)
+
+
+def run_toy(sd, seeds, f_true=None, factory=make_filters, names=None):
+    """Every filter on the same data per seed. Returns ``{name: dict}`` with per-seed arrays
+    ``mae (S, 5)``, ``cover (S,)``, ``nees (S,)``, ``fhat (S, K)``, ``fsd (S, K)``, ``run (S,)``
+    and the per-step times ``times``."""
     params = BrakingParams(meas_var=tuple(float(s) ** 2 for s in sd))
     fam = BrakingModel(params)
-    k = np.arange(1, K_STEPS + 1)
-    f_true = 1.0 - 0.005 * k  # eq. (23)
+    f_true = ramp() if f_true is None else f_true
     u = np.column_stack([-np.ones(K_STEPS), np.zeros(K_STEPS)])
-    names = list(make_filters(fam))
-    mae = {n: [] for n in names}
-    times = {n: [] for n in names}
-    run_time = {n: [] for n in names}
+    names = list(factory(fam)) if names is None else names
+    out = {n: {k: [] for k in ("mae", "cover", "nees", "fhat", "fsd", "run", "times", "cpu")}
+           for n in names}
     for seed in range(seeds):
         rng = np.random.default_rng(seed)
         x0 = X0 + rng.multivariate_normal(np.zeros(4), P0)
-        x, y = simulate_open_loop(params, f_true, u, x0, rng)
-        truth = np.column_stack([f_true, x[1:, 0], x[1:, 1], x[1:, 2], x[1:, 3]])
-        for name, filt in make_filters(fam).items():
+        f_seed = f_true(seed) if callable(f_true) else f_true
+        x, y = simulate_open_loop(params, f_seed, u, x0, rng)
+        truth = np.column_stack([f_seed, x[1:, 0], x[1:, 1], x[1:, 2], x[1:, 3]])
+        filters = factory(fam)
+        for name in names:
+            filt = filters[name]
             frng = np.random.default_rng(10_000 + seed)
             filt.reset(X0, P0, frng)
             est = np.empty((K_STEPS, 5))
+            var = np.empty(K_STEPS)
             tt = np.empty(K_STEPS)
+            tc = np.empty(K_STEPS)
             t_run = time.perf_counter()
             for j in range(K_STEPS):
                 t0 = time.perf_counter()
+                c0 = time.thread_time()
                 if isinstance(filt, OracleKF):
-                    e = filt.step(-1.0, y[j], None, frng, theta_true=f_true[j])
+                    e = filt.step(-1.0, y[j], None, frng, theta_true=f_seed[j])
                 else:
                     e = filt.step(-1.0, y[j], None, frng)
                 tt[j] = time.perf_counter() - t0
+                tc[j] = time.thread_time() - c0
                 est[j] = (e.mean[3], e.mean[0], e.mean[1], e.mean[2], e.x_mean[3])
-            run_time[name].append(time.perf_counter() - t_run)
-            times[name].append(tt)
-            mae[name].append(np.mean(np.abs(est - truth), axis=0))
-    return ({n: np.array(v) for n, v in mae.items()}, {n: np.concatenate(v) for n, v in
-                                                       times.items()},
-            {n: np.array(v) for n, v in run_time.items()})
+                var[j] = e.cov[3, 3]
+            o = out[name]
+            o["run"].append(time.perf_counter() - t_run)
+            o["times"].append(tt)
+            o["cpu"].append(tc)
+            o["mae"].append(np.mean(np.abs(est - truth), axis=0))
+            err = est[:, 0] - f_seed
+            o["cover"].append(np.mean(np.abs(err) <= 2.0 * np.sqrt(var)))
+            with np.errstate(divide="ignore", invalid="ignore"):
+                o["nees"].append(np.mean(err ** 2 / var) if np.all(var > 0) else np.inf)
+            o["fhat"].append(est[:, 0])
+            o["fsd"].append(np.sqrt(var))
+    for o in out.values():
+        o["times"] = np.concatenate(o["times"])
+        o["cpu"] = np.concatenate(o["cpu"])
+        for k in ("mae", "cover", "nees", "fhat", "fsd", "run"):
+            o[k] = np.array(o[k])
+    return out
 
 
 def fmt(a, digits=3):
+    a = np.asarray(a, dtype=float)
+    if not np.all(np.isfinite(a)):
+        return "inf"
     m, lo, hi = np.mean(a), np.percentile(a, 2.5), np.percentile(a, 97.5)
     return f"{m:.{digits}f} [{lo:.{digits}f}, {hi:.{digits}f}]"
 
 
-def table1(level, sd, mae, seeds):
+def ratio_to_ref(res, name, q=0):
+    return float(np.mean(res[name]["mae"][:, q]) / np.mean(res[REF]["mae"][:, q]))
+
+
+def table1(level, sd, res, seeds):
     print(f"\n### Table 1 ({level} noise: sigma_D = {sd[0]} m, sigma_v = {sd[1]} m/s, "
           f"sigma_az = {sd[2]} m/s^2): MAE over 150 steps, mean [2.5 %, 97.5 %] over "
           f"{seeds} seeds\n")
-    names = list(mae)
+    names = list(res)
     print("| quantity | " + " | ".join(names) + " | paper RBPF / SMA / GSMA |")
     print("|---" * (len(names) + 2) + "|")
     for q, qn in enumerate(QUANTITIES):
         digits = 4 if q == 4 else 3
-        cells = [fmt(mae[n][:, q], digits) for n in names]
+        cells = [fmt(res[n]["mae"][:, q], digits) for n in names]
         paper = " / ".join(str(PAPER_T1[a][q]) for a in ("RBPF", "SMA", "GSMA"))
         print(f"| {qn} | " + " | ".join(cells) + f" | {paper} |")
+        if q == 0:
+            cells = [f"{ratio_to_ref(res, n):.2f}" for n in names]
+            paper = " / ".join(f"{PAPER_T1[a][0] / PAPER_T1['GSMA'][0]:.2f}"
+                               for a in ("RBPF", "SMA", "GSMA"))
+            print(f"| f MAE / {REF} | " + " | ".join(cells) + f" | (/ GSMA) {paper} |")
 
 
-def table2_5(times, run_time, seeds):
+def calibration_table(title, res, seeds, after=0):
+    print(f"\n### {title}: f calibration over {seeds} seeds (2-sigma coverage = share of steps "
+          "with abs error <= 2 reported std; NEES = mean of error^2 / variance; "
+          "mean [2.5 %, 97.5 %])\n")
+    print("| algorithm | f MAE | / KF | 2-sigma coverage | NEES |")
+    print("|---|---|---|---|---|")
+    for n, o in res.items():
+        if n == "oracle KF":
+            continue
+        print(f"| {n} | {fmt(o['mae'][:, 0])} | {ratio_to_ref(res, n):.2f} | "
+              f"{fmt(o['cover'], 2)} | {fmt(o['nees'], 2)} |")
+
+
+def table2_5(res, seeds):
     print(f"\n### Table 2: computation time of one 150-step run (mean over {seeds} seeds, "
           "mid noise)\n")
-    rt = {n: float(np.mean(v)) for n, v in run_time.items()}
-    print("| algorithm | time per run (ms) | paper (s, MATLAB, T6570) |")
-    print("|---|---|---|")
+    rt = {n: float(np.mean(o["run"])) for n, o in res.items()}
+    print("| algorithm | time per run (ms) | / KF | f MAE / KF | paper (s, MATLAB, T6570) |")
+    print("|---|---|---|---|---|")
     paper = {"RBPF static (paper)": "6.590", "SMA": "56.505", "GSMA": "16.760"}
     for n, v in rt.items():
-        print(f"| {n} | {1e3 * v:.1f} | {paper.get(n, '')} |")
+        print(f"| {n} | {1e3 * v:.1f} | {v / rt[REF]:.2f} | {ratio_to_ref(res, n):.2f} | "
+              f"{paper.get(n, '')} |")
     print("\n| ratio | this machine | paper |")
     print("|---|---|---|")
-    print(f"| time(GSMA) / time(SMA) | {rt['GSMA'] / rt['SMA']:.2f} | 0.30 |")
-    print(f"| time(GSMA Q=N) / time(SMA) | {rt['GSMA Q=N'] / rt['SMA']:.2f} | 0.30 |")
-    print(f"| time(RBPF) / time(GSMA) | {rt['RBPF static (paper)'] / rt['GSMA']:.2f} | 0.39 |")
+    for num, den, pap in (("GSMA", "SMA", "0.30"), ("GSMA Q=N", "SMA", "0.30"),
+                          ("GSMA sticky merged", "SMA", "0.30"),
+                          ("RBPF static (paper)", "GSMA", "0.39")):
+        print(f"| time({num}) / time({den}) | {rt[num] / rt[den]:.2f} | {pap} |")
     print(f"| GSMA per step (ms) | {1e3 * rt['GSMA'] / K_STEPS:.3f} | 112 |")
-    print(f"\n### Table 5: per-step time (ms) over {seeds} x 150 steps, mid noise\n")
-    print("| algorithm | median | p99 | max |")
-    print("|---|---|---|---|")
-    for n, v in times.items():
-        print(f"| {n} | {1e3 * np.median(v):.3f} | {1e3 * np.percentile(v, 99):.3f} | "
-              f"{1e3 * np.max(v):.3f} |")
+    print(f"\n### Table 5: per-step time (ms) over {seeds} x 150 steps, mid noise (wall clock, "
+          "and CPU time of the stepping thread: the wall clock's tail includes the waits for a "
+          "core on this shared 2-core machine)\n")
+    print("| algorithm | median | p99 | max | CPU median | CPU p99 | CPU max |")
+    print("|---|---|---|---|---|---|---|")
+    for n, o in res.items():
+        v, c = 1e3 * o["times"], 1e3 * o["cpu"]
+        print(f"| {n} | {np.median(v):.3f} | {np.percentile(v, 99):.3f} | {np.max(v):.3f} | "
+              f"{np.median(c):.3f} | {np.percentile(c, 99):.3f} | {np.max(c):.3f} |")
+
+
+def step_table(res, f_true, seeds, k_step=50):
+    f_after = f_true[-1]
+    mid = 0.5 * (f_true[0] + f_after)
+    print(f"\n### Step fault (brake cylinder failure): f = {f_true[0]} up to step {k_step}, "
+          f"{f_after} after; mid noise, {seeds} seeds, mean [2.5 %, 97.5 %]\n")
+    print("Time to detect = steps (s) after the fault until f_hat first crosses the midpoint "
+          f"{mid:.2f} (a seed that never does counts as {K_STEPS - k_step}); MAE after = over "
+          f"steps {k_step + 1}..{K_STEPS}; settled = over the last 50 steps.\n")
+    print("| algorithm | time to detect (s) | MAE after the step | / KF | MAE settled | "
+          "2-sigma coverage after | MAE before |")
+    print("|---|---|---|---|---|---|---|")
+    mae_ref = None
+    rows = []
+    for n, o in res.items():
+        if n == "oracle KF":
+            continue
+        fh, sd = o["fhat"], o["fsd"]
+        after = fh[:, k_step:]
+        cross = np.where(after <= mid, np.arange(after.shape[1])[None, :] + 1, 10**9).min(1)
+        ttd = np.minimum(cross, K_STEPS - k_step).astype(float)
+        e = fh - f_true[None, :]
+        mae_a = np.mean(np.abs(e[:, k_step:]), axis=1)
+        cov_a = np.mean(np.abs(e[:, k_step:]) <= 2 * sd[:, k_step:], axis=1)
+        rows.append((n, ttd, mae_a, np.mean(np.abs(e[:, -50:]), axis=1), cov_a,
+                     np.mean(np.abs(e[:, :k_step]), axis=1)))
+        if n == REF:
+            mae_ref = np.mean(mae_a)
+    for n, ttd, mae_a, mae_s, cov_a, mae_b in rows:
+        print(f"| {n} | {fmt(ttd, 1)} | {fmt(mae_a)} | {np.mean(mae_a) / mae_ref:.2f} | "
+              f"{fmt(mae_s)} | {fmt(cov_a, 2)} | {fmt(mae_b)} |")
+
+
+# ------------------------------------------------------------------ accuracy vs cost
+
+SWEEP_N = (10, 30, 100, 300, 1000)
+
+
+def sweep_factory(n):
+    def factory(fam):
+        pr = dict(prior=PRIOR)
+        return {
+            "RBPF sticky": DiscreteRBPF(fam, VALUES, STICKY, n, **pr),
+            "SMA": SMA(fam, VALUES, n_init=n, n_keep=n, q_max=n, **pr),
+            "GSMA": GSMA(fam, VALUES, n_init=n, n_keep=n, q_max=n, **pr),
+            "Q-GRBPF": QGRBPF(fam, [(0.0, 1.0)], n, q_theta=Q_F, **pr),
+            "RW-RBPF": RandomWalkRBPF(fam, [(0.0, 1.0)], n, q_theta=Q_F, **pr),
+        }
+    return factory
+
+
+def fixed_factory(fam):
+    pr = dict(prior=PRIOR)
+    return {
+        "SMA sticky merged": SMA(fam, VALUES, transition=STICKY, merge=True, **pr),
+        "GSMA sticky merged": GSMA(fam, VALUES, transition=STICKY, merge=True, **pr),
+        "Q-GRBPF GH-3": QGRBPF(fam, [(0.0, 1.0)], 3, q_theta=Q_F, quadrature=True, **pr),
+        REF: BrakingKF(fam, q_theta=Q_F, f_prior=PRIOR),
+    }
+
+
+def time_at(points, target):
+    """Smallest median step time among the settings with MAE <= target (None: none)."""
+    ok = [t for _, t, m in points if m <= target]
+    return min(ok) if ok else None
+
+
+def sweep(seeds, out: Path):
+    """f MAE against median time per step, each algorithm over its particle count."""
+    sd = NOISE_LEVELS["mid"]
+    pts = {}  # name -> [(N, median step s, MAE)]
+    for n in SWEEP_N:
+        res = run_toy(sd, seeds, factory=sweep_factory(n))
+        for name, o in res.items():
+            pts.setdefault(name, []).append((n, float(np.median(o["cpu"])),
+                                             float(np.mean(o["mae"][:, 0]))))
+    res = run_toy(sd, seeds, factory=fixed_factory)
+    for name, o in res.items():
+        pts[name] = [(None, float(np.median(o["cpu"])), float(np.mean(o["mae"][:, 0])))]
+    ref_mae = pts[REF][0][2]
+    print(f"\n### Accuracy against cost (ramp, mid noise, {seeds} seeds): f MAE (/ KF) and "
+          "median CPU time per step (ms) per particle count N\n")
+    print("| algorithm | " + " | ".join(f"N = {n}" for n in SWEEP_N) + " |")
+    print("|---" * (len(SWEEP_N) + 1) + "|")
+    for name, p in pts.items():
+        cells = [f"{m:.3f} ({m / ref_mae:.2f}) / {1e3 * t:.3f} ms" for _, t, m in p]
+        if len(p) == 1:
+            cells = [cells[0] + " (no N)"] + [""] * (len(SWEEP_N) - 1)
+        print(f"| {name} | " + " | ".join(cells) + " |")
+    print("\n| pair | target f MAE | time per step at target (ms) | ratio | paper |")
+    print("|---|---|---|---|---|")
+    for num, den, paper in (("GSMA", "SMA", "0.30"), ("GSMA sticky merged", "SMA", "0.30"),
+                            ("GSMA sticky merged", "SMA sticky merged", "0.30"),
+                            ("Q-GRBPF", "RW-RBPF", "0.44"), ("Q-GRBPF GH-3", "RW-RBPF", "0.44"),
+                            (REF, "RW-RBPF", "")):
+        target = 1.05 * max(min(m for *_, m in pts[num]), min(m for *_, m in pts[den]))
+        tn, td = time_at(pts[num], target), time_at(pts[den], target)
+        r = f"{tn / td:.2f}" if tn and td else "n/a"
+        cell = (f"{1e3 * tn:.3f} / {1e3 * td:.3f}" if tn and td else "n/a")
+        print(f"| {num} / {den} | {target:.3f} | {cell} | {r} | {paper} |")
+    print("\n(target = 1.05 x the worse of the two algorithms' best MAE over N: the cheapest "
+          "setting of each that reaches it.)")
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(8, 5))
+    for i, (name, p) in enumerate(pts.items()):
+        t = [1e3 * q[1] for q in p]
+        m = [q[2] for q in p]
+        ax.plot(t, m, "o-" if len(p) > 1 else "s", color=f"C{i}", label=name)
+        for n, tt, mm in zip([q[0] for q in p], t, m):
+            if n is not None:
+                ax.annotate(str(n), (tt, mm), fontsize=7, xytext=(3, 3),
+                            textcoords="offset points")
+    ax.axhline(ref_mae, color="k", lw=0.8, ls="--", label=f"{REF} MAE")
+    ax.set_xscale("log")
+    ax.set_xlabel("median CPU time per step (ms, log)")
+    ax.set_ylabel("f MAE over 150 steps")
+    ax.set_title(f"Braking rate: accuracy vs cost (Zheng ramp, mid noise, {seeds} seeds; "
+                 "labels = N)", fontsize=9)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    out.mkdir(parents=True, exist_ok=True)
+    for path in (out / "braking_mae_vs_time.png", ROOT / "docs" / "braking_mae_vs_time.png"):
+        fig.savefig(path, dpi=110)
+    plt.close(fig)
+    print(f"\nplot: {out / 'braking_mae_vs_time.png'} (copy in docs/)")
 
 
 # ------------------------------------------------------------------ Q-GRBPF paper, eq. (20)-(21)
@@ -235,26 +452,51 @@ def table3(seeds, steps=200, n=1000):
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--seeds", type=int, default=100)
+    ap.add_argument("--seeds", type=int, default=50)
     ap.add_argument("--quick", action="store_true", help="10 seeds, mid noise only")
     ap.add_argument("--skip-qgrbpf-example", action="store_true")
+    ap.add_argument("--skip-sweep", action="store_true", help="no MAE-vs-time sweep / plot")
+    ap.add_argument("--sweep-only", action="store_true", help="only the MAE-vs-time sweep")
+    ap.add_argument("--out", default=str(ROOT / "benchmarks" / "out"))
     args = ap.parse_args(argv)
     seeds = 10 if args.quick else args.seeds
     levels = {"mid": NOISE_LEVELS["mid"]} if args.quick else NOISE_LEVELS
+    if args.sweep_only:
+        sweep(max(3, seeds // 2) if args.quick else max(5, seeds // 5), Path(args.out))
+        return
     print("# Braking-rate estimation benchmark\n")
     print(f"seeds = {seeds}; data: exact discrete model of Zheng eq. (4), a_Tar = -1 m/s^2, "
-          "Var(Omega) = 0.05 held per 1 s step; f_k = 1 - 0.005 k. Columns: RBPF static = "
-          "discrete set, identity transition (the paper's 'no transition function'), 250 "
-          "particles, bootstrap proposal; RBPF sticky = stay 0.9 / neighbours 0.05 each; SMA, "
-          "GSMA: N0 = N = 50, Q = 500, uniform prior over children; GSMA Q=N prunes to 50 "
-          "every step; Q-GRBPF: 50 particles on [0, 1], random walk 1e-4 per step.")
+          "Var(Omega) = 0.05 held per 1 s step; f_k = 1 - 0.005 k. Every estimator starts from "
+          f"the f prior N({PRIOR[0]}, {PRIOR[1]}^2) (train.yaml's braking_rate; on a discrete "
+          "set: the Gaussian's mass per value). Columns: RBPF static = discrete set, identity "
+          "transition (the paper's 'no transition function'), 250 particles, bootstrap "
+          "proposal; RBPF sticky = stay 0.9 / neighbours 0.05 each; SMA, GSMA: N0 = N = 50, "
+          "Q = 500, uniform prior over children (the paper); GSMA Q=N prunes to 50 every "
+          "step; GSMA sticky merged: sticky prior over the group's children, particles on one "
+          "value merged into one Gaussian after each step (at most 11 x 3 KFs per step); "
+          f"Q-GRBPF: 50 particles on [0, 1], random walk {Q_F} per step; Q-GRBPF GH-3: the "
+          "same Gaussian over f represented by 3 Gauss-Hermite nodes, KF states from the joint "
+          f"Gaussian's conditional (no random draw, no resampling); {REF}: one KF on "
+          f"(D, v, a_hat, a_z, f), f a random walk {Q_F} per step (the exact Bayesian estimator "
+          "for that prior, the information limit); oracle KF: told the true f.")
     timing = None
     for level, sd in levels.items():
-        mae, times, run_time = run_toy(sd, seeds)
-        table1(level, sd, mae, seeds)
+        res = run_toy(sd, seeds)
+        table1(level, sd, res, seeds)
         if level == "mid":
-            timing = (times, run_time)
-    table2_5(*timing, seeds)
+            timing = res
+            calibration_table("Ramp (eq. (23)), mid noise", res, seeds)
+    table2_5(timing, seeds)
+    res = run_toy(NOISE_LEVELS["mid"], seeds, random_walk_truth,
+                  factory=lambda fam: make_filters(fam, RW_PRIOR, RW_Q))
+    calibration_table(f"Random-walk f drawn from the KF's own prior (f_0 ~ N{RW_PRIOR}, "
+                      f"q = {RW_Q} per step; every filter given that prior and q), mid noise",
+                      res, seeds)
+    f_step = step_fault()
+    res = run_toy(NOISE_LEVELS["mid"], seeds, f_step)
+    step_table(res, f_step, seeds)
+    if not args.skip_sweep:
+        sweep(max(3, seeds // 2) if args.quick else max(5, seeds // 5), Path(args.out))
     if not args.skip_qgrbpf_example:
         table3(max(2, seeds // 5) if args.quick else seeds)
 

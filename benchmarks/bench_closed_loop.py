@@ -108,7 +108,8 @@ def fmt(a, digits: int = 3) -> str:
 def open_loop(sc, algorithms, seeds, plot_seed):
     """Per algorithm: dict of per-seed metric arrays; plus the traces to plot."""
     cfg = BrakingConfig()
-    metrics = {a: {k: [] for k in ("mae", "mae_after", "mae_brake", "final", "cover")}
+    metrics = {a: {k: [] for k in ("mae", "mae_after", "mae_brake", "final", "cover", "nees",
+                                   "step_ms")}
                for a in algorithms}
     abs_err = {a: [] for a in algorithms}  # per seed, on the common output grid
     trace = {}
@@ -123,7 +124,9 @@ def open_loop(sc, algorithms, seeds, plot_seed):
             for topic, stamp, fields in events:
                 if topic in INPUT_TOPICS:
                     runner.push(topic, stamp, fields)
+            t_run = time.perf_counter()
             outs = runner.advance_to(sc.duration)
+            t_run = time.perf_counter() - t_run
             assert not runner.rejected, f"{alg} seed {seed}: rejected {dict(runner.rejected)}"
             t = np.array([o.stamp for o in outs])
             f_hat = np.array([o.braking_rate for o in outs])
@@ -139,6 +142,10 @@ def open_loop(sc, algorithms, seeds, plot_seed):
             m["final"].append(abs(e[-1]))
             m["cover"].append(np.mean(np.abs(e[after]) <= 2 * sd[after]) if after.any()
                               else math.nan)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                m["nees"].append(np.mean(e[after] ** 2 / sd[after] ** 2) if after.any()
+                                 else math.nan)
+            m["step_ms"].append(1e3 * t_run / max(len(outs), 1))
             abs_err[alg].append((t, np.abs(e)))
             if seed == plot_seed:
                 trace[alg] = (t, f_hat, sd, f_true, ts_s, brk)
@@ -150,11 +157,15 @@ def open_loop_table(metrics, n_seeds) -> str:
              f"mean [2.5 %, 97.5 %] over {n_seeds} seeds",
              "",
              "| algorithm | MAE whole run | MAE after stop at B | MAE while braking | "
-             "final abs error (t = 600 s) | share abs error <= 2 sigma after B |",
-             "|---|---|---|---|---|---|"]
+             "final abs error (t = 600 s) | share abs error <= 2 sigma after B | NEES after B | "
+             "MAE after B / kf | time per output (ms) |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    ref = np.mean(metrics["kf"]["mae_after"]) if "kf" in metrics else math.nan
     for alg, m in metrics.items():
         lines.append(f"| {alg} | {fmt(m['mae'])} | {fmt(m['mae_after'])} | "
-                     f"{fmt(m['mae_brake'])} | {fmt(m['final'])} | {fmt(m['cover'], 2)} |")
+                     f"{fmt(m['mae_brake'])} | {fmt(m['final'])} | {fmt(m['cover'], 2)} | "
+                     f"{fmt(m['nees'], 2)} | {np.mean(m['mae_after']) / ref:.2f} | "
+                     f"{fmt(m['step_ms'], 3)} |")
     return "\n".join(lines)
 
 
@@ -204,6 +215,7 @@ def closed_loop(sc, source: str, rule: str, seed: int, std_max: float) -> dict:
     belief = NOMINAL_F  # what the ATO currently plans with (the scenario's nominal belief)
     was_braking = False
     onset = {}  # station -> |belief - f| when braking for it started
+    cal = []  # (t, f_hat, var, f_true) of every output: calibration in the loop
     for k in range(1, n + 1):
         t = k / rate  # the world's own sample grid: chunks end on sample times
         msgs = world.advance(t)
@@ -219,6 +231,8 @@ def closed_loop(sc, source: str, rule: str, seed: int, std_max: float) -> dict:
                 if topic in INPUT_TOPICS:
                     runner.push(topic, stamp, fields)
             outs = runner.advance_to(t)
+            cal += [(o.stamp, o.braking_rate, o.covariance[15], world.braking_rate(o.stamp))
+                    for o in outs]
             if outs:
                 o = outs[-1]
                 var = o.covariance[15]
@@ -235,8 +249,17 @@ def closed_loop(sc, source: str, rule: str, seed: int, std_max: float) -> dict:
     errs = {s["station"]: s["stopping_error"] for s in res.stops}
     t_d = next((s["t"] for s in res.stops if s["station"] == STATIONS[-1]), math.nan)
     rejected = dict(runner.rejected) if runner is not None else {}
+    cover = nees = math.nan
+    if cal and res.stops:
+        c = np.array(cal)
+        c = c[c[:, 0] >= res.stops[0]["t"]]  # after the first braking phase, as in open loop
+        if c.size:
+            e2 = (c[:, 1] - c[:, 3]) ** 2
+            cover = float(np.mean(e2 <= 4.0 * c[:, 2]))
+            with np.errstate(divide="ignore", invalid="ignore"):
+                nees = float(np.mean(e2 / c[:, 2]))
     return {"err": errs, "t_D": t_d, "onset": onset, "rejected": rejected,
-            "emergency": res.emergency_brakes}
+            "emergency": res.emergency_brakes, "cover": cover, "nees": nees}
 
 
 def closed_loop_table(rows, n_seeds, std_max) -> str:
@@ -244,8 +267,9 @@ def closed_loop_table(rows, n_seeds, std_max) -> str:
              f"(ATO takes f_hat when its std < {std_max})",
              "",
              "| ATO belief | rule | B | C | D | all stations | max abs error | "
-             "abs(f_belief - f) at brake onset | arrival at D (s) |",
-             "|---|---|---|---|---|---|---|---|---|"]
+             "abs(f_belief - f) at brake onset | arrival at D (s) | 2-sigma coverage of f "
+             "after B | NEES after B |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for (source, rule), runs in rows.items():
         per = {s: np.array([abs(r["err"].get(s, math.nan)) for r in runs]) for s in STATIONS}
         allst = np.nanmean(np.column_stack([per[s] for s in STATIONS]), axis=1)
@@ -254,7 +278,8 @@ def closed_loop_table(rows, n_seeds, std_max) -> str:
         t_d = np.array([r["t_D"] for r in runs])
         lines.append(f"| {source} | {rule} | {fmt(per['B'], 2)} | {fmt(per['C'], 2)} | "
                      f"{fmt(per['D'], 2)} | {fmt(allst, 2)} | {fmt(mx, 2)} | {fmt(ons, 3)} | "
-                     f"{fmt(t_d, 1)} |")
+                     f"{fmt(t_d, 1)} | {fmt([r['cover'] for r in runs], 2)} | "
+                     f"{fmt([r['nees'] for r in runs], 2)} |")
     return "\n".join(lines)
 
 
@@ -266,6 +291,68 @@ def signed_table(rows) -> str:
     for (source, rule), runs in rows.items():
         cells = [np.nanmean([r["err"].get(s, math.nan) for r in runs]) for s in STATIONS]
         lines.append(f"| {source} | {rule} | " + " | ".join(f"{c:+.2f}" for c in cells) + " |")
+    return "\n".join(lines)
+
+
+# ----------------------------------------------------------------------------------------------
+# 3. step fault
+
+STEP_T, STEP_F = 200.0, 0.6
+
+
+def step_fault_section(sc, algorithms, seeds, std_max) -> str:
+    """The scenario with its braking-rate effect replaced by a step 1.0 -> 0.6 at t = 200 s
+    (after the stop at B, before braking for C: the step can only be seen once the train brakes
+    again). Open loop: time to detect (the first output after the step with f_hat below the
+    midpoint 0.8), MAE and 2-sigma coverage after the step; closed loop ("hold" rule): parking."""
+    import dataclasses
+
+    from train_core.effects import BrakingRateEffect
+
+    eff = BrakingRateEffect(1.0, STEP_F, mode="step", t_step=STEP_T)
+    scf = dataclasses.replace(sc, effects=dataclasses.replace(sc.effects, braking_rate=eff))
+    mid = 0.5 * (1.0 + STEP_F)
+    rows = []
+    for alg in algorithms:
+        ttd, mae, cov, park = [], [], [], []
+        for seed in seeds:
+            world = World(scf, seed)
+            events = world.advance(scf.duration)
+            runner = make_runner(scf, alg, seed)
+            for topic, stamp, fields in events:
+                if topic in INPUT_TOPICS:
+                    runner.push(topic, stamp, fields)
+            outs = runner.advance_to(scf.duration)
+            t = np.array([o.stamp for o in outs])
+            f_hat = np.array([o.braking_rate for o in outs])
+            sd = np.sqrt(np.array([o.covariance[15] for o in outs]))
+            f_true = np.array([world.braking_rate(x) for x in t])
+            after = t >= STEP_T
+            hit = np.flatnonzero(after & (f_hat <= mid))
+            ttd.append(t[hit[0]] - STEP_T if hit.size else math.nan)
+            e = np.abs(f_hat - f_true)[after]
+            mae.append(np.mean(e))
+            cov.append(np.mean(e <= 2 * sd[after]))
+            r = closed_loop(scf, alg, "hold", seed, std_max)
+            park.append([abs(r["err"].get(st, math.nan)) for st in STATIONS])
+        park = np.array(park)
+        rows.append((alg, ttd, mae, cov, park))
+    ref = np.mean(dict((a, m) for a, _, m, _, _ in rows).get("kf", [math.nan]))
+    base = [closed_loop(scf, "nominal", "-", s, std_max) for s in seeds]
+    orc = [closed_loop(scf, "oracle", "-", s, std_max) for s in seeds]
+    lines = [f"### Step fault: f = 1.0 -> {STEP_F} at t = {STEP_T:.0f} s (after B; seen only "
+             f"when braking for C), mean [2.5 %, 97.5 %] over {len(seeds)} seeds",
+             "",
+             "| algorithm | time to detect (s, f_hat < 0.8) | MAE after the step | / kf | "
+             "2-sigma coverage after | abs stopping error C (m, hold) | D (m, hold) |",
+             "|---|---|---|---|---|---|---|"]
+    for alg, ttd, mae, cov, park in rows:
+        lines.append(f"| {alg} | {fmt(ttd, 1)} | {fmt(mae)} | {np.mean(mae) / ref:.2f} | "
+                     f"{fmt(cov, 2)} | {fmt(park[:, 1], 2)} | {fmt(park[:, 2], 2)} |")
+    for name, runs in (("nominal f = 1", base), ("oracle (true f)", orc)):
+        c = [abs(r["err"].get("C", math.nan)) for r in runs]
+        d = [abs(r["err"].get("D", math.nan)) for r in runs]
+        lines.append(f"| {name} | | | | | {fmt(c, 2)} | {fmt(d, 2)} |")
     return "\n".join(lines)
 
 
@@ -284,6 +371,8 @@ def main(argv=None):
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "out"))
     ap.add_argument("--skip-open-loop", action="store_true")
     ap.add_argument("--skip-closed-loop", action="store_true")
+    ap.add_argument("--step-fault", action="store_true",
+                    help="also: f steps 1.0 -> 0.6 at t = 200 s (brake cylinder failure)")
     args = ap.parse_args(argv)
     n_seeds = 3 if args.quick else args.seeds
     seeds = list(range(n_seeds))
@@ -348,6 +437,10 @@ def main(argv=None):
             print("\n" + "\n".join(notes))
             sections.append("\n".join(notes))
         print(f"\n(closed loop {time.perf_counter() - t1:.0f} s)")
+    if args.step_fault:
+        tab = step_fault_section(sc, algorithms, seeds, args.std_max)
+        print("\n" + tab, flush=True)
+        sections.append(tab)
     (out_dir / "bench_closed_loop.md").write_text("\n\n".join(sections) + "\n")
 
 

@@ -33,9 +33,24 @@ Algorithms (theta = braking rate f):
   parameter posterior (2) (7)-(8), new parameters drawn from ``N(theta_hat, P + Q_theta dt)``
   (3) (9), the KF states paired with them by the paper's search algorithm (5) (17) (see
   ``QGRBPF``), KF update (4) and prediction (6). No weight-based resampling step of its own.
+  ``quadrature=True``: the same Gaussian over theta carried by N Gauss-Hermite nodes whose KF
+  states are the joint Gaussian's conditional -- no random draw, no resampling, few particles.
 * ``RandomWalkRBPF`` -- continuous theta, Gaussian random-walk kernel, systematic resampling:
   the "RBPF" the Q-GRBPF paper compares with.
-* ``OracleKF`` -- one Kalman filter told the true theta_k: the limit every algorithm aims at.
+* ``BrakingKF`` -- one Kalman filter on (D, v, a_hat, a_z, f), f a random walk: the exact
+  Bayesian estimator of the braking model (f enters linearly given the known command;
+  ``braking_model.augmented_model``), the reference every table compares with.
+* ``OracleKF`` -- one Kalman filter told the true theta_k.
+
+**Priors and calibration (issue 15).** ``prior = (mean, std)``: discrete algorithms draw their
+initial values from the Gaussian's mass on each value's cell (``grid_prior``), continuous ones
+from the Gaussian (reflected into the bounds); None = the papers' uniform prior. A discrete
+value stands for its cell, so each particle carries the cell's variance ``h^2 / 12``
+(``cell_variance``) in the reported f variance, and SMA/GSMA form the estimate from *every*
+evaluated branch before pruning to the N best (``_after``) -- otherwise the reported f variance
+collapses to exactly 0 whenever the survivors share one value. ``merge=True`` (SMA/GSMA) replaces
+pruning by merging the particles of each value into one Gaussian (at most values x children KFs
+per step).
 
 **Standstill, coasting, traction.** When ``informative`` is False (``BrakingModel.gate``: no
 braking command, or standstill) every particle has the same model, so the likelihood is flat in
@@ -66,6 +81,7 @@ import numpy as np
 from scipy.special import ndtr
 
 from .batched_kf import log_normalize, mixture_moments, predict, update
+from .braking_model import augmented_model
 
 __all__ = [
     "Estimate",
@@ -76,6 +92,9 @@ __all__ = [
     "QGRBPF",
     "RandomWalkRBPF",
     "OracleKF",
+    "BrakingKF",
+    "grid_prior",
+    "cell_variance",
     "systematic_resample",
     "effective_sample_size",
     "neighbour_groups",
@@ -229,8 +248,10 @@ class RaoBlackwellFilter:
         else:
             theta, idx = self._theta_from_values(np.asarray(theta0, dtype=float))
         N = theta.shape[0]
+        lw0 = self._initial_logw(N) if theta0 is None else None
         self._s = _Set(theta=theta, x=np.repeat(x0[None], N, axis=0),
-                       P=np.repeat(P0[None], N, axis=0), logw=np.full(N, -np.log(N)), idx=idx)
+                       P=np.repeat(P0[None], N, axis=0),
+                       logw=np.full(N, -np.log(N)) if lw0 is None else lw0, idx=idx)
         self._t = None if t0 is None else float(t0)
         self.rejected = Counter()
         self.n_steps = 0
@@ -244,6 +265,10 @@ class RaoBlackwellFilter:
 
     def _initial_theta(self, rng):
         raise NotImplementedError
+
+    def _initial_logw(self, N):
+        """Initial normalised log-weights of the initial draw; None: uniform."""
+        return None
 
     # -- properties ------------------------------------------------------------------------
     @property
@@ -288,11 +313,7 @@ class RaoBlackwellFilter:
                     since = 0.0
                 else:
                     s = self._transition(s, False, rng, dt)
-                if informative or not hasattr(fam, "hold_gain"):
-                    Phi, Bu, Qd = fam.matrices(s.theta, u, dt, informative)
-                else:
-                    hold = fam.hold_gain(u, self._last.x_mean, float(self._last.theta_mean[0]))
-                    Phi, Bu, Qd = fam.matrices(s.theta, u, dt, informative, hold=hold)
+                Phi, Bu, Qd = self._model(s, u, dt, informative)
                 x, P = predict(s.x, s.P, Phi, Bu, Qd)
                 s = _Set(s.theta, x, P, s.logw, s.idx, s.extra)
             x, P, loglik = update(s.x, s.P, y_arr, fam.H, R, mask_arr)
@@ -386,6 +407,9 @@ class RaoBlackwellFilter:
         z = np.concatenate([s.x, s.theta], axis=1)
         zc = np.zeros((z.shape[0], n + dth, n + dth))
         zc[:, :n, :n] = s.P
+        tv = self._theta_var(s)
+        if tv is not None:
+            zc[:, n:, n:] = tv
         m, c = mixture_moments(w, z, zc)
         ri = list(fam.report_index) + list(range(n, n + dth))
         return Estimate(accepted, reason, self._t if t is None else float(t), m[ri],
@@ -394,6 +418,20 @@ class RaoBlackwellFilter:
                         bool(used), float(log_ev))
 
     # -- hooks -----------------------------------------------------------------------------
+    def _theta_var(self, s: _Set):
+        """Per-particle variance of theta around the particle's value, ``(N, d, d)``, or None
+        (point masses)."""
+        return None
+
+    def _model(self, s: _Set, u, dt: float, informative: bool):
+        """``(Phi, Bu, Qd)`` of this step for every particle (``family.matrices``); a step that
+        cannot inform theta uses one model shared by all particles (``family.hold_gain``)."""
+        fam = self.family
+        if informative or not hasattr(fam, "hold_gain"):
+            return fam.matrices(s.theta, u, dt, informative)
+        hold = fam.hold_gain(u, self._last.x_mean, float(self._last.theta_mean[0]))
+        return fam.matrices(s.theta, u, dt, informative, hold=hold)
+
     def _transition(self, s: _Set, informative: bool, rng, dt: float) -> _Set:
         """Parameter transition before the KF prediction (identity by default / when frozen or
         not due). ``dt``: time the transition covers (since the last one, for random walks)."""
@@ -414,18 +452,70 @@ class RaoBlackwellFilter:
 # discrete parameter set
 
 
+def grid_prior(values, prior) -> np.ndarray:
+    """Probabilities of the discrete values under ``prior = (mean, std)``: the Gaussian's mass
+    on each value's cell (the half-way points to its neighbours; the outer cells are open, so
+    the tails pile on the end values). ``prior`` None: uniform (Zheng Section 4)."""
+    v = np.asarray(values, dtype=float).reshape(-1)
+    if prior is None:
+        return np.full(v.size, 1.0 / v.size)
+    m, sd = (float(a) for a in prior)
+    if not (np.isfinite(m) and np.isfinite(sd) and sd > 0):
+        raise ValueError(f"prior must be a finite (mean, std > 0), got {prior!r}")
+    order = np.argsort(v)
+    vs = v[order]
+    edges = np.concatenate([[-np.inf], 0.5 * (vs[1:] + vs[:-1]), [np.inf]])
+    p_sorted = np.diff(ndtr((edges - m) / sd))
+    p = np.empty_like(p_sorted)
+    p[order] = p_sorted
+    if not p.sum() > 0:
+        raise ValueError("prior has no mass on the discrete set")
+    return p / p.sum()
+
+
+def cell_variance(values) -> np.ndarray:
+    """Variance ``h^2 / 12`` of a uniform spread over each value's cell, ``h`` the distance
+    between the half-way points to its neighbours (an end value: twice its inner half-width).
+    A discrete value stands for a continuous f anywhere in its cell (Sheppard's correction):
+    without it a grid posterior on one value reports std 0 while f can be up to h / 2 away.
+    One value: 0 (no grid, nothing to spread)."""
+    v = np.asarray(values, dtype=float).reshape(-1)
+    if v.size < 2:
+        return np.zeros(v.size)
+    order = np.argsort(v)
+    vs = v[order]
+    half = 0.5 * np.diff(vs)
+    lo = np.concatenate([[half[0]], half])
+    hi = np.concatenate([half, [half[-1]]])
+    out = np.empty(v.size)
+    out[order] = (lo + hi) ** 2 / 12.0
+    return out
+
+
 class _DiscreteBase(RaoBlackwellFilter):
-    def __init__(self, family, values, n_init: int):
+    def __init__(self, family, values, n_init: int, prior=None, cell_var: bool = True):
         super().__init__(family)
         self.values = np.asarray(values, dtype=float).reshape(-1)
         if self.values.size == 0 or not np.all(np.isfinite(self.values)):
             raise ValueError("values must be a non-empty finite set")
         self.n_init = int(n_init)
+        self.prior_p = grid_prior(self.values, prior)
+        self.prior = prior
+        self._cell_var = cell_variance(self.values) if cell_var else np.zeros(self.values.size)
 
     def _initial_theta(self, rng):
-        # Zheng Section 4: initial particles sampled in the discrete space (uniform prior).
-        idx = rng.integers(0, self.values.size, self.n_init)
+        # Zheng Section 4: initial particles sampled in the discrete space (uniform prior);
+        # with ``prior`` = (mean, std) from the Gaussian's mass on each value's cell.
+        if self.prior is None:
+            idx = rng.integers(0, self.values.size, self.n_init)
+        else:
+            idx = rng.choice(self.values.size, self.n_init, p=self.prior_p)
         return self.values[idx][:, None], idx
+
+    def _theta_var(self, s):
+        if s.idx is None:
+            return None
+        return self._cell_var[s.idx][:, None, None]
 
     def _theta_from_values(self, values):
         v = values.reshape(-1)
@@ -445,8 +535,9 @@ class DiscreteRBPF(_DiscreteBase):
     name = "rbpf"
 
     def __init__(self, family, values, transition, n_particles: int = 250,
-                 proposal: str = "prior", ess_frac: float = 0.5):
-        super().__init__(family, values, n_particles)
+                 proposal: str = "prior", ess_frac: float = 0.5, prior=None,
+                 cell_var: bool = True):
+        super().__init__(family, values, n_particles, prior, cell_var)
         T = np.asarray(transition, dtype=float)
         M = self.values.size
         if T.shape != (M, M) or np.any(T < 0) or not np.allclose(T.sum(axis=1), 1.0):
@@ -511,6 +602,24 @@ class DiscreteRBPF(_DiscreteBase):
         return _Set(s.theta[a], s.x[a], s.P[a], np.full(N, -np.log(N)), s.idx[a])
 
 
+def _merge_by_value(s: _Set, values) -> _Set:
+    """Collapse the particles that share a value into one Gaussian (moment matching: weight sum,
+    weighted mean, law of total covariance). Particles on one value have the same model from now
+    on, so their KF states only differ by their past; merging them keeps the mixture's first two
+    moments per value and bounds the particle count by the number of values (GPB1-style)."""
+    w, _ = log_normalize(s.logw)
+    present = np.flatnonzero(np.bincount(s.idx, weights=w, minlength=values.size) > 0)
+    G = (s.idx[None, :] == present[:, None]) * w[None, :]  # (K, N) weights per value
+    W = G.sum(axis=1)
+    Gn = G / W[:, None]
+    x = Gn @ s.x
+    dev = s.x[None, :, :] - x[:, None, :]  # (K, N, n)
+    P = np.einsum("kj,jab->kab", Gn, s.P) + np.einsum("kj,kja,kjb->kab", Gn, dev, dev)
+    lw = np.log(W)
+    return _Set(values[present][:, None], x, 0.5 * (P + np.swapaxes(P, -1, -2)),
+                lw - _lse_norm(lw)[1], present)
+
+
 class _BranchingFilter(_DiscreteBase):
     """SMA/GSMA: branch every particle to its allowed children, keep the best ``n_keep`` when
     the count exceeds ``q_max`` (Zheng 3.4-3.5). ``kernel[j, m] >= 0``: value j may go to value
@@ -518,8 +627,9 @@ class _BranchingFilter(_DiscreteBase):
     over the allowed children for a 0/1 kernel, as in the paper)."""
 
     def __init__(self, family, values, kernel, n_init: int = 50, n_keep: int = 50,
-                 q_max: int = 500):
-        super().__init__(family, values, n_init)
+                 q_max: int = 500, prior=None, cell_var: bool = True, merge: bool = False):
+        super().__init__(family, values, n_init, prior, cell_var)
+        self.merge = bool(merge)
         kernel = np.asarray(kernel, dtype=float)
         M = self.values.size
         if kernel.shape != (M, M) or np.any(kernel < 0) or not np.all((kernel > 0).any(axis=1)):
@@ -540,16 +650,35 @@ class _BranchingFilter(_DiscreteBase):
         return _Set(self.values[child][:, None], s.x[parent], s.P[parent],
                     lw - _lse_norm(lw)[1], child)
 
-    def _reduce(self, s, loglik, informative, rng):
-        lw = s.logw + loglik
-        _, logz = _lse_norm(lw)
-        lw = lw - logz
-        if informative and lw.size > self.q_max:
+    def _initial_theta(self, rng):
+        if not self.merge:
+            return super()._initial_theta(rng)
+        # merged form: one hypothesis per value, weighted by the prior (see _initial_logw)
+        idx = np.arange(self.values.size)
+        return self.values[:, None], idx
+
+    def _initial_logw(self, N):
+        if not self.merge:
+            return None
+        with np.errstate(divide="ignore"):
+            lw = np.log(self.prior_p)
+        return lw - _lse_norm(lw)[1]
+
+    def _after(self, s, informative, rng):
+        # Reduction happens *after* the estimate of this step is formed (base step): the
+        # estimate uses every evaluated branch. Pruning before it (as the paper's loop reads)
+        # throws away the branches' probability mass and reports a too narrow f posterior --
+        # with all kept particles on one value, a variance of exactly 0.
+        if not informative:
+            return s
+        if self.merge:
+            return _merge_by_value(s, self.values)
+        if s.logw.size > self.q_max:
             # keep the n_keep largest weights; sorted by index for reproducibility
-            keep = np.sort(np.argpartition(-lw, self.n_keep - 1)[: self.n_keep])
-            lw = lw[keep] - _lse_norm(lw[keep])[1]
-            return _Set(s.theta[keep], s.x[keep], s.P[keep], lw, s.idx[keep]), logz
-        return _Set(s.theta, s.x, s.P, lw, s.idx), logz
+            keep = np.sort(np.argpartition(-s.logw, self.n_keep - 1)[: self.n_keep])
+            lw = s.logw[keep] - _lse_norm(s.logw[keep])[1]
+            return _Set(s.theta[keep], s.x[keep], s.P[keep], lw, s.idx[keep])
+        return s
 
 
 class SMA(_BranchingFilter):
@@ -560,10 +689,10 @@ class SMA(_BranchingFilter):
     name = "sma"
 
     def __init__(self, family, values, n_init: int = 50, n_keep: int = 50, q_max: int = 500,
-                 transition=None):
+                 transition=None, prior=None, cell_var: bool = True, merge: bool = False):
         M = np.asarray(values).size
         kernel = np.ones((M, M)) if transition is None else transition
-        super().__init__(family, values, kernel, n_init, n_keep, q_max)
+        super().__init__(family, values, kernel, n_init, n_keep, q_max, prior, cell_var, merge)
 
 
 class GSMA(_BranchingFilter):
@@ -575,7 +704,8 @@ class GSMA(_BranchingFilter):
     name = "gsma"
 
     def __init__(self, family, values, groups=None, n_init: int = 50, n_keep: int = 50,
-                 q_max: int = 500, transition=None):
+                 q_max: int = 500, transition=None, prior=None, cell_var: bool = True,
+                 merge: bool = False):
         vals = np.asarray(values, dtype=float).reshape(-1)
         groups = neighbour_groups(vals.size) if groups is None else [tuple(g) for g in groups]
         means = np.array([vals[list(g)].mean() for g in groups])
@@ -586,7 +716,7 @@ class GSMA(_BranchingFilter):
             member[j, list(groups[closest[j]])] = 1.0
         kernel = member if transition is None else member * np.asarray(transition, dtype=float)
         self.groups = groups
-        super().__init__(family, vals, kernel, n_init, n_keep, q_max)
+        super().__init__(family, vals, kernel, n_init, n_keep, q_max, prior, cell_var, merge)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -594,8 +724,13 @@ class GSMA(_BranchingFilter):
 
 
 class _ContinuousBase(RaoBlackwellFilter):
-    def __init__(self, family, bounds, n_particles: int, q_theta):
+    def __init__(self, family, bounds, n_particles: int, q_theta, prior=None):
         super().__init__(family)
+        if prior is not None:
+            m, sd = (float(a) for a in np.broadcast_to(np.asarray(prior, float), (2,)))
+            if not (np.isfinite(m) and np.isfinite(sd) and sd > 0):
+                raise ValueError(f"prior must be a finite (mean, std > 0), got {prior!r}")
+        self.prior = prior
         b = np.asarray(bounds, dtype=float).reshape(-1, 2)
         if b.shape[0] != family.d or not np.all(b[:, 1] > b[:, 0]):
             raise ValueError("bounds: one (lo, hi) with lo < hi per parameter")
@@ -607,8 +742,13 @@ class _ContinuousBase(RaoBlackwellFilter):
             raise ValueError("q_theta must be positive semi-definite")
 
     def _initial_theta(self, rng):
-        # Q-GRBPF step 1: uniform in [theta_min, theta_max]
-        return self.lo + (self.hi - self.lo) * rng.random((self.n, self.family.d)), None
+        # Q-GRBPF step 1: uniform in [theta_min, theta_max]; with ``prior`` = (mean, std):
+        # N(mean, std^2) reflected into the bounds
+        if self.prior is None:
+            return self.lo + (self.hi - self.lo) * rng.random((self.n, self.family.d)), None
+        m, sd = self.prior
+        th = m + sd * rng.standard_normal((self.n, self.family.d))
+        return _reflect(th, self.lo, self.hi), None
 
 
 class QGRBPF(_ContinuousBase):
@@ -634,13 +774,32 @@ class QGRBPF(_ContinuousBase):
 
     name = "qgrbpf"
 
-    def __init__(self, family, bounds, n_particles: int = 50, q_theta=0.0, min_var=1e-8):
-        super().__init__(family, bounds, n_particles, q_theta)
+    def __init__(self, family, bounds, n_particles: int = 50, q_theta=0.0, min_var=1e-8,
+                 prior=None, quadrature: bool = False):
+        super().__init__(family, bounds, n_particles, q_theta, prior)
         self.min_var = float(min_var)
+        self.quadrature = bool(quadrature)
+        if self.quadrature:
+            if family.d != 1:
+                raise ValueError("quadrature: one parameter only")
+            z, wq = np.polynomial.hermite_e.hermegauss(self.n)  # nodes/weights for N(0, 1)
+            self._gh = (z, np.log(wq / wq.sum()))
+
+    def _initial_theta(self, rng):
+        if not self.quadrature:
+            return super()._initial_theta(rng)
+        m, sd = self.prior if self.prior is not None else (
+            0.5 * (self.lo[0] + self.hi[0]), (self.hi[0] - self.lo[0]) / np.sqrt(12.0))
+        return np.clip(m + sd * self._gh[0], self.lo, self.hi)[:, None], None
+
+    def _initial_logw(self, N):
+        return self._gh[1].copy() if self.quadrature else None
 
     def _transition(self, s, informative, rng, dt):
         if not informative:
             return s  # frozen: keep particles and weights
+        if self.quadrature:
+            return self._transition_quadrature(s, dt)
         N, dth = self.n, self.family.d
         w, _ = log_normalize(s.logw)
         mu, cov = mixture_moments(w, s.theta)  # eq. (7), (8)
@@ -658,6 +817,32 @@ class QGRBPF(_ContinuousBase):
         anc = order[np.minimum(np.searchsorted(cdf, ndtr(z[:, 0]), side="left"), w.size - 1)]
         return _Set(theta, s.x[anc], s.P[anc], np.full(N, -np.log(N)))
 
+    def _transition_quadrature(self, s, dt):
+        """Deterministic form (``quadrature=True``): the Gaussian of eq. (7)-(9) over
+        ``(x, theta)`` jointly, represented by ``N`` Gauss-Hermite nodes in theta; no random
+        draw and no resampling search. The KF state of node j is the Gaussian conditional
+        ``E[x | theta_j] = x_bar + C_x,theta / var (theta_j - theta_hat)`` with the conditional
+        covariance ``Sigma_x - C C^T / var`` (``var`` includes the random-walk step, which is
+        independent of x). The nodes' weighted mixture then has exactly the joint Gaussian's
+        mean and covariance. Because theta enters the braking model linearly, few nodes suffice.
+        """
+        w, _ = log_normalize(s.logw)
+        th = s.theta[:, 0]
+        mu = w @ th
+        dth = th - mu
+        var = w @ (dth * dth) + self.q_theta[0, 0] * dt + self.min_var
+        xm = w @ s.x
+        dx = s.x - xm
+        cxt = (w * dth) @ dx  # (n,) Cov(x, theta)
+        Sx = np.einsum("k,kij->ij", w, s.P) + (w[:, None] * dx).T @ dx
+        beta = cxt / var
+        Pc = Sx - np.outer(cxt, beta)
+        z, lw = self._gh
+        theta = np.clip(mu + np.sqrt(var) * z, self.lo[0], self.hi[0])
+        x = xm + (theta - mu)[:, None] * beta[None, :]
+        P = np.repeat(0.5 * (Pc + Pc.T)[None], z.size, axis=0)
+        return _Set(theta[:, None], x, P, lw.copy())
+
 
 class RandomWalkRBPF(_ContinuousBase):
     """Bootstrap RBPF with a Gaussian random-walk kernel ``theta_k = theta_{k-1} + N(0, Q dt)``
@@ -666,8 +851,8 @@ class RandomWalkRBPF(_ContinuousBase):
     name = "rbpf_rw"
 
     def __init__(self, family, bounds, n_particles: int = 250, q_theta=1e-4,
-                 ess_frac: float = 0.5):
-        super().__init__(family, bounds, n_particles, q_theta)
+                 ess_frac: float = 0.5, prior=None):
+        super().__init__(family, bounds, n_particles, q_theta, prior)
         self.ess_frac = float(ess_frac)
         ev, V = np.linalg.eigh(self.q_theta)
         self._L = V * np.sqrt(np.clip(ev, 0.0, None))
@@ -715,3 +900,91 @@ class OracleKF(RaoBlackwellFilter):
         if self._pending is None:
             return s
         return _Set(self._pending.copy(), s.x, s.P, s.logw)
+
+
+# ----------------------------------------------------------------------------------------------
+# the exact reference: one Kalman filter with f in the state
+
+
+class _AugmentedFamily:
+    """``BrakingModel`` seen with f as a fifth KF state (``braking_model.augmented_model``).
+
+    Only what the common step needs: ``n`` = 5, no particle parameter (``d`` = 0), the
+    measurement rows padded with a zero f column, the braking model's gates.
+    """
+
+    n = 5
+    d = 0
+    report_index = (0, 1, 2, 4)  # D, v, a_hat, f
+
+    def __init__(self, family):
+        self.base = family
+        self.params = family.params
+        self.H = np.hstack([family.H, np.zeros((family.H.shape[0], 1))])
+        self.R = family.R
+
+    def default_dt(self) -> float:
+        return self.base.default_dt()
+
+    def gate(self, u, x_mean) -> bool:
+        return self.base.gate(u, x_mean)
+
+    def hold_gain(self, u, x_mean, f_mean: float) -> float:
+        return self.base.hold_gain(u, x_mean, f_mean)
+
+
+class BrakingKF(RaoBlackwellFilter):
+    """Kalman filter on ``(D, v, a_hat, a_z, f)`` with f a random walk: the exact Bayesian
+    estimator of the braking model for a Gaussian prior on f, given the known command (see
+    ``braking_model.augmented_model``; exact when ``a_z`` is known, i.e. its variance is 0 --
+    ``a_z`` is the Pade response to the command, so in the live system it is). One "particle";
+    the common step (validation, rejection, gating, ``batched_kf.predict`` / ``update``) is the
+    base class's.
+
+    ``f_prior = (mean, std)`` of f at reset (``reset(theta0=...)`` overrides the mean);
+    ``q_theta`` (1/s): random-walk variance of f per second of *informative* time (frozen
+    otherwise, like the particle filters).
+    """
+
+    name = "kf"
+
+    def __init__(self, family, q_theta: float = 1e-4, f_prior=(1.0, 0.15)):
+        if not (np.isfinite(q_theta) and q_theta >= 0):
+            raise ValueError(f"q_theta must be finite and >= 0, got {q_theta!r}")
+        m, sd = (float(v) for v in f_prior)
+        if not (np.isfinite(m) and np.isfinite(sd) and sd >= 0):
+            raise ValueError(f"f_prior must be a finite (mean, std >= 0), got {f_prior!r}")
+        super().__init__(_AugmentedFamily(family))
+        self.q_theta = float(q_theta)
+        self.f_prior = (m, sd)
+
+    def reset(self, x0, P0, rng=None, theta0=None, t0=None) -> Estimate:
+        """``x0 (4,)``, ``P0 (4, 4)``: (D, v, a_hat, a_z) as for the particle filters; f starts
+        at ``N(theta0 or f_prior mean, f_prior std^2)``, uncorrelated with the rest."""
+        x0 = np.asarray(x0, dtype=float).reshape(4)
+        P0 = np.asarray(P0, dtype=float).reshape(4, 4)
+        m = self.f_prior[0] if theta0 is None else float(np.mean(theta0))
+        z = np.append(x0, m)
+        Pz = np.zeros((5, 5))
+        Pz[:4, :4] = P0
+        Pz[4, 4] = self.f_prior[1] ** 2
+        est = super().reset(z, Pz, None, np.zeros((1, 0)), t0)
+        return est
+
+    def _theta_from_values(self, values):
+        return np.zeros((1, 0)), None
+
+    def _model(self, s, u, dt, informative):
+        hold = None
+        if not informative:
+            hold = self.family.hold_gain(u, self._last.x_mean, float(self._last.theta_mean[0]))
+        F, b, Q = augmented_model(self.family.params, u, dt, float(s.x[0, 3]), informative,
+                                  hold, self.q_theta)
+        return F[None], b[None], Q
+
+    def _summary(self, s, accepted, reason, informative, used, log_ev, t=None) -> Estimate:
+        x, P = s.x[0], s.P[0]
+        ri = list(self.family.report_index)
+        return Estimate(accepted, reason, self._t if t is None else float(t), x[ri],
+                        P[np.ix_(ri, ri)], x[:4], P[:4, :4], x[4:], P[4:, 4:], 1, 1.0,
+                        bool(informative), bool(used), float(log_ev))

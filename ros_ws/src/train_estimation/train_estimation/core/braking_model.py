@@ -61,6 +61,7 @@ __all__ = [
     "discretize",
     "process_noise",
     "simulate_open_loop",
+    "augmented_model",
     "MEAS_NAMES",
 ]
 
@@ -268,6 +269,47 @@ class BrakingModel:
             f = np.array([1.0 if u[0] >= 0.0 else 0.0])
         Phi, Bd, Qd = discretize(f, self.params, dt)
         return Phi, Bd @ u, Qd
+
+
+def augmented_model(params: BrakingParams, u, dt: float, az_mean: float, informative: bool,
+                    hold: float | None = None, q_f: float = 0.0):
+    """The braking model with f as a fifth state, ``z = (D, v, a_hat, a_z, f)``: ``z' = F z + b +
+    w``, ``w ~ N(0, Q)``, exactly linear when ``a_z`` is known.
+
+    Why this is exact. ``Phi(f) x + B(f) u = Phi(0) x + B(0) u + f (Phi(1) - Phi(0)) x +
+    f (B(1) - B(0)) u`` (the affine form above). ``Phi(1) - Phi(0)`` has a single non-zero
+    column, ``a_z``'s (f scales only the edge ``a_z -> a_hat``), and ``Phi(0)`` has no path from
+    ``a_z`` to ``(D, v, a_hat)``. So, with ``a_z`` known over the step (it is the Pade response
+    to the *known* command; ``az_mean`` is its value at the start of the step), the f column is
+    the known vector ``c = (Phi(1) - Phi(0))[:, 3] az_mean + (B(1) - B(0)) u`` and a Kalman
+    filter on ``z`` is the exact Bayesian estimator for a Gaussian prior on f and the random walk
+    ``f' = f + N(0, q_f dt)``. (``a_z`` itself evolves independently of everything else; its
+    row and column are carried unchanged, and an ``a_z`` reading updates it alone.)
+
+    Steps that cannot inform f (``informative`` False: traction, standstill, weak trim) use the
+    shared model of gain ``hold`` (``BrakingModel.matrices``) with no f column and no f noise: the
+    f marginal is frozen, as in the particle filters.
+
+    Returns ``F (5, 5)``, ``b (5,)``, ``Q (5, 5)``.
+    """
+    u = np.asarray(u, dtype=float)
+    F = np.zeros((5, 5))
+    b = np.zeros(5)
+    Q = np.zeros((5, 5))
+    F[4, 4] = 1.0
+    if informative:
+        P0, P1, B0, B1, Qd = _affine_pieces(params, float(dt))
+        F[:4, :4] = P0
+        F[:4, 4] = P1[:, 3] * float(az_mean) + B1 @ u
+        b[:4] = B0 @ u
+        Q[4, 4] = float(q_f) * float(dt)
+    else:
+        g = (1.0 if u[0] >= 0.0 else 0.0) if hold is None else float(hold)
+        Phi, Bd, Qd = discretize(np.array([g]), params, dt)
+        F[:4, :4] = Phi[0]
+        b[:4] = Bd[0] @ u
+    Q[:4, :4] = Qd
+    return F, b, Q
 
 
 def simulate_open_loop(params: BrakingParams, f_seq, u_seq, x0, rng: np.random.Generator,

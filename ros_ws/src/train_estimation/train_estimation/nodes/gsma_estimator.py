@@ -1,4 +1,4 @@
-"""`gsma_estimator`: braking rate, position and velocity (GSMA, SMA, RBPF or Q-GRBPF).
+"""`gsma_estimator`: braking rate, position and velocity (GSMA, SMA, RBPF, Q-GRBPF or the KF).
 
 Subscribes ``control``, ``odometer``, ``balise``; publishes ``estimate/gsma`` (source = the
 algorithm) with position, velocity, control acceleration (a-hat), braking rate and the 4x4
@@ -27,6 +27,9 @@ def make_adapter(node, train, line, start, common):
     cfg = BrakingConfig(
         algorithm=algorithm,
         values=tuple(declare("values", list(d.values), "discrete braking-rate set")),
+        f_prior_std=declare("f_prior_std", d.f_prior_std,
+                            "std of the f prior (centred on train.yaml's braking_rate)"),
+        merge=declare("merge", d.merge, "GSMA/SMA: merge particles per value, no pruning"),
         n_init=declare("n_init", d.n_init, "N0, initial particles"),
         n_keep=declare("n_keep", d.n_keep, "N, particles kept after pruning"),
         q_max=declare("q_max", d.q_max, "Q, prune when the count exceeds it"),
@@ -36,6 +39,7 @@ def make_adapter(node, train, line, start, common):
         rbpf_p_move=declare("rbpf_p_move", d.rbpf_p_move, "RBPF: P(move to a neighbour)"),
         qgrbpf_particles=declare("qgrbpf_particles", d.qgrbpf_particles, "Q-GRBPF particles"),
         qgrbpf_q_theta=declare("qgrbpf_q_theta", d.qgrbpf_q_theta, "1/s, f random walk"),
+        kf_q_theta=declare("kf_q_theta", d.kf_q_theta, "1/s, f random walk while braking (KF)"),
         transition_interval=declare("transition_interval", d.transition_interval,
                                     "s between f transitions"),
         accel_var=declare("accel_var", d.accel_var, "m^2/s^3, acceleration noise PSD"),
