@@ -3,7 +3,8 @@
 import numpy as np
 import pytest
 
-from train_estimation.core.batched_kf import log_normalize, mixture_moments, predict, update
+from train_estimation.core.batched_kf import mixture_moments, predict, update
+from train_estimation.core.smc import log_normalize
 
 
 def _random_model(rng, n=4, p=3):

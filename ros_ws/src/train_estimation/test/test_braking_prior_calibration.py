@@ -6,7 +6,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from train_estimation.core.batched_kf import log_normalize, mixture_moments
+from train_estimation.core.batched_kf import mixture_moments
 from train_estimation.core.braking_filters import (
     GSMA,
     QGRBPF,
@@ -21,6 +21,7 @@ from train_estimation.core.braking_filters import (
     sticky_transition,
 )
 from train_estimation.core.braking_model import BrakingModel, BrakingParams, simulate_open_loop
+from train_estimation.core.smc import log_normalize
 
 VALUES = np.round(np.arange(10, -1, -1) * 0.1, 10)
 X0 = np.array([0.0, 20.0, -1.0, -2.0])

@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["predict", "update", "log_normalize", "mixture_moments"]
+__all__ = ["predict", "update", "mixture_moments"]
 
 _LOG2PI = float(np.log(2.0 * np.pi))
 
@@ -84,25 +84,6 @@ def update(x, P, y, H, R, mask):
         P = P - (Ph[:, :, None] * Ph[:, None, :]) / s[:, None, None]
         loglik = loglik - 0.5 * (_LOG2PI + np.log(s) + e * e / s)
     return x, P, loglik
-
-
-def log_normalize(logw):
-    """Normalised weights and ``log sum exp`` of log-weights, underflow-safe.
-
-    Returns ``(w, logZ)``; ``w`` sums to one. Entries of ``-inf`` get weight 0. Raises
-    ``ValueError`` if no entry is finite (nothing to normalise) or any entry is NaN/+inf.
-    """
-    logw = np.asarray(logw, dtype=float)
-    if logw.size == 0:
-        raise ValueError("no particles")
-    if np.any(np.isnan(logw)) or np.any(logw == np.inf):
-        raise ValueError("NaN or +inf log-weight")
-    m = np.max(logw)
-    if not np.isfinite(m):
-        raise ValueError("all log-weights are -inf")
-    e = np.exp(logw - m)
-    s = e.sum()
-    return e / s, float(m + np.log(s))
 
 
 def mixture_moments(w, means, covs=None):

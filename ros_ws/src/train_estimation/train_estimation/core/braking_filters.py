@@ -80,8 +80,10 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.special import ndtr
 
-from .batched_kf import log_normalize, mixture_moments, predict, update
+from . import smc
+from .batched_kf import mixture_moments, predict, update
 from .braking_model import augmented_model
+from .smc import effective_sample_size, log_normalize
 
 __all__ = [
     "Estimate",
@@ -106,28 +108,11 @@ __all__ = [
 # helpers
 
 
-def effective_sample_size(logw) -> float:
-    """``N_eff = 1 / sum w_i^2`` of normalised weights (Zheng 3.2 step 4; the paper prints the
-    *unnormalised* weights there and squares the denominator of step 3: both slips)."""
-    w, _ = log_normalize(logw)
-    return float(1.0 / np.sum(w * w))
-
-
 def systematic_resample(logw, n: int, rng: np.random.Generator) -> np.ndarray:
-    """Systematic resampling: ``n`` ancestor indices, ``u_j = (U + j) / n``, ``U ~ U[0, 1)``.
-
-    Weights are normalised in log space; ``-inf`` entries are never drawn. Each index ``i`` is
-    drawn ``floor(n w_i)`` or ``ceil(n w_i)`` times (so equal weights give every index exactly
-    once when ``n`` equals the particle count). Raises ``ValueError`` if no weight is positive.
-    """
+    """``n`` ancestor indices by systematic resampling of log-weights (smc.systematic_resample);
+    ``-inf`` entries are never drawn; ``ValueError`` if no weight is positive."""
     w, _ = log_normalize(logw)
-    cdf = np.cumsum(w)
-    cdf[-1] = 1.0  # round-off: the last bin must catch u close to 1
-    u = (rng.random() + np.arange(n)) / n
-    idx = np.searchsorted(cdf, u, side="right")
-    # searchsorted(side="right") never picks a zero-weight bin: such a bin has the same cdf as
-    # its predecessor, so u lands after it.
-    return np.minimum(idx, len(w) - 1)
+    return smc.systematic_resample(w, rng, n)
 
 
 def neighbour_groups(n_values: int) -> list[tuple[int, ...]]:

@@ -49,6 +49,7 @@ from .em_model import (
     theta_change,
     velocity_drift,
 )
+from .smc import log_normalize, systematic_resample
 
 __all__ = [
     "Prior",
@@ -110,35 +111,6 @@ class EMResult:
 # ---------------------------------------------------------------------------------------------
 # Particle machinery
 # ---------------------------------------------------------------------------------------------
-
-
-def systematic_resample(w: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """Systematic resampling of normalised weights ``w`` (N, *b) independently per batch element.
-
-    Returns ancestor indices (N, *b). One searchsorted over all batch elements at once: each
-    element's cumulative weights are shifted by its flat index m, which keeps the concatenation
-    monotone, and the offsets are removed afterwards.
-    """
-    N = w.shape[0]
-    wb = np.moveaxis(w, 0, -1).reshape(-1, N)
-    M = wb.shape[0]
-    cw = np.cumsum(wb, axis=1)
-    cw[:, -1] = 1.0  # guard against round-off: the last bin must catch u < 1
-    off = np.arange(M)[:, None]
-    pos = (rng.random((M, 1)) + np.arange(N)[None, :]) / N
-    idx = np.searchsorted((cw + off).ravel(), (pos + off).ravel(), side="right")
-    idx = np.minimum(idx.reshape(M, N) - off * N, N - 1)
-    return np.moveaxis(idx.reshape(np.moveaxis(w, 0, -1).shape), -1, 0)
-
-
-def _normalise_log(logw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Normalise log-weights over the particle axis; returns (w, log of the sum)."""
-    mx = np.max(logw, axis=0)
-    if not np.all(np.isfinite(mx)):
-        raise FloatingPointError("all particle weights are zero or not finite")
-    e = np.exp(logw - mx)
-    tot = np.sum(e, axis=0)
-    return e / tot, mx + np.log(tot)
 
 
 def _check_data(y1, y2, u):
@@ -262,7 +234,7 @@ def particle_e_step(y1, y2, u, vt, noise: NoiseParams, rng: np.random.Generator,
             K = Pm / S
             s = shat + K * (y1[t - 1] - shat)
             Ps = (1.0 - K) * Pm
-        w, lz = _normalise_log(np.log(w) + logl)  # eq. (28)
+        w, lz = log_normalize(np.log(w) + logl)  # eq. (28)
         loglik = loglik + lz
         hist = np.concatenate([hist[1:], v[None]], axis=0)
         v_mean[t] = np.sum(w * v, axis=0)  # eq. (25) with its sum; overwritten if L > 0
