@@ -51,11 +51,11 @@ Pure: numpy/scipy only.
 from __future__ import annotations
 
 import math
-from bisect import bisect_right
 from dataclasses import dataclass, field
 from functools import cached_property, lru_cache
 
 import numpy as np
+from train_core.dynamics import GradientLookup
 from train_core.model import Line, TrainParams
 
 from .discretize import zoh
@@ -136,24 +136,13 @@ class WenModel:
                                  self.uncertainty)
 
     @cached_property
-    def _gradient_table(self) -> tuple[list[float], list[float]]:
-        """Section boundaries and g sin(theta) per interval, for a bisect lookup (hot path)."""
-        bounds, vals = [], [0.0]
-        for sec in sorted(self.line.gradients, key=lambda s: s.start):
-            mid = 0.5 * (sec.start + sec.end)
-            if bounds and bounds[-1] == sec.start:
-                vals[-1] = float(self.line.gradient_accel(mid))
-            else:
-                bounds.append(sec.start)
-                vals.append(float(self.line.gradient_accel(mid)))
-            bounds.append(sec.end)
-            vals.append(0.0)
-        return bounds, vals
+    def _gradient(self) -> GradientLookup:
+        """g sin(theta(x)) by bisection (hot path): the simulator's lookup with lambda = 0."""
+        return GradientLookup(self.line, 0.0)
 
     def gradient_force(self, position: float) -> float:
         """N, F_grad = M g sin(theta(x)) (eq. (2)); positive uphill (opposes motion)."""
-        bounds, vals = self._gradient_table
-        return self.mass * vals[bisect_right(bounds, position)]
+        return self.mass * self._gradient(position)
 
     def known_input(self, dm: DiscreteWen, position: float, control_accel: float) -> np.ndarray:
         """The known part of eq. (10): ``B~ F_drive + E~ (f~ + F_grad)`` (2-vector, SI)."""
