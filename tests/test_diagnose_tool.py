@@ -311,12 +311,7 @@ def test_summary_last_line_is_the_cause(metro, tmp_path, capsys, diagnosed):
 
 # (cause(s), size, seed): seeds fixed in advance, not picked for passing. Known failures of the
 # core are marked xfail(strict): the mark must go when the core is fixed.
-KNOWN = {("odometer_scale", 203): "core: a 1.6 % odometer scale on a line with few balises (7 "
-                                  "readings) is explained as wheel-slip episodes (score 17744) "
-                                  "and the scale fit gives 1.001 instead of 0.984",
-         ("gradient", 240): "core: subtle section (-2.29 per mille on [3594, 4044) m) found as "
-                            "-1.78 on [3487, 4104): permille within 4 SE but the start 107 m "
-                            "off (the same height change spread over a longer section)"}
+KNOWN: dict = {}  # (cause, seed) -> reason
 SPECS = [(c, "plain", 200 + i) for i, c in enumerate(CAUSES)] + [
     (None, "plain", 230), (("gradient", "mass"), "plain", 231), ("gradient", "subtle", 240),
     ("brake_delay", "subtle", 241)]
