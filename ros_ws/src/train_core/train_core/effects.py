@@ -177,8 +177,8 @@ def true_link(link: LinkParams, eff: Effects) -> LinkParams:
     b = eff.bursty_link
     if b is None:
         return link
-    return LinkParams(model="gilbert_elliott", p=link.p, r=link.r, p_good_bad=b.p_good_bad,
-                      p_bad_good=b.p_bad_good, loss_good=b.loss_good, loss_bad=b.loss_bad)
+    return replace(link, model="gilbert_elliott", p_good_bad=b.p_good_bad,
+                   p_bad_good=b.p_bad_good, loss_good=b.loss_good, loss_bad=b.loss_bad)
 
 
 def braking_rate_at(eff: Effects, train: TrainParams, t: float) -> float:
