@@ -90,3 +90,12 @@ def test_core_replay_equals_the_world(closed):
                   tr["position"][k0], tr["velocity"][k0])
     assert np.max(np.abs(v - tr["velocity"][sel])) < 1e-6
     assert np.max(np.abs(x - tr["position"][sel])) < 1e-5
+
+
+def test_bursty_link_keeps_latency_and_outages():
+    from train_core.effects import BurstyLinkEffect, true_link
+
+    base = LinkParams(latency=0.05, jitter=0.01, outages=((10.0, 20.0),))
+    tl = true_link(base, Effects(bursty_link=BurstyLinkEffect(0.02, 0.3)))
+    assert tl.model == "gilbert_elliott" and (tl.p_good_bad, tl.p_bad_good) == (0.02, 0.3)
+    assert (tl.latency, tl.jitter, tl.outages) == (base.latency, base.jitter, base.outages)
