@@ -1,10 +1,12 @@
 """The ROS layer shared by `robust_filter` and `gsma_estimator`.
 
-Callbacks only enqueue (``EstimatorRunner.push``). A steady wall-clock timer moves the runner to
-``now - output_delay`` on the node's clock (sim time under ``use_sim_time``), which steps the core
-in stamp order and returns one estimate per odometer period; each is published as a TrainState
-stamped with its sample time. Rejected input is logged with its reason (throttled) and counted;
-the counts are logged at shutdown.
+Callbacks push the message with its arrival time on the node's clock into the runner
+(``EstimatorRunner.push``) and at once advance the runner to its ready time, so that an odometer
+sample's estimate is published as soon as the sample (and the command of its cycle) is in; a
+steady wall-clock timer does the same for lost samples (predicted slots). Each estimate is a
+TrainState stamped with its sample's own stamp (the odometer's clock). Rejected input is logged
+with its reason (throttled; names of ``core/reasons.py``) and counted; events (a sequence
+reset, separate clocks found) are logged once each; the counts are logged at shutdown.
 """
 
 from __future__ import annotations
@@ -29,7 +31,13 @@ def declare_common(node) -> dict:
         "initial_position_std": declare("initial_position_std", 5.0, "m"),
         "odometer_rate": declare("odometer_rate", 10.0, "Hz, output rate = odometer rate"),
         "output_delay": declare("output_delay", 0.05,
-                                "s, an estimate of time t is output at clock t + delay"),
+                                "s, without control messages, an estimate of time t is output "
+                                "at clock t + delay"),
+        "control_clock": declare("control_clock", "auto",
+                                 "clock of control stamps: auto | same (the odometer's) | "
+                                 "reference (the receive clock)"),
+        "max_future": declare("max_future", 30.0,
+                              "s, a stamp this far after its arrival is refused (future_stamp)"),
     }
 
 
@@ -80,7 +88,14 @@ def build_estimator_node(name: str, topic: str, make_adapter: Callable):
                 self.adapter = make_adapter(self, train, line, start, common)
             except ValueError as exc:
                 raise ParameterError(str(exc)) from None
-            self.runner = EstimatorRunner(self.adapter, 1.0 / common["odometer_rate"])
+            try:
+                self.runner = EstimatorRunner(self.adapter, 1.0 / common["odometer_rate"],
+                                              control_clock=common["control_clock"],
+                                              max_future=common["max_future"])
+            except ValueError as exc:
+                raise ParameterError(f"parameter control_clock: {exc}") from None
+            self.n_events = 0
+            self.separate_logged = False
             self.delay = common["output_delay"]
             self.pub = self.create_publisher(TrainState, topic, 1000)
             self.create_subscription(OdometerReading, "odometer", self.on_odometer, 2000)
@@ -93,10 +108,16 @@ def build_estimator_node(name: str, topic: str, make_adapter: Callable):
                 f"{self.adapter.source} on {line.name} / {train.name}, start at "
                 f"{start.position:.1f} m, output {common['odometer_rate']:g} Hz on '{topic}'")
 
+        def now(self) -> float:
+            return self.get_clock().now().nanoseconds * 1e-9
+
         def _push(self, kind: str, msg, fields: dict) -> None:
-            reason = self.runner.push(kind, stamp_to_sec(msg.header.stamp), fields)
+            now = self.now()
+            reason = self.runner.push(kind, stamp_to_sec(msg.header.stamp), fields,
+                                      now if now > 0.0 else None)
             if reason:
                 self.get_logger().warning(f"{kind} rejected: {reason}", throttle_duration_sec=2.0)
+            self.tick()
 
         def on_odometer(self, msg) -> None:
             self._push("odometer", msg, {"seq": msg.seq, "distance": msg.distance,
@@ -111,7 +132,7 @@ def build_estimator_node(name: str, topic: str, make_adapter: Callable):
             self._push("control", msg, {"target_acceleration": msg.target_acceleration})
 
         def tick(self) -> None:
-            now = self.get_clock().now().nanoseconds * 1e-9
+            now = self.now()
             if now <= 0.0:  # no /clock yet under use_sim_time
                 return
             # Outputs wait for the inputs' watermarks (or 4 x delay for a lost sample), so the
@@ -127,6 +148,16 @@ def build_estimator_node(name: str, topic: str, make_adapter: Callable):
                 msg.covariance = list(out.covariance)
                 msg.measurement_used = out.measurement_used
                 self.pub.publish(msg)
+            events = sum(self.runner.events.values())
+            if events > self.n_events:  # accepted input worth a line each (seq reset, ...)
+                for kind, stamp, text in self.runner.last_events[-(events - self.n_events):]:
+                    self.get_logger().info(f"{kind} at {stamp:.3f} s: {text}")
+                self.n_events = events
+            if self.runner.separate_clocks and not self.separate_logged:
+                self.separate_logged = True
+                self.get_logger().info("control is stamped on another clock than the odometer: "
+                                       "mapped onto the odometer's clock (drift "
+                                       f"{self.runner.drift:.2e} so far)")
             total = sum(self.runner.rejected.values())
             if total > self.n_reported:  # the core refused input: say why (throttled)
                 kind, stamp, why = self.runner.last_reasons[-1]
@@ -136,6 +167,7 @@ def build_estimator_node(name: str, topic: str, make_adapter: Callable):
 
         def close(self) -> None:
             self.get_logger().info(f"accepted {dict(self.runner.accepted)}; "
-                                   f"rejected {dict(self.runner.rejected) or 'none'}")
+                                   f"rejected {dict(self.runner.rejected) or 'none'}; "
+                                   f"events {dict(self.runner.events) or 'none'}")
 
     return EstimatorNode()
