@@ -62,9 +62,12 @@ def estimates(bag, topic, source):
 
 
 def offline(bag_path, sc, adapter):
+    """The core fed in log-time order (arrival order), with the log time as arrival time."""
     bag = read_bag(bag_path)
-    events = [(t, s, f) for t in ("control", "odometer", "balise") for _, s, f in bag.topics[t]]
-    out, _ = replay(events, adapter, 1.0 / sc.odometer_rate)
+    events = sorted(((t_ns, k, t, s, f) for k, t in enumerate(("control", "odometer", "balise"))
+                     for t_ns, s, f in bag.topics[t]), key=lambda e: (e[0], e[1]))
+    out, _ = replay([(t, s, f, t_ns * 1e-9) for t_ns, _, t, s, f in events], adapter,
+                    1.0 / sc.odometer_rate, control_clock="same")  # the nodes' default
     return np.array([[o.stamp, o.position, o.velocity, o.braking_rate] for o in out])
 
 

@@ -75,8 +75,8 @@ def category(reason: str) -> str:
 def normalise(reason: str) -> str:
     """Map a free-text reason (e.g. of ``braking_filters``) onto this vocabulary, keeping detail.
 
-    "" (accepted) stays "". Names of the vocabulary pass unchanged; known phrasings are mapped; anything else becomes
-    ``invalid: <text>`` so that no rejection is ever counted without a vocabulary name.
+    "" (accepted) stays "". Names of the vocabulary pass unchanged; known phrasings are mapped;
+    anything else becomes ``invalid: <text>``: no rejection is counted without a vocabulary name.
     """
     if not reason:
         return ""

@@ -18,15 +18,19 @@ clock; in a replay the bag's log time) is tracked as a running median; a control
 onto the train clock by adding ``median(odometer offset) - median(control offset)`` (the error is
 the difference of the two streams' median latencies, milliseconds for a radio link). When that
 difference is below ``same_clock_tolerance`` the two clocks are taken as one (the simulator:
-mapping 0, exactly, so that a node and its replay compute the same numbers). ``control_clock``
-forces ``"same"`` or ``"reference"``; ``"auto"`` decides per command as above.
+mapping 0, exactly, so that a node and its replay compute the same numbers); "separate" is
+latched after 50 commands in a row beyond the tolerance (a burst of arrivals does not latch it).
+``control_clock`` forces ``"same"`` or ``"reference"``. The nodes default to ``"same"``: a node
+that falls behind its input (callbacks late by seconds) sees arrival times that say little about
+the clocks; offline, with the bag's log times as arrivals, ``"auto"`` is the default.
 On separate clocks the train clock's rate is also estimated (least squares of odometer stamps on
 arrival times, ``drift``) and the filter runs in reference seconds: stamps are converted
 piecewise from the last processed sample, the estimates keep the sample's own stamp. One clock
 needs no rate (a drift shared by all stamps only rescales time; not corrected).
 
-A stamp more than ``max_future`` seconds after what its stream's median offset predicts from its
-arrival is refused (``future_stamp``): one reading stamped 1e6 s ahead is counted and dropped,
+A stamp more than ``max_future`` seconds (default 10 min: generous, because a node whose
+callbacks lag its input sees late arrivals) after what its stream's median offset predicts from
+its arrival is refused (``future_stamp``): one reading stamped 1e6 s ahead is counted and dropped,
 never queued, so it can neither blind the filter nor make ``advance_to`` run for ever. Without
 receive times (``recv=None``) a stream's arrival is taken as the latest stamp pushed on the
 other clock (odometer for control, control for odometer/balise), which is the same test on one
@@ -103,8 +107,8 @@ class EstimatorRunner:
     adapter: Adapter
     period: float  # s, odometer sample period (nominal; the slots follow the odometer's stamps)
     control_clock: str = "auto"  # "auto", "same" or "reference" (see module doc)
-    max_future: float = 30.0  # s, stamp beyond arrival (+ median offset) refused as future_stamp
-    same_clock_tolerance: float = 0.5  # s, "auto": closer clocks are one clock
+    max_future: float = 600.0  # s, stamp beyond arrival (+ median offset): future_stamp
+    same_clock_tolerance: float = 2.0  # s, "auto": closer clocks are one clock
     max_gap_outputs: int = 6000  # predicted slots emitted for one gap at most (10 min at 10 Hz)
     queue: list = field(default_factory=list)
     rejected: Counter = field(default_factory=Counter)  # "kind:reason" -> count
@@ -124,6 +128,8 @@ class EstimatorRunner:
     _odo: list = field(default_factory=list)  # heap of the queued odometer stamps
     _fit: list = field(default_factory=lambda: [0, 0.0, 0.0, 0.0, 0.0, None])  # drift regression
     _anchor: tuple | None = None  # (train stamp, filter time) of the last processed odometer
+    _last_mapped: float = -math.inf
+    _evidence: int = 0  # consecutive commands whose clock differs from the odometer's
     separate_clocks: bool = False  # control was found (or said) to be on another clock
 
     def __post_init__(self):
@@ -194,10 +200,17 @@ class EstimatorRunner:
         if self.control_clock == "same" or not has_recv:
             return stamp
         shift = self._offsets["train"].value - self._offsets["control"].value
-        if self.control_clock == "auto" and abs(shift) < self.same_clock_tolerance:
-            return stamp
+        if self.control_clock == "auto" and not self.separate_clocks:
+            # latch "separate" only on persistent evidence: a burst of arrivals (a node or a
+            # recorder catching up) moves one stream's median for a moment, not for 50 commands
+            self._evidence = self._evidence + 1 if abs(shift) >= self.same_clock_tolerance else 0
+            if self._evidence < 50:
+                return stamp
         self.separate_clocks = True
-        return stamp + shift
+        # the shift follows the medians: keep the mapped commands in their order
+        mapped = max(stamp + shift, self._last_mapped)
+        self._last_mapped = mapped
+        return mapped
 
     def _regress(self, recv: float, stamp: float) -> None:
         """Running least squares of odometer stamp on arrival time (centred on the first)."""

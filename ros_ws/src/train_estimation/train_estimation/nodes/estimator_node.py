@@ -33,10 +33,10 @@ def declare_common(node) -> dict:
         "output_delay": declare("output_delay", 0.05,
                                 "s, without control messages, an estimate of time t is output "
                                 "at clock t + delay"),
-        "control_clock": declare("control_clock", "auto",
+        "control_clock": declare("control_clock", "same",
                                  "clock of control stamps: auto | same (the odometer's) | "
                                  "reference (the receive clock)"),
-        "max_future": declare("max_future", 30.0,
+        "max_future": declare("max_future", 600.0,
                               "s, a stamp this far after its arrival is refused (future_stamp)"),
     }
 
@@ -95,6 +95,7 @@ def build_estimator_node(name: str, topic: str, make_adapter: Callable):
             except ValueError as exc:
                 raise ParameterError(f"parameter control_clock: {exc}") from None
             self.n_events = 0
+            self.steady = Clock(clock_type=ClockType.STEADY_TIME)
             self.separate_logged = False
             self.delay = common["output_delay"]
             self.pub = self.create_publisher(TrainState, topic, 1000)
@@ -108,13 +109,12 @@ def build_estimator_node(name: str, topic: str, make_adapter: Callable):
                 f"{self.adapter.source} on {line.name} / {train.name}, start at "
                 f"{start.position:.1f} m, output {common['odometer_rate']:g} Hz on '{topic}'")
 
-        def now(self) -> float:
-            return self.get_clock().now().nanoseconds * 1e-9
-
         def _push(self, kind: str, msg, fields: dict) -> None:
-            now = self.now()
-            reason = self.runner.push(kind, stamp_to_sec(msg.header.stamp), fields,
-                                      now if now > 0.0 else None)
+            # Arrival on the steady clock: only differences of arrival times matter to the
+            # runner (stream offsets, the train clock's rate), and under use_sim_time the ROS
+            # clock can stall behind the data (a player's /clock), which arrival must not do.
+            recv = self.steady.now().nanoseconds * 1e-9
+            reason = self.runner.push(kind, stamp_to_sec(msg.header.stamp), fields, recv)
             if reason:
                 self.get_logger().warning(f"{kind} rejected: {reason}", throttle_duration_sec=2.0)
             self.tick()
@@ -132,9 +132,7 @@ def build_estimator_node(name: str, topic: str, make_adapter: Callable):
             self._push("control", msg, {"target_acceleration": msg.target_acceleration})
 
         def tick(self) -> None:
-            now = self.now()
-            if now <= 0.0:  # no /clock yet under use_sim_time
-                return
+            now = self.steady.now().nanoseconds * 1e-9  # the arrival clock (see _push)
             # Outputs wait for the inputs' watermarks (or 4 x delay for a lost sample), so the
             # node computes exactly what the offline replay of the same messages computes.
             for out in self.runner.advance_to(self.runner.ready_time(now, self.delay,
