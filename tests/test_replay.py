@@ -62,11 +62,12 @@ def estimates(bag, topic, source):
 
 
 def offline(bag_path, sc, adapter):
-    """The core fed in log-time order (arrival order), with the log time as arrival time."""
+    """The core fed in the node's arrival order: the player publishes in stamp order (stable
+    over its topic list) at bag time = stamp, so that is the arrival order and time."""
     bag = read_bag(bag_path)
-    events = sorted(((t_ns, k, t, s, f) for k, t in enumerate(("control", "odometer", "balise"))
-                     for t_ns, s, f in bag.topics[t]), key=lambda e: (e[0], e[1]))
-    out, _ = replay([(t, s, f, t_ns * 1e-9) for t_ns, _, t, s, f in events], adapter,
+    events = sorted(((s, t, f) for t in ("control", "odometer", "balise")
+                     for _, s, f in bag.topics[t]), key=lambda e: e[0])
+    out, _ = replay([(t, s, f, s) for s, t, f in events], adapter,
                     1.0 / sc.odometer_rate, control_clock="same")  # the nodes' default
     return np.array([[o.stamp, o.position, o.velocity, o.braking_rate] for o in out])
 

@@ -312,7 +312,10 @@ class EstimatorRunner:
             if kind == "odometer":
                 heapq.heappop(self._odo)
             self._apply(stamp, kind, fields)
-            if kind == "odometer" and (self._last_out is None or stamp > self._last_out):
+            # one estimate per slot: a sample whose slot was already published as a prediction
+            # (it came after the fallback) is fused and shows in the next estimate
+            if kind == "odometer" and (self._last_out is None
+                                       or stamp > self._last_out + 0.5 * self.period):
                 self._emit(stamp, out)
         return out
 
