@@ -8,6 +8,7 @@ The ROS nodes and the offline replay (``replay.py``) use the same adapters throu
 
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import dataclass
 
@@ -55,6 +56,7 @@ class RobustConfig:
     distance_variance: float = 1.0  # m^2, variance of (origin + distance) as a position reading
     period: float = 0.1  # s, nominal odometer sample period (lost samples: gap / period - 1)
     outage_slots: int = 8  # more lost slots in a row are an outage: prediction only
+    max_command: float = 5.0  # m/s^2, |a_Tar| beyond is no train's command (outside_gate)
 
 
 class RobustAdapter:
@@ -85,6 +87,7 @@ class RobustAdapter:
         self.f: RobustFilter | None = None
         self.last_odo: tuple[float, int] | None = None  # (stamp, seq) of the last odometer slot
         self.outages = 0
+        self._pred = None  # (state token, t, x, P, actuator) of the last prediction output
 
     def start(self, t0: float) -> None:
         s = self.start_state
@@ -93,7 +96,10 @@ class RobustAdapter:
                                  brake=self.train.brake)
 
     def control(self, stamp: float, fields: dict) -> str:
-        d = self.f.set_control(stamp, float(fields["target_acceleration"]))
+        a = float(fields["target_acceleration"])
+        if math.isfinite(a) and abs(a) > self.cfg.max_command:
+            return f"{R.OUTSIDE_GATE}: command {a:.3g} m/s^2"
+        d = self.f.set_control(stamp, a)
         return "" if d.accepted else d.reason
 
     def _lost_slots(self, stamp: float) -> None:
@@ -134,14 +140,58 @@ class RobustAdapter:
         return "" if d.accepted else d.reason
 
     def output(self, t: float) -> Output:
-        if t > self.f.t:
-            x, P, _ = self.f._propagate(t)  # a prediction on copies (the state is untouched)
+        f = self.f
+        if t > f.t:
+            # a prediction on copies (the state is untouched); through a gap each output goes
+            # on from the previous one instead of from the last reading (linear, not quadratic)
+            token = (f.t, float(f.x[0]), float(f.x[1]), float(f.P[0, 0]))
+            c = self._pred
+            if c is not None and c[0] == token and c[1] <= t:
+                saved = f.x, f.P, f.t, f.actuator
+                f.x, f.P, f.t, f.actuator = c[2], c[3], c[1], c[4]
+                try:
+                    x, P, act = f._propagate(t)
+                finally:
+                    f.x, f.P, f.t, f.actuator = saved
+            else:
+                x, P, act = f._propagate(t)
+            self._pred = (token, t, x, P, act)
         else:
-            x, P = self.f.estimate()
+            x, P = f.estimate()
         return Output(stamp=t, position=float(x[0]), velocity=float(x[1]),
                       acceleration=math.nan, braking_rate=math.nan,
                       covariance=tuple(covariance16(P)),
                       measurement_used=self.f.pop_measurement_used())
+
+    def snapshot(self):
+        """The mutable state, for the runner's rewinding (models, maps, params are shared)."""
+        state = {}
+        for k, v in vars(self.f).items():
+            if isinstance(v, np.ndarray):
+                v = v.copy()
+            elif isinstance(v, dict | list):  # Counter, seq/stamp dicts, FOH history
+                v = copy.deepcopy(v) if k == "_hist" else type(v)(v)
+            elif k == "actuator":
+                v = v.copy()
+            state[k] = v
+        return state, self.last_odo, self.outages, self._pred
+
+    def restore(self, snap) -> None:
+        state, self.last_odo, self.outages, self._pred = snap
+        self.f.__dict__.update(self.snapshot_copy(state))
+
+    @staticmethod
+    def snapshot_copy(state: dict) -> dict:
+        out = {}
+        for k, v in state.items():
+            if isinstance(v, np.ndarray):
+                v = v.copy()
+            elif isinstance(v, dict | list):
+                v = copy.deepcopy(v) if k == "_hist" else type(v)(v)
+            elif k == "actuator":
+                v = v.copy()
+            out[k] = v
+        return out
 
     @property
     def counters(self) -> dict:
@@ -184,6 +234,7 @@ class BrakingConfig:
     gate_accel: float = 1.5  # m/s^2, acceleration error allowed in the gate's look-ahead
     balise_map_tolerance: float = 1.0  # m, max |sent position - map position|
     max_horizon: float = 3600.0  # s, a reading further ahead of the estimate is future_stamp
+    max_command: float = 5.0  # m/s^2, |a_Tar| beyond is no train's command (outside_gate)
 
 
 class BrakingAdapter:
@@ -289,6 +340,8 @@ class BrakingAdapter:
         a = float(fields["target_acceleration"])
         if not (math.isfinite(a) and math.isfinite(stamp)):
             return R.NON_FINITE
+        if abs(a) > self.cfg.max_command:
+            return f"{R.OUTSIDE_GATE}: command {a:.3g} m/s^2"
         if self.filt.t is not None and stamp < self.filt.t:
             return R.OUT_OF_ORDER
         reason = self._advance(stamp)  # the old command holds up to the new one's stamp
@@ -362,6 +415,18 @@ class BrakingAdapter:
                       acceleration=float(e.mean[2]), braking_rate=float(e.mean[3]),
                       covariance=tuple(float(v) for v in np.asarray(e.cov).ravel()),
                       measurement_used=used)
+
+    def snapshot(self):
+        """The mutable state, for the runner's rewinding (the model family is shared)."""
+        return (copy.deepcopy(self.filt, {id(self.fam): self.fam}),
+                copy.deepcopy(self.rng.bit_generator.state), self.a_tar, self.est, self.used,
+                dict(self.last))
+
+    def restore(self, snap) -> None:
+        filt, rng_state, self.a_tar, self.est, self.used, last = snap
+        self.filt = copy.deepcopy(filt, {id(self.fam): self.fam})
+        self.rng.bit_generator.state = copy.deepcopy(rng_state)
+        self.last = dict(last)
 
     @property
     def counters(self) -> dict:

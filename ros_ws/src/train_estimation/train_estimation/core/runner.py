@@ -32,9 +32,18 @@ A stamp more than ``max_future`` seconds (default 10 min: generous, because a no
 callbacks lag its input sees late arrivals) after what its stream's median offset predicts from
 its arrival is refused (``future_stamp``): one reading stamped 1e6 s ahead is counted and dropped,
 never queued, so it can neither blind the filter nor make ``advance_to`` run for ever. Without
-receive times (``recv=None``) a stream's arrival is taken as the latest stamp pushed on the
-other clock (odometer for control, control for odometer/balise), which is the same test on one
-clock.
+receive times (``recv=None``) the arrival is taken as the latest stamp admitted on any topic
+(first, the previous stamp pushed), which is the same test on one clock; without receive times
+the topics are taken to share one clock.
+
+Out-of-sequence readings (a radio link with jitter delivers a reading after later ones): a
+reading up to ``history`` seconds older than the newest fused one is fused by **rewinding**, as
+robot_localization's history does: the adapter's state before the first fused odometer sample
+after the late reading is restored (``snapshot``/``restore``) and everything since is
+re-filtered with the late reading in its place (event ``fused_late``). Estimates already
+published stay published; the next ones carry the correction. Older readings are refused
+(``out_of_order``). A replay in arrival order meets the same lateness, so it reproduces the
+node's estimates.
 
 Sequence numbers only detect duplicates (same ``seq`` and stamp as a recent reading) and resets
 (``seq`` goes back while the stamp goes on: a sensor reboot or a wrap-around, accepted and
@@ -54,6 +63,7 @@ from typing import Protocol
 from . import reasons as R
 
 KIND_ORDER = {"control": 0, "odometer": 1, "balise": 2}
+NO_SLOT = (R.OUT_OF_ORDER, R.DUPLICATE, R.FUTURE_STAMP, R.STALE_STAMP, R.NON_FINITE)
 CLOCK_OF = {"control": "control", "odometer": "train", "balise": "train"}
 
 
@@ -81,12 +91,16 @@ class Adapter(Protocol):
 
 
 class _Median:
-    """Running median of the last ``n`` values (sorted window, O(n) per insert, n small)."""
+    """Robust centre of the last ``n`` values: the densest one (most others within ``tol``),
+    the median of the densest on ties. A plain median fails when over half of a window is
+    wild (a fuzzed stream); wild stamps scatter, while good ones agree to milliseconds."""
 
     def __init__(self, n: int = 31):
         self.n, self.fifo, self.sorted = n, deque(), []
+        self._value = None  # cached centre (recomputed after an add)
 
     def add(self, v: float) -> None:
+        self._value = None
         self.fifo.append(v)
         bisect.insort(self.sorted, v)
         if len(self.fifo) > self.n:
@@ -96,10 +110,21 @@ class _Median:
     def __len__(self) -> int:
         return len(self.fifo)
 
+    tol = 1.0  # s
+
     @property
     def value(self) -> float:
+        if self._value is not None:
+            return self._value
         s = self.sorted
-        return s[len(s) // 2] if s else math.nan
+        if not s:
+            return math.nan
+        counts = [bisect.bisect_right(s, v + self.tol) - bisect.bisect_left(s, v - self.tol)
+                  for v in s]
+        best = max(counts)
+        dense = [v for v, c in zip(s, counts) if c == best]
+        self._value = dense[len(dense) // 2]
+        return self._value
 
 
 @dataclass
@@ -109,7 +134,9 @@ class EstimatorRunner:
     control_clock: str = "auto"  # "auto", "same" or "reference" (see module doc)
     max_future: float = 600.0  # s, stamp beyond arrival (+ median offset): future_stamp
     same_clock_tolerance: float = 2.0  # s, "auto": closer clocks are one clock
-    max_gap_outputs: int = 6000  # predicted slots emitted for one gap at most (10 min at 10 Hz)
+    max_gap_outputs: int = 6000  # predicted slots after the last fused sample (10 min at 10 Hz)
+    min_judged: int = 9  # arrivals of a clock before its stamps are judged (earlier ones wait)
+    history: float = 3.0  # s of fused input kept: a reading up to this late is fused by rewinding
     queue: list = field(default_factory=list)
     rejected: Counter = field(default_factory=Counter)  # "kind:reason" -> count
     accepted: Counter = field(default_factory=Counter)
@@ -121,16 +148,25 @@ class EstimatorRunner:
     _last_out: float | None = None  # stamp of the last estimate emitted
     _n: int = 0  # insertion counter: FIFO among equal stamps and kinds
     _offsets: dict = field(default_factory=dict)  # clock -> _Median of stamp - recv
-    _last_stamp_any: dict = field(default_factory=dict)  # clock -> latest raw stamp pushed
+    _prev_raw: float | None = None  # the last stamp pushed (no-arrival mode, early phase)
+    _admitted_high: float = -math.inf  # the latest stamp admitted (no-arrival mode)
     _recent: dict = field(default_factory=dict)  # kind -> deque of (seq, stamp)
     _last_seq: dict = field(default_factory=dict)  # kind -> (seq, stamp) of the last pushed
     _held: list = field(default_factory=list)  # control pushed before any odometer (raw)
+    _early: dict = field(default_factory=dict)  # clock -> items waiting for min_judged
     _odo: list = field(default_factory=list)  # heap of the queued odometer stamps
     _fit: list = field(default_factory=lambda: [0, 0.0, 0.0, 0.0, 0.0, None])  # drift regression
     _anchor: tuple | None = None  # (train stamp, filter time) of the last processed odometer
     _last_mapped: float = -math.inf
+    _hist: list = field(default_factory=list)  # [stamp, order, n, kind, fields, snapshot]
+    _high_done: float = -math.inf  # largest stamp fused
+    _last_fused: float = -math.inf  # stamp of the last odometer sample accepted (or the start)
     _evidence: int = 0  # consecutive commands whose clock differs from the odometer's
     separate_clocks: bool = False  # control was found (or said) to be on another clock
+
+    @property
+    def _can_rewind(self) -> bool:
+        return self.history > 0 and hasattr(self.adapter, "snapshot")
 
     def __post_init__(self):
         if self.control_clock not in ("auto", "same", "reference"):
@@ -151,25 +187,50 @@ class EstimatorRunner:
         if recv is not None and not math.isfinite(recv):
             recv = None
         clock = CLOCK_OF[kind]
-        other = "train" if clock == "control" else "control"
-        arrival = recv if recv is not None else self._last_stamp_any.get(other)
         med = self._offsets.setdefault(clock, _Median())
+        early = len(med) < self.min_judged
+        if recv is not None:
+            arrival = recv
+        elif early:  # no arrival times: the stamps themselves (one clock), jump from the last
+            arrival = self._prev_raw if self._prev_raw is not None else stamp
+        else:  # ... then from the latest stamp admitted on any topic
+            arrival = self._admitted_high if math.isfinite(self._admitted_high) else stamp
+        self._prev_raw = stamp
+        if early:
+            # too early to judge a stamp against its clock: hold it until the clock's median
+            # offset rests on min_judged arrivals (one corrupted first stamp must not set the
+            # watermarks or the start), then judge the held ones like any other
+            med.add(stamp - arrival)
+            self._early.setdefault(clock, []).append((kind, stamp, fields, recv, arrival))
+            if len(med) >= self.min_judged:
+                held, self._early[clock] = self._early[clock], []
+                for k, st, f, rc, ar in held:
+                    self._admit(k, st, f, rc, ar, counted=True)
+            return ""
+        why = self._admit(kind, stamp, fields, recv, arrival)
+        return why
+
+    def _admit(self, kind: str, stamp: float, fields: dict, recv, arrival,
+               counted: bool = False) -> str:
+        """Judge a stamp against its clock's median offset, check seq, queue."""
+        clock = CLOCK_OF[kind]
+        med = self._offsets[clock]
         if arrival is not None:
             off = stamp - arrival
-            if len(med) >= 3 and off - med.value > self.max_future:
+            if off - med.value > self.max_future:
                 return self._reject(kind, stamp, f"{R.FUTURE_STAMP}: {off - med.value:.3g} s "
                                                  f"ahead of its arrival")
         if kind != "control":
             why = self._check_seq(kind, stamp, fields)
             if why:
                 return self._reject(kind, stamp, why)
-        if arrival is not None:
+        if arrival is not None and not counted:
             med.add(stamp - arrival)
         if kind == "odometer" and recv is not None:
             self._regress(recv, stamp)
-        self._last_stamp_any[clock] = max(self._last_stamp_any.get(clock, -math.inf), stamp)
+        self._admitted_high = max(self._admitted_high, stamp)
         if kind == "control":
-            if "train" not in self._offsets or not len(self._offsets["train"]):
+            if "train" not in self._offsets or len(self._offsets["train"]) < self.min_judged:
                 self._held.append((stamp, recv is not None, fields))
                 return ""
             stamp = self._to_train(stamp, recv is not None)
@@ -266,14 +327,70 @@ class EstimatorRunner:
         del self.last_events[:-20]
 
     # -- processing ---------------------------------------------------------------------------
-    def _apply(self, stamp: float, kind: str, fields: dict) -> None:
+    def _call(self, stamp: float, kind: str, fields: dict) -> str:
         ft = self._filter_time(stamp)
         if kind == "odometer":
             self._anchor = (stamp, ft)
         try:
-            reason = getattr(self.adapter, kind)(ft, fields)
+            return getattr(self.adapter, kind)(ft, fields)
         except (KeyError, TypeError, ValueError, OverflowError) as exc:  # malformed fields
-            reason = f"{R.INVALID}: {type(exc).__name__}: {exc}"
+            return f"{R.INVALID}: {type(exc).__name__}: {exc}"
+
+    def _process(self, entry: list) -> str:
+        """Apply one item, keeping it (and the state before it, for odometer items) in the
+        history that a late item rewinds."""
+        if self.history > 0 and entry[3] == "odometer" and self._can_rewind:
+            entry[5] = (self.adapter.snapshot(), self._anchor)
+        reason = self._call(entry[0], entry[3], entry[4])
+        if self.history > 0:
+            self._hist.append(entry)
+            self._high_done = max(self._high_done, entry[0])
+            # keep the history back to the first snapshot older than the horizon
+            cut = self._high_done - self.history
+            while len(self._hist) > 1:
+                first_snap = next((k for k in range(1, len(self._hist))
+                                   if self._hist[k][5] is not None), None)
+                if first_snap is None or self._hist[first_snap][0] > cut:
+                    break
+                del self._hist[:first_snap]
+        return reason
+
+    def _apply(self, stamp: float, order: int, n: int, kind: str, fields: dict) -> str:
+        entry = [stamp, order, n, kind, fields, None]
+        hist = self._hist
+        # late: older than an item fused, or than an estimate output (a braking filter's
+        # output is a time update of the filter itself)
+        late = hist and ((stamp, order) < (hist[-1][0], hist[-1][1])
+                         or (self._last_out is not None and stamp < self._last_out))
+        if late and self._can_rewind and stamp >= self._high_done - self.history:
+            # rewind to the state before the first fused item after it, and re-filter
+            j = next((k for k in range(len(hist)) if (hist[k][0], hist[k][1]) > (stamp, order)),
+                     len(hist))
+            i = next((k for k in range(j, -1, -1) if k < len(hist) and hist[k][5] is not None),
+                     None)
+            if i is not None:
+                snap, anchor = hist[i][5]
+                redo = hist[i:]
+                del hist[i:]
+                self.adapter.restore(snap)
+                self._anchor = anchor
+                redo.insert(j - i, entry)
+                reason = ""
+                for e in redo:
+                    e[5] = None
+                    r = self._process(e)
+                    if e is entry:
+                        reason = r
+                self._count(kind, stamp, reason)
+                if not reason:
+                    self._event(kind, stamp, f"{R.FUSED_LATE}: {self._high_done - stamp:.3f} s "
+                                             f"late")
+                return reason
+        reason = self._process(entry)
+        self._count(kind, stamp, reason)
+        return reason
+
+    def _count(self, kind: str, stamp: float, reason: str) -> None:
         if reason:
             self._reject(kind, stamp, reason)
         else:
@@ -288,34 +405,43 @@ class EstimatorRunner:
         """Process everything queued with stamp <= t; the estimates that became due."""
         out: list[Output] = []
         if not self._started:
-            if "odometer" not in self.high:  # the odometer defines the clock and the slots
+            # the odometer defines the clock and the slots: start with the third sample, at the
+            # earliest item no more than 2 s before the median of the first three (one stale or
+            # corrupted first stamp must not start the estimator 500 s in the past)
+            if len(self._odo) < 3:
                 return out
-            self.adapter.start(self.queue[0][0])
-            self._anchor = (self.queue[0][0], self.queue[0][0])
+            first = sorted(self._odo[:3]) if len(self._odo) == 3 else sorted(self._odo)[:3]
+            t0 = min(s for s, *_ in self.queue if s >= first[1] - 2.0)
+            self.adapter.start(t0)
+            self._anchor = (t0, t0)
+            self._last_fused = t0
             self._started = True
         while True:
             nxt = self.queue[0][0] if self.queue else math.inf
             if self._last_out is not None:
-                # a lost slot: predicted estimate at the expected time, once nothing can fill it
+                # a lost slot: predicted estimate at the expected time, once nothing can fill it;
+                # at most max_gap_outputs slots after the last fused sample (a stamp far ahead
+                # cannot make the runner predict for ever)
                 slot = self._last_out + self.period
                 if slot <= t + 1e-9 and self._next_odometer() > slot + 0.5 * self.period \
-                        and nxt > slot:
-                    gap = (min(t, self._next_odometer()) - self._last_out) / self.period
-                    if gap > self.max_gap_outputs:  # a clock jump: do not emit 1e7 predictions
-                        self._last_out = min(t, self._next_odometer()) - self.period
-                        continue
+                        and nxt > slot \
+                        and slot - self._last_fused <= self.max_gap_outputs * self.period:
                     self._emit(slot, out)
                     continue
             if nxt > t + 1e-9:
                 break
-            stamp, _, _, kind, fields = heapq.heappop(self.queue)
+            stamp, order, n, kind, fields = heapq.heappop(self.queue)
             if kind == "odometer":
                 heapq.heappop(self._odo)
-            self._apply(stamp, kind, fields)
-            # one estimate per slot: a sample whose slot was already published as a prediction
-            # (it came after the fallback) is fused and shows in the next estimate
-            if kind == "odometer" and (self._last_out is None
-                                       or stamp > self._last_out + 0.5 * self.period):
+            reason = self._apply(stamp, order, n, kind, fields)
+            if kind == "odometer" and not reason:
+                self._last_fused = max(self._last_fused, stamp)
+            # one estimate per slot, at the sample's stamp -- unless the sample is no slot (a
+            # stamp refused as out of order, duplicate or from the future), or its slot was
+            # already published as a prediction (it came after the fallback: fused, it shows
+            # in the next estimate)
+            if kind == "odometer" and R.category(reason) not in NO_SLOT and (
+                    self._last_out is None or stamp > self._last_out + 0.5 * self.period):
                 self._emit(stamp, out)
         return out
 
