@@ -69,6 +69,8 @@ def restamp(events, rng):
     ref = 1.6e9 + rng.uniform(0, 1e6)
     out = []
     for topic, t, fields in events:
+        if topic not in ("control", "odometer", "balise"):
+            continue
         s = epoch + phase + t * (1 + drift) if topic != "control" else ref + t
         out.append((topic, s, fields, ref + t))
     return out, (epoch + phase, drift)

@@ -99,9 +99,10 @@ def test_runner_refuses_garbage_at_the_door_with_reasons():
     assert r.push("odometer", math.nan, {"seq": 1}) == "non_finite: stamp"
     assert r.push("lidar", 1.0, {}).startswith("unknown_kind")
     assert r.push("odometer", 1.0, {"seq": "x"}).startswith("invalid")
-    assert r.push("odometer", 1.0, {"seq": 1, "distance": 0.0, "speed": 0.0,
-                                    "speed_variance": 0.01}) == ""
-    assert r.push("odometer", 1.0, {"seq": 1, "distance": 0.0, "speed": 0.0,
-                                    "speed_variance": 0.01}) == "duplicate"
+    odo = {"distance": 0.0, "speed": 0.0, "speed_variance": 0.01}
+    for k in range(12):  # stamps are judged once the clock has min_judged arrivals
+        assert r.push("odometer", 1.0 + 0.1 * k, dict(odo, seq=k), 1.0 + 0.1 * k) == ""
+    assert r.push("odometer", 2.1, dict(odo, seq=11), 2.2) == "duplicate"
+    assert r.push("odometer", 1e6, dict(odo, seq=12), 2.3).startswith("future_stamp")
     assert set(r.rejected) == {"odometer:non_finite", "lidar:unknown_kind", "odometer:invalid",
-                               "odometer:duplicate"}
+                               "odometer:duplicate", "odometer:future_stamp"}

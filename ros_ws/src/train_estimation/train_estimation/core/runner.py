@@ -18,8 +18,8 @@ clock; in a replay the bag's log time) is tracked as a running median; a control
 onto the train clock by adding ``median(odometer offset) - median(control offset)`` (the error is
 the difference of the two streams' median latencies, milliseconds for a radio link). When that
 difference is below ``same_clock_tolerance`` the two clocks are taken as one (the simulator:
-mapping 0, exactly, so that a node and its replay compute the same numbers); "separate" is
-latched after 50 commands in a row beyond the tolerance (a burst of arrivals does not latch it).
+mapping 0, exactly, so that a node and its replay compute the same numbers); once found
+"separate" stays so (commands wait until both clocks have ``min_judged`` arrivals).
 ``control_clock`` forces ``"same"`` or ``"reference"``. The nodes default to ``"same"``: a node
 that falls behind its input (callbacks late by seconds) sees arrival times that say little about
 the clocks; offline, with the bag's log times as arrivals, ``"auto"`` is the default.
@@ -112,6 +112,11 @@ class _Median:
 
     tol = 1.0  # s
 
+    def near(self, v: float) -> int:
+        """How many values of the window lie within ``tol`` of ``v``."""
+        return bisect.bisect_right(self.sorted, v + self.tol) - \
+            bisect.bisect_left(self.sorted, v - self.tol)
+
     @property
     def value(self) -> float:
         if self._value is not None:
@@ -161,7 +166,6 @@ class EstimatorRunner:
     _hist: list = field(default_factory=list)  # [stamp, order, n, kind, fields, snapshot]
     _high_done: float = -math.inf  # largest stamp fused
     _last_fused: float = -math.inf  # stamp of the last odometer sample accepted (or the start)
-    _evidence: int = 0  # consecutive commands whose clock differs from the odometer's
     separate_clocks: bool = False  # control was found (or said) to be on another clock
 
     @property
@@ -186,6 +190,10 @@ class EstimatorRunner:
         stamp = float(stamp)
         if recv is not None and not math.isfinite(recv):
             recv = None
+        if kind != "control":
+            seq = fields.get("seq") if isinstance(fields, dict) else None
+            if not isinstance(seq, int) or isinstance(seq, bool):
+                return self._reject(kind, stamp, f"{R.INVALID}: seq {seq!r}")
         clock = CLOCK_OF[kind]
         med = self._offsets.setdefault(clock, _Median())
         early = len(med) < self.min_judged
@@ -201,10 +209,15 @@ class EstimatorRunner:
             # offset rests on min_judged arrivals (one corrupted first stamp must not set the
             # watermarks or the start), then judge the held ones like any other
             med.add(stamp - arrival)
-            self._early.setdefault(clock, []).append((kind, stamp, fields, recv, arrival))
+            early_items = self._early.setdefault(clock, [])
+            early_items.append((kind, stamp, fields, recv, arrival))
             if len(med) >= self.min_judged:
-                held, self._early[clock] = self._early[clock], []
-                for k, st, f, rc, ar in held:
+                release = early_items
+            else:  # those that agree with two others already are good: no need to wait
+                release = [e for e in early_items if med.near(e[1] - e[4]) >= 3]
+            if release:
+                self._early[clock] = [e for e in early_items if e not in release]
+                for k, st, f, rc, ar in release:
                     self._admit(k, st, f, rc, ar, counted=True)
             return ""
         why = self._admit(kind, stamp, fields, recv, arrival)
@@ -226,8 +239,8 @@ class EstimatorRunner:
                 return self._reject(kind, stamp, why)
         if arrival is not None and not counted:
             med.add(stamp - arrival)
-        if kind == "odometer" and recv is not None:
-            self._regress(recv, stamp)
+        if kind == "odometer" and recv is not None and abs(stamp - recv - med.value) <= med.tol:
+            self._regress(recv, stamp)  # only stamps of the dense cluster inform the rate
         self._admitted_high = max(self._admitted_high, stamp)
         if kind == "control":
             if "train" not in self._offsets or len(self._offsets["train"]) < self.min_judged:
@@ -261,12 +274,9 @@ class EstimatorRunner:
         if self.control_clock == "same" or not has_recv:
             return stamp
         shift = self._offsets["train"].value - self._offsets["control"].value
-        if self.control_clock == "auto" and not self.separate_clocks:
-            # latch "separate" only on persistent evidence: a burst of arrivals (a node or a
-            # recorder catching up) moves one stream's median for a moment, not for 50 commands
-            self._evidence = self._evidence + 1 if abs(shift) >= self.same_clock_tolerance else 0
-            if self._evidence < 50:
-                return stamp
+        if self.control_clock == "auto" and not self.separate_clocks \
+                and abs(shift) < self.same_clock_tolerance:
+            return stamp
         self.separate_clocks = True
         # the shift follows the medians: keep the mapped commands in their order
         mapped = max(stamp + shift, self._last_mapped)

@@ -96,6 +96,8 @@ def build_estimator_node(name: str, topic: str, make_adapter: Callable):
                 raise ParameterError(f"parameter control_clock: {exc}") from None
             self.n_events = 0
             self.steady = Clock(clock_type=ClockType.STEADY_TIME)
+            self.arrived: dict[float, float] = {}  # odometer stamp -> arrival (steady s)
+            self.latency: list[float] = []  # s, odometer received -> its estimate published
             self.separate_logged = False
             self.delay = common["output_delay"]
             self.pub = self.create_publisher(TrainState, topic, 1000)
@@ -114,7 +116,10 @@ def build_estimator_node(name: str, topic: str, make_adapter: Callable):
             # runner (stream offsets, the train clock's rate), and under use_sim_time the ROS
             # clock can stall behind the data (a player's /clock), which arrival must not do.
             recv = self.steady.now().nanoseconds * 1e-9
-            reason = self.runner.push(kind, stamp_to_sec(msg.header.stamp), fields, recv)
+            stamp = stamp_to_sec(msg.header.stamp)
+            reason = self.runner.push(kind, stamp, fields, recv)
+            if kind == "odometer" and not reason:
+                self.arrived[stamp] = recv  # for the received -> published latency
             if reason:
                 self.get_logger().warning(f"{kind} rejected: {reason}", throttle_duration_sec=2.0)
             self.tick()
@@ -146,6 +151,11 @@ def build_estimator_node(name: str, topic: str, make_adapter: Callable):
                 msg.covariance = list(out.covariance)
                 msg.measurement_used = out.measurement_used
                 self.pub.publish(msg)
+                t_recv = self.arrived.pop(out.stamp, None)
+                if t_recv is not None:
+                    self.latency.append(self.steady.now().nanoseconds * 1e-9 - t_recv)
+            if len(self.arrived) > 1000:  # samples that never became an estimate (refused)
+                self.arrived.clear()
             events = sum(self.runner.events.values())
             if events > self.n_events:  # accepted input worth a line each (seq reset, ...)
                 for kind, stamp, text in self.runner.last_events[-(events - self.n_events):]:
@@ -164,6 +174,12 @@ def build_estimator_node(name: str, topic: str, make_adapter: Callable):
                                           f"({total} rejected so far)", throttle_duration_sec=2.0)
 
         def close(self) -> None:
+            if self.latency:
+                lat = sorted(self.latency)
+                p50, p99 = lat[len(lat) // 2], lat[min(len(lat) - 1, int(0.99 * len(lat)))]
+                self.get_logger().info(f"latency odometer received -> estimate published: "
+                                       f"p50 {1e3 * p50:.2f} ms, p99 {1e3 * p99:.2f} ms, "
+                                       f"max {1e3 * lat[-1]:.2f} ms over {len(lat)} samples")
             self.get_logger().info(f"accepted {dict(self.runner.accepted)}; "
                                    f"rejected {dict(self.runner.rejected) or 'none'}; "
                                    f"events {dict(self.runner.events) or 'none'}")

@@ -63,6 +63,8 @@ def corrupt(events: list, rng: np.random.Generator, per_reading: float = 5.0,
     pending = None  # a clean reading held back to arrive after the next one (reordered)
     dt = 0.03  # s, corrupted copies sit between samples (distinct stamps: not duplicates)
     for i, (topic, stamp, fields, recv) in enumerate(events):
+        if topic not in ("control", "odometer", "balise"):
+            continue
         f = dict(fields)
         if topic == "odometer":
             if i == reset_at:
