@@ -23,7 +23,8 @@ A train is unsafe (stale) when its last report arrived more than ``stale_timeout
 estimate's own stamp is older than ``stale_timeout`` (an estimator that republishes old
 estimates), or when its estimator has not used a measurement for ``measurement_timeout``
 (``stamp - stamp of the last report with measurement_used``, both on the estimator's clock: an
-estimator that keeps publishing predictions is not fresh). An unsafe train gets the emergency
+estimator that keeps publishing predictions is not fresh; a source that never sets the flag,
+such as ground truth, is judged by its stamps only). An unsafe train gets the emergency
 brake, and so does every train behind it (its rear can no longer be bounded from recent data).
 While a supervised train has not reported at all, no other train gets an authority (it may be
 anywhere). Each authority carries a short ``state`` (``ok``, ``stale``, ``no_estimate``,
@@ -100,8 +101,9 @@ class ZoneController:
         last = self.reports.get(train_id)
         if rep.measurement_used:
             rep.last_measurement = rep.stamp
-        else:  # carried over; before any measurement the first report's stamp counts
-            rep.last_measurement = last.last_measurement if last is not None else rep.stamp
+        else:  # carried over; NaN until a report says a measurement was used (ground truth,
+            # or an estimator that does not set the flag, is judged by its stamps only)
+            rep.last_measurement = last.last_measurement if last is not None else math.nan
         self.reports[train_id] = rep
         return ""
 
@@ -113,7 +115,8 @@ class ZoneController:
                    f"(> {p.stale_timeout} s)"
         if p.check_stamp_age and now - rep.stamp > p.stale_timeout:
             return f"estimates stale: stamped {now - rep.stamp:.1f} s ago (> {p.stale_timeout} s)"
-        if rep.stamp - rep.last_measurement > p.measurement_timeout:
+        if math.isfinite(rep.last_measurement) and \
+                rep.stamp - rep.last_measurement > p.measurement_timeout:
             return (f"estimates stale: no measurement used for "
                     f"{rep.stamp - rep.last_measurement:.1f} s (> {p.measurement_timeout} s)")
         return ""

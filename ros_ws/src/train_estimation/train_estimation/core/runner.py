@@ -110,7 +110,8 @@ class _Median:
     def __len__(self) -> int:
         return len(self.fifo)
 
-    tol = 1.0  # s
+    tol = 5.0  # s: wider than arrival jitter (a node at 10x sees 1 Hz stamps 0.9 s apart in
+    #   stamp - arrival), far narrower than a clock error worth refusing
 
     def near(self, v: float) -> int:
         """How many values of the window lie within ``tol`` of ``v``."""
