@@ -62,9 +62,13 @@ def estimates(bag, topic, source):
 
 
 def offline(bag_path, sc, adapter):
+    """The core fed in the node's arrival order: the player publishes in stamp order (stable
+    over its topic list) at bag time = stamp, so that is the arrival order and time."""
     bag = read_bag(bag_path)
-    events = [(t, s, f) for t in ("control", "odometer", "balise") for _, s, f in bag.topics[t]]
-    out, _ = replay(events, adapter, 1.0 / sc.odometer_rate)
+    events = sorted(((s, t, f) for t in ("control", "odometer", "balise")
+                     for _, s, f in bag.topics[t]), key=lambda e: e[0])
+    out, _ = replay([(t, s, f, s) for s, t, f in events], adapter,
+                    1.0 / sc.odometer_rate, control_clock="same")  # the nodes' default
     return np.array([[o.stamp, o.position, o.velocity, o.braking_rate] for o in out])
 
 

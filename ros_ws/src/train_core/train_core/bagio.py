@@ -7,6 +7,8 @@ Pure module (rosbags, no rclpy): the offline generator, the bag tools and the te
   are embedded in every bag written, exactly as a ROS 2 recorder would.
 - :class:`BagWriter` writes dict-valued messages (CONTRACT.md field names) or raw CDR bytes.
 - :func:`read_bag` reads a bag into per-topic lists of ``(t_recv_ns, stamp_s, fields)``.
+- :func:`repair_bag` (``python -m train_core.bagio repair BAG``) makes a bag whose recorder was
+  killed a normal bag again (summary, end magic, metadata.yaml).
 """
 
 from __future__ import annotations
@@ -293,7 +295,9 @@ def _recover(p: Path, namespace: str | None) -> Bag:
         namespace = _guess_namespace([t for t, _ in channels.values()])
     bag = Bag(path=p, namespace=namespace)
     if truncated:
-        bag.skipped["(file tail)"] = f"bag was not closed; read up to the last chunk ({truncated})"
+        bag.skipped["(file tail)"] = (f"bag was not closed; read up to the last chunk "
+                                      f"({truncated}); make it a normal bag with "
+                                      f"'python -m train_core.bagio repair {p}'")
     for topic, msgtype, t_ns, data in sorted(raw, key=lambda r: r[2]):
         rel = topic[len(namespace) + 1:] if topic.startswith(namespace + "/") else topic
         if msgtype not in msg_texts():
@@ -303,3 +307,105 @@ def _recover(p: Path, namespace: str | None) -> Bag:
         bag.types[rel] = msgtype
         bag.topics.setdefault(rel, []).append((t_ns, stamp, fields))
     return bag
+
+
+def repair_bag(path: str | os.PathLike, keep_broken: bool = True) -> Path:
+    """Make a bag whose writer died (``kill -9``: no metadata.yaml, no MCAP summary or end magic)
+    a normal bag again, readable by rosbags' AnyReader, the ``mcap`` reader and ``ros2 bag``.
+
+    Every complete record is copied, in log-time order, into a new bag written by rosbags
+    (summary, end magic, metadata.yaml); the original directory is kept beside it as
+    ``<bag>.broken`` (``keep_broken=False`` deletes it). Returns the repaired bag's path.
+    Raises BagError if the bag is not a broken rosbag2/MCAP bag.
+    """
+    import shutil
+    import tempfile
+
+    from mcap.stream_reader import StreamReader
+
+    p = Path(path)
+    if not p.is_dir():
+        raise BagError(f"{p}: not a bag directory")
+    if (p / "metadata.yaml").exists():
+        raise BagError(f"{p}: has metadata.yaml already: nothing to repair")
+    files = sorted(p.glob("*.mcap"))
+    if not files:
+        raise BagError(f"{p}: no .mcap file: not a rosbag2/MCAP bag")
+    schemas: dict[int, tuple[str, str]] = {}
+    channels: dict[int, tuple[str, str, str]] = {}
+    raw: list[tuple[int, int, str, str, str, bytes]] = []
+    for f in files:
+        with open(f, "rb") as fh:
+            try:
+                for rec in StreamReader(fh).records:
+                    kind = type(rec).__name__
+                    if kind == "Schema":
+                        schemas[rec.id] = (rec.name, bytes(rec.data).decode(errors="replace"))
+                    elif kind == "Channel":
+                        name, text = schemas.get(rec.schema_id, ("", ""))
+                        channels[rec.id] = (rec.topic, name, text)
+                    elif kind == "Message" and rec.channel_id in channels:
+                        topic, msgtype, text = channels[rec.channel_id]
+                        raw.append((rec.log_time, len(raw), topic, msgtype, text,
+                                    bytes(rec.data)))
+            except Exception:  # the truncated tail ends the copy; what was complete is kept
+                pass
+    tmp = Path(tempfile.mkdtemp(prefix=".repair-", dir=p.parent))
+    try:
+        from rosbags.rosbag2 import StoragePlugin, Writer
+
+        out = tmp / p.name
+        writer = Writer(out, version=9, storage_plugin=StoragePlugin.MCAP)
+        writer.open()
+        conns: dict[str, object] = {}
+        try:
+            for t_ns, _, topic, msgtype, text, data in sorted(raw, key=lambda r: r[:2]):
+                conn = conns.get(topic)
+                if conn is None:
+                    if msgtype in msg_texts():
+                        conn = writer.add_connection(topic, msgtype, msgdef=msgdef(msgtype),
+                                                     rihs01=typestore().hash_rihs01(msgtype))
+                    else:  # another package's type: its embedded definition, as recorded
+                        conn = writer.add_connection(topic, msgtype, msgdef=text, rihs01="")
+                    conns[topic] = conn
+                writer.write(conn, t_ns, data)
+        finally:
+            writer.close()
+        broken = p.with_name(p.name + ".broken")
+        if broken.exists():
+            raise BagError(f"{broken} exists: move it away first")
+        p.rename(broken)
+        out.rename(p)
+        if not keep_broken:
+            shutil.rmtree(broken)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return p
+
+
+def main(argv=None) -> int:
+    """``python -m train_core.bagio repair BAG``: see :func:`repair_bag`."""
+    import argparse
+    import sys
+
+    ap = argparse.ArgumentParser(prog="python -m train_core.bagio",
+                                 description="Repair a bag whose recorder was killed.")
+    ap.add_argument("command", choices=["repair"])
+    ap.add_argument("bag", help="bag directory without metadata.yaml")
+    ap.add_argument("--delete-broken", action="store_true",
+                    help="delete the original instead of keeping it as BAG.broken")
+    args = ap.parse_args(argv)
+    try:
+        before = read_bag(args.bag)
+        p = repair_bag(args.bag, keep_broken=not args.delete_broken)
+    except (BagError, OSError) as exc:
+        print(f"repair: {exc}", file=sys.stderr)
+        return 2
+    n = sum(len(v) for v in before.topics.values())
+    print(f"repaired {p}: {n} messages on {len(before.topics)} topics"
+          + ("" if args.delete_broken else f"; original kept as {p}.broken"))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

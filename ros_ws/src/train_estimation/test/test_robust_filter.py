@@ -423,7 +423,8 @@ BAD = [
      "non_positive_variance"),
     (OdometerReading(0.1, 1, distance=33.8, speed=0.0, speed_variance=0.01), "out_of_order"),
     (OdometerReading(0.2, 1, distance=33.8, speed=0.0, speed_variance=0.01), "duplicate"),
-    (OdometerReading(0.2, 0, distance=33.8, speed=0.0, speed_variance=0.01), "out_of_order"),
+    (OdometerReading(0.09, 3, distance=33.8, speed=0.0, speed_variance=0.01), "out_of_order"),
+    (OdometerReading(1e6, 2, distance=33.8, speed=0.0, speed_variance=0.01), "future_stamp"),
     (BaliseReading(0.15, 1, 1, 1400.0, 1.0), "duplicate"),
     (OdometerReading(0.05, 2, distance=33.8, speed=0.0, speed_variance=0.01), "out_of_order"),
     (OdometerReading(0.2, 2, distance=533.8, speed=0.0, speed_variance=0.01), "outside_gate"),
@@ -576,3 +577,13 @@ def test_make_robust_filter_and_covariance16():
     c = np.array(covariance16(f.P)).reshape(4, 4)
     np.testing.assert_array_equal(c[:2, :2], f.P)
     assert np.all(np.isnan(c[2:, :])) and np.all(np.isnan(c[:, 2:]))
+
+
+def test_seq_reset_and_wraparound_accepted_and_counted():
+    """Order is by stamp: seq 2**32 - 1 then a reset to 0 must not blind the filter."""
+    f = _fresh()
+    for i, seq in enumerate([2**32 - 1, 0, 1, 2]):
+        d = f.update(OdometerReading(0.2 + 0.1 * i, seq, distance=33.8, speed=0.0,
+                                     speed_variance=0.01))
+        assert d.accepted, (seq, d)
+    assert f.counters["seq_reset"] == 1

@@ -70,3 +70,41 @@ def test_no_authority_while_another_train_is_not_localised():
     auth = {x.train_id: x for x in zc.authorities(0.5, ["A", "B"])}
     assert auth["B"].emergency_brake and "unknown" in auth["B"].reason
     assert auth["A"].emergency_brake
+
+
+def test_predictions_without_measurements_become_stale_by_their_own_stamps():
+    """An estimator that keeps publishing predictions (fresh arrivals) is stale all the same."""
+    zc = ZoneController(P)  # stale_timeout 2 s, measurement_timeout 10 s (default)
+    zc.report("A", rep(0.0, 1000.0, 10.0))
+    t = 0.0
+    for k in range(1, 120):  # 11.9 s of predictions, each arriving fresh
+        t = 0.1 * k
+        r = rep(t, 1000.0 + 10 * t, 10.0)
+        r.measurement_used = False
+        assert zc.report("A", r) == ""
+        (a,) = zc.authorities(t, ["A"])
+        assert a.emergency_brake == (t > 10.0 + 1e-9), t
+    assert a.state == "stale" and "no measurement" in a.reason
+    # a fresh measurement releases it
+    zc.report("A", rep(t + 0.1, 1000.0 + 10 * t, 10.0))
+    assert not zc.authorities(t + 0.1, ["A"])[0].emergency_brake
+
+
+def test_old_stamp_is_stale_even_when_it_just_arrived():
+    zc = ZoneController(P)
+    r = TrainReport(t_received=5.0, stamp=2.5, position=1000.0, velocity=0.0, var_position=1.0,
+                    var_velocity=0.01)
+    zc.report("A", r)
+    (a,) = zc.authorities(5.0, ["A"])
+    assert a.emergency_brake and a.state == "stale" and "stamped" in a.reason
+
+
+def test_state_is_stable_while_the_reason_text_changes():
+    zc = ZoneController(P)
+    zc.report("A", rep(0.0, 1000.0, 10.0))
+    states, reasons = set(), set()
+    for k in range(30, 60):
+        (a,) = zc.authorities(0.1 * k, ["A"])
+        states.add(a.state)
+        reasons.add(a.reason)
+    assert states == {"stale"} and len(reasons) > 10

@@ -19,9 +19,17 @@ speed passes the EoA::
 where ``f_low = max(f_hat - k sigma_f, f_min)`` is the estimated braking rate's lower bound when
 a braking rate is published (``braking_rate`` finite) and 1 (nominal) otherwise.
 
-A train whose reports are older than ``stale_timeout`` is unsafe: it gets the emergency brake,
-and so does every train behind it (its rear can no longer be bounded from recent data). While a
-supervised train has not reported at all, no other train gets an authority (it may be anywhere).
+A train is unsafe (stale) when its last report arrived more than ``stale_timeout`` ago, when the
+estimate's own stamp is older than ``stale_timeout`` (an estimator that republishes old
+estimates), or when its estimator has not used a measurement for ``measurement_timeout``
+(``stamp - stamp of the last report with measurement_used``, both on the estimator's clock: an
+estimator that keeps publishing predictions is not fresh; a source that never sets the flag,
+such as ground truth, is judged by its stamps only). An unsafe train gets the emergency
+brake, and so does every train behind it (its rear can no longer be bounded from recent data).
+While a supervised train has not reported at all, no other train gets an authority (it may be
+anywhere). Each authority carries a short ``state`` (``ok``, ``stale``, ``no_estimate``,
+``ahead_stale``, ``ahead_unknown``, ``overrun``) so that a node logs a change of state once,
+not every publication of a reason whose numbers change.
 """
 
 from __future__ import annotations
@@ -33,7 +41,9 @@ from dataclasses import dataclass, field
 @dataclass(frozen=True)
 class ZoneParams:
     k_sigma: float = 3.0  # -, width of the confidence interval in standard deviations
-    stale_timeout: float = 3.0  # s, reports older than this make the train unsafe
+    stale_timeout: float = 3.0  # s, reports (arrival or stamp) older than this: unsafe
+    measurement_timeout: float = 10.0  # s, no measurement used for this long: unsafe
+    check_stamp_age: bool = True  # the zone's clock and the estimates' stamps are one clock
     emergency_decel: float = 1.2  # m/s^2, guaranteed emergency braking at nominal braking rate
     train_length: float = 120.0  # m, front to rear
     margin: float = 20.0  # m, kept between an EoA and the hazard it protects
@@ -52,6 +62,9 @@ class TrainReport:
     var_velocity: float  # (m/s)^2
     braking_rate: float = math.nan  # -, NaN where not estimated
     var_braking_rate: float = math.nan
+    measurement_used: bool = True  # a measurement entered this estimate
+    last_measurement: float = math.nan  # s, stamp of the last report with a measurement (set
+    #   by ZoneController.report)
 
 
 @dataclass(frozen=True)
@@ -61,6 +74,7 @@ class Authority:
     permitted_speed: float  # m/s
     emergency_brake: bool
     reason: str  # why the brake is set ("" when it is not)
+    state: str = "ok"  # short category of the reason (changes are logged once)
 
 
 @dataclass
@@ -84,7 +98,27 @@ class ZoneController:
         if reason:
             self.rejected[reason] = self.rejected.get(reason, 0) + 1
             return reason
+        last = self.reports.get(train_id)
+        if rep.measurement_used:
+            rep.last_measurement = rep.stamp
+        else:  # carried over; NaN until a report says a measurement was used (ground truth,
+            # or an estimator that does not set the flag, is judged by its stamps only)
+            rep.last_measurement = last.last_measurement if last is not None else math.nan
         self.reports[train_id] = rep
+        return ""
+
+    def staleness(self, rep: TrainReport, now: float) -> str:
+        """Why a report is too old to bound the train ("" if fresh)."""
+        p = self.params
+        if now - rep.t_received > p.stale_timeout:
+            return f"estimates stale: none received for {now - rep.t_received:.1f} s " \
+                   f"(> {p.stale_timeout} s)"
+        if p.check_stamp_age and now - rep.stamp > p.stale_timeout:
+            return f"estimates stale: stamped {now - rep.stamp:.1f} s ago (> {p.stale_timeout} s)"
+        if math.isfinite(rep.last_measurement) and \
+                rep.stamp - rep.last_measurement > p.measurement_timeout:
+            return (f"estimates stale: no measurement used for "
+                    f"{rep.stamp - rep.last_measurement:.1f} s (> {p.measurement_timeout} s)")
         return ""
 
     def _bounds(self, rep: TrainReport) -> tuple[float, float, float, float]:
@@ -104,40 +138,41 @@ class ZoneController:
     def authorities(self, now: float, train_ids: list[str]) -> list[Authority]:
         """One authority per train in ``train_ids`` at zone-controller time ``now`` (s)."""
         p = self.params
-        stale = {
-            tid: (tid not in self.reports) or (now - self.reports[tid].t_received > p.stale_timeout)
-            for tid in train_ids
-        }
+        why_stale = {tid: self.staleness(self.reports[tid], now) if tid in self.reports
+                     else "no estimate" for tid in train_ids}
+        stale = {tid: bool(w) for tid, w in why_stale.items()}
         out = []
         for tid in train_ids:
             rep = self.reports.get(tid)
             if rep is None:
-                out.append(Authority(tid, -math.inf, 0.0, True, "no estimate received yet"))
+                out.append(Authority(tid, -math.inf, 0.0, True, "no estimate received yet",
+                                     "no_estimate"))
                 continue
             front, _, speed, f_low = self._bounds(rep)
             hazards = [(d - p.margin, f"danger point at {d:.1f} m") for d in p.danger_points
                        if d - p.margin >= rep.position - p.k_sigma * math.sqrt(rep.var_position)]
-            reason = ""
+            reason, state = "", "ok"
             for other in train_ids:
                 orep = self.reports.get(other)
                 if other == tid:
                     continue
                 if orep is None:  # a supervised train not yet localised may be anywhere ahead
-                    reason = f"position of {other} unknown"
+                    reason, state = f"position of {other} unknown", "ahead_unknown"
                     continue
                 if orep.position <= rep.position:
                     continue
                 _, orear, _, _ = self._bounds(orep)
                 hazards.append((orear - p.margin, f"rear of {other}"))
                 if stale[other]:
-                    reason = f"train ahead ({other}) has stale estimates"
+                    reason, state = f"train ahead ({other}) has stale estimates", "ahead_stale"
             eoa, what = min(hazards, default=(math.inf, "open line"))
             if stale[tid]:
-                reason = f"estimates stale for {now - rep.t_received:.1f} s (> {p.stale_timeout} s)"
+                reason, state = why_stale[tid], "stale"
             elif not reason:
                 stop_dist = speed * speed / (2.0 * f_low * p.emergency_decel)
                 if front + stop_dist > eoa:
                     reason = (f"worst-case stop {front + stop_dist:.1f} m passes EoA {eoa:.1f} m "
                               f"({what})")
-            out.append(Authority(tid, eoa, p.permitted_speed, bool(reason), reason))
+                    state = "overrun"
+            out.append(Authority(tid, eoa, p.permitted_speed, bool(reason), reason, state))
         return out

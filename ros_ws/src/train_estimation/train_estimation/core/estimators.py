@@ -8,12 +8,14 @@ The ROS nodes and the offline replay (``replay.py``) use the same adapters throu
 
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import dataclass
 
 import numpy as np
 from train_core.model import Line, TrainParams
 
+from . import reasons as R
 from .braking_filters import GSMA, QGRBPF, SMA, BrakingKF, DiscreteRBPF, sticky_transition
 from .braking_model import BrakingModel, BrakingParams
 from .robust_filter import (
@@ -51,11 +53,24 @@ class RobustConfig:
     gate: float = 8.0  # -, innovation gate in standard deviations
     use_distance: bool = True  # odometer distance as a position measurement
     distance_variance: float = 1.0  # m^2, variance of (origin + distance) as a position reading
-    period: float = 0.1  # s, odometer sample period (lost samples are detected on this grid)
+    period: float = 0.1  # s, nominal odometer sample period (lost samples: gap / period - 1)
+    outage_slots: int = 8  # more lost slots in a row are an outage: prediction only
+    max_command: float = 5.0  # m/s^2, |a_Tar| beyond is no train's command (outside_gate)
 
 
 class RobustAdapter:
-    """Drives :class:`RobustFilter`; a lost odometer sample enters as ``received=False``."""
+    """Drives :class:`RobustFilter` on the odometer's own clock.
+
+    Lost odometer samples are found from the odometer's stamps (not from an output grid, so any
+    epoch, phase and drift work): when a sample arrives ``n = round(gap / period) - 1`` slots
+    after the previous one, the ``n`` lost slots enter first as ``received=False`` at evenly
+    spaced stamps (Wen eq. (11)-(12): alpha = 0, the bound (22) takes the expectation over
+    alpha). A gap of more than ``outage_slots`` slots is not Bernoulli loss (probability
+    ``(1 - abar)^n``, 6e-8 for 8 slots at abar = 0.875) but an outage (a tunnel, a dead
+    radio): no expected update is taken for it, the bound grows by prediction alone (21), so
+    that it still covers the error after the outage (event ``outage``). Estimates between
+    samples are predictions on copies: the state only moves with readings.
+    """
 
     source = "robust_filter"
 
@@ -70,6 +85,8 @@ class RobustAdapter:
         self.train, self.start_state, self.cfg, self.filter_cls = train, start, cfg, filter_cls
         self.f: RobustFilter | None = None
         self.last_odo: tuple[float, int] | None = None  # (stamp, seq) of the last odometer slot
+        self.outages = 0
+        self._pred = None  # (state token, t, x, P, actuator) of the last prediction output
 
     def start(self, t0: float) -> None:
         s = self.start_state
@@ -78,14 +95,38 @@ class RobustAdapter:
                                  brake=self.train.brake)
 
     def control(self, stamp: float, fields: dict) -> str:
-        d = self.f.set_control(stamp, float(fields["target_acceleration"]))
+        a = float(fields["target_acceleration"])
+        if math.isfinite(a) and abs(a) > self.cfg.max_command:
+            return f"{R.OUTSIDE_GATE}: command {a:.3g} m/s^2"
+        d = self.f.set_control(stamp, a)
         return "" if d.accepted else d.reason
 
+    def _lost_slots(self, stamp: float) -> None:
+        """Enter the slots lost between the last odometer sample and one stamped ``stamp``."""
+        if self.last_odo is None:
+            return
+        last_stamp, last_seq = self.last_odo
+        n = int(round((stamp - last_stamp) / self.cfg.period)) - 1
+        if n > self.cfg.outage_slots:
+            self.outages += 1
+            return
+        step = (stamp - last_stamp) / (n + 1) if n >= 1 else 0.0
+        for i in range(1, n + 1):
+            t = last_stamp + i * step
+            if t <= self.f.t:  # a balise was fused after this slot: the slot is past
+                continue
+            self.f.update(OdometerReading(stamp=t, seq=last_seq + i, received=False))
+
     def odometer(self, stamp: float, fields: dict) -> str:
-        d = self.f.update(OdometerReading(stamp=stamp, seq=int(fields["seq"]),
-                                          distance=float(fields["distance"]),
-                                          speed=float(fields["speed"]),
-                                          speed_variance=float(fields["speed_variance"])))
+        r = OdometerReading(stamp=stamp, seq=int(fields["seq"]),
+                            distance=float(fields["distance"]), speed=float(fields["speed"]),
+                            speed_variance=float(fields["speed_variance"]))
+        # the reading's own checks first, so that a bad one does not enter lost slots
+        kind, meas = self.f._measurement(r)
+        if isinstance(meas, str):
+            return self.f._decide(False, meas).reason
+        self._lost_slots(stamp)
+        d = self.f.update(r)
         if d.accepted:
             self.last_odo = (stamp, int(fields["seq"]))
         return "" if d.accepted else d.reason
@@ -97,28 +138,66 @@ class RobustAdapter:
                                         position_variance=float(fields["position_variance"])))
         return "" if d.accepted else d.reason
 
-    def predict_to(self, t: float) -> None:
-        # alpha(k) = 0 from the sequence numbers: no sample for this slot arrived in time, so the
-        # slot enters as a lost packet (Wen eq. (11)-(12)) and the bound (22) grows accordingly.
-        if self.last_odo is not None:
-            last_stamp, last_seq = self.last_odo
-            slots = int(round((t - last_stamp) / self.cfg.period))
-            if slots >= 1:
-                d = self.f.update(OdometerReading(stamp=t, seq=last_seq + slots, received=False))
-                if d.accepted:
-                    self.last_odo = (t, last_seq + slots)
-        self.f.predict_to(t)
-
     def output(self, t: float) -> Output:
-        x, P = self.f.estimate()
+        f = self.f
+        if t > f.t:
+            # a prediction on copies (the state is untouched); through a gap each output goes
+            # on from the previous one instead of from the last reading (linear, not quadratic)
+            token = (f.t, float(f.x[0]), float(f.x[1]), float(f.P[0, 0]))
+            c = self._pred
+            if c is not None and c[0] == token and c[1] <= t:
+                saved = f.x, f.P, f.t, f.actuator
+                f.x, f.P, f.t, f.actuator = c[2], c[3], c[1], c[4]
+                try:
+                    x, P, act = f._propagate(t)
+                finally:
+                    f.x, f.P, f.t, f.actuator = saved
+            else:
+                x, P, act = f._propagate(t)
+            self._pred = (token, t, x, P, act)
+        else:
+            x, P = f.estimate()
         return Output(stamp=t, position=float(x[0]), velocity=float(x[1]),
                       acceleration=math.nan, braking_rate=math.nan,
                       covariance=tuple(covariance16(P)),
                       measurement_used=self.f.pop_measurement_used())
 
+    def snapshot(self):
+        """The mutable state, for the runner's rewinding (models, maps, params are shared)."""
+        state = {}
+        for k, v in vars(self.f).items():
+            if isinstance(v, np.ndarray):
+                v = v.copy()
+            elif isinstance(v, dict | list):  # Counter, seq/stamp dicts, FOH history
+                v = copy.deepcopy(v) if k == "_hist" else type(v)(v)
+            elif k == "actuator":
+                v = v.copy()
+            state[k] = v
+        return state, self.last_odo, self.outages, self._pred
+
+    def restore(self, snap) -> None:
+        state, self.last_odo, self.outages, self._pred = snap
+        self.f.__dict__.update(self.snapshot_copy(state))
+
+    @staticmethod
+    def snapshot_copy(state: dict) -> dict:
+        out = {}
+        for k, v in state.items():
+            if isinstance(v, np.ndarray):
+                v = v.copy()
+            elif isinstance(v, dict | list):
+                v = copy.deepcopy(v) if k == "_hist" else type(v)(v)
+            elif k == "actuator":
+                v = v.copy()
+            out[k] = v
+        return out
+
     @property
     def counters(self) -> dict:
-        return dict(self.f.counters) if self.f else {}
+        c = dict(self.f.counters) if self.f else {}
+        if self.outages:
+            c[R.OUTAGE] = self.outages
+        return c
 
 
 # ---------------------------------------------------------------------------------------------
@@ -159,6 +238,11 @@ class BrakingConfig:
     #   train is held at rest and f is not observed (odometer speed noise is ~0.1 m/s)
     min_brake: float = 0.1  # m/s^2: weaker braking commands do not inform f
     seed: int = 0  # particle-filter random stream
+    gate: float = 8.0  # -, innovation gate in standard deviations (math.inf disables)
+    gate_accel: float = 1.5  # m/s^2, acceleration error allowed in the gate's look-ahead
+    balise_map_tolerance: float = 1.0  # m, max |sent position - map position|
+    max_horizon: float = 3600.0  # s, a reading further ahead of the estimate is future_stamp
+    max_command: float = 5.0  # m/s^2, |a_Tar| beyond is no train's command (outside_gate)
 
 
 class BrakingAdapter:
@@ -214,7 +298,7 @@ class BrakingAdapter:
         self.est = None
         self.used = False
         self.balises = {b.id: b.position for b in line.balises}
-        self.last_seq: int | None = None  # odometer seq: duplicates and replays are refused
+        self.last: dict = {}  # kind -> (seq, stamp) of the last fused reading (duplicates)
 
     def start(self, t0: float) -> None:
         s = self.start_state
@@ -231,7 +315,7 @@ class BrakingAdapter:
     def _step(self, stamp: float, y=None, mask=None, meas_var=None) -> str:
         e = self.filt.step(self.a_tar, y, mask, self.rng, t=stamp, meas_var=meas_var, d=self._d())
         if not e.accepted:
-            return e.reason or "rejected"
+            return R.normalise(e.reason or R.INVALID)
         self.est = e
         self.used |= e.measurement_used
         return ""
@@ -241,51 +325,124 @@ class BrakingAdapter:
             return self._step(stamp)
         return ""
 
+    def _gate(self, stamp: float, rows: list[tuple[int, float, float]]) -> str:
+        """Innovation test of readings ``(state index 0 = D / 1 = v, value, variance)`` against
+        the estimate predicted to ``stamp`` (constant a-hat), like the robust filter's gate.
+
+        ``S = C P C^T + R + slack``: ``P`` from the mixture covariance moved by ``dt`` (NaN or
+        negative entries count as 0, so a collapsed covariance cannot close the gate), and the
+        slack of an acceleration error up to ``gate_accel`` over ``dt`` (the model neglects the
+        resistance in this look-ahead; the slack also reopens the gate after a long rejection).
+        """
+        g = self.cfg.gate
+        if not math.isfinite(g):
+            return ""
+        e = self.est
+        dt = max(stamp - (self.filt.t if self.filt.t is not None else stamp), 0.0)
+        m = np.asarray(e.mean, dtype=float)
+        P = np.nan_to_num(np.asarray(e.cov, dtype=float)[:3, :3], nan=0.0)
+        F = np.array([[1.0, dt, 0.5 * dt * dt], [0.0, 1.0, dt]])
+        pred = F @ np.nan_to_num(m[:3])
+        Pp = F @ P @ F.T
+        slack = (0.5 * self.cfg.gate_accel * dt * dt, self.cfg.gate_accel * dt)
+        for i, y, r in rows:
+            s = max(Pp[i, i], 0.0) + r + slack[i] ** 2
+            nu = y - pred[i]
+            if abs(nu) > g * math.sqrt(s):
+                return f"{R.OUTSIDE_GATE}: {('position', 'speed')[i]} innovation {nu:.3g}"
+        return ""
+
     def control(self, stamp: float, fields: dict) -> str:
         a = float(fields["target_acceleration"])
         if not (math.isfinite(a) and math.isfinite(stamp)):
-            return "non_finite"
+            return R.NON_FINITE
+        if abs(a) > self.cfg.max_command:
+            return f"{R.OUTSIDE_GATE}: command {a:.3g} m/s^2"
         if self.filt.t is not None and stamp < self.filt.t:
-            return "out_of_order"
+            return R.OUT_OF_ORDER
         reason = self._advance(stamp)  # the old command holds up to the new one's stamp
         if not reason:
             self.a_tar = a
         return reason
 
+    def _order(self, kind: str, stamp: float, seq: int) -> str:
+        """Order by stamp; seq only marks duplicates (a seq reset is counted by the runner)."""
+        last = self.last.get(kind)
+        if last is not None and (seq == last[0] or stamp == last[1]):
+            return R.DUPLICATE
+        if self.filt.t is not None and stamp < self.filt.t:
+            return R.OUT_OF_ORDER
+        if self.filt.t is not None and stamp - self.filt.t > self.cfg.max_horizon:
+            return R.FUTURE_STAMP
+        return ""
+
     def odometer(self, stamp: float, fields: dict) -> str:
         seq = int(fields["seq"])
-        if self.last_seq is not None and seq <= self.last_seq:
-            return "duplicate" if seq == self.last_seq else "out_of_order"
+        dist, speed = float(fields["distance"]), float(fields["speed"])
         var = float(fields["speed_variance"])
-        if not (math.isfinite(var) and var > 0):
-            return "non_positive_variance" if math.isfinite(var) else "non_finite"
-        y = [self.start_state.position + float(fields["distance"]), float(fields["speed"]),
-             math.nan]
-        reason = self._step(stamp, y, [self.cfg.use_distance, True, False],
-                            [self.cfg.distance_variance, var, 1.0])
+        if not all(math.isfinite(v) for v in (stamp, dist, speed, var)):
+            return R.NON_FINITE
+        if var <= 0:
+            return R.NON_POSITIVE_VARIANCE
+        why = self._order("odometer", stamp, seq)
+        if why:
+            return why
+        pos = self.start_state.position + dist
+        rows = [(1, speed, var)] + ([(0, pos, self.cfg.distance_variance)]
+                                    if self.cfg.use_distance else [])
+        why = self._gate(stamp, rows)
+        if why:
+            return why
+        reason = R.normalise(self._step(stamp, [pos, speed, math.nan],
+                                        [self.cfg.use_distance, True, False],
+                                        [self.cfg.distance_variance, var, 1.0]))
         if not reason:
-            self.last_seq = seq
+            self.last["odometer"] = (seq, stamp)
         return reason
 
     def balise(self, stamp: float, fields: dict) -> str:
+        seq, sent = int(fields["seq"]), float(fields["position"])
+        var = float(fields["position_variance"])
+        if not all(math.isfinite(v) for v in (stamp, sent, var)):
+            return R.NON_FINITE
+        if var <= 0:
+            return R.NON_POSITIVE_VARIANCE
         pos = self.balises.get(int(fields["balise_id"]))
         if pos is None:
-            return "unknown_balise"
-        var = float(fields["position_variance"])
-        if not (math.isfinite(var) and var > 0):
-            return "non_positive_variance" if math.isfinite(var) else "non_finite"
-        return self._step(stamp, [pos, math.nan, math.nan], [True, False, False], [var, 1.0, 1.0])
-
-    def predict_to(self, t: float) -> None:
-        self._advance(t)
+            return R.UNKNOWN_BALISE
+        if abs(pos - sent) > self.cfg.balise_map_tolerance:
+            return f"{R.BALISE_MAP_MISMATCH}: sent {sent:.1f} m, map {pos:.1f} m"
+        why = self._order("balise", stamp, seq) or self._gate(stamp, [(0, pos, var)])
+        if why:
+            return why
+        reason = R.normalise(self._step(stamp, [pos, math.nan, math.nan], [True, False, False],
+                                        [var, 1.0, 1.0]))
+        if not reason:
+            self.last["balise"] = (seq, stamp)
+        return reason
 
     def output(self, t: float) -> Output:
+        # the braking filters step in time (their transition clock): an output between readings
+        # is a time update of the filter itself, as Zheng's filters do at every sample
+        self._advance(t)
         e = self.est
         used, self.used = self.used, False
         return Output(stamp=t, position=float(e.mean[0]), velocity=float(e.mean[1]),
                       acceleration=float(e.mean[2]), braking_rate=float(e.mean[3]),
                       covariance=tuple(float(v) for v in np.asarray(e.cov).ravel()),
                       measurement_used=used)
+
+    def snapshot(self):
+        """The mutable state, for the runner's rewinding (the model family is shared)."""
+        return (copy.deepcopy(self.filt, {id(self.fam): self.fam}),
+                copy.deepcopy(self.rng.bit_generator.state), self.a_tar, self.est, self.used,
+                dict(self.last))
+
+    def restore(self, snap) -> None:
+        filt, rng_state, self.a_tar, self.est, self.used, last = snap
+        self.filt = copy.deepcopy(filt, {id(self.fam): self.fam})
+        self.rng.bit_generator.state = copy.deepcopy(rng_state)
+        self.last = dict(last)
 
     @property
     def counters(self) -> dict:

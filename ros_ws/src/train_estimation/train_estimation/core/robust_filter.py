@@ -77,7 +77,11 @@ step instead (``WenModel.standstill``): a braked train at rest does not roll bac
 Bad input is rejected with a reason (``Decision``), counted in ``counters`` and leaves the state
 untouched: ``non_finite``, ``non_positive_variance``, ``out_of_order``, ``duplicate``,
 ``unknown_balise``, ``balise_map_mismatch``, ``outside_gate`` (normalised innovation
-``|nu_i| / sqrt(S_ii) > gate`` on any channel, S from the filter's own covariance / bound).
+``|nu_i| / sqrt(S_ii) > gate`` on any channel, S from the filter's own covariance / bound),
+``future_stamp`` (more than ``max_horizon`` ahead), ``numerical_failure`` -- the names of
+``core/reasons.py``. Order is by stamp; ``seq`` marks duplicates only, and a ``seq`` that goes
+back while the stamp goes on (a sensor reset, a wrap-around) is accepted and counted as
+``seq_reset``.
 
 Lost packets are not bad input: an odometer slot with ``received=False`` is accepted with
 reason ``missing``. Accepted ``predict_to``/``set_control`` calls are not counted.
@@ -99,6 +103,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from . import reasons as R
 from .wen_model import Actuator, DiscreteWen, WenModel
 
 __all__ = [
@@ -108,9 +113,10 @@ __all__ = [
     "make_robust_filter", "covariance16",
 ]
 
-REASONS = ("ok", "missing", "ignored",  # accepted
-           "non_finite", "non_positive_variance", "out_of_order", "duplicate",  # rejected
-           "unknown_balise", "balise_map_mismatch", "outside_gate")
+# the filters' share of the one vocabulary (core/reasons.py)
+REASONS = (R.OK, R.MISSING, R.IGNORED,  # accepted
+           R.NON_FINITE, R.NON_POSITIVE_VARIANCE, R.OUT_OF_ORDER, R.DUPLICATE,  # rejected
+           R.UNKNOWN_BALISE, R.BALISE_MAP_MISMATCH, R.OUTSIDE_GATE)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -172,6 +178,7 @@ class FilterParams:
     clamp_standstill: bool = True  # project v^ onto v >= 0 (the world never rolls back)
     kf_q: float | None = None  # N^2, IntermittentKF's wind-force variance (None: model.q)
     max_dt: float = 1.0  # s, longer predictions are split (ZOH of gradient and resistance)
+    max_horizon: float = 3600.0  # s, a reading further ahead of the estimate is future_stamp
 
 
 # ---------------------------------------------------------------------------------------------
@@ -415,27 +422,29 @@ class _FilterBase:
     # -- control -------------------------------------------------------------------------------
     def set_control(self, stamp: float, target_acceleration: float) -> Decision:
         if not _finite(stamp, target_acceleration):
-            return self._decide(False, "non_finite")
+            return self._decide(False, R.NON_FINITE)
         last = self._last_stamp.get("control", -math.inf)
         if stamp < last:
-            return self._decide(False, "out_of_order")
+            return self._decide(False, R.OUT_OF_ORDER)
         self._last_stamp["control"] = float(stamp)
         self.actuator.command(stamp, target_acceleration)
-        return Decision(True, "ok")  # accepted commands are not counted (rejections are)
+        return Decision(True, R.OK)  # accepted commands are not counted (rejections are)
 
     # -- time update ---------------------------------------------------------------------------
     def predict_to(self, t: float, control: float | None = None) -> Decision:
         """Move the estimate to time ``t`` (s). ``control`` (a_Tar, m/s^2), if given, is recorded
         as a command issued at the current filter time first."""
         if not _finite(t) or (control is not None and not _finite(control)):
-            return self._decide(False, "non_finite")
+            return self._decide(False, R.NON_FINITE)
         if t < self.t:
-            return self._decide(False, "out_of_order")
+            return self._decide(False, R.OUT_OF_ORDER)
+        if t - self.t > self.params.max_horizon:
+            return self._decide(False, R.FUTURE_STAMP)
         if control is not None:
             self.set_control(self.t, control)
         self.x, self.P, self.actuator = self._propagate(t)
         self.t = float(t)
-        return Decision(True, "ok")
+        return Decision(True, R.OK)
 
     def _propagate(self, t: float):
         """Prediction to ``t`` on copies; returns (x, P, actuator)."""
@@ -458,14 +467,18 @@ class _FilterBase:
 
     # -- measurement update --------------------------------------------------------------------
     def _validate_order(self, kind: str, stamp: float, seq: int) -> str | None:
+        """Order by stamp; ``seq`` only marks duplicates. A seq that goes back while the stamp
+        goes on is a sensor reset or a wrap-around: accepted, counted as ``seq_reset``."""
         if stamp < self.t:
-            return "out_of_order"
+            return R.OUT_OF_ORDER
+        if stamp - self.t > self.params.max_horizon:  # a clock error, not a long outage
+            return R.FUTURE_STAMP
         last_seq = self._last_seq.get(kind)
         last_stamp = self._last_stamp.get(kind)
         if last_seq is not None and (seq == last_seq or stamp == last_stamp):
-            return "duplicate"
-        if last_seq is not None and (seq < last_seq or stamp < last_stamp):
-            return "out_of_order"
+            return R.DUPLICATE
+        if last_stamp is not None and stamp < last_stamp:
+            return R.OUT_OF_ORDER
         return None
 
     def _measurement(self, reading) -> tuple[str, Measurement | str]:
@@ -474,12 +487,12 @@ class _FilterBase:
         if isinstance(reading, OdometerReading):
             kind = "odometer"
             if not _finite(reading.stamp) or not isinstance(reading.seq, (int, np.integer)):
-                return kind, "non_finite"
+                return kind, R.NON_FINITE
             if reading.received:
                 if not _finite(reading.distance, reading.speed, reading.speed_variance):
-                    return kind, "non_finite"
+                    return kind, R.NON_FINITE
                 if reading.speed_variance <= 0.0:
-                    return kind, "non_positive_variance"
+                    return kind, R.NON_POSITIVE_VARIANCE
             bad = self._validate_order(kind, reading.stamp, int(reading.seq))
             if bad:
                 return kind, bad
@@ -503,17 +516,17 @@ class _FilterBase:
             kind = "balise"
             if not _finite(reading.stamp, reading.position, reading.position_variance) or \
                     not isinstance(reading.seq, (int, np.integer)):
-                return kind, "non_finite"
+                return kind, R.NON_FINITE
             if reading.position_variance <= 0.0:
-                return kind, "non_positive_variance"
+                return kind, R.NON_POSITIVE_VARIANCE
             bad = self._validate_order(kind, reading.stamp, int(reading.seq))
             if bad:
                 return kind, bad
             pos = self._balise_pos.get(int(reading.balise_id))
             if pos is None:
-                return kind, "unknown_balise"
+                return kind, R.UNKNOWN_BALISE
             if abs(pos - reading.position) > p.balise_map_tolerance:
-                return kind, "balise_map_mismatch"
+                return kind, R.BALISE_MAP_MISMATCH
             return kind, Measurement(
                 y=np.array([pos]), C=_POS.copy(), R=np.array([[reading.position_variance]]),
                 abar=np.array([p.alpha_bar_balise]), group=np.zeros(1, int),
@@ -537,18 +550,20 @@ class _FilterBase:
             return self._decide(False, meas)
         x, P, act = self._propagate(float(reading.stamp))
         if not self._gate_ok(x, P, meas):
-            return self._decide(False, "outside_gate")
+            return self._decide(False, R.OUTSIDE_GATE)
         x, P = self._apply(x, P, meas)
         if not (np.all(np.isfinite(x)) and _finite_or_nan_cov(P)):
-            return self._decide(False, "non_finite")  # numerical failure: keep the old state
+            return self._decide(False, R.NUMERICAL_FAILURE)  # keep the old state
         self.x, self.P, self.actuator, self.t = x, P, act, float(reading.stamp)
+        if self._last_seq.get(kind, -1) > int(reading.seq):
+            self.counters[R.SEQ_RESET] += 1
         self._last_seq[kind] = int(reading.seq)
         self._last_stamp[kind] = float(reading.stamp)
         received = bool(np.any(meas.mask))
         if kind == "odometer" and received:
             self._speed_var = float(reading.speed_variance)
         self._used |= received
-        return self._decide(True, "ok" if received else "missing")
+        return self._decide(True, R.OK if received else R.MISSING)
 
 
 def _finite_or_nan_cov(P) -> bool:
@@ -657,7 +672,7 @@ class FOHFilter(_FilterBase):
             self.t = t
             self._last_seq[kind] = int(reading.seq)
             self._last_stamp[kind] = t
-            return self._decide(True, "ignored")
+            return self._decide(True, R.IGNORED)
         hist = [list(h) for h in self._hist]
         for row, y, ok in zip(meas.C, meas.y, meas.mask):
             if ok:
@@ -673,7 +688,7 @@ class FOHFilter(_FilterBase):
         self._last_stamp[kind] = t
         received = bool(np.any(meas.mask))
         self._used |= received
-        return self._decide(True, "ok" if received else "missing")
+        return self._decide(True, R.OK if received else R.MISSING)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -3,32 +3,75 @@
 The ROS nodes and the offline replay both drive an estimator through :class:`EstimatorRunner`,
 so the node's estimates can be reproduced from a bag without ROS:
 
-- ``push(kind, stamp, fields)`` queues a reading or command (the node's callbacks only do this);
-- ``advance_to(t)`` processes every queued item with stamp <= each output time in stamp order
-  (commands before readings at equal stamps), predicts to the output time and emits one estimate
-  per output time ``k * period`` (the odometer rate), whether or not a measurement arrived.
+- ``push(kind, stamp, fields, recv)`` checks one reading or command at the door (finite stamp,
+  plausible clock, duplicate, sequence reset) and queues it (the node's callbacks only do this);
+- ``advance_to(t)`` processes every queued item with stamp <= t in stamp order (commands before
+  readings at equal stamps) and emits one estimate per odometer sample, **at the sample's own
+  stamp**, as soon as it is processed; an odometer slot without a sample (lost packet, outage)
+  gets a predicted estimate at the expected slot time once the inputs' watermarks pass it.
 
-Items stamped before a time already output are late: they go to the estimator anyway, which
-rejects them as out of order (counted, state untouched). The node calls ``advance_to(now -
-delay)`` with a small ``delay`` so that readings of a sample time arrive before it is output.
+Clocks (CONTRACT.md, "The measured data's clocks"). The estimator runs on the **odometer's
+clock** (the train's clock: odometer and balise stamps are the sampling times, at any epoch,
+phase and drift). ``control`` may be stamped on another clock (measured data: the reference =
+receive clock). Each stream's offset ``stamp - recv`` (``recv`` = arrival time on the node's
+clock; in a replay the bag's log time) is tracked as a running median; a control stamp is mapped
+onto the train clock by adding ``median(odometer offset) - median(control offset)`` (the error is
+the difference of the two streams' median latencies, milliseconds for a radio link). When that
+difference is below ``same_clock_tolerance`` the two clocks are taken as one (the simulator:
+mapping 0, exactly, so that a node and its replay compute the same numbers); once found
+"separate" stays so (commands wait until both clocks have ``min_judged`` arrivals).
+``control_clock`` forces ``"same"`` or ``"reference"``. The nodes default to ``"same"``: a node
+that falls behind its input (callbacks late by seconds) sees arrival times that say little about
+the clocks; offline, with the bag's log times as arrivals, ``"auto"`` is the default.
+On separate clocks the train clock's rate is also estimated (least squares of odometer stamps on
+arrival times, ``drift``) and the filter runs in reference seconds: stamps are converted
+piecewise from the last processed sample, the estimates keep the sample's own stamp. One clock
+needs no rate (a drift shared by all stamps only rescales time; not corrected).
+
+A stamp more than ``max_future`` seconds (default 10 min: generous, because a node whose
+callbacks lag its input sees late arrivals) after what its stream's median offset predicts from
+its arrival is refused (``future_stamp``): one reading stamped 1e6 s ahead is counted and dropped,
+never queued, so it can neither blind the filter nor make ``advance_to`` run for ever. Without
+receive times (``recv=None``) the arrival is taken as the latest stamp admitted on any topic
+(first, the previous stamp pushed), which is the same test on one clock; without receive times
+the topics are taken to share one clock.
+
+Out-of-sequence readings (a radio link with jitter delivers a reading after later ones): a
+reading up to ``history`` seconds older than the newest fused one is fused by **rewinding**, as
+robot_localization's history does: the adapter's state before the first fused odometer sample
+after the late reading is restored (``snapshot``/``restore``) and everything since is
+re-filtered with the late reading in its place (event ``fused_late``). Estimates already
+published stay published; the next ones carry the correction. Older readings are refused
+(``out_of_order``). A replay in arrival order meets the same lateness, so it reproduces the
+node's estimates.
+
+Sequence numbers only detect duplicates (same ``seq`` and stamp as a recent reading) and resets
+(``seq`` goes back while the stamp goes on: a sensor reboot or a wrap-around, accepted and
+counted as the event ``seq_reset``). Order is decided by stamps, so ``seq = 2**32 - 1`` cannot
+blind a stream.
 """
 
 from __future__ import annotations
 
+import bisect
 import heapq
 import math
-from collections import Counter
-from dataclasses import dataclass, field
+from collections import Counter, deque
+from dataclasses import dataclass, field, replace
 from typing import Protocol
 
+from . import reasons as R
+
 KIND_ORDER = {"control": 0, "odometer": 1, "balise": 2}
+NO_SLOT = (R.OUT_OF_ORDER, R.DUPLICATE, R.FUTURE_STAMP, R.STALE_STAMP, R.NON_FINITE)
+CLOCK_OF = {"control": "control", "odometer": "train", "balise": "train"}
 
 
 @dataclass(frozen=True)
 class Output:
     """One estimate, as published in a TrainState (SI units; NaN where not estimated)."""
 
-    stamp: float  # s
+    stamp: float  # s, on the odometer (train) clock
     position: float  # m
     velocity: float  # m/s
     acceleration: float  # m/s^2
@@ -44,83 +87,396 @@ class Adapter(Protocol):
     def control(self, stamp: float, fields: dict) -> str: ...  # "" accepted, else a reason
     def odometer(self, stamp: float, fields: dict) -> str: ...
     def balise(self, stamp: float, fields: dict) -> str: ...
-    def predict_to(self, t: float) -> None: ...
-    def output(self, t: float) -> Output: ...
+    def output(self, t: float) -> Output: ...  # estimate at t >= last fused time, state unchanged
+
+
+class _Median:
+    """Robust centre of the last ``n`` values: the densest one (most others within ``tol``),
+    the median of the densest on ties. A plain median fails when over half of a window is
+    wild (a fuzzed stream); wild stamps scatter, while good ones agree to milliseconds."""
+
+    def __init__(self, n: int = 31):
+        self.n, self.fifo, self.sorted = n, deque(), []
+        self._value = None  # cached centre (recomputed after an add)
+
+    def add(self, v: float) -> None:
+        self._value = None
+        self.fifo.append(v)
+        bisect.insort(self.sorted, v)
+        if len(self.fifo) > self.n:
+            old = self.fifo.popleft()
+            del self.sorted[bisect.bisect_left(self.sorted, old)]
+
+    def __len__(self) -> int:
+        return len(self.fifo)
+
+    tol = 5.0  # s: wider than arrival jitter (a node at 10x sees 1 Hz stamps 0.9 s apart in
+    #   stamp - arrival), far narrower than a clock error worth refusing
+
+    def near(self, v: float) -> int:
+        """How many values of the window lie within ``tol`` of ``v``."""
+        return bisect.bisect_right(self.sorted, v + self.tol) - \
+            bisect.bisect_left(self.sorted, v - self.tol)
+
+    @property
+    def value(self) -> float:
+        if self._value is not None:
+            return self._value
+        s = self.sorted
+        if not s:
+            return math.nan
+        counts = [bisect.bisect_right(s, v + self.tol) - bisect.bisect_left(s, v - self.tol)
+                  for v in s]
+        best = max(counts)
+        dense = [v for v, c in zip(s, counts) if c == best]
+        self._value = dense[len(dense) // 2]
+        return self._value
 
 
 @dataclass
 class EstimatorRunner:
     adapter: Adapter
-    period: float  # s, output period (the odometer's)
+    period: float  # s, odometer sample period (nominal; the slots follow the odometer's stamps)
+    control_clock: str = "auto"  # "auto", "same" or "reference" (see module doc)
+    max_future: float = 600.0  # s, stamp beyond arrival (+ median offset): future_stamp
+    same_clock_tolerance: float = 2.0  # s, "auto": closer clocks are one clock
+    max_gap_outputs: int = 6000  # predicted slots after the last fused sample (10 min at 10 Hz)
+    min_judged: int = 9  # arrivals of a clock before its stamps are judged (earlier ones wait)
+    history: float = 3.0  # s of fused input kept: a reading up to this late is fused by rewinding
     queue: list = field(default_factory=list)
-    rejected: Counter = field(default_factory=Counter)
+    rejected: Counter = field(default_factory=Counter)  # "kind:reason" -> count
     accepted: Counter = field(default_factory=Counter)
+    events: Counter = field(default_factory=Counter)  # "kind:event" -> count (seq_reset, ...)
     last_reasons: list = field(default_factory=list)  # (kind, stamp, reason), most recent last
-    high: dict = field(default_factory=dict)  # kind -> largest stamp pushed (the watermark)
-    _k: int | None = None  # index of the next output time
+    last_events: list = field(default_factory=list)  # (kind, stamp, event text)
+    high: dict = field(default_factory=dict)  # kind -> largest stamp queued (the watermark)
+    _started: bool = False
+    _last_out: float | None = None  # stamp of the last estimate emitted
     _n: int = 0  # insertion counter: FIFO among equal stamps and kinds
+    _offsets: dict = field(default_factory=dict)  # clock -> _Median of stamp - recv
+    _prev_raw: float | None = None  # the last stamp pushed (no-arrival mode, early phase)
+    _admitted_high: float = -math.inf  # the latest stamp admitted (no-arrival mode)
+    _recent: dict = field(default_factory=dict)  # kind -> deque of (seq, stamp)
+    _last_seq: dict = field(default_factory=dict)  # kind -> (seq, stamp) of the last pushed
+    _held: list = field(default_factory=list)  # control pushed before any odometer (raw)
+    _early: dict = field(default_factory=dict)  # clock -> items waiting for min_judged
+    _odo: list = field(default_factory=list)  # heap of the queued odometer stamps
+    _fit: list = field(default_factory=lambda: [0, 0.0, 0.0, 0.0, 0.0, None])  # drift regression
+    _anchor: tuple | None = None  # (train stamp, filter time) of the last processed odometer
+    _last_mapped: float = -math.inf
+    _hist: list = field(default_factory=list)  # [stamp, order, n, kind, fields, snapshot]
+    _high_done: float = -math.inf  # largest stamp fused
+    _last_fused: float = -math.inf  # stamp of the last odometer sample accepted (or the start)
+    separate_clocks: bool = False  # control was found (or said) to be on another clock
 
-    def push(self, kind: str, stamp: float, fields: dict) -> str:
-        """Queue one item; returns "" or the reason it was refused at the door."""
+    @property
+    def _can_rewind(self) -> bool:
+        return self.history > 0 and hasattr(self.adapter, "snapshot")
+
+    def __post_init__(self):
+        if self.control_clock not in ("auto", "same", "reference"):
+            raise ValueError(f"control_clock must be auto, same or reference, "
+                             f"got {self.control_clock!r}")
+
+    # -- door ---------------------------------------------------------------------------------
+    def push(self, kind: str, stamp: float, fields: dict, recv: float | None = None) -> str:
+        """Check and queue one item; returns "" or the reason it was refused at the door.
+
+        ``recv``: arrival time (s) on the node's clock (a replay: the bag's log time), or None.
+        """
         if kind not in KIND_ORDER:
-            return self._reject(kind, stamp, f"unknown kind {kind}")
+            return self._reject(kind, math.nan, f"{R.UNKNOWN_KIND}: {kind}")
         if not (isinstance(stamp, float | int) and math.isfinite(stamp)):
-            return self._reject(kind, float("nan"), "non_finite_stamp")
-        heapq.heappush(self.queue, (float(stamp), KIND_ORDER[kind], self._n, kind, fields))
-        self.high[kind] = max(self.high.get(kind, -math.inf), float(stamp))
-        self._n += 1
+            return self._reject(kind, math.nan, R.NON_FINITE + ": stamp")
+        stamp = float(stamp)
+        if recv is not None and not math.isfinite(recv):
+            recv = None
+        if kind != "control":
+            seq = fields.get("seq") if isinstance(fields, dict) else None
+            if not isinstance(seq, int) or isinstance(seq, bool):
+                return self._reject(kind, stamp, f"{R.INVALID}: seq {seq!r}")
+        clock = CLOCK_OF[kind]
+        med = self._offsets.setdefault(clock, _Median())
+        early = len(med) < self.min_judged
+        if recv is not None:
+            arrival = recv
+        elif early:  # no arrival times: the stamps themselves (one clock), jump from the last
+            arrival = self._prev_raw if self._prev_raw is not None else stamp
+        else:  # ... then from the latest stamp admitted on any topic
+            arrival = self._admitted_high if math.isfinite(self._admitted_high) else stamp
+        self._prev_raw = stamp
+        if early:
+            # too early to judge a stamp against its clock: hold it until the clock's median
+            # offset rests on min_judged arrivals (one corrupted first stamp must not set the
+            # watermarks or the start), then judge the held ones like any other
+            med.add(stamp - arrival)
+            early_items = self._early.setdefault(clock, [])
+            early_items.append((kind, stamp, fields, recv, arrival))
+            if len(med) >= self.min_judged:
+                release = early_items
+            else:  # those that agree with two others already are good: no need to wait
+                release = [e for e in early_items if med.near(e[1] - e[4]) >= 3]
+            if release:
+                self._early[clock] = [e for e in early_items if e not in release]
+                for k, st, f, rc, ar in release:
+                    self._admit(k, st, f, rc, ar, counted=True)
+            return ""
+        why = self._admit(kind, stamp, fields, recv, arrival)
+        return why
+
+    def _admit(self, kind: str, stamp: float, fields: dict, recv, arrival,
+               counted: bool = False) -> str:
+        """Judge a stamp against its clock's median offset, check seq, queue."""
+        clock = CLOCK_OF[kind]
+        med = self._offsets[clock]
+        if arrival is not None:
+            off = stamp - arrival
+            if off - med.value > self.max_future:
+                return self._reject(kind, stamp, f"{R.FUTURE_STAMP}: {off - med.value:.3g} s "
+                                                 f"ahead of its arrival")
+        if kind != "control":
+            why = self._check_seq(kind, stamp, fields)
+            if why:
+                return self._reject(kind, stamp, why)
+        if arrival is not None and not counted:
+            med.add(stamp - arrival)
+        if kind == "odometer" and recv is not None and abs(stamp - recv - med.value) <= med.tol:
+            self._regress(recv, stamp)  # only stamps of the dense cluster inform the rate
+        self._admitted_high = max(self._admitted_high, stamp)
+        if kind == "control":
+            if "train" not in self._offsets or len(self._offsets["train"]) < self.min_judged:
+                self._held.append((stamp, recv is not None, fields))
+                return ""
+            stamp = self._to_train(stamp, recv is not None)
+        elif self._held:
+            held, self._held = self._held, []
+            for s, has_recv, f in held:
+                self._queue("control", self._to_train(s, has_recv), f)
+        self._queue(kind, stamp, fields)
         return ""
 
+    def _check_seq(self, kind: str, stamp: float, fields: dict) -> str:
+        seq = fields.get("seq")
+        if not isinstance(seq, int) or isinstance(seq, bool):
+            return f"{R.INVALID}: seq {seq!r}"
+        recent = self._recent.setdefault(kind, deque(maxlen=64))
+        if (seq, stamp) in recent:
+            return R.DUPLICATE
+        last = self._last_seq.get(kind)
+        if last is not None and seq < last[0] and stamp > last[1]:
+            self._event(kind, stamp, f"{R.SEQ_RESET}: seq {last[0]} -> {seq}")
+        recent.append((seq, stamp))
+        if last is None or stamp >= last[1]:
+            self._last_seq[kind] = (seq, stamp)
+        return ""
+
+    def _to_train(self, stamp: float, has_recv: bool) -> float:
+        """A control stamp on the train (odometer) clock (module doc)."""
+        if self.control_clock == "same" or not has_recv:
+            return stamp
+        shift = self._offsets["train"].value - self._offsets["control"].value
+        if self.control_clock == "auto" and not self.separate_clocks \
+                and abs(shift) < self.same_clock_tolerance:
+            return stamp
+        self.separate_clocks = True
+        # the shift follows the medians: keep the mapped commands in their order
+        mapped = max(stamp + shift, self._last_mapped)
+        self._last_mapped = mapped
+        return mapped
+
+    def _regress(self, recv: float, stamp: float) -> None:
+        """Running least squares of odometer stamp on arrival time (centred on the first)."""
+        f = self._fit
+        if f[5] is None:
+            f[5] = (recv, stamp)
+        x, y = recv - f[5][0], stamp - f[5][1]
+        f[0] += 1
+        f[1] += x
+        f[2] += y
+        f[3] += x * x
+        f[4] += x * y
+
+    @property
+    def drift(self) -> float:
+        """Train clock rate minus 1 (s/s), from stamps vs arrivals; 0 until the clocks are known
+        to be separate and 10 s of arrivals are in (one clock needs no rate: same seconds)."""
+        n, sx, sy, sxx, sxy, _ = self._fit
+        if not self.separate_clocks or n < 20:
+            return 0.0
+        var = sxx - sx * sx / n
+        if var < n * 10.0 ** 2 / 12:  # less than ~10 s of span
+            return 0.0
+        d = (sxy - sx * sy / n) / var - 1.0
+        return d if abs(d) < 0.1 else 0.0
+
+    def _filter_time(self, stamp: float) -> float:
+        """Train-clock stamp -> filter time in reference seconds (the drift removed piecewise
+        from the last processed odometer sample, so that it stays monotone as the estimate of
+        the drift improves). Identity while the drift is 0."""
+        if self._anchor is None:
+            return stamp
+        s0, f0 = self._anchor
+        return f0 + (stamp - s0) / (1.0 + self.drift)
+
+    def _queue(self, kind: str, stamp: float, fields: dict) -> None:
+        heapq.heappush(self.queue, (stamp, KIND_ORDER[kind], self._n, kind, fields))
+        if kind == "odometer":
+            heapq.heappush(self._odo, stamp)
+        self.high[kind] = max(self.high.get(kind, -math.inf), stamp)
+        self._n += 1
+
     def _reject(self, kind: str, stamp: float, reason: str) -> str:
-        # count by category (the text before any ':' detail), keep the full text for the log
-        self.rejected[f"{kind}:{reason.split(':', 1)[0]}"] += 1
+        reason = R.normalise(reason)
+        self.rejected[f"{kind}:{R.category(reason)}"] += 1
         self.last_reasons.append((kind, stamp, reason))
         del self.last_reasons[:-20]
         return reason
 
-    def _apply(self, stamp: float, kind: str, fields: dict) -> None:
-        reason = getattr(self.adapter, kind)(stamp, fields)
+    def _event(self, kind: str, stamp: float, text: str) -> None:
+        self.events[f"{kind}:{R.category(text)}"] += 1
+        self.last_events.append((kind, stamp, text))
+        del self.last_events[:-20]
+
+    # -- processing ---------------------------------------------------------------------------
+    def _call(self, stamp: float, kind: str, fields: dict) -> str:
+        ft = self._filter_time(stamp)
+        if kind == "odometer":
+            self._anchor = (stamp, ft)
+        try:
+            return getattr(self.adapter, kind)(ft, fields)
+        except (KeyError, TypeError, ValueError, OverflowError) as exc:  # malformed fields
+            return f"{R.INVALID}: {type(exc).__name__}: {exc}"
+
+    def _process(self, entry: list) -> str:
+        """Apply one item, keeping it (and the state before it, for odometer items) in the
+        history that a late item rewinds."""
+        if self.history > 0 and entry[3] == "odometer" and self._can_rewind:
+            entry[5] = (self.adapter.snapshot(), self._anchor)
+        reason = self._call(entry[0], entry[3], entry[4])
+        if self.history > 0:
+            self._hist.append(entry)
+            self._high_done = max(self._high_done, entry[0])
+            # keep the history back to the first snapshot older than the horizon
+            cut = self._high_done - self.history
+            while len(self._hist) > 1:
+                first_snap = next((k for k in range(1, len(self._hist))
+                                   if self._hist[k][5] is not None), None)
+                if first_snap is None or self._hist[first_snap][0] > cut:
+                    break
+                del self._hist[:first_snap]
+        return reason
+
+    def _apply(self, stamp: float, order: int, n: int, kind: str, fields: dict) -> str:
+        entry = [stamp, order, n, kind, fields, None]
+        hist = self._hist
+        # late: older than an item fused, or than an estimate output (a braking filter's
+        # output is a time update of the filter itself)
+        late = hist and ((stamp, order) < (hist[-1][0], hist[-1][1])
+                         or (self._last_out is not None and stamp < self._last_out))
+        if late and self._can_rewind and stamp >= self._high_done - self.history:
+            # rewind to the state before the first fused item after it, and re-filter
+            j = next((k for k in range(len(hist)) if (hist[k][0], hist[k][1]) > (stamp, order)),
+                     len(hist))
+            i = next((k for k in range(j, -1, -1) if k < len(hist) and hist[k][5] is not None),
+                     None)
+            if i is not None:
+                snap, anchor = hist[i][5]
+                redo = hist[i:]
+                del hist[i:]
+                self.adapter.restore(snap)
+                self._anchor = anchor
+                redo.insert(j - i, entry)
+                reason = ""
+                for e in redo:
+                    e[5] = None
+                    r = self._process(e)
+                    if e is entry:
+                        reason = r
+                self._count(kind, stamp, reason)
+                if not reason:
+                    self._event(kind, stamp, f"{R.FUSED_LATE}: {self._high_done - stamp:.3f} s "
+                                             f"late")
+                return reason
+        reason = self._process(entry)
+        self._count(kind, stamp, reason)
+        return reason
+
+    def _count(self, kind: str, stamp: float, reason: str) -> None:
         if reason:
             self._reject(kind, stamp, reason)
         else:
             self.accepted[kind] += 1
 
+    def _emit(self, t: float, out: list) -> None:
+        o = self.adapter.output(self._filter_time(t))
+        out.append(o if o.stamp == t else replace(o, stamp=t))  # published on the train clock
+        self._last_out = t
+
     def advance_to(self, t: float) -> list[Output]:
-        """Emit the estimates of every output time <= t not emitted yet."""
+        """Process everything queued with stamp <= t; the estimates that became due."""
         out: list[Output] = []
-        if self._k is None:
-            if not self.queue:
+        if not self._started:
+            # the odometer defines the clock and the slots: start with the third sample, at the
+            # earliest item no more than 2 s before the median of the first three (one stale or
+            # corrupted first stamp must not start the estimator 500 s in the past)
+            if len(self._odo) < 3:
                 return out
-            t0 = self.queue[0][0]
+            first = sorted(self._odo[:3]) if len(self._odo) == 3 else sorted(self._odo)[:3]
+            t0 = min(s for s, *_ in self.queue if s >= first[1] - 2.0)
             self.adapter.start(t0)
-            self._k = math.ceil(t0 / self.period - 1e-9)
+            self._anchor = (t0, t0)
+            self._last_fused = t0
+            self._started = True
         while True:
-            tk = self._k * self.period
-            if tk > t + 1e-9:
+            nxt = self.queue[0][0] if self.queue else math.inf
+            if self._last_out is not None:
+                # a lost slot: predicted estimate at the expected time, once nothing can fill it;
+                # at most max_gap_outputs slots after the last fused sample (a stamp far ahead
+                # cannot make the runner predict for ever)
+                slot = self._last_out + self.period
+                if slot <= t + 1e-9 and self._next_odometer() > slot + 0.5 * self.period \
+                        and nxt > slot \
+                        and slot - self._last_fused <= self.max_gap_outputs * self.period:
+                    self._emit(slot, out)
+                    continue
+            if nxt > t + 1e-9:
                 break
-            while self.queue and self.queue[0][0] <= tk + 1e-9:
-                stamp, _, _, kind, fields = heapq.heappop(self.queue)
-                self._apply(stamp, kind, fields)
-            self.adapter.predict_to(tk)
-            out.append(self.adapter.output(tk))
-            self._k += 1
+            stamp, order, n, kind, fields = heapq.heappop(self.queue)
+            if kind == "odometer":
+                heapq.heappop(self._odo)
+            reason = self._apply(stamp, order, n, kind, fields)
+            if kind == "odometer" and not reason:
+                self._last_fused = max(self._last_fused, stamp)
+            # one estimate per slot, at the sample's stamp -- unless the sample is no slot (a
+            # stamp refused as out of order, duplicate or from the future), or its slot was
+            # already published as a prediction (it came after the fallback: fused, it shows
+            # in the next estimate)
+            if kind == "odometer" and R.category(reason) not in NO_SLOT and (
+                    self._last_out is None or stamp > self._last_out + 0.5 * self.period):
+                self._emit(stamp, out)
         return out
 
-    def ready_time(self, now: float, delay: float, fallback: float) -> float:
-        """Latest output time a live node can emit at clock ``now`` without racing its inputs.
+    def _next_odometer(self) -> float:
+        return self._odo[0] if self._odo else math.inf
 
-        Output time t needs every reading stamped <= t. Each topic arrives in order, so the
-        largest stamp pushed per topic (its watermark) says how far that topic is complete.
-        ``control`` is not sent over the lossy link: its watermark is the data's own clock.
-        The odometer is complete up to its watermark, or -- when samples were lost -- up to
-        ``fallback`` seconds behind the control watermark. Without control messages the node's
-        clock stands in for it. ``now - delay`` is an upper bound in every case. Driven by the
+    def ready_time(self, now: float, delay: float, fallback: float) -> float:
+        """Latest stamp (train clock) a live node can process at clock ``now`` without racing
+        its inputs.
+
+        Stamp t needs every reading stamped <= t. Each topic arrives in order, so the largest
+        stamp queued per topic (its watermark) says how far that topic is complete. ``control``
+        is not sent over the lossy link: its watermark leads. The odometer is complete up to
+        its watermark, or -- when samples were lost -- up to ``fallback`` seconds behind the
+        control watermark. Without control messages the node's clock (``now - delay``, mapped
+        onto the train clock through the odometer's offset) stands in for it. Driven by the
         data rather than by the clock, a node emits what the offline replay of the same
         messages emits, however the executor interleaves /clock and the subscriptions.
         """
-        lead = self.high.get("control", now - delay)
+        train = self._offsets.get("train")
+        now_train = now - delay + (train.value if train is not None and len(train) else 0.0)
+        lead = self.high.get("control", now_train)
         odo = self.high.get("odometer", -math.inf)
-        return min(now - delay, lead, max(odo, lead - fallback))
+        return min(lead, max(odo, lead - fallback))
 
     def drain(self) -> list[Output]:
         """Process everything queued (offline use): estimates up to the last item's stamp."""
@@ -128,3 +484,8 @@ class EstimatorRunner:
             return []
         return self.advance_to(max(item[0] for item in self.queue))
 
+    @property
+    def counts(self) -> dict:
+        """Accepted, rejected (by vocabulary name) and events, for logs and summaries."""
+        return {"accepted": dict(self.accepted), "rejected": dict(self.rejected),
+                "events": dict(self.events)}

@@ -1,10 +1,12 @@
 """The ROS layer shared by `robust_filter` and `gsma_estimator`.
 
-Callbacks only enqueue (``EstimatorRunner.push``). A steady wall-clock timer moves the runner to
-``now - output_delay`` on the node's clock (sim time under ``use_sim_time``), which steps the core
-in stamp order and returns one estimate per odometer period; each is published as a TrainState
-stamped with its sample time. Rejected input is logged with its reason (throttled) and counted;
-the counts are logged at shutdown.
+Callbacks push the message with its arrival time on the node's clock into the runner
+(``EstimatorRunner.push``) and at once advance the runner to its ready time, so that an odometer
+sample's estimate is published as soon as the sample (and the command of its cycle) is in; a
+steady wall-clock timer does the same for lost samples (predicted slots). Each estimate is a
+TrainState stamped with its sample's own stamp (the odometer's clock). Rejected input is logged
+with its reason (throttled; names of ``core/reasons.py``) and counted; events (a sequence
+reset, separate clocks found) are logged once each; the counts are logged at shutdown.
 """
 
 from __future__ import annotations
@@ -29,7 +31,13 @@ def declare_common(node) -> dict:
         "initial_position_std": declare("initial_position_std", 5.0, "m"),
         "odometer_rate": declare("odometer_rate", 10.0, "Hz, output rate = odometer rate"),
         "output_delay": declare("output_delay", 0.05,
-                                "s, an estimate of time t is output at clock t + delay"),
+                                "s, without control messages, an estimate of time t is output "
+                                "at clock t + delay"),
+        "control_clock": declare("control_clock", "same",
+                                 "clock of control stamps: auto | same (the odometer's) | "
+                                 "reference (the receive clock)"),
+        "max_future": declare("max_future", 600.0,
+                              "s, a stamp this far after its arrival is refused (future_stamp)"),
         "wait_for_subscribers": declare("wait_for_subscribers", 0,
                                         "output nothing until the estimate topic has this many "
                                         "subscribers (a recorder sees every estimate)"),
@@ -83,7 +91,17 @@ def build_estimator_node(name: str, topic: str, make_adapter: Callable):
                 self.adapter = make_adapter(self, train, line, start, common)
             except ValueError as exc:
                 raise ParameterError(str(exc)) from None
-            self.runner = EstimatorRunner(self.adapter, 1.0 / common["odometer_rate"])
+            try:
+                self.runner = EstimatorRunner(self.adapter, 1.0 / common["odometer_rate"],
+                                              control_clock=common["control_clock"],
+                                              max_future=common["max_future"])
+            except ValueError as exc:
+                raise ParameterError(f"parameter control_clock: {exc}") from None
+            self.n_events = 0
+            self.steady = Clock(clock_type=ClockType.STEADY_TIME)
+            self.arrived: dict[float, float] = {}  # odometer stamp -> arrival (steady s)
+            self.latency: list[float] = []  # s, odometer received -> its estimate published
+            self.separate_logged = False
             self.delay = common["output_delay"]
             self.wait_subs = common["wait_for_subscribers"]
             self.pub = self.create_publisher(TrainState, topic, 1000)
@@ -98,9 +116,17 @@ def build_estimator_node(name: str, topic: str, make_adapter: Callable):
                 f"{start.position:.1f} m, output {common['odometer_rate']:g} Hz on '{topic}'")
 
         def _push(self, kind: str, msg, fields: dict) -> None:
-            reason = self.runner.push(kind, stamp_to_sec(msg.header.stamp), fields)
+            # Arrival on the steady clock: only differences of arrival times matter to the
+            # runner (stream offsets, the train clock's rate), and under use_sim_time the ROS
+            # clock can stall behind the data (a player's /clock), which arrival must not do.
+            recv = self.steady.now().nanoseconds * 1e-9
+            stamp = stamp_to_sec(msg.header.stamp)
+            reason = self.runner.push(kind, stamp, fields, recv)
+            if kind == "odometer" and not reason:
+                self.arrived[stamp] = recv  # for the received -> published latency
             if reason:
                 self.get_logger().warning(f"{kind} rejected: {reason}", throttle_duration_sec=2.0)
+            self.tick()
 
         def on_odometer(self, msg) -> None:
             self._push("odometer", msg, {"seq": msg.seq, "distance": msg.distance,
@@ -115,9 +141,7 @@ def build_estimator_node(name: str, topic: str, make_adapter: Callable):
             self._push("control", msg, {"target_acceleration": msg.target_acceleration})
 
         def tick(self) -> None:
-            now = self.get_clock().now().nanoseconds * 1e-9
-            if now <= 0.0:  # no /clock yet under use_sim_time
-                return
+            now = self.steady.now().nanoseconds * 1e-9  # the arrival clock (see _push)
             if self.wait_subs:  # discovery, as the simulator's wait_for_subscribers: readers
                 if self.pub.get_subscription_count() < self.wait_subs:  # that match late
                     return  # would miss the first estimates (inputs stay queued meanwhile)
@@ -135,6 +159,21 @@ def build_estimator_node(name: str, topic: str, make_adapter: Callable):
                 msg.covariance = list(out.covariance)
                 msg.measurement_used = out.measurement_used
                 self.pub.publish(msg)
+                t_recv = self.arrived.pop(out.stamp, None)
+                if t_recv is not None:
+                    self.latency.append(self.steady.now().nanoseconds * 1e-9 - t_recv)
+            if len(self.arrived) > 1000:  # samples that never became an estimate (refused)
+                self.arrived.clear()
+            events = sum(self.runner.events.values())
+            if events > self.n_events:  # accepted input worth a line each (seq reset, ...)
+                for kind, stamp, text in self.runner.last_events[-(events - self.n_events):]:
+                    self.get_logger().info(f"{kind} at {stamp:.3f} s: {text}")
+                self.n_events = events
+            if self.runner.separate_clocks and not self.separate_logged:
+                self.separate_logged = True
+                self.get_logger().info("control is stamped on another clock than the odometer: "
+                                       "mapped onto the odometer's clock (drift "
+                                       f"{self.runner.drift:.2e} so far)")
             total = sum(self.runner.rejected.values())
             if total > self.n_reported:  # the core refused input: say why (throttled)
                 kind, stamp, why = self.runner.last_reasons[-1]
@@ -143,7 +182,14 @@ def build_estimator_node(name: str, topic: str, make_adapter: Callable):
                                           f"({total} rejected so far)", throttle_duration_sec=2.0)
 
         def close(self) -> None:
+            if self.latency:
+                lat = sorted(self.latency)
+                p50, p99 = lat[len(lat) // 2], lat[min(len(lat) - 1, int(0.99 * len(lat)))]
+                self.get_logger().info(f"latency odometer received -> estimate published: "
+                                       f"p50 {1e3 * p50:.2f} ms, p99 {1e3 * p99:.2f} ms, "
+                                       f"max {1e3 * lat[-1]:.2f} ms over {len(lat)} samples")
             self.get_logger().info(f"accepted {dict(self.runner.accepted)}; "
-                                   f"rejected {dict(self.runner.rejected) or 'none'}")
+                                   f"rejected {dict(self.runner.rejected) or 'none'}; "
+                                   f"events {dict(self.runner.events) or 'none'}")
 
     return EstimatorNode()

@@ -3,7 +3,9 @@
 Subscribes every topic of ``topics`` (relative names work in the node's namespace) with raw
 (serialized) delivery and appends each message to the bag with the message definitions embedded.
 Every ``flush_period`` seconds the pending chunk is closed and synced to disk, so a crash or
-``kill -9`` loses at most that much; SIGINT/SIGTERM close the bag properly. At the end it logs the
+``kill -9`` loses at most that much (``read_bag``/``check_bag`` read such a bag, and
+``python -m train_core.bagio repair BAG`` makes it a normal bag again for any reader);
+SIGINT/SIGTERM close the bag properly. At the end it logs the
 topics, message counts and bytes written.
 """
 

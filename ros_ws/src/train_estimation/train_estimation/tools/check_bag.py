@@ -32,6 +32,8 @@ from pathlib import Path
 import numpy as np
 from train_core.bagio import Bag, BagError, read_bag
 
+from train_estimation.core import reasons as R
+
 ESTIMATE_PREFIX = "estimate/"
 CHI2_95 = {1: 3.841, 2: 5.991}  # 95% quantiles of chi-square with 1 and 2 degrees of freedom
 
@@ -57,8 +59,11 @@ def topic_health(bag: Bag, topic: str) -> dict:
     if len(msgs) == 0:
         return out
     d = np.diff(stamps)
-    out["out_of_order"] = int(np.sum(d < 0))
+    # the estimators' rejection names (core/reasons.py) for what the stamps alone show
+    out[R.OUT_OF_ORDER] = int(np.sum(d < 0))
     out["duplicate_stamps"] = int(np.sum(d == 0))
+    out[R.NON_FINITE] = int(sum(1 for _, s, f in msgs if not math.isfinite(s) or any(
+        isinstance(v, float) and not math.isfinite(v) for v in f.values())))
     out["max_gap_s"] = float(d.max()) if d.size else 0.0
     if "seq" in msgs[0][2]:
         seq = bag.series(topic, "seq")

@@ -40,6 +40,11 @@ def build_node():
                 k_sigma=declare("k_sigma", d.k_sigma, "-, confidence interval half-width in sigma"),
                 stale_timeout=declare("stale_timeout", d.stale_timeout,
                                       "s, estimates older than this: emergency brake"),
+                measurement_timeout=declare("measurement_timeout", d.measurement_timeout,
+                                            "s, no measurement used for this long: emergency "
+                                            "brake"),
+                check_stamp_age=declare("check_stamp_age", d.check_stamp_age,
+                                        "judge age by the estimate's stamp too (one clock)"),
                 emergency_decel=declare("emergency_decel", d.emergency_decel,
                                         "m/s^2, emergency braking at nominal braking rate"),
                 train_length=declare("train_length", d.train_length, "m, front to rear"),
@@ -47,7 +52,8 @@ def build_node():
                 permitted_speed=declare("permitted_speed", d.permitted_speed, "m/s"),
             )
             rate = declare("rate", 1.0, "Hz, movement authority publication rate")
-            for name in ("k_sigma", "stale_timeout", "emergency_decel", "rate"):
+            for name in ("k_sigma", "stale_timeout", "measurement_timeout", "emergency_decel",
+                         "rate"):
                 value = rate if name == "rate" else getattr(params, name)
                 if not (math.isfinite(value) and value > 0):
                     raise ParameterError(f"parameter {name}: {value} must be > 0")
@@ -69,7 +75,7 @@ def build_node():
                 self.pubs[tid] = self.create_publisher(
                     MovementAuthority, f"{prefix}movement_authority", 10)
             self.msg_type = MovementAuthority
-            self.last_reason: dict[str, str] = {}
+            self.last_state: dict[str, str] = {}
             self.timer = self.create_timer(1.0 / rate, self.publish)
             self.get_logger().info(
                 f"zone controller for {self.trains} on '{state_topic}', "
@@ -91,7 +97,8 @@ def build_node():
                 t_received=self.now(), stamp=stamp_to_sec(msg.header.stamp),
                 position=msg.position, velocity=msg.velocity,
                 var_position=float(cov[0]), var_velocity=float(cov[5]),
-                braking_rate=msg.braking_rate, var_braking_rate=float(cov[15]))
+                braking_rate=msg.braking_rate, var_braking_rate=float(cov[15]),
+                measurement_used=bool(msg.measurement_used))
             reason = self.zone.report(tid, rep)
             if reason:
                 self.get_logger().warning(f"{tid}: report rejected: {reason}",
@@ -108,14 +115,15 @@ def build_node():
                 msg.permitted_speed = float(auth.permitted_speed)
                 msg.emergency_brake = auth.emergency_brake
                 self.pubs[auth.train_id].publish(msg)
-                if auth.reason != self.last_reason.get(auth.train_id, ""):
-                    # (rclpy wants one severity per call site: two calls, not one)
+                if auth.state != self.last_state.get(auth.train_id, "ok"):
+                    # a change of state is logged once (the reason's numbers change at every
+                    # publication); rclpy wants one severity per call site: two calls
                     if auth.reason:
-                        self.get_logger().warning(f"{auth.train_id}: emergency brake SET: "
-                                                  f"{auth.reason}")
+                        self.get_logger().warning(f"{auth.train_id}: emergency brake SET "
+                                                  f"({auth.state}): {auth.reason}")
                     else:
                         self.get_logger().info(f"{auth.train_id}: emergency brake released")
-                    self.last_reason[auth.train_id] = auth.reason
+                    self.last_state[auth.train_id] = auth.state
 
     return ZoneControllerNode()
 

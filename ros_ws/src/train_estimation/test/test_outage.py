@@ -1,0 +1,44 @@
+"""Issue 11, item 6: the robust filter's bound covers the error through a 60 s outage."""
+
+import os
+import sys
+
+import numpy as np
+import pytest
+
+from train_estimation.core.replay import replay
+
+sys.path.insert(0, os.path.dirname(__file__))
+from clocks import adapter, restamp, run  # noqa: E402
+
+T0, T1 = 60.0, 120.0  # s, no odometer or balise reading arrives in [T0, T1) (a tunnel)
+
+
+@pytest.mark.slow
+def test_bound_covers_the_error_through_a_60_s_outage():
+    nees_runs = []
+    for seed in range(4):
+        sc, res = run("metro_demo", seed, 160.0)
+        ev = [e for e in restamp(res.events())
+              if not (e[0] in ("odometer", "balise") and T0 <= e[1] < T1)]
+        outs, r = replay(ev, adapter(sc), 0.1)
+        assert r.adapter.counters.get("outage") == 1
+        t = np.array([o.stamp for o in outs])
+        # one estimate per slot through the outage (predictions)
+        assert np.all(np.diff(t) < 0.1 + 1e-6)
+        C = np.array([np.array(o.covariance).reshape(4, 4)[:2, :2] for o in outs])
+        tr = res.truth
+        e = np.stack([np.array([o.position for o in outs]) - np.interp(t, tr["t"], tr["position"]),
+                      np.array([o.velocity for o in outs]) - np.interp(t, tr["t"], tr["velocity"])],
+                     axis=1)
+        nees = np.einsum("ni,nij,nj->n", e, np.linalg.inv(C), e)
+        m = (t >= T0) & (t < T1 + 10.0)
+        assert np.all(np.abs(e[m, 0]) <= 3 * np.sqrt(C[m, 0, 0])), seed
+        assert np.abs(e[m, 0]).max() > 3.0, seed  # the outage does hurt: the test has teeth
+        nees_runs.append(nees[m])
+        # measurements bring the bound back down after the tunnel
+        after = (t > T1 + 5.0) & (t < T1 + 10.0)
+        assert np.sqrt(C[after, 0, 0]).max() < 2.0, seed
+    # Theorem 2: E[e' Sigma^-1 e] <= 2 (2 states) if Sigma bounds the error's second moment;
+    # mean over 4 seeds at each time, with room for the sampling spread of 4 runs
+    assert np.mean(nees_runs, axis=0).max() <= 4.0

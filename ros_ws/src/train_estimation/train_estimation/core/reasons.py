@@ -1,0 +1,97 @@
+"""One vocabulary of rejection reasons and input events (pure, no dependencies).
+
+Every estimator core, the :class:`~train_estimation.core.runner.EstimatorRunner`, the nodes' logs
+and ``check_bag`` use these names, so that a count in a node's log, a counter of the runner and a
+line of ``check_bag`` mean the same thing. A reason string is ``NAME`` or ``NAME: detail``; counts
+are kept per ``NAME`` (:func:`category`).
+
+Rejections refuse a reading (counted, the state untouched); accepted outcomes and events are
+not rejections: an event is accepted input worth one log line (a sequence or clock reset).
+"""
+
+from __future__ import annotations
+
+# -- rejections --------------------------------------------------------------------------------
+NON_FINITE = "non_finite"  # NaN/inf in a stamp or a value
+NON_POSITIVE_VARIANCE = "non_positive_variance"  # stated variance <= 0
+OUT_OF_ORDER = "out_of_order"  # older than what the estimator has already fused (beyond history)
+DUPLICATE = "duplicate"  # same sample again (same seq and stamp, or same stamp)
+FUTURE_STAMP = "future_stamp"  # stamped far after its arrival / the other inputs (clock error)
+STALE_STAMP = "stale_stamp"  # stamped far before its arrival (clock error, replayed message)
+UNKNOWN_BALISE = "unknown_balise"  # balise id not in the line map
+BALISE_MAP_MISMATCH = "balise_map_mismatch"  # sent position contradicts the map
+OUTSIDE_GATE = "outside_gate"  # innovation beyond the gate (gross outlier)
+UNKNOWN_KIND = "unknown_kind"  # not control, odometer or balise
+INVALID = "invalid"  # malformed otherwise (wrong type or shape)
+NUMERICAL_FAILURE = "numerical_failure"  # the update produced NaN: the old state is kept
+
+REJECTIONS = (NON_FINITE, NON_POSITIVE_VARIANCE, OUT_OF_ORDER, DUPLICATE, FUTURE_STAMP,
+              STALE_STAMP, UNKNOWN_BALISE, BALISE_MAP_MISMATCH, OUTSIDE_GATE, UNKNOWN_KIND,
+              INVALID, NUMERICAL_FAILURE)
+
+# -- accepted outcomes (not rejections) ----------------------------------------------------------
+OK = "ok"
+MISSING = "missing"  # a lost odometer slot entered as alpha = 0 (Wen eq. (11))
+IGNORED = "ignored"  # validated, not used by this estimator (FOH and balises)
+ACCEPTED = (OK, MISSING, IGNORED)
+
+# -- events: accepted input that changes how later input is read (logged once, counted) ----------
+SEQ_RESET = "seq_reset"  # sequence number went back (sensor reboot, wrap-around)
+CLOCK_RESET = "clock_reset"  # a stamp clock jumped and stayed: re-anchored
+FUSED_LATE = "fused_late"  # arrived after later readings, fused by rewinding the history
+OUTAGE = "outage"  # no odometer for longer than the outage threshold
+EVENTS = (SEQ_RESET, CLOCK_RESET, FUSED_LATE, OUTAGE)
+
+ALL = REJECTIONS + ACCEPTED + EVENTS
+
+DESCRIPTION = {
+    NON_FINITE: "NaN or infinite stamp or value",
+    NON_POSITIVE_VARIANCE: "stated variance <= 0",
+    OUT_OF_ORDER: "older than the history the estimator keeps",
+    DUPLICATE: "same sample twice",
+    FUTURE_STAMP: "stamp far after its arrival time (clock error)",
+    STALE_STAMP: "stamp far before its arrival time (clock error)",
+    UNKNOWN_BALISE: "balise id not in the line map",
+    BALISE_MAP_MISMATCH: "balise position contradicts the line map",
+    OUTSIDE_GATE: "innovation outside the gate (gross outlier)",
+    UNKNOWN_KIND: "not control, odometer or balise",
+    INVALID: "malformed reading",
+    NUMERICAL_FAILURE: "update produced NaN; state kept",
+    OK: "fused",
+    MISSING: "lost odometer slot (alpha = 0)",
+    IGNORED: "validated, not used",
+    SEQ_RESET: "sequence number went back (reboot/wrap)",
+    CLOCK_RESET: "stamp clock jumped; re-anchored",
+    FUSED_LATE: "arrived late, fused by rewinding",
+    OUTAGE: "no odometer for longer than the outage threshold",
+}
+
+
+def category(reason: str) -> str:
+    """The counted name of a reason string (``"NAME: detail"`` -> ``NAME``)."""
+    return reason.split(":", 1)[0].strip()
+
+
+def normalise(reason: str) -> str:
+    """Map a free-text reason (e.g. of ``braking_filters``) onto this vocabulary, keeping detail.
+
+    "" (accepted) stays "". Names of the vocabulary pass unchanged; known phrasings are mapped;
+    anything else becomes ``invalid: <text>``: no rejection is counted without a vocabulary name.
+    """
+    if not reason:
+        return ""
+    cat = category(reason)
+    if cat in ALL:
+        return reason
+    low = reason.lower()
+    if low.startswith("numerical failure"):
+        name = NUMERICAL_FAILURE
+    elif "variance" in low and ("non-positive" in low or "non_positive" in low):
+        name = NON_POSITIVE_VARIANCE
+    elif "non-finite" in low or "non_finite" in low:
+        name = NON_FINITE
+    elif "out-of-order" in low or "duplicate" in low:
+        name = OUT_OF_ORDER
+    else:
+        name = INVALID
+    return f"{name}: {reason}"
