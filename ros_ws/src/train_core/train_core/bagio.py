@@ -202,8 +202,10 @@ class Bag:
         return np.array([t for t, _, _ in self.topics.get(topic, [])], dtype=float) * 1e-9
 
 
-def read_bag(path: str | os.PathLike, namespace: str | None = None) -> Bag:
-    """Read every CONTRACT.md topic of a rosbag2/MCAP bag (a directory or a .mcap file).
+def read_bag(path: str | os.PathLike, namespace: str | None = None,
+             topics: tuple[str, ...] | None = None) -> Bag:
+    """Read every CONTRACT.md topic of a rosbag2/MCAP bag (a directory or a .mcap file), or
+    only ``topics`` (relative names): the others' messages are then never decoded.
 
     Works on bags written by rosbags, by rosbag2 and by the ``mcap`` writer with ROS 2 schemas.
     Topics of other types are listed in ``Bag.skipped`` with the reason.
@@ -214,7 +216,7 @@ def read_bag(path: str | os.PathLike, namespace: str | None = None) -> Bag:
     if not p.exists():
         raise BagError(f"{p}: no such bag")
     if p.is_dir() and not (p / "metadata.yaml").exists():
-        return _recover(p, namespace)
+        return _recover(p, namespace, topics)
     paths = [p]
     try:
         reader = AnyReader(paths, default_typestore=typestore())
@@ -232,7 +234,8 @@ def read_bag(path: str | os.PathLike, namespace: str | None = None) -> Bag:
             if c.msgtype not in msg_texts() and c.msgtype != "rosgraph_msgs/msg/Clock":
                 bag.skipped[c.topic] = f"type {c.msgtype} is not a CONTRACT.md type"
                 continue
-            if c.msgtype == "rosgraph_msgs/msg/Clock":
+            if c.msgtype == "rosgraph_msgs/msg/Clock" or (topics is not None
+                                                           and rel not in topics):
                 continue
             bag.types[rel] = c.msgtype
             bag.topics.setdefault(rel, [])
@@ -262,7 +265,7 @@ def _guess_namespace(topics: list[str]) -> str:
     return ""
 
 
-def _recover(p: Path, namespace: str | None) -> Bag:
+def _recover(p: Path, namespace: str | None, topics: tuple[str, ...] | None = None) -> Bag:
     """Read a bag whose writer died (no metadata.yaml, no MCAP summary): every complete chunk.
 
     The MCAP records are streamed in file order; the first truncated or corrupt record ends the
@@ -302,6 +305,8 @@ def _recover(p: Path, namespace: str | None) -> Bag:
         rel = topic[len(namespace) + 1:] if topic.startswith(namespace + "/") else topic
         if msgtype not in msg_texts():
             bag.skipped[topic] = f"type {msgtype} is not a CONTRACT.md type"
+            continue
+        if topics is not None and rel not in topics:
             continue
         stamp, fields = deserialize(msgtype, data)
         bag.types[rel] = msgtype

@@ -87,9 +87,9 @@ def bag_to_data(bag):
 
 
 def read_measured(path) -> tuple:
-    """(DiagData, bag) from a bag path; only the topics diagnose uses are touched."""
-    bag = read_bag(path)
-    bag.topics = {k: v for k, v in bag.topics.items() if k in USED_TOPICS}
+    """(DiagData, bag) from a bag path; only the topics diagnose uses are decoded (a
+    ground_truth topic is never read)."""
+    bag = read_bag(path, topics=USED_TOPICS)
     return bag_to_data(bag), bag
 
 
