@@ -265,20 +265,15 @@ def _guess_namespace(topics: list[str]) -> str:
     return ""
 
 
-def _recover(p: Path, namespace: str | None, topics: tuple[str, ...] | None = None) -> Bag:
-    """Read a bag whose writer died (no metadata.yaml, no MCAP summary): every complete chunk.
-
-    The MCAP records are streamed in file order; the first truncated or corrupt record ends the
-    read, and everything before it is kept.
-    """
+def _complete_messages(files) -> tuple[list, str]:
+    """Every complete message of MCAP files whose writer may have died, in file order:
+    [(log_time ns, topic, schema name, schema text, data)], and the reason the read stopped
+    early ("" if it did not). The first truncated or corrupt record ends a file's read."""
     from mcap.stream_reader import StreamReader
 
-    files = sorted(p.glob("*.mcap"))
-    if not files:
-        raise BagError(f"{p}: no metadata.yaml and no .mcap file: not a rosbag2/MCAP bag")
-    schemas: dict[int, str] = {}
-    channels: dict[int, tuple[str, str]] = {}
-    raw: list[tuple[str, str, int, bytes]] = []
+    schemas: dict[int, tuple[str, str]] = {}
+    channels: dict[int, tuple[str, str, str]] = {}
+    out: list = []
     truncated = ""
     for f in files:
         with open(f, "rb") as fh:
@@ -286,22 +281,37 @@ def _recover(p: Path, namespace: str | None, topics: tuple[str, ...] | None = No
                 for rec in StreamReader(fh).records:
                     kind = type(rec).__name__
                     if kind == "Schema":
-                        schemas[rec.id] = rec.name
+                        schemas[rec.id] = (rec.name, bytes(rec.data).decode(errors="replace"))
                     elif kind == "Channel":
-                        channels[rec.id] = (rec.topic, schemas.get(rec.schema_id, ""))
+                        name, text = schemas.get(rec.schema_id, ("", ""))
+                        channels[rec.id] = (rec.topic, name, text)
                     elif kind == "Message" and rec.channel_id in channels:
-                        topic, msgtype = channels[rec.channel_id]
-                        raw.append((topic, msgtype, rec.log_time, bytes(rec.data)))
+                        topic, msgtype, text = channels[rec.channel_id]
+                        out.append((rec.log_time, topic, msgtype, text, bytes(rec.data)))
             except Exception as exc:  # a truncated tail: keep what was complete
                 truncated = f"{type(exc).__name__}"
+    return out, truncated
+
+
+def _recover(p: Path, namespace: str | None, topics: tuple[str, ...] | None = None) -> Bag:
+    """Read a bag whose writer died (no metadata.yaml, no MCAP summary): every complete chunk.
+
+    The MCAP records are streamed in file order; the first truncated or corrupt record ends the
+    read, and everything before it is kept.
+    """
+
+    files = sorted(p.glob("*.mcap"))
+    if not files:
+        raise BagError(f"{p}: no metadata.yaml and no .mcap file: not a rosbag2/MCAP bag")
+    msgs, truncated = _complete_messages(files)
     if namespace is None:
-        namespace = _guess_namespace([t for t, _ in channels.values()])
+        namespace = _guess_namespace(sorted({m[1] for m in msgs}))
     bag = Bag(path=p, namespace=namespace)
     if truncated:
         bag.skipped["(file tail)"] = (f"bag was not closed; read up to the last chunk "
                                       f"({truncated}); make it a normal bag with "
                                       f"'python -m train_core.bagio repair {p}'")
-    for topic, msgtype, t_ns, data in sorted(raw, key=lambda r: r[2]):
+    for t_ns, topic, msgtype, _, data in sorted(msgs, key=lambda r: r[0]):
         rel = topic[len(namespace) + 1:] if topic.startswith(namespace + "/") else topic
         if msgtype not in msg_texts():
             bag.skipped[topic] = f"type {msgtype} is not a CONTRACT.md type"
@@ -326,7 +336,6 @@ def repair_bag(path: str | os.PathLike, keep_broken: bool = True) -> Path:
     import shutil
     import tempfile
 
-    from mcap.stream_reader import StreamReader
 
     p = Path(path)
     if not p.is_dir():
@@ -336,25 +345,9 @@ def repair_bag(path: str | os.PathLike, keep_broken: bool = True) -> Path:
     files = sorted(p.glob("*.mcap"))
     if not files:
         raise BagError(f"{p}: no .mcap file: not a rosbag2/MCAP bag")
-    schemas: dict[int, tuple[str, str]] = {}
-    channels: dict[int, tuple[str, str, str]] = {}
-    raw: list[tuple[int, int, str, str, str, bytes]] = []
-    for f in files:
-        with open(f, "rb") as fh:
-            try:
-                for rec in StreamReader(fh).records:
-                    kind = type(rec).__name__
-                    if kind == "Schema":
-                        schemas[rec.id] = (rec.name, bytes(rec.data).decode(errors="replace"))
-                    elif kind == "Channel":
-                        name, text = schemas.get(rec.schema_id, ("", ""))
-                        channels[rec.id] = (rec.topic, name, text)
-                    elif kind == "Message" and rec.channel_id in channels:
-                        topic, msgtype, text = channels[rec.channel_id]
-                        raw.append((rec.log_time, len(raw), topic, msgtype, text,
-                                    bytes(rec.data)))
-            except Exception:  # the truncated tail ends the copy; what was complete is kept
-                pass
+    # the truncated tail ends the copy; what was complete is kept
+    raw = [(t_ns, i, topic, msgtype, text, data)
+           for i, (t_ns, topic, msgtype, text, data) in enumerate(_complete_messages(files)[0])]
     tmp = Path(tempfile.mkdtemp(prefix=".repair-", dir=p.parent))
     try:
         from rosbags.rosbag2 import StoragePlugin, Writer
