@@ -357,12 +357,12 @@ def open_loop(line: Line, train: TrainParams, commands: tuple, *, effects: Effec
     eff = effects
     if eff.braking_rate is not None:
         br = eff.braking_rate
-        eff = replace_effect(eff, braking_rate=type(br)(
+        eff = replace(eff, braking_rate=type(br)(
             br.f_start, br.f_end, br.mode, br.t_start - t0,
             None if br.t_end is None else br.t_end - t0, br.t_step - t0))
     if eff.wheel_slip is not None:
         ws = eff.wheel_slip
-        eff = replace_effect(eff, wheel_slip=type(ws)(
+        eff = replace(eff, wheel_slip=type(ws)(
             tuple((a - t0, b - t0) for a, b in ws.intervals), ws.slip_fraction))
     tt = true_train(train, eff)
     # Actuator state at t0: the commands issued before t0 through the true actuator alone.
@@ -382,10 +382,6 @@ def open_loop(line: Line, train: TrainParams, commands: tuple, *, effects: Effec
     world.advance(duration)
     res = world.result()
     return _shift(res, t0)
-
-
-def replace_effect(eff: Effects, **kw) -> Effects:
-    return replace(eff, **kw)
 
 
 def _shift(res: SimResult, t0: float) -> SimResult:

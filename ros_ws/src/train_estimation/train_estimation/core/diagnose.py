@@ -68,7 +68,7 @@ from .augmented_kf import (
     odometer_update,
     predict_cov,
 )
-from .identify import actuator_output
+from .identify import actuator_output, moving_average
 
 CAUSES = ("gradient", "resistance", "braking_rate", "odometer_scale", "wheel_slip",
           "bursty_link", "brake_delay", "mass", "clock_drift")
@@ -290,7 +290,7 @@ def _unwrap(seq: np.ndarray) -> np.ndarray:
 # =============================================================================================
 
 
-def clock_test(run: _Run, n_params_penalty: float | None = None) -> dict:
+def clock_test(run: _Run) -> dict:
     """Train clock rate against the reference clock: log time r = alpha + beta s + jitter.
 
     Null: beta = 1 (no drift); alternative: beta free. Gaussian jitter with its variance
@@ -510,8 +510,7 @@ class _Motion:
         # reference trajectory: odometer speed averaged over 1 s, counted distance; placed on
         # the line by the balises (median offset)
         w = max(1, int(round(1.0 / max(np.median(np.diff(run.odo_t)), 1e-3))))
-        v_s = np.convolve(np.pad(run.odo_v, (w // 2, w - 1 - w // 2), mode="edge"),
-                          np.ones(w) / w, mode="valid")
+        v_s = moving_average(run.odo_v, w)
         self.v_ref = np.clip(np.interp(g.t, run.odo_t, v_s), 0.0, None)
         d_ref = np.interp(g.t, run.odo_t, run.odo_d)
         self.s0 = float(np.median(run.bal_p - np.interp(run.bal_t, run.odo_t, run.odo_d)))
@@ -639,8 +638,8 @@ class _Stage:
     """One greedy stage: the null (believed model + accepted causes), its noise, the augmented
     filter over every elementary column, and each cause's best fit and score."""
 
-    def __init__(self, mo: _Motion, null: _Null, cfg: DiagConfig, fit_noise=True,
-                 noise=None, update=None, big=True):
+    def __init__(self, mo: _Motion, null: _Null, cfg: DiagConfig, noise=None, update=None,
+                 big=True):
         self.mo, self.null, self.cfg = mo, null, cfg
         ev = mo.ev
         n = ev.t.size
@@ -658,7 +657,7 @@ class _Stage:
             mv = mv + eps * b
         self.fv, self.fs, self.md, self.mv = fv, fs, md, mv
         if noise is None:
-            noise = self._fit_noise() if fit_noise else (1e-4, 1e-2)
+            noise = self._fit_noise()
         self.q, self.r_s = noise
         if not big:
             return
@@ -696,7 +695,7 @@ class _Stage:
                 d[f"G{b}"] = d.get(f"G{b}", 0.0) + pm
         return d
 
-    def _fit_noise(self, start=None):
+    def _fit_noise(self):
         """Process-noise PSD q and distance-noise variance r_s by maximum likelihood under this
         stage's null (s0 profiled): coordinate-wise bounded Brent searches on their logs, q
         first (it matters most), then r_s, then q again (the two trade off against each other:
@@ -707,14 +706,9 @@ class _Stage:
             return _kf2_loglik(ev, math.exp(lq), math.exp(lr), self.fv, self.fs, self.md,
                                self.mv, cfg.standstill_q)
 
-        if start is None:
-            lq, lr = math.log(1e-4), math.log(max(float(np.median(self.mo.run.odo_rv)), 1e-4))
-            q_lo, q_hi, r_lo, r_hi = (math.log(cfg.q_floor), math.log(1.0), math.log(1e-6),
-                                      math.log(25))
-        else:
-            lq, lr = math.log(start[0]), math.log(start[1])
-            q_lo, q_hi, r_lo, r_hi = (max(lq - 4.0, math.log(cfg.q_floor)), lq + 2.0, lr - 3.0,
-                                      lr + 3.0)
+        lr = math.log(max(float(np.median(self.mo.run.odo_rv)), 1e-4))
+        q_lo, q_hi, r_lo, r_hi = (math.log(cfg.q_floor), math.log(1.0), math.log(1e-6),
+                                  math.log(25))
         opts = {"xatol": 0.1, "maxiter": 14}
         lq = minimize_scalar(lambda x: -ll(x, lr), bounds=(q_lo, q_hi), method="bounded",
                              options=opts).x
@@ -1134,7 +1128,7 @@ def diagnose(data: DiagData, line: Line, train: TrainParams, config: DiagConfig 
     gain = _gain(top, mo, first_stage, clock, link, cfg) if top["cause"] != "none" else \
         {"metric": "none: nothing to extend", "before": None, "after": None}
     tick(total, "done")
-    series = _series(mo, first_stage, null, accepted, link)
+    series = _series(mo, accepted, link)
     return Diagnosis(cause=top["cause"], parameters=top["parameters"], ranking=ranking,
                      untestable=untestable, evidence=evidence, gain=gain, accepted=accepted,
                      series=series)
@@ -1220,7 +1214,7 @@ def _gain(top: dict, mo: _Motion, st: _Stage, clock: dict, link: dict, cfg: Diag
     if cause == "odometer_scale":
         return _gain_scale(mo, top["parameters"])
     if cause == "wheel_slip":
-        return _gain_slip(mo, top["parameters"], st)
+        return _gain_slip(mo, top["parameters"])
     return _gain_motion(cause, mo, st, cfg)
 
 
@@ -1244,7 +1238,7 @@ def _gain_scale(mo: _Motion, params: dict) -> dict:
             "after": after, "scale_fitted_on_half": float(1.0 / inv_scale)}
 
 
-def _gain_slip(mo: _Motion, params: dict, st: _Stage) -> dict:
+def _gain_slip(mo: _Motion, params: dict) -> dict:
     """Odometer speed minus the model's smoothed speed inside the episodes, raw against
     corrected by the fitted slip (the episodes are local: nothing to hold out)."""
     run = mo.run
@@ -1257,14 +1251,11 @@ def _gain_slip(mo: _Motion, params: dict, st: _Stage) -> dict:
     for (t0, t1) in ivs:
         m = (run.odo_t >= t0) & (run.odo_t < t1)
         inside |= m
-    eps = params.get("_eps")
     w = max(1, int(round(3.0 / max(np.median(np.diff(run.odo_t)), 1e-3))))
-    ref = np.convolve(np.pad(run.odo_v, (w // 2, w - 1 - w // 2), mode="edge"),
-                      np.ones(w) / w, mode="valid")
+    ref = moving_average(run.odo_v, w)
     # the reference outside the episodes: interpolate across them
     ref_i = np.interp(run.odo_t, run.odo_t[~inside], ref[~inside]) if (~inside).any() else ref
-    if eps is None:
-        eps = float(np.mean(run.odo_v[inside] / np.maximum(ref_i[inside], 0.1) - 1.0))
+    eps = float(np.mean(run.odo_v[inside] / np.maximum(ref_i[inside], 0.1) - 1.0))
     corr[inside] = 1.0 + eps
     before = float(np.sqrt(np.mean((run.odo_v[inside] - ref_i[inside]) ** 2)))
     after = float(np.sqrt(np.mean((run.odo_v[inside] / corr[inside] - ref_i[inside]) ** 2)))
@@ -1366,7 +1357,7 @@ def _extended(cause: str, params: dict, mo: _Motion, believed: TrainParams):
 # =============================================================================================
 
 
-def _series(mo: _Motion, st: _Stage, null: _Null, accepted: list, link: dict) -> dict:
+def _series(mo: _Motion, accepted: list, link: dict) -> dict:
     """Residual acceleration of the believed model (smoothed odometer speed derivative minus the
     model's acceleration) against position, speed and time; f(t); the loss runs."""
     g = mo.grid

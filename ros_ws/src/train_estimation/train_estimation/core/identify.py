@@ -172,7 +172,8 @@ def actuator_output(t_grid, ctrl_t, ctrl_a, tau: float, delay: float,
     return out[0], out[1]
 
 
-def _moving_average(x, width):
+def moving_average(x, width):
+    """Centred moving average over ``width`` samples, the ends padded with the edge values."""
     if width <= 1:
         return x.copy()
     k = np.ones(width) / width
@@ -403,7 +404,7 @@ def identify(data: SIData, line: Line, prior: TrainParams, config: SIConfig = SI
 
     # initial reference: lightly smoothed measured speed, measured distance
     width = max(1, int(round(2.0 / np.median(dt))))
-    v_ref = np.clip(_moving_average(Y[:, 1], width), 0.0, None)
+    v_ref = np.clip(moving_average(Y[:, 1], width), 0.0, None)
     s_ref = Y[:, 0]
 
     grad_spread = 0.0

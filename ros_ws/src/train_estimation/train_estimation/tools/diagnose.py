@@ -53,6 +53,8 @@ from train_core.config import ConfigError, load_yaml
 from train_core.effects import Effects, GradientEffect, true_line
 from train_core.model import line_from_dict, load_line, load_train, train_from_dict
 
+from train_estimation.tools.identify import Progress
+
 REPORT_KEYS = ("cause", "parameters", "ranking", "untestable", "evidence", "gain")
 USED_TOPICS = ("odometer", "balise", "control")  # never ground_truth
 
@@ -549,21 +551,6 @@ def summary(dg, bag_path, data, elapsed: float, model: dict) -> list[str]:
     return out
 
 
-class Progress:
-    """A one-line text progress bar on stderr."""
-
-    def __init__(self, width: int = 30):
-        self.width = width
-
-    def __call__(self, step: int, total: int, what: str) -> None:
-        frac = min(max(step / max(total, 1), 0.0), 1.0)
-        bar = "#" * int(round(frac * self.width))
-        sys.stderr.write(f"\rdiagnose [{bar:<{self.width}}] {100 * frac:5.1f}% {what:<36}")
-        if step >= total:
-            sys.stderr.write("\n")
-        sys.stderr.flush()
-
-
 def _one_line(exc) -> str:
     return " ".join(str(exc).split())
 
@@ -586,7 +573,8 @@ def main(argv=None) -> int:
     try:
         line, train = load_line(args.line), load_train(args.train)
         data, _ = read_measured(args.bag)
-        dg = diagnose(data, line, train, progress=None if args.quiet else Progress())
+        bar = None if args.quiet else Progress("diagnose", what_width=36)
+        dg = diagnose(data, line, train, progress=bar)
     except (ConfigError, BagError) as exc:
         print(f"diagnose: {_one_line(exc)}", file=sys.stderr)
         return 2

@@ -113,15 +113,16 @@ def plot_fit(res, path: Path) -> None:
 
 
 class Progress:
-    """A one-line text progress bar on stderr."""
+    """A one-line text progress bar on stderr (the offline tools' ``progress`` callback)."""
 
-    def __init__(self, width: int = 30):
-        self.width = width
+    def __init__(self, label: str = "identify", width: int = 30, what_width: int = 30):
+        self.label, self.width, self.what_width = label, width, what_width
 
     def __call__(self, step: int, total: int, what: str) -> None:
-        frac = step / max(total, 1)
+        frac = min(max(step / max(total, 1), 0.0), 1.0)
         bar = "#" * int(round(frac * self.width))
-        sys.stderr.write(f"\ridentify [{bar:<{self.width}}] {100 * frac:5.1f}% {what:<30}")
+        sys.stderr.write(f"\r{self.label} [{bar:<{self.width}}] {100 * frac:5.1f}% "
+                         f"{what:<{self.what_width}}")
         if step >= total:
             sys.stderr.write("\n")
         sys.stderr.flush()
