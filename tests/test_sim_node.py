@@ -22,6 +22,7 @@ def binomial_interval(n: int, p: float, z: float = 4.5) -> tuple[float, float]:
 
 def test_simulator_with_zone_controller(launch, ros_node):
     from train_interfaces.msg import (
+        BaliseReading,
         ControlCommand,
         MovementAuthority,
         OdometerReading,
@@ -32,6 +33,7 @@ def test_simulator_with_zone_controller(launch, ros_node):
     red_signal = sc.start_position + 700.0  # a danger point the train must stop before
     odo = ros_node.collect(OdometerReading, f"{NS}/odometer")
     ros_node.collect(ControlCommand, f"{NS}/control")
+    ros_node.collect(BaliseReading, f"{NS}/balise")  # the simulator waits for every input
     truth = ros_node.collect(TrainState, f"{NS}/ground_truth")
     mas = ros_node.collect(MovementAuthority, f"{NS}/movement_authority")
     launch.node("train_sim", "zone_controller", "--ros-args", "-r", f"__ns:={NS}",

@@ -92,6 +92,18 @@ def fields_to_msg(type_name: str, stamp: float, fields: dict, frame_id: str = "t
     return msg
 
 
+ESTIMATOR_INPUTS = ("control", "odometer", "balise")
+
+
+def inputs_matched(pubs: dict, n: int) -> bool:
+    """True when each estimator input topic published (``pubs``: topic -> publisher) has at
+    least ``n`` subscribers. A sender waits for this before its first message: DDS does not
+    keep volatile messages for readers matched later, so a reader discovered on one topic but
+    not yet on another would miss, say, the first command (and compute something else than the
+    offline replay of the same bag)."""
+    return all(pubs[t].get_subscription_count() >= n for t in ESTIMATOR_INPUTS if t in pubs)
+
+
 def declarer(node):
     """``declare(name, default, text) -> value``: declare_parameter with a descriptor."""
     from rcl_interfaces.msg import ParameterDescriptor

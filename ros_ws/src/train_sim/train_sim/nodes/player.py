@@ -19,6 +19,7 @@ from train_core.ros import (
     ParameterError,
     declarer,
     fields_to_msg,
+    inputs_matched,
     msg_class,
     parse_cli,
     run_node,
@@ -44,7 +45,8 @@ def build_node():
                              "topics of the bag to publish (relative names)")
             self.rate = declare("rate_factor", 1.0, "bag seconds per wall second")
             self.wait_subs = declare("wait_for_subscribers", 0,
-                                     "start when 'odometer' has this many subscribers")
+                                     "start when each of control, odometer and balise has this "
+                                     "many subscribers")
             if not bag:
                 raise ParameterError("parameter bag: give the bag to play")
             try:
@@ -70,8 +72,7 @@ def build_node():
 
         def tick(self) -> None:
             if self.wall0 is None:
-                if self.pubs.get("odometer") and \
-                        self.pubs["odometer"].get_subscription_count() < self.wait_subs:
+                if not inputs_matched(self.pubs, self.wait_subs):
                     return
                 self.wall0 = time.monotonic()
             t_bag = self.t0_bag + (time.monotonic() - self.wall0) * self.rate

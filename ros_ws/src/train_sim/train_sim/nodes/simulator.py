@@ -20,6 +20,7 @@ from train_core.ros import (
     ParameterError,
     declarer,
     fields_to_msg,
+    inputs_matched,
     msg_class,
     parse_cli,
     run_node,
@@ -59,8 +60,8 @@ def build_node():
             self.summary_file = declare("summary_file", "",
                                         "write the run's summary (JSON) here at the end; '' = no")
             self.wait_subs = declare("wait_for_subscribers", 0,
-                                     "start only when odometer and control have this many "
-                                     "subscribers each")
+                                     "start only when control, odometer and balise have this "
+                                     "many subscribers each")
             self.wait_truth = declare("wait_for_truth_subscribers", 0,
                                       "and ground_truth has this many subscribers")
             self.publish_clock = declare("publish_clock", True,
@@ -141,8 +142,7 @@ def build_node():
             if self.wall0 is None:
                 # Discovery, not a blind sleep: recorders and estimators must be matched before
                 # the first sample, or they would miss the start of the run.
-                if min(self.pubs[t].get_subscription_count() for t in ("odometer", "control")) \
-                        < self.wait_subs or \
+                if not inputs_matched(self.pubs, self.wait_subs) or \
                         self.pubs["ground_truth"].get_subscription_count() < self.wait_truth:
                     return
                 if self.start_at > 0:
