@@ -106,3 +106,66 @@ def test_runner_refuses_garbage_at_the_door_with_reasons():
     assert r.push("odometer", 1e6, dict(odo, seq=12), 2.3).startswith("future_stamp")
     assert set(r.rejected) == {"odometer:non_finite", "lidar:unknown_kind", "odometer:invalid",
                                "odometer:duplicate", "odometer:future_stamp"}
+
+
+def _stepped(ev, t_step, new_clock):
+    """Odometer and balise stamped ``new_clock(t)`` from true time ``t_step`` on (a clock reset:
+    reboot to a small count, or set to GPS time); ``ev`` from :func:`restamp` with epoch 1.7e9."""
+    out = []
+    for topic, stamp, fields, *recv in ev:
+        t = stamp - 1.7e9
+        if topic != "control" and t >= t_step - 1e-9:
+            stamp = new_clock(t)
+        out.append((topic, stamp, fields, *recv))
+    return out
+
+
+@pytest.mark.parametrize("kind", ["robust", "gsma"])
+@pytest.mark.parametrize("recv", [True, False])
+@pytest.mark.parametrize("step", ["reboot", "gps"])
+def test_a_clock_reset_is_re_anchored_not_blinding(kind, recv, step):
+    """A train clock that jumps and stays (reboot to 5 s, or a jump to GPS time 1e9 s ahead) is
+    recognised (one ``clock_reset`` event), the filter goes on on its old timeline, the estimates
+    carry the new clock's stamps, and its accuracy is that of the run without the reset."""
+    sc, res = run(duration=120.0)
+    t_step = 60.0
+    new_clock = {"reboot": lambda t: 5.0 + (t - t_step),
+                 "gps": lambda t: 1.7e9 + 1e9 + t}[step]
+    ev = restamp(res.events(), epoch=1.7e9, control_epoch=1.7e9)
+    ev_step = _stepped(ev, t_step, new_clock)
+    if not recv:
+        ev, ev_step = [e[:3] for e in ev], [e[:3] for e in ev_step]
+    n_odo = sum(1 for e in ev if e[0] == "odometer")
+    ref, _ = replay(ev, adapter(sc, kind), 0.1)
+    outs, r = replay(ev_step, adapter(sc, kind), 0.1)
+    assert r.events["odometer:clock_reset"] == 1, (dict(r.events), dict(r.rejected))
+    # at most the readings of the step's detection window lost (min_judged), none blinded
+    assert r.accepted["odometer"] >= n_odo - r.min_judged, (dict(r.accepted), dict(r.rejected))
+    new = {e[1] for e in ev_step if e[0] == "odometer" and abs(e[1] - 1.7e9) > 1e8}
+    stamps = [o.stamp for o in outs]
+    assert len(new - set(stamps)) <= r.min_judged  # the new clock's sample stamps, as sent
+
+    def to_true(s):
+        return s - 1.7e9 if abs(s - 1.7e9) < 1e8 else (
+            s - 5.0 + t_step if step == "reboot" else s - 2.7e9)
+
+    t = np.array([to_true(s) for s in stamps])
+    x = np.array([o.position for o in outs])
+    e = x - np.interp(t, res.truth["t"], res.truth["position"])
+    e_ref, _ = errors(ref, res, epoch=1.7e9)
+    after = t > t_step + 2.0
+    rmse = float(np.sqrt(np.mean(e[after] ** 2)))
+    rmse_ref = float(np.sqrt(np.mean(e_ref[-after.sum():] ** 2)))
+    assert rmse <= 1.2 * rmse_ref + 0.05, (rmse, rmse_ref)
+
+
+def test_a_stalled_node_is_no_clock_reset():
+    """Callbacks stalled 8 s, then a burst (all arrive at once): small stamp gaps whatever the
+    arrivals, so no clock step is declared and every reading is used."""
+    sc, res = run(duration=60.0)
+    ev = restamp(res.events())
+    ev = [(k, s, f, 38.0 if 30.0 <= r < 38.0 else r) for k, s, f, r in ev]
+    n_odo = sum(1 for e in ev if e[0] == "odometer")
+    outs, r = replay(ev, adapter(sc), 0.1)
+    assert not r.events.get("odometer:clock_reset"), dict(r.events)
+    assert r.accepted["odometer"] >= n_odo - 2, dict(r.rejected)

@@ -45,6 +45,19 @@ published stay published; the next ones carry the correction. Older readings are
 (``out_of_order``). A replay in arrival order meets the same lateness, so it reproduces the
 node's estimates.
 
+Clock steps (a train clock reset to 0 by a reboot, or set to GPS time): odometer stamps jump
+and stay on the new clock. A reading is *discontinuous* when its stamp is more than
+``_Median.tol`` behind the last odometer stamp admitted, or ahead of it by more than the arrival
+time elapsed since (+ tol); an outage moves stamps and arrivals alike, and a node whose callbacks
+lag sees small stamp gaps whatever its arrivals, so neither is discontinuous. Discontinuous
+train-clock readings are held back; ``min_judged`` odometer readings in a row that continue one
+another (increasing stamps at a plausible pace) with no continuous reading between them are a
+step: every later train-clock stamp is mapped back onto the old timeline (``stamp - shift``,
+``shift`` = the jump less the elapsed arrival time, at least one period), the held readings are
+admitted, and the event ``clock_reset`` is logged. Estimates keep the sample's own stamp (the
+new clock). Otherwise the held readings are judged as any other (a stale or future stamp). A step
+smaller than ``tol`` cannot be told from arrival jitter and is not re-anchored.
+
 Sequence numbers only detect duplicates (same ``seq`` and stamp as a recent reading) and resets
 (``seq`` goes back while the stamp goes on: a sensor reboot or a wrap-around, accepted and
 counted as the event ``seq_reset``). Order is decided by stamps, so ``seq = 2**32 - 1`` cannot
@@ -168,6 +181,10 @@ class EstimatorRunner:
     _high_done: float = -math.inf  # largest stamp fused
     _last_fused: float = -math.inf  # stamp of the last odometer sample accepted (or the start)
     separate_clocks: bool = False  # control was found (or said) to be on another clock
+    _train_shift: float = 0.0  # s, train-clock steps so far: filter stamps = raw - shift
+    _odo_last: tuple | None = None  # (stamp, arrival) of the last odometer admitted
+    _step_held: list = field(default_factory=list)  # discontinuous train-clock readings
+    _raw_stamp: dict = field(default_factory=dict)  # mapped odometer stamp -> stamp as sent
 
     @property
     def _can_rewind(self) -> bool:
@@ -189,6 +206,10 @@ class EstimatorRunner:
         if not (isinstance(stamp, float | int) and math.isfinite(stamp)):
             return self._reject(kind, math.nan, R.NON_FINITE + ": stamp")
         stamp = float(stamp)
+        if CLOCK_OF.get(kind) == "train" and self._train_shift:
+            raw, stamp = stamp, stamp - self._train_shift  # onto the timeline before the step
+            if kind == "odometer":  # its estimate is published at the raw stamp, bit for bit
+                self._raw_stamp[stamp] = raw
         if recv is not None and not math.isfinite(recv):
             recv = None
         if kind != "control":
@@ -225,10 +246,14 @@ class EstimatorRunner:
         return why
 
     def _admit(self, kind: str, stamp: float, fields: dict, recv, arrival,
-               counted: bool = False) -> str:
+               counted: bool = False, watch: bool = True) -> str:
         """Judge a stamp against its clock's median offset, check seq, queue."""
         clock = CLOCK_OF[kind]
         med = self._offsets[clock]
+        if watch and clock == "train" and arrival is not None and self._odo_last is not None:
+            held, stamp, arrival = self._watch_step(kind, stamp, fields, recv, arrival)
+            if held:
+                return ""
         if arrival is not None:
             off = stamp - arrival
             if off - med.value > self.max_future:
@@ -242,6 +267,9 @@ class EstimatorRunner:
             med.add(stamp - arrival)
         if kind == "odometer" and recv is not None and abs(stamp - recv - med.value) <= med.tol:
             self._regress(recv, stamp)  # only stamps of the dense cluster inform the rate
+        if kind == "odometer" and arrival is not None and \
+                (self._odo_last is None or stamp > self._odo_last[0]):
+            self._odo_last = (stamp, arrival)
         self._admitted_high = max(self._admitted_high, stamp)
         if kind == "control":
             if "train" not in self._offsets or len(self._offsets["train"]) < self.min_judged:
@@ -254,6 +282,55 @@ class EstimatorRunner:
                 self._queue("control", self._to_train(s, has_recv), f)
         self._queue(kind, stamp, fields)
         return ""
+
+    def _watch_step(self, kind: str, stamp: float, fields: dict, recv, arrival):
+        """``(held, stamp, arrival)``: hold a discontinuous train-clock reading, and declare a
+        clock step when ``min_judged`` such odometer readings continue one another (module
+        doc). A stamp beyond ``max_future`` is not held: it is refused at the door as always,
+        and only counts towards a step. ``stamp`` comes back mapped when this reading
+        completed a step."""
+        tol = _Median.tol
+        s0, a0 = self._odo_last
+        if -tol <= stamp - s0 <= max(arrival - a0, 0.0) + tol:  # continues the stream
+            if kind == "odometer" and self._step_held:
+                self._release_held()
+            return False, stamp, arrival
+        chain = [h for h in self._step_held if h[0] == "odometer"]
+        if kind == "odometer" and chain:
+            _, s1, _, _, a1, _ = chain[-1]
+            if not 0.0 < stamp - s1 <= max(arrival - a1, 0.0) + tol:  # not one new clock
+                self._release_held()
+                chain = []
+        refused = stamp - arrival - self._offsets["train"].value > self.max_future
+        self._step_held.append((kind, stamp, fields, recv, arrival, refused))
+        if kind == "odometer":
+            chain.append(self._step_held[-1])
+        if len(chain) < self.min_judged or \
+                chain[-1][1] - chain[0][1] < 0.5 * (len(chain) - 1) * self.period:
+            return not refused, stamp, arrival
+        # a step: the first reading of the new clock came (elapsed arrival time, at least one
+        # period) after the last one of the old clock
+        first, a_first = chain[0][1], chain[0][4]
+        shift = first - (s0 + max(a_first - a0, self.period))
+        self._train_shift += shift
+        self._event("odometer", stamp, f"{R.CLOCK_RESET}: train clock stepped by {shift:+.3f} s "
+                                       f"at stamp {first + self._train_shift:.3f}; re-anchored")
+        old = self._train_shift - shift
+        held, self._step_held = self._step_held, []
+        for i, (k, st, _, _, _, ref) in enumerate(held):
+            if k == "odometer" and (not ref or i == len(held) - 1):
+                self._raw_stamp[st - shift] = st + old  # as sent
+        for k, st, f, rc, ar, ref in held[:-1]:
+            if not ref:
+                self._admit(k, st - shift, f, rc, ar, watch=False)
+        return False, stamp - shift, arrival
+
+    def _release_held(self) -> None:
+        """No step after all: judge the held readings as any other (stale, future, ...)."""
+        held, self._step_held = self._step_held, []
+        for k, st, f, rc, ar, ref in held:
+            if not ref:
+                self._admit(k, st, f, rc, ar, watch=False)
 
     def _check_seq(self, kind: str, stamp: float, fields: dict) -> str:
         seq = fields.get("seq")
@@ -409,7 +486,13 @@ class EstimatorRunner:
 
     def _emit(self, t: float, out: list) -> None:
         o = self.adapter.output(self._filter_time(t))
-        out.append(o if o.stamp == t else replace(o, stamp=t))  # published on the train clock
+        # published on the train clock (after a step: the new one, the sample's stamp as sent)
+        stamp = self._raw_stamp.pop(t, None) if self._raw_stamp else None
+        if stamp is None:
+            stamp = t + self._train_shift
+        if len(self._raw_stamp) > 1000:  # refused samples never emitted
+            self._raw_stamp = {k: v for k, v in self._raw_stamp.items() if k > t}
+        out.append(o if o.stamp == stamp else replace(o, stamp=stamp))
         self._last_out = t
 
     def advance_to(self, t: float) -> list[Output]:
