@@ -73,6 +73,7 @@ from .identify import actuator_output, moving_average
 CAUSES = ("gradient", "resistance", "braking_rate", "odometer_scale", "wheel_slip",
           "bursty_link", "brake_delay", "mass", "clock_drift")
 MOTION_CAUSES = ("gradient", "resistance", "braking_rate", "brake_delay", "mass")
+RESISTANCE_COLS = ("one", "v", "v2")  # the Davis terms' elementary columns (a, b, c)
 REFIT_CAUSES = MOTION_CAUSES + ("odometer_scale", "wheel_slip")
 
 
@@ -498,6 +499,27 @@ def _kf2_loglik(ev: Events, q: float, r_s: float, bv, bs, md, mv, q_held: float)
 # =============================================================================================
 
 
+def place_on_line(d: np.ndarray, d_bal: np.ndarray, p_bal: np.ndarray) -> np.ndarray:
+    """Track positions (m) of odometer distances ``d``, placed by the balise fixes (odometer
+    distance ``d_bal`` at each balise read at map position ``p_bal``): piecewise linear between
+    consecutive fixes, as a train's positioning resets at each balise, and beyond the first
+    and last fix by the least-squares scale of all fixes. A wrong odometer scale (1 % is 60 m
+    over a 6 km line) or a slip episode would otherwise misplace the map's gradient changes,
+    which then look like a gradient error. With one fix: the offset only."""
+    if d_bal.size == 0:
+        return d.astype(float).copy()
+    order = np.argsort(d_bal)
+    db, pb = d_bal[order], p_bal[order]
+    keep = np.concatenate([[True], np.diff(db) > 1.0])  # one fix per balise passage
+    db, pb = db[keep], pb[keep]
+    if db.size < 2:
+        return d + float(np.median(p_bal - d_bal))
+    k = np.polyfit(db, pb, 1)[0]
+    x = np.interp(d, db, pb)
+    x = np.where(d < db[0], pb[0] + k * (d - db[0]), x)
+    return np.where(d > db[-1], pb[-1] + k * (d - db[-1]), x)
+
+
 class _Motion:
     """Columns of the motion model on the events of one run, built once."""
 
@@ -513,8 +535,7 @@ class _Motion:
         v_s = moving_average(run.odo_v, w)
         self.v_ref = np.clip(np.interp(g.t, run.odo_t, v_s), 0.0, None)
         d_ref = np.interp(g.t, run.odo_t, run.odo_d)
-        self.s0 = float(np.median(run.bal_p - np.interp(run.bal_t, run.odo_t, run.odo_d)))
-        self.x_ref = self.s0 + d_ref
+        self.x_ref = place_on_line(d_ref, np.interp(run.bal_t, run.odo_t, run.odo_d), run.bal_p)
         moving = (self.v_ref >= cfg.standstill_speed).astype(float)
         cm = np.concatenate([[0.0], np.cumsum(1.0 - moving)])
         # interval k is modelled only if the train moves throughout it
@@ -777,47 +798,76 @@ class _Stage:
     def null_ll(self) -> float:
         return self.fit({}, [])[2]
 
-    def resistance(self):
-        th, cov, ll, _ = self.fit({}, [{"one": 1.0}, {"v": 1.0}, {"v2": 1.0}])
+    # Causes linear in their parameters: free combinations of elementary columns (``_free``)
+    # and the map from the fitted coefficients to the contract's parameters (``_params``).
+    # One definition serves the cause's own test and the final joint refit (``joint_refit``).
+    def _free(self, cause: str, extra: dict | None = None) -> list:
         mo = self.mo
-        meff = mo.train.effective_mass
-        base = np.array([mo.alpha0, mo.beta0, mo.gamma0]) + self._null_res()
-        val = (base + th) * meff
-        se = np.sqrt(np.clip(np.diag(cov), 0, None)) * meff
-        # a, b and c are strongly correlated over one run's speeds; the resistance force at
-        # the run's typical speed is what the data determine well (and is reported too)
-        vr = float(np.sqrt(np.mean(mo.v_ref[mo.moving > 0] ** 2))) if mo.moving.any() else 0.0
-        gv = np.array([1.0, vr, vr * vr])
-        force = float(gv @ val)
-        se_force = float(np.sqrt(max(gv @ cov @ gv, 0.0))) * meff
-        return ll, 3, {"a": val[0], "b": val[1], "c": val[2]}, \
-            {"a": se[0], "b": se[1], "c": se[2], "force_at_v_ref": se_force}, \
-            {"v_ref": vr, "force_at_v_ref": force}
+        if cause == "resistance":
+            return [{n: 1.0} for n in RESISTANCE_COLS]
+        if cause == "mass":
+            return [{"tr": 1.0, "br": mo.f0, "one": mo.alpha0, "v": mo.beta0, "v2": mo.gamma0}]
+        if cause == "braking_rate":
+            return [{"br": 1.0, "brt": -1.0}, {"brt": 1.0}]
+        if cause == "odometer_scale":
+            return [{"scale": 1.0}]
+        if cause == "gradient":
+            bi, bj = extra["bins"]
+            return [{f"G{b}": 1.0 for b in range(bi, bj)}]
+        raise ValueError(cause)
+
+    def _params(self, cause: str, th: np.ndarray, cov: np.ndarray, extra: dict | None = None):
+        """(parameters, standard errors, extra) of a linear cause from its coefficients."""
+        mo = self.mo
+        sd = np.sqrt(np.clip(np.diag(cov), 0, None))
+        if cause == "resistance":
+            meff = mo.train.effective_mass
+            val = (np.array([mo.alpha0, mo.beta0, mo.gamma0]) + self._null_res() + th) * meff
+            se = sd * meff
+            # a, b and c are strongly correlated over one run's speeds; the resistance force
+            # at the run's typical speed is what the data determine well (reported too)
+            vr = float(np.sqrt(np.mean(mo.v_ref[mo.moving > 0] ** 2))) if mo.moving.any() \
+                else 0.0
+            gv = np.array([1.0, vr, vr * vr])
+            se_force = float(np.sqrt(max(gv @ cov @ gv, 0.0))) * meff
+            return {"a": val[0], "b": val[1], "c": val[2]}, \
+                {"a": se[0], "b": se[1], "c": se[2], "force_at_v_ref": se_force}, \
+                {"v_ref": vr, "force_at_v_ref": float(gv @ val)}
+        if cause == "mass":
+            k = 1.0 + th[0]
+            return {"mass": mo.train.mass / k}, {"mass": mo.train.mass * sd[0] / k ** 2}, \
+                {"traction_gain": k}
+        if cause == "braking_rate":
+            return {"f_start": mo.f0 + th[0], "f_end": mo.f0 + th[1]}, \
+                {"f_start": sd[0], "f_end": sd[1]}, {}
+        if cause == "odometer_scale":
+            return {"scale": 1.0 + self.null.scale + th[0]}, {"scale": sd[0]}, {}
+        if cause == "gradient":
+            bi, bj = extra["bins"]
+            return {"start": float(mo.bin_edges[bi]), "end": float(mo.bin_edges[bj]),
+                    "permille": float(th[0])}, {"permille": sd[0]}, dict(extra)
+        raise ValueError(cause)
+
+    def _linear(self, cause: str):
+        free = self._free(cause)
+        th, cov, ll, _ = self.fit({}, free)
+        return (ll, len(free), *self._params(cause, th, cov))
+
+    def resistance(self):
+        return self._linear("resistance")
 
     def _null_res(self) -> np.ndarray:
         d = self.null.drift
         return np.array([d.get("one", 0.0), d.get("v", 0.0), d.get("v2", 0.0)])
 
     def mass(self):
-        mo = self.mo
-        combo = {"tr": 1.0, "br": mo.f0, "one": mo.alpha0, "v": mo.beta0, "v2": mo.gamma0}
-        th, cov, ll, _ = self.fit({}, [combo])
-        k = 1.0 + th[0]
-        m = mo.train.mass / k
-        se = mo.train.mass * math.sqrt(max(cov[0, 0], 0.0)) / k ** 2
-        return ll, 1, {"mass": m}, {"mass": se}, {"traction_gain": k}
+        return self._linear("mass")
 
     def braking_rate(self):
-        mo = self.mo
-        th, cov, ll, _ = self.fit({}, [{"br": 1.0, "brt": -1.0}, {"brt": 1.0}])
-        f_s, f_e = mo.f0 + th[0], mo.f0 + th[1]
-        se = np.sqrt(np.clip(np.diag(cov), 0, None))
-        return ll, 2, {"f_start": f_s, "f_end": f_e}, {"f_start": se[0], "f_end": se[1]}, {}
+        return self._linear("braking_rate")
 
     def odometer_scale(self):
-        th, cov, ll, _ = self.fit({}, [{"scale": 1.0}])
-        return ll, 1, {"scale": 1.0 + self.null.scale + th[0]}, \
-            {"scale": math.sqrt(max(cov[0, 0], 0.0))}, {}
+        return self._linear("odometer_scale")
 
     def brake_delay(self):
         """Profile over (common offset, extra braking delay > 0): the brake chain's own timing."""
@@ -853,18 +903,59 @@ class _Stage:
                                                                       enumerate(ds)]}
 
     def gradient(self):
-        """All sections [i, j) of the position bins by prefix sums; (s0, permille) by GLS."""
+        """All sections [i, j) of the position bins by prefix sums; (s0, permille) by GLS.
+
+        Scored *against the running-resistance model*: the section is searched and its
+        likelihood gain measured with the Davis terms (a, b, c) free as nuisance. On one run,
+        position and speed go together: a long "section" at cruise speed is running
+        resistance by another name (a line-wide offset is exactly the a-term), and a map error
+        is local. So a gradient is named only for what resistance cannot explain; the
+        permille reported (and added to the model) is the plain fit of the chosen section.
+        Returns ll such that ll - null_ll() is that gain."""
         mo = self.mo
         idx = np.array([self._j(f"G{b}") for b in range(mo.n_bins)])
         width = mo.bin_edges[1] - mo.bin_edges[0]
         min_len = max(1, int(math.ceil(self.cfg.min_section / width - 1e-9)))
         e1 = np.zeros(self.p + 3)
         e1[1] = 1.0
-        quad, bi, bj, pm, se = best_section(self.kf.W, self._M({}, [])[:, 0], e1, idx, min_len)
-        ll = -0.5 * (self.kf.logdet + self.kf.m * LOG2PI + quad)
-        start, end = float(mo.bin_edges[bi]), float(mo.bin_edges[bj])
-        return ll, 3, {"start": start, "end": end, "permille": pm}, {"permille": se}, \
-            {"bins": (bi, bj), "bin_width": float(width)}
+        W = self.kf.W
+        # Frisch-Waugh: partial the resistance columns out of the metric, then scan
+        F = np.zeros((self.p + 3, 3))
+        for r, name in enumerate(RESISTANCE_COLS):
+            F[self._j(name), r] = 1.0
+        WF = W @ F
+        W_res = W - WF @ np.linalg.pinv(F.T @ WF) @ WF.T
+        quad, bi, bj, _, _ = best_section(W_res, self._M({}, [])[:, 0], e1, idx, min_len)
+        ll_res = self.fit({}, [{n: 1.0} for n in RESISTANCE_COLS])[2]
+        ll_joint = -0.5 * (self.kf.logdet + self.kf.m * LOG2PI + quad)
+        extra = {"bins": (bi, bj), "bin_width": float(width)}
+        th, cov, ll_plain, _ = self.fit({}, self._free("gradient", extra))
+        extra["loglik_gain_plain"] = ll_plain - self.null_ll()
+        return (self.null_ll() + (ll_joint - ll_res), 3,
+                *self._params("gradient", th, cov, extra))
+
+    def gain_beyond_resistance(self, fv: np.ndarray, fs: np.ndarray) -> float:
+        """Log-likelihood gain of the fixed drift (fv, fs) over this stage's null, both with
+        the Davis terms free (small augmented filter at this stage's noise): the gradient's
+        evidence at another noise level (see :meth:`gradient`)."""
+        mo, ev = self.mo, self.mo.ev
+        n = ev.t.size
+        cols = [mo.col[c] for c in RESISTANCE_COLS]
+        lls = []
+        for f_v, f_s in ((self.fv, self.fs), (fv, fs)):
+            Bv = np.zeros((n, 5))
+            Bs = np.zeros((n, 5))
+            Bv[:, 0], Bs[:, 0] = f_v, f_s
+            Bv[:, 2:], Bs[:, 2:] = mo.Dv[:, cols], mo.Ds[:, cols]
+            Md = np.zeros((n, 5))
+            Mv = np.zeros((n, 5))
+            Md[:, 0], Mv[:, 0] = self.md, self.mv
+            Mb = np.zeros((n, 5))
+            Mb[:, 1] = 1.0
+            kf = augmented_kf(ev, self.q, self.r_s, Bv, Bs, Md, Mv, Mb, self.cfg.standstill_q)
+            quad = gls(kf.W, np.eye(5))[2]
+            lls.append(-0.5 * (kf.logdet + kf.m * LOG2PI + quad))
+        return lls[1] - lls[0]
 
     def wheel_slip(self):
         """Candidate episodes where the standardised speed innovation of the null is large;
@@ -974,6 +1065,8 @@ def best_section(W: np.ndarray, u: np.ndarray, e1: np.ndarray, idx: np.ndarray, 
     th = -(-bS * w_u1 + w_11 * aS) / safe
     quad = np.where(ok, w_uu + w_u1 * th_s0 + aS * th, np.inf)
     best = int(np.argmin(quad))
+    if not np.isfinite(quad[best]):
+        return math.inf, 0, nb, 0.0, math.nan
     se = math.sqrt(max(w_11 / det[best], 0.0)) if ok[best] else math.nan
     return float(quad[best]), int(i[best]), int(j[best]), float(th[best]), se
 
@@ -1061,9 +1154,13 @@ def diagnose(data: DiagData, line: Line, train: TrainParams, config: DiagConfig 
             st_c = _Stage(mo, null_c, cfg, big=False, noise=None)
             # the null at the cause's noise too: an optimiser that stopped short on the null
             # must not pass for evidence
-            ll0_c = max(ll0, _kf2_loglik(mo.ev, st_c.q, st_c.r_s, st.fv, st.fs, st.md, st.mv,
-                                         cfg.standstill_q))
-            dll_c = st_c.fixed_loglik() - ll0_c
+            if cause == "gradient":  # its gain beyond resistance (see _Stage.gradient)
+                dll_c = _Stage(mo, null, cfg, big=False, noise=(st_c.q, st_c.r_s)) \
+                    .gain_beyond_resistance(st_c.fv, st_c.fs)
+            else:
+                ll0_c = max(ll0, _kf2_loglik(mo.ev, st_c.q, st_c.r_s, st.fv, st.fs, st.md,
+                                             st.mv, cfg.standstill_q))
+                dll_c = st_c.fixed_loglik() - ll0_c
             if dll_c > res["dll"]:
                 res["dll_common_noise"] = res["dll"]
                 res["dll"] = dll_c
@@ -1080,10 +1177,15 @@ def diagnose(data: DiagData, line: Line, train: TrainParams, config: DiagConfig 
             break
         cause, res = best
         accepted.append({"cause": cause, "score": res["score"], "parameters": res["parameters"],
-                         "std_errors": res["std_errors"], "stage": stage_i + 1})
+                         "std_errors": res["std_errors"], "stage": stage_i + 1,
+                         "extra": res["extra"]})
         _extend_null(null, cause, res, mo)
         if cause in ("clock_drift", "bursty_link"):
             skip.add(cause)
+
+    joint_refit(mo, null, accepted, cfg, (st.q, st.r_s))
+    for a in accepted:
+        a.pop("extra", None)
 
     # ---- ranking: accepted causes in order, then the rest by their best score --------------
     ranking = []
@@ -1132,6 +1234,32 @@ def diagnose(data: DiagData, line: Line, train: TrainParams, config: DiagConfig 
     return Diagnosis(cause=top["cause"], parameters=top["parameters"], ranking=ranking,
                      untestable=untestable, evidence=evidence, gain=gain, accepted=accepted,
                      series=series)
+
+
+LINEAR_CAUSES = ("resistance", "mass", "braking_rate", "odometer_scale", "gradient")
+
+
+def joint_refit(mo: _Motion, null: _Null, accepted: list, cfg: DiagConfig, noise) -> None:
+    """Re-estimate the accepted linear causes' parameters jointly (in place).
+
+    Greedy stages fit each cause on top of the earlier ones held fixed: a cause accepted first
+    absorbs part of a later one's effect (a gradient section fitted before a resistance
+    change is biased by it). Given the discrete choices (sections, delays, slip episodes,
+    command offset), the accepted linear causes are one GLS problem: fit them together."""
+    lin = [a for a in accepted if a["cause"] in LINEAR_CAUSES]
+    if len(lin) < 2:
+        return
+    base = _Null(shift=null.shift, brake_extra=null.brake_extra, slip=list(null.slip))
+    st = _Stage(mo, base, cfg, noise=noise)
+    free, blocks = [], []
+    for a in lin:
+        f = st._free(a["cause"], a["extra"])
+        blocks.append((a, len(free), len(f)))
+        free += f
+    th, cov, _, _ = st.fit({}, free)
+    for a, i, k in blocks:
+        p, se, ex = st._params(a["cause"], th[i:i + k], cov[i:i + k, i:i + k], a["extra"])
+        a["parameters"], a["std_errors"], a["extra"] = p, se, ex
 
 
 def _extend_null(null: _Null, cause: str, res: dict, mo: _Motion) -> None:
@@ -1276,7 +1404,6 @@ def _gain_motion(cause: str, mo: _Motion, st: _Stage, cfg: DiagConfig) -> dict:
     ll, k, params, se, extra = getattr(st_a, cause)()
     believed = mo.train
     extended, line_ext, brake_delay, f_of_t = _extended(cause, params, mo, believed)
-    s0 = mo.s0
     nb = int(block.max()) + 1
     sq_b, sq_a, cnt, moved = [], [], [], []
     for b in range(1, nb, 2):
@@ -1286,7 +1413,7 @@ def _gain_motion(cause: str, mo: _Motion, st: _Stage, cfg: DiagConfig) -> dict:
             continue
         t_out = run.odo_t[sel]
         v0 = float(np.mean(run.odo_v[sel][:3]))
-        x0 = s0 + float(run.odo_d[sel][0])
+        x0 = float(np.interp(t_out[0], mo.grid.t, mo.x_ref))
         tt = t_out[0]
         if v0 < 0.5:
             v0 = 0.0
