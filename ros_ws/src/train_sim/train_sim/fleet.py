@@ -2,6 +2,7 @@
 trains with degrading brakes.
 
     python -m train_sim.fleet OUTDIR [--trains 6] [--runs 4] [--degraded 2] [--seed 1]
+                                     [--stops 2]
 
 Writes (OUTDIR is created):
 
@@ -13,7 +14,7 @@ Writes (OUTDIR is created):
                                         their f per run, each run's true mass
 
 The world: ``north`` is the shipped metro_demo line (A -> B -> C), ``south`` a 5.2 km line with
-three stations written here. Run k of train i is on ``north`` when i + k is even, else on
+three stations written here (P -> Q -> R); ``--stops 1`` ends every run at the first stop. Run k of train i is on ``north`` when i + k is even, else on
 ``south``: every train runs on both lines. Hidden from the believed files:
 
 - the map error: an unmapped gradient section (``--map-error START END PERMILLE`` on ``north``,
@@ -78,6 +79,7 @@ class FleetSpec:
     f_last: float = 0.75  # ... and in its last run
     load_std: float = 0.01  # relative sd of the per-run true mass
     dwell: float = 15.0  # s at the intermediate station
+    stops: int = 2  # stations served after the start: 2 (6-minute runs) or 1 (3.3 minutes)
     link_p: tuple = (0.2, 0.45)  # Bernoulli frame error rate range (r = 2)
     extra: dict = field(default_factory=dict)
 
@@ -126,11 +128,12 @@ def _scenario_dict(r: dict, spec: FleetSpec, line_path: Path, train_path: Path) 
     a, b = ROUTES[r["line"]]
     return {"name": f"fleet-{r['train']}-r{r['run']}-{r['line']}",
             "line": str(line_path), "train": str(train_path), "seed": r["seed"],
-            "duration": 360.0,
+            "duration": 360.0 if spec.stops >= 2 else 200.0,
             "start": {"position": START[r["line"]], "speed": 0.0},
             "sensors": {"odometer_rate": 10.0, "stamp_epoch": r["epoch"]},
             "driver": {"mode": "ato", "control_period": 0.1, "initial_dwell": 5.0},
-            "timetable": [{"station": a, "dwell": spec.dwell}, {"station": b, "dwell": 30.0}],
+            "timetable": [{"station": a, "dwell": spec.dwell},
+                          {"station": b, "dwell": 30.0}][:max(1, min(spec.stops, 2))],
             "link": {"model": "bernoulli", "p": r["link_p"], "r": 2, "latency": 0.02,
                      "jitter": 0.005},
             "effects": r["effects"]}
@@ -158,7 +161,6 @@ def write_fleet(out: str | Path, spec: FleetSpec, progress=None) -> dict:
         bag = out / "bags" / name
         sc = scenario_from_dict(_scenario_dict(r, spec, lines[r["line"]].resolve(),
                                                train_path.resolve()), name, out)
-        # the run ends 20 s after the last stop (or at 360 s)
         if not bag.exists():
             generate(sc, bag, measured=True)
         rows.append({"train": r["train"], "bag": f"bags/{name}",
@@ -199,13 +201,15 @@ def main(argv=None) -> int:
     p.add_argument("--f-first", type=float, default=0.85)
     p.add_argument("--f-last", type=float, default=0.75)
     p.add_argument("--load-std", type=float, default=0.01)
+    p.add_argument("--stops", type=int, default=2, choices=(1, 2),
+                   help="stations served per run: 2 (6-minute bags, default) or 1 (200 s)")
     a = p.parse_args(argv)
     if a.degraded > a.trains or a.trains < 1 or a.runs < 1:
         print("train_sim.fleet: need 1 <= trains, 1 <= runs, degraded <= trains",
               file=sys.stderr)
         return 2
     spec = FleetSpec(trains=a.trains, runs=a.runs, degraded=a.degraded, seed=a.seed,
-                     f_first=a.f_first, f_last=a.f_last, load_std=a.load_std)
+                     f_first=a.f_first, f_last=a.f_last, load_std=a.load_std, stops=a.stops)
     if a.map_error:
         spec.map_error = (a.map_error[0], *(float(x) for x in a.map_error[1:]))
     t0 = time.perf_counter()

@@ -35,16 +35,23 @@ Line consensus (per line):
 Train consensus (per parameter: braking rate, mass, odometer scale):
 
 - Per-run scatter beyond the stated standard errors (load, weather) is tau^2: the
-  DerSimonian-Laird estimate within each train about its own mean, the median over trains (a
-  degrading train inflates its own, not the fleet's). Every run then has variance se^2 + tau^2.
-- Departure: a train's mean m_i against the *other* trains' median (leave-one-out, so a faulty
-  train does not pull its own reference), z_i = (m_i - med_-i) / sqrt(se_i^2 + s_-i^2 + se_med^2)
+  DerSimonian-Laird moment estimate within trains about their own means, pooled over the
+  *other* trains (a degrading train's scatter does not hide its own fault). Every run of the
+  train then has variance se^2 + tau^2.
+- Departure: a train's mean m_i against the *other* trains' median (leave-one-out: the
+  reference, its tau^2 included, is computed without the train, so a faulty train neither pulls
+  nor widens its own reference; a train whose own runs scatter more than their errors gets its
+  se scaled by the Birge ratio sqrt(Q / df)),
+  z_i = (m_i - med_-i) / sqrt(se_i^2 + s_-i^2 + se_med^2)
   with s_-i = 1.4826 MAD of the others (the fleet's train-to-train spread) and
   se_med = 1.2533 sqrt(s_-i^2 + mean se_j^2) / sqrt(n_others) (the median's standard error).
 - Trend: the weighted least-squares slope of the parameter against time, z = slope / se.
-- An alert when |z| > z_crit = Phi^-1(1 - alpha / (2 n_trains n_parameters)): with ``alpha``
-  = 0.01 the chance of one false alert in the whole fleet's table (each kind) is <= 1 %
-  (Bonferroni), whatever the fleet's size; no threshold is tuned to a scenario.
+- An alert when |z| exceeds the Student-t quantile of 1 - alpha / (2 n_trains n_parameters)
+  (Bonferroni) on the Welch-Satterthwaite degrees of freedom of z's estimated variance parts
+  (tau^2 on the pooled within-train degrees of freedom; the others' spread on n_others - 1;
+  the normal quantile when nothing is estimated): with ``alpha`` = 0.01 the chance of one
+  false alert in the whole fleet's table (each kind) is about 1 % or less, whatever the
+  fleet's size; no threshold is tuned to a scenario.
 
 Pure: numpy/scipy only.
 """
@@ -129,6 +136,18 @@ def weighted_trend(t, values, ses) -> dict:
     b = float(np.sum(w * (t - tm) * x) / sxx)
     se = 1.0 / math.sqrt(sxx)
     return {"n": int(x.size), "slope": b, "se": se, "z": b / se}
+
+
+def t_critical(alpha: float, tests: int, df: float) -> float:
+    """Two-sided Student-t quantile (normal for df = inf) with Bonferroni over ``tests``."""
+    if not math.isfinite(df):
+        return z_critical(alpha, tests)
+    return float(stats.t.isf(alpha / (2.0 * max(tests, 1)), max(df, 1.0)))
+
+
+def _p_two_sided(z: float, df: float) -> float:
+    return float(2 * (stats.norm.sf(abs(z)) if not math.isfinite(df) else
+                      stats.t.sf(abs(z), max(df, 1.0))))
 
 
 def z_critical(alpha: float, tests: int) -> float:
@@ -250,13 +269,21 @@ def train_consensus(rows: list[dict], cfg: FleetConfig = FleetConfig(),
                            "x": np.array([r[p]["value"] for r in rr], float),
                            "se": np.array([r[p]["se"] for r in rr], float),
                            "bags": [r.get("bag") for r in rr]}
-        taus = [tau2_dl(v["x"], v["se"]) for v in per.values() if v["x"].size >= 2]
-        tau2 = float(np.median(taus)) if taus else 0.0
+        mom = {tr: _moments(v["x"], v["se"]) for tr, v in per.items()}
+        tau2_all = _pooled_tau2(list(mom.values()))
         res: dict = {}
         for tr, v in per.items():
+            # the scatter of the *other* trains' runs: a train's own fault must not hide itself
+            oth = [m for o, m in mom.items() if o != tr] if len(mom) > 1 else list(mom.values())
+            tau2, df_tau = _pooled_tau2(oth), sum(m[1] for m in oth)
             s_eff = np.sqrt(v["se"] ** 2 + tau2)
+            # the share of each run's variance that is estimated (tau^2, on df_tau degrees of
+            # freedom): Welch-Satterthwaite degrees of freedom of the train's statistics
+            frac = tau2 / (float(np.mean(v["se"] ** 2)) + tau2) if tau2 > 0 else 0.0
+            df_own = df_tau / frac**2 if frac > 0 and df_tau > 0 else math.inf
             c = combine(v["x"], s_eff)
             res[tr] = {"runs": int(v["x"].size), "mean": c["mean"], "se": c["se"],
+                       "frac_estimated": frac, "df_tau": df_tau, "df_trend": df_own,
                        "t": v["t"].tolist(), "values": v["x"].tolist(),
                        "ses": v["se"].tolist(), "bags": v["bags"]}
             if v["x"].size >= max(cfg.min_runs_trend, 2):
@@ -268,24 +295,74 @@ def train_consensus(rows: list[dict], cfg: FleetConfig = FleetConfig(),
             if len(others) < 2:
                 res[tr]["z_departure"] = None
                 continue
-            m = np.array([res[o]["mean"] for o in others])
-            se_o = np.array([res[o]["se"] for o in others])
+            # leave-one-out: the reference (others' means, their run scatter tau^2) is computed
+            # without train tr, so its own fault can neither move nor widen its reference
+            oth = [mom[o] for o in others]
+            tau2, df_tau = _pooled_tau2(oth), max(sum(m[1] for m in oth), 1)
+            loo = {o: _train_mean(per[o]["x"], per[o]["se"], tau2) for o in res}
+            m = np.array([loo[o][0] for o in others])
+            se_o = np.array([loo[o][1] for o in others])
+            fr_o = float(np.mean([loo[o][2] for o in others]))
+            mean_i, se_i, fr_i = loo[tr]
             med, s = float(np.median(m)), _mad_sd(m)
-            se_med = 1.2533 * math.sqrt(s**2 + float(np.mean(se_o**2))) / math.sqrt(len(m))
-            den = math.sqrt(res[tr]["se"] ** 2 + s**2 + se_med**2)
+            n_o = len(m)
+            k_med = 1.2533**2 / n_o  # variance of a median of n normal values: (pi/2) s^2 / n
+            se_med = math.sqrt(k_med * (s**2 + float(np.mean(se_o**2))))
+            den2 = se_i**2 + s**2 + se_med**2
+            # Welch-Satterthwaite: the estimated parts are tau^2 (df_tau) in se_i and se_o,
+            # and the others' spread s (n_others - 1 degrees of freedom)
+            est = ((se_i**2 * fr_i) ** 2 + (k_med * float(np.mean(se_o**2)) * fr_o) ** 2) \
+                / df_tau + (s**2 * (1 + k_med)) ** 2 / (n_o - 1)
             res[tr].update({"fleet": med, "fleet_spread": s, "fleet_se": se_med,
-                            "z_departure": (res[tr]["mean"] - med) / den})
+                            "loo_mean": mean_i, "loo_se": se_i,
+                            "z_departure": (mean_i - med) / math.sqrt(den2),
+                            "df_departure": den2**2 / est if est > 0 else math.inf})
         for tr, r in res.items():
             for kind, key in (("departs from the fleet", "z_departure"),
                               ("trends in time", "z_trend")):
                 z = r.get(key)
-                if z is not None and abs(z) > zc:
+                if z is None:
+                    continue
+                df = r["df_departure"] if key == "z_departure" else r["df_trend"]
+                crit = t_critical(cfg.alpha, n_tests, df)
+                r[key.replace("z_", "crit_")] = crit
+                if abs(z) > crit:
                     out["alerts"].append({"train": tr, "parameter": p, "kind": kind,
-                                          "z": z, "mean": r["mean"], "se": r["se"],
+                                          "z": z, "df": df, "critical": crit,
+                                          "mean": r["mean"], "se": r["se"],
                                           "fleet": r.get("fleet"), "slope": r.get("slope"),
-                                          "p": float(2 * stats.norm.sf(abs(z)))})
-        out["parameters"][p] = {"tau": math.sqrt(tau2), "trains": res}
+                                          "p": _p_two_sided(z, df)})
+        out["parameters"][p] = {"tau": math.sqrt(tau2_all), "trains": res}
     return out
+
+
+def _train_mean(x: np.ndarray, se: np.ndarray, tau2: float) -> tuple[float, float, float]:
+    """(mean, se, estimated share of the variance) of one train's runs with variances
+    se^2 + tau^2; the se is scaled up by the Birge ratio sqrt(Q / df) when the train's own runs
+    scatter more than that (a train that changes between runs is less certain of its mean)."""
+    s_eff = np.sqrt(se**2 + tau2)
+    c = combine(x, s_eff)
+    birge = math.sqrt(c["q"] / c["df"]) if c["df"] > 0 and c["q"] > c["df"] else 1.0
+    frac = tau2 / (float(np.mean(se**2)) + tau2) if tau2 > 0 else 0.0
+    return c["mean"], c["se"] * birge, frac
+
+
+def _moments(x: np.ndarray, se: np.ndarray) -> tuple[float, int, float]:
+    """(Q, df, S1 - S2 / S1) of one train's runs about its own mean (DerSimonian-Laird)."""
+    if x.size < 2:
+        return 0.0, 0, 0.0
+    w = 1.0 / se**2
+    c = combine(x, se)
+    s1, s2 = float(np.sum(w)), float(np.sum(w * w))
+    return c["q"], c["df"], s1 - s2 / s1
+
+
+def _pooled_tau2(moments: list) -> float:
+    """Pooled DerSimonian-Laird tau^2 = max(0, sum (Q_j - df_j) / sum c_j) over trains: the
+    run-to-run scatter the stated standard errors miss, estimated with every train's degrees
+    of freedom (a median of per-train estimates is biased low with few runs each)."""
+    den = sum(m[2] for m in moments)
+    return max(0.0, sum(m[0] - m[1] for m in moments) / den) if den > 0 else 0.0
 
 
 def _finite(x) -> bool:

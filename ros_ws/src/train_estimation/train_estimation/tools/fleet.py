@@ -20,9 +20,10 @@ and the others go on.
 
 Output (DIR is created):
   DIR/runs.csv        one row per bag: status, reason, check_bag's received fractions, the
-                      diagnosed cause, the accepted causes, the fitted gradient section,
-                      resistance, braking rate, mass and odometer scale with standard errors,
-                      identify's braking rate and mass, time taken
+                      diagnosed cause, the accepted causes, the fitted gradient section and
+                      resistance (diagnose), braking rate and mass (identify; diagnose where
+                      identify cannot identify them) and odometer scale (diagnose) with
+                      standard errors, time taken
   DIR/fleet.json      the consensus (train_estimation.core.fleet: every test and its numbers)
   DIR/report.md       the fleet report: map errors (where, how large, how many trains and runs
                       agree, how sure), per-line resistance, train alerts (which parameter,
@@ -57,7 +58,7 @@ from pathlib import Path
 
 import numpy as np
 
-VERSION = "fleet-1"  # part of the cache key: bump when a task's result changes meaning
+VERSION = "fleet-2"  # part of the cache key: bump when a task's result changes meaning
 PARAMS = ("braking_rate", "mass", "odometer_scale")
 
 
@@ -174,6 +175,14 @@ def _analyse(task: dict) -> dict:
     dg = diagnose(data, line, train)
     out.update(diagnosis_row(jsonable({"ranking": dg.ranking, "evidence": dg.evidence,
                                        "accepted": dg.accepted}), train))
+    # braking rate and mass for the trends: identify's (one constant f per run, the quantity
+    # tracked over runs; diagnose fits f at the first and last message, which one braking
+    # phase leaves poorly determined), diagnose's where identify cannot identify them
+    for p in ("braking_rate", "mass"):
+        out[f"{p}_source"] = "diagnose" if out.get(f"{p}_se") else None
+        v, se = out.get(f"identify_{p}"), out.get(f"identify_{p}_se")
+        if v is not None and se is not None and math.isfinite(se) and se > 0:
+            out[p], out[f"{p}_se"], out[f"{p}_source"] = v, se, "identify"
     pos = np.asarray(dg.series.get("position", []), float)
     pos = pos[np.isfinite(pos)]
     out["coverage"] = [float(pos.min()), float(pos.max())] if pos.size else None
@@ -323,7 +332,8 @@ COLUMNS = ("train", "bag", "line", "time", "error", "cached", "seconds", "durati
            "odometer_received", "balise_received", "cause", "accepted", "gradient_start",
            "gradient_end", "gradient_permille", "gradient_se", "gradient_score",
            "resistance_v_ref", "resistance_dforce", "resistance_dforce_se", "braking_rate",
-           "braking_rate_se", "mass", "mass_se", "odometer_scale", "odometer_scale_se",
+           "braking_rate_se", "braking_rate_source", "mass", "mass_se", "mass_source",
+           "odometer_scale", "odometer_scale_se",
            "identify_braking_rate", "identify_braking_rate_se", "identify_mass",
            "identify_mass_se", "identify_error", "key")
 
