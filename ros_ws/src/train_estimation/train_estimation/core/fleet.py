@@ -36,8 +36,9 @@ Train consensus (per parameter: braking rate, mass, odometer scale):
 
 - Per-run scatter beyond the stated standard errors (load, weather) is tau^2: the
   DerSimonian-Laird moment estimate within trains about their own means, pooled over the
-  *other* trains (a degrading train's scatter does not hide its own fault). Every run of the
-  train then has variance se^2 + tau^2.
+  *other* trains (for the departure test less the quarter with the largest scatter: a degrading
+  train's scatter neither hides its own fault nor another's). Every run then has variance
+  se^2 + tau^2.
 - Departure: a train's mean m_i against the *other* trains' median (leave-one-out: the
   reference, its tau^2 included, is computed without the train, so a faulty train neither pulls
   nor widens its own reference; a train whose own runs scatter more than their errors gets its
@@ -274,6 +275,8 @@ def train_consensus(rows: list[dict], cfg: FleetConfig = FleetConfig(),
         res: dict = {}
         for tr, v in per.items():
             # the scatter of the *other* trains' runs: a train's own fault must not hide itself
+            # (trend: all other trains; trimming biases tau^2 low, which a trend test with
+            # few runs turns into false alarms)
             oth = [m for o, m in mom.items() if o != tr] if len(mom) > 1 else list(mom.values())
             tau2, df_tau = _pooled_tau2(oth), sum(m[1] for m in oth)
             s_eff = np.sqrt(v["se"] ** 2 + tau2)
@@ -297,7 +300,7 @@ def train_consensus(rows: list[dict], cfg: FleetConfig = FleetConfig(),
                 continue
             # leave-one-out: the reference (others' means, their run scatter tau^2) is computed
             # without train tr, so its own fault can neither move nor widen its reference
-            oth = [mom[o] for o in others]
+            oth = _trimmed([mom[o] for o in others])
             tau2, df_tau = _pooled_tau2(oth), max(sum(m[1] for m in oth), 1)
             loo = {o: _train_mean(per[o]["x"], per[o]["se"], tau2) for o in res}
             m = np.array([loo[o][0] for o in others])
@@ -355,6 +358,18 @@ def _moments(x: np.ndarray, se: np.ndarray) -> tuple[float, int, float]:
     c = combine(x, se)
     s1, s2 = float(np.sum(w)), float(np.sum(w * w))
     return c["q"], c["df"], s1 - s2 / s1
+
+
+def _trimmed(moments: list) -> list:
+    """The trains' moments without the quarter (at least one of three or more) whose own
+    scatter is largest: a second faulty train among the others must not widen the reference
+    of the first (the pooled estimate is otherwise not robust)."""
+    if len(moments) < 3:
+        return moments
+    k = max(1, len(moments) // 4)
+    own = [(m[0] - m[1]) / m[2] if m[2] > 0 else 0.0 for m in moments]
+    keep = np.argsort(own)[:len(moments) - k]
+    return [moments[i] for i in sorted(keep)]
 
 
 def _pooled_tau2(moments: list) -> float:
