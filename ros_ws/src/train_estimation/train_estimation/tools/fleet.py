@@ -372,8 +372,9 @@ def plot_line(name: str, line, d: dict, path: Path) -> None:
         for ax in (a0, a1):
             ax.axvline(st.position, color="0.6", lw=0.6, ls=":")
         a0.text(st.position, a0.get_ylim()[1], st.name, fontsize=8, va="top")
-    for b in line.balises:
-        a0.plot([b.position], [a0.get_ylim()[0]], "|", color="0.3", ms=6)
+    y_b = min([s.permille for s in line.gradients] + [0.0]) - 3.0
+    a0.plot([b.position for b in line.balises], [y_b] * len(line.balises), "|", color="0.3",
+            ms=6, label="balises")
     trains = sorted({t for s in d["sections"] for t in s["trains_found"]})
     colors = {t: f"C{i % 10}" for i, t in enumerate(trains)}
     y = 0
@@ -429,9 +430,10 @@ def plot_trends(trains: dict, path: Path) -> None:
                         ms=4 if bad else 3, lw=2 if bad else 0.8, capsize=2,
                         color="C3" if bad else f"C{i % 10}", alpha=1.0 if bad else 0.6,
                         label=f"{tr} (alert)" if bad else tr)
-        fleet = [r.get("fleet") for r in d["trains"].values() if r.get("fleet") is not None]
-        if fleet:
-            ax.axhline(float(np.median(fleet)), color="k", lw=1, ls="--", label="fleet median")
+        means = [r["mean"] for r in d["trains"].values()]
+        if means:
+            ax.axhline(float(np.median(means)), color="k", lw=1, ls="--",
+                       label="median of the trains' means")
         ax.set_ylabel(p.replace("_", " "))
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7, ncol=6, loc="best")
