@@ -14,8 +14,9 @@ Writes (OUTDIR is created):
                                         their f per run, each run's true mass
 
 The world: ``north`` is the shipped metro_demo line (A -> B -> C), ``south`` a 5.2 km line with
-three stations written here (P -> Q -> R); ``--stops 1`` ends every run at the first stop. Run k of train i is on ``north`` when i + k is even, else on
-``south``: every train runs on both lines. Hidden from the believed files:
+three stations written here (P -> Q -> R); ``--stops 1`` ends every run at the first stop.
+Run k of train i is on ``north`` when i + k is even, else on ``south``: every train runs on
+both lines. Hidden from the believed files:
 
 - the map error: an unmapped gradient section (``--map-error START END PERMILLE`` on ``north``,
   default +5 per mille on [1000, 1400) m, which every run passes at speed);

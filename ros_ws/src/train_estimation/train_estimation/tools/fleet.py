@@ -282,45 +282,54 @@ def consensus_rows(rows: list[dict]) -> list[dict]:
 # Dask
 # ------------------------------------------------------------------------------------------------
 
-def run_tasks(tasks: list[dict], workers: int, scheduler: str | None, progress: bool) -> list:
-    """Analyse ``tasks`` on Dask; rows in completion order. A task whose worker died is a row
-    with the error too."""
-    from dask.distributed import Client, LocalCluster, as_completed
-    from tqdm import tqdm
+def local_cluster(workers: int):
+    """The embedded cluster: ``workers`` processes of one thread each (the tasks are
+    numpy-heavy; the workers are the parallelism, so BLAS threads are limited to one)."""
+    from dask.distributed import LocalCluster
 
-    # one thread per task: the tasks are numpy-heavy and the workers are the parallelism
     for v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ.setdefault(v, "1")
-    rows = []
+    return LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                        dashboard_address=None)
+
+
+def run_tasks(tasks: list[dict], workers: int, scheduler: str | None, progress: bool,
+              client=None) -> list:
+    """Analyse ``tasks`` on Dask (``client``, else the cluster at ``scheduler``, else an
+    embedded LocalCluster of ``workers`` processes, closed afterwards); rows in completion
+    order. A task whose worker died is a row with the error too."""
+    from dask.distributed import Client
+
+    if client is not None:
+        return _collect(client, tasks, progress)
     if scheduler:
-        cluster_cm, client_cm = None, Client(scheduler)
-    else:
-        cluster_cm = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                                  dashboard_address=None)
-        client_cm = Client(cluster_cm)
-    try:
-        with client_cm as client:
-            futs = client.map(analyse_bag, tasks, key=[f"bag-{t['key']}" for t in tasks],
-                              pure=False)
-            by_key = {f.key: t for f, t in zip(futs, tasks)}
-            bar = tqdm(total=len(futs), desc="fleet", unit="bag", disable=not progress,
-                       file=sys.stderr)
-            for fut in as_completed(futs):
-                try:
-                    row = fut.result()
-                except Exception as exc:  # noqa: BLE001 - a lost worker loses one bag only
-                    t = by_key[fut.key]
-                    row = {"train": t["train"], "bag": t["bag"], "line_file": t["line"],
-                           "train_file": t["train_file"], "time": t.get("time"),
-                           "key": t["key"], "error": f"task failed: {type(exc).__name__}: "
-                           f"{exc}"[:300]}
-                rows.append(row)
-                bar.set_postfix_str(Path(row["bag"]).name[-24:])
-                bar.update(1)
-            bar.close()
-    finally:
-        if cluster_cm is not None:
-            cluster_cm.close()
+        with Client(scheduler) as c:
+            return _collect(c, tasks, progress)
+    with local_cluster(workers) as cluster, Client(cluster) as c:
+        return _collect(c, tasks, progress)
+
+
+def _collect(client, tasks: list[dict], progress: bool) -> list:
+    from dask.distributed import as_completed
+    from tqdm import tqdm
+
+    rows = []
+    futs = client.map(analyse_bag, tasks, key=[f"bag-{t['key']}" for t in tasks], pure=False)
+    by_key = {f.key: t for f, t in zip(futs, tasks)}
+    with tqdm(total=len(futs), desc="fleet", unit="bag", disable=not progress,
+              file=sys.stderr) as bar:
+        for fut in as_completed(futs):
+            try:
+                row = fut.result()
+            except Exception as exc:  # noqa: BLE001 - a lost worker loses one bag only
+                t = by_key[fut.key]
+                row = {"train": t["train"], "bag": t["bag"], "line_file": t["line"],
+                       "train_file": t["train_file"], "time": t.get("time"),
+                       "key": t["key"], "error": f"task failed: {type(exc).__name__}: "
+                       f"{exc}"[:300]}
+            rows.append(row)
+            bar.set_postfix_str(Path(row["bag"]).name[-24:])
+            bar.update(1)
     return rows
 
 
