@@ -82,3 +82,23 @@ def test_fleet_bad_input(tmp_path, capsys):
     (tmp_path / "m.csv").write_text("a,b\n1,2\n")
     assert tool.main(["--manifest", str(tmp_path / "m.csv"), "--out", str(tmp_path)]) == 2
     assert "columns train, bag, line, train_file" in capsys.readouterr().err
+
+
+def test_folder_input_and_cache_key(fleet_dir, tmp_path):
+    d, _ = fleet_dir
+    tasks = tool.read_folder(str(d / "bags"), str(d / "lines" / "north.yaml"),
+                             str(d / "trains" / "metro_b6.yaml"))
+    assert len(tasks) == 11
+    assert {t["train"] for t in tasks} == {"T01", "T02", "T03", "T04", "T05"}
+    # the key follows the bag's content, not its path
+    src = d / "bags" / "T01_r0_north"
+    copy = tmp_path / "T01" / "run0"
+    shutil.copytree(src, copy)
+    t = dict(tasks[0], bag=str(src))
+    k1 = tool.content_key(t)
+    assert tool.content_key(dict(t, bag=str(copy))) == k1
+    assert tool.read_folder(str(tmp_path), t["line"], t["train_file"])[0]["train"] == "T01"
+    f = next(copy.glob("*.mcap"))
+    f.write_bytes(f.read_bytes() + b"\0")
+    assert tool.content_key(dict(t, bag=str(copy))) != k1
+    assert tool.content_key(dict(t, line=str(d / "lines" / "south.yaml"))) != k1

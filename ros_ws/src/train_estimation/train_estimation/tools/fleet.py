@@ -1,5 +1,6 @@
-"""`fleet`: check, identify and diagnose every bag of a fleet on Dask, then tell map errors from
-train faults.
+"""`fleet`: analyse every bag of a fleet on Dask and tell line-map errors from train faults.
+
+check_bag, identify and diagnose run on every bag; the consensus across trains follows.
 
     fleet --manifest manifest.csv --out DIR [--workers 2 | --scheduler ADDRESS]
     fleet --bags FOLDER --line line.yaml --train train.yaml --out DIR
