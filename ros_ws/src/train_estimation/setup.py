@@ -29,6 +29,7 @@ setup(
             "check_bag = train_estimation.tools.check_bag:main",
             "identify = train_estimation.tools.identify:main",
             "diagnose = train_estimation.tools.diagnose:main",
+            "fleet = train_estimation.tools.fleet:main",
         ],
     },
 )

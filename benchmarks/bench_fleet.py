@@ -1,0 +1,160 @@
+#!/usr/bin/env python3
+"""Benchmark of `fleet` (issue 14): throughput on Dask and consensus accuracy.
+
+    ./run bench fleet [--trains 8] [--runs 2] [--degraded 2] [--stops 1] [--timing-bags 6]
+                      [--draws 20] [--seed 3] [--permille 5] [--f-first 0.85] [--f-last 0.75]
+                      [--no-timing]
+
+1. A fleet from ``train_sim.fleet`` (trains x runs on two lines, the hidden map error on
+   ``north``, degraded brakes on the first --degraded trains) is written once.
+2. Throughput: the same --timing-bags bags are analysed (check_bag + identify + diagnose, no
+   cache) on a LocalCluster of 1 and then of 2 worker processes, in this one run (each cluster
+   started and its workers' imports done before the clock starts): bags per minute each and
+   the ratio (the machine's other load is printed beside it).
+3. Accuracy against the number of trains: every bag is analysed once (2 workers); then for
+   n trains (always including degraded trains in proportion) --draws random subsets of the
+   fleet's trains are given to the consensus: the map error right (exactly one map error, on
+   north, overlapping the hidden section by >= 50 %) and the train alerts right (exactly the
+   degraded trains of the subset). The subsets are drawn from one simulated fleet: they share
+   runs, so the rates are of the consensus on these runs, not of independent fleets.
+
+Prints the tables (and writes benchmarks/out/fleet.md).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import tempfile
+import time
+
+import numpy as np
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+OUT = os.path.join(HERE, "out")
+
+from train_estimation.core.fleet import consensus  # noqa: E402
+from train_estimation.tools import fleet as tool  # noqa: E402
+from train_sim.fleet import FleetSpec, write_fleet  # noqa: E402
+
+
+def tasks_of(d: str) -> list[dict]:
+    tasks = tool.read_manifest(os.path.join(d, "manifest.csv"))
+    for t in tasks:
+        t["key"] = tool.content_key(t)
+    return tasks
+
+
+def _warm() -> bool:
+    """Imports a task needs (numpy, scipy, the project's modules), done before timing."""
+    import train_estimation.core.diagnose  # noqa: F401
+    import train_estimation.core.identify  # noqa: F401
+    import train_estimation.tools.check_bag  # noqa: F401
+
+    return True
+
+
+def throughput(tasks, workers: int) -> tuple[float, float]:
+    """Wall time of the bags on a started, warmed-up cluster (start-up excluded)."""
+    from dask.distributed import Client
+
+    with tool.local_cluster(workers) as cluster, Client(cluster) as client:
+        client.run(_warm)
+        t0 = time.perf_counter()
+        rows = tool.run_tasks(tasks, workers, None, progress=False, client=client)
+        wall = time.perf_counter() - t0
+    assert not any(r.get("error") for r in rows), [r["error"] for r in rows if r.get("error")]
+    return wall, 60.0 * len(tasks) / wall
+
+
+def judge(rows, truth, trains) -> tuple[bool, bool]:
+    sub = [r for r in rows if r["train"] in trains]
+    res = consensus(tool.consensus_rows(sub))
+    t = truth["map_error"]
+    ok_map = len(res.map_errors) == 1 and res.map_errors[0]["line"] == t["line"] and (
+        min(res.map_errors[0]["end"], t["end"]) - max(res.map_errors[0]["start"], t["start"])
+        >= 0.5 * (t["end"] - t["start"]))
+    want = set(truth["degraded_trains"]) & set(trains)
+    ok_trains = {a["train"] for a in res.train_alerts} == want
+    return ok_map, ok_trains
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--trains", type=int, default=8)
+    p.add_argument("--runs", type=int, default=2)
+    p.add_argument("--degraded", type=int, default=2)
+    p.add_argument("--stops", type=int, default=1, choices=(1, 2))
+    p.add_argument("--timing-bags", type=int, default=6)
+    p.add_argument("--draws", type=int, default=20)
+    p.add_argument("--seed", type=int, default=3)
+    p.add_argument("--permille", type=float, default=5.0, help="size of the map error")
+    p.add_argument("--f-first", type=float, default=0.85, help="degraded f in the first run")
+    p.add_argument("--f-last", type=float, default=0.75, help="degraded f in the last run")
+    p.add_argument("--no-timing", action="store_true", help="accuracy only")
+    a = p.parse_args()
+    lines = []
+
+    def say(s=""):
+        print(s, flush=True)
+        lines.append(s)
+
+    with tempfile.TemporaryDirectory(prefix="bench_fleet_") as d:
+        t0 = time.perf_counter()
+        spec = FleetSpec(trains=a.trains, runs=a.runs, degraded=a.degraded, seed=a.seed,
+                         stops=a.stops, map_error=("north", 1000.0, 1400.0, a.permille),
+                         f_first=a.f_first, f_last=a.f_last)
+        truth = write_fleet(d, spec)
+        tasks = tasks_of(d)
+        say(f"fleet: {a.trains} trains x {a.runs} runs ({len(tasks)} bags, "
+            f"{'200 s' if a.stops == 1 else '360 s'} each), map error {truth['map_error']}, "
+            f"degraded {truth['degraded_trains']} (f {a.f_first} -> {a.f_last}); written in "
+            f"{time.perf_counter() - t0:.0f} s")
+        say(f"machine: {os.cpu_count()} cores, load average before timing "
+            f"{os.getloadavg()[0]:.2f}")
+        say()
+        if not a.no_timing:
+            sub = tasks[:a.timing_bags]
+            w1, r1 = throughput(sub, 1)
+            w2, r2 = throughput(sub, 2)
+            say("| workers | bags | wall (s) | bags per minute |")
+            say("|---|---|---|---|")
+            say(f"| 1 | {len(sub)} | {w1:.1f} | {r1:.1f} |")
+            say(f"| 2 | {len(sub)} | {w2:.1f} | {r2:.1f} |")
+            say(f"ratio 2 / 1 workers: {r2 / r1:.2f} (load average after: "
+                f"{os.getloadavg()[0]:.2f})")
+            say()
+        t1 = time.perf_counter()
+        rows = tool.run_tasks(tasks, 2, None, progress=False)
+        say(f"all {len(rows)} bags analysed on 2 workers in {time.perf_counter() - t1:.0f} s "
+            f"({sum(1 for r in rows if r.get('error'))} failed)")
+        say()
+        all_trains = truth_trains = sorted({r["train"] for r in rows})
+        deg = truth["degraded_trains"]
+        rng = np.random.default_rng(a.seed)
+        say("| trains | degraded among them | draws | map error right | train alerts right "
+            "| both |")
+        say("|---|---|---|---|---|---|")
+        for n in range(3, len(all_trains) + 1):
+            n_deg = max(1, round(n * len(deg) / len(all_trains)))
+            nom = [t for t in truth_trains if t not in deg]
+            draws = a.draws if n < len(all_trains) else 1
+            res = []
+            for _ in range(draws):
+                pick = list(rng.choice(deg, size=min(n_deg, len(deg)), replace=False)) + list(
+                    rng.choice(nom, size=n - min(n_deg, len(deg)), replace=False))
+                res.append(judge(rows, truth, pick))
+            m = np.mean([r[0] for r in res])
+            t = np.mean([r[1] for r in res])
+            b = np.mean([r[0] and r[1] for r in res])
+            say(f"| {n} | {min(n_deg, len(deg))} | {draws} | {100 * m:.0f} % | {100 * t:.0f} % "
+                f"| {100 * b:.0f} % |")
+    os.makedirs(OUT, exist_ok=True)
+    with open(os.path.join(OUT, "fleet.md"), "w") as fh:
+        fh.write("\n".join(lines) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,140 @@
+"""Fleet consensus core (train_estimation.core.fleet) on exact inputs.
+
+- inverse-variance combination, Cochran's Q, DerSimonian-Laird tau^2 and the weighted trend
+  against numbers worked out by hand;
+- sections: grouped by overlap; a section found by several trains with agreeing values is a map
+  error, by one train only (however often) or by trains that disagree it is not;
+- trains: a departing train is flagged and no other; a trending train is flagged; on fleets
+  without any fault the family-wise false-alarm rate stays at or below the stated alpha.
+"""
+
+import math
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from train_estimation.core import fleet as F
+
+
+def test_combine_by_hand():
+    # w = 1, 1/4: mean = (1 * 1 + 0.25 * 4) / 1.25 = 1.6, se = 1.25^-1/2,
+    # Q = 1 * 0.6^2 + 0.25 * 2.4^2 = 1.8 on 1 df
+    c = F.combine([1.0, 4.0], [1.0, 2.0])
+    assert c["mean"] == pytest.approx(1.6)
+    assert c["se"] == pytest.approx(1 / math.sqrt(1.25))
+    assert c["q"] == pytest.approx(1.8)
+    assert c["df"] == 1
+    assert c["p_consistency"] == pytest.approx(stats.chi2.sf(1.8, 1))
+    assert c["z"] == pytest.approx(1.6 * math.sqrt(1.25))
+    one = F.combine([3.0], [0.5])
+    assert one["mean"] == 3.0 and one["se"] == 0.5 and one["p_consistency"] == 1.0
+
+
+def test_tau2_and_random_effects_by_hand():
+    # x = 0, 2, 4, se = 1: mean 2, Q = 8 on 2 df, S1 = 3, S2 = 3 -> tau^2 = 6 / (3 - 1) = 3
+    assert F.tau2_dl([0.0, 2.0, 4.0], [1.0, 1.0, 1.0]) == pytest.approx(3.0)
+    assert F.tau2_dl([1.0, 1.1], [1.0, 1.0]) == 0.0  # less scatter than the errors: 0
+    r = F.combine_random([0.0, 2.0, 4.0], [1.0, 1.0, 1.0])
+    assert r["tau"] == pytest.approx(math.sqrt(3.0))
+    assert r["se"] == pytest.approx(math.sqrt(4.0 / 3.0))  # (1 + 3) / 3
+    assert r["q"] == pytest.approx(8.0)
+
+
+def test_weighted_trend_by_hand():
+    t = np.array([0.0, 1.0, 2.0, 3.0])
+    x = 5.0 - 0.5 * t
+    tr = F.weighted_trend(t, x, np.full(4, 0.1))
+    assert tr["slope"] == pytest.approx(-0.5)
+    # se = 1 / sqrt(sum w (t - t_bar)^2) = 1 / sqrt(100 * 5)
+    assert tr["se"] == pytest.approx(1 / math.sqrt(500.0))
+    assert F.z_critical(0.01, 1) == pytest.approx(stats.norm.isf(0.005))
+
+
+def test_group_sections():
+    dets = [{"start": 1000, "end": 1400}, {"start": 1050, "end": 1400},
+            {"start": 3000, "end": 3300}, {"start": 975, "end": 1425},
+            {"start": 1350, "end": 1700}]  # overlaps the first by 50 of 350 m: its own
+    groups = F.group_sections(dets, 0.5)
+    assert sorted(sorted(g) for g in groups) == [[0, 1, 3], [2], [4]]
+
+
+def _row(train, line, gradient=None, **params):
+    r = {"train": train, "line": line, "time": 0.0, "bag": f"{train}-{line}"}
+    if gradient:
+        r["gradient"] = dict(zip(("start", "end", "permille", "se"), gradient))
+    r.update({k: {"value": v[0], "se": v[1]} for k, v in params.items()})
+    return r
+
+
+def test_map_error_needs_several_agreeing_trains():
+    rows = [_row(f"T{i}", "north", (1000 + 10 * i, 1400, 5.0 + 0.3 * (i % 2), 0.6))
+            for i in range(4)]
+    rows += [_row(f"T{i}", "north") for i in range(4, 8)]  # passed without finding it
+    # one train finds the same section on every run of the south line: its fault, not the map's
+    rows += [_row("T9", "south", (2000, 2300, -6.0, 0.5)) for _ in range(3)]
+    rows += [_row(f"T{i}", "south") for i in range(5)]
+    res = F.consensus(rows)
+    assert [(m["line"], m["start"], m["end"]) for m in res.map_errors] == \
+        [("north", 1015.0, 1400.0)]
+    m = res.map_errors[0]
+    # 4 detections, se 0.6 each: combined se = 0.3; values 5.0, 5.3, 5.0, 5.3 -> 5.15
+    assert m["permille"] == pytest.approx(5.15) and m["se"] == pytest.approx(0.3)
+    assert m["trains_found"] == ["T0", "T1", "T2", "T3"] and m["runs_passed"] == 8
+    assert m["p_binomial"] == pytest.approx(stats.binom.sf(3, 8, 0.05))
+    south = res.lines["south"]["sections"]
+    assert len(south) == 1 and south[0]["verdict"] == "single-train or spurious"
+
+
+def test_disagreeing_trains_are_disputed():
+    vals = (5.0, -5.0, 5.0, -5.0)
+    rows = [_row(f"T{i}", "north", (1000, 1400, v, 0.5)) for i, v in enumerate(vals)]
+    res = F.consensus(rows)
+    assert res.map_errors == []
+    assert res.lines["north"]["sections"][0]["verdict"] == "disputed"
+
+
+def _fleet(rng, n_trains=8, runs=4, f_bad=None, trend=None, tau=0.01):
+    rows = []
+    for i in range(n_trains):
+        for k in range(runs):
+            f = 1.0 + tau * rng.normal()
+            if f_bad is not None and i == 0:
+                f = f_bad + tau * rng.normal()
+            if trend is not None and i == 1:
+                f += trend * k
+            se = 0.02
+            r = _row(f"T{i}", "north" if k % 2 else "south",
+                     braking_rate=(f + se * rng.normal(), se),
+                     mass=(288000 * (1 + 0.01 * rng.normal()), 1000.0),
+                     odometer_scale=(1 + 3e-4 * rng.normal(), 3e-4))
+            r["time"] = 24.0 * k + float(rng.uniform(6, 20))
+            rows.append(r)
+    return rows
+
+
+def test_departing_train_flagged_and_no_other():
+    res = F.consensus(_fleet(np.random.default_rng(3), f_bad=0.8))
+    alerts = {(a["train"], a["parameter"], a["kind"]) for a in res.train_alerts}
+    assert alerts == {("T0", "braking_rate", "departs from the fleet")}
+    t0 = res.trains["parameters"]["braking_rate"]["trains"]["T0"]
+    assert t0["mean"] == pytest.approx(0.8, abs=0.03) and t0["fleet"] == pytest.approx(1.0,
+                                                                                        abs=0.02)
+
+
+def test_trending_train_flagged():
+    res = F.consensus(_fleet(np.random.default_rng(4), trend=-0.06, tau=0.005))
+    kinds = {(a["train"], a["kind"]) for a in res.train_alerts if a["parameter"] ==
+             "braking_rate"}
+    assert ("T1", "trends in time") in kinds
+    assert {a["train"] for a in res.train_alerts} == {"T1"}
+
+
+def test_false_alarm_rate_at_most_alpha():
+    """200 fleets without any fault: fleets with an alert (any train, parameter or kind)."""
+    rng = np.random.default_rng(11)
+    n = 200
+    hits = sum(bool(F.consensus(_fleet(rng)).train_alerts) for _ in range(n))
+    # two families (departure, trend) at alpha = 0.01 each: expected <= 2 %; P(X > 10) for
+    # Binomial(200, 0.02) is 0.3 %
+    assert hits <= 10, hits

@@ -1,0 +1,674 @@
+"""`fleet`: analyse every bag of a fleet on Dask and tell line-map errors from train faults.
+
+check_bag, identify and diagnose run on every bag; the consensus across trains follows.
+
+    fleet --manifest manifest.csv --out DIR [--workers 2 | --scheduler ADDRESS]
+    fleet --bags FOLDER --line line.yaml --train train.yaml --out DIR
+
+Input: a manifest (CSV with columns train, bag, line, train_file and optionally time; paths
+relative to the manifest) or a folder searched for bags (rosbag2 directories); a folder's bag
+belongs to the train named by its parent directory (FOLDER/T07/run3) or, for bags directly in
+FOLDER, by its name up to the first "_" (T07_run3). Time orders a train's runs: the manifest's
+``time`` column (any unit; the fleet simulator writes hours) or else the bag's first log time
+in hours.
+
+Every bag is analysed by one Dask task (an embedded LocalCluster of --workers processes, or
+the cluster at --scheduler, e.g. tcp://host:8786): check_bag's topic health, identify's fit
+(braking rate, mass) and diagnose's ranking. A task's result is cached in DIR/cache under the
+SHA-256 of the bag's files, the line and train files and the tool's version, so a rerun only
+analyses new or changed bags. A bag that cannot be read or diagnosed is listed with its reason
+and the others go on.
+
+Output (DIR is created):
+  DIR/runs.csv        one row per bag: status, reason, check_bag's received fractions, the
+                      diagnosed cause, the accepted causes, the fitted gradient section and
+                      resistance (diagnose), braking rate and mass (identify; diagnose where
+                      identify cannot identify them) and odometer scale (diagnose) with
+                      standard errors, time taken
+  DIR/fleet.json      the consensus (train_estimation.core.fleet: every test and its numbers)
+  DIR/report.md       the fleet report: map errors (where, how large, how many trains and runs
+                      agree, how sure), per-line resistance, train alerts (which parameter,
+                      departure from the fleet or trend, z and p), per-train tables, failed bags
+  DIR/line_<NAME>.png the line's gradient profile with the flagged sections and every run's
+                      section; DIR/trends.png: braking rate, mass and odometer scale per train
+                      against time, alerted trains highlighted
+
+Criteria (core/fleet.py): a map error = a section found by >= 2 trains, by more runs than
+spurious detections explain (binomial test, Bonferroni), with consistent values (Cochran's Q);
+a train alert = |z| above the Bonferroni normal quantile for a family-wise false-alarm rate
+--alpha (default 0.01) over all trains and parameters, for the departure from the other trains'
+median (leave-one-out, MAD spread) or for a trend in time.
+
+Exit status: 0 when the report was written (failed bags are listed in it); 2 when there is no
+usable input (no manifest or folder, no bag in it, bad YAML).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import dataclasses
+import hashlib
+import json
+import math
+import os
+import sys
+import time
+import traceback
+from pathlib import Path
+
+import numpy as np
+
+VERSION = "fleet-2"  # part of the cache key: bump when a task's result changes meaning
+PARAMS = ("braking_rate", "mass", "odometer_scale")
+
+
+# ------------------------------------------------------------------------------------------------
+# Inputs
+# ------------------------------------------------------------------------------------------------
+
+class InputError(ValueError):
+    """No usable input (exit 2)."""
+
+
+def is_bag(p: Path) -> bool:
+    return p.is_dir() and (p / "metadata.yaml").is_file()
+
+
+def read_manifest(path: str) -> list[dict]:
+    base = Path(path).resolve().parent
+    try:
+        with open(path, newline="") as fh:
+            rows = list(csv.DictReader(fh))
+    except OSError as exc:
+        raise InputError(f"cannot read the manifest {path}: {exc.strerror}") from exc
+    need = {"train", "bag", "line", "train_file"}
+    if not rows or not need <= set(rows[0]):
+        raise InputError(f"{path}: a manifest is a CSV with columns train, bag, line, "
+                         f"train_file[, time] (got {sorted(rows[0]) if rows else 'no rows'})")
+    tasks = []
+    for r in rows:
+        t = {k: str(base / r[k]) if not os.path.isabs(r[k]) else r[k]
+             for k in ("bag", "line", "train_file")}
+        t["train"] = r["train"]
+        t["time"] = float(r["time"]) if r.get("time") not in (None, "") else None
+        tasks.append(t)
+    return tasks
+
+
+def read_folder(folder: str, line: str, train: str) -> list[dict]:
+    root = Path(folder)
+    if not root.is_dir():
+        raise InputError(f"{folder}: not a directory")
+    bags = sorted({p.parent for p in root.rglob("metadata.yaml")})
+    tasks = []
+    for b in bags:
+        tid = b.parent.name if b.parent != root else b.name.split("_")[0]
+        tasks.append({"train": tid, "bag": str(b), "line": str(Path(line).resolve()),
+                      "train_file": str(Path(train).resolve()), "time": None})
+    return tasks
+
+
+def content_key(task: dict) -> str:
+    """SHA-256 over the bag's files (names and bytes), the line and train files and VERSION."""
+    h = hashlib.sha256(VERSION.encode())
+    bag = Path(task["bag"])
+    files = sorted(p for p in bag.rglob("*") if p.is_file()) if bag.is_dir() else [bag]
+    for p in files:
+        h.update(str(p.relative_to(bag) if bag.is_dir() else p.name).encode())
+        try:
+            with open(p, "rb") as fh:
+                for chunk in iter(lambda: fh.read(1 << 20), b""):
+                    h.update(chunk)
+        except OSError:
+            h.update(b"unreadable")
+    for k in ("line", "train_file"):
+        try:
+            h.update(Path(task[k]).read_bytes())
+        except OSError:
+            h.update(b"missing " + task[k].encode())
+    return h.hexdigest()
+
+
+# ------------------------------------------------------------------------------------------------
+# One bag (a Dask task: pure Python, no rclpy)
+# ------------------------------------------------------------------------------------------------
+
+def analyse_bag(task: dict) -> dict:
+    """check_bag + identify + diagnose of one bag -> one flat row. Never raises: a failure is
+    a row with ``error`` set (the reason in one line)."""
+    t0 = time.perf_counter()
+    row = {"train": task["train"], "bag": task["bag"], "line_file": task["line"],
+           "train_file": task["train_file"], "time": task.get("time"), "key": task.get("key"),
+           "error": None}
+    try:
+        row.update(_analyse(task))
+    except Exception as exc:  # noqa: BLE001 - any failure of one bag is reported, not fatal
+        row["error"] = f"{type(exc).__name__}: {' '.join(str(exc).split())}"[:300]
+        row["traceback_at"] = traceback.extract_tb(exc.__traceback__)[-1].name
+    row["seconds"] = round(time.perf_counter() - t0, 2)
+    return row
+
+
+def _analyse(task: dict) -> dict:
+    from train_core.bagio import read_bag
+    from train_core.model import load_line, load_train
+
+    from train_estimation.core.diagnose import diagnose
+    from train_estimation.tools.check_bag import check
+    from train_estimation.tools.diagnose import bag_to_data, jsonable
+
+    line, train = load_line(task["line"]), load_train(task["train_file"])
+    out: dict = {"line": line.name}
+    # check_bag: topic health (received fractions, gaps); no plots, nothing written
+    summ = check(task["bag"], out_dir=None, plots=False)
+    for tp in ("odometer", "balise", "control"):
+        h = summ["topics"].get(tp, {})
+        out[f"{tp}_count"] = h.get("count", 0)
+        if "received_fraction" in h:
+            out[f"{tp}_received"] = round(h["received_fraction"], 4)
+    bag = read_bag(task["bag"], topics=("odometer", "balise", "control"))
+    data = bag_to_data(bag)
+    if task.get("time") is None:
+        out["time"] = float(np.min(data.odo_recv)) / 3600.0 if data.odo_recv.size else 0.0
+    out["duration_s"] = float(np.ptp(data.odo_stamp)) if data.odo_stamp.size else 0.0
+    out.update(_identify(bag, data, line, train))
+    dg = diagnose(data, line, train)
+    out.update(diagnosis_row(jsonable({"ranking": dg.ranking, "evidence": dg.evidence,
+                                       "accepted": dg.accepted}), train))
+    # braking rate and mass for the trends: identify's (one constant f per run, the quantity
+    # tracked over runs; diagnose fits f at the first and last message, which one braking
+    # phase leaves poorly determined), diagnose's where identify cannot identify them
+    for p in ("braking_rate", "mass"):
+        out[f"{p}_source"] = "diagnose" if out.get(f"{p}_se") else None
+        v, se = out.get(f"identify_{p}"), out.get(f"identify_{p}_se")
+        if v is not None and se is not None and math.isfinite(se) and se > 0:
+            out[p], out[f"{p}_se"], out[f"{p}_source"] = v, se, "identify"
+    pos = np.asarray(dg.series.get("position", []), float)
+    pos = pos[np.isfinite(pos)]
+    out["coverage"] = [float(pos.min()), float(pos.max())] if pos.size else None
+    return out
+
+
+def _identify(bag, data, line, train) -> dict:
+    """identify's braking rate and mass. identify reads all stamps on one clock; odometer and
+    balise stamps are on the train's clock and control on the reference clock (CONTRACT.md), so
+    the control stamps are mapped onto the train clock by the straight line through the
+    odometer's (log time, stamp) pairs first."""
+    from train_estimation.core.identify import IdentificationError, identify
+    from train_estimation.tools.identify import bag_to_data as si_data
+
+    d = si_data(bag)
+    if data.odo_recv.size >= 2 and np.ptp(data.odo_recv) > 0:
+        b, a = np.polyfit(data.odo_recv, data.odo_stamp, 1)
+        recv_c = np.array([t for t, _, _ in bag.topics["control"]], float) * 1e-9
+        d = dataclasses.replace(d, ctrl_t=a + b * recv_c)
+    try:
+        res = identify(d, line, train)
+    except (IdentificationError, np.linalg.LinAlgError, ValueError) as exc:
+        return {"identify_error": " ".join(str(exc).split())[:200]}
+    out = {}
+    for name, key in (("braking_rate", "braking_rate"), ("mass", "mass")):
+        if res.identifiable.get(key):
+            out[f"identify_{name}"] = float(res.values[key]) if key in res.values else None
+            out[f"identify_{name}_se"] = float(res.std_errors.get(key, math.nan))
+    return out
+
+
+def diagnosis_row(rep: dict, train) -> dict:
+    """The consensus inputs from a diagnose report (ranking, evidence, accepted; JSON types):
+    the accepted gradient section and, for every parameter, the fitted value with its standard
+    error (the ranking's parameters, fitted with the accepted causes in the model; the standard
+    errors of the evidence)."""
+    rank = {r["cause"]: r for r in rep["ranking"]}
+    ev = rep.get("evidence", {})
+    acc = [a["cause"] for a in rep.get("accepted") or []]
+    out = {"cause": rep["ranking"][0]["cause"], "accepted": "+".join(acc)}
+
+    def se(cause, key):
+        v = (ev.get(cause) or {}).get("std_errors", {}).get(key)
+        return v if v is not None and math.isfinite(v) and v > 0 else None
+
+    if "gradient" in acc:
+        p = rank["gradient"]["parameters"]
+        out.update({"gradient_start": p["start"], "gradient_end": p["end"],
+                    "gradient_permille": p["permille"],
+                    "gradient_se": se("gradient", "permille"),
+                    "gradient_score": rank["gradient"]["score"]})
+    if "braking_rate" in rank and se("braking_rate", "f_start") and se("braking_rate", "f_end"):
+        p = rank["braking_rate"]["parameters"]
+        out["braking_rate"] = 0.5 * (p["f_start"] + p["f_end"])
+        # mean of f_start and f_end; their correlation is not reported, so the bound for
+        # perfect correlation (the larger standard error) is used
+        out["braking_rate_se"] = 0.5 * (se("braking_rate", "f_start")
+                                        + se("braking_rate", "f_end"))
+    if "mass" in rank and se("mass", "mass"):
+        out["mass"], out["mass_se"] = rank["mass"]["parameters"]["mass"], se("mass", "mass")
+    if "odometer_scale" in rank and se("odometer_scale", "scale"):
+        out["odometer_scale"] = rank["odometer_scale"]["parameters"]["scale"]
+        out["odometer_scale_se"] = se("odometer_scale", "scale")
+    if "resistance" in rank and se("resistance", "force_at_v_ref"):
+        p = rank["resistance"]["parameters"]
+        vr = (ev.get("resistance") or {}).get("details", {}).get("v_ref")
+        if vr is not None:
+            d = train.davis
+            out["resistance_v_ref"] = vr
+            out["resistance_dforce"] = (p["a"] + p["b"] * vr + p["c"] * vr * vr
+                                        - (d.a + d.b * vr + d.c * vr * vr))
+            out["resistance_dforce_se"] = se("resistance", "force_at_v_ref")
+    return out
+
+
+def consensus_rows(rows: list[dict]) -> list[dict]:
+    """The table's rows in core.fleet's input format."""
+    out = []
+    for r in rows:
+        c = {"train": r["train"], "line": r.get("line") or Path(r["line_file"]).stem,
+             "time": r.get("time") or 0.0, "bag": r["bag"], "error": r.get("error"),
+             "coverage": r.get("coverage")}
+        if r.get("gradient_se"):
+            c["gradient"] = {"start": r["gradient_start"], "end": r["gradient_end"],
+                             "permille": r["gradient_permille"], "se": r["gradient_se"]}
+        if r.get("resistance_dforce_se"):
+            c["resistance"] = {"value": r["resistance_dforce"],
+                               "se": r["resistance_dforce_se"]}
+        for p in PARAMS:
+            if r.get(f"{p}_se"):
+                c[p] = {"value": r[p], "se": r[f"{p}_se"]}
+        out.append(c)
+    return out
+
+
+# ------------------------------------------------------------------------------------------------
+# Dask
+# ------------------------------------------------------------------------------------------------
+
+def local_cluster(workers: int):
+    """The embedded cluster: ``workers`` processes of one thread each (the tasks are
+    numpy-heavy; the workers are the parallelism, so BLAS threads are limited to one)."""
+    from dask.distributed import LocalCluster
+
+    for v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(v, "1")
+    return LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                        dashboard_address=None)
+
+
+def run_tasks(tasks: list[dict], workers: int, scheduler: str | None, progress: bool,
+              client=None) -> list:
+    """Analyse ``tasks`` on Dask (``client``, else the cluster at ``scheduler``, else an
+    embedded LocalCluster of ``workers`` processes, closed afterwards); rows in completion
+    order. A task whose worker died is a row with the error too."""
+    from dask.distributed import Client
+
+    if client is not None:
+        return _collect(client, tasks, progress)
+    if scheduler:
+        with Client(scheduler) as c:
+            return _collect(c, tasks, progress)
+    with local_cluster(workers) as cluster, Client(cluster) as c:
+        return _collect(c, tasks, progress)
+
+
+def _collect(client, tasks: list[dict], progress: bool) -> list:
+    from dask.distributed import as_completed
+    from tqdm import tqdm
+
+    rows = []
+    futs = client.map(analyse_bag, tasks, key=[f"bag-{t['key']}" for t in tasks], pure=False)
+    by_key = {f.key: t for f, t in zip(futs, tasks)}
+    with tqdm(total=len(futs), desc="fleet", unit="bag", disable=not progress,
+              file=sys.stderr) as bar:
+        for fut in as_completed(futs):
+            try:
+                row = fut.result()
+            except Exception as exc:  # noqa: BLE001 - a lost worker loses one bag only
+                t = by_key[fut.key]
+                row = {"train": t["train"], "bag": t["bag"], "line_file": t["line"],
+                       "train_file": t["train_file"], "time": t.get("time"),
+                       "key": t["key"], "error": f"task failed: {type(exc).__name__}: "
+                       f"{exc}"[:300]}
+            rows.append(row)
+            bar.set_postfix_str(Path(row["bag"]).name[-24:])
+            bar.update(1)
+    return rows
+
+
+# ------------------------------------------------------------------------------------------------
+# Output
+# ------------------------------------------------------------------------------------------------
+
+COLUMNS = ("train", "bag", "line", "time", "error", "cached", "seconds", "duration_s",
+           "odometer_received", "balise_received", "cause", "accepted", "gradient_start",
+           "gradient_end", "gradient_permille", "gradient_se", "gradient_score",
+           "resistance_v_ref", "resistance_dforce", "resistance_dforce_se", "braking_rate",
+           "braking_rate_se", "braking_rate_source", "mass", "mass_se", "mass_source",
+           "odometer_scale", "odometer_scale_se",
+           "identify_braking_rate", "identify_braking_rate_se", "identify_mass",
+           "identify_mass_se", "identify_error", "key")
+
+
+def write_csv(rows: list[dict], path: Path) -> None:
+    with open(path, "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=COLUMNS, extrasaction="ignore")
+        w.writeheader()
+        for r in sorted(rows, key=lambda r: (r["train"], r.get("time") or 0.0, r["bag"])):
+            w.writerow({k: _fmt_cell(r.get(k)) for k in COLUMNS})
+
+
+def _fmt_cell(v):
+    if isinstance(v, float):
+        return "" if not math.isfinite(v) else f"{v:.6g}"
+    return "" if v is None else v
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def plot_line(name: str, line, d: dict, path: Path) -> None:
+    """Believed gradient profile with the flagged sections; every run's section below."""
+    plt = _plt()
+    fig, (a0, a1) = plt.subplots(2, 1, figsize=(10, 6), sharex=True,
+                                 gridspec_kw={"height_ratios": [1, 1.3]})
+    for s in line.gradients:
+        a0.plot([s.start, s.end], [s.permille, s.permille], color="C2", lw=1.5)
+    for st in line.stations:
+        for ax in (a0, a1):
+            ax.axvline(st.position, color="0.6", lw=0.6, ls=":")
+        a0.text(st.position, a0.get_ylim()[1], st.name, fontsize=8, va="top")
+    y_b = min([s.permille for s in line.gradients] + [0.0]) - 3.0
+    a0.plot([b.position for b in line.balises], [y_b] * len(line.balises), "|", color="0.3",
+            ms=6, label="balises")
+    trains = sorted({t for s in d["sections"] for t in s["trains_found"]})
+    colors = {t: f"C{i % 10}" for i, t in enumerate(trains)}
+    y = 0
+    for s in d["sections"]:
+        err = s["verdict"] == "map error"
+        for ax in (a0, a1):
+            ax.axvspan(s["start"], s["end"], color="C3" if err else "C1",
+                       alpha=0.25 if err else 0.1)
+        if err:
+            a0.annotate(f"map error {s['permille']:+.1f}+-{1.96 * s['se']:.1f} per mille\n"
+                        f"{len(s['trains_found'])}/{len(s['trains_passed'])} trains, "
+                        f"{s['runs_found']}/{s['runs_passed']} runs",
+                        ((s["start"] + s["end"]) / 2, 0), fontsize=8, ha="center",
+                        color="C3", xytext=(0, 18), textcoords="offset points")
+        a1.errorbar([(s["start"] + s["end"]) / 2], [s["permille"]], yerr=[1.96 * s["se"]],
+                    fmt="s", color="k", ms=5, capsize=4, zorder=5,
+                    label="combined +-95 %" if y == 0 else None)
+        y += 1
+    seen = set()
+    for r in d.get("_runs", []):
+        g = r.get("gradient")
+        if not g:
+            continue
+        lab = r["train"] if r["train"] not in seen else None
+        seen.add(r["train"])
+        a1.plot([g["start"], g["end"]], [g["permille"]] * 2, color=colors.get(r["train"], "0.4"),
+                lw=2, alpha=0.8, label=lab)
+    a1.axhline(0, color="k", lw=0.6)
+    a0.set_ylabel("mapped gradient (per mille)")
+    a1.set_ylabel("found: true - mapped (per mille)")
+    a1.set_xlabel("track position (m)")
+    a0.set_title(f"line {name}: {d['runs']} runs of {len(d['trains'])} trains; red = map "
+                 "error the fleet agrees on, orange = found by too few")
+    if a1.get_legend_handles_labels()[0]:
+        a1.legend(fontsize=7, ncol=4)
+    for ax in (a0, a1):
+        ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def plot_trends(trains: dict, path: Path) -> None:
+    plt = _plt()
+    pars = trains["parameters"]
+    alerted = {(a["train"], a["parameter"]) for a in trains["alerts"]}
+    fig, axes = plt.subplots(len(pars), 1, figsize=(10, 3.2 * len(pars)), sharex=True)
+    axes = np.atleast_1d(axes)
+    for ax, (p, d) in zip(axes, pars.items()):
+        for i, (tr, r) in enumerate(sorted(d["trains"].items())):
+            bad = (tr, p) in alerted
+            ax.errorbar(r["t"], r["values"], yerr=1.96 * np.asarray(r["ses"]), fmt="o-",
+                        ms=4 if bad else 3, lw=2 if bad else 0.8, capsize=2,
+                        color="C3" if bad else f"C{i % 10}", alpha=1.0 if bad else 0.6,
+                        label=f"{tr} (alert)" if bad else tr)
+        means = [r["mean"] for r in d["trains"].values()]
+        if means:
+            ax.axhline(float(np.median(means)), color="k", lw=1, ls="--",
+                       label="median of the trains' means")
+        ax.set_ylabel(p.replace("_", " "))
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7, ncol=6, loc="best")
+    axes[-1].set_xlabel("time of the run (manifest units; the simulator: hours)")
+    axes[0].set_title("per-train parameters per run (+-95 %); red: trains with an alert")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def _f(x, fmt=".3g"):
+    return "-" if x is None or (isinstance(x, float) and not math.isfinite(x)) else \
+        format(x, fmt)
+
+
+def report_md(res, rows: list[dict], info: dict, plots: list[str]) -> str:
+    ok = [r for r in rows if not r.get("error")]
+    bad = [r for r in rows if r.get("error")]
+    cfg = res.config
+    L = [f"# Fleet report ({info['when']})", "",
+         f"{len(rows)} bags of {len({r['train'] for r in rows})} trains on "
+         f"{len(res.lines)} lines: {len(ok)} analysed, {len(bad)} failed; "
+         f"{info['cached']} from the cache, {info['computed']} computed in "
+         f"{info['wall_s']:.0f} s on {info['workers']}.", "",
+         "## Map errors", ""]
+    if res.map_errors:
+        L += ["| line | section (m) | true - mapped (per mille), 95 % | trains | runs | "
+              "binomial p | consistency p |", "|---|---|---|---|---|---|---|"]
+        for m in res.map_errors:
+            L.append(f"| {m['line']} | [{m['start']:.0f}, {m['end']:.0f}) | "
+                     f"{m['permille']:+.2f} [{m['ci95'][0]:+.2f}, {m['ci95'][1]:+.2f}] | "
+                     f"{len(m['trains_found'])} of {len(m['trains_passed'])} "
+                     f"({', '.join(m['trains_found'])}) | {m['runs_found']} of "
+                     f"{m['runs_passed']} | {m['p_binomial']:.2g} | "
+                     f"{m['p_consistency']:.2f} |")
+        L.append("")
+        for m in res.map_errors:
+            L.append(f"- **Line {m['line']}, [{m['start']:.0f}, {m['end']:.0f}) m: the map is "
+                     f"wrong by {m['permille']:+.2f} +- {m['se']:.2f} per mille** "
+                     f"({m['runs_found']} of {m['runs_passed']} runs and "
+                     f"{len(m['trains_found'])} of {len(m['trains_passed'])} trains that passed "
+                     f"found it; by chance at {cfg['p_false']:.0%} false detections per run: "
+                     f"p = {m['p_binomial']:.2g}; the values agree: Cochran's Q = {m['q']:.1f} "
+                     f"on {m['df']} df, p = {m['p_consistency']:.2f}).")
+    else:
+        L.append("No section is found by enough trains to be a map error.")
+    L += ["", "### Every section found, per line", "",
+          "| line | section (m) | per mille +- se | found by runs (trains) | verdict |",
+          "|---|---|---|---|---|"]
+    for ln, d in res.lines.items():
+        for s in d["sections"]:
+            L.append(f"| {ln} | [{s['start']:.0f}, {s['end']:.0f}) | {s['permille']:+.2f} +- "
+                     f"{s['se']:.2f} | {s['runs_found']}/{s['runs_passed']} "
+                     f"({', '.join(s['trains_found'])}) | {s['verdict']} |")
+    L += ["", "### Resistance per line (fitted minus believed force at each run's speed)", "",
+          "| line | runs | combined (N) +- se | tau (N) | z | consistency p | verdict |",
+          "|---|---|---|---|---|---|---|"]
+    for ln, d in res.lines.items():
+        rc = d["resistance"]
+        if rc.get("n", 0):
+            L.append(f"| {ln} | {rc['n']} | {rc['mean']:+.0f} +- {rc['se']:.0f} | "
+                     f"{rc.get('tau', 0):.0f} | {rc['z']:+.2f} | {rc['p_consistency']:.2f} | "
+                     f"{rc.get('verdict', 'too few runs')} |")
+    tr = res.trains
+    L += ["", "## Train alerts", "",
+          f"Criterion: |z| > {tr['z_critical']:.2f} (family-wise false-alarm rate "
+          f"{tr['alpha']:g} over {tr['tests']} train-parameter pairs, Bonferroni).", ""]
+    if res.train_alerts:
+        L += ["| train | parameter | alert | train mean +- se | fleet (others' median) | z | "
+              "p |", "|---|---|---|---|---|---|---|"]
+        for a in sorted(res.train_alerts, key=lambda a: (a["train"], a["parameter"])):
+            L.append(f"| **{a['train']}** | {a['parameter']} | {a['kind']} | "
+                     f"{_f(a['mean'], '.4g')} +- {_f(a['se'], '.2g')} | "
+                     f"{_f(a['fleet'], '.4g')} | {a['z']:+.1f} | {a['p']:.1e} |")
+        names = sorted({a["train"] for a in res.train_alerts})
+        L += ["", f"Trains with an alert: **{', '.join(names)}**."]
+    else:
+        L.append("No train departs from the fleet or trends.")
+    for p, d in tr["parameters"].items():
+        L += ["", f"### {p.replace('_', ' ')} per train (run-to-run scatter beyond the "
+              f"standard errors: tau = {_f(d['tau'], '.3g')})", "",
+              "| train | runs | mean +- se | others' median | z departure | slope per time "
+              "unit +- se | z trend |", "|---|---|---|---|---|---|---|"]
+        for t, r in sorted(d["trains"].items()):
+            L.append(f"| {t} | {r['runs']} | {_f(r['mean'], '.5g')} +- {_f(r['se'], '.2g')} | "
+                     f"{_f(r.get('fleet'), '.5g')} | {_f(r.get('z_departure'), '+.2f')} | "
+                     f"{_f(r.get('slope'), '.2g')} +- {_f(r.get('slope_se'), '.2g')} | "
+                     f"{_f(r.get('z_trend'), '+.2f')} |")
+    if bad:
+        L += ["", "## Bags that could not be analysed", "", "| train | bag | reason |",
+              "|---|---|---|"]
+        for r in sorted(bad, key=lambda r: r["bag"]):
+            L.append(f"| {r['train']} | {r['bag']} | {r['error']} |")
+    L += ["", "## Plots", ""] + [f"![{p}]({p})" for p in plots]
+    L += ["", "## How to read it", "",
+          "Each bag was checked (check_bag), fitted (identify) and diagnosed (diagnose); "
+          "runs.csv has one row per bag. A *map error* is a gradient section found by runs of "
+          f"at least {cfg['min_trains']} trains, more often than spurious detections explain "
+          f"(binomial test against {cfg['p_false']:.0%} per run, Bonferroni over every "
+          f"section found, alpha = {cfg['alpha']:g}), with values that agree (Cochran's Q, "
+          "alpha); its size is the inverse-variance combination of the runs' values. A *train "
+          "alert* is a train whose parameter departs from the other trains' median "
+          "(leave-one-out, robust spread) or trends in time, beyond the Bonferroni quantile "
+          "above. Method: train_estimation/core/fleet.py."]
+    return "\n".join(L) + "\n"
+
+
+# ------------------------------------------------------------------------------------------------
+# CLI
+# ------------------------------------------------------------------------------------------------
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="fleet", description=__doc__.splitlines()[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter,
+                                epilog="\n".join(__doc__.splitlines()[2:]))
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--manifest", help="CSV: train, bag, line, train_file[, time]")
+    src.add_argument("--bags", metavar="FOLDER", help="folder searched for bags")
+    p.add_argument("--line", help="line.yaml for every bag of --bags")
+    p.add_argument("--train", help="train.yaml for every bag of --bags")
+    p.add_argument("--out", required=True, help="output directory (created)")
+    p.add_argument("--workers", type=int, default=2,
+                   help="worker processes of the embedded LocalCluster (default 2)")
+    p.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                   help="use the Dask cluster at ADDRESS (e.g. tcp://host:8786) instead")
+    p.add_argument("--cache", default=None, help="cache directory (default OUT/cache)")
+    p.add_argument("--alpha", type=float, default=0.01,
+                   help="family-wise false-alarm rate of the consensus tests (default 0.01)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    args = p.parse_args(argv)
+    from train_core.config import ConfigError
+    from train_core.model import load_line
+
+    from train_estimation.core.fleet import FleetConfig, consensus
+
+    t0 = time.perf_counter()
+    try:
+        if args.manifest:
+            tasks = read_manifest(args.manifest)
+        else:
+            if not (args.line and args.train):
+                raise InputError("--bags needs --line and --train")
+            tasks = read_folder(args.bags, args.line, args.train)
+        if not tasks:
+            raise InputError("no bag found")
+        lines = {}
+        for t in tasks:
+            if t["line"] not in lines:
+                lines[t["line"]] = load_line(t["line"])
+    except (InputError, ConfigError) as exc:
+        print(f"fleet: {' '.join(str(exc).split())}", file=sys.stderr)
+        return 2
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    cache = Path(args.cache) if args.cache else out / "cache"
+    cache.mkdir(parents=True, exist_ok=True)
+    rows, todo = [], []
+    for t in tasks:
+        t["key"] = content_key(t)
+        f = cache / f"{t['key']}.json"
+        if f.is_file():
+            row = json.loads(f.read_text())
+            row.update({"train": t["train"], "bag": t["bag"], "cached": True})
+            if t.get("time") is not None:
+                row["time"] = t["time"]
+            rows.append(row)
+        else:
+            todo.append(t)
+    where = (f"the cluster at {args.scheduler}" if args.scheduler else
+             f"a local Dask cluster of {args.workers} worker processes")
+    if todo:
+        print(f"fleet: {len(tasks)} bags, {len(tasks) - len(todo)} cached, {len(todo)} to "
+              f"analyse on {where}", file=sys.stderr)
+        t1 = time.perf_counter()
+        new = run_tasks(todo, args.workers, args.scheduler, not args.quiet)
+        wall = time.perf_counter() - t1
+        for r in new:
+            r["cached"] = False
+            (cache / f"{r['key']}.json").write_text(json.dumps(r, default=_json_default))
+        rows += new
+    else:
+        wall = 0.0
+    res = consensus(consensus_rows(rows), FleetConfig(alpha=args.alpha))
+    write_csv(rows, out / "runs.csv")
+    plots = []
+    crow = consensus_rows([r for r in rows if not r.get("error")])
+    by_name = {}
+    for ln in lines.values():
+        by_name.setdefault(ln.name, ln)
+    for name, d in res.lines.items():
+        if name in by_name:
+            fn = f"line_{name}.png"
+            plot_line(name, by_name[name], dict(d, _runs=[r for r in crow if r["line"] == name]),
+                      out / fn)
+            plots.append(fn)
+    if res.trains["parameters"]:
+        plot_trends(res.trains, out / "trends.png")
+        plots.append("trends.png")
+    info = {"when": time.strftime("%Y-%m-%d %H:%M"), "cached": len(tasks) - len(todo),
+            "computed": len(todo), "wall_s": wall, "workers": where}
+    (out / "report.md").write_text(report_md(res, rows, info, plots))
+    (out / "fleet.json").write_text(json.dumps(
+        {"map_errors": res.map_errors, "train_alerts": res.train_alerts, "lines": res.lines,
+         "trains": res.trains, "config": res.config, "run": info}, indent=1,
+        default=_json_default))
+    n_bad = sum(1 for r in rows if r.get("error"))
+    print(f"fleet: {len(rows)} bags ({n_bad} failed), {len(todo)} analysed in {wall:.0f} s, "
+          f"total {time.perf_counter() - t0:.0f} s")
+    for m in res.map_errors:
+        print(f"map error: line {m['line']} [{m['start']:.0f}, {m['end']:.0f}) m "
+              f"{m['permille']:+.2f} +- {m['se']:.2f} per mille ({len(m['trains_found'])} "
+              f"trains, {m['runs_found']}/{m['runs_passed']} runs)")
+    for a in sorted(res.train_alerts, key=lambda a: (a["train"], a["parameter"])):
+        print(f"train alert: {a['train']} {a['parameter']} {a['kind']} (z = {a['z']:+.1f})")
+    print(f"wrote {out / 'report.md'}, {out / 'runs.csv'}, {out / 'fleet.json'}")
+    return 0
+
+
+def _json_default(o):
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    return str(o)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,104 @@
+"""`fleet` end to end on a small simulated fleet, on a local Dask cluster of two workers.
+
+5 trains x 2 short runs (one stop) on two lines: an unmapped +5 per mille section on the
+``north`` line at [1000, 1400) m and degraded brakes (f 0.85 then 0.75) on T01 and T02, plus a
+corrupt bag. The report must name the map section (and no other) and exactly the degraded
+trains; the corrupt bag is listed with its reason while the others are analysed; a rerun
+takes every result from the cache.
+"""
+
+import csv
+import json
+import shutil
+
+import pytest
+
+from train_estimation.tools import fleet as tool
+from train_sim.fleet import FleetSpec, write_fleet
+
+
+@pytest.fixture(scope="module")
+def fleet_dir(tmp_path_factory):
+    d = tmp_path_factory.mktemp("fleet")
+    spec = FleetSpec(trains=5, runs=2, degraded=2, seed=2, stops=1)
+    truth = write_fleet(d, spec)
+    # a corrupt bag: a real bag's metadata with garbage instead of its MCAP file
+    bad = d / "bags" / "T03_corrupt"
+    good = d / truth["runs"][0]["bag"]
+    shutil.copytree(good, bad)
+    for f in bad.glob("*.mcap"):
+        f.write_bytes(b"\x89MCAP0\r\n" + bytes(range(256)) * 20)
+    with open(d / "manifest.csv", "a", newline="") as fh:
+        csv.writer(fh).writerow(["T03", "bags/T03_corrupt", "lines/north.yaml",
+                                 "trains/metro_b6.yaml", "99.0"])
+    return d, truth
+
+
+def test_fleet_names_the_map_error_and_the_degraded_trains(fleet_dir, capsys):
+    d, truth = fleet_dir
+    out = d / "out"
+    rc = tool.main(["--manifest", str(d / "manifest.csv"), "--out", str(out), "--workers", "2",
+                    "--quiet"])
+    assert rc == 0
+    res = json.loads((out / "fleet.json").read_text())
+    # the map error: one section, on north, where it is hidden
+    maps = res["map_errors"]
+    assert len(maps) == 1, maps
+    m, t = maps[0], truth["map_error"]
+    assert m["line"] == t["line"]
+    overlap = min(m["end"], t["end"]) - max(m["start"], t["start"])
+    assert overlap >= 0.75 * (t["end"] - t["start"]), m
+    assert m["ci95"][0] - 1.0 < t["permille"] < m["ci95"][1] + 1.0, m  # size right too
+    assert len(m["trains_found"]) >= 3
+    # exactly the degraded trains, on the braking rate
+    alerted = {a["train"] for a in res["train_alerts"]}
+    assert alerted == set(truth["degraded_trains"]), res["train_alerts"]
+    assert {a["parameter"] for a in res["train_alerts"]} == {"braking_rate"}
+    report = (out / "report.md").read_text()
+    assert f"Line north, [{m['start']:.0f}, {m['end']:.0f}) m" in report
+    assert "Trains with an alert: **T01, T02**." in report
+    # the corrupt bag is reported, the other ten analysed
+    rows = list(csv.DictReader(open(out / "runs.csv")))
+    assert len(rows) == 11
+    bad = [r for r in rows if r["error"]]
+    assert [r["bag"].split("/")[-1] for r in bad] == ["T03_corrupt"]
+    assert "T03_corrupt" in report and bad[0]["error"] in report
+    for png in ("line_north.png", "line_south.png", "trends.png"):
+        assert (out / png).stat().st_size > 10_000
+    capsys.readouterr()
+
+    # a rerun analyses nothing: every bag's result comes from the cache
+    rc = tool.main(["--manifest", str(d / "manifest.csv"), "--out", str(out), "--quiet"])
+    assert rc == 0
+    assert "11 bags (1 failed), 0 analysed" in capsys.readouterr().out
+    rows2 = list(csv.DictReader(open(out / "runs.csv")))
+    assert all(r["cached"] == "True" for r in rows2)
+    assert json.loads((out / "fleet.json").read_text())["map_errors"] == maps
+
+
+def test_fleet_bad_input(tmp_path, capsys):
+    assert tool.main(["--manifest", str(tmp_path / "none.csv"), "--out", str(tmp_path)]) == 2
+    assert "cannot read the manifest" in capsys.readouterr().err
+    (tmp_path / "m.csv").write_text("a,b\n1,2\n")
+    assert tool.main(["--manifest", str(tmp_path / "m.csv"), "--out", str(tmp_path)]) == 2
+    assert "columns train, bag, line, train_file" in capsys.readouterr().err
+
+
+def test_folder_input_and_cache_key(fleet_dir, tmp_path):
+    d, _ = fleet_dir
+    tasks = tool.read_folder(str(d / "bags"), str(d / "lines" / "north.yaml"),
+                             str(d / "trains" / "metro_b6.yaml"))
+    assert len(tasks) == 11
+    assert {t["train"] for t in tasks} == {"T01", "T02", "T03", "T04", "T05"}
+    # the key follows the bag's content, not its path
+    src = d / "bags" / "T01_r0_north"
+    copy = tmp_path / "T01" / "run0"
+    shutil.copytree(src, copy)
+    t = dict(tasks[0], bag=str(src))
+    k1 = tool.content_key(t)
+    assert tool.content_key(dict(t, bag=str(copy))) == k1
+    assert tool.read_folder(str(tmp_path), t["line"], t["train_file"])[0]["train"] == "T01"
+    f = next(copy.glob("*.mcap"))
+    f.write_bytes(f.read_bytes() + b"\0")
+    assert tool.content_key(dict(t, bag=str(copy))) != k1
+    assert tool.content_key(dict(t, line=str(d / "lines" / "south.yaml"))) != k1
