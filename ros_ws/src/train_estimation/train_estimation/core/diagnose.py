@@ -68,6 +68,7 @@ from .augmented_kf import (
     odometer_update,
     predict_cov,
 )
+from .clocks import ClockFit
 from .identify import actuator_output, moving_average
 
 CAUSES = ("gradient", "resistance", "braking_rate", "odometer_scale", "wheel_slip",
@@ -209,13 +210,10 @@ def _prepare(data: DiagData, line: Line, cfg: DiagConfig) -> _Run:
         notes.append(f"{int((~keep).sum())} duplicate odometer stamps dropped")
     idx = idx[keep]
     s_odo, r_odo = odo_s[idx], odo_r[idx]
-    t_first = float(s_odo[0])
-
     # ---- clock: log time r = alpha + beta * stamp + latency (OLS; latency mean in alpha) -----
+    cf = ClockFit.fit(s_odo, r_odo)
+    t_first, alpha, beta = cf.t_first, cf.alpha, cf.beta
     x = s_odo - t_first
-    A = np.stack([np.ones_like(x), x], axis=1)
-    coef, *_ = np.linalg.lstsq(A, r_odo, rcond=None)
-    alpha, beta = float(coef[0]), float(coef[1])
     if not (0.5 < beta < 1.5):
         raise DiagnoseError(f"odometer stamps and log times disagree (rate {beta:.3g}): the "
                             "bag's log times must be receive times on one clock")
@@ -230,7 +228,7 @@ def _prepare(data: DiagData, line: Line, cfg: DiagConfig) -> _Run:
     # The motion is analysed on the reference clock (true seconds, so accelerations are not
     # scaled by a drifting train clock): odometer/balise times beta * (stamp - t_first), control
     # stamps less alpha. Times reported in parameters go back to the stamp clock (/ beta).
-    ctrl_t = ctrl_s[okc][order] - alpha
+    ctrl_t = cf.ref_of_control(ctrl_s[okc][order])
     ctrl_a = ctrl_a[okc][order]
     keepc = np.concatenate([[True], np.diff(ctrl_t) > 0]) if ctrl_t.size else ctrl_t
     ctrl_t, ctrl_a = ctrl_t[keepc], ctrl_a[keepc]

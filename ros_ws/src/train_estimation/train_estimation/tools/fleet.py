@@ -47,7 +47,6 @@ from __future__ import annotations
 
 import argparse
 import csv
-import dataclasses
 import hashlib
 import json
 import math
@@ -191,18 +190,11 @@ def _analyse(task: dict) -> dict:
 
 
 def _identify(bag, data, line, train) -> dict:
-    """identify's braking rate and mass. identify reads all stamps on one clock; odometer and
-    balise stamps are on the train's clock and control on the reference clock (CONTRACT.md), so
-    the control stamps are mapped onto the train clock by the straight line through the
-    odometer's (log time, stamp) pairs first."""
+    """identify's braking rate and mass (its bag reader puts control on the train clock)."""
     from train_estimation.core.identify import IdentificationError, identify
     from train_estimation.tools.identify import bag_to_data as si_data
 
     d = si_data(bag)
-    if data.odo_recv.size >= 2 and np.ptp(data.odo_recv) > 0:
-        b, a = np.polyfit(data.odo_recv, data.odo_stamp, 1)
-        recv_c = np.array([t for t, _, _ in bag.topics["control"]], float) * 1e-9
-        d = dataclasses.replace(d, ctrl_t=a + b * recv_c)
     try:
         res = identify(d, line, train)
     except (IdentificationError, np.linalg.LinAlgError, ValueError) as exc:

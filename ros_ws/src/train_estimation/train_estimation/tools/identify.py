@@ -24,6 +24,8 @@ from train_core.bagio import BagError, read_bag
 from train_core.config import ConfigError
 from train_core.model import TrainParams, load_line, load_train
 
+from train_estimation.core.clocks import control_on_train_clock
+
 
 def bag_to_data(bag):
     from train_estimation.core.identify import IdentificationError, SIData
@@ -36,11 +38,17 @@ def bag_to_data(bag):
             unidentifiable=("davis.a", "davis.b", "davis.c", "mass", "rotary_allowance",
                             "braking_rate"))
     bal = bag.topics.get("balise", [])
+    # identify reads every time on the odometer's (train) clock; control is stamped on the
+    # reference clock (CONTRACT.md): mapped through the odometer's stamps and log times
+    odo_t = bag.stamps("odometer")
+    ctrl_t = control_on_train_clock(odo_t, bag.recv_times("odometer"), bag.stamps("control"),
+                                    bag.recv_times("control"))
     return SIData(
-        odo_t=bag.stamps("odometer"), odo_distance=bag.series("odometer", "distance"),
+        odo_t=odo_t, odo_distance=bag.series("odometer", "distance"),
         odo_speed=bag.series("odometer", "speed"),
         odo_speed_variance=bag.series("odometer", "speed_variance"),
-        ctrl_t=bag.stamps("control"), ctrl_a_tar=bag.series("control", "target_acceleration"),
+        ctrl_t=ctrl_t,
+        ctrl_a_tar=bag.series("control", "target_acceleration"),
         balise_t=np.array([s for _, s, _ in bal]) if bal else None,
         balise_position=np.array([f["position"] for _, _, f in bal]) if bal else None)
 
