@@ -9,7 +9,10 @@ Two models, both seeded through an explicit ``np.random.Generator``:
   for frame error rate ``p`` and at most ``r`` transmissions (CSMA/CA with ARQ). Wen's example,
   p = 0.5 and r = 3, gives 0.875.
 
-* ``gilbert_elliott``: a two-state Markov chain (good G, bad B) advanced once per message.
+* ``gilbert_elliott``: a two-state Markov chain (good G, bad B) advanced once per message --
+  or, given the link's time ``slot`` (the radio's cycle, s), once per slot elapsed: a topic that
+  sends rarely (balises, every few hundred metres) then meets the channel's state at its own
+  instants (n-step transition) instead of a burst lasting n of its own messages.
   Message k is lost with probability ``loss_good`` in G and ``loss_bad`` in B, then the state moves
   G -> B with ``p_good_bad`` and B -> G with ``p_bad_good``. With loss_good = 0 and loss_bad = 1
   the lengths of loss bursts are geometric on {1, 2, ...} with mean 1 / p_bad_good, and the
@@ -83,7 +86,7 @@ class Link:
     """One topic's lossy link. ``transmit()`` returns True when the message arrives."""
 
     def __init__(self, params: LinkParams, rng: np.random.Generator,
-                 delay_rng: np.random.Generator | None = None):
+                 delay_rng: np.random.Generator | None = None, slot: float | None = None):
         if params.model not in MODELS:
             raise ValueError(f"unknown link model {params.model!r} (allowed: {', '.join(MODELS)})")
         self.params = params
@@ -96,6 +99,8 @@ class Link:
         # models consume the stream the same way).
         u0 = float(rng.random())
         self.bad = params.model == "gilbert_elliott" and u0 < params.stationary_bad
+        self.slot = slot  # s, one chain step (None: one step per message)
+        self._t_last: float | None = None
 
     def transmit(self) -> bool:
         """Decide one message's fate (one uniform draw; Gilbert-Elliott: two)."""
@@ -112,8 +117,23 @@ class Link:
             self.dropped += 1
         return bool(ok)
 
+    def _advance(self, m: int) -> None:
+        """m more chain steps at once: P(bad) = pi + (1{bad} - pi) lambda^m, with lambda =
+        1 - p_good_bad - p_bad_good the chain's second eigenvalue and pi its stationary P(bad)
+        (one uniform draw)."""
+        p = self.params
+        pi = p.stationary_bad
+        lam = 1.0 - p.p_good_bad - p.p_bad_good
+        p_bad = pi + ((1.0 if self.bad else 0.0) - pi) * lam ** m
+        self.bad = float(self.rng.random()) < p_bad
+
     def send(self, t: float) -> float | None:
         """A message sent at true time ``t``: its arrival time, or None when it is lost."""
+        if self.slot and self.params.model == "gilbert_elliott" and self._t_last is not None:
+            n = int(round((t - self._t_last) / self.slot))
+            if n > 1:  # the chain already took one step after the previous message
+                self._advance(n - 1)
+        self._t_last = t
         ok = self.transmit()
         if self.params.outages and self.params.in_outage(t):
             if ok:

@@ -78,3 +78,24 @@ def test_bernoulli_bursts_are_not_gilbert_elliott_like():
 def test_burst_lengths_helper():
     assert list(burst_lengths(np.array([1, 0, 0, 1, 0, 1, 1, 0, 0, 0], bool))) == [2, 1, 3]
     assert list(burst_lengths(np.ones(5, bool))) == []
+
+
+def test_gilbert_elliott_in_time_slots():
+    """With a time slot the chain steps per slot elapsed: one message per slot is the per-message
+    chain exactly (same draws), and a topic sending every 200 slots meets the channel at its
+    stationary state, nearly independently (lag-1 correlation lambda^200 ~ 0), not in bursts of
+    its own messages."""
+    pgb, pbg = 0.03, 0.05  # slow channel: bursts of 20 slots
+    params = LinkParams("gilbert_elliott", p_good_bad=pgb, p_bad_good=pbg)
+    per_msg = Link(params, np.random.default_rng(5)).transmit_many(2000)
+    slotted = Link(params, np.random.default_rng(5), slot=0.1)
+    same = np.array([slotted.send(0.1 * k) is not None for k in range(2000)])
+    assert np.array_equal(per_msg, same)
+    n = 4000
+    sparse = Link(params, np.random.default_rng(6), slot=0.1)
+    ok = np.array([sparse.send(20.0 * k) is not None for k in range(n)])
+    pi = params.received_probability
+    assert abs(ok.mean() - pi) < Z * math.sqrt(pi * (1 - pi) / n)
+    # the chain per message would give bursts of mean 1 / p_bad_good = 20; here ~ 1 / pi_good
+    L = burst_lengths(ok)
+    assert abs(L.mean() - 1 / pi) < Z * math.sqrt((1 - pi)) / pi / math.sqrt(len(L))

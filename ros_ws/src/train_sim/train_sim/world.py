@@ -118,10 +118,11 @@ class World:
                                  np.random.default_rng(s_odo))
         self.balise_reader = BaliseReader(sc.line.balises, sc.train.balise_position_std,
                                           np.random.default_rng(s_bal), sc.start_position)
+        slot = 1.0 / sc.odometer_rate  # the radio's cycle: the Markov link's time step
         self.links = {"odometer": Link(sc.true_link, np.random.default_rng(s_lodo),
-                                       np.random.default_rng(s_dodo)),
+                                       np.random.default_rng(s_dodo), slot),
                       "balise": Link(sc.true_link, np.random.default_rng(s_lbal),
-                                     np.random.default_rng(s_dbal))}
+                                     np.random.default_rng(s_dbal), slot)}
         self.t = 0.0
         self.a_tar = sc.start_target_acceleration
         self.axle_distance = 0.0  # m, distance the axle counted since the start
