@@ -18,7 +18,8 @@ believed delay and lag (identify.actuator_output). Every cause is a set of extra
 mass, the braking command re-timed by an extra delay) or measurement columns ``m_j`` (odometer
 scale, slip episodes), linear in its parameters once the nonlinear ones (section ends, delay,
 slip intervals) are fixed. The regressors are evaluated on a reference trajectory (smoothed
-odometer speed and distance, placed on the line by the balises).
+odometer speed, and odometer distance placed on the line piecewise between balise fixes, so a
+wrong odometer scale does not misplace the map's gradient changes).
 
 Exact likelihood for all causes from one filter run: the Kalman gains do not depend on the
 drift or measurement columns, so one *augmented* Kalman filter run (de Jong 1991; the
@@ -37,7 +38,13 @@ cause is accepted when its score is > 0; ``none`` has score 0. Causes outside th
 have likelihoods of their own: the train clock (log time against stamp, Gaussian jitter) and
 the link (Bernoulli against a two-state Markov chain on the loss sequence). Two effects:
 greedy: the best cause is put into the null (its fit fixed, noise refitted) and the rest are
-scored again.
+scored again; at the end the accepted causes that are linear in their parameters are refitted
+jointly (a cause accepted first must not keep the part of a later one it absorbed).
+
+Gradient against resistance: on one run position and speed go together, so a long gradient
+"section" at cruise speed is running resistance by another name (a line-long section is exactly
+the Davis a-term). A gradient section is therefore searched and scored with the Davis terms free
+as nuisance: it is named only for what resistance cannot explain (a map error is local).
 
 Clocks (CONTRACT.md): odometer and balise stamps are on the train's clock, control on the
 reference clock. The rate and offset between them come from the odometer's (stamp, log time)
@@ -1174,6 +1181,8 @@ def diagnose(data: DiagData, line: Line, train: TrainParams, config: DiagConfig 
         if best is None or best[1]["score"] <= 0:
             break
         cause, res = best
+        if "noise" in res:
+            _refit_at_own_noise(mo, null, cause, res, cfg)
         accepted.append({"cause": cause, "score": res["score"], "parameters": res["parameters"],
                          "std_errors": res["std_errors"], "stage": stage_i + 1,
                          "extra": res["extra"]})
@@ -1232,6 +1241,22 @@ def diagnose(data: DiagData, line: Line, train: TrainParams, config: DiagConfig 
     return Diagnosis(cause=top["cause"], parameters=top["parameters"], ranking=ranking,
                      untestable=untestable, evidence=evidence, gain=gain, accepted=accepted,
                      series=series)
+
+
+def _refit_at_own_noise(mo: _Motion, null: _Null, cause: str, res: dict, cfg: DiagConfig,
+                        rounds: int = 2) -> None:
+    """Re-fit an accepted cause's parameters at the noise of the model that includes it (in
+    place). Its first fit ran at the null's noise, which the cause itself inflated (a slip
+    episode not modelled makes q 100x too large, and at that q the filter follows the odometer
+    and the slip fraction is barely determined): fit, re-maximise the noise under the extended
+    null, fit again."""
+    for _ in range(rounds):
+        st = _Stage(mo, null, cfg, noise=res["noise"])
+        _, _, res["parameters"], res["std_errors"], res["extra"] = getattr(st, cause)()
+        null_c = copy.deepcopy(null)
+        _extend_null(null_c, cause, res, mo)
+        st_c = _Stage(mo, null_c, cfg, big=False)
+        res["noise"] = (st_c.q, st_c.r_s)
 
 
 LINEAR_CAUSES = ("resistance", "mass", "braking_rate", "odometer_scale", "gradient")
