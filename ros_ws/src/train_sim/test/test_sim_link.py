@@ -98,4 +98,4 @@ def test_gilbert_elliott_in_time_slots():
     assert abs(ok.mean() - pi) < Z * math.sqrt(pi * (1 - pi) / n)
     # the chain per message would give bursts of mean 1 / p_bad_good = 20; here ~ 1 / pi_good
     L = burst_lengths(ok)
-    assert abs(L.mean() - 1 / pi) < Z * math.sqrt((1 - pi)) / pi / math.sqrt(len(L))
+    assert abs(L.mean() - 1 / pi) < Z * math.sqrt(1 - pi) / pi / math.sqrt(len(L))
