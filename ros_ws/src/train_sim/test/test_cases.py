@@ -168,3 +168,16 @@ def test_main_error_is_zero_at_truth_and_one_at_nominal():
     g = {"start": 1000.0, "end": 1400.0, "permille": 4.0}
     assert main_error("gradient", {**g, "start": 1100.0, "end": 1500.0}, g,
                       {"permille": 0.0}) == pytest.approx(0.5)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [[23, 1], [5, 0], [6, 0], [7, 0]])
+def test_gradient_section_is_on_the_case_run(seed):
+    """The section is placed on the stretch the case's own run crosses at speed. (The pilot
+    runs the whole timetable; a section placed after the last stop kept was never reached:
+    seed [23, 1] put it at 6927 m on a run that ended at 6137 m.)"""
+    c = make_case(np.random.default_rng(seed), ("gradient",), "plain")
+    tr = simulate(c.scenario).truth
+    g = c.truth["gradient"]
+    inside = (tr["position"] >= g["start"]) & (tr["position"] < g["end"])
+    assert inside.sum() > 5 and tr["velocity"][inside].min() > 2.0, (g, tr["position"][-1])

@@ -259,7 +259,10 @@ def make_case(rng: np.random.Generator, cause: str | None | tuple = None, size: 
     base["duration"] = round(duration, 1)
 
     tr = res.truth
-    inside = tr["t"] <= duration
+    # the pilot ran the whole timetable: after the last stop kept, the case's train stands
+    # while the pilot's drove on, so only the pilot's run up to that stop is the case's
+    t_same = stop_t[keep - 1] if 1 <= keep <= n_stops else duration
+    inside = tr["t"] <= min(duration, t_same)
     t, x, v = tr["t"][inside], tr["position"][inside], tr["velocity"][inside]
     moving = v > 1.0
     v_ref = float(np.mean(v[moving])) if moving.any() else 10.0
