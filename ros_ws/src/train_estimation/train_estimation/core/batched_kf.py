@@ -61,28 +61,41 @@ def update(x, P, y, H, R, mask):
     ``(x, P, 0)``.
     """
     mask = np.asarray(mask, dtype=bool)
+    rows = np.flatnonzero(mask)
+    N = x.shape[0]
+    if rows.size == 0:
+        return x, P, np.zeros(N)
     H = np.asarray(H, dtype=float)
     R = np.asarray(R, dtype=float)
     y = np.asarray(y, dtype=float)
-    loglik = np.zeros(x.shape[0])
-    for j in np.flatnonzero(mask):  # rows (at most a handful), not particles
-        h = H[j]
-        nz = np.flatnonzero(h)
-        if nz.size == 1 and h[nz[0]] == 1.0:  # selector row: no matmul needed
-            i = nz[0]
-            Ph = P[:, :, i]  # (N, n)
+    # selector rows (a single 1: the braking model's D, v, a_z) need no matmul: P h is a column
+    sel = [int(np.argmax(H[j])) if (np.count_nonzero(H[j]) == 1 and H[j].max() == 1.0)
+           else -1 for j in rows.tolist()]
+    x = x.copy()
+    P = P.copy()
+    logs = np.empty((rows.size, N))
+    quad = np.empty((rows.size, N))
+    for r, j in enumerate(rows.tolist()):  # rows (at most a handful), not particles
+        i = sel[r]
+        if i >= 0:
+            Ph = P[:, :, i].copy()  # (N, n); a copy: P is updated in place below
             e = y[j] - x[:, i]
+            s = Ph[:, i] + R[j]  # (N,)
         else:
+            h = H[j]
             Ph = P @ h
             e = y[j] - x @ h
-        s = Ph @ h + R[j]  # (N,)
-        k = Ph / s[:, None]
-        x = x + k * e[:, None]
+            s = Ph @ h + R[j]
+        x += Ph * (e / s)[:, None]
         # P - s k k^T = P - (Ph)(Ph)^T / s: elements (i, j) and (j, i) are the same products, so
         # P stays exactly symmetric (the "symmetrised" form; Joseph's form would cost three
         # outer products per row, ~2x the time of the whole update, for no gain at R > 0)
-        P = P - (Ph[:, :, None] * Ph[:, None, :]) / s[:, None, None]
-        loglik = loglik - 0.5 * (_LOG2PI + np.log(s) + e * e / s)
+        outer = Ph[:, :, None] * Ph[:, None, :]
+        outer /= s[:, None, None]
+        P -= outer
+        logs[r] = s
+        quad[r] = e * e / s
+    loglik = -0.5 * (rows.size * _LOG2PI + np.log(logs).sum(axis=0) + quad.sum(axis=0))
     return x, P, loglik
 
 

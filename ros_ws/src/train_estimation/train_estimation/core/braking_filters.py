@@ -298,8 +298,7 @@ class RaoBlackwellFilter:
                     since = 0.0
                 else:
                     s = self._transition(s, False, rng, dt)
-                Phi, Bu, Qd = self._model(s, u, dt, informative)
-                x, P = predict(s.x, s.P, Phi, Bu, Qd)
+                x, P = self._predict(s, u, dt, informative)
                 s = _Set(s.theta, x, P, s.logw, s.idx, s.extra)
             x, P, loglik = update(s.x, s.P, y_arr, fam.H, R, mask_arr)
             if np.any(np.isnan(loglik)):
@@ -385,22 +384,39 @@ class RaoBlackwellFilter:
                         last.informative, False, float("nan"))
 
     def _summary(self, s: _Set, accepted, reason, informative, used, log_ev, t=None) -> Estimate:
-        fam = self.family
+        # Moments of the mixture over (x, theta) with per-particle covariance blkdiag(P_i,
+        # theta_var_i): law of total covariance, written out so that no (N, n + d, n + d)
+        # stack is built (the mean of P_i is one matrix-vector product over the flat P).
         w, _ = log_normalize(s.logw)
-        n, dth = s.x.shape[1], s.theta.shape[1]
-        # one mixture over (x, theta): per-particle covariance blkdiag(P_i, 0)
-        z = np.concatenate([s.x, s.theta], axis=1)
-        zc = np.zeros((z.shape[0], n + dth, n + dth))
-        zc[:, :n, :n] = s.P
+        N, n = s.x.shape
+        dth = s.theta.shape[1]
+        xm = w @ s.x
+        tm = w @ s.theta
+        dx = s.x - xm
+        dt_ = s.theta - tm
+        wdx = dx * w[:, None]
+        c = np.empty((n + dth, n + dth))
+        c[:n, :n] = (w @ s.P.reshape(N, n * n)).reshape(n, n) + wdx.T @ dx
+        c[:n, n:] = wdx.T @ dt_
+        c[n:, :n] = c[:n, n:].T
+        c[n:, n:] = (dt_ * w[:, None]).T @ dt_
         tv = self._theta_var(s)
         if tv is not None:
-            zc[:, n:, n:] = tv
-        m, c = mixture_moments(w, z, zc)
-        ri = list(fam.report_index) + list(range(n, n + dth))
+            c[n:, n:] += (w @ tv.reshape(N, dth * dth)).reshape(dth, dth)
+        c = 0.5 * (c + c.T)
+        m = np.concatenate([xm, tm])
+        ri = self._report_index(n, dth)
         return Estimate(accepted, reason, self._t if t is None else float(t), m[ri],
-                        c[np.ix_(ri, ri)], m[:n], c[:n, :n], m[n:], c[n:, n:],
-                        int(s.theta.shape[0]), float(1.0 / np.sum(w * w)), bool(informative),
+                        c[np.ix_(ri, ri)], xm, c[:n, :n], tm, c[n:, n:],
+                        int(N), float(1.0 / np.sum(w * w)), bool(informative),
                         bool(used), float(log_ev))
+
+    def _report_index(self, n, dth):
+        ri = self.__dict__.get("_ri")
+        if ri is None:
+            ri = np.array(list(self.family.report_index) + list(range(n, n + dth)), dtype=int)
+            self._ri = ri
+        return ri
 
     # -- hooks -----------------------------------------------------------------------------
     def _theta_var(self, s: _Set):
@@ -408,14 +424,18 @@ class RaoBlackwellFilter:
         (point masses)."""
         return None
 
-    def _model(self, s: _Set, u, dt: float, informative: bool):
-        """``(Phi, Bu, Qd)`` of this step for every particle (``family.matrices``); a step that
-        cannot inform theta uses one model shared by all particles (``family.hold_gain``)."""
+    def _predict(self, s: _Set, u, dt: float, informative: bool):
+        """KF prediction of every particle with this step's model: the family's own
+        ``predict`` if it has one (``BrakingModel.predict``: the affine form, no per-particle
+        matrices), else ``batched_kf.predict`` on ``family.matrices``. A step that cannot
+        inform theta uses one model shared by all particles (``family.hold_gain``)."""
         fam = self.family
-        if informative or not hasattr(fam, "hold_gain"):
-            return fam.matrices(s.theta, u, dt, informative)
-        hold = fam.hold_gain(u, self._last.x_mean, float(self._last.theta_mean[0]))
-        return fam.matrices(s.theta, u, dt, informative, hold=hold)
+        kw = {}
+        if not informative and hasattr(fam, "hold_gain"):
+            kw["hold"] = fam.hold_gain(u, self._last.x_mean, float(self._last.theta_mean[0]))
+        if hasattr(fam, "predict"):
+            return fam.predict(s.x, s.P, s.theta, u, dt, informative, **kw)
+        return predict(s.x, s.P, *fam.matrices(s.theta, u, dt, informative, **kw))
 
     def _transition(self, s: _Set, informative: bool, rng, dt: float) -> _Set:
         """Parameter transition before the KF prediction (identity by default / when frozen or
@@ -959,13 +979,13 @@ class BrakingKF(RaoBlackwellFilter):
     def _theta_from_values(self, values):
         return np.zeros((1, 0)), None
 
-    def _model(self, s, u, dt, informative):
+    def _predict(self, s, u, dt, informative):
         hold = None
         if not informative:
             hold = self.family.hold_gain(u, self._last.x_mean, float(self._last.theta_mean[0]))
         F, b, Q = augmented_model(self.family.params, u, dt, float(s.x[0, 3]), informative,
                                   hold, self.q_theta)
-        return F[None], b[None], Q
+        return predict(s.x, s.P, F[None], b[None], Q)
 
     def _summary(self, s, accepted, reason, informative, used, log_ev, t=None) -> Estimate:
         x, P = s.x[0], s.P[0]
