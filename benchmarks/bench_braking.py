@@ -29,8 +29,11 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-for sub in ("ros_ws/src/train_sim", "ros_ws/src/train_estimation"):
+for sub in ("ros_ws/src/train_sim", "ros_ws/src/train_estimation",
+            "ros_ws/src/train_estimation/test"):  # test/braking_toy.py: the model's own data
     sys.path.insert(0, str(ROOT / sub))
+
+from braking_toy import simulate_open_loop  # noqa: E402
 
 from train_estimation.core.braking_filters import (  # noqa: E402
     GSMA,
@@ -42,11 +45,7 @@ from train_estimation.core.braking_filters import (  # noqa: E402
     RandomWalkRBPF,
     sticky_transition,
 )
-from train_estimation.core.braking_model import (  # noqa: E402
-    BrakingModel,
-    BrakingParams,
-    simulate_open_loop,
-)
+from train_estimation.core.braking_model import BrakingModel, BrakingParams  # noqa: E402
 
 VALUES = np.round(np.arange(10, -1, -1) * 0.1, 10)
 X0 = np.array([0.0, 20.0, -1.0, -2.0])

@@ -1,5 +1,8 @@
 """Braking model (Zheng et al. 2015 eq. (4)): exact discretisation, noise, gating, data."""
 
+import os
+import sys
+
 import numpy as np
 import pytest
 from scipy.linalg import expm
@@ -10,9 +13,11 @@ from train_estimation.core.braking_model import (
     continuous_matrices,
     discretize,
     process_noise,
-    simulate_open_loop,
     zoh_batched,
 )
+
+sys.path.insert(0, os.path.dirname(__file__))
+from braking_toy import simulate_open_loop  # noqa: E402  (test support: the model's own data)
 
 PAPER = BrakingParams()  # tau = 0.4 s, T = 1.2 s (lambda = 1.6667), dt = 1 s
 

@@ -60,7 +60,6 @@ __all__ = [
     "zoh_batched",
     "discretize",
     "process_noise",
-    "simulate_open_loop",
     "augmented_model",
     "MEAS_NAMES",
 ]
@@ -109,13 +108,13 @@ class BrakingParams:
             raise ValueError(f"BrakingParams.meas_var must be 3 positive numbers, got {mv!r}")
 
 
-def continuous_matrices(f, params: BrakingParams) -> tuple[np.ndarray, np.ndarray]:
+def continuous_matrices(braking_rate, params: BrakingParams) -> tuple[np.ndarray, np.ndarray]:
     """Eq. (4) for a vector of braking rates: ``A (K, 4, 4)`` and input matrix ``B (K, 4, 2)``.
 
     Input columns: ``a_Tar`` (``b`` of eq. (4)) and a known acceleration offset on ``v``
     (``E`` of eq. (4): gradient, running resistance; 0 in the paper).
     """
-    f = np.atleast_1d(np.asarray(f, dtype=float))
+    f = np.atleast_1d(np.asarray(braking_rate, dtype=float))
     K = f.shape[0]
     tau, lam = params.tau, params.lam
     A = np.zeros((K, 4, 4))
@@ -173,14 +172,14 @@ def process_noise(params: BrakingParams, dt: float) -> np.ndarray:
     return 0.5 * (Qd + Qd.T)
 
 
-def discretize(f, params: BrakingParams, dt: float | None = None
+def discretize(braking_rate, params: BrakingParams, dt: float | None = None
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Exact discrete model for a vector of f: ``Phi (K,4,4)``, ``Bd (K,4,2)``, ``Qd (4,4)``.
 
     Uses the exact affine dependence on f (module docstring); ``zoh_batched`` is the reference.
     """
     dt = params.dt if dt is None else float(dt)
-    f = np.atleast_1d(np.asarray(f, dtype=float))
+    f = np.atleast_1d(np.asarray(braking_rate, dtype=float))
     P0, P1, B0, B1, Qd = _affine_pieces(params, dt)
     Phi = P0 + f[:, None, None] * P1
     Bd = B0 + f[:, None, None] * B1
@@ -243,7 +242,7 @@ class BrakingModel:
         vs = self.params.standstill_speed
         return not (vs is not None and abs(float(x_mean[1])) <= vs)
 
-    def hold_gain(self, u, x_mean, f_mean: float) -> float:
+    def hold_gain(self, u, x_mean, braking_rate_mean: float) -> float:
         """Gain of a step that does not inform f (one model shared by every particle).
 
         Traction or coasting: 1 (f scales braking only). Braking at standstill: 0 (the train is
@@ -255,9 +254,10 @@ class BrakingModel:
         vs = self.params.standstill_speed
         if vs is not None and abs(float(x_mean[1])) <= vs:
             return 0.0
-        return float(f_mean)
+        return float(braking_rate_mean)
 
-    def gains(self, theta, u, informative: bool, hold: float | None = None) -> np.ndarray:
+    def braking_rates(self, theta, u, informative: bool, hold: float | None = None
+                      ) -> np.ndarray:
         """The braking rate each particle's model uses this step: ``theta`` if informative, else
         the one shared gain (``hold`` if given, else 1 for traction and 0 for braking)."""
         if informative:
@@ -282,7 +282,7 @@ class BrakingModel:
         same column, so P' is exactly symmetric (P is). Equal to the generic path up to
         rounding (``test_braking_model.py``).
         """
-        f = self.gains(theta, u, informative, hold)
+        f = self.braking_rates(theta, u, informative, hold)
         Kx, KP, Qd = _predict_maps(self.params, float(dt))
         u = np.asarray(u, dtype=float)
         N = x.shape[0]
@@ -298,7 +298,7 @@ class BrakingModel:
         """``Phi (K,4,4)``, ``Bu (K,4)``, ``Qd (4,4)``; ``K = len(theta)`` if informative else 1
         (with gain ``hold`` if given, else 1 for traction and 0 for braking)."""
         u = np.asarray(u, dtype=float)
-        Phi, Bd, Qd = discretize(self.gains(theta, u, informative, hold), self.params, dt)
+        Phi, Bd, Qd = discretize(self.braking_rates(theta, u, informative, hold), self.params, dt)
         return Phi, Bd @ u, Qd
 
 
@@ -348,7 +348,7 @@ def _predict_maps(params: BrakingParams, dt: float):
 
 
 def augmented_model(params: BrakingParams, u, dt: float, az_mean: float, informative: bool,
-                    hold: float | None = None, q_f: float = 0.0):
+                    hold: float | None = None, q_braking_rate: float = 0.0):
     """The braking model with f as a fifth state, ``z = (D, v, a_hat, a_z, f)``: ``z' = F z + b +
     w``, ``w ~ N(0, Q)``, exactly linear when ``a_z`` is known.
 
@@ -359,8 +359,9 @@ def augmented_model(params: BrakingParams, u, dt: float, az_mean: float, informa
     to the *known* command; ``az_mean`` is its value at the start of the step), the f column is
     the known vector ``c = (Phi(1) - Phi(0))[:, 3] az_mean + (B(1) - B(0)) u`` and a Kalman
     filter on ``z`` is the exact Bayesian estimator for a Gaussian prior on f and the random walk
-    ``f' = f + N(0, q_f dt)``. (``a_z`` itself evolves independently of everything else; its
-    row and column are carried unchanged, and an ``a_z`` reading updates it alone.)
+    ``f' = f + N(0, q_braking_rate dt)``. (``a_z`` itself evolves independently of
+    everything else; its row and column are carried unchanged, and an ``a_z`` reading updates
+    it alone.)
 
     Steps that cannot inform f (``informative`` False: traction, standstill, weak trim) use the
     shared model of gain ``hold`` (``BrakingModel.matrices``) with no f column and no f noise: the
@@ -378,7 +379,7 @@ def augmented_model(params: BrakingParams, u, dt: float, az_mean: float, informa
         F[:4, :4] = P0
         F[:4, 4] = P1[:, 3] * float(az_mean) + B1 @ u
         b[:4] = B0 @ u
-        Q[4, 4] = float(q_f) * float(dt)
+        Q[4, 4] = float(q_braking_rate) * float(dt)
     else:
         g = (1.0 if u[0] >= 0.0 else 0.0) if hold is None else float(hold)
         Phi, Bd, Qd = discretize(np.array([g]), params, dt)
@@ -386,30 +387,3 @@ def augmented_model(params: BrakingParams, u, dt: float, az_mean: float, informa
         b[:4] = Bd[0] @ u
     Q[:4, :4] = Qd
     return F, b, Q
-
-
-def simulate_open_loop(params: BrakingParams, f_seq, u_seq, x0, rng: np.random.Generator,
-                       meas_std=None, dt: float | None = None):
-    """Data from the discrete model itself (Zheng Section 4): ``x_k = Phi(f_k) x_{k-1} + B(f_k)
-    u_k + w_k``, ``y_k = C x_k + e_k`` for k = 1..K.
-
-    ``u_seq (K, 2)`` is held over ``(k-1, k]``; ``f_seq (K,)`` is the true braking rate on that
-    interval. Returns ``x (K+1, 4)`` (``x[0] = x0``) and ``y (K, 3)``. ``meas_std`` defaults to
-    the square root of ``params.meas_var``.
-    """
-    f_seq = np.asarray(f_seq, dtype=float)
-    u_seq = np.asarray(u_seq, dtype=float).reshape(len(f_seq), -1)
-    K = len(f_seq)
-    dt = params.dt if dt is None else dt
-    Phi, Bd, Qd = discretize(f_seq, params, dt)
-    # Qd may be rank one ("zoh"): an eigen factor is exact for PSD matrices, Cholesky is not.
-    ev, V = np.linalg.eigh(Qd)
-    Lq = V * np.sqrt(np.clip(ev, 0.0, None))
-    sd = np.sqrt(np.asarray(params.meas_var)) if meas_std is None else np.asarray(meas_std)
-    x = np.empty((K + 1, 4))
-    x[0] = x0
-    w = rng.standard_normal((K, 4)) @ Lq.T
-    for k in range(K):  # a time loop (not a particle loop): the truth is one trajectory
-        x[k + 1] = Phi[k] @ x[k] + Bd[k] @ u_seq[k] + w[k]
-    y = x[1:] @ C_ROWS.T + rng.standard_normal((K, 3)) * sd
-    return x, y
