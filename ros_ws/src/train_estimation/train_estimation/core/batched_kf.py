@@ -53,6 +53,24 @@ def predict(x, P, Phi, Bu, Qd):
     return x_new, _sym(P_new)
 
 
+_SEL: dict = {}
+
+
+def _selectors(H) -> tuple[int, ...]:
+    """Per row of ``H``: the state index if the row is a selector (a single 1: the braking
+    model's D, v, a_z rows), else -1. Selector rows need no matmul (``P h`` is a column of P).
+    Cached by the matrix's bytes (a few models per process)."""
+    key = (H.shape, H.tobytes())
+    hit = _SEL.get(key)
+    if hit is None:
+        hit = tuple(int(np.argmax(h)) if (np.count_nonzero(h) == 1 and h.max() == 1.0) else -1
+                    for h in H)
+        if len(_SEL) > 64:
+            _SEL.clear()
+        _SEL[key] = hit
+    return hit
+
+
 def update(x, P, y, H, R, mask):
     """Sequential exact update of every particle with the rows ``mask`` of ``y``.
 
@@ -68,15 +86,13 @@ def update(x, P, y, H, R, mask):
     H = np.asarray(H, dtype=float)
     R = np.asarray(R, dtype=float)
     y = np.asarray(y, dtype=float)
-    # selector rows (a single 1: the braking model's D, v, a_z) need no matmul: P h is a column
-    sel = [int(np.argmax(H[j])) if (np.count_nonzero(H[j]) == 1 and H[j].max() == 1.0)
-           else -1 for j in rows.tolist()]
+    sel = _selectors(H)
     x = x.copy()
     P = P.copy()
     logs = np.empty((rows.size, N))
     quad = np.empty((rows.size, N))
     for r, j in enumerate(rows.tolist()):  # rows (at most a handful), not particles
-        i = sel[r]
+        i = sel[j]
         if i >= 0:
             Ph = P[:, :, i].copy()  # (N, n); a copy: P is updated in place below
             e = y[j] - x[:, i]

@@ -38,6 +38,15 @@ from .smc import log_normalize
 __all__ = ["Estimate", "RaoBlackwellFilter"]
 
 
+def _weights(logw):
+    """Weights of a log-weight vector already checked by ``smc.log_normalize``: every ``_Set``
+    the step hands on (after ``_reduce``) and every committed one was, so the NaN/inf checks
+    are not repeated; the arithmetic is ``log_normalize``'s (equal log-weights give exactly
+    equal weights, a single value exactly zero variance)."""
+    e = np.exp(logw - logw.max())
+    return e / e.sum()
+
+
 @dataclass(frozen=True)
 class Estimate:
     """Posterior summary after one step (or the last good one, if the step was rejected)."""
@@ -181,7 +190,7 @@ class RaoBlackwellFilter:
                 x, P = self._predict(s, u, dt, informative)
                 s = _Set(s.theta, x, P, s.logw, s.idx, s.extra)
             x, P, loglik = update(s.x, s.P, y_arr, fam.H, R, mask_arr)
-            if np.any(np.isnan(loglik)):
+            if np.isnan(loglik).any():
                 return self._reject("numerical failure: NaN likelihood")
             s = _Set(s.theta, x, P, s.logw, s.idx, s.extra)
             s, log_ev = self._reduce(s, loglik, informative, rng)
@@ -190,8 +199,8 @@ class RaoBlackwellFilter:
             s = self._after(s, informative, rng)
         except (ValueError, np.linalg.LinAlgError) as exc:
             return self._reject(f"numerical failure: {exc}")
-        if not (np.all(np.isfinite(s.x)) and np.all(np.isfinite(s.P))
-                and np.all(np.isfinite(s.theta)) and s.theta.shape[0] > 0):
+        if not (s.theta.shape[0] > 0 and np.isfinite(s.x).all() and np.isfinite(s.P).all()
+                and np.isfinite(s.theta).all()):
             return self._reject("numerical failure: non-finite particle state")
         self._s = s
         self._since = since
@@ -267,7 +276,7 @@ class RaoBlackwellFilter:
         # Moments of the mixture over (x, theta) with per-particle covariance blkdiag(P_i,
         # theta_var_i): law of total covariance, written out so that no (N, n + d, n + d)
         # stack is built (the mean of P_i is one matrix-vector product over the flat P).
-        w, _ = log_normalize(s.logw)
+        w = _weights(s.logw)
         N, n = s.x.shape
         dth = s.theta.shape[1]
         xm = w @ s.x

@@ -11,7 +11,7 @@ import numpy as np
 from scipy.special import ndtr
 
 from .batched_kf import mixture_moments
-from .braking_base import RaoBlackwellFilter, _Set
+from .braking_base import RaoBlackwellFilter, _Set, _weights
 from .smc import log_normalize, systematic_resample
 
 __all__ = ["QGRBPF", "RandomWalkRBPF"]
@@ -173,7 +173,7 @@ class RandomWalkRBPF(_ContinuousBase):
         if not informative:
             return s
         N = s.theta.shape[0]
-        w, _ = log_normalize(s.logw)
+        w = _weights(s.logw)
         if 1.0 / np.sum(w * w) >= self.ess_frac * N:
             return s
         a = systematic_resample(w, rng, N)

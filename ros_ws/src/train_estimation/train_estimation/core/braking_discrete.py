@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.special import ndtr
 
-from .braking_base import RaoBlackwellFilter, _Set
+from .braking_base import RaoBlackwellFilter, _Set, _weights
 from .smc import log_normalize, systematic_resample
 
 __all__ = ["DiscreteRBPF", "SMA", "GSMA", "grid_prior", "cell_variance", "neighbour_groups",
@@ -190,7 +190,7 @@ class DiscreteRBPF(_DiscreteBase):
         if not informative:
             return s  # frozen: no resampling noise on the f marginal
         N = s.idx.size
-        w, _ = log_normalize(s.logw)
+        w = _weights(s.logw)
         if 1.0 / np.sum(w * w) >= self.ess_frac * N:
             return s
         a = systematic_resample(w, rng, N)
