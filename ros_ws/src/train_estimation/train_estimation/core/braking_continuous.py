@@ -110,8 +110,11 @@ class QGRBPF(_ContinuousBase):
         w, _ = log_normalize(s.logw)
         mu, cov = mixture_moments(w, s.theta)  # eq. (7), (8)
         cov = cov + self.q_theta * dt + self.min_var * np.eye(dth)
-        ev, V = np.linalg.eigh(cov)
-        ev, V = ev[::-1], V[:, ::-1]  # principal axis first
+        if dth == 1:  # the braking rate: the principal axis is the axis (no LAPACK call)
+            ev, V = cov.reshape(1), np.ones((1, 1))
+        else:
+            ev, V = np.linalg.eigh(cov)
+            ev, V = ev[::-1], V[:, ::-1]  # principal axis first
         z = rng.standard_normal((N, dth))
         theta = mu + (z * np.sqrt(np.clip(ev, 0.0, None))) @ V.T  # eq. (9)
         theta = _reflect(theta, self.lo, self.hi)

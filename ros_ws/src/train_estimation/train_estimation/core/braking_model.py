@@ -276,23 +276,30 @@ class BrakingModel:
             x' = Phi0 x + B0 u + f (E x + B1 u)
             P' = Phi0 P Phi0^T + f (E P Phi0^T + Phi0 P E^T) + f^2 E P E^T + Qd
 
-        so one matrix product ``vec(P) @ [K0 K1 K2]`` (16 x 48, cached per dt) gives all three
-        for every particle, combined by Horner's rule with each particle's f: no (N, 4, 4)
-        model stack, no batched 4x4 matmuls. Entries (i, j) and (j, i) of each ``K`` use the
-        same column, so P' is exactly symmetric (P is). Equal to the generic path up to
-        rounding (``test_braking_model.py``).
+        so one matrix product (``KP``: the three linear maps, cached per dt) gives all three for
+        every particle, combined by Horner's rule with each particle's f: no (N, 4, 4) model
+        stack, no batched 4x4 matmuls. Only the 10 distinct entries of the symmetric P' are
+        computed and copied to both (i, j) and (j, i): P' is exactly symmetric. Internally the
+        particles are on the last axis (long contiguous rows for the elementwise Horner steps).
+        Equal to the generic path up to rounding (``test_braking_model.py``).
         """
         f = self.braking_rates(theta, u, informative, hold)
-        Kx, KP, Qd = _predict_maps(self.params, float(dt))
+        Kx, KP, Qd, full = _predict_maps(self.params, float(dt))
         u = np.asarray(u, dtype=float)
         N = x.shape[0]
-        bu = u @ Kx[4:]  # (8,): B0 u | B1 u
-        X = x @ Kx[:4]  # (N, 8): Phi0 x | E x
-        fc = f[:, None]
-        x_new = X[:, :4] + bu[:4] + fc * (X[:, 4:] + bu[4:])
-        Y = _matmul_rows(P.reshape(N, 16), KP)  # (N, 48)
-        P_new = Y[:, :16] + fc * (Y[:, 16:32] + fc * Y[:, 32:]) + Qd
-        return x_new, P_new.reshape(N, 4, 4)
+        bu = (u @ Kx[4:])[:, None]  # (8, 1): B0 u | B1 u
+        Xt = Kx[:4].T @ x.T  # (8, N): Phi0 x | E x
+        xt = Xt[4:] + bu[4:]
+        xt *= f
+        xt += Xt[:4]
+        xt += bu[:4]
+        Yt = _matmul_cols(KP, P.reshape(N, 16).T)  # (30, N): f^0, f^1, f^2 coefficients
+        Pu = Yt[20:] * f
+        Pu += Yt[10:20]
+        Pu *= f
+        Pu += Yt[:10]
+        Pu += Qd
+        return xt.T.copy(), Pu.T[:, full].reshape(N, 4, 4)
 
     def matrices(self, theta, u, dt: float, informative: bool, hold: float | None = None):
         """``Phi (K,4,4)``, ``Bu (K,4)``, ``Qd (4,4)``; ``K = len(theta)`` if informative else 1
@@ -302,28 +309,35 @@ class BrakingModel:
         return Phi, Bd @ u, Qd
 
 
-_ROW_BLOCK = 512
+_COL_BLOCK = 2048
 
 
-def _matmul_rows(A, K):
-    """``A @ K`` in blocks of at most ``_ROW_BLOCK`` rows. Why: above ~10^6 multiply-adds
-    OpenBLAS splits one product over threads; on a loaded machine waking them costs
-    milliseconds (measured: 8.5 ms instead of 0.08 ms for 1350 x 16 x 48), blocks stay in the
-    calling thread. A loop over blocks of rows, not over particles."""
-    n = A.shape[0]
-    if n <= _ROW_BLOCK:
-        return A @ K
-    out = np.empty((n, K.shape[1]))
-    for i in range(0, n, _ROW_BLOCK):
-        np.matmul(A[i:i + _ROW_BLOCK], K, out=out[i:i + _ROW_BLOCK])
+def _matmul_cols(K, A):
+    """``K @ A`` in blocks of at most ``_COL_BLOCK`` columns. Why: above ~2 x 10^6
+    multiply-adds OpenBLAS splits one product over threads; on a loaded machine waking them
+    costs milliseconds (measured for (30 x 16) @ (16 x N): 41 us at N = 3000, 30 ms at
+    N = 5000), blocks stay in the calling thread. A loop over blocks of particles, not over
+    particles."""
+    n = A.shape[1]
+    if n <= _COL_BLOCK:
+        return K @ A
+    out = np.empty((K.shape[0], n))
+    for i in range(0, n, _COL_BLOCK):
+        out[:, i:i + _COL_BLOCK] = K @ A[:, i:i + _COL_BLOCK]
     return out
+
+
+# the 10 distinct entries (i <= j) of a symmetric 4 x 4 matrix, and where each of the 16 goes
+_UPPER = [(i, j) for i in range(4) for j in range(i, 4)]
+_FULL = np.array([_UPPER.index((min(i, j), max(i, j))) for i in range(4) for j in range(4)])
 
 
 def _predict_maps(params: BrakingParams, dt: float):
     """Linear maps of ``BrakingModel.predict`` for one dt, cached (bounded): ``Kx (6, 8)``
     (rows 0-3: ``x -> (Phi0 x, E x)`` as right factors; rows 4-5: ``u -> (B0 u, B1 u)``),
-    ``KP (16, 48)`` (``vec(P) -> vec`` of the f^0, f^1, f^2 coefficients of P', row-major vec),
-    ``Qd`` flattened."""
+    ``KP (30, 16)`` (``vec(P)`` -> the 10 distinct entries of the f^0, f^1 and f^2
+    coefficients of P', row-major vec), ``Qd``'s 10 distinct entries (a column) and the
+    index that spreads 10 distinct entries over the 16 of a symmetric matrix."""
     key = ("maps", params, float(dt))
     hit = _CACHE.get(key)
     if hit is None:
@@ -333,14 +347,12 @@ def _predict_maps(params: BrakingParams, dt: float):
         Kx[:4, 4:] = E.T
         Kx[4:, :4] = B0.T
         Kx[4:, 4:] = B1.T
-        # vec(A P B^T) = vec(P) @ kron(A, B)^T for row-major vec
-        K0 = np.kron(P0, P0).T
-        K1 = np.kron(E, P0).T + np.kron(P0, E).T
-        K2 = np.kron(E, E).T
-        # column (i, j) := column (min, max): P' symmetric bit for bit
-        sym = np.array([min(i, j) * 4 + max(i, j) for i in range(4) for j in range(4)])
-        KP = np.hstack([K0[:, sym], K1[:, sym], K2[:, sym]])
-        hit = (Kx, KP, Qd.reshape(16))
+        # vec(A P B^T) = kron(A, B) vec(P) for row-major vec
+        up = [4 * i + j for i, j in _UPPER]
+        K0 = np.kron(P0, P0)[up]
+        K1 = (np.kron(E, P0) + np.kron(P0, E))[up]
+        K2 = np.kron(E, E)[up]
+        hit = (Kx, np.vstack([K0, K1, K2]), Qd.reshape(16)[up][:, None], _FULL)
         if len(_CACHE) > 64:
             _CACHE.clear()
         _CACHE[key] = hit
