@@ -11,7 +11,7 @@ import numpy as np
 from scipy.special import ndtr
 
 from .batched_kf import mixture_moments
-from .braking_base import RaoBlackwellFilter, _Set, _weights
+from .braking_base import RaoBlackwellFilter, _Set, _weights, _wsum
 from .smc import log_normalize, systematic_resample
 
 __all__ = ["QGRBPF", "RandomWalkRBPF"]
@@ -140,10 +140,10 @@ class QGRBPF(_ContinuousBase):
         mu = w @ th
         dth = th - mu
         var = w @ (dth * dth) + self.q_theta[0, 0] * dt + self.min_var
-        xm = w @ s.x
+        xm = _wsum(w, s.x)
         dx = s.x - xm
         cxt = (w * dth) @ dx  # (n,) Cov(x, theta)
-        Sx = np.einsum("k,kij->ij", w, s.P) + (w[:, None] * dx).T @ dx
+        Sx = _wsum(w, s.P) + (w[:, None] * dx).T @ dx
         beta = cxt / var
         Pc = Sx - np.outer(cxt, beta)
         z, lw = self._gh
