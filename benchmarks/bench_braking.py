@@ -8,7 +8,8 @@ two-state example, and per-step timing. Prints markdown tables.
     PYTHONPATH=ros_ws/src/train_sim:ros_ws/src/train_estimation \\
         python3 benchmarks/bench_braking.py [--seeds 50] [--quick] [--sweep-only]
 
-Data: open-loop toy generated from the exact discrete model itself (ZOH of eq. (4), dt = 1 s)
+Data: open-loop toy generated from the exact discrete model itself (ZOH of eq. (4), dt = 1 s;
+``ros_ws/src/train_estimation/test/braking_toy.py``, test and benchmark support outside the core)
 with Section 4's settings: f_k = 1 - 0.005 k, k = 1..150, tau = 0.4 s, lambda = 1.6667
 (T = 1.2 s), Var(Omega) = 0.05 (m/s^2)^2 held over each step, x_0 = (0 m, 20 m/s, -1 m/s^2,
 -2 m/s^2) plus N(0, 0.001 I). Input: a_Tar = -1 m/s^2 throughout -- Section 4 does not print it,

@@ -115,6 +115,14 @@ class BrakingKF(RaoBlackwellFilter):
     def _theta_from_values(self, values):
         return np.zeros((1, 0)), None
 
+    def _reduce(self, s, loglik, informative, rng):
+        # one Gaussian: its weight stays 1 and the log evidence is its log likelihood (what the
+        # base class's log-normalisation of a single weight returns, without the array work)
+        logz = float(loglik[0])
+        if not np.isfinite(logz):
+            raise ValueError("log-weights: none finite, or NaN/+inf")
+        return s, logz
+
     def _predict(self, s, u, dt, informative):
         hold = None
         if not informative:
