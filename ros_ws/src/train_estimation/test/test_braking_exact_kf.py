@@ -12,11 +12,11 @@ from train_estimation.core.braking_model import (
     BrakingModel,
     BrakingParams,
     continuous_matrices,
-    simulate_open_loop,
     zoh_batched,
 )
 
 sys.path.insert(0, os.path.dirname(__file__))
+from braking_toy import simulate_open_loop  # noqa: E402  (test support: the model's own data)
 from test_braking_kf import _dense_posterior  # noqa: E402  (the dense joint-Gaussian oracle)
 
 X0 = np.array([0.0, 20.0, -1.0, -2.0])

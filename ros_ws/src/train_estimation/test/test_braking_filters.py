@@ -1,5 +1,8 @@
 """RBPF / SMA / GSMA / Q-GRBPF / oracle for the braking rate: exact oracles and edge cases."""
 
+import os
+import sys
+
 import numpy as np
 import pytest
 from scipy.linalg import expm
@@ -16,7 +19,10 @@ from train_estimation.core.braking_filters import (
     sticky_transition,
     systematic_resample,
 )
-from train_estimation.core.braking_model import BrakingModel, BrakingParams, simulate_open_loop
+from train_estimation.core.braking_model import BrakingModel, BrakingParams
+
+sys.path.insert(0, os.path.dirname(__file__))
+from braking_toy import simulate_open_loop  # noqa: E402  (test support: the model's own data)
 
 VALUES = np.round(np.arange(10, -1, -1) * 0.1, 10)  # {1.0, 0.9, ..., 0}
 X0 = np.array([0.0, 20.0, -1.0, -2.0])

@@ -1,5 +1,8 @@
 """Braking model (Zheng et al. 2015 eq. (4)): exact discretisation, noise, gating, data."""
 
+import os
+import sys
+
 import numpy as np
 import pytest
 from scipy.linalg import expm
@@ -10,9 +13,11 @@ from train_estimation.core.braking_model import (
     continuous_matrices,
     discretize,
     process_noise,
-    simulate_open_loop,
     zoh_batched,
 )
+
+sys.path.insert(0, os.path.dirname(__file__))
+from braking_toy import simulate_open_loop  # noqa: E402  (test support: the model's own data)
 
 PAPER = BrakingParams()  # tau = 0.4 s, T = 1.2 s (lambda = 1.6667), dt = 1 s
 
@@ -127,3 +132,26 @@ def test_simulate_open_loop_noise_free_is_the_recursion():
         xr = Phi[0] @ xr + Bd[0] @ u[k]
         np.testing.assert_allclose(x[k + 1], xr, atol=1e-12)
     np.testing.assert_allclose(y, x[1:][:, [0, 1, 3]], atol=1e-12)
+
+
+@pytest.mark.parametrize("noise_model", ["zoh", "white"])
+def test_affine_prediction_equals_the_generic_kalman_prediction(noise_model):
+    """``BrakingModel.predict`` (affine form, particles on the last axis inside) is the Kalman
+    prediction with ``matrices`` for every particle, informative or held, and keeps P exactly
+    symmetric -- also past the block size of its matrix products (many particles)."""
+    from train_estimation.core.batched_kf import predict
+
+    fam = BrakingModel(BrakingParams(noise_model=noise_model, ahat_var=0.01))
+    rng = np.random.default_rng(3)
+    for N in (1, 7, 5000):
+        x = rng.standard_normal((N, 4))
+        G = rng.standard_normal((N, 4, 4))
+        P = G @ np.swapaxes(G, 1, 2)
+        theta = rng.uniform(0.0, 1.3, (N, 1))
+        u = np.array([-0.7, 0.1])
+        for informative, hold in ((True, None), (False, 0.6), (False, None)):
+            xa, Pa = fam.predict(x, P, theta, u, 0.37, informative, hold)
+            xb, Pb = predict(x, P, *fam.matrices(theta, u, 0.37, informative, hold))
+            np.testing.assert_allclose(xa, xb, rtol=0, atol=1e-12)
+            np.testing.assert_allclose(Pa, Pb, rtol=0, atol=1e-11)
+            assert np.array_equal(Pa, np.swapaxes(Pa, 1, 2))

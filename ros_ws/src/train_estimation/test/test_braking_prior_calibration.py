@@ -2,6 +2,8 @@
 pruning, merging by value."""
 
 import dataclasses
+import os
+import sys
 
 import numpy as np
 import pytest
@@ -20,8 +22,11 @@ from train_estimation.core.braking_filters import (
     grid_prior,
     sticky_transition,
 )
-from train_estimation.core.braking_model import BrakingModel, BrakingParams, simulate_open_loop
+from train_estimation.core.braking_model import BrakingModel, BrakingParams
 from train_estimation.core.smc import log_normalize
+
+sys.path.insert(0, os.path.dirname(__file__))
+from braking_toy import simulate_open_loop  # noqa: E402  (test support: the model's own data)
 
 VALUES = np.round(np.arange(10, -1, -1) * 0.1, 10)
 X0 = np.array([0.0, 20.0, -1.0, -2.0])

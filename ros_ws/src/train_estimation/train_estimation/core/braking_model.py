@@ -60,7 +60,6 @@ __all__ = [
     "zoh_batched",
     "discretize",
     "process_noise",
-    "simulate_open_loop",
     "augmented_model",
     "MEAS_NAMES",
 ]
@@ -109,13 +108,13 @@ class BrakingParams:
             raise ValueError(f"BrakingParams.meas_var must be 3 positive numbers, got {mv!r}")
 
 
-def continuous_matrices(f, params: BrakingParams) -> tuple[np.ndarray, np.ndarray]:
+def continuous_matrices(braking_rate, params: BrakingParams) -> tuple[np.ndarray, np.ndarray]:
     """Eq. (4) for a vector of braking rates: ``A (K, 4, 4)`` and input matrix ``B (K, 4, 2)``.
 
     Input columns: ``a_Tar`` (``b`` of eq. (4)) and a known acceleration offset on ``v``
     (``E`` of eq. (4): gradient, running resistance; 0 in the paper).
     """
-    f = np.atleast_1d(np.asarray(f, dtype=float))
+    f = np.atleast_1d(np.asarray(braking_rate, dtype=float))
     K = f.shape[0]
     tau, lam = params.tau, params.lam
     A = np.zeros((K, 4, 4))
@@ -173,14 +172,14 @@ def process_noise(params: BrakingParams, dt: float) -> np.ndarray:
     return 0.5 * (Qd + Qd.T)
 
 
-def discretize(f, params: BrakingParams, dt: float | None = None
+def discretize(braking_rate, params: BrakingParams, dt: float | None = None
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Exact discrete model for a vector of f: ``Phi (K,4,4)``, ``Bd (K,4,2)``, ``Qd (4,4)``.
 
     Uses the exact affine dependence on f (module docstring); ``zoh_batched`` is the reference.
     """
     dt = params.dt if dt is None else float(dt)
-    f = np.atleast_1d(np.asarray(f, dtype=float))
+    f = np.atleast_1d(np.asarray(braking_rate, dtype=float))
     P0, P1, B0, B1, Qd = _affine_pieces(params, dt)
     Phi = P0 + f[:, None, None] * P1
     Bd = B0 + f[:, None, None] * B1
@@ -243,7 +242,7 @@ class BrakingModel:
         vs = self.params.standstill_speed
         return not (vs is not None and abs(float(x_mean[1])) <= vs)
 
-    def hold_gain(self, u, x_mean, f_mean: float) -> float:
+    def hold_gain(self, u, x_mean, braking_rate_mean: float) -> float:
         """Gain of a step that does not inform f (one model shared by every particle).
 
         Traction or coasting: 1 (f scales braking only). Braking at standstill: 0 (the train is
@@ -255,24 +254,115 @@ class BrakingModel:
         vs = self.params.standstill_speed
         if vs is not None and abs(float(x_mean[1])) <= vs:
             return 0.0
-        return float(f_mean)
+        return float(braking_rate_mean)
+
+    def braking_rates(self, theta, u, informative: bool, hold: float | None = None
+                      ) -> np.ndarray:
+        """The braking rate each particle's model uses this step: ``theta`` if informative, else
+        the one shared gain (``hold`` if given, else 1 for traction and 0 for braking)."""
+        if informative:
+            return np.asarray(theta, dtype=float).reshape(-1)
+        if hold is not None:
+            return np.array([float(hold)])
+        return np.array([1.0 if float(u[0]) >= 0.0 else 0.0])
+
+    def predict(self, x, P, theta, u, dt: float, informative: bool, hold: float | None = None):
+        """KF prediction of every particle, ``batched_kf.predict(x, P, *self.matrices(...))``
+        computed through the affine form (module docstring) instead of per-particle matrices.
+
+        With ``Phi(f) = Phi0 + f E`` the prediction is a quadratic polynomial in f whose
+        coefficients are *linear maps of (x, P) that do not depend on f*::
+
+            x' = Phi0 x + B0 u + f (E x + B1 u)
+            P' = Phi0 P Phi0^T + f (E P Phi0^T + Phi0 P E^T) + f^2 E P E^T + Qd
+
+        so one matrix product (``KP``: the three linear maps, cached per dt) gives all three for
+        every particle, combined by Horner's rule with each particle's f: no (N, 4, 4) model
+        stack, no batched 4x4 matmuls. Only the 10 distinct entries of the symmetric P' are
+        computed and copied to both (i, j) and (j, i): P' is exactly symmetric. Internally the
+        particles are on the last axis (long contiguous rows for the elementwise Horner steps).
+        Equal to the generic path up to rounding (``test_braking_model.py``).
+        """
+        f = self.braking_rates(theta, u, informative, hold)
+        Kx, KP, Qd, full = _predict_maps(self.params, float(dt))
+        u = np.asarray(u, dtype=float)
+        N = x.shape[0]
+        bu = (u @ Kx[4:])[:, None]  # (8, 1): B0 u | B1 u
+        Xt = _matmul_cols(Kx[:4].T, x.T)  # (8, N): Phi0 x | E x
+        xt = Xt[4:] + bu[4:]
+        xt *= f
+        xt += Xt[:4]
+        xt += bu[:4]
+        Yt = _matmul_cols(KP, P.reshape(N, 16).T)  # (30, N): f^0, f^1, f^2 coefficients
+        Pu = Yt[20:] * f
+        Pu += Yt[10:20]
+        Pu *= f
+        Pu += Yt[:10]
+        Pu += Qd
+        return xt.T.copy(), Pu.T[:, full].reshape(N, 4, 4)
 
     def matrices(self, theta, u, dt: float, informative: bool, hold: float | None = None):
         """``Phi (K,4,4)``, ``Bu (K,4)``, ``Qd (4,4)``; ``K = len(theta)`` if informative else 1
         (with gain ``hold`` if given, else 1 for traction and 0 for braking)."""
         u = np.asarray(u, dtype=float)
-        if informative:
-            f = np.asarray(theta, dtype=float).reshape(-1)
-        elif hold is not None:
-            f = np.array([float(hold)])
-        else:
-            f = np.array([1.0 if u[0] >= 0.0 else 0.0])
-        Phi, Bd, Qd = discretize(f, self.params, dt)
+        Phi, Bd, Qd = discretize(self.braking_rates(theta, u, informative, hold), self.params, dt)
         return Phi, Bd @ u, Qd
 
 
+_MAX_MNK = 200_000
+
+
+def _matmul_cols(K, A):
+    """``K @ A`` for a small ``K`` and many columns (particles), in blocks of columns small
+    enough (``m n k`` below ``_MAX_MNK``) that OpenBLAS keeps each product in the calling
+    thread. Why: above ~2.6 x 10^5 multiply-adds it splits a product over threads, and on a
+    loaded machine the calling thread then waits milliseconds for them (measured for
+    (30 x 16) @ (16 x 1350): 6 ms median, 23 us in one thread). A loop over blocks of
+    particles, not over particles."""
+    n = A.shape[1]
+    block = max(1, _MAX_MNK // (K.shape[0] * K.shape[1]))
+    if n <= block:
+        return K @ A
+    out = np.empty((K.shape[0], n))
+    for i in range(0, n, block):
+        np.matmul(K, A[:, i:i + block], out=out[:, i:i + block])
+    return out
+
+
+# the 10 distinct entries (i <= j) of a symmetric 4 x 4 matrix, and where each of the 16 goes
+_UPPER = [(i, j) for i in range(4) for j in range(i, 4)]
+_FULL = np.array([_UPPER.index((min(i, j), max(i, j))) for i in range(4) for j in range(4)])
+
+
+def _predict_maps(params: BrakingParams, dt: float):
+    """Linear maps of ``BrakingModel.predict`` for one dt, cached (bounded): ``Kx (6, 8)``
+    (rows 0-3: ``x -> (Phi0 x, E x)`` as right factors; rows 4-5: ``u -> (B0 u, B1 u)``),
+    ``KP (30, 16)`` (``vec(P)`` -> the 10 distinct entries of the f^0, f^1 and f^2
+    coefficients of P', row-major vec), ``Qd``'s 10 distinct entries (a column) and the
+    index that spreads 10 distinct entries over the 16 of a symmetric matrix."""
+    key = ("maps", params, float(dt))
+    hit = _CACHE.get(key)
+    if hit is None:
+        P0, E, B0, B1, Qd = _affine_pieces(params, dt)
+        Kx = np.zeros((6, 8))
+        Kx[:4, :4] = P0.T
+        Kx[:4, 4:] = E.T
+        Kx[4:, :4] = B0.T
+        Kx[4:, 4:] = B1.T
+        # vec(A P B^T) = kron(A, B) vec(P) for row-major vec
+        up = [4 * i + j for i, j in _UPPER]
+        K0 = np.kron(P0, P0)[up]
+        K1 = (np.kron(E, P0) + np.kron(P0, E))[up]
+        K2 = np.kron(E, E)[up]
+        hit = (Kx, np.vstack([K0, K1, K2]), Qd.reshape(16)[up][:, None], _FULL)
+        if len(_CACHE) > 64:
+            _CACHE.clear()
+        _CACHE[key] = hit
+    return hit
+
+
 def augmented_model(params: BrakingParams, u, dt: float, az_mean: float, informative: bool,
-                    hold: float | None = None, q_f: float = 0.0):
+                    hold: float | None = None, q_braking_rate: float = 0.0):
     """The braking model with f as a fifth state, ``z = (D, v, a_hat, a_z, f)``: ``z' = F z + b +
     w``, ``w ~ N(0, Q)``, exactly linear when ``a_z`` is known.
 
@@ -283,8 +373,9 @@ def augmented_model(params: BrakingParams, u, dt: float, az_mean: float, informa
     to the *known* command; ``az_mean`` is its value at the start of the step), the f column is
     the known vector ``c = (Phi(1) - Phi(0))[:, 3] az_mean + (B(1) - B(0)) u`` and a Kalman
     filter on ``z`` is the exact Bayesian estimator for a Gaussian prior on f and the random walk
-    ``f' = f + N(0, q_f dt)``. (``a_z`` itself evolves independently of everything else; its
-    row and column are carried unchanged, and an ``a_z`` reading updates it alone.)
+    ``f' = f + N(0, q_braking_rate dt)``. (``a_z`` itself evolves independently of
+    everything else; its row and column are carried unchanged, and an ``a_z`` reading updates
+    it alone.)
 
     Steps that cannot inform f (``informative`` False: traction, standstill, weak trim) use the
     shared model of gain ``hold`` (``BrakingModel.matrices``) with no f column and no f noise: the
@@ -302,7 +393,7 @@ def augmented_model(params: BrakingParams, u, dt: float, az_mean: float, informa
         F[:4, :4] = P0
         F[:4, 4] = P1[:, 3] * float(az_mean) + B1 @ u
         b[:4] = B0 @ u
-        Q[4, 4] = float(q_f) * float(dt)
+        Q[4, 4] = float(q_braking_rate) * float(dt)
     else:
         g = (1.0 if u[0] >= 0.0 else 0.0) if hold is None else float(hold)
         Phi, Bd, Qd = discretize(np.array([g]), params, dt)
@@ -310,30 +401,3 @@ def augmented_model(params: BrakingParams, u, dt: float, az_mean: float, informa
         b[:4] = Bd[0] @ u
     Q[:4, :4] = Qd
     return F, b, Q
-
-
-def simulate_open_loop(params: BrakingParams, f_seq, u_seq, x0, rng: np.random.Generator,
-                       meas_std=None, dt: float | None = None):
-    """Data from the discrete model itself (Zheng Section 4): ``x_k = Phi(f_k) x_{k-1} + B(f_k)
-    u_k + w_k``, ``y_k = C x_k + e_k`` for k = 1..K.
-
-    ``u_seq (K, 2)`` is held over ``(k-1, k]``; ``f_seq (K,)`` is the true braking rate on that
-    interval. Returns ``x (K+1, 4)`` (``x[0] = x0``) and ``y (K, 3)``. ``meas_std`` defaults to
-    the square root of ``params.meas_var``.
-    """
-    f_seq = np.asarray(f_seq, dtype=float)
-    u_seq = np.asarray(u_seq, dtype=float).reshape(len(f_seq), -1)
-    K = len(f_seq)
-    dt = params.dt if dt is None else dt
-    Phi, Bd, Qd = discretize(f_seq, params, dt)
-    # Qd may be rank one ("zoh"): an eigen factor is exact for PSD matrices, Cholesky is not.
-    ev, V = np.linalg.eigh(Qd)
-    Lq = V * np.sqrt(np.clip(ev, 0.0, None))
-    sd = np.sqrt(np.asarray(params.meas_var)) if meas_std is None else np.asarray(meas_std)
-    x = np.empty((K + 1, 4))
-    x[0] = x0
-    w = rng.standard_normal((K, 4)) @ Lq.T
-    for k in range(K):  # a time loop (not a particle loop): the truth is one trajectory
-        x[k + 1] = Phi[k] @ x[k] + Bd[k] @ u_seq[k] + w[k]
-    y = x[1:] @ C_ROWS.T + rng.standard_normal((K, 3)) * sd
-    return x, y

@@ -1,0 +1,183 @@
+"""Braking-rate filters with a continuous parameter: Q-GRBPF (Guan, Fang, Hu) in its paper form
+and a Gauss-Hermite form, and the random-walk RBPF it is compared with (``braking_filters``
+gives the overview).
+
+Pure: numpy/scipy only; randomness only through the ``rng`` argument.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.special import ndtr
+
+from .batched_kf import mixture_moments
+from .braking_base import RaoBlackwellFilter, _Set, _weights, _wsum
+from .smc import log_normalize, systematic_resample
+
+__all__ = ["QGRBPF", "RandomWalkRBPF"]
+
+
+def _reflect(theta, lo, hi):
+    """Reflect into ``[lo, hi]`` (per column); keeps a Gaussian draw's shape near the bounds."""
+    width = hi - lo
+    y = np.mod(theta - lo, 2.0 * width)
+    y = np.where(y > width, 2.0 * width - y, y)
+    return lo + y
+
+
+# ----------------------------------------------------------------------------------------------
+# continuous parameter
+
+
+class _ContinuousBase(RaoBlackwellFilter):
+    def __init__(self, family, bounds, n_particles: int, q_theta, prior=None):
+        super().__init__(family)
+        if prior is not None:
+            m, sd = (float(a) for a in np.broadcast_to(np.asarray(prior, float), (2,)))
+            if not (np.isfinite(m) and np.isfinite(sd) and sd > 0):
+                raise ValueError(f"prior must be a finite (mean, std > 0), got {prior!r}")
+        self.prior = prior
+        b = np.asarray(bounds, dtype=float).reshape(-1, 2)
+        if b.shape[0] != family.d or not np.all(b[:, 1] > b[:, 0]):
+            raise ValueError("bounds: one (lo, hi) with lo < hi per parameter")
+        self.lo, self.hi = b[:, 0], b[:, 1]
+        self.n = int(n_particles)
+        q = np.asarray(q_theta, dtype=float)
+        self.q_theta = np.diag(np.broadcast_to(q, (family.d,))) if q.ndim <= 1 else q
+        if not np.all(np.linalg.eigvalsh(self.q_theta) >= 0):
+            raise ValueError("q_theta must be positive semi-definite")
+
+    def _initial_theta(self, rng):
+        # Q-GRBPF step 1: uniform in [theta_min, theta_max]; with ``prior`` = (mean, std):
+        # N(mean, std^2) reflected into the bounds
+        if self.prior is None:
+            return self.lo + (self.hi - self.lo) * rng.random((self.n, self.family.d)), None
+        m, sd = self.prior
+        th = m + sd * rng.standard_normal((self.n, self.family.d))
+        return _reflect(th, self.lo, self.hi), None
+
+
+class QGRBPF(_ContinuousBase):
+    """Quasi-Gaussian RBPF (Guan, Fang, Hu), continuous theta, see the module docstring.
+
+    Each informative step starts by redrawing the parameter particles from the Gaussian
+    approximation of the posterior, eq. (7)-(9), widened by the random-walk kernel
+    ``Q_theta dt`` (``q_theta`` per second; 0 = static parameter) and floored at ``min_var``
+    (so it cannot collapse to a point): ``theta_j = theta_hat + L z_j``, reflected into
+    ``bounds``, equal weights.
+
+    Pairing with KF states (paper step (5), eq. (17)). The paper draws uniforms ``u_p`` and finds
+    ``l`` with ``sum_{j<l} q_j < u_p <= sum_{j<=l} q_j``. We use ``u_p = Phi(z_p1)`` (``z_p1``: the
+    coordinate of draw p along the principal axis of the Gaussian, ``Phi`` the normal CDF, so
+    ``u_p`` is exactly uniform) and the old particles sorted along that axis with their weights:
+    the search then maps each new theta to the old particle at the same weighted quantile, i.e.
+    the monotone (optimal-transport) coupling, so a new f inherits the KF state of a particle
+    with a similar f. With ``u_p`` independent of ``z_p`` the pairing would be random and the
+    KF states (a_hat depends on f) would not match their parameter.
+    (The paper says resampling is omitted and still performs this search: the search *is* a
+    multinomial resampling of the KF states. What it omits is resampling of the parameters.)
+    """
+
+    name = "qgrbpf"
+
+    def __init__(self, family, bounds, n_particles: int = 50, q_theta=0.0, min_var=1e-8,
+                 prior=None, quadrature: bool = False):
+        super().__init__(family, bounds, n_particles, q_theta, prior)
+        self.min_var = float(min_var)
+        self.quadrature = bool(quadrature)
+        if self.quadrature:
+            if family.d != 1:
+                raise ValueError("quadrature: one parameter only")
+            z, wq = np.polynomial.hermite_e.hermegauss(self.n)  # nodes/weights for N(0, 1)
+            self._gh = (z, np.log(wq / wq.sum()))
+
+    def _initial_theta(self, rng):
+        if not self.quadrature:
+            return super()._initial_theta(rng)
+        m, sd = self.prior if self.prior is not None else (
+            0.5 * (self.lo[0] + self.hi[0]), (self.hi[0] - self.lo[0]) / np.sqrt(12.0))
+        return np.clip(m + sd * self._gh[0], self.lo, self.hi)[:, None], None
+
+    def _initial_logw(self, N):
+        return self._gh[1].copy() if self.quadrature else None
+
+    def _transition(self, s, informative, rng, dt):
+        if not informative:
+            return s  # frozen: keep particles and weights
+        if self.quadrature:
+            return self._transition_quadrature(s, dt)
+        N, dth = self.n, self.family.d
+        w, _ = log_normalize(s.logw)
+        mu, cov = mixture_moments(w, s.theta)  # eq. (7), (8)
+        cov = cov + self.q_theta * dt + self.min_var * np.eye(dth)
+        if dth == 1:  # the braking rate: the principal axis is the axis (no LAPACK call)
+            ev, V = cov.reshape(1), np.ones((1, 1))
+        else:
+            ev, V = np.linalg.eigh(cov)
+            ev, V = ev[::-1], V[:, ::-1]  # principal axis first
+        z = rng.standard_normal((N, dth))
+        theta = mu + (z * np.sqrt(np.clip(ev, 0.0, None))) @ V.T  # eq. (9)
+        theta = _reflect(theta, self.lo, self.hi)
+        # eq. (17) with u_p = Phi(z_p1): weighted quantile search along the principal axis
+        proj = (s.theta - mu) @ V[:, 0]
+        order = np.argsort(proj, kind="stable")
+        cdf = np.cumsum(w[order])
+        cdf[-1] = 1.0
+        anc = order[np.minimum(np.searchsorted(cdf, ndtr(z[:, 0]), side="left"), w.size - 1)]
+        return _Set(theta, s.x[anc], s.P[anc], np.full(N, -np.log(N)))
+
+    def _transition_quadrature(self, s, dt):
+        """Deterministic form (``quadrature=True``): the Gaussian of eq. (7)-(9) over
+        ``(x, theta)`` jointly, represented by ``N`` Gauss-Hermite nodes in theta; no random
+        draw and no resampling search. The KF state of node j is the Gaussian conditional
+        ``E[x | theta_j] = x_bar + C_x,theta / var (theta_j - theta_hat)`` with the conditional
+        covariance ``Sigma_x - C C^T / var`` (``var`` includes the random-walk step, which is
+        independent of x). The nodes' weighted mixture then has exactly the joint Gaussian's
+        mean and covariance. Because theta enters the braking model linearly, few nodes suffice.
+        """
+        w, _ = log_normalize(s.logw)
+        th = s.theta[:, 0]
+        mu = w @ th
+        dth = th - mu
+        var = w @ (dth * dth) + self.q_theta[0, 0] * dt + self.min_var
+        xm = _wsum(w, s.x)
+        dx = s.x - xm
+        cxt = (w * dth) @ dx  # (n,) Cov(x, theta)
+        Sx = _wsum(w, s.P) + (w[:, None] * dx).T @ dx
+        beta = cxt / var
+        Pc = Sx - np.outer(cxt, beta)
+        z, lw = self._gh
+        theta = np.clip(mu + np.sqrt(var) * z, self.lo[0], self.hi[0])
+        x = xm + (theta - mu)[:, None] * beta[None, :]
+        P = np.repeat(0.5 * (Pc + Pc.T)[None], z.size, axis=0)
+        return _Set(theta[:, None], x, P, lw.copy())
+
+
+class RandomWalkRBPF(_ContinuousBase):
+    """Bootstrap RBPF with a Gaussian random-walk kernel ``theta_k = theta_{k-1} + N(0, Q dt)``
+    (reflected into ``bounds``) and systematic resampling when ``N_eff < ess_frac N``."""
+
+    name = "rbpf_rw"
+
+    def __init__(self, family, bounds, n_particles: int = 250, q_theta=1e-4,
+                 ess_frac: float = 0.5, prior=None):
+        super().__init__(family, bounds, n_particles, q_theta, prior)
+        self.ess_frac = float(ess_frac)
+        ev, V = np.linalg.eigh(self.q_theta)
+        self._L = V * np.sqrt(np.clip(ev, 0.0, None))
+
+    def _transition(self, s, informative, rng, dt):
+        if not informative:
+            return s
+        theta = s.theta + np.sqrt(dt) * rng.standard_normal(s.theta.shape) @ self._L.T
+        return _Set(_reflect(theta, self.lo, self.hi), s.x, s.P, s.logw)
+
+    def _after(self, s, informative, rng):
+        if not informative:
+            return s
+        N = s.theta.shape[0]
+        w = _weights(s.logw)
+        if 1.0 / np.sum(w * w) >= self.ess_frac * N:
+            return s
+        a = systematic_resample(w, rng, N)
+        return _Set(s.theta[a], s.x[a], s.P[a], np.full(N, -np.log(N)))

@@ -1,0 +1,139 @@
+"""Kalman-filter braking estimators: the exact reference ``BrakingKF`` (f in the state) and the
+``OracleKF`` told the true braking rate (``braking_filters`` gives the overview).
+
+Pure: numpy only.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .batched_kf import predict
+from .braking_base import Estimate, RaoBlackwellFilter, _Set
+from .braking_model import augmented_model
+
+__all__ = ["BrakingKF", "OracleKF"]
+
+
+class OracleKF(RaoBlackwellFilter):
+    """The Kalman filter that is told the true parameter of every step (one particle)."""
+
+    name = "oracle"
+
+    def reset(self, x0, P0, rng=None, theta0=1.0, t0=None) -> Estimate:
+        return super().reset(x0, P0, None, np.atleast_1d(np.asarray(theta0, float))[:1], t0)
+
+    def step(self, a_tar, y=None, mask=None, rng=None, *, theta_true=None, **kw) -> Estimate:
+        """As ``RaoBlackwellFilter.step``; ``theta_true``: the true parameter over this step."""
+        if theta_true is not None:
+            th = np.asarray(theta_true, dtype=float).reshape(1, -1)
+            if not np.all(np.isfinite(th)):
+                return self._reject(f"non-finite true parameter: {theta_true!r}")
+            self._pending = th
+        try:
+            return super().step(a_tar, y, mask, rng, **kw)
+        finally:
+            self._pending = None
+
+    _pending = None
+
+    def _transition(self, s, informative, rng, dt):
+        if self._pending is None:
+            return s
+        return _Set(self._pending.copy(), s.x, s.P, s.logw)
+
+
+# ----------------------------------------------------------------------------------------------
+# the exact reference: one Kalman filter with f in the state
+
+
+class _AugmentedFamily:
+    """``BrakingModel`` seen with f as a fifth KF state (``braking_model.augmented_model``).
+
+    Only what the common step needs: ``n`` = 5, no particle parameter (``d`` = 0), the
+    measurement rows padded with a zero f column, the braking model's gates.
+    """
+
+    n = 5
+    d = 0
+    report_index = (0, 1, 2, 4)  # D, v, a_hat, f
+
+    def __init__(self, family):
+        self.base = family
+        self.params = family.params
+        self.H = np.hstack([family.H, np.zeros((family.H.shape[0], 1))])
+        self.R = family.R
+
+    def default_dt(self) -> float:
+        return self.base.default_dt()
+
+    def gate(self, u, x_mean) -> bool:
+        return self.base.gate(u, x_mean)
+
+    def hold_gain(self, u, x_mean, braking_rate_mean: float) -> float:
+        return self.base.hold_gain(u, x_mean, braking_rate_mean)
+
+
+class BrakingKF(RaoBlackwellFilter):
+    """Kalman filter on ``(D, v, a_hat, a_z, f)`` with f a random walk: the exact Bayesian
+    estimator of the braking model for a Gaussian prior on f, given the known command (see
+    ``braking_model.augmented_model``; exact when ``a_z`` is known, i.e. its variance is 0 --
+    ``a_z`` is the Pade response to the command, so in the live system it is). One "particle";
+    the common step (validation, rejection, gating, ``batched_kf.predict`` / ``update``) is the
+    base class's.
+
+    ``f_prior = (mean, std)`` of f at reset (``reset(theta0=...)`` overrides the mean);
+    ``q_theta`` (1/s): random-walk variance of f per second of *informative* time (frozen
+    otherwise, like the particle filters).
+    """
+
+    name = "kf"
+
+    def __init__(self, family, q_theta: float = 1e-4, f_prior=(1.0, 0.15)):
+        if not (np.isfinite(q_theta) and q_theta >= 0):
+            raise ValueError(f"q_theta must be finite and >= 0, got {q_theta!r}")
+        m, sd = (float(v) for v in f_prior)
+        if not (np.isfinite(m) and np.isfinite(sd) and sd >= 0):
+            raise ValueError(f"f_prior must be a finite (mean, std >= 0), got {f_prior!r}")
+        super().__init__(_AugmentedFamily(family))
+        self.q_theta = float(q_theta)
+        self.f_prior = (m, sd)
+
+    def reset(self, x0, P0, rng=None, theta0=None, t0=None) -> Estimate:
+        """``x0 (4,)``, ``P0 (4, 4)``: (D, v, a_hat, a_z) as for the particle filters; f starts
+        at ``N(theta0 or f_prior mean, f_prior std^2)``, uncorrelated with the rest."""
+        x0 = np.asarray(x0, dtype=float).reshape(4)
+        P0 = np.asarray(P0, dtype=float).reshape(4, 4)
+        m = self.f_prior[0] if theta0 is None else float(np.mean(theta0))
+        z = np.append(x0, m)
+        Pz = np.zeros((5, 5))
+        Pz[:4, :4] = P0
+        Pz[4, 4] = self.f_prior[1] ** 2
+        est = super().reset(z, Pz, None, np.zeros((1, 0)), t0)
+        return est
+
+    def _theta_from_values(self, values):
+        return np.zeros((1, 0)), None
+
+    def _reduce(self, s, loglik, informative, rng):
+        # one Gaussian: its weight stays 1 and the log evidence is its log likelihood (what the
+        # base class's log-normalisation of a single weight returns, without the array work)
+        logz = float(loglik[0])
+        if not np.isfinite(logz):
+            raise ValueError("log-weights: none finite, or NaN/+inf")
+        return s, logz
+
+    def _predict(self, s, u, dt, informative):
+        hold = None
+        if not informative:
+            hold = self.family.hold_gain(u, self._last.x_mean, float(self._last.theta_mean[0]))
+        F, b, Q = augmented_model(self.family.params, u, dt, float(s.x[0, 3]), informative,
+                                  hold, self.q_theta)
+        return predict(s.x, s.P, F[None], b[None], Q)
+
+    def _summary(self, s, accepted, reason, informative, used, log_ev, t=None) -> Estimate:
+        x, P = s.x[0], s.P[0]
+        ri = list(self.family.report_index)
+        return Estimate(accepted, reason, self._t if t is None else float(t), x[ri],
+                        P[np.ix_(ri, ri)], x[:4], P[:4, :4], x[4:], P[4:, 4:], 1, 1.0,
+                        bool(informative), bool(used), float(log_ev))
