@@ -45,13 +45,14 @@ MOTION = ("gradient", "resistance", "braking_rate", "brake_delay", "mass")
 LABELS = CAUSES + ("none",)
 
 
-def case_list(n: int, sizes, n_pairs: int, seed: int) -> list[dict]:
+def case_list(n: int, sizes, n_pairs: int, seed: int, n_nominal: int | None = None
+              ) -> list[dict]:
     """The case specifications (deterministic in seed): index -> (causes, size)."""
     specs = []
     for size in sizes:
         for c in CAUSES:
             specs += [{"causes": (c,), "size": size} for _ in range(n)]
-    specs += [{"causes": (), "size": "plain"} for _ in range(n)]
+    specs += [{"causes": (), "size": "plain"} for _ in range(n if n_nominal is None else n_nominal)]
     rng = np.random.default_rng([seed, 99])
     for _ in range(n_pairs):
         a, b = rng.choice(len(CAUSES), size=2, replace=False)
@@ -228,12 +229,18 @@ def main(argv=None) -> int:
     p.add_argument("--pairs", type=int, default=None, help="pairs (default: --cases x 3)")
     p.add_argument("--seed", type=int, default=0, help="seed of every case (default 0)")
     p.add_argument("--jobs", type=int, default=1, help="parallel processes (default 1)")
-    p.add_argument("--sizes", default="plain,subtle", help="sizes (default plain,subtle)")
+    p.add_argument("--sizes", default="plain,subtle",
+                   help="sizes (default plain,subtle; '' for no single-cause bags)")
+    p.add_argument("--nominal", type=int, default=None,
+                   help="bags with no effect (default: --cases), e.g. --sizes '' --pairs 0 "
+                        "--nominal 40 for the false-alarm rate alone")
+    p.add_argument("--name", default="diagnose",
+                   help="output files benchmarks/out/NAME.md and NAME.json (default diagnose)")
     args = p.parse_args(argv)
     if args.pairs is None:
         args.pairs = 3 * args.cases
     sizes = [s for s in args.sizes.split(",") if s]
-    specs = case_list(args.cases, sizes, args.pairs, args.seed)
+    specs = case_list(args.cases, sizes, args.pairs, args.seed, args.nominal)
     bar = Bar(len(specs))
     results = []
     bar(0)
@@ -249,11 +256,11 @@ def main(argv=None) -> int:
     md = tables(results, sizes, args)
     print(md)
     os.makedirs(OUT, exist_ok=True)
-    with open(os.path.join(OUT, "diagnose.md"), "w") as f:
+    with open(os.path.join(OUT, f"{args.name}.md"), "w") as f:
         f.write(md)
-    with open(os.path.join(OUT, "diagnose.json"), "w") as f:
+    with open(os.path.join(OUT, f"{args.name}.json"), "w") as f:
         json.dump(results, f, indent=1, default=str)
-    print(f"wrote {os.path.join(OUT, 'diagnose.md')} and diagnose.json")
+    print(f"wrote {os.path.join(OUT, args.name + '.md')} and {args.name}.json")
     return 0
 
 
