@@ -131,7 +131,8 @@ def tables(results: list[dict], sizes, args) -> str:
     md = []
     ok = [r for r in results if r.get("rc") == 0]
     failed = [r for r in results if r.get("rc") != 0]
-    md.append(f"# diagnose benchmark: {args.cases} case(s) per cause and size, {args.cases} "
+    n_nom = args.cases if args.nominal is None else args.nominal
+    md.append(f"# diagnose benchmark: {args.cases} case(s) per cause and size, {n_nom} "
               f"nominal, {args.pairs} pairs, seed {args.seed}\n")
     crashed = [r for r in failed if r.get("rc") == "crash"]
     md.append(f"{len(results)} bags, {len(failed) - len(crashed)} refused (exit != 0), "
