@@ -100,7 +100,11 @@ def build_estimator_node(name: str, topic: str, make_adapter: Callable):
             self.n_events = 0
             self.steady = Clock(clock_type=ClockType.STEADY_TIME)
             self.arrived: dict[float, float] = {}  # odometer stamp -> arrival (steady s)
-            self.latency: list[float] = []  # s, odometer received -> its estimate published
+            # s, odometer received -> its estimate published, in the steady state and in the
+            # start-up (the runner starts on the third sample and judges each clock's stamps
+            # once min_judged have arrived: those first samples wait by design)
+            self.latency: list[float] = []
+            self.latency_startup: list[float] = []
             self.separate_logged = False
             self.delay = common["output_delay"]
             self.wait_subs = common["wait_for_subscribers"]
@@ -161,7 +165,10 @@ def build_estimator_node(name: str, topic: str, make_adapter: Callable):
                 self.pub.publish(msg)
                 t_recv = self.arrived.pop(out.stamp, None)
                 if t_recv is not None:
-                    self.latency.append(self.steady.now().nanoseconds * 1e-9 - t_recv)
+                    lat = self.steady.now().nanoseconds * 1e-9 - t_recv
+                    startup = len(self.latency) + len(self.latency_startup) < \
+                        self.runner.min_judged + 3
+                    (self.latency_startup if startup else self.latency).append(lat)
             if len(self.arrived) > 1000:  # samples that never became an estimate (refused)
                 self.arrived.clear()
             events = sum(self.runner.events.values())
@@ -187,7 +194,10 @@ def build_estimator_node(name: str, topic: str, make_adapter: Callable):
                 p50, p99 = lat[len(lat) // 2], lat[min(len(lat) - 1, int(0.99 * len(lat)))]
                 self.get_logger().info(f"latency odometer received -> estimate published: "
                                        f"p50 {1e3 * p50:.2f} ms, p99 {1e3 * p99:.2f} ms, "
-                                       f"max {1e3 * lat[-1]:.2f} ms over {len(lat)} samples")
+                                       f"max {1e3 * lat[-1]:.2f} ms over {len(lat)} samples"
+                                       f" (steady state; start-up: max "
+                                       f"{1e3 * max(self.latency_startup, default=0.0):.2f} ms "
+                                       f"over the first {len(self.latency_startup)})")
             self.get_logger().info(f"accepted {dict(self.runner.accepted)}; "
                                    f"rejected {dict(self.runner.rejected) or 'none'}; "
                                    f"events {dict(self.runner.events) or 'none'}")
