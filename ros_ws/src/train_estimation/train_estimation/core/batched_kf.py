@@ -31,59 +31,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from .kalman import predict, update
+
+# the steps live in kalman.py (one implementation); re-exported for the particle filters
 __all__ = ["predict", "update", "mixture_moments"]
-
-_LOG2PI = float(np.log(2.0 * np.pi))
-
-
-def _sym(P):
-    return 0.5 * (P + np.swapaxes(P, -1, -2))
-
-
-def predict(x, P, Phi, Bu, Qd):
-    """One prediction step for every particle (see module docstring).
-
-    ``Phi (N or 1, n, n)``, ``Bu (N or 1, n)``, ``Qd (n, n)``.
-    """
-    if Phi.shape[0] == x.shape[0]:
-        x_new = np.matmul(Phi, x[:, :, None])[:, :, 0] + Bu
-    else:
-        x_new = x @ Phi[0].T + Bu
-    P_new = np.matmul(np.matmul(Phi, P), np.swapaxes(Phi, -1, -2)) + Qd
-    return x_new, _sym(P_new)
-
-
-def update(x, P, y, H, R, mask):
-    """Sequential exact update of every particle with the rows ``mask`` of ``y``.
-
-    ``y (p,)``, ``H (p, n)``, ``R (p,)`` variances (> 0), ``mask (p,)`` bool (missing
-    components are skipped). Returns ``(x+, P+, loglik (N,))``; with no row used,
-    ``(x, P, 0)``.
-    """
-    mask = np.asarray(mask, dtype=bool)
-    H = np.asarray(H, dtype=float)
-    R = np.asarray(R, dtype=float)
-    y = np.asarray(y, dtype=float)
-    loglik = np.zeros(x.shape[0])
-    for j in np.flatnonzero(mask):  # rows (at most a handful), not particles
-        h = H[j]
-        nz = np.flatnonzero(h)
-        if nz.size == 1 and h[nz[0]] == 1.0:  # selector row: no matmul needed
-            i = nz[0]
-            Ph = P[:, :, i]  # (N, n)
-            e = y[j] - x[:, i]
-        else:
-            Ph = P @ h
-            e = y[j] - x @ h
-        s = Ph @ h + R[j]  # (N,)
-        k = Ph / s[:, None]
-        x = x + k * e[:, None]
-        # P - s k k^T = P - (Ph)(Ph)^T / s: elements (i, j) and (j, i) are the same products, so
-        # P stays exactly symmetric (the "symmetrised" form; Joseph's form would cost three
-        # outer products per row, ~2x the time of the whole update, for no gain at R > 0)
-        P = P - (Ph[:, :, None] * Ph[:, None, :]) / s[:, None, None]
-        loglik = loglik - 0.5 * (_LOG2PI + np.log(s) + e * e / s)
-    return x, P, loglik
 
 
 def mixture_moments(w, means, covs=None):

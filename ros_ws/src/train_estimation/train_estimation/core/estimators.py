@@ -18,13 +18,9 @@ from train_core.model import Line, TrainParams
 from . import reasons as R
 from .braking_filters import GSMA, QGRBPF, SMA, BrakingKF, DiscreteRBPF, sticky_transition
 from .braking_model import BrakingModel, BrakingParams
-from .robust_filter import (
-    BaliseReading,
-    FilterParams,
-    OdometerReading,
-    RobustFilter,
-    covariance16,
-)
+from .filter_base import filter_params_from_train
+from .readings import BaliseReading, OdometerReading, covariance16
+from .robust_filter import RobustFilter
 from .runner import Output
 from .wen_model import WenModel
 
@@ -77,11 +73,10 @@ class RobustAdapter:
     def __init__(self, train: TrainParams, line: Line, start: StartState,
                  cfg: RobustConfig = RobustConfig(), filter_cls=RobustFilter):
         self.model = WenModel.from_params(train, line, q=cfg.q)
-        self.params = FilterParams(alpha_bar=cfg.alpha_bar, epsilon=cfg.epsilon, gate=cfg.gate,
-                                   use_distance=cfg.use_distance,
-                                   distance_variance=cfg.distance_variance,
-                                   speed_variance=train.odometer_speed_std ** 2,
-                                   odometer_origin=start.position)
+        self.params = filter_params_from_train(
+            train, alpha_bar=cfg.alpha_bar, epsilon=cfg.epsilon, gate=cfg.gate,
+            use_distance=cfg.use_distance, distance_variance=cfg.distance_variance,
+            odometer_origin=start.position)
         self.train, self.start_state, self.cfg, self.filter_cls = train, start, cfg, filter_cls
         self.f: RobustFilter | None = None
         self.last_odo: tuple[float, int] | None = None  # (stamp, seq) of the last odometer slot
@@ -264,7 +259,7 @@ class BrakingAdapter:
         self.fam = BrakingModel(BrakingParams(
             tau=train.brake.time_constant, delay=train.brake.delay, dt=cfg.transition_interval,
             noise_model="white", accel_var=cfg.accel_var, ahat_var=cfg.ahat_var,
-            meas_var=(cfg.distance_variance, train.odometer_speed_std ** 2, 1.0),
+            meas_var=(cfg.distance_variance, train.odometer_speed_variance, 1.0),
             standstill_speed=cfg.standstill_speed, min_brake=cfg.min_brake))
         values = np.asarray(cfg.values, dtype=float)
         M, p = len(values), cfg.branch_p_move

@@ -352,7 +352,7 @@ def identify(data: SIData, line: Line, prior: TrainParams, config: SIConfig = SI
     if "odo_speed_variance" in d:
         r_v = d["odo_speed_variance"][sel]
     else:
-        r_v = np.full(t.size, prior.odometer_speed_std ** 2)
+        r_v = np.full(t.size, prior.odometer_speed_variance)
     r_v = np.maximum(r_v, 1e-8)
     dt = np.diff(t)
 
