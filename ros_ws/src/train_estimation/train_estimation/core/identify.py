@@ -59,7 +59,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.optimize import minimize
-from scipy.signal import lfilter
+from train_core.actuator import grid_output as actuator_output
 from train_core.model import Davis, Line, TrainParams
 
 from . import kalman
@@ -147,31 +147,6 @@ class SIResult:
 
 
 # ---------------------------------------------------------------------------------------------
-
-
-def actuator_output(t_grid, ctrl_t, ctrl_a, tau: float, delay: float,
-                    brake_delay: float | None = None):
-    """(traction, braking) actuator outputs on ``t_grid`` (uniform): delayed zero-order-hold
-    command split at zero, each through the first-order lag tau (exact discretisation).
-
-    The traction part is delayed by ``delay``, the braking part by ``brake_delay`` (default the
-    same: the brake chain of train_core.actuator). The command before the first stamp is 0
-    (Zheng eq. (1): a_Tar(t - T) = 0 for t <= T).
-    """
-    t_grid = np.asarray(t_grid, float)
-    dt = t_grid[1] - t_grid[0]
-    e = np.exp(-dt / tau)
-    out = []
-    for part, d in ((np.maximum, delay), (np.minimum, delay if brake_delay is None
-                                          else brake_delay)):
-        # The grid, the delay and the command stamps often sit on one lattice (0.1 s): without
-        # a tolerance, round-off puts some grid points one command late, a 0.1 s jitter of the
-        # input that biased a, c and f on metro_demo (found by benchmarks/bench_identify.py).
-        i = np.searchsorted(ctrl_t, t_grid - d + 1e-9, side="right") - 1
-        cmd = np.where(i >= 0, ctrl_a[np.clip(i, 0, None)], 0.0)
-        # y[k] = e y[k-1] + (1 - e) x[k-1]: exact for a command held over each grid step
-        out.append(lfilter([0.0, 1.0 - e], [1.0, -e], part(cmd, 0.0)))
-    return out[0], out[1]
 
 
 def moving_average(x, width):

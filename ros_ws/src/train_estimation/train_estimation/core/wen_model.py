@@ -203,6 +203,13 @@ class Actuator:
 
     ``mean(t0, t1)`` integrates the lag exactly over the piecewise-constant delayed command and
     returns the mean achieved acceleration over ``[t0, t1]`` (the ZOH input of the step).
+
+    Why not ``train_core.actuator.Actuator`` (the same eq. (1), event based): the filter needs
+    the *mean* over each prediction step (the ZOH input of eq. (6)), not point values; it must
+    accept late commands (effective from the latest known time: message order is not the
+    world's) and run copies for predictions on copies; and ``enabled=False`` is Wen's plain
+    ``u(kT)``. Its lag state at step ends is the event actuator's output
+    (``test_wen_model.py`` checks both on a common grid).
     """
 
     def __init__(self, time_constant: float, delay: float, braking_rate: float = 1.0,
