@@ -65,6 +65,7 @@ class FilterParams:
     use_distance: bool = True  # odometer distance as a position measurement
     distance_variance: float = 1.0  # m^2, variance of origin + distance as a position reading
     speed_variance: float = 0.01  # (m/s)^2, odometer speed variance until a packet states it
+    #   (filter_params_from_train: train.yaml's, the constructors' one fallback)
     odometer_origin: float = 0.0  # m, track position where the odometer distance is zero
     balise_map_tolerance: float = 1.0  # m, max |sent position - map position|
     actuator: bool = True  # pass a_Tar through the believed delay + lag (wen_model.Actuator)
