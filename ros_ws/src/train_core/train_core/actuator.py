@@ -44,9 +44,9 @@ from collections import deque
 _EPS = 1e-9  # s, tolerance when comparing event times
 
 
-def effective_input(u: float, f: float) -> float:
+def effective_input(u: float, braking_rate: float) -> float:
     """u_eff of eq. (1): braking commands (u < 0) are scaled by the braking rate f."""
-    return u if u >= 0.0 else f * u
+    return u if u >= 0.0 else braking_rate * u
 
 
 class Actuator:
@@ -89,9 +89,9 @@ class Actuator:
         """m/s^2, the delayed command in force (traction part + braking part, before f)."""
         return self.u_tr + self.u_br
 
-    def effective(self, f: float) -> float:
+    def effective(self, braking_rate: float) -> float:
         """u_eff of eq. (1) now: traction part + f * braking part."""
-        return self.u_tr + f * self.u_br
+        return self.u_tr + braking_rate * self.u_br
 
     def copy(self) -> Actuator:
         new = Actuator.__new__(Actuator)
@@ -126,12 +126,12 @@ class Actuator:
         b = self._bpipe[0][0] if self._bpipe else math.inf
         return a if a < b else b
 
-    def segment(self, h: float, f: float) -> tuple[float, float, float]:
+    def segment(self, h: float, braking_rate: float) -> tuple[float, float, float]:
         """Advance by ``h`` with constant input (caller ensures no switch inside (t, t + h)).
 
         Returns (a_hat(t), a_hat(t + h/2), a_hat(t + h)) -- the values RK4 needs.
         """
-        ue = self.u_tr + f * self.u_br
+        ue = self.u_tr + braking_rate * self.u_br
         a0 = self.a
         e = math.exp(-0.5 * h / self.tau)
         a_mid = ue + (a0 - ue) * e
@@ -141,17 +141,18 @@ class Actuator:
         self._activate()
         return a0, a_mid, a_end
 
-    def advance(self, t_new: float, f: float = 1.0) -> float:
+    def advance(self, t_new: float, braking_rate: float = 1.0) -> float:
         """Exact evolution to ``t_new`` (splitting at activation times); returns a_hat(t_new)."""
         while self.t < t_new - _EPS:
             t_stop = min(t_new, self.next_switch())
-            self.segment(t_stop - self.t, f)
+            self.segment(t_stop - self.t, braking_rate)
             self.t = t_stop  # avoid round-off accumulation
             self._activate()
         return self.a
 
 
-def step_response(t, amplitude: float, time_constant: float, delay: float, f: float = 1.0):
+def step_response(t, amplitude: float, time_constant: float, delay: float,
+                  braking_rate: float = 1.0):
     """Closed form of eq. (1) for a step a_Tar = amplitude at t = 0 from rest (test oracle).
 
     a_hat(t) = 0 for t < T and u_eff (1 - exp(-(t - T) / tau)) afterwards.
@@ -159,7 +160,7 @@ def step_response(t, amplitude: float, time_constant: float, delay: float, f: fl
     import numpy as np
 
     t = np.asarray(t, dtype=float)
-    ue = effective_input(amplitude, f)
+    ue = effective_input(amplitude, braking_rate)
     return np.where(t < delay, 0.0, ue * (1.0 - np.exp(-(t - delay) / time_constant)))
 
 

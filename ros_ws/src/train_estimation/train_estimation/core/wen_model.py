@@ -216,7 +216,7 @@ class Actuator:
                  enabled: bool = True):
         self.tau = float(time_constant)
         self.delay = float(delay) if enabled else 0.0
-        self.f = float(braking_rate)
+        self.braking_rate = float(braking_rate)
         self.enabled = enabled
         self._cmds: list[tuple[float, float]] = []  # (stamp, a_Tar), stamps non-decreasing
         self._a = 0.0  # achieved acceleration at self._t
@@ -234,7 +234,7 @@ class Actuator:
         self._cmds.append((float(stamp), float(a_tar)))
 
     def _g(self, c: float) -> float:
-        return c if c >= 0.0 else self.f * c
+        return c if c >= 0.0 else self.braking_rate * c
 
     def _delayed(self, s: float) -> float:
         """g(a_Tar(s - T)): the command in force at time s (0 before the first command)."""
