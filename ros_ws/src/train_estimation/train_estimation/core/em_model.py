@@ -1,16 +1,8 @@
-"""Single mass-point train model of the hybrid-filter EM paper (eq. (1)-(7)) and its M-step.
+"""The M-step of the hybrid-filter EM paper for its single mass-point train model (eq. (1)-(7)).
 
-Continuous model (eq. (1)-(2)), specific forces in N/kN (newton per kilonewton of train weight)::
-
-    ds/dt = v,    dv/dt = epsilon (f(v) - w(v)),   w(v) = a + b v + c v^2,
-    epsilon = 0.0098 / (1 + d)                     # (m/s^2) per (N/kN); d = rotary allowance
-
-(1 N/kN = 1e-3 g = 0.0098 m/s^2, hence the constant.) Euler discretisation with step T
-(eq. (3)-(7)), time index t = 1..n, state (s(0), v(0)) given by a prior::
-
-    s(t) = s(t-1) + T v(t-1) + w1(t)                                    w1 ~ N(0, delta1^2)
-    v(t) = v(t-1) + dbar [u(t) - (a + b v(t-1) + c v(t-1)^2)] + w2(t)   w2 ~ N(0, delta2^2)
-    y1(t) = s(t) + e1(t),   y2(t) = v(t) + e2(t)                        e_i ~ N(0, sigma_i^2)
+The model (eq. (1)-(7): Euler discretisation with step T of ds/dt = v,
+dv/dt = epsilon (f(v) - w(v)), Davis w(v) = a + b v + c v^2, noisy s and v readings) is
+``train_core.mass_point``, shared with the simulator of the paper's data (``train_sim.crh3``).
 
 Reparametrisation (eq. (31)-(34)): dbar = 0.0098 T / (1 + d) and
 
@@ -52,9 +44,6 @@ Paper slips found (and what is done here instead):
 * Step 7 stops on ||Theta_k - Theta_{k-1}|| <= eps in the original parameters, whose entries
   differ by four orders of magnitude; :func:`theta_change` offers that and a relative change in
   vartheta (the default in hybrid_em).
-
-The model itself (eq. (1)-(7), vartheta, the regressors) is ``train_core.mass_point`` (re-exported
-here); the synthetic CRH3 data are made by ``train_sim.crh3``.
 
 Pure: numpy only. Arrays carry the time index first and an optional batch (independent data sets,
 e.g. Monte Carlo seeds) in trailing axes; particle arrays carry particles first.

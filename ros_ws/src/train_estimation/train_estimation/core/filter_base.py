@@ -209,19 +209,24 @@ class FilterBase:
             return R.OUT_OF_ORDER
         return None
 
+    def _check(self, kind: str, reading, values: tuple, variance: float | None) -> str | None:
+        """The checks every reading gets: finite stamp and values, an integer seq, a positive
+        stated variance, then the order (:meth:`_validate_order`). None when it passes."""
+        if not _finite(reading.stamp, *values) or not isinstance(reading.seq, (int, np.integer)):
+            return R.NON_FINITE
+        if variance is not None and variance <= 0.0:
+            return R.NON_POSITIVE_VARIANCE
+        return self._validate_order(kind, reading.stamp, int(reading.seq))
+
     def _measurement(self, reading) -> tuple[str, Measurement | str]:
         """Validate a reading and turn it into channels, or return the rejection reason."""
         p = self.params
         if isinstance(reading, OdometerReading):
             kind = "odometer"
-            if not _finite(reading.stamp) or not isinstance(reading.seq, (int, np.integer)):
-                return kind, R.NON_FINITE
-            if reading.received:
-                if not _finite(reading.distance, reading.speed, reading.speed_variance):
-                    return kind, R.NON_FINITE
-                if reading.speed_variance <= 0.0:
-                    return kind, R.NON_POSITIVE_VARIANCE
-            bad = self._validate_order(kind, reading.stamp, int(reading.seq))
+            values = ((reading.distance, reading.speed, reading.speed_variance)
+                      if reading.received else ())
+            bad = self._check(kind, reading, values,
+                              reading.speed_variance if reading.received else None)
             if bad:
                 return kind, bad
             rows, ys, rs = [_VEL], [reading.speed], [reading.speed_variance]
@@ -242,12 +247,8 @@ class FilterBase:
                 mask=np.full(m, recv))
         if isinstance(reading, BaliseReading):
             kind = "balise"
-            if not _finite(reading.stamp, reading.position, reading.position_variance) or \
-                    not isinstance(reading.seq, (int, np.integer)):
-                return kind, R.NON_FINITE
-            if reading.position_variance <= 0.0:
-                return kind, R.NON_POSITIVE_VARIANCE
-            bad = self._validate_order(kind, reading.stamp, int(reading.seq))
+            bad = self._check(kind, reading, (reading.position, reading.position_variance),
+                              reading.position_variance)
             if bad:
                 return kind, bad
             pos = self._balise_pos.get(int(reading.balise_id))
