@@ -148,9 +148,9 @@ class World:
         if self.driver is not None:
             self.driver.set_movement_authority(end_of_authority, permitted_speed, emergency_brake)
 
-    def set_braking_rate_belief(self, f: float) -> None:
+    def set_braking_rate_belief(self, braking_rate: float) -> None:
         if self.driver is not None:
-            self.driver.set_braking_rate_belief(f)
+            self.driver.set_braking_rate_belief(braking_rate)
 
     def train_stamp(self, t: float) -> float:
         """The train clock's reading at true time ``t`` (s)."""
