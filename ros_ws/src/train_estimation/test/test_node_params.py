@@ -53,3 +53,13 @@ def test_every_parameter_field_has_a_unit_and_a_meaning():
 def test_validation_in_the_config_names_the_parameter(cls, bad):
     with pytest.raises(ConfigError, match=f"parameter {next(iter(bad))}:"):
         cls(**bad)
+
+
+def test_recorder_params_file_has_exactly_the_declared_fields():
+    from train_estimation.nodes.recorder import RecorderConfig
+
+    params = yaml.safe_load((CONFIG / "recorder.yaml").read_text())["/**"]["ros__parameters"]
+    fields = param_fields(RecorderConfig)
+    assert set(params) == {f.name for f in fields}
+    for f in fields:
+        assert _same(params[f.name], f.default), f.name
