@@ -222,7 +222,7 @@ def closed_loop(sc, source: str, rule: str, seed: int, std_max: float) -> dict:
         drv = world.driver
         if drv.braking and not was_braking and drv.queue:
             st = drv.queue[0].station
-            onset.setdefault(st, abs(drv.f_belief - world.braking_rate(t)))
+            onset.setdefault(st, abs(drv.braking_rate_belief - world.braking_rate(t)))
         was_braking = drv.braking
         if source == "oracle":
             belief = world.braking_rate(t)

@@ -13,7 +13,8 @@ Prints markdown tables:
 
 Data (the paper gives neither length nor input): T = 1 s, s(0) = 0, v(0) ~ N(0, 0.2^2), u(t) from
 a feedback driver cycling accelerate (u = 35 N/kN) / cruise / coast / brake (u = -30 N/kN)
-between random speed targets (high U(40, 80) m/s, low U(5, 30) m/s), see em_model.simulate_crh3.
+between random speed targets (high U(40, 80) m/s, low U(5, 30) m/s), see
+train_sim.crh3.simulate_crh3.
 All seeds run at once (trailing batch axis); every method sees the same data sets.
 
 Usage: bench_em.py [--seeds 50] [--quick] [--n 2000] [--n2 10000] [--particles 100] [--iters 30]
@@ -37,9 +38,9 @@ from train_estimation.core.em_model import (  # noqa: E402
     m_step,
     param_error,
     plugin_stats,
-    simulate_crh3,
 )
 from train_estimation.core.hybrid_em import run_em  # noqa: E402
+from train_sim.crh3 import simulate_crh3  # noqa: E402
 
 PAPER = {  # Tables 1-3, delta in % at k = 5, 8, 10, 20, 30
     "hybrid": [0.33063, 0.37553, 0.59953, 0.58897, 0.74688],

@@ -48,9 +48,9 @@ for _p in (ROOT / "ros_ws/src/train_sim", ROOT / "ros_ws/src/train_estimation"):
 from train_core.effects import Effects, ResistanceEffect  # noqa: E402
 from train_core.link import LinkParams  # noqa: E402
 
+from train_estimation.core.filter_base import filter_params_from_train  # noqa: E402
 from train_estimation.core.robust_filter import (  # noqa: E402
     BaliseReading,
-    FilterParams,
     FOHFilter,
     IntermittentKF,
     OdometerReading,
@@ -71,12 +71,11 @@ def make_filters(sc, names, alpha_bar, q=Q_WIND, use_distance=True, epsilon=None
     the oracle, which gets the true train, line and actuator)."""
     tr, ln = sc.train, sc.line
     x0 = np.array([sc.start_position, sc.start_speed])
-    P0 = np.diag([tr.odometer_distance_std ** 2 or 1.0, tr.odometer_speed_std ** 2])
-    base = FilterParams(alpha_bar=alpha_bar, epsilon=epsilon, use_distance=use_distance,
-                        distance_variance=max(tr.odometer_distance_std ** 2, 1e-4),
-                        speed_variance=tr.odometer_speed_std ** 2,
-                        odometer_origin=sc.start_position, gate=8.0,
-                        max_dt=max(1.0 / sc.odometer_rate, 0.1))
+    P0 = np.diag([tr.odometer_distance_std ** 2 or 1.0, tr.odometer_speed_variance])
+    base = filter_params_from_train(tr, alpha_bar=alpha_bar, epsilon=epsilon,
+                                    use_distance=use_distance,
+                                    odometer_origin=sc.start_position, gate=8.0,
+                                    max_dt=max(1.0 / sc.odometer_rate, 0.1))
     out = {}
     for n in names:
         if n == "foh":

@@ -21,7 +21,19 @@ Pade's ``(lambda - s) / (lambda + s)`` with ``lambda = 2 / T`` is the estimators
 never the world's. A time-varying ``f(t)`` is held at its mid-step value over each (<= 10 ms)
 integration step; Zheng's drift of 0.005 per second changes f by 5e-5 per step.
 
-Pure module: the standard library only.
+Two implementations of the one model, because they compute different things:
+
+* :class:`Actuator` (event based, exact): the output ``a_hat`` with ``f`` applied, at any time,
+  with commands at any stamps -- what the world, the driver and ``motion`` step through.
+* :func:`grid_output` (on a uniform grid, vectorised): the traction and the braking parts
+  *separately and before f* over a whole recorded run, the regressors of ``identify`` and
+  ``diagnose`` where ``f`` (and the traction gain) are unknown coefficients of a linear fit.
+  The command is sampled at the grid points (held over each grid step), so it equals
+  :class:`Actuator` exactly when command stamps plus delay fall on the grid (the usual 0.1 s
+  lattice), and ``traction + f * braking`` is then the event-based output
+  (``test_sim_physics.py`` checks this on a common grid).
+
+Pure module: the standard library only (numpy/scipy imported inside the grid function).
 """
 
 from __future__ import annotations
@@ -32,9 +44,9 @@ from collections import deque
 _EPS = 1e-9  # s, tolerance when comparing event times
 
 
-def effective_input(u: float, f: float) -> float:
+def effective_input(u: float, braking_rate: float) -> float:
     """u_eff of eq. (1): braking commands (u < 0) are scaled by the braking rate f."""
-    return u if u >= 0.0 else f * u
+    return u if u >= 0.0 else braking_rate * u
 
 
 class Actuator:
@@ -77,9 +89,9 @@ class Actuator:
         """m/s^2, the delayed command in force (traction part + braking part, before f)."""
         return self.u_tr + self.u_br
 
-    def effective(self, f: float) -> float:
+    def effective(self, braking_rate: float) -> float:
         """u_eff of eq. (1) now: traction part + f * braking part."""
-        return self.u_tr + f * self.u_br
+        return self.u_tr + braking_rate * self.u_br
 
     def copy(self) -> Actuator:
         new = Actuator.__new__(Actuator)
@@ -114,12 +126,12 @@ class Actuator:
         b = self._bpipe[0][0] if self._bpipe else math.inf
         return a if a < b else b
 
-    def segment(self, h: float, f: float) -> tuple[float, float, float]:
+    def segment(self, h: float, braking_rate: float) -> tuple[float, float, float]:
         """Advance by ``h`` with constant input (caller ensures no switch inside (t, t + h)).
 
         Returns (a_hat(t), a_hat(t + h/2), a_hat(t + h)) -- the values RK4 needs.
         """
-        ue = self.u_tr + f * self.u_br
+        ue = self.u_tr + braking_rate * self.u_br
         a0 = self.a
         e = math.exp(-0.5 * h / self.tau)
         a_mid = ue + (a0 - ue) * e
@@ -129,17 +141,18 @@ class Actuator:
         self._activate()
         return a0, a_mid, a_end
 
-    def advance(self, t_new: float, f: float = 1.0) -> float:
+    def advance(self, t_new: float, braking_rate: float = 1.0) -> float:
         """Exact evolution to ``t_new`` (splitting at activation times); returns a_hat(t_new)."""
         while self.t < t_new - _EPS:
             t_stop = min(t_new, self.next_switch())
-            self.segment(t_stop - self.t, f)
+            self.segment(t_stop - self.t, braking_rate)
             self.t = t_stop  # avoid round-off accumulation
             self._activate()
         return self.a
 
 
-def step_response(t, amplitude: float, time_constant: float, delay: float, f: float = 1.0):
+def step_response(t, amplitude: float, time_constant: float, delay: float,
+                  braking_rate: float = 1.0):
     """Closed form of eq. (1) for a step a_Tar = amplitude at t = 0 from rest (test oracle).
 
     a_hat(t) = 0 for t < T and u_eff (1 - exp(-(t - T) / tau)) afterwards.
@@ -147,5 +160,34 @@ def step_response(t, amplitude: float, time_constant: float, delay: float, f: fl
     import numpy as np
 
     t = np.asarray(t, dtype=float)
-    ue = effective_input(amplitude, f)
+    ue = effective_input(amplitude, braking_rate)
     return np.where(t < delay, 0.0, ue * (1.0 - np.exp(-(t - delay) / time_constant)))
+
+
+def grid_output(t_grid, ctrl_t, ctrl_a, tau: float, delay: float,
+                brake_delay: float | None = None):
+    """(traction, braking) actuator outputs on ``t_grid`` (uniform): delayed zero-order-hold
+    command split at zero, each through the first-order lag tau (exact discretisation); the
+    braking part before the braking rate f (module docstring: why this and :class:`Actuator`).
+
+    The traction part is delayed by ``delay``, the braking part by ``brake_delay`` (default the
+    same: the brake chain of :class:`Actuator`). The command before the first stamp is 0
+    (Zheng eq. (1): a_Tar(t - T) = 0 for t <= T).
+    """
+    import numpy as np
+    from scipy.signal import lfilter
+
+    t_grid = np.asarray(t_grid, float)
+    dt = t_grid[1] - t_grid[0]
+    e = np.exp(-dt / tau)
+    out = []
+    for part, d in ((np.maximum, delay), (np.minimum, delay if brake_delay is None
+                                          else brake_delay)):
+        # The grid, the delay and the command stamps often sit on one lattice (0.1 s): without
+        # a tolerance, round-off puts some grid points one command late, a 0.1 s jitter of the
+        # input that biased a, c and f on metro_demo (found by benchmarks/bench_identify.py).
+        i = np.searchsorted(ctrl_t, t_grid - d + 1e-9, side="right") - 1
+        cmd = np.where(i >= 0, ctrl_a[np.clip(i, 0, None)], 0.0)
+        # y[k] = e y[k-1] + (1 - e) x[k-1]: exact for a command held over each grid step
+        out.append(lfilter([0.0, 1.0 - e], [1.0, -e], part(cmd, 0.0)))
+    return out[0], out[1]

@@ -170,3 +170,43 @@ def _range_text(lo, hi, lo_open=False, hi_open=False, unit="") -> str:
     lo_s = "-inf" if lo is None else f"{lo:g}"
     hi_s = "inf" if hi is None else f"{hi:g}"
     return f"{left}{lo_s}, {hi_s}{right}{(' ' + unit) if unit else ''}"
+
+
+# ---------------------------------------------------------------------------------------------
+# Parameters of a config dataclass: declared once, with unit and meaning as the field's metadata
+# ---------------------------------------------------------------------------------------------
+
+def param(default, unit: str, doc: str, *, ros: tuple | None = None, node: bool = True):
+    """A config-dataclass field with its unit and meaning: the one declaration of a parameter.
+
+    ``unit`` ("-" for dimensionless, "" for names and switches) and ``doc`` describe it to the
+    node (``train_core.ros.declare_config``: the ROS ParameterDescriptor) and to the reader.
+    ``ros = (to_ros, from_ros)`` converts a value a ROS parameter cannot carry (``None``) to a
+    sentinel and back. ``node=False``: set by the code (from another parameter), not declared.
+    """
+    from dataclasses import field
+
+    md = {"unit": unit, "doc": doc, "node": node}
+    if ros is not None:
+        md["ros"] = ros
+    return field(default=default, metadata=md)
+
+
+def param_fields(cls) -> list:
+    """The fields of config dataclass ``cls`` a node declares (those made with :func:`param`)."""
+    from dataclasses import fields
+
+    return [f for f in fields(cls) if "doc" in f.metadata and f.metadata["node"]]
+
+
+def describe(f) -> str:
+    """One line for a parameter field: "unit, meaning" (or the meaning alone)."""
+    unit = f.metadata["unit"]
+    return f"{unit}, {f.metadata['doc']}" if unit else f.metadata["doc"]
+
+
+def require(ok: bool, name: str, value, what: str) -> None:
+    """Raise ConfigError ``parameter NAME: VALUE WHAT`` unless ``ok`` (validation in one place:
+    the config dataclass's ``__post_init__``)."""
+    if not ok:
+        raise ConfigError(f"parameter {name}: {value!r} {what}")

@@ -76,6 +76,19 @@ class TrainParams:
         """kg, (1 + lambda) M."""
         return (1.0 + self.rotary_allowance) * self.mass
 
+    @property
+    def odometer_speed_variance(self) -> float:
+        """(m/s)^2, the odometer speed variance ``train.yaml`` states: what every estimator
+        assumes until (or where) a message states its own ``speed_variance``. Floored at 1e-6
+        so that a noiseless odometer still gives a proper (invertible) measurement."""
+        return max(self.odometer_speed_std ** 2, 1e-6)
+
+    @property
+    def odometer_distance_variance(self) -> float:
+        """m^2, the variance of the counted distance as a position reading (``train.yaml``'s
+        ``distance_std``), floored at 1e-4 for the same reason."""
+        return max(self.odometer_distance_std ** 2, 1e-4)
+
     def resistance_accel(self, v):
         """m/s^2, deceleration from Davis resistance: R(v) / ((1 + lambda) M)."""
         return self.davis.force(v) / self.effective_mass

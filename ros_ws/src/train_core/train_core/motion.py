@@ -34,7 +34,7 @@ class Motion:
         self.dyn = Dynamics(train, line, believed)
         self.state = MotionState(float(x0), float(v0), v0 == 0.0)
         self.max_step = float(max_step)
-        self.f_const = train.brake.braking_rate if f_of_t is None else None
+        self.braking_rate_const = train.brake.braking_rate if f_of_t is None else None
         self.f_of_t = f_of_t
         self.t = act.t
 
@@ -49,10 +49,10 @@ class Motion:
         h = span / n
         act, dyn, st = self.act, self.dyn, self.state
         tau = act.tau
-        f_const = self.f_const
+        braking_rate_const = self.braking_rate_const
         for i in range(n):
             t0 = t_start + i * h
-            f = f_const if f_const is not None else self.f_of_t(t0 + 0.5 * h)
+            f = braking_rate_const if braking_rate_const is not None else self.f_of_t(t0 + 0.5 * h)
             ue = act.effective(f)  # constant over the span (it ends at the next input change)
             a0, a_mid, a_end = act.segment(h, f)
             x0 = st.x

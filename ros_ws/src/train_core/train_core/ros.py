@@ -114,6 +114,29 @@ def declarer(node):
     return declare
 
 
+def declare_config(node, cls, **given):
+    """Declare every parameter field of config dataclass ``cls`` on ``node`` (name, default,
+    "unit, meaning" from the field's metadata: ``train_core.config.param``) and return
+    ``cls(**values, **given)``; ``given`` fields are set by the caller, not declared. Tuples
+    travel as ROS lists; a field's ``ros`` converters map values ROS cannot carry (None).
+    Validation is the dataclass's own (``__post_init__``): a ValueError names the parameter.
+    """
+    from train_core.config import describe, param_fields
+
+    declare = declarer(node)
+    values = dict(given)
+    for f in param_fields(cls):
+        if f.name in given:
+            continue
+        to_ros, from_ros = f.metadata.get("ros", (None, None))
+        default = f.default
+        is_tuple = isinstance(default, tuple)
+        ros_default = to_ros(default) if to_ros else (list(default) if is_tuple else default)
+        v = declare(f.name, ros_default, describe(f))
+        values[f.name] = from_ros(v) if from_ros else (tuple(v) if is_tuple else v)
+    return cls(**values)
+
+
 def parse_cli(description: str, argv: list[str] | None = None,
               extra: Callable[[argparse.ArgumentParser], None] | None = None):
     """Parse our own options; everything after --ros-args is left for rclpy.

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from scipy.stats import multivariate_normal
 
-from train_estimation.core.em_model import CRH3_VARTHETA, NoiseParams, param_error, simulate_crh3
+from train_estimation.core.em_model import CRH3_VARTHETA, NoiseParams, param_error
 from train_estimation.core.hybrid_em import (
     Prior,
     kalman_e_step,
@@ -14,6 +14,7 @@ from train_estimation.core.hybrid_em import (
     run_em,
     systematic_resample,
 )
+from train_sim.crh3 import simulate_crh3
 
 NOISE = NoiseParams()
 

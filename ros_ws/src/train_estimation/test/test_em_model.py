@@ -13,9 +13,9 @@ from train_estimation.core.em_model import (
     pair_stats,
     param_error,
     plugin_stats,
-    simulate_crh3,
     theta_change,
 )
+from train_sim.crh3 import simulate_crh3
 
 TINY = NoiseParams(q_s=1e-300, q_v=1e-300)  # noise-free states (std 1e-150)
 

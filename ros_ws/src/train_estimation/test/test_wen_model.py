@@ -118,3 +118,37 @@ def test_standstill_stops_instead_of_reversing():
                                   [100.0, 0.0])
     moving = m.predict_mean(dm, np.array([100.0, 5.0]), -1.0)
     assert m.standstill(x, moving, 1.0) is moving
+
+
+def test_zoh_batched_is_the_stack_of_single_discretisations():
+    """One ZOH: a stack of models (the braking particles' per-f matrices) in one call."""
+    rng = np.random.default_rng(4)
+    A = rng.normal(size=(5, 3, 3))
+    B = rng.normal(size=(5, 3, 2))
+    Ad, Bd = zoh(A, B, 0.3)
+    for k in range(5):
+        a, b = zoh(A[k], B[k], 0.3)
+        np.testing.assert_allclose(Ad[k], a, rtol=1e-13, atol=1e-15)
+        np.testing.assert_allclose(Bd[k], b, rtol=1e-13, atol=1e-15)
+
+
+def test_believed_actuator_state_is_the_event_actuator():
+    """wen_model.Actuator (step means for the filter) and train_core.actuator.Actuator (the
+    world's, event based) are the same eq. (1): the lag state agrees at every step end."""
+    from train_core.actuator import Actuator as EventActuator
+
+    rng = np.random.default_rng(5)
+    f = 0.7
+    believed = Actuator(0.4, 1.2, braking_rate=f)
+    event = EventActuator(0.4, 1.2)
+    cmds = [(0.1 * k, float(rng.uniform(-1.0, 1.0))) for k in range(0, 300, 9)]
+    grid = 0.1 * np.arange(320)
+    i = 0
+    for t0, t1 in zip(grid[:-1], grid[1:]):
+        while i < len(cmds) and cmds[i][0] <= t0 + 1e-9:
+            believed.command(*cmds[i])
+            event.advance(cmds[i][0], f)
+            event.command(*cmds[i])
+            i += 1
+        believed.mean(t0, t1)
+        assert believed._a == pytest.approx(event.advance(t1, f), abs=1e-12)

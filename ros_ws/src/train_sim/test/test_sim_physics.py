@@ -166,3 +166,28 @@ def test_coasting_to_rest_uphill_does_not_roll_back():
     static = DAVIS.a / train.effective_mass  # static resistance per effective mass
     assert not dyn.can_start(x, grade + static - 1e-6)
     assert dyn.can_start(x, grade + static + 1e-6)
+
+
+@pytest.mark.parametrize("brake_delay", [None, 1.5])
+def test_grid_output_is_the_event_actuator_on_a_common_grid(brake_delay):
+    """The two implementations of Zheng eq. (1) (train_core.actuator docstring): with commands
+    and delays on the 0.1 s grid, traction + f * braking of the grid form is the event-based
+    output at every grid point."""
+    from train_core.actuator import grid_output
+
+    rng = np.random.default_rng(3)
+    ctrl_t = 0.1 * np.arange(1, 600, 7)
+    ctrl_a = rng.uniform(-1.2, 1.0, ctrl_t.size)
+    tg = 0.1 * np.arange(700)
+    f = 0.8
+    tr, br = grid_output(tg, ctrl_t, ctrl_a, 0.4, 1.2, brake_delay)
+    act = Actuator(0.4, 1.2, brake_delay=brake_delay)
+    got = []
+    i = 0
+    for t in tg:
+        while i < ctrl_t.size and ctrl_t[i] <= t + 1e-9:
+            act.advance(ctrl_t[i], f)
+            act.command(ctrl_t[i], ctrl_a[i])
+            i += 1
+        got.append(act.advance(t, f))
+    np.testing.assert_allclose(tr + f * br, got, rtol=0, atol=1e-12)

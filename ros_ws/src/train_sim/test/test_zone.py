@@ -108,3 +108,41 @@ def test_state_is_stable_while_the_reason_text_changes():
         states.add(a.state)
         reasons.add(a.reason)
     assert states == {"stale"} and len(reasons) > 10
+
+
+def test_params_file_has_exactly_the_declared_fields_with_their_defaults():
+    """zone_controller's parameters are declared once (ZoneParams, ZoneNodeConfig metadata);
+    config/zone_controller.yaml documents exactly those, with their defaults."""
+    from pathlib import Path
+
+    import yaml
+    from train_core.config import param_fields
+
+    from train_sim.zone import ZoneNodeConfig
+
+    path = Path(__file__).resolve().parents[1] / "config" / "zone_controller.yaml"
+    params = yaml.safe_load(path.read_text())["/**"]["ros__parameters"]
+    fields = param_fields(ZoneParams) + param_fields(ZoneNodeConfig)
+    assert set(params) == {f.name for f in fields}
+    for f in fields:
+        want = list(f.default) if isinstance(f.default, tuple) else f.default
+        assert params[f.name] == want, f.name
+
+
+def test_simulator_params_file_has_exactly_the_declared_fields_with_their_defaults():
+    """The simulator's parameters are declared once (SimulatorConfig metadata);
+    config/simulator.yaml documents exactly those, with their defaults."""
+    from pathlib import Path
+
+    import yaml
+    from train_core.config import param_fields
+
+    from train_sim.nodes.simulator import SimulatorConfig
+
+    path = Path(__file__).resolve().parents[1] / "config" / "simulator.yaml"
+    params = yaml.safe_load(path.read_text())["/**"]["ros__parameters"]
+    fields = param_fields(SimulatorConfig)
+    assert set(params) == {f.name for f in fields}
+    for f in fields:
+        want = list(f.default) if isinstance(f.default, tuple) else f.default
+        assert params[f.name] == want, f.name

@@ -83,7 +83,7 @@ class Driver:
         self.line, self.train, self.p = line, train, params
         b = train.brake
         self._act = Actuator(b.time_constant, b.delay, a0=a0, u0=u0, t0=t0)  # believed actuator
-        self.f_belief = float(params.braking_rate_belief)
+        self.braking_rate_belief = float(params.braking_rate_belief)
         self.horizon = b.delay + b.time_constant + params.control_period
         self.gain = params.speed_gain or 0.5 / self.horizon
         m_eff = train.effective_mass
@@ -108,11 +108,11 @@ class Driver:
         self._profile = sorted(params.profile)
 
     # -- inputs from outside ---------------------------------------------------------------------
-    def set_braking_rate_belief(self, f: float) -> None:
-        """Plan with braking rate ``f`` (e.g. an online estimate) instead of the nominal one."""
-        if not (math.isfinite(f) and f > 0.0):
-            raise ValueError(f"braking rate belief must be finite and > 0, got {f!r}")
-        self.f_belief = float(f)
+    def set_braking_rate_belief(self, braking_rate: float) -> None:
+        """Plan with ``braking_rate`` (e.g. an online estimate) instead of the nominal one."""
+        if not (math.isfinite(braking_rate) and braking_rate > 0.0):
+            raise ValueError(f"braking rate belief must be finite and > 0, got {braking_rate!r}")
+        self.braking_rate_belief = float(braking_rate)
 
     def set_movement_authority(self, end_of_authority: float, permitted_speed: float,
                                emergency_brake: bool) -> None:
@@ -127,7 +127,7 @@ class Driver:
     # -- the control law -------------------------------------------------------------------------
     def update(self, t: float, x: float, v: float, stopped: bool) -> float:
         """a_Tar (m/s^2) to issue at time ``t`` given position ``x`` and speed ``v``."""
-        self._act.advance(t, self.f_belief)
+        self._act.advance(t, self.braking_rate_belief)
         a = self._decide(t, x, v, stopped)
         self._act.command(t, a)
         self.a_cmd = a
@@ -141,7 +141,7 @@ class Driver:
         perf = self.train.performance
         if a_hat >= 0.0:
             return min(a_hat, perf.max_traction)
-        return max(a_hat / self.f_belief, -perf.service_brake)
+        return max(a_hat / self.braking_rate_belief, -perf.service_brake)
 
     def _predict(self, x: float, v: float) -> tuple[float, float]:
         """Believed (x, v) at t + H: delay line and lag exact, motion by trapezoid steps."""
@@ -150,7 +150,7 @@ class Driver:
         h = self.horizon / n
         for _ in range(n):
             a_start = act.a
-            a_end = act.advance(act.t + h, self.f_belief)
+            a_end = act.advance(act.t + h, self.braking_rate_belief)
             dv = h * (0.5 * (a_start + a_end) - self._resist(x, v))
             v_new = v + dv
             if v_new <= 0.0:  # stops inside this sub-step
@@ -209,7 +209,7 @@ class Driver:
             self.braking = False  # at rest short of the stopping point: re-plan and creep on
         xp, vp = self._predict(x, v)
         dp = s - xp
-        a_plan = p.brake_margin * self.f_belief * perf.service_brake
+        a_plan = p.brake_margin * self.braking_rate_belief * perf.service_brake
         if vp > 0.0:
             a_req = vp * vp / (2.0 * dp) if dp > 0.0 else math.inf
             if self.braking and a_req < 0.5 * a_plan:

@@ -100,10 +100,10 @@ class World:
         act = Actuator(tt.brake.time_constant, tt.brake.delay,
                        a0=sc.start_acceleration, u0=sc.start_target_acceleration,
                        brake_delay=eff.brake_delay.delay if eff.brake_delay else None)
-        self._f_const = None if eff.braking_rate else tt.brake.braking_rate
+        self._braking_rate_const = None if eff.braking_rate else tt.brake.braking_rate
         self.motion = Motion(tt, sc.true_line, sc.train, act, sc.start_position,
                              sc.start_speed, sc.max_step,
-                             None if self._f_const is not None else self.braking_rate)
+                             None if self._braking_rate_const is not None else self.braking_rate)
         if commands is None:
             self.driver = Driver(sc.line, sc.train, sc.driver, sc.timetable, sc.start_position,
                                  sc.start_speed, a0=sc.start_acceleration,
@@ -149,9 +149,9 @@ class World:
         if self.driver is not None:
             self.driver.set_movement_authority(end_of_authority, permitted_speed, emergency_brake)
 
-    def set_braking_rate_belief(self, f: float) -> None:
+    def set_braking_rate_belief(self, braking_rate: float) -> None:
         if self.driver is not None:
-            self.driver.set_braking_rate_belief(f)
+            self.driver.set_braking_rate_belief(braking_rate)
 
     def train_stamp(self, t: float) -> float:
         """The train clock's reading at true time ``t`` (s)."""
@@ -159,8 +159,8 @@ class World:
 
     def braking_rate(self, t: float) -> float:
         """True braking rate f(t)."""
-        if self._f_const is not None:
-            return self._f_const
+        if self._braking_rate_const is not None:
+            return self._braking_rate_const
         return braking_rate_at(self.effects, self.scenario.true_train, t)
 
     @property

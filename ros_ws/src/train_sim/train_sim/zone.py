@@ -37,19 +37,52 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+from train_core.config import param, require
+
 
 @dataclass(frozen=True)
 class ZoneParams:
-    k_sigma: float = 3.0  # -, width of the confidence interval in standard deviations
-    stale_timeout: float = 3.0  # s, reports (arrival or stamp) older than this: unsafe
-    measurement_timeout: float = 10.0  # s, no measurement used for this long: unsafe
-    check_stamp_age: bool = True  # the zone's clock and the estimates' stamps are one clock
-    emergency_decel: float = 1.2  # m/s^2, guaranteed emergency braking at nominal braking rate
-    train_length: float = 120.0  # m, front to rear
-    margin: float = 20.0  # m, kept between an EoA and the hazard it protects
-    danger_points: tuple[float, ...] = ()  # m, fixed hazards (red signals, end of line)
-    permitted_speed: float = 22.23  # m/s, speed granted with every authority
-    min_braking_rate: float = 0.2  # -, floor for the braking-rate lower bound
+    """The zone's rules (the node declares them from this metadata; config/zone_controller.yaml
+    documents them)."""
+
+    k_sigma: float = param(3.0, "-", "half-width of the position/speed confidence interval in "
+                           "standard deviations")
+    stale_timeout: float = param(3.0, "s", "reports (arrival or stamp) older than this: "
+                                 "emergency brake")
+    measurement_timeout: float = param(10.0, "s", "no measurement used for this long: "
+                                       "emergency brake")
+    check_stamp_age: bool = param(True, "", "judge age by the estimate's stamp too (the zone "
+                                  "and the estimates on one clock)")
+    emergency_decel: float = param(1.2, "m/s^2", "guaranteed emergency braking at the nominal "
+                                   "braking rate")
+    train_length: float = param(120.0, "m", "front to rear")
+    margin: float = param(20.0, "m", "kept between an end of authority and the hazard it "
+                          "protects")
+    danger_points: tuple[float, ...] = param((), "m", "fixed hazards (red signals, end of "
+                                             "line); the node builds them", node=False)
+    permitted_speed: float = param(22.23, "m/s", "speed granted with every authority")
+    min_braking_rate: float = param(0.2, "-", "floor for the braking-rate lower bound")
+
+    def __post_init__(self):
+        for name in ("k_sigma", "stale_timeout", "measurement_timeout", "emergency_decel"):
+            v = getattr(self, name)
+            require(math.isfinite(v) and v > 0, name, v, "must be > 0")
+
+
+@dataclass(frozen=True)
+class ZoneNodeConfig:
+    """What the zone_controller node adds to :class:`ZoneParams` (declared from this metadata)."""
+
+    trains: tuple[str, ...] = param(("",), "", "train namespaces ('' = this node's namespace)")
+    state_topic: str = param("estimate/robust", "", "TrainState topic of each train, relative "
+                             "to its namespace")
+    line_file: str = param("", "", "line.yaml; its length is a danger point")
+    danger_points: tuple[float, ...] = param((-1.0,), "m", "fixed danger points (red signals); "
+                                             "[-1.0] = none")
+    rate: float = param(1.0, "Hz", "movement authority publication rate")
+
+    def __post_init__(self):
+        require(math.isfinite(self.rate) and self.rate > 0, "rate", self.rate, "must be > 0")
 
 
 @dataclass

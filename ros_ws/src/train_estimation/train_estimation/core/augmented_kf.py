@@ -23,6 +23,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .kalman import balise_update, odometer_update, predict_cov
+
 LOG2PI = math.log(2.0 * math.pi)
 
 
@@ -50,34 +52,6 @@ class KFResult:
 
     def loglik(self, z: np.ndarray) -> float:
         return -0.5 * (self.logdet + self.m * LOG2PI + z @ self.W @ z)
-
-
-def predict_cov(p00: float, p01: float, p11: float, h: float, q: float):
-    """P <- A P A^T + Q for A = [[1, h], [0, 1]], Q = q [[h^3/3, h^2/2], [h^2/2, h]] (white
-    acceleration noise of PSD q over h seconds); P symmetric 2x2 as (p00, p01, p11)."""
-    return (p00 + 2 * h * p01 + h * h * p11 + q * h ** 3 / 3.0,
-            p01 + h * p11 + q * h * h / 2.0, p11 + q * h)
-
-
-def odometer_update(p00: float, p01: float, p11: float, r_s: float, r_v: float):
-    """An odometer reading of (s, v) with noise diag(r_s, r_v): S = P + R, its inverse
-    (i00, i01, i11), det S, the gain K = P S^-1 (k00, k01, k10, k11) and the updated P."""
-    s00, s01, s11 = p00 + r_s, p01, p11 + r_v
-    det = s00 * s11 - s01 * s01
-    i00, i01, i11 = s11 / det, -s01 / det, s00 / det
-    k00, k01 = p00 * i00 + p01 * i01, p00 * i01 + p01 * i11
-    k10, k11 = p01 * i00 + p11 * i01, p01 * i01 + p11 * i11
-    n00 = (1 - k00) * p00 - k01 * p01
-    n01 = (1 - k00) * p01 - k01 * p11
-    n11 = -k10 * p01 + (1 - k11) * p11
-    return (s00, s01, s11, det, (i00, i01, i11), (k00, k01, k10, k11), (n00, n01, n11))
-
-
-def balise_update(p00: float, p01: float, p11: float, r_b: float):
-    """A balise reading of s with noise r_b: S, the gain (k0, k1) and the updated P."""
-    s = p00 + r_b
-    k0, k1 = p00 / s, p01 / s
-    return s, (k0, k1), ((1 - k0) * p00, (1 - k0) * p01, p11 - k1 * p01)
 
 
 def augmented_kf(ev: Events, q: float, r_s: float, Bv, Bs, Md, Mv, Mb, q_held: float,

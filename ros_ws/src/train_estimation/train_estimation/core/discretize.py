@@ -29,18 +29,24 @@ def zoh(A, B, dt: float) -> tuple[np.ndarray, np.ndarray]:
 
     Uses ``expm([[A, B], [0, 0]] dt) = [[Ad, Bd], [0, I]]``. ``dt >= 0`` (``dt = 0`` gives
     ``(I, 0)``). ``B`` may be a vector (treated as one column; returned with the same shape).
+    Batched: ``A (..., n, n)`` with ``B (..., n, m)`` (the same leading axes) gives the stack
+    of discretisations in one call (scipy's expm is batched over leading axes); this is the
+    one ZOH of the estimation core (the braking particles' per-f models use it too).
     """
-    A = np.atleast_2d(np.asarray(A, dtype=float))
+    A = np.asarray(A, dtype=float)
+    if A.ndim < 2:
+        A = np.atleast_2d(A)
     B_in = np.asarray(B, dtype=float)
-    B = B_in.reshape(A.shape[0], -1)
+    lead, n = A.shape[:-2], A.shape[-1]
+    B = B_in.reshape(lead + (n, -1)) if B_in.ndim == A.ndim else B_in.reshape(lead + (n, 1))
     if not np.isfinite(dt) or dt < 0:
         raise ValueError(f"zoh: dt must be finite and >= 0, got {dt!r}")
-    n, m = B.shape
-    M = np.zeros((n + m, n + m))
-    M[:n, :n] = A
-    M[:n, n:] = B
+    m = B.shape[-1]
+    M = np.zeros(lead + (n + m, n + m))
+    M[..., :n, :n] = A
+    M[..., :n, n:] = B
     F = expm(M * dt)
-    return F[:n, :n], F[:n, n:].reshape(B_in.shape)
+    return F[..., :n, :n], F[..., :n, n:].reshape(B_in.shape)
 
 
 def van_loan(A, Qc, dt: float) -> np.ndarray:

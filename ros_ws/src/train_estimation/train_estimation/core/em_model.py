@@ -1,16 +1,8 @@
-"""Single mass-point train model of the hybrid-filter EM paper (eq. (1)-(7)) and its M-step.
+"""The M-step of the hybrid-filter EM paper for its single mass-point train model (eq. (1)-(7)).
 
-Continuous model (eq. (1)-(2)), specific forces in N/kN (newton per kilonewton of train weight)::
-
-    ds/dt = v,    dv/dt = epsilon (f(v) - w(v)),   w(v) = a + b v + c v^2,
-    epsilon = 0.0098 / (1 + d)                     # (m/s^2) per (N/kN); d = rotary allowance
-
-(1 N/kN = 1e-3 g = 0.0098 m/s^2, hence the constant.) Euler discretisation with step T
-(eq. (3)-(7)), time index t = 1..n, state (s(0), v(0)) given by a prior::
-
-    s(t) = s(t-1) + T v(t-1) + w1(t)                                    w1 ~ N(0, delta1^2)
-    v(t) = v(t-1) + dbar [u(t) - (a + b v(t-1) + c v(t-1)^2)] + w2(t)   w2 ~ N(0, delta2^2)
-    y1(t) = s(t) + e1(t),   y2(t) = v(t) + e2(t)                        e_i ~ N(0, sigma_i^2)
+The model (eq. (1)-(7): Euler discretisation with step T of ds/dt = v,
+dv/dt = epsilon (f(v) - w(v)), Davis w(v) = a + b v + c v^2, noisy s and v readings) is
+``train_core.mass_point``, shared with the simulator of the paper's data (``train_sim.crh3``).
 
 Reparametrisation (eq. (31)-(34)): dbar = 0.0098 T / (1 + d) and
 
@@ -62,6 +54,16 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from train_core.mass_point import (
+    CRH3_PARAMS,
+    CRH3_VARTHETA,
+    G_PER_KN,
+    MassPointParams,
+    NoiseParams,
+    expand_to,
+    regressors,
+    velocity_drift,
+)
 
 __all__ = [
     "G_PER_KN",
@@ -70,7 +72,6 @@ __all__ = [
     "MassPointParams",
     "NoiseParams",
     "SuffStats",
-    "CRH3Data",
     "expand_to",
     "regressors",
     "velocity_drift",
@@ -80,80 +81,7 @@ __all__ = [
     "gaussian_pair_stats",
     "param_error",
     "theta_change",
-    "crh3_input_schedule",
-    "simulate_crh3",
 ]
-
-G_PER_KN = 0.0098  # (m/s^2) per (N/kN): 1 N per kN of weight = g/1000 (paper rounds g = 9.8)
-
-
-@dataclass(frozen=True)
-class MassPointParams:
-    """Theta = [a, b, c, d] of eq. (9): specific Davis resistance and rotary allowance."""
-
-    a: float  # N/kN, constant specific resistance
-    b: float  # N/kN per (m/s), linear term
-    c: float  # N/kN per (m/s)^2, quadratic (aerodynamic) term
-    d: float  # -, rotary mass coefficient: effective mass = (1 + d) M
-
-    def to_vartheta(self, T: float = 1.0) -> np.ndarray:
-        """eq. (32), (34): [dbar, dbar a, dbar b, dbar c] with dbar = 0.0098 T / (1 + d)."""
-        dbar = G_PER_KN * T / (1.0 + self.d)
-        return np.array([dbar, dbar * self.a, dbar * self.b, dbar * self.c])
-
-    @staticmethod
-    def from_vartheta(vt, T: float = 1.0) -> MassPointParams:
-        """Inverse of eq. (32), (34). Requires dbar > 0."""
-        vt = np.asarray(vt, dtype=float)
-        if vt.shape != (4,) or not np.all(np.isfinite(vt)) or vt[0] <= 0:
-            raise ValueError(f"vartheta must be 4 finite numbers with dbar > 0, got {vt!r}")
-        dbar = vt[0]
-        return MassPointParams(a=vt[1] / dbar, b=vt[2] / dbar, c=vt[3] / dbar,
-                               d=G_PER_KN * T / dbar - 1.0)
-
-
-# CRH3 example of Section 3 (four motor + four trailer cars): a, b, c per the paper, d = 0.06.
-CRH3_PARAMS = MassPointParams(a=0.53, b=0.0039, c=0.000114, d=0.06)
-# The vector the paper's Tables 1-3 measure the error against (a rounding of CRH3_PARAMS, T = 1).
-CRH3_VARTHETA = np.array([0.0092, 0.0049, 0.00004, 0.000001])
-
-
-@dataclass(frozen=True)
-class NoiseParams:
-    """Known noise variances of eq. (5)-(7) (the paper treats them as known)."""
-
-    q_s: float = 0.01  # m^2, delta1^2: displacement process noise per step
-    q_v: float = 0.01  # (m/s)^2, delta2^2: velocity process noise per step
-    r_s: float = 0.01  # m^2, sigma1^2: displacement measurement noise
-    r_v: float = 0.01  # (m/s)^2, sigma2^2: velocity measurement noise
-
-    def __post_init__(self):
-        for k in ("q_s", "q_v", "r_s", "r_v"):
-            val = getattr(self, k)
-            if not (np.isfinite(val) and val > 0):
-                raise ValueError(f"NoiseParams.{k} must be finite and > 0, got {val!r}")
-
-
-def expand_to(x, ndim: int) -> np.ndarray:
-    """Append singleton axes so a (n,) series broadcasts against (n, *batch) arrays."""
-    x = np.asarray(x, float)
-    return x.reshape(x.shape + (1,) * (ndim - x.ndim))
-
-
-def regressors(u, v_prev) -> np.ndarray:
-    """eq. (33): Phi = [u, -1, -v, -v^2] stacked on a new last axis (broadcast u with v)."""
-    u, v = np.broadcast_arrays(np.asarray(u, float), np.asarray(v_prev, float))
-    return np.stack([u, -np.ones_like(v), -v, -v * v], axis=-1)
-
-
-def velocity_drift(vt, u, v_prev):
-    """Phi^T vartheta: the deterministic velocity increment of eq. (18) for parameters ``vt``.
-
-    ``vt`` has shape (4,) or (4, *batch) (batch trailing, to match data arrays); ``u`` and
-    ``v_prev`` broadcast against the batch shape (particles lead).
-    """
-    vt = np.asarray(vt, float)
-    return vt[0] * u - vt[1] - vt[2] * v_prev - vt[3] * v_prev * v_prev
 
 
 @dataclass(frozen=True)
@@ -280,85 +208,3 @@ def theta_change(vt_new, vt_old, T: float = 1.0, space: str = "vartheta") -> np.
         return np.stack([vt[1] / dbar, vt[2] / dbar, vt[3] / dbar, G_PER_KN * T / dbar - 1.0])
 
     return np.linalg.norm(to_theta(vt_new) - to_theta(vt_old), axis=0)
-
-
-# ---------------------------------------------------------------------------------------------
-# Synthetic CRH3 data. The paper gives neither the data length nor the input u(t); the input here
-# is a driver that cycles accelerate -> cruise -> coast -> brake between random speed targets so
-# that u, 1, v and v^2 are all excited (0 .. ~80 m/s).
-# ---------------------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class CRH3Data:
-    """Simulated data set; arrays have time first and the batch (seeds) trailing."""
-
-    u: np.ndarray  # (n, *b) N/kN, u(1..n)
-    y1: np.ndarray  # (n, *b) m, y1(1..n)
-    y2: np.ndarray  # (n, *b) m/s, y2(1..n)
-    s: np.ndarray  # (n+1, *b) m, true s(0..n)
-    v: np.ndarray  # (n+1, *b) m/s, true v(0..n)
-    T: float = 1.0  # s
-
-    @property
-    def n(self) -> int:
-        return self.u.shape[0]
-
-
-def crh3_input_schedule(v, phase, target, timer, rng, vt=CRH3_VARTHETA):
-    """One step of the driver (vectorised over the batch): returns (u, phase, target, timer).
-
-    Phases 0 accelerate (u = 35 N/kN) until v > target, 1 cruise (u balances the resistance at
-    the current speed, ~ 40-160 s), 2 coast (u = 0, ~ 30-90 s), 3 brake (u = -30 N/kN) until
-    v < target. Targets: high in U(40, 80) m/s, low in U(5, 30) m/s.
-    """
-    shape = np.shape(v)
-    hi = rng.uniform(40.0, 80.0, shape)
-    lo = rng.uniform(5.0, 30.0, shape)
-    cruise_len = rng.integers(40, 160, shape)
-    coast_len = rng.integers(30, 90, shape)
-    timer = timer - 1
-    to_cruise = (phase == 0) & (v > target)
-    to_coast = (phase == 1) & (timer <= 0)
-    to_brake = (phase == 2) & (timer <= 0)
-    to_acc = (phase == 3) & (v < target)
-    phase = np.where(to_cruise, 1, np.where(to_coast, 2, np.where(to_brake, 3,
-                     np.where(to_acc, 0, phase))))
-    timer = np.where(to_cruise, cruise_len, np.where(to_coast, coast_len, timer))
-    target = np.where(to_brake, lo, np.where(to_acc, hi, target))
-    res = (vt[1] + vt[2] * v + vt[3] * v * v) / vt[0]
-    u = np.select([phase == 0, phase == 1, phase == 2], [35.0, res, 0.0], -30.0)
-    return u, phase, target, timer
-
-
-def simulate_crh3(n: int, rng: np.random.Generator, batch: int | None = None,
-                  vt=CRH3_VARTHETA, noise: NoiseParams | None = None, T: float = 1.0,
-                  v0_std: float = 0.2) -> CRH3Data:
-    """Simulate eq. (5)-(7) for ``n`` steps (``batch`` independent runs in a trailing axis).
-
-    s(0) = 0, v(0) ~ N(0, v0_std^2) (the paper's particle initialisation, step 2), clipped >= 0.
-    The input is the feedback driver :func:`crh3_input_schedule`: u(t) depends on v(t-1) only,
-    which is what eq. (4) allows (u(t) = f(v(t-1)) measurable).
-    """
-    if n < 10:
-        raise ValueError(f"n must be >= 10, got {n}")
-    noise = NoiseParams() if noise is None else noise
-    shape = () if batch is None else (batch,)
-    vt = np.asarray(vt, float)
-    s = np.zeros((n + 1,) + shape)
-    v = np.zeros((n + 1,) + shape)
-    u = np.zeros((n,) + shape)
-    v[0] = np.abs(v0_std * rng.standard_normal(shape))
-    phase = np.zeros(shape, int)
-    target = rng.uniform(40.0, 80.0, shape)
-    timer = np.zeros(shape, int)
-    w1 = np.sqrt(noise.q_s) * rng.standard_normal((n,) + shape)
-    w2 = np.sqrt(noise.q_v) * rng.standard_normal((n,) + shape)
-    for t in range(1, n + 1):
-        ut, phase, target, timer = crh3_input_schedule(v[t - 1], phase, target, timer, rng, vt)
-        u[t - 1] = ut
-        s[t] = s[t - 1] + T * v[t - 1] + w1[t - 1]
-        v[t] = v[t - 1] + velocity_drift(vt, ut, v[t - 1]) + w2[t - 1]
-    y1 = s[1:] + np.sqrt(noise.r_s) * rng.standard_normal((n,) + shape)
-    y2 = v[1:] + np.sqrt(noise.r_v) * rng.standard_normal((n,) + shape)
-    return CRH3Data(u=u, y1=y1, y2=y2, s=s, v=v, T=T)

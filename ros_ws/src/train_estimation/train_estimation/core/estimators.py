@@ -13,18 +13,15 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from train_core.config import param, require
 from train_core.model import Line, TrainParams
 
 from . import reasons as R
 from .braking_filters import GSMA, QGRBPF, SMA, BrakingKF, DiscreteRBPF, sticky_transition
 from .braking_model import BrakingModel, BrakingParams
-from .robust_filter import (
-    BaliseReading,
-    FilterParams,
-    OdometerReading,
-    RobustFilter,
-    covariance16,
-)
+from .filter_base import filter_params_from_train
+from .readings import BaliseReading, OdometerReading, covariance16
+from .robust_filter import RobustFilter
 from .runner import Output
 from .wen_model import WenModel
 
@@ -41,21 +38,79 @@ class StartState:
     velocity_std: float = 0.5  # m/s
 
 
+@dataclass(frozen=True)
+class NodeConfig:
+    """Parameters every estimator node has (declared from this metadata; config/*.yaml
+    document them)."""
+
+    line_file: str = param("", "", "line.yaml; '' = metro_demo's line")
+    train_file: str = param("", "", "train.yaml; '' = metro_demo's train")
+    initial_position: float = param(math.nan, "m", "position at start (odometer origin); NaN = "
+                                    "first station of the line")
+    initial_position_std: float = param(5.0, "m", "standard deviation of the initial position")
+    odometer_rate: float = param(10.0, "Hz", "odometer sample rate = output rate")
+    output_delay: float = param(0.05, "s", "without control messages, an estimate of time t is "
+                                "output at clock t + delay")
+    control_clock: str = param("same", "", "clock of control stamps: auto | same (the "
+                               "odometer's) | reference (the receive clock)")
+    max_future: float = param(600.0, "s", "a stamp this far after its arrival is refused "
+                              "(future_stamp)")
+    wait_for_subscribers: int = param(0, "", "output nothing until the estimate topic has this "
+                                      "many subscribers (a recorder sees every estimate)")
+
+    def __post_init__(self):
+        for key in ("initial_position_std", "odometer_rate"):
+            v = getattr(self, key)
+            require(math.isfinite(v) and v > 0, key, v, "must be > 0")
+        require(math.isfinite(self.output_delay) and self.output_delay >= 0, "output_delay",
+                self.output_delay, "must be >= 0")
+
+
 # ---------------------------------------------------------------------------------------------
 # Wen et al. (2017) recursive robust filter
 # ---------------------------------------------------------------------------------------------
 
+def _eps_to_ros(v):
+    return -1.0 if v is None else v
+
+
+def _eps_from_ros(v):
+    return None if v <= 0 else v
+
+
 @dataclass(frozen=True)
 class RobustConfig:
-    q: float = 0.49  # N^2, bound on the squared wind force (Wen eq. (7))
-    epsilon: float | None = None  # -, eq. (21); None = per-step minimiser
-    alpha_bar: float = 0.875  # -, Prob(odometer packet received), eq. (12)
-    gate: float = 8.0  # -, innovation gate in standard deviations
-    use_distance: bool = True  # odometer distance as a position measurement
-    distance_variance: float = 1.0  # m^2, variance of (origin + distance) as a position reading
-    period: float = 0.1  # s, nominal odometer sample period (lost samples: gap / period - 1)
-    outage_slots: int = 8  # more lost slots in a row are an outage: prediction only
-    max_command: float = 5.0  # m/s^2, |a_Tar| beyond is no train's command (outside_gate)
+    """Settings of the robust filter node (declared from this metadata, config/robust_filter.yaml
+    documents them)."""
+
+    q: float = param(0.49, "N^2", "bound q on the squared wind force, w^2 <= q (Wen eq. (7))")
+    epsilon: float | None = param(None, "-", "epsilon of eq. (21) (> 0); -1 (None) = choose it "
+                                  "per step to minimise the bound",
+                                  ros=(_eps_to_ros, _eps_from_ros))
+    alpha_bar: float = param(0.875, "-", "Prob(odometer packet received), alpha-bar of eq. (12)")
+    gate: float = param(8.0, "-", "innovation gate in standard deviations")
+    use_distance: bool = param(True, "", "odometer distance as a position measurement")
+    distance_variance: float = param(1.0, "m^2", "variance of (initial_position + counted "
+                                     "distance) as a position reading")
+    period: float = param(0.1, "s", "nominal odometer sample period (lost samples: gap / period "
+                          "- 1); the node sets it from odometer_rate", node=False)
+    outage_slots: int = param(8, "-", "more lost odometer slots in a row are an outage: "
+                              "prediction only")
+    max_command: float = param(5.0, "m/s^2", "|a_Tar| beyond is no train's command "
+                               "(outside_gate)")
+
+    def __post_init__(self):
+        require(0.0 < self.alpha_bar <= 1.0, "alpha_bar", self.alpha_bar, "must be in (0, 1]")
+        require(math.isfinite(self.q) and self.q >= 0, "q", self.q, "must be finite and >= 0")
+        require(self.gate > 0, "gate", self.gate, "must be > 0")
+        require(self.distance_variance > 0, "distance_variance", self.distance_variance,
+                "must be > 0")
+        require(self.epsilon is None or self.epsilon > 0, "epsilon", self.epsilon,
+                "must be > 0 (or None: per step)")
+        require(math.isfinite(self.period) and self.period > 0, "period", self.period,
+                "must be > 0")
+        require(self.outage_slots >= 0, "outage_slots", self.outage_slots, "must be >= 0")
+        require(self.max_command > 0, "max_command", self.max_command, "must be > 0")
 
 
 class RobustAdapter:
@@ -77,11 +132,10 @@ class RobustAdapter:
     def __init__(self, train: TrainParams, line: Line, start: StartState,
                  cfg: RobustConfig = RobustConfig(), filter_cls=RobustFilter):
         self.model = WenModel.from_params(train, line, q=cfg.q)
-        self.params = FilterParams(alpha_bar=cfg.alpha_bar, epsilon=cfg.epsilon, gate=cfg.gate,
-                                   use_distance=cfg.use_distance,
-                                   distance_variance=cfg.distance_variance,
-                                   speed_variance=train.odometer_speed_std ** 2,
-                                   odometer_origin=start.position)
+        self.params = filter_params_from_train(
+            train, alpha_bar=cfg.alpha_bar, epsilon=cfg.epsilon, gate=cfg.gate,
+            use_distance=cfg.use_distance, distance_variance=cfg.distance_variance,
+            odometer_origin=start.position)
         self.train, self.start_state, self.cfg, self.filter_cls = train, start, cfg, filter_cls
         self.f: RobustFilter | None = None
         self.last_odo: tuple[float, int] | None = None  # (stamp, seq) of the last odometer slot
@@ -209,45 +263,71 @@ ALGORITHMS = ("gsma", "sma", "rbpf", "qgrbpf", "kf")
 
 @dataclass(frozen=True)
 class BrakingConfig:
-    algorithm: str = "kf"  # one of ALGORITHMS (kf: the exact estimator, README "Braking rate")
-    values: tuple[float, ...] = tuple(np.round(np.linspace(1.3, 0.0, 14), 10))  # discrete f set
-    #   (up to 1.3 so that a prior centred on the nominal 1.0 is not cut in half by the set)
-    f_prior_std: float = 0.15  # -, std of every algorithm's f prior, centred on train.yaml's
-    #   braking_rate (on a discrete set: the Gaussian's mass per value)
-    merge: bool = True  # GSMA/SMA: merge particles on one value after each step instead of
-    #   pruning to the N best (at most (#values) x (children) KFs per step); pruning to N every
-    #   step makes GSMA over-confident on metro_drift (2-sigma coverage 0.83), Q = 500 costs a
-    #   p99 of ~3 ms; merged: coverage 1.00 at the KF's accuracy (README)
-    n_init: int = 50  # N0, initial particles
-    n_keep: int = 50  # N, particles kept after pruning
-    q_max: int = 500  # Q, prune when the branched count exceeds it (merge = False only)
-    rbpf_particles: int = 250  # RBPF particle count
-    rbpf_p_move: float = 0.1  # RBPF sticky kernel: probability of moving to a neighbour value
-    branch_p_move: float = 0.1  # GSMA/SMA children prior: P(move to a neighbour value); -1 =
-    #   the paper's uniform prior over the children, which forgets f at every branching
-    qgrbpf_particles: int = 50
-    qgrbpf_q_theta: float = 3e-4  # 1/s, random-walk variance of f per second (Q-GRBPF; as the KF)
-    kf_q_theta: float = 3e-4  # 1/s, random-walk variance of f per second of braking (KF; chosen
-    #   on metro_drift: 1e-3 tracks as fast but its std breaks the ATO gate, 1e-4 lags)
-    transition_interval: float = 1.0  # s between f transitions, whatever the message rate
-    accel_var: float = 0.02  # m^2/s^3, white acceleration noise PSD on v (unmodelled forces)
-    ahat_var: float = 0.001  # m^2/s^5, white noise PSD on a_hat (actuator mismatch)
-    distance_variance: float = 1.0  # m^2, odometer distance as a position reading
-    use_distance: bool = True
-    standstill_speed: float = 0.3  # m/s: at or below (estimated), with a brake command, the
-    #   train is held at rest and f is not observed (odometer speed noise is ~0.1 m/s)
-    min_brake: float = 0.1  # m/s^2: weaker braking commands do not inform f
-    seed: int = 0  # particle-filter random stream
-    gate: float = 8.0  # -, innovation gate in standard deviations (math.inf disables)
-    gate_accel: float = 1.5  # m/s^2, acceleration error allowed in the gate's look-ahead
-    balise_map_tolerance: float = 1.0  # m, max |sent position - map position|
-    max_horizon: float = 3600.0  # s, a reading further ahead of the estimate is future_stamp
-    max_command: float = 5.0  # m/s^2, |a_Tar| beyond is no train's command (outside_gate)
+    """Settings of the braking-rate estimator node (declared from this metadata,
+    config/gsma_estimator.yaml documents them)."""
+
+    algorithm: str = param("kf", "", f"one of {', '.join(ALGORITHMS)} (kf: the exact "
+                           "estimator, README 'Braking rate')")
+    values: tuple[float, ...] = param(
+        tuple(np.round(np.linspace(1.3, 0.0, 14), 10)), "-",
+        "discrete braking-rate set (GSMA, SMA, RBPF; Q-GRBPF uses its range); up to 1.3 so that "
+        "a prior centred on the nominal 1.0 is not cut in half")
+    braking_rate_prior_std: float = param(
+        0.15, "-", "std of every algorithm's braking-rate prior, centred on train.yaml's "
+        "braking_rate (on a discrete set: the Gaussian's mass per value)")
+    merge: bool = param(True, "", "GSMA/SMA: merge particles on one value after each step "
+                        "instead of pruning to the N best")
+    #   (at most (#values) x (children) KFs per step); pruning to N every step makes GSMA
+    #   over-confident on metro_drift (2-sigma coverage 0.83), Q = 500 costs a p99 of ~3 ms;
+    #   merged: coverage 1.00 at the KF's accuracy (README)
+    n_init: int = param(50, "-", "N0, initial particles (GSMA, SMA)")
+    n_keep: int = param(50, "-", "N, particles kept after pruning (GSMA, SMA)")
+    q_max: int = param(500, "-", "Q, prune when the branched count exceeds it (merge = false)")
+    rbpf_particles: int = param(250, "-", "RBPF particle count")
+    rbpf_p_move: float = param(0.1, "-", "RBPF sticky kernel: probability of moving to a "
+                               "neighbour value")
+    branch_p_move: float = param(0.1, "-", "GSMA/SMA children prior: P(move to a neighbour "
+                                 "value); -1 = the paper's uniform prior (forgets f at every "
+                                 "branching)")
+    qgrbpf_particles: int = param(50, "-", "Q-GRBPF particle count")
+    qgrbpf_braking_rate_q: float = param(3e-4, "1/s", "Q-GRBPF: random-walk variance of the "
+                                         "braking rate per second (as the KF)")
+    kf_braking_rate_q: float = param(3e-4, "1/s", "KF: random-walk variance of the braking "
+                                     "rate per second of braking")
+    #   (chosen on metro_drift: 1e-3 tracks as fast but its std breaks the ATO gate, 1e-4 lags)
+    transition_interval: float = param(1.0, "s", "between braking-rate transitions, whatever "
+                                       "the message rate")
+    accel_var: float = param(0.02, "m^2/s^3", "white acceleration noise PSD on v (unmodelled "
+                             "forces)")
+    ahat_var: float = param(0.001, "m^2/s^5", "white noise PSD on a_hat (actuator mismatch)")
+    distance_variance: float = param(1.0, "m^2", "odometer distance as a position reading")
+    use_distance: bool = param(True, "", "odometer distance as a position measurement")
+    standstill_speed: float = param(0.3, "m/s", "at or below (estimated), with a brake "
+                                    "command, the train is held at rest and the braking rate "
+                                    "is not observed")
+    min_brake: float = param(0.1, "m/s^2", "weaker braking commands do not inform the braking "
+                             "rate")
+    seed: int = param(0, "", "particle-filter random stream")
+    gate: float = param(8.0, "-", "innovation gate in standard deviations (.inf disables)")
+    gate_accel: float = param(1.5, "m/s^2", "acceleration error allowed in the gate's "
+                              "look-ahead")
+    balise_map_tolerance: float = param(1.0, "m", "max |sent position - map position|")
+    max_horizon: float = param(3600.0, "s", "a reading further ahead of the estimate is "
+                               "future_stamp")
+    max_command: float = param(5.0, "m/s^2", "|a_Tar| beyond is no train's command "
+                               "(outside_gate)")
+
+    def __post_init__(self):
+        require(self.algorithm in ALGORITHMS, "algorithm", self.algorithm,
+                f"(allowed: {', '.join(ALGORITHMS)})")
+        require(math.isfinite(self.braking_rate_prior_std) and self.braking_rate_prior_std > 0,
+                "braking_rate_prior_std", self.braking_rate_prior_std, "must be finite and > 0")
 
 
 class BrakingAdapter:
     """Drives one of GSMA, SMA, RBPF, Q-GRBPF or the exact KF over the (D, v, a_hat, a_z) model of
-    Zheng eq. (4). Every algorithm's f prior is N(train.brake.braking_rate, f_prior_std^2).
+    Zheng eq. (4). Every algorithm's braking-rate prior is
+    N(train.brake.braking_rate, braking_rate_prior_std^2).
 
     The known acceleration offset ``d`` on v is minus the believed Davis resistance and gradient
     at the current estimate (Zheng treat them as noise; here they are known forces).
@@ -255,8 +335,6 @@ class BrakingAdapter:
 
     def __init__(self, train: TrainParams, line: Line, start: StartState,
                  cfg: BrakingConfig = BrakingConfig()):
-        if cfg.algorithm not in ALGORITHMS:
-            raise ValueError(f"algorithm must be one of {ALGORITHMS}, got {cfg.algorithm!r}")
         if train.brake.delay <= 0:
             raise ValueError("the braking model needs a transport delay > 0 (Pade lambda = 2/T)")
         self.train, self.line, self.start_state, self.cfg = train, line, start, cfg
@@ -264,13 +342,11 @@ class BrakingAdapter:
         self.fam = BrakingModel(BrakingParams(
             tau=train.brake.time_constant, delay=train.brake.delay, dt=cfg.transition_interval,
             noise_model="white", accel_var=cfg.accel_var, ahat_var=cfg.ahat_var,
-            meas_var=(cfg.distance_variance, train.odometer_speed_std ** 2, 1.0),
+            meas_var=(cfg.distance_variance, train.odometer_speed_variance, 1.0),
             standstill_speed=cfg.standstill_speed, min_brake=cfg.min_brake))
         values = np.asarray(cfg.values, dtype=float)
         M, p = len(values), cfg.branch_p_move
-        if not (math.isfinite(cfg.f_prior_std) and cfg.f_prior_std > 0):
-            raise ValueError(f"f_prior_std must be finite and > 0, got {cfg.f_prior_std!r}")
-        prior = (float(train.brake.braking_rate), float(cfg.f_prior_std))
+        prior = (float(train.brake.braking_rate), float(cfg.braking_rate_prior_std))
         if cfg.algorithm == "gsma":
             # children: the group of three neighbours; prior stay 1 - p, each neighbour p / 2
             self.filt = GSMA(self.fam, values, n_init=cfg.n_init, n_keep=cfg.n_keep,
@@ -289,9 +365,10 @@ class BrakingAdapter:
                                      cfg.rbpf_particles, prior=prior)
         elif cfg.algorithm == "qgrbpf":
             self.filt = QGRBPF(self.fam, [(float(values.min()), float(values.max()))],
-                               cfg.qgrbpf_particles, q_theta=cfg.qgrbpf_q_theta, prior=prior)
+                               cfg.qgrbpf_particles, q_theta=cfg.qgrbpf_braking_rate_q,
+                               prior=prior)
         else:
-            self.filt = BrakingKF(self.fam, q_theta=cfg.kf_q_theta, f_prior=prior)
+            self.filt = BrakingKF(self.fam, q_theta=cfg.kf_braking_rate_q, f_prior=prior)
         self.filt.transition_interval = cfg.transition_interval
         self.rng = np.random.default_rng(cfg.seed)
         self.a_tar = 0.0

@@ -28,7 +28,8 @@ What the data can identify (no force is measured):
 * kappa = 1 / (1 + lambda): the gain on the known gradient acceleration g sin(theta). It is
   identifiable only if the gradient *varies* along the run (a constant grade is a constant
   acceleration, indistinguishable from alpha) and the variation is large against the noise.
-* k f (braking gain): identifiable when the run contains braking; f = (k f) / k.
+* k f (``scaled_braking_rate``, the braking rate times the traction gain): identifiable when the
+  run contains braking; f = (k f) / k.
 * k (traction gain): identifiable from traction phases. M = M_prior / k is identifiable ONLY
   under the force-calibration assumption above (the applied force is exactly the command times
   the believed mass). Without it (if the command were an acceleration delivered whatever the
@@ -58,9 +59,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.optimize import minimize
-from scipy.signal import lfilter
+from train_core.actuator import grid_output as actuator_output
 from train_core.model import Davis, Line, TrainParams
 
+from . import kalman
 from .augmented_kf import Events, augmented_kf
 
 __all__ = [
@@ -73,7 +75,7 @@ __all__ = [
     "identify",
 ]
 
-PARAM_NAMES = ("traction_gain", "brake_gain", "alpha", "beta", "gamma", "kappa")
+PARAM_NAMES = ("traction_gain", "scaled_braking_rate", "alpha", "beta", "gamma", "kappa")
 LOG2PI = np.log(2.0 * np.pi)
 
 
@@ -145,31 +147,6 @@ class SIResult:
 
 
 # ---------------------------------------------------------------------------------------------
-
-
-def actuator_output(t_grid, ctrl_t, ctrl_a, tau: float, delay: float,
-                    brake_delay: float | None = None):
-    """(traction, braking) actuator outputs on ``t_grid`` (uniform): delayed zero-order-hold
-    command split at zero, each through the first-order lag tau (exact discretisation).
-
-    The traction part is delayed by ``delay``, the braking part by ``brake_delay`` (default the
-    same: the brake chain of train_core.actuator). The command before the first stamp is 0
-    (Zheng eq. (1): a_Tar(t - T) = 0 for t <= T).
-    """
-    t_grid = np.asarray(t_grid, float)
-    dt = t_grid[1] - t_grid[0]
-    e = np.exp(-dt / tau)
-    out = []
-    for part, d in ((np.maximum, delay), (np.minimum, delay if brake_delay is None
-                                          else brake_delay)):
-        # The grid, the delay and the command stamps often sit on one lattice (0.1 s): without
-        # a tolerance, round-off puts some grid points one command late, a 0.1 s jitter of the
-        # input that biased a, c and f on metro_demo (found by benchmarks/bench_identify.py).
-        i = np.searchsorted(ctrl_t, t_grid - d + 1e-9, side="right") - 1
-        cmd = np.where(i >= 0, ctrl_a[np.clip(i, 0, None)], 0.0)
-        # y[k] = e y[k-1] + (1 - e) x[k-1]: exact for a command held over each grid step
-        out.append(lfilter([0.0, 1.0 - e], [1.0, -e], part(cmd, 0.0)))
-    return out[0], out[1]
 
 
 def moving_average(x, width):
@@ -280,11 +257,11 @@ def _kf_rts(Y, dt, drift_v, drift_s, q, r_s, r_v):
         A[k] = [[1.0, h], [0.0, 1.0]]
         Q = q[k - 1] * np.array([[h ** 3 / 3, h * h / 2], [h * h / 2, h]])
         mp[k] = A[k] @ m[k - 1] + [drift_s[k - 1], drift_v[k - 1]]
-        Pp[k] = A[k] @ P[k - 1] @ A[k].T + Q
-        S = Pp[k] + np.diag([r_s, r_v[k]])
-        K = Pp[k] @ np.linalg.inv(S)
-        m[k] = mp[k] + K @ (Y[k] - mp[k])
-        P[k] = (np.eye(2) - K) @ Pp[k]
+        Pp[k] = kalman.propagate_cov(P[k - 1], A[k], Q)
+        _, _, _, _, _, (k00, k01, k10, k11), (n00, n01, n11) = kalman.odometer_update(
+            Pp[k, 0, 0], Pp[k, 0, 1], Pp[k, 1, 1], r_s, r_v[k])
+        m[k] = mp[k] + np.array([[k00, k01], [k10, k11]]) @ (Y[k] - mp[k])
+        P[k] = [[n00, n01], [n01, n11]]
     ms = m.copy()
     Ps = P.copy()
     for k in range(n - 2, -1, -1):
@@ -307,18 +284,24 @@ class _QVec:
 # ---------------------------------------------------------------------------------------------
 
 
-def identify(data: SIData, line: Line, prior: TrainParams, config: SIConfig = SIConfig(),
-             progress: Callable[[int, int, str], None] | None = None) -> SIResult:
-    """Fit braking rate f, specific Davis resistance (alpha, beta, gamma) and kappa = 1/(1+lambda)
-    from one run; map them to train.yaml quantities given the prior mass.
+@dataclass
+class _Run:
+    """The run as the fit sees it: decimated odometer, the actuator on the grid, line position."""
 
-    Raises :class:`IdentificationError` (with what is missing and which parameters cannot be
-    identified) for missing series, too short runs, a train that never moves or only cruises.
-    ``progress(step, total, what)`` is called as the fit proceeds.
-    """
-    cfg = config
-    d = _validate(data, line)
-    has_grad = any(g.permille != 0 for g in line.gradients)
+    t_all: np.ndarray  # s, every odometer stamp
+    t: np.ndarray  # s, decimated stamps
+    Y: np.ndarray  # (n, 2) distance (m), speed (m/s) at t
+    r_v: np.ndarray  # (m/s)^2, speed variance at t
+    dt: np.ndarray  # s, np.diff(t)
+    s0: float  # m, line position of odometer distance zero
+    tg: np.ndarray  # s, uniform grid over the run
+    a_tr: np.ndarray  # m/s^2, traction actuator output on tg
+    a_br: np.ndarray  # m/s^2, braking actuator output on tg (before the braking rate)
+    has_grad: bool  # the line has a gradient
+
+
+def _check_run(d: dict, line: Line, cfg: SIConfig) -> tuple[float, float, float]:
+    """Refuse runs that cannot support the fit; returns (duration s, 5 %, 95 % moving speed)."""
     t_all = d["odo_t"]
     duration = t_all[-1] - t_all[0] if t_all.size else 0.0
     if t_all.size < cfg.min_samples or duration < cfg.min_duration:
@@ -339,12 +322,20 @@ def identify(data: SIData, line: Line, prior: TrainParams, config: SIConfig = SI
             f"{cfg.min_speed_range:g} m/s); only the total resistance at that speed is "
             "determined, a, b and c cannot be separated", ("speed variation (accelerate/brake)",),
             ALL_PHYSICAL)
-
-    if has_grad and "balise_t" not in d:
+    if _has_gradient(line) and "balise_t" not in d:
         raise IdentificationError("no balise readings: the run cannot be placed on the line's "
                                   "gradients", ("balise",), ALL_PHYSICAL)
+    return duration, lo, hi
 
-    # ---- decimate the odometer -------------------------------------------------------------
+
+def _has_gradient(line: Line) -> bool:
+    return any(g.permille != 0 for g in line.gradients)
+
+
+def _prepare(d: dict, line: Line, prior: TrainParams, cfg: SIConfig) -> _Run:
+    """Decimate the odometer, place the run on the line (balises), the actuator on the grid."""
+    has_grad = _has_gradient(line)
+    t_all = d["odo_t"]
     step = max(1, int(round(1.0 / (cfg.max_rate * np.median(np.diff(t_all))))))
     sel = np.arange(0, t_all.size, step)
     t = t_all[sel]
@@ -352,11 +343,9 @@ def identify(data: SIData, line: Line, prior: TrainParams, config: SIConfig = SI
     if "odo_speed_variance" in d:
         r_v = d["odo_speed_variance"][sel]
     else:
-        r_v = np.full(t.size, prior.odometer_speed_std ** 2)
+        r_v = np.full(t.size, prior.odometer_speed_variance)
     r_v = np.maximum(r_v, 1e-8)
-    dt = np.diff(t)
 
-    # ---- position on the line --------------------------------------------------------------
     if "balise_t" in d:
         inside = (d["balise_t"] >= t_all[0]) & (d["balise_t"] <= t_all[-1])
         if not np.any(inside) and has_grad:
@@ -368,124 +357,94 @@ def identify(data: SIData, line: Line, prior: TrainParams, config: SIConfig = SI
     else:
         s0 = 0.0
 
-    # ---- grid quantities -------------------------------------------------------------------
     tg = t[0] + cfg.grid_dt * np.arange(int(np.floor((t[-1] - t[0]) / cfg.grid_dt + 1e-9)) + 1)
     a_tr, a_br = actuator_output(tg, d["ctrl_t"], d["ctrl_a_tar"], prior.brake.time_constant,
                                  prior.brake.delay)
-    braking_seen = bool(np.any(d["ctrl_a_tar"] < -cfg.min_brake))
-    lam0 = prior.rotary_allowance
-    meff0 = prior.effective_mass
-    prior_vals = {"traction_gain": 1.0, "brake_gain": prior.brake.braking_rate,
-                  "alpha": prior.davis.a / meff0, "beta": prior.davis.b / meff0,
-                  "gamma": prior.davis.c / meff0, "kappa": 1.0 / (1.0 + lam0)}
+    return _Run(t_all=t_all, t=t, Y=Y, r_v=r_v, dt=np.diff(t), s0=s0, tg=tg, a_tr=a_tr,
+                a_br=a_br, has_grad=has_grad)
 
-    def build(v_ref_g, s_ref_g):
-        """Regressor columns on the grid -> interval integrals at the stamps."""
-        mv = (v_ref_g >= cfg.standstill_speed).astype(float)
-        # an interval is modelled only if the train moves throughout it
-        cm = np.concatenate([[0.0], np.cumsum(1.0 - mv)])
-        ig = np.searchsorted(tg, t)
-        held_k = (cm[np.minimum(ig[1:] + 1, tg.size)] - cm[ig[:-1]]) > 0
-        gs = line.gradient_accel(s0 + s_ref_g) if has_grad else np.zeros_like(tg)
-        R = np.stack([a_tr, a_br, -np.ones_like(tg), -v_ref_g, -v_ref_g ** 2, -gs], axis=1)
-        R *= mv[:, None]
-        # cumulative integrals I1 = int r, I2 = int tau r (trapezoid on the grid)
-        inc = 0.5 * (R[1:] + R[:-1]) * cfg.grid_dt
-        tm = 0.5 * (tg[1:] + tg[:-1])
-        I1 = np.concatenate([np.zeros((1, 6)), np.cumsum(inc, axis=0)])
-        I2 = np.concatenate([np.zeros((1, 6)), np.cumsum(inc * tm[:, None], axis=0)])
-        J1 = np.stack([np.interp(t, tg, I1[:, j]) for j in range(6)], axis=1)
-        J2 = np.stack([np.interp(t, tg, I2[:, j]) for j in range(6)], axis=1)
-        Bv = np.diff(J1, axis=0)
-        Bs = t[1:, None] * Bv - np.diff(J2, axis=0)  # int (t_{k+1} - tau) r dtau
-        Bv[held_k] = 0.0
-        Bs[held_k] = 0.0
-        return Bv, Bs, gs, mv, held_k
 
-    # initial reference: lightly smoothed measured speed, measured distance
-    width = max(1, int(round(2.0 / np.median(dt))))
-    v_ref = np.clip(moving_average(Y[:, 1], width), 0.0, None)
-    s_ref = Y[:, 0]
+def _regressors(run: _Run, line: Line, cfg: SIConfig, v_ref_g, s_ref_g):
+    """Regressor columns (PARAM_NAMES order) on the grid -> their integrals over each interval
+    between stamps: (Bv, Bs, gradient accel on the grid, moving mask, held intervals)."""
+    tg, t = run.tg, run.t
+    mv = (v_ref_g >= cfg.standstill_speed).astype(float)
+    # an interval is modelled only if the train moves throughout it
+    cm = np.concatenate([[0.0], np.cumsum(1.0 - mv)])
+    ig = np.searchsorted(tg, t)
+    held_k = (cm[np.minimum(ig[1:] + 1, tg.size)] - cm[ig[:-1]]) > 0
+    gs = line.gradient_accel(run.s0 + s_ref_g) if run.has_grad else np.zeros_like(tg)
+    R = np.stack([run.a_tr, run.a_br, -np.ones_like(tg), -v_ref_g, -v_ref_g ** 2, -gs], axis=1)
+    R *= mv[:, None]
+    # cumulative integrals I1 = int r, I2 = int tau r (trapezoid on the grid)
+    inc = 0.5 * (R[1:] + R[:-1]) * cfg.grid_dt
+    tm = 0.5 * (tg[1:] + tg[:-1])
+    I1 = np.concatenate([np.zeros((1, 6)), np.cumsum(inc, axis=0)])
+    I2 = np.concatenate([np.zeros((1, 6)), np.cumsum(inc * tm[:, None], axis=0)])
+    J1 = np.stack([np.interp(t, tg, I1[:, j]) for j in range(6)], axis=1)
+    J2 = np.stack([np.interp(t, tg, I2[:, j]) for j in range(6)], axis=1)
+    Bv = np.diff(J1, axis=0)
+    Bs = t[1:, None] * Bv - np.diff(J2, axis=0)  # int (t_{k+1} - tau) r dtau
+    Bv[held_k] = 0.0
+    Bs[held_k] = 0.0
+    return Bv, Bs, gs, mv, held_k
 
-    grad_spread = 0.0
-    free = {"traction_gain": cfg.fit_traction_gain, "brake_gain": braking_seen,
-            "alpha": True, "beta": True, "gamma": True, "kappa": True}
-    reasons = {}
-    if not cfg.fit_traction_gain:
-        reasons["traction_gain"] = "fixed at 1 (fit_traction_gain=False): mass not identifiable"
-    if not braking_seen:
-        reasons["brake_gain"] = "no braking in the run: f not identifiable, prior kept"
-    log_q, log_rs = np.log(1e-4), np.log(max(prior.odometer_distance_std ** 2,
-                                             cfg.min_distance_var))
-    total_steps = cfg.outer_iterations + 2
-    fit = None
-    for outer in range(cfg.outer_iterations):
-        v_ref_g = np.interp(tg, t, v_ref)
-        s_ref_g = np.interp(tg, t, s_ref)
-        Bv, Bs, gs, mv, held_k = build(v_ref_g, s_ref_g)
-        qvec = _QVec(held_k, cfg.standstill_q)
-        if outer == 0:
-            grad_spread = float(np.std(gs[mv > 0])) if np.any(mv > 0) else 0.0
-            if grad_spread < cfg.min_gradient_spread:
-                free["kappa"] = False
-                reasons["kappa"] = (f"gradient acceleration varies too little along the run "
-                                    f"(std {grad_spread:.2g} m/s^2): lambda not identifiable "
-                                    "(confounded with a), prior kept")
 
-        def fit_with(free_now, lq, lrs, Bv=Bv, Bs=Bs, qvec=qvec):
-            names = [k for k in PARAM_NAMES if free_now[k]]
-            fixed = [k for k in PARAM_NAMES if not free_now[k]]
-            jf = [PARAM_NAMES.index(k) for k in names]
-            jx = [PARAM_NAMES.index(k) for k in fixed]
-            thx = np.array([prior_vals[k] for k in fixed])
-            base_v = Bv[:, jx] @ thx if jx else np.zeros(len(dt))
-            base_s = Bs[:, jx] @ thx if jx else np.zeros(len(dt))
-            W, ld = _aug_kf(Y, dt, Bv[:, jf], Bs[:, jf], base_v, base_s, qvec(lq),
-                            np.exp(lrs), r_v)
-            th, cov, ll, cond = _gls(W, ld)
+def _fit(run: _Run, free: dict, prior_vals: dict, Bv, Bs, q_vec, r_s):
+    """GLS of the free parameters, the others fixed at the prior: (names, theta, cov, loglik,
+    condition)."""
+    names = [k for k in PARAM_NAMES if free[k]]
+    fixed = [k for k in PARAM_NAMES if not free[k]]
+    jf = [PARAM_NAMES.index(k) for k in names]
+    jx = [PARAM_NAMES.index(k) for k in fixed]
+    thx = np.array([prior_vals[k] for k in fixed])
+    base_v = Bv[:, jx] @ thx if jx else np.zeros(len(run.dt))
+    base_s = Bs[:, jx] @ thx if jx else np.zeros(len(run.dt))
+    W, ld = _aug_kf(run.Y, run.dt, Bv[:, jf], Bs[:, jf], base_v, base_s, q_vec, r_s, run.r_v)
+    th, cov, ll, cond = _gls(W, ld)
+    return names, th, cov, ll, cond
+
+
+def _fit_noise(run, free, prior_vals, Bv, Bs, qvec, log_q, log_rs, cfg: SIConfig):
+    """(log q, log r_s) by the profile likelihood (Nelder-Mead on logs)."""
+    def negll(z):
+        try:
+            return -_fit(run, free, prior_vals, Bv, Bs, qvec(z[0]), np.exp(z[1]))[3]
+        except np.linalg.LinAlgError:
+            return np.inf
+    opt = minimize(negll, np.array([log_q, log_rs]), method="Nelder-Mead",
+                   options={"xatol": 0.05, "fatol": 0.05, "maxfev": 60})
+    return (float(np.clip(opt.x[0], np.log(1e-12), np.log(10.0))),
+            float(max(opt.x[1], np.log(cfg.min_distance_var))))
+
+
+def _eliminate(run, free, reasons, prior_vals, Bv, Bs, q_vec, r_s, cfg: SIConfig):
+    """Fit, fixing the worst-determined parameter at the prior until every free one passes
+    ``rel_se_max`` (``free`` and ``reasons`` are updated); returns the last fit."""
+    while True:
+        try:
+            names, th, cov, ll, cond = _fit(run, free, prior_vals, Bv, Bs, q_vec, r_s)
+        except np.linalg.LinAlgError as exc:
+            raise IdentificationError(f"no excitation: {exc}", ("excitation",),
+                                      ALL_PHYSICAL) from exc
+        se = np.sqrt(np.diag(cov))
+        rel = np.array([se[i] / max(abs(prior_vals[k]), 1e-12) for i, k in enumerate(names)])
+        bad = [(rel[i], k) for i, k in enumerate(names) if rel[i] > cfg.rel_se_max]
+        if not bad:
             return names, th, cov, ll, cond
+        worst = max(bad)[1]
+        free[worst] = False
+        reasons[worst] = (f"relative standard error {max(bad)[0]:.2f} > {cfg.rel_se_max:g}: "
+                          "not identifiable from this run, prior kept")
+        if not any(free[k] for k in ("alpha", "beta", "gamma")):
+            raise IdentificationError(
+                "no resistance parameter is identifiable from this run",
+                ("excitation",), ("davis.a", "davis.b", "davis.c", "mass"))
 
-        if outer == 0:  # noise by profile likelihood (once; the linearisation barely moves it)
-            def negll(z):
-                try:
-                    return -fit_with(free, z[0], z[1])[3]
-                except np.linalg.LinAlgError:
-                    return np.inf
-            opt = minimize(negll, np.array([log_q, log_rs]), method="Nelder-Mead",
-                           options={"xatol": 0.05, "fatol": 0.05, "maxfev": 60})
-            log_q = float(np.clip(opt.x[0], np.log(1e-12), np.log(10.0)))
-            log_rs = float(max(opt.x[1], np.log(cfg.min_distance_var)))
-        # elimination: fix the worst-determined parameter at the prior until all pass
-        while True:
-            try:
-                names, th, cov, ll, cond = fit_with(free, log_q, log_rs)
-            except np.linalg.LinAlgError as exc:
-                raise IdentificationError(f"no excitation: {exc}", ("excitation",),
-                                          ALL_PHYSICAL) from exc
-            se = np.sqrt(np.diag(cov))
-            rel = np.array([se[i] / max(abs(prior_vals[k]), 1e-12) for i, k in enumerate(names)])
-            bad = [(rel[i], k) for i, k in enumerate(names) if rel[i] > cfg.rel_se_max]
-            if not bad:
-                break
-            worst = max(bad)[1]
-            free[worst] = False
-            reasons[worst] = (f"relative standard error {max(bad)[0]:.2f} > {cfg.rel_se_max:g}: "
-                              "not identifiable from this run, prior kept")
-            if not any(free[k] for k in ("alpha", "beta", "gamma")):
-                raise IdentificationError(
-                    "no resistance parameter is identifiable from this run",
-                    ("excitation",), ("davis.a", "davis.b", "davis.c", "mass"))
-        fit = (names, th, cov, ll, cond, Bv, Bs)
-        # re-linearise about the smoothed trajectory under the fit
-        vals = dict(prior_vals)
-        vals.update(dict(zip(names, th)))
-        thv = np.array([vals[k] for k in PARAM_NAMES])
-        sm = _kf_rts(Y, dt, Bv @ thv, Bs @ thv, qvec(log_q), np.exp(log_rs), r_v)
-        s_ref, v_ref = sm[:, 0], np.clip(sm[:, 1], 0.0, None)
-        if progress is not None:
-            progress(outer + 1, total_steps, f"linearisation {outer + 1}/{cfg.outer_iterations}")
 
-    names, th, cov, ll, cond, Bv, Bs = fit
+def _physical(names, th, cov, free, reasons, prior_vals, prior: TrainParams):
+    """Specific parameters -> train.yaml quantities given the prior mass (delta method for the
+    standard errors): (values, std_errors, identifiable, reasons, davis, lambda, mass, f)."""
     vals = dict(prior_vals)
     vals.update(dict(zip(names, th)))
     ses = {k: float("nan") for k in PARAM_NAMES}
@@ -493,35 +452,33 @@ def identify(data: SIData, line: Line, prior: TrainParams, config: SIConfig = SI
     ident = {k: bool(free[k]) for k in PARAM_NAMES}
     for k in names:
         reasons.setdefault(k, f"identified, relative SE {ses[k] / abs(prior_vals[k]):.3f}")
-
-    # ---- physical quantities ---------------------------------------------------------------
     kap = vals["kappa"]
     lam = 1.0 / kap - 1.0
     se_lam = ses["kappa"] / kap ** 2 if ident["kappa"] else float("nan")
     kg = vals["traction_gain"]
     mass = prior.mass / kg
     se_mass = prior.mass * ses["traction_gain"] / kg ** 2 if ident["traction_gain"] else np.nan
-    f_hat = vals["brake_gain"] / kg
-    se_f = float("nan")
-    if ident["brake_gain"]:
+    braking_rate = vals["scaled_braking_rate"] / kg
+    se_braking_rate = float("nan")
+    if ident["scaled_braking_rate"]:
         # delta method for f = (k f) / k with the joint covariance of the free gains
-        gradf = np.zeros(len(names))
-        gradf[names.index("brake_gain")] = 1.0 / kg
+        grad = np.zeros(len(names))
+        grad[names.index("scaled_braking_rate")] = 1.0 / kg
         if ident["traction_gain"]:
-            gradf[names.index("traction_gain")] = -vals["brake_gain"] / kg ** 2
-        se_f = float(np.sqrt(gradf @ cov @ gradf))
+            grad[names.index("traction_gain")] = -vals["scaled_braking_rate"] / kg ** 2
+        se_braking_rate = float(np.sqrt(grad @ cov @ grad))
     meff = (1.0 + lam) * mass
     davis = Davis(a=vals["alpha"] * meff, b=vals["beta"] * meff, c=vals["gamma"] * meff)
     values = dict(vals)
     values.update({"davis.a": davis.a, "davis.b": davis.b, "davis.c": davis.c,
-                   "mass": mass, "rotary_allowance": lam, "braking_rate": f_hat})
+                   "mass": mass, "rotary_allowance": lam, "braking_rate": braking_rate})
     std = dict(ses)
     std.update({"davis.a": ses["alpha"] * meff, "davis.b": ses["beta"] * meff,
                 "davis.c": ses["gamma"] * meff, "mass": se_mass, "rotary_allowance": se_lam,
-                "braking_rate": se_f})
+                "braking_rate": se_braking_rate})
     ident.update({"davis.a": ident["alpha"], "davis.b": ident["beta"], "davis.c": ident["gamma"],
                   "mass": ident["traction_gain"], "rotary_allowance": ident["kappa"],
-                  "braking_rate": ident["brake_gain"]})
+                  "braking_rate": ident["scaled_braking_rate"]})
     mass_note = (" (in N: alpha M_eff with the fitted mass)" if ident["traction_gain"]
                  else " (in N given the prior mass)")
     reasons.update({
@@ -531,10 +488,14 @@ def identify(data: SIData, line: Line, prior: TrainParams, config: SIConfig = SI
         "mass": (("identified as M_prior / traction_gain, assuming the drive force is the "
                   "command times the believed mass") if ident["traction_gain"] else
                  ("not identifiable: " + reasons["traction_gain"])),
-        "rotary_allowance": reasons["kappa"], "braking_rate": reasons["brake_gain"]})
+        "rotary_allowance": reasons["kappa"], "braking_rate": reasons["scaled_braking_rate"]})
+    return values, std, ident, reasons, davis, lam, mass, braking_rate
 
-    # mass hypothesis: resistance = k * prior specific resistance, k = M_eff,prior / M_eff
-    free_m = {k: (free[k] if k in ("brake_gain", "kappa") else False)
+
+def _mass_hypothesis(run, free, prior_vals, prior: TrainParams, Bv, Bs, q_vec, r_s):
+    """The mass explaining the data if a, b, c (N) are train.yaml's: resistance = k * prior
+    specific resistance, k = M_eff,prior / M_eff. Returns ((kg, SE kg), loglik)."""
+    free_m = {k: (free[k] if k in ("scaled_braking_rate", "kappa") else False)
               for k in PARAM_NAMES}
     jx = [PARAM_NAMES.index(k) for k in PARAM_NAMES if not free_m[k] and k not in
           ("alpha", "beta", "gamma")]
@@ -544,20 +505,97 @@ def identify(data: SIData, line: Line, prior: TrainParams, config: SIConfig = SI
     res_col_s = (Bs[:, 2:5] @ np.array([prior_vals["alpha"], prior_vals["beta"],
                                         prior_vals["gamma"]]))
     thx = np.array([prior_vals[PARAM_NAMES[j]] for j in jx])
-    W, ld = _aug_kf(Y, dt, np.concatenate([Bv[:, jf], res_col[:, None]], axis=1),
+    W, ld = _aug_kf(run.Y, run.dt, np.concatenate([Bv[:, jf], res_col[:, None]], axis=1),
                     np.concatenate([Bs[:, jf], res_col_s[:, None]], axis=1),
-                    Bv[:, jx] @ thx, Bs[:, jx] @ thx, qvec(log_q), np.exp(log_rs), r_v)
+                    Bv[:, jx] @ thx, Bs[:, jx] @ thx, q_vec, r_s, run.r_v)
     thm, covm, llm, _ = _gls(W, ld)
     kscale, se_k = thm[-1], float(np.sqrt(covm[-1, -1]))
     m_eq = prior.mass / kscale
-    mass_hyp = (float(m_eq), float(prior.mass * se_k / kscale ** 2))
+    return (float(m_eq), float(prior.mass * se_k / kscale ** 2)), llm
+
+
+def identify(data: SIData, line: Line, prior: TrainParams, config: SIConfig = SIConfig(),
+             progress: Callable[[int, int, str], None] | None = None) -> SIResult:
+    """Fit braking rate f, specific Davis resistance (alpha, beta, gamma) and kappa = 1/(1+lambda)
+    from one run; map them to train.yaml quantities given the prior mass.
+
+    Raises :class:`IdentificationError` (with what is missing and which parameters cannot be
+    identified) for missing series, too short runs, a train that never moves or only cruises.
+    ``progress(step, total, what)`` is called as the fit proceeds.
+
+    Steps: check the run (:func:`_check_run`), decimate and place it (:func:`_prepare`), then
+    ``outer_iterations`` times: regressors about the reference trajectory (:func:`_regressors`),
+    the noise by profile likelihood (first time only, :func:`_fit_noise`), the GLS with
+    elimination of unidentifiable parameters (:func:`_eliminate`) and a new reference from the
+    RTS smoother; finally the physical quantities (:func:`_physical`) and the mass hypothesis
+    (:func:`_mass_hypothesis`).
+    """
+    cfg = config
+    d = _validate(data, line)
+    duration, lo, hi = _check_run(d, line, cfg)
+    run = _prepare(d, line, prior, cfg)
+    Y, dt, t, tg = run.Y, run.dt, run.t, run.tg
+    braking_seen = bool(np.any(d["ctrl_a_tar"] < -cfg.min_brake))
+    lam0 = prior.rotary_allowance
+    meff0 = prior.effective_mass
+    prior_vals = {"traction_gain": 1.0, "scaled_braking_rate": prior.brake.braking_rate,
+                  "alpha": prior.davis.a / meff0, "beta": prior.davis.b / meff0,
+                  "gamma": prior.davis.c / meff0, "kappa": 1.0 / (1.0 + lam0)}
+
+    # initial reference: lightly smoothed measured speed, measured distance
+    width = max(1, int(round(2.0 / np.median(dt))))
+    v_ref = np.clip(moving_average(Y[:, 1], width), 0.0, None)
+    s_ref = Y[:, 0]
+
+    grad_spread = 0.0
+    free = {"traction_gain": cfg.fit_traction_gain, "scaled_braking_rate": braking_seen,
+            "alpha": True, "beta": True, "gamma": True, "kappa": True}
+    reasons = {}
+    if not cfg.fit_traction_gain:
+        reasons["traction_gain"] = "fixed at 1 (fit_traction_gain=False): mass not identifiable"
+    if not braking_seen:
+        reasons["scaled_braking_rate"] = "no braking in the run: f not identifiable, prior kept"
+    log_q, log_rs = np.log(1e-4), np.log(max(prior.odometer_distance_std ** 2,
+                                             cfg.min_distance_var))
+    total_steps = cfg.outer_iterations + 2
+    fit = None
+    for outer in range(cfg.outer_iterations):
+        Bv, Bs, gs, mv, held_k = _regressors(run, line, cfg, np.interp(tg, t, v_ref),
+                                             np.interp(tg, t, s_ref))
+        qvec = _QVec(held_k, cfg.standstill_q)
+        if outer == 0:
+            grad_spread = float(np.std(gs[mv > 0])) if np.any(mv > 0) else 0.0
+            if grad_spread < cfg.min_gradient_spread:
+                free["kappa"] = False
+                reasons["kappa"] = (f"gradient acceleration varies too little along the run "
+                                    f"(std {grad_spread:.2g} m/s^2): lambda not identifiable "
+                                    "(confounded with a), prior kept")
+            # noise once: the linearisation barely moves it
+            log_q, log_rs = _fit_noise(run, free, prior_vals, Bv, Bs, qvec, log_q, log_rs, cfg)
+        names, th, cov, ll, cond = _eliminate(run, free, reasons, prior_vals, Bv, Bs,
+                                              qvec(log_q), np.exp(log_rs), cfg)
+        fit = (names, th, cov, ll, cond, Bv, Bs)
+        # re-linearise about the smoothed trajectory under the fit
+        vals = dict(prior_vals)
+        vals.update(dict(zip(names, th)))
+        thv = np.array([vals[k] for k in PARAM_NAMES])
+        sm = _kf_rts(Y, dt, Bv @ thv, Bs @ thv, qvec(log_q), np.exp(log_rs), run.r_v)
+        s_ref, v_ref = sm[:, 0], np.clip(sm[:, 1], 0.0, None)
+        if progress is not None:
+            progress(outer + 1, total_steps, f"linearisation {outer + 1}/{cfg.outer_iterations}")
+
+    names, th, cov, ll, cond, Bv, Bs = fit
+    values, std, ident, reasons, davis, lam, mass, braking_rate = _physical(
+        names, th, cov, free, reasons, prior_vals, prior)
+    mass_hyp, llm = _mass_hypothesis(run, free, prior_vals, prior, Bv, Bs, qvec(log_q),
+                                     np.exp(log_rs))
 
     train = prior.with_changes(
         davis=davis if any(ident[k] for k in ("alpha", "beta", "gamma")) else prior.davis,
         rotary_allowance=float(lam) if ident["kappa"] else prior.rotary_allowance,
         brake=prior.brake.__class__(time_constant=prior.brake.time_constant,
                                     delay=prior.brake.delay,
-                                    braking_rate=float(f_hat)),
+                                    braking_rate=float(braking_rate)),
         mass=float(mass),
     )
     if progress is not None:
@@ -567,7 +605,7 @@ def identify(data: SIData, line: Line, prior: TrainParams, config: SIConfig = SI
         train=train, values=values, std_errors=std, identifiable=ident, reasons=reasons,
         covariance=cov, free_names=tuple(names), mass_if_davis_nominal=mass_hyp,
         diagnostics={"samples_used": int(t.size), "duration_s": float(duration),
-                     "position_offset_m": s0, "process_noise_psd": float(np.exp(log_q)),
+                     "position_offset_m": run.s0, "process_noise_psd": float(np.exp(log_q)),
                      "distance_noise_var": float(np.exp(log_rs)), "loglik": float(ll),
                      "loglik_mass_hypothesis": float(llm), "condition": float(cond),
                      "speed_range": (float(lo), float(hi)), "gradient_spread": grad_spread,

@@ -203,13 +203,20 @@ class Actuator:
 
     ``mean(t0, t1)`` integrates the lag exactly over the piecewise-constant delayed command and
     returns the mean achieved acceleration over ``[t0, t1]`` (the ZOH input of the step).
+
+    Why not ``train_core.actuator.Actuator`` (the same eq. (1), event based): the filter needs
+    the *mean* over each prediction step (the ZOH input of eq. (6)), not point values; it must
+    accept late commands (effective from the latest known time: message order is not the
+    world's) and run copies for predictions on copies; and ``enabled=False`` is Wen's plain
+    ``u(kT)``. Its lag state at step ends is the event actuator's output
+    (``test_wen_model.py`` checks both on a common grid).
     """
 
     def __init__(self, time_constant: float, delay: float, braking_rate: float = 1.0,
                  enabled: bool = True):
         self.tau = float(time_constant)
         self.delay = float(delay) if enabled else 0.0
-        self.f = float(braking_rate)
+        self.braking_rate = float(braking_rate)
         self.enabled = enabled
         self._cmds: list[tuple[float, float]] = []  # (stamp, a_Tar), stamps non-decreasing
         self._a = 0.0  # achieved acceleration at self._t
@@ -227,7 +234,7 @@ class Actuator:
         self._cmds.append((float(stamp), float(a_tar)))
 
     def _g(self, c: float) -> float:
-        return c if c >= 0.0 else self.f * c
+        return c if c >= 0.0 else self.braking_rate * c
 
     def _delayed(self, s: float) -> float:
         """g(a_Tar(s - T)): the command in force at time s (0 before the first command)."""

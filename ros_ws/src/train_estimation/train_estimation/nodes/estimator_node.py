@@ -14,34 +14,19 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 
-from train_core.ros import ParameterError, declarer, sec_to_stamp, stamp_to_sec
+from train_core.ros import ParameterError, declare_config, sec_to_stamp, stamp_to_sec
 
 
 def declare_common(node) -> dict:
-    """Parameters every estimator node has (documented in config/*.yaml)."""
+    """Parameters every estimator node has (``core.estimators.NodeConfig``; config/*.yaml)."""
+    from dataclasses import asdict
 
-    declare = declarer(node)
+    from train_estimation.core.estimators import NodeConfig
 
-    return {
-        "line_file": declare("line_file", "", "line.yaml; '' = metro_demo's line"),
-        "train_file": declare("train_file", "", "train.yaml; '' = metro_demo's train"),
-        "initial_position": declare("initial_position", math.nan,
-                                    "m, position at start (odometer origin); NaN = first "
-                                    "station of the line"),
-        "initial_position_std": declare("initial_position_std", 5.0, "m"),
-        "odometer_rate": declare("odometer_rate", 10.0, "Hz, output rate = odometer rate"),
-        "output_delay": declare("output_delay", 0.05,
-                                "s, without control messages, an estimate of time t is output "
-                                "at clock t + delay"),
-        "control_clock": declare("control_clock", "same",
-                                 "clock of control stamps: auto | same (the odometer's) | "
-                                 "reference (the receive clock)"),
-        "max_future": declare("max_future", 600.0,
-                              "s, a stamp this far after its arrival is refused (future_stamp)"),
-        "wait_for_subscribers": declare("wait_for_subscribers", 0,
-                                        "output nothing until the estimate topic has this many "
-                                        "subscribers (a recorder sees every estimate)"),
-    }
+    try:
+        return asdict(declare_config(node, NodeConfig))
+    except ValueError as exc:
+        raise ParameterError(str(exc)) from None
 
 
 def load_models(common: dict):
@@ -61,11 +46,6 @@ def load_models(common: dict):
     x0 = common["initial_position"]
     if not math.isfinite(x0):
         x0 = line.stations[0].position if line.stations else 0.0
-    for key in ("initial_position_std", "odometer_rate"):
-        if not (math.isfinite(common[key]) and common[key] > 0):
-            raise ParameterError(f"parameter {key}: {common[key]} must be > 0")
-    if not (math.isfinite(common["output_delay"]) and common["output_delay"] >= 0):
-        raise ParameterError(f"parameter output_delay: {common['output_delay']} must be >= 0")
     return train, line, StartState(position=x0, position_std=common["initial_position_std"])
 
 

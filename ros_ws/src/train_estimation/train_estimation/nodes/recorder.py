@@ -12,11 +12,13 @@ topics, message counts and bytes written.
 from __future__ import annotations
 
 import sys
+from dataclasses import dataclass
 
+from train_core.config import param, require
 from train_core.ros import (
     TOPIC_TYPES,
     ParameterError,
-    declarer,
+    declare_config,
     msg_class,
     parse_cli,
     run_node,
@@ -27,6 +29,22 @@ DEFAULT_TOPICS = ["odometer", "balise", "control", "ground_truth", "estimate/rob
                   "estimate/gsma", "movement_authority"]
 
 
+@dataclass(frozen=True)
+class RecorderConfig:
+    """The recorder's parameters (declared from this metadata; config/recorder.yaml)."""
+
+    topics: tuple[str, ...] = param(tuple(DEFAULT_TOPICS), "", "topics to record (CONTRACT.md "
+                                    "names)")
+    bag: str = param("", "", "bag directory to create (must not exist)")
+    flush_period: float = param(1.0, "s", "of wall time between chunk flushes")
+
+    def __post_init__(self):
+        require(bool(self.bag), "bag", self.bag, "is empty: give the bag directory to write")
+        unknown = [t for t in self.topics if t.split("/")[-1] not in
+                   {k.split("/")[-1] for k in TOPIC_TYPES}]
+        require(not unknown, "topics", unknown, f"unknown (allowed: {sorted(TOPIC_TYPES)})")
+
+
 def build_node():
     from rclpy.node import Node
     from train_core.bagio import BagError, BagWriter
@@ -35,18 +53,11 @@ def build_node():
         def __init__(self):
             super().__init__("recorder")
 
-            declare = declarer(self)
-
-            topics = declare("topics", DEFAULT_TOPICS, "topics to record (CONTRACT.md names)")
-            bag = declare("bag", "", "bag directory to create (must not exist)")
-            flush = declare("flush_period", 1.0, "s of wall time between chunk flushes")
-            if not bag:
-                raise ParameterError("parameter bag: give the bag directory to write")
-            unknown = [t for t in topics if t.split("/")[-1] not in
-                       {k.split("/")[-1] for k in TOPIC_TYPES}]
-            if unknown:
-                raise ParameterError(f"parameter topics: unknown topic(s) {unknown} "
-                                     f"(allowed: {sorted(TOPIC_TYPES)})")
+            try:
+                cfg = declare_config(self, RecorderConfig)
+            except ValueError as exc:
+                raise ParameterError(str(exc)) from None
+            topics, bag, flush = list(cfg.topics), cfg.bag, cfg.flush_period
             ns = self.get_namespace()
             try:
                 self.writer = BagWriter(bag, namespace=ns if ns != "/" else "")

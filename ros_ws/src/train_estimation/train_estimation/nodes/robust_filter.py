@@ -7,10 +7,9 @@ upper bound Sigma of the error covariance in ``covariance`` (position/velocity b
 
 from __future__ import annotations
 
-import math
 import sys
 
-from train_core.ros import declarer, parse_cli, run_node
+from train_core.ros import declare_config, parse_cli, run_node
 
 DESCRIPTION = __doc__.splitlines()[0]
 
@@ -19,22 +18,7 @@ def make_adapter(node, train, line, start, common):
 
     from train_estimation.core.estimators import RobustAdapter, RobustConfig
 
-    declare = declarer(node)
-
-    d = RobustConfig()
-    eps = declare("epsilon", -1.0, "eq. (21) epsilon > 0; -1 = per-step minimiser")
-    cfg = RobustConfig(
-        q=declare("q", d.q, "N^2, bound on the squared wind force (Wen eq. (7))"),
-        epsilon=None if eps <= 0 else eps,
-        alpha_bar=declare("alpha_bar", d.alpha_bar, "Prob(odometer packet received)"),
-        gate=declare("gate", d.gate, "innovation gate in standard deviations"),
-        use_distance=declare("use_distance", d.use_distance, "odometer distance as position"),
-        distance_variance=declare("distance_variance", d.distance_variance, "m^2"),
-        period=1.0 / common["odometer_rate"])
-    if not (0.0 < cfg.alpha_bar <= 1.0 and cfg.q >= 0 and cfg.gate > 0
-            and cfg.distance_variance > 0 and math.isfinite(cfg.q)):
-        raise ValueError("robust_filter parameters: need 0 < alpha_bar <= 1, q >= 0, gate > 0, "
-                         "distance_variance > 0")
+    cfg = declare_config(node, RobustConfig, period=1.0 / common["odometer_rate"])
     return RobustAdapter(train, line, start, cfg)
 
 

@@ -13,11 +13,13 @@ from __future__ import annotations
 
 import sys
 import time
+from dataclasses import dataclass
 
+from train_core.config import param, require
 from train_core.ros import (
     TOPIC_TYPES,
     ParameterError,
-    declarer,
+    declare_config,
     fields_to_msg,
     inputs_matched,
     msg_class,
@@ -29,6 +31,21 @@ from train_core.ros import (
 DESCRIPTION = __doc__.splitlines()[0]
 
 
+@dataclass(frozen=True)
+class PlayerConfig:
+    """The player's parameters (declared from this metadata)."""
+
+    bag: str = param("", "", "bag directory (rosbag2, MCAP) to play")
+    topics: tuple[str, ...] = param(("control", "odometer", "balise", "ground_truth"), "",
+                                    "topics of the bag to publish (relative names)")
+    rate_factor: float = param(1.0, "-", "bag seconds per wall second")
+    wait_for_subscribers: int = param(0, "", "start when each of control, odometer and balise "
+                                      "has this many subscribers")
+
+    def __post_init__(self):
+        require(bool(self.bag), "bag", self.bag, "is empty: give the bag to play")
+
+
 def build_node():
     from rclpy.node import Node
     from rosgraph_msgs.msg import Clock
@@ -38,17 +55,12 @@ def build_node():
         def __init__(self):
             super().__init__("player")
 
-            declare = declarer(self)
-
-            bag = declare("bag", "", "bag directory (rosbag2, MCAP) to play")
-            topics = declare("topics", ["control", "odometer", "balise", "ground_truth"],
-                             "topics of the bag to publish (relative names)")
-            self.rate = declare("rate_factor", 1.0, "bag seconds per wall second")
-            self.wait_subs = declare("wait_for_subscribers", 0,
-                                     "start when each of control, odometer and balise has this "
-                                     "many subscribers")
-            if not bag:
-                raise ParameterError("parameter bag: give the bag to play")
+            try:
+                cfg = declare_config(self, PlayerConfig)
+            except ValueError as exc:
+                raise ParameterError(str(exc)) from None
+            bag, topics = cfg.bag, list(cfg.topics)
+            self.rate, self.wait_subs = cfg.rate_factor, cfg.wait_for_subscribers
             try:
                 data = read_bag(bag)
             except BagError as exc:

@@ -13,12 +13,14 @@ import json
 import math
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
+from train_core.config import param, require
 from train_core.ros import (
     TOPIC_TYPES,
     ParameterError,
-    declarer,
+    declare_config,
     fields_to_msg,
     inputs_matched,
     msg_class,
@@ -29,6 +31,50 @@ from train_core.ros import (
 )
 
 DESCRIPTION = __doc__.splitlines()[0]
+
+
+@dataclass(frozen=True)
+class SimulatorConfig:
+    """The simulator node's parameters (declared from this metadata; config/simulator.yaml
+    documents them)."""
+
+    scenario: str = param("metro_demo", "", "scenario name or path to its YAML")
+    model: str = param("", "", "a model directory written by diagnose (DIR/model: line.yaml, "
+                       "train.yaml, effects.yaml) to run instead of the scenario's line, train "
+                       "and effects; empty = the scenario's")
+    seed: int = param(-1, "", "random seed; -1 = the scenario's own seed")
+    rate_factor: float = param(1.0, "-", "simulated seconds per wall-clock second")
+    duration: float = param(-1.0, "s", "simulated time; -1 = the scenario's")
+    wall_step: float = param(0.01, "s", "wall-clock period of the stepping timer")
+    wait_for_subscribers: int = param(0, "", "start only when control, odometer and balise "
+                                      "have this many subscribers each")
+    wait_for_truth_subscribers: int = param(0, "", "and ground_truth has this many "
+                                            "subscribers")
+    publish_clock: bool = param(True, "", "publish /clock (one simulator per ROS graph should)")
+    start_at: float = param(0.0, "s", "wall time (since the epoch) to start at; 0 = at once. "
+                            "Several simulators given one start_at share a time base")
+    summary_file: str = param("", "", "write the run's summary (JSON) here at the end; '' = no")
+    start_with_emergency_brake: bool = param(False, "", "the train starts braked, as one no "
+                                             "zone controller has localised yet, until an "
+                                             "authority without the brake arrives")
+    end_linger: float = param(0.0, "s", "of simulated time /clock keeps running after the run "
+                              "ends, so estimators release their last estimates")
+    max_lead: float = param(0.0, "s", "> 0: simulated time runs at most this far ahead of the "
+                            "newest message stamp on every pace_topics topic; 0 = off")
+    pace_topics: tuple[str, ...] = param(("estimate/robust",), "", "topics whose progress "
+                                         "paces the world when max_lead > 0")
+    exit_at_end: bool = param(True, "", "stop the node when the run ends")
+
+    def __post_init__(self):
+        require(self.rate_factor > 0, "rate_factor", self.rate_factor, "must be > 0")
+        require(self.wall_step > 0, "wall_step", self.wall_step, "must be > 0")
+        require(math.isfinite(self.end_linger) and self.end_linger >= 0, "end_linger",
+                self.end_linger, "must be >= 0")
+        require(math.isfinite(self.max_lead) and self.max_lead >= 0, "max_lead", self.max_lead,
+                "must be >= 0")
+        unknown = [t for t in self.pace_topics if t not in TOPIC_TYPES]
+        require(self.max_lead == 0 or not unknown, "pace_topics", unknown,
+                f"unknown (allowed: {sorted(TOPIC_TYPES)})")
 
 
 def build_node():
@@ -45,51 +91,18 @@ def build_node():
         def __init__(self):
             super().__init__("simulator")
 
-            declare = declarer(self)
-
-            scenario = declare("scenario", "metro_demo", "scenario name or path to its YAML")
-            model_dir = declare("model", "", "a model directory written by diagnose (DIR/model: "
-                                "line.yaml, train.yaml, effects.yaml) to run instead of the "
-                                "scenario's line, train and effects; empty = the scenario's")
-            seed = declare("seed", -1, "random seed; -1 = the scenario's own seed")
-            self.rate_factor = declare("rate_factor", 1.0,
-                                       "-, simulated seconds per wall-clock second")
-            duration = declare("duration", -1.0, "s, simulated time; -1 = the scenario's")
-            self.step = declare("wall_step", 0.01, "s, wall-clock period of the stepping timer")
-            self.exit_at_end = declare("exit_at_end", True, "stop the node when the run ends")
-            self.summary_file = declare("summary_file", "",
-                                        "write the run's summary (JSON) here at the end; '' = no")
-            self.wait_subs = declare("wait_for_subscribers", 0,
-                                     "start only when control, odometer and balise have this "
-                                     "many subscribers each")
-            self.wait_truth = declare("wait_for_truth_subscribers", 0,
-                                      "and ground_truth has this many subscribers")
-            self.publish_clock = declare("publish_clock", True,
-                                         "publish /clock (one simulator per ROS graph should)")
-            self.start_at = declare("start_at", 0.0,
-                                    "wall time (s since the epoch) to start at; 0 = at once. "
-                                    "Several simulators given one start_at share a time base")
-            startup_eb = declare("start_with_emergency_brake", False,
-                                 "the train starts braked, as one no zone controller has "
-                                 "localised yet, until an authority without the brake arrives")
-            self.linger = declare("end_linger", 0.0,
-                                  "s of simulated time /clock keeps running after the run ends, "
-                                  "so estimators release their last estimates")
-            if not (self.rate_factor > 0 and self.step > 0):
-                raise ParameterError("rate_factor and wall_step must be > 0")
-            self.max_lead = declare("max_lead", 0.0,
-                                    "s; > 0: simulated time runs at most this far ahead of the "
-                                    "newest message stamp on every pace_topics topic; 0 = off")
-            pace_topics = declare("pace_topics", ["estimate/robust"],
-                                  "topics whose progress paces the world when max_lead > 0")
-            if not (math.isfinite(self.linger) and self.linger >= 0):
-                raise ParameterError(f"parameter end_linger: {self.linger} must be >= 0")
-            if not (math.isfinite(self.max_lead) and self.max_lead >= 0):
-                raise ParameterError(f"parameter max_lead: {self.max_lead} must be >= 0")
-            unknown = [t for t in pace_topics if t not in TOPIC_TYPES]
-            if self.max_lead > 0 and unknown:
-                raise ParameterError(f"parameter pace_topics: unknown {unknown} "
-                                     f"(allowed: {sorted(TOPIC_TYPES)})")
+            try:
+                cfg = declare_config(self, SimulatorConfig)
+            except ValueError as exc:
+                raise ParameterError(str(exc)) from None
+            scenario, model_dir, seed, duration = cfg.scenario, cfg.model, cfg.seed, cfg.duration
+            self.rate_factor, self.step = cfg.rate_factor, cfg.wall_step
+            self.exit_at_end, self.summary_file = cfg.exit_at_end, cfg.summary_file
+            self.wait_subs, self.wait_truth = cfg.wait_for_subscribers, \
+                cfg.wait_for_truth_subscribers
+            self.publish_clock, self.start_at = cfg.publish_clock, cfg.start_at
+            startup_eb, self.linger = cfg.start_with_emergency_brake, cfg.end_linger
+            self.max_lead, pace_topics = cfg.max_lead, list(cfg.pace_topics)
             try:
                 self.sc = load_scenario(scenario)
                 if model_dir:

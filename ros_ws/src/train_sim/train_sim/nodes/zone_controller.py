@@ -11,7 +11,7 @@ import math
 import sys
 from dataclasses import replace
 
-from train_core.ros import ParameterError, declarer, parse_cli, run_node, stamp_to_sec
+from train_core.ros import ParameterError, declare_config, parse_cli, run_node, stamp_to_sec
 
 DESCRIPTION = __doc__.splitlines()[0]
 
@@ -21,42 +21,19 @@ def build_node():
     from train_core.model import load_line
 
     from train_interfaces.msg import MovementAuthority, TrainState
-    from train_sim.zone import TrainReport, ZoneController, ZoneParams
+    from train_sim.zone import TrainReport, ZoneController, ZoneNodeConfig, ZoneParams
 
     class ZoneControllerNode(Node):
         def __init__(self):
             super().__init__("zone_controller")
 
-            declare = declarer(self)
-
-            d = ZoneParams()
-            trains = declare("trains", [""], "train namespaces ('' = this node's namespace)")
-            state_topic = declare("state_topic", "estimate/robust",
-                                  "TrainState topic of each train, relative to its namespace")
-            line_file = declare("line_file", "", "line.yaml; its length is a danger point")
-            danger = declare("danger_points", [-1.0],
-                             "m, fixed danger points (red signals); [-1.0] = none")
-            params = ZoneParams(
-                k_sigma=declare("k_sigma", d.k_sigma, "-, confidence interval half-width in sigma"),
-                stale_timeout=declare("stale_timeout", d.stale_timeout,
-                                      "s, estimates older than this: emergency brake"),
-                measurement_timeout=declare("measurement_timeout", d.measurement_timeout,
-                                            "s, no measurement used for this long: emergency "
-                                            "brake"),
-                check_stamp_age=declare("check_stamp_age", d.check_stamp_age,
-                                        "judge age by the estimate's stamp too (one clock)"),
-                emergency_decel=declare("emergency_decel", d.emergency_decel,
-                                        "m/s^2, emergency braking at nominal braking rate"),
-                train_length=declare("train_length", d.train_length, "m, front to rear"),
-                margin=declare("margin", d.margin, "m, kept before each hazard"),
-                permitted_speed=declare("permitted_speed", d.permitted_speed, "m/s"),
-            )
-            rate = declare("rate", 1.0, "Hz, movement authority publication rate")
-            for name in ("k_sigma", "stale_timeout", "measurement_timeout", "emergency_decel",
-                         "rate"):
-                value = rate if name == "rate" else getattr(params, name)
-                if not (math.isfinite(value) and value > 0):
-                    raise ParameterError(f"parameter {name}: {value} must be > 0")
+            try:
+                params = declare_config(self, ZoneParams)
+                node_cfg = declare_config(self, ZoneNodeConfig)
+            except ValueError as exc:
+                raise ParameterError(str(exc)) from None
+            trains, state_topic = list(node_cfg.trains), node_cfg.state_topic
+            line_file, danger, rate = node_cfg.line_file, node_cfg.danger_points, node_cfg.rate
             points = [p for p in danger if p >= 0]
             if line_file:
                 try:
