@@ -52,3 +52,18 @@ def test_closed_form_updates_are_the_batched_one(seed):
                                atol=1e-14)
     np.testing.assert_allclose(ll[0], -0.5 * (np.log(2 * np.pi * s) + (y[0] - x[0]) ** 2 / s),
                                rtol=1e-12)
+
+
+@pytest.mark.parametrize("n_particles", [1, 3])
+def test_update_leaves_its_inputs_alone(n_particles):
+    """The batched update works on copies: with one particle the transposed arrays are
+    contiguous views, and an in-place step would overwrite the caller's state (a filter's
+    snapshot for rewinding, say)."""
+    rng = np.random.default_rng(1)
+    x = rng.normal(size=(n_particles, 2))
+    P = np.stack([_random_cov(rng) for _ in range(n_particles)])
+    x0, P0 = x.copy(), P.copy()
+    kalman.update(x, P, rng.normal(size=2), np.eye(2), np.array([0.5, 0.2]),
+                  np.array([True, True]))
+    np.testing.assert_array_equal(x, x0)
+    np.testing.assert_array_equal(P, P0)

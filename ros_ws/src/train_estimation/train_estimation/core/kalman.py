@@ -112,8 +112,10 @@ def update(x, P, y, H, R, mask):
     # operation below is then elementwise over long contiguous rows of N values instead of
     # numpy's slow inner loops of length n = 4 (measured 2x faster at N = 1350; the same
     # arithmetic, results identical bit for bit). The interface keeps the leading axis.
-    xt = np.ascontiguousarray(x.T)
-    Pt = np.ascontiguousarray(P.reshape(N, n * n).T).reshape(n, n, N)
+    # (always copies: with N = 1 the transposes are contiguous already, ascontiguousarray would
+    # return views, and the in-place steps below would overwrite the caller's x and P)
+    xt = x.T.copy()
+    Pt = P.reshape(N, n * n).T.copy().reshape(n, n, N)
     logs = np.empty((rows.size, N))
     quad = np.empty((rows.size, N))
     for r, j in enumerate(rows.tolist()):  # rows (at most a handful), not particles
