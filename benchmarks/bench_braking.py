@@ -85,9 +85,9 @@ def make_filters(fam, prior=PRIOR, q_f=Q_F):
         "GSMA Q=N": GSMA(fam, VALUES, n_init=50, n_keep=50, q_max=50, **pr),
         "SMA merged": SMA(fam, VALUES, transition=SMA_ALL, merge=True, **pr),
         "GSMA sticky merged": GSMA(fam, VALUES, transition=STICKY, merge=True, **pr),
-        "Q-GRBPF N=50": QGRBPF(fam, [(0.0, 1.0)], 50, q_theta=q_f, **pr),
-        "Q-GRBPF GH-3": QGRBPF(fam, [(0.0, 1.0)], 3, q_theta=q_f, quadrature=True, **pr),
-        REF: BrakingKF(fam, q_theta=q_f, f_prior=prior),
+        "Q-GRBPF N=50": QGRBPF(fam, [(0.0, 1.0)], 50, braking_rate_q=q_f, **pr),
+        "Q-GRBPF GH-3": QGRBPF(fam, [(0.0, 1.0)], 3, braking_rate_q=q_f, quadrature=True, **pr),
+        REF: BrakingKF(fam, braking_rate_q=q_f, braking_rate_prior=prior),
         "oracle KF": OracleKF(fam),
     }
 
@@ -318,8 +318,8 @@ def sweep_factory(n):
             "RBPF sticky": DiscreteRBPF(fam, VALUES, STICKY, n, **pr),
             "SMA": SMA(fam, VALUES, n_init=n, n_keep=n, q_max=n, **pr),
             "GSMA": GSMA(fam, VALUES, n_init=n, n_keep=n, q_max=n, **pr),
-            "Q-GRBPF": QGRBPF(fam, [(0.0, 1.0)], n, q_theta=Q_F, **pr),
-            "RW-RBPF": RandomWalkRBPF(fam, [(0.0, 1.0)], n, q_theta=Q_F, **pr),
+            "Q-GRBPF": QGRBPF(fam, [(0.0, 1.0)], n, braking_rate_q=Q_F, **pr),
+            "RW-RBPF": RandomWalkRBPF(fam, [(0.0, 1.0)], n, braking_rate_q=Q_F, **pr),
         }
     return factory
 
@@ -329,8 +329,8 @@ def fixed_factory(fam):
     return {
         "SMA merged": SMA(fam, VALUES, transition=SMA_ALL, merge=True, **pr),
         "GSMA sticky merged": GSMA(fam, VALUES, transition=STICKY, merge=True, **pr),
-        "Q-GRBPF GH-3": QGRBPF(fam, [(0.0, 1.0)], 3, q_theta=Q_F, quadrature=True, **pr),
-        REF: BrakingKF(fam, q_theta=Q_F, f_prior=PRIOR),
+        "Q-GRBPF GH-3": QGRBPF(fam, [(0.0, 1.0)], 3, braking_rate_q=Q_F, quadrature=True, **pr),
+        REF: BrakingKF(fam, braking_rate_q=Q_F, braking_rate_prior=PRIOR),
     }
 
 
@@ -470,8 +470,8 @@ def table3(seeds, steps=200, n=1000):
         for _ in range(steps):
             x = A @ x + Lq @ rng.standard_normal(2)
             ys.append(fam.H @ x + np.sqrt(fam.R) * rng.standard_normal(2))
-        for name, filt in (("Q-GRBPF", QGRBPF(fam, bounds, n, q_theta=1e-6)),
-                           ("RBPF", RandomWalkRBPF(fam, bounds, n, q_theta=1e-4))):
+        for name, filt in (("Q-GRBPF", QGRBPF(fam, bounds, n, braking_rate_q=1e-6)),
+                           ("RBPF", RandomWalkRBPF(fam, bounds, n, braking_rate_q=1e-4))):
             frng = np.random.default_rng(20_000 + seed)
             filt.reset(np.zeros(2), np.diag([0.05**2, 0.05**2]), frng)
             est = np.empty((steps, 2))

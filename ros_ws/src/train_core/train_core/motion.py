@@ -25,17 +25,17 @@ _EPS = 1e-9  # s
 
 
 class Motion:
-    """True motion of one train; ``f_of_t(t)`` is the true braking rate (s -> -)."""
+    """True motion of one train; ``braking_rate_of_t(t)`` is the true braking rate (s -> -)."""
 
     def __init__(self, train: TrainParams, line: Line, believed: TrainParams, act: Actuator,
                  x0: float, v0: float, max_step: float = 0.01,
-                 f_of_t: Callable[[float], float] | None = None):
+                 braking_rate_of_t: Callable[[float], float] | None = None):
         self.act = act
         self.dyn = Dynamics(train, line, believed)
         self.state = MotionState(float(x0), float(v0), v0 == 0.0)
         self.max_step = float(max_step)
-        self.braking_rate_const = train.brake.braking_rate if f_of_t is None else None
-        self.f_of_t = f_of_t
+        self.braking_rate_const = train.brake.braking_rate if braking_rate_of_t is None else None
+        self.braking_rate_of_t = braking_rate_of_t
         self.t = act.t
 
     def integrate(self, t_next: float,
@@ -52,7 +52,8 @@ class Motion:
         braking_rate_const = self.braking_rate_const
         for i in range(n):
             t0 = t_start + i * h
-            f = braking_rate_const if braking_rate_const is not None else self.f_of_t(t0 + 0.5 * h)
+            f = braking_rate_const if braking_rate_const is not None else \
+                self.braking_rate_of_t(t0 + 0.5 * h)
             ue = act.effective(f)  # constant over the span (it ends at the next input change)
             a0, a_mid, a_end = act.segment(h, f)
             x0 = st.x
@@ -71,11 +72,11 @@ class Motion:
 
 def warm_actuator(train: TrainParams, t_cmd, a_cmd, t0: float, warmup: float = 30.0,
                   brake_delay: float | None = None,
-                  f_of_t: Callable[[float], float] | None = None) -> Actuator:
+                  braking_rate_of_t: Callable[[float], float] | None = None) -> Actuator:
     """The actuator's state at ``t0`` from the commands issued before it (the delay lines
     filled, the lag run over ``warmup`` s: the unknown earlier output is forgotten to within
     exp(-warmup / tau)). Times in the returned actuator are shifted so that t0 -> 0."""
-    f_of = f_of_t or (lambda t: train.brake.braking_rate)
+    f_of = braking_rate_of_t or (lambda t: train.brake.braking_rate)
     act = Actuator(train.brake.time_constant, train.brake.delay, t0=-warmup,
                    brake_delay=brake_delay)
     t_cmd = np.asarray(t_cmd, dtype=float)
@@ -93,17 +94,20 @@ def warm_actuator(train: TrainParams, t_cmd, a_cmd, t0: float, warmup: float = 3
 
 def replay(line: Line, train: TrainParams, t_cmd, a_cmd, t0: float, t_out,
            x0: float, v0: float, believed: TrainParams | None = None,
-           brake_delay: float | None = None, f_of_t: Callable[[float], float] | None = None,
+           brake_delay: float | None = None,
+           braking_rate_of_t: Callable[[float], float] | None = None,
            max_step: float = 0.01) -> tuple[np.ndarray, np.ndarray]:
     """Open-loop motion from (x0, v0) at ``t0`` under the recorded commands (t_cmd, a_cmd):
     position and speed at the times ``t_out`` (>= t0, increasing). ``train`` is the true train
-    (its braking rate unless ``f_of_t`` is given), ``believed`` the one the controller makes
+    (its braking rate unless ``braking_rate_of_t`` is given), ``believed`` the one the controller
+    makes
     forces for (default ``train``), ``brake_delay`` the braking chain's delay (default the
     train's delay)."""
     t_cmd = np.asarray(t_cmd, dtype=float)
     a_cmd = np.asarray(a_cmd, dtype=float)
-    shifted_f = None if f_of_t is None else (lambda t: f_of_t(t + t0))
-    act = warm_actuator(train, t_cmd, a_cmd, t0, brake_delay=brake_delay, f_of_t=f_of_t)
+    shifted_f = None if braking_rate_of_t is None else (lambda t: braking_rate_of_t(t + t0))
+    act = warm_actuator(train, t_cmd, a_cmd, t0, brake_delay=brake_delay,
+                        braking_rate_of_t=braking_rate_of_t)
     mot = Motion(train, line, believed or train, act, x0, v0, max_step, shifted_f)
     after = t_cmd >= t0
     cmds = list(zip((t_cmd[after] - t0).tolist(), a_cmd[after].tolist()))

@@ -45,7 +45,7 @@ def test_kf_equals_dense_joint_gaussian_with_random_walk_f():
     ys = [rng.standard_normal(3) + [20.0 * k, 20.0, -2.0] for k in range(K)]
     R = np.asarray(params.meas_var)
     H5 = np.hstack([np.eye(4)[[0, 1, 3]], np.zeros((3, 1))])
-    kf = BrakingKF(fam, q_theta=q, f_prior=(0.9, 0.2))
+    kf = BrakingKF(fam, braking_rate_q=q, braking_rate_prior=(0.9, 0.2))
     kf.reset(X0, P0, t0=0.0)
     models = []
     az, t, total = X0[3], 0.0, 0.0
@@ -97,7 +97,7 @@ def test_static_f_posterior_equals_grid_integration():
     f_true = np.full(K, 0.7)
     u = np.column_stack([-np.ones(K), np.zeros(K)])
     _, y = simulate_open_loop(params, f_true, u, X0, np.random.default_rng(8))
-    kf = BrakingKF(fam, q_theta=0.0, f_prior=(0.8, 0.15))
+    kf = BrakingKF(fam, braking_rate_q=0.0, braking_rate_prior=(0.8, 0.15))
     kf.reset(X0, P0)
     for k in range(K):
         e = kf.step(-1.0, y[k])
@@ -122,7 +122,7 @@ def test_static_f_posterior_equals_grid_integration():
 
 def test_kf_holds_f_when_not_braking_and_rejects_bad_input():
     params = BrakingParams(standstill_speed=0.05)
-    kf = BrakingKF(BrakingModel(params), q_theta=1e-3, f_prior=(1.0, 0.15))
+    kf = BrakingKF(BrakingModel(params), braking_rate_q=1e-3, braking_rate_prior=(1.0, 0.15))
     e0 = kf.reset([100.0, 0.0, 0.0, 0.0], P0, t0=0.0)
     assert e0.mean[3] == 1.0 and e0.cov[3, 3] == pytest.approx(0.0225)
     rng = np.random.default_rng(0)

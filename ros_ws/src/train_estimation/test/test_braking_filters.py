@@ -43,8 +43,8 @@ def _all_filters(fam, n=40):
         "rbpf_opt": DiscreteRBPF(fam, VALUES, sticky_transition(11, 0.1), n, proposal="optimal"),
         "sma": SMA(fam, VALUES, n_init=n, n_keep=n, q_max=200),
         "gsma": GSMA(fam, VALUES, n_init=n, n_keep=n, q_max=200),
-        "qgrbpf": QGRBPF(fam, [(0.0, 1.0)], n, q_theta=1e-4),
-        "rbpf_rw": RandomWalkRBPF(fam, [(0.0, 1.0)], n, q_theta=1e-4),
+        "qgrbpf": QGRBPF(fam, [(0.0, 1.0)], n, braking_rate_q=1e-4),
+        "rbpf_rw": RandomWalkRBPF(fam, [(0.0, 1.0)], n, braking_rate_q=1e-4),
     }
 
 

@@ -62,7 +62,7 @@ def _filters(fam, prior, n=4000):
         "qgrbpf": QGRBPF(fam, [(0.0, 2.0)], n, prior=prior),  # bounds far from the prior
         "rbpf_rw": RandomWalkRBPF(fam, [(0.0, 2.0)], n, prior=prior),
         "qgrbpf_gh": QGRBPF(fam, [(0.0, 2.0)], 5, prior=prior, quadrature=True),
-        "kf": BrakingKF(fam, f_prior=prior),
+        "kf": BrakingKF(fam, braking_rate_prior=prior),
     }
 
 
@@ -185,7 +185,7 @@ def test_quadrature_qgrbpf_nodes_carry_the_joint_gaussian():
     """One deterministic redraw: the Gauss-Hermite nodes with their conditional KF states have
     the mixture's mean and covariance of (x, theta), theta's variance widened by q dt."""
     fam = BrakingModel(BrakingParams())
-    q = QGRBPF(fam, [(-5.0, 5.0)], 5, q_theta=0.01, quadrature=True)
+    q = QGRBPF(fam, [(-5.0, 5.0)], 5, braking_rate_q=0.01, quadrature=True)
     rng = np.random.default_rng(2)
     N, n = 30, 4
     G = rng.standard_normal((N, n, n))
@@ -228,9 +228,9 @@ _step = st.tuples(
            st.lists(_step, min_size=1, max_size=25), st.integers(0, 2**31 - 1))
 def test_new_filters_survive_random_inputs(name, steps, seed):
     fam = BrakingModel(BrakingParams(standstill_speed=0.05))
-    filt = {"kf": BrakingKF(fam, q_theta=1e-3),
+    filt = {"kf": BrakingKF(fam, braking_rate_q=1e-3),
             "gsma_merged": GSMA(fam, VALUES, prior=(1.0, 0.15), merge=True),
-            "qgrbpf_gh": QGRBPF(fam, [(0.0, 1.0)], 3, q_theta=1e-3, prior=(1.0, 0.15),
+            "qgrbpf_gh": QGRBPF(fam, [(0.0, 1.0)], 3, braking_rate_q=1e-3, prior=(1.0, 0.15),
                                 quadrature=True)}[name]
     rng = np.random.default_rng(seed)
     filt.reset(X0, P0, rng, t0=0.0)

@@ -30,7 +30,7 @@ def _reflect(theta, lo, hi):
 
 
 class _ContinuousBase(RaoBlackwellFilter):
-    def __init__(self, family, bounds, n_particles: int, q_theta, prior=None):
+    def __init__(self, family, bounds, n_particles: int, braking_rate_q, prior=None):
         super().__init__(family)
         if prior is not None:
             m, sd = (float(a) for a in np.broadcast_to(np.asarray(prior, float), (2,)))
@@ -42,10 +42,10 @@ class _ContinuousBase(RaoBlackwellFilter):
             raise ValueError("bounds: one (lo, hi) with lo < hi per parameter")
         self.lo, self.hi = b[:, 0], b[:, 1]
         self.n = int(n_particles)
-        q = np.asarray(q_theta, dtype=float)
-        self.q_theta = np.diag(np.broadcast_to(q, (family.d,))) if q.ndim <= 1 else q
-        if not np.all(np.linalg.eigvalsh(self.q_theta) >= 0):
-            raise ValueError("q_theta must be positive semi-definite")
+        q = np.asarray(braking_rate_q, dtype=float)
+        self.braking_rate_q = np.diag(np.broadcast_to(q, (family.d,))) if q.ndim <= 1 else q
+        if not np.all(np.linalg.eigvalsh(self.braking_rate_q) >= 0):
+            raise ValueError("braking_rate_q must be positive semi-definite")
 
     def _initial_theta(self, rng):
         # Q-GRBPF step 1: uniform in [theta_min, theta_max]; with ``prior`` = (mean, std):
@@ -62,7 +62,7 @@ class QGRBPF(_ContinuousBase):
 
     Each informative step starts by redrawing the parameter particles from the Gaussian
     approximation of the posterior, eq. (7)-(9), widened by the random-walk kernel
-    ``Q_theta dt`` (``q_theta`` per second; 0 = static parameter) and floored at ``min_var``
+    ``Q_theta dt`` (``braking_rate_q`` per second; 0 = static parameter) and floored at ``min_var``
     (so it cannot collapse to a point): ``theta_j = theta_hat + L z_j``, reflected into
     ``bounds``, equal weights.
 
@@ -80,9 +80,9 @@ class QGRBPF(_ContinuousBase):
 
     name = "qgrbpf"
 
-    def __init__(self, family, bounds, n_particles: int = 50, q_theta=0.0, min_var=1e-8,
+    def __init__(self, family, bounds, n_particles: int = 50, braking_rate_q=0.0, min_var=1e-8,
                  prior=None, quadrature: bool = False):
-        super().__init__(family, bounds, n_particles, q_theta, prior)
+        super().__init__(family, bounds, n_particles, braking_rate_q, prior)
         self.min_var = float(min_var)
         self.quadrature = bool(quadrature)
         if self.quadrature:
@@ -109,7 +109,7 @@ class QGRBPF(_ContinuousBase):
         N, dth = self.n, self.family.d
         w, _ = log_normalize(s.logw)
         mu, cov = mixture_moments(w, s.theta)  # eq. (7), (8)
-        cov = cov + self.q_theta * dt + self.min_var * np.eye(dth)
+        cov = cov + self.braking_rate_q * dt + self.min_var * np.eye(dth)
         if dth == 1:  # the braking rate: the principal axis is the axis (no LAPACK call)
             ev, V = cov.reshape(1), np.ones((1, 1))
         else:
@@ -139,7 +139,7 @@ class QGRBPF(_ContinuousBase):
         th = s.theta[:, 0]
         mu = w @ th
         dth = th - mu
-        var = w @ (dth * dth) + self.q_theta[0, 0] * dt + self.min_var
+        var = w @ (dth * dth) + self.braking_rate_q[0, 0] * dt + self.min_var
         xm = _wsum(w, s.x)
         dx = s.x - xm
         cxt = (w * dth) @ dx  # (n,) Cov(x, theta)
@@ -159,11 +159,11 @@ class RandomWalkRBPF(_ContinuousBase):
 
     name = "rbpf_rw"
 
-    def __init__(self, family, bounds, n_particles: int = 250, q_theta=1e-4,
+    def __init__(self, family, bounds, n_particles: int = 250, braking_rate_q=1e-4,
                  ess_frac: float = 0.5, prior=None):
-        super().__init__(family, bounds, n_particles, q_theta, prior)
+        super().__init__(family, bounds, n_particles, braking_rate_q, prior)
         self.ess_frac = float(ess_frac)
-        ev, V = np.linalg.eigh(self.q_theta)
+        ev, V = np.linalg.eigh(self.braking_rate_q)
         self._L = V * np.sqrt(np.clip(ev, 0.0, None))
 
     def _transition(self, s, informative, rng, dt):

@@ -82,33 +82,35 @@ class BrakingKF(RaoBlackwellFilter):
     the common step (validation, rejection, gating, ``batched_kf.predict`` / ``update``) is the
     base class's.
 
-    ``f_prior = (mean, std)`` of f at reset (``reset(theta0=...)`` overrides the mean);
-    ``q_theta`` (1/s): random-walk variance of f per second of *informative* time (frozen
+    ``braking_rate_prior = (mean, std)`` of f at reset (``reset(theta0=...)`` overrides the mean);
+    ``braking_rate_q`` (1/s): random-walk variance of f per second of *informative* time (frozen
     otherwise, like the particle filters).
     """
 
     name = "kf"
 
-    def __init__(self, family, q_theta: float = 1e-4, f_prior=(1.0, 0.15)):
-        if not (np.isfinite(q_theta) and q_theta >= 0):
-            raise ValueError(f"q_theta must be finite and >= 0, got {q_theta!r}")
-        m, sd = (float(v) for v in f_prior)
+    def __init__(self, family, braking_rate_q: float = 1e-4, braking_rate_prior=(1.0, 0.15)):
+        if not (np.isfinite(braking_rate_q) and braking_rate_q >= 0):
+            raise ValueError(f"braking_rate_q must be finite and >= 0, got {braking_rate_q!r}")
+        m, sd = (float(v) for v in braking_rate_prior)
         if not (np.isfinite(m) and np.isfinite(sd) and sd >= 0):
-            raise ValueError(f"f_prior must be a finite (mean, std >= 0), got {f_prior!r}")
+            raise ValueError("braking_rate_prior must be a finite (mean, std >= 0), "
+                             f"got {braking_rate_prior!r}")
         super().__init__(_AugmentedFamily(family))
-        self.q_theta = float(q_theta)
-        self.f_prior = (m, sd)
+        self.braking_rate_q = float(braking_rate_q)
+        self.braking_rate_prior = (m, sd)
 
     def reset(self, x0, P0, rng=None, theta0=None, t0=None) -> Estimate:
         """``x0 (4,)``, ``P0 (4, 4)``: (D, v, a_hat, a_z) as for the particle filters; f starts
-        at ``N(theta0 or f_prior mean, f_prior std^2)``, uncorrelated with the rest."""
+        at ``N(theta0 or braking_rate_prior mean, braking_rate_prior std^2)``, uncorrelated with
+        the rest."""
         x0 = np.asarray(x0, dtype=float).reshape(4)
         P0 = np.asarray(P0, dtype=float).reshape(4, 4)
-        m = self.f_prior[0] if theta0 is None else float(np.mean(theta0))
+        m = self.braking_rate_prior[0] if theta0 is None else float(np.mean(theta0))
         z = np.append(x0, m)
         Pz = np.zeros((5, 5))
         Pz[:4, :4] = P0
-        Pz[4, 4] = self.f_prior[1] ** 2
+        Pz[4, 4] = self.braking_rate_prior[1] ** 2
         est = super().reset(z, Pz, None, np.zeros((1, 0)), t0)
         return est
 
@@ -128,7 +130,7 @@ class BrakingKF(RaoBlackwellFilter):
         if not informative:
             hold = self.family.hold_gain(u, self._last.x_mean, float(self._last.theta_mean[0]))
         F, b, Q = augmented_model(self.family.params, u, dt, float(s.x[0, 3]), informative,
-                                  hold, self.q_theta)
+                                  hold, self.braking_rate_q)
         return predict(s.x, s.P, F[None], b[None], Q)
 
     def _summary(self, s, accepted, reason, informative, used, log_ev, t=None) -> Estimate:

@@ -51,7 +51,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.linalg import expm
+
+from .discretize import van_loan, zoh
 
 __all__ = [
     "BrakingParams",
@@ -130,21 +131,9 @@ def continuous_matrices(braking_rate, params: BrakingParams) -> tuple[np.ndarray
     return A, B
 
 
-def zoh_batched(A, B, dt: float) -> tuple[np.ndarray, np.ndarray]:
-    """Batched exact ZOH: ``A (K, n, n)``, ``B (K, n, m)`` -> ``Phi = e^{A dt}``,
-    ``Bd = int_0^dt e^{A s} ds B`` via ``expm([[A, B], [0, 0]] dt)`` on the stack (scipy's expm
-    is batched over leading axes)."""
-    A = np.asarray(A, dtype=float)
-    B = np.asarray(B, dtype=float)
-    if not (np.isfinite(dt) and dt >= 0):
-        raise ValueError(f"zoh_batched: dt must be finite and >= 0, got {dt!r}")
-    K, n, _ = A.shape
-    m = B.shape[-1]
-    M = np.zeros((K, n + m, n + m))
-    M[:, :n, :n] = A
-    M[:, :n, n:] = B
-    F = expm(M * dt)
-    return F[:, :n, :n], F[:, :n, n:]
+# the one ZOH of the estimation core (discretize.zoh, batched over leading axes); the old name
+# stays for the tests that call it
+zoh_batched = zoh
 
 
 def process_noise(params: BrakingParams, dt: float) -> np.ndarray:
@@ -163,12 +152,7 @@ def process_noise(params: BrakingParams, dt: float) -> np.ndarray:
         A = A[0]
         Qc = np.zeros((4, 4))
         Qc[2, 2] = params.ahat_var
-        M = np.zeros((8, 8))
-        M[:4, :4] = -A
-        M[:4, 4:] = Qc
-        M[4:, 4:] = A.T
-        F = expm(M * dt)
-        Qd += F[4:, 4:].T @ F[:4, 4:]
+        Qd += van_loan(A, Qc, dt)
     return 0.5 * (Qd + Qd.T)
 
 

@@ -1426,7 +1426,7 @@ def _gain_motion(cause: str, mo: _Motion, st: _Stage, cfg: DiagConfig) -> dict:
     st_a = _Stage(mo, st.null, cfg, noise=(st.q, st.r_s), update=update)
     ll, k, params, se, extra = getattr(st_a, cause)()
     believed = mo.train
-    extended, line_ext, brake_delay, f_of_t = _extended(cause, params, mo, believed)
+    extended, line_ext, brake_delay, braking_rate_of_t = _extended(cause, params, mo, believed)
     nb = int(block.max()) + 1
     # both models replay the commands with the analysis' command-time offset (the link's mean
     # latency, a nuisance of the alignment, not a cause)
@@ -1451,7 +1451,8 @@ def _gain_motion(cause: str, mo: _Motion, st: _Stage, cfg: DiagConfig) -> dict:
         _, vb = replay(mo.line, believed, ctrl_t, run.ctrl_a, tt, t_out, x0, v0,
                        max_step=0.05)
         _, va = replay(line_ext, extended, ctrl_t, run.ctrl_a, tt, t_out, x0, v0,
-                       believed=believed, brake_delay=brake_delay, f_of_t=f_of_t,
+                       believed=believed, brake_delay=brake_delay,
+                       braking_rate_of_t=braking_rate_of_t,
                        max_step=0.05)
         sq_b.append(float(np.sum((vb - y) ** 2)))
         sq_a.append(float(np.sum((va - y) ** 2)))
@@ -1490,7 +1491,7 @@ def _extended(cause: str, params: dict, mo: _Motion, believed: TrainParams):
     from train_core.effects import Effects, GradientEffect, true_line
     from train_core.model import Brake, Davis
 
-    line, train, bd, f_of_t = mo.line, believed, None, None
+    line, train, bd, braking_rate_of_t = mo.line, believed, None, None
     if cause == "gradient":
         line = true_line(mo.line, Effects(gradient=GradientEffect(
             params["start"], params["end"], params["permille"])))
@@ -1502,10 +1503,10 @@ def _extended(cause: str, params: dict, mo: _Motion, believed: TrainParams):
         bd = params["delay"]
     elif cause == "braking_rate":
         fs, fe, T = params["f_start"], params["f_end"], max(mo.run.duration, 1e-9)
-        f_of_t = lambda t: fs + (fe - fs) * min(max(t / T, 0.0), 1.0)  # noqa: E731
+        braking_rate_of_t = lambda t: fs + (fe - fs) * min(max(t / T, 0.0), 1.0)  # noqa: E731
         train = replace(believed, brake=Brake(believed.brake.time_constant,
                                               believed.brake.delay, fs))
-    return train, line, bd, f_of_t
+    return train, line, bd, braking_rate_of_t
 
 
 # =============================================================================================

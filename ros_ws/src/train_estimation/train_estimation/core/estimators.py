@@ -365,10 +365,11 @@ class BrakingAdapter:
                                      cfg.rbpf_particles, prior=prior)
         elif cfg.algorithm == "qgrbpf":
             self.filt = QGRBPF(self.fam, [(float(values.min()), float(values.max()))],
-                               cfg.qgrbpf_particles, q_theta=cfg.qgrbpf_braking_rate_q,
+                               cfg.qgrbpf_particles, braking_rate_q=cfg.qgrbpf_braking_rate_q,
                                prior=prior)
         else:
-            self.filt = BrakingKF(self.fam, q_theta=cfg.kf_braking_rate_q, f_prior=prior)
+            self.filt = BrakingKF(self.fam, braking_rate_q=cfg.kf_braking_rate_q,
+                                  braking_rate_prior=prior)
         self.filt.transition_interval = cfg.transition_interval
         self.rng = np.random.default_rng(cfg.seed)
         self.a_tar = 0.0
