@@ -1431,6 +1431,8 @@ def _gain_motion(cause: str, mo: _Motion, st: _Stage, cfg: DiagConfig) -> dict:
     # both models replay the commands with the analysis' command-time offset (the link's mean
     # latency, a nuisance of the alignment, not a cause)
     ctrl_t = run.ctrl_t + st.null.shift
+    # (a brake delay is fitted with its own offset: the pair is the extension's timing)
+    ctrl_t_ext = run.ctrl_t + (extra["offset"] if cause == "brake_delay" else st.null.shift)
     sq_b, sq_a, cnt, moved = [], [], [], []
     for b in range(1, nb, 2):
         t0, t1 = b * cfg.gain_block, (b + 1) * cfg.gain_block
@@ -1450,7 +1452,7 @@ def _gain_motion(cause: str, mo: _Motion, st: _Stage, cfg: DiagConfig) -> dict:
         # between command changes, and replay cuts its steps at every one of them
         _, vb = replay(mo.line, believed, ctrl_t, run.ctrl_a, tt, t_out, x0, v0,
                        max_step=0.05)
-        _, va = replay(line_ext, extended, ctrl_t, run.ctrl_a, tt, t_out, x0, v0,
+        _, va = replay(line_ext, extended, ctrl_t_ext, run.ctrl_a, tt, t_out, x0, v0,
                        believed=believed, brake_delay=brake_delay,
                        braking_rate_of_t=braking_rate_of_t,
                        max_step=0.05)
