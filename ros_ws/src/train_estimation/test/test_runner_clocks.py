@@ -169,3 +169,37 @@ def test_a_stalled_node_is_no_clock_reset():
     outs, r = replay(ev, adapter(sc), 0.1)
     assert not r.events.get("odometer:clock_reset"), dict(r.events)
     assert r.accepted["odometer"] >= n_odo - 2, dict(r.rejected)
+
+
+def test_wild_stamps_cannot_outvote_the_clock():
+    """Stale copies (-500 s, all alike) mixed with good commands: even when they outnumber the
+    good ones in the offset window (a run of bad luck in a long fuzz: the control clock's
+    centre moved 500 s, the commands were mapped 500 s ahead and the braking filters went
+    blind), they do not move the clock's centre; a clock that really steps (only far values,
+    consecutively) does."""
+    from train_estimation.core.runner import _Median
+
+    m = _Median()
+    for k in range(40):
+        m.add(0.001 * (k % 3))
+    for k in range(60):  # two stale values for one good one
+        m.add(-500.0 if k % 3 else 0.0)
+    assert abs(m.value) < 0.01
+    for _ in range(m.n // 2 + 1):  # the clock stepped by -500 s and stays there
+        m.add(-500.0)
+    assert m.value == -500.0
+
+
+def test_stale_copies_do_not_blind_the_braking_filter():
+    sc, res = run(duration=60.0)
+    ev = restamp(res.events(), epoch=1.7e9, control_epoch=1.6e9)
+    bad = []
+    for k, e in enumerate(ev):
+        bad.append(e)
+        if e[0] == "control" and 300 <= k < 900:  # two stale copies per command for a while
+            bad += [("control", e[1] - 500.0, e[2], e[3])] * 2
+    outs, r = replay(bad, adapter(sc, "kf"), 0.1)
+    n_odo = sum(1 for e in ev if e[0] == "odometer")
+    assert r.accepted["odometer"] >= n_odo - 2, dict(r.rejected)
+    e, _ = errors(outs, res, epoch=1.7e9)
+    assert np.abs(e).max() < 3.0

@@ -111,8 +111,31 @@ class _Median:
     def __init__(self, n: int = 31):
         self.n, self.fifo, self.sorted = n, deque(), []
         self._value = None  # cached centre (recomputed after an add)
+        self.pending: list = []  # consecutive values away from a full window's centre
 
     def add(self, v: float) -> None:
+        # Once the window is full, a value far from its centre does not vote: wild stamps
+        # mixed with good ones (a fuzzed or corrupted stream) could otherwise, by a run of
+        # bad luck, outnumber the good ones in the window and move the centre by their offset
+        # (a control clock moved 500 s ahead blinds the filter). Only n // 2 + 1 *consecutive*
+        # far values that agree among themselves -- the clock itself has stepped -- replace
+        # the window.
+        if len(self.fifo) >= self.n and abs(v - self.value) > self.tol:
+            if self.pending and abs(v - self.pending[-1]) > self.tol:
+                self.pending = []
+            self.pending.append(v)
+            if len(self.pending) <= self.n // 2:
+                return
+            self.fifo.clear()
+            self.sorted = []
+            for p in self.pending[:-1]:
+                self._push(p)
+            self.pending = []
+        elif self.pending:
+            self.pending = []
+        self._push(v)
+
+    def _push(self, v: float) -> None:
         self._value = None
         self.fifo.append(v)
         bisect.insort(self.sorted, v)
