@@ -34,7 +34,8 @@ the run's seed).
    f(t) at each chunk end). Stopping error = stop position - stopping point (m, > 0 overshoot) at
    B, C, D, as recorded by the simulator's ATO. The ATO is perfectly localised and the sensors do
    not act on the motion, so the baseline and the oracle are deterministic: their interval is a
-   point. Extra columns: |f_belief - f| when braking for each station starts (the moment that
+   point. Extra columns: |braking_rate_belief - f| when braking for each station starts (the
+   moment that
    decides the overshoot: once the service-brake limit is reached the belief cannot help any
    more), and the arrival time at D (a too pessimistic belief brakes early and creeps).
 
@@ -267,7 +268,8 @@ def closed_loop_table(rows, n_seeds, std_max) -> str:
              f"(ATO takes f_hat when its std < {std_max})",
              "",
              "| ATO belief | rule | B | C | D | all stations | max abs error | "
-             "abs(f_belief - f) at brake onset | arrival at D (s) | 2-sigma coverage of f "
+             "abs(braking_rate_belief - f) at brake onset | arrival at D (s) | "
+             "2-sigma coverage of f "
              "after B | NEES after B |",
              "|---|---|---|---|---|---|---|---|---|---|---|"]
     for (source, rule), runs in rows.items():

@@ -138,9 +138,9 @@ def test_plot_bands_are_clipped_and_startup_is_separated():
     cov = np.zeros((t.size, 4, 4))
     cov[:, 0, 0] = (0.2 + 5.0 * np.exp(-t)) ** 2  # 5 m at start, 0.2 m after a few seconds
     cov[:, 3, 3] = 0.3**2
-    s = {"stamp": t, "cov": cov, "f": np.where(t < 50, 0.5, 1.9), "x": t, "xt": t, "v": t,
-         "vt": t}
-    f, lo, hi = band(s, "f")
+    s = {"stamp": t, "cov": cov, "braking_rate": np.where(t < 50, 0.5, 1.9), "x": t, "xt": t,
+         "v": t, "vt": t}
+    f, lo, hi = band(s, "braking_rate")
     assert lo.min() == F_RANGE[0] and hi.max() == F_RANGE[1]  # 0.5 - 0.9 and 1.9 + 0.9
     assert np.all(lo <= f) and np.all(f <= hi)
     t_ss = startup_end({"e": s}, 0.0, 100.0)

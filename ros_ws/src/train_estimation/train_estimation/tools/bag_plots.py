@@ -106,10 +106,10 @@ def _scaled(values: list[np.ndarray], margin: float = 1.1) -> float:
 
 def band(s: dict, kind: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(curve, band low, band high) of one panel: kind "x"/"v" = error and +-3 sigma about 0,
-    "f" = braking-rate estimate and its 3-sigma interval clipped to the physical range."""
-    if kind == "f":
+    "braking_rate" = the estimate and its 3-sigma interval clipped to the physical range."""
+    if kind == "braking_rate":
         sf = _sigma(s["cov"], 3)
-        y = s["f"]
+        y = s["braking_rate"]
         return y, np.clip(y - 3 * sf, *F_RANGE), np.clip(y + 3 * sf, *F_RANGE)
     i, key = (0, "x") if kind == "x" else (1, "v")
     sd = _sigma(s["cov"], i)
@@ -129,7 +129,7 @@ def plot_time(path: Path, series: dict, truth: dict | None, mk: dict, title: str
     if truth is not None:
         rows += [("x", n) for n in names if "xt" in series[n]]
         rows += [("v", n) for n in names if "xt" in series[n]]
-    rows += [("f", n) for n in names if np.any(np.isfinite(series[n]["f"]))]
+    rows += [("braking_rate", n) for n in names if np.any(np.isfinite(series[n]["braking_rate"]))]
     if not rows:
         return
     t0 = min(float(s["stamp"][0]) for s in series.values())
@@ -138,7 +138,8 @@ def plot_time(path: Path, series: dict, truth: dict | None, mk: dict, title: str
     colors = {n: f"C{i}" for i, n in enumerate(names)}
     fig, axes = plt.subplots(len(rows), 2, figsize=(13, 2.1 * len(rows) + 1.2), sharex="col",
                              gridspec_kw={"width_ratios": [1, 4]}, squeeze=False)
-    units = {"x": "position error (m)", "v": "velocity error (m/s)", "f": "braking rate f"}
+    units = {"x": "position error (m)", "v": "velocity error (m/s)",
+             "braking_rate": "braking rate f"}
     for r, (kind, name) in enumerate(rows):
         s = series[name]
         t = s["stamp"]
@@ -149,19 +150,19 @@ def plot_time(path: Path, series: dict, truth: dict | None, mk: dict, title: str
             ax = axes[r, col]
             ax.fill_between(t, lo, hi, color=c, alpha=0.2, lw=0, step="post")
             ax.plot(t, y, color=c, lw=0.7)
-            if kind == "f" and truth is not None:
-                ax.plot(truth["t"], truth["f"], "k--", lw=1)
+            if kind == "braking_rate" and truth is not None:
+                ax.plot(truth["t"], truth["braking_rate"], "k--", lw=1)
             ax.set_xlim(a, b)
             ax.grid(alpha=0.3)
-            if kind == "f":
+            if kind == "braking_rate":
                 top = np.nanmax(np.concatenate([hi, y, [1.05]]))
                 if truth is not None:
-                    top = max(top, float(np.nanmax(truth["f"])))
+                    top = max(top, float(np.nanmax(truth["braking_rate"])))
                 ax.set_ylim(F_RANGE[0], min(F_RANGE[1], top + 0.05))
             elif col == 1 and steady.any():
                 m = _scaled([y[steady], hi[steady]])
                 ax.set_ylim(-m, m)
-            _decorate(ax, mk, names=(r == 0 and col == 1), braking=(kind == "f"))
+            _decorate(ax, mk, names=(r == 0 and col == 1), braking=(kind == "braking_rate"))
         axes[r, 0].set_ylabel(f"{name}\n{units[kind]}", fontsize=9)
     axes[0, 0].set_title("start-up", fontsize=10, pad=14)
     axes[0, 1].set_title("after start-up (scaled to it)", fontsize=10, pad=14)

@@ -95,12 +95,12 @@ def estimator_report(bag: Bag, topic: str, source: str, truth: dict | None,
         rep["latency_wall_s"] = {"median": float(np.median(lat)) / rate_factor,
                                  "p99": float(np.percentile(lat, 99)) / rate_factor,
                                  "rate_factor": rate_factor}
-    series = {"stamp": stamp, "x": x, "v": v, "f": f_hat, "cov": cov}
+    series = {"stamp": stamp, "x": x, "v": v, "braking_rate": f_hat, "cov": cov}
     if truth is not None and len(rows):
         inside = (stamp >= truth["t"][0]) & (stamp <= truth["t"][-1])
         xt = np.interp(stamp, truth["t"], truth["x"])
         vt = np.interp(stamp, truth["t"], truth["v"])
-        ft = np.interp(stamp, truth["t"], truth["f"])
+        ft = np.interp(stamp, truth["t"], truth["braking_rate"])
         ex, ev, ef = (x - xt)[inside], (v - vt)[inside], (f_hat - ft)[inside]
         rep["position"] = _stats(ex)
         rep["velocity"] = _stats(ev)
@@ -131,7 +131,8 @@ def truth_series(bag: Bag) -> dict | None:
     t = np.array([s for _, s, _ in rows])
     order = np.argsort(t, kind="stable")
     get = lambda k: np.array([f[k] for _, _, f in rows])[order]  # noqa: E731
-    return {"t": t[order], "x": get("position"), "v": get("velocity"), "f": get("braking_rate")}
+    return {"t": t[order], "x": get("position"), "v": get("velocity"),
+            "braking_rate": get("braking_rate")}
 
 
 def by_position(series: dict, truth: dict, line) -> dict:
