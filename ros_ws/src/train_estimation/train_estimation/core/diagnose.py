@@ -32,11 +32,13 @@ commands (a grid of delays), the mass hypothesis is one combination of the tract
 resistance columns. Nonlinear parameters are profiled over those grids.
 
 Decision (the same for every cause): the score is the BIC-penalised log-likelihood ratio
-against the current null, ``2 (ll_cause - ll_null) - k ln n`` (k = the cause's parameter count,
-profiled ones included; n = number of scalar measurements of the likelihood it lives in). A
-cause is accepted when its score is > 0; ``none`` has score 0. Causes outside the motion model
-have likelihoods of their own: the train clock (log time against stamp, Gaussian jitter) and
-the link (Bernoulli against a two-state Markov chain on the loss sequence). Two effects:
+against the current null with the prior odds of K causes against ``none``,
+``2 (ll_cause - ll_null) - k ln n - 2 ln K`` (k = the cause's parameter count, profiled ones
+included; n = number of scalar measurements of the likelihood it lives in; K = causes scored in
+the stage). A cause is accepted when its score is > 0; ``none`` has score 0. Causes outside
+the motion model have likelihoods of their own: the train clock (log time against stamp,
+Gaussian jitter) and the link (Bernoulli against a two-state Markov chain on the loss
+sequence). Two effects:
 greedy: the best cause is put into the null (its fit fixed, noise refitted) and the rest are
 scored again; at the end the accepted causes that are linear in their parameters are refitted
 jointly (a cause accepted first must not keep the part of a later one it absorbed).
@@ -1171,6 +1173,13 @@ def diagnose(data: DiagData, line: Line, train: TrainParams, config: DiagConfig 
                 res["dll"] = dll_c
                 res["score"] = 2 * dll_c - res["k"] * math.log(n)
                 res["noise"] = (st_c.q, st_c.r_s)
+        # Prior odds: `none` against K causes, each 1/K as likely a priori as some effect at
+        # all (BIC is the log Bayes factor at even odds): 2 ln K off every score. Without it
+        # every cause tested is a chance of a false alarm (10 % of nominal bags with K = 9).
+        prior = 2.0 * math.log(max(len(scores), 1))
+        for res in scores.values():
+            res["score"] -= prior
+            res["prior_odds_penalty"] = prior
         stage_results.append({"null_loglik": ll0, "q": st.q, "r_s": st.r_s, "scores": scores,
                               "shift": null.shift})
         if first_scores is None:
