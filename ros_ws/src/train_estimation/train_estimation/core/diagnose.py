@@ -669,8 +669,6 @@ class _Stage:
     def __init__(self, mo: _Motion, null: _Null, cfg: DiagConfig, noise=None, update=None,
                  big=True):
         self.mo, self.null, self.cfg = mo, null, cfg
-        ev = mo.ev
-        n = ev.t.size
         # fixed part of drift and measurement (column 0)
         fv, fs = mo.base_v.copy(), mo.base_s.copy()
         for name, c in self._null_drift().items():
@@ -690,21 +688,29 @@ class _Stage:
         if not big:
             return
         # the big run: [fixed, s0, elementary drift columns..., scale]
-        p = mo.Dv.shape[1]
-        Bv = np.zeros((n, p + 3))
-        Bs = np.zeros((n, p + 3))
-        Bv[:, 0], Bs[:, 0] = fv, fs
-        Bv[:, 2:p + 2], Bs[:, 2:p + 2] = mo.Dv, mo.Ds
-        Md = np.zeros((n, p + 3))
-        Mv = np.zeros((n, p + 3))
-        Md[:, 0], Mv[:, 0] = md, mv
-        Md[:, p + 2], Mv[:, p + 2] = mo.sc_d, mo.sc_v
-        Mb = np.zeros((n, p + 3))
-        Mb[:, 1] = 1.0
-        self.p = p
-        self.kf = augmented_kf(ev, self.q, self.r_s, Bv, Bs, Md, Mv, Mb, cfg.standstill_q,
-                               keep_innov=True, update=update)
+        self.p = mo.Dv.shape[1]
+        self.kf = self.augmented(fv, fs, drift=(mo.Dv, mo.Ds),
+                                 meas=(mo.sc_d[:, None], mo.sc_v[:, None]), keep_innov=True,
+                                 update=update)
         self.n_meas = self.kf.m
+
+    def augmented(self, fv: np.ndarray, fs: np.ndarray, drift=None, meas=None, **kw):
+        """One augmented filter at this stage's noise over the columns [fixed part (drift fv,
+        fs; the null's measurement part), s0, drift columns ``drift = (Dv, Ds)``...,
+        measurement columns ``meas = (Md, Mv)``...] (each pair (n_ev, k) or None)."""
+        n = self.mo.ev.t.size
+        a = 0 if drift is None else drift[0].shape[1]
+        b = 0 if meas is None else meas[0].shape[1]
+        Bv, Bs, Md, Mv, Mb = (np.zeros((n, a + b + 2)) for _ in range(5))
+        Bv[:, 0], Bs[:, 0] = fv, fs
+        Md[:, 0], Mv[:, 0] = self.md, self.mv
+        Mb[:, 1] = 1.0
+        if a:
+            Bv[:, 2:a + 2], Bs[:, 2:a + 2] = drift
+        if b:
+            Md[:, a + 2:], Mv[:, a + 2:] = meas
+        return augmented_kf(self.mo.ev, self.q, self.r_s, Bv, Bs, Md, Mv, Mb,
+                            self.cfg.standstill_q, **kw)
 
     # -- helpers --------------------------------------------------------------------------------
     def _null_drift(self) -> dict:
@@ -933,7 +939,7 @@ class _Stage:
         WF = W @ F
         W_res = W - WF @ np.linalg.pinv(F.T @ WF) @ WF.T
         quad, bi, bj, _, _ = best_section(W_res, self._M({}, [])[:, 0], e1, idx, min_len)
-        ll_res = self.fit({}, [{n: 1.0} for n in RESISTANCE_COLS])[2]
+        ll_res = self.fit({}, self._free("resistance"))[2]
         ll_joint = -0.5 * (self.kf.logdet + self.kf.m * LOG2PI + quad)
         extra = {"bins": (bi, bj), "bin_width": float(width)}
         th, cov, ll_plain, _ = self.fit({}, self._free("gradient", extra))
@@ -945,21 +951,11 @@ class _Stage:
         """Log-likelihood gain of the fixed drift (fv, fs) over this stage's null, both with
         the Davis terms free (small augmented filter at this stage's noise): the gradient's
         evidence at another noise level (see :meth:`gradient`)."""
-        mo, ev = self.mo, self.mo.ev
-        n = ev.t.size
+        mo = self.mo
         cols = [mo.col[c] for c in RESISTANCE_COLS]
         lls = []
         for f_v, f_s in ((self.fv, self.fs), (fv, fs)):
-            Bv = np.zeros((n, 5))
-            Bs = np.zeros((n, 5))
-            Bv[:, 0], Bs[:, 0] = f_v, f_s
-            Bv[:, 2:], Bs[:, 2:] = mo.Dv[:, cols], mo.Ds[:, cols]
-            Md = np.zeros((n, 5))
-            Mv = np.zeros((n, 5))
-            Md[:, 0], Mv[:, 0] = self.md, self.mv
-            Mb = np.zeros((n, 5))
-            Mb[:, 1] = 1.0
-            kf = augmented_kf(ev, self.q, self.r_s, Bv, Bs, Md, Mv, Mb, self.cfg.standstill_q)
+            kf = self.augmented(f_v, f_s, drift=(mo.Dv[:, cols], mo.Ds[:, cols]))
             quad = gls(kf.W, np.eye(5))[2]
             lls.append(-0.5 * (kf.logdet + kf.m * LOG2PI + quad))
         return lls[1] - lls[0]
@@ -993,18 +989,12 @@ class _Stage:
                 if i + 1 < t.size:
                     cols.append((c, int(i)))
         n, nc = ev.t.size, len(cols)
-        Md = np.zeros((n, nc + 2))
-        Mv = np.zeros((n, nc + 2))
-        Md[:, 0], Mv[:, 0] = self.md, self.mv
+        Md = np.zeros((n, nc))
+        Mv = np.zeros((n, nc))
         for j, (_, i) in enumerate(cols):
-            Mv[o[i], 2 + j] = np.interp(t[i], g.t, mo.v_ref)
-            Md[o[i + 1:], 2 + j] = np.interp(t[i + 1], g.t, cum) - np.interp(t[i], g.t, cum)
-        Bv = np.zeros((n, nc + 2))
-        Bs = np.zeros((n, nc + 2))
-        Bv[:, 0], Bs[:, 0] = self.fv, self.fs
-        Mb = np.zeros((n, nc + 2))
-        Mb[:, 1] = 1.0
-        kf = augmented_kf(ev, self.q, self.r_s, Bv, Bs, Md, Mv, Mb, cfg.standstill_q)
+            Mv[o[i], j] = np.interp(t[i], g.t, mo.v_ref)
+            Md[o[i + 1:], j] = np.interp(t[i + 1], g.t, cum) - np.interp(t[i], g.t, cum)
+        kf = self.augmented(self.fv, self.fs, meas=(Md, Mv))
         u = np.zeros(nc + 2)
         u[0] = 1.0
         e1 = np.zeros(nc + 2)
