@@ -1,13 +1,13 @@
 #!/usr/bin/env python3
 """Fuzz benchmark: every estimator fed corrupted readings through the runner, as the nodes feed it.
 
-For each estimator (robust_filter, gsma, sma, rbpf, qgrbpf) and each seed: a simulated run of
-``metro_demo`` is re-stamped as measured data (odometer and balise on a train clock at a random
-epoch ~1.7e9 s, phase in [0, 0.1) s and drift in [-1 %, 1 %]; control on the reference clock,
-arrival = reference time), then :func:`train_estimation.tools.fuzz.corrupt` mixes in about
-``--per-reading`` corrupted messages per clean one (NaN, inf, zero and negative variances,
-+-1e6 m and m/s outliers, 1e6 m/s^2 commands, duplicates, reordered, stale, future (+1e6 s,
-+1e9 s) and NaN stamps, a seq jump to 2^32 - 1 and a seq reset, unknown and contradicting
+For each estimator (robust_filter; kf, the braking node's default; gsma, sma, rbpf, qgrbpf) and
+each seed: a simulated run of ``metro_demo`` is re-stamped as measured data (odometer and balise on
+a train clock at a random epoch ~1.7e9 s, phase in [0, 0.1) s and drift in [-1 %, 1 %]; control
+on the reference clock, arrival = reference time), then :func:`train_estimation.tools.fuzz.corrupt`
+mixes in about ``--per-reading`` corrupted messages per clean one (NaN, inf, zero and negative
+variances, +-1e6 m and m/s outliers, 1e6 m/s^2 commands, duplicates, reordered, stale, future
+(+1e6 s, +1e9 s) and NaN stamps, a seq jump to 2^32 - 1 and a seq reset, unknown and contradicting
 balises). The same clean stream without corruption is the reference run.
 
 Checks per estimator (table): exceptions, NaN in the estimates, non-positive-definite
@@ -52,7 +52,7 @@ from train_estimation.tools.fuzz import corrupt  # noqa: E402
 from train_sim.scenario import load_scenario  # noqa: E402
 from train_sim.world import simulate  # noqa: E402
 
-ESTIMATORS = ("robust_filter", "gsma", "sma", "rbpf", "qgrbpf")
+ESTIMATORS = ("robust_filter", "kf", "gsma", "sma", "rbpf", "qgrbpf")
 
 
 def make_adapter(sc, name):
