@@ -5,7 +5,9 @@ Starts the simulator (metro_demo, 1x, ``--duration`` s) and the ``robust_filter`
 ``gsma_estimator`` nodes on a private ROS domain (localhost only), stops them with SIGINT and
 prints the latency each node measured on its steady clock (from the callback of the odometer
 sample to the publication of the estimate stamped with it), with the counts of accepted and
-rejected input and of late readings fused by rewinding. The p50/p99 are the steady state; the
+rejected input and of late readings fused by rewinding. The p50/p99 are the steady state, split
+into waiting for the cycle's other inputs (a sample is released once the control watermark
+passes it) and processing (the runner's work and publishing, from the tick that released it); the
 first min_judged + 3 samples (the runner starts on the third odometer sample and judges each
 clock's stamps once it has min_judged arrivals: they wait by design, ~0.1-0.2 s) are reported
 apart as the start-up maximum.
@@ -65,20 +67,22 @@ def main(argv=None) -> int:
         for p in procs.values():
             stop_process(p)
     print(f"metro_demo at 1x for {args.duration:g} s (logs in {logs})\n")
-    print("| node | p50 (ms) | p99 (ms) | max (ms) | samples | start-up max (ms) | rejected "
-          "| events |")
-    print("|---|---|---|---|---|---|---|---|")
+    print("| node | p50 (ms) | p99 (ms) | max (ms) | samples | waiting p50/p99 (ms) | "
+          "processing p50/p99 (ms) | start-up max (ms) | rejected | events |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for exe in NODES:
         text = (logs / f"{exe}.log").read_text()
         m = re.search(r"p50 ([\d.]+) ms, p99 ([\d.]+) ms, max ([\d.]+) ms over (\d+) samples"
-                      r" \(steady state; start-up: max ([\d.]+) ms", text)
+                      r" \(steady state; start-up: max ([\d.]+) ms.*?waiting for inputs p50 "
+                      r"([\d.]+) ms, p99 ([\d.]+) ms; processing p50 ([\d.]+) ms, p99 ([\d.]+)",
+                      text)
         c = re.search(r"rejected (.*); events (.*)$", text, re.M)
         if not m:
-            print(f"| {exe} | - | - | - | - | - | (no latency line; see log) | |")
+            print(f"| {exe} | - | - | - | - | - | - | - | (no latency line; see log) | |")
             continue
-        print(f"| {exe} | {m.group(1)} | {m.group(2)} | {m.group(3)} | {m.group(4)} | "
-              f"{m.group(5)} | "
-              f"{c.group(1) if c else '?'} | {c.group(2) if c else '?'} |")
+        g = m.groups()
+        print(f"| {exe} | {g[0]} | {g[1]} | {g[2]} | {g[3]} | {g[5]}/{g[6]} | {g[7]}/{g[8]} | "
+              f"{g[4]} | {c.group(1) if c else '?'} | {c.group(2) if c else '?'} |")
     return 0
 
 

@@ -49,6 +49,12 @@ def load_models(common: dict):
     return train, line, StartState(position=x0, position_std=common["initial_position_std"])
 
 
+def _quantiles(values: list[float]) -> tuple[float, float, float]:
+    """(p50, p99, max) of a non-empty list, order statistics as in the benchmarks' tables."""
+    v = sorted(values)
+    return v[len(v) // 2], v[min(len(v) - 1, int(0.99 * len(v)))], v[-1]
+
+
 def build_estimator_node(name: str, topic: str, make_adapter: Callable):
     """A node that feeds ``make_adapter(node, train, line, start, common)`` through a runner."""
     from rclpy.clock import Clock, ClockType
@@ -85,6 +91,11 @@ def build_estimator_node(name: str, topic: str, make_adapter: Callable):
             # once min_judged have arrived: those first samples wait by design)
             self.latency: list[float] = []
             self.latency_startup: list[float] = []
+            # the steady-state latency split: waiting for the cycle's other inputs (the runner
+            # releases a sample once the control watermark passes it) and processing (the
+            # runner's work and publishing, from the start of the tick that released it)
+            self.waited: list[float] = []
+            self.processed: list[float] = []
             self.separate_logged = False
             self.delay = common["output_delay"]
             self.wait_subs = common["wait_for_subscribers"]
@@ -136,6 +147,7 @@ def build_estimator_node(name: str, topic: str, make_adapter: Callable):
                 self.wait_subs = 0
             # Outputs wait for the inputs' watermarks (or 4 x delay for a lost sample), so the
             # node computes exactly what the offline replay of the same messages computes.
+            t_tick = self.steady.now().nanoseconds * 1e-9
             for out in self.runner.advance_to(self.runner.ready_time(now, self.delay,
                                                                       4 * self.delay)):
                 msg = TrainState()
@@ -152,7 +164,12 @@ def build_estimator_node(name: str, topic: str, make_adapter: Callable):
                     lat = self.steady.now().nanoseconds * 1e-9 - t_recv
                     startup = len(self.latency) + len(self.latency_startup) < \
                         self.runner.min_judged + 3
-                    (self.latency_startup if startup else self.latency).append(lat)
+                    if startup:
+                        self.latency_startup.append(lat)
+                    else:
+                        self.latency.append(lat)
+                        self.waited.append(max(0.0, t_tick - t_recv))
+                        self.processed.append(lat - self.waited[-1])
             if len(self.arrived) > 1000:  # samples that never became an estimate (refused)
                 self.arrived.clear()
             events = sum(self.runner.events.values())
@@ -174,14 +191,18 @@ def build_estimator_node(name: str, topic: str, make_adapter: Callable):
 
         def close(self) -> None:
             if self.latency:
-                lat = sorted(self.latency)
-                p50, p99 = lat[len(lat) // 2], lat[min(len(lat) - 1, int(0.99 * len(lat)))]
+                p50, p99, top = _quantiles(self.latency)
+                w50, w99, _ = _quantiles(self.waited)
+                c50, c99, _ = _quantiles(self.processed)
                 self.get_logger().info(f"latency odometer received -> estimate published: "
                                        f"p50 {1e3 * p50:.2f} ms, p99 {1e3 * p99:.2f} ms, "
-                                       f"max {1e3 * lat[-1]:.2f} ms over {len(lat)} samples"
+                                       f"max {1e3 * top:.2f} ms over {len(self.latency)} samples"
                                        f" (steady state; start-up: max "
                                        f"{1e3 * max(self.latency_startup, default=0.0):.2f} ms "
-                                       f"over the first {len(self.latency_startup)})")
+                                       f"over the first {len(self.latency_startup)}); waiting "
+                                       f"for inputs p50 {1e3 * w50:.2f} ms, p99 {1e3 * w99:.2f} "
+                                       f"ms; processing p50 {1e3 * c50:.2f} ms, p99 "
+                                       f"{1e3 * c99:.2f} ms")
             self.get_logger().info(f"accepted {dict(self.runner.accepted)}; "
                                    f"rejected {dict(self.runner.rejected) or 'none'}; "
                                    f"events {dict(self.runner.events) or 'none'}")

@@ -1,0 +1,38 @@
+"""Node processes keep BLAS in the calling thread (train_core.realtime): a fresh process that
+imports a node module has one BLAS thread, a user's choice is kept, and a plain numpy process
+is left alone (the offline tools keep their threads)."""
+
+import os
+import subprocess
+import sys
+
+import pytest
+
+from train_core.realtime import BLAS_THREAD_VARIABLES
+
+PROBE = ("import os, sys; {imports}; import numpy, scipy.linalg; "
+         "print(os.environ.get('OPENBLAS_NUM_THREADS'), len(os.listdir('/proc/self/task')))")
+
+
+def run_probe(imports: str, **extra) -> tuple[str, int]:
+    env = {k: v for k, v in os.environ.items() if k not in BLAS_THREAD_VARIABLES}
+    env.update(extra)
+    out = subprocess.run([sys.executable, "-c", PROBE.format(imports=imports)], env=env,
+                         capture_output=True, text=True, check=True, timeout=60).stdout.split()
+    return out[0], int(out[1])
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self/task"), reason="thread count from /proc")
+@pytest.mark.parametrize("module", ["train_estimation.nodes.robust_filter",
+                                    "train_sim.nodes.simulator"])
+def test_node_process_has_one_blas_thread(module):
+    var, threads = run_probe(f"import {module}")
+    assert var == "1"
+    assert threads == 1  # the interpreter's own thread only: no OpenBLAS workers
+
+
+def test_user_choice_kept_and_offline_untouched():
+    var, _ = run_probe("import train_estimation.nodes.robust_filter", OPENBLAS_NUM_THREADS="2")
+    assert var == "2"
+    var, _ = run_probe("import train_estimation.core.robust_filter")
+    assert var == "None"
