@@ -7,7 +7,6 @@ import subprocess
 import sys
 
 import pytest
-
 from train_core.realtime import BLAS_THREAD_VARIABLES
 
 PROBE = ("import os, sys; {imports}; import numpy, scipy.linalg; "
