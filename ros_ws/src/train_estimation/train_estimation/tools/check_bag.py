@@ -322,8 +322,8 @@ def format_report(summary: dict) -> str:
                              f"+- {fb['std']:.3f} (truth {fb['truth']:.3f})")
         if wall:
             rf = next(iter(summary["estimators"].values()))["latency_wall_s"]["rate_factor"]
-            lines.append(f"(units: m, m/s; latency = sample stamp to the recorder, incl. the "
-                         f"estimators' output_delay; bag time / {rf:g} = wall time)")
+            lines.append(f"(units: m, m/s; latency = sample stamp to the recorder's log time, "
+                         f"link, estimator and queues included; bag time / {rf:g} = wall time)")
         else:
             lines.append("(units: m, m/s; latency = sample stamp to the recorder, in the bag's "
                          "clock: simulated time if recorded with use_sim_time)")
