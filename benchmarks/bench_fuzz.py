@@ -32,12 +32,19 @@ import time
 from collections import Counter
 from pathlib import Path
 
-import numpy as np
-
 ROOT = Path(__file__).resolve().parents[1]
-for _p in (ROOT / "ros_ws/src/train_sim", ROOT / "ros_ws/src/train_estimation"):
+for _p in (ROOT / "ros_ws/src/train_sim", ROOT / "ros_ws/src/train_estimation",
+           ROOT / "ros_ws/src/train_core"):
     if str(_p) not in sys.path:
         sys.path.insert(0, str(_p))
+
+# one BLAS thread, as in the nodes (small matrices: worker threads only cost, and with the
+# other core busy they made this benchmark several times slower)
+from train_core.realtime import single_threaded_blas  # noqa: E402
+
+single_threaded_blas()
+
+import numpy as np  # noqa: E402
 
 from train_estimation.core import reasons as R  # noqa: E402
 from train_estimation.core.estimators import (  # noqa: E402
