@@ -143,7 +143,7 @@ def offline(seeds: int, duration: float, latency: float, jitter: float) -> list[
         d = r1[:, 0] - r0[:, 0]
         se = d.std(ddof=1) / np.sqrt(len(d)) if len(d) > 1 else float("nan")
         rows.append(f"| {name} | {r0[:, 0].mean():.3f} | {r1[:, 0].mean():.3f} | "
-                    f"{d.mean():+.4f} +- {se:.4f} | {int(r1[:, 1].sum())} | "
+                    f"{d.mean():+.2g} +- {se:.1g} | {int(r1[:, 1].sum())} | "
                     f"{int(r1[:, 2].sum())} | {int(r0[:, 2].sum())} | {int(r1[:, 3].sum())} |")
     return rows
 
