@@ -14,7 +14,9 @@ Clocks (CONTRACT.md, "The measured data's clocks"). The estimator runs on the **
 clock** (the train's clock: odometer and balise stamps are the sampling times, at any epoch,
 phase and drift). ``control`` may be stamped on another clock (measured data: the reference =
 receive clock). Each stream's offset ``stamp - recv`` (``recv`` = arrival time on the node's
-clock; in a replay the bag's log time) is tracked as a running median; a control stamp is mapped
+clock; in a replay the bag's log time) is tracked as a robust running median of the items
+that came on time (an item more than ``_Median.late`` below the centre came late, e.g. in the
+burst that follows a stalled recorder or node, and does not vote); a control stamp is mapped
 onto the train clock by adding ``median(odometer offset) - median(control offset)`` (the error is
 the difference of the two streams' median latencies, milliseconds for a radio link). When that
 difference is below ``same_clock_tolerance`` the two clocks are taken as one (the simulator:
@@ -113,27 +115,58 @@ class _Median:
         self._value = None  # cached centre (recomputed after an add)
         self.pending: list = []  # consecutive values away from a full window's centre
 
-    def add(self, v: float) -> None:
+    def add(self, v: float, at: float | None = None) -> None:
+        """Add the offset ``v`` = stamp - arrival of an item that arrived at ``at`` (s; None:
+        unknown)."""
         # Once the window is full, a value far from its centre does not vote: wild stamps
         # mixed with good ones (a fuzzed or corrupted stream) could otherwise, by a run of
         # bad luck, outnumber the good ones in the window and move the centre by their offset
         # (a control clock moved 500 s ahead blinds the filter). Only n // 2 + 1 *consecutive*
         # far values that agree among themselves -- the clock itself has stepped -- replace
         # the window.
+        #
+        # A clock that stepped keeps its new offset as time goes on; a backlog does not: after
+        # a stall (a node or recorder blocked for longer than tol), the readings of the stall
+        # arrive in one burst, their offsets sweeping from -stall towards 0 as the stamps
+        # advance with the arrival frozen. Taken for a step, such a burst moved one clock's
+        # centre by seconds and not the other's, so "auto" judged the clocks separate and
+        # mapped the commands seconds off (tens of metres of error after an 8 s recorder
+        # stall). So the far run must also span arrival time, at least half the stamp time it
+        # spans (a step: both equal, up to jitter and drift; a burst: none); older values of
+        # a run that does not are dropped from it.
+        if len(self.fifo) >= self.n and -self.tol <= v - self.value < -self.late:
+            # delayed by more than the usual jitter (a backlog, a retried packet): its arrival
+            # says how late it came, not where its clock is; it neither votes nor informs the
+            # drift (EstimatorRunner._regress). Latency only ever lowers stamp - arrival, so
+            # items on time keep the centre where the clock is.
+            self.pending = []
+            return
         if len(self.fifo) >= self.n and abs(v - self.value) > self.tol:
-            if self.pending and abs(v - self.pending[-1]) > self.tol:
+            if self.pending and abs(v - self.pending[-1][0]) > self.tol:
                 self.pending = []
-            self.pending.append(v)
+            self.pending.append((v, at))
+            while len(self.pending) > self.n // 2 and not self._persists(self.pending):
+                self.pending.pop(0)
             if len(self.pending) <= self.n // 2:
                 return
             self.fifo.clear()
             self.sorted = []
-            for p in self.pending[:-1]:
+            for p, _ in self.pending[:-1]:
                 self._push(p)
             self.pending = []
         elif self.pending:
             self.pending = []
         self._push(v)
+
+    @staticmethod
+    def _persists(run: list) -> bool:
+        """A run of far (offset, arrival) values that spans arrival time: a clock step, not a
+        backlog (see add). Without arrival times, any run does."""
+        (v0, a0), (v1, a1) = run[0], run[-1]
+        if a0 is None or a1 is None:
+            return True
+        arrived = a1 - a0
+        return arrived >= 0.5 * (arrived + v1 - v0)  # stamp span = arrival span + offset change
 
     def _push(self, v: float) -> None:
         self._value = None
@@ -148,6 +181,13 @@ class _Median:
 
     tol = 5.0  # s: wider than arrival jitter (a node at 10x sees 1 Hz stamps 0.9 s apart in
     #   stamp - arrival), far narrower than a clock error worth refusing
+    late = 1.0  # s: an item whose stamp - arrival is this far below the centre came late (a
+    #   backlog after a stall or an outage): it does not vote (add). Above the radio's jitter
+    #   (p99 of 20 ms + Exp(50 ms) is 0.25 s) and a sim-time node's arrival quantisation.
+
+    def on_time(self, v: float) -> bool:
+        """``v`` (stamp - arrival) is neither late nor far from the centre (a voter)."""
+        return -self.late <= v - self.value <= self.tol
 
     def near(self, v: float) -> int:
         """How many values of the window lie within ``tol`` of ``v``."""
@@ -198,6 +238,7 @@ class EstimatorRunner:
     _early: dict = field(default_factory=dict)  # clock -> items waiting for min_judged
     _odo: list = field(default_factory=list)  # heap of the queued odometer stamps
     _fit: list = field(default_factory=lambda: [0, 0.0, 0.0, 0.0, 0.0, None])  # drift regression
+    _reg_last: tuple | None = None  # (arrival, stamp) of the last reading in the regression
     _anchor: tuple | None = None  # (train stamp, filter time) of the last processed odometer
     _last_mapped: float = -math.inf
     _hist: list = field(default_factory=list)  # [stamp, order, n, kind, fields, snapshot]
@@ -253,7 +294,7 @@ class EstimatorRunner:
             # too early to judge a stamp against its clock: hold it until the clock's median
             # offset rests on min_judged arrivals (one corrupted first stamp must not set the
             # watermarks or the start), then judge the held ones like any other
-            med.add(stamp - arrival)
+            med.add(stamp - arrival, arrival)
             early_items = self._early.setdefault(clock, [])
             early_items.append((kind, stamp, fields, recv, arrival))
             if len(med) >= self.min_judged:
@@ -287,9 +328,9 @@ class EstimatorRunner:
             if why:
                 return self._reject(kind, stamp, why)
         if arrival is not None and not counted:
-            med.add(stamp - arrival)
-        if kind == "odometer" and recv is not None and abs(stamp - recv - med.value) <= med.tol:
-            self._regress(recv, stamp)  # only stamps of the dense cluster inform the rate
+            med.add(stamp - arrival, arrival)
+        if kind == "odometer" and recv is not None and med.on_time(stamp - recv):
+            self._regress(recv, stamp)  # only stamps on time inform the rate (not a backlog's)
         if kind == "odometer" and arrival is not None and \
                 (self._odo_last is None or stamp > self._odo_last[0]):
             self._odo_last = (stamp, arrival)
@@ -385,8 +426,17 @@ class EstimatorRunner:
         return mapped
 
     def _regress(self, recv: float, stamp: float) -> None:
-        """Running least squares of odometer stamp on arrival time (centred on the first)."""
+        """Running least squares of odometer stamp on arrival time (centred on the first).
+
+        A reading whose arrival advanced less than half its stamp since the last one used came
+        in a burst (the tail of a backlog: its latency shrinking as the stamps advance with the
+        arrival frozen) and is left out: a second of such readings in 30 s of data tilted the
+        slope by ~1e-2, so the filter ran 1 % slow and was 0.2 m off for a minute."""
         f = self._fit
+        last = self._reg_last
+        if last is not None and recv - last[0] < 0.5 * (stamp - last[1]):
+            return
+        self._reg_last = (recv, stamp)
         if f[5] is None:
             f[5] = (recv, stamp)
         x, y = recv - f[5][0], stamp - f[5][1]
