@@ -63,3 +63,26 @@ def test_identify_refuses_a_train_that_never_moves(crh3, tmp_path, capsys):
     err = capsys.readouterr().err
     assert "never moves" in err and "cannot identify" in err, err
     assert not (tmp_path / "x.yaml").exists()
+
+
+def test_fitted_yaml_says_which_prior_an_unidentifiable_davis_term_kept(crh3, tmp_path):
+    """b not identifiable, mass fitted 20 % heavier: b is the prior per unit of effective mass
+    (so 1.2 x train.yaml's in N), and the comment must not claim train.yaml's b was kept."""
+    from types import SimpleNamespace
+
+    prior = crh3.train
+    d = prior.davis
+    fitted = dataclasses.replace(prior, mass=1.2 * prior.mass,
+                                 davis=dataclasses.replace(d, b=1.2 * d.b, c=1.1 * d.c))
+    ok = {"mass": True, "rotary_allowance": True, "davis.a": False, "davis.b": False,
+          "davis.c": True, "braking_rate": True}
+    res = SimpleNamespace(std_errors={k: 0.01 for k in ok}, identifiable=ok,
+                          reasons={k: "x" for k in ok}, mass_if_davis_nominal=(1.0, 0.1))
+    text = tool.train_to_yaml(fitted, res, prior, "bag")
+    line = {ln.split(":")[0].strip(): ln for ln in text.splitlines()}
+    assert "per unit of effective mass" in line["b"] and f"prior {d.b:.6g}" in line["b"]
+    assert line["a"].endswith("not identifiable from this run: prior kept")  # a unchanged
+    assert "fitted, standard error" in line["c"]
+    path = tmp_path / "fitted.yaml"
+    path.write_text(text)
+    assert load_train(path).davis.b == pytest.approx(1.2 * d.b, rel=1e-5)

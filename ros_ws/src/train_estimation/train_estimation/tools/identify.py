@@ -57,13 +57,22 @@ def train_to_yaml(train: TrainParams, res, prior: TrainParams, source: str) -> s
     """The fitted train.yaml text: CONTRACT.md keys, SEs as comments, extras as a block."""
     se, ok = res.std_errors, res.identifiable
 
+    d, d0 = train.davis, prior.davis
+
     def note(name):
         s = se.get(name, math.nan)
         if not ok.get(name, False):
+            if name.startswith("davis."):
+                # the fit holds a Davis term at the prior *per unit of effective mass* (the
+                # specific resistance is what the data constrain); with a fitted mass the
+                # value in N then differs from train.yaml's, so say which prior was kept
+                v, v0 = getattr(d, name[6:]), getattr(d0, name[6:])
+                if not math.isclose(v, v0, rel_tol=1e-9, abs_tol=1e-12):
+                    return (f"not identifiable from this run: the prior per unit of effective "
+                            f"mass kept, scaled by the fitted mass (prior {v0:.6g})")
             return "not identifiable from this run: prior kept"
         return f"fitted, standard error {s:.4g}" if math.isfinite(s) else "fitted"
 
-    d = train.davis
     lines = [
         f"# train.yaml fitted by `identify` from {source}",
         f"# prior: {prior.name}; values the data cannot identify keep the prior's value.",
