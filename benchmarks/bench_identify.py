@@ -237,8 +237,8 @@ def sanity_check(sc: Scenario, seed: int, holdout: str) -> tuple[float, float]:
     res = simulate(sc_hold, seed=seed)
     sc_m = model_scenario(sc_hold, sc_hold.true_train, sc_hold.effects)
     p = run_replay(sc_m, res.control)
-    # the simulator's own open-loop driver mode on the same profile must agree (it scans the
-    # whole profile every ATO cycle, O(n^2), hence the bisect stand-in for the bulk runs)
+    # the simulator's own open-loop driver mode on the same profile must agree (ReplayDriver
+    # is the independent stand-in it is checked against)
     prof = tuple(zip(res.control["t"].tolist(), res.control["target_acceleration"].tolist()))
     sc_ol = dataclasses.replace(sc_m, driver=dataclasses.replace(sc_m.driver, mode="open_loop",
                                                                  profile=prof))
