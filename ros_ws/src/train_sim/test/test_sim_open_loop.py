@@ -99,3 +99,19 @@ def test_bursty_link_keeps_latency_and_outages():
     tl = true_link(base, Effects(bursty_link=BurstyLinkEffect(0.02, 0.3)))
     assert tl.model == "gilbert_elliott" and (tl.p_good_bad, tl.p_bad_good) == (0.02, 0.3)
     assert (tl.latency, tl.jitter, tl.outages) == (base.latency, base.jitter, base.outages)
+
+
+def test_driver_open_loop_mode_issues_the_profile(closed):
+    """The driver's open_loop mode (a_Tar profile, looked up by bisection) issues the command
+    in force at every cycle: on the closed loop's own 2000-command profile, the very same
+    commands, and the same motion."""
+    import dataclasses
+
+    sc, ref = closed
+    c = ref.control
+    prof = tuple(zip(c["t"].tolist(), c["target_acceleration"].tolist()))
+    sc_ol = dataclasses.replace(sc, driver=dataclasses.replace(sc.driver, mode="open_loop",
+                                                               profile=prof))
+    res = simulate(sc_ol, duration=200.0)
+    assert np.array_equal(res.control["target_acceleration"], c["target_acceleration"])
+    assert np.allclose(res.truth["position"], ref.truth["position"], rtol=0, atol=1e-9)
