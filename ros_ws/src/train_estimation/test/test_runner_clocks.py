@@ -198,7 +198,7 @@ def test_a_backlog_burst_does_not_move_the_clocks(kind, clk):
         e, t = errors(outs, res, clk.get("epoch", 0.0), clk.get("phase", 0.0),
                       clk.get("drift", 0.0))
         rmse = float(np.sqrt(np.mean(e[t > 30.0] ** 2)))
-        assert rmse <= 1.2 * rmse_ref + 0.05, (stall, rmse, rmse_ref)
+        assert rmse <= 1.1 * rmse_ref + 0.01, (stall, rmse, rmse_ref)  # as on aligned stamps
 
 
 def test_wild_stamps_cannot_outvote_the_clock():
