@@ -185,9 +185,9 @@ class _Median:
     #   backlog after a stall or an outage): it does not vote (add). Above the radio's jitter
     #   (p99 of 20 ms + Exp(50 ms) is 0.25 s) and a sim-time node's arrival quantisation.
 
-    def on_time(self, v: float) -> bool:
-        """``v`` (stamp - arrival) is neither late nor far from the centre (a voter)."""
-        return -self.late <= v - self.value <= self.tol
+    def on_time(self, v: float, late: float) -> bool:
+        """``v`` (stamp - arrival) is at most ``late`` s below the centre, and not far above."""
+        return -late <= v - self.value <= self.tol
 
     def near(self, v: float) -> int:
         """How many values of the window lie within ``tol`` of ``v``."""
@@ -333,8 +333,7 @@ class EstimatorRunner:
                 return self._reject(kind, stamp, why)
         if arrival is not None and not counted:
             med.add(stamp - arrival, arrival)
-        if kind == "odometer" and recv is not None and \
-                -self.drift_late <= stamp - recv - med.value <= med.tol:
+        if kind == "odometer" and recv is not None and med.on_time(stamp - recv, self.drift_late):
             self._regress(recv, stamp)  # only stamps on time inform the rate (not a backlog's)
         if kind == "odometer" and arrival is not None and \
                 (self._odo_last is None or stamp > self._odo_last[0]):
