@@ -21,6 +21,8 @@ def _random_value(kind: str, rng: random.Random):
                            math.nan, 5e-324, 1.7976931348623157e308])
     if kind == "uint32":
         return rng.choice([0, 1, 2**32 - 1, rng.randrange(2**32)])
+    if kind == "uint8":
+        return rng.choice([0, 1, 2, 255, rng.randrange(256)])
     if kind == "int32":
         return rng.choice([-(2**31), 2**31 - 1, rng.randrange(-(2**31), 2**31)])
     if kind == "boolean":
@@ -40,7 +42,7 @@ def _random_fields(cls, rng: random.Random) -> dict:
             n = int(kind[len("double["):-1])
             out[name] = [_random_value("float64", rng) for _ in range(n)]
         else:
-            out[name] = _random_value({"double": "float64", "uint32": "uint32",
+            out[name] = _random_value({"double": "float64", "uint32": "uint32", "uint8": "uint8",
                                        "boolean": "boolean", "string": "string"}[kind], rng)
     return out
 

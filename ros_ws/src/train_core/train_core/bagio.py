@@ -90,7 +90,7 @@ def _build(ts, msgtype: str, fields: dict, stamp: float, frame_id: str = "track"
     for name in cls.__dataclass_fields__:
         if name in ("header", "__msgtype__"):
             continue
-        value = fields[name]
+        value = fields.get(name, 0) if name == "integrity" else fields[name]  # older writers
         if name == "covariance":
             value = np.asarray(value, dtype=np.float64).reshape(16)
         elif isinstance(value, (np.floating, np.integer, np.bool_)):
@@ -245,8 +245,11 @@ def read_bag(path: str | os.PathLike, namespace: str | None = None,
             try:
                 stamp, fields = deserialize(conn.msgtype, raw)
             except Exception as exc:
-                bag.skipped.setdefault(conn.topic, f"undecodable message ({exc})")
-                continue
+                try:  # a bag written with an older definition (TrainState before integrity)
+                    stamp, fields = _deserialize_own(reader, conn.msgtype, raw)
+                except Exception:
+                    bag.skipped.setdefault(conn.topic, f"undecodable message ({exc})")
+                    continue
             bag.topics[rel_of[conn.id]].append((t_ns, stamp, fields))
     except BagError:
         raise
@@ -255,6 +258,14 @@ def read_bag(path: str | os.PathLike, namespace: str | None = None,
     finally:
         reader.close()
     return bag
+
+
+def _deserialize_own(reader, msgtype: str, raw: bytes) -> tuple[float, dict]:
+    """(stamp, fields) with the definition the bag itself carries (AnyReader's typestore)."""
+    msg = reader.deserialize(raw, msgtype)
+    fields = {k: getattr(msg, k) for k in msg.__dataclass_fields__
+              if k not in ("header", "__msgtype__")}
+    return msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9, fields
 
 
 def _guess_namespace(topics: list[str]) -> str:

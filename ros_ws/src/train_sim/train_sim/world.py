@@ -267,7 +267,8 @@ class World:
         self._log["truth"].append((t, st.x, st.v, acc, f))
         out.append((t, "ground_truth", t, {
             "source": "truth", "position": st.x, "velocity": st.v, "acceleration": acc,
-            "braking_rate": f, "covariance": TRUTH_COVARIANCE, "measurement_used": False}))
+            "braking_rate": f, "covariance": TRUTH_COVARIANCE, "measurement_used": False,
+            "integrity": 0}))
         # control is on the reference clock (CONTRACT.md): the ATO's command as issued
         self._log["control"].append((t, t, self.a_tar))
         out.append((t, "control", t, {"target_acceleration": self.a_tar}))

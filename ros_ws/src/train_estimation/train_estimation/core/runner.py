@@ -93,6 +93,11 @@ class Output:
     braking_rate: float  # -
     covariance: tuple  # 16 floats, row-major 4x4 over (position, velocity, acceleration, f)
     measurement_used: bool
+    integrity: int = 0  # 0 OK, 1 DEGRADED (covariance inflated to cover a doubt), 2 ALARM
+    integrity_reason: str = ""  # why not OK (empty when OK)
+
+
+INTEGRITY_OK, INTEGRITY_DEGRADED, INTEGRITY_ALARM = 0, 1, 2
 
 
 class Adapter(Protocol):

@@ -158,6 +158,7 @@ def build_estimator_node(name: str, topic: str, make_adapter: Callable):
                 msg.acceleration, msg.braking_rate = out.acceleration, out.braking_rate
                 msg.covariance = list(out.covariance)
                 msg.measurement_used = out.measurement_used
+                msg.integrity = out.integrity
                 self.pub.publish(msg)
                 t_recv = self.arrived.pop(out.stamp, None)
                 if t_recv is not None:
