@@ -154,6 +154,8 @@ class RobustAdapter:
         if math.isfinite(a) and abs(a) > self.cfg.max_command:
             return f"{R.OUTSIDE_GATE}: command {a:.3g} m/s^2"
         d = self.f.set_control(stamp, a)
+        if d.accepted and self._pred is not None and stamp + self.f.actuator.delay < self._pred[1]:
+            self._pred = None  # a command that acts before the cached prediction: start afresh
         return "" if d.accepted else d.reason
 
     def _lost_slots(self, stamp: float) -> None:
@@ -201,8 +203,13 @@ class RobustAdapter:
             token = (f.t, float(f.x[0]), float(f.x[1]), float(f.P[0, 0]))
             c = self._pred
             if c is not None and c[0] == token and c[1] <= t:
+                # the cached actuator's lag state, with every command known now: commands
+                # given since the cached prediction must drive this one (a copy without them
+                # held the speed through a 60 s outage while the train accelerated)
+                act = c[4].copy()
+                act._cmds = list(f.actuator._cmds)
                 saved = f.x, f.P, f.t, f.actuator
-                f.x, f.P, f.t, f.actuator = c[2], c[3], c[1], c[4]
+                f.x, f.P, f.t, f.actuator = c[2], c[3], c[1], act
                 try:
                     x, P, act = f._propagate(t)
                 finally:
