@@ -9,6 +9,7 @@ import yaml
 from train_core.config import ConfigError, param_fields
 
 from train_estimation.core.estimators import BrakingConfig, NodeConfig, RobustConfig
+from train_estimation.core.integrity import IntegrityParams
 
 CONFIG = Path(__file__).resolve().parents[1] / "config"
 NODES = {"robust_filter.yaml": RobustConfig, "gsma_estimator.yaml": BrakingConfig}
@@ -25,7 +26,7 @@ def _same(a, b):
 @pytest.mark.parametrize("name", sorted(NODES))
 def test_params_file_has_exactly_the_declared_fields_with_their_defaults(name):
     params = yaml.safe_load((CONFIG / name).read_text())["/**"]["ros__parameters"]
-    fields = param_fields(NodeConfig) + param_fields(NODES[name])
+    fields = param_fields(NodeConfig) + param_fields(NODES[name]) + param_fields(IntegrityParams)
     declared = {f.name for f in fields}
     assert set(params) == declared, (set(params) - declared, declared - set(params))
     for f in fields:
@@ -38,7 +39,7 @@ def test_params_file_has_exactly_the_declared_fields_with_their_defaults(name):
 
 
 def test_every_parameter_field_has_a_unit_and_a_meaning():
-    for cls in (NodeConfig, RobustConfig, BrakingConfig):
+    for cls in (NodeConfig, RobustConfig, BrakingConfig, IntegrityParams):
         for f in param_fields(cls):
             assert isinstance(f.metadata["unit"], str) and len(f.metadata["doc"]) > 5, f.name
 

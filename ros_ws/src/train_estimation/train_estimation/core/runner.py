@@ -76,6 +76,7 @@ from dataclasses import dataclass, field, replace
 from typing import Protocol
 
 from . import reasons as R
+from .integrity import IntegrityMonitor, IntegrityParams
 
 KIND_ORDER = {"control": 0, "odometer": 1, "balise": 2}
 NO_SLOT = (R.OUT_OF_ORDER, R.DUPLICATE, R.FUTURE_STAMP, R.STALE_STAMP, R.NON_FINITE)
@@ -224,6 +225,9 @@ class EstimatorRunner:
     max_gap_outputs: int = 6000  # predicted slots after the last fused sample (10 min at 10 Hz)
     min_judged: int = 9  # arrivals of a clock before its stamps are judged (earlier ones wait)
     history: float = 3.0  # s of fused input kept: a reading up to this late is fused by rewinding
+    step_back: float = 0.3  # s: an odometer stamp this far behind the newest one admitted is
+    #   held as a possible backward clock step (at least 2.5 periods); min_judged such readings
+    #   continuing one another, arriving at their stamps' pace, are a step and re-anchored
     drift_late: float = 0.25  # s: an odometer reading later than this (below the centre of
     #   stamp - arrival) stays out of the drift fit. Above a radio's jitter (p99 of 20 ms +
     #   Exp(50 ms): 0.25 s); one reading of a backlog's tail, 1 s late, in 30 s of data gave
@@ -258,6 +262,10 @@ class EstimatorRunner:
     _odo_last: tuple | None = None  # (stamp, arrival) of the last odometer admitted
     _step_held: list = field(default_factory=list)  # discontinuous train-clock readings
     _raw_stamp: dict = field(default_factory=dict)  # mapped odometer stamp -> stamp as sent
+    integrity: IntegrityParams = field(default_factory=IntegrityParams)
+    command_timeout: float | None = None  # s without commands before the node's clock stands
+    #   in for the control watermark (None: integrity.command_timeout)
+    monitor: IntegrityMonitor | None = None
 
     @property
     def _can_rewind(self) -> bool:
@@ -267,6 +275,10 @@ class EstimatorRunner:
         if self.control_clock not in ("auto", "same", "reference"):
             raise ValueError(f"control_clock must be auto, same or reference, "
                              f"got {self.control_clock!r}")
+        if self.monitor is None:
+            self.monitor = IntegrityMonitor(self.integrity, self.period)
+        if self.command_timeout is None:
+            self.command_timeout = self.integrity.command_timeout
 
     # -- door ---------------------------------------------------------------------------------
     def push(self, kind: str, stamp: float, fields: dict, recv: float | None = None) -> str:
@@ -325,6 +337,7 @@ class EstimatorRunner:
         med = self._offsets[clock]
         if watch and clock == "train" and arrival is not None and self._odo_last is not None:
             held, stamp, arrival = self._watch_step(kind, stamp, fields, recv, arrival)
+            self.monitor.clock(sum(h[0] == "odometer" for h in self._step_held))
             if held:
                 return ""
         if arrival is not None:
@@ -364,7 +377,12 @@ class EstimatorRunner:
         completed a step."""
         tol = _Median.tol
         s0, a0 = self._odo_last
-        if -tol <= stamp - s0 <= max(arrival - a0, 0.0) + tol:  # continues the stream
+        # Back by more than step_back: possibly a small backward step (a clock resynchronised
+        # by a few seconds), held until later readings decide. A reading late by jitter is
+        # held too, and released (then fused by rewinding) by the next reading that continues
+        # the stream, one period later.
+        back = max(self.step_back, 2.5 * self.period)
+        if -back <= stamp - s0 <= max(arrival - a0, 0.0) + tol:  # continues the stream
             if kind == "odometer" and self._step_held:
                 self._release_held()
             return False, stamp, arrival
@@ -379,13 +397,17 @@ class EstimatorRunner:
         if kind == "odometer":
             chain.append(self._step_held[-1])
         if len(chain) < self.min_judged or \
-                chain[-1][1] - chain[0][1] < 0.5 * (len(chain) - 1) * self.period:
+                chain[-1][1] - chain[0][1] < 0.5 * (len(chain) - 1) * self.period or \
+                chain[-1][4] - chain[0][4] < 0.5 * (chain[-1][1] - chain[0][1]):
+            # not yet a step: too few readings, too slow a pace, or arrivals that do not span
+            # the stamps (a backlog's burst, not a clock that jumped and runs on)
             return not refused, stamp, arrival
         # a step: the first reading of the new clock came (elapsed arrival time, at least one
         # period) after the last one of the old clock
         first, a_first = chain[0][1], chain[0][4]
         shift = first - (s0 + max(a_first - a0, self.period))
         self._train_shift += shift
+        self.monitor.clock(0, reanchored_at=first - shift)
         self._event("odometer", stamp, f"{R.CLOCK_RESET}: train clock stepped by {shift:+.3f} s "
                                        f"at stamp {first + self._train_shift:.3f}; re-anchored")
         old = self._train_shift - shift
@@ -399,11 +421,22 @@ class EstimatorRunner:
         return False, stamp - shift, arrival
 
     def _release_held(self) -> None:
-        """No step after all: judge the held readings as any other (stale, future, ...)."""
+        """No step after all: judge the held readings as any other (stale, late, ...) -- but a
+        reading stamped *ahead* of its stream that no later reading confirmed is refused: one
+        corrupt stamp (a flipped bit, 60 s ahead) admitted here became the stream's newest
+        stamp, every genuine reading after it looked discontinuous, and the runner declared a
+        clock step of -60 s (kf 1.3 km off with a covariance of centimetres)."""
         held, self._step_held = self._step_held, []
+        s0, a0 = self._odo_last
         for k, st, f, rc, ar, ref in held:
-            if not ref:
-                self._admit(k, st, f, rc, ar, watch=False)
+            if ref:
+                continue
+            ahead = st - s0 - max(ar - a0, 0.0)
+            if ahead > _Median.tol:
+                self._count(k, st, f"{R.FUTURE_STAMP}: {ahead:.3g} s ahead of its stream, "
+                                   f"not continued by later readings")
+                continue
+            self._admit(k, st, f, rc, ar, watch=False)
 
     def _check_seq(self, kind: str, stamp: float, fields: dict) -> str:
         seq = fields.get("seq")
@@ -553,13 +586,23 @@ class EstimatorRunner:
                     if e is entry:
                         reason = r
                 self._count(kind, stamp, reason)
+                self._observe(kind, stamp, fields, reason)
                 if not reason:
                     self._event(kind, stamp, f"{R.FUSED_LATE}: {self._high_done - stamp:.3f} s "
                                              f"late")
                 return reason
         reason = self._process(entry)
         self._count(kind, stamp, reason)
+        self._observe(kind, stamp, fields, reason)
         return reason
+
+    def _observe(self, kind: str, stamp: float, fields: dict, reason: str) -> None:
+        """Tell the integrity monitor what became of an item the filter processed."""
+        if kind == "odometer":
+            self.monitor.reading(stamp, fields if isinstance(fields, dict) else None,
+                                 not reason or R.category(reason) in R.ACCEPTED)
+        elif kind == "control" and not reason:
+            self.monitor.command(stamp)
 
     def _count(self, kind: str, stamp: float, reason: str) -> None:
         if reason:
@@ -568,7 +611,7 @@ class EstimatorRunner:
             self.accepted[kind] += 1
 
     def _emit(self, t: float, out: list) -> None:
-        o = self.adapter.output(self._filter_time(t))
+        o = self.monitor.assess(self.adapter.output(self._filter_time(t)), t)
         # published on the train clock (after a step: the new one, the sample's stamp as sent)
         stamp = self._raw_stamp.pop(t, None) if self._raw_stamp else None
         if stamp is None:
@@ -641,6 +684,11 @@ class EstimatorRunner:
         train = self._offsets.get("train")
         now_train = now - delay + (train.value if train is not None and len(train) else 0.0)
         lead = self.high.get("control", now_train)
+        if now_train - lead > self.command_timeout:
+            # the command stream stopped while readings go on: waiting for it would leave the
+            # train without an estimate and the queue growing; the filters hold the last
+            # command, the integrity monitor says DEGRADED (no_command)
+            lead = now_train
         odo = self.high.get("odometer", -math.inf)
         return min(lead, max(odo, lead - fallback))
 

@@ -78,9 +78,16 @@ def build_estimator_node(name: str, topic: str, make_adapter: Callable):
             except ValueError as exc:
                 raise ParameterError(str(exc)) from None
             try:
+                from train_estimation.core.integrity import IntegrityParams
+
+                integrity = declare_config(self, IntegrityParams)
+            except ValueError as exc:
+                raise ParameterError(str(exc)) from None
+            try:
                 self.runner = EstimatorRunner(self.adapter, 1.0 / common["odometer_rate"],
                                               control_clock=common["control_clock"],
-                                              max_future=common["max_future"])
+                                              max_future=common["max_future"],
+                                              integrity=integrity)
             except ValueError as exc:
                 raise ParameterError(f"parameter control_clock: {exc}") from None
             self.n_events = 0

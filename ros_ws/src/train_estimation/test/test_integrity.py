@@ -1,0 +1,179 @@
+"""Integrity: an estimate is never confidently wrong. One case of each fault class, through the
+runner the nodes use (arrival = stamp + 50 ms); the campaign is ``./run bench integrity``.
+
+A *wrong-side* estimate is labelled OK while its position error exceeds both 1 m and 5 of its
+own standard deviations."""
+
+import math
+import os
+import sys
+
+import numpy as np
+import pytest
+
+from train_estimation.core.integrity import (
+    ALARM,
+    DEGRADED,
+    OK,
+    IntegrityMonitor,
+    IntegrityParams,
+    _accel_cov,
+)
+from train_estimation.core.replay import replay
+from train_estimation.core.runner import Output
+
+sys.path.insert(0, os.path.dirname(__file__))
+from clocks import adapter, run  # noqa: E402
+
+LAT = 0.05  # s, arrival = stamp + LAT
+
+
+def _events(res, mod=None):
+    out = []
+    for topic, t, f in res.events():
+        if topic not in ("odometer", "balise", "control"):
+            continue
+        e = (topic, t, f, t + LAT) if mod is None else mod(topic, t, f)
+        if e is not None:
+            out.append(e)
+    return out
+
+
+def _check(outs, res, true_time):
+    """(errors, sigmas, labels) at the outputs; ``true_time``: output index, stamp -> true t."""
+    tt = np.array([true_time(i, o.stamp) for i, o in enumerate(outs)])
+    tr = res.truth
+    inside = (tt >= tr["t"][0]) & (tt <= tr["t"][-1])
+    e = np.array([o.position for o in outs])[inside] - np.interp(tt[inside], tr["t"],
+                                                                  tr["position"])
+    sig = np.sqrt(np.array([o.covariance[0] for o in outs]))[inside]
+    lab = np.array([o.integrity for o in outs])[inside]
+    return e, sig, lab, tt[inside]
+
+
+def _wrong_side(e, sig, lab) -> int:
+    return int(np.sum((lab == OK) & (np.abs(e) > 1.0) & (np.abs(e) > 5.0 * sig)))
+
+
+@pytest.fixture(scope="module")
+def demo():
+    return run("metro_demo", 3, 240.0)
+
+
+@pytest.mark.parametrize("kind", ["robust", "kf"])
+def test_nominal_data_are_ok(demo, kind):
+    sc, res = demo
+    outs, r = replay(_events(res), adapter(sc, kind), 0.1, control_clock="same")
+    e, sig, lab, _ = _check(outs, res, lambda i, s: s)
+    assert _wrong_side(e, sig, lab) == 0
+    assert np.mean(lab == OK) >= 0.99, r.monitor.counts
+
+
+@pytest.mark.parametrize("kind", ["robust", "kf"])
+def test_one_reading_stamped_60_s_ahead_moves_no_clock(demo, kind):
+    """One flipped bit in the seconds field: the reading is refused, no clock step is declared
+    (before, the genuine readings after it were taken for a -60 s step: 1.3 km off with a
+    covariance of centimetres)."""
+    sc, res = demo
+    hit = []
+
+    def mod(topic, t, f):
+        if topic == "odometer" and t >= 100.0 and not hit:
+            hit.append(t)
+            return topic, t + 60.0, f, t + LAT
+        return topic, t, f, t + LAT
+
+    outs, r = replay(_events(res, mod), adapter(sc, kind), 0.1, control_clock="same")
+    assert "odometer:clock_reset" not in r.events
+    assert r.rejected["odometer:future_stamp"] == 1
+    e, sig, lab, _ = _check(outs, res, lambda i, s: s)
+    assert _wrong_side(e, sig, lab) == 0 and np.abs(e).max() < 2.0
+
+
+@pytest.mark.parametrize("kind", ["robust", "kf"])
+def test_a_backward_clock_step_of_3_s_is_re_anchored(demo, kind):
+    sc, res = demo
+
+    def mod(topic, t, f):
+        if topic != "control" and t >= 100.0:
+            return topic, t - 3.0, f, t + LAT
+        return topic, t, f, t + LAT
+
+    outs, r = replay(_events(res, mod), adapter(sc, kind), 0.1, control_clock="same")
+    assert r.events["odometer:clock_reset"] == 1
+    st = np.array([o.stamp for o in outs])
+    k = int(np.argmax(np.diff(st) < -1.0)) + 1  # the first estimate on the new clock
+    e, sig, lab, _ = _check(outs, res, lambda i, s: s + 3.0 if i >= k else s)
+    assert _wrong_side(e, sig, lab) == 0
+    assert np.mean(lab == OK) >= 0.98  # a second to decide, two seconds flagged after
+
+
+def test_a_60_s_outage_is_flagged_and_covered(demo):
+    sc, res = demo
+    t0 = 150.0  # the train starts from a stop at about 165 s
+
+    def mod(topic, t, f):
+        if topic in ("odometer", "balise") and t0 <= t < t0 + 60.0:
+            return None
+        return topic, t, f, t + LAT
+
+    for kind in ("robust", "kf"):
+        outs, _ = replay(_events(res, mod), adapter(sc, kind), 0.1, control_clock="same")
+        e, sig, lab, t = _check(outs, res, lambda i, s: s)
+        gap = (t > t0 + 1.0) & (t < t0 + 60.0)
+        assert np.all(lab[gap] == DEGRADED), kind
+        assert np.all(np.abs(e[gap]) <= 3.0 * sig[gap]), kind
+        assert _wrong_side(e, sig, lab) == 0
+        assert np.all(lab[t > t0 + 65.0] == OK), kind
+
+
+def test_a_stopped_command_stream_keeps_estimates_flowing(demo):
+    """Commands stop at 100 s while readings go on: one estimate per sample all the same (the
+    node's clock stands in for the command watermark), labelled DEGRADED (no_command)."""
+    sc, res = demo
+
+    def mod(topic, t, f):
+        return None if topic == "control" and t >= 100.0 else (topic, t, f, t + LAT)
+
+    outs, r = replay(_events(res, mod), adapter(sc, "kf"), 0.1, control_clock="same")
+    ref, _ = replay(_events(res), adapter(sc, "kf"), 0.1, control_clock="same")
+    assert len(outs) >= len(ref) - 1
+    e, sig, lab, t = _check(outs, res, lambda i, s: s)
+    assert np.all(lab[t > 103.0] == DEGRADED)
+    assert "no_command" in outs[-1].integrity_reason
+    assert _wrong_side(e, sig, lab) == 0
+
+
+def test_readings_all_refused_raise_an_alarm_within_a_second(demo):
+    """From 100 s the odometer reads 15 m/s too fast (a sensor fault the gate refuses): the
+    estimator is blind while data arrive; ALARM within 1 s."""
+    sc, res = demo
+
+    def mod(topic, t, f):
+        if topic == "odometer" and t >= 100.0:
+            f = dict(f, speed=f["speed"] + 15.0, distance=f["distance"] + 500.0)
+        return topic, t, f, t + LAT
+
+    outs, _ = replay(_events(res, mod), adapter(sc, "kf"), 0.1, control_clock="same")
+    t = np.array([o.stamp for o in outs])
+    lab = np.array([o.integrity for o in outs])
+    first = t[(t >= 100.0) & (lab == ALARM)]
+    assert first.size and first[0] - 100.0 <= 1.0
+
+
+def test_monitor_inflation_and_labels():
+    a, tau = 0.2, 7.0
+    Q = _accel_cov(a, tau)
+    assert np.all(np.linalg.eigvalsh(Q) >= -1e-9)
+    assert math.isclose(math.sqrt(Q[0, 0]), a * tau ** 2 / 2)  # a constant error a: a tau^2 / 2
+    m = IntegrityMonitor(IntegrityParams(), 0.1)
+    cov = tuple(np.diag([1.0, 0.01, math.nan, math.nan]).ravel())
+    o = Output(10.0, 0.0, 5.0, math.nan, math.nan, cov, True)
+    m.reading(10.0, {"speed": 5.0, "speed_variance": 0.01}, True)
+    assert m.assess(o, 10.0).integrity == OK
+    late = m.assess(o, 12.0)  # 2 s without a fused reading
+    assert late.integrity == DEGRADED and late.covariance[0] > 1.0 + Q[0, 0] * 0
+    assert m.assess(o, 100.0).integrity == ALARM
+    bad = Output(10.0, 0.0, 5.0, math.nan, math.nan, tuple(np.diag([-1.0, 1, 1, 1]).ravel()),
+                 True)
+    assert m.assess(bad, 10.0).integrity == ALARM

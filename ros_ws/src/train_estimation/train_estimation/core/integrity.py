@@ -1,0 +1,222 @@
+"""Integrity monitoring of an estimator's output (pure): the stated bound holds, or it says so.
+
+A zone controller grants movement authority from the train's position interval; the worst
+output is a position far off with a covariance that claims centimetres (a *wrong-side*
+estimate). :class:`IntegrityMonitor` watches each estimator from outside the filter, on what
+the runner sees (which readings were fused or refused, when, the clock events, the commands)
+and on the estimates themselves, and labels every estimate:
+
+- ``OK`` (0): none of the checks doubts it; the estimator's own covariance is published.
+- ``DEGRADED`` (1): a check doubts it; the covariance is *inflated* to cover the doubt (below).
+- ``ALARM`` (2): the error cannot be bounded; the estimate must not be used (the zone
+  controller brakes).
+
+Checks (each gives a reason, e.g. ``"no_measurement: 2.3 s"``):
+
+``no_measurement``
+    The time ``tau`` from the last fused odometer reading to the estimate's stamp. Beyond
+    ``degraded_after`` the estimate is a prediction without measurements: DEGRADED, with the
+    covariance of an unmodelled acceleration of at most ``accel_uncertainty`` (a white-jerk-free
+    bound: a constant acceleration error ``a`` gives ``a tau^2 / 2`` of position and ``a tau`` of
+    speed), added to the filter's own::
+
+        P += a_u^2 [[tau^4 / 4, tau^3 / 2], [tau^3 / 2, tau^2]]
+
+    Beyond ``alarm_after``: ALARM.
+``blind``
+    Readings keep arriving but the estimator refuses them all (gate, order, stale stamps): a
+    filter that disagrees with every measurement is lost. ``blind_readings`` odometer readings
+    refused in a row with none fused: ALARM (at 10 Hz, 1 s).
+``speed_nis``
+    The normalised innovation squared of each fused odometer speed against the previous
+    estimate, ``(v_meas - v_prev)^2 / (P_vv + r + (a_max dt)^2)`` (``a_max``: the train's largest
+    plausible acceleration, so that a consistent filter gives a mean of at most about 1),
+    averaged over the last ``nis_window`` readings. For a consistent filter the window mean of
+    ``n`` chi-square(1) terms exceeds ``1 + z sqrt(2 / n)`` with probability ~ the normal tail of
+    ``z``; above it: DEGRADED, the covariance scaled by the mean (covariance inflation restores
+    NIS = 1); above ``nis_alarm``: ALARM.
+``clock``
+    Two or more readings held back as a possible clock step (the runner has not decided: one
+    reading late by jitter is held for a period and says nothing), or a step
+    re-anchored less than ``reanchor_hold`` s ago: DEGRADED, position variance increased by
+    ``(v period)^2`` (a re-anchored step is known to about one sample period).
+``no_command``
+    No control command for ``command_timeout`` while readings arrive: the filters hold the last
+    command; DEGRADED with the ``no_measurement`` inflation over the silence beyond the timeout
+    limited to one sample period (measurements still correct the prediction every period).
+
+Everything is on the estimator's (train) clock: stamps of estimates and readings, so that a
+replay of a bag reproduces a node's labels exactly.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass, replace
+
+import numpy as np
+from train_core.config import param, require
+
+OK, DEGRADED, ALARM = 0, 1, 2
+NAMES = {OK: "OK", DEGRADED: "DEGRADED", ALARM: "ALARM"}
+
+
+@dataclass(frozen=True)
+class IntegrityParams:
+    """Thresholds of the integrity checks (declared as node parameters; config/*.yaml)."""
+
+    degraded_after: float = param(0.5, "s", "no odometer reading fused for this long: DEGRADED, "
+                                  "covariance inflated by accel_uncertainty")
+    alarm_after: float = param(60.0, "s", "no odometer reading fused for this long: ALARM")
+    accel_uncertainty: float = param(0.15, "m/s^2", "bound on the acceleration the model does "
+                                     "not know (gradient map, resistance, adhesion), used to "
+                                     "inflate predictions without measurements")
+    blind_readings: int = param(10, "-", "odometer readings refused in a row with none fused: "
+                                "ALARM")
+    max_acceleration: float = param(1.5, "m/s^2", "largest plausible acceleration of the train, "
+                                    "for the speed-consistency check between samples")
+    nis_window: int = param(30, "-", "fused odometer speeds in the consistency window")
+    nis_z: float = param(5.0, "-", "window-mean NIS above 1 + nis_z sqrt(2 / nis_window): "
+                         "DEGRADED (covariance scaled by the mean)")
+    nis_alarm: float = param(100.0, "-", "window-mean NIS above this: ALARM")
+    reanchor_hold: float = param(2.0, "s", "DEGRADED for this long after a clock step was "
+                                 "re-anchored")
+    command_timeout: float = param(2.0, "s", "no control command for this long while readings "
+                                   "arrive: DEGRADED")
+
+    def __post_init__(self):
+        for k in ("degraded_after", "alarm_after", "accel_uncertainty", "max_acceleration",
+                  "nis_z", "nis_alarm", "reanchor_hold", "command_timeout"):
+            v = getattr(self, k)
+            require(math.isfinite(v) and v >= 0, k, v, "must be finite and >= 0")
+        require(self.alarm_after > self.degraded_after, "alarm_after", self.alarm_after,
+                "must be > degraded_after")
+        require(self.blind_readings >= 1, "blind_readings", self.blind_readings, "must be >= 1")
+        require(self.nis_window >= 2, "nis_window", self.nis_window, "must be >= 2")
+
+
+class IntegrityMonitor:
+    """Labels and inflates the estimates of one estimator (module doc). Fed by the runner:
+    :meth:`reading` for every odometer outcome, :meth:`command`, :meth:`clock`, then
+    :meth:`assess` for each estimate."""
+
+    def __init__(self, params: IntegrityParams = IntegrityParams(), period: float = 0.1):
+        self.p, self.period = params, float(period)
+        self.last_fused = -math.inf  # stamp of the last fused odometer reading
+        self.refused_run = 0  # odometer readings refused since the last fused one
+        self.last_command = -math.inf  # stamp of the last command
+        self.last_reading = -math.inf  # stamp of the latest odometer reading seen
+        self.reanchored_at = -math.inf
+        self.held = 0  # readings the runner holds as a possible clock step
+        self.nis: deque = deque(maxlen=params.nis_window)
+        self.prev: tuple | None = None  # (stamp, velocity, P_vv) of the last estimate
+        self.counts = {NAMES[k]: 0 for k in NAMES}
+        self.last_state = (OK, "")
+
+    # -- inputs ---------------------------------------------------------------------------------
+    def reading(self, stamp: float, fields: dict | None, fused: bool) -> None:
+        """An odometer reading's outcome (fused or refused, for any reason)."""
+        if not math.isfinite(stamp):
+            self.refused_run += 1
+            return
+        if not fused:
+            self.refused_run += 1
+            return
+        self.refused_run = 0
+        self.last_fused = max(self.last_fused, stamp)
+        self.last_reading = max(self.last_reading, stamp)
+        if fields is not None and self.prev is not None:
+            self._speed_nis(stamp, fields)
+
+    def _speed_nis(self, stamp: float, fields: dict) -> None:
+        t0, v0, pvv = self.prev
+        try:
+            v, r = float(fields["speed"]), float(fields["speed_variance"])
+        except (KeyError, TypeError, ValueError):
+            return
+        dt = stamp - t0
+        if not (math.isfinite(v) and math.isfinite(r) and r > 0 and 0 <= dt <= 2.0):
+            return  # across a gap the test says nothing (no_measurement covers it)
+        s = pvv + r + (self.p.max_acceleration * max(dt, self.period)) ** 2
+        if s > 0 and math.isfinite(s):
+            self.nis.append((v - v0) ** 2 / s)
+
+    def command(self, stamp: float) -> None:
+        if math.isfinite(stamp):
+            self.last_command = max(self.last_command, stamp)
+
+    def clock(self, held: int, reanchored_at: float | None = None) -> None:
+        """The runner's clock state: readings held as a possible step; a step re-anchored."""
+        self.held = held
+        if reanchored_at is not None:
+            self.reanchored_at = reanchored_at
+
+    # -- output ---------------------------------------------------------------------------------
+    def _nis_mean(self) -> float:
+        n = len(self.nis)
+        return sum(self.nis) / n if n >= self.p.nis_window // 2 else 0.0
+
+    def assess(self, out, t: float):
+        """``out`` (a runner Output for stamp ``t`` on the runner's train timeline) labelled,
+        with its covariance inflated where DEGRADED."""
+        p = self.p
+        state, why = OK, []
+        C = np.array(out.covariance, dtype=float).reshape(4, 4)
+        P = C[:2, :2].copy()
+        finite = np.all(np.isfinite(P)) and math.isfinite(out.position) \
+            and math.isfinite(out.velocity)
+        if not finite or P[0, 0] <= 0 or P[1, 1] <= 0 or \
+                P[0, 0] * P[1, 1] - P[0, 1] ** 2 <= 0:
+            return self._label(out, t, ALARM, "covariance: not positive definite", None)
+        tau = t - self.last_fused
+        if self.refused_run >= p.blind_readings:
+            return self._label(out, t, ALARM, f"blind: {self.refused_run} readings refused in a "
+                                           f"row", None)
+        if tau > p.alarm_after:
+            return self._label(out, t, ALARM, f"no_measurement: {tau:.1f} s", None)
+        m = self._nis_mean()
+        if m > p.nis_alarm:
+            return self._label(out, t, ALARM, f"speed_nis: window mean {m:.3g}", None)
+        if tau > p.degraded_after:
+            state = DEGRADED
+            why.append(f"no_measurement: {tau:.1f} s")
+            P = P + _accel_cov(p.accel_uncertainty, tau)
+        if m > 1.0 + p.nis_z * math.sqrt(2.0 / p.nis_window):
+            state = DEGRADED
+            why.append(f"speed_nis: window mean {m:.3g}")
+            P = P * m
+        if self.held >= 2 or t - self.reanchored_at < p.reanchor_hold:
+            state = DEGRADED
+            why.append("clock: " + (f"{self.held} readings held as a possible step"
+                                    if self.held else "step re-anchored"))
+            P = P + np.diag([(abs(out.velocity) * self.period) ** 2 + self.period ** 2, 0.0])
+        silent = t - self.last_command
+        if math.isfinite(self.last_command) and silent > p.command_timeout:
+            state = DEGRADED
+            why.append(f"no_command: {silent:.1f} s")
+            P = P + _accel_cov(p.accel_uncertainty, min(tau, self.period) + self.period)
+        return self._label(out, t, state, "; ".join(why), P if state else None)
+
+    def _label(self, out, t: float, state: int, why: str, P):
+        self.counts[NAMES[state]] += 1
+        self.last_state = (state, why)
+        C = np.array(out.covariance, dtype=float).reshape(4, 4)
+        if P is not None:
+            C[:2, :2] = P
+        if state == OK or P is not None:
+            pvv = C[1, 1]
+        else:
+            pvv = math.inf
+        if math.isfinite(out.velocity):
+            self.prev = (t, float(out.velocity), float(pvv) if math.isfinite(pvv)
+                         else 1e6)
+        return replace(out, covariance=tuple(C.ravel()), integrity=state,
+                       integrity_reason=why)
+
+
+def _accel_cov(a: float, tau: float) -> np.ndarray:
+    """Covariance of (position, speed) errors from a constant unknown acceleration of size ``a``
+    over ``tau`` seconds (module doc)."""
+    a2 = a * a
+    return a2 * np.array([[tau ** 4 / 4.0, tau ** 3 / 2.0], [tau ** 3 / 2.0, tau ** 2]])
