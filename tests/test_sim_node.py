@@ -89,6 +89,7 @@ def test_stale_estimates_trigger_the_emergency_brake(launch, ros_node):
         msg.header.stamp = ros_node.node.get_clock().now().to_msg()
         msg.source = "test"
         msg.position, msg.velocity = 100.0, 0.0
+        msg.braking_rate = math.nan  # not estimated
         msg.covariance = [1.0 if i in (0, 5) else 0.0 for i in range(16)]
         pub.publish(msg)
 
