@@ -212,3 +212,17 @@ def test_fuzz_no_exception_no_lock_refusals_counted_by_kind(check_stamp_age, see
     assert zc.report("A", replace(last, stamp=last.stamp + 0.1,
                                   t_received=last.t_received + 0.1)) == ""
     assert granted(zc, last.t_received + 0.1)[0]
+
+
+def test_main_job_summary_reads_the_brake_reasons_the_node_logs(tmp_path):
+    """The demo's summary lists the reasons from the zone controller's log lines as the node
+    writes them ("emergency brake SET (state): reason")."""
+    from train_bringup.main_job import brake_reasons
+
+    log = tmp_path / "zone_controller.log"
+    log.write_text("[WARN] [1.5] [zone_controller]: /train: emergency brake SET (stale): "
+                   "estimates stale: none received for 3.2 s (> 3.0 s)\n"
+                   "[WARN] [9.0] [zone_controller]: /train: emergency brake SET (alarm): "
+                   "estimator integrity ALARM (it cannot bound its error)\n")
+    assert brake_reasons(log) == ["estimates stale: none received for # s (> # s)",
+                                  "estimator integrity ALARM (it cannot bound its error)"]
