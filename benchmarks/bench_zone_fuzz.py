@@ -6,7 +6,7 @@ reported as an estimator would (sigma_x growing from 0.5 m, sigma_v 0.1 m/s, a p
 correlation, arrival = stamp + 0.05 s); :func:`train_sim.zone_fuzz.corrupt_reports` mixes in
 about ``--per-report`` corrupted copies per clean one (NaN/inf fields and variances, negative and
 zero variances, NaN and negative braking-rate variances, a non-symmetric or non-positive-definite
-covariance, an unknown integrity value, stamps +1.5 s to +1e9 s ahead and 0.5 to 500 s behind).
+covariance, an unknown integrity value, stamps +3.5 s to +1e9 s ahead and 0.5 to 500 s behind).
 Both clock modes (``check_stamp_age`` true and false) are run.
 
 Prints per mode: corrupted reports, exceptions, good reports refused (a corruption that got in

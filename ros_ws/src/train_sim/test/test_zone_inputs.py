@@ -13,7 +13,7 @@ from train_sim.zone import RefusalLog, TrainReport, ZoneController, ZoneParams
 from train_sim.zone_fuzz import EXPECTED, corrupt_reports
 
 P = ZoneParams(k_sigma=3.0, stale_timeout=2.0, emergency_decel=1.0, train_length=100.0,
-               margin=10.0, danger_points=(50000.0,), degraded_timeout=4.0)
+               margin=10.0, danger_points=(50000.0,), degraded_timeout=4.0, max_future=1.0)
 LATENCY = 0.05  # s, stamp to arrival
 
 

@@ -87,7 +87,7 @@ class ZoneParams:
     min_braking_rate: float = param(0.2, "-", "floor for the braking-rate lower bound")
     degraded_timeout: float = param(10.0, "s", "a train whose estimator reports integrity "
                                     "DEGRADED for longer than this: emergency brake")
-    max_future: float = param(1.0, "s", "a report stamped further ahead than this (of the "
+    max_future: float = param(3.0, "s", "a report stamped further ahead than this (of the "
                               "zone's clock, or of the train's timeline on separate clocks) "
                               "is refused; also the agreement needed to follow a clock reset")
     reset_reports: int = param(5, "-", "consecutive reports on one new timeline after which "

@@ -35,7 +35,7 @@ FIELDS = {  # corruption -> (changed fields, expected refusal)
     "unknown_integrity": ({"integrity": 7}, Z.UNKNOWN_INTEGRITY),
 }
 NOT_PD = "covariance_not_positive_definite"  # |cov_xv| = 2 sqrt(var_x var_v), symmetric
-FUTURE = (1.5, 60.0, 1e6, 1e9)  # s added to the stamp (beyond max_future = 1 s)
+FUTURE = (3.5, 60.0, 1e6, 1e9)  # s added to the stamp (beyond max_future, default 3 s)
 BEHIND = (0.5, 500.0)  # s, range (log-uniform) subtracted from the stamp
 EXPECTED = {**{k: v[1] for k, v in FIELDS.items()}, NOT_PD: Z.NOT_POSITIVE_DEFINITE,
             "future_stamp": Z.FUTURE_STAMP, "stamp_behind": Z.OUT_OF_ORDER}
