@@ -78,6 +78,18 @@ def test_far_future_stamp_is_refused_without_poisoning_later_reports(check_stamp
     assert zc.rejected == {Z.FUTURE_STAMP: 1}
 
 
+def test_future_stamp_on_separate_clocks_is_judged_against_the_recent_timeline():
+    """A train clock 1 % slow for an hour: its timeline moves 36 s back; a report stamped 10 s
+    ahead of it is still refused (the timeline is the recent maximum, not the all-time one)."""
+    zc = ZoneController(replace(P, check_stamp_age=False))
+    for k in range(36000):
+        t = 0.1 * k
+        assert zc.report("A", rep(t, clock=-0.01 * t)) == ""
+    bad = rep(3600.0, clock=-36.0 + 10.0)
+    assert zc.report("A", bad) == Z.FUTURE_STAMP
+    assert zc.report("A", rep(3600.1, clock=-36.001)) == ""
+
+
 def test_a_stream_of_future_stamps_is_never_followed_on_one_clock():
     zc = ZoneController(P)  # check_stamp_age: zone and estimates on one clock
     assert zc.report("A", rep(0.0)) == ""

@@ -44,7 +44,8 @@ integrity value, or a stamp that is implausible:
 
 - *ahead*: more than ``max_future`` ahead of the zone's own clock (``check_stamp_age``: zone and
   estimates on one clock) or, on separate clocks, of the train's timeline (the largest
-  ``stamp - arrival`` accepted so far: latency only makes that smaller);
+  ``stamp - arrival`` accepted in the last ``TIMELINE_WINDOW`` s: latency only makes that
+  smaller);
 - *behind* the last accepted stamp (out of order).
 
 A refused stamp never moves anything, so one far-future report cannot lock out the reports that
@@ -58,6 +59,7 @@ timeline in between breaks such a run.
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass, field
 
 from train_core.config import param, require
@@ -134,7 +136,10 @@ FUTURE_STAMP = "future stamp"
 OUT_OF_ORDER = "out-of-order stamp"
 KINDS = (NON_FINITE, NON_POSITIVE_VARIANCE, NOT_POSITIVE_DEFINITE, UNKNOWN_INTEGRITY,
          FUTURE_STAMP, OUT_OF_ORDER)
-STAMP_KINDS = (FUTURE_STAMP, OUT_OF_ORDER)
+# s of arrivals over which the largest stamp - arrival accepted is a train's timeline on separate
+# clocks: link latency varies within seconds, and a clock drift of 1e-2 moves the timeline only
+# 0.6 s in this time (a plain running maximum would let a slow clock's timeline lag by hours)
+TIMELINE_WINDOW = 60.0
 
 
 @dataclass
@@ -207,9 +212,23 @@ def check_fields(rep: TrainReport) -> tuple[str, str]:
 class _Timeline:
     """One train's stamp timeline as the zone follows it (stamps are the estimator's)."""
 
-    offset: float  # s, largest stamp - arrival accepted on this timeline (the least latency)
+    recent: deque = field(default_factory=deque)  # (arrival, stamp - arrival) accepted in the
+    #   last TIMELINE_WINDOW s, offsets decreasing (a monotone queue: its head is the maximum)
     run: list = field(default_factory=list)  # (stamp, offset) of consecutive stamp-refused
     #   reports that agree with each other: evidence of a new timeline
+
+    @property
+    def offset(self) -> float:
+        """s, the largest stamp - arrival accepted in the window (the least latency)."""
+        return self.recent[0][1]
+
+    def add(self, t_received: float, offset: float) -> None:
+        q = self.recent
+        while q and q[-1][1] <= offset:
+            q.pop()
+        q.append((t_received, offset))
+        while q[0][0] < t_received - TIMELINE_WINDOW:
+            q.popleft()
 
 
 @dataclass
@@ -273,10 +292,9 @@ class ZoneController:
         offset = rep.stamp - rep.t_received
         tl = self.timelines.get(train_id)
         if tl is None or new_timeline:
-            self.timelines[train_id] = _Timeline(offset)
-        else:
-            tl.offset = max(tl.offset, offset)
-            tl.run.clear()  # a good report on this timeline breaks a run of outliers
+            tl = self.timelines[train_id] = _Timeline()
+        tl.add(rep.t_received, offset)
+        tl.run.clear()  # a good report on this timeline breaks a run of outliers
         last = None if new_timeline else self.reports.get(train_id)
         if rep.measurement_used:
             rep.last_measurement = rep.stamp
