@@ -225,11 +225,10 @@ class BagWriter:
             "custom_data": None,
             "ros_distro": "rosbags",
         }
+        # replaced atomically; not synced: a killed process leaves the page cache to the kernel,
+        # and a second sync per flush would stall the recorder on a busy disk
         tmp = self.path / "metadata.yaml.tmp"
-        with open(tmp, "w") as fh:
-            yaml.safe_dump({"rosbag2_bagfile_information": info}, fh, sort_keys=False)
-            fh.flush()
-            os.fsync(fh.fileno())
+        tmp.write_text(yaml.safe_dump({"rosbag2_bagfile_information": info}, sort_keys=False))
         tmp.replace(self.path / "metadata.yaml")
 
     def close(self) -> None:
