@@ -1,6 +1,7 @@
 """Simulator and zone-controller nodes on a live (localhost-only) ROS graph."""
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -89,6 +90,7 @@ def test_stale_estimates_trigger_the_emergency_brake(launch, ros_node):
         msg.header.stamp = ros_node.node.get_clock().now().to_msg()
         msg.source = "test"
         msg.position, msg.velocity = 100.0, 0.0
+        msg.braking_rate = math.nan  # not estimated
         msg.covariance = [1.0 if i in (0, 5) else 0.0 for i in range(16)]
         pub.publish(msg)
 
@@ -99,6 +101,65 @@ def test_stale_estimates_trigger_the_emergency_brake(launch, ros_node):
     n_before = len(mas)
     ros_node.wait_until(lambda: any(m.emergency_brake for m in mas[n_before:]), timeout=20,
                         what="the emergency brake after the estimates stopped")
+
+
+def test_zone_controller_refuses_bad_reports_without_crashing_or_locking(launch, ros_node):
+    """A live zone controller fed bad TrainStates between good ones (a negative braking-rate
+    variance, NaN variances, a stamp 1e6 s ahead, integrity 9) keeps running, keeps granting
+    authority from the good ones, logs each kind once per log_interval, and brakes at once on
+    integrity ALARM."""
+    from train_interfaces.msg import MovementAuthority, TrainState
+
+    ns = "/bad_reports"
+    mas = ros_node.collect(MovementAuthority, f"{ns}/movement_authority")
+    pub = ros_node.node.create_publisher(TrainState, f"{ns}/estimate/robust", 100)
+    zc = launch.node("train_sim", "zone_controller", "--ros-args", "-r", f"__ns:={ns}",
+                     "-p", "stale_timeout:=2.0", "-p", "rate:=10.0",
+                     "-p", "danger_points:=[5000.0]", "-p", "log_interval:=60.0")
+    ros_node.wait_for_subscribers(f"{ns}/estimate/robust", 1)
+    ros_node.wait_for_publishers(f"{ns}/movement_authority", 1)
+    bad = [{"braking_rate": 0.9, 15: -0.01}, {0: math.nan}, {"braking_rate": 0.9, 15: math.nan},
+           {"ahead": 1e6}, {"integrity": 9}]
+    state = {"integrity": 0}
+
+    def report(change=None):
+        change = dict(change or {})
+        msg = TrainState()
+        now = ros_node.node.get_clock().now().nanoseconds * 1e-9 + change.pop("ahead", 0.0)
+        msg.header.stamp.sec, msg.header.stamp.nanosec = int(now), int(now % 1 * 1e9)
+        msg.source = "test"
+        msg.position, msg.velocity = 100.0, 0.0
+        msg.braking_rate = change.pop("braking_rate", math.nan)
+        msg.integrity = change.pop("integrity", state["integrity"])
+        cov = [math.nan] * 16
+        cov[0], cov[1], cov[4], cov[5] = 1.0, 0.0, 0.0, 0.01
+        for i, v in change.items():
+            cov[i] = v
+        msg.covariance = cov
+        pub.publish(msg)
+
+    def good_and_bad():
+        report()
+        for b in bad:
+            report(b)
+
+    timer = ros_node.node.create_timer(0.1, good_and_bad)
+    ros_node.spin_for(4.0)  # 40 rounds: 200 bad reports, 40 good ones
+    n = len(mas)
+    ros_node.wait_until(lambda: len(mas) > n + 5, timeout=20, what="authorities after the garbage")
+    assert zc.poll() is None, launch.logs()
+    assert not any(m.emergency_brake for m in mas[n:]), "bad reports locked the authority"
+    state["integrity"] = 2  # ALARM: the next authority brakes
+    n = len(mas)
+    ros_node.wait_until(lambda: any(m.emergency_brake for m in mas[n:]), timeout=20,
+                        what="the emergency brake on integrity ALARM")
+    timer.cancel()
+    launch.stop(zc)  # the whole log is on disk
+    log = Path(zc.log_path).read_text()
+    for kind in ("non-positive variance", "non-finite value", "future stamp",
+                 "unknown integrity"):
+        assert log.count(f"refused ({kind})") == 1, (kind, log)
+    assert "emergency brake SET (alarm)" in log
 
 
 @pytest.mark.parametrize("with_model", [False, True])

@@ -183,8 +183,9 @@ def brake_reasons(log: Path) -> list[str]:
         return []
     seen = []
     for line in log.read_text(errors="replace").splitlines():
-        if "emergency brake SET:" in line:
-            why = re.sub(r"\d+\.\d+", "#", line.split("emergency brake SET:", 1)[1].strip())
+        m = re.search(r"emergency brake SET(?: \([a-z_]+\))?:(.*)", line)
+        if m:  # the zone controller logs "emergency brake SET (state): reason"
+            why = re.sub(r"\d+\.\d+", "#", m.group(1).strip())
             if why not in seen:
                 seen.append(why)
     return seen

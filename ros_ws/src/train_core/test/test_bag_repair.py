@@ -1,4 +1,4 @@
-"""Issue 11, item 8: a bag whose recorder was killed becomes a normal bag again."""
+"""A bag whose writer was killed: readable as it is, and made a normal indexed bag again."""
 
 import shutil
 import subprocess
@@ -8,8 +8,10 @@ import pytest
 from train_core.bagio import BagError, BagWriter, read_bag, repair_bag
 
 
-def _killed_bag(tmp_path, n=50, flushed=40):
-    """A bag as ``kill -9`` leaves it: ``flushed`` messages on disk, no summary, no metadata."""
+def _killed_bag(tmp_path, n=50, flushed=40, old_writer=True):
+    """A bag as ``kill -9`` leaves it: ``flushed`` messages on disk, no summary. The writer's
+    bag ends in a provisional footer and has metadata.yaml; ``old_writer``: neither (a writer
+    without provisional footer and early metadata, or a tail cut mid-record)."""
     bag = tmp_path / "bag"
     w = BagWriter(bag, namespace="/rec")
     for s in range(n):
@@ -23,7 +25,13 @@ def _killed_bag(tmp_path, n=50, flushed=40):
     w.close()
     shutil.rmtree(bag)
     snap.rename(bag)
-    (bag / "metadata.yaml").unlink(missing_ok=True)
+    if old_writer:
+        from train_core.bagio import PROVISIONAL_TAIL
+
+        (bag / "metadata.yaml").unlink()
+        (mcap,) = bag.glob("*.mcap")
+        with open(mcap, "r+b") as fh:
+            fh.truncate(mcap.stat().st_size - len(PROVISIONAL_TAIL))
     return bag
 
 
@@ -42,7 +50,27 @@ def _readers_agree(bag, n):
     assert len(msgs) == 2 * n
 
 
-def test_killed_bag_mcap_file_is_refused_by_the_mcap_reader(tmp_path):
+def test_killed_bag_opens_as_it_is_in_every_reader(tmp_path):
+    """The writer keeps metadata.yaml and a provisional footer on disk at every flush."""
+    bag = _killed_bag(tmp_path, old_writer=False)
+    assert (bag / "metadata.yaml").exists()
+    rec = read_bag(bag)
+    assert [f["seq"] for _, _, f in rec.topics["odometer"]] == list(range(40))
+    assert "not closed" in rec.skipped["(file tail)"]
+    from mcap.reader import make_reader
+    from rosbags.highlevel import AnyReader
+
+    with AnyReader([bag]) as r:
+        assert len(list(r.messages())) == 80
+    (mcap,) = bag.glob("*.mcap")
+    with open(mcap, "rb") as fh:
+        assert len(list(make_reader(fh).iter_messages())) == 80
+    assert repair_bag(bag) == bag  # indexed now
+    _readers_agree(bag, 40)
+    assert read_bag(bag).topics == rec.topics and read_bag(bag).skipped == {}
+
+
+def test_killed_old_bag_mcap_file_is_refused_by_the_mcap_reader(tmp_path):
     from mcap.exceptions import McapError
     from mcap.reader import make_reader
 
@@ -52,7 +80,7 @@ def test_killed_bag_mcap_file_is_refused_by_the_mcap_reader(tmp_path):
         list(make_reader(fh).iter_messages())
 
 
-def test_killed_bag_is_refused_by_the_readers_then_repaired(tmp_path):
+def test_killed_old_bag_is_refused_by_the_readers_then_repaired(tmp_path):
     from rosbags.highlevel import AnyReader, AnyReaderError
 
     bag = _killed_bag(tmp_path)

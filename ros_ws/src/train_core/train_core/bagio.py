@@ -6,9 +6,15 @@ Pure module (rosbags, no rclpy): the offline generator, the bag tools and the te
   ``train_interfaces`` (found through the ament index, else in the source tree), so definitions
   are embedded in every bag written, exactly as a ROS 2 recorder would.
 - :class:`BagWriter` writes dict-valued messages (CONTRACT.md field names) or raw CDR bytes.
-- :func:`read_bag` reads a bag into per-topic lists of ``(t_recv_ns, stamp_s, fields)``.
+  From the start and at every :meth:`BagWriter.flush` the bag on disk is one that readers open:
+  ``metadata.yaml`` lists the topics and counts flushed so far, and the MCAP file ends in a
+  provisional footer without a summary (readers scan it); :meth:`BagWriter.close` writes the
+  final summary and metadata. A writer killed between flushes leaves such a bag.
+- :func:`read_bag` reads a bag into per-topic lists of ``(t_recv_ns, stamp_s, fields)``; a bag
+  that was never closed (no summary, or no footer at all) is read record by record, up to the
+  last complete one.
 - :func:`repair_bag` (``python -m train_core.bagio repair BAG``) makes a bag whose recorder was
-  killed a normal bag again (summary, end magic, metadata.yaml).
+  killed a normal, indexed bag again (summary, end magic, metadata.yaml).
 """
 
 from __future__ import annotations
@@ -32,6 +38,12 @@ TOPIC_TYPES = {
     "estimate/gsma": "train_interfaces/msg/TrainState",
     "movement_authority": "train_interfaces/msg/MovementAuthority",
 }
+MAGIC = b"\x89MCAP0\r\n"
+# DataEnd (op 0x0F, data-section CRC 0 = not computed), then a Footer (op 0x02) with no summary
+# (summary start 0, summary-offset start 0, CRC 0) and the end magic: a valid end of an MCAP
+# file whose readers scan the data section instead of using an index.
+PROVISIONAL_TAIL = (b"\x0f" + (4).to_bytes(8, "little") + bytes(4)
+                    + b"\x02" + (20).to_bytes(8, "little") + bytes(20) + MAGIC)
 HEADER_DEF = "builtin_interfaces/Time stamp\nstring frame_id\n"
 TIME_DEF = "int32 sec\nuint32 nanosec\n"
 SEP = "=" * 80 + "\n"
@@ -114,7 +126,8 @@ def deserialize(msgtype: str, data: bytes) -> tuple[float, dict]:
 
 
 class BagWriter:
-    """A rosbag2 bag with MCAP storage; topics are created on first use."""
+    """A rosbag2 bag with MCAP storage; topics are created on first use. Readable as it is on
+    disk from the start and after every :meth:`flush` (see the module's docstring)."""
 
     def __init__(self, path: str | os.PathLike, namespace: str = "/train"):
         from rosbags.rosbag2 import StoragePlugin, Writer
@@ -127,6 +140,8 @@ class BagWriter:
         self.writer.open()
         self.connections: dict[str, object] = {}
         self.counts: dict[str, int] = {}
+        self._tail_at: int | None = None  # file offset of the provisional tail, if written
+        self.flush()
 
     def full_topic(self, topic: str) -> str:
         return topic if topic.startswith("/") else f"{self.namespace}/{topic}"
@@ -155,23 +170,72 @@ class BagWriter:
         self.write_raw(topic, msgtype, t_ns, serialize(msgtype, fields, stamp))
 
     def flush(self) -> None:
-        """Close the pending MCAP chunk and push it to disk.
+        """Close the pending MCAP chunk, end the file with a provisional footer, write
+        metadata.yaml for what is on disk, and sync both.
 
-        After a flush, everything written so far survives a crash or ``kill -9``: the bag then
-        lacks only its summary and metadata.yaml, and :func:`read_bag` recovers it. (rosbags
-        itself closes a chunk only at 1 MiB; this reaches into its MCAP writer to do it sooner.)
+        After a flush, everything written so far survives a crash or ``kill -9`` in a bag that
+        rosbags' AnyReader and :func:`read_bag` open as it is; only the summary (the index) is
+        missing. The next chunk overwrites the provisional tail. (rosbags closes a chunk only at
+        1 MiB and writes metadata.yaml only at close; this reaches into its writer to do both
+        sooner.)
         """
         storage = getattr(self.writer, "storage", None)
         chunk = getattr(storage, "chunk", None)
         if chunk is not None and chunk.bio.tell():
             storage.close_chunk()
         bio = getattr(storage, "bio", None)
-        if bio is not None:
-            bio.flush()
-            os.fsync(bio.fileno())
+        if bio is None:
+            return
+        at = bio.tell()
+        bio.write(PROVISIONAL_TAIL)
+        bio.flush()
+        os.fsync(bio.fileno())
+        bio.seek(at)  # the next chunk (or the summary at close) replaces the tail
+        self._tail_at = at
+        self._write_metadata(storage.path.name)
+
+    def _write_metadata(self, filename: str) -> None:
+        """metadata.yaml as rosbags' Writer.close writes it, for the messages flushed so far."""
+        import yaml
+        from rosbags.rosbag2.metadata import dump_qos_v9
+
+        w = self.writer
+        count = sum(w.counts.values())
+        start = w.min_timestamp if count else 0
+        duration = max(0, w.max_timestamp - w.min_timestamp) if count else 0
+        info = {
+            "version": w.version,
+            "storage_identifier": "mcap",
+            "relative_file_paths": [filename],
+            "duration": {"nanoseconds": duration},
+            "starting_time": {"nanoseconds_since_epoch": start},
+            "message_count": count,
+            "topics_with_message_count": [
+                {"topic_metadata": {"name": c.topic, "type": c.msgtype,
+                                    "serialization_format": c.ext.serialization_format,
+                                    "offered_qos_profiles": dump_qos_v9(
+                                        c.ext.offered_qos_profiles),
+                                    "type_description_hash": c.digest},
+                 "message_count": w.counts[c.id]}
+                for c in w.connections],
+            "compression_format": "",
+            "compression_mode": "",
+            "files": [{"path": filename, "starting_time": {"nanoseconds_since_epoch": start},
+                       "duration": {"nanoseconds": duration}, "message_count": count}],
+            "custom_data": None,
+            "ros_distro": "rosbags",
+        }
+        # replaced atomically; not synced: a killed process leaves the page cache to the kernel,
+        # and a second sync per flush would stall the recorder on a busy disk
+        tmp = self.path / "metadata.yaml.tmp"
+        tmp.write_text(yaml.safe_dump({"rosbag2_bagfile_information": info}, sort_keys=False))
+        tmp.replace(self.path / "metadata.yaml")
 
     def close(self) -> None:
         if self.writer is not None:
+            bio = getattr(getattr(self.writer, "storage", None), "bio", None)
+            if bio is not None and self._tail_at is not None and bio.tell() == self._tail_at:
+                bio.truncate()  # the summary replaces the provisional tail
             self.writer.close()
             self.writer = None
 
@@ -215,7 +279,8 @@ def read_bag(path: str | os.PathLike, namespace: str | None = None,
     p = Path(path)
     if not p.exists():
         raise BagError(f"{p}: no such bag")
-    if p.is_dir() and not (p / "metadata.yaml").exists():
+    if p.is_dir() and (not (p / "metadata.yaml").exists()
+                       or not all(_is_closed(f) for f in p.glob("*.mcap"))):
         return _recover(p, namespace, topics)
     paths = [p]
     try:
@@ -268,6 +333,22 @@ def _deserialize_own(reader, msgtype: str, raw: bytes) -> tuple[float, dict]:
     return msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9, fields
 
 
+def _is_closed(mcap: Path) -> bool:
+    """An MCAP file its writer closed: it ends in a footer that points to a summary (a file
+    whose writer died ends in a provisional footer without one, or in a cut record)."""
+    try:
+        with open(mcap, "rb") as fh:
+            fh.seek(0, os.SEEK_END)
+            if fh.tell() < 8 + 37:
+                return False
+            fh.seek(-37, os.SEEK_END)
+            tail = fh.read(37)
+    except OSError:
+        return False
+    return (tail[-8:] == MAGIC and tail[0] == 0x02
+            and int.from_bytes(tail[9:17], "little") != 0)
+
+
 def _guess_namespace(topics: list[str]) -> str:
     for t in topics:
         for rel in TOPIC_TYPES:
@@ -318,10 +399,9 @@ def _recover(p: Path, namespace: str | None, topics: tuple[str, ...] | None = No
     if namespace is None:
         namespace = _guess_namespace(sorted({m[1] for m in msgs}))
     bag = Bag(path=p, namespace=namespace)
-    if truncated:
-        bag.skipped["(file tail)"] = (f"bag was not closed; read up to the last chunk "
-                                      f"({truncated}); make it a normal bag with "
-                                      f"'python -m train_core.bagio repair {p}'")
+    bag.skipped["(file tail)"] = (f"bag was not closed; read up to the last complete record"
+                                  f"{f' ({truncated})' if truncated else ''}; "
+                                  f"'python -m train_core.bagio repair {p}' indexes it")
     for t_ns, topic, msgtype, _, data in sorted(msgs, key=lambda r: r[0]):
         rel = topic[len(namespace) + 1:] if topic.startswith(namespace + "/") else topic
         if msgtype not in msg_texts():
@@ -336,8 +416,8 @@ def _recover(p: Path, namespace: str | None, topics: tuple[str, ...] | None = No
 
 
 def repair_bag(path: str | os.PathLike, keep_broken: bool = True) -> Path:
-    """Make a bag whose writer died (``kill -9``: no metadata.yaml, no MCAP summary or end magic)
-    a normal bag again, readable by rosbags' AnyReader, the ``mcap`` reader and ``ros2 bag``.
+    """Make a bag whose writer died (``kill -9``: no MCAP summary, perhaps no footer or no
+    metadata.yaml) a normal, indexed bag again, for every reader and ``ros2 bag``.
 
     Every complete record is copied, in log-time order, into a new bag written by rosbags
     (summary, end magic, metadata.yaml); the original directory is kept beside it as
@@ -351,11 +431,11 @@ def repair_bag(path: str | os.PathLike, keep_broken: bool = True) -> Path:
     p = Path(path)
     if not p.is_dir():
         raise BagError(f"{p}: not a bag directory")
-    if (p / "metadata.yaml").exists():
-        raise BagError(f"{p}: has metadata.yaml already: nothing to repair")
     files = sorted(p.glob("*.mcap"))
     if not files:
         raise BagError(f"{p}: no .mcap file: not a rosbag2/MCAP bag")
+    if (p / "metadata.yaml").exists() and all(_is_closed(f) for f in files):
+        raise BagError(f"{p}: was closed by its writer: nothing to repair")
     # the truncated tail ends the copy; what was complete is kept
     raw = [(t_ns, i, topic, msgtype, text, data)
            for i, (t_ns, topic, msgtype, text, data) in enumerate(_complete_messages(files)[0])]
@@ -400,7 +480,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m train_core.bagio",
                                  description="Repair a bag whose recorder was killed.")
     ap.add_argument("command", choices=["repair"])
-    ap.add_argument("bag", help="bag directory without metadata.yaml")
+    ap.add_argument("bag", help="bag directory whose writer did not close it")
     ap.add_argument("--delete-broken", action="store_true",
                     help="delete the original instead of keeping it as BAG.broken")
     args = ap.parse_args(argv)

@@ -7,7 +7,9 @@ instead of showing a traceback.
 
 from __future__ import annotations
 
+import difflib
 import math
+import warnings
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
@@ -33,6 +35,26 @@ def load_yaml(path: str | Path) -> dict:
     if not isinstance(data, dict):
         raise ConfigError(f"{p}: expected a mapping at the top level, got {type(data).__name__}")
     return data
+
+
+class ConfigWarning(UserWarning):
+    """A configuration file holds something the loader ignores (an unknown top-level key)."""
+
+
+def check_top_level(data: Mapping, known: Iterable[str], where: str) -> None:
+    """Top-level keys of a file whose format allows extra keys: a near miss of a known key (a
+    typo such as ``gradeints``) is a :class:`ConfigError` naming the key meant, since the file
+    would otherwise load with that section silently missing; any other unknown key is named in
+    a :class:`ConfigWarning` (it is allowed, but nothing reads it)."""
+    known = list(known)
+    for key in data:
+        if key in known:
+            continue
+        close = difflib.get_close_matches(str(key), known, n=1, cutoff=0.8)
+        if close:
+            raise ConfigError(f"{where}: unknown key '{key}': did you mean '{close[0]}'?")
+        warnings.warn(f"{where}: unknown top-level key '{key}' is ignored "
+                      f"(known: {', '.join(known)})", ConfigWarning, stacklevel=3)
 
 
 class Section:

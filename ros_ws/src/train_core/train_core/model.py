@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .config import REQUIRED, ConfigError, Section, load_yaml
+from .config import REQUIRED, ConfigError, Section, check_top_level, load_yaml
 
 G = 9.80665  # m/s^2, standard gravity
 
@@ -172,15 +172,19 @@ class Line:
 
 
 # ---------------------------------------------------------------------------------------------
-# Loading with validation. Top-level extra keys are allowed (CONTRACT.md: "extra keys allowed");
-# nested mappings with a fixed meaning are strict, so a typo in `davis: {A: ...}` is caught.
+# Loading with validation. Top-level extra keys are allowed (CONTRACT.md: "extra keys allowed")
+# but named in a warning, and a near miss of a known key is an error (check_top_level); nested
+# mappings with a fixed meaning are strict, so a typo in `davis: {A: ...}` is caught.
 # ---------------------------------------------------------------------------------------------
 
 TRAIN_KEYS = ("mass", "rotary_allowance", "davis", "brake", "odometer")
+TRAIN_ALL_KEYS = ("name", *TRAIN_KEYS, "balise", "performance")  # every key the loader reads
+LINE_KEYS = ("name", "length", "balises", "gradients", "stations", "speed_limits", "max_speed")
 
 
 def train_from_dict(data: dict, where: str = "train.yaml") -> TrainParams:
     s = Section(data, where)
+    check_top_level(s.data, TRAIN_ALL_KEYS, where)
     davis = s.section("davis", ("a", "b", "c"), default=REQUIRED)
     brake = s.section("brake", ("time_constant", "delay", "braking_rate"), default=REQUIRED)
     odo = s.section("odometer", ("speed_std", "distance_std"), default={})
@@ -219,6 +223,7 @@ def train_from_dict(data: dict, where: str = "train.yaml") -> TrainParams:
 
 def line_from_dict(data: dict, where: str = "line.yaml") -> Line:
     s = Section(data, where)
+    check_top_level(s.data, LINE_KEYS, where)
     length = s.number("length", REQUIRED, lo=0.0, lo_open=True, unit="m")
     balises = tuple(
         Balise(id=b.integer("id", REQUIRED, lo=0), position=b.number("position", REQUIRED))

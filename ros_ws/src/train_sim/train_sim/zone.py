@@ -27,14 +27,39 @@ estimator that keeps publishing predictions is not fresh; a source that never se
 such as ground truth, is judged by its stamps only). An unsafe train gets the emergency
 brake, and so does every train behind it (its rear can no longer be bounded from recent data).
 While a supervised train has not reported at all, no other train gets an authority (it may be
-anywhere). Each authority carries a short ``state`` (``ok``, ``stale``, ``no_estimate``,
-``ahead_stale``, ``ahead_unknown``, ``overrun``) so that a node logs a change of state once,
-not every publication of a reason whose numbers change.
+anywhere). A report's ``integrity`` (TrainState: 0 OK, 1 DEGRADED, 2 ALARM) is obeyed the same
+way: ALARM brakes the train (and those behind it) at once; DEGRADED (the estimator has inflated
+its covariance to cover a doubt) is used as reported for up to ``degraded_timeout`` and brakes
+after that. Each authority carries a short ``state`` (``ok``, ``stale``, ``alarm``,
+``degraded``, ``no_estimate``, ``ahead_stale``, ``ahead_alarm``, ``ahead_degraded``,
+``ahead_unknown``, ``overrun``) so that a node logs a change of state once, not every
+publication of a reason whose numbers change.
+
+Input checks (:meth:`ZoneController.report`). A report is refused, counted by kind and never
+stored when a field the zone reads is unusable: a non-finite stamp, position, velocity or
+variance (a NaN variance is no information, never certainty), a variance <= 0 (a report the
+node marks ``exact``, ground truth, may state 0), a position/velocity covariance that is not
+symmetric positive definite, a braking rate with no finite positive variance, an unknown
+integrity value, or a stamp that is implausible:
+
+- *ahead*: more than ``max_future`` ahead of the zone's own clock (``check_stamp_age``: zone and
+  estimates on one clock) or, on separate clocks, of the train's timeline (the largest
+  ``stamp - arrival`` accepted in the last ``TIMELINE_WINDOW`` s: latency only makes that
+  smaller);
+- *behind* the last accepted stamp (out of order).
+
+A refused stamp never moves anything, so one far-future report cannot lock out the reports that
+follow. An estimator's clock reset is followed by evidence: ``reset_reports`` consecutive
+stamp-refused reports whose ``stamp - arrival`` agree within ``max_future`` and whose stamps
+increase form a new timeline, which is adopted (on one clock only where it is not ahead of the
+zone's clock, so a stream of future stamps is never followed). A good report on the current
+timeline in between breaks such a run.
 """
 
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass, field
 
 from train_core.config import param, require
@@ -62,11 +87,21 @@ class ZoneParams:
                                              "line); the node builds them", node=False)
     permitted_speed: float = param(22.23, "m/s", "speed granted with every authority")
     min_braking_rate: float = param(0.2, "-", "floor for the braking-rate lower bound")
+    degraded_timeout: float = param(10.0, "s", "a train whose estimator reports integrity "
+                                    "DEGRADED for longer than this: emergency brake")
+    max_future: float = param(3.0, "s", "a report stamped further ahead than this (of the "
+                              "zone's clock, or of the train's timeline on separate clocks) "
+                              "is refused; also the agreement needed to follow a clock reset")
+    reset_reports: int = param(5, "-", "consecutive reports on one new timeline after which "
+                               "an estimator's clock reset is followed")
 
     def __post_init__(self):
-        for name in ("k_sigma", "stale_timeout", "measurement_timeout", "emergency_decel"):
+        for name in ("k_sigma", "stale_timeout", "measurement_timeout", "emergency_decel",
+                     "degraded_timeout", "max_future"):
             v = getattr(self, name)
             require(math.isfinite(v) and v > 0, name, v, "must be > 0")
+        require(int(self.reset_reports) == self.reset_reports and self.reset_reports >= 2,
+                "reset_reports", self.reset_reports, "must be an integer >= 2")
 
 
 @dataclass(frozen=True)
@@ -80,9 +115,31 @@ class ZoneNodeConfig:
     danger_points: tuple[float, ...] = param((-1.0,), "m", "fixed danger points (red signals); "
                                              "[-1.0] = none")
     rate: float = param(1.0, "Hz", "movement authority publication rate")
+    log_interval: float = param(5.0, "s", "each kind of refused report is logged at most "
+                                "once per train in this interval (with the count)")
 
     def __post_init__(self):
-        require(math.isfinite(self.rate) and self.rate > 0, "rate", self.rate, "must be > 0")
+        for name in ("rate", "log_interval"):
+            v = getattr(self, name)
+            require(math.isfinite(v) and v > 0, name, v, "must be > 0")
+
+
+# Integrity values of TrainState
+OK, DEGRADED, ALARM = 0, 1, 2
+
+# Kinds of refused report (the keys of ZoneController.rejected)
+NON_FINITE = "non-finite value"
+NON_POSITIVE_VARIANCE = "non-positive variance"
+NOT_POSITIVE_DEFINITE = "covariance not positive definite"
+UNKNOWN_INTEGRITY = "unknown integrity"
+FUTURE_STAMP = "future stamp"
+OUT_OF_ORDER = "out-of-order stamp"
+KINDS = (NON_FINITE, NON_POSITIVE_VARIANCE, NOT_POSITIVE_DEFINITE, UNKNOWN_INTEGRITY,
+         FUTURE_STAMP, OUT_OF_ORDER)
+# s of arrivals over which the largest stamp - arrival accepted is a train's timeline on separate
+# clocks: link latency varies within seconds, and a clock drift of 1e-2 moves the timeline only
+# 0.6 s in this time (a plain running maximum would let a slow clock's timeline lag by hours)
+TIMELINE_WINDOW = 60.0
 
 
 @dataclass
@@ -96,6 +153,10 @@ class TrainReport:
     braking_rate: float = math.nan  # -, NaN where not estimated
     var_braking_rate: float = math.nan
     measurement_used: bool = True  # a measurement entered this estimate
+    cov_position_velocity: float = 0.0  # m^2/s, covariance[1]
+    cov_velocity_position: float = 0.0  # m^2/s, covariance[4] (must equal covariance[1])
+    integrity: int = OK  # 0 OK, 1 DEGRADED, 2 ALARM
+    exact: bool = False  # ground truth: variances of 0 are allowed
     last_measurement: float = math.nan  # s, stamp of the last report with a measurement (set
     #   by ZoneController.report)
 
@@ -110,35 +171,156 @@ class Authority:
     state: str = "ok"  # short category of the reason (changes are logged once)
 
 
+def check_fields(rep: TrainReport) -> tuple[str, str]:
+    """``(kind, detail)`` of the first unusable field of ``rep``; ``("", "")`` if all are usable.
+
+    Only what the zone reads is judged: the stamp, position, velocity, the position/velocity
+    block of the covariance, the braking rate with its variance where one is published (NaN
+    braking rate = not estimated, nominal braking assumed), and the integrity value.
+    """
+    vals = {"stamp": rep.stamp, "position": rep.position, "velocity": rep.velocity,
+            "position variance": rep.var_position, "velocity variance": rep.var_velocity,
+            "position/velocity covariance": rep.cov_position_velocity,
+            "velocity/position covariance": rep.cov_velocity_position}
+    if not math.isnan(rep.braking_rate):
+        vals["braking rate"] = rep.braking_rate
+        vals["braking-rate variance"] = rep.var_braking_rate
+    for name, v in vals.items():
+        if not (isinstance(v, (int, float)) and math.isfinite(v)):
+            return NON_FINITE, f"{name} is {v}"
+    if rep.integrity not in (OK, DEGRADED, ALARM):
+        return UNKNOWN_INTEGRITY, f"integrity {rep.integrity} (0 OK, 1 DEGRADED, 2 ALARM)"
+    variances = {"position variance": rep.var_position, "velocity variance": rep.var_velocity}
+    if not math.isnan(rep.braking_rate):
+        variances["braking-rate variance"] = rep.var_braking_rate
+    for name, v in variances.items():
+        if v < 0 or (v == 0 and not rep.exact):
+            return NON_POSITIVE_VARIANCE, f"{name} is {v:g}"
+    vx, vv = rep.var_position, rep.var_velocity
+    cxv, cvx = rep.cov_position_velocity, rep.cov_velocity_position
+    scale = math.sqrt(vx * vv)
+    # symmetric to rounding, and a 2x2 block is positive definite iff its determinant is > 0
+    # (the diagonal is already > 0); an exact report may be singular
+    if abs(cxv - cvx) > 1e-6 * scale or cxv * cvx > vx * vv or \
+            (cxv * cvx == vx * vv and not rep.exact):
+        return NOT_POSITIVE_DEFINITE, (f"position/velocity block [[{vx:g}, {cxv:g}], "
+                                       f"[{cvx:g}, {vv:g}]]")
+    return "", ""
+
+
+@dataclass
+class _Timeline:
+    """One train's stamp timeline as the zone follows it (stamps are the estimator's)."""
+
+    recent: deque = field(default_factory=deque)  # (arrival, stamp - arrival) accepted in the
+    #   last TIMELINE_WINDOW s, offsets decreasing (a monotone queue: its head is the maximum)
+    run: list = field(default_factory=list)  # (stamp, offset) of consecutive stamp-refused
+    #   reports that agree with each other: evidence of a new timeline
+
+    @property
+    def offset(self) -> float:
+        """s, the largest stamp - arrival accepted in the window (the least latency)."""
+        return self.recent[0][1]
+
+    def add(self, t_received: float, offset: float) -> None:
+        q = self.recent
+        while q and q[-1][1] <= offset:
+            q.pop()
+        q.append((t_received, offset))
+        while q[0][0] < t_received - TIMELINE_WINDOW:
+            q.popleft()
+
+
 @dataclass
 class ZoneController:
     params: ZoneParams
     reports: dict[str, TrainReport] = field(default_factory=dict)
-    rejected: dict[str, int] = field(default_factory=dict)
+    rejected: dict[str, int] = field(default_factory=dict)  # refusals per kind (KINDS)
+    clock_resets: dict[str, int] = field(default_factory=dict)  # new timelines followed
+    last_refusal: tuple[str, str, str] = ("", "", "")  # (train, kind, detail) of the latest
+    timelines: dict[str, _Timeline] = field(default_factory=dict)
+    degraded_since: dict[str, float] = field(default_factory=dict)  # zone time, DEGRADED run
 
     def report(self, train_id: str, rep: TrainReport) -> str:
-        """Store a train's report; returns "" if accepted or the reason it was rejected."""
-        vals = (rep.position, rep.velocity, rep.var_position, rep.var_velocity)
-        reason = ""
-        if not all(math.isfinite(v) for v in vals):
-            reason = "non-finite position, velocity or variance"
-        elif rep.var_position < 0 or rep.var_velocity < 0:
-            reason = "negative variance"
-        else:
-            last = self.reports.get(train_id)
-            if last is not None and rep.stamp < last.stamp:
-                reason = "out-of-order stamp"
-        if reason:
-            self.rejected[reason] = self.rejected.get(reason, 0) + 1
-            return reason
+        """Store a train's report; returns "" if accepted or the kind of refusal (one of
+        :data:`KINDS`, counted in ``rejected``; ``last_refusal`` holds the detail). Never
+        raises on any report content."""
+        kind, detail = check_fields(rep)
+        if not kind:
+            kind, detail = self._check_stamp(train_id, rep)
+            if kind and self._follows_reset(train_id, rep):
+                self.clock_resets[train_id] = self.clock_resets.get(train_id, 0) + 1
+                self._store(train_id, rep, new_timeline=True)
+                return ""
+        if kind:
+            self.rejected[kind] = self.rejected.get(kind, 0) + 1
+            self.last_refusal = (train_id, kind, detail)
+            return kind
+        self._store(train_id, rep, new_timeline=False)
+        return ""
+
+    def _check_stamp(self, train_id: str, rep: TrainReport) -> tuple[str, str]:
+        p = self.params
+        offset = rep.stamp - rep.t_received
+        tl = self.timelines.get(train_id)
+        ref = 0.0 if p.check_stamp_age else (tl.offset if tl is not None else offset)
+        if offset - ref > p.max_future:
+            return FUTURE_STAMP, (f"stamped {offset - ref:.3g} s ahead of the "
+                                  f"{'zone clock' if p.check_stamp_age else 'train timeline'}"
+                                  f" (> {p.max_future} s)")
         last = self.reports.get(train_id)
+        if last is not None and rep.stamp < last.stamp:
+            return OUT_OF_ORDER, f"stamp {last.stamp - rep.stamp:.3g} s behind the last one"
+        return "", ""
+
+    def _follows_reset(self, train_id: str, rep: TrainReport) -> bool:
+        """Record a stamp-refused report as evidence of a new timeline; True when the run of
+        such reports is long and consistent enough to follow it (this report included)."""
+        p = self.params
+        tl = self.timelines.get(train_id)
+        if tl is None:
+            return False
+        offset = rep.stamp - rep.t_received
+        run = tl.run
+        if run and (abs(offset - run[0][1]) > p.max_future or rep.stamp <= run[-1][0]):
+            run.clear()
+        run.append((rep.stamp, offset))
+        plausible = not p.check_stamp_age or offset <= p.max_future
+        return len(run) >= p.reset_reports and plausible
+
+    def _store(self, train_id: str, rep: TrainReport, new_timeline: bool) -> None:
+        offset = rep.stamp - rep.t_received
+        tl = self.timelines.get(train_id)
+        if tl is None or new_timeline:
+            tl = self.timelines[train_id] = _Timeline()
+        tl.add(rep.t_received, offset)
+        tl.run.clear()  # a good report on this timeline breaks a run of outliers
+        last = None if new_timeline else self.reports.get(train_id)
         if rep.measurement_used:
             rep.last_measurement = rep.stamp
         else:  # carried over; NaN until a report says a measurement was used (ground truth,
             # or an estimator that does not set the flag, is judged by its stamps only)
             rep.last_measurement = last.last_measurement if last is not None else math.nan
+        if rep.integrity == DEGRADED:
+            self.degraded_since.setdefault(train_id, rep.t_received)
+        else:
+            self.degraded_since.pop(train_id, None)
         self.reports[train_id] = rep
-        return ""
+
+    def unsafe(self, train_id: str, now: float) -> tuple[str, str]:
+        """``(reason, state)`` why a train's position cannot be bounded now (stale, integrity
+        ALARM, or DEGRADED for too long); ``("", "")`` if it can."""
+        rep = self.reports[train_id]
+        why = self.staleness(rep, now)
+        if why:
+            return why, "stale"
+        if rep.integrity == ALARM:
+            return "estimator integrity ALARM (it cannot bound its error)", "alarm"
+        since = self.degraded_since.get(train_id)
+        if since is not None and now - since > self.params.degraded_timeout:
+            return (f"estimator integrity DEGRADED for {now - since:.1f} s "
+                    f"(> {self.params.degraded_timeout} s)"), "degraded"
+        return "", ""
 
     def staleness(self, rep: TrainReport, now: float) -> str:
         """Why a report is too old to bound the train ("" if fresh)."""
@@ -171,9 +353,8 @@ class ZoneController:
     def authorities(self, now: float, train_ids: list[str]) -> list[Authority]:
         """One authority per train in ``train_ids`` at zone-controller time ``now`` (s)."""
         p = self.params
-        why_stale = {tid: self.staleness(self.reports[tid], now) if tid in self.reports
-                     else "no estimate" for tid in train_ids}
-        stale = {tid: bool(w) for tid, w in why_stale.items()}
+        unsafe = {tid: self.unsafe(tid, now) if tid in self.reports else ("no estimate", "")
+                  for tid in train_ids}
         out = []
         for tid in train_ids:
             rep = self.reports.get(tid)
@@ -196,11 +377,12 @@ class ZoneController:
                     continue
                 _, orear, _, _ = self._bounds(orep)
                 hazards.append((orear - p.margin, f"rear of {other}"))
-                if stale[other]:
-                    reason, state = f"train ahead ({other}) has stale estimates", "ahead_stale"
+                why, kind = unsafe[other]
+                if why:
+                    reason, state = f"train ahead ({other}): {why}", f"ahead_{kind}"
             eoa, what = min(hazards, default=(math.inf, "open line"))
-            if stale[tid]:
-                reason, state = why_stale[tid], "stale"
+            if unsafe[tid][0]:
+                reason, state = unsafe[tid]
             elif not reason:
                 stop_dist = speed * speed / (2.0 * f_low * p.emergency_decel)
                 if front + stop_dist > eoa:
@@ -209,3 +391,24 @@ class ZoneController:
                     state = "overrun"
             out.append(Authority(tid, eoa, p.permitted_speed, bool(reason), reason, state))
         return out
+
+
+@dataclass
+class RefusalLog:
+    """Which refusals to log: each (train, kind) at most once per ``interval`` s, with the
+    number refused since it was last logged, so a flood of bad reports is one line per
+    interval, not one per message."""
+
+    interval: float  # s
+    last_logged: dict = field(default_factory=dict)  # (train, kind) -> zone time
+    pending: dict = field(default_factory=dict)  # (train, kind) -> refused since last logged
+
+    def note(self, train_id: str, kind: str, now: float) -> int:
+        """Count one refusal; the number to log now (0: stay quiet)."""
+        key = (train_id, kind)
+        self.pending[key] = self.pending.get(key, 0) + 1
+        t = self.last_logged.get(key)
+        if t is None or now - t >= self.interval or now < t:  # now < t: the clock was reset
+            self.last_logged[key] = now
+            return self.pending.pop(key)
+        return 0

@@ -2,11 +2,12 @@
 
 Subscribes every topic of ``topics`` (relative names work in the node's namespace) with raw
 (serialized) delivery and appends each message to the bag with the message definitions embedded.
-Every ``flush_period`` seconds the pending chunk is closed and synced to disk, so a crash or
-``kill -9`` loses at most that much (``read_bag``/``check_bag`` read such a bag, and
-``python -m train_core.bagio repair BAG`` makes it a normal bag again for any reader);
-SIGINT/SIGTERM close the bag properly. At the end it logs the
-topics, message counts and bytes written.
+metadata.yaml is written at the start, and every ``flush_period`` seconds the pending chunk is
+closed and synced to disk with a provisional MCAP footer and an updated metadata.yaml, so a crash
+or ``kill -9`` loses at most that much and leaves a bag that opens as it is (``read_bag``,
+``check_bag``, rosbags' AnyReader; ``python -m train_core.bagio repair BAG`` adds the index);
+SIGINT/SIGTERM close the bag properly. At the end it logs the topics, message counts and bytes
+written.
 """
 
 from __future__ import annotations

@@ -1,8 +1,10 @@
 """`zone_controller`: movement authorities for one or more trains (ROS layer of train_sim.zone).
 
 Subscribes ``<train>/<state_topic>`` (TrainState) for every entry of ``trains`` and publishes
-``<train>/movement_authority`` (MovementAuthority) at ``rate`` Hz. An entry of ``trains`` is a
-namespace: "" means the node's own namespace (relative names), "/train2" an absolute one.
+``<train>/movement_authority`` (MovementAuthority) at ``rate`` Hz, and at once when a train's
+estimator reports integrity ALARM. An entry of ``trains`` is a namespace: "" means the node's own
+namespace (relative names), "/train2" an absolute one. Refused reports are logged once per train
+and kind per ``log_interval`` with their count; a followed clock reset is logged when it happens.
 """
 
 from __future__ import annotations
@@ -21,7 +23,14 @@ def build_node():
     from train_core.model import load_line
 
     from train_interfaces.msg import MovementAuthority, TrainState
-    from train_sim.zone import TrainReport, ZoneController, ZoneNodeConfig, ZoneParams
+    from train_sim.zone import (
+        ALARM,
+        RefusalLog,
+        TrainReport,
+        ZoneController,
+        ZoneNodeConfig,
+        ZoneParams,
+    )
 
     class ZoneControllerNode(Node):
         def __init__(self):
@@ -53,6 +62,7 @@ def build_node():
                     MovementAuthority, f"{prefix}movement_authority", 10)
             self.msg_type = MovementAuthority
             self.last_state: dict[str, str] = {}
+            self.refusals = RefusalLog(node_cfg.log_interval)
             self.timer = self.create_timer(1.0 / rate, self.publish)
             self.get_logger().info(
                 f"zone controller for {self.trains} on '{state_topic}', "
@@ -67,19 +77,35 @@ def build_node():
             return self.get_clock().now().nanoseconds * 1e-9
 
         def on_state(self, tid: str, msg) -> None:
-            cov = msg.covariance
-            if msg.source == "truth":  # exact: its covariance is NaN (not estimated), read as 0
+            cov = [float(c) for c in msg.covariance]
+            exact = msg.source == "truth"
+            if exact:  # its covariance is NaN (not estimated), read as 0
                 cov = [0.0 if math.isnan(c) else c for c in cov]
+            now = self.now()
             rep = TrainReport(
-                t_received=self.now(), stamp=stamp_to_sec(msg.header.stamp),
-                position=msg.position, velocity=msg.velocity,
-                var_position=float(cov[0]), var_velocity=float(cov[5]),
-                braking_rate=msg.braking_rate, var_braking_rate=float(cov[15]),
-                measurement_used=bool(msg.measurement_used))
-            reason = self.zone.report(tid, rep)
-            if reason:
-                self.get_logger().warning(f"{tid}: report rejected: {reason}",
-                                          throttle_duration_sec=5.0)
+                t_received=now, stamp=stamp_to_sec(msg.header.stamp),
+                position=float(msg.position), velocity=float(msg.velocity),
+                var_position=cov[0], var_velocity=cov[5],
+                braking_rate=float(msg.braking_rate), var_braking_rate=cov[15],
+                measurement_used=bool(msg.measurement_used), cov_position_velocity=cov[1],
+                cov_velocity_position=cov[4], integrity=int(msg.integrity), exact=exact)
+            resets = self.zone.clock_resets.get(tid, 0)
+            prev = self.zone.reports.get(tid)
+            kind = self.zone.report(tid, rep)
+            if kind:
+                n = self.refusals.note(tid, kind, now)
+                if n:
+                    _, _, detail = self.zone.last_refusal
+                    self.get_logger().warning(
+                        f"{tid}: {n} report(s) refused ({kind}) since last logged, "
+                        f"{self.zone.rejected[kind]} in all; latest: {detail}")
+                return
+            if self.zone.clock_resets.get(tid, 0) != resets:
+                self.get_logger().warning(
+                    f"{tid}: estimator clock reset followed: stamps now {rep.stamp:.3f} s "
+                    f"(the previous timeline ended at {prev.stamp:.3f} s)")
+            if rep.integrity == ALARM and (prev is None or prev.integrity != ALARM):
+                self.publish()  # brake now, not at the next tick
 
         def publish(self) -> None:
             now = self.now()

@@ -1,0 +1,240 @@
+"""Zone controller: bad input refused and counted (never a crash, never a lock), clock resets
+followed on evidence, integrity obeyed, and a seeded fuzz of corrupted reports."""
+
+import math
+from collections import Counter
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from train_sim import zone as Z
+from train_sim.zone import RefusalLog, TrainReport, ZoneController, ZoneParams
+from train_sim.zone_fuzz import EXPECTED, corrupt_reports
+
+P = ZoneParams(k_sigma=3.0, stale_timeout=2.0, emergency_decel=1.0, train_length=100.0,
+               margin=10.0, danger_points=(50000.0,), degraded_timeout=4.0, max_future=1.0)
+LATENCY = 0.05  # s, stamp to arrival
+
+
+def rep(t, x=1000.0, v=10.0, clock=0.0, **kw):
+    """A good report sampled at zone time t, stamped on a clock ``clock`` s ahead of the
+    zone's, arriving LATENCY later."""
+    kw = {"var_position": 1.0, "var_velocity": 0.01, **kw}
+    return TrainReport(t_received=t + LATENCY, stamp=t + clock, position=x + v * t, velocity=v,
+                       **kw)
+
+
+def granted(zc, now, tid="A"):
+    (a,) = zc.authorities(now, [tid])
+    return not a.emergency_brake, a
+
+
+def test_negative_braking_rate_variance_is_refused_not_a_crash():
+    zc = ZoneController(P)
+    assert zc.report("A", rep(0.0)) == ""
+    assert zc.report("A", rep(0.1, braking_rate=0.9, var_braking_rate=-0.01)) == \
+        Z.NON_POSITIVE_VARIANCE
+    assert zc.rejected == {Z.NON_POSITIVE_VARIANCE: 1}
+    assert zc.report("A", rep(0.2)) == ""
+    assert granted(zc, 0.3)[0]
+
+
+@pytest.mark.parametrize("field", ["var_position", "var_velocity", "var_braking_rate"])
+def test_nan_variance_is_refused_never_read_as_certainty(field):
+    zc = ZoneController(P)
+    # the last good report stays in force: the NaN one is not stored with a variance of 0
+    good = replace(rep(0.0, x=4000.0), braking_rate=0.9, var_braking_rate=1e-4)
+    assert zc.report("A", good) == ""
+    bad = replace(rep(0.1, x=4000.0), **{"braking_rate": 0.9, "var_braking_rate": 1e-4,
+                                          field: math.nan})
+    assert zc.report("A", bad) == Z.NON_FINITE
+    assert zc.reports["A"] is good
+
+
+def test_covariance_must_be_symmetric_positive_definite():
+    zc = ZoneController(P)
+    assert zc.report("A", rep(0.0, cov_position_velocity=0.05, cov_velocity_position=0.05)) == ""
+    assert zc.report("A", rep(0.1, cov_position_velocity=0.05)) == Z.NOT_POSITIVE_DEFINITE
+    assert zc.report("A", rep(0.2, cov_position_velocity=0.2, cov_velocity_position=0.2)) == \
+        Z.NOT_POSITIVE_DEFINITE  # 0.04 > 1.0 * 0.01
+    assert zc.report("A", rep(0.3, integrity=3)) == Z.UNKNOWN_INTEGRITY
+    assert zc.report("A", rep(0.4, var_velocity=0.0)) == Z.NON_POSITIVE_VARIANCE
+    # ground truth (exact) may state zero variances
+    assert zc.report("A", rep(0.5, var_velocity=0.0, var_position=0.0, exact=True)) == ""
+
+
+@pytest.mark.parametrize("check_stamp_age", [True, False])
+@pytest.mark.parametrize("ahead", [1.5, 60.0, 1e6, 1e9])
+def test_far_future_stamp_is_refused_without_poisoning_later_reports(check_stamp_age, ahead):
+    zc = ZoneController(replace(P, check_stamp_age=check_stamp_age))
+    assert zc.report("A", rep(0.0)) == ""
+    bad = rep(0.1)
+    bad.stamp += ahead
+    assert zc.report("A", bad) == Z.FUTURE_STAMP
+    for k in range(2, 100):
+        assert zc.report("A", rep(0.1 * k)) == "", k
+        assert granted(zc, 0.1 * k + LATENCY)[0]
+    assert zc.rejected == {Z.FUTURE_STAMP: 1}
+
+
+def test_future_stamp_on_separate_clocks_is_judged_against_the_recent_timeline():
+    """A train clock 1 % slow for an hour: its timeline moves 36 s back; a report stamped 10 s
+    ahead of it is still refused (the timeline is the recent maximum, not the all-time one)."""
+    zc = ZoneController(replace(P, check_stamp_age=False))
+    for k in range(36000):
+        t = 0.1 * k
+        assert zc.report("A", rep(t, clock=-0.01 * t)) == ""
+    bad = rep(3600.0, clock=-36.0 + 10.0)
+    assert zc.report("A", bad) == Z.FUTURE_STAMP
+    assert zc.report("A", rep(3600.1, clock=-36.001)) == ""
+
+
+def test_a_stream_of_future_stamps_is_never_followed_on_one_clock():
+    zc = ZoneController(P)  # check_stamp_age: zone and estimates on one clock
+    assert zc.report("A", rep(0.0)) == ""
+    for k in range(1, 50):
+        assert zc.report("A", rep(0.1 * k, clock=60.0)) == Z.FUTURE_STAMP
+    assert zc.clock_resets == {}
+    assert zc.report("A", rep(5.0)) == ""
+
+
+def run_reset(zc, jump, n=400, dt=0.1):
+    """n reports, the estimator's clock jumping by ``jump`` s after the first quarter; returns
+    (refused, braked) counted over the reports after the jump."""
+    refused = braked = 0
+    for k in range(n):
+        t = dt * k
+        clock = jump if k >= n // 4 else 0.0
+        r = rep(t, clock=clock)
+        kind = zc.report("A", r)
+        ok, _ = granted(zc, t + LATENCY)
+        if k >= n // 4:
+            refused += bool(kind)
+            braked += not ok
+    return refused, braked
+
+
+@pytest.mark.parametrize("jump", [-3600.0, -60.0, -2.0, 3600.0])
+def test_clock_reset_is_followed_on_separate_clocks(jump):
+    """Estimates on the estimator's own clock (check_stamp_age false): a reset is followed after
+    reset_reports consistent reports; the authority is kept meanwhile (the last accepted report
+    is fresh by its arrival for stale_timeout)."""
+    zc = ZoneController(replace(P, check_stamp_age=False))
+    refused, braked = run_reset(zc, jump)
+    assert refused == P.reset_reports - 1
+    assert braked == 0
+    assert zc.clock_resets == {"A": 1}
+
+
+def test_small_clock_reset_is_followed_on_one_clock():
+    """On one clock a reset back by less than stale_timeout is followed after reset_reports
+    reports; a reset far back is followed too, and its stamps are then judged stale."""
+    zc = ZoneController(P)
+    refused, braked = run_reset(zc, -1.0)
+    assert refused == P.reset_reports - 1 and braked == 0 and zc.clock_resets == {"A": 1}
+    zc = ZoneController(P)
+    refused, braked = run_reset(zc, -60.0)
+    assert refused == P.reset_reports - 1 and zc.clock_resets == {"A": 1}
+    _, a = granted(zc, 39.9 + LATENCY)
+    assert a.state == "stale" and "stamped" in a.reason
+
+
+def test_interleaved_outliers_do_not_make_a_new_timeline():
+    """Reports 60 s behind, each followed by a good one: never a run, never followed."""
+    zc = ZoneController(replace(P, check_stamp_age=False))
+    for k in range(200):
+        assert zc.report("A", rep(0.1 * k)) == ""
+        assert zc.report("A", rep(0.1 * k + 0.05, clock=-60.0)) == Z.OUT_OF_ORDER
+    assert zc.clock_resets == {}
+
+
+def test_integrity_alarm_brakes_at_once_and_the_train_behind():
+    zc = ZoneController(P)
+    zc.report("A", rep(0.0, x=3000.0))
+    zc.report("B", rep(0.0, x=1000.0))
+    zc.report("A", rep(0.1, x=3000.0, integrity=Z.ALARM))
+    auth = {a.train_id: a for a in zc.authorities(0.1 + LATENCY, ["A", "B"])}
+    assert auth["A"].emergency_brake and auth["A"].state == "alarm"
+    assert auth["B"].emergency_brake and auth["B"].state == "ahead_alarm"
+    zc.report("A", rep(0.2, x=3000.0))
+    auth = {a.train_id: a for a in zc.authorities(0.2 + LATENCY, ["A", "B"])}
+    assert not auth["A"].emergency_brake and not auth["B"].emergency_brake
+
+
+def test_degraded_is_used_until_degraded_timeout_then_brakes():
+    zc = ZoneController(P)  # degraded_timeout 4 s
+    zc.report("A", rep(0.0))
+    t0 = 1.0
+    states = []
+    for k in range(60):
+        t = t0 + 0.1 * k
+        zc.report("A", rep(t, integrity=Z.DEGRADED))
+        ok, a = granted(zc, t + LATENCY)
+        states.append(a.state)
+        assert ok == (t - t0 <= P.degraded_timeout + 1e-9), (t, a.reason)
+    assert states[-1] == "degraded" and "DEGRADED" in a.reason
+    zc.report("A", rep(t + 0.1))  # OK again: released, and the timer restarts
+    assert granted(zc, t + 0.1 + LATENCY)[0]
+    zc.report("A", rep(t + 0.2, integrity=Z.DEGRADED))
+    assert granted(zc, t + 0.2 + LATENCY)[0]
+
+
+def test_refusals_are_logged_once_per_kind_per_interval():
+    log = RefusalLog(interval=5.0)
+    logged = [(t, log.note("A", Z.NON_FINITE, t)) for t in np.arange(0.0, 12.0, 0.01)]
+    logged = [(t, n) for t, n in logged if n]
+    assert [n for _, n in logged] == [1, 500, 500]
+    assert log.note("A", Z.FUTURE_STAMP, 12.0) == 1  # another kind: its own interval
+    assert log.note("B", Z.NON_FINITE, 12.0) == 1  # another train too
+
+
+@pytest.mark.parametrize("check_stamp_age", [True, False])
+@pytest.mark.parametrize("seed", [0, 1])
+def test_fuzz_no_exception_no_lock_refusals_counted_by_kind(check_stamp_age, seed):
+    rng = np.random.default_rng(seed)
+    clean = []
+    x, v = 100.0, 0.0
+    for k in range(600):  # 60 s at 10 Hz: accelerating, then cruising
+        t = 0.1 * k
+        v = min(v + 0.05, 15.0)
+        x += 0.1 * v
+        clean.append(TrainReport(t_received=t + LATENCY, stamp=t, position=x, velocity=v,
+                                 var_position=1.0 + 0.01 * k, var_velocity=0.01,
+                                 cov_position_velocity=0.02, cov_velocity_position=0.02))
+    stream, counts = corrupt_reports(clean, rng, per_report=5.0)
+    assert sum(counts.values()) > 2500 and set(counts) == set(EXPECTED)
+    zc = ZoneController(replace(P, check_stamp_age=check_stamp_age))
+    refused = Counter()
+    for kind, r in stream:
+        got = zc.report("A", r)
+        if kind:
+            refused[kind] += 1
+            assert got == EXPECTED[kind], (kind, got, r)
+        else:
+            assert got == "", (got, zc.last_refusal)  # no corruption poisoned a good report
+            assert granted(zc, r.t_received)[0]
+    want = Counter()
+    for kind, n in counts.items():
+        want[EXPECTED[kind]] += n
+    assert zc.rejected == dict(want)
+    assert zc.clock_resets == {}
+    # after the garbage, a good report is granted authority
+    last = clean[-1]
+    assert zc.report("A", replace(last, stamp=last.stamp + 0.1,
+                                  t_received=last.t_received + 0.1)) == ""
+    assert granted(zc, last.t_received + 0.1)[0]
+
+
+def test_main_job_summary_reads_the_brake_reasons_the_node_logs(tmp_path):
+    """The demo's summary lists the reasons from the zone controller's log lines as the node
+    writes them ("emergency brake SET (state): reason")."""
+    from train_bringup.main_job import brake_reasons
+
+    log = tmp_path / "zone_controller.log"
+    log.write_text("[WARN] [1.5] [zone_controller]: /train: emergency brake SET (stale): "
+                   "estimates stale: none received for 3.2 s (> 3.0 s)\n"
+                   "[WARN] [9.0] [zone_controller]: /train: emergency brake SET (alarm): "
+                   "estimator integrity ALARM (it cannot bound its error)\n")
+    assert brake_reasons(log) == ["estimates stale: none received for # s (> # s)",
+                                  "estimator integrity ALARM (it cannot bound its error)"]
