@@ -72,14 +72,17 @@ def test_estimator_publishes_odometry_and_diagnostics(launch, ros_node):
                if dict((kv.key, kv.value) for kv in s.values).get("odometer.received", "0")
                != "0"]
     assert len(running) >= 3, launch.logs()
-    values = {kv.key: kv.value for kv in running[-2].values}  # the run's last full second
+    values = {kv.key: kv.value for kv in running[-1].values}
     assert values["source"] == "robust_filter" and values["integrity"] in ("OK", "DEGRADED",
                                                                           "ALARM")
     for key in ("odometer.rate_hz", "odometer.accepted", "control.rate_hz", "balise.received",
                 "latency_p99_ms", "integrity_reason", "odometer.age_s"):
         assert key in values, (key, values)
-    # 10 Hz odometer at 10x: about 100 per wall second, less the link's drops (12.5 %)
-    assert 50 <= float(values["odometer.rate_hz"]) <= 150, values
+    # 10 Hz odometer at 10x: about 100 per wall second, less the link's drops (12.5 %), in a
+    # period spent wholly in the run (the first and last ones hold part of it)
+    rates = [float(dict((kv.key, kv.value) for kv in s.values)["odometer.rate_hz"])
+             for s in running]
+    assert 50 <= max(rates) <= 150, rates
     levels = {s.level for s in running}
     assert bytes([0]) in levels, [(s.level, s.message) for s in running]
     # the simulator's status names its state and what it published
