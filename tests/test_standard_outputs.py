@@ -1,5 +1,6 @@
 """The standard ROS outputs of a running estimator: nav_msgs/Odometry and /diagnostics."""
 
+import re
 import time
 
 import numpy as np
@@ -92,3 +93,37 @@ def test_estimator_publishes_odometry_and_diagnostics(launch, ros_node):
     # one status per second per node (steady clock, whatever /clock does), from its start
     n = len(_mine(diags, ns, "robust_filter"))
     assert elapsed - 8.0 <= n <= elapsed + 1.0, (n, elapsed)
+
+
+def test_zone_controller_diagnostics_count_refused_reports_by_reason(launch, ros_node):
+    """Reports with a negative variance are refused and counted under their reason; the share
+    refused in the period grades the status (here all of them: ERROR, the reason named)."""
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    from train_interfaces.msg import TrainState
+
+    ns = "/zone_diag"
+    diags = ros_node.collect(DiagnosticArray, "/diagnostics")
+    pub = ros_node.node.create_publisher(TrainState, f"{ns}/estimate/robust", 10)
+    launch.node("train_sim", "zone_controller", "--ros-args", "-r", f"__ns:={ns}")
+    ros_node.wait_for_subscribers(f"{ns}/estimate/robust", 1, timeout=30)
+    for k in range(5):
+        msg = TrainState()
+        msg.header.stamp.sec = k
+        msg.source = "test"
+        msg.position, msg.velocity = 100.0, 0.0
+        msg.covariance = [1.0] * 16
+        msg.covariance[0] = -0.01
+        pub.publish(msg)
+    ros_node.wait_until(lambda: any(
+        dict((kv.key, kv.value) for kv in s.values).get(f"{ns}.rejected.negative_variance")
+        == "5" for s in _mine(diags, ns, "zone_controller")), timeout=20,
+        what="the zone's status counting 5 refused reports")
+    last = [s for s in _mine(diags, ns, "zone_controller")
+            if dict((kv.key, kv.value) for kv in s.values).get(f"{ns}.received") == "5"]
+    first = last[0]  # the period in which the five arrived
+    assert first.level == bytes([2]), (first.level, first.message)
+    # all refused in that period (the five may straddle two periods: n of n)
+    assert re.search(rf"{ns}: (\d) of \1 rejected in the last 1 s \(mostly "
+                     r"negative_variance\)", first.message), first.message
+    assert dict((kv.key, kv.value) for kv in first.values)[f"{ns}.accepted"] == "0"

@@ -145,3 +145,11 @@ def test_runtime_set_parameters_is_validated_and_refused_with_a_reason(launch, r
     r = set_double("stale_warn", 3.0)
     assert r.successful, r.reason
     assert get("stale_warn") == 3.0
+    # a live change takes effect: four statuses a second after diagnostics_period := 0.25
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    assert set_double("diagnostics_period", 0.25).successful
+    box = ros_node.collect(DiagnosticArray, "/diagnostics")
+    ros_node.spin_for(2.0)
+    mine = [s for a in box for s in a.status if s.hardware_id == ns]
+    assert 6 <= len(mine) <= 9, len(mine)

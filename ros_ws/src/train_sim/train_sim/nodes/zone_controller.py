@@ -10,6 +10,7 @@ emergency brake and why) goes to ``/diagnostics`` once per ``diagnostics_period`
 from __future__ import annotations
 
 import math
+import re
 import sys
 from dataclasses import replace
 
@@ -103,7 +104,7 @@ def build_node():
             self.received[tid] += 1
             self.last_arrival[tid] = self.steady.now().nanoseconds * 1e-9
             if reason:
-                kind = reason.split(":", 1)[0].strip().replace(" ", "_")
+                kind = "_".join(re.findall(r"[a-z0-9]+", reason.split(":", 1)[0].lower()))
                 self.refused[tid][kind] = self.refused[tid].get(kind, 0) + 1
                 self.get_logger().warning(f"{tid}: report rejected: {reason}",
                                           throttle_duration_sec=5.0)
