@@ -61,7 +61,8 @@ def test_demo_is_reproducible_and_its_report_explains_itself(launch, tmp_path):
         assert "latency p50/p99 (ms, wall)" in rep and "/ 20 = wall time" in rep
         assert "errors by position on line metro_demo" in rep
     for name in ("robust_filter", "gsma", "kf"):
-        assert f"{name} " in reports[0]  # check_bag's table has a row for each
+        assert f"\n{name} " in reports[0]  # check_bag's table has a row for each
+    assert "gsma = Zheng et al. 2015's GSMA (estimate/gsma)" in reports[0]
     # the Foxglove layout on this real bag: every panel's data is there, the script's errors
     # are estimate - truth, and /diagnostics carries every node's status
     counts = _foxglove_check().check_layout(tmp_path / "run1" / "bag", tmp_path, NODES)

@@ -38,6 +38,13 @@ ESTIMATORS = {
                      ["-p", "algorithm:=kf", "-r", "__node:=kf_estimator",
                       "-r", "estimate/gsma:=estimate/kf", "-r", "odom/gsma:=odom/kf"]),
 }
+# what each estimator's `source` in the report stands for
+LEGEND = {
+    "robust_filter": "robust_filter = Wen et al. 2017's robust filter (estimate/robust)",
+    "gsma_estimator": "gsma = Zheng et al. 2015's GSMA (estimate/gsma)",
+    "kf_estimator": "kf = the exact Kalman filter of the same braking model, the reference "
+                    "beside it (estimate/kf)",
+}
 
 
 class Processes:
@@ -186,6 +193,9 @@ def main(argv=None) -> int:
     else:
         failed.append("simulator summary missing")
     if bag.exists():
+        ran = [LEGEND[n] for _, _, n, _ in consumers if n in LEGEND]
+        if ran:
+            print("estimators: " + "; ".join(ran))
         title = f"{args.scenario} seed {sc.seed}"
         check = subprocess.run([sys.executable, "-m", "train_estimation.tools.check_bag", str(bag),
                                 "--out", str(out / "check"), "--line", str(line_file),
