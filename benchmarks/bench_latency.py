@@ -80,7 +80,8 @@ def run_live(scenario: str, duration: float, logs: Path) -> None:
             path = resolve_executable("train_estimation", exe)
             procs[exe] = subprocess.Popen(
                 [path or sys.executable, *([] if path else ["-m", f"train_estimation.nodes.{exe}"]),
-                 "--ros-args", "-r", "__ns:=/lat", "-p", "use_sim_time:=true"],
+                 "--ros-args", "-r", "__ns:=/lat", "-p", "use_sim_time:=true",
+                 "-p", "use_demo_line:=true"],
                 env=env, stdout=open(logs / f"{exe}.log", "w"), stderr=subprocess.STDOUT)
         sim = resolve_executable("train_sim", "simulator")
         procs["simulator"] = subprocess.Popen(

@@ -1,7 +1,8 @@
 // Foxglove user script of docs/foxglove_layout.json (kept in sync by tests/test_demo_outputs.py).
 // Errors of the estimates against ground truth, matched by sample stamp: one output message per
 // estimate on /studio_script/train_errors, with the estimator's name in `source` (the layout's
-// plots select one estimator each with {source=="..."}). Topics are in the /train namespace.
+// plots select one estimator each with {source=="..."}: robust_filter, gsma, kf). Topics are in
+// the /train namespace, as the main job records them.
 type Time = { sec: number; nsec: number };
 
 type Output = {
@@ -14,7 +15,12 @@ type Output = {
   velocity_3sigma: number; // m/s
 };
 
-export const inputs = ["/train/ground_truth", "/train/estimate/robust", "/train/estimate/gsma"];
+export const inputs = [
+  "/train/ground_truth",
+  "/train/estimate/robust",
+  "/train/estimate/gsma",
+  "/train/estimate/kf",
+];
 export const output = "/studio_script/train_errors";
 
 const truth = new Map<number, { position: number; velocity: number; braking_rate: number }>();

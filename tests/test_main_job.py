@@ -10,7 +10,20 @@ from train_core.bagio import read_bag
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
 DURATION = 50.0  # s: the start-up (braked, initial dwell of 10 s), departure, a balise
-SAME = ("ground_truth", "control", "odometer", "balise", "estimate/robust", "estimate/gsma")
+SAME = ("ground_truth", "control", "odometer", "balise", "estimate/robust", "estimate/gsma",
+        "estimate/kf")
+NODES = {"simulator", "zone_controller", "robust_filter", "gsma_estimator", "kf_estimator",
+         "recorder"}
+
+
+def _foxglove_check():
+    import importlib.util
+
+    path = Path(__file__).parent / "helpers" / "foxglove_check.py"
+    spec = importlib.util.spec_from_file_location("foxglove_check", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
 
 
 def _demo(launch, out: Path) -> str:
@@ -37,13 +50,25 @@ def test_demo_is_reproducible_and_its_report_explains_itself(launch, tmp_path):
             assert all(np.array_equal(fa[k], fb[k], equal_nan=not isinstance(fa[k], str))
                        for k in fa), (topic, sa, fa, fb)
     for bag in bags:  # every sample has its estimate: none lost at the start or at the end
-        assert len(bag.topics["estimate/gsma"]) == len(bag.topics["ground_truth"])
-        assert len(bag.topics["estimate/robust"]) == len(bag.topics["ground_truth"])
+        for topic in ("estimate/robust", "estimate/gsma", "estimate/kf"):
+            assert len(bag.topics[topic]) == len(bag.topics["ground_truth"]), topic
+        # names say what runs: the GSMA on estimate/gsma, the exact KF beside it
+        assert {f["source"] for _, _, f in bag.topics["estimate/gsma"]} == {"gsma"}
+        assert {f["source"] for _, _, f in bag.topics["estimate/kf"]} == {"kf"}
     for rep in reports:
         assert "emergency brakes: 0 during the run (incidents)" in rep
         assert "start-up: the train starts braked until the zone controller's first" in rep
         assert "latency p50/p99 (ms, wall)" in rep and "/ 20 = wall time" in rep
         assert "errors by position on line metro_demo" in rep
+    for name in ("robust_filter", "gsma", "kf"):
+        assert f"\n{name} " in reports[0]  # check_bag's table has a row for each
+    assert "gsma = Zheng et al. 2015's GSMA (estimate/gsma)" in reports[0]
+    # the Foxglove layout on this real bag: every panel's data is there, the script's errors
+    # are estimate - truth, and /diagnostics carries every node's status
+    counts = _foxglove_check().check_layout(tmp_path / "run1" / "bag", tmp_path, NODES)
+    n = len(bags[0].topics["ground_truth"])
+    # every estimate is plotted: its truth was logged no later (the recorder's log times)
+    assert counts == {"robust_filter": n, "gsma": n, "kf": n}, (counts, n)
     check = tmp_path / "run1" / "check"
     assert (check / "estimates_vs_truth.png").stat().st_size > 10_000
     assert (check / "error_over_position.png").stat().st_size > 10_000

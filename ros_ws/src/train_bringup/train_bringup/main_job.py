@@ -4,6 +4,13 @@ Starts the simulator, the estimators, the zone controller and the recorder as se
 (each resolved as `ros2 run` would), waits for the simulator to finish its run, stops every
 process it started by PID, checks the recorded bag offline and prints a report.
 
+The estimators: `robust_filter` (Wen et al. 2017) on `estimate/robust`, and two instances of
+`gsma_estimator`: node `gsma_estimator` runs Zheng et al.'s GSMA (`algorithm: gsma`, source
+"gsma") on `estimate/gsma`, node `kf_estimator` the exact Kalman filter of the same braking
+model beside it (`algorithm: kf`, source "kf"), remapped to `estimate/kf` and `odom/kf`. The
+zone controller follows `estimate/robust`. The bag holds every topic, the Odometry outputs and
+`/diagnostics`.
+
 Pure orchestration (subprocess): no rclpy in this process. Exit code 0 when every process ran and
 stopped cleanly and the checks passed, 1 otherwise.
 """
@@ -23,6 +30,21 @@ from train_core.procs import resolve_executable as executable
 from train_core.procs import stop_process
 
 NS = "/train"
+# node name -> (executable, its estimate topic, extra arguments)
+ESTIMATORS = {
+    "robust_filter": ("robust_filter", "estimate/robust", []),
+    "gsma_estimator": ("gsma_estimator", "estimate/gsma", ["-p", "algorithm:=gsma"]),
+    "kf_estimator": ("gsma_estimator", "estimate/kf",
+                     ["-p", "algorithm:=kf", "-r", "__node:=kf_estimator",
+                      "-r", "estimate/gsma:=estimate/kf", "-r", "odom/gsma:=odom/kf"]),
+}
+# what each estimator's `source` in the report stands for
+LEGEND = {
+    "robust_filter": "robust_filter = Wen et al. 2017's robust filter (estimate/robust)",
+    "gsma_estimator": "gsma = Zheng et al. 2015's GSMA (estimate/gsma)",
+    "kf_estimator": "kf = the exact Kalman filter of the same braking model, the reference "
+                    "beside it (estimate/kf)",
+}
 
 
 class Processes:
@@ -54,8 +76,9 @@ def main(argv=None) -> int:
     p.add_argument("--duration", type=float, default=-1.0,
                    help="s of simulated time (default: the scenario's)")
     p.add_argument("--out", default=None, help="output folder (default out/demo-<time>)")
-    p.add_argument("--estimators", default="robust_filter,gsma_estimator",
-                   help="comma-separated estimator nodes to run (default both)")
+    p.add_argument("--estimators", default=",".join(ESTIMATORS),
+                   help="comma-separated estimator nodes to run (default all: "
+                        f"{', '.join(ESTIMATORS)})")
     args = p.parse_args(argv)
 
     repo = Path(os.environ.get("TRAIN_REPO", Path.cwd()))
@@ -84,22 +107,32 @@ def main(argv=None) -> int:
     est = ["-p", f"output_delay:={delay}", "-p", f"initial_position:={sc.start_position}",
            "-p", f"odometer_rate:={sc.odometer_rate}", "-p", f"line_file:={line_file}",
            "-p", f"train_file:={train_file}"]
-    plan: list[tuple[str, str, str, list[str]]] = [
-        ("train_estimation", "recorder", "recorder", ["-p", f"bag:={bag}"]),
-        ("train_estimation", "robust_filter", "robust_filter", est),
-        ("train_estimation", "gsma_estimator", "gsma_estimator", est),
-    ]
     wanted = {"recorder", *filter(None, args.estimators.split(","))}
+    unknown = sorted(wanted - {"recorder", *ESTIMATORS})
+    if unknown:
+        print(f"main_job: --estimators: unknown {unknown} (known: {', '.join(ESTIMATORS)})",
+              file=sys.stderr)
+        return 2
+    recorded = ["odometer", "balise", "control", "ground_truth", "movement_authority",
+                *(ESTIMATORS[n][1] for n in ESTIMATORS if n in wanted),
+                *("odom/" + ESTIMATORS[n][1].split("/")[1] for n in ESTIMATORS if n in wanted),
+                "/diagnostics"]
+    plan: list[tuple[str, str, str, list[str]]] = [
+        ("train_estimation", "recorder", "recorder",
+         ["-p", f"bag:={bag}", "-p", f"topics:=[{', '.join(recorded)}]"]),
+        *(("train_estimation", exe, name, [*est, *extra])
+          for name, (exe, _, extra) in ESTIMATORS.items()),
+    ]
     consumers = [(pkg, exe, name, extra) for pkg, exe, name, extra in plan
                  if name in wanted and executable(pkg, exe) is not None]
     bag_recorded = any(name == "recorder" for _, _, name, _ in consumers)
-    state_topic = ("estimate/robust" if any(e == "robust_filter" for _, e, _, _ in consumers)
+    state_topic = ("estimate/robust" if any(n == "robust_filter" for _, _, n, _ in consumers)
                    else "ground_truth")
     # An estimator outputs only once its readers are matched (the recorder, the pacing
     # simulator, the zone controller for the state topic): none misses the first estimates.
     consumers = [(pkg, exe, name, extra if name == "recorder" else
                   [*extra, "-p", "wait_for_subscribers:="
-                   f"{int(bag_recorded) + 1 + int(exe == 'robust_filter')}"])
+                   f"{int(bag_recorded) + 1 + int(name == 'robust_filter')}"])
                  for pkg, exe, name, extra in consumers]
     zc_extra = ["-p", f"state_topic:={state_topic}", "-p", f"line_file:={line_file}"]
     # Reproducible runs (same scenario and seed, same bag whatever the machine's load):
@@ -110,8 +143,7 @@ def main(argv=None) -> int:
     #   less than its 3 s staleness limit): a process stalled for some wall time holds the world
     #   back instead of being judged stale in simulated time (a brake that depends on the load);
     # - /clock runs on past the end until the estimators have released their last estimates.
-    topics = {"robust_filter": "estimate/robust", "gsma_estimator": "estimate/gsma"}
-    pace = [topics[name] for _, _, name, _ in consumers if name in topics]
+    pace = [ESTIMATORS[name][1] for _, _, name, _ in consumers if name in ESTIMATORS]
     pace.append("movement_authority")
     lead = delay + 1.2
     sim_extra = ["-p", f"scenario:={args.scenario}", "-p", f"rate_factor:={args.rate_factor}",
@@ -161,6 +193,9 @@ def main(argv=None) -> int:
     else:
         failed.append("simulator summary missing")
     if bag.exists():
+        ran = [LEGEND[n] for _, _, n, _ in consumers if n in LEGEND]
+        if ran:
+            print("estimators: " + "; ".join(ran))
         title = f"{args.scenario} seed {sc.seed}"
         check = subprocess.run([sys.executable, "-m", "train_estimation.tools.check_bag", str(bag),
                                 "--out", str(out / "check"), "--line", str(line_file),

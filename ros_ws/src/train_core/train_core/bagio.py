@@ -36,6 +36,9 @@ TOPIC_TYPES = {
     "ground_truth": "train_interfaces/msg/TrainState",
     "estimate/robust": "train_interfaces/msg/TrainState",
     "estimate/gsma": "train_interfaces/msg/TrainState",
+    # a second gsma_estimator with algorithm kf (the exact Kalman reference the main job runs
+    # beside the GSMA; docs/ros.md)
+    "estimate/kf": "train_interfaces/msg/TrainState",
     "movement_authority": "train_interfaces/msg/MovementAuthority",
 }
 MAGIC = b"\x89MCAP0\r\n"

@@ -3,12 +3,15 @@
 - message <-> plain dict conversion (the core speaks dicts with CONTRACT.md's field names);
 - stamps: seconds (float) <-> builtin_interfaces/Time;
 - argument handling so every executable answers ``--help`` without starting ROS;
-- a ``run_node`` wrapper that spins until SIGINT/SIGTERM and shuts down cleanly.
+- a ``run_node`` wrapper that spins until SIGINT/SIGTERM and shuts down cleanly;
+- parameters declared from config dataclasses, validated at start-up and at run time;
+- ``/diagnostics``: a node's :class:`train_core.diagnostics.Status` as a DiagnosticArray.
 """
 
 from __future__ import annotations
 
 import argparse
+import re
 import signal
 import sys
 from collections.abc import Callable
@@ -105,21 +108,97 @@ def inputs_matched(pubs: dict, n: int) -> bool:
 
 
 def declarer(node):
-    """``declare(name, default, text) -> value``: declare_parameter with a descriptor."""
+    """``declare(name, default, text) -> value``: declare_parameter with a descriptor.
+
+    A value of the wrong type (``-p q:=abc``) raises :class:`ParameterError` with one line
+    naming the parameter, the type wanted and the value given, instead of rclpy's traceback.
+    """
     from rcl_interfaces.msg import ParameterDescriptor
+    from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 
     def declare(name, default, text):
-        return node.declare_parameter(name, default, ParameterDescriptor(description=text)).value
+        try:
+            return node.declare_parameter(name, default,
+                                          ParameterDescriptor(description=text)).value
+        except InvalidParameterTypeException as exc:
+            m = re.search(r"to '(.*)' of type '(\w+)'", str(exc))
+            given = f"{m.group(1)!r} ({m.group(2).lower()})" if m else "another type"
+            raise ParameterError(f"parameter {name}: expected {_type_name(default)}, got "
+                                 f"{given}") from None
+        except InvalidParameterValueException as exc:
+            raise ParameterError(f"parameter {name}: {getattr(exc, 'reason', exc)}") from None
 
     return declare
 
 
-def declare_config(node, cls, **given):
+def _type_name(default) -> str:
+    if isinstance(default, bool):
+        return "a boolean (true/false)"
+    if isinstance(default, int):
+        return "an integer"
+    if isinstance(default, float):
+        return "a number (write 5.0, not 5)"
+    if isinstance(default, str):
+        return "a string"
+    if isinstance(default, (list, tuple)):
+        return f"a list like {list(default)!r}"
+    return type(default).__name__
+
+
+def refuse_runtime_changes(node, cls, values: dict, live: tuple[str, ...] = (),
+                           on_change: Callable | None = None) -> None:
+    """Validate ``set_parameters`` on ``cls``'s parameters at run time.
+
+    The proposed values with the current ones go through ``cls``'s own checks
+    (``__post_init__``): an invalid set is refused with that reason. A valid change of a
+    parameter in ``live`` is accepted and ``on_change(cls(**new))`` applies it; a valid change
+    of any other (read once at start-up) is refused, saying so, rather than accepted and ignored.
+    ``values``: the current constructor arguments (``given`` ones included).
+    """
+    from rcl_interfaces.msg import SetParametersResult
+
+    from train_core.config import param_fields
+
+    names = {f.name: f for f in param_fields(cls)}
+    current = dict(values)
+
+    def callback(params):
+        mine = [p for p in params if p.name in names]
+        if not mine:
+            return SetParametersResult(successful=True)
+        proposed = dict(current)
+        for p in mine:
+            f = names[p.name]
+            from_ros = f.metadata.get("ros", (None, None))[1]
+            v = p.value
+            proposed[p.name] = from_ros(v) if from_ros else (
+                tuple(v) if isinstance(f.default, tuple) else v)
+        try:
+            new = cls(**proposed)
+        except (ValueError, TypeError) as exc:
+            return SetParametersResult(successful=False, reason=str(exc))
+        fixed = [p.name for p in mine if p.name not in live]
+        if fixed:
+            return SetParametersResult(
+                successful=False, reason=f"parameter {fixed[0]}: read at start-up only; "
+                                         "restart the node to change it")
+        current.update(proposed)
+        if on_change is not None:
+            on_change(new)
+        return SetParametersResult(successful=True)
+
+    node.add_on_set_parameters_callback(callback)
+
+
+def declare_config(node, cls, live: tuple[str, ...] = (), on_change: Callable | None = None,
+                   **given):
     """Declare every parameter field of config dataclass ``cls`` on ``node`` (name, default,
     "unit, meaning" from the field's metadata: ``train_core.config.param``) and return
     ``cls(**values, **given)``; ``given`` fields are set by the caller, not declared. Tuples
     travel as ROS lists; a field's ``ros`` converters map values ROS cannot carry (None).
-    Validation is the dataclass's own (``__post_init__``): a ValueError names the parameter.
+    Validation is the dataclass's own (``__post_init__``): a ValueError names the parameter,
+    at start-up and for a ``set_parameters`` at run time (:func:`refuse_runtime_changes`:
+    ``live`` parameters are applied through ``on_change``, the others refused).
     """
     from train_core.config import describe, param_fields
 
@@ -134,7 +213,47 @@ def declare_config(node, cls, **given):
         ros_default = to_ros(default) if to_ros else (list(default) if is_tuple else default)
         v = declare(f.name, ros_default, describe(f))
         values[f.name] = from_ros(v) if from_ros else (tuple(v) if is_tuple else v)
-    return cls(**values)
+    cfg = cls(**values)
+    refuse_runtime_changes(node, cls, values, live, on_change)
+    return cfg
+
+
+class Diagnostics:
+    """Publishes ``/diagnostics`` (diagnostic_msgs/DiagnosticArray) for ``node``.
+
+    ``status()`` returns the node's :class:`train_core.diagnostics.Status` (built by the pure
+    core from the node's counters); it is called every ``period`` s of steady (wall) time, so
+    the rate holds under ``use_sim_time`` whatever /clock does. The status is named
+    ``<node name>: <what>`` with the node's namespace as ``hardware_id`` (the train).
+    """
+
+    def __init__(self, node, what: str, period: float, status: Callable):
+        from diagnostic_msgs.msg import DiagnosticArray
+        from rclpy.clock import Clock, ClockType
+
+        self.node, self.what, self.status = node, what, status
+        self.pub = node.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self.timer = node.create_timer(period, self.publish,
+                                       clock=Clock(clock_type=ClockType.STEADY_TIME))
+
+    def set_period(self, period: float) -> None:
+        self.timer.timer_period_ns = int(period * 1e9)
+        self.timer.reset()
+
+    def publish(self) -> None:
+        from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+
+        st = self.status()
+        msg = DiagnosticArray()
+        msg.header.stamp = self.node.get_clock().now().to_msg()
+        item = DiagnosticStatus()
+        item.level = bytes([st.level])
+        item.name = f"{self.node.get_name()}: {self.what}"
+        item.message = st.message
+        item.hardware_id = self.node.get_namespace()
+        item.values = [KeyValue(key=k, value=v) for k, v in st.values]
+        msg.status = [item]
+        self.pub.publish(msg)
 
 
 def parse_cli(description: str, argv: list[str] | None = None,

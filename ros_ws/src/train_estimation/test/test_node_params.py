@@ -7,6 +7,7 @@ from pathlib import Path
 import pytest
 import yaml
 from train_core.config import ConfigError, param_fields
+from train_core.diagnostics import EstimatorThresholds, StaleThresholds
 
 from train_estimation.core.estimators import BrakingConfig, NodeConfig, RobustConfig
 from train_estimation.core.integrity import IntegrityParams
@@ -26,7 +27,10 @@ def _same(a, b):
 @pytest.mark.parametrize("name", sorted(NODES))
 def test_params_file_has_exactly_the_declared_fields_with_their_defaults(name):
     params = yaml.safe_load((CONFIG / name).read_text())["/**"]["ros__parameters"]
-    fields = param_fields(NodeConfig) + param_fields(NODES[name]) + param_fields(IntegrityParams)
+    from train_estimation.nodes.estimator_node import LineChoice
+
+    fields = (param_fields(NodeConfig) + param_fields(LineChoice) + param_fields(NODES[name])
+              + param_fields(EstimatorThresholds) + param_fields(IntegrityParams))
     declared = {f.name for f in fields}
     assert set(params) == declared, (set(params) - declared, declared - set(params))
     for f in fields:
@@ -60,7 +64,93 @@ def test_recorder_params_file_has_exactly_the_declared_fields():
     from train_estimation.nodes.recorder import RecorderConfig
 
     params = yaml.safe_load((CONFIG / "recorder.yaml").read_text())["/**"]["ros__parameters"]
-    fields = param_fields(RecorderConfig)
+    fields = param_fields(RecorderConfig) + param_fields(StaleThresholds)
     assert set(params) == {f.name for f in fields}
     for f in fields:
         assert _same(params[f.name], f.default), f.name
+
+
+# --- the running node: start-up refusals in one line, runtime changes validated ------------
+
+def _node_output(launch, *args, name):
+    proc = launch.node("train_estimation", "robust_filter", "--ros-args", *args, name=name)
+    proc.wait(timeout=60)
+    return proc.returncode, Path(proc.log_path).read_text()
+
+
+@pytest.mark.ros
+@pytest.mark.parametrize("arg,want", [
+    ("q:=abc", "error: parameter q: expected a number (write 5.0, not 5), got 'abc' (string)"),
+    ("q:=1", "error: parameter q: expected a number (write 5.0, not 5), got '1' (integer)"),
+    ("use_distance:=3.5", "error: parameter use_distance: expected a boolean (true/false), "
+                          "got '3.5' (double)"),
+    ("q:=-1.0", "error: parameter q: -1.0 must be finite and >= 0"),
+])
+def test_a_bad_parameter_at_start_up_is_one_line_not_a_traceback(launch, arg, want):
+    code, out = _node_output(launch, "-p", "use_demo_line:=true", "-p", arg,
+                             name=f"bad_{arg.split(':')[0]}")
+    assert code == 2, out
+    assert "Traceback" not in out, out
+    lines = [ln for ln in out.splitlines() if ln.strip()]
+    assert lines == [want], out
+
+
+@pytest.mark.ros
+def test_an_estimator_without_a_line_file_refuses_to_start(launch):
+    code, out = _node_output(launch, name="no_line")
+    assert code == 2 and "Traceback" not in out, out
+    assert out.strip() == ("error: parameter line_file: empty: give the line.yaml the train "
+                           "runs on (or use_demo_line:=true to run on the demo's line, "
+                           "metro_demo)")
+
+
+@pytest.mark.ros
+def test_runtime_set_parameters_is_validated_and_refused_with_a_reason(launch, ros_node):
+    """q = -1 is refused with the dataclass's reason; a valid q is refused too (read at start-up:
+    accepting it would be a silent no-op); diagnostics thresholds change live, checked."""
+    from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
+    from rcl_interfaces.srv import GetParameters, SetParameters
+
+    ns = "/params"
+    launch.node("train_estimation", "robust_filter", "--ros-args", "-r", f"__ns:={ns}",
+                "-p", "use_demo_line:=true", name="live_params")
+    node = ros_node.node
+    set_cli = node.create_client(SetParameters, f"{ns}/robust_filter/set_parameters")
+    get_cli = node.create_client(GetParameters, f"{ns}/robust_filter/get_parameters")
+    ros_node.wait_until(lambda: set_cli.service_is_ready() and get_cli.service_is_ready(),
+                        timeout=30, what="the node's parameter services")
+
+    def call(client, request):
+        future = client.call_async(request)
+        ros_node.wait_until(future.done, timeout=10, what="a parameter service answer")
+        return future.result()
+
+    def set_double(name, value):
+        p = Parameter(name=name, value=ParameterValue(type=ParameterType.PARAMETER_DOUBLE,
+                                                      double_value=value))
+        (result,) = call(set_cli, SetParameters.Request(parameters=[p])).results
+        return result
+
+    def get(name):
+        (v,) = call(get_cli, GetParameters.Request(names=[name])).values
+        return v.double_value
+
+    r = set_double("q", -1.0)
+    assert not r.successful and r.reason == "parameter q: -1.0 must be finite and >= 0", r.reason
+    r = set_double("q", 0.5)
+    assert not r.successful
+    assert r.reason == "parameter q: read at start-up only; restart the node to change it"
+    assert get("q") == 0.49  # unchanged
+    r = set_double("stale_warn", 6.0)  # above stale_error (5.0): the pair's check
+    assert not r.successful and r.reason.startswith("parameter stale_error:"), r.reason
+    r = set_double("stale_warn", 3.0)
+    assert r.successful, r.reason
+    assert get("stale_warn") == 3.0
+    # a live change takes effect: four statuses a second after diagnostics_period := 0.25
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    assert set_double("diagnostics_period", 0.25).successful
+    box = ros_node.collect(DiagnosticArray, "/diagnostics")
+    ros_node.spin_for(2.0)
+    mine = [s for a in box for s in a.status if s.hardware_id == ns]
+    assert 6 <= len(mine) <= 9, len(mine)

@@ -122,7 +122,10 @@ def test_params_file_has_exactly_the_declared_fields_with_their_defaults():
 
     path = Path(__file__).resolve().parents[1] / "config" / "zone_controller.yaml"
     params = yaml.safe_load(path.read_text())["/**"]["ros__parameters"]
-    fields = param_fields(ZoneParams) + param_fields(ZoneNodeConfig)
+    from train_core.diagnostics import InputThresholds
+
+    fields = param_fields(ZoneParams) + param_fields(ZoneNodeConfig) + \
+        param_fields(InputThresholds)
     assert set(params) == {f.name for f in fields}
     for f in fields:
         want = list(f.default) if isinstance(f.default, tuple) else f.default
@@ -141,7 +144,9 @@ def test_simulator_params_file_has_exactly_the_declared_fields_with_their_defaul
 
     path = Path(__file__).resolve().parents[1] / "config" / "simulator.yaml"
     params = yaml.safe_load(path.read_text())["/**"]["ros__parameters"]
-    fields = param_fields(SimulatorConfig)
+    from train_core.diagnostics import StaleThresholds
+
+    fields = param_fields(SimulatorConfig) + param_fields(StaleThresholds)
     assert set(params) == {f.name for f in fields}
     for f in fields:
         want = list(f.default) if isinstance(f.default, tuple) else f.default

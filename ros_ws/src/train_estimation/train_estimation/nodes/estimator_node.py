@@ -7,14 +7,29 @@ steady wall-clock timer does the same for lost samples (predicted slots). Each e
 TrainState stamped with its sample's own stamp (the odometer's clock). Rejected input is logged
 with its reason (throttled; names of ``core/reasons.py``) and counted; events (a sequence
 reset, separate clocks found) are logged once each; the counts are logged at shutdown.
+
+Besides the TrainState, each estimate is published as ``nav_msgs/Odometry`` on ``odom/<name>``
+(``estimate/robust`` -> ``odom/robust``; covariances by ``core/odometry.py``), and the node's
+health (input rates, accepted and rejected counts by reason, staleness, latency, integrity) goes
+to ``/diagnostics`` once per ``diagnostics_period`` (levels by ``train_core.diagnostics``).
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from dataclasses import dataclass
 
+from train_core.config import param, param_fields
 from train_core.ros import ParameterError, declare_config, sec_to_stamp, stamp_to_sec
+
+
+@dataclass(frozen=True)
+class LineChoice:
+    """Whether an estimator may run on the demo's line when no line file is given."""
+
+    use_demo_line: bool = param(False, "", "with line_file empty, run on metro_demo's line (the "
+                                "demo's); false: an empty line_file is refused")
 
 
 def declare_common(node) -> dict:
@@ -24,9 +39,11 @@ def declare_common(node) -> dict:
     from train_estimation.core.estimators import NodeConfig
 
     try:
-        return asdict(declare_config(node, NodeConfig))
+        common = asdict(declare_config(node, NodeConfig))
+        common.update(asdict(declare_config(node, LineChoice)))
     except ValueError as exc:
         raise ParameterError(str(exc)) from None
+    return common
 
 
 def load_models(common: dict):
@@ -37,6 +54,10 @@ def load_models(common: dict):
 
     from train_estimation.core.estimators import StartState
 
+    if not common["line_file"] and not common.get("use_demo_line", False):
+        # an estimator on the wrong line map is wrong everywhere: never guess it silently
+        raise ParameterError("parameter line_file: empty: give the line.yaml the train runs on "
+                             "(or use_demo_line:=true to run on the demo's line, metro_demo)")
     line_file = common["line_file"] or str(config_file("lines", "metro_demo"))
     train_file = common["train_file"] or str(config_file("trains", "metro_b6"))
     try:
@@ -57,9 +78,13 @@ def _quantiles(values: list[float]) -> tuple[float, float, float]:
 
 def build_estimator_node(name: str, topic: str, make_adapter: Callable):
     """A node that feeds ``make_adapter(node, train, line, start, common)`` through a runner."""
+    from nav_msgs.msg import Odometry
     from rclpy.clock import Clock, ClockType
     from rclpy.node import Node
+    from train_core import diagnostics as D
+    from train_core.ros import Diagnostics
 
+    from train_estimation.core.odometry import odometry_covariances
     from train_estimation.core.runner import EstimatorRunner
     from train_interfaces.msg import (
         BaliseReading,
@@ -107,6 +132,25 @@ def build_estimator_node(name: str, topic: str, make_adapter: Callable):
             self.delay = common["output_delay"]
             self.wait_subs = common["wait_for_subscribers"]
             self.pub = self.create_publisher(TrainState, topic, 1000)
+            self.odom_topic = "odom/" + topic.rsplit("/", 1)[-1]
+            self.odom_pub = self.create_publisher(Odometry, self.odom_topic, 1000)
+            # /diagnostics: counters the runner does not keep (arrivals), read by the core
+            self.started = self.steady.now().nanoseconds * 1e-9
+            self.received = dict.fromkeys(("odometer", "control", "balise"), 0)
+            self.last_arrival = dict.fromkeys(self.received, math.nan)
+            self.window_latency: list[float] = []
+            self.last_integrity: tuple[int, str] | None = None
+            self.diag_prev: dict = {}
+            self.n_published = 0
+            try:
+                self.diag_cfg = declare_config(self, D.EstimatorThresholds,
+                                               live=tuple(f.name for f in
+                                                          param_fields(D.EstimatorThresholds)),
+                                               on_change=self._on_diag_change)
+            except ValueError as exc:
+                raise ParameterError(str(exc)) from None
+            self.diag = Diagnostics(self, f"{self.adapter.source} estimator",
+                                    self.diag_cfg.diagnostics_period, self.diagnostics)
             self.create_subscription(OdometerReading, "odometer", self.on_odometer, 2000)
             self.create_subscription(BaliseReading, "balise", self.on_balise, 200)
             self.create_subscription(ControlCommand, "control", self.on_control, 2000)
@@ -127,6 +171,8 @@ def build_estimator_node(name: str, topic: str, make_adapter: Callable):
             # clock can stall behind the data (a player's /clock), which arrival must not do.
             recv = self.steady.now().nanoseconds * 1e-9
             stamp = stamp_to_sec(msg.header.stamp)
+            self.received[kind] += 1
+            self.last_arrival[kind] = recv
             reason = self.runner.push(kind, stamp, fields, recv)
             if kind == "odometer" and not reason:
                 self.arrived[stamp] = recv  # for the received -> published latency
@@ -167,6 +213,10 @@ def build_estimator_node(name: str, topic: str, make_adapter: Callable):
                 msg.measurement_used = out.measurement_used
                 msg.integrity = out.integrity
                 self.pub.publish(msg)
+                self.odom_pub.publish(self._odometry(msg))
+                self.n_published += 1
+                self.last_integrity = (int(out.integrity),
+                                       str(getattr(out, "integrity_reason", "")))
                 t_recv = self.arrived.pop(out.stamp, None)
                 if t_recv is not None:
                     lat = self.steady.now().nanoseconds * 1e-9 - t_recv
@@ -176,6 +226,7 @@ def build_estimator_node(name: str, topic: str, make_adapter: Callable):
                         self.latency_startup.append(lat)
                     else:
                         self.latency.append(lat)
+                        self.window_latency.append(lat)
                         self.waited.append(max(0.0, t_tick - t_recv))
                         self.processed.append(lat - self.waited[-1])
             if len(self.arrived) > 1000:  # samples that never became an estimate (refused)
@@ -196,6 +247,45 @@ def build_estimator_node(name: str, topic: str, make_adapter: Callable):
                 self.n_reported = total
                 self.get_logger().warning(f"{kind} at {stamp:.3f} s rejected: {why} "
                                           f"({total} rejected so far)", throttle_duration_sec=2.0)
+
+        def _odometry(self, state):
+            """The estimate as nav_msgs/Odometry (frames and covariances: core/odometry.py)."""
+            odom = Odometry()
+            odom.header = state.header
+            odom.child_frame_id = "base_link"
+            odom.pose.pose.position.x = state.position
+            odom.pose.pose.orientation.w = 1.0  # the body x axis along the track's
+            odom.twist.twist.linear.x = state.velocity
+            odom.pose.covariance, odom.twist.covariance = odometry_covariances(state.covariance)
+            return odom
+
+        def _on_diag_change(self, cfg) -> None:
+            self.diag_cfg = cfg
+            self.diag.set_period(cfg.diagnostics_period)
+
+        def diagnostics(self):
+            """The node's Status for /diagnostics (the rules: train_core.diagnostics)."""
+            now = self.steady.now().nanoseconds * 1e-9
+            inputs = []
+            for kind in ("odometer", "control", "balise"):
+                reasons = {k.split(":", 1)[1]: n for k, n in self.runner.rejected.items()
+                           if k.split(":", 1)[0] == kind}
+                inputs.append(D.InputCounts(kind, self.received[kind],
+                                            self.runner.accepted.get(kind, 0), reasons,
+                                            self.last_arrival[kind],
+                                            watch_stale=kind != "balise"))
+            cfg = self.diag_cfg
+            checks, values = D.input_checks(now, self.started, inputs, self.diag_prev,
+                                            cfg.diagnostics_period, cfg)
+            self.diag_prev = {c.name: c for c in inputs}
+            lat_checks, lat_values = D.latency_check(self.window_latency, cfg)
+            self.window_latency = []
+            integ = self.last_integrity
+            i_checks, i_values = D.integrity_check(*(integ if integ else (None, "")))
+            extra = [("source", self.adapter.source), ("estimates_published",
+                                                       str(self.n_published))]
+            return D.combine(checks + lat_checks + i_checks,
+                             extra + values + lat_values + i_values)
 
         def close(self) -> None:
             if self.latency:

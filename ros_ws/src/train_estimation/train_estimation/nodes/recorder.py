@@ -8,19 +8,24 @@ or ``kill -9`` loses at most that much and leaves a bag that opens as it is (``r
 ``check_bag``, rosbags' AnyReader; ``python -m train_core.bagio repair BAG`` adds the index);
 SIGINT/SIGTERM close the bag properly. At the end it logs the topics, message counts and bytes
 written.
+
+Besides CONTRACT.md's topics it records any ``estimate/<name>`` (TrainState), ``odom/<name>``
+(nav_msgs/Odometry) and ``/diagnostics`` (diagnostic_msgs/DiagnosticArray), so that a bag shows
+in Foxglove what the nodes published. Its own health (per topic: rate, count, silence; bytes
+written) goes to ``/diagnostics``.
 """
 
 from __future__ import annotations
 
+import math
 import sys
 from dataclasses import dataclass
 
-from train_core.config import param, require
+from train_core.config import param, param_fields, require
 from train_core.ros import (
     TOPIC_TYPES,
     ParameterError,
     declare_config,
-    msg_class,
     parse_cli,
     run_node,
 )
@@ -28,6 +33,29 @@ from train_core.ros import (
 DESCRIPTION = __doc__.splitlines()[0]
 DEFAULT_TOPICS = ["odometer", "balise", "control", "ground_truth", "estimate/robust",
                   "estimate/gsma", "movement_authority"]
+SPARSE = ("balise",)  # minutes apart by design: never judged stale
+
+
+def topic_type(topic: str) -> str | None:
+    """The full message type recorded on ``topic`` (relative, or absolute with a namespace):
+    CONTRACT.md's topics, ``estimate/<name>``, ``odom/<name>``, ``/diagnostics``; else None."""
+    parts = topic.strip("/").split("/")
+    for i in range(len(parts)):  # drop leading namespace components
+        rel, rest = "/".join(parts[i:]), len(parts) - i
+        if rel in TOPIC_TYPES:
+            return f"train_interfaces/msg/{TOPIC_TYPES[rel]}"
+        if rest == 2 and parts[i] == "estimate":
+            return "train_interfaces/msg/TrainState"
+        if rest == 2 and parts[i] == "odom":
+            return "nav_msgs/msg/Odometry"
+        if rel == "diagnostics" and topic.startswith("/") and i == 0:
+            return "diagnostic_msgs/msg/DiagnosticArray"
+    return None
+
+
+def type_class(full: str):
+    pkg, _, name = full.split("/")
+    return getattr(__import__(f"{pkg}.msg", fromlist=[name]), name)
 
 
 @dataclass(frozen=True)
@@ -35,20 +63,23 @@ class RecorderConfig:
     """The recorder's parameters (declared from this metadata; config/recorder.yaml)."""
 
     topics: tuple[str, ...] = param(tuple(DEFAULT_TOPICS), "", "topics to record (CONTRACT.md "
-                                    "names)")
+                                    "names, estimate/NAME, odom/NAME, /diagnostics)")
     bag: str = param("", "", "bag directory to create (must not exist)")
     flush_period: float = param(1.0, "s", "of wall time between chunk flushes")
 
     def __post_init__(self):
         require(bool(self.bag), "bag", self.bag, "is empty: give the bag directory to write")
-        unknown = [t for t in self.topics if t.split("/")[-1] not in
-                   {k.split("/")[-1] for k in TOPIC_TYPES}]
-        require(not unknown, "topics", unknown, f"unknown (allowed: {sorted(TOPIC_TYPES)})")
+        unknown = [t for t in self.topics if topic_type(t) is None]
+        require(not unknown, "topics", unknown, f"unknown (allowed: {sorted(TOPIC_TYPES)}, "
+                "estimate/NAME, odom/NAME, /diagnostics)")
 
 
 def build_node():
+    from rclpy.clock import Clock, ClockType
     from rclpy.node import Node
+    from train_core import diagnostics as D
     from train_core.bagio import BagError, BagWriter
+    from train_core.ros import Diagnostics
 
     class Recorder(Node):
         def __init__(self):
@@ -65,23 +96,55 @@ def build_node():
             except (BagError, OSError) as exc:
                 raise ParameterError(f"parameter bag: {exc}") from None
             self.bytes = 0
+            self.steady = Clock(clock_type=ClockType.STEADY_TIME)
+            self.started = self.steady.now().nanoseconds * 1e-9
+            self.received: dict[str, int] = {}
+            self.last_arrival: dict[str, float] = {}
             for topic in topics:
-                rel = topic.lstrip("/")
-                key = rel if rel in TOPIC_TYPES else rel.split("/", 1)[-1]
-                type_name = TOPIC_TYPES[key]
-                msgtype = f"train_interfaces/msg/{type_name}"
+                msgtype = topic_type(topic)
                 full = self.resolve_topic_name(topic)
+                self.received[full], self.last_arrival[full] = 0, math.nan
                 self.create_subscription(
-                    msg_class(type_name), topic,
+                    type_class(msgtype), topic,
                     lambda data, full=full, msgtype=msgtype: self.on_msg(full, msgtype, data),
                     1000, raw=True)
             self.timer = self.create_timer(flush, self.writer.flush)
+            self.diag_prev: dict = {}
+            try:
+                self.diag_cfg = declare_config(
+                    self, D.StaleThresholds,
+                    live=tuple(f.name for f in param_fields(D.StaleThresholds)),
+                    on_change=self._on_diag_change)
+            except ValueError as exc:
+                raise ParameterError(str(exc)) from None
+            self.diag = Diagnostics(self, "bag recorder", self.diag_cfg.diagnostics_period,
+                                    self.diagnostics)
             self.get_logger().info(f"recording {topics} in {ns} to {bag}")
 
         def on_msg(self, topic: str, msgtype: str, data: bytes) -> None:
             t_ns = self.get_clock().now().nanoseconds
             self.writer.write_raw(topic, msgtype, t_ns, data)
             self.bytes += len(data)
+            self.received[topic] += 1
+            self.last_arrival[topic] = self.steady.now().nanoseconds * 1e-9
+
+        def _on_diag_change(self, cfg) -> None:
+            self.diag_cfg = cfg
+            self.diag.set_period(cfg.diagnostics_period)
+
+        def diagnostics(self):
+            """Per topic: rate, count and silence (a topic is watched once it has delivered:
+            a recorder may be told to record a topic nobody publishes in this run)."""
+            now = self.steady.now().nanoseconds * 1e-9
+            inputs = [D.InputCounts(t, n, n, {}, self.last_arrival[t],
+                                    watch_stale=n > 0 and t.rsplit("/", 1)[-1] not in SPARSE)
+                      for t, n in self.received.items()]
+            cfg = self.diag_cfg
+            checks, values = D.input_checks(now, self.started, inputs, self.diag_prev,
+                                            cfg.diagnostics_period, cfg)
+            self.diag_prev = {c.name: c for c in inputs}
+            return D.combine(checks, [("bag", str(self.writer.path)),
+                                      ("bytes_written", str(self.bytes)), *values])
 
         def close(self) -> None:
             self.writer.close()

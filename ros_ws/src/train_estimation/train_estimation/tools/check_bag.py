@@ -329,8 +329,14 @@ def format_report(summary: dict) -> str:
                          "clock: simulated time if recorded with use_sim_time)")
     if summary.get("by_position"):
         lines += format_by_position(summary)
+    other = []  # topics of other packages' types (Odometry, /diagnostics): one line
     for k, why in summary.get("skipped", {}).items():
-        lines.append(f"not used: {k}: {why}")
+        if why.endswith("is not a CONTRACT.md type"):
+            other.append(f"{k} ({why.split()[1].replace('/msg/', '/')})")
+        else:
+            lines.append(f"not used: {k}: {why}")
+    if other:
+        lines.append("also in the bag, not checked: " + ", ".join(sorted(other)))
     return "\n".join(lines)
 
 

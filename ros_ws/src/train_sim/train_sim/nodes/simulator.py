@@ -5,6 +5,8 @@ what it emits: ``odometer`` and ``balise`` after the lossy radio link, ``control
 command) and ``ground_truth``, each stamped with its sample time, plus ``/clock`` (the world's
 time) so every other node can run with ``use_sim_time``. Subscribes ``movement_authority`` and
 hands it to the ATO. Same scenario and seed, same message contents as the offline generator.
+Its health (state, simulated time, messages published, the authorities and paced topics it
+receives) goes to ``/diagnostics`` once per ``diagnostics_period``.
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from train_core.config import param, require
+from train_core.config import param, param_fields, require
 from train_core.ros import (
     TOPIC_TYPES,
     ParameterError,
@@ -78,9 +80,13 @@ class SimulatorConfig:
 
 
 def build_node():
+    from rclpy.clock import Clock as RosClock
+    from rclpy.clock import ClockType
     from rclpy.node import Node
     from rosgraph_msgs.msg import Clock
+    from train_core import diagnostics as D
     from train_core.config import ConfigError
+    from train_core.ros import Diagnostics
 
     from train_interfaces.msg import MovementAuthority
     from train_sim.scenario import load_scenario, with_model
@@ -139,15 +145,57 @@ def build_node():
             self.finished = False
             self.done = False
             self.timer = self.create_timer(self.step, self.tick)
+            # /diagnostics: what the world receives (authorities, paced estimates); each input
+            # is judged stale only once it has come (a world run without a zone controller is
+            # a valid set-up, one that loses its controller is not)
+            self.steady = RosClock(clock_type=ClockType.STEADY_TIME)
+            self.started = self.steady.now().nanoseconds * 1e-9
+            self.in_received = dict.fromkeys(["movement_authority", *self.paced], 0)
+            self.in_last = dict.fromkeys(self.in_received, math.nan)
+            self.diag_prev: dict = {}
+            try:
+                self.diag_cfg = declare_config(
+                    self, D.StaleThresholds,
+                    live=tuple(f.name for f in param_fields(D.StaleThresholds)),
+                    on_change=self._on_diag_change)
+            except ValueError as exc:
+                raise ParameterError(str(exc)) from None
+            self.diag = Diagnostics(self, "train world", self.diag_cfg.diagnostics_period,
+                                    self.diagnostics)
             self.get_logger().info(
                 f"scenario {self.sc.name}, seed {self.world.seed}, {self.duration:.0f} s at "
                 f"{self.rate_factor:g}x real time")
 
+        def _arrived(self, topic: str) -> None:
+            self.in_received[topic] += 1
+            self.in_last[topic] = self.steady.now().nanoseconds * 1e-9
+
+        def _on_diag_change(self, cfg) -> None:
+            self.diag_cfg = cfg
+            self.diag.set_period(cfg.diagnostics_period)
+
+        def diagnostics(self):
+            now = self.steady.now().nanoseconds * 1e-9
+            inputs = [D.InputCounts(t, n, n, {}, self.in_last[t], watch_stale=n > 0)
+                      for t, n in self.in_received.items()]
+            cfg = self.diag_cfg
+            checks, values = D.input_checks(now, self.started, inputs, self.diag_prev,
+                                            cfg.diagnostics_period, cfg)
+            self.diag_prev = {c.name: c for c in inputs}
+            state = ("waiting for subscribers" if self.wall0 is None
+                     else "ended" if self.done else "running")
+            head = [("scenario", self.sc.name), ("seed", str(self.world.seed)), ("state", state),
+                    ("sim_time_s", f"{self.t_sim:.2f}"), ("rate_factor", f"{self.rate_factor:g}")]
+            head += [(f"{t}.published", str(n)) for t, n in self.counts.items()]
+            return D.combine(checks, head + values)
+
         def on_ma(self, msg) -> None:
+            self._arrived("movement_authority")
             self.world.set_movement_authority(msg.end_of_authority, msg.permitted_speed,
                                               msg.emergency_brake)
 
         def on_paced(self, topic: str, msg) -> None:
+            self._arrived(topic)
             self.paced[topic] = max(self.paced[topic], stamp_to_sec(msg.header.stamp))
 
         def tick(self) -> None:

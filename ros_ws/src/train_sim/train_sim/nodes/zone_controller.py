@@ -5,6 +5,8 @@ Subscribes ``<train>/<state_topic>`` (TrainState) for every entry of ``trains`` 
 estimator reports integrity ALARM. An entry of ``trains`` is a namespace: "" means the node's own
 namespace (relative names), "/train2" an absolute one. Refused reports are logged once per train
 and kind per ``log_interval`` with their count; a followed clock reset is logged when it happens.
+Its health (per train: reports received, accepted and rejected by reason, their silence, the
+emergency brake and why) goes to ``/diagnostics`` once per ``diagnostics_period``.
 """
 
 from __future__ import annotations
@@ -13,14 +15,18 @@ import math
 import sys
 from dataclasses import replace
 
+from train_core.config import param_fields
 from train_core.ros import ParameterError, declare_config, parse_cli, run_node, stamp_to_sec
 
 DESCRIPTION = __doc__.splitlines()[0]
 
 
 def build_node():
+    from rclpy.clock import Clock, ClockType
     from rclpy.node import Node
+    from train_core import diagnostics as D
     from train_core.model import load_line
+    from train_core.ros import Diagnostics
 
     from train_interfaces.msg import MovementAuthority, TrainState
     from train_sim.zone import (
@@ -64,6 +70,23 @@ def build_node():
             self.last_state: dict[str, str] = {}
             self.refusals = RefusalLog(node_cfg.log_interval)
             self.timer = self.create_timer(1.0 / rate, self.publish)
+            # /diagnostics: per train, reports received (steady clock) and refused by reason
+            self.steady = Clock(clock_type=ClockType.STEADY_TIME)
+            self.started = self.steady.now().nanoseconds * 1e-9
+            self.received = dict.fromkeys(self.trains, 0)
+            self.refused: dict[str, dict[str, int]] = {t: {} for t in self.trains}
+            self.last_arrival = dict.fromkeys(self.trains, math.nan)
+            self.last_auth: dict = {}
+            self.diag_prev: dict = {}
+            try:
+                self.diag_cfg = declare_config(
+                    self, D.InputThresholds,
+                    live=tuple(f.name for f in param_fields(D.InputThresholds)),
+                    on_change=self._on_diag_change)
+            except ValueError as exc:
+                raise ParameterError(str(exc)) from None
+            self.diag = Diagnostics(self, "movement authorities",
+                                    self.diag_cfg.diagnostics_period, self.diagnostics)
             self.get_logger().info(
                 f"zone controller for {self.trains} on '{state_topic}', "
                 f"danger points {points}, k={params.k_sigma}")
@@ -92,7 +115,10 @@ def build_node():
             resets = self.zone.clock_resets.get(tid, 0)
             prev = self.zone.reports.get(tid)
             kind = self.zone.report(tid, rep)
+            self.received[tid] += 1
+            self.last_arrival[tid] = self.steady.now().nanoseconds * 1e-9
             if kind:
+                self.refused[tid][kind] = self.refused[tid].get(kind, 0) + 1
                 n = self.refusals.note(tid, kind, now)
                 if n:
                     _, _, detail = self.zone.last_refusal
@@ -118,6 +144,7 @@ def build_node():
                 msg.permitted_speed = float(auth.permitted_speed)
                 msg.emergency_brake = auth.emergency_brake
                 self.pubs[auth.train_id].publish(msg)
+                self.last_auth[auth.train_id] = auth
                 if auth.state != self.last_state.get(auth.train_id, "ok"):
                     # a change of state is logged once (the reason's numbers change at every
                     # publication); rclpy wants one severity per call site: two calls
@@ -127,6 +154,32 @@ def build_node():
                     else:
                         self.get_logger().info(f"{auth.train_id}: emergency brake released")
                     self.last_state[auth.train_id] = auth.state
+
+        def _on_diag_change(self, cfg) -> None:
+            self.diag_cfg = cfg
+            self.diag.set_period(cfg.diagnostics_period)
+
+        def diagnostics(self):
+            """Reports per train as inputs; an emergency brake set is WARN with its reason
+            (the zone doing its job on a train it cannot bound, worth an operator's look)."""
+            now = self.steady.now().nanoseconds * 1e-9
+            inputs = [D.InputCounts(t, self.received[t],
+                                    self.received[t] - sum(self.refused[t].values()),
+                                    dict(self.refused[t]), self.last_arrival[t])
+                      for t in self.trains]
+            cfg = self.diag_cfg
+            checks, values = D.input_checks(now, self.started, inputs, self.diag_prev,
+                                            cfg.diagnostics_period, cfg)
+            self.diag_prev = {c.name: c for c in inputs}
+            for t in self.trains:
+                auth = self.last_auth.get(t)
+                values.append((f"{t}.emergency_brake", "unknown" if auth is None
+                               else str(bool(auth.emergency_brake)).lower()))
+                if auth is not None and auth.emergency_brake:
+                    checks.append((D.WARN, f"{t}: emergency brake set ({auth.reason})"))
+                if auth is not None:
+                    values.append((f"{t}.end_of_authority_m", f"{auth.end_of_authority:.1f}"))
+            return D.combine(checks, values)
 
     return ZoneControllerNode()
 

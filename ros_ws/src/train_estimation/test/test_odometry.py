@@ -1,0 +1,34 @@
+"""nav_msgs/Odometry covariances from an estimate's 4x4 (REP-103: unknown = large, never NaN)."""
+
+import math
+
+import numpy as np
+import pytest
+
+from train_estimation.core.odometry import UNKNOWN_VARIANCE, odometry_covariances
+
+
+def test_position_and_speed_variances_go_to_x_and_the_rest_is_unknown():
+    cov = np.diag([0.25, 0.01, 0.3, 0.02]).ravel()
+    cov[1] = cov[4] = 0.04  # position-velocity correlation: not expressible in Odometry
+    pose, twist = odometry_covariances(list(cov))
+    p, t = np.reshape(pose, (6, 6)), np.reshape(twist, (6, 6))
+    assert p[0, 0] == 0.25 and t[0, 0] == 0.01
+    for m in (p, t):
+        assert np.all(np.diag(m)[1:] == UNKNOWN_VARIANCE)
+        assert np.all(m[~np.eye(6, dtype=bool)] == 0.0)
+        assert np.all(np.linalg.eigvalsh(m) > 0)  # a valid covariance for any consumer
+
+
+@pytest.mark.parametrize("bad", [math.nan, math.inf, -1.0, 0.0])
+def test_not_estimated_or_invalid_variances_are_unknown_never_nan(bad):
+    cov = [math.nan] * 16
+    cov[0], cov[5] = bad, 0.04
+    pose, twist = odometry_covariances(cov)
+    assert pose[0] == UNKNOWN_VARIANCE and twist[0] == 0.04
+    assert all(math.isfinite(v) for v in pose + twist)
+
+
+def test_wrong_size_is_an_error():
+    with pytest.raises(ValueError, match="16"):
+        odometry_covariances([0.0] * 4)
