@@ -97,13 +97,15 @@ class World:
         s_odo, s_bal, s_lodo, s_lbal, s_dodo, s_dbal = np.random.SeedSequence(self.seed).spawn(6)
         tt, eff = sc.true_train, sc.effects
         self.effects = eff
-        act = Actuator(tt.brake.time_constant, tt.brake.delay,
+        act = Actuator(tt.brake.time_constant,
+                       eff.traction_delay.delay if eff.traction_delay else tt.brake.delay,
                        a0=sc.start_acceleration, u0=sc.start_target_acceleration,
-                       brake_delay=eff.brake_delay.delay if eff.brake_delay else None)
+                       brake_delay=eff.brake_delay.delay if eff.brake_delay else tt.brake.delay)
         self._braking_rate_const = None if eff.braking_rate else tt.brake.braking_rate
         self.motion = Motion(tt, sc.true_line, sc.train, act, sc.start_position,
                              sc.start_speed, sc.max_step,
-                             None if self._braking_rate_const is not None else self.braking_rate)
+                             None if self._braking_rate_const is not None else self.braking_rate,
+                             **drive_effects(eff))
         if commands is None:
             self.driver = Driver(sc.line, sc.train, sc.driver, sc.timetable, sc.start_position,
                                  sc.start_speed, a0=sc.start_acceleration,
@@ -330,6 +332,13 @@ def simulate(scenario: Scenario, seed: int | None = None, duration: float | None
     return world.result()
 
 
+def drive_effects(eff: Effects) -> dict:
+    """The :class:`~train_core.motion.Motion` keywords of the effects on the delivered drive
+    (power limit, adhesion section)."""
+    return {"p_spec": eff.power_limit.p_spec if eff.power_limit else None,
+            "adhesion": eff.adhesion_section.as_tuple() if eff.adhesion_section else None}
+
+
 NO_EFFECTS = Effects()
 LOSSLESS = LinkParams(p=0.0)  # every message received, no latency
 
@@ -370,7 +379,8 @@ def open_loop(line: Line, train: TrainParams, commands: tuple, *, effects: Effec
     # Actuator state at t0: the commands issued before t0 through the true actuator alone.
     brake_delay = eff.brake_delay.delay if eff.brake_delay else None
     f_of = (lambda t: eff.braking_rate.value(t)) if eff.braking_rate else None
-    act = warm_actuator(tt, ct, ca, 0.0, warmup, brake_delay, f_of)
+    act = warm_actuator(tt, ct, ca, 0.0, warmup, brake_delay, f_of,
+                        eff.traction_delay.delay if eff.traction_delay else None)
     before = ct < 0.0
     sc = Scenario(
         name="open_loop", path="", line=line, train=believed,
