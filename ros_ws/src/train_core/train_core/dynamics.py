@@ -92,9 +92,15 @@ class Dynamics:
 
     def __init__(self, train: TrainParams, line: Line, believed_train: TrainParams | None = None,
                  p_spec: float | None = None,
-                 adhesion: tuple[float, float, float] | None = None):
+                 adhesion: tuple[float, float, float] | None = None,
+                 drive_hook=None, resist_hook=None):
         """``p_spec``: power limit (m^2/s^3); ``adhesion``: (start m, end m, factor -) of a
-        low-adhesion section (module docstring). Both None: the nominal drive."""
+        low-adhesion section (module docstring). Both None: the nominal drive.
+
+        Hooks for effects defined elsewhere (the simulator's test effects): ``drive_hook(x, v,
+        a_tr, a_br) -> (a_tr, a_br)`` (m/s^2) changes the delivered traction and braking parts;
+        ``resist_hook(t, x, v)`` is an extra deceleration (m/s^2) at the step's mid time ``t``
+        (set in ``self.t`` by the caller)."""
         m_eff = train.effective_mass
         self.ra = train.davis.a / m_eff  # m/s^2
         self.rb = train.davis.b / m_eff  # 1/s
@@ -105,7 +111,10 @@ class Dynamics:
         self.grad = GradientLookup(line, train.rotary_allowance)
         self.p_spec = None if p_spec is None else float(p_spec)
         self.adhesion = None if adhesion is None else tuple(float(a) for a in adhesion)
-        self.split = self.p_spec is not None or self.adhesion is not None
+        self.drive_hook, self.resist_hook = drive_hook, resist_hook
+        self.t = 0.0  # s, mid time of the current step (for resist_hook)
+        self.split = (self.p_spec is not None or self.adhesion is not None
+                      or drive_hook is not None or resist_hook is not None)
 
     def drive(self, x: float, v: float, a_hat: float, a_br: float) -> float:
         """m/s^2, the control acceleration delivered (before kappa) for the actuator output
@@ -117,11 +126,19 @@ class Dynamics:
         ad = self.adhesion
         if ad is not None and ad[0] <= x < ad[1]:
             a_br = ad[2] * a_br
+        if self.drive_hook is not None:
+            a_tr, a_br = self.drive_hook(x, v, a_tr, a_br)
         return a_tr + a_br
+
+    def _accel_hooked(self, x: float, v: float, a_hat: float) -> float:
+        out = self.accel(x, v, a_hat)
+        if self.resist_hook is not None:
+            out -= self.resist_hook(self.t, x, max(v, 0.0))
+        return out
 
     def _rk4_split(self, x, v, a0, a_mid, a_end, b0, b_mid, b_end, h):
         """RK4 as :meth:`_rk4` with the delivered drive (power limit, adhesion) at each stage."""
-        d, f = self.drive, self.accel
+        d, f = self.drive, self._accel_hooked
         h2 = 0.5 * h
         k1 = f(x, v, d(x, v, a0, b0))
         x2, v2 = x + h2 * v, v + h2 * k1

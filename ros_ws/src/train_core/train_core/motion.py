@@ -31,11 +31,12 @@ class Motion:
                  x0: float, v0: float, max_step: float = 0.01,
                  braking_rate_of_t: Callable[[float], float] | None = None,
                  p_spec: float | None = None,
-                 adhesion: tuple[float, float, float] | None = None):
+                 adhesion: tuple[float, float, float] | None = None,
+                 drive_hook=None, resist_hook=None):
         """``p_spec``, ``adhesion``: a power limit and a low-adhesion section on the delivered
-        drive (dynamics.py); None = off."""
+        drive; ``drive_hook``, ``resist_hook``: further effects (dynamics.py); None = off."""
         self.act = act
-        self.dyn = Dynamics(train, line, believed, p_spec, adhesion)
+        self.dyn = Dynamics(train, line, believed, p_spec, adhesion, drive_hook, resist_hook)
         self.state = MotionState(float(x0), float(v0), v0 == 0.0)
         self.max_step = float(max_step)
         self.braking_rate_const = train.brake.braking_rate if braking_rate_of_t is None else None
@@ -63,6 +64,7 @@ class Motion:
             ub = f * act.u_br
             a0, a_mid, a_end = act.segment(h, f)
             x0 = st.x
+            dyn.t = t0 + 0.5 * h
             dyn.step(st, h, a0, a_mid, a_end, ue, tau, (*act.br_stages, ub) if split else None)
             if visit is not None and st.x > x0:
                 visit(t0, h, x0, st.x)

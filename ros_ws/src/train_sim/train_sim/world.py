@@ -52,6 +52,7 @@ from train_core.motion import Motion, warm_actuator
 from .driver import Driver, DriverParams
 from .scenario import Scenario
 from .sensors import BaliseReader, Odometer
+from .unlisted import unlisted_hooks
 
 _EPS = 1e-9  # s
 TRUTH_COVARIANCE = (math.nan,) * 16  # CONTRACT.md: NaN where not estimated (truth is not)
@@ -105,7 +106,7 @@ class World:
         self.motion = Motion(tt, sc.true_line, sc.train, act, sc.start_position,
                              sc.start_speed, sc.max_step,
                              None if self._braking_rate_const is not None else self.braking_rate,
-                             **drive_effects(eff))
+                             **drive_effects(eff), **unlisted_hooks(sc.unlisted, tt))
         if commands is None:
             self.driver = Driver(sc.line, sc.train, sc.driver, sc.timetable, sc.start_position,
                                  sc.start_speed, a0=sc.start_acceleration,
@@ -347,7 +348,7 @@ def open_loop(line: Line, train: TrainParams, commands: tuple, *, effects: Effec
               believed_train: TrainParams | None = None, t0: float = 0.0,
               duration: float, x0: float, v0: float = 0.0, odometer_rate: float = 10.0,
               link: LinkParams = LOSSLESS, seed: int = 0, max_step: float = 0.01,
-              warmup: float = 30.0) -> SimResult:
+              warmup: float = 30.0, unlisted=None) -> SimResult:
     """The simulator open loop: ``line``/``train`` (+ ``effects``) driven by a recorded command
     series instead of the ATO, from true time ``t0`` for ``duration`` s.
 
@@ -358,6 +359,8 @@ def open_loop(line: Line, train: TrainParams, commands: tuple, *, effects: Effec
     commands into force for (default ``train``; the ``mass`` effect makes them differ). The
     result's times are true times (t0 + world time); motion, ground truth and sensor readings
     come from the same :class:`World` as a closed-loop run (``link`` default: lossless).
+    ``unlisted``: test effects (:mod:`train_sim.unlisted`), their times in the world's frame
+    (true time - t0).
     """
     from .scenario import Scenario
 
@@ -388,7 +391,7 @@ def open_loop(line: Line, train: TrainParams, commands: tuple, *, effects: Effec
         start_position=x0, start_speed=v0, start_acceleration=act.a,
         start_target_acceleration=0.0, odometer_rate=odometer_rate, max_step=max_step,
         driver=DriverParams(), timetable=(), link=link, true_link=true_link(link, eff),
-        effects=eff)
+        effects=eff, unlisted=unlisted)
     world = World(sc, seed, commands=(ct[~before], ca[~before]))
     world.motion.act = act
     world.advance(duration)

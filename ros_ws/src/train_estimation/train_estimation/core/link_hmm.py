@@ -6,13 +6,17 @@ hidden state s_k in {good, bad} per odometer sample k; sample k is lost with pro
 and bad -> good with ``p_bad_good``. So bursts are not the loss runs themselves: a bad spell may
 let some samples through and a good one may lose some.
 
-Fit: Baum-Welch (EM for hidden Markov models; Rabiner 1989, eq. (19)-(27), (37)-(40) and (40a-c)
-for the updates). The E-step's forward and backward messages are the prefix and suffix products
-of the 2x2 transfer matrices M_k[i, j] = A[i, j] P(o_k | j), computed for the whole sequence at
-once by a parallel (Hillis-Steele) scan in numpy, every partial product divided by its largest
-entry and the log of the divisor carried along -- the scaling of Rabiner's Sec. V.A, done per
-product rather than per step, so long sequences neither underflow nor need a Python loop over
-samples. All starts of a fit (and all replicates of a bootstrap) run side by side as a batch.
+Fit: Baum-Welch (EM for hidden Markov models; Rabiner 1989, eq. (18)-(27) for the forward and
+backward messages, (37)-(40) for the re-estimation). The E-step works on runs: between changes of
+the observation the transfer matrix M[i, j] = A[i, j] P(o | j) is constant, so a run of L equal
+observations is the matrix power M^L and its sums of posteriors come from one block-matrix power
+(:func:`statistics`); powers by squaring are shared by all runs of the same length. The messages
+over the runs are prefix and suffix products computed at once by a parallel (Hillis-Steele) scan,
+every partial product divided by its largest entry and the log of the divisor carried along (the
+scaling of Rabiner's Sec. V.A, per product rather than per step). The cost grows with the number
+of loss bursts, not of samples, with no Python loop over either; all starts of a fit run side by
+side as a batch. :func:`forward_backward` is the same E-step per sample (the reference the tests
+check it against).
 
 EM never decreases the likelihood (Dempster, Laird and Rubin 1977); the M-step keeps every
 probability in [EPS, 1 - EPS], which is the exact maximiser of the (concave, per-parameter) EM
@@ -24,10 +28,12 @@ probability. Under a Bernoulli link (losses independent, one loss probability) t
 merge and the transitions are not determined; :func:`fit_link` then reports the Bernoulli
 link as the memoryless chain p_good_bad = q, p_bad_good = 1 - q, loss_good = 0, loss_bad = 1
 (the state is the loss itself and does not depend on the previous one). Whether the data are
-bursty is a likelihood-ratio test of Gilbert-Elliott against Bernoulli; the null sits on the
-boundary of the larger model and leaves its transitions unidentified, so the chi-square
-approximation does not hold and the p-value comes from a parametric bootstrap under the fitted
-Bernoulli link.
+bursty: the likelihood ratio of Gilbert-Elliott against Bernoulli (:func:`lr_test`) has its null
+on the boundary of the larger model with the transitions unidentified there, so the chi-square
+approximation does not hold and its p-value comes from a parametric bootstrap under the fitted
+Bernoulli link (exact, a fit per replicate). The default decision uses the instant, calibrated
+likelihood-ratio test of Bernoulli against a Markov chain of the losses (:func:`markov_test`,
+chi-square with one degree of freedom), which a bursty link fails.
 
 Pure module: numpy only. Inputs are explicit (the lost/received sequence, ``rng``).
 """
@@ -127,8 +133,8 @@ def bernoulli_log_likelihood(lost) -> float:
 
 
 def simulate(params: GilbertElliott, n: int, rng: np.random.Generator) -> np.ndarray:
-    """A lost sequence of ``n`` samples from ``params`` (stationary start), the draw order of
-    :class:`train_core.link.Link` (loss, then move) but vectorised over replicates' needs."""
+    """A lost sequence of ``n`` samples from ``params`` (stationary start; each sample: the
+    loss in the current state, then the move, as :class:`train_core.link.Link` draws them)."""
     u = rng.random((n, 2))
     lost = np.empty(n, dtype=bool)
     bad = bool(rng.random() < params.stationary_bad)
