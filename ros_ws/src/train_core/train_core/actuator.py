@@ -84,6 +84,7 @@ class Actuator:
         self.a_br = min(float(a0), 0.0)
         self.br_stages = (self.a_br, self.a_br, self.a_br)  # a_br at t, t + h/2, t + h of the
         # last segment (m/s^2)
+        self.track_br = False  # keep a_br up to date (only the drive effects need it)
         self.u_tr = max(float(u0), 0.0)  # m/s^2, delayed traction part in force at self.t
         self.u_br = min(float(u0), 0.0)  # m/s^2, delayed braking part in force at self.t
         self.last_command = float(u0)  # most recent command issued (not yet necessarily active)
@@ -145,6 +146,10 @@ class Actuator:
         a_mid = ue + (a0 - ue) * e
         a_end = ue + (a_mid - ue) * e
         self.a = a_end
+        if not self.track_br:
+            self.t += h
+            self._activate()
+            return a0, a_mid, a_end
         b0 = self.a_br
         b_mid = ub + (b0 - ub) * e
         b_end = ub + (b_mid - ub) * e

@@ -56,16 +56,22 @@ class Motion:
         tau = act.tau
         braking_rate_const = self.braking_rate_const
         split = dyn.split
+        act.track_br = split
         for i in range(n):
             t0 = t_start + i * h
             f = braking_rate_const if braking_rate_const is not None else \
                 self.braking_rate_of_t(t0 + 0.5 * h)
             ue = act.effective(f)  # constant over the span (it ends at the next input change)
-            ub = f * act.u_br
-            a0, a_mid, a_end = act.segment(h, f)
-            x0 = st.x
-            dyn.t = t0 + 0.5 * h
-            dyn.step(st, h, a0, a_mid, a_end, ue, tau, (*act.br_stages, ub) if split else None)
+            if split:
+                ub = f * act.u_br
+                a0, a_mid, a_end = act.segment(h, f)
+                x0 = st.x
+                dyn.t = t0 + 0.5 * h
+                dyn.step(st, h, a0, a_mid, a_end, ue, tau, (*act.br_stages, ub))
+            else:
+                a0, a_mid, a_end = act.segment(h, f)
+                x0 = st.x
+                dyn.step(st, h, a0, a_mid, a_end, ue, tau)
             if visit is not None and st.x > x0:
                 visit(t0, h, x0, st.x)
         self.t = t_next
@@ -95,6 +101,7 @@ def warm_actuator(train: TrainParams, t_cmd, a_cmd, t0: float, warmup: float = 3
     act = Actuator(train.brake.time_constant,
                    train.brake.delay if traction_delay is None else traction_delay, t0=-warmup,
                    brake_delay=train.brake.delay if brake_delay is None else brake_delay)
+    act.track_br = True  # the braking part too, for a Motion with drive effects
     t_cmd = np.asarray(t_cmd, dtype=float)
     a_cmd = np.asarray(a_cmd, dtype=float)
     for t_i, a_i in zip(t_cmd[t_cmd < t0] - t0, a_cmd[t_cmd < t0]):
