@@ -78,6 +78,13 @@ class Actuator:
         self.brake_delay = brake_delay
         self.t = float(t0)
         self.a = float(a0)  # m/s^2, output a_hat(t)
+        # m/s^2, the braking part of a_hat (the lag of f * braking part; the lag is linear, so
+        # a_hat = lag(traction part) + lag(f * braking part) exactly): what a power limit and an
+        # adhesion section act on separately (dynamics.py). At t0 the output's sign says which.
+        self.a_br = min(float(a0), 0.0)
+        self.br_stages = (self.a_br, self.a_br, self.a_br)  # a_br at t, t + h/2, t + h of the
+        # last segment (m/s^2)
+        self.track_br = False  # keep a_br up to date (only the drive effects need it)
         self.u_tr = max(float(u0), 0.0)  # m/s^2, delayed traction part in force at self.t
         self.u_br = min(float(u0), 0.0)  # m/s^2, delayed braking part in force at self.t
         self.last_command = float(u0)  # most recent command issued (not yet necessarily active)
@@ -129,14 +136,25 @@ class Actuator:
     def segment(self, h: float, braking_rate: float) -> tuple[float, float, float]:
         """Advance by ``h`` with constant input (caller ensures no switch inside (t, t + h)).
 
-        Returns (a_hat(t), a_hat(t + h/2), a_hat(t + h)) -- the values RK4 needs.
+        Returns (a_hat(t), a_hat(t + h/2), a_hat(t + h)) -- the values RK4 needs; the braking
+        part's three values are left in ``br_stages``.
         """
-        ue = self.u_tr + braking_rate * self.u_br
+        ub = braking_rate * self.u_br
+        ue = self.u_tr + ub
         a0 = self.a
         e = math.exp(-0.5 * h / self.tau)
         a_mid = ue + (a0 - ue) * e
         a_end = ue + (a_mid - ue) * e
         self.a = a_end
+        if not self.track_br:
+            self.t += h
+            self._activate()
+            return a0, a_mid, a_end
+        b0 = self.a_br
+        b_mid = ub + (b0 - ub) * e
+        b_end = ub + (b_mid - ub) * e
+        self.a_br = b_end
+        self.br_stages = (b0, b_mid, b_end)
         self.t += h
         self._activate()
         return a0, a_mid, a_end

@@ -14,6 +14,21 @@ the drive acceleration is ``kappa * a_hat`` with kappa = (1 + lambda_b) M_b / ((
 Without a ``mass`` effect kappa = 1 and this is exactly Zheng's a_hat. This is what makes a wrong
 mass visible in traction and braking, not only in the resistance term.
 
+Two effects act on the delivered drive, not on the actuator (the controller still asks for
+a_hat; the train delivers less):
+
+* power limit ``p_spec`` (m^2/s^3, traction power per kg of believed effective mass, i.e.
+  P = p_spec (1 + lambda_b) M_b in W): the traction part of a_hat is delivered up to p_spec / v,
+  so a command a is met below the knee speed p_spec / a and the traction acceleration falls as
+  p_spec / v above it (a constant-power converter); at v = 0 there is no cap.
+* adhesion section ``(start, end, factor)``: while the train's reference point is on
+  [start, end) the braking part of a_hat is delivered times ``factor`` (wet rail, leaves: the
+  wheel-rail contact limits the force at once, so the change starts and ends at the section's
+  ends, with no lag).
+
+The actuator gives a_hat and its braking part a_br separately (actuator.py); the traction part is
+a_hat - a_br. Both effects are evaluated at the RK4 stage states (x, v), as the gradient is.
+
 Integration: classical RK4 on (x, v) with step h <= 10 ms; a_hat comes from the actuator's
 closed form at the RK4 stage times (t, t + h/2, t + h), so the actuator is integrated exactly.
 
@@ -75,7 +90,17 @@ class MotionState:
 class Dynamics:
     """RK4 integrator of the true train on the true line (scalar state, lean inner loop)."""
 
-    def __init__(self, train: TrainParams, line: Line, believed_train: TrainParams | None = None):
+    def __init__(self, train: TrainParams, line: Line, believed_train: TrainParams | None = None,
+                 p_spec: float | None = None,
+                 adhesion: tuple[float, float, float] | None = None,
+                 drive_hook=None, resist_hook=None):
+        """``p_spec``: power limit (m^2/s^3); ``adhesion``: (start m, end m, factor -) of a
+        low-adhesion section (module docstring). Both None: the nominal drive.
+
+        Hooks for effects defined elsewhere (the simulator's test effects): ``drive_hook(x, v,
+        a_tr, a_br) -> (a_tr, a_br)`` (m/s^2) changes the delivered traction and braking parts;
+        ``resist_hook(t, x, v)`` is an extra deceleration (m/s^2) at the step's mid time ``t``
+        (set in ``self.t`` by the caller)."""
         m_eff = train.effective_mass
         self.ra = train.davis.a / m_eff  # m/s^2
         self.rb = train.davis.b / m_eff  # 1/s
@@ -84,6 +109,46 @@ class Dynamics:
         believed = believed_train if believed_train is not None else train
         self.kappa = believed.effective_mass / m_eff
         self.grad = GradientLookup(line, train.rotary_allowance)
+        self.p_spec = None if p_spec is None else float(p_spec)
+        self.adhesion = None if adhesion is None else tuple(float(a) for a in adhesion)
+        self.drive_hook, self.resist_hook = drive_hook, resist_hook
+        self.t = 0.0  # s, mid time of the current step (for resist_hook)
+        self.split = (self.p_spec is not None or self.adhesion is not None
+                      or drive_hook is not None or resist_hook is not None)
+
+    def drive(self, x: float, v: float, a_hat: float, a_br: float) -> float:
+        """m/s^2, the control acceleration delivered (before kappa) for the actuator output
+        a_hat with braking part a_br, at position x and speed v (module docstring)."""
+        a_tr = a_hat - a_br
+        p = self.p_spec
+        if p is not None and a_tr > 0.0 and a_tr * v > p:
+            a_tr = p / v
+        ad = self.adhesion
+        if ad is not None and ad[0] <= x < ad[1]:
+            a_br = ad[2] * a_br
+        if self.drive_hook is not None:
+            a_tr, a_br = self.drive_hook(x, v, a_tr, a_br)
+        return a_tr + a_br
+
+    def _accel_hooked(self, x: float, v: float, a_hat: float) -> float:
+        out = self.accel(x, v, a_hat)
+        if self.resist_hook is not None:
+            out -= self.resist_hook(self.t, x, max(v, 0.0))
+        return out
+
+    def _rk4_split(self, x, v, a0, a_mid, a_end, b0, b_mid, b_end, h):
+        """RK4 as :meth:`_rk4` with the delivered drive (power limit, adhesion) at each stage."""
+        d, f = self.drive, self._accel_hooked
+        h2 = 0.5 * h
+        k1 = f(x, v, d(x, v, a0, b0))
+        x2, v2 = x + h2 * v, v + h2 * k1
+        k2 = f(x2, v2, d(x2, v2, a_mid, b_mid))
+        x3, v3 = x + h2 * v2, v + h2 * k2
+        k3 = f(x3, v3, d(x3, v3, a_mid, b_mid))
+        x4, v4 = x + h * v3, v + h * k3
+        k4 = f(x4, v4, d(x4, v4, a_end, b_end))
+        return (x + h * (v + 2.0 * v2 + 2.0 * v3 + v4) / 6.0,
+                v + h * (k1 + 2.0 * k2 + 2.0 * k3 + k4) / 6.0)
 
     def accel(self, x: float, v: float, a_hat: float) -> float:
         """dv/dt of a moving train (v >= 0); resistance evaluated at max(v, 0)."""
@@ -109,19 +174,26 @@ class Dynamics:
                 v + h * (k1 + 2.0 * k2 + 2.0 * k3 + k4) / 6.0)
 
     def step(self, s: MotionState, h: float, a0: float, a_mid: float, a_end: float,
-             ue: float, tau: float) -> None:
+             ue: float, tau: float, br: tuple | None = None) -> None:
         """Advance ``s`` by ``h`` given the actuator's a_hat at t, t + h/2, t + h.
 
         ``ue`` and ``tau`` describe the lag's closed form a_hat(t + r) = ue + (a0 - ue) e^{-r/tau},
-        used when the step has to be cut at the stopping instant.
+        used when the step has to be cut at the stopping instant. ``br`` = (b0, b_mid, b_end, ub):
+        the braking part of a_hat at the same times and its lag input (needed when
+        ``self.split``: a power limit or an adhesion section).
         """
+        split = self.split and br is not None
         if s.stopped:
             # Held at rest; release when the forward force at the step start beats static
             # resistance (10 ms resolution on the breakaway instant).
-            if not self.can_start(s.x, a0):
+            if not self.can_start(s.x, self.drive(s.x, 0.0, a0, br[0]) if split else a0):
                 return
             s.stopped = False
-        x1, v1 = self._rk4(s.x, s.v, a0, a_mid, a_end, h)
+        if split:
+            b0, b_mid, b_end, ub = br
+            x1, v1 = self._rk4_split(s.x, s.v, a0, a_mid, a_end, b0, b_mid, b_end, h)
+        else:
+            x1, v1 = self._rk4(s.x, s.v, a0, a_mid, a_end, h)
         if v1 > 0.0:
             s.x, s.v = x1, v1
             return
@@ -139,7 +211,11 @@ class Dynamics:
             er = math.exp(-0.5 * r / tau)
             am = ue + (a0 - ue) * er
             ae = ue + (am - ue) * er
-            xr, vr = self._rk4(s.x, v0, a0, am, ae, r)
+            if split:
+                bm = ub + (b0 - ub) * er
+                xr, vr = self._rk4_split(s.x, v0, a0, am, ae, b0, bm, ub + (bm - ub) * er, r)
+            else:
+                xr, vr = self._rk4(s.x, v0, a0, am, ae, r)
             if abs(vr) < 1e-10:
                 break
             if vr > 0.0:

@@ -28,6 +28,13 @@ mass               true mass M (kg). The drive force is computed for the believe
 clock_drift        the train's clock runs at rate (1 + drift): odometer and balise stamps are
                    epoch + t (1 + drift); control and ground truth stay on the reference clock
                    (true time). Stamps only.
+power_limit        traction delivered at most ``p_spec`` / v (m^2/s^3, traction power per kg of
+                   believed effective mass): a command a is met below the knee speed p_spec / a.
+                   Braking untouched. Motion only (dynamics.py).
+adhesion_section   braking delivered x ``factor`` while the train's reference point is on
+                   [start, end) (m). Traction untouched. Motion only (dynamics.py).
+traction_delay     true transport delay (s) of *traction* commands; braking keeps train.yaml's
+                   delay (or brake_delay's). Motion only (World's actuator).
 =================  ================================================================================
 
 Pure module: PyYAML-free (validation uses :mod:`train_core.config` sections).
@@ -130,6 +137,9 @@ class Effects:
     brake_delay: BrakeDelayEffect | None = None
     mass: MassEffect | None = None
     clock_drift: ClockDriftEffect | None = None
+    power_limit: PowerLimitEffect | None = None
+    adhesion_section: AdhesionSectionEffect | None = None
+    traction_delay: TractionDelayEffect | None = None
 
     def active(self) -> list[str]:
         return [f.name for f in fields(self) if getattr(self, f.name) is not None]
@@ -249,4 +259,55 @@ def parse_effects(sec: Section, duration: float) -> Effects:
         s = sec.section("clock_drift", ("drift",))
         kw["clock_drift"] = ClockDriftEffect(s.number("drift", REQUIRED, lo=-0.1, hi=0.1,
                                                       unit="s/s"))
+    _parse_drive_effects(sec, kw)
     return Effects(**kw)
+
+
+# ------------------------------------------------------------------------------------------------
+# Effects on the delivered drive and the traction chain
+# ------------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class PowerLimitEffect:
+    """Traction limited by power: the traction acceleration delivered is at most p_spec / v, so a
+    command a is met below the knee speed p_spec / a (dynamics.py)."""
+
+    p_spec: float  # m^2/s^3, traction power per kg of believed effective mass
+
+
+@dataclass(frozen=True)
+class AdhesionSectionEffect:
+    """Braking weaker on a stretch of track: the braking acceleration delivered is x ``factor``
+    while the train's reference point is on [start, end) (dynamics.py)."""
+
+    start: float  # m, track position
+    end: float  # m, track position
+    factor: float  # -, braking-rate multiplier on [start, end)
+
+    def as_tuple(self) -> tuple[float, float, float]:
+        return (self.start, self.end, self.factor)
+
+
+@dataclass(frozen=True)
+class TractionDelayEffect:
+    """Traction commands take effect ``delay`` after they are issued (braking keeps its own)."""
+
+    delay: float  # s, true transport delay of traction commands
+
+
+def _parse_drive_effects(sec: Section, kw: dict) -> None:
+    if sec.has("power_limit"):
+        s = sec.section("power_limit", ("p_spec",))
+        kw["power_limit"] = PowerLimitEffect(s.number("p_spec", REQUIRED, lo=0.0, lo_open=True,
+                                                      unit="m^2/s^3"))
+    if sec.has("adhesion_section"):
+        s = sec.section("adhesion_section", ("start", "end", "factor"))
+        start, end = s.number("start", REQUIRED, lo=0.0, unit="m"), s.number("end", REQUIRED)
+        if end <= start:
+            raise ConfigError(f"{s.where}.end: {end:g} must be greater than start ({start:g})")
+        kw["adhesion_section"] = AdhesionSectionEffect(
+            start, end, s.number("factor", REQUIRED, lo=0.0, hi=2.0))
+    if sec.has("traction_delay"):
+        s = sec.section("traction_delay", ("delay",))
+        kw["traction_delay"] = TractionDelayEffect(s.number("delay", REQUIRED, lo=0.0, hi=10.0,
+                                                            unit="s"))

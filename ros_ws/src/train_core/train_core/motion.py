@@ -29,9 +29,14 @@ class Motion:
 
     def __init__(self, train: TrainParams, line: Line, believed: TrainParams, act: Actuator,
                  x0: float, v0: float, max_step: float = 0.01,
-                 braking_rate_of_t: Callable[[float], float] | None = None):
+                 braking_rate_of_t: Callable[[float], float] | None = None,
+                 p_spec: float | None = None,
+                 adhesion: tuple[float, float, float] | None = None,
+                 drive_hook=None, resist_hook=None):
+        """``p_spec``, ``adhesion``: a power limit and a low-adhesion section on the delivered
+        drive; ``drive_hook``, ``resist_hook``: further effects (dynamics.py); None = off."""
         self.act = act
-        self.dyn = Dynamics(train, line, believed)
+        self.dyn = Dynamics(train, line, believed, p_spec, adhesion, drive_hook, resist_hook)
         self.state = MotionState(float(x0), float(v0), v0 == 0.0)
         self.max_step = float(max_step)
         self.braking_rate_const = train.brake.braking_rate if braking_rate_of_t is None else None
@@ -50,14 +55,23 @@ class Motion:
         act, dyn, st = self.act, self.dyn, self.state
         tau = act.tau
         braking_rate_const = self.braking_rate_const
+        split = dyn.split
+        act.track_br = split
         for i in range(n):
             t0 = t_start + i * h
             f = braking_rate_const if braking_rate_const is not None else \
                 self.braking_rate_of_t(t0 + 0.5 * h)
             ue = act.effective(f)  # constant over the span (it ends at the next input change)
-            a0, a_mid, a_end = act.segment(h, f)
-            x0 = st.x
-            dyn.step(st, h, a0, a_mid, a_end, ue, tau)
+            if split:
+                ub = f * act.u_br
+                a0, a_mid, a_end = act.segment(h, f)
+                x0 = st.x
+                dyn.t = t0 + 0.5 * h
+                dyn.step(st, h, a0, a_mid, a_end, ue, tau, (*act.br_stages, ub))
+            else:
+                a0, a_mid, a_end = act.segment(h, f)
+                x0 = st.x
+                dyn.step(st, h, a0, a_mid, a_end, ue, tau)
             if visit is not None and st.x > x0:
                 visit(t0, h, x0, st.x)
         self.t = t_next
@@ -66,19 +80,28 @@ class Motion:
 
     @property
     def drive_acceleration(self) -> float:
-        """m/s^2, kappa a_hat: the control acceleration on the true train."""
-        return self.dyn.kappa * self.act.a
+        """m/s^2, kappa a_hat: the control acceleration on the true train (as delivered, after
+        a power limit or an adhesion section)."""
+        dyn, act = self.dyn, self.act
+        if dyn.split:
+            st = self.state
+            return dyn.kappa * dyn.drive(st.x, st.v, act.a, act.a_br)
+        return dyn.kappa * act.a
 
 
 def warm_actuator(train: TrainParams, t_cmd, a_cmd, t0: float, warmup: float = 30.0,
                   brake_delay: float | None = None,
-                  braking_rate_of_t: Callable[[float], float] | None = None) -> Actuator:
+                  braking_rate_of_t: Callable[[float], float] | None = None,
+                  traction_delay: float | None = None) -> Actuator:
     """The actuator's state at ``t0`` from the commands issued before it (the delay lines
     filled, the lag run over ``warmup`` s: the unknown earlier output is forgotten to within
-    exp(-warmup / tau)). Times in the returned actuator are shifted so that t0 -> 0."""
+    exp(-warmup / tau)). Times in the returned actuator are shifted so that t0 -> 0.
+    ``brake_delay``/``traction_delay``: the two chains' delays (default: the train's delay)."""
     f_of = braking_rate_of_t or (lambda t: train.brake.braking_rate)
-    act = Actuator(train.brake.time_constant, train.brake.delay, t0=-warmup,
-                   brake_delay=brake_delay)
+    act = Actuator(train.brake.time_constant,
+                   train.brake.delay if traction_delay is None else traction_delay, t0=-warmup,
+                   brake_delay=train.brake.delay if brake_delay is None else brake_delay)
+    act.track_br = True  # the braking part too, for a Motion with drive effects
     t_cmd = np.asarray(t_cmd, dtype=float)
     a_cmd = np.asarray(a_cmd, dtype=float)
     for t_i, a_i in zip(t_cmd[t_cmd < t0] - t0, a_cmd[t_cmd < t0]):
@@ -96,19 +119,23 @@ def replay(line: Line, train: TrainParams, t_cmd, a_cmd, t0: float, t_out,
            x0: float, v0: float, believed: TrainParams | None = None,
            brake_delay: float | None = None,
            braking_rate_of_t: Callable[[float], float] | None = None,
-           max_step: float = 0.01) -> tuple[np.ndarray, np.ndarray]:
+           max_step: float = 0.01, traction_delay: float | None = None,
+           p_spec: float | None = None,
+           adhesion: tuple[float, float, float] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Open-loop motion from (x0, v0) at ``t0`` under the recorded commands (t_cmd, a_cmd):
     position and speed at the times ``t_out`` (>= t0, increasing). ``train`` is the true train
     (its braking rate unless ``braking_rate_of_t`` is given), ``believed`` the one the controller
     makes
     forces for (default ``train``), ``brake_delay`` the braking chain's delay (default the
-    train's delay)."""
+    train's delay), ``traction_delay`` the traction chain's (default the train's delay),
+    ``p_spec``/``adhesion`` a power limit and a low-adhesion section (dynamics.py)."""
     t_cmd = np.asarray(t_cmd, dtype=float)
     a_cmd = np.asarray(a_cmd, dtype=float)
     shifted_f = None if braking_rate_of_t is None else (lambda t: braking_rate_of_t(t + t0))
     act = warm_actuator(train, t_cmd, a_cmd, t0, brake_delay=brake_delay,
-                        braking_rate_of_t=braking_rate_of_t)
-    mot = Motion(train, line, believed or train, act, x0, v0, max_step, shifted_f)
+                        braking_rate_of_t=braking_rate_of_t, traction_delay=traction_delay)
+    mot = Motion(train, line, believed or train, act, x0, v0, max_step, shifted_f, p_spec,
+                 adhesion)
     after = t_cmd >= t0
     cmds = list(zip((t_cmd[after] - t0).tolist(), a_cmd[after].tolist()))
     t_rel = np.asarray(t_out, dtype=float) - t0

@@ -78,7 +78,9 @@ def test_each_cause_at_both_sizes_subtle_is_half_plain(cause):
              "odometer_scale": (abs(t.get("scale", 1) - 1), 0.0075, 0.0094),
              "brake_delay": (t.get("delay", 0) - n.get("delay", 0), 0.25, 0.3125),
              "clock_drift": (abs(t.get("drift", 0)), 0.001, 0.00125),
-             "bursty_link": (1.0 / t.get("p_bad_good", 1), 4.0, 5.0)}
+             "bursty_link": (1.0 / t.get("p_bad_good", 1), 4.0, 5.0),
+             "traction_delay": (t.get("delay", 0) - n.get("delay", 0), 0.25, 0.3125),
+             "adhesion_section": (1.0 - t.get("factor", 1.0), 0.2, 0.25)}
     if cause in sizes and sizes[cause][1] is not None:
         v, lo, hi = sizes[cause]
         assert lo - 1e-9 <= v <= hi + 1e-9, (cause, v)
@@ -113,7 +115,8 @@ def test_hidden_effect_is_exercised(cause):
     with_eff, without = simulate(sc), simulate(_without_effects(sc))
     tr, tr0 = with_eff.truth, without.truth
     odo, odo0 = with_eff.odometer, without.odometer
-    motion = cause in ("gradient", "resistance", "braking_rate", "brake_delay", "mass")
+    motion = cause in ("gradient", "resistance", "braking_rate", "brake_delay", "mass",
+                       "power_limit", "adhesion_section", "traction_delay")
     n = min(len(tr["t"]), len(tr0["t"]))
     dv = np.abs(tr["velocity"][:n] - tr0["velocity"][:n]).max()
     if motion:
@@ -127,6 +130,15 @@ def test_hidden_effect_is_exercised(cause):
     if cause in ("braking_rate", "brake_delay"):
         braking = (with_eff.control["target_acceleration"] < -0.1) & (tr["velocity"] > 1.0)
         assert braking.sum() > 50, "the effect needs braking"
+    if cause == "adhesion_section":
+        a = c.truth[cause]
+        inside = (tr["position"] >= a["start"]) & (tr["position"] < a["end"])
+        braking = with_eff.control["target_acceleration"] < -0.1
+        assert (inside & braking & (tr["velocity"] > 2.0)).sum() > 20, "no braking on the section"
+    if cause == "power_limit":
+        p = c.truth[cause]["p_spec"]
+        limited = tr["acceleration"] * tr["velocity"] >= p * (1 - 1e-9)
+        assert (limited & (tr["acceleration"] > 0.0)).sum() > 50, "the limit never bites"
     if cause == "wheel_slip":
         frac = sc.effects.wheel_slip.slip_fraction
         for t0, t1 in c.truth["wheel_slip"]["intervals"]:

@@ -122,6 +122,9 @@ def test_effects_parse_and_build_true_models(tmp_scenario):
         "brake_delay": {"delay": 1.6},
         "mass": {"mass": 320000.0},
         "clock_drift": {"drift": 1e-4},
+        "power_limit": {"p_spec": 9.0},
+        "adhesion_section": {"start": 1500.0, "end": 1700.0, "factor": 0.6},
+        "traction_delay": {"delay": 1.5},
     }
     sc = load_scenario(tmp_scenario(lambda d: d.update(effects=eff)))
     assert sorted(sc.effects.active()) == sorted(EFFECT_NAMES)

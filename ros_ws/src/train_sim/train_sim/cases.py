@@ -29,9 +29,14 @@ bursty_link        Gilbert-Elliott, mean burst 4 k samples, loss rate about the 
 brake_delay        believed T + 0.25 k s
 mass               believed mass x (1 +- 0.07 k)
 clock_drift        +-0.001 k s/s
+power_limit        knee speed of the largest traction command at 0.8 / k U(0.8, 1) of the top
+                   speed (p_spec = a_max v_top 0.8 / k U(0.8, 1)); judged on 1 / p_spec
+adhesion_section   factor 1 - 0.2 k U(1, 1.25) on a stretch of a braking-to-stop approach
+traction_delay     believed T + 0.25 k s
 =================  ===================================  =====================================
 
-The trajectory-dependent placements (gradient section, slip episodes) come from a pilot run of
+The trajectory-dependent placements (gradient section, slip episodes, power limit, adhesion
+section) come from a pilot run of
 the same world without those effects, so every effect is exercised. ``main_error`` gives the
 relative error |estimate - true| / |true - nominal| of a cause's main quantity (see there).
 
@@ -55,14 +60,18 @@ from .driver import DriverParams, TimetableStop
 from .scenario import Scenario
 
 CAUSES = ("gradient", "resistance", "braking_rate", "odometer_scale", "wheel_slip",
-          "bursty_link", "brake_delay", "mass", "clock_drift")
+          "bursty_link", "brake_delay", "mass", "clock_drift", "power_limit", "adhesion_section",
+          "traction_delay")
 SIZES = ("plain", "subtle")
 FAMILIES = ("metro_demo", "metro", "regional", "highspeed")
 MIN_DURATION, MAX_DURATION = 480.0, 720.0  # s, 8-12 min
 MAIN = {"gradient": "permille", "resistance": "force at v_ref (N)",
         "braking_rate": "mean f", "odometer_scale": "scale",
         "wheel_slip": "slip time (symmetric difference, s)", "bursty_link": "p_bad_good",
-        "brake_delay": "delay", "mass": "mass", "clock_drift": "drift"}
+        "brake_delay": "delay", "mass": "mass", "clock_drift": "drift",
+        "power_limit": "1 / p_spec (s^3/m^2)", "adhesion_section": "factor",
+        "traction_delay": "delay"}
+TRAJECTORY = ("gradient", "wheel_slip", "power_limit", "adhesion_section")  # drawn after the pilot
 
 
 @dataclass(frozen=True)
@@ -128,16 +137,20 @@ class Case:
 def main_value(cause: str, params: dict, v_ref: float = 10.0) -> float:
     """The scalar a cause is judged on (``MAIN`` names it): the parameter itself, except
     resistance (the force a + b v + c v^2 at ``v_ref``: a, b, c alone are nearly collinear),
-    braking_rate (mean of f_start and f_end) and wheel_slip (total slip time)."""
+    braking_rate (mean of f_start and f_end), wheel_slip (total slip time) and power_limit
+    (1 / p_spec: 0 without a limit, so that the deviation from nominal is finite)."""
     if cause == "resistance":
         return float(params["a"] + params["b"] * v_ref + params["c"] * v_ref**2)
     if cause == "braking_rate":
         return 0.5 * (float(params["f_start"]) + float(params["f_end"]))
     if cause == "wheel_slip":
         return float(sum(t1 - t0 for t0, t1 in params.get("intervals", [])))
+    if cause == "power_limit":
+        return 1.0 / float(params["p_spec"])
     return float(params[{"gradient": "permille", "odometer_scale": "scale",
                          "bursty_link": "p_bad_good", "brake_delay": "delay", "mass": "mass",
-                         "clock_drift": "drift"}[cause]])
+                         "clock_drift": "drift", "adhesion_section": "factor",
+                         "traction_delay": "delay"}[cause]])
 
 
 def main_error(cause: str, estimate: dict, truth: dict, nominal: dict,
@@ -146,8 +159,8 @@ def main_error(cause: str, estimate: dict, truth: dict, nominal: dict,
 
     wheel_slip: the duration of the symmetric difference between the estimated and the true
     interval sets over the true slip time (0 = the same episodes, 1 = as bad as finding none).
-    gradient: the permille error, plus the misplaced length of the section relative to its
-    length (a right value at the wrong place is not a right answer)."""
+    gradient, adhesion_section: the value's error, plus the misplaced length of the section
+    relative to its length (a right value at the wrong place is not a right answer)."""
     if cause == "wheel_slip":
         a, b = _union(estimate.get("intervals", [])), _union(truth["intervals"])
         inter = sum(max(0.0, min(x1, y1) - max(x0, y0)) for x0, x1 in a for y0, y1 in b)
@@ -156,7 +169,7 @@ def main_error(cause: str, estimate: dict, truth: dict, nominal: dict,
     est, tru = main_value(cause, estimate, v_ref), main_value(cause, truth, v_ref)
     nom = main_value(cause, {**truth, **nominal}, v_ref)
     err = abs(est - tru) / abs(tru - nom)
-    if cause == "gradient":
+    if cause in ("gradient", "adhesion_section"):
         s0, s1, e0, e1 = truth["start"], truth["end"], estimate["start"], estimate["end"]
         overlap = max(0.0, min(s1, e1) - max(s0, e0))
         err += ((s1 - s0) + (e1 - e0) - 2 * overlap) / (s1 - s0)
@@ -238,7 +251,7 @@ def make_case(rng: np.random.Generator, cause: str | None | tuple = None, size: 
     # Effects that do not need the trajectory are drawn first and are in the pilot run.
     eff_d, truth, nominal = {}, {}, {}
     for c in causes:
-        if c not in ("gradient", "wheel_slip"):
+        if c not in TRAJECTORY:
             _draw_effect(c, k, eff_rng, line, train, link_d, eff_d, truth, nominal)
     pilot_sc = _build(base | {"effects": dict(eff_d)}, line, train, line_d, train_d)
     res = pilot(pilot_sc)
@@ -271,6 +284,12 @@ def make_case(rng: np.random.Generator, cause: str | None | tuple = None, size: 
             _draw_gradient(k, eff_rng, line, x, v, eff_d, truth, nominal)
         elif c == "wheel_slip":
             _draw_slip(k, eff_rng, t, v, eff_d, truth, nominal)
+        elif c == "power_limit":
+            # control is logged with every truth sample (world.py), so the two align
+            a_cmd = res.control["target_acceleration"][inside]
+            _draw_power_limit(k, eff_rng, a_cmd, v, eff_d, truth, nominal)
+        elif c == "adhesion_section":
+            _draw_adhesion(k, eff_rng, res, t_same, eff_d, truth, nominal)
     if "braking_rate" in eff_d:
         eff_d["braking_rate"]["t_end"] = base["duration"]
     base["effects"] = eff_d
@@ -330,6 +349,9 @@ def _draw_effect(c, k, rng, line, train, link_d, eff, truth, nominal) -> None:
     elif c == "clock_drift":
         eff[c] = {"drift": _sign(rng) * 0.001 * k * float(rng.uniform(1.0, 1.25))}
         truth[c], nominal[c] = dict(eff[c]), {"drift": 0.0}
+    elif c == "traction_delay":
+        eff[c] = {"delay": train.brake.delay + 0.25 * k * float(rng.uniform(1.0, 1.25))}
+        truth[c], nominal[c] = dict(eff[c]), {"delay": train.brake.delay}
     else:  # pragma: no cover - guarded by _causes
         raise ValueError(c)
 
@@ -381,6 +403,47 @@ def _draw_slip(k, rng, t, v, eff, truth, nominal) -> None:
     eff["wheel_slip"] = {"intervals": intervals, "slip_fraction": round(frac, 4)}
     truth["wheel_slip"] = {"intervals": [list(iv) for iv in intervals]}
     nominal["wheel_slip"] = {"intervals": []}
+
+
+def _draw_power_limit(k, rng, a_cmd, v, eff, truth, nominal) -> None:
+    """p_spec such that the largest traction command (95th percentile of the pilot's) meets the
+    limit at 0.8 / k U(0.8, 1) of the top speed: a constant-power run above that knee."""
+    trac = a_cmd[a_cmd > 0.05]
+    if trac.size == 0 or v.max() < 3.0:
+        raise RuntimeError("the train never pulls: cannot place a power limit")
+    a_max, v_top = float(np.percentile(trac, 95)), float(v.max())
+    p_spec = a_max * v_top * 0.8 / k * float(rng.uniform(0.8, 1.0))
+    eff["power_limit"] = {"p_spec": round(p_spec, 4)}
+    truth["power_limit"] = dict(eff["power_limit"])
+    nominal["power_limit"] = {"p_spec": float("inf")}
+
+
+def _draw_adhesion(k, rng, res, t_end, eff, truth, nominal) -> None:
+    """A stretch of the braking-to-stop approach of one of the run's stops (wet rail before a
+    station): from 10-30 % to 80-95 % of the braking distance."""
+    tr, ctrl = res.truth, res.control
+    approaches = []
+    for stop in res.stops:
+        if stop["t"] > t_end:
+            continue
+        before = (tr["t"] <= stop["t"]) & (ctrl["target_acceleration"] >= 0.0)
+        if not before.any():
+            continue
+        i_b = int(np.flatnonzero(before)[-1])  # the last sample not braking before the stop
+        x_b, x_s = float(tr["position"][i_b]), float(stop["stop_position"])
+        if x_s - x_b > 60.0 and tr["velocity"][i_b] > 5.0:
+            approaches.append((x_b, x_s))
+    if not approaches:
+        raise RuntimeError("no braking-to-stop approach: cannot place an adhesion section")
+    x_b, x_s = approaches[int(rng.integers(len(approaches)))]
+    length = x_s - x_b
+    start = x_b + length * float(rng.uniform(0.1, 0.3))
+    end = x_b + length * float(rng.uniform(0.8, 0.95))
+    factor = 1.0 - 0.2 * k * float(rng.uniform(1.0, 1.25))
+    eff["adhesion_section"] = {"start": round(start, 1), "end": round(end, 1),
+                               "factor": round(factor, 4)}
+    truth["adhesion_section"] = dict(eff["adhesion_section"])
+    nominal["adhesion_section"] = {"factor": 1.0}
 
 
 def _build(d: dict, line, train, line_d: dict, train_d: dict) -> Scenario:

@@ -61,6 +61,7 @@ class Scenario:
     stamp_epoch: float = 0.0  # s, the train clock's reading at true time 0 (odometer, balise)
     line_path: str = ""  # the line.yaml file the estimators are given
     train_path: str = ""  # the train.yaml file the estimators are given
+    unlisted: object = None  # train_sim.unlisted.Unlisted: test effects outside the causes list
 
     def with_effects(self, effects: Effects) -> Scenario:
         """The same scenario with other effects (true models recomputed)."""

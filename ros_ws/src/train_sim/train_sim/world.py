@@ -52,6 +52,7 @@ from train_core.motion import Motion, warm_actuator
 from .driver import Driver, DriverParams
 from .scenario import Scenario
 from .sensors import BaliseReader, Odometer
+from .unlisted import unlisted_hooks
 
 _EPS = 1e-9  # s
 TRUTH_COVARIANCE = (math.nan,) * 16  # CONTRACT.md: NaN where not estimated (truth is not)
@@ -97,13 +98,15 @@ class World:
         s_odo, s_bal, s_lodo, s_lbal, s_dodo, s_dbal = np.random.SeedSequence(self.seed).spawn(6)
         tt, eff = sc.true_train, sc.effects
         self.effects = eff
-        act = Actuator(tt.brake.time_constant, tt.brake.delay,
+        act = Actuator(tt.brake.time_constant,
+                       eff.traction_delay.delay if eff.traction_delay else tt.brake.delay,
                        a0=sc.start_acceleration, u0=sc.start_target_acceleration,
-                       brake_delay=eff.brake_delay.delay if eff.brake_delay else None)
+                       brake_delay=eff.brake_delay.delay if eff.brake_delay else tt.brake.delay)
         self._braking_rate_const = None if eff.braking_rate else tt.brake.braking_rate
         self.motion = Motion(tt, sc.true_line, sc.train, act, sc.start_position,
                              sc.start_speed, sc.max_step,
-                             None if self._braking_rate_const is not None else self.braking_rate)
+                             None if self._braking_rate_const is not None else self.braking_rate,
+                             **drive_effects(eff), **unlisted_hooks(sc.unlisted, tt))
         if commands is None:
             self.driver = Driver(sc.line, sc.train, sc.driver, sc.timetable, sc.start_position,
                                  sc.start_speed, a0=sc.start_acceleration,
@@ -330,6 +333,13 @@ def simulate(scenario: Scenario, seed: int | None = None, duration: float | None
     return world.result()
 
 
+def drive_effects(eff: Effects) -> dict:
+    """The :class:`~train_core.motion.Motion` keywords of the effects on the delivered drive
+    (power limit, adhesion section)."""
+    return {"p_spec": eff.power_limit.p_spec if eff.power_limit else None,
+            "adhesion": eff.adhesion_section.as_tuple() if eff.adhesion_section else None}
+
+
 NO_EFFECTS = Effects()
 LOSSLESS = LinkParams(p=0.0)  # every message received, no latency
 
@@ -338,7 +348,7 @@ def open_loop(line: Line, train: TrainParams, commands: tuple, *, effects: Effec
               believed_train: TrainParams | None = None, t0: float = 0.0,
               duration: float, x0: float, v0: float = 0.0, odometer_rate: float = 10.0,
               link: LinkParams = LOSSLESS, seed: int = 0, max_step: float = 0.01,
-              warmup: float = 30.0) -> SimResult:
+              warmup: float = 30.0, unlisted=None) -> SimResult:
     """The simulator open loop: ``line``/``train`` (+ ``effects``) driven by a recorded command
     series instead of the ATO, from true time ``t0`` for ``duration`` s.
 
@@ -349,6 +359,8 @@ def open_loop(line: Line, train: TrainParams, commands: tuple, *, effects: Effec
     commands into force for (default ``train``; the ``mass`` effect makes them differ). The
     result's times are true times (t0 + world time); motion, ground truth and sensor readings
     come from the same :class:`World` as a closed-loop run (``link`` default: lossless).
+    ``unlisted``: test effects (:mod:`train_sim.unlisted`), their times in the world's frame
+    (true time - t0).
     """
     from .scenario import Scenario
 
@@ -370,7 +382,8 @@ def open_loop(line: Line, train: TrainParams, commands: tuple, *, effects: Effec
     # Actuator state at t0: the commands issued before t0 through the true actuator alone.
     brake_delay = eff.brake_delay.delay if eff.brake_delay else None
     f_of = (lambda t: eff.braking_rate.value(t)) if eff.braking_rate else None
-    act = warm_actuator(tt, ct, ca, 0.0, warmup, brake_delay, f_of)
+    act = warm_actuator(tt, ct, ca, 0.0, warmup, brake_delay, f_of,
+                        eff.traction_delay.delay if eff.traction_delay else None)
     before = ct < 0.0
     sc = Scenario(
         name="open_loop", path="", line=line, train=believed,
@@ -378,7 +391,7 @@ def open_loop(line: Line, train: TrainParams, commands: tuple, *, effects: Effec
         start_position=x0, start_speed=v0, start_acceleration=act.a,
         start_target_acceleration=0.0, odometer_rate=odometer_rate, max_step=max_step,
         driver=DriverParams(), timetable=(), link=link, true_link=true_link(link, eff),
-        effects=eff)
+        effects=eff, unlisted=unlisted)
     world = World(sc, seed, commands=(ct[~before], ca[~before]))
     world.motion.act = act
     world.advance(duration)

@@ -1,0 +1,86 @@
+"""The test effects outside the causes list (train_sim.unlisted) against closed forms, on a
+frictionless train on a flat line (test_sim_drive_effects.py's set-up)."""
+
+import numpy as np
+from train_core.effects import Effects
+from train_core.model import Brake, Davis, Line, TrainParams
+
+from train_sim.scenario import load_scenario
+from train_sim.unlisted import BrakeFade, TractionGain, TunnelDrag, Unlisted, Wind
+from train_sim.world import open_loop, simulate
+
+TAU, T = 0.4, 1.2  # s
+TRAIN = TrainParams(mass=200000.0, rotary_allowance=0.1, davis=Davis(0.0, 0.0, 0.0),
+                    brake=Brake(TAU, T, 1.0))
+M_EFF = TRAIN.effective_mass
+FLAT = Line("flat", 1e5)
+SETTLED = T + 40 * TAU  # s
+
+
+def run(commands, unlisted=None, duration=60.0, v0=0.0, x0=0.0):
+    t, a = (np.asarray(c, float) for c in commands)
+    return open_loop(FLAT, TRAIN, (t, a), effects=Effects(), duration=duration, x0=x0, v0=v0,
+                     unlisted=unlisted).truth
+
+
+def test_traction_gain_scales_traction_only():
+    u = Unlisted(traction_gain=TractionGain(0.75))
+    pull = run(([0.0], [0.8]), u)
+    settled = pull["t"] > SETTLED
+    assert np.allclose(pull["acceleration"][settled], 0.75 * 0.8, rtol=0, atol=1e-12)
+    brake = ([-40.0], [-0.6])
+    for k in ("position", "velocity", "acceleration"):
+        assert np.array_equal(run(brake, u, v0=25.0)[k], run(brake, v0=25.0)[k]), k
+
+
+def test_brake_fade_below_v_fade_only():
+    u = Unlisted(brake_fade=BrakeFade(8.0, 0.6))
+    tr = run(([-40.0], [-0.8]), u, v0=25.0)
+    v, acc = tr["velocity"], tr["acceleration"]
+    fast, slow = v >= 8.0, (v < 8.0) & (v > 0.0)
+    assert fast.sum() > 50 and slow.sum() > 50
+    assert np.allclose(acc[fast], -0.8, rtol=0, atol=1e-12)
+    assert np.allclose(acc[slow], -0.48, rtol=0, atol=1e-12)
+
+
+def test_tunnel_drag_in_the_tunnel_only():
+    c = 30.0  # N/(m/s)^2
+    u = Unlisted(tunnel_drag=TunnelDrag(200.0, 500.0, c))
+    tr = run(([-40.0], [0.0]), u, v0=20.0)  # coasting, frictionless
+    t, x, v = tr["t"], tr["position"], tr["velocity"]
+    before, inside, after = x < 200.0, (x >= 200.0) & (x < 500.0), x >= 500.0
+    assert inside.sum() > 50 and after.sum() > 50
+    assert np.all(v[before] == 20.0)
+    # v' = -c v^2 / M_eff: 1 / v grows linearly at c / M_eff
+    k = np.flatnonzero(inside)[1:]
+    slope = np.diff(1.0 / v[k]) / np.diff(t[k])
+    assert np.allclose(slope, c / M_EFF, rtol=1e-6)
+    assert np.ptp(v[after]) < 1e-12 and v[after][0] < 20.0
+
+
+def test_wind_in_its_time_window_only():
+    f = 8000.0  # N
+    u = Unlisted(wind=Wind(10.0, 20.0, f))
+    tr = run(([-40.0], [0.0]), u, v0=15.0)
+    t, v = tr["t"], tr["velocity"]
+    assert np.all(v[t <= 10.0] == 15.0)
+    inside = (t > 10.05) & (t < 19.95)
+    slope = np.diff(v[inside]) / np.diff(t[inside])
+    assert np.allclose(slope, -f / M_EFF, rtol=1e-9)
+    after = t >= 20.0
+    assert np.ptp(v[after]) < 1e-12
+    # exactly 10 s of it: the 10 ms integration steps start and end on the window's edges
+    assert abs(v[after][0] - (15.0 - 10.0 * f / M_EFF)) < 1e-9
+
+
+def test_closed_loop_with_all_four_and_sensors_untouched():
+    sc = load_scenario("metro_demo")
+    r0 = simulate(sc, duration=150.0)
+    u = Unlisted(TunnelDrag(300.0, 900.0, 20.0), BrakeFade(5.0, 0.7), TractionGain(0.8),
+                 Wind(30.0, 60.0, 5000.0))
+    r1 = simulate(sc.with_changes(unlisted=u), duration=150.0)
+    assert np.abs(r1.truth["velocity"] - r0.truth["velocity"]).max() > 0.1
+    for k in ("t", "seq", "received"):
+        assert np.array_equal(r1.odometer[k], r0.odometer[k]), k
+    assert np.allclose(r1.odometer["speed"] - r1.truth["velocity"],
+                       r0.odometer["speed"] - r0.truth["velocity"], rtol=0, atol=1e-9)

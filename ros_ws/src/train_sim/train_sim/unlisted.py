@@ -1,0 +1,111 @@
+"""Effects outside the causes list, for tests: what a diagnosis must not explain by a listed cause.
+
+Every cause that ``diagnose`` knows (CONTRACT.md's table) has an effect in
+:mod:`train_core.effects`. The effects here are deliberately none of them, nor the power limit,
+the traction delay or the adhesion section: each is a physical difference that no listed cause
+describes, and each is confined in a different way, so that a check "no listed cause is
+confirmed" meets every kind of structure a residual can have:
+
+===================  ======================  ==================================================
+effect               where it shows          what the world does
+===================  ======================  ==================================================
+``tunnel_drag``      in a place              extra aerodynamic resistance c v^2 (N) while the
+                                             train's reference point is on [start, end): a
+                                             tunnel. Not a gradient (it grows with speed), not
+                                             the Davis c (it acts on one stretch only).
+``brake_fade``       at some speeds          braking delivered x ``factor`` while v < ``v_fade``
+                                             (the electric brake fading at low speed before the
+                                             friction brake takes over). Not braking_rate (it
+                                             holds at every speed) nor an adhesion section (it
+                                             holds at every place).
+``traction_gain``    in one phase            traction delivered x ``factor`` (a motor car cut
+                                             out), at every speed and place; braking untouched.
+                                             Not mass (which scales braking and resistance too),
+                                             not a power limit (no knee in speed).
+``wind``             in time                 a constant extra force ``force`` (N, > 0 against
+                                             the motion) on [t0, t1) of true time (a gust
+                                             front). Not a gradient (it is not tied to a place)
+                                             nor resistance (it does not depend on speed).
+===================  ======================  ==================================================
+
+Use: ``scenario.with_changes(unlisted=Unlisted(wind=Wind(120.0, 180.0, 9000.0)))``; the world
+(``simulate``, ``generate``) runs them through the hooks of :class:`train_core.dynamics.Dynamics`
+(delivered traction/braking parts; extra deceleration). They are not parsed from scenario files
+(they exist to be hidden from the tools under test). Only the motion changes; sensor noise and
+link draws stay those of the same seed without them.
+
+Pure module: standard library only.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from train_core.model import TrainParams
+
+
+@dataclass(frozen=True)
+class TunnelDrag:
+    start: float  # m, track position where the extra drag begins
+    end: float  # m, where it ends
+    c: float  # N/(m/s)^2, extra resistance c v^2 on [start, end)
+
+
+@dataclass(frozen=True)
+class BrakeFade:
+    v_fade: float  # m/s, braking is weaker below this speed
+    factor: float  # -, multiplier of the delivered braking below v_fade
+
+
+@dataclass(frozen=True)
+class TractionGain:
+    factor: float  # -, multiplier of the delivered traction
+
+
+@dataclass(frozen=True)
+class Wind:
+    t0: float  # s, true time the force starts
+    t1: float  # s, true time it stops
+    force: float  # N, extra force against the motion (negative: tail wind)
+
+
+@dataclass(frozen=True)
+class Unlisted:
+    """The test effects of one run; None = off."""
+
+    tunnel_drag: TunnelDrag | None = None
+    brake_fade: BrakeFade | None = None
+    traction_gain: TractionGain | None = None
+    wind: Wind | None = None
+
+
+def unlisted_hooks(unlisted: Unlisted | None, true_train: TrainParams) -> dict:
+    """The ``drive_hook``/``resist_hook`` keywords of :class:`train_core.motion.Motion` for
+    ``unlisted`` on ``true_train`` (forces in N become decelerations over its effective mass)."""
+    if unlisted is None:
+        return {}
+    out = {}
+    fade, gain = unlisted.brake_fade, unlisted.traction_gain
+    if fade is not None or gain is not None:
+        g = gain.factor if gain is not None else 1.0
+
+        def drive_hook(x, v, a_tr, a_br):
+            if fade is not None and v < fade.v_fade:
+                a_br = fade.factor * a_br
+            return g * a_tr, a_br
+
+        out["drive_hook"] = drive_hook
+    tun, wind = unlisted.tunnel_drag, unlisted.wind
+    if tun is not None or wind is not None:
+        m_eff = true_train.effective_mass
+
+        def resist_hook(t, x, v):
+            f = 0.0
+            if tun is not None and tun.start <= x < tun.end:
+                f += tun.c * v * v
+            if wind is not None and wind.t0 <= t < wind.t1 and v > 0.0:
+                f += wind.force
+            return f / m_eff
+
+        out["resist_hook"] = resist_hook
+    return out
