@@ -31,3 +31,11 @@ def test_zero_weights_are_never_drawn_and_degenerate_weights_fail():
     np.testing.assert_allclose(wn, [[0.2, 0.0], [0.8, 1.0]])
     with pytest.raises(ValueError):
         log_normalize(np.array([[-np.inf], [-np.inf]]))
+
+
+def test_degenerate_batched_weights_resample_to_single_particle():
+    w = np.zeros((10, 2))
+    w[3, 0] = 1.0
+    w[9, 1] = 1.0
+    idx = systematic_resample(w, np.random.default_rng(1))
+    assert np.all(idx[:, 0] == 3) and np.all(idx[:, 1] == 9)

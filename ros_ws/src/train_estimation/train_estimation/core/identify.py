@@ -63,7 +63,7 @@ from train_core.actuator import grid_output as actuator_output
 from train_core.model import Davis, Line, TrainParams
 
 from . import kalman
-from .augmented_kf import Events, augmented_kf
+from .augmented_kf import Events, augmented_kf, gls, information_condition
 
 __all__ = [
     "IdentificationError",
@@ -77,6 +77,8 @@ __all__ = [
 
 PARAM_NAMES = ("traction_gain", "scaled_braking_rate", "alpha", "beta", "gamma", "kappa")
 LOG2PI = np.log(2.0 * np.pi)
+# the equilibrated information's condition number above which the fit is refused as singular
+MAX_CONDITION = 1e12
 
 
 class IdentificationError(ValueError):
@@ -227,23 +229,9 @@ def _aug_kf(Y, dt, Bv, Bs, base_v, base_s, q, r_s, r_v):
     return res.W, res.logdet + res.m * LOG2PI
 
 
-def _gls(W, logdet):
-    """theta maximising -0.5 z^T W z (z = [1, theta]); returns theta, cov, loglik."""
-    Wtt, wt0 = W[1:, 1:], W[1:, 0]
-    d = np.sqrt(np.clip(np.diag(Wtt), 1e-300, None))
-    A = Wtt / np.outer(d, d)
-    cond = np.linalg.cond(A)
-    if not np.isfinite(cond) or cond > 1e12:
-        raise np.linalg.LinAlgError(f"information matrix singular (condition {cond:.3g})")
-    Ai = np.linalg.inv(A)
-    cov = Ai / np.outer(d, d)
-    theta = -cov @ wt0
-    z = np.concatenate([[1.0], theta])
-    return theta, cov, -0.5 * (logdet + z @ W @ z), cond
-
-
 def _kf_rts(Y, dt, drift_v, drift_s, q, r_s, r_v):
-    """Plain KF + RTS for x = (s, v) with known drift; returns smoothed (s, v) at the stamps."""
+    """Kalman filter (closed-form odometer updates) + :func:`kalman.rts_smooth` for x = (s, v)
+    with known drift; returns the smoothed (s, v) at the stamps."""
     n = Y.shape[0]
     m = np.zeros((n, 2))
     P = np.zeros((n, 2, 2))
@@ -262,13 +250,7 @@ def _kf_rts(Y, dt, drift_v, drift_s, q, r_s, r_v):
             Pp[k, 0, 0], Pp[k, 0, 1], Pp[k, 1, 1], r_s, r_v[k])
         m[k] = mp[k] + np.array([[k00, k01], [k10, k11]]) @ (Y[k] - mp[k])
         P[k] = [[n00, n01], [n01, n11]]
-    ms = m.copy()
-    Ps = P.copy()
-    for k in range(n - 2, -1, -1):
-        C = P[k] @ A[k + 1].T @ np.linalg.inv(Pp[k + 1])
-        ms[k] = m[k] + C @ (ms[k + 1] - mp[k + 1])
-        Ps[k] = P[k] + C @ (Ps[k + 1] - Pp[k + 1]) @ C.T
-    return ms
+    return kalman.rts_smooth(m, P, mp, Pp, A)[0]
 
 
 class _QVec:
@@ -401,8 +383,8 @@ def _fit(run: _Run, free: dict, prior_vals: dict, Bv, Bs, q_vec, r_s):
     base_v = Bv[:, jx] @ thx if jx else np.zeros(len(run.dt))
     base_s = Bs[:, jx] @ thx if jx else np.zeros(len(run.dt))
     W, ld = _aug_kf(run.Y, run.dt, Bv[:, jf], Bs[:, jf], base_v, base_s, q_vec, r_s, run.r_v)
-    th, cov, ll, cond = _gls(W, ld)
-    return names, th, cov, ll, cond
+    th, cov, quad = gls(W, max_condition=MAX_CONDITION)
+    return names, th, cov, -0.5 * (ld + quad), information_condition(W)
 
 
 def _fit_noise(run, free, prior_vals, Bv, Bs, qvec, log_q, log_rs, cfg: SIConfig):
@@ -508,7 +490,8 @@ def _mass_hypothesis(run, free, prior_vals, prior: TrainParams, Bv, Bs, q_vec, r
     W, ld = _aug_kf(run.Y, run.dt, np.concatenate([Bv[:, jf], res_col[:, None]], axis=1),
                     np.concatenate([Bs[:, jf], res_col_s[:, None]], axis=1),
                     Bv[:, jx] @ thx, Bs[:, jx] @ thx, q_vec, r_s, run.r_v)
-    thm, covm, llm, _ = _gls(W, ld)
+    thm, covm, quad = gls(W, max_condition=MAX_CONDITION)
+    llm = -0.5 * (ld + quad)
     kscale, se_k = thm[-1], float(np.sqrt(covm[-1, -1]))
     m_eq = prior.mass / kscale
     return (float(m_eq), float(prior.mass * se_k / kscale ** 2)), llm
