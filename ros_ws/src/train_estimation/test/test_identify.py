@@ -102,3 +102,55 @@ def test_bad_stamps_and_nan():
     sp[3] = np.nan
     with pytest.raises(IdentificationError, match="NaN"):
         identify(_data(run, odo_speed=sp), LINE, METRO)
+
+
+@pytest.fixture(scope="module")
+def nominal():
+    run = simulate_run(METRO, LINE, np.random.default_rng(12), 900.0)
+    return identify(_data(run), LINE, METRO)
+
+
+def test_correlated_davis_terms_are_reported_and_not_all_flagged(nominal):
+    """Over a run's speeds 1, v and v^2 are nearly collinear: the Davis terms' estimates are
+    correlated near -1. The rule holds the term the others reproduce at the prior, reports its
+    correlations, and flags as identifiable only parameters that are tight and separable."""
+    from train_estimation.core.identify import SIConfig
+
+    res, cfg = nominal, SIConfig()
+    davis = ("alpha", "beta", "gamma")
+    fixed = [f for f in res.fixed_by_rule if f["rule"] == "separable"]
+    assert fixed and all(f["name"] in davis for f in fixed)
+    r_max = np.sqrt(1.0 - 1.0 / cfg.vif_max)  # the largest |r| two separable parameters have
+    for f in fixed:
+        assert f["variance_inflation"] > cfg.vif_max
+        partner, r = max(f["correlations"].items(), key=lambda kv: abs(kv[1]))
+        assert partner in davis and abs(r) > r_max
+        assert f"{r:+.2f} with {partner}" in res.reasons[f["name"]]
+        assert not res.identifiable[f["name"]]
+    # what stays flagged is tight and separable: every pair's |correlation| is below r_max
+    m0 = METRO.effective_mass
+    prior = {"alpha": METRO.davis.a / m0, "beta": METRO.davis.b / m0, "gamma": METRO.davis.c / m0,
+             "traction_gain": 1.0, "kappa": 1.0 / (1.0 + METRO.rotary_allowance),
+             "scaled_braking_rate": METRO.brake.braking_rate}
+    names = list(res.free_names)
+    assert res.correlation.shape == (len(names), len(names))
+    np.testing.assert_allclose(np.diag(res.correlation), 1.0)
+    for i, a in enumerate(names):
+        assert res.identifiable[a]
+        assert res.variance_inflation[a] <= cfg.vif_max
+        assert res.std_errors[a] <= cfg.rel_se_max * abs(prior[a])
+        for j in range(i):
+            assert abs(res.correlation[i, j]) <= r_max
+    assert sum(res.identifiable[k] for k in davis) < 3
+    assert "variance inflation" in res.rule and "relative standard error" in res.rule
+
+
+def test_force_at_reference_speed_is_within_its_standard_error(nominal):
+    f = nominal.force_at_reference_speed
+    d = METRO.davis
+    true = d.a + d.b * f["speed"] + d.c * f["speed"] ** 2
+    assert 9.0 < f["speed"] < 22.0  # the median moving speed of the run
+    assert f["prior"] == pytest.approx(true)
+    assert 0 < f["std_error"] < 0.05 * true
+    # 3 SE: a 0.27 % two-sided chance of failing with an honest SE (one fixed seed)
+    assert abs(f["fitted"] - true) < 3 * f["std_error"]

@@ -127,7 +127,10 @@ class SIConfig:
     min_speed_range: float = 3.0  # m/s, 5-95 % spread of moving speeds (else "only cruises")
     min_brake: float = 0.05  # m/s^2, |a_Tar| below this is not braking
     min_gradient_spread: float = 1e-3  # m/s^2, std of g sin(theta) over the run for kappa
-    rel_se_max: float = 0.25  # a parameter is identifiable if SE < rel_se_max * |prior|
+    rel_se_max: float = 0.25  # tight: a free parameter's SE <= rel_se_max * |prior value|
+    vif_max: float = 10.0  # separable: its variance inflation factor <= vif_max (see identify)
+    reference_speed: float | None = None  # m/s, for the resistance force report; None: the
+    #                                       median moving speed of the run
     fit_traction_gain: bool = True  # k = M_prior / M; False: k = 1 (mass not identifiable)
     min_distance_var: float = 1e-4  # m^2, floor for the distance noise variance
 
@@ -144,6 +147,11 @@ class SIResult:
     covariance: np.ndarray  # covariance of the free specific parameters (order: free_names)
     free_names: tuple
     mass_if_davis_nominal: tuple  # (kg, SE kg): mass explaining the data if a, b, c (N) = prior
+    correlation: np.ndarray | None = None  # correlations of the free parameters (free_names)
+    variance_inflation: dict = field(default_factory=dict)  # free name -> VIF (>= 1)
+    force_at_reference_speed: dict = field(default_factory=dict)  # see _force_report
+    fixed_by_rule: tuple = ()  # one dict per parameter the rule fixed at the prior (in order)
+    rule: str = ""  # the identifiability rule applied, in words
     diagnostics: dict = field(default_factory=dict)
     series: dict = field(default_factory=dict)  # t, measured and smoothed speed for plots
 
@@ -400,9 +408,38 @@ def _fit_noise(run, free, prior_vals, Bv, Bs, qvec, log_q, log_rs, cfg: SIConfig
             float(max(opt.x[1], np.log(cfg.min_distance_var))))
 
 
-def _eliminate(run, free, reasons, prior_vals, Bv, Bs, q_vec, r_s, cfg: SIConfig):
-    """Fit, fixing the worst-determined parameter at the prior until every free one passes
-    ``rel_se_max`` (``free`` and ``reasons`` are updated); returns the last fit."""
+def identifiability_rule(cfg: SIConfig) -> str:
+    """The rule :func:`_eliminate` applies, in words (printed by the ``identify`` tool)."""
+    r_max = float(np.sqrt(1.0 - 1.0 / cfg.vif_max)) if cfg.vif_max > 1 else 0.0
+    return (f"identifiable = tight AND separable: relative standard error <= {cfg.rel_se_max:g} "
+            f"(SE / |prior value|) and variance inflation factor <= {cfg.vif_max:g} (the other "
+            f"free parameters explain at most {100 * (1 - 1 / cfg.vif_max):.0f} % of its effect;"
+            f" for two parameters |correlation| <= {r_max:.3f}); otherwise fixed at the prior, "
+            "worst first, and the rest refitted")
+
+
+def _correlation(cov: np.ndarray) -> np.ndarray:
+    se = np.sqrt(np.diag(cov))
+    se = np.where(se > 0, se, 1.0)
+    return cov / np.outer(se, se)
+
+
+def _vif(cov: np.ndarray) -> np.ndarray:
+    """Variance inflation factors: VIF_i = [R^-1]_ii for the correlation matrix R of the
+    estimates, = Var(theta_i, the others fitted) / Var(theta_i, the others known) =
+    1 / (1 - R_i^2), R_i^2 the share of theta_i's effect the other parameters reproduce (in
+    the metric of the likelihood)."""
+    if cov.shape[0] < 2:
+        return np.ones(cov.shape[0])
+    return np.diag(np.linalg.pinv(_correlation(cov)))
+
+
+def _eliminate(run, free, reasons, prior_vals, Bv, Bs, q_vec, r_s, cfg: SIConfig, log=None):
+    """Fit, fixing at the prior the free parameter that breaks the identifiability rule
+    (:func:`identifiability_rule`) worst until every free one passes: first the loosest
+    interval above ``rel_se_max``, then the largest variance inflation above ``vif_max``
+    (a parameter whose effect the others reproduce). ``free`` and ``reasons`` are updated and
+    each decision appended to ``log``; returns the last fit."""
     while True:
         try:
             names, th, cov, ll, cond = _fit(run, free, prior_vals, Bv, Bs, q_vec, r_s)
@@ -411,20 +448,57 @@ def _eliminate(run, free, reasons, prior_vals, Bv, Bs, q_vec, r_s, cfg: SIConfig
                                       ALL_PHYSICAL) from exc
         se = np.sqrt(np.diag(cov))
         rel = np.array([se[i] / max(abs(prior_vals[k]), 1e-12) for i, k in enumerate(names)])
-        bad = [(rel[i], k) for i, k in enumerate(names) if rel[i] > cfg.rel_se_max]
-        if not bad:
+        vif = _vif(cov)
+        corr = _correlation(cov)
+        loose = [(rel[i], i) for i in range(len(names)) if rel[i] > cfg.rel_se_max]
+        mixed = [(vif[i], i) for i in range(len(names)) if vif[i] > cfg.vif_max]
+        if not loose and not mixed:
             return names, th, cov, ll, cond
-        worst = max(bad)[1]
+        i = max(loose)[1] if loose else max(mixed)[1]
+        worst = names[i]
+        partners = sorted(((corr[i, j], names[j]) for j in range(len(names)) if j != i),
+                          key=lambda c: -abs(c[0]))
+        with_ = ", ".join(f"{r:+.2f} with {k}" for r, k in partners[:2])
         free[worst] = False
-        reasons[worst] = (f"relative standard error {max(bad)[0]:.2f} > {cfg.rel_se_max:g}: "
-                          "not identifiable from this run, prior kept")
+        if loose:
+            reasons[worst] = (f"relative standard error {rel[i]:.2f} > {cfg.rel_se_max:g}: "
+                              "not identifiable from this run, prior kept")
+        else:
+            reasons[worst] = (f"not separable: variance inflation {vif[i]:.3g} > "
+                              f"{cfg.vif_max:g} (correlation {with_}): the other parameters "
+                              "reproduce its effect, prior kept")
+        if log is not None:
+            log.append({"name": worst, "rule": "tight" if loose else "separable",
+                        "relative_se": float(rel[i]), "variance_inflation": float(vif[i]),
+                        "correlations": {k: float(r) for r, k in partners}})
         if not any(free[k] for k in ("alpha", "beta", "gamma")):
             raise IdentificationError(
                 "no resistance parameter is identifiable from this run",
                 ("excitation",), ("davis.a", "davis.b", "davis.c", "mass"))
 
 
-def _physical(names, th, cov, free, reasons, prior_vals, prior: TrainParams):
+def _force_report(names, th, cov, prior_vals, meff: float, prior: TrainParams, v: float):
+    """The resistance force a + b v + c v^2 (N) at speed ``v`` (m/s): fitted, its standard
+    error (delta method over the free alpha, beta, gamma, given the fitted effective mass), the
+    prior's and the difference in standard errors. The force at a speed the run spends its
+    time at is determined far better than the terms a, b, c one by one when they are
+    correlated."""
+    vals = dict(prior_vals)
+    vals.update(dict(zip(names, th)))
+    grad = np.zeros(len(names))
+    for k, x in (("alpha", 1.0), ("beta", v), ("gamma", v * v)):
+        if k in names:
+            grad[names.index(k)] = meff * x
+    fitted = meff * (vals["alpha"] + vals["beta"] * v + vals["gamma"] * v * v)
+    se = float(np.sqrt(max(grad @ cov @ grad, 0.0)))
+    d = prior.davis
+    at_prior = d.a + d.b * v + d.c * v * v
+    return {"speed": float(v), "fitted": float(fitted), "std_error": se,
+            "prior": float(at_prior),
+            "z_vs_prior": float((fitted - at_prior) / se) if se > 0 else float("nan")}
+
+
+def _physical(names, th, cov, free, reasons, prior_vals, prior: TrainParams, vif=None):
     """Specific parameters -> train.yaml quantities given the prior mass (delta method for the
     standard errors): (values, std_errors, identifiable, reasons, davis, lambda, mass, f)."""
     vals = dict(prior_vals)
@@ -432,8 +506,9 @@ def _physical(names, th, cov, free, reasons, prior_vals, prior: TrainParams):
     ses = {k: float("nan") for k in PARAM_NAMES}
     ses.update({k: float(s) for k, s in zip(names, np.sqrt(np.diag(cov)))})
     ident = {k: bool(free[k]) for k in PARAM_NAMES}
-    for k in names:
-        reasons.setdefault(k, f"identified, relative SE {ses[k] / abs(prior_vals[k]):.3f}")
+    for i, k in enumerate(names):
+        infl = "" if vif is None else f", variance inflation {vif[i]:.3g}"
+        reasons.setdefault(k, f"identified, relative SE {ses[k] / abs(prior_vals[k]):.3f}{infl}")
     kap = vals["kappa"]
     lam = 1.0 / kap - 1.0
     se_lam = ses["kappa"] / kap ** 2 if ident["kappa"] else float("nan")
@@ -461,12 +536,14 @@ def _physical(names, th, cov, free, reasons, prior_vals, prior: TrainParams):
     ident.update({"davis.a": ident["alpha"], "davis.b": ident["beta"], "davis.c": ident["gamma"],
                   "mass": ident["traction_gain"], "rotary_allowance": ident["kappa"],
                   "braking_rate": ident["scaled_braking_rate"]})
-    mass_note = (" (in N: alpha M_eff with the fitted mass)" if ident["traction_gain"]
-                 else " (in N given the prior mass)")
+    def mass_note(sym):
+        return (f" (in N: {sym} M_eff with the fitted mass)" if ident["traction_gain"]
+                else " (in N given the prior mass)")
+
     reasons.update({
-        "davis.a": reasons["alpha"] + mass_note,
-        "davis.b": reasons["beta"] + mass_note,
-        "davis.c": reasons["gamma"] + mass_note,
+        "davis.a": reasons["alpha"] + mass_note("alpha"),
+        "davis.b": reasons["beta"] + mass_note("beta"),
+        "davis.c": reasons["gamma"] + mass_note("gamma"),
         "mass": (("identified as M_prior / traction_gain, assuming the drive force is the "
                   "command times the believed mass") if ident["traction_gain"] else
                  ("not identifiable: " + reasons["traction_gain"])),
@@ -510,8 +587,21 @@ def identify(data: SIData, line: Line, prior: TrainParams, config: SIConfig = SI
     ``outer_iterations`` times: regressors about the reference trajectory (:func:`_regressors`),
     the noise by profile likelihood (first time only, :func:`_fit_noise`), the GLS with
     elimination of unidentifiable parameters (:func:`_eliminate`) and a new reference from the
-    RTS smoother; finally the physical quantities (:func:`_physical`) and the mass hypothesis
+    RTS smoother; finally the physical quantities (:func:`_physical`), the resistance force at
+    the reference speed (:func:`_force_report`) and the mass hypothesis
     (:func:`_mass_hypothesis`).
+
+    Identifiable means tight AND separable (:func:`identifiability_rule`): a parameter's
+    interval must be narrow against its size (relative SE <= ``rel_se_max``) and its effect
+    must not be reproduced by the other free parameters (variance inflation factor <=
+    ``vif_max``; VIF = 1 / (1 - R^2), R^2 the share of its effect the others explain). The
+    Davis terms are the usual case: over a run's speeds 1, v and v^2 are nearly collinear, so
+    a, b and c trade off against each other (correlations near -1 between neighbours) and can
+    each be well off while the force they sum to is well determined; the term the others
+    reproduce best is then held at the prior and the rest refitted. The result reports the
+    correlations and inflation factors of the final free parameters, every parameter the rule
+    fixed (with its correlations at that moment) and the force at the reference speed with
+    its standard error.
     """
     cfg = config
     d = _validate(data, line)
@@ -542,6 +632,7 @@ def identify(data: SIData, line: Line, prior: TrainParams, config: SIConfig = SI
                                              cfg.min_distance_var))
     total_steps = cfg.outer_iterations + 2
     fit = None
+    fixed_log: list = []
     for outer in range(cfg.outer_iterations):
         Bv, Bs, gs, mv, held_k = _regressors(run, line, cfg, np.interp(tg, t, v_ref),
                                              np.interp(tg, t, s_ref))
@@ -556,7 +647,7 @@ def identify(data: SIData, line: Line, prior: TrainParams, config: SIConfig = SI
             # noise once: the linearisation barely moves it
             log_q, log_rs = _fit_noise(run, free, prior_vals, Bv, Bs, qvec, log_q, log_rs, cfg)
         names, th, cov, ll, cond = _eliminate(run, free, reasons, prior_vals, Bv, Bs,
-                                              qvec(log_q), np.exp(log_rs), cfg)
+                                              qvec(log_q), np.exp(log_rs), cfg, fixed_log)
         fit = (names, th, cov, ll, cond, Bv, Bs)
         # re-linearise about the smoothed trajectory under the fit
         vals = dict(prior_vals)
@@ -568,8 +659,13 @@ def identify(data: SIData, line: Line, prior: TrainParams, config: SIConfig = SI
             progress(outer + 1, total_steps, f"linearisation {outer + 1}/{cfg.outer_iterations}")
 
     names, th, cov, ll, cond, Bv, Bs = fit
+    vif = _vif(cov)
     values, std, ident, reasons, davis, lam, mass, braking_rate = _physical(
-        names, th, cov, free, reasons, prior_vals, prior)
+        names, th, cov, free, reasons, prior_vals, prior, vif)
+    moving = d["odo_speed"][d["odo_speed"] > cfg.min_speed]
+    v_force = (float(np.median(moving)) if cfg.reference_speed is None
+               else float(cfg.reference_speed))
+    force = _force_report(names, th, cov, prior_vals, (1.0 + lam) * mass, prior, v_force)
     mass_hyp, llm = _mass_hypothesis(run, free, prior_vals, prior, Bv, Bs, qvec(log_q),
                                      np.exp(log_rs))
 
@@ -587,6 +683,9 @@ def identify(data: SIData, line: Line, prior: TrainParams, config: SIConfig = SI
     return SIResult(
         train=train, values=values, std_errors=std, identifiable=ident, reasons=reasons,
         covariance=cov, free_names=tuple(names), mass_if_davis_nominal=mass_hyp,
+        correlation=_correlation(cov), variance_inflation=dict(zip(names, map(float, vif))),
+        force_at_reference_speed=force, fixed_by_rule=tuple(fixed_log),
+        rule=identifiability_rule(cfg),
         diagnostics={"samples_used": int(t.size), "duration_s": float(duration),
                      "position_offset_m": run.s0, "process_noise_psd": float(np.exp(log_q)),
                      "distance_noise_var": float(np.exp(log_rs)), "loglik": float(ll),
