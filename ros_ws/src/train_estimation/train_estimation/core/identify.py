@@ -128,7 +128,7 @@ class SIConfig:
     min_brake: float = 0.05  # m/s^2, |a_Tar| below this is not braking
     min_gradient_spread: float = 1e-3  # m/s^2, std of g sin(theta) over the run for kappa
     rel_se_max: float = 0.25  # tight: a free parameter's SE <= rel_se_max * |prior value|
-    vif_max: float = 10.0  # separable: its variance inflation factor <= vif_max (see identify)
+    vif_max: float = 30.0  # separable: its variance inflation factor <= vif_max (see identify)
     reference_speed: float | None = None  # m/s, for the resistance force report; None: the
     #                                       median moving speed of the run
     fit_traction_gain: bool = True  # k = M_prior / M; False: k = 1 (mass not identifiable)
@@ -137,7 +137,8 @@ class SIConfig:
 
 @dataclass(frozen=True)
 class SIResult:
-    """Fit result. Values of non-identifiable parameters are the prior's, flagged False."""
+    """Fit result. Parameters too loosely determined are held at the prior; parameters fitted
+    but not separable keep the joint fit's value; both are flagged False (see ``reasons``)."""
 
     train: TrainParams  # prior with the identified values substituted
     values: dict  # name -> fitted value (PARAM_NAMES and physical names)
@@ -150,7 +151,7 @@ class SIResult:
     correlation: np.ndarray | None = None  # correlations of the free parameters (free_names)
     variance_inflation: dict = field(default_factory=dict)  # free name -> VIF (>= 1)
     force_at_reference_speed: dict = field(default_factory=dict)  # see _force_report
-    fixed_by_rule: tuple = ()  # one dict per parameter the rule fixed at the prior (in order)
+    fixed_by_rule: tuple = ()  # one dict per parameter held at the prior as too loose (in order)
     rule: str = ""  # the identifiability rule applied, in words
     diagnostics: dict = field(default_factory=dict)
     series: dict = field(default_factory=dict)  # t, measured and smoothed speed for plots
@@ -412,10 +413,11 @@ def identifiability_rule(cfg: SIConfig) -> str:
     """The rule :func:`_eliminate` applies, in words (printed by the ``identify`` tool)."""
     r_max = float(np.sqrt(1.0 - 1.0 / cfg.vif_max)) if cfg.vif_max > 1 else 0.0
     return (f"identifiable = tight AND separable: relative standard error <= {cfg.rel_se_max:g} "
-            f"(SE / |prior value|) and variance inflation factor <= {cfg.vif_max:g} (the other "
-            f"free parameters explain at most {100 * (1 - 1 / cfg.vif_max):.0f} % of its effect;"
-            f" for two parameters |correlation| <= {r_max:.3f}); otherwise fixed at the prior, "
-            "worst first, and the rest refitted")
+            f"(SE / |prior value|; otherwise held at the prior, loosest first, and the rest "
+            f"refitted) and variance inflation factor <= {cfg.vif_max:g} in the joint fit (the "
+            f"other free parameters reproduce at most {100 * (1 - 1 / cfg.vif_max):.1f} % of its "
+            f"effect; for two parameters |correlation| <= {r_max:.3f}; otherwise the joint fit's "
+            "value is kept and flagged)")
 
 
 def _correlation(cov: np.ndarray) -> np.ndarray:
@@ -435,11 +437,11 @@ def _vif(cov: np.ndarray) -> np.ndarray:
 
 
 def _eliminate(run, free, reasons, prior_vals, Bv, Bs, q_vec, r_s, cfg: SIConfig, log=None):
-    """Fit, fixing at the prior the free parameter that breaks the identifiability rule
-    (:func:`identifiability_rule`) worst until every free one passes: first the loosest
-    interval above ``rel_se_max``, then the largest variance inflation above ``vif_max``
-    (a parameter whose effect the others reproduce). ``free`` and ``reasons`` are updated and
-    each decision appended to ``log``; returns the last fit."""
+    """Fit, holding at the prior the free parameter with the loosest interval until every free
+    one has a relative standard error <= ``rel_se_max`` (``free`` and ``reasons`` are updated,
+    each decision appended to ``log`` with the correlations at that moment); returns the last
+    fit. Separability does not eliminate: a parameter the others reproduce keeps its joint
+    value (holding it at a wrong prior would bias the others) and is only flagged."""
     while True:
         try:
             names, th, cov, ll, cond = _fit(run, free, prior_vals, Bv, Bs, q_vec, r_s)
@@ -448,33 +450,42 @@ def _eliminate(run, free, reasons, prior_vals, Bv, Bs, q_vec, r_s, cfg: SIConfig
                                       ALL_PHYSICAL) from exc
         se = np.sqrt(np.diag(cov))
         rel = np.array([se[i] / max(abs(prior_vals[k]), 1e-12) for i, k in enumerate(names)])
-        vif = _vif(cov)
-        corr = _correlation(cov)
         loose = [(rel[i], i) for i in range(len(names)) if rel[i] > cfg.rel_se_max]
-        mixed = [(vif[i], i) for i in range(len(names)) if vif[i] > cfg.vif_max]
-        if not loose and not mixed:
+        if not loose:
             return names, th, cov, ll, cond
-        i = max(loose)[1] if loose else max(mixed)[1]
+        i = max(loose)[1]
         worst = names[i]
-        partners = sorted(((corr[i, j], names[j]) for j in range(len(names)) if j != i),
-                          key=lambda c: -abs(c[0]))
-        with_ = ", ".join(f"{r:+.2f} with {k}" for r, k in partners[:2])
         free[worst] = False
-        if loose:
-            reasons[worst] = (f"relative standard error {rel[i]:.2f} > {cfg.rel_se_max:g}: "
-                              "not identifiable from this run, prior kept")
-        else:
-            reasons[worst] = (f"not separable: variance inflation {vif[i]:.3g} > "
-                              f"{cfg.vif_max:g} (correlation {with_}): the other parameters "
-                              "reproduce its effect, prior kept")
+        reasons[worst] = (f"relative standard error {rel[i]:.2f} > {cfg.rel_se_max:g}: "
+                          "not identifiable from this run, prior kept")
         if log is not None:
-            log.append({"name": worst, "rule": "tight" if loose else "separable",
-                        "relative_se": float(rel[i]), "variance_inflation": float(vif[i]),
-                        "correlations": {k: float(r) for r, k in partners}})
+            corr = _correlation(cov)
+            log.append({"name": worst, "rule": "tight", "relative_se": float(rel[i]),
+                        "variance_inflation": float(_vif(cov)[i]),
+                        "correlations": {names[j]: float(corr[i, j])
+                                         for j in range(len(names)) if j != i}})
         if not any(free[k] for k in ("alpha", "beta", "gamma")):
             raise IdentificationError(
                 "no resistance parameter is identifiable from this run",
                 ("excitation",), ("davis.a", "davis.b", "davis.c", "mass"))
+
+
+def _separability(names, cov, reasons, cfg: SIConfig) -> dict:
+    """name -> separable (VIF <= ``vif_max`` in the joint fit); the reason of a parameter that
+    is not names its inflation and its two strongest correlations."""
+    vif, corr = _vif(cov), _correlation(cov)
+    sep = {}
+    for i, k in enumerate(names):
+        sep[k] = bool(vif[i] <= cfg.vif_max)
+        if not sep[k]:
+            partners = sorted(((corr[i, j], names[j]) for j in range(len(names)) if j != i),
+                              key=lambda c: -abs(c[0]))
+            with_ = ", ".join(f"{r:+.2f} with {p}" for r, p in partners[:2])
+            reasons[k] = (f"fitted jointly but not separable: variance inflation {vif[i]:.3g} > "
+                          f"{cfg.vif_max:g} (correlation {with_}): the other parameters "
+                          "reproduce its effect, only their combination is determined (see the "
+                          "force at the reference speed)")
+    return sep
 
 
 def _force_report(names, th, cov, prior_vals, meff: float, prior: TrainParams, v: float):
@@ -592,15 +603,15 @@ def identify(data: SIData, line: Line, prior: TrainParams, config: SIConfig = SI
     (:func:`_mass_hypothesis`).
 
     Identifiable means tight AND separable (:func:`identifiability_rule`): a parameter's
-    interval must be narrow against its size (relative SE <= ``rel_se_max``) and its effect
-    must not be reproduced by the other free parameters (variance inflation factor <=
-    ``vif_max``; VIF = 1 / (1 - R^2), R^2 the share of its effect the others explain). The
-    Davis terms are the usual case: over a run's speeds 1, v and v^2 are nearly collinear, so
-    a, b and c trade off against each other (correlations near -1 between neighbours) and can
-    each be well off while the force they sum to is well determined; the term the others
-    reproduce best is then held at the prior and the rest refitted. The result reports the
-    correlations and inflation factors of the final free parameters, every parameter the rule
-    fixed (with its correlations at that moment) and the force at the reference speed with
+    interval must be narrow against its size (relative SE <= ``rel_se_max``; otherwise it is held
+    at the prior and the rest refitted) and its effect must not be reproduced by the other free
+    parameters (variance inflation factor <= ``vif_max``; VIF = 1 / (1 - R^2), R^2 the share of
+    its effect the others explain; otherwise it keeps the joint fit's value and is flagged).
+    The Davis terms are the usual case: over a run's speeds 1, v and v^2 are nearly collinear,
+    so a, b and c trade off against each other (correlations near -1 between neighbours) and
+    can each be well off while the force they sum to is well determined. The result reports
+    the correlations and inflation factors of the free parameters, every parameter held at the
+    prior (with its correlations at that moment) and the force at the reference speed with
     its standard error.
     """
     cfg = config
@@ -660,8 +671,15 @@ def identify(data: SIData, line: Line, prior: TrainParams, config: SIConfig = SI
 
     names, th, cov, ll, cond, Bv, Bs = fit
     vif = _vif(cov)
-    values, std, ident, reasons, davis, lam, mass, braking_rate = _physical(
+    separable = _separability(names, cov, reasons, cfg)
+    values, std, fitted, reasons, davis, lam, mass, braking_rate = _physical(
         names, th, cov, free, reasons, prior_vals, prior, vif)
+    ident = {k: fitted[k] and separable.get(k, True) for k in PARAM_NAMES}
+    ident.update({"davis.a": ident["alpha"], "davis.b": ident["beta"], "davis.c": ident["gamma"],
+                  "mass": ident["traction_gain"], "rotary_allowance": ident["kappa"],
+                  "braking_rate": ident["scaled_braking_rate"]})
+    if fitted["traction_gain"] and not separable.get("traction_gain", True):
+        reasons["mass"] = reasons["traction_gain"]
     moving = d["odo_speed"][d["odo_speed"] > cfg.min_speed]
     v_force = (float(np.median(moving)) if cfg.reference_speed is None
                else float(cfg.reference_speed))
@@ -670,8 +688,8 @@ def identify(data: SIData, line: Line, prior: TrainParams, config: SIConfig = SI
                                      np.exp(log_rs))
 
     train = prior.with_changes(
-        davis=davis if any(ident[k] for k in ("alpha", "beta", "gamma")) else prior.davis,
-        rotary_allowance=float(lam) if ident["kappa"] else prior.rotary_allowance,
+        davis=davis if any(fitted[k] for k in ("alpha", "beta", "gamma")) else prior.davis,
+        rotary_allowance=float(lam) if fitted["kappa"] else prior.rotary_allowance,
         brake=prior.brake.__class__(time_constant=prior.brake.time_constant,
                                     delay=prior.brake.delay,
                                     braking_rate=float(braking_rate)),

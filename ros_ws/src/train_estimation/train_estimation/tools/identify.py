@@ -62,6 +62,9 @@ def train_to_yaml(train: TrainParams, res, prior: TrainParams, source: str) -> s
     def note(name):
         s = se.get(name, math.nan)
         if not ok.get(name, False):
+            if "not separable" in str(res.reasons.get(name, "")) and math.isfinite(s):
+                return (f"fitted, standard error {s:.4g}, but not separable from the other "
+                        "parameters (see identification.reasons)")
             if name.startswith("davis."):
                 # the fit holds a Davis term at the prior *per unit of effective mass* (the
                 # specific resistance is what the data constrain); with a fitted mass the
@@ -151,8 +154,11 @@ def print_identifiability(res, out=None) -> None:
             print(f"{SHORT.get(a, a):<8}{row}  {res.variance_inflation.get(a, math.nan):>8.3g}",
                   file=out)
     for fx in res.fixed_by_rule:
-        print(f"fixed at the prior: {fx['name']}: {res.reasons.get(fx['name'], fx['rule'])}",
+        print(f"held at the prior: {fx['name']}: {res.reasons.get(fx['name'], fx['rule'])}",
               file=out)
+    for name in names:
+        if not res.identifiable.get(name, True):
+            print(f"not identifiable: {name}: {res.reasons.get(name, '')}", file=out)
     if res.rule:
         print(f"rule: {res.rule}", file=out)
 
