@@ -3,6 +3,7 @@
 import dataclasses
 
 import pytest
+import yaml
 from train_core.bagio import BagWriter
 from train_core.effects import ResistanceEffect
 from train_core.model import load_train
@@ -32,6 +33,17 @@ def test_identify_recovers_c_plus_30_percent(crh3, tmp_path, capsys):
     assert abs(fitted.davis.c - 1.3 * d.c) <= 0.10 * 1.3 * d.c, fitted.davis
     assert (tmp_path / "fitted.png").stat().st_size > 5000
     assert "standard error" in (tmp_path / "fitted.yaml").read_text()
+    # the summary and the yaml carry the force at the reference speed, the correlations of the
+    # free parameters and the rule applied
+    out = capsys.readouterr().out
+    assert "resistance force at" in out and "correlations of the fitted parameters" in out
+    assert "rule: identifiable = tight AND separable" in out
+    ident = yaml.safe_load((tmp_path / "fitted.yaml").read_text())["identification"]
+    force = ident["force_at_reference_speed"]
+    assert force["std_error"] > 0 and force["speed"] > 0
+    assert "gamma" in ident["correlations"]
+    vif = ident["variance_inflation"]
+    assert all(ident["identifiable"][k] == (v <= 30.0) for k, v in vif.items())
 
 
 def test_identify_refuses_a_bag_without_control(crh3, tmp_path, capsys):
@@ -77,7 +89,9 @@ def test_fitted_yaml_says_which_prior_an_unidentifiable_davis_term_kept(crh3, tm
     ok = {"mass": True, "rotary_allowance": True, "davis.a": False, "davis.b": False,
           "davis.c": True, "braking_rate": True}
     res = SimpleNamespace(std_errors={k: 0.01 for k in ok}, identifiable=ok,
-                          reasons={k: "x" for k in ok}, mass_if_davis_nominal=(1.0, 0.1))
+                          reasons={k: "x" for k in ok}, mass_if_davis_nominal=(1.0, 0.1),
+                          rule="r", free_names=(), correlation=None, variance_inflation={},
+                          fixed_by_rule=(), force_at_reference_speed={})
     text = tool.train_to_yaml(fitted, res, prior, "bag")
     line = {ln.split(":")[0].strip(): ln for ln in text.splitlines()}
     assert "per unit of effective mass" in line["b"] and f"prior {d.b:.6g}" in line["b"]

@@ -14,12 +14,11 @@ from train_estimation.core.braking_filters import (
     DiscreteRBPF,
     OracleKF,
     RandomWalkRBPF,
-    effective_sample_size,
     neighbour_groups,
     sticky_transition,
-    systematic_resample,
 )
 from train_estimation.core.braking_model import BrakingModel, BrakingParams
+from train_estimation.core.smc import effective_sample_size
 
 sys.path.insert(0, os.path.dirname(__file__))
 from braking_toy import simulate_open_loop  # noqa: E402  (test support: the model's own data)
@@ -136,42 +135,6 @@ def test_gsma_groups_follow_section_3_5():
     assert children[1.0] == (1.0, 0.9, 0.8)  # the boundary group the paper's list omits
     assert children[0.5] == (0.6, 0.5, 0.4)
     assert children[0.0] == (0.2, 0.1, 0.0)
-
-
-# ---------------------------------------------------------------- resampling
-
-
-def test_systematic_resampling_degenerate_weights():
-    rng = np.random.default_rng(0)
-    # one weight 1, the rest exactly 0
-    with np.errstate(divide="ignore"):
-        lw = np.log([0.0, 1.0, 0.0, 0.0])
-    np.testing.assert_array_equal(systematic_resample(lw, 4, rng), [1, 1, 1, 1])
-    # all -inf but one, and all underflowing but one (exp would give 0/0)
-    np.testing.assert_array_equal(
-        systematic_resample(np.array([-np.inf, -np.inf, -3.0]), 5, rng), [2] * 5)
-    np.testing.assert_array_equal(
-        systematic_resample(np.array([-1e300, -2e4, -1e300]), 3, rng), [1] * 3)
-    # all equal: every particle exactly once, whatever the uniform
-    for _ in range(20):
-        np.testing.assert_array_equal(systematic_resample(np.zeros(6), 6, rng), np.arange(6))
-    with pytest.raises(ValueError):
-        systematic_resample(np.full(3, -np.inf), 3, rng)
-
-
-def test_systematic_resampling_counts_are_floor_or_ceil():
-    rng = np.random.default_rng(1)
-    for _ in range(50):
-        w = rng.dirichlet(np.full(9, 0.3))
-        with np.errstate(divide="ignore"):
-            a = systematic_resample(np.log(w), 100, rng)
-        c = np.bincount(a, minlength=9)
-        assert np.all(c >= np.floor(100 * w) - 1e-9) and np.all(c <= np.ceil(100 * w) + 1e-9)
-
-
-def test_effective_sample_size():
-    assert effective_sample_size(np.zeros(8)) == pytest.approx(8.0)
-    assert effective_sample_size(np.array([0.0, -np.inf, -np.inf])) == pytest.approx(1.0)
 
 
 def test_rbpf_resamples_when_degenerate():

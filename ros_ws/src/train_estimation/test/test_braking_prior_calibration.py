@@ -9,6 +9,8 @@ import numpy as np
 import pytest
 
 from train_estimation.core.batched_kf import mixture_moments
+from train_estimation.core.braking_base import _Set
+from train_estimation.core.braking_discrete import _merge_by_value
 from train_estimation.core.braking_filters import (
     GSMA,
     QGRBPF,
@@ -16,8 +18,6 @@ from train_estimation.core.braking_filters import (
     BrakingKF,
     DiscreteRBPF,
     RandomWalkRBPF,
-    _merge_by_value,
-    _Set,
     cell_variance,
     grid_prior,
     sticky_transition,

@@ -12,32 +12,10 @@ from train_estimation.core.hybrid_em import (
     particle_e_step,
     reference_speed,
     run_em,
-    systematic_resample,
 )
 from train_sim.crh3 import simulate_crh3
 
 NOISE = NoiseParams()
-
-
-def test_systematic_resample_batched_counts():
-    rng = np.random.default_rng(0)
-    w = rng.random((50, 7))
-    w /= w.sum(0)
-    idx = systematic_resample(w, rng)
-    assert idx.shape == (50, 7)
-    for b in range(7):
-        counts = np.bincount(idx[:, b], minlength=50)
-        # systematic resampling: each count is floor or ceil of N w_i
-        assert np.all(counts >= np.floor(50 * w[:, b]) - 1e-9)
-        assert np.all(counts <= np.ceil(50 * w[:, b]) + 1e-9)
-
-
-def test_degenerate_weights_resample_to_single_particle():
-    w = np.zeros((10, 2))
-    w[3, 0] = 1.0
-    w[9, 1] = 1.0
-    idx = systematic_resample(w, np.random.default_rng(1))
-    assert np.all(idx[:, 0] == 3) and np.all(idx[:, 1] == 9)
 
 
 def _dense_linearised(y1, y2, u, vt, v_ref, prior=None, noise=NOISE):

@@ -30,7 +30,8 @@ def c_plus_30():
 
 def test_identify_recovers_c_plus_30_percent_within_10_percent(c_plus_30):
     true, res = c_plus_30
-    assert res.identifiable["davis.c"]
+    assert "gamma" in res.free_names  # fitted (identifiable only if also separable)
+    assert res.identifiable["davis.c"] == (res.variance_inflation["gamma"] <= 30.0)
     assert abs(res.values["davis.c"] / true.davis.c - 1) < 0.10
     # the reported SE is honest: the error is within 3 SE
     assert abs(res.values["davis.c"] - true.davis.c) < 3 * res.std_errors["davis.c"]
@@ -102,3 +103,52 @@ def test_bad_stamps_and_nan():
     sp[3] = np.nan
     with pytest.raises(IdentificationError, match="NaN"):
         identify(_data(run, odo_speed=sp), LINE, METRO)
+
+
+@pytest.fixture(scope="module")
+def nominal():
+    run = simulate_run(METRO, LINE, np.random.default_rng(12), 900.0)
+    return identify(_data(run), LINE, METRO)
+
+
+def test_correlated_davis_terms_are_reported_and_not_all_flagged(nominal):
+    """Over a run's speeds 1, v and v^2 are nearly collinear: the Davis terms' estimates are
+    correlated near -1. They are reported with their correlations, keep the joint fit's values,
+    and are flagged identifiable only if separable (variance inflation <= vif_max)."""
+    from train_estimation.core.identify import SIConfig
+
+    res, cfg = nominal, SIConfig()
+    names = list(res.free_names)
+    assert {"alpha", "beta", "gamma"} <= set(names)  # all three fitted on this run
+    R = res.correlation
+    assert R.shape == (len(names), len(names))
+    np.testing.assert_allclose(np.diag(R), 1.0)
+    ib, ig = names.index("beta"), names.index("gamma")
+    r_max = np.sqrt(1.0 - 1.0 / cfg.vif_max)  # the largest |r| two separable parameters have
+    assert abs(R[ib, ig]) > r_max  # the correlated pair ...
+    assert not (res.identifiable["beta"] and res.identifiable["gamma"])  # ... not both flagged
+    for i, a in enumerate(names):
+        vif = res.variance_inflation[a]
+        assert res.identifiable[a] == (vif <= cfg.vif_max)
+        if vif > cfg.vif_max:
+            # the reason names the inflation and the strongest correlation; the value is the
+            # joint fit's (with its SE), not the prior
+            j = max((j for j in range(len(names)) if j != i), key=lambda j: abs(R[i, j]))
+            assert "not separable" in res.reasons[a]
+            assert f"{R[i, j]:+.2f} with {names[j]}" in res.reasons[a]
+            assert np.isfinite(res.std_errors[a])
+        for j in range(i):
+            if res.identifiable[a] and res.identifiable[names[j]]:
+                assert abs(R[i, j]) <= r_max
+    assert "variance inflation" in res.rule and "relative standard error" in res.rule
+
+
+def test_force_at_reference_speed_is_within_its_standard_error(nominal):
+    f = nominal.force_at_reference_speed
+    d = METRO.davis
+    true = d.a + d.b * f["speed"] + d.c * f["speed"] ** 2
+    assert 9.0 < f["speed"] < 22.0  # the median moving speed of the run
+    assert f["prior"] == pytest.approx(true)
+    assert 0 < f["std_error"] < 0.05 * true
+    # 3 SE: a 0.27 % two-sided chance of failing with an honest SE (one fixed seed)
+    assert abs(f["fitted"] - true) < 3 * f["std_error"]

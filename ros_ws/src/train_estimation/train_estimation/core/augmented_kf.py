@@ -133,15 +133,43 @@ def augmented_kf(ev: Events, q: float, r_s: float, Bv, Bs, Md, Mv, Mb, q_held: f
     return KFResult(W=Z.T @ Z, logdet=logdet, m=m, E0=E0, E1=E1, S_v=S_v)
 
 
-def gls(W: np.ndarray, M: np.ndarray):
-    """Maximise -0.5 [1, theta]^T (M^T W M) [1, theta] over theta: (theta, cov, quad).
+def _equilibrated(A: np.ndarray):
+    """``A`` scaled to unit diagonal, ``A / sqrt(diag A diag A^T)``, and the scales (1 where a
+    parameter carries no information): the parameters' units then do not enter the condition
+    number or the pseudo-inverse's cut-off."""
+    dg = np.diag(A)
+    d = np.where(dg > 0, np.sqrt(np.abs(dg)), 1.0)
+    return A / np.outer(d, d), d
 
-    ``M`` (p+1, 1+k) maps [1, theta] onto the elementary columns."""
-    Wh = M.T @ W @ M
+
+def information_condition(W: np.ndarray, M: np.ndarray | None = None) -> float:
+    """Condition number of the equilibrated information of theta (see :func:`gls`)."""
+    Wh = W if M is None else M.T @ W @ M
+    return float(np.linalg.cond(_equilibrated(Wh[1:, 1:])[0]))
+
+
+def gls(W: np.ndarray, M: np.ndarray | None = None, max_condition: float = np.inf):
+    """Maximise -0.5 [1, theta]^T Wh [1, theta] over theta, Wh = M^T W M: (theta, cov, quad).
+
+    The generalised least squares of every augmented-filter fit. ``M`` (p+1, 1+k) maps
+    [1, theta] onto the elementary columns (None: theta are the columns 1..p themselves). With
+    A = Wh[1:, 1:] (the information of theta) and b = Wh[1:, 0]::
+
+        theta = -A^-1 b,   cov = A^-1,   quad = Wh[0, 0] + b^T theta = min over theta
+
+    so the log-likelihood at the optimum is -0.5 (logdet + m log 2 pi + quad). A is inverted
+    after equilibration to unit diagonal, by the pseudo-inverse: a parameter without
+    information gets theta 0 and variance 0 instead of an error. ``max_condition``: raise
+    ``numpy.linalg.LinAlgError`` when the equilibrated information's condition number exceeds it
+    (the caller needs every parameter determined)."""
+    Wh = W if M is None else M.T @ W @ M
     A, b = Wh[1:, 1:], Wh[1:, 0]
-    cov = np.linalg.pinv(A)
+    As, d = _equilibrated(A)
+    if np.isfinite(max_condition):
+        cond = np.linalg.cond(As)
+        if not cond <= max_condition:
+            raise np.linalg.LinAlgError(f"information matrix singular (condition {cond:.3g})")
+    cov = np.linalg.pinv(As) / np.outer(d, d)
     th = -cov @ b
     quad = float(Wh[0, 0] + b @ th)
     return th, cov, quad
-
-

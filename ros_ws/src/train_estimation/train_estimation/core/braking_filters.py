@@ -81,23 +81,18 @@ prediction).
 
 from __future__ import annotations
 
-import numpy as np
-
-from . import smc
-from .braking_base import Estimate, RaoBlackwellFilter, _Set
+from .braking_base import Estimate, RaoBlackwellFilter
 from .braking_continuous import QGRBPF, RandomWalkRBPF
 from .braking_discrete import (
     GSMA,
     SMA,
     DiscreteRBPF,
-    _merge_by_value,
     cell_variance,
     grid_prior,
     neighbour_groups,
     sticky_transition,
 )
 from .braking_kf import BrakingKF, OracleKF
-from .smc import effective_sample_size, log_normalize
 
 __all__ = [
     "Estimate",
@@ -111,18 +106,6 @@ __all__ = [
     "BrakingKF",
     "grid_prior",
     "cell_variance",
-    "systematic_resample",
-    "effective_sample_size",
     "neighbour_groups",
     "sticky_transition",
-    "_Set",
-    "_merge_by_value",
 ]
-
-
-def systematic_resample(logw, n: int, rng: np.random.Generator) -> np.ndarray:
-    """``smc.systematic_resample`` taking *log*-weights (kept for existing callers; the filters
-    call ``smc.systematic_resample`` directly): ``n`` ancestor indices, ``-inf`` entries never
-    drawn, ``ValueError`` if no weight is positive."""
-    w, _ = log_normalize(logw)
-    return smc.systematic_resample(w, rng, n)

@@ -37,6 +37,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from . import kalman
 from .em_model import (
     G_PER_KN,
     NoiseParams,
@@ -55,7 +56,6 @@ __all__ = [
     "Prior",
     "EStepResult",
     "EMResult",
-    "systematic_resample",
     "kalman_position",
     "particle_e_step",
     "kalman_e_step",
@@ -137,26 +137,26 @@ def kalman_position(y1, v_in, noise: NoiseParams, T: float = 1.0, prior: Prior =
     s(t) = s(t-1) + T v(t-1) + w1, y1 = s + e1, treating v_in(0..n-1) as a known input.
 
     ``y1`` (n, *b), ``v_in`` (n+1, *b). Returns s means (n+1, *b) for t = 0..n. The variance
-    recursion does not depend on the data, so it is a plain scalar sequence.
+    recursion does not depend on the data, so it is a plain scalar sequence common to the batch
+    (the paper's scalar equations, written out); the smoother is :func:`kalman.rts_smooth`.
     """
     n = y1.shape[0]
     s_f = np.empty((n + 1,) + y1.shape[1:])
+    s_p = np.empty_like(s_f)
     Pf = np.empty(n + 1)
     Pp = np.empty(n + 1)
     s_f[0], Pf[0] = prior.s0, prior.s0_var
     for t in range(1, n + 1):
-        shat = s_f[t - 1] + T * v_in[t - 1]  # eq. (21)
+        s_p[t] = s_f[t - 1] + T * v_in[t - 1]  # eq. (21)
         Pp[t] = Pf[t - 1] + noise.q_s  # eq. (23)
         K = Pp[t] / (Pp[t] + noise.r_s)  # eq. (22): P^-(P^- + sigma1^2)^{-1}
-        s_f[t] = shat + K * (y1[t - 1] - shat)  # eq. (20)
+        s_f[t] = s_p[t] + K * (y1[t - 1] - s_p[t])  # eq. (20)
         Pf[t] = (1.0 - K) * Pp[t]  # eq. (24)
     if not smooth:
         return s_f
-    s_s = s_f.copy()
-    for t in range(n - 1, -1, -1):  # RTS: s_s(t) = s_f(t) + C (s_s(t+1) - shat(t+1))
-        C = Pf[t] / Pp[t + 1]
-        s_s[t] = s_f[t] + C * (s_s[t + 1] - (s_f[t] + T * v_in[t]))
-    return s_s
+    s_s = kalman.rts_smooth(s_f[..., None], Pf[:, None, None], s_p[..., None],
+                            Pp[:, None, None], np.ones((n + 1, 1, 1)))[0]
+    return s_s[..., 0]
 
 
 def particle_e_step(y1, y2, u, vt, noise: NoiseParams, rng: np.random.Generator,
@@ -281,6 +281,10 @@ def kalman_e_step(y1, y2, u, vt, noise: NoiseParams, T: float = 1.0, prior: Prio
     2 v_ref v - v_ref^2 (linear-Gaussian), for which the filter, the RTS smoother and the
     innovation log-likelihood are exact.
 
+    Predict, update and smoother are :mod:`kalman`'s (``propagate_cov``, the sequential exact
+    ``update`` -- R is diagonal -- and ``rts_smooth``), with the batch elements on the update's
+    particle axis.
+
     statistics: 'plugin' (paper: means plugged into eq. (31)/(33); filtered if not smooth) or
     'moments' (exact expectations from smoothed first/second moments incl. the lag-one cross
     covariance Cov(v(t-1), v(t) | y) = [C_{t-1} P_{t|n}]_vv; requires smooth and v_ref).
@@ -293,7 +297,8 @@ def kalman_e_step(y1, y2, u, vt, noise: NoiseParams, T: float = 1.0, prior: Prio
     if statistics == "moments" and not (lin and smooth):
         raise ValueError("exact moment statistics need the linearised model and smoothing")
     Q = np.diag([noise.q_s, noise.q_v])
-    R = np.diag([noise.r_s, noise.r_v])
+    R = np.array([noise.r_s, noise.r_v])
+    H, used = np.eye(2), np.ones(2, bool)
     m_f = np.empty((n + 1,) + bshape + (2,))
     P_f = np.empty((n + 1,) + bshape + (2, 2))
     m_p = np.empty_like(m_f)
@@ -316,27 +321,20 @@ def kalman_e_step(y1, y2, u, vt, noise: NoiseParams, T: float = 1.0, prior: Prio
         F[..., 0, 0], F[..., 0, 1], F[..., 1, 1] = 1.0, T, dfdv
         F_all[t] = F
         m_p[t] = np.stack([s_ + T * v_, v_pred], axis=-1)
-        P_p[t] = F @ P_f[t - 1] @ np.swapaxes(F, -1, -2) + Q
-        S = P_p[t] + R
-        Si = np.linalg.inv(S)
-        nu = Y[t - 1] - m_p[t]
-        K = P_p[t] @ Si
-        m_f[t] = m_p[t] + np.einsum("...ij,...j->...i", K, nu)
-        IK = np.eye(2) - K
-        P_f[t] = IK @ P_p[t] @ np.swapaxes(IK, -1, -2) + K @ R @ np.swapaxes(K, -1, -2)  # Joseph
-        loglik = loglik - 0.5 * (2 * LOG2PI + np.log(np.linalg.det(S))
-                                 + np.einsum("...i,...ij,...j->...", nu, Si, nu))
+        P_p[t] = kalman.propagate_cov(P_f[t - 1], F, Q)
+        # the batch elements are the update's particle axis (each with its own reading)
+        x, P, ll = kalman.update(m_p[t].reshape(-1, 2), P_p[t].reshape(-1, 2, 2),
+                                 Y[t - 1].reshape(-1, 2), H, R, used)
+        m_f[t] = x.reshape(bshape + (2,))
+        P_f[t] = P.reshape(bshape + (2, 2))
+        loglik = loglik + ll.reshape(bshape)
     if not smooth:
         v_mean, s_mean = m_f[..., 1], m_f[..., 0]
         stats = plugin_stats(v_mean, u)
         return EStepResult(stats=stats, v_mean=v_mean, s_mean=s_mean, loglik=loglik)
-    m_s, P_s = m_f.copy(), P_f.copy()
-    cross = np.empty((n,) + bshape)  # Cov(v(t-1), v(t) | y(1..n)), t = 1..n
-    for t in range(n - 1, -1, -1):
-        C = P_f[t] @ np.swapaxes(F_all[t + 1], -1, -2) @ np.linalg.inv(P_p[t + 1])
-        m_s[t] = m_f[t] + np.einsum("...ij,...j->...i", C, m_s[t + 1] - m_p[t + 1])
-        P_s[t] = P_f[t] + C @ (P_s[t + 1] - P_p[t + 1]) @ np.swapaxes(C, -1, -2)
-        cross[t] = (C @ P_s[t + 1])[..., 1, 1]
+    m_s, P_s, C = kalman.rts_smooth(m_f, P_f, m_p, P_p, F_all)
+    # Cov(v(t-1), v(t) | y(1..n)), t = 1..n: the lag-one cross covariance C_{t-1} P_{t|n}
+    cross = np.matmul(C, P_s[1:])[..., 1, 1]
     v_mean, s_mean = m_s[..., 1], m_s[..., 0]
     if statistics == "plugin":
         stats = plugin_stats(v_mean, u)

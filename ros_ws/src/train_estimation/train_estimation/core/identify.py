@@ -63,7 +63,7 @@ from train_core.actuator import grid_output as actuator_output
 from train_core.model import Davis, Line, TrainParams
 
 from . import kalman
-from .augmented_kf import Events, augmented_kf
+from .augmented_kf import Events, augmented_kf, gls, information_condition
 
 __all__ = [
     "IdentificationError",
@@ -77,6 +77,8 @@ __all__ = [
 
 PARAM_NAMES = ("traction_gain", "scaled_braking_rate", "alpha", "beta", "gamma", "kappa")
 LOG2PI = np.log(2.0 * np.pi)
+# the equilibrated information's condition number above which the fit is refused as singular
+MAX_CONDITION = 1e12
 
 
 class IdentificationError(ValueError):
@@ -125,14 +127,18 @@ class SIConfig:
     min_speed_range: float = 3.0  # m/s, 5-95 % spread of moving speeds (else "only cruises")
     min_brake: float = 0.05  # m/s^2, |a_Tar| below this is not braking
     min_gradient_spread: float = 1e-3  # m/s^2, std of g sin(theta) over the run for kappa
-    rel_se_max: float = 0.25  # a parameter is identifiable if SE < rel_se_max * |prior|
+    rel_se_max: float = 0.25  # tight: a free parameter's SE <= rel_se_max * |prior value|
+    vif_max: float = 30.0  # separable: its variance inflation factor <= vif_max (see identify)
+    reference_speed: float | None = None  # m/s, for the resistance force report; None: the
+    #                                       median moving speed of the run
     fit_traction_gain: bool = True  # k = M_prior / M; False: k = 1 (mass not identifiable)
     min_distance_var: float = 1e-4  # m^2, floor for the distance noise variance
 
 
 @dataclass(frozen=True)
 class SIResult:
-    """Fit result. Values of non-identifiable parameters are the prior's, flagged False."""
+    """Fit result. Parameters too loosely determined are held at the prior; parameters fitted
+    but not separable keep the joint fit's value; both are flagged False (see ``reasons``)."""
 
     train: TrainParams  # prior with the identified values substituted
     values: dict  # name -> fitted value (PARAM_NAMES and physical names)
@@ -142,6 +148,11 @@ class SIResult:
     covariance: np.ndarray  # covariance of the free specific parameters (order: free_names)
     free_names: tuple
     mass_if_davis_nominal: tuple  # (kg, SE kg): mass explaining the data if a, b, c (N) = prior
+    correlation: np.ndarray | None = None  # correlations of the free parameters (free_names)
+    variance_inflation: dict = field(default_factory=dict)  # free name -> VIF (>= 1)
+    force_at_reference_speed: dict = field(default_factory=dict)  # see _force_report
+    fixed_by_rule: tuple = ()  # one dict per parameter held at the prior as too loose (in order)
+    rule: str = ""  # the identifiability rule applied, in words
     diagnostics: dict = field(default_factory=dict)
     series: dict = field(default_factory=dict)  # t, measured and smoothed speed for plots
 
@@ -227,23 +238,9 @@ def _aug_kf(Y, dt, Bv, Bs, base_v, base_s, q, r_s, r_v):
     return res.W, res.logdet + res.m * LOG2PI
 
 
-def _gls(W, logdet):
-    """theta maximising -0.5 z^T W z (z = [1, theta]); returns theta, cov, loglik."""
-    Wtt, wt0 = W[1:, 1:], W[1:, 0]
-    d = np.sqrt(np.clip(np.diag(Wtt), 1e-300, None))
-    A = Wtt / np.outer(d, d)
-    cond = np.linalg.cond(A)
-    if not np.isfinite(cond) or cond > 1e12:
-        raise np.linalg.LinAlgError(f"information matrix singular (condition {cond:.3g})")
-    Ai = np.linalg.inv(A)
-    cov = Ai / np.outer(d, d)
-    theta = -cov @ wt0
-    z = np.concatenate([[1.0], theta])
-    return theta, cov, -0.5 * (logdet + z @ W @ z), cond
-
-
 def _kf_rts(Y, dt, drift_v, drift_s, q, r_s, r_v):
-    """Plain KF + RTS for x = (s, v) with known drift; returns smoothed (s, v) at the stamps."""
+    """Kalman filter (closed-form odometer updates) + :func:`kalman.rts_smooth` for x = (s, v)
+    with known drift; returns the smoothed (s, v) at the stamps."""
     n = Y.shape[0]
     m = np.zeros((n, 2))
     P = np.zeros((n, 2, 2))
@@ -262,13 +259,7 @@ def _kf_rts(Y, dt, drift_v, drift_s, q, r_s, r_v):
             Pp[k, 0, 0], Pp[k, 0, 1], Pp[k, 1, 1], r_s, r_v[k])
         m[k] = mp[k] + np.array([[k00, k01], [k10, k11]]) @ (Y[k] - mp[k])
         P[k] = [[n00, n01], [n01, n11]]
-    ms = m.copy()
-    Ps = P.copy()
-    for k in range(n - 2, -1, -1):
-        C = P[k] @ A[k + 1].T @ np.linalg.inv(Pp[k + 1])
-        ms[k] = m[k] + C @ (ms[k + 1] - mp[k + 1])
-        Ps[k] = P[k] + C @ (Ps[k + 1] - Pp[k + 1]) @ C.T
-    return ms
+    return kalman.rts_smooth(m, P, mp, Pp, A)[0]
 
 
 class _QVec:
@@ -401,8 +392,8 @@ def _fit(run: _Run, free: dict, prior_vals: dict, Bv, Bs, q_vec, r_s):
     base_v = Bv[:, jx] @ thx if jx else np.zeros(len(run.dt))
     base_s = Bs[:, jx] @ thx if jx else np.zeros(len(run.dt))
     W, ld = _aug_kf(run.Y, run.dt, Bv[:, jf], Bs[:, jf], base_v, base_s, q_vec, r_s, run.r_v)
-    th, cov, ll, cond = _gls(W, ld)
-    return names, th, cov, ll, cond
+    th, cov, quad = gls(W, max_condition=MAX_CONDITION)
+    return names, th, cov, -0.5 * (ld + quad), information_condition(W)
 
 
 def _fit_noise(run, free, prior_vals, Bv, Bs, qvec, log_q, log_rs, cfg: SIConfig):
@@ -418,9 +409,39 @@ def _fit_noise(run, free, prior_vals, Bv, Bs, qvec, log_q, log_rs, cfg: SIConfig
             float(max(opt.x[1], np.log(cfg.min_distance_var))))
 
 
-def _eliminate(run, free, reasons, prior_vals, Bv, Bs, q_vec, r_s, cfg: SIConfig):
-    """Fit, fixing the worst-determined parameter at the prior until every free one passes
-    ``rel_se_max`` (``free`` and ``reasons`` are updated); returns the last fit."""
+def identifiability_rule(cfg: SIConfig) -> str:
+    """The rule :func:`_eliminate` applies, in words (printed by the ``identify`` tool)."""
+    r_max = float(np.sqrt(1.0 - 1.0 / cfg.vif_max)) if cfg.vif_max > 1 else 0.0
+    return (f"identifiable = tight AND separable: relative standard error <= {cfg.rel_se_max:g} "
+            f"(SE / |prior value|; otherwise held at the prior, loosest first, and the rest "
+            f"refitted) and variance inflation factor <= {cfg.vif_max:g} in the joint fit (the "
+            f"other free parameters reproduce at most {100 * (1 - 1 / cfg.vif_max):.1f} % of its "
+            f"effect; for two parameters |correlation| <= {r_max:.3f}; otherwise the joint fit's "
+            "value is kept and flagged)")
+
+
+def _correlation(cov: np.ndarray) -> np.ndarray:
+    se = np.sqrt(np.diag(cov))
+    se = np.where(se > 0, se, 1.0)
+    return cov / np.outer(se, se)
+
+
+def _vif(cov: np.ndarray) -> np.ndarray:
+    """Variance inflation factors: VIF_i = [R^-1]_ii for the correlation matrix R of the
+    estimates, = Var(theta_i, the others fitted) / Var(theta_i, the others known) =
+    1 / (1 - R_i^2), R_i^2 the share of theta_i's effect the other parameters reproduce (in
+    the metric of the likelihood)."""
+    if cov.shape[0] < 2:
+        return np.ones(cov.shape[0])
+    return np.diag(np.linalg.pinv(_correlation(cov)))
+
+
+def _eliminate(run, free, reasons, prior_vals, Bv, Bs, q_vec, r_s, cfg: SIConfig, log=None):
+    """Fit, holding at the prior the free parameter with the loosest interval until every free
+    one has a relative standard error <= ``rel_se_max`` (``free`` and ``reasons`` are updated,
+    each decision appended to ``log`` with the correlations at that moment); returns the last
+    fit. Separability does not eliminate: a parameter the others reproduce keeps its joint
+    value (holding it at a wrong prior would bias the others) and is only flagged."""
     while True:
         try:
             names, th, cov, ll, cond = _fit(run, free, prior_vals, Bv, Bs, q_vec, r_s)
@@ -429,20 +450,66 @@ def _eliminate(run, free, reasons, prior_vals, Bv, Bs, q_vec, r_s, cfg: SIConfig
                                       ALL_PHYSICAL) from exc
         se = np.sqrt(np.diag(cov))
         rel = np.array([se[i] / max(abs(prior_vals[k]), 1e-12) for i, k in enumerate(names)])
-        bad = [(rel[i], k) for i, k in enumerate(names) if rel[i] > cfg.rel_se_max]
-        if not bad:
+        loose = [(rel[i], i) for i in range(len(names)) if rel[i] > cfg.rel_se_max]
+        if not loose:
             return names, th, cov, ll, cond
-        worst = max(bad)[1]
+        i = max(loose)[1]
+        worst = names[i]
         free[worst] = False
-        reasons[worst] = (f"relative standard error {max(bad)[0]:.2f} > {cfg.rel_se_max:g}: "
+        reasons[worst] = (f"relative standard error {rel[i]:.2f} > {cfg.rel_se_max:g}: "
                           "not identifiable from this run, prior kept")
+        if log is not None:
+            corr = _correlation(cov)
+            log.append({"name": worst, "rule": "tight", "relative_se": float(rel[i]),
+                        "variance_inflation": float(_vif(cov)[i]),
+                        "correlations": {names[j]: float(corr[i, j])
+                                         for j in range(len(names)) if j != i}})
         if not any(free[k] for k in ("alpha", "beta", "gamma")):
             raise IdentificationError(
                 "no resistance parameter is identifiable from this run",
                 ("excitation",), ("davis.a", "davis.b", "davis.c", "mass"))
 
 
-def _physical(names, th, cov, free, reasons, prior_vals, prior: TrainParams):
+def _separability(names, cov, reasons, cfg: SIConfig) -> dict:
+    """name -> separable (VIF <= ``vif_max`` in the joint fit); the reason of a parameter that
+    is not names its inflation and its two strongest correlations."""
+    vif, corr = _vif(cov), _correlation(cov)
+    sep = {}
+    for i, k in enumerate(names):
+        sep[k] = bool(vif[i] <= cfg.vif_max)
+        if not sep[k]:
+            partners = sorted(((corr[i, j], names[j]) for j in range(len(names)) if j != i),
+                              key=lambda c: -abs(c[0]))
+            with_ = ", ".join(f"{r:+.2f} with {p}" for r, p in partners[:2])
+            reasons[k] = (f"fitted jointly but not separable: variance inflation {vif[i]:.3g} > "
+                          f"{cfg.vif_max:g} (correlation {with_}): the other parameters "
+                          "reproduce its effect, only their combination is determined (see the "
+                          "force at the reference speed)")
+    return sep
+
+
+def _force_report(names, th, cov, prior_vals, meff: float, prior: TrainParams, v: float):
+    """The resistance force a + b v + c v^2 (N) at speed ``v`` (m/s): fitted, its standard
+    error (delta method over the free alpha, beta, gamma, given the fitted effective mass), the
+    prior's and the difference in standard errors. The force at a speed the run spends its
+    time at is determined far better than the terms a, b, c one by one when they are
+    correlated."""
+    vals = dict(prior_vals)
+    vals.update(dict(zip(names, th)))
+    grad = np.zeros(len(names))
+    for k, x in (("alpha", 1.0), ("beta", v), ("gamma", v * v)):
+        if k in names:
+            grad[names.index(k)] = meff * x
+    fitted = meff * (vals["alpha"] + vals["beta"] * v + vals["gamma"] * v * v)
+    se = float(np.sqrt(max(grad @ cov @ grad, 0.0)))
+    d = prior.davis
+    at_prior = d.a + d.b * v + d.c * v * v
+    return {"speed": float(v), "fitted": float(fitted), "std_error": se,
+            "prior": float(at_prior),
+            "z_vs_prior": float((fitted - at_prior) / se) if se > 0 else float("nan")}
+
+
+def _physical(names, th, cov, free, reasons, prior_vals, prior: TrainParams, vif=None):
     """Specific parameters -> train.yaml quantities given the prior mass (delta method for the
     standard errors): (values, std_errors, identifiable, reasons, davis, lambda, mass, f)."""
     vals = dict(prior_vals)
@@ -450,8 +517,9 @@ def _physical(names, th, cov, free, reasons, prior_vals, prior: TrainParams):
     ses = {k: float("nan") for k in PARAM_NAMES}
     ses.update({k: float(s) for k, s in zip(names, np.sqrt(np.diag(cov)))})
     ident = {k: bool(free[k]) for k in PARAM_NAMES}
-    for k in names:
-        reasons.setdefault(k, f"identified, relative SE {ses[k] / abs(prior_vals[k]):.3f}")
+    for i, k in enumerate(names):
+        infl = "" if vif is None else f", variance inflation {vif[i]:.3g}"
+        reasons.setdefault(k, f"identified, relative SE {ses[k] / abs(prior_vals[k]):.3f}{infl}")
     kap = vals["kappa"]
     lam = 1.0 / kap - 1.0
     se_lam = ses["kappa"] / kap ** 2 if ident["kappa"] else float("nan")
@@ -479,12 +547,14 @@ def _physical(names, th, cov, free, reasons, prior_vals, prior: TrainParams):
     ident.update({"davis.a": ident["alpha"], "davis.b": ident["beta"], "davis.c": ident["gamma"],
                   "mass": ident["traction_gain"], "rotary_allowance": ident["kappa"],
                   "braking_rate": ident["scaled_braking_rate"]})
-    mass_note = (" (in N: alpha M_eff with the fitted mass)" if ident["traction_gain"]
-                 else " (in N given the prior mass)")
+    def mass_note(sym):
+        return (f" (in N: {sym} M_eff with the fitted mass)" if ident["traction_gain"]
+                else " (in N given the prior mass)")
+
     reasons.update({
-        "davis.a": reasons["alpha"] + mass_note,
-        "davis.b": reasons["beta"] + mass_note,
-        "davis.c": reasons["gamma"] + mass_note,
+        "davis.a": reasons["alpha"] + mass_note("alpha"),
+        "davis.b": reasons["beta"] + mass_note("beta"),
+        "davis.c": reasons["gamma"] + mass_note("gamma"),
         "mass": (("identified as M_prior / traction_gain, assuming the drive force is the "
                   "command times the believed mass") if ident["traction_gain"] else
                  ("not identifiable: " + reasons["traction_gain"])),
@@ -508,7 +578,8 @@ def _mass_hypothesis(run, free, prior_vals, prior: TrainParams, Bv, Bs, q_vec, r
     W, ld = _aug_kf(run.Y, run.dt, np.concatenate([Bv[:, jf], res_col[:, None]], axis=1),
                     np.concatenate([Bs[:, jf], res_col_s[:, None]], axis=1),
                     Bv[:, jx] @ thx, Bs[:, jx] @ thx, q_vec, r_s, run.r_v)
-    thm, covm, llm, _ = _gls(W, ld)
+    thm, covm, quad = gls(W, max_condition=MAX_CONDITION)
+    llm = -0.5 * (ld + quad)
     kscale, se_k = thm[-1], float(np.sqrt(covm[-1, -1]))
     m_eq = prior.mass / kscale
     return (float(m_eq), float(prior.mass * se_k / kscale ** 2)), llm
@@ -527,8 +598,21 @@ def identify(data: SIData, line: Line, prior: TrainParams, config: SIConfig = SI
     ``outer_iterations`` times: regressors about the reference trajectory (:func:`_regressors`),
     the noise by profile likelihood (first time only, :func:`_fit_noise`), the GLS with
     elimination of unidentifiable parameters (:func:`_eliminate`) and a new reference from the
-    RTS smoother; finally the physical quantities (:func:`_physical`) and the mass hypothesis
+    RTS smoother; finally the physical quantities (:func:`_physical`), the resistance force at
+    the reference speed (:func:`_force_report`) and the mass hypothesis
     (:func:`_mass_hypothesis`).
+
+    Identifiable means tight AND separable (:func:`identifiability_rule`): a parameter's
+    interval must be narrow against its size (relative SE <= ``rel_se_max``; otherwise it is held
+    at the prior and the rest refitted) and its effect must not be reproduced by the other free
+    parameters (variance inflation factor <= ``vif_max``; VIF = 1 / (1 - R^2), R^2 the share of
+    its effect the others explain; otherwise it keeps the joint fit's value and is flagged).
+    The Davis terms are the usual case: over a run's speeds 1, v and v^2 are nearly collinear,
+    so a, b and c trade off against each other (correlations near -1 between neighbours) and
+    can each be well off while the force they sum to is well determined. The result reports
+    the correlations and inflation factors of the free parameters, every parameter held at the
+    prior (with its correlations at that moment) and the force at the reference speed with
+    its standard error.
     """
     cfg = config
     d = _validate(data, line)
@@ -559,6 +643,7 @@ def identify(data: SIData, line: Line, prior: TrainParams, config: SIConfig = SI
                                              cfg.min_distance_var))
     total_steps = cfg.outer_iterations + 2
     fit = None
+    fixed_log: list = []
     for outer in range(cfg.outer_iterations):
         Bv, Bs, gs, mv, held_k = _regressors(run, line, cfg, np.interp(tg, t, v_ref),
                                              np.interp(tg, t, s_ref))
@@ -573,7 +658,7 @@ def identify(data: SIData, line: Line, prior: TrainParams, config: SIConfig = SI
             # noise once: the linearisation barely moves it
             log_q, log_rs = _fit_noise(run, free, prior_vals, Bv, Bs, qvec, log_q, log_rs, cfg)
         names, th, cov, ll, cond = _eliminate(run, free, reasons, prior_vals, Bv, Bs,
-                                              qvec(log_q), np.exp(log_rs), cfg)
+                                              qvec(log_q), np.exp(log_rs), cfg, fixed_log)
         fit = (names, th, cov, ll, cond, Bv, Bs)
         # re-linearise about the smoothed trajectory under the fit
         vals = dict(prior_vals)
@@ -585,14 +670,26 @@ def identify(data: SIData, line: Line, prior: TrainParams, config: SIConfig = SI
             progress(outer + 1, total_steps, f"linearisation {outer + 1}/{cfg.outer_iterations}")
 
     names, th, cov, ll, cond, Bv, Bs = fit
-    values, std, ident, reasons, davis, lam, mass, braking_rate = _physical(
-        names, th, cov, free, reasons, prior_vals, prior)
+    vif = _vif(cov)
+    separable = _separability(names, cov, reasons, cfg)
+    values, std, fitted, reasons, davis, lam, mass, braking_rate = _physical(
+        names, th, cov, free, reasons, prior_vals, prior, vif)
+    ident = {k: fitted[k] and separable.get(k, True) for k in PARAM_NAMES}
+    ident.update({"davis.a": ident["alpha"], "davis.b": ident["beta"], "davis.c": ident["gamma"],
+                  "mass": ident["traction_gain"], "rotary_allowance": ident["kappa"],
+                  "braking_rate": ident["scaled_braking_rate"]})
+    if fitted["traction_gain"] and not separable.get("traction_gain", True):
+        reasons["mass"] = reasons["traction_gain"]
+    moving = d["odo_speed"][d["odo_speed"] > cfg.min_speed]
+    v_force = (float(np.median(moving)) if cfg.reference_speed is None
+               else float(cfg.reference_speed))
+    force = _force_report(names, th, cov, prior_vals, (1.0 + lam) * mass, prior, v_force)
     mass_hyp, llm = _mass_hypothesis(run, free, prior_vals, prior, Bv, Bs, qvec(log_q),
                                      np.exp(log_rs))
 
     train = prior.with_changes(
-        davis=davis if any(ident[k] for k in ("alpha", "beta", "gamma")) else prior.davis,
-        rotary_allowance=float(lam) if ident["kappa"] else prior.rotary_allowance,
+        davis=davis if any(fitted[k] for k in ("alpha", "beta", "gamma")) else prior.davis,
+        rotary_allowance=float(lam) if fitted["kappa"] else prior.rotary_allowance,
         brake=prior.brake.__class__(time_constant=prior.brake.time_constant,
                                     delay=prior.brake.delay,
                                     braking_rate=float(braking_rate)),
@@ -604,6 +701,9 @@ def identify(data: SIData, line: Line, prior: TrainParams, config: SIConfig = SI
     return SIResult(
         train=train, values=values, std_errors=std, identifiable=ident, reasons=reasons,
         covariance=cov, free_names=tuple(names), mass_if_davis_nominal=mass_hyp,
+        correlation=_correlation(cov), variance_inflation=dict(zip(names, map(float, vif))),
+        force_at_reference_speed=force, fixed_by_rule=tuple(fixed_log),
+        rule=identifiability_rule(cfg),
         diagnostics={"samples_used": int(t.size), "duration_s": float(duration),
                      "position_offset_m": run.s0, "process_noise_psd": float(np.exp(log_q)),
                      "distance_noise_var": float(np.exp(log_rs)), "loglik": float(ll),

@@ -39,6 +39,12 @@ Two forms of the same equations, for the two ways the estimators run a Kalman fi
    and K that the augmented filter needs for its columns. ``test_kalman.py`` checks that both
    forms give the same numbers.
 
+3. **Smoothing** (:func:`rts_smooth`): the Rauch-Tung-Striebel backward pass over the stored
+   filtered and predicted moments of any of the filters above (time on the leading axis, any
+   batch axes, any state size), with the smoother gains that give the lag-one cross covariances
+   the exact EM statistics need. ``test_kalman.py`` checks it against the posterior of the
+   stacked Gaussian of all states.
+
 Pure: numpy only.
 """
 
@@ -46,7 +52,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["propagate_cov", "predict", "update", "predict_cov", "odometer_update",
+__all__ = ["propagate_cov", "predict", "update", "rts_smooth", "predict_cov", "odometer_update",
            "balise_update"]
 
 _LOG2PI = float(np.log(2.0 * np.pi))
@@ -94,8 +100,9 @@ def _selectors(H) -> tuple[int, ...]:
 def update(x, P, y, H, R, mask):
     """Sequential exact update of every particle with the rows ``mask`` of ``y``.
 
-    ``y (p,)``, ``H (p, n)``, ``R (p,)`` variances (> 0), ``mask (p,)`` bool (missing
-    components are skipped). Returns ``(x+, P+, loglik (N,))``; with no row used,
+    ``y (p,)`` one reading for every particle, or ``(N, p)`` one per particle (independent data
+    sets run side by side), ``H (p, n)``, ``R (p,)`` variances (> 0), ``mask (p,)`` bool
+    (missing components are skipped). Returns ``(x+, P+, loglik (N,))``; with no row used,
     ``(x, P, 0)``.
     """
     mask = np.asarray(mask, dtype=bool)
@@ -106,6 +113,8 @@ def update(x, P, y, H, R, mask):
     H = np.asarray(H, dtype=float)
     R = np.asarray(R, dtype=float)
     y = np.asarray(y, dtype=float)
+    if y.ndim == 2:  # (N, p) -> (p, N): y[j] is then a row over the particles, like xt[i]
+        y = y.T
     sel = _selectors(H)
     n = x.shape[1]
     # Work with the particles on the *last* axis (xt (n, N), Pt (n, n, N), copies): every
@@ -140,6 +149,36 @@ def update(x, P, y, H, R, mask):
         quad[r] = e * e / s
     loglik = -0.5 * (rows.size * _LOG2PI + np.log(logs).sum(axis=0) + quad.sum(axis=0))
     return xt.T.copy(), Pt.reshape(n * n, N).T.reshape(N, n, n).copy(), loglik
+
+
+def rts_smooth(m_f, P_f, m_p, P_p, F):
+    """Rauch-Tung-Striebel smoother over stored Kalman filter moments (time on axis 0).
+
+    ``m_f (T, ..., n)``, ``P_f (T, ..., n, n)``: filtered x_{t|t}, P_{t|t}; ``m_p``, ``P_p`` the
+    same shapes: predicted x_{t|t-1}, P_{t|t-1} (entry 0 unused); ``F (T, ..., n, n)`` the
+    transition from t-1 to t (entry 0 unused). Batch axes ``...`` broadcast: covariances and
+    transitions common to all batch elements may omit them. For t = T-2 .. 0::
+
+        C_t = P_{t|t} F_{t+1}^T P_{t+1|t}^-1
+        x_{t|T} = x_{t|t} + C_t (x_{t+1|T} - x_{t+1|t})
+        P_{t|T} = P_{t|t} + C_t (P_{t+1|T} - P_{t+1|t}) C_t^T
+
+    Returns ``(m_s, P_s, C)`` with ``C (T-1, ..., n, n)`` the smoother gains: the lag-one cross
+    covariance is Cov(x_t, x_{t+1} | y_1..T) = C_t P_{t+1|T} (Shumway & Stoffer 1982). The
+    smoothed moments equal the posterior of the stacked Gaussian of all states (tested).
+    """
+    m_s = np.array(m_f, dtype=float, copy=True)
+    P_s = np.array(P_f, dtype=float, copy=True)
+    gains = []
+    for t in range(m_s.shape[0] - 2, -1, -1):
+        C = np.matmul(np.matmul(P_f[t], np.swapaxes(F[t + 1], -1, -2)),
+                      np.linalg.inv(P_p[t + 1]))
+        m_s[t] = m_f[t] + np.matmul(C, (m_s[t + 1] - m_p[t + 1])[..., None])[..., 0]
+        P_s[t] = P_f[t] + np.matmul(np.matmul(C, P_s[t + 1] - P_p[t + 1]), np.swapaxes(C, -1, -2))
+        gains.append(C)
+    gains.reverse()
+    C = np.stack(gains) if gains else np.empty((0,) + np.shape(P_f)[1:])
+    return m_s, P_s, C
 
 
 def predict_cov(p00: float, p01: float, p11: float, h: float, q: float):

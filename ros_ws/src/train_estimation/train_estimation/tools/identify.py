@@ -62,6 +62,9 @@ def train_to_yaml(train: TrainParams, res, prior: TrainParams, source: str) -> s
     def note(name):
         s = se.get(name, math.nan)
         if not ok.get(name, False):
+            if "not separable" in str(res.reasons.get(name, "")) and math.isfinite(s):
+                return (f"fitted, standard error {s:.4g}, but not separable from the other "
+                        "parameters (see identification.reasons)")
             if name.startswith("davis."):
                 # the fit holds a Davis term at the prior *per unit of effective mass* (the
                 # specific resistance is what the data constrain); with a fitted mass the
@@ -101,10 +104,63 @@ def train_to_yaml(train: TrainParams, res, prior: TrainParams, source: str) -> s
                             if k in ok and isinstance(v, float | int) and math.isfinite(v)},
         "identifiable": {k: bool(v) for k, v in ok.items()},
         "reasons": {k: str(v) for k, v in res.reasons.items()},
+        "rule": res.rule,
+        "correlations": correlations(res),
+        "variance_inflation": {k: round(float(v), 3) for k, v in res.variance_inflation.items()},
+        "fixed_by_rule": [{"name": f["name"], "rule": f["rule"],
+                           "relative_se": round(f["relative_se"], 4),
+                           "variance_inflation": round(f["variance_inflation"], 3),
+                           "correlations": {k: round(r, 4) for k, r in f["correlations"].items()}}
+                          for f in res.fixed_by_rule],
+        "force_at_reference_speed": {k: float(v) for k, v in
+                                     res.force_at_reference_speed.items()},
         "mass_if_davis_nominal_kg": [float(x) for x in res.mass_if_davis_nominal],
     }}
     return "\n".join(lines) + "\n# extra keys (CONTRACT.md allows them): what the fit knows\n" \
         + yaml.safe_dump(extra, sort_keys=False, width=100)
+
+
+# what the fitted (specific) parameters are, for the correlation table
+FITTED_LEGEND = ("alpha, beta, gamma = davis a, b, c / M_eff; k = traction_gain = M_prior / mass;"
+                 " kf = scaled_braking_rate = k braking_rate; kappa = 1 / (1 + rotary_allowance)")
+SHORT = {"traction_gain": "k", "scaled_braking_rate": "kf"}
+
+
+def correlations(res) -> dict:
+    """Correlations of the final free (fitted) parameters as {name: {other: r}}."""
+    names = list(res.free_names)
+    if res.correlation is None:
+        return {}
+    return {a: {b: round(float(res.correlation[i, j]), 4) for j, b in enumerate(names) if j != i}
+            for i, a in enumerate(names)}
+
+
+def print_identifiability(res, out=None) -> None:
+    """The force at the reference speed, the correlations and inflation factors of the free
+    parameters, the parameters the rule fixed, and the rule (to ``out``, default stdout)."""
+    out = sys.stdout if out is None else out
+    f = res.force_at_reference_speed
+    if f:
+        print(f"resistance force at {f['speed']:.1f} m/s (median moving speed): fitted "
+              f"{f['fitted']:.6g} N +- {f['std_error']:.3g} N, prior {f['prior']:.6g} N "
+              f"({f['z_vs_prior']:+.1f} SE from the prior)", file=out)
+    names = list(res.free_names)
+    if res.correlation is not None and names:
+        print(f"correlations of the fitted parameters ({FITTED_LEGEND}):", file=out)
+        print(" " * 8 + "".join(f"{SHORT.get(n, n):>8}" for n in names) + f"{'VIF':>10}",
+              file=out)
+        for i, a in enumerate(names):
+            row = "".join(f"{res.correlation[i, j]:>8.3f}" for j in range(len(names)))
+            print(f"{SHORT.get(a, a):<8}{row}  {res.variance_inflation.get(a, math.nan):>8.3g}",
+                  file=out)
+    for fx in res.fixed_by_rule:
+        print(f"held at the prior: {fx['name']}: {res.reasons.get(fx['name'], fx['rule'])}",
+              file=out)
+    for name in names:
+        if not res.identifiable.get(name, True):
+            print(f"not identifiable: {name}: {res.reasons.get(name, '')}", file=out)
+    if res.rule:
+        print(f"rule: {res.rule}", file=out)
 
 
 def plot_fit(res, path: Path) -> None:
@@ -181,6 +237,7 @@ def main(argv=None) -> int:
         se = res.std_errors.get(name, math.nan)
         print(f"{name:<18}{get(prior):>14.6g}{get(res.train):>14.6g}{se:>12.4g}  "
               f"{'yes' if res.identifiable.get(name) else 'no'}")
+    print_identifiability(res)
     print(f"wrote {out} and {plot}")
     return 0
 
