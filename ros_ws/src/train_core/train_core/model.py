@@ -178,7 +178,8 @@ class Line:
 # ---------------------------------------------------------------------------------------------
 
 TRAIN_KEYS = ("mass", "rotary_allowance", "davis", "brake", "odometer")
-TRAIN_ALL_KEYS = ("name", *TRAIN_KEYS, "balise", "performance")  # every key the loader reads
+TRAIN_ALL_KEYS = ("name", *TRAIN_KEYS, "balise", "performance",
+                  "identification")  # every key the loader reads; identify writes the last
 LINE_KEYS = ("name", "length", "balises", "gradients", "stations", "speed_limits", "max_speed")
 
 
