@@ -19,7 +19,8 @@ Output (DIR is created):
 How to read the report:
   cause        the best-supported cause ("none": the believed model explains the data)
   ranking      every cause tested, best first, "none" among them. The score of a cause is
-               the BIC-penalised log-likelihood ratio 2 (ll_cause - ll_null) - k ln n (k: its
+               the BIC-penalised log-likelihood ratio with the prior odds of "none" against
+               the K causes tested, 2 (ll_cause - ll_null) - k ln n - 2 ln K (k: its
                parameter count, n: the number of measurements); > 0 means the data support
                the cause, "none" has score 0. With two effects the greedy refit ranks the
                second cause (scored on top of the first) second.
@@ -119,10 +120,18 @@ def jsonable(obj):
     return str(obj)
 
 
+# The score the core applies (core/diagnose.py), stated in --help and in report.json
+SCORE_FORMULA = ("2 (ll_cause - ll_null) - k ln n - 2 ln K (BIC-penalised log-likelihood ratio; "
+                 "k: the cause's parameter count, n: measurements, K: causes scored in the stage)")
+
+
 def report_dict(dg) -> dict:
     """CONTRACT.md report: exactly cause, parameters, ranking, untestable, evidence, gain."""
+    evidence = dict(dg.evidence or {})
+    if isinstance(evidence.get("_model"), dict):
+        evidence["_model"] = dict(evidence["_model"], score=SCORE_FORMULA)
     return jsonable({"cause": dg.cause, "parameters": dg.parameters, "ranking": dg.ranking,
-                     "untestable": dg.untestable, "evidence": dg.evidence, "gain": dg.gain})
+                     "untestable": dg.untestable, "evidence": evidence, "gain": dg.gain})
 
 
 # ------------------------------------------------------------------------------------------------
