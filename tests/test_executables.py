@@ -11,7 +11,7 @@ PACKAGES = ("train_sim", "train_estimation")
 CONTRACT = {
     "train_sim": {"simulator", "zone_controller"},
     "train_estimation": {"robust_filter", "gsma_estimator", "recorder", "check_bag", "identify",
-                         "diagnose", "fleet"},
+                         "diagnose", "fleet", "csv2bag"},
 }
 
 
