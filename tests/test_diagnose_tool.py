@@ -1,6 +1,6 @@
 """The `diagnose` executable as a user runs it: bad input gives one line and exit 2, the report
-has CONTRACT.md's shape, ground truth is never read, the model directory runs in the simulator,
-and hidden effects on generated bags (train_sim.cases) are found."""
+has docs/interfaces.md's shape, ground truth is never read, the model directory runs in the
+simulator, and hidden effects on generated bags (train_sim.cases) are found."""
 
 from __future__ import annotations
 

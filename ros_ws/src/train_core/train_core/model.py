@@ -172,7 +172,7 @@ class Line:
 
 
 # ---------------------------------------------------------------------------------------------
-# Loading with validation. Top-level extra keys are allowed (CONTRACT.md: "extra keys allowed");
+# Loading with validation. Top-level extra keys are allowed (docs/interfaces.md: "extra keys");
 # nested mappings with a fixed meaning are strict, so a typo in `davis: {A: ...}` is caught.
 # ---------------------------------------------------------------------------------------------
 

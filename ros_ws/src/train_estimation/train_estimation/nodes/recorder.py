@@ -33,8 +33,8 @@ DEFAULT_TOPICS = ["odometer", "balise", "control", "ground_truth", "estimate/rob
 class RecorderConfig:
     """The recorder's parameters (declared from this metadata; config/recorder.yaml)."""
 
-    topics: tuple[str, ...] = param(tuple(DEFAULT_TOPICS), "", "topics to record (CONTRACT.md "
-                                    "names)")
+    topics: tuple[str, ...] = param(tuple(DEFAULT_TOPICS), "", "topics to record "
+                                    "(docs/interfaces.md names)")
     bag: str = param("", "", "bag directory to create (must not exist)")
     flush_period: float = param(1.0, "s", "of wall time between chunk flushes")
 

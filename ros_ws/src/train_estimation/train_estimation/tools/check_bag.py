@@ -217,7 +217,8 @@ def check(bag_path: str, out_dir: Path | None = None, expected_received: float |
     """Check one bag; ``line`` is a :class:`train_core.model.Line` (errors by position)."""
     bag = read_bag(bag_path)
     if not bag.topics:
-        raise CheckError(f"{bag_path}: no CONTRACT.md topics in the bag ({bag.skipped or 'empty'})")
+        raise CheckError(f"{bag_path}: no docs/interfaces.md topics in the bag "
+                         f"({bag.skipped or 'empty'})")
     truth = truth_series(bag)
     summary: dict = {"bag": str(bag_path), "namespace": bag.namespace,
                      "has_ground_truth": truth is not None,

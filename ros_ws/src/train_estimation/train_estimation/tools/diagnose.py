@@ -4,11 +4,11 @@
 
 Reads the bag's ``odometer``, ``balise`` and ``control`` topics (a ``ground_truth`` topic, if
 present, is never used), aligns the believed model (line.yaml, train.yaml) with the data, fits
-one extended model per cause (CONTRACT.md ``diagnose``: gradient, resistance, braking_rate,
+one extended model per cause (docs/interfaces.md ``diagnose``: gradient, resistance, braking_rate,
 odometer_scale, wheel_slip, bursty_link, brake_delay, mass, clock_drift) and ranks them.
 
 Output (DIR is created):
-  DIR/report.json   cause, parameters, ranking, untestable, evidence, gain (CONTRACT.md)
+  DIR/report.json   cause, parameters, ranking, untestable, evidence, gain (docs/interfaces.md)
   DIR/model/        line.yaml, train.yaml, effects.yaml: the believed model extended by every
                     accepted cause; run it with
                     python -m train_sim.generate --scenario S --model DIR/model --out BAG
@@ -126,7 +126,7 @@ SCORE_FORMULA = ("2 (ll_cause - ll_null) - k ln n - 2 ln K (BIC-penalised log-li
 
 
 def report_dict(dg) -> dict:
-    """CONTRACT.md report: exactly cause, parameters, ranking, untestable, evidence, gain."""
+    """docs/interfaces.md report: exactly cause, parameters, ranking, untestable, evidence, gain."""
     evidence = dict(dg.evidence or {})
     if isinstance(evidence.get("_model"), dict):
         evidence["_model"] = dict(evidence["_model"], score=SCORE_FORMULA)
@@ -198,7 +198,7 @@ def write_model(out: Path, dg, line_path: str, train_path: str, data) -> dict:
     """DIR/model: line.yaml (+ fitted gradient section), train.yaml (+ fitted Davis), and
     effects.yaml (the other accepted causes, in a scenario's ``effects:`` syntax).
 
-    ``mass`` goes into effects.yaml, not train.yaml: CONTRACT.md's mass cause keeps the drive
+    ``mass`` goes into effects.yaml, not train.yaml: docs/interfaces.md's mass cause keeps the drive
     force computed for the believed mass, which is what train.yaml's mass is in the simulator;
     the effect makes the world's train heavier or lighter exactly as in the data.
 
