@@ -146,3 +146,26 @@ def test_plot_bands_are_clipped_and_startup_is_separated():
     t_ss = startup_end({"e": s}, 0.0, 100.0)
     sx = np.sqrt(cov[:, 0, 0])
     assert np.all(sx[t >= t_ss] <= 2 * np.median(sx)) and t_ss < 25.0
+
+
+def test_not_estimated_nan_is_not_non_finite(bag_with_estimate, tmp_path):
+    """NaN braking_rate and NaN covariance entries of a TrainState mean "not estimated"
+    (docs/interfaces.md): not counted; a NaN position or an infinite entry is."""
+    bag, _ = bag_with_estimate
+    s = check_bag.check(str(bag), tmp_path / "a", expected_received=0.875)
+    est = s["topics"]["estimate/robust"]
+    assert est["count"] > 100 and est["non_finite"] == 0
+    fields = read_bag(bag).topics["estimate/robust"][0][2]
+    out = tmp_path / "bad"
+    cov = np.full(16, math.nan)
+    cov[5] = math.inf
+    bad = [dict(fields, position=math.nan), dict(fields, covariance=cov),
+           dict(fields, braking_rate=math.inf), dict(fields, braking_rate=math.nan)]
+    with BagWriter(out) as w:
+        for i, f in enumerate(bad):
+            w.write("estimate/robust", 1.0 + i, f)
+        w.write("odometer", 5.0, {"seq": 1, "distance": math.nan, "speed": 1.0,
+                                   "speed_variance": 0.01})
+    b = read_bag(out)
+    assert check_bag.topic_health(b, "estimate/robust")["non_finite"] == 3
+    assert check_bag.topic_health(b, "odometer")["non_finite"] == 1

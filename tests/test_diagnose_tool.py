@@ -1,6 +1,6 @@
 """The `diagnose` executable as a user runs it: bad input gives one line and exit 2, the report
-has CONTRACT.md's shape, ground truth is never read, the model directory runs in the simulator,
-and hidden effects on generated bags (train_sim.cases) are found."""
+has docs/interfaces.md's shape, ground truth is never read, the model directory runs in the
+simulator, and hidden effects on generated bags (train_sim.cases) are found."""
 
 from __future__ import annotations
 
@@ -283,6 +283,27 @@ def test_report_has_the_contract_shape(diagnosed, capsys):
     assert list(out.glob("*.png")), "no plot written"
     for f in ("line.yaml", "train.yaml", "effects.yaml"):
         assert (out / "model" / f).is_file()
+
+
+@pytest.mark.slow
+def test_stated_score_formula_is_the_one_applied(diagnosed, capsys):
+    """--help and report.json state 2 (ll_cause - ll_null) - k ln n - 2 ln K; every first-stage
+    score in the report is that formula of the report's own log-likelihood gain, k and n."""
+    _, out = diagnosed["measured"]
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["evidence"]["_model"]["score"] == tool.SCORE_FORMULA
+    assert "- k ln n - 2 ln K" in tool.SCORE_FORMULA
+    with pytest.raises(SystemExit):
+        tool.main(["--help"])
+    assert "- k ln n - 2 ln K" in " ".join(capsys.readouterr().out.split())
+    ev = {c: e for c, e in rep["evidence"].items() if not c.startswith("_")}
+    k_causes = len(ev)
+    assert k_causes >= 9
+    for cause, e in ev.items():
+        stated = (2 * e["loglik_gain"] - e["n_params"] * math.log(e["n"])
+                  - 2 * math.log(k_causes))
+        # the report rounds to 3 decimals: 2 x 0.0005 + 0.0005
+        assert e["score_alone"] == pytest.approx(stated, abs=2e-3), cause
 
 
 @pytest.mark.slow

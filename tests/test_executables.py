@@ -11,7 +11,7 @@ PACKAGES = ("train_sim", "train_estimation")
 CONTRACT = {
     "train_sim": {"simulator", "zone_controller"},
     "train_estimation": {"robust_filter", "gsma_estimator", "recorder", "check_bag", "identify",
-                         "diagnose", "fleet"},
+                         "diagnose", "fleet", "csv2bag"},
 }
 
 
@@ -33,14 +33,14 @@ def test_installed_executables_are_contract_names():
     found = all_executables()
     assert found, "no executables installed"
     for pkg, name in found:
-        assert name in CONTRACT[pkg], f"{pkg}/{name} is not a CONTRACT.md executable"
+        assert name in CONTRACT[pkg], f"{pkg}/{name} is not a docs/interfaces.md executable"
 
 
 def test_every_contract_executable_is_installed():
     found = set(all_executables())
     for pkg in PACKAGES:
         for name in sorted(CONTRACT[pkg]):
-            assert (pkg, name) in found, f"{pkg}/{name} (CONTRACT.md) is not installed"
+            assert (pkg, name) in found, f"{pkg}/{name} (docs/interfaces.md) is not installed"
 
 
 @pytest.mark.parametrize("pkg,exe", all_executables())

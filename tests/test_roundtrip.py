@@ -1,4 +1,4 @@
-"""Every CONTRACT.md message crosses a process boundary with every field exactly preserved."""
+"""Every docs/interfaces.md message crosses a process boundary with every field preserved."""
 
 import json
 import math

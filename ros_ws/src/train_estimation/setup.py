@@ -30,6 +30,7 @@ setup(
             "identify = train_estimation.tools.identify:main",
             "diagnose = train_estimation.tools.diagnose:main",
             "fleet = train_estimation.tools.fleet:main",
+            "csv2bag = train_estimation.tools.csv2bag:main",
         ],
     },
 )

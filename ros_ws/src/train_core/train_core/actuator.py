@@ -58,7 +58,7 @@ class Actuator:
 
     Traction and braking have their own transport delay (``delay`` and ``brake_delay``, default
     the same): the drive and the brake are separate chains on a real train (the brake's is
-    pneumatic and often slower; CONTRACT.md's ``brake_delay`` cause). A command is split at zero,
+    pneumatic, often slower; docs/interfaces.md's ``brake_delay`` cause). A command is split at 0,
     its traction part max(a_Tar, 0) enters the traction pipe and its braking part min(a_Tar, 0)
     the brake pipe; the lag's input is the sum of the two delayed parts, the braking one scaled
     by f. With equal delays this is exactly eq. (1) (one of the two parts is always 0).

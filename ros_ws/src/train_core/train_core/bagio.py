@@ -2,10 +2,10 @@
 
 Pure module (rosbags, no rclpy): the offline generator, the bag tools and the tests all use it.
 
-- :func:`typestore` registers the CONTRACT.md messages from the ``.msg`` files of
+- :func:`typestore` registers the docs/interfaces.md messages from the ``.msg`` files of
   ``train_interfaces`` (found through the ament index, else in the source tree), so definitions
   are embedded in every bag written, exactly as a ROS 2 recorder would.
-- :class:`BagWriter` writes dict-valued messages (CONTRACT.md field names) or raw CDR bytes.
+- :class:`BagWriter` writes dict-valued messages (docs/interfaces.md field names) or raw CDR bytes.
   From the start and at every :meth:`BagWriter.flush` the bag on disk is one that readers open:
   ``metadata.yaml`` lists the topics and counts flushed so far, and the MCAP file ends in a
   provisional footer without a summary (readers scan it); :meth:`BagWriter.close` writes the
@@ -271,7 +271,7 @@ class Bag:
 
 def read_bag(path: str | os.PathLike, namespace: str | None = None,
              topics: tuple[str, ...] | None = None) -> Bag:
-    """Read every CONTRACT.md topic of a rosbag2/MCAP bag (a directory or a .mcap file), or
+    """Read every docs/interfaces.md topic of a rosbag2/MCAP bag (a directory or a .mcap file), or
     only ``topics`` (relative names): the others' messages are then never decoded.
 
     Works on bags written by rosbags, by rosbag2 and by the ``mcap`` writer with ROS 2 schemas.
@@ -300,7 +300,7 @@ def read_bag(path: str | os.PathLike, namespace: str | None = None,
         for c in conns:
             rel = c.topic[len(namespace) + 1:] if c.topic.startswith(namespace + "/") else c.topic
             if c.msgtype not in msg_texts() and c.msgtype != "rosgraph_msgs/msg/Clock":
-                bag.skipped[c.topic] = f"type {c.msgtype} is not a CONTRACT.md type"
+                bag.skipped[c.topic] = f"type {c.msgtype} is not a docs/interfaces.md type"
                 continue
             if c.msgtype == "rosgraph_msgs/msg/Clock" or (topics is not None
                                                            and rel not in topics):
@@ -408,7 +408,7 @@ def _recover(p: Path, namespace: str | None, topics: tuple[str, ...] | None = No
     for t_ns, topic, msgtype, _, data in sorted(msgs, key=lambda r: r[0]):
         rel = topic[len(namespace) + 1:] if topic.startswith(namespace + "/") else topic
         if msgtype not in msg_texts():
-            bag.skipped[topic] = f"type {msgtype} is not a CONTRACT.md type"
+            bag.skipped[topic] = f"type {msgtype} is not a docs/interfaces.md type"
             continue
         if topics is not None and rel not in topics:
             continue

@@ -1,6 +1,6 @@
 """Effects: the ways the real world differs from ``line.yaml``/``train.yaml``.
 
-One effect per cause of CONTRACT.md's ``diagnose`` table; every effect is off unless the scenario
+One effect per cause of docs/interfaces.md's ``diagnose`` table; each is off unless the scenario
 switches it on. The world runs with ``true_line``/``true_train``/``true_link`` built here with
 :func:`dataclasses.replace` on the believed objects; estimators only ever get the believed ones.
 Each effect changes the data in exactly one documented way:

@@ -172,7 +172,7 @@ class Line:
 
 
 # ---------------------------------------------------------------------------------------------
-# Loading with validation. Top-level extra keys are allowed (CONTRACT.md: "extra keys allowed")
+# Loading with validation. Top-level extra keys are allowed (docs/interfaces.md: "extra keys")
 # but named in a warning, and a near miss of a known key is an error (check_top_level); nested
 # mappings with a fixed meaning are strict, so a typo in `davis: {A: ...}` is caught.
 # ---------------------------------------------------------------------------------------------

@@ -1,6 +1,6 @@
 """ROS-layer helpers shared by every node of the project (this module imports rclpy).
 
-- message <-> plain dict conversion (the core speaks dicts with CONTRACT.md's field names);
+- message <-> plain dict conversion (the core speaks dicts with docs/interfaces.md's field names);
 - stamps: seconds (float) <-> builtin_interfaces/Time;
 - argument handling so every executable answers ``--help`` without starting ROS;
 - a ``run_node`` wrapper that spins until SIGINT/SIGTERM and shuts down cleanly;
@@ -20,7 +20,7 @@ import numpy as np
 
 from train_core import bagio
 
-# short message name -> Python class path; CONTRACT.md topic -> short message name (one table,
+# short message name -> Python class path; docs/interfaces.md topic -> short message name (a table,
 # bagio's, serves the bag tools and the nodes)
 TYPES = {n: f"train_interfaces.msg.{n}" for n in bagio.MSG_NAMES}
 TOPIC_TYPES = {t: full.rsplit("/", 1)[-1] for t, full in bagio.TOPIC_TYPES.items()}

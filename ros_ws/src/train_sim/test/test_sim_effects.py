@@ -84,7 +84,7 @@ def test_clock_drift_changes_only_train_stamps(base):
         a, b = getattr(r0, topic), getattr(r1, topic)
         assert same(a, b, [k for k in a if k != "stamp"])
         assert np.array_equal(a["stamp"], a["t"])
-        # CONTRACT.md: control stays on the reference clock; the sensors' stamps drift
+        # docs/interfaces.md: control stays on the reference clock; the sensors' stamps drift
         expect = b["t"] if topic == "control" else b["t"] * (1 + d)
         assert np.allclose(b["stamp"], expect, rtol=0, atol=1e-12)
     gt = [s for topic, s, _ in r1.events() if topic == "ground_truth"]

@@ -79,7 +79,7 @@ def test_brake_after_an_authority_is_an_incident_and_late_release_departs_late()
 
 
 def test_ground_truth_covariance_is_nan():
-    """CONTRACT.md: covariance is NaN where not estimated, and the truth estimates nothing."""
+    """docs/interfaces.md: covariance is NaN where not estimated; the truth estimates nothing."""
     w = World(load_scenario("metro_demo"))
     truth = [f for topic, _, f in w.advance(1.0) if topic == "ground_truth"]
     assert truth and all(len(f["covariance"]) == 16 and all(math.isnan(c)

@@ -3,7 +3,7 @@ hidden effect (or none, or a pair) of a given size.
 
     case = make_case(np.random.default_rng(7), "gradient", "subtle")
     case.scenario            # a train_sim Scenario: believed line/train + the hidden effects
-    case.truth["gradient"]   # {"start", "end", "permille"} in CONTRACT.md names and units
+    case.truth["gradient"]   # {"start", "end", "permille"} in docs/interfaces.md names and units
     case.nominal["gradient"] # what the believed model says ({"permille": 0.0})
     case.write(dir)          # line.yaml, train.yaml, scenario.yaml (for the executables)
 
@@ -82,7 +82,7 @@ class Case:
     causes: tuple[str, ...]  # hidden causes, () for nominal data
     size: str  # "plain" or "subtle"
     family: str  # line family
-    truth: dict  # cause -> true parameters (CONTRACT.md names, units; times on the true clock)
+    truth: dict  # cause -> true parameters (docs/interfaces.md names, units; times: true clock)
     nominal: dict  # cause -> the believed model's values of the same parameters
     v_ref: float  # m/s, mean speed while moving (pilot run): resistance is compared there
     line_dict: dict = field(repr=False, default_factory=dict)

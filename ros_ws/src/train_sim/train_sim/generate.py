@@ -7,7 +7,7 @@
 Uses the same :class:`train_sim.world.World` as the ``simulator`` node, so the same scenario and
 seed give the same messages. The bag holds what the train sends after the radio link
 (``odometer``, ``balise``), ``control`` and ``ground_truth``; ``--measured`` leaves ground truth
-out (a "measured data" bag, CONTRACT.md). Each message's log time is its arrival time on the
+out (a "measured data" bag, docs/interfaces.md). Each message's log time is its arrival time on the
 reference clock (the link's latency included), as a recorder on the ground would log it.
 
 ``--model DIR`` runs a model written by ``diagnose`` (``DIR/line.yaml``, ``DIR/train.yaml``,

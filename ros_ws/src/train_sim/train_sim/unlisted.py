@@ -1,6 +1,6 @@
 """Effects outside the causes list, for tests: what a diagnosis must not explain by a listed cause.
 
-Every cause that ``diagnose`` knows (CONTRACT.md's table) has an effect in
+Every cause that ``diagnose`` knows (the table in docs/interfaces.md) has an effect in
 :mod:`train_core.effects`. The effects here are deliberately none of them, nor the power limit,
 the traction delay or the adhesion section: each is a physical difference that no listed cause
 describes, and each is confined in a different way, so that a check "no listed cause is

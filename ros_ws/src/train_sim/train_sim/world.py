@@ -18,7 +18,7 @@ Time line (true time t, s, from 0):
 At equal times the order is: ATO cycle, then ground_truth, control, odometer. Messages are
 returned in order of true time.
 
-Clocks (CONTRACT.md, ``diagnose``): the reference clock is true time t; ``ground_truth`` and
+Clocks (docs/interfaces.md, ``diagnose``): the reference clock is true time t; ``ground_truth`` and
 ``control`` are stamped with it. ``odometer`` and ``balise`` are stamped by the train's own clock,
 ``stamp_epoch + t (1 + drift)`` (scenario ``sensors.stamp_epoch``, default 0; clock_drift
 effect, default 0). A received message arrives at ``t_recv`` = t + the link's latency (default
@@ -55,7 +55,7 @@ from .sensors import BaliseReader, Odometer
 from .unlisted import unlisted_hooks
 
 _EPS = 1e-9  # s
-TRUTH_COVARIANCE = (math.nan,) * 16  # CONTRACT.md: NaN where not estimated (truth is not)
+TRUTH_COVARIANCE = (math.nan,) * 16  # docs/interfaces.md: NaN where not estimated (truth is not)
 
 
 @dataclass
@@ -272,7 +272,7 @@ class World:
             "source": "truth", "position": st.x, "velocity": st.v, "acceleration": acc,
             "braking_rate": f, "covariance": TRUTH_COVARIANCE, "measurement_used": False,
             "integrity": 0}))
-        # control is on the reference clock (CONTRACT.md): the ATO's command as issued
+        # control is on the reference clock (docs/interfaces.md): the ATO's command as issued
         self._log["control"].append((t, t, self.a_tar))
         out.append((t, "control", t, {"target_acceleration": self.a_tar}))
         slip = self._slip.factor(t) if self._slip else 1.0

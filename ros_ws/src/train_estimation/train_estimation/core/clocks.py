@@ -1,4 +1,4 @@
-"""The measured data's two clocks, offline (pure; CONTRACT.md, "The measured data's clocks").
+"""The measured data's two clocks, offline (pure; docs/interfaces.md, "The measured data's clocks").
 
 Odometer and balise stamps come from the train's clock (any epoch, a small drift); control is
 stamped on the reference clock, which is also the clock of the bag's log (receive) times. The

@@ -1,7 +1,7 @@
 """`diagnose` core: what the believed model of a train gets wrong in measured data.
 
 Given one run (odometer, balise and control series with the bag's log times) and the railway's
-believed ``line.yaml``/``train.yaml``, find which of CONTRACT.md's causes explains the data,
+believed ``line.yaml``/``train.yaml``, find which of docs/interfaces.md's causes explains the data,
 fit it, and rank every cause.
 
 The model (train_core physics, as ``identify``; Zheng et al. 2015 eq. (1) for the actuator)::
@@ -48,7 +48,7 @@ Gradient against resistance: on one run position and speed go together, so a lon
 the Davis a-term). A gradient section is therefore searched and scored with the Davis terms free
 as nuisance: it is named only for what resistance cannot explain (a map error is local).
 
-Clocks (CONTRACT.md): odometer and balise stamps are on the train's clock, control on the
+Clocks (docs/interfaces.md): odometer and balise stamps are on the train's clock, control on the
 reference clock. The rate and offset between them come from the odometer's (stamp, log time)
 pairs; control stamps are mapped onto the train clock, and a residual common command-time offset
 (the link's mean latency) is a nuisance parameter profiled with the brake timing. Times in the
@@ -94,7 +94,7 @@ class DiagnoseError(ValueError):
 
 @dataclass(frozen=True)
 class DiagData:
-    """Measured series of one run, as recorded (CONTRACT.md clocks):
+    """Measured series of one run, as recorded (docs/interfaces.md clocks):
 
     odometer and balise ``*_stamp`` are on the train's clock (arbitrary epoch, may drift);
     ``control`` stamps are on the reference clock; ``*_recv`` are the bag's log (receive) times
@@ -144,7 +144,7 @@ class DiagConfig:
 @dataclass
 class Diagnosis:
     cause: str  # first entry of ranking
-    parameters: dict  # its parameters (CONTRACT.md units)
+    parameters: dict  # its parameters (docs/interfaces.md units)
     ranking: list  # [{"cause", "score", "parameters"}], best first, "none" included
     untestable: list  # [{"cause", "why"}]
     evidence: dict  # per cause: log-likelihood gain, penalty, n, standard errors, ...
@@ -303,7 +303,7 @@ def clock_test(run: _Run) -> dict:
 
     Null: beta = 1 (no drift); alternative: beta free. Gaussian jitter with its variance
     profiled; floor 1 us^2 (time resolution) so a jitter-free log does not divide by zero.
-    drift = 1 / beta - 1 (stamp rate minus 1, CONTRACT.md)."""
+    drift = 1 / beta - 1 (stamp rate minus 1, docs/interfaces.md)."""
     s, r = run.odo_stamp, run.odo_recv
     n = s.size
     res0 = r - s
@@ -1317,7 +1317,7 @@ def _extend_null(null: _Null, cause: str, res: dict, mo: _Motion) -> None:
 
 
 def _report(cause: str, params: dict, beta: float) -> dict:
-    """Parameters as CONTRACT.md reports them: times on the train's stamp clock (the analysis
+    """Parameters as docs/interfaces.md reports them: times on the train's stamp clock (the analysis
     runs on the reference clock, t_ref = beta t_stamp)."""
     p = _clean(params)
     if cause == "wheel_slip":

@@ -1,4 +1,4 @@
-"""Adapters from CONTRACT.md message fields to the estimator cores (pure).
+"""Adapters from docs/interfaces.md message fields to the estimator cores (pure).
 
 Each adapter turns the dict fields of ``odometer``, ``balise`` and ``control`` messages into
 calls of one filter core and reports its state as a :class:`~train_estimation.core.runner.Output`.

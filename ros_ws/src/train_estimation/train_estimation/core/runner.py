@@ -10,7 +10,7 @@ so the node's estimates can be reproduced from a bag without ROS:
   stamp**, as soon as it is processed; an odometer slot without a sample (lost packet, outage)
   gets a predicted estimate at the expected slot time once the inputs' watermarks pass it.
 
-Clocks (CONTRACT.md, "The measured data's clocks"). The estimator runs on the **odometer's
+Clocks (docs/interfaces.md, "The measured data's clocks"). The estimator runs on the **odometer's
 clock** (the train's clock: odometer and balise stamps are the sampling times, at any epoch,
 phase and drift). ``control`` may be stamped on another clock (measured data: the reference =
 receive clock). Each stream's offset ``stamp - recv`` (``recv`` = arrival time on the node's

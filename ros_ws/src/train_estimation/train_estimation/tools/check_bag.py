@@ -52,6 +52,30 @@ def _stats(err: np.ndarray) -> dict:
             "mean": float(err.mean())}
 
 
+# TrainState fields where NaN is a value by design: "not estimated" (docs/interfaces.md), e.g.
+# the braking rate of an estimator that does not estimate it. Infinity is never by design.
+NOT_ESTIMATED_NAN = ("braking_rate", "covariance")
+
+
+def _non_finite(stamp: float, fields: dict) -> bool:
+    """A stamp or field that is not a finite number, NaN-by-design fields excepted."""
+    if not math.isfinite(stamp):
+        return True
+    state = "source" in fields and "covariance" in fields  # a TrainState
+    for k, v in fields.items():
+        if isinstance(v, (float, np.floating)):
+            if math.isfinite(v) or (state and k in NOT_ESTIMATED_NAN and math.isnan(v)):
+                continue
+            return True
+        if isinstance(v, np.ndarray) and v.dtype.kind == "f":
+            bad = ~np.isfinite(v)
+            if state and k in NOT_ESTIMATED_NAN:
+                bad &= ~np.isnan(v)
+            if bad.any():
+                return True
+    return False
+
+
 def topic_health(bag: Bag, topic: str) -> dict:
     msgs = bag.topics.get(topic, [])
     stamps = bag.stamps(topic)
@@ -62,8 +86,7 @@ def topic_health(bag: Bag, topic: str) -> dict:
     # the estimators' rejection names (core/reasons.py) for what the stamps alone show
     out[R.OUT_OF_ORDER] = int(np.sum(d < 0))
     out["duplicate_stamps"] = int(np.sum(d == 0))
-    out[R.NON_FINITE] = int(sum(1 for _, s, f in msgs if not math.isfinite(s) or any(
-        isinstance(v, float) and not math.isfinite(v) for v in f.values())))
+    out[R.NON_FINITE] = int(sum(1 for _, s, f in msgs if _non_finite(s, f)))
     out["max_gap_s"] = float(d.max()) if d.size else 0.0
     if "seq" in msgs[0][2]:
         seq = bag.series(topic, "seq")
@@ -194,7 +217,8 @@ def check(bag_path: str, out_dir: Path | None = None, expected_received: float |
     """Check one bag; ``line`` is a :class:`train_core.model.Line` (errors by position)."""
     bag = read_bag(bag_path)
     if not bag.topics:
-        raise CheckError(f"{bag_path}: no CONTRACT.md topics in the bag ({bag.skipped or 'empty'})")
+        raise CheckError(f"{bag_path}: no docs/interfaces.md topics in the bag "
+                         f"({bag.skipped or 'empty'})")
     truth = truth_series(bag)
     summary: dict = {"bag": str(bag_path), "namespace": bag.namespace,
                      "has_ground_truth": truth is not None,
@@ -331,7 +355,7 @@ def format_report(summary: dict) -> str:
         lines += format_by_position(summary)
     other = []  # topics of other packages' types (Odometry, /diagnostics): one line
     for k, why in summary.get("skipped", {}).items():
-        if why.endswith("is not a CONTRACT.md type"):
+        if why.endswith("is not a docs/interfaces.md type"):
             other.append(f"{k} ({why.split()[1].replace('/msg/', '/')})")
         else:
             lines.append(f"not used: {k}: {why}")

@@ -4,11 +4,11 @@
 
 Reads the bag's ``odometer``, ``balise`` and ``control`` topics (a ``ground_truth`` topic, if
 present, is never used), aligns the believed model (line.yaml, train.yaml) with the data, fits
-one extended model per cause (CONTRACT.md ``diagnose``: gradient, resistance, braking_rate,
+one extended model per cause (docs/interfaces.md ``diagnose``: gradient, resistance, braking_rate,
 odometer_scale, wheel_slip, bursty_link, brake_delay, mass, clock_drift) and ranks them.
 
 Output (DIR is created):
-  DIR/report.json   cause, parameters, ranking, untestable, evidence, gain (CONTRACT.md)
+  DIR/report.json   cause, parameters, ranking, untestable, evidence, gain (docs/interfaces.md)
   DIR/model/        line.yaml, train.yaml, effects.yaml: the believed model extended by every
                     accepted cause; run it with
                     python -m train_sim.generate --scenario S --model DIR/model --out BAG
@@ -19,7 +19,8 @@ Output (DIR is created):
 How to read the report:
   cause        the best-supported cause ("none": the believed model explains the data)
   ranking      every cause tested, best first, "none" among them. The score of a cause is
-               the BIC-penalised log-likelihood ratio 2 (ll_cause - ll_null) - k ln n (k: its
+               the BIC-penalised log-likelihood ratio with the prior odds of "none" against
+               the K causes tested, 2 (ll_cause - ll_null) - k ln n - 2 ln K (k: its
                parameter count, n: the number of measurements); > 0 means the data support
                the cause, "none" has score 0. With two effects the greedy refit ranks the
                second cause (scored on top of the first) second.
@@ -119,10 +120,18 @@ def jsonable(obj):
     return str(obj)
 
 
+# The score the core applies (core/diagnose.py), stated in --help and in report.json
+SCORE_FORMULA = ("2 (ll_cause - ll_null) - k ln n - 2 ln K (BIC-penalised log-likelihood ratio; "
+                 "k: the cause's parameter count, n: measurements, K: causes scored in the stage)")
+
+
 def report_dict(dg) -> dict:
-    """CONTRACT.md report: exactly cause, parameters, ranking, untestable, evidence, gain."""
+    """docs/interfaces.md report: exactly cause, parameters, ranking, untestable, evidence, gain."""
+    evidence = dict(dg.evidence or {})
+    if isinstance(evidence.get("_model"), dict):
+        evidence["_model"] = dict(evidence["_model"], score=SCORE_FORMULA)
     return jsonable({"cause": dg.cause, "parameters": dg.parameters, "ranking": dg.ranking,
-                     "untestable": dg.untestable, "evidence": dg.evidence, "gain": dg.gain})
+                     "untestable": dg.untestable, "evidence": evidence, "gain": dg.gain})
 
 
 # ------------------------------------------------------------------------------------------------
@@ -189,7 +198,7 @@ def write_model(out: Path, dg, line_path: str, train_path: str, data) -> dict:
     """DIR/model: line.yaml (+ fitted gradient section), train.yaml (+ fitted Davis), and
     effects.yaml (the other accepted causes, in a scenario's ``effects:`` syntax).
 
-    ``mass`` goes into effects.yaml, not train.yaml: CONTRACT.md's mass cause keeps the drive
+    ``mass`` goes into effects.yaml, not train.yaml: docs/interfaces.md's mass cause keeps the drive
     force computed for the believed mass, which is what train.yaml's mass is in the simulator;
     the effect makes the world's train heavier or lighter exactly as in the data.
 

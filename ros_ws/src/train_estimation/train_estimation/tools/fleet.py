@@ -35,9 +35,11 @@ Output (DIR is created):
 
 Criteria (core/fleet.py): a map error = a section found by >= 2 trains, by more runs than
 spurious detections explain (binomial test, Bonferroni), with consistent values (Cochran's Q);
-a train alert = |z| above the Bonferroni normal quantile for a family-wise false-alarm rate
---alpha (default 0.01) over all trains and parameters, for the departure from the other trains'
-median (leave-one-out, MAD spread) or for a trend in time.
+a train alert = |z| above the two-sided Student-t quantile, on the statistic's
+Welch-Satterthwaite degrees of freedom, of alpha / (2 x trains x parameters) (Bonferroni: a
+family-wise false-alarm rate --alpha, default 0.01), for the departure from the other trains'
+median (leave-one-out, MAD spread) or for a trend in time; the report lists the critical value
+applied to each train.
 
 Exit status: 0 when the report was written (failed bags are listed in it); 2 when there is no
 usable input (no manifest or folder, no bag in it, bad YAML).
@@ -501,15 +503,20 @@ def report_md(res, rows: list[dict], info: dict, plots: list[str]) -> str:
                      f"{rc.get('verdict', 'too few runs')} |")
     tr = res.trains
     L += ["", "## Train alerts", "",
-          f"Criterion: |z| > {tr['z_critical']:.2f} (family-wise false-alarm rate "
-          f"{tr['alpha']:g} over {tr['tests']} train-parameter pairs, Bonferroni).", ""]
+          "Criterion: |z| > the two-sided Student-t quantile of "
+          f"{tr['alpha']:g} / (2 x {tr['tests']}) (family-wise false-alarm rate "
+          f"{tr['alpha']:g} over {tr['tests']} train-parameter pairs, Bonferroni) on each "
+          "statistic's Welch-Satterthwaite degrees of freedom: the critical value applied is "
+          "in the tables (crit); it is at least the normal quantile "
+          f"{tr['z_critical']:.2f}, reached when no variance is estimated.", ""]
     if res.train_alerts:
         L += ["| train | parameter | alert | train mean +- se | fleet (others' median) | z | "
-              "p |", "|---|---|---|---|---|---|---|"]
+              "crit | p |", "|---|---|---|---|---|---|---|---|"]
         for a in sorted(res.train_alerts, key=lambda a: (a["train"], a["parameter"])):
             L.append(f"| **{a['train']}** | {a['parameter']} | {a['kind']} | "
                      f"{_f(a['mean'], '.4g')} +- {_f(a['se'], '.2g')} | "
-                     f"{_f(a['fleet'], '.4g')} | {a['z']:+.1f} | {a['p']:.1e} |")
+                     f"{_f(a['fleet'], '.4g')} | {a['z']:+.2f} | {a['critical']:.2f} | "
+                     f"{a['p']:.1e} |")
         names = sorted({a["train"] for a in res.train_alerts})
         L += ["", f"Trains with an alert: **{', '.join(names)}**."]
     else:
@@ -517,13 +524,14 @@ def report_md(res, rows: list[dict], info: dict, plots: list[str]) -> str:
     for p, d in tr["parameters"].items():
         L += ["", f"### {p.replace('_', ' ')} per train (run-to-run scatter beyond the "
               f"standard errors: tau = {_f(d['tau'], '.3g')})", "",
-              "| train | runs | mean +- se | others' median | z departure | slope per time "
-              "unit +- se | z trend |", "|---|---|---|---|---|---|---|"]
+              "| train | runs | mean +- se | others' median | z departure (crit) | slope per "
+              "time unit +- se | z trend (crit) |", "|---|---|---|---|---|---|---|"]
         for t, r in sorted(d["trains"].items()):
             L.append(f"| {t} | {r['runs']} | {_f(r['mean'], '.5g')} +- {_f(r['se'], '.2g')} | "
-                     f"{_f(r.get('fleet'), '.5g')} | {_f(r.get('z_departure'), '+.2f')} | "
+                     f"{_f(r.get('fleet'), '.5g')} | {_f(r.get('z_departure'), '+.2f')} "
+                     f"({_f(r.get('crit_departure'), '.2f')}) | "
                      f"{_f(r.get('slope'), '.2g')} +- {_f(r.get('slope_se'), '.2g')} | "
-                     f"{_f(r.get('z_trend'), '+.2f')} |")
+                     f"{_f(r.get('z_trend'), '+.2f')} ({_f(r.get('crit_trend'), '.2f')}) |")
     if bad:
         L += ["", "## Bags that could not be analysed", "", "| train | bag | reason |",
               "|---|---|---|"]
@@ -538,8 +546,8 @@ def report_md(res, rows: list[dict], info: dict, plots: list[str]) -> str:
           f"section found, alpha = {cfg['alpha']:g}), with values that agree (Cochran's Q, "
           "alpha); its size is the inverse-variance combination of the runs' values. A *train "
           "alert* is a train whose parameter departs from the other trains' median "
-          "(leave-one-out, robust spread) or trends in time, beyond the Bonferroni quantile "
-          "above. Method: train_estimation/core/fleet.py."]
+          "(leave-one-out, robust spread) or trends in time, beyond the Bonferroni Student-t "
+          "quantile above (crit). Method: train_estimation/core/fleet.py."]
     return "\n".join(L) + "\n"
 
 

@@ -2,7 +2,7 @@
 
     identify --bag BAG --line line.yaml --train train.yaml --out fitted_train.yaml
 
-Reads ``odometer``, ``balise`` and ``control`` from the bag (CONTRACT.md format; ground truth,
+Reads ``odometer``, ``balise`` and ``control`` from the bag (docs/interfaces.md; ground truth,
 if present, is not used), fits the Davis coefficients, mass, rotary allowance and braking rate
 as far as the data identify them (train.identify), and writes ``train.yaml`` with the fitted
 values, their standard errors as comments and an ``identification`` block of extra keys, plus a
@@ -39,7 +39,7 @@ def bag_to_data(bag):
                             "braking_rate"))
     bal = bag.topics.get("balise", [])
     # identify reads every time on the odometer's (train) clock; control is stamped on the
-    # reference clock (CONTRACT.md): mapped through the odometer's stamps and log times
+    # reference clock (docs/interfaces.md): mapped through the odometer's stamps and log times
     odo_t = bag.stamps("odometer")
     ctrl_t = control_on_train_clock(odo_t, bag.recv_times("odometer"), bag.stamps("control"),
                                     bag.recv_times("control"))
@@ -54,7 +54,7 @@ def bag_to_data(bag):
 
 
 def train_to_yaml(train: TrainParams, res, prior: TrainParams, source: str) -> str:
-    """The fitted train.yaml text: CONTRACT.md keys, SEs as comments, extras as a block."""
+    """The fitted train.yaml text: docs/interfaces.md keys, SEs as comments, extras as a block."""
     se, ok = res.std_errors, res.identifiable
 
     d, d0 = train.davis, prior.davis
@@ -116,7 +116,8 @@ def train_to_yaml(train: TrainParams, res, prior: TrainParams, source: str) -> s
                                      res.force_at_reference_speed.items()},
         "mass_if_davis_nominal_kg": [float(x) for x in res.mass_if_davis_nominal],
     }}
-    return "\n".join(lines) + "\n# extra keys (CONTRACT.md allows them): what the fit knows\n" \
+    return "\n".join(lines) + "\n# extra keys (docs/interfaces.md allows them): what the fit " \
+        "knows\n" \
         + yaml.safe_dump(extra, sort_keys=False, width=100)
 
 
