@@ -1,6 +1,6 @@
 """The radio link as a hidden two-state Markov chain (Gilbert-Elliott), fitted to lost seq numbers.
 
-Model (docs/interfaces.md ``bursty_link``; the simulator's :mod:`train_core.link` draws it this way): a
+Model (docs/interfaces.md ``bursty_link``; :mod:`train_core.link` draws it this way): a
 hidden state s_k in {good, bad} per odometer sample k; sample k is lost with probability
 ``loss_good`` or ``loss_bad`` in its state; then the state moves good -> bad with ``p_good_bad``
 and bad -> good with ``p_bad_good``. So bursts are not the loss runs themselves: a bad spell may

@@ -9,9 +9,9 @@ or ``kill -9`` loses at most that much and leaves a bag that opens as it is (``r
 SIGINT/SIGTERM close the bag properly. At the end it logs the topics, message counts and bytes
 written.
 
-Besides the topics of docs/interfaces.md it records any ``estimate/<name>`` (TrainState), ``odom/<name>``
-(nav_msgs/Odometry) and ``/diagnostics`` (diagnostic_msgs/DiagnosticArray), so that a bag shows
-in Foxglove what the nodes published. Its own health (per topic: rate, count, silence; bytes
+Besides the topics of docs/interfaces.md it records any ``estimate/<name>`` (TrainState),
+``odom/<name>`` (nav_msgs/Odometry) and ``/diagnostics`` (diagnostic_msgs/DiagnosticArray), so
+that a bag shows in Foxglove what the nodes published. Its own health (per topic: rate, count, silence; bytes
 written) goes to ``/diagnostics``.
 """
 
@@ -38,7 +38,8 @@ SPARSE = ("balise",)  # minutes apart by design: never judged stale
 
 def topic_type(topic: str) -> str | None:
     """The full message type recorded on ``topic`` (relative, or absolute with a namespace):
-    docs/interfaces.md's topics, ``estimate/<name>``, ``odom/<name>``, ``/diagnostics``; else None."""
+    the topics of docs/interfaces.md, ``estimate/<name>``, ``odom/<name>``, ``/diagnostics``;
+    else None."""
     parts = topic.strip("/").split("/")
     for i in range(len(parts)):  # drop leading namespace components
         rel, rest = "/".join(parts[i:]), len(parts) - i
