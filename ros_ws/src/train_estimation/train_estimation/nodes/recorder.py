@@ -11,8 +11,8 @@ written.
 
 Besides the topics of docs/interfaces.md it records any ``estimate/<name>`` (TrainState),
 ``odom/<name>`` (nav_msgs/Odometry) and ``/diagnostics`` (diagnostic_msgs/DiagnosticArray), so
-that a bag shows in Foxglove what the nodes published. Its own health (per topic: rate, count, silence; bytes
-written) goes to ``/diagnostics``.
+that a bag shows in Foxglove what the nodes published. Its own health (per topic: rate, count,
+silence; bytes written) goes to ``/diagnostics``.
 """
 
 from __future__ import annotations
@@ -63,8 +63,9 @@ def type_class(full: str):
 class RecorderConfig:
     """The recorder's parameters (declared from this metadata; config/recorder.yaml)."""
 
-    topics: tuple[str, ...] = param(tuple(DEFAULT_TOPICS), "", "topics to record (docs/interfaces.md "
-                                    "names, estimate/NAME, odom/NAME, /diagnostics)")
+    topics: tuple[str, ...] = param(tuple(DEFAULT_TOPICS), "", "topics to record "
+                                    "(docs/interfaces.md names, estimate/NAME, odom/NAME, "
+                                    "/diagnostics)")
     bag: str = param("", "", "bag directory to create (must not exist)")
     flush_period: float = param(1.0, "s", "of wall time between chunk flushes")
 
