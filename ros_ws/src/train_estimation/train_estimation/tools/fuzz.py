@@ -51,9 +51,11 @@ EXPECTED = {**{k: v[1] for k, v in ODOMETER.items()}, **{k: v[1] for k, v in BAL
 
 
 def corrupt(events: list, rng: np.random.Generator, per_reading: float = 5.0,
-            seq_jump: bool = True, seq_reset: bool = True) -> tuple[list, Counter]:
+            seq_jump: bool = True, seq_reset: bool = True,
+            stamps: dict = STAMPS) -> tuple[list, Counter]:
     """``(stream, counts)``: about ``per_reading`` corrupted messages per clean one (Poisson),
-    each of a kind drawn uniformly from those that fit its topic; ``counts`` per kind."""
+    each of a kind drawn uniformly from those that fit its topic; ``counts`` per kind.
+    ``stamps``: the stamp changes to draw from (kind -> (change s, expected reasons))."""
     out: list = []
     counts: Counter = Counter()
     odo_idx = [i for i, e in enumerate(events) if e[0] == "odometer"]
@@ -87,7 +89,7 @@ def corrupt(events: list, rng: np.random.Generator, per_reading: float = 5.0,
             out.append(clean)
         for _ in range(rng.poisson(per_reading)):
             table = {"odometer": ODOMETER, "balise": BALISE, "control": CONTROL}[topic]
-            kinds = list(table) + list(STAMPS) + ["duplicate"]
+            kinds = list(table) + list(stamps) + ["duplicate"]
             kind = kinds[rng.integers(len(kinds))]
             counts[kind] += 1
             g = dict(f)
@@ -96,8 +98,8 @@ def corrupt(events: list, rng: np.random.Generator, per_reading: float = 5.0,
                 g.update(table[kind][0])
                 if topic != "control":
                     g["seq"] = f["seq"] + 1 if kind in ODOMETER and "1e6" in kind else f["seq"]
-            elif kind in STAMPS:
-                s = stamp + STAMPS[kind][0]
+            elif kind in stamps:
+                s = stamp + stamps[kind][0]
             else:  # duplicate: the clean message again
                 s = stamp
             if topic == "control" and kind in CONTROL:

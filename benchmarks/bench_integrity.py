@@ -1,0 +1,458 @@
+#!/usr/bin/env python3
+"""Integrity benchmark: a seeded fault campaign over every estimator and the zone controller.
+
+Each fault of ``train_estimation.tools.faults`` (one or a few readings with wrong stamps, clock
+steps, drift, odometer outages while accelerating / cruising / braking, the command stream
+stopping, link latency tails, recorder and node stalls, the fuzz mix with stamps inside
+``max_future``), at several sizes and times, on metro_demo, crh3_high_speed and wen2017_subway,
+is replayed through the runner the nodes use (node defaults: ``NodeConfig``), arrival = stamp +
+50 ms. Per fault and estimator (seeds pooled) the table gives:
+
+- wrong-side: estimates with integrity OK (0) while |error| > 1 m and > 5 sigma (sigma: the
+  published position variance); off-run: OK estimates stamped > 1 s outside the simulated run;
+- time to alarm (s): from the first estimate whose error exceeds that bound to the first
+  non-OK estimate published since the fault's onset ("-": the bound was never exceeded;
+  "never": no alarm);
+- availability: OK estimates published within 1 s of the time they claim, over the odometer
+  slots from the onset on; the longest silence;
+- max and RMS |error| from the onset on, and the largest |error| until 10 s after the fault's
+  end (the outage figure); non-PD (negative or non-finite) covariances; exceptions.
+
+Zone-controller rows (``train_sim.zone``, pure logic): bad reports and report streams (a
+negative or NaN braking-rate variance, a stamp 1e6 s ahead, an estimator's clock reset, ALARM,
+DEGRADED, reports stopping, fuzzed reports), counting crashes, bad reports accepted, lock-ups
+(emergency brake still on 5 s after good reports are back) and the time to brake.
+
+Then one line per target of the integrity issue with PASS/FAIL.
+
+Usage::
+
+    ./run bench integrity --quick          # robust_filter and kf, one size per class (< 2 min)
+    ./run bench integrity --jobs 2         # all estimators, sizes and times, fuzz >= 1e6 / est.
+    ./run bench integrity --only step drift --estimators kf
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import math
+import random
+import sys
+import traceback
+import zlib
+from collections import defaultdict
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import fields as dc_fields
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+for _p in (ROOT / "ros_ws/src/train_sim", ROOT / "ros_ws/src/train_estimation",
+           ROOT / "ros_ws/src/train_core"):
+    if str(_p) not in sys.path:
+        sys.path.insert(0, str(_p))
+
+from train_core.realtime import single_threaded_blas  # noqa: E402
+
+single_threaded_blas()
+
+import numpy as np  # noqa: E402
+from tqdm import tqdm  # noqa: E402
+
+from train_estimation.core.estimators import (  # noqa: E402
+    BrakingAdapter,
+    BrakingConfig,
+    NodeConfig,
+    RobustAdapter,
+    RobustConfig,
+    StartState,
+)
+from train_estimation.tools import faults as F  # noqa: E402
+from train_sim.scenario import load_scenario  # noqa: E402
+from train_sim.world import simulate  # noqa: E402
+from train_sim.zone import TrainReport, ZoneController, ZoneParams  # noqa: E402
+
+ESTIMATORS = ("robust_filter", "kf", "gsma", "sma", "rbpf", "qgrbpf")
+QUICK_ESTIMATORS = ("robust_filter", "kf")
+SCENARIOS = ("metro_demo", "crh3_high_speed", "wen2017_subway")
+AFTER = 60.0  # s of run kept after a fault's end (the recovery)
+
+
+# -- runs ------------------------------------------------------------------------------------------
+
+@functools.lru_cache(maxsize=4)
+def _sim(scenario: str, seed: int, duration: float):
+    sc = load_scenario(scenario)
+    return sc, simulate(sc, seed, duration)
+
+
+def make_adapter(sc, name: str):
+    st = StartState(sc.start_position)
+    if name == "robust_filter":
+        return RobustAdapter(sc.train, sc.line, st, RobustConfig(period=1 / sc.odometer_rate))
+    return BrakingAdapter(sc.train, sc.line, st, BrakingConfig(algorithm=name))
+
+
+def phases(truth: dict) -> dict:
+    """True times (s) at which the train starts accelerating, cruising and braking (first
+    occurrence): a fault placed there meets that motion."""
+    t, v, a = (np.asarray(truth[k], float) for k in ("t", "velocity", "acceleration"))
+    vmax = v.max()
+
+    def first(mask, default):
+        i = np.flatnonzero(mask)
+        return float(t[i[0]]) if i.size else default
+
+    acc = first((a > 0.3) & (v > 1.0), t[len(t) // 4])
+    cruise = first((t > acc) & (v > 0.8 * vmax) & (np.abs(a) < 0.25), t[len(t) // 2])
+    brake = first((t > cruise) & (a < -0.25) & (v > 0.5 * vmax), t[3 * len(t) // 4])
+    return {"accelerating": round(acc, 1), "cruising": round(cruise, 1),
+            "braking": round(brake, 1)}
+
+
+def run_task(task: dict) -> dict:
+    """One fault on one scenario and seed through one estimator: the scores (faults.score)."""
+    sc, res = _sim(task["scenario"], task["seed"], task["sim_duration"])
+    fault = task["fault"]
+    end = task["duration"]
+    events = [e for e in res.events() if e[1] <= end]
+    tr = {k: np.asarray(v)[np.asarray(res.truth["t"]) <= end] for k, v in res.truth.items()}
+    row = dict(task, exceptions=0, error="")
+    try:
+        adapter = make_adapter(sc, task["estimator"])
+    except ValueError as exc:  # the estimator cannot model this train (no brake delay, ...)
+        row["na"] = str(exc)
+        return row
+    rng = np.random.default_rng([task["seed"], zlib.crc32(
+        f"{task['scenario']}|{fault.label}|{fault.at}".encode())])
+    faulted = F.inject(events, fault, rng)
+    cfg = NodeConfig()
+    rate = sc.odometer_rate
+    try:
+        outs, emitted, runner = F.run(faulted.events, adapter, 1 / rate, delay=cfg.output_delay,
+                                      control_clock=cfg.control_clock,
+                                      max_future=cfg.max_future)
+    except Exception as exc:  # counted and shown: the campaign must see every failure
+        row["exceptions"] = 1
+        row["error"] = f"{type(exc).__name__}: {exc}"
+        row["trace"] = traceback.format_exc(limit=3)
+        return row
+    row.update(F.score(outs, emitted, faulted, tr, rate, end + F.LATENCY))
+    row["corrupted"] = sum(faulted.counts.values())
+    return row
+
+
+def plan(quick: bool, seeds: int, estimators, only) -> list[dict]:
+    """The campaign: tasks (scenario, seed, fault, estimator, run duration)."""
+    tasks = []
+    for scenario in SCENARIOS:
+        sc = load_scenario(scenario)
+        full = sc.duration
+        ph = phases(_sim(scenario, 0, full)[1].truth)
+        cruise = ph["cruising"]
+        times = [cruise] if quick else list(ph.values())
+        # quick: metro_demo's first leg (A to B and the dwell) for the whole-run faults
+        short = min(full, 240.0) if quick else full
+        faults = [(F.Fault("none"), short)]
+
+        def add(f, extent, faults=faults, full=full):
+            faults.append((f, min(full, f.at + extent + AFTER)))
+
+        stamp_sizes = (60.0, -5.0) if quick else (0.1, -0.1, 1.0, -1.0, 10.0, -10.0, 60.0,
+                                                    -60.0, 599.0, -599.0, 1e6, -1e6, 1e9, -1e9)
+        step_sizes = (-3.0, 3.0) if quick else (-10.0, -6.0, -3.0, -0.5, -0.1, 0.1, 0.5, 3.0,
+                                                 6.0, 10.0)
+        if quick and scenario != "metro_demo":
+            stamp_sizes, step_sizes = (60.0,), (-3.0,)
+        for at in times:
+            for s in stamp_sizes:
+                add(F.Fault("stamp", s, at), 0.0)
+            if not quick:
+                for s in (60.0, 1e6):
+                    add(F.Fault("stamp", s, at, count=3), 0.0)
+            for s in step_sizes:
+                add(F.Fault("step", s, at), 0.0)
+            add(F.Fault("command_stop", 0.0, at), 120.0 if quick else 400.0)
+        outage_at = list(ph.items()) if (not quick or scenario == "metro_demo") else \
+            [("cruising", cruise)]
+        for _, at in outage_at:
+            for L in ((60.0,) if quick else (10.0, 30.0, 60.0, 120.0)):
+                add(F.Fault("outage", L, at), L)
+        for L in ((8.0,) if quick else (2.0, 8.0, 20.0)):
+            add(F.Fault("recorder_stall", L, cruise), L)
+            add(F.Fault("node_stall", L, cruise), L)
+        for cap in ((5.0,) if quick else (1.0, 5.0)):
+            faults.append((F.Fault("latency", cap, 0.0), short))
+        drift_duration = short if quick else 3600.0
+        for d in ((-1e-2,) if quick else (-1e-2, -1e-3, 1e-3, 1e-2)):
+            faults.append((F.Fault("drift", d, 0.0), drift_duration))
+        fuzz_duration = short if quick or scenario != "metro_demo" else 3000.0
+        faults.append((F.Fault("fuzz", 0.5 if quick else 10.0, 0.0), fuzz_duration))
+        for fault, duration in faults:
+            if only and fault.kind not in only:
+                continue
+            phase = next((k for k, v in ph.items() if v == fault.at), "")
+            for seed in range(seeds):
+                sim_duration = max(full, duration)
+                for est in estimators:
+                    if quick and scenario == "wen2017_subway" and est != "robust_filter":
+                        continue
+                    tasks.append(dict(scenario=scenario, seed=seed, fault=fault, phase=phase,
+                                      estimator=est, duration=duration,
+                                      sim_duration=sim_duration))
+    return tasks
+
+
+# -- zone controller -------------------------------------------------------------------------------
+
+ZONE_FAULTS = ("none", "braking_rate_var -0.01", "braking_rate_var NaN", "stamp +1e6",
+               "clock_reset -1000", "integrity ALARM", "integrity DEGRADED", "reports stop",
+               "fuzz")
+
+
+def zone_case(kind: str, seed: int = 0, duration: float = 60.0, onset: float = 20.0) -> dict:
+    """One train at 10 m/s reporting at 10 Hz (position variance 1 m^2), authorities at 10 Hz on
+    one clock; ``kind`` from ``onset`` on (one report, or every later report: clock reset,
+    integrity, reports stop; fuzz: 5 bad reports per good one all along). Clear line (no danger
+    point): with good reports the brake is never due."""
+    p = ZoneParams()
+    zc = ZoneController(p)
+    names = {f.name for f in dc_fields(TrainReport)}
+    rng = random.Random(seed)
+    row = dict(kind=kind, crashes=0, bad_accepted=0, false_brakes=0, locked=0, brake_after=math.nan,
+               error="")
+
+    def report(t, **kw):
+        base = dict(t_received=t, stamp=t, position=10.0 * t, velocity=10.0, var_position=1.0,
+                    var_velocity=0.01, braking_rate=1.0, var_braking_rate=0.01,
+                    measurement_used=True)
+        base.update(kw)
+        # a TrainReport without an integrity field: the zone controller never sees it (the
+        # node converts only the fields it knows), the report looks good
+        try:
+            return zc.report("t1", TrainReport(**{k: v for k, v in base.items() if k in names}))
+        except Exception as exc:  # counted: the zone controller must refuse, never crash
+            row["crashes"] += 1
+            row["error"] = row["error"] or f"{type(exc).__name__}: {exc}"
+            return "crash"
+
+    bad_kinds = [dict(var_position=math.nan), dict(var_velocity=-1.0), dict(position=math.inf),
+                 dict(var_braking_rate=-0.01), dict(var_braking_rate=math.nan),
+                 dict(braking_rate=math.nan), dict(stamp_shift=1e6), dict(stamp_shift=-1e6),
+                 dict(stamp_shift=math.nan), dict(velocity=1e9), dict(integrity=7)]
+    n = int(duration * 10)
+    brakes = []
+    for k in range(n + 1):
+        t = 0.1 * k
+        after = t >= onset - 1e-9
+        first = after and t < onset + 0.05
+        kw = {}
+        if kind == "clock_reset -1000" and after:
+            kw["stamp"] = t - 1000.0
+        if kind == "integrity ALARM" and after:
+            kw["integrity"] = 2
+        if kind == "integrity DEGRADED" and after:
+            kw["integrity"] = 1
+        if not (kind == "reports stop" and after):
+            if first and kind in ("braking_rate_var -0.01", "braking_rate_var NaN",
+                                  "stamp +1e6"):
+                bad = {"braking_rate_var -0.01": dict(var_braking_rate=-0.01),
+                       "braking_rate_var NaN": dict(var_braking_rate=math.nan),
+                       "stamp +1e6": dict(stamp=t + 1e6)}[kind]
+                row["bad_accepted"] += report(t, **bad) == ""
+            else:
+                report(t, **kw)
+            if kind == "fuzz":
+                for _ in range(5):
+                    b = dict(rng.choice(bad_kinds))
+                    shift = b.pop("stamp_shift", None)
+                    if shift is not None:
+                        b["stamp"] = t + shift
+                    row["bad_accepted"] += report(t, **b) == ""
+        try:
+            auth = zc.authorities(t, ["t1"])[0]
+        except Exception as exc:
+            row["crashes"] += 1
+            row["error"] = row["error"] or f"{type(exc).__name__}: {exc}"
+            brakes.append((t, True))
+            continue
+        brakes.append((t, bool(auth.emergency_brake)))
+    expect_brake = kind in ("integrity ALARM", "integrity DEGRADED", "reports stop")
+    t0 = brakes[0][0]
+    settled = [(t, b) for t, b in brakes if t >= t0 + p.stale_timeout]
+    if expect_brake:
+        row["false_brakes"] = sum(b for t, b in settled if t < onset)
+        hit = [t for t, b in brakes if t >= onset and b]
+        row["brake_after"] = hit[0] - onset if hit else math.inf
+    else:
+        row["false_brakes"] = sum(b for _, b in settled)
+        recovered = onset + 5.0 if kind != "fuzz" else t0 + p.stale_timeout
+        row["locked"] = int(any(b for t, b in brakes if t >= recovered and t >= duration - 5.0))
+    return row
+
+
+# -- report ----------------------------------------------------------------------------------------
+
+def _fmt(v, nd=2):
+    if isinstance(v, float):
+        if math.isnan(v):
+            return "-"
+        if math.isinf(v):
+            return "never"
+        return f"{v:.{nd}f}" if abs(v) < 1e4 else f"{v:.3g}"
+    return str(v)
+
+
+def aggregate(rows: list[dict]) -> list[dict]:
+    groups = defaultdict(list)
+    for r in rows:
+        f = r["fault"]
+        groups[(r["scenario"], f.kind, f.label, f.at, r["phase"], r["estimator"])].append(r)
+    out = []
+    for (scn, kind, label, at, phase, est), rs in groups.items():
+        ok = [r for r in rs if "outputs" in r]
+        g = dict(scenario=scn, kind=kind, label=label, at=at, phase=phase, estimator=est,
+                 size=rs[0]["fault"].size, runs=len(rs),
+                 na=next((r["na"] for r in rs if "na" in r), ""),
+                 exceptions=sum(r["exceptions"] for r in rs),
+                 error=next((r["error"] for r in rs if r["error"]), ""))
+        for k in ("wrong_side", "off_run", "hazards", "bad_cov", "corrupted", "outputs"):
+            g[k] = sum(r[k] for r in ok)
+        for k in ("tta", "silence", "max_err", "rms_err", "window_err", "max_ratio"):
+            vals = [r[k] for r in ok if not math.isnan(r[k])]
+            g[k] = max(vals) if vals else math.nan
+        g["availability"] = min((r["availability"] for r in ok), default=math.nan)
+        out.append(g)
+    return out
+
+
+def print_table(groups: list[dict]) -> None:
+    print("| scenario | fault | at | estimator | wrong-side | off-run | max err/sigma | "
+          "time to alarm s | availability % | longest silence s | max err m | RMS err m | "
+          "err to end+10 s m | non-PD cov | exceptions |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    for g in groups:
+        at = "-" if g["kind"] in ("none", "drift", "fuzz", "latency") else \
+            f"{g['at']:g} s {g['phase']}".strip()
+        if g["na"]:
+            print(f"| {g['scenario']} | {g['label']} | {at} | {g['estimator']} | n/a: "
+                  f"{g['na'][:60]} |||||||||||")
+            continue
+        print(f"| {g['scenario']} | {g['label']} | {at} | {g['estimator']} | {g['wrong_side']} | "
+              f"{g['off_run']} | {_fmt(g['max_ratio'], 0)} | {_fmt(g['tta'])} | "
+              f"{_fmt(100 * g['availability'], 1)} | {_fmt(g['silence'], 1)} | "
+              f"{_fmt(g['max_err'])} | {_fmt(g['rms_err'])} | {_fmt(g['window_err'])} | "
+              f"{g['bad_cov']} | {g['exceptions']} |")
+
+
+def targets(groups: list[dict], zone: list[dict]) -> bool:
+    real = [g for g in groups if not g["na"]]
+    ws = sum(g["wrong_side"] for g in real)
+    off = sum(g["off_run"] for g in real)
+    lines = []
+    lines.append((ws + off == 0, f"zero wrong-side estimates: {ws} wrong-side + {off} off-run "
+                                 f"in {sum(g['outputs'] for g in real)} estimates"))
+    haz = [g for g in real if g["hazards"]]
+    never = sum(1 for g in haz if math.isinf(g["tta"]))
+    finite = [g["tta"] for g in haz if math.isfinite(g["tta"])]
+    lines.append((all(g["tta"] <= 1.0 for g in haz),
+                  f"time to alarm <= 1 s: {len(haz)} rows exceed the bound, {never} never alarm, "
+                  f"slowest alarm {_fmt(max(finite, default=math.nan))} s"))
+    bad = sum(g["bad_cov"] for g in real)
+    lines.append((bad == 0, f"no negative or non-PD covariance: {bad}"))
+    exc = sum(g["exceptions"] for g in real)
+    lines.append((exc == 0, f"no exception: {exc}"))
+    av = [g for g in real if g["kind"] in ("drift", "latency")
+          or (g["kind"] == "step" and abs(g["size"]) <= 10.0)]
+    worst = min(av, key=lambda g: g["availability"], default=None)
+    lines.append((bool(av) and worst["availability"] >= 0.99,
+                  "availability >= 99 % through drift, steps <= 10 s and latency tails: "
+                  + (f"lowest {100 * worst['availability']:.1f} % ({worst['scenario']}, "
+                     f"{worst['label']}, {worst['estimator']})" if worst else "no rows")))
+    out60 = [g for g in real if g["scenario"] == "metro_demo" and g["kind"] == "outage"
+             and g["size"] == 60.0]
+    w60 = max(out60, key=lambda g: g["window_err"], default=None)
+    lines.append((bool(out60) and w60["window_err"] <= 10.0,
+                  "60 s outage on metro_demo: error <= 10 m: "
+                  + (f"largest {w60['window_err']:.1f} m ({w60['phase']}, {w60['estimator']})"
+                     if w60 else "no rows")))
+    if zone:
+        stale = ZoneParams().stale_timeout
+        crash = sum(z["crashes"] for z in zone)
+        locked = sum(z["locked"] for z in zone)
+        lines.append((crash == 0, f"zone controller never crashes: {crash} crashes"))
+        lines.append((locked == 0, f"zone controller never locks: {locked} lock-ups"))
+        alarm = next(z for z in zone if z["kind"] == "integrity ALARM")
+        lines.append((alarm["brake_after"] <= stale,
+                      f"zone controller brakes on ALARM within its staleness time ({stale:g} s): "
+                      f"{_fmt(alarm['brake_after'])} s"))
+    ok = True
+    print()
+    for passed, text in lines:
+        ok &= passed
+        print(f"{'PASS' if passed else 'FAIL'}  {text}")
+    return ok
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true",
+                    help="robust_filter and kf, one or two sizes per fault class, one seed")
+    ap.add_argument("--seeds", type=int, default=None, help="seeds per case (quick 1, full 2)")
+    ap.add_argument("--estimators", nargs="*", default=None)
+    ap.add_argument("--only", nargs="*", default=None, help=f"fault kinds ({', '.join(F.KINDS)})")
+    ap.add_argument("--jobs", type=int, default=2, help="worker processes")
+    ap.add_argument("--no-zone", action="store_true")
+    args = ap.parse_args(argv)
+    seeds = args.seeds or (1 if args.quick else 2)
+    estimators = args.estimators or (QUICK_ESTIMATORS if args.quick else ESTIMATORS)
+    tasks = plan(args.quick, seeds, estimators, args.only)
+    # the longest first: the pool finishes together
+    tasks.sort(key=lambda t: -t["duration"] * (3 if t["fault"].kind == "fuzz" else 1))
+    rows = []
+    with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
+        futs = [pool.submit(run_task, t) for t in tasks]
+        for fut in tqdm(as_completed(futs), total=len(futs), desc="fault runs", unit="run",
+                        file=sys.stderr):
+            rows.append(fut.result())
+    order = {k: i for i, k in enumerate(F.KINDS)}
+    rows.sort(key=lambda r: (SCENARIOS.index(r["scenario"]), order[r["fault"].kind],
+                             r["fault"].at, r["fault"].size, r["fault"].count,
+                             ESTIMATORS.index(r["estimator"]), r["seed"]))
+    groups = aggregate(rows)
+    mode = "quick" if args.quick else "full"
+    print(f"Integrity campaign ({mode}): {len(tasks)} runs, {seeds} seed(s), estimators "
+          f"{', '.join(estimators)}; node defaults (NodeConfig: control_clock "
+          f"{NodeConfig().control_clock!r}, max_future {NodeConfig().max_future:g} s), "
+          f"arrival = stamp + {F.LATENCY:g} s\n")
+    print_table(groups)
+    corrupted = defaultdict(int)
+    for r in rows:
+        if r["fault"].kind == "fuzz":
+            corrupted[r["estimator"]] += r.get("corrupted", 0)
+    if corrupted:
+        print("\ncorrupted messages per estimator (fuzz): "
+              + ", ".join(f"{k} {v}" for k, v in corrupted.items()))
+    for r in rows:
+        if r["error"]:
+            print(f"exception: {r['scenario']} {r['fault'].label} {r['estimator']} seed "
+                  f"{r['seed']}: {r['error']}", file=sys.stderr)
+    zone = []
+    if not args.no_zone and not args.only:
+        zone = [zone_case(k) for k in ZONE_FAULTS]
+        print("\n| zone controller fault | crashes | bad reports accepted | false brakes "
+              "(authorities at 10 Hz) | locked | time to brake s |")
+        print("|---|---|---|---|---|---|")
+        for z in zone:
+            print(f"| {z['kind']} | {z['crashes']} | {z['bad_accepted']} | {z['false_brakes']} | "
+                  f"{'yes' if z['locked'] else 'no'} | {_fmt(z['brake_after'])} |")
+        for z in zone:
+            if z["error"]:
+                print(f"zone {z['kind']}: {z['error']}", file=sys.stderr)
+    ok = targets(groups, zone)
+    print("RESULT:", "PASS" if ok else "FAIL")
+    return 0 if ok else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

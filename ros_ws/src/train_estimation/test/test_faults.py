@@ -1,0 +1,166 @@
+"""The fault injectors of ``tools/faults.py`` do what they say, and one case of each fault class
+runs through an estimator and is scored (``./run bench integrity`` is the campaign)."""
+
+import math
+import os
+import sys
+
+import numpy as np
+import pytest
+
+from train_estimation.core.replay import replay
+from train_estimation.core.runner import Output
+from train_estimation.tools import faults as F
+
+sys.path.insert(0, os.path.dirname(__file__))
+from clocks import adapter, run  # noqa: E402
+
+ODO = {"distance": 0.0, "speed": 0.0, "speed_variance": 0.01}
+
+
+def clean(duration=30.0):
+    """Control and odometer at 10 Hz, a balise every 10 s: ``(topic, t, fields)``."""
+    ev = []
+    for k in range(int(duration * 10)):
+        t = 0.1 * k
+        ev.append(("control", t, {"target_acceleration": 0.0}))
+        ev.append(("odometer", t, dict(ODO, seq=k)))
+        if k % 100 == 50:
+            ev.append(("balise", t, {"seq": k, "balise_id": 1, "position": 0.0,
+                                     "position_variance": 1.0}))
+    return ev
+
+
+def by_topic(out, topic):
+    return [(s, f, r) for k, s, f, r in out if k == topic]
+
+
+def test_clean_stream_is_stamped_on_one_epoch_with_the_link_latency():
+    out = F.inject(clean(), F.Fault("none"), np.random.default_rng(0)).events
+    assert len(out) == len(clean())
+    for _k, s, _f, r in out:
+        assert r == pytest.approx(s + F.LATENCY)
+    assert [r for *_, r in out] == sorted(r for *_, r in out)
+
+
+@pytest.mark.parametrize("count", [1, 3])
+def test_a_stamp_fault_moves_only_the_stamps_of_count_readings(count):
+    f = F.Fault("stamp", 60.0, 10.0, count=count)
+    base = by_topic(F.inject(clean(), F.Fault("none"), np.random.default_rng(0)).events,
+                    "odometer")
+    got = by_topic(F.inject(clean(), f, np.random.default_rng(0)).events, "odometer")
+    moved = [(b, g) for b, g in zip(base, got) if g[0] != b[0]]
+    assert len(moved) == count
+    for b, g in moved:
+        assert g[0] - b[0] == pytest.approx(60.0)
+        assert g[2] == b[2]  # arrives when it would have: only the stamp lies
+        assert g[0] - 60.0 >= F.EPOCH + 10.0 - 1e-9
+
+
+@pytest.mark.parametrize("size", [-10.0, -0.5, 3.0])
+def test_a_step_shifts_train_stamps_from_its_time_on_and_not_commands(size):
+    at = 12.0
+    fl = F.inject(clean(), F.Fault("step", size, at), np.random.default_rng(0))
+    for k, s, _f, r in fl.events:
+        t = r - F.LATENCY - F.EPOCH
+        want = F.EPOCH + t + (size if k != "control" and t >= at - 1e-9 else 0.0)
+        assert s == pytest.approx(want, rel=0, abs=1e-5), (k, t)
+    # the truth mapping undoes it: each stamp back to its own sample time
+    for k, s, _f, r in fl.events:
+        if k == "odometer":
+            assert fl.clock.true_time(s, r - F.EPOCH) == pytest.approx(
+                r - F.LATENCY - F.EPOCH, rel=0, abs=1e-5)
+
+
+def test_drift_scales_train_stamps_only():
+    d = 1e-2
+    fl = F.inject(clean(), F.Fault("drift", d), np.random.default_rng(0))
+    for k, s, _f, r in fl.events:
+        t = r - F.LATENCY - F.EPOCH
+        assert s - F.EPOCH == pytest.approx(t * (1 + d) if k != "control" else t, rel=0, abs=1e-5)
+
+
+def test_outage_and_command_stop_drop_what_they_say():
+    fl = F.inject(clean(), F.Fault("outage", 5.0, 10.0), np.random.default_rng(0))
+    seq = [f["seq"] for s, f, r in by_topic(fl.events, "odometer")]
+    assert seq == [k for k in range(300) if not 100 <= k < 150]
+    assert len(by_topic(fl.events, "control")) == 300
+    assert fl.end == 15.0
+    fl = F.inject(clean(), F.Fault("command_stop", 0.0, 20.0), np.random.default_rng(0))
+    t_ctl = [s - F.EPOCH for s, *_ in by_topic(fl.events, "control")]
+    assert max(t_ctl) < 19.95 and len(t_ctl) == 200
+    assert len(by_topic(fl.events, "odometer")) == 300
+
+
+@pytest.mark.parametrize("kind", ["recorder_stall", "node_stall"])
+def test_a_stall_delivers_its_backlog_in_one_burst(kind):
+    fl = F.inject(clean(), F.Fault(kind, 8.0, 10.0), np.random.default_rng(0))
+    for k, s, _f, r in fl.events:
+        t = s - F.EPOCH
+        late = 10.0 <= t + F.LATENCY < 18.0 and (kind == "node_stall" or k != "control")
+        assert r - F.EPOCH == pytest.approx(18.0 if late else t + F.LATENCY, rel=0, abs=1e-5)
+    assert [r for *_, r in fl.events] == sorted(r for *_, r in fl.events)
+
+
+def test_latency_tail_is_capped_and_heavy():
+    fl = F.inject(clean(300.0), F.Fault("latency", 5.0, 0.0), np.random.default_rng(1))
+    lat = np.array([r - s for k, s, f, r in fl.events if k == "odometer"])
+    assert lat.min() >= F.LATENCY - 1e-9 and lat.max() <= 5.0 + 1e-6
+    # Pareto(1.5) times 50 ms: P(> 1 s) = 20^-1.5 = 1.1 %; 3000 readings: 34 expected
+    n = int(np.sum(lat > 1.0))
+    assert 34 - 4 * math.sqrt(34) < n < 34 + 4 * math.sqrt(34)
+    assert [r for *_, r in fl.events] == sorted(r for *_, r in fl.events)
+
+
+def test_fuzz_mixes_in_stamps_inside_max_future():
+    fl = F.inject(clean(), F.Fault("fuzz", 5.0), np.random.default_rng(2))
+    assert sum(fl.counts.values()) > 1000
+    assert any(fl.counts[k] for k in F.INSIDE_FUTURE)
+
+
+def _out(stamp, x, var, integrity=0):
+    C = np.full((4, 4), np.nan)
+    C[:2, :2] = [[var, 0.0], [0.0, 0.01]]
+    return Output(stamp, x, 0.0, math.nan, math.nan, tuple(C.ravel()), True, integrity)
+
+
+def test_score_counts_wrong_side_and_time_to_alarm():
+    truth = {"t": 0.1 * np.arange(200), "position": np.zeros(200)}
+    fl = F.Faulted([], F.TrainClock(), onset=5.0, end=5.0)
+    t = 0.1 * np.arange(200)
+    outs, emitted = [], F.EPOCH + t + F.LATENCY
+    for k, ti in enumerate(t):
+        bad = 50 <= k < 80  # 30 m off with a 1 m sigma: OK until 7 s, then ALARM
+        outs.append(_out(F.EPOCH + ti, 30.0 if bad else 0.5, 1.0, 2 if 70 <= k < 80 else 0))
+    outs.append(_out(F.EPOCH + 1e6, 0.0, 1.0))  # a stamp far outside the run, said OK
+    emitted = np.append(emitted, emitted[-1])
+    s = F.score(outs, emitted, fl, truth, 10.0, 20.0)
+    assert s["wrong_side"] == 20 and s["off_run"] == 1 and s["hazards"] == 30
+    assert s["tta"] == pytest.approx(2.0)
+    assert s["availability"] == pytest.approx(140 / 150)  # the far stamp is of no use
+    assert s["max_err"] == pytest.approx(30.0) and s["bad_cov"] == 0
+    # a covariance claiming certainty of a hazard is no bound: wrong-side and not PD
+    s = F.score([_out(F.EPOCH + 6.0, 3.0, -1.0)], np.array([F.EPOCH + 6.05]), fl, truth,
+                10.0, 20.0)
+    assert s["wrong_side"] == 1 and s["bad_cov"] == 1 and s["tta"] == math.inf
+
+
+@pytest.mark.parametrize("fault", [
+    F.Fault("none"), F.Fault("stamp", 60.0, 10.0), F.Fault("step", -3.0, 10.0),
+    F.Fault("drift", -1e-2), F.Fault("outage", 5.0, 10.0), F.Fault("command_stop", 0.0, 10.0),
+    F.Fault("latency", 5.0), F.Fault("recorder_stall", 4.0, 10.0),
+    F.Fault("node_stall", 4.0, 10.0), F.Fault("fuzz", 0.5)], ids=lambda f: f.kind)
+def test_one_case_of_each_fault_class_runs_through_an_estimator(fault):
+    sc, res = run("metro_demo", 1, 20.0)
+    fl = F.inject(res.events(), fault, np.random.default_rng(0))
+    outs, emitted, runner = F.run(fl.events, adapter(sc), 0.1, control_clock="same")
+    assert len(outs) == len(emitted) > 50
+    assert np.all(np.diff(emitted) >= 0)
+    s = F.score(outs, emitted, fl, res.truth, 10.0, 20.0 + F.LATENCY)
+    assert s["outputs"] == len(outs)
+    assert 0.0 <= s["availability"] <= 1.0 and math.isfinite(s["rms_err"])
+    if fault.kind == "none":  # the clean run is inside its bound: the scoring has no false alarm
+        assert s["wrong_side"] == 0 and s["hazards"] == 0 and s["availability"] > 0.95
+    if fault.kind in ("none", "stamp"):  # faults.run is core.replay.replay, timed
+        ref, _ = replay(fl.events, adapter(sc), 0.1, control_clock="same")
+        assert [(o.stamp, o.position) for o in ref] == [(o.stamp, o.position) for o in outs]

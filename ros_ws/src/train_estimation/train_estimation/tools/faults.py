@@ -1,0 +1,286 @@
+"""Fault injection and integrity scoring for the estimators (pure; used by
+``benchmarks/bench_integrity.py`` and the tests).
+
+A clean run (the simulator's ``(topic, t, fields)`` events, ``t`` the true sampling time) is turned
+into what a node would receive, ``(topic, stamp, fields, recv)`` in arrival order, with one
+:class:`Fault` applied:
+
+===============  ========================================================================
+kind             ``size``
+===============  ========================================================================
+none             (the clean stream)
+stamp            s added to the stamps of ``count`` consecutive odometer readings from ``at``
+                 (a flipped bit, a sender's bad clock read): the readings stay where they are
+                 in the stream, only their stamps lie
+step             s by which the train clock (odometer and balise stamps) jumps at ``at`` and
+                 stays (a clock set by GPS or NTP, a reboot)
+drift            s/s: the train clock runs at ``1 + size`` against the reference (control and
+                 arrival) clock, from the start
+outage           s without odometer or balise readings from ``at`` (a tunnel, a dead radio)
+command_stop     (none): no control message from ``at`` on, odometer readings go on
+latency          s: largest link latency of odometer and balise readings from ``at`` on; the
+                 latency is ``LATENCY`` s times a Pareto(1.5) factor (1 % above 1 s, 0.1 %
+                 above 5 s), capped at ``size``; the stream is then in arrival order
+recorder_stall   s: odometer and balise readings arriving in ``[at, at + size)`` are logged at
+                 ``at + size`` (the recorder's subscription blocked; commands unaffected)
+node_stall       s: every message arriving in ``[at, at + size)`` is taken at ``at + size``
+                 (the node's callbacks blocked, then the backlog in one burst)
+fuzz             mean corrupted messages per clean one: :func:`~.fuzz.corrupt` with stamps
+                 inside ``max_future`` too (:data:`INSIDE_FUTURE`) besides its own
+===============  ========================================================================
+
+Clocks: odometer and balise are stamped by the train clock ``EPOCH + t (1 + drift)`` plus the
+steps so far (:class:`TrainClock`); control by the reference clock ``EPOCH + t``; the arrival is
+``EPOCH + t + LATENCY`` (the same epoch on both clocks, as the nodes' default ``control_clock:
+same`` assumes; the drift and the steps are what breaks that assumption).
+
+:func:`score` judges the estimates as a zone controller would read them: an estimate claims
+``position`` at the time its stamp means on the train clock (:meth:`TrainClock.true_time`), and it
+is *wrong-side* when it says integrity OK (0) while ``|error| > WRONG_SIDE_M`` and
+``|error| > WRONG_SIDE_SIGMAS`` standard deviations of its published position variance (or the
+variance is not a positive finite number, or the position is not finite).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import Counter
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from train_estimation.core import reasons as R
+
+from .fuzz import STAMPS, corrupt
+
+EPOCH = 1.7e9  # s, both clocks at start (a Unix time)
+LATENCY = 0.05  # s, link latency of every message in the clean stream
+WRONG_SIDE_M = 1.0  # m: smaller errors are never a hazard, whatever the covariance says
+WRONG_SIDE_SIGMAS = 5.0  # published standard deviations
+AVAILABLE_LAG = 1.0  # s: an OK estimate published further from the time it claims is not
+#   available (counted in ``availability``)
+TRAIN_TOPICS = ("odometer", "balise")
+KINDS = ("none", "stamp", "step", "drift", "outage", "command_stop", "latency", "recorder_stall",
+         "node_stall", "fuzz")
+# stamps a few seconds to minutes off: inside the runner's max_future (600 s), so the door lets
+# them in and only the clocks' and the filters' own checks stand between them and the estimate
+INSIDE_FUTURE = {
+    "stamp+0.5": (0.5, (R.OUTSIDE_GATE, R.OUT_OF_ORDER, R.DUPLICATE)),
+    "stamp+5": (5.0, (R.OUTSIDE_GATE, R.OUT_OF_ORDER, R.FUTURE_STAMP)),
+    "stamp+60": (60.0, (R.OUTSIDE_GATE, R.OUT_OF_ORDER, R.FUTURE_STAMP)),
+    "stamp+300": (300.0, (R.OUTSIDE_GATE, R.OUT_OF_ORDER, R.FUTURE_STAMP)),
+    "stamp-5": (-5.0, (R.OUT_OF_ORDER, R.STALE_STAMP, R.OUTSIDE_GATE)),
+}
+
+
+@dataclass(frozen=True)
+class TrainClock:
+    """The train clock: ``epoch + t (1 + drift) + (sum of the steps at or before t)``."""
+
+    epoch: float = EPOCH  # s
+    drift: float = 0.0  # s/s
+    steps: tuple[tuple[float, float], ...] = ()  # (true time s, jump s), in time order
+
+    def offset(self, t: float) -> float:
+        return sum(j for ts, j in self.steps if t >= ts)
+
+    def stamp(self, t: float) -> float:
+        return self.epoch + t * (1.0 + self.drift) + self.offset(t)
+
+    def true_time(self, s: float, near: float) -> float:
+        """The true time a train-clock stamp ``s`` stands for, for an estimate published at true
+        time ``near``. Each clock segment (between steps) inverts ``s``; after a backward step
+        two segments can both contain it, and the one nearer ``near`` is meant (an estimate is of
+        a recent sample). A stamp in no segment (a corrupted one) is read on the clock in force at
+        ``near``: it claims that time."""
+        bounds = [-math.inf] + [ts for ts, _ in self.steps] + [math.inf]
+        valid, current = [], None
+        for k in range(len(bounds) - 1):
+            off = sum(j for _, j in self.steps[:k])
+            t = (s - self.epoch - off) / (1.0 + self.drift)
+            if bounds[k] <= t < bounds[k + 1]:
+                valid.append(t)
+            if bounds[k] <= near < bounds[k + 1]:
+                current = t
+        if valid:
+            return min(valid, key=lambda t: abs(t - near))
+        return current
+
+
+@dataclass(frozen=True)
+class Fault:
+    kind: str = "none"  # one of KINDS
+    size: float = 0.0  # meaning per kind (module doc): s, s/s or messages per clean one
+    at: float = 0.0  # s, true time of onset
+    count: int = 1  # readings affected ("stamp")
+
+    def __post_init__(self):
+        if self.kind not in KINDS:
+            raise ValueError(f"unknown fault kind {self.kind!r} (one of {', '.join(KINDS)})")
+
+    @property
+    def label(self) -> str:
+        if self.kind in ("none", "command_stop"):
+            return self.kind
+        n = f" x{self.count}" if self.kind == "stamp" and self.count != 1 else ""
+        return f"{self.kind} {self.size:+g}{n}" if self.kind in ("stamp", "step", "drift") \
+            else f"{self.kind} {self.size:g}{n}"
+
+
+@dataclass
+class Faulted:
+    events: list  # (topic, stamp, fields, recv) in arrival order
+    clock: TrainClock
+    onset: float  # s, true time the fault starts
+    end: float  # s, true time it ends (inf: persists)
+    counts: Counter = field(default_factory=Counter)  # corrupted messages by kind ("fuzz")
+
+
+def inject(events: list, fault: Fault, rng: np.random.Generator) -> Faulted:
+    """The received stream of a clean run ``events`` = ``(topic, t, fields)`` (true time ``t``)
+    with ``fault`` applied (module doc). Topics other than control, odometer and balise are
+    left out."""
+    k, size, at = fault.kind, fault.size, fault.at
+    clock = TrainClock(drift=size if k == "drift" else 0.0,
+                       steps=((at, size),) if k == "step" else ())
+    rows = []  # [topic, t, fields, stamp error, true arrival]
+    hit = 0
+    for topic, t, fields in events:
+        if topic not in ("control",) + TRAIN_TOPICS:
+            continue
+        train = topic in TRAIN_TOPICS
+        if k == "outage" and train and at <= t < at + size:
+            continue
+        if k == "command_stop" and topic == "control" and t >= at:
+            continue
+        err = 0.0
+        if k == "stamp" and topic == "odometer" and t >= at and hit < fault.count:
+            err, hit = size, hit + 1
+        recv = t + LATENCY
+        if k == "latency" and train and t >= at:
+            recv = t + min(size, LATENCY * (1.0 + rng.pareto(1.5)))
+        if k == "recorder_stall" and train or k == "node_stall":
+            if at <= recv < at + size:
+                recv = at + size
+        rows.append((topic, t, fields, err, recv))
+    rows.sort(key=lambda r: r[4])  # arrival order (stable: equal arrivals keep sending order)
+    out = [(topic, (clock.stamp(t) if topic in TRAIN_TOPICS else EPOCH + t) + err, fields,
+            EPOCH + recv) for topic, t, fields, err, recv in rows]
+    counts: Counter = Counter()
+    if k == "fuzz":
+        out, counts = corrupt(out, rng, size, stamps={**STAMPS, **INSIDE_FUTURE})
+    end = {"none": at, "stamp": at, "outage": at + size, "recorder_stall": at + size,
+           "node_stall": at + size}.get(k, math.inf)
+    return Faulted(out, clock, at, end, counts)
+
+
+class _Timed:
+    """Adapter proxy that notes the arrival time at which each estimate was produced."""
+
+    def __init__(self, adapter):
+        self._a, self.now, self.emitted = adapter, math.nan, []
+
+    def output(self, t):
+        self.emitted.append(self.now)
+        return self._a.output(t)
+
+    def __getattr__(self, name):
+        return getattr(self._a, name)
+
+
+def run(events: list, adapter, period: float, delay: float = 0.05, fallback: float = 0.2,
+        **runner_kw):
+    """``(outputs, emitted, runner)``: the replay of ``core.replay.replay`` (same runner, same
+    steps), with ``emitted[i]`` the arrival time (s, reference clock) of the message after which
+    ``outputs[i]`` was produced (the drain at the end: the last arrival)."""
+    from train_estimation.core.runner import EstimatorRunner
+
+    timed = _Timed(adapter)
+    runner = EstimatorRunner(timed, period, **runner_kw)
+    out: list = []
+    now = None
+    for topic, stamp, fields, recv in events:
+        runner.push(topic, stamp, fields, recv)
+        now = recv
+        timed.now = recv
+        out += runner.advance_to(runner.ready_time(now, delay, fallback))
+    out += runner.drain()
+    return out, np.array(timed.emitted, float), runner
+
+
+def _not_pd(C: np.ndarray) -> bool:
+    if not np.all(np.isfinite(C)):
+        return True
+    try:
+        np.linalg.cholesky(0.5 * (C + C.T))
+        return False
+    except np.linalg.LinAlgError:
+        return True
+
+
+def score(outs: list, emitted: np.ndarray, faulted: Faulted, truth: dict, rate: float,
+          t_end: float, window: float = 10.0) -> dict:
+    """Integrity figures of one run's estimates (true times: reference seconds since EPOCH).
+
+    - ``wrong_side``: OK estimates with a hazardous error (module doc), whole run;
+    - ``off_run``: OK estimates whose stamp means a time more than 1 s outside the simulated run
+      (no truth to judge them by; a claim that cannot be right either);
+    - ``hazards``: estimates, from the onset on, whose error exceeds the bound (whatever their
+      integrity); ``tta``: from the first of them to the first non-OK estimate published at or
+      after the onset (0 when the alarm came first; inf: never; NaN: no hazard);
+    - ``availability``: OK estimates published from the onset on, within ``AVAILABLE_LAG`` of the
+      time they claim, over the odometer slots of that time (at most 1); ``silence``: the
+      longest time without an estimate from the onset on;
+    - ``max_err``/``rms_err``: |position error| from the onset on; ``window_err``: the largest
+      |error| from the onset to ``window`` s after the fault's end;
+    - ``bad_cov``: estimates whose position/velocity covariance is not positive definite
+      (negative or non-finite variances included).
+    """
+    n = len(outs)
+    em = np.asarray(emitted, float) - EPOCH
+    integ = np.array([o.integrity for o in outs], int)
+    x = np.array([o.position for o in outs], float)
+    C = [np.array(o.covariance, float).reshape(4, 4)[:2, :2] for o in outs]
+    var = np.array([c[0, 0] for c in C], float)
+    t = np.array([faulted.clock.true_time(o.stamp, e - LATENCY) for o, e in zip(outs, em)],
+                 float)
+    tr_t = np.asarray(truth["t"], float)
+    inside = (t >= tr_t[0] - 1.0) & (t <= tr_t[-1] + 1.0)
+    err = np.full(n, np.nan)
+    err[inside] = x[inside] - np.interp(t[inside], tr_t, np.asarray(truth["position"], float))
+    a = np.abs(err)
+    with np.errstate(invalid="ignore"):
+        sigma = np.sqrt(np.where(var > 0, var, np.nan))
+        # beyond the bound, or no bound at all (NaN position, variance <= 0 or NaN)
+        beyond = (a > WRONG_SIDE_M) & ~(a <= WRONG_SIDE_SIGMAS * sigma)
+        hazard = inside & (~np.isfinite(a) | beyond)
+    ok = integ == 0
+    after = em >= faulted.onset
+    h = np.flatnonzero(hazard & after)
+    alarms = np.flatnonzero(~ok & after)
+    if h.size == 0:
+        tta = math.nan
+    elif alarms.size == 0:
+        tta = math.inf
+    else:
+        tta = max(0.0, float(em[alarms[0]] - em[h[0]]))
+    span = max(t_end - faulted.onset, 1.0 / rate)
+    # an estimate is of use when it is published near the time it claims (not a backlog
+    # published at once, nor a claim about a time far ahead)
+    timely = np.abs(em - LATENCY - t) <= AVAILABLE_LAG
+    e_after = a[after & np.isfinite(a)]
+    w = after & (em <= faulted.end + window) & np.isfinite(a)
+    stamps_after = np.concatenate([[faulted.onset], em[after], [t_end]])
+    return dict(
+        outputs=n, wrong_side=int(np.sum(ok & hazard)), off_run=int(np.sum(ok & ~inside)),
+        hazards=int(h.size), tta=tta,
+        availability=min(1.0, float(np.sum(ok & after & timely))
+                         / max(1.0, math.floor(span * rate))),
+        silence=float(np.max(np.diff(stamps_after))) if stamps_after.size > 1 else span,
+        max_err=float(e_after.max()) if e_after.size else math.nan,
+        rms_err=float(np.sqrt(np.mean(e_after ** 2))) if e_after.size else math.nan,
+        window_err=float(a[w].max()) if np.any(w) else math.nan,
+        bad_cov=int(sum(_not_pd(c) for c in C)),
+        max_ratio=float(np.nanmax(np.where(ok & hazard, a / sigma, np.nan)))
+        if np.any(ok & hazard & np.isfinite(sigma)) else math.nan,
+    )
