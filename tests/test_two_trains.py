@@ -48,7 +48,8 @@ def test_two_trains_under_one_zone_controller(launch, ros_node, tmp_path):
     for ns, (start, _) in trains.items():
         estimators[ns] = launch.node(
             "train_estimation", "robust_filter", "--ros-args", "-r", f"__ns:={ns}",
-            "-p", "use_sim_time:=true", "-p", f"line_file:={base.line_path}",
+            "-p", "use_sim_time:=true", "-p", "control_clock:=same",
+            "-p", f"line_file:={base.line_path}",
             "-p", f"train_file:={base.train_path}", "-p", f"initial_position:={start}",
             "-p", f"output_delay:={0.05 * RATE}", name=f"robust_filter{ns.replace('/', '_')}")
     for ns in trains:

@@ -104,7 +104,8 @@ def main(argv=None) -> int:
     # Estimates of time t are output at sim time t + delay; at rate factor r that is delay / r
     # of wall time for the readings of t to cross DDS and the executor: keep it ~50 ms of wall.
     delay = max(0.05, 0.05 * args.rate_factor)
-    est = ["-p", f"output_delay:={delay}", "-p", f"initial_position:={sc.start_position}",
+    est = ["-p", "control_clock:=same",  # the simulator stamps everything on one clock
+           "-p", f"output_delay:={delay}", "-p", f"initial_position:={sc.start_position}",
            "-p", f"odometer_rate:={sc.odometer_rate}", "-p", f"line_file:={line_file}",
            "-p", f"train_file:={train_file}"]
     wanted = {"recorder", *filter(None, args.estimators.split(","))}

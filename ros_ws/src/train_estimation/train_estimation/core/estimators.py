@@ -52,8 +52,9 @@ class NodeConfig:
     odometer_rate: float = param(10.0, "Hz", "odometer sample rate = output rate")
     output_delay: float = param(0.05, "s", "without control messages, an estimate of time t is "
                                 "output at clock t + delay")
-    control_clock: str = param("same", "", "clock of control stamps: auto | same (the "
-                               "odometer's) | reference (the receive clock)")
+    control_clock: str = param("auto", "", "clock of control stamps: auto (judged from "
+                               "arrivals; drift tracked) | same (the odometer's: a simulator) | "
+                               "reference (the receive clock)")
     max_future: float = param(600.0, "s", "a stamp this far after its arrival is refused "
                               "(future_stamp)")
     wait_for_subscribers: int = param(0, "", "output nothing until the estimate topic has this "

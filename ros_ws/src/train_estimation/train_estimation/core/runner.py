@@ -261,6 +261,7 @@ class EstimatorRunner:
     _train_shift: float = 0.0  # s, train-clock steps so far: filter stamps = raw - shift
     _odo_last: tuple | None = None  # (stamp, arrival) of the last odometer admitted
     _step_held: list = field(default_factory=list)  # discontinuous train-clock readings
+    _odo_pushed: tuple | None = None  # (stamp, arrival) of the last odometer watched
     _raw_stamp: dict = field(default_factory=dict)  # mapped odometer stamp -> stamp as sent
     integrity: IntegrityParams = field(default_factory=IntegrityParams)
     command_timeout: float | None = None  # s without commands before the node's clock stands
@@ -382,7 +383,20 @@ class EstimatorRunner:
         # held too, and released (then fused by rewinding) by the next reading that continues
         # the stream, one period later.
         back = max(self.step_back, 2.5 * self.period)
-        if -back <= stamp - s0 <= max(arrival - a0, 0.0) + tol:  # continues the stream
+        med = self._offsets["train"]
+        # ... and so is a reading whose stamp - arrival fell by more than that below its
+        # clock's on-time centre: late (jitter, released by the next reading on time), or the
+        # first of a small backward step whose stamps overlap those already fused (then the
+        # readings that follow stay that far below: min_judged of them are the step)
+        # (arriving at the stamps' pace: a backlog's burst, all late, arrives at once and is
+        # no step)
+        prev = self._odo_pushed
+        if kind == "odometer":
+            self._odo_pushed = (stamp, arrival)
+        paced = prev is None or arrival - prev[1] >= 0.5 * (stamp - prev[0])
+        behind = kind == "odometer" and paced and len(med) >= self.min_judged and \
+            stamp - arrival - med.value < -back
+        if -back <= stamp - s0 <= max(arrival - a0, 0.0) + tol and not behind:
             if kind == "odometer" and self._step_held:
                 self._release_held()
             return False, stamp, arrival
@@ -684,12 +698,13 @@ class EstimatorRunner:
         train = self._offsets.get("train")
         now_train = now - delay + (train.value if train is not None and len(train) else 0.0)
         lead = self.high.get("control", now_train)
+        odo = self.high.get("odometer", -math.inf)
         if now_train - lead > self.command_timeout:
             # the command stream stopped while readings go on: waiting for it would leave the
             # train without an estimate and the queue growing; the filters hold the last
-            # command, the integrity monitor says DEGRADED (no_command)
-            lead = now_train
-        odo = self.high.get("odometer", -math.inf)
+            # command, the integrity monitor says DEGRADED (no_command). The readings admitted
+            # lead instead (not the clock alone: without arrival times ``now`` is a stamp)
+            lead = max(lead, min(now_train, odo))
         return min(lead, max(odo, lead - fallback))
 
     def drain(self) -> list[Output]:
