@@ -121,8 +121,7 @@ def jsonable(obj):
 
 def report_dict(dg) -> dict:
     """CONTRACT.md report: exactly cause, parameters, ranking, untestable, evidence, gain."""
-    return jsonable({"cause": dg.cause, "parameters": dg.parameters, "ranking": dg.ranking,
-                     "untestable": dg.untestable, "evidence": dg.evidence, "gain": dg.gain})
+    return dg.to_json()
 
 
 # ------------------------------------------------------------------------------------------------
@@ -131,10 +130,8 @@ def report_dict(dg) -> dict:
 
 def accepted_causes(dg) -> list[dict]:
     """[{"cause", "parameters", ...}] of the causes the diagnosis accepted (score > 0)."""
-    acc = [a for a in (dg.accepted or []) if a.get("cause") not in (None, "none")]
-    if not acc and dg.cause != "none":
-        acc = [{"cause": dg.cause, "parameters": dg.parameters}]
-    return acc
+    return [{"cause": a.cause, "parameters": a.parameters} for a in dg.accepted or []
+            if a.cause != "none"]
 
 
 def slip_fraction(a: dict, dg, data, t_first: float) -> float:
@@ -470,8 +467,8 @@ def plot_loss_runs(s: dict, path: Path, dg=None) -> bool:
                 label=f"independent losses (p = {q:.3f})")
     p_bg = None
     for r in (dg.ranking if dg is not None else []):
-        if r.get("cause") == "bursty_link":
-            p_bg = r.get("parameters", {}).get("p_bad_good")
+        if r.cause == "bursty_link":
+            p_bg = r.parameters.get("p_bad_good")
     if p_bg:
         ax.plot(k, p_bg * (1 - p_bg) ** (k - 1), "s-", color="C3", ms=3,
                 label=f"two-state chain (p_bad_good = {p_bg:.3f})")
@@ -533,8 +530,7 @@ def summary(dg, bag_path, data, elapsed: float, model: dict) -> list[str]:
            f"readings, {elapsed:.1f} s",
            f"{'rank':<5}{'cause':<16}{'score':>10}  parameters"]
     for i, r in enumerate(dg.ranking[:6]):
-        out.append(f"{i + 1:<5}{r['cause']:<16}{r['score']:>10.1f}  "
-                   f"{_fmt_params(r.get('parameters', {}))}")
+        out.append(f"{i + 1:<5}{r.cause:<16}{r.score:>10.1f}  {_fmt_params(r.parameters)}")
     if len(dg.ranking) > 6:
         out.append(f"     ... {len(dg.ranking) - 6} more in report.json")
     for u in dg.untestable:

@@ -155,7 +155,7 @@ def _analyse(task: dict) -> dict:
 
     from train_estimation.core.diagnose import diagnose
     from train_estimation.tools.check_bag import check
-    from train_estimation.tools.diagnose import bag_to_data, jsonable
+    from train_estimation.tools.diagnose import bag_to_data
 
     line, train = load_line(task["line"]), load_train(task["train_file"])
     out: dict = {"line": line.name}
@@ -173,8 +173,9 @@ def _analyse(task: dict) -> dict:
     out["duration_s"] = float(np.ptp(data.odo_stamp)) if data.odo_stamp.size else 0.0
     out.update(_identify(bag, data, line, train))
     dg = diagnose(data, line, train)
-    out.update(diagnosis_row(jsonable({"ranking": dg.ranking, "evidence": dg.evidence,
-                                       "accepted": dg.accepted}), train))
+    rep = dg.to_json()
+    rep["accepted"] = [{"cause": a.cause} for a in dg.accepted]
+    out.update(diagnosis_row(rep, train))
     # braking rate and mass for the trends: identify's (one constant f per run, the quantity
     # tracked over runs; diagnose fits f at the first and last message, which one braking
     # phase leaves poorly determined), diagnose's where identify cannot identify them
