@@ -116,6 +116,11 @@ class Cause:
         length on the time axis of the parameters)."""
         raise NotImplementedError
 
+    def clock_drift(self, fit: CauseFit) -> float:
+        """-, the train clock's drift the accepted cause implies (times in a model directory
+        are true seconds)."""
+        return 0.0
+
     def model_effect(self, fit: CauseFit, ctx: ModelContext):
         """(effect, note) for a model directory, or (None, reason) when the fit cannot be
         written (the effect's own parameter ranges are checked by its parser)."""

@@ -25,6 +25,9 @@ class ClockDrift(Cause):
     def extend_null(self, null, fit, mo) -> None:
         """The stamps are not part of the motion model: nothing to add."""
 
+    def clock_drift(self, fit) -> float:
+        return float(fit.parameters["drift"])
+
     def effect(self, params: dict, duration: float) -> ClockDriftEffect:
         return ClockDriftEffect(float(params["drift"]))
 

@@ -40,5 +40,10 @@ class Mass(Cause):
     def effect(self, params: dict, duration: float) -> MassEffect:
         return MassEffect(float(params["mass"]))
 
+    def model_effect(self, fit, ctx):
+        return self.effect(fit.parameters, ctx.duration), (
+            "mass: true mass in effects.yaml (the drive force stays computed for train.yaml's "
+            "believed mass, as in the data)")
+
 
 CAUSE = Mass()
