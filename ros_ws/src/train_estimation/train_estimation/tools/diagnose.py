@@ -42,7 +42,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import math
 import sys
 import time
 from pathlib import Path
@@ -54,76 +53,22 @@ from train_core.config import ConfigError, Section, load_yaml
 from train_core.effects import Effects, effect_to_dict, parse_effects, true_line, true_train
 from train_core.model import line_from_dict, load_line, load_train, train_from_dict
 
-from train_estimation.tools.identify import Progress
-
-REPORT_KEYS = ("cause", "parameters", "ranking", "untestable", "evidence", "gain")
-USED_TOPICS = ("odometer", "balise", "control")  # never ground_truth
-
+from train_estimation.core.measured import TOPICS, MeasuredRun
+from train_estimation.tools.common import EXIT_OK, Progress, fail, jsonable, one_line
 
 # ------------------------------------------------------------------------------------------------
-# Bag -> DiagData
+# Bag -> MeasuredRun
 # ------------------------------------------------------------------------------------------------
 
-def bag_to_data(bag):
-    """The core's DiagData from a read bag: odometer, balise and control only."""
-    from train_estimation.core.diagnose import DiagData
-
-    def col(topic, key, dtype=float):
-        return np.array([f[key] for _, _, f in bag.topics.get(topic, [])], dtype=dtype)
-
-    def stamps(topic):
-        return np.array([s for _, s, _ in bag.topics.get(topic, [])], dtype=float)
-
-    def recv(topic):
-        return np.array([t for t, _, _ in bag.topics.get(topic, [])], dtype=float) * 1e-9
-
-    return DiagData(
-        odo_stamp=stamps("odometer"), odo_recv=recv("odometer"),
-        odo_seq=col("odometer", "seq", np.int64), odo_distance=col("odometer", "distance"),
-        odo_speed=col("odometer", "speed"),
-        odo_speed_variance=col("odometer", "speed_variance"),
-        ctrl_stamp=stamps("control"), ctrl_a_tar=col("control", "target_acceleration"),
-        balise_stamp=stamps("balise"), balise_recv=recv("balise"),
-        balise_id=col("balise", "balise_id", np.int64),
-        balise_position=col("balise", "position"),
-        balise_variance=col("balise", "position_variance"))
-
-
-def read_measured(path) -> tuple:
-    """(DiagData, bag) from a bag path; only the topics diagnose uses are decoded (a
+def read_measured(path) -> MeasuredRun:
+    """The measured run of a bag path; only the topics diagnose uses are decoded (a
     ground_truth topic is never read)."""
-    bag = read_bag(path, topics=USED_TOPICS)
-    return bag_to_data(bag), bag
+    return MeasuredRun.from_bag(read_bag(path, topics=TOPICS))
 
 
 # ------------------------------------------------------------------------------------------------
 # Report
 # ------------------------------------------------------------------------------------------------
-
-def jsonable(obj):
-    """Plain JSON types: numpy scalars/arrays to Python, NaN/inf to null, tuples to lists."""
-    if isinstance(obj, dict):
-        return {str(k): jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [jsonable(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return jsonable(obj.tolist())
-    if isinstance(obj, (bool, np.bool_)):
-        return bool(obj)
-    if isinstance(obj, (int, np.integer)):
-        return int(obj)
-    if isinstance(obj, (float, np.floating)):
-        v = float(obj)
-        return v if math.isfinite(v) else None
-    if obj is None or isinstance(obj, str):
-        return obj
-    return str(obj)
-
-
-def report_dict(dg) -> dict:
-    """CONTRACT.md report: exactly cause, parameters, ranking, untestable, evidence, gain."""
-    return dg.to_json()
-
 
 # ------------------------------------------------------------------------------------------------
 # The extended model (DIR/model)
@@ -223,7 +168,7 @@ class _Model:
                 parse_effects(Section({field: params}, "effects.yaml"), duration)
                 self.effects[field] = params
         except ConfigError as exc:
-            self.skipped.append(f"{name} not in the model ({_one_line(exc)})")
+            self.skipped.append(f"{name} not in the model ({one_line(exc)})")
             return
         if note:
             (self.notes if where != "effects" else self.effect_notes).append(note)
@@ -489,10 +434,6 @@ def summary(dg, bag_path, data, elapsed: float, model: dict) -> list[str]:
     return out
 
 
-def _one_line(exc) -> str:
-    return " ".join(str(exc).split())
-
-
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="diagnose", description=__doc__.splitlines()[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -510,23 +451,21 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     try:
         line, train = load_line(args.line), load_train(args.train)
-        data, _ = read_measured(args.bag)
+        data = read_measured(args.bag)
         bar = None if args.quiet else Progress("diagnose", what_width=36)
         dg = diagnose(data, line, train, progress=bar)
     except (ConfigError, BagError) as exc:
-        print(f"diagnose: {_one_line(exc)}", file=sys.stderr)
-        return 2
+        return fail("diagnose", str(exc))
     except DiagnoseError as exc:
-        print(f"diagnose: cannot diagnose {args.bag}: {_one_line(exc)}", file=sys.stderr)
-        return 2
+        return fail("diagnose", f"cannot diagnose {args.bag}: {exc}")
     elapsed = time.perf_counter() - t0
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "report.json").write_text(json.dumps(report_dict(dg), indent=1) + "\n")
+    (out / "report.json").write_text(json.dumps(dg.to_json(), indent=1) + "\n")
     model = write_model(out, dg, args.line, args.train, data)
     write_plots(dg.series, out, dg)
     print("\n".join(summary(dg, args.bag, data, elapsed, model)))
-    return 0
+    return EXIT_OK
 
 
 if __name__ == "__main__":

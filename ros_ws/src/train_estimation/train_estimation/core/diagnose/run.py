@@ -16,34 +16,12 @@ import numpy as np
 from train_core.model import Line
 
 from ..clocks import ClockFit
+from ..measured import MeasuredRun
 
 
 class DiagnoseError(ValueError):
     """The data cannot be diagnosed (unusable input); the message is one line saying what is
     missing or wrong and what to do."""
-
-
-@dataclass(frozen=True)
-class DiagData:
-    """Measured series of one run, as recorded (CONTRACT.md clocks):
-
-    odometer and balise ``*_stamp`` are on the train's clock (arbitrary epoch, may drift);
-    ``control`` stamps are on the reference clock; ``*_recv`` are the bag's log (receive) times
-    on the reference clock, s. Arrays in bag order (not necessarily sorted)."""
-
-    odo_stamp: np.ndarray  # s, train clock
-    odo_recv: np.ndarray  # s, reference clock (bag log time)
-    odo_seq: np.ndarray  # -, uint32 sample counter before the link
-    odo_distance: np.ndarray  # m
-    odo_speed: np.ndarray  # m/s
-    odo_speed_variance: np.ndarray  # (m/s)^2
-    ctrl_stamp: np.ndarray  # s, reference clock
-    ctrl_a_tar: np.ndarray  # m/s^2
-    balise_stamp: np.ndarray  # s, train clock
-    balise_recv: np.ndarray  # s, reference clock
-    balise_id: np.ndarray  # -
-    balise_position: np.ndarray  # m, surveyed position
-    balise_variance: np.ndarray  # m^2
 
 
 @dataclass(frozen=True)
@@ -100,7 +78,7 @@ def _arr(x, dtype=float):
     return np.asarray(x if x is not None else [], dtype=dtype).ravel()
 
 
-def prepare(data: DiagData, line: Line, cfg: DiagConfig) -> Run:
+def prepare(data: MeasuredRun, line: Line, cfg: DiagConfig) -> Run:
     """The run on the reference clock's time axis; :class:`DiagnoseError` when unusable."""
     notes = []
     _require_topics(data)
@@ -136,7 +114,7 @@ def prepare(data: DiagData, line: Line, cfg: DiagConfig) -> Run:
         bal_p=bal_p, bal_r=bal_r, bal_id=bal_id, clock=clock, notes=notes)
 
 
-def _require_topics(data: DiagData) -> None:
+def _require_topics(data: MeasuredRun) -> None:
     if _arr(data.odo_stamp).size == 0:
         raise DiagnoseError("no odometer messages in the bag: record the 'odometer' topic")
     if _arr(data.ctrl_stamp).size == 0:
@@ -147,7 +125,7 @@ def _require_topics(data: DiagData) -> None:
                             "line (record the 'balise' topic)")
 
 
-def _odometer(data: DiagData, notes: list):
+def _odometer(data: MeasuredRun, notes: list):
     """(indices of the usable odometer readings in stamp order, the value arrays, seq)."""
     odo_s, odo_r = _arr(data.odo_stamp), _arr(data.odo_recv)
     fields = {"odo_distance": _arr(data.odo_distance), "odo_speed": _arr(data.odo_speed),
@@ -173,7 +151,7 @@ def _odometer(data: DiagData, notes: list):
     return idx[keep], fields, seq
 
 
-def _control(data: DiagData, cf: ClockFit):
+def _control(data: MeasuredRun, cf: ClockFit):
     """Control commands in time order on the analysis axis: (t, a_tar)."""
     ctrl_s = _arr(data.ctrl_stamp)
     ctrl_a = _arr(data.ctrl_a_tar)
@@ -190,7 +168,7 @@ def _control(data: DiagData, cf: ClockFit):
     return ctrl_t[keepc], ctrl_a[keepc]
 
 
-def _balises(data: DiagData, line: Line, notes: list, beta: float, t_first: float,
+def _balises(data: MeasuredRun, line: Line, notes: list, beta: float, t_first: float,
              t_end: float):
     """Balise readings inside the odometer record: (t, position, variance, id); line.yaml's
     position wins over a reading's that contradicts it."""

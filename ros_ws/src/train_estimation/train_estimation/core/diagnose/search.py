@@ -21,11 +21,12 @@ from dataclasses import dataclass, field
 
 from train_core.model import Line, TrainParams
 
+from ..measured import MeasuredRun
 from .causes import BY_NAME, REGISTRY, SCORING
 from .gain import GainContext
 from .motion import Motion
 from .result import CauseFit, Diagnosis, clean, rounded
-from .run import DiagConfig, DiagData, prepare
+from .run import DiagConfig, prepare
 from .series import series
 from .stage import Null, Stage
 
@@ -44,7 +45,7 @@ class _Search:
     first: tuple | None = None  # (first stage, its null)
 
 
-def diagnose(data: DiagData, line: Line, train: TrainParams, config: DiagConfig | None = None,
+def diagnose(data: MeasuredRun, line: Line, train: TrainParams, config: DiagConfig | None = None,
              progress: Callable[[int, int, str], None] | None = None) -> Diagnosis:
     """Diagnose one run (``config``: default :class:`DiagConfig`). Raises
     :class:`DiagnoseError` on unusable input."""
