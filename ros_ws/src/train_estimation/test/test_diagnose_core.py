@@ -191,6 +191,9 @@ def test_clock_drift_test():
 
 
 def test_core_does_not_read_ground_truth():
-    """DiagData has no ground-truth field: the core cannot read it by construction."""
-    names = set(D.DiagData.__dataclass_fields__)
+    """The measured run has no ground-truth field: the core cannot read it by construction."""
+    from train_estimation.core.measured import TOPICS, MeasuredRun
+
+    assert "ground_truth" not in TOPICS
+    names = set(MeasuredRun.__dataclass_fields__)
     assert not any("truth" in n for n in names)
