@@ -352,10 +352,7 @@ def plot_loss_runs(s: dict, path: Path, dg=None) -> bool:
     if q is not None and 0 < q < 1:
         ax.plot(k, (1 - q) * q ** (k - 1), "o-", color="C0", ms=3,
                 label=f"independent losses (p = {q:.3f})")
-    p_bg = None
-    for r in (dg.ranking if dg is not None else []):
-        if r.cause == "bursty_link":
-            p_bg = r.parameters.get("p_bad_good")
+    p_bg = s.get("loss_p_bad_good")
     if p_bg:
         ax.plot(k, p_bg * (1 - p_bg) ** (k - 1), "s-", color="C3", ms=3,
                 label=f"two-state chain (p_bad_good = {p_bg:.3f})")

@@ -20,15 +20,15 @@ def series(mo: Motion, accepted: list, own: dict) -> dict:
     res = np.where(mo.moving > 0, dv - model, np.nan)
     step = max(1, int(round(0.5 / g.dt)))
     sl = slice(0, None, step)
-    link = own.get("bursty_link", {})
     out = {"t": g.t[sl], "position": mo.x_ref[sl], "speed": v[sl], "residual_accel": res[sl],
            "commanded_braking": mo.a_br0[sl], "commanded_traction": mo.a_tr0[sl],
            "odo_t": mo.run.odo_t, "odo_speed": mo.run.odo_v,
            "line_gradient": [(s.start, s.end, s.permille) for s in mo.line.gradients],
            "stations": [(s.name, s.position) for s in mo.line.stations],
            "balises": [b.position for b in mo.line.balises],
-           "loss_runs": link.get("loss_runs", np.array([], int)),
-           "loss_fraction": link.get("loss_fraction")}
+           "loss_runs": np.array([], int), "loss_fraction": None}
+    for name, res in own.items():
+        BY_NAME[name].own_series(res, out)
     for a in accepted:
         BY_NAME[a.cause].series(a.parameters, mo, out)
     return out

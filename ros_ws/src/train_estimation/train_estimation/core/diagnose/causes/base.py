@@ -139,3 +139,7 @@ class Cause:
 
     def series(self, params: dict, mo, out: dict) -> None:
         """Add the accepted cause's curves to the plots' series (in place)."""
+
+    def own_series(self, own: dict, out: dict) -> None:
+        """Add what the cause's own likelihood test saw to the plots' series (in place),
+        accepted or not."""

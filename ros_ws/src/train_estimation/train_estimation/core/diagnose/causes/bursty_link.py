@@ -36,8 +36,13 @@ class BurstyLink(Cause):
         return ctx.own[self.name].get("gain") or {"metric": "held-out log-likelihood",
                                                   "before": None, "after": None}
 
-    def series(self, params: dict, mo, out: dict) -> None:
-        """The loss runs are plotted whether the cause is accepted or not (``search``)."""
+    def own_series(self, own: dict, out: dict) -> None:
+        """The loss runs, the loss fraction and the chain's p_bad_good (plotted whether the
+        cause is accepted or not)."""
+        if "loss_runs" in own:
+            out["loss_runs"] = own["loss_runs"]
+            out["loss_fraction"] = own.get("loss_fraction")
+            out["loss_p_bad_good"] = own["parameters"].get("p_bad_good")
 
 
 def link_test(run) -> dict:
