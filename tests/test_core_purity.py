@@ -36,6 +36,18 @@ def test_there_are_core_modules():
     mods = core_modules()
     assert "train_core.model" in mods and "train_core.config" in mods
     assert "train_sim.world" in mods and "train_estimation.core.identify" in mods
+    # the diagnose package and every cause module are core too
+    assert {"train_estimation.core.diagnose.search", "train_estimation.core.diagnose.causes.base",
+            "train_estimation.core.measured"} <= set(mods)
+
+
+def test_core_does_not_import_the_tools():
+    """The offline CLIs sit on the core, never the other way round."""
+    pat = re.compile(r"^\s*(?:from|import)\s+(train_estimation\.tools|\.+tools)\b", re.M)
+    core = REPO / "ros_ws" / "src" / "train_estimation" / "train_estimation" / "core"
+    bad = [str(f.relative_to(core)) for f in sorted(core.rglob("*.py"))
+           if pat.search(f.read_text())]
+    assert bad == []
 
 
 def test_core_modules_do_not_import_ros():

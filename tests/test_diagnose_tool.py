@@ -20,7 +20,7 @@ from train_core.bagio import BagWriter, read_bag
 from train_core.config import Section
 from train_core.effects import parse_effects
 
-from train_estimation.core.diagnose import CAUSES, Diagnosis
+from train_estimation.core.diagnose import CAUSES, CauseFit, Diagnosis
 from train_estimation.tools import diagnose as tool
 from train_sim.cases import main_error, make_case
 from train_sim.generate import generate
@@ -157,6 +157,10 @@ def test_the_installed_executable_exits_2_with_one_line(metro, tmp_path, ros_env
 # The model directory (no core needed: a Diagnosis with every cause accepted)
 # ------------------------------------------------------------------------------------------------
 
+def _fits(entries: list[dict]) -> list[CauseFit]:
+    return [CauseFit(e["cause"], e.get("score", 1.0), e["parameters"]) for e in entries]
+
+
 def full_diagnosis() -> Diagnosis:
     acc = [
         {"cause": "gradient", "parameters": {"start": 2400.0, "end": 2800.0, "permille": 4.0}},
@@ -171,8 +175,8 @@ def full_diagnosis() -> Diagnosis:
     ]
     ranking = [{"cause": a["cause"], "score": 10.0 - i, "parameters": a["parameters"]}
                for i, a in enumerate(acc)] + [{"cause": "none", "score": 0.0, "parameters": {}}]
-    return Diagnosis(cause="gradient", parameters=acc[0]["parameters"], ranking=ranking,
-                     untestable=[], gain={}, accepted=acc, series={},
+    return Diagnosis(cause="gradient", parameters=acc[0]["parameters"], ranking=_fits(ranking),
+                     untestable=[], gain={}, accepted=_fits(acc), series={},
                      # where the core reports the fitted slip fraction of each episode
                      evidence={"wheel_slip": {"details": {"slip_fraction": [0.1, 0.12]}}})
 
@@ -212,8 +216,7 @@ def test_model_dir_holds_every_accepted_cause_and_loads(metro, tmp_path):
 
 
 def test_model_dir_of_none_is_the_believed_model(metro, tmp_path):
-    dg = Diagnosis(cause="none", parameters={}, ranking=[{"cause": "none", "score": 0.0,
-                                                          "parameters": {}}],
+    dg = Diagnosis(cause="none", parameters={}, ranking=[CauseFit("none", 0.0, {})],
                    untestable=[], evidence={}, gain={}, accepted=[])
     tool.write_model(tmp_path, dg, metro.line_path, metro.train_path, fake_data())
     sc = with_model(metro, tmp_path / "model")
@@ -449,9 +452,8 @@ def test_plots_draw_what_the_series_hold(tmp_path):
 def test_a_negative_davis_fit_is_written_as_the_closest_nonnegative_curve(metro, tmp_path):
     acc = [{"cause": "resistance", "parameters": {"a": 5000.0, "b": -100.0, "c": 14.0}}]
     dg = Diagnosis(cause="resistance", parameters=acc[0]["parameters"],
-                   ranking=[{"cause": "resistance", "score": 5.0,
-                             "parameters": acc[0]["parameters"]}],
-                   untestable=[], evidence={}, gain={}, accepted=acc)
+                   ranking=[CauseFit("resistance", 5.0, acc[0]["parameters"])],
+                   untestable=[], evidence={}, gain={}, accepted=_fits(acc))
     data = fake_data()
     data.odo_speed[:] = np.linspace(0.0, 20.0, data.odo_speed.size)
     tool.write_model(tmp_path, dg, metro.line_path, metro.train_path, data)
@@ -468,8 +470,8 @@ def test_a_fit_the_files_cannot_hold_is_left_out_of_the_model_with_a_note(metro,
            {"cause": "odometer_scale", "parameters": {"scale": 3.0}},
            {"cause": "mass", "parameters": {"mass": 300000.0}}]
     dg = Diagnosis(cause="gradient", parameters=acc[0]["parameters"],
-                   ranking=[{"cause": a["cause"], "score": 1.0, "parameters": a["parameters"]}
-                            for a in acc], untestable=[], evidence={}, gain={}, accepted=acc)
+                   ranking=_fits(acc), untestable=[], evidence={}, gain={},
+                   accepted=_fits(acc))
     model = tool.write_model(tmp_path, dg, metro.line_path, metro.train_path, fake_data())
     sc = with_model(metro, tmp_path / "model")
     assert sc.line == metro.line and sc.effects.active() == ["mass"]

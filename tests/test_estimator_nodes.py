@@ -20,7 +20,8 @@ def run_live(launch, ros_node, ns, scenario, duration, rate, nodes, topics, sim_
 
     sc = load_scenario(scenario)
     boxes = {t: ros_node.collect(TrainState, f"{ns}/{t}") for t in topics}
-    common = ["-p", "use_sim_time:=true", "-p", "control_clock:=same", "-p", f"line_file:={sc.line_path}",
+    common = ["-p", "use_sim_time:=true", "-p", "control_clock:=same",
+              "-p", f"line_file:={sc.line_path}",
               "-p", f"train_file:={sc.train_path}", "-p", f"initial_position:={sc.start_position}",
               "-p", f"odometer_rate:={sc.odometer_rate}",
               "-p", f"output_delay:={max(0.05, 0.05 * rate)}"]

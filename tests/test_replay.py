@@ -34,7 +34,8 @@ def live_replay(launch, ros_node, tmp_path, bag, scenario, estimators, tag):
     sc = load_scenario(scenario)
     ns = f"/replay_{tag}"
     out = tmp_path / f"out_{tag}"
-    common = ["-p", "use_sim_time:=true", "-p", "control_clock:=same", "-p", f"line_file:={sc.line_path}",
+    common = ["-p", "use_sim_time:=true", "-p", "control_clock:=same",
+              "-p", f"line_file:={sc.line_path}",
               "-p", f"train_file:={sc.train_path}", "-p", f"initial_position:={sc.start_position}",
               "-p", f"odometer_rate:={sc.odometer_rate}", "-p", f"output_delay:={0.05 * RATE}"]
     rec = launch.node("train_estimation", "recorder", "--ros-args", "-r", f"__ns:={ns}",

@@ -311,3 +311,31 @@ def _parse_drive_effects(sec: Section, kw: dict) -> None:
         s = sec.section("traction_delay", ("delay",))
         kw["traction_delay"] = TractionDelayEffect(s.number("delay", REQUIRED, lo=0.0, hi=10.0,
                                                             unit="s"))
+# Writing (the inverse of parse_effects: what is written parses back to the same effects)
+# ------------------------------------------------------------------------------------------------
+
+def effect_to_dict(effect) -> dict:
+    """One effect's parameters in the scenario's ``effects:`` syntax (plain YAML types); a
+    field at its dataclass default is left out, as :func:`parse_effects` fills it in."""
+    from dataclasses import MISSING
+
+    out = {}
+    for f in fields(effect):
+        v = getattr(effect, f.name)
+        if f.default is not MISSING and v == f.default:
+            continue
+        out[f.name] = _plain(v)
+    return out
+
+
+def effects_to_dict(eff: Effects) -> dict:
+    """A scenario's ``effects:`` mapping ({name: {parameters}}) of every active effect."""
+    return {name: effect_to_dict(getattr(eff, name)) for name in eff.active()}
+
+
+def _plain(v):
+    if v is None or isinstance(v, str | bool):
+        return v
+    if isinstance(v, tuple | list):
+        return [_plain(x) for x in v]
+    return float(v)

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from train_estimation.core import diagnose as D
+from train_estimation.core.augmented_kf import Events, augmented_kf, gls, kf2_loglik
 
 
 def _events(rng, n=40, with_balise=True):
@@ -24,7 +25,7 @@ def _events(rng, n=40, with_balise=True):
     r_v = np.where(kind == 1, rng.uniform(0.5, 2.0, n), rng.uniform(0.01, 0.05, n))
     held = np.zeros(n, bool)
     held[[3, 4]] = True
-    return D.Events(t=t, kind=kind, y_d=y_d, y_v=y_v, r_v=r_v, held=held,
+    return Events(t=t, kind=kind, y_d=y_d, y_v=y_v, r_v=r_v, held=held,
                      odo=np.flatnonzero(kind == 0), bal=np.flatnonzero(kind == 1))
 
 
@@ -90,15 +91,15 @@ def test_augmented_kf_equals_dense_gaussian(seed):
     Mb = np.zeros((n, p1))
     Mb[:, 1] = 1.0
     q, r_s, q_held = 0.02, 0.3, 2.0
-    kf = D.augmented_kf(ev, q, r_s, Bv, Bs, Md, Mv, Mb, q_held)
+    kf = augmented_kf(ev, q, r_s, Bv, Bs, Md, Mv, Mb, q_held)
     for _ in range(3):
         z = np.concatenate([[1.0], rng.normal(size=p1 - 1)])
         assert kf.loglik(z) == pytest.approx(
             _dense_loglik(ev, q, r_s, q_held, Bv, Bs, Md, Mv, Mb, z), rel=1e-9, abs=1e-8)
     # the scalar two-column filter used for the noise fit is the same likelihood with s0
     # profiled out
-    ll2 = D._kf2_loglik(ev, q, r_s, Bv[:, 0], Bs[:, 0], Md[:, 0], Mv[:, 0], q_held)
-    th, cov, quad = D.gls(kf.W[:2, :2], np.eye(2))
+    ll2 = kf2_loglik(ev, q, r_s, Bv[:, 0], Bs[:, 0], Md[:, 0], Mv[:, 0], q_held)
+    th, cov, quad = gls(kf.W[:2, :2], np.eye(2))
     assert ll2 == pytest.approx(-0.5 * (kf.logdet + kf.m * math.log(2 * math.pi) + quad),
                                 rel=1e-10)
 
@@ -110,8 +111,8 @@ def test_gls_maximises_the_likelihood():
     Bv, Bs = rng.normal(size=(n, 3)) * 0.1, rng.normal(size=(n, 3)) * 0.05
     Md, Mv, Mb = np.zeros((n, 3)), np.zeros((n, 3)), np.zeros((n, 3))
     Mb[:, 1] = 1.0
-    kf = D.augmented_kf(ev, 0.01, 0.2, Bv, Bs, Md, Mv, Mb, 1.0)
-    th, cov, quad = D.gls(kf.W, np.eye(3))
+    kf = augmented_kf(ev, 0.01, 0.2, Bv, Bs, Md, Mv, Mb, 1.0)
+    th, cov, quad = gls(kf.W, np.eye(3))
     best = kf.loglik(np.concatenate([[1.0], th]))
     for _ in range(20):
         other = np.concatenate([[1.0], th + rng.normal(size=2) * 0.1])
@@ -134,7 +135,7 @@ def test_best_section_equals_brute_force():
         for j in range(i + 2, p + 1):
             col = np.zeros(p + 2)
             col[idx[i:j]] = 1.0
-            _, _, q = D.gls(W, np.stack([u, e1, col], axis=1))
+            _, _, q = gls(W, np.stack([u, e1, col], axis=1))
             best = min(best, (q, (i, j)))
     assert best[1] == (a, b)
     assert quad == pytest.approx(best[0], rel=1e-10)
@@ -163,7 +164,7 @@ def test_link_likelihoods():
 
 
 def _run(stamps, recv):
-    return D._Run(t_first=0.0, duration=float(stamps[-1]), odo_t=stamps, odo_stamp=stamps,
+    return D.Run(t_first=0.0, duration=float(stamps[-1]), odo_t=stamps, odo_stamp=stamps,
                   odo_d=stamps,
                   odo_v=np.ones_like(stamps), odo_rv=np.ones_like(stamps),
                   odo_seq=np.arange(stamps.size), odo_recv=recv, ctrl_t=stamps,
@@ -190,6 +191,9 @@ def test_clock_drift_test():
 
 
 def test_core_does_not_read_ground_truth():
-    """DiagData has no ground-truth field: the core cannot read it by construction."""
-    names = set(D.DiagData.__dataclass_fields__)
+    """The measured run has no ground-truth field: the core cannot read it by construction."""
+    from train_estimation.core.measured import TOPICS, MeasuredRun
+
+    assert "ground_truth" not in TOPICS
+    names = set(MeasuredRun.__dataclass_fields__)
     assert not any("truth" in n for n in names)

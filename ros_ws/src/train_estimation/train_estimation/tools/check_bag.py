@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 from train_core.bagio import Bag, BagError, read_bag
 
-from train_estimation.core import reasons as R
+from train_estimation.core.measured import topic_health
 
 ESTIMATE_PREFIX = "estimate/"
 CHI2_95 = {1: 3.841, 2: 5.991}  # 95% quantiles of chi-square with 1 and 2 degrees of freedom
@@ -50,51 +50,6 @@ def _stats(err: np.ndarray) -> dict:
     return {"n": int(err.size), "rmse": float(np.sqrt(np.mean(err**2))),
             "p95": float(np.percentile(a, 95)), "max": float(a.max()),
             "mean": float(err.mean())}
-
-
-# TrainState fields where NaN is a value by design: "not estimated" (docs/interfaces.md), e.g.
-# the braking rate of an estimator that does not estimate it. Infinity is never by design.
-NOT_ESTIMATED_NAN = ("braking_rate", "covariance")
-
-
-def _non_finite(stamp: float, fields: dict) -> bool:
-    """A stamp or field that is not a finite number, NaN-by-design fields excepted."""
-    if not math.isfinite(stamp):
-        return True
-    state = "source" in fields and "covariance" in fields  # a TrainState
-    for k, v in fields.items():
-        if isinstance(v, (float, np.floating)):
-            if math.isfinite(v) or (state and k in NOT_ESTIMATED_NAN and math.isnan(v)):
-                continue
-            return True
-        if isinstance(v, np.ndarray) and v.dtype.kind == "f":
-            bad = ~np.isfinite(v)
-            if state and k in NOT_ESTIMATED_NAN:
-                bad &= ~np.isnan(v)
-            if bad.any():
-                return True
-    return False
-
-
-def topic_health(bag: Bag, topic: str) -> dict:
-    msgs = bag.topics.get(topic, [])
-    stamps = bag.stamps(topic)
-    out: dict = {"count": len(msgs), "type": bag.types.get(topic, "")}
-    if len(msgs) == 0:
-        return out
-    d = np.diff(stamps)
-    # the estimators' rejection names (core/reasons.py) for what the stamps alone show
-    out[R.OUT_OF_ORDER] = int(np.sum(d < 0))
-    out["duplicate_stamps"] = int(np.sum(d == 0))
-    out[R.NON_FINITE] = int(sum(1 for _, s, f in msgs if _non_finite(s, f)))
-    out["max_gap_s"] = float(d.max()) if d.size else 0.0
-    if "seq" in msgs[0][2]:
-        seq = bag.series(topic, "seq")
-        span = int(seq.max() - seq.min() + 1)
-        out["seq_span"] = span
-        out["received_fraction"] = len(np.unique(seq)) / span
-        out["seq_gaps"] = int(np.sum(np.diff(np.sort(seq)) > 1))
-    return out
 
 
 def estimator_report(bag: Bag, topic: str, source: str, truth: dict | None,

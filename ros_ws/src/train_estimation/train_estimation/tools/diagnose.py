@@ -41,8 +41,8 @@ balises, too short, never moving, missing or malformed YAML).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
-import math
 import sys
 import time
 from pathlib import Path
@@ -50,153 +50,37 @@ from pathlib import Path
 import numpy as np
 import yaml
 from train_core.bagio import BagError, read_bag
-from train_core.config import ConfigError, load_yaml
-from train_core.effects import Effects, GradientEffect, true_line
+from train_core.config import ConfigError, Section, load_yaml
+from train_core.effects import Effects, effect_to_dict, parse_effects, true_line, true_train
 from train_core.model import line_from_dict, load_line, load_train, train_from_dict
 
-from train_estimation.tools.identify import Progress
-
-REPORT_KEYS = ("cause", "parameters", "ranking", "untestable", "evidence", "gain")
-USED_TOPICS = ("odometer", "balise", "control")  # never ground_truth
-
+from train_estimation.core.diagnose.search import SCORE_FORMULA  # noqa: F401 (stated in help)
+from train_estimation.core.measured import TOPICS, MeasuredRun
+from train_estimation.tools.common import EXIT_OK, Progress, fail, jsonable, one_line
 
 # ------------------------------------------------------------------------------------------------
-# Bag -> DiagData
+# Bag -> MeasuredRun
 # ------------------------------------------------------------------------------------------------
 
-def bag_to_data(bag):
-    """The core's DiagData from a read bag: odometer, balise and control only."""
-    from train_estimation.core.diagnose import DiagData
-
-    def col(topic, key, dtype=float):
-        return np.array([f[key] for _, _, f in bag.topics.get(topic, [])], dtype=dtype)
-
-    def stamps(topic):
-        return np.array([s for _, s, _ in bag.topics.get(topic, [])], dtype=float)
-
-    def recv(topic):
-        return np.array([t for t, _, _ in bag.topics.get(topic, [])], dtype=float) * 1e-9
-
-    return DiagData(
-        odo_stamp=stamps("odometer"), odo_recv=recv("odometer"),
-        odo_seq=col("odometer", "seq", np.int64), odo_distance=col("odometer", "distance"),
-        odo_speed=col("odometer", "speed"),
-        odo_speed_variance=col("odometer", "speed_variance"),
-        ctrl_stamp=stamps("control"), ctrl_a_tar=col("control", "target_acceleration"),
-        balise_stamp=stamps("balise"), balise_recv=recv("balise"),
-        balise_id=col("balise", "balise_id", np.int64),
-        balise_position=col("balise", "position"),
-        balise_variance=col("balise", "position_variance"))
-
-
-def read_measured(path) -> tuple:
-    """(DiagData, bag) from a bag path; only the topics diagnose uses are decoded (a
+def read_measured(path) -> MeasuredRun:
+    """The measured run of a bag path; only the topics diagnose uses are decoded (a
     ground_truth topic is never read)."""
-    bag = read_bag(path, topics=USED_TOPICS)
-    return bag_to_data(bag), bag
+    return MeasuredRun.from_bag(read_bag(path, topics=TOPICS))
 
 
 # ------------------------------------------------------------------------------------------------
 # Report
 # ------------------------------------------------------------------------------------------------
 
-def jsonable(obj):
-    """Plain JSON types: numpy scalars/arrays to Python, NaN/inf to null, tuples to lists."""
-    if isinstance(obj, dict):
-        return {str(k): jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [jsonable(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return jsonable(obj.tolist())
-    if isinstance(obj, (bool, np.bool_)):
-        return bool(obj)
-    if isinstance(obj, (int, np.integer)):
-        return int(obj)
-    if isinstance(obj, (float, np.floating)):
-        v = float(obj)
-        return v if math.isfinite(v) else None
-    if obj is None or isinstance(obj, str):
-        return obj
-    return str(obj)
-
-
-# The score the core applies (core/diagnose.py), stated in --help and in report.json
-SCORE_FORMULA = ("2 (ll_cause - ll_null) - k ln n - 2 ln K (BIC-penalised log-likelihood ratio; "
-                 "k: the cause's parameter count, n: measurements, K: causes scored in the stage)")
-
-
-def report_dict(dg) -> dict:
-    """docs/interfaces.md report: exactly cause, parameters, ranking, untestable, evidence, gain."""
-    evidence = dict(dg.evidence or {})
-    if isinstance(evidence.get("_model"), dict):
-        evidence["_model"] = dict(evidence["_model"], score=SCORE_FORMULA)
-    return jsonable({"cause": dg.cause, "parameters": dg.parameters, "ranking": dg.ranking,
-                     "untestable": dg.untestable, "evidence": evidence, "gain": dg.gain})
-
-
 # ------------------------------------------------------------------------------------------------
 # The extended model (DIR/model)
 # ------------------------------------------------------------------------------------------------
 
-def accepted_causes(dg) -> list[dict]:
-    """[{"cause", "parameters", ...}] of the causes the diagnosis accepted (score > 0)."""
-    acc = [a for a in (dg.accepted or []) if a.get("cause") not in (None, "none")]
-    if not acc and dg.cause != "none":
-        acc = [{"cause": dg.cause, "parameters": dg.parameters}]
-    return acc
-
-
-def slip_fraction(a: dict, dg, data, t_first: float) -> float:
-    """The slip fraction of the accepted wheel_slip (one value for all episodes, as the
-    simulator's effect has): from the fit if the core reports it, else measured from the
-    odometer speed inside the episodes against the speed just around them."""
-    ev = (dg.evidence or {}).get("wheel_slip", {})
-    for src in (a.get("extra", {}), a.get("details", {}), a.get("parameters", {}),
-                ev.get("details", {}) if isinstance(ev, dict) else {}, ev):
-        v = src.get("slip_fraction") if isinstance(src, dict) else None
-        if v is not None and not isinstance(v, dict):
-            vals = [float(x) for x in np.atleast_1d(v) if x is not None and math.isfinite(x)]
-            if vals and all(abs(x) < 1.0 for x in vals):
-                return float(np.mean(vals))
-    t = np.asarray(data.odo_stamp, float) - t_first
-    v = np.asarray(data.odo_speed, float)
-    order = np.argsort(t)
-    t, v = t[order], v[order]
-    ratios = []
-    for t0, t1 in a["parameters"].get("intervals", []):
-        inside = (t >= t0) & (t < t1)
-        around = ((t >= t0 - 3.0) & (t < t0)) | ((t >= t1) & (t < t1 + 3.0))
-        if inside.any() and around.sum() >= 2:
-            ref = np.interp(t[inside], t[around], v[around])
-            ok = ref > 1.0
-            if ok.any():
-                ratios.append(float(np.mean(v[inside][ok] / ref[ok] - 1.0)))
-    return float(np.mean(ratios)) if ratios else 0.0
-
-
-def davis_nonnegative(abc, data) -> tuple[list[float], bool]:
-    """Davis (a, b, c) with every coefficient >= 0, as train.yaml requires. A fit with a negative
-    coefficient is replaced by the non-negative a + b v + c v^2 closest to its curve (least
-    squares) over the speeds of the run, so the resistance the data showed is kept."""
-    abc = [float(x) for x in abc]
-    if min(abc) >= 0.0:
-        return abc, False
-    from scipy.optimize import nnls
-
-    speeds = np.asarray(data.odo_speed, float)
-    v_max = float(np.nanmax(speeds)) if speeds.size and np.isfinite(speeds).any() else 20.0
-    v = np.linspace(0.0, max(v_max, 1.0), 200)
-    A = np.stack([np.ones_like(v), v, v * v], axis=1)
-    target = A @ np.array(abc)
-    # scale the columns so the three coefficients are equally well conditioned
-    sc = np.abs(A).max(axis=0)
-    x, _ = nnls(A / sc, target)
-    return [float(u) for u in x / sc], True
-
-
 def write_model(out: Path, dg, line_path: str, train_path: str, data) -> dict:
     """DIR/model: line.yaml (+ fitted gradient section), train.yaml (+ fitted Davis), and
-    effects.yaml (the other accepted causes, in a scenario's ``effects:`` syntax).
+    effects.yaml (the other accepted causes, in a scenario's ``effects:`` syntax): each
+    accepted cause's ``train_core.effects`` dataclass (``model_effect`` of the cause), put
+    where the cause says (``model_file``).
 
     ``mass`` goes into effects.yaml, not train.yaml: docs/interfaces.md's mass cause keeps the drive
     force computed for the believed mass, which is what train.yaml's mass is in the simulator;
@@ -205,98 +89,91 @@ def write_model(out: Path, dg, line_path: str, train_path: str, data) -> dict:
     A fitted value the files cannot hold (e.g. a gradient beyond line.yaml's +-60 per mille) is
     left out of the model with a note (printed in the summary and written into the files'
     header), never clipped silently: the report keeps the fit as it is."""
-    from train_core.config import Section
-    from train_core.effects import parse_effects
+    from train_estimation.core.diagnose import BY_NAME
 
     d = out / "model"
     d.mkdir(parents=True, exist_ok=True)
-    line_d = load_yaml(line_path)
-    train_d = load_yaml(train_path)
-    line = line_from_dict(line_d, line_path)
-    effects: dict = {}
-    notes, skipped = [], []
-    t_first = float(np.min(data.odo_stamp)) if len(data.odo_stamp) else 0.0
-    duration = float(np.ptp(data.odo_stamp)) if len(data.odo_stamp) else 0.0
-    drift = 0.0
-    for a in accepted_causes(dg):
-        if a["cause"] == "clock_drift":
-            drift = float(a["parameters"]["drift"])
-
-    def effect(name: str, params: dict) -> None:
-        try:  # the simulator's parser decides what an effects.yaml may hold
-            parse_effects(Section({name: jsonable(params)}, "effects.yaml"), max(duration, 1.0))
-        except ConfigError as exc:
-            skipped.append(f"{name} not in the model ({_one_line(exc)})")
-            return
-        effects[name] = params
-
-    for a in accepted_causes(dg):
-        c, p = a["cause"], a["parameters"]
-        if c == "gradient":
-            start, end = max(0.0, float(p["start"])), min(line.length, float(p["end"]))
-            if end <= start:
-                skipped.append(f"gradient not in the model (section [{p['start']:.0f}, "
-                               f"{p['end']:.0f}) m is outside the line)")
-                continue
-            new_line = true_line(line, Effects(gradient=GradientEffect(start, end,
-                                                                       float(p["permille"]))))
-            grads = [{"start": float(s.start), "end": float(s.end),
-                      "permille": round(float(s.permille), 4)} for s in new_line.gradients]
-            try:
-                line_from_dict({**line_d, "gradients": grads}, "line.yaml")
-            except ConfigError as exc:
-                skipped.append(f"gradient not in the model ({_one_line(exc)})")
-                continue
-            line, line_d["gradients"] = new_line, grads
-            notes.append(f"gradient: {p['permille']:+.2f} per mille added on "
-                         f"[{start:.0f}, {end:.0f}) m")
-        elif c == "resistance":
-            abc, projected = davis_nonnegative((p["a"], p["b"], p["c"]), data)
-            train_d["davis"] = {"a": abc[0], "b": abc[1], "c": abc[2]}
-            notes.append("resistance: fitted Davis a, b, c in train.yaml" + (
-                " (a negative coefficient was projected onto a, b, c >= 0 over the run's "
-                "speeds)" if projected else ""))
-        elif c == "mass":
-            effect("mass", {"mass": float(p["mass"])})
-        elif c == "braking_rate":
-            effect("braking_rate", {"f_start": float(p["f_start"]), "f_end": float(p["f_end"]),
-                                    "t_start": 0.0, "t_end": round(duration / (1.0 + drift), 3)})
-        elif c == "brake_delay":
-            effect("brake_delay", {"delay": float(p["delay"])})
-        elif c == "odometer_scale":
-            effect("odometer_scale", {"scale": float(p["scale"])})
-        elif c == "wheel_slip":
-            ivs = [[round(float(t0) / (1.0 + drift), 3), round(float(t1) / (1.0 + drift), 3)]
-                   for t0, t1 in p.get("intervals", []) if t1 > t0 >= 0.0]
-            if ivs:
-                effect("wheel_slip", {"intervals": ivs, "slip_fraction": round(
-                    float(np.clip(slip_fraction(a, dg, data, t_first), -0.9, 1.0)), 5)})
-        elif c == "bursty_link":
-            effect("bursty_link", {"p_good_bad": float(p["p_good_bad"]),
-                                   "p_bad_good": float(max(p["p_bad_good"], 1e-6))})
-        elif c == "clock_drift":
-            effect("clock_drift", {"drift": float(p["drift"])})
-    if "mass" in effects:
-        notes.append("mass: true mass in effects.yaml (the drive force stays computed for "
-                     "train.yaml's believed mass, as in the data)")
+    m = _Model(load_yaml(line_path), load_yaml(train_path), line_path)
+    ctx = model_context(dg, data, m.line.length)
+    for a in dg.accepted:
+        cause = BY_NAME[a.cause]
+        eff, note = cause.model_effect(a, ctx)
+        if eff is None:
+            if note:
+                m.skipped.append(note)
+            continue
+        m.add(a.cause, cause.model_file, cause.effect_field, eff, note, max(ctx.duration, 1.0))
     head = ("# written by diagnose: the believed {what} extended by the accepted causes\n"
             "# ({causes}); times are seconds from the start of the run\n"
-            + "".join(f"# {s}\n" for s in skipped))
-    causes = ", ".join(a["cause"] for a in accepted_causes(dg)) or "none"
+            + "".join(f"# {s}\n" for s in m.skipped))
+    causes = ", ".join(a.cause for a in dg.accepted) or "none"
     (d / "line.yaml").write_text(head.format(what="line", causes=causes)
-                                 + yaml.safe_dump(jsonable(line_d), sort_keys=False))
+                                 + yaml.safe_dump(jsonable(m.line_d), sort_keys=False))
     (d / "train.yaml").write_text(head.format(what="train", causes=causes)
-                                  + yaml.safe_dump(jsonable(train_d), sort_keys=False))
+                                  + yaml.safe_dump(jsonable(m.train_d), sort_keys=False))
     (d / "effects.yaml").write_text(
         head.format(what="model's effects (train_sim scenario `effects:` syntax)",
                     causes=causes)
-        + (yaml.safe_dump(jsonable(effects), sort_keys=False) if effects else "{}\n"))
+        + (yaml.safe_dump(jsonable(m.effects), sort_keys=False) if m.effects else "{}\n"))
     # what we wrote must load (the simulator reads these files)
     line_from_dict(load_yaml(d / "line.yaml"), str(d / "line.yaml"))
     train_from_dict(load_yaml(d / "train.yaml"), str(d / "train.yaml"))
     parse_effects(Section(load_yaml(d / "effects.yaml"), str(d / "effects.yaml")),
-                  max(duration, 1.0))
-    return {"dir": d, "effects": effects, "notes": notes + skipped}
+                  max(ctx.duration, 1.0))
+    return {"dir": d, "effects": m.effects, "notes": m.notes + m.effect_notes + m.skipped}
+
+
+def model_context(dg, data, line_length: float):
+    """The diagnosis' times on true time: the run's length and the accepted clock drift."""
+    from train_estimation.core.diagnose import BY_NAME, ModelContext
+
+    n = len(data.odo_stamp)
+    drift = sum(BY_NAME[a.cause].clock_drift(a) for a in dg.accepted)
+    duration = float(np.ptp(data.odo_stamp)) if n else 0.0
+    return ModelContext(duration=duration / (1.0 + drift), line_length=line_length,
+                        drift=drift, t_first=float(np.min(data.odo_stamp)) if n else 0.0,
+                        evidence=dg.evidence or {}, odo_stamp=data.odo_stamp,
+                        odo_speed=data.odo_speed)
+
+
+class _Model:
+    """The model directory's contents while effects are added to them."""
+
+    def __init__(self, line_d: dict, train_d: dict, line_path: str):
+        self.line_d, self.train_d = line_d, train_d
+        self.line = line_from_dict(line_d, line_path)
+        self.train = train_from_dict(train_d, "train.yaml")
+        self.effects: dict = {}
+        self.notes, self.effect_notes, self.skipped = [], [], []
+
+    def add(self, name: str, where: str, field: str, eff, note, duration: float) -> None:
+        """Put one effect into line.yaml, train.yaml or effects.yaml; a value the file cannot
+        hold (the loaders and the simulator's parser decide) is skipped with a note."""
+        effects = Effects(**{field: eff})
+        try:
+            if where == "line":
+                new_line = true_line(self.line, effects)
+                grads = [{"start": float(s.start), "end": float(s.end),
+                          "permille": round(float(s.permille), 4)} for s in new_line.gradients]
+                line_from_dict({**self.line_d, "gradients": grads}, "line.yaml")
+                self.line, self.line_d["gradients"] = new_line, grads
+            elif where == "train":
+                new = true_train(self.train, effects)
+                for f in dataclasses.fields(new):
+                    v = getattr(new, f.name)
+                    if v != getattr(self.train, f.name):
+                        self.train_d[f.name] = dataclasses.asdict(v) \
+                            if dataclasses.is_dataclass(v) else v
+                self.train = new
+            else:
+                params = effect_to_dict(eff)
+                parse_effects(Section({field: params}, "effects.yaml"), duration)
+                self.effects[field] = params
+        except ConfigError as exc:
+            self.skipped.append(f"{name} not in the model ({one_line(exc)})")
+            return
+        if note:
+            (self.notes if where != "effects" else self.effect_notes).append(note)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -477,10 +354,7 @@ def plot_loss_runs(s: dict, path: Path, dg=None) -> bool:
     if q is not None and 0 < q < 1:
         ax.plot(k, (1 - q) * q ** (k - 1), "o-", color="C0", ms=3,
                 label=f"independent losses (p = {q:.3f})")
-    p_bg = None
-    for r in (dg.ranking if dg is not None else []):
-        if r.get("cause") == "bursty_link":
-            p_bg = r.get("parameters", {}).get("p_bad_good")
+    p_bg = s.get("loss_p_bad_good")
     if p_bg:
         ax.plot(k, p_bg * (1 - p_bg) ** (k - 1), "s-", color="C3", ms=3,
                 label=f"two-state chain (p_bad_good = {p_bg:.3f})")
@@ -542,8 +416,7 @@ def summary(dg, bag_path, data, elapsed: float, model: dict) -> list[str]:
            f"readings, {elapsed:.1f} s",
            f"{'rank':<5}{'cause':<16}{'score':>10}  parameters"]
     for i, r in enumerate(dg.ranking[:6]):
-        out.append(f"{i + 1:<5}{r['cause']:<16}{r['score']:>10.1f}  "
-                   f"{_fmt_params(r.get('parameters', {}))}")
+        out.append(f"{i + 1:<5}{r.cause:<16}{r.score:>10.1f}  {_fmt_params(r.parameters)}")
     if len(dg.ranking) > 6:
         out.append(f"     ... {len(dg.ranking) - 6} more in report.json")
     for u in dg.untestable:
@@ -558,10 +431,6 @@ def summary(dg, bag_path, data, elapsed: float, model: dict) -> list[str]:
         out.append("model: " + "; ".join(notes))
     out.append(f"cause: {dg.cause}")
     return out
-
-
-def _one_line(exc) -> str:
-    return " ".join(str(exc).split())
 
 
 def main(argv=None) -> int:
@@ -581,23 +450,21 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     try:
         line, train = load_line(args.line), load_train(args.train)
-        data, _ = read_measured(args.bag)
+        data = read_measured(args.bag)
         bar = None if args.quiet else Progress("diagnose", what_width=36)
         dg = diagnose(data, line, train, progress=bar)
     except (ConfigError, BagError) as exc:
-        print(f"diagnose: {_one_line(exc)}", file=sys.stderr)
-        return 2
+        return fail("diagnose", str(exc))
     except DiagnoseError as exc:
-        print(f"diagnose: cannot diagnose {args.bag}: {_one_line(exc)}", file=sys.stderr)
-        return 2
+        return fail("diagnose", f"cannot diagnose {args.bag}: {exc}")
     elapsed = time.perf_counter() - t0
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "report.json").write_text(json.dumps(report_dict(dg), indent=1) + "\n")
+    (out / "report.json").write_text(json.dumps(dg.to_json(), indent=1) + "\n")
     model = write_model(out, dg, args.line, args.train, data)
     write_plots(dg.series, out, dg)
     print("\n".join(summary(dg, args.bag, data, elapsed, model)))
-    return 0
+    return EXIT_OK
 
 
 if __name__ == "__main__":

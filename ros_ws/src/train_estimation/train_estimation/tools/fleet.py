@@ -1,6 +1,7 @@
 """`fleet`: analyse every bag of a fleet on Dask and tell line-map errors from train faults.
 
-check_bag, identify and diagnose run on every bag; the consensus across trains follows.
+Every bag is read once: its topics' health, identify's fit and diagnose's ranking; the
+consensus across trains follows.
 
     fleet --manifest manifest.csv --out DIR [--workers 2 | --scheduler ADDRESS]
     fleet --bags FOLDER --line line.yaml --train train.yaml --out DIR
@@ -59,6 +60,8 @@ import traceback
 from pathlib import Path
 
 import numpy as np
+
+from train_estimation.tools.common import EXIT_OK, fail, json_default
 
 VERSION = "fleet-2"  # part of the cache key: bump when a task's result changes meaning
 PARAMS = ("braking_rate", "mass", "odometer_scale")
@@ -152,31 +155,31 @@ def analyse_bag(task: dict) -> dict:
 
 
 def _analyse(task: dict) -> dict:
+    """One bag, read once: its topics' health, identify's fit and diagnose's ranking."""
     from train_core.bagio import read_bag
     from train_core.model import load_line, load_train
 
     from train_estimation.core.diagnose import diagnose
-    from train_estimation.tools.check_bag import check
-    from train_estimation.tools.diagnose import bag_to_data, jsonable
+    from train_estimation.core.measured import TOPICS, MeasuredRun, topic_health
 
     line, train = load_line(task["line"]), load_train(task["train_file"])
     out: dict = {"line": line.name}
-    # check_bag: topic health (received fractions, gaps); no plots, nothing written
-    summ = check(task["bag"], out_dir=None, plots=False)
-    for tp in ("odometer", "balise", "control"):
-        h = summ["topics"].get(tp, {})
+    bag = read_bag(task["bag"], topics=TOPICS)
+    # topic health (check_bag's received fractions, gaps)
+    for tp in TOPICS:
+        h = topic_health(bag, tp)
         out[f"{tp}_count"] = h.get("count", 0)
         if "received_fraction" in h:
             out[f"{tp}_received"] = round(h["received_fraction"], 4)
-    bag = read_bag(task["bag"], topics=("odometer", "balise", "control"))
-    data = bag_to_data(bag)
+    data = MeasuredRun.from_bag(bag)
     if task.get("time") is None:
         out["time"] = float(np.min(data.odo_recv)) / 3600.0 if data.odo_recv.size else 0.0
     out["duration_s"] = float(np.ptp(data.odo_stamp)) if data.odo_stamp.size else 0.0
-    out.update(_identify(bag, data, line, train))
+    out.update(_identify(data, line, train))
     dg = diagnose(data, line, train)
-    out.update(diagnosis_row(jsonable({"ranking": dg.ranking, "evidence": dg.evidence,
-                                       "accepted": dg.accepted}), train))
+    rep = dg.to_json()
+    rep["accepted"] = [{"cause": a.cause} for a in dg.accepted]
+    out.update(diagnosis_row(rep, train))
     # braking rate and mass for the trends: identify's (one constant f per run, the quantity
     # tracked over runs; diagnose fits f at the first and last message, which one braking
     # phase leaves poorly determined), diagnose's where identify cannot identify them
@@ -191,12 +194,11 @@ def _analyse(task: dict) -> dict:
     return out
 
 
-def _identify(bag, data, line, train) -> dict:
-    """identify's braking rate and mass (its bag reader puts control on the train clock)."""
+def _identify(data, line, train) -> dict:
+    """identify's braking rate and mass (its record puts control on the train clock)."""
     from train_estimation.core.identify import IdentificationError, identify
-    from train_estimation.tools.identify import bag_to_data as si_data
 
-    d = si_data(bag)
+    d = data.to_identify()  # a bag without odometer or control fails here, as a row
     try:
         res = identify(d, line, train)
     except (IdentificationError, np.linalg.LinAlgError, ValueError) as exc:
@@ -594,8 +596,7 @@ def main(argv=None) -> int:
             if t["line"] not in lines:
                 lines[t["line"]] = load_line(t["line"])
     except (InputError, ConfigError) as exc:
-        print(f"fleet: {' '.join(str(exc).split())}", file=sys.stderr)
-        return 2
+        return fail("fleet", str(exc))
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     cache = Path(args.cache) if args.cache else out / "cache"
@@ -622,7 +623,7 @@ def main(argv=None) -> int:
         wall = time.perf_counter() - t1
         for r in new:
             r["cached"] = False
-            (cache / f"{r['key']}.json").write_text(json.dumps(r, default=_json_default))
+            (cache / f"{r['key']}.json").write_text(json.dumps(r, default=json_default))
         rows += new
     else:
         wall = 0.0
@@ -648,7 +649,7 @@ def main(argv=None) -> int:
     (out / "fleet.json").write_text(json.dumps(
         {"map_errors": res.map_errors, "train_alerts": res.train_alerts, "lines": res.lines,
          "trains": res.trains, "config": res.config, "run": info}, indent=1,
-        default=_json_default))
+        default=json_default))
     n_bad = sum(1 for r in rows if r.get("error"))
     print(f"fleet: {len(rows)} bags ({n_bad} failed), {len(todo)} analysed in {wall:.0f} s, "
           f"total {time.perf_counter() - t0:.0f} s")
@@ -659,15 +660,7 @@ def main(argv=None) -> int:
     for a in sorted(res.train_alerts, key=lambda a: (a["train"], a["parameter"])):
         print(f"train alert: {a['train']} {a['parameter']} {a['kind']} (z = {a['z']:+.1f})")
     print(f"wrote {out / 'report.md'}, {out / 'runs.csv'}, {out / 'fleet.json'}")
-    return 0
-
-
-def _json_default(o):
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, (np.floating, np.integer)):
-        return o.item()
-    return str(o)
+    return EXIT_OK
 
 
 if __name__ == "__main__":

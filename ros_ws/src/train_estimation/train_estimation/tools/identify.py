@@ -18,39 +18,13 @@ import math
 import sys
 from pathlib import Path
 
-import numpy as np
 import yaml
 from train_core.bagio import BagError, read_bag
 from train_core.config import ConfigError
 from train_core.model import TrainParams, load_line, load_train
 
-from train_estimation.core.clocks import control_on_train_clock
-
-
-def bag_to_data(bag):
-    from train_estimation.core.identify import IdentificationError, SIData
-
-    missing = [t for t in ("odometer", "control") if not bag.topics.get(t)]
-    if missing:
-        raise IdentificationError(
-            f"the bag has no {' and no '.join(missing)} messages (topics: "
-            f"{sorted(bag.topics) or 'none'})", missing=missing,
-            unidentifiable=("davis.a", "davis.b", "davis.c", "mass", "rotary_allowance",
-                            "braking_rate"))
-    bal = bag.topics.get("balise", [])
-    # identify reads every time on the odometer's (train) clock; control is stamped on the
-    # reference clock (docs/interfaces.md): mapped through the odometer's stamps and log times
-    odo_t = bag.stamps("odometer")
-    ctrl_t = control_on_train_clock(odo_t, bag.recv_times("odometer"), bag.stamps("control"),
-                                    bag.recv_times("control"))
-    return SIData(
-        odo_t=odo_t, odo_distance=bag.series("odometer", "distance"),
-        odo_speed=bag.series("odometer", "speed"),
-        odo_speed_variance=bag.series("odometer", "speed_variance"),
-        ctrl_t=ctrl_t,
-        ctrl_a_tar=bag.series("control", "target_acceleration"),
-        balise_t=np.array([s for _, s, _ in bal]) if bal else None,
-        balise_position=np.array([f["position"] for _, _, f in bal]) if bal else None)
+from train_estimation.core.measured import MeasuredRun
+from train_estimation.tools.common import EXIT_OK, Progress, fail
 
 
 def train_to_yaml(train: TrainParams, res, prior: TrainParams, source: str) -> str:
@@ -186,22 +160,6 @@ def plot_fit(res, path: Path) -> None:
     plt.close(fig)
 
 
-class Progress:
-    """A one-line text progress bar on stderr (the offline tools' ``progress`` callback)."""
-
-    def __init__(self, label: str = "identify", width: int = 30, what_width: int = 30):
-        self.label, self.width, self.what_width = label, width, what_width
-
-    def __call__(self, step: int, total: int, what: str) -> None:
-        frac = min(max(step / max(total, 1), 0.0), 1.0)
-        bar = "#" * int(round(frac * self.width))
-        sys.stderr.write(f"\r{self.label} [{bar:<{self.width}}] {100 * frac:5.1f}% "
-                         f"{what:<{self.what_width}}")
-        if step >= total:
-            sys.stderr.write("\n")
-        sys.stderr.flush()
-
-
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="identify", description=__doc__.splitlines()[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -216,14 +174,12 @@ def main(argv=None) -> int:
 
     try:
         line, prior = load_line(args.line), load_train(args.train)
-        data = bag_to_data(read_bag(args.bag))
-        res = identify(data, line, prior, progress=None if args.quiet else Progress())
+        data = MeasuredRun.from_bag(read_bag(args.bag)).to_identify()
+        res = identify(data, line, prior, progress=None if args.quiet else Progress("identify"))
     except (ConfigError, BagError) as exc:
-        print(f"identify: {exc}", file=sys.stderr)
-        return 2
+        return fail("identify", str(exc))
     except IdentificationError as exc:
-        print(f"identify: cannot fit {args.bag}: {exc}", file=sys.stderr)
-        return 2
+        return fail("identify", f"cannot fit {args.bag}: {exc}")
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(train_to_yaml(res.train, res, prior, args.bag))
@@ -240,7 +196,7 @@ def main(argv=None) -> int:
               f"{'yes' if res.identifiable.get(name) else 'no'}")
     print_identifiability(res)
     print(f"wrote {out} and {plot}")
-    return 0
+    return EXIT_OK
 
 
 if __name__ == "__main__":

@@ -1,0 +1,31 @@
+"""`diagnose` core: what the believed model of a train gets wrong in measured data.
+
+Given one run (``core.measured.MeasuredRun``: odometer, balise and control series with the
+bag's log times) and the railway's believed ``line.yaml``/``train.yaml``, find which of
+docs/interfaces.md's causes explains the data, fit it, and rank every cause.
+
+- ``run``: the measured run and its preparation (order, clean, the clock fit);
+- ``motion``: the motion model, its time grid, the reference trajectory placed on the line by
+  the balises, and the elementary columns every cause is built from;
+- ``stage``: the null, its noise fit, the augmented Kalman filter and the GLS of any set of
+  columns against it;
+- ``causes``: one module per cause and the registry;
+- ``search``: greedy stages, prior odds, the refits; ``gain``: held-out gains;
+- ``result``: :class:`CauseFit`, :class:`Diagnosis` and their JSON.
+
+Pure: numpy/scipy and train_core only.
+"""
+
+from .causes import BY_NAME, CAUSES, REGISTRY, ModelContext
+from .causes.bursty_link import link_test, markov_vs_bernoulli
+from .causes.clock_drift import clock_test
+from .motion import Motion, place_on_line
+from .result import REPORT_KEYS, CauseFit, Diagnosis, jsonable
+from .run import DiagConfig, DiagnoseError, Run, prepare
+from .search import diagnose, joint_refit
+from .stage import Null, Stage, best_section
+
+__all__ = ["BY_NAME", "CAUSES", "REGISTRY", "REPORT_KEYS", "CauseFit", "DiagConfig",
+           "DiagnoseError", "Diagnosis", "ModelContext", "Motion", "Null", "Run", "Stage",
+           "best_section", "clock_test", "diagnose", "joint_refit", "jsonable", "link_test",
+           "markov_vs_bernoulli", "place_on_line", "prepare"]

@@ -1,0 +1,145 @@
+"""The protocol every cause implements, with the defaults most causes share.
+
+A cause is one module with one object: its name (docs/interfaces.md), the family of data it acts on,
+how it is scored against a stage, how it extends the null when accepted, the
+``train_core.effects`` dataclass it becomes (what the simulator runs), its held-out gain, and
+how it is written into a model directory. The search over causes (``search``) knows nothing of
+any particular cause.
+
+Families, in the order the causes are scored: ``motion`` (the dynamics: drift columns of the
+motion model), ``odometer`` (measurement columns), ``clock`` (the stamps: a likelihood of its
+own) and ``link`` (which messages arrive: a likelihood of its own).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from ..result import CauseFit
+
+FAMILIES = ("motion", "odometer", "clock", "link")
+
+
+@dataclass(frozen=True)
+class ModelContext:
+    """What a cause needs to become an effect of a model directory: the run's length on true
+    time and the fitted clock drift (times in effects.yaml are true seconds from the start),
+    the evidence of the diagnosis and the raw odometer series (stamps s, speeds m/s)."""
+
+    duration: float  # s, true time
+    line_length: float  # m, of the believed line
+    drift: float  # -, fitted clock drift (0 when not accepted)
+    t_first: float  # s, first odometer stamp
+    evidence: dict
+    odo_stamp: object
+    odo_speed: object
+
+
+class Cause:
+    """Defaults: a motion-model cause scored by :meth:`fit` against a stage."""
+
+    name: str = ""
+    family: str = "motion"
+    linear: bool = False  # parameters a GLS combination of elementary columns (joint refit)
+    effect_name: str = ""  # field of train_core.effects.Effects (default: the cause's name)
+    model_file: str = "effects"  # where the model directory holds it: line, train or effects
+
+    @property
+    def effect_field(self) -> str:
+        return self.effect_name or self.name
+
+    @property
+    def in_motion_model(self) -> bool:
+        """Scored against the motion model's stages (and refitted at its own noise)."""
+        return self.family in ("motion", "odometer")
+
+    # -- testing --------------------------------------------------------------------------------
+    def untestable(self, run, cfg, own: dict | None) -> str | None:
+        """Why the data cannot test the cause (None: testable)."""
+        return None
+
+    def own_test(self, run) -> dict | None:
+        """A likelihood of its own, computed once per run (clock, link); None for causes scored
+        in the motion model."""
+        return None
+
+    def fit(self, st) -> tuple:
+        """(ll, k, parameters, standard errors, extra) against the stage ``st``."""
+        raise NotImplementedError
+
+    def score(self, st, own: dict | None, ll0: float) -> CauseFit:
+        """The cause's fit and BIC score against the stage whose null has log-likelihood
+        ``ll0`` (prior odds not yet applied)."""
+        if own is not None:
+            return CauseFit(self.name, 2 * own["dll"] - own["k"] * math.log(own["n"]),
+                            own["parameters"], dll=own["dll"], k=own["k"], n=own["n"],
+                            std_errors=own.get("std_errors", {}), extra={})
+        n = st.n_meas
+        ll, k, params, se, extra = self.fit(st)
+        dll = ll - ll0
+        return CauseFit(self.name, 2 * dll - k * math.log(n), params, dll=dll, k=k, n=n,
+                        std_errors=se, extra=extra)
+
+    def dll_at_noise(self, st, st_c, ll0: float) -> float:
+        """Log-likelihood gain of the null extended by the cause (``st_c``, at its own noise)
+        over the stage's null ``st`` at that noise: an unmodelled effect inflates the null's
+        process noise, which understates the effect's own evidence. The null at the cause's
+        noise too: an optimiser that stopped short on the null must not pass for evidence."""
+        return st_c.fixed_loglik() - max(ll0, st.loglik_at(st_c.q, st_c.r_s))
+
+    def extend_null(self, null, fit: CauseFit, mo) -> None:
+        """Put the fitted cause into the null (in place)."""
+        raise NotImplementedError
+
+    # -- linear causes --------------------------------------------------------------------------
+    def free(self, st, extra: dict | None = None) -> list:
+        """Free combinations of elementary columns: [{column name: weight}]."""
+        raise NotImplementedError
+
+    def params(self, st, th, cov, extra: dict | None = None) -> tuple:
+        """(parameters, standard errors, extra) from the fitted coefficients."""
+        raise NotImplementedError
+
+    def fit_linear(self, st) -> tuple:
+        free = self.free(st)
+        th, cov, ll, _ = st.fit({}, free)
+        return (ll, len(free), *self.params(st, th, cov))
+
+    # -- what it becomes ------------------------------------------------------------------------
+    def report(self, params: dict, beta: float) -> dict:
+        """Parameters as docs/interfaces.md reports them (times on the train's stamp clock)."""
+        return params
+
+    def effect(self, params: dict, duration: float):
+        """The train_core.effects dataclass of the fitted cause (``duration``: s, the run's
+        length on the time axis of the parameters)."""
+        raise NotImplementedError
+
+    def clock_drift(self, fit: CauseFit) -> float:
+        """-, the train clock's drift the accepted cause implies (times in a model directory
+        are true seconds)."""
+        return 0.0
+
+    def model_effect(self, fit: CauseFit, ctx: ModelContext):
+        """(effect, note) for a model directory, or (None, reason) when the fit cannot be
+        written (the effect's own parameter ranges are checked by its parser)."""
+        return self.effect(fit.parameters, ctx.duration), None
+
+    def replay_offset(self, extra: dict, shift: float) -> float:
+        """s, command-time offset the extended model replays the commands with (the
+        analysis' nuisance offset unless the cause fits its own timing)."""
+        return shift
+
+    def gain(self, fit: CauseFit, ctx) -> dict:
+        """How much better the extended model predicts data not used for the fit."""
+        from ..gain import gain_motion
+
+        return gain_motion(self, ctx)
+
+    def series(self, params: dict, mo, out: dict) -> None:
+        """Add the accepted cause's curves to the plots' series (in place)."""
+
+    def own_series(self, own: dict, out: dict) -> None:
+        """Add what the cause's own likelihood test saw to the plots' series (in place),
+        accepted or not."""

@@ -1,0 +1,70 @@
+"""``clock_drift``: the train's clock runs at a rate other than the reference clock's.
+
+A likelihood of its own: log time r = alpha + beta s + jitter. Null beta = 1 (no drift),
+alternative beta free; Gaussian jitter with its variance profiled, floor 1 us^2 (time
+resolution) so a jitter-free log does not divide by zero. drift = 1 / beta - 1 (stamp rate
+minus 1, docs/interfaces.md)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from train_core.effects import ClockDriftEffect
+
+from .base import Cause
+
+
+class ClockDrift(Cause):
+    name = "clock_drift"
+    family = "clock"
+
+    def own_test(self, run) -> dict:
+        return clock_test(run)
+
+    def extend_null(self, null, fit, mo) -> None:
+        """The stamps are not part of the motion model: nothing to add."""
+
+    def clock_drift(self, fit) -> float:
+        return float(fit.parameters["drift"])
+
+    def effect(self, params: dict, duration: float) -> ClockDriftEffect:
+        return ClockDriftEffect(float(params["drift"]))
+
+    def gain(self, fit, ctx) -> dict:
+        return ctx.own[self.name].get("gain") or {"metric": "stamp residual", "before": None,
+                                                  "after": None}
+
+
+def clock_test(run) -> dict:
+    """Train clock rate against the reference clock (see the module's docstring); the held-out
+    gain fits on the first half and predicts the second half's log times."""
+    s, r = run.odo_stamp, run.odo_recv
+    n = s.size
+    res0 = r - s
+    rss0 = float(np.sum((res0 - res0.mean()) ** 2))
+    A = np.stack([np.ones_like(s), s], axis=1)
+    coef, *_ = np.linalg.lstsq(A, r, rcond=None)
+    res1 = r - A @ coef
+    rss1 = float(np.sum(res1 ** 2))
+    floor = n * 1e-12
+    dll = 0.5 * n * (math.log(max(rss0, floor)) - math.log(max(rss1, floor)))
+    beta = float(coef[1])
+    sig2 = max(rss1, floor) / max(n - 2, 1)
+    se_beta = math.sqrt(sig2 / max(float(np.sum((s - s.mean()) ** 2)), 1e-12))
+    drift = 1.0 / beta - 1.0
+    half = s < 0.5 * s[-1]
+    gain = None
+    if half.sum() > 10 and (~half).sum() > 10:
+        c1, *_ = np.linalg.lstsq(A[half], r[half], rcond=None)
+        off0 = float(np.median(r[half] - s[half]))
+        before = float(np.sqrt(np.mean((r[~half] - s[~half] - off0) ** 2)))
+        after = float(np.sqrt(np.mean((r[~half] - A[~half] @ c1) ** 2)))
+        gain = {"metric": "held-out stamp residual RMS (s), second half predicted from the first",
+                "before": before, "after": after}
+    return {"dll": dll, "k": 1, "n": n, "parameters": {"drift": drift},
+            "std_errors": {"drift": se_beta / beta ** 2}, "jitter_std": math.sqrt(sig2),
+            "gain": gain}
+
+
+CAUSE = ClockDrift()

@@ -1,0 +1,101 @@
+"""``gradient``: a section of track whose true gradient differs from the map's.
+
+A section is a sum of position bins: every section [i, j) is scored at once by 2-D prefix sums
+(:func:`..stage.best_section`), (s0, permille) by GLS.
+
+Gradient against resistance: on one run position and speed go together, so a long gradient
+"section" at cruise speed is running resistance by another name (a line-long section is exactly
+the Davis a-term). A section is therefore searched and scored with the Davis terms free as
+nuisance: it is named only for what resistance cannot explain (a map error is local).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from train_core.effects import GradientEffect
+
+from ...augmented_kf import LOG2PI, gls
+from ..stage import Stage, best_section
+from .base import Cause
+from .resistance import RESISTANCE_COLS
+
+
+class Gradient(Cause):
+    name = "gradient"
+    family = "motion"
+    linear = True
+    model_file = "line"
+
+    def free(self, st, extra=None) -> list:
+        bi, bj = extra["bins"]
+        return [{f"G{b}": 1.0 for b in range(bi, bj)}]
+
+    def params(self, st, th, cov, extra=None) -> tuple:
+        sd = np.sqrt(np.clip(np.diag(cov), 0, None))
+        bi, bj = extra["bins"]
+        return {"start": float(st.mo.bin_edges[bi]), "end": float(st.mo.bin_edges[bj]),
+                "permille": float(th[0])}, {"permille": sd[0]}, dict(extra)
+
+    def fit(self, st) -> tuple:
+        """All sections [i, j) of the position bins, scored *against the running-resistance
+        model* (Davis a, b, c free as nuisance: Frisch-Waugh on the metric); the permille
+        reported (and added to the model) is the plain fit of the chosen section. Returns ll
+        such that ll - null_ll() is the gain beyond resistance."""
+        mo = st.mo
+        idx = np.array([st.j(f"G{b}") for b in range(mo.n_bins)])
+        width = mo.bin_edges[1] - mo.bin_edges[0]
+        min_len = max(1, int(math.ceil(st.cfg.min_section / width - 1e-9)))
+        e1 = np.zeros(st.p + 3)
+        e1[1] = 1.0
+        W = st.kf.W
+        # Frisch-Waugh: partial the resistance columns out of the metric, then scan
+        F = np.zeros((st.p + 3, 3))
+        for r, name in enumerate(RESISTANCE_COLS):
+            F[st.j(name), r] = 1.0
+        WF = W @ F
+        W_res = W - WF @ np.linalg.pinv(F.T @ WF) @ WF.T
+        quad, bi, bj, _, _ = best_section(W_res, st.M({}, [])[:, 0], e1, idx, min_len)
+        ll_res = st.fit({}, [{n: 1.0} for n in RESISTANCE_COLS])[2]
+        ll_joint = st.loglik_of_quad(quad)
+        extra = {"bins": (bi, bj), "bin_width": float(width)}
+        th, cov, ll_plain, _ = st.fit({}, self.free(st, extra))
+        extra["loglik_gain_plain"] = ll_plain - st.null_ll()
+        return (st.null_ll() + (ll_joint - ll_res), 3, *self.params(st, th, cov, extra))
+
+    def dll_at_noise(self, st, st_c, ll0: float) -> float:
+        """The gain beyond resistance at the cause's noise (see :meth:`fit`): the null and the
+        null with the section, both with the Davis terms free."""
+        mo = st.mo
+        at = Stage(mo, st.null, st.cfg, big=False, noise=(st_c.q, st_c.r_s))
+        cols = [mo.col[c] for c in RESISTANCE_COLS]
+        lls = []
+        for f_v, f_s in ((at.fv, at.fs), (st_c.fv, st_c.fs)):
+            kf = at.augmented(f_v, f_s, drift=(mo.Dv[:, cols], mo.Ds[:, cols]))
+            quad = gls(kf.W, np.eye(5))[2]
+            lls.append(-0.5 * (kf.logdet + kf.m * LOG2PI + quad))
+        return lls[1] - lls[0]
+
+    def extend_null(self, null, fit, mo) -> None:
+        i, j = fit.extra["bins"]
+        null.gradient = (i, j, fit.parameters["permille"])
+
+    def effect(self, params: dict, duration: float) -> GradientEffect:
+        return GradientEffect(params["start"], params["end"], params["permille"])
+
+    def model_effect(self, fit, ctx):
+        """The section clipped to the line (the model directory's line.yaml holds it)."""
+        p = fit.parameters
+        start, end = max(0.0, float(p["start"])), min(ctx.line_length, float(p["end"]))
+        if end <= start:
+            return None, (f"gradient not in the model (section [{p['start']:.0f}, "
+                          f"{p['end']:.0f}) m is outside the line)")
+        return GradientEffect(start, end, float(p["permille"])), (
+            f"gradient: {p['permille']:+.2f} per mille added on [{start:.0f}, {end:.0f}) m")
+
+    def series(self, params: dict, mo, out: dict) -> None:
+        out["gradient_section"] = (params["start"], params["end"], params["permille"])
+
+
+CAUSE = Gradient()

@@ -1,0 +1,49 @@
+"""``mass``: the train's true mass differs from train.yaml's.
+
+The drive force is computed for the believed mass (docs/interfaces.md), so a wrong mass scales the
+traction, braking and resistance accelerations together: one combination of those columns.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from train_core.effects import MassEffect
+
+from .base import Cause
+
+
+class Mass(Cause):
+    name = "mass"
+    family = "motion"
+    linear = True
+
+    def free(self, st, extra=None) -> list:
+        mo = st.mo
+        return [{"tr": 1.0, "br": mo.f0, "one": mo.alpha0, "v": mo.beta0, "v2": mo.gamma0}]
+
+    def params(self, st, th, cov, extra=None) -> tuple:
+        mo = st.mo
+        sd = np.sqrt(np.clip(np.diag(cov), 0, None))
+        k = 1.0 + th[0]
+        return {"mass": mo.train.mass / k}, {"mass": mo.train.mass * sd[0] / k ** 2}, \
+            {"traction_gain": k}
+
+    def fit(self, st) -> tuple:
+        return self.fit_linear(st)
+
+    def extend_null(self, null, fit, mo) -> None:
+        dk = fit.extra["traction_gain"] - 1.0
+        for name, c in (("tr", 1.0), ("br", mo.f0), ("one", mo.alpha0), ("v", mo.beta0),
+                        ("v2", mo.gamma0)):
+            null.drift[name] = null.drift.get(name, 0.0) + dk * c
+
+    def effect(self, params: dict, duration: float) -> MassEffect:
+        return MassEffect(float(params["mass"]))
+
+    def model_effect(self, fit, ctx):
+        return self.effect(fit.parameters, ctx.duration), (
+            "mass: true mass in effects.yaml (the drive force stays computed for train.yaml's "
+            "believed mass, as in the data)")
+
+
+CAUSE = Mass()

@@ -1,0 +1,82 @@
+"""``resistance``: the running resistance (Davis a + b v + c v^2) differs from train.yaml's."""
+
+from __future__ import annotations
+
+import numpy as np
+from train_core.effects import ResistanceEffect
+
+from .base import Cause
+
+RESISTANCE_COLS = ("one", "v", "v2")  # the Davis terms' elementary columns (a, b, c)
+
+
+class Resistance(Cause):
+    name = "resistance"
+    family = "motion"
+    linear = True
+    model_file = "train"
+
+    def free(self, st, extra=None) -> list:
+        return [{n: 1.0} for n in RESISTANCE_COLS]
+
+    def params(self, st, th, cov, extra=None) -> tuple:
+        mo = st.mo
+        sd = np.sqrt(np.clip(np.diag(cov), 0, None))
+        meff = mo.train.effective_mass
+        d = st.null.drift
+        null_res = np.array([d.get("one", 0.0), d.get("v", 0.0), d.get("v2", 0.0)])
+        val = (np.array([mo.alpha0, mo.beta0, mo.gamma0]) + null_res + th) * meff
+        se = sd * meff
+        # a, b and c are strongly correlated over one run's speeds; the resistance force
+        # at the run's typical speed is what the data determine well (reported too)
+        vr = float(np.sqrt(np.mean(mo.v_ref[mo.moving > 0] ** 2))) if mo.moving.any() \
+            else 0.0
+        gv = np.array([1.0, vr, vr * vr])
+        se_force = float(np.sqrt(max(gv @ cov @ gv, 0.0))) * meff
+        return {"a": val[0], "b": val[1], "c": val[2]}, \
+            {"a": se[0], "b": se[1], "c": se[2], "force_at_v_ref": se_force}, \
+            {"v_ref": vr, "force_at_v_ref": float(gv @ val)}
+
+    def fit(self, st) -> tuple:
+        return self.fit_linear(st)
+
+    def extend_null(self, null, fit, mo) -> None:
+        p = fit.parameters
+        meff = mo.train.effective_mass
+        for name, val, base in (("one", p["a"], mo.alpha0), ("v", p["b"], mo.beta0),
+                                ("v2", p["c"], mo.gamma0)):
+            null.drift[name] = null.drift.get(name, 0.0) + val / meff - base
+
+    def effect(self, params: dict, duration: float) -> ResistanceEffect:
+        return ResistanceEffect(params["a"], params["b"], params["c"])
+
+    def model_effect(self, fit, ctx):
+        """The fitted Davis terms, projected onto a, b, c >= 0 if one is negative."""
+        p = fit.parameters
+        abc, projected = davis_nonnegative((p["a"], p["b"], p["c"]), ctx.odo_speed)
+        return ResistanceEffect(*abc), "resistance: fitted Davis a, b, c in train.yaml" + (
+            " (a negative coefficient was projected onto a, b, c >= 0 over the run's speeds)"
+            if projected else "")
+
+
+def davis_nonnegative(abc, speeds) -> tuple[list[float], bool]:
+    """Davis (a, b, c) with every coefficient >= 0, as train.yaml requires. A fit with a negative
+    coefficient is replaced by the non-negative a + b v + c v^2 closest to its curve (least
+    squares) over the speeds of the run (m/s), so the resistance the data showed is kept."""
+    abc = [float(x) for x in abc]
+    if min(abc) >= 0.0:
+        return abc, False
+    from scipy.optimize import nnls
+
+    speeds = np.asarray(speeds, float)
+    v_max = float(np.nanmax(speeds)) if speeds.size and np.isfinite(speeds).any() else 20.0
+    v = np.linspace(0.0, max(v_max, 1.0), 200)
+    A = np.stack([np.ones_like(v), v, v * v], axis=1)
+    target = A @ np.array(abc)
+    # scale the columns so the three coefficients are equally well conditioned
+    sc = np.abs(A).max(axis=0)
+    x, _ = nnls(A / sc, target)
+    return [float(u) for u in x / sc], True
+
+
+CAUSE = Resistance()

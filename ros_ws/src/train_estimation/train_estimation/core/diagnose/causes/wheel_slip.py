@@ -1,0 +1,201 @@
+"""``wheel_slip``: episodes in which the odometer's axle turns faster (slip) or slower (slide)
+than the train moves; the counted distance keeps the excess afterwards.
+
+Candidate episodes are where the null's standardised speed innovation is large; each is fitted
+as an interval [t0, t1) with its own slip fraction, the boundaries profiled at the decimated
+odometer rate (per-sample measurement columns, contiguous sums)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from train_core.effects import WheelSlipEffect
+
+from ...augmented_kf import gls
+from ...identify import moving_average
+from ..stage import best_section
+from .base import Cause
+
+
+class WheelSlip(Cause):
+    name = "wheel_slip"
+    family = "odometer"
+
+    def fit(self, st) -> tuple:
+        cands = _candidates(st)
+        null_ll = st.null_ll()
+        if not cands:
+            return null_ll, 3, {"intervals": []}, {}, {"candidates": 0}
+        cols, Md, Mv = _sample_columns(st, cands)
+        kf = st.augmented(st.fv, st.fs, meas=(Md, Mv))
+        nc = len(cols)
+        u = np.zeros(nc + 2)
+        u[0] = 1.0
+        e1 = np.zeros(nc + 2)
+        e1[1] = 1.0
+        base_quad = gls(kf.W, np.stack([u, e1], axis=1))[2]
+        pen = 3 * math.log(st.n_meas)
+        t = st.mo.ev.t[st.mo.ev.odo]
+        # each candidate's best interval alone ...
+        best_iv = []
+        for c in range(len(cands)):
+            idx = np.array([2 + j for j, (cc, _) in enumerate(cols) if cc == c])
+            if idx.size == 0:
+                continue
+            quad, a, b, eps, se = best_section(kf.W, u, e1, idx, 1)
+            if 2 * 0.5 * (base_quad - quad) - pen > 0:
+                col = np.zeros(nc + 2)
+                col[idx[a:b]] = 1.0
+                i0 = cols[idx[a] - 2][1]
+                i1 = cols[idx[b - 1] - 2][1] + 1
+                best_iv.append((float(t[i0]), float(t[i1]), col))
+        chosen, quad_now = _forward_selection(kf.W, u, e1, best_iv, base_quad, pen)
+        if not chosen:
+            return null_ll, 3, {"intervals": []}, {}, {"candidates": len(cands)}
+        chosen.sort(key=lambda c: c[0])
+        th, cov, _ = gls(kf.W, np.stack([u, e1] + [c[2] for c in chosen], axis=1))
+        eps = th[1:].tolist()
+        se = np.sqrt(np.clip(np.diag(cov)[1:], 0, None)).tolist()
+        return null_ll + 0.5 * (base_quad - quad_now), 3 * len(chosen), \
+            {"intervals": [[c[0], c[1]] for c in chosen]}, {"slip_fraction": se}, \
+            {"slip_fraction": eps, "candidates": len(cands)}
+
+    def extend_null(self, null, fit, mo) -> None:
+        for (t0, t1), eps in zip(fit.parameters["intervals"],
+                                 fit.extra.get("slip_fraction", [])):
+            null.slip.append((t0, t1, eps))
+
+    def report(self, params: dict, beta: float) -> dict:
+        params["intervals"] = [[a / beta, b / beta] for a, b in params.get("intervals", [])]
+        return params
+
+    def effect(self, params: dict, duration: float) -> WheelSlipEffect:
+        fr = [x for x in params.get("slip_fraction", []) if x is not None]
+        return WheelSlipEffect(tuple(tuple(iv) for iv in params.get("intervals", [])),
+                               float(np.mean(fr)) if fr else 0.0)
+
+    def model_effect(self, fit, ctx):
+        """One slip fraction for all episodes (as the simulator's effect has), times on true
+        time from the start of the run."""
+        k = 1.0 + ctx.drift
+        ivs = [[round(float(t0) / k, 3), round(float(t1) / k, 3)]
+               for t0, t1 in fit.parameters.get("intervals", []) if t1 > t0 >= 0.0]
+        if not ivs:
+            return None, None
+        frac = float(np.clip(slip_fraction(fit, ctx), -0.9, 1.0))
+        return WheelSlipEffect(tuple(tuple(iv) for iv in ivs), round(frac, 5)), None
+
+    def gain(self, fit, ctx) -> dict:
+        """Odometer speed minus the model's smoothed speed inside the episodes, raw against
+        corrected by the fitted slip (the episodes are local: nothing to hold out)."""
+        run = ctx.mo.run
+        ivs = fit.parameters.get("intervals", [])
+        if not ivs:
+            return {"metric": "odometer speed error in the slip episodes (m/s)", "before": None,
+                    "after": None}
+        inside = np.zeros(run.odo_t.size, bool)
+        corr = np.ones(run.odo_t.size)
+        for (t0, t1) in ivs:
+            inside |= (run.odo_t >= t0) & (run.odo_t < t1)
+        w = max(1, int(round(3.0 / max(np.median(np.diff(run.odo_t)), 1e-3))))
+        ref = moving_average(run.odo_v, w)
+        # the reference outside the episodes: interpolate across them
+        ref_i = np.interp(run.odo_t, run.odo_t[~inside], ref[~inside]) if (~inside).any() \
+            else ref
+        eps = float(np.mean(run.odo_v[inside] / np.maximum(ref_i[inside], 0.1) - 1.0))
+        corr[inside] = 1.0 + eps
+        before = float(np.sqrt(np.mean((run.odo_v[inside] - ref_i[inside]) ** 2)))
+        after = float(np.sqrt(np.mean((run.odo_v[inside] / corr[inside] - ref_i[inside]) ** 2)))
+        return {"metric": "odometer speed error in the slip episodes (m/s), raw vs corrected "
+                          "by the fitted slip (local: not held out)", "before": before,
+                "after": after}
+
+    def series(self, params: dict, mo, out: dict) -> None:
+        out["slip_intervals"] = params["intervals"]
+
+
+def _candidates(st) -> list:
+    """[t0, t1] of the candidate episodes, strongest first (at most max_slip_candidates)."""
+    cfg, ev = st.cfg, st.mo.ev
+    o = ev.odo
+    s0_hat = st.fit({}, [])[3]
+    nu = (st.kf.E0[o, 0] + s0_hat * st.kf.E1[o, 0]) / np.sqrt(st.kf.S_v[o])
+    t = ev.t[o]
+    cands = []
+    for k in np.flatnonzero(np.abs(nu) > cfg.slip_threshold):
+        if cands and t[k] - cands[-1][1] < 3.0:
+            cands[-1][1] = t[k]
+        else:
+            cands.append([t[k], t[k]])
+    cands = sorted(cands, key=lambda c: -np.max(np.abs(nu[(t >= c[0]) & (t <= c[1])])))
+    return cands[:cfg.max_slip_candidates]
+
+
+def _sample_columns(st, cands: list):
+    """Per-sample slip columns of every candidate window: ([(candidate, odometer event i)],
+    Md, Mv) with column j the slip of bin [t_i, t_i+1) at unit fraction."""
+    mo, ev = st.mo, st.mo.ev
+    o = ev.odo
+    t = ev.t[o]
+    g = mo.grid
+    cum = np.concatenate([[0.0], np.cumsum(0.5 * (mo.v_ref[1:] + mo.v_ref[:-1]) * g.dt)])
+    cols = []
+    for c, (c0, c1) in enumerate(cands):
+        for i in np.flatnonzero((t >= c0 - 2.0) & (t <= c1 + 3.0))[:-1]:
+            if i + 1 < t.size:
+                cols.append((c, int(i)))
+    n, nc = ev.t.size, len(cols)
+    Md = np.zeros((n, nc))
+    Mv = np.zeros((n, nc))
+    for j, (_, i) in enumerate(cols):
+        Mv[o[i], j] = np.interp(t[i], g.t, mo.v_ref)
+        Md[o[i + 1:], j] = np.interp(t[i + 1], g.t, cum) - np.interp(t[i], g.t, cum)
+    return cols, Md, Mv
+
+
+def _forward_selection(W, u, e1, best_iv: list, base_quad: float, pen: float):
+    """Episodes added one at a time by the joint fit: every episode's distance excess persists,
+    so episodes compete for the same evidence and their gains must not be added up."""
+    chosen, quad_now = [], base_quad
+    while best_iv:
+        trials = []
+        for m, (_a, _b, col) in enumerate(best_iv):
+            M = np.stack([u, e1] + [c[2] for c in chosen] + [col], axis=1)
+            trials.append((gls(W, M)[2], m))
+        q_new, m = min(trials)
+        if (quad_now - q_new) - pen <= 0:
+            break
+        chosen.append(best_iv.pop(m))
+        quad_now = q_new
+    return chosen, quad_now
+
+
+def slip_fraction(fit, ctx) -> float:
+    """The slip fraction of an accepted wheel_slip for a model (one value for all episodes):
+    the mean of the fitted per-episode fractions the diagnosis reports, else measured from the
+    odometer speed inside the episodes against the speed just around them."""
+    ev = (ctx.evidence or {}).get("wheel_slip", {})
+    for src in (ev.get("details", {}) if isinstance(ev, dict) else {}, ev):
+        v = src.get("slip_fraction") if isinstance(src, dict) else None
+        if v is not None and not isinstance(v, dict):
+            vals = [float(x) for x in np.atleast_1d(v) if x is not None and math.isfinite(x)]
+            if vals and all(abs(x) < 1.0 for x in vals):
+                return float(np.mean(vals))
+    t = np.asarray(ctx.odo_stamp, float) - ctx.t_first
+    v = np.asarray(ctx.odo_speed, float)
+    order = np.argsort(t)
+    t, v = t[order], v[order]
+    ratios = []
+    for t0, t1 in fit.parameters.get("intervals", []):
+        inside = (t >= t0) & (t < t1)
+        around = ((t >= t0 - 3.0) & (t < t0)) | ((t >= t1) & (t < t1 + 3.0))
+        if inside.any() and around.sum() >= 2:
+            ref = np.interp(t[inside], t[around], v[around])
+            ok = ref > 1.0
+            if ok.any():
+                ratios.append(float(np.mean(v[inside][ok] / ref[ok] - 1.0)))
+    return float(np.mean(ratios)) if ratios else 0.0
+
+
+CAUSE = WheelSlip()

@@ -1,0 +1,246 @@
+"""The search over causes: greedy stages, prior odds, the refit at a cause's own noise and the
+joint refit of the accepted linear causes.
+
+Decision (the same for every cause): the score is the BIC-penalised log-likelihood ratio
+against the current null with the prior odds of K causes against ``none``,
+``2 (ll_cause - ll_null) - k ln n - 2 ln K`` (k = the cause's parameter count, profiled ones
+included; n = number of scalar measurements of the likelihood it lives in; K = causes scored in
+the stage). A cause is accepted when its score is > 0; ``none`` has score 0. Causes outside
+the motion model have likelihoods of their own (the clock, the link). Greedy: the best cause is
+put into the null (its fit fixed, noise refitted) and the rest are scored again; at the end the
+accepted causes that are linear in their parameters are refitted jointly (a cause accepted
+first must not keep the part of a later one it absorbed).
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+from train_core.model import Line, TrainParams
+
+from ..measured import MeasuredRun
+from .causes import BY_NAME, REGISTRY, SCORING
+from .gain import GainContext
+from .motion import Motion
+from .result import CauseFit, Diagnosis, clean, rounded
+from .run import DiagConfig, prepare
+from .series import series
+from .stage import Null, Stage
+
+# The score applied below, as stated in diagnose --help and in report.json (a test compares them)
+SCORE_FORMULA = ("2 (ll_cause - ll_null) - k ln n - 2 ln K (BIC-penalised log-likelihood ratio; "
+                 "k: the cause's parameter count, n: measurements, K: causes scored in the stage)")
+
+
+@dataclass
+class _Search:
+    """The state of the greedy search over one run."""
+
+    mo: Motion
+    cfg: DiagConfig
+    own: dict  # cause -> its own likelihood test (clock, link)
+    skip: set  # untestable or already accepted causes of their own likelihood
+    null: Null = field(default_factory=Null)
+    accepted: list = field(default_factory=list)  # [CauseFit]
+    stages: list = field(default_factory=list)  # [{"null_loglik", "q", "r_s", "scores", ...}]
+    first: tuple | None = None  # (first stage, its null)
+
+
+def diagnose(data: MeasuredRun, line: Line, train: TrainParams, config: DiagConfig | None = None,
+             progress: Callable[[int, int, str], None] | None = None) -> Diagnosis:
+    """Diagnose one run (``config``: default :class:`DiagConfig`). Raises
+    :class:`DiagnoseError` on unusable input."""
+    cfg = config if config is not None else DiagConfig()
+    total = 3 + 2 * cfg.stages
+
+    def tick(i, what):
+        if progress is not None:
+            progress(i, total, what)
+
+    run = prepare(data, line, cfg)
+    tick(1, "clock and link")
+    own = {c.name: res for c in REGISTRY if (res := c.own_test(run)) is not None}
+    untestable = []
+    for c in SCORING:
+        why = c.untestable(run, cfg, own.get(c.name))
+        if why is not None:
+            untestable.append({"cause": c.name, "why": why})
+    tick(2, "motion model")
+    sr = _Search(Motion(run, line, train, cfg), cfg, own, {u["cause"] for u in untestable})
+    st = None
+    for stage_i in range(cfg.stages):
+        st = _stage(sr, stage_i, tick)
+        best = max(sr.stages[-1]["scores"].values(), key=lambda f: f.score, default=None)
+        if best is None or best.score <= 0:
+            break
+        _accept(sr, best, stage_i)
+    joint_refit(sr.mo, sr.null, sr.accepted, cfg, (st.q, st.r_s))
+    ranking = _ranking(sr, run.clock["beta"])
+    evidence = _evidence(sr, run)
+    tick(total - 1, "gain")
+    top = ranking[0]
+    first_stage, first_null = sr.first
+    first_stage.null = first_null
+    gain = BY_NAME[top.cause].gain(top, GainContext(sr.mo, first_stage, cfg, own)) \
+        if top.cause != "none" else \
+        {"metric": "none: nothing to extend", "before": None, "after": None}
+    tick(total, "done")
+    return Diagnosis(cause=top.cause, parameters=top.parameters, ranking=ranking,
+                     untestable=untestable, evidence=evidence, gain=gain,
+                     accepted=sr.accepted, series=series(sr.mo, sr.accepted, own))
+
+
+def _stage(sr: _Search, stage_i: int, tick) -> Stage:
+    """Score every cause not yet accepted against the current null (one greedy stage)."""
+    mo, cfg, null = sr.mo, sr.cfg, sr.null
+    tick(3 + 2 * stage_i, f"stage {stage_i + 1}: noise and filter")
+    st = Stage(mo, null, cfg)
+    # the common command-time offset (nuisance) is re-estimated under every stage's null:
+    # estimated under a null that misses a large effect it can be far off, and a wrong
+    # offset would then pass for a brake delay
+    if not null.brake_extra:
+        s_hat, _ = st.nuisance_shift()
+        if s_hat != null.shift:
+            null.shift = s_hat
+            st = Stage(mo, null, cfg, noise=(st.q, st.r_s))
+    tick(4 + 2 * stage_i, f"stage {stage_i + 1}: causes")
+    ll0 = st.null_ll()
+    done = {a.cause for a in sr.accepted}
+    scores = {}
+    for c in SCORING:
+        if c.name in sr.skip or c.name in done:
+            continue
+        scores[c.name] = c.score(st, sr.own.get(c.name), ll0)
+    _refit_noise(sr, st, scores, ll0)
+    # Prior odds: `none` against K causes, each 1/K as likely a priori as some effect at
+    # all (BIC is the log Bayes factor at even odds): 2 ln K off every score. Without it
+    # every cause tested is a chance of a false alarm (10 % of nominal bags with K = 9).
+    prior = 2.0 * math.log(max(len(scores), 1))
+    for f in scores.values():
+        f.score -= prior
+        f.prior_odds_penalty = prior
+    sr.stages.append({"null_loglik": ll0, "q": st.q, "r_s": st.r_s, "scores": scores,
+                      "shift": null.shift})
+    if sr.first is None:
+        sr.first = (st, copy.deepcopy(null))
+    return st
+
+
+def _refit_noise(sr: _Search, st: Stage, scores: dict, ll0: float) -> None:
+    """A cause's likelihood ratio with the noise re-maximised under it: an unmodelled effect
+    inflates the null's process noise q, which understates the effect's own evidence. For the
+    best ``noise_refits`` causes of the motion model (in place)."""
+    n = st.n_meas
+    prelim = sorted((c for c in scores if BY_NAME[c].in_motion_model),
+                    key=lambda c: -scores[c].score)[:sr.cfg.noise_refits]
+    for name in prelim:
+        f = scores[name]
+        if f.score < -20.0:
+            continue
+        null_c = copy.deepcopy(sr.null)
+        BY_NAME[name].extend_null(null_c, f, sr.mo)
+        st_c = Stage(sr.mo, null_c, sr.cfg, big=False, noise=None)
+        dll_c = BY_NAME[name].dll_at_noise(st, st_c, ll0)
+        if dll_c > f.dll:
+            f.dll_common_noise = f.dll
+            f.dll = dll_c
+            f.score = 2 * dll_c - f.k * math.log(n)
+            f.noise = (st_c.q, st_c.r_s)
+
+
+def _accept(sr: _Search, best: CauseFit, stage_i: int) -> None:
+    """Put the stage's best cause into the null (refitted at its own noise first)."""
+    cause = BY_NAME[best.cause]
+    if best.noise is not None:
+        refit_at_own_noise(sr.mo, sr.null, cause, best, sr.cfg)
+    sr.accepted.append(CauseFit(best.cause, best.score, best.parameters,
+                                std_errors=best.std_errors, extra=best.extra,
+                                stage=stage_i + 1))
+    cause.extend_null(sr.null, best, sr.mo)
+    if not cause.in_motion_model:
+        sr.skip.add(best.cause)
+
+
+def refit_at_own_noise(mo: Motion, null: Null, cause, fit: CauseFit, cfg: DiagConfig,
+                       rounds: int = 2) -> None:
+    """Re-fit an accepted cause's parameters at the noise of the model that includes it (in
+    place). Its first fit ran at the null's noise, which the cause itself inflated (a slip
+    episode not modelled makes q 100x too large, and at that q the filter follows the odometer
+    and the slip fraction is barely determined): fit, re-maximise the noise under the extended
+    null, fit again."""
+    for _ in range(rounds):
+        st = Stage(mo, null, cfg, noise=fit.noise)
+        _, _, fit.parameters, fit.std_errors, fit.extra = cause.fit(st)
+        null_c = copy.deepcopy(null)
+        cause.extend_null(null_c, fit, mo)
+        st_c = Stage(mo, null_c, cfg, big=False)
+        fit.noise = (st_c.q, st_c.r_s)
+
+
+def joint_refit(mo: Motion, null: Null, accepted: list, cfg: DiagConfig, noise) -> None:
+    """Re-estimate the accepted linear causes' parameters jointly (in place).
+
+    Greedy stages fit each cause on top of the earlier ones held fixed: a cause accepted first
+    absorbs part of a later one's effect (a gradient section fitted before a resistance
+    change is biased by it). Given the discrete choices (sections, delays, slip episodes,
+    command offset), the accepted linear causes are one GLS problem: fit them together."""
+    lin = [a for a in accepted if BY_NAME[a.cause].linear]
+    if len(lin) < 2:
+        return
+    base = Null(shift=null.shift, brake_extra=null.brake_extra, slip=list(null.slip))
+    st = Stage(mo, base, cfg, noise=noise)
+    free, blocks = [], []
+    for a in lin:
+        f = BY_NAME[a.cause].free(st, a.extra)
+        blocks.append((a, len(free), len(f)))
+        free += f
+    th, cov, _, _ = st.fit({}, free)
+    for a, i, k in blocks:
+        a.parameters, a.std_errors, a.extra = BY_NAME[a.cause].params(
+            st, th[i:i + k], cov[i:i + k, i:i + k], a.extra)
+
+
+def _reported(fit: CauseFit, beta: float) -> CauseFit:
+    """A ranking entry: score rounded, parameters as docs/interfaces.md reports them."""
+    return CauseFit(fit.cause, rounded(fit.score),
+                    BY_NAME[fit.cause].report(clean(fit.parameters), beta))
+
+
+def _ranking(sr: _Search, beta: float) -> list:
+    """Accepted causes in order, then the rest by their last score, ``none`` among them."""
+    ranking = [_reported(a, beta) for a in sr.accepted]
+    seen = {a.cause for a in sr.accepted}
+    first, last = sr.stages[0]["scores"], sr.stages[-1]["scores"]
+    rest = [_reported(last.get(c.name, first[c.name]), beta) for c in REGISTRY
+            if c.name not in seen and c.name in first]
+    rest.append(CauseFit("none", 0.0, {}))
+    rest.sort(key=lambda r: -r.score)
+    return ranking + rest
+
+
+def _evidence(sr: _Search, run) -> dict:
+    """Per cause: its fit alone at the first stage; the model's clocks, noise and notes."""
+    evidence = {}
+    for cause, f in sr.stages[0]["scores"].items():
+        evidence[cause] = {"score_alone": rounded(f.score), "loglik_gain": rounded(f.dll),
+                           "n_params": f.k, "n": f.n,
+                           "parameters_alone": clean(f.parameters),
+                           "std_errors": clean(f.std_errors),
+                           "details": clean({k: v for k, v in f.extra.items()
+                                             if k != "profile"})}
+    for a in sr.accepted:
+        evidence.setdefault(a.cause, {})["accepted_at_stage"] = a.stage
+        evidence[a.cause]["std_errors"] = clean(a.std_errors)
+    clock = sr.own.get("clock_drift", {})
+    evidence["_model"] = {"clock": {"offset_s": run.clock["alpha"], "rate": run.clock["beta"],
+                                    "jitter_std_s": clock.get("jitter_std")},
+                          "command_offset_s": sr.stages[0]["shift"],
+                          "stages": [{"null_loglik": rounded(s["null_loglik"]), "q": s["q"],
+                                      "r_s": s["r_s"]} for s in sr.stages],
+                          "samples": int(sr.mo.ev.odo.size), "balises": int(sr.mo.ev.bal.size),
+                          "duration_s": run.duration,
+                          "score": SCORE_FORMULA, "notes": run.notes}
+    return evidence

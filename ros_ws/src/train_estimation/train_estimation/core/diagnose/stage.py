@@ -1,0 +1,222 @@
+"""The generic stage: the null (believed model + accepted causes), its noise, the augmented
+filter over every elementary column, and fitting any set of columns against it.
+
+Exact likelihood for all causes from one filter run: the Kalman gains do not depend on the
+drift or measurement columns, so one *augmented* Kalman filter run (de Jong 1991; the
+``identify`` GLS) carrying every elementary column gives the matrix W = sum_k E_k^T S_k^-1 E_k
+over [data, columns], and the exact log-likelihood of any hypothesis z = [1, theta] is
+-0.5 (sum log det S_k + m log 2 pi + z^T W z). A hypothesis that is a linear combination of
+elementary columns is then a small quadratic problem (:meth:`Stage.fit`); nonlinear parameters
+are profiled over grids (the causes do that).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import minimize_scalar
+
+from ..augmented_kf import LOG2PI, augmented_kf, gls, kf2_loglik
+from .motion import Motion, slip_cols
+from .run import DiagConfig
+
+
+@dataclass
+class Null:
+    """What the current null adds to the believed model (accepted causes, nuisance shift)."""
+
+    drift: dict = field(default_factory=dict)  # elementary drift column name -> coefficient
+    scale: float = 0.0  # odometer (scale - 1)
+    slip: list = field(default_factory=list)  # [(t0, t1, eps)]
+    shift: float = 0.0  # s, command-time offset
+    brake_extra: float = 0.0  # s, extra braking delay
+    gradient: tuple | None = None  # (bin i, bin j, permille)
+
+
+class Stage:
+    """One greedy stage: the null, its noise (fitted unless given) and, with ``big``, the
+    augmented filter over [fixed, s0, every elementary drift column, scale] (``kf``)."""
+
+    def __init__(self, mo: Motion, null: Null, cfg: DiagConfig, noise=None, update=None,
+                 big=True):
+        self.mo, self.null, self.cfg = mo, null, cfg
+        # fixed part of drift and measurement (column 0)
+        fv, fs = mo.base_v.copy(), mo.base_s.copy()
+        for name, c in self._null_drift().items():
+            j = mo.col[name]
+            fv += c * mo.Dv[:, j]
+            fs += c * mo.Ds[:, j]
+        md = null.scale * mo.sc_d
+        mv = null.scale * mo.sc_v
+        for t0, t1, eps in null.slip:
+            a, b = slip_cols(mo, [(t0, t1)])
+            md = md + eps * a
+            mv = mv + eps * b
+        self.fv, self.fs, self.md, self.mv = fv, fs, md, mv
+        if noise is None:
+            noise = self._fit_noise()
+        self.q, self.r_s = noise
+        if not big:
+            return
+        # the big run: [fixed, s0, elementary drift columns..., scale]
+        self.p = mo.Dv.shape[1]
+        self.kf = self.augmented(fv, fs, drift=(mo.Dv, mo.Ds),
+                                 meas=(mo.sc_d[:, None], mo.sc_v[:, None]), keep_innov=True,
+                                 update=update)
+        self.n_meas = self.kf.m
+
+    def augmented(self, fv: np.ndarray, fs: np.ndarray, drift=None, meas=None, **kw):
+        """One augmented filter at this stage's noise over the columns [fixed part (drift fv,
+        fs; the null's measurement part), s0, drift columns ``drift = (Dv, Ds)``...,
+        measurement columns ``meas = (Md, Mv)``...] (each pair (n_ev, k) or None)."""
+        n = self.mo.ev.t.size
+        a = 0 if drift is None else drift[0].shape[1]
+        b = 0 if meas is None else meas[0].shape[1]
+        Bv, Bs, Md, Mv, Mb = (np.zeros((n, a + b + 2)) for _ in range(5))
+        Bv[:, 0], Bs[:, 0] = fv, fs
+        Md[:, 0], Mv[:, 0] = self.md, self.mv
+        Mb[:, 1] = 1.0
+        if a:
+            Bv[:, 2:a + 2], Bs[:, 2:a + 2] = drift
+        if b:
+            Md[:, a + 2:], Mv[:, a + 2:] = meas
+        return augmented_kf(self.mo.ev, self.q, self.r_s, Bv, Bs, Md, Mv, Mb,
+                            self.cfg.standstill_q, **kw)
+
+    def _null_drift(self) -> dict:
+        null, mo = self.null, self.mo
+        d = dict(null.drift)
+        if null.shift != 0.0:
+            name = f"T{null.shift:+.3f}"
+            d[name] = d.get(name, 0.0) + 1.0
+        key = round(null.shift + null.brake_extra, 6)
+        if key != 0.0:
+            name = mo.braking_cols[key]
+            d[name] = d.get(name, 0.0) + 1.0
+        if null.gradient is not None:
+            i, j, pm = null.gradient
+            for b in range(i, j):
+                d[f"G{b}"] = d.get(f"G{b}", 0.0) + pm
+        return d
+
+    def loglik_at(self, q: float, r_s: float) -> float:
+        """Log-likelihood of this stage's null at noise (q, r_s), s0 profiled."""
+        return kf2_loglik(self.mo.ev, q, r_s, self.fv, self.fs, self.md, self.mv,
+                          self.cfg.standstill_q)
+
+    def _fit_noise(self):
+        """Process-noise PSD q and distance-noise variance r_s by maximum likelihood under this
+        stage's null (s0 profiled): coordinate-wise bounded Brent searches on their logs, q
+        first (it matters most), then r_s, then q again (the two trade off against each other:
+        too small a distance noise makes q absorb it)."""
+        cfg = self.cfg
+
+        def ll(lq, lr):
+            return self.loglik_at(math.exp(lq), math.exp(lr))
+
+        lr = math.log(max(float(np.median(self.mo.run.odo_rv)), 1e-4))
+        q_lo, q_hi, r_lo, r_hi = (math.log(cfg.q_floor), math.log(1.0), math.log(1e-6),
+                                  math.log(25))
+        opts = {"xatol": 0.1, "maxiter": 14}
+        lq = minimize_scalar(lambda x: -ll(x, lr), bounds=(q_lo, q_hi), method="bounded",
+                             options=opts).x
+        lr = minimize_scalar(lambda x: -ll(lq, x), bounds=(r_lo, r_hi), method="bounded",
+                             options=opts).x
+        lq = minimize_scalar(lambda x: -ll(x, lr), bounds=(q_lo, q_hi), method="bounded",
+                             options=opts).x
+        return float(math.exp(lq)), float(math.exp(lr))
+
+    def fixed_loglik(self) -> float:
+        """Log-likelihood of this stage's null at its noise, s0 profiled (scalar filter)."""
+        return self.loglik_at(self.q, self.r_s)
+
+    def M(self, fixed: dict, free: list) -> np.ndarray:
+        """[1, theta] -> full z over [fixed, s0, elementary..., scale]. ``fixed``: column name
+        -> coefficient added to z[0]'s combination; ``free``: list of {column name: weight}
+        (s0 is always free, first)."""
+        p = self.p
+        M = np.zeros((p + 3, 2 + len(free)))
+        M[0, 0] = 1.0
+        for name, c in fixed.items():
+            M[self.j(name), 0] += c
+        M[1, 1] = 1.0  # s0
+        for i, combo in enumerate(free):
+            for name, c in combo.items():
+                M[self.j(name), 2 + i] += c
+        return M
+
+    def j(self, name: str) -> int:
+        """Index of an elementary column (or ``scale``) in the big filter's z."""
+        if name == "scale":
+            return self.p + 2
+        return 2 + self.mo.col[name]
+
+    def fit(self, fixed: dict, free: list):
+        """GLS of the free combinations with the fixed ones added: (theta, cov, ll, s0)."""
+        th, cov, quad = gls(self.kf.W, self.M(fixed, free))
+        ll = -0.5 * (self.kf.logdet + self.kf.m * LOG2PI + quad)
+        return th[1:], cov[1:, 1:], ll, th[0]
+
+    def loglik_of_quad(self, quad: float) -> float:
+        """The big filter's log-likelihood for a quadratic form z^T W z = ``quad``."""
+        return -0.5 * (self.kf.logdet + self.kf.m * LOG2PI + quad)
+
+    def nuisance_shift(self) -> tuple[float, float]:
+        """Best common command-time offset under the null (both chains re-timed): (s, ll)."""
+        best = (-math.inf, 0.0)
+        for s in self.mo.shifts:
+            fixed = self.retime(float(s), 0.0)
+            ll = self.fit(fixed, [])[2]
+            best = max(best, (ll, float(s)))
+        return best[1], best[0]
+
+    def retime(self, shift: float, extra: float) -> dict:
+        """Fixed columns that move the null's command timing to (shift, extra braking)."""
+        null, mo = self.null, self.mo
+        d = {}
+        if null.shift != 0.0:
+            d[f"T{null.shift:+.3f}"] = -1.0
+        if shift != 0.0:
+            d[f"T{shift:+.3f}"] = d.get(f"T{shift:+.3f}", 0.0) + 1.0
+        k_old = round(null.shift + null.brake_extra, 6)
+        k_new = round(shift + extra, 6)
+        if k_old != 0.0:
+            d[mo.braking_cols[k_old]] = -1.0
+        if k_new != 0.0:
+            d[mo.braking_cols[k_new]] = d.get(mo.braking_cols[k_new], 0.0) + 1.0
+        return {k: v for k, v in d.items() if v != 0.0}
+
+    def null_ll(self) -> float:
+        return self.fit({}, [])[2]
+
+
+def best_section(W: np.ndarray, u: np.ndarray, e1: np.ndarray, idx: np.ndarray, min_len: int):
+    """The contiguous run [a, b) of the columns ``idx`` (b - a >= min_len) whose sum, with one
+    free coefficient theta and the free nuisance e1 (s0), best explains the data: closed-form
+    GLS for every run through prefix sums of W. ``u`` is the fixed combination (z[0]).
+    Returns (quad, a, b, theta, se(theta))."""
+    nb = idx.size
+    w_uu, w_u1, w_11 = u @ W @ u, u @ W @ e1, e1 @ W @ e1
+    a_ = W[idx] @ u
+    b_ = W[idx] @ e1
+    C = W[np.ix_(idx, idx)]
+    A = np.concatenate([[0.0], np.cumsum(a_)])
+    B = np.concatenate([[0.0], np.cumsum(b_)])
+    P = np.zeros((nb + 1, nb + 1))
+    P[1:, 1:] = np.cumsum(np.cumsum(C, axis=0), axis=1)
+    i, j = np.triu_indices(nb + 1, k=min(min_len, nb))
+    aS, bS = A[j] - A[i], B[j] - B[i]
+    cS = P[j, j] - P[i, j] - P[j, i] + P[i, i]
+    det = w_11 * cS - bS * bS
+    ok = det > 1e-12 * np.maximum(w_11 * cS, 1e-300)
+    safe = np.where(ok, det, 1.0)
+    th_s0 = -(cS * w_u1 - bS * aS) / safe
+    th = -(-bS * w_u1 + w_11 * aS) / safe
+    quad = np.where(ok, w_uu + w_u1 * th_s0 + aS * th, np.inf)
+    best = int(np.argmin(quad))
+    if not np.isfinite(quad[best]):
+        return math.inf, 0, nb, 0.0, math.nan
+    se = math.sqrt(max(w_11 / det[best], 0.0)) if ok[best] else math.nan
+    return float(quad[best]), int(i[best]), int(j[best]), float(th[best]), se

@@ -1,0 +1,139 @@
+"""One record of a measured run: what the offline tools (identify, diagnose, fleet) read of a
+bag, and the health of its topics.
+
+Only ``odometer``, ``balise`` and ``control`` are taken (a ``ground_truth`` topic, if present,
+is never read). Stamps as recorded (docs/interfaces.md clocks): odometer and balise on the train's
+clock, control on the reference clock; ``*_recv`` are the bag's log (receive) times on the
+reference clock. Arrays in bag order.
+
+Pure: numpy and train_core only (a read :class:`train_core.bagio.Bag` in, no file access).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import reasons as R
+from .clocks import control_on_train_clock
+
+TOPICS = ("odometer", "balise", "control")  # never ground_truth
+
+
+@dataclass(frozen=True)
+class MeasuredRun:
+    """Measured series of one run, as recorded."""
+
+    odo_stamp: np.ndarray  # s, train clock
+    odo_recv: np.ndarray  # s, reference clock (bag log time)
+    odo_seq: np.ndarray  # -, uint32 sample counter before the link
+    odo_distance: np.ndarray  # m
+    odo_speed: np.ndarray  # m/s
+    odo_speed_variance: np.ndarray  # (m/s)^2
+    ctrl_stamp: np.ndarray  # s, reference clock
+    ctrl_a_tar: np.ndarray  # m/s^2
+    balise_stamp: np.ndarray  # s, train clock
+    balise_recv: np.ndarray  # s, reference clock
+    balise_id: np.ndarray  # -
+    balise_position: np.ndarray  # m, surveyed position
+    balise_variance: np.ndarray  # m^2
+    ctrl_recv: np.ndarray | None = None  # s, reference clock (bag log time)
+    topics: tuple = ()  # the topics the bag held (names relative to its namespace)
+
+    @classmethod
+    def from_bag(cls, bag) -> MeasuredRun:
+        """The record of a read bag (:class:`train_core.bagio.Bag`)."""
+
+        def col(topic, key, dtype=float):
+            return np.array([f[key] for _, _, f in bag.topics.get(topic, [])], dtype=dtype)
+
+        def stamps(topic):
+            return np.array([s for _, s, _ in bag.topics.get(topic, [])], dtype=float)
+
+        def recv(topic):
+            return np.array([t for t, _, _ in bag.topics.get(topic, [])], dtype=float) * 1e-9
+
+        return cls(
+            odo_stamp=stamps("odometer"), odo_recv=recv("odometer"),
+            odo_seq=col("odometer", "seq", np.int64), odo_distance=col("odometer", "distance"),
+            odo_speed=col("odometer", "speed"),
+            odo_speed_variance=col("odometer", "speed_variance"),
+            ctrl_stamp=stamps("control"), ctrl_a_tar=col("control", "target_acceleration"),
+            balise_stamp=stamps("balise"), balise_recv=recv("balise"),
+            balise_id=col("balise", "balise_id", np.int64),
+            balise_position=col("balise", "position"),
+            balise_variance=col("balise", "position_variance"),
+            ctrl_recv=recv("control"), topics=tuple(sorted(bag.topics)))
+
+    def to_identify(self):
+        """identify's :class:`SIData`: every time on the odometer's (train) clock, control
+        mapped through the odometer's stamps and log times. Raises IdentificationError
+        naming the missing topics."""
+        from .identify import IdentificationError, SIData
+
+        missing = [t for t, a in (("odometer", self.odo_stamp), ("control", self.ctrl_stamp))
+                   if len(a) == 0]
+        if missing:
+            raise IdentificationError(
+                f"the bag has no {' and no '.join(missing)} messages (topics: "
+                f"{list(self.topics) or 'none'})", missing=missing,
+                unidentifiable=("davis.a", "davis.b", "davis.c", "mass", "rotary_allowance",
+                                "braking_rate"))
+        ctrl_recv = self.ctrl_recv if self.ctrl_recv is not None else np.array([])
+        ctrl_t = control_on_train_clock(self.odo_stamp, self.odo_recv, self.ctrl_stamp,
+                                        ctrl_recv)
+        has_bal = len(self.balise_stamp) > 0
+        return SIData(
+            odo_t=self.odo_stamp, odo_distance=self.odo_distance, odo_speed=self.odo_speed,
+            odo_speed_variance=self.odo_speed_variance, ctrl_t=ctrl_t, ctrl_a_tar=self.ctrl_a_tar,
+            balise_t=self.balise_stamp if has_bal else None,
+            balise_position=self.balise_position if has_bal else None)
+
+
+# TrainState fields where NaN is a value by design: "not estimated" (docs/interfaces.md), e.g.
+# the braking rate of an estimator that does not estimate it. Infinity is never by design.
+NOT_ESTIMATED_NAN = ("braking_rate", "covariance")
+
+
+def _non_finite(stamp: float, fields: dict) -> bool:
+    """A stamp or field that is not a finite number, NaN-by-design fields excepted."""
+    if not math.isfinite(stamp):
+        return True
+    state = "source" in fields and "covariance" in fields  # a TrainState
+    for k, v in fields.items():
+        if isinstance(v, (float, np.floating)):
+            if math.isfinite(v) or (state and k in NOT_ESTIMATED_NAN and math.isnan(v)):
+                continue
+            return True
+        if isinstance(v, np.ndarray) and v.dtype.kind == "f":
+            bad = ~np.isfinite(v)
+            if state and k in NOT_ESTIMATED_NAN:
+                bad &= ~np.isnan(v)
+            if bad.any():
+                return True
+    return False
+
+
+def topic_health(bag, topic: str) -> dict:
+    """Count, type, stamp order, non-finite values, largest gap and (with ``seq``) the received
+    fraction of one topic of a read bag; the estimators' rejection names (core/reasons.py) for
+    what the stamps alone show."""
+    msgs = bag.topics.get(topic, [])
+    stamps = bag.stamps(topic)
+    out: dict = {"count": len(msgs), "type": bag.types.get(topic, "")}
+    if len(msgs) == 0:
+        return out
+    d = np.diff(stamps)
+    out[R.OUT_OF_ORDER] = int(np.sum(d < 0))
+    out["duplicate_stamps"] = int(np.sum(d == 0))
+    out[R.NON_FINITE] = int(sum(1 for _, s, f in msgs if _non_finite(s, f)))
+    out["max_gap_s"] = float(d.max()) if d.size else 0.0
+    if "seq" in msgs[0][2]:
+        seq = bag.series(topic, "seq")
+        span = int(seq.max() - seq.min() + 1)
+        out["seq_span"] = span
+        out["received_fraction"] = len(np.unique(seq)) / span
+        out["seq_gaps"] = int(np.sum(np.diff(np.sort(seq)) > 1))
+    return out
