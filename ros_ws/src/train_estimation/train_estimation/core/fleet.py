@@ -32,6 +32,18 @@ Line consensus (per line):
   train widens the interval instead of moving the line's value; flagged when |z| exceeds the
   normal quantile of alpha / (2 n_lines) and Cochran's Q does not reject agreement.
 
+Several days (rows with a ``day`` label): a map error passed on two or more days is tested
+once more without the day that found it most often. It is *confirmed* when the other days'
+runs alone pass the binomial test; *withdrawn* (verdict "one day's artefact") when the other
+days found it significantly less often than that day (one-sided Fisher exact test, alpha) and
+alone do not pass; otherwise it stands, found on one day only ("unconfirmed").
+
+Reliability (``reliability``): a section needs ``n_min`` analysed runs, the fewest with which a
+map error that ``diagnose`` finds in ``p_detect`` of the runs is declared with probability
+``power`` by the binomial test above; a line with fewer analysed runs (or runs of fewer than
+``min_trains`` trains) cannot exclude a map error, and a parameter with values of fewer than
+three trains cannot show a departure: the consensus then says it is unreliable, and why.
+
 Train consensus (per parameter: braking rate, mass, odometer scale):
 
 - Per-run scatter beyond the stated standard errors (load, weather) is tau^2: the
@@ -60,7 +72,7 @@ Pure: numpy/scipy only.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 from scipy import stats
@@ -77,6 +89,8 @@ class FleetConfig:
     overlap: float = 0.5  # sections overlapping by this fraction of the shorter are the same
     p_false: float = 0.05  # per-run probability of a spurious section (diagnose, nominal bags)
     min_runs_trend: int = 3  # runs a train needs for a trend test
+    p_detect: float = 0.5  # per-run detection rate of the weakest map error not to be missed
+    power: float = 0.9  # ... declared with this probability: sets the runs a section needs
 
 
 # ------------------------------------------------------------------------------------------------
@@ -198,7 +212,7 @@ def line_consensus(rows: list[dict], cfg: FleetConfig = FleetConfig()) -> dict:
     n_groups = 0
     for ln in lines:
         lr = [r for r in rows if r["line"] == ln]
-        dets = [dict(r["gradient"], train=r["train"], bag=r.get("bag"))
+        dets = [dict(r["gradient"], train=r["train"], bag=r.get("bag"), day=r.get("day"))
                 for r in lr if r.get("gradient")]
         groups = group_sections(dets, cfg.overlap)
         n_groups += len(groups)
@@ -209,6 +223,11 @@ def line_consensus(rows: list[dict], cfg: FleetConfig = FleetConfig()) -> dict:
             s1 = float(np.median([d["end"] for d in m]))
             c = combine([d["permille"] for d in m], [d["se"] for d in m])
             passed = [r for r in lr if _covers(r, s0, s1)]
+            days: dict = {}
+            for r in passed:
+                days.setdefault(r.get("day"), [0, 0])[1] += 1
+            for d in m:
+                days.setdefault(d.get("day"), [0, 0])[0] += 1
             secs.append({"start": s0, "end": s1, "permille": c["mean"], "se": c["se"],
                          "ci95": [c["mean"] - 1.96 * c["se"], c["mean"] + 1.96 * c["se"]],
                          "z": c["z"], "q": c["q"], "df": c["df"],
@@ -216,7 +235,9 @@ def line_consensus(rows: list[dict], cfg: FleetConfig = FleetConfig()) -> dict:
                          "runs_found": len(m), "runs_passed": max(len(passed), len(m)),
                          "trains_found": sorted({d["train"] for d in m}),
                          "trains_passed": sorted({r["train"] for r in passed}),
-                         "bags": [d.get("bag") for d in m]})
+                         "bags": [d.get("bag") for d in m],
+                         "days": {str(k): [f, max(n, f)] for k, (f, n) in days.items()
+                                  if k is not None}})
         ltrains = sorted({r["train"] for r in lr})
         res = [r["resistance"] for r in lr if r.get("resistance")]
         rc = combine_random([x["value"] for x in res], [x["se"] for x in res]) if res else \
@@ -233,6 +254,8 @@ def line_consensus(rows: list[dict], cfg: FleetConfig = FleetConfig()) -> dict:
             agree = s["p_consistency"] >= cfg.alpha
             s["verdict"] = ("map error" if enough and unlikely and agree else
                             "disputed" if enough and unlikely else "single-train or spurious")
+            if s["verdict"] == "map error" and len(s["days"]) >= 2:
+                s.update(_day_test(s["days"], cfg, max(n_groups, 1)))
         rc = d["resistance"]
         if rc.get("n", 0) >= 2:
             rc["z_critical"] = zc_res
@@ -384,6 +407,71 @@ def _finite(x) -> bool:
     return x is not None and isinstance(x, (int, float)) and math.isfinite(x)
 
 
+def _day_test(days: dict, cfg: FleetConfig, n_groups: int) -> dict:
+    """A map error seen on several days, tested without the day that found it most often
+    (module docstring): {"day_status", "top_day", "p_rest", "p_fewer"}."""
+    top = max(days, key=lambda k: (days[k][0] / max(days[k][1], 1), days[k][0], k))
+    f_top, n_top = days[top]
+    f_rest = sum(v[0] for k, v in days.items() if k != top)
+    n_rest = sum(v[1] for k, v in days.items() if k != top)
+    p_rest = float(stats.binom.sf(f_rest - 1, n_rest, cfg.p_false)) if n_rest else 1.0
+    p_fewer = float(stats.fisher_exact([[f_top, n_top - f_top], [f_rest, n_rest - f_rest]],
+                                       alternative="greater")[1]) if n_rest else 1.0
+    found_days = sorted(k for k, v in days.items() if v[0] > 0)
+    if p_rest < cfg.alpha / n_groups:
+        status = f"confirmed on {len(found_days)} days"
+    elif p_fewer < cfg.alpha:
+        status = "withdrawn"
+    else:
+        status = "unconfirmed"
+    out = {"day_status": status, "top_day": top, "p_rest": p_rest, "p_fewer": p_fewer,
+           "days_found": found_days}
+    if status == "withdrawn":
+        out["verdict"] = "one day's artefact"
+    return out
+
+
+def runs_needed(cfg: FleetConfig, n_groups: int = 1) -> int:
+    """n_min: the fewest runs over a section with which a map error found in ``p_detect`` of
+    the runs passes the binomial test (alpha / n_groups) with probability >= ``power``."""
+    for n in range(1, 10_000):
+        k = np.arange(1, n + 1)
+        ok = stats.binom.sf(k - 1, n, cfg.p_false) < cfg.alpha / max(n_groups, 1)
+        if ok.any() and stats.binom.sf(k[ok][0] - 1, n, cfg.p_detect) >= cfg.power:
+            return n
+    return 10_000
+
+
+def reliability(rows: list[dict], lines: dict, trains: dict,
+                cfg: FleetConfig = FleetConfig()) -> dict:
+    """Whether the consensus can be trusted where it finds nothing (module docstring):
+    {"reliable", "reasons": [...], "n_min", "lines": {line: {...}}, "parameters": {...}}."""
+    n_min = runs_needed(cfg)
+    reasons = []
+    per_line: dict = {}
+    for ln in sorted({r["line"] for r in rows}):
+        lr = [r for r in rows if r["line"] == ln]
+        ok = [r for r in lr if not r.get("error")]
+        n_tr = len({r["train"] for r in ok})
+        good = len(ok) >= n_min and n_tr >= cfg.min_trains
+        per_line[ln] = {"runs": len(lr), "analysed": len(ok), "failed": len(lr) - len(ok),
+                        "trains": n_tr, "reliable": good}
+        if not good:
+            reasons.append(f"line {ln}: {len(ok)} of {len(lr)} runs analysed ({n_tr} trains); "
+                           f"{n_min} runs of {cfg.min_trains} trains are needed to find or "
+                           "exclude a map error")
+        for s in (lines.get(ln) or {}).get("sections", []):
+            s["too_few_runs"] = s["runs_passed"] < n_min
+    per_par: dict = {}
+    for p, d in trains.get("parameters", {}).items():
+        n = len(d.get("trains", {}))
+        per_par[p] = {"trains": n, "reliable": n >= 3}
+        if n < 3:
+            reasons.append(f"{p}: values of {n} trains; a departure needs 3")
+    return {"reliable": not reasons, "reasons": reasons, "n_min": n_min, "lines": per_line,
+            "parameters": per_par}
+
+
 @dataclass
 class FleetResult:
     lines: dict
@@ -391,6 +479,7 @@ class FleetResult:
     map_errors: list  # [{"line", "start", "end", "permille", ...}]
     train_alerts: list  # [{"train", "parameter", "kind", "z", ...}]
     config: dict
+    reliability: dict = field(default_factory=dict)  # see ``reliability``
 
 
 def consensus(rows: list[dict], cfg: FleetConfig = FleetConfig()) -> FleetResult:
@@ -401,4 +490,5 @@ def consensus(rows: list[dict], cfg: FleetConfig = FleetConfig()) -> FleetResult
     maps = [dict(s, line=ln) for ln, d in lines.items() for s in d["sections"]
             if s["verdict"] == "map error"]
     return FleetResult(lines=lines, trains=trains, map_errors=maps,
-                       train_alerts=trains["alerts"], config=asdict(cfg))
+                       train_alerts=trains["alerts"], config=asdict(cfg),
+                       reliability=reliability(rows, lines, trains, cfg))
