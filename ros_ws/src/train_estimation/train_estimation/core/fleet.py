@@ -26,7 +26,12 @@ Line consensus (per line):
   Q = sum w_i (x_i - x_bar)^2 with w_i = 1/se_i^2 is below its chi-square(k - 1) quantile at
   1 - alpha. The report gives the inverse-variance combination x_bar = sum w_i x_i / sum w_i,
   se = (sum w_i)^-1/2 (e.g. Hartung, Knapp & Sinha, Statistical Meta-Analysis, eq. 4.2-4.3).
-  Groups failing (2) or (1) are "single-train or spurious"; failing (3) "disputed".
+  Groups failing (2) or (1) are "single-train or spurious"; failing (3) "disputed". The
+  spurious detections that happen to overlap a section join its group; so that a history of
+  many runs does not turn a map error into "disputed", the consistency test and the
+  combination leave out, most discordant first, at most as many detections as spurious ones
+  can explain (the binomial 1 - alpha quantile of the runs that passed it at ``p_false``), and
+  always fewer than half.
 - Resistance: the fitted minus the believed resistance force at each run's speed, combined over
   the line's runs with a random-effects model (DerSimonian-Laird tau^2 between runs), so one odd
   train widens the interval instead of moving the line's value; flagged when |z| exceeds the
@@ -71,6 +76,7 @@ Pure: numpy/scipy only.
 
 from __future__ import annotations
 
+import bisect
 import math
 from dataclasses import asdict, dataclass, field
 
@@ -113,6 +119,15 @@ def combine(values, ses) -> dict:
     return {"n": int(x.size), "mean": mean, "se": se, "z": mean / se,
             "p": float(2 * stats.norm.sf(abs(mean / se))), "q": q, "df": df,
             "p_consistency": float(stats.chi2.sf(q, df)) if df > 0 else 1.0}
+
+
+def _wmean(x: np.ndarray, s: np.ndarray) -> dict:
+    """``combine``'s mean, se, q and df without its p-values (cheap: for inner loops)."""
+    w = 1.0 / s**2
+    sw = float(np.sum(w))
+    mean = float(np.dot(w, x)) / sw
+    return {"mean": mean, "se": 1.0 / math.sqrt(sw), "q": float(np.dot(w, (x - mean) ** 2)),
+            "df": int(x.size - 1)}
 
 
 def tau2_dl(values, ses) -> float:
@@ -185,17 +200,44 @@ def group_sections(dets: list[dict], overlap: float) -> list[list[int]]:
     whose median section it overlaps by >= ``overlap`` of the shorter; in order of start."""
     order = sorted(range(len(dets)), key=lambda i: (dets[i]["start"], dets[i]["end"]))
     groups: list[list[int]] = []
+    # each group's starts and ends kept sorted, so that its median section costs O(1): the
+    # fleet's history can hold thousands of detections of one section
+    sorted_se: list[tuple[list, list]] = []
     for i in order:
         d = dets[i]
-        for g in groups:
-            s0 = float(np.median([dets[j]["start"] for j in g]))
-            s1 = float(np.median([dets[j]["end"] for j in g]))
-            if _overlap(d["start"], d["end"], s0, s1) >= overlap:
+        for g, (st, en) in zip(groups, sorted_se):
+            if _overlap(d["start"], d["end"], _median_sorted(st), _median_sorted(en)) \
+                    >= overlap:
                 g.append(i)
+                bisect.insort(st, float(d["start"]))
+                bisect.insort(en, float(d["end"]))
                 break
         else:
             groups.append([i])
+            sorted_se.append(([float(d["start"])], [float(d["end"])]))
     return groups
+
+
+def _median_sorted(v: list) -> float:
+    n = len(v)
+    return v[n // 2] if n % 2 else 0.5 * (v[n // 2 - 1] + v[n // 2])
+
+
+def _trimmed_combine(values, ses, k_max: int, alpha: float) -> tuple[dict, int]:
+    """``combine`` after leaving out, one at a time, the value with the largest share of
+    Cochran's Q, until Q is consistent at ``alpha`` or ``k_max`` values, or all but a
+    majority, are left out (a minority cannot outvote the rest, nor the rest be trimmed to
+    agree with it)."""
+    x, s = np.asarray(values, float), np.asarray(ses, float)
+    keep = np.ones(x.size, bool)
+    c = combine(x, s)
+    n_out = 0
+    while c.get("p_consistency", 1.0) < alpha and n_out < min(k_max, (x.size - 1) // 2):
+        w = np.where(keep, 1.0 / s**2, 0.0)
+        keep[int(np.argmax(w * (x - c["mean"]) ** 2))] = False
+        n_out += 1
+        c = combine(x[keep], s[keep])
+    return c, n_out
 
 
 def _covers(row: dict, s0: float, s1: float) -> bool:
@@ -216,13 +258,22 @@ def line_consensus(rows: list[dict], cfg: FleetConfig = FleetConfig()) -> dict:
                 for r in lr if r.get("gradient")]
         groups = group_sections(dets, cfg.overlap)
         n_groups += len(groups)
+        # every run's coverage as arrays (unknown: the whole line), for _covers on all at once
+        cov = np.array([r.get("coverage") or (-np.inf, np.inf) for r in lr], float)
+        cov = cov.reshape(len(lr), 2)
         secs = []
         for g in groups:
             m = [dets[j] for j in g]
             s0 = float(np.median([d["start"] for d in m]))
             s1 = float(np.median([d["end"] for d in m]))
-            c = combine([d["permille"] for d in m], [d["se"] for d in m])
-            passed = [r for r in lr if _covers(r, s0, s1)]
+            hit = (np.minimum(cov[:, 1], s1) - np.maximum(cov[:, 0], s0) >= 0.5 * (s1 - s0))
+            passed = [lr[i] for i in np.flatnonzero(hit)]
+            # spurious detections that overlap the section join its group (more of them the
+            # more runs the history holds): up to the number the runs passing it can explain
+            # are left out of the consistency test, the most discordant first
+            k_spur = int(stats.binom.isf(cfg.alpha, max(len(passed), len(m)), cfg.p_false))
+            c, n_out = _trimmed_combine([d["permille"] for d in m], [d["se"] for d in m],
+                                        k_spur, cfg.alpha)
             days: dict = {}
             for r in passed:
                 days.setdefault(r.get("day"), [0, 0])[1] += 1
@@ -231,7 +282,7 @@ def line_consensus(rows: list[dict], cfg: FleetConfig = FleetConfig()) -> dict:
             secs.append({"start": s0, "end": s1, "permille": c["mean"], "se": c["se"],
                          "ci95": [c["mean"] - 1.96 * c["se"], c["mean"] + 1.96 * c["se"]],
                          "z": c["z"], "q": c["q"], "df": c["df"],
-                         "p_consistency": c["p_consistency"],
+                         "p_consistency": c["p_consistency"], "left_out": n_out,
                          "runs_found": len(m), "runs_passed": max(len(passed), len(m)),
                          "trains_found": sorted({d["train"] for d in m}),
                          "trains_passed": sorted({r["train"] for r in passed}),
@@ -282,10 +333,13 @@ def train_consensus(rows: list[dict], cfg: FleetConfig = FleetConfig(),
     zc = z_critical(cfg.alpha, n_tests)
     out: dict = {"parameters": {}, "alerts": [], "z_critical": zc,
                  "tests": n_tests, "alpha": cfg.alpha}
+    by_train: dict = {}
+    for r in rows:
+        by_train.setdefault(r["train"], []).append(r)
     for p in parameters:
         per: dict = {}
         for tr in trains:
-            rr = sorted((r for r in rows if r["train"] == tr and r.get(p)
+            rr = sorted((r for r in by_train[tr] if r.get(p)
                          and _finite(r[p].get("value")) and _finite(r[p].get("se"))
                          and r[p]["se"] > 0), key=lambda r: r.get("time", 0.0))
             if rr:
@@ -367,7 +421,7 @@ def _train_mean(x: np.ndarray, se: np.ndarray, tau2: float) -> tuple[float, floa
     se^2 + tau^2; the se is scaled up by the Birge ratio sqrt(Q / df) when the train's own runs
     scatter more than that (a train that changes between runs is less certain of its mean)."""
     s_eff = np.sqrt(se**2 + tau2)
-    c = combine(x, s_eff)
+    c = _wmean(x, s_eff)  # called n_trains^2 times per parameter: no p-values here
     birge = math.sqrt(c["q"] / c["df"]) if c["df"] > 0 and c["q"] > c["df"] else 1.0
     frac = tau2 / (float(np.mean(se**2)) + tau2) if tau2 > 0 else 0.0
     return c["mean"], c["se"] * birge, frac
@@ -378,7 +432,7 @@ def _moments(x: np.ndarray, se: np.ndarray) -> tuple[float, int, float]:
     if x.size < 2:
         return 0.0, 0, 0.0
     w = 1.0 / se**2
-    c = combine(x, se)
+    c = _wmean(x, se)
     s1, s2 = float(np.sum(w)), float(np.sum(w * w))
     return c["q"], c["df"], s1 - s2 / s1
 
