@@ -104,3 +104,16 @@ def test_fleet_on_scheduler_and_worker_processes(launch, small_fleet, tmp_path):
         # one run per line cannot exclude a map error: the report says so
         assert "**The consensus is unreliable**" in report
         assert "Too few analysed runs on north, south" in report
+
+
+def test_embedded_cluster_dashboard():
+    """The embedded cluster's dashboard, on a free port: its status page is served."""
+    import urllib.request
+
+    from train_estimation.tools import fleet as tool
+
+    port = free_port()
+    with tool.local_cluster(1, f"127.0.0.1:{port}") as cluster:
+        assert cluster.dashboard_link == f"http://127.0.0.1:{port}/status"
+        with urllib.request.urlopen(cluster.dashboard_link, timeout=30) as page:
+            assert page.status == 200 and b"bokeh" in page.read().lower()

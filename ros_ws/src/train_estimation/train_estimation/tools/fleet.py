@@ -312,8 +312,12 @@ def local_cluster(workers: int, dashboard: str | None = None):
 
     for v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ.setdefault(v, "1")
+    # without a dashboard the scheduler still serves HTTP (health, metrics): on a free port of
+    # the loopback interface, not on the dashboard's default port
     return LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                        dashboard_address=dashboard)
+                        dashboard_address=dashboard,
+                        scheduler_kwargs=None if dashboard else
+                        {"dashboard_address": "127.0.0.1:0"})
 
 
 def worker_check(paths: dict) -> dict:
@@ -409,12 +413,13 @@ def run_tasks(tasks: list[dict], workers: int, scheduler: str | None, progress: 
         with c:
             return _run(c, tasks, progress, scheduler, wait_s, info)
     with local_cluster(workers, dashboard) as cluster, Client(cluster) as c:
-        return _run(c, tasks, progress, cluster.scheduler_address, wait_s, info)
+        return _run(c, tasks, progress, cluster.scheduler_address, wait_s, info,
+                    show=dashboard is not None)
 
 
-def _run(client, tasks, progress, address, wait_s, info) -> list:
+def _run(client, tasks, progress, address, wait_s, info, show=True) -> list:
     info["workers_n"] = probe_workers(client, tasks[0], address, wait_s)
-    link = client.dashboard_link if _has_dashboard(client) else None
+    link = client.dashboard_link if show and _has_dashboard(client) else None
     info["dashboard"] = link
     if link:
         print(f"fleet: dashboard at {link}", file=sys.stderr)
