@@ -5,19 +5,29 @@ check_bag, identify and diagnose run on every bag; the consensus across trains f
     fleet --manifest manifest.csv --out DIR [--workers 2 | --scheduler ADDRESS]
     fleet --bags FOLDER --line line.yaml --train train.yaml --out DIR
 
-Input: a manifest (CSV with columns train, bag, line, train_file and optionally time; paths
+Input: a manifest (CSV with columns train, bag, line, train_file and optionally time, day; paths
 relative to the manifest) or a folder searched for bags (rosbag2 directories); a folder's bag
 belongs to the train named by its parent directory (FOLDER/T07/run3) or, for bags directly in
 FOLDER, by its name up to the first "_" (T07_run3). Time orders a train's runs: the manifest's
 ``time`` column (any unit; the fleet simulator writes hours) or else the bag's first log time
 in hours.
 
-Every bag is analysed by one Dask task (an embedded LocalCluster of --workers processes, or
-the cluster at --scheduler, e.g. tcp://host:8786): check_bag's topic health, identify's fit
-(braking rate, mass) and diagnose's ranking. A task's result is cached in DIR/cache under the
-SHA-256 of the bag's files, the line and train files and the tool's version, so a rerun only
-analyses new or changed bags. A bag that cannot be read or diagnosed is listed with its reason
-and the others go on.
+Every bag is analysed by one Dask task (an embedded LocalCluster of --workers processes, its
+dashboard at --dashboard, printed; or the cluster at --scheduler, e.g. tcp://host:8786,
+started with `./run scheduler` and `./run worker tcp://host:8786` on every machine with a
+checkout): check_bag's topic health, identify's fit (braking rate, mass) and diagnose's
+ranking. Before submitting, every worker is asked to import the analysis and read the first
+bag's line and train files; a worker that cannot stops the run with one line saying what is
+missing and how to start workers. A task's result is cached in DIR/cache under the SHA-256 of
+the bag's files, the line and train files and the tool's version, so a rerun only analyses new
+or changed bags. A bag that cannot be read or diagnosed is listed with its reason and the
+others go on.
+
+Days: every run adds its bags to DIR/history.jsonl (one row per bag, by content, with its day:
+the manifest's ``day`` column, else --day, else today's UTC date), and the consensus is over
+the history (--days N: its N latest days; --no-history: this run's bags only). A map error
+seen on several days is confirmed by the other days' runs or withdrawn as one day's artefact
+(core/fleet.py); trends use the ``time`` column, which must then be on one clock across days.
 
 Output (DIR is created):
   DIR/runs.csv        one row per bag: status, reason, check_bag's received fractions, the
@@ -39,8 +49,15 @@ a train alert = |z| above the Bonferroni normal quantile for a family-wise false
 --alpha (default 0.01) over all trains and parameters, for the departure from the other trains'
 median (leave-one-out, MAD spread) or for a trend in time.
 
-Exit status: 0 when the report was written (failed bags are listed in it); 2 when there is no
-usable input (no manifest or folder, no bag in it, bad YAML).
+Reliability: the report's first line says how many bags failed and why (reasons grouped);
+the consensus says it is unreliable where too few runs were analysed to find or exclude a map
+error (fewer than n_min runs on a line, see core/fleet.py) or to test departures (fewer than
+three trains with values).
+
+Exit status: 0 when the report was written; 1 when it was written but more than --max-failed
+(default 0.1) of the bags failed; 2 when there is no usable input (no manifest or folder, a
+malformed manifest row, no bag, bad YAML) or the cluster cannot run the analysis (no
+scheduler, no worker, a worker without the project's environment): one line on stderr.
 """
 
 from __future__ import annotations
