@@ -38,7 +38,7 @@ def test_fleet_names_the_map_error_and_the_degraded_trains(fleet_dir, capsys):
     d, truth = fleet_dir
     out = d / "out"
     rc = tool.main(["--manifest", str(d / "manifest.csv"), "--out", str(out), "--workers", "2",
-                    "--quiet"])
+                    "--quiet", "--no-dashboard"])
     assert rc == 0
     res = json.loads((out / "fleet.json").read_text())
     # the map error: one section, on north, where it is hidden
@@ -74,6 +74,66 @@ def test_fleet_names_the_map_error_and_the_degraded_trains(fleet_dir, capsys):
     rows2 = list(csv.DictReader(open(out / "runs.csv")))
     assert all(r["cached"] == "True" for r in rows2)
     assert json.loads((out / "fleet.json").read_text())["map_errors"] == maps
+    # the report's first line says how many bags failed and why
+    first = (out / "report.md").read_text().splitlines()[0]
+    assert first.endswith(f"1 of 11 bags failed: 1 x {tool.failure_groups(rows)[0][1][:120]}")
+    assert "FAILED" not in first  # 1 of 11 is within --max-failed 0.1
+    # more than --max-failed: exit 1, the report written all the same
+    rc = tool.main(["--manifest", str(d / "manifest.csv"), "--out", str(out), "--quiet",
+                    "--max-failed", "0.05"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 1 and err[-1].startswith("fleet: 1 of 11 bags failed: 1 x "), err
+    assert "(more than --max-failed 0.05)" in err[-1]
+    assert (out / "report.md").read_text().startswith("# Fleet report (")
+    assert ": FAILED, 1 of 11 bags failed" in (out / "report.md").read_text().splitlines()[0]
+
+
+def test_second_day_adds_to_the_first(fleet_dir, tmp_path, capsys):
+    """The fleet's two days (run 0 on day 1, run 1 and the corrupt bag on day 2) given one
+    after the other to the same OUT: the second run analyses only its own bags and the
+    consensus is over both days, the same as over both together."""
+    d, truth = fleet_dir
+    rows = list(csv.DictReader(open(d / "manifest.csv")))
+    for name, keep in (("day1.csv", lambda r: float(r["time"]) < 24),
+                       ("day2.csv", lambda r: float(r["time"]) >= 24)):
+        with open(d / name, "w", newline="") as fh:
+            w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+            w.writeheader()
+            w.writerows([r for r in rows if keep(r)])
+    out = tmp_path / "days"
+    cache = d / "out" / "cache"  # the first test's results, when it ran (else analysed here)
+    common = ["--out", str(out), "--quiet", "--no-dashboard", "--cache", str(cache)]
+    assert tool.main(["--manifest", str(d / "day1.csv"), "--day", "2026-11-01"] + common) == 0
+    day1 = json.loads((out / "fleet.json").read_text())
+    assert day1["run"]["days"] == ["2026-11-01"] and day1["run"]["pool"] == 5
+    capsys.readouterr()
+    # day 2: 1 of 6 bags fails (> --max-failed 0.1: exit 1), the report is written
+    assert tool.main(["--manifest", str(d / "day2.csv"), "--day", "2026-11-02"] + common) == 1
+    res = json.loads((out / "fleet.json").read_text())
+    assert res["run"]["days"] == ["2026-11-01", "2026-11-02"] and res["run"]["pool"] == 11
+    assert len(list(csv.DictReader(open(out / "runs.csv")))) == 6  # the day's bags
+    hist = [json.loads(x) for x in (out / "history.jsonl").read_text().splitlines()]
+    assert sorted(r["day"] for r in hist) == ["2026-11-01"] * 5 + ["2026-11-02"] * 6
+    # the same consensus as over both days at once (days aside)
+    from train_estimation.core.fleet import consensus
+
+    both = consensus(tool.consensus_rows([dict(r, day=None) for r in hist]))
+    assert len(both.map_errors) == len(res["map_errors"]) == 1
+    m, b = res["map_errors"][0], both.map_errors[0]
+    assert (m["start"], m["end"], m["permille"], m["se"]) == \
+        (b["start"], b["end"], b["permille"], b["se"])
+    assert set(m["days"]) == {"2026-11-01", "2026-11-02"}
+    assert m["day_status"] in ("confirmed on 2 days", "unconfirmed"), m
+    assert {a["train"] for a in res["train_alerts"]} == \
+        {a["train"] for a in both.train_alerts} == set(truth["degraded_trains"])
+    report = (out / "report.md").read_text()
+    assert "The consensus is over 11 runs of 2 days (2026-11-01 to 2026-11-02)" in report
+    # a rerun of day 2 adds nothing twice; --days 1 keeps the latest day only
+    tool.main(["--manifest", str(d / "day2.csv"), "--day", "2026-11-02", "--days", "1"]
+              + common)
+    res = json.loads((out / "fleet.json").read_text())
+    assert res["run"]["days"] == ["2026-11-02"] and res["run"]["pool"] == 6
+    assert len((out / "history.jsonl").read_text().splitlines()) == 11
 
 
 def test_fleet_bad_input(tmp_path, capsys):
@@ -82,6 +142,18 @@ def test_fleet_bad_input(tmp_path, capsys):
     (tmp_path / "m.csv").write_text("a,b\n1,2\n")
     assert tool.main(["--manifest", str(tmp_path / "m.csv"), "--out", str(tmp_path)]) == 2
     assert "columns train, bag, line, train_file" in capsys.readouterr().err
+    # malformed rows: one line naming the row, exit 2, never a traceback
+    head = "train,bag,line,train_file,time\n"
+    for body, why in (("T1,bags/a\n", "line 2: no line, train_file"),
+                      ("T1,bags/a,l.yaml,t.yaml,1.0,extra\n", "line 2: 6 cells, the header "
+                       "has 5"),
+                      ("T1,bags/a,l.yaml,t.yaml,1.0\nT2,bags/b,l.yaml,t.yaml,noon\n",
+                       "line 3: time 'noon' is not a number"),
+                      ("T1,,l.yaml,t.yaml,1.0\n", "line 2: no bag")):
+        (tmp_path / "m.csv").write_text(head + body)
+        assert tool.main(["--manifest", str(tmp_path / "m.csv"), "--out", str(tmp_path)]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and why in err[0], (err, why)
 
 
 def test_folder_input_and_cache_key(fleet_dir, tmp_path):

@@ -138,3 +138,89 @@ def test_false_alarm_rate_at_most_alpha():
     # two families (departure, trend) at alpha = 0.01 each: expected <= 2 %; P(X > 10) for
     # Binomial(200, 0.02) is 0.3 %
     assert hits <= 10, hits
+
+
+# ------------------------------------------------------------------------------------------------
+# Several days, reliability
+# ------------------------------------------------------------------------------------------------
+
+def _days(rng, days, trains, runs, found, spurious=0.05, artefact_day=None):
+    """Runs on ``north`` over ``days`` days: each finds the section [1000, 1400) +5 per mille
+    with probability ``found`` (on ``artefact_day`` only, when given), else a spurious 300 m
+    section anywhere with probability ``spurious``."""
+    rows = []
+    for d in range(days):
+        for i in range(trains):
+            for k in range(runs):
+                r = _row(f"T{i:02d}", "north")
+                r.update(day=f"2026-11-{d + 1:02d}", time=24.0 * d + 6 + k,
+                         coverage=[100.0, 4300.0])
+                p = found if artefact_day in (None, d) else 0.0
+                if rng.random() < p:
+                    r["gradient"] = {"start": 1000 + 20 * rng.normal(),
+                                     "end": 1400 + 20 * rng.normal(),
+                                     "permille": 5 + 0.8 * rng.normal(), "se": 0.8}
+                elif rng.random() < spurious:
+                    s = rng.uniform(0, 4000)
+                    r["gradient"] = {"start": s, "end": s + 300, "permille": 3 * rng.normal(),
+                                     "se": 1.0}
+                rows.append(r)
+    return rows
+
+
+def test_map_error_confirmed_over_days_and_kept_among_spurious_detections():
+    # two weeks of 30 trains x 4 runs: the spurious detections that overlap the section
+    # would make the values disagree (Cochran's Q) if none were left out
+    rows = _days(np.random.default_rng(5), 14, 30, 4, found=0.7)
+    # six spurious detections that overlap the section, far from its value
+    quiet = [r for r in rows if not r.get("gradient")][::97][:6]
+    for r in quiet:
+        r["gradient"] = {"start": 1100.0, "end": 1400.0, "permille": -4.0, "se": 0.5}
+    found = [r["gradient"] for r in rows if r.get("gradient")
+             and F._overlap(r["gradient"]["start"], r["gradient"]["end"], 1000, 1400) >= 0.5]
+    assert F.combine([g["permille"] for g in found],
+                     [g["se"] for g in found])["p_consistency"] < 0.01  # untrimmed: disputed
+    res = F.consensus(rows)
+    assert len(res.map_errors) == 1
+    m = res.map_errors[0]
+    assert abs(m["start"] - 1000) < 30 and abs(m["end"] - 1400) < 30
+    assert m["day_status"] == "confirmed on 14 days" and len(m["days"]) == 14
+    assert m["ci95"][0] < 5.0 < m["ci95"][1]
+    assert 1 <= m["left_out"] <= stats.binom.isf(0.01, m["runs_passed"], 0.05)
+    assert res.reliability["lines"]["north"]["reliable"]
+
+
+def test_one_days_artefact_is_withdrawn_and_one_day_alone_unconfirmed():
+    rng = np.random.default_rng(6)
+    # found by every train on day 1 only; the next two days' runs pass it and do not find it
+    rows = _days(rng, 3, 6, 2, found=0.8, artefact_day=0)
+    res = F.consensus(rows)
+    assert res.map_errors == []
+    sec = max(res.lines["north"]["sections"], key=lambda s: s["runs_found"])
+    assert sec["verdict"] == "one day's artefact" and sec["day_status"] == "withdrawn"
+    assert sec["top_day"] == "2026-11-01" and sec["p_fewer"] < 0.01
+    # day 1 alone: a map error (nothing yet says otherwise)
+    day1 = [r for r in rows if r["day"] == "2026-11-01"]
+    res1 = F.consensus(day1)
+    assert len(res1.map_errors) == 1 and "day_status" not in res1.map_errors[0]
+
+
+def test_runs_needed_and_unreliable_consensus():
+    cfg = F.FleetConfig()
+    n = F.runs_needed(cfg)
+    # the rule by hand: the binomial test's critical count k at n runs, and the power to reach
+    # it when a map error is found in half of the runs
+    k = next(k for k in range(n + 1) if stats.binom.sf(k - 1, n, 0.05) < 0.01)
+    assert stats.binom.sf(k - 1, n, 0.5) >= 0.9
+    km = next(k for k in range(n) if stats.binom.sf(k - 1, n - 1, 0.05) < 0.01)
+    assert stats.binom.sf(km - 1, n - 1, 0.5) < 0.9
+    # every bag but two failed: "no map error" must not read as a clean line
+    rows = [dict(_row(f"T{i}", "north"), error="ModuleNotFoundError: x") for i in range(20)]
+    rows += [_row("T0", "north", braking_rate=(1.0, 0.02)),
+             _row("T1", "north", braking_rate=(1.0, 0.02))]
+    res = F.consensus(rows)
+    rel = res.reliability
+    assert not rel["reliable"] and rel["lines"]["north"] == {
+        "runs": 22, "analysed": 2, "failed": 20, "trains": 2, "reliable": False}
+    assert any(r.startswith("line north: 2 of 22 runs analysed") for r in rel["reasons"])
+    assert any(r.startswith("braking_rate: values of 2 trains") for r in rel["reasons"])

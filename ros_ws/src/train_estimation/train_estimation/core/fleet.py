@@ -26,11 +26,28 @@ Line consensus (per line):
   Q = sum w_i (x_i - x_bar)^2 with w_i = 1/se_i^2 is below its chi-square(k - 1) quantile at
   1 - alpha. The report gives the inverse-variance combination x_bar = sum w_i x_i / sum w_i,
   se = (sum w_i)^-1/2 (e.g. Hartung, Knapp & Sinha, Statistical Meta-Analysis, eq. 4.2-4.3).
-  Groups failing (2) or (1) are "single-train or spurious"; failing (3) "disputed".
+  Groups failing (2) or (1) are "single-train or spurious"; failing (3) "disputed". The
+  spurious detections that happen to overlap a section join its group; so that a history of
+  many runs does not turn a map error into "disputed", the consistency test and the
+  combination leave out, most discordant first, at most as many detections as spurious ones
+  can explain (the binomial 1 - alpha quantile of the runs that passed it at ``p_false``), and
+  always fewer than half.
 - Resistance: the fitted minus the believed resistance force at each run's speed, combined over
   the line's runs with a random-effects model (DerSimonian-Laird tau^2 between runs), so one odd
   train widens the interval instead of moving the line's value; flagged when |z| exceeds the
   normal quantile of alpha / (2 n_lines) and Cochran's Q does not reject agreement.
+
+Several days (rows with a ``day`` label): a map error passed on two or more days is tested
+once more without the day that found it most often. It is *confirmed* when the other days'
+runs alone pass the binomial test; *withdrawn* (verdict "one day's artefact") when the other
+days found it significantly less often than that day (one-sided Fisher exact test, alpha) and
+alone do not pass; otherwise it stands, found on one day only ("unconfirmed").
+
+Reliability (``reliability``): a section needs ``n_min`` analysed runs, the fewest with which a
+map error that ``diagnose`` finds in ``p_detect`` of the runs is declared with probability
+``power`` by the binomial test above; a line with fewer analysed runs (or runs of fewer than
+``min_trains`` trains) cannot exclude a map error, and a parameter with values of fewer than
+three trains cannot show a departure: the consensus then says it is unreliable, and why.
 
 Train consensus (per parameter: braking rate, mass, odometer scale):
 
@@ -59,8 +76,9 @@ Pure: numpy/scipy only.
 
 from __future__ import annotations
 
+import bisect
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 from scipy import stats
@@ -77,6 +95,8 @@ class FleetConfig:
     overlap: float = 0.5  # sections overlapping by this fraction of the shorter are the same
     p_false: float = 0.05  # per-run probability of a spurious section (diagnose, nominal bags)
     min_runs_trend: int = 3  # runs a train needs for a trend test
+    p_detect: float = 0.5  # per-run detection rate of the weakest map error not to be missed
+    power: float = 0.9  # ... declared with this probability: sets the runs a section needs
 
 
 # ------------------------------------------------------------------------------------------------
@@ -99,6 +119,15 @@ def combine(values, ses) -> dict:
     return {"n": int(x.size), "mean": mean, "se": se, "z": mean / se,
             "p": float(2 * stats.norm.sf(abs(mean / se))), "q": q, "df": df,
             "p_consistency": float(stats.chi2.sf(q, df)) if df > 0 else 1.0}
+
+
+def _wmean(x: np.ndarray, s: np.ndarray) -> dict:
+    """``combine``'s mean, se, q and df without its p-values (cheap: for inner loops)."""
+    w = 1.0 / s**2
+    sw = float(np.sum(w))
+    mean = float(np.dot(w, x)) / sw
+    return {"mean": mean, "se": 1.0 / math.sqrt(sw), "q": float(np.dot(w, (x - mean) ** 2)),
+            "df": int(x.size - 1)}
 
 
 def tau2_dl(values, ses) -> float:
@@ -171,17 +200,44 @@ def group_sections(dets: list[dict], overlap: float) -> list[list[int]]:
     whose median section it overlaps by >= ``overlap`` of the shorter; in order of start."""
     order = sorted(range(len(dets)), key=lambda i: (dets[i]["start"], dets[i]["end"]))
     groups: list[list[int]] = []
+    # each group's starts and ends kept sorted, so that its median section costs O(1): the
+    # fleet's history can hold thousands of detections of one section
+    sorted_se: list[tuple[list, list]] = []
     for i in order:
         d = dets[i]
-        for g in groups:
-            s0 = float(np.median([dets[j]["start"] for j in g]))
-            s1 = float(np.median([dets[j]["end"] for j in g]))
-            if _overlap(d["start"], d["end"], s0, s1) >= overlap:
+        for g, (st, en) in zip(groups, sorted_se):
+            if _overlap(d["start"], d["end"], _median_sorted(st), _median_sorted(en)) \
+                    >= overlap:
                 g.append(i)
+                bisect.insort(st, float(d["start"]))
+                bisect.insort(en, float(d["end"]))
                 break
         else:
             groups.append([i])
+            sorted_se.append(([float(d["start"])], [float(d["end"])]))
     return groups
+
+
+def _median_sorted(v: list) -> float:
+    n = len(v)
+    return v[n // 2] if n % 2 else 0.5 * (v[n // 2 - 1] + v[n // 2])
+
+
+def _trimmed_combine(values, ses, k_max: int, alpha: float) -> tuple[dict, int]:
+    """``combine`` after leaving out, one at a time, the value with the largest share of
+    Cochran's Q, until Q is consistent at ``alpha`` or ``k_max`` values, or all but a
+    majority, are left out (a minority cannot outvote the rest, nor the rest be trimmed to
+    agree with it)."""
+    x, s = np.asarray(values, float), np.asarray(ses, float)
+    keep = np.ones(x.size, bool)
+    c = combine(x, s)
+    n_out = 0
+    while c.get("p_consistency", 1.0) < alpha and n_out < min(k_max, (x.size - 1) // 2):
+        w = np.where(keep, 1.0 / s**2, 0.0)
+        keep[int(np.argmax(w * (x - c["mean"]) ** 2))] = False
+        n_out += 1
+        c = combine(x[keep], s[keep])
+    return c, n_out
 
 
 def _covers(row: dict, s0: float, s1: float) -> bool:
@@ -198,25 +254,41 @@ def line_consensus(rows: list[dict], cfg: FleetConfig = FleetConfig()) -> dict:
     n_groups = 0
     for ln in lines:
         lr = [r for r in rows if r["line"] == ln]
-        dets = [dict(r["gradient"], train=r["train"], bag=r.get("bag"))
+        dets = [dict(r["gradient"], train=r["train"], bag=r.get("bag"), day=r.get("day"))
                 for r in lr if r.get("gradient")]
         groups = group_sections(dets, cfg.overlap)
         n_groups += len(groups)
+        # every run's coverage as arrays (unknown: the whole line), for _covers on all at once
+        cov = np.array([r.get("coverage") or (-np.inf, np.inf) for r in lr], float)
+        cov = cov.reshape(len(lr), 2)
         secs = []
         for g in groups:
             m = [dets[j] for j in g]
             s0 = float(np.median([d["start"] for d in m]))
             s1 = float(np.median([d["end"] for d in m]))
-            c = combine([d["permille"] for d in m], [d["se"] for d in m])
-            passed = [r for r in lr if _covers(r, s0, s1)]
+            hit = (np.minimum(cov[:, 1], s1) - np.maximum(cov[:, 0], s0) >= 0.5 * (s1 - s0))
+            passed = [lr[i] for i in np.flatnonzero(hit)]
+            # spurious detections that overlap the section join its group (more of them the
+            # more runs the history holds): up to the number the runs passing it can explain
+            # are left out of the consistency test, the most discordant first
+            k_spur = int(stats.binom.isf(cfg.alpha, max(len(passed), len(m)), cfg.p_false))
+            c, n_out = _trimmed_combine([d["permille"] for d in m], [d["se"] for d in m],
+                                        k_spur, cfg.alpha)
+            days: dict = {}
+            for r in passed:
+                days.setdefault(r.get("day"), [0, 0])[1] += 1
+            for d in m:
+                days.setdefault(d.get("day"), [0, 0])[0] += 1
             secs.append({"start": s0, "end": s1, "permille": c["mean"], "se": c["se"],
                          "ci95": [c["mean"] - 1.96 * c["se"], c["mean"] + 1.96 * c["se"]],
                          "z": c["z"], "q": c["q"], "df": c["df"],
-                         "p_consistency": c["p_consistency"],
+                         "p_consistency": c["p_consistency"], "left_out": n_out,
                          "runs_found": len(m), "runs_passed": max(len(passed), len(m)),
                          "trains_found": sorted({d["train"] for d in m}),
                          "trains_passed": sorted({r["train"] for r in passed}),
-                         "bags": [d.get("bag") for d in m]})
+                         "bags": [d.get("bag") for d in m],
+                         "days": {str(k): [f, max(n, f)] for k, (f, n) in days.items()
+                                  if k is not None}})
         ltrains = sorted({r["train"] for r in lr})
         res = [r["resistance"] for r in lr if r.get("resistance")]
         rc = combine_random([x["value"] for x in res], [x["se"] for x in res]) if res else \
@@ -233,6 +305,8 @@ def line_consensus(rows: list[dict], cfg: FleetConfig = FleetConfig()) -> dict:
             agree = s["p_consistency"] >= cfg.alpha
             s["verdict"] = ("map error" if enough and unlikely and agree else
                             "disputed" if enough and unlikely else "single-train or spurious")
+            if s["verdict"] == "map error" and len(s["days"]) >= 2:
+                s.update(_day_test(s["days"], cfg, max(n_groups, 1)))
         rc = d["resistance"]
         if rc.get("n", 0) >= 2:
             rc["z_critical"] = zc_res
@@ -259,10 +333,13 @@ def train_consensus(rows: list[dict], cfg: FleetConfig = FleetConfig(),
     zc = z_critical(cfg.alpha, n_tests)
     out: dict = {"parameters": {}, "alerts": [], "z_critical": zc,
                  "tests": n_tests, "alpha": cfg.alpha}
+    by_train: dict = {}
+    for r in rows:
+        by_train.setdefault(r["train"], []).append(r)
     for p in parameters:
         per: dict = {}
         for tr in trains:
-            rr = sorted((r for r in rows if r["train"] == tr and r.get(p)
+            rr = sorted((r for r in by_train[tr] if r.get(p)
                          and _finite(r[p].get("value")) and _finite(r[p].get("se"))
                          and r[p]["se"] > 0), key=lambda r: r.get("time", 0.0))
             if rr:
@@ -344,7 +421,7 @@ def _train_mean(x: np.ndarray, se: np.ndarray, tau2: float) -> tuple[float, floa
     se^2 + tau^2; the se is scaled up by the Birge ratio sqrt(Q / df) when the train's own runs
     scatter more than that (a train that changes between runs is less certain of its mean)."""
     s_eff = np.sqrt(se**2 + tau2)
-    c = combine(x, s_eff)
+    c = _wmean(x, s_eff)  # called n_trains^2 times per parameter: no p-values here
     birge = math.sqrt(c["q"] / c["df"]) if c["df"] > 0 and c["q"] > c["df"] else 1.0
     frac = tau2 / (float(np.mean(se**2)) + tau2) if tau2 > 0 else 0.0
     return c["mean"], c["se"] * birge, frac
@@ -355,7 +432,7 @@ def _moments(x: np.ndarray, se: np.ndarray) -> tuple[float, int, float]:
     if x.size < 2:
         return 0.0, 0, 0.0
     w = 1.0 / se**2
-    c = combine(x, se)
+    c = _wmean(x, se)
     s1, s2 = float(np.sum(w)), float(np.sum(w * w))
     return c["q"], c["df"], s1 - s2 / s1
 
@@ -384,6 +461,71 @@ def _finite(x) -> bool:
     return x is not None and isinstance(x, (int, float)) and math.isfinite(x)
 
 
+def _day_test(days: dict, cfg: FleetConfig, n_groups: int) -> dict:
+    """A map error seen on several days, tested without the day that found it most often
+    (module docstring): {"day_status", "top_day", "p_rest", "p_fewer"}."""
+    top = max(days, key=lambda k: (days[k][0] / max(days[k][1], 1), days[k][0], k))
+    f_top, n_top = days[top]
+    f_rest = sum(v[0] for k, v in days.items() if k != top)
+    n_rest = sum(v[1] for k, v in days.items() if k != top)
+    p_rest = float(stats.binom.sf(f_rest - 1, n_rest, cfg.p_false)) if n_rest else 1.0
+    p_fewer = float(stats.fisher_exact([[f_top, n_top - f_top], [f_rest, n_rest - f_rest]],
+                                       alternative="greater")[1]) if n_rest else 1.0
+    found_days = sorted(k for k, v in days.items() if v[0] > 0)
+    if p_rest < cfg.alpha / n_groups:
+        status = f"confirmed on {len(found_days)} days"
+    elif p_fewer < cfg.alpha:
+        status = "withdrawn"
+    else:
+        status = "unconfirmed"
+    out = {"day_status": status, "top_day": top, "p_rest": p_rest, "p_fewer": p_fewer,
+           "days_found": found_days}
+    if status == "withdrawn":
+        out["verdict"] = "one day's artefact"
+    return out
+
+
+def runs_needed(cfg: FleetConfig, n_groups: int = 1) -> int:
+    """n_min: the fewest runs over a section with which a map error found in ``p_detect`` of
+    the runs passes the binomial test (alpha / n_groups) with probability >= ``power``."""
+    for n in range(1, 10_000):
+        k = np.arange(1, n + 1)
+        ok = stats.binom.sf(k - 1, n, cfg.p_false) < cfg.alpha / max(n_groups, 1)
+        if ok.any() and stats.binom.sf(k[ok][0] - 1, n, cfg.p_detect) >= cfg.power:
+            return n
+    return 10_000
+
+
+def reliability(rows: list[dict], lines: dict, trains: dict,
+                cfg: FleetConfig = FleetConfig()) -> dict:
+    """Whether the consensus can be trusted where it finds nothing (module docstring):
+    {"reliable", "reasons": [...], "n_min", "lines": {line: {...}}, "parameters": {...}}."""
+    n_min = runs_needed(cfg)
+    reasons = []
+    per_line: dict = {}
+    for ln in sorted({r["line"] for r in rows}):
+        lr = [r for r in rows if r["line"] == ln]
+        ok = [r for r in lr if not r.get("error")]
+        n_tr = len({r["train"] for r in ok})
+        good = len(ok) >= n_min and n_tr >= cfg.min_trains
+        per_line[ln] = {"runs": len(lr), "analysed": len(ok), "failed": len(lr) - len(ok),
+                        "trains": n_tr, "reliable": good}
+        if not good:
+            reasons.append(f"line {ln}: {len(ok)} of {len(lr)} runs analysed ({n_tr} trains); "
+                           f"{n_min} runs of {cfg.min_trains} trains are needed to find or "
+                           "exclude a map error")
+        for s in (lines.get(ln) or {}).get("sections", []):
+            s["too_few_runs"] = s["runs_passed"] < n_min
+    per_par: dict = {}
+    for p, d in trains.get("parameters", {}).items():
+        n = len(d.get("trains", {}))
+        per_par[p] = {"trains": n, "reliable": n >= 3}
+        if n < 3:
+            reasons.append(f"{p}: values of {n} trains; a departure needs 3")
+    return {"reliable": not reasons, "reasons": reasons, "n_min": n_min, "lines": per_line,
+            "parameters": per_par}
+
+
 @dataclass
 class FleetResult:
     lines: dict
@@ -391,6 +533,7 @@ class FleetResult:
     map_errors: list  # [{"line", "start", "end", "permille", ...}]
     train_alerts: list  # [{"train", "parameter", "kind", "z", ...}]
     config: dict
+    reliability: dict = field(default_factory=dict)  # see ``reliability``
 
 
 def consensus(rows: list[dict], cfg: FleetConfig = FleetConfig()) -> FleetResult:
@@ -401,4 +544,5 @@ def consensus(rows: list[dict], cfg: FleetConfig = FleetConfig()) -> FleetResult
     maps = [dict(s, line=ln) for ln, d in lines.items() for s in d["sections"]
             if s["verdict"] == "map error"]
     return FleetResult(lines=lines, trains=trains, map_errors=maps,
-                       train_alerts=trains["alerts"], config=asdict(cfg))
+                       train_alerts=trains["alerts"], config=asdict(cfg),
+                       reliability=reliability(rows, lines, trains, cfg))

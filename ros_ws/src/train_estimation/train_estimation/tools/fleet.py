@@ -6,19 +6,29 @@ consensus across trains follows.
     fleet --manifest manifest.csv --out DIR [--workers 2 | --scheduler ADDRESS]
     fleet --bags FOLDER --line line.yaml --train train.yaml --out DIR
 
-Input: a manifest (CSV with columns train, bag, line, train_file and optionally time; paths
+Input: a manifest (CSV with columns train, bag, line, train_file and optionally time, day; paths
 relative to the manifest) or a folder searched for bags (rosbag2 directories); a folder's bag
 belongs to the train named by its parent directory (FOLDER/T07/run3) or, for bags directly in
 FOLDER, by its name up to the first "_" (T07_run3). Time orders a train's runs: the manifest's
 ``time`` column (any unit; the fleet simulator writes hours) or else the bag's first log time
 in hours.
 
-Every bag is analysed by one Dask task (an embedded LocalCluster of --workers processes, or
-the cluster at --scheduler, e.g. tcp://host:8786): check_bag's topic health, identify's fit
-(braking rate, mass) and diagnose's ranking. A task's result is cached in DIR/cache under the
-SHA-256 of the bag's files, the line and train files and the tool's version, so a rerun only
-analyses new or changed bags. A bag that cannot be read or diagnosed is listed with its reason
-and the others go on.
+Every bag is analysed by one Dask task (an embedded LocalCluster of --workers processes, its
+dashboard at --dashboard, printed; or the cluster at --scheduler, e.g. tcp://host:8786,
+started with `./run scheduler` and `./run worker tcp://host:8786` on every machine with a
+checkout): check_bag's topic health, identify's fit (braking rate, mass) and diagnose's
+ranking. Before submitting, every worker is asked to import the analysis and read the first
+bag's line and train files; a worker that cannot stops the run with one line saying what is
+missing and how to start workers. A task's result is cached in DIR/cache under the SHA-256 of
+the bag's files, the line and train files and the tool's version, so a rerun only analyses new
+or changed bags. A bag that cannot be read or diagnosed is listed with its reason and the
+others go on.
+
+Days: every run adds its bags to DIR/history.jsonl (one row per bag, by content, with its day:
+the manifest's ``day`` column, else --day, else today's UTC date), and the consensus is over
+the history (--days N: its N latest days; --no-history: this run's bags only). A map error
+seen on several days is confirmed by the other days' runs or withdrawn as one day's artefact
+(core/fleet.py); trends use the ``time`` column, which must then be on one clock across days.
 
 Output (DIR is created):
   DIR/runs.csv        one row per bag: status, reason, check_bag's received fractions, the
@@ -42,8 +52,15 @@ family-wise false-alarm rate --alpha, default 0.01), for the departure from the 
 median (leave-one-out, MAD spread) or for a trend in time; the report lists the critical value
 applied to each train.
 
-Exit status: 0 when the report was written (failed bags are listed in it); 2 when there is no
-usable input (no manifest or folder, no bag in it, bad YAML).
+Reliability: the report's first line says how many bags failed and why (reasons grouped);
+the consensus says it is unreliable where too few runs were analysed to find or exclude a map
+error (fewer than n_min runs on a line, see core/fleet.py) or to test departures (fewer than
+three trains with values).
+
+Exit status: 0 when the report was written; 1 when it was written but more than --max-failed
+(default 0.1) of the bags failed; 2 when there is no usable input (no manifest or folder, a
+malformed manifest row, no bag, bad YAML) or the cluster cannot run the analysis (no
+scheduler, no worker, a worker without the project's environment): one line on stderr.
 """
 
 from __future__ import annotations
@@ -80,22 +97,43 @@ def is_bag(p: Path) -> bool:
 
 
 def read_manifest(path: str) -> list[dict]:
+    """The manifest's tasks; a malformed row is an InputError naming its line (exit 2)."""
     base = Path(path).resolve().parent
     try:
         with open(path, newline="") as fh:
-            rows = list(csv.DictReader(fh))
+            reader = csv.DictReader(fh)
+            rows = [(reader.line_num, r) for r in reader]
+            header = reader.fieldnames or []
     except OSError as exc:
         raise InputError(f"cannot read the manifest {path}: {exc.strerror}") from exc
-    need = {"train", "bag", "line", "train_file"}
-    if not rows or not need <= set(rows[0]):
+    except (csv.Error, UnicodeDecodeError) as exc:
+        raise InputError(f"{path}: not a CSV manifest ({exc})") from exc
+    need = ("train", "bag", "line", "train_file")
+    if not rows or not set(need) <= set(header):
         raise InputError(f"{path}: a manifest is a CSV with columns train, bag, line, "
-                         f"train_file[, time] (got {sorted(rows[0]) if rows else 'no rows'})")
+                         f"train_file[, time][, day] (got {sorted(header) if rows else 'no rows'})")
     tasks = []
-    for r in rows:
-        t = {k: str(base / r[k]) if not os.path.isabs(r[k]) else r[k]
+    for num, r in rows:
+        if None in r:  # more cells than the header has columns
+            raise InputError(f"{path} line {num}: {len(header) + len(r[None])} cells, the "
+                             f"header has {len(header)} ({', '.join(header)})")
+        empty = [k for k in need if not (r.get(k) or "").strip()]
+        if empty:
+            raise InputError(f"{path} line {num}: no {', '.join(empty)} (a row needs "
+                             f"{', '.join(need)}; {len([v for v in r.values() if v])} of "
+                             f"{len(header)} cells given)")
+        t = {k: r[k].strip() if os.path.isabs(r[k].strip()) else str(base / r[k].strip())
              for k in ("bag", "line", "train_file")}
-        t["train"] = r["train"]
-        t["time"] = float(r["time"]) if r.get("time") not in (None, "") else None
+        t["train"] = r["train"].strip()
+        tm = (r.get("time") or "").strip()
+        try:
+            t["time"] = float(tm) if tm else None
+        except ValueError:
+            raise InputError(f"{path} line {num}: time {tm!r} is not a number") from None
+        if t["time"] is not None and not math.isfinite(t["time"]):
+            raise InputError(f"{path} line {num}: time {tm!r} is not finite")
+        day = (r.get("day") or "").strip()
+        t["day"] = day or None
         tasks.append(t)
     return tasks
 
@@ -261,7 +299,7 @@ def consensus_rows(rows: list[dict]) -> list[dict]:
     for r in rows:
         c = {"train": r["train"], "line": r.get("line") or Path(r["line_file"]).stem,
              "time": r.get("time") or 0.0, "bag": r["bag"], "error": r.get("error"),
-             "coverage": r.get("coverage")}
+             "coverage": r.get("coverage"), "day": r.get("day")}
         if r.get("gradient_se"):
             c["gradient"] = {"start": r["gradient_start"], "end": r["gradient_end"],
                              "permille": r["gradient_permille"], "se": r["gradient_se"]}
@@ -279,44 +317,156 @@ def consensus_rows(rows: list[dict]) -> list[dict]:
 # Dask
 # ------------------------------------------------------------------------------------------------
 
-def local_cluster(workers: int):
+WORKER_HINT = "./run worker {address}"  # how a worker is started with the project's environment
+
+
+class ClusterError(RuntimeError):
+    """The cluster cannot run the analysis (exit 2, one line)."""
+
+
+def local_cluster(workers: int, dashboard: str | None = None):
     """The embedded cluster: ``workers`` processes of one thread each (the tasks are
-    numpy-heavy; the workers are the parallelism, so BLAS threads are limited to one)."""
+    numpy-heavy; the workers are the parallelism, so BLAS threads are limited to one).
+    ``dashboard``: the dashboard's address (e.g. 127.0.0.1:8787; a taken port is replaced by
+    a free one), None for none."""
     from dask.distributed import LocalCluster
 
     for v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ.setdefault(v, "1")
+    # without a dashboard the scheduler still serves HTTP (health, metrics): on a free port of
+    # the loopback interface, not on the dashboard's default port
     return LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                        dashboard_address=None)
+                        dashboard_address=dashboard,
+                        scheduler_kwargs=None if dashboard else
+                        {"dashboard_address": "127.0.0.1:0"})
+
+
+def worker_check(paths: dict) -> dict:
+    """Run on a worker: import everything a task imports and read the first task's line and
+    train files (the paths every worker must see, like the bags). {"version", "problem"}."""
+    out: dict = {"version": VERSION, "problem": None}
+    try:
+        import train_core.bagio  # noqa: F401
+        from train_core.model import load_line, load_train
+
+        import train_estimation.core.diagnose  # noqa: F401
+        import train_estimation.core.identify  # noqa: F401
+        import train_estimation.tools.check_bag  # noqa: F401
+        import train_estimation.tools.diagnose  # noqa: F401
+    except Exception as exc:  # noqa: BLE001 - reported, as what the worker lacks
+        out["problem"] = f"{type(exc).__name__}: {exc}"
+        return out
+    for what in ("bag", "line", "train_file"):
+        if not os.path.exists(paths[what]):
+            out["problem"] = (f"cannot see {paths[what]} (every worker needs the bags and "
+                              "YAML files at the paths of the manifest)")
+            return out
+    try:
+        load_line(paths["line"])
+        load_train(paths["train_file"])
+    except Exception as exc:  # noqa: BLE001
+        out["problem"] = f"cannot load the line or train: {type(exc).__name__}: {exc}"
+    return out
+
+
+def _probe_function(paths: dict):
+    """A function for ``client.run`` that is shipped by value (a closure): it must run on a
+    worker that cannot import this module, to say so."""
+    def probe():
+        import sys as _sys
+        try:
+            from train_estimation.tools import fleet as _fleet
+        except Exception as exc:  # noqa: BLE001
+            return {"version": None, "python": _sys.executable,
+                    "problem": f"{type(exc).__name__}: {exc}"}
+        return dict(_fleet.worker_check(paths), python=_sys.executable)
+    return probe
+
+
+def probe_workers(client, task: dict, address: str, wait_s: float = 60.0) -> int:
+    """Check before submitting that every worker can run the analysis; the number of workers.
+    Raises ClusterError with one line: which workers, what is missing, how to start them."""
+    hint = WORKER_HINT.format(address=address)
+    try:
+        client.wait_for_workers(1, timeout=wait_s)
+    except (TimeoutError, OSError) as exc:
+        raise ClusterError(f"no worker connected to the scheduler at {address} within "
+                           f"{wait_s:.0f} s; start workers with: {hint}") from exc
+    res = client.run(_probe_function({k: task[k] for k in ("bag", "line", "train_file")}),
+                     on_error="return")
+    bad = {}
+    for w, r in sorted(res.items()):
+        if isinstance(r, BaseException):
+            bad[w] = f"{type(r).__name__}: {r}"
+        elif r.get("problem"):
+            bad[w] = f"{r['problem']} (python {r.get('python')})"
+        elif r.get("version") != VERSION:
+            bad[w] = f"runs analysis version {r.get('version')}, this client {VERSION}"
+    if bad:
+        w, why = next(iter(bad.items()))
+        more = f" (and {len(bad) - 1} more)" if len(bad) > 1 else ""
+        raise ClusterError(f"{len(bad)} of {len(res)} workers cannot run the analysis: {w}: "
+                           f"{' '.join(why.split())}{more}; start every worker from a checkout "
+                           f"of this project with: {hint}")
+    return len(res)
 
 
 def run_tasks(tasks: list[dict], workers: int, scheduler: str | None, progress: bool,
-              client=None) -> list:
+              client=None, dashboard: str | None = None, wait_s: float = 60.0,
+              info: dict | None = None) -> list:
     """Analyse ``tasks`` on Dask (``client``, else the cluster at ``scheduler``, else an
-    embedded LocalCluster of ``workers`` processes, closed afterwards); rows in completion
-    order. A task whose worker died is a row with the error too."""
+    embedded LocalCluster of ``workers`` processes with its dashboard at ``dashboard``,
+    closed afterwards); rows in completion order. A task whose worker died is a row with the
+    error too. Every worker is probed first (``probe_workers``: ClusterError when one cannot
+    run the analysis). ``info`` (a dict) receives the dashboard link and the worker count."""
     from dask.distributed import Client
 
+    info = {} if info is None else info
     if client is not None:
-        return _collect(client, tasks, progress)
+        return _run(client, tasks, progress, client.scheduler.address, wait_s, info)
     if scheduler:
-        with Client(scheduler) as c:
-            return _collect(c, tasks, progress)
-    with local_cluster(workers) as cluster, Client(cluster) as c:
-        return _collect(c, tasks, progress)
+        try:
+            c = Client(scheduler, timeout=wait_s)
+        except (OSError, TimeoutError) as exc:
+            raise ClusterError(f"no scheduler answers at {scheduler} ({type(exc).__name__}); "
+                               "start one with: ./run scheduler, and workers with: "
+                               f"{WORKER_HINT.format(address=scheduler)}") from exc
+        with c:
+            return _run(c, tasks, progress, scheduler, wait_s, info)
+    with local_cluster(workers, dashboard) as cluster, Client(cluster) as c:
+        return _run(c, tasks, progress, cluster.scheduler_address, wait_s, info,
+                    show=dashboard is not None)
 
 
-def _collect(client, tasks: list[dict], progress: bool) -> list:
+def _run(client, tasks, progress, address, wait_s, info, show=True) -> list:
+    info["workers_n"] = probe_workers(client, tasks[0], address, wait_s)
+    link = client.dashboard_link if show and _has_dashboard(client) else None
+    info["dashboard"] = link
+    if link:
+        print(f"fleet: dashboard at {link}", file=sys.stderr)
+    return _collect(client, tasks, progress, info)
+
+
+def _has_dashboard(client) -> bool:
+    try:
+        return "dashboard" in client.scheduler_info().get("services", {})
+    except Exception:  # noqa: BLE001 - no dashboard link is not a failure
+        return False
+
+
+def _collect(client, tasks: list[dict], progress: bool, info: dict | None = None) -> list:
     from dask.distributed import as_completed
     from tqdm import tqdm
 
     rows = []
     futs = client.map(analyse_bag, tasks, key=[f"bag-{t['key']}" for t in tasks], pure=False)
     by_key = {f.key: t for f, t in zip(futs, tasks)}
+    where: dict = {}
     with tqdm(total=len(futs), desc="fleet", unit="bag", disable=not progress,
               file=sys.stderr) as bar:
         for fut in as_completed(futs):
             try:
+                where.update({k: sorted(v) for k, v in client.who_has([fut]).items()})
                 row = fut.result()
             except Exception as exc:  # noqa: BLE001 - a lost worker loses one bag only
                 t = by_key[fut.key]
@@ -324,10 +474,73 @@ def _collect(client, tasks: list[dict], progress: bool) -> list:
                        "train_file": t["train_file"], "time": t.get("time"),
                        "key": t["key"], "error": f"task failed: {type(exc).__name__}: "
                        f"{exc}"[:300]}
+            row["worker"] = (where.get(fut.key) or [None])[0]
             rows.append(row)
             bar.set_postfix_str(Path(row["bag"]).name[-24:])
             bar.update(1)
+    if info is not None:
+        per: dict = {}
+        for r in rows:
+            per[r["worker"]] = per.get(r["worker"], 0) + 1
+        info["bags_per_worker"] = per
     return rows
+
+
+def failure_groups(rows: list[dict]) -> list[tuple[int, str]]:
+    """The failed bags' reasons grouped (paths and numbers blanked), most frequent first."""
+    import re
+
+    groups: dict = {}
+    for r in rows:
+        if r.get("error"):
+            why = re.sub(r"(?:[A-Za-z]:)?(?:/[^\s:'\",()]+)+", "<path>", r["error"])
+            why = re.sub(r"\b\d+(?:\.\d+)?\b", "#", why)
+            groups[why] = groups.get(why, 0) + 1
+    return sorted(((n, w) for w, n in groups.items()), key=lambda x: (-x[0], x[1]))
+
+
+def failure_line(rows: list[dict], top: int = 3) -> str:
+    """'N of M bags failed: k x reason; ...' (empty when none failed)."""
+    g = failure_groups(rows)
+    n = sum(c for c, _ in g)
+    if not n:
+        return ""
+    parts = [f"{c} x {w[:120]}" for c, w in g[:top]]
+    if len(g) > top:
+        parts.append(f"{len(g) - top} other reasons")
+    return f"{n} of {len(rows)} bags failed: {'; '.join(parts)}"
+
+
+def merge_history(path: Path, rows: list[dict], day: str) -> list[dict]:
+    """Add this run's rows to the history (one JSON row per bag, by content key; a bag seen
+    before keeps its first day unless the manifest names one) and return every row."""
+    hist: dict = {}
+    if path.is_file():
+        with open(path) as fh:
+            for n, line in enumerate(fh, 1):
+                try:
+                    r = json.loads(line)
+                    hist[r["key"]] = r
+                except (ValueError, KeyError, TypeError):
+                    print(f"fleet: {path} line {n}: not a history row, skipped", file=sys.stderr)
+    for r in rows:
+        old = hist.get(r["key"])
+        r["day"] = r.get("manifest_day") or (old or {}).get("day") or day
+        hist[r["key"]] = r
+    tmp = path.with_suffix(".tmp")
+    with open(tmp, "w") as fh:
+        for r in hist.values():
+            fh.write(json.dumps(r, default=json_default) + "\n")
+    os.replace(tmp, path)  # a killed run leaves the old history whole
+    return list(hist.values())
+
+
+def window(rows: list[dict], days: int) -> list[dict]:
+    """The rows of the ``days`` latest days (day labels in sort order; 0: every day)."""
+    if days <= 0:
+        return rows
+    keep = set(sorted({str(r.get("day")) for r in rows})[-days:])
+    return [r for r in rows if str(r.get("day")) in keep]
 
 
 # ------------------------------------------------------------------------------------------------
@@ -459,11 +672,29 @@ def report_md(res, rows: list[dict], info: dict, plots: list[str]) -> str:
     ok = [r for r in rows if not r.get("error")]
     bad = [r for r in rows if r.get("error")]
     cfg = res.config
-    L = [f"# Fleet report ({info['when']})", "",
-         f"{len(rows)} bags of {len({r['train'] for r in rows})} trains on "
-         f"{len(res.lines)} lines: {len(ok)} analysed, {len(bad)} failed; "
-         f"{info['cached']} from the cache, {info['computed']} computed in "
-         f"{info['wall_s']:.0f} s on {info['workers']}.", "",
+    rel = getattr(res, "reliability", None) or {}
+    days = info.get("days") or []
+    # the first line says what failed, so that nobody reads "no map error" off a failed run
+    head = f"# Fleet report ({info['when']})"
+    if bad:
+        too_many = len(bad) > info.get("max_failed", 1.0) * len(rows)
+        head += f": {'FAILED, ' if too_many else ''}{failure_line(rows)}"
+    L = [head, ""]
+    if rel and not rel.get("reliable", True):
+        L += ["**The consensus is unreliable** (too few analysed runs; \"no map error\" or "
+              "\"no train departs\" below does not mean that there is none): "
+              + "; ".join(rel["reasons"]) + ".", ""]
+    per = info.get("bags_per_worker") or {}
+    L += [f"{len(rows)} bags of {len({r['train'] for r in rows})} trains on "
+          f"{len(res.lines)} lines: {len(ok)} analysed, {len(bad)} failed; "
+          f"{info['cached']} from the cache, {info['computed']} computed in "
+          f"{info.get('wall_s', 0.0):.0f} s on {info['workers']}"
+          + (f" ({len(per)} workers: {', '.join(str(n) for n in per.values())} bags)"
+             if per else "") + ".", ""]
+    if len(days) > 1 or info.get("pool", len(rows)) != len(rows):
+        L += [f"The consensus is over {info.get('pool')} runs of {len(days)} days "
+              f"({days[0]} to {days[-1]}) from the history (OUT/history.jsonl).", ""]
+    L += [
          "## Map errors", ""]
     if res.map_errors:
         L += ["| line | section (m) | true - mapped (per mille), 95 % | trains | runs | "
@@ -483,17 +714,30 @@ def report_md(res, rows: list[dict], info: dict, plots: list[str]) -> str:
                      f"{len(m['trains_found'])} of {len(m['trains_passed'])} trains that passed "
                      f"found it; by chance at {cfg['p_false']:.0%} false detections per run: "
                      f"p = {m['p_binomial']:.2g}; the values agree: Cochran's Q = {m['q']:.1f} "
-                     f"on {m['df']} df, p = {m['p_consistency']:.2f}).")
+                     f"on {m['df']} df, p = {m['p_consistency']:.2f})"
+                     + (f"; over {len(m['days'])} days: {m['day_status']}, without "
+                        f"{m['top_day']} p = {m['p_rest']:.2g}" if m.get("day_status") else "")
+                     + ".")
     else:
         L.append("No section is found by enough trains to be a map error.")
+    weak = [ln for ln, d in (rel.get("lines") or {}).items() if not d["reliable"]]
+    if weak:
+        L.append(f"Too few analysed runs on {', '.join(weak)} to exclude one (a section needs "
+                 f"{rel['n_min']} runs: the fewest with which a map error that diagnose finds "
+                 f"in {cfg.get('p_detect', 0.5):.0%} of the runs is declared with probability "
+                 f"{cfg.get('power', 0.9):.0%}).")
     L += ["", "### Every section found, per line", "",
-          "| line | section (m) | per mille +- se | found by runs (trains) | verdict |",
-          "|---|---|---|---|---|"]
+          "| line | section (m) | per mille +- se | found by runs (trains) | days: found/passed "
+          "| verdict |", "|---|---|---|---|---|---|"]
     for ln, d in res.lines.items():
         for s in d["sections"]:
+            dd = ", ".join(f"{k}: {f}/{n}" for k, (f, n) in sorted(s.get("days", {}).items()))
+            v = s["verdict"] + (f" ({s['day_status']})" if s.get("day_status") else "") + \
+                (" (too few runs)" if s.get("too_few_runs") and s["verdict"] != "map error"
+                 else "")
             L.append(f"| {ln} | [{s['start']:.0f}, {s['end']:.0f}) | {s['permille']:+.2f} +- "
                      f"{s['se']:.2f} | {s['runs_found']}/{s['runs_passed']} "
-                     f"({', '.join(s['trains_found'])}) | {s['verdict']} |")
+                     f"({', '.join(s['trains_found'])}) | {dd or '-'} | {v} |")
     L += ["", "### Resistance per line (fitted minus believed force at each run's speed)", "",
           "| line | runs | combined (N) +- se | tau (N) | z | consistency p | verdict |",
           "|---|---|---|---|---|---|---|"]
@@ -523,6 +767,10 @@ def report_md(res, rows: list[dict], info: dict, plots: list[str]) -> str:
         L += ["", f"Trains with an alert: **{', '.join(names)}**."]
     else:
         L.append("No train departs from the fleet or trends.")
+    few = [p for p, d in (rel.get("parameters") or {}).items() if not d["reliable"]]
+    if few:
+        L.append(f"Too few trains with values of {', '.join(few)} to test departures (3 "
+                 "needed).")
     for p, d in tr["parameters"].items():
         L += ["", f"### {p.replace('_', ' ')} per train (run-to-run scatter beyond the "
               f"standard errors: tau = {_f(d['tau'], '.3g')})", "",
@@ -557,12 +805,16 @@ def report_md(res, rows: list[dict], info: dict, plots: list[str]) -> str:
 # CLI
 # ------------------------------------------------------------------------------------------------
 
+# failures of the worker rather than of the bag: analysed again next time
+_NOT_CACHED = ("task failed", "ModuleNotFoundError", "ImportError", "MemoryError")
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="fleet", description=__doc__.splitlines()[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter,
                                 epilog="\n".join(__doc__.splitlines()[2:]))
     src = p.add_mutually_exclusive_group(required=True)
-    src.add_argument("--manifest", help="CSV: train, bag, line, train_file[, time]")
+    src.add_argument("--manifest", help="CSV: train, bag, line, train_file[, time][, day]")
     src.add_argument("--bags", metavar="FOLDER", help="folder searched for bags")
     p.add_argument("--line", help="line.yaml for every bag of --bags")
     p.add_argument("--train", help="train.yaml for every bag of --bags")
@@ -570,7 +822,24 @@ def main(argv=None) -> int:
     p.add_argument("--workers", type=int, default=2,
                    help="worker processes of the embedded LocalCluster (default 2)")
     p.add_argument("--scheduler", default=None, metavar="ADDRESS",
-                   help="use the Dask cluster at ADDRESS (e.g. tcp://host:8786) instead")
+                   help="use the Dask cluster at ADDRESS (e.g. tcp://host:8786) instead; start "
+                        "it with ./run scheduler and its workers with ./run worker ADDRESS")
+    p.add_argument("--dashboard", default="127.0.0.1:8787", metavar="HOST:PORT",
+                   help="the embedded cluster's dashboard (default 127.0.0.1:8787; a taken "
+                        "port is replaced by a free one; the link is printed)")
+    p.add_argument("--no-dashboard", action="store_true", help="no dashboard")
+    p.add_argument("--wait", type=float, default=60.0, metavar="S",
+                   help="seconds to wait for the scheduler and a first worker (default 60)")
+    p.add_argument("--max-failed", type=float, default=0.1, metavar="FRACTION",
+                   help="exit 1 when more than this share of the bags failed (default 0.1; "
+                        "the report is written all the same)")
+    p.add_argument("--day", default=None,
+                   help="the day these bags belong to in the history (default: the "
+                        "manifest's day column, else today's UTC date)")
+    p.add_argument("--days", type=int, default=0, metavar="N",
+                   help="consensus over the N latest days of the history (default 0: all)")
+    p.add_argument("--no-history", action="store_true",
+                   help="consensus over this run's bags only; OUT/history.jsonl is not touched")
     p.add_argument("--cache", default=None, help="cache directory (default OUT/cache)")
     p.add_argument("--alpha", type=float, default=0.01,
                    help="family-wise false-alarm rate of the consensus tests (default 0.01)")
@@ -583,6 +852,8 @@ def main(argv=None) -> int:
 
     t0 = time.perf_counter()
     try:
+        if not 0.0 <= args.max_failed <= 1.0:
+            raise InputError(f"--max-failed {args.max_failed}: a fraction in [0, 1]")
         if args.manifest:
             tasks = read_manifest(args.manifest)
         else:
@@ -615,22 +886,44 @@ def main(argv=None) -> int:
             todo.append(t)
     where = (f"the cluster at {args.scheduler}" if args.scheduler else
              f"a local Dask cluster of {args.workers} worker processes")
+    info = {"when": time.strftime("%Y-%m-%d %H:%M"), "cached": len(tasks) - len(todo),
+            "computed": len(todo), "workers": where}
     if todo:
         print(f"fleet: {len(tasks)} bags, {len(tasks) - len(todo)} cached, {len(todo)} to "
               f"analyse on {where}", file=sys.stderr)
         t1 = time.perf_counter()
-        new = run_tasks(todo, args.workers, args.scheduler, not args.quiet)
+        try:
+            new = run_tasks(todo, args.workers, args.scheduler, not args.quiet,
+                            dashboard=None if args.no_dashboard else args.dashboard,
+                            wait_s=args.wait, info=info)
+        except ClusterError as exc:
+            print(f"fleet: {' '.join(str(exc).split())}", file=sys.stderr)
+            return 2
         wall = time.perf_counter() - t1
         for r in new:
             r["cached"] = False
-            (cache / f"{r['key']}.json").write_text(json.dumps(r, default=json_default))
+            if not str(r.get("error") or "").startswith(_NOT_CACHED):
+                (cache / f"{r['key']}.json").write_text(json.dumps(r, default=json_default))
         rows += new
     else:
         wall = 0.0
-    res = consensus(consensus_rows(rows), FleetConfig(alpha=args.alpha))
+    info["wall_s"] = wall
+    by_key = {t["key"]: t for t in tasks}
+    for r in rows:
+        r["manifest_day"] = by_key[r["key"]].get("day")
+    day = args.day or time.strftime("%Y-%m-%d", time.gmtime())
+    if args.no_history:
+        for r in rows:
+            r["day"] = r["manifest_day"] or day
+        pool = rows
+    else:
+        pool = window(merge_history(out / "history.jsonl", rows, day), args.days)
+    info["days"] = sorted({str(r.get("day")) for r in pool})
+    info["pool"] = len(pool)
+    res = consensus(consensus_rows(pool), FleetConfig(alpha=args.alpha))
     write_csv(rows, out / "runs.csv")
     plots = []
-    crow = consensus_rows([r for r in rows if not r.get("error")])
+    crow = consensus_rows([r for r in pool if not r.get("error")])
     by_name = {}
     for ln in lines.values():
         by_name.setdefault(ln.name, ln)
@@ -643,23 +936,30 @@ def main(argv=None) -> int:
     if res.trains["parameters"]:
         plot_trends(res.trains, out / "trends.png")
         plots.append("trends.png")
-    info = {"when": time.strftime("%Y-%m-%d %H:%M"), "cached": len(tasks) - len(todo),
-            "computed": len(todo), "wall_s": wall, "workers": where}
+    n_bad = sum(1 for r in rows if r.get("error"))
+    too_many = n_bad > args.max_failed * len(rows)
+    info["max_failed"] = args.max_failed
     (out / "report.md").write_text(report_md(res, rows, info, plots))
     (out / "fleet.json").write_text(json.dumps(
         {"map_errors": res.map_errors, "train_alerts": res.train_alerts, "lines": res.lines,
-         "trains": res.trains, "config": res.config, "run": info}, indent=1,
-        default=json_default))
-    n_bad = sum(1 for r in rows if r.get("error"))
+         "trains": res.trains, "config": res.config, "reliability": res.reliability,
+         "failures": failure_groups(rows), "run": info}, indent=1, default=json_default))
     print(f"fleet: {len(rows)} bags ({n_bad} failed), {len(todo)} analysed in {wall:.0f} s, "
-          f"total {time.perf_counter() - t0:.0f} s")
+          f"total {time.perf_counter() - t0:.0f} s; consensus over {len(pool)} runs of "
+          f"{len(info['days'])} days")
     for m in res.map_errors:
         print(f"map error: line {m['line']} [{m['start']:.0f}, {m['end']:.0f}) m "
               f"{m['permille']:+.2f} +- {m['se']:.2f} per mille ({len(m['trains_found'])} "
               f"trains, {m['runs_found']}/{m['runs_passed']} runs)")
     for a in sorted(res.train_alerts, key=lambda a: (a["train"], a["parameter"])):
         print(f"train alert: {a['train']} {a['parameter']} {a['kind']} (z = {a['z']:+.1f})")
+    for why in res.reliability.get("reasons", []):
+        print(f"unreliable: {why}")
     print(f"wrote {out / 'report.md'}, {out / 'runs.csv'}, {out / 'fleet.json'}")
+    if too_many:
+        print(f"fleet: {failure_line(rows)} (more than --max-failed {args.max_failed:g})",
+              file=sys.stderr)
+        return 1
     return EXIT_OK
 
 
