@@ -351,8 +351,8 @@ def worker_check(paths: dict) -> dict:
 
         import train_estimation.core.diagnose  # noqa: F401
         import train_estimation.core.identify  # noqa: F401
-        import train_estimation.tools.check_bag  # noqa: F401
-        import train_estimation.tools.diagnose  # noqa: F401
+        import train_estimation.core.measured  # noqa: F401
+        import train_estimation.tools.common  # noqa: F401
     except Exception as exc:  # noqa: BLE001 - reported, as what the worker lacks
         out["problem"] = f"{type(exc).__name__}: {exc}"
         return out
