@@ -22,7 +22,8 @@ Checks (each gives a reason, e.g. ``"no_measurement: 2.3 s"``):
 
         P += a_u^2 [[tau^4 / 4, tau^3 / 2], [tau^3 / 2, tau^2]]
 
-    Beyond ``alarm_after``: ALARM.
+    Beyond ``alarm_after``: ALARM. (``degraded_after`` is at least 2.5 odometer periods: a
+    1 Hz odometer's normal gaps are no doubt.)
 ``blind``
     Readings keep arriving but the estimator refuses them all (gate, order, stale stamps): a
     filter that disagrees with every measurement is lost. ``blind_readings`` odometer readings
@@ -59,6 +60,7 @@ import numpy as np
 from train_core.config import param, require
 
 OK, DEGRADED, ALARM = 0, 1, 2
+UNBOUNDED = 1e12  # m^2, (m/s)^2: the variance published when the filter's is not usable
 NAMES = {OK: "OK", DEGRADED: "DEGRADED", ALARM: "ALARM"}
 
 
@@ -168,17 +170,21 @@ class IntegrityMonitor:
             and math.isfinite(out.velocity)
         if not finite or P[0, 0] <= 0 or P[1, 1] <= 0 or \
                 P[0, 0] * P[1, 1] - P[0, 1] ** 2 <= 0:
-            return self._label(out, t, ALARM, "covariance: not positive definite", None)
+            # the filter's own covariance is broken: published as "unbounded" (never a negative
+            # or non-positive-definite matrix a consumer could take for a bound)
+            return self._label(out, t, ALARM, "covariance: not positive definite",
+                               np.diag([UNBOUNDED, UNBOUNDED]))
         tau = t - self.last_fused
         if self.refused_run >= p.blind_readings:
             return self._label(out, t, ALARM, f"blind: {self.refused_run} readings refused in a "
                                            f"row", None)
+        degraded_after = max(p.degraded_after, 2.5 * self.period)  # a slow odometer's gaps
         if tau > p.alarm_after:
             return self._label(out, t, ALARM, f"no_measurement: {tau:.1f} s", None)
         m = self._nis_mean()
         if m > p.nis_alarm:
             return self._label(out, t, ALARM, f"speed_nis: window mean {m:.3g}", None)
-        if tau > p.degraded_after:
+        if tau > degraded_after:
             state = DEGRADED
             why.append(f"no_measurement: {tau:.1f} s")
             P = P + _accel_cov(p.accel_uncertainty, tau)
@@ -204,7 +210,7 @@ class IntegrityMonitor:
         C = np.array(out.covariance, dtype=float).reshape(4, 4)
         if P is not None:
             C[:2, :2] = P
-        if state == OK or P is not None:
+        if (state == OK or P is not None) and C[1, 1] < UNBOUNDED:
             pvv = C[1, 1]
         else:
             pvv = math.inf
