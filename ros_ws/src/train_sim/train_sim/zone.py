@@ -157,6 +157,7 @@ class TrainReport:
     cov_velocity_position: float = 0.0  # m^2/s, covariance[4] (must equal covariance[1])
     integrity: int = OK  # 0 OK, 1 DEGRADED, 2 ALARM
     exact: bool = False  # ground truth: variances of 0 are allowed
+    clock_shift: float = 0.0  # s, set by the zone: its timeline's shift (stamp - zone clock)
     last_measurement: float = math.nan  # s, stamp of the last report with a measurement (set
     #   by ZoneController.report)
 
@@ -216,6 +217,8 @@ class _Timeline:
     #   last TIMELINE_WINDOW s, offsets decreasing (a monotone queue: its head is the maximum)
     run: list = field(default_factory=list)  # (stamp, offset) of consecutive stamp-refused
     #   reports that agree with each other: evidence of a new timeline
+    shift: float = 0.0  # s, stamp - zone clock of this timeline (0: the estimator's clock is
+    #   the zone's; after a followed reset, the new timeline's offset at the reset)
 
     @property
     def offset(self) -> float:
@@ -263,7 +266,8 @@ class ZoneController:
         p = self.params
         offset = rep.stamp - rep.t_received
         tl = self.timelines.get(train_id)
-        ref = 0.0 if p.check_stamp_age else (tl.offset if tl is not None else offset)
+        ref = (tl.shift if tl is not None else 0.0) if p.check_stamp_age else \
+            (tl.offset if tl is not None else offset)
         if offset - ref > p.max_future:
             return FUTURE_STAMP, (f"stamped {offset - ref:.3g} s ahead of the "
                                   f"{'zone clock' if p.check_stamp_age else 'train timeline'}"
@@ -285,14 +289,20 @@ class ZoneController:
         if run and (abs(offset - run[0][1]) > p.max_future or rep.stamp <= run[-1][0]):
             run.clear()
         run.append((rep.stamp, offset))
-        plausible = not p.check_stamp_age or offset <= p.max_future
+        # on one clock, a new timeline ahead of the zone's clock is not adopted (a clock that
+        # jumps forward would make old estimates look fresh); one behind it is (a reboot)
+        plausible = not p.check_stamp_age or offset <= tl.shift + p.max_future
         return len(run) >= p.reset_reports and plausible
 
     def _store(self, train_id: str, rep: TrainReport, new_timeline: bool) -> None:
         offset = rep.stamp - rep.t_received
         tl = self.timelines.get(train_id)
         if tl is None or new_timeline:
-            tl = self.timelines[train_id] = _Timeline()
+            # a followed reset: stamp ages are judged on the new timeline from now on (its
+            # offset at the reset, the latency of that report included, which only errs
+            # towards "older")
+            tl = self.timelines[train_id] = _Timeline(shift=offset if new_timeline else 0.0)
+        rep.clock_shift = tl.shift
         tl.add(rep.t_received, offset)
         tl.run.clear()  # a good report on this timeline breaks a run of outliers
         last = None if new_timeline else self.reports.get(train_id)
@@ -328,8 +338,9 @@ class ZoneController:
         if now - rep.t_received > p.stale_timeout:
             return f"estimates stale: none received for {now - rep.t_received:.1f} s " \
                    f"(> {p.stale_timeout} s)"
-        if p.check_stamp_age and now - rep.stamp > p.stale_timeout:
-            return f"estimates stale: stamped {now - rep.stamp:.1f} s ago (> {p.stale_timeout} s)"
+        age = now - (rep.stamp - rep.clock_shift)  # on the zone's clock
+        if p.check_stamp_age and age > p.stale_timeout:
+            return f"estimates stale: stamped {age:.1f} s ago (> {p.stale_timeout} s)"
         if math.isfinite(rep.last_measurement) and \
                 rep.stamp - rep.last_measurement > p.measurement_timeout:
             return (f"estimates stale: no measurement used for "
