@@ -262,6 +262,7 @@ class EstimatorRunner:
     _odo_last: tuple | None = None  # (stamp, arrival) of the last odometer admitted
     _step_held: list = field(default_factory=list)  # discontinuous train-clock readings
     _odo_pushed: tuple | None = None  # (stamp, arrival) of the last odometer watched
+    _ctl_recv: float | None = None  # arrival of the latest command (the node's clock)
     _raw_stamp: dict = field(default_factory=dict)  # mapped odometer stamp -> stamp as sent
     integrity: IntegrityParams = field(default_factory=IntegrityParams)
     command_timeout: float | None = None  # s without commands before the node's clock stands
@@ -298,6 +299,8 @@ class EstimatorRunner:
                 self._raw_stamp[stamp] = raw
         if recv is not None and not math.isfinite(recv):
             recv = None
+        if kind == "control" and recv is not None:
+            self._ctl_recv = recv if self._ctl_recv is None else max(self._ctl_recv, recv)
         if kind != "control":
             seq = fields.get("seq") if isinstance(fields, dict) else None
             if not isinstance(seq, int) or isinstance(seq, bool):
@@ -699,7 +702,11 @@ class EstimatorRunner:
         now_train = now - delay + (train.value if train is not None and len(train) else 0.0)
         lead = self.high.get("control", now_train)
         odo = self.high.get("odometer", -math.inf)
-        if now_train - lead > self.command_timeout:
+        # silence on the arrival clock when arrivals are known: at 20x sim time a node's
+        # 100 ms of wall jitter is 2 s of stamps, which must not make it run ahead of commands
+        # that are on their way (the run would depend on the machine's load)
+        silent = now - self._ctl_recv if self._ctl_recv is not None else now_train - lead
+        if "control" in self.high and silent > self.command_timeout:
             # the command stream stopped while readings go on: waiting for it would leave the
             # train without an estimate and the queue growing; the filters hold the last
             # command, the integrity monitor says DEGRADED (no_command). The readings admitted
