@@ -5,6 +5,7 @@ import yaml
 from train_core.config import ConfigError, Section
 from train_core.effects import (
     EFFECT_NAMES,
+    AdhesionSectionEffect,
     BrakeDelayEffect,
     BrakingRateEffect,
     BurstyLinkEffect,
@@ -13,7 +14,9 @@ from train_core.effects import (
     GradientEffect,
     MassEffect,
     OdometerScaleEffect,
+    PowerLimitEffect,
     ResistanceEffect,
+    TractionDelayEffect,
     WheelSlipEffect,
     effect_to_dict,
     effects_to_dict,
@@ -32,6 +35,9 @@ EVERY = Effects(
     brake_delay=BrakeDelayEffect(1.6),
     mass=MassEffect(310000.0),
     clock_drift=ClockDriftEffect(0.001),
+    power_limit=PowerLimitEffect(9.5),
+    adhesion_section=AdhesionSectionEffect(3100.0, 3400.0, 0.7),
+    traction_delay=TractionDelayEffect(1.5),
 )
 
 
