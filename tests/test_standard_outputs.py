@@ -116,7 +116,7 @@ def test_zone_controller_diagnostics_count_refused_reports_by_reason(launch, ros
         msg.covariance[0] = -0.01
         pub.publish(msg)
     ros_node.wait_until(lambda: any(
-        dict((kv.key, kv.value) for kv in s.values).get(f"{ns}.rejected.negative_variance")
+        dict((kv.key, kv.value) for kv in s.values).get(f"{ns}.rejected.non_positive_variance")
         == "5" for s in _mine(diags, ns, "zone_controller")), timeout=20,
         what="the zone's status counting 5 refused reports")
     last = [s for s in _mine(diags, ns, "zone_controller")
@@ -125,5 +125,5 @@ def test_zone_controller_diagnostics_count_refused_reports_by_reason(launch, ros
     assert first.level == bytes([2]), (first.level, first.message)
     # all refused in that period (the five may straddle two periods: n of n)
     assert re.search(rf"{ns}: (\d) of \1 rejected in the last 1 s \(mostly "
-                     r"negative_variance\)", first.message), first.message
+                     r"non_positive_variance\)", first.message), first.message
     assert dict((kv.key, kv.value) for kv in first.values)[f"{ns}.accepted"] == "0"

@@ -12,6 +12,7 @@ emergency brake and why) goes to ``/diagnostics`` once per ``diagnostics_period`
 from __future__ import annotations
 
 import math
+import re
 import sys
 from dataclasses import replace
 
@@ -118,7 +119,8 @@ def build_node():
             self.received[tid] += 1
             self.last_arrival[tid] = self.steady.now().nanoseconds * 1e-9
             if kind:
-                self.refused[tid][kind] = self.refused[tid].get(kind, 0) + 1
+                key = "_".join(re.findall(r"[a-z0-9]+", kind.lower()))  # a diagnostics key
+                self.refused[tid][key] = self.refused[tid].get(key, 0) + 1
                 n = self.refusals.note(tid, kind, now)
                 if n:
                     _, _, detail = self.zone.last_refusal
