@@ -210,13 +210,11 @@ class IntegrityMonitor:
         C = np.array(out.covariance, dtype=float).reshape(4, 4)
         if P is not None:
             C[:2, :2] = P
-        if (state == OK or P is not None) and C[1, 1] < UNBOUNDED:
-            pvv = C[1, 1]
-        else:
-            pvv = math.inf
+        # the speed variance the next NIS term uses: unknown (a broken or ALARM covariance)
+        # counts as a wide one, so one bad estimate does not make every reading inconsistent
+        known = (state == OK or P is not None) and C[1, 1] < UNBOUNDED
         if math.isfinite(out.velocity):
-            self.prev = (t, float(out.velocity), float(pvv) if math.isfinite(pvv)
-                         else 1e6)
+            self.prev = (t, float(out.velocity), float(C[1, 1]) if known else 1e6)
         return replace(out, covariance=tuple(C.ravel()), integrity=state,
                        integrity_reason=why)
 
