@@ -8,6 +8,7 @@
 #   - ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST: discovery and traffic stay on loopback;
 #   - ROS_DOMAIN_ID: TRAIN_ROS_DOMAIN_ID if given, else a random id in [1, 100] per sourcing.
 #     (A developer's own ROS_DOMAIN_ID is deliberately ignored; override with TRAIN_ROS_DOMAIN_ID.)
+#   - one BLAS/OpenMP thread per process (small matrices; see the end of this file);
 
 TRAIN_REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 export TRAIN_REPO
@@ -54,3 +55,11 @@ else
     export ROS_DOMAIN_ID
 fi
 export PYTHONDONTWRITEBYTECODE=1
+
+# One BLAS thread per process. The filters multiply 2x2 to 4x4 matrices: a second BLAS thread
+# only spins, and beside other processes on a 2-core machine (nodes, test workers, dask
+# workers) the spinning threads starve each other (one expm-heavy test: 26 s against 1 s).
+# A caller's explicit setting wins.
+export OMP_NUM_THREADS="${OMP_NUM_THREADS:-1}"
+export OPENBLAS_NUM_THREADS="${OPENBLAS_NUM_THREADS:-1}"
+export MKL_NUM_THREADS="${MKL_NUM_THREADS:-1}"
