@@ -79,6 +79,7 @@ from pathlib import Path
 import numpy as np
 
 from train_estimation.tools.common import EXIT_OK, fail, json_default
+from train_estimation.tools.report_html import write_report_html
 
 VERSION = "fleet-2"  # part of the cache key: bump when a task's result changes meaning
 PARAMS = ("braking_rate", "mass", "odometer_scale")
@@ -955,7 +956,8 @@ def main(argv=None) -> int:
         print(f"train alert: {a['train']} {a['parameter']} {a['kind']} (z = {a['z']:+.1f})")
     for why in res.reliability.get("reasons", []):
         print(f"unreliable: {why}")
-    print(f"wrote {out / 'report.md'}, {out / 'runs.csv'}, {out / 'fleet.json'}")
+    print(f"wrote {out / 'report.md'}, {write_report_html(out, 'fleet')}, {out / 'runs.csv'}, "
+          f"{out / 'fleet.json'}")
     if too_many:
         print(f"fleet: {failure_line(rows)} (more than --max-failed {args.max_failed:g})",
               file=sys.stderr)
