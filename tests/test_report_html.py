@@ -16,8 +16,12 @@ import pytest
 from train_core.bagio import read_bag
 
 from train_estimation.tools import diagnose as diagnose_tool
-from train_estimation.tools.report_html import (CHROMIUM, markdown_html, screenshot,
-                                                write_report_html)
+from train_estimation.tools.report_html import (
+    CHROMIUM,
+    markdown_html,
+    screenshot,
+    write_report_html,
+)
 from train_sim.generate import generate
 from train_sim.scenario import load_scenario
 

@@ -543,8 +543,9 @@ def main(argv=None) -> int:
     (out / "report.json").write_text(json.dumps(dg.to_json(), indent=1) + "\n")
     model = write_model(out, dg, args.line, args.train, data)
     write_plots(dg.series, out, dg)
-    print("\n".join(summary(dg, args.bag, data, elapsed, model)))
-    print(f"wrote {write_report_html(out, 'diagnose')}")
+    lines = summary(dg, args.bag, data, elapsed, model)
+    lines.insert(-1, f"report: {write_report_html(out, 'diagnose')}")  # "cause: ..." stays last
+    print("\n".join(lines))
     return EXIT_OK
 
 

@@ -457,14 +457,13 @@ def _has_dashboard(client) -> bool:
 
 def _collect(client, tasks: list[dict], progress: bool, info: dict | None = None) -> list:
     from dask.distributed import as_completed
-    from tqdm import tqdm
+    from train_core.progress import bar as progress_bar
 
     rows = []
     futs = client.map(analyse_bag, tasks, key=[f"bag-{t['key']}" for t in tasks], pure=False)
     by_key = {f.key: t for f, t in zip(futs, tasks)}
     where: dict = {}
-    with tqdm(total=len(futs), desc="fleet", unit="bag", disable=not progress,
-              file=sys.stderr) as bar:
+    with progress_bar(len(futs), "fleet", disable=not progress) as bar:
         for fut in as_completed(futs):
             try:
                 where.update({k: sorted(v) for k, v in client.who_has([fut]).items()})
