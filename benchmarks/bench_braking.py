@@ -35,6 +35,7 @@ for sub in ("ros_ws/src/train_sim", "ros_ws/src/train_estimation",
     sys.path.insert(0, str(ROOT / sub))
 
 from braking_toy import simulate_open_loop  # noqa: E402
+from train_core.progress import track  # noqa: E402
 
 from train_estimation.core.braking_filters import (  # noqa: E402
     GSMA,
@@ -114,7 +115,8 @@ def step_fault(k_step=50, f_after=0.6):
     return np.where(np.arange(1, K_STEPS + 1) <= k_step, 1.0, f_after)
 
 
-def run_toy(sd, seeds, f_true=None, factory=make_filters, names=None, reps=1):
+def run_toy(sd, seeds, f_true=None, factory=make_filters, names=None, reps=1,
+            label="braking runs"):
     """Every filter on the same data per seed. Returns ``{name: dict}`` with per-seed arrays
     ``mae (S, 5)``, ``cover (S,)``, ``nees (S,)``, ``fhat (S, K)``, ``fsd (S, K)``, ``run (S,)``
     and the per-step times ``times`` (wall) and ``cpu`` (CPU time of the stepping thread), and
@@ -132,7 +134,7 @@ def run_toy(sd, seeds, f_true=None, factory=make_filters, names=None, reps=1):
     out = {n: {k: [] for k in ("mae", "cover", "nees", "fhat", "fsd", "run", "times", "cpu",
                                 "kfs")}
            for n in names}
-    for seed in range(seeds):
+    for seed in track(range(seeds), label):
         rng = np.random.default_rng(seed)
         x0 = X0 + rng.multivariate_normal(np.zeros(4), P0)
         f_seed = f_true(seed) if callable(f_true) else f_true
@@ -352,12 +354,12 @@ def sweep(seeds, out: Path, reps=3):
     pts = {}  # name -> [(N, median step s, MAE)]
     kfs = {}  # (name, N) -> mean KFs per step
     for n in SWEEP_N:
-        res = run_toy(sd, seeds, factory=sweep_factory(n), reps=reps)
+        res = run_toy(sd, seeds, factory=sweep_factory(n), reps=reps, label=f"sweep N = {n}")
         for name, o in res.items():
             pts.setdefault(name, []).append((n, float(np.median(o["cpu"])),
                                              float(np.mean(o["mae"][:, 0]))))
             kfs[name, n] = float(np.mean(o["kfs"]))
-    res = run_toy(sd, seeds, factory=fixed_factory, reps=reps)
+    res = run_toy(sd, seeds, factory=fixed_factory, reps=reps, label="sweep fixed-size")
     for name, o in res.items():
         pts[name] = [(None, float(np.median(o["cpu"])), float(np.mean(o["mae"][:, 0])))]
         kfs[name, None] = float(np.mean(o["kfs"]))
@@ -460,7 +462,7 @@ def table3(seeds, steps=200, n=1000):
     true = np.array([-0.7, 1.5])
     bounds = [(-1.0, 0.0), (1.0, 2.0)]
     res = {"Q-GRBPF": [], "RBPF": []}
-    for seed in range(seeds):
+    for seed in track(range(seeds), "table 3"):
         rng = np.random.default_rng(seed)
         ev, V = np.linalg.eigh(fam.Qd)
         Lq = V * np.sqrt(np.clip(ev, 0, None))
@@ -535,19 +537,20 @@ def main(argv=None):
           "for that prior, the information limit); oracle KF: told the true f.")
     timing = None
     for level, sd in levels.items():
-        res = run_toy(sd, seeds, reps=args.reps if level == "mid" else 1)
+        res = run_toy(sd, seeds, reps=args.reps if level == "mid" else 1,
+                      label=f"table 1, {level} noise")
         table1(level, sd, res, seeds)
         if level == "mid":
             timing = res
             calibration_table("Ramp (eq. (23)), mid noise", res, seeds)
     table2_5(timing, seeds, args.reps)
     res = run_toy(NOISE_LEVELS["mid"], seeds, random_walk_truth,
-                  factory=lambda fam: make_filters(fam, RW_PRIOR, RW_Q))
+                  factory=lambda fam: make_filters(fam, RW_PRIOR, RW_Q), label="random-walk f")
     calibration_table(f"Random-walk f drawn from the KF's own prior (f_0 ~ N{RW_PRIOR}, "
                       f"q = {RW_Q} per step; every filter given that prior and q), mid noise",
                       res, seeds)
     f_step = step_fault()
-    res = run_toy(NOISE_LEVELS["mid"], seeds, f_step)
+    res = run_toy(NOISE_LEVELS["mid"], seeds, f_step, label="step fault")
     step_table(res, f_step, seeds)
     if not args.skip_sweep:
         sweep(max(3, seeds // 2) if args.quick else max(5, seeds // 5), Path(args.out),

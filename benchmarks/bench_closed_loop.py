@@ -55,6 +55,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from train_core.progress import track  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 for sub in ("ros_ws/src/train_sim", "ros_ws/src/train_estimation"):
@@ -114,7 +115,7 @@ def open_loop(sc, algorithms, seeds, plot_seed):
                for a in algorithms}
     abs_err = {a: [] for a in algorithms}  # per seed, on the common output grid
     trace = {}
-    for seed in seeds:
+    for seed in track(seeds, f"closed loop {sc.name}"):
         world = World(sc, seed)
         events = world.advance(sc.duration)
         res = world.result()
@@ -317,7 +318,7 @@ def step_fault_section(sc, algorithms, seeds, std_max) -> str:
     rows = []
     for alg in algorithms:
         ttd, mae, cov, park = [], [], [], []
-        for seed in seeds:
+        for seed in track(seeds, f"closed loop {alg}"):
             world = World(scf, seed)
             events = world.advance(scf.duration)
             runner = make_runner(scf, alg, seed)

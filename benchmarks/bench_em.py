@@ -33,6 +33,8 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path[:0] = [os.path.join(HERE, "..", "ros_ws", "src", "train_estimation"),
                 os.path.join(HERE, "..", "ros_ws", "src", "train_sim")]
 
+from train_core.progress import Progress  # noqa: E402
+
 from train_estimation.core.em_model import (  # noqa: E402
     CRH3_VARTHETA,
     m_step,
@@ -48,6 +50,12 @@ PAPER = {  # Tables 1-3, delta in % at k = 5, 8, 10, 20, 30
     "pf": [1.14182, 0.82781, 0.85850, 1.02914, 0.94999],
 }
 KS = [5, 8, 10, 20, 30]
+
+
+def em_bar(label: str):
+    """run_em's progress callback drawn in the project's bar style."""
+    bar = Progress(label)
+    return lambda k, n, vt, change: bar(k, n, f"iteration {k}/{n}")
 
 
 def fmt(x):
@@ -66,7 +74,7 @@ def table1(args, n, seed0):
                        ("pf", {"n_particles": args.particles})):
         t0 = time.perf_counter()
         r = run_em(data.y1, data.y2, data.u, method=meth, n_iter=args.iters,
-                   rng=np.random.default_rng(seed0 + 1), **opts)
+                   rng=np.random.default_rng(seed0 + 1), progress=em_bar(f"EM {meth}"), **opts)
         dt = time.perf_counter() - t0
         cells = [fmt(param_error(r.vartheta[k])) for k in ks]
         paper = " / ".join(f"{PAPER[meth][KS.index(k)]:.2f}" for k in ks)
@@ -100,7 +108,7 @@ def table2(args):
     for name, meth, opts in variants:
         reps = 3
         r = run_em(data.y1, data.y2, data.u, method=meth, n_iter=reps,
-                   rng=np.random.default_rng(1), **opts)
+                   rng=np.random.default_rng(1), progress=em_bar(f"EM {name}"), **opts)
         times[name] = r.seconds / r.iterations
     ref = times["hybrid (paper)"]
     print(f"\n### (2) time per EM iteration, one run, n = {args.n}, {args.particles} particles\n")

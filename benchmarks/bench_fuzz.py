@@ -45,6 +45,7 @@ from train_core.realtime import single_threaded_blas  # noqa: E402
 single_threaded_blas()
 
 import numpy as np  # noqa: E402
+from train_core.progress import track  # noqa: E402
 
 from train_estimation.core import reasons as R  # noqa: E402
 from train_estimation.core.estimators import (  # noqa: E402
@@ -156,7 +157,8 @@ def main(argv=None) -> int:
     if args.quick:
         args.seeds, args.duration = 1, 120.0
     sc = load_scenario("metro_demo")
-    runs = [simulate(sc, seed, args.duration) for seed in range(args.seeds)]
+    runs = [simulate(sc, seed, args.duration)
+            for seed in track(range(args.seeds), "simulate")]
     print(f"metro_demo, {args.seeds} seed(s) x {args.duration:g} s, ~{args.per_reading:g} "
           f"corrupted messages per clean one; random epoch ~1.7e9 s, phase, drift +-1 %\n")
     print("| estimator | corrupted | rejected | exceptions | NaN | non-PD (x,v) | non-PD (4x4) | "

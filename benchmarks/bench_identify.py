@@ -54,6 +54,7 @@ import sys
 import time
 
 import numpy as np
+from train_core.progress import track  # noqa: E402
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path[:0] = [os.path.join(HERE, "..", "ros_ws", "src", "train_estimation"),
@@ -399,7 +400,7 @@ def main(argv=None):
         print(f"{s}: replay with the true train (world mass +20 %) reproduces the held-out truth "
               f"to max |dx| = {err:.2g} m; driver mode open_loop agrees to {err_ol:.2g} m")
         results[s] = {c: [] for c in cases}
-        for i in range(args.seeds):
+        for i in track(range(args.seeds), f"identify {s}"):
             for c in cases:
                 results[s][c].append(run_case(sc, c, 100 + i, 1000 + i, args.holdout,
                                               args.nudge_control_stamps))

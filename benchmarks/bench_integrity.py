@@ -57,7 +57,7 @@ from train_core.realtime import single_threaded_blas  # noqa: E402
 single_threaded_blas()
 
 import numpy as np  # noqa: E402
-from tqdm import tqdm  # noqa: E402
+from train_core.progress import track  # noqa: E402
 
 from train_estimation.core.estimators import (  # noqa: E402
     BrakingAdapter,
@@ -412,8 +412,7 @@ def main(argv=None) -> int:
     rows = []
     with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
         futs = [pool.submit(run_task, t) for t in tasks]
-        for fut in tqdm(as_completed(futs), total=len(futs), desc="fault runs", unit="run",
-                        file=sys.stderr):
+        for fut in track(as_completed(futs), "fault runs", total=len(futs)):
             rows.append(fut.result())
     order = {k: i for i, k in enumerate(F.KINDS)}
     rows.sort(key=lambda r: (SCENARIOS.index(r["scenario"]), order[r["fault"].kind],

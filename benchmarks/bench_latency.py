@@ -43,6 +43,7 @@ from pathlib import Path
 
 import numpy as np
 import yaml
+from train_core.progress import track  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 for _p in (ROOT / "ros_ws/src/train_sim", ROOT / "ros_ws/src/train_estimation",
@@ -126,7 +127,7 @@ def offline(seeds: int, duration: float, latency: float, jitter: float) -> list[
     base = load_scenario("metro_demo")
     lagged = base.with_changes(link=replace(base.link, latency=latency, jitter=jitter))
     acc = {(name, lag): [] for name in OFFLINE for lag in (False, True)}
-    for seed in range(seeds):
+    for seed in track(range(seeds), "latency"):
         for lag, sc in ((False, base), (True, lagged)):
             res = simulate(sc, seed=seed, duration=duration)
             events = [(topic, stamp, fields, t_recv)

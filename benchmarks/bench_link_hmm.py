@@ -19,6 +19,7 @@ import sys
 import time
 
 import numpy as np
+from train_core.progress import track  # noqa: E402
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path[:0] = [os.path.join(HERE, "..", "ros_ws", "src", "train_estimation"),
@@ -61,7 +62,7 @@ def main() -> None:
         errs = {k: [] for k in NAMES}
         ok = {k: [] for k in NAMES}
         bursty, secs = [], []
-        for r in range(args.reps):
+        for r in track(range(args.reps), "link hmm"):
             lost = losses(true, args.n, 1000 * args.seed + r)
             t0 = time.perf_counter()
             fit = fit_link(lost, np.random.default_rng([args.seed, r]))

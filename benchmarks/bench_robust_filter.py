@@ -39,6 +39,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+from train_core.progress import track  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 for _p in (ROOT / "ros_ws/src/train_sim", ROOT / "ros_ws/src/train_estimation"):
@@ -179,7 +180,7 @@ def wen_table(seeds, names, out_dir):
     err_all = {n: [] for n in names}
     sig_all = {n: [] for n in ROBUST if n in names}
     step_ns = []
-    for s in range(seeds):
+    for s in track(range(seeds), "robust filter"):
         res = simulate(sc, seed=s)
         fl = make_filters(sc, names, ab)
         est, cov, truth, _, ns, rej = run(sc, res, fl, time_filter="robust")
@@ -286,7 +287,7 @@ def sweeps(seeds, names, out_dir, quick):
                                                                           d.c * (1 + val))))
                 ab = sc.link.received_probability
             se = {n: [] for n in names}
-            for s in range(seeds):
+            for s in track(range(seeds), "sensitivity"):
                 res = simulate(sc, seed=1000 + s)
                 est, _, truth, _, _, _ = run(sc, res, make_filters(sc, names, ab))
                 for n in names:
@@ -343,7 +344,7 @@ def etcs(seeds):
     errs = {v[0]: [] for v in variants}
     rejected = {v[0]: 0 for v in variants}
     allow = []
-    for s in range(seeds):
+    for s in track(range(seeds), "robust filter"):
         res = simulate(sc, seed=s)
         for use_d in (True, False):
             names = sorted({v[1] for v in variants if v[2] == use_d})

@@ -34,6 +34,7 @@ for _p in (ROOT / "ros_ws/src/train_sim", ROOT / "ros_ws/src/train_core"):
         sys.path.insert(0, str(_p))
 
 import numpy as np  # noqa: E402
+from train_core.progress import track  # noqa: E402
 
 from train_sim.scenario import load_scenario  # noqa: E402
 from train_sim.world import simulate  # noqa: E402
@@ -115,7 +116,7 @@ def main(argv=None) -> int:
     for check_stamp_age in (True, False):
         tot: Counter = Counter()
         match = True
-        for seed in range(args.seeds):
+        for seed in track(range(args.seeds), f"zone fuzz (stamp age {check_stamp_age})"):
             clean = clean_reports(args.duration, seed)
             r = run(clean, 1000 + seed, args.per_report, check_stamp_age)
             match &= r.pop("counts_match")

@@ -41,6 +41,7 @@ import numpy as np
 import yaml
 from train_core.config import load_yaml
 from train_core.files import config_file
+from train_core.progress import Progress
 
 from .scenario import scenario_from_dict
 
@@ -214,13 +215,7 @@ def main(argv=None) -> int:
     if a.map_error:
         spec.map_error = (a.map_error[0], *(float(x) for x in a.map_error[1:]))
     t0 = time.perf_counter()
-
-    def bar(i, n, what):
-        sys.stderr.write(f"\rtrain_sim.fleet {i}/{n} {what:<28}")
-        if i == n:
-            sys.stderr.write("\n")
-
-    truth = write_fleet(a.out, spec, progress=bar)
+    truth = write_fleet(a.out, spec, progress=Progress("train_sim.fleet", what_width=28))
     print(f"wrote {len(truth['runs'])} bags and {Path(a.out) / 'manifest.csv'} in "
           f"{time.perf_counter() - t0:.0f} s; hidden: gradient {truth['map_error']}, "
           f"degraded brakes on {', '.join(truth['degraded_trains']) or 'no train'}")

@@ -11,8 +11,8 @@ out (a "measured data" bag, docs/interfaces.md). Each message's log time is its 
 reference clock (the link's latency included), as a recorder on the ground would log it.
 
 ``--model DIR`` runs a model written by ``diagnose`` (``DIR/line.yaml``, ``DIR/train.yaml``,
-``DIR/effects.yaml``): the scenario's driver, timetable, link and seed with that line, train and
-those effects (:func:`train_sim.scenario.with_model`).
+``DIR/effects.yaml``): the scenario's driver, link and seed with that line, train and those
+effects, on that line's own stations, start and timetable (:func:`train_sim.scenario.with_model`).
 """
 
 from __future__ import annotations

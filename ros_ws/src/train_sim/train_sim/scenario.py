@@ -219,7 +219,13 @@ def with_model(sc: Scenario, model_dir: str | Path) -> Scenario:
     """``sc`` with the line, train and effects of a model directory (``diagnose``'s
     ``OUT/model``: ``line.yaml``, ``train.yaml`` and optionally ``effects.yaml``, a mapping
     {effect: {parameters}} as in a scenario's ``effects:``). The model is both what the world
-    runs and what the estimators are given; its effects are the fitted ones."""
+    runs and what the estimators are given; its effects are the fitted ones.
+
+    The run is on the model's own line: when that line has the scenario's stations (same names
+    at the same positions) the scenario's start and timetable are kept; otherwise the train
+    starts at the model line's first station and calls at every other one, in running order,
+    with line.yaml's dwells (a scenario's stop positions on another line would put the train's
+    stops off every platform). The scenario's driver, link, seed and duration are kept."""
     d = Path(model_dir)
     for name in ("line.yaml", "train.yaml"):
         if not (d / name).is_file():
@@ -230,5 +236,22 @@ def with_model(sc: Scenario, model_dir: str | Path) -> Scenario:
     eff_path = d / "effects.yaml"
     raw = load_yaml(eff_path) if eff_path.is_file() else {}
     effects = parse_effects(Section(raw or {}, str(eff_path)), sc.duration)
+    start, timetable = _own_timetable(sc, line)
     return replace(sc, line=line, train=train, line_path=str(d / "line.yaml"),
-                   train_path=str(d / "train.yaml")).with_effects(effects)
+                   train_path=str(d / "train.yaml"), start_position=start,
+                   timetable=timetable).with_effects(effects)
+
+
+def _own_timetable(sc: Scenario, line: Line) -> tuple[float, tuple[TimetableStop, ...]]:
+    """(start position m, timetable) of scenario ``sc`` run on ``line`` (see with_model)."""
+    tol = 1e-6  # m: "the same position" (both are read from YAML)
+    here = {s.name: s.position for s in line.stations}
+    same = (all(abs(here.get(s.name, math.inf) - s.position) <= tol for s in sc.line.stations)
+            and sc.start_position <= line.length)
+    if same:
+        return sc.start_position, sc.timetable
+    if not line.stations:
+        return min(sc.start_position, line.length), ()
+    stations = sorted(line.stations, key=lambda s: s.position)
+    return (stations[0].position,
+            tuple(TimetableStop(s.name, s.position, s.dwell) for s in stations[1:]))

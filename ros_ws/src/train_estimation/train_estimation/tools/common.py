@@ -1,11 +1,12 @@
-"""What the offline CLIs (identify, diagnose, fleet, check_bag) share: the exit-code ladder, a
-progress bar and the conversion of results to JSON types."""
+"""What the offline CLIs (identify, diagnose, fleet, check_bag) share: the exit-code ladder, the
+project's progress bar (train_core.progress) and the conversion of results to JSON types."""
 
 from __future__ import annotations
 
 import sys
 
 import numpy as np
+from train_core.progress import Progress, track
 
 from train_estimation.core.diagnose.result import jsonable
 
@@ -16,8 +17,9 @@ EXIT_OK = 0
 EXIT_CHECK_FAILED = 1
 EXIT_UNUSABLE = 2
 
+# the project's one progress-bar style (train_core.progress), re-exported for the tools
 __all__ = ["EXIT_CHECK_FAILED", "EXIT_OK", "EXIT_UNUSABLE", "Progress", "fail", "json_default",
-           "jsonable", "one_line"]
+           "jsonable", "one_line", "track"]
 
 
 def one_line(exc) -> str:
@@ -38,24 +40,3 @@ def json_default(o):
     if isinstance(o, (np.floating, np.integer)):
         return o.item()
     return str(o)
-
-
-class Progress:
-    """A progress callback ``(step, total, what)`` drawn by tqdm on stderr; the bar appears at
-    the first step (nothing is drawn for input refused before it) and closes at the last."""
-
-    def __init__(self, label: str, what_width: int = 30):
-        self.label, self.what_width = label, what_width
-        self.bar = None
-
-    def __call__(self, step: int, total: int, what: str) -> None:
-        from tqdm import tqdm
-
-        if self.bar is None:
-            self.bar = tqdm(total=total, desc=self.label, file=sys.stderr, leave=True,
-                            bar_format="{desc} [{bar:30}] {percentage:5.1f}% {postfix}")
-        self.bar.set_postfix_str(f"{what:<{self.what_width}}", refresh=False)
-        self.bar.update(max(min(step, total) - self.bar.n, 0))
-        if step >= total:
-            self.bar.close()
-            self.bar = None

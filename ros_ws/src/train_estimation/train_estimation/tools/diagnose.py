@@ -12,9 +12,12 @@ Output (DIR is created):
   DIR/model/        line.yaml, train.yaml, effects.yaml: the believed model extended by every
                     accepted cause; run it with
                     python -m train_sim.generate --scenario S --model DIR/model --out BAG
-  DIR/*.png         residual acceleration against position (with the line profile and the
-                    fitted gradient section), against speed and against the commands; the
-                    speed trace with slip episodes; f(t); the loss-run histogram
+  DIR/*.png         residual acceleration of the believed and the extended model against
+                    position (with the line profile and the fitted gradient section), against
+                    speed and against the commands; the speed trace with slip episodes; f(t);
+                    the loss-run histogram; the recorded commands replayed through both
+                    models (replay.png)
+  DIR/report.html   the report in one self-contained page (verdict first, plots embedded)
 
 How to read the report:
   cause        the best-supported cause ("none": the believed model explains the data)
@@ -57,6 +60,7 @@ from train_core.model import line_from_dict, load_line, load_train, train_from_d
 from train_estimation.core.diagnose.search import SCORE_FORMULA  # noqa: F401 (stated in help)
 from train_estimation.core.measured import TOPICS, MeasuredRun
 from train_estimation.tools.common import EXIT_OK, Progress, fail, jsonable, one_line
+from train_estimation.tools.report_html import write_report_html
 
 # ------------------------------------------------------------------------------------------------
 # Bag -> MeasuredRun
@@ -229,10 +233,17 @@ def plot_position(s: dict, path: Path, dg=None) -> bool:
     c, m, e = _binned(x, r, max(10, int(span // 100)))
     if c.size:
         a0.fill_between(c, m - 2 * e, m + 2 * e, color="C0", alpha=0.25, step="mid")
-        a0.step(c, m, where="mid", lw=1.2, color="C0", label="mean per 100 m, +-2 SE")
+        a0.step(c, m, where="mid", lw=1.2, color="C0",
+                label="believed model: mean per 100 m, +-2 SE")
         lim = 1.5 * float(np.percentile(np.abs(m) + 2 * e, 90))  # a few sparse bins may clip
         if lim > 0:
             a0.set_ylim(-lim, lim)
+    ext = _extended(s, r)
+    if ext is not None:
+        c, m, e = _binned(x, ext, max(10, int(span // 100)))
+        if c.size:
+            a0.step(c, m, where="mid", lw=1.2, color="C3",
+                    label="extended model: mean per 100 m")
     a0.axhline(0, color="k", lw=0.6)
     a0.set_ylabel("residual accel. (m/s^2)")
     prof = s.get("line_gradient") or []
@@ -271,6 +282,7 @@ def plot_speed(s: dict, path: Path, dg=None) -> bool:
         return False
     plt = _plt()
     v, r = xy
+    ext = _extended(s, r)
     panels = [("speed (m/s)", v)]
     for key, label in (("commanded_traction", "traction command through the actuator (m/s^2)"),
                        ("commanded_braking", "braking command through the actuator (m/s^2)")):
@@ -286,13 +298,19 @@ def plot_speed(s: dict, path: Path, dg=None) -> bool:
         sel = np.abs(x[:n]) > 1e-3 if "command" in label else np.ones(n, bool)
         c, m, e = _binned(x[:n][sel], r[:n][sel], 20)
         if c.size:
-            ax.errorbar(c, m, yerr=2 * e, fmt="o-", ms=3, color="C0", label="binned mean +-2 SE")
+            ax.errorbar(c, m, yerr=2 * e, fmt="o-", ms=3, color="C0",
+                        label="believed model: binned mean +-2 SE")
             lim = max(lim, 1.5 * float(np.percentile(np.abs(m) + 2 * e, 90)))
-    if lim > 0:
-        axes[0].set_ylim(-lim, lim)
+        if ext is not None:
+            c, m, e = _binned(x[:n][sel], ext[:n][sel], 20)
+            if c.size:
+                ax.errorbar(c, m, yerr=2 * e, fmt="s-", ms=3, color="C3",
+                            label="extended model: binned mean +-2 SE")
         ax.axhline(0, color="k", lw=0.6)
         ax.set_xlabel(label)
         ax.grid(alpha=0.3)
+    if lim > 0:
+        axes[0].set_ylim(-lim, lim)
     axes[0].set_ylabel("residual accel. (m/s^2)")
     axes[0].legend(fontsize=8)
     fig.suptitle(_title(dg, "residual acceleration against speed and commands"), fontsize=10)
@@ -300,6 +318,29 @@ def plot_speed(s: dict, path: Path, dg=None) -> bool:
     fig.savefig(path, dpi=90)
     plt.close(fig)
     return True
+
+
+def _extended(s: dict, r: np.ndarray):
+    """The extended model's residual acceleration on the believed one's samples (None when no
+    accepted cause changes the motion model)."""
+    e = s.get("residual_accel_extended")
+    if e is None:
+        return None
+    e = np.asarray(e, dtype=float)[:r.size]
+    return e if e.size == r.size else None
+
+
+F_MIN_SPAN = 0.2  # -, smallest braking-rate axis span: a 0.1 % change must not fill the panel
+
+
+def f_axis(values) -> tuple[float, float]:
+    """The braking-rate axis: nominal 1 and every value in view, at least F_MIN_SPAN wide."""
+    v = np.asarray(values, dtype=float)
+    v = v[np.isfinite(v)]
+    lo, hi = min(1.0, float(v.min()) if v.size else 1.0), max(1.0, float(v.max()) if v.size
+                                                               else 1.0)
+    pad = max(F_MIN_SPAN - (hi - lo), 0.0) / 2 + 0.05 * (hi - lo)
+    return lo - pad, hi + pad
 
 
 def plot_speed_trace(s: dict, path: Path, dg=None) -> bool:
@@ -326,6 +367,7 @@ def plot_speed_trace(s: dict, path: Path, dg=None) -> bool:
         ft = s["f_t"]
         axes[1].plot(np.asarray(ft[0]), np.asarray(ft[1]), color="C3", lw=2, label="fitted f(t)")
         axes[1].axhline(1.0, color="k", lw=0.6, ls="--", label="nominal f = 1")
+        axes[1].set_ylim(*f_axis(ft[1]))
         axes[1].set_ylabel("braking rate f")
         axes[1].legend(fontsize=8)
     axes[-1].set_xlabel("time since the first odometer stamp (s)")
@@ -370,8 +412,46 @@ def plot_loss_runs(s: dict, path: Path, dg=None) -> bool:
     return True
 
 
+def plot_replay(s: dict, path: Path, dg=None) -> bool:
+    """Before/after: the recorded commands replayed open loop through the believed and the
+    extended model from the measured state at each block's start, against the measured speed,
+    and the two models' speed errors."""
+    tv = _get(s, "replay_t", "replay_measured", "replay_believed", "replay_extended")
+    if tv is None:
+        return False
+    plt = _plt()
+    t, y, vb, va = tv
+    fig, (a0, a1) = plt.subplots(2, 1, figsize=(10, 6), sharex=True,
+                                 gridspec_kw={"height_ratios": [2, 1]})
+    a0.plot(t, y, color="k", lw=1.0, label="measured (odometer, 1 s average)")
+    a0.plot(t, vb, color="C0", lw=0.9, label="believed model")
+    a0.plot(t, va, color="C3", lw=0.9, label="extended model")
+    rms = [float(np.sqrt(np.nanmean((m - y) ** 2))) for m in (vb, va)]
+    a1.plot(t, vb - y, color="C0", lw=0.8, label=f"believed - measured (RMS {rms[0]:.3f} m/s)")
+    a1.plot(t, va - y, color="C3", lw=0.8, label=f"extended - measured (RMS {rms[1]:.3f} m/s)")
+    a1.axhline(0, color="k", lw=0.6)
+    block = s.get("replay_block")
+    if block:
+        for tb in np.arange(t[0], t[-1], float(block)):
+            for ax in (a0, a1):
+                ax.axvline(tb, color="0.7", lw=0.5, ls=":")
+    a0.set_ylabel("speed (m/s)")
+    a1.set_ylabel("speed error (m/s)")
+    a1.set_xlabel("time since the first odometer stamp (s); dotted: restart from the measured "
+                  "state")
+    for ax in (a0, a1):
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8, loc="upper right")
+    a0.set_title(_title(dg, "recorded commands replayed open loop, before/after"))
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return True
+
+
 PLOTS = (("residual_position.png", plot_position), ("residual_speed.png", plot_speed),
-         ("speed_trace.png", plot_speed_trace), ("loss_runs.png", plot_loss_runs))
+         ("speed_trace.png", plot_speed_trace), ("loss_runs.png", plot_loss_runs),
+         ("replay.png", plot_replay))
 
 
 def _title(dg, what: str) -> str:
@@ -463,7 +543,9 @@ def main(argv=None) -> int:
     (out / "report.json").write_text(json.dumps(dg.to_json(), indent=1) + "\n")
     model = write_model(out, dg, args.line, args.train, data)
     write_plots(dg.series, out, dg)
-    print("\n".join(summary(dg, args.bag, data, elapsed, model)))
+    lines = summary(dg, args.bag, data, elapsed, model)
+    lines.insert(-1, f"report: {write_report_html(out, 'diagnose')}")  # "cause: ..." stays last
+    print("\n".join(lines))
     return EXIT_OK
 
 

@@ -79,6 +79,7 @@ from pathlib import Path
 import numpy as np
 
 from train_estimation.tools.common import EXIT_OK, fail, json_default
+from train_estimation.tools.report_html import write_report_html
 
 VERSION = "fleet-2"  # part of the cache key: bump when a task's result changes meaning
 PARAMS = ("braking_rate", "mass", "odometer_scale")
@@ -456,14 +457,13 @@ def _has_dashboard(client) -> bool:
 
 def _collect(client, tasks: list[dict], progress: bool, info: dict | None = None) -> list:
     from dask.distributed import as_completed
-    from tqdm import tqdm
+    from train_core.progress import bar as progress_bar
 
     rows = []
     futs = client.map(analyse_bag, tasks, key=[f"bag-{t['key']}" for t in tasks], pure=False)
     by_key = {f.key: t for f, t in zip(futs, tasks)}
     where: dict = {}
-    with tqdm(total=len(futs), desc="fleet", unit="bag", disable=not progress,
-              file=sys.stderr) as bar:
+    with progress_bar(len(futs), "fleet", disable=not progress) as bar:
         for fut in as_completed(futs):
             try:
                 where.update({k: sorted(v) for k, v in client.who_has([fut]).items()})
@@ -955,7 +955,8 @@ def main(argv=None) -> int:
         print(f"train alert: {a['train']} {a['parameter']} {a['kind']} (z = {a['z']:+.1f})")
     for why in res.reliability.get("reasons", []):
         print(f"unreliable: {why}")
-    print(f"wrote {out / 'report.md'}, {out / 'runs.csv'}, {out / 'fleet.json'}")
+    print(f"wrote {out / 'report.md'}, {write_report_html(out, 'fleet')}, {out / 'runs.csv'}, "
+          f"{out / 'fleet.json'}")
     if too_many:
         print(f"fleet: {failure_line(rows)} (more than --max-failed {args.max_failed:g})",
               file=sys.stderr)

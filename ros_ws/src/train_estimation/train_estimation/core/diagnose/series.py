@@ -27,8 +27,77 @@ def series(mo: Motion, accepted: list, own: dict) -> dict:
            "stations": [(s.name, s.position) for s in mo.line.stations],
            "balises": [b.position for b in mo.line.balises],
            "loss_runs": np.array([], int), "loss_fraction": None}
-    for name, res in own.items():
-        BY_NAME[name].own_series(res, out)
+    for name, own_res in own.items():
+        BY_NAME[name].own_series(own_res, out)
     for a in accepted:
         BY_NAME[a.cause].series(a.parameters, mo, out)
+    if accepted:
+        out["residual_accel_extended"] = res[sl] - extended_accel(mo, accepted)[sl]
+        out.update(replay_series(mo, accepted))
     return out
+
+
+def _null_of(mo: Motion, accepted: list):
+    from .stage import Null
+
+    null = Null()
+    for a in accepted:
+        BY_NAME[a.cause].extend_null(null, a, mo)
+    return null
+
+
+def extended_accel(mo: Motion, accepted: list) -> np.ndarray:
+    """m/s^2 on the grid: what the accepted causes add to the believed model's acceleration,
+    the mean over each event interval of the drift they put into the null (the motion model's
+    columns, so the extended residual is the believed one minus this)."""
+    from .stage import Stage
+
+    ev, g = mo.ev, mo.grid
+    st = Stage(mo, _null_of(mo, accepted), mo.cfg, noise=(1.0, 1.0), big=False)
+    dt = np.diff(ev.t, prepend=ev.t[0])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        extra = np.where(dt > 0, (st.fv - mo.base_v) / dt, 0.0)
+    k = np.clip(np.searchsorted(ev.t, g.t, side="right"), 1, ev.t.size - 1)
+    return extra[k] * mo.moving
+
+
+def replay_series(mo: Motion, accepted: list) -> dict:
+    """The recorded commands replayed open loop through the believed and the extended model
+    (the simulator's physics, train_core.motion), restarted from the measured state at the
+    start of every gain block (cfg.gain_block s), against the odometer speed averaged over 1 s:
+    the before/after picture of the held-out gain, over the whole run."""
+    from train_core.effects import Effects, true_line, true_train
+    from train_core.motion import replay
+
+    run, cfg = mo.run, mo.cfg
+    fields = {}
+    for a in accepted:
+        cause = BY_NAME[a.cause]
+        if cause.family == "motion":
+            fields[cause.effect_field] = cause.effect(a.parameters, max(run.duration, 1e-9))
+    if not fields:
+        return {}
+    eff = Effects(**fields)
+    train, line = true_train(mo.train, eff), true_line(mo.line, eff)
+    brake_delay = eff.brake_delay.delay if eff.brake_delay is not None else None
+    f_of_t = eff.braking_rate.value if eff.braking_rate is not None else None
+    shift = _null_of(mo, accepted).shift
+    period = float(np.median(np.diff(run.odo_t))) if run.odo_t.size > 1 else 1.0
+    t_all = run.odo_t[::max(1, int(round(0.5 / max(period, 1e-3))))]  # ~2 Hz: for a plot
+    vb, va = np.full(t_all.size, np.nan), np.full(t_all.size, np.nan)
+    for b in range(int(np.ceil((t_all[-1] - t_all[0]) / cfg.gain_block)) + 1):
+        sel = np.flatnonzero((t_all >= t_all[0] + b * cfg.gain_block)
+                             & (t_all < t_all[0] + (b + 1) * cfg.gain_block))
+        if sel.size < 2:
+            continue
+        t_out = t_all[sel]
+        v0 = float(np.interp(t_out[0], mo.grid.t, mo.v_ref))
+        x0 = float(np.interp(t_out[0], mo.grid.t, mo.x_ref))
+        v0 = 0.0 if v0 < 0.5 else v0
+        vb[sel] = replay(mo.line, mo.train, run.ctrl_t, run.ctrl_a, t_out[0], t_out, x0, v0,
+                         max_step=0.05)[1]
+        va[sel] = replay(line, train, run.ctrl_t + shift, run.ctrl_a, t_out[0], t_out, x0, v0,
+                         believed=mo.train, brake_delay=brake_delay,
+                         braking_rate_of_t=f_of_t, max_step=0.05)[1]
+    return {"replay_t": t_all, "replay_measured": np.interp(t_all, mo.grid.t, mo.v_ref),
+            "replay_believed": vb, "replay_extended": va, "replay_block": cfg.gain_block}

@@ -1,0 +1,16 @@
+#!/usr/bin/env bash
+# Check diagnose's shareable report in a real browser: simulate a train whose brakes have lost
+# 30 % (scenario metro_degraded, 300 s, no ground truth), diagnose it, write report.html and
+# render it in headless Chromium (Debian's package: apt-get install -y chromium) into
+# docs/diagnose_report.png, the screenshot docs/diagnose.md shows.
+# Usage: ./run exec bash scripts/check_report.sh [OUT_DIR (default out/report_demo)]
+set -euo pipefail
+cd "$(dirname "$0")/.."
+out="${1:-out/report_demo}"
+rm -rf "$out"
+mkdir -p "$out"
+python -m train_sim.generate --scenario metro_degraded --measured --duration 300 --out "$out/bag"
+diagnose --bag "$out/bag" --line ros_ws/src/train_core/config/lines/metro_demo.yaml \
+    --train ros_ws/src/train_core/config/trains/metro_b6.yaml --out "$out/diag" --quiet
+python -m train_estimation.tools.report_html "$out/diag" --screenshot docs/diagnose_report.png \
+    --size 1200x2000
