@@ -15,7 +15,7 @@ clock** (the train's clock: odometer and balise stamps are the sampling times, a
 phase and drift). ``control`` may be stamped on another clock (measured data: the reference =
 receive clock). Each stream's offset ``stamp - recv`` (``recv`` = arrival time on the node's
 clock; in a replay the bag's log time) is tracked as a robust running median of the items
-that came on time (an item more than ``_Median.late`` below the centre came late, e.g. in the
+that came on time (an item more than ``clocks.LATE`` below the centre came late, e.g. in the
 burst that follows a stalled recorder or node, and does not vote); a control stamp is mapped
 onto the train clock by adding ``median(odometer offset) - median(control offset)`` (the error is
 the difference of the two streams' median latencies, milliseconds for a radio link). When that
@@ -49,7 +49,7 @@ node's estimates.
 
 Clock steps (a train clock reset to 0 by a reboot, or set to GPS time): odometer stamps jump
 and stay on the new clock. A reading is *discontinuous* when its stamp is more than
-``_Median.tol`` behind the last odometer stamp admitted, or ahead of it by more than the arrival
+``clocks.TOL`` behind the last odometer stamp admitted, or ahead of it by more than the arrival
 time elapsed since (+ tol); an outage moves stamps and arrivals alike, and a node whose callbacks
 lag sees small stamp gaps whatever its arrivals, so neither is discontinuous. Discontinuous
 train-clock readings are held back; ``min_judged`` odometer readings in a row that continue one
@@ -68,7 +68,6 @@ blind a stream.
 
 from __future__ import annotations
 
-import bisect
 import heapq
 import math
 from collections import Counter, deque
@@ -76,6 +75,7 @@ from dataclasses import dataclass, field, replace
 from typing import Protocol
 
 from . import reasons as R
+from .clocks import StreamClock, continues, is_step, paced
 from .integrity import IntegrityMonitor, IntegrityParams
 
 KIND_ORDER = {"control": 0, "odometer": 1, "balise": 2}
@@ -111,110 +111,6 @@ class Adapter(Protocol):
     def output(self, t: float) -> Output: ...  # estimate at t >= last fused time, state unchanged
 
 
-class _Median:
-    """Robust centre of the last ``n`` values: the densest one (most others within ``tol``),
-    the median of the densest on ties. A plain median fails when over half of a window is
-    wild (a fuzzed stream); wild stamps scatter, while good ones agree to milliseconds."""
-
-    def __init__(self, n: int = 31):
-        self.n, self.fifo, self.sorted = n, deque(), []
-        self._value = None  # cached centre (recomputed after an add)
-        self.pending: list = []  # consecutive values away from a full window's centre
-
-    def add(self, v: float, at: float | None = None) -> None:
-        """Add the offset ``v`` = stamp - arrival of an item that arrived at ``at`` (s; None:
-        unknown)."""
-        # Once the window is full, a value far from its centre does not vote: wild stamps
-        # mixed with good ones (a fuzzed or corrupted stream) could otherwise, by a run of
-        # bad luck, outnumber the good ones in the window and move the centre by their offset
-        # (a control clock moved 500 s ahead blinds the filter). Only n // 2 + 1 *consecutive*
-        # far values that agree among themselves -- the clock itself has stepped -- replace
-        # the window.
-        #
-        # A clock that stepped keeps its new offset as time goes on; a backlog does not: after
-        # a stall (a node or recorder blocked for longer than tol), the readings of the stall
-        # arrive in one burst, their offsets sweeping from -stall towards 0 as the stamps
-        # advance with the arrival frozen. Taken for a step, such a burst moved one clock's
-        # centre by seconds and not the other's, so "auto" judged the clocks separate and
-        # mapped the commands seconds off (tens of metres of error after an 8 s recorder
-        # stall). So the far run must also span arrival time, at least half the stamp time it
-        # spans (a step: both equal, up to jitter and drift; a burst: none); older values of
-        # a run that does not are dropped from it.
-        if len(self.fifo) >= self.n and -self.tol <= v - self.value < -self.late:
-            # delayed by more than the usual jitter (a backlog, a retried packet): its arrival
-            # says how late it came, not where its clock is; it neither votes nor informs the
-            # drift (EstimatorRunner._regress). Latency only ever lowers stamp - arrival, so
-            # items on time keep the centre where the clock is.
-            self.pending = []
-            return
-        if len(self.fifo) >= self.n and abs(v - self.value) > self.tol:
-            if self.pending and abs(v - self.pending[-1][0]) > self.tol:
-                self.pending = []
-            self.pending.append((v, at))
-            while len(self.pending) > self.n // 2 and not self._persists(self.pending):
-                self.pending.pop(0)
-            if len(self.pending) <= self.n // 2:
-                return
-            self.fifo.clear()
-            self.sorted = []
-            for p, _ in self.pending[:-1]:
-                self._push(p)
-            self.pending = []
-        elif self.pending:
-            self.pending = []
-        self._push(v)
-
-    @staticmethod
-    def _persists(run: list) -> bool:
-        """A run of far (offset, arrival) values that spans arrival time: a clock step, not a
-        backlog (see add). Without arrival times, any run does."""
-        (v0, a0), (v1, a1) = run[0], run[-1]
-        if a0 is None or a1 is None:
-            return True
-        arrived = a1 - a0
-        return arrived >= 0.5 * (arrived + v1 - v0)  # stamp span = arrival span + offset change
-
-    def _push(self, v: float) -> None:
-        self._value = None
-        self.fifo.append(v)
-        bisect.insort(self.sorted, v)
-        if len(self.fifo) > self.n:
-            old = self.fifo.popleft()
-            del self.sorted[bisect.bisect_left(self.sorted, old)]
-
-    def __len__(self) -> int:
-        return len(self.fifo)
-
-    tol = 5.0  # s: wider than arrival jitter (a node at 10x sees 1 Hz stamps 0.9 s apart in
-    #   stamp - arrival), far narrower than a clock error worth refusing
-    late = 1.0  # s: an item whose stamp - arrival is this far below the centre came late (a
-    #   backlog after a stall or an outage): it does not vote (add). Above the radio's jitter
-    #   (p99 of 20 ms + Exp(50 ms) is 0.25 s) and a sim-time node's arrival quantisation.
-
-    def on_time(self, v: float, late: float) -> bool:
-        """``v`` (stamp - arrival) is at most ``late`` s below the centre, and not far above."""
-        return -late <= v - self.value <= self.tol
-
-    def near(self, v: float) -> int:
-        """How many values of the window lie within ``tol`` of ``v``."""
-        return bisect.bisect_right(self.sorted, v + self.tol) - \
-            bisect.bisect_left(self.sorted, v - self.tol)
-
-    @property
-    def value(self) -> float:
-        if self._value is not None:
-            return self._value
-        s = self.sorted
-        if not s:
-            return math.nan
-        counts = [bisect.bisect_right(s, v + self.tol) - bisect.bisect_left(s, v - self.tol)
-                  for v in s]
-        best = max(counts)
-        dense = [v for v, c in zip(s, counts) if c == best]
-        self._value = dense[len(dense) // 2]
-        return self._value
-
-
 @dataclass
 class EstimatorRunner:
     adapter: Adapter
@@ -228,10 +124,6 @@ class EstimatorRunner:
     step_back: float = 0.3  # s: an odometer stamp this far behind the newest one admitted is
     #   held as a possible backward clock step (at least 2.5 periods); min_judged such readings
     #   continuing one another, arriving at their stamps' pace, are a step and re-anchored
-    drift_late: float = 0.25  # s: an odometer reading later than this (below the centre of
-    #   stamp - arrival) stays out of the drift fit. Above a radio's jitter (p99 of 20 ms +
-    #   Exp(50 ms): 0.25 s); one reading of a backlog's tail, 1 s late, in 30 s of data gave
-    #   a drift of 2e-5 for a true 0 and cost the KF 0.04 m of RMSE for a minute
     queue: list = field(default_factory=list)
     rejected: Counter = field(default_factory=Counter)  # "kind:reason" -> count
     accepted: Counter = field(default_factory=Counter)
@@ -242,7 +134,7 @@ class EstimatorRunner:
     _started: bool = False
     _last_out: float | None = None  # stamp of the last estimate emitted
     _n: int = 0  # insertion counter: FIFO among equal stamps and kinds
-    _offsets: dict = field(default_factory=dict)  # clock -> _Median of stamp - recv
+    _offsets: dict = field(default_factory=dict)  # clock -> StreamClock (offset, rate)
     _prev_raw: float | None = None  # the last stamp pushed (no-arrival mode, early phase)
     _admitted_high: float = -math.inf  # the latest stamp admitted (no-arrival mode)
     _recent: dict = field(default_factory=dict)  # kind -> deque of (seq, stamp)
@@ -250,8 +142,6 @@ class EstimatorRunner:
     _held: list = field(default_factory=list)  # control pushed before any odometer (raw)
     _early: dict = field(default_factory=dict)  # clock -> items waiting for min_judged
     _odo: list = field(default_factory=list)  # heap of the queued odometer stamps
-    _fit: list = field(default_factory=lambda: [0, 0.0, 0.0, 0.0, 0.0, None])  # drift regression
-    _reg_last: tuple | None = None  # (arrival, stamp) of the last reading in the regression
     _anchor: tuple | None = None  # (train stamp, filter time) of the last processed odometer
     _last_mapped: float = -math.inf
     _hist: list = field(default_factory=list)  # [stamp, order, n, kind, fields, snapshot]
@@ -306,7 +196,7 @@ class EstimatorRunner:
             if not isinstance(seq, int) or isinstance(seq, bool):
                 return self._reject(kind, stamp, f"{R.INVALID}: seq {seq!r}")
         clock = CLOCK_OF[kind]
-        med = self._offsets.setdefault(clock, _Median())
+        med = self._offsets.setdefault(clock, StreamClock())
         early = len(med) < self.min_judged
         if recv is not None:
             arrival = recv
@@ -355,8 +245,8 @@ class EstimatorRunner:
                 return self._reject(kind, stamp, why)
         if arrival is not None and not counted:
             med.add(stamp - arrival, arrival)
-        if kind == "odometer" and recv is not None and med.on_time(stamp - recv, self.drift_late):
-            self._regress(recv, stamp)  # only stamps on time inform the rate (not a backlog's)
+        if kind == "odometer" and recv is not None:
+            med.rate_point(stamp, recv)  # only stamps on time inform the rate (not a backlog's)
         if kind == "odometer" and arrival is not None and \
                 (self._odo_last is None or stamp > self._odo_last[0]):
             self._odo_last = (stamp, arrival)
@@ -379,7 +269,7 @@ class EstimatorRunner:
         doc). A stamp beyond ``max_future`` is not held: it is refused at the door as always,
         and only counts towards a step. ``stamp`` comes back mapped when this reading
         completed a step."""
-        tol = _Median.tol
+        tol = StreamClock.tol
         s0, a0 = self._odo_last
         # Back by more than step_back: possibly a small backward step (a clock resynchronised
         # by a few seconds), held until later readings decide. A reading late by jitter is
@@ -396,8 +286,8 @@ class EstimatorRunner:
         prev = self._odo_pushed
         if kind == "odometer":
             self._odo_pushed = (stamp, arrival)
-        paced = prev is None or arrival - prev[1] >= 0.5 * (stamp - prev[0])
-        behind = kind == "odometer" and paced and len(med) >= self.min_judged and \
+        on_pace = prev is None or paced(prev, (stamp, arrival))
+        behind = kind == "odometer" and on_pace and len(med) >= self.min_judged and \
             stamp - arrival - med.value < -back
         if -back <= stamp - s0 <= max(arrival - a0, 0.0) + tol and not behind:
             if kind == "odometer" and self._step_held:
@@ -406,18 +296,14 @@ class EstimatorRunner:
         chain = [h for h in self._step_held if h[0] == "odometer"]
         if kind == "odometer" and chain:
             _, s1, _, _, a1, _ = chain[-1]
-            if not 0.0 < stamp - s1 <= max(arrival - a1, 0.0) + tol:  # not one new clock
+            if not continues((s1, a1), (stamp, arrival)):  # not one new clock
                 self._release_held()
                 chain = []
         refused = stamp - arrival - self._offsets["train"].value > self.max_future
         self._step_held.append((kind, stamp, fields, recv, arrival, refused))
         if kind == "odometer":
             chain.append(self._step_held[-1])
-        if len(chain) < self.min_judged or \
-                chain[-1][1] - chain[0][1] < 0.5 * (len(chain) - 1) * self.period or \
-                chain[-1][4] - chain[0][4] < 0.5 * (chain[-1][1] - chain[0][1]):
-            # not yet a step: too few readings, too slow a pace, or arrivals that do not span
-            # the stamps (a backlog's burst, not a clock that jumped and runs on)
+        if not is_step([(h[1], h[4]) for h in chain], self.min_judged, self.period):
             return not refused, stamp, arrival
         # a step: the first reading of the new clock came (elapsed arrival time, at least one
         # period) after the last one of the old clock
@@ -449,7 +335,7 @@ class EstimatorRunner:
             if ref:
                 continue
             ahead = st - s0 - max(ar - a0, 0.0)
-            if ahead > _Median.tol:
+            if ahead > StreamClock.tol:
                 self._count(k, st, f"{R.FUTURE_STAMP}: {ahead:.3g} s ahead of its stream, "
                                    f"not continued by later readings")
                 continue
@@ -484,40 +370,13 @@ class EstimatorRunner:
         self._last_mapped = mapped
         return mapped
 
-    def _regress(self, recv: float, stamp: float) -> None:
-        """Running least squares of odometer stamp on arrival time (centred on the first).
-
-        A reading whose arrival advanced less than half its stamp since the last one used came
-        in a burst (the tail of a backlog: its latency shrinking as the stamps advance with the
-        arrival frozen) and is left out. With a backlog's readings in the fit, an 8 s stall on
-        separate clocks left a drift error of 9e-5 (true drift 0) and the KF 0.20-0.26 m off
-        for half a minute after it (0.06-0.07 m without the stall)."""
-        f = self._fit
-        last = self._reg_last
-        if last is not None and recv - last[0] < 0.5 * (stamp - last[1]):
-            return
-        self._reg_last = (recv, stamp)
-        if f[5] is None:
-            f[5] = (recv, stamp)
-        x, y = recv - f[5][0], stamp - f[5][1]
-        f[0] += 1
-        f[1] += x
-        f[2] += y
-        f[3] += x * x
-        f[4] += x * y
-
     @property
     def drift(self) -> float:
-        """Train clock rate minus 1 (s/s), from stamps vs arrivals; 0 until the clocks are known
-        to be separate and 10 s of arrivals are in (one clock needs no rate: same seconds)."""
-        n, sx, sy, sxx, sxy, _ = self._fit
-        if not self.separate_clocks or n < 20:
+        """Train clock rate minus 1 (s/s), from stamps vs arrivals (StreamClock.rate); 0 until
+        the clocks are known to be separate (one clock needs no rate: same seconds)."""
+        if not self.separate_clocks or "train" not in self._offsets:
             return 0.0
-        var = sxx - sx * sx / n
-        if var < n * 10.0 ** 2 / 12:  # less than ~10 s of span
-            return 0.0
-        d = (sxy - sx * sy / n) / var - 1.0
-        return d if abs(d) < 0.1 else 0.0
+        return self._offsets["train"].drift
 
     def _filter_time(self, stamp: float) -> float:
         """Train-clock stamp -> filter time in reference seconds (the drift removed piecewise
