@@ -117,7 +117,8 @@ class EstimatorRunner:
     period: float  # s, odometer sample period (nominal; the slots follow the odometer's stamps)
     control_clock: str = "auto"  # "auto", "same" or "reference" (see module doc)
     max_future: float = 600.0  # s, stamp beyond arrival (+ median offset): future_stamp
-    same_clock_tolerance: float = 2.0  # s, "auto": closer clocks are one clock
+    same_clock_tolerance: float = 2.0  # s, "auto": closer clocks are one clock ...
+    same_clock_rate: float = 1e-4  # s/s, ... unless their rates differ by more (significantly)
     max_gap_outputs: int = 6000  # predicted slots after the last fused sample (10 min at 10 Hz)
     min_judged: int = 9  # arrivals of a clock before its stamps are judged (earlier ones wait)
     history: float = 3.0  # s of fused input kept: a reading up to this late is fused by rewinding
@@ -231,7 +232,10 @@ class EstimatorRunner:
         med = self._offsets[clock]
         if watch and clock == "train" and arrival is not None and self._odo_last is not None:
             held, stamp, arrival = self._watch_step(kind, stamp, fields, recv, arrival)
-            self.monitor.clock(sum(h[0] == "odometer" for h in self._step_held))
+            s0, a0 = self._odo_last
+            self.monitor.clock(sum(h[0] == "odometer" for h in self._step_held),
+                               doubt=max((abs(h[1] - s0 - (h[4] - a0)) for h in self._step_held),
+                                         default=0.0))
             if held:
                 return ""
         if arrival is not None:
@@ -289,7 +293,12 @@ class EstimatorRunner:
         on_pace = prev is None or paced(prev, (stamp, arrival))
         behind = kind == "odometer" and on_pace and len(med) >= self.min_judged and \
             stamp - arrival - med.value < -back
-        if -back <= stamp - s0 <= max(arrival - a0, 0.0) + tol and not behind:
+        # Ahead by more than that above the centre: a forward step (latency only ever lowers
+        # stamp - arrival, and an outage moves stamps and arrivals alike, so nothing else
+        # raises it), or one wrong stamp; held until later readings decide, as a backward step
+        ahead = recv is not None and len(med) >= self.min_judged and \
+            stamp - arrival - med.value > back
+        if -back <= stamp - s0 <= max(arrival - a0, 0.0) + tol and not behind and not ahead:
             if kind == "odometer" and self._step_held:
                 self._release_held()
             return False, stamp, arrival
@@ -331,13 +340,17 @@ class EstimatorRunner:
         clock step of -60 s (kf 1.3 km off with a covariance of centimetres)."""
         held, self._step_held = self._step_held, []
         s0, a0 = self._odo_last
+        med = self._offsets["train"]
+        back = max(self.step_back, 2.5 * self.period)
         for k, st, f, rc, ar, ref in held:
             if ref:
                 continue
             ahead = st - s0 - max(ar - a0, 0.0)
-            if ahead > StreamClock.tol:
-                self._count(k, st, f"{R.FUTURE_STAMP}: {ahead:.3g} s ahead of its stream, "
-                                   f"not continued by later readings")
+            # above its clock's centre (arrival known): no forward step confirmed it
+            lead = st - ar - med.value if rc is not None else -math.inf
+            if ahead > StreamClock.tol or lead > back:
+                self._count(k, st, f"{R.FUTURE_STAMP}: {max(ahead, lead):.3g} s ahead of its "
+                                   f"stream, not continued by later readings")
                 continue
             self._admit(k, st, f, rc, ar, watch=False)
 
@@ -362,13 +375,21 @@ class EstimatorRunner:
             return stamp
         shift = self._offsets["train"].value - self._offsets["control"].value
         if self.control_clock == "auto" and not self.separate_clocks \
-                and abs(shift) < self.same_clock_tolerance:
+                and abs(shift) < self.same_clock_tolerance and not self._drifting():
             return stamp
         self.separate_clocks = True
         # the shift follows the medians: keep the mapped commands in their order
         mapped = max(stamp + shift, self._last_mapped)
         self._last_mapped = mapped
         return mapped
+
+    def _drifting(self) -> bool:
+        """The train clock's rate against the arrivals differs from 1 by more than
+        ``same_clock_rate``, significantly (5 standard errors): two clocks, however close
+        their offsets still are (a clock 1 % slow is 2 s off after 200 s; taken as one until
+        then, the commands were mapped up to 2 s off)."""
+        d, se = self._offsets["train"].rate()
+        return abs(d) > max(self.same_clock_rate, 5.0 * se)
 
     @property
     def drift(self) -> float:
