@@ -59,3 +59,17 @@ def test_stream_clock_rate_and_step_test():
     assert is_step(chain, 9, 0.1) and not is_step(chain[:8], 9, 0.1)
     burst = [(100.0 + 0.1 * k, 97.0) for k in range(9)]  # one stall's backlog, at once
     assert not is_step(burst, 9, 0.1)
+
+
+def test_backward_step_at_1_hz_is_in_doubt_from_its_first_reading():
+    """At 1 Hz the first reading after a -3 s step lands on a slot already fused: no lateness
+    explains it, so the estimate is DEGRADED at once (not one period later, wrong-side)."""
+    sc, res = run("wen2017_subway", 3, 40.0)
+    assert sc.odometer_rate == 1.0
+    fl = F.inject(res.events(), F.Fault("step", -3.0, at=26.0), np.random.default_rng(0))
+    outs, emitted, runner = F.run(fl.events, adapter(sc), 1.0)
+    s = F.score(outs, emitted, fl, res.truth, 1.0, 40.0 + F.LATENCY)
+    assert runner.events.get("odometer:clock_reset") == 1, runner.counts
+    first = next(o for o, e in zip(outs, emitted) if e - F.EPOCH > 26.0)
+    assert first.integrity == 1 and first.integrity_reason.startswith("clock"), first
+    assert s["wrong_side"] == 0 and s["hazards"] == 0, s

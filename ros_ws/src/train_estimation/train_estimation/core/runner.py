@@ -13,21 +13,23 @@ so the node's estimates can be reproduced from a bag without ROS:
 Clocks (docs/interfaces.md, "The measured data's clocks"). The estimator runs on the **odometer's
 clock** (the train's clock: odometer and balise stamps are the sampling times, at any epoch,
 phase and drift). ``control`` may be stamped on another clock (measured data: the reference =
-receive clock). Each stream's offset ``stamp - recv`` (``recv`` = arrival time on the node's
-clock; in a replay the bag's log time) is tracked as a robust running median of the items
-that came on time (an item more than ``clocks.LATE`` below the centre came late, e.g. in the
-burst that follows a stalled recorder or node, and does not vote); a control stamp is mapped
+receive clock). Each clock is followed by a :class:`~.clocks.StreamClock` (the streaming
+counterpart of the offline ``ClockFit``): its offset ``stamp - recv`` (``recv`` = arrival time on
+the node's clock; in a replay the bag's log time) is a robust running centre of the items that
+came on time (lateness: the one rule of ``core/clocks.py``, ``LATE`` = 0.5 s below the centre,
+e.g. the burst that follows a stalled recorder or node, does not vote); a control stamp is mapped
 onto the train clock by adding ``median(odometer offset) - median(control offset)`` (the error is
 the difference of the two streams' median latencies, milliseconds for a radio link). When that
-difference is below ``same_clock_tolerance`` the two clocks are taken as one (the simulator:
-mapping 0, exactly, so that a node and its replay compute the same numbers); once found
+difference is below ``same_clock_tolerance`` and the train clock's rate against the arrivals
+differs from 1 by no more than ``same_clock_rate`` (or not significantly) the two clocks are
+taken as one (the simulator: mapping 0, exactly, so that a node and its replay compute the same
+numbers); once found
 "separate" stays so (commands wait until both clocks have ``min_judged`` arrivals).
-``control_clock`` forces ``"same"`` or ``"reference"``. The nodes default to ``"same"``: a node
-that falls behind its input (callbacks late by seconds) sees arrival times that say little about
-the clocks; offline, with the bag's log times as arrivals, ``"auto"`` is the default.
-On separate clocks the train clock's rate is also estimated (least squares of odometer stamps on
-arrival times, ``drift``) and the filter runs in reference seconds: stamps are converted
-piecewise from the last processed sample, the estimates keep the sample's own stamp. One clock
+``control_clock`` forces ``"same"`` (the simulator's launch) or ``"reference"``; ``"auto"`` is
+the default, in the nodes and offline. On separate clocks the train clock's rate (least squares
+of odometer stamps on the arrival times of the readings on time, ``drift``) is used and the
+filter runs in reference seconds: stamps are converted piecewise from the last processed sample,
+the estimates keep the sample's own stamp. One clock
 needs no rate (a drift shared by all stamps only rescales time; not corrected).
 
 A stamp more than ``max_future`` seconds (default 10 min: generous, because a node whose
@@ -50,15 +52,22 @@ node's estimates.
 Clock steps (a train clock reset to 0 by a reboot, or set to GPS time): odometer stamps jump
 and stay on the new clock. A reading is *discontinuous* when its stamp is more than
 ``clocks.TOL`` behind the last odometer stamp admitted, or ahead of it by more than the arrival
-time elapsed since (+ tol); an outage moves stamps and arrivals alike, and a node whose callbacks
-lag sees small stamp gaps whatever its arrivals, so neither is discontinuous. Discontinuous
-train-clock readings are held back; ``min_judged`` odometer readings in a row that continue one
-another (increasing stamps at a plausible pace) with no continuous reading between them are a
+time elapsed since (+ tol), or (arrivals known, the clock judged) its ``stamp - arrival`` lies
+more than ``max(step_back, 2.5 periods)`` below its clock's centre (paced: a backward step) or
+above it (a forward step: latency only lowers it). An outage moves stamps and arrivals alike,
+and a node whose callbacks lag sees small stamp gaps whatever its arrivals, so neither is
+discontinuous. Discontinuous train-clock readings are held back (the integrity monitor says
+DEGRADED from the second one, the position variance grown by the candidate step); the step test
+(``clocks.is_step``: ``min_judged`` odometer readings in a row that continue one another at a
+plausible pace, arriving at their stamps' pace) with no continuous reading between them makes a
 step: every later train-clock stamp is mapped back onto the old timeline (``stamp - shift``,
 ``shift`` = the jump less the elapsed arrival time, at least one period), the held readings are
 admitted, and the event ``clock_reset`` is logged. Estimates keep the sample's own stamp (the
-new clock). Otherwise the held readings are judged as any other (a stale or future stamp). A step
-smaller than ``tol`` cannot be told from arrival jitter and is not re-anchored.
+new clock). Otherwise the held readings are judged as any other (a stale stamp), except that one
+stamped ahead of its stream or of its clock, which no later reading continued, is refused
+(``future_stamp``). A step smaller than ``max(step_back, 2.5 periods)`` (0.3 s at 10 Hz) cannot
+be told from arrival jitter and is not re-anchored; without arrival times only steps beyond
+``tol`` are seen.
 
 Sequence numbers only detect duplicates (same ``seq`` and stamp as a recent reading) and resets
 (``seq`` goes back while the stamp goes on: a sensor reboot or a wrap-around, accepted and
@@ -68,6 +77,7 @@ blind a stream.
 
 from __future__ import annotations
 
+import bisect
 import heapq
 import math
 from collections import Counter, deque
@@ -152,6 +162,7 @@ class EstimatorRunner:
     _train_shift: float = 0.0  # s, train-clock steps so far: filter stamps = raw - shift
     _odo_last: tuple | None = None  # (stamp, arrival) of the last odometer admitted
     _step_held: list = field(default_factory=list)  # discontinuous train-clock readings
+    _odo_admitted: list = field(default_factory=list)  # sorted recent odometer stamps admitted
     _odo_pushed: tuple | None = None  # (stamp, arrival) of the last odometer watched
     _ctl_recv: float | None = None  # arrival of the latest command (the node's clock)
     _raw_stamp: dict = field(default_factory=dict)  # mapped odometer stamp -> stamp as sent
@@ -233,9 +244,10 @@ class EstimatorRunner:
         if watch and clock == "train" and arrival is not None and self._odo_last is not None:
             held, stamp, arrival = self._watch_step(kind, stamp, fields, recv, arrival)
             s0, a0 = self._odo_last
-            self.monitor.clock(sum(h[0] == "odometer" for h in self._step_held),
-                               doubt=max((abs(h[1] - s0 - (h[4] - a0)) for h in self._step_held),
-                                         default=0.0))
+            odo = [h for h in self._step_held if h[0] == "odometer"]
+            self.monitor.clock(len(odo), doubt=max((abs(h[1] - s0 - (h[4] - a0))
+                                                    for h in self._step_held), default=0.0),
+                               conclusive=any(self._conclusive(h[1], h[3], h[4]) for h in odo))
             if held:
                 return ""
         if arrival is not None:
@@ -254,6 +266,9 @@ class EstimatorRunner:
         if kind == "odometer" and arrival is not None and \
                 (self._odo_last is None or stamp > self._odo_last[0]):
             self._odo_last = (stamp, arrival)
+        if kind == "odometer":
+            bisect.insort(self._odo_admitted, stamp)
+            del self._odo_admitted[:-128]
         self._admitted_high = max(self._admitted_high, stamp)
         if kind == "control":
             if "train" not in self._offsets or len(self._offsets["train"]) < self.min_judged:
@@ -331,6 +346,24 @@ class EstimatorRunner:
             if not ref:
                 self._admit(k, st - shift, f, rc, ar, watch=False)
         return False, stamp - shift, arrival
+
+    def _conclusive(self, stamp: float, recv, arrival) -> bool:
+        """One held odometer reading that no lateness explains: stamped above its clock's
+        centre (latency only lowers stamp - arrival), or behind the newest one on a slot already
+        fused, or where readings were fused at the slot's pace all along (a late reading fills
+        a slot that has none).
+        Not yet a step (:func:`clocks.is_step` decides), but the estimate is in doubt at once:
+        at 1 Hz, waiting for a second reading left one estimate wrong-side after a -3 s step."""
+        med = self._offsets["train"]
+        if recv is not None and stamp - arrival - med.value > \
+                max(self.step_back, 2.5 * self.period):
+            return True
+        adm = self._odo_admitted
+        i = bisect.bisect_left(adm, stamp)
+        near = min((abs(adm[k] - stamp) for k in (i - 1, i) if 0 <= k < len(adm)),
+                   default=math.inf)
+        return near < 0.25 * self.period or \
+            (0 < i < len(adm) and adm[i] - adm[i - 1] < 1.5 * self.period)
 
     def _release_held(self) -> None:
         """No step after all: judge the held readings as any other (stale, late, ...) -- but a
