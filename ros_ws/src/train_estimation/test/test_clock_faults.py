@@ -73,3 +73,18 @@ def test_backward_step_at_1_hz_is_in_doubt_from_its_first_reading():
     first = next(o for o, e in zip(outs, emitted) if e - F.EPOCH > 26.0)
     assert first.integrity == 1 and first.integrity_reason.startswith("clock"), first
     assert s["wrong_side"] == 0 and s["hazards"] == 0, s
+
+
+
+def test_a_node_catching_up_is_not_above_its_clock():
+    """Offsets drift down while a node falls 3 s behind (each reading a little later: the
+    centre follows); when it catches up they return to where the clock is: above the centre by
+    3 s, but not above the ceiling, so not taken for a forward step (a real one is)."""
+    c = StreamClock()
+    for k in range(100):
+        c.add(-0.05, 0.1 * k)
+    for k in range(100):  # lag grows by 30 ms per reading to 3 s
+        c.add(-0.05 - 0.03 * k, 10.0 + 0.13 * k)
+    assert c.value < -2.5 and c.ceiling == pytest.approx(-0.05)
+    assert c.above(-0.05) == pytest.approx(0.0, abs=1e-9)
+    assert c.above(-0.05 + 3.0) == pytest.approx(3.0)

@@ -159,9 +159,12 @@ class StreamClock:
         self.pending: list = []  # consecutive values away from a full window's centre
         self._fit = [0, 0.0, 0.0, 0.0, 0.0, 0.0, None]  # n, sx, sy, sxx, sxy, syy, origin
         self._reg_last: tuple | None = None  # (stamp, arrival) of the last point in the fit
+        self._top: deque = deque()  # (index, offset), decreasing: the sliding maximum
+        self._pushed = 0  # offsets pushed so far
 
     tol = TOL
     late = LATE
+    horizon = 600  # offsets over which the ceiling is the maximum (1 min at 10 Hz)
 
     # -- offset ---------------------------------------------------------------------------
     def add(self, v: float, at: float | None = None) -> None:
@@ -213,6 +216,12 @@ class StreamClock:
 
     def _push(self, v: float) -> None:
         self._value = None
+        self._pushed += 1
+        while self._top and self._top[-1][1] <= v:
+            self._top.pop()
+        self._top.append((self._pushed, v))
+        if self._top[0][0] <= self._pushed - self.horizon:
+            self._top.popleft()
         self.fifo.append(v)
         bisect.insort(self.sorted, v)
         if len(self.fifo) > self.n:
@@ -247,6 +256,18 @@ class StreamClock:
         return self._value
 
     offset = value
+
+    @property
+    def ceiling(self) -> float:
+        """The largest offset that voted among the last ``horizon``: where the clock is when
+        the latency is least. A node that lagged its input for a while moves the centre down
+        with it; when it catches up, its offsets return to the ceiling, never above it."""
+        return self._top[0][1] if self._top else math.nan
+
+    def above(self, v: float) -> float:
+        """How far the offset ``v`` lies above where its clock can be (s): only a forward step
+        or a wrong stamp puts it there, since latency only ever lowers an offset."""
+        return v - max(self.value, self.ceiling)
 
     # -- rate -----------------------------------------------------------------------------
     def rate_point(self, stamp: float, arrival: float) -> None:

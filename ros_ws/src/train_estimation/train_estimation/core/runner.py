@@ -308,11 +308,11 @@ class EstimatorRunner:
         on_pace = prev is None or paced(prev, (stamp, arrival))
         behind = kind == "odometer" and on_pace and len(med) >= self.min_judged and \
             stamp - arrival - med.value < -back
-        # Ahead by more than that above the centre: a forward step (latency only ever lowers
-        # stamp - arrival, and an outage moves stamps and arrivals alike, so nothing else
-        # raises it), or one wrong stamp; held until later readings decide, as a backward step
+        # Ahead by more than that above where the clock can be (its centre, and the ceiling of
+        # its offsets: latency only ever lowers stamp - arrival, an outage moves stamps and
+        # arrivals alike): a forward step or one wrong stamp; held until later readings decide
         ahead = recv is not None and len(med) >= self.min_judged and \
-            stamp - arrival - med.value > back
+            med.above(stamp - arrival) > back
         if -back <= stamp - s0 <= max(arrival - a0, 0.0) + tol and not behind and not ahead:
             if kind == "odometer" and self._step_held:
                 self._release_held()
@@ -355,7 +355,7 @@ class EstimatorRunner:
         Not yet a step (:func:`clocks.is_step` decides), but the estimate is in doubt at once:
         at 1 Hz, waiting for a second reading left one estimate wrong-side after a -3 s step."""
         med = self._offsets["train"]
-        if recv is not None and stamp - arrival - med.value > \
+        if recv is not None and med.above(stamp - arrival) > \
                 max(self.step_back, 2.5 * self.period):
             return True
         adm = self._odo_admitted
@@ -380,7 +380,7 @@ class EstimatorRunner:
                 continue
             ahead = st - s0 - max(ar - a0, 0.0)
             # above its clock's centre (arrival known): no forward step confirmed it
-            lead = st - ar - med.value if rc is not None else -math.inf
+            lead = med.above(st - ar) if rc is not None else -math.inf
             if ahead > StreamClock.tol or lead > back:
                 self._count(k, st, f"{R.FUTURE_STAMP}: {max(ahead, lead):.3g} s ahead of its "
                                    f"stream, not continued by later readings")
