@@ -39,7 +39,8 @@ Checks (each gives a reason, e.g. ``"no_measurement: 2.3 s"``):
 ``clock``
     Two or more readings held back as a possible clock step (the runner has not decided: one
     reading late by jitter is held for a period and says nothing), or one that no lateness
-    explains (stamped above its clock, or on a slot already fused), or a step
+    explains (stamped above its clock, or on a slot already fused; with an odometer slower
+    than 2 Hz, any: the reading that decides comes too late to wait for), or a step
     re-anchored less than ``reanchor_hold`` s ago: DEGRADED, position variance increased by
     ``(v T)^2``: while readings are held, ``T`` is the largest discontinuity among them (the
     candidate step: the estimate's stamp may be read on either side of it), after a step one

@@ -247,7 +247,8 @@ class EstimatorRunner:
             odo = [h for h in self._step_held if h[0] == "odometer"]
             self.monitor.clock(len(odo), doubt=max((abs(h[1] - s0 - (h[4] - a0))
                                                     for h in self._step_held), default=0.0),
-                               conclusive=any(self._conclusive(h[1], h[3], h[4]) for h in odo))
+                               conclusive=self.period > 0.5 or
+                               any(self._conclusive(h[1], h[3], h[4]) for h in odo))
             if held:
                 return ""
         if arrival is not None:
@@ -353,7 +354,10 @@ class EstimatorRunner:
         fused, or where readings were fused at the slot's pace all along (a late reading fills
         a slot that has none).
         Not yet a step (:func:`clocks.is_step` decides), but the estimate is in doubt at once:
-        at 1 Hz, waiting for a second reading left one estimate wrong-side after a -3 s step."""
+        at 1 Hz, waiting for a second reading left one estimate wrong-side after a -3 s step.
+        (With a period over 0.5 s every held reading is: the next one, which decides, comes
+        later than an alarm may wait; a reading held there is more than 2.5 s behind, rare
+        for a late one.)"""
         med = self._offsets["train"]
         if recv is not None and med.above(stamp - arrival) > \
                 max(self.step_back, 2.5 * self.period):
