@@ -221,9 +221,9 @@ def test_wild_stamps_cannot_outvote_the_clock():
     centre moved 500 s, the commands were mapped 500 s ahead and the braking filters went
     blind), they do not move the clock's centre; a clock that really steps (only far values,
     consecutively) does."""
-    from train_estimation.core.runner import _Median
+    from train_estimation.core.clocks import StreamClock
 
-    m = _Median()
+    m = StreamClock()
     for k in range(40):
         m.add(0.001 * (k % 3))
     for k in range(60):  # two stale values for one good one

@@ -38,9 +38,13 @@ Checks (each gives a reason, e.g. ``"no_measurement: 2.3 s"``):
     NIS = 1); above ``nis_alarm``: ALARM.
 ``clock``
     Two or more readings held back as a possible clock step (the runner has not decided: one
-    reading late by jitter is held for a period and says nothing), or a step
+    reading late by jitter is held for a period and says nothing), or one that no lateness
+    explains (stamped above its clock, or on a slot already fused; with an odometer slower
+    than 2 Hz, any: the reading that decides comes too late to wait for), or a step
     re-anchored less than ``reanchor_hold`` s ago: DEGRADED, position variance increased by
-    ``(v period)^2`` (a re-anchored step is known to about one sample period).
+    ``(v T)^2``: while readings are held, ``T`` is the largest discontinuity among them (the
+    candidate step: the estimate's stamp may be read on either side of it), after a step one
+    sample period (a re-anchored step is known to about that).
 ``no_command``
     No control command for ``command_timeout`` while readings arrive: the filters hold the last
     command; DEGRADED with the ``no_measurement`` inflation over the silence beyond the timeout
@@ -111,6 +115,8 @@ class IntegrityMonitor:
         self.last_reading = -math.inf  # stamp of the latest odometer reading seen
         self.reanchored_at = -math.inf
         self.held = 0  # readings the runner holds as a possible clock step
+        self.doubt = 0.0  # s, the largest discontinuity among them
+        self.suspect = False  # they put the estimate in doubt (see clock)
         self.nis: deque = deque(maxlen=params.nis_window)
         self.prev: tuple | None = None  # (stamp, velocity, P_vv) of the last estimate
         self.counts = {NAMES[k]: 0 for k in NAMES}
@@ -148,9 +154,14 @@ class IntegrityMonitor:
         if math.isfinite(stamp):
             self.last_command = max(self.last_command, stamp)
 
-    def clock(self, held: int, reanchored_at: float | None = None) -> None:
-        """The runner's clock state: readings held as a possible step; a step re-anchored."""
+    def clock(self, held: int, reanchored_at: float | None = None, doubt: float = 0.0,
+              conclusive: bool = False) -> None:
+        """The runner's clock state: readings held as a possible step, the largest
+        discontinuity among them (s), whether one of them is no late reading; a step
+        re-anchored."""
         self.held = held
+        self.suspect = held >= 2 or (held >= 1 and conclusive)
+        self.doubt = doubt if held else 0.0
         if reanchored_at is not None:
             self.reanchored_at = reanchored_at
 
@@ -192,11 +203,12 @@ class IntegrityMonitor:
             state = DEGRADED
             why.append(f"speed_nis: window mean {m:.3g}")
             P = P * m
-        if self.held >= 2 or t - self.reanchored_at < p.reanchor_hold:
+        if self.suspect or t - self.reanchored_at < p.reanchor_hold:
             state = DEGRADED
             why.append("clock: " + (f"{self.held} readings held as a possible step"
                                     if self.held else "step re-anchored"))
-            P = P + np.diag([(abs(out.velocity) * self.period) ** 2 + self.period ** 2, 0.0])
+            T = max(self.period, self.doubt if self.suspect else 0.0)
+            P = P + np.diag([(abs(out.velocity) * T) ** 2 + T ** 2, 0.0])
         silent = t - self.last_command
         if math.isfinite(self.last_command) and silent > p.command_timeout:
             state = DEGRADED

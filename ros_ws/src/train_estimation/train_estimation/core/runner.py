@@ -13,21 +13,23 @@ so the node's estimates can be reproduced from a bag without ROS:
 Clocks (docs/interfaces.md, "The measured data's clocks"). The estimator runs on the **odometer's
 clock** (the train's clock: odometer and balise stamps are the sampling times, at any epoch,
 phase and drift). ``control`` may be stamped on another clock (measured data: the reference =
-receive clock). Each stream's offset ``stamp - recv`` (``recv`` = arrival time on the node's
-clock; in a replay the bag's log time) is tracked as a robust running median of the items
-that came on time (an item more than ``_Median.late`` below the centre came late, e.g. in the
-burst that follows a stalled recorder or node, and does not vote); a control stamp is mapped
+receive clock). Each clock is followed by a :class:`~.clocks.StreamClock` (the streaming
+counterpart of the offline ``ClockFit``): its offset ``stamp - recv`` (``recv`` = arrival time on
+the node's clock; in a replay the bag's log time) is a robust running centre of the items that
+came on time (lateness: the one rule of ``core/clocks.py``, ``LATE`` = 0.5 s below the centre,
+e.g. the burst that follows a stalled recorder or node, does not vote); a control stamp is mapped
 onto the train clock by adding ``median(odometer offset) - median(control offset)`` (the error is
 the difference of the two streams' median latencies, milliseconds for a radio link). When that
-difference is below ``same_clock_tolerance`` the two clocks are taken as one (the simulator:
-mapping 0, exactly, so that a node and its replay compute the same numbers); once found
+difference is below ``same_clock_tolerance`` and the train clock's rate against the arrivals
+differs from 1 by no more than ``same_clock_rate`` (or not significantly) the two clocks are
+taken as one (the simulator: mapping 0, exactly, so that a node and its replay compute the same
+numbers); once found
 "separate" stays so (commands wait until both clocks have ``min_judged`` arrivals).
-``control_clock`` forces ``"same"`` or ``"reference"``. The nodes default to ``"same"``: a node
-that falls behind its input (callbacks late by seconds) sees arrival times that say little about
-the clocks; offline, with the bag's log times as arrivals, ``"auto"`` is the default.
-On separate clocks the train clock's rate is also estimated (least squares of odometer stamps on
-arrival times, ``drift``) and the filter runs in reference seconds: stamps are converted
-piecewise from the last processed sample, the estimates keep the sample's own stamp. One clock
+``control_clock`` forces ``"same"`` (the simulator's launch) or ``"reference"``; ``"auto"`` is
+the default, in the nodes and offline. On separate clocks the train clock's rate (least squares
+of odometer stamps on the arrival times of the readings on time, ``drift``) is used and the
+filter runs in reference seconds: stamps are converted piecewise from the last processed sample,
+the estimates keep the sample's own stamp. One clock
 needs no rate (a drift shared by all stamps only rescales time; not corrected).
 
 A stamp more than ``max_future`` seconds (default 10 min: generous, because a node whose
@@ -49,16 +51,23 @@ node's estimates.
 
 Clock steps (a train clock reset to 0 by a reboot, or set to GPS time): odometer stamps jump
 and stay on the new clock. A reading is *discontinuous* when its stamp is more than
-``_Median.tol`` behind the last odometer stamp admitted, or ahead of it by more than the arrival
-time elapsed since (+ tol); an outage moves stamps and arrivals alike, and a node whose callbacks
-lag sees small stamp gaps whatever its arrivals, so neither is discontinuous. Discontinuous
-train-clock readings are held back; ``min_judged`` odometer readings in a row that continue one
-another (increasing stamps at a plausible pace) with no continuous reading between them are a
+``clocks.TOL`` behind the last odometer stamp admitted, or ahead of it by more than the arrival
+time elapsed since (+ tol), or (arrivals known, the clock judged) its ``stamp - arrival`` lies
+more than ``max(step_back, 2.5 periods)`` below its clock's centre (paced: a backward step) or
+above it (a forward step: latency only lowers it). An outage moves stamps and arrivals alike,
+and a node whose callbacks lag sees small stamp gaps whatever its arrivals, so neither is
+discontinuous. Discontinuous train-clock readings are held back (the integrity monitor says
+DEGRADED from the second one, the position variance grown by the candidate step); the step test
+(``clocks.is_step``: ``min_judged`` odometer readings in a row that continue one another at a
+plausible pace, arriving at their stamps' pace) with no continuous reading between them makes a
 step: every later train-clock stamp is mapped back onto the old timeline (``stamp - shift``,
 ``shift`` = the jump less the elapsed arrival time, at least one period), the held readings are
 admitted, and the event ``clock_reset`` is logged. Estimates keep the sample's own stamp (the
-new clock). Otherwise the held readings are judged as any other (a stale or future stamp). A step
-smaller than ``tol`` cannot be told from arrival jitter and is not re-anchored.
+new clock). Otherwise the held readings are judged as any other (a stale stamp), except that one
+stamped ahead of its stream or of its clock, which no later reading continued, is refused
+(``future_stamp``). A step smaller than ``max(step_back, 2.5 periods)`` (0.3 s at 10 Hz) cannot
+be told from arrival jitter and is not re-anchored; without arrival times only steps beyond
+``tol`` are seen.
 
 Sequence numbers only detect duplicates (same ``seq`` and stamp as a recent reading) and resets
 (``seq`` goes back while the stamp goes on: a sensor reboot or a wrap-around, accepted and
@@ -76,6 +85,7 @@ from dataclasses import dataclass, field, replace
 from typing import Protocol
 
 from . import reasons as R
+from .clocks import StreamClock, continues, is_step, paced
 from .integrity import IntegrityMonitor, IntegrityParams
 
 KIND_ORDER = {"control": 0, "odometer": 1, "balise": 2}
@@ -111,127 +121,20 @@ class Adapter(Protocol):
     def output(self, t: float) -> Output: ...  # estimate at t >= last fused time, state unchanged
 
 
-class _Median:
-    """Robust centre of the last ``n`` values: the densest one (most others within ``tol``),
-    the median of the densest on ties. A plain median fails when over half of a window is
-    wild (a fuzzed stream); wild stamps scatter, while good ones agree to milliseconds."""
-
-    def __init__(self, n: int = 31):
-        self.n, self.fifo, self.sorted = n, deque(), []
-        self._value = None  # cached centre (recomputed after an add)
-        self.pending: list = []  # consecutive values away from a full window's centre
-
-    def add(self, v: float, at: float | None = None) -> None:
-        """Add the offset ``v`` = stamp - arrival of an item that arrived at ``at`` (s; None:
-        unknown)."""
-        # Once the window is full, a value far from its centre does not vote: wild stamps
-        # mixed with good ones (a fuzzed or corrupted stream) could otherwise, by a run of
-        # bad luck, outnumber the good ones in the window and move the centre by their offset
-        # (a control clock moved 500 s ahead blinds the filter). Only n // 2 + 1 *consecutive*
-        # far values that agree among themselves -- the clock itself has stepped -- replace
-        # the window.
-        #
-        # A clock that stepped keeps its new offset as time goes on; a backlog does not: after
-        # a stall (a node or recorder blocked for longer than tol), the readings of the stall
-        # arrive in one burst, their offsets sweeping from -stall towards 0 as the stamps
-        # advance with the arrival frozen. Taken for a step, such a burst moved one clock's
-        # centre by seconds and not the other's, so "auto" judged the clocks separate and
-        # mapped the commands seconds off (tens of metres of error after an 8 s recorder
-        # stall). So the far run must also span arrival time, at least half the stamp time it
-        # spans (a step: both equal, up to jitter and drift; a burst: none); older values of
-        # a run that does not are dropped from it.
-        if len(self.fifo) >= self.n and -self.tol <= v - self.value < -self.late:
-            # delayed by more than the usual jitter (a backlog, a retried packet): its arrival
-            # says how late it came, not where its clock is; it neither votes nor informs the
-            # drift (EstimatorRunner._regress). Latency only ever lowers stamp - arrival, so
-            # items on time keep the centre where the clock is.
-            self.pending = []
-            return
-        if len(self.fifo) >= self.n and abs(v - self.value) > self.tol:
-            if self.pending and abs(v - self.pending[-1][0]) > self.tol:
-                self.pending = []
-            self.pending.append((v, at))
-            while len(self.pending) > self.n // 2 and not self._persists(self.pending):
-                self.pending.pop(0)
-            if len(self.pending) <= self.n // 2:
-                return
-            self.fifo.clear()
-            self.sorted = []
-            for p, _ in self.pending[:-1]:
-                self._push(p)
-            self.pending = []
-        elif self.pending:
-            self.pending = []
-        self._push(v)
-
-    @staticmethod
-    def _persists(run: list) -> bool:
-        """A run of far (offset, arrival) values that spans arrival time: a clock step, not a
-        backlog (see add). Without arrival times, any run does."""
-        (v0, a0), (v1, a1) = run[0], run[-1]
-        if a0 is None or a1 is None:
-            return True
-        arrived = a1 - a0
-        return arrived >= 0.5 * (arrived + v1 - v0)  # stamp span = arrival span + offset change
-
-    def _push(self, v: float) -> None:
-        self._value = None
-        self.fifo.append(v)
-        bisect.insort(self.sorted, v)
-        if len(self.fifo) > self.n:
-            old = self.fifo.popleft()
-            del self.sorted[bisect.bisect_left(self.sorted, old)]
-
-    def __len__(self) -> int:
-        return len(self.fifo)
-
-    tol = 5.0  # s: wider than arrival jitter (a node at 10x sees 1 Hz stamps 0.9 s apart in
-    #   stamp - arrival), far narrower than a clock error worth refusing
-    late = 1.0  # s: an item whose stamp - arrival is this far below the centre came late (a
-    #   backlog after a stall or an outage): it does not vote (add). Above the radio's jitter
-    #   (p99 of 20 ms + Exp(50 ms) is 0.25 s) and a sim-time node's arrival quantisation.
-
-    def on_time(self, v: float, late: float) -> bool:
-        """``v`` (stamp - arrival) is at most ``late`` s below the centre, and not far above."""
-        return -late <= v - self.value <= self.tol
-
-    def near(self, v: float) -> int:
-        """How many values of the window lie within ``tol`` of ``v``."""
-        return bisect.bisect_right(self.sorted, v + self.tol) - \
-            bisect.bisect_left(self.sorted, v - self.tol)
-
-    @property
-    def value(self) -> float:
-        if self._value is not None:
-            return self._value
-        s = self.sorted
-        if not s:
-            return math.nan
-        counts = [bisect.bisect_right(s, v + self.tol) - bisect.bisect_left(s, v - self.tol)
-                  for v in s]
-        best = max(counts)
-        dense = [v for v, c in zip(s, counts) if c == best]
-        self._value = dense[len(dense) // 2]
-        return self._value
-
-
 @dataclass
 class EstimatorRunner:
     adapter: Adapter
     period: float  # s, odometer sample period (nominal; the slots follow the odometer's stamps)
     control_clock: str = "auto"  # "auto", "same" or "reference" (see module doc)
     max_future: float = 600.0  # s, stamp beyond arrival (+ median offset): future_stamp
-    same_clock_tolerance: float = 2.0  # s, "auto": closer clocks are one clock
+    same_clock_tolerance: float = 2.0  # s, "auto": closer clocks are one clock ...
+    same_clock_rate: float = 1e-4  # s/s, ... unless their rates differ by more (significantly)
     max_gap_outputs: int = 6000  # predicted slots after the last fused sample (10 min at 10 Hz)
     min_judged: int = 9  # arrivals of a clock before its stamps are judged (earlier ones wait)
     history: float = 3.0  # s of fused input kept: a reading up to this late is fused by rewinding
     step_back: float = 0.3  # s: an odometer stamp this far behind the newest one admitted is
     #   held as a possible backward clock step (at least 2.5 periods); min_judged such readings
     #   continuing one another, arriving at their stamps' pace, are a step and re-anchored
-    drift_late: float = 0.25  # s: an odometer reading later than this (below the centre of
-    #   stamp - arrival) stays out of the drift fit. Above a radio's jitter (p99 of 20 ms +
-    #   Exp(50 ms): 0.25 s); one reading of a backlog's tail, 1 s late, in 30 s of data gave
-    #   a drift of 2e-5 for a true 0 and cost the KF 0.04 m of RMSE for a minute
     queue: list = field(default_factory=list)
     rejected: Counter = field(default_factory=Counter)  # "kind:reason" -> count
     accepted: Counter = field(default_factory=Counter)
@@ -242,7 +145,7 @@ class EstimatorRunner:
     _started: bool = False
     _last_out: float | None = None  # stamp of the last estimate emitted
     _n: int = 0  # insertion counter: FIFO among equal stamps and kinds
-    _offsets: dict = field(default_factory=dict)  # clock -> _Median of stamp - recv
+    _offsets: dict = field(default_factory=dict)  # clock -> StreamClock (offset, rate)
     _prev_raw: float | None = None  # the last stamp pushed (no-arrival mode, early phase)
     _admitted_high: float = -math.inf  # the latest stamp admitted (no-arrival mode)
     _recent: dict = field(default_factory=dict)  # kind -> deque of (seq, stamp)
@@ -250,8 +153,6 @@ class EstimatorRunner:
     _held: list = field(default_factory=list)  # control pushed before any odometer (raw)
     _early: dict = field(default_factory=dict)  # clock -> items waiting for min_judged
     _odo: list = field(default_factory=list)  # heap of the queued odometer stamps
-    _fit: list = field(default_factory=lambda: [0, 0.0, 0.0, 0.0, 0.0, None])  # drift regression
-    _reg_last: tuple | None = None  # (arrival, stamp) of the last reading in the regression
     _anchor: tuple | None = None  # (train stamp, filter time) of the last processed odometer
     _last_mapped: float = -math.inf
     _hist: list = field(default_factory=list)  # [stamp, order, n, kind, fields, snapshot]
@@ -261,6 +162,7 @@ class EstimatorRunner:
     _train_shift: float = 0.0  # s, train-clock steps so far: filter stamps = raw - shift
     _odo_last: tuple | None = None  # (stamp, arrival) of the last odometer admitted
     _step_held: list = field(default_factory=list)  # discontinuous train-clock readings
+    _odo_admitted: list = field(default_factory=list)  # sorted recent odometer stamps admitted
     _odo_pushed: tuple | None = None  # (stamp, arrival) of the last odometer watched
     _ctl_recv: float | None = None  # arrival of the latest command (the node's clock)
     _raw_stamp: dict = field(default_factory=dict)  # mapped odometer stamp -> stamp as sent
@@ -306,7 +208,7 @@ class EstimatorRunner:
             if not isinstance(seq, int) or isinstance(seq, bool):
                 return self._reject(kind, stamp, f"{R.INVALID}: seq {seq!r}")
         clock = CLOCK_OF[kind]
-        med = self._offsets.setdefault(clock, _Median())
+        med = self._offsets.setdefault(clock, StreamClock())
         early = len(med) < self.min_judged
         if recv is not None:
             arrival = recv
@@ -341,7 +243,12 @@ class EstimatorRunner:
         med = self._offsets[clock]
         if watch and clock == "train" and arrival is not None and self._odo_last is not None:
             held, stamp, arrival = self._watch_step(kind, stamp, fields, recv, arrival)
-            self.monitor.clock(sum(h[0] == "odometer" for h in self._step_held))
+            s0, a0 = self._odo_last
+            odo = [h for h in self._step_held if h[0] == "odometer"]
+            self.monitor.clock(len(odo), doubt=max((abs(h[1] - s0 - (h[4] - a0))
+                                                    for h in self._step_held), default=0.0),
+                               conclusive=self.period > 0.5 or
+                               any(self._conclusive(h[1], h[3], h[4]) for h in odo))
             if held:
                 return ""
         if arrival is not None:
@@ -355,11 +262,14 @@ class EstimatorRunner:
                 return self._reject(kind, stamp, why)
         if arrival is not None and not counted:
             med.add(stamp - arrival, arrival)
-        if kind == "odometer" and recv is not None and med.on_time(stamp - recv, self.drift_late):
-            self._regress(recv, stamp)  # only stamps on time inform the rate (not a backlog's)
+        if kind == "odometer" and recv is not None:
+            med.rate_point(stamp, recv)  # only stamps on time inform the rate (not a backlog's)
         if kind == "odometer" and arrival is not None and \
                 (self._odo_last is None or stamp > self._odo_last[0]):
             self._odo_last = (stamp, arrival)
+        if kind == "odometer":
+            bisect.insort(self._odo_admitted, stamp)
+            del self._odo_admitted[:-128]
         self._admitted_high = max(self._admitted_high, stamp)
         if kind == "control":
             if "train" not in self._offsets or len(self._offsets["train"]) < self.min_judged:
@@ -379,7 +289,7 @@ class EstimatorRunner:
         doc). A stamp beyond ``max_future`` is not held: it is refused at the door as always,
         and only counts towards a step. ``stamp`` comes back mapped when this reading
         completed a step."""
-        tol = _Median.tol
+        tol = StreamClock.tol
         s0, a0 = self._odo_last
         # Back by more than step_back: possibly a small backward step (a clock resynchronised
         # by a few seconds), held until later readings decide. A reading late by jitter is
@@ -396,28 +306,29 @@ class EstimatorRunner:
         prev = self._odo_pushed
         if kind == "odometer":
             self._odo_pushed = (stamp, arrival)
-        paced = prev is None or arrival - prev[1] >= 0.5 * (stamp - prev[0])
-        behind = kind == "odometer" and paced and len(med) >= self.min_judged and \
+        on_pace = prev is None or paced(prev, (stamp, arrival))
+        behind = kind == "odometer" and on_pace and len(med) >= self.min_judged and \
             stamp - arrival - med.value < -back
-        if -back <= stamp - s0 <= max(arrival - a0, 0.0) + tol and not behind:
+        # Ahead by more than that above where the clock can be (its centre, and the ceiling of
+        # its offsets: latency only ever lowers stamp - arrival, an outage moves stamps and
+        # arrivals alike): a forward step or one wrong stamp; held until later readings decide
+        ahead = recv is not None and len(med) >= self.min_judged and \
+            med.above(stamp - arrival) > back
+        if -back <= stamp - s0 <= max(arrival - a0, 0.0) + tol and not behind and not ahead:
             if kind == "odometer" and self._step_held:
                 self._release_held()
             return False, stamp, arrival
         chain = [h for h in self._step_held if h[0] == "odometer"]
         if kind == "odometer" and chain:
             _, s1, _, _, a1, _ = chain[-1]
-            if not 0.0 < stamp - s1 <= max(arrival - a1, 0.0) + tol:  # not one new clock
+            if not continues((s1, a1), (stamp, arrival)):  # not one new clock
                 self._release_held()
                 chain = []
         refused = stamp - arrival - self._offsets["train"].value > self.max_future
         self._step_held.append((kind, stamp, fields, recv, arrival, refused))
         if kind == "odometer":
             chain.append(self._step_held[-1])
-        if len(chain) < self.min_judged or \
-                chain[-1][1] - chain[0][1] < 0.5 * (len(chain) - 1) * self.period or \
-                chain[-1][4] - chain[0][4] < 0.5 * (chain[-1][1] - chain[0][1]):
-            # not yet a step: too few readings, too slow a pace, or arrivals that do not span
-            # the stamps (a backlog's burst, not a clock that jumped and runs on)
+        if not is_step([(h[1], h[4]) for h in chain], self.min_judged, self.period):
             return not refused, stamp, arrival
         # a step: the first reading of the new clock came (elapsed arrival time, at least one
         # period) after the last one of the old clock
@@ -437,6 +348,27 @@ class EstimatorRunner:
                 self._admit(k, st - shift, f, rc, ar, watch=False)
         return False, stamp - shift, arrival
 
+    def _conclusive(self, stamp: float, recv, arrival) -> bool:
+        """One held odometer reading that no lateness explains: stamped above its clock's
+        centre (latency only lowers stamp - arrival), or behind the newest one on a slot already
+        fused, or where readings were fused at the slot's pace all along (a late reading fills
+        a slot that has none).
+        Not yet a step (:func:`clocks.is_step` decides), but the estimate is in doubt at once:
+        at 1 Hz, waiting for a second reading left one estimate wrong-side after a -3 s step.
+        (With a period over 0.5 s every held reading is: the next one, which decides, comes
+        later than an alarm may wait; a reading held there is more than 2.5 s behind, rare
+        for a late one.)"""
+        med = self._offsets["train"]
+        if recv is not None and med.above(stamp - arrival) > \
+                max(self.step_back, 2.5 * self.period):
+            return True
+        adm = self._odo_admitted
+        i = bisect.bisect_left(adm, stamp)
+        near = min((abs(adm[k] - stamp) for k in (i - 1, i) if 0 <= k < len(adm)),
+                   default=math.inf)
+        return near < 0.25 * self.period or \
+            (0 < i < len(adm) and adm[i] - adm[i - 1] < 1.5 * self.period)
+
     def _release_held(self) -> None:
         """No step after all: judge the held readings as any other (stale, late, ...) -- but a
         reading stamped *ahead* of its stream that no later reading confirmed is refused: one
@@ -445,13 +377,17 @@ class EstimatorRunner:
         clock step of -60 s (kf 1.3 km off with a covariance of centimetres)."""
         held, self._step_held = self._step_held, []
         s0, a0 = self._odo_last
+        med = self._offsets["train"]
+        back = max(self.step_back, 2.5 * self.period)
         for k, st, f, rc, ar, ref in held:
             if ref:
                 continue
             ahead = st - s0 - max(ar - a0, 0.0)
-            if ahead > _Median.tol:
-                self._count(k, st, f"{R.FUTURE_STAMP}: {ahead:.3g} s ahead of its stream, "
-                                   f"not continued by later readings")
+            # above its clock's centre (arrival known): no forward step confirmed it
+            lead = med.above(st - ar) if rc is not None else -math.inf
+            if ahead > StreamClock.tol or lead > back:
+                self._count(k, st, f"{R.FUTURE_STAMP}: {max(ahead, lead):.3g} s ahead of its "
+                                   f"stream, not continued by later readings")
                 continue
             self._admit(k, st, f, rc, ar, watch=False)
 
@@ -476,7 +412,7 @@ class EstimatorRunner:
             return stamp
         shift = self._offsets["train"].value - self._offsets["control"].value
         if self.control_clock == "auto" and not self.separate_clocks \
-                and abs(shift) < self.same_clock_tolerance:
+                and abs(shift) < self.same_clock_tolerance and not self._drifting():
             return stamp
         self.separate_clocks = True
         # the shift follows the medians: keep the mapped commands in their order
@@ -484,40 +420,21 @@ class EstimatorRunner:
         self._last_mapped = mapped
         return mapped
 
-    def _regress(self, recv: float, stamp: float) -> None:
-        """Running least squares of odometer stamp on arrival time (centred on the first).
-
-        A reading whose arrival advanced less than half its stamp since the last one used came
-        in a burst (the tail of a backlog: its latency shrinking as the stamps advance with the
-        arrival frozen) and is left out. With a backlog's readings in the fit, an 8 s stall on
-        separate clocks left a drift error of 9e-5 (true drift 0) and the KF 0.20-0.26 m off
-        for half a minute after it (0.06-0.07 m without the stall)."""
-        f = self._fit
-        last = self._reg_last
-        if last is not None and recv - last[0] < 0.5 * (stamp - last[1]):
-            return
-        self._reg_last = (recv, stamp)
-        if f[5] is None:
-            f[5] = (recv, stamp)
-        x, y = recv - f[5][0], stamp - f[5][1]
-        f[0] += 1
-        f[1] += x
-        f[2] += y
-        f[3] += x * x
-        f[4] += x * y
+    def _drifting(self) -> bool:
+        """The train clock's rate against the arrivals differs from 1 by more than
+        ``same_clock_rate``, significantly (5 standard errors): two clocks, however close
+        their offsets still are (a clock 1 % slow is 2 s off after 200 s; taken as one until
+        then, the commands were mapped up to 2 s off)."""
+        d, se = self._offsets["train"].rate()
+        return abs(d) > max(self.same_clock_rate, 5.0 * se)
 
     @property
     def drift(self) -> float:
-        """Train clock rate minus 1 (s/s), from stamps vs arrivals; 0 until the clocks are known
-        to be separate and 10 s of arrivals are in (one clock needs no rate: same seconds)."""
-        n, sx, sy, sxx, sxy, _ = self._fit
-        if not self.separate_clocks or n < 20:
+        """Train clock rate minus 1 (s/s), from stamps vs arrivals (StreamClock.rate); 0 until
+        the clocks are known to be separate (one clock needs no rate: same seconds)."""
+        if not self.separate_clocks or "train" not in self._offsets:
             return 0.0
-        var = sxx - sx * sx / n
-        if var < n * 10.0 ** 2 / 12:  # less than ~10 s of span
-            return 0.0
-        d = (sxy - sx * sy / n) / var - 1.0
-        return d if abs(d) < 0.1 else 0.0
+        return self._offsets["train"].drift
 
     def _filter_time(self, stamp: float) -> float:
         """Train-clock stamp -> filter time in reference seconds (the drift removed piecewise

@@ -31,8 +31,8 @@ fuzz             mean corrupted messages per clean one: :func:`~.fuzz.corrupt` w
 
 Clocks: odometer and balise are stamped by the train clock ``EPOCH + t (1 + drift)`` plus the
 steps so far (:class:`TrainClock`); control by the reference clock ``EPOCH + t``; the arrival is
-``EPOCH + t + LATENCY`` (the same epoch on both clocks, as the nodes' default ``control_clock:
-same`` assumes; the drift and the steps are what breaks that assumption).
+``EPOCH + t + LATENCY`` (the same epoch on both clocks, which the runner's default
+``control_clock: auto`` takes as one clock until the drift or a step says otherwise).
 
 :func:`score` judges the estimates as a zone controller would read them: an estimate claims
 ``position`` at the time its stamp means on the train clock (:meth:`TrainClock.true_time`), and it
@@ -65,7 +65,7 @@ KINDS = ("none", "stamp", "step", "drift", "outage", "command_stop", "latency", 
 # stamps a few seconds to minutes off: inside the runner's max_future (600 s), so the door lets
 # them in and only the clocks' and the filters' own checks stand between them and the estimate
 INSIDE_FUTURE = {
-    "stamp+0.5": (0.5, (R.OUTSIDE_GATE, R.OUT_OF_ORDER, R.DUPLICATE)),
+    "stamp+0.5": (0.5, (R.OUTSIDE_GATE, R.OUT_OF_ORDER, R.DUPLICATE, R.FUTURE_STAMP)),
     "stamp+5": (5.0, (R.OUTSIDE_GATE, R.OUT_OF_ORDER, R.FUTURE_STAMP)),
     "stamp+60": (60.0, (R.OUTSIDE_GATE, R.OUT_OF_ORDER, R.FUTURE_STAMP)),
     "stamp+300": (300.0, (R.OUTSIDE_GATE, R.OUT_OF_ORDER, R.FUTURE_STAMP)),

@@ -1,0 +1,90 @@
+"""Clock faults through the runner with the node defaults (``control_clock: auto``): a forward
+step is re-anchored, a drifting train clock is tracked, one wrong stamp never moves a clock.
+The figures are those of ``./run bench integrity`` (tools/faults.py), on a short metro_demo run
+with the kf (the estimator that was wrong-side on both)."""
+
+import os
+import sys
+
+import numpy as np
+import pytest
+
+from train_estimation.core.clocks import StreamClock, is_step
+from train_estimation.tools import faults as F
+
+sys.path.insert(0, os.path.dirname(__file__))
+from clocks import adapter, run  # noqa: E402
+
+
+def _campaign_case(fault, duration=40.0):
+    sc, res = run("metro_demo", 3, duration)
+    fl = F.inject(res.events(), fault, np.random.default_rng(0))
+    outs, emitted, runner = F.run(fl.events, adapter(sc, "kf"), 0.1)  # node default: auto
+    return F.score(outs, emitted, fl, res.truth, 10.0, duration + F.LATENCY), runner
+
+
+@pytest.mark.parametrize("size", [3.0, 0.5])
+def test_forward_clock_step_is_re_anchored(size):
+    s, runner = _campaign_case(F.Fault("step", size, at=20.0))
+    assert runner.events.get("odometer:clock_reset") == 1, runner.counts
+    assert runner._train_shift == pytest.approx(size, abs=0.02)
+    assert s["wrong_side"] == 0 and s["hazards"] == 0, s  # the bound holds throughout
+
+
+def test_one_stamp_ahead_is_refused_and_moves_no_clock():
+    s, runner = _campaign_case(F.Fault("stamp", 1.0, at=20.0))
+    assert "odometer:clock_reset" not in runner.events and runner._train_shift == 0.0
+    assert runner.rejected.get("odometer:future_stamp") == 1, runner.counts
+    assert s["wrong_side"] == 0, s
+
+
+def test_drift_is_tracked_by_default():
+    s, runner = _campaign_case(F.Fault("drift", -1e-2), duration=60.0)
+    assert runner.separate_clocks
+    assert runner.drift == pytest.approx(-1e-2, abs=1e-4)
+    assert s["wrong_side"] == 0 and s["hazards"] == 0, s  # the bound holds throughout
+
+
+def test_stream_clock_rate_and_step_test():
+    c = StreamClock()
+    rng = np.random.default_rng(0)
+    for k in range(4000):  # 1e-3 slow clock, 10 Hz, latency 20 ms + Exp(50 ms)
+        a = 0.1 * k + 0.02 + rng.exponential(0.05)
+        s = 0.1 * k * (1 - 1e-3)
+        c.add(s - a, a)
+        c.rate_point(s, a)
+    d, se = c.rate()
+    assert abs(d + 1e-3) < 5 * se and se < 2e-5
+    chain = [(100.0 + 0.1 * k, 97.0 + 0.1 * k) for k in range(9)]
+    assert is_step(chain, 9, 0.1) and not is_step(chain[:8], 9, 0.1)
+    burst = [(100.0 + 0.1 * k, 97.0) for k in range(9)]  # one stall's backlog, at once
+    assert not is_step(burst, 9, 0.1)
+
+
+def test_backward_step_at_1_hz_is_in_doubt_from_its_first_reading():
+    """At 1 Hz the first reading after a -3 s step lands on a slot already fused: no lateness
+    explains it, so the estimate is DEGRADED at once (not one period later, wrong-side)."""
+    sc, res = run("wen2017_subway", 3, 40.0)
+    assert sc.odometer_rate == 1.0
+    fl = F.inject(res.events(), F.Fault("step", -3.0, at=26.0), np.random.default_rng(0))
+    outs, emitted, runner = F.run(fl.events, adapter(sc), 1.0)
+    s = F.score(outs, emitted, fl, res.truth, 1.0, 40.0 + F.LATENCY)
+    assert runner.events.get("odometer:clock_reset") == 1, runner.counts
+    first = next(o for o, e in zip(outs, emitted) if e - F.EPOCH > 26.0)
+    assert first.integrity == 1 and first.integrity_reason.startswith("clock"), first
+    assert s["wrong_side"] == 0 and s["hazards"] == 0, s
+
+
+
+def test_a_node_catching_up_is_not_above_its_clock():
+    """Offsets drift down while a node falls 3 s behind (each reading a little later: the
+    centre follows); when it catches up they return to where the clock is: above the centre by
+    3 s, but not above the ceiling, so not taken for a forward step (a real one is)."""
+    c = StreamClock()
+    for k in range(100):
+        c.add(-0.05, 0.1 * k)
+    for k in range(100):  # lag grows by 30 ms per reading to 3 s
+        c.add(-0.05 - 0.03 * k, 10.0 + 0.13 * k)
+    assert c.value < -2.5 and c.ceiling == pytest.approx(-0.05)
+    assert c.above(-0.05) == pytest.approx(0.0, abs=1e-9)
+    assert c.above(-0.05 + 3.0) == pytest.approx(3.0)
