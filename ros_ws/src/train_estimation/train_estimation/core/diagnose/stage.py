@@ -33,6 +33,9 @@ class Null:
     shift: float = 0.0  # s, command-time offset
     brake_extra: float = 0.0  # s, extra braking delay
     gradient: tuple | None = None  # (bin i, bin j, permille)
+    # drift increments (Bv, Bs), each (n_ev,), of accepted causes whose columns are not
+    # elementary (a power limit, a low-adhesion section, a traction delay)
+    extra: list = field(default_factory=list)
 
 
 class Stage:
@@ -48,6 +51,9 @@ class Stage:
             j = mo.col[name]
             fv += c * mo.Dv[:, j]
             fs += c * mo.Ds[:, j]
+        for bv, bs in null.extra:
+            fv = fv + bv
+            fs = fs + bs
         md = null.scale * mo.sc_d
         mv = null.scale * mo.sc_v
         for t0, t1, eps in null.slip:
@@ -55,6 +61,7 @@ class Stage:
             md = md + eps * a
             mv = mv + eps * b
         self.fv, self.fs, self.md, self.mv = fv, fs, md, mv
+        self.update = update  # events whose measurement the filter uses (None: all)
         if noise is None:
             noise = self._fit_noise()
         self.q, self.r_s = noise
