@@ -199,11 +199,13 @@ class Stage:
         return self.fit({}, [])[2]
 
 
-def best_section(W: np.ndarray, u: np.ndarray, e1: np.ndarray, idx: np.ndarray, min_len: int):
+def best_section(W: np.ndarray, u: np.ndarray, e1: np.ndarray, idx: np.ndarray, min_len: int,
+                 sign: float = 0.0):
     """The contiguous run [a, b) of the columns ``idx`` (b - a >= min_len) whose sum, with one
     free coefficient theta and the free nuisance e1 (s0), best explains the data: closed-form
-    GLS for every run through prefix sums of W. ``u`` is the fixed combination (z[0]).
-    Returns (quad, a, b, theta, se(theta))."""
+    GLS for every run through prefix sums of W. ``u`` is the fixed combination (z[0]). ``sign``
+    +1 or -1: only runs whose theta has that sign (0: any). Returns (quad, a, b, theta,
+    se(theta))."""
     nb = idx.size
     w_uu, w_u1, w_11 = u @ W @ u, u @ W @ e1, e1 @ W @ e1
     a_ = W[idx] @ u
@@ -222,6 +224,8 @@ def best_section(W: np.ndarray, u: np.ndarray, e1: np.ndarray, idx: np.ndarray, 
     th_s0 = -(cS * w_u1 - bS * aS) / safe
     th = -(-bS * w_u1 + w_11 * aS) / safe
     quad = np.where(ok, w_uu + w_u1 * th_s0 + aS * th, np.inf)
+    if sign:
+        quad = np.where(sign * th > 0, quad, np.inf)
     best = int(np.argmin(quad))
     if not np.isfinite(quad[best]):
         return math.inf, 0, nb, 0.0, math.nan

@@ -5,7 +5,8 @@ braking acceleration delivered is x ``factor`` while the train's reference point
 Like a gradient section, a sum of position bins: per bin the believed braking there
 (f0 a_br on the steps whose reference position is in the bin), and a section [i, j) of the bins
 the run brakes in is (factor - 1) times their sum. Every section is scored at once by prefix sums
-(``stage.best_section``) on one filter run over the bins (``drive.Candidates``). A braking-rate
+(``stage.best_section``, factor < 1 only) on one filter run over the bins
+(``drive.Candidates``). A braking-rate
 change acts on every brake application, a section only on those over it: a section covering
 every braking bin is the braking rate by another name and scores below it (one parameter more).
 """
@@ -38,7 +39,8 @@ class AdhesionSection(Cause):
         e0[0] = 1.0
         e1 = np.zeros(cand.k + 2)
         e1[1] = 1.0
-        quad, a, b, th, se = best_section(cand.W, e0, e1, np.arange(2, cand.k + 2), 1)
+        # weaker only (factor < 1): stronger braking on a stretch is not this cause
+        quad, a, b, th, se = best_section(cand.W, e0, e1, np.arange(2, cand.k + 2), 1, sign=-1.0)
         if not np.isfinite(quad):
             return st.null_ll(), 3, {}, {}, {}
         start, end = float(mo.bin_edges[bins[a]]), float(mo.bin_edges[bins[b - 1] + 1])
