@@ -34,7 +34,7 @@ class TractionDelay(Cause):
 
     def fit(self, st) -> tuple:
         """Profile over (s, d > 0) on the grids of brake_delay; the delay refined by a parabola
-        through the profile at the best offset."""
+        through the profile likelihood of d."""
         mo = st.mo
         keys, cols = _columns(mo)
         cand = Candidates(st, drift=cols)
@@ -47,8 +47,11 @@ class TractionDelay(Cause):
                 u = base + _fixed(cand.k, keys, float(s), st.null.brake_extra, 1.0, float(d))
                 prof[(float(s), float(d))] = cand.dll(cand.quad_fixed(u))
         (s_b, d_b), dll = max(prof.items(), key=lambda kv: kv[1])
-        ds = sorted(d for (s, d) in prof if s == s_b)
-        lls = [prof[(s_b, d)] for d in ds]
+        # the profile likelihood of d (the offset maximised out at each d): the offset and the
+        # extra delay trade off (both move traction), so the curvature at the best offset alone
+        # would understate the delay's uncertainty
+        ds = sorted({d for (_, d) in prof})
+        lls = [max(v for (_, d2), v in prof.items() if d2 == d) for d in ds]
         d_hat, se = parabola(ds, lls, ds.index(d_b))
         return st.null_ll() + dll, 1, {"delay": mo.train.brake.delay + d_hat}, {"delay": se}, \
             {"offset": s_b, "extra": d_b, "profile": list(zip(ds, lls))}
