@@ -172,6 +172,10 @@ def full_diagnosis() -> Diagnosis:
         {"cause": "brake_delay", "parameters": {"delay": 1.6}},
         {"cause": "mass", "parameters": {"mass": 310000.0}},
         {"cause": "clock_drift", "parameters": {"drift": 0.001}},
+        {"cause": "power_limit", "parameters": {"p_spec": 9.5}},
+        {"cause": "adhesion_section", "parameters": {"start": 3100.0, "end": 3400.0,
+                                                     "factor": 0.7}},
+        {"cause": "traction_delay", "parameters": {"delay": 1.5}},
     ]
     ranking = [{"cause": a["cause"], "score": 10.0 - i, "parameters": a["parameters"]}
                for i, a in enumerate(acc)] + [{"cause": "none", "score": 0.0, "parameters": {}}]
@@ -210,6 +214,8 @@ def test_model_dir_holds_every_accepted_cause_and_loads(metro, tmp_path):
     assert eff.wheel_slip.intervals[0] == pytest.approx((50.0 / 1.001, 52.0 / 1.001), abs=1e-3)
     assert (eff.bursty_link.p_good_bad, eff.bursty_link.p_bad_good) == (0.03, 0.2)
     assert eff.clock_drift.drift == 0.001
+    assert eff.power_limit.p_spec == 9.5 and eff.traction_delay.delay == 1.5
+    assert eff.adhesion_section.as_tuple() == (3100.0, 3400.0, 0.7)
     # believed extras (balises, stations, performance) survive
     assert sc.line.balises == metro.line.balises and sc.line.stations == metro.line.stations
     assert sc.train.performance == metro.train.performance
