@@ -17,7 +17,7 @@ Pure: numpy/scipy and train_core only.
 """
 
 from .causes import BY_NAME, CAUSES, REGISTRY, ModelContext
-from .causes.bursty_link import link_test, markov_vs_bernoulli
+from .causes.bursty_link import gilbert_elliott_vs_bernoulli, link_test
 from .causes.clock_drift import clock_test
 from .motion import Motion, place_on_line
 from .result import REPORT_KEYS, CauseFit, Diagnosis, jsonable
@@ -28,4 +28,4 @@ from .stage import Null, Stage, best_section
 __all__ = ["BY_NAME", "CAUSES", "REGISTRY", "REPORT_KEYS", "CauseFit", "DiagConfig",
            "DiagnoseError", "Diagnosis", "ModelContext", "Motion", "Null", "Run", "Stage",
            "best_section", "clock_test", "diagnose", "joint_refit", "jsonable", "link_test",
-           "markov_vs_bernoulli", "place_on_line", "prepare"]
+           "gilbert_elliott_vs_bernoulli", "place_on_line", "prepare"]

@@ -190,7 +190,8 @@ def joint_refit(mo: Motion, null: Null, accepted: list, cfg: DiagConfig, noise) 
     lin = [a for a in accepted if BY_NAME[a.cause].linear]
     if len(lin) < 2:
         return
-    base = Null(shift=null.shift, brake_extra=null.brake_extra, slip=list(null.slip))
+    base = Null(shift=null.shift, brake_extra=null.brake_extra, slip=list(null.slip),
+                extra=list(null.extra))
     st = Stage(mo, base, cfg, noise=noise)
     free, blocks = [], []
     for a in lin:

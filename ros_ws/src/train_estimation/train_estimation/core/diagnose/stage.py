@@ -33,6 +33,9 @@ class Null:
     shift: float = 0.0  # s, command-time offset
     brake_extra: float = 0.0  # s, extra braking delay
     gradient: tuple | None = None  # (bin i, bin j, permille)
+    # drift increments (Bv, Bs), each (n_ev,), of accepted causes whose columns are not
+    # elementary (a power limit, a low-adhesion section, a traction delay)
+    extra: list = field(default_factory=list)
 
 
 class Stage:
@@ -48,6 +51,9 @@ class Stage:
             j = mo.col[name]
             fv += c * mo.Dv[:, j]
             fs += c * mo.Ds[:, j]
+        for bv, bs in null.extra:
+            fv = fv + bv
+            fs = fs + bs
         md = null.scale * mo.sc_d
         mv = null.scale * mo.sc_v
         for t0, t1, eps in null.slip:
@@ -55,6 +61,7 @@ class Stage:
             md = md + eps * a
             mv = mv + eps * b
         self.fv, self.fs, self.md, self.mv = fv, fs, md, mv
+        self.update = update  # events whose measurement the filter uses (None: all)
         if noise is None:
             noise = self._fit_noise()
         self.q, self.r_s = noise
@@ -192,11 +199,13 @@ class Stage:
         return self.fit({}, [])[2]
 
 
-def best_section(W: np.ndarray, u: np.ndarray, e1: np.ndarray, idx: np.ndarray, min_len: int):
+def best_section(W: np.ndarray, u: np.ndarray, e1: np.ndarray, idx: np.ndarray, min_len: int,
+                 sign: float = 0.0):
     """The contiguous run [a, b) of the columns ``idx`` (b - a >= min_len) whose sum, with one
     free coefficient theta and the free nuisance e1 (s0), best explains the data: closed-form
-    GLS for every run through prefix sums of W. ``u`` is the fixed combination (z[0]).
-    Returns (quad, a, b, theta, se(theta))."""
+    GLS for every run through prefix sums of W. ``u`` is the fixed combination (z[0]). ``sign``
+    +1 or -1: only runs whose theta has that sign (0: any). Returns (quad, a, b, theta,
+    se(theta))."""
     nb = idx.size
     w_uu, w_u1, w_11 = u @ W @ u, u @ W @ e1, e1 @ W @ e1
     a_ = W[idx] @ u
@@ -215,6 +224,8 @@ def best_section(W: np.ndarray, u: np.ndarray, e1: np.ndarray, idx: np.ndarray, 
     th_s0 = -(cS * w_u1 - bS * aS) / safe
     th = -(-bS * w_u1 + w_11 * aS) / safe
     quad = np.where(ok, w_uu + w_u1 * th_s0 + aS * th, np.inf)
+    if sign:
+        quad = np.where(sign * th > 0, quad, np.inf)
     best = int(np.argmin(quad))
     if not np.isfinite(quad[best]):
         return math.inf, 0, nb, 0.0, math.nan

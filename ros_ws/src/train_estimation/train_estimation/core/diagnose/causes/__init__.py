@@ -7,6 +7,7 @@ scores); ``SCORING`` is the order the search scores them in (by family: the moti
 from __future__ import annotations
 
 from . import (
+    adhesion_section,
     brake_delay,
     braking_rate,
     bursty_link,
@@ -14,7 +15,9 @@ from . import (
     gradient,
     mass,
     odometer_scale,
+    power_limit,
     resistance,
+    traction_delay,
     wheel_slip,
 )
 from .base import FAMILIES, Cause, ModelContext
@@ -29,6 +32,9 @@ REGISTRY: tuple[Cause, ...] = (
     brake_delay.CAUSE,
     mass.CAUSE,
     clock_drift.CAUSE,
+    power_limit.CAUSE,
+    adhesion_section.CAUSE,
+    traction_delay.CAUSE,
 )
 
 CAUSES: tuple[str, ...] = tuple(c.name for c in REGISTRY)

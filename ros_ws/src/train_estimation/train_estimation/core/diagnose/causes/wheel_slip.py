@@ -3,7 +3,10 @@ than the train moves; the counted distance keeps the excess afterwards.
 
 Candidate episodes are where the null's standardised speed innovation is large; each is fitted
 as an interval [t0, t1) with its own slip fraction, the boundaries profiled at the decimated
-odometer rate (per-sample measurement columns, contiguous sums)."""
+odometer rate (per-sample measurement columns, contiguous sums); then neighbours that are one
+episode are merged and episodes that do not pay for themselves in the joint fit are dropped
+(:func:`refine_episodes`). Each episode's depth is reported: 1 - odometer speed / train speed
+(> 0: the odometer misses speed, a slide; < 0: it reads too much, a slip)."""
 
 from __future__ import annotations
 
@@ -14,8 +17,12 @@ from train_core.effects import WheelSlipEffect
 
 from ...augmented_kf import gls
 from ...identify import moving_average
+from ..motion import slip_cols
 from ..stage import best_section
 from .base import Cause
+
+# s: neighbouring episodes closer than this are tested as one (refine_episodes)
+MERGE_GAP = 10.0
 
 
 class WheelSlip(Cause):
@@ -50,16 +57,14 @@ class WheelSlip(Cause):
                 i0 = cols[idx[a] - 2][1]
                 i1 = cols[idx[b - 1] - 2][1] + 1
                 best_iv.append((float(t[i0]), float(t[i1]), col))
-        chosen, quad_now = _forward_selection(kf.W, u, e1, best_iv, base_quad, pen)
+        chosen, _ = _forward_selection(kf.W, u, e1, best_iv, base_quad, pen)
         if not chosen:
             return null_ll, 3, {"intervals": []}, {}, {"candidates": len(cands)}
-        chosen.sort(key=lambda c: c[0])
-        th, cov, _ = gls(kf.W, np.stack([u, e1] + [c[2] for c in chosen], axis=1))
-        eps = th[1:].tolist()
-        se = np.sqrt(np.clip(np.diag(cov)[1:], 0, None)).tolist()
-        return null_ll + 0.5 * (base_quad - quad_now), 3 * len(chosen), \
-            {"intervals": [[c[0], c[1]] for c in chosen]}, {"slip_fraction": se}, \
-            {"slip_fraction": eps, "candidates": len(cands)}
+        ivs, eps, se, quad_now = refine_episodes(st, [(c[0], c[1]) for c in chosen], pen)
+        return null_ll + 0.5 * (base_quad - quad_now), 3 * len(ivs), \
+            {"intervals": [list(iv) for iv in ivs], "depths": [-e for e in eps]}, \
+            {"slip_fraction": se, "depths": se}, \
+            {"slip_fraction": eps, "candidates": len(cands), "found": len(chosen)}
 
     def extend_null(self, null, fit, mo) -> None:
         for (t0, t1), eps in zip(fit.parameters["intervals"],
@@ -71,7 +76,7 @@ class WheelSlip(Cause):
         return params
 
     def effect(self, params: dict, duration: float) -> WheelSlipEffect:
-        fr = [x for x in params.get("slip_fraction", []) if x is not None]
+        fr = [-x for x in params.get("depths", []) if x is not None]
         return WheelSlipEffect(tuple(tuple(iv) for iv in params.get("intervals", [])),
                                float(np.mean(fr)) if fr else 0.0)
 
@@ -169,6 +174,57 @@ def _forward_selection(W, u, e1, best_iv: list, base_quad: float, pen: float):
         chosen.append(best_iv.pop(m))
         quad_now = q_new
     return chosen, quad_now
+
+
+def refine_episodes(st, intervals: list, pen: float) -> tuple:
+    """One episode where the data say one, and only episodes that pay for themselves.
+
+    A long episode shows in the null's speed innovations at its onset and its end (in between
+    the filter, its noise inflated by the episode, follows the odometer), so the search can
+    return it as two or more pieces. Here, on the joint fit of all episodes (one filter run per
+    round over each episode's columns and each merge of neighbours closer than ``MERGE_GAP``),
+    the merge that costs least is made while it costs less than an episode's BIC penalty
+    ``pen`` (3 ln n: a merged pair has 3 parameters fewer), then the episode whose removal
+    costs least is dropped while that costs less than ``pen``. Returns (intervals, slip
+    fractions, their standard errors, quadratic form of the final joint fit)."""
+    ivs = sorted((float(a), float(b)) for a, b in intervals)
+    for _ in range(2 * len(ivs) + 1):
+        pairs = [i for i in range(len(ivs) - 1) if ivs[i + 1][0] - ivs[i][1] < MERGE_GAP]
+        W, cols = _episode_filter(st, ivs + [(ivs[i][0], ivs[i + 1][1]) for i in pairs])
+        n = len(ivs)
+        q_all = _quad(W, cols, range(n))
+        merges = [(_quad(W, cols, [j for j in range(n) if j not in (i, i + 1)] + [n + m]), i)
+                  for m, i in enumerate(pairs)]
+        if merges and min(merges)[0] - q_all < pen:
+            i = min(merges)[1]
+            ivs[i:i + 2] = [(ivs[i][0], ivs[i + 1][1])]
+            continue
+        drops = [(_quad(W, cols, [j for j in range(n) if j != i]), i)
+                 for i in range(n)] if n > 1 else []
+        if drops and min(drops)[0] - q_all < pen:
+            del ivs[min(drops)[1]]
+            continue
+        th, cov, q = gls(W, cols[:, :2 + n])
+        se = np.sqrt(np.clip(np.diag(cov)[1:], 0, None))
+        return ivs, th[1:].tolist(), se.tolist(), float(q)
+    raise RuntimeError("episode refinement did not settle")  # pragma: no cover - bounded
+
+
+def _quad(W, cols, sel) -> float:
+    """Quadratic form of the joint fit of the episodes ``sel`` (indices of the columns)."""
+    return gls(W, cols[:, [0, 1] + [2 + j for j in sel]])[2]
+
+
+def _episode_filter(st, ivs: list) -> tuple:
+    """The augmented filter over [null, s0, one measurement column per interval (unit slip
+    fraction)]: (W, identity selector over its columns)."""
+    n_ev = st.mo.ev.t.size
+    Md = np.zeros((n_ev, len(ivs)))
+    Mv = np.zeros((n_ev, len(ivs)))
+    for j, iv in enumerate(ivs):
+        Md[:, j], Mv[:, j] = slip_cols(st.mo, [iv])
+    kf = st.augmented(st.fv, st.fs, meas=(Md, Mv), update=st.update)
+    return kf.W, np.eye(len(ivs) + 2)
 
 
 def slip_fraction(fit, ctx) -> float:

@@ -1,0 +1,97 @@
+"""``adhesion_section``: braking weaker only on a stretch of track (wet rail, leaves): the
+braking acceleration delivered is x ``factor`` while the train's reference point is on
+[start, end) (train_core dynamics.py); traction is untouched.
+
+Like a gradient section, a sum of position bins: per bin the believed braking there
+(f0 a_br on the steps whose reference position is in the bin), and a section [i, j) of the bins
+the run brakes in is (factor - 1) times their sum. Every section is scored at once by prefix sums
+(``stage.best_section``, factor < 1 only) on one filter run over the bins
+(``drive.Candidates``). A braking-rate
+change acts on every brake application, a section only on those over it: a section covering
+every braking bin is the braking rate by another name and scores below it (one parameter more).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from train_core.effects import AdhesionSectionEffect
+
+from ..stage import best_section
+from .base import Cause
+from .braking_rate import brakes_while_moving
+from .drive import Candidates
+
+
+class AdhesionSection(Cause):
+    name = "adhesion_section"
+    family = "motion"
+
+    def untestable(self, run, cfg, own) -> str | None:
+        return None if brakes_while_moving(run, cfg) else "no braking while moving in the data"
+
+    def fit(self, st) -> tuple:
+        mo = st.mo
+        bins, drift = braking_bins(mo)
+        if bins.size == 0:
+            return st.null_ll(), 3, {}, {}, {}
+        cand = Candidates(st, drift=drift)
+        e0 = np.zeros(cand.k + 2)
+        e0[0] = 1.0
+        e1 = np.zeros(cand.k + 2)
+        e1[1] = 1.0
+        # weaker only (factor < 1): stronger braking on a stretch is not this cause
+        quad, a, b, th, se = best_section(cand.W, e0, e1, np.arange(2, cand.k + 2), 1, sign=-1.0)
+        if not np.isfinite(quad):
+            return st.null_ll(), 3, {}, {}, {}
+        start, end = float(mo.bin_edges[bins[a]]), float(mo.bin_edges[bins[b - 1] + 1])
+        return st.null_ll() + cand.dll(quad), 3, \
+            {"start": start, "end": end, "factor": 1.0 + th}, {"factor": se}, \
+            {"bins": (int(bins[a]), int(bins[b - 1]) + 1)}
+
+    def extend_null(self, null, fit, mo) -> None:
+        bins, (bv, bs) = braking_bins(mo)
+        i, j = fit.extra["bins"]
+        w = ((bins >= i) & (bins < j)) * (fit.parameters["factor"] - 1.0)
+        null.extra.append((bv @ w, bs @ w))
+
+    def effect(self, params: dict, duration: float) -> AdhesionSectionEffect:
+        return AdhesionSectionEffect(float(params["start"]), float(params["end"]),
+                                     float(params["factor"]))
+
+    def model_effect(self, fit, ctx):
+        """The section clipped to the line, the factor to what the effect's parser takes."""
+        p = fit.parameters
+        start, end = max(0.0, float(p["start"])), min(ctx.line_length, float(p["end"]))
+        if end <= start:
+            return None, (f"adhesion_section not in the model (section [{p['start']:.0f}, "
+                          f"{p['end']:.0f}) m is outside the line)")
+        factor = float(np.clip(p["factor"], 0.0, 2.0))
+        return AdhesionSectionEffect(start, end, factor), (
+            f"adhesion_section: braking x {factor:.3f} on [{start:.0f}, {end:.0f}) m")
+
+    def series(self, params: dict, mo, out: dict) -> None:
+        out["adhesion_section"] = (params["start"], params["end"], params["factor"])
+
+
+def braking_bins(mo) -> tuple[np.ndarray, tuple]:
+    """The position bins (of the gradient search, ``mo.bin_edges``) the run brakes in and, per
+    bin, the drift increments (Bv, Bs) (n_ev, n) of the believed braking f0 a_br there."""
+    g, ev = mo.grid, mo.ev
+    xm = 0.5 * (mo.x_ref[1:] + mo.x_ref[:-1])
+    brk = mo.f0 * 0.5 * (mo.a_br0[1:] + mo.a_br0[:-1]) * 0.5 * (mo.moving[1:] + mo.moving[:-1])
+    width = mo.bin_edges[1] - mo.bin_edges[0]
+    j = np.clip(((xm - mo.bin_edges[0]) / width).astype(int), 0, mo.n_bins - 1)
+    on = brk < 0.0
+    bins = np.unique(j[on])
+    if bins.size == 0:
+        return bins, (np.zeros((ev.t.size, 0)), np.zeros((ev.t.size, 0)))
+    col = np.searchsorted(bins, j[on])
+    inc = brk[on] * g.dt
+    Bv = np.zeros((ev.t.size, bins.size))
+    Bs = np.zeros((ev.t.size, bins.size))
+    np.add.at(Bv, (g.k[on], col), inc)
+    np.add.at(Bs, (g.k[on], col), inc * g.lever[on])
+    return bins, (Bv, Bs)
+
+
+CAUSE = AdhesionSection()

@@ -1,0 +1,79 @@
+"""``power_limit``: traction limited by power. The traction acceleration delivered is at most
+p_spec / v (train_core dynamics.py), so a command a is met below the knee speed p_spec / a and
+falls short above it; braking is untouched.
+
+The extension is the drift column -max(a_tr - p_spec / v, 0) (a_tr: the believed traction
+through the actuator, v: the reference speed), with coefficient 1: p_spec is profiled over a
+log-spaced grid spanning the traction powers a_tr v the run reaches (one filter run for all of
+them, ``drive.Candidates``) and refined by a parabola in log p_spec. A power limit shows only in
+traction above the knee: a resistance or mass change acts in every phase, which is how the two
+are told apart."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from train_core.effects import PowerLimitEffect
+
+from .base import Cause
+from .drive import Candidates, parabola
+
+GRID = 40  # candidate powers, log-spaced
+MIN_TRACTION = 0.05  # m/s^2, traction commands below this cannot show a limit
+
+
+class PowerLimit(Cause):
+    name = "power_limit"
+    family = "motion"
+
+    def untestable(self, run, cfg, own) -> str | None:
+        trac = run.ctrl_a > MIN_TRACTION
+        v_at_cmd = np.interp(run.ctrl_t, run.odo_t, run.odo_v)
+        return None if np.any(trac & (v_at_cmd > cfg.standstill_speed)) else \
+            "no traction command while moving in the data"
+
+    def fit(self, st) -> tuple:
+        powers = _grid(st.mo)
+        if powers.size < 3:
+            return -math.inf, 1, {}, {}, {}
+        cand = Candidates(st, np.stack([deficit(st.mo, p) for p in powers], axis=1))
+        dll = np.array([cand.dll(q) for q in cand.quads_each()])
+        i = int(np.argmax(dll))
+        x_hat, se_x = parabola(np.log(powers), dll, i)
+        p_hat = math.exp(x_hat)
+        # the score is the grid's best (the refined power is not scored: one filter run less)
+        ll = st.null_ll() + float(dll[i])
+        return ll, 1, {"p_spec": p_hat}, {"p_spec": p_hat * se_x}, {
+            "knee_speed_at_max_command": p_hat / max(float(np.max(st.mo.a_tr0)), 1e-9),
+            "profile": list(zip(powers.tolist(), dll.tolist()))}
+
+    def extend_null(self, null, fit, mo) -> None:
+        R = deficit(mo, fit.parameters["p_spec"])[:, None]
+        bv, bs = mo.grid.integrate(R, mo.ev.t.size)
+        null.extra.append((bv[:, 0], bs[:, 0]))
+
+    def effect(self, params: dict, duration: float) -> PowerLimitEffect:
+        return PowerLimitEffect(float(params["p_spec"]))
+
+
+def deficit(mo, p_spec: float) -> np.ndarray:
+    """m/s^2 on the grid: the traction the power limit takes away from the believed one."""
+    v = np.maximum(mo.v_ref, 1e-3)
+    return -np.maximum(mo.a_tr0 - p_spec / v, 0.0) * mo.moving
+
+
+def _grid(mo) -> np.ndarray:
+    """Powers from the 5th percentile of the traction powers a_tr v of the run (below it the
+    limit would act on nearly every traction) to their maximum (no limit)."""
+    sel = (mo.a_tr0 > MIN_TRACTION) & (mo.moving > 0)
+    if not sel.any():
+        return np.zeros(0)
+    pw = mo.a_tr0[sel] * mo.v_ref[sel]
+    lo, hi = float(np.percentile(pw, 5)), float(np.max(pw))
+    if not hi > lo > 0:
+        return np.zeros(0)
+    return np.geomspace(lo, hi, GRID)
+
+
+CAUSE = PowerLimit()

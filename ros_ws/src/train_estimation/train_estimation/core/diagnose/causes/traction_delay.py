@@ -1,0 +1,112 @@
+"""``traction_delay``: traction commands take effect later than train.yaml's delay; braking
+does not (the two chains, train_core actuator.py).
+
+The counterpart of ``brake_delay``: the extra traction delay d > 0 is profiled jointly with the
+common command-time offset s (a nuisance: the link's mean latency moves both chains). Hypothesis
+(s, d): traction re-timed by s + d, braking by s. The re-timed traction columns (believed
+traction through the actuator at each offset, minus the believed one) are built once per run;
+every (s, d) is a fixed combination of them and of the motion model's braking columns, scored
+on one filter run (``drive.Candidates``)."""
+
+from __future__ import annotations
+
+import weakref
+
+import numpy as np
+from train_core.effects import TractionDelayEffect
+
+from .base import Cause
+from .drive import Candidates, parabola
+
+MIN_TRACTION = 0.05  # m/s^2, as power_limit: a traction command that can show a delay
+_COLUMNS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # Motion -> its columns
+
+
+class TractionDelay(Cause):
+    name = "traction_delay"
+    family = "motion"
+
+    def untestable(self, run, cfg, own) -> str | None:
+        trac = run.ctrl_a > MIN_TRACTION
+        v_at_cmd = np.interp(run.ctrl_t, run.odo_t, run.odo_v)
+        return None if np.any(trac & (v_at_cmd > cfg.standstill_speed)) else \
+            "no traction command while moving in the data"
+
+    def fit(self, st) -> tuple:
+        """Profile over (s, d > 0) on the grids of brake_delay; the delay refined by a parabola
+        through the profile likelihood of d."""
+        mo = st.mo
+        keys, cols = _columns(mo)
+        cand = Candidates(st, drift=cols)
+        base = _fixed(cand.k, keys, st.null.shift, st.null.brake_extra, -1.0)
+        prof = {}
+        for s in mo.shifts:
+            for d in mo.delays:
+                if d <= 0.0:
+                    continue
+                u = base + _fixed(cand.k, keys, float(s), st.null.brake_extra, 1.0, float(d))
+                prof[(float(s), float(d))] = cand.dll(cand.quad_fixed(u))
+        (s_b, d_b), dll = max(prof.items(), key=lambda kv: kv[1])
+        # the profile likelihood of d (the offset maximised out at each d): the offset and the
+        # extra delay trade off (both move traction), so the curvature at the best offset alone
+        # would understate the delay's uncertainty
+        ds = sorted({d for (_, d) in prof})
+        lls = [max(v for (_, d2), v in prof.items() if d2 == d) for d in ds]
+        d_hat, se = parabola(ds, lls, ds.index(d_b))
+        return st.null_ll() + dll, 1, {"delay": mo.train.brake.delay + d_hat}, {"delay": se}, \
+            {"offset": s_b, "extra": d_b, "profile": list(zip(ds, lls))}
+
+    def extend_null(self, null, fit, mo) -> None:
+        """The common offset is the fit's; traction moves by the extra delay beyond it."""
+        keys, (bv, bs) = _columns(mo)
+        s, d = fit.extra["offset"], fit.extra["extra"]
+        w = np.zeros(len(keys))
+        for key, c in ((s + d, 1.0), (s, -1.0)):
+            k = round(key, 6)
+            if ("T", k) in keys:
+                w[keys[("T", k)]] += c
+        null.shift = s
+        null.extra.append((bv @ w, bs @ w))
+
+    def replay_offset(self, extra: dict, shift: float) -> float:
+        # a traction delay is fitted with its own offset: the pair is the extension's timing
+        return extra["offset"]
+
+    def effect(self, params: dict, duration: float) -> TractionDelayEffect:
+        return TractionDelayEffect(float(params["delay"]))
+
+
+def _columns(mo) -> tuple[dict, tuple]:
+    """Columns [traction re-timed by every offset s + d (the believed one subtracted), the
+    motion model's braking columns]: ({("T" or "B", key): column index}, (Bv, Bs))."""
+    if mo in _COLUMNS:
+        return _COLUMNS[mo]
+    keys = sorted({round(float(s + d), 6) for s in mo.shifts for d in mo.delays} - {0.0})
+    R = np.stack([(mo._act(k, 0.0)[0] - mo.a_tr0) * mo.moving for k in keys], axis=1)
+    Bv, Bs = mo.grid.integrate(R, mo.ev.t.size)
+    index = {("T", k): i for i, k in enumerate(keys)}
+    bk = sorted(mo.braking_cols)
+    for k in bk:
+        index[("B", k)] = len(index)
+    cols = [mo.col[mo.braking_cols[k]] for k in bk]
+    out = (index, (np.concatenate([Bv, mo.Dv[:, cols]], axis=1),
+                   np.concatenate([Bs, mo.Ds[:, cols]], axis=1)))
+    _COLUMNS[mo] = out
+    return out
+
+
+def _fixed(k: int, keys: dict, shift: float, brake_extra: float, sign: float,
+           traction_extra: float = 0.0) -> np.ndarray:
+    """The combination (over [fixed, s0, columns]) that moves traction to shift +
+    traction_extra and braking to shift + brake_extra, times ``sign`` (-1: undo the null's)."""
+    u = np.zeros(k + 2)
+    if sign > 0:
+        u[0] = 1.0
+    for kind, key in (("T", shift + traction_extra), ("B", shift + brake_extra)):
+        j = keys.get((kind, round(key, 6)))
+        if j is not None:
+            u[2 + j] += sign
+    return u
+
+
+CAUSE = TractionDelay()
