@@ -27,7 +27,8 @@ from train_sim.generate import generate
 from train_sim.scenario import load_scenario, with_model
 from train_sim.world import simulate
 
-REPORT_KEYS = ["cause", "parameters", "ranking", "untestable", "evidence", "gain"]
+REPORT_KEYS = ["cause", "parameters", "ranking", "unexplained", "untestable", "evidence",
+               "gain"]
 
 
 def run_tool(bag, line, train, out):
@@ -281,8 +282,20 @@ def test_report_has_the_contract_shape(diagnosed, capsys):
     assert rc == 0
     rep = json.loads((out / "report.json").read_text())
     assert list(rep) == REPORT_KEYS
-    assert rep["cause"] == rep["ranking"][0]["cause"]
-    assert rep["parameters"] == rep["ranking"][0]["parameters"]
+    # cause: the first confirmed entry (none when it is none itself), else unexplained
+    first = next(r for r in rep["ranking"] if r["status"] == "confirmed") \
+        if rep["cause"] != "unexplained" else None
+    assert rep["cause"] == ("unexplained" if first is None else first["cause"])
+    assert rep["parameters"] == ({} if first is None else first["parameters"])
+    assert all(r["status"] in ("confirmed", "not confirmed", "rejected")
+               for r in rep["ranking"])
+    assert all(("why" in r) == (r["status"] == "not confirmed") for r in rep["ranking"])
+    assert (rep["cause"] == "unexplained") == (
+        bool(rep["unexplained"]) and not any(r["status"] == "confirmed" and r["cause"] != "none"
+                                             for r in rep["ranking"]))
+    for u in rep["unexplained"]:
+        assert set(u) == {"phase", "where", "when", "speed", "size", "best_listed"}
+        assert u["phase"] in ("traction", "coasting", "braking", "standstill", "all")
     names = [r["cause"] for r in rep["ranking"]]
     assert "none" in names and len(set(names)) == len(names)
     assert set(names) | {u["cause"] for u in rep["untestable"]} == set(CAUSES) | {"none"}
@@ -433,6 +446,7 @@ def test_hidden_effect_is_found(cause, size, seed, tmp_path, capsys):
         assert rep["cause"] == case.expected, (case.truth, rep["ranking"][:3])
     else:
         assert set(names[:2]) == set(case.causes), (case.truth, rep["ranking"][:3])
+        assert all(r["status"] == "confirmed" for r in rep["ranking"][:2]), rep["ranking"][:3]
     for c in case.causes:
         est = next(r["parameters"] for r in rep["ranking"] if r["cause"] == c)
         check_parameters(c, est, truth[c], rep["evidence"], case.v_ref)
@@ -459,10 +473,13 @@ def test_plots_draw_what_the_series_hold(tmp_path):
          "line_gradient": [(0.0, 1000.0, 5.0), (1000.0, 3000.0, -2.0)],
          "gradient_section": (1200.0, 1500.0, 4.0), "stations": [("A", 100.0)],
          "slip_intervals": [[50.0, 52.0]], "f_t": ([0.0, 300.0], [0.95, 0.9]),
-         "loss_runs": np.array([1, 1, 2, 5, 1, 3]), "loss_fraction": 0.1}
+         "loss_runs": np.array([1, 1, 2, 5, 1, 3]), "loss_fraction": 0.1,
+         "phase": np.arange(t.size) % 3,
+         "unexplained": [{"phase": "braking", "where": None, "when": None, "speed": [2, 8],
+                          "size": 0.05, "best_listed": None}]}
     names = {p.name for p in tool.write_plots(s, tmp_path)}
     assert names == {"residual_position.png", "residual_speed.png", "speed_trace.png",
-                     "loss_runs.png"}
+                     "loss_runs.png", "residual_phases.png"}
     assert all((tmp_path / n).stat().st_size > 5000 for n in names)
 
 
@@ -531,3 +548,88 @@ def test_a_long_slip_episode_is_one_episode_and_a_spurious_one_is_dropped(metro,
     assert len(params["intervals"]) == 1, params
     assert abs(params["intervals"][0][0] - a) <= 0.5 and abs(params["intervals"][0][1] - b) <= 0.5
     assert params["depths"][0] < 0  # a slip: the odometer reads more than the train moves
+
+
+# ------------------------------------------------------------------------------------------------
+# Effects outside the list (train_sim.unlisted_cases): no listed cause confirmed, the remainder
+# described with the right phase. Seeds fixed in advance (one per kind, varied lines/trains).
+# ------------------------------------------------------------------------------------------------
+
+UNLISTED_KNOWN = {
+    "tunnel_drag": "drag in a tunnel run at a steady speed is a gradient over the tunnel in one "
+                   "run's data (docs/diagnose.md)",
+    "wind": "a constant force for a minute is a gradient over the track run in that minute in "
+            "one run's data (docs/diagnose.md)",
+}
+UNLISTED = [pytest.param(k, s, marks=[pytest.mark.xfail(reason=UNLISTED_KNOWN[k], strict=True)]
+                         if k in UNLISTED_KNOWN else [])
+            for k, s in (("brake_fade", 3), ("traction_gain", 4), ("tunnel_drag", 5),
+                         ("wind", 6))]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kind,seed", UNLISTED, ids=lambda p: str(p))
+def test_an_effect_outside_the_list_is_unexplained(kind, seed, tmp_path, capsys):
+    from train_sim.unlisted_cases import unlisted_case
+
+    uc = unlisted_case(np.random.default_rng(seed), kind)
+    paths = uc.write(tmp_path / "case")
+    generate(uc.scenario, tmp_path / "bag", measured=True)
+    assert tool.main(["--bag", str(tmp_path / "bag"), "--line", str(paths["line"]), "--train",
+                      str(paths["train"]), "--out", str(tmp_path / "out"), "--quiet"]) == 0
+    rep = json.loads((tmp_path / "out" / "report.json").read_text())
+    out = capsys.readouterr().out
+    confirmed = [r["cause"] for r in rep["ranking"]
+                 if r["status"] == "confirmed" and r["cause"] != "none"]
+    assert confirmed == [], rep["ranking"][:3]
+    assert rep["cause"] == "unexplained", rep["unexplained"]
+    assert rep["unexplained"][0]["phase"] == uc.phase, rep["unexplained"]
+    assert "unexplained:" in out
+    # nothing confirmed: the model directory is the believed model
+    assert yaml.safe_load((tmp_path / "out" / "model" / "effects.yaml").read_text()) == {}
+
+
+def test_each_cause_states_its_resolution():
+    """The issue's examples: 25 ms of brake delay at a 10 Hz odometer, f 0.999 and a mass
+    0.5 % off are not changes; a plain effect is."""
+    from train_core.model import load_train
+
+    from train_estimation.core.diagnose import BY_NAME
+
+    train = load_train(Path(__file__).parents[1] / "ros_ws/src/train_core/config/trains"
+                       / "metro_b6.yaml")
+    t = np.arange(0.0, 100.0, 0.1)
+    mo = SimpleNamespace(train=train, f0=train.brake.braking_rate,
+                         ev=SimpleNamespace(t=t, odo=np.arange(t.size)))
+
+    def res(cause, params, se, extra=None):
+        return BY_NAME[cause].resolution(CauseFit(cause, 10.0, params, std_errors=se,
+                                                  extra=extra or {}), mo)
+
+    d0 = train.brake.delay
+    assert "below resolution" in res("brake_delay", {"delay": d0 + 0.025}, {"delay": 0.005})
+    assert res("brake_delay", {"delay": d0 + 0.5}, {"delay": 0.02}) is None
+    assert "below resolution" in res("brake_delay", {"delay": d0 + 0.5}, {"delay": 0.2})
+    assert "below resolution" in res("braking_rate", {"f_start": 0.999, "f_end": 0.999},
+                                     {"f_start": 1e-4, "f_end": 1e-4})
+    assert res("braking_rate", {"f_start": 0.9, "f_end": 0.85},
+               {"f_start": 0.005, "f_end": 0.005}) is None
+    assert "below resolution" in res("mass", {"mass": train.mass * 1.005}, {"mass": 10.0})
+    assert res("mass", {"mass": train.mass * 1.1}, {"mass": 100.0}) is None
+    assert res("gradient", {"permille": 4.0}, {"permille": 0.3}) is None
+    assert "below resolution" in res("gradient", {"permille": 0.3}, {"permille": 0.01})
+    assert "below resolution" in res("odometer_scale", {"scale": 1.0004}, {"scale": 1e-5})
+    assert "below resolution" in res("clock_drift", {"drift": 2e-6}, {"drift": 1e-8})
+    assert res("bursty_link", {"p_good_bad": 0.02, "p_bad_good": 0.25}, {}) is None
+    assert "below resolution" in res("bursty_link", {"p_good_bad": 0.3, "p_bad_good": 0.65}, {})
+    v = 15.0
+    f0 = float(train.davis.force(v))
+    assert res("resistance", {}, {"force_at_v_ref": 50.0},
+               {"v_ref": v, "force_at_v_ref": 1.2 * f0}) is None
+    assert "below resolution" in res("resistance", {}, {"force_at_v_ref": 50.0},
+                                     {"v_ref": v, "force_at_v_ref": 1.01 * f0})
+    ok = res("wheel_slip", {"intervals": [[10.0, 12.0]]}, {"slip_fraction": [0.002]},
+             {"slip_fraction": [0.08]})
+    assert ok is None
+    assert "below resolution" in res("wheel_slip", {"intervals": [[10.0, 12.0]]},
+                                     {"slip_fraction": [0.002]}, {"slip_fraction": [0.005]})

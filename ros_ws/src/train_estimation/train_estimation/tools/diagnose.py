@@ -8,25 +8,38 @@ one extended model per cause (docs/interfaces.md ``diagnose``: gradient, resista
 odometer_scale, wheel_slip, bursty_link, brake_delay, mass, clock_drift) and ranks them.
 
 Output (DIR is created):
-  DIR/report.json   cause, parameters, ranking, untestable, evidence, gain (docs/interfaces.md)
+  DIR/report.json   cause, parameters, ranking, unexplained, untestable, evidence, gain
+                    (docs/interfaces.md)
   DIR/model/        line.yaml, train.yaml, effects.yaml: the believed model extended by every
-                    accepted cause; run it with
+                    confirmed cause; run it with
                     python -m train_sim.generate --scenario S --model DIR/model --out BAG
   DIR/*.png         residual acceleration of the believed and the extended model against
                     position (with the line profile and the fitted gradient section), against
                     speed and against the commands; the speed trace with slip episodes; f(t);
                     the loss-run histogram; the recorded commands replayed through both
-                    models (replay.png)
+                    models (replay.png); the residual by phase against position and speed
+                    with what is unexplained (residual_phases.png)
   DIR/report.html   the report in one self-contained page (verdict first, plots embedded)
 
 How to read the report:
-  cause        the best-supported cause ("none": the believed model explains the data)
-  ranking      every cause tested, best first, "none" among them. The score of a cause is
+  cause        the first confirmed cause; "none" when nothing is confirmed and nothing is
+               left over, "unexplained" when nothing is confirmed and the residuals still
+               hold structure that no listed cause explains
+  ranking      every cause tested, best first, "none" among them, each with a status:
+               confirmed (accepted by the score, its fit on half of the data predicts the
+               other half better beyond that gain's own noise, its size is beyond what the
+               data resolve, and it shows in every phase, speed, place and time it predicts),
+               "not confirmed" (with why) or "rejected" (score not above none's). Only
+               confirmed causes go into DIR/model. The score of a cause is
                the BIC-penalised log-likelihood ratio with the prior odds of "none" against
                the K causes tested, 2 (ll_cause - ll_null) - k ln n - 2 ln K (k: its
                parameter count, n: the number of measurements); > 0 means the data support
                the cause, "none" has score 0. With two effects the greedy refit ranks the
                second cause (scored on top of the first) second.
+  unexplained  what the confirmed model leaves in the residuals (a calibrated test by phase,
+               speed, position, time and command onsets): phase, where (m), when (s), speed
+               (m/s), size (m/s^2) and the closest listed cause with why it does not fit;
+               [] when nothing is left
   untestable   causes the data cannot test, with the reason (e.g. no braking, no balises)
   evidence     per cause: its score alone, log-likelihood gain, parameter count, n, the fit
                alone and the standard errors of its parameters
@@ -82,8 +95,8 @@ def read_measured(path) -> MeasuredRun:
 
 def write_model(out: Path, dg, line_path: str, train_path: str, data) -> dict:
     """DIR/model: line.yaml (+ fitted gradient section), train.yaml (+ fitted Davis), and
-    effects.yaml (the other accepted causes, in a scenario's ``effects:`` syntax): each
-    accepted cause's ``train_core.effects`` dataclass (``model_effect`` of the cause), put
+    effects.yaml (the other confirmed causes, in a scenario's ``effects:`` syntax): each
+    confirmed cause's ``train_core.effects`` dataclass (``model_effect`` of the cause), put
     where the cause says (``model_file``).
 
     ``mass`` goes into effects.yaml, not train.yaml: docs/interfaces.md's mass cause keeps the drive
@@ -107,7 +120,7 @@ def write_model(out: Path, dg, line_path: str, train_path: str, data) -> dict:
                 m.skipped.append(note)
             continue
         m.add(a.cause, cause.model_file, cause.effect_field, eff, note, max(ctx.duration, 1.0))
-    head = ("# written by diagnose: the believed {what} extended by the accepted causes\n"
+    head = ("# written by diagnose: the believed {what} extended by the confirmed causes\n"
             "# ({causes}); times are seconds from the start of the run\n"
             + "".join(f"# {s}\n" for s in m.skipped))
     causes = ", ".join(a.cause for a in dg.accepted) or "none"
@@ -449,7 +462,49 @@ def plot_replay(s: dict, path: Path, dg=None) -> bool:
     return True
 
 
+PHASE_COLOURS = (("traction", "C0"), ("coasting", "C2"), ("braking", "C3"))
+
+
+def plot_phases(s: dict, path: Path, dg=None) -> bool:
+    """Residual acceleration of the believed model by phase (traction, coasting, braking),
+    against position and against speed, binned means +-2 SE per phase; what the report calls
+    unexplained shaded (where, or the speed range of its phase)."""
+    xy = _get(s, "position", "speed", "residual_accel", "phase")
+    if xy is None:
+        return False
+    plt = _plt()
+    x, v, r, ph = xy
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.2), sharey=True)
+    lim = 0.0
+    for ax, q, label in ((axes[0], x, "track position (m)"), (axes[1], v, "speed (m/s)")):
+        for i, (name, col) in enumerate(PHASE_COLOURS):
+            sel = ph == i
+            c, m, e = _binned(q[sel], r[sel], 30)
+            if c.size:
+                ax.errorbar(c, m, yerr=2 * e, fmt="o-", ms=2.5, lw=0.8, color=col,
+                            label=f"{name} (binned mean +-2 SE)")
+                lim = max(lim, 1.5 * float(np.percentile(np.abs(m) + 2 * e, 90)))
+        for u in s.get("unexplained") or []:
+            span = u.get("where") if q is x else u.get("speed")
+            if span:
+                ax.axvspan(span[0], span[1], color="0.5", alpha=0.2,
+                           label=f"unexplained ({u['phase']}, {u['size']:+.3f} m/s^2)")
+        ax.axhline(0, color="k", lw=0.6)
+        ax.set_xlabel(label)
+        ax.grid(alpha=0.3)
+    if lim > 0:
+        axes[0].set_ylim(-lim, lim)
+    axes[0].set_ylabel("residual accel., believed model (m/s^2)")
+    axes[0].legend(fontsize=7)
+    fig.suptitle(_title(dg, "residual by phase"), fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return True
+
+
 PLOTS = (("residual_position.png", plot_position), ("residual_speed.png", plot_speed),
+         ("residual_phases.png", plot_phases),
          ("speed_trace.png", plot_speed_trace), ("loss_runs.png", plot_loss_runs),
          ("replay.png", plot_replay))
 
@@ -494,11 +549,16 @@ def summary(dg, bag_path, data, elapsed: float, model: dict) -> list[str]:
     dur = float(np.ptp(data.odo_stamp)) if n_odo else 0.0
     out = [f"diagnose {bag_path}: {dur:.0f} s, {n_odo} odometer samples, {n_bal} balise "
            f"readings, {elapsed:.1f} s",
-           f"{'rank':<5}{'cause':<16}{'score':>10}  parameters"]
+           f"{'rank':<5}{'cause':<16}{'score':>10}  {'status':<14} parameters"]
     for i, r in enumerate(dg.ranking[:6]):
-        out.append(f"{i + 1:<5}{r.cause:<16}{r.score:>10.1f}  {_fmt_params(r.parameters)}")
+        out.append(f"{i + 1:<5}{r.cause:<16}{r.score:>10.1f}  {r.status or '-':<14} "
+                   f"{_fmt_params(r.parameters)}")
+        if r.why:
+            out.append(f"{'':<33}why: {r.why}")
     if len(dg.ranking) > 6:
         out.append(f"     ... {len(dg.ranking) - 6} more in report.json")
+    for u in dg.unexplained:
+        out.append(unexplained_line(u))
     for u in dg.untestable:
         out.append(f"untestable: {u['cause']} ({u['why']})")
     g = dg.gain or {}
@@ -511,6 +571,21 @@ def summary(dg, bag_path, data, elapsed: float, model: dict) -> list[str]:
         out.append("model: " + "; ".join(notes))
     out.append(f"cause: {dg.cause}")
     return out
+
+
+def _span(r, unit: str) -> str | None:
+    return None if r is None else f"{r[0]:.0f}-{r[1]:.0f} {unit}"
+
+
+def unexplained_line(u: dict) -> str:
+    """One line of the summary for an ``unexplained`` entry."""
+    where = [x for x in (_span(u.get("where"), "m"), _span(u.get("when"), "s")) if x]
+    sp = u.get("speed")
+    best = u.get("best_listed") or {}
+    return (f"unexplained: {u['phase']}" + (f" on {', '.join(where)}" if where else "")
+            + (f" at {sp[0]:.1f}-{sp[1]:.1f} m/s" if sp else "")
+            + f", residual {u['size']:+.3f} m/s^2"
+            + (f"; closest listed: {best['cause']} ({best['why']})" if best else ""))
 
 
 def main(argv=None) -> int:

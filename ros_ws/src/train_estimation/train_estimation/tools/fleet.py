@@ -258,7 +258,7 @@ def diagnosis_row(rep: dict, train) -> dict:
     rank = {r["cause"]: r for r in rep["ranking"]}
     ev = rep.get("evidence", {})
     acc = [a["cause"] for a in rep.get("accepted") or []]
-    out = {"cause": rep["ranking"][0]["cause"], "accepted": "+".join(acc)}
+    out = {"cause": rep["cause"], "accepted": "+".join(acc)}
 
     def se(cause, key):
         v = (ev.get(cause) or {}).get("std_errors", {}).get(key)

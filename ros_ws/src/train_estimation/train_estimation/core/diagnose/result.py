@@ -8,7 +8,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-REPORT_KEYS = ("cause", "parameters", "ranking", "untestable", "evidence", "gain")
+REPORT_KEYS = ("cause", "parameters", "ranking", "unexplained", "untestable", "evidence",
+               "gain")
 
 
 @dataclass
@@ -32,30 +33,35 @@ class CauseFit:
 
     def to_json(self) -> dict:
         """A ranking entry: cause, score, parameters (status and why when set)."""
-        out = {"cause": self.cause, "score": self.score, "parameters": self.parameters}
+        out = {"cause": self.cause, "score": self.score}
         if self.status is not None:
             out["status"] = self.status
         if self.why is not None:
             out["why"] = self.why
+        out["parameters"] = self.parameters
         return out
 
 
 @dataclass
 class Diagnosis:
-    cause: str  # first entry of ranking
+    cause: str  # first confirmed entry of ranking, else unexplained or none
     parameters: dict  # its parameters (docs/interfaces.md units)
     ranking: list  # [CauseFit], best first, "none" included
     untestable: list  # [{"cause", "why"}]
     evidence: dict  # per cause: log-likelihood gain, penalty, n, standard errors, ...
     gain: dict  # {"metric", "before", "after", ...} for the top cause
-    accepted: list  # [CauseFit] with score > 0 after the greedy refit, in order
+    accepted: list  # [CauseFit] confirmed (what DIR/model holds), in the order accepted
     series: dict = field(default_factory=dict)  # arrays for the plots
+    # [{"phase", "where", "when", "speed", "size", "best_listed"}]: what the confirmed model
+    # leaves in the data that no listed cause explains
+    unexplained: list = field(default_factory=list)
 
     def to_json(self) -> dict:
-        """docs/interfaces.md report: exactly cause, parameters, ranking, untestable, evidence,
-        gain, in plain JSON types (numpy to Python, NaN/inf to null, tuples to lists)."""
+        """docs/interfaces.md report: exactly REPORT_KEYS, in plain JSON types (numpy to
+        Python, NaN/inf to null, tuples to lists)."""
         return jsonable({"cause": self.cause, "parameters": self.parameters,
                          "ranking": [r.to_json() for r in self.ranking],
+                         "unexplained": self.unexplained,
                          "untestable": self.untestable, "evidence": self.evidence,
                          "gain": self.gain})
 

@@ -23,8 +23,10 @@ from train_core.model import Line, TrainParams
 
 from ..measured import MeasuredRun
 from .causes import BY_NAME, REGISTRY, SCORING
+from .confirm import CONFIRM, _null_of, confirm, unpiece
 from .gain import GainContext
 from .motion import Motion
+from .phases import structure
 from .result import CauseFit, Diagnosis, clean, rounded
 from .run import DiagConfig, prepare
 from .series import series
@@ -33,6 +35,11 @@ from .stage import Null, Stage
 # The score applied below, as stated in diagnose --help and in report.json (a test compares them)
 SCORE_FORMULA = ("2 (ll_cause - ll_null) - k ln n - 2 ln K (BIC-penalised log-likelihood ratio; "
                  "k: the cause's parameter count, n: measurements, K: causes scored in the stage)")
+
+# The structure test's thresholds (phases.structure): a family at 1e-3 / families (chi-square),
+# its cells beyond 3 SE and 0.02 m/s^2 (about 2 per mille of gradient: a simulated bag whose
+# world had no such effect showed a significant 0.010 m/s^2 in low-speed braking)
+STRUCTURE = {"alpha": 1e-3, "cell_z": 3.0, "min_accel": 0.02, "max_entries": 3}
 
 
 @dataclass
@@ -77,20 +84,61 @@ def diagnose(data: MeasuredRun, line: Line, train: TrainParams, config: DiagConf
         if best is None or best.score <= 0:
             break
         _accept(sr, best, stage_i)
+    before = {a.cause: BY_NAME[a.cause].resolution(a, sr.mo) for a in sr.accepted}
     joint_refit(sr.mo, sr.null, sr.accepted, cfg, (st.q, st.r_s))
-    ranking = _ranking(sr, run.clock["beta"])
-    evidence = _evidence(sr, run)
-    tick(total - 1, "gain")
-    top = ranking[0]
+    tick(total - 1, "confirmation and gain")
     first_stage, first_null = sr.first
     first_stage.null = first_null
-    gain = BY_NAME[top.cause].gain(top, GainContext(sr.mo, first_stage, cfg, own)) \
-        if top.cause != "none" else \
-        {"metric": "none: nothing to extend", "before": None, "after": None}
-    tick(total, "done")
-    return Diagnosis(cause=top.cause, parameters=top.parameters, ranking=ranking,
-                     untestable=untestable, evidence=evidence, gain=gain,
-                     accepted=sr.accepted, series=series(sr.mo, sr.accepted, own))
+    gctx = GainContext(sr.mo, first_stage, cfg, own)
+    return _verdict(sr, run, untestable, before, (st.q, st.r_s), gctx)
+
+
+def _verdict(sr: _Search, run, untestable: list, before: dict, noise,
+             gctx: GainContext) -> Diagnosis:
+    """Confirm the accepted causes, test what the confirmed model leaves, rank, and the held-out
+    gain of the cause named."""
+    mo, beta = sr.mo, run.clock["beta"]
+    checks = confirm(mo, sr.null.shift, sr.accepted, before, sr.cfg, noise, sr.own, gctx)
+    confirmed = [a for a in sr.accepted if a.status == "confirmed"]
+    found, tests = structure(mo, _null_of(mo, sr.null.shift, confirmed), sr.cfg, noise,
+                             beta, **STRUCTURE)
+    if found and unpiece(mo, sr.null.shift, confirmed, sr.cfg, noise, found):
+        confirmed = [a for a in sr.accepted if a.status == "confirmed"]
+        found, tests = structure(mo, _null_of(mo, sr.null.shift, confirmed), sr.cfg, noise,
+                                 beta, **STRUCTURE)
+    for u in found:
+        u.pop("mask")
+    verdict = confirmed[0].cause if confirmed else ("unexplained" if found else "none")
+    ranking = _ranking(sr, beta, "confirmed" if verdict == "none" else "rejected")
+    top = ranking[0] if confirmed else None
+    unexplained = [_entry(u, ranking) for u in found]
+    evidence = _evidence(sr, run)
+    evidence["_model"]["confirmation"] = {"checks": checks, "thresholds": vars(CONFIRM)}
+    evidence["_model"]["structure"] = {"tests": tests, "found": found,
+                                       "thresholds": STRUCTURE}
+    gain = BY_NAME[top.cause].gain(top, gctx) if top is not None else \
+        {"metric": f"{verdict}: no confirmed cause to extend the model with", "before": None,
+         "after": None}
+    plots = series(mo, confirmed, sr.own)
+    plots["unexplained"] = unexplained
+    return Diagnosis(cause=verdict, parameters=top.parameters if top is not None else {},
+                     ranking=ranking, untestable=untestable, evidence=evidence, gain=gain,
+                     accepted=confirmed, series=plots, unexplained=unexplained)
+
+
+def _entry(u: dict, ranking: list) -> dict:
+    """An ``unexplained`` entry: the signature and the listed cause that came closest (the
+    first not confirmed in the ranking) with why it does not fit."""
+    best = next((r for r in ranking if r.status != "confirmed" and r.cause != "none"), None)
+    if best is None:
+        listed = None
+    elif best.status == "not confirmed":
+        listed = {"cause": best.cause, "why": best.why}
+    else:
+        listed = {"cause": best.cause, "why": f"rejected: score {best.score:.1f} is not above "
+                                              "none's 0 (not supported by the data)"}
+    return {"phase": u["phase"], "where": u["where"], "when": u["when"], "speed": u["speed"],
+            "size": u["size"], "best_listed": listed}
 
 
 def _stage(sr: _Search, stage_i: int, tick) -> Stage:
@@ -204,20 +252,23 @@ def joint_refit(mo: Motion, null: Null, accepted: list, cfg: DiagConfig, noise) 
             st, th[i:i + k], cov[i:i + k, i:i + k], a.extra)
 
 
-def _reported(fit: CauseFit, beta: float) -> CauseFit:
+def _reported(fit: CauseFit, beta: float, status: str | None = None) -> CauseFit:
     """A ranking entry: score rounded, parameters as docs/interfaces.md reports them."""
     return CauseFit(fit.cause, rounded(fit.score),
-                    BY_NAME[fit.cause].report(clean(fit.parameters), beta))
+                    BY_NAME[fit.cause].report(clean(fit.parameters), beta),
+                    status=status or fit.status, why=fit.why)
 
 
-def _ranking(sr: _Search, beta: float) -> list:
-    """Accepted causes in order, then the rest by their last score, ``none`` among them."""
-    ranking = [_reported(a, beta) for a in sr.accepted]
+def _ranking(sr: _Search, beta: float, none_status: str) -> list:
+    """Confirmed causes in the order accepted, then the accepted ones not confirmed, then the
+    rest (rejected) by their last score, ``none`` (with ``none_status``) among them."""
+    ranking = [_reported(a, beta) for a in sr.accepted if a.status == "confirmed"]
+    ranking += [_reported(a, beta) for a in sr.accepted if a.status != "confirmed"]
     seen = {a.cause for a in sr.accepted}
     first, last = sr.stages[0]["scores"], sr.stages[-1]["scores"]
-    rest = [_reported(last.get(c.name, first[c.name]), beta) for c in REGISTRY
+    rest = [_reported(last.get(c.name, first[c.name]), beta, "rejected") for c in REGISTRY
             if c.name not in seen and c.name in first]
-    rest.append(CauseFit("none", 0.0, {}))
+    rest.append(CauseFit("none", 0.0, {}, status=none_status))
     rest.sort(key=lambda r: -r.score)
     return ranking + rest
 

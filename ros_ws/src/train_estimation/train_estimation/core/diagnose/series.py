@@ -7,6 +7,7 @@ import numpy as np
 
 from .causes import BY_NAME
 from .motion import Motion
+from .phases import grid_phase
 
 
 def series(mo: Motion, accepted: list, own: dict) -> dict:
@@ -21,7 +22,8 @@ def series(mo: Motion, accepted: list, own: dict) -> dict:
     step = max(1, int(round(0.5 / g.dt)))
     sl = slice(0, None, step)
     out = {"t": g.t[sl], "position": mo.x_ref[sl], "speed": v[sl], "residual_accel": res[sl],
-           "commanded_braking": mo.a_br0[sl], "commanded_traction": mo.a_tr0[sl],
+           "phase": grid_phase(mo)[sl], "commanded_braking": mo.a_br0[sl],
+           "commanded_traction": mo.a_tr0[sl],
            "odo_t": mo.run.odo_t, "odo_speed": mo.run.odo_v,
            "line_gradient": [(s.start, s.end, s.permille) for s in mo.line.gradients],
            "stations": [(s.name, s.position) for s in mo.line.stations],

@@ -20,6 +20,21 @@ from ..result import CauseFit
 
 FAMILIES = ("motion", "odometer", "clock", "link")
 
+# A fitted change is resolved when it is more than this many standard errors from nominal (and
+# more than the cause's stated minimum): 3 SE is a two-sided 0.3 % chance under no change.
+Z_RESOLVE = 3.0
+
+
+def resolved(name: str, delta: float, se, minimum: float, unit: str = "") -> str | None:
+    """None when ``|delta|`` (the fitted parameter minus nominal) is more than
+    max(Z_RESOLVE x ``se``, ``minimum``), else the reason in words."""
+    se = float(se) if se is not None and math.isfinite(float(se)) else 0.0
+    need = max(Z_RESOLVE * se, minimum)
+    if abs(delta) > need:
+        return None
+    return (f"below resolution: {name} {delta:+.4g}{unit} from nominal, not more than "
+            f"max({Z_RESOLVE:g} SE = {Z_RESOLVE * se:.3g}, minimum {minimum:g}){unit}")
+
 
 @dataclass(frozen=True)
 class ModelContext:
@@ -105,6 +120,17 @@ class Cause:
         free = self.free(st)
         th, cov, ll, _ = st.fit({}, free)
         return (ll, len(free), *self.params(st, th, cov))
+
+    # -- confirmation ---------------------------------------------------------------------------
+    def resolution(self, fit: CauseFit, mo) -> str | None:
+        """Why the fitted size is not larger than what the data can resolve (None: it is).
+
+        Each cause states its own rule on its reported parameters (``fit.parameters``,
+        ``fit.std_errors``; ``mo``: the run's motion model, for the believed train and the
+        odometer period), in general with :func:`resolved`: a change is a change only when it
+        is more than ``Z_RESOLVE`` standard errors and more than a stated minimum from
+        nominal. The default (no rule of its own) accepts every fit."""
+        return None
 
     # -- what it becomes ------------------------------------------------------------------------
     def report(self, params: dict, beta: float) -> dict:

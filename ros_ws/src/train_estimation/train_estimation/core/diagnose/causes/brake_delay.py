@@ -6,9 +6,10 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 from train_core.effects import BrakeDelayEffect
 
-from .base import Cause
+from .base import Cause, resolved
 from .braking_rate import brakes_while_moving
 
 
@@ -43,6 +44,13 @@ class BrakeDelay(Cause):
         return ll, 1, {"delay": delay}, {"delay": se}, {"offset": s_b, "extra": d_hat,
                                                           "profile": [(d, lls[k]) for k, d in
                                                                       enumerate(ds)]}
+
+    def resolution(self, fit, mo) -> str | None:
+        """A delay change below one odometer period is not a delay the samples can show."""
+        t = mo.ev.t[mo.ev.odo]
+        period = float(np.median(np.diff(t))) if t.size > 1 else 0.0
+        return resolved("delay", fit.parameters["delay"] - mo.train.brake.delay,
+                        fit.std_errors.get("delay"), period, " s")
 
     def extend_null(self, null, fit, mo) -> None:
         ex = fit.extra

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 from train_core.effects import BrakingRateEffect
 
-from .base import Cause
+from .base import Cause, resolved
 
 
 class BrakingRate(Cause):
@@ -28,6 +28,12 @@ class BrakingRate(Cause):
 
     def fit(self, st) -> tuple:
         return self.fit_linear(st)
+
+    def resolution(self, fit, mo) -> str | None:
+        """The larger change of f (start or end) beyond 0.02 (2 % of the braking)."""
+        p, se = fit.parameters, fit.std_errors
+        k = max(("f_start", "f_end"), key=lambda k: abs(p[k] - mo.f0))
+        return resolved(k, p[k] - mo.f0, se.get(k), 0.02)
 
     def extend_null(self, null, fit, mo) -> None:
         p = fit.parameters

@@ -16,7 +16,7 @@ import numpy as np
 from train_core.effects import BurstyLinkEffect
 
 from ...link_hmm import GilbertElliott, fit_gilbert_elliott, fit_link, log_likelihood, markov_test
-from .base import Cause
+from .base import Cause, resolved
 
 # Parameters beyond Bernoulli's one loss probability: the two transitions and the second loss
 # probability (the BIC penalty of the Gilbert-Elliott fit).
@@ -43,6 +43,15 @@ class BurstyLink(Cause):
 
     def own_test(self, run) -> dict:
         return link_test(run)
+
+    def resolution(self, fit, mo) -> str | None:
+        """Bursts are bursts when the chain remembers its state: 1 - p_good_bad - p_bad_good
+        (0 for independent losses) above 0.1."""
+        p = fit.parameters
+        if "p_good_bad" not in p or "p_bad_good" not in p:
+            return "below resolution: no chain fitted"
+        return resolved("state memory 1 - p_good_bad - p_bad_good",
+                        1.0 - p["p_good_bad"] - p["p_bad_good"], None, 0.1)
 
     def extend_null(self, null, fit, mo) -> None:
         """Which messages arrive is not part of the motion model: nothing to add."""

@@ -12,7 +12,7 @@ import math
 import numpy as np
 from train_core.effects import ClockDriftEffect
 
-from .base import Cause
+from .base import Cause, resolved
 
 
 class ClockDrift(Cause):
@@ -21,6 +21,11 @@ class ClockDrift(Cause):
 
     def own_test(self, run) -> dict:
         return clock_test(run)
+
+    def resolution(self, fit, mo) -> str | None:
+        """A drift below 10 ppm (36 ms an hour) is within a stamp's own jitter."""
+        return resolved("drift", fit.parameters["drift"], fit.std_errors.get("drift"), 1e-5,
+                        " s/s")
 
     def extend_null(self, null, fit, mo) -> None:
         """The stamps are not part of the motion model: nothing to add."""

@@ -18,7 +18,7 @@ from train_core.effects import GradientEffect
 
 from ...augmented_kf import LOG2PI, gls
 from ..stage import Stage, best_section
-from .base import Cause
+from .base import Cause, resolved
 from .resistance import RESISTANCE_COLS
 
 
@@ -79,6 +79,11 @@ class Gradient(Cause):
             lls.append(-0.5 * (kf.logdet + kf.m * LOG2PI + quad))
         ll_res = st.fit({}, [{n: 1.0} for n in RESISTANCE_COLS])[2]
         return lls[1] - max(lls[0], ll_res)
+
+    def resolution(self, fit, mo) -> str | None:
+        """A map error below 0.5 per mille is within a surveyed map's own precision."""
+        return resolved("permille", fit.parameters["permille"],
+                        fit.std_errors.get("permille"), 0.5, " per mille")
 
     def extend_null(self, null, fit, mo) -> None:
         i, j = fit.extra["bins"]

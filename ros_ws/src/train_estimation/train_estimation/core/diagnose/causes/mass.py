@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 from train_core.effects import MassEffect
 
-from .base import Cause
+from .base import Cause, resolved
 
 
 class Mass(Cause):
@@ -30,6 +30,13 @@ class Mass(Cause):
 
     def fit(self, st) -> tuple:
         return self.fit_linear(st)
+
+    def resolution(self, fit, mo) -> str | None:
+        """A mass within 1 % of the believed one is within a train's load variation."""
+        m0 = mo.train.mass
+        se = fit.std_errors.get("mass")
+        return resolved("mass (relative)", fit.parameters["mass"] / m0 - 1.0,
+                        None if se is None else se / m0, 0.01)
 
     def extend_null(self, null, fit, mo) -> None:
         dk = fit.extra["traction_gain"] - 1.0

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 from train_core.effects import OdometerScaleEffect
 
-from .base import Cause
+from .base import Cause, resolved
 
 
 class OdometerScale(Cause):
@@ -28,6 +28,11 @@ class OdometerScale(Cause):
 
     def fit(self, st) -> tuple:
         return self.fit_linear(st)
+
+    def resolution(self, fit, mo) -> str | None:
+        """A scale within 0.1 % of 1 is within a wheel's wear between calibrations."""
+        return resolved("scale", fit.parameters["scale"] - 1.0, fit.std_errors.get("scale"),
+                        1e-3)
 
     def extend_null(self, null, fit, mo) -> None:
         null.scale = fit.parameters["scale"] - 1.0

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from train_core.effects import ResistanceEffect
 
-from .base import Cause
+from .base import Cause, resolved
 
 RESISTANCE_COLS = ("one", "v", "v2")  # the Davis terms' elementary columns (a, b, c)
 
@@ -39,6 +39,15 @@ class Resistance(Cause):
 
     def fit(self, st) -> tuple:
         return self.fit_linear(st)
+
+    def resolution(self, fit, mo) -> str | None:
+        """The resistance force at the run's typical speed (what one run determines well):
+        more than 3 % of the believed force there."""
+        v = fit.extra.get("v_ref", 0.0)
+        f0 = float(mo.train.davis.force(v))
+        df = fit.extra.get("force_at_v_ref", f0) - f0
+        return resolved(f"resistance force at {v:.1f} m/s", df,
+                        fit.std_errors.get("force_at_v_ref"), 0.03 * abs(f0), " N")
 
     def extend_null(self, null, fit, mo) -> None:
         p = fit.parameters

@@ -19,7 +19,7 @@ from ...augmented_kf import gls
 from ...identify import moving_average
 from ..motion import slip_cols
 from ..stage import best_section
-from .base import Cause
+from .base import Cause, resolved
 
 # s: neighbouring episodes closer than this are tested as one (refine_episodes)
 MERGE_GAP = 10.0
@@ -65,6 +65,21 @@ class WheelSlip(Cause):
             {"intervals": [list(iv) for iv in ivs], "depths": [-e for e in eps]}, \
             {"slip_fraction": se, "depths": se}, \
             {"slip_fraction": eps, "candidates": len(cands), "found": len(chosen)}
+
+    def resolution(self, fit, mo) -> str | None:
+        """An episode is resolved when its slip fraction is more than 0.01 and 3 SE from 0
+        and it lasts at least one odometer period."""
+        t = mo.ev.t[mo.ev.odo]
+        period = float(np.median(np.diff(t))) if t.size > 1 else 0.0
+        eps = fit.extra.get("slip_fraction", [])
+        se = fit.std_errors.get("slip_fraction", [None] * len(eps))
+        why = "below resolution: no episode"
+        for (t0, t1), e, s in zip(fit.parameters.get("intervals", []), eps, se):
+            r = resolved(f"slip fraction on [{t0:.1f}, {t1:.1f}] s", e, s, 0.01)
+            if r is None and t1 - t0 >= period:
+                return None
+            why = r or f"below resolution: episode shorter than one odometer period ({period:g} s)"
+        return why
 
     def extend_null(self, null, fit, mo) -> None:
         for (t0, t1), eps in zip(fit.parameters["intervals"],

@@ -1,0 +1,217 @@
+"""Confirmation of the accepted causes: a cause is named only when the data confirm it.
+
+The greedy search accepts a cause whose score (BIC with prior odds) is positive; that is a
+closed-world comparison among the listed causes and ``none``. An effect outside the list is
+then absorbed by whichever listed cause resembles it most. A cause accepted by the search is
+reported ``confirmed`` only when three checks pass, the same for every cause:
+
+1. **Held out.** The cause, fitted on alternate ``gain_block`` s blocks (odometer causes:
+   alternate odometer samples, ``FOLDS``), predicts the other half better than the model
+   without it, beyond the noise of that gain. With the filter's
+   speed innovations e0_k of the model without the cause and e1_k = e0_k - d_k of the model with
+   the fit from the other blocks (S_k the innovation variance), the held-out log-likelihood
+   gain is D = sum (e0 d / S - d^2 / 2S) over the held-out events of both folds. Without the
+   effect, e0_k ~ N(0, S_k) independently of d (fitted elsewhere), so Z = sum (e0 d / S) /
+   sqrt(sum d^2 / S) is standard normal (a score test on held-out data; a local effect in
+   one block counts at its own noise). Confirmed when D > 0 and Z > ``heldout_z``.
+   Causes with a likelihood of their own (clock, link) use their own held-out gain.
+2. **Resolution.** The fitted size is more than the data can resolve: each cause states its
+   rule (``Cause.resolution``). Checked on the parameters after the joint refit; a fit that
+   passes before the joint refit but not after is ``parameters at nominal after the joint
+   refit``.
+3. **Where it shows** (:func:`.phases.split_test`): the cause predicts its effect in every
+   phase, speed band, place and time it acts in; its fitted contribution, split into those
+   cells with a free multiplier each, must not need a cell changed by more than half of
+   itself (``split_min_share``) with significance (chi-square at ``split_alpha``).
+
+4. **Not cancelling** another confirmed cause in a phase (:func:`.phases.cancelling`).
+5. **Not a piece** of a structure the confirmed model leaves in the residuals that also shows
+   where the cause does not act (:func:`.phases.piece_of`).
+
+Every other entry of the ranking is ``rejected`` (its score is not above ``none``'s).
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..augmented_kf import gls
+from .causes import BY_NAME
+from .gain import GainContext
+from .motion import Motion
+from .phases import cancelling, piece_of, split_test
+from .result import CauseFit
+from .run import DiagConfig
+from .stage import Null, Stage
+
+
+@dataclass(frozen=True)
+class ConfirmConfig:
+    """The confirmation's thresholds (stated in report.json's evidence)."""
+
+    # -, held-out score Z above this (one-sided 2.3 % under no effect) and held-out gain > 0
+    heldout_z: float = 2.0
+    # -, false-alarm rate of the split test of a confirmed cause (chi-square, per partition)
+    split_alpha: float = 1e-3
+    # -, a cell of the split contradicts the cause when its multiplier moves by more than this
+    split_min_share: float = 0.5
+
+
+CONFIRM = ConfirmConfig()
+
+
+def confirm(mo: Motion, shift: float, accepted: list, resolved_before: dict, cfg: DiagConfig,
+            noise, own: dict, gain_ctx: GainContext, ccfg: ConfirmConfig = CONFIRM) -> dict:
+    """Set ``status`` and ``why`` of every accepted cause (in place); returns the checks'
+    figures per cause for the evidence. ``resolved_before``: cause -> the resolution verdict
+    before the joint refit."""
+    checks = {}
+    for a in accepted:
+        cause = BY_NAME[a.cause]
+        if cause.in_motion_model:
+            others = _null_of(mo, shift, [b for b in accepted if b is not a])
+            held = heldout_motion(mo, others, cause, cfg, noise, ccfg)
+        else:
+            held = heldout_own(cause, a, gain_ctx)
+        res = cause.resolution(a, mo)
+        checks[a.cause] = {"held_out": held, "resolution": res or "resolved"}
+        if not held["ok"]:
+            a.status, a.why = "not confirmed", f"held-out check failed: {held['why']}"
+        elif res is not None:
+            a.status = "not confirmed"
+            a.why = ("parameters at nominal after the joint refit: " + res
+                     if resolved_before.get(a.cause) is None else res)
+        else:
+            a.status, a.why = "confirmed", None
+    # the split of each confirmed cause against the model of all confirmed causes
+    confirmed = [a for a in accepted if a.status == "confirmed"]
+    motion = [a for a in confirmed if BY_NAME[a.cause].in_motion_model]
+    if len(motion) >= 2:
+        nulls = {a.cause: _null_of(mo, shift, [b for b in confirmed if b is not a])
+                 for a in motion}
+        cancel = cancelling(mo, nulls, _null_of(mo, shift, [b for b in confirmed
+                                                           if b not in motion]),
+                            _null_of(mo, shift, confirmed), cfg, noise)
+        for a in motion:
+            if a.cause in cancel:
+                a.status, a.why = "not confirmed", cancel[a.cause]
+                checks[a.cause]["cancels"] = cancel[a.cause]
+        confirmed = [a for a in accepted if a.status == "confirmed"]
+    for a in confirmed:
+        if not BY_NAME[a.cause].in_motion_model:
+            continue
+        others = _null_of(mo, shift, [b for b in confirmed if b is not a])
+        full = _null_of(mo, shift, confirmed)
+        sp = split_test(mo, others, full, cfg, noise, ccfg.split_alpha, ccfg.split_min_share)
+        checks[a.cause]["split"] = sp
+        if sp.get("contradicted"):
+            a.status = "not confirmed"
+            a.why = f"contradicted by the phase split: {sp['why']}"
+    return checks
+
+
+def _null_of(mo: Motion, shift: float, fits: list) -> Null:
+    """The believed model extended by ``fits`` (with the command-time offset ``shift``)."""
+    null = Null(shift=shift)
+    for f in fits:
+        BY_NAME[f.cause].extend_null(null, f, mo)
+    return null
+
+
+# How data are held out, by the family of data a cause acts on: the dynamics act through time
+# (alternate blocks, so a fit cannot follow the held-out data through the state); the odometer's
+# measurement errors act sample by sample, and a slip episode of 2 s lies in one block only
+# (alternate odometer samples: each fold holds every episode)
+FOLDS = {"motion": "alternate {:g} s blocks", "odometer": "alternate odometer samples"}
+
+
+def _folds(mo: Motion, family: str, cfg: DiagConfig) -> np.ndarray:
+    """Fold index (parity: 0 or 1) of every event."""
+    if family == "odometer":
+        return np.cumsum(mo.ev.kind == 0)
+    return np.floor((mo.ev.t - mo.ev.t[0]) / cfg.gain_block).astype(int)
+
+
+def speed_innovations(mo: Motion, null: Null, cfg: DiagConfig, noise):
+    """(e, S): the filter's speed innovation and its variance at every event of the model
+    ``null`` at ``noise`` (s0 by GLS; NaN where no odometer speed was updated)."""
+    st = Stage(mo, null, cfg, noise=noise, big=False)
+    kf = st.augmented(st.fv, st.fs, keep_innov=True)
+    s0 = gls(kf.W, np.eye(2))[0][0]
+    return kf.E0[:, 0] + s0 * kf.E1[:, 0], kf.S_v
+
+
+def heldout_motion(mo: Motion, others: Null, cause, cfg: DiagConfig, noise,
+                   ccfg: ConfirmConfig = CONFIRM) -> dict:
+    """The two-fold held-out score test of the module docstring for a motion-model cause,
+    against the model ``others`` (the other accepted causes)."""
+    block = _folds(mo, cause.family, cfg)
+    e0, s = speed_innovations(mo, others, cfg, noise)
+    num = var = 0.0
+    fitted = []
+    for fold in (0, 1):
+        train = block % 2 == fold
+        st_f = Stage(mo, copy.deepcopy(others), cfg, noise=noise, update=train)
+        _, _, params, se, extra = cause.fit(st_f)
+        fit_f = CauseFit(cause.name, 0.0, params, std_errors=se, extra=extra)
+        ext = copy.deepcopy(others)
+        try:
+            cause.extend_null(ext, fit_f, mo)
+        except (KeyError, IndexError, ValueError) as exc:  # a fold without the cause's data
+            fitted.append({"fold": fold, "error": str(exc)})
+            continue
+        e1, _ = speed_innovations(mo, ext, cfg, noise)
+        test = ~train & np.isfinite(s) & np.isfinite(e0) & np.isfinite(e1) & (s > 0)
+        d = (e0 - e1)[test]
+        num += float(np.sum(e0[test] * d / s[test]))
+        var += float(np.sum(d * d / s[test]))
+        fitted.append({"fold": fold, "parameters": params})
+    gain = num - 0.5 * var
+    sd = math.sqrt(var)
+    z = num / sd if sd > 0 else 0.0
+    out = {"test": "held-out score test on the filter's speed innovations, two folds of "
+                   + FOLDS[cause.family].format(cfg.gain_block), "gain_loglik": gain,
+           "sd_under_no_effect": sd, "z": z, "z_needed": ccfg.heldout_z,
+           "fitted_on_folds": fitted}
+    out["ok"] = bool(gain > 0 and z > ccfg.heldout_z)
+    if not out["ok"]:
+        out["why"] = (f"held-out log-likelihood gain {gain:+.3g} (SD {sd:.3g} under no "
+                      f"effect), score Z {z:.2f} <= {ccfg.heldout_z:g}" if gain <= 0 or
+                      sd == 0 else f"score Z {z:.2f} <= {ccfg.heldout_z:g}")
+    return out
+
+
+def heldout_own(cause, fit: CauseFit, ctx: GainContext) -> dict:
+    """A cause with a likelihood of its own (clock, link): its held-out gain must improve on
+    the believed model (higher for a likelihood, lower for an error)."""
+    g = cause.gain(fit, ctx) or {}
+    b, a = g.get("before"), g.get("after")
+    out = {"test": g.get("metric", "held-out gain"), "before": b, "after": a}
+    if b is None or a is None or not (math.isfinite(b) and math.isfinite(a)):
+        out.update(ok=False, why="no held-out data")
+        return out
+    better = a > b if "likelihood" in str(g.get("metric", "")) else a < b
+    out["ok"] = bool(better)
+    if not better:
+        out["why"] = f"{g.get('metric', 'held-out gain')}: {b:.4g} -> {a:.4g} (no gain)"
+    return out
+
+
+def unpiece(mo: Motion, shift: float, confirmed: list, cfg: DiagConfig, noise,
+            found: list) -> bool:
+    """Withdraw the confirmation of every confirmed motion cause that is a piece of a structure
+    still ``found`` in the residuals (:func:`.phases.piece_of`); True if any was withdrawn."""
+    out = False
+    for a in confirmed:
+        if not BY_NAME[a.cause].in_motion_model:
+            continue
+        others = _null_of(mo, shift, [b for b in confirmed if b is not a])
+        why = piece_of(mo, others, _null_of(mo, shift, confirmed), cfg, noise, found)
+        if why is not None:
+            a.status, a.why = "not confirmed", f"a piece of an unexplained structure: {why}"
+            out = True
+    return out

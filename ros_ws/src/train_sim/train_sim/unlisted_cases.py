@@ -1,0 +1,98 @@
+"""Test cases with an effect outside the causes list: a nominal :func:`train_sim.cases.make_case`
+(varied line, train, link, clock and driver) with one :mod:`train_sim.unlisted` effect placed
+where the run exercises it (from a pilot run of the nominal case).
+
+    case = unlisted_case(np.random.default_rng(7), "brake_fade")
+    case.scenario        # the scenario with the effect (Scenario.unlisted)
+    case.kind, case.phase, case.truth
+
+Sizes are those of a plain listed effect (an extra deceleration of 0.04-0.08 m/s^2 where the
+effect acts; 20-30 % of the traction or of the low-speed braking):
+
+===================  =================================================  ==============
+kind                 placement and size                                  phase
+===================  =================================================  ==============
+``tunnel_drag``      a 500-900 m stretch run at > 60 % of the top       all
+                     speed; c v^2 = 0.04-0.08 m/s^2 x M_eff at the
+                     stretch's mean speed
+``brake_fade``       v_fade at 35-50 % of the top speed, factor         braking
+                     0.6-0.75
+``traction_gain``    factor 0.7-0.8 or 1.2-1.3                          traction
+``wind``             60-120 s while moving, +-0.04-0.08 m/s^2 x M_eff   all
+===================  =================================================  ==============
+
+``phase`` is the phase ``diagnose``'s ``unexplained`` signature should name.
+
+Pure module: numpy + train_sim / train_core (no ROS). Same generator state -> same case.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .cases import Case, make_case
+from .unlisted import BrakeFade, TractionGain, TunnelDrag, Unlisted, Wind
+
+KINDS = ("tunnel_drag", "brake_fade", "traction_gain", "wind")
+PHASE = {"tunnel_drag": "all", "brake_fade": "braking", "traction_gain": "traction",
+         "wind": "all"}
+
+
+@dataclass(frozen=True)
+class UnlistedCase:
+    case: Case  # the nominal case (line, train, scenario files; no listed effect)
+    scenario: object  # the case's scenario with the unlisted effect
+    kind: str
+    phase: str  # the phase the effect acts in (traction, braking or all)
+    truth: dict  # the effect's parameters
+
+    def write(self, directory):
+        """line.yaml and train.yaml (the believed model) as Case.write."""
+        return self.case.write(directory)
+
+
+def unlisted_case(rng: np.random.Generator, kind: str, pilot=None) -> UnlistedCase:
+    """A random nominal case with the unlisted effect ``kind`` (one of :data:`KINDS`)."""
+    if kind not in KINDS:
+        raise ValueError(f"kind must be one of {KINDS}, got {kind!r}")
+    if pilot is None:
+        from .world import simulate as pilot
+    case = make_case(rng, None, "plain")
+    sc = case.scenario
+    tr = pilot(sc).truth
+    t, x, v = tr["t"], tr["position"], tr["velocity"]
+    v_top = float(np.max(v))
+    m_eff = sc.true_train.effective_mass
+    eff_rng = np.random.default_rng(rng.integers(2**63))
+    a = float(eff_rng.uniform(0.04, 0.08))  # m/s^2
+    if kind == "tunnel_drag":
+        fast = np.flatnonzero(v > 0.6 * v_top)
+        i = int(fast[eff_rng.integers(fast.size)])
+        length = float(eff_rng.uniform(500.0, 900.0))
+        start = float(np.clip(x[i] - 0.5 * length, x.min(), x.max() - length))
+        inside = (x >= start) & (x < start + length)
+        v_in = float(np.mean(v[inside])) if inside.any() else v_top
+        eff = TunnelDrag(round(start, 1), round(start + length, 1),
+                         round(a * m_eff / max(v_in, 1.0) ** 2, 3))
+        u = Unlisted(tunnel_drag=eff)
+    elif kind == "brake_fade":
+        eff = BrakeFade(round(float(eff_rng.uniform(0.35, 0.5)) * v_top, 2),
+                        round(float(eff_rng.uniform(0.6, 0.75)), 3))
+        u = Unlisted(brake_fade=eff)
+    elif kind == "traction_gain":
+        f = float(eff_rng.uniform(0.2, 0.3))
+        eff = TractionGain(round(1.0 + f if eff_rng.random() < 0.5 else 1.0 - f, 3))
+        u = Unlisted(traction_gain=eff)
+    else:
+        moving = np.flatnonzero(v > 2.0)
+        dur = float(eff_rng.uniform(60.0, 120.0))
+        t_mov = t[moving]
+        ok = t_mov[(t_mov > t_mov[0] + 10.0) & (t_mov < t_mov[-1] - dur)]
+        t0 = float(ok[eff_rng.integers(ok.size)]) if ok.size else float(t_mov[0])
+        sign = 1.0 if eff_rng.random() < 0.5 else -1.0
+        eff = Wind(round(t0, 1), round(t0 + dur, 1), round(sign * a * m_eff, 1))
+        u = Unlisted(wind=eff)
+    truth = {k: getattr(eff, k) for k in eff.__dataclass_fields__}
+    return UnlistedCase(case, sc.with_changes(unlisted=u), kind, PHASE[kind], truth)
