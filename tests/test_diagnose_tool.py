@@ -343,7 +343,7 @@ def test_summary_last_line_is_the_cause(metro, tmp_path, capsys, diagnosed):
 # core are marked xfail(strict): the mark must go when the core is fixed.
 KNOWN: dict = {  # (cause, seed) -> reason
     ("adhesion_section", 210): "the section lies wholly in braking at a constant rate: a gradient "
-                               "section there predicts the same motion and is named"}
+                               "section there predicts the same motion (scores 752 vs 740)"}
 SPECS = [(c, "plain", 200 + i) for i, c in enumerate(CAUSES)] + [
     (None, "plain", 230), (("gradient", "mass"), "plain", 231), ("gradient", "subtle", 240),
     ("brake_delay", "subtle", 241), ("power_limit", "subtle", 242),

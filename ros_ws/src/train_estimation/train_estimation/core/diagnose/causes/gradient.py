@@ -66,7 +66,9 @@ class Gradient(Cause):
 
     def dll_at_noise(self, st, st_c, ll0: float) -> float:
         """The gain beyond resistance at the cause's noise (see :meth:`fit`): the null and the
-        null with the section, both with the Davis terms free."""
+        null with the section, both with the Davis terms free; the null at the better of the
+        cause's noise and the stage's (as :meth:`Cause.dll_at_noise`: a null held at a noise
+        that is not its own must not make the section look better than it is)."""
         mo = st.mo
         at = Stage(mo, st.null, st.cfg, big=False, noise=(st_c.q, st_c.r_s))
         cols = [mo.col[c] for c in RESISTANCE_COLS]
@@ -75,7 +77,8 @@ class Gradient(Cause):
             kf = at.augmented(f_v, f_s, drift=(mo.Dv[:, cols], mo.Ds[:, cols]))
             quad = gls(kf.W, np.eye(5))[2]
             lls.append(-0.5 * (kf.logdet + kf.m * LOG2PI + quad))
-        return lls[1] - lls[0]
+        ll_res = st.fit({}, [{n: 1.0} for n in RESISTANCE_COLS])[2]
+        return lls[1] - max(lls[0], ll_res)
 
     def extend_null(self, null, fit, mo) -> None:
         i, j = fit.extra["bins"]
