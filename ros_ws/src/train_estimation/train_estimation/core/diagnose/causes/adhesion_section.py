@@ -17,7 +17,7 @@ import numpy as np
 from train_core.effects import AdhesionSectionEffect
 
 from ..stage import best_section
-from .base import Cause
+from .base import Cause, resolved
 from .braking_rate import brakes_while_moving
 from .drive import Candidates
 
@@ -47,6 +47,13 @@ class AdhesionSection(Cause):
         return st.null_ll() + cand.dll(quad), 3, \
             {"start": start, "end": end, "factor": 1.0 + th}, {"factor": se}, \
             {"bins": (int(bins[a]), int(bins[b - 1]) + 1)}
+
+    def resolution(self, fit, mo) -> str | None:
+        """Braking on one stretch weaker by more than 3 SE and by 5 %: a few brake
+        applications over a stretch scatter by a few per cent (driver, load, rail) without
+        any low-adhesion section."""
+        return resolved("factor", fit.parameters["factor"] - 1.0,
+                        fit.std_errors.get("factor"), 0.05)
 
     def extend_null(self, null, fit, mo) -> None:
         bins, (bv, bs) = braking_bins(mo)

@@ -16,7 +16,7 @@ import math
 import numpy as np
 from train_core.effects import PowerLimitEffect
 
-from .base import Cause
+from .base import Cause, resolved
 from .drive import Candidates, parabola
 
 GRID = 40  # candidate powers, log-spaced
@@ -47,6 +47,18 @@ class PowerLimit(Cause):
         return ll, 1, {"p_spec": p_hat}, {"p_spec": p_hat * se_x}, {
             "knee_speed_at_max_command": p_hat / max(float(np.max(st.mo.a_tr0)), 1e-9),
             "profile": list(zip(powers.tolist(), dll.tolist()))}
+
+    def resolution(self, fit, mo) -> str | None:
+        """A limit is a limit only below the largest traction power the run asked for, by more
+        than 3 SE and by 5 % of that power: a knee at the top of the run's powers takes away
+        too little traction to tell from the believed train."""
+        sel = (mo.a_tr0 > MIN_TRACTION) & (mo.moving > 0)
+        if not sel.any():
+            return "below resolution: no traction while moving"
+        top = float(np.max(mo.a_tr0[sel] * mo.v_ref[sel]))
+        return resolved("p_spec below the run's largest traction power",
+                        top - fit.parameters["p_spec"], fit.std_errors.get("p_spec"),
+                        0.05 * top, " W/kg")
 
     def extend_null(self, null, fit, mo) -> None:
         R = deficit(mo, fit.parameters["p_spec"])[:, None]

@@ -15,7 +15,7 @@ import weakref
 import numpy as np
 from train_core.effects import TractionDelayEffect
 
-from .base import Cause
+from .base import Cause, resolved
 from .drive import Candidates, parabola
 
 MIN_TRACTION = 0.05  # m/s^2, as power_limit: a traction command that can show a delay
@@ -55,6 +55,14 @@ class TractionDelay(Cause):
         d_hat, se = parabola(ds, lls, ds.index(d_b))
         return st.null_ll() + dll, 1, {"delay": mo.train.brake.delay + d_hat}, {"delay": se}, \
             {"offset": s_b, "extra": d_b, "profile": list(zip(ds, lls))}
+
+    def resolution(self, fit, mo) -> str | None:
+        """As a brake delay: a traction delay change below one odometer period is not a delay
+        the samples can show (the believed traction delay is the actuator's delay)."""
+        t = mo.ev.t[mo.ev.odo]
+        period = float(np.median(np.diff(t))) if t.size > 1 else 0.0
+        return resolved("delay", fit.parameters["delay"] - mo.train.brake.delay,
+                        fit.std_errors.get("delay"), period, " s")
 
     def extend_null(self, null, fit, mo) -> None:
         """The common offset is the fit's; traction moves by the extra delay beyond it."""
