@@ -58,7 +58,7 @@ class PowerLimit(Cause):
         top = float(np.max(mo.a_tr0[sel] * mo.v_ref[sel]))
         return resolved("p_spec below the run's largest traction power",
                         top - fit.parameters["p_spec"], fit.std_errors.get("p_spec"),
-                        0.05 * top, " W/kg")
+                        0.05 * top, " W/kg (m^2/s^3)")
 
     def extend_null(self, null, fit, mo) -> None:
         R = deficit(mo, fit.parameters["p_spec"])[:, None]
