@@ -180,10 +180,14 @@ def _stage(sr: _Search, stage_i: int, tick) -> Stage:
 def _refit_noise(sr: _Search, st: Stage, scores: dict, ll0: float) -> None:
     """A cause's likelihood ratio with the noise re-maximised under it: an unmodelled effect
     inflates the null's process noise q, which understates the effect's own evidence. For the
-    best ``noise_refits`` causes of the motion model (in place)."""
+    ``noise_refits`` causes of the motion model with the largest log-likelihood gain (in
+    place). By gain, not by penalised score: at the inflated q a large effect's gain is small
+    but still above the one-parameter causes' noise-level gains, while its penalty (a section
+    has three parameters) can rank it below them, and a cause left out here is never
+    reconsidered at its own noise."""
     n = st.n_meas
     prelim = sorted((c for c in scores if BY_NAME[c].in_motion_model),
-                    key=lambda c: -scores[c].score)[:sr.cfg.noise_refits]
+                    key=lambda c: -scores[c].dll)[:sr.cfg.noise_refits]
     for name in prelim:
         f = scores[name]
         if f.score < -20.0:
