@@ -37,7 +37,7 @@ for sub in ("ros_ws/src/train_sim", "ros_ws/src/train_estimation",
 from braking_toy import simulate_open_loop  # noqa: E402
 from train_core.progress import track  # noqa: E402
 
-from train_estimation.core.braking_filters import (  # noqa: E402
+from train_estimation.core.braking.braking_filters import (  # noqa: E402
     GSMA,
     QGRBPF,
     SMA,
@@ -47,7 +47,7 @@ from train_estimation.core.braking_filters import (  # noqa: E402
     RandomWalkRBPF,
     sticky_transition,
 )
-from train_estimation.core.braking_model import BrakingModel, BrakingParams  # noqa: E402
+from train_estimation.core.braking.braking_model import BrakingModel, BrakingParams  # noqa: E402
 
 VALUES = np.round(np.arange(10, -1, -1) * 0.1, 10)
 X0 = np.array([0.0, 20.0, -1.0, -2.0])

@@ -61,14 +61,14 @@ ROOT = Path(__file__).resolve().parents[1]
 for sub in ("ros_ws/src/train_sim", "ros_ws/src/train_estimation"):
     sys.path.insert(0, str(ROOT / sub))
 
-from train_estimation.core.estimators import (  # noqa: E402
+from train_estimation.core.online.estimators import (  # noqa: E402
     ALGORITHMS,
     BrakingAdapter,
     BrakingConfig,
     StartState,
 )
-from train_estimation.core.replay import INPUT_TOPICS  # noqa: E402
-from train_estimation.core.runner import EstimatorRunner  # noqa: E402
+from train_estimation.core.online.replay import INPUT_TOPICS  # noqa: E402
+from train_estimation.core.online.runner import EstimatorRunner  # noqa: E402
 from train_sim.scenario import load_scenario  # noqa: E402
 from train_sim.world import World  # noqa: E402
 

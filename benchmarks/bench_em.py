@@ -35,13 +35,13 @@ sys.path[:0] = [os.path.join(HERE, "..", "ros_ws", "src", "train_estimation"),
 
 from train_core.progress import Progress  # noqa: E402
 
-from train_estimation.core.em_model import (  # noqa: E402
+from train_estimation.core.offline.em_model import (  # noqa: E402
     CRH3_VARTHETA,
     m_step,
     param_error,
     plugin_stats,
 )
-from train_estimation.core.hybrid_em import run_em  # noqa: E402
+from train_estimation.core.offline.hybrid_em import run_em  # noqa: E402
 from train_sim.crh3 import simulate_crh3  # noqa: E402
 
 PAPER = {  # Tables 1-3, delta in % at k = 5, 8, 10, 20, 30

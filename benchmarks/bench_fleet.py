@@ -34,7 +34,7 @@ import numpy as np
 HERE = os.path.dirname(os.path.abspath(__file__))
 OUT = os.path.join(HERE, "out")
 
-from train_estimation.core.fleet import consensus  # noqa: E402
+from train_estimation.core.offline.fleet import consensus  # noqa: E402
 from train_estimation.tools import fleet as tool  # noqa: E402
 from train_sim.fleet import FleetSpec, write_fleet  # noqa: E402
 
@@ -48,8 +48,8 @@ def tasks_of(d: str) -> list[dict]:
 
 def _warm() -> bool:
     """Imports a task needs (numpy, scipy, the project's modules), done before timing."""
-    import train_estimation.core.diagnose  # noqa: F401
-    import train_estimation.core.identify  # noqa: F401
+    import train_estimation.core.offline.diagnose  # noqa: F401
+    import train_estimation.core.offline.identify  # noqa: F401
     import train_estimation.tools.check_bag  # noqa: F401
 
     return True

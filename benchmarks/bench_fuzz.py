@@ -48,14 +48,14 @@ import numpy as np  # noqa: E402
 from train_core.progress import track  # noqa: E402
 
 from train_estimation.core import reasons as R  # noqa: E402
-from train_estimation.core.estimators import (  # noqa: E402
+from train_estimation.core.online.estimators import (  # noqa: E402
     BrakingAdapter,
     BrakingConfig,
     RobustAdapter,
     RobustConfig,
     StartState,
 )
-from train_estimation.core.replay import replay  # noqa: E402
+from train_estimation.core.online.replay import replay  # noqa: E402
 from train_estimation.tools.fuzz import corrupt  # noqa: E402
 from train_sim.scenario import load_scenario  # noqa: E402
 from train_sim.world import simulate  # noqa: E402

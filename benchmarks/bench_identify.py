@@ -63,7 +63,7 @@ sys.path[:0] = [os.path.join(HERE, "..", "ros_ws", "src", "train_estimation"),
 from train_core.effects import Effects, MassEffect, ResistanceEffect  # noqa: E402
 from train_core.model import TrainParams  # noqa: E402
 
-from train_estimation.core.identify import IdentificationError, SIData, identify  # noqa: E402
+from train_estimation.core.offline.identify import IdentificationError, SIData, identify  # noqa: E402
 from train_sim.driver import TimetableStop  # noqa: E402
 from train_sim.scenario import Scenario, load_scenario  # noqa: E402
 from train_sim.world import World, simulate  # noqa: E402

@@ -59,7 +59,7 @@ single_threaded_blas()
 import numpy as np  # noqa: E402
 from train_core.progress import track  # noqa: E402
 
-from train_estimation.core.estimators import (  # noqa: E402
+from train_estimation.core.online.estimators import (  # noqa: E402
     BrakingAdapter,
     BrakingConfig,
     NodeConfig,

@@ -54,7 +54,7 @@ for _p in (ROOT / "ros_ws/src/train_sim", ROOT / "ros_ws/src/train_estimation",
 from bench_fuzz import make_adapter, position_errors  # noqa: E402
 from train_core.procs import resolve_executable, stop_process  # noqa: E402
 
-from train_estimation.core.replay import replay  # noqa: E402
+from train_estimation.core.online.replay import replay  # noqa: E402
 from train_sim.scenario import load_scenario, scenario_path  # noqa: E402
 from train_sim.world import simulate  # noqa: E402
 

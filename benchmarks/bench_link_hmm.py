@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Benchmark of the Gilbert-Elliott link fit (train_estimation.core.link_hmm).
+"""Benchmark of the Gilbert-Elliott link fit (train_estimation.core.offline.link_hmm).
 
 For several true links, ``--reps`` sequences of ``--n`` odometer samples (default 6000: a
 10-minute run at 10 Hz) from the simulator's own link (train_core.link.Link), each fitted by
@@ -27,7 +27,7 @@ sys.path[:0] = [os.path.join(HERE, "..", "ros_ws", "src", "train_estimation"),
 
 from train_core.link import Link, LinkParams  # noqa: E402
 
-from train_estimation.core.link_hmm import GilbertElliott, fit_link  # noqa: E402
+from train_estimation.core.offline.link_hmm import GilbertElliott, fit_link  # noqa: E402
 
 SETS = {
     "0/1 losses, bursts of 4": GilbertElliott(0.02, 0.25, 0.0, 1.0),

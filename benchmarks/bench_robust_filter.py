@@ -49,15 +49,15 @@ for _p in (ROOT / "ros_ws/src/train_sim", ROOT / "ros_ws/src/train_estimation"):
 from train_core.effects import Effects, ResistanceEffect  # noqa: E402
 from train_core.link import LinkParams  # noqa: E402
 
-from train_estimation.core.filter_base import filter_params_from_train  # noqa: E402
-from train_estimation.core.robust_filter import (  # noqa: E402
+from train_estimation.core.robust.filter_base import filter_params_from_train  # noqa: E402
+from train_estimation.core.robust.robust_filter import (  # noqa: E402
     BaliseReading,
     FOHFilter,
     IntermittentKF,
     OdometerReading,
     RobustFilter,
 )
-from train_estimation.core.wen_model import WenModel  # noqa: E402
+from train_estimation.core.robust.wen_model import WenModel  # noqa: E402
 from train_sim.scenario import load_scenario  # noqa: E402
 from train_sim.world import simulate  # noqa: E402
 

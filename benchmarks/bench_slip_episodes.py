@@ -70,8 +70,8 @@ def stretched(case, rng):
 def run(case) -> dict:
     from train_core.bagio import read_bag
 
-    from train_estimation.core.diagnose import diagnose
-    from train_estimation.core.measured import MeasuredRun
+    from train_estimation.core.offline.diagnose import diagnose
+    from train_estimation.core.offline.measured import MeasuredRun
     from train_estimation.tools.diagnose import TOPICS
     from train_sim.generate import generate
 

@@ -35,10 +35,11 @@ def core_modules() -> list[str]:
 def test_there_are_core_modules():
     mods = core_modules()
     assert "train_core.model" in mods and "train_core.config" in mods
-    assert "train_sim.world" in mods and "train_estimation.core.identify" in mods
+    assert "train_sim.world" in mods and "train_estimation.core.offline.identify" in mods
     # the diagnose package and every cause module are core too
-    assert {"train_estimation.core.diagnose.search", "train_estimation.core.diagnose.causes.base",
-            "train_estimation.core.measured"} <= set(mods)
+    assert {"train_estimation.core.offline.diagnose.search",
+            "train_estimation.core.offline.diagnose.causes.base",
+            "train_estimation.core.offline.measured"} <= set(mods)
 
 
 def test_core_does_not_import_the_tools():
@@ -93,4 +94,48 @@ def test_dependency_direction():
             for used in set(pat.findall(f.read_text())):
                 if used not in allowed:
                     bad.append(f"{f.relative_to(REPO)} imports {used}")
+    assert bad == []
+
+
+# the core's families (docs/nodes.md): the maths at the bottom, the filters of each paper on it,
+# the online wing (runner, adapters, integrity) on those, the offline wing (identify, diagnose,
+# fleet) beside the online one; ``core/reasons.py`` is the one vocabulary every family uses
+FAMILY_DEPS = {
+    "numerics": {"numerics"},
+    "robust": {"numerics", "robust"},
+    "braking": {"numerics", "braking"},
+    "online": {"numerics", "robust", "braking", "online"},
+    "offline": {"numerics", "offline"},
+}
+
+
+def _core_imports(path: Path, core: Path) -> set[str]:
+    """Families of the core that a module imports (relative imports resolved)."""
+    rel_pkg = path.relative_to(core).parent.parts  # e.g. ("offline", "diagnose")
+    found = set()
+    for dots, name in re.findall(r"^\s*from\s+(\.+)([\w.]*)\s+import", path.read_text(), re.M):
+        up = len(dots) - 1
+        parts = list(rel_pkg[:len(rel_pkg) - up] if up else rel_pkg) + name.split(".")
+        parts = [p for p in parts if p]
+        if parts:
+            found.add(parts[0])
+    for name in re.findall(r"^\s*(?:from|import)\s+train_estimation\.core\.(\w+)",
+                           path.read_text(), re.M):
+        found.add(name)
+    return found
+
+
+def test_core_families_depend_downwards():
+    """numerics <- robust, braking <- online; offline on numerics only: no family reaches up
+    or sideways (a filter never imports the runner, the offline wing never the online one)."""
+    core = REPO / "ros_ws" / "src" / "train_estimation" / "train_estimation" / "core"
+    assert sorted(p.name for p in core.iterdir() if p.is_dir() and p.name in FAMILY_DEPS) \
+        == sorted(FAMILY_DEPS)
+    flat = sorted(p.name for p in core.glob("*.py") if p.name not in ("__init__.py",))
+    assert flat == ["reasons.py"], f"core modules outside a family folder: {flat}"
+    bad = []
+    for fam, allowed in FAMILY_DEPS.items():
+        for f in sorted((core / fam).rglob("*.py")):
+            for used in _core_imports(f, core) - allowed - {"reasons"}:
+                bad.append(f"{f.relative_to(core)} imports core.{used}")
     assert bad == []

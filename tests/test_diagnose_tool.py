@@ -20,7 +20,7 @@ from train_core.bagio import BagWriter, read_bag
 from train_core.config import Section
 from train_core.effects import parse_effects
 
-from train_estimation.core.diagnose import CAUSES, CauseFit, Diagnosis
+from train_estimation.core.offline.diagnose import CAUSES, CauseFit, Diagnosis
 from train_estimation.tools import diagnose as tool
 from train_sim.cases import main_error, make_case
 from train_sim.generate import generate
@@ -524,8 +524,8 @@ def test_a_long_slip_episode_is_one_episode_and_a_spurious_one_is_dropped(metro,
     not pay its BIC penalty; the cause's own search returns the one episode with its depth."""
     from train_core.effects import Effects, WheelSlipEffect
 
-    from train_estimation.core.diagnose import DiagConfig, Motion, Null, Stage, prepare
-    from train_estimation.core.diagnose.causes.wheel_slip import CAUSE, refine_episodes
+    from train_estimation.core.offline.diagnose import DiagConfig, Motion, Null, Stage, prepare
+    from train_estimation.core.offline.diagnose.causes.wheel_slip import CAUSE, refine_episodes
 
     t, v = metro_run.truth["t"], metro_run.truth["velocity"]
     fast = np.flatnonzero(np.convolve(v > 8.0, np.ones(120), "valid") == 120)
@@ -597,7 +597,7 @@ def test_each_cause_states_its_resolution():
     0.5 % off are not changes; a plain effect is."""
     from train_core.model import load_train
 
-    from train_estimation.core.diagnose import BY_NAME
+    from train_estimation.core.offline.diagnose import BY_NAME
 
     train = load_train(Path(__file__).parents[1] / "ros_ws/src/train_core/config/trains"
                        / "metro_b6.yaml")

@@ -1,4 +1,5 @@
-"""The fleet report states the train-alert criterion that core/fleet.py applies: every z in the
+"""The fleet report states the train-alert criterion that core/offline/fleet.py applies: every z in
+the
 per-train tables is shown with the critical value it was tested against, and a train-parameter
 pair is alerted exactly when its |z| exceeds that value."""
 
@@ -6,7 +7,7 @@ import re
 
 import numpy as np
 
-from train_estimation.core import fleet as F
+from train_estimation.core.offline import fleet as F
 from train_estimation.tools.fleet import report_md
 
 INFO = {"when": "test", "cached": 0, "computed": 0, "wall_s": 0.0, "workers": "none"}

@@ -115,7 +115,7 @@ def test_second_day_adds_to_the_first(fleet_dir, tmp_path, capsys):
     hist = [json.loads(x) for x in (out / "history.jsonl").read_text().splitlines()]
     assert sorted(r["day"] for r in hist) == ["2026-11-01"] * 5 + ["2026-11-02"] * 6
     # the same consensus as over both days at once (days aside)
-    from train_estimation.core.fleet import consensus
+    from train_estimation.core.offline.fleet import consensus
 
     both = consensus(tool.consensus_rows([dict(r, day=None) for r in hist]))
     assert len(both.map_errors) == len(res["map_errors"]) == 1

@@ -13,14 +13,14 @@ import numpy as np
 import pytest
 from train_core.bagio import read_bag
 
-from train_estimation.core.estimators import (
+from train_estimation.core.online.estimators import (
     BrakingAdapter,
     BrakingConfig,
     RobustAdapter,
     RobustConfig,
     StartState,
 )
-from train_estimation.core.replay import replay
+from train_estimation.core.online.replay import replay
 from train_sim.scenario import load_scenario
 
 pytestmark = pytest.mark.ros

@@ -154,8 +154,8 @@ def test_diagnose_writes_report_html_with_the_replay_plot(worn, tmp_path):
 def test_extended_residual_removes_what_the_accepted_cause_explains(worn):
     """On worn brakes the believed model's residual while braking is about (f - f0) a_br
     (a_br < 0, f0 = 1); the extended model's is about zero; the replay follows the data."""
-    from train_estimation.core.diagnose import diagnose
-    from train_estimation.core.measured import MeasuredRun
+    from train_estimation.core.offline.diagnose import diagnose
+    from train_estimation.core.offline.measured import MeasuredRun
 
     sc, bag = worn
     data = MeasuredRun.from_bag(read_bag(bag))

@@ -33,5 +33,5 @@ def test_node_process_has_one_blas_thread(module):
 def test_user_choice_kept_and_offline_untouched():
     var, _ = run_probe("import train_estimation.nodes.robust_filter", OPENBLAS_NUM_THREADS="2")
     assert var == "2"
-    var, _ = run_probe("import train_estimation.core.robust_filter")
+    var, _ = run_probe("import train_estimation.core.robust.robust_filter")
     assert var == "None"

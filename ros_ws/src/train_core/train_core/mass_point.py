@@ -1,5 +1,5 @@
 """Single mass-point train model of the hybrid-filter EM paper (eq. (1)-(7)): the model both the
-simulator (``train_sim.crh3``) and the estimator (``train_estimation.core.em_model``) use.
+simulator (``train_sim.crh3``) and the estimator (``train_estimation.core.offline.em_model``) use.
 
 Continuous model (eq. (1)-(2)), specific forces in N/kN (newton per kilonewton of train weight)::
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from train_estimation.core.braking_model import C_ROWS, BrakingParams, discretize
+from train_estimation.core.braking.braking_model import C_ROWS, BrakingParams, discretize
 
 __all__ = ["simulate_open_loop"]
 

@@ -7,14 +7,14 @@ import functools
 
 import numpy as np
 
-from train_estimation.core.estimators import (
+from train_estimation.core.online.estimators import (
     BrakingAdapter,
     BrakingConfig,
     RobustAdapter,
     RobustConfig,
     StartState,
 )
-from train_estimation.core.replay import replay
+from train_estimation.core.online.replay import replay
 from train_sim.scenario import load_scenario
 from train_sim.world import simulate
 

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from train_estimation.core.augmented_kf import Events, augmented_kf, gls, kf2_loglik
+from train_estimation.core.numerics.augmented_kf import Events, augmented_kf, gls, kf2_loglik
 
 
 def _events(rng, n, balises, held):

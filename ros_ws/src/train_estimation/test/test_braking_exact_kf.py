@@ -6,14 +6,14 @@ import sys
 import numpy as np
 import pytest
 
-from train_estimation.core.batched_kf import predict, update
-from train_estimation.core.braking_filters import BrakingKF
-from train_estimation.core.braking_model import (
+from train_estimation.core.braking.braking_filters import BrakingKF
+from train_estimation.core.braking.braking_model import (
     BrakingModel,
     BrakingParams,
     continuous_matrices,
     zoh_batched,
 )
+from train_estimation.core.numerics.batched_kf import predict, update
 
 sys.path.insert(0, os.path.dirname(__file__))
 from braking_toy import simulate_open_loop  # noqa: E402  (test support: the model's own data)

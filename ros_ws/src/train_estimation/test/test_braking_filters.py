@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from scipy.linalg import expm
 
-from train_estimation.core.braking_filters import (
+from train_estimation.core.braking.braking_filters import (
     GSMA,
     QGRBPF,
     SMA,
@@ -17,8 +17,8 @@ from train_estimation.core.braking_filters import (
     neighbour_groups,
     sticky_transition,
 )
-from train_estimation.core.braking_model import BrakingModel, BrakingParams
-from train_estimation.core.smc import effective_sample_size
+from train_estimation.core.braking.braking_model import BrakingModel, BrakingParams
+from train_estimation.core.numerics.smc import effective_sample_size
 
 sys.path.insert(0, os.path.dirname(__file__))
 from braking_toy import simulate_open_loop  # noqa: E402  (test support: the model's own data)
@@ -194,7 +194,7 @@ def test_f_estimate_holds_while_coasting_after_braking(name):
     f = np.full(K_brake + K_coast, 0.6)
     u = np.column_stack([np.r_[-np.ones(K_brake), np.zeros(K_coast)], np.zeros(K_brake + K_coast)])
     # truth with the same gating as the model: gain 1 while coasting
-    from train_estimation.core.braking_model import discretize
+    from train_estimation.core.braking.braking_model import discretize
     x = X0.copy()
     ys = []
     for k in range(K_brake + K_coast):

@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from train_estimation.core.braking_model import BrakingModel, BrakingParams, discretize
+from train_estimation.core.braking.braking_model import BrakingModel, BrakingParams, discretize
 
 
 def test_hold_gain_cases():

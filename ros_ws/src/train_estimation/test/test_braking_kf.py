@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from train_estimation.core.batched_kf import mixture_moments, predict, update
-from train_estimation.core.smc import log_normalize
+from train_estimation.core.numerics.batched_kf import mixture_moments, predict, update
+from train_estimation.core.numerics.smc import log_normalize
 
 
 def _random_model(rng, n=4, p=3):

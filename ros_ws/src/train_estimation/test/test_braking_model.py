@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from scipy.linalg import expm
 
-from train_estimation.core.braking_model import (
+from train_estimation.core.braking.braking_model import (
     BrakingModel,
     BrakingParams,
     continuous_matrices,
@@ -139,7 +139,7 @@ def test_affine_prediction_equals_the_generic_kalman_prediction(noise_model):
     """``BrakingModel.predict`` (affine form, particles on the last axis inside) is the Kalman
     prediction with ``matrices`` for every particle, informative or held, and keeps P exactly
     symmetric -- also past the block size of its matrix products (many particles)."""
-    from train_estimation.core.batched_kf import predict
+    from train_estimation.core.numerics.batched_kf import predict
 
     fam = BrakingModel(BrakingParams(noise_model=noise_model, ahat_var=0.01))
     rng = np.random.default_rng(3)

@@ -8,10 +8,9 @@ import sys
 import numpy as np
 import pytest
 
-from train_estimation.core.batched_kf import mixture_moments
-from train_estimation.core.braking_base import _Set
-from train_estimation.core.braking_discrete import _merge_by_value
-from train_estimation.core.braking_filters import (
+from train_estimation.core.braking.braking_base import _Set
+from train_estimation.core.braking.braking_discrete import _merge_by_value
+from train_estimation.core.braking.braking_filters import (
     GSMA,
     QGRBPF,
     SMA,
@@ -22,8 +21,9 @@ from train_estimation.core.braking_filters import (
     grid_prior,
     sticky_transition,
 )
-from train_estimation.core.braking_model import BrakingModel, BrakingParams
-from train_estimation.core.smc import log_normalize
+from train_estimation.core.braking.braking_model import BrakingModel, BrakingParams
+from train_estimation.core.numerics.batched_kf import mixture_moments
+from train_estimation.core.numerics.smc import log_normalize
 
 sys.path.insert(0, os.path.dirname(__file__))
 from braking_toy import simulate_open_loop  # noqa: E402  (test support: the model's own data)
@@ -82,7 +82,7 @@ def test_every_prior_is_centred_on_the_given_mean_with_the_given_spread(name):
 
 
 def test_adapter_prior_follows_train_yaml():
-    from train_estimation.core.estimators import (
+    from train_estimation.core.online.estimators import (
         ALGORITHMS,
         BrakingAdapter,
         BrakingConfig,

@@ -9,7 +9,7 @@ import sys
 import numpy as np
 import pytest
 
-from train_estimation.core.clocks import StreamClock, is_step
+from train_estimation.core.numerics.clocks import StreamClock, is_step
 from train_estimation.tools import faults as F
 
 sys.path.insert(0, os.path.dirname(__file__))

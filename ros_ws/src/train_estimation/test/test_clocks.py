@@ -1,9 +1,10 @@
-"""Offline clock mapping (core/clocks.py): the odometer's stamps and log times tie the train
+"""Offline clock mapping (core/numerics/clocks.py): the odometer's stamps and log times tie
+the train
 clock to the reference clock on which control is stamped."""
 
 import numpy as np
 
-from train_estimation.core.clocks import ClockFit, control_on_train_clock
+from train_estimation.core.numerics.clocks import ClockFit, control_on_train_clock
 
 
 def _streams(epoch, drift, latency, n=600, period=0.1):

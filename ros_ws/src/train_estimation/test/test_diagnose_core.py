@@ -11,8 +11,8 @@ import math
 import numpy as np
 import pytest
 
-from train_estimation.core import diagnose as D
-from train_estimation.core.augmented_kf import Events, augmented_kf, gls, kf2_loglik
+from train_estimation.core.numerics.augmented_kf import Events, augmented_kf, gls, kf2_loglik
+from train_estimation.core.offline import diagnose as D
 
 
 def _events(rng, n=40, with_balise=True):
@@ -160,7 +160,7 @@ def test_link_is_fitted_as_a_hidden_two_state_chain(true):
     and a good one that loses 2 % (the soft link) are recovered within 4 observed-information
     standard errors (|z| > 4: P = 6e-5 per parameter); a parameter at the boundary (0 or 1),
     which has no standard error, within 0.01."""
-    from train_estimation.core.link_hmm import GilbertElliott, simulate
+    from train_estimation.core.offline.link_hmm import GilbertElliott, simulate
 
     ge = GilbertElliott(*true)
     lost = simulate(ge, 6000, np.random.default_rng(5))
@@ -205,7 +205,7 @@ def test_clock_drift_test():
 
 def test_core_does_not_read_ground_truth():
     """The measured run has no ground-truth field: the core cannot read it by construction."""
-    from train_estimation.core.measured import TOPICS, MeasuredRun
+    from train_estimation.core.offline.measured import TOPICS, MeasuredRun
 
     assert "ground_truth" not in TOPICS
     names = set(MeasuredRun.__dataclass_fields__)

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 from scipy.stats import multivariate_normal
 
-from train_estimation.core.em_model import CRH3_VARTHETA, NoiseParams, param_error
-from train_estimation.core.hybrid_em import (
+from train_estimation.core.offline.em_model import CRH3_VARTHETA, NoiseParams, param_error
+from train_estimation.core.offline.hybrid_em import (
     Prior,
     kalman_e_step,
     kalman_position,

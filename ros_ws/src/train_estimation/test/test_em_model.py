@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from train_estimation.core.em_model import (
+from train_estimation.core.offline.em_model import (
     CRH3_PARAMS,
     CRH3_VARTHETA,
     MassPointParams,

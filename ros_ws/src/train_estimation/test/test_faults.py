@@ -8,8 +8,8 @@ import sys
 import numpy as np
 import pytest
 
-from train_estimation.core.replay import replay
-from train_estimation.core.runner import Output
+from train_estimation.core.online.replay import replay
+from train_estimation.core.online.runner import Output
 from train_estimation.tools import faults as F
 
 sys.path.insert(0, os.path.dirname(__file__))

@@ -1,4 +1,4 @@
-"""Fleet consensus core (train_estimation.core.fleet) on exact inputs.
+"""Fleet consensus core (train_estimation.core.offline.fleet) on exact inputs.
 
 - inverse-variance combination, Cochran's Q, DerSimonian-Laird tau^2 and the weighted trend
   against numbers worked out by hand;
@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from train_estimation.core import fleet as F
+from train_estimation.core.offline import fleet as F
 
 
 def test_combine_by_hand():

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from train_estimation.core import reasons as R
-from train_estimation.core.replay import replay
+from train_estimation.core.online.replay import replay
 
 sys.path.insert(0, os.path.dirname(__file__))
 from clocks import adapter, errors, restamp, run  # noqa: E402

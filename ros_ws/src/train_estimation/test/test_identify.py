@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from train_core.model import Davis, Line
 
-from train_estimation.core.identify import IdentificationError, SIData, identify
+from train_estimation.core.offline.identify import IdentificationError, SIData, identify
 
 sys.path.insert(0, os.path.dirname(__file__))
 from si_synth import METRO, hilly_line, simulate_run  # noqa: E402
@@ -47,7 +47,7 @@ def test_identify_other_parameters_and_mass_flags(c_plus_30):
 
 
 def test_mass_not_identifiable_without_force_calibration():
-    from train_estimation.core.identify import SIConfig
+    from train_estimation.core.offline.identify import SIConfig
 
     run = simulate_run(METRO, LINE, np.random.default_rng(12), 900.0)
     res = identify(_data(run), LINE, METRO, SIConfig(fit_traction_gain=False))
@@ -115,7 +115,7 @@ def test_correlated_davis_terms_are_reported_and_not_all_flagged(nominal):
     """Over a run's speeds 1, v and v^2 are nearly collinear: the Davis terms' estimates are
     correlated near -1. They are reported with their correlations, keep the joint fit's values,
     and are flagged identifiable only if separable (variance inflation <= vif_max)."""
-    from train_estimation.core.identify import SIConfig
+    from train_estimation.core.offline.identify import SIConfig
 
     res, cfg = nominal, SIConfig()
     names = list(res.free_names)

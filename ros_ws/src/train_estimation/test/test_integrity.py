@@ -11,7 +11,7 @@ import sys
 import numpy as np
 import pytest
 
-from train_estimation.core.integrity import (
+from train_estimation.core.online.integrity import (
     ALARM,
     DEGRADED,
     OK,
@@ -19,8 +19,8 @@ from train_estimation.core.integrity import (
     IntegrityParams,
     _accel_cov,
 )
-from train_estimation.core.replay import replay
-from train_estimation.core.runner import Output
+from train_estimation.core.online.replay import replay
+from train_estimation.core.online.runner import Output
 
 sys.path.insert(0, os.path.dirname(__file__))
 from clocks import adapter, run  # noqa: E402

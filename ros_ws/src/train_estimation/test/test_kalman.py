@@ -1,11 +1,12 @@
-"""The Kalman toolbox: the two forms of the steps in ``core/kalman.py`` give the same numbers;
-the RTS smoother and the GLS of ``core/augmented_kf.py`` equal direct dense solves."""
+"""The Kalman toolbox: the two forms of the steps in ``core/numerics/kalman.py`` give the same
+numbers;
+the RTS smoother and the GLS of ``core/numerics/augmented_kf.py`` equal direct dense solves."""
 
 import numpy as np
 import pytest
 
-from train_estimation.core import kalman
-from train_estimation.core.augmented_kf import gls, information_condition
+from train_estimation.core.numerics import kalman
+from train_estimation.core.numerics.augmented_kf import gls, information_condition
 
 
 def _random_cov(rng):

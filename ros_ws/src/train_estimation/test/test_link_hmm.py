@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from train_core.link import Link, LinkParams
 
-from train_estimation.core import link_hmm as L
+from train_estimation.core.offline import link_hmm as L
 
 N = 6000  # a 10-minute run at 10 Hz
 

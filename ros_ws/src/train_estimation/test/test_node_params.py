@@ -9,8 +9,8 @@ import yaml
 from train_core.config import ConfigError, param_fields
 from train_core.diagnostics import EstimatorThresholds, StaleThresholds
 
-from train_estimation.core.estimators import BrakingConfig, NodeConfig, RobustConfig
-from train_estimation.core.integrity import IntegrityParams
+from train_estimation.core.online.estimators import BrakingConfig, NodeConfig, RobustConfig
+from train_estimation.core.online.integrity import IntegrityParams
 
 CONFIG = Path(__file__).resolve().parents[1] / "config"
 NODES = {"robust_filter.yaml": RobustConfig, "gsma_estimator.yaml": BrakingConfig}

@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from train_estimation.core.odometry import UNKNOWN_VARIANCE, odometry_covariances
+from train_estimation.core.online.odometry import UNKNOWN_VARIANCE, odometry_covariances
 
 
 def test_position_and_speed_variances_go_to_x_and_the_rest_is_unknown():

@@ -7,8 +7,8 @@ import sys
 import numpy as np
 
 from train_estimation.core import reasons as R
-from train_estimation.core import robust_filter
-from train_estimation.core.replay import replay
+from train_estimation.core.online.replay import replay
+from train_estimation.core.robust import robust_filter
 from train_estimation.tools import check_bag
 from train_estimation.tools.fuzz import EXPECTED, corrupt
 
@@ -25,7 +25,7 @@ def test_filters_reasons_are_the_vocabulary():
 
 
 def test_free_text_reasons_are_mapped_onto_names():
-    # phrasings of core/braking_filters.py (issue 15 owns the file; the adapter maps them)
+    # phrasings of core/braking/braking_filters.py (issue 15 owns the file; the adapter maps them)
     cases = {"non-finite measurement: [nan]": R.NON_FINITE,
              "non-positive or non-finite measurement variance: [0.0]": R.NON_POSITIVE_VARIANCE,
              "out-of-order or duplicate time stamp: 1.0 <= 2.0": R.OUT_OF_ORDER,

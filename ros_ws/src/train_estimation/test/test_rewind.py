@@ -6,7 +6,7 @@ import sys
 import numpy as np
 import pytest
 
-from train_estimation.core.replay import replay
+from train_estimation.core.online.replay import replay
 
 sys.path.insert(0, os.path.dirname(__file__))
 from clocks import adapter, errors, restamp, run  # noqa: E402

@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 from scipy.stats import norm
 from train_core.model import Balise, Brake, Davis, GradientSection, Line, TrainParams
 
-from train_estimation.core.robust_filter import (
+from train_estimation.core.robust.robust_filter import (
     BaliseReading,
     Decision,
     FilterParams,
@@ -28,7 +28,7 @@ from train_estimation.core.robust_filter import (
     robust_predict_cov,
     robust_update,
 )
-from train_estimation.core.wen_model import DiscreteWen, WenModel
+from train_estimation.core.robust.wen_model import DiscreteWen, WenModel
 
 TRAIN = TrainParams(mass=288e3, rotary_allowance=0.16, davis=Davis(3481.8036, 144.9154, 8.5212),
                     brake=Brake(0.4, 1.2))

@@ -7,8 +7,8 @@ import sys
 import numpy as np
 import pytest
 
-from train_estimation.core.replay import replay
-from train_estimation.core.runner import EstimatorRunner
+from train_estimation.core.online.replay import replay
+from train_estimation.core.online.runner import EstimatorRunner
 
 sys.path.insert(0, os.path.dirname(__file__))
 from clocks import adapter, errors, restamp, run, run_replay  # noqa: E402
@@ -221,7 +221,7 @@ def test_wild_stamps_cannot_outvote_the_clock():
     centre moved 500 s, the commands were mapped 500 s ahead and the braking filters went
     blind), they do not move the clock's centre; a clock that really steps (only far values,
     consecutively) does."""
-    from train_estimation.core.clocks import StreamClock
+    from train_estimation.core.numerics.clocks import StreamClock
 
     m = StreamClock()
     for k in range(40):

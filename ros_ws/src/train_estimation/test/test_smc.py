@@ -3,7 +3,11 @@
 import numpy as np
 import pytest
 
-from train_estimation.core.smc import effective_sample_size, log_normalize, systematic_resample
+from train_estimation.core.numerics.smc import (
+    effective_sample_size,
+    log_normalize,
+    systematic_resample,
+)
 
 
 def test_systematic_counts_are_floor_or_ceil_per_batch_element():

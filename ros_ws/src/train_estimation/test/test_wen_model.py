@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from train_core.model import Brake, Davis, GradientSection, Line, TrainParams
 
-from train_estimation.core.discretize import van_loan, zoh
-from train_estimation.core.wen_model import Actuator, WenModel
+from train_estimation.core.numerics.discretize import van_loan, zoh
+from train_estimation.core.robust.wen_model import Actuator, WenModel
 
 TRAIN = TrainParams(mass=288e3, rotary_allowance=0.16, davis=Davis(3481.8036, 144.9154, 8.5212),
                     brake=Brake(0.4, 1.2))

@@ -1,6 +1,7 @@
 """One vocabulary of rejection reasons and input events (pure, no dependencies).
 
-Every estimator core, the :class:`~train_estimation.core.runner.EstimatorRunner`, the nodes' logs
+Every estimator core, the :class:`~train_estimation.core.online.runner.EstimatorRunner`, the
+nodes' logs
 and ``check_bag`` use these names, so that a count in a node's log, a counter of the runner and a
 line of ``check_bag`` mean the same thing. A reason string is ``NAME`` or ``NAME: detail``; counts
 are kept per ``NAME`` (:func:`category`).

@@ -9,7 +9,7 @@ with its reason (throttled; names of ``core/reasons.py``) and counted; events (a
 reset, separate clocks found) are logged once each; the counts are logged at shutdown.
 
 Besides the TrainState, each estimate is published as ``nav_msgs/Odometry`` on ``odom/<name>``
-(``estimate/robust`` -> ``odom/robust``; covariances by ``core/odometry.py``), and the node's
+(``estimate/robust`` -> ``odom/robust``; covariances by ``core/online/odometry.py``), and the node's
 health (input rates, accepted and rejected counts by reason, staleness, latency, integrity) goes
 to ``/diagnostics`` once per ``diagnostics_period`` (levels by ``train_core.diagnostics``).
 """
@@ -33,10 +33,10 @@ class LineChoice:
 
 
 def declare_common(node) -> dict:
-    """Parameters every estimator node has (``core.estimators.NodeConfig``; config/*.yaml)."""
+    """Parameters every estimator node has (``core.online.estimators.NodeConfig``; config/*.yaml)."""
     from dataclasses import asdict
 
-    from train_estimation.core.estimators import NodeConfig
+    from train_estimation.core.online.estimators import NodeConfig
 
     try:
         common = asdict(declare_config(node, NodeConfig))
@@ -52,7 +52,7 @@ def load_models(common: dict):
     from train_core.files import config_file
     from train_core.model import load_line, load_train
 
-    from train_estimation.core.estimators import StartState
+    from train_estimation.core.online.estimators import StartState
 
     if not common["line_file"] and not common.get("use_demo_line", False):
         # an estimator on the wrong line map is wrong everywhere: never guess it silently
@@ -84,8 +84,8 @@ def build_estimator_node(name: str, topic: str, make_adapter: Callable):
     from train_core import diagnostics as D
     from train_core.ros import Diagnostics
 
-    from train_estimation.core.odometry import odometry_covariances
-    from train_estimation.core.runner import EstimatorRunner
+    from train_estimation.core.online.odometry import odometry_covariances
+    from train_estimation.core.online.runner import EstimatorRunner
     from train_interfaces.msg import (
         BaliseReading,
         ControlCommand,
@@ -103,7 +103,7 @@ def build_estimator_node(name: str, topic: str, make_adapter: Callable):
             except ValueError as exc:
                 raise ParameterError(str(exc)) from None
             try:
-                from train_estimation.core.integrity import IntegrityParams
+                from train_estimation.core.online.integrity import IntegrityParams
 
                 integrity = declare_config(self, IntegrityParams)
             except ValueError as exc:
@@ -249,7 +249,8 @@ def build_estimator_node(name: str, topic: str, make_adapter: Callable):
                                           f"({total} rejected so far)", throttle_duration_sec=2.0)
 
         def _odometry(self, state):
-            """The estimate as nav_msgs/Odometry (frames and covariances: core/odometry.py)."""
+            """The estimate as nav_msgs/Odometry (frames and covariances:
+            core/online/odometry.py)."""
             odom = Odometry()
             odom.header = state.header
             odom.child_frame_id = "base_link"

@@ -16,7 +16,7 @@ DESCRIPTION = __doc__.splitlines()[0]
 
 def make_adapter(node, train, line, start, common):
 
-    from train_estimation.core.estimators import BrakingAdapter, BrakingConfig
+    from train_estimation.core.online.estimators import BrakingAdapter, BrakingConfig
 
     return BrakingAdapter(train, line, start, declare_config(node, BrakingConfig))
 

@@ -16,7 +16,7 @@ DESCRIPTION = __doc__.splitlines()[0]
 
 def make_adapter(node, train, line, start, common):
 
-    from train_estimation.core.estimators import RobustAdapter, RobustConfig
+    from train_estimation.core.online.estimators import RobustAdapter, RobustConfig
 
     cfg = declare_config(node, RobustConfig, period=1.0 / common["odometer_rate"])
     return RobustAdapter(train, line, start, cfg)

@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 from train_core.bagio import Bag, BagError, read_bag
 
-from train_estimation.core.measured import topic_health
+from train_estimation.core.offline.measured import topic_health
 
 ESTIMATE_PREFIX = "estimate/"
 CHI2_95 = {1: 3.841, 2: 5.991}  # 95% quantiles of chi-square with 1 and 2 degrees of freedom

@@ -8,7 +8,7 @@ import sys
 import numpy as np
 from train_core.progress import Progress, track
 
-from train_estimation.core.diagnose.result import jsonable
+from train_estimation.core.offline.diagnose.result import jsonable
 
 # The exit-code ladder: 0 done (a diagnosis of "none" and a report listing failed bags
 # included), 1 done but a check the user asked for failed, 2 the input is unusable (one line on

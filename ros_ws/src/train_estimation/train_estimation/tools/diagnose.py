@@ -70,8 +70,8 @@ from train_core.config import ConfigError, Section, load_yaml
 from train_core.effects import Effects, effect_to_dict, parse_effects, true_line, true_train
 from train_core.model import line_from_dict, load_line, load_train, train_from_dict
 
-from train_estimation.core.diagnose.search import SCORE_FORMULA  # noqa: F401 (stated in help)
-from train_estimation.core.measured import TOPICS, MeasuredRun
+from train_estimation.core.offline.diagnose.search import SCORE_FORMULA  # noqa: F401 (stated in help)
+from train_estimation.core.offline.measured import TOPICS, MeasuredRun
 from train_estimation.tools.common import EXIT_OK, Progress, fail, jsonable, one_line
 from train_estimation.tools.report_html import write_report_html
 
@@ -106,7 +106,7 @@ def write_model(out: Path, dg, line_path: str, train_path: str, data) -> dict:
     A fitted value the files cannot hold (e.g. a gradient beyond line.yaml's +-60 per mille) is
     left out of the model with a note (printed in the summary and written into the files'
     header), never clipped silently: the report keeps the fit as it is."""
-    from train_estimation.core.diagnose import BY_NAME
+    from train_estimation.core.offline.diagnose import BY_NAME
 
     d = out / "model"
     d.mkdir(parents=True, exist_ok=True)
@@ -142,7 +142,7 @@ def write_model(out: Path, dg, line_path: str, train_path: str, data) -> dict:
 
 def model_context(dg, data, line_length: float):
     """The diagnosis' times on true time: the run's length and the accepted clock drift."""
-    from train_estimation.core.diagnose import BY_NAME, ModelContext
+    from train_estimation.core.offline.diagnose import BY_NAME, ModelContext
 
     n = len(data.odo_stamp)
     drift = sum(BY_NAME[a.cause].clock_drift(a) for a in dg.accepted)
@@ -600,7 +600,7 @@ def main(argv=None) -> int:
                    help="output directory: report.json, plots and model/ (created)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     args = p.parse_args(argv)
-    from train_estimation.core.diagnose import DiagnoseError, diagnose
+    from train_estimation.core.offline.diagnose import DiagnoseError, diagnose
 
     t0 = time.perf_counter()
     try:

@@ -193,7 +193,7 @@ def run(events: list, adapter, period: float, delay: float = 0.05, fallback: flo
     """``(outputs, emitted, runner)``: the replay of ``core.replay.replay`` (same runner, same
     steps), with ``emitted[i]`` the arrival time (s, reference clock) of the message after which
     ``outputs[i]`` was produced (the drain at the end: the last arrival)."""
-    from train_estimation.core.runner import EstimatorRunner
+    from train_estimation.core.online.runner import EstimatorRunner
 
     timed = _Timed(adapter)
     runner = EstimatorRunner(timed, period, **runner_kw)

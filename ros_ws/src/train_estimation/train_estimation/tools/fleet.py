@@ -28,7 +28,8 @@ Days: every run adds its bags to DIR/history.jsonl (one row per bag, by content,
 the manifest's ``day`` column, else --day, else today's UTC date), and the consensus is over
 the history (--days N: its N latest days; --no-history: this run's bags only). A map error
 seen on several days is confirmed by the other days' runs or withdrawn as one day's artefact
-(core/fleet.py); trends use the ``time`` column, which must then be on one clock across days.
+(core/offline/fleet.py); trends use the ``time`` column, which must then be on one clock across
+days.
 
 Output (DIR is created):
   DIR/runs.csv        one row per bag: status, reason, check_bag's received fractions, the
@@ -36,7 +37,8 @@ Output (DIR is created):
                       resistance (diagnose), braking rate and mass (identify; diagnose where
                       identify cannot identify them) and odometer scale (diagnose) with
                       standard errors, time taken
-  DIR/fleet.json      the consensus (train_estimation.core.fleet: every test and its numbers)
+  DIR/fleet.json      the consensus (train_estimation.core.offline.fleet: every test and its
+                      numbers)
   DIR/report.md       the fleet report: map errors (where, how large, how many trains and runs
                       agree, how sure), per-line resistance, train alerts (which parameter,
                       departure from the fleet or trend, z and p), per-train tables, failed bags
@@ -44,7 +46,7 @@ Output (DIR is created):
                       section; DIR/trends.png: braking rate, mass and odometer scale per train
                       against time, alerted trains highlighted
 
-Criteria (core/fleet.py): a map error = a section found by >= 2 trains, by more runs than
+Criteria (core/offline/fleet.py): a map error = a section found by >= 2 trains, by more runs than
 spurious detections explain (binomial test, Bonferroni), with consistent values (Cochran's Q);
 a train alert = |z| above the two-sided Student-t quantile, on the statistic's
 Welch-Satterthwaite degrees of freedom, of alpha / (2 x trains x parameters) (Bonferroni: a
@@ -54,7 +56,7 @@ applied to each train.
 
 Reliability: the report's first line says how many bags failed and why (reasons grouped);
 the consensus says it is unreliable where too few runs were analysed to find or exclude a map
-error (fewer than n_min runs on a line, see core/fleet.py) or to test departures (fewer than
+error (fewer than n_min runs on a line, see core/offline/fleet.py) or to test departures (fewer than
 three trains with values).
 
 Exit status: 0 when the report was written; 1 when it was written but more than --max-failed
@@ -198,8 +200,8 @@ def _analyse(task: dict) -> dict:
     from train_core.bagio import read_bag
     from train_core.model import load_line, load_train
 
-    from train_estimation.core.diagnose import diagnose
-    from train_estimation.core.measured import TOPICS, MeasuredRun, topic_health
+    from train_estimation.core.offline.diagnose import diagnose
+    from train_estimation.core.offline.measured import TOPICS, MeasuredRun, topic_health
 
     line, train = load_line(task["line"]), load_train(task["train_file"])
     out: dict = {"line": line.name}
@@ -235,7 +237,7 @@ def _analyse(task: dict) -> dict:
 
 def _identify(data, line, train) -> dict:
     """identify's braking rate and mass (its record puts control on the train clock)."""
-    from train_estimation.core.identify import IdentificationError, identify
+    from train_estimation.core.offline.identify import IdentificationError, identify
 
     d = data.to_identify()  # a bag without odometer or control fails here, as a row
     try:
@@ -295,7 +297,7 @@ def diagnosis_row(rep: dict, train) -> dict:
 
 
 def consensus_rows(rows: list[dict]) -> list[dict]:
-    """The table's rows in core.fleet's input format."""
+    """The table's rows in core.offline.fleet's input format."""
     out = []
     for r in rows:
         c = {"train": r["train"], "line": r.get("line") or Path(r["line_file"]).stem,
@@ -350,9 +352,9 @@ def worker_check(paths: dict) -> dict:
         import train_core.bagio  # noqa: F401
         from train_core.model import load_line, load_train
 
-        import train_estimation.core.diagnose  # noqa: F401
-        import train_estimation.core.identify  # noqa: F401
-        import train_estimation.core.measured  # noqa: F401
+        import train_estimation.core.offline.diagnose  # noqa: F401
+        import train_estimation.core.offline.identify  # noqa: F401
+        import train_estimation.core.offline.measured  # noqa: F401
         import train_estimation.tools.common  # noqa: F401
     except Exception as exc:  # noqa: BLE001 - reported, as what the worker lacks
         out["problem"] = f"{type(exc).__name__}: {exc}"
@@ -797,7 +799,7 @@ def report_md(res, rows: list[dict], info: dict, plots: list[str]) -> str:
           "alpha); its size is the inverse-variance combination of the runs' values. A *train "
           "alert* is a train whose parameter departs from the other trains' median "
           "(leave-one-out, robust spread) or trends in time, beyond the Bonferroni Student-t "
-          "quantile above (crit). Method: train_estimation/core/fleet.py."]
+          "quantile above (crit). Method: train_estimation/core/offline/fleet.py."]
     return "\n".join(L) + "\n"
 
 
@@ -848,7 +850,7 @@ def main(argv=None) -> int:
     from train_core.config import ConfigError
     from train_core.model import load_line
 
-    from train_estimation.core.fleet import FleetConfig, consensus
+    from train_estimation.core.offline.fleet import FleetConfig, consensus
 
     t0 = time.perf_counter()
     try:

@@ -23,7 +23,7 @@ from train_core.bagio import BagError, read_bag
 from train_core.config import ConfigError
 from train_core.model import TrainParams, load_line, load_train
 
-from train_estimation.core.measured import MeasuredRun
+from train_estimation.core.offline.measured import MeasuredRun
 from train_estimation.tools.common import EXIT_OK, Progress, fail
 
 
@@ -170,7 +170,7 @@ def main(argv=None) -> int:
     p.add_argument("--out", required=True, help="fitted train.yaml to write")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     args = p.parse_args(argv)
-    from train_estimation.core.identify import IdentificationError, identify
+    from train_estimation.core.offline.identify import IdentificationError, identify
 
     try:
         line, prior = load_line(args.line), load_train(args.train)

@@ -49,7 +49,8 @@ import math
 import numpy as np
 from scipy.stats import chi2
 
-from ..augmented_kf import gls
+from train_estimation.core.numerics.augmented_kf import gls
+
 from .motion import Motion
 from .stage import Null, Stage
 

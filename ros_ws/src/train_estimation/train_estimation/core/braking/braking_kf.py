@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .batched_kf import predict
+from ..numerics.batched_kf import predict
 from .braking_base import Estimate, RaoBlackwellFilter, _Set
 from .braking_model import augmented_model
 

@@ -32,8 +32,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .batched_kf import predict, update
-from .smc import log_normalize
+from ..numerics.batched_kf import predict, update
+from ..numerics.smc import log_normalize
 
 __all__ = ["Estimate", "RaoBlackwellFilter"]
 

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import reasons as R
+from .. import reasons as R
 
 __all__ = ["Decision", "OdometerReading", "BaliseReading", "REASONS", "covariance16"]
 

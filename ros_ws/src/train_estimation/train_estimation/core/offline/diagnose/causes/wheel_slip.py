@@ -15,8 +15,9 @@ import math
 import numpy as np
 from train_core.effects import WheelSlipEffect
 
-from ...augmented_kf import gls
-from ...identify import moving_average
+from train_estimation.core.numerics.augmented_kf import gls
+from train_estimation.core.offline.identify import moving_average
+
 from ..motion import slip_cols
 from ..stage import best_section
 from .base import Cause, resolved

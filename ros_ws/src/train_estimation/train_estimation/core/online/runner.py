@@ -16,7 +16,8 @@ phase and drift). ``control`` may be stamped on another clock (measured data: th
 receive clock). Each clock is followed by a :class:`~.clocks.StreamClock` (the streaming
 counterpart of the offline ``ClockFit``): its offset ``stamp - recv`` (``recv`` = arrival time on
 the node's clock; in a replay the bag's log time) is a robust running centre of the items that
-came on time (lateness: the one rule of ``core/clocks.py``, ``LATE`` = 0.5 s below the centre,
+came on time (lateness: the one rule of ``core/numerics/clocks.py``, ``LATE`` = 0.5 s below the
+centre,
 e.g. the burst that follows a stalled recorder or node, does not vote); a control stamp is mapped
 onto the train clock by adding ``median(odometer offset) - median(control offset)`` (the error is
 the difference of the two streams' median latencies, milliseconds for a radio link). When that
@@ -84,8 +85,8 @@ from collections import Counter, deque
 from dataclasses import dataclass, field, replace
 from typing import Protocol
 
-from . import reasons as R
-from .clocks import StreamClock, continues, is_step, paced
+from .. import reasons as R
+from ..numerics.clocks import StreamClock, continues, is_step, paced
 from .integrity import IntegrityMonitor, IntegrityParams
 
 KIND_ORDER = {"control": 0, "odometer": 1, "balise": 2}
@@ -112,7 +113,7 @@ INTEGRITY_OK, INTEGRITY_DEGRADED, INTEGRITY_ALARM = 0, 1, 2
 
 
 class Adapter(Protocol):
-    """What the runner needs from an estimator (see train_estimation.core.estimators)."""
+    """What the runner needs from an estimator (see train_estimation.core.online.estimators)."""
 
     def start(self, t0: float) -> None: ...
     def control(self, stamp: float, fields: dict) -> str: ...  # "" accepted, else a reason

@@ -1,9 +1,10 @@
 """Adapters from docs/interfaces.md message fields to the estimator cores (pure).
 
 Each adapter turns the dict fields of ``odometer``, ``balise`` and ``control`` messages into
-calls of one filter core and reports its state as a :class:`~train_estimation.core.runner.Output`.
+calls of one filter core and reports its state as a
+:class:`~train_estimation.core.online.runner.Output`.
 The ROS nodes and the offline replay (``replay.py``) use the same adapters through
-:class:`~train_estimation.core.runner.EstimatorRunner`.
+:class:`~train_estimation.core.online.runner.EstimatorRunner`.
 """
 
 from __future__ import annotations
@@ -17,14 +18,14 @@ from train_core.config import param, require
 from train_core.dynamics import GradientLookup
 from train_core.model import Line, TrainParams
 
-from . import reasons as R
-from .braking_filters import GSMA, QGRBPF, SMA, BrakingKF, DiscreteRBPF, sticky_transition
-from .braking_model import BrakingModel, BrakingParams
-from .filter_base import filter_params_from_train
-from .readings import BaliseReading, OdometerReading, covariance16
-from .robust_filter import RobustFilter
+from .. import reasons as R
+from ..braking.braking_filters import GSMA, QGRBPF, SMA, BrakingKF, DiscreteRBPF, sticky_transition
+from ..braking.braking_model import BrakingModel, BrakingParams
+from ..robust.filter_base import filter_params_from_train
+from ..robust.readings import BaliseReading, OdometerReading, covariance16
+from ..robust.robust_filter import RobustFilter
+from ..robust.wen_model import WenModel
 from .runner import Output
-from .wen_model import WenModel
 
 NAN16 = (math.nan,) * 16
 

@@ -19,7 +19,7 @@ milliseconds, never comes near, so an undisturbed bag keeps the plain least-squa
 
 Online, :class:`StreamClock` is the streaming counterpart of :class:`ClockFit`: it follows one
 clock's offset against the arrival clock and (for the train clock) its rate, one reading at a
-time, as the :class:`~train_estimation.core.runner.EstimatorRunner` admits them, and
+time, as the :class:`~train_estimation.core.online.runner.EstimatorRunner` admits them, and
 :func:`is_step` is its step test. Both wings judge lateness by the one rule below.
 
 Lateness, the one rule. Latency is never negative, so ``stamp - arrival`` of a reading can only

@@ -16,8 +16,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import reasons as R
-from .clocks import control_on_train_clock
+from .. import reasons as R
+from ..numerics.clocks import control_on_train_clock
 
 TOPICS = ("odometer", "balise", "control")  # never ground_truth
 

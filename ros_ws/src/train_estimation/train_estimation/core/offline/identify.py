@@ -62,8 +62,8 @@ from scipy.optimize import minimize
 from train_core.actuator import grid_output as actuator_output
 from train_core.model import Davis, Line, TrainParams
 
-from . import kalman
-from .augmented_kf import Events, augmented_kf, gls, information_condition
+from ..numerics import kalman
+from ..numerics.augmented_kf import Events, augmented_kf, gls, information_condition
 
 __all__ = [
     "IdentificationError",

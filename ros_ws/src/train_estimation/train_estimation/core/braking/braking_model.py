@@ -52,7 +52,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .discretize import van_loan, zoh
+from ..numerics.discretize import van_loan, zoh
 
 __all__ = [
     "BrakingParams",

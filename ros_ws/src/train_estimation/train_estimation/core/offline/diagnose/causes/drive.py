@@ -11,7 +11,7 @@ import math
 
 import numpy as np
 
-from ...augmented_kf import LOG2PI, gls
+from train_estimation.core.numerics.augmented_kf import LOG2PI, gls
 
 
 class Candidates:

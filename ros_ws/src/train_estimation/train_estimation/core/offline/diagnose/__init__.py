@@ -1,6 +1,6 @@
 """`diagnose` core: what the believed model of a train gets wrong in measured data.
 
-Given one run (``core.measured.MeasuredRun``: odometer, balise and control series with the
+Given one run (``core.offline.measured.MeasuredRun``: odometer, balise and control series with the
 bag's log times) and the railway's believed ``line.yaml``/``train.yaml``, find which of
 docs/interfaces.md's causes explains the data, fit it, and rank every cause.
 

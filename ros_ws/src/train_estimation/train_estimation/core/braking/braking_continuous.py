@@ -10,9 +10,9 @@ from __future__ import annotations
 import numpy as np
 from scipy.special import ndtr
 
-from .batched_kf import mixture_moments
+from ..numerics.batched_kf import mixture_moments
+from ..numerics.smc import log_normalize, systematic_resample
 from .braking_base import RaoBlackwellFilter, _Set, _weights, _wsum
-from .smc import log_normalize, systematic_resample
 
 __all__ = ["QGRBPF", "RandomWalkRBPF"]
 

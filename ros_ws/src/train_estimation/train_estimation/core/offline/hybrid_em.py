@@ -1,6 +1,6 @@
 """Hybrid Kalman/particle-filter EM (Section 2 of the hybrid-filter EM paper) and baselines.
 
-Model and M-step: :mod:`train_estimation.core.em_model` (eq. (1)-(7), (31)-(36)).
+Model and M-step: :mod:`train_estimation.core.offline.em_model` (eq. (1)-(7), (31)-(36)).
 
 E-steps (all vectorised: particles on the leading axis, independent data sets -- e.g. Monte Carlo
 seeds -- on trailing batch axes, so one Python loop over time serves a whole benchmark):
@@ -37,7 +37,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import kalman
+from ..numerics import kalman
+from ..numerics.smc import log_normalize, systematic_resample
 from .em_model import (
     G_PER_KN,
     NoiseParams,
@@ -50,7 +51,6 @@ from .em_model import (
     theta_change,
     velocity_drift,
 )
-from .smc import log_normalize, systematic_resample
 
 __all__ = [
     "Prior",

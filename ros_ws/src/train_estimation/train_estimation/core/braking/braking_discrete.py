@@ -10,8 +10,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.special import ndtr
 
+from ..numerics.smc import log_normalize, systematic_resample
 from .braking_base import RaoBlackwellFilter, _Set, _weights
-from .smc import log_normalize, systematic_resample
 
 __all__ = ["DiscreteRBPF", "SMA", "GSMA", "grid_prior", "cell_variance", "neighbour_groups",
            "sticky_transition"]

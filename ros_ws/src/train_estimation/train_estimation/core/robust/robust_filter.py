@@ -27,8 +27,8 @@ from dataclasses import replace
 
 import numpy as np
 
-from . import kalman
-from . import reasons as R
+from .. import reasons as R
+from ..numerics import kalman
 from .filter_base import FilterBase, FilterParams, filter_params_from_train
 from .readings import REASONS, BaliseReading, Decision, OdometerReading, covariance16
 from .robust_steps import (
@@ -203,7 +203,7 @@ def make_robust_filter(train, line, x0, t0: float = 0.0, Sigma0=None, q: float =
     ``diag(distance_variance, speed_variance)``; ``params`` are :class:`FilterParams` fields
     (``alpha_bar``, ``epsilon``, ``gate``, ``odometer_origin``, ...); ``distance_variance`` and
     ``speed_variance`` default to the odometer noise of ``train.yaml``
-    (:func:`~train_estimation.core.filter_base.filter_params_from_train`).
+    (:func:`~train_estimation.core.robust.filter_base.filter_params_from_train`).
     ``uncertainty="velocity"`` is the tight, exact structure of the v^2 term (recommended);
     ``"paper"`` reproduces Lemma 1 with E = I as printed.
     """

@@ -58,7 +58,7 @@ import numpy as np
 from train_core.dynamics import GradientLookup
 from train_core.model import Line, TrainParams
 
-from .discretize import zoh
+from ..numerics.discretize import zoh
 
 __all__ = ["WenModel", "DiscreteWen", "Actuator", "discrete_matrices"]
 

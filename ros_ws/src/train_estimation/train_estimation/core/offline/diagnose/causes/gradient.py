@@ -16,7 +16,8 @@ import math
 import numpy as np
 from train_core.effects import GradientEffect
 
-from ...augmented_kf import LOG2PI, gls
+from train_estimation.core.numerics.augmented_kf import LOG2PI, gls
+
 from ..stage import Stage, best_section
 from .base import Cause, resolved
 from .resistance import RESISTANCE_COLS

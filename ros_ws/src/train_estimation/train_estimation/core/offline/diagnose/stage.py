@@ -18,7 +18,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import minimize_scalar
 
-from ..augmented_kf import LOG2PI, augmented_kf, gls, kf2_loglik
+from train_estimation.core.numerics.augmented_kf import LOG2PI, augmented_kf, gls, kf2_loglik
+
 from .motion import Motion, slip_cols
 from .run import DiagConfig
 

@@ -15,7 +15,8 @@ from dataclasses import dataclass
 import numpy as np
 from train_core.model import Line
 
-from ..clocks import ClockFit
+from train_estimation.core.numerics.clocks import ClockFit
+
 from ..measured import MeasuredRun
 
 

@@ -24,7 +24,8 @@ import math
 import numpy as np
 from train_core.model import G, Line, TrainParams
 
-from ..augmented_kf import Events
+from train_estimation.core.numerics.augmented_kf import Events
+
 from ..identify import actuator_output, moving_average
 from .run import DiagConfig, Run
 

@@ -39,7 +39,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..augmented_kf import gls
+from train_estimation.core.numerics.augmented_kf import gls
+
 from .causes import BY_NAME
 from .gain import GainContext
 from .motion import Motion

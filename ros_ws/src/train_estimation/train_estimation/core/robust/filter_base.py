@@ -45,7 +45,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import reasons as R
+from .. import reasons as R
 from .readings import BaliseReading, Decision, OdometerReading
 from .robust_steps import Measurement
 from .wen_model import Actuator, WenModel

@@ -15,7 +15,14 @@ import math
 import numpy as np
 from train_core.effects import BurstyLinkEffect
 
-from ...link_hmm import GilbertElliott, fit_gilbert_elliott, fit_link, log_likelihood, markov_test
+from train_estimation.core.offline.link_hmm import (
+    GilbertElliott,
+    fit_gilbert_elliott,
+    fit_link,
+    log_likelihood,
+    markov_test,
+)
+
 from .base import Cause, resolved
 
 # Parameters beyond Bernoulli's one loss probability: the two transitions and the second loss

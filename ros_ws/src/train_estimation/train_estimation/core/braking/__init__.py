@@ -1,0 +1,1 @@
+"""Braking family of the estimation core (docs/nodes.md)."""

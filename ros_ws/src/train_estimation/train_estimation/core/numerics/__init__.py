@@ -1,0 +1,1 @@
+"""Numerics family of the estimation core (docs/nodes.md)."""

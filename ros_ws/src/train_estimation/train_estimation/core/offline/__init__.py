@@ -1,0 +1,1 @@
+"""Offline family of the estimation core (docs/nodes.md)."""

@@ -1,0 +1,1 @@
+"""Online family of the estimation core (docs/nodes.md)."""

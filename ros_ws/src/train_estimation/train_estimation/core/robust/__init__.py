@@ -1,0 +1,1 @@
+"""Robust family of the estimation core (docs/nodes.md)."""
