@@ -33,7 +33,8 @@ class LineChoice:
 
 
 def declare_common(node) -> dict:
-    """Parameters every estimator node has (``core.online.estimators.NodeConfig``; config/*.yaml)."""
+    """Parameters every estimator node has (``core.online.estimators.NodeConfig``;
+    config/*.yaml)."""
     from dataclasses import asdict
 
     from train_estimation.core.online.estimators import NodeConfig
