@@ -39,6 +39,8 @@ import numpy as np
 HERE = os.path.dirname(os.path.abspath(__file__))
 OUT = os.path.join(HERE, "out")
 
+from train_core.progress import Progress  # noqa: E402
+
 from train_sim.cases import CAUSES, describe, main_error, make_case  # noqa: E402
 
 MOTION = ("gradient", "resistance", "braking_rate", "brake_delay", "mass")
@@ -279,21 +281,6 @@ def unlisted_table(rows: list[dict]) -> str:
     return "\n".join(md) + "\n"
 
 
-class Bar:
-    def __init__(self, total: int, width: int = 30):
-        self.total, self.width, self.t0 = total, width, time.perf_counter()
-
-    def __call__(self, done: int, what: str = "") -> None:
-        frac = done / max(self.total, 1)
-        el = time.perf_counter() - self.t0
-        eta = el / done * (self.total - done) if done else 0.0
-        sys.stderr.write(f"\rbench diagnose [{'#' * int(round(frac * self.width)):<{self.width}}]"
-                         f" {done}/{self.total} {el:5.0f} s, eta {eta:4.0f} s {what:<30}")
-        if done >= self.total:
-            sys.stderr.write("\n")
-        sys.stderr.flush()
-
-
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="bench_diagnose", description=__doc__.splitlines()[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -318,7 +305,11 @@ def main(argv=None) -> int:
     sizes = [s for s in args.sizes.split(",") if s]
     specs = case_list(args.cases, sizes, args.pairs, args.seed, args.nominal,
                       args.unlisted)
-    bar = Bar(len(specs))
+    prog = Progress("bench diagnose")
+
+    def bar(done: int, what: str = "") -> None:
+        prog(done, len(specs), what)
+
     results = []
     bar(0)
     if args.jobs <= 1:
