@@ -26,7 +26,9 @@ from train_sim.scenario import load_scenario
 pytestmark = pytest.mark.ros
 REPO = Path(__file__).resolve().parents[1]
 BAGS = REPO / "bags"
-RATE = 10.0
+# 5x: at 10x on two cores a particle filter node falls behind its input by seconds of stamps,
+# and a sparse balise then reaches it far ahead of the odometer clock it is judged on
+RATE = 5.0
 PLAYER = [sys.executable, "-m", "train_sim.nodes.player"]
 
 

@@ -39,7 +39,8 @@ def test_estimator_publishes_odometry_and_diagnostics(launch, ros_node):
     launch.node("train_estimation", "robust_filter", "--ros-args", "-r", f"__ns:={ns}",
                 "-p", "use_sim_time:=true", "-p", f"line_file:={sc.line_path}",
                 "-p", f"train_file:={sc.train_path}",
-                "-p", f"initial_position:={sc.start_position}", "-p", "output_delay:=0.5")
+                "-p", f"initial_position:={sc.start_position}", "-p", "output_delay:=0.5",
+                "-p", "control_clock:=same")  # the simulator's launch: one clock
     ros_node.wait_for_subscribers(f"{ns}/odometer", 1)
     ros_node.wait_for_publishers(f"{ns}/odom/robust", 1)
     ros_node.spin_for(3.0)  # the estimator alone: its odometer input is missing

@@ -263,7 +263,7 @@ class EstimatorRunner:
                 return self._reject(kind, stamp, why)
         if arrival is not None and not counted:
             med.add(stamp - arrival, arrival)
-        if kind == "odometer" and recv is not None:
+        if kind in ("odometer", "control") and recv is not None:
             med.rate_point(stamp, recv)  # only stamps on time inform the rate (not a backlog's)
         if kind == "odometer" and arrival is not None and \
                 (self._odo_last is None or stamp > self._odo_last[0]):
@@ -424,11 +424,16 @@ class EstimatorRunner:
         return mapped
 
     def _drifting(self) -> bool:
-        """The train clock's rate against the arrivals differs from 1 by more than
-        ``same_clock_rate``, significantly (5 standard errors): two clocks, however close
-        their offsets still are (a clock 1 % slow is 2 s off after 200 s; taken as one until
-        then, the commands were mapped up to 2 s off)."""
-        d, se = self._offsets["train"].rate()
+        """The train clock's rate differs from the control clock's (each against the
+        arrivals) by more than ``same_clock_rate``, significantly (5 standard errors): two
+        clocks, however close their offsets still are (a clock 1 % slow is 2 s off after 200
+        s; taken as one until then, the commands were mapped up to 2 s off). Rates against
+        each other, not against the arrivals: a node falling behind its input (sim time at
+        10x on a loaded machine) sees every stream's latency grow alike, which is no second
+        clock."""
+        d_t, se_t = self._offsets["train"].rate()
+        d_c, se_c = self._offsets["control"].rate()
+        d, se = d_t - d_c, math.hypot(se_t, se_c)
         return abs(d) > max(self.same_clock_rate, 5.0 * se)
 
     @property
