@@ -88,3 +88,12 @@ def parabola(xs, lls, i: int) -> tuple[float, float]:
             x_hat = float(np.clip(-b / (2 * c2), x0, x2))
             se = 1.0 / math.sqrt(-2 * c2)
     return x_hat, se
+
+
+def untestable_without_traction(run, cfg, min_traction: float) -> str | None:
+    """Why a traction cause cannot be tested: no command of at least ``min_traction`` (m/s^2)
+    given while the train moves (None: there is one)."""
+    trac = run.ctrl_a > min_traction
+    v_at_cmd = np.interp(run.ctrl_t, run.odo_t, run.odo_v)
+    return None if np.any(trac & (v_at_cmd > cfg.standstill_speed)) else \
+        "no traction command while moving in the data"

@@ -17,7 +17,7 @@ import numpy as np
 from train_core.effects import PowerLimitEffect
 
 from .base import Cause, resolved
-from .drive import Candidates, parabola
+from .drive import Candidates, parabola, untestable_without_traction
 
 GRID = 40  # candidate powers, log-spaced
 MIN_TRACTION = 0.05  # m/s^2, traction commands below this cannot show a limit
@@ -28,10 +28,7 @@ class PowerLimit(Cause):
     family = "motion"
 
     def untestable(self, run, cfg, own) -> str | None:
-        trac = run.ctrl_a > MIN_TRACTION
-        v_at_cmd = np.interp(run.ctrl_t, run.odo_t, run.odo_v)
-        return None if np.any(trac & (v_at_cmd > cfg.standstill_speed)) else \
-            "no traction command while moving in the data"
+        return untestable_without_traction(run, cfg, MIN_TRACTION)
 
     def fit(self, st) -> tuple:
         powers = _grid(st.mo)

@@ -16,7 +16,7 @@ import numpy as np
 from train_core.effects import TractionDelayEffect
 
 from .base import Cause, resolved
-from .drive import Candidates, parabola
+from .drive import Candidates, parabola, untestable_without_traction
 
 MIN_TRACTION = 0.05  # m/s^2, as power_limit: a traction command that can show a delay
 _COLUMNS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # Motion -> its columns
@@ -27,10 +27,7 @@ class TractionDelay(Cause):
     family = "motion"
 
     def untestable(self, run, cfg, own) -> str | None:
-        trac = run.ctrl_a > MIN_TRACTION
-        v_at_cmd = np.interp(run.ctrl_t, run.odo_t, run.odo_v)
-        return None if np.any(trac & (v_at_cmd > cfg.standstill_speed)) else \
-            "no traction command while moving in the data"
+        return untestable_without_traction(run, cfg, MIN_TRACTION)
 
     def fit(self, st) -> tuple:
         """Profile over (s, d > 0) on the grids of brake_delay; the delay refined by a parabola
