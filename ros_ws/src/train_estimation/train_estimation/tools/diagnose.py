@@ -281,10 +281,7 @@ def plot_position(s: dict, path: Path, dg=None) -> bool:
     a0.set_title(_title(dg, "residual acceleration along the line"))
     for ax in (a0, a1):
         ax.grid(alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    return True
+    return _save(fig, path)
 
 
 def plot_speed(s: dict, path: Path, dg=None) -> bool:
@@ -327,10 +324,7 @@ def plot_speed(s: dict, path: Path, dg=None) -> bool:
     axes[0].set_ylabel("residual accel. (m/s^2)")
     axes[0].legend(fontsize=8)
     fig.suptitle(_title(dg, "residual acceleration against speed and commands"), fontsize=10)
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    return True
+    return _save(fig, path)
 
 
 def _extended(s: dict, r: np.ndarray):
@@ -387,10 +381,7 @@ def plot_speed_trace(s: dict, path: Path, dg=None) -> bool:
     for ax in axes:
         ax.grid(alpha=0.3)
     axes[0].set_title(_title(dg, "speed trace"))
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    return True
+    return _save(fig, path)
 
 
 def plot_loss_runs(s: dict, path: Path, dg=None) -> bool:
@@ -419,10 +410,7 @@ def plot_loss_runs(s: dict, path: Path, dg=None) -> bool:
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3)
     ax.set_title(_title(dg, "loss runs"))
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    return True
+    return _save(fig, path)
 
 
 def plot_replay(s: dict, path: Path, dg=None) -> bool:
@@ -456,10 +444,7 @@ def plot_replay(s: dict, path: Path, dg=None) -> bool:
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8, loc="upper right")
     a0.set_title(_title(dg, "recorded commands replayed open loop, before/after"))
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    return True
+    return _save(fig, path)
 
 
 PHASE_COLOURS = (("traction", "C0"), ("coasting", "C2"), ("braking", "C3"))
@@ -497,16 +482,21 @@ def plot_phases(s: dict, path: Path, dg=None) -> bool:
     axes[0].set_ylabel("residual accel., believed model (m/s^2)")
     axes[0].legend(fontsize=7)
     fig.suptitle(_title(dg, "residual by phase"), fontsize=10)
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    return True
+    return _save(fig, path)
 
 
 PLOTS = (("residual_position.png", plot_position), ("residual_speed.png", plot_speed),
          ("residual_phases.png", plot_phases),
          ("speed_trace.png", plot_speed_trace), ("loss_runs.png", plot_loss_runs),
          ("replay.png", plot_replay))
+
+
+def _save(fig, path: Path) -> bool:
+    """Lay out, write and close a plot (every plot of this module ends so)."""
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    _plt().close(fig)
+    return True
 
 
 def _title(dg, what: str) -> str:
