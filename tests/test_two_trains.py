@@ -11,7 +11,7 @@ import yaml
 from train_sim.scenario import load_scenario
 
 pytestmark = pytest.mark.ros
-RATE = 10.0
+RATE = 5.0  # sim s per wall s: at 10x one busy CI core made the estimates stale (0.3 s of wall)
 DURATION = 90.0  # s of simulated time
 KILL_AT = 60.0  # s: the leader's estimator is killed then
 LENGTH, MARGIN, K = 120.0, 20.0, 3.0  # zone controller's train length, margin, k sigma
@@ -42,7 +42,7 @@ def test_two_trains_under_one_zone_controller(launch, ros_node, tmp_path):
     launch.node("train_sim", "zone_controller", "--ros-args", "-p", "use_sim_time:=true",
                 "-p", "trains:=[/lead, /follow]", "-p", "state_topic:=estimate/robust",
                 "-p", f"line_file:={base.line_path}", "-p", f"train_length:={LENGTH}",
-                "-p", f"margin:={MARGIN}", "-p", f"k_sigma:={K}", "-p", "stale_timeout:=3.0",
+                "-p", f"margin:={MARGIN}", "-p", f"k_sigma:={K}", "-p", "stale_timeout:=5.0",
                 "-p", "rate:=2.0", name="zone_controller")
     estimators = {}
     for ns, (start, _) in trains.items():
