@@ -232,3 +232,12 @@ def require(ok: bool, name: str, value, what: str) -> None:
     the config dataclass's ``__post_init__``)."""
     if not ok:
         raise ConfigError(f"parameter {name}: {value!r} {what}")
+
+
+def require_finite(obj, names, *, above: float = 0.0, strict: bool = True) -> None:
+    """``require`` for several numeric fields of ``obj`` at once: each finite and > ``above``
+    (>= ``above`` when not ``strict``)."""
+    for name in names:
+        v = getattr(obj, name)
+        ok = math.isfinite(v) and (v > above if strict else v >= above)
+        require(ok, name, v, f"must be finite and {'>' if strict else '>='} {above:g}")

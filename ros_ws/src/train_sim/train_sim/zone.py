@@ -62,7 +62,7 @@ import math
 from collections import deque
 from dataclasses import dataclass, field
 
-from train_core.config import param, require
+from train_core.config import param, require, require_finite
 
 
 @dataclass(frozen=True)
@@ -96,10 +96,8 @@ class ZoneParams:
                                "an estimator's clock reset is followed")
 
     def __post_init__(self):
-        for name in ("k_sigma", "stale_timeout", "measurement_timeout", "emergency_decel",
-                     "degraded_timeout", "max_future"):
-            v = getattr(self, name)
-            require(math.isfinite(v) and v > 0, name, v, "must be > 0")
+        require_finite(self, ("k_sigma", "stale_timeout", "measurement_timeout",
+                              "emergency_decel", "degraded_timeout", "max_future"))
         require(int(self.reset_reports) == self.reset_reports and self.reset_reports >= 2,
                 "reset_reports", self.reset_reports, "must be an integer >= 2")
 
@@ -119,9 +117,7 @@ class ZoneNodeConfig:
                                 "once per train in this interval (with the count)")
 
     def __post_init__(self):
-        for name in ("rate", "log_interval"):
-            v = getattr(self, name)
-            require(math.isfinite(v) and v > 0, name, v, "must be > 0")
+        require_finite(self, ("rate", "log_interval"))
 
 
 # Integrity values of TrainState

@@ -14,7 +14,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from train_core.config import param, require
+from train_core.config import param, require, require_finite
 from train_core.dynamics import GradientLookup
 from train_core.model import Line, TrainParams
 
@@ -62,9 +62,7 @@ class NodeConfig:
                                       "many subscribers (a recorder sees every estimate)")
 
     def __post_init__(self):
-        for key in ("initial_position_std", "odometer_rate"):
-            v = getattr(self, key)
-            require(math.isfinite(v) and v > 0, key, v, "must be > 0")
+        require_finite(self, ("initial_position_std", "odometer_rate"))
         require(math.isfinite(self.output_delay) and self.output_delay >= 0, "output_delay",
                 self.output_delay, "must be >= 0")
 

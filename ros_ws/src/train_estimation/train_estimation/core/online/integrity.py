@@ -61,7 +61,7 @@ from collections import deque
 from dataclasses import dataclass, replace
 
 import numpy as np
-from train_core.config import param, require
+from train_core.config import param, require, require_finite
 
 OK, DEGRADED, ALARM = 0, 1, 2
 UNBOUNDED = 1e12  # m^2, (m/s)^2: the variance published when the filter's is not usable
@@ -92,10 +92,9 @@ class IntegrityParams:
                                    "arrive: DEGRADED")
 
     def __post_init__(self):
-        for k in ("degraded_after", "alarm_after", "accel_uncertainty", "max_acceleration",
-                  "nis_z", "nis_alarm", "reanchor_hold", "command_timeout"):
-            v = getattr(self, k)
-            require(math.isfinite(v) and v >= 0, k, v, "must be finite and >= 0")
+        require_finite(self, ("degraded_after", "alarm_after", "accel_uncertainty",
+                              "max_acceleration", "nis_z", "nis_alarm", "reanchor_hold",
+                              "command_timeout"), strict=False)
         require(self.alarm_after > self.degraded_after, "alarm_after", self.alarm_after,
                 "must be > degraded_after")
         require(self.blind_readings >= 1, "blind_readings", self.blind_readings, "must be >= 1")
