@@ -126,6 +126,18 @@ def launch(ros_env, tmp_path, request):
         sys.stderr.write(launcher.logs())
 
 
+_ROS_FIXTURES = {"launch", "ros_node"}  # node processes, rclpy in the test
+
+
+def pytest_collection_modifyitems(config, items):
+    """Every test that starts processes in the ROS environment is marked ``ros``, whether or not
+    its module says so: ``./run test`` runs those one at a time on an otherwise idle machine
+    (their timing is real time) after the rest has run in parallel."""
+    for item in items:
+        if _ROS_FIXTURES & set(getattr(item, "fixturenames", ())):
+            item.add_marker(pytest.mark.ros)
+
+
 @pytest.hookimpl(hookwrapper=True)
 def pytest_runtest_makereport(item, call):
     outcome = yield
