@@ -12,6 +12,7 @@ are profiled over grids (the causes do that).
 
 from __future__ import annotations
 
+import hashlib
 import math
 from dataclasses import dataclass, field
 
@@ -63,16 +64,26 @@ class Stage:
             mv = mv + eps * b
         self.fv, self.fs, self.md, self.mv = fv, fs, md, mv
         self.update = update  # events whose measurement the filter uses (None: all)
+        # The search meets the same null more than once (the next stage's null is the last
+        # refit's extended null; a stage rebuilt at the same noise): its noise fit and big
+        # filter, deterministic functions of these inputs, are computed once per run.
+        memo = _memo(mo)
+        key = _key(repr(cfg), fv, fs, md, mv)
         if noise is None:
-            noise = self._fit_noise()
+            if ("noise", key) not in memo:
+                memo["noise", key] = self._fit_noise()
+            noise = memo["noise", key]
         self.q, self.r_s = noise
         if not big:
             return
         # the big run: [fixed, s0, elementary drift columns..., scale]
         self.p = mo.Dv.shape[1]
-        self.kf = self.augmented(fv, fs, drift=(mo.Dv, mo.Ds),
-                                 meas=(mo.sc_d[:, None], mo.sc_v[:, None]), keep_innov=True,
-                                 update=update)
+        kkey = ("big", key, _key(self.q, self.r_s, update))
+        if kkey not in memo:
+            memo[kkey] = self.augmented(fv, fs, drift=(mo.Dv, mo.Ds),
+                                        meas=(mo.sc_d[:, None], mo.sc_v[:, None]),
+                                        keep_innov=True, update=update)
+        self.kf = memo[kkey]
         self.n_meas = self.kf.m
 
     def augmented(self, fv: np.ndarray, fs: np.ndarray, drift=None, meas=None, **kw):
@@ -215,6 +226,25 @@ class Stage:
 
     def null_ll(self) -> float:
         return self.fit({}, [])[2]
+
+
+def _memo(mo: Motion) -> dict:
+    """The per-run memo of noise fits and big filters (on the Motion: it lives as long as the
+    run's analysis; the big filters' results are shared, never modified)."""
+    return mo.__dict__.setdefault("_stage_memo", {})
+
+
+def _key(*parts) -> bytes:
+    """A digest of arrays (their bytes) and other values (their repr)."""
+    h = hashlib.blake2b(digest_size=20)
+    for x in parts:
+        if isinstance(x, np.ndarray):
+            h.update(str((x.dtype, x.shape)).encode())
+            h.update(np.ascontiguousarray(x).tobytes())
+        else:
+            h.update(repr(x).encode())
+        h.update(b"|")
+    return h.digest()
 
 
 def best_section(W: np.ndarray, u: np.ndarray, e1: np.ndarray, idx: np.ndarray, min_len: int,
