@@ -76,18 +76,21 @@ def _peak_rss_mb() -> float:
 
 def throughput(tasks, workers: int, memory: bool = False):
     """Wall time of the bags on a started, warmed-up cluster (start-up excluded) and bags per
-    minute; with ``memory`` also each worker's peak RSS (MB) after the run."""
+    minute; with ``memory`` also each worker's peak RSS (MB) after the run and the CPU time
+    the workers spent (s, all workers)."""
     from dask.distributed import Client
 
     with tool.local_cluster(workers) as cluster, Client(cluster) as client:
         client.run(_warm)
+        c0 = client.run(time.process_time)
         t0 = time.perf_counter()
         rows = tool.run_tasks(tasks, workers, None, progress=False, client=client)
         wall = time.perf_counter() - t0
+        c1 = client.run(time.process_time)
         rss = sorted(client.run(_peak_rss_mb).values()) if memory else []
     assert not any(r.get("error") for r in rows), [r["error"] for r in rows if r.get("error")]
     if memory:
-        return wall, 60.0 * len(tasks) / wall, rss
+        return wall, 60.0 * len(tasks) / wall, rss, sum(c1[w] - c0[w] for w in c1)
     return wall, 60.0 * len(tasks) / wall
 
 
@@ -115,12 +118,16 @@ def day(a, say) -> None:
         say()
         res = {w: throughput(tasks, w, memory=True) for w in (1, 2)}
         say("| workers | bags | wall (s) | bags per minute | s per bag per worker "
-            "| peak RSS per worker (MB) | 2,000 bags (extrapolated) |")
-        say("|---|---|---|---|---|---|---|")
-        for w, (wall, rate, rss) in res.items():
-            say(f"| {w} | {n} | {wall:.0f} | {rate:.2f} | {w * wall / n:.1f} | "
+            "| CPU s per bag | peak RSS per worker (MB) | 2,000 bags (extrapolated) |")
+        say("|---|---|---|---|---|---|---|---|")
+        for w, (wall, rate, rss, cpu) in res.items():
+            say(f"| {w} | {n} | {wall:.0f} | {rate:.2f} | {w * wall / n:.1f} | {cpu / n:.1f} | "
                 f"{', '.join(f'{m:.0f}' for m in rss)} | {DAY_BAGS / rate:.0f} min |")
         say()
+        cpu = res[1][3] / n
+        say(f"CPU time: {cpu:.1f} s per bag (1 worker); 2 workers with a core each: "
+            f"{DAY_BAGS} x {cpu:.1f} s / 2 / 60 = {DAY_BAGS * cpu / 120.0:.0f} min for "
+            f"{DAY_BAGS} bags (the wall times above include the machine's other load)")
         r1, r2 = res[1][1], res[2][1]
         say(f"extrapolation: {DAY_BAGS} bags / {r1:.2f} bags per minute = "
             f"{DAY_BAGS / r1:.0f} min on 1 worker; {DAY_BAGS} / {r2:.2f} = "
