@@ -4,7 +4,7 @@
     ./run bench fleet [--trains 8] [--runs 2] [--degraded 2] [--stops 1] [--timing-bags 6]
                       [--draws 20] [--seed 3] [--permille 5] [--f-first 0.85] [--f-last 0.75]
                       [--no-timing]
-    ./run bench fleet --day [--day-trains 4] [--day-runs 5] [--seed 3]
+    ./run bench fleet --day [--day-trains 4] [--day-runs 4] [--seed 3]
 
 
 1. A fleet from ``train_sim.fleet`` (trains x runs on two lines, the hidden map error on
@@ -21,14 +21,14 @@
    runs, so the rates are of the consensus on these runs, not of independent fleets.
 
 --day: a scaled-down simulated day instead. A railway's day is 100 trains x 20 runs of 10
-minutes (2,000 bags); --day-trains x --day-runs of them (default 4 x 5 = 20 bags, 1 % of the
-day) are written by ``train_sim.fleet`` with three stations per run (10-minute bags: about 8
-minutes of driving, then standing at the terminus; the map error and --degraded trains as
-above) and analysed as ``fleet`` does (check_bag's topic health + identify + diagnose, no
-cache) on a LocalCluster of 1 and then of 2 single-threaded worker processes, in this one run:
-bags per minute, seconds per bag, each worker's peak memory (RSS), and the time of 2,000 bags
-extrapolated from each rate with its arithmetic. On a quiet 2-core machine the default takes
-about 10 minutes.
+minutes (2,000 bags); --day-trains x --day-runs of them (default 4 x 4 = 16 bags, 0.8 % of the
+day) are written by ``train_sim.fleet`` with three stations per run (10-minute bags: 6-8
+minutes of driving and station stops, then standing at the terminus; the map error and
+--degraded trains as above) and analysed as ``fleet`` does (check_bag's topic health +
+identify + diagnose, no cache) on a LocalCluster of 1 and then of 2 single-threaded worker
+processes, in this one run: bags per minute, seconds per bag, the workers' CPU time per bag,
+each worker's peak memory (RSS), and the time of 2,000 bags extrapolated from each rate with
+its arithmetic. On a quiet 2-core machine the default takes about 10 minutes.
 
 Prints the tables (and writes benchmarks/out/fleet.md, --day: benchmarks/out/fleet_day.md).
 """
@@ -166,7 +166,7 @@ def main() -> int:
                         "bags per minute, peak memory per worker and the extrapolation to "
                         "2,000 bags (about 10 minutes with the defaults)")
     p.add_argument("--day-trains", type=int, default=4, help="--day: trains (default 4)")
-    p.add_argument("--day-runs", type=int, default=5, help="--day: runs per train (default 5)")
+    p.add_argument("--day-runs", type=int, default=4, help="--day: runs per train (default 4)")
     a = p.parse_args()
     lines = []
 
