@@ -4,6 +4,8 @@
     ./run bench fleet [--trains 8] [--runs 2] [--degraded 2] [--stops 1] [--timing-bags 6]
                       [--draws 20] [--seed 3] [--permille 5] [--f-first 0.85] [--f-last 0.75]
                       [--no-timing]
+    ./run bench fleet --day [--day-trains 4] [--day-runs 4] [--seed 3]
+
 
 1. A fleet from ``train_sim.fleet`` (trains x runs on two lines, the hidden map error on
    ``north``, degraded brakes on the first --degraded trains) is written once.
@@ -18,7 +20,17 @@
    degraded trains of the subset). The subsets are drawn from one simulated fleet: they share
    runs, so the rates are of the consensus on these runs, not of independent fleets.
 
-Prints the tables (and writes benchmarks/out/fleet.md).
+--day: a scaled-down simulated day instead. A railway's day is 100 trains x 20 runs of 10
+minutes (2,000 bags); --day-trains x --day-runs of them (default 4 x 4 = 16 bags, 0.8 % of the
+day) are written by ``train_sim.fleet`` with three stations per run (10-minute bags: 6-8
+minutes of driving and station stops, then standing at the terminus; the map error and
+--degraded trains as above) and analysed as ``fleet`` does (check_bag's topic health +
+identify + diagnose, no cache) on a LocalCluster of 1 and then of 2 single-threaded worker
+processes, in this one run: bags per minute, seconds per bag, the workers' CPU time per bag,
+each worker's peak memory (RSS), and the time of 2,000 bags extrapolated from each rate with
+its arithmetic. On a quiet 2-core machine the default takes about 10 minutes.
+
+Prints the tables (and writes benchmarks/out/fleet.md, --day: benchmarks/out/fleet_day.md).
 """
 
 from __future__ import annotations
@@ -55,17 +67,73 @@ def _warm() -> bool:
     return True
 
 
-def throughput(tasks, workers: int) -> tuple[float, float]:
-    """Wall time of the bags on a started, warmed-up cluster (start-up excluded)."""
+def _peak_rss_mb() -> float:
+    """This process's peak resident memory (MB; Linux reports ru_maxrss in KiB)."""
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def throughput(tasks, workers: int, memory: bool = False):
+    """Wall time of the bags on a started, warmed-up cluster (start-up excluded) and bags per
+    minute; with ``memory`` also each worker's peak RSS (MB) after the run and the CPU time
+    the workers spent (s, all workers)."""
     from dask.distributed import Client
 
     with tool.local_cluster(workers) as cluster, Client(cluster) as client:
         client.run(_warm)
+        c0 = client.run(time.process_time)
         t0 = time.perf_counter()
         rows = tool.run_tasks(tasks, workers, None, progress=False, client=client)
         wall = time.perf_counter() - t0
+        c1 = client.run(time.process_time)
+        rss = sorted(client.run(_peak_rss_mb).values()) if memory else []
     assert not any(r.get("error") for r in rows), [r["error"] for r in rows if r.get("error")]
+    if memory:
+        return wall, 60.0 * len(tasks) / wall, rss, sum(c1[w] - c0[w] for w in c1)
     return wall, 60.0 * len(tasks) / wall
+
+
+DAY_BAGS = 2000  # 100 trains x 20 runs of 10 minutes
+
+
+def day(a, say) -> None:
+    """The --day mode (module docstring)."""
+    with tempfile.TemporaryDirectory(prefix="bench_fleet_day_") as d:
+        t0 = time.perf_counter()
+        spec = FleetSpec(trains=a.day_trains, runs=a.day_runs,
+                         degraded=min(a.degraded, a.day_trains), seed=a.seed, stops=3,
+                         dwell=40.0, map_error=("north", 1000.0, 1400.0, a.permille),
+                         f_first=a.f_first, f_last=a.f_last)
+        write_fleet(d, spec)
+        tasks = tasks_of(d)
+        n = len(tasks)
+        say(f"./run bench fleet --day --day-trains {a.day_trains} --day-runs {a.day_runs} "
+            f"--seed {a.seed} ({time.strftime('%Y-%m-%d', time.gmtime())})")
+        say(f"day sample: {a.day_trains} trains x {a.day_runs} runs = {n} bags of 600 s "
+            f"({100.0 * n / DAY_BAGS:.1f} % of a {DAY_BAGS}-bag day), written in "
+            f"{time.perf_counter() - t0:.0f} s")
+        say(f"machine: {os.cpu_count()} cores, load average before timing "
+            f"{os.getloadavg()[0]:.2f}")
+        say()
+        res = {w: throughput(tasks, w, memory=True) for w in (1, 2)}
+        say("| workers | bags | wall (s) | bags per minute | s per bag per worker "
+            "| CPU s per bag | peak RSS per worker (MB) | 2,000 bags (extrapolated) |")
+        say("|---|---|---|---|---|---|---|---|")
+        for w, (wall, rate, rss, cpu) in res.items():
+            say(f"| {w} | {n} | {wall:.0f} | {rate:.2f} | {w * wall / n:.1f} | {cpu / n:.1f} | "
+                f"{', '.join(f'{m:.0f}' for m in rss)} | {DAY_BAGS / rate:.0f} min |")
+        say()
+        cpu = res[1][3] / n
+        say(f"CPU time: {cpu:.1f} s per bag (1 worker); 2 workers with a core each: "
+            f"{DAY_BAGS} x {cpu:.1f} s / 2 / 60 = {DAY_BAGS * cpu / 120.0:.0f} min for "
+            f"{DAY_BAGS} bags (the wall times above include the machine's other load)")
+        r1, r2 = res[1][1], res[2][1]
+        say(f"extrapolation: {DAY_BAGS} bags / {r1:.2f} bags per minute = "
+            f"{DAY_BAGS / r1:.0f} min on 1 worker; {DAY_BAGS} / {r2:.2f} = "
+            f"{DAY_BAGS / r2:.0f} min ({DAY_BAGS / r2 / 60.0:.1f} h) on 2 workers "
+            f"(target < 60 min); 2 / 1 workers {r2 / r1:.2f}x (target >= 1.8x); load average "
+            f"after {os.getloadavg()[0]:.2f}")
 
 
 def judge(rows, truth, trains) -> tuple[bool, bool]:
@@ -93,12 +161,25 @@ def main() -> int:
     p.add_argument("--f-first", type=float, default=0.85, help="degraded f in the first run")
     p.add_argument("--f-last", type=float, default=0.75, help="degraded f in the last run")
     p.add_argument("--no-timing", action="store_true", help="accuracy only")
+    p.add_argument("--day", action="store_true",
+                   help="a scaled-down simulated day of 10-minute bags on 1 and 2 workers: "
+                        "bags per minute, peak memory per worker and the extrapolation to "
+                        "2,000 bags (about 10 minutes with the defaults)")
+    p.add_argument("--day-trains", type=int, default=4, help="--day: trains (default 4)")
+    p.add_argument("--day-runs", type=int, default=4, help="--day: runs per train (default 4)")
     a = p.parse_args()
     lines = []
 
     def say(s=""):
         print(s, flush=True)
         lines.append(s)
+
+    if a.day:
+        day(a, say)
+        os.makedirs(OUT, exist_ok=True)
+        with open(os.path.join(OUT, "fleet_day.md"), "w") as fh:
+            fh.write("\n".join(lines) + "\n")
+        return 0
 
     with tempfile.TemporaryDirectory(prefix="bench_fleet_") as d:
         t0 = time.perf_counter()

@@ -204,7 +204,12 @@ def grid_output(t_grid, ctrl_t, ctrl_a, tau: float, delay: float,
         # The grid, the delay and the command stamps often sit on one lattice (0.1 s): without
         # a tolerance, round-off puts some grid points one command late, a 0.1 s jitter of the
         # input that biased a, c and f on metro_demo (found by benchmarks/bench_identify.py).
-        i = np.searchsorted(ctrl_t, t_grid - d + 1e-9, side="right") - 1
+        # i[k] = (number of stamps <= t_grid[k] - d + 1e-9) - 1, counted from the stamps' side
+        # (each stamp's first grid point at or after it): a search per command instead of
+        # per grid point, the same comparisons
+        x = t_grid - d + 1e-9
+        first = np.searchsorted(x, ctrl_t, side="left")
+        i = np.cumsum(np.bincount(first, minlength=x.size + 1)[:x.size]) - 1
         cmd = np.where(i >= 0, ctrl_a[np.clip(i, 0, None)], 0.0)
         # y[k] = e y[k-1] + (1 - e) x[k-1]: exact for a command held over each grid step
         out.append(lfilter([0.0, 1.0 - e], [1.0, -e], part(cmd, 0.0)))

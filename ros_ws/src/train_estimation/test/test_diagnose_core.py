@@ -210,3 +210,27 @@ def test_core_does_not_read_ground_truth():
     assert "ground_truth" not in TOPICS
     names = set(MeasuredRun.__dataclass_fields__)
     assert not any("truth" in n for n in names)
+
+
+def test_fixed_lls_equal_one_gls_fit_each():
+    """Stage.fixed_lls (every profile point of a grid in one gather) is Stage.fit(f, [])."""
+    from types import SimpleNamespace
+
+    from train_estimation.core.offline.diagnose.stage import Stage
+
+    rng = np.random.default_rng(7)
+    ev = _events(rng)
+    n, p = ev.t.size, 5
+    Bv, Bs = rng.normal(size=(n, p + 3)) * 0.1, rng.normal(size=(n, p + 3)) * 0.05
+    Md, Mv = rng.normal(size=(n, p + 3)) * 0.2, rng.normal(size=(n, p + 3)) * 0.1
+    for M in (Bv, Bs, Md, Mv):
+        M[:, 1] = 0.0
+    Mb = np.zeros((n, p + 3))
+    Mb[:, 1] = 1.0
+    st = Stage.__new__(Stage)
+    st.p, st.mo = p, SimpleNamespace(col={f"c{i}": i for i in range(p)})
+    st.kf = augmented_kf(ev, 0.02, 0.3, Bv, Bs, Md, Mv, Mb, 2.0)
+    fixed = [{}, {"c0": 1.0}, {"c1": -1.0, "c3": 1.0, "scale": 0.5},
+             {"c4": 2.0, "c2": -0.5, "c0": 1.5, "scale": -1.0}]
+    want = [st.fit(f, [])[2] for f in fixed]
+    assert st.fixed_lls(fixed) == pytest.approx(want, rel=1e-11)

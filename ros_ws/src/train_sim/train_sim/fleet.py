@@ -14,7 +14,8 @@ Writes (OUTDIR is created):
                                         their f per run, each run's true mass
 
 The world: ``north`` is the shipped metro_demo line (A -> B -> C), ``south`` a 5.2 km line with
-three stations written here (P -> Q -> R); ``--stops 1`` ends every run at the first stop.
+four stations written here (P -> Q -> R -> S); ``--stops 1`` ends every run at the first stop,
+``--stops 3`` serves three (north B, C, D; south Q, R, S: 10-minute bags, a real day's runs).
 Run k of train i is on ``north`` when i + k is even, else on ``south``: every train runs on
 both lines. Hidden from the believed files:
 
@@ -62,11 +63,15 @@ SOUTH_LINE = {
     ],
     "stations": [{"name": "P", "position": 100.0, "dwell": 10.0},
                  {"name": "Q", "position": 2000.0, "dwell": 20.0},
-                 {"name": "R", "position": 4100.0, "dwell": 20.0}],
+                 {"name": "R", "position": 4100.0, "dwell": 20.0},
+                 {"name": "S", "position": 5100.0, "dwell": 20.0}],
+    # the balise 40 m before S is past R: runs that end at R (--stops 1, 2) never read it
     "balises": [{"id": i + 1, "position": p} for i, p in enumerate(
-        (60.0, 500.0, 1000.0, 1500.0, 1960.0, 2500.0, 3100.0, 3600.0, 4060.0, 4700.0))],
+        (60.0, 500.0, 1000.0, 1500.0, 1960.0, 2500.0, 3100.0, 3600.0, 4060.0, 4700.0,
+         5060.0))],
 }
-ROUTES = {"north": ("B", "C"), "south": ("Q", "R")}
+ROUTES = {"north": ("B", "C", "D"), "south": ("Q", "R", "S")}
+DURATION = {1: 200.0, 2: 360.0, 3: 600.0}  # s, a run's record by the stations it serves
 START = {"north": 100.0, "south": 100.0}
 
 
@@ -81,7 +86,7 @@ class FleetSpec:
     f_last: float = 0.75  # ... and in its last run
     load_std: float = 0.01  # relative sd of the per-run true mass
     dwell: float = 15.0  # s at the intermediate station
-    stops: int = 2  # stations served after the start: 2 (6-minute runs) or 1 (3.3 minutes)
+    stops: int = 2  # stations served after the start: 3 (10-minute runs), 2 (6) or 1 (3.3)
     link_p: tuple = (0.2, 0.45)  # Bernoulli frame error rate range (r = 2)
     extra: dict = field(default_factory=dict)
 
@@ -127,15 +132,17 @@ def plan(spec: FleetSpec) -> list[dict]:
 
 
 def _scenario_dict(r: dict, spec: FleetSpec, line_path: Path, train_path: Path) -> dict:
-    a, b = ROUTES[r["line"]]
+    route = ROUTES[r["line"]]
+    n_stops = max(1, min(spec.stops, 3))
     return {"name": f"fleet-{r['train']}-r{r['run']}-{r['line']}",
             "line": str(line_path), "train": str(train_path), "seed": r["seed"],
-            "duration": 360.0 if spec.stops >= 2 else 200.0,
+            "duration": DURATION[min(max(spec.stops, 1), 3)],
             "start": {"position": START[r["line"]], "speed": 0.0},
             "sensors": {"odometer_rate": 10.0, "stamp_epoch": r["epoch"]},
             "driver": {"mode": "ato", "control_period": 0.1, "initial_dwell": 5.0},
-            "timetable": [{"station": a, "dwell": spec.dwell},
-                          {"station": b, "dwell": 30.0}][:max(1, min(spec.stops, 2))],
+            # the first station spec.dwell, the later ones 30 s
+            "timetable": [{"station": st, "dwell": spec.dwell if i == 0 else 30.0}
+                          for i, st in enumerate(route[:n_stops])],
             "link": {"model": "bernoulli", "p": r["link_p"], "r": 2, "latency": 0.02,
                      "jitter": 0.005},
             "effects": r["effects"]}
@@ -203,8 +210,9 @@ def main(argv=None) -> int:
     p.add_argument("--f-first", type=float, default=0.85)
     p.add_argument("--f-last", type=float, default=0.75)
     p.add_argument("--load-std", type=float, default=0.01)
-    p.add_argument("--stops", type=int, default=2, choices=(1, 2),
-                   help="stations served per run: 2 (6-minute bags, default) or 1 (200 s)")
+    p.add_argument("--stops", type=int, default=2, choices=(1, 2, 3),
+                   help="stations served per run: 3 (10-minute bags), 2 (6-minute bags, "
+                        "default) or 1 (200 s)")
     a = p.parse_args(argv)
     if a.degraded > a.trains or a.trains < 1 or a.runs < 1:
         print("train_sim.fleet: need 1 <= trains, 1 <= runs, degraded <= trains",

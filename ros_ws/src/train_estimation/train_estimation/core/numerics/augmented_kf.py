@@ -179,8 +179,10 @@ def kf2_loglik(ev: Events, q: float, r_s: float, bv, bs, md, mv, q_held: float) 
     """The fast path of :func:`augmented_kf` for two columns, [fixed model, s0]: the profile
     log-likelihood with s0 eliminated exactly by GLS, as ``gls(W, I)`` on the general filter
     with ``Bv = [bv, 0]``, ``Bs = [bs, 0]``, ``Md = [md, 0]``, ``Mv = [mv, 0]``, ``Mb = [0, 1]``
-    gives (tested equal). A scalar loop without arrays: a noise fit calls it some 40 times,
-    where the general filter's per-event matrix work would dominate."""
+    gives (tested equal). A scalar loop on Python floats with kalman.predict_cov,
+    odometer_update and balise_update written out (no calls, no tuples, no arrays): a noise
+    fit calls it some 30 times, and per event the general filter's array work, or calls,
+    would cost several times the arithmetic."""
     n = ev.t.size
     xs0, xv0 = ev.y_d[0] - md[0], ev.y_v[0] - mv[0]
     xs1 = xv1 = 0.0
@@ -190,40 +192,50 @@ def kf2_loglik(ev: Events, q: float, r_s: float, bv, bs, md, mv, q_held: float) 
     t, kind, yd, yv, rv, held = (ev.t.tolist(), ev.kind.tolist(), ev.y_d.tolist(),
                                  ev.y_v.tolist(), ev.r_v.tolist(), ev.held.tolist())
     bv, bs, md, mv = bv.tolist(), bs.tolist(), md.tolist(), mv.tolist()
+    log = math.log
+    t_prev = t[0]
     for k in range(1, n):
-        h = t[k] - t[k - 1]
+        tk = t[k]
+        h = tk - t_prev
+        t_prev = tk
         qk = q_held if held[k] else q
         xs0 += h * xv0 + bs[k]
         xv0 += bv[k]
         xs1 += h * xv1
-        p00, p01, p11 = predict_cov(p00, p01, p11, h, qk)
+        p00, p01, p11 = (p00 + 2 * h * p01 + h * h * p11 + qk * h ** 3 / 3.0,
+                         p01 + h * p11 + qk * h * h / 2.0, p11 + qk * h)
         if kind[k] == 0:
-            _, _, _, det, (i00, i01, i11), (k00, k01, k10, k11), pn = odometer_update(
-                p00, p01, p11, r_s, rv[k])
+            s00, s11 = p00 + r_s, p11 + rv[k]
+            det = s00 * s11 - p01 * p01
+            i00, i01, i11 = s11 / det, -p01 / det, s00 / det
+            k00, k01 = p00 * i00 + p01 * i01, p00 * i01 + p01 * i11
+            k10, k11 = p01 * i00 + p11 * i01, p01 * i01 + p11 * i11
             es0, ev0 = yd[k] - xs0 - md[k], yv[k] - xv0 - mv[k]
             es1, ev1 = -xs1, -xv1
             w00 += es0 * (i00 * es0 + i01 * ev0) + ev0 * (i01 * es0 + i11 * ev0)
             w01 += es0 * (i00 * es1 + i01 * ev1) + ev0 * (i01 * es1 + i11 * ev1)
             w11 += es1 * (i00 * es1 + i01 * ev1) + ev1 * (i01 * es1 + i11 * ev1)
-            logdet += math.log(det)
+            logdet += log(det)
             m += 2
             xs0 += k00 * es0 + k01 * ev0
             xv0 += k10 * es0 + k11 * ev0
             xs1 += k00 * es1 + k01 * ev1
             xv1 += k10 * es1 + k11 * ev1
-            p00, p01, p11 = pn
+            p00, p01, p11 = ((1 - k00) * p00 - k01 * p01, (1 - k00) * p01 - k01 * p11,
+                             -k10 * p01 + (1 - k11) * p11)
         else:
-            s, (k0, k1), pn = balise_update(p00, p01, p11, rv[k])
+            s = p00 + rv[k]
+            k0, k1 = p00 / s, p01 / s
             e0, e1 = yd[k] - xs0, -xs1 - 1.0
             w00 += e0 * e0 / s
             w01 += e0 * e1 / s
             w11 += e1 * e1 / s
-            logdet += math.log(s)
+            logdet += log(s)
             m += 1
             xs0 += k0 * e0
             xv0 += k1 * e0
             xs1 += k0 * e1
             xv1 += k1 * e1
-            p00, p01, p11 = pn
+            p00, p01, p11 = (1 - k0) * p00, (1 - k0) * p01, p11 - k1 * p01
     quad = w00 - w01 * w01 / w11 if w11 > 0 else w00
     return -0.5 * (logdet + m * LOG2PI + quad)

@@ -12,6 +12,7 @@ are profiled over grids (the causes do that).
 
 from __future__ import annotations
 
+import hashlib
 import math
 from dataclasses import dataclass, field
 
@@ -63,16 +64,26 @@ class Stage:
             mv = mv + eps * b
         self.fv, self.fs, self.md, self.mv = fv, fs, md, mv
         self.update = update  # events whose measurement the filter uses (None: all)
+        # The search meets the same null more than once (the next stage's null is the last
+        # refit's extended null; a stage rebuilt at the same noise): its noise fit and big
+        # filter, deterministic functions of these inputs, are computed once per run.
+        memo = _memo(mo)
+        key = _key(repr(cfg), fv, fs, md, mv)
         if noise is None:
-            noise = self._fit_noise()
+            if ("noise", key) not in memo:
+                memo["noise", key] = self._fit_noise()
+            noise = memo["noise", key]
         self.q, self.r_s = noise
         if not big:
             return
         # the big run: [fixed, s0, elementary drift columns..., scale]
         self.p = mo.Dv.shape[1]
-        self.kf = self.augmented(fv, fs, drift=(mo.Dv, mo.Ds),
-                                 meas=(mo.sc_d[:, None], mo.sc_v[:, None]), keep_innov=True,
-                                 update=update)
+        kkey = ("big", key, _key(self.q, self.r_s, update))
+        if kkey not in memo:
+            memo[kkey] = self.augmented(fv, fs, drift=(mo.Dv, mo.Ds),
+                                        meas=(mo.sc_d[:, None], mo.sc_v[:, None]),
+                                        keep_innov=True, update=update)
+        self.kf = memo[kkey]
         self.n_meas = self.kf.m
 
     def augmented(self, fv: np.ndarray, fs: np.ndarray, drift=None, meas=None, **kw):
@@ -167,16 +178,33 @@ class Stage:
         ll = -0.5 * (self.kf.logdet + self.kf.m * LOG2PI + quad)
         return th[1:], cov[1:, 1:], ll, th[0]
 
+    def fixed_lls(self, fixed: list) -> np.ndarray:
+        """``fit(f, [])[2]`` for every fixed combination f in ``fixed`` at once (s0 the only
+        free parameter, profiled in closed form): with u the combination over the big filter's
+        z, w = W u, quad = u^T W u - (w_1)^2 / W_11, gathered from W's entries at the few
+        columns each combination touches."""
+        W = self.kf.W
+        width = 1 + max((len(f) for f in fixed), default=0)
+        idx = np.zeros((len(fixed), width), np.int64)  # column 0 (the data) in slot 0
+        c = np.zeros((len(fixed), width))
+        c[:, 0] = 1.0
+        for r, f in enumerate(fixed):
+            for i, (name, v) in enumerate(f.items()):
+                idx[r, i + 1], c[r, i + 1] = self.j(name), v
+        uwu = np.einsum("ka,kb,kab->k", c, c, W[idx[:, :, None], idx[:, None, :]])
+        b = np.einsum("ka,ka->k", c, W[idx, 1])
+        quad = uwu - b * b / W[1, 1] if W[1, 1] > 0 else uwu
+        return -0.5 * (self.kf.logdet + self.kf.m * LOG2PI + quad)
+
     def loglik_of_quad(self, quad: float) -> float:
         """The big filter's log-likelihood for a quadratic form z^T W z = ``quad``."""
         return -0.5 * (self.kf.logdet + self.kf.m * LOG2PI + quad)
 
     def nuisance_shift(self) -> tuple[float, float]:
         """Best common command-time offset under the null (both chains re-timed): (s, ll)."""
+        lls = self.fixed_lls([self.retime(float(s), 0.0) for s in self.mo.shifts])
         best = (-math.inf, 0.0)
-        for s in self.mo.shifts:
-            fixed = self.retime(float(s), 0.0)
-            ll = self.fit(fixed, [])[2]
+        for s, ll in zip(self.mo.shifts, lls.tolist()):
             best = max(best, (ll, float(s)))
         return best[1], best[0]
 
@@ -198,6 +226,25 @@ class Stage:
 
     def null_ll(self) -> float:
         return self.fit({}, [])[2]
+
+
+def _memo(mo: Motion) -> dict:
+    """The per-run memo of noise fits and big filters (on the Motion: it lives as long as the
+    run's analysis; the big filters' results are shared, never modified)."""
+    return mo.__dict__.setdefault("_stage_memo", {})
+
+
+def _key(*parts) -> bytes:
+    """A digest of arrays (their bytes) and other values (their repr)."""
+    h = hashlib.blake2b(digest_size=20)
+    for x in parts:
+        if isinstance(x, np.ndarray):
+            h.update(str((x.dtype, x.shape)).encode())
+            h.update(np.ascontiguousarray(x).tobytes())
+        else:
+            h.update(repr(x).encode())
+        h.update(b"|")
+    return h.digest()
 
 
 def best_section(W: np.ndarray, u: np.ndarray, e1: np.ndarray, idx: np.ndarray, min_len: int,

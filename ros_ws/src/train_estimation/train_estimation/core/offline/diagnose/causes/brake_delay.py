@@ -24,7 +24,7 @@ class BrakeDelay(Cause):
         """Profile over (common offset, extra braking delay > 0): the brake chain's own
         timing; the delay refined by a parabola through the profile at the best offset."""
         mo = st.mo
-        prof = {}
+        grid = []
         for s in mo.shifts:
             for d in mo.delays:
                 if d <= 0.0:
@@ -32,8 +32,9 @@ class BrakeDelay(Cause):
                 key = round(float(s + d), 6)
                 if key not in mo.braking_cols and key != 0.0:
                     continue
-                ll = st.fit(st.retime(float(s), float(d)), [])[2]
-                prof[(float(s), float(d))] = ll
+                grid.append((float(s), float(d)))
+        lls = st.fixed_lls([st.retime(s, d) for s, d in grid]).tolist() if grid else []
+        prof = dict(zip(grid, lls))
         if not prof:
             return -math.inf, 1, {}, {}, {}
         (s_b, d_b), ll = max(prof.items(), key=lambda kv: kv[1])
