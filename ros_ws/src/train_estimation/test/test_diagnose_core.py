@@ -234,3 +234,32 @@ def test_fixed_lls_equal_one_gls_fit_each():
              {"c4": 2.0, "c2": -0.5, "c0": 1.5, "scale": -1.0}]
     want = [st.fit(f, [])[2] for f in fixed]
     assert st.fixed_lls(fixed) == pytest.approx(want, rel=1e-11)
+
+
+def test_measured_run_gives_identify_each_series_in_stamp_order_once():
+    """A bag holds messages in arrival order: a jittery link reorders them and may deliver one
+    twice. identify gets each series sorted by stamp with a repeated stamp's first reading."""
+    from train_estimation.core.offline.measured import MeasuredRun
+
+    rng = np.random.default_rng(5)
+    t = np.arange(0.0, 60.0, 0.1) + 1.7e9
+    recv = t + 0.05 + rng.exponential(0.3, t.size)  # latency with a tail: reordered arrivals
+    arrival = np.argsort(recv, kind="stable")
+    arrival = np.insert(arrival, 100, arrival[99])  # one reading delivered twice
+    ct = t[::5]
+    c_arrival = np.argsort(ct + rng.exponential(0.3, ct.size), kind="stable")
+    bt = np.array([t[50], t[300]])
+    run = MeasuredRun(
+        odo_stamp=t[arrival], odo_recv=recv[arrival], odo_seq=arrival.astype(np.int64),
+        odo_distance=(2.0 * (t - t[0]))[arrival], odo_speed=np.full(arrival.size, 2.0),
+        odo_speed_variance=np.full(arrival.size, 0.01), ctrl_stamp=ct[c_arrival],
+        ctrl_a_tar=np.linspace(-1, 1, ct.size)[c_arrival], balise_stamp=bt[::-1],
+        balise_recv=bt[::-1] + 0.1, balise_id=np.array([2, 1]),
+        balise_position=np.array([600.0, 100.0]), balise_variance=np.array([1.0, 1.0]),
+        ctrl_recv=(ct + 0.1)[c_arrival])
+    si = run.to_identify()
+    assert np.array_equal(si.odo_t, t)
+    assert np.array_equal(si.odo_distance, 2.0 * (t - t[0]))
+    assert np.array_equal(si.ctrl_t, ct)
+    assert np.array_equal(si.ctrl_a_tar, np.linspace(-1, 1, ct.size))
+    assert np.array_equal(si.balise_t, bt) and np.array_equal(si.balise_position, [100.0, 600.0])

@@ -84,12 +84,29 @@ class MeasuredRun:
         ctrl_recv = self.ctrl_recv if self.ctrl_recv is not None else np.array([])
         ctrl_t = control_on_train_clock(self.odo_stamp, self.odo_recv, self.ctrl_stamp,
                                         ctrl_recv)
-        has_bal = len(self.balise_stamp) > 0
+        # A bag holds messages in arrival order: a link with jitter reorders them and may
+        # deliver one twice. identify wants each series in stamp order, one reading a stamp
+        # (the first kept), as diagnose prepares it.
+        o = _stamp_order(self.odo_stamp)
+        c = _stamp_order(ctrl_t)
+        b = _stamp_order(self.balise_stamp)
+        has_bal = b.size > 0
         return SIData(
-            odo_t=self.odo_stamp, odo_distance=self.odo_distance, odo_speed=self.odo_speed,
-            odo_speed_variance=self.odo_speed_variance, ctrl_t=ctrl_t, ctrl_a_tar=self.ctrl_a_tar,
-            balise_t=self.balise_stamp if has_bal else None,
-            balise_position=self.balise_position if has_bal else None)
+            odo_t=self.odo_stamp[o], odo_distance=self.odo_distance[o],
+            odo_speed=self.odo_speed[o], odo_speed_variance=self.odo_speed_variance[o],
+            ctrl_t=ctrl_t[c], ctrl_a_tar=self.ctrl_a_tar[c],
+            balise_t=self.balise_stamp[b] if has_bal else None,
+            balise_position=self.balise_position[b] if has_bal else None)
+
+
+def _stamp_order(stamp) -> np.ndarray:
+    """Indices of ``stamp`` in increasing order, a repeated stamp's first reading only."""
+    stamp = np.asarray(stamp, float)
+    if stamp.size == 0:
+        return np.zeros(0, dtype=int)
+    idx = np.argsort(stamp, kind="stable")
+    keep = np.concatenate([[True], np.diff(stamp[idx]) > 0])
+    return idx[keep]
 
 
 # TrainState fields where NaN is a value by design: "not estimated" (docs/interfaces.md), e.g.
