@@ -435,9 +435,12 @@ def test_hidden_effect_is_found(cause, size, seed, tmp_path, capsys):
     stamps = np.array([s for _, s, _ in bag.topics["odometer"]])
     truth = case.truth_in_bag(float(stamps.min()), float(stamps.max()))
     assert tool.main(["--bag", str(tmp_path / "bag"), "--line", str(paths["line"]), "--train",
-                      str(paths["train"]), "--out", str(tmp_path / "out"), "--quiet"]) == 0
+                      str(paths["train"]), "--out", str(tmp_path / "out"), "--quiet",
+                      "--no-plots"]) == 0  # the verdict; the plots have tests of their own
     rep = json.loads((tmp_path / "out" / "report.json").read_text())
     assert capsys.readouterr().out.strip().splitlines()[-1] == f"cause: {rep['cause']}"
+    assert (tmp_path / "out" / "report.html").is_file()
+    assert not list((tmp_path / "out").glob("*.png"))  # --no-plots
     names = [r["cause"] for r in rep["ranking"]]
     if not case.causes:
         assert rep["cause"] == "none", rep["ranking"][:3]
@@ -579,7 +582,8 @@ def test_an_effect_outside_the_list_is_unexplained(kind, seed, tmp_path, capsys)
     paths = uc.write(tmp_path / "case")
     generate(uc.scenario, tmp_path / "bag", measured=True)
     assert tool.main(["--bag", str(tmp_path / "bag"), "--line", str(paths["line"]), "--train",
-                      str(paths["train"]), "--out", str(tmp_path / "out"), "--quiet"]) == 0
+                      str(paths["train"]), "--out", str(tmp_path / "out"), "--quiet",
+                      "--no-plots"]) == 0  # the verdict; the plots have tests of their own
     rep = json.loads((tmp_path / "out" / "report.json").read_text())
     out = capsys.readouterr().out
     confirmed = [r["cause"] for r in rep["ranking"]

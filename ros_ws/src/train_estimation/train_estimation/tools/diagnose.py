@@ -589,6 +589,9 @@ def main(argv=None) -> int:
     p.add_argument("--out", required=True,
                    help="output directory: report.json, plots and model/ (created)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--no-plots", action="store_true",
+                   help="no PNG plots (report.json, model/ and report.html without figures; "
+                        "the plots take longer than the analysis on a short bag)")
     args = p.parse_args(argv)
     from train_estimation.core.offline.diagnose import DiagnoseError, diagnose
 
@@ -607,7 +610,8 @@ def main(argv=None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     (out / "report.json").write_text(json.dumps(dg.to_json(), indent=1) + "\n")
     model = write_model(out, dg, args.line, args.train, data)
-    write_plots(dg.series, out, dg)
+    if not args.no_plots:
+        write_plots(dg.series, out, dg)
     lines = summary(dg, args.bag, data, elapsed, model)
     lines.insert(-1, f"report: {write_report_html(out, 'diagnose')}")  # "cause: ..." stays last
     print("\n".join(lines))
