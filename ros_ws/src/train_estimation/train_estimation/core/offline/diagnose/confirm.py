@@ -44,7 +44,7 @@ from train_estimation.core.numerics.augmented_kf import gls
 from .causes import BY_NAME
 from .gain import GainContext
 from .motion import Motion
-from .phases import cancelling, piece_of, split_test
+from .phases import cancelling, flexible_rival, piece_of, place_test, split_test
 from .result import CauseFit
 from .run import DiagConfig
 from .stage import Null, Stage
@@ -60,6 +60,9 @@ class ConfirmConfig:
     split_alpha: float = 1e-3
     # -, a cell of the split contradicts the cause when its multiplier moves by more than this
     split_min_share: float = 0.5
+    # a cause that acts in every phase (Cause.phase_rival) seen in one phase only is not
+    # confirmed: it cannot be told from an effect of that phase or of that moment
+    one_phase: bool = False
 
 
 CONFIRM = ConfirmConfig()
@@ -102,17 +105,50 @@ def confirm(mo: Motion, shift: float, accepted: list, resolved_before: dict, cfg
                 a.status, a.why = "not confirmed", cancel[a.cause]
                 checks[a.cause]["cancels"] = cancel[a.cause]
         confirmed = [a for a in accepted if a.status == "confirmed"]
+        motion = [a for a in confirmed if BY_NAME[a.cause].in_motion_model]
+    if len(motion) >= 2:
+        # causes confirmed together: each must do better than a flexible term in the phases
+        # and speeds it acts in (two listed causes can share out one effect outside the list)
+        for a in motion:
+            others = _null_of(mo, shift, [b for b in confirmed if b is not a])
+            fr = flexible_rival(mo, others, _null_of(mo, shift, confirmed), cfg, noise,
+                                _n_params(a))
+            checks[a.cause]["flexible"] = fr
+            if not fr["better"]:
+                a.status = "not confirmed"
+                a.why = (f"with {', '.join(b.cause for b in motion if b is not a)} it does no "
+                         f"better than a free acceleration per phase and speed band "
+                         f"({fr['k_flexible']} cells) in place of it")
+        confirmed = [a for a in accepted if a.status == "confirmed"]
     for a in confirmed:
         if not BY_NAME[a.cause].in_motion_model:
             continue
         others = _null_of(mo, shift, [b for b in confirmed if b is not a])
         full = _null_of(mo, shift, confirmed)
+        cause = BY_NAME[a.cause]
         sp = split_test(mo, others, full, cfg, noise, ccfg.split_alpha, ccfg.split_min_share)
         checks[a.cause]["split"] = sp
+        seen = sp.get("phases_seen", [])
         if sp.get("contradicted"):
             a.status = "not confirmed"
             a.why = f"contradicted by the phase split: {sp['why']}"
+        elif ccfg.one_phase and cause.phase_rival and len(seen) < 2:
+            a.status = "not confirmed"
+            a.why = (f"cannot be told from {cause.phase_rival} (one phase only where it acts: "
+                     f"{seen[0] if seen else 'none'} seen)")
+        if a.status != "confirmed" or (bey := cause.beyond(a, mo)) is None:
+            continue
+        pt = place_test(mo, full, cfg, noise, *bey, ccfg.split_alpha, ccfg.split_min_share)
+        checks[a.cause]["place"] = pt
+        if pt.get("contradicted"):
+            a.status = "not confirmed"
+            a.why = pt["why"]
     return checks
+
+
+def _n_params(fit: CauseFit) -> int:
+    """The number of the cause's fitted parameters (for the BIC comparisons)."""
+    return max(1, sum(np.size(v) for v in fit.parameters.values()))
 
 
 def _null_of(mo: Motion, shift: float, fits: list) -> Null:
