@@ -20,7 +20,9 @@ structure when its p-value is below ``alpha`` / (number of families) (Bonferroni
 carries it when its extra acceleration is more than ``cell_z`` standard errors and more than
 ``min_accel`` from zero. The strongest family (smallest p-value) gives one ``unexplained``
 entry; its cells are then put into the model and the families tested again (at most
-``max_entries``).
+``max_entries``). The entry's phase is named only where the data show the pattern absent
+from the other phases (per-phase families; a place or time cell run in one phase only
+gives ``all``).
 
 **Split test** (:func:`split_test`). A confirmed cause's contribution d (its drift columns:
 the model with it minus the model without it) is split into cells (phase x speed tercile,
@@ -34,7 +36,15 @@ shows in traction but not in braking).
 mostly (> half of its energy) inside a structure still found in the residuals, while that
 structure lies mostly outside the cause's own support, is one instance of something that
 recurs where the cause does not act (a gradient section on one braking approach while every
-braking approach shows the same weaker braking at low speed).
+braking approach shows the same weaker braking at low speed). Likewise a structure lying
+mostly where the cause acts with more than half the cause's own acceleration there: the
+cause does not describe what acts there.
+
+**Place test** (:func:`place_test`). A cause fitted on a stretch, continued beyond it in the
+same phases and speed terciles with a free multiplier per cell, must not be needed there.
+
+**Flexible rival** (:func:`flexible_rival`). A cause confirmed with others must explain the
+data better (BIC) than free accelerations per phase x speed quarter where it acts.
 
 **Causes that cancel** (:func:`cancelling`). Two confirmed causes whose contributions are
 each large in a phase (> 1/4 of their own energy there) while their sum there is small (< 1/4
