@@ -41,7 +41,7 @@ mostly where the cause acts with more than half the cause's own acceleration the
 cause does not describe what acts there.
 
 **Place test** (:func:`place_test`). A cause fitted on a stretch, continued beyond it in the
-same phases and speed terciles with a free multiplier per cell, must not be needed there.
+same phases and speed halves with a free multiplier per cell, must not be needed there.
 
 **Flexible rival** (:func:`flexible_rival`). A cause confirmed with others must explain the
 data better (BIC) than free accelerations per phase x speed quarter where it acts.
@@ -68,6 +68,9 @@ PHASES = ("traction", "coasting", "braking")
 PHASE_ACCEL = 0.02  # m/s^2, a command part above this sets the phase
 ONSET = 4.0  # s, window after a command onset
 MIN_CELL_TIME = 5.0  # s, cells with less moving time are dropped
+# s, a cell of the place test holds at least this much time outside the stretch (a stop's last
+# few m/s of braking last a few seconds; the cell's standard error states what it can test)
+PLACE_MIN_TIME = 1.0
 # a cell tests a cause's prediction when a departure of min_share of it there would be a
 # Z_SEEN-standard-error result (a two-sided 0.3 % chance under the cause)
 Z_SEEN = 3.0
@@ -348,7 +351,7 @@ def place_test(mo: Motion, full: Null, cfg, noise, inside: np.ndarray, beyond: n
     """Whether a cause fitted on a stretch of track (``inside``: its grid points) acts at that
     place or in a phase and speed band everywhere: the cause's effect continued beyond its
     stretch (``beyond``: m/s^2 per grid point if it acted at every place) gets a free multiplier
-    per cell (phase x speed tercile of the stretch) outside the stretch, on top of the model
+    per cell (phase x speed half of the stretch) outside the stretch, on top of the model
     ``full``. A place effect leaves these at 0; a chi-square at ``alpha`` with a cell needing
     more than ``min_share`` of the effect (beyond 3 SE, the same sign) says the same shows at
     the other places run in that phase and speed (braking weaker at low speed at every stop,
@@ -361,8 +364,10 @@ def place_test(mo: Motion, full: Null, cfg, noise, inside: np.ndarray, beyond: n
     if not on.any() or not out_.any():
         res["note"] = "no data outside the stretch in its phases"
         return res
-    vt = np.quantile(v[on], [1 / 3, 2 / 3])
-    vb = [(0.0, vt[0]), (vt[0], vt[1]), (vt[1], np.inf)]
+    # speed halves of the stretch: a stop's last metres are run for a few seconds only, and a
+    # finer band at low speed would hold too little of the other stops to test
+    vm = float(np.median(v[on]))
+    vb = [(0.0, vm), (vm, np.inf)]
     cols, labels = [], []
     e_in = float(np.sum(beyond[on] ** 2))
     for p in range(3):
@@ -372,7 +377,7 @@ def place_test(mo: Motion, full: Null, cfg, noise, inside: np.ndarray, beyond: n
             # cells of the phases and speeds the stretch itself holds, with data outside it
             if (np.sum(beyond[on & band] ** 2) < 0.02 * e_in
                     or np.sum(beyond[cell] ** 2) < 0.02 * e_in
-                    or cell.sum() * mo.grid.dt < MIN_CELL_TIME):
+                    or cell.sum() * mo.grid.dt < PLACE_MIN_TIME):
                 continue
             cols.append(beyond * cell)
             labels.append(f"in {PHASES[p]} at {a:.0f}-{min(b, 999):.0f} m/s")
