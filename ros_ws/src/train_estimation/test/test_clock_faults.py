@@ -88,3 +88,46 @@ def test_a_node_catching_up_is_not_above_its_clock():
     assert c.value < -2.5 and c.ceiling == pytest.approx(-0.05)
     assert c.above(-0.05) == pytest.approx(0.0, abs=1e-9)
     assert c.above(-0.05 + 3.0) == pytest.approx(3.0)
+
+
+def test_one_wild_offset_does_not_lift_the_ceiling():
+    """The ceiling (where the clock is when the latency is least) follows the centre: a wild
+    stamp among the first readings, or one stamped 4.9 s ahead later, is no clock."""
+    c = StreamClock()
+    c.add(-0.05, 0.0)
+    c.add(1e9, 0.0)  # among the first: voted before any centre existed
+    for k in range(1, 40):
+        c.add(-0.05, 0.1 * k)
+        if k == 20:
+            c.add(4.9, 2.0)  # within tol of the centre: it votes, but is no clock
+    assert c.value == pytest.approx(-0.05) and c.ceiling == pytest.approx(-0.05)
+    assert c.above(-0.05 + 5.0) == pytest.approx(5.0)
+
+
+def _with_copies(events, copies):
+    """``events`` (faults.inject's stream) with copies of odometer readings stamped wrong:
+    ``copies`` = {true sampling time: stamp error}, each copy arriving with its original."""
+    out = []
+    for topic, stamp, fields, recv in events:
+        out.append((topic, stamp, fields, recv))
+        t = round(stamp - F.EPOCH, 6)
+        if topic == "odometer" and t in copies:
+            out.append((topic, stamp + copies[t], dict(fields), recv))
+    return out
+
+
+def test_a_wild_first_stamp_does_not_let_a_later_one_take_a_slot():
+    """1 Hz odometer (crh3_high_speed), kf: a copy of the second reading stamped 1e9 s ahead,
+    then a copy of the 8th stamped 5 s ahead. The first must not raise the clock's ceiling (it
+    did, for 600 readings: the second then passed as on time, was fused at its wrong stamp,
+    took the genuine reading's slot and left the kf up to 6 m off with sigma 0.4 m, integrity
+    OK); the second is refused as stamped ahead of its clock."""
+    sc, res = run("crh3_high_speed", 0, 40.0)
+    assert sc.odometer_rate == 1.0
+    fl = F.inject(res.events(), F.Fault("none"), np.random.default_rng(0))
+    events = _with_copies(fl.events, {1.0: 1e9, 8.0: 5.0})
+    outs, emitted, runner = F.run(events, adapter(sc, "kf"), 1.0)
+    s = F.score(outs, emitted, fl, res.truth, 1.0, 40.0 + F.LATENCY)
+    assert runner.rejected.get("odometer:future_stamp") == 2, runner.counts
+    assert "odometer:duplicate" not in runner.rejected, runner.counts
+    assert s["wrong_side"] == 0 and s["hazards"] == 0, s
