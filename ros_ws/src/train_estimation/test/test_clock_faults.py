@@ -131,3 +131,55 @@ def test_a_wild_first_stamp_does_not_let_a_later_one_take_a_slot():
     assert runner.rejected.get("odometer:future_stamp") == 2, runner.counts
     assert "odometer:duplicate" not in runner.rejected, runner.counts
     assert s["wrong_side"] == 0 and s["hazards"] == 0, s
+
+
+@pytest.mark.parametrize("size", [0.2, -0.1])
+def test_a_small_clock_step_is_re_anchored(size):
+    """Steps below step_back (0.3 s at 10 Hz) on a link with little jitter: every offset of the
+    new clock moves alike, which jitter cannot do, so the step is watched and re-anchored
+    (left alone, 0.2 s left the kf 4 m off at 20 m/s with sigma 0.1 m, integrity OK)."""
+    s, runner = _campaign_case(F.Fault("step", size, at=20.0))
+    assert runner.events.get("odometer:clock_reset") == 1, runner.counts
+    assert runner._train_shift == pytest.approx(size, abs=0.02)
+    assert s["wrong_side"] == 0 and s["hazards"] == 0, s
+
+
+def test_a_node_falling_behind_is_no_small_step():
+    """Arrivals later by 30 ms more per reading for 2 s (a node falling 0.6 s behind its
+    input), then on time again: readings below the centre, each later than the one before --
+    late readings, no clock step, nothing wrong-side."""
+    sc, res = run("metro_demo", 3, 40.0)
+    fl = F.inject(res.events(), F.Fault("none"), np.random.default_rng(0))
+    lag = [(tp, st, f, rc + min(max(rc - F.EPOCH - 20.0, 0.0), 2.0) * 0.3
+            * (rc - F.EPOCH < 24.0)) for tp, st, f, rc in fl.events]
+    lag.sort(key=lambda e: e[3])
+    outs, emitted, runner = F.run(lag, adapter(sc, "kf"), 0.1)
+    s = F.score(outs, emitted, fl, res.truth, 10.0, 40.0 + F.LATENCY)
+    assert "odometer:clock_reset" not in runner.events and runner._train_shift == 0.0
+    assert s["wrong_side"] == 0, s
+
+
+@pytest.mark.parametrize("how", ["lag", "stall"])
+def test_a_balise_is_judged_on_the_odometer_clock_when_the_node_falls_behind(how):
+    """metro_demo's first balise (41.8 s) reaches a node that fell behind: arrivals 0.3 s
+    later per second from 38 s (1.2 s behind at the balise), or every arrival of 38-46 s taken
+    at 46 s in one burst. The balise shares the train clock with the odometer (one
+    StreamClock, fed at 10 Hz), so it meets the centre the odometer readings around it set, is
+    fused, and no estimate is wrong-side."""
+    sc, res = run("metro_demo", 3, 60.0)
+    if how == "stall":
+        fl = F.inject(res.events(), F.Fault("node_stall", 8.0, at=38.0),
+                      np.random.default_rng(0))
+        events = fl.events
+    else:
+        fl = F.inject(res.events(), F.Fault("none"), np.random.default_rng(0))
+        events = sorted(((tp, st, f, rc + 0.3 * min(max(rc - F.EPOCH - 38.0, 0.0), 4.0)
+                          * (rc - F.EPOCH < 44.0)) for tp, st, f, rc in fl.events),
+                        key=lambda e: e[3])
+    assert sum(e[0] == "balise" for e in events) == 1
+    outs, emitted, runner = F.run(events, adapter(sc, "kf"), 0.1)
+    s = F.score(outs, emitted, fl, res.truth, 10.0, 60.0 + F.LATENCY)
+    assert runner.accepted.get("balise") == 1, runner.counts
+    assert not any(k.startswith("balise:") for k in runner.rejected), runner.counts
+    assert "odometer:clock_reset" not in runner.events, runner.counts
+    assert s["wrong_side"] == 0, s

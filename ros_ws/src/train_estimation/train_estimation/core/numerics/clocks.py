@@ -268,6 +268,16 @@ class StreamClock:
     offset = value
 
     @property
+    def scale(self) -> float:
+        """Robust spread of the window's offsets around the centre (1.4826 x the median
+        absolute deviation, s): the link's jitter as this clock sees it."""
+        if not self.sorted:
+            return math.nan
+        c = self.value
+        dev = sorted(abs(v - c) for v in self.sorted)
+        return 1.4826 * dev[len(dev) // 2]
+
+    @property
     def ceiling(self) -> float:
         """The highest centre over the last ``horizon`` offsets (once ``settled`` are in):
         where the clock is when the latency is least. A node that lagged its input for a
