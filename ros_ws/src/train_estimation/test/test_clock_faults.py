@@ -183,3 +183,21 @@ def test_a_balise_is_judged_on_the_odometer_clock_when_the_node_falls_behind(how
     assert not any(k.startswith("balise:") for k in runner.rejected), runner.counts
     assert "odometer:clock_reset" not in runner.events, runner.counts
     assert s["wrong_side"] == 0, s
+
+
+def test_one_command_stamped_ahead_is_refused_and_blinds_nothing():
+    """A command copy stamped 300 s ahead (inside max_future): it made the control watermark,
+    and with it the runner, jump 300 s ahead -- every slot up to it predicted at once, then
+    every genuine reading refused as out of order. Refused now: estimates go on, all OK."""
+    sc, res = run("metro_demo", 3, 40.0)
+    fl = F.inject(res.events(), F.Fault("none"), np.random.default_rng(0))
+    events = []
+    for e in fl.events:
+        events.append(e)
+        if e[0] == "control" and abs(e[1] - F.EPOCH - 20.0) < 1e-6:
+            events.append((e[0], e[1] + 300.0, dict(e[2]), e[3]))
+    outs, emitted, runner = F.run(events, adapter(sc, "kf"), 0.1)
+    s = F.score(outs, emitted, fl, res.truth, 10.0, 40.0 + F.LATENCY)
+    assert runner.rejected.get("control:future_stamp") == 1, runner.counts
+    assert not any(k.startswith("odometer:") for k in runner.rejected), runner.counts
+    assert s["wrong_side"] == 0 and s["off_run"] == 0 and s["availability"] > 0.99, s

@@ -54,8 +54,11 @@ Clock steps (a train clock reset to 0 by a reboot, or set to GPS time): odometer
 and stay on the new clock. A reading is *discontinuous* when its stamp is more than
 ``clocks.TOL`` behind the last odometer stamp admitted, or ahead of it by more than the arrival
 time elapsed since (+ tol), or (arrivals known, the clock judged) its ``stamp - arrival`` lies
-more than ``max(step_back, 2.5 periods)`` below its clock's centre (paced: a backward step) or
-above it (a forward step: latency only lowers it). An outage moves stamps and arrivals alike,
+more than a bar below its clock's centre (paced: a backward step) or above it (a forward step:
+latency only lowers it). The bar is ``max(step_back, 2.5 periods)`` on a jittery link and with
+``control_clock: same``; where the link's jitter is small it comes down to ``max(small_step,
+small_step_z`` robust spreads of the offsets), so that small steps (0.1 s is 8 m at 300 km/h)
+are watched too. An outage moves stamps and arrivals alike,
 and a node whose callbacks lag sees small stamp gaps whatever its arrivals, so neither is
 discontinuous. Discontinuous train-clock readings are held back (the integrity monitor says
 DEGRADED from the second one, the position variance grown by the candidate step); the step test
@@ -66,9 +69,14 @@ step: every later train-clock stamp is mapped back onto the old timeline (``stam
 admitted, and the event ``clock_reset`` is logged. Estimates keep the sample's own stamp (the
 new clock). Otherwise the held readings are judged as any other (a stale stamp), except that one
 stamped ahead of its stream or of its clock, which no later reading continued, is refused
-(``future_stamp``). A step smaller than ``max(step_back, 2.5 periods)`` (0.3 s at 10 Hz) cannot
-be told from arrival jitter and is not re-anchored; without arrival times only steps beyond
-``tol`` are seen.
+(``future_stamp``); a command stamped above its own clock by more than the bar is refused
+too (it votes, so a control clock that truly stepped is followed once the step fills half the
+window). A step smaller than ``max(step_back, 2.5 periods)`` must also move every
+held reading's offset alike (their spread within the bar) and by more than half the bar: a node
+falling further behind its input puts readings below the centre each later than the one
+before, which is no step (they are released as late). A step within the bar is not told from
+arrival jitter and not re-anchored; without arrival times only steps beyond ``tol`` are
+seen.
 
 Sequence numbers only detect duplicates (same ``seq`` and stamp as a recent reading) and resets
 (``seq`` goes back while the stamp goes on: a sensor reboot or a wrap-around, accepted and
@@ -267,8 +275,18 @@ class EstimatorRunner:
             why = self._check_seq(kind, stamp, fields)
             if why:
                 return self._reject(kind, stamp, why)
+        # a command stamped above where its clock can be (latency only lowers stamp - arrival)
+        # is refused, though it still votes: one command stamped 300 s ahead made the
+        # control watermark run 300 s ahead, the runner predicted every slot up to it at once
+        # and then refused every genuine reading as out of order (a clock that truly stepped
+        # moves the window, and its commands are taken again)
+        lead = med.above(stamp - arrival) if kind == "control" and recv is not None and \
+            self.control_clock != "same" and len(med) >= self.min_judged else -math.inf
         if arrival is not None and not counted:
             med.add(stamp - arrival, arrival)
+        bar = self._bar(med, max(self.step_back, 2.5 * self.period)) if lead > 0 else math.inf
+        if lead > bar:
+            return self._reject(kind, stamp, f"{R.FUTURE_STAMP}: {lead:.3g} s ahead of its clock")
         if kind in ("odometer", "control") and recv is not None:
             med.rate_point(stamp, recv)  # only stamps on time inform the rate (not a backlog's)
         if kind == "odometer" and arrival is not None and \
