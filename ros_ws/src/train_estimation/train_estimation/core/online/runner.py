@@ -594,6 +594,10 @@ class EstimatorRunner:
                                  not reason or R.category(reason) in R.ACCEPTED)
         elif kind == "control" and not reason:
             self.monitor.command(stamp)
+        elif kind == "balise":
+            self.monitor.balise(stamp, fields if isinstance(fields, dict) else None,
+                                not reason or R.category(reason) in R.ACCEPTED,
+                                R.category(reason) if reason else "")
 
     def _count(self, kind: str, stamp: float, reason: str) -> None:
         if reason:
