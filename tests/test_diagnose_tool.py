@@ -650,7 +650,7 @@ def test_a_stretch_of_weaker_braking_is_told_from_weaker_braking_at_every_stop(m
     from train_estimation.core.offline.diagnose import DiagConfig, Motion, Null, Stage, prepare
     from train_estimation.core.offline.diagnose.causes.adhesion_section import CAUSE
     from train_estimation.core.offline.diagnose.confirm import CONFIRM
-    from train_estimation.core.offline.diagnose.phases import place_test
+    from train_estimation.core.offline.diagnose.contradict import place_test
     from train_sim.unlisted import BrakeFade, Unlisted
 
     sc = metro.with_changes(duration=300.0)

@@ -19,7 +19,7 @@ reported ``confirmed`` only when the checks below pass, the same for every cause
    rule (``Cause.resolution``). Checked on the parameters after the joint refit; a fit that
    passes before the joint refit but not after is ``parameters at nominal after the joint
    refit``.
-3. **Where it shows** (:func:`.phases.split_test`): the cause predicts its effect in every
+3. **Where it shows** (:func:`.contradict.split_test`): the cause predicts its effect in every
    phase, speed band, place and time it acts in; its fitted contribution, split into those
    cells with a free multiplier each, must not need a cell changed by more than half of
    itself (``split_min_share``) with significance (chi-square at ``split_alpha``).
@@ -27,17 +27,17 @@ reported ``confirmed`` only when the checks below pass, the same for every cause
    only (the phases where a departure of half of it would be a 3 SE result) cannot be told
    from an effect of that phase or of that moment: the check states it (``caveat``); with
    ``one_phase`` it is not confirmed.
-4. **Not cancelling** another confirmed cause in a phase (:func:`.phases.cancelling`).
+4. **Not cancelling** another confirmed cause in a phase (:func:`.contradict.cancelling`).
 5. **Better than a flexible term.** Causes confirmed together: each must beat (by BIC) free
    accelerations per phase x speed quarter on the cells it acts in, on top of the others
-   (:func:`.phases.flexible_rival`): two listed causes can share out one effect outside the
+   (:func:`.contradict.flexible_rival`): two listed causes can share out one effect outside the
    list (weaker braking at low speed as a stretch of low adhesion plus a braking-rate drift).
 6. **A place effect** (causes fitted on a stretch, ``Cause.beyond``: gradient,
    adhesion_section): continued beyond its stretch in the same phases and speeds, it is not
-   needed there (:func:`.phases.place_test`).
+   needed there (:func:`.contradict.place_test`).
 7. **Not a piece** of a structure the confirmed model leaves in the residuals that also shows
    where the cause does not act, nor left where it acts as large as half of itself
-   (:func:`.phases.piece_of`).
+   (:func:`.contradict.piece_of`).
 
 Every other entry of the ranking is ``rejected`` (its score is not above ``none``'s).
 """
@@ -53,9 +53,9 @@ import numpy as np
 from train_estimation.core.numerics.augmented_kf import gls
 
 from .causes import BY_NAME
+from .contradict import cancelling, flexible_rival, piece_of, place_test, split_test
 from .gain import GainContext
 from .motion import Motion
-from .phases import cancelling, flexible_rival, piece_of, place_test, split_test
 from .result import CauseFit
 from .run import DiagConfig
 from .stage import Null, Stage
@@ -254,7 +254,7 @@ def heldout_own(cause, fit: CauseFit, ctx: GainContext) -> dict:
 def unpiece(mo: Motion, shift: float, confirmed: list, cfg: DiagConfig, noise,
             found: list) -> bool:
     """Withdraw the confirmation of every confirmed motion cause that is a piece of a structure
-    still ``found`` in the residuals (:func:`.phases.piece_of`); True if any was withdrawn."""
+    still ``found`` in the residuals (:func:`.contradict.piece_of`); True if any was withdrawn."""
     out = False
     for a in confirmed:
         if not BY_NAME[a.cause].in_motion_model:
