@@ -142,15 +142,19 @@ def run_task(task: dict) -> dict:
     return row
 
 
-def plan(quick: bool, seeds: int, estimators, only) -> list[dict]:
-    """The campaign: tasks (scenario, seed, fault, estimator, run duration)."""
+def plan(quick: bool, seeds: int, estimators, only, phase_names=None, long: float | None = None,
+         fuzz_rate: float | None = None) -> list[dict]:
+    """The campaign: tasks (scenario, seed, fault, estimator, run duration). A reduced full
+    campaign: ``phase_names`` (the phases the stamp, step and command faults start in),
+    ``long`` (s, the longest drift and fuzz run), ``fuzz_rate`` (corrupted per clean one)."""
     tasks = []
     for scenario in SCENARIOS:
         sc = load_scenario(scenario)
         full = sc.duration
         ph = phases(_sim(scenario, 0, full)[1].truth)
         cruise = ph["cruising"]
-        times = [cruise] if quick else list(ph.values())
+        times = [cruise] if quick else [v for k, v in ph.items()
+                                        if not phase_names or k in phase_names]
         # quick: metro_demo's first leg (A to B and the dwell) for the whole-run faults
         short = min(full, 240.0) if quick else full
         faults = [(F.Fault("none"), short)]
@@ -183,11 +187,13 @@ def plan(quick: bool, seeds: int, estimators, only) -> list[dict]:
             add(F.Fault("node_stall", L, cruise), L)
         for cap in ((5.0,) if quick else (1.0, 5.0)):
             faults.append((F.Fault("latency", cap, 0.0), short))
-        drift_duration = short if quick else 3600.0
+        drift_duration = short if quick else min(3600.0, long or math.inf)
         for d in ((-1e-2,) if quick else (-1e-2, -1e-3, 1e-3, 1e-2)):
             faults.append((F.Fault("drift", d, 0.0), drift_duration))
         fuzz_duration = short if quick or scenario != "metro_demo" else 3000.0
-        faults.append((F.Fault("fuzz", 0.5 if quick else 10.0, 0.0), fuzz_duration))
+        fuzz_duration = min(fuzz_duration, long or math.inf)
+        faults.append((F.Fault("fuzz", fuzz_rate or (0.5 if quick else 10.0), 0.0),
+                       fuzz_duration))
         for fault, duration in faults:
             if only and fault.kind not in only:
                 continue
@@ -403,10 +409,18 @@ def main(argv=None) -> int:
     ap.add_argument("--only", nargs="*", default=None, help=f"fault kinds ({', '.join(F.KINDS)})")
     ap.add_argument("--jobs", type=int, default=2, help="worker processes")
     ap.add_argument("--no-zone", action="store_true")
+    ap.add_argument("--phases", nargs="*", default=None,
+                    help="reduced full campaign: stamp, step and command faults only in these "
+                         "phases (accelerating, cruising, braking)")
+    ap.add_argument("--long", type=float, default=None,
+                    help="reduced full campaign: drift and fuzz runs at most this long (s)")
+    ap.add_argument("--fuzz-rate", type=float, default=None,
+                    help="corrupted messages per clean one (quick 0.5, full 10)")
     args = ap.parse_args(argv)
     seeds = args.seeds or (1 if args.quick else 2)
     estimators = args.estimators or (QUICK_ESTIMATORS if args.quick else ESTIMATORS)
-    tasks = plan(args.quick, seeds, estimators, args.only)
+    tasks = plan(args.quick, seeds, estimators, args.only, args.phases, args.long,
+                 args.fuzz_rate)
     # the longest first: the pool finishes together
     tasks.sort(key=lambda t: -t["duration"] * (3 if t["fault"].kind == "fuzz" else 1))
     rows = []
@@ -420,6 +434,9 @@ def main(argv=None) -> int:
                              ESTIMATORS.index(r["estimator"]), r["seed"]))
     groups = aggregate(rows)
     mode = "quick" if args.quick else "full"
+    if not args.quick and (args.phases or args.long or args.fuzz_rate):
+        mode = (f"reduced full: phases {', '.join(args.phases or ['all'])}, drift and fuzz "
+                f"<= {args.long or 'full'} s, fuzz {args.fuzz_rate or 10.0:g} per clean message")
     print(f"Integrity campaign ({mode}): {len(tasks)} runs, {seeds} seed(s), estimators "
           f"{', '.join(estimators)}; node defaults (NodeConfig: control_clock "
           f"{NodeConfig().control_clock!r}, max_future {NodeConfig().max_future:g} s), "

@@ -640,3 +640,48 @@ def test_each_cause_states_its_resolution():
     assert ok is None
     assert "below resolution" in res("wheel_slip", {"intervals": [[10.0, 12.0]]},
                                      {"slip_fraction": [0.002]}, {"slip_fraction": [0.005]})
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("world", ["adhesion_section", "brake_fade"])
+def test_a_stretch_of_weaker_braking_is_told_from_weaker_braking_at_every_stop(metro, world,
+                                                                               tmp_path):
+    """The place test: weaker braking on the approach to the first stop is a place effect when
+    only that stretch has it, and is contradicted when every stop's low-speed braking is as
+    weak (brakes that fade below a speed, an effect outside the list)."""
+    from train_core.effects import AdhesionSectionEffect, Effects
+
+    from train_estimation.core.offline.diagnose import DiagConfig, Motion, Null, Stage, prepare
+    from train_estimation.core.offline.diagnose.causes.adhesion_section import CAUSE
+    from train_estimation.core.offline.diagnose.confirm import CONFIRM
+    from train_estimation.core.offline.diagnose.contradict import place_test
+    from train_sim.unlisted import BrakeFade, Unlisted
+
+    sc = metro.with_changes(duration=300.0)
+    tr = simulate(sc).truth
+    x, v = tr["position"], tr["velocity"]
+    # the stretch: the first approach braked from above 6 m/s to a stop, from 6 m/s on
+    stop = int(np.flatnonzero((v[1:] < 0.1) & (v[:-1] >= 0.1) & (x[1:] > x[0] + 100.0))[0])
+    start = float(x[np.flatnonzero(v[:stop] > 6.0)[-1]])
+    end = float(x[stop]) + 5.0
+    if world == "adhesion_section":
+        sc = sc.with_changes(effects=Effects(adhesion_section=AdhesionSectionEffect(
+            start, end, 0.6)))
+    else:
+        sc = sc.with_changes(unlisted=Unlisted(brake_fade=BrakeFade(6.0, 0.6)))
+    bag = write_bag(tmp_path / "bag", simulate(sc))
+    cfg = DiagConfig()
+    run = prepare(tool.read_measured(bag), sc.line, cfg)
+    mo = Motion(run, sc.line, sc.train, cfg)
+    i = int(np.searchsorted(mo.bin_edges, start, "right") - 1)
+    j = int(np.searchsorted(mo.bin_edges, end, "left"))
+    fit = CauseFit("adhesion_section", 10.0, {"start": float(mo.bin_edges[i]),
+                                              "end": float(mo.bin_edges[j]), "factor": 0.6},
+                   extra={"bins": (i, j)})
+    full = Null()
+    CAUSE.extend_null(full, fit, mo)
+    st = Stage(mo, full, cfg, big=False)
+    res = place_test(mo, full, cfg, (st.q, st.r_s), *CAUSE.beyond(fit, mo), CONFIRM.split_alpha,
+                     CONFIRM.split_min_share)
+    assert "p" in res, res  # other stops were braked at the stretch's speeds
+    assert res["contradicted"] is (world == "brake_fade"), res

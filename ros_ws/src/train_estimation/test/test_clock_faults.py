@@ -88,3 +88,116 @@ def test_a_node_catching_up_is_not_above_its_clock():
     assert c.value < -2.5 and c.ceiling == pytest.approx(-0.05)
     assert c.above(-0.05) == pytest.approx(0.0, abs=1e-9)
     assert c.above(-0.05 + 3.0) == pytest.approx(3.0)
+
+
+def test_one_wild_offset_does_not_lift_the_ceiling():
+    """The ceiling (where the clock is when the latency is least) follows the centre: a wild
+    stamp among the first readings, or one stamped 4.9 s ahead later, is no clock."""
+    c = StreamClock()
+    c.add(-0.05, 0.0)
+    c.add(1e9, 0.0)  # among the first: voted before any centre existed
+    for k in range(1, 40):
+        c.add(-0.05, 0.1 * k)
+        if k == 20:
+            c.add(4.9, 2.0)  # within tol of the centre: it votes, but is no clock
+    assert c.value == pytest.approx(-0.05) and c.ceiling == pytest.approx(-0.05)
+    assert c.above(-0.05 + 5.0) == pytest.approx(5.0)
+
+
+def _with_copies(events, copies):
+    """``events`` (faults.inject's stream) with copies of odometer readings stamped wrong:
+    ``copies`` = {true sampling time: stamp error}, each copy arriving with its original."""
+    out = []
+    for topic, stamp, fields, recv in events:
+        out.append((topic, stamp, fields, recv))
+        t = round(stamp - F.EPOCH, 6)
+        if topic == "odometer" and t in copies:
+            out.append((topic, stamp + copies[t], dict(fields), recv))
+    return out
+
+
+def test_a_wild_first_stamp_does_not_let_a_later_one_take_a_slot():
+    """1 Hz odometer (crh3_high_speed), kf: a copy of the second reading stamped 1e9 s ahead,
+    then a copy of the 8th stamped 5 s ahead. The first must not raise the clock's ceiling (it
+    did, for 600 readings: the second then passed as on time, was fused at its wrong stamp,
+    took the genuine reading's slot and left the kf up to 6 m off with sigma 0.4 m, integrity
+    OK); the second is refused as stamped ahead of its clock."""
+    sc, res = run("crh3_high_speed", 0, 40.0)
+    assert sc.odometer_rate == 1.0
+    fl = F.inject(res.events(), F.Fault("none"), np.random.default_rng(0))
+    events = _with_copies(fl.events, {1.0: 1e9, 8.0: 5.0})
+    outs, emitted, runner = F.run(events, adapter(sc, "kf"), 1.0)
+    s = F.score(outs, emitted, fl, res.truth, 1.0, 40.0 + F.LATENCY)
+    assert runner.rejected.get("odometer:future_stamp") == 2, runner.counts
+    assert "odometer:duplicate" not in runner.rejected, runner.counts
+    assert s["wrong_side"] == 0 and s["hazards"] == 0, s
+
+
+@pytest.mark.parametrize("size", [0.2, -0.1])
+def test_a_small_clock_step_is_re_anchored(size):
+    """Steps below step_back (0.3 s at 10 Hz) on a link with little jitter: every offset of the
+    new clock moves alike, which jitter cannot do, so the step is watched and re-anchored
+    (left alone, 0.2 s left the kf 4 m off at 20 m/s with sigma 0.1 m, integrity OK)."""
+    s, runner = _campaign_case(F.Fault("step", size, at=20.0))
+    assert runner.events.get("odometer:clock_reset") == 1, runner.counts
+    assert runner._train_shift == pytest.approx(size, abs=0.02)
+    assert s["wrong_side"] == 0 and s["hazards"] == 0, s
+
+
+def test_a_node_falling_behind_is_no_small_step():
+    """Arrivals later by 30 ms more per reading for 2 s (a node falling 0.6 s behind its
+    input), then on time again: readings below the centre, each later than the one before --
+    late readings, no clock step, nothing wrong-side."""
+    sc, res = run("metro_demo", 3, 40.0)
+    fl = F.inject(res.events(), F.Fault("none"), np.random.default_rng(0))
+    lag = [(tp, st, f, rc + min(max(rc - F.EPOCH - 20.0, 0.0), 2.0) * 0.3
+            * (rc - F.EPOCH < 24.0)) for tp, st, f, rc in fl.events]
+    lag.sort(key=lambda e: e[3])
+    outs, emitted, runner = F.run(lag, adapter(sc, "kf"), 0.1)
+    s = F.score(outs, emitted, fl, res.truth, 10.0, 40.0 + F.LATENCY)
+    assert "odometer:clock_reset" not in runner.events and runner._train_shift == 0.0
+    assert s["wrong_side"] == 0, s
+
+
+@pytest.mark.parametrize("how", ["lag", "stall"])
+def test_a_balise_is_judged_on_the_odometer_clock_when_the_node_falls_behind(how):
+    """metro_demo's first balise (41.8 s) reaches a node that fell behind: arrivals 0.3 s
+    later per second from 38 s (1.2 s behind at the balise), or every arrival of 38-46 s taken
+    at 46 s in one burst. The balise shares the train clock with the odometer (one
+    StreamClock, fed at 10 Hz), so it meets the centre the odometer readings around it set, is
+    fused, and no estimate is wrong-side."""
+    sc, res = run("metro_demo", 3, 60.0)
+    if how == "stall":
+        fl = F.inject(res.events(), F.Fault("node_stall", 8.0, at=38.0),
+                      np.random.default_rng(0))
+        events = fl.events
+    else:
+        fl = F.inject(res.events(), F.Fault("none"), np.random.default_rng(0))
+        events = sorted(((tp, st, f, rc + 0.3 * min(max(rc - F.EPOCH - 38.0, 0.0), 4.0)
+                          * (rc - F.EPOCH < 44.0)) for tp, st, f, rc in fl.events),
+                        key=lambda e: e[3])
+    assert sum(e[0] == "balise" for e in events) == 1
+    outs, emitted, runner = F.run(events, adapter(sc, "kf"), 0.1)
+    s = F.score(outs, emitted, fl, res.truth, 10.0, 60.0 + F.LATENCY)
+    assert runner.accepted.get("balise") == 1, runner.counts
+    assert not any(k.startswith("balise:") for k in runner.rejected), runner.counts
+    assert "odometer:clock_reset" not in runner.events, runner.counts
+    assert s["wrong_side"] == 0, s
+
+
+def test_one_command_stamped_ahead_is_refused_and_blinds_nothing():
+    """A command copy stamped 300 s ahead (inside max_future): it made the control watermark,
+    and with it the runner, jump 300 s ahead -- every slot up to it predicted at once, then
+    every genuine reading refused as out of order. Refused now: estimates go on, all OK."""
+    sc, res = run("metro_demo", 3, 40.0)
+    fl = F.inject(res.events(), F.Fault("none"), np.random.default_rng(0))
+    events = []
+    for e in fl.events:
+        events.append(e)
+        if e[0] == "control" and abs(e[1] - F.EPOCH - 20.0) < 1e-6:
+            events.append((e[0], e[1] + 300.0, dict(e[2]), e[3]))
+    outs, emitted, runner = F.run(events, adapter(sc, "kf"), 0.1)
+    s = F.score(outs, emitted, fl, res.truth, 10.0, 40.0 + F.LATENCY)
+    assert runner.rejected.get("control:future_stamp") == 1, runner.counts
+    assert not any(k.startswith("odometer:") for k in runner.rejected), runner.counts
+    assert s["wrong_side"] == 0 and s["off_run"] == 0 and s["availability"] > 0.99, s

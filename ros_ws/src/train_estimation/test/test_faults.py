@@ -164,3 +164,12 @@ def test_one_case_of_each_fault_class_runs_through_an_estimator(fault):
     if fault.kind in ("none", "stamp"):  # faults.run is core.replay.replay, timed
         ref, _ = replay(fl.events, adapter(sc), 0.1, control_clock="same")
         assert [(o.stamp, o.position) for o in ref] == [(o.stamp, o.position) for o in outs]
+
+
+@pytest.mark.parametrize("jump", [0.2, -3.0])
+def test_a_stamp_at_the_step_instant_means_the_old_clock(jump):
+    """The slot after the old clock's last sample, predicted at the old clock's next stamp
+    (the step's instant), is read there -- not 3 s later, nor 0.2 s earlier."""
+    clock = F.TrainClock(steps=((41.0, jump),))
+    assert clock.true_time(F.EPOCH + 41.0, near=41.2) == pytest.approx(41.0)
+    assert clock.true_time(F.EPOCH + 41.1 + jump, near=41.2) == pytest.approx(41.1)

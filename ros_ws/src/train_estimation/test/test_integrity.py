@@ -177,3 +177,27 @@ def test_monitor_inflation_and_labels():
     bad = Output(10.0, 0.0, 5.0, math.nan, math.nan, tuple(np.diag([-1.0, 1, 1, 1]).ravel()),
                  True)
     assert m.assess(bad, 10.0).integrity == ALARM
+
+
+@pytest.mark.parametrize("kind", ["robust", "kf"])
+def test_a_balise_refused_by_the_gate_degrades_until_one_agrees(kind):
+    """Started 60 m off with a claimed 5 m (a wrong stabling point): the first balise (41.8 s)
+    disagrees by 60 m, 12 sigma, and the filter's gate refuses it. Counted, and from then on the
+    estimate is DEGRADED with the interval widened to hold the balise's claim: nothing
+    wrong-side after the balise (before it, nothing could know)."""
+    from train_estimation.core.online.estimators import StartState
+    from train_estimation.tools import faults as F
+
+    sc, res = run("metro_demo", 3, 60.0)
+    fl = F.inject(res.events(), F.Fault("none"), np.random.default_rng(0))
+    a = adapter(sc, kind)
+    st = StartState(sc.start_position + 60.0)
+    a = type(a)(sc.train, sc.line, st, a.cfg)
+    outs, emitted, runner = F.run(fl.events, a, 0.1)
+    assert runner.rejected.get("balise:outside_gate") == 1, runner.counts
+    t_bal = next(e[3] for e in fl.events if e[0] == "balise")
+    after = [o for o, e in zip(outs, emitted) if e > t_bal]
+    assert after and all(o.integrity == 1 and "balise" in o.integrity_reason for o in after)
+    fl.onset = t_bal - F.EPOCH  # score from the balise on
+    s = F.score(after, emitted[emitted > t_bal], fl, res.truth, 10.0, 60.0 + F.LATENCY)
+    assert s["wrong_side"] == 0 and s["hazards"] == 0, s

@@ -91,14 +91,16 @@ class TrainClock:
         """The true time a train-clock stamp ``s`` stands for, for an estimate published at true
         time ``near``. Each clock segment (between steps) inverts ``s``; after a backward step
         two segments can both contain it, and the one nearer ``near`` is meant (an estimate is of
-        a recent sample). A stamp in no segment (a corrupted one) is read on the clock in force at
-        ``near``: it claims that time."""
+        a recent sample). A segment includes the instant of the step that ends it: the estimate
+        of the slot after the old clock's last sample, predicted at the old clock's next stamp,
+        means that instant. A stamp in no segment (a corrupted one) is read on the clock in force
+        at ``near``: it claims that time."""
         bounds = [-math.inf] + [ts for ts, _ in self.steps] + [math.inf]
         valid, current = [], None
         for k in range(len(bounds) - 1):
             off = sum(j for _, j in self.steps[:k])
             t = (s - self.epoch - off) / (1.0 + self.drift)
-            if bounds[k] <= t < bounds[k + 1]:
+            if bounds[k] <= t <= bounds[k + 1]:
                 valid.append(t)
             if bounds[k] <= near < bounds[k + 1]:
                 current = t

@@ -165,6 +165,7 @@ class StreamClock:
     tol = TOL
     late = LATE
     horizon = 600  # offsets over which the ceiling is the maximum (1 min at 10 Hz)
+    settled = 9  # offsets in the window before its centre says where the clock is
 
     # -- offset ---------------------------------------------------------------------------
     def add(self, v: float, at: float | None = None) -> None:
@@ -199,6 +200,7 @@ class StreamClock:
                 return
             self.fifo.clear()
             self.sorted = []
+            self._top.clear()  # the clock itself moved: where it was says nothing now
             for p, _ in self.pending[:-1]:
                 self._push(p)
             self.pending = []
@@ -217,16 +219,24 @@ class StreamClock:
     def _push(self, v: float) -> None:
         self._value = None
         self._pushed += 1
-        while self._top and self._top[-1][1] <= v:
-            self._top.pop()
-        self._top.append((self._pushed, v))
-        if self._top[0][0] <= self._pushed - self.horizon:
-            self._top.popleft()
         self.fifo.append(v)
         bisect.insort(self.sorted, v)
         if len(self.fifo) > self.n:
             old = self.fifo.popleft()
             del self.sorted[bisect.bisect_left(self.sorted, old)]
+        if len(self.fifo) < self.settled:
+            return
+        # the ceiling follows the centre, never one offset: a single wrong stamp a few
+        # seconds ahead (or a wild one among the first few, before any centre is known) is
+        # an offset that voted; as the sliding maximum of raw offsets it lifted the ceiling
+        # for `horizon` readings and hid every forward step and stamp ahead below it (a
+        # fuzzed 1 Hz stream: a reading stamped 5 s ahead took a genuine one's slot)
+        c = self.value
+        while self._top and self._top[-1][1] <= c:
+            self._top.pop()
+        self._top.append((self._pushed, c))
+        if self._top[0][0] <= self._pushed - self.horizon:
+            self._top.popleft()
 
     def __len__(self) -> int:
         return len(self.fifo)
@@ -258,10 +268,21 @@ class StreamClock:
     offset = value
 
     @property
+    def scale(self) -> float:
+        """Robust spread of the window's offsets around the centre (1.4826 x the median
+        absolute deviation, s): the link's jitter as this clock sees it."""
+        if not self.sorted:
+            return math.nan
+        c = self.value
+        dev = sorted(abs(v - c) for v in self.sorted)
+        return 1.4826 * dev[len(dev) // 2]
+
+    @property
     def ceiling(self) -> float:
-        """The largest offset that voted among the last ``horizon``: where the clock is when
-        the latency is least. A node that lagged its input for a while moves the centre down
-        with it; when it catches up, its offsets return to the ceiling, never above it."""
+        """The highest centre over the last ``horizon`` offsets (once ``settled`` are in):
+        where the clock is when the latency is least. A node that lagged its input for a
+        while moves the centre down with it; when it catches up, its offsets return to the
+        ceiling, never above it."""
         return self._top[0][1] if self._top else math.nan
 
     def above(self, v: float) -> float:

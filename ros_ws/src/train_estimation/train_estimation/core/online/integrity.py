@@ -45,6 +45,13 @@ Checks (each gives a reason, e.g. ``"no_measurement: 2.3 s"``):
     ``(v T)^2``: while readings are held, ``T`` is the largest discontinuity among them (the
     candidate step: the estimate's stamp may be read on either side of it), after a step one
     sample period (a re-anchored step is known to about that).
+``balise``
+    A balise reading the filter refused as far outside its predicted position interval
+    (``outside_gate``): either the balise or the estimate is wrong, and nothing tells which
+    until a later balise agrees. DEGRADED until a balise is fused, the position variance
+    increased by the square of the disagreement (the balise's position carried to the
+    estimate's stamp at the estimated speed, less the estimate), so the published interval
+    holds the balise's claim; the refusal is counted by the runner (``balise:outside_gate``).
 ``no_command``
     No control command for ``command_timeout`` while readings arrive: the filters hold the last
     command; DEGRADED with the ``no_measurement`` inflation over the silence beyond the timeout
@@ -62,6 +69,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from train_core.config import param, require, require_finite
+
+from .. import reasons as R
 
 OK, DEGRADED, ALARM = 0, 1, 2
 UNBOUNDED = 1e12  # m^2, (m/s)^2: the variance published when the filter's is not usable
@@ -118,6 +127,8 @@ class IntegrityMonitor:
         self.suspect = False  # they put the estimate in doubt (see clock)
         self.nis: deque = deque(maxlen=params.nis_window)
         self.prev: tuple | None = None  # (stamp, velocity, P_vv) of the last estimate
+        self.balise_doubt: tuple | None = None  # (stamp, position) of a balise refused by the
+        #   gate, until a balise is fused
         self.counts = {NAMES[k]: 0 for k in NAMES}
         self.last_state = (OK, "")
 
@@ -148,6 +159,18 @@ class IntegrityMonitor:
         s = pvv + r + (self.p.max_acceleration * max(dt, self.period)) ** 2
         if s > 0 and math.isfinite(s):
             self.nis.append((v - v0) ** 2 / s)
+
+    def balise(self, stamp: float, fields: dict | None, fused: bool, reason: str = "") -> None:
+        """A balise reading's outcome: fused, or refused (``reason``, a rejection name)."""
+        if fused:
+            self.balise_doubt = None
+            return
+        try:
+            pos = float(fields["position"])
+        except (KeyError, TypeError, ValueError):
+            return
+        if reason == R.OUTSIDE_GATE and math.isfinite(pos) and math.isfinite(stamp):
+            self.balise_doubt = (stamp, pos)
 
     def command(self, stamp: float) -> None:
         if math.isfinite(stamp):
@@ -208,6 +231,12 @@ class IntegrityMonitor:
                                     if self.held else "step re-anchored"))
             T = max(self.period, self.doubt if self.suspect else 0.0)
             P = P + np.diag([(abs(out.velocity) * T) ** 2 + T ** 2, 0.0])
+        if self.balise_doubt is not None:
+            sb, pb = self.balise_doubt
+            nu = pb + out.velocity * (t - sb) - out.position
+            state = DEGRADED
+            why.append(f"balise: {nu:+.1f} m from the estimate, refused by the gate")
+            P = P + np.diag([nu * nu, 0.0])
         silent = t - self.last_command
         if math.isfinite(self.last_command) and silent > p.command_timeout:
             state = DEGRADED

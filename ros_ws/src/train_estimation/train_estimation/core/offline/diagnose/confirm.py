@@ -3,7 +3,7 @@
 The greedy search accepts a cause whose score (BIC with prior odds) is positive; that is a
 closed-world comparison among the listed causes and ``none``. An effect outside the list is
 then absorbed by whichever listed cause resembles it most. A cause accepted by the search is
-reported ``confirmed`` only when three checks pass, the same for every cause:
+reported ``confirmed`` only when the checks below pass, the same for every cause:
 
 1. **Held out.** The cause, fitted on alternate ``gain_block`` s blocks (odometer causes:
    alternate odometer samples, ``FOLDS``), predicts the other half better than the model
@@ -19,14 +19,25 @@ reported ``confirmed`` only when three checks pass, the same for every cause:
    rule (``Cause.resolution``). Checked on the parameters after the joint refit; a fit that
    passes before the joint refit but not after is ``parameters at nominal after the joint
    refit``.
-3. **Where it shows** (:func:`.phases.split_test`): the cause predicts its effect in every
+3. **Where it shows** (:func:`.contradict.split_test`): the cause predicts its effect in every
    phase, speed band, place and time it acts in; its fitted contribution, split into those
    cells with a free multiplier each, must not need a cell changed by more than half of
    itself (``split_min_share``) with significance (chi-square at ``split_alpha``).
-
-4. **Not cancelling** another confirmed cause in a phase (:func:`.phases.cancelling`).
-5. **Not a piece** of a structure the confirmed model leaves in the residuals that also shows
-   where the cause does not act (:func:`.phases.piece_of`).
+   A cause that acts in every phase (``Cause.phase_rival``: a gradient) seen in one phase
+   only (the phases where a departure of half of it would be a 3 SE result) cannot be told
+   from an effect of that phase or of that moment: the check states it (``caveat``); with
+   ``one_phase`` it is not confirmed.
+4. **Not cancelling** another confirmed cause in a phase (:func:`.contradict.cancelling`).
+5. **Better than a flexible term.** Causes confirmed together: each must beat (by BIC) free
+   accelerations per phase x speed quarter on the cells it acts in, on top of the others
+   (:func:`.contradict.flexible_rival`): two listed causes can share out one effect outside the
+   list (weaker braking at low speed as a stretch of low adhesion plus a braking-rate drift).
+6. **A place effect** (causes fitted on a stretch, ``Cause.beyond``: gradient,
+   adhesion_section): continued beyond its stretch in the same phases and speeds, it is not
+   needed there (:func:`.contradict.place_test`).
+7. **Not a piece** of a structure the confirmed model leaves in the residuals that also shows
+   where the cause does not act, nor left where it acts as large as half of itself
+   (:func:`.contradict.piece_of`).
 
 Every other entry of the ranking is ``rejected`` (its score is not above ``none``'s).
 """
@@ -42,9 +53,9 @@ import numpy as np
 from train_estimation.core.numerics.augmented_kf import gls
 
 from .causes import BY_NAME
+from .contradict import cancelling, flexible_rival, piece_of, place_test, split_test
 from .gain import GainContext
 from .motion import Motion
-from .phases import cancelling, piece_of, split_test
 from .result import CauseFit
 from .run import DiagConfig
 from .stage import Null, Stage
@@ -60,6 +71,9 @@ class ConfirmConfig:
     split_alpha: float = 1e-3
     # -, a cell of the split contradicts the cause when its multiplier moves by more than this
     split_min_share: float = 0.5
+    # a cause that acts in every phase (Cause.phase_rival) seen in one phase only is not
+    # confirmed: it cannot be told from an effect of that phase or of that moment
+    one_phase: bool = False
 
 
 CONFIRM = ConfirmConfig()
@@ -102,17 +116,52 @@ def confirm(mo: Motion, shift: float, accepted: list, resolved_before: dict, cfg
                 a.status, a.why = "not confirmed", cancel[a.cause]
                 checks[a.cause]["cancels"] = cancel[a.cause]
         confirmed = [a for a in accepted if a.status == "confirmed"]
+        motion = [a for a in confirmed if BY_NAME[a.cause].in_motion_model]
+    if len(motion) >= 2:
+        # causes confirmed together: each must do better than a flexible term in the phases
+        # and speeds it acts in (two listed causes can share out one effect outside the list)
+        for a in motion:
+            others = _null_of(mo, shift, [b for b in confirmed if b is not a])
+            fr = flexible_rival(mo, others, _null_of(mo, shift, confirmed), cfg, noise,
+                                _n_params(a))
+            checks[a.cause]["flexible"] = fr
+            if not fr["better"]:
+                a.status = "not confirmed"
+                a.why = (f"with {', '.join(b.cause for b in motion if b is not a)} it does no "
+                         f"better than a free acceleration per phase and speed band "
+                         f"({fr['k_flexible']} cells) in place of it")
+        confirmed = [a for a in accepted if a.status == "confirmed"]
     for a in confirmed:
         if not BY_NAME[a.cause].in_motion_model:
             continue
         others = _null_of(mo, shift, [b for b in confirmed if b is not a])
         full = _null_of(mo, shift, confirmed)
+        cause = BY_NAME[a.cause]
         sp = split_test(mo, others, full, cfg, noise, ccfg.split_alpha, ccfg.split_min_share)
         checks[a.cause]["split"] = sp
+        seen = sp.get("phases_seen", [])
         if sp.get("contradicted"):
             a.status = "not confirmed"
             a.why = f"contradicted by the phase split: {sp['why']}"
+        elif cause.phase_rival and len(seen) < 2:
+            told = (f"cannot be told from {cause.phase_rival} (one phase only where it acts: "
+                    f"{seen[0] if seen else 'none'} seen)")
+            checks[a.cause]["caveat"] = told
+            if ccfg.one_phase:
+                a.status, a.why = "not confirmed", told
+        if a.status != "confirmed" or (bey := cause.beyond(a, mo)) is None:
+            continue
+        pt = place_test(mo, full, cfg, noise, *bey, ccfg.split_alpha, ccfg.split_min_share)
+        checks[a.cause]["place"] = pt
+        if pt.get("contradicted"):
+            a.status = "not confirmed"
+            a.why = pt["why"]
     return checks
+
+
+def _n_params(fit: CauseFit) -> int:
+    """The number of the cause's fitted parameters (for the BIC comparisons)."""
+    return max(1, sum(np.size(v) for v in fit.parameters.values()))
 
 
 def _null_of(mo: Motion, shift: float, fits: list) -> Null:
@@ -205,7 +254,7 @@ def heldout_own(cause, fit: CauseFit, ctx: GainContext) -> dict:
 def unpiece(mo: Motion, shift: float, confirmed: list, cfg: DiagConfig, noise,
             found: list) -> bool:
     """Withdraw the confirmation of every confirmed motion cause that is a piece of a structure
-    still ``found`` in the residuals (:func:`.phases.piece_of`); True if any was withdrawn."""
+    still ``found`` in the residuals (:func:`.contradict.piece_of`); True if any was withdrawn."""
     out = False
     for a in confirmed:
         if not BY_NAME[a.cause].in_motion_model:

@@ -1,5 +1,5 @@
 """Where the residuals of a model hold structure: by phase, speed, position, time and around
-command onsets; and whether a fitted cause shows where it predicts it shows.
+command onsets.
 
 Phases, on the time grid of the motion model (commands through the believed actuator):
 ``traction`` (traction part > ``PHASE_ACCEL``), ``braking`` (braking part < -``PHASE_ACCEL``),
@@ -20,26 +20,12 @@ structure when its p-value is below ``alpha`` / (number of families) (Bonferroni
 carries it when its extra acceleration is more than ``cell_z`` standard errors and more than
 ``min_accel`` from zero. The strongest family (smallest p-value) gives one ``unexplained``
 entry; its cells are then put into the model and the families tested again (at most
-``max_entries``).
+``max_entries``). The entry's phase is named only where the data show the pattern absent
+from the other phases (per-phase families; a place or time cell run in one phase only
+gives ``all``).
 
-**Split test** (:func:`split_test`). A confirmed cause's contribution d (its drift columns:
-the model with it minus the model without it) is split into cells (phase x speed tercile,
-quarters of its position range, quarters of its time range), each with a free multiplier
-1 + c_j. If the cause is right, every c_j is 0 within noise; a chi-square test per partition at
-``alpha`` with some |c_j| > ``min_share`` (more than 3 standard errors) says the cause does not
-show where it predicts (a braking-rate change that only shows at low speed, a mass change that
-shows in traction but not in braking).
-
-**A piece of a larger structure** (:func:`piece_of`). A confirmed cause whose contribution lies
-mostly (> half of its energy) inside a structure still found in the residuals, while that
-structure lies mostly outside the cause's own support, is one instance of something that
-recurs where the cause does not act (a gradient section on one braking approach while every
-braking approach shows the same weaker braking at low speed).
-
-**Causes that cancel** (:func:`cancelling`). Two confirmed causes whose contributions are
-each large in a phase (> 1/4 of their own energy there) while their sum there is small (< 1/4
-of the larger) act together as one effect confined to the other phases (a heavier train and a
-stronger brake: traction alone is weaker). No listed cause is that effect.
+The checks of a confirmed cause against the rest of the data (where it must show and where it
+must not) are in :mod:`.contradict`.
 """
 
 from __future__ import annotations
@@ -160,7 +146,8 @@ def structure(mo: Motion, null: Null, cfg, noise, beta: float = 1.0, alpha: floa
             break
         _, name, th, cells = best
         R, labels = fam[name]
-        phase, c = _attribute_phase(mo, st, R[:, cells] @ th[cells], extra, cell_z)
+        phase, c = _attribute_phase(mo, st, R[:, cells] @ th[cells], extra, cell_z,
+                                    by_phase=name in ("phase", "speed", "onset"))
         round_tests[name]["phase_multipliers"] = c
         found.append(_signature(mo, name, R, labels, th, cells, phase))
         # the cells found become part of the model; test again for what is left
@@ -170,14 +157,18 @@ def structure(mo: Motion, null: Null, cfg, noise, beta: float = 1.0, alpha: floa
     return found, tests
 
 
-def _attribute_phase(mo: Motion, st: Stage, pattern: np.ndarray, extra, cell_z: float):
+def _attribute_phase(mo: Motion, st: Stage, pattern: np.ndarray, extra, cell_z: float,
+                     by_phase: bool = True):
     """The phase a found pattern (extra acceleration on the grid) belongs to: the pattern
     restricted to each phase gets a free multiplier; the phases where it is needed (more than
-    half of itself, beyond ``cell_z`` SE) name it, one phase or ``all``."""
+    half of itself, beyond ``cell_z`` SE) name it, one phase or ``all``. A phase is named only
+    where the data show the pattern absent from the others: a family of cells per phase
+    (``by_phase``) tests every phase; a place or time cell run in one phase only does not,
+    and its pattern is ``all``."""
     ph = grid_phase(mo)
     R = np.stack([pattern * (ph == p) for p in range(3)], axis=1)
     live = [p for p in range(3) if np.any(R[:, p] != 0)]
-    if not live:
+    if not live or (len(live) == 1 and not by_phase):
         return "all", {}
     Bv, Bs = mo.grid.integrate(R[:, live], mo.ev.t.size)
     _, c, se = _fit_columns(st, Bv, Bs, extra)
@@ -205,103 +196,3 @@ def _signature(mo: Motion, family: str, R, labels, th, cells, phase: str) -> dic
             "speed": [float(np.percentile(v, 5)), float(np.percentile(v, 95))] if v.size
             else None, "size": size, "family": family,
             "onset": any(labels[j].get("onset") for j in cells), "mask": on}
-
-
-def split_test(mo: Motion, others: Null, full: Null, cfg, noise, alpha: float,
-               min_share: float) -> dict:
-    """The split test of the module docstring for the cause that makes ``others`` into
-    ``full``: {"contradicted", "why", per-partition figures}."""
-    st0 = Stage(mo, others, cfg, noise=noise, big=False)
-    st1 = Stage(mo, full, cfg, noise=noise, big=False)
-    dv, ds = st1.fv - st0.fv, st1.fs - st0.fs
-    energy = dv * dv
-    if not energy.sum() > 0:
-        return {"contradicted": False, "note": "no drift part to split"}
-    gi = _event_grid_index(mo)
-    ph = grid_phase(mo)[gi]
-    v, x, t = mo.v_ref[gi], mo.x_ref[gi], mo.ev.t
-    on = energy > 1e-6 * energy.max()
-    out = {"contradicted": False}
-    bad = []
-    for part, cells in _partitions(ph, v, x, t, on).items():
-        cols = [(m, lab) for m, lab in cells if energy[m].sum() > 0.02 * energy.sum()]
-        if len(cols) < 2:
-            continue
-        Bv = np.stack([dv * m for m, _ in cols], axis=1)
-        Bs = np.stack([ds * m for m, _ in cols], axis=1)
-        stat, c, se = _fit_columns(st1, Bv, Bs)
-        p = float(chi2.sf(stat, len(cols)))
-        out[part] = {"chi2": stat, "dof": len(cols), "p": p,
-                     "multipliers": {lab: 1.0 + float(cj) for (_, lab), cj in zip(cols, c)}}
-        if p < alpha:
-            bad += [f"x{1 + cj:.2f} of itself {lab}" for (_, lab), cj, sj in zip(cols, c, se)
-                    if abs(cj) > max(min_share, 3.0 * sj)]
-    if bad:
-        out["contradicted"] = True
-        out["why"] = "the fitted effect is needed " + ", ".join(bad[:4])
-    return out
-
-
-def _partitions(ph, v, x, t, on) -> dict:
-    """Cells (event masks, label) of the split test over the events where the cause acts."""
-    out = {}
-    vt = np.quantile(v[on], [1 / 3, 2 / 3]) if on.any() else [0.0, 0.0]
-    vb = [(-np.inf, vt[0]), (vt[0], vt[1]), (vt[1], np.inf)]
-    out["phase x speed"] = [(on & (ph == p) & (v >= a) & (v < b),
-                             f"in {PHASES[p]} at {max(a, 0):.0f}-{b:.0f} m/s")
-                            for p in range(3) for a, b in vb]
-    for name, q, unit in (("position", x, "m"), ("time", t, "s")):
-        e = np.quantile(q[on], [0, 0.25, 0.5, 0.75, 1.0]) if on.any() else np.zeros(5)
-        e[-1] += 1e-9
-        out[name] = [(on & (q >= a) & (q < b), f"on {a:.0f}-{b:.0f} {unit}")
-                     for a, b in zip(e[:-1], e[1:])]
-    return out
-
-
-def piece_of(mo: Motion, others: Null, full: Null, cfg, noise, found: list) -> str | None:
-    """The ``unexplained`` signature the cause (``others`` -> ``full``) is a piece of (module
-    docstring), in words, or None."""
-    dv = Stage(mo, full, cfg, noise=noise, big=False).fv - \
-        Stage(mo, others, cfg, noise=noise, big=False).fv
-    energy = dv * dv
-    if not energy.sum() > 0:
-        return None
-    gi = _event_grid_index(mo)
-    support = (energy > 1e-6 * energy.max())[mo.grid.k]
-    for u in found:
-        on = u["mask"]
-        inside = energy[on[gi]].sum() / energy.sum()
-        outside = (on[:-1] & ~support).sum() / max(on[:-1].sum(), 1)
-        if inside > 0.5 and outside > 0.5:
-            return (f"{100 * inside:.0f} % of it lies in a structure that also shows where it "
-                    f"does not act (phase {u['phase']}, speed {_rng(u['speed'])} m/s, "
-                    f"{100 * outside:.0f} % of that structure outside it)")
-    return None
-
-
-def _rng(r) -> str:
-    return "-" if r is None else f"{r[0]:.0f}-{r[1]:.0f}"
-
-
-def cancelling(mo: Motion, nulls: dict, base: Null, full: Null, cfg, noise) -> dict:
-    """Causes (``nulls``: cause -> the model of all confirmed causes but it) whose
-    contributions cancel in a phase (module docstring): cause -> reason in words."""
-    gi = _event_grid_index(mo)
-    ph = grid_phase(mo)[gi]
-    fv_full = Stage(mo, full, cfg, noise=noise, big=False).fv
-    total = fv_full - Stage(mo, base, cfg, noise=noise, big=False).fv
-    parts = {c: fv_full - Stage(mo, n, cfg, noise=noise, big=False).fv
-             for c, n in nulls.items()}
-    out = {}
-    for p in range(3):
-        m = ph == p
-        big = {c: float(np.sum(d[m] ** 2)) for c, d in parts.items()
-               if np.sum(d[m] ** 2) > 0.25 * max(np.sum(d ** 2), 1e-300)}
-        if len(big) < 2 or np.sum(total[m] ** 2) >= 0.25 * max(big.values()):
-            continue
-        for c in big:
-            rest = ", ".join(sorted(set(big) - {c}))
-            out[c] = (f"cancels with {rest} in {PHASES[p]} (together they leave "
-                      f"{100 * np.sum(total[m] ** 2) / max(big.values()):.0f} % of the larger "
-                      f"there: an effect confined to the other phases)")
-    return out

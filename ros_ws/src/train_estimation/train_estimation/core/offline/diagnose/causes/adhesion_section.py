@@ -55,6 +55,13 @@ class AdhesionSection(Cause):
         return resolved("factor", fit.parameters["factor"] - 1.0,
                         fit.std_errors.get("factor"), 0.05)
 
+    def beyond(self, fit, mo):
+        """The section's braking factor on every brake application while moving."""
+        p = fit.parameters
+        brk = mo.f0 * mo.a_br0 * mo.moving
+        inside = (brk < 0) & (mo.x_ref >= p["start"]) & (mo.x_ref < p["end"])
+        return inside, (p["factor"] - 1.0) * brk
+
     def extend_null(self, null, fit, mo) -> None:
         bins, (bv, bs) = braking_bins(mo)
         i, j = fit.extra["bins"]

@@ -132,6 +132,16 @@ class Cause:
         nominal. The default (no rule of its own) accepts every fit."""
         return None
 
+    # What else makes the same residual when the cause is seen in one phase only (None: the
+    # cause acts in one phase by its nature); the confirmation then cannot tell them apart.
+    phase_rival: str | None = None
+
+    def beyond(self, fit: CauseFit, mo):
+        """For a cause fitted on a stretch of track: (inside, pattern), the grid points it acts
+        on and its acceleration (m/s^2 per grid point) if it acted at every place in the same
+        phases; None for a cause that is not a place effect."""
+        return None
+
     # -- what it becomes ------------------------------------------------------------------------
     def report(self, params: dict, beta: float) -> dict:
         """Parameters as docs/interfaces.md reports them (times on the train's stamp clock)."""

@@ -15,6 +15,7 @@ import math
 
 import numpy as np
 from train_core.effects import GradientEffect
+from train_core.model import G
 
 from train_estimation.core.numerics.augmented_kf import LOG2PI, gls
 
@@ -85,6 +86,17 @@ class Gradient(Cause):
         """A map error below 0.5 per mille is within a surveyed map's own precision."""
         return resolved("permille", fit.parameters["permille"],
                         fit.std_errors.get("permille"), 0.5, " per mille")
+
+    # at one place in one phase only, a map error and a force acting while the train was there
+    # (headwind, a traction or braking fault of that moment) make the same residual
+    phase_rival = "a force acting during that time"
+
+    def beyond(self, fit, mo):
+        """The section's gradient force at every place run while moving."""
+        p = fit.parameters
+        mov = mo.moving > 0
+        inside = mov & (mo.x_ref >= p["start"]) & (mo.x_ref < p["end"])
+        return inside, np.where(mov, -G / 1000.0 * mo.k_grad * p["permille"], 0.0)
 
     def extend_null(self, null, fit, mo) -> None:
         i, j = fit.extra["bins"]

@@ -1,0 +1,250 @@
+"""Whether a confirmed cause shows where it predicts it shows, and only there: its checks
+against the rest of the data (see :mod:`.phases` for the phases and cells).
+
+**Split test** (:func:`split_test`). A confirmed cause's contribution d (its drift columns:
+the model with it minus the model without it) is split into cells (phase x speed tercile,
+quarters of its position range, quarters of its time range), each with a free multiplier
+1 + c_j. If the cause is right, every c_j is 0 within noise; a chi-square test per partition at
+``alpha`` with some |c_j| > ``min_share`` (more than 3 standard errors) says the cause does not
+show where it predicts (a braking-rate change that only shows at low speed, a mass change that
+shows in traction but not in braking).
+
+**A piece of a larger structure** (:func:`piece_of`). A confirmed cause whose contribution lies
+mostly (> half of its energy) inside a structure still found in the residuals, while that
+structure lies mostly outside the cause's own support, is one instance of something that
+recurs where the cause does not act (a gradient section on one braking approach while every
+braking approach shows the same weaker braking at low speed). Likewise a structure lying
+mostly where the cause acts with more than half the cause's own acceleration there: the
+cause does not describe what acts there.
+
+**Place test** (:func:`place_test`). A cause fitted on a stretch, continued beyond it in the
+same phases and speed halves with a free multiplier per cell, must not be needed there.
+
+**Flexible rival** (:func:`flexible_rival`). A cause confirmed with others must explain the
+data better (BIC) than free accelerations per phase x speed quarter where it acts.
+
+**Causes that cancel** (:func:`cancelling`). Two confirmed causes whose contributions are
+each large in a phase (> 1/4 of their own energy there) while their sum there is small (< 1/4
+of the larger) act together as one effect confined to the other phases (a heavier train and a
+stronger brake: traction alone is weaker). No listed cause is that effect.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.stats import chi2
+
+from .motion import Motion
+from .phases import PHASES, _event_grid_index, _fit_columns, families, grid_phase
+from .stage import Null, Stage
+
+# s, a cell of the place test holds at least this much time outside the stretch (a stop's last
+# few m/s of braking last a few seconds; the cell's standard error states what it can test)
+PLACE_MIN_TIME = 1.0
+# a cell tests a cause's prediction when a departure of min_share of it there would be a
+# Z_SEEN-standard-error result (a two-sided 0.3 % chance under the cause)
+Z_SEEN = 3.0
+
+
+def split_test(mo: Motion, others: Null, full: Null, cfg, noise, alpha: float,
+               min_share: float) -> dict:
+    """The split test of the module docstring for the cause that makes ``others`` into
+    ``full``: {"contradicted", "why", per-partition figures}."""
+    st0 = Stage(mo, others, cfg, noise=noise, big=False)
+    st1 = Stage(mo, full, cfg, noise=noise, big=False)
+    dv, ds = st1.fv - st0.fv, st1.fs - st0.fs
+    energy = dv * dv
+    if not energy.sum() > 0:
+        return {"contradicted": False, "note": "no drift part to split"}
+    gi = _event_grid_index(mo)
+    ph = grid_phase(mo)[gi]
+    v, x, t = mo.v_ref[gi], mo.x_ref[gi], mo.ev.t
+    on = energy > 1e-6 * energy.max()
+    out = {"contradicted": False}
+    bad = []
+    for part, cells in _partitions(ph, v, x, t, on).items():
+        cols = [(m, lab) for m, lab in cells if energy[m].sum() > 0.02 * energy.sum()]
+        if len(cols) < 2 and part != "phase":
+            continue
+        Bv = np.stack([dv * m for m, _ in cols], axis=1)
+        Bs = np.stack([ds * m for m, _ in cols], axis=1)
+        stat, c, se = _fit_columns(st1, Bv, Bs)
+        p = float(chi2.sf(stat, len(cols)))
+        out[part] = {"chi2": stat, "dof": len(cols), "p": p,
+                     "multipliers": {lab: 1.0 + float(cj) for (_, lab), cj in zip(cols, c)},
+                     "std_errors": {lab: float(sj) for (_, lab), sj in zip(cols, se)}}
+        if part == "phase":
+            # the phases where the data could have shown the cause off by min_share (at
+            # Z_SEEN standard errors): only there is its prediction for that phase tested
+            out["phases_seen"] = [lab[3:] for (_, lab), sj in zip(cols, se)
+                                  if sj <= min_share / Z_SEEN]
+        if len(cols) >= 2 and p < alpha:
+            bad += [f"x{1 + cj:.2f} of itself {lab}" for (_, lab), cj, sj in zip(cols, c, se)
+                    if abs(cj) > max(min_share, 3.0 * sj)]
+    if bad:
+        out["contradicted"] = True
+        out["why"] = "the fitted effect is needed " + ", ".join(bad[:4])
+    return out
+
+
+def _partitions(ph, v, x, t, on) -> dict:
+    """Cells (event masks, label) of the split test over the events where the cause acts."""
+    out = {"phase": [(on & (ph == p), f"in {PHASES[p]}") for p in range(3)]}
+    vt = np.quantile(v[on], [1 / 3, 2 / 3]) if on.any() else [0.0, 0.0]
+    vb = [(-np.inf, vt[0]), (vt[0], vt[1]), (vt[1], np.inf)]
+    out["phase x speed"] = [(on & (ph == p) & (v >= a) & (v < b),
+                             f"in {PHASES[p]} at {max(a, 0):.0f}-{b:.0f} m/s")
+                            for p in range(3) for a, b in vb]
+    for name, q, unit in (("position", x, "m"), ("time", t, "s")):
+        e = np.quantile(q[on], [0, 0.25, 0.5, 0.75, 1.0]) if on.any() else np.zeros(5)
+        e[-1] += 1e-9
+        out[name] = [(on & (q >= a) & (q < b), f"on {a:.0f}-{b:.0f} {unit}")
+                     for a, b in zip(e[:-1], e[1:])]
+    return out
+
+
+def piece_of(mo: Motion, others: Null, full: Null, cfg, noise, found: list) -> str | None:
+    """The ``unexplained`` signature the cause (``others`` -> ``full``) is a piece of (module
+    docstring), in words, or None."""
+    dv = Stage(mo, full, cfg, noise=noise, big=False).fv - \
+        Stage(mo, others, cfg, noise=noise, big=False).fv
+    energy = dv * dv
+    if not energy.sum() > 0:
+        return None
+    gi = _event_grid_index(mo)
+    support = (energy > 1e-6 * energy.max())[mo.grid.k]
+    # the cause's acceleration on the grid (its drift increment per event interval)
+    dt_ev = np.diff(mo.ev.t, prepend=mo.ev.t[0] - mo.grid.dt)
+    acc = (dv / np.maximum(dt_ev, 1e-9))[mo.grid.k]
+    for u in found:
+        on = u["mask"]
+        inside = energy[on[gi]].sum() / energy.sum()
+        outside = (on[:-1] & ~support).sum() / max(on[:-1].sum(), 1)
+        if inside > 0.5 and outside > 0.5:
+            return (f"{100 * inside:.0f} % of it lies in a structure that also shows where it "
+                    f"does not act (phase {u['phase']}, speed {_rng(u['speed'])} m/s, "
+                    f"{100 * outside:.0f} % of that structure outside it)")
+        # a remainder mostly where the cause acts and as large as half of it there: the
+        # cause does not describe what acts there
+        both = on[:-1] & support
+        if both.sum() > 0.5 * max(on[:-1].sum(), 1):
+            own = float(np.median(np.abs(acc[both])))
+            if abs(u["size"]) > 0.5 * own:
+                return (f"what is left where it acts ({abs(u['size']):.3f} m/s^2, phase "
+                        f"{u['phase']}, speed {_rng(u['speed'])} m/s) is more than half of "
+                        f"its own {own:.3f} m/s^2 there")
+    return None
+
+
+def _rng(r) -> str:
+    return "-" if r is None else f"{r[0]:.0f}-{r[1]:.0f}"
+
+
+def cancelling(mo: Motion, nulls: dict, base: Null, full: Null, cfg, noise) -> dict:
+    """Causes (``nulls``: cause -> the model of all confirmed causes but it) whose
+    contributions cancel in a phase (module docstring): cause -> reason in words."""
+    gi = _event_grid_index(mo)
+    ph = grid_phase(mo)[gi]
+    fv_full = Stage(mo, full, cfg, noise=noise, big=False).fv
+    total = fv_full - Stage(mo, base, cfg, noise=noise, big=False).fv
+    parts = {c: fv_full - Stage(mo, n, cfg, noise=noise, big=False).fv
+             for c, n in nulls.items()}
+    out = {}
+    for p in range(3):
+        m = ph == p
+        big = {c: float(np.sum(d[m] ** 2)) for c, d in parts.items()
+               if np.sum(d[m] ** 2) > 0.25 * max(np.sum(d ** 2), 1e-300)}
+        if len(big) < 2 or np.sum(total[m] ** 2) >= 0.25 * max(big.values()):
+            continue
+        for c in big:
+            rest = ", ".join(sorted(set(big) - {c}))
+            out[c] = (f"cancels with {rest} in {PHASES[p]} (together they leave "
+                      f"{100 * np.sum(total[m] ** 2) / max(big.values()):.0f} % of the larger "
+                      f"there: an effect confined to the other phases)")
+    return out
+
+
+def place_test(mo: Motion, full: Null, cfg, noise, inside: np.ndarray, beyond: np.ndarray,
+               alpha: float, min_share: float) -> dict:
+    """Whether a cause fitted on a stretch of track (``inside``: its grid points) acts at that
+    place or in a phase and speed band everywhere: the cause's effect continued beyond its
+    stretch (``beyond``: m/s^2 per grid point if it acted at every place) gets a free multiplier
+    per cell (phase x speed half of the stretch) outside the stretch, on top of the model
+    ``full``. A place effect leaves these at 0; a chi-square at ``alpha`` with a cell needing
+    more than ``min_share`` of the effect (beyond 3 SE, the same sign) says the same shows at
+    the other places run in that phase and speed (braking weaker at low speed at every stop,
+    not on one stretch)."""
+    ph = grid_phase(mo)
+    v = mo.v_ref
+    on = inside & (beyond != 0) & (ph >= 0)
+    out_ = ~inside & (beyond != 0) & (ph >= 0)
+    res = {"contradicted": False}
+    if not on.any() or not out_.any():
+        res["note"] = "no data outside the stretch in its phases"
+        return res
+    # speed halves of the stretch: a stop's last metres are run for a few seconds only, and a
+    # finer band at low speed would hold too little of the other stops to test
+    vm = float(np.median(v[on]))
+    vb = [(0.0, vm), (vm, np.inf)]
+    cols, labels = [], []
+    e_in = float(np.sum(beyond[on] ** 2))
+    for p in range(3):
+        for a, b in vb:
+            band = (ph == p) & (v >= a) & (v < b)
+            cell = out_ & band
+            # cells of the phases and speeds the stretch itself holds, with data outside it
+            if (np.sum(beyond[on & band] ** 2) < 0.02 * e_in
+                    or np.sum(beyond[cell] ** 2) < 0.02 * e_in
+                    or cell.sum() * mo.grid.dt < PLACE_MIN_TIME):
+                continue
+            cols.append(beyond * cell)
+            labels.append(f"in {PHASES[p]} at {a:.0f}-{min(b, 999):.0f} m/s")
+    if not cols:
+        res["note"] = "no phase and speed of the stretch run elsewhere"
+        return res
+    Bv, Bs = mo.grid.integrate(np.stack(cols, axis=1), mo.ev.t.size)
+    st = Stage(mo, full, cfg, noise=noise, big=False)
+    stat, c, se = _fit_columns(st, Bv, Bs)
+    p = float(chi2.sf(stat, len(cols)))
+    res.update(chi2=stat, dof=len(cols), p=p,
+               multipliers={lab: float(cj) for lab, cj in zip(labels, c)},
+               std_errors={lab: float(sj) for lab, sj in zip(labels, se)})
+    bad = [f"x{cj:.2f} of it {lab}" for lab, cj, sj in zip(labels, c, se)
+           if cj > max(min_share, 3.0 * sj)]
+    if p < alpha and bad:
+        res["contradicted"] = True
+        res["why"] = ("the same shows outside its stretch (not a place effect): "
+                      + ", ".join(bad[:3]))
+    return res
+
+
+def flexible_rival(mo: Motion, others: Null, full: Null, cfg, noise, k_cause: int) -> dict:
+    """Whether a cause confirmed together with others explains the data better than a flexible
+    term in the phases and speeds it acts in: free extra accelerations per phase x quarter of
+    the top speed (the structure test's ``speed`` family) on the cells holding its
+    contribution, on top of the other causes (``others``). Both by BIC (``k_cause``: the
+    cause's parameters, one per cell for the flexible term): {"better", figures}."""
+    st0 = Stage(mo, others, cfg, noise=noise, big=False)
+    dv = Stage(mo, full, cfg, noise=noise, big=False).fv - st0.fv
+    ds = Stage(mo, full, cfg, noise=noise, big=False).fs - st0.fs
+    fam = families(mo).get("speed")
+    if fam is None or not np.any(dv):
+        return {"better": True, "note": "no flexible term to compare"}
+    R, labels = fam
+    gi = _event_grid_index(mo)
+    energy = dv * dv
+    keep = [j for j in range(R.shape[1])
+            if energy[R[gi, j] > 0].sum() > 0.02 * energy.sum()]
+    if not keep:
+        return {"better": True, "note": "no flexible term to compare"}
+    Bv, Bs = mo.grid.integrate(R[:, keep], mo.ev.t.size)
+    stat_f = _fit_columns(st0, Bv, Bs)[0]
+    stat_c = _fit_columns(st0, dv[:, None], ds[:, None])[0]
+    ln_n = math.log(max(mo.ev.t.size, 2))
+    bic_c = stat_c - k_cause * ln_n
+    bic_f = stat_f - len(keep) * ln_n
+    return {"better": bool(bic_c > bic_f), "chi2_cause": stat_c, "k_cause": k_cause,
+            "chi2_flexible": stat_f, "k_flexible": len(keep),
+            "cells": [labels[j] for j in keep]}
