@@ -169,9 +169,10 @@ class StreamClock:
     #   runner's min_judged): earlier ones do not lift the ceiling
 
     # -- offset ---------------------------------------------------------------------------
-    def add(self, v: float, at: float | None = None) -> None:
+    def add(self, v: float, at: float | None = None, lift: bool = True) -> None:
         """Add the offset ``v`` = stamp - arrival of an item that arrived at ``at`` (s; None:
-        unknown)."""
+        unknown). ``lift=False``: it votes for the centre but not for the ceiling (an item
+        refused as stamped above its clock)."""
         # Once the window is full, a value far from its centre does not vote: wild stamps
         # mixed with good ones (a fuzzed or corrupted stream) could otherwise, by a run of
         # bad luck, outnumber the good ones in the window and move the centre by their offset
@@ -207,7 +208,7 @@ class StreamClock:
             self.pending = []
         elif self.pending:
             self.pending = []
-        self._push(v)
+        self._push(v, lift)
 
     @staticmethod
     def _persists(run: list) -> bool:
@@ -217,7 +218,7 @@ class StreamClock:
             return True
         return paced((v0 + a0, a0), (v1 + a1, a1))
 
-    def _push(self, v: float) -> None:
+    def _push(self, v: float, lift: bool = True) -> None:
         self._value = None
         self._pushed += 1
         self.fifo.append(v)
@@ -225,7 +226,7 @@ class StreamClock:
         if len(self.fifo) > self.n:
             old = self.fifo.popleft()
             del self.sorted[bisect.bisect_left(self.sorted, old)]
-        if len(self.fifo) <= self.settled:
+        if len(self.fifo) <= self.settled or not lift:
             return
         # only offsets that voted once the clock had a centre: among the first few a wild
         # stamp (1e9 s ahead) votes unjudged, and as the ceiling it hid every forward step and
