@@ -165,12 +165,14 @@ class StreamClock:
     tol = TOL
     late = LATE
     horizon = 600  # offsets over which the ceiling is the maximum (1 min at 10 Hz)
-    settled = 9  # offsets in the window before its centre says where the clock is
+    settled = 9  # offsets in the window before its centre says where the clock is (the
+    #   runner's min_judged): earlier ones do not lift the ceiling
 
     # -- offset ---------------------------------------------------------------------------
-    def add(self, v: float, at: float | None = None) -> None:
+    def add(self, v: float, at: float | None = None, lift: bool = True) -> None:
         """Add the offset ``v`` = stamp - arrival of an item that arrived at ``at`` (s; None:
-        unknown)."""
+        unknown). ``lift=False``: it votes for the centre but not for the ceiling (an item
+        refused as stamped above its clock)."""
         # Once the window is full, a value far from its centre does not vote: wild stamps
         # mixed with good ones (a fuzzed or corrupted stream) could otherwise, by a run of
         # bad luck, outnumber the good ones in the window and move the centre by their offset
@@ -206,7 +208,7 @@ class StreamClock:
             self.pending = []
         elif self.pending:
             self.pending = []
-        self._push(v)
+        self._push(v, lift)
 
     @staticmethod
     def _persists(run: list) -> bool:
@@ -216,7 +218,7 @@ class StreamClock:
             return True
         return paced((v0 + a0, a0), (v1 + a1, a1))
 
-    def _push(self, v: float) -> None:
+    def _push(self, v: float, lift: bool = True) -> None:
         self._value = None
         self._pushed += 1
         self.fifo.append(v)
@@ -224,17 +226,17 @@ class StreamClock:
         if len(self.fifo) > self.n:
             old = self.fifo.popleft()
             del self.sorted[bisect.bisect_left(self.sorted, old)]
-        if len(self.fifo) < self.settled:
+        if len(self.fifo) <= self.settled or not lift:
             return
-        # the ceiling follows the centre, never one offset: a single wrong stamp a few
-        # seconds ahead (or a wild one among the first few, before any centre is known) is
-        # an offset that voted; as the sliding maximum of raw offsets it lifted the ceiling
-        # for `horizon` readings and hid every forward step and stamp ahead below it (a
-        # fuzzed 1 Hz stream: a reading stamped 5 s ahead took a genuine one's slot)
-        c = self.value
-        while self._top and self._top[-1][1] <= c:
+        # only offsets that voted once the clock had a centre: among the first few a wild
+        # stamp (1e9 s ahead) votes unjudged, and as the ceiling it hid every forward step and
+        # stamp ahead for `horizon` readings (a fuzzed 1 Hz stream: a reading stamped 5 s
+        # ahead then took a genuine one's slot). Later ones are judged before they vote (the
+        # runner holds a reading above the ceiling by more than its bar), so one lifts it by
+        # no more than that bar
+        while self._top and self._top[-1][1] <= v:
             self._top.pop()
-        self._top.append((self._pushed, c))
+        self._top.append((self._pushed, v))
         if self._top[0][0] <= self._pushed - self.horizon:
             self._top.popleft()
 
@@ -279,8 +281,8 @@ class StreamClock:
 
     @property
     def ceiling(self) -> float:
-        """The highest centre over the last ``horizon`` offsets (once ``settled`` are in):
-        where the clock is when the latency is least. A node that lagged its input for a
+        """The largest offset that voted among the last ``horizon``, once ``settled`` were
+        in: where the clock is when the latency is least. A node that lagged its input for a
         while moves the centre down with it; when it catches up, its offsets return to the
         ceiling, never above it."""
         return self._top[0][1] if self._top else math.nan

@@ -282,9 +282,9 @@ class EstimatorRunner:
         # moves the window, and its commands are taken again)
         lead = med.above(stamp - arrival) if kind == "control" and recv is not None and \
             self.control_clock != "same" and len(med) >= self.min_judged else -math.inf
-        if arrival is not None and not counted:
-            med.add(stamp - arrival, arrival)
         bar = self._bar(med, max(self.step_back, 2.5 * self.period)) if lead > 0 else math.inf
+        if arrival is not None and not counted:
+            med.add(stamp - arrival, arrival, lift=not lead > bar)
         if lead > bar:
             return self._reject(kind, stamp, f"{R.FUTURE_STAMP}: {lead:.3g} s ahead of its clock")
         if kind in ("odometer", "control") and recv is not None:
