@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Braking-rate estimation in and out of the loop on ``metro_drift`` (issue 5, item 4).
+"""Braking-rate estimation in and out of the loop on ``metro_drift``.
 
     PYTHONPATH=ros_ws/src/train_sim:ros_ws/src/train_estimation \\
         python3 benchmarks/bench_closed_loop.py [--seeds 20] [--quick]

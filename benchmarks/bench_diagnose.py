@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Benchmark of `diagnose` (issue 10's targets) on generated measured bags.
+"""Benchmark of `diagnose` on generated measured bags, against the targets below.
 
     ./run bench diagnose --cases N [--seed S] [--jobs 1] [--sizes plain,subtle] [--pairs N]
 

@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Benchmark of `fleet` (issue 14): throughput on Dask and consensus accuracy.
+"""Benchmark of `fleet`: throughput on Dask and consensus accuracy.
 
     ./run bench fleet [--trains 8] [--runs 2] [--degraded 2] [--stops 1] [--timing-bags 6]
                       [--draws 20] [--seed 3] [--permille 5] [--f-first 0.85] [--f-last 0.75]

@@ -12,7 +12,7 @@ balises). The same clean stream without corruption is the reference run.
 
 Checks per estimator (table): exceptions, NaN in the estimates, non-positive-definite
 covariances (position/velocity block; and the full 4x4 of the braking filters, whose braking-rate
-variance is issue 15's), rejections without a vocabulary name (``core/reasons.py``), and the
+variance is estimated too), rejections without a vocabulary name (``core/reasons.py``), and the
 final and RMS position error against the clean run's. Stated bound: final |error| within
 ``clean + 1 m`` and RMSE within ``1.1 clean + 0.1 m``.
 
@@ -197,7 +197,7 @@ def main(argv=None) -> int:
     print(f"\n{total} corrupted messages in all. Rejections by reason (all estimators): "
           + ", ".join(f"{k} {v}" for k, v in reasons.most_common()))
     print("bound: final |error| <= clean + 1 m and RMSE <= 1.1 clean + 0.1 m; "
-          "non-PD (4x4) includes the braking-rate variance (issue 15). Corrupted but not "
+          "non-PD (4x4) includes the braking-rate variance. Corrupted but not "
           "rejected: duplicated commands (same stamp and value: harmless), the seq jump and the "
           "seq reset (accepted, counted as events)")
     print("RESULT:", "PASS" if ok_all else "FAIL")

@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Benchmark of the SI front end (issue 6, "Reproduce and measure" item 4).
+"""Benchmark of the SI front end.
 
 For each case -- no effect (control), Davis c +30 %, all Davis -30 %, all Davis +30 %, mass
 +20 % -- on ``metro_demo`` and, as a second column, ``crh3_high_speed`` (far wider speed range):

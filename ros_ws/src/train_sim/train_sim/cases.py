@@ -15,7 +15,7 @@ around a metro, a regional and a high-speed EMU (mass, rotary allowance, Davis, 
 Bernoulli link with p, r, latency 0-80 ms and jitter 0-30 ms; train-clock epoch 1e8-2e9 s; ATO
 brake margin, speed margin, holding brake, initial dwell and dwells; 2-5 stops; 8-12 min runs.
 
-Effect sizes (issue 10): ``subtle`` is half the deviation from nominal of ``plain``:
+Effect sizes: ``subtle`` is half the deviation from nominal of ``plain``:
 
 =================  ===================================  =====================================
 cause              subtle (k = 1)                        plain (k = 2)
@@ -155,7 +155,7 @@ def main_value(cause: str, params: dict, v_ref: float = 10.0) -> float:
 
 def main_error(cause: str, estimate: dict, truth: dict, nominal: dict,
                v_ref: float = 10.0) -> float:
-    """|estimate - true| / |true - nominal| of the cause's main quantity (issue 10's criterion).
+    """|estimate - true| / |true - nominal| of the cause's main quantity (the benchmark's measure).
 
     wheel_slip: the duration of the symmetric difference between the estimated and the true
     interval sets over the true slip time (0 = the same episodes, 1 = as bad as finding none).

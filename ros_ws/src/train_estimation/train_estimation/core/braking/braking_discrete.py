@@ -1,6 +1,6 @@
 """Braking-rate filters on a discrete set of values (Zheng et al. 2015): RBPF with a transition
-matrix (Section 3.3), SMA (3.4), GSMA (3.5), plus the discrete prior and cell variance of
-issue 15 (``braking_filters`` gives the overview).
+matrix (Section 3.3), SMA (3.4), GSMA (3.5), plus the discrete prior and cell variance
+(``braking_filters`` gives the overview).
 
 Pure: numpy/scipy only; randomness only through the ``rng`` argument.
 """

@@ -42,7 +42,7 @@ Algorithms (theta = braking rate f):
   ``braking_model.augmented_model``), the reference every table compares with.
 * ``OracleKF`` -- one Kalman filter told the true theta_k.
 
-**Priors and calibration (issue 15).** ``prior = (mean, std)``: discrete algorithms draw their
+**Priors and calibration.** ``prior = (mean, std)``: discrete algorithms draw their
 initial values from the Gaussian's mass on each value's cell (``grid_prior``), continuous ones
 from the Gaussian (reflected into the bounds); None = the papers' uniform prior. A discrete
 value stands for its cell, so each particle carries the cell's variance ``h^2 / 12``
