@@ -244,8 +244,9 @@ def zone_case(kind: str, seed: int = 0, duration: float = 60.0, onset: float = 2
 
     bad_kinds = [dict(var_position=math.nan), dict(var_velocity=-1.0), dict(position=math.inf),
                  dict(var_braking_rate=-0.01), dict(var_braking_rate=math.nan),
-                 dict(braking_rate=math.nan), dict(stamp_shift=1e6), dict(stamp_shift=-1e6),
-                 dict(stamp_shift=math.nan), dict(velocity=1e9), dict(integrity=7)]
+                 dict(braking_rate=-math.inf), dict(stamp_shift=1e6), dict(stamp_shift=-1e6),
+                 dict(stamp_shift=math.nan), dict(velocity=1e9), dict(velocity=-1e9),
+                 dict(integrity=7)]  # (a NaN braking rate is "not estimated": not bad)
     n = int(duration * 10)
     brakes = []
     for k in range(n + 1):

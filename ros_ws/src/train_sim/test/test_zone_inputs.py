@@ -64,6 +64,18 @@ def test_covariance_must_be_symmetric_positive_definite():
     assert zc.report("A", rep(0.5, var_velocity=0.0, var_position=0.0, exact=True)) == ""
 
 
+@pytest.mark.parametrize("v", [1e9, -1e9, -151.0])
+def test_a_speed_no_train_runs_is_refused(v):
+    """A large negative speed would be a train at rest in the worst-case stop (max(v, 0)):
+    refused, and the last good report stays in force."""
+    zc = ZoneController(P)
+    good = rep(0.0, v=20.0)
+    assert zc.report("A", good) == ""
+    assert zc.report("A", rep(0.1, v=v)) == Z.IMPLAUSIBLE_SPEED
+    assert zc.reports["A"] is good
+    assert zc.report("A", rep(0.2, v=Z.MAX_SPEED)) == ""  # the fastest plausible is accepted
+
+
 @pytest.mark.parametrize("check_stamp_age", [True, False])
 @pytest.mark.parametrize("ahead", [1.5, 60.0, 1e6, 1e9])
 def test_far_future_stamp_is_refused_without_poisoning_later_reports(check_stamp_age, ahead):

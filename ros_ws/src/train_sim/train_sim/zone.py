@@ -40,7 +40,8 @@ stored when a field the zone reads is unusable: a non-finite stamp, position, ve
 variance (a NaN variance is no information, never certainty), a variance <= 0 (a report the
 node marks ``exact``, ground truth, may state 0), a position/velocity covariance that is not
 symmetric positive definite, a braking rate with no finite positive variance, an unknown
-integrity value, or a stamp that is implausible:
+integrity value, a speed no train runs (|velocity| > ``MAX_SPEED``), or a stamp that is
+implausible:
 
 - *ahead*: more than ``max_future`` ahead of the zone's own clock (``check_stamp_age``: zone and
   estimates on one clock) or, on separate clocks, of the train's timeline (the largest
@@ -128,10 +129,15 @@ NON_FINITE = "non-finite value"
 NON_POSITIVE_VARIANCE = "non-positive variance"
 NOT_POSITIVE_DEFINITE = "covariance not positive definite"
 UNKNOWN_INTEGRITY = "unknown integrity"
+IMPLAUSIBLE_SPEED = "implausible speed"
 FUTURE_STAMP = "future stamp"
 OUT_OF_ORDER = "out-of-order stamp"
 KINDS = (NON_FINITE, NON_POSITIVE_VARIANCE, NOT_POSITIVE_DEFINITE, UNKNOWN_INTEGRITY,
-         FUTURE_STAMP, OUT_OF_ORDER)
+         IMPLAUSIBLE_SPEED, FUTURE_STAMP, OUT_OF_ORDER)
+# m/s: no train runs faster (540 km/h; the fastest wheeled train in service runs 97 m/s). A
+# larger |velocity| is a corrupt report, and a large negative one must never be read as a
+# train at rest (the worst-case stop takes max(velocity, 0)).
+MAX_SPEED = 150.0
 # s of arrivals over which the largest stamp - arrival accepted is a train's timeline on separate
 # clocks: link latency varies within seconds, and a clock drift of 1e-2 moves the timeline only
 # 0.6 s in this time (a plain running maximum would let a slow clock's timeline lag by hours)
@@ -173,7 +179,8 @@ def check_fields(rep: TrainReport) -> tuple[str, str]:
 
     Only what the zone reads is judged: the stamp, position, velocity, the position/velocity
     block of the covariance, the braking rate with its variance where one is published (NaN
-    braking rate = not estimated, nominal braking assumed), and the integrity value.
+    braking rate = not estimated, nominal braking assumed), the integrity value and the speed
+    (|velocity| <= ``MAX_SPEED``).
     """
     vals = {"stamp": rep.stamp, "position": rep.position, "velocity": rep.velocity,
             "position variance": rep.var_position, "velocity variance": rep.var_velocity,
@@ -187,6 +194,8 @@ def check_fields(rep: TrainReport) -> tuple[str, str]:
             return NON_FINITE, f"{name} is {v}"
     if rep.integrity not in (OK, DEGRADED, ALARM):
         return UNKNOWN_INTEGRITY, f"integrity {rep.integrity} (0 OK, 1 DEGRADED, 2 ALARM)"
+    if abs(rep.velocity) > MAX_SPEED:
+        return IMPLAUSIBLE_SPEED, f"velocity {rep.velocity:g} m/s (|v| > {MAX_SPEED:g})"
     variances = {"position variance": rep.var_position, "velocity variance": rep.var_velocity}
     if not math.isnan(rep.braking_rate):
         variances["braking-rate variance"] = rep.var_braking_rate

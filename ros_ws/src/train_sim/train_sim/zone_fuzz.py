@@ -33,6 +33,8 @@ FIELDS = {  # corruption -> (changed fields, expected refusal)
                                        Z.NON_POSITIVE_VARIANCE),
     "asymmetric_covariance": ({"cov_position_velocity": 0.5}, Z.NOT_POSITIVE_DEFINITE),
     "unknown_integrity": ({"integrity": 7}, Z.UNKNOWN_INTEGRITY),
+    "huge_velocity": ({"velocity": 1e9}, Z.IMPLAUSIBLE_SPEED),
+    "huge_negative_velocity": ({"velocity": -1e9}, Z.IMPLAUSIBLE_SPEED),
 }
 NOT_PD = "covariance_not_positive_definite"  # |cov_xv| = 2 sqrt(var_x var_v), symmetric
 FUTURE = (3.5, 60.0, 1e6, 1e9)  # s added to the stamp (beyond max_future, default 3 s)
