@@ -221,20 +221,46 @@ def declare_config(node, cls, live: tuple[str, ...] = (), on_change: Callable | 
 class Diagnostics:
     """Publishes ``/diagnostics`` (diagnostic_msgs/DiagnosticArray) for ``node``.
 
-    ``status()`` returns the node's :class:`train_core.diagnostics.Status` (built by the pure
-    core from the node's counters); it is called every ``period`` s of steady (wall) time, so
-    the rate holds under ``use_sim_time`` whatever /clock does. The status is named
-    ``<node name>: <what>`` with the node's namespace as ``hardware_id`` (the train).
+    ``thresholds`` is the node's threshold dataclass (``train_core.diagnostics``: it has
+    ``diagnostics_period``); every field is declared as a parameter that may change at run time
+    (the period included) and the one in force is ``self.cfg``. ``status()`` returns the node's
+    :class:`train_core.diagnostics.Status` (built by the pure core from the node's counters); it
+    is called every ``diagnostics_period`` s of steady (wall) time, so the rate holds under
+    ``use_sim_time`` whatever /clock does. The status is named ``<node name>: <what>`` with the
+    node's namespace as ``hardware_id`` (the train).
     """
 
-    def __init__(self, node, what: str, period: float, status: Callable):
+    def __init__(self, node, what: str, thresholds: type, status: Callable):
         from diagnostic_msgs.msg import DiagnosticArray
         from rclpy.clock import Clock, ClockType
 
+        from train_core.config import param_fields
+
         self.node, self.what, self.status = node, what, status
+        self._previous: dict = {}  # input name -> its InputCounts one period ago
+        try:
+            self.cfg = declare_config(node, thresholds,
+                                      live=tuple(f.name for f in param_fields(thresholds)),
+                                      on_change=self._on_change)
+        except ValueError as exc:
+            raise ParameterError(str(exc)) from None
         self.pub = node.create_publisher(DiagnosticArray, "/diagnostics", 10)
-        self.timer = node.create_timer(period, self.publish,
+        self.timer = node.create_timer(self.cfg.diagnostics_period, self.publish,
                                        clock=Clock(clock_type=ClockType.STEADY_TIME))
+
+    def _on_change(self, cfg) -> None:
+        self.cfg = cfg
+        self.set_period(cfg.diagnostics_period)
+
+    def input_checks(self, now: float, started: float, inputs: list):
+        """``train_core.diagnostics.input_checks`` of ``inputs`` (InputCounts) against the
+        counts one period ago, with the thresholds in force; returns (checks, values)."""
+        from train_core.diagnostics import input_checks
+
+        checks, values = input_checks(now, started, inputs, self._previous,
+                                      self.cfg.diagnostics_period, self.cfg)
+        self._previous = {c.name: c for c in inputs}
+        return checks, values
 
     def set_period(self, period: float) -> None:
         self.timer.timer_period_ns = int(period * 1e9)

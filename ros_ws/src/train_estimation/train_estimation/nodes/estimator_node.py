@@ -20,7 +20,7 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from train_core.config import param, param_fields
+from train_core.config import param
 from train_core.ros import ParameterError, declare_config, sec_to_stamp, stamp_to_sec
 
 
@@ -141,17 +141,9 @@ def build_estimator_node(name: str, topic: str, make_adapter: Callable):
             self.last_arrival = dict.fromkeys(self.received, math.nan)
             self.window_latency: list[float] = []
             self.last_integrity: tuple[int, str] | None = None
-            self.diag_prev: dict = {}
             self.n_published = 0
-            try:
-                self.diag_cfg = declare_config(self, D.EstimatorThresholds,
-                                               live=tuple(f.name for f in
-                                                          param_fields(D.EstimatorThresholds)),
-                                               on_change=self._on_diag_change)
-            except ValueError as exc:
-                raise ParameterError(str(exc)) from None
             self.diag = Diagnostics(self, f"{self.adapter.source} estimator",
-                                    self.diag_cfg.diagnostics_period, self.diagnostics)
+                                    D.EstimatorThresholds, self.diagnostics)
             self.create_subscription(OdometerReading, "odometer", self.on_odometer, 2000)
             self.create_subscription(BaliseReading, "balise", self.on_balise, 200)
             self.create_subscription(ControlCommand, "control", self.on_control, 2000)
@@ -261,10 +253,6 @@ def build_estimator_node(name: str, topic: str, make_adapter: Callable):
             odom.pose.covariance, odom.twist.covariance = odometry_covariances(state.covariance)
             return odom
 
-        def _on_diag_change(self, cfg) -> None:
-            self.diag_cfg = cfg
-            self.diag.set_period(cfg.diagnostics_period)
-
         def diagnostics(self):
             """The node's Status for /diagnostics (the rules: train_core.diagnostics)."""
             now = self.steady.now().nanoseconds * 1e-9
@@ -276,11 +264,8 @@ def build_estimator_node(name: str, topic: str, make_adapter: Callable):
                                             self.runner.accepted.get(kind, 0), reasons,
                                             self.last_arrival[kind],
                                             watch_stale=kind != "balise"))
-            cfg = self.diag_cfg
-            checks, values = D.input_checks(now, self.started, inputs, self.diag_prev,
-                                            cfg.diagnostics_period, cfg)
-            self.diag_prev = {c.name: c for c in inputs}
-            lat_checks, lat_values = D.latency_check(self.window_latency, cfg)
+            checks, values = self.diag.input_checks(now, self.started, inputs)
+            lat_checks, lat_values = D.latency_check(self.window_latency, self.diag.cfg)
             self.window_latency = []
             integ = self.last_integrity
             i_checks, i_values = D.integrity_check(*(integ if integ else (None, "")))

@@ -21,7 +21,7 @@ import math
 import sys
 from dataclasses import dataclass
 
-from train_core.config import param, param_fields, require
+from train_core.config import param, require
 from train_core.ros import (
     TOPIC_TYPES,
     ParameterError,
@@ -111,16 +111,7 @@ def build_node():
                     lambda data, full=full, msgtype=msgtype: self.on_msg(full, msgtype, data),
                     1000, raw=True)
             self.timer = self.create_timer(flush, self.writer.flush)
-            self.diag_prev: dict = {}
-            try:
-                self.diag_cfg = declare_config(
-                    self, D.StaleThresholds,
-                    live=tuple(f.name for f in param_fields(D.StaleThresholds)),
-                    on_change=self._on_diag_change)
-            except ValueError as exc:
-                raise ParameterError(str(exc)) from None
-            self.diag = Diagnostics(self, "bag recorder", self.diag_cfg.diagnostics_period,
-                                    self.diagnostics)
+            self.diag = Diagnostics(self, "bag recorder", D.StaleThresholds, self.diagnostics)
             self.get_logger().info(f"recording {topics} in {ns} to {bag}")
 
         def on_msg(self, topic: str, msgtype: str, data: bytes) -> None:
@@ -130,10 +121,6 @@ def build_node():
             self.received[topic] += 1
             self.last_arrival[topic] = self.steady.now().nanoseconds * 1e-9
 
-        def _on_diag_change(self, cfg) -> None:
-            self.diag_cfg = cfg
-            self.diag.set_period(cfg.diagnostics_period)
-
         def diagnostics(self):
             """Per topic: rate, count and silence (a topic is watched once it has delivered:
             a recorder may be told to record a topic nobody publishes in this run)."""
@@ -141,10 +128,7 @@ def build_node():
             inputs = [D.InputCounts(t, n, n, {}, self.last_arrival[t],
                                     watch_stale=n > 0 and t.rsplit("/", 1)[-1] not in SPARSE)
                       for t, n in self.received.items()]
-            cfg = self.diag_cfg
-            checks, values = D.input_checks(now, self.started, inputs, self.diag_prev,
-                                            cfg.diagnostics_period, cfg)
-            self.diag_prev = {c.name: c for c in inputs}
+            checks, values = self.diag.input_checks(now, self.started, inputs)
             return D.combine(checks, [("bag", str(self.writer.path)),
                                       ("bytes_written", str(self.bytes)), *values])
 

@@ -18,7 +18,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from train_core.config import param, param_fields, require
+from train_core.config import param, require
 from train_core.ros import (
     TOPIC_TYPES,
     ParameterError,
@@ -152,16 +152,7 @@ def build_node():
             self.started = self.steady.now().nanoseconds * 1e-9
             self.in_received = dict.fromkeys(["movement_authority", *self.paced], 0)
             self.in_last = dict.fromkeys(self.in_received, math.nan)
-            self.diag_prev: dict = {}
-            try:
-                self.diag_cfg = declare_config(
-                    self, D.StaleThresholds,
-                    live=tuple(f.name for f in param_fields(D.StaleThresholds)),
-                    on_change=self._on_diag_change)
-            except ValueError as exc:
-                raise ParameterError(str(exc)) from None
-            self.diag = Diagnostics(self, "train world", self.diag_cfg.diagnostics_period,
-                                    self.diagnostics)
+            self.diag = Diagnostics(self, "train world", D.StaleThresholds, self.diagnostics)
             self.get_logger().info(
                 f"scenario {self.sc.name}, seed {self.world.seed}, {self.duration:.0f} s at "
                 f"{self.rate_factor:g}x real time")
@@ -170,18 +161,11 @@ def build_node():
             self.in_received[topic] += 1
             self.in_last[topic] = self.steady.now().nanoseconds * 1e-9
 
-        def _on_diag_change(self, cfg) -> None:
-            self.diag_cfg = cfg
-            self.diag.set_period(cfg.diagnostics_period)
-
         def diagnostics(self):
             now = self.steady.now().nanoseconds * 1e-9
             inputs = [D.InputCounts(t, n, n, {}, self.in_last[t], watch_stale=n > 0)
                       for t, n in self.in_received.items()]
-            cfg = self.diag_cfg
-            checks, values = D.input_checks(now, self.started, inputs, self.diag_prev,
-                                            cfg.diagnostics_period, cfg)
-            self.diag_prev = {c.name: c for c in inputs}
+            checks, values = self.diag.input_checks(now, self.started, inputs)
             state = ("waiting for subscribers" if self.wall0 is None
                      else "ended" if self.done else "running")
             head = [("scenario", self.sc.name), ("seed", str(self.world.seed)), ("state", state),

@@ -16,7 +16,6 @@ import re
 import sys
 from dataclasses import replace
 
-from train_core.config import param_fields
 from train_core.ros import ParameterError, declare_config, parse_cli, run_node, stamp_to_sec
 
 DESCRIPTION = __doc__.splitlines()[0]
@@ -78,16 +77,8 @@ def build_node():
             self.refused: dict[str, dict[str, int]] = {t: {} for t in self.trains}
             self.last_arrival = dict.fromkeys(self.trains, math.nan)
             self.last_auth: dict = {}
-            self.diag_prev: dict = {}
-            try:
-                self.diag_cfg = declare_config(
-                    self, D.InputThresholds,
-                    live=tuple(f.name for f in param_fields(D.InputThresholds)),
-                    on_change=self._on_diag_change)
-            except ValueError as exc:
-                raise ParameterError(str(exc)) from None
-            self.diag = Diagnostics(self, "movement authorities",
-                                    self.diag_cfg.diagnostics_period, self.diagnostics)
+            self.diag = Diagnostics(self, "movement authorities", D.InputThresholds,
+                                    self.diagnostics)
             self.get_logger().info(
                 f"zone controller for {self.trains} on '{state_topic}', "
                 f"danger points {points}, k={params.k_sigma}")
@@ -157,10 +148,6 @@ def build_node():
                         self.get_logger().info(f"{auth.train_id}: emergency brake released")
                     self.last_state[auth.train_id] = auth.state
 
-        def _on_diag_change(self, cfg) -> None:
-            self.diag_cfg = cfg
-            self.diag.set_period(cfg.diagnostics_period)
-
         def diagnostics(self):
             """Reports per train as inputs; an emergency brake set is WARN with its reason
             (the zone doing its job on a train it cannot bound, worth an operator's look)."""
@@ -169,10 +156,7 @@ def build_node():
                                     self.received[t] - sum(self.refused[t].values()),
                                     dict(self.refused[t]), self.last_arrival[t])
                       for t in self.trains]
-            cfg = self.diag_cfg
-            checks, values = D.input_checks(now, self.started, inputs, self.diag_prev,
-                                            cfg.diagnostics_period, cfg)
-            self.diag_prev = {c.name: c for c in inputs}
+            checks, values = self.diag.input_checks(now, self.started, inputs)
             for t in self.trains:
                 auth = self.last_auth.get(t)
                 values.append((f"{t}.emergency_brake", "unknown" if auth is None
