@@ -10,10 +10,13 @@ measured bag (no ground truth) and the ``diagnose`` executable's entry point run
 as a user would (--bag, --line, --train, --out); the report is then compared with the truth.
 
 Printed (and written to benchmarks/out/diagnose.md, raw results to diagnose.json):
-- confusion matrix per size: true cause (rows) against the reported cause (columns);
-- right-cause rate per size (target >= 95 % plain, >= 85 % subtle) and `none` on nominal data
-  (target >= 95 %; 1 - this is the false-alarm rate);
-- pairs: both true causes in the first two of the ranking (target >= 80 %);
+- confusion matrix per size: true cause (rows) against the reported cause (columns), and each
+  cause's statuses (confirmed / not confirmed, with the reason / rejected);
+- right cause confirmed, per size (target >= 97 % plain, >= 90 % subtle); nominal data with no
+  confirmed cause (target >= 97 %; 1 - this is the false-alarm rate);
+- pairs: both true causes confirmed and first and second in the ranking (target >= 90 %);
+- effects outside the list (``--unlisted``): `unexplained` (target >= 80 %), a listed cause
+  confirmed (target <= 10 %), the signature's phase right (target >= 80 %);
 - main-parameter error |estimate - true| / |true - nominal| per cause (train_sim.cases
   main_error; the estimate is the true cause's entry in the ranking, whatever rank it has):
   median and the fraction within 0.2 (target: within 20 %);
