@@ -75,11 +75,12 @@ def augmented_kf(ev: Events, q: float, r_s: float, Bv, Bs, Md, Mv, Mb, q_held: f
     n, p1 = ev.t.size, Bv.shape[1]
     gp = _gain_pass(ev, q, r_s, q_held, update, q_per_event)
     odo, bal = gp.odo, gp.bal
-    B = np.stack([Bs, Bv], axis=1).astype(float)  # (n, 2, p1): drift of (s, v)
+    B = np.stack([Bs, Bv], axis=1).astype(float, copy=False)  # (n, 2, p1): drift of (s, v)
     # minus the measurement columns: (-M) - x is -x - M (rounding is symmetric)
-    Mn = -np.stack([Md, Mv], axis=1).astype(float)
+    Mn = np.stack([Md, Mv], axis=1).astype(float, copy=False)
+    np.negative(Mn, out=Mn)
     Mbn = -np.asarray(Mb, float)
-    Y = np.stack([ev.y_d, ev.y_v], axis=1).astype(float)
+    Y = np.stack([ev.y_d, ev.y_v], axis=1).astype(float, copy=False)
     kc0 = np.ascontiguousarray(gp.K[:, :, 0:1])  # (n, 2, 1): gain on the distance innovation
     kc1 = np.ascontiguousarray(gp.K[:, :, 1:2])  # on the speed innovation
     x = Mn[0].copy()
