@@ -1,9 +1,12 @@
 """kf2_loglik is the two-column fast path of augmented_kf: the same profile log-likelihood."""
 
+import math
+
 import numpy as np
 import pytest
 
 from train_estimation.core.numerics.augmented_kf import Events, augmented_kf, gls, kf2_loglik
+from train_estimation.core.numerics.kalman import balise_update, odometer_update, predict_cov
 
 
 def _events(rng, n, balises, held):
@@ -44,3 +47,81 @@ def test_kf2_loglik_equals_the_general_filter(seed, balises, held, q, r_s):
     general = kf.loglik(np.array([1.0, 0.0])) + 0.5 * (kf.W[0, 0] - quad)
     fast = kf2_loglik(ev, q, r_s, bv, bs, md, mv, q_held)
     assert fast == pytest.approx(general, rel=1e-10, abs=1e-9)
+
+
+def _reference_augmented_kf(ev, q, r_s, Bv, Bs, Md, Mv, Mb, q_held, keep_innov=False,
+                            update=None, q_per_event=None):
+    """augmented_kf as one event loop over all the columns (the filter written out step by
+    step, as before the two-pass form): the two-pass form must give the same."""
+    n, p1 = ev.t.size, Bv.shape[1]
+    Z = np.zeros((2 * n, p1))
+    Xs, Xv = -Md[0].copy(), -Mv[0].copy()
+    Xs[0] += ev.y_d[0]
+    Xv[0] += ev.y_v[0]
+    p00, p01, p11 = r_s, 0.0, float(ev.r_v[0])
+    logdet, m, row = 0.0, 0, 0
+    E0, E1, S_v = np.zeros((n, 2)), np.zeros((n, 2)), np.full(n, np.nan)
+    for k in range(1, n):
+        h = ev.t[k] - ev.t[k - 1]
+        qk = q_per_event[k] if q_per_event is not None else (q_held if ev.held[k] else q)
+        Xs = Xs + h * Xv + Bs[k]
+        Xv = Xv + Bv[k]
+        p00, p01, p11 = predict_cov(p00, p01, p11, h, qk)
+        if update is not None and not update[k]:
+            continue
+        if ev.kind[k] == 0:
+            s00, s01, s11, det, _, (k00, k01, k10, k11), pn = odometer_update(
+                p00, p01, p11, r_s, ev.r_v[k])
+            es, ev_ = -Xs - Md[k], -Xv - Mv[k]
+            es[0] += ev.y_d[k]
+            ev_[0] += ev.y_v[k]
+            l00 = math.sqrt(s00)
+            l10 = s01 / l00
+            Z[row] = es / l00
+            Z[row + 1] = (ev_ - l10 * Z[row]) / math.sqrt(s11 - l10 * l10)
+            row, m, logdet = row + 2, m + 2, logdet + math.log(det)
+            E0[k], E1[k], S_v[k] = (ev_[0], es[0]), (ev_[1], es[1]), s11
+            Xs, Xv = Xs + k00 * es + k01 * ev_, Xv + k10 * es + k11 * ev_
+        else:
+            s, (k0, k1), pn = balise_update(p00, p01, p11, ev.r_v[k])
+            eb = -Xs - Mb[k]
+            eb[0] += ev.y_d[k]
+            Z[row] = eb / math.sqrt(s)
+            row, m, logdet = row + 1, m + 1, logdet + math.log(s)
+            E0[k], E1[k] = (np.nan, eb[0]), (np.nan, eb[1])
+            Xs, Xv = Xs + k0 * eb, Xv + k1 * eb
+        p00, p01, p11 = pn
+    Z = Z[:row]
+    return Z.T @ Z, logdet, m, E0, E1, S_v
+
+
+@pytest.mark.parametrize("seed,balises,held,update,per_event", [
+    (0, [5, 17, 30], [2, 3], None, False),
+    (1, [1, 2, 40], [], [4, 5, 6, 17, 40], False),  # held-out readings, balises back to back
+    (2, [10], list(range(20, 30)), None, True),  # a standstill; noise per event
+    (3, [], [7], [30], False),
+    (4, [0, 44], [], None, False),  # balises at the first and the last event
+])
+def test_two_pass_filter_equals_the_step_by_step_filter(seed, balises, held, update, per_event):
+    rng = np.random.default_rng(seed)
+    n, p1 = 45, 7
+    ev = _events(rng, n, balises, held)
+    Bv, Bs = rng.normal(size=(n, p1)) * 0.1, rng.normal(size=(n, p1)) * 0.05
+    Md, Mv = rng.normal(size=(n, p1)) * 0.2, rng.normal(size=(n, p1)) * 0.1
+    Mb = np.zeros((n, p1))
+    Mb[:, 1] = 1.0
+    upd = None
+    if update is not None:
+        upd = np.ones(n, bool)
+        upd[update] = False
+    qpe = rng.uniform(0.0, 0.1, n) if per_event else None
+    q, r_s, q_held = 0.02, 0.3, 2.0
+    for _ in range(2):  # the second run reuses the first's gains
+        kf = augmented_kf(ev, q, r_s, Bv, Bs, Md, Mv, Mb, q_held, keep_innov=True, update=upd,
+                          q_per_event=qpe)
+        W, logdet, m, E0, E1, S_v = _reference_augmented_kf(
+            ev, q, r_s, Bv, Bs, Md, Mv, Mb, q_held, update=upd, q_per_event=qpe)
+        # the same operations on every number: equal bit for bit
+        assert kf.m == m and kf.logdet == logdet
+        for a, b in ((kf.W, W), (kf.E0, E0), (kf.E1, E1), (kf.S_v, S_v)):
+            np.testing.assert_array_equal(a, b)

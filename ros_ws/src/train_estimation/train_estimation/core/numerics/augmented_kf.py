@@ -18,12 +18,11 @@ Pure: numpy only.
 
 from __future__ import annotations
 
+import hashlib
 import math
 from dataclasses import dataclass
 
 import numpy as np
-
-from .kalman import balise_update, odometer_update, predict_cov
 
 LOG2PI = math.log(2.0 * math.pi)
 
@@ -66,71 +65,178 @@ def augmented_kf(ev: Events, q: float, r_s: float, Bv, Bs, Md, Mv, Mb, q_held: f
     interval ending at event k when given. The
     innovation at theta is E_k [1, theta]; W = sum E_k^T S_k^-1 E_k, accumulated as Z^T Z of the
     whitened innovations (Cholesky of each S_k). ``update[k]`` False skips event k's measurement
-    (held-out data)."""
+    (held-out data).
+
+    Two passes: the covariances and gains (scalars, the same for every column:
+    :func:`_gain_pass`, shared by the calls at the same noise), then the columns, stacked as
+    one (2, p+1) state: the same operations on every element as a filter written out step by
+    step (the results are bit for bit those of that filter; tested), in a few array
+    operations per event; the innovations are whitened at all events at once."""
     n, p1 = ev.t.size, Bv.shape[1]
-    Z = np.zeros((2 * n, p1))
-    Xs = -Md[0].copy()
-    Xv = -Mv[0].copy()
-    Xs[0] += ev.y_d[0]
-    Xv[0] += ev.y_v[0]
-    p00, p01, p11 = r_s, 0.0, float(ev.r_v[0])
-    logdet, m, row = 0.0, 0, 0
-    E0 = np.zeros((n, 2)) if keep_innov else None
-    E1 = np.zeros((n, 2)) if keep_innov else None
-    S_v = np.full(n, np.nan) if keep_innov else None
+    gp = _gain_pass(ev, q, r_s, q_held, update, q_per_event)
+    odo, bal = gp.odo, gp.bal
+    B = np.stack([Bs, Bv], axis=1).astype(float, copy=False)  # (n, 2, p1): drift of (s, v)
+    # minus the measurement columns: (-M) - x is -x - M (rounding is symmetric)
+    Mn = np.stack([Md, Mv], axis=1).astype(float, copy=False)
+    np.negative(Mn, out=Mn)
+    Mbn = -np.asarray(Mb, float)
+    Y = np.stack([ev.y_d, ev.y_v], axis=1).astype(float, copy=False)
+    kc0 = np.ascontiguousarray(gp.K[:, :, 0:1])  # (n, 2, 1): gain on the distance innovation
+    kc1 = np.ascontiguousarray(gp.K[:, :, 1:2])  # on the speed innovation
+    x = Mn[0].copy()
+    x[0, 0] += Y[0, 0]
+    x[1, 0] += Y[0, 1]
+    xs, xv = x[0], x[1]
+    E = np.zeros((n, 2, p1))  # innovations (distance, speed) of every column at each event
+    tmp, tmp2 = np.empty(p1), np.empty((2, p1))
+    add, multiply, subtract = np.add, np.multiply, np.subtract
+    hs, code = gp.h.tolist(), gp.code.tolist()
+    for k in range(1, n):
+        multiply(xv, hs[k], out=tmp)
+        add(xs, tmp, out=xs)
+        add(x, B[k], out=x)
+        c = code[k]
+        if c == 0:  # odometer reading
+            ek = E[k]
+            subtract(Mn[k], x, out=ek)
+            ek[:, 0] += Y[k]
+            multiply(kc0[k], ek[0], out=tmp2)
+            add(x, tmp2, out=x)
+            multiply(kc1[k], ek[1], out=tmp2)
+            add(x, tmp2, out=x)
+        elif c == 1:  # balise reading
+            eb = E[k, 0]
+            subtract(Mbn[k], xs, out=eb)
+            eb[0] += Y[k, 0]
+            multiply(kc0[k], eb, out=tmp2)
+            add(x, tmp2, out=x)
+    Z = np.empty((gp.m, p1))
+    L = gp.L
+    z0 = E[odo, 0] / L[odo, 0, None]
+    Z[gp.row[odo]] = z0
+    Z[gp.row[odo] + 1] = (E[odo, 1] - L[odo, 1, None] * z0) / L[odo, 2, None]
+    Z[gp.row[bal]] = E[bal, 0] / L[bal, 0, None]
+    if not keep_innov:
+        return KFResult(W=Z.T @ Z, logdet=gp.logdet, m=gp.m)
+    E0, E1 = np.zeros((n, 2)), np.zeros((n, 2))
+    E0[odo] = E[odo, ::-1, 0]  # (speed, distance)
+    E1[odo] = E[odo, ::-1, 1]
+    E0[bal, 0] = E1[bal, 0] = np.nan
+    E0[bal, 1], E1[bal, 1] = E[bal, 0, 0], E[bal, 0, 1]
+    S_v = np.full(n, np.nan)
+    S_v[odo] = gp.S_v[odo]
+    return KFResult(W=Z.T @ Z, logdet=gp.logdet, m=gp.m, E0=E0, E1=E1, S_v=S_v)
+
+
+@dataclass
+class _Gains:
+    """The column-independent part of one :func:`augmented_kf` run (see :func:`_gain_pass`)."""
+
+    h: np.ndarray  # (n,) s, interval ending at event k
+    code: np.ndarray  # (n,) event k's update: 0 odometer reading, 1 balise reading, 2 none
+    K: np.ndarray  # (n, 2, 2) gain of event k's update (0 where none; balise: column 0)
+    L: np.ndarray  # (n, 3) Cholesky factor of S_k (l00, l10, l11; a balise: sqrt(s), 0, 0)
+    S_v: np.ndarray  # (n,) innovation variance of the speed (odometer updates)
+    row: np.ndarray  # (n,) the first row of event k's whitened innovations in Z
+    odo: np.ndarray  # indices of the odometer updates
+    bal: np.ndarray  # indices of the balise updates
+    logdet: float
+    m: int
+
+
+_GAINS: dict = {}  # digest of the inputs -> _Gains, the most recent few
+_GAINS_KEEP = 16
+
+
+def _gain_pass(ev: Events, q: float, r_s: float, q_held: float, update, q_per_event) -> _Gains:
+    """Covariances, gains, innovation variances and log det S of an augmented filter run:
+    functions of the events' times, kinds, standstill flags and variances and of the noise
+    only, so computed once for all the runs at the same noise (kept for the most recent
+    inputs; the scalar recursion of kalman.predict_cov, odometer_update and balise_update)."""
+    parts = (ev.t, ev.kind, ev.held, ev.r_v, q, r_s, q_held,
+             None if update is None else np.asarray(update, bool),
+             None if q_per_event is None else np.asarray(q_per_event, float))
+    key = _digest(parts)
+    hit = _GAINS.get(key)
+    if hit is not None:
+        return hit
+    n = ev.t.size
     dts = np.diff(ev.t, prepend=ev.t[0]).tolist()
     kinds, held = ev.kind.tolist(), ev.held.tolist()
-    yd, yv, rv = ev.y_d.tolist(), ev.y_v.tolist(), ev.r_v.tolist()
-    upd = [True] * n if update is None else update.tolist()
+    rv = ev.r_v.tolist()
+    upd = [True] * n if update is None else np.asarray(update, bool).tolist()
     qs = None if q_per_event is None else np.asarray(q_per_event, float).tolist()
+    p00, p01, p11 = r_s, 0.0, float(ev.r_v[0])
+    logdet, m = 0.0, 0
+    row = np.zeros(n, np.int64)
+    odo, bal, gains, chol, s_v, bgains, bchol = [], [], [], [], [], [], []
+    sqrt, log = math.sqrt, math.log
     for k in range(1, n):
         h = dts[k]
         qk = qs[k] if qs is not None else (q_held if held[k] else q)
-        Xs = Xs + h * Xv + Bs[k]
-        Xv = Xv + Bv[k]
-        p00, p01, p11 = predict_cov(p00, p01, p11, h, qk)
+        # kalman.predict_cov, odometer_update and balise_update written out (same arithmetic)
+        p00, p01, p11 = (p00 + 2 * h * p01 + h * h * p11 + qk * h ** 3 / 3.0,
+                         p01 + h * p11 + qk * h * h / 2.0, p11 + qk * h)
         if not upd[k]:
             continue
+        row[k] = m
         if kinds[k] == 0:
-            s00, s01, s11, det, _, (k00, k01, k10, k11), pn = odometer_update(
-                p00, p01, p11, r_s, rv[k])
-            es = -Xs - Md[k]
-            ev_ = -Xv - Mv[k]
-            es[0] += yd[k]
-            ev_[0] += yv[k]
-            # whitening: S = L L^T, rows of L^-1 E
-            l00 = math.sqrt(s00)
-            l10 = s01 / l00
-            l11 = math.sqrt(s11 - l10 * l10)
-            z0 = es / l00
-            Z[row] = z0
-            Z[row + 1] = (ev_ - l10 * z0) / l11
-            row += 2
-            logdet += math.log(det)
+            s00, s11 = p00 + r_s, p11 + rv[k]
+            det = s00 * s11 - p01 * p01
+            i00, i01, i11 = s11 / det, -p01 / det, s00 / det
+            k00, k01 = p00 * i00 + p01 * i01, p00 * i01 + p01 * i11
+            k10, k11 = p01 * i00 + p11 * i01, p01 * i01 + p11 * i11
+            l00 = sqrt(s00)
+            l10 = p01 / l00
+            gains.append((k00, k01, k10, k11))
+            chol.append((l00, l10, sqrt(s11 - l10 * l10)))
+            s_v.append(s11)
+            odo.append(k)
+            logdet += log(det)
             m += 2
-            if keep_innov:
-                E0[k] = (ev_[0], es[0])
-                E1[k] = (ev_[1], es[1])
-                S_v[k] = s11
-            Xs = Xs + k00 * es + k01 * ev_
-            Xv = Xv + k10 * es + k11 * ev_
-            p00, p01, p11 = pn
+            p00, p01, p11 = ((1 - k00) * p00 - k01 * p01, (1 - k00) * p01 - k01 * p11,
+                             -k10 * p01 + (1 - k11) * p11)
         else:
-            s, (k0, k1), pn = balise_update(p00, p01, p11, rv[k])
-            eb = -Xs - Mb[k]
-            eb[0] += yd[k]
-            Z[row] = eb / math.sqrt(s)
-            row += 1
-            logdet += math.log(s)
+            sb = p00 + rv[k]
+            k0, k1 = p00 / sb, p01 / sb
+            bgains.append((k0, k1))
+            bchol.append(sqrt(sb))
+            bal.append(k)
+            logdet += log(sb)
             m += 1
-            if keep_innov:
-                E0[k] = (np.nan, eb[0])
-                E1[k] = (np.nan, eb[1])
-            Xs = Xs + k0 * eb
-            Xv = Xv + k1 * eb
-            p00, p01, p11 = pn
-    Z = Z[:row]
-    return KFResult(W=Z.T @ Z, logdet=logdet, m=m, E0=E0, E1=E1, S_v=S_v)
+            p00, p01, p11 = (1 - k0) * p00, (1 - k0) * p01, p11 - k1 * p01
+    K = np.zeros((n, 2, 2))
+    L = np.zeros((n, 3))
+    S_v = np.full(n, np.nan)
+    if odo:
+        K[odo] = np.asarray(gains).reshape(-1, 2, 2)
+        L[odo] = chol
+        S_v[odo] = s_v
+    if bal:
+        K[bal, :, 0] = bgains
+        L[bal, 0] = bchol
+    odo, bal = np.asarray(odo, np.int64), np.asarray(bal, np.int64)
+    code = np.full(n, 2, np.int8)
+    code[odo], code[bal] = 0, 1
+    out = _Gains(h=np.asarray(dts), code=code, K=K, L=L, S_v=S_v, row=row, odo=odo, bal=bal,
+                 logdet=logdet, m=m)
+    if len(_GAINS) >= _GAINS_KEEP:
+        _GAINS.pop(next(iter(_GAINS)))
+    _GAINS[key] = out
+    return out
+
+
+def _digest(parts) -> bytes:
+    """A digest of arrays (dtype, shape, bytes) and other values (their repr)."""
+    hsh = hashlib.blake2b(digest_size=20)
+    for x in parts:
+        if isinstance(x, np.ndarray):
+            hsh.update(str((x.dtype, x.shape)).encode())
+            hsh.update(np.ascontiguousarray(x).tobytes())
+        else:
+            hsh.update(repr(x).encode())
+        hsh.update(b"|")
+    return hsh.digest()
 
 
 def _equilibrated(A: np.ndarray):
