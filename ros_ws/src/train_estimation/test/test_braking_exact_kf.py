@@ -11,9 +11,9 @@ from train_estimation.core.braking.braking_model import (
     BrakingModel,
     BrakingParams,
     continuous_matrices,
-    zoh_batched,
 )
 from train_estimation.core.numerics.batched_kf import predict, update
+from train_estimation.core.numerics.discretize import zoh
 
 sys.path.insert(0, os.path.dirname(__file__))
 from braking_toy import simulate_open_loop  # noqa: E402  (test support: the model's own data)
@@ -27,7 +27,7 @@ def _f_column(params, az, u, dt):
     """d/df of the exact ZOH map at two *other* f values (0.3, 0.8): independent of the
     module's cached affine pieces; exact because the map is affine in f."""
     A, B = continuous_matrices(np.array([0.3, 0.8]), params)
-    Phi, Bd = zoh_batched(A, B, dt)
+    Phi, Bd = zoh(A, B, dt)
     x = np.array([0.0, 0.0, 0.0, az])
     return ((Phi[1] - Phi[0]) @ x + (Bd[1] - Bd[0]) @ u) / 0.5, Phi
 
@@ -60,12 +60,12 @@ def test_kf_equals_dense_joint_gaussian_with_random_walk_f():
         if a_tar[k] < 0:  # braking: f enters through the known column
             c, _ = _f_column(params, az, u, dts[k])
             A, B = continuous_matrices(np.array([0.0]), params)
-            Phi0, Bd0 = zoh_batched(A, B, dts[k])
+            Phi0, Bd0 = zoh(A, B, dts[k])
             F[:4, :4], F[:4, 4], b[:4] = Phi0[0], c, Bd0[0] @ u
             Q[4, 4] = q * dts[k]
         else:  # traction: gain 1, f frozen
             A, B = continuous_matrices(np.array([1.0]), params)
-            Phi1, Bd1 = zoh_batched(A, B, dts[k])
+            Phi1, Bd1 = zoh(A, B, dts[k])
             F[:4, :4], b[:4] = Phi1[0], Bd1[0] @ u
         models.append((F, b, Q, H5, R))
         az = F[3, 3] * az + b[3]  # a_z: the Pade response to the known command

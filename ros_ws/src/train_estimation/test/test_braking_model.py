@@ -13,8 +13,8 @@ from train_estimation.core.braking.braking_model import (
     continuous_matrices,
     discretize,
     process_noise,
-    zoh_batched,
 )
+from train_estimation.core.numerics.discretize import zoh
 
 sys.path.insert(0, os.path.dirname(__file__))
 from braking_toy import simulate_open_loop  # noqa: E402  (test support: the model's own data)
@@ -32,7 +32,7 @@ def test_affine_in_f_equals_batched_expm():
     for dt in (0.05, 1.0, 2.7):
         Phi, Bd, _ = discretize(f, PAPER, dt)
         A, B = continuous_matrices(f, PAPER)
-        Phi_ref, Bd_ref = zoh_batched(A, B, dt)
+        Phi_ref, Bd_ref = zoh(A, B, dt)
         np.testing.assert_allclose(Phi, Phi_ref, rtol=0, atol=1e-12)
         np.testing.assert_allclose(Bd, Bd_ref, rtol=0, atol=1e-12)
 

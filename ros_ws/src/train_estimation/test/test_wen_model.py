@@ -120,7 +120,7 @@ def test_standstill_stops_instead_of_reversing():
     assert m.standstill(x, moving, 1.0) is moving
 
 
-def test_zoh_batched_is_the_stack_of_single_discretisations():
+def test_zoh_of_a_stack_is_the_stack_of_single_discretisations():
     """One ZOH: a stack of models (the braking particles' per-f matrices) in one call."""
     rng = np.random.default_rng(4)
     A = rng.normal(size=(5, 3, 3))

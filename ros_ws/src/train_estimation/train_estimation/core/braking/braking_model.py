@@ -58,7 +58,6 @@ __all__ = [
     "BrakingParams",
     "BrakingModel",
     "continuous_matrices",
-    "zoh_batched",
     "discretize",
     "process_noise",
     "augmented_model",
@@ -131,11 +130,6 @@ def continuous_matrices(braking_rate, params: BrakingParams) -> tuple[np.ndarray
     return A, B
 
 
-# the one ZOH of the estimation core (discretize.zoh, batched over leading axes); the old name
-# stays for the tests that call it
-zoh_batched = zoh
-
-
 def process_noise(params: BrakingParams, dt: float) -> np.ndarray:
     """``Qd (4, 4)`` for one step of length ``dt``; independent of f (see module docstring)."""
     Qd = np.zeros((4, 4))
@@ -160,7 +154,8 @@ def discretize(braking_rate, params: BrakingParams, dt: float | None = None
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Exact discrete model for a vector of f: ``Phi (K,4,4)``, ``Bd (K,4,2)``, ``Qd (4,4)``.
 
-    Uses the exact affine dependence on f (module docstring); ``zoh_batched`` is the reference.
+    Uses the exact affine dependence on f (module docstring); ``numerics.discretize.zoh``, batched
+    over f, is the reference.
     """
     dt = params.dt if dt is None else float(dt)
     f = np.atleast_1d(np.asarray(braking_rate, dtype=float))
@@ -179,7 +174,7 @@ def _affine_pieces(params: BrakingParams, dt: float):
     hit = _CACHE.get(key)
     if hit is None:
         A, B = continuous_matrices(np.array([0.0, 1.0]), params)
-        Phi, Bd = zoh_batched(A, B, dt)
+        Phi, Bd = zoh(A, B, dt)  # the core's one ZOH, batched over f
         hit = (Phi[0], Phi[1] - Phi[0], Bd[0], Bd[1] - Bd[0], process_noise(params, dt))
         if len(_CACHE) > 64:
             _CACHE.clear()

@@ -267,8 +267,6 @@ class StreamClock:
         self._value = dense[len(dense) // 2]
         return self._value
 
-    offset = value
-
     @property
     def scale(self) -> float:
         """Robust spread of the window's offsets around the centre (1.4826 x the median

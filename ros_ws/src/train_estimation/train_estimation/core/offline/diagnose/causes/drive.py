@@ -11,7 +11,7 @@ import math
 
 import numpy as np
 
-from train_estimation.core.numerics.augmented_kf import LOG2PI, gls
+from train_estimation.core.numerics.augmented_kf import LOG2PI
 
 
 class Candidates:
@@ -54,16 +54,6 @@ class Candidates:
         wuu = w00 + 2 * W[0, j] + W[j, j]
         wu1 = w01 + W[j, 1]
         return wuu - wu1 * wu1 / w11
-
-    def fit_free(self, cols: list[np.ndarray]) -> tuple:
-        """GLS of free coefficients of the combinations ``cols`` (each over the candidate
-        columns, length K): (theta, cov, quad)."""
-        M = np.zeros((self.k + 2, 2 + len(cols)))
-        M[0, 0] = M[1, 1] = 1.0
-        for i, c in enumerate(cols):
-            M[2:, 2 + i] = c
-        th, cov, quad = gls(self.W, M)
-        return th[1:], cov[1:, 1:], quad
 
     def column(self, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The drift increments (Bv, Bs) of a combination of the candidate columns (what the
