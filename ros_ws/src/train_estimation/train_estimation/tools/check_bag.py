@@ -33,6 +33,7 @@ import numpy as np
 from train_core.bagio import Bag, BagError, read_bag
 
 from train_estimation.core.offline.measured import topic_health
+from train_estimation.tools.common import EXIT_CHECK_FAILED, EXIT_OK, fail
 
 ESTIMATE_PREFIX = "estimate/"
 CHI2_95 = {1: 3.841, 2: 5.991}  # 95% quantiles of chi-square with 1 and 2 degrees of freedom
@@ -391,8 +392,7 @@ def main(argv=None) -> int:
                         title=args.title)
         results = evaluate(summary, thresholds)
     except (BagError, CheckError, ConfigError, OSError) as exc:
-        print(f"check_bag: {exc}", file=sys.stderr)
-        return 2
+        return fail("check_bag", str(exc))
     summary["thresholds"] = results
     if args.out:
         (Path(args.out) / "summary.json").write_text(json.dumps(summary, indent=1, default=float))
@@ -407,8 +407,8 @@ def main(argv=None) -> int:
     failed = [r for r in results if not r["pass"]]
     if failed:
         print(f"check_bag: {len(failed)} threshold(s) failed", file=sys.stderr)
-        return 1
-    return 0
+        return EXIT_CHECK_FAILED
+    return EXIT_OK
 
 
 if __name__ == "__main__":

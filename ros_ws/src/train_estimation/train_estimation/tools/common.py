@@ -1,5 +1,7 @@
 """What the offline CLIs (identify, diagnose, fleet, check_bag) share: the exit-code ladder, the
-project's progress bar (train_core.progress) and the conversion of results to JSON types."""
+project's progress bar (train_core.progress) and ``json.dumps``'s default for numpy values (a
+diagnosis converts itself: ``Diagnosis.to_json``). Light on purpose: importing it must not pull
+in the analyses (check_bag and identify start without the diagnose package)."""
 
 from __future__ import annotations
 
@@ -7,8 +9,6 @@ import sys
 
 import numpy as np
 from train_core.progress import Progress, track
-
-from train_estimation.core.offline.diagnose.result import jsonable
 
 # The exit-code ladder: 0 done (a diagnosis of "none" and a report listing failed bags
 # included), 1 done but a check the user asked for failed, 2 the input is unusable (one line on
@@ -19,7 +19,7 @@ EXIT_UNUSABLE = 2
 
 # the project's one progress-bar style (train_core.progress), re-exported for the tools
 __all__ = ["EXIT_CHECK_FAILED", "EXIT_OK", "EXIT_UNUSABLE", "Progress", "fail", "json_default",
-           "jsonable", "one_line", "track"]
+           "one_line", "track"]
 
 
 def one_line(exc) -> str:

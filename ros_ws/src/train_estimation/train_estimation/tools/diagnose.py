@@ -70,9 +70,10 @@ from train_core.config import ConfigError, Section, load_yaml
 from train_core.effects import Effects, effect_to_dict, parse_effects, true_line, true_train
 from train_core.model import line_from_dict, load_line, load_train, train_from_dict
 
+from train_estimation.core.offline.diagnose.result import jsonable
 from train_estimation.core.offline.diagnose.search import SCORE_FORMULA  # noqa: F401 (stated in help)
 from train_estimation.core.offline.measured import TOPICS, MeasuredRun
-from train_estimation.tools.common import EXIT_OK, Progress, fail, jsonable, one_line
+from train_estimation.tools.common import EXIT_OK, Progress, fail, one_line
 from train_estimation.tools.report_html import write_report_html
 
 # ------------------------------------------------------------------------------------------------

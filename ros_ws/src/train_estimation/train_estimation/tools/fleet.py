@@ -80,7 +80,7 @@ from pathlib import Path
 
 import numpy as np
 
-from train_estimation.tools.common import EXIT_OK, fail, json_default
+from train_estimation.tools.common import EXIT_CHECK_FAILED, EXIT_OK, fail, json_default
 from train_estimation.tools.report_html import write_report_html
 
 VERSION = "fleet-2"  # part of the cache key: bump when a task's result changes meaning
@@ -899,8 +899,7 @@ def main(argv=None) -> int:
                             dashboard=None if args.no_dashboard else args.dashboard,
                             wait_s=args.wait, info=info)
         except ClusterError as exc:
-            print(f"fleet: {' '.join(str(exc).split())}", file=sys.stderr)
-            return 2
+            return fail("fleet", str(exc))
         wall = time.perf_counter() - t1
         for r in new:
             r["cached"] = False
@@ -962,7 +961,7 @@ def main(argv=None) -> int:
     if too_many:
         print(f"fleet: {failure_line(rows)} (more than --max-failed {args.max_failed:g})",
               file=sys.stderr)
-        return 1
+        return EXIT_CHECK_FAILED
     return EXIT_OK
 
 
