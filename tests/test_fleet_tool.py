@@ -174,3 +174,43 @@ def test_folder_input_and_cache_key(fleet_dir, tmp_path):
     f.write_bytes(f.read_bytes() + b"\0")
     assert tool.content_key(dict(t, bag=str(copy))) != k1
     assert tool.content_key(dict(t, line=str(d / "lines" / "south.yaml"))) != k1
+
+
+def test_diagnosis_row_reads_the_typed_result():
+    """Each ranked cause gives the fleet its own columns (Cause.fleet_row) from the typed
+    diagnosis: an accepted section only, values with a usable standard error only."""
+    from pathlib import Path
+
+    from train_core.model import load_train
+
+    from train_estimation.core.offline.diagnose import CauseFit, Diagnosis
+
+    train = load_train(Path(__file__).resolve().parents[1] / "ros_ws" / "src" / "train_core"
+                       / "config" / "trains" / "metro_b6.yaml")
+    d = train.davis
+    ranking = [CauseFit("gradient", 30.0, {"start": 1000.0, "end": 1400.0, "permille": 4.8}),
+               CauseFit("braking_rate", 12.0, {"f_start": 0.9, "f_end": 0.8}),
+               CauseFit("resistance", -3.0, {"a": d.a + 100.0, "b": d.b, "c": d.c}),
+               CauseFit("mass", -5.0, {"mass": 3.0e5}),
+               CauseFit("odometer_scale", -6.0, {"scale": 1.001}),
+               CauseFit("wheel_slip", -7.0, {"intervals": [[1.0, 2.0]]}),
+               CauseFit("none", 0.0, {})]
+    evidence = {"gradient": {"std_errors": {"permille": 0.2}},
+                "braking_rate": {"std_errors": {"f_start": 0.02, "f_end": 0.04}},
+                "resistance": {"std_errors": {"force_at_v_ref": 50.0},
+                               "details": {"v_ref": 12.0}},
+                "mass": {"std_errors": {"mass": float("nan")}},  # no usable standard error
+                "odometer_scale": {"std_errors": {"scale": 3e-4}},
+                "_model": {}}
+    dg = Diagnosis(cause="gradient", parameters={}, ranking=ranking, untestable=[],
+                   evidence=evidence, gain={}, accepted=ranking[:2])
+    assert tool.diagnosis_row(dg, train) == {
+        "cause": "gradient", "accepted": "gradient+braking_rate",
+        "gradient_start": 1000.0, "gradient_end": 1400.0, "gradient_permille": 4.8,
+        "gradient_se": 0.2, "gradient_score": 30.0,
+        "braking_rate": pytest.approx(0.85), "braking_rate_se": pytest.approx(0.03),
+        "resistance_v_ref": 12.0, "resistance_dforce": pytest.approx(100.0),
+        "resistance_dforce_se": 50.0,
+        "odometer_scale": 1.001, "odometer_scale_se": 3e-4}
+    dg.accepted = ranking[1:2]  # a section ranked but not accepted is no map evidence
+    assert not any(k.startswith("gradient") for k in tool.diagnosis_row(dg, train))

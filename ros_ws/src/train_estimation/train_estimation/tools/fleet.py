@@ -218,9 +218,7 @@ def _analyse(task: dict) -> dict:
     out["duration_s"] = float(np.ptp(data.odo_stamp)) if data.odo_stamp.size else 0.0
     out.update(_identify(data, line, train))
     dg = diagnose(data, line, train)
-    rep = dg.to_json()
-    rep["accepted"] = [{"cause": a.cause} for a in dg.accepted]
-    out.update(diagnosis_row(rep, train))
+    out.update(diagnosis_row(dg, train))
     # braking rate and mass for the trends: identify's (one constant f per run, the quantity
     # tracked over runs; diagnose fits f at the first and last message, which one braking
     # phase leaves poorly determined), diagnose's where identify cannot identify them
@@ -252,48 +250,20 @@ def _identify(data, line, train) -> dict:
     return out
 
 
-def diagnosis_row(rep: dict, train) -> dict:
-    """The consensus inputs from a diagnose report (ranking, evidence, accepted; JSON types):
-    the accepted gradient section and, for every parameter, the fitted value with its standard
-    error (the ranking's parameters, fitted with the accepted causes in the model; the standard
-    errors of the evidence)."""
-    rank = {r["cause"]: r for r in rep["ranking"]}
-    ev = rep.get("evidence", {})
-    acc = [a["cause"] for a in rep.get("accepted") or []]
-    out = {"cause": rep["cause"], "accepted": "+".join(acc)}
+def diagnosis_row(dg, train) -> dict:
+    """The consensus inputs of one diagnosis (plain JSON types): its verdict, the accepted
+    causes, and what each ranked cause says the fleet tracks of it (``Cause.fleet_row``: an
+    accepted gradient section, the braking rate, mass, odometer scale and resistance force with
+    their standard errors)."""
+    from train_estimation.core.offline.diagnose import BY_NAME, jsonable
 
-    def se(cause, key):
-        v = (ev.get(cause) or {}).get("std_errors", {}).get(key)
-        return v if v is not None and math.isfinite(v) and v > 0 else None
-
-    if "gradient" in acc:
-        p = rank["gradient"]["parameters"]
-        out.update({"gradient_start": p["start"], "gradient_end": p["end"],
-                    "gradient_permille": p["permille"],
-                    "gradient_se": se("gradient", "permille"),
-                    "gradient_score": rank["gradient"]["score"]})
-    if "braking_rate" in rank and se("braking_rate", "f_start") and se("braking_rate", "f_end"):
-        p = rank["braking_rate"]["parameters"]
-        out["braking_rate"] = 0.5 * (p["f_start"] + p["f_end"])
-        # mean of f_start and f_end; their correlation is not reported, so the bound for
-        # perfect correlation (the larger standard error) is used
-        out["braking_rate_se"] = 0.5 * (se("braking_rate", "f_start")
-                                        + se("braking_rate", "f_end"))
-    if "mass" in rank and se("mass", "mass"):
-        out["mass"], out["mass_se"] = rank["mass"]["parameters"]["mass"], se("mass", "mass")
-    if "odometer_scale" in rank and se("odometer_scale", "scale"):
-        out["odometer_scale"] = rank["odometer_scale"]["parameters"]["scale"]
-        out["odometer_scale_se"] = se("odometer_scale", "scale")
-    if "resistance" in rank and se("resistance", "force_at_v_ref"):
-        p = rank["resistance"]["parameters"]
-        vr = (ev.get("resistance") or {}).get("details", {}).get("v_ref")
-        if vr is not None:
-            d = train.davis
-            out["resistance_v_ref"] = vr
-            out["resistance_dforce"] = (p["a"] + p["b"] * vr + p["c"] * vr * vr
-                                        - (d.a + d.b * vr + d.c * vr * vr))
-            out["resistance_dforce_se"] = se("resistance", "force_at_v_ref")
-    return out
+    accepted = [a.cause for a in dg.accepted]
+    out = {"cause": dg.cause, "accepted": "+".join(accepted)}
+    ranked = {r.cause: r for r in dg.ranking if r.cause in BY_NAME}
+    for name, fit in ranked.items():
+        out.update(BY_NAME[name].fleet_row(fit, dg.evidence.get(name) or {}, name in accepted,
+                                           train))
+    return jsonable(out)
 
 
 def consensus_rows(rows: list[dict]) -> list[dict]:

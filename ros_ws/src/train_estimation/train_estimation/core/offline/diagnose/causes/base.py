@@ -2,9 +2,9 @@
 
 A cause is one module with one object: its name (docs/interfaces.md), the family of data it acts on,
 how it is scored against a stage, how it extends the null when accepted, the
-``train_core.effects`` dataclass it becomes (what the simulator runs), its held-out gain, and
-how it is written into a model directory. The search over causes (``search``) knows nothing of
-any particular cause.
+``train_core.effects`` dataclass it becomes (what the simulator runs), its held-out gain, how
+it is written into a model directory and what the fleet tracks of it. The search over causes
+(``search``) and the fleet know nothing of any particular cause.
 
 Families, in the order the causes are scored: ``motion`` (the dynamics: drift columns of the
 motion model), ``odometer`` (measurement columns), ``clock`` (the stamps: a likelihood of its
@@ -179,3 +179,17 @@ class Cause:
     def own_series(self, own: dict, out: dict) -> None:
         """Add what the cause's own likelihood test saw to the plots' series (in place),
         accepted or not."""
+
+    # -- the fleet ------------------------------------------------------------------------------
+    def fleet_row(self, fit: CauseFit, evidence: dict, accepted: bool, train) -> dict:
+        """What the fleet's consensus tracks of this cause in one run: {column: value} from the
+        ranking entry ``fit`` (parameters as reported, fitted with the accepted causes in the
+        model), the cause's ``evidence`` (standard errors, details), whether it was
+        ``accepted``, and the believed ``train``; {} when the fleet tracks nothing of it."""
+        return {}
+
+
+def fleet_se(evidence: dict, key: str) -> float | None:
+    """A standard error of the evidence the fleet can weigh by: finite and positive, else None."""
+    v = (evidence.get("std_errors") or {}).get(key)
+    return v if v is not None and math.isfinite(v) and v > 0 else None

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 from train_core.effects import BrakingRateEffect
 
-from .base import Cause, resolved
+from .base import Cause, fleet_se, resolved
 
 
 class BrakingRate(Cause):
@@ -52,6 +52,17 @@ class BrakingRate(Cause):
     def series(self, params: dict, mo, out: dict) -> None:
         out["f_t"] = (np.array([0.0, mo.run.duration]),
                       np.array([params["f_start"], params["f_end"]]))
+
+    def fleet_row(self, fit, evidence, accepted, train) -> dict:
+        """The mean of f_start and f_end with the larger-correlation bound of its standard
+        error: their correlation is not reported, so half the sum of the two (perfect
+        correlation)."""
+        se0, se1 = fleet_se(evidence, "f_start"), fleet_se(evidence, "f_end")
+        if not (se0 and se1):
+            return {}
+        p = fit.parameters
+        return {"braking_rate": 0.5 * (p["f_start"] + p["f_end"]),
+                "braking_rate_se": 0.5 * (se0 + se1)}
 
 
 def brakes_while_moving(run, cfg) -> bool:

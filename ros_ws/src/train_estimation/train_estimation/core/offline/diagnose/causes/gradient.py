@@ -20,7 +20,7 @@ from train_core.model import G
 from train_estimation.core.numerics.augmented_kf import LOG2PI, gls
 
 from ..stage import Stage, best_section
-from .base import Cause, resolved
+from .base import Cause, fleet_se, resolved
 from .resistance import RESISTANCE_COLS
 
 
@@ -117,6 +117,16 @@ class Gradient(Cause):
 
     def series(self, params: dict, mo, out: dict) -> None:
         out["gradient_section"] = (params["start"], params["end"], params["permille"])
+
+    def fleet_row(self, fit, evidence, accepted, train) -> dict:
+        """An accepted section: where, how steep, its standard error and score (the fleet's
+        map-error test)."""
+        if not accepted:
+            return {}
+        p = fit.parameters
+        return {"gradient_start": p["start"], "gradient_end": p["end"],
+                "gradient_permille": p["permille"], "gradient_se": fleet_se(evidence, "permille"),
+                "gradient_score": fit.score}
 
 
 CAUSE = Gradient()

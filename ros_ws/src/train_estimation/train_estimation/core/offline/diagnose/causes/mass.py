@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 from train_core.effects import MassEffect
 
-from .base import Cause, resolved
+from .base import Cause, fleet_se, resolved
 
 
 class Mass(Cause):
@@ -51,6 +51,11 @@ class Mass(Cause):
         return self.effect(fit.parameters, ctx.duration), (
             "mass: true mass in effects.yaml (the drive force stays computed for train.yaml's "
             "believed mass, as in the data)")
+
+    def fleet_row(self, fit, evidence, accepted, train) -> dict:
+        """The fitted mass and its standard error (the fleet's per-train trend)."""
+        se = fleet_se(evidence, "mass")
+        return {"mass": fit.parameters["mass"], "mass_se": se} if se else {}
 
 
 CAUSE = Mass()

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 from train_core.effects import OdometerScaleEffect
 
-from .base import Cause, resolved
+from .base import Cause, fleet_se, resolved
 
 
 class OdometerScale(Cause):
@@ -58,6 +58,11 @@ class OdometerScale(Cause):
         return {"metric": "held-out balise position error RMS (m), odometer distance placed by "
                           "the odd-numbered balises, tested on the even-numbered",
                 "before": before, "after": after, "scale_fitted_on_half": float(1.0 / inv_scale)}
+
+    def fleet_row(self, fit, evidence, accepted, train) -> dict:
+        """The fitted scale and its standard error (the fleet's per-train trend)."""
+        se = fleet_se(evidence, "scale")
+        return {"odometer_scale": fit.parameters["scale"], "odometer_scale_se": se} if se else {}
 
 
 CAUSE = OdometerScale()

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from train_core.effects import ResistanceEffect
 
-from .base import Cause, resolved
+from .base import Cause, fleet_se, resolved
 
 RESISTANCE_COLS = ("one", "v", "v2")  # the Davis terms' elementary columns (a, b, c)
 
@@ -66,6 +66,20 @@ class Resistance(Cause):
         return ResistanceEffect(*abc), "resistance: fitted Davis a, b, c in train.yaml" + (
             " (a negative coefficient was projected onto a, b, c >= 0 over the run's speeds)"
             if projected else "")
+
+    def fleet_row(self, fit, evidence, accepted, train) -> dict:
+        """The fitted minus the believed resistance force at the run's typical speed (the
+        quantity one run determines well: a, b, c alone are nearly collinear) and its standard
+        error (the fleet's per-line resistance consensus)."""
+        se = fleet_se(evidence, "force_at_v_ref")
+        vr = (evidence.get("details") or {}).get("v_ref")
+        if not se or vr is None:
+            return {}
+        p, d = fit.parameters, train.davis
+        return {"resistance_v_ref": vr,
+                "resistance_dforce": (p["a"] + p["b"] * vr + p["c"] * vr * vr
+                                      - (d.a + d.b * vr + d.c * vr * vr)),
+                "resistance_dforce_se": se}
 
 
 def davis_nonnegative(abc, speeds) -> tuple[list[float], bool]:
