@@ -191,6 +191,24 @@ def true_link(link: LinkParams, eff: Effects) -> LinkParams:
                    p_bad_good=b.p_bad_good, loss_good=b.loss_good, loss_bad=b.loss_bad)
 
 
+def drive_effects(eff: Effects) -> dict:
+    """The :class:`~train_core.motion.Motion` keywords of the effects on the delivered drive
+    (power limit, adhesion section)."""
+    return {"p_spec": eff.power_limit.p_spec if eff.power_limit else None,
+            "adhesion": eff.adhesion_section.as_tuple() if eff.adhesion_section else None}
+
+
+def replay_effects(eff: Effects) -> dict:
+    """The :func:`~train_core.motion.replay` keywords of the effects on the actuators (brake
+    and traction delays, the braking-rate schedule) and on the delivered drive: what the world
+    runs beyond the true train and line, so that a replay of recorded commands (diagnose's
+    held-out gain) moves as the simulator would."""
+    return {"brake_delay": eff.brake_delay.delay if eff.brake_delay else None,
+            "braking_rate_of_t": eff.braking_rate.value if eff.braking_rate else None,
+            "traction_delay": eff.traction_delay.delay if eff.traction_delay else None,
+            **drive_effects(eff)}
+
+
 def braking_rate_at(eff: Effects, train: TrainParams, t: float) -> float:
     """True braking rate f(t): the effect's schedule, else the (true) train's braking_rate."""
     if eff.braking_rate is not None:

@@ -44,7 +44,14 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 from train_core.actuator import Actuator
-from train_core.effects import Effects, braking_rate_at, true_line, true_link, true_train
+from train_core.effects import (
+    Effects,
+    braking_rate_at,
+    drive_effects,
+    true_line,
+    true_link,
+    true_train,
+)
 from train_core.link import Link, LinkParams
 from train_core.model import Line, TrainParams
 from train_core.motion import Motion, warm_actuator
@@ -331,13 +338,6 @@ def simulate(scenario: Scenario, seed: int | None = None, duration: float | None
     world = World(scenario, seed)
     world.advance(scenario.duration if duration is None else float(duration))
     return world.result()
-
-
-def drive_effects(eff: Effects) -> dict:
-    """The :class:`~train_core.motion.Motion` keywords of the effects on the delivered drive
-    (power limit, adhesion section)."""
-    return {"p_spec": eff.power_limit.p_spec if eff.power_limit else None,
-            "adhesion": eff.adhesion_section.as_tuple() if eff.adhesion_section else None}
 
 
 NO_EFFECTS = Effects()

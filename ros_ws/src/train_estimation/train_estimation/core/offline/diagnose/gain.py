@@ -7,7 +7,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from train_core.effects import Effects, true_line, true_train
+from train_core.effects import Effects, replay_effects, true_line, true_train
 
 from .motion import Motion
 from .result import clean
@@ -27,18 +27,10 @@ class GainContext:
 
 
 def extended_model(cause, params: dict, mo: Motion):
-    """(train, line, brake delay or None, f(t) or None, the drive effects as
-    train_core.motion.replay takes them) of the believed model extended by the fitted cause,
-    through the effect the simulator runs."""
+    """(train, line, the other effects as train_core.motion.replay takes them) of the believed
+    model extended by the fitted cause, through the effect the simulator runs."""
     eff = Effects(**{cause.effect_field: cause.effect(params, max(mo.run.duration, 1e-9))})
-    brake_delay = eff.brake_delay.delay if eff.brake_delay is not None else None
-    f_of_t = eff.braking_rate.value if eff.braking_rate is not None else None
-    drive = {"p_spec": eff.power_limit.p_spec if eff.power_limit is not None else None,
-             "adhesion": eff.adhesion_section.as_tuple()
-             if eff.adhesion_section is not None else None,
-             "traction_delay": eff.traction_delay.delay
-             if eff.traction_delay is not None else None}
-    return true_train(mo.train, eff), true_line(mo.line, eff), brake_delay, f_of_t, drive
+    return true_train(mo.train, eff), true_line(mo.line, eff), replay_effects(eff)
 
 
 def gain_motion(cause, ctx: GainContext) -> dict:
@@ -86,7 +78,7 @@ def _replay_blocks(mo: Motion, cfg: DiagConfig, nb: int, ctrl_t, ctrl_t_ext, ext
     from train_core.motion import replay
 
     run, believed = mo.run, mo.train
-    extended, line_ext, brake_delay, braking_rate_of_t, drive = ext
+    extended, line_ext, effects = ext
     sq_b, sq_a, cnt, moved = [], [], [], []
     for b in range(1, nb, 2):
         t0, t1 = b * cfg.gain_block, (b + 1) * cfg.gain_block
@@ -107,8 +99,7 @@ def _replay_blocks(mo: Motion, cfg: DiagConfig, nb: int, ctrl_t, ctrl_t_ext, ext
         _, vb = replay(mo.line, believed, ctrl_t, run.ctrl_a, tt, t_out, x0, v0,
                        max_step=0.05)
         _, va = replay(line_ext, extended, ctrl_t_ext, run.ctrl_a, tt, t_out, x0, v0,
-                       believed=believed, brake_delay=brake_delay,
-                       braking_rate_of_t=braking_rate_of_t, max_step=0.05, **drive)
+                       believed=believed, max_step=0.05, **effects)
         sq_b.append(float(np.sum((vb - y) ** 2)))
         sq_a.append(float(np.sum((va - y) ** 2)))
         cnt.append(int(sel.sum()))
