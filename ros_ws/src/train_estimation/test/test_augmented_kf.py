@@ -1,10 +1,17 @@
 """kf2_loglik is the two-column fast path of augmented_kf: the same profile log-likelihood."""
 
+import json
 import math
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
 
 import numpy as np
 import pytest
 
+from train_estimation.core.numerics import augmented_kf as A
 from train_estimation.core.numerics.augmented_kf import Events, augmented_kf, gls, kf2_loglik
 from train_estimation.core.numerics.kalman import balise_update, odometer_update, predict_cov
 
@@ -125,3 +132,68 @@ def test_two_pass_filter_equals_the_step_by_step_filter(seed, balises, held, upd
         assert kf.m == m and kf.logdet == logdet
         for a, b in ((kf.W, W), (kf.E0, E0), (kf.E1, E1), (kf.S_v, S_v)):
             np.testing.assert_array_equal(a, b)
+
+
+def test_compiled_loops_equal_the_interpreted_ones():
+    """numerics.jit: the loops numba compiles give what the same Python gives, bit for bit (no
+    fast-math: the same IEEE operations in the same order)."""
+    rng = np.random.default_rng(7)
+    n = 300
+    ev = _events(rng, n, [3, 50, 51, 200], list(range(100, 130)))
+    vecs = [rng.normal(size=n) * 0.2 for _ in range(4)]
+    arrays = (ev.t, ev.kind.astype(np.int64), ev.y_d, ev.y_v, ev.r_v, ev.held, *vecs)
+    compiled = A._kf2_loop(*arrays, 0.02, 0.3, 1.0)
+    interpreted = A._kf2_loop.py_func(*(a.tolist() for a in arrays), 0.02, 0.3, 1.0)
+    assert compiled == interpreted
+
+    h = np.diff(ev.t, prepend=ev.t[0])
+    upd = rng.uniform(size=n) > 0.2
+    outs = []
+    for f in (A._gain_loop, A._gain_loop.py_func):
+        bufs = (np.zeros((n, 2, 2)), np.zeros((n, 3)), np.full(n, np.nan), np.zeros(n, np.int64),
+                np.full(n, 2, np.int8))
+        ld = f(h, ev.kind.astype(np.int64), ev.held, ev.r_v, upd, np.zeros(n), False, 0.02, 0.3,
+               1.0, *bufs)
+        outs.append((ld, bufs))
+    assert outs[0][0] == outs[1][0]
+    for a, b in zip(outs[0][1], outs[1][1]):
+        np.testing.assert_array_equal(a, b)
+
+    p1 = 5
+    B, Mn = rng.normal(size=(n, 2, p1)), rng.normal(size=(n, 2, p1))
+    Mbn, Y, K = rng.normal(size=(n, p1)), rng.normal(size=(n, 2)), rng.normal(size=(n, 2, 2))
+    code = rng.integers(0, 3, n)
+    res = []
+    for f in (A._column_pass, A._column_pass.py_func, A._column_pass_numpy):
+        x, E = np.ones((2, p1)), np.zeros((n, 2, p1))
+        f(h, code, B, Mn, Mbn, Y, K, x, E)
+        res.append((x, E))
+    for other in res[1:]:
+        np.testing.assert_array_equal(res[0][0], other[0])
+        np.testing.assert_array_equal(res[0][1], other[1])
+
+
+def test_the_loops_run_without_numba():
+    """Without numba (TRAIN_NO_JIT=1 stands in for a missing numba) the same functions run
+    interpreted and give the same log-likelihood."""
+    here = str(Path(__file__).parent)
+    code = textwrap.dedent(f"""
+        import json, sys
+        import numpy as np
+        sys.path.insert(0, {here!r})
+        from test_augmented_kf import _events
+        from train_estimation.core.numerics import augmented_kf as A, jit
+        rng = np.random.default_rng(3)
+        ev = _events(rng, 200, [5, 90], [40, 41])
+        v = [rng.normal(size=200) for _ in range(4)]
+        print(json.dumps([jit.COMPILED, A.kf2_loglik(ev, 0.05, 0.2, *v, 1.0)]))
+        """)
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         env={**os.environ, "TRAIN_NO_JIT": "1"}, timeout=120)
+    assert run.returncode == 0, run.stderr
+    compiled_flag, ll = json.loads(run.stdout.strip().splitlines()[-1])
+    assert compiled_flag is False
+    rng = np.random.default_rng(3)
+    ev = _events(rng, 200, [5, 90], [40, 41])
+    v = [rng.normal(size=200) for _ in range(4)]
+    assert kf2_loglik(ev, 0.05, 0.2, *v, 1.0) == ll

@@ -24,6 +24,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .jit import COMPILED, jit
+
 LOG2PI = math.log(2.0 * math.pi)
 
 
@@ -81,35 +83,14 @@ def augmented_kf(ev: Events, q: float, r_s: float, Bv, Bs, Md, Mv, Mb, q_held: f
     np.negative(Mn, out=Mn)
     Mbn = -np.asarray(Mb, float)
     Y = np.stack([ev.y_d, ev.y_v], axis=1).astype(float, copy=False)
-    kc0 = np.ascontiguousarray(gp.K[:, :, 0:1])  # (n, 2, 1): gain on the distance innovation
-    kc1 = np.ascontiguousarray(gp.K[:, :, 1:2])  # on the speed innovation
     x = Mn[0].copy()
     x[0, 0] += Y[0, 0]
     x[1, 0] += Y[0, 1]
-    xs, xv = x[0], x[1]
     E = np.zeros((n, 2, p1))  # innovations (distance, speed) of every column at each event
-    tmp, tmp2 = np.empty(p1), np.empty((2, p1))
-    add, multiply, subtract = np.add, np.multiply, np.subtract
-    hs, code = gp.h.tolist(), gp.code.tolist()
-    for k in range(1, n):
-        multiply(xv, hs[k], out=tmp)
-        add(xs, tmp, out=xs)
-        add(x, B[k], out=x)
-        c = code[k]
-        if c == 0:  # odometer reading
-            ek = E[k]
-            subtract(Mn[k], x, out=ek)
-            ek[:, 0] += Y[k]
-            multiply(kc0[k], ek[0], out=tmp2)
-            add(x, tmp2, out=x)
-            multiply(kc1[k], ek[1], out=tmp2)
-            add(x, tmp2, out=x)
-        elif c == 1:  # balise reading
-            eb = E[k, 0]
-            subtract(Mbn[k], xs, out=eb)
-            eb[0] += Y[k, 0]
-            multiply(kc0[k], eb, out=tmp2)
-            add(x, tmp2, out=x)
+    (_column_pass if COMPILED else _column_pass_numpy)(
+        np.ascontiguousarray(gp.h, np.float64), np.ascontiguousarray(gp.code, np.int64),
+        np.ascontiguousarray(B), np.ascontiguousarray(Mn), np.ascontiguousarray(Mbn),
+        np.ascontiguousarray(Y), np.ascontiguousarray(gp.K), x, E)
     Z = np.empty((gp.m, p1))
     L = gp.L
     z0 = E[odo, 0] / L[odo, 0, None]
@@ -126,6 +107,76 @@ def augmented_kf(ev: Events, q: float, r_s: float, Bv, Bs, Md, Mv, Mb, q_held: f
     S_v = np.full(n, np.nan)
     S_v[odo] = gp.S_v[odo]
     return KFResult(W=Z.T @ Z, logdet=gp.logdet, m=gp.m, E0=E0, E1=E1, S_v=S_v)
+
+
+@jit
+def _column_pass(h, code, B, Mn, Mbn, Y, K, x, E):
+    """The columns of an augmented filter run, stacked as one (2, p+1) state ``x`` (updated in
+    place); the innovations go to ``E`` (n, 2, p+1). Per element the operations of a filter
+    written out step by step, in its order: predict (s += h v, then the drift B), then the
+    odometer update (innovation M - x + y, gain columns K[:, :, 0] on distance and K[:, :, 1]
+    on speed) or the balise update (distance only)."""
+    n, p1 = E.shape[0], E.shape[2]
+    for k in range(1, n):
+        hk = h[k]
+        c = code[k]
+        for j in range(p1):
+            xs = x[0, j] + x[1, j] * hk
+            xs = xs + B[k, 0, j]
+            xv = x[1, j] + B[k, 1, j]
+            if c == 0:  # odometer reading
+                es = Mn[k, 0, j] - xs
+                ev_ = Mn[k, 1, j] - xv
+                if j == 0:
+                    es += Y[k, 0]
+                    ev_ += Y[k, 1]
+                E[k, 0, j] = es
+                E[k, 1, j] = ev_
+                xs = xs + K[k, 0, 0] * es
+                xv = xv + K[k, 1, 0] * es
+                xs = xs + K[k, 0, 1] * ev_
+                xv = xv + K[k, 1, 1] * ev_
+            elif c == 1:  # balise reading
+                eb = Mbn[k, j] - xs
+                if j == 0:
+                    eb += Y[k, 0]
+                E[k, 0, j] = eb
+                xs = xs + K[k, 0, 0] * eb
+                xv = xv + K[k, 1, 0] * eb
+            x[0, j] = xs
+            x[1, j] = xv
+
+
+def _column_pass_numpy(h, code, B, Mn, Mbn, Y, K, x, E):
+    """:func:`_column_pass` without numba: the columns as whole rows, a few array operations
+    per event (interpreted, a scalar loop over the columns would cost some 50 times more). The
+    same operations on every element in the same order: equal bit for bit (tested)."""
+    n, p1 = E.shape[0], E.shape[2]
+    xs, xv = x[0], x[1]
+    kc0 = np.ascontiguousarray(K[:, :, 0:1])  # (n, 2, 1): gain on the distance innovation
+    kc1 = np.ascontiguousarray(K[:, :, 1:2])  # on the speed innovation
+    tmp, tmp2 = np.empty(p1), np.empty((2, p1))
+    add, multiply, subtract = np.add, np.multiply, np.subtract
+    hs, codes = h.tolist(), code.tolist()
+    for k in range(1, n):
+        multiply(xv, hs[k], out=tmp)
+        add(xs, tmp, out=xs)
+        add(x, B[k], out=x)
+        c = codes[k]
+        if c == 0:  # odometer reading
+            ek = E[k]
+            subtract(Mn[k], x, out=ek)
+            ek[:, 0] += Y[k]
+            multiply(kc0[k], ek[0], out=tmp2)
+            add(x, tmp2, out=x)
+            multiply(kc1[k], ek[1], out=tmp2)
+            add(x, tmp2, out=x)
+        elif c == 1:  # balise reading
+            eb = E[k, 0]
+            subtract(Mbn[k], xs, out=eb)
+            eb[0] += Y[k, 0]
+            multiply(kc0[k], eb, out=tmp2)
+            add(x, tmp2, out=x)
 
 
 @dataclass
@@ -161,69 +212,68 @@ def _gain_pass(ev: Events, q: float, r_s: float, q_held: float, update, q_per_ev
     if hit is not None:
         return hit
     n = ev.t.size
-    dts = np.diff(ev.t, prepend=ev.t[0]).tolist()
-    kinds, held = ev.kind.tolist(), ev.held.tolist()
-    rv = ev.r_v.tolist()
-    upd = [True] * n if update is None else np.asarray(update, bool).tolist()
-    qs = None if q_per_event is None else np.asarray(q_per_event, float).tolist()
-    p00, p01, p11 = r_s, 0.0, float(ev.r_v[0])
+    h = np.diff(ev.t, prepend=ev.t[0]).astype(np.float64)
+    upd = np.ones(n, np.bool_) if update is None else np.asarray(update, np.bool_)
+    use_qs = q_per_event is not None
+    qs = np.asarray(q_per_event, np.float64) if use_qs else np.zeros(n)
+    K, L, S_v, row, code = (np.zeros((n, 2, 2)), np.zeros((n, 3)), np.full(n, np.nan),
+                            np.zeros(n, np.int64), np.full(n, 2, np.int8))
+    logdet, m = _gain_loop(h, np.ascontiguousarray(ev.kind, np.int64),
+                           np.ascontiguousarray(ev.held, np.bool_),
+                           np.ascontiguousarray(ev.r_v, np.float64), np.ascontiguousarray(upd),
+                           np.ascontiguousarray(qs), use_qs, float(q), float(r_s),
+                           float(q_held), K, L, S_v, row, code)
+    odo, bal = np.flatnonzero(code == 0), np.flatnonzero(code == 1)
+    out = _Gains(h=h, code=code, K=K, L=L, S_v=S_v, row=row, odo=odo, bal=bal,
+                 logdet=logdet, m=m)
+    if len(_GAINS) >= _GAINS_KEEP:
+        _GAINS.pop(next(iter(_GAINS)))
+    _GAINS[key] = out
+    return out
+
+
+@jit
+def _gain_loop(h, kind, held, rv, upd, qs, use_qs, q, r_s, q_held, K, L, S_v, row, code):
+    """_gain_pass's recursion (kalman.predict_cov, odometer_update and balise_update written
+    out on scalars, as in :func:`_kf2_loop`): fills K, L, S_v, row and code in place and
+    returns (log det of all S_k, scalar measurements)."""
+    n = h.size
+    p00, p01, p11 = r_s, 0.0, rv[0]
     logdet, m = 0.0, 0
-    row = np.zeros(n, np.int64)
-    odo, bal, gains, chol, s_v, bgains, bchol = [], [], [], [], [], [], []
-    sqrt, log = math.sqrt, math.log
     for k in range(1, n):
-        h = dts[k]
-        qk = qs[k] if qs is not None else (q_held if held[k] else q)
-        # kalman.predict_cov, odometer_update and balise_update written out (same arithmetic)
-        p00, p01, p11 = (p00 + 2 * h * p01 + h * h * p11 + qk * h ** 3 / 3.0,
-                         p01 + h * p11 + qk * h * h / 2.0, p11 + qk * h)
+        hk = h[k]
+        qk = qs[k] if use_qs else (q_held if held[k] else q)
+        p00, p01, p11 = (p00 + 2 * hk * p01 + hk * hk * p11 + qk * hk ** 3.0 / 3.0,
+                         p01 + hk * p11 + qk * hk * hk / 2.0, p11 + qk * hk)
         if not upd[k]:
             continue
         row[k] = m
-        if kinds[k] == 0:
+        if kind[k] == 0:
             s00, s11 = p00 + r_s, p11 + rv[k]
             det = s00 * s11 - p01 * p01
             i00, i01, i11 = s11 / det, -p01 / det, s00 / det
             k00, k01 = p00 * i00 + p01 * i01, p00 * i01 + p01 * i11
             k10, k11 = p01 * i00 + p11 * i01, p01 * i01 + p11 * i11
-            l00 = sqrt(s00)
+            l00 = math.sqrt(s00)
             l10 = p01 / l00
-            gains.append((k00, k01, k10, k11))
-            chol.append((l00, l10, sqrt(s11 - l10 * l10)))
-            s_v.append(s11)
-            odo.append(k)
-            logdet += log(det)
+            K[k, 0, 0], K[k, 0, 1], K[k, 1, 0], K[k, 1, 1] = k00, k01, k10, k11
+            L[k, 0], L[k, 1], L[k, 2] = l00, l10, math.sqrt(s11 - l10 * l10)
+            S_v[k] = s11
+            code[k] = 0
+            logdet += math.log(det)
             m += 2
             p00, p01, p11 = ((1 - k00) * p00 - k01 * p01, (1 - k00) * p01 - k01 * p11,
                              -k10 * p01 + (1 - k11) * p11)
         else:
             sb = p00 + rv[k]
             k0, k1 = p00 / sb, p01 / sb
-            bgains.append((k0, k1))
-            bchol.append(sqrt(sb))
-            bal.append(k)
-            logdet += log(sb)
+            K[k, 0, 0], K[k, 1, 0] = k0, k1
+            L[k, 0] = math.sqrt(sb)
+            code[k] = 1
+            logdet += math.log(sb)
             m += 1
             p00, p01, p11 = (1 - k0) * p00, (1 - k0) * p01, p11 - k1 * p01
-    K = np.zeros((n, 2, 2))
-    L = np.zeros((n, 3))
-    S_v = np.full(n, np.nan)
-    if odo:
-        K[odo] = np.asarray(gains).reshape(-1, 2, 2)
-        L[odo] = chol
-        S_v[odo] = s_v
-    if bal:
-        K[bal, :, 0] = bgains
-        L[bal, 0] = bchol
-    odo, bal = np.asarray(odo, np.int64), np.asarray(bal, np.int64)
-    code = np.full(n, 2, np.int8)
-    code[odo], code[bal] = 0, 1
-    out = _Gains(h=np.asarray(dts), code=code, K=K, L=L, S_v=S_v, row=row, odo=odo, bal=bal,
-                 logdet=logdet, m=m)
-    if len(_GAINS) >= _GAINS_KEEP:
-        _GAINS.pop(next(iter(_GAINS)))
-    _GAINS[key] = out
-    return out
+    return logdet, m
 
 
 def _digest(parts) -> bytes:
@@ -285,20 +335,33 @@ def kf2_loglik(ev: Events, q: float, r_s: float, bv, bs, md, mv, q_held: float) 
     """The fast path of :func:`augmented_kf` for two columns, [fixed model, s0]: the profile
     log-likelihood with s0 eliminated exactly by GLS, as ``gls(W, I)`` on the general filter
     with ``Bv = [bv, 0]``, ``Bs = [bs, 0]``, ``Md = [md, 0]``, ``Mv = [mv, 0]``, ``Mb = [0, 1]``
-    gives (tested equal). A scalar loop on Python floats with kalman.predict_cov,
-    odometer_update and balise_update written out (no calls, no tuples, no arrays): a noise
-    fit calls it some 30 times, and per event the general filter's array work, or calls,
-    would cost several times the arithmetic."""
-    n = ev.t.size
-    xs0, xv0 = ev.y_d[0] - md[0], ev.y_v[0] - mv[0]
+    gives (tested equal). A noise fit calls it some 30 times: the recursion is one scalar loop
+    (:func:`_kf2_loop`), compiled by numba where it is installed (``numerics.jit``)."""
+    f8 = np.float64
+    arrays = (np.ascontiguousarray(ev.t, f8), np.ascontiguousarray(ev.kind, np.int64),
+              np.ascontiguousarray(ev.y_d, f8), np.ascontiguousarray(ev.y_v, f8),
+              np.ascontiguousarray(ev.r_v, f8), np.ascontiguousarray(ev.held, np.bool_),
+              np.ascontiguousarray(bv, f8), np.ascontiguousarray(bs, f8),
+              np.ascontiguousarray(md, f8), np.ascontiguousarray(mv, f8))
+    if not COMPILED:  # interpreted: Python floats index faster from lists than from arrays
+        arrays = tuple(a.tolist() for a in arrays)
+    logdet, m, w00, w01, w11 = _kf2_loop(*arrays, float(q), float(r_s), float(q_held))
+    quad = w00 - w01 * w01 / w11 if w11 > 0 else w00
+    return -0.5 * (logdet + m * LOG2PI + quad)
+
+
+@jit
+def _kf2_loop(t, kind, yd, yv, rv, held, bv, bs, md, mv, q, r_s, q_held):
+    """kf2_loglik's recursion: (sum log det S_k, scalar measurements, W entries of the two
+    columns). kalman.predict_cov, odometer_update and balise_update written out on scalars (no
+    calls, no tuples, no arrays), so that numba compiles it to a plain loop and the
+    interpreter, without numba, runs it as fast as Python can."""
+    n = len(t)
+    xs0, xv0 = yd[0] - md[0], yv[0] - mv[0]
     xs1 = xv1 = 0.0
-    p00, p01, p11 = r_s, 0.0, float(ev.r_v[0])
+    p00, p01, p11 = r_s, 0.0, rv[0]
     w00 = w01 = w11 = 0.0
     logdet, m = 0.0, 0
-    t, kind, yd, yv, rv, held = (ev.t.tolist(), ev.kind.tolist(), ev.y_d.tolist(),
-                                 ev.y_v.tolist(), ev.r_v.tolist(), ev.held.tolist())
-    bv, bs, md, mv = bv.tolist(), bs.tolist(), md.tolist(), mv.tolist()
-    log = math.log
     t_prev = t[0]
     for k in range(1, n):
         tk = t[k]
@@ -308,7 +371,7 @@ def kf2_loglik(ev: Events, q: float, r_s: float, bv, bs, md, mv, q_held: float) 
         xs0 += h * xv0 + bs[k]
         xv0 += bv[k]
         xs1 += h * xv1
-        p00, p01, p11 = (p00 + 2 * h * p01 + h * h * p11 + qk * h ** 3 / 3.0,
+        p00, p01, p11 = (p00 + 2 * h * p01 + h * h * p11 + qk * h ** 3.0 / 3.0,
                          p01 + h * p11 + qk * h * h / 2.0, p11 + qk * h)
         if kind[k] == 0:
             s00, s11 = p00 + r_s, p11 + rv[k]
@@ -321,7 +384,7 @@ def kf2_loglik(ev: Events, q: float, r_s: float, bv, bs, md, mv, q_held: float) 
             w00 += es0 * (i00 * es0 + i01 * ev0) + ev0 * (i01 * es0 + i11 * ev0)
             w01 += es0 * (i00 * es1 + i01 * ev1) + ev0 * (i01 * es1 + i11 * ev1)
             w11 += es1 * (i00 * es1 + i01 * ev1) + ev1 * (i01 * es1 + i11 * ev1)
-            logdet += log(det)
+            logdet += math.log(det)
             m += 2
             xs0 += k00 * es0 + k01 * ev0
             xv0 += k10 * es0 + k11 * ev0
@@ -336,12 +399,11 @@ def kf2_loglik(ev: Events, q: float, r_s: float, bv, bs, md, mv, q_held: float) 
             w00 += e0 * e0 / s
             w01 += e0 * e1 / s
             w11 += e1 * e1 / s
-            logdet += log(s)
+            logdet += math.log(s)
             m += 1
             xs0 += k0 * e0
             xv0 += k1 * e0
             xs1 += k0 * e1
             xv1 += k1 * e1
             p00, p01, p11 = (1 - k0) * p00, (1 - k0) * p01, p11 - k1 * p01
-    quad = w00 - w01 * w01 / w11 if w11 > 0 else w00
-    return -0.5 * (logdet + m * LOG2PI + quad)
+    return logdet, m, w00, w01, w11
