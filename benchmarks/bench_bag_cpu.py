@@ -44,13 +44,15 @@ SHIPPED = [("metro_demo_short", "metro_demo", "metro_b6"),
 
 
 def make(d: str) -> None:
+    from train_core.progress import track
+
     from train_sim.cases import make_case
     from train_sim.fleet import FleetSpec, write_fleet
     from train_sim.generate import generate
 
     os.makedirs(d, exist_ok=True)
     bags = []
-    for label, causes, size, family in CASES:
+    for label, causes, size, family in track(CASES, "bag_cpu: cases"):
         case = make_case(np.random.default_rng([24, len(bags)]), causes or None, size, family)
         sub = os.path.join(d, label)
         paths = case.write(sub)
@@ -58,7 +60,6 @@ def make(d: str) -> None:
         bags.append({"label": f"{label} ({case.family}, {case.scenario.duration:.0f} s)",
                      "bag": os.path.join(sub, "bag"), "line": str(paths["line"]),
                      "train_file": str(paths["train"]), "train": label})
-        print(bags[-1]["label"], flush=True)
     fd = os.path.join(d, "fleet")
     write_fleet(fd, FleetSpec(trains=2, runs=2, degraded=1, seed=3, stops=3, dwell=40.0,
                               map_error=("north", 1000.0, 1400.0, 5.0)))
@@ -78,6 +79,8 @@ def make(d: str) -> None:
 
 
 def analyse(d: str, out: str, only: list | None) -> None:
+    from train_core.progress import track
+
     import train_estimation.core.offline.diagnose as dmod
     import train_estimation.core.offline.identify as imod
     from train_estimation.tools import fleet as tool
@@ -102,7 +105,7 @@ def analyse(d: str, out: str, only: list | None) -> None:
     tool.analyse_bag(dict(bags[0], time=None))  # warm-up: imports, caches of the interpreter
     res = {"load_before": os.getloadavg()[0], "bags": []}
     print(f"load average {res['load_before']:.2f}", flush=True)
-    for b in bags:
+    for b in track(bags, "bag_cpu: bags"):
         captured.clear()
         c0, w0 = time.process_time(), time.perf_counter()
         row = tool.analyse_bag(dict(b, time=None))

@@ -91,6 +91,8 @@ def run(case) -> dict:
 
 
 def main() -> None:
+    from train_core.progress import track
+
     from train_sim.cases import make_case
 
     ap = argparse.ArgumentParser()
@@ -103,7 +105,7 @@ def main() -> None:
     print("|---|---|---|---|---|---|")
     for kind in ("plain", "subtle", "long"):
         rows = []
-        for i in range(args.cases):
+        for i in track(range(args.cases), f"slip_episodes: {kind}"):
             rng = np.random.default_rng([args.seed, 77, i])
             case = make_case(rng, "wheel_slip", "subtle" if kind == "subtle" else "plain")
             if kind == "long":

@@ -2,6 +2,7 @@
 
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -11,6 +12,7 @@ from train_estimation.tools import check_bag
 from train_sim.generate import generate
 from train_sim.scenario import load_scenario
 
+REPO = Path(__file__).resolve().parents[1]
 SIGMA_X, SIGMA_V = 2.0, 0.1
 
 
@@ -149,8 +151,8 @@ def test_plot_bands_are_clipped_and_startup_is_separated():
 
 
 def test_not_estimated_nan_is_not_non_finite(bag_with_estimate, tmp_path):
-    """NaN braking_rate and NaN covariance entries of a TrainState mean "not estimated"
-    (docs/interfaces.md): not counted; a NaN position or an infinite entry is."""
+    """NaN acceleration, braking_rate and covariance entries of a TrainState mean "not
+    estimated" (docs/interfaces.md): not counted; a NaN position or an infinite entry is."""
     bag, _ = bag_with_estimate
     s = check_bag.check(str(bag), tmp_path / "a", expected_received=0.875)
     est = s["topics"]["estimate/robust"]
@@ -160,12 +162,24 @@ def test_not_estimated_nan_is_not_non_finite(bag_with_estimate, tmp_path):
     cov = np.full(16, math.nan)
     cov[5] = math.inf
     bad = [dict(fields, position=math.nan), dict(fields, covariance=cov),
-           dict(fields, braking_rate=math.inf), dict(fields, braking_rate=math.nan)]
+           dict(fields, braking_rate=math.inf), dict(fields, acceleration=-math.inf),
+           dict(fields, braking_rate=math.nan), dict(fields, acceleration=math.nan)]
     with BagWriter(out) as w:
         for i, f in enumerate(bad):
             w.write("estimate/robust", 1.0 + i, f)
         w.write("odometer", 5.0, {"seq": 1, "distance": math.nan, "speed": 1.0,
                                    "speed_variance": 0.01})
     b = read_bag(out)
-    assert check_bag.topic_health(b, "estimate/robust")["non_finite"] == 3
+    assert check_bag.topic_health(b, "estimate/robust")["non_finite"] == 4
     assert check_bag.topic_health(b, "odometer")["non_finite"] == 1
+
+
+def test_the_shipped_bag_of_the_live_nodes_has_no_non_finite_value():
+    """The reference bag recorded from the live nodes: the robust filter publishes NaN
+    acceleration and braking rate by design (not estimated); nothing in it is non-finite."""
+    b = read_bag(REPO / "bags" / "metro_demo_short")
+    robust = [f for _, _, f in b.topics["estimate/robust"]]
+    assert robust and all(math.isnan(f["acceleration"]) for f in robust)  # what is exempted
+    for topic in b.topics:
+        h = check_bag.topic_health(b, topic)
+        assert h["count"] > 0 and h["non_finite"] == 0, (topic, h)

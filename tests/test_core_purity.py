@@ -4,7 +4,7 @@ Everything under ``train_core``, ``train_sim`` and ``train_estimation`` except t
 sub-packages and ``train_core.ros`` (the nodes' message helpers) is core (the offline tools
 included: they read bags with rosbags, not with ROS).
 
-The packages depend in one direction only (README's diagram): train_core <- train_sim,
+The packages depend in one direction only (docs/nodes.md's package tree): train_core <- train_sim,
 train_estimation <- train_bringup. Checked on the import statements of the package code.
 """
 

@@ -158,6 +158,40 @@ def test_run_blocks_succeed(tmp_path, ros_env):
     assert ran >= 5
 
 
+NODE_CASES = [p for p in CASES if not p.values[1] and "--ros-args" in p.values[0]]
+
+
+def _node_name(argv: list[str]) -> str:
+    for a in argv:
+        if a.startswith("__node:="):
+            return a.split(":=", 1)[1]
+    return argv[2].rsplit(".", 1)[-1] if argv[:2] == ["python", "-m"] else Path(argv[0]).name
+
+
+def test_the_docs_show_node_commands():
+    names = {_node_name(translate(p.values[0])[1]) for p in NODE_CASES}
+    assert {"simulator", "robust_filter", "zone_controller", "kf_estimator", "player"} <= names
+
+
+@pytest.mark.parametrize("cmd,run", NODE_CASES)
+def test_node_command_starts_and_keeps_running(cmd, run, launch, ros_node):
+    """A node the docs start by hand (not run to an end: a node runs until stopped) comes up
+    in the ROS graph and is still running seconds later: a parameter it needs and the command
+    lacks (an estimator's line_file) would end it at once. The command's TRAIN_ROS_DOMAIN_ID
+    is not applied: the test session's isolated domain is."""
+    _, argv, _ = translate(cmd)
+    name = _node_name(argv)
+    proc = launch.start(argv, name=name)
+
+    def up():
+        assert proc.poll() is None, f"{cmd}: exited with {proc.returncode}"
+        return any(n == name for n, _ in ros_node.node.get_node_names_and_namespaces())
+
+    ros_node.wait_until(up, timeout=60.0, what=f"node {name}")
+    ros_node.spin_for(3.0)
+    assert proc.poll() is None, f"{cmd}: exited with {proc.returncode} after starting"
+
+
 def test_run_help_prints_the_header_only():
     out = subprocess.run(["bash", str(REPO / "run"), "help"], capture_output=True, text=True,
                          timeout=30, cwd=REPO)

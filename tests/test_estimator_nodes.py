@@ -73,7 +73,7 @@ def test_robust_filter_tracks_truth_within_its_bound(launch, ros_node):
 
 def test_gsma_estimator_converges_to_the_degraded_braking_rate(launch, ros_node):
     """Live simulator, brakes at f = 0.7: after three braking phases |f_hat - 0.7| < 0.05.
-    (The node's default algorithm is the exact KF since issue 15, so `source` is "kf".)"""
+    (The node's default algorithm is the exact KF, so `source` is "kf".)"""
     from train_sim.world import simulate
 
     ns = "/gsma"

@@ -108,11 +108,11 @@ def test_diagnose_page_puts_the_verdict_first_embeds_plots_and_shows_every_field
 
 def test_fleet_page_renders_its_markdown_and_embeds_the_images_it_references(tmp_path):
     shutil.copy(DOCS / "fleet_report_example.md", tmp_path / "report.md")
-    for name in ("fleet_line_north.png", "fleet_trends.png"):
+    for name in ("fleet_line_north.png", "fleet_line_south.png", "fleet_trends.png"):
         shutil.copy(DOCS / name, tmp_path / name)
     _png(tmp_path / "unreferenced.png")
     text = write_report_html(tmp_path, "fleet").read_text()
-    _check_page(text, 3)
+    _check_page(text, 4)
     assert "<table>" in text and "<b>T01</b>" in text
     verdict = text[text.find('id="verdict"'):text.find("<h2")]
     assert "bags of" in verdict and "failed" in verdict

@@ -5,7 +5,7 @@ discretise it), so simulated truth and filter assumptions cannot silently diverg
 effects (``train_core.effects``) produce a *modified copy* of these objects with
 :func:`dataclasses.replace`; the estimators only ever see what ``train.yaml``/``line.yaml`` say.
 
-Longitudinal dynamics (mass point, issue #3)::
+Longitudinal dynamics (mass point)::
 
     (1 + lambda) M dv/dt = F_drive - (a + b v + c v^2) - M g sin(theta(x)),    dx/dt = v
 

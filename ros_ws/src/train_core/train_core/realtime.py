@@ -5,7 +5,7 @@ and scipy's OpenBLAS start worker threads at import (one per core) and hand work
 machine whose other core is busy, the callback then loses a scheduler tick (4 ms here) every so
 often. Measured on the robust filter's odometer callback, in-process, with the other core
 loaded: p99 5.2-5.4 ms with the default threads, 2.0-2.4 ms with one
-(``benchmarks/bench_latency.py``; README, latency). Limiting the threads later, through
+(``benchmarks/bench_latency.py``; docs/benchmarks.md, Latency). Limiting the threads later, through
 OpenBLAS's own call, did not help: only the start-up setting did. So the node packages call
 :func:`single_threaded_blas` in their ``__init__``, before anything imports numpy; a variable the
 user set is kept.

@@ -1,8 +1,8 @@
 """Data from the braking model's own discrete recursion (Zheng et al. 2015, Section 4): the
 open-loop toy of the braking tests and ``benchmarks/bench_braking.py``.
 
-Test and benchmark support, deliberately outside the estimation core (issue 12: no data
-generator in the core). It is *not* the simulator's open loop (``train_sim.world.open_loop``):
+Test and benchmark support, deliberately outside the estimation core (no data generator
+in the core). It is *not* the simulator's open loop (``train_sim.world.open_loop``):
 the world uses the exact transport delay and train physics, while the exactness tests and
 Zheng's Tables 1-2 need data from the estimators' own model (Pade delay, exact ZOH), where the
 KF is the exact posterior.

@@ -1,4 +1,4 @@
-"""Issue 15: f priors centred on train.yaml's braking rate, discrete cells, estimates before
+"""f priors centred on train.yaml's braking rate, discrete cells, estimates before
 pruning, merging by value."""
 
 import dataclasses

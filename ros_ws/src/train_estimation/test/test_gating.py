@@ -1,4 +1,4 @@
-"""Issue 11, item 3: every estimator gates gross outliers with a reason, and counts them."""
+"""Every estimator gates gross outliers with a reason, and counts them."""
 
 import os
 import sys

@@ -112,8 +112,8 @@ def test_runtime_set_parameters_is_validated_and_refused_with_a_reason(launch, r
     from rcl_interfaces.srv import GetParameters, SetParameters
 
     ns = "/params"
-    launch.node("train_estimation", "robust_filter", "--ros-args", "-r", f"__ns:={ns}",
-                "-p", "use_demo_line:=true", name="live_params")
+    proc = launch.node("train_estimation", "robust_filter", "--ros-args", "-r", f"__ns:={ns}",
+                       "-p", "use_demo_line:=true", name="live_params")
     node = ros_node.node
     set_cli = node.create_client(SetParameters, f"{ns}/robust_filter/set_parameters")
     get_cli = node.create_client(GetParameters, f"{ns}/robust_filter/get_parameters")
@@ -137,6 +137,12 @@ def test_runtime_set_parameters_is_validated_and_refused_with_a_reason(launch, r
 
     r = set_double("q", -1.0)
     assert not r.successful and r.reason == "parameter q: -1.0 must be finite and >= 0", r.reason
+    # a wrong type is refused with a reason (rclpy's type check), and the node keeps running
+    p = Parameter(name="q", value=ParameterValue(type=ParameterType.PARAMETER_STRING,
+                                                 string_value="abc"))
+    (r,) = call(set_cli, SetParameters.Request(parameters=[p])).results
+    assert not r.successful and "type" in r.reason.lower(), r.reason
+    assert proc.poll() is None
     r = set_double("q", 0.5)
     assert not r.successful
     assert r.reason == "parameter q: read at start-up only; restart the node to change it"

@@ -1,4 +1,4 @@
-"""Issue 11, item 6: the robust filter's bound covers the error through a 60 s outage."""
+"""The robust filter's bound covers the error through a 60 s outage."""
 
 import os
 import sys

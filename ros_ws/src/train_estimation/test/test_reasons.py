@@ -1,4 +1,4 @@
-"""Issue 11, item 4: one vocabulary of rejection reasons (core/reasons.py) everywhere."""
+"""One vocabulary of rejection reasons (core/reasons.py) everywhere."""
 
 import math
 import os
@@ -25,7 +25,7 @@ def test_filters_reasons_are_the_vocabulary():
 
 
 def test_free_text_reasons_are_mapped_onto_names():
-    # phrasings of core/braking/braking_filters.py (issue 15 owns the file; the adapter maps them)
+    # phrasings of core/braking/braking_filters.py (the adapter maps them)
     cases = {"non-finite measurement: [nan]": R.NON_FINITE,
              "non-positive or non-finite measurement variance: [0.0]": R.NON_POSITIVE_VARIANCE,
              "out-of-order or duplicate time stamp: 1.0 <= 2.0": R.OUT_OF_ORDER,

@@ -1,4 +1,4 @@
-"""Issue 11, item 5: out-of-sequence readings within the history are fused by rewinding."""
+"""Out-of-sequence readings within the history are fused by rewinding."""
 
 import os
 import sys

@@ -1,4 +1,4 @@
-"""Issue 11, items 1-2: any stamp epoch, phase and drift; one bad seq or stamp never blinds."""
+"""Any stamp epoch, phase and drift; one bad seq or stamp never blinds."""
 
 import math
 import os

@@ -71,7 +71,7 @@ def test_each_cause_at_both_sizes_subtle_is_half_plain(cause):
                     - main_value(cause, {**c.truth[cause], **c.nominal[cause]}, 10.0))
         dp, ds = dev(plain), dev(subtle)
     assert dp == pytest.approx(2.0 * ds, rel=2e-3), (dp, ds)
-    # issue 10's subtle sizes
+    # the subtle sizes
     t, n = subtle.truth[cause], subtle.nominal[cause]
     sizes = {"gradient": (abs(t.get("permille", 0)), 2.0, 2.5),
              "resistance": (t["a"] / n["a"] if "a" in n else 0, None, None),

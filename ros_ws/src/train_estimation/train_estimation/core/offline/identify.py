@@ -1,7 +1,7 @@
 """System identification front end: fit the train's longitudinal parameters from
 odometer, balise and control time series (plain arrays; the ``identify`` CLI reads the bag).
 
-Model (train_core.model, issue #3; actuator after Zheng et al. 2015 eq. (1))::
+Model (train_core.model; actuator after Zheng et al. 2015 eq. (1))::
 
     ds/dt = v
     dv/dt = k a_tr(t) + k f a_br(t) - (a + b v + c v^2) / M_eff

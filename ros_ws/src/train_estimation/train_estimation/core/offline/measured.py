@@ -110,8 +110,9 @@ def _stamp_order(stamp) -> np.ndarray:
 
 
 # TrainState fields where NaN is a value by design: "not estimated" (docs/interfaces.md), e.g.
-# the braking rate of an estimator that does not estimate it. Infinity is never by design.
-NOT_ESTIMATED_NAN = ("braking_rate", "covariance")
+# the control acceleration and braking rate of the robust filter, which estimates neither.
+# Infinity is never by design.
+NOT_ESTIMATED_NAN = ("acceleration", "braking_rate", "covariance")
 
 
 def _non_finite(stamp: float, fields: dict) -> bool:

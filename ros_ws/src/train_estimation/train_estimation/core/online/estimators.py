@@ -275,7 +275,7 @@ class BrakingConfig:
     config/gsma_estimator.yaml documents them)."""
 
     algorithm: str = param("kf", "", f"one of {', '.join(ALGORITHMS)} (kf: the exact "
-                           "estimator, README 'Braking rate')")
+                           "estimator, docs/benchmarks.md 'Braking-rate estimation')")
     values: tuple[float, ...] = param(
         tuple(np.round(np.linspace(1.3, 0.0, 14), 10)), "-",
         "discrete braking-rate set (GSMA, SMA, RBPF; Q-GRBPF uses its range); up to 1.3 so that "
@@ -287,7 +287,7 @@ class BrakingConfig:
                         "instead of pruning to the N best")
     #   (at most (#values) x (children) KFs per step); pruning to N every step makes GSMA
     #   over-confident on metro_drift (2-sigma coverage 0.83), Q = 500 costs a p99 of ~3 ms;
-    #   merged: coverage 1.00 at the KF's accuracy (README)
+    #   merged: coverage 1.00 at the KF's accuracy (docs/benchmarks.md)
     n_init: int = param(50, "-", "N0, initial particles (GSMA, SMA)")
     n_keep: int = param(50, "-", "N, particles kept after pruning (GSMA, SMA)")
     q_max: int = param(500, "-", "Q, prune when the branched count exceeds it (merge = false)")
