@@ -73,7 +73,7 @@ def test_robust_filter_tracks_truth_within_its_bound(launch, ros_node):
 
 def test_gsma_estimator_converges_to_the_degraded_braking_rate(launch, ros_node):
     """Live simulator, brakes at f = 0.7: after three braking phases |f_hat - 0.7| < 0.05.
-    (The node's default algorithm is the exact KF, so `source` is "kf".)"""
+    (The node's default algorithm is GSMA, so `source` is "gsma".)"""
     from train_sim.world import simulate
 
     ns = "/gsma"
@@ -82,7 +82,7 @@ def test_gsma_estimator_converges_to_the_degraded_braking_rate(launch, ros_node)
         [("gsma_estimator", ["--params-file", str(CONFIG / "gsma_estimator.yaml")])],
         ["estimate/gsma"])
     est = boxes["estimate/gsma"]
-    assert est and all(m.source == "kf" for m in est)
+    assert est and all(m.source == "gsma" for m in est)
     # the third braking phase ends when the train stops at the third station
     stops = simulate(sc, duration=480.0).stops
     assert len(stops) == 3, stops

@@ -96,14 +96,14 @@ def test_metro_demo_bag_replay(launch, ros_node, tmp_path):
     (b1, out1, sc), (b2, _, _) = runs
     check(out1, ["estimators.robust_filter.position.rmse<=1.0",
                  "estimators.robust_filter.position_within_3sigma>=0.99",
-                 "estimators.kf.position.rmse<=1.0",  # gsma_estimator's default: kf
-                 "estimators.kf.velocity.rmse<=0.3"])
+                 "estimators.gsma.position.rmse<=1.0",  # gsma_estimator's default: gsma
+                 "estimators.gsma.velocity.rmse<=0.3"])
     st = StartState(sc.start_position)
     robust = offline(bag, sc, RobustAdapter(sc.train, sc.line, st,
                                             RobustConfig(period=1.0 / sc.odometer_rate)))
     gsma = offline(bag, sc, BrakingAdapter(sc.train, sc.line, st, BrakingConfig()))
     for topic, source, core in (("estimate/robust", "robust_filter", robust),
-                                ("estimate/gsma", "kf", gsma)):
+                                ("estimate/gsma", "gsma", gsma)):
         e1, e2 = estimates(b1, topic, source), estimates(b2, topic, source)
         # the nodes go on predicting while the player's clock runs past the last message
         n = len(core)

@@ -274,8 +274,9 @@ class BrakingConfig:
     """Settings of the braking-rate estimator node (declared from this metadata,
     config/gsma_estimator.yaml documents them)."""
 
-    algorithm: str = param("kf", "", f"one of {', '.join(ALGORITHMS)} (kf: the exact "
-                           "estimator, docs/benchmarks.md 'Braking-rate estimation')")
+    algorithm: str = param("gsma", "", f"one of {', '.join(ALGORITHMS)} (gsma: Zheng et "
+                           "al.'s GSMA, the node's name; kf: the exact estimator of the same "
+                           "model, docs/benchmarks.md 'Braking-rate estimation')")
     values: tuple[float, ...] = param(
         tuple(np.round(np.linspace(1.3, 0.0, 14), 10)), "-",
         "discrete braking-rate set (GSMA, SMA, RBPF; Q-GRBPF uses its range); up to 1.3 so that "
