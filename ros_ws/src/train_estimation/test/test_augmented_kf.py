@@ -159,18 +159,22 @@ def test_compiled_loops_equal_the_interpreted_ones():
     for a, b in zip(outs[0][1], outs[1][1]):
         np.testing.assert_array_equal(a, b)
 
+    # the column pass: compiled, interpreted, and the numpy form without numba
     p1 = 5
-    B, Mn = rng.normal(size=(n, 2, p1)), rng.normal(size=(n, 2, p1))
-    Mbn, Y, K = rng.normal(size=(n, p1)), rng.normal(size=(n, 2)), rng.normal(size=(n, 2, 2))
-    code = rng.integers(0, 3, n)
+    Bs, Bv, Md, Mv, Mb = (rng.normal(size=(n, p1)) for _ in range(5))
+    gp = A._gain_pass(ev, 0.02, 0.3, 1.0, upd, None)
     res = []
-    for f in (A._column_pass, A._column_pass.py_func, A._column_pass_numpy):
-        x, E = np.ones((2, p1)), np.zeros((n, 2, p1))
-        f(h, code, B, Mn, Mbn, Y, K, x, E)
-        res.append((x, E))
+    for f in (A._column_pass, A._column_pass.py_func):
+        Z, E = np.zeros((gp.m, p1)), np.zeros((n, 2, p1))
+        f(gp.h, gp.code.astype(np.int64), Bs, Bv, Md, Mv, Mb, ev.y_d, ev.y_v, gp.K, gp.L,
+          gp.row, Z, E, True)
+        res.append((Z, E))
+    E = np.zeros((n, 2, p1))
+    A._column_pass_numpy(ev, gp, Bs, Bv, Md, Mv, Mb, E)
     for other in res[1:]:
         np.testing.assert_array_equal(res[0][0], other[0])
         np.testing.assert_array_equal(res[0][1], other[1])
+    np.testing.assert_array_equal(res[0][1], E)
 
 
 def test_the_loops_run_without_numba():

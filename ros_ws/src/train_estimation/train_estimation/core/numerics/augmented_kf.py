@@ -70,33 +70,29 @@ def augmented_kf(ev: Events, q: float, r_s: float, Bv, Bs, Md, Mv, Mb, q_held: f
     (held-out data).
 
     Two passes: the covariances and gains (scalars, the same for every column:
-    :func:`_gain_pass`, shared by the calls at the same noise), then the columns, stacked as
-    one (2, p+1) state: the same operations on every element as a filter written out step by
-    step (the results are bit for bit those of that filter; tested), in a few array
-    operations per event; the innovations are whitened at all events at once."""
+    :func:`_gain_pass`, shared by the calls at the same noise), then the columns and their
+    whitened innovations (:func:`_column_pass`, compiled; without numba the columns as whole
+    rows in a few array operations per event): the same operations on every element as a
+    filter written out step by step (the results are bit for bit those of that filter;
+    tested)."""
     n, p1 = ev.t.size, Bv.shape[1]
     gp = _gain_pass(ev, q, r_s, q_held, update, q_per_event)
     odo, bal = gp.odo, gp.bal
-    B = np.stack([Bs, Bv], axis=1).astype(float, copy=False)  # (n, 2, p1): drift of (s, v)
-    # minus the measurement columns: (-M) - x is -x - M (rounding is symmetric)
-    Mn = np.stack([Md, Mv], axis=1).astype(float, copy=False)
-    np.negative(Mn, out=Mn)
-    Mbn = -np.asarray(Mb, float)
-    Y = np.stack([ev.y_d, ev.y_v], axis=1).astype(float, copy=False)
-    x = Mn[0].copy()
-    x[0, 0] += Y[0, 0]
-    x[1, 0] += Y[0, 1]
-    E = np.zeros((n, 2, p1))  # innovations (distance, speed) of every column at each event
-    (_column_pass if COMPILED else _column_pass_numpy)(
-        np.ascontiguousarray(gp.h, np.float64), np.ascontiguousarray(gp.code, np.int64),
-        np.ascontiguousarray(B), np.ascontiguousarray(Mn), np.ascontiguousarray(Mbn),
-        np.ascontiguousarray(Y), np.ascontiguousarray(gp.K), x, E)
-    Z = np.empty((gp.m, p1))
-    L = gp.L
-    z0 = E[odo, 0] / L[odo, 0, None]
-    Z[gp.row[odo]] = z0
-    Z[gp.row[odo] + 1] = (E[odo, 1] - L[odo, 1, None] * z0) / L[odo, 2, None]
-    Z[gp.row[bal]] = E[bal, 0] / L[bal, 0, None]
+    Z = np.empty((gp.m, p1))  # the whitened innovations, two rows per odometer reading
+    E = np.zeros((n, 2, p1) if keep_innov or not COMPILED else (1, 2, 1))
+    if COMPILED:  # the columns and their whitening in one compiled loop, no stacked copies
+        f8 = np.float64
+        _column_pass(np.ascontiguousarray(gp.h, f8), np.ascontiguousarray(gp.code, np.int64),
+                     *(np.ascontiguousarray(a, f8) for a in (Bs, Bv, Md, Mv, Mb)),
+                     np.ascontiguousarray(ev.y_d, f8), np.ascontiguousarray(ev.y_v, f8),
+                     np.ascontiguousarray(gp.K), gp.L, gp.row, Z, E, keep_innov)
+    else:
+        _column_pass_numpy(ev, gp, Bs, Bv, Md, Mv, Mb, E)
+        L = gp.L
+        z0 = E[odo, 0] / L[odo, 0, None]
+        Z[gp.row[odo]] = z0
+        Z[gp.row[odo] + 1] = (E[odo, 1] - L[odo, 1, None] * z0) / L[odo, 2, None]
+        Z[gp.row[bal]] = E[bal, 0] / L[bal, 0, None]
     if not keep_innov:
         return KFResult(W=Z.T @ Z, logdet=gp.logdet, m=gp.m)
     E0, E1 = np.zeros((n, 2)), np.zeros((n, 2))
@@ -110,54 +106,76 @@ def augmented_kf(ev: Events, q: float, r_s: float, Bv, Bs, Md, Mv, Mb, q_held: f
 
 
 @jit
-def _column_pass(h, code, B, Mn, Mbn, Y, K, x, E):
-    """The columns of an augmented filter run, stacked as one (2, p+1) state ``x`` (updated in
-    place); the innovations go to ``E`` (n, 2, p+1). Per element the operations of a filter
-    written out step by step, in its order: predict (s += h v, then the drift B), then the
-    odometer update (innovation M - x + y, gain columns K[:, :, 0] on distance and K[:, :, 1]
-    on speed) or the balise update (distance only)."""
-    n, p1 = E.shape[0], E.shape[2]
+def _column_pass(h, code, Bs, Bv, Md, Mv, Mb, yd, yv, K, L, row, Z, E, keep):
+    """The columns of an augmented filter run and their whitened innovations ``Z`` (two rows
+    per odometer reading, one per balise reading; ``E`` (n, 2, p+1) the innovations when
+    ``keep``). Per element the operations of a filter written out step by step, in its order:
+    predict (s += h v, then the drift), then the odometer update (innovation -M - x + y; gain
+    columns K[:, :, 0] on distance and K[:, :, 1] on speed) or the balise update (distance
+    only); whitening by the Cholesky factor L of S_k."""
+    n, p1 = Bs.shape[0], Bs.shape[1]
+    xs = -Md[0].copy()
+    xv = -Mv[0].copy()
+    xs[0] += yd[0]
+    xv[0] += yv[0]
     for k in range(1, n):
         hk = h[k]
         c = code[k]
+        r = row[k]
         for j in range(p1):
-            xs = x[0, j] + x[1, j] * hk
-            xs = xs + B[k, 0, j]
-            xv = x[1, j] + B[k, 1, j]
+            s_ = xs[j] + xv[j] * hk
+            s_ = s_ + Bs[k, j]
+            v_ = xv[j] + Bv[k, j]
             if c == 0:  # odometer reading
-                es = Mn[k, 0, j] - xs
-                ev_ = Mn[k, 1, j] - xv
+                es = -Md[k, j] - s_
+                ev_ = -Mv[k, j] - v_
                 if j == 0:
-                    es += Y[k, 0]
-                    ev_ += Y[k, 1]
-                E[k, 0, j] = es
-                E[k, 1, j] = ev_
-                xs = xs + K[k, 0, 0] * es
-                xv = xv + K[k, 1, 0] * es
-                xs = xs + K[k, 0, 1] * ev_
-                xv = xv + K[k, 1, 1] * ev_
+                    es += yd[k]
+                    ev_ += yv[k]
+                s_ = s_ + K[k, 0, 0] * es
+                v_ = v_ + K[k, 1, 0] * es
+                s_ = s_ + K[k, 0, 1] * ev_
+                v_ = v_ + K[k, 1, 1] * ev_
+                z0 = es / L[k, 0]
+                Z[r, j] = z0
+                Z[r + 1, j] = (ev_ - L[k, 1] * z0) / L[k, 2]
+                if keep:
+                    E[k, 0, j] = es
+                    E[k, 1, j] = ev_
             elif c == 1:  # balise reading
-                eb = Mbn[k, j] - xs
+                eb = -Mb[k, j] - s_
                 if j == 0:
-                    eb += Y[k, 0]
-                E[k, 0, j] = eb
-                xs = xs + K[k, 0, 0] * eb
-                xv = xv + K[k, 1, 0] * eb
-            x[0, j] = xs
-            x[1, j] = xv
+                    eb += yd[k]
+                s_ = s_ + K[k, 0, 0] * eb
+                v_ = v_ + K[k, 1, 0] * eb
+                Z[r, j] = eb / L[k, 0]
+                if keep:
+                    E[k, 0, j] = eb
+            xs[j] = s_
+            xv[j] = v_
 
 
-def _column_pass_numpy(h, code, B, Mn, Mbn, Y, K, x, E):
-    """:func:`_column_pass` without numba: the columns as whole rows, a few array operations
-    per event (interpreted, a scalar loop over the columns would cost some 50 times more). The
-    same operations on every element in the same order: equal bit for bit (tested)."""
+def _column_pass_numpy(ev: Events, gp, Bs, Bv, Md, Mv, Mb, E):
+    """:func:`_column_pass` without numba: the innovations ``E`` of all columns as whole rows,
+    a few array operations per event (interpreted, a scalar loop over the columns would cost
+    some 50 times more); the caller whitens them. The same operations on every element in the
+    same order: equal bit for bit (tested)."""
     n, p1 = E.shape[0], E.shape[2]
+    B = np.stack([Bs, Bv], axis=1).astype(float, copy=False)  # (n, 2, p1): drift of (s, v)
+    # minus the measurement columns: (-M) - x is -x - M (rounding is symmetric)
+    Mn = np.stack([Md, Mv], axis=1).astype(float, copy=False)
+    np.negative(Mn, out=Mn)
+    Mbn = -np.asarray(Mb, float)
+    Y = np.stack([ev.y_d, ev.y_v], axis=1).astype(float, copy=False)
+    x = Mn[0].copy()
+    x[0, 0] += Y[0, 0]
+    x[1, 0] += Y[0, 1]
     xs, xv = x[0], x[1]
-    kc0 = np.ascontiguousarray(K[:, :, 0:1])  # (n, 2, 1): gain on the distance innovation
-    kc1 = np.ascontiguousarray(K[:, :, 1:2])  # on the speed innovation
+    kc0 = np.ascontiguousarray(gp.K[:, :, 0:1])  # (n, 2, 1): gain on the distance innovation
+    kc1 = np.ascontiguousarray(gp.K[:, :, 1:2])  # on the speed innovation
     tmp, tmp2 = np.empty(p1), np.empty((2, p1))
     add, multiply, subtract = np.add, np.multiply, np.subtract
-    hs, codes = h.tolist(), code.tolist()
+    hs, codes = gp.h.tolist(), gp.code.tolist()
     for k in range(1, n):
         multiply(xv, hs[k], out=tmp)
         add(xs, tmp, out=xs)
