@@ -251,6 +251,26 @@ def _gain_pass(ev: Events, q: float, r_s: float, q_held: float, update, q_per_ev
 
 
 @jit
+def _predict_cov(p00, p01, p11, h, q):
+    """kalman.predict_cov written out: the (s, v) covariance over ``h`` s with white
+    acceleration noise of PSD ``q``."""
+    return (p00 + 2 * h * p01 + h * h * p11 + q * h ** 3.0 / 3.0,
+            p01 + h * p11 + q * h * h / 2.0, p11 + q * h)
+
+
+@jit
+def _odometer_gain(p00, p01, p11, r_s, r_v):
+    """kalman.odometer_update's innovation covariance and gain written out: (det S, S^-1
+    entries, gain entries) of a reading of (s, v) with variances (r_s, r_v)."""
+    s00, s11 = p00 + r_s, p11 + r_v
+    det = s00 * s11 - p01 * p01
+    i00, i01, i11 = s11 / det, -p01 / det, s00 / det
+    k00, k01 = p00 * i00 + p01 * i01, p00 * i01 + p01 * i11
+    k10, k11 = p01 * i00 + p11 * i01, p01 * i01 + p11 * i11
+    return s00, s11, det, i00, i01, i11, k00, k01, k10, k11
+
+
+@jit
 def _gain_loop(h, kind, held, rv, upd, qs, use_qs, q, r_s, q_held, K, L, S_v, row, code):
     """_gain_pass's recursion (kalman.predict_cov, odometer_update and balise_update written
     out on scalars, as in :func:`_kf2_loop`): fills K, L, S_v, row and code in place and
@@ -261,17 +281,13 @@ def _gain_loop(h, kind, held, rv, upd, qs, use_qs, q, r_s, q_held, K, L, S_v, ro
     for k in range(1, n):
         hk = h[k]
         qk = qs[k] if use_qs else (q_held if held[k] else q)
-        p00, p01, p11 = (p00 + 2 * hk * p01 + hk * hk * p11 + qk * hk ** 3.0 / 3.0,
-                         p01 + hk * p11 + qk * hk * hk / 2.0, p11 + qk * hk)
+        p00, p01, p11 = _predict_cov(p00, p01, p11, hk, qk)
         if not upd[k]:
             continue
         row[k] = m
         if kind[k] == 0:
-            s00, s11 = p00 + r_s, p11 + rv[k]
-            det = s00 * s11 - p01 * p01
-            i00, i01, i11 = s11 / det, -p01 / det, s00 / det
-            k00, k01 = p00 * i00 + p01 * i01, p00 * i01 + p01 * i11
-            k10, k11 = p01 * i00 + p11 * i01, p01 * i01 + p11 * i11
+            s00, s11, det, _, _, _, k00, k01, k10, k11 = _odometer_gain(p00, p01, p11, r_s,
+                                                                        rv[k])
             l00 = math.sqrt(s00)
             l10 = p01 / l00
             K[k, 0, 0], K[k, 0, 1], K[k, 1, 0], K[k, 1, 1] = k00, k01, k10, k11
@@ -389,14 +405,10 @@ def _kf2_loop(t, kind, yd, yv, rv, held, bv, bs, md, mv, q, r_s, q_held):
         xs0 += h * xv0 + bs[k]
         xv0 += bv[k]
         xs1 += h * xv1
-        p00, p01, p11 = (p00 + 2 * h * p01 + h * h * p11 + qk * h ** 3.0 / 3.0,
-                         p01 + h * p11 + qk * h * h / 2.0, p11 + qk * h)
+        p00, p01, p11 = _predict_cov(p00, p01, p11, h, qk)
         if kind[k] == 0:
-            s00, s11 = p00 + r_s, p11 + rv[k]
-            det = s00 * s11 - p01 * p01
-            i00, i01, i11 = s11 / det, -p01 / det, s00 / det
-            k00, k01 = p00 * i00 + p01 * i01, p00 * i01 + p01 * i11
-            k10, k11 = p01 * i00 + p11 * i01, p01 * i01 + p11 * i11
+            _, _, det, i00, i01, i11, k00, k01, k10, k11 = _odometer_gain(p00, p01, p11, r_s,
+                                                                          rv[k])
             es0, ev0 = yd[k] - xs0 - md[k], yv[k] - xv0 - mv[k]
             es1, ev1 = -xs1, -xv1
             w00 += es0 * (i00 * es0 + i01 * ev0) + ev0 * (i01 * es0 + i11 * ev0)
