@@ -155,7 +155,6 @@ class StreamClock:
 
     def __init__(self, n: int = 31):
         self.n, self.fifo, self.sorted = n, deque(), []
-        self.arrivals: deque = deque()  # arrival (s, or None) of each offset in the window
         self._value = None  # cached centre (recomputed after an add)
         self.pending: list = []  # consecutive values away from a full window's centre
         self._fit = [0, 0.0, 0.0, 0.0, 0.0, 0.0, None]  # n, sx, sy, sxx, sxy, syy, origin
@@ -202,15 +201,14 @@ class StreamClock:
             if len(self.pending) <= self.n // 2:
                 return
             self.fifo.clear()
-            self.arrivals.clear()
             self.sorted = []
             self._top.clear()  # the clock itself moved: where it was says nothing now
-            for p, a in self.pending[:-1]:
-                self._push(p, at=a)
+            for p, _ in self.pending[:-1]:
+                self._push(p)
             self.pending = []
         elif self.pending:
             self.pending = []
-        self._push(v, lift, at)
+        self._push(v, lift)
 
     @staticmethod
     def _persists(run: list) -> bool:
@@ -220,15 +218,13 @@ class StreamClock:
             return True
         return paced((v0 + a0, a0), (v1 + a1, a1))
 
-    def _push(self, v: float, lift: bool = True, at: float | None = None) -> None:
+    def _push(self, v: float, lift: bool = True) -> None:
         self._value = None
         self._pushed += 1
         self.fifo.append(v)
-        self.arrivals.append(at)
         bisect.insort(self.sorted, v)
         if len(self.fifo) > self.n:
             old = self.fifo.popleft()
-            self.arrivals.popleft()
             del self.sorted[bisect.bisect_left(self.sorted, old)]
         if len(self.fifo) <= self.settled or not lift:
             return
@@ -270,23 +266,6 @@ class StreamClock:
         dense = [v for v, c in zip(s, counts) if c == best]
         self._value = dense[len(dense) // 2]
         return self._value
-
-    def value_at(self, t: float | None) -> float:
-        """The offset at arrival time ``t`` (s): the centre moved on by the clock's rate from
-        the window's middle arrival to ``t``. The centre of a window of a drifting clock lags
-        its present offset by half the window's span times the drift (15 ms for a 1 Hz stream
-        at 1e-3, 150 ms at 1e-2): commands mapped through the lagging centres were stamped
-        behind the train's readings of the same instant, and each 1 Hz reading waited a whole
-        second for the next command. The centre itself without a rate (fewer than the fit's
-        points, or no arrival times)."""
-        c = self.value
-        if t is None or not self.arrivals:
-            return c
-        mid = self.arrivals[len(self.arrivals) // 2]
-        d, se = self.rate()
-        if mid is None or not math.isfinite(se):
-            return c
-        return c + d * (t - mid)
 
     @property
     def scale(self) -> float:

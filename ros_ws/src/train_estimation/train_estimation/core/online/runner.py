@@ -148,9 +148,6 @@ class EstimatorRunner:
     #   far from its clock (and beyond small_step_z robust spreads of the link's jitter) is
     #   watched as a possible step too (not with control_clock 'same': step_back alone)
     small_step_z: float = 10.0  # robust spreads of the offsets (StreamClock.scale)
-    map_tolerance: float = 0.01  # s: on separate clocks, a reading stamped this little after
-    #   the mapped control watermark is taken as covered by it (the mapping is an estimate; a
-    #   command that still comes stamped before the reading is fused by rewinding)
     queue: list = field(default_factory=list)
     rejected: Counter = field(default_factory=Counter)  # "kind:reason" -> count
     accepted: Counter = field(default_factory=Counter)
@@ -301,13 +298,13 @@ class EstimatorRunner:
         self._admitted_high = max(self._admitted_high, stamp)
         if kind == "control":
             if "train" not in self._offsets or len(self._offsets["train"]) < self.min_judged:
-                self._held.append((stamp, recv, fields))
+                self._held.append((stamp, recv is not None, fields))
                 return ""
-            stamp = self._to_train(stamp, recv)
+            stamp = self._to_train(stamp, recv is not None)
         elif self._held:
             held, self._held = self._held, []
-            for s, rc, f in held:
-                self._queue("control", self._to_train(s, rc), f)
+            for s, has_recv, f in held:
+                self._queue("control", self._to_train(s, has_recv), f)
         self._queue(kind, stamp, fields)
         return ""
 
@@ -461,18 +458,15 @@ class EstimatorRunner:
             self._last_seq[kind] = (seq, stamp)
         return ""
 
-    def _to_train(self, stamp: float, recv: float | None) -> float:
-        """A control stamp on the train (odometer) clock (module doc), through the two clocks'
-        offsets at the command's arrival ``recv`` (StreamClock.value_at: a drifting clock's
-        centre lags its present offset)."""
-        if self.control_clock == "same" or recv is None:
+    def _to_train(self, stamp: float, has_recv: bool) -> float:
+        """A control stamp on the train (odometer) clock (module doc)."""
+        if self.control_clock == "same" or not has_recv:
             return stamp
         shift = self._offsets["train"].value - self._offsets["control"].value
         if self.control_clock == "auto" and not self.separate_clocks \
                 and abs(shift) < self.same_clock_tolerance and not self._drifting():
             return stamp
         self.separate_clocks = True
-        shift = self._offsets["train"].value_at(recv) - self._offsets["control"].value_at(recv)
         # the shift follows the medians: keep the mapped commands in their order
         mapped = max(stamp + shift, self._last_mapped)
         self._last_mapped = mapped
@@ -683,8 +677,7 @@ class EstimatorRunner:
         messages emits, however the executor interleaves /clock and the subscriptions.
         """
         train = self._offsets.get("train")
-        now_train = now - delay + (train.value_at(now) if train is not None and len(train)
-                                   else 0.0)
+        now_train = now - delay + (train.value if train is not None and len(train) else 0.0)
         lead = self.high.get("control", now_train)
         odo = self.high.get("odometer", -math.inf)
         # silence on the arrival clock when arrivals are known: at 20x sim time a node's
@@ -697,11 +690,6 @@ class EstimatorRunner:
             # command, the integrity monitor says DEGRADED (no_command). The readings admitted
             # lead instead (not the clock alone: without arrival times ``now`` is a stamp)
             lead = max(lead, min(now_train, odo))
-        if self.separate_clocks:
-            # a command and a reading of the same instant map onto the same train-clock time
-            # give or take the mapping's error: without the tolerance a 1 Hz reading whose
-            # command mapped a microsecond before it waited a second for the next command
-            lead += self.map_tolerance
         return min(lead, max(odo, lead - fallback))
 
     def drain(self) -> list[Output]:
