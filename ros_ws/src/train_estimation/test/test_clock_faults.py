@@ -210,3 +210,40 @@ def test_a_clock_faster_than_its_arrivals_is_not_ahead_of_itself():
         c.add(0.095 * k, 0.005 * k)
     assert c.value < 0.095 * 99 - 1.0
     assert c.above(0.095 * 100) == pytest.approx(0.095)
+
+
+def test_the_offset_of_a_drifting_clock_is_carried_to_now():
+    """A window's centre is the offset of its middle: half a window (15 s at 1 Hz) behind a
+    clock 1 % fast, 0.15 s. Carried along the drift it is where the clock is now."""
+    c = StreamClock()
+    for k in range(60):
+        c.add(0.01 * k - 0.05, float(k))
+    assert c.value == pytest.approx(0.01 * 44 - 0.05)  # the middle of the last 31
+    assert c.value_at(59.0, 0.01) == pytest.approx(0.01 * 59 - 0.05)
+    assert c.value_at(59.0, 0.0) == c.value
+
+
+@pytest.mark.parametrize("drift", [1e-3, 1e-2])
+def test_a_fast_train_clock_at_1_hz_is_published_on_arrival(drift):
+    """Reading and command sampled together at 1 Hz, the train clock fast: each reading's
+    estimate is published when the reading arrives (it waited for the command after it, one
+    second late, when the commands were mapped onto the clock's centre of 15 s ago), and a
+    lost reading's slot is stamped where its sample would have been."""
+    sc, res = run("wen2017_subway", 3, 120.0)
+    fl = F.inject(res.events(), F.Fault("drift", drift), np.random.default_rng(0))
+    outs, emitted, runner = F.run(fl.events, adapter(sc), 1.0)  # node default: auto
+    assert runner.separate_clocks and runner.drift == pytest.approx(drift, rel=1e-3)
+    arrived = {s: r for k, s, _, r in fl.events if k == "odometer"}
+    late, slots = [], []
+    for o, e in zip(outs, emitted):
+        t = fl.clock.true_time(o.stamp, e - F.EPOCH)
+        if t < 40.0:  # the drift is found from 20 readings on
+            continue
+        if o.stamp in arrived:
+            late.append(e - arrived[o.stamp])
+        else:  # a lost reading's slot: at the true second the sample was due
+            slots.append(t - round(t))
+    assert len(late) > 60 and max(late) == 0.0, late
+    assert slots and max(map(abs, slots)) < 1e-3, slots
+    s = F.score(outs, emitted, fl, res.truth, 1.0, 120.0 + F.LATENCY)
+    assert s["wrong_side"] == 0 and s["hazards"] == 0, s

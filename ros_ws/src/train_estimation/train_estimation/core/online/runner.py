@@ -180,6 +180,8 @@ class EstimatorRunner:
     _ctl_recv: float | None = None  # arrival of the latest command (the node's clock)
     _raw_stamp: dict = field(default_factory=dict)  # mapped odometer stamp -> stamp as sent
     integrity: IntegrityParams = field(default_factory=IntegrityParams)
+    command_slack: float = 0.25  # odometer periods: a reading stamped this little past the
+    #   control watermark is processed without waiting for the next command (ready_time)
     command_timeout: float | None = None  # s without commands before the node's clock stands
     #   in for the control watermark (None: integrity.command_timeout)
     monitor: IntegrityMonitor | None = None
@@ -298,13 +300,13 @@ class EstimatorRunner:
         self._admitted_high = max(self._admitted_high, stamp)
         if kind == "control":
             if "train" not in self._offsets or len(self._offsets["train"]) < self.min_judged:
-                self._held.append((stamp, recv is not None, fields))
+                self._held.append((stamp, recv, fields))
                 return ""
-            stamp = self._to_train(stamp, recv is not None)
+            stamp = self._to_train(stamp, recv)
         elif self._held:
             held, self._held = self._held, []
-            for s, has_recv, f in held:
-                self._queue("control", self._to_train(s, has_recv), f)
+            for s, rc, f in held:
+                self._queue("control", self._to_train(s, rc), f)
         self._queue(kind, stamp, fields)
         return ""
 
@@ -458,15 +460,22 @@ class EstimatorRunner:
             self._last_seq[kind] = (seq, stamp)
         return ""
 
-    def _to_train(self, stamp: float, has_recv: bool) -> float:
-        """A control stamp on the train (odometer) clock (module doc)."""
-        if self.control_clock == "same" or not has_recv:
+    def _to_train(self, stamp: float, recv: float | None) -> float:
+        """A control stamp on the train (odometer) clock (module doc), for a command that
+        arrived at ``recv``."""
+        if self.control_clock == "same" or recv is None:
             return stamp
-        shift = self._offsets["train"].value - self._offsets["control"].value
+        train, control = self._offsets["train"], self._offsets["control"]
+        shift = train.value - control.value
         if self.control_clock == "auto" and not self.separate_clocks \
                 and abs(shift) < self.same_clock_tolerance and not self._drifting():
             return stamp
         self.separate_clocks = True
+        # both offsets where they are at the command's arrival, not half a window ago: on a
+        # train clock 1e-2 fast the plain centres mapped every command 0.15 s early, below the
+        # reading sampled with it, and a 1 Hz reading then waited for the next command, a
+        # second late (StreamClock.value_at)
+        shift = train.value_at(recv, train.drift) - control.value_at(recv, control.drift)
         # the shift follows the medians: keep the mapped commands in their order
         mapped = max(stamp + shift, self._last_mapped)
         self._last_mapped = mapped
@@ -637,7 +646,10 @@ class EstimatorRunner:
                 # a lost slot: predicted estimate at the expected time, once nothing can fill it;
                 # at most max_gap_outputs slots after the last fused sample (a stamp far ahead
                 # cannot make the runner predict for ever)
-                slot = self._last_out + self.period
+                # one period of reference time later: on a drifting train clock the samples
+                # are (1 + drift) periods of its stamps apart (a slot at the nominal period, 0.01
+                # s early per lost sample on a clock 1 % fast, claimed a time before the sample)
+                slot = self._last_out + self.period * (1.0 + self.drift)
                 if slot <= t + 1e-9 and self._next_odometer() > slot + 0.5 * self.period \
                         and nxt > slot \
                         and slot - self._last_fused <= self.max_gap_outputs * self.period:
@@ -671,7 +683,14 @@ class EstimatorRunner:
         stamp queued per topic (its watermark) says how far that topic is complete. ``control``
         is not sent over the lossy link: its watermark leads. The odometer is complete up to
         its watermark, or -- when samples were lost -- up to ``fallback`` seconds behind the
-        control watermark. Without control messages the node's clock (``now - delay``, mapped
+        control watermark. A reading stamped no more than ``command_slack`` periods past the
+        control watermark does not wait for the next command: a reading and a command sampled
+        together on two clocks are mapped apart by the mapping's error (the two links'
+        latencies, a drift not yet found), and a reading mapped a millisecond after its
+        command waited a whole command period (1 s at 1 Hz: the estimate published too late
+        to use). A command that does come later inside the slack is fused by rewinding; what
+        it would have changed in the estimates already published is at most a quarter
+        period of its acceleration (1.5 m/s^2 over 0.25 s at 1 Hz: 5 cm). Without control messages the node's clock (``now - delay``, mapped
         onto the train clock through the odometer's offset) stands in for it. Driven by the
         data rather than by the clock, a node emits what the offline replay of the same
         messages emits, however the executor interleaves /clock and the subscriptions.
@@ -690,7 +709,8 @@ class EstimatorRunner:
             # command, the integrity monitor says DEGRADED (no_command). The readings admitted
             # lead instead (not the clock alone: without arrival times ``now`` is a stamp)
             lead = max(lead, min(now_train, odo))
-        return min(lead, max(odo, lead - fallback))
+        slack = self.command_slack * self.period if "control" in self.high else 0.0
+        return min(lead + slack, max(odo, lead - fallback))
 
     def drain(self) -> list[Output]:
         """Process everything queued (offline use): estimates up to the last item's stamp."""
