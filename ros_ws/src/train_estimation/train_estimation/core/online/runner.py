@@ -690,8 +690,9 @@ class EstimatorRunner:
         command waited a whole command period (1 s at 1 Hz: the estimate published too late
         to use). A command that does come later inside the slack is fused by rewinding; what
         it would have changed in the estimates already published is at most a quarter
-        period of its acceleration (1.5 m/s^2 over 0.25 s at 1 Hz: 5 cm). Without control messages the node's clock (``now - delay``, mapped
-        onto the train clock through the odometer's offset) stands in for it. Driven by the
+        period of its acceleration (1.5 m/s^2 over 0.25 s at 1 Hz: 5 cm). Without control
+        messages the node's clock (``now - delay``, mapped onto the train clock through the
+        odometer's offset) stands in for it. Driven by the
         data rather than by the clock, a node emits what the offline replay of the same
         messages emits, however the executor interleaves /clock and the subscriptions.
         """
