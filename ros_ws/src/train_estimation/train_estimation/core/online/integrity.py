@@ -41,7 +41,10 @@ Checks (each gives a reason, e.g. ``"no_measurement: 2.3 s"``):
     reading late by jitter is held for a period and says nothing), or one that no lateness
     explains (stamped above its clock, or on a slot already fused; with an odometer slower
     than 2 Hz, any: the reading that decides comes too late to wait for), or a step
-    re-anchored less than ``reanchor_hold`` s ago: DEGRADED, position variance increased by
+    re-anchored less than ``reanchor_hold`` s ago (a step whose size was assumed from the
+    stamps alone, without arrival times; one measured from the arrivals of the readings that
+    decided it is known to the link's jitter and needs no hold): DEGRADED, position variance
+    increased by
     ``(v T)^2``: while readings are held, ``T`` is the largest discontinuity among them (the
     candidate step: the estimate's stamp may be read on either side of it), after a step one
     sample period (a re-anchored step is known to about that).
@@ -96,7 +99,8 @@ class IntegrityParams:
                          "DEGRADED (covariance scaled by the mean)")
     nis_alarm: float = param(100.0, "-", "window-mean NIS above this: ALARM")
     reanchor_hold: float = param(2.0, "s", "DEGRADED for this long after a clock step was "
-                                 "re-anchored")
+                                 "re-anchored on its stamps alone (no arrival times; a step "
+                                 "measured from the arrivals needs no hold)")
     command_timeout: float = param(2.0, "s", "no control command for this long while readings "
                                    "arrive: DEGRADED")
 
@@ -121,7 +125,7 @@ class IntegrityMonitor:
         self.refused_run = 0  # odometer readings refused since the last fused one
         self.last_command = -math.inf  # stamp of the last command
         self.last_reading = -math.inf  # stamp of the latest odometer reading seen
-        self.reanchored_at = -math.inf
+        self.reanchored_at = -math.inf  # stamp of the last step re-anchored by assumption
         self.held = 0  # readings the runner holds as a possible clock step
         self.doubt = 0.0  # s, the largest discontinuity among them
         self.suspect = False  # they put the estimate in doubt (see clock)
@@ -177,15 +181,17 @@ class IntegrityMonitor:
             self.last_command = max(self.last_command, stamp)
 
     def clock(self, held: int, reanchored_at: float | None = None, doubt: float = 0.0,
-              conclusive: bool = False) -> None:
+              conclusive: bool = False, measured: bool = False) -> None:
         """The runner's clock state: readings held as a possible step, the largest
         discontinuity among them (s), whether one of them is no late reading; a step
-        re-anchored."""
+        re-anchored, ``measured`` from the offsets of the readings that decided it against
+        their clock's centre (then known to the link's jitter: no hold) or assumed from the
+        stamps alone (then held for ``reanchor_hold``)."""
         self.held = held
         self.suspect = held >= 2 or (held >= 1 and conclusive)
         self.doubt = doubt if held else 0.0
         if reanchored_at is not None:
-            self.reanchored_at = reanchored_at
+            self.reanchored_at = -math.inf if measured else reanchored_at
 
     # -- output ---------------------------------------------------------------------------------
     def _nis_mean(self) -> float:
