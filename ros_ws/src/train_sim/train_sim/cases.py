@@ -139,18 +139,24 @@ def main_value(cause: str, params: dict, v_ref: float = 10.0) -> float:
     resistance (the force a + b v + c v^2 at ``v_ref``: a, b, c alone are nearly collinear),
     braking_rate (mean of f_start and f_end), wheel_slip (total slip time) and power_limit
     (1 / p_spec: 0 without a limit, so that the deviation from nominal is finite)."""
-    if cause == "resistance":
-        return float(params["a"] + params["b"] * v_ref + params["c"] * v_ref**2)
-    if cause == "braking_rate":
-        return 0.5 * (float(params["f_start"]) + float(params["f_end"]))
-    if cause == "wheel_slip":
-        return float(sum(t1 - t0 for t0, t1 in params.get("intervals", [])))
-    if cause == "power_limit":
-        return 1.0 / float(params["p_spec"])
-    return float(params[{"gradient": "permille", "odometer_scale": "scale",
-                         "bursty_link": "p_bad_good", "brake_delay": "delay", "mass": "mass",
-                         "clock_drift": "drift", "adhesion_section": "factor",
-                         "traction_delay": "delay"}[cause]])
+    derived = _MAIN_VALUE.get(cause)
+    if derived is not None:
+        return float(derived(params, v_ref))
+    return float(params[_MAIN_PARAM[cause]])
+
+
+# the causes judged on a quantity derived from their parameters, and the parameter of the rest
+_MAIN_VALUE = {
+    "resistance": lambda p, v_ref: p["a"] + p["b"] * v_ref + p["c"] * v_ref**2,
+    "braking_rate": lambda p, v_ref: 0.5 * (float(p["f_start"]) + float(p["f_end"])),
+    "wheel_slip": lambda p, v_ref: sum(t1 - t0 for t0, t1 in p.get("intervals", [])),
+    "power_limit": lambda p, v_ref: 1.0 / float(p["p_spec"]),
+}
+_MAIN_PARAM = {"gradient": "permille", "odometer_scale": "scale", "bursty_link": "p_bad_good",
+               "brake_delay": "delay", "mass": "mass", "clock_drift": "drift",
+               "adhesion_section": "factor", "traction_delay": "delay"}
+EPISODES = ("wheel_slip",)  # judged on the episodes' intervals
+SECTIONS = ("gradient", "adhesion_section")  # judged on the value and the section's place
 
 
 def main_error(cause: str, estimate: dict, truth: dict, nominal: dict,
@@ -161,7 +167,7 @@ def main_error(cause: str, estimate: dict, truth: dict, nominal: dict,
     interval sets over the true slip time (0 = the same episodes, 1 = as bad as finding none).
     gradient, adhesion_section: the value's error, plus the misplaced length of the section
     relative to its length (a right value at the wrong place is not a right answer)."""
-    if cause == "wheel_slip":
+    if cause in EPISODES:
         a, b = _union(estimate.get("intervals", [])), _union(truth["intervals"])
         inter = sum(max(0.0, min(x1, y1) - max(x0, y0)) for x0, x1 in a for y0, y1 in b)
         la, lb = sum(x1 - x0 for x0, x1 in a), sum(y1 - y0 for y0, y1 in b)
@@ -169,7 +175,7 @@ def main_error(cause: str, estimate: dict, truth: dict, nominal: dict,
     est, tru = main_value(cause, estimate, v_ref), main_value(cause, truth, v_ref)
     nom = main_value(cause, {**truth, **nominal}, v_ref)
     err = abs(est - tru) / abs(tru - nom)
-    if cause in ("gradient", "adhesion_section"):
+    if cause in SECTIONS:
         s0, s1, e0, e1 = truth["start"], truth["end"], estimate["start"], estimate["end"]
         overlap = max(0.0, min(s1, e1) - max(s0, e0))
         err += ((s1 - s0) + (e1 - e0) - 2 * overlap) / (s1 - s0)
@@ -279,17 +285,12 @@ def make_case(rng: np.random.Generator, cause: str | None | tuple = None, size: 
     t, x, v = tr["t"][inside], tr["position"][inside], tr["velocity"][inside]
     moving = v > 1.0
     v_ref = float(np.mean(v[moving])) if moving.any() else 10.0
+    # control is logged with every truth sample (world.py), so the two align
+    run = _PilotRun(line=line, res=res, t=t, x=x, v=v, t_same=t_same,
+                    a_cmd=res.control["target_acceleration"][inside])
     for c in causes:
-        if c == "gradient":
-            _draw_gradient(k, eff_rng, line, x, v, eff_d, truth, nominal)
-        elif c == "wheel_slip":
-            _draw_slip(k, eff_rng, t, v, eff_d, truth, nominal)
-        elif c == "power_limit":
-            # control is logged with every truth sample (world.py), so the two align
-            a_cmd = res.control["target_acceleration"][inside]
-            _draw_power_limit(k, eff_rng, a_cmd, v, eff_d, truth, nominal)
-        elif c == "adhesion_section":
-            _draw_adhesion(k, eff_rng, res, t_same, eff_d, truth, nominal)
+        if c in TRAJECTORY:
+            _ON_RUN[c](k, eff_rng, run, eff_d, truth, nominal)
     if "braking_rate" in eff_d:
         eff_d["braking_rate"]["t_end"] = base["duration"]
     base["effects"] = eff_d
@@ -316,44 +317,85 @@ def _sign(rng) -> float:
 
 
 def _draw_effect(c, k, rng, line, train, link_d, eff, truth, nominal) -> None:
-    if c == "resistance":
-        s = 1.0 + _sign(rng) * 0.2 * k * float(rng.uniform(1.0, 1.25))
-        d = train.davis
-        eff[c] = {"a": d.a * s, "b": d.b * s, "c": d.c * s}
-        truth[c] = dict(eff[c])
-        nominal[c] = {"a": d.a, "b": d.b, "c": d.c}
-    elif c == "braking_rate":
-        f0 = 1.0 - 0.1 * k * float(rng.uniform(0.3, 1.0))
-        f1 = f0 if rng.random() < 0.3 else 1.0 - 0.1 * k * float(rng.uniform(1.0, 1.7))
-        eff[c] = {"f_start": round(f0, 4), "f_end": round(f1, 4)}
-        truth[c] = dict(eff[c])
-        nominal[c] = {"f_start": train.brake.braking_rate, "f_end": train.brake.braking_rate}
-    elif c == "odometer_scale":
-        eff[c] = {"scale": 1.0 + _sign(rng) * 0.0075 * k * float(rng.uniform(1.0, 1.25))}
-        truth[c], nominal[c] = dict(eff[c]), {"scale": 1.0}
-    elif c == "bursty_link":
-        q = link_d["p"] ** link_d["r"]  # configured (Bernoulli) loss probability
-        p_bg = 1.0 / (4.0 * k * float(rng.uniform(1.0, 1.25)))
-        loss = float(np.clip(q * rng.uniform(1.0, 2.0), 0.05, 0.3))
-        p_gb = loss * p_bg / (1.0 - loss)  # stationary loss rate = p_gb / (p_gb + p_bg)
-        eff[c] = {"p_good_bad": p_gb, "p_bad_good": p_bg}
-        truth[c] = dict(eff[c])
-        # A Bernoulli link with loss q is the two-state chain with p_gb = q, p_bg = 1 - q.
-        nominal[c] = {"p_good_bad": q, "p_bad_good": 1.0 - q}
-    elif c == "brake_delay":
-        eff[c] = {"delay": train.brake.delay + 0.25 * k * float(rng.uniform(1.0, 1.25))}
-        truth[c], nominal[c] = dict(eff[c]), {"delay": train.brake.delay}
-    elif c == "mass":
-        eff[c] = {"mass": train.mass * (1.0 + _sign(rng) * 0.07 * k * float(rng.uniform(1, 1.25)))}
-        truth[c], nominal[c] = dict(eff[c]), {"mass": train.mass}
-    elif c == "clock_drift":
-        eff[c] = {"drift": _sign(rng) * 0.001 * k * float(rng.uniform(1.0, 1.25))}
-        truth[c], nominal[c] = dict(eff[c]), {"drift": 0.0}
-    elif c == "traction_delay":
-        eff[c] = {"delay": train.brake.delay + 0.25 * k * float(rng.uniform(1.0, 1.25))}
-        truth[c], nominal[c] = dict(eff[c]), {"delay": train.brake.delay}
-    else:  # pragma: no cover - guarded by _causes
-        raise ValueError(c)
+    """Draw cause ``c`` at size factor ``k`` (the causes that do not need the pilot run)."""
+    eff[c], truth[c], nominal[c] = _SIMPLE[c](k, rng, train, link_d)
+
+
+def _resistance(k, rng, train, link_d):
+    s = 1.0 + _sign(rng) * 0.2 * k * float(rng.uniform(1.0, 1.25))
+    d = train.davis
+    e = {"a": d.a * s, "b": d.b * s, "c": d.c * s}
+    return e, dict(e), {"a": d.a, "b": d.b, "c": d.c}
+
+
+def _braking_rate(k, rng, train, link_d):
+    f0 = 1.0 - 0.1 * k * float(rng.uniform(0.3, 1.0))
+    f1 = f0 if rng.random() < 0.3 else 1.0 - 0.1 * k * float(rng.uniform(1.0, 1.7))
+    e = {"f_start": round(f0, 4), "f_end": round(f1, 4)}
+    f = train.brake.braking_rate
+    return e, dict(e), {"f_start": f, "f_end": f}
+
+
+def _odometer_scale(k, rng, train, link_d):
+    e = {"scale": 1.0 + _sign(rng) * 0.0075 * k * float(rng.uniform(1.0, 1.25))}
+    return e, dict(e), {"scale": 1.0}
+
+
+def _bursty_link(k, rng, train, link_d):
+    q = link_d["p"] ** link_d["r"]  # configured (Bernoulli) loss probability
+    p_bg = 1.0 / (4.0 * k * float(rng.uniform(1.0, 1.25)))
+    loss = float(np.clip(q * rng.uniform(1.0, 2.0), 0.05, 0.3))
+    p_gb = loss * p_bg / (1.0 - loss)  # stationary loss rate = p_gb / (p_gb + p_bg)
+    e = {"p_good_bad": p_gb, "p_bad_good": p_bg}
+    # A Bernoulli link with loss q is the two-state chain with p_gb = q, p_bg = 1 - q.
+    return e, dict(e), {"p_good_bad": q, "p_bad_good": 1.0 - q}
+
+
+def _actuator_delay(k, rng, train, link_d):  # brake_delay, traction_delay
+    e = {"delay": train.brake.delay + 0.25 * k * float(rng.uniform(1.0, 1.25))}
+    return e, dict(e), {"delay": train.brake.delay}
+
+
+def _mass(k, rng, train, link_d):
+    e = {"mass": train.mass * (1.0 + _sign(rng) * 0.07 * k * float(rng.uniform(1, 1.25)))}
+    return e, dict(e), {"mass": train.mass}
+
+
+def _clock_drift(k, rng, train, link_d):
+    e = {"drift": _sign(rng) * 0.001 * k * float(rng.uniform(1.0, 1.25))}
+    return e, dict(e), {"drift": 0.0}
+
+
+# per cause drawn before the pilot run: (k, rng, train, link dict) -> (effect, truth, nominal)
+_SIMPLE = {"resistance": _resistance, "braking_rate": _braking_rate,
+           "odometer_scale": _odometer_scale, "bursty_link": _bursty_link,
+           "brake_delay": _actuator_delay, "mass": _mass, "clock_drift": _clock_drift,
+           "traction_delay": _actuator_delay}
+
+
+@dataclass(frozen=True)
+class _PilotRun:
+    """What the causes drawn on the pilot's trajectory need of it."""
+
+    line: object  # the line (train_core.model.Line)
+    res: object  # the pilot's SimResult
+    t: np.ndarray  # s, truth times of the part of the run the case repeats
+    x: np.ndarray  # m, positions there
+    v: np.ndarray  # m/s, speeds there
+    t_same: float  # s, end of that part
+    a_cmd: np.ndarray  # m/s^2, the commanded acceleration at those times
+
+
+# per cause drawn on the pilot run: (k, rng, run, effects, truth, nominal), filled in place
+_ON_RUN = {
+    "gradient": lambda k, rng, r, e, tr, nom: _draw_gradient(k, rng, r.line, r.x, r.v, e, tr,
+                                                             nom),
+    "wheel_slip": lambda k, rng, r, e, tr, nom: _draw_slip(k, rng, r.t, r.v, e, tr, nom),
+    "power_limit": lambda k, rng, r, e, tr, nom: _draw_power_limit(k, rng, r.a_cmd, r.v, e, tr,
+                                                                   nom),
+    "adhesion_section": lambda k, rng, r, e, tr, nom: _draw_adhesion(k, rng, r.res, r.t_same, e,
+                                                                     tr, nom),
+}
 
 
 def _draw_gradient(k, rng, line, x, v, eff, truth, nominal) -> None:
