@@ -27,13 +27,13 @@ def _campaign_case(fault, duration=40.0):
 def test_forward_clock_step_is_re_anchored(size):
     s, runner = _campaign_case(F.Fault("step", size, at=20.0))
     assert runner.events.get("odometer:clock_reset") == 1, runner.counts
-    assert runner._train_shift == pytest.approx(size, abs=0.02)
+    assert runner._steps.shift == pytest.approx(size, abs=0.02)
     assert s["wrong_side"] == 0 and s["hazards"] == 0, s  # the bound holds throughout
 
 
 def test_one_stamp_ahead_is_refused_and_moves_no_clock():
     s, runner = _campaign_case(F.Fault("stamp", 1.0, at=20.0))
-    assert "odometer:clock_reset" not in runner.events and runner._train_shift == 0.0
+    assert "odometer:clock_reset" not in runner.events and runner._steps.shift == 0.0
     assert runner.rejected.get("odometer:future_stamp") == 1, runner.counts
     assert s["wrong_side"] == 0, s
 
@@ -138,7 +138,7 @@ def test_a_small_clock_step_is_re_anchored(size):
     (left alone, 0.2 s left the kf 4 m off at 20 m/s with sigma 0.1 m, integrity OK)."""
     s, runner = _campaign_case(F.Fault("step", size, at=20.0))
     assert runner.events.get("odometer:clock_reset") == 1, runner.counts
-    assert runner._train_shift == pytest.approx(size, abs=0.02)
+    assert runner._steps.shift == pytest.approx(size, abs=0.02)
     assert s["wrong_side"] == 0 and s["hazards"] == 0, s
 
 
@@ -153,7 +153,7 @@ def test_a_node_falling_behind_is_no_small_step():
     lag.sort(key=lambda e: e[3])
     outs, emitted, runner = F.run(lag, adapter(sc, "kf"), 0.1)
     s = F.score(outs, emitted, fl, res.truth, 10.0, 40.0 + F.LATENCY)
-    assert "odometer:clock_reset" not in runner.events and runner._train_shift == 0.0
+    assert "odometer:clock_reset" not in runner.events and runner._steps.shift == 0.0
     assert s["wrong_side"] == 0, s
 
 
@@ -270,7 +270,7 @@ def test_a_step_is_measured_from_the_offsets_not_two_arrivals(size):
         outs, emitted, runner = F.run(fl.events, adapter(sc, "kf"), 0.1)
         s = F.score(outs, emitted, fl, res.truth, 10.0, 60.0 + F.LATENCY)
         assert runner.events.get("odometer:clock_reset") == 1, (seed, runner.counts)
-        assert runner._train_shift == pytest.approx(size, abs=0.08), seed
+        assert runner._steps.shift == pytest.approx(size, abs=0.08), seed
         assert s["wrong_side"] == 0, (seed, s)
 
 

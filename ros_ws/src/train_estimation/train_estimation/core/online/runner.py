@@ -50,33 +50,15 @@ published stay published; the next ones carry the correction. Older readings are
 (``out_of_order``). A replay in arrival order meets the same lateness, so it reproduces the
 node's estimates.
 
-Clock steps (a train clock reset to 0 by a reboot, or set to GPS time): odometer stamps jump
-and stay on the new clock. A reading is *discontinuous* when its stamp is more than
-``clocks.TOL`` behind the last odometer stamp admitted, or ahead of it by more than the arrival
-time elapsed since (+ tol), or (arrivals known, the clock judged) its ``stamp - arrival`` lies
-more than a bar below its clock's centre (paced: a backward step) or above it (a forward step:
-latency only lowers it). The bar is ``max(step_back, 2.5 periods)`` on a jittery link and with
-``control_clock: same``; where the link's jitter is small it comes down to ``max(small_step,
-small_step_z`` robust spreads of the offsets), so that small steps (0.1 s is 8 m at 300 km/h)
-are watched too. An outage moves stamps and arrivals alike,
-and a node whose callbacks lag sees small stamp gaps whatever its arrivals, so neither is
-discontinuous. Discontinuous train-clock readings are held back (the integrity monitor says
-DEGRADED from the second one, the position variance grown by the candidate step); the step test
-(``clocks.is_step``: ``min_judged`` odometer readings in a row that continue one another at a
-plausible pace, arriving at their stamps' pace) with no continuous reading between them makes a
-step: every later train-clock stamp is mapped back onto the old timeline (``stamp - shift``,
-``shift`` = the jump less the elapsed arrival time, at least one period), the held readings are
-admitted, and the event ``clock_reset`` is logged. Estimates keep the sample's own stamp (the
-new clock). Otherwise the held readings are judged as any other (a stale stamp), except that one
-stamped ahead of its stream or of its clock, which no later reading continued, is refused
-(``future_stamp``); a command stamped above its own clock by more than the bar is refused
-too (it votes, so a control clock that truly stepped is followed once the step fills half the
-window). A step smaller than ``max(step_back, 2.5 periods)`` must also move every
-held reading's offset alike (their spread within the bar) and by more than half the bar: a node
-falling further behind its input puts readings below the centre each later than the one
-before, which is no step (they are released as late). A step within the bar is not told from
-arrival jitter and not re-anchored; without arrival times only steps beyond ``tol`` are
-seen.
+Clock steps (a train clock reset to 0 by a reboot, or set to GPS time) are watched by a
+:class:`~.clocks.StepWatch` (``core/numerics/clocks.py``, where its docstring states the rules):
+it tells the runner, for each train-clock reading, whether to pass it on, hold it, admit or
+refuse the readings it held, or map every later train-clock stamp back onto the old timeline
+after a step (event ``clock_reset``; estimates keep the sample's own stamp, the new clock); the
+runner admits, counts, logs and tells the integrity monitor. A command stamped above its own
+clock by more than the same bar (:meth:`~.clocks.StepWatch.bar`) is refused (``future_stamp``);
+it still votes, so a control clock that truly stepped is followed once the step fills half the
+window.
 
 Sequence numbers only detect duplicates (same ``seq`` and stamp as a recent reading) and resets
 (``seq`` goes back while the stamp goes on: a sensor reboot or a wrap-around, accepted and
@@ -86,7 +68,6 @@ blind a stream.
 
 from __future__ import annotations
 
-import bisect
 import heapq
 import math
 from collections import Counter, deque
@@ -94,7 +75,7 @@ from dataclasses import dataclass, field, replace
 from typing import Protocol
 
 from .. import reasons as R
-from ..numerics.clocks import StreamClock, continues, is_step, paced
+from ..numerics.clocks import ADMIT, HOLD, PASS, REFUSE, STEP, StepWatch, StreamClock
 from .integrity import IntegrityMonitor, IntegrityParams
 
 KIND_ORDER = {"control": 0, "odometer": 1, "balise": 2}
@@ -172,13 +153,8 @@ class EstimatorRunner:
     _high_done: float = -math.inf  # largest stamp fused
     _last_fused: float = -math.inf  # stamp of the last odometer sample accepted (or the start)
     separate_clocks: bool = False  # control was found (or said) to be on another clock
-    _train_shift: float = 0.0  # s, train-clock steps so far: filter stamps = raw - shift
-    _odo_last: tuple | None = None  # (stamp, arrival) of the last odometer admitted
-    _step_held: list = field(default_factory=list)  # discontinuous train-clock readings
-    _odo_admitted: list = field(default_factory=list)  # sorted recent odometer stamps admitted
-    _odo_pushed: tuple | None = None  # (stamp, arrival) of the last odometer watched
+    _steps: StepWatch | None = None  # the train clock's steps (and the train StreamClock)
     _ctl_recv: float | None = None  # arrival of the latest command (the node's clock)
-    _raw_stamp: dict = field(default_factory=dict)  # mapped odometer stamp -> stamp as sent
     integrity: IntegrityParams = field(default_factory=IntegrityParams)
     command_slack: float = 0.25  # odometer periods: a reading stamped this little past the
     #   control watermark is processed without waiting for the next command (ready_time)
@@ -198,6 +174,9 @@ class EstimatorRunner:
             self.monitor = IntegrityMonitor(self.integrity, self.period)
         if self.command_timeout is None:
             self.command_timeout = self.integrity.command_timeout
+        self._steps = StepWatch(self.period, self.min_judged, self.step_back, self.small_step,
+                                self.small_step_z, self.max_future,
+                                same=self.control_clock == "same")
 
     # -- door ---------------------------------------------------------------------------------
     def push(self, kind: str, stamp: float, fields: dict, recv: float | None = None) -> str:
@@ -210,10 +189,8 @@ class EstimatorRunner:
         if not (isinstance(stamp, float | int) and math.isfinite(stamp)):
             return self._reject(kind, math.nan, R.NON_FINITE + ": stamp")
         stamp = float(stamp)
-        if CLOCK_OF.get(kind) == "train" and self._train_shift:
-            raw, stamp = stamp, stamp - self._train_shift  # onto the timeline before the step
-            if kind == "odometer":  # its estimate is published at the raw stamp, bit for bit
-                self._raw_stamp[stamp] = raw
+        if CLOCK_OF.get(kind) == "train":  # onto the timeline before the steps
+            stamp = self._steps.onto_timeline(stamp, kind == "odometer")
         if recv is not None and not math.isfinite(recv):
             recv = None
         if kind == "control" and recv is not None:
@@ -223,7 +200,9 @@ class EstimatorRunner:
             if not isinstance(seq, int) or isinstance(seq, bool):
                 return self._reject(kind, stamp, f"{R.INVALID}: seq {seq!r}")
         clock = CLOCK_OF[kind]
-        med = self._offsets.setdefault(clock, StreamClock())
+        med = self._offsets.get(clock)
+        if med is None:  # the train clock is the one the step watch follows
+            med = self._offsets[clock] = self._steps.clock if clock == "train" else StreamClock()
         early = len(med) < self.min_judged
         if recv is not None:
             arrival = recv
@@ -258,13 +237,10 @@ class EstimatorRunner:
         med = self._offsets[clock]
         if kind != "control" and (fields.get("seq"), stamp) in self._recent.get(kind, ()):
             return self._reject(kind, stamp, R.DUPLICATE)  # a copy is no evidence of a step
-        if watch and clock == "train" and arrival is not None and self._odo_last is not None:
-            held, stamp, arrival = self._watch_step(kind, stamp, fields, recv, arrival)
-            s0, a0 = self._odo_last
-            odo = [h for h in self._step_held if h[0] == "odometer"]
-            self.monitor.clock(len(odo), doubt=max((abs(h[1] - s0 - (h[4] - a0))
-                                                    for h in self._step_held), default=0.0),
-                               conclusive=any(self._conclusive(h[1], h[3], h[4]) for h in odo))
+        if watch and clock == "train" and arrival is not None and self._steps.last is not None:
+            held, stamp = self._watch_step(kind, stamp, fields, recv, arrival)
+            n, doubt, conclusive = self._steps.doubt(self.drift)
+            self.monitor.clock(n, doubt=doubt, conclusive=conclusive)
             if held:
                 return ""
         if arrival is not None:
@@ -283,19 +259,14 @@ class EstimatorRunner:
         # moves the window, and its commands are taken again)
         lead = med.above(stamp - arrival) if kind == "control" and recv is not None and \
             self.control_clock != "same" and len(med) >= self.min_judged else -math.inf
-        bar = self._bar(med, max(self.step_back, 2.5 * self.period)) if lead > 0 else math.inf
+        bar = self._steps.bar(med) if lead > 0 else math.inf
         if arrival is not None and not counted:
             med.add(stamp - arrival, arrival, lift=not lead > bar)
         if lead > bar:
             return self._reject(kind, stamp, f"{R.FUTURE_STAMP}: {lead:.3g} s ahead of its clock")
         if kind in ("odometer", "control") and recv is not None:
             med.rate_point(stamp, recv)  # only stamps on time inform the rate (not a backlog's)
-        if kind == "odometer" and arrival is not None and \
-                (self._odo_last is None or stamp > self._odo_last[0]):
-            self._odo_last = (stamp, arrival)
-        if kind == "odometer":
-            bisect.insort(self._odo_admitted, stamp)
-            del self._odo_admitted[:-128]
+        self._steps.admitted(kind, stamp, arrival)
         self._admitted_high = max(self._admitted_high, stamp)
         if kind == "control":
             if "train" not in self._offsets or len(self._offsets["train"]) < self.min_judged:
@@ -310,163 +281,28 @@ class EstimatorRunner:
         return ""
 
     def _watch_step(self, kind: str, stamp: float, fields: dict, recv, arrival):
-        """``(held, stamp, arrival)``: hold a discontinuous train-clock reading, and declare a
-        clock step when ``min_judged`` such odometer readings continue one another (module
-        doc). A stamp beyond ``max_future`` is not held: it is refused at the door as always,
-        and only counts towards a step. ``stamp`` comes back mapped when this reading
-        completed a step."""
-        tol = StreamClock.tol
-        s0, a0 = self._odo_last
-        # Back by more than step_back: possibly a small backward step (a clock resynchronised
-        # by a few seconds), held until later readings decide. A reading late by jitter is
-        # held too, and released (then fused by rewinding) by the next reading that continues
-        # the stream, one period later.
-        back = max(self.step_back, 2.5 * self.period)
-        med = self._offsets["train"]
-        bar = self._bar(med, back)
-        # ... and so is a reading whose stamp - arrival fell by more than that below its
-        # clock's on-time centre: late (jitter, released by the next reading on time), or the
-        # first of a small backward step whose stamps overlap those already fused (then the
-        # readings that follow stay that far below: min_judged of them are the step)
-        # (arriving at the stamps' pace: a backlog's burst, all late, arrives at once and is
-        # no step)
-        prev = self._odo_pushed
-        if kind == "odometer":
-            self._odo_pushed = (stamp, arrival)
-        on_pace = prev is None or paced(prev, (stamp, arrival))
-        behind = kind == "odometer" and on_pace and len(med) >= self.min_judged and \
-            stamp - arrival - med.value < -bar
-        # Ahead by more than that above where the clock can be (its centre, and the ceiling of
-        # its offsets: latency only ever lowers stamp - arrival, an outage moves stamps and
-        # arrivals alike): a forward step or one wrong stamp; held until later readings decide
-        # Not with control_clock "same" (the simulator's launch, sim time): a node's sim clock
-        # stalls under load and stamps then run ahead of arrivals by seconds
-        ahead = self.control_clock != "same" and recv is not None and \
-            len(med) >= self.min_judged and med.above(stamp - arrival) > bar
-        if -back <= stamp - s0 <= max(arrival - a0, 0.0) + tol and not behind and not ahead:
-            if kind == "odometer" and self._step_held:
-                self._release_held()
-            return False, stamp, arrival
-        chain = [h for h in self._step_held if h[0] == "odometer"]
-        if kind == "odometer" and chain:
-            _, s1, _, _, a1, _ = chain[-1]
-            if not continues((s1, a1), (stamp, arrival)):  # not one new clock
-                self._release_held()
-                chain = []
-        refused = stamp - arrival - self._offsets["train"].value > self.max_future
-        self._step_held.append((kind, stamp, fields, recv, arrival, refused))
-        if kind == "odometer":
-            chain.append(self._step_held[-1])
-        if len(chain) < self.min_judged:
-            return not refused, stamp, arrival
-        step = is_step([(h[1], h[4]) for h in chain], self.min_judged, self.period)
-        # the first reading of the new clock came (elapsed arrival time, at least one period)
-        # after the last one of the old clock
-        first, a_first = chain[0][1], chain[0][4]
-        shift = first - (s0 + max(a_first - a0, self.period))
-        if abs(shift) < back:
-            # a small step (below step_back) moves every offset of the new clock alike: its
-            # readings agree with one another. A node falling further behind its input also
-            # puts readings below the centre, each later than the one before: no step, late
-            # readings (released, fused by rewinding); and a shift well inside the bar that
-            # held them is none (a node catching up)
-            offs = [h[1] - h[4] for h in chain]
-            if max(offs) - min(offs) > bar or abs(shift) < 0.5 * bar:
-                self._release_held()  # this reading with them: judged there
-                return True, stamp, arrival
-        if not step:
-            return not refused, stamp, arrival
-        measured = all(h[3] is not None for h in chain) and len(med) >= self.min_judged
-        if measured:
-            # arrivals known: the step is how far the new clock's offsets lie from the old
-            # clock's centre, the median of the chain's (two readings' arrivals, the last of
-            # the old clock and the first of the new, put a link's jitter into the step whole:
-            # 0.17 s with 50 ms of exponential jitter, the kf 55 estimates wrong-side once
-            # re-anchored)
-            offs = sorted(h[1] - h[4] for h in chain)
-            shift = offs[len(offs) // 2] - med.value
-        self._train_shift += shift
-        self.monitor.clock(0, reanchored_at=first - shift, measured=measured)
-        self._event("odometer", stamp, f"{R.CLOCK_RESET}: train clock stepped by {shift:+.3f} s "
-                                       f"at stamp {first + self._train_shift:.3f}; re-anchored")
-        old = self._train_shift - shift
-        held, self._step_held = self._step_held, []
-        for i, (k, st, _, _, _, ref) in enumerate(held):
-            if k == "odometer" and (not ref or i == len(held) - 1):
-                self._raw_stamp[st - shift] = st + old  # as sent
-        for k, st, f, rc, ar, ref in held[:-1]:
-            if not ref:
-                self._admit(k, st - shift, f, rc, ar, watch=False)
-        return False, stamp - shift, arrival
-
-    def _bar(self, med: StreamClock, back: float) -> float:
-        """How far (s) a train-clock offset may lie from its clock before the reading is
-        watched as a possible step: ``back`` on a jittery link or with ``control_clock
-        'same'``, down to ``small_step`` where the link's jitter (the offsets' robust spread)
-        is small. A radio's jitter cannot shift every offset of nine readings in a row by the
-        same amount, which a small step does: left unwatched, a 0.2 s step left the kf 4 m off
-        at 20 m/s with a sigma of 0.1 m."""
-        if self.control_clock == "same" or len(med) < self.min_judged:
-            return back
-        return min(back, max(self.small_step, self.small_step_z * med.scale))
-
-    def _conclusive(self, stamp: float, recv, arrival) -> bool:
-        """One held odometer reading that no lateness explains: stamped above its clock's
-        centre (latency only lowers stamp - arrival), or behind the newest one on a slot already
-        fused, or where readings were fused at the slot's pace all along (a late reading fills
-        a slot that has none).
-        Not yet a step (:func:`clocks.is_step` decides), but the estimate is in doubt at once:
-        at 1 Hz, waiting for a second reading left one estimate wrong-side after a -3 s step.
-        (With a period over 0.5 s every held reading is: the next one, which decides, comes
-        later than an alarm may wait; a reading held there is more than 2.5 s behind, rare
-        for a late one.)"""
-        med = self._offsets["train"]
-        if recv is not None and med.above(stamp - arrival) > \
-                max(self.step_back, 2.5 * self.period):
-            return True
-        adm = self._odo_admitted
-        i = bisect.bisect_left(adm, stamp)
-        near = min((abs(adm[k] - stamp) for k in (i - 1, i) if 0 <= k < len(adm)),
-                   default=math.inf)
-        if near < 0.25 * self.period or \
-                (0 < i < len(adm) and adm[i] - adm[i - 1] < 1.5 * self.period):
-            return True
-        if self.period <= 0.5:
-            return False
-        # A slow odometer: the next reading, which decides, comes later than an alarm may
-        # wait, so a held reading is in doubt at once -- except one stamped on the stream's
-        # grid (within small_step) at a slot not yet filled: a late reading of the slot it was
-        # due for (a latency tail). A backward step lands there only if smaller than
-        # small_step (not told from jitter anyway); a larger one lands off the grid or on a
-        # slot already fused. (Every held reading at 1 Hz was in doubt: a 1 s latency cap cost
-        # 9 % of the estimates.)
-        if i == 0:
-            return True
-        pace = self.period * (1.0 + self.drift)
-        k = round((stamp - adm[i - 1]) / pace)
-        return k < 1 or abs(stamp - adm[i - 1] - k * pace) > self.small_step
-
-    def _release_held(self) -> None:
-        """No step after all: judge the held readings as any other (stale, late, ...) -- but a
-        reading stamped *ahead* of its stream that no later reading confirmed is refused: one
-        corrupt stamp (a flipped bit, 60 s ahead) admitted here became the stream's newest
-        stamp, every genuine reading after it looked discontinuous, and the runner declared a
-        clock step of -60 s (kf 1.3 km off with a covariance of centimetres)."""
-        held, self._step_held = self._step_held, []
-        s0, a0 = self._odo_last
-        med = self._offsets["train"]
-        back = max(self.step_back, 2.5 * self.period)
-        for k, st, f, rc, ar, ref in held:
-            if ref:
-                continue
-            ahead = st - s0 - max(ar - a0, 0.0)
-            # above its clock's centre (arrival known): no forward step confirmed it
-            lead = med.above(st - ar) if rc is not None else -math.inf
-            if ahead > StreamClock.tol or lead > back:
-                self._count(k, st, f"{R.FUTURE_STAMP}: {max(ahead, lead):.3g} s ahead of its "
-                                   f"stream, not continued by later readings")
-                continue
-            self._admit(k, st, f, rc, ar, watch=False)
+        """``(held, stamp)``: act on the step watch's answer for a train-clock reading, in
+        order (each held reading is judged as the admission of the ones before it left the
+        clock); ``stamp`` comes back mapped when this reading completed a step."""
+        held = False
+        for act in self._steps.watch(kind, stamp, fields, recv, arrival):
+            if act[0] == ADMIT:
+                self._admit(*act[1], watch=False)
+            elif act[0] == REFUSE:
+                _, k, st, ahead = act
+                self._count(k, st, f"{R.FUTURE_STAMP}: {ahead:.3g} s ahead of its stream, not "
+                                   f"continued by later readings")
+            elif act[0] == STEP:
+                _, shift, first, measured = act
+                self.monitor.clock(0, reanchored_at=first - shift, measured=measured)
+                self._event("odometer", stamp, f"{R.CLOCK_RESET}: train clock stepped by "
+                                               f"{shift:+.3f} s at stamp "
+                                               f"{first + self._steps.shift:.3f}; re-anchored")
+            elif act[0] == PASS:
+                stamp = act[1]
+            elif act[0] == HOLD:
+                held = True
+        return held, stamp
 
     def _check_seq(self, kind: str, stamp: float, fields: dict) -> str:
         seq = fields.get("seq")
@@ -640,11 +476,7 @@ class EstimatorRunner:
     def _emit(self, t: float, out: list) -> None:
         o = self.monitor.assess(self.adapter.output(self._filter_time(t)), t)
         # published on the train clock (after a step: the new one, the sample's stamp as sent)
-        stamp = self._raw_stamp.pop(t, None) if self._raw_stamp else None
-        if stamp is None:
-            stamp = t + self._train_shift
-        if len(self._raw_stamp) > 1000:  # refused samples never emitted
-            self._raw_stamp = {k: v for k, v in self._raw_stamp.items() if k > t}
+        stamp = self._steps.as_sent(t)
         out.append(o if o.stamp == stamp else replace(o, stamp=stamp))
         self._last_out = t
 

@@ -1,0 +1,118 @@
+"""The train clock's step watch (core/numerics/clocks.StepWatch), driven directly as the
+runner drives it: each answer acted on before the next is asked for."""
+
+import pytest
+
+from train_estimation.core.numerics.clocks import ADMIT, HOLD, PASS, REFUSE, STEP, TOL, StepWatch
+
+PERIOD, LATENCY = 0.1, 0.05
+
+
+class Feed:
+    """A 10 Hz odometer through a StepWatch; admission reduced to what the watch sees (the
+    reading's offset votes for the train clock, the watch is told)."""
+
+    def __init__(self, period=PERIOD):
+        self.period = period
+        self.w = StepWatch(period)
+        self.admitted: list = []
+
+    def admit(self, stamp, arrival):
+        self.w.clock.add(stamp - arrival, arrival)
+        self.w.admitted("odometer", stamp, arrival)
+        self.admitted.append(stamp)
+
+    def push(self, raw, arrival):
+        """The actions for one reading stamped ``raw`` (as sent), acted on in turn."""
+        stamp = self.w.onto_timeline(raw, odometer=True)
+        if self.w.last is None:
+            self.admit(stamp, arrival)
+            return [(PASS, stamp)]
+        acts = []
+        for act in self.w.watch("odometer", stamp, {}, arrival, arrival):
+            acts.append(act)
+            if act[0] == ADMIT:
+                self.admit(act[1][1], act[1][4])
+            elif act[0] == PASS:
+                self.admit(act[1], arrival)
+        return acts
+
+    def run_on(self, k0, k1, epoch=1000.0):
+        for k in range(k0, k1):
+            t = epoch + k * self.period
+            assert self.push(t, t + LATENCY)[-1][0] == PASS
+
+
+def test_a_backward_step_is_decided_after_min_judged_readings():
+    f = Feed()
+    f.run_on(0, 40)
+    step = -3.0
+    answers = []
+    for k in range(40, 40 + f.w.min_judged):
+        raw = 1000.0 + k * PERIOD + step
+        answers.append(f.push(raw, 1000.0 + k * PERIOD + LATENCY))
+    # held, each of the first min_judged - 1 (the integrity monitor is told they are)
+    assert all(a == [(HOLD,)] for a in answers[:-1])
+    acts = answers[-1]
+    # measured from the arrivals: the readings' median offset less the clock's centre
+    assert acts[0][0] == STEP and acts[0][1] == pytest.approx(step, abs=1e-9) and acts[0][3]
+    assert f.w.shift == pytest.approx(step, abs=1e-9)
+    # the held readings admitted on the old timeline, then this one: no gap, no repeat
+    assert [a[0] for a in acts[1:]] == [ADMIT] * (f.w.min_judged - 1) + [PASS]
+    assert f.admitted[-f.w.min_judged:] == pytest.approx(
+        [1000.0 + k * PERIOD for k in range(40, 40 + f.w.min_judged)], abs=1e-9)
+    assert not f.w.held
+    # later readings are mapped back; their estimates are published at the stamps as sent
+    raw = 1000.0 + 49 * PERIOD + step
+    assert f.push(raw, 1000.0 + 49 * PERIOD + LATENCY) == [(PASS, pytest.approx(raw - step))]
+    assert f.w.as_sent(f.admitted[-1]) == raw
+
+
+def test_one_wrong_stamp_is_refused_not_taken_for_a_step():
+    f = Feed()
+    f.run_on(0, 40)
+    bad = 1000.0 + 40 * PERIOD + 60.0  # a flipped bit: one reading 60 s ahead
+    assert f.push(bad, 1000.0 + 40 * PERIOD + LATENCY) == [(HOLD,)]
+    n, doubt, _ = f.w.doubt()
+    assert n == 1 and doubt == pytest.approx(60.0, abs=1e-6)  # beyond the elapsed arrival time
+    acts = f.push(1000.0 + 41 * PERIOD, 1000.0 + 41 * PERIOD + LATENCY)  # the stream goes on
+    assert acts[0][:3] == (REFUSE, "odometer", bad) and acts[0][3] > TOL
+    assert acts[1:] == [(PASS, 1000.0 + 41 * PERIOD)]
+    assert f.w.shift == 0.0 and not f.w.held and bad not in f.admitted
+    f.run_on(42, 60)
+
+
+def test_a_late_reading_is_released_by_the_next_one_on_time():
+    f = Feed()
+    f.run_on(0, 40)
+    late = 1000.0 + 40 * PERIOD
+    # half a second late (a node that lagged): below its clock's centre, held for a step
+    assert f.push(late, late + LATENCY + 0.5) == [(HOLD,)]
+    assert f.w.doubt()[0] == 1
+    nxt = 1000.0 + 41 * PERIOD
+    acts = f.push(nxt, nxt + LATENCY)
+    assert acts == [(ADMIT, ("odometer", late, {}, late + LATENCY + 0.5, late + LATENCY + 0.5)),
+                    (PASS, nxt)]
+    assert f.w.shift == 0.0 and not f.w.held and f.admitted[-2:] == [late, nxt]
+
+
+def test_at_1_hz_a_late_reading_on_the_grid_is_no_doubt():
+    """At 1 Hz a held reading stamped on the stream's grid at a slot not yet filled is a late
+    one (no doubt); one off the grid (a backward step) or on a slot already fused is in doubt
+    at once; the grid is spaced by the drift given."""
+    f = Feed(period=1.0)
+    f.run_on(0, 40)
+    late = 1000.0 + 40.0
+    assert f.push(late, late + LATENCY + 0.5) == [(HOLD,)]  # below the centre: held
+    assert f.w.doubt() == (1, pytest.approx(0.5), False)
+    assert f.w.doubt(drift=0.1)[2]  # 1.1 s apart, the grid puts no reading at late
+    f = Feed(period=1.0)
+    f.run_on(0, 40)
+    off = 1000.0 + 39.0 + 0.7  # 0.3 s back, off the grid
+    assert f.push(off, 1000.0 + 40.0 + LATENCY) == [(HOLD,)]
+    assert f.w.doubt()[2]
+    f = Feed(period=1.0)
+    f.run_on(0, 40)
+    fused = 1000.0 + 38.0  # a slot already fused
+    assert f.push(fused, 1000.0 + 40.0 + LATENCY) == [(HOLD,)]
+    assert f.w.doubt()[2]
