@@ -1,6 +1,7 @@
 """The train clock's step watch (core/numerics/clocks.StepWatch), driven directly as the
 runner drives it: each answer acted on before the next is asked for."""
 
+import numpy as np
 import pytest
 
 from train_estimation.core.numerics.clocks import ADMIT, HOLD, PASS, REFUSE, STEP, TOL, StepWatch
@@ -116,3 +117,22 @@ def test_at_1_hz_a_late_reading_on_the_grid_is_no_doubt():
     fused = 1000.0 + 38.0  # a slot already fused
     assert f.push(fused, 1000.0 + 40.0 + LATENCY) == [(HOLD,)]
     assert f.w.doubt()[2]
+
+
+def test_an_unannounced_move_of_the_offset_is_no_drift():
+    """A train clock that moves back by 0.5 s on a jittery link without a declared step (the
+    window absorbs it): one least-squares fit across the move read it as a drift of -7e-3, and
+    the filter's time ran off it. Each level of the offset gets its own intercept."""
+    from train_estimation.core.numerics.clocks import StreamClock
+
+    rng = np.random.default_rng(3)
+    clock = StreamClock()
+    for k in range(1100):
+        t = 0.1 * k
+        arrival = t + 0.02 + rng.exponential(0.05)
+        stamp = t - (0.5 if t >= 50.0 else 0.0)
+        clock.add(stamp - arrival, arrival)
+        clock.rate_point(stamp, arrival)
+    d, se = clock.rate()
+    assert abs(d) < 5e-4 and se < 1e-3, (d, se)
+    assert clock.value == pytest.approx(-0.57, abs=0.05)

@@ -114,6 +114,8 @@ def control_on_train_clock(odo_stamp, odo_recv, ctrl_stamp, ctrl_recv,
 
 # -- online ----------------------------------------------------------------------------------
 
+SMALL_MOVE = 0.05  # s: the least move of a clock's offset level taken as one (the runner's
+#   small_step); smaller moves are jitter and drift
 TOL = 5.0  # s: wider than arrival jitter (a node at 10x sees 1 Hz stamps 0.9 s apart in
 #   stamp - arrival), far narrower than a clock error worth refusing
 
@@ -161,6 +163,8 @@ class StreamClock:
         self._value = None  # cached centre (recomputed after an add)
         self.pending: list = []  # consecutive values away from a full window's centre
         self._fit = [0, 0.0, 0.0, 0.0, 0.0, 0.0, None]  # n, sx, sy, sxx, sxy, syy, origin
+        self._closed = [0, 0, 0.0, 0.0, 0.0]  # segments, n, centred sxx, sxy, syy before a move
+        self._level: tuple | None = None  # (centre, arrival) at the last rate point
         self._reg_last: tuple | None = None  # (stamp, arrival) of the last point in the fit
         self._top: deque = deque()  # (index, offset), decreasing: the sliding maximum
         self._pushed = 0  # offsets pushed so far
@@ -323,6 +327,25 @@ class StreamClock:
         for half a minute after it (0.06-0.07 m without the stall)."""
         if not self.on_time(stamp - arrival):
             return
+        # The offset's level: a move of the centre that the drift does not explain (a step
+        # within TOL that no step test declared, absorbed by the window) starts a new segment
+        # of the fit, and only offsets near the centre inform it: the readings of a move's two
+        # levels read as a slope (a -0.5 s move on a jittery link was a drift of -7e-3, and the
+        # kf ran 1.7 m off with a sigma of 0.1 m for minutes).
+        # (the band: three robust spreads of the offsets, allowed to widen by 5 % a point: while
+        # a move fills the window its two levels widen the window's own spread at once, a link
+        # whose jitter grows widens it over tens of readings)
+        d, se = self.rate()
+        if math.isfinite(se):  # the rate is known: the level is the centre carried to now
+            c, band = self.value_at(arrival, d), max(SMALL_MOVE, 3.0 * self.scale)
+            if self._level is not None:
+                c0, a0, band0 = self._level
+                band = min(band, 1.05 * band0)
+                if abs(c - c0 - d * (arrival - a0)) > band:
+                    self._new_segment()
+            self._level = (c, arrival, band)
+            if abs(stamp - arrival - c) > band:
+                return
         if self._reg_last is not None and not paced(self._reg_last, (stamp, arrival)):
             return
         self._reg_last = (stamp, arrival)
@@ -337,22 +360,45 @@ class StreamClock:
         f[4] += x * y
         f[5] += y * y
 
+    def _centred(self) -> tuple[int, float, float, float]:
+        """The current segment's n and centred sums (sxx, sxy, syy)."""
+        n, sx, sy, sxx, sxy, syy, _ = self._fit
+        if n == 0:
+            return 0, 0.0, 0.0, 0.0
+        return n, sxx - sx * sx / n, sxy - sx * sy / n, syy - sy * sy / n
+
+    def _new_segment(self) -> None:
+        """The offset's level moved: later points get an intercept of their own and share the
+        slope with the earlier ones."""
+        n, cxx, cxy, cyy = self._centred()
+        if n:
+            c = self._closed
+            c[0] += 1
+            c[1] += n
+            c[2] += cxx
+            c[3] += cxy
+            c[4] += cyy
+        self._fit = [0, 0.0, 0.0, 0.0, 0.0, 0.0, None]
+        self._reg_last = None
+
     def rate(self, min_n: int = 20, min_span: float = 10.0) -> tuple[float, float]:
         """(drift, its standard error): the clock's rate minus 1 (s/s) against the arrival
-        clock; (0, inf) until ``min_n`` points over ~``min_span`` s of arrivals are in, or when
-        the fit says more than 10 % (not a clock)."""
-        n, sx, sy, sxx, sxy, syy, _ = self._fit
+        clock, least squares with one intercept per level of the offset (:meth:`rate_point`);
+        (0, inf) until ``min_n`` points over ~``min_span`` s of arrivals are in, or when the
+        fit says more than 10 % (not a clock)."""
+        n1, cxx1, cxy1, cyy1 = self._centred()
+        segs, n0, cxx0, cxy0, cyy0 = self._closed
+        n, var, cov, vyy = n0 + n1, cxx0 + cxx1, cxy0 + cxy1, cyy0 + cyy1
         if n < min_n:
             return 0.0, math.inf
-        var = sxx - sx * sx / n
         if var < n * min_span ** 2 / 12:  # less than ~min_span of arrivals
             return 0.0, math.inf
-        slope = (sxy - sx * sy / n) / var
+        slope = cov / var
         d = slope - 1.0
         if not abs(d) < 0.1:
             return 0.0, math.inf
-        rss = max(syy - sy * sy / n - slope * (sxy - sx * sy / n), 0.0)
-        return d, math.sqrt(rss / max(n - 2, 1) / var)
+        rss = max(vyy - slope * cov, 0.0)
+        return d, math.sqrt(rss / max(n - 1 - segs - (n1 > 0), 1) / var)
 
     @property
     def drift(self) -> float:
