@@ -25,6 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .jit import COMPILED, jit
+from .kalman import balise_update, odometer_update, predict_cov
 
 LOG2PI = math.log(2.0 * math.pi)
 
@@ -250,30 +251,16 @@ def _gain_pass(ev: Events, q: float, r_s: float, q_held: float, update, q_per_ev
     return out
 
 
-@jit
-def _predict_cov(p00, p01, p11, h, q):
-    """kalman.predict_cov written out: the (s, v) covariance over ``h`` s with white
-    acceleration noise of PSD ``q``."""
-    return (p00 + 2 * h * p01 + h * h * p11 + q * h ** 3.0 / 3.0,
-            p01 + h * p11 + q * h * h / 2.0, p11 + q * h)
-
-
-@jit
-def _odometer_gain(p00, p01, p11, r_s, r_v):
-    """kalman.odometer_update's innovation covariance and gain written out: (det S, S^-1
-    entries, gain entries) of a reading of (s, v) with variances (r_s, r_v)."""
-    s00, s11 = p00 + r_s, p11 + r_v
-    det = s00 * s11 - p01 * p01
-    i00, i01, i11 = s11 / det, -p01 / det, s00 / det
-    k00, k01 = p00 * i00 + p01 * i01, p00 * i01 + p01 * i11
-    k10, k11 = p01 * i00 + p11 * i01, p01 * i01 + p11 * i11
-    return s00, s11, det, i00, i01, i11, k00, k01, k10, k11
+# kalman's scalar steps, compiled for the loops below (the same functions: one definition)
+_predict_cov = jit(predict_cov)
+_odometer_update = jit(odometer_update)
+_balise_update = jit(balise_update)
 
 
 @jit
 def _gain_loop(h, kind, held, rv, upd, qs, use_qs, q, r_s, q_held, K, L, S_v, row, code):
-    """_gain_pass's recursion (kalman.predict_cov, odometer_update and balise_update written
-    out on scalars, as in :func:`_kf2_loop`): fills K, L, S_v, row and code in place and
+    """_gain_pass's recursion (kalman.predict_cov, odometer_update and balise_update, compiled
+    with the loop): fills K, L, S_v, row and code in place and
     returns (log det of all S_k, scalar measurements)."""
     n = h.size
     p00, p01, p11 = r_s, 0.0, rv[0]
@@ -286,27 +273,23 @@ def _gain_loop(h, kind, held, rv, upd, qs, use_qs, q, r_s, q_held, K, L, S_v, ro
             continue
         row[k] = m
         if kind[k] == 0:
-            s00, s11, det, _, _, _, k00, k01, k10, k11 = _odometer_gain(p00, p01, p11, r_s,
-                                                                        rv[k])
+            s00, s01, s11, det, _, gain, (p00, p01, p11) = _odometer_update(p00, p01, p11, r_s,
+                                                                            rv[k])
             l00 = math.sqrt(s00)
-            l10 = p01 / l00
-            K[k, 0, 0], K[k, 0, 1], K[k, 1, 0], K[k, 1, 1] = k00, k01, k10, k11
+            l10 = s01 / l00
+            K[k, 0, 0], K[k, 0, 1], K[k, 1, 0], K[k, 1, 1] = gain
             L[k, 0], L[k, 1], L[k, 2] = l00, l10, math.sqrt(s11 - l10 * l10)
             S_v[k] = s11
             code[k] = 0
             logdet += math.log(det)
             m += 2
-            p00, p01, p11 = ((1 - k00) * p00 - k01 * p01, (1 - k00) * p01 - k01 * p11,
-                             -k10 * p01 + (1 - k11) * p11)
         else:
-            sb = p00 + rv[k]
-            k0, k1 = p00 / sb, p01 / sb
+            sb, (k0, k1), (p00, p01, p11) = _balise_update(p00, p01, p11, rv[k])
             K[k, 0, 0], K[k, 1, 0] = k0, k1
             L[k, 0] = math.sqrt(sb)
             code[k] = 1
             logdet += math.log(sb)
             m += 1
-            p00, p01, p11 = (1 - k0) * p00, (1 - k0) * p01, p11 - k1 * p01
     return logdet, m
 
 
@@ -387,9 +370,8 @@ def kf2_loglik(ev: Events, q: float, r_s: float, bv, bs, md, mv, q_held: float) 
 @jit
 def _kf2_loop(t, kind, yd, yv, rv, held, bv, bs, md, mv, q, r_s, q_held):
     """kf2_loglik's recursion: (sum log det S_k, scalar measurements, W entries of the two
-    columns). kalman.predict_cov, odometer_update and balise_update written out on scalars (no
-    calls, no tuples, no arrays), so that numba compiles it to a plain loop and the
-    interpreter, without numba, runs it as fast as Python can."""
+    columns), with kalman.predict_cov, odometer_update and balise_update on scalars (compiled
+    with the loop by numba; interpreted without it)."""
     n = len(t)
     xs0, xv0 = yd[0] - md[0], yv[0] - mv[0]
     xs1 = xv1 = 0.0
@@ -407,8 +389,8 @@ def _kf2_loop(t, kind, yd, yv, rv, held, bv, bs, md, mv, q, r_s, q_held):
         xs1 += h * xv1
         p00, p01, p11 = _predict_cov(p00, p01, p11, h, qk)
         if kind[k] == 0:
-            _, _, det, i00, i01, i11, k00, k01, k10, k11 = _odometer_gain(p00, p01, p11, r_s,
-                                                                          rv[k])
+            _, _, _, det, (i00, i01, i11), (k00, k01, k10, k11), pn = _odometer_update(
+                p00, p01, p11, r_s, rv[k])
             es0, ev0 = yd[k] - xs0 - md[k], yv[k] - xv0 - mv[k]
             es1, ev1 = -xs1, -xv1
             w00 += es0 * (i00 * es0 + i01 * ev0) + ev0 * (i01 * es0 + i11 * ev0)
@@ -420,11 +402,9 @@ def _kf2_loop(t, kind, yd, yv, rv, held, bv, bs, md, mv, q, r_s, q_held):
             xv0 += k10 * es0 + k11 * ev0
             xs1 += k00 * es1 + k01 * ev1
             xv1 += k10 * es1 + k11 * ev1
-            p00, p01, p11 = ((1 - k00) * p00 - k01 * p01, (1 - k00) * p01 - k01 * p11,
-                             -k10 * p01 + (1 - k11) * p11)
+            p00, p01, p11 = pn
         else:
-            s = p00 + rv[k]
-            k0, k1 = p00 / s, p01 / s
+            s, (k0, k1), (p00, p01, p11) = _balise_update(p00, p01, p11, rv[k])
             e0, e1 = yd[k] - xs0, -xs1 - 1.0
             w00 += e0 * e0 / s
             w01 += e0 * e1 / s
@@ -435,5 +415,4 @@ def _kf2_loop(t, kind, yd, yv, rv, held, bv, bs, md, mv, q, r_s, q_held):
             xv0 += k1 * e0
             xs1 += k0 * e1
             xv1 += k1 * e1
-            p00, p01, p11 = (1 - k0) * p00, (1 - k0) * p01, p11 - k1 * p01
     return logdet, m, w00, w01, w11

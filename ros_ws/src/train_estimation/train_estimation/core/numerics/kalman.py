@@ -184,7 +184,7 @@ def rts_smooth(m_f, P_f, m_p, P_p, F):
 def predict_cov(p00: float, p01: float, p11: float, h: float, q: float):
     """P <- A P A^T + Q for A = [[1, h], [0, 1]], Q = q [[h^3/3, h^2/2], [h^2/2, h]] (white
     acceleration noise of PSD q over h seconds); P symmetric 2x2 as (p00, p01, p11)."""
-    return (p00 + 2 * h * p01 + h * h * p11 + q * h ** 3 / 3.0,
+    return (p00 + 2 * h * p01 + h * h * p11 + q * h ** 3.0 / 3.0,
             p01 + h * p11 + q * h * h / 2.0, p11 + q * h)
 
 
