@@ -226,7 +226,7 @@ def _gain_pass(ev: Events, q: float, r_s: float, q_held: float, update, q_per_ev
     parts = (ev.t, ev.kind, ev.held, ev.r_v, q, r_s, q_held,
              None if update is None else np.asarray(update, bool),
              None if q_per_event is None else np.asarray(q_per_event, float))
-    key = _digest(parts)
+    key = digest(*parts)
     hit = _GAINS.get(key)
     if hit is not None:
         return hit
@@ -293,8 +293,9 @@ def _gain_loop(h, kind, held, rv, upd, qs, use_qs, q, r_s, q_held, K, L, S_v, ro
     return logdet, m
 
 
-def _digest(parts) -> bytes:
-    """A digest of arrays (dtype, shape, bytes) and other values (their repr)."""
+def digest(*parts) -> bytes:
+    """A digest of arrays (dtype, shape, bytes) and other values (their repr): the key of the
+    memos of filter runs by their inputs (here and in diagnose's stages)."""
     hsh = hashlib.blake2b(digest_size=20)
     for x in parts:
         if isinstance(x, np.ndarray):

@@ -12,14 +12,19 @@ are profiled over grids (the causes do that).
 
 from __future__ import annotations
 
-import hashlib
 import math
 from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.optimize import minimize_scalar
 
-from train_estimation.core.numerics.augmented_kf import LOG2PI, augmented_kf, gls, kf2_loglik
+from train_estimation.core.numerics.augmented_kf import (
+    LOG2PI,
+    augmented_kf,
+    digest,
+    gls,
+    kf2_loglik,
+)
 
 from .motion import Motion, slip_cols
 from .run import DiagConfig
@@ -68,7 +73,7 @@ class Stage:
         # refit's extended null; a stage rebuilt at the same noise): its noise fit and big
         # filter, deterministic functions of these inputs, are computed once per run.
         memo = _memo(mo)
-        key = _key(repr(cfg), fv, fs, md, mv)
+        key = digest(repr(cfg), fv, fs, md, mv)
         if noise is None:
             if ("noise", key) not in memo:
                 memo["noise", key] = self._fit_noise()
@@ -78,7 +83,7 @@ class Stage:
             return
         # the big run: [fixed, s0, elementary drift columns..., scale]
         self.p = mo.Dv.shape[1]
-        kkey = ("big", key, _key(self.q, self.r_s, update))
+        kkey = ("big", key, digest(self.q, self.r_s, update))
         if kkey not in memo:
             memo[kkey] = self.augmented(fv, fs, drift=(mo.Dv, mo.Ds),
                                         meas=(mo.sc_d[:, None], mo.sc_v[:, None]),
@@ -232,19 +237,6 @@ def _memo(mo: Motion) -> dict:
     """The per-run memo of noise fits and big filters (on the Motion: it lives as long as the
     run's analysis; the big filters' results are shared, never modified)."""
     return mo.__dict__.setdefault("_stage_memo", {})
-
-
-def _key(*parts) -> bytes:
-    """A digest of arrays (their bytes) and other values (their repr)."""
-    h = hashlib.blake2b(digest_size=20)
-    for x in parts:
-        if isinstance(x, np.ndarray):
-            h.update(str((x.dtype, x.shape)).encode())
-            h.update(np.ascontiguousarray(x).tobytes())
-        else:
-            h.update(repr(x).encode())
-        h.update(b"|")
-    return h.digest()
 
 
 def best_section(W: np.ndarray, u: np.ndarray, e1: np.ndarray, idx: np.ndarray, min_len: int,
