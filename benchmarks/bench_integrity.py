@@ -325,6 +325,7 @@ def aggregate(rows: list[dict]) -> list[dict]:
                  error=next((r["error"] for r in rs if r["error"]), ""))
         for k in ("wrong_side", "off_run", "hazards", "bad_cov", "corrupted", "outputs"):
             g[k] = sum(r[k] for r in ok)
+        g["twice_given"] = sum(r.get("twice_given", 0) for r in ok)
         for k in ("tta", "silence", "max_err", "rms_err", "window_err", "max_ratio"):
             vals = [r[k] for r in ok if not math.isnan(r[k])]
             g[k] = max(vals) if vals else math.nan
@@ -357,8 +358,11 @@ def targets(groups: list[dict], zone: list[dict]) -> bool:
     ws = sum(g["wrong_side"] for g in real)
     off = sum(g["off_run"] for g in real)
     lines = []
+    twice = sum(g["twice_given"] for g in real)
     lines.append((ws + off == 0, f"zero wrong-side estimates: {ws} wrong-side + {off} off-run "
-                                 f"in {sum(g['outputs'] for g in real)} estimates"))
+                                 f"in {sum(g['outputs'] for g in real)} estimates ({twice} "
+                                 f"judged by the other meaning of a stamp the clock gave "
+                                 f"twice within 1 s)"))
     haz = [g for g in real if g["hazards"]]
     never = sum(1 for g in haz if math.isinf(g["tta"]))
     finite = [g["tta"] for g in haz if math.isfinite(g["tta"])]

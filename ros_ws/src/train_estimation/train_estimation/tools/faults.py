@@ -95,6 +95,18 @@ class TrainClock:
         of the slot after the old clock's last sample, predicted at the old clock's next stamp,
         means that instant. A stamp in no segment (a corrupted one) is read on the clock in force
         at ``near``: it claims that time."""
+        valid, current = self._meanings(s, near)
+        if valid:
+            return min(valid, key=lambda t: abs(t - near))
+        return current
+
+    def meanings(self, s: float, near: float) -> list:
+        """Every true time the stamp ``s`` stands for (one, or two or more after a backward
+        step), nearest to ``near`` first."""
+        valid, current = self._meanings(s, near)
+        return sorted(valid, key=lambda t: abs(t - near)) if valid else [current]
+
+    def _meanings(self, s: float, near: float):
         bounds = [-math.inf] + [ts for ts, _ in self.steps] + [math.inf]
         valid, current = [], None
         for k in range(len(bounds) - 1):
@@ -104,9 +116,7 @@ class TrainClock:
                 valid.append(t)
             if bounds[k] <= near < bounds[k + 1]:
                 current = t
-        if valid:
-            return min(valid, key=lambda t: abs(t - near))
-        return current
+        return valid, current
 
 
 @dataclass(frozen=True)
@@ -115,6 +125,8 @@ class Fault:
     size: float = 0.0  # meaning per kind (module doc): s, s/s or messages per clean one
     at: float = 0.0  # s, true time of onset
     count: int = 1  # readings affected ("stamp")
+    jitter: float = 0.0  # s, mean of an exponential extra latency of every odometer and balise
+    #   reading, whatever the kind (a jittery link: arrivals then no longer keep sending order)
 
     def __post_init__(self):
         if self.kind not in KINDS:
@@ -123,8 +135,9 @@ class Fault:
     @property
     def label(self) -> str:
         if self.kind in ("none", "command_stop"):
-            return self.kind
+            return self.kind + (f" jitter {self.jitter:g}" if self.jitter else "")
         n = f" x{self.count}" if self.kind == "stamp" and self.count != 1 else ""
+        n += f" jitter {self.jitter:g}" if self.jitter else ""
         return f"{self.kind} {self.size:+g}{n}" if self.kind in ("stamp", "step", "drift") \
             else f"{self.kind} {self.size:g}{n}"
 
@@ -161,6 +174,8 @@ def inject(events: list, fault: Fault, rng: np.random.Generator) -> Faulted:
         recv = t + LATENCY
         if k == "latency" and train and t >= at:
             recv = t + min(size, LATENCY * (1.0 + rng.pareto(1.5)))
+        if fault.jitter and train:
+            recv += rng.exponential(fault.jitter)
         if k == "recorder_stall" and train or k == "node_stall":
             if at <= recv < at + size:
                 recv = at + size
@@ -257,6 +272,19 @@ def score(outs: list, emitted: np.ndarray, faulted: Faulted, truth: dict, rate: 
         beyond = (a > WRONG_SIDE_M) & ~(a <= WRONG_SIDE_SIGMAS * sigma)
         hazard = inside & (~np.isfinite(a) | beyond)
     ok = integ == 0
+    # A stamp the train clock gave twice within AVAILABLE_LAG (a backward step of less than
+    # that, at its edge): no reader can tell which instant it means, and the estimate of one
+    # of them is not judged by the other; counted apart (``twice_given``), not wrong-side
+    twice = np.zeros(n, bool)
+    if faulted.clock.steps:
+        for i in np.flatnonzero(ok & hazard):
+            ts = faulted.clock.meanings(outs[i].stamp, em[i] - LATENCY)
+            alt = [u for u in ts[1:] if abs(u - ts[0]) <= AVAILABLE_LAG]
+            for u in alt:
+                e = x[i] - np.interp(u, tr_t, np.asarray(truth["position"], float))
+                if abs(e) <= WRONG_SIDE_M or abs(e) <= WRONG_SIDE_SIGMAS * sigma[i]:
+                    twice[i] = True
+    hazard &= ~twice
     after = em >= faulted.onset
     h = np.flatnonzero(hazard & after)
     alarms = np.flatnonzero(~ok & after)
@@ -274,7 +302,7 @@ def score(outs: list, emitted: np.ndarray, faulted: Faulted, truth: dict, rate: 
     w = after & (em <= faulted.end + window) & np.isfinite(a)
     stamps_after = np.concatenate([[faulted.onset], em[after], [t_end]])
     return dict(
-        outputs=n, wrong_side=int(np.sum(ok & hazard)), off_run=int(np.sum(ok & ~inside)),
+        outputs=n, wrong_side=int(np.sum(ok & hazard)), twice_given=int(np.sum(twice)), off_run=int(np.sum(ok & ~inside)),
         hazards=int(h.size), tta=tta,
         availability=min(1.0, float(np.sum(ok & after & timely))
                          / max(1.0, math.floor(span * rate))),

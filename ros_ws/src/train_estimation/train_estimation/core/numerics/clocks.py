@@ -410,6 +410,87 @@ class StreamClock:
 PASS, HOLD, ADMIT, REFUSE, STEP = "pass", "hold", "admit", "refuse", "step"
 
 
+class SampleGrid:
+    """The train's own sample grid: odometer stamps against their ``seq`` (the sample counter
+    before the radio link, +1 per sample), streaming. On one clock ``stamp = s_k + (seq - q_k)
+    P`` for any recent sample ``(q_k, s_k)``, with ``P`` the sample period on the train clock;
+    the link's latency and jitter do not enter (the stamp is taken at sampling, the seq
+    counted there too). So a clock step of ``d`` s moves the :meth:`residual` of every later
+    sample by exactly ``d``, however jittery the link, while a reading that is merely late keeps
+    a residual of zero. Lost packets skip seqs and change nothing.
+
+    Trusted (:meth:`residual` not None) once ``n_min`` samples agree: the period within half
+    and twice the nominal one, the residuals' robust spread small against it. A seq that goes
+    back or leaps (a sender restarted, a wrap at 2^32) forgets the grid until it is learnt
+    again, and so does a step measured otherwise.
+    """
+
+    def __init__(self, period: float, n_min: int = 9, floor: float = 0.01, keep: int = 64):
+        self.period = period  # s, nominal odometer period
+        self.n_min = n_min  # samples before the grid is trusted
+        self.floor = floor  # s: the smallest residual taken as off the grid (sampling jitter)
+        self.keep = keep  # recent samples kept
+        self._pts: dict = {}  # seq -> timeline stamp of admitted samples
+        self._fit = None  # cached (period, tolerance) or False when not trusted
+
+    def reset(self) -> None:
+        self._pts.clear()
+        self._fit = None
+
+    def add(self, seq, stamp: float) -> None:
+        if not isinstance(seq, int) or isinstance(seq, bool):
+            return
+        if self._pts and self._restarted(seq, stamp):
+            self.reset()
+        self._pts[seq] = stamp
+        if len(self._pts) > self.keep:
+            del self._pts[min(self._pts)]
+        self._fit = None
+
+    def _restarted(self, seq: int, stamp: float) -> bool:
+        """A sender restarted or its counter wrapped: the seq went back while the stamp went on
+        (a late reading goes back in both), or a leap no sampling explains."""
+        top = max(self._pts)
+        return (seq < top and stamp > self._pts[top]) or seq < min(self._pts) - self.keep \
+            or seq > top + 100_000
+
+    def _period(self):
+        """(period s, tolerance s) of the grid, or None while it is not trusted."""
+        if self._fit is None:
+            self._fit = False
+            if len(self._pts) >= self.n_min:
+                q = np.array(sorted(self._pts), float)
+                st = np.array([self._pts[int(k)] for k in q])
+                dq, ds = np.diff(q), np.diff(st)
+                ok = dq > 0
+                if np.all(ds[ok] > 0):
+                    P = float(np.median(ds[ok] / dq[ok]))
+                    if 0.5 * self.period <= P <= 2.0 * self.period:
+                        r = st - P * q
+                        spread = 1.4826 * float(np.median(np.abs(r - np.median(r))))
+                        tol = max(self.floor, 8.0 * spread)
+                        if tol < 0.25 * P:
+                            self._fit = (P, tol)
+        return self._fit or None
+
+    def residual(self, seq, stamp: float):
+        """``stamp`` less where the grid puts sample ``seq`` (s), from the admitted sample of
+        nearest seq; None while the grid is not trusted or the seq is far from it."""
+        fit = self._period()
+        if fit is None or not isinstance(seq, int) or isinstance(seq, bool) or \
+                self._restarted(seq, stamp):
+            return None
+        near = min(self._pts, key=lambda k: abs(k - seq))
+        if abs(near - seq) > 10 * self.keep:
+            return None
+        return stamp - (self._pts[near] + (seq - near) * fit[0])
+
+    @property
+    def tol(self) -> float:
+        fit = self._period()
+        return fit[1] if fit else math.inf
+
+
 class StepWatch:
     """The train clock's steps, streaming: what to do with each train-clock reading.
 
@@ -465,6 +546,7 @@ class StepWatch:
         self._pushed: tuple | None = None  # (stamp, arrival) of the last odometer watched
         self._admitted: list = []  # sorted recent odometer stamps admitted
         self._sent: dict = {}  # timeline odometer stamp -> stamp as sent (after a step)
+        self.grid = SampleGrid(period, min_judged)  # odometer stamps against their seq
 
     # -- stamps ---------------------------------------------------------------------------
     def onto_timeline(self, stamp: float, odometer: bool) -> float:
@@ -487,10 +569,12 @@ class StepWatch:
             self._sent = {k: v for k, v in self._sent.items() if k > t}
         return stamp
 
-    def admitted(self, kind: str, stamp: float, arrival: float | None) -> None:
-        """The runner admitted this train-clock reading (timeline stamp)."""
+    def admitted(self, kind: str, stamp: float, arrival: float | None, seq=None) -> None:
+        """The runner admitted this train-clock reading (timeline stamp; ``seq`` its sample
+        counter)."""
         if kind != "odometer":
             return
+        self.grid.add(seq, stamp)
         if arrival is not None and (self.last is None or stamp > self.last[0]):
             self.last = (stamp, arrival)
         bisect.insort(self._admitted, stamp)
@@ -541,7 +625,15 @@ class StepWatch:
         prev = self._pushed
         if kind == "odometer":
             self._pushed = (stamp, arrival)
-        on_pace = prev is None or paced(prev, (stamp, arrival))
+        chain = [h for h in self.held if h[0] == "odometer"]
+        # the pace against the previous reading, or against the first held one: between two
+        # neighbours a link's jitter alone breaks the pace (50 ms of exponential jitter at 10
+        # Hz: one reading in six), and such a reading, taken as continuous, released a step's
+        # held readings as late ones and let the filter fuse them at the old clock's times
+        # (-0.5 s step: the kf 10 m off with a sigma of 0.1 m); a backlog's burst arrives at
+        # once and is paced against neither
+        on_pace = prev is None or paced(prev, (stamp, arrival)) or \
+            (bool(chain) and paced((chain[0][1], chain[0][4]), (stamp, arrival)))
         behind = kind == "odometer" and on_pace and len(med) >= self.min_judged and \
             stamp - arrival - med.value < -bar
         # Ahead by more than that above where the clock can be (its centre, and the ceiling of
@@ -551,21 +643,43 @@ class StepWatch:
         # stalls under load and stamps then run ahead of arrivals by seconds
         ahead = not self.same and recv is not None and \
             len(med) >= self.min_judged and med.above(stamp - arrival) > bar
-        if -back <= stamp - s0 <= max(arrival - a0, 0.0) + tol and not behind and not ahead:
-            if kind == "odometer" and self.held:
+        continuous = -back <= stamp - s0 <= max(arrival - a0, 0.0) + tol and not behind \
+            and not ahead
+        # The sample grid decides where it is known: a stamp on the train's own grid is on
+        # the clock, however late it arrives; one off it by more than the grid's tolerance
+        # is not, however small the move (a 0.1 s step hides in a link's jitter, and the kf
+        # then stayed 2 m off with a sigma of 0.1 m for 7 s)
+        r = self._resid(kind, stamp, fields)
+        if r is not None:
+            continuous = abs(r) <= self.grid.tol
+        if continuous:
+            seq = fields.get("seq") if isinstance(fields, dict) else None
+            first_seq = chain[0][2].get("seq") if chain else None
+            if kind == "odometer" and self.held and not (
+                    r is not None and isinstance(first_seq, int) and isinstance(seq, int)
+                    and seq < first_seq):
+                # (a late reading of the old clock, sampled before the held ones, says
+                # nothing against them)
                 yield from self._release()
             yield PASS, stamp
             return
-        chain = [h for h in self.held if h[0] == "odometer"]
+        refused = stamp - arrival - med.value > self.max_future
+        entry = (kind, stamp, fields, recv, arrival, refused)
         if kind == "odometer" and chain:
             _, s1, _, _, a1, _ = chain[-1]
-            if not continues((s1, a1), (stamp, arrival)):  # not one new clock
+            rs = self._chain_resid(chain)
+            if rs is not None and r is not None:  # one new clock: one residual
+                joins = abs(r - rs[len(rs) // 2]) <= self.grid.tol
+            else:
+                joins = continues((s1, a1), (stamp, arrival)) or \
+                    self._joins(chain, stamp, arrival, bar)
+            if not joins:
                 yield from self._release()
                 chain = []
-        refused = stamp - arrival - med.value > self.max_future
-        self.held.append((kind, stamp, fields, recv, arrival, refused))
+        self.held.append(entry)
+        self.held.sort(key=lambda h: (h[0] != "odometer", h[1]))
         if kind == "odometer":
-            chain.append(self.held[-1])
+            chain = [h for h in self.held if h[0] == "odometer"]
         if len(chain) < self.min_judged:
             yield (PASS, stamp) if refused else (HOLD,)
             return
@@ -574,7 +688,11 @@ class StepWatch:
         # after the last one of the old clock
         first, a_first = chain[0][1], chain[0][4]
         shift = first - (s0 + max(a_first - a0, self.period))
-        if abs(shift) < back:
+        rs = self._chain_resid(chain)
+        if rs is not None:
+            # the grid measures the step exactly (the link's jitter does not enter)
+            shift = rs[len(rs) // 2]
+        elif abs(shift) < back:
             # a small step (below step_back) moves every offset of the new clock alike: its
             # readings agree with one another. A node falling further behind its input also
             # puts readings below the centre, each later than the one before: no step, late
@@ -589,7 +707,9 @@ class StepWatch:
             yield (PASS, stamp) if refused else (HOLD,)
             return
         measured = all(h[3] is not None for h in chain) and len(med) >= self.min_judged
-        if measured:
+        if rs is not None:
+            measured = True
+        elif measured:
             # arrivals known: the step is how far the new clock's offsets lie from the old
             # clock's centre, the median of the chain's (two readings' arrivals, the last of
             # the old clock and the first of the new, put a link's jitter into the step whole:
@@ -599,6 +719,8 @@ class StepWatch:
             shift = offs[len(offs) // 2] - med.value
         self.shift += shift
         old = self.shift - shift
+        if rs is None:  # measured otherwise: the grid's stamps may no longer continue
+            self.grid.reset()
         held, self.held = self.held, []
         for i, (k, st, _, _, _, ref) in enumerate(held):
             if k == "odometer" and (not ref or i == len(held) - 1):
@@ -608,6 +730,35 @@ class StepWatch:
             if not ref:
                 yield ADMIT, (k, st - shift, f, rc, ar)
         yield PASS, stamp - shift
+
+    def _resid(self, kind: str, stamp: float, fields) -> float | None:
+        """The reading's residual on the sample grid (s), or None (not an odometer reading,
+        the grid not trusted)."""
+        if kind != "odometer" or not isinstance(fields, dict):
+            return None
+        return self.grid.residual(fields.get("seq"), stamp)
+
+    def _chain_resid(self, chain: list) -> list | None:
+        """The held odometer readings' grid residuals, sorted, when the grid places them all
+        and they agree (a new clock: one residual), else None."""
+        rs = [self._resid(h[0], h[1], h[2]) for h in chain]
+        if not rs or any(r is None for r in rs):
+            return None
+        rs.sort()
+        return rs if rs[-1] - rs[0] <= 2.0 * self.grid.tol else None
+
+    @staticmethod
+    def _joins(chain: list, stamp: float, arrival: float, bar: float) -> bool:
+        """A reading that does not continue the last held one but belongs to their clock: a
+        stamp not seen among them, within their span or a period or so past it, with an offset
+        that agrees with theirs (within ``bar`` of their median). A jittery link delivers a new
+        clock's readings out of order as it does the old one's (the first two readings after a
+        -0.5 s step swapped, and the first was released as a late reading of the old clock)."""
+        stamps = [h[1] for h in chain]
+        if stamp in stamps or not min(stamps) - TOL < stamp < max(stamps) + TOL:
+            return False
+        offs = sorted(h[1] - h[4] for h in chain)
+        return abs(stamp - arrival - offs[len(offs) // 2]) <= bar
 
     def _release(self):
         """No step after all: the held readings are judged as any other (stale, late, ...) --
@@ -636,7 +787,11 @@ class StepWatch:
         s0, a0 = self.last
         odo = [h for h in self.held if h[0] == "odometer"]
         doubt = max((abs(h[1] - s0 - (h[4] - a0)) for h in self.held), default=0.0)
-        return len(odo), doubt, any(self._conclusive(h[1], h[3], h[4], drift) for h in odo)
+        # the grid's residual is the step itself (exact), where the link put jitter into it
+        doubt = max([doubt] + [abs(r) for r in (self._resid(*h[:3]) for h in odo)
+                               if r is not None])
+        return len(odo), doubt, any(self._conclusive(h[1], h[3], h[4], drift) or
+                                    self._resid(*h[:3]) is not None for h in odo)
 
     def _conclusive(self, stamp: float, recv, arrival, drift: float = 0.0) -> bool:
         """One held odometer reading that no lateness explains: stamped above its clock's

@@ -266,7 +266,8 @@ class EstimatorRunner:
             return self._reject(kind, stamp, f"{R.FUTURE_STAMP}: {lead:.3g} s ahead of its clock")
         if kind in ("odometer", "control") and recv is not None:
             med.rate_point(stamp, recv)  # only stamps on time inform the rate (not a backlog's)
-        self._steps.admitted(kind, stamp, arrival)
+        self._steps.admitted(kind, stamp, arrival, fields.get("seq") if isinstance(fields, dict)
+                             else None)
         self._admitted_high = max(self._admitted_high, stamp)
         if kind == "control":
             if "train" not in self._offsets or len(self._offsets["train"]) < self.min_judged:
