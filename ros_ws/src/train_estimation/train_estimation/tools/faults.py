@@ -302,7 +302,8 @@ def score(outs: list, emitted: np.ndarray, faulted: Faulted, truth: dict, rate: 
     w = after & (em <= faulted.end + window) & np.isfinite(a)
     stamps_after = np.concatenate([[faulted.onset], em[after], [t_end]])
     return dict(
-        outputs=n, wrong_side=int(np.sum(ok & hazard)), twice_given=int(np.sum(twice)), off_run=int(np.sum(ok & ~inside)),
+        outputs=n, wrong_side=int(np.sum(ok & hazard)), twice_given=int(np.sum(twice)),
+        off_run=int(np.sum(ok & ~inside)),
         hazards=int(h.size), tta=tta,
         availability=min(1.0, float(np.sum(ok & after & timely))
                          / max(1.0, math.floor(span * rate))),
