@@ -76,6 +76,7 @@ ESTIMATORS = ("robust_filter", "kf", "gsma", "sma", "rbpf", "qgrbpf")
 QUICK_ESTIMATORS = ("robust_filter", "kf")
 SCENARIOS = ("metro_demo", "crh3_high_speed", "wen2017_subway")
 AFTER = 60.0  # s of run kept after a fault's end (the recovery)
+JITTER = 0.05  # s, mean exponential extra latency of the jittery-link step faults
 
 
 # -- runs ------------------------------------------------------------------------------------------
@@ -176,6 +177,11 @@ def plan(quick: bool, seeds: int, estimators, only, phase_names=None, long: floa
                     add(F.Fault("stamp", s, at, count=3), 0.0)
             for s in step_sizes:
                 add(F.Fault("step", s, at), 0.0)
+            # the same steps on a jittery link (arrivals out of order: the step's readings
+            # among the old clock's late ones)
+            for s in (((-0.5,) if scenario == "metro_demo" else ()) if quick else
+                      (-3.0, -0.5, -0.1, 0.1, 0.5, 3.0)):
+                add(F.Fault("step", s, at, jitter=JITTER), 0.0)
             add(F.Fault("command_stop", 0.0, at), 120.0 if quick else 400.0)
         outage_at = list(ph.items()) if (not quick or scenario == "metro_demo") else \
             [("cruising", cruise)]

@@ -29,6 +29,9 @@ fuzz             mean corrupted messages per clean one: :func:`~.fuzz.corrupt` w
                  inside ``max_future`` too (:data:`INSIDE_FUTURE`) besides its own
 ===============  ========================================================================
 
+Any kind can run on a jittery link: ``Fault.jitter`` (s) adds an exponential extra latency of
+that mean to every odometer and balise reading, so that arrivals leave sending order.
+
 Clocks: odometer and balise are stamped by the train clock ``EPOCH + t (1 + drift)`` plus the
 steps so far (:class:`TrainClock`); control by the reference clock ``EPOCH + t``; the arrival is
 ``EPOCH + t + LATENCY`` (the same epoch on both clocks, which the runner's default
@@ -239,7 +242,9 @@ def score(outs: list, emitted: np.ndarray, faulted: Faulted, truth: dict, rate: 
           t_end: float, window: float = 10.0) -> dict:
     """Integrity figures of one run's estimates (true times: reference seconds since EPOCH).
 
-    - ``wrong_side``: OK estimates with a hazardous error (module doc), whole run;
+    - ``wrong_side``: OK estimates with a hazardous error (module doc), whole run; ``twice_given``:
+      those not counted because their stamp is one the train clock gave twice within
+      ``AVAILABLE_LAG`` (a backward step) and they are right for the other instant it means;
     - ``off_run``: OK estimates whose stamp means a time more than 1 s outside the simulated run
       (no truth to judge them by; a claim that cannot be right either);
     - ``hazards``: estimates, from the onset on, whose error exceeds the bound (whatever their
