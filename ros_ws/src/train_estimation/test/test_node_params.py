@@ -160,3 +160,18 @@ def test_runtime_set_parameters_is_validated_and_refused_with_a_reason(launch, r
     ros_node.spin_for(2.0)
     mine = [s for a in box for s in a.status if s.hardware_id == ns]
     assert 6 <= len(mine) <= 9, len(mine)
+
+
+def test_an_empty_train_file_is_refused_unless_the_demo_is_asked_for():
+    # an estimator on another train's mass, resistance and brake is off with no sign of it
+    from train_core.files import config_file
+
+    from train_estimation.nodes.estimator_node import ParameterError, load_models
+
+    line = str(config_file("lines", "metro_demo"))
+    common = dict(line_file=line, train_file="", initial_position=math.nan,
+                  initial_position_std=5.0)
+    with pytest.raises(ParameterError, match="parameter train_file: empty"):
+        load_models(common)
+    train, _, _ = load_models(dict(common, use_demo_line=True))
+    assert train.mass > 0

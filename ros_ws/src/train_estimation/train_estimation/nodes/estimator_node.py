@@ -28,8 +28,9 @@ from train_core.ros import ParameterError, declare_config, sec_to_stamp, stamp_t
 class LineChoice:
     """Whether an estimator may run on the demo's line when no line file is given."""
 
-    use_demo_line: bool = param(False, "", "with line_file empty, run on metro_demo's line (the "
-                                "demo's); false: an empty line_file is refused")
+    use_demo_line: bool = param(False, "", "with line_file or train_file empty, run on the "
+                                "demo's line and train (metro_demo, metro_b6); false: an empty "
+                                "line_file or train_file is refused")
 
 
 def declare_common(node) -> dict:
@@ -59,6 +60,12 @@ def load_models(common: dict):
         # an estimator on the wrong line map is wrong everywhere: never guess it silently
         raise ParameterError("parameter line_file: empty: give the line.yaml the train runs on "
                              "(or use_demo_line:=true to run on the demo's line, metro_demo)")
+    if not common["train_file"] and not common.get("use_demo_line", False):
+        # nor on another train's mass, resistance and brake: the braking-rate and the
+        # predictions through a gap would be off with no sign of it
+        raise ParameterError("parameter train_file: empty: give the train.yaml of the train "
+                             "(mass, resistance, brake, odometer noise) (or "
+                             "use_demo_line:=true to run on the demo's train, metro_b6)")
     line_file = common["line_file"] or str(config_file("lines", "metro_demo"))
     train_file = common["train_file"] or str(config_file("trains", "metro_b6"))
     try:

@@ -46,7 +46,8 @@ class NodeConfig:
     document them)."""
 
     line_file: str = param("", "", "line.yaml; '' = metro_demo's line")
-    train_file: str = param("", "", "train.yaml; '' = metro_demo's train")
+    train_file: str = param("", "", "train.yaml the estimator believes; required ('' is "
+                            "refused unless use_demo_line is true: then metro_demo's train)")
     initial_position: float = param(math.nan, "m", "position at start (odometer origin); NaN = "
                                     "first station of the line")
     initial_position_std: float = param(5.0, "m", "standard deviation of the initial position")

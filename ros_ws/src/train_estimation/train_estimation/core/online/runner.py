@@ -296,9 +296,12 @@ class EstimatorRunner:
             elif act[0] == STEP:
                 _, shift, first, measured = act
                 self.monitor.clock(0, reanchored_at=first - shift, measured=measured)
+                # the first new reading's stamp as sent: its timeline stamp plus the shifts
+                # before this one
+                sent = first + self._steps.shift - shift
                 self._event("odometer", stamp, f"{R.CLOCK_RESET}: train clock stepped by "
-                                               f"{shift:+.3f} s at stamp "
-                                               f"{first + self._steps.shift:.3f}; re-anchored")
+                                               f"{shift:+.3f} s at stamp {sent:.3f}; "
+                                               f"re-anchored")
             elif act[0] == PASS:
                 stamp = act[1]
             elif act[0] == HOLD:
