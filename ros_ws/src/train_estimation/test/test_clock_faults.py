@@ -335,9 +335,15 @@ def test_the_sample_grid():
     assert abs(g.residual(25, 100.0 + 0.1 * (1 + 1e-3) * 25)) < g.tol  # lost packets: no matter
     assert g.residual(21, 100.0 + 0.1 * 21 - 0.1) == pytest.approx(-0.1, abs=0.005)  # a step
     assert abs(g.residual(15, 100.0 + 0.1 * 1.001 * 15)) < g.tol  # a late reading is on it
+    g.add(20, 100.0 + 0.1 * 1.001 * 20 - 0.07)  # one corrupted stamp admitted: not learnt
+    assert abs(g.residual(21, 100.0 + 0.1 * 1.001 * 21)) < g.tol
+    g.add(21, 100.0 + 0.1 * 1.001 * 21)
     assert g.residual(3, 200.0) is None  # the seq back, the stamp on: a sender restarted
-    g.add(3, 200.0)
-    assert g.residual(4, 200.1) is None  # forgotten, learnt again from n_min samples
+    for q in range(3, 3 + 8):
+        g.add(q, 200.0 + 0.1 * (q - 3))
+    assert g.residual(11, 200.8) is None  # not yet: eight readings off the line
+    g.add(11, 200.8)  # the ninth in a row: the restarted sender's grid replaces the old one
+    assert abs(g.residual(12, 200.9)) < g.tol and g.residual(12, 200.8) == pytest.approx(-0.1)
     h = SampleGrid(0.1)
     for q in range(20):  # irregular sampling (no grid): never trusted
         h.add(q, 100.0 + 0.1 * q + rng.uniform(0, 0.05))

@@ -412,17 +412,19 @@ PASS, HOLD, ADMIT, REFUSE, STEP = "pass", "hold", "admit", "refuse", "step"
 
 class SampleGrid:
     """The train's own sample grid: odometer stamps against their ``seq`` (the sample counter
-    before the radio link, +1 per sample), streaming. On one clock ``stamp = s_k + (seq - q_k)
-    P`` for any recent sample ``(q_k, s_k)``, with ``P`` the sample period on the train clock;
-    the link's latency and jitter do not enter (the stamp is taken at sampling, the seq
-    counted there too). So a clock step of ``d`` s moves the :meth:`residual` of every later
-    sample by exactly ``d``, however jittery the link, while a reading that is merely late keeps
-    a residual of zero. Lost packets skip seqs and change nothing.
+    before the radio link, +1 per sample), streaming. On one clock ``stamp = c + P seq``, with
+    ``P`` the sample period on the train clock; the link's latency and jitter do not enter (the
+    stamp is taken at sampling, the seq counted there too). So a clock step of ``d`` s moves the
+    :meth:`residual` of every later sample by exactly ``d``, however jittery the link, while a
+    reading that is merely late keeps a residual of zero. Lost packets skip seqs and change
+    nothing.
 
-    Trusted (:meth:`residual` not None) once ``n_min`` samples agree: the period within half
-    and twice the nominal one, the residuals' robust spread small against it. A seq that goes
-    back or leaps (a sender restarted, a wrap at 2^32) forgets the grid until it is learnt
-    again, and so does a step measured otherwise.
+    The line is robust: ``P`` the median of the slopes between neighbours, ``c`` the median of
+    ``stamp - P seq``, so that one corrupted stamp or seq among the samples moves neither; once
+    trusted, only samples on it are learnt. Trusted (:meth:`residual` not None) once ``n_min``
+    samples agree: the period within half and twice the nominal one, the residuals' robust
+    spread small against it. ``n_min`` admitted samples in a row off the line (a sender
+    restarted, its counter wrapped) replace it by theirs; a step measured otherwise forgets it.
     """
 
     def __init__(self, period: float, n_min: int = 9, floor: float = 0.01, keep: int = 64):
@@ -430,65 +432,77 @@ class SampleGrid:
         self.n_min = n_min  # samples before the grid is trusted
         self.floor = floor  # s: the smallest residual taken as off the grid (sampling jitter)
         self.keep = keep  # recent samples kept
-        self._pts: dict = {}  # seq -> timeline stamp of admitted samples
-        self._fit = None  # cached (period, tolerance) or False when not trusted
+        self._pts: dict = {}  # seq -> timeline stamp of learnt samples
+        self._misfits: list = []  # (seq, stamp) admitted in a row off the trusted line
+        self._fit = None  # cached (P, c, tolerance), or False when not trusted
 
     def reset(self) -> None:
         self._pts.clear()
+        self._misfits.clear()
         self._fit = None
 
+    @staticmethod
+    def _seq(seq):
+        return seq if isinstance(seq, int) and not isinstance(seq, bool) else None
+
     def add(self, seq, stamp: float) -> None:
-        if not isinstance(seq, int) or isinstance(seq, bool):
+        """A sample the runner admitted (timeline stamp)."""
+        seq = self._seq(seq)
+        if seq is None or not math.isfinite(stamp):
             return
-        if self._pts and self._restarted(seq, stamp):
-            self.reset()
+        if self._line() is not None:
+            r = self.residual(seq, stamp)
+            if r is None or abs(r) > self.tol:
+                self._misfits.append((seq, stamp))
+                if len(self._misfits) < self.n_min:
+                    return
+                misfits = self._misfits[-self.n_min:]
+                self.reset()
+                for q, st in misfits:
+                    self._pts[q] = st
+                return
+        self._misfits.clear()
         self._pts[seq] = stamp
         if len(self._pts) > self.keep:
             del self._pts[min(self._pts)]
         self._fit = None
 
-    def _restarted(self, seq: int, stamp: float) -> bool:
-        """A sender restarted or its counter wrapped: the seq went back while the stamp went on
-        (a late reading goes back in both), or a leap no sampling explains."""
-        top = max(self._pts)
-        return (seq < top and stamp > self._pts[top]) or seq < min(self._pts) - self.keep \
-            or seq > top + 100_000
-
-    def _period(self):
-        """(period s, tolerance s) of the grid, or None while it is not trusted."""
+    def _line(self):
+        """(P s, c s, tolerance s) of the grid, or None while it is not trusted."""
         if self._fit is None:
             self._fit = False
             if len(self._pts) >= self.n_min:
                 q = np.array(sorted(self._pts), float)
                 st = np.array([self._pts[int(k)] for k in q])
-                dq, ds = np.diff(q), np.diff(st)
-                ok = dq > 0
-                if np.all(ds[ok] > 0):
-                    P = float(np.median(ds[ok] / dq[ok]))
-                    if 0.5 * self.period <= P <= 2.0 * self.period:
-                        r = st - P * q
-                        spread = 1.4826 * float(np.median(np.abs(r - np.median(r))))
-                        tol = max(self.floor, 8.0 * spread)
-                        if tol < 0.25 * P:
-                            self._fit = (P, tol)
+                P = float(np.median(np.diff(st) / np.diff(q)))
+                if 0.5 * self.period <= P <= 2.0 * self.period:
+                    r = st - P * q
+                    c = float(np.median(r))
+                    spread = 1.4826 * float(np.median(np.abs(r - c)))
+                    tol = max(self.floor, 8.0 * spread)
+                    if tol < 0.25 * P:
+                        self._fit = (P, c, tol)
         return self._fit or None
 
     def residual(self, seq, stamp: float):
-        """``stamp`` less where the grid puts sample ``seq`` (s), from the admitted sample of
-        nearest seq; None while the grid is not trusted or the seq is far from it."""
-        fit = self._period()
-        if fit is None or not isinstance(seq, int) or isinstance(seq, bool) or \
-                self._restarted(seq, stamp):
+        """``stamp`` less where the grid puts sample ``seq`` (s); None while the grid is not
+        trusted, or for a seq far from it (a counter restarted or wrapped, a corrupted seq)."""
+        fit = self._line()
+        seq = self._seq(seq)
+        if fit is None or seq is None:
             return None
-        near = min(self._pts, key=lambda k: abs(k - seq))
-        if abs(near - seq) > 10 * self.keep:
+        lo, hi = min(self._pts), max(self._pts)
+        if not lo - 100_000 <= seq <= hi + 100_000:
             return None
-        return stamp - (self._pts[near] + (seq - near) * fit[0])
+        P, c, tol = fit
+        if seq < hi and stamp > c + P * hi + tol:
+            return None  # the seq back while the stamp went on: restarted, wrapped or corrupt
+        return stamp - (c + P * seq)
 
     @property
     def tol(self) -> float:
-        fit = self._period()
-        return fit[1] if fit else math.inf
+        fit = self._line()
+        return fit[2] if fit else math.inf
 
 
 class StepWatch:

@@ -196,6 +196,18 @@ class RobustAdapter:
                                         position_variance=float(fields["position_variance"])))
         return "" if d.accepted else d.reason
 
+    def position_reading(self, fields: dict):
+        """The odometer reading as this estimator's position measurement: ``(start position
+        + counted distance m, distance_variance m^2)``, or None when distance is not used
+        (the integrity monitor's position test)."""
+        if not self.cfg.use_distance:
+            return None
+        try:
+            return (self.start_state.position + float(fields["distance"]),
+                    float(self.cfg.distance_variance))
+        except (KeyError, TypeError, ValueError):
+            return None
+
     def output(self, t: float) -> Output:
         f = self.f
         if t > f.t:
@@ -509,6 +521,18 @@ class BrakingAdapter:
         if not reason:
             self.last["balise"] = (seq, stamp)
         return reason
+
+    def position_reading(self, fields: dict):
+        """The odometer reading as this estimator's position measurement: ``(start position
+        + counted distance m, distance_variance m^2)``, or None when distance is not used
+        (the integrity monitor's position test)."""
+        if not self.cfg.use_distance:
+            return None
+        try:
+            return (self.start_state.position + float(fields["distance"]),
+                    float(self.cfg.distance_variance))
+        except (KeyError, TypeError, ValueError):
+            return None
 
     def output(self, t: float) -> Output:
         # the braking filters step in time (their transition clock): an output between readings

@@ -36,6 +36,17 @@ Checks (each gives a reason, e.g. ``"no_measurement: 2.3 s"``):
     ``n`` chi-square(1) terms exceeds ``1 + z sqrt(2 / n)`` with probability ~ the normal tail of
     ``z``; above it: DEGRADED, the covariance scaled by the mean (covariance inflation restores
     NIS = 1); above ``nis_alarm``: ALARM.
+``position``
+    The odometer's distance read as the estimator's own position measurement (start position
+    plus counted distance, with the estimator's ``distance_variance``), against the previous
+    estimate carried to the reading's stamp: innovation ``nu = pos - (x + v dt + a dt^2 / 2)``,
+    variance ``S = P_xx + P_vv dt^2 + (accel_uncertainty dt^2 / 2)^2 + r``. A bias, not a
+    spread: the mean of the last ``pos_window`` innovations against its standard error
+    ``sqrt(mean S / pos_window)``; beyond ``pos_z`` of them (a consistent filter's innovations
+    are white and unbiased) the estimate and the distance disagree by more than either claims:
+    DEGRADED, position variance increased by the mean squared. (A filter that absorbs a
+    position offset slowly, one reading's weight at a time, stays centimetre-confident while
+    metres off; the speed test does not see it.)
 ``clock``
     Two or more readings held back as a possible clock step (the runner has not decided: one
     reading late by jitter is held for a period and says nothing), or one that no lateness
@@ -103,15 +114,19 @@ class IntegrityParams:
                                  "measured from the arrivals needs no hold)")
     command_timeout: float = param(2.0, "s", "no control command for this long while readings "
                                    "arrive: DEGRADED")
+    pos_window: int = param(10, "-", "fused odometer distances in the position-bias window")
+    pos_z: float = param(5.0, "-", "mean position innovation beyond pos_z standard errors: "
+                         "DEGRADED (position variance + the mean squared)")
 
     def __post_init__(self):
         require_finite(self, ("degraded_after", "alarm_after", "accel_uncertainty",
                               "max_acceleration", "nis_z", "nis_alarm", "reanchor_hold",
-                              "command_timeout"), strict=False)
+                              "command_timeout", "pos_z"), strict=False)
         require(self.alarm_after > self.degraded_after, "alarm_after", self.alarm_after,
                 "must be > degraded_after")
         require(self.blind_readings >= 1, "blind_readings", self.blind_readings, "must be >= 1")
         require(self.nis_window >= 2, "nis_window", self.nis_window, "must be >= 2")
+        require(self.pos_window >= 2, "pos_window", self.pos_window, "must be >= 2")
 
 
 class IntegrityMonitor:
@@ -131,14 +146,19 @@ class IntegrityMonitor:
         self.suspect = False  # they put the estimate in doubt (see clock)
         self.nis: deque = deque(maxlen=params.nis_window)
         self.prev: tuple | None = None  # (stamp, velocity, P_vv) of the last estimate
+        self.prev_pos: tuple | None = None  # (stamp, position, velocity, acceleration, P_xx,
+        #   P_vv) of the last estimate whose covariance is known
+        self.pos: deque = deque(maxlen=params.pos_window)  # (nu, S) of fused distances
         self.balise_doubt: tuple | None = None  # (stamp, position) of a balise refused by the
         #   gate, until a balise is fused
         self.counts = {NAMES[k]: 0 for k in NAMES}
         self.last_state = (OK, "")
 
     # -- inputs ---------------------------------------------------------------------------------
-    def reading(self, stamp: float, fields: dict | None, fused: bool) -> None:
-        """An odometer reading's outcome (fused or refused, for any reason)."""
+    def reading(self, stamp: float, fields: dict | None, fused: bool,
+                position: tuple | None = None) -> None:
+        """An odometer reading's outcome (fused or refused, for any reason); ``position``: the
+        estimator's own position measurement of it, ``(m, variance m^2)``, or None."""
         if not math.isfinite(stamp):
             self.refused_run += 1
             return
@@ -150,6 +170,28 @@ class IntegrityMonitor:
         self.last_reading = max(self.last_reading, stamp)
         if fields is not None and self.prev is not None:
             self._speed_nis(stamp, fields)
+        if position is not None and self.prev_pos is not None:
+            self._position_bias(stamp, position)
+
+    def _position_bias(self, stamp: float, position: tuple) -> None:
+        t0, x0, v0, a0, pxx, pvv = self.prev_pos
+        z, r = position
+        dt = stamp - t0
+        if not (math.isfinite(z) and math.isfinite(r) and r > 0 and 0 <= dt <= 2.0):
+            return  # across a gap the test says nothing (no_measurement covers it)
+        a0 = a0 if math.isfinite(a0) else 0.0
+        pred = x0 + v0 * dt + 0.5 * a0 * dt * dt
+        s = pxx + pvv * dt * dt + (0.5 * self.p.accel_uncertainty * dt * dt) ** 2 + r
+        if math.isfinite(s) and s > 0:
+            self.pos.append((z - pred, s))
+
+    def _bias(self) -> tuple[float, float]:
+        """(mean position innovation m, its standard error m) over a full window, else (0, inf)."""
+        n = len(self.pos)
+        if n < self.p.pos_window:
+            return 0.0, math.inf
+        return (sum(nu for nu, _ in self.pos) / n,
+                math.sqrt(sum(s for _, s in self.pos) / n / n))
 
     def _speed_nis(self, stamp: float, fields: dict) -> None:
         t0, v0, pvv = self.prev
@@ -237,6 +279,12 @@ class IntegrityMonitor:
                                     if self.held else "step re-anchored"))
             T = max(self.period, self.doubt if self.suspect else 0.0)
             P = P + np.diag([(abs(out.velocity) * T) ** 2 + T ** 2, 0.0])
+        b, se = self._bias()
+        if abs(b) > p.pos_z * se:
+            state = DEGRADED
+            why.append(f"position: distance innovations {b:+.2f} m on average over "
+                       f"{len(self.pos)} readings")
+            P = P + np.diag([b * b, 0.0])
         if self.balise_doubt is not None:
             sb, pb = self.balise_doubt
             nu = pb + out.velocity * (t - sb) - out.position
@@ -261,6 +309,15 @@ class IntegrityMonitor:
         known = (state == OK or P is not None) and C[1, 1] < UNBOUNDED
         if math.isfinite(out.velocity):
             self.prev = (t, float(out.velocity), float(C[1, 1]) if known else 1e6)
+        # the filter's own covariance, not the inflated one: the position test judges the
+        # filter (an inflation it caused must not silence it)
+        own = np.array(out.covariance, dtype=float).reshape(4, 4)
+        if math.isfinite(out.position) and math.isfinite(out.velocity) and \
+                0 < own[0, 0] < UNBOUNDED and 0 <= own[1, 1] < UNBOUNDED:
+            self.prev_pos = (t, float(out.position), float(out.velocity),
+                             float(out.acceleration), float(own[0, 0]), float(own[1, 1]))
+        else:
+            self.prev_pos = None
         return replace(out, covariance=tuple(C.ravel()), integrity=state,
                        integrity_reason=why)
 

@@ -462,8 +462,11 @@ class EstimatorRunner:
     def _observe(self, kind: str, stamp: float, fields: dict, reason: str) -> None:
         """Tell the integrity monitor what became of an item the filter processed."""
         if kind == "odometer":
-            self.monitor.reading(stamp, fields if isinstance(fields, dict) else None,
-                                 not reason or R.category(reason) in R.ACCEPTED)
+            fused = not reason or R.category(reason) in R.ACCEPTED
+            pos = getattr(self.adapter, "position_reading", None)
+            self.monitor.reading(stamp, fields if isinstance(fields, dict) else None, fused,
+                                 pos(fields) if pos is not None and fused and
+                                 isinstance(fields, dict) else None)
         elif kind == "control" and not reason:
             self.monitor.command(stamp)
         elif kind == "balise":
