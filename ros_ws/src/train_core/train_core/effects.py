@@ -18,7 +18,8 @@ odometer_scale     odometer distance and speed are ``scale`` x the axle-free tru
                    scale = nominal / true wheel diameter). Odometer values only.
 wheel_slip         during each interval [t0, t1] the axle speed is (1 + slip_fraction) v (slip if
                    > 0, slide if < 0); the counted distance integrates the axle speed, so it keeps
-                   the excess afterwards. Odometer values only.
+                   the excess afterwards. ``fractions`` (optional): one slip fraction per
+                   interval instead. Odometer values only.
 bursty_link        both topics' links become Gilbert-Elliott with p_good_bad, p_bad_good
                    (loss_good, loss_bad default 0 and 1). Which messages are received only.
 brake_delay        true transport delay (s) of *braking* commands; traction keeps train.yaml's
@@ -42,6 +43,7 @@ Pure module: PyYAML-free (validation uses :mod:`train_core.config` sections).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, fields, replace
 
 from .config import REQUIRED, ConfigError, Section
@@ -93,11 +95,18 @@ class OdometerScaleEffect:
 class WheelSlipEffect:
     intervals: tuple[tuple[float, float], ...]  # s, [(t0, t1), ...] episodes
     slip_fraction: float = 0.1  # -, axle speed = (1 + slip_fraction) v during an episode
+    # -, one slip fraction per episode (same order as ``intervals``); empty: ``slip_fraction``
+    # in every episode
+    fractions: tuple[float, ...] = ()
+
+    def fraction(self, i: int) -> float:
+        """-, the slip fraction of episode ``i``."""
+        return self.fractions[i] if self.fractions else self.slip_fraction
 
     def factor(self, t: float) -> float:
-        for t0, t1 in self.intervals:
+        for i, (t0, t1) in enumerate(self.intervals):
             if t0 <= t < t1:
-                return 1.0 + self.slip_fraction
+                return 1.0 + self.fraction(i)
         return 1.0
 
 
@@ -255,10 +264,11 @@ def parse_effects(sec: Section, duration: float) -> Effects:
         kw["odometer_scale"] = OdometerScaleEffect(
             s.number("scale", REQUIRED, lo=0.5, hi=1.5))
     if sec.has("wheel_slip"):
-        s = sec.section("wheel_slip", ("intervals", "slip_fraction"))
+        s = sec.section("wheel_slip", ("intervals", "slip_fraction", "fractions"))
+        ivs = s.intervals("intervals", REQUIRED)
         kw["wheel_slip"] = WheelSlipEffect(
-            intervals=s.intervals("intervals", REQUIRED),
-            slip_fraction=s.number("slip_fraction", 0.1, lo=-0.9, hi=1.0))
+            intervals=ivs, slip_fraction=s.number("slip_fraction", 0.1, lo=-0.9, hi=1.0),
+            fractions=_slip_fractions(s, ivs))
     if sec.has("bursty_link"):
         s = sec.section("bursty_link", ("p_good_bad", "p_bad_good", "loss_good", "loss_bad"))
         kw["bursty_link"] = BurstyLinkEffect(
@@ -331,6 +341,23 @@ def _parse_drive_effects(sec: Section, kw: dict) -> None:
                                                             unit="s"))
 # Writing (the inverse of parse_effects: what is written parses back to the same effects)
 # ------------------------------------------------------------------------------------------------
+
+def _slip_fractions(s, ivs) -> tuple[float, ...]:
+    """wheel_slip's optional ``fractions``: one number in [-0.9, 1] per interval, in the order
+    the intervals are written (they are sorted by start, and the fractions with them)."""
+    raw = s.data.get("fractions")
+    if raw is None:
+        return ()
+    ivs_raw = s.data.get("intervals")
+    ok = isinstance(raw, list) and len(raw) == len(ivs) and all(
+        isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+        and -0.9 <= x <= 1.0 for x in raw)
+    if not ok:
+        raise ConfigError(f"{s.where}.fractions: expected one number in [-0.9, 1] per interval "
+                          f"({len(ivs)}), got {raw!r}")
+    order = sorted(range(len(raw)), key=lambda i: (float(ivs_raw[i][0]), float(ivs_raw[i][1])))
+    return tuple(float(raw[i]) for i in order)
+
 
 def effect_to_dict(effect) -> dict:
     """One effect's parameters in the scenario's ``effects:`` syntax (plain YAML types); a

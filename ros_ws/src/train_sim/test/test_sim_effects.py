@@ -75,6 +75,24 @@ def test_wheel_slip_changes_odometer_only_inside_and_carries_distance(base):
     assert extra[-1] > 1.0  # the episode really happened while moving
 
 
+def test_wheel_slip_fractions_per_episode(base):
+    """``fractions``: each episode its own slip fraction (a slide in one, a slip in the other),
+    in the order of the intervals."""
+    sc, r0 = base
+    ivs, fr = ((40.0, 45.0), (70.0, 80.0)), (-0.15, 0.08)
+    r1 = run(sc, wheel_slip=WheelSlipEffect(ivs, slip_fraction=0.5, fractions=fr))
+    t, v = r0.truth["t"], r0.truth["velocity"]
+    dv = r1.odometer["speed"] - r0.odometer["speed"]
+    for (a, b), k in zip(ivs, fr):
+        inside = (t >= a) & (t < b)
+        assert v[inside].min() > 1.0
+        assert np.allclose(dv[inside], k * v[inside], atol=1e-12)
+    out = np.ones(t.size, bool)
+    for a, b in ivs:
+        out &= (t < a) | (t >= b)
+    assert np.all(dv[out] == 0.0)
+
+
 def test_clock_drift_changes_only_train_stamps(base):
     sc, r0 = base
     d = 2e-4

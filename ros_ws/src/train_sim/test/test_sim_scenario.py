@@ -103,6 +103,9 @@ def test_other_bad_values(tmp_scenario):
                  "effects.mass", "missing key 'mass'")
     expect_error(tmp_scenario(lambda d: d.update(
         effects={"wheel_slip": {"intervals": [[5, 2]]}})), "effects.wheel_slip.intervals")
+    expect_error(tmp_scenario(lambda d: d.update(effects={"wheel_slip": {
+        "intervals": [[2, 5], [8, 9]], "fractions": [0.1]}})), "effects.wheel_slip.fractions",
+        "one number in [-0.9, 1] per interval")
     expect_error(tmp_scenario(lambda d: d["start"].update(position=1e6)),
                  "start.position", "out of range")
 
@@ -117,7 +120,7 @@ def test_effects_parse_and_build_true_models(tmp_scenario):
         "resistance": {"a": 4000.0, "b": 150.0, "c": 9.0},
         "braking_rate": {"f_start": 1.0, "f_end": 0.7},
         "odometer_scale": {"scale": 1.01},
-        "wheel_slip": {"intervals": [[10, 20], [30, 35]], "slip_fraction": 0.15},
+        "wheel_slip": {"intervals": [[30, 35], [10, 20]], "fractions": [-0.1, 0.2]},
         "bursty_link": {"p_good_bad": 0.02, "p_bad_good": 0.3},
         "brake_delay": {"delay": 1.6},
         "mass": {"mass": 320000.0},
@@ -136,6 +139,8 @@ def test_effects_parse_and_build_true_models(tmp_scenario):
     assert sc.effects.braking_rate.value(sc.duration) == 0.7
     assert sc.true_link.model == "gilbert_elliott" and sc.link.model == "bernoulli"
     assert sc.true_line.gradient_permille(1100.0) == 12.0 + 8.0
+    # the fractions follow their intervals (which are sorted by start)
+    assert sc.effects.wheel_slip.factor(15.0) == 1.2 and sc.effects.wheel_slip.factor(32.0) == 0.9
     assert sc.line.gradient_permille(1100.0) == 12.0
 
 

@@ -376,8 +376,8 @@ def open_loop(line: Line, train: TrainParams, commands: tuple, *, effects: Effec
             None if br.t_end is None else br.t_end - t0, br.t_step - t0))
     if eff.wheel_slip is not None:
         ws = eff.wheel_slip
-        eff = replace(eff, wheel_slip=type(ws)(
-            tuple((a - t0, b - t0) for a, b in ws.intervals), ws.slip_fraction))
+        eff = replace(eff, wheel_slip=replace(
+            ws, intervals=tuple((a - t0, b - t0) for a, b in ws.intervals)))
     tt = true_train(train, eff)
     # Actuator state at t0: the commands issued before t0 through the true actuator alone.
     brake_delay = eff.brake_delay.delay if eff.brake_delay else None

@@ -223,17 +223,29 @@ class Motion:
 
 
 def slip_cols(mo: Motion, intervals) -> tuple[np.ndarray, np.ndarray]:
-    """Measurement columns of slip episodes with unit fraction: speed v_ref inside, distance
-    the integral of v_ref over the part of the episode before t_k."""
-    ev, g = mo.ev, mo.grid
+    """Measurement columns of slip episodes with unit coefficient: the odometer's own speed
+    inside, and after t_k the distance the odometer counted over the part of the episode before
+    t_k. Both already hold the episode (the odometer reads (1 + eps) v there), so a coefficient
+    theta is the slip fraction eps = theta / (1 - theta), at every sample of the episode alike
+    (a reference speed smoothed across the onset would be partly slipped at the edges only)."""
+    ev = mo.ev
     md = np.zeros(ev.t.size)
     mv = np.zeros(ev.t.size)
-    cum = np.concatenate([[0.0], np.cumsum(0.5 * (mo.v_ref[1:] + mo.v_ref[:-1]) * g.dt)])
     o = ev.odo
     t = ev.t[o]
     for t0, t1 in intervals:
         inside = (t >= t0) & (t < t1)
-        mv[o[inside]] += np.interp(t[inside], g.t, mo.v_ref)
-        c0 = np.interp(t0, g.t, cum)
-        md[o] += np.clip(np.interp(np.minimum(t, t1), g.t, cum) - c0, 0.0, None)
+        mv[o[inside]] += odometer_speed(mo, t[inside])
+        c0 = counted(mo, t0)
+        md[o] += np.clip(counted(mo, np.minimum(t, t1)) - c0, 0.0, None)
     return md, mv
+
+
+def odometer_speed(mo: Motion, t) -> np.ndarray:
+    """m/s, the odometer's measured speed at times ``t`` (linear between samples, >= 0)."""
+    return np.clip(np.interp(t, mo.run.odo_t, mo.run.odo_v), 0.0, None)
+
+
+def counted(mo: Motion, t) -> np.ndarray:
+    """m, the odometer's counted distance at times ``t`` (linear between samples)."""
+    return np.interp(t, mo.run.odo_t, mo.run.odo_d)

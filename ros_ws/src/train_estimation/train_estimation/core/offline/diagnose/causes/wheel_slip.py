@@ -18,12 +18,20 @@ from train_core.effects import WheelSlipEffect
 from train_estimation.core.numerics.augmented_kf import gls
 from train_estimation.core.offline.identify import moving_average
 
-from ..motion import slip_cols
-from ..stage import best_section
+from ..motion import counted, odometer_speed, slip_cols
 from .base import Cause, resolved
 
 # s: neighbouring episodes closer than this are tested as one (refine_episodes)
 MERGE_GAP = 10.0
+# s: the longest episode searched as one interval (a wheel slide under wheel-slide protection
+# can last a whole brake application, tens of seconds)
+MAX_EPISODE = 30.0
+# s: a window's samples reach this far before its first and after its last large innovation
+# (the filter reacts within a sample or two; the onset is found to a sample)
+PAD_BEFORE, PAD_AFTER = 2.0, 3.0
+# -, the smallest slip fraction an episode is reported with: the odometer's speed is good to
+# about 1 % (wheel diameter, calibration), so a smaller one is not a slip
+MIN_DEPTH = 0.01
 
 
 class WheelSlip(Cause):
@@ -35,9 +43,10 @@ class WheelSlip(Cause):
         null_ll = st.null_ll()
         if not cands:
             return null_ll, 3, {"intervals": []}, {}, {"candidates": 0}
-        cols, Md, Mv = _sample_columns(st, cands)
+        wins = _windows(cands)
+        samples, Md, Mv = _sample_columns(st, wins)
         kf = st.augmented(st.fv, st.fs, meas=(Md, Mv))
-        nc = len(cols)
+        nc = samples.size
         u = np.zeros(nc + 2)
         u[0] = 1.0
         e1 = np.zeros(nc + 2)
@@ -45,47 +54,43 @@ class WheelSlip(Cause):
         base_quad = gls(kf.W, np.stack([u, e1], axis=1))[2]
         pen = 3 * math.log(st.n_meas)
         t = st.mo.ev.t[st.mo.ev.odo]
-        # each candidate's best interval alone ...
-        best_iv = []
-        for c in range(len(cands)):
-            idx = np.array([2 + j for j, (cc, _) in enumerate(cols) if cc == c])
-            if idx.size == 0:
-                continue
-            quad, a, b, eps, se = best_section(kf.W, u, e1, idx, 1)
-            if 2 * 0.5 * (base_quad - quad) - pen > 0:
-                col = np.zeros(nc + 2)
-                col[idx[a:b]] = 1.0
-                i0 = cols[idx[a] - 2][1]
-                i1 = cols[idx[b - 1] - 2][1] + 1
-                best_iv.append((float(t[i0]), float(t[i1]), col))
-        chosen, _ = _forward_selection(kf.W, u, e1, best_iv, base_quad, pen)
+        ts = t[samples]
+        runs = [2 + np.flatnonzero((ts >= w0 - PAD_BEFORE) & (ts <= w1 + PAD_AFTER))
+                for w0, w1 in wins]
+        chosen = [(float(t[samples[c[0] - 2]]), float(t[samples[c[-1] - 2] + 1]))
+                  for c in _forward_selection(kf.W, u, e1, [r for r in runs if r.size], pen)]
         if not chosen:
             return null_ll, 3, {"intervals": []}, {}, {"candidates": len(cands)}
-        ivs, eps, se, quad_now = refine_episodes(st, [(c[0], c[1]) for c in chosen], pen)
+        ivs, th, se_th, quad_now = refine_episodes(st, chosen, pen)
+        eps, se = _fractions(th, se_th)
         return null_ll + 0.5 * (base_quad - quad_now), 3 * len(ivs), \
             {"intervals": [list(iv) for iv in ivs], "depths": [-e for e in eps]}, \
             {"slip_fraction": se, "depths": se}, \
-            {"slip_fraction": eps, "candidates": len(cands), "found": len(chosen)}
+            {"slip_fraction": eps, "column": th, "candidates": len(cands),
+             "found": len(chosen)}
 
     def resolution(self, fit, mo) -> str | None:
-        """An episode is resolved when its slip fraction is more than 0.01 and 3 SE from 0
-        and it lasts at least one odometer period."""
+        """An episode is resolved when its slip fraction is more than ``MIN_DEPTH`` and 3 SE
+        from 0 and it lasts at least one odometer period."""
         t = mo.ev.t[mo.ev.odo]
         period = float(np.median(np.diff(t))) if t.size > 1 else 0.0
         eps = fit.extra.get("slip_fraction", [])
         se = fit.std_errors.get("slip_fraction", [None] * len(eps))
         why = "below resolution: no episode"
         for (t0, t1), e, s in zip(fit.parameters.get("intervals", []), eps, se):
-            r = resolved(f"slip fraction on [{t0:.1f}, {t1:.1f}] s", e, s, 0.01)
+            r = resolved(f"slip fraction on [{t0:.1f}, {t1:.1f}] s", e, s, MIN_DEPTH)
             if r is None and t1 - t0 >= period:
                 return None
             why = r or f"below resolution: episode shorter than one odometer period ({period:g} s)"
         return why
 
     def extend_null(self, null, fit, mo) -> None:
-        for (t0, t1), eps in zip(fit.parameters["intervals"],
-                                 fit.extra.get("slip_fraction", [])):
-            null.slip.append((t0, t1, eps))
+        """The episodes' columns at their fitted coefficients (see :func:`_fractions`)."""
+        th = fit.extra.get("column")
+        if th is None:
+            th = [e / (1.0 + e) for e in fit.extra.get("slip_fraction", [])]
+        for (t0, t1), c in zip(fit.parameters["intervals"], th):
+            null.slip.append((t0, t1, c))
 
     def report(self, params: dict, beta: float) -> dict:
         params["intervals"] = [[a / beta, b / beta] for a, b in params.get("intervals", [])]
@@ -153,43 +158,104 @@ def _candidates(st) -> list:
     return cands[:cfg.max_slip_candidates]
 
 
-def _sample_columns(st, cands: list):
-    """Per-sample slip columns of every candidate window: ([(candidate, odometer event i)],
-    Md, Mv) with column j the slip of bin [t_i, t_i+1) at unit fraction."""
+def _windows(cands: list) -> list:
+    """The windows searched for one episode each: every candidate, and every span from one
+    candidate to a later one within ``MAX_EPISODE`` s. A long episode shows in the null's speed
+    innovations at its onset and at its end only (in between, the filter follows the odometer),
+    so its two candidates are far apart and neither window alone holds the whole episode."""
+    out = [(float(c0), float(c1)) for c0, c1 in cands]
+    by_time = sorted(out)
+    for i, (a0, _) in enumerate(by_time):
+        for _, b1 in by_time[i + 1:]:
+            if b1 - a0 <= MAX_EPISODE:
+                out.append((a0, b1))
+    return out
+
+
+def _sample_columns(st, wins: list):
+    """Per-sample slip columns over every window (each odometer sample once): (odometer event
+    index i of each column (ascending), Md, Mv) with column j the slip of bin [t_i, t_i+1) at
+    unit fraction. A window's samples are a contiguous run of columns."""
     mo, ev = st.mo, st.mo.ev
     o = ev.odo
     t = ev.t[o]
-    g = mo.grid
-    cum = np.concatenate([[0.0], np.cumsum(0.5 * (mo.v_ref[1:] + mo.v_ref[:-1]) * g.dt)])
-    cols = []
-    for c, (c0, c1) in enumerate(cands):
-        for i in np.flatnonzero((t >= c0 - 2.0) & (t <= c1 + 3.0))[:-1]:
-            if i + 1 < t.size:
-                cols.append((c, int(i)))
-    n, nc = ev.t.size, len(cols)
+    keep = np.zeros(t.size, bool)
+    for w0, w1 in wins:
+        keep |= (t >= w0 - PAD_BEFORE) & (t <= w1 + PAD_AFTER)
+    keep[-1] = False  # the last sample has no bin after it
+    samples = np.flatnonzero(keep)
+    n, nc = ev.t.size, samples.size
     Md = np.zeros((n, nc))
     Mv = np.zeros((n, nc))
-    for j, (_, i) in enumerate(cols):
-        Mv[o[i], j] = np.interp(t[i], g.t, mo.v_ref)
-        Md[o[i + 1:], j] = np.interp(t[i + 1], g.t, cum) - np.interp(t[i], g.t, cum)
-    return cols, Md, Mv
+    # as motion.slip_cols: the odometer's own speed and counted distance (they hold the slip)
+    v = odometer_speed(mo, t[samples])
+    d = counted(mo, t[samples + 1]) - counted(mo, t[samples])
+    for j, i in enumerate(samples):
+        Mv[o[i], j] = v[j]
+        Md[o[i + 1:], j] = d[j]
+    return samples, Md, Mv
 
 
-def _forward_selection(W, u, e1, best_iv: list, base_quad: float, pen: float):
-    """Episodes added one at a time by the joint fit: every episode's distance excess persists,
-    so episodes compete for the same evidence and their gains must not be added up."""
-    chosen, quad_now = [], base_quad
-    while best_iv:
-        trials = []
-        for m, (_a, _b, col) in enumerate(best_iv):
-            M = np.stack([u, e1] + [c[2] for c in chosen] + [col], axis=1)
-            trials.append((gls(W, M)[2], m))
-        q_new, m = min(trials)
-        if (quad_now - q_new) - pen <= 0:
-            break
-        chosen.append(best_iv.pop(m))
-        quad_now = q_new
-    return chosen, quad_now
+def _forward_selection(W, u, e1, runs: list, pen: float) -> list:
+    """Episodes added one at a time, each the contiguous run of columns within one window
+    (``runs``: each window's column indices, in time order) that most improves the joint fit
+    of the episodes chosen so far, while it pays its BIC penalty ``pen``. Returns the chosen
+    episodes' column indices.
+
+    Every episode's distance excess persists in the counted distance, so episodes compete for
+    the same evidence: an episode's gain and its best boundaries are those given the episodes
+    already chosen (the chosen columns and s0 are profiled out of W, a Schur complement), not
+    those it has alone -- alone, a short episode after a long slide would take its window's
+    whole width to explain the slide's persisting distance deficit."""
+    chosen: list[np.ndarray] = []
+    nuis = [e1]
+    quad_now = gls(W, np.stack([u, e1], axis=1))[2]
+    while True:
+        N = np.stack(nuis, axis=1)
+        WN = W @ N
+        P = W - WN @ np.linalg.solve(N.T @ WN, WN.T)
+        best = None
+        taken = np.zeros(W.shape[0], bool)
+        for c in chosen:
+            taken[c] = True
+        for idx in runs:
+            # episodes do not overlap (two at once would be one episode of varying depth,
+            # which the model does not have): a window gives runs outside the chosen ones
+            free = idx[~taken[idx]]
+            if free.size == 0:
+                continue
+            cut = np.flatnonzero(np.diff(free) > 1) + 1
+            for part in np.split(free, cut):
+                q, a, b = _best_run(P, u, part)
+                if best is None or q < best[0]:
+                    best = (q, part[a:b])
+        if best is None or not math.isfinite(best[0]) or quad_now - best[0] - pen <= 0:
+            return chosen
+        col = np.zeros(W.shape[0])
+        col[best[1]] = 1.0
+        chosen.append(best[1])
+        nuis.append(col)
+        quad_now = best[0]
+
+
+def _best_run(P: np.ndarray, u: np.ndarray, idx: np.ndarray) -> tuple:
+    """The contiguous run [a, b) of the columns ``idx`` whose sum, with one free coefficient,
+    best explains the data with the nuisances already profiled out of ``P``: (quad, a, b);
+    quad = u'Pu - (c'Pu)^2 / c'Pc, all runs at once from prefix sums. A run that the nuisances
+    already span (c'Pc ~ 0 relative to c'Wc's diagonal part) is skipped."""
+    pu = P[idx] @ u
+    C = P[np.ix_(idx, idx)]
+    A = np.concatenate([[0.0], np.cumsum(pu)])
+    S = np.zeros((idx.size + 1, idx.size + 1))
+    S[1:, 1:] = np.cumsum(np.cumsum(C, axis=0), axis=1)
+    D = np.concatenate([[0.0], np.cumsum(np.abs(np.diag(C)))])
+    i, j = np.triu_indices(idx.size + 1, k=1)
+    aS = A[j] - A[i]
+    cS = S[j, j] - S[i, j] - S[j, i] + S[i, i]
+    ok = cS > 1e-9 * (D[j] - D[i])
+    quad = np.where(ok, float(u @ P @ u) - aS * aS / np.where(ok, cS, 1.0), np.inf)
+    k = int(np.argmin(quad))
+    return float(quad[k]), int(i[k]), int(j[k])
 
 
 def refine_episodes(st, intervals: list, pen: float) -> tuple:
@@ -201,8 +267,11 @@ def refine_episodes(st, intervals: list, pen: float) -> tuple:
     round over each episode's columns and each merge of neighbours closer than ``MERGE_GAP``),
     the merge that costs least is made while it costs less than an episode's BIC penalty
     ``pen`` (3 ln n: a merged pair has 3 parameters fewer), then the episode whose removal
-    costs least is dropped while that costs less than ``pen``. Returns (intervals, slip
-    fractions, their standard errors, quadratic form of the final joint fit)."""
+    costs least is dropped while that costs less than ``pen``, then the shallowest episode
+    below the resolution (|slip fraction| <= ``MIN_DEPTH`` or within 3 standard errors of 0:
+    a piece that only trims a neighbour's edge) while there is one. Returns (intervals,
+    column coefficients (:func:`_fractions`), their standard errors, quadratic form of the
+    final joint fit)."""
     ivs = sorted((float(a), float(b)) for a, b in intervals)
     for _ in range(2 * len(ivs) + 1):
         pairs = [i for i in range(len(ivs) - 1) if ivs[i + 1][0] - ivs[i][1] < MERGE_GAP]
@@ -222,8 +291,31 @@ def refine_episodes(st, intervals: list, pen: float) -> tuple:
             continue
         th, cov, q = gls(W, cols[:, :2 + n])
         se = np.sqrt(np.clip(np.diag(cov)[1:], 0, None))
-        return ivs, th[1:].tolist(), se.tolist(), float(q)
+        th = th[1:]
+        eps, se_eps = _fractions(th, se)
+        weak = [(abs(e), i) for i, (e, s) in enumerate(zip(eps, se_eps))
+                if resolved("", e, s, MIN_DEPTH) is not None]
+        if n > 1 and weak:
+            del ivs[min(weak)[1]]
+            continue
+        return ivs, th.tolist(), se.tolist(), float(q)
     raise RuntimeError("episode refinement did not settle")  # pragma: no cover - bounded
+
+
+def _fractions(th, se_th) -> tuple[list, list]:
+    """Slip fractions (and standard errors) from the coefficients of the episode columns.
+
+    A column is the odometer's own speed (and counted distance) inside the episode
+    (motion.slip_cols), which already holds the episode: there it reads (1 + eps) v. The
+    odometer's excess eps v is then theta (1 + eps) v, so eps = theta / (1 - theta) (a 10 %
+    slip would be read as 9.1 %, a 25 % slide as 33 % without it); d eps / d theta =
+    1 / (1 - theta)^2."""
+    eps, se = [], []
+    for t, s in zip(th, se_th):
+        d = 1.0 - float(t)
+        eps.append(float(t) / d if d > 0 else math.inf)
+        se.append(float(s) / d**2 if d > 0 else math.inf)
+    return eps, se
 
 
 def _quad(W, cols, sel) -> float:
