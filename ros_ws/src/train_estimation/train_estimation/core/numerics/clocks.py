@@ -537,6 +537,12 @@ class StepWatch:
     no step (they are released as late). A step within the bar is not told from arrival jitter
     and not re-anchored; without arrival times only steps beyond ``TOL`` are seen.
 
+    Where the train's sample grid is known (:class:`SampleGrid`, fed by :meth:`admitted`) it
+    decides first: a reading on the grid is continuous however late it arrives, one off it is
+    discontinuous however small the move, held readings belong to one new clock when their grid
+    residuals agree, and the step is their median residual (``measured``, to the sampling
+    jitter). A jittery link then neither hides a small step nor breaks a step's chain.
+
     The runner keeps admission (duplicates, sequence numbers, ``max_future``, the offsets' votes)
     and acts; this decides. :meth:`watch` answers one reading with a sequence of actions,
     judged one at a time: each held reading released is judged against the clock as the
