@@ -45,9 +45,11 @@ from train_estimation.core.braking.braking_filters import (  # noqa: E402
     DiscreteRBPF,
     OracleKF,
     RandomWalkRBPF,
+    sma_transition,
     sticky_transition,
 )
 from train_estimation.core.braking.braking_model import BrakingModel, BrakingParams  # noqa: E402
+from train_estimation.core.online.estimators import BrakingConfig  # noqa: E402
 
 VALUES = np.round(np.arange(10, -1, -1) * 0.1, 10)
 X0 = np.array([0.0, 20.0, -1.0, -2.0])
@@ -68,9 +70,10 @@ PRIOR = (1.0, 0.15)  # f prior of every estimator: train.yaml's braking_rate, st
 Q_F = 1e-3  # f random walk per step for the KF and the continuous filters (the sticky kernel's
 #   variance: P(move) 0.1 x (0.1)^2 = 1e-3 per step)
 STICKY = sticky_transition(11, 0.1)
-# the node's SMA children prior (estimators.BrakingAdapter): every value a child, stay 0.9, the
-# other ten 0.01 each (a sticky kernel would restrict SMA's children to GSMA's three)
-SMA_ALL = 0.9 * np.eye(11) + 0.1 / 10 * (1.0 - np.eye(11))
+# the node's SMA children prior (estimators.BrakingAdapter): every value a child, the sticky
+# drift to a neighbour (0.1) and a jump to a farther value with 1e-3 (a sticky kernel alone
+# would restrict SMA's children to GSMA's three)
+SMA_ALL = sma_transition(11, 0.1, BrakingConfig().sma_p_jump)
 REF = "KF (exact)"
 
 
@@ -528,8 +531,9 @@ def main(argv=None):
           "Q = 500, uniform prior over children (the paper); GSMA Q=N prunes to 50 every "
           "step; GSMA sticky merged: sticky prior over the group's children, particles on one "
           "value merged into one Gaussian after each step (at most 11 x 3 KFs per step); SMA "
-          "merged: the same with every value a child (stay 0.9, each other value 0.01: the "
-          "node's SMA; at most 11 x 11 KFs); "
+          "merged: the same with every value a child (stay 0.9, each neighbour 0.05, a jump "
+          f"to a farther value {BrakingConfig().sma_p_jump:g}: the node's SMA; at most 11 x 11 "
+          "KFs); "
           f"Q-GRBPF: 50 particles on [0, 1], random walk {Q_F} per step; Q-GRBPF GH-3: the "
           "same Gaussian over f represented by 3 Gauss-Hermite nodes, KF states from the joint "
           f"Gaussian's conditional (no random draw, no resampling); {REF}: one KF on "

@@ -15,6 +15,7 @@ from train_estimation.core.braking.braking_filters import (
     OracleKF,
     RandomWalkRBPF,
     neighbour_groups,
+    sma_transition,
     sticky_transition,
 )
 from train_estimation.core.braking.braking_model import BrakingModel, BrakingParams
@@ -308,12 +309,69 @@ def test_random_inputs_never_empty_or_nan(name, steps, seed):
         assert filt.t == pytest.approx(t)
 
 
+SPEED = (np.array([0.0, 20.0, 0.0]), np.array([False, True, False]))  # one speed reading
+
+
 def test_transition_interval_makes_branching_rate_independent():
-    """With transition_interval = 1 s and 0.25 s steps, GSMA branches on every 4th step only."""
+    """With transition_interval = 1 s and 0.25 s readings, GSMA branches on every 4th step only."""
     fam = BrakingModel(BrakingParams())
     filt = GSMA(fam, VALUES, n_init=10, n_keep=10, q_max=10_000)
     filt.transition_interval = 1.0
     rng = np.random.default_rng(0)
     filt.reset(X0, P0, rng, t0=0.0)
-    counts = [filt.step(-1.0, None, None, rng, t=0.25 * (k + 1)).n_particles for k in range(8)]
+    counts = [filt.step(-1.0, *SPEED, rng, t=0.25 * (k + 1)).n_particles for k in range(8)]
     assert counts == [10, 10, 10, 30, 30, 30, 30, 90]
+
+
+def _sma(fam):
+    return SMA(fam, VALUES, transition=sma_transition(VALUES.size, 0.1, 1e-3), merge=True,
+               prior=(1.0, 0.15))
+
+
+@pytest.mark.parametrize("make", [
+    _sma,
+    lambda fam: GSMA(fam, VALUES, transition=sticky_transition(VALUES.size, 0.1), merge=True,
+                     prior=(1.0, 0.15)),
+    lambda fam: DiscreteRBPF(fam, VALUES, sticky_transition(VALUES.size, 0.1), 100,
+                             prior=(1.0, 0.15)),
+    lambda fam: QGRBPF(fam, [(0.0, 1.3)], 50, braking_rate_q=3e-4, prior=(1.0, 0.15)),
+], ids=["sma", "gsma", "rbpf", "qgrbpf"])
+def test_without_readings_f_is_held_and_the_next_reading_takes_the_transition(make):
+    """While braking without a reading (an outage, outputs between readings) a step is the KF
+    time update alone: the f particles and weights stay as they were, however long and however
+    often it is predicted; the transition comes with the next reading (dt = 0 included)."""
+    fam = BrakingModel(BrakingParams())
+    filt = make(fam)
+    filt.transition_interval = 1.0
+    rng = np.random.default_rng(0)
+    filt.reset(X0, P0, rng, t0=0.0)
+    for k in range(10):  # 1 s of braking with readings: transitions happen
+        filt.step(-1.0, *SPEED, rng, t=0.1 * (k + 1))
+    th0, lw0 = filt.particles
+    f0 = filt.estimate().theta_mean.copy()
+    for k in range(300):  # 30 s of braking predicted at 10 Hz, no reading
+        e = filt.step(-1.0, None, None, rng, t=1.0 + 0.1 * (k + 1))
+        assert e.accepted and e.informative
+    th1, lw1 = filt.particles
+    np.testing.assert_array_equal(th1, th0)
+    np.testing.assert_allclose(lw1, lw0, rtol=0, atol=1e-12)  # re-normalised: rounding only
+    np.testing.assert_allclose(filt.estimate().theta_mean, f0, rtol=0, atol=1e-12)
+    # a reading at the time already predicted to (dt = 0): the due transition happens now
+    filt.step(-1.0, *SPEED, rng, t=31.0)
+    th2, lw2 = filt.particles
+    assert th2.shape != th0.shape or not (np.array_equal(th2, th0) and np.array_equal(lw2, lw0))
+
+
+def test_sma_transition_drifts_to_neighbours_and_jumps_rarely():
+    T = sma_transition(VALUES.size, 0.1, 1e-3)
+    np.testing.assert_allclose(T.sum(axis=1), 1.0)
+    assert np.all(T > 0)  # every value is a child (SMA's branching)
+    j = 5
+    assert T[j, j] == pytest.approx(0.999 * 0.9)
+    assert T[j, j - 1] == pytest.approx(0.999 * 0.05) == T[j, j + 1]
+    far = np.abs(np.arange(VALUES.size) - j) > 1
+    assert T[j, far].sum() == pytest.approx(1e-3)
+    # the mean f after one transition moves only by the rare jump, not towards the middle
+    assert abs(T[1] @ VALUES - VALUES[1]) < 2e-3
+    np.testing.assert_allclose(sma_transition(VALUES.size, 0.1, 0.0),
+                               sticky_transition(VALUES.size, 0.1))

@@ -14,7 +14,8 @@ with ``smc.log_normalize``. One step (``RaoBlackwellFilter.step``):
 
 1. validate the input (reject with a reason, count it, leave the state untouched);
 2. ``informative = family.gate(u, E[x])``: can this step say anything about theta?
-3. parameter transition (only if informative, else *frozen*): algorithm specific;
+3. parameter transition (only if informative and with a reading, at most once per
+   ``transition_interval`` of braking; else *frozen*): algorithm specific;
 4. KF prediction of every particle with its own model (exact ZOH);
 5. log predictive likelihood ``l_i = log N(y; H x_i, S_i)`` (Zheng (12)/(17), Q-GRBPF (5));
    ``log w_i += l_i``, normalised in log space (no underflow: no exp before the max is removed);
@@ -186,15 +187,28 @@ class RaoBlackwellFilter:
         u = np.array([float(a_tar), float(d)])
         s = self._s
         informative = bool(fam.gate(u, self._last.x_mean))
+        fused = bool(np.any(mask_arr))
         try:
-            since = self._since + dt
+            # seconds of braking since the last transition: f is only seen, and only forgotten,
+            # while the brake acts (a random walk per second of braking, as the KF's; the
+            # coasting before a brake application is not charged to it)
+            since = self._since + (dt if informative else 0.0)
+            # The transition (Zheng eq. (5); Q-GRBPF's redraw, eq. (9), a measurement-update
+            # step) is the filters' forgetting, tuned for tracking (stay 0.9 per second), not
+            # how fast a braking rate changes (wear, adhesion: minutes to hours; Zheng Section
+            # 6: it "changes occasionally and slowly"). It is applied with a reading only: a
+            # step without one (an output between readings, an outage) is the KF time update
+            # alone, eq. (6), with f held -- forgetting with nothing to learn from would only
+            # spread f (SMA's kernel: towards the middle of the value set, moving the predicted
+            # stop) or add Monte-Carlo drift to its mean (redraws, sampling). A reading stamped
+            # at the time an output already predicted to (dt = 0) takes the due transition.
+            due = informative and fused and since > 0 and since >= self.transition_interval
+            if due:
+                s = self._transition(s, True, rng, since)
+                since = 0.0
+            elif dt > 0:
+                s = self._transition(s, False, rng, dt)
             if dt > 0:
-                due = informative and since >= self.transition_interval
-                if due:
-                    s = self._transition(s, True, rng, since)
-                    since = 0.0
-                else:
-                    s = self._transition(s, False, rng, dt)
                 x, P = self._predict(s, u, dt, informative)
                 s = _Set(s.theta, x, P, s.logw, s.idx, s.extra)
             x, P, loglik = update(s.x, s.P, y_arr, fam.H, R, mask_arr)
@@ -202,7 +216,7 @@ class RaoBlackwellFilter:
                 return self._reject("numerical failure: NaN likelihood")
             s = _Set(s.theta, x, P, s.logw, s.idx, s.extra)
             s, log_ev = self._reduce(s, loglik, informative, rng)
-            used = bool(np.any(mask_arr))
+            used = fused
             est = self._summary(s, True, "", informative, used, log_ev if used else np.nan, t)
             s = self._after(s, informative, rng)
         except (ValueError, np.linalg.LinAlgError) as exc:

@@ -14,7 +14,7 @@ from ..numerics.smc import log_normalize, systematic_resample
 from .braking_base import RaoBlackwellFilter, _Set, _weights
 
 __all__ = ["DiscreteRBPF", "SMA", "GSMA", "grid_prior", "cell_variance", "neighbour_groups",
-           "sticky_transition"]
+           "sma_transition", "sticky_transition"]
 
 
 def neighbour_groups(n_values: int) -> list[tuple[int, ...]]:
@@ -41,6 +41,20 @@ def sticky_transition(n_values: int, p_move: float) -> np.ndarray:
             else:
                 T[j, j] += p_move / 2.0
     return T
+
+
+def sma_transition(n_values: int, p_move: float, p_jump: float) -> np.ndarray:
+    """SMA's children prior on an ordered grid: ``sticky_transition(n_values, p_move)`` (drift to
+    a neighbour) with probability ``1 - p_jump``, a jump to one of the values beyond the
+    neighbours (evenly) with ``p_jump``. Every value is a child when ``p_jump > 0`` (SMA's
+    branching); rows sum to one. On three values or fewer there is nothing beyond the
+    neighbours and the kernel is the sticky one."""
+    T = sticky_transition(n_values, p_move)
+    if n_values <= 3 or p_jump <= 0:
+        return T
+    idx = np.arange(n_values)
+    far = (np.abs(idx[:, None] - idx[None, :]) > 1).astype(float)
+    return (1.0 - p_jump) * T + p_jump * far / far.sum(axis=1, keepdims=True)
 
 
 # ----------------------------------------------------------------------------------------------

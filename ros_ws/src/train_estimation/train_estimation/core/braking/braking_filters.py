@@ -10,7 +10,8 @@ step (``RaoBlackwellFilter.step``):
 
 1. validate the input (reject with a reason, count it, leave the state untouched);
 2. ``informative = family.gate(u, E[x])``: can this step say anything about theta?
-3. parameter transition (only if informative, else *frozen*): algorithm specific, see below;
+3. parameter transition (only if informative and with a reading, at most once per
+   ``transition_interval`` of braking; else *frozen*): algorithm specific, see below;
 4. KF prediction of every particle with its own ``Phi(theta_i)`` (exact ZOH);
 5. log predictive likelihood ``l_i = log N(y; H x_i, S_i)`` (Zheng (12)/(17), Q-GRBPF (5));
    ``log w_i += l_i``, normalised in log space (no underflow: no exp before the max is removed);
@@ -63,6 +64,11 @@ holds exactly when the particles' KF states agree, and otherwise changes only by
 say about past braking through the states (legitimate evidence, decaying as the states
 converge). ``test_braking_filters.py`` checks both.
 
+**Between readings** (outputs between samples, an outage) the same holds while braking: the
+transition is the filters' forgetting (tuned for tracking), not the physical rate of change of f
+(wear, adhesion: minutes to hours), so a step without a reading is the KF time update alone with
+f held, and the due transition comes with the next reading (``RaoBlackwellFilter.step``).
+
 **Bad input** never reaches the state: non-finite command/measurement/variance, bad mask,
 non-finite or non-increasing time stamps are rejected with a reason (``Estimate.reason``,
 counted in ``filter.rejected``); a numerical failure inside a step (all likelihoods -inf,
@@ -90,6 +96,7 @@ from .braking_discrete import (
     cell_variance,
     grid_prior,
     neighbour_groups,
+    sma_transition,
     sticky_transition,
 )
 from .braking_kf import BrakingKF, OracleKF
@@ -107,5 +114,6 @@ __all__ = [
     "grid_prior",
     "cell_variance",
     "neighbour_groups",
+    "sma_transition",
     "sticky_transition",
 ]

@@ -19,7 +19,15 @@ from train_core.dynamics import GradientLookup
 from train_core.model import Line, TrainParams
 
 from .. import reasons as R
-from ..braking.braking_filters import GSMA, QGRBPF, SMA, BrakingKF, DiscreteRBPF, sticky_transition
+from ..braking.braking_filters import (
+    GSMA,
+    QGRBPF,
+    SMA,
+    BrakingKF,
+    DiscreteRBPF,
+    sma_transition,
+    sticky_transition,
+)
 from ..braking.braking_model import BrakingModel, BrakingParams
 from ..robust.filter_base import filter_params_from_train
 from ..robust.readings import BaliseReading, OdometerReading, covariance16
@@ -311,14 +319,19 @@ class BrakingConfig:
     branch_p_move: float = param(0.1, "-", "GSMA/SMA children prior: P(move to a neighbour "
                                  "value); -1 = the paper's uniform prior (forgets f at every "
                                  "branching)")
+    sma_p_jump: float = param(1e-3, "-", "SMA children prior: P(jump to a value beyond the "
+                              "neighbours) per transition, spread evenly over them (an abrupt "
+                              "change: a brake cut out, a cylinder failure -- rare)")
     qgrbpf_particles: int = param(50, "-", "Q-GRBPF particle count")
     qgrbpf_braking_rate_q: float = param(3e-4, "1/s", "Q-GRBPF: random-walk variance of the "
                                          "braking rate per second (as the KF)")
     kf_braking_rate_q: float = param(3e-4, "1/s", "KF: random-walk variance of the braking "
                                      "rate per second of braking")
     #   (chosen on metro_drift: 1e-3 tracks as fast but its std breaks the ATO gate, 1e-4 lags)
-    transition_interval: float = param(1.0, "s", "between braking-rate transitions, whatever "
-                                       "the message rate")
+    transition_interval: float = param(1.0, "s", "of braking between braking-rate "
+                                       "transitions, whatever the message rate (applied with a "
+                                       "reading only: f is held between readings and through "
+                                       "an outage)")
     accel_var: float = param(0.02, "m^2/s^3", "white acceleration noise PSD on v (unmodelled "
                              "forces)")
     ahat_var: float = param(0.001, "m^2/s^5", "white noise PSD on a_hat (actuator mismatch)")
@@ -344,6 +357,7 @@ class BrakingConfig:
                 f"(allowed: {', '.join(ALGORITHMS)})")
         require(math.isfinite(self.braking_rate_prior_std) and self.braking_rate_prior_std > 0,
                 "braking_rate_prior_std", self.braking_rate_prior_std, "must be finite and > 0")
+        require(0 <= self.sma_p_jump < 1, "sma_p_jump", self.sma_p_jump, "must be in [0, 1)")
 
 
 class BrakingAdapter:
@@ -376,10 +390,15 @@ class BrakingAdapter:
                              transition=None if p < 0 else sticky_transition(M, p),
                              prior=prior, merge=cfg.merge)
         elif cfg.algorithm == "sma":
-            # children: every value (the paper's SMA); prior stay 1 - p, the rest p / (M - 1)
-            full = (1 - p) * np.eye(M) + p / (M - 1) * (1 - np.eye(M))
+            # children: every value (the paper's SMA); prior: GSMA's sticky drift (stay 1 - p,
+            # each neighbour p / 2) and, with sma_p_jump, a jump to any farther value. Not a
+            # uniform p over every value: a braking rate drifts (wear, adhesion) and jumps
+            # only on a failure; moving mass evenly to every value drags f to the middle of
+            # the set at each transition, faster than the first seconds of a brake application
+            # can pull it back (the predicted stop moves tens of metres)
             self.filt = SMA(self.fam, values, n_init=cfg.n_init, n_keep=cfg.n_keep,
-                            q_max=cfg.q_max, transition=None if p < 0 else full,
+                            q_max=cfg.q_max,
+                            transition=None if p < 0 else sma_transition(M, p, cfg.sma_p_jump),
                             prior=prior, merge=cfg.merge)
         elif cfg.algorithm == "rbpf":
             self.filt = DiscreteRBPF(self.fam, values,
