@@ -53,7 +53,8 @@ def test_every_parameter_field_has_a_unit_and_a_meaning():
     (RobustConfig, {"distance_variance": 0.0}), (RobustConfig, {"q": math.inf}),
     (BrakingConfig, {"algorithm": "nope"}), (BrakingConfig, {"braking_rate_prior_std": 0.0}),
     (NodeConfig, {"odometer_rate": 0.0}), (NodeConfig, {"output_delay": -1.0}),
-    (NodeConfig, {"initial_position_std": math.nan}),
+    (NodeConfig, {"initial_position_std": math.nan}), (NodeConfig, {"tick_period": 0.0}),
+    (NodeConfig, {"slot_grace": -1.0}),
 ])
 def test_validation_in_the_config_names_the_parameter(cls, bad):
     with pytest.raises(ConfigError, match=f"parameter {next(iter(bad))}:"):
@@ -85,6 +86,8 @@ def _node_output(launch, *args, name):
     ("use_distance:=3.5", "error: parameter use_distance: expected a boolean (true/false), "
                           "got '3.5' (double)"),
     ("q:=-1.0", "error: parameter q: -1.0 must be finite and >= 0"),
+    ("tick_period:=0.0", "error: parameter tick_period: 0.0 must be finite and > 0"),
+    ("slot_grace:=-0.5", "error: parameter slot_grace: -0.5 must be >= 0"),
 ])
 def test_a_bad_parameter_at_start_up_is_one_line_not_a_traceback(launch, arg, want):
     code, out = _node_output(launch, "-p", "use_demo_line:=true", "-p", arg,
@@ -175,3 +178,49 @@ def test_an_empty_train_file_is_refused_unless_the_demo_is_asked_for():
         load_models(common)
     train, _, _ = load_models(dict(common, use_demo_line=True))
     assert train.mass > 0
+
+
+@pytest.mark.ros
+def test_the_node_timer_publishes_a_lost_1hz_slot_before_the_next_message(launch, ros_node):
+    """odometer_rate 1 Hz, slot_grace 0.2 s: the estimate of a reading that never comes leaves
+    by the node's timer (tick_period) within the grace, before the next cycle's messages are
+    sent (without the timer it waits for them, a second later)."""
+    import time
+
+    from train_core.ros import sec_to_stamp, stamp_to_sec
+
+    from train_interfaces.msg import ControlCommand, OdometerReading, TrainState
+
+    ns = "/slot_tick"
+    launch.node("train_estimation", "robust_filter", "--ros-args", "-r", f"__ns:={ns}",
+                "-p", "use_demo_line:=true", "-p", "odometer_rate:=1.0",
+                "-p", "slot_grace:=0.2", "-p", "tick_period:=0.05", name="slot_tick")
+    node = ros_node.node
+    est = ros_node.collect(TrainState, f"{ns}/estimate/robust")
+    odo = node.create_publisher(OdometerReading, f"{ns}/odometer", 100)
+    ctl = node.create_publisher(ControlCommand, f"{ns}/control", 100)
+    ros_node.wait_for_subscribers(f"{ns}/odometer")
+    ros_node.wait_for_subscribers(f"{ns}/control")
+    ros_node.wait_for_publishers(f"{ns}/estimate/robust")
+    start, lost = time.time() + 1.0, 12  # the clock is judged after 9 readings
+
+    def wait_until_time(t):
+        ros_node.spin_for(max(0.0, t - time.time()))
+
+    for k in range(lost + 1):
+        wait_until_time(start + k)
+        c, o = ControlCommand(), OdometerReading()
+        sec_to_stamp(start + k, c.header.stamp)
+        sec_to_stamp(start + k, o.header.stamp)
+        c.target_acceleration = 0.0
+        o.seq, o.distance, o.speed, o.speed_variance = k, 0.0, 0.0, 0.01
+        ctl.publish(c)
+        if k != lost:  # that reading is lost, its cycle's command is not
+            odo.publish(o)
+    # its estimate must come before the next cycle would be sent
+    wait_until_time(start + lost + 0.85)
+    stamps = [stamp_to_sec(m.header.stamp) for m in est]
+    assert any(abs(s - (start + lost - 1)) < 1e-3 for s in stamps), (launch.logs(), stamps)
+    mine = [m for m, s in zip(est, stamps) if abs(s - (start + lost)) < 1e-3]
+    assert len(mine) == 1, ([s - start for s in stamps], launch.logs())
+    assert not mine[0].measurement_used and mine[0].integrity == 0, mine[0]

@@ -3,8 +3,10 @@
 Callbacks push the message with its arrival time on the node's clock into the runner
 (``EstimatorRunner.push``) and at once advance the runner to its ready time, so that an odometer
 sample's estimate is published as soon as the sample (and the command of its cycle) is in; a
-steady wall-clock timer does the same for lost samples (predicted slots). Each estimate is a
-TrainState stamped with its sample's own stamp (the odometer's clock). Rejected input is logged
+steady wall-clock timer (``tick_period``) publishes the slots the clock alone makes due: a lost
+sample's predicted slot once it is ``slot_grace`` overdue (``EstimatorRunner.tick``). Each
+estimate is a TrainState stamped with its sample's own stamp (the odometer's clock). Rejected
+input is logged
 with its reason (throttled; names of ``core/reasons.py``) and counted; events (a sequence
 reset, separate clocks found) are logged once each; the counts are logged at shutdown.
 
@@ -120,6 +122,7 @@ def build_estimator_node(name: str, topic: str, make_adapter: Callable):
                 self.runner = EstimatorRunner(self.adapter, 1.0 / common["odometer_rate"],
                                               control_clock=common["control_clock"],
                                               max_future=common["max_future"],
+                                              slot_grace=common["slot_grace"],
                                               integrity=integrity)
             except ValueError as exc:
                 raise ParameterError(f"parameter control_clock: {exc}") from None
@@ -155,10 +158,13 @@ def build_estimator_node(name: str, topic: str, make_adapter: Callable):
             self.create_subscription(BaliseReading, "balise", self.on_balise, 200)
             self.create_subscription(ControlCommand, "control", self.on_control, 2000)
             # Every message ticks the runner itself (outputs are released by the inputs'
-            # watermarks); the timer only covers silence on every input (a dead link: the
-            # node's clock then stands in for the commands) and discovery. 20 Hz is enough for
-            # that and leaves the cores to the callbacks (200 Hz made no latency difference).
-            self.timer = self.create_timer(0.05, self.tick,
+            # watermarks); the timer covers what only the clock can tell: a lost reading's
+            # slot, published once it is slot_grace overdue (EstimatorRunner.tick; with a 1 Hz
+            # odometer the next message comes a second later), silence on every input (a dead
+            # link: the node's clock then stands in for the commands) and discovery. 20 Hz
+            # (tick_period) is enough for that and leaves the cores to the callbacks (200 Hz
+            # made no latency difference); the replays tick at the same period.
+            self.timer = self.create_timer(common["tick_period"], self.tick,
                                            clock=Clock(clock_type=ClockType.STEADY_TIME))
             self.n_reported = 0
             self.get_logger().info(
@@ -199,10 +205,12 @@ def build_estimator_node(name: str, topic: str, make_adapter: Callable):
                     return  # would miss the first estimates (inputs stay queued meanwhile)
                 self.wait_subs = 0
             # Outputs wait for the inputs' watermarks (or 4 x delay for a lost sample), so the
-            # node computes exactly what the offline replay of the same messages computes.
+            # node computes exactly what the offline replay of the same messages computes; a
+            # slot whose reading is overdue on the arrival clock leaves by runner.tick.
             t_tick = self.steady.now().nanoseconds * 1e-9
-            for out in self.runner.advance_to(self.runner.ready_time(now, self.delay,
-                                                                      4 * self.delay)):
+            outs = self.runner.advance_to(self.runner.ready_time(now, self.delay,
+                                                                  4 * self.delay))
+            for out in outs + self.runner.tick(now):
                 msg = TrainState()
                 sec_to_stamp(out.stamp, msg.header.stamp)
                 msg.header.frame_id = "track"

@@ -69,11 +69,19 @@ class NodeConfig:
                               "(future_stamp)")
     wait_for_subscribers: int = param(0, "", "output nothing until the estimate topic has this "
                                       "many subscribers (a recorder sees every estimate)")
+    tick_period: float = param(0.05, "s", "period of the node's timer (steady clock) that "
+                               "publishes the estimates due by the clock alone: a lost "
+                               "reading's slot, a silent input")
+    slot_grace: float = param(0.5, "s", "a slot whose odometer reading has not arrived this long "
+                              "after it was due (on the train clock's tracked offset and rate) "
+                              "is published as a prediction")
 
     def __post_init__(self):
-        require_finite(self, ("initial_position_std", "odometer_rate"))
+        require_finite(self, ("initial_position_std", "odometer_rate", "tick_period"))
         require(math.isfinite(self.output_delay) and self.output_delay >= 0, "output_delay",
                 self.output_delay, "must be >= 0")
+        require(math.isfinite(self.slot_grace) and self.slot_grace >= 0, "slot_grace",
+                self.slot_grace, "must be >= 0")
 
 
 # ---------------------------------------------------------------------------------------------

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable
 
 from .runner import EstimatorRunner, Output
@@ -9,26 +10,65 @@ from .runner import EstimatorRunner, Output
 INPUT_TOPICS = ("control", "odometer", "balise")
 
 
+class TimerTicks:
+    """The arrival times at which a node's timer of period ``period`` (s; None or 0: no timer)
+    fires between messages: multiples of the period, from the first message's arrival on.
+
+    At most ``cap`` ticks per silence: a tick publishes nothing past the latest stamp queued
+    (``EstimatorRunner.due_time``), so once the silence is longer than ``slot_grace`` the
+    later ticks are no-ops, and a log time far ahead (a corrupted bag) must not make the
+    replay tick for ever."""
+
+    cap = 1000
+
+    def __init__(self, period: float | None):
+        self.period = period if period and math.isfinite(period) and period > 0 else None
+        self.k: int | None = None  # index of the next tick (k * period)
+
+    def until(self, now: float | None) -> list[float]:
+        """The ticks before ``now`` not yet given (none without an arrival time)."""
+        if self.period is None or now is None or not math.isfinite(now):
+            return []
+        if self.k is None:
+            self.k = math.floor(now / self.period) + 1
+            return []
+        ticks = []
+        while self.k * self.period < now and len(ticks) < self.cap:
+            ticks.append(self.k * self.period)
+            self.k += 1
+        if self.k * self.period < now:
+            self.k = math.floor(now / self.period) + 1
+        return ticks
+
+
 def replay(events: Iterable[tuple], adapter, period: float, delay: float = 0.05,
-           fallback: float = 0.2, **runner_kw) -> tuple[list[Output], EstimatorRunner]:
+           fallback: float = 0.2, tick_period: float | None = 0.05,
+           **runner_kw) -> tuple[list[Output], EstimatorRunner]:
     """Estimates from ``(topic, stamp, fields[, recv])`` events **in arrival (log-time) order**.
 
-    Each event is pushed and the runner advanced to its ready time, as the node does on every
-    message, then everything left is drained. ``recv`` (s) is the arrival time (the bag's log
-    time); without it the arrival is judged from the other clock's stamps (see the runner).
-    Every step is bounded by the stamps pushed, and a stamp far in the future is refused at the
-    door, so the replay always terminates.
+    Each event is pushed and the runner advanced to its ready time and ticked
+    (``EstimatorRunner.tick``), as the node does on every message, and ticked at the times its
+    timer (``tick_period``) fires between messages; then everything left is drained. ``recv``
+    (s) is the arrival time (the bag's log time); without it the arrival is judged from the
+    other clock's stamps (see the runner) and there are no ticks. Every step is bounded by the
+    stamps pushed, and a stamp far in the future is refused at the door, so the replay always
+    terminates.
     """
     runner = EstimatorRunner(adapter, period, **runner_kw)
     out: list[Output] = []
     now = None
+    ticks = TimerTicks(tick_period)
     for ev in events:
         topic, stamp, fields = ev[0], ev[1], ev[2]
         recv = ev[3] if len(ev) > 3 else None
         if topic not in INPUT_TOPICS:
             continue
+        for t in ticks.until(recv):
+            out += runner.tick(t)
         runner.push(topic, stamp, fields, recv)
         now = recv if recv is not None else now
         out += runner.advance_to(runner.ready_time(now if now is not None else stamp, delay,
                                                    fallback))
+        if recv is not None:
+            out += runner.tick(recv)
     return out + runner.drain(), runner

@@ -8,7 +8,10 @@ so the node's estimates can be reproduced from a bag without ROS:
 - ``advance_to(t)`` processes every queued item with stamp <= t in stamp order (commands before
   readings at equal stamps) and emits one estimate per odometer sample, **at the sample's own
   stamp**, as soon as it is processed; an odometer slot without a sample (lost packet, outage)
-  gets a predicted estimate at the expected slot time once the inputs' watermarks pass it.
+  gets a predicted estimate at the expected slot time once the inputs' watermarks pass it;
+- ``tick(now)`` (the nodes' timer, and the replays at the same arrival times) publishes, by the
+  arrival clock, every slot whose reading is ``slot_grace`` overdue on the train clock's
+  offset: a lost reading's slot leaves when it is due, not when the next message arrives.
 
 Clocks (docs/interfaces.md, "The measured data's clocks"). The estimator runs on the **odometer's
 clock** (the train's clock: odometer and balise stamps are the sampling times, at any epoch,
@@ -160,6 +163,9 @@ class EstimatorRunner:
     #   control watermark is processed without waiting for the next command (ready_time)
     command_timeout: float | None = None  # s without commands before the node's clock stands
     #   in for the control watermark (None: integrity.command_timeout)
+    slot_grace: float = 0.5  # s on the arrival clock: a slot whose reading has not arrived this
+    #   long after it was due is published as a prediction by :meth:`tick`
+    _backlog: bool = False  # the latest message pushed came late (tick waits)
     monitor: IntegrityMonitor | None = None
 
     @property
@@ -211,6 +217,11 @@ class EstimatorRunner:
         else:  # ... then from the latest stamp admitted on any topic
             arrival = self._admitted_high if math.isfinite(self._admitted_high) else stamp
         self._prev_raw = stamp
+        if recv is not None and not early:
+            # a message later than its clock's lateness bar (LATE): the node or its link is
+            # catching up with a backlog (a stall's burst), whose next messages may well hold
+            # the readings the arrival clock says are overdue; tick waits for one on time
+            self._backlog = stamp - arrival - med.value < -med.late
         if early:
             # too early to judge a stamp against its clock: hold it until the clock's median
             # offset rests on min_judged arrivals (one corrupted first stamp must not set the
@@ -536,6 +547,45 @@ class EstimatorRunner:
 
     def _next_odometer(self) -> float:
         return self._odo[0] if self._odo else math.inf
+
+    def due_time(self, now: float) -> float:
+        """Latest train-clock stamp whose reading is overdue at ``now`` (s, the arrival clock
+        ``recv`` is on): a reading stamped there would have arrived ``slot_grace`` s ago at the
+        train clock's offset (:class:`~.clocks.StreamClock`: its centre carried along its drift
+        to that arrival). Bounded by the inputs: at most ``command_slack`` periods past the
+        latest stamp queued (a command or a reading sent at or after it), so that silence on
+        every input is not filled with predictions here (:meth:`ready_time` decides that).
+        -inf before the train clock is judged (``min_judged`` arrivals: until then the
+        commands wait too)."""
+        train = self._offsets.get("train")
+        if train is None or len(train) < self.min_judged or not math.isfinite(now):
+            return -math.inf
+        at = now - self.slot_grace
+        due = at + train.value_at(at, train.drift)
+        lead = max(self.high.get("control", -math.inf), self.high.get("odometer", -math.inf))
+        return min(due, lead + self.command_slack * self.period)
+
+    def tick(self, now: float) -> list[Output]:
+        """The estimates that became due by the arrival clock alone at ``now`` (s, as
+        ``recv``): the nodes call it from a timer and after each message, the replays at the
+        same arrival times.
+
+        A lost reading's slot is otherwise published once the inputs' watermarks pass it
+        (:meth:`ready_time`): with a 1 Hz odometer and 1 Hz commands, when the next message
+        arrives, a second after the slot -- too late to use. Here every slot up to
+        :meth:`due_time` is published, as :meth:`advance_to` publishes it: the items queued up
+        to it processed first (the commands that arrived), a reading that did arrive fused and
+        published at its own stamp, a lost one's slot predicted and assessed by the integrity
+        monitor. A reading that arrives after its slot was predicted is fused by rewinding and
+        shows in the next estimate: no slot is published twice or out of order. Nothing
+        while the latest message came late (a backlog being caught up: its next messages are
+        what the arrival clock would call overdue)."""
+        if not self._started or self._last_out is None or self._backlog:
+            return []
+        due = self.due_time(now)
+        if due <= self._last_out:
+            return []
+        return self.advance_to(due)
 
     def ready_time(self, now: float, delay: float, fallback: float) -> float:
         """Latest stamp (train clock) a live node can process at clock ``now`` without racing
