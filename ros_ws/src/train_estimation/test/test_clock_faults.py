@@ -348,3 +348,15 @@ def test_the_sample_grid():
     for q in range(20):  # irregular sampling (no grid): never trusted
         h.add(q, 100.0 + 0.1 * q + rng.uniform(0, 0.05))
     assert h.residual(20, 102.0) is None
+
+
+def test_a_recorder_stall_early_in_a_1_hz_run_does_not_move_the_clock():
+    # an 8 s stall at 26 s of a 1 Hz run (26 readings, the offsets' window not yet full): the
+    # burst voted into the centre, which moved 4 s, and the rest of the run was published 4 s
+    # late (availability 50 %)
+    sc, res = run("wen2017_subway", 0, 100.0)
+    fl = F.inject(res.events(), F.Fault("recorder_stall", 8.0, at=26.0), np.random.default_rng(0))
+    outs, emitted, runner = F.run(fl.events, adapter(sc, "robust"), 1.0)
+    s = F.score(outs, emitted, fl, res.truth, 1.0, 100.0 + F.LATENCY)
+    assert abs(runner._offsets["train"].value + F.LATENCY) < 0.1, runner._offsets["train"].value
+    assert s["wrong_side"] == 0 and s["availability"] > 0.85, s
