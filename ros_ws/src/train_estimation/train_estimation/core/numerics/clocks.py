@@ -116,6 +116,7 @@ def control_on_train_clock(odo_stamp, odo_recv, ctrl_stamp, ctrl_recv,
 
 SMALL_MOVE = 0.05  # s: the least move of a clock's offset level taken as one (the runner's
 #   small_step); smaller moves are jitter and drift
+MAX_SPEED = 200.0  # m/s, beyond any train (720 km/h): a reading claiming more is corrupt
 TOL = 5.0  # s: wider than arrival jitter (a node at 10x sees 1 Hz stamps 0.9 s apart in
 #   stamp - arrival), far narrower than a clock error worth refusing
 
@@ -570,6 +571,7 @@ class StepWatch:
         self._admitted: list = []  # sorted recent odometer stamps admitted
         self._sent: dict = {}  # timeline odometer stamp -> stamp as sent (after a step)
         self.grid = SampleGrid(period, min_judged)  # odometer stamps against their seq
+        self._dist: tuple | None = None  # (stamp, counted distance) of the newest fused
 
     # -- stamps ---------------------------------------------------------------------------
     def onto_timeline(self, stamp: float, odometer: bool) -> float:
@@ -602,6 +604,13 @@ class StepWatch:
             self.last = (stamp, arrival)
         bisect.insort(self._admitted, stamp)
         del self._admitted[:-128]
+
+    def fused(self, stamp: float, distance) -> None:
+        """The filter fused this odometer reading (timeline stamp, counted distance m): the
+        reference of :meth:`_plausible`."""
+        if isinstance(distance, int | float) and math.isfinite(distance) and \
+                (self._dist is None or stamp > self._dist[0]):
+            self._dist = (stamp, float(distance))
 
     # -- judging --------------------------------------------------------------------------
     def bar(self, clock: StreamClock) -> float:
@@ -756,10 +765,24 @@ class StepWatch:
 
     def _resid(self, kind: str, stamp: float, fields) -> float | None:
         """The reading's residual on the sample grid (s), or None (not an odometer reading,
-        the grid not trusted)."""
-        if kind != "odometer" or not isinstance(fields, dict):
+        the grid not trusted, or a reading whose values no train could produce: a corrupted
+        copy is no evidence about the clock, and the filters' gates refuse it)."""
+        if kind != "odometer" or not isinstance(fields, dict) or not self._plausible(stamp,
+                                                                                  fields):
             return None
         return self.grid.residual(fields.get("seq"), stamp)
+
+    def _plausible(self, stamp: float, fields: dict) -> bool:
+        """Speed within ``MAX_SPEED`` and the counted distance within reach of the newest fused
+        reading's at that speed (and a period's slack)."""
+        v, d = fields.get("speed"), fields.get("distance")
+        if not all(isinstance(x, int | float) and math.isfinite(x) for x in (v, d)) or \
+                abs(v) > MAX_SPEED:
+            return False
+        if self._dist is None:
+            return True
+        s0, d0 = self._dist
+        return abs(d - d0) <= MAX_SPEED * (abs(stamp - s0) + self.period) + 1.0
 
     def _chain_resid(self, chain: list) -> list | None:
         """The held odometer readings' grid residuals, sorted, when the grid places them all
@@ -799,6 +822,12 @@ class StepWatch:
             lead = self.clock.above(st - ar) if rc is not None else -math.inf
             if ahead > TOL or lead > self.back:
                 yield REFUSE, k, st, max(ahead, lead)
+                continue
+            # off the sample grid, and no step: its stamp lies about when it was sampled (a
+            # copy 0.5 s ahead was admitted and fused 10 m off its time)
+            r = self._resid(k, st, f)
+            if r is not None and abs(r) > self.grid.tol:
+                yield REFUSE, k, st, r
                 continue
             yield ADMIT, (k, st, f, rc, ar)
 

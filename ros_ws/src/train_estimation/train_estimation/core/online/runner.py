@@ -114,6 +114,26 @@ class Adapter(Protocol):
     def output(self, t: float) -> Output: ...  # estimate at t >= last fused time, state unchanged
 
 
+_VALUES = {"odometer": (("distance", "speed"), ("speed_variance",)),
+           "balise": (("position",), ("position_variance",))}
+
+
+def _content(kind: str, fields: dict) -> str:
+    """Why a reading's values can say nothing (a NaN or infinite value, a variance <= 0), or
+    "" (the filters judge the rest: gates, order)."""
+    values, variances = _VALUES.get(kind, ((), ()))
+    for k in values + variances:
+        v = fields.get(k)
+        if isinstance(v, bool) or not isinstance(v, int | float):
+            return f"{R.INVALID}: {k} {v!r}"
+        if not math.isfinite(v):
+            return f"{R.NON_FINITE}: {k}"
+    for k in variances:
+        if fields[k] <= 0:
+            return f"{R.NON_POSITIVE_VARIANCE}: {k} {fields[k]!r}"
+    return ""
+
+
 @dataclass
 class EstimatorRunner:
     adapter: Adapter
@@ -146,6 +166,7 @@ class EstimatorRunner:
     _prev_raw: float | None = None  # the last stamp pushed (no-arrival mode, early phase)
     _admitted_high: float = -math.inf  # the latest stamp admitted (no-arrival mode)
     _recent: dict = field(default_factory=dict)  # kind -> deque of (seq, stamp)
+    _fused_seq: dict = field(default_factory=dict)  # seq -> stamp of recent fused odometer
     _last_seq: dict = field(default_factory=dict)  # kind -> (seq, stamp) of the last pushed
     _held: list = field(default_factory=list)  # control pushed before any odometer (raw)
     _early: dict = field(default_factory=dict)  # clock -> items waiting for min_judged
@@ -205,6 +226,14 @@ class EstimatorRunner:
             seq = fields.get("seq") if isinstance(fields, dict) else None
             if not isinstance(seq, int) or isinstance(seq, bool):
                 return self._reject(kind, stamp, f"{R.INVALID}: seq {seq!r}")
+            why = _content(kind, fields)
+            if why:
+                # a reading that says nothing is no evidence about its clock either: refused
+                # before the clocks see it (fuzzed copies with a NaN distance, their stamps
+                # 30 ms off, were held as possible steps and doubted 2 estimates in 3)
+                if kind == "odometer":
+                    self.monitor.reading(stamp, None, False)
+                return self._reject(kind, stamp, why)
         clock = CLOCK_OF[kind]
         med = self._offsets.get(clock)
         if med is None:  # the train clock is the one the step watch follows
@@ -248,6 +277,11 @@ class EstimatorRunner:
         med = self._offsets[clock]
         if kind != "control" and (fields.get("seq"), stamp) in self._recent.get(kind, ()):
             return self._reject(kind, stamp, R.DUPLICATE)  # a copy is no evidence of a step
+        if kind == "odometer" and self._fused_seq.get(fields.get("seq"), stamp) != stamp:
+            # a sample already fused, sent again with another stamp: a corrupted copy (a clock
+            # step sends new samples, not old ones), no evidence of a step either
+            return self._reject(kind, stamp, f"{R.DUPLICATE}: seq {fields.get('seq')} fused "
+                                             f"at another stamp")
         if watch and clock == "train" and arrival is not None and self._steps.last is not None:
             held, stamp = self._watch_step(kind, stamp, fields, recv, arrival)
             n, doubt, conclusive = self._steps.doubt(self.drift)
@@ -302,8 +336,12 @@ class EstimatorRunner:
                 self._admit(*act[1], watch=False)
             elif act[0] == REFUSE:
                 _, k, st, ahead = act
-                self._count(k, st, f"{R.FUTURE_STAMP}: {ahead:.3g} s ahead of its stream, not "
-                                   f"continued by later readings")
+                if ahead > 0:
+                    self._count(k, st, f"{R.FUTURE_STAMP}: {ahead:.3g} s ahead of its stream, "
+                                       f"not continued by later readings")
+                else:
+                    self._count(k, st, f"{R.STALE_STAMP}: {-ahead:.3g} s behind its sample "
+                                       f"grid, not continued by later readings")
             elif act[0] == STEP:
                 _, shift, first, measured = act
                 self.monitor.clock(0, reanchored_at=first - shift, measured=measured)
@@ -474,6 +512,14 @@ class EstimatorRunner:
         """Tell the integrity monitor what became of an item the filter processed."""
         if kind == "odometer":
             fused = not reason or R.category(reason) in R.ACCEPTED
+            if fused and isinstance(fields, dict):
+                self._steps.fused(stamp, fields.get("distance"))
+                self._fused_seq.pop(fields.get("seq"), None)
+                self._fused_seq[fields.get("seq")] = stamp
+                # the samples of the last `history` seconds only: a copy comes with its
+                # original, while a sender restarted later reuses older seqs for new samples
+                while len(self._fused_seq) > max(8, math.ceil(self.history / self.period)):
+                    del self._fused_seq[next(iter(self._fused_seq))]
             pos = getattr(self.adapter, "position_reading", None)
             self.monitor.reading(stamp, fields if isinstance(fields, dict) else None, fused,
                                  pos(fields) if pos is not None and fused and
