@@ -116,6 +116,13 @@ class Cause:
         """(parameters, standard errors, extra) from the fitted coefficients."""
         raise NotImplementedError
 
+    def profile(self, st) -> tuple | None:
+        """For a cause whose extension is one drift column fixed by one nonlinear parameter: (the
+        parameter's name, its candidate values (increasing), the columns on the motion model's
+        grid (n_grid, K), m/s^2, one per value), against the stage ``st``'s null; the joint refit
+        profiles the parameter with the accepted linear causes free. None: not such a cause."""
+        return None
+
     def fit_linear(self, st) -> tuple:
         free = self.free(st)
         th, cov, ll, _ = st.fit({}, free)
