@@ -139,6 +139,12 @@ class Cause:
         nominal. The default (no rule of its own) accepts every fit."""
         return None
 
+    def plausible(self, fit: CauseFit, mo) -> str | None:
+        """Why the fitted cause is not one the railway could have (None: it could): a bound
+        that follows from what the cause is (a map's error, a train's parameter), not from the
+        data. The default states none."""
+        return None
+
     # What else makes the same residual when the cause is seen in one phase only (None: the
     # cause acts in one phase by its nature); the confirmation then cannot tell them apart.
     phase_rival: str | None = None
