@@ -356,10 +356,7 @@ def test_summary_last_line_is_the_cause(metro, tmp_path, capsys, diagnosed):
 # core are marked xfail(strict): the mark must go when the core is fixed.
 KNOWN: dict = {  # (cause, seed) -> reason
     ("adhesion_section", 210): "the section lies wholly in braking at a constant rate: a gradient "
-                               "section there predicts the same motion (scores 752 vs 740)",
-    (("traction_delay", "power_limit"), 232): "both fitted right (delay 1.24 s for 1.22, p_spec "
-                                              "8.48 for 8.51) but the delay's part at the top "
-                                              "speeds is needed x1.9: the split contradicts it"}
+                               "section there predicts the same motion (scores 752 vs 740)"}
 SPECS = [(c, "plain", 200 + i) for i, c in enumerate(CAUSES)] + [
     (None, "plain", 230), (("gradient", "mass"), "plain", 231),
     (("traction_delay", "power_limit"), "plain", 232),

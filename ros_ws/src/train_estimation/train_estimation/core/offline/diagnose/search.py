@@ -100,13 +100,17 @@ def _verdict(sr: _Search, run, untestable: list, before: dict, noise,
     """Confirm the accepted causes, test what the confirmed model leaves, rank, and the held-out
     gain of the cause named."""
     mo, beta = sr.mo, run.clock["beta"]
-    checks = confirm(mo, sr.null.shift, sr.accepted, before, sr.cfg, noise, sr.own, gctx)
+    # the command-time offset of the model of every accepted cause (a traction delay brings
+    # the one profiled with it): every model compared below has it, so that a model with a
+    # cause and one without it differ by that cause only, not by a re-timing of all commands
+    shift = _null_of(mo, sr.null.shift, sr.accepted).shift
+    checks = confirm(mo, shift, sr.accepted, before, sr.cfg, noise, sr.own, gctx)
     confirmed = [a for a in sr.accepted if a.status == "confirmed"]
-    found, tests = structure(mo, _null_of(mo, sr.null.shift, confirmed), sr.cfg, noise,
+    found, tests = structure(mo, _null_of(mo, shift, confirmed), sr.cfg, noise,
                              beta, **STRUCTURE)
-    if found and unpiece(mo, sr.null.shift, confirmed, sr.cfg, noise, found):
+    if found and unpiece(mo, shift, confirmed, sr.cfg, noise, found):
         confirmed = [a for a in sr.accepted if a.status == "confirmed"]
-        found, tests = structure(mo, _null_of(mo, sr.null.shift, confirmed), sr.cfg, noise,
+        found, tests = structure(mo, _null_of(mo, shift, confirmed), sr.cfg, noise,
                                  beta, **STRUCTURE)
     for u in found:
         u.pop("mask")
