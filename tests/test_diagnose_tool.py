@@ -561,9 +561,6 @@ def test_a_long_slip_episode_is_one_episode_and_a_spurious_one_is_dropped(metro,
 # ------------------------------------------------------------------------------------------------
 
 UNLISTED_KNOWN = {
-    "brake_fade": "braking weaker below a speed acts where the train stops: with the listed "
-                  "adhesion_section (weaker braking on a stretch) it is confirmed as sections "
-                  "before stations plus a braking_rate change (docs/diagnose.md)",
     "tunnel_drag": "drag in a tunnel run at a steady speed is a gradient over the tunnel in one "
                    "run's data (docs/diagnose.md)",
     "wind": "a constant force for a minute is a gradient over the track run in that minute in "
