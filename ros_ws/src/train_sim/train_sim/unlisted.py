@@ -26,7 +26,19 @@ effect               where it shows          what the world does
                                              the motion) on [t0, t1) of true time (a gust
                                              front). Not a gradient (it is not tied to a place)
                                              nor resistance (it does not depend on speed).
+``traction_fade``    at some speeds, in      traction delivered x ``factor`` while v >
+                     traction                ``v_fade`` (a motor's field-weakening range
+                                             derated). Not a power limit (a step at v_fade, not
+                                             p_spec / v), nor mass or resistance (braking and
+                                             coasting untouched).
+``neutral_section``  in a place, in          traction delivered x ``factor`` while the train is
+                     traction                on [start, end) (a stretch fed at a low voltage, a
+                                             phase break). Not a gradient (coasting and braking
+                                             there are untouched; it scales with the command).
 ===================  ======================  ==================================================
+
+The bench (:mod:`train_sim.unlisted_cases`) uses the first four; the last two are kept for
+tests, so that a test does not only mirror the bench.
 
 Use: ``scenario.with_changes(unlisted=Unlisted(wind=Wind(120.0, 180.0, 9000.0)))``; the world
 (``simulate``, ``generate``) runs them through the hooks of :class:`train_core.dynamics.Dynamics`
@@ -70,6 +82,19 @@ class Wind:
 
 
 @dataclass(frozen=True)
+class TractionFade:
+    v_fade: float  # m/s, traction is weaker above this speed
+    factor: float  # -, multiplier of the delivered traction above v_fade
+
+
+@dataclass(frozen=True)
+class NeutralSection:
+    start: float  # m, track position where the traction is weaker
+    end: float  # m, where it ends
+    factor: float  # -, multiplier of the delivered traction on [start, end)
+
+
+@dataclass(frozen=True)
 class Unlisted:
     """The test effects of one run; None = off."""
 
@@ -77,6 +102,8 @@ class Unlisted:
     brake_fade: BrakeFade | None = None
     traction_gain: TractionGain | None = None
     wind: Wind | None = None
+    traction_fade: TractionFade | None = None
+    neutral_section: NeutralSection | None = None
 
 
 def unlisted_hooks(unlisted: Unlisted | None, true_train: TrainParams) -> dict:
@@ -86,13 +113,19 @@ def unlisted_hooks(unlisted: Unlisted | None, true_train: TrainParams) -> dict:
         return {}
     out = {}
     fade, gain = unlisted.brake_fade, unlisted.traction_gain
-    if fade is not None or gain is not None:
+    tfade, neutral = unlisted.traction_fade, unlisted.neutral_section
+    if fade is not None or gain is not None or tfade is not None or neutral is not None:
         g = gain.factor if gain is not None else 1.0
 
         def drive_hook(x, v, a_tr, a_br):
             if fade is not None and v < fade.v_fade:
                 a_br = fade.factor * a_br
-            return g * a_tr, a_br
+            k = g
+            if tfade is not None and v > tfade.v_fade:
+                k *= tfade.factor
+            if neutral is not None and neutral.start <= x < neutral.end:
+                k *= neutral.factor
+            return k * a_tr, a_br
 
         out["drive_hook"] = drive_hook
     tun, wind = unlisted.tunnel_drag, unlisted.wind

@@ -21,6 +21,15 @@ kind                 placement and size                                  phase
 ``wind``             60-120 s while moving, +-0.04-0.08 m/s^2 x M_eff   all
 ===================  =================================================  ==============
 
+Two further kinds (:data:`TEST_KINDS`) are for tests only, so that a test does not only mirror
+the bench:
+
+===================  =================================================  ==============
+``traction_fade``    above 40-60 % of the top speed, factor 0.6-0.75    traction
+``neutral_section``  a 300-600 m stretch where the train accelerates    traction
+                     (> 0.15 m/s^2 at > 3 m/s), factor 0.4-0.6
+===================  =================================================  ==============
+
 ``phase`` is the phase ``diagnose``'s ``unexplained`` signature should name.
 
 Pure module: numpy + train_sim / train_core (no ROS). Same generator state -> same case.
@@ -33,11 +42,20 @@ from dataclasses import dataclass
 import numpy as np
 
 from .cases import Case, make_case
-from .unlisted import BrakeFade, TractionGain, TunnelDrag, Unlisted, Wind
+from .unlisted import (
+    BrakeFade,
+    NeutralSection,
+    TractionFade,
+    TractionGain,
+    TunnelDrag,
+    Unlisted,
+    Wind,
+)
 
 KINDS = ("tunnel_drag", "brake_fade", "traction_gain", "wind")
+TEST_KINDS = ("traction_fade", "neutral_section")
 PHASE = {"tunnel_drag": "all", "brake_fade": "braking", "traction_gain": "traction",
-         "wind": "all"}
+         "wind": "all", "traction_fade": "traction", "neutral_section": "traction"}
 
 
 @dataclass(frozen=True)
@@ -54,9 +72,10 @@ class UnlistedCase:
 
 
 def unlisted_case(rng: np.random.Generator, kind: str, pilot=None) -> UnlistedCase:
-    """A random nominal case with the unlisted effect ``kind`` (one of :data:`KINDS`)."""
-    if kind not in KINDS:
-        raise ValueError(f"kind must be one of {KINDS}, got {kind!r}")
+    """A random nominal case with the unlisted effect ``kind`` (one of :data:`KINDS` or
+    :data:`TEST_KINDS`)."""
+    if kind not in KINDS + TEST_KINDS:
+        raise ValueError(f"kind must be one of {KINDS + TEST_KINDS}, got {kind!r}")
     if pilot is None:
         from .world import simulate as pilot
     case = make_case(rng, None, "plain")
@@ -85,6 +104,19 @@ def unlisted_case(rng: np.random.Generator, kind: str, pilot=None) -> UnlistedCa
         f = float(eff_rng.uniform(0.2, 0.3))
         eff = TractionGain(round(1.0 + f if eff_rng.random() < 0.5 else 1.0 - f, 3))
         u = Unlisted(traction_gain=eff)
+    elif kind == "traction_fade":
+        eff = TractionFade(round(float(eff_rng.uniform(0.4, 0.6)) * v_top, 2),
+                           round(float(eff_rng.uniform(0.6, 0.75)), 3))
+        u = Unlisted(traction_fade=eff)
+    elif kind == "neutral_section":
+        acc = np.gradient(v, t)
+        ok = np.flatnonzero((acc > 0.15) & (v > 3.0))
+        i = int(ok[eff_rng.integers(ok.size)])
+        length = float(eff_rng.uniform(300.0, 600.0))
+        start = float(x[i]) - 0.3 * length
+        eff = NeutralSection(round(start, 1), round(start + length, 1),
+                             round(float(eff_rng.uniform(0.4, 0.6)), 3))
+        u = Unlisted(neutral_section=eff)
     else:
         moving = np.flatnonzero(v > 2.0)
         dur = float(eff_rng.uniform(60.0, 120.0))

@@ -93,13 +93,17 @@ def confirm(mo: Motion, shift: float, accepted: list, resolved_before: dict, cfg
         else:
             held = heldout_own(cause, a, gain_ctx)
         res = cause.resolution(a, mo)
-        checks[a.cause] = {"held_out": held, "resolution": res or "resolved"}
+        odd = cause.plausible(a, mo)
+        checks[a.cause] = {"held_out": held, "resolution": res or "resolved",
+                           "plausible": odd or "yes"}
         if not held["ok"]:
             a.status, a.why = "not confirmed", f"held-out check failed: {held['why']}"
         elif res is not None:
             a.status = "not confirmed"
             a.why = ("parameters at nominal after the joint refit: " + res
                      if resolved_before.get(a.cause) is None else res)
+        elif odd is not None:
+            a.status, a.why = "not confirmed", odd
         else:
             a.status, a.why = "confirmed", None
     # the split of each confirmed cause against the model of all confirmed causes
@@ -265,3 +269,4 @@ def unpiece(mo: Motion, shift: float, confirmed: list, cfg: DiagConfig, noise,
             a.status, a.why = "not confirmed", f"a piece of an unexplained structure: {why}"
             out = True
     return out
+

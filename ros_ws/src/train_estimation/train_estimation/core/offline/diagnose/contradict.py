@@ -7,7 +7,12 @@ quarters of its position range, quarters of its time range), each with a free mu
 1 + c_j. If the cause is right, every c_j is 0 within noise; a chi-square test per partition at
 ``alpha`` with some |c_j| > ``min_share`` (more than 3 standard errors) says the cause does not
 show where it predicts (a braking-rate change that only shows at low speed, a mass change that
-shows in traction but not in braking).
+shows in traction but not in braking). Then smooth slopes, one degree of freedom each: the
+contribution times a centred covariate (speed; the traction command in traction, the braking
+command in braking), whose coefficient is the cause's change from the covariate's 5th to its
+95th percentile; a likelihood ratio at ``alpha`` with a change of more than ``min_share`` (and
+3 SE) contradicts the cause (a traction loss above a speed taken for a power limit's
+p_spec / v; a loss that scales with the traction command taken for a gradient).
 
 **A piece of a larger structure** (:func:`piece_of`). A confirmed cause whose contribution lies
 mostly (> half of its energy) inside a structure still found in the residuals, while that
@@ -83,9 +88,45 @@ def split_test(mo: Motion, others: Null, full: Null, cfg, noise, alpha: float,
         if len(cols) >= 2 and p < alpha:
             bad += [f"x{1 + cj:.2f} of itself {lab}" for (_, lab), cj, sj in zip(cols, c, se)
                     if abs(cj) > max(min_share, 3.0 * sj)]
+    # smooth departures, one degree of freedom each (more power than the cells against a
+    # cause whose shape in speed or in the command is wrong: a knee p_spec / v against a step
+    # at a speed, a force fixed in place against one that scales with the traction asked for)
+    for name, z in _slopes(mo, ph, v, gi, on, energy):
+        stat, c, se = _fit_columns(st1, (dv * z)[:, None], (ds * z)[:, None])
+        p = float(chi2.sf(stat, 1))
+        out[f"slope in {name}"] = {"chi2": stat, "dof": 1, "p": p, "change": float(c[0]),
+                                   "std_error": float(se[0])}
+        if p < alpha and abs(c[0]) > max(min_share, 3.0 * se[0]):
+            bad.append(f"{1 - c[0] / 2:.2f} to {1 + c[0] / 2:.2f} of itself from the low to "
+                       f"the high end of its {name}")
     if bad:
         out["contradicted"] = True
         out["why"] = "the fitted effect is needed " + ", ".join(bad[:4])
+    return out
+
+
+# the 5-95 % range of a covariate below which a slope in it is not tested (m/s, m/s^2)
+SLOPE_MIN_RANGE = {"speed": 2.0, "traction command": 0.05, "braking command": 0.05}
+
+
+def _slopes(mo: Motion, ph, v, gi, on, energy) -> list:
+    """[(name, z per event)]: centred covariates over the events where the cause acts, scaled
+    so that a coefficient c is the change of the cause from the 5th to the 95th percentile of
+    the covariate (x (1 - c/2) to x (1 + c/2)): speed, and the commanded traction (braking) in
+    traction (braking) where the cause holds more than 2 % of its energy there."""
+    out = []
+    covs = [("speed", v, on)]
+    for p, name, cmd in ((0, "traction command", mo.a_tr0), (2, "braking command", -mo.a_br0)):
+        m = on & (ph == p)
+        if energy[m].sum() > 0.02 * energy.sum():
+            covs.append((name, cmd[gi], m))
+    for name, q, m in covs:
+        if m.sum() < 10:
+            continue
+        lo, hi = np.percentile(q[m], [5, 95])
+        if hi - lo < SLOPE_MIN_RANGE[name]:
+            continue
+        out.append((name, np.where(m, (np.clip(q, lo, hi) - 0.5 * (lo + hi)) / (hi - lo), 0.0)))
     return out
 
 

@@ -19,10 +19,12 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+import numpy as np
 from train_core.model import Line, TrainParams
 
 from ..measured import MeasuredRun
 from .causes import BY_NAME, REGISTRY, SCORING
+from .causes.drive import parabola
 from .confirm import CONFIRM, _null_of, confirm, unpiece
 from .gain import GainContext
 from .motion import Motion
@@ -98,13 +100,17 @@ def _verdict(sr: _Search, run, untestable: list, before: dict, noise,
     """Confirm the accepted causes, test what the confirmed model leaves, rank, and the held-out
     gain of the cause named."""
     mo, beta = sr.mo, run.clock["beta"]
-    checks = confirm(mo, sr.null.shift, sr.accepted, before, sr.cfg, noise, sr.own, gctx)
+    # the command-time offset of the model of every accepted cause (a traction delay brings
+    # the one profiled with it): every model compared below has it, so that a model with a
+    # cause and one without it differ by that cause only, not by a re-timing of all commands
+    shift = _null_of(mo, sr.null.shift, sr.accepted).shift
+    checks = confirm(mo, shift, sr.accepted, before, sr.cfg, noise, sr.own, gctx)
     confirmed = [a for a in sr.accepted if a.status == "confirmed"]
-    found, tests = structure(mo, _null_of(mo, sr.null.shift, confirmed), sr.cfg, noise,
+    found, tests = structure(mo, _null_of(mo, shift, confirmed), sr.cfg, noise,
                              beta, **STRUCTURE)
-    if found and unpiece(mo, sr.null.shift, confirmed, sr.cfg, noise, found):
+    if found and unpiece(mo, shift, confirmed, sr.cfg, noise, found):
         confirmed = [a for a in sr.accepted if a.status == "confirmed"]
-        found, tests = structure(mo, _null_of(mo, sr.null.shift, confirmed), sr.cfg, noise,
+        found, tests = structure(mo, _null_of(mo, shift, confirmed), sr.cfg, noise,
                                  beta, **STRUCTURE)
     for u in found:
         u.pop("mask")
@@ -240,10 +246,18 @@ def joint_refit(mo: Motion, null: Null, accepted: list, cfg: DiagConfig, noise) 
     change is biased by it). Given the discrete choices (sections, delays, slip episodes,
     command offset), the accepted linear causes are one GLS problem: fit them together."""
     lin = [a for a in accepted if BY_NAME[a.cause].linear]
-    if len(lin) < 2:
+    # an accepted cause with a profiled parameter (a power limit), fitted before the linear
+    # ones, took part of them; profiled again with them free (joint maximum), then they are
+    # refitted given its new value
+    moved = bool(lin) and any([_profile_jointly(mo, null.shift, accepted, lin, a, cfg, noise)
+                               for a in accepted if not BY_NAME[a.cause].linear])
+    if moved:
+        null = _null_of(mo, null.shift, [a for a in accepted if not BY_NAME[a.cause].linear])
+    if len(lin) < 2 and not moved:
         return
     base = Null(shift=null.shift, brake_extra=null.brake_extra, slip=list(null.slip),
-                extra=list(null.extra))
+                extra=list(null.extra), traction_timing=null.traction_timing,
+                p_spec=null.p_spec)
     st = Stage(mo, base, cfg, noise=noise)
     free, blocks = [], []
     for a in lin:
@@ -254,6 +268,54 @@ def joint_refit(mo: Motion, null: Null, accepted: list, cfg: DiagConfig, noise) 
     for a, i, k in blocks:
         a.parameters, a.std_errors, a.extra = BY_NAME[a.cause].params(
             st, th[i:i + k], cov[i:i + k, i:i + k], a.extra)
+
+
+def _profile_jointly(mo: Motion, shift: float, accepted: list, lin: list, fit: CauseFit,
+                     cfg: DiagConfig, noise) -> bool:
+    """Re-fit the profiled parameter of the accepted cause ``fit`` (``Cause.profile``) jointly
+    with the free columns of the accepted linear causes ``lin`` (in place): one augmented
+    filter over [the other nonlinear causes' null, s0, the linear causes' columns, the
+    candidate columns]; per candidate the exact log-likelihood with s0 and the linear
+    coefficients at their GLS values; the best refined by a parabola in log value. True when
+    it was re-fitted."""
+    cause = BY_NAME[fit.cause]
+    others = [b for b in accepted if b is not fit and not BY_NAME[b.cause].linear]
+    st = Stage(mo, _null_of(mo, shift, others), cfg, noise=noise, big=False)
+    prof = cause.profile(st)
+    if prof is None:
+        return False
+    name, values, R = prof
+    n_ev = mo.ev.t.size
+    dv, ds, mv_d, mv_v = [], [], [], []
+    for b in lin:
+        for combo in BY_NAME[b.cause].free(st, b.extra):
+            if all(c in mo.col for c in combo):
+                dv.append(sum(w * mo.Dv[:, mo.col[c]] for c, w in combo.items()))
+                ds.append(sum(w * mo.Ds[:, mo.col[c]] for c, w in combo.items()))
+            elif set(combo) == {"scale"}:
+                mv_d.append(combo["scale"] * mo.sc_d)
+                mv_v.append(combo["scale"] * mo.sc_v)
+            else:  # a column the profile does not know how to free
+                return False
+    Cv, Cs = mo.grid.integrate(R, n_ev)
+    nf, k = len(dv), len(values)
+    drift = (np.column_stack(dv + [Cv]), np.column_stack(ds + [Cs]))
+    meas = (np.column_stack(mv_d), np.column_stack(mv_v)) if mv_d else None
+    W = st.augmented(st.fv, st.fs, drift=drift, meas=meas).W
+    free = [1] + list(range(2, 2 + nf)) + list(range(2 + nf + k, W.shape[0]))
+    A = W[np.ix_(free, free)]
+    ll = np.empty(k)
+    for j in range(k):
+        u = np.zeros(W.shape[0])
+        u[0] = u[2 + nf + j] = 1.0
+        b = W[free] @ u
+        ll[j] = -0.5 * (u @ W @ u - b @ np.linalg.lstsq(A, b, rcond=None)[0])
+    i = int(np.argmax(ll))
+    x_hat, se_x = parabola(np.log(values), ll, i)
+    value = math.exp(x_hat)
+    fit.parameters = {**fit.parameters, name: value}
+    fit.std_errors = {**fit.std_errors, name: value * se_x}
+    return True
 
 
 def _reported(fit: CauseFit, beta: float, status: str | None = None) -> CauseFit:

@@ -43,6 +43,12 @@ class Null:
     # drift increments (Bv, Bs), each (n_ev,), of accepted causes whose columns are not
     # elementary (a power limit, a low-adhesion section, a traction delay)
     extra: list = field(default_factory=list)
+    # the delivered traction's chain as far as the accepted causes change it: the traction
+    # commands' re-timing (s, set by a traction delay) and the power limit (W/kg, set by
+    # power_limit); a cause acting on the delivered traction composes with the other
+    # (the limit caps the re-timed traction, the re-timing moves the capped one)
+    traction_timing: float | None = None
+    p_spec: float | None = None
 
 
 class Stage:

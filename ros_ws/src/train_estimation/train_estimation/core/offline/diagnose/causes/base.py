@@ -116,6 +116,13 @@ class Cause:
         """(parameters, standard errors, extra) from the fitted coefficients."""
         raise NotImplementedError
 
+    def profile(self, st) -> tuple | None:
+        """For a cause whose extension is one drift column fixed by one nonlinear parameter: (the
+        parameter's name, its candidate values (increasing), the columns on the motion model's
+        grid (n_grid, K), m/s^2, one per value), against the stage ``st``'s null; the joint refit
+        profiles the parameter with the accepted linear causes free. None: not such a cause."""
+        return None
+
     def fit_linear(self, st) -> tuple:
         free = self.free(st)
         th, cov, ll, _ = st.fit({}, free)
@@ -130,6 +137,12 @@ class Cause:
         odometer period), in general with :func:`resolved`: a change is a change only when it
         is more than ``Z_RESOLVE`` standard errors and more than a stated minimum from
         nominal. The default (no rule of its own) accepts every fit."""
+        return None
+
+    def plausible(self, fit: CauseFit, mo) -> str | None:
+        """Why the fitted cause is not one the railway could have (None: it could): a bound
+        that follows from what the cause is (a map's error, a train's parameter), not from the
+        data. The default states none."""
         return None
 
     # What else makes the same residual when the cause is seen in one phase only (None: the

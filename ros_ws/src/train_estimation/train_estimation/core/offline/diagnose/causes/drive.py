@@ -8,6 +8,7 @@ that one run (stage.py) and are compared on it."""
 from __future__ import annotations
 
 import math
+import weakref
 
 import numpy as np
 
@@ -87,3 +88,31 @@ def untestable_without_traction(run, cfg, min_traction: float) -> str | None:
     v_at_cmd = np.interp(run.ctrl_t, run.odo_t, run.odo_v)
     return None if np.any(trac & (v_at_cmd > cfg.standstill_speed)) else \
         "no traction command while moving in the data"
+
+
+_TRACTION: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # Motion -> {timing: a_tr}
+
+
+def traction_at(mo, timing: float) -> np.ndarray:
+    """m/s^2 on the grid: the believed traction through the actuator with the commands re-timed
+    by ``timing`` s (cached per run)."""
+    cache = _TRACTION.setdefault(mo, {})
+    key = round(float(timing), 6)
+    if key not in cache:
+        cache[key] = mo.a_tr0 if key == 0.0 else mo._act(key, 0.0)[0]
+    return cache[key]
+
+
+def null_traction(mo, null) -> np.ndarray:
+    """The traction the null delivers before any power limit: the commands re-timed by the
+    accepted traction delay, else by the common command-time offset."""
+    timing = null.traction_timing if null.traction_timing is not None else null.shift
+    return traction_at(mo, timing)
+
+
+def capped(mo, a_tr: np.ndarray, p_spec: float | None) -> np.ndarray:
+    """The traction ``a_tr`` capped at p_spec / v (train_core dynamics.py); uncapped when
+    ``p_spec`` is None."""
+    if p_spec is None:
+        return a_tr
+    return np.minimum(a_tr, p_spec / np.maximum(mo.v_ref, 1e-3))

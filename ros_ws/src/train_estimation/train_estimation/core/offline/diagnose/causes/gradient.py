@@ -23,6 +23,10 @@ from ..stage import Stage, best_section
 from .base import Cause, fleet_se, resolved
 from .resistance import RESISTANCE_COLS
 
+# per mille, the largest error of a surveyed gradient map that is not a section mapped with the
+# wrong profile (a few per mille: a gradient map error of a survey)
+MAP_ERROR = 10.0
+
 
 class Gradient(Cause):
     name = "gradient"
@@ -86,6 +90,25 @@ class Gradient(Cause):
         """A map error below 0.5 per mille is within a surveyed map's own precision."""
         return resolved("permille", fit.parameters["permille"],
                         fit.std_errors.get("permille"), 0.5, " per mille")
+
+    def plausible(self, fit, mo) -> str | None:
+        """A gradient map error is an error of a surveyed profile: a few per mille, or a
+        section mapped with a profile the line has elsewhere (a sign or a change point in the
+        wrong place). A change of more than ``MAP_ERROR`` whose corrected gradient is steeper
+        than any the line's map holds is no map error: a force of that size on that stretch is
+        something else (traction cut on a stretch, drag, a force in time)."""
+        p = fit.parameters
+        pm = float(p["permille"])
+        if abs(pm) <= MAP_ERROR:
+            return None
+        steepest = max((abs(s.permille) for s in mo.line.gradients), default=0.0)
+        xs = np.linspace(p["start"], p["end"], 64)
+        corrected = float(np.max(np.abs(mo.line.gradient_permille(xs) + pm)))
+        if corrected <= steepest:
+            return None
+        return (f"not a map error: {pm:+.1f} per mille is more than a map's error ({MAP_ERROR:g}) "
+                f"and the corrected gradient ({corrected:.1f} per mille) is steeper than any on "
+                f"the line's map ({steepest:.1f})")
 
     # at one place in one phase only, a map error and a force acting while the train was there
     # (headwind, a traction or braking fault of that moment) make the same residual

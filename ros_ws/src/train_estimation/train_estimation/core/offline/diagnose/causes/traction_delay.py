@@ -6,7 +6,9 @@ common command-time offset s (a nuisance: the link's mean latency moves both cha
 (s, d): traction re-timed by s + d, braking by s. The re-timed traction columns (believed
 traction through the actuator at each offset, minus the believed one) are built once per run;
 every (s, d) is a fixed combination of them and of the motion model's braking columns, scored
-on one filter run (``drive.Candidates``)."""
+on one filter run (``drive.Candidates``). With a power limit in the null the re-timed traction
+is capped at p_spec / v (a delayed command still meets the limit: at a power-limited release the
+traction that goes on for the delay is p_spec / v, not the command)."""
 
 from __future__ import annotations
 
@@ -16,10 +18,10 @@ import numpy as np
 from train_core.effects import TractionDelayEffect
 
 from .base import Cause, resolved
-from .drive import Candidates, parabola, untestable_without_traction
+from .drive import Candidates, capped, parabola, traction_at, untestable_without_traction
 
 MIN_TRACTION = 0.05  # m/s^2, as power_limit: a traction command that can show a delay
-_COLUMNS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # Motion -> its columns
+_COLUMNS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # Motion -> {p_spec: columns}
 
 
 class TractionDelay(Cause):
@@ -33,7 +35,7 @@ class TractionDelay(Cause):
         """Profile over (s, d > 0) on the grids of brake_delay; the delay refined by a parabola
         through the profile likelihood of d."""
         mo = st.mo
-        keys, cols = _columns(mo)
+        keys, cols = _columns(mo, st.null.p_spec)
         cand = Candidates(st, drift=cols)
         base = _fixed(cand.k, keys, st.null.shift, st.null.brake_extra, -1.0)
         prof = {}
@@ -63,7 +65,7 @@ class TractionDelay(Cause):
 
     def extend_null(self, null, fit, mo) -> None:
         """The common offset is the fit's; traction moves by the extra delay beyond it."""
-        keys, (bv, bs) = _columns(mo)
+        keys, (bv, bs) = _columns(mo, null.p_spec)
         s, d = fit.extra["offset"], fit.extra["extra"]
         w = np.zeros(len(keys))
         for key, c in ((s + d, 1.0), (s, -1.0)):
@@ -71,6 +73,7 @@ class TractionDelay(Cause):
             if ("T", k) in keys:
                 w[keys[("T", k)]] += c
         null.shift = s
+        null.traction_timing = s + d
         null.extra.append((bv @ w, bs @ w))
 
     def replay_offset(self, extra: dict, shift: float) -> float:
@@ -81,13 +84,20 @@ class TractionDelay(Cause):
         return TractionDelayEffect(float(params["delay"]))
 
 
-def _columns(mo) -> tuple[dict, tuple]:
+def _columns(mo, p_spec: float | None = None) -> tuple[dict, tuple]:
     """Columns [traction re-timed by every offset s + d (the believed one subtracted), the
-    motion model's braking columns]: ({("T" or "B", key): column index}, (Bv, Bs))."""
-    if mo in _COLUMNS:
-        return _COLUMNS[mo]
+    motion model's braking columns]: ({("T" or "B", key): column index}, (Bv, Bs)). With
+    ``p_spec`` both the re-timed and the believed traction are capped at p_spec / v (the
+    null's power limit), so that a hypothesis replaces the null's capped traction by the capped
+    re-timed one."""
+    cache = _COLUMNS.setdefault(mo, {})
+    ck = None if p_spec is None else round(float(p_spec), 9)
+    if ck in cache:
+        return cache[ck]
     keys = sorted({round(float(s + d), 6) for s in mo.shifts for d in mo.delays} - {0.0})
-    R = np.stack([(mo._act(k, 0.0)[0] - mo.a_tr0) * mo.moving for k in keys], axis=1)
+    a0 = capped(mo, mo.a_tr0, p_spec)
+    R = np.stack([(capped(mo, traction_at(mo, k), p_spec) - a0) * mo.moving for k in keys],
+                 axis=1)
     Bv, Bs = mo.grid.integrate(R, mo.ev.t.size)
     index = {("T", k): i for i, k in enumerate(keys)}
     bk = sorted(mo.braking_cols)
@@ -96,7 +106,7 @@ def _columns(mo) -> tuple[dict, tuple]:
     cols = [mo.col[mo.braking_cols[k]] for k in bk]
     out = (index, (np.concatenate([Bv, mo.Dv[:, cols]], axis=1),
                    np.concatenate([Bs, mo.Ds[:, cols]], axis=1)))
-    _COLUMNS[mo] = out
+    cache[ck] = out
     return out
 
 
