@@ -201,3 +201,23 @@ def test_a_balise_refused_by_the_gate_degrades_until_one_agrees(kind):
     fl.onset = t_bal - F.EPOCH  # score from the balise on
     s = F.score(after, emitted[emitted > t_bal], fl, res.truth, 10.0, 60.0 + F.LATENCY)
     assert s["wrong_side"] == 0 and s["hazards"] == 0, s
+
+
+@pytest.mark.parametrize("bias,want", [(0.0, OK), (2.0, DEGRADED)])
+def test_the_position_test_flags_a_distance_bias_and_covers_it(bias, want):
+    # a filter that claims 0.1 m while the distances say it is 2 m behind, reading after
+    # reading (each only 2 sigma of the distance's stated 1 m^2, so the filter absorbs it a
+    # reading's weight at a time): DEGRADED, the variance grown by the bias squared; the
+    # distances' own noise (sd 1 m, as stated) is no bias
+    rng = np.random.default_rng(4)
+    m = IntegrityMonitor(IntegrityParams(), 0.1)
+    cov = tuple(np.diag([0.01, 0.0025, math.nan, math.nan]).ravel())
+    out = None
+    for k in range(40):
+        t, x = 10.0 + 0.1 * k, 20.0 * 0.1 * k
+        m.reading(t, {"speed": 20.0, "speed_variance": 0.01}, True,
+                  position=(x + bias + rng.normal(0.0, 1.0), 1.0))
+        out = m.assess(Output(t, x, 20.0, 0.0, math.nan, cov, True), t)
+    assert out.integrity == want, out.integrity_reason
+    if want == DEGRADED:
+        assert "position" in out.integrity_reason and out.covariance[0] > 0.04 * bias ** 2

@@ -131,7 +131,23 @@ class RobustConfig:
         require(self.max_command > 0, "max_command", self.max_command, "must be > 0")
 
 
-class RobustAdapter:
+class _DistanceAsPosition:
+    """What both adapters read the odometer's distance as (``start_state``, ``cfg``)."""
+
+    def position_reading(self, fields: dict):
+        """The odometer reading as this estimator's position measurement: ``(start position
+        + counted distance m, distance_variance m^2)``, or None when distance is not used
+        (the integrity monitor's position test)."""
+        if not self.cfg.use_distance:
+            return None
+        try:
+            return (self.start_state.position + float(fields["distance"]),
+                    float(self.cfg.distance_variance))
+        except (KeyError, TypeError, ValueError):
+            return None
+
+
+class RobustAdapter(_DistanceAsPosition):
     """Drives :class:`RobustFilter` on the odometer's own clock.
 
     Lost odometer samples are found from the odometer's stamps (not from an output grid, so any
@@ -211,18 +227,6 @@ class RobustAdapter:
                                         position=float(fields["position"]),
                                         position_variance=float(fields["position_variance"])))
         return "" if d.accepted else d.reason
-
-    def position_reading(self, fields: dict):
-        """The odometer reading as this estimator's position measurement: ``(start position
-        + counted distance m, distance_variance m^2)``, or None when distance is not used
-        (the integrity monitor's position test)."""
-        if not self.cfg.use_distance:
-            return None
-        try:
-            return (self.start_state.position + float(fields["distance"]),
-                    float(self.cfg.distance_variance))
-        except (KeyError, TypeError, ValueError):
-            return None
 
     def output(self, t: float) -> Output:
         f = self.f
@@ -368,7 +372,7 @@ class BrakingConfig:
         require(0 <= self.sma_p_jump < 1, "sma_p_jump", self.sma_p_jump, "must be in [0, 1)")
 
 
-class BrakingAdapter:
+class BrakingAdapter(_DistanceAsPosition):
     """Drives one of GSMA, SMA, RBPF, Q-GRBPF or the exact KF over the (D, v, a_hat, a_z) model of
     Zheng eq. (4). Every algorithm's braking-rate prior is
     N(train.brake.braking_rate, braking_rate_prior_std^2).
@@ -548,18 +552,6 @@ class BrakingAdapter:
         if not reason:
             self.last["balise"] = (seq, stamp)
         return reason
-
-    def position_reading(self, fields: dict):
-        """The odometer reading as this estimator's position measurement: ``(start position
-        + counted distance m, distance_variance m^2)``, or None when distance is not used
-        (the integrity monitor's position test)."""
-        if not self.cfg.use_distance:
-            return None
-        try:
-            return (self.start_state.position + float(fields["distance"]),
-                    float(self.cfg.distance_variance))
-        except (KeyError, TypeError, ValueError):
-            return None
 
     def output(self, t: float) -> Output:
         # the braking filters step in time (their transition clock): an output between readings
