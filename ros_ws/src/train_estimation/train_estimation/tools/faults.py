@@ -271,10 +271,10 @@ def score(outs: list, emitted: np.ndarray, faulted: Faulted, truth: dict, rate: 
     var = np.array([c[0, 0] for c in C], float)
     t = np.array([faulted.clock.true_time(o.stamp, e - LATENCY) for o, e in zip(outs, em)],
                  float)
-    tr_t = np.asarray(truth["t"], float)
+    tr_t, tr_x = np.asarray(truth["t"], float), np.asarray(truth["position"], float)
     inside = (t >= tr_t[0] - 1.0) & (t <= tr_t[-1] + 1.0)
     err = np.full(n, np.nan)
-    err[inside] = x[inside] - np.interp(t[inside], tr_t, np.asarray(truth["position"], float))
+    err[inside] = x[inside] - np.interp(t[inside], tr_t, tr_x)
     a = np.abs(err)
     with np.errstate(invalid="ignore"):
         sigma = np.sqrt(np.where(var > 0, var, np.nan))
@@ -291,7 +291,7 @@ def score(outs: list, emitted: np.ndarray, faulted: Faulted, truth: dict, rate: 
             ts = faulted.clock.meanings(outs[i].stamp, em[i] - LATENCY)
             alt = [u for u in ts[1:] if abs(u - ts[0]) <= AVAILABLE_LAG]
             for u in alt:
-                e = x[i] - np.interp(u, tr_t, np.asarray(truth["position"], float))
+                e = x[i] - np.interp(u, tr_t, tr_x)
                 if abs(e) <= WRONG_SIDE_M or abs(e) <= WRONG_SIDE_SIGMAS * sigma[i]:
                     twice[i] = True
     hazard &= ~twice

@@ -438,7 +438,8 @@ class SampleGrid:
         self.keep = keep  # recent samples kept
         self._pts: dict = {}  # seq -> timeline stamp of learnt samples
         self._misfits: list = []  # (seq, stamp) admitted in a row off the trusted line
-        self._fit = None  # cached (P, c, tolerance), or False when not trusted
+        self._fit = None  # cached (P, c, tolerance, lowest seq, highest seq), or False when not
+        #   trusted
 
     def reset(self) -> None:
         self._pts.clear()
@@ -472,7 +473,8 @@ class SampleGrid:
         self._fit = None
 
     def _line(self):
-        """(P s, c s, tolerance s) of the grid, or None while it is not trusted."""
+        """(P s, c s, tolerance s, lowest seq, highest seq) of the grid, or None while it is
+        not trusted."""
         if self._fit is None:
             self._fit = False
             if len(self._pts) >= self.n_min:
@@ -485,7 +487,7 @@ class SampleGrid:
                     spread = 1.4826 * float(np.median(np.abs(r - c)))
                     tol = max(self.floor, 8.0 * spread)
                     if tol < 0.25 * P:
-                        self._fit = (P, c, tol)
+                        self._fit = (P, c, tol, int(q[0]), int(q[-1]))
         return self._fit or None
 
     def residual(self, seq, stamp: float):
@@ -495,10 +497,9 @@ class SampleGrid:
         seq = self._seq(seq)
         if fit is None or seq is None:
             return None
-        lo, hi = min(self._pts), max(self._pts)
+        P, c, tol, lo, hi = fit
         if not lo - 100_000 <= seq <= hi + 100_000:
             return None
-        P, c, tol = fit
         if seq < hi and stamp > c + P * hi + tol:
             return None  # the seq back while the stamp went on: restarted, wrapped or corrupt
         return stamp - (c + P * seq)
@@ -839,11 +840,12 @@ class StepWatch:
         s0, a0 = self.last
         odo = [h for h in self.held if h[0] == "odometer"]
         doubt = max((abs(h[1] - s0 - (h[4] - a0)) for h in self.held), default=0.0)
-        # the grid's residual is the step itself (exact), where the link put jitter into it
-        doubt = max([doubt] + [abs(r) for r in (self._resid(*h[:3]) for h in odo)
-                               if r is not None])
-        return len(odo), doubt, any(self._conclusive(h[1], h[3], h[4], drift) or
-                                    self._resid(*h[:3]) is not None for h in odo)
+        # the grid's residual is the step itself (exact), where the link put jitter into it;
+        # a held reading the grid places is off it, and in doubt at once
+        rs = [self._resid(*h[:3]) for h in odo]
+        doubt = max([doubt] + [abs(r) for r in rs if r is not None])
+        return len(odo), doubt, any(r is not None or self._conclusive(h[1], h[3], h[4], drift)
+                                    for h, r in zip(odo, rs))
 
     def _conclusive(self, stamp: float, recv, arrival, drift: float = 0.0) -> bool:
         """One held odometer reading that no lateness explains: stamped above its clock's
