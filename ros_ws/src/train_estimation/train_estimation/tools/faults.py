@@ -210,26 +210,19 @@ class _Timed:
 
 def run(events: list, adapter, period: float, delay: float = 0.05, fallback: float = 0.2,
         tick_period: float | None = 0.05, **runner_kw):
-    """``(outputs, emitted, runner)``: the replay of ``core.replay.replay`` (same runner, same
-    steps, the same ``runner.tick`` at the same arrival times), with ``emitted[i]`` the arrival
-    time (s, reference clock) of the message or timer tick after which ``outputs[i]`` was
-    produced (the drain at the end: the last arrival)."""
-    from train_estimation.core.online.replay import TimerTicks
-    from train_estimation.core.online.runner import EstimatorRunner
+    """``(outputs, emitted, runner)``: ``core.online.replay.replay`` itself (the runner the
+    nodes use, its ticks at the node timer's times), with ``emitted[i]`` the arrival time (s,
+    reference clock) of the message or timer tick after which ``outputs[i]`` was produced (the
+    drain at the end: the last arrival)."""
+    from train_estimation.core.online.replay import replay
 
     timed = _Timed(adapter)
-    runner = EstimatorRunner(timed, period, **runner_kw)
-    out: list = []
-    ticks = TimerTicks(tick_period)
-    for topic, stamp, fields, recv in events:
-        for t in ticks.until(recv):  # the node's timer between two messages
-            timed.now = t
-            out += runner.tick(t)
-        runner.push(topic, stamp, fields, recv)
-        timed.now = recv
-        out += runner.advance_to(runner.ready_time(recv, delay, fallback))
-        out += runner.tick(recv)
-    out += runner.drain()
+
+    def at(t):
+        timed.now = t
+
+    out, runner = replay(events, timed, period, delay=delay, fallback=fallback,
+                         tick_period=tick_period, on_time=at, **runner_kw)
     return out, np.array(timed.emitted, float), runner
 
 

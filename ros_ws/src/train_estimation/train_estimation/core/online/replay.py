@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 
 from .runner import EstimatorRunner, Output
 
@@ -43,6 +43,7 @@ class TimerTicks:
 
 def replay(events: Iterable[tuple], adapter, period: float, delay: float = 0.05,
            fallback: float = 0.2, tick_period: float | None = 0.05,
+           on_time: Callable[[float], None] | None = None,
            **runner_kw) -> tuple[list[Output], EstimatorRunner]:
     """Estimates from ``(topic, stamp, fields[, recv])`` events **in arrival (log-time) order**.
 
@@ -52,7 +53,8 @@ def replay(events: Iterable[tuple], adapter, period: float, delay: float = 0.05,
     (s) is the arrival time (the bag's log time); without it the arrival is judged from the
     other clock's stamps (see the runner) and there are no ticks. Every step is bounded by the
     stamps pushed, and a stamp far in the future is refused at the door, so the replay always
-    terminates.
+    terminates. ``on_time(t)`` (optional) is told each arrival and tick time before the runner
+    works at it (``tools.faults.run`` notes there when each estimate was produced).
     """
     runner = EstimatorRunner(adapter, period, **runner_kw)
     out: list[Output] = []
@@ -64,7 +66,11 @@ def replay(events: Iterable[tuple], adapter, period: float, delay: float = 0.05,
         if topic not in INPUT_TOPICS:
             continue
         for t in ticks.until(recv):
+            if on_time is not None:
+                on_time(t)
             out += runner.tick(t)
+        if on_time is not None and recv is not None:
+            on_time(recv)
         runner.push(topic, stamp, fields, recv)
         now = recv if recv is not None else now
         out += runner.advance_to(runner.ready_time(now if now is not None else stamp, delay,
