@@ -382,3 +382,38 @@ def test_a_copy_of_a_fused_sample_with_another_stamp_is_refused_and_doubts_nothi
     s = F.score(outs, emitted, fl, res.truth, 10.0, 60.0 + F.LATENCY)
     assert runner.rejected.get("odometer:duplicate") == n_copies > 40, runner.counts
     assert s["wrong_side"] == 0 and s["availability"] > 0.99, s
+
+
+@pytest.mark.parametrize("size", [-10.0, -3.0, 3.0, 10.0])
+def test_a_step_in_the_first_seconds_of_a_1_hz_run_is_seen_by_the_seqs(size):
+    """A train clock that steps 4 s into a 1 Hz run, before the clock has its nine readings: the
+    seqs place the new readings off the provisional sample grid, and the step is re-anchored.
+    Without it the readings after a -10 s step, stamped where the old clock had been, were
+    taken as its late ones (the robust filter 70 m behind, integrity OK); after a +3 s step the
+    step's offsets voted into the clock's centre before the watch judged them, and every slot
+    to the end of the run came 3 s early (availability 0 %)."""
+    sc, res = run("wen2017_subway", 0, 70.0)
+    fl = F.inject(res.events(), F.Fault("step", size, at=4.0), np.random.default_rng(0))
+    outs, emitted, runner = F.run(fl.events, adapter(sc, "robust"), 1.0)
+    s = F.score(outs, emitted, fl, res.truth, 1.0, 70.0 + F.LATENCY)
+    assert runner.events.get("odometer:clock_reset") == 1, runner.counts
+    assert runner._steps.shift == pytest.approx(size, abs=0.02)
+    assert s["wrong_side"] == 0 and s["off_run"] == 0, s
+    # held while the nine readings that decide the step come (9 of the 66 slots scored)
+    assert s["availability"] > 0.8, s
+
+
+def test_the_provisional_sample_grid():
+    from train_estimation.core.numerics.clocks import SampleGrid
+    g = SampleGrid(1.0, n_min=9)
+    for q in range(2):
+        g.add(q, 50.0 + q)
+    assert g.residual(2, 52.0) is None  # two samples: no line yet
+    g.add(2, 52.0)
+    assert g.residual(5, 55.0) == pytest.approx(0.0) and g.tol_at(5) == pytest.approx(0.07)
+    assert g.residual(14, 54.0) == pytest.approx(-10.0)  # a -10 s step, 11 samples on
+    assert g.tol_at(1) == pytest.approx(0.01)  # inside the learnt span: the floor
+    h = SampleGrid(1.0, n_min=9)
+    for q, st in ((0, 50.0), (1, 51.0), (7, 52.0)):  # a corrupted seq among three: no line
+        h.add(q, st)
+    assert h.residual(3, 53.0) is None and h.tol_at(3) == float("inf")

@@ -173,3 +173,19 @@ def test_a_stamp_at_the_step_instant_means_the_old_clock(jump):
     clock = F.TrainClock(steps=((41.0, jump),))
     assert clock.true_time(F.EPOCH + 41.0, near=41.2) == pytest.approx(41.0)
     assert clock.true_time(F.EPOCH + 41.1 + jump, near=41.2) == pytest.approx(41.1)
+
+
+def test_a_step_is_read_from_its_first_reading_on():
+    """A -0.1 s step at 618 s of a 1 Hz run whose readings at 618 and 619 s were lost: nothing
+    tells of it until the reading at 620 s arrives (commands are on the reference clock), and
+    the slot predicted at 619.00 is read on the clock in force until then, as a zone controller
+    reading it at that time reads it -- on the stepped clock 619.00 is 619.1 s, 8 m further at
+    80 m/s, which no estimator could have known."""
+    events = [("odometer", float(t), {"seq": t}) for t in (616, 617, 620, 621)]
+    fl = F.inject(events, F.Fault("step", -0.1, at=618.0), np.random.default_rng(0))
+    assert fl.clock.seen == pytest.approx((620.0 + F.LATENCY,))
+    before = fl.clock.known_at(619.55)
+    assert before.steps == () and before.true_time(F.EPOCH + 619.0, 619.5) == pytest.approx(619.0)
+    after = fl.clock.known_at(620.05)
+    assert after.true_time(F.EPOCH + 619.9, 620.0) == pytest.approx(620.0)
+    assert after.true_time(F.EPOCH + 619.0, 619.5) == pytest.approx(619.1)

@@ -38,7 +38,9 @@ steps so far (:class:`TrainClock`); control by the reference clock ``EPOCH + t``
 ``control_clock: auto`` takes as one clock until the drift or a step says otherwise).
 
 :func:`score` judges the estimates as a zone controller would read them: an estimate claims
-``position`` at the time its stamp means on the train clock (:meth:`TrainClock.true_time`), and it
+``position`` at the time its stamp means on the train clock (:meth:`TrainClock.true_time`) as it
+could be known when the estimate was published (a step from the arrival of its first reading on:
+:meth:`TrainClock.known_at`), and it
 is *wrong-side* when it says integrity OK (0) while ``|error| > WRONG_SIDE_M`` and
 ``|error| > WRONG_SIDE_SIGMAS`` standard deviations of its published position variance (or the
 variance is not a positive finite number, or the position is not finite).
@@ -48,7 +50,7 @@ from __future__ import annotations
 
 import math
 from collections import Counter
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -83,6 +85,19 @@ class TrainClock:
     epoch: float = EPOCH  # s
     drift: float = 0.0  # s/s
     steps: tuple[tuple[float, float], ...] = ()  # (true time s, jump s), in time order
+    seen: tuple[float, ...] = ()  # s, true arrival of each step's first train-clock reading
+    #   (inf: none arrived); empty: every step known from its instant on
+
+    def known_at(self, arrival: float) -> TrainClock:
+        """The clock as a reader of the train's messages can know it at true time ``arrival``:
+        without the steps none of whose readings had arrived by then. Before a step's first
+        reading arrives nothing tells of it (commands run on the reference clock), and an
+        estimate predicted for a lost reading's slot is stamped on the clock in force -- as a
+        zone controller reading it at that time maps it too."""
+        if not self.seen:
+            return self
+        return replace(self, steps=tuple(st for st, s in zip(self.steps, self.seen)
+                                         if s <= arrival + 1e-6), seen=())
 
     def offset(self, t: float) -> float:
         return sum(j for ts, j in self.steps if t >= ts)
@@ -184,6 +199,10 @@ def inject(events: list, fault: Fault, rng: np.random.Generator) -> Faulted:
                 recv = at + size
         rows.append((topic, t, fields, err, recv))
     rows.sort(key=lambda r: r[4])  # arrival order (stable: equal arrivals keep sending order)
+    if clock.steps:
+        clock = replace(clock, seen=tuple(
+            min((r[4] for r in rows if r[0] in TRAIN_TOPICS and r[1] >= ts),
+                default=math.inf) for ts, _ in clock.steps))
     out = [(topic, (clock.stamp(t) if topic in TRAIN_TOPICS else EPOCH + t) + err, fields,
             EPOCH + recv) for topic, t, fields, err, recv in rows]
     counts: Counter = Counter()
@@ -262,7 +281,9 @@ def score(outs: list, emitted: np.ndarray, faulted: Faulted, truth: dict, rate: 
     x = np.array([o.position for o in outs], float)
     C = [np.array(o.covariance, float).reshape(4, 4)[:2, :2] for o in outs]
     var = np.array([c[0, 0] for c in C], float)
-    t = np.array([faulted.clock.true_time(o.stamp, e - LATENCY) for o, e in zip(outs, em)],
+    # each estimate read on the clock as known when it was published (TrainClock.known_at)
+    clocks = [faulted.clock.known_at(e) for e in em]
+    t = np.array([c.true_time(o.stamp, e - LATENCY) for c, o, e in zip(clocks, outs, em)],
                  float)
     tr_t, tr_x = np.asarray(truth["t"], float), np.asarray(truth["position"], float)
     inside = (t >= tr_t[0] - 1.0) & (t <= tr_t[-1] + 1.0)
@@ -281,7 +302,7 @@ def score(outs: list, emitted: np.ndarray, faulted: Faulted, truth: dict, rate: 
     twice = np.zeros(n, bool)
     if faulted.clock.steps:
         for i in np.flatnonzero(ok & hazard):
-            ts = faulted.clock.meanings(outs[i].stamp, em[i] - LATENCY)
+            ts = clocks[i].meanings(outs[i].stamp, em[i] - LATENCY)
             alt = [u for u in ts[1:] if abs(u - ts[0]) <= AVAILABLE_LAG]
             for u in alt:
                 e = x[i] - np.interp(u, tr_t, tr_x)

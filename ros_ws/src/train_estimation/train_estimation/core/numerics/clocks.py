@@ -429,22 +429,36 @@ class SampleGrid:
     samples agree: the period within half and twice the nominal one, the residuals' robust
     spread small against it. ``n_min`` admitted samples in a row off the line (a sender
     restarted, its counter wrapped) replace it by theirs; a step measured otherwise forgets it.
+
+    Before that, from ``n_early`` samples that lie on one line within ``floor`` (a corrupted
+    stamp or seq among so few breaks the line, and then there is none), the grid is
+    *provisional*: the same residuals, with a tolerance that also allows ``rate_tol`` of the
+    period per sample beyond the learnt ones (the period known from so few samples only to a
+    drifting clock's rate). A train clock that steps in the first seconds of a 1 Hz run is then
+    seen by the seqs: the readings after a -10 s step at 4 s, stamped where the old clock had
+    already been, were taken as the old clock's late ones and its estimates ran 70 m behind.
     """
 
-    def __init__(self, period: float, n_min: int = 9, floor: float = 0.01, keep: int = 64):
+    def __init__(self, period: float, n_min: int = 9, floor: float = 0.01, keep: int = 64,
+                 n_early: int = 3, rate_tol: float = 0.02):
         self.period = period  # s, nominal odometer period
         self.n_min = n_min  # samples before the grid is trusted
+        self.n_early = n_early  # samples on one line before the grid is provisional
+        self.rate_tol = rate_tol  # -, the provisional period's allowance per sample beyond
+        #   the learnt ones (a clock's rate error, 1e-2 at most, and the slope of few samples)
         self.floor = floor  # s: the smallest residual taken as off the grid (sampling jitter)
         self.keep = keep  # recent samples kept
         self._pts: dict = {}  # seq -> timeline stamp of learnt samples
         self._misfits: list = []  # (seq, stamp) admitted in a row off the trusted line
         self._fit = None  # cached (P, c, tolerance, lowest seq, highest seq), or False when not
         #   trusted
+        self._early = None  # the same, provisional (class doc), or False when there is none
 
     def reset(self) -> None:
         self._pts.clear()
         self._misfits.clear()
         self._fit = None
+        self._early = None
 
     @staticmethod
     def _seq(seq):
@@ -471,6 +485,7 @@ class SampleGrid:
         if len(self._pts) > self.keep:
             del self._pts[min(self._pts)]
         self._fit = None
+        self._early = None
 
     def _line(self):
         """(P s, c s, tolerance s, lowest seq, highest seq) of the grid, or None while it is
@@ -490,10 +505,40 @@ class SampleGrid:
                         self._fit = (P, c, tol, int(q[0]), int(q[-1]))
         return self._fit or None
 
-    def residual(self, seq, stamp: float):
-        """``stamp`` less where the grid puts sample ``seq`` (s); None while the grid is not
-        trusted, or for a seq far from it (a counter restarted or wrapped, a corrupted seq)."""
+    def _provisional(self):
+        """The provisional line (class doc), as :meth:`_line`'s tuple, or None."""
+        if self._early is None:
+            self._early = False
+            n = len(self._pts)
+            if self.n_early <= n < self.n_min:
+                q = np.array(sorted(self._pts), float)
+                st = np.array([self._pts[int(k)] for k in q])
+                P = float(np.median(np.diff(st) / np.diff(q)))
+                if 0.5 * self.period <= P <= 2.0 * self.period:
+                    r = st - P * q
+                    c = float(np.median(r))
+                    if np.all(np.abs(r - c) <= self.floor) and self.floor < 0.25 * P:
+                        self._early = (P, c, self.floor, int(q[0]), int(q[-1]))
+        return self._early or None
+
+    def tol_at(self, seq) -> float:
+        """The tolerance (s) of :meth:`residual` at sample ``seq``: the trusted grid's, or the
+        provisional one's grown by ``rate_tol`` periods per sample beyond the learnt ones;
+        inf without a grid."""
         fit = self._line()
+        if fit:
+            return fit[2]
+        fit, seq = self._provisional(), self._seq(seq)
+        if fit is None or seq is None:
+            return math.inf
+        P, _, tol, lo, hi = fit
+        return tol + self.rate_tol * P * max(lo - seq, seq - hi, 0)
+
+    def residual(self, seq, stamp: float):
+        """``stamp`` less where the grid puts sample ``seq`` (s); None while the grid is
+        neither trusted nor provisional, or for a seq far from it (a counter restarted or
+        wrapped, a corrupted seq)."""
+        fit = self._line() or self._provisional()
         seq = self._seq(seq)
         if fit is None or seq is None:
             return None
@@ -683,10 +728,10 @@ class StepWatch:
         # is not, however small the move (a 0.1 s step hides in a link's jitter, and the kf
         # then stayed 2 m off with a sigma of 0.1 m for 7 s)
         r = self._resid(kind, stamp, fields)
+        seq = fields.get("seq") if isinstance(fields, dict) else None
         if r is not None:
-            continuous = abs(r) <= self.grid.tol
+            continuous = abs(r) <= self.grid.tol_at(seq)
         if continuous:
-            seq = fields.get("seq") if isinstance(fields, dict) else None
             first_seq = chain[0][2].get("seq") if chain else None
             if kind == "odometer" and self.held and not (
                     r is not None and isinstance(first_seq, int) and isinstance(seq, int)
@@ -702,7 +747,7 @@ class StepWatch:
             _, s1, _, _, a1, _ = chain[-1]
             rs = self._chain_resid(chain)
             if rs is not None and r is not None:  # one new clock: one residual
-                joins = abs(r - rs[len(rs) // 2]) <= self.grid.tol
+                joins = abs(r - rs[len(rs) // 2]) <= self.grid.tol_at(seq)
             else:
                 joins = continues((s1, a1), (stamp, arrival)) or \
                     self._joins(chain, stamp, arrival, bar)
@@ -791,8 +836,9 @@ class StepWatch:
         rs = [self._resid(h[0], h[1], h[2]) for h in chain]
         if not rs or any(r is None for r in rs):
             return None
+        tol = max(self.grid.tol_at(h[2].get("seq")) for h in chain)
         rs.sort()
-        return rs if rs[-1] - rs[0] <= 2.0 * self.grid.tol else None
+        return rs if rs[-1] - rs[0] <= 2.0 * tol else None
 
     @staticmethod
     def _joins(chain: list, stamp: float, arrival: float, bar: float) -> bool:
@@ -827,7 +873,7 @@ class StepWatch:
             # off the sample grid, and no step: its stamp lies about when it was sampled (a
             # copy 0.5 s ahead was admitted and fused 10 m off its time)
             r = self._resid(k, st, f)
-            if r is not None and abs(r) > self.grid.tol:
+            if r is not None and abs(r) > self.grid.tol_at(f.get("seq")):
                 yield REFUSE, k, st, r
                 continue
             yield ADMIT, (k, st, f, rc, ar)

@@ -251,10 +251,15 @@ class EstimatorRunner:
             # catching up with a backlog (a stall's burst), whose next messages may well hold
             # the readings the arrival clock says are overdue; tick waits for one on time
             self._backlog = stamp - arrival - med.value < -med.late
-        if early:
+        if early and not (clock == "train" and recv is not None and
+                          self._steps.last is not None):
             # too early to judge a stamp against its clock: hold it until the clock's median
             # offset rests on min_judged arrivals (one corrupted first stamp must not set the
-            # watermarks or the start), then judge the held ones like any other
+            # watermarks or the start), then judge the held ones like any other. Not once the
+            # step watch judges the train clock (a reading admitted, arrivals known): it holds
+            # what does not continue the clock, and an offset voted here before it judged put
+            # a step's readings into the clock's centre (a +3 s step 4 s into a 1 Hz run: the
+            # slots then came 3 s early to the end of the run, every reading fused late)
             med.add(stamp - arrival, arrival)
             early_items = self._early.setdefault(clock, [])
             early_items.append((kind, stamp, fields, recv, arrival))
@@ -268,6 +273,11 @@ class EstimatorRunner:
                     self._admit(k, st, f, rc, ar, counted=True)
             return ""
         why = self._admit(kind, stamp, fields, recv, arrival)
+        if self._early.get(clock) and len(med) >= self.min_judged:
+            # what the early hold still keeps is judged once the clock is (above)
+            release, self._early[clock] = self._early[clock], []
+            for k, st, f, rc, ar in release:
+                self._admit(k, st, f, rc, ar, counted=True)
         return why
 
     def _admit(self, kind: str, stamp: float, fields: dict, recv, arrival,
