@@ -375,3 +375,21 @@ def test_sma_transition_drifts_to_neighbours_and_jumps_rarely():
     assert abs(T[1] @ VALUES - VALUES[1]) < 2e-3
     np.testing.assert_allclose(sma_transition(VALUES.size, 0.1, 0.0),
                                sticky_transition(VALUES.size, 0.1))
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_rbpf_initial_particles_hold_the_prior_systematically(seed):
+    """Each value is drawn n p or n p + 1 times (systematic draws), so the particles' mean f --
+    frozen until the first braking, and the f an outage there is predicted with -- is the
+    prior's to within one particle's share, whatever the seed. Independent draws scatter it by
+    sd / sqrt(n) (0.01 for 250 particles; 3 m of a 60 s outage's braking distance)."""
+    from train_estimation.core.braking.braking_discrete import grid_prior
+    fam = BrakingModel(BrakingParams())
+    values = np.round(np.linspace(1.3, 0.0, 14), 10)
+    n = 250
+    filt = DiscreteRBPF(fam, values, sticky_transition(values.size, 0.1), n, prior=(1.0, 0.15))
+    theta, idx = filt._initial_theta(np.random.default_rng(seed))
+    counts = np.bincount(idx, minlength=values.size)
+    p = grid_prior(values, (1.0, 0.15))
+    assert counts.sum() == n and np.all(np.abs(counts - n * p) < 1.0 + 1e-9)
+    assert abs(theta.mean() - float(p @ values)) <= values.max() / n
