@@ -189,3 +189,16 @@ def test_a_step_is_read_from_its_first_reading_on():
     after = fl.clock.known_at(620.05)
     assert after.true_time(F.EPOCH + 619.9, 620.0) == pytest.approx(620.0)
     assert after.true_time(F.EPOCH + 619.0, 619.5) == pytest.approx(619.1)
+
+
+def test_the_start_up_is_not_scored_as_unavailable():
+    """A clean 1 Hz run: the runner starts on the third reading and publishes the first two
+    slots with it (two seconds late, by design); availability counts from the third slot on,
+    where every estimate is OK and on time."""
+    sc, res = run("wen2017_subway", 0, 60.0)
+    fl = F.inject(res.events(), F.Fault("none"), np.random.default_rng(0))
+    outs, emitted, _ = F.run(fl.events, adapter(sc, "robust"), 1.0)
+    first = emitted[0] - F.EPOCH
+    assert first > 1.9  # the start-up: nothing before the third reading
+    s = F.score(outs, emitted, fl, res.truth, 1.0, 60.0 + F.LATENCY)
+    assert s["availability"] == 1.0, s

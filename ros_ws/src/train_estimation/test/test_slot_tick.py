@@ -70,6 +70,18 @@ def test_a_lost_1hz_reading_leaves_within_the_grace(kind):
     assert [r.stamp for r in ref] == [r.stamp for r in outs]
 
 
+@pytest.mark.parametrize("near", [40.0, 5.0])
+def test_a_lost_1hz_reading_in_the_first_seconds_leaves_within_the_grace(near):
+    """Also before the train clock has its nine readings (nine seconds at 1 Hz): three that
+    agree place it (a reading lost at 6 s waited for the next one, a second late)."""
+    sc, _res, ev = stream("wen2017_subway", 40.0, seed=0)
+    assert sc.odometer_rate == 1.0
+    lost, reading, s = lose_one(ev, near if near < 40.0 else 20.0)
+    outs, emitted, _ = replay(sc, lost, "robust")
+    k = next(i for i, o in enumerate(outs) if abs(o.stamp - s) < 1e-6)
+    assert outs[k].integrity == 0 and emitted[k] - reading[3] <= GRACE + TICK + 1e-6
+
+
 @pytest.mark.parametrize("kind", ["robust", "kf"])
 @pytest.mark.parametrize("delay", [0.8, 1.3])
 def test_a_reading_after_its_predicted_slot_is_fused_and_not_published_again(kind, delay):

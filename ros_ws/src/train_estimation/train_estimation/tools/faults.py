@@ -62,6 +62,7 @@ EPOCH = 1.7e9  # s, both clocks at start (a Unix time)
 LATENCY = 0.05  # s, link latency of every message in the clean stream
 WRONG_SIDE_M = 1.0  # m: smaller errors are never a hazard, whatever the covariance says
 WRONG_SIDE_SIGMAS = 5.0  # published standard deviations
+START_SLOTS = 2  # odometer slots of a run's start-up, not counted in ``availability``
 AVAILABLE_LAG = 1.0  # s: an OK estimate published further from the time it claims is not
 #   available (counted in ``availability``)
 TRAIN_TOPICS = ("odometer", "balise")
@@ -267,8 +268,9 @@ def score(outs: list, emitted: np.ndarray, faulted: Faulted, truth: dict, rate: 
     - ``hazards``: estimates, from the onset on, whose error exceeds the bound (whatever their
       integrity); ``tta``: from the first of them to the first non-OK estimate published at or
       after the onset (0 when the alarm came first; inf: never; NaN: no hazard);
-    - ``availability``: OK estimates published from the onset on, within ``AVAILABLE_LAG`` of the
-      time they claim, over the odometer slots of that time (at most 1); ``silence``: the
+    - ``availability``: OK estimates published from the onset on (after the run's first
+      ``START_SLOTS`` slots: the start-up), within ``AVAILABLE_LAG`` of the time they claim,
+      over the odometer slots of that time (at most 1); ``silence``: the
       longest time without an estimate from the onset on;
     - ``max_err``/``rms_err``: |position error| from the onset on; ``window_err``: the largest
       |error| from the onset to ``window`` s after the fault's end;
@@ -318,7 +320,11 @@ def score(outs: list, emitted: np.ndarray, faulted: Faulted, truth: dict, rate: 
         tta = math.inf
     else:
         tta = max(0.0, float(em[alarms[0]] - em[h[0]]))
-    span = max(t_end - faulted.onset, 1.0 / rate)
+    # availability from the onset, but not over the start-up: the runner starts on the run's
+    # third odometer reading (one corrupted first stamp must not start it in the past), so the
+    # first START_SLOTS slots are published with it, late by design and not by a fault
+    a_from = max(faulted.onset, float(tr_t[0]) + START_SLOTS / rate)
+    span = max(t_end - a_from, 1.0 / rate)
     # an estimate is of use when it is published near the time it claims (not a backlog
     # published at once, nor a claim about a time far ahead)
     timely = np.abs(em - LATENCY - t) <= AVAILABLE_LAG
@@ -329,7 +335,7 @@ def score(outs: list, emitted: np.ndarray, faulted: Faulted, truth: dict, rate: 
         outputs=n, wrong_side=int(np.sum(ok & hazard)), twice_given=int(np.sum(twice)),
         off_run=int(np.sum(ok & ~inside)),
         hazards=int(h.size), tta=tta,
-        availability=min(1.0, float(np.sum(ok & after & timely))
+        availability=min(1.0, float(np.sum(ok & (em >= a_from) & timely))
                          / max(1.0, math.floor(span * rate))),
         silence=float(np.max(np.diff(stamps_after))) if stamps_after.size > 1 else span,
         max_err=float(e_after.max()) if e_after.size else math.nan,

@@ -325,7 +325,7 @@ class EstimatorRunner:
                              else None)
         self._admitted_high = max(self._admitted_high, stamp)
         if kind == "control":
-            if "train" not in self._offsets or len(self._offsets["train"]) < self.min_judged:
+            if not self._judged("train"):
                 self._held.append((stamp, recv, fields))
                 return ""
             stamp = self._to_train(stamp, recv)
@@ -611,15 +611,24 @@ class EstimatorRunner:
         to that arrival). Bounded by the inputs: at most ``command_slack`` periods past the
         latest stamp queued (a command or a reading sent at or after it), so that silence on
         every input is not filled with predictions here (:meth:`ready_time` decides that).
-        -inf before the train clock is judged (``min_judged`` arrivals: until then the
-        commands wait too)."""
+        -inf before the train clock is known (:meth:`_judged`: until then the commands wait
+        too)."""
         train = self._offsets.get("train")
-        if train is None or len(train) < self.min_judged or not math.isfinite(now):
+        if not self._judged("train") or not math.isfinite(now):
             return -math.inf
         at = now - self.slot_grace
         due = at + train.value_at(at, train.drift)
         lead = max(self.high.get("control", -math.inf), self.high.get("odometer", -math.inf))
         return min(due, lead + self.command_slack * self.period)
+
+    def _judged(self, clock: str) -> bool:
+        """The clock's offset is known well enough to map commands onto it and to call a slot
+        overdue: ``min_judged`` arrivals, or three that agree (the early hold's rule) -- at 1 Hz
+        nine are nine seconds, and a reading lost in them was published only with the next one
+        (a second late: not available)."""
+        med = self._offsets.get(clock)
+        return med is not None and (len(med) >= self.min_judged or
+                                    (len(med) >= 3 and med.near(med.value) >= 3))
 
     def tick(self, now: float) -> list[Output]:
         """The estimates that became due by the arrival clock alone at ``now`` (s, as
