@@ -417,3 +417,17 @@ def test_the_provisional_sample_grid():
     for q, st in ((0, 50.0), (1, 51.0), (7, 52.0)):  # a corrupted seq among three: no line
         h.add(q, st)
     assert h.residual(3, 53.0) is None and h.tol_at(3) == float("inf")
+
+
+def test_a_balise_during_a_step_waits_with_the_odometer_and_is_fused_on_the_new_clock():
+    """wen2017_subway (1 Hz), the train clock 3 s back at 55 s, a balise among the nine
+    readings that decide it: held with them and mapped with the step. Taken at once, it was
+    placed 3 s (60 m) off, refused by the gate, and its doubt held the estimate DEGRADED to the
+    next balise (availability 0 %)."""
+    sc, res = run("wen2017_subway", 1, 115.0)
+    fl = F.inject(res.events(), F.Fault("step", -3.0, at=55.0), np.random.default_rng(0))
+    outs, emitted, runner = F.run(fl.events, adapter(sc, "robust"), 1.0)
+    s = F.score(outs, emitted, fl, res.truth, 1.0, 115.0 + F.LATENCY)
+    assert runner.events.get("odometer:clock_reset") == 1, runner.counts
+    assert "balise:outside_gate" not in runner.rejected, runner.counts
+    assert s["wrong_side"] == 0 and s["availability"] > 0.8, s

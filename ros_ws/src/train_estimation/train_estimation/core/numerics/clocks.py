@@ -731,6 +731,12 @@ class StepWatch:
         seq = fields.get("seq") if isinstance(fields, dict) else None
         if r is not None:
             continuous = abs(r) <= self.grid.tol_at(seq)
+        if kind != "odometer" and chain:
+            # a balise while odometer readings are held as a possible step: its stamp is on
+            # the same clock, in the same doubt, and waits with them (taken at once, a balise
+            # 3 s into a -3 s step was placed 60 m off, refused by the gate, and its doubt held
+            # the estimate DEGRADED until the next balise)
+            continuous = False
         if continuous:
             first_seq = chain[0][2].get("seq") if chain else None
             if kind == "odometer" and self.held and not (
@@ -800,13 +806,22 @@ class StepWatch:
         if rs is None:  # measured otherwise: the grid's stamps may no longer continue
             self.grid.reset()
         held, self.held = self.held, []
-        for i, (k, st, _, _, _, ref) in enumerate(held):
-            if k == "odometer" and (not ref or i == len(held) - 1):
-                self._sent[st - shift] = st + old  # as sent
+        for h in held:
+            if h[0] == "odometer" and (not h[5] or h is entry):
+                self._sent[h[1] - shift] = h[1] + old  # as sent
         yield STEP, shift, first, measured
-        for k, st, f, rc, ar, ref in held[:-1]:
-            if not ref:
-                yield ADMIT, (k, st - shift, f, rc, ar)
+        offs = sorted(h[1] - h[4] for h in chain)
+        new_off = offs[len(offs) // 2]
+        for h in held:
+            k, st, f, rc, ar, ref = h
+            if h is entry or ref:
+                continue
+            # another topic's reading held with the step's: on the new clock when its offset
+            # lies nearer theirs than the old clock's centre (a late one of the old clock is
+            # not moved)
+            on_new = k == "odometer" or rc is None or not len(med) or \
+                abs(st - ar - new_off) <= abs(st - ar - med.value)
+            yield ADMIT, (k, st - shift if on_new else st, f, rc, ar)
         yield PASS, stamp - shift
 
     def _resid(self, kind: str, stamp: float, fields) -> float | None:
