@@ -487,38 +487,40 @@ class SampleGrid:
         self._fit = None
         self._early = None
 
+    def _robust(self):
+        """The learnt samples' robust line: ``(P, c, residuals, lowest seq, highest seq)``, or
+        None when the median period is not within half and twice the nominal one."""
+        q = np.array(sorted(self._pts), float)
+        st = np.array([self._pts[int(k)] for k in q])
+        P = float(np.median(np.diff(st) / np.diff(q)))
+        if not 0.5 * self.period <= P <= 2.0 * self.period:
+            return None
+        r = st - P * q
+        c = float(np.median(r))
+        return P, c, r - c, int(q[0]), int(q[-1])
+
     def _line(self):
         """(P s, c s, tolerance s, lowest seq, highest seq) of the grid, or None while it is
         not trusted."""
         if self._fit is None:
             self._fit = False
-            if len(self._pts) >= self.n_min:
-                q = np.array(sorted(self._pts), float)
-                st = np.array([self._pts[int(k)] for k in q])
-                P = float(np.median(np.diff(st) / np.diff(q)))
-                if 0.5 * self.period <= P <= 2.0 * self.period:
-                    r = st - P * q
-                    c = float(np.median(r))
-                    spread = 1.4826 * float(np.median(np.abs(r - c)))
-                    tol = max(self.floor, 8.0 * spread)
-                    if tol < 0.25 * P:
-                        self._fit = (P, c, tol, int(q[0]), int(q[-1]))
+            line = self._robust() if len(self._pts) >= self.n_min else None
+            if line is not None:
+                P, c, r, lo, hi = line
+                tol = max(self.floor, 8.0 * 1.4826 * float(np.median(np.abs(r))))
+                if tol < 0.25 * P:
+                    self._fit = (P, c, tol, lo, hi)
         return self._fit or None
 
     def _provisional(self):
         """The provisional line (class doc), as :meth:`_line`'s tuple, or None."""
         if self._early is None:
             self._early = False
-            n = len(self._pts)
-            if self.n_early <= n < self.n_min:
-                q = np.array(sorted(self._pts), float)
-                st = np.array([self._pts[int(k)] for k in q])
-                P = float(np.median(np.diff(st) / np.diff(q)))
-                if 0.5 * self.period <= P <= 2.0 * self.period:
-                    r = st - P * q
-                    c = float(np.median(r))
-                    if np.all(np.abs(r - c) <= self.floor) and self.floor < 0.25 * P:
-                        self._early = (P, c, self.floor, int(q[0]), int(q[-1]))
+            line = self._robust() if self.n_early <= len(self._pts) < self.n_min else None
+            if line is not None:
+                P, c, r, lo, hi = line
+                if np.all(np.abs(r) <= self.floor) and self.floor < 0.25 * P:
+                    self._early = (P, c, self.floor, lo, hi)
         return self._early or None
 
     def tol_at(self, seq) -> float:
