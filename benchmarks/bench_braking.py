@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Braking-rate estimation benchmark (issues 5, 15): Zheng et al. (2015) Tables 1-2, the exact
+"""Braking-rate estimation benchmark: Zheng et al. (2015) Tables 1-2, the exact
 reference KF and every algorithm's error as a ratio to it, f calibration (2-sigma coverage,
 NEES), a random-walk f drawn from the KF's own prior (the information limit), a step fault
 (time to detect), f MAE against time per step over particle counts (plot), the Q-GRBPF paper's
