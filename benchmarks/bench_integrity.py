@@ -133,7 +133,8 @@ def run_task(task: dict) -> dict:
         outs, emitted, runner = F.run(faulted.events, adapter, 1 / rate, delay=cfg.output_delay,
                                       tick_period=cfg.tick_period,
                                       control_clock=cfg.control_clock,
-                                      max_future=cfg.max_future, slot_grace=cfg.slot_grace)
+                                      max_future=cfg.max_future, slot_grace=cfg.slot_grace,
+                                      stalled=faulted.stalled)
     except Exception as exc:  # counted and shown: the campaign must see every failure
         row["exceptions"] = 1
         row["error"] = f"{type(exc).__name__}: {exc}"

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from train_estimation.core.online.replay import TimerTicks
+from train_estimation.core.online.replay import replay as core_replay
 from train_estimation.tools import faults as F
 
 sys.path.insert(0, os.path.dirname(__file__))
@@ -146,3 +147,21 @@ def test_timer_ticks_fall_between_messages_and_stop_in_a_long_silence():
     assert len(got) == TimerTicks.cap
     assert ticks.until(1e9 + 0.07) == pytest.approx([1e9 + 0.05], abs=1e-6)
     assert TimerTicks(None).until(5.0) == [] and TimerTicks(0.05).until(None) == []
+
+
+def test_a_stalled_node_does_not_tick():
+    """faults.run with a node stall: the timer fires on both sides of it, never inside (a node
+    whose callbacks are blocked runs no timer either; every message of the stall arrives at its
+    end)."""
+    sc, res, _ = stream("crh3_high_speed", 40.0)
+    fl = F.inject(res.events(), F.Fault("node_stall", 8.0, at=10.0), np.random.default_rng(0))
+    assert fl.stalled == ((10.0, 18.0),)
+    seen = {}
+    for stalled in ((), fl.stalled):
+        t = seen[stalled] = []
+        core_replay(fl.events, adapter(sc, "kf"), 1.0, tick_period=TICK, on_time=t.append,
+                    blocked=(lambda u: any(a <= u - F.EPOCH < b for a, b in stalled))
+                    if stalled else None)
+    inside = [[u for u in seen[k] if 10.0 < u - F.EPOCH < 18.0] for k in ((), fl.stalled)]
+    assert inside[0] and not inside[1]
+    assert any(u - F.EPOCH >= 18.0 for u in seen[fl.stalled])

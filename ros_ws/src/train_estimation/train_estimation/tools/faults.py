@@ -168,6 +168,7 @@ class Faulted:
     onset: float  # s, true time the fault starts
     end: float  # s, true time it ends (inf: persists)
     counts: Counter = field(default_factory=Counter)  # corrupted messages by kind ("fuzz")
+    stalled: tuple = ()  # (t0, t1) s, true times in which the node's callbacks are blocked
 
 
 def inject(events: list, fault: Fault, rng: np.random.Generator) -> Faulted:
@@ -211,7 +212,8 @@ def inject(events: list, fault: Fault, rng: np.random.Generator) -> Faulted:
         out, counts = corrupt(out, rng, size, stamps={**STAMPS, **INSIDE_FUTURE})
     end = {"none": at, "stamp": at, "outage": at + size, "recorder_stall": at + size,
            "node_stall": at + size}.get(k, math.inf)
-    return Faulted(out, clock, at, end, counts)
+    stalled = ((at, at + size),) if k == "node_stall" else ()
+    return Faulted(out, clock, at, end, counts, stalled)
 
 
 class _Timed:
@@ -229,11 +231,12 @@ class _Timed:
 
 
 def run(events: list, adapter, period: float, delay: float = 0.05, fallback: float = 0.2,
-        tick_period: float | None = 0.05, **runner_kw):
+        tick_period: float | None = 0.05, stalled: tuple = (), **runner_kw):
     """``(outputs, emitted, runner)``: ``core.online.replay.replay`` itself (the runner the
     nodes use, its ticks at the node timer's times), with ``emitted[i]`` the arrival time (s,
     reference clock) of the message or timer tick after which ``outputs[i]`` was produced (the
-    drain at the end: the last arrival)."""
+    drain at the end: the last arrival). ``stalled``: ``(t0, t1)`` true-time intervals in which
+    the node's callbacks are blocked (:attr:`Faulted.stalled`): its timer does not fire."""
     from train_estimation.core.online.replay import replay
 
     timed = _Timed(adapter)
@@ -241,8 +244,12 @@ def run(events: list, adapter, period: float, delay: float = 0.05, fallback: flo
     def at(t):
         timed.now = t
 
+    def blocked(t):
+        return any(t0 <= t - EPOCH < t1 for t0, t1 in stalled)
+
     out, runner = replay(events, timed, period, delay=delay, fallback=fallback,
-                         tick_period=tick_period, on_time=at, **runner_kw)
+                         tick_period=tick_period, on_time=at,
+                         blocked=blocked if stalled else None, **runner_kw)
     return out, np.array(timed.emitted, float), runner
 
 

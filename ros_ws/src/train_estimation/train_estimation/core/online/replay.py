@@ -44,7 +44,7 @@ class TimerTicks:
 def replay(events: Iterable[tuple], adapter, period: float, delay: float = 0.05,
            fallback: float = 0.2, tick_period: float | None = 0.05,
            on_time: Callable[[float], None] | None = None,
-           **runner_kw) -> tuple[list[Output], EstimatorRunner]:
+           blocked: Callable[[float], bool] | None = None, **runner_kw) -> tuple[list[Output], EstimatorRunner]:
     """Estimates from ``(topic, stamp, fields[, recv])`` events **in arrival (log-time) order**.
 
     Each event is pushed and the runner advanced to its ready time and ticked
@@ -54,7 +54,9 @@ def replay(events: Iterable[tuple], adapter, period: float, delay: float = 0.05,
     other clock's stamps (see the runner) and there are no ticks. Every step is bounded by the
     stamps pushed, and a stamp far in the future is refused at the door, so the replay always
     terminates. ``on_time(t)`` (optional) is told each arrival and tick time before the runner
-    works at it (``tools.faults.run`` notes there when each estimate was produced).
+    works at it (``tools.faults.run`` notes there when each estimate was produced);
+    ``blocked(t)`` (optional) is true for the arrival times at which the node's callbacks are
+    blocked (a stalled node: its timer does not fire either).
     """
     runner = EstimatorRunner(adapter, period, **runner_kw)
     out: list[Output] = []
@@ -66,6 +68,8 @@ def replay(events: Iterable[tuple], adapter, period: float, delay: float = 0.05,
         if topic not in INPUT_TOPICS:
             continue
         for t in ticks.until(recv):
+            if blocked is not None and blocked(t):
+                continue
             if on_time is not None:
                 on_time(t)
             out += runner.tick(t)
