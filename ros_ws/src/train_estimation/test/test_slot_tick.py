@@ -160,7 +160,7 @@ def test_a_stalled_node_does_not_tick():
     for stalled in ((), fl.stalled):
         t = seen[stalled] = []
         core_replay(fl.events, adapter(sc, "kf"), 1.0, tick_period=TICK, on_time=t.append,
-                    blocked=(lambda u: any(a <= u - F.EPOCH < b for a, b in stalled))
+                    blocked=(lambda u, st=stalled: any(a <= u - F.EPOCH < b for a, b in st))
                     if stalled else None)
     inside = [[u for u in seen[k] if 10.0 < u - F.EPOCH < 18.0] for k in ((), fl.stalled)]
     assert inside[0] and not inside[1]
