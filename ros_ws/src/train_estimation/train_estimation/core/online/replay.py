@@ -44,7 +44,8 @@ class TimerTicks:
 def replay(events: Iterable[tuple], adapter, period: float, delay: float = 0.05,
            fallback: float = 0.2, tick_period: float | None = 0.05,
            on_time: Callable[[float], None] | None = None,
-           blocked: Callable[[float], bool] | None = None, **runner_kw) -> tuple[list[Output], EstimatorRunner]:
+           blocked: Callable[[float], bool] | None = None,
+           **runner_kw) -> tuple[list[Output], EstimatorRunner]:
     """Estimates from ``(topic, stamp, fields[, recv])`` events **in arrival (log-time) order**.
 
     Each event is pushed and the runner advanced to its ready time and ticked
