@@ -830,3 +830,32 @@ def test_drag_growing_with_speed_is_told_from_a_gradient_where_the_speed_changes
     else:
         assert res["lr"] > CONFIRM.law_lr, res
         assert res["b"] > 0.5, res
+
+
+@pytest.mark.slow
+def test_a_tunnel_on_a_stretch_run_at_changing_speed_is_not_confirmed_as_a_gradient(tmp_path):
+    """The tool end to end: drag growing as v^2 on a stretch the train accelerates over (drawn
+    where the test kind ``neutral_section`` of seed 14 puts its stretch: metro_demo, 10-14 m/s)
+    fits a gradient section well enough to be accepted, and the speed-law comparison withdraws
+    it: no listed cause confirmed, the remainder `unexplained`."""
+    from train_sim.unlisted import TunnelDrag, Unlisted
+    from train_sim.unlisted_cases import unlisted_case
+
+    uc = unlisted_case(np.random.default_rng(14), "neutral_section")
+    ns, sc = uc.scenario.unlisted.neutral_section, uc.case.scenario
+    tr = simulate(sc).truth
+    inside = (tr["position"] >= ns.start) & (tr["position"] < ns.end)
+    c = 0.06 * sc.true_train.effective_mass / float(np.mean(tr["velocity"][inside] ** 2))
+    paths = uc.write(tmp_path / "case")
+    generate(sc.with_changes(unlisted=Unlisted(tunnel_drag=TunnelDrag(ns.start, ns.end, c))),
+             tmp_path / "bag", measured=True)
+    assert tool.main(["--bag", str(tmp_path / "bag"), "--line", str(paths["line"]), "--train",
+                      str(paths["train"]), "--out", str(tmp_path / "out"), "--quiet",
+                      "--no-plots"]) == 0
+    rep = json.loads((tmp_path / "out" / "report.json").read_text())
+    confirmed = [r["cause"] for r in rep["ranking"]
+                 if r["status"] == "confirmed" and r["cause"] != "none"]
+    assert confirmed == [], rep["ranking"][:3]
+    assert rep["cause"] == "unexplained", rep["unexplained"]
+    grad = next(r for r in rep["ranking"] if r["cause"] == "gradient")
+    assert grad["status"] == "not confirmed" and "fits better" in grad["why"], grad
