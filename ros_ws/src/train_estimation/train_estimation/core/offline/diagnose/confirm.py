@@ -27,6 +27,11 @@ reported ``confirmed`` only when the checks below pass, the same for every cause
    only (the phases where a departure of half of it would be a 3 SE result) cannot be told
    from an effect of that phase or of that moment: the check states it (``caveat``); with
    ``one_phase`` it is not confirmed.
+   A cause fixed at a place whatever the speed (``Cause.speed_rival``: a gradient) is
+   compared with a force at that place growing as v^2 (drag in a tunnel), each on its own
+   best stretch (:func:`.contradict.speed_law`): where the law fits better by 2 ln LR >
+   ``law_lr`` the cause is not confirmed; within +-``law_lr`` (the speeds on the stretch do
+   not tell them apart) the check states it (``caveat``).
 4. **Not cancelling** another confirmed cause in a phase (:func:`.contradict.cancelling`).
 5. **Better than a flexible term.** Causes confirmed together: each must beat (by BIC) free
    accelerations per phase x speed quarter on the cells it acts in, on top of the others

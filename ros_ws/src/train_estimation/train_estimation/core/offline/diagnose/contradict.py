@@ -22,6 +22,11 @@ braking approach shows the same weaker braking at low speed). Likewise a structu
 mostly where the cause acts with more than half the cause's own acceleration there: the
 cause does not describe what acts there.
 
+**Speed law** (:func:`speed_law`). A gradient is g sin(theta) at its place, whatever the
+speed; drag in a tunnel at the same place grows as v^2. Each law gets its own best stretch near
+the fitted one (same parameter count), and 2 ln of their likelihood ratio says which the data
+prefer; at one steady speed the two are the same force and the ratio is near 0.
+
 **Place test** (:func:`place_test`). A cause fitted on a stretch, continued beyond it in the
 same phases and speed halves with a free multiplier per cell, must not be needed there.
 
