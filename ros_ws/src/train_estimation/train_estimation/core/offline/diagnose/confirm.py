@@ -179,8 +179,9 @@ def confirm(mo: Motion, shift: float, accepted: list, resolved_before: dict, cfg
             at = f"speeds {v[0]:.0f}-{v[1]:.0f} m/s on the stretch" if v else "no speeds"
             if lr > ccfg.law_lr:
                 a.status = "not confirmed"
-                a.why = (f"{cause.speed_rival} fits better than a fixed force there "
-                         f"(2 ln LR {lr:+.1f} > {ccfg.law_lr:g}; {at})")
+                a.why = (f"a speed law fits better: {cause.speed_rival} explains the data "
+                         f"better than a fixed force there (2 ln LR {lr:+.1f} > "
+                         f"{ccfg.law_lr:g}; {at})")
                 continue
             if lr > -ccfg.law_lr:
                 told = f"cannot be told from {cause.speed_rival} (2 ln LR {lr:+.1f}; {at})"
