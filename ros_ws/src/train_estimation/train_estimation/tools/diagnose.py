@@ -28,7 +28,8 @@ How to read the report:
   ranking      every cause tested, best first, "none" among them, each with a status:
                confirmed (accepted by the score, its fit on half of the data predicts the
                other half better beyond that gain's own noise, its size is beyond what the
-               data resolve, and it shows in every phase, speed, place and time it predicts),
+               data resolve, and it shows in every phase, speed, place and time it predicts,
+               with the speed law it predicts: a gradient does not grow as v^2 as drag does),
                "not confirmed" (with why) or "rejected" (score not above none's). Only
                confirmed causes go into DIR/model. The score of a cause is
                the BIC-penalised log-likelihood ratio with the prior odds of "none" against

@@ -27,6 +27,11 @@ reported ``confirmed`` only when the checks below pass, the same for every cause
    only (the phases where a departure of half of it would be a 3 SE result) cannot be told
    from an effect of that phase or of that moment: the check states it (``caveat``); with
    ``one_phase`` it is not confirmed.
+   A cause fixed at a place whatever the speed (``Cause.speed_rival``: a gradient) is
+   compared with a force at that place growing as v^2 (drag in a tunnel), each on its own
+   best stretch (:func:`.contradict.speed_law`): where the law fits better by 2 ln LR >
+   ``law_lr`` the cause is not confirmed; within +-``law_lr`` (the speeds on the stretch do
+   not tell them apart) the check states it (``caveat``).
 4. **Not cancelling** another confirmed cause in a phase (:func:`.contradict.cancelling`).
 5. **Better than a flexible term.** Causes confirmed together: each must beat (by BIC) free
    accelerations per phase x speed quarter on the cells it acts in, on top of the others
@@ -53,7 +58,14 @@ import numpy as np
 from train_estimation.core.numerics.augmented_kf import gls
 
 from .causes import BY_NAME
-from .contradict import cancelling, flexible_rival, piece_of, place_test, split_test
+from .contradict import (
+    cancelling,
+    flexible_rival,
+    piece_of,
+    place_test,
+    speed_law,
+    split_test,
+)
 from .gain import GainContext
 from .motion import Motion
 from .result import CauseFit
@@ -74,6 +86,11 @@ class ConfirmConfig:
     # a cause that acts in every phase (Cause.phase_rival) seen in one phase only is not
     # confirmed: it cannot be told from an effect of that phase or of that moment
     one_phase: bool = False
+    # -, a place cause whose rival speed law (Cause.speed_rival) fits better by 2 ln LR more
+    # than this is not confirmed (equal parameter counts, each on its own best stretch): with
+    # b-hat ~ N(0, se^2) under the cause, 2 ln LR ~ (2 b-hat - 1) / se^2 exceeds T with at most
+    # P(Z > sqrt(T)) whatever se: 0.13 % for 9
+    law_lr: float = 9.0
 
 
 CONFIRM = ConfirmConfig()
@@ -155,6 +172,21 @@ def confirm(mo: Motion, shift: float, accepted: list, resolved_before: dict, cfg
                 a.status, a.why = "not confirmed", told
         if a.status != "confirmed" or (bey := cause.beyond(a, mo)) is None:
             continue
+        if cause.speed_rival is not None:
+            sl = speed_law(mo, others, cfg, noise, a.extra["bins"])
+            checks[a.cause]["speed_law"] = sl
+            lr, v = sl.get("lr", 0.0), sl.get("speeds")
+            at = f"speeds {v[0]:.0f}-{v[1]:.0f} m/s on the stretch" if v else "no speeds"
+            if lr > ccfg.law_lr:
+                a.status = "not confirmed"
+                a.why = (f"a speed law fits better: {cause.speed_rival} explains the data "
+                         f"better than a fixed force there (2 ln LR {lr:+.1f} > "
+                         f"{ccfg.law_lr:g}; {at})")
+                continue
+            if lr > -ccfg.law_lr:
+                told = f"cannot be told from {cause.speed_rival} (2 ln LR {lr:+.1f}; {at})"
+                old = checks[a.cause].get("caveat")
+                checks[a.cause]["caveat"] = told if old is None else f"{old}; {told}"
         pt = place_test(mo, full, cfg, noise, *bey, ccfg.split_alpha, ccfg.split_min_share)
         checks[a.cause]["place"] = pt
         if pt.get("contradicted"):

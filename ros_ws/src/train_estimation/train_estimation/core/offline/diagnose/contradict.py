@@ -22,6 +22,11 @@ braking approach shows the same weaker braking at low speed). Likewise a structu
 mostly where the cause acts with more than half the cause's own acceleration there: the
 cause does not describe what acts there.
 
+**Speed law** (:func:`speed_law`). A gradient is g sin(theta) at its place, whatever the
+speed; drag in a tunnel at the same place grows as v^2. Each law gets its own best stretch near
+the fitted one (same parameter count), and 2 ln of their likelihood ratio says which the data
+prefer; at one steady speed the two are the same force and the ratio is near 0.
+
 **Place test** (:func:`place_test`). A cause fitted on a stretch, continued beyond it in the
 same phases and speed halves with a free multiplier per cell, must not be needed there.
 
@@ -40,6 +45,9 @@ import math
 
 import numpy as np
 from scipy.stats import chi2
+from train_core.model import G as G_ACCEL
+
+from train_estimation.core.numerics.augmented_kf import gls
 
 from .motion import Motion
 from .phases import PHASES, _event_grid_index, _fit_columns, families, grid_phase
@@ -289,3 +297,84 @@ def flexible_rival(mo: Motion, others: Null, full: Null, cfg, noise, k_cause: in
     return {"better": bool(bic_c > bic_f), "chi2_cause": stat_c, "k_cause": k_cause,
             "chi2_flexible": stat_f, "k_flexible": len(keep),
             "cells": [labels[j] for j in keep]}
+
+
+
+# position bins by which the speed-law test moves a stretch's ends (each law gets its own best
+# stretch near the fitted one: a fixed force fitted on a drag stretch overshoots it at the fast
+# end, which alone would make the drag law look worse on the fixed force's own stretch)
+LAW_REACH = 4
+
+
+def speed_law(mo: Motion, others: Null, cfg, noise, bins: tuple, power: float = 2.0) -> dict:
+    """A force fixed at a place (a gradient on the position bins ``bins`` = (i, j)) against a
+    force at a place that grows as v^power (aerodynamic drag: power 2, drag in a tunnel), both
+    on top of the model ``others``, each on its own best stretch within ``LAW_REACH`` bins of
+    the fitted one (same parameter count: start, end, size).
+
+    Returns ``lr``: 2 ln of the likelihood ratio of the law's best stretch against the fixed
+    force's (> 0: the data prefer the law; near 0 at one steady speed, where the two are the
+    same force); on the fixed force's stretch the fit of both together, a ((1 - b) g + b h)
+    with h the law's column scaled to the same mean force: ``b`` (0 a fixed force, 1 the law)
+    and its standard error (on that stretch, whose ends a fixed force fitted to drag moves:
+    ``lr`` is the comparison); the speeds on it (5-95 %) and both stretches."""
+    g, ev = mo.grid, mo.ev
+    i, j = int(bins[0]), int(bins[1])
+    lo, hi = max(0, i - LAW_REACH), min(mo.n_bins, j + LAW_REACH)
+    xm = 0.5 * (mo.x_ref[1:] + mo.x_ref[:-1])
+    vm = 0.5 * (mo.v_ref[1:] + mo.v_ref[:-1])
+    mov = 0.5 * (mo.moving[1:] + mo.moving[:-1]) > 0.5
+    width = mo.bin_edges[1] - mo.bin_edges[0]
+    jb = np.clip(((xm - mo.bin_edges[0]) / width).astype(int), 0, mo.n_bins - 1)
+    res = {"law": f"v^{power:g}"}
+    on = mov & (jb >= i) & (jb < j)
+    if on.sum() < 2:
+        res.update(lr=0.0, note="the train does not move on the stretch")
+        return res
+    vp = vm ** power
+    law = vp / float(np.mean(vp[on]))  # the law's force relative to its mean on the stretch
+    m = hi - lo
+    near = mov & (jb >= lo) & (jb < hi)
+    col = jb[near] - lo
+    gper = -G_ACCEL / 1000.0 * mo.k_grad  # m/s^2 per permille
+    n_ev = ev.t.size
+    Bv, Bs = np.zeros((n_ev, 2 * m)), np.zeros((n_ev, 2 * m))
+    for off, w in ((0, np.ones(near.sum())), (m, law[near])):
+        inc = gper * g.dt * w
+        np.add.at(Bv, (g.k[near], off + col), inc)
+        np.add.at(Bs, (g.k[near], off + col), inc * g.lever[near])
+    st = Stage(mo, others, cfg, noise=noise, big=False)
+    W = st.augmented(st.fv, st.fs, drift=(Bv, Bs)).W
+    q0 = gls(W[:2, :2])[2]
+    min_len = max(1, int(math.ceil(cfg.min_section / width - 1e-9)))
+    best = {}
+    for name, off in (("fixed", 0), ("law", m)):
+        top = (-np.inf, None)
+        for a in range(m):
+            for b in range(a + min_len, m + 1):
+                M = np.zeros((W.shape[0], 3))
+                M[0, 0] = M[1, 1] = 1.0
+                M[2 + off + a:2 + off + b, 2] = 1.0
+                stat = q0 - gls(W, M)[2]
+                if stat > top[0]:
+                    top = (stat, (lo + a, lo + b))
+        best[name] = top
+    # on the fixed force's own stretch: both columns, a g + c (h - g), c / a = b
+    a0, b0 = best["fixed"][1][0] - lo, best["fixed"][1][1] - lo
+    M = np.zeros((W.shape[0], 4))
+    M[0, 0] = M[1, 1] = 1.0
+    M[2 + a0:2 + b0, 2] = 1.0
+    M[2 + m + a0:2 + m + b0, 3] = 1.0
+    M[2 + a0:2 + b0, 3] = -1.0
+    th, cov, _ = gls(W, M)
+    amp = float(th[1])
+    share = float(th[2] / amp) if amp != 0 else float("nan")
+    se = float(math.sqrt(max(cov[2, 2], 0.0)) / abs(amp)) if amp != 0 else float("inf")
+    sec = mov & (jb >= best["fixed"][1][0]) & (jb < best["fixed"][1][1])
+    v_lo, v_hi = np.percentile(vm[sec], [5, 95]) if sec.any() else (0.0, 0.0)
+    edges = mo.bin_edges
+    res.update(lr=float(best["law"][0] - best["fixed"][0]), b=share, std_error=se,
+               speeds=[float(v_lo), float(v_hi)],
+               stretch_fixed=[float(edges[best["fixed"][1][0]]), float(edges[best["fixed"][1][1]])],
+               stretch_law=[float(edges[best["law"][1][0]]), float(edges[best["law"][1][1]])])
+    return res

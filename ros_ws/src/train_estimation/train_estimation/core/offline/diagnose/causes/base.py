@@ -149,6 +149,10 @@ class Cause:
     # cause acts in one phase by its nature); the confirmation then cannot tell them apart.
     phase_rival: str | None = None
 
+    # A force at a place that grows with speed, which the cause (a force independent of speed
+    # at its place) is not; None: the cause states no speed law of its own to test against.
+    speed_rival: str | None = None
+
     def beyond(self, fit: CauseFit, mo):
         """For a cause fitted on a stretch of track: (inside, pattern), the grid points it acts
         on and its acceleration (m/s^2 per grid point) if it acted at every place in the same

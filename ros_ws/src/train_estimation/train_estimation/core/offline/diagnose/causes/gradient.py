@@ -113,6 +113,8 @@ class Gradient(Cause):
     # at one place in one phase only, a map error and a force acting while the train was there
     # (headwind, a traction or braking fault of that moment) make the same residual
     phase_rival = "a force acting during that time"
+    # g sin(theta) does not depend on speed; drag in a tunnel grows as v^2
+    speed_rival = "aerodynamic drag at that place (a force growing as v^2: a tunnel)"
 
     def beyond(self, fit, mo):
         """The section's gradient force at every place run while moving."""
