@@ -304,6 +304,29 @@ def parse_cli(description: str, argv: list[str] | None = None,
     return args, ros_args
 
 
+FLUSH_TIMEOUT = 3.0  # s: at most this long at exit for subscribers to acknowledge the last data
+
+
+def flush_publishers(node, timeout: float = FLUSH_TIMEOUT) -> list[str]:
+    """Wait until every message published by ``node`` is acknowledged by its matched reliable
+    subscribers, at most ``timeout`` s in all; returns the topics still unacknowledged.
+
+    A node that exits right after its last publish would otherwise lose those messages: the
+    RMW sends them from its own thread (asynchronous publication) and repairs a lost datagram
+    only while the writer exists, so destroying the node drops what is still on its way."""
+    import time
+
+    from rclpy.duration import Duration
+
+    end = time.monotonic() + timeout
+    late = []
+    for pub in list(node.publishers):
+        left = max(0.0, end - time.monotonic())
+        if not pub.wait_for_all_acked(Duration(nanoseconds=int(left * 1e9))):
+            late.append(pub.topic_name)
+    return late
+
+
 def run_node(factory: Callable, ros_args: list[str]) -> int:
     """Create the node with ``factory(context_args)``, spin until SIGINT/SIGTERM, clean up.
 
@@ -345,6 +368,11 @@ def run_node(factory: Callable, ros_args: list[str]) -> int:
             close = getattr(node, "close", None)
             if close is not None:
                 close()
+            if rclpy.ok():
+                late = flush_publishers(node)
+                if late:
+                    node.get_logger().warning(f"exit: messages on {late} not acknowledged by "
+                                              f"every subscriber within {FLUSH_TIMEOUT:g} s")
             node.destroy_node()
         if rclpy.ok():
             rclpy.shutdown()

@@ -4,7 +4,8 @@ Callbacks push the message with its arrival time on the node's clock into the ru
 (``EstimatorRunner.push``) and at once advance the runner to its ready time, so that an odometer
 sample's estimate is published as soon as the sample (and the command of its cycle) is in; a
 steady wall-clock timer (``tick_period``) publishes the slots the clock alone makes due: a lost
-sample's predicted slot once it is ``slot_grace`` overdue (``EstimatorRunner.tick``). Each
+sample's predicted slot once it is ``slot_grace`` overdue (``EstimatorRunner.tick``), except on
+simulated time (``use_sim_time``), where the inputs' watermarks alone publish the slots. Each
 estimate is a TrainState stamped with its sample's own stamp (the odometer's clock). Rejected
 input is logged
 with its reason (throttled; names of ``core/reasons.py``) and counted; events (a sequence
@@ -166,6 +167,14 @@ def build_estimator_node(name: str, topic: str, make_adapter: Callable):
             # made no latency difference); the replays tick at the same period.
             self.timer = self.create_timer(common["tick_period"], self.tick,
                                            clock=Clock(clock_type=ClockType.STEADY_TIME))
+            # On simulated time (use_sim_time) the arrival clock says nothing about the stamps:
+            # the world runs at rate_factor x wall time and is paced by the estimates, so a
+            # reading "overdue" on the steady clock is one still queued behind a command or a
+            # /clock (a loaded node), and the timer's phase decided whether its slot left as a
+            # prediction, before the commands of its cycle (two runs of one scenario and seed
+            # would publish different estimates). There the slots follow the inputs' watermarks
+            # alone: the simulator's next messages publish a lost reading's slot.
+            self.clock_slots = not self.get_parameter("use_sim_time").value
             self.n_reported = 0
             self.get_logger().info(
                 f"{self.adapter.source} on {line.name} / {train.name}, start at "
@@ -210,7 +219,7 @@ def build_estimator_node(name: str, topic: str, make_adapter: Callable):
             t_tick = self.steady.now().nanoseconds * 1e-9
             outs = self.runner.advance_to(self.runner.ready_time(now, self.delay,
                                                                   4 * self.delay))
-            for out in outs + self.runner.tick(now):
+            for out in outs + (self.runner.tick(now) if self.clock_slots else []):
                 msg = TrainState()
                 sec_to_stamp(out.stamp, msg.header.stamp)
                 msg.header.frame_id = "track"

@@ -74,7 +74,8 @@ class NodeConfig:
                                "reading's slot, a silent input")
     slot_grace: float = param(0.5, "s", "a slot whose odometer reading has not arrived this long "
                               "after it was due (on the train clock's tracked offset and rate) "
-                              "is published as a prediction")
+                              "is published as a prediction (not on simulated time, "
+                              "use_sim_time: there the inputs' watermarks publish it)")
 
     def __post_init__(self):
         require_finite(self, ("initial_position_std", "odometer_rate", "tick_period"))
