@@ -158,6 +158,20 @@ def test_the_installed_executable_exits_2_with_one_line(metro, tmp_path, ros_env
 # The model directory (no core needed: a Diagnosis with every cause accepted)
 # ------------------------------------------------------------------------------------------------
 
+def _unexplained(paths: dict, tmp_path) -> dict:
+    """diagnose on ``tmp_path/bag`` with the case's believed line and train: the report, checked
+    to confirm no listed cause and to say ``unexplained``."""
+    assert tool.main(["--bag", str(tmp_path / "bag"), "--line", str(paths["line"]), "--train",
+                      str(paths["train"]), "--out", str(tmp_path / "out"), "--quiet",
+                      "--no-plots"]) == 0
+    rep = json.loads((tmp_path / "out" / "report.json").read_text())
+    confirmed = [r["cause"] for r in rep["ranking"]
+                 if r["status"] == "confirmed" and r["cause"] != "none"]
+    assert confirmed == [], rep["ranking"][:3]
+    assert rep["cause"] == "unexplained", rep["unexplained"]
+    return rep
+
+
 def _fits(entries: list[dict]) -> list[CauseFit]:
     return [CauseFit(e["cause"], e.get("score", 1.0), e["parameters"]) for e in entries]
 
@@ -623,14 +637,7 @@ def test_an_effect_of_a_kind_the_bench_does_not_use_is_unexplained(kind, seed, t
     uc = unlisted_case(np.random.default_rng(seed), kind)
     paths = uc.write(tmp_path / "case")
     generate(uc.scenario, tmp_path / "bag", measured=True)
-    assert tool.main(["--bag", str(tmp_path / "bag"), "--line", str(paths["line"]), "--train",
-                      str(paths["train"]), "--out", str(tmp_path / "out"), "--quiet",
-                      "--no-plots"]) == 0
-    rep = json.loads((tmp_path / "out" / "report.json").read_text())
-    confirmed = [r["cause"] for r in rep["ranking"]
-                 if r["status"] == "confirmed" and r["cause"] != "none"]
-    assert confirmed == [], rep["ranking"][:3]
-    assert rep["cause"] == "unexplained", rep["unexplained"]
+    rep = _unexplained(paths, tmp_path)
     # a traction loss at every place shows in traction only; a loss on a stretch run in
     # traction may be `all` (a place remainder is named by phase only where the same track
     # is run in other phases too: docs/diagnose.md)
@@ -849,14 +856,7 @@ def test_a_tunnel_on_a_stretch_run_at_changing_speed_is_not_confirmed_as_a_gradi
     paths = uc.write(tmp_path / "case")
     generate(sc.with_changes(unlisted=Unlisted(tunnel_drag=TunnelDrag(ns.start, ns.end, c))),
              tmp_path / "bag", measured=True)
-    assert tool.main(["--bag", str(tmp_path / "bag"), "--line", str(paths["line"]), "--train",
-                      str(paths["train"]), "--out", str(tmp_path / "out"), "--quiet",
-                      "--no-plots"]) == 0
-    rep = json.loads((tmp_path / "out" / "report.json").read_text())
-    confirmed = [r["cause"] for r in rep["ranking"]
-                 if r["status"] == "confirmed" and r["cause"] != "none"]
-    assert confirmed == [], rep["ranking"][:3]
-    assert rep["cause"] == "unexplained", rep["unexplained"]
+    rep = _unexplained(paths, tmp_path)
     grad = next(r for r in rep["ranking"] if r["cause"] == "gradient")
     assert grad["status"] == "not confirmed", grad
     assert grad["why"].startswith("a speed law fits better"), grad
