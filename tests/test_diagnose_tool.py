@@ -158,6 +158,17 @@ def test_the_installed_executable_exits_2_with_one_line(metro, tmp_path, ros_env
 # The model directory (no core needed: a Diagnosis with every cause accepted)
 # ------------------------------------------------------------------------------------------------
 
+def _motion_over(tmp_path, sc, cfg, start: float, end: float):
+    """The scenario's run, written as a bag and read back as diagnose reads it: its Motion and
+    the position bins ``i..j`` that hold the stretch ``[start, end)``."""
+    from train_estimation.core.offline.diagnose import Motion, prepare
+
+    bag = write_bag(tmp_path / "bag", simulate(sc))
+    mo = Motion(prepare(tool.read_measured(bag), sc.line, cfg), sc.line, sc.train, cfg)
+    return (mo, int(np.searchsorted(mo.bin_edges, start, "right") - 1),
+            int(np.searchsorted(mo.bin_edges, end, "left")))
+
+
 def _unexplained(paths: dict, tmp_path) -> dict:
     """diagnose on ``tmp_path/bag`` with the case's believed line and train: the report, checked
     to confirm no listed cause and to say ``unexplained``."""
@@ -754,7 +765,7 @@ def test_a_stretch_of_weaker_braking_is_told_from_weaker_braking_at_every_stop(m
     weak (brakes that fade below a speed, an effect outside the list)."""
     from train_core.effects import AdhesionSectionEffect, Effects
 
-    from train_estimation.core.offline.diagnose import DiagConfig, Motion, Null, Stage, prepare
+    from train_estimation.core.offline.diagnose import DiagConfig, Null, Stage
     from train_estimation.core.offline.diagnose.causes.adhesion_section import CAUSE
     from train_estimation.core.offline.diagnose.confirm import CONFIRM
     from train_estimation.core.offline.diagnose.contradict import place_test
@@ -772,12 +783,8 @@ def test_a_stretch_of_weaker_braking_is_told_from_weaker_braking_at_every_stop(m
             start, end, 0.6)))
     else:
         sc = sc.with_changes(unlisted=Unlisted(brake_fade=BrakeFade(6.0, 0.6)))
-    bag = write_bag(tmp_path / "bag", simulate(sc))
     cfg = DiagConfig()
-    run = prepare(tool.read_measured(bag), sc.line, cfg)
-    mo = Motion(run, sc.line, sc.train, cfg)
-    i = int(np.searchsorted(mo.bin_edges, start, "right") - 1)
-    j = int(np.searchsorted(mo.bin_edges, end, "left"))
+    mo, i, j = _motion_over(tmp_path, sc, cfg, start, end)
     fit = CauseFit("adhesion_section", 10.0, {"start": float(mo.bin_edges[i]),
                                               "end": float(mo.bin_edges[j]), "factor": 0.6},
                    extra={"bins": (i, j)})
@@ -800,7 +807,7 @@ def test_drag_growing_with_speed_is_told_from_a_gradient_where_the_speed_changes
     from train_core.effects import Effects, GradientEffect
     from train_core.model import G
 
-    from train_estimation.core.offline.diagnose import DiagConfig, Motion, Null, Stage, prepare
+    from train_estimation.core.offline.diagnose import DiagConfig, Null, Stage
     from train_estimation.core.offline.diagnose.confirm import CONFIRM
     from train_estimation.core.offline.diagnose.contradict import speed_law
     from train_sim.unlisted import TunnelDrag, Unlisted
@@ -820,12 +827,8 @@ def test_drag_growing_with_speed_is_told_from_a_gradient_where_the_speed_changes
     else:
         c = a * train.effective_mass / float(np.mean(v[inside] ** 2))
         sc = sc.with_changes(unlisted=Unlisted(tunnel_drag=TunnelDrag(start, end, c)))
-    bag = write_bag(tmp_path / "bag", simulate(sc))
     cfg = DiagConfig()
-    run = prepare(tool.read_measured(bag), sc.line, cfg)
-    mo = Motion(run, sc.line, sc.train, cfg)
-    i = int(np.searchsorted(mo.bin_edges, start, "right") - 1)
-    j = int(np.searchsorted(mo.bin_edges, end, "left"))
+    mo, i, j = _motion_over(tmp_path, sc, cfg, start, end)
     # at the noise of the model with the stretch's force (as the confirmation tests it: the
     # null's noise, inflated by the force it misses, would hide the shape)
     th = Stage(mo, Null(), cfg).fit({}, [{f"G{b}": 1.0 for b in range(i, j)}])[0]
