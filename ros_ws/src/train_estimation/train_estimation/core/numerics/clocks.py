@@ -774,6 +774,8 @@ class StepWatch:
         # after the last one of the old clock
         first, a_first = chain[0][1], chain[0][4]
         shift = first - (s0 + max(a_first - a0, self.period))
+        offs = sorted(h[1] - h[4] for h in chain)  # the new clock's offsets (stamp - arrival)
+        new_off = offs[len(offs) // 2]
         rs = self._chain_resid(chain)
         if rs is not None:
             # the grid measures the step exactly (the link's jitter does not enter)
@@ -784,8 +786,7 @@ class StepWatch:
             # puts readings below the centre, each later than the one before: no step, late
             # readings (released, fused by rewinding); and a shift well inside the bar that
             # held them is none (a node catching up)
-            offs = [h[1] - h[4] for h in chain]
-            if max(offs) - min(offs) > bar or abs(shift) < 0.5 * bar:
+            if offs[-1] - offs[0] > bar or abs(shift) < 0.5 * bar:
                 yield from self._release()  # this reading with them: judged there
                 yield (HOLD,)
                 return
@@ -801,8 +802,7 @@ class StepWatch:
             # the old clock and the first of the new, put a link's jitter into the step whole:
             # 0.17 s with 50 ms of exponential jitter, the kf 55 estimates wrong-side once
             # re-anchored)
-            offs = sorted(h[1] - h[4] for h in chain)
-            shift = offs[len(offs) // 2] - med.value
+            shift = new_off - med.value
         self.shift += shift
         old = self.shift - shift
         if rs is None:  # measured otherwise: the grid's stamps may no longer continue
@@ -812,8 +812,6 @@ class StepWatch:
             if h[0] == "odometer" and (not h[5] or h is entry):
                 self._sent[h[1] - shift] = h[1] + old  # as sent
         yield STEP, shift, first, measured
-        offs = sorted(h[1] - h[4] for h in chain)
-        new_off = offs[len(offs) // 2]
         for h in held:
             k, st, f, rc, ar, ref = h
             if h is entry or ref:

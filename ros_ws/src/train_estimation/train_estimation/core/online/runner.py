@@ -267,18 +267,21 @@ class EstimatorRunner:
                 release = early_items
             else:  # those that agree with two others already are good: no need to wait
                 release = [e for e in early_items if med.near(e[1] - e[4]) >= 3]
-            if release:
-                self._early[clock] = [e for e in early_items if e not in release]
-                for k, st, f, rc, ar in release:
-                    self._admit(k, st, f, rc, ar, counted=True)
+            self._judge_early(clock, release)
             return ""
         why = self._admit(kind, stamp, fields, recv, arrival)
-        if self._early.get(clock) and len(med) >= self.min_judged:
+        if len(med) >= self.min_judged:
             # what the early hold still keeps is judged once the clock is (above)
-            release, self._early[clock] = self._early[clock], []
+            self._judge_early(clock, self._early.get(clock, []))
+        return why
+
+    def _judge_early(self, clock: str, release: list) -> None:
+        """Admit ``release``, items the early hold kept for ``clock`` (their offsets voted
+        already), and keep the rest held."""
+        if release:
+            self._early[clock] = [e for e in self._early[clock] if e not in release]
             for k, st, f, rc, ar in release:
                 self._admit(k, st, f, rc, ar, counted=True)
-        return why
 
     def _admit(self, kind: str, stamp: float, fields: dict, recv, arrival,
                counted: bool = False, watch: bool = True) -> str:
