@@ -321,11 +321,9 @@ def speed_law(mo: Motion, others: Null, cfg, noise, bins: tuple, power: float = 
     g, ev = mo.grid, mo.ev
     i, j = int(bins[0]), int(bins[1])
     lo, hi = max(0, i - LAW_REACH), min(mo.n_bins, j + LAW_REACH)
-    xm = 0.5 * (mo.x_ref[1:] + mo.x_ref[:-1])
     vm = 0.5 * (mo.v_ref[1:] + mo.v_ref[:-1])
-    mov = 0.5 * (mo.moving[1:] + mo.moving[:-1]) > 0.5
+    mov, jb = mo.step_moving, mo.step_bin
     width = mo.bin_edges[1] - mo.bin_edges[0]
-    jb = np.clip(((xm - mo.bin_edges[0]) / width).astype(int), 0, mo.n_bins - 1)
     res = {"law": f"v^{power:g}"}
     on = mov & (jb >= i) & (jb < j)
     if on.sum() < 2:

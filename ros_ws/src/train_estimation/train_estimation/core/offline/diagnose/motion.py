@@ -199,6 +199,9 @@ class Motion:
         self.bin_edges = lo_x + width * np.arange(nb + 1)
         self.n_bins = nb
         j = np.clip(((xm - lo_x) / width).astype(int), 0, nb - 1)
+        # per grid step: its position bin and whether the train moves there (the causes that
+        # act at a place build their columns on these)
+        self.step_bin, self.step_moving = j, mov
         gper = -G / 1000.0 * self.k_grad  # m/s^2 per permille (small-angle: sin(atan p) ~ p)
         inc = np.where(mov, gper * g.dt, 0.0)
         Gv = np.zeros((ev.t.size, nb))

@@ -91,10 +91,8 @@ def braking_bins(mo) -> tuple[np.ndarray, tuple]:
     """The position bins (of the gradient search, ``mo.bin_edges``) the run brakes in and, per
     bin, the drift increments (Bv, Bs) (n_ev, n) of the believed braking f0 a_br there."""
     g, ev = mo.grid, mo.ev
-    xm = 0.5 * (mo.x_ref[1:] + mo.x_ref[:-1])
     brk = mo.f0 * 0.5 * (mo.a_br0[1:] + mo.a_br0[:-1]) * 0.5 * (mo.moving[1:] + mo.moving[:-1])
-    width = mo.bin_edges[1] - mo.bin_edges[0]
-    j = np.clip(((xm - mo.bin_edges[0]) / width).astype(int), 0, mo.n_bins - 1)
+    j = mo.step_bin
     on = brk < 0.0
     bins = np.unique(j[on])
     if bins.size == 0:
