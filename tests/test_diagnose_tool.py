@@ -688,6 +688,74 @@ def test_a_power_limit_and_a_traction_delay_compose_in_either_order(metro, metro
                                                    np.max(np.abs(got - want)))
 
 
+@pytest.mark.slow
+def test_a_power_limit_is_profiled_again_for_each_cause_scored_after_it(tmp_path):
+    """A pair the benchmark missed (seed 29, pair 6: metro_demo, the train 8 % lighter than
+    believed and a power limit). The power limit, accepted first, took most of the stronger
+    traction, and against that null the stronger braking and faster coasting were fitted as a
+    braking-rate change plus a resistance change; the mass change, scored with the limit
+    profiled again with it free, is accepted second."""
+    case = make_case(np.random.default_rng([29, 6]), ("mass", "power_limit"), "plain")
+    paths = case.write(tmp_path / "case")
+    generate(case.scenario, tmp_path / "bag", measured=True)
+    bag = read_bag(tmp_path / "bag")
+    stamps = np.array([s for _, s, _ in bag.topics["odometer"]])
+    truth = case.truth_in_bag(float(stamps.min()), float(stamps.max()))
+    assert tool.main(["--bag", str(tmp_path / "bag"), "--line", str(paths["line"]), "--train",
+                      str(paths["train"]), "--out", str(tmp_path / "out"), "--quiet",
+                      "--no-plots"]) == 0
+    rep = json.loads((tmp_path / "out" / "report.json").read_text())
+    by = {r["cause"]: r for r in rep["ranking"]}
+    assert [r["cause"] for r in rep["ranking"][:2]] == ["power_limit", "mass"], rep["ranking"][:3]
+    assert by["mass"]["status"] == by["power_limit"]["status"] == "confirmed"
+    assert by["braking_rate"]["status"] != "confirmed" and by["resistance"]["status"] != "confirmed"
+    for c in ("mass", "power_limit"):
+        check_parameters(c, by[c]["parameters"], truth[c], rep["evidence"], case.v_ref)
+
+
+def test_two_accepted_causes_that_one_mass_change_explains_are_merged(metro, metro_run, tmp_path):
+    """The merge step: a train 10 % heavier than believed, with the greedy stages made to accept
+    a braking-rate change and then a resistance change (what a power limit accepted first left
+    them in a benchmark bag), is one mass change: the model with it scores higher, the two are
+    rejected with the reason, and nothing is merged where the two causes are what the data
+    hold."""
+    from train_core.effects import BrakingRateEffect, Effects, MassEffect, ResistanceEffect
+
+    from train_estimation.core.offline.diagnose import DiagConfig, Motion, prepare
+    from train_estimation.core.offline.diagnose.causes import REGISTRY, SCORING
+    from train_estimation.core.offline.diagnose.search import _accept, _Search, _stage, merge
+
+    def greedy_with(sc, names):
+        bag = write_bag(tmp_path / f"bag{len(list(tmp_path.iterdir()))}", simulate(sc))
+        cfg = DiagConfig()
+        mo = Motion(prepare(tool.read_measured(bag), sc.line, cfg), sc.line, sc.train, cfg)
+        own = {c.name: r for c in REGISTRY if (r := c.own_test(mo.run)) is not None}
+        sr = _Search(mo, cfg, own, {c.name for c in SCORING
+                                    if c.untestable(mo.run, cfg, own.get(c.name))})
+        for i, name in enumerate(names):
+            st = _stage(sr, i, lambda *a: None)
+            _accept(sr, sr.stages[-1]["scores"][name], i)
+        st = _stage(sr, len(names), lambda *a: None)
+        return sr, (st.q, st.r_s)
+
+    sc = metro.with_changes(duration=300.0)
+    heavier = sc.with_changes(effects=Effects(mass=MassEffect(1.1 * sc.train.mass)))
+    sr, noise = greedy_with(heavier, ["braking_rate", "resistance"])
+    assert merge(sr, noise)
+    assert [a.cause for a in sr.accepted] == ["mass"]
+    assert sr.accepted[0].parameters["mass"] == pytest.approx(1.1 * sc.train.mass, rel=0.02)
+    assert [a.status for a in sr.merged] == ["rejected", "rejected"]
+    assert sr.merged[0].why.startswith("one mass change explains it and resistance together")
+    # a braking-rate change and a resistance change that are there stay
+    d = sc.train.davis
+    both = sc.with_changes(effects=Effects(braking_rate=BrakingRateEffect(0.8, 0.8),
+                                           resistance=ResistanceEffect(1.5 * d.a, d.b,
+                                                                       1.5 * d.c)))
+    sr, noise = greedy_with(both, ["braking_rate", "resistance"])
+    assert not merge(sr, noise)
+    assert [a.cause for a in sr.accepted] == ["braking_rate", "resistance"]
+
+
 def test_a_gradient_steeper_than_the_line_allows_is_not_a_map_error():
     """A map error of a few per mille is one; a change whose corrected gradient no part of the
     line's map holds is not, unless the map could have the section's profile wrong (a sign)."""

@@ -15,6 +15,8 @@ first must not keep the part of a later one it absorbed).
 from __future__ import annotations
 
 import copy
+import dataclasses
+import itertools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -54,6 +56,7 @@ class _Search:
     skip: set  # untestable or already accepted causes of their own likelihood
     null: Null = field(default_factory=Null)
     accepted: list = field(default_factory=list)  # [CauseFit]
+    merged: list = field(default_factory=list)  # [CauseFit] accepted, then replaced (merge)
     stages: list = field(default_factory=list)  # [{"null_loglik", "q", "r_s", "scores", ...}]
     first: tuple | None = None  # (first stage, its null)
 
@@ -88,6 +91,10 @@ def diagnose(data: MeasuredRun, line: Line, train: TrainParams, config: DiagConf
         _accept(sr, best, stage_i)
     before = {a.cause: BY_NAME[a.cause].resolution(a, sr.mo) for a in sr.accepted}
     joint_refit(sr.mo, sr.null, sr.accepted, cfg, (st.q, st.r_s))
+    if merge(sr, (st.q, st.r_s)):
+        before.update({a.cause: BY_NAME[a.cause].resolution(a, sr.mo) for a in sr.accepted
+                       if a.cause not in before})
+        joint_refit(sr.mo, sr.null, sr.accepted, cfg, (st.q, st.r_s))
     tick(total - 1, "confirmation and gain")
     first_stage, first_null = sr.first
     first_stage.null = first_null
@@ -168,6 +175,7 @@ def _stage(sr: _Search, stage_i: int, tick) -> Stage:
         if c.name in sr.skip or c.name in done:
             continue
         scores[c.name] = c.score(st, sr.own.get(c.name), ll0)
+    _reprofile(sr, st, scores)
     _refit_noise(sr, st, scores, ll0)
     # Prior odds: `none` against K causes, each 1/K as likely a priori as some effect at
     # all (BIC is the log Bayes factor at even odds): 2 ln K off every score. Without it
@@ -198,9 +206,7 @@ def _refit_noise(sr: _Search, st: Stage, scores: dict, ll0: float) -> None:
         f = scores[name]
         if f.score < -20.0:
             continue
-        null_c = copy.deepcopy(sr.null)
-        BY_NAME[name].extend_null(null_c, f, sr.mo)
-        st_c = Stage(sr.mo, null_c, sr.cfg, big=False, noise=None)
+        st_c = Stage(sr.mo, _extended(sr, f), sr.cfg, big=False, noise=None)
         dll_c = BY_NAME[name].dll_at_noise(st, st_c, ll0)
         if dll_c > f.dll:
             f.dll_common_noise = f.dll
@@ -209,15 +215,68 @@ def _refit_noise(sr: _Search, st: Stage, scores: dict, ll0: float) -> None:
             f.noise = (st_c.q, st_c.r_s)
 
 
+def _reprofile(sr: _Search, st: Stage, scores: dict) -> None:
+    """Linear causes scored with the accepted profiled causes profiled again (in place).
+
+    A power limit accepted first takes the part of a resistance or mass change that shows in
+    traction at speed; against that null the change's evidence left (coasting, braking) is
+    small, and a braking-rate change can fit it better. The joint refit at the end corrects the
+    limit, but only with the causes accepted. So each linear cause not accepted (and not placed
+    by a search of its own, a gradient section) is also scored as the gain of the model with it
+    over the model without it, each fitted by :func:`joint_model` (the limit re-profiled, the
+    accepted linear causes free), and gets that gain where it is larger than its own, with its
+    parameters from that fit and the re-profiled values in ``extra["reprofiled"]`` (acted on
+    when it is accepted)."""
+    nonlin = [a for a in sr.accepted if not BY_NAME[a.cause].linear]
+    if not any(BY_NAME[a.cause].profiled for a in nonlin):
+        return
+    mo, cfg, noise = sr.mo, sr.cfg, (st.q, st.r_s)
+    lin = [(a.cause, a.extra) for a in sr.accepted if BY_NAME[a.cause].linear]
+    ll_without = joint_model(mo, sr.null.shift, nonlin, lin, cfg, noise)[0]
+    for name, f in scores.items():
+        c = BY_NAME[name]
+        if not c.linear or c.located:
+            continue
+        ll, _, n, th, cov, blocks, fits = joint_model(mo, sr.null.shift, nonlin,
+                                                      lin + [(name, None)], cfg, noise)
+        dll = ll - ll_without
+        if dll <= f.dll:
+            continue
+        stj, i, k = blocks[-1]
+        f.parameters, f.std_errors, f.extra = c.params(stj, th[i:i + k], cov[i:i + k, i:i + k])
+        f.extra = {**f.extra, "reprofiled": {a.cause: dict(a.parameters) for a in fits}}
+        f.dll, f.k, f.n, f.noise = dll, k, n, None
+        f.score = 2 * dll - k * math.log(n)
+
+
+def _extended(sr: _Search, f: CauseFit) -> Null:
+    """The current null with the cause ``f`` put in; where ``f`` was scored with the profiled
+    causes re-profiled (:func:`_reprofile`), with them moved as its fit moved them."""
+    moved = f.extra.get("reprofiled")
+    if not moved:
+        null = copy.deepcopy(sr.null)
+        BY_NAME[f.cause].extend_null(null, f, sr.mo)
+        return null
+    fits = [dataclasses.replace(a, parameters=dict(moved.get(a.cause, a.parameters)))
+            for a in sr.accepted]
+    return _null_of(sr.mo, sr.null.shift, fits + [f])
+
+
 def _accept(sr: _Search, best: CauseFit, stage_i: int) -> None:
-    """Put the stage's best cause into the null (refitted at its own noise first)."""
+    """Put the stage's best cause into the null (refitted at its own noise first, unless it was
+    scored with the profiled causes re-profiled: then they move with it)."""
     cause = BY_NAME[best.cause]
-    if best.noise is not None:
+    moved = best.extra.get("reprofiled")
+    if best.noise is not None and not moved:
         refit_at_own_noise(sr.mo, sr.null, cause, best, sr.cfg)
+    null = _extended(sr, best)
+    for a in sr.accepted:
+        if moved and a.cause in moved:
+            a.parameters = dict(moved[a.cause])
     sr.accepted.append(CauseFit(best.cause, best.score, best.parameters,
                                 std_errors=best.std_errors, extra=best.extra,
                                 stage=stage_i + 1))
-    cause.extend_null(sr.null, best, sr.mo)
+    sr.null = null
     if not cause.in_motion_model:
         sr.skip.add(best.cause)
 
@@ -244,34 +303,126 @@ def joint_refit(mo: Motion, null: Null, accepted: list, cfg: DiagConfig, noise) 
     Greedy stages fit each cause on top of the earlier ones held fixed: a cause accepted first
     absorbs part of a later one's effect (a gradient section fitted before a resistance
     change is biased by it). Given the discrete choices (sections, delays, slip episodes,
-    command offset), the accepted linear causes are one GLS problem: fit them together."""
+    command offset), the accepted linear causes are one GLS problem: fit them together. An
+    accepted cause with a profiled parameter (a power limit), fitted before the linear ones,
+    took part of them: it is profiled again with them free (:func:`joint_model`)."""
     lin = [a for a in accepted if BY_NAME[a.cause].linear]
-    # an accepted cause with a profiled parameter (a power limit), fitted before the linear
-    # ones, took part of them; profiled again with them free (joint maximum), then they are
-    # refitted given its new value
-    moved = bool(lin) and any([_profile_jointly(mo, null.shift, accepted, lin, a, cfg, noise)
-                               for a in accepted if not BY_NAME[a.cause].linear])
-    if moved:
-        null = _null_of(mo, null.shift, [a for a in accepted if not BY_NAME[a.cause].linear])
-    if len(lin) < 2 and not moved:
+    nonlin = [a for a in accepted if not BY_NAME[a.cause].linear]
+    if not lin or (len(lin) < 2 and not any(BY_NAME[a.cause].profiled for a in nonlin)):
         return
-    base = Null(shift=null.shift, brake_extra=null.brake_extra, slip=list(null.slip),
-                extra=list(null.extra), traction_timing=null.traction_timing,
-                p_spec=null.p_spec)
-    st = Stage(mo, base, cfg, noise=noise)
-    free, blocks = [], []
-    for a in lin:
-        f = BY_NAME[a.cause].free(st, a.extra)
-        blocks.append((a, len(free), len(f)))
-        free += f
-    th, cov, _, _ = st.fit({}, free)
-    for a, i, k in blocks:
+    _, _, _, th, cov, blocks, fits = joint_model(mo, null.shift, nonlin,
+                                                 [(a.cause, a.extra) for a in lin], cfg, noise)
+    for a, f in zip(nonlin, fits):
+        a.parameters, a.std_errors = f.parameters, f.std_errors
+    for a, (st, i, k) in zip(lin, blocks):
         a.parameters, a.std_errors, a.extra = BY_NAME[a.cause].params(
             st, th[i:i + k], cov[i:i + k, i:i + k], a.extra)
 
 
+# rounds of the drive's gain (a mass change) with the drive increments scaled by it
+GAIN_ROUNDS = 4
+
+
+def joint_model(mo: Motion, shift: float, nonlinear: list, members: list, cfg: DiagConfig,
+                noise) -> tuple:
+    """One model fitted as the joint refit fits the accepted one: the ``nonlinear`` fits
+    (copies) with their profiled parameters (a power limit's p_spec) profiled with the linear
+    ``members`` ([(cause, extra)]) free, then those fitted jointly (GLS) on the null of the
+    nonlinear fits, at ``noise``. Returns (ll, k, n, theta, cov, blocks [(stage, first, count)
+    per member], the nonlinear fits).
+
+    A mass change scales the whole delivered drive, the nonlinear causes' increments (a power
+    limit's deficit, a traction delay's re-timing, a low-adhesion section) too: the truth is
+    k a_delivered where the linear mass column is k a_believed. With a mass change among the
+    members, the fit is repeated with those increments scaled by the mass change's gain
+    (``Null.drive_gain``) until the gain settles: its fixed point is that product."""
+    fits = copy.deepcopy(nonlinear)
+    free_of = [CauseFit(c, 0.0, {}, extra=extra) for c, extra in members]
+    gain = 1.0
+    for _ in range(GAIN_ROUNDS):
+        for f in fits:
+            if BY_NAME[f.cause].profiled:
+                _profile_jointly(mo, shift, fits, free_of, f, cfg, noise, gain)
+        null = _null_of(mo, shift, fits)
+        null.drive_gain = gain
+        st = Stage(mo, null, cfg, noise=noise)
+        free, blocks = [], []
+        for c, extra in members:
+            f = BY_NAME[c].free(st, extra)
+            blocks.append((st, len(free), len(f)))
+            free += f
+        th, cov, ll, _ = st.fit({}, free)
+        new = next((BY_NAME[c].params(st, th[i:i + k], cov[i:i + k, i:i + k], extra)[2]
+                    ["traction_gain"] for (c, extra), (_, i, k) in zip(members, blocks)
+                    if c == "mass"), None)
+        if new is None or not null.extra or abs(new - gain) < 1e-5:
+            break
+        gain = new
+    return ll, len(free), st.n_meas, th, cov, blocks, fits
+
+
+def merge(sr: _Search, noise) -> bool:
+    """Occam's step after the greedy stages: accepted linear causes that one other listed
+    cause explains together are replaced by it when the whole model's score says so (in place;
+    True when a merge was made).
+
+    Greedy selection fixes each cause on top of the ones before: a power limit fitted first
+    takes most of a heavier or lighter train's traction change, and what is left, in braking
+    and coasting, is then fitted as a braking-rate change plus a resistance change (five
+    parameters) where one mass change (one parameter) acts in every phase at once. Each
+    alternative is the accepted model with a set S of two or more of its linear causes replaced
+    by one linear cause C not accepted. Each model is fitted as the joint refit fits the
+    accepted one: its profiled nonlinear parameters (a power limit's p_spec) profiled with its
+    linear causes free, then those fitted jointly (GLS), at one noise; the models are compared
+    by the search's own criterion for a whole model, ``2 ll - k ln n - 2 ln K`` per cause
+    (:data:`SCORE_FORMULA`). The replaced fits go to ``sr.merged`` with the reason."""
+    mo, cfg = sr.mo, sr.cfg
+    names = {a.cause for a in sr.accepted}
+    cands = [c for c in SCORING if c.linear and not c.located and c.name not in names
+             and c.name not in sr.skip]
+    lin = [a for a in sr.accepted if BY_NAME[a.cause].linear]
+    if len(lin) < 2 or not cands:
+        return False
+    nonlin = [a for a in sr.accepted if not BY_NAME[a.cause].linear]
+    prior = 2.0 * math.log(max(len(sr.stages[0]["scores"]), 1))
+
+    def model(members):
+        return joint_model(mo, sr.null.shift, nonlin, members, cfg, noise)
+
+    ll_a, k_a, n, _, _, _, _ = model([(a.cause, a.extra) for a in lin])
+    best = None
+    for r in range(2, len(lin) + 1):
+        for group in itertools.combinations(lin, r):
+            rest = [(a.cause, a.extra) for a in lin if a not in group]
+            for c in cands:
+                ll_b, k_b, _, th, cov, blocks, _ = model(rest + [(c.name, None)])
+                gain = 2.0 * (ll_b - ll_a) - (k_b - k_a) * math.log(n) + (r - 1) * prior
+                if gain > 0 and (best is None or gain > best[0]):
+                    best = (gain, group, c, ll_b, k_a - k_b, th, cov, blocks[-1], rest)
+    if best is None:
+        return False
+    gain, group, c, ll_b, fewer, th, cov, (st, i, k), rest = best
+    params, se, extra = c.params(st, th[i:i + k], cov[i:i + k, i:i + k], None)
+    dll = ll_b - model(rest)[0]
+    fit = CauseFit(c.name, 2.0 * dll - k * math.log(n) - prior, params, dll=dll, k=k, n=n,
+                   std_errors=se, extra=extra, prior_odds_penalty=prior,
+                   stage=min(a.stage for a in group))
+    at = sr.accepted.index(group[0])
+    for a in group:
+        sr.accepted.remove(a)
+        a.status = "rejected"
+        a.why = (f"one {c.name} change explains it and "
+                 f"{', '.join(b.cause for b in group if b is not a)} together: the model "
+                 f"with it scores {gain:.1f} above the one with them ({len(group) - 1} "
+                 f"cause(s) and {fewer} parameter(s) fewer)")
+        sr.merged.append(a)
+    sr.accepted.insert(at, fit)
+    merge(sr, noise)  # the merged model may merge again
+    return True
+
+
 def _profile_jointly(mo: Motion, shift: float, accepted: list, lin: list, fit: CauseFit,
-                     cfg: DiagConfig, noise) -> bool:
+                     cfg: DiagConfig, noise, gain: float = 1.0) -> bool:
     """Re-fit the profiled parameter of the accepted cause ``fit`` (``Cause.profile``) jointly
     with the free columns of the accepted linear causes ``lin`` (in place): one augmented
     filter over [the other nonlinear causes' null, s0, the linear causes' columns, the
@@ -280,7 +431,9 @@ def _profile_jointly(mo: Motion, shift: float, accepted: list, lin: list, fit: C
     it was re-fitted."""
     cause = BY_NAME[fit.cause]
     others = [b for b in accepted if b is not fit and not BY_NAME[b.cause].linear]
-    st = Stage(mo, _null_of(mo, shift, others), cfg, noise=noise, big=False)
+    null = _null_of(mo, shift, others)
+    null.drive_gain = gain  # the drive's gain from a mass change among lin (joint_model)
+    st = Stage(mo, null, cfg, noise=noise, big=False)
     prof = cause.profile(st)
     if prof is None:
         return False
@@ -330,7 +483,8 @@ def _ranking(sr: _Search, beta: float, none_status: str) -> list:
     rest (rejected) by their last score, ``none`` (with ``none_status``) among them."""
     ranking = [_reported(a, beta) for a in sr.accepted if a.status == "confirmed"]
     ranking += [_reported(a, beta) for a in sr.accepted if a.status != "confirmed"]
-    seen = {a.cause for a in sr.accepted}
+    ranking += [_reported(a, beta) for a in sr.merged]
+    seen = {a.cause for a in sr.accepted + sr.merged}
     first, last = sr.stages[0]["scores"], sr.stages[-1]["scores"]
     rest = [_reported(last.get(c.name, first[c.name]), beta, "rejected") for c in REGISTRY
             if c.name not in seen and c.name in first]

@@ -49,6 +49,10 @@ class Null:
     # (the limit caps the re-timed traction, the re-timing moves the capped one)
     traction_timing: float | None = None
     p_spec: float | None = None
+    # the delivered drive's gain from an accepted mass change (believed / true mass): the truth
+    # is that gain times the whole delivered drive, so the increments in ``extra`` (all of the
+    # drive: a power limit, a traction delay, a low-adhesion section) are scaled by it
+    drive_gain: float = 1.0
 
 
 class Stage:
@@ -65,8 +69,8 @@ class Stage:
             fv += c * mo.Dv[:, j]
             fs += c * mo.Ds[:, j]
         for bv, bs in null.extra:
-            fv = fv + bv
-            fs = fs + bs
+            fv = fv + null.drive_gain * bv
+            fs = fs + null.drive_gain * bs
         md = null.scale * mo.sc_d
         mv = null.scale * mo.sc_v
         for t0, t1, eps in null.slip:

@@ -57,6 +57,8 @@ class Cause:
     name: str = ""
     family: str = "motion"
     linear: bool = False  # parameters a GLS combination of elementary columns (joint refit)
+    located: bool = False  # a linear cause whose columns need its fitted place (a section)
+    profiled: bool = False  # one nonlinear parameter profiled over a grid (:meth:`profile`)
     effect_name: str = ""  # field of train_core.effects.Effects (default: the cause's name)
     model_file: str = "effects"  # where the model directory holds it: line, train or effects
 

@@ -25,6 +25,9 @@ class Candidates:
         mo = st.mo
         if drift is None:
             drift = mo.grid.integrate(R, mo.ev.t.size)
+        g = st.null.drive_gain  # the drive scaled by an accepted mass change (stage.Null)
+        if g != 1.0:
+            drift = (g * drift[0], g * drift[1])
         self.st, self.Bv, self.Bs = st, drift[0], drift[1]
         self.k = self.Bv.shape[1]
         self.kf = st.augmented(st.fv, st.fs, drift=drift, update=st.update)

@@ -32,6 +32,7 @@ class Gradient(Cause):
     name = "gradient"
     family = "motion"
     linear = True
+    located = True
     model_file = "line"
 
     def free(self, st, extra=None) -> list:

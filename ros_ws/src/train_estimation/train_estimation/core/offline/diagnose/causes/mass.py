@@ -40,6 +40,7 @@ class Mass(Cause):
 
     def extend_null(self, null, fit, mo) -> None:
         dk = fit.extra["traction_gain"] - 1.0
+        null.drive_gain = fit.extra["traction_gain"]  # the other causes' drive increments too
         for name, c in (("tr", 1.0), ("br", mo.f0), ("one", mo.alpha0), ("v", mo.beta0),
                         ("v2", mo.gamma0)):
             null.drift[name] = null.drift.get(name, 0.0) + dk * c

@@ -28,6 +28,7 @@ MIN_TRACTION = 0.05  # m/s^2, traction commands below this cannot show a limit
 class PowerLimit(Cause):
     name = "power_limit"
     family = "motion"
+    profiled = True
 
     def untestable(self, run, cfg, own) -> str | None:
         return untestable_without_traction(run, cfg, MIN_TRACTION)
@@ -57,7 +58,8 @@ class PowerLimit(Cause):
         if powers.size < 3:
             return None
         a_tr = null_traction(st.mo, st.null)
-        return "p_spec", powers, np.stack([deficit(st.mo, p, a_tr) for p in powers], axis=1)
+        return "p_spec", powers, st.null.drive_gain * np.stack(
+            [deficit(st.mo, p, a_tr) for p in powers], axis=1)
 
     def resolution(self, fit, mo) -> str | None:
         """A limit is a limit only below the largest traction power the run asked for, by more
