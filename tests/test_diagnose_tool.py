@@ -379,9 +379,7 @@ def test_summary_last_line_is_the_cause(metro, tmp_path, capsys, diagnosed):
 
 # (cause(s), size, seed): seeds fixed in advance, not picked for passing. Known failures of the
 # core are marked xfail(strict): the mark must go when the core is fixed.
-KNOWN: dict = {  # (cause, seed) -> reason
-    ("adhesion_section", 210): "the section lies wholly in braking at a constant rate: a gradient "
-                               "section there predicts the same motion (scores 752 vs 740)"}
+KNOWN: dict = {}  # (cause, seed) -> reason
 SPECS = [(c, "plain", 200 + i) for i, c in enumerate(CAUSES)] + [
     (None, "plain", 230), (("gradient", "mass"), "plain", 231),
     (("traction_delay", "power_limit"), "plain", 232),
