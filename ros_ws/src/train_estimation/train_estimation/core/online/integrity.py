@@ -186,9 +186,11 @@ class IntegrityMonitor:
             self.pos.append((z - pred, s))
 
     def _bias(self) -> tuple[float, float]:
-        """(mean position innovation m, its standard error m) over a full window, else (0, inf)."""
+        """(mean position innovation m, its standard error m) over the window (the first
+        readings: over those there are; one innovation 5 standard errors off is as sure a
+        doubt as a window's mean), else (0, inf)."""
         n = len(self.pos)
-        if n < self.p.pos_window:
+        if n == 0:
             return 0.0, math.inf
         return (sum(nu for nu, _ in self.pos) / n,
                 math.sqrt(sum(s for _, s in self.pos) / n / n))
