@@ -274,6 +274,20 @@ class StreamClock:
         self._value = self._centre(self.sorted)
         return self._value
 
+    def one_densest(self) -> bool:
+        """Whether one group of agreeing offsets is denser than every other (its values within
+        ``2 tol`` of one another): with two groups as dense, the centre is a coin toss (the
+        fuzz mix's first message, three copies 1e9 s ahead against the genuine command and two
+        copies of it with corrupted values: the control clock's centre went 1e9 s ahead)."""
+        s = self.sorted
+        if not s:
+            return False
+        counts = [bisect.bisect_right(s, v + self.tol) - bisect.bisect_left(s, v - self.tol)
+                  for v in s]
+        best = max(counts)
+        dense = [v for v, c in zip(s, counts) if c == best]
+        return dense[-1] - dense[0] <= 2 * self.tol
+
     @classmethod
     def _centre(cls, s: list) -> float:
         """The densest value of the sorted ``s`` (most others within ``tol``), the median of

@@ -82,6 +82,9 @@ from ..numerics.clocks import ADMIT, HOLD, PASS, REFUSE, STEP, StepWatch, Stream
 from .integrity import IntegrityMonitor, IntegrityParams
 
 KIND_ORDER = {"control": 0, "odometer": 1, "balise": 2}
+# the early hold waits past min_judged arrivals while two groups of offsets are as dense as
+# each other (StreamClock.one_densest), up to this many times min_judged
+EARLY_CAP = 4
 NO_SLOT = (R.OUT_OF_ORDER, R.DUPLICATE, R.FUTURE_STAMP, R.STALE_STAMP, R.NON_FINITE)
 CLOCK_OF = {"control": "control", "odometer": "train", "balise": "train"}
 
@@ -238,7 +241,7 @@ class EstimatorRunner:
         med = self._offsets.get(clock)
         if med is None:  # the train clock is the one the step watch follows
             med = self._offsets[clock] = self._steps.clock if clock == "train" else StreamClock()
-        early = len(med) < self.min_judged
+        early = not self._clock_ready(med)
         if recv is not None:
             arrival = recv
         elif early:  # no arrival times: the stamps themselves (one clock), jump from the last
@@ -263,17 +266,24 @@ class EstimatorRunner:
             med.add(stamp - arrival, arrival)
             early_items = self._early.setdefault(clock, [])
             early_items.append((kind, stamp, fields, recv, arrival))
-            if len(med) >= self.min_judged:
+            if self._clock_ready(med):
                 release = early_items
             else:  # those that agree with two others already are good: no need to wait
                 release = [e for e in early_items if _agreeing(early_items, e, med.tol) >= 3]
             self._judge_early(clock, release)
             return ""
         why = self._admit(kind, stamp, fields, recv, arrival)
-        if len(med) >= self.min_judged:
+        if self._clock_ready(med):
             # what the early hold still keeps is judged once the clock is (above)
             self._judge_early(clock, self._early.get(clock, []))
         return why
+
+    def _clock_ready(self, med: StreamClock) -> bool:
+        """The early hold's end for a clock: ``min_judged`` offsets in, one group of them
+        denser than any other (:meth:`~.clocks.StreamClock.one_densest`; at most
+        ``EARLY_CAP`` times as many offsets waited for)."""
+        n = len(med)
+        return n >= self.min_judged and med.one_densest() or n >= EARLY_CAP * self.min_judged
 
     def _judge_early(self, clock: str, release: list) -> None:
         """Admit ``release``, items the early hold kept for ``clock`` (their offsets voted
