@@ -173,6 +173,7 @@ class EstimatorRunner:
     _last_seq: dict = field(default_factory=dict)  # kind -> (seq, stamp) of the last pushed
     _held: list = field(default_factory=list)  # control pushed before any odometer (raw)
     _early: dict = field(default_factory=dict)  # clock -> items waiting for min_judged
+    _ready: set = field(default_factory=set)  # ids of the clocks whose early hold ended
     _odo: list = field(default_factory=list)  # heap of the queued odometer stamps
     _anchor: tuple | None = None  # (train stamp, filter time) of the last processed odometer
     _last_mapped: float = -math.inf
@@ -281,9 +282,16 @@ class EstimatorRunner:
     def _clock_ready(self, med: StreamClock) -> bool:
         """The early hold's end for a clock: ``min_judged`` offsets in, one group of them
         denser than any other (:meth:`~.clocks.StreamClock.one_densest`; at most
-        ``EARLY_CAP`` times as many offsets waited for)."""
+        ``EARLY_CAP`` times as many offsets waited for). Once ended it stays ended: later
+        windows with two groups as dense (a step half-way through the window) are the step
+        watch's and the centre's to judge, not a reason to hold every message again."""
+        if id(med) in self._ready:
+            return True
         n = len(med)
-        return n >= self.min_judged and med.one_densest() or n >= EARLY_CAP * self.min_judged
+        if n >= self.min_judged and med.one_densest() or n >= EARLY_CAP * self.min_judged:
+            self._ready.add(id(med))
+            return True
+        return False
 
     def _judge_early(self, clock: str, release: list) -> None:
         """Admit ``release``, items the early hold kept for ``clock`` (their offsets voted
