@@ -173,7 +173,7 @@ class EstimatorRunner:
     _last_seq: dict = field(default_factory=dict)  # kind -> (seq, stamp) of the last pushed
     _held: list = field(default_factory=list)  # control pushed before any odometer (raw)
     _early: dict = field(default_factory=dict)  # clock -> items waiting for min_judged
-    _ready: set = field(default_factory=set)  # ids of the clocks whose early hold ended
+    _ready: set = field(default_factory=set)  # clocks whose early hold ended
     _odo: list = field(default_factory=list)  # heap of the queued odometer stamps
     _anchor: tuple | None = None  # (train stamp, filter time) of the last processed odometer
     _last_mapped: float = -math.inf
@@ -242,7 +242,7 @@ class EstimatorRunner:
         med = self._offsets.get(clock)
         if med is None:  # the train clock is the one the step watch follows
             med = self._offsets[clock] = self._steps.clock if clock == "train" else StreamClock()
-        early = not self._clock_ready(med)
+        early = not self._clock_ready(clock, med)
         if recv is not None:
             arrival = recv
         elif early:  # no arrival times: the stamps themselves (one clock), jump from the last
@@ -267,29 +267,38 @@ class EstimatorRunner:
             med.add(stamp - arrival, arrival)
             early_items = self._early.setdefault(clock, [])
             early_items.append((kind, stamp, fields, recv, arrival))
-            if self._clock_ready(med):
+            if self._clock_ready(clock, med):
                 release = early_items
             else:  # those that agree with two others already are good: no need to wait
                 release = [e for e in early_items if _agreeing(early_items, e, med.tol) >= 3]
             self._judge_early(clock, release)
             return ""
         why = self._admit(kind, stamp, fields, recv, arrival)
-        if self._clock_ready(med):
+        if self._clock_ready(clock, med):
             # what the early hold still keeps is judged once the clock is (above)
             self._judge_early(clock, self._early.get(clock, []))
         return why
 
-    def _clock_ready(self, med: StreamClock) -> bool:
+    def _fused_elsewhere(self, kind: str, stamp: float, fields) -> str:
+        """``duplicate`` when this odometer reading's sample was fused at another stamp in the
+        last ``history`` seconds (a corrupted copy: a clock step sends new samples, not old
+        ones, so it is no evidence of a step either), else ""."""
+        if kind == "odometer" and isinstance(fields, dict) and \
+                self._fused_seq.get(fields.get("seq"), stamp) != stamp:
+            return f"{R.DUPLICATE}: seq {fields.get('seq')} fused at another stamp"
+        return ""
+
+    def _clock_ready(self, clock: str, med: StreamClock) -> bool:
         """The early hold's end for a clock: ``min_judged`` offsets in, one group of them
         denser than any other (:meth:`~.clocks.StreamClock.one_densest`; at most
         ``EARLY_CAP`` times as many offsets waited for). Once ended it stays ended: later
         windows with two groups as dense (a step half-way through the window) are the step
         watch's and the centre's to judge, not a reason to hold every message again."""
-        if id(med) in self._ready:
+        if clock in self._ready:
             return True
         n = len(med)
         if n >= self.min_judged and med.one_densest() or n >= EARLY_CAP * self.min_judged:
-            self._ready.add(id(med))
+            self._ready.add(clock)
             return True
         return False
 
@@ -308,11 +317,9 @@ class EstimatorRunner:
         med = self._offsets[clock]
         if kind != "control" and (fields.get("seq"), stamp) in self._recent.get(kind, ()):
             return self._reject(kind, stamp, R.DUPLICATE)  # a copy is no evidence of a step
-        if kind == "odometer" and self._fused_seq.get(fields.get("seq"), stamp) != stamp:
-            # a sample already fused, sent again with another stamp: a corrupted copy (a clock
-            # step sends new samples, not old ones), no evidence of a step either
-            return self._reject(kind, stamp, f"{R.DUPLICATE}: seq {fields.get('seq')} fused "
-                                             f"at another stamp")
+        why = self._fused_elsewhere(kind, stamp, fields)
+        if why:
+            return self._reject(kind, stamp, why)
         if watch and clock == "train" and arrival is not None and self._steps.last is not None:
             held, stamp = self._watch_step(kind, stamp, fields, recv, arrival)
             n, doubt, conclusive = self._steps.doubt(self.drift)
@@ -503,13 +510,12 @@ class EstimatorRunner:
         return reason
 
     def _apply(self, stamp: float, order: int, n: int, kind: str, fields: dict) -> str:
-        if kind == "odometer" and isinstance(fields, dict) and \
-                self._fused_seq.get(fields.get("seq"), stamp) != stamp:
-            # the admission's check again, now that the queue has fused what came before:
-            # two copies of one sample admitted before either was fused (the early hold
-            # released a copy stamped 5 s ahead with the original; fused 5 s late with its
-            # sample's distance, it left the robust filter 11 m behind with a sigma of 1.1 m)
-            reason = f"{R.DUPLICATE}: seq {fields.get('seq')} fused at another stamp"
+        # the admission's check again, now that the queue has fused what came before: two
+        # copies of one sample admitted before either was fused (the early hold released a
+        # copy stamped 5 s ahead with the original; fused 5 s late with its sample's distance,
+        # it left the robust filter 11 m behind with a sigma of 1.1 m)
+        reason = self._fused_elsewhere(kind, stamp, fields)
+        if reason:
             self._count(kind, stamp, reason)
             self._observe(kind, stamp, fields, reason)
             return reason
