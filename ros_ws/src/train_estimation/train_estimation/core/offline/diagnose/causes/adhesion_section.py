@@ -122,13 +122,25 @@ def braking_on(mo, cuts: np.ndarray, cells: bool = False) -> tuple:
     """The drift increments (Bv, Bs) of the believed braking f0 a_br on the grid steps whose
     mid position is in [cuts[0], cuts[-1]): one column (``cells`` False: two cuts, a section)
     or one per cell [cuts[k], cuts[k + 1])."""
-    g, ev = mo.grid, mo.ev
-    brk = mo.f0 * 0.5 * (mo.a_br0[1:] + mo.a_br0[:-1]) * 0.5 * (mo.moving[1:] + mo.moving[:-1])
     xm = 0.5 * (mo.x_ref[1:] + mo.x_ref[:-1])
     col = np.searchsorted(cuts, xm, side="right") - 1
-    n = cuts.size - 1 if cells else 1
-    on = (brk < 0.0) & (col >= 0) & (col < cuts.size - 1)
-    col = col if cells else np.zeros_like(col)
+    inside = (col >= 0) & (col < cuts.size - 1)
+    if not cells:
+        col = np.zeros_like(col)
+    return _braking_columns(mo, np.where(inside, col, -1), cuts.size - 1 if cells else 1)
+
+
+def _step_braking(mo) -> np.ndarray:
+    """m/s^2 per grid step: the believed braking f0 a_br while moving (step means)."""
+    return mo.f0 * 0.5 * (mo.a_br0[1:] + mo.a_br0[:-1]) * 0.5 * (mo.moving[1:] + mo.moving[:-1])
+
+
+def _braking_columns(mo, col: np.ndarray, n: int) -> tuple:
+    """(Bv, Bs) (n_ev, ``n``): the believed braking f0 a_br of each grid step added to its
+    column ``col`` (per grid step; < 0: in none)."""
+    g, ev = mo.grid, mo.ev
+    brk = _step_braking(mo)
+    on = (brk < 0.0) & (col >= 0)
     Bv, Bs = np.zeros((ev.t.size, n)), np.zeros((ev.t.size, n))
     inc = brk[on] * g.dt
     np.add.at(Bv, (g.k[on], col[on]), inc)
@@ -139,20 +151,10 @@ def braking_on(mo, cuts: np.ndarray, cells: bool = False) -> tuple:
 def braking_bins(mo) -> tuple[np.ndarray, tuple]:
     """The position bins (of the gradient search, ``mo.bin_edges``) the run brakes in and, per
     bin, the drift increments (Bv, Bs) (n_ev, n) of the believed braking f0 a_br there."""
-    g, ev = mo.grid, mo.ev
-    brk = mo.f0 * 0.5 * (mo.a_br0[1:] + mo.a_br0[:-1]) * 0.5 * (mo.moving[1:] + mo.moving[:-1])
     j = mo.step_bin
-    on = brk < 0.0
-    bins = np.unique(j[on])
-    if bins.size == 0:
-        return bins, (np.zeros((ev.t.size, 0)), np.zeros((ev.t.size, 0)))
-    col = np.searchsorted(bins, j[on])
-    inc = brk[on] * g.dt
-    Bv = np.zeros((ev.t.size, bins.size))
-    Bs = np.zeros((ev.t.size, bins.size))
-    np.add.at(Bv, (g.k[on], col), inc)
-    np.add.at(Bs, (g.k[on], col), inc * g.lever[on])
-    return bins, (Bv, Bs)
+    bins = np.unique(j[_step_braking(mo) < 0.0])
+    # steps outside these bins do not brake: _braking_columns leaves them out
+    return bins, _braking_columns(mo, np.searchsorted(bins, j), bins.size)
 
 
 CAUSE = AdhesionSection()
