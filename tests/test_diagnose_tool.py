@@ -450,10 +450,10 @@ def check_parameters(cause: str, est: dict, truth: dict, evidence: dict, v_ref: 
     assert abs(est[k] - truth[k]) <= Z * se, (k, est[k], truth[k], se)
 
 
-@pytest.mark.slow
-@pytest.mark.parametrize("cause,size,seed", HIDDEN, ids=[_id(p) for p in HIDDEN])
-def test_hidden_effect_is_found(cause, size, seed, tmp_path, capsys):
-    case = make_case(np.random.default_rng(seed), cause, size)
+def _diagnosed(case, tmp_path) -> tuple[dict, dict]:
+    """The case (train_sim.cases) written, simulated into a measured bag and diagnosed as a
+    user runs the tool (no plots: they have tests of their own): (report.json, the truth over
+    the bag's odometer stamps)."""
     paths = case.write(tmp_path / "case")
     generate(case.scenario, tmp_path / "bag", measured=True)
     bag = read_bag(tmp_path / "bag")
@@ -461,8 +461,15 @@ def test_hidden_effect_is_found(cause, size, seed, tmp_path, capsys):
     truth = case.truth_in_bag(float(stamps.min()), float(stamps.max()))
     assert tool.main(["--bag", str(tmp_path / "bag"), "--line", str(paths["line"]), "--train",
                       str(paths["train"]), "--out", str(tmp_path / "out"), "--quiet",
-                      "--no-plots"]) == 0  # the verdict; the plots have tests of their own
-    rep = json.loads((tmp_path / "out" / "report.json").read_text())
+                      "--no-plots"]) == 0
+    return json.loads((tmp_path / "out" / "report.json").read_text()), truth
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("cause,size,seed", HIDDEN, ids=[_id(p) for p in HIDDEN])
+def test_hidden_effect_is_found(cause, size, seed, tmp_path, capsys):
+    case = make_case(np.random.default_rng(seed), cause, size)
+    rep, truth = _diagnosed(case, tmp_path)
     assert capsys.readouterr().out.strip().splitlines()[-1] == f"cause: {rep['cause']}"
     assert (tmp_path / "out" / "report.html").is_file()
     assert not list((tmp_path / "out").glob("*.png"))  # --no-plots
@@ -694,15 +701,7 @@ def test_a_power_limit_is_profiled_again_for_each_cause_scored_after_it(tmp_path
     braking-rate change plus a resistance change; the mass change, scored with the limit
     profiled again with it free, is accepted second."""
     case = make_case(np.random.default_rng([29, 6]), ("mass", "power_limit"), "plain")
-    paths = case.write(tmp_path / "case")
-    generate(case.scenario, tmp_path / "bag", measured=True)
-    bag = read_bag(tmp_path / "bag")
-    stamps = np.array([s for _, s, _ in bag.topics["odometer"]])
-    truth = case.truth_in_bag(float(stamps.min()), float(stamps.max()))
-    assert tool.main(["--bag", str(tmp_path / "bag"), "--line", str(paths["line"]), "--train",
-                      str(paths["train"]), "--out", str(tmp_path / "out"), "--quiet",
-                      "--no-plots"]) == 0
-    rep = json.loads((tmp_path / "out" / "report.json").read_text())
+    rep, truth = _diagnosed(case, tmp_path)
     by = {r["cause"]: r for r in rep["ranking"]}
     assert [r["cause"] for r in rep["ranking"][:2]] == ["power_limit", "mass"], rep["ranking"][:3]
     assert by["mass"]["status"] == by["power_limit"]["status"] == "confirmed"
