@@ -633,6 +633,24 @@ def test_an_effect_outside_the_list_is_unexplained(kind, seed, tmp_path, capsys)
     assert yaml.safe_load((tmp_path / "out" / "model" / "effects.yaml").read_text()) == {}
 
 
+@pytest.mark.slow
+def test_a_cause_found_beside_causes_not_confirmed_is_confirmed_again_without_them(tmp_path):
+    """A brake fade at every stop (metro_demo, the bench's seed [29, 125]): the greedy stages
+    accept a low-adhesion section at the last stop and a gradient before it that fills the
+    section's excess there. The section is then not confirmed (the phase split contradicts
+    it); the gradient, confirmed against a model that held the section, falls once it is
+    confirmed again without it."""
+    from train_sim.unlisted_cases import unlisted_case
+
+    uc = unlisted_case(np.random.default_rng([29, 125]), "brake_fade")
+    paths = uc.write(tmp_path / "case")
+    generate(uc.scenario, tmp_path / "bag", measured=True)
+    rep = _unexplained(paths, tmp_path)
+    by = {r["cause"]: r for r in rep["ranking"]}
+    assert by["gradient"]["why"].startswith("without adhesion_section"), by["gradient"]
+    assert rep["unexplained"][0]["phase"] == "braking", rep["unexplained"]
+
+
 # Effects of kinds the bench does not use (train_sim.unlisted_cases.TEST_KINDS): a traction loss
 # above a speed (not a power limit's p_spec / v) and a traction loss on a stretch (not a gradient).
 # Seeds 11-13 fixed in advance.

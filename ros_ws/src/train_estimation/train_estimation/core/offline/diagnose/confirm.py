@@ -43,6 +43,8 @@ reported ``confirmed`` only when the checks below pass, the same for every cause
 7. **Not a piece** of a structure the confirmed model leaves in the residuals that also shows
    where the cause does not act, nor left where it acts as large as half of itself
    (:func:`.contradict.piece_of`).
+8. **Without the causes that fell**: the confirmed causes, refitted jointly without the accepted
+   ones that were not confirmed, pass 1-7 again (:func:`.search.reconfirm`).
 
 Every other entry of the ranking is ``rejected`` (its score is not above ``none``'s).
 """
