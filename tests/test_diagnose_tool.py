@@ -652,7 +652,8 @@ def test_a_cause_found_beside_causes_not_confirmed_is_confirmed_again_without_th
 
 
 # Effects of kinds the bench does not use (train_sim.unlisted_cases.TEST_KINDS): a traction loss
-# above a speed (not a power limit's p_spec / v) and a traction loss on a stretch (not a gradient).
+# above a speed (not a power limit's p_spec / v), a traction loss on a stretch (not a gradient) and
+# a balise that lies metres from its map position (not an odometer scale, not slip).
 # Seeds 11-13 fixed in advance.
 TEST_KIND_KNOWN = {
     ("neutral_section", 13): "a slip episode of 1.4 % for 4.6 s on the stretch is confirmed: the "
@@ -660,7 +661,8 @@ TEST_KIND_KNOWN = {
 TEST_KIND = [pytest.param(k, s, marks=[pytest.mark.xfail(reason=TEST_KIND_KNOWN[(k, s)],
                                                          strict=True)]
                           if (k, s) in TEST_KIND_KNOWN else [])
-             for k in ("traction_fade", "neutral_section") for s in (11, 12, 13)]
+             for k in ("traction_fade", "neutral_section", "misplaced_balise")
+             for s in (11, 12, 13)]
 
 
 @pytest.mark.slow
@@ -677,6 +679,16 @@ def test_an_effect_of_a_kind_the_bench_does_not_use_is_unexplained(kind, seed, t
     # is run in other phases too: docs/diagnose.md)
     phases = {uc.phase} if kind == "traction_fade" else {uc.phase, "all"}
     assert rep["unexplained"][0]["phase"] in phases, rep["unexplained"]
+    if kind == "misplaced_balise":
+        # the entry is at that balise, and its offset is the balise's (reading minus the
+        # train's position by the odometer: minus where it lies from its map position)
+        mb = uc.scenario.unlisted.misplaced_balise
+        pos = next(b.position for b in uc.case.scenario.line.balises if b.id == mb.balise_id)
+        u = rep["unexplained"][0]
+        assert u["where"] == [pytest.approx(pos, abs=0.01)] * 2, (u, pos)
+        rounds = rep["evidence"]["_model"]["structure"]["tests"][-1]["balise"]["rounds"]
+        se = next(r["std_error"] for r in rounds if r["significant"])
+        assert abs(u["size"] + mb.offset) <= 4 * se, (u["size"], mb.offset, se)
 
 
 def test_a_power_limit_and_a_traction_delay_compose_in_either_order(metro, metro_run, tmp_path):

@@ -67,10 +67,14 @@ class BaliseReader:
     """Detects balise passages along a forward-moving trajectory."""
 
     def __init__(self, balises: tuple[Balise, ...], position_std: float,
-                 rng: np.random.Generator, start_position: float):
+                 rng: np.random.Generator, start_position: float, moved: dict | None = None):
+        """``moved``: balise id -> m it lies from the position it reports (a test effect,
+        train_sim.unlisted.MisplacedBalise)."""
+        moved = moved or {}
         ordered = sorted(balises, key=lambda b: b.position)
         offsets = rng.standard_normal(len(ordered)) * position_std  # one per balise, line order
-        pairs = sorted(zip((b.position + float(e) for b, e in zip(ordered, offsets)), ordered),
+        pairs = sorted(zip((b.position + moved.get(b.id, 0.0) + float(e)
+                            for b, e in zip(ordered, offsets)), ordered),
                        key=lambda p: p[0])
         self.triggers = [p[0] for p in pairs]  # m, true positions where each balise is read
         self.balises = [p[1] for p in pairs]

@@ -35,16 +35,22 @@ effect               where it shows          what the world does
                      traction                on [start, end) (a stretch fed at a low voltage, a
                                              phase break). Not a gradient (coasting and braking
                                              there are untouched; it scales with the command).
+``misplaced_balise``  at one balise           the balise lies ``offset`` m from the position the
+                                             map and its telegram give (a survey error): read
+                                             there, it reports the map's position. Not an
+                                             odometer scale (one reading, not a drift with
+                                             distance) nor slip (the readings after it agree).
 ===================  ======================  ==================================================
 
-The bench (:mod:`train_sim.unlisted_cases`) uses the first four; the last two are kept for
+The bench (:mod:`train_sim.unlisted_cases`) uses the first four; the last three are kept for
 tests, so that a test does not only mirror the bench.
 
 Use: ``scenario.with_changes(unlisted=Unlisted(wind=Wind(120.0, 180.0, 9000.0)))``; the world
 (``simulate``, ``generate``) runs them through the hooks of :class:`train_core.dynamics.Dynamics`
-(delivered traction/braking parts; extra deceleration). They are not parsed from scenario files
-(they exist to be hidden from the tools under test). Only the motion changes; sensor noise and
-link draws stay those of the same seed without them.
+(delivered traction/braking parts; extra deceleration), a misplaced balise through the balise
+reader's trigger positions (:func:`balise_moves`). They are not parsed from scenario files
+(they exist to be hidden from the tools under test). Only the motion and the place where a balise
+is read change; sensor noise and link draws stay those of the same seed without them.
 
 Pure module: standard library only.
 """
@@ -95,6 +101,12 @@ class NeutralSection:
 
 
 @dataclass(frozen=True)
+class MisplacedBalise:
+    balise_id: int  # the balise (its id in line.yaml)
+    offset: float  # m, where it lies minus where the map and its telegram say
+
+
+@dataclass(frozen=True)
 class Unlisted:
     """The test effects of one run; None = off."""
 
@@ -104,6 +116,13 @@ class Unlisted:
     wind: Wind | None = None
     traction_fade: TractionFade | None = None
     neutral_section: NeutralSection | None = None
+    misplaced_balise: MisplacedBalise | None = None
+
+
+def balise_moves(unlisted: Unlisted | None) -> dict:
+    """balise id -> m it lies from its map position (the balise reader's ``moved``)."""
+    mb = unlisted.misplaced_balise if unlisted is not None else None
+    return {} if mb is None else {int(mb.balise_id): float(mb.offset)}
 
 
 def unlisted_hooks(unlisted: Unlisted | None, true_train: TrainParams) -> dict:

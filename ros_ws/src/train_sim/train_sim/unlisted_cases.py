@@ -28,6 +28,9 @@ the bench:
 ``traction_fade``    above 40-60 % of the top speed, factor 0.6-0.75    traction
 ``neutral_section``  a 300-600 m stretch where the train accelerates    traction
                      (> 0.15 m/s^2 at > 3 m/s), factor 0.4-0.6
+``misplaced_balise`` a balise the run passes at > 3 m/s with balises    all
+                     passed before and after it, +-8-20 m from its
+                     map position
 ===================  =================================================  ==============
 
 ``phase`` is the phase ``diagnose``'s ``unexplained`` signature should name.
@@ -44,6 +47,7 @@ import numpy as np
 from .cases import Case, make_case
 from .unlisted import (
     BrakeFade,
+    MisplacedBalise,
     NeutralSection,
     TractionFade,
     TractionGain,
@@ -53,9 +57,10 @@ from .unlisted import (
 )
 
 KINDS = ("tunnel_drag", "brake_fade", "traction_gain", "wind")
-TEST_KINDS = ("traction_fade", "neutral_section")
+TEST_KINDS = ("traction_fade", "neutral_section", "misplaced_balise")
 PHASE = {"tunnel_drag": "all", "brake_fade": "braking", "traction_gain": "traction",
-         "wind": "all", "traction_fade": "traction", "neutral_section": "traction"}
+         "wind": "all", "traction_fade": "traction", "neutral_section": "traction",
+         "misplaced_balise": "all"}
 
 
 @dataclass(frozen=True)
@@ -117,6 +122,18 @@ def unlisted_case(rng: np.random.Generator, kind: str, pilot=None) -> UnlistedCa
         eff = NeutralSection(round(start, 1), round(start + length, 1),
                              round(float(eff_rng.uniform(0.4, 0.6)), 3))
         u = Unlisted(neutral_section=eff)
+    elif kind == "misplaced_balise":
+        # a balise passed at speed, with balises passed before and after it (so that the
+        # odometer carries the position to it and on from it)
+        passed = sorted(b.position for b in sc.line.balises if x.min() < b.position < x.max())
+        inner = [p for p in passed[1:-1] if np.interp(p, x, v) > 3.0]
+        if not inner:
+            raise RuntimeError("no balise passed at speed between two others")
+        pos = inner[int(eff_rng.integers(len(inner)))]
+        bid = next(b.id for b in sc.line.balises if b.position == pos)
+        sign = 1.0 if eff_rng.random() < 0.5 else -1.0
+        eff = MisplacedBalise(int(bid), round(sign * float(eff_rng.uniform(8.0, 20.0)), 2))
+        u = Unlisted(misplaced_balise=eff)
     else:
         moving = np.flatnonzero(v > 2.0)
         dur = float(eff_rng.uniform(60.0, 120.0))

@@ -59,7 +59,7 @@ from train_core.motion import Motion, warm_actuator
 from .driver import Driver, DriverParams
 from .scenario import Scenario
 from .sensors import BaliseReader, Odometer
-from .unlisted import unlisted_hooks
+from .unlisted import balise_moves, unlisted_hooks
 
 _EPS = 1e-9  # s
 TRUTH_COVARIANCE = (math.nan,) * 16  # docs/interfaces.md: NaN where not estimated (truth is not)
@@ -127,7 +127,8 @@ class World:
         self.odometer = Odometer(sc.train.odometer_speed_std, sc.train.odometer_distance_std,
                                  np.random.default_rng(s_odo))
         self.balise_reader = BaliseReader(sc.line.balises, sc.train.balise_position_std,
-                                          np.random.default_rng(s_bal), sc.start_position)
+                                          np.random.default_rng(s_bal), sc.start_position,
+                                          moved=balise_moves(sc.unlisted))
         slot = 1.0 / sc.odometer_rate  # the radio's cycle: the Markov link's time step
         self.links = {"odometer": Link(sc.true_link, np.random.default_rng(s_lodo),
                                        np.random.default_rng(s_dodo), slot),

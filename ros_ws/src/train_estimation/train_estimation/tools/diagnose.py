@@ -473,7 +473,10 @@ def plot_phases(s: dict, path: Path, dg=None) -> bool:
                 lim = max(lim, 1.5 * float(np.percentile(np.abs(m) + 2 * e, 90)))
         for u in s.get("unexplained") or []:
             span = u.get("where") if q is x else u.get("speed")
-            if span:
+            if span and at_balise(u):
+                ax.axvline(span[0], color="0.4", ls="--", lw=1.0,
+                           label=f"unexplained: balise read {u['size']:+.1f} m off")
+            elif span:
                 ax.axvspan(span[0], span[1], color="0.5", alpha=0.2,
                            label=f"unexplained ({u['phase']}, {u['size']:+.3f} m/s^2)")
         ax.axhline(0, color="k", lw=0.6)
@@ -569,15 +572,27 @@ def _span(r, unit: str) -> str | None:
     return None if r is None else f"{r[0]:.0f}-{r[1]:.0f} {unit}"
 
 
+def at_balise(u: dict) -> bool:
+    """An ``unexplained`` entry at one balise reading (``where`` one point): its size is the
+    reading's offset in m, not an acceleration (docs/diagnose.md)."""
+    w = u.get("where")
+    return bool(w) and w[0] == w[1]
+
+
 def unexplained_line(u: dict) -> str:
     """One line of the summary for an ``unexplained`` entry."""
+    best = u.get("best_listed") or {}
+    closest = f"; closest listed: {best['cause']} ({best['why']})" if best else ""
+    if at_balise(u):
+        return (f"unexplained: the balise at {u['where'][0]:.0f} m (read at {u['when'][0]:.0f} s, "
+                f"{u['speed'][0]:.1f} m/s) is {u['size']:+.1f} m from the train's position by "
+                f"the odometer: it lies elsewhere than the map says, or another balise was read"
+                + closest)
     where = [x for x in (_span(u.get("where"), "m"), _span(u.get("when"), "s")) if x]
     sp = u.get("speed")
-    best = u.get("best_listed") or {}
     return (f"unexplained: {u['phase']}" + (f" on {', '.join(where)}" if where else "")
             + (f" at {sp[0]:.1f}-{sp[1]:.1f} m/s" if sp else "")
-            + f", residual {u['size']:+.3f} m/s^2"
-            + (f"; closest listed: {best['cause']} ({best['why']})" if best else ""))
+            + f", residual {u['size']:+.3f} m/s^2" + closest)
 
 
 def main(argv=None) -> int:

@@ -24,6 +24,13 @@ entry; its cells are then put into the model and the families tested again (at m
 from the other phases (per-phase families; a place or time cell run in one phase only
 gives ``all``).
 
+**Balise test** (:func:`balise_test`). The motion families cannot see a balise that lies
+elsewhere than the map says: the odometer carries the position from one balise to the next,
+so one reading off by metres moves no acceleration. Each reading gets a free offset of its
+own; the largest that is significant (Bonferroni over the readings, within the same
+``alpha``) and more than ``min_offset`` m is an entry (phase ``all``, ``where`` the balise's
+map position, ``size`` the offset in m), and the rest are tested again.
+
 The checks of a confirmed cause against the rest of the data (where it must show and where it
 must not) are in :mod:`.contradict`.
 """
@@ -119,14 +126,17 @@ def _fit_columns(st: Stage, Bv: np.ndarray, Bs: np.ndarray, extra=None):
 
 
 def structure(mo: Motion, null: Null, cfg, noise, beta: float = 1.0, alpha: float = 1e-3,
-              cell_z: float = 3.0, min_accel: float = 0.01, max_entries: int = 3) -> tuple:
+              cell_z: float = 3.0, min_accel: float = 0.01, max_entries: int = 3,
+              min_offset: float = 2.0) -> tuple:
     """What the model ``null`` leaves in the data (module docstring): ([signature], [tests])
-    with a signature {phase, where, when, speed, size} per entry and the tests' figures."""
+    with a signature {phase, where, when, speed, size} per entry and the tests' figures. The
+    motion families first, then the balise readings (:func:`balise_test`), ``alpha`` shared
+    among them all."""
     fam = families(mo, beta)
     st = Stage(mo, null, cfg, noise=noise, big=False)
     n_ev = mo.ev.t.size
     ig = {k: mo.grid.integrate(R, n_ev) for k, (R, _) in fam.items()}
-    a_f = alpha / max(len(fam), 1)
+    a_f = alpha / (len(fam) + 1)
     extra = None
     found, tests = [], []
     for _ in range(max_entries):
@@ -154,7 +164,70 @@ def structure(mo: Motion, null: Null, cfg, noise, beta: float = 1.0, alpha: floa
         add_v = ig[name][0][:, cells] @ th[cells]
         add_s = ig[name][1][:, cells] @ th[cells]
         extra = (add_v, add_s) if extra is None else (extra[0] + add_v, extra[1] + add_s)
-    return found, tests
+    bal, bal_test = balise_test(mo, st, extra, a_f, cell_z, min_offset,
+                                max_entries - len(found), beta)
+    tests.append({"balise": bal_test})
+    return found + bal, tests
+
+
+def balise_test(mo: Motion, st: Stage, extra, alpha: float, cell_z: float, min_offset: float,
+                max_entries: int, beta: float = 1.0) -> tuple:
+    """Balise readings that the odometer does not continue (a balise lying elsewhere than the
+    map and its telegram say, a reading of another balise): ([signature], figures).
+
+    Every reading j gets a free offset of its own (a balise measurement column that is 1 at
+    that reading: p_b = s0 + s(t_b) + o_j + e_b) on top of the model ``st`` (plus the found
+    drift ``extra``). For each reading not yet in the model, 2 dll of adding its offset is
+    chi-square with one degree of freedom under the model; the largest, below ``alpha`` / n
+    (Bonferroni over the n readings) with the offset beyond ``cell_z`` SE and ``min_offset``
+    (m: a balise's location accuracy is metres; a misstated reading variance must not make a
+    finding of less), is an entry; its offset is put into the model and the rest tested again.
+    No listed cause moves one reading: an odometer scale grows with distance, a slip episode
+    shifts every reading after it, a clock or link cause moves none. An entry's ``size`` is the
+    offset in m (the reading's position minus the train's position by the odometer there),
+    ``where`` the balise's map position, ``when`` the reading's time (stamp clock)."""
+    ev = mo.ev
+    n = ev.bal.size
+    if n < 3 or max_entries <= 0:
+        return [], {"readings": int(n), "note": "fewer than three balise readings"
+                    if n < 3 else "no entries left"}
+    cols = np.zeros((ev.t.size, n))
+    cols[ev.bal, np.arange(n)] = 1.0
+    fv, fs = (st.fv, st.fs) if extra is None else (st.fv + extra[0], st.fs + extra[1])
+    W = st.augmented(fv, fs, bal=cols).W  # [data, s0, o_1 .. o_n]
+    a_n = alpha / n
+    inside, found = [], []
+    out = {"readings": int(n), "alpha_per_reading": a_n, "rounds": []}
+    for _ in range(max_entries):
+        base = [0, 1] + [2 + j for j in inside]
+        q0 = gls(W[np.ix_(base, base)])[2]
+        best = None
+        for j in range(n):
+            if j in inside:
+                continue
+            idx = base + [2 + j]
+            th, cov, q1 = gls(W[np.ix_(idx, idx)])
+            stat = max(q0 - q1, 0.0)
+            if best is None or stat > best[0]:
+                best = (stat, j, float(th[-1]), float(math.sqrt(max(cov[-1, -1], 0.0))))
+        if best is None:
+            break
+        stat, j, off, se = best
+        logp = float(chi2.logsf(stat, 1))
+        sig = bool(logp < math.log(a_n) and abs(off) > max(cell_z * se, min_offset))
+        out["rounds"].append({"reading": j, "chi2": stat, "p": math.exp(logp), "offset": off,
+                              "std_error": se, "significant": sig})
+        if not sig:
+            break
+        inside.append(j)
+        k = ev.bal[j]
+        gi = int(np.clip(np.searchsorted(mo.grid.t, ev.t[k]), 0, mo.grid.t.size - 1))
+        v = float(mo.v_ref[gi])
+        found.append({"phase": "all", "where": [float(ev.y_d[k])] * 2,
+                      "when": [float(ev.t[k]) / beta] * 2, "speed": [v, v], "size": off,
+                      "family": "balise", "onset": False,
+                      "mask": np.zeros(mo.grid.t.size, bool)})
+    return found, out
 
 
 def _attribute_phase(mo: Motion, st: Stage, pattern: np.ndarray, extra, cell_z: float,

@@ -42,8 +42,11 @@ SCORE_FORMULA = ("2 (ll_cause - ll_null) - k ln n - 2 ln K (BIC-penalised log-li
 
 # The structure test's thresholds (phases.structure): a family at 1e-3 / families (chi-square),
 # its cells beyond 3 SE and 0.02 m/s^2 (about 2 per mille of gradient: a simulated bag whose
-# world had no such effect showed a significant 0.010 m/s^2 in low-speed braking)
-STRUCTURE = {"alpha": 1e-3, "cell_z": 3.0, "min_accel": 0.02, "max_entries": 3}
+# world had no such effect showed a significant 0.010 m/s^2 in low-speed braking); a balise
+# reading off the odometer's track by more than 3 SE and 2 m (a balise's location accuracy is
+# metres: less is not a finding even where the reading's stated variance is smaller)
+STRUCTURE = {"alpha": 1e-3, "cell_z": 3.0, "min_accel": 0.02, "max_entries": 3,
+             "min_offset": 2.0}
 
 
 @dataclass

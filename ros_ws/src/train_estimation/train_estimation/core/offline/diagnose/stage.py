@@ -101,21 +101,26 @@ class Stage:
         self.kf = memo[kkey]
         self.n_meas = self.kf.m
 
-    def augmented(self, fv: np.ndarray, fs: np.ndarray, drift=None, meas=None, **kw):
+    def augmented(self, fv: np.ndarray, fs: np.ndarray, drift=None, meas=None, bal=None,
+                  **kw):
         """One augmented filter at this stage's noise over the columns [fixed part (drift fv,
         fs; the null's measurement part), s0, drift columns ``drift = (Dv, Ds)``...,
-        measurement columns ``meas = (Md, Mv)``...] (each pair (n_ev, k) or None)."""
+        measurement columns ``meas = (Md, Mv)``..., balise measurement columns ``bal``...]
+        (each pair (n_ev, k), ``bal`` (n_ev, k), or None)."""
         n = self.mo.ev.t.size
         a = 0 if drift is None else drift[0].shape[1]
         b = 0 if meas is None else meas[0].shape[1]
-        Bv, Bs, Md, Mv, Mb = (np.zeros((n, a + b + 2)) for _ in range(5))
+        c = 0 if bal is None else bal.shape[1]
+        Bv, Bs, Md, Mv, Mb = (np.zeros((n, a + b + c + 2)) for _ in range(5))
         Bv[:, 0], Bs[:, 0] = fv, fs
         Md[:, 0], Mv[:, 0] = self.md, self.mv
         Mb[:, 1] = 1.0
         if a:
             Bv[:, 2:a + 2], Bs[:, 2:a + 2] = drift
         if b:
-            Md[:, a + 2:], Mv[:, a + 2:] = meas
+            Md[:, a + 2:a + b + 2], Mv[:, a + 2:a + b + 2] = meas
+        if c:
+            Mb[:, a + b + 2:] = bal
         return augmented_kf(self.mo.ev, self.q, self.r_s, Bv, Bs, Md, Mv, Mb,
                             self.cfg.standstill_q, **kw)
 
