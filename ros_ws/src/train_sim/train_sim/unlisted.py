@@ -35,6 +35,10 @@ effect               where it shows          what the world does
                      traction                on [start, end) (a stretch fed at a low voltage, a
                                              phase break). Not a gradient (coasting and braking
                                              there are untouched; it scales with the command).
+``odometer_rescale``  from a time on          the odometer counts ``factor`` times the distance
+                                             and speed from true time ``t0`` on (it moved to an
+                                             axle with other wheels). Not an odometer scale (one
+                                             scale for the whole run) nor slip (it persists).
 ``misplaced_balise``  at one balise           the balise lies ``offset`` m from the position the
                                              map and its telegram give (a survey error): read
                                              there, it reports the map's position. Not an
@@ -42,15 +46,17 @@ effect               where it shows          what the world does
                                              distance) nor slip (the readings after it agree).
 ===================  ======================  ==================================================
 
-The bench (:mod:`train_sim.unlisted_cases`) uses the first four; the last three are kept for
+The bench (:mod:`train_sim.unlisted_cases`) uses the first four; the last four are kept for
 tests, so that a test does not only mirror the bench.
 
 Use: ``scenario.with_changes(unlisted=Unlisted(wind=Wind(120.0, 180.0, 9000.0)))``; the world
 (``simulate``, ``generate``) runs them through the hooks of :class:`train_core.dynamics.Dynamics`
 (delivered traction/braking parts; extra deceleration), a misplaced balise through the balise
-reader's trigger positions (:func:`balise_moves`). They are not parsed from scenario files
-(they exist to be hidden from the tools under test). Only the motion and the place where a balise
-is read change; sensor noise and link draws stay those of the same seed without them.
+reader's trigger positions (:func:`balise_moves`), an odometer rescale through the world's
+odometer factor (:func:`odometer_factor`). They are not parsed from scenario files
+(they exist to be hidden from the tools under test). Only the motion, the place where a balise
+is read and what the odometer counts change; sensor noise and link draws stay those of the same
+seed without them.
 
 Pure module: standard library only.
 """
@@ -101,6 +107,12 @@ class NeutralSection:
 
 
 @dataclass(frozen=True)
+class OdometerRescale:
+    t0: float  # s, true time from which the odometer counts differently
+    factor: float  # -, multiplier of the distance and speed it counts from t0 on
+
+
+@dataclass(frozen=True)
 class MisplacedBalise:
     balise_id: int  # the balise (its id in line.yaml)
     offset: float  # m, where it lies minus where the map and its telegram say
@@ -117,6 +129,13 @@ class Unlisted:
     traction_fade: TractionFade | None = None
     neutral_section: NeutralSection | None = None
     misplaced_balise: MisplacedBalise | None = None
+    odometer_rescale: OdometerRescale | None = None
+
+
+def odometer_factor(unlisted: Unlisted | None, t: float) -> float:
+    """The multiplier of what the odometer counts at true time ``t`` (1 without a rescale)."""
+    r = unlisted.odometer_rescale if unlisted is not None else None
+    return r.factor if r is not None and t >= r.t0 else 1.0
 
 
 def balise_moves(unlisted: Unlisted | None) -> dict:

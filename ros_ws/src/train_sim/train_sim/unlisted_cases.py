@@ -28,6 +28,8 @@ the bench:
 ``traction_fade``    above 40-60 % of the top speed, factor 0.6-0.75    traction
 ``neutral_section``  a 300-600 m stretch where the train accelerates    traction
                      (> 0.15 m/s^2 at > 3 m/s), factor 0.4-0.6
+``odometer_rescale`` from the time the train has run 30-60 % of the      all
+                     run's distance on, factor 1 +- 0.01-0.02
 ``misplaced_balise`` a balise the run passes at > 3 m/s with balises    all
                      passed before and after it, +-8-20 m from its
                      map position
@@ -49,6 +51,7 @@ from .unlisted import (
     BrakeFade,
     MisplacedBalise,
     NeutralSection,
+    OdometerRescale,
     TractionFade,
     TractionGain,
     TunnelDrag,
@@ -57,10 +60,10 @@ from .unlisted import (
 )
 
 KINDS = ("tunnel_drag", "brake_fade", "traction_gain", "wind")
-TEST_KINDS = ("traction_fade", "neutral_section", "misplaced_balise")
+TEST_KINDS = ("traction_fade", "neutral_section", "misplaced_balise", "odometer_rescale")
 PHASE = {"tunnel_drag": "all", "brake_fade": "braking", "traction_gain": "traction",
          "wind": "all", "traction_fade": "traction", "neutral_section": "traction",
-         "misplaced_balise": "all"}
+         "misplaced_balise": "all", "odometer_rescale": "all"}
 
 
 @dataclass(frozen=True)
@@ -122,6 +125,15 @@ def unlisted_case(rng: np.random.Generator, kind: str, pilot=None) -> UnlistedCa
         eff = NeutralSection(round(start, 1), round(start + length, 1),
                              round(float(eff_rng.uniform(0.4, 0.6)), 3))
         u = Unlisted(neutral_section=eff)
+    elif kind == "odometer_rescale":
+        # from the time the train has run 30-60 % of the run's distance: the rest of the run
+        # (at least 40 % of it, with its balises) is counted differently
+        frac = float(eff_rng.uniform(0.3, 0.6))
+        t0 = float(t[np.searchsorted(x, x[0] + frac * (x[-1] - x[0]))])
+        sign = 1.0 if eff_rng.random() < 0.5 else -1.0
+        eff = OdometerRescale(round(t0, 1),
+                              round(1.0 + sign * float(eff_rng.uniform(0.01, 0.02)), 4))
+        u = Unlisted(odometer_rescale=eff)
     elif kind == "misplaced_balise":
         # a balise passed at speed, with balises passed before and after it (so that the
         # odometer carries the position to it and on from it)

@@ -59,7 +59,7 @@ from train_core.motion import Motion, warm_actuator
 from .driver import Driver, DriverParams
 from .scenario import Scenario
 from .sensors import BaliseReader, Odometer
-from .unlisted import balise_moves, unlisted_hooks
+from .unlisted import balise_moves, odometer_factor, unlisted_hooks
 
 _EPS = 1e-9  # s
 TRUTH_COVARIANCE = (math.nan,) * 16  # docs/interfaces.md: NaN where not estimated (truth is not)
@@ -245,8 +245,9 @@ class World:
     def _integrate(self, t_next: float, out: list) -> None:
         t_start = self.t
         br = self.balise_reader
-        factor = self._scale * (self._slip.factor(0.5 * (t_start + t_next)) if self._slip
-                                else 1.0)
+        mid = 0.5 * (t_start + t_next)
+        factor = self._scale * (self._slip.factor(mid) if self._slip else 1.0) * \
+            odometer_factor(self.scenario.unlisted, mid)
 
         def visit(t0, h, x0, x1):
             self.axle_distance += factor * (x1 - x0)
@@ -284,8 +285,9 @@ class World:
         self._log["control"].append((t, t, self.a_tar))
         out.append((t, "control", t, {"target_acceleration": self.a_tar}))
         slip = self._slip.factor(t) if self._slip else 1.0
-        seq, dist, speed, var = self.odometer.sample(self.axle_distance,
-                                                     self._scale * slip * st.v)
+        seq, dist, speed, var = self.odometer.sample(
+            self.axle_distance,
+            self._scale * slip * odometer_factor(self.scenario.unlisted, t) * st.v)
         stamp = self.train_stamp(t)
         t_recv = self.links["odometer"].send(t)
         ok = t_recv is not None

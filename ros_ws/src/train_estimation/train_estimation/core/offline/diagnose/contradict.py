@@ -70,7 +70,7 @@ def split_test(mo: Motion, others: Null, full: Null, cfg, noise, alpha: float,
     dv, ds = st1.fv - st0.fv, st1.fs - st0.fs
     energy = dv * dv
     if not energy.sum() > 0:
-        return {"contradicted": False, "note": "no drift part to split"}
+        return _split_measurement(mo, st1, st1.md - st0.md, st1.mv - st0.mv, alpha, min_share)
     gi = _event_grid_index(mo)
     ph = grid_phase(mo)[gi]
     v, x, t = mo.v_ref[gi], mo.x_ref[gi], mo.ev.t
@@ -110,6 +110,53 @@ def split_test(mo: Motion, others: Null, full: Null, cfg, noise, alpha: float,
     if bad:
         out["contradicted"] = True
         out["why"] = "the fitted effect is needed " + ", ".join(bad[:4])
+    return out
+
+
+def _split_measurement(mo: Motion, st1: Stage, dmd: np.ndarray, dmv: np.ndarray, alpha: float,
+                       min_share: float) -> dict:
+    """The split test of a cause that acts on the odometer's readings (an odometer scale, slip
+    episodes): its measurement contribution, the distance part ``dmd`` (counted: what the
+    cause adds to the distance grows with the distance run) and the speed part ``dmv``, split
+    into cells of phase, phase x speed, position and time with a free multiplier each. A cell
+    takes the cause's distance increments inside it (carried on after it) and its speed part
+    inside it, so a multiplier of 1 everywhere is the cause as fitted: a scale that changes in
+    the middle of the run (the odometer moved to another axle) needs x0 before and x2 after."""
+    o = mo.ev.odo
+    inc = np.zeros(dmd.size)
+    inc[o] = np.diff(dmd[o], prepend=0.0)
+    energy = inc * inc + dmv * dmv
+    if not energy.sum() > 0:
+        return {"contradicted": False, "note": "nothing to split"}
+    gi = _event_grid_index(mo)
+    ph = grid_phase(mo)[gi]
+    v, x, t = mo.v_ref[gi], mo.x_ref[gi], mo.ev.t
+    on = energy > 1e-6 * energy.max()
+    is_odo = np.zeros(dmd.size, bool)
+    is_odo[o] = True
+    out, bad = {"contradicted": False, "on": "the odometer's readings"}, []
+    fv, fs = st1.fv, st1.fs
+    for part, cells in _partitions(ph, v, x, t, on).items():
+        cols = [(m, lab) for m, lab in cells if energy[m].sum() > 0.02 * energy.sum()]
+        if len(cols) < 2:
+            continue
+        Md = np.stack([np.where(is_odo, np.cumsum(inc * m), 0.0) for m, _ in cols], axis=1)
+        Mv = np.stack([dmv * m for m, _ in cols], axis=1)
+        kf = st1.augmented(fv, fs, meas=(Md, Mv))
+        q0 = gls(kf.W[:2, :2])[2]
+        th, cov, q1 = gls(kf.W)
+        c, se = th[1:], np.sqrt(np.clip(np.diag(cov), 0.0, None))[1:]
+        stat = max(q0 - q1, 0.0)
+        p = float(chi2.sf(stat, len(cols)))
+        out[part] = {"chi2": stat, "dof": len(cols), "p": p,
+                     "multipliers": {lab: 1.0 + float(cj) for (_, lab), cj in zip(cols, c)},
+                     "std_errors": {lab: float(sj) for (_, lab), sj in zip(cols, se)}}
+        if p < alpha:
+            bad += [f"x{1 + cj:.2f} of itself {lab}" for (_, lab), cj, sj in zip(cols, c, se)
+                    if abs(cj) > max(min_share, 3.0 * sj)]
+    if bad:
+        out["contradicted"] = True
+        out["why"] = "the fitted effect on the odometer is needed " + ", ".join(bad[:4])
     return out
 
 
