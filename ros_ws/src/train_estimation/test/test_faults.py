@@ -92,6 +92,20 @@ def test_outage_and_command_stop_drop_what_they_say():
     assert len(by_topic(fl.events, "odometer")) == 300
 
 
+@pytest.mark.parametrize("size", [20.0, -20.0])
+def test_a_misplaced_balise_is_read_when_the_train_has_run_that_much_more(size):
+    """The first balise at or after ``at`` lies ``size`` m further on: at 10 m/s it is read
+    size / 10 s later (stamp and arrival), with the fields it always had; the others stay."""
+    ev = [(k, t, dict(f, distance=10.0 * t) if k == "odometer" else f) for k, t, f in clean()]
+    base = by_topic(F.inject(ev, F.Fault("none"), np.random.default_rng(0)).events, "balise")
+    got = by_topic(F.inject(ev, F.Fault("balise", size, 10.0), np.random.default_rng(0)).events,
+                   "balise")
+    assert [s - F.EPOCH for s, _f, _r in base] == pytest.approx([5.0, 15.0, 25.0])
+    assert [s - F.EPOCH for s, _f, _r in got] == pytest.approx([5.0, 15.0 + size / 10.0, 25.0])
+    assert [f for _s, f, _r in got] == [f for _s, f, _r in base]
+    assert all(r == pytest.approx(s + F.LATENCY) for s, _f, r in got)
+
+
 @pytest.mark.parametrize("kind", ["recorder_stall", "node_stall"])
 def test_a_stall_delivers_its_backlog_in_one_burst(kind):
     fl = F.inject(clean(), F.Fault(kind, 8.0, 10.0), np.random.default_rng(0))
@@ -149,7 +163,8 @@ def test_score_counts_wrong_side_and_time_to_alarm():
     F.Fault("none"), F.Fault("stamp", 60.0, 10.0), F.Fault("step", -3.0, 10.0),
     F.Fault("drift", -1e-2), F.Fault("outage", 5.0, 10.0), F.Fault("command_stop", 0.0, 10.0),
     F.Fault("latency", 5.0), F.Fault("recorder_stall", 4.0, 10.0),
-    F.Fault("node_stall", 4.0, 10.0), F.Fault("fuzz", 0.5)], ids=lambda f: f.kind)
+    F.Fault("node_stall", 4.0, 10.0), F.Fault("fuzz", 0.5), F.Fault("balise", 10.0, 5.0)],
+    ids=lambda f: f.kind)
 def test_one_case_of_each_fault_class_runs_through_an_estimator(fault):
     sc, res = run("metro_demo", 1, 20.0)
     fl = F.inject(res.events(), fault, np.random.default_rng(0))

@@ -203,6 +203,43 @@ def test_a_balise_refused_by_the_gate_degrades_until_one_agrees(kind):
     assert s["wrong_side"] == 0 and s["hazards"] == 0, s
 
 
+@pytest.mark.parametrize("offset,want", [(0.0, OK), (2.5, OK), (10.0, DEGRADED),
+                                         (-30.0, DEGRADED)])
+def test_a_fused_balise_is_judged_against_the_odometer_not_the_filter(offset, want):
+    """A filter whose interval is wide (sd 4 m, a robust bound) takes a balise that lies 10 m
+    from where the map says and then claims a metre. The monitor judges the balise against the
+    odometer's positions either side of it (sd 1 m each): 10 m is DEGRADED, the interval
+    widened to hold the odometer's track, until a balise agrees; 2.5 m is the sensors' own
+    noise."""
+    m = IntegrityMonitor(IntegrityParams(), 1.0)
+    wide = tuple(np.diag([16.0, 1.0, math.nan, math.nan]).ravel())
+    narrow = tuple(np.diag([1.0, 0.25, math.nan, math.nan]).ravel())
+
+    def odo(t):  # 20 m/s, the odometer exact
+        m.reading(t, {"speed": 20.0, "speed_variance": 0.04}, True, position=(20.0 * t, 1.0))
+
+    for t in (10.0, 11.0):
+        odo(t)
+        m.assess(Output(t, 20.0 * t, 20.0, 0.0, math.nan, wide, True), t)
+    # the balise at 11.5 s, 230 m, reported at 230 + offset; the filter moves to it
+    m.balise(11.5, {"position": 230.0 + offset, "position_variance": 1.0}, True)
+    odo(12.0)
+    out = m.assess(Output(12.0, 240.0 + offset, 20.0, 0.0, math.nan, narrow, True), 12.0)
+    assert out.integrity == want, out.integrity_reason
+    if want == DEGRADED:
+        assert "balise: fused" in out.integrity_reason
+        assert abs(offset) <= 5.0 * math.sqrt(out.covariance[0])  # the error is covered
+        for t in np.arange(13.0, 21.0):  # the filter back on the odometer's track
+            odo(t)
+            assert m.assess(Output(t, 20.0 * t, 20.0, 0.0, math.nan, narrow, True),
+                            t).integrity == DEGRADED
+        # a balise that agrees with the odometer ends the doubt
+        m.balise(20.5, {"position": 410.0, "position_variance": 1.0}, True)
+        odo(21.0)
+        assert m.assess(Output(21.0, 420.0, 20.0, 0.0, math.nan, narrow, True),
+                        21.0).integrity == OK
+
+
 @pytest.mark.parametrize("bias,want", [(0.0, OK), (2.0, DEGRADED)])
 def test_the_position_test_flags_a_distance_bias_and_covers_it(bias, want):
     # a filter that claims 0.1 m while the distances say it is 2 m behind, reading after

@@ -27,6 +27,10 @@ node_stall       s: every message arriving in ``[at, at + size)`` is taken at ``
                  (the node's callbacks blocked, then the backlog in one burst)
 fuzz             mean corrupted messages per clean one: :func:`~.fuzz.corrupt` with stamps
                  inside ``max_future`` too (:data:`INSIDE_FUTURE`) besides its own
+balise           m: the first balise read at or after ``at`` lies ``size`` m further on than
+                 the map and its telegram say (a survey error): it is read when the train has
+                 run ``size`` m more (timed by the odometer's distance), reporting the map's
+                 position with its usual variance
 ===============  ========================================================================
 
 Any kind can run on a jittery link: ``Fault.jitter`` (s) adds an exponential extra latency of
@@ -67,7 +71,7 @@ AVAILABLE_LAG = 1.0  # s: an OK estimate published further from the time it clai
 #   available (counted in ``availability``)
 TRAIN_TOPICS = ("odometer", "balise")
 KINDS = ("none", "stamp", "step", "drift", "outage", "command_stop", "latency", "recorder_stall",
-         "node_stall", "fuzz")
+         "node_stall", "fuzz", "balise")
 # stamps a few seconds to minutes off: inside the runner's max_future (600 s), so the door lets
 # them in and only the clocks' and the filters' own checks stand between them and the estimate
 INSIDE_FUTURE = {
@@ -157,7 +161,8 @@ class Fault:
             return self.kind + (f" jitter {self.jitter:g}" if self.jitter else "")
         n = f" x{self.count}" if self.kind == "stamp" and self.count != 1 else ""
         n += f" jitter {self.jitter:g}" if self.jitter else ""
-        return f"{self.kind} {self.size:+g}{n}" if self.kind in ("stamp", "step", "drift") \
+        return f"{self.kind} {self.size:+g}{n}" if self.kind in ("stamp", "step", "drift",
+                                                                   "balise") \
             else f"{self.kind} {self.size:g}{n}"
 
 
@@ -191,6 +196,8 @@ def inject(events: list, fault: Fault, rng: np.random.Generator) -> Faulted:
         err = 0.0
         if k == "stamp" and topic == "odometer" and t >= at and hit < fault.count:
             err, hit = size, hit + 1
+        if k == "balise" and topic == "balise" and t >= at and not hit:
+            t, hit = _when_run(events, t, size), 1
         recv = t + LATENCY
         if k == "latency" and train and t >= at:
             recv = t + min(size, LATENCY * (1.0 + rng.pareto(1.5)))
@@ -214,6 +221,18 @@ def inject(events: list, fault: Fault, rng: np.random.Generator) -> Faulted:
            "node_stall": at + size}.get(k, math.inf)
     stalled = ((at, at + size),) if k == "node_stall" else ()
     return Faulted(out, clock, at, end, counts, stalled)
+
+
+def _when_run(events: list, t: float, metres: float) -> float:
+    """The true time at which the train has run ``metres`` more than at ``t`` (m, negative:
+    less), by the odometer readings' distance (interpolated; clipped to the run)."""
+    od = [(ti, f["distance"]) for topic, ti, f in events if topic == "odometer"]
+    if len(od) < 2:
+        return t
+    ts, ds = (np.asarray(a, float) for a in zip(*od))
+    d = float(np.interp(t, ts, ds)) + metres
+    # the first time the odometer reaches d (distance never decreases on a forward run)
+    return float(np.interp(d, np.maximum.accumulate(ds), ts))
 
 
 class _Timed:

@@ -60,12 +60,23 @@ Checks (each gives a reason, e.g. ``"no_measurement: 2.3 s"``):
     candidate step: the estimate's stamp may be read on either side of it), after a step one
     sample period (a re-anchored step is known to about that).
 ``balise``
-    A balise reading the filter refused as far outside its predicted position interval
-    (``outside_gate``): either the balise or the estimate is wrong, and nothing tells which
-    until a later balise agrees. DEGRADED until a balise is fused, the position variance
-    increased by the square of the disagreement (the balise's position carried to the
-    estimate's stamp at the estimated speed, less the estimate), so the published interval
-    holds the balise's claim; the refusal is counted by the runner (``balise:outside_gate``).
+    A balise and the odometer that disagree by more than either claims: either the balise
+    lies elsewhere than the map says or the estimate (and the odometer) is off, and nothing
+    tells which until a later balise agrees. The odometer's *track* is its latest position
+    reading (start position plus counted distance, with the estimator's distance variance),
+    fused or refused by the gate alone, carried at its own speed reading; it does not depend on
+    the filter, whose interval may be wide enough to take a balise that lies metres off and is
+    narrow once it has. A balise the filter refused as far outside its interval
+    (``outside_gate``), or fused while it lies more than ``pos_z`` standard deviations from
+    the track (``S = r_odo + r_balise + r_speed dt^2 + (accel_uncertainty dt^2 / 2)^2``, and
+    again when the next odometer reading is in, with the odometer's position interpolated
+    between the readings either side, whose verdict replaces the first), puts the estimate in
+    doubt: DEGRADED until a balise is fused that agrees with the track, the position variance
+    increased so that the interval holds both the odometer's track and the balise's (the track
+    moved by their disagreement) at the estimate's stamp. Without a track (an estimator that
+    does not use the distance) a refused balise's position is carried at the estimated speed
+    and a fused one is taken as it is. Refusals are counted by the runner
+    (``balise:outside_gate``).
 ``no_command``
     No control command for ``command_timeout`` while readings arrive: the filters hold the last
     command; DEGRADED with the ``no_measurement`` inflation over the silence beyond the timeout
@@ -149,19 +160,28 @@ class IntegrityMonitor:
         self.prev_pos: tuple | None = None  # (stamp, position, velocity, acceleration, P_xx,
         #   P_vv) of the last estimate whose covariance is known
         self.pos: deque = deque(maxlen=params.pos_window)  # (nu, S) of fused distances
-        self.balise_doubt: tuple | None = None  # (stamp, position) of a balise refused by the
-        #   gate, until a balise is fused
+        self.balise_doubt: tuple | None = None  # (stamp, offset m or position m, what,
+        #   track-based) of a balise refused by the gate or fused while it disagrees with the
+        #   odometer, until a balise is fused that agrees with the odometer
+        self.odo_track: tuple | None = None  # (stamp, position m, variance m^2, speed m/s,
+        #   speed variance) of the latest odometer reading fused or refused by the gate only
+        self.pending_balise: tuple | None = None  # (stamp, position, variance) of the last
+        #   fused balise, until the next odometer position reading judges it again
         self.counts = {NAMES[k]: 0 for k in NAMES}
         self.last_state = (OK, "")
 
     # -- inputs ---------------------------------------------------------------------------------
     def reading(self, stamp: float, fields: dict | None, fused: bool,
-                position: tuple | None = None) -> None:
+                position: tuple | None = None, gate: bool = False) -> None:
         """An odometer reading's outcome (fused or refused, for any reason); ``position``: the
-        estimator's own position measurement of it, ``(m, variance m^2)``, or None."""
+        estimator's own position measurement of it, ``(m, variance m^2)``, or None; ``gate``:
+        refused by the filter's gate only (its values plausible, the filter's state not: after
+        a balise that lay elsewhere the odometer still tells where the train is)."""
         if not math.isfinite(stamp):
             self.refused_run += 1
             return
+        if fused or gate:
+            self._track(stamp, fields, position, fused)
         if not fused:
             self.refused_run += 1
             return
@@ -172,6 +192,23 @@ class IntegrityMonitor:
             self._speed_nis(stamp, fields)
         if position is not None and self.prev_pos is not None:
             self._position_bias(stamp, position)
+
+    def _track(self, stamp: float, fields: dict | None, position: tuple | None,
+               fused: bool) -> None:
+        """The odometer's own track: its latest position reading and speed (``odo_track``); a
+        balise fused before it is judged again against it (:meth:`_balise_between`)."""
+        try:
+            z, r = float(position[0]), float(position[1])
+            v, rv = float(fields["speed"]), float(fields["speed_variance"])
+        except (KeyError, TypeError, ValueError, IndexError):
+            return
+        if not all(math.isfinite(q) for q in (z, r, v, rv)) or r <= 0 or rv < 0:
+            return
+        if self.odo_track is not None and stamp < self.odo_track[0]:
+            return
+        if self.pending_balise is not None and stamp > self.pending_balise[0]:
+            self._balise_between(stamp, z, r, fused)
+        self.odo_track = (stamp, z, r, v, rv)
 
     def _position_bias(self, stamp: float, position: tuple) -> None:
         t0, x0, v0, a0, pxx, pvv = self.prev_pos
@@ -210,15 +247,65 @@ class IntegrityMonitor:
 
     def balise(self, stamp: float, fields: dict | None, fused: bool, reason: str = "") -> None:
         """A balise reading's outcome: fused, or refused (``reason``, a rejection name)."""
-        if fused:
-            self.balise_doubt = None
-            return
         try:
-            pos = float(fields["position"])
+            pos, var = float(fields["position"]), float(fields["position_variance"])
         except (KeyError, TypeError, ValueError):
+            pos = var = math.nan
+        if not (math.isfinite(pos) and math.isfinite(stamp)):
             return
-        if reason == R.OUTSIDE_GATE and math.isfinite(pos) and math.isfinite(stamp):
-            self.balise_doubt = (stamp, pos)
+        odo = self._odometer_at(stamp)
+        if fused:
+            self.pending_balise = None
+            if odo is None or not (math.isfinite(var) and var > 0):
+                self.balise_doubt = None  # nothing to judge it against: taken as it is
+                return
+            self.pending_balise = (stamp, pos, var)
+            self._judge_balise(stamp, pos, var, *odo, may_clear=True)
+            return
+        if reason == R.OUTSIDE_GATE:
+            # the two tracks: the odometer's, and the balise's (the odometer's moved by their
+            # disagreement); without the odometer's, the balise carried at the estimated speed
+            self.balise_doubt = (stamp, pos - odo[0], "refused by the gate", True) \
+                if odo is not None else (stamp, pos, "refused by the gate", False)
+
+    def _judge_balise(self, stamp: float, pos: float, var: float, z: float, s: float,
+                      may_clear: bool) -> None:
+        """A fused balise against the odometer's position ``z`` (variance ``s``) at its stamp:
+        a doubt when they disagree beyond ``pos_z``; an agreement ends one only when
+        ``may_clear`` (judged on a reading the filter fused)."""
+        nu = pos - z
+        if abs(nu) > self.p.pos_z * math.sqrt(s + var):
+            self.balise_doubt = (stamp, nu, f"fused {nu:+.1f} m from the odometer's position",
+                                 True)
+        elif may_clear:
+            self.balise_doubt = None
+
+    def _balise_between(self, t1: float, z1: float, r1: float, fused: bool) -> None:
+        """The last fused balise judged again once the odometer reading after it is in: the
+        odometer's position interpolated between the readings either side (tighter than the
+        track carried at a speed: an acceleration error of ``accel_uncertainty`` over the two
+        intervals only). A reading the gate refused can raise a doubt, not end one."""
+        tb, pos, var = self.pending_balise
+        self.pending_balise = None
+        t0, z0, r0 = self.odo_track[:3]
+        if not (t0 <= tb < t1 and t1 - t0 <= 2.0):
+            return
+        w = (tb - t0) / (t1 - t0)
+        z = z0 + w * (z1 - z0)
+        s = (1 - w) ** 2 * r0 + w * w * r1 + (0.5 * self.p.accel_uncertainty * (tb - t0)
+                                              * (t1 - tb)) ** 2
+        self._judge_balise(tb, pos, var, z, s, may_clear=fused)
+
+    def _odometer_at(self, stamp: float) -> tuple | None:
+        """(position m, variance m^2) of the odometer's track carried to ``stamp`` at its own
+        speed reading (module doc, ``balise``), or None (no track, or more than 2 s away)."""
+        if self.odo_track is None or not math.isfinite(stamp):
+            return None
+        t0, z, r, v, rv = self.odo_track
+        dt = stamp - t0
+        if not abs(dt) <= 2.0:
+            return None  # across a gap the odometer's track says little (no_measurement)
+        return z + v * dt, r + rv * dt * dt + (0.5 * self.p.accel_uncertainty * dt * dt) ** 2
 
     def command(self, stamp: float) -> None:
         if math.isfinite(stamp):
@@ -288,10 +375,23 @@ class IntegrityMonitor:
                        f"{len(self.pos)} readings")
             P = P + np.diag([b * b, 0.0])
         if self.balise_doubt is not None:
-            sb, pb = self.balise_doubt
-            nu = pb + out.velocity * (t - sb) - out.position
+            sb, d, what, tracked = self.balise_doubt
+            odo = self._odometer_at(t) if tracked else None
+            if odo is not None:
+                # the truth is on the odometer's track or on the balise's (the odometer's moved
+                # by their disagreement ``d``): the interval holds both
+                d1 = odo[0] - out.position
+                nu = max(abs(d1), abs(d1 + d)) + math.sqrt(odo[1])
+                told = (f"the odometer's track {d1:+.1f} m, the balise's {d1 + d:+.1f} m from "
+                        "the estimate")
+            elif tracked:  # no odometer reading lately (no_measurement covers the gap)
+                nu = abs(d)
+                told = f"the sensors {d:+.1f} m apart"
+            else:
+                nu = d + out.velocity * (t - sb) - out.position
+                told = f"{nu:+.1f} m from the estimate"
             state = DEGRADED
-            why.append(f"balise: {nu:+.1f} m from the estimate, refused by the gate")
+            why.append(f"balise: {what}; {told}")
             P = P + np.diag([nu * nu, 0.0])
         silent = t - self.last_command
         if math.isfinite(self.last_command) and silent > p.command_timeout:

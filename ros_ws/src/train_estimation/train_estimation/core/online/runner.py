@@ -568,9 +568,10 @@ class EstimatorRunner:
                 while len(self._fused_seq) > max(8, math.ceil(self.history / self.period)):
                     del self._fused_seq[next(iter(self._fused_seq))]
             pos = getattr(self.adapter, "position_reading", None)
+            gate = R.category(reason) == R.OUTSIDE_GATE if reason else False
             self.monitor.reading(stamp, fields if isinstance(fields, dict) else None, fused,
-                                 pos(fields) if pos is not None and fused and
-                                 isinstance(fields, dict) else None)
+                                 pos(fields) if pos is not None and (fused or gate) and
+                                 isinstance(fields, dict) else None, gate=gate)
         elif kind == "control" and not reason:
             self.monitor.command(stamp)
         elif kind == "balise":
