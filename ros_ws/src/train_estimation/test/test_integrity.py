@@ -240,6 +240,22 @@ def test_a_fused_balise_is_judged_against_the_odometer_not_the_filter(offset, wa
                         21.0).integrity == OK
 
 
+def test_a_corrupted_odometer_reading_the_gate_refused_is_no_reference_for_a_balise():
+    """Readings the filter's gate refused still tell where the train is when they continue the
+    odometer's track (after a bad balise the filter refuses the good readings); a corrupted
+    distance does not continue it and must not make a good balise look 920 km off."""
+    m = IntegrityMonitor(IntegrityParams(), 1.0)
+    cov = tuple(np.diag([1.0, 0.25, math.nan, math.nan]).ravel())
+    for t in (10.0, 11.0):
+        m.reading(t, {"speed": 20.0, "speed_variance": 0.04}, True, position=(20.0 * t, 1.0))
+        m.assess(Output(t, 20.0 * t, 20.0, 0.0, math.nan, cov, True), t)
+    m.reading(11.4, {"speed": 20.0, "speed_variance": 0.04}, False, position=(-9.2e5, 1.0),
+              gate=True)
+    m.balise(11.5, {"position": 230.0, "position_variance": 1.0}, True)
+    m.reading(12.0, {"speed": 20.0, "speed_variance": 0.04}, True, position=(240.0, 1.0))
+    assert m.assess(Output(12.0, 240.0, 20.0, 0.0, math.nan, cov, True), 12.0).integrity == OK
+
+
 @pytest.mark.parametrize("bias,want", [(0.0, OK), (2.0, DEGRADED)])
 def test_the_position_test_flags_a_distance_bias_and_covers_it(bias, want):
     # a filter that claims 0.1 m while the distances say it is 2 m behind, reading after

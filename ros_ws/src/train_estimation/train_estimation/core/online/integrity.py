@@ -64,7 +64,8 @@ Checks (each gives a reason, e.g. ``"no_measurement: 2.3 s"``):
     lies elsewhere than the map says or the estimate (and the odometer) is off, and nothing
     tells which until a later balise agrees. The odometer's *track* is its latest position
     reading (start position plus counted distance, with the estimator's distance variance),
-    fused or refused by the gate alone, carried at its own speed reading; it does not depend on
+    fused, or refused by the gate alone where its distance and speed continue the track (within
+    ``pos_z`` and ``max_acceleration``), carried at its own speed reading; it does not depend on
     the filter, whose interval may be wide enough to take a balise that lies metres off and is
     narrow once it has. A balise the filter refused as far outside its interval
     (``outside_gate``), or fused while it lies more than ``pos_z`` standard deviations from
@@ -206,6 +207,8 @@ class IntegrityMonitor:
             return
         if self.odo_track is not None and stamp < self.odo_track[0]:
             return
+        if not fused and not self._continues(stamp, z, r, v, rv):
+            return  # a reading the filter refused joins the track only where it continues it
         if self.pending_balise is not None and stamp > self.pending_balise[0]:
             self._balise_between(stamp, z, r, fused)
         self.odo_track = (stamp, z, r, v, rv)
@@ -267,6 +270,21 @@ class IntegrityMonitor:
             # disagreement); without the odometer's, the balise carried at the estimated speed
             self.balise_doubt = (stamp, pos - odo[0], "refused by the gate", True) \
                 if odo is not None else (stamp, pos, "refused by the gate", False)
+
+    def _continues(self, stamp: float, z: float, r: float, v: float, rv: float) -> bool:
+        """Whether a reading continues the odometer's track: its distance within ``pos_z``
+        standard deviations of the track carried to it and its speed within what
+        ``max_acceleration`` allows (a corrupted distance or speed, refused by the gate, must
+        not become the reference a balise is judged against)."""
+        if self.odo_track is None:
+            return False
+        t0, z0, r0, v0, rv0 = self.odo_track
+        dt = stamp - t0
+        if not 0 <= dt <= 2.0:
+            return False
+        s = r + r0 + rv0 * dt * dt + (0.5 * self.p.max_acceleration * dt * dt) ** 2
+        dv = self.p.max_acceleration * dt + self.p.pos_z * math.sqrt(rv + rv0)
+        return abs(z - (z0 + v0 * dt)) <= self.p.pos_z * math.sqrt(s) and abs(v - v0) <= dv
 
     def _judge_balise(self, stamp: float, pos: float, var: float, z: float, s: float,
                       may_clear: bool) -> None:
