@@ -169,13 +169,30 @@ def _motion_over(tmp_path, sc, cfg, start: float, end: float):
             int(np.searchsorted(mo.bin_edges, end, "left")))
 
 
-def _unexplained(paths: dict, tmp_path) -> dict:
-    """diagnose on ``tmp_path/bag`` with the case's believed line and train: the report, checked
-    to confirm no listed cause and to say ``unexplained``."""
+def _report(paths: dict, tmp_path) -> dict:
+    """diagnose on ``tmp_path/bag`` with the case's believed line and train, as a user runs it
+    (no plots: they have tests of their own): report.json."""
     assert tool.main(["--bag", str(tmp_path / "bag"), "--line", str(paths["line"]), "--train",
                       str(paths["train"]), "--out", str(tmp_path / "out"), "--quiet",
                       "--no-plots"]) == 0
-    rep = json.loads((tmp_path / "out" / "report.json").read_text())
+    return json.loads((tmp_path / "out" / "report.json").read_text())
+
+
+def _unlisted_bag(kind: str, seed, tmp_path):
+    """An unlisted case (train_sim.unlisted_cases) of ``kind`` at ``seed``, written and
+    simulated into ``tmp_path/bag``: (the case, its files)."""
+    from train_sim.unlisted_cases import unlisted_case
+
+    uc = unlisted_case(np.random.default_rng(seed), kind)
+    paths = uc.write(tmp_path / "case")
+    generate(uc.scenario, tmp_path / "bag", measured=True)
+    return uc, paths
+
+
+def _unexplained(paths: dict, tmp_path) -> dict:
+    """diagnose on ``tmp_path/bag`` with the case's believed line and train: the report, checked
+    to confirm no listed cause and to say ``unexplained``."""
+    rep = _report(paths, tmp_path)
     confirmed = [r["cause"] for r in rep["ranking"]
                  if r["status"] == "confirmed" and r["cause"] != "none"]
     assert confirmed == [], rep["ranking"][:3]
@@ -459,10 +476,7 @@ def _diagnosed(case, tmp_path) -> tuple[dict, dict]:
     bag = read_bag(tmp_path / "bag")
     stamps = np.array([s for _, s, _ in bag.topics["odometer"]])
     truth = case.truth_in_bag(float(stamps.min()), float(stamps.max()))
-    assert tool.main(["--bag", str(tmp_path / "bag"), "--line", str(paths["line"]), "--train",
-                      str(paths["train"]), "--out", str(tmp_path / "out"), "--quiet",
-                      "--no-plots"]) == 0
-    return json.loads((tmp_path / "out" / "report.json").read_text()), truth
+    return _report(paths, tmp_path), truth
 
 
 @pytest.mark.slow
@@ -613,20 +627,9 @@ UNLISTED = [pytest.param(k, s, marks=[pytest.mark.xfail(reason=UNLISTED_KNOWN[k]
 @pytest.mark.slow
 @pytest.mark.parametrize("kind,seed", UNLISTED, ids=lambda p: str(p))
 def test_an_effect_outside_the_list_is_unexplained(kind, seed, tmp_path, capsys):
-    from train_sim.unlisted_cases import unlisted_case
-
-    uc = unlisted_case(np.random.default_rng(seed), kind)
-    paths = uc.write(tmp_path / "case")
-    generate(uc.scenario, tmp_path / "bag", measured=True)
-    assert tool.main(["--bag", str(tmp_path / "bag"), "--line", str(paths["line"]), "--train",
-                      str(paths["train"]), "--out", str(tmp_path / "out"), "--quiet",
-                      "--no-plots"]) == 0  # the verdict; the plots have tests of their own
-    rep = json.loads((tmp_path / "out" / "report.json").read_text())
+    uc, paths = _unlisted_bag(kind, seed, tmp_path)
+    rep = _unexplained(paths, tmp_path)
     out = capsys.readouterr().out
-    confirmed = [r["cause"] for r in rep["ranking"]
-                 if r["status"] == "confirmed" and r["cause"] != "none"]
-    assert confirmed == [], rep["ranking"][:3]
-    assert rep["cause"] == "unexplained", rep["unexplained"]
     assert rep["unexplained"][0]["phase"] == uc.phase, rep["unexplained"]
     assert "unexplained:" in out
     # nothing confirmed: the model directory is the believed model
@@ -640,11 +643,7 @@ def test_a_cause_found_beside_causes_not_confirmed_is_confirmed_again_without_th
     section's excess there. The section is then not confirmed (the phase split contradicts
     it); the gradient, confirmed against a model that held the section, falls once it is
     confirmed again without it."""
-    from train_sim.unlisted_cases import unlisted_case
-
-    uc = unlisted_case(np.random.default_rng([29, 125]), "brake_fade")
-    paths = uc.write(tmp_path / "case")
-    generate(uc.scenario, tmp_path / "bag", measured=True)
+    _, paths = _unlisted_bag("brake_fade", [29, 125], tmp_path)
     rep = _unexplained(paths, tmp_path)
     by = {r["cause"]: r for r in rep["ranking"]}
     assert by["gradient"]["why"].startswith("without adhesion_section"), by["gradient"]
@@ -674,11 +673,7 @@ TEST_KIND = [pytest.param(k, s, marks=[pytest.mark.xfail(reason=TEST_KIND_KNOWN[
 @pytest.mark.slow
 @pytest.mark.parametrize("kind,seed", TEST_KIND, ids=lambda p: str(p))
 def test_an_effect_of_a_kind_the_bench_does_not_use_is_unexplained(kind, seed, tmp_path):
-    from train_sim.unlisted_cases import unlisted_case
-
-    uc = unlisted_case(np.random.default_rng(seed), kind)
-    paths = uc.write(tmp_path / "case")
-    generate(uc.scenario, tmp_path / "bag", measured=True)
+    uc, paths = _unlisted_bag(kind, seed, tmp_path)
     rep = _unexplained(paths, tmp_path)
     # a traction loss at every place shows in traction only; a loss on a stretch run in
     # traction may be `all` (a place remainder is named by phase only where the same track
@@ -703,15 +698,8 @@ def test_an_odometer_that_rescales_mid_run_is_not_an_odometer_scale(seed, tmp_pa
     """One scale for the whole run fits an odometer that counts 1-2 % differently from a time
     on better than none (it was confirmed in all three); split by time, position and speed, the
     fitted scale is needed about x0 before the rescale and x2 after: not confirmed."""
-    from train_sim.unlisted_cases import unlisted_case
-
-    uc = unlisted_case(np.random.default_rng(seed), "odometer_rescale")
-    paths = uc.write(tmp_path / "case")
-    generate(uc.scenario, tmp_path / "bag", measured=True)
-    assert tool.main(["--bag", str(tmp_path / "bag"), "--line", str(paths["line"]), "--train",
-                      str(paths["train"]), "--out", str(tmp_path / "out"), "--quiet",
-                      "--no-plots"]) == 0
-    rep = json.loads((tmp_path / "out" / "report.json").read_text())
+    _, paths = _unlisted_bag("odometer_rescale", seed, tmp_path)
+    rep = _report(paths, tmp_path)
     scale = next(r for r in rep["ranking"] if r["cause"] == "odometer_scale")
     assert scale["status"] == "not confirmed", scale
     assert "effect on the odometer is needed" in scale["why"], scale["why"]

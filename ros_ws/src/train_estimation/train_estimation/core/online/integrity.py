@@ -276,15 +276,12 @@ class IntegrityMonitor:
         standard deviations of the track carried to it and its speed within what
         ``max_acceleration`` allows (a corrupted distance or speed, refused by the gate, must
         not become the reference a balise is judged against)."""
-        if self.odo_track is None:
+        odo = self._odometer_at(stamp, self.p.max_acceleration)
+        if odo is None:
             return False
-        t0, z0, r0, v0, rv0 = self.odo_track
-        dt = stamp - t0
-        if not 0 <= dt <= 2.0:
-            return False
-        s = r + r0 + rv0 * dt * dt + (0.5 * self.p.max_acceleration * dt * dt) ** 2
-        dv = self.p.max_acceleration * dt + self.p.pos_z * math.sqrt(rv + rv0)
-        return abs(z - (z0 + v0 * dt)) <= self.p.pos_z * math.sqrt(s) and abs(v - v0) <= dv
+        t0, _, _, v0, rv0 = self.odo_track
+        dv = self.p.max_acceleration * (stamp - t0) + self.p.pos_z * math.sqrt(rv + rv0)
+        return abs(z - odo[0]) <= self.p.pos_z * math.sqrt(odo[1] + r) and abs(v - v0) <= dv
 
     def _judge_balise(self, stamp: float, pos: float, var: float, z: float, s: float,
                       may_clear: bool) -> None:
@@ -314,16 +311,19 @@ class IntegrityMonitor:
                                               * (t1 - tb)) ** 2
         self._judge_balise(tb, pos, var, z, s, may_clear=fused)
 
-    def _odometer_at(self, stamp: float) -> tuple | None:
+    def _odometer_at(self, stamp: float, accel: float | None = None) -> tuple | None:
         """(position m, variance m^2) of the odometer's track carried to ``stamp`` at its own
-        speed reading (module doc, ``balise``), or None (no track, or more than 2 s away)."""
+        speed reading, with an unknown acceleration of ``accel`` (default
+        ``accel_uncertainty``; module doc, ``balise``), or None (no track, or more than 2 s
+        away)."""
         if self.odo_track is None or not math.isfinite(stamp):
             return None
         t0, z, r, v, rv = self.odo_track
         dt = stamp - t0
         if not abs(dt) <= 2.0:
             return None  # across a gap the odometer's track says little (no_measurement)
-        return z + v * dt, r + rv * dt * dt + (0.5 * self.p.accel_uncertainty * dt * dt) ** 2
+        a = self.p.accel_uncertainty if accel is None else accel
+        return z + v * dt, r + rv * dt * dt + (0.5 * a * dt * dt) ** 2
 
     def command(self, stamp: float) -> None:
         if math.isfinite(stamp):

@@ -84,18 +84,12 @@ def split_test(mo: Motion, others: Null, full: Null, cfg, noise, alpha: float,
         Bv = np.stack([dv * m for m, _ in cols], axis=1)
         Bs = np.stack([ds * m for m, _ in cols], axis=1)
         stat, c, se = _fit_columns(st1, Bv, Bs)
-        p = float(chi2.sf(stat, len(cols)))
-        out[part] = {"chi2": stat, "dof": len(cols), "p": p,
-                     "multipliers": {lab: 1.0 + float(cj) for (_, lab), cj in zip(cols, c)},
-                     "std_errors": {lab: float(sj) for (_, lab), sj in zip(cols, se)}}
+        bad += _cells(out, part, cols, stat, c, se, alpha, min_share)
         if part == "phase":
             # the phases where the data could have shown the cause off by min_share (at
             # Z_SEEN standard errors): only there is its prediction for that phase tested
             out["phases_seen"] = [lab[3:] for (_, lab), sj in zip(cols, se)
                                   if sj <= min_share / Z_SEEN]
-        if len(cols) >= 2 and p < alpha:
-            bad += [f"x{1 + cj:.2f} of itself {lab}" for (_, lab), cj, sj in zip(cols, c, se)
-                    if abs(cj) > max(min_share, 3.0 * sj)]
     # smooth departures, one degree of freedom each (more power than the cells against a
     # cause whose shape in speed or in the command is wrong: a knee p_spec / v against a step
     # at a speed, a force fixed in place against one that scales with the traction asked for)
@@ -111,6 +105,22 @@ def split_test(mo: Motion, others: Null, full: Null, cfg, noise, alpha: float,
         out["contradicted"] = True
         out["why"] = "the fitted effect is needed " + ", ".join(bad[:4])
     return out
+
+
+def _cells(out: dict, part: str, cols: list, stat: float, c, se, alpha: float,
+           min_share: float) -> list:
+    """One partition of a split test: its figures into ``out[part]`` (chi-square with a degree
+    of freedom per cell, each cell's multiplier 1 + c_j and standard error); the cells that
+    contradict the cause (the partition significant at ``alpha``, two cells at least, a cell
+    off by more than ``min_share`` and 3 SE), in words."""
+    p = float(chi2.sf(stat, len(cols)))
+    out[part] = {"chi2": stat, "dof": len(cols), "p": p,
+                 "multipliers": {lab: 1.0 + float(cj) for (_, lab), cj in zip(cols, c)},
+                 "std_errors": {lab: float(sj) for (_, lab), sj in zip(cols, se)}}
+    if len(cols) < 2 or not p < alpha:
+        return []
+    return [f"x{1 + cj:.2f} of itself {lab}" for (_, lab), cj, sj in zip(cols, c, se)
+            if abs(cj) > max(min_share, 3.0 * sj)]
 
 
 def _split_measurement(mo: Motion, st1: Stage, dmd: np.ndarray, dmv: np.ndarray, alpha: float,
@@ -135,25 +145,14 @@ def _split_measurement(mo: Motion, st1: Stage, dmd: np.ndarray, dmv: np.ndarray,
     is_odo = np.zeros(dmd.size, bool)
     is_odo[o] = True
     out, bad = {"contradicted": False, "on": "the odometer's readings"}, []
-    fv, fs = st1.fv, st1.fs
     for part, cells in _partitions(ph, v, x, t, on).items():
         cols = [(m, lab) for m, lab in cells if energy[m].sum() > 0.02 * energy.sum()]
         if len(cols) < 2:
             continue
         Md = np.stack([np.where(is_odo, np.cumsum(inc * m), 0.0) for m, _ in cols], axis=1)
         Mv = np.stack([dmv * m for m, _ in cols], axis=1)
-        kf = st1.augmented(fv, fs, meas=(Md, Mv))
-        q0 = gls(kf.W[:2, :2])[2]
-        th, cov, q1 = gls(kf.W)
-        c, se = th[1:], np.sqrt(np.clip(np.diag(cov), 0.0, None))[1:]
-        stat = max(q0 - q1, 0.0)
-        p = float(chi2.sf(stat, len(cols)))
-        out[part] = {"chi2": stat, "dof": len(cols), "p": p,
-                     "multipliers": {lab: 1.0 + float(cj) for (_, lab), cj in zip(cols, c)},
-                     "std_errors": {lab: float(sj) for (_, lab), sj in zip(cols, se)}}
-        if p < alpha:
-            bad += [f"x{1 + cj:.2f} of itself {lab}" for (_, lab), cj, sj in zip(cols, c, se)
-                    if abs(cj) > max(min_share, 3.0 * sj)]
+        stat, c, se = _fit_columns(st1, None, None, meas=(Md, Mv))
+        bad += _cells(out, part, cols, stat, c, se, alpha, min_share)
     if bad:
         out["contradicted"] = True
         out["why"] = "the fitted effect on the odometer is needed " + ", ".join(bad[:4])

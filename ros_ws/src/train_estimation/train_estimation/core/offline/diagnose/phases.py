@@ -112,13 +112,15 @@ def families(mo: Motion, beta: float = 1.0) -> dict:
     return keep
 
 
-def _fit_columns(st: Stage, Bv: np.ndarray, Bs: np.ndarray, extra=None):
-    """GLS of free drift columns (Bv, Bs) on top of the stage's model (plus fixed extra
-    drift): (chi-square statistic 2 dll, theta, se)."""
+def _fit_columns(st: Stage, Bv: np.ndarray | None, Bs: np.ndarray | None, extra=None,
+                 meas=None):
+    """GLS of free drift columns (Bv, Bs), or with Bv, Bs None of free odometer measurement
+    columns ``meas`` = (Md, Mv), on top of the stage's model (plus fixed extra drift):
+    (chi-square statistic 2 dll, theta, se)."""
     fv, fs = st.fv, st.fs
     if extra is not None:
         fv, fs = fv + extra[0], fs + extra[1]
-    kf = st.augmented(fv, fs, drift=(Bv, Bs))
+    kf = st.augmented(fv, fs, drift=None if Bv is None else (Bv, Bs), meas=meas)
     q0 = gls(kf.W[:2, :2])[2]
     th, cov, q1 = gls(kf.W)
     se = np.sqrt(np.clip(np.diag(cov), 0.0, None))
