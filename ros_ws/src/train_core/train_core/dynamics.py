@@ -97,8 +97,9 @@ class Dynamics:
         """``p_spec``: power limit (m^2/s^3); ``adhesion``: (start m, end m, factor -) of a
         low-adhesion section (module docstring). Both None: the nominal drive.
 
-        Hooks for effects defined elsewhere (the simulator's test effects): ``drive_hook(x, v,
-        a_tr, a_br) -> (a_tr, a_br)`` (m/s^2) changes the delivered traction and braking parts;
+        Hooks for effects defined elsewhere (the simulator's test effects): ``drive_hook(t, x,
+        v, a_tr, a_br) -> (a_tr, a_br)`` (m/s^2) changes the delivered traction and braking parts
+        (``t``: the step's mid time, as below);
         ``resist_hook(t, x, v)`` is an extra deceleration (m/s^2) at the step's mid time ``t``
         (set in ``self.t`` by the caller)."""
         m_eff = train.effective_mass
@@ -127,7 +128,7 @@ class Dynamics:
         if ad is not None and ad[0] <= x < ad[1]:
             a_br = ad[2] * a_br
         if self.drive_hook is not None:
-            a_tr, a_br = self.drive_hook(x, v, a_tr, a_br)
+            a_tr, a_br = self.drive_hook(self.t, x, v, a_tr, a_br)
         return a_tr + a_br
 
     def _accel_hooked(self, x: float, v: float, a_hat: float) -> float:

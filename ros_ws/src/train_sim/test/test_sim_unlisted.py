@@ -6,7 +6,15 @@ from train_core.effects import Effects
 from train_core.model import Brake, Davis, Line, TrainParams
 
 from train_sim.scenario import load_scenario
-from train_sim.unlisted import BrakeFade, TractionGain, TunnelDrag, Unlisted, Wind
+from train_sim.unlisted import (
+    BrakeFade,
+    CoastDrag,
+    LoadChange,
+    TractionGain,
+    TunnelDrag,
+    Unlisted,
+    Wind,
+)
 from train_sim.world import open_loop, simulate
 
 TAU, T = 0.4, 1.2  # s
@@ -71,6 +79,33 @@ def test_wind_in_its_time_window_only():
     assert np.ptp(v[after]) < 1e-12
     # exactly 10 s of it: the 10 ms integration steps start and end on the window's edges
     assert abs(v[after][0] - (15.0 - 10.0 * f / M_EFF)) < 1e-9
+
+
+def test_load_change_scales_traction_from_its_time_on():
+    u = Unlisted(load_change=LoadChange(30.0, 0.8))
+    tr = run(([0.0], [0.5]), u)
+    t, acc = tr["t"], tr["acceleration"]
+    before, after = (t > SETTLED) & (t < 29.95), t > 30.05
+    assert before.sum() > 50 and after.sum() > 50
+    assert np.allclose(acc[before], 0.5, rtol=0, atol=1e-12)
+    assert np.allclose(acc[after], 0.4, rtol=0, atol=1e-12)
+    brake = ([-40.0], [-0.6])  # a load-weighed brake: braking untouched
+    for k in ("position", "velocity", "acceleration"):
+        assert np.array_equal(run(brake, u, v0=25.0)[k], run(brake, v0=25.0)[k]), k
+
+
+def test_coast_drag_while_coasting_only():
+    u = Unlisted(coast_drag=CoastDrag(0.05))
+    coast = run(([-40.0], [0.0]), u, v0=10.0)
+    v, acc = coast["velocity"], coast["acceleration"]
+    moving = v > 0.6
+    assert moving.sum() > 50
+    assert np.allclose(acc[moving], -0.05, rtol=0, atol=1e-12)
+    for cmd in (([0.0], [0.5]), ([-40.0], [-0.6])):  # traction or braking delivered: untouched
+        ref, got = run(cmd, v0=25.0), run(cmd, u, v0=25.0)
+        settled = (ref["t"] > SETTLED) & (ref["velocity"] > 0.6)
+        assert settled.sum() > 50
+        assert np.array_equal(got["acceleration"][settled], ref["acceleration"][settled])
 
 
 def test_closed_loop_with_all_four_and_sensors_untouched():

@@ -39,6 +39,18 @@ effect               where it shows          what the world does
                                              and speed from true time ``t0`` on (it moved to an
                                              axle with other wheels). Not an odometer scale (one
                                              scale for the whole run) nor slip (it persists).
+``load_change``      from a time on, in          traction delivered x ``factor`` from true time
+                     traction                    ``t0`` on (passengers boarded at a stop: the
+                                                 same motors move more mass; the brake is
+                                                 load-weighed, so braking is untouched). Not mass
+                                                 (one mass for the whole run, braking too) nor
+                                                 a traction delay or power limit.
+``coast_drag``       in coasting                 an extra deceleration ``decel`` (m/s^2) while
+                                                 neither traction nor braking is delivered and
+                                                 the train moves (the motors' drag, or a light
+                                                 electric brake the coasting notch applies). Not
+                                                 resistance nor a gradient (traction and braking
+                                                 are untouched).
 ``misplaced_balise``  at one balise           the balise lies ``offset`` m from the position the
                                              map and its telegram give (a survey error): read
                                              there, it reports the map's position. Not an
@@ -46,7 +58,7 @@ effect               where it shows          what the world does
                                              distance) nor slip (the readings after it agree).
 ===================  ======================  ==================================================
 
-The bench (:mod:`train_sim.unlisted_cases`) uses the first four; the last four are kept for
+The bench (:mod:`train_sim.unlisted_cases`) uses the first four; the others are kept for
 tests, so that a test does not only mirror the bench.
 
 Use: ``scenario.with_changes(unlisted=Unlisted(wind=Wind(120.0, 180.0, 9000.0)))``; the world
@@ -113,6 +125,17 @@ class OdometerRescale:
 
 
 @dataclass(frozen=True)
+class LoadChange:
+    t0: float  # s, true time from which the traction moves more (or less) load
+    factor: float  # -, multiplier of the delivered traction from t0 on
+
+
+@dataclass(frozen=True)
+class CoastDrag:
+    decel: float  # m/s^2, extra deceleration while coasting (moving, no traction or braking)
+
+
+@dataclass(frozen=True)
 class MisplacedBalise:
     balise_id: int  # the balise (its id in line.yaml)
     offset: float  # m, where it lies minus where the map and its telegram say
@@ -130,6 +153,14 @@ class Unlisted:
     neutral_section: NeutralSection | None = None
     misplaced_balise: MisplacedBalise | None = None
     odometer_rescale: OdometerRescale | None = None
+    load_change: LoadChange | None = None
+    coast_drag: CoastDrag | None = None
+
+
+# coast_drag acts while the train moves faster than this (m/s) with less than COAST_DRIVE (m/s^2)
+# of traction and of braking delivered
+COAST_MIN_SPEED = 0.5
+COAST_DRIVE = 0.01
 
 
 def odometer_factor(unlisted: Unlisted | None, t: float) -> float:
@@ -152,10 +183,11 @@ def unlisted_hooks(unlisted: Unlisted | None, true_train: TrainParams) -> dict:
     out = {}
     fade, gain = unlisted.brake_fade, unlisted.traction_gain
     tfade, neutral = unlisted.traction_fade, unlisted.neutral_section
-    if fade is not None or gain is not None or tfade is not None or neutral is not None:
+    load, coast = unlisted.load_change, unlisted.coast_drag
+    if any(e is not None for e in (fade, gain, tfade, neutral, load, coast)):
         g = gain.factor if gain is not None else 1.0
 
-        def drive_hook(x, v, a_tr, a_br):
+        def drive_hook(t, x, v, a_tr, a_br):
             if fade is not None and v < fade.v_fade:
                 a_br = fade.factor * a_br
             k = g
@@ -163,6 +195,11 @@ def unlisted_hooks(unlisted: Unlisted | None, true_train: TrainParams) -> dict:
                 k *= tfade.factor
             if neutral is not None and neutral.start <= x < neutral.end:
                 k *= neutral.factor
+            if load is not None and t >= load.t0:
+                k *= load.factor
+            if coast is not None and v > COAST_MIN_SPEED and a_tr < COAST_DRIVE \
+                    and a_br > -COAST_DRIVE:
+                a_br = a_br - coast.decel
             return k * a_tr, a_br
 
         out["drive_hook"] = drive_hook

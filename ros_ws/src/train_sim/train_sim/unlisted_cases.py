@@ -30,6 +30,11 @@ the bench:
                      (> 0.15 m/s^2 at > 3 m/s), factor 0.4-0.6
 ``odometer_rescale`` from the time the train has run 30-60 % of the      all
                      run's distance on, factor 1 +- 0.01-0.02
+``load_change``      from the departure of a stop the run makes         traction
+                     between 30 and 70 % of its time, factor 0.8-0.88
+                     or 1.12-1.2
+``coast_drag``       0.04-0.08 m/s^2 while coasting (a case whose run   coasting
+                     coasts for at least 20 s is drawn)
 ``misplaced_balise`` a balise the run passes at > 3 m/s with balises    all
                      passed before and after it, +-8-20 m from its
                      map position
@@ -49,6 +54,8 @@ import numpy as np
 from .cases import Case, make_case
 from .unlisted import (
     BrakeFade,
+    CoastDrag,
+    LoadChange,
     MisplacedBalise,
     NeutralSection,
     OdometerRescale,
@@ -60,10 +67,12 @@ from .unlisted import (
 )
 
 KINDS = ("tunnel_drag", "brake_fade", "traction_gain", "wind")
-TEST_KINDS = ("traction_fade", "neutral_section", "misplaced_balise", "odometer_rescale")
+TEST_KINDS = ("traction_fade", "neutral_section", "misplaced_balise", "odometer_rescale",
+              "load_change", "coast_drag")
 PHASE = {"tunnel_drag": "all", "brake_fade": "braking", "traction_gain": "traction",
          "wind": "all", "traction_fade": "traction", "neutral_section": "traction",
-         "misplaced_balise": "all", "odometer_rescale": "all"}
+         "misplaced_balise": "all", "odometer_rescale": "all", "load_change": "traction",
+         "coast_drag": "coasting"}
 
 
 @dataclass(frozen=True)
@@ -86,9 +95,15 @@ def unlisted_case(rng: np.random.Generator, kind: str, pilot=None) -> UnlistedCa
         raise ValueError(f"kind must be one of {KINDS + TEST_KINDS}, got {kind!r}")
     if pilot is None:
         from .world import simulate as pilot
-    case = make_case(rng, None, "plain")
-    sc = case.scenario
-    tr = pilot(sc).truth
+    while True:
+        case = make_case(rng, None, "plain")
+        sc = case.scenario
+        sim = pilot(sc)
+        # a coasting drag needs a run that coasts (moving, neither traction nor braking
+        # commanded) long enough to show it; another case is drawn from the same generator
+        if kind != "coast_drag" or _coasting_time(sim) >= 20.0:
+            break
+    tr = sim.truth
     t, x, v = tr["t"], tr["position"], tr["velocity"]
     v_top = float(np.max(v))
     m_eff = sc.true_train.effective_mass
@@ -134,6 +149,23 @@ def unlisted_case(rng: np.random.Generator, kind: str, pilot=None) -> UnlistedCa
         eff = OdometerRescale(round(t0, 1),
                               round(1.0 + sign * float(eff_rng.uniform(0.01, 0.02)), 4))
         u = Unlisted(odometer_rescale=eff)
+    elif kind == "load_change":
+        # the departure from a stop in the middle of the run: the first time after a
+        # standstill of 10 s or more, between 30 and 70 % of the run's time
+        still = v < 0.05
+        dep = np.flatnonzero(still[:-1] & ~still[1:]) + 1
+        span = t[-1] - t[0]
+        mid = [i for i in dep if 0.3 * span <= t[i] - t[0] <= 0.7 * span]
+        if not mid:
+            raise RuntimeError("no stop in the middle of the run")
+        i = int(mid[eff_rng.integers(len(mid))])
+        f = float(eff_rng.uniform(0.12, 0.2))
+        eff = LoadChange(round(float(t[i]) - 1.0, 1),
+                         round(1.0 - f if eff_rng.random() < 0.5 else 1.0 + f, 3))
+        u = Unlisted(load_change=eff)
+    elif kind == "coast_drag":
+        eff = CoastDrag(round(a, 4))
+        u = Unlisted(coast_drag=eff)
     elif kind == "misplaced_balise":
         # a balise passed at speed, with balises passed before and after it (so that the
         # odometer carries the position to it and on from it)
@@ -157,3 +189,13 @@ def unlisted_case(rng: np.random.Generator, kind: str, pilot=None) -> UnlistedCa
         u = Unlisted(wind=eff)
     truth = {k: getattr(eff, k) for k in eff.__dataclass_fields__}
     return UnlistedCase(case, sc.with_changes(unlisted=u), kind, PHASE[kind], truth)
+
+
+def _coasting_time(sim) -> float:
+    """s the pilot run moves (> 0.5 m/s) with neither traction nor braking commanded."""
+    tr = sim.truth
+    t, v = np.asarray(tr["t"]), np.asarray(tr["velocity"])
+    ct, u = np.asarray(sim.control["t"]), np.asarray(sim.control["target_acceleration"])
+    k = np.clip(np.searchsorted(ct, t, side="right") - 1, 0, max(ct.size - 1, 0))
+    coast = (v > 0.5) & (np.abs(u[k]) < 0.01) if ct.size else np.zeros(t.size, bool)
+    return float(np.sum(np.diff(t)[coast[:-1]]))

@@ -39,7 +39,10 @@ reported ``confirmed`` only when the checks below pass, the same for every cause
    list (weaker braking at low speed as a stretch of low adhesion plus a braking-rate drift).
 6. **A place effect** (causes fitted on a stretch, ``Cause.beyond``: gradient,
    adhesion_section): continued beyond its stretch in the same phases and speeds, it is not
-   needed there (:func:`.contradict.place_test`).
+   needed there (:func:`.contradict.place_test`). A cause seen in one phase only (check 3)
+   whose place test is significant with a cell above 3 SE, even below ``split_min_share``, is
+   not confirmed: some of it shows in that phase elsewhere, which favours the rival (an
+   effect of the phase) over a cause at that place.
 7. **Not a piece** of a structure the confirmed model leaves in the residuals that also shows
    where the cause does not act, nor left where it acts as large as half of itself
    (:func:`.contradict.piece_of`).
@@ -194,6 +197,14 @@ def confirm(mo: Motion, shift: float, accepted: list, resolved_before: dict, cfg
         if pt.get("contradicted"):
             a.status = "not confirmed"
             a.why = pt["why"]
+        elif cause.phase_rival and len(seen) < 2 and pt.get("elsewhere"):
+            # seen in one phase only, and some of it shows in that phase elsewhere: the data
+            # favour the rival (an effect of the phase) over a cause at that place
+            a.status = "not confirmed"
+            a.why = (f"cannot be told from {cause.phase_rival}: it shows in "
+                     f"{seen[0] if seen else 'no phase'} only, and the same shows outside its "
+                     f"stretch ({', '.join(pt['elsewhere'][:3])}; chi-square p "
+                     f"{pt['p']:.2g})")
     return checks
 
 

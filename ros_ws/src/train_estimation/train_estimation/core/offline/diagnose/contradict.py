@@ -310,6 +310,11 @@ def place_test(mo: Motion, full: Null, cfg, noise, inside: np.ndarray, beyond: n
                std_errors={lab: float(sj) for lab, sj in zip(labels, se)})
     bad = [f"x{cj:.2f} of it {lab}" for lab, cj, sj in zip(labels, c, se)
            if cj > max(min_share, 3.0 * sj)]
+    if p < alpha:
+        # the same shows elsewhere, if less than min_share of it: evidence for an effect of
+        # the phase, which a cause seen in one phase only cannot be told from (confirm.py)
+        res["elsewhere"] = [f"x{cj:.2f} of it {lab}" for lab, cj, sj in zip(labels, c, se)
+                            if cj > 3.0 * sj]
     if p < alpha and bad:
         res["contradicted"] = True
         res["why"] = ("the same shows outside its stretch (not a place effect): "
