@@ -637,13 +637,24 @@ def test_an_effect_outside_the_list_is_unexplained(kind, seed, tmp_path, capsys)
 
 
 @pytest.mark.slow
-def test_a_cause_found_beside_causes_not_confirmed_is_confirmed_again_without_them(tmp_path):
+def test_a_cause_found_beside_causes_not_confirmed_is_confirmed_again_without_them(
+        tmp_path, monkeypatch):
     """A brake fade at every stop (metro_demo, the bench's seed [29, 125]): the greedy stages
     accept a low-adhesion section at the last stop and a gradient before it that fills the
     section's excess there. The section is then not confirmed (the phase split contradicts
     it); the gradient, confirmed against a model that held the section, falls once it is
-    confirmed again without it."""
+    confirmed again without it. (The gradient is seen in braking only, and a third of it
+    shows in braking elsewhere, so the one-phase rule of the place test withdraws it first:
+    that rule is off here, so that this test sees the re-confirmation; with it, the verdict
+    is the same.)"""
+    from dataclasses import replace
+
+    from train_estimation.core.offline.diagnose import confirm
+
     _, paths = _unlisted_bag("brake_fade", [29, 125], tmp_path)
+    rep = _unexplained(paths, tmp_path)
+    assert rep["unexplained"][0]["phase"] == "braking", rep["unexplained"]
+    monkeypatch.setattr(confirm, "CONFIRM", replace(confirm.CONFIRM, one_phase_elsewhere=False))
     rep = _unexplained(paths, tmp_path)
     by = {r["cause"]: r for r in rep["ranking"]}
     assert by["gradient"]["why"].startswith("without adhesion_section"), by["gradient"]
@@ -660,11 +671,6 @@ def test_a_cause_found_beside_causes_not_confirmed_is_confirmed_again_without_th
 TEST_KIND_KNOWN = {
     ("neutral_section", 13): "a slip episode of 1.4 % for 4.6 s on the stretch is confirmed: the "
                              "odometer cause stands in for part of the motion left unexplained",
-    ("odometer_rescale", 11): "a braking-rate drift (1.016 -> 0.979) is confirmed: braking read "
-                              "1.3 % weaker after the rescale looks like a brake that weakens",
-    ("odometer_rescale", 12): "unexplained, but the first entry is a traction remainder (the "
-                              "accelerations read 2 % lower after the rescale); no family tests "
-                              "an odometer that counts differently from a time on",
     ("load_change", 13): "a gradient of 8.9 per mille over the 3 km of the departure after the "
                          "load changed is confirmed: the traction command is constant there, so "
                          "a traction x1.15 is a constant force on that stretch, and no earlier "
@@ -687,6 +693,13 @@ def test_an_effect_of_a_kind_the_bench_does_not_use_is_unexplained(kind, seed, t
     # is run in other phases too: docs/diagnose.md)
     phases = {uc.phase} if kind in ("traction_fade", "coast_drag") else {uc.phase, "all"}
     assert rep["unexplained"][0]["phase"] in phases, rep["unexplained"]
+    if kind == "odometer_rescale":
+        # the odometer family's entry: what the odometer counts differently, as an error in m
+        # of the sign of the change (it counts more: ahead of the train)
+        u = rep["unexplained"][0]
+        assert tool.on_odometer(u), u
+        r = uc.scenario.unlisted.odometer_rescale
+        assert np.sign(u["size"]) == np.sign(r.factor - 1.0) and abs(u["size"]) > 5.0, (u, r)
     if kind == "misplaced_balise":
         # the entry is at that balise, and its offset is the balise's (reading minus the
         # train's position by the odometer: minus where it lies from its map position)
@@ -694,8 +707,8 @@ def test_an_effect_of_a_kind_the_bench_does_not_use_is_unexplained(kind, seed, t
         pos = next(b.position for b in uc.case.scenario.line.balises if b.id == mb.balise_id)
         u = rep["unexplained"][0]
         assert u["where"] == [pytest.approx(pos, abs=0.01)] * 2, (u, pos)
-        rounds = rep["evidence"]["_model"]["structure"]["tests"][-1]["balise"]["rounds"]
-        se = next(r["std_error"] for r in rounds if r["significant"])
+        rounds = rep["evidence"]["_model"]["structure"]["tests"]
+        se = next(r["balise"]["std_error"] for r in rounds if r["balise"]["significant"])
         assert abs(u["size"] + mb.offset) <= 4 * se, (u["size"], mb.offset, se)
 
 

@@ -476,6 +476,10 @@ def plot_phases(s: dict, path: Path, dg=None) -> bool:
             if span and at_balise(u):
                 ax.axvline(span[0], color="0.4", ls="--", lw=1.0,
                            label=f"unexplained: balise read {u['size']:+.1f} m off")
+            elif span and on_odometer(u):
+                ax.axvspan(span[0], span[1], color="tab:purple", alpha=0.12,
+                           label=f"unexplained: the odometer counts differently, "
+                                 f"{u['size']:+.1f} m")
             elif span:
                 ax.axvspan(span[0], span[1], color="0.5", alpha=0.2,
                            label=f"unexplained ({u['phase']}, {u['size']:+.3f} m/s^2)")
@@ -579,10 +583,22 @@ def at_balise(u: dict) -> bool:
     return bool(w) and w[0] == w[1]
 
 
+def on_odometer(u: dict) -> bool:
+    """An ``unexplained`` entry of the odometer's count (``where`` and ``when`` both spans: no
+    acceleration family gives both): its size is the odometer error in m (docs/diagnose.md)."""
+    w, t = u.get("where"), u.get("when")
+    return bool(w) and bool(t) and w[0] != w[1]
+
+
 def unexplained_line(u: dict) -> str:
     """One line of the summary for an ``unexplained`` entry."""
     best = u.get("best_listed") or {}
     closest = f"; closest listed: {best['cause']} ({best['why']})" if best else ""
+    if on_odometer(u):
+        return (f"unexplained: the odometer counts differently on {_span(u['where'], 'm')} "
+                f"({_span(u['when'], 's')}), {u['size']:+.1f} m from the train's position by "
+                f"the end of it: it moved to other wheels or its calibration changed, not one "
+                f"scale for the run" + closest)
     if at_balise(u):
         return (f"unexplained: the balise at {u['where'][0]:.0f} m (read at {u['when'][0]:.0f} s, "
                 f"{u['speed'][0]:.1f} m/s) is {u['size']:+.1f} m from the train's position by "

@@ -91,6 +91,9 @@ class ConfirmConfig:
     # a cause that acts in every phase (Cause.phase_rival) seen in one phase only is not
     # confirmed: it cannot be told from an effect of that phase or of that moment
     one_phase: bool = False
+    # a cause seen in one phase only whose place test is significant with a cell beyond 3 SE
+    # (even below split_min_share) is not confirmed: some of it shows in that phase elsewhere
+    one_phase_elsewhere: bool = True
     # -, a place cause whose rival speed law (Cause.speed_rival) fits better by 2 ln LR more
     # than this is not confirmed (equal parameter counts, each on its own best stretch): with
     # b-hat ~ N(0, se^2) under the cause, 2 ln LR ~ (2 b-hat - 1) / se^2 exceeds T with at most
@@ -102,10 +105,11 @@ CONFIRM = ConfirmConfig()
 
 
 def confirm(mo: Motion, shift: float, accepted: list, resolved_before: dict, cfg: DiagConfig,
-            noise, own: dict, gain_ctx: GainContext, ccfg: ConfirmConfig = CONFIRM) -> dict:
+            noise, own: dict, gain_ctx: GainContext, ccfg: ConfirmConfig | None = None) -> dict:
     """Set ``status`` and ``why`` of every accepted cause (in place); returns the checks'
     figures per cause for the evidence. ``resolved_before``: cause -> the resolution verdict
-    before the joint refit."""
+    before the joint refit; ``ccfg``: the thresholds (None: the module's ``CONFIRM``)."""
+    ccfg = CONFIRM if ccfg is None else ccfg
     checks = {}
     for a in accepted:
         cause = BY_NAME[a.cause]
@@ -197,7 +201,8 @@ def confirm(mo: Motion, shift: float, accepted: list, resolved_before: dict, cfg
         if pt.get("contradicted"):
             a.status = "not confirmed"
             a.why = pt["why"]
-        elif cause.phase_rival and len(seen) < 2 and pt.get("elsewhere"):
+        elif ccfg.one_phase_elsewhere and cause.phase_rival and len(seen) < 2 \
+                and pt.get("elsewhere"):
             # seen in one phase only, and some of it shows in that phase elsewhere: the data
             # favour the rival (an effect of the phase) over a cause at that place
             a.status = "not confirmed"
@@ -297,6 +302,34 @@ def heldout_own(cause, fit: CauseFit, ctx: GainContext) -> dict:
     out["ok"] = bool(better)
     if not better:
         out["why"] = f"{g.get('metric', 'held-out gain')}: {b:.4g} -> {a:.4g} (no gain)"
+    return out
+
+
+def unneeded(mo: Motion, shift: float, confirmed: list, cfg: DiagConfig, noise, found: list,
+             ccfg: ConfirmConfig = CONFIRM) -> bool:
+    """Withdraw the confirmation of every confirmed motion cause that is no longer needed once
+    the odometer's changed count ``found`` in the residuals (``phases.odometer_family``) is in
+    the model: its held-out check (1) against the other confirmed causes plus that count fails.
+    An odometer that reads 1.3 % less from a time on makes the braking after it look weaker,
+    which a braking-rate drift fits; with the count in the model, the drift predicts nothing
+    more. True if any was withdrawn."""
+    meas = [u["meas"] for u in found if u.get("family") == "odometer"]
+    if not meas:
+        return False
+    out = False
+    for a in confirmed:
+        cause = BY_NAME[a.cause]
+        if not cause.in_motion_model:
+            continue
+        others = _null_of(mo, shift, [b for b in confirmed if b is not a])
+        others.meas = list(meas)
+        held = heldout_motion(mo, others, cause, cfg, noise, ccfg)
+        if not held["ok"]:
+            when = next(u["when"] for u in found if u.get("family") == "odometer")
+            a.status = "not confirmed"
+            a.why = (f"not needed beside the odometer's changed count (unexplained, "
+                     f"{when[0]:.0f}-{when[1]:.0f} s): with it in the model, {held['why']}")
+            out = True
     return out
 
 

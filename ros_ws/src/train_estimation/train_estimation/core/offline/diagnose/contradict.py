@@ -224,7 +224,10 @@ def piece_of(mo: Motion, others: Null, full: Null, cfg, noise, found: list) -> s
                     f"does not act (phase {u['phase']}, speed {_rng(u['speed'])} m/s, "
                     f"{100 * outside:.0f} % of that structure outside it)")
         # a remainder mostly where the cause acts and as large as half of it there: the
-        # cause does not describe what acts there
+        # cause does not describe what acts there (an acceleration: not the odometer's
+        # count, whose size is in m)
+        if u["family"] == "odometer":
+            continue
         both = on[:-1] & support
         if both.sum() > 0.5 * max(on[:-1].sum(), 1):
             own = float(np.median(np.abs(acc[both])))

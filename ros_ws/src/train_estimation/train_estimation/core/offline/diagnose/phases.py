@@ -24,12 +24,23 @@ entry; its cells are then put into the model and the families tested again (at m
 from the other phases (per-phase families; a place or time cell run in one phase only
 gives ``all``).
 
-**Balise test** (:func:`balise_test`). The motion families cannot see a balise that lies
+**Odometer family** (:func:`odometer_family`). An odometer that counts differently from a
+time on (moved to an axle with other wheels, a wheel re-profiled, a changed calibration) is
+no acceleration: its speed readings jump by the change at once and its distance drifts from
+the balises after it. Beside the motion families, one more family gives the odometer a free
+scale change per 60 s of the run (the counted distance inside the cell x (1 + c_j), carried
+on after it, and the speed read inside it x (1 + c_j)), the same likelihood ratio and
+Bonferroni share; a cell carries it beyond ``cell_z`` SE and ``MIN_SCALE``. Its entry has
+phase ``all``, ``where`` and ``when`` the span of its cells, and ``size`` the odometer error
+in m it makes there (the largest distance the changed count puts between the odometer and
+the train).
+
+**Balise test** (:func:`balise_round`). The motion families cannot see a balise that lies
 elsewhere than the map says: the odometer carries the position from one balise to the next,
 so one reading off by metres moves no acceleration. Each reading gets a free offset of its
 own; the largest that is significant (Bonferroni over the readings, within the same
-``alpha``) and more than ``min_offset`` m is an entry (phase ``all``, ``where`` the balise's
-map position, ``size`` the offset in m), and the rest are tested again.
+``alpha``) and more than ``min_offset`` m competes with the families in each round; as an
+entry it has phase ``all``, ``where`` the balise's map position, ``size`` the offset in m.
 
 The checks of a confirmed cause against the rest of the data (where it must show and where it
 must not) are in :mod:`.contradict`.
@@ -37,6 +48,7 @@ must not) are in :mod:`.contradict`.
 
 from __future__ import annotations
 
+import copy
 import math
 
 import numpy as np
@@ -51,6 +63,9 @@ PHASES = ("traction", "coasting", "braking")
 PHASE_ACCEL = 0.02  # m/s^2, a command part above this sets the phase
 ONSET = 4.0  # s, window after a command onset
 MIN_CELL_TIME = 5.0  # s, cells with less moving time are dropped
+# -, an odometer family cell's scale change below this is no finding: a wheel's wear between
+# calibrations (the odometer_scale cause's resolution)
+MIN_SCALE = 1e-3
 
 
 def grid_phase(mo: Motion) -> np.ndarray:
@@ -112,6 +127,36 @@ def families(mo: Motion, beta: float = 1.0) -> dict:
     return keep
 
 
+def odometer_family(mo: Motion, beta: float = 1.0):
+    """The odometer family of the module docstring: (Md, Mv) measurement columns (n_events, k),
+    one per 60 s of the moving run with at least ``MIN_CELL_TIME`` s of motion, their labels
+    (``when``, stamp clock: / beta) and grid masks; None when fewer than two cells."""
+    g, ev = mo.grid, mo.ev
+    mov = mo.moving > 0
+    if not mov.any():
+        return None
+    o = ev.odo
+    inc = np.zeros(ev.t.size)
+    inc[o] = np.diff(mo.sc_d[o], prepend=mo.sc_d[o][0])
+    is_odo = np.zeros(ev.t.size, bool)
+    is_odo[o] = True
+    t_mov = g.t[mov]
+    te = _bins(float(t_mov[0]), float(t_mov[-1]) + 1e-6, 60.0)
+    Md, Mv, labels, masks = [], [], [], []
+    for a, b in zip(te[:-1], te[1:]):
+        on_g = mov & (g.t >= a) & (g.t < b)
+        if on_g.sum() * g.dt < MIN_CELL_TIME:
+            continue
+        m = (ev.t >= a) & (ev.t < b)
+        Md.append(np.where(is_odo, np.cumsum(inc * m), 0.0))
+        Mv.append(mo.sc_v * m)
+        labels.append({"phase": "all", "when": [a / beta, b / beta]})
+        masks.append(on_g)
+    if len(Md) < 2:
+        return None
+    return np.stack(Md, axis=1), np.stack(Mv, axis=1), labels, np.stack(masks, axis=1)
+
+
 def _fit_columns(st: Stage, Bv: np.ndarray | None, Bs: np.ndarray | None, extra=None,
                  meas=None):
     """GLS of free drift columns (Bv, Bs), or with Bv, Bs None of free odometer measurement
@@ -131,32 +176,62 @@ def structure(mo: Motion, null: Null, cfg, noise, beta: float = 1.0, alpha: floa
               cell_z: float = 3.0, min_accel: float = 0.01, max_entries: int = 3,
               min_offset: float = 2.0) -> tuple:
     """What the model ``null`` leaves in the data (module docstring): ([signature], [tests])
-    with a signature {phase, where, when, speed, size} per entry and the tests' figures. The
-    motion families first, then the balise readings (:func:`balise_test`), ``alpha`` shared
-    among them all."""
+    with a signature {phase, where, when, speed, size} per entry and each round's figures.
+    Every round tests the motion families, the odometer family and the balise readings
+    (:func:`balise_round`), ``alpha`` shared among them all; the one with the smallest p-value
+    (a balise's times the readings tested: Bonferroni) becomes an entry and part of the model,
+    and the next round tests what is left. A balise offset and an odometer that counts
+    differently both move the balise readings: in one round, the data say which fits."""
     fam = families(mo, beta)
+    odo = odometer_family(mo, beta)
     st = Stage(mo, null, cfg, noise=noise, big=False)
     n_ev = mo.ev.t.size
     ig = {k: mo.grid.integrate(R, n_ev) for k, (R, _) in fam.items()}
-    a_f = alpha / (len(fam) + 1)
+    a_f = alpha / (len(fam) + 1 + (odo is not None))
     extra = None
-    found, tests = [], []
+    found, tests, bal_in = [], [], []
     for _ in range(max_entries):
         best = None
         round_tests = {}
-        for name in fam:
-            stat, th, se = _fit_columns(st, *ig[name], extra)
+        for name in list(fam) + (["odometer"] if odo is not None else []):
+            if name == "odometer":
+                stat, th, se = _fit_columns(st, None, None, extra, meas=odo[:2])
+                floor = MIN_SCALE
+            else:
+                stat, th, se = _fit_columns(st, *ig[name], extra)
+                floor = min_accel
             k = th.size
             logp = float(chi2.logsf(stat, k))
-            cells = [j for j in range(k) if abs(th[j]) > max(cell_z * se[j], min_accel)]
+            cells = [j for j in range(k) if abs(th[j]) > max(cell_z * se[j], floor)]
             round_tests[name] = {"chi2": stat, "dof": k, "p": math.exp(logp),
                                  "significant": bool(logp < math.log(a_f) and cells)}
             if round_tests[name]["significant"] and (best is None or logp < best[0]):
                 best = (logp, name, th, cells)
+        bal = balise_round(mo, st, extra, bal_in, a_f, cell_z, min_offset, beta)
+        round_tests["balise"] = {k: v for k, v in bal.items() if k != "entry"}
+        if bal["significant"] and (best is None or bal["logp_family"] < best[0]):
+            best = (bal["logp_family"], "balise", None, None)
         tests.append(round_tests)
         if best is None:
             break
         _, name, th, cells = best
+        if name == "balise":
+            # the reading's offset becomes part of the model; test again
+            found.append(bal["entry"])
+            bal_in.append(bal["reading"])
+            st = copy.copy(st)
+            st.mb = st.mb.copy()
+            st.mb[mo.ev.bal[bal["reading"]]] += bal["offset"]
+            continue
+        if name == "odometer":
+            # the changed count becomes part of the measurement model; test again
+            add_d, add_m = odo[0][:, cells] @ th[cells], odo[1][:, cells] @ th[cells]
+            found.append(_odometer_signature(mo, odo, th, cells, add_d))
+            found[-1]["meas"] = (add_d, add_m)
+            st = copy.copy(st)
+            st.md, st.mv = st.md + add_d, st.mv + add_m
+            odo = None  # one odometer entry: its cells hold the change wherever it is
+            continue
         R, labels = fam[name]
         phase, c = _attribute_phase(mo, st, R[:, cells] @ th[cells], extra, cell_z,
                                     by_phase=name in ("phase", "speed", "onset"))
@@ -166,70 +241,60 @@ def structure(mo: Motion, null: Null, cfg, noise, beta: float = 1.0, alpha: floa
         add_v = ig[name][0][:, cells] @ th[cells]
         add_s = ig[name][1][:, cells] @ th[cells]
         extra = (add_v, add_s) if extra is None else (extra[0] + add_v, extra[1] + add_s)
-    bal, bal_test = balise_test(mo, st, extra, a_f, cell_z, min_offset,
-                                max_entries - len(found), beta)
-    tests.append({"balise": bal_test})
-    return found + bal, tests
+    return found, tests
 
 
-def balise_test(mo: Motion, st: Stage, extra, alpha: float, cell_z: float, min_offset: float,
-                max_entries: int, beta: float = 1.0) -> tuple:
-    """Balise readings that the odometer does not continue (a balise lying elsewhere than the
-    map and its telegram say, a reading of another balise): ([signature], figures).
+def balise_round(mo: Motion, st: Stage, extra, inside: list, alpha: float, cell_z: float,
+                 min_offset: float, beta: float = 1.0) -> dict:
+    """One round of the balise test: the reading that the odometer continues least (a balise
+    lying elsewhere than the map and its telegram say, a reading of another balise).
 
-    Every reading j gets a free offset of its own (a balise measurement column that is 1 at
-    that reading: p_b = s0 + s(t_b) + o_j + e_b) on top of the model ``st`` (plus the found
-    drift ``extra``). For each reading not yet in the model, 2 dll of adding its offset is
-    chi-square with one degree of freedom under the model; the largest, below ``alpha`` / n
-    (Bonferroni over the n readings) with the offset beyond ``cell_z`` SE and ``min_offset``
-    (m: a balise's location accuracy is metres; a misstated reading variance must not make a
-    finding of less), is an entry; its offset is put into the model and the rest tested again.
-    No listed cause moves one reading: an odometer scale grows with distance, a slip episode
-    shifts every reading after it, a clock or link cause moves none. An entry's ``size`` is the
-    offset in m (the reading's position minus the train's position by the odometer there),
-    ``where`` the balise's map position, ``when`` the reading's time (stamp clock)."""
+    Every reading j not yet in the model (``inside``: readings whose offset is) gets a free
+    offset of its own (a balise measurement column that is 1 at that reading: p_b = s0 + s(t_b)
+    + o_j + e_b) on top of the model ``st`` (plus the found drift ``extra``); 2 dll of adding
+    it is chi-square with one degree of freedom under the model. The largest is significant
+    below ``alpha`` / n (Bonferroni over the n readings) with the offset beyond ``cell_z`` SE
+    and ``min_offset`` (m: a balise's location accuracy is metres; a misstated reading variance
+    must not make a finding of less). No listed cause moves one reading: an odometer scale
+    grows with distance, a slip episode shifts every reading after it, a clock or link cause
+    moves none. Its entry's ``size`` is the offset in m (the reading's position minus the
+    train's position by the odometer there), ``where`` the balise's map position, ``when`` the
+    reading's time (stamp clock). Returns the figures, ``logp_family`` (log of n p: the round's
+    comparison with the families) and, when significant, ``entry``."""
     ev = mo.ev
     n = ev.bal.size
-    if n < 3 or max_entries <= 0:
-        return [], {"readings": int(n), "note": "fewer than three balise readings"
-                    if n < 3 else "no entries left"}
-    cols = np.zeros((ev.t.size, n))
-    cols[ev.bal, np.arange(n)] = 1.0
+    out = {"readings": int(n), "significant": False}
+    left = [j for j in range(n) if j not in inside]
+    if n < 3 or not left:
+        out["note"] = "fewer than three balise readings" if n < 3 else "every reading in"
+        return out
+    cols = np.zeros((ev.t.size, len(left)))
+    cols[ev.bal[left], np.arange(len(left))] = 1.0
     fv, fs = (st.fv, st.fs) if extra is None else (st.fv + extra[0], st.fs + extra[1])
-    W = st.augmented(fv, fs, bal=cols).W  # [data, s0, o_1 .. o_n]
+    W = st.augmented(fv, fs, bal=cols).W  # [data, s0, o_j for j in left]
+    q0 = gls(W[:2, :2])[2]
+    best = None
+    for c, j in enumerate(left):
+        idx = [0, 1, 2 + c]
+        th, cov, q1 = gls(W[np.ix_(idx, idx)])
+        stat = max(q0 - q1, 0.0)
+        if best is None or stat > best[0]:
+            best = (stat, j, float(th[-1]), float(math.sqrt(max(cov[-1, -1], 0.0))))
+    stat, j, off, se = best
+    logp = float(chi2.logsf(stat, 1))
     a_n = alpha / n
-    inside, found = [], []
-    out = {"readings": int(n), "alpha_per_reading": a_n, "rounds": []}
-    for _ in range(max_entries):
-        base = [0, 1] + [2 + j for j in inside]
-        q0 = gls(W[np.ix_(base, base)])[2]
-        best = None
-        for j in range(n):
-            if j in inside:
-                continue
-            idx = base + [2 + j]
-            th, cov, q1 = gls(W[np.ix_(idx, idx)])
-            stat = max(q0 - q1, 0.0)
-            if best is None or stat > best[0]:
-                best = (stat, j, float(th[-1]), float(math.sqrt(max(cov[-1, -1], 0.0))))
-        if best is None:
-            break
-        stat, j, off, se = best
-        logp = float(chi2.logsf(stat, 1))
-        sig = bool(logp < math.log(a_n) and abs(off) > max(cell_z * se, min_offset))
-        out["rounds"].append({"reading": j, "chi2": stat, "p": math.exp(logp), "offset": off,
-                              "std_error": se, "significant": sig})
-        if not sig:
-            break
-        inside.append(j)
+    sig = bool(logp < math.log(a_n) and abs(off) > max(cell_z * se, min_offset))
+    out.update(reading=j, chi2=stat, p=math.exp(logp), offset=off, std_error=se,
+               alpha_per_reading=a_n, significant=sig, logp_family=logp + math.log(n))
+    if sig:
         k = ev.bal[j]
         gi = int(np.clip(np.searchsorted(mo.grid.t, ev.t[k]), 0, mo.grid.t.size - 1))
         v = float(mo.v_ref[gi])
-        found.append({"phase": "all", "where": [float(ev.y_d[k])] * 2,
-                      "when": [float(ev.t[k]) / beta] * 2, "speed": [v, v], "size": off,
-                      "family": "balise", "onset": False,
-                      "mask": np.zeros(mo.grid.t.size, bool)})
-    return found, out
+        out["entry"] = {"phase": "all", "where": [float(ev.y_d[k])] * 2,
+                        "when": [float(ev.t[k]) / beta] * 2, "speed": [v, v], "size": off,
+                        "family": "balise", "onset": False,
+                        "mask": np.zeros(mo.grid.t.size, bool)}
+    return out
 
 
 def _attribute_phase(mo: Motion, st: Stage, pattern: np.ndarray, extra, cell_z: float,
@@ -250,6 +315,23 @@ def _attribute_phase(mo: Motion, st: Stage, pattern: np.ndarray, extra, cell_z: 
     mult = {PHASES[p]: float(cj) for p, cj in zip(live, c)}
     need = [PHASES[p] for p, cj, sj in zip(live, c, se) if cj > 0.5 and cj > cell_z * sj]
     return (need[0] if len(need) == 1 else "all"), mult
+
+
+def _odometer_signature(mo: Motion, odo, th, cells, add_d) -> dict:
+    """The ``unexplained`` entry of the odometer family's significant ``cells``: ``where`` and
+    ``when`` their span, ``size`` the largest odometer error (m) the changed count makes
+    (``add_d``: what it adds to the counted distance at each event)."""
+    _, _, labels, masks = odo
+    on = masks[:, cells].any(axis=1)
+    v, x = mo.v_ref[on], mo.x_ref[on]
+    size = float(add_d[np.argmax(np.abs(add_d))])
+    return {"phase": "all", "where": [float(x.min()), float(x.max())],
+            "when": [min(labels[j]["when"][0] for j in cells),
+                     max(labels[j]["when"][1] for j in cells)],
+            "speed": [float(np.percentile(v, 5)), float(np.percentile(v, 95))],
+            "size": size, "family": "odometer", "onset": False, "mask": on,
+            "scale_changes": [[labels[j]["when"][0], labels[j]["when"][1], float(th[j])]
+                              for j in cells]}
 
 
 def _signature(mo: Motion, family: str, R, labels, th, cells, phase: str) -> dict:

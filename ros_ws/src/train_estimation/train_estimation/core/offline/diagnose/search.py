@@ -27,7 +27,7 @@ from train_core.model import Line, TrainParams
 from ..measured import MeasuredRun
 from .causes import BY_NAME, REGISTRY, SCORING
 from .causes.drive import parabola
-from .confirm import CONFIRM, _null_of, confirm, unpiece
+from .confirm import CONFIRM, _null_of, confirm, unneeded, unpiece
 from .gain import GainContext
 from .motion import Motion
 from .phases import structure
@@ -119,12 +119,16 @@ def _verdict(sr: _Search, run, untestable: list, before: dict, noise,
     confirmed = [a for a in sr.accepted if a.status == "confirmed"]
     found, tests = structure(mo, _null_of(mo, shift, confirmed), sr.cfg, noise,
                              beta, **STRUCTURE)
-    if found and unpiece(mo, shift, confirmed, sr.cfg, noise, found):
+    if found:
+        pieces = unpiece(mo, shift, confirmed, sr.cfg, noise, found)
         confirmed = [a for a in sr.accepted if a.status == "confirmed"]
-        found, tests = structure(mo, _null_of(mo, shift, confirmed), sr.cfg, noise,
-                                 beta, **STRUCTURE)
+        if unneeded(mo, shift, confirmed, sr.cfg, noise, found) or pieces:
+            confirmed = [a for a in sr.accepted if a.status == "confirmed"]
+            found, tests = structure(mo, _null_of(mo, shift, confirmed), sr.cfg, noise,
+                                     beta, **STRUCTURE)
     for u in found:
         u.pop("mask")
+        u.pop("meas", None)
     verdict = confirmed[0].cause if confirmed else ("unexplained" if found else "none")
     ranking = _ranking(sr, beta, "confirmed" if verdict == "none" else "rejected")
     top = ranking[0] if confirmed else None

@@ -53,6 +53,10 @@ class Null:
     # is that gain times the whole delivered drive, so the increments in ``extra`` (all of the
     # drive: a power limit, a traction delay, a low-adhesion section) are scaled by it
     drive_gain: float = 1.0
+    # odometer measurement offsets (distance, speed), each (n_ev,), of structure found in the
+    # residuals that no listed cause explains (an odometer that counts differently from a
+    # time on: phases.odometer_family), put into the model to test what else is still needed
+    meas: list = field(default_factory=list)
 
 
 class Stage:
@@ -77,7 +81,11 @@ class Stage:
             a, b = slip_cols(mo, [(t0, t1)])
             md = md + eps * a
             mv = mv + eps * b
+        for d, m in null.meas:
+            md, mv = md + d, mv + m
         self.fv, self.fs, self.md, self.mv = fv, fs, md, mv
+        # fixed balise offsets (m, at balise events): readings the structure test found off
+        self.mb = np.zeros(mo.ev.t.size)
         self.update = update  # events whose measurement the filter uses (None: all)
         # The search meets the same null more than once (the next stage's null is the last
         # refit's extended null; a stage rebuilt at the same noise): its noise fit and big
@@ -114,7 +122,7 @@ class Stage:
         Bv, Bs, Md, Mv, Mb = (np.zeros((n, a + b + c + 2)) for _ in range(5))
         Bv[:, 0], Bs[:, 0] = fv, fs
         Md[:, 0], Mv[:, 0] = self.md, self.mv
-        Mb[:, 1] = 1.0
+        Mb[:, 0], Mb[:, 1] = self.mb, 1.0
         if a:
             Bv[:, 2:a + 2], Bs[:, 2:a + 2] = drift
         if b:
