@@ -607,6 +607,42 @@ def test_a_long_slip_episode_is_one_episode_and_a_spurious_one_is_dropped(metro,
     assert abs(params["depths"][0] + 0.1) <= max(4 * ses["depths"][0], 0.003), (params, ses)
 
 
+@pytest.mark.slow
+def test_each_slip_episode_is_held_out_on_its_own(metro, metro_run, tmp_path):
+    """A 7 s slip episode (+10 %) and a 2 s one where nothing happened, given as one confirmed
+    wheel_slip: held out one by one (its fraction fitted on alternate odometer samples, scored
+    on the others), the true episode is confirmed far beyond the score's 2 and the other is
+    dropped, with its depth and column."""
+    from train_core.effects import Effects, WheelSlipEffect
+
+    from train_estimation.core.offline.diagnose import DiagConfig, Motion, Null, Stage, prepare
+    from train_estimation.core.offline.diagnose.confirm import heldout_episodes
+
+    t, v = metro_run.truth["t"], metro_run.truth["velocity"]
+    fast = np.flatnonzero(np.convolve(v > 8.0, np.ones(120), "valid") == 120)
+    t0 = float(t[fast[len(fast) // 3]]) + 1.0
+    sc = metro.with_changes(duration=300.0,
+                            effects=Effects(wheel_slip=WheelSlipEffect(((t0, t0 + 7.0),), 0.1)))
+    bag = write_bag(tmp_path / "bag", simulate(sc))
+    cfg = DiagConfig()
+    run = prepare(tool.read_measured(bag), sc.line, cfg)
+    mo = Motion(run, sc.line, sc.train, cfg)
+    st = Stage(mo, Null(), cfg, big=False)
+    shift = run.t_first - sc.stamp_epoch
+    a, b = t0 - shift, t0 + 7.0 - shift
+    quiet = float(run.odo_t[np.searchsorted(run.odo_t, b + 60.0)])
+    th = [0.1 / 1.1, 0.02]  # columns: the slipped speed (motion.slip_cols); 2 % where none is
+    fit = CauseFit("wheel_slip", 10.0, {"intervals": [[a, b], [quiet, quiet + 2.0]],
+                                        "depths": [-0.1, -0.02]},
+                   std_errors={"depths": [0.003, 0.003], "slip_fraction": [0.003, 0.003]},
+                   extra={"column": th, "slip_fraction": [0.1, 0.02]})
+    out = heldout_episodes(mo, Null(), fit, cfg, (st.q, st.r_s))
+    assert [e["confirmed"] for e in out] == [True, False], out
+    assert out[0]["z"] > 10.0, out
+    assert fit.parameters == {"intervals": [[a, b]], "depths": [-0.1]}
+    assert fit.extra["column"] == [th[0]] and fit.std_errors["depths"] == [0.003]
+
+
 # ------------------------------------------------------------------------------------------------
 # Effects outside the list (train_sim.unlisted_cases): no listed cause confirmed, the remainder
 # described with the right phase. Seeds fixed in advance (one per kind, varied lines/trains).

@@ -7,14 +7,16 @@ reported ``confirmed`` only when the checks below pass, the same for every cause
 
 1. **Held out.** The cause, fitted on alternate ``gain_block`` s blocks (odometer causes:
    alternate odometer samples, ``FOLDS``), predicts the other half better than the model
-   without it, beyond the noise of that gain. With the filter's
-   speed innovations e0_k of the model without the cause and e1_k = e0_k - d_k of the model with
-   the fit from the other blocks (S_k the innovation variance), the held-out log-likelihood
-   gain is D = sum (e0 d / S - d^2 / 2S) over the held-out events of both folds. Without the
-   effect, e0_k ~ N(0, S_k) independently of d (fitted elsewhere), so Z = sum (e0 d / S) /
+   without it, beyond the noise of that gain. With the filter's speed innovations e0_k of
+   the model without the cause and e1_k = e0_k - d_k of the model with the fit from the other
+   blocks (S_k the innovation variance), the held-out log-likelihood gain is
+   D = sum (e0 d / S - d^2 / 2S) over the held-out events of both folds. Without the effect,
+   e0_k ~ N(0, S_k) independently of d (fitted elsewhere), so Z = sum (e0 d / S) /
    sqrt(sum d^2 / S) is standard normal (a score test on held-out data; a local effect in
    one block counts at its own noise). Confirmed when D > 0 and Z > ``heldout_z``.
-   Causes with a likelihood of their own (clock, link) use their own held-out gain.
+   Causes with a likelihood of their own (clock, link) use their own held-out gain. Slip
+   episodes are then held out one by one (:func:`heldout_episodes`): an episode that the
+   other samples do not confirm is dropped.
 2. **Resolution.** The fitted size is more than the data can resolve: each cause states its
    rule (``Cause.resolution``). Checked on the parameters after the joint refit; a fit that
    passes before the joint refit but not after is ``parameters at nominal after the joint
@@ -72,7 +74,7 @@ from .contradict import (
     split_test,
 )
 from .gain import GainContext
-from .motion import Motion
+from .motion import Motion, slip_cols
 from .result import CauseFit
 from .run import DiagConfig
 from .stage import Null, Stage
@@ -122,6 +124,15 @@ def confirm(mo: Motion, shift: float, accepted: list, resolved_before: dict, cfg
         odd = cause.plausible(a, mo)
         checks[a.cause] = {"held_out": held, "resolution": res or "resolved",
                            "plausible": odd or "yes"}
+        if held["ok"] and a.cause == "wheel_slip" and res is None:
+            # each episode held out on its own: those the other samples do not confirm go
+            others = _null_of(mo, shift, [b for b in accepted if b is not a])
+            checks[a.cause]["episodes"] = heldout_episodes(mo, others, a, cfg, noise, ccfg)
+            if not a.parameters.get("intervals"):
+                held = dict(held, ok=False, why="no episode confirmed on its own (held out "
+                                                "one by one)")
+            else:
+                res = cause.resolution(a, mo)
         if not held["ok"]:
             a.status, a.why = "not confirmed", f"held-out check failed: {held['why']}"
         elif res is not None:
@@ -286,6 +297,53 @@ def heldout_motion(mo: Motion, others: Null, cause, cfg: DiagConfig, noise,
         out["why"] = (f"held-out log-likelihood gain {gain:+.3g} (SD {sd:.3g} under no "
                       f"effect), score Z {z:.2f} <= {ccfg.heldout_z:g}" if gain <= 0 or
                       sd == 0 else f"score Z {z:.2f} <= {ccfg.heldout_z:g}")
+    return out
+
+
+def heldout_episodes(mo: Motion, others: Null, fit: CauseFit, cfg: DiagConfig, noise,
+                     ccfg: ConfirmConfig = CONFIRM) -> list:
+    """Each slip episode of ``fit`` held out on its own (check 1 per episode): against the
+    model ``others`` plus the other episodes at their fitted coefficients, the episode's
+    coefficient is fitted on alternate odometer samples and scored on the others (the score
+    test of :func:`heldout_motion`, both folds). An episode that fails is dropped from ``fit``
+    (its interval, depth, fraction and column, in place; the others keep the joint fit's
+    values). Returns each episode's figures."""
+    ivs = [tuple(iv) for iv in fit.parameters.get("intervals", [])]
+    th = list(fit.extra.get("column") or [])
+    if not ivs or len(th) != len(ivs):
+        return []
+    fold = _folds(mo, "odometer", cfg) % 2
+    out, keep = [], []
+    for j, iv in enumerate(ivs):
+        base = copy.deepcopy(others)
+        base.slip += [(a, b, c) for i, ((a, b), c) in enumerate(zip(ivs, th)) if i != j]
+        st = Stage(mo, base, cfg, noise=noise, big=False)
+        e0, s = speed_innovations(mo, base, cfg, noise)
+        md, mv = slip_cols(mo, [iv])
+        num = var = 0.0
+        for f in (0, 1):
+            train = fold == f
+            W = st.augmented(st.fv, st.fs, meas=(md[:, None], mv[:, None]), update=train).W
+            c = float(gls(W)[0][1])
+            ext = copy.deepcopy(base)
+            ext.slip.append((iv[0], iv[1], c))
+            e1, _ = speed_innovations(mo, ext, cfg, noise)
+            test = ~train & np.isfinite(s) & np.isfinite(e0) & np.isfinite(e1) & (s > 0)
+            d = (e0 - e1)[test]
+            num += float(np.sum(e0[test] * d / s[test]))
+            var += float(np.sum(d * d / s[test]))
+        z = num / math.sqrt(var) if var > 0 else 0.0
+        ok = bool(num - 0.5 * var > 0 and z > ccfg.heldout_z)
+        out.append({"interval": list(iv), "gain_loglik": num - 0.5 * var, "z": z,
+                    "confirmed": ok})
+        if ok:
+            keep.append(j)
+    if len(keep) < len(ivs):
+        p, se, ex = fit.parameters, fit.std_errors, fit.extra
+        for d in (p, se, ex):
+            for k in ("intervals", "depths", "slip_fraction", "column"):
+                if isinstance(d.get(k), list) and len(d[k]) == len(ivs):
+                    d[k] = [d[k][i] for i in keep]
     return out
 
 
