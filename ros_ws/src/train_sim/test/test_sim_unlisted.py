@@ -9,6 +9,7 @@ from train_sim.scenario import load_scenario
 from train_sim.unlisted import (
     BrakeFade,
     CoastDrag,
+    HuntingDrag,
     LoadChange,
     TractionGain,
     TunnelDrag,
@@ -106,6 +107,18 @@ def test_coast_drag_while_coasting_only():
         settled = (ref["t"] > SETTLED) & (ref["velocity"] > 0.6)
         assert settled.sum() > 50
         assert np.array_equal(got["acceleration"][settled], ref["acceleration"][settled])
+
+
+def test_hunting_drag_above_its_critical_speed_only():
+    f = 30000.0  # N: 0.14 m/s^2, from 25 to 20 m/s in 37 s
+    u = Unlisted(hunting_drag=HuntingDrag(20.0, f))
+    tr = run(([-40.0], [0.0]), u, v0=25.0)  # coasting, frictionless: slows to 20 m/s, then holds
+    t, v = tr["t"], tr["velocity"]
+    fast = np.flatnonzero(v > 20.05)
+    assert fast.size > 50
+    slope = np.diff(v[fast]) / np.diff(t[fast])
+    assert np.allclose(slope[:-1], -f / M_EFF, rtol=1e-6)
+    assert v.min() > 19.9 and np.ptp(v[-50:]) < 1e-9
 
 
 def test_closed_loop_with_all_four_and_sensors_untouched():

@@ -51,6 +51,13 @@ effect               where it shows          what the world does
                                                  electric brake the coasting notch applies). Not
                                                  resistance nor a gradient (traction and braking
                                                  are untouched).
+``hunting_drag``     at some speeds, in every      an extra resistance ``force`` (N) while the train
+                     phase                         runs faster than ``v_crit`` (a bogie hunting:
+                                                   the wheelsets' lateral oscillation above a
+                                                   critical speed dissipates energy). Not
+                                                   resistance (a step at a speed, not the Davis
+                                                   curve), nor a power limit (braking and
+                                                   coasting too).
 ``misplaced_balise``  at one balise           the balise lies ``offset`` m from the position the
                                              map and its telegram give (a survey error): read
                                              there, it reports the map's position. Not an
@@ -136,6 +143,12 @@ class CoastDrag:
 
 
 @dataclass(frozen=True)
+class HuntingDrag:
+    v_crit: float  # m/s, the critical speed above which the bogies hunt
+    force: float  # N, extra resistance above v_crit
+
+
+@dataclass(frozen=True)
 class MisplacedBalise:
     balise_id: int  # the balise (its id in line.yaml)
     offset: float  # m, where it lies minus where the map and its telegram say
@@ -155,6 +168,7 @@ class Unlisted:
     odometer_rescale: OdometerRescale | None = None
     load_change: LoadChange | None = None
     coast_drag: CoastDrag | None = None
+    hunting_drag: HuntingDrag | None = None
 
 
 # coast_drag acts while the train moves faster than this (m/s) with less than COAST_DRIVE (m/s^2)
@@ -203,8 +217,8 @@ def unlisted_hooks(unlisted: Unlisted | None, true_train: TrainParams) -> dict:
             return k * a_tr, a_br
 
         out["drive_hook"] = drive_hook
-    tun, wind = unlisted.tunnel_drag, unlisted.wind
-    if tun is not None or wind is not None:
+    tun, wind, hunt = unlisted.tunnel_drag, unlisted.wind, unlisted.hunting_drag
+    if tun is not None or wind is not None or hunt is not None:
         m_eff = true_train.effective_mass
 
         def resist_hook(t, x, v):
@@ -213,6 +227,8 @@ def unlisted_hooks(unlisted: Unlisted | None, true_train: TrainParams) -> dict:
                 f += tun.c * v * v
             if wind is not None and wind.t0 <= t < wind.t1 and v > 0.0:
                 f += wind.force
+            if hunt is not None and v > hunt.v_crit:
+                f += hunt.force
             return f / m_eff
 
         out["resist_hook"] = resist_hook

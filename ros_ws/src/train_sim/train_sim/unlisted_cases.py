@@ -35,6 +35,8 @@ the bench:
                      or 1.12-1.2
 ``coast_drag``       0.04-0.08 m/s^2 while coasting (a case whose run   coasting
                      coasts for at least 20 s is drawn)
+``hunting_drag``     above 60-80 % of the top speed, 0.04-0.08 m/s^2     all
+                     x M_eff
 ``misplaced_balise`` a balise the run passes at > 3 m/s with balises    all
                      passed before and after it, +-8-20 m from its
                      map position
@@ -55,6 +57,7 @@ from .cases import Case, make_case
 from .unlisted import (
     BrakeFade,
     CoastDrag,
+    HuntingDrag,
     LoadChange,
     MisplacedBalise,
     NeutralSection,
@@ -68,11 +71,11 @@ from .unlisted import (
 
 KINDS = ("tunnel_drag", "brake_fade", "traction_gain", "wind")
 TEST_KINDS = ("traction_fade", "neutral_section", "misplaced_balise", "odometer_rescale",
-              "load_change", "coast_drag")
+              "load_change", "coast_drag", "hunting_drag")
 PHASE = {"tunnel_drag": "all", "brake_fade": "braking", "traction_gain": "traction",
          "wind": "all", "traction_fade": "traction", "neutral_section": "traction",
          "misplaced_balise": "all", "odometer_rescale": "all", "load_change": "traction",
-         "coast_drag": "coasting"}
+         "coast_drag": "coasting", "hunting_drag": "all"}
 
 
 @dataclass(frozen=True)
@@ -166,6 +169,9 @@ def unlisted_case(rng: np.random.Generator, kind: str, pilot=None) -> UnlistedCa
     elif kind == "coast_drag":
         eff = CoastDrag(round(a, 4))
         u = Unlisted(coast_drag=eff)
+    elif kind == "hunting_drag":
+        eff = HuntingDrag(round(float(eff_rng.uniform(0.6, 0.8)) * v_top, 2), round(a * m_eff, 1))
+        u = Unlisted(hunting_drag=eff)
     elif kind == "misplaced_balise":
         # a balise passed at speed, with balises passed before and after it (so that the
         # odometer carries the position to it and on from it)

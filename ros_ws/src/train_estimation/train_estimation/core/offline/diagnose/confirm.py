@@ -96,6 +96,9 @@ class ConfirmConfig:
     # a cause seen in one phase only whose place test is significant with a cell beyond 3 SE
     # (even below split_min_share) is not confirmed: some of it shows in that phase elsewhere
     one_phase_elsewhere: bool = True
+    # the causes' physical bounds asked of the data (Cause.plausible_data: the Davis terms of a
+    # resistance >= 0)
+    data_bounds: bool = True
     # -, a place cause whose rival speed law (Cause.speed_rival) fits better by 2 ln LR more
     # than this is not confirmed (equal parameter counts, each on its own best stretch): with
     # b-hat ~ N(0, se^2) under the cause, 2 ln LR ~ (2 b-hat - 1) / se^2 exceeds T with at most
@@ -122,6 +125,10 @@ def confirm(mo: Motion, shift: float, accepted: list, resolved_before: dict, cfg
             held = heldout_own(cause, a, gain_ctx)
         res = cause.resolution(a, mo)
         odd = cause.plausible(a, mo)
+        if odd is None and held["ok"] and cause.in_motion_model and ccfg.data_bounds:
+            odd = cause.plausible_data(
+                Stage(mo, _null_of(mo, shift, [b for b in accepted if b is not a]), cfg,
+                      noise=noise), a)
         checks[a.cause] = {"held_out": held, "resolution": res or "resolved",
                            "plausible": odd or "yes"}
         if held["ok"] and a.cause == "wheel_slip" and res is None:

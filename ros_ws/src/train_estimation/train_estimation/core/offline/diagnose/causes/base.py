@@ -147,6 +147,12 @@ class Cause:
         data. The default states none."""
         return None
 
+    def plausible_data(self, st, fit: CauseFit) -> str | None:
+        """Like :meth:`plausible`, a bound from what the cause is, but one the data must be
+        asked about: ``st`` the stage of the other confirmed causes (its big filter), ``fit``
+        the cause as fitted on it. The default states none."""
+        return None
+
     # What else makes the same residual when the cause is seen in one phase only (None: the
     # cause acts in one phase by its nature); the confirmation then cannot tell them apart.
     phase_rival: str | None = None

@@ -8,6 +8,10 @@ from train_core.effects import ResistanceEffect
 from .base import Cause, fleet_se, resolved
 
 RESISTANCE_COLS = ("one", "v", "v2")  # the Davis terms' elementary columns (a, b, c)
+# 2 ln LR of the free Davis fit against the best with a, b, c >= 0 beyond which the data need
+# a resistance no Davis curve gives: chi-square(3) at 1e-3 (the statistic of a bound on three
+# parameters is a chi-bar-square, below chi-square(3) in its tail)
+NONNEG_LR = 16.27
 
 
 class Resistance(Cause):
@@ -48,6 +52,42 @@ class Resistance(Cause):
         df = fit.extra.get("force_at_v_ref", f0) - f0
         return resolved(f"resistance force at {v:.1f} m/s", df,
                         fit.std_errors.get("force_at_v_ref"), 0.03 * abs(f0), " N")
+
+    def plausible_data(self, st, fit) -> str | None:
+        """Every Davis term is a resistance (rolling, flange and bearing, air): a, b, c >= 0.
+        A resistance that steps or bends with speed (bogies hunting above a critical speed,
+        an aerodynamic effect at some speeds) is fitted by a Davis curve with a negative term,
+        which no train has. The best fit with a, b, c >= 0 (each subset of them held at its
+        bound, the rest free on the stage ``st``) against the free one: 2 ln LR above
+        ``NONNEG_LR`` says the data need such a curve, and the resistance is not confirmed."""
+        mo = st.mo
+        d = st.null.drift
+        # the bound on each column's coefficient: believed plus null part plus it >= 0
+        lb = -(np.array([mo.alpha0, mo.beta0, mo.gamma0])
+               + np.array([d.get(n, 0.0) for n in RESISTANCE_COLS]))
+        free = [{n: 1.0} for n in RESISTANCE_COLS]
+        th, _, ll_free, _ = st.fit({}, free)
+        if np.all(th >= lb - 1e-12 * np.abs(lb)):
+            return None
+        best = -np.inf
+        for mask in range(1, 8):  # the subsets held at their bound
+            held = [k for k in range(3) if mask >> k & 1]
+            rest = [k for k in range(3) if k not in held]
+            t, _, ll, _ = st.fit({RESISTANCE_COLS[k]: lb[k] for k in held},
+                                 [free[k] for k in rest])
+            if all(t[i] >= lb[k] - 1e-12 * abs(lb[k]) for i, k in enumerate(rest)):
+                best = max(best, ll)
+        lr = 2.0 * (ll_free - best)
+        fit.extra["nonnegative_lr"] = float(lr)
+        if lr <= NONNEG_LR:
+            return None
+        meff = mo.train.effective_mass
+        tot = (np.array([mo.alpha0, mo.beta0, mo.gamma0])
+               + np.array([d.get(n, 0.0) for n in RESISTANCE_COLS]) + th) * meff
+        neg = ", ".join(f"{n} {v:.3g}" for n, v in zip("abc", tot) if v < 0)
+        return (f"not a running resistance: the data need a Davis curve with a negative term "
+                f"({neg}; 2 ln LR {lr:.1f} > {NONNEG_LR:g} against the best with a, b, c >= 0): "
+                f"a resistance that steps or bends with speed is something else")
 
     def extend_null(self, null, fit, mo) -> None:
         p = fit.parameters
