@@ -126,14 +126,11 @@ def confirm(mo: Motion, shift: float, accepted: list, resolved_before: dict, cfg
         res = cause.resolution(a, mo)
         odd = cause.plausible(a, mo)
         if odd is None and held["ok"] and cause.in_motion_model and ccfg.data_bounds:
-            odd = cause.plausible_data(
-                Stage(mo, _null_of(mo, shift, [b for b in accepted if b is not a]), cfg,
-                      noise=noise), a)
+            odd = cause.plausible_data(mo, others, a, cfg, noise)
         checks[a.cause] = {"held_out": held, "resolution": res or "resolved",
                            "plausible": odd or "yes"}
         if held["ok"] and a.cause == "wheel_slip" and res is None:
             # each episode held out on its own: those the other samples do not confirm go
-            others = _null_of(mo, shift, [b for b in accepted if b is not a])
             checks[a.cause]["episodes"] = heldout_episodes(mo, others, a, cfg, noise, ccfg)
             if not a.parameters.get("intervals"):
                 held = dict(held, ok=False, why="no episode confirmed on its own (held out "
@@ -287,24 +284,35 @@ def heldout_motion(mo: Motion, others: Null, cause, cfg: DiagConfig, noise,
             fitted.append({"fold": fold, "error": str(exc)})
             continue
         e1, _ = speed_innovations(mo, ext, cfg, noise)
-        test = ~train & np.isfinite(s) & np.isfinite(e0) & np.isfinite(e1) & (s > 0)
-        d = (e0 - e1)[test]
-        num += float(np.sum(e0[test] * d / s[test]))
-        var += float(np.sum(d * d / s[test]))
+        n, v = _score_terms(e0, e1, s, ~train)
+        num, var = num + n, var + v
         fitted.append({"fold": fold, "parameters": params})
-    gain = num - 0.5 * var
-    sd = math.sqrt(var)
-    z = num / sd if sd > 0 else 0.0
+    gain, sd, z, ok = _score(num, var, ccfg)
     out = {"test": "held-out score test on the filter's speed innovations, two folds of "
                    + FOLDS[cause.family].format(cfg.gain_block), "gain_loglik": gain,
            "sd_under_no_effect": sd, "z": z, "z_needed": ccfg.heldout_z,
            "fitted_on_folds": fitted}
-    out["ok"] = bool(gain > 0 and z > ccfg.heldout_z)
+    out["ok"] = ok
     if not out["ok"]:
         out["why"] = (f"held-out log-likelihood gain {gain:+.3g} (SD {sd:.3g} under no "
                       f"effect), score Z {z:.2f} <= {ccfg.heldout_z:g}" if gain <= 0 or
                       sd == 0 else f"score Z {z:.2f} <= {ccfg.heldout_z:g}")
     return out
+
+
+def _score_terms(e0, e1, s, held) -> tuple[float, float]:
+    """The held-out events' terms of the score test (module docstring, check 1): sum e0 d / S
+    and sum d^2 / S with d = e0 - e1, over the events ``held`` out where all are finite."""
+    test = held & np.isfinite(s) & np.isfinite(e0) & np.isfinite(e1) & (s > 0)
+    d = (e0 - e1)[test]
+    return float(np.sum(e0[test] * d / s[test])), float(np.sum(d * d / s[test]))
+
+
+def _score(num: float, var: float, ccfg: ConfirmConfig) -> tuple[float, float, float, bool]:
+    """(gain D, its SD under no effect, score Z, confirmed: D > 0 and Z > heldout_z)."""
+    gain, sd = num - 0.5 * var, math.sqrt(var)
+    z = num / sd if sd > 0 else 0.0
+    return gain, sd, z, bool(gain > 0 and z > ccfg.heldout_z)
 
 
 def heldout_episodes(mo: Motion, others: Null, fit: CauseFit, cfg: DiagConfig, noise,
@@ -313,8 +321,8 @@ def heldout_episodes(mo: Motion, others: Null, fit: CauseFit, cfg: DiagConfig, n
     model ``others`` plus the other episodes at their fitted coefficients, the episode's
     coefficient is fitted on alternate odometer samples and scored on the others (the score
     test of :func:`heldout_motion`, both folds). An episode that fails is dropped from ``fit``
-    (its interval, depth, fraction and column, in place; the others keep the joint fit's
-    values). Returns each episode's figures."""
+    (``WheelSlip.keep_episodes``: in place; the others keep the joint fit's values). Returns
+    each episode's figures."""
     ivs = [tuple(iv) for iv in fit.parameters.get("intervals", [])]
     th = list(fit.extra.get("column") or [])
     if not ivs or len(th) != len(ivs):
@@ -335,22 +343,14 @@ def heldout_episodes(mo: Motion, others: Null, fit: CauseFit, cfg: DiagConfig, n
             ext = copy.deepcopy(base)
             ext.slip.append((iv[0], iv[1], c))
             e1, _ = speed_innovations(mo, ext, cfg, noise)
-            test = ~train & np.isfinite(s) & np.isfinite(e0) & np.isfinite(e1) & (s > 0)
-            d = (e0 - e1)[test]
-            num += float(np.sum(e0[test] * d / s[test]))
-            var += float(np.sum(d * d / s[test]))
-        z = num / math.sqrt(var) if var > 0 else 0.0
-        ok = bool(num - 0.5 * var > 0 and z > ccfg.heldout_z)
-        out.append({"interval": list(iv), "gain_loglik": num - 0.5 * var, "z": z,
-                    "confirmed": ok})
+            n, v = _score_terms(e0, e1, s, ~train)
+            num, var = num + n, var + v
+        gain, _, z, ok = _score(num, var, ccfg)
+        out.append({"interval": list(iv), "gain_loglik": gain, "z": z, "confirmed": ok})
         if ok:
             keep.append(j)
     if len(keep) < len(ivs):
-        p, se, ex = fit.parameters, fit.std_errors, fit.extra
-        for d in (p, se, ex):
-            for k in ("intervals", "depths", "slip_fraction", "column"):
-                if isinstance(d.get(k), list) and len(d[k]) == len(ivs):
-                    d[k] = [d[k][i] for i in keep]
+        BY_NAME[fit.cause].keep_episodes(fit, keep)
     return out
 
 

@@ -50,7 +50,14 @@ from train_core.model import G as G_ACCEL
 from train_estimation.core.numerics.augmented_kf import gls
 
 from .motion import Motion
-from .phases import PHASES, _event_grid_index, _fit_columns, families, grid_phase
+from .phases import (
+    PHASES,
+    _event_grid_index,
+    _fit_columns,
+    counted_columns,
+    families,
+    grid_phase,
+)
 from .stage import Null, Stage
 
 # s, a cell of the place test holds at least this much time outside the stretch (a stop's last
@@ -142,14 +149,12 @@ def _split_measurement(mo: Motion, st1: Stage, dmd: np.ndarray, dmv: np.ndarray,
     ph = grid_phase(mo)[gi]
     v, x, t = mo.v_ref[gi], mo.x_ref[gi], mo.ev.t
     on = energy > 1e-6 * energy.max()
-    is_odo = np.zeros(dmd.size, bool)
-    is_odo[o] = True
     out, bad = {"contradicted": False, "on": "the odometer's readings"}, []
     for part, cells in _partitions(ph, v, x, t, on).items():
         cols = [(m, lab) for m, lab in cells if energy[m].sum() > 0.02 * energy.sum()]
         if len(cols) < 2:
             continue
-        Md = np.stack([np.where(is_odo, np.cumsum(inc * m), 0.0) for m, _ in cols], axis=1)
+        Md = counted_columns(mo, inc, [m for m, _ in cols])
         Mv = np.stack([dmv * m for m, _ in cols], axis=1)
         stat, c, se = _fit_columns(st1, None, None, meas=(Md, Mv))
         bad += _cells(out, part, cols, stat, c, se, alpha, min_share)

@@ -138,23 +138,29 @@ def odometer_family(mo: Motion, beta: float = 1.0):
     o = ev.odo
     inc = np.zeros(ev.t.size)
     inc[o] = np.diff(mo.sc_d[o], prepend=mo.sc_d[o][0])
-    is_odo = np.zeros(ev.t.size, bool)
-    is_odo[o] = True
     t_mov = g.t[mov]
     te = _bins(float(t_mov[0]), float(t_mov[-1]) + 1e-6, 60.0)
-    Md, Mv, labels, masks = [], [], [], []
+    cells, labels, masks = [], [], []
     for a, b in zip(te[:-1], te[1:]):
         on_g = mov & (g.t >= a) & (g.t < b)
         if on_g.sum() * g.dt < MIN_CELL_TIME:
             continue
-        m = (ev.t >= a) & (ev.t < b)
-        Md.append(np.where(is_odo, np.cumsum(inc * m), 0.0))
-        Mv.append(mo.sc_v * m)
+        cells.append((ev.t >= a) & (ev.t < b))
         labels.append({"phase": "all", "when": [a / beta, b / beta]})
         masks.append(on_g)
-    if len(Md) < 2:
+    if len(cells) < 2:
         return None
-    return np.stack(Md, axis=1), np.stack(Mv, axis=1), labels, np.stack(masks, axis=1)
+    return (counted_columns(mo, inc, cells), np.stack([mo.sc_v * m for m in cells], axis=1),
+            labels, np.stack(masks, axis=1))
+
+
+def counted_columns(mo: Motion, inc: np.ndarray, cells: list) -> np.ndarray:
+    """Odometer distance columns (n_events, len(cells)): the distance increments ``inc`` (m
+    per odometer event) inside each cell (an event mask), counted on after it, at the odometer
+    events (0 elsewhere): what the odometer's count gains from a change of 1 inside the cell."""
+    is_odo = np.zeros(inc.size, bool)
+    is_odo[mo.ev.odo] = True
+    return np.stack([np.where(is_odo, np.cumsum(inc * m), 0.0) for m in cells], axis=1)
 
 
 def _fit_columns(st: Stage, Bv: np.ndarray | None, Bs: np.ndarray | None, extra=None,

@@ -147,10 +147,10 @@ class Cause:
         data. The default states none."""
         return None
 
-    def plausible_data(self, st, fit: CauseFit) -> str | None:
+    def plausible_data(self, mo, others, fit: CauseFit, cfg, noise) -> str | None:
         """Like :meth:`plausible`, a bound from what the cause is, but one the data must be
-        asked about: ``st`` the stage of the other confirmed causes (its big filter), ``fit``
-        the cause as fitted on it. The default states none."""
+        asked about: ``others`` the model (Null) of the other accepted causes, at ``noise``;
+        ``fit`` the cause as fitted. The default states none (and costs nothing)."""
         return None
 
     # What else makes the same residual when the cause is seen in one phase only (None: the

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 from train_core.effects import ResistanceEffect
 
+from ..stage import Stage
 from .base import Cause, fleet_se, resolved
 
 RESISTANCE_COLS = ("one", "v", "v2")  # the Davis terms' elementary columns (a, b, c)
@@ -53,19 +54,20 @@ class Resistance(Cause):
         return resolved(f"resistance force at {v:.1f} m/s", df,
                         fit.std_errors.get("force_at_v_ref"), 0.03 * abs(f0), " N")
 
-    def plausible_data(self, st, fit) -> str | None:
+    def plausible_data(self, mo, others, fit, cfg, noise) -> str | None:
         """Every Davis term is a resistance (rolling, flange and bearing, air): a, b, c >= 0.
         A resistance that steps or bends with speed (bogies hunting above a critical speed,
         an aerodynamic effect at some speeds) is fitted by a Davis curve with a negative term,
         which no train has. The best fit with a, b, c >= 0 (each subset of them held at its
-        bound, the rest free on the stage ``st``) against the free one: 2 ln LR above
+        bound, the rest free on the model ``others``) against the free one: 2 ln LR above
         ``NONNEG_LR`` says the data need such a curve, and the resistance is not confirmed."""
-        mo = st.mo
-        d = st.null.drift
-        # the bound on each column's coefficient: believed plus null part plus it >= 0
-        lb = -(np.array([mo.alpha0, mo.beta0, mo.gamma0])
-               + np.array([d.get(n, 0.0) for n in RESISTANCE_COLS]))
-        free = [{n: 1.0} for n in RESISTANCE_COLS]
+        st = Stage(mo, others, cfg, noise=noise)
+        d = others.drift
+        # the bound on each column's coefficient: believed plus the others' part plus it >= 0
+        base = np.array([mo.alpha0 + d.get("one", 0.0), mo.beta0 + d.get("v", 0.0),
+                         mo.gamma0 + d.get("v2", 0.0)])
+        lb = -base
+        free = self.free(st)
         th, _, ll_free, _ = st.fit({}, free)
         if np.all(th >= lb - 1e-12 * np.abs(lb)):
             return None
@@ -81,9 +83,7 @@ class Resistance(Cause):
         fit.extra["nonnegative_lr"] = float(lr)
         if lr <= NONNEG_LR:
             return None
-        meff = mo.train.effective_mass
-        tot = (np.array([mo.alpha0, mo.beta0, mo.gamma0])
-               + np.array([d.get(n, 0.0) for n in RESISTANCE_COLS]) + th) * meff
+        tot = (base + th) * mo.train.effective_mass
         neg = ", ".join(f"{n} {v:.3g}" for n, v in zip("abc", tot) if v < 0)
         return (f"not a running resistance: the data need a Davis curve with a negative term "
                 f"({neg}; 2 ln LR {lr:.1f} > {NONNEG_LR:g} against the best with a, b, c >= 0): "

@@ -84,6 +84,15 @@ class WheelSlip(Cause):
             why = r or f"below resolution: episode shorter than one odometer period ({period:g} s)"
         return why
 
+    def keep_episodes(self, fit, keep: list) -> None:
+        """Keep only the episodes ``keep`` (indices) of ``fit``, in place: their intervals,
+        depths, fractions (and standard errors) and columns."""
+        n = len(fit.parameters.get("intervals", []))
+        for d in (fit.parameters, fit.std_errors, fit.extra):
+            for k in ("intervals", "depths", "slip_fraction", "column"):
+                if isinstance(d.get(k), list) and len(d[k]) == n:
+                    d[k] = [d[k][i] for i in keep]
+
     def extend_null(self, null, fit, mo) -> None:
         """The episodes' columns at their fitted coefficients (see :func:`_fractions`)."""
         th = fit.extra.get("column")
