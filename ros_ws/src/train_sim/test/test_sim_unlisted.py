@@ -8,10 +8,15 @@ from train_core.model import Brake, Davis, Line, TrainParams
 from train_sim.scenario import load_scenario
 from train_sim.unlisted import (
     BrakeFade,
+    BrakePowerLimit,
+    ClockStep,
     CoastDrag,
     HuntingDrag,
     LoadChange,
+    OdometerBias,
+    ResistanceWarmup,
     TractionGain,
+    TractionTrip,
     TunnelDrag,
     Unlisted,
     Wind,
@@ -119,6 +124,61 @@ def test_hunting_drag_above_its_critical_speed_only():
     slope = np.diff(v[fast]) / np.diff(t[fast])
     assert np.allclose(slope[:-1], -f / M_EFF, rtol=1e-6)
     assert v.min() > 19.9 and np.ptp(v[-50:]) < 1e-9
+
+
+def test_resistance_warmup_decays_from_its_start():
+    f, tau = 20000.0, 15.0  # N, s
+    u = Unlisted(resistance_warmup=ResistanceWarmup(5.0, tau, f))
+    tr = run(([-40.0], [0.0]), u, v0=20.0)  # coasting, frictionless
+    t, v = tr["t"], tr["velocity"]
+    assert np.all(v[t <= 5.0] == 20.0)
+    # v(t) = 20 - f tau / M_eff (1 - exp(-(t - 5) / tau)) after its start
+    after = t > 5.0
+    want = 20.0 - f * tau / M_EFF * (1.0 - np.exp(-(t[after] - 5.0) / tau))
+    assert np.allclose(v[after], want, rtol=0, atol=1e-6)
+
+
+def test_brake_power_limit_above_its_knee_only():
+    p = 10.0  # m^2/s^3: the braking -0.8 m/s^2 is limited above 12.5 m/s
+    u = Unlisted(brake_power_limit=BrakePowerLimit(p))
+    tr = run(([-40.0], [-0.8]), u, v0=25.0)
+    v, acc = tr["velocity"], tr["acceleration"]
+    fast, slow = v > 12.6, (v < 12.4) & (v > 0.0)
+    assert fast.sum() > 50 and slow.sum() > 50
+    assert np.allclose(acc[fast], -p / v[fast], rtol=1e-3)
+    assert np.allclose(acc[slow], -0.8, rtol=0, atol=1e-12)
+
+
+def test_traction_trip_in_its_time_window_only():
+    u = Unlisted(traction_trip=TractionTrip(30.0, 45.0, 0.5))
+    tr = run(([0.0], [0.5]), u)
+    t, acc = tr["t"], tr["acceleration"]
+    before, inside, after = (t > SETTLED) & (t < 29.95), (t > 30.05) & (t < 44.95), t > 45.05
+    assert before.sum() > 50 and inside.sum() > 50 and after.sum() > 50
+    assert np.allclose(acc[before], 0.5, rtol=0, atol=1e-12)
+    assert np.allclose(acc[inside], 0.25, rtol=0, atol=1e-12)
+    assert np.allclose(acc[after], 0.5, rtol=0, atol=1e-12)
+
+
+def test_odometer_bias_and_clock_step_change_the_readings_only():
+    sc = load_scenario("metro_demo")
+    r0 = simulate(sc, duration=150.0)
+    u = Unlisted(odometer_bias=OdometerBias(0.07), clock_step=ClockStep(60.0, -2.5))
+    r1 = simulate(sc.with_changes(unlisted=u), duration=150.0)
+    for k in ("position", "velocity"):
+        assert np.array_equal(r1.truth[k], r0.truth[k]), k
+    o0, o1 = r0.odometer, r1.odometer
+    moving = r0.truth["velocity"] > 0.5
+    assert moving.sum() > 500 and (~moving).sum() > 50
+    dv = o1["speed"] - o0["speed"]
+    assert np.allclose(dv[moving], 0.07, rtol=0, atol=1e-9)
+    assert np.allclose(dv[~moving], 0.0, rtol=0, atol=1e-9)
+    # the distance counts the bias over the time moving: 0.07 m/s x (time moving so far)
+    dd = o1["distance"] - o0["distance"]
+    assert abs(dd[-1] - 0.07 * 0.1 * moving[:-1].sum()) < 0.07 * 1.0, dd[-1]
+    for r1_, r0_ in ((o1, o0), (r1.balise, r0.balise)):
+        step = np.where(r0_["t"] >= 60.0, -2.5, 0.0)
+        assert np.allclose(r1_["stamp"] - r0_["stamp"], step, rtol=0, atol=1e-9)
 
 
 def test_closed_loop_with_all_four_and_sensors_untouched():

@@ -58,6 +58,29 @@ effect               where it shows          what the world does
                                                    resistance (a step at a speed, not the Davis
                                                    curve), nor a power limit (braking and
                                                    coasting too).
+``resistance_warmup`` in time, in every     an extra resistance ``force`` x exp(-(t - t0) /
+                     phase                   ``tau``) (N) from true time ``t0`` on (axle
+                                             bearings and gearboxes run in cold: their drag
+                                             falls as they warm). Not resistance (the Davis
+                                             curve holds for the whole run) nor a gradient.
+``odometer_bias``    while moving            the odometer reads ``bias`` (m/s) more speed than
+                                             the axle turns while the train moves, and counts
+                                             it into the distance (a radar's offset). Not an
+                                             odometer scale (the same m/s at every speed) nor
+                                             slip (it persists).
+``brake_power_limit`` at some speeds, in     the braking delivered is at most ``p`` / v
+                     braking                 (m/s^2; an electric brake limited by the power it
+                                             can return, without a friction blend above it).
+                                             Not braking_rate (full braking below the knee) nor
+                                             an adhesion section (every place).
+``traction_trip``    in time, in traction    traction delivered x ``factor`` on [t0, t1) of
+                                             true time (a converter tripped, then reset). Not
+                                             mass nor a traction delay (it ends).
+``clock_step``       from a time on          the train's clock reads ``step`` s more from true
+                                             time ``t0`` on (set by hand, or by a time server
+                                             after an outage). Not clock drift (a rate, not a
+                                             jump) nor a delay of the commands (both
+                                             phases, and it does not end).
 ``misplaced_balise``  at one balise           the balise lies ``offset`` m from the position the
                                              map and its telegram give (a survey error): read
                                              there, it reports the map's position. Not an
@@ -82,6 +105,7 @@ Pure module: standard library only.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 from train_core.model import TrainParams
@@ -155,6 +179,36 @@ class MisplacedBalise:
 
 
 @dataclass(frozen=True)
+class ResistanceWarmup:
+    t0: float  # s, true time the warm-up starts (the run's start)
+    tau: float  # s, time constant of the decay
+    force: float  # N, extra resistance at t0
+
+
+@dataclass(frozen=True)
+class OdometerBias:
+    bias: float  # m/s, speed the odometer reads (and counts) beyond the train's while moving
+
+
+@dataclass(frozen=True)
+class BrakePowerLimit:
+    p: float  # m^2/s^3, the braking delivered (m/s^2) is at most p / v
+
+
+@dataclass(frozen=True)
+class TractionTrip:
+    t0: float  # s, true time the traction drops
+    t1: float  # s, true time it is restored
+    factor: float  # -, multiplier of the delivered traction on [t0, t1)
+
+
+@dataclass(frozen=True)
+class ClockStep:
+    t0: float  # s, true time the train's clock jumps
+    step: float  # s, what it reads more from t0 on (negative: it jumps back)
+
+
+@dataclass(frozen=True)
 class Unlisted:
     """The test effects of one run; None = off."""
 
@@ -169,6 +223,11 @@ class Unlisted:
     load_change: LoadChange | None = None
     coast_drag: CoastDrag | None = None
     hunting_drag: HuntingDrag | None = None
+    resistance_warmup: ResistanceWarmup | None = None
+    odometer_bias: OdometerBias | None = None
+    brake_power_limit: BrakePowerLimit | None = None
+    traction_trip: TractionTrip | None = None
+    clock_step: ClockStep | None = None
 
 
 # coast_drag acts while the train moves faster than this (m/s) with less than COAST_DRIVE (m/s^2)
@@ -181,6 +240,19 @@ def odometer_factor(unlisted: Unlisted | None, t: float) -> float:
     """The multiplier of what the odometer counts at true time ``t`` (1 without a rescale)."""
     r = unlisted.odometer_rescale if unlisted is not None else None
     return r.factor if r is not None and t >= r.t0 else 1.0
+
+
+def odometer_bias(unlisted: Unlisted | None, v: float) -> float:
+    """m/s the odometer reads beyond the train's speed ``v`` (0 without a bias, and while the
+    train moves slower than COAST_MIN_SPEED)."""
+    b = unlisted.odometer_bias if unlisted is not None else None
+    return b.bias if b is not None and v > COAST_MIN_SPEED else 0.0
+
+
+def clock_step(unlisted: Unlisted | None, t: float) -> float:
+    """s the train's clock reads more at true time ``t`` (0 without a step)."""
+    c = unlisted.clock_step if unlisted is not None else None
+    return c.step if c is not None and t >= c.t0 else 0.0
 
 
 def balise_moves(unlisted: Unlisted | None) -> dict:
@@ -198,7 +270,8 @@ def unlisted_hooks(unlisted: Unlisted | None, true_train: TrainParams) -> dict:
     fade, gain = unlisted.brake_fade, unlisted.traction_gain
     tfade, neutral = unlisted.traction_fade, unlisted.neutral_section
     load, coast = unlisted.load_change, unlisted.coast_drag
-    if any(e is not None for e in (fade, gain, tfade, neutral, load, coast)):
+    bpl, trip = unlisted.brake_power_limit, unlisted.traction_trip
+    if any(e is not None for e in (fade, gain, tfade, neutral, load, coast, bpl, trip)):
         g = gain.factor if gain is not None else 1.0
 
         def drive_hook(t, x, v, a_tr, a_br):
@@ -211,6 +284,10 @@ def unlisted_hooks(unlisted: Unlisted | None, true_train: TrainParams) -> dict:
                 k *= neutral.factor
             if load is not None and t >= load.t0:
                 k *= load.factor
+            if trip is not None and trip.t0 <= t < trip.t1:
+                k *= trip.factor
+            if bpl is not None and v > 0.0 and -a_br * v > bpl.p:
+                a_br = -bpl.p / v
             if coast is not None and v > COAST_MIN_SPEED and a_tr < COAST_DRIVE \
                     and a_br > -COAST_DRIVE:
                 a_br = a_br - coast.decel
@@ -218,7 +295,8 @@ def unlisted_hooks(unlisted: Unlisted | None, true_train: TrainParams) -> dict:
 
         out["drive_hook"] = drive_hook
     tun, wind, hunt = unlisted.tunnel_drag, unlisted.wind, unlisted.hunting_drag
-    if tun is not None or wind is not None or hunt is not None:
+    warm = unlisted.resistance_warmup
+    if tun is not None or wind is not None or hunt is not None or warm is not None:
         m_eff = true_train.effective_mass
 
         def resist_hook(t, x, v):
@@ -229,6 +307,8 @@ def unlisted_hooks(unlisted: Unlisted | None, true_train: TrainParams) -> dict:
                 f += wind.force
             if hunt is not None and v > hunt.v_crit:
                 f += hunt.force
+            if warm is not None and t >= warm.t0 and v > 0.0:
+                f += warm.force * math.exp(-(t - warm.t0) / warm.tau)
             return f / m_eff
 
         out["resist_hook"] = resist_hook

@@ -37,6 +37,14 @@ the bench:
                      coasts for at least 20 s is drawn)
 ``hunting_drag``     above 60-80 % of the top speed, 0.04-0.08 m/s^2     all
                      x M_eff
+``resistance_warmup`` from the run's start, tau 20-35 % of the run's    all
+                     time, 0.06-0.12 m/s^2 x M_eff at the start
+``odometer_bias``    +-0.04-0.1 m/s while moving                          all
+``brake_power_limit`` the knee at 45-65 % of the top speed for the run's   braking
+                     median braking command
+``traction_trip``    60-120 s from a traction onset between 20 and 70 %  traction
+                     of the run's time, factor 0.4-0.6
+``clock_step``       +-0.5-3 s at a time between 30 and 70 % of the run   all
 ``misplaced_balise`` a balise the run passes at > 3 m/s with balises    all
                      passed before and after it, +-8-20 m from its
                      map position
@@ -56,14 +64,19 @@ import numpy as np
 from .cases import Case, make_case
 from .unlisted import (
     BrakeFade,
+    BrakePowerLimit,
+    ClockStep,
     CoastDrag,
     HuntingDrag,
     LoadChange,
     MisplacedBalise,
     NeutralSection,
+    OdometerBias,
     OdometerRescale,
+    ResistanceWarmup,
     TractionFade,
     TractionGain,
+    TractionTrip,
     TunnelDrag,
     Unlisted,
     Wind,
@@ -71,11 +84,14 @@ from .unlisted import (
 
 KINDS = ("tunnel_drag", "brake_fade", "traction_gain", "wind")
 TEST_KINDS = ("traction_fade", "neutral_section", "misplaced_balise", "odometer_rescale",
-              "load_change", "coast_drag", "hunting_drag")
+              "load_change", "coast_drag", "hunting_drag", "resistance_warmup",
+              "odometer_bias", "brake_power_limit", "traction_trip", "clock_step")
 PHASE = {"tunnel_drag": "all", "brake_fade": "braking", "traction_gain": "traction",
          "wind": "all", "traction_fade": "traction", "neutral_section": "traction",
          "misplaced_balise": "all", "odometer_rescale": "all", "load_change": "traction",
-         "coast_drag": "coasting", "hunting_drag": "all"}
+         "coast_drag": "coasting", "hunting_drag": "all", "resistance_warmup": "all",
+         "odometer_bias": "all", "brake_power_limit": "braking", "traction_trip": "traction",
+         "clock_step": "all"}
 
 
 @dataclass(frozen=True)
@@ -172,6 +188,39 @@ def unlisted_case(rng: np.random.Generator, kind: str, pilot=None) -> UnlistedCa
     elif kind == "hunting_drag":
         eff = HuntingDrag(round(float(eff_rng.uniform(0.6, 0.8)) * v_top, 2), round(a * m_eff, 1))
         u = Unlisted(hunting_drag=eff)
+    elif kind == "resistance_warmup":
+        span = float(t[-1] - t[0])
+        eff = ResistanceWarmup(round(float(t[0]), 1),
+                               round(float(eff_rng.uniform(0.2, 0.35)) * span, 1),
+                               round(1.5 * a * m_eff, 1))
+        u = Unlisted(resistance_warmup=eff)
+    elif kind == "odometer_bias":
+        sign = 1.0 if eff_rng.random() < 0.5 else -1.0
+        eff = OdometerBias(round(sign * float(eff_rng.uniform(0.04, 0.1)), 3))
+        u = Unlisted(odometer_bias=eff)
+    elif kind == "brake_power_limit":
+        ct, ca = np.asarray(sim.control["t"]), np.asarray(sim.control["target_acceleration"])
+        brake = ca[ca < -0.05]
+        a_ref = float(np.median(-brake)) if brake.size else 0.5
+        eff = BrakePowerLimit(round(float(eff_rng.uniform(0.45, 0.65)) * v_top * a_ref, 3))
+        u = Unlisted(brake_power_limit=eff)
+    elif kind == "traction_trip":
+        ct, ca = np.asarray(sim.control["t"]), np.asarray(sim.control["target_acceleration"])
+        on = ct[1:][(ca[1:] > 0.05) & (ca[:-1] <= 0.05)]
+        span = float(t[-1] - t[0])
+        mid = on[(on - t[0] >= 0.2 * span) & (on - t[0] <= 0.7 * span)]
+        if not mid.size:
+            raise RuntimeError("no traction onset in the middle of the run")
+        t0 = float(mid[eff_rng.integers(mid.size)])
+        eff = TractionTrip(round(t0, 1), round(t0 + float(eff_rng.uniform(60.0, 120.0)), 1),
+                           round(float(eff_rng.uniform(0.4, 0.6)), 3))
+        u = Unlisted(traction_trip=eff)
+    elif kind == "clock_step":
+        span = float(t[-1] - t[0])
+        sign = 1.0 if eff_rng.random() < 0.5 else -1.0
+        eff = ClockStep(round(float(t[0]) + float(eff_rng.uniform(0.3, 0.7)) * span, 1),
+                        round(sign * float(eff_rng.uniform(0.5, 3.0)), 2))
+        u = Unlisted(clock_step=eff)
     elif kind == "misplaced_balise":
         # a balise passed at speed, with balises passed before and after it (so that the
         # odometer carries the position to it and on from it)

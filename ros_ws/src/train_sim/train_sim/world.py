@@ -59,7 +59,7 @@ from train_core.motion import Motion, warm_actuator
 from .driver import Driver, DriverParams
 from .scenario import Scenario
 from .sensors import BaliseReader, Odometer
-from .unlisted import balise_moves, odometer_factor, unlisted_hooks
+from .unlisted import balise_moves, clock_step, odometer_bias, odometer_factor, unlisted_hooks
 
 _EPS = 1e-9  # s
 TRUTH_COVARIANCE = (math.nan,) * 16  # docs/interfaces.md: NaN where not estimated (truth is not)
@@ -166,7 +166,7 @@ class World:
 
     def train_stamp(self, t: float) -> float:
         """The train clock's reading at true time ``t`` (s)."""
-        return self._epoch + t * (1.0 + self._drift)
+        return self._epoch + t * (1.0 + self._drift) + clock_step(self.scenario.unlisted, t)
 
     def braking_rate(self, t: float) -> float:
         """True braking rate f(t)."""
@@ -251,6 +251,8 @@ class World:
 
         def visit(t0, h, x0, x1):
             self.axle_distance += factor * (x1 - x0)
+            if h > 0.0:  # an odometer bias (unlisted test effect) counts bias x time moving
+                self.axle_distance += odometer_bias(self.scenario.unlisted, (x1 - x0) / h) * h
             if x1 >= br.next_trigger:
                 for tb, bal in br.crossings(t0, x0, t0 + h, x1):
                     self._emit_balise(tb, bal, out)
@@ -287,7 +289,8 @@ class World:
         slip = self._slip.factor(t) if self._slip else 1.0
         seq, dist, speed, var = self.odometer.sample(
             self.axle_distance,
-            self._scale * slip * odometer_factor(self.scenario.unlisted, t) * st.v)
+            self._scale * slip * odometer_factor(self.scenario.unlisted, t) * st.v
+            + odometer_bias(self.scenario.unlisted, st.v))
         stamp = self.train_stamp(t)
         t_recv = self.links["odometer"].send(t)
         ok = t_recv is not None

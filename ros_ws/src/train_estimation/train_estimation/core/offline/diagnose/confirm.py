@@ -16,7 +16,8 @@ reported ``confirmed`` only when the checks below pass, the same for every cause
    one block counts at its own noise). Confirmed when D > 0 and Z > ``heldout_z``.
    Causes with a likelihood of their own (clock, link) use their own held-out gain. Slip
    episodes are then held out one by one (:func:`heldout_episodes`): an episode that the
-   other samples do not confirm is dropped.
+   other samples do not confirm, or whose readings on their own reject its step
+   (:func:`.contradict.slip_step`), is dropped.
 2. **Resolution.** The fitted size is more than the data can resolve: each cause states its
    rule (``Cause.resolution``). Checked on the parameters after the joint refit; a fit that
    passes before the joint refit but not after is ``parameters at nominal after the joint
@@ -70,6 +71,7 @@ from .contradict import (
     flexible_rival,
     piece_of,
     place_test,
+    slip_step,
     speed_law,
     split_test,
 )
@@ -131,7 +133,15 @@ def confirm(mo: Motion, shift: float, accepted: list, resolved_before: dict, cfg
                            "plausible": odd or "yes"}
         if held["ok"] and a.cause == "wheel_slip" and res is None:
             # each episode held out on its own: those the other samples do not confirm go
-            checks[a.cause]["episodes"] = heldout_episodes(mo, others, a, cfg, noise, ccfg)
+            eps = heldout_episodes(mo, others, a, cfg, noise, ccfg)
+            checks[a.cause]["episodes"] = eps
+            if not a.parameters.get("intervals") and all(e["readings_step"]["contradicted"]
+                                                         for e in eps):
+                a.status = "not confirmed"
+                a.why = ("not a slip: the odometer's speed readings step by less than half the "
+                         "fitted depth at the episodes' ends (the train's motion differs from "
+                         "the model there, not the odometer)")
+                continue
             if not a.parameters.get("intervals"):
                 held = dict(held, ok=False, why="no episode confirmed on its own (held out "
                                                 "one by one)")
@@ -320,7 +330,8 @@ def heldout_episodes(mo: Motion, others: Null, fit: CauseFit, cfg: DiagConfig, n
     """Each slip episode of ``fit`` held out on its own (check 1 per episode): against the
     model ``others`` plus the other episodes at their fitted coefficients, the episode's
     coefficient is fitted on alternate odometer samples and scored on the others (the score
-    test of :func:`heldout_motion`, both folds). An episode that fails is dropped from ``fit``
+    test of :func:`heldout_motion`, both folds), and its readings on their own must show its
+    step (:func:`.contradict.slip_step`). An episode that fails is dropped from ``fit``
     (``WheelSlip.keep_episodes``: in place; the others keep the joint fit's values). Returns
     each episode's figures."""
     ivs = [tuple(iv) for iv in fit.parameters.get("intervals", [])]
@@ -346,7 +357,11 @@ def heldout_episodes(mo: Motion, others: Null, fit: CauseFit, cfg: DiagConfig, n
             n, v = _score_terms(e0, e1, s, ~train)
             num, var = num + n, var + v
         gain, _, z, ok = _score(num, var, ccfg)
-        out.append({"interval": list(iv), "gain_loglik": gain, "z": z, "confirmed": ok})
+        step = slip_step(mo, iv, th[j], others=[w for i, w in enumerate(ivs) if i != j])
+        if step["contradicted"]:
+            ok = False
+        out.append({"interval": list(iv), "gain_loglik": gain, "z": z, "readings_step": step,
+                    "confirmed": ok})
         if ok:
             keep.append(j)
     if len(keep) < len(ivs):
