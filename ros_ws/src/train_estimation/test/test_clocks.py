@@ -4,7 +4,7 @@ clock to the reference clock on which control is stamped."""
 
 import numpy as np
 
-from train_estimation.core.numerics.clocks import ClockFit, control_on_train_clock
+from train_estimation.core.numerics.clocks import ClockFit, clock_steps, control_on_train_clock
 
 
 def _streams(epoch, drift, latency, n=600, period=0.1):
@@ -70,3 +70,43 @@ def test_a_recorder_stall_does_not_move_the_fit():
         fit = ClockFit.fit(s, stalled)
         err = np.abs(fit.ref_of_train(s) + fit.alpha - ref.ref_of_train(s) - ref.alpha)
         assert err.max() < 2e-3, (start, err.max())
+
+
+def _grid(n=3000, period=0.1, drift=1e-3, jitter=0.002, seed=3):
+    """Odometer stamps on a 10 Hz grid (a drifting train clock, 2 ms stamp jitter) with one
+    reading in ten lost: (stamps, seq)."""
+    rng = np.random.default_rng(seed)
+    seq = np.arange(n)
+    kept = rng.random(n) > 0.1
+    s = 1.7e9 + seq * period * (1.0 + drift) + jitter * rng.standard_normal(n)
+    return s[kept], seq[kept]
+
+
+def test_clock_steps_are_found_where_the_sample_grid_moves():
+    """Steps of +2.4 s and -0.7 s are found at the first reading after each, with their
+    sizes to within the stamps' jitter; the drift, the lost readings and the jitter give
+    none."""
+    s, q = _grid()
+    assert clock_steps(s, q) == []
+    a, b = int(np.searchsorted(q, 1000)), int(np.searchsorted(q, 2200))
+    stepped = s.copy()
+    stepped[a:] += 2.4
+    stepped[b:] -= 0.7
+    found = clock_steps(stepped, q)
+    assert [i for i, _ in found] == [a, b], found
+    assert np.allclose([j for _, j in found], [2.4, -0.7], atol=0.01), found
+
+
+def test_wrong_stamps_and_irregular_sampling_give_no_step():
+    """One stamp 60 s ahead, a burst of five stamps 3 s behind (shorter than half the window)
+    and a link whose latency changes by 0.3 s (it moves no stamp) are no steps; stamps that
+    are not on a grid (sampled at random times) give none either."""
+    s, q = _grid()
+    bad = s.copy()
+    bad[500] += 60.0
+    bad[1500:1505] -= 3.0
+    assert clock_steps(bad, q) == []
+    rng = np.random.default_rng(4)
+    irregular = np.sort(1.7e9 + rng.uniform(0.0, 300.0, q.size))
+    irregular[q.size // 2:] += 2.0
+    assert clock_steps(irregular, q) == []

@@ -583,6 +583,13 @@ def at_balise(u: dict) -> bool:
     return bool(w) and w[0] == w[1]
 
 
+def clock_step(u: dict) -> bool:
+    """An ``unexplained`` entry of a step of the train's clock (``when`` one point, no
+    ``where``): its size is the step in s (docs/diagnose.md)."""
+    t = u.get("when")
+    return not u.get("where") and bool(t) and t[0] == t[1]
+
+
 def on_odometer(u: dict) -> bool:
     """An ``unexplained`` entry of the odometer's count (``where`` and ``when`` both spans: no
     acceleration family gives both): its size is the odometer error in m (docs/diagnose.md)."""
@@ -599,6 +606,10 @@ def unexplained_line(u: dict) -> str:
                 f"({_span(u['when'], 's')}), {u['size']:+.1f} m from the train's position by "
                 f"the end of it: it moved to other wheels or its calibration changed, not one "
                 f"scale for the run" + closest)
+    if clock_step(u):
+        return (f"unexplained: the train's clock jumped by {u['size']:+.3f} s at "
+                f"{u['when'][0]:.1f} s (the odometer's sample grid moved at once): the readings "
+                f"after it are analysed on the clock before it" + closest)
     if at_balise(u):
         return (f"unexplained: the balise at {u['where'][0]:.0f} m (read at {u['when'][0]:.0f} s, "
                 f"{u['speed'][0]:.1f} m/s) is {u['size']:+.1f} m from the train's position by "

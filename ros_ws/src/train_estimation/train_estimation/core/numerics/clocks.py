@@ -112,6 +112,50 @@ def control_on_train_clock(odo_stamp, odo_recv, ctrl_stamp, ctrl_recv,
     return fit.train_of_control(c)
 
 
+def clock_steps(stamps, seq, window: int = 20, max_steps: int = 5) -> list[tuple[int, float]]:
+    """Steps of the train's clock in odometer readings in sequence order (``stamps`` s,
+    ``seq`` unwrapped and increasing): [(i, J)], the readings from index ``i`` on read ``J`` s
+    more than the sample grid before them says.
+
+    An odometer samples on a grid: stamp = s0 + T seq (a drift is in T). A clock step (a
+    reboot, a time server's correction) moves the grid by J at once and for good; the link's
+    latency moves no stamp, so a change of the link is not a step, and nothing here needs the
+    log times. A step is an increment of stamp - T seq beyond the bar (``SMALL_MOVE`` and 10
+    robust SDs of those increments) after which the level holds: the medians of the
+    ``window`` readings either side differ by the same J (within the bar). One wrong stamp,
+    or a burst shorter than half the window, comes back and is no step. Nothing is reported
+    where the readings are not on a grid (the increments' robust SD above a tenth of the
+    period, or fewer than 90 % of them within the bar: irregular sampling, no seq), nor when
+    there are more than ``max_steps`` (a clock that moves that often is not one with a few
+    steps, and this does not follow it)."""
+    s = np.asarray(stamps, float)
+    q = np.asarray(seq, float)
+    n = s.size
+    if n < 2 * window or q.size != n:
+        return []
+    dq, ds = np.diff(q), np.diff(s)
+    if np.any(dq <= 0):
+        return []
+    period = float(np.median(ds / dq))
+    if not period > 0:
+        return []
+    de = ds - period * dq
+    scale = 1.4826 * float(np.median(np.abs(de - np.median(de))))
+    bar = max(SMALL_MOVE, 10.0 * scale)
+    if scale > 0.1 * period or np.mean(np.abs(de) <= bar) < 0.9:
+        return []
+    e = s - period * q
+    out = []
+    for c in np.flatnonzero(np.abs(de) > bar):
+        i = int(c) + 1
+        if i < window or n - i < window:
+            continue
+        jump = float(np.median(e[i:i + window]) - np.median(e[i - window:i]))
+        if abs(jump) > bar and abs(jump - de[c]) < bar:
+            out.append((i, jump))
+    return out if len(out) <= max_steps else []
+
+
 # -- online ----------------------------------------------------------------------------------
 
 SMALL_MOVE = 0.05  # s: the least move of a clock's offset level taken as one (the runner's

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 from train_core.model import Line
 
-from train_estimation.core.numerics.clocks import ClockFit
+from train_estimation.core.numerics.clocks import ClockFit, clock_steps
 
 from ..measured import MeasuredRun
 
@@ -83,8 +83,8 @@ def prepare(data: MeasuredRun, line: Line, cfg: DiagConfig) -> Run:
     """The run on the reference clock's time axis; :class:`DiagnoseError` when unusable."""
     notes = []
     _require_topics(data)
-    idx, fields, seq = _odometer(data, notes)
-    odo_s, odo_r = _arr(data.odo_stamp), _arr(data.odo_recv)
+    idx, fields, seq, odo_s, steps = _odometer(data, notes)
+    odo_r = _arr(data.odo_recv)
     s_odo, r_odo = odo_s[idx], odo_r[idx]
     # ---- clock: log time r = alpha + beta * stamp + latency (OLS; latency mean in alpha) -----
     cf = ClockFit.fit(s_odo, r_odo)
@@ -93,10 +93,11 @@ def prepare(data: MeasuredRun, line: Line, cfg: DiagConfig) -> Run:
     if not (0.5 < beta < 1.5):
         raise DiagnoseError(f"odometer stamps and log times disagree (rate {beta:.3g}): the "
                             "bag's log times must be receive times on one clock")
-    clock = {"alpha": alpha, "beta": beta}
+    clock = {"alpha": alpha, "beta": beta,
+             "steps": [{"when": float(at - t_first), "step": float(j)} for at, j, _ in steps]}
     ctrl_t, ctrl_a = _control(data, cf)
     t_end = float(beta * (s_odo[-1] - t_first))
-    bal_t, bal_p, bal_r, bal_id = _balises(data, line, notes, beta, t_first, t_end)
+    bal_t, bal_p, bal_r, bal_id = _balises(data, line, notes, beta, t_first, t_end, steps)
 
     v = fields["odo_speed"][idx]
     if t_end < cfg.min_duration:
@@ -127,7 +128,9 @@ def _require_topics(data: MeasuredRun) -> None:
 
 
 def _odometer(data: MeasuredRun, notes: list):
-    """(indices of the usable odometer readings in stamp order, the value arrays, seq)."""
+    """(indices of the usable odometer readings in stamp order, the value arrays, seq, the
+    stamps with the train clock's steps taken out, the steps [(stamp at the step on the clock
+    before it, J s, log time from which readings are after it)])."""
     odo_s, odo_r = _arr(data.odo_stamp), _arr(data.odo_recv)
     fields = {"odo_distance": _arr(data.odo_distance), "odo_speed": _arr(data.odo_speed),
               "odo_speed_variance": _arr(data.odo_speed_variance)}
@@ -141,15 +144,48 @@ def _odometer(data: MeasuredRun, notes: list):
         notes.append(f"{int((~ok).sum())} odometer readings with non-finite values or "
                      "non-positive variance dropped")
     seq = _arr(data.odo_seq, np.int64)
-    if seq.size != odo_s.size:
+    has_seq = seq.size == odo_s.size
+    if not has_seq:
         seq = np.arange(odo_s.size)
     idx = np.flatnonzero(ok)
+    steps = []
+    if has_seq and idx.size:
+        odo_s, steps = _unstep(odo_s, odo_r, seq, idx, notes)
     idx = idx[np.argsort(odo_s[idx], kind="stable")]
     # duplicates (same stamp) keep the first
     keep = np.concatenate([[True], np.diff(odo_s[idx]) > 0])
     if (~keep).sum():
         notes.append(f"{int((~keep).sum())} duplicate odometer stamps dropped")
-    return idx[keep], fields, seq
+    return idx[keep], fields, seq, odo_s, steps
+
+
+def _unstep(odo_s, odo_r, seq, idx, notes: list):
+    """The train clock's steps (numerics.clocks.clock_steps, on the readings in sequence
+    order) taken out of the stamps: every reading from a step on is put back on the clock
+    before it. Returns (stamps, steps) as :func:`_odometer`."""
+    by_recv = idx[np.argsort(odo_r[idx], kind="stable")]
+    q = unwrap(seq[by_recv])
+    o = np.argsort(q, kind="stable")
+    order, q = by_recv[o], q[o]
+    first = np.concatenate([[True], np.diff(q) > 0])
+    order, q = order[first], q[first]
+    found = clock_steps(odo_s[order], q)
+    if not found:
+        return odo_s, []
+    q_all = np.empty(odo_s.size, np.int64)
+    q_all[by_recv] = unwrap(seq[by_recv])
+    out, steps = odo_s.copy(), []
+    for i, jump in found:
+        after = np.zeros(odo_s.size, bool)
+        after[idx] = q_all[idx] >= q[i]
+        out[after] -= jump
+        # readings logged from halfway between the last reading before and the first after
+        # the step are after it (balises, which have no seq)
+        r_from = 0.5 * (odo_r[order[i - 1]] + odo_r[order[i]])
+        steps.append((float(out[order[i]]), float(jump), float(r_from)))
+        notes.append(f"the train's clock jumped by {jump:+.3f} s at odometer seq {int(q[i])}: "
+                     "the readings after it are put back on the clock before it")
+    return out, steps
 
 
 def _control(data: MeasuredRun, cf: ClockFit):
@@ -170,10 +206,20 @@ def _control(data: MeasuredRun, cf: ClockFit):
 
 
 def _balises(data: MeasuredRun, line: Line, notes: list, beta: float, t_first: float,
-             t_end: float):
+             t_end: float, steps=()):
     """Balise readings inside the odometer record: (t, position, variance, id); line.yaml's
-    position wins over a reading's that contradicts it."""
+    position wins over a reading's that contradicts it. ``steps``: the train clock's steps
+    (:func:`_odometer`), taken out of the readings logged after each."""
     bal_s = _arr(data.balise_stamp)
+    if steps:
+        bal_r = _arr(data.balise_recv)
+        if bal_r.size == bal_s.size:
+            bal_s = bal_s.copy()
+            for _, jump, r_from in steps:
+                bal_s[bal_r >= r_from] -= jump
+        else:
+            notes.append("balise readings without log times: the train clock's steps are not "
+                         "taken out of their stamps")
     bp, br = _arr(data.balise_position), _arr(data.balise_variance)
     bid = _arr(data.balise_id, np.int64)
     okb = np.isfinite(bal_s) & np.isfinite(bp) & (np.isfinite(br) & (br > 0))

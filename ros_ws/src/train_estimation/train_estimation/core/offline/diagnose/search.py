@@ -129,10 +129,12 @@ def _verdict(sr: _Search, run, untestable: list, before: dict, noise,
     for u in found:
         u.pop("mask")
         u.pop("meas", None)
-    verdict = confirmed[0].cause if confirmed else ("unexplained" if found else "none")
+    steps = mo.run.clock.get("steps") or []
+    verdict = confirmed[0].cause if confirmed else \
+        ("unexplained" if found or steps else "none")
     ranking = _ranking(sr, beta, "confirmed" if verdict == "none" else "rejected")
     top = ranking[0] if confirmed else None
-    unexplained = [_entry(u, ranking) for u in found]
+    unexplained = [_clock_entry(c) for c in steps] + [_entry(u, ranking) for u in found]
     evidence = _evidence(sr, run)
     evidence["_model"]["confirmation"] = {"checks": checks, "thresholds": vars(CONFIRM)}
     evidence["_model"]["structure"] = {"tests": tests, "found": found,
@@ -189,6 +191,18 @@ def _entry(u: dict, ranking: list) -> dict:
                                               "none's 0 (not supported by the data)"}
     return {"phase": u["phase"], "where": u["where"], "when": u["when"], "speed": u["speed"],
             "size": u["size"], "best_listed": listed}
+
+
+def _clock_entry(step: dict) -> dict:
+    """An ``unexplained`` entry for a step of the train's clock (run.prepare): ``when`` the
+    stamp it happened at (one point, on the clock before it), ``size`` the step in s (the
+    readings after it are analysed on the clock before it)."""
+    w, j = step["when"], step["step"]
+    return {"phase": "all", "where": None, "when": [w, w], "speed": None, "size": j,
+            "best_listed": {"cause": "clock_drift",
+                            "why": f"the train's clock jumped by {j:+.3f} s at once and held "
+                                   "the new reading (the odometer's sample grid moved): a "
+                                   "drift is a rate"}}
 
 
 def _stage(sr: _Search, stage_i: int, tick) -> Stage:
