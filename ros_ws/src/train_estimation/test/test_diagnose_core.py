@@ -263,3 +263,37 @@ def test_measured_run_gives_identify_each_series_in_stamp_order_once():
     assert np.array_equal(si.ctrl_t, ct)
     assert np.array_equal(si.ctrl_a_tar, np.linspace(-1, 1, ct.size))
     assert np.array_equal(si.balise_t, bt) and np.array_equal(si.balise_position, [100.0, 600.0])
+
+
+def test_measured_run_takes_the_train_clocks_step_out_of_every_stamp():
+    """The train clock jumps back 2.5 s at its 300th sample, in a bag in arrival order with
+    reordering latency: the odometer readings from that sample on and the balise logged after
+    it are put back on the clock before it (identify gets the unstepped stamps); without seq
+    numbers nothing is judged."""
+    import dataclasses
+
+    from train_estimation.core.offline.measured import MeasuredRun
+
+    rng = np.random.default_rng(6)
+    t = np.arange(0.0, 60.0, 0.1) + 1.7e9
+    stamped = t - np.where(np.arange(t.size) >= 300, 2.5, 0.0)
+    recv = t + 0.05 + rng.exponential(0.05, t.size)
+    arrival = np.argsort(recv, kind="stable")
+    bt = np.array([t[100], t[450]])
+    run = MeasuredRun(
+        odo_stamp=stamped[arrival], odo_recv=recv[arrival], odo_seq=arrival.astype(np.int64),
+        odo_distance=(2.0 * (t - t[0]))[arrival], odo_speed=np.full(t.size, 2.0),
+        odo_speed_variance=np.full(t.size, 0.01), ctrl_stamp=t[::5],
+        ctrl_a_tar=np.zeros(t[::5].size), balise_stamp=bt - [0.0, 2.5],
+        balise_recv=bt + 0.1, balise_id=np.array([1, 2]),
+        balise_position=np.array([20.0, 90.0]), balise_variance=np.array([1.0, 1.0]),
+        ctrl_recv=t[::5] + 0.1)
+    fixed, steps = run.without_clock_steps()
+    assert len(steps) == 1 and abs(steps[0][1] + 2.5) < 1e-5, steps  # stamps at 1.7e9 s
+    assert abs(steps[0][0] - t[300]) < 1e-5, steps
+    assert np.allclose(fixed.odo_stamp, t[arrival], rtol=0, atol=1e-5)
+    assert np.allclose(fixed.balise_stamp, bt, rtol=0, atol=1e-5)
+    assert np.allclose(run.to_identify().odo_t, t, rtol=0, atol=1e-5)
+    no_seq = dataclasses.replace(run, odo_seq=np.zeros(0, np.int64))
+    same, none = no_seq.without_clock_steps()
+    assert same is no_seq and none == []

@@ -11,13 +11,14 @@ Pure: numpy and train_core only (a read :class:`train_core.bagio.Bag` in, no fil
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from .. import reasons as R
-from ..numerics.clocks import control_on_train_clock
+from ..numerics.clocks import clock_steps, control_on_train_clock
 
 TOPICS = ("odometer", "balise", "control")  # never ground_truth
 
@@ -67,6 +68,43 @@ class MeasuredRun:
             balise_variance=col("balise", "position_variance"),
             ctrl_recv=recv("control"), topics=tuple(sorted(bag.topics)))
 
+    def without_clock_steps(self) -> tuple[MeasuredRun, list]:
+        """The run with the train clock's steps taken out of the odometer and balise stamps
+        (:func:`~train_estimation.core.numerics.clocks.clock_steps` on the odometer's
+        readings in sequence order): every reading from a step on is put back on the clock
+        before it; a balise reading is after a step when it was logged after halfway between
+        the last odometer reading before it and the first after it. Returns (run, steps),
+        each step (stamp where it happened, on the clock before it; J s, what the clock reads
+        more from there; log time from which readings are after it). Unchanged without seq
+        numbers or log times, or without a step."""
+        s, r = np.asarray(self.odo_stamp, float), np.asarray(self.odo_recv, float)
+        seq = np.asarray(self.odo_seq)
+        ok = np.isfinite(s) & np.isfinite(r)
+        if seq.size != s.size or r.size != s.size or ok.sum() < 2:
+            return self, []
+        idx = np.flatnonzero(ok)
+        by_recv = idx[np.argsort(r[idx], kind="stable")]
+        q_recv = unwrap(seq[by_recv])
+        o = np.argsort(q_recv, kind="stable")
+        order, q = by_recv[o], q_recv[o]
+        first = np.concatenate([[True], np.diff(q) > 0])
+        order, q = order[first], q[first]
+        found = clock_steps(s[order], q)
+        if not found:
+            return self, []
+        q_all = np.full(s.size, np.iinfo(np.int64).min)
+        q_all[by_recv] = q_recv
+        odo, bal = s.copy(), np.asarray(self.balise_stamp, float).copy()
+        bal_r = np.asarray(self.balise_recv, float)
+        steps = []
+        for i, jump in found:
+            odo[q_all >= q[i]] -= jump
+            r_from = 0.5 * (r[order[i - 1]] + r[order[i]])
+            if bal_r.size == bal.size:
+                bal[bal_r >= r_from] -= jump
+            steps.append((float(odo[order[i]]), float(jump), float(r_from)))
+        return dataclasses.replace(self, odo_stamp=odo, balise_stamp=bal), steps
+
     def to_identify(self):
         """identify's :class:`SIData`: every time on the odometer's (train) clock, control
         mapped through the odometer's stamps and log times. Raises IdentificationError
@@ -81,6 +119,8 @@ class MeasuredRun:
                 f"{list(self.topics) or 'none'})", missing=missing,
                 unidentifiable=("davis.a", "davis.b", "davis.c", "mass", "rotary_allowance",
                                 "braking_rate"))
+        # a step of the train's clock would move every reading after it against the commands
+        self, _ = self.without_clock_steps()
         ctrl_recv = self.ctrl_recv if self.ctrl_recv is not None else np.array([])
         ctrl_t = control_on_train_clock(self.odo_stamp, self.odo_recv, self.ctrl_stamp,
                                         ctrl_recv)
@@ -97,6 +137,14 @@ class MeasuredRun:
             ctrl_t=ctrl_t[c], ctrl_a_tar=self.ctrl_a_tar[c],
             balise_t=self.balise_stamp[b] if has_bal else None,
             balise_position=self.balise_position[b] if has_bal else None)
+
+
+def unwrap(seq: np.ndarray) -> np.ndarray:
+    """uint32 sequence numbers in time order -> increasing int64 (wrap-around at 2^32)."""
+    q = np.asarray(seq).astype(np.int64)
+    d = np.diff(q)
+    d = np.where(d < -(2 ** 31), d + 2 ** 32, d)
+    return np.concatenate([[0], np.cumsum(d)]) + (q[0] if q.size else 0)
 
 
 def _stamp_order(stamp) -> np.ndarray:

@@ -15,9 +15,9 @@ from dataclasses import dataclass
 import numpy as np
 from train_core.model import Line
 
-from train_estimation.core.numerics.clocks import ClockFit, clock_steps
+from train_estimation.core.numerics.clocks import ClockFit
 
-from ..measured import MeasuredRun
+from ..measured import MeasuredRun, unwrap
 
 
 class DiagnoseError(ValueError):
@@ -83,8 +83,13 @@ def prepare(data: MeasuredRun, line: Line, cfg: DiagConfig) -> Run:
     """The run on the reference clock's time axis; :class:`DiagnoseError` when unusable."""
     notes = []
     _require_topics(data)
-    idx, fields, seq, odo_s, steps = _odometer(data, notes)
-    odo_r = _arr(data.odo_recv)
+    # the train clock's steps out of the stamps first (MeasuredRun.without_clock_steps)
+    data, steps = data.without_clock_steps()
+    for at, jump, _ in steps:
+        notes.append(f"the train's clock jumped by {jump:+.3f} s at stamp {at:.3f}: the "
+                     "readings after it are put back on the clock before it")
+    idx, fields, seq = _odometer(data, notes)
+    odo_s, odo_r = _arr(data.odo_stamp), _arr(data.odo_recv)
     s_odo, r_odo = odo_s[idx], odo_r[idx]
     # ---- clock: log time r = alpha + beta * stamp + latency (OLS; latency mean in alpha) -----
     cf = ClockFit.fit(s_odo, r_odo)
@@ -97,7 +102,7 @@ def prepare(data: MeasuredRun, line: Line, cfg: DiagConfig) -> Run:
              "steps": [{"when": float(at - t_first), "step": float(j)} for at, j, _ in steps]}
     ctrl_t, ctrl_a = _control(data, cf)
     t_end = float(beta * (s_odo[-1] - t_first))
-    bal_t, bal_p, bal_r, bal_id = _balises(data, line, notes, beta, t_first, t_end, steps)
+    bal_t, bal_p, bal_r, bal_id = _balises(data, line, notes, beta, t_first, t_end)
 
     v = fields["odo_speed"][idx]
     if t_end < cfg.min_duration:
@@ -128,9 +133,7 @@ def _require_topics(data: MeasuredRun) -> None:
 
 
 def _odometer(data: MeasuredRun, notes: list):
-    """(indices of the usable odometer readings in stamp order, the value arrays, seq, the
-    stamps with the train clock's steps taken out, the steps [(stamp at the step on the clock
-    before it, J s, log time from which readings are after it)])."""
+    """(indices of the usable odometer readings in stamp order, the value arrays, seq)."""
     odo_s, odo_r = _arr(data.odo_stamp), _arr(data.odo_recv)
     fields = {"odo_distance": _arr(data.odo_distance), "odo_speed": _arr(data.odo_speed),
               "odo_speed_variance": _arr(data.odo_speed_variance)}
@@ -144,48 +147,15 @@ def _odometer(data: MeasuredRun, notes: list):
         notes.append(f"{int((~ok).sum())} odometer readings with non-finite values or "
                      "non-positive variance dropped")
     seq = _arr(data.odo_seq, np.int64)
-    has_seq = seq.size == odo_s.size
-    if not has_seq:
+    if seq.size != odo_s.size:
         seq = np.arange(odo_s.size)
     idx = np.flatnonzero(ok)
-    steps = []
-    if has_seq and idx.size:
-        odo_s, steps = _unstep(odo_s, odo_r, seq, idx, notes)
     idx = idx[np.argsort(odo_s[idx], kind="stable")]
     # duplicates (same stamp) keep the first
     keep = np.concatenate([[True], np.diff(odo_s[idx]) > 0])
     if (~keep).sum():
         notes.append(f"{int((~keep).sum())} duplicate odometer stamps dropped")
-    return idx[keep], fields, seq, odo_s, steps
-
-
-def _unstep(odo_s, odo_r, seq, idx, notes: list):
-    """The train clock's steps (numerics.clocks.clock_steps, on the readings in sequence
-    order) taken out of the stamps: every reading from a step on is put back on the clock
-    before it. Returns (stamps, steps) as :func:`_odometer`."""
-    by_recv = idx[np.argsort(odo_r[idx], kind="stable")]
-    q = unwrap(seq[by_recv])
-    o = np.argsort(q, kind="stable")
-    order, q = by_recv[o], q[o]
-    first = np.concatenate([[True], np.diff(q) > 0])
-    order, q = order[first], q[first]
-    found = clock_steps(odo_s[order], q)
-    if not found:
-        return odo_s, []
-    q_all = np.empty(odo_s.size, np.int64)
-    q_all[by_recv] = unwrap(seq[by_recv])
-    out, steps = odo_s.copy(), []
-    for i, jump in found:
-        after = np.zeros(odo_s.size, bool)
-        after[idx] = q_all[idx] >= q[i]
-        out[after] -= jump
-        # readings logged from halfway between the last reading before and the first after
-        # the step are after it (balises, which have no seq)
-        r_from = 0.5 * (odo_r[order[i - 1]] + odo_r[order[i]])
-        steps.append((float(out[order[i]]), float(jump), float(r_from)))
-        notes.append(f"the train's clock jumped by {jump:+.3f} s at odometer seq {int(q[i])}: "
-                     "the readings after it are put back on the clock before it")
-    return out, steps
+    return idx[keep], fields, seq
 
 
 def _control(data: MeasuredRun, cf: ClockFit):
@@ -206,20 +176,10 @@ def _control(data: MeasuredRun, cf: ClockFit):
 
 
 def _balises(data: MeasuredRun, line: Line, notes: list, beta: float, t_first: float,
-             t_end: float, steps=()):
+             t_end: float):
     """Balise readings inside the odometer record: (t, position, variance, id); line.yaml's
-    position wins over a reading's that contradicts it. ``steps``: the train clock's steps
-    (:func:`_odometer`), taken out of the readings logged after each."""
+    position wins over a reading's that contradicts it."""
     bal_s = _arr(data.balise_stamp)
-    if steps:
-        bal_r = _arr(data.balise_recv)
-        if bal_r.size == bal_s.size:
-            bal_s = bal_s.copy()
-            for _, jump, r_from in steps:
-                bal_s[bal_r >= r_from] -= jump
-        else:
-            notes.append("balise readings without log times: the train clock's steps are not "
-                         "taken out of their stamps")
     bp, br = _arr(data.balise_position), _arr(data.balise_variance)
     bid = _arr(data.balise_id, np.int64)
     okb = np.isfinite(bal_s) & np.isfinite(bp) & (np.isfinite(br) & (br > 0))
@@ -244,10 +204,3 @@ def _balises(data: MeasuredRun, line: Line, notes: list, beta: float, t_first: f
                             "cannot be placed on the line")
     return bal_t, bp[okb][ob][inside], br[okb][ob][inside], bid[okb][ob][inside]
 
-
-def unwrap(seq: np.ndarray) -> np.ndarray:
-    """uint32 sequence numbers in time order -> increasing int64 (wrap-around at 2^32)."""
-    s = seq.astype(np.int64)
-    d = np.diff(s)
-    d = np.where(d < -(2 ** 31), d + 2 ** 32, d)
-    return np.concatenate([[0], np.cumsum(d)]) + (s[0] if s.size else 0)
