@@ -752,8 +752,8 @@ def test_a_cause_found_beside_causes_not_confirmed_is_confirmed_again_without_th
 # (bogies hunting: a step in speed, not a Davis curve), an extra resistance that decays as the
 # train warms up (in time, not a Davis curve), an odometer that reads a constant speed more or
 # less while moving (not a scale), braking limited by power above a knee speed (not a braking
-# rate), a traction that fails for a minute or two (in time, in traction) and a train clock
-# that jumps by 0.5-3 s (not a drift).
+# rate), a traction that fails for a minute or two (in time, in traction), a train clock
+# that jumps by 0.5-3 s and one whose rate changes mid-run (neither is a drift).
 # Seeds 11-13 fixed in advance.
 TEST_KIND_KNOWN = {
     ("neutral_section", 13): "a slip episode of 1.4 % for 4.6 s at the stretch's start is "
@@ -783,7 +783,8 @@ TEST_KIND = [pytest.param(k, s, marks=[pytest.mark.xfail(reason=TEST_KIND_KNOWN[
                           if (k, s) in TEST_KIND_KNOWN else [])
              for k in ("traction_fade", "neutral_section", "misplaced_balise", "odometer_rescale",
                        "load_change", "coast_drag", "hunting_drag", "resistance_warmup",
-                       "odometer_bias", "brake_power_limit", "traction_trip", "clock_step")
+                       "odometer_bias", "brake_power_limit", "traction_trip", "clock_step",
+                       "clock_slew")
              for s in (11, 12, 13)]
 
 
@@ -818,6 +819,13 @@ def test_an_effect_of_a_kind_the_bench_does_not_use_is_unexplained(kind, seed, t
         st = uc.scenario.unlisted.clock_step
         assert tool.clock_step(u), u
         assert abs(u["when"][0] - st.t0) < 1.0 and abs(u["size"] - st.step) < 0.01, (u, st)
+    if kind == "clock_slew":
+        # the change of rate from where it happened, of the sign of the change (the clock
+        # reads more by the end when it runs faster)
+        u = rep["unexplained"][0]
+        sl = uc.scenario.unlisted.clock_slew
+        assert tool.clock_rate(u), u
+        assert abs(u["when"][0] - sl.t0) < 20.0 and np.sign(u["size"]) == np.sign(sl.rate), (u, sl)
     if kind == "misplaced_balise":
         # the entry is at that balise, and its offset is the balise's (reading minus the
         # train's position by the odometer: minus where it lies from its map position)

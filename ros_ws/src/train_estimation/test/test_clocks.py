@@ -4,7 +4,12 @@ clock to the reference clock on which control is stamped."""
 
 import numpy as np
 
-from train_estimation.core.numerics.clocks import ClockFit, clock_steps, control_on_train_clock
+from train_estimation.core.numerics.clocks import (
+    ClockFit,
+    clock_rate_change,
+    clock_steps,
+    control_on_train_clock,
+)
 
 
 def _streams(epoch, drift, latency, n=600, period=0.1):
@@ -110,3 +115,33 @@ def test_wrong_stamps_and_irregular_sampling_give_no_step():
     irregular = np.sort(1.7e9 + rng.uniform(0.0, 300.0, q.size))
     irregular[q.size // 2:] += 2.0
     assert clock_steps(irregular, q) == []
+
+
+def _logged(rate_after=None, at=0.4, latency_shift=0.0, n=6000, seed=8):
+    """(stamps, log times) of a 10-minute 10 Hz run on a train clock 200 ppm fast, latency
+    20 ms + Exp(50 ms); from ``at`` of the run on, the clock runs ``rate_after`` s/s fast
+    instead, or the link's latency is ``latency_shift`` s longer."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) * 0.1
+    k = t >= at * t[-1]
+    s = 1.7e9 + t * 2e-4 + t
+    if rate_after is not None:
+        s = s + np.where(k, (rate_after - 2e-4) * (t - at * t[-1]), 0.0)
+    r = 5000.0 + t + 0.02 + rng.exponential(0.05, n) + np.where(k, latency_shift, 0.0)
+    return s, r
+
+
+def test_a_change_of_the_clocks_rate_is_found_and_one_rate_is_not():
+    """One rate (200 ppm) gives nothing; the rate turning to -700 ppm at 40 % of the run is
+    found at that time (within 3 % of the run), both rates within 4 SE (a slope from 2400
+    readings with 50 ms of latency scatter over 240 s: SE 0.05 / sqrt(2400) / (240 /
+    sqrt(12)) = 15 ppm) and the offset it makes by the end within 0.02 s; a link whose latency
+    grows by 0.3 s for good is no change of rate."""
+    assert clock_rate_change(*_logged()) is None
+    ch = clock_rate_change(*_logged(rate_after=-7e-4))
+    assert ch is not None
+    assert abs(ch["when"] - 0.4 * 599.9) < 0.03 * 600, ch
+    se = 0.05 / np.sqrt(2400) / (240 / np.sqrt(12))
+    assert abs(ch["drift_before"] - 2e-4) < 4 * se and abs(ch["drift_after"] + 7e-4) < 4 * se, ch
+    assert abs(ch["offset"] + 9e-4 * 0.6 * 599.9) < 0.02, ch
+    assert clock_rate_change(*_logged(latency_shift=0.3)) is None

@@ -68,6 +68,10 @@ effect               where it shows          what the world does
                                              it into the distance (a radar's offset). Not an
                                              odometer scale (the same m/s at every speed) nor
                                              slip (it persists).
+``odometer_speed_scale`` at some speeds     the odometer reads (1 + ``k`` v / ``v_ref``) times
+                                             the train's speed and counts it (a radar whose
+                                             error grows with speed). Not an odometer scale
+                                             (one factor at every speed) nor slip.
 ``brake_power_limit`` at some speeds, in     the braking delivered is at most ``p`` / v
                      braking                 (m/s^2; an electric brake limited by the power it
                                              can return, without a friction blend above it).
@@ -81,6 +85,10 @@ effect               where it shows          what the world does
                                              after an outage). Not clock drift (a rate, not a
                                              jump) nor a delay of the commands (both
                                              phases, and it does not end).
+``clock_slew``       from a time on          the train's clock runs ``rate`` s/s faster from
+                                             true time ``t0`` on (a time server slewing it
+                                             towards the reference). Not clock drift (one
+                                             rate for the run) nor a step.
 ``misplaced_balise``  at one balise           the balise lies ``offset`` m from the position the
                                              map and its telegram give (a survey error): read
                                              there, it reports the map's position. Not an
@@ -191,6 +199,12 @@ class OdometerBias:
 
 
 @dataclass(frozen=True)
+class OdometerSpeedScale:
+    k: float  # -, the odometer's relative error at v_ref (0 at standstill, linear in speed)
+    v_ref: float  # m/s
+
+
+@dataclass(frozen=True)
 class BrakePowerLimit:
     p: float  # m^2/s^3, the braking delivered (m/s^2) is at most p / v
 
@@ -206,6 +220,12 @@ class TractionTrip:
 class ClockStep:
     t0: float  # s, true time the train's clock jumps
     step: float  # s, what it reads more from t0 on (negative: it jumps back)
+
+
+@dataclass(frozen=True)
+class ClockSlew:
+    t0: float  # s, true time the clock's rate changes
+    rate: float  # s/s, what the clock runs faster from t0 on (negative: slower)
 
 
 @dataclass(frozen=True)
@@ -225,9 +245,11 @@ class Unlisted:
     hunting_drag: HuntingDrag | None = None
     resistance_warmup: ResistanceWarmup | None = None
     odometer_bias: OdometerBias | None = None
+    odometer_speed_scale: OdometerSpeedScale | None = None
     brake_power_limit: BrakePowerLimit | None = None
     traction_trip: TractionTrip | None = None
     clock_step: ClockStep | None = None
+    clock_slew: ClockSlew | None = None
 
 
 # coast_drag acts while the train moves faster than this (m/s) with less than COAST_DRIVE (m/s^2)
@@ -243,16 +265,23 @@ def odometer_factor(unlisted: Unlisted | None, t: float) -> float:
 
 
 def odometer_bias(unlisted: Unlisted | None, v: float) -> float:
-    """m/s the odometer reads beyond the train's speed ``v`` (0 without a bias, and while the
-    train moves slower than COAST_MIN_SPEED)."""
-    b = unlisted.odometer_bias if unlisted is not None else None
-    return b.bias if b is not None and v > COAST_MIN_SPEED else 0.0
+    """m/s the odometer reads beyond the train's speed ``v``: a bias while the train moves
+    faster than COAST_MIN_SPEED, and a speed scale's k v^2 / v_ref (0 without either)."""
+    if unlisted is None:
+        return 0.0
+    b, sc = unlisted.odometer_bias, unlisted.odometer_speed_scale
+    out = b.bias if b is not None and v > COAST_MIN_SPEED else 0.0
+    return out + (sc.k * v * v / sc.v_ref if sc is not None else 0.0)
 
 
 def clock_step(unlisted: Unlisted | None, t: float) -> float:
-    """s the train's clock reads more at true time ``t`` (0 without a step)."""
-    c = unlisted.clock_step if unlisted is not None else None
-    return c.step if c is not None and t >= c.t0 else 0.0
+    """s the train's clock reads more at true time ``t`` than its epoch and drift say (0
+    without a step or a slew)."""
+    if unlisted is None:
+        return 0.0
+    c, w = unlisted.clock_step, unlisted.clock_slew
+    out = c.step if c is not None and t >= c.t0 else 0.0
+    return out + (w.rate * (t - w.t0) if w is not None and t >= w.t0 else 0.0)
 
 
 def balise_moves(unlisted: Unlisted | None) -> dict:

@@ -40,11 +40,14 @@ the bench:
 ``resistance_warmup`` from the run's start, tau 20-35 % of the run's    all
                      time, 0.06-0.12 m/s^2 x M_eff at the start
 ``odometer_bias``    +-0.04-0.1 m/s while moving                          all
+``odometer_speed_scale`` k +-1-2 % at the top speed                        all
 ``brake_power_limit`` the knee at 45-65 % of the top speed for the run's   braking
                      median braking command
 ``traction_trip``    60-120 s from a traction onset between 20 and 70 %  traction
                      of the run's time, factor 0.4-0.6
 ``clock_step``       +-0.5-3 s at a time between 30 and 70 % of the run   all
+``clock_slew``       +-0.5-2 ms/s from a time between 20 and 50 % of      all
+                     the run
 ``misplaced_balise`` a balise the run passes at > 3 m/s with balises    all
                      passed before and after it, +-8-20 m from its
                      map position
@@ -65,6 +68,7 @@ from .cases import Case, make_case
 from .unlisted import (
     BrakeFade,
     BrakePowerLimit,
+    ClockSlew,
     ClockStep,
     CoastDrag,
     HuntingDrag,
@@ -73,6 +77,7 @@ from .unlisted import (
     NeutralSection,
     OdometerBias,
     OdometerRescale,
+    OdometerSpeedScale,
     ResistanceWarmup,
     TractionFade,
     TractionGain,
@@ -85,13 +90,14 @@ from .unlisted import (
 KINDS = ("tunnel_drag", "brake_fade", "traction_gain", "wind")
 TEST_KINDS = ("traction_fade", "neutral_section", "misplaced_balise", "odometer_rescale",
               "load_change", "coast_drag", "hunting_drag", "resistance_warmup",
-              "odometer_bias", "brake_power_limit", "traction_trip", "clock_step")
+              "odometer_bias", "brake_power_limit", "traction_trip", "clock_step",
+              "clock_slew", "odometer_speed_scale")
 PHASE = {"tunnel_drag": "all", "brake_fade": "braking", "traction_gain": "traction",
          "wind": "all", "traction_fade": "traction", "neutral_section": "traction",
          "misplaced_balise": "all", "odometer_rescale": "all", "load_change": "traction",
          "coast_drag": "coasting", "hunting_drag": "all", "resistance_warmup": "all",
          "odometer_bias": "all", "brake_power_limit": "braking", "traction_trip": "traction",
-         "clock_step": "all"}
+         "clock_step": "all", "clock_slew": "all", "odometer_speed_scale": "all"}
 
 
 @dataclass(frozen=True)
@@ -198,6 +204,11 @@ def unlisted_case(rng: np.random.Generator, kind: str, pilot=None) -> UnlistedCa
         sign = 1.0 if eff_rng.random() < 0.5 else -1.0
         eff = OdometerBias(round(sign * float(eff_rng.uniform(0.04, 0.1)), 3))
         u = Unlisted(odometer_bias=eff)
+    elif kind == "odometer_speed_scale":
+        sign = 1.0 if eff_rng.random() < 0.5 else -1.0
+        eff = OdometerSpeedScale(round(sign * float(eff_rng.uniform(0.01, 0.02)), 4),
+                                 round(v_top, 2))
+        u = Unlisted(odometer_speed_scale=eff)
     elif kind == "brake_power_limit":
         ct, ca = np.asarray(sim.control["t"]), np.asarray(sim.control["target_acceleration"])
         brake = ca[ca < -0.05]
@@ -221,6 +232,12 @@ def unlisted_case(rng: np.random.Generator, kind: str, pilot=None) -> UnlistedCa
         eff = ClockStep(round(float(t[0]) + float(eff_rng.uniform(0.3, 0.7)) * span, 1),
                         round(sign * float(eff_rng.uniform(0.5, 3.0)), 2))
         u = Unlisted(clock_step=eff)
+    elif kind == "clock_slew":
+        span = float(t[-1] - t[0])
+        sign = 1.0 if eff_rng.random() < 0.5 else -1.0
+        eff = ClockSlew(round(float(t[0]) + float(eff_rng.uniform(0.2, 0.5)) * span, 1),
+                        round(sign * float(eff_rng.uniform(5e-4, 2e-3)), 5))
+        u = Unlisted(clock_slew=eff)
     elif kind == "misplaced_balise":
         # a balise passed at speed, with balises passed before and after it (so that the
         # odometer carries the position to it and on from it)

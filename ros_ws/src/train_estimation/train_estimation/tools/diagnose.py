@@ -590,6 +590,13 @@ def clock_step(u: dict) -> bool:
     return not u.get("where") and bool(t) and t[0] == t[1]
 
 
+def clock_rate(u: dict) -> bool:
+    """An ``unexplained`` entry of a change of the train clock's rate (``when`` a span, no
+    ``where`` nor ``speed``): its size is what the clock reads more by the end, in s."""
+    t = u.get("when")
+    return not u.get("where") and u.get("speed") is None and bool(t) and t[0] != t[1]
+
+
 def on_odometer(u: dict) -> bool:
     """An ``unexplained`` entry of the odometer's count (``where`` and ``when`` both spans: no
     acceleration family gives both): its size is the odometer error in m (docs/diagnose.md)."""
@@ -610,6 +617,10 @@ def unexplained_line(u: dict) -> str:
         return (f"unexplained: the train's clock jumped by {u['size']:+.3f} s at "
                 f"{u['when'][0]:.1f} s (the odometer's sample grid moved at once): the readings "
                 f"after it are analysed on the clock before it" + closest)
+    if clock_rate(u):
+        return (f"unexplained: the train's clock changes its rate at {u['when'][0]:.0f} s and "
+                f"reads {u['size']:+.3f} s more by {u['when'][1]:.0f} s than one rate says"
+                + closest)
     if at_balise(u):
         return (f"unexplained: the balise at {u['where'][0]:.0f} m (read at {u['when'][0]:.0f} s, "
                 f"{u['speed'][0]:.1f} m/s) is {u['size']:+.1f} m from the train's position by "

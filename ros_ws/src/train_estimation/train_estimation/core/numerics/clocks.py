@@ -156,6 +156,57 @@ def clock_steps(stamps, seq, window: int = 20, max_steps: int = 5) -> list[tuple
     return out if len(out) <= max_steps else []
 
 
+RATE_CHANGE_LR = 30.0  # 2 ln LR a rate change must reach against one rate (one change, profiled)
+MIN_RATE_CHANGE = 1e-5  # s/s, below it the two rates are one (clock_drift's resolution)
+
+
+def clock_rate_change(stamps, recv, n_times: int = 81) -> dict | None:
+    """Whether the train clock's rate against the reference clock changes once in the run:
+    a time server slewing it, a clock that warms up. Against one rate (log time r = a + b x,
+    x = stamp - the first), a change at x_k adds c (x - x_k)+ (the offset bends there); x_k
+    is profiled over ``n_times`` points from 10 % to 90 % of the run, on the readings not
+    logged late (:class:`ClockFit`'s rule). A change is found when 2 ln LR > ``RATE_CHANGE_LR``,
+    |c| > ``MIN_RATE_CHANGE`` and the offset it makes by the end is more than ``SMALL_MOVE``:
+    {when (s of stamp since the first), drift_before, drift_after (stamp rate minus 1), offset
+    (s the clock reads more by the end than one rate says), lr}; else None. A one-rate drift
+    bends nowhere; a link whose latency changes for good moves the offset at once: where one
+    level shift (profiled over the same points) fits at least as well as the bend, it is no
+    change of rate (the clock's own steps are found on the sample grid, before)."""
+    s = np.asarray(stamps, float)
+    r = np.asarray(recv, float)
+    if s.size < 50 or np.ptp(s) <= 0:
+        return None
+    fit = ClockFit.fit(s, r)
+    x = s - fit.t_first
+    e = r - fit.alpha - fit.beta * x
+    scale = 1.4826 * float(np.median(np.abs(e - np.median(e))))
+    keep = e - np.median(e) <= max(LATE, LATE_SCALES * scale)
+    x, r = x[keep], r[keep]
+    A = np.stack([np.ones_like(x), x], axis=1)
+    rss0 = float(np.sum((r - A @ np.linalg.lstsq(A, r, rcond=None)[0]) ** 2))
+    best = jump = None
+    for xk in np.linspace(0.1, 0.9, n_times) * x[-1]:
+        B = np.column_stack([A, np.clip(x - xk, 0.0, None)])
+        coef = np.linalg.lstsq(B, r, rcond=None)[0]
+        rss = float(np.sum((r - B @ coef) ** 2))
+        if best is None or rss < best[0]:
+            best = (rss, xk, coef)
+        S = np.column_stack([A, (x >= xk).astype(float)])
+        rss_s = float(np.sum((r - S @ np.linalg.lstsq(S, r, rcond=None)[0]) ** 2))
+        jump = rss_s if jump is None else min(jump, rss_s)
+    rss1, xk, coef = best
+    if jump <= rss1:  # the offset moves at once (the link's latency), not by a rate
+        return None
+    n = x.size
+    lr = n * (math.log(max(rss0, n * 1e-12)) - math.log(max(rss1, n * 1e-12)))
+    b0, c = float(coef[1]), float(coef[2])
+    offset = -c * (x[-1] - xk)  # the stamp clock runs faster when r grows slower per stamp
+    if lr <= RATE_CHANGE_LR or abs(c) <= MIN_RATE_CHANGE or abs(offset) <= SMALL_MOVE:
+        return None
+    return {"when": float(xk), "drift_before": 1.0 / b0 - 1.0,
+            "drift_after": 1.0 / (b0 + c) - 1.0, "offset": float(offset), "lr": float(lr)}
+
+
 # -- online ----------------------------------------------------------------------------------
 
 SMALL_MOVE = 0.05  # s: the least move of a clock's offset level taken as one (the runner's

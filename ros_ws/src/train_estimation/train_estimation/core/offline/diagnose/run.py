@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 from train_core.model import Line
 
-from train_estimation.core.numerics.clocks import ClockFit
+from train_estimation.core.numerics.clocks import ClockFit, clock_rate_change
 
 from ..measured import MeasuredRun, unwrap
 
@@ -99,7 +99,8 @@ def prepare(data: MeasuredRun, line: Line, cfg: DiagConfig) -> Run:
         raise DiagnoseError(f"odometer stamps and log times disagree (rate {beta:.3g}): the "
                             "bag's log times must be receive times on one clock")
     clock = {"alpha": alpha, "beta": beta,
-             "steps": [{"when": float(at - t_first), "step": float(j)} for at, j, _ in steps]}
+             "steps": [{"when": float(at - t_first), "step": float(j)} for at, j, _ in steps],
+             "rate_change": clock_rate_change(s_odo, r_odo)}
     ctrl_t, ctrl_a = _control(data, cf)
     t_end = float(beta * (s_odo[-1] - t_first))
     bal_t, bal_p, bal_r, bal_id = _balises(data, line, notes, beta, t_first, t_end)

@@ -129,12 +129,14 @@ def _verdict(sr: _Search, run, untestable: list, before: dict, noise,
     for u in found:
         u.pop("mask")
         u.pop("meas", None)
-    steps = mo.run.clock.get("steps") or []
+    clock = [_clock_entry(c) for c in mo.run.clock.get("steps") or []]
+    if mo.run.clock.get("rate_change") is not None:
+        clock.append(_rate_entry(mo.run.clock["rate_change"], mo.run.duration / beta))
     verdict = confirmed[0].cause if confirmed else \
-        ("unexplained" if found or steps else "none")
+        ("unexplained" if found or clock else "none")
     ranking = _ranking(sr, beta, "confirmed" if verdict == "none" else "rejected")
     top = ranking[0] if confirmed else None
-    unexplained = [_clock_entry(c) for c in steps] + [_entry(u, ranking) for u in found]
+    unexplained = clock + [_entry(u, ranking) for u in found]
     evidence = _evidence(sr, run)
     evidence["_model"]["confirmation"] = {"checks": checks, "thresholds": vars(CONFIRM)}
     evidence["_model"]["structure"] = {"tests": tests, "found": found,
@@ -203,6 +205,18 @@ def _clock_entry(step: dict) -> dict:
                             "why": f"the train's clock jumped by {j:+.3f} s at once and held "
                                    "the new reading (the odometer's sample grid moved): a "
                                    "drift is a rate"}}
+
+
+def _rate_entry(ch: dict, end: float) -> dict:
+    """An ``unexplained`` entry for a change of the train clock's rate (run.prepare):
+    ``when`` from the change to the end, ``size`` the s the clock reads more by the end than
+    one rate says."""
+    return {"phase": "all", "where": None, "when": [ch["when"], end], "speed": None,
+            "size": ch["offset"],
+            "best_listed": {"cause": "clock_drift",
+                            "why": f"the rate changes at {ch['when']:.0f} s, from "
+                                   f"{1e6 * ch['drift_before']:+.0f} to "
+                                   f"{1e6 * ch['drift_after']:+.0f} ppm: a drift is one rate"}}
 
 
 def _stage(sr: _Search, stage_i: int, tick) -> Stage:

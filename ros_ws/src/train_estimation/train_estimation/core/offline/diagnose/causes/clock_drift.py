@@ -27,6 +27,17 @@ class ClockDrift(Cause):
         return resolved("drift", fit.parameters["drift"], fit.std_errors.get("drift"), 1e-5,
                         " s/s")
 
+    def plausible(self, fit, mo) -> str | None:
+        """A drift is one rate for the run: where the stamps show the rate changing once
+        (numerics.clocks.clock_rate_change, run.prepare), the fitted rate is an average of
+        two and predicts neither."""
+        ch = mo.run.clock.get("rate_change")
+        if ch is None:
+            return None
+        return (f"not one rate: the train's clock runs {1e6 * ch['drift_before']:+.0f} ppm "
+                f"before {ch['when']:.0f} s and {1e6 * ch['drift_after']:+.0f} ppm after "
+                f"(2 ln LR {ch['lr']:.0f} against one rate)")
+
     def extend_null(self, null, fit, mo) -> None:
         """The stamps are not part of the motion model: nothing to add."""
 
