@@ -9,11 +9,13 @@ from train_sim.scenario import load_scenario
 from train_sim.unlisted import (
     BrakeFade,
     BrakePowerLimit,
+    ClockSlew,
     ClockStep,
     CoastDrag,
     HuntingDrag,
     LoadChange,
     OdometerBias,
+    OdometerSpeedScale,
     ResistanceWarmup,
     TractionGain,
     TractionTrip,
@@ -179,6 +181,22 @@ def test_odometer_bias_and_clock_step_change_the_readings_only():
     for r1_, r0_ in ((o1, o0), (r1.balise, r0.balise)):
         step = np.where(r0_["t"] >= 60.0, -2.5, 0.0)
         assert np.allclose(r1_["stamp"] - r0_["stamp"], step, rtol=0, atol=1e-9)
+
+
+def test_odometer_speed_scale_and_clock_slew_change_the_readings_only():
+    sc = load_scenario("metro_demo")
+    r0 = simulate(sc, duration=150.0)
+    u = Unlisted(odometer_speed_scale=OdometerSpeedScale(0.02, 20.0),
+                 clock_slew=ClockSlew(60.0, 1e-3))
+    r1 = simulate(sc.with_changes(unlisted=u), duration=150.0)
+    assert np.array_equal(r1.truth["velocity"], r0.truth["velocity"])
+    v = r0.truth["velocity"]
+    assert v.max() > 10.0
+    assert np.allclose(r1.odometer["speed"] - r0.odometer["speed"], 0.02 * v * v / 20.0,
+                       rtol=0, atol=1e-9)
+    for r1_, r0_ in ((r1.odometer, r0.odometer), (r1.balise, r0.balise)):
+        slew = np.where(r0_["t"] >= 60.0, 1e-3 * (r0_["t"] - 60.0), 0.0)
+        assert np.allclose(r1_["stamp"] - r0_["stamp"], slew, rtol=0, atol=1e-6)
 
 
 def test_closed_loop_with_all_four_and_sensors_untouched():
