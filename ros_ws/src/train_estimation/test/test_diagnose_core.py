@@ -297,3 +297,35 @@ def test_measured_run_takes_the_train_clocks_step_out_of_every_stamp():
     no_seq = dataclasses.replace(run, odo_seq=np.zeros(0, np.int64))
     same, none = no_seq.without_clock_steps()
     assert same is no_seq and none == []
+
+
+def test_measured_run_puts_the_stamps_after_a_change_of_rate_on_the_rate_before():
+    """The train clock runs 1000 ppm slow from 240 s on: the odometer's and the balise's
+    stamps after the bend are put back on the rate before it (to within the bend's placement:
+    a few seconds at 1000 ppm is a few ms), and identify gets them so."""
+    import dataclasses
+
+    from train_estimation.core.offline.measured import MeasuredRun
+
+    rng = np.random.default_rng(9)
+    t = np.arange(0.0, 600.0, 0.1)
+    slow = np.where(t >= 240.0, -1e-3 * (t - 240.0), 0.0)
+    recv = 5000.0 + t + 0.02 + rng.exponential(0.05, t.size)
+    bt = np.array([100.0, 450.0])
+    run = MeasuredRun(
+        odo_stamp=1.7e9 + t + slow, odo_recv=recv, odo_seq=np.arange(t.size),
+        odo_distance=2.0 * t, odo_speed=np.full(t.size, 2.0),
+        odo_speed_variance=np.full(t.size, 0.01), ctrl_stamp=5000.0 + t[::5],
+        ctrl_a_tar=np.zeros(t[::5].size), balise_stamp=1.7e9 + bt + [0.0, -0.21],
+        balise_recv=5000.0 + bt + 0.1, balise_id=np.array([1, 2]),
+        balise_position=np.array([200.0, 900.0]), balise_variance=np.array([1.0, 1.0]),
+        ctrl_recv=5000.0 + t[::5] + 0.1)
+    fixed, ch = run.without_rate_change()
+    assert ch is not None and abs(ch["at"] - 1.7e9 - 240.0) < 10.0, ch
+    assert np.abs(fixed.odo_stamp - 1.7e9 - t).max() < 0.01
+    assert np.abs(fixed.balise_stamp - 1.7e9 - bt).max() < 0.01
+    assert np.abs(run.to_identify().odo_t - 1.7e9 - t).max() < 0.01
+    # log times that follow the stamps (one rate): nothing to take out
+    steady = dataclasses.replace(run, odo_recv=run.odo_stamp - 1.7e9 + 5000.0 + 0.05)
+    same, none = steady.without_rate_change()
+    assert same is steady and none is None

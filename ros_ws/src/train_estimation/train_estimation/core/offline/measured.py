@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .. import reasons as R
-from ..numerics.clocks import clock_steps, control_on_train_clock
+from ..numerics.clocks import clock_rate_change, clock_steps, control_on_train_clock
 
 TOPICS = ("odometer", "balise", "control")  # never ground_truth
 
@@ -105,6 +105,31 @@ class MeasuredRun:
             steps.append((float(odo[order[i]]), float(jump), float(r_from)))
         return dataclasses.replace(self, odo_stamp=odo, balise_stamp=bal), steps
 
+    def without_rate_change(self) -> tuple[MeasuredRun, dict | None]:
+        """The run with a change of the train clock's rate taken out of the odometer and
+        balise stamps (:func:`~train_estimation.core.numerics.clocks.clock_rate_change` on
+        the odometer's stamps and log times): stamps after the bend are put on the rate
+        before it, s' = at + (s - at) (1 + drift_before) / (1 + drift_after). Returns (run,
+        the change with ``at``, the stamp of the bend), or (self, None) without one."""
+        s, r = np.asarray(self.odo_stamp, float), np.asarray(self.odo_recv, float)
+        if r.size != s.size:
+            return self, None
+        ok = np.flatnonzero(np.isfinite(s) & np.isfinite(r))
+        o = ok[np.argsort(s[ok], kind="stable")]
+        o = o[np.concatenate([[True], np.diff(s[o]) > 0])] if o.size else o
+        ch = clock_rate_change(s[o], r[o])
+        if ch is None:
+            return self, None
+        at = float(s[o][0] + ch["when"])
+        k = (1.0 + ch["drift_before"]) / (1.0 + ch["drift_after"])
+
+        def fix(x):
+            x = np.asarray(x, float)
+            return np.where(x > at, at + (x - at) * k, x)
+
+        return (dataclasses.replace(self, odo_stamp=fix(s), balise_stamp=fix(self.balise_stamp)),
+                dict(ch, at=at))
+
     def to_identify(self):
         """identify's :class:`SIData`: every time on the odometer's (train) clock, control
         mapped through the odometer's stamps and log times. Raises IdentificationError
@@ -119,8 +144,10 @@ class MeasuredRun:
                 f"{list(self.topics) or 'none'})", missing=missing,
                 unidentifiable=("davis.a", "davis.b", "davis.c", "mass", "rotary_allowance",
                                 "braking_rate"))
-        # a step of the train's clock would move every reading after it against the commands
+        # a step or a change of rate of the train's clock would move the readings after it
+        # against the commands
         self, _ = self.without_clock_steps()
+        self, _ = self.without_rate_change()
         ctrl_recv = self.ctrl_recv if self.ctrl_recv is not None else np.array([])
         ctrl_t = control_on_train_clock(self.odo_stamp, self.odo_recv, self.ctrl_stamp,
                                         ctrl_recv)

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 from train_core.model import Line
 
-from train_estimation.core.numerics.clocks import ClockFit, clock_rate_change
+from train_estimation.core.numerics.clocks import ClockFit
 
 from ..measured import MeasuredRun, unwrap
 
@@ -83,8 +83,9 @@ def prepare(data: MeasuredRun, line: Line, cfg: DiagConfig) -> Run:
     """The run on the reference clock's time axis; :class:`DiagnoseError` when unusable."""
     notes = []
     _require_topics(data)
-    # the train clock's steps out of the stamps first (MeasuredRun.without_clock_steps)
+    # the train clock's steps and change of rate out of the stamps first (MeasuredRun)
     data, steps = data.without_clock_steps()
+    data, change = data.without_rate_change()
     for at, jump, _ in steps:
         notes.append(f"the train's clock jumped by {jump:+.3f} s at stamp {at:.3f}: the "
                      "readings after it are put back on the clock before it")
@@ -100,7 +101,8 @@ def prepare(data: MeasuredRun, line: Line, cfg: DiagConfig) -> Run:
                             "bag's log times must be receive times on one clock")
     clock = {"alpha": alpha, "beta": beta,
              "steps": [{"when": float(at - t_first), "step": float(j)} for at, j, _ in steps],
-             "rate_change": clock_rate_change(s_odo, r_odo)}
+             "rate_change": None if change is None else
+             {k: v for k, v in dict(change, when=change["at"] - t_first).items() if k != "at"}}
     ctrl_t, ctrl_a = _control(data, cf)
     t_end = float(beta * (s_odo[-1] - t_first))
     bal_t, bal_p, bal_r, bal_id = _balises(data, line, notes, beta, t_first, t_end)
