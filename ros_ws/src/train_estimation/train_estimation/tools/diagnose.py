@@ -72,7 +72,10 @@ from train_core.effects import Effects, effect_to_dict, parse_effects, true_line
 from train_core.model import line_from_dict, load_line, load_train, train_from_dict
 
 from train_estimation.core.offline.diagnose.result import jsonable
-from train_estimation.core.offline.diagnose.search import SCORE_FORMULA  # noqa: F401 (stated in help)
+from train_estimation.core.offline.diagnose.search import (  # noqa: F401 (SCORE_FORMULA: help)
+    RATE_WHY,
+    SCORE_FORMULA,
+)
 from train_estimation.core.offline.measured import TOPICS, MeasuredRun
 from train_estimation.tools.common import EXIT_OK, Progress, fail, one_line
 from train_estimation.tools.report_html import write_report_html
@@ -585,16 +588,20 @@ def at_balise(u: dict) -> bool:
 
 def clock_step(u: dict) -> bool:
     """An ``unexplained`` entry of a step of the train's clock (``when`` one point, no
-    ``where``): its size is the step in s (docs/diagnose.md)."""
+    ``where``: no other entry has that shape): its size is the step in s (docs/diagnose.md)."""
     t = u.get("when")
     return not u.get("where") and bool(t) and t[0] == t[1]
 
 
 def clock_rate(u: dict) -> bool:
     """An ``unexplained`` entry of a change of the train clock's rate (``when`` a span, no
-    ``where`` nor ``speed``): its size is what the clock reads more by the end, in s."""
-    t = u.get("when")
-    return not u.get("where") and u.get("speed") is None and bool(t) and t[0] != t[1]
+    ``where``, the closest listed cause ``clock_drift`` with the rate's change as the reason:
+    a time entry of the motion has the same shape): its size is what the clock reads more by
+    the end, in s."""
+    t, best = u.get("when"), u.get("best_listed") or {}
+    return (not u.get("where") and bool(t) and t[0] != t[1]
+            and best.get("cause") == "clock_drift"
+            and str(best.get("why", "")).startswith(RATE_WHY))
 
 
 def on_odometer(u: dict) -> bool:

@@ -129,9 +129,12 @@ def _verdict(sr: _Search, run, untestable: list, before: dict, noise,
     for u in found:
         u.pop("mask")
         u.pop("meas", None)
-    clock = [_clock_entry(c) for c in mo.run.clock.get("steps") or []]
-    if mo.run.clock.get("rate_change") is not None:
-        clock.append(_rate_entry(mo.run.clock["rate_change"], mo.run.duration / beta))
+    clock = [_clock_entry(c, _speeds(mo, beta, c["when"], c["when"]))
+             for c in mo.run.clock.get("steps") or []]
+    ch = mo.run.clock.get("rate_change")
+    if ch is not None:
+        end = mo.run.duration / beta
+        clock.append(_rate_entry(ch, end, _speeds(mo, beta, ch["when"], end)))
     verdict = confirmed[0].cause if confirmed else \
         ("unexplained" if found or clock else "none")
     ranking = _ranking(sr, beta, "confirmed" if verdict == "none" else "rejected")
@@ -195,26 +198,42 @@ def _entry(u: dict, ranking: list) -> dict:
             "size": u["size"], "best_listed": listed}
 
 
-def _clock_entry(step: dict) -> dict:
+def _speeds(mo, beta: float, t0: float, t1: float) -> list:
+    """[v0, v1] m/s: the train's speed from stamp t0 to t1 (s since the first odometer stamp;
+    5th and 95th percentiles, or the speed at t0 when t0 == t1)."""
+    t, v = mo.grid.t, mo.v_ref
+    if t1 <= t0:
+        x = float(np.interp(t0 * beta, t, v))
+        return [x, x]
+    m = (t >= t0 * beta) & (t <= t1 * beta)
+    vv = v[m] if m.any() else v
+    return [float(np.percentile(vv, 5)), float(np.percentile(vv, 95))]
+
+
+def _clock_entry(step: dict, speed: list) -> dict:
     """An ``unexplained`` entry for a step of the train's clock (run.prepare): ``when`` the
     stamp it happened at (one point, on the clock before it), ``size`` the step in s (the
     readings after it are analysed on the clock before it)."""
     w, j = step["when"], step["step"]
-    return {"phase": "all", "where": None, "when": [w, w], "speed": None, "size": j,
+    return {"phase": "all", "where": None, "when": [w, w], "speed": speed, "size": j,
             "best_listed": {"cause": "clock_drift",
                             "why": f"the train's clock jumped by {j:+.3f} s at once and held "
                                    "the new reading (the odometer's sample grid moved): a "
                                    "drift is a rate"}}
 
 
-def _rate_entry(ch: dict, end: float) -> dict:
+# how the reason of a clock rate entry begins (tools.diagnose tells the entry by it)
+RATE_WHY = "the train clock's rate changes at"
+
+
+def _rate_entry(ch: dict, end: float, speed: list) -> dict:
     """An ``unexplained`` entry for a change of the train clock's rate (run.prepare):
     ``when`` from the change to the end, ``size`` the s the clock reads more by the end than
     one rate says."""
-    return {"phase": "all", "where": None, "when": [ch["when"], end], "speed": None,
+    return {"phase": "all", "where": None, "when": [ch["when"], end], "speed": speed,
             "size": ch["offset"],
             "best_listed": {"cause": "clock_drift",
-                            "why": f"the rate changes at {ch['when']:.0f} s, from "
+                            "why": f"{RATE_WHY} {ch['when']:.0f} s, from "
                                    f"{1e6 * ch['drift_before']:+.0f} to "
                                    f"{1e6 * ch['drift_after']:+.0f} ppm: a drift is one rate"}}
 
