@@ -59,24 +59,28 @@ class ClockFit:
     def fit(cls, stamps: np.ndarray, recv: np.ndarray) -> ClockFit:
         """Least squares of log times on stamps (sorted odometer stamps, their log times),
         refitted without the readings logged grossly late (module doc)."""
+        return cls.fit_kept(stamps, recv)[0]
+
+    @classmethod
+    def fit_kept(cls, stamps: np.ndarray, recv: np.ndarray) -> tuple[ClockFit, np.ndarray]:
+        """:meth:`fit` and the readings it kept (not logged late), a boolean mask."""
         s = np.asarray(stamps, float)
         r = np.asarray(recv, float)
         t_first = float(s[0])
         x = s - t_first
-        if s.size < 2 or np.ptp(x) <= 0:
-            return cls(t_first, float(np.mean(r) - np.mean(x)), 1.0)
-        A = np.stack([np.ones_like(x), x], axis=1)
         keep = np.ones(s.size, bool)
+        if s.size < 2 or np.ptp(x) <= 0:
+            return cls(t_first, float(np.mean(r) - np.mean(x)), 1.0), keep
+        A = np.stack([np.ones_like(x), x], axis=1)
         for _ in range(5):  # the late set settles in two or three rounds
             coef, *_ = np.linalg.lstsq(A[keep], r[keep], rcond=None)
             e = r - A @ coef
             centre = np.median(e[keep])
-            scale = 1.4826 * np.median(np.abs(e[keep] - centre))
-            late = e - centre > max(LATE, LATE_SCALES * scale)
+            late = e - centre > max(LATE, LATE_SCALES * _robust_sd(e[keep]))
             if np.array_equal(~late, keep) or late.sum() > s.size // 2 or np.ptp(x[~late]) <= 0:
                 break
             keep = ~late
-        return cls(t_first, float(coef[0]), float(coef[1]))
+        return cls(t_first, float(coef[0]), float(coef[1])), keep
 
     def ref_of_train(self, s):
         """Train-clock stamps -> reference seconds since the first odometer stamp."""
@@ -89,6 +93,11 @@ class ClockFit:
     def train_of_control(self, c):
         """Control stamps -> the train clock (where identify reads every time)."""
         return self.t_first + self.ref_of_control(c) / self.beta
+
+
+def _robust_sd(x: np.ndarray) -> float:
+    """1.4826 x the median absolute deviation: the SD of a normal sample, robust to outliers."""
+    return 1.4826 * float(np.median(np.abs(x - np.median(x))))
 
 
 def control_on_train_clock(odo_stamp, odo_recv, ctrl_stamp, ctrl_recv,
@@ -140,7 +149,7 @@ def clock_steps(stamps, seq, window: int = 20, max_steps: int = 5) -> list[tuple
     if not period > 0:
         return []
     de = ds - period * dq
-    scale = 1.4826 * float(np.median(np.abs(de - np.median(de))))
+    scale = _robust_sd(de)
     bar = max(SMALL_MOVE, 10.0 * scale)
     if scale > 0.1 * period or np.mean(np.abs(de) <= bar) < 0.9:
         return []
@@ -176,12 +185,8 @@ def clock_rate_change(stamps, recv, n_times: int = 81) -> dict | None:
     r = np.asarray(recv, float)
     if s.size < 50 or np.ptp(s) <= 0:
         return None
-    fit = ClockFit.fit(s, r)
-    x = s - fit.t_first
-    e = r - fit.alpha - fit.beta * x
-    scale = 1.4826 * float(np.median(np.abs(e - np.median(e))))
-    keep = e - np.median(e) <= max(LATE, LATE_SCALES * scale)
-    x, r = x[keep], r[keep]
+    fit, keep = ClockFit.fit_kept(s, r)
+    x, r = s[keep] - fit.t_first, r[keep]
     A = np.stack([np.ones_like(x), x], axis=1)
     rss0 = float(np.sum((r - A @ np.linalg.lstsq(A, r, rcond=None)[0]) ** 2))
     best = jump = None

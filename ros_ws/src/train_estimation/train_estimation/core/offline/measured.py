@@ -85,10 +85,8 @@ class MeasuredRun:
         idx = np.flatnonzero(ok)
         by_recv = idx[np.argsort(r[idx], kind="stable")]
         q_recv = unwrap(seq[by_recv])
-        o = np.argsort(q_recv, kind="stable")
+        o = _stamp_order(q_recv)  # sequence order, a repeated seq's first reading
         order, q = by_recv[o], q_recv[o]
-        first = np.concatenate([[True], np.diff(q) > 0])
-        order, q = order[first], q[first]
         found = clock_steps(s[order], q)
         if not found:
             return self, []
@@ -115,8 +113,7 @@ class MeasuredRun:
         if r.size != s.size:
             return self, None
         ok = np.flatnonzero(np.isfinite(s) & np.isfinite(r))
-        o = ok[np.argsort(s[ok], kind="stable")]
-        o = o[np.concatenate([[True], np.diff(s[o]) > 0])] if o.size else o
+        o = ok[_stamp_order(s[ok])]
         ch = clock_rate_change(s[o], r[o])
         if ch is None:
             return self, None

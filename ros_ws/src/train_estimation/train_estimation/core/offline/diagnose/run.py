@@ -102,7 +102,7 @@ def prepare(data: MeasuredRun, line: Line, cfg: DiagConfig) -> Run:
     clock = {"alpha": alpha, "beta": beta,
              "steps": [{"when": float(at - t_first), "step": float(j)} for at, j, _ in steps],
              "rate_change": None if change is None else
-             {k: v for k, v in dict(change, when=change["at"] - t_first).items() if k != "at"}}
+             {**change, "when": change["at"] - t_first}}
     ctrl_t, ctrl_a = _control(data, cf)
     t_end = float(beta * (s_odo[-1] - t_first))
     bal_t, bal_p, bal_r, bal_id = _balises(data, line, notes, beta, t_first, t_end)
