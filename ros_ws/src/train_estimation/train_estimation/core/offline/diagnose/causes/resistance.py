@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import numpy as np
+from scipy.stats import chi2
 from train_core.effects import ResistanceEffect
 
+from ..phases import MIN_CELL_TIME, _fit_columns, grid_phase
 from ..stage import Stage
 from .base import Cause, fleet_se, resolved
 
@@ -13,6 +15,11 @@ RESISTANCE_COLS = ("one", "v", "v2")  # the Davis terms' elementary columns (a, 
 # a resistance no Davis curve gives: chi-square(3) at 1e-3 (the statistic of a bound on three
 # parameters is a chi-bar-square, below chi-square(3) in its tail)
 NONNEG_LR = 16.27
+# a resistance free in speed: this many bands of equal width from standstill to the top speed
+# (bands with less than MIN_CELL_TIME s of motion are left out), tested against the Davis curve
+# at this level (the same as the bound above)
+SPEED_BANDS = 8
+CURVE_ALPHA = 1e-3
 
 
 class Resistance(Cause):
@@ -61,6 +68,9 @@ class Resistance(Cause):
         which no train has. The best fit with a, b, c >= 0 (each subset of them held at its
         bound, the rest free on the model ``others``) against the free one: 2 ln LR above
         ``NONNEG_LR`` says the data need such a curve, and the resistance is not confirmed."""
+        why = self._not_a_curve(mo, others, fit, cfg, noise)
+        if why is not None:
+            return why
         st = Stage(mo, others, cfg, noise=noise)
         d = others.drift
         # the bound on each column's coefficient: believed plus the others' part plus it >= 0
@@ -88,6 +98,44 @@ class Resistance(Cause):
         return (f"not a running resistance: the data need a Davis curve with a negative term "
                 f"({neg}; 2 ln LR {lr:.1f} > {NONNEG_LR:g} against the best with a, b, c >= 0): "
                 f"a resistance that steps or bends with speed is something else")
+
+    def _not_a_curve(self, mo, others, fit, cfg, noise) -> str | None:
+        """A running resistance is smooth in speed: a + b v + c v^2. Against it, a resistance
+        free in speed: the Davis terms plus a free extra force in each of ``SPEED_BANDS`` bands
+        of equal width (all phases; one band is the reference), both on the model ``others``.
+        The two are nested and linear, so 2 ln LR is chi-square with one degree of freedom
+        per extra band when the Davis curve is right; beyond its ``CURVE_ALPHA`` quantile the
+        data need a resistance that steps or bends with speed (bogies that hunt above a
+        critical speed: 2 ln LR 27.8-93.4 on eight runs, where the bench's 17 resistance
+        changes give 1.1-16.6), and the resistance is not confirmed. Equal widths, not
+        quantiles: a run spends most of its time at one cruising speed, and quantile bands
+        crowd there."""
+        g, v = mo.grid, mo.v_ref
+        mov = grid_phase(mo) >= 0
+        if not mov.any():
+            return None
+        edges = np.linspace(0.0, float(v[mov].max()) * (1 + 1e-9), SPEED_BANDS + 1)
+        R = np.stack([(mov & (v >= a) & (v < b)).astype(float)
+                      for a, b in zip(edges[:-1], edges[1:])], axis=1)
+        R = R[:, R.sum(axis=0) * g.dt >= MIN_CELL_TIME]
+        k = R.shape[1] - 1
+        if k < 1:
+            return None
+        Bv, Bs = g.integrate(R[:, 1:], mo.ev.t.size)
+        js = [mo.col[n] for n in RESISTANCE_COLS]
+        Dv, Ds = mo.Dv[:, js], mo.Ds[:, js]
+        st = Stage(mo, others, cfg, noise=noise, big=False)
+        stat_davis = _fit_columns(st, Dv, Ds)[0]
+        stat_free = _fit_columns(st, np.hstack([Dv, Bv]), np.hstack([Ds, Bs]))[0]
+        lr = max(stat_free - stat_davis, 0.0)
+        bar = float(chi2.isf(CURVE_ALPHA, k))
+        fit.extra["free_in_speed_lr"] = float(lr)
+        if lr <= bar:
+            return None
+        return (f"not a running resistance: a force free in {k + 1} speed bands fits better "
+                f"than any Davis curve (2 ln LR {lr:.1f} > {bar:.1f}, chi-square({k}) at "
+                f"{CURVE_ALPHA:g}): a resistance that steps or bends with speed is something "
+                "else")
 
     def extend_null(self, null, fit, mo) -> None:
         p = fit.parameters
