@@ -1,0 +1,180 @@
+"""diagnose on bags from an independent simulator (benchmarks/foreign_sim.py): no shared physics.
+
+    ./run bench foreign --seeds 4 --jobs 2        # quick: 4 seeds x 11 kinds, about 2 min
+
+Each seed draws a line and a believed train (``train_sim.cases.make_case``: metro, regional,
+high-speed, metro_demo families), then runs the foreign simulator on them nominally and with one
+effect the believed files lack, of a plain case's size: a gradient section of 4-6 per mille over
+300-500 m of track run at speed; Davis terms x 0.6-0.75 or x 1.3-1.5; f 0.75-0.85; mass x
+0.85-0.9 or x 1.1-1.2; odometer scale 1 +- 0.01-0.02; brake delay + 0.4-0.8 s; clock drift
++-2e-5 to 1e-4; a stretch of 200-400 m of a braking approach braking x 0.5-0.7; a power limit
+with its knee at 40-60 % of the top speed; a traction delay + 0.6-1.0 s. Its driver,
+integrator, sensors, link (Gilbert-Elliott losses, latency with an exponential tail) and clock
+(an arbitrary epoch) are its own. Printed: per kind, how often the reported cause is the hidden
+one, confirmed and alone (nominal: ``none``), and what was reported instead.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import io
+import json
+import os
+import sys
+import tempfile
+import time
+from collections import Counter
+from concurrent.futures import ProcessPoolExecutor
+
+import numpy as np
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, HERE)
+import foreign_sim as FS  # noqa: E402
+from train_core.progress import Progress  # noqa: E402
+
+KINDS = ("none", "gradient", "resistance", "braking_rate", "mass", "odometer_scale",
+         "brake_delay", "clock_drift", "adhesion_section", "power_limit", "traction_delay")
+OUT = os.path.join(HERE, "out")
+
+
+def _sign(rng) -> float:
+    return 1.0 if rng.random() < 0.5 else -1.0
+
+
+def effect_of(kind: str, line: dict, train: dict, rng, pilot) -> FS.Effect:
+    """One plain effect of ``kind`` (module doc); ``pilot`` = (x, v) of the nominal run."""
+    if kind == "none":
+        return FS.Effect()
+    if kind == "gradient":
+        x, v, _ = pilot
+        length = float(rng.uniform(300.0, 500.0))
+        starts = [s for s in np.arange(x.min(), x.max() - length, 10.0)
+                  if np.all(v[(x >= s) & (x <= s + length)] > 3.0)]
+        s0 = float(rng.choice(starts))
+        return FS.Effect(gradient=(s0, s0 + length, _sign(rng) * float(rng.uniform(4.0, 6.0))))
+    if kind == "resistance":
+        k = float(rng.uniform(1.3, 1.5)) if rng.random() < 0.5 else float(rng.uniform(0.6, 0.75))
+        d = train["davis"]
+        return FS.Effect(davis=(d["a"] * k, d["b"] * k, d["c"] * k))
+    if kind == "braking_rate":
+        return FS.Effect(braking_rate=float(rng.uniform(0.75, 0.85)))
+    if kind == "mass":
+        return FS.Effect(mass=float(rng.uniform(1.1, 1.2)) if rng.random() < 0.5
+                         else float(rng.uniform(0.85, 0.9)))
+    if kind == "odometer_scale":
+        return FS.Effect(odometer_scale=1.0 + _sign(rng) * float(rng.uniform(0.01, 0.02)))
+    if kind == "brake_delay":
+        return FS.Effect(brake_delay=float(train["brake"]["delay"]) + float(rng.uniform(0.4, 0.8)))
+    if kind == "clock_drift":
+        return FS.Effect(clock_drift=_sign(rng) * float(rng.uniform(2e-5, 1e-4)))
+    if kind == "adhesion_section":
+        # a stretch of 200-400 m inside a braking approach
+        x, v, cmd = pilot
+        brake = np.flatnonzero((cmd < -0.1) & (v > 5.0))
+        length = float(rng.uniform(200.0, 400.0))
+        for _ in range(100):
+            s0 = float(x[rng.choice(brake)])
+            if np.all(cmd[(x >= s0) & (x <= s0 + length)] < 0.0):
+                break
+        return FS.Effect(adhesion=(s0, s0 + length, float(rng.uniform(0.5, 0.7))))
+    if kind == "power_limit":
+        # the knee at 40-60 % of the top speed for the largest traction command
+        x, v, cmd = pilot
+        a_max = float(train.get("performance", {}).get("max_traction", 0.8))
+        return FS.Effect(p_spec=a_max * float(rng.uniform(0.4, 0.6)) * float(v.max()))
+    if kind == "traction_delay":
+        return FS.Effect(traction_delay=float(train["brake"]["delay"])
+                         + float(rng.uniform(0.6, 1.0)))
+    raise ValueError(kind)
+
+
+def run_case(spec: dict) -> dict:
+    from train_estimation.tools import diagnose as tool
+    from train_sim.cases import make_case
+
+    seed, kind = spec["seed"], spec["kind"]
+    case = make_case(np.random.default_rng([seed, 5]), None, "plain")
+    out = {**spec, "family": case.family}
+    with tempfile.TemporaryDirectory(prefix="bench_foreign_") as d:
+        paths = case.write(os.path.join(d, "case"))
+        line, train = FS.load(str(paths["line"])), FS.load(str(paths["train"]))
+        trace: list = []
+        FS.simulate(line, train, FS.Effect(), np.random.default_rng([seed, 1]), trace=trace)
+        pilot = tuple(np.array([r[i] for r in trace]) for i in (1, 2, 3))
+        eff = effect_of(kind, line, train, np.random.default_rng([seed, 2, KINDS.index(kind)]),
+                        pilot)
+        out["effect"] = repr(eff)
+        events = FS.simulate(line, train, eff, np.random.default_rng([seed, 3]))
+        bag = os.path.join(d, "bag")
+        FS.write_bag(events, bag)
+        t0 = time.perf_counter()
+        with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
+            rc = tool.main(["--bag", bag, "--line", str(paths["line"]), "--train",
+                            str(paths["train"]), "--out", os.path.join(d, "diag"), "--quiet"])
+        out["time"] = time.perf_counter() - t0
+        out["rc"] = rc
+        if rc != 0:
+            return out
+        rep = json.load(open(os.path.join(d, "diag", "report.json")))
+    out["reported"] = rep["cause"]
+    out["confirmed"] = [r["cause"] for r in rep["ranking"] if r.get("status") == "confirmed"
+                        and r["cause"] != "none"]
+    out["unexplained"] = [u.get("phase") for u in rep.get("unexplained", [])]
+    want = kind
+    out["right"] = (rep["cause"] == want and (want == "none" or want in out["confirmed"])
+                    and len(out["confirmed"]) == (0 if want == "none" else 1))
+    return out
+
+
+def table(results: list) -> str:
+    md = ["| hidden | right | reported instead |", "|---|---|---|"]
+    for k in KINDS:
+        rows = [r for r in results if r["kind"] == k]
+        if not rows:
+            continue
+        ok = sum(bool(r.get("right")) for r in rows)
+        other = Counter(f"{r.get('reported', 'rc ' + str(r.get('rc')))}"
+                        + (f" (+{'+'.join(c for c in r['confirmed'] if c != r['reported'])})"
+                           if len([c for c in r.get("confirmed", []) if c != r["reported"]])
+                           else "")
+                        for r in rows if not r.get("right"))
+        md.append(f"| {k} | {ok}/{len(rows)} | "
+                  + (", ".join(f"{n} x{c}" for n, c in other.most_common()) or "-") + " |")
+    n = len(results)
+    ok = sum(bool(r.get("right")) for r in results)
+    md.append(f"| all | {ok}/{n} | |")
+    t = [r["time"] for r in results if "time" in r]
+    md.append(f"\ntime per bag (diagnose): mean {np.mean(t):.1f} s, max {np.max(t):.1f} s")
+    return "\n".join(md)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="bench_foreign", description=__doc__.splitlines()[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter,
+                                epilog="\n".join(__doc__.splitlines()[2:]))
+    p.add_argument("--seeds", type=int, default=6, help="lines and trains drawn (default 6)")
+    p.add_argument("--first", type=int, default=0, help="first seed (default 0)")
+    p.add_argument("--kinds", nargs="*", default=list(KINDS), choices=KINDS)
+    p.add_argument("--jobs", type=int, default=1, help="parallel processes (default 1)")
+    args = p.parse_args(argv)
+    specs = [{"seed": s, "kind": k} for s in range(args.first, args.first + args.seeds)
+             for k in args.kinds]
+    prog = Progress("bench foreign")
+    results = []
+    prog(0, len(specs), "")
+    with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as ex:
+        for r in ex.map(run_case, specs):
+            results.append(r)
+            prog(len(results), len(specs), r["kind"])
+    md = table(results)
+    print(md)
+    os.makedirs(OUT, exist_ok=True)
+    with open(os.path.join(OUT, "foreign.json"), "w") as f:
+        json.dump(results, f, indent=1, default=str)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,236 @@
+"""A second, independent train simulator: measured bags that our simulator did not make.
+
+``diagnose`` is meant for data from other physics code (another driver, other numerics, another
+link and clock). This module writes such bags from the contract's meanings alone
+(``../shared/CONTRACT.md``, docs/interfaces.md) and shares no physics with ``train_core`` or
+``train_sim``: its own integrator (semi-implicit Euler, 5 ms, where ours is RK4 with an exact
+actuator), its own driver (a trapezoid speed profile between the line's stations, a P speed
+controller, a braking curve aimed at the stopping point), its own sensors, link and clock. Only
+the map (``line.yaml``) and the believed train (``train.yaml``) are shared, read as plain YAML,
+and the bag is written with ``train_core.bagio`` (the file format, not the physics).
+
+Physics (per unit effective mass; the meanings the contract gives the files)::
+
+    dv/dt = kappa a_hat - (a + b v + c v^2) / M_eff - g sin(theta(x)) / (1 + lambda)
+    a_hat' = (u(t - T) - a_hat) / tau,   u = a_Tar (traction) or f a_Tar (braking)
+
+with ``kappa`` = believed / true effective mass (the controller asks for the force of the train it
+believes in). The train never rolls back; at rest it stays until the drive beats the static
+resistance ``a``.
+
+Pure module: numpy, yaml and the bag writer.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+import yaml
+
+G = 9.81  # m/s^2
+
+
+@dataclass(frozen=True)
+class Effect:
+    """What the world has that the believed files do not (None / 1.0: as believed)."""
+
+    gradient: tuple | None = None  # (start m, end m, permille): a section the map lacks
+    davis: tuple | None = None  # (a N, b N/(m/s), c N/(m/s)^2): the true resistance
+    braking_rate: float = 1.0  # -, f (braking delivered / asked)
+    mass: float = 1.0  # -, true / believed mass
+    odometer_scale: float = 1.0  # -, counted / true distance (and speed)
+    brake_delay: float | None = None  # s, the brake's true transport delay
+    clock_drift: float = 0.0  # s/s, the train clock's rate minus 1
+    adhesion: tuple | None = None  # (start m, end m, factor): braking delivered x factor there
+    p_spec: float | None = None  # m^2/s^3: traction acceleration delivered at most p_spec / v
+    traction_delay: float | None = None  # s, the traction's true transport delay
+
+    def cause(self) -> str:
+        named = [n for n, on in (("gradient", self.gradient is not None),
+                                 ("resistance", self.davis is not None),
+                                 ("braking_rate", self.braking_rate != 1.0),
+                                 ("mass", self.mass != 1.0),
+                                 ("odometer_scale", self.odometer_scale != 1.0),
+                                 ("brake_delay", self.brake_delay is not None),
+                                 ("clock_drift", self.clock_drift != 0.0),
+                                 ("adhesion_section", self.adhesion is not None),
+                                 ("power_limit", self.p_spec is not None),
+                                 ("traction_delay", self.traction_delay is not None)) if on]
+        return "+".join(named) or "none"
+
+
+def _profile(sections, x: float) -> float:
+    for s in sections:
+        if s["start"] <= x < s["end"]:
+            return float(s.get("permille", s.get("speed", 0.0)))
+    return 0.0
+
+
+def simulate(line: dict, train: dict, effect: Effect, rng: np.random.Generator,
+             dt: float = 0.005, odo_rate: float = 10.0, cmd_rate: float = 5.0,
+             dwell: float = 25.0, trace: list | None = None) -> list:
+    """The run from the first station to the last: [(log time s, topic, stamp s, fields)] as
+    a ground recorder would log it (measured: no ground truth)."""
+    m_b = float(train["mass"])
+    lam = float(train.get("rotary_allowance", 0.0))
+    meff_b = (1 + lam) * m_b
+    meff = meff_b * effect.mass
+    kappa = meff_b / meff
+    a0, b0, c0 = (float(train["davis"][k]) for k in "abc")
+    a, b, c = effect.davis if effect.davis is not None else (a0, b0, c0)
+    br = train["brake"]
+    tau, delay = float(br["time_constant"]), float(br["delay"])
+    b_delay = effect.brake_delay if effect.brake_delay is not None else delay
+    t_delay = effect.traction_delay if effect.traction_delay is not None else delay
+    perf = train.get("performance", {})
+    a_max = float(perf.get("max_traction", 0.8))
+    b_serv = float(perf.get("service_brake", 0.8))
+    odo = train.get("odometer", {})
+    s_std, d_std = float(odo.get("speed_std", 0.1)), float(odo.get("distance_std", 0.1))
+    p_std = float(train.get("balise", {}).get("position_std", 0.5))
+    def grad_acc(x):
+        pm = _profile(line.get("gradients", []), x)
+        if effect.gradient is not None and effect.gradient[0] <= x < effect.gradient[1]:
+            pm += effect.gradient[2]
+        th = math.atan(pm / 1000.0)
+        return G * math.sin(th) / (1 + lam)
+
+    limits = line.get("speed_limits", [])
+    v_line = float(line.get("max_speed", 20.0))
+
+    def v_limit(x):
+        v = _profile(limits, x)
+        return v if v > 0 else v_line
+
+    stations = sorted(float(s["position"]) for s in line.get("stations", []))
+    if len(stations) < 2:
+        stations = [0.0, float(line["length"])]
+    balises = sorted((float(bl["position"]), int(bl["id"])) for bl in line.get("balises", []))
+
+    # clocks: the train's stamps at an arbitrary epoch (at the effect's drift); the ground's
+    # log time at another epoch
+    epoch_train = float(rng.uniform(1e8, 1e9))
+    drift = effect.clock_drift
+    epoch_ref = 1.75e9
+
+    def stamp(t):
+        return epoch_train + (1.0 + drift) * t
+
+    # the radio link: Gilbert-Elliott losses, latency with an exponential tail
+    state = {"bad": False}
+
+    def link(t):
+        st = state["bad"]
+        state["bad"] = (rng.random() < 0.25) if st else (rng.random() > 0.98)
+        lost = rng.random() < (0.5 if state["bad"] else 0.02)
+        return None if lost else t + 0.04 + float(rng.exponential(0.015))
+
+    out = []
+    x, v = stations[0], 0.0
+    ah_tr = ah_br = 0.0
+    dist_true = 0.0
+    pipe_tr: deque = deque()
+    pipe_br: deque = deque()
+    u_tr = u_br = 0.0
+    t, t_end_dwell = 0.0, dwell * 0.4
+    leg, seq_odo, seq_bal = 1, 0, 0
+    next_cmd, next_odo = 0.0, 0.0
+    cmd = -0.3
+    stopping = False
+    bi = next((i for i, (p, _) in enumerate(balises) if p > x), len(balises))
+    while leg < len(stations):
+        if t >= next_cmd - 1e-9:
+            target = stations[leg]
+            if t < t_end_dwell:
+                cmd = -0.3  # holding brake while dwelling
+            else:
+                rem = target - x
+                vc = 0.9 * min(v_limit(x), v_limit(x + 50.0), v_line)
+                # the braking curve: latched once the distance left is what a braking at 60 %
+                # of the service rate needs, plus the actuator's reaction
+                if not stopping and rem < v * v / (1.2 * b_serv) + v * (delay + tau) + 10.0:
+                    stopping = True
+                if stopping:
+                    need = v * v / (2.0 * max(rem - 1.0, 0.5))
+                    cmd = -0.3 if v < 0.05 else -min(b_serv, 1.1 * need)
+                else:
+                    cmd = float(np.clip(0.6 * (vc - v), -0.5 * b_serv, a_max))
+                    if abs(cmd) < 0.03:
+                        cmd = 0.0
+            if trace is not None:
+                trace.append((t, x, v, cmd, leg))
+            out.append((epoch_ref + t + 0.005, "control", epoch_ref + t,
+                        {"target_acceleration": cmd}))
+            pipe_tr.append((t + t_delay, max(cmd, 0.0)))
+            pipe_br.append((t + b_delay, min(cmd, 0.0)))
+            next_cmd += 1.0 / cmd_rate
+        while pipe_tr and pipe_tr[0][0] <= t + 1e-9:
+            u_tr = pipe_tr.popleft()[1]
+        while pipe_br and pipe_br[0][0] <= t + 1e-9:
+            u_br = pipe_br.popleft()[1]
+        # one first-order lag (linear): its traction and braking parts lag separately
+        e = math.exp(-dt / tau)
+        ah_tr = u_tr + (ah_tr - u_tr) * e
+        ah_br = effect.braking_rate * u_br + (ah_br - effect.braking_rate * u_br) * e
+        drive_tr = ah_tr
+        if effect.p_spec is not None and v > 0.0:
+            drive_tr = min(drive_tr, effect.p_spec / v)
+        drive_br = ah_br
+        if effect.adhesion is not None and effect.adhesion[0] <= x < effect.adhesion[1]:
+            drive_br *= effect.adhesion[2]
+        acc = kappa * (drive_tr + drive_br) - grad_acc(x)
+        if v > 0.0:
+            acc -= (a + b * v + c * v * v) / meff
+            v_new = max(v + acc * dt, 0.0)
+        else:
+            v_new = acc * dt if acc > a / meff else 0.0
+        x_old = x
+        x += v_new * dt
+        v = v_new
+        dist_true += v * dt
+        t += dt
+        while bi < len(balises) and balises[bi][0] <= x:
+            p, bid = balises[bi]
+            tb = t - dt + dt * (p - x_old) / max(x - x_old, 1e-12)
+            seq_bal += 1
+            tr = link(tb)
+            if tr is not None:
+                out.append((epoch_ref + tr, "balise", stamp(tb),
+                            {"seq": seq_bal, "balise_id": bid, "position": p,
+                             "position_variance": p_std * p_std}))
+            bi += 1
+        if t >= next_odo - 1e-9:
+            d = effect.odometer_scale * dist_true + float(rng.normal(0.0, d_std))
+            sp = effect.odometer_scale * v + float(rng.normal(0.0, s_std))
+            tr = link(t)
+            if tr is not None:
+                out.append((epoch_ref + tr, "odometer", stamp(t),
+                            {"seq": seq_odo, "distance": d, "speed": sp,
+                             "speed_variance": s_std * s_std}))
+            seq_odo += 1
+            next_odo += 1.0 / odo_rate
+        if stopping and v < 0.01 and stations[leg] - x < 20.0:
+            leg += 1
+            t_end_dwell = t + dwell
+            stopping = False
+        if t > 4000.0:
+            raise RuntimeError("the driver did not reach the last station in 4000 s")
+    out.sort(key=lambda e: e[0])
+    return out
+
+
+def write_bag(events: list, path: str) -> None:
+    """The events as a measured bag (log time = arrival on the ground's clock)."""
+    from train_core.bagio import BagWriter
+
+    with BagWriter(path, namespace="/train") as w:
+        for t_log, topic, st, fields in events:
+            w.write(topic, st, fields, t_ns=int(round(t_log * 1e9)))
+
+
+def load(path: str) -> dict:
+    with open(path) as f:
+        return yaml.safe_load(f)

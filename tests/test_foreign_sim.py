@@ -1,0 +1,52 @@
+"""The independent simulator of benchmarks/bench_foreign.py: its own physics, contract bags."""
+
+import ast
+import os
+import sys
+
+import numpy as np
+import pytest
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, os.path.join(HERE, "..", "benchmarks"))
+import foreign_sim as FS  # noqa: E402
+
+LINE = {"length": 3000.0, "max_speed": 20.0,
+        "balises": [{"id": i + 1, "position": p} for i, p in enumerate((50.0, 1500.0, 2950.0))],
+        "gradients": [{"start": 0.0, "end": 3000.0, "permille": 0.0}],
+        "stations": [{"name": "A", "position": 100.0}, {"name": "B", "position": 2900.0}]}
+TRAIN = {"mass": 300000.0, "rotary_allowance": 0.1, "davis": {"a": 3000.0, "b": 100.0, "c": 8.0},
+         "brake": {"time_constant": 0.5, "delay": 1.0, "braking_rate": 1.0},
+         "performance": {"max_traction": 0.8, "service_brake": 0.8}}
+
+
+def test_it_shares_no_physics_with_ours():
+    src = open(FS.__file__).read()
+    mods = {n.module or "" for n in ast.walk(ast.parse(src)) if isinstance(n, ast.ImportFrom)}
+    mods |= {a.name for n in ast.walk(ast.parse(src)) if isinstance(n, ast.Import)
+             for a in n.names}
+    assert not any(m.startswith("train_sim") for m in mods), mods
+    assert {m for m in mods if m.startswith("train_core")} <= {"train_core.bagio"}, mods
+
+
+@pytest.mark.parametrize("effect", [FS.Effect(), FS.Effect(gradient=(1000.0, 1400.0, 5.0),
+                                                           clock_drift=1e-4)])
+def test_a_run_from_station_to_station_keeps_the_contract(effect):
+    tr: list = []
+    ev = FS.simulate(LINE, TRAIN, effect, np.random.default_rng(0), trace=tr)
+    x = np.array([r[1] for r in tr])
+    assert x[-1] > 2850.0  # it reached the last station (a few metres either side)
+    log = [e[0] for e in ev]
+    assert log == sorted(log)
+    odo = sorted((e for e in ev if e[1] == "odometer"), key=lambda e: e[3]["seq"])
+    seq = np.array([e[3]["seq"] for e in odo])
+    st = np.array([e[2] for e in odo])
+    assert np.all(np.diff(seq) > 0) and np.all(np.diff(st) > 0)
+    # the train clock's rate against the sample counter: 10 Hz times (1 + drift)
+    rate = np.polyfit(seq, st, 1)[0] * 10.0 - 1.0
+    assert rate == pytest.approx(effect.clock_drift, abs=1e-7)
+    # losses happen, and the counted distance ends near the distance run
+    assert 0 < seq.size < seq[-1] + 1
+    assert odo[-1][3]["distance"] == pytest.approx(x[-1] - x[0], abs=2.0)
+    bal = [e for e in ev if e[1] == "balise"]
+    assert {e[3]["balise_id"] for e in bal} <= {1, 2, 3}
