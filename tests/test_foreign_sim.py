@@ -50,3 +50,43 @@ def test_a_run_from_station_to_station_keeps_the_contract(effect):
     assert odo[-1][3]["distance"] == pytest.approx(x[-1] - x[0], abs=2.0)
     bal = [e for e in ev if e[1] == "balise"]
     assert {e[3]["balise_id"] for e in bal} <= {1, 2, 3}
+
+
+@pytest.mark.slow
+def test_a_downhill_run_in_braking_is_named_with_the_rival_it_cannot_be_told_from(tmp_path):
+    """A downhill section the map lacks, run wholly in a braking approach at a nearly constant
+    braking command (bench_foreign's gradient at seed 1): the same force as braking weaker on
+    that stretch. Whichever of the two is confirmed is on the stretch and says what it cannot
+    be told from (docs/diagnose.md: gradient against resistance, checks 3)."""
+    import json
+
+    import bench_foreign as BF
+
+    from train_estimation.tools import diagnose as tool
+    from train_sim.cases import make_case
+
+    seed = 1
+    case = make_case(np.random.default_rng([seed, 5]), None, "plain")
+    paths = case.write(tmp_path / "case")
+    line, train = FS.load(str(paths["line"])), FS.load(str(paths["train"]))
+    trace: list = []
+    FS.simulate(line, train, FS.Effect(), np.random.default_rng([seed, 1]), trace=trace)
+    pilot = tuple(np.array([r[i] for r in trace]) for i in (1, 2, 3))
+    eff = BF.effect_of("gradient", line, train,
+                       np.random.default_rng([seed, 2, BF.KINDS.index("gradient")]), pilot)
+    s0, s1, pm = eff.gradient
+    x, _, cmd = pilot
+    on = (x >= s0) & (x < s1)
+    assert pm < 0 and np.all(cmd[on] < 0)  # downhill, wholly in braking
+    FS.write_bag(FS.simulate(line, train, eff, np.random.default_rng([seed, 3])),
+                 str(tmp_path / "bag"))
+    assert tool.main(["--bag", str(tmp_path / "bag"), "--line", str(paths["line"]), "--train",
+                      str(paths["train"]), "--out", str(tmp_path / "out"), "--quiet"]) == 0
+    rep = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert rep["cause"] in ("gradient", "adhesion_section"), rep["cause"]
+    p = rep["parameters"]
+    overlap = min(p["end"], s1) - max(p["start"], s0)
+    assert overlap > 0.8 * (s1 - s0), (p, eff.gradient)
+    caveat = rep["evidence"]["_model"]["confirmation"]["checks"][rep["cause"]]["caveat"]
+    rival = "downhill gradient" if rep["cause"] == "adhesion_section" else "braking"
+    assert rival in caveat, caveat

@@ -552,11 +552,17 @@ def summary(dg, bag_path, data, elapsed: float, model: dict) -> list[str]:
     out = [f"diagnose {bag_path}: {dur:.0f} s, {n_odo} odometer samples, {n_bal} balise "
            f"readings, {elapsed:.1f} s",
            f"{'rank':<5}{'cause':<16}{'score':>10}  {'status':<14} parameters"]
+    checks = (((dg.evidence or {}).get("_model") or {}).get("confirmation") or {}).get(
+        "checks") or {}
     for i, r in enumerate(dg.ranking[:6]):
         out.append(f"{i + 1:<5}{r.cause:<16}{r.score:>10.1f}  {r.status or '-':<14} "
                    f"{_fmt_params(r.parameters)}")
         if r.why:
             out.append(f"{'':<33}why: {r.why}")
+        caveat = (checks.get(r.cause) or {}).get("caveat")
+        if r.status == "confirmed" and caveat:
+            # what one run's data cannot tell the confirmed cause from (docs/diagnose.md)
+            out.append(f"{'':<33}caveat: {caveat}")
     if len(dg.ranking) > 6:
         out.append(f"     ... {len(dg.ranking) - 6} more in report.json")
     for u in dg.unexplained:

@@ -421,8 +421,25 @@ LAW_REACH = 4
 
 
 def speed_law(mo: Motion, others: Null, cfg, noise, bins: tuple, power: float = 2.0) -> dict:
+    """A force fixed at a place against one that grows as v^power (aerodynamic drag: power 2,
+    drag in a tunnel): :func:`law_test` with that law."""
+    vm = 0.5 * (mo.v_ref[1:] + mo.v_ref[:-1])
+    return law_test(mo, others, cfg, noise, bins, vm ** power, f"v^{power:g}")
+
+
+def braking_law(mo: Motion, others: Null, cfg, noise, bins: tuple) -> dict:
+    """A force fixed at a place against one in proportion to the braking asked for there
+    (braking weaker on a stretch: an adhesion section): :func:`law_test` with that law."""
+    br = -mo.f0 * mo.a_br0
+    return law_test(mo, others, cfg, noise, bins, np.maximum(0.5 * (br[1:] + br[:-1]), 0.0),
+                    "the braking command")
+
+
+def law_test(mo: Motion, others: Null, cfg, noise, bins: tuple, shape: np.ndarray,
+             name: str) -> dict:
     """A force fixed at a place (a gradient on the position bins ``bins`` = (i, j)) against a
-    force at a place that grows as v^power (aerodynamic drag: power 2, drag in a tunnel), both
+    force at a place that follows ``shape`` (per grid step, >= 0: v^2 for drag in a tunnel, the
+    braking asked for where the rail's adhesion is low), both
     on top of the model ``others``, each on its own best stretch within ``LAW_REACH`` bins of
     the fitted one (same parameter count: start, end, size).
 
@@ -438,13 +455,12 @@ def speed_law(mo: Motion, others: Null, cfg, noise, bins: tuple, power: float = 
     vm = 0.5 * (mo.v_ref[1:] + mo.v_ref[:-1])
     mov, jb = mo.step_moving, mo.step_bin
     width = mo.bin_edges[1] - mo.bin_edges[0]
-    res = {"law": f"v^{power:g}"}
+    res = {"law": name}
     on = mov & (jb >= i) & (jb < j)
-    if on.sum() < 2:
+    if on.sum() < 2 or not np.mean(shape[on]) > 0:
         res.update(lr=0.0, note="the train does not move on the stretch")
         return res
-    vp = vm ** power
-    law = vp / float(np.mean(vp[on]))  # the law's force relative to its mean on the stretch
+    law = shape / float(np.mean(shape[on]))  # the law's force relative to its mean there
     m = hi - lo
     near = mov & (jb >= lo) & (jb < hi)
     col = jb[near] - lo

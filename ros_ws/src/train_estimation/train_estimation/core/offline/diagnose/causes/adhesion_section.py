@@ -49,6 +49,10 @@ class AdhesionSection(Cause):
             {"start": start, "end": end, "factor": 1.0 + th}, {"factor": se}, \
             {"bins": (i, j)}
 
+    # the braking weaker in proportion to the braking asked for at its place; a force fixed
+    # there is a gradient the map lacks (downhill: braking seems weaker)
+    fixed_rival = "a downhill gradient the map lacks (a force fixed at that place)"
+
     def resolution(self, fit, mo) -> str | None:
         """Braking on one stretch weaker by more than 3 SE and by 5 %: a few brake
         applications over a stretch scatter by a few per cent (driver, load, rail) without

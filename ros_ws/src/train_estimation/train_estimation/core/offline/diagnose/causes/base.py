@@ -161,6 +161,10 @@ class Cause:
     # at its place) is not; None: the cause states no speed law of its own to test against.
     speed_rival: str | None = None
 
+    # A force fixed at that place (a gradient), which the cause (a force in proportion to the
+    # braking asked for at its place) is not; None: the cause is no such law.
+    fixed_rival: str | None = None
+
     def beyond(self, fit: CauseFit, mo):
         """For a cause fitted on a stretch of track: (inside, pattern), the grid points it acts
         on and its acceleration (m/s^2 per grid point) if it acted at every place in the same
