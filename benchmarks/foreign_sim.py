@@ -129,6 +129,13 @@ def simulate(line: dict, train: dict, effect: Effect, rng: np.random.Generator,
         return None if lost else t + 0.04 + float(rng.exponential(0.015))
 
     out = []
+
+    def send(t_sample, topic, fields):
+        """A train message sampled at ``t_sample`` through the link (lost: not logged)."""
+        tr = link(t_sample)
+        if tr is not None:
+            out.append((epoch_ref + tr, topic, stamp(t_sample), fields))
+
     x, v = stations[0], 0.0
     ah_tr = ah_br = 0.0
     dist_true = 0.0
@@ -196,20 +203,14 @@ def simulate(line: dict, train: dict, effect: Effect, rng: np.random.Generator,
             p, bid = balises[bi]
             tb = t - dt + dt * (p - x_old) / max(x - x_old, 1e-12)
             seq_bal += 1
-            tr = link(tb)
-            if tr is not None:
-                out.append((epoch_ref + tr, "balise", stamp(tb),
-                            {"seq": seq_bal, "balise_id": bid, "position": p,
-                             "position_variance": p_std * p_std}))
+            send(tb, "balise", {"seq": seq_bal, "balise_id": bid, "position": p,
+                                "position_variance": p_std * p_std})
             bi += 1
         if t >= next_odo - 1e-9:
             d = effect.odometer_scale * dist_true + float(rng.normal(0.0, d_std))
             sp = effect.odometer_scale * v + float(rng.normal(0.0, s_std))
-            tr = link(t)
-            if tr is not None:
-                out.append((epoch_ref + tr, "odometer", stamp(t),
-                            {"seq": seq_odo, "distance": d, "speed": sp,
-                             "speed_variance": s_std * s_std}))
+            send(t, "odometer", {"seq": seq_odo, "distance": d, "speed": sp,
+                                 "speed_variance": s_std * s_std})
             seq_odo += 1
             next_odo += 1.0 / odo_rate
         if stopping and v < 0.01 and stations[leg] - x < 20.0:
