@@ -71,9 +71,13 @@ def _profile(sections, x: float) -> float:
 
 def simulate(line: dict, train: dict, effect: Effect, rng: np.random.Generator,
              dt: float = 0.005, odo_rate: float = 10.0, cmd_rate: float = 5.0,
-             dwell: float = 25.0, trace: list | None = None) -> list:
+             dwell: float = 25.0, trace: list | None = None, sent: list | None = None,
+             truth: list | None = None) -> list:
     """The run from the first station to the last: [(log time s, topic, stamp s, fields)] as
-    a ground recorder would log it (measured: no ground truth)."""
+    a ground recorder would log it (measured: no ground truth). ``trace`` gets (t, x, v,
+    command, leg) at every command; ``sent`` the messages the link delivered as (topic, true
+    sample time s, fields) in sampling order (the clean stream of ``tools.faults.inject``);
+    ``truth`` (t, x, v) at every odometer sample."""
     m_b = float(train["mass"])
     lam = float(train.get("rotary_allowance", 0.0))
     meff_b = (1 + lam) * m_b
@@ -135,6 +139,8 @@ def simulate(line: dict, train: dict, effect: Effect, rng: np.random.Generator,
         tr = link(t_sample)
         if tr is not None:
             out.append((epoch_ref + tr, topic, stamp(t_sample), fields))
+            if sent is not None:
+                sent.append((topic, t_sample, fields))
 
     x, v = stations[0], 0.0
     ah_tr = ah_br = 0.0
@@ -171,6 +177,8 @@ def simulate(line: dict, train: dict, effect: Effect, rng: np.random.Generator,
                 trace.append((t, x, v, cmd, leg))
             out.append((epoch_ref + t + 0.005, "control", epoch_ref + t,
                         {"target_acceleration": cmd}))
+            if sent is not None:
+                sent.append(("control", t, {"target_acceleration": cmd}))
             pipe_tr.append((t + t_delay, max(cmd, 0.0)))
             pipe_br.append((t + b_delay, min(cmd, 0.0)))
             next_cmd += 1.0 / cmd_rate
@@ -207,6 +215,8 @@ def simulate(line: dict, train: dict, effect: Effect, rng: np.random.Generator,
                                 "position_variance": p_std * p_std})
             bi += 1
         if t >= next_odo - 1e-9:
+            if truth is not None:
+                truth.append((t, x, v))
             d = effect.odometer_scale * dist_true + float(rng.normal(0.0, d_std))
             sp = effect.odometer_scale * v + float(rng.normal(0.0, s_std))
             send(t, "odometer", {"seq": seq_odo, "distance": d, "speed": sp,

@@ -32,8 +32,14 @@ def test_it_shares_no_physics_with_ours():
 @pytest.mark.parametrize("effect", [FS.Effect(), FS.Effect(gradient=(1000.0, 1400.0, 5.0),
                                                            clock_drift=1e-4)])
 def test_a_run_from_station_to_station_keeps_the_contract(effect):
-    tr: list = []
-    ev = FS.simulate(LINE, TRAIN, effect, np.random.default_rng(0), trace=tr)
+    tr, sent, truth = [], [], []
+    ev = FS.simulate(LINE, TRAIN, effect, np.random.default_rng(0), trace=tr, sent=sent,
+                     truth=truth)
+    # the clean stream: every message logged, at its true sample time; the truth per sample
+    assert len(sent) == len(ev)
+    assert [e[0] for e in sent].count("odometer") == [e[1] for e in ev].count("odometer")
+    assert np.all(np.diff([u[0] for u in truth]) > 0) and truth[-1][1] == pytest.approx(
+        tr[-1][1], abs=30.0)
     x = np.array([r[1] for r in tr])
     assert x[-1] > 2850.0  # it reached the last station (a few metres either side)
     log = [e[0] for e in ev]
