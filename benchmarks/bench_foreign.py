@@ -142,16 +142,12 @@ def run_estimators(spec: dict) -> list[dict]:
     """Every estimator on one foreign run (``--estimators``): the clean stream the link delivered,
     on the fault campaign's clocks and latency (``tools.faults``, no fault), replayed through the
     runner the nodes use with the node defaults and scored as the integrity campaign scores."""
+    from types import SimpleNamespace
+
+    from bench_integrity import make_adapter
     from train_core.model import load_line, load_train
 
-    from train_estimation.core.online.estimators import (
-        BrakingAdapter,
-        BrakingConfig,
-        NodeConfig,
-        RobustAdapter,
-        RobustConfig,
-        StartState,
-    )
+    from train_estimation.core.online.estimators import NodeConfig
     from train_estimation.tools import faults as F
     from train_sim.cases import make_case
 
@@ -176,11 +172,10 @@ def run_estimators(spec: dict) -> list[dict]:
     cfg = NodeConfig()
     for name in ESTIMATORS:
         row = {**spec, "family": case.family, "estimator": name, "effect": repr(eff)}
-        st = StartState(float(tr[0, 1]))
+        sc = SimpleNamespace(train=train, line=line, start_position=float(tr[0, 1]),
+                             odometer_rate=rate)
         try:
-            ad = RobustAdapter(train, line, st, RobustConfig(period=1 / rate)) \
-                if name == "robust_filter" else \
-                BrakingAdapter(train, line, st, BrakingConfig(algorithm=name))
+            ad = make_adapter(sc, name)  # as the integrity campaign makes it
         except ValueError as exc:  # the estimator cannot model this train
             row["na"] = str(exc)
             rows.append(row)
@@ -257,34 +252,20 @@ def main(argv=None) -> int:
                    help="run every estimator on the runs instead of diagnose (the integrity "
                         "campaign's figures: wrong-side, availability, error)")
     args = p.parse_args(argv)
-    if args.estimators:
-        specs = [{"seed": s, "kind": k} for s in range(args.first, args.first + args.seeds)
-                 for k in args.kinds]
-        prog = Progress("bench foreign estimators")
-        rows = []
-        prog(0, len(specs), "")
-        with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as ex:
-            for i, r in enumerate(ex.map(run_estimators, specs)):
-                rows += r
-                prog(i + 1, len(specs), specs[i]["kind"])
-        print(estimator_table(rows))
-        os.makedirs(OUT, exist_ok=True)
-        with open(os.path.join(OUT, "foreign_estimators.json"), "w") as f:
-            json.dump(rows, f, indent=1, default=str)
-        return 0
     specs = [{"seed": s, "kind": k} for s in range(args.first, args.first + args.seeds)
              for k in args.kinds]
-    prog = Progress("bench foreign")
+    fn, name = (run_estimators, "foreign_estimators") if args.estimators else \
+        (run_case, "foreign")
+    prog = Progress(f"bench {name.replace('_', ' ')}")
     results = []
     prog(0, len(specs), "")
     with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as ex:
-        for r in ex.map(run_case, specs):
-            results.append(r)
-            prog(len(results), len(specs), r["kind"])
-    md = table(results)
-    print(md)
+        for i, r in enumerate(ex.map(fn, specs)):
+            results += r if args.estimators else [r]
+            prog(i + 1, len(specs), specs[i]["kind"])
+    print(estimator_table(results) if args.estimators else table(results))
     os.makedirs(OUT, exist_ok=True)
-    with open(os.path.join(OUT, "foreign.json"), "w") as f:
+    with open(os.path.join(OUT, f"{name}.json"), "w") as f:
         json.dump(results, f, indent=1, default=str)
     return 0
 
