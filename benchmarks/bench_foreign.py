@@ -39,6 +39,7 @@ import numpy as np
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, HERE)
 import foreign_sim as FS  # noqa: E402
+from bench_integrity import ESTIMATORS, make_adapter  # noqa: E402
 from train_core.progress import Progress  # noqa: E402
 
 KINDS = ("none", "gradient", "resistance", "braking_rate", "mass", "odometer_scale",
@@ -51,7 +52,8 @@ def _sign(rng) -> float:
 
 
 def effect_of(kind: str, line: dict, train: dict, rng, pilot) -> FS.Effect:
-    """One plain effect of ``kind`` (module doc); ``pilot`` = (x, v) of the nominal run."""
+    """One plain effect of ``kind`` (module doc); ``pilot`` = (x, v, command) of the nominal
+    run at its commands."""
     if kind == "none":
         return FS.Effect()
     if kind == "gradient":
@@ -97,22 +99,30 @@ def effect_of(kind: str, line: dict, train: dict, rng, pilot) -> FS.Effect:
     raise ValueError(kind)
 
 
-def run_case(spec: dict) -> dict:
-    from train_estimation.tools import diagnose as tool
+def foreign_case(seed: int, kind: str, directory: str) -> tuple:
+    """Seed ``seed``'s line and believed train (``make_case``, written to ``directory``) and
+    the effect of ``kind`` placed from a nominal pilot run: (case, paths, line dict, train
+    dict, the pilot's (x, v, command) at its commands, effect)."""
     from train_sim.cases import make_case
 
-    seed, kind = spec["seed"], spec["kind"]
     case = make_case(np.random.default_rng([seed, 5]), None, "plain")
-    out = {**spec, "family": case.family}
+    paths = case.write(directory)
+    line, train = FS.load(str(paths["line"])), FS.load(str(paths["train"]))
+    trace: list = []
+    FS.simulate(line, train, FS.Effect(), np.random.default_rng([seed, 1]), trace=trace)
+    pilot = tuple(np.array([r[i] for r in trace]) for i in (1, 2, 3))
+    eff = effect_of(kind, line, train, np.random.default_rng([seed, 2, KINDS.index(kind)]),
+                    pilot)
+    return case, paths, line, train, pilot, eff
+
+
+def run_case(spec: dict) -> dict:
+    from train_estimation.tools import diagnose as tool
+
+    seed, kind = spec["seed"], spec["kind"]
     with tempfile.TemporaryDirectory(prefix="bench_foreign_") as d:
-        paths = case.write(os.path.join(d, "case"))
-        line, train = FS.load(str(paths["line"])), FS.load(str(paths["train"]))
-        trace: list = []
-        FS.simulate(line, train, FS.Effect(), np.random.default_rng([seed, 1]), trace=trace)
-        pilot = tuple(np.array([r[i] for r in trace]) for i in (1, 2, 3))
-        eff = effect_of(kind, line, train, np.random.default_rng([seed, 2, KINDS.index(kind)]),
-                        pilot)
-        out["effect"] = repr(eff)
+        case, paths, line, train, _, eff = foreign_case(seed, kind, os.path.join(d, "case"))
+        out = {**spec, "family": case.family, "effect": repr(eff)}
         events = FS.simulate(line, train, eff, np.random.default_rng([seed, 3]))
         bag = os.path.join(d, "bag")
         FS.write_bag(events, bag)
@@ -129,13 +139,9 @@ def run_case(spec: dict) -> dict:
     out["confirmed"] = [r["cause"] for r in rep["ranking"] if r.get("status") == "confirmed"
                         and r["cause"] != "none"]
     out["unexplained"] = [u.get("phase") for u in rep.get("unexplained", [])]
-    want = kind
-    out["right"] = (rep["cause"] == want and (want == "none" or want in out["confirmed"])
-                    and len(out["confirmed"]) == (0 if want == "none" else 1))
+    out["right"] = (rep["cause"] == kind and (kind == "none" or kind in out["confirmed"])
+                    and len(out["confirmed"]) == (0 if kind == "none" else 1))
     return out
-
-
-ESTIMATORS = ("robust_filter", "kf", "gsma", "sma", "rbpf", "qgrbpf")
 
 
 def run_estimators(spec: dict) -> list[dict]:
@@ -144,25 +150,17 @@ def run_estimators(spec: dict) -> list[dict]:
     runner the nodes use with the node defaults and scored as the integrity campaign scores."""
     from types import SimpleNamespace
 
-    from bench_integrity import make_adapter
     from train_core.model import load_line, load_train
 
     from train_estimation.core.online.estimators import NodeConfig
     from train_estimation.tools import faults as F
-    from train_sim.cases import make_case
 
     seed, kind = spec["seed"], spec["kind"]
-    case = make_case(np.random.default_rng([seed, 5]), None, "plain")
     rows = []
     with tempfile.TemporaryDirectory(prefix="bench_foreign_") as d:
-        paths = case.write(os.path.join(d, "case"))
-        line_d, train_d = FS.load(str(paths["line"])), FS.load(str(paths["train"]))
+        case, paths, line_d, train_d, _, eff = foreign_case(seed, kind,
+                                                           os.path.join(d, "case"))
         line, train = load_line(str(paths["line"])), load_train(str(paths["train"]))
-    trace: list = []
-    FS.simulate(line_d, train_d, FS.Effect(), np.random.default_rng([seed, 1]), trace=trace)
-    pilot = tuple(np.array([r[i] for r in trace]) for i in (1, 2, 3))
-    eff = effect_of(kind, line_d, train_d, np.random.default_rng([seed, 2, KINDS.index(kind)]),
-                    pilot)
     sent, truth = [], []
     FS.simulate(line_d, train_d, eff, np.random.default_rng([seed, 3]), sent=sent, truth=truth)
     sent.sort(key=lambda e: e[1])
@@ -170,17 +168,17 @@ def run_estimators(spec: dict) -> list[dict]:
     tr_d = {"t": tr[:, 0], "position": tr[:, 1], "velocity": tr[:, 2]}
     rate = 10.0
     cfg = NodeConfig()
+    fl = F.inject(sent, F.Fault("none"), np.random.default_rng(seed))  # the same for each
+    sc = SimpleNamespace(train=train, line=line, start_position=float(tr[0, 1]),
+                         odometer_rate=rate)
     for name in ESTIMATORS:
         row = {**spec, "family": case.family, "estimator": name, "effect": repr(eff)}
-        sc = SimpleNamespace(train=train, line=line, start_position=float(tr[0, 1]),
-                             odometer_rate=rate)
         try:
             ad = make_adapter(sc, name)  # as the integrity campaign makes it
         except ValueError as exc:  # the estimator cannot model this train
             row["na"] = str(exc)
             rows.append(row)
             continue
-        fl = F.inject(sent, F.Fault("none"), np.random.default_rng(seed))
         try:
             outs, emitted, _ = F.run(fl.events, ad, 1 / rate, delay=cfg.output_delay,
                                      tick_period=cfg.tick_period,

@@ -48,19 +48,6 @@ class Effect:
     p_spec: float | None = None  # m^2/s^3: traction acceleration delivered at most p_spec / v
     traction_delay: float | None = None  # s, the traction's true transport delay
 
-    def cause(self) -> str:
-        named = [n for n, on in (("gradient", self.gradient is not None),
-                                 ("resistance", self.davis is not None),
-                                 ("braking_rate", self.braking_rate != 1.0),
-                                 ("mass", self.mass != 1.0),
-                                 ("odometer_scale", self.odometer_scale != 1.0),
-                                 ("brake_delay", self.brake_delay is not None),
-                                 ("clock_drift", self.clock_drift != 0.0),
-                                 ("adhesion_section", self.adhesion is not None),
-                                 ("power_limit", self.p_spec is not None),
-                                 ("traction_delay", self.traction_delay is not None)) if on]
-        return "+".join(named) or "none"
-
 
 def _profile(sections, x: float) -> float:
     for s in sections:
@@ -95,6 +82,8 @@ def simulate(line: dict, train: dict, effect: Effect, rng: np.random.Generator,
     odo = train.get("odometer", {})
     s_std, d_std = float(odo.get("speed_std", 0.1)), float(odo.get("distance_std", 0.1))
     p_std = float(train.get("balise", {}).get("position_std", 0.5))
+    lag = math.exp(-dt / tau)  # the first-order lag over one step
+
     def grad_acc(x):
         pm = _profile(line.get("gradients", []), x)
         if effect.gradient is not None and effect.gradient[0] <= x < effect.gradient[1]:
@@ -144,14 +133,12 @@ def simulate(line: dict, train: dict, effect: Effect, rng: np.random.Generator,
 
     x, v = stations[0], 0.0
     ah_tr = ah_br = 0.0
-    dist_true = 0.0
     pipe_tr: deque = deque()
     pipe_br: deque = deque()
     u_tr = u_br = 0.0
     t, t_end_dwell = 0.0, dwell * 0.4
     leg, seq_odo, seq_bal = 1, 0, 0
     next_cmd, next_odo = 0.0, 0.0
-    cmd = -0.3
     stopping = False
     bi = next((i for i, (p, _) in enumerate(balises) if p > x), len(balises))
     while leg < len(stations):
@@ -187,9 +174,8 @@ def simulate(line: dict, train: dict, effect: Effect, rng: np.random.Generator,
         while pipe_br and pipe_br[0][0] <= t + 1e-9:
             u_br = pipe_br.popleft()[1]
         # one first-order lag (linear): its traction and braking parts lag separately
-        e = math.exp(-dt / tau)
-        ah_tr = u_tr + (ah_tr - u_tr) * e
-        ah_br = effect.braking_rate * u_br + (ah_br - effect.braking_rate * u_br) * e
+        ah_tr = u_tr + (ah_tr - u_tr) * lag
+        ah_br = effect.braking_rate * u_br + (ah_br - effect.braking_rate * u_br) * lag
         drive_tr = ah_tr
         if effect.p_spec is not None and v > 0.0:
             drive_tr = min(drive_tr, effect.p_spec / v)
@@ -205,7 +191,6 @@ def simulate(line: dict, train: dict, effect: Effect, rng: np.random.Generator,
         x_old = x
         x += v_new * dt
         v = v_new
-        dist_true += v * dt
         t += dt
         while bi < len(balises) and balises[bi][0] <= x:
             p, bid = balises[bi]
@@ -217,7 +202,8 @@ def simulate(line: dict, train: dict, effect: Effect, rng: np.random.Generator,
         if t >= next_odo - 1e-9:
             if truth is not None:
                 truth.append((t, x, v))
-            d = effect.odometer_scale * dist_true + float(rng.normal(0.0, d_std))
+            # the train never rolls back: the distance run is how far it is from the start
+            d = effect.odometer_scale * (x - stations[0]) + float(rng.normal(0.0, d_std))
             sp = effect.odometer_scale * v + float(rng.normal(0.0, s_std))
             send(t, "odometer", {"seq": seq_odo, "distance": d, "speed": sp,
                                  "speed_variance": s_std * s_std})

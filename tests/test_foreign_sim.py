@@ -69,17 +69,10 @@ def test_a_downhill_run_in_braking_is_named_with_the_rival_it_cannot_be_told_fro
     import bench_foreign as BF
 
     from train_estimation.tools import diagnose as tool
-    from train_sim.cases import make_case
 
     seed = 1
-    case = make_case(np.random.default_rng([seed, 5]), None, "plain")
-    paths = case.write(tmp_path / "case")
-    line, train = FS.load(str(paths["line"])), FS.load(str(paths["train"]))
-    trace: list = []
-    FS.simulate(line, train, FS.Effect(), np.random.default_rng([seed, 1]), trace=trace)
-    pilot = tuple(np.array([r[i] for r in trace]) for i in (1, 2, 3))
-    eff = BF.effect_of("gradient", line, train,
-                       np.random.default_rng([seed, 2, BF.KINDS.index("gradient")]), pilot)
+    _, paths, line, train, pilot, eff = BF.foreign_case(seed, "gradient",
+                                                        str(tmp_path / "case"))
     s0, s1, pm = eff.gradient
     x, _, cmd = pilot
     on = (x >= s0) & (x < s1)

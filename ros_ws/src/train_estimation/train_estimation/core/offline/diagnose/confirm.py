@@ -223,9 +223,8 @@ def confirm(mo: Motion, shift: float, accepted: list, resolved_before: dict, cfg
                          f"{ccfg.law_lr:g}; {at})")
                 continue
             if lr > -ccfg.law_lr:
-                told = f"cannot be told from {cause.speed_rival} (2 ln LR {lr:+.1f}; {at})"
-                old = checks[a.cause].get("caveat")
-                checks[a.cause]["caveat"] = told if old is None else f"{old}; {told}"
+                _caveat(checks[a.cause],
+                        f"cannot be told from {cause.speed_rival} (2 ln LR {lr:+.1f}; {at})")
         if cause.fixed_rival is not None and "bins" in a.extra:
             # the same comparison from the other side: the cause is the law (the braking
             # asked for), the rival the fixed force; told apart only where the braking asked
@@ -237,9 +236,8 @@ def confirm(mo: Motion, shift: float, accepted: list, resolved_before: dict, cfg
             checks[a.cause]["braking_law"] = bl
             lr = -bl.get("lr", 0.0)  # > 0: the fixed force fits better
             if abs(lr) <= ccfg.law_lr:
-                told = f"cannot be told from {cause.fixed_rival} (2 ln LR {lr:+.1f})"
-                old = checks[a.cause].get("caveat")
-                checks[a.cause]["caveat"] = told if old is None else f"{old}; {told}"
+                _caveat(checks[a.cause],
+                        f"cannot be told from {cause.fixed_rival} (2 ln LR {lr:+.1f})")
         pt = place_test(mo, full, cfg, noise, *bey, ccfg.split_alpha, ccfg.split_min_share)
         checks[a.cause]["place"] = pt
         if pt.get("contradicted"):
@@ -255,6 +253,12 @@ def confirm(mo: Motion, shift: float, accepted: list, resolved_before: dict, cfg
                      f"stretch ({', '.join(pt['elsewhere'][:3])}; chi-square p "
                      f"{pt['p']:.2g})")
     return checks
+
+
+def _caveat(check: dict, told: str) -> None:
+    """Add ``told`` to a cause's check's ``caveat`` (what one run cannot tell it from)."""
+    old = check.get("caveat")
+    check["caveat"] = told if old is None else f"{old}; {told}"
 
 
 def _n_params(fit: CauseFit) -> int:

@@ -439,9 +439,9 @@ def law_test(mo: Motion, others: Null, cfg, noise, bins: tuple, shape: np.ndarra
              name: str) -> dict:
     """A force fixed at a place (a gradient on the position bins ``bins`` = (i, j)) against a
     force at a place that follows ``shape`` (per grid step, >= 0: v^2 for drag in a tunnel, the
-    braking asked for where the rail's adhesion is low), both
-    on top of the model ``others``, each on its own best stretch within ``LAW_REACH`` bins of
-    the fitted one (same parameter count: start, end, size).
+    braking asked for where the rail's adhesion is low), both on top of the model ``others``,
+    each on its own best stretch within ``LAW_REACH`` bins of the fitted one (same parameter
+    count: start, end, size).
 
     Returns ``lr``: 2 ln of the likelihood ratio of the law's best stretch against the fixed
     force's (> 0: the data prefer the law; near 0 at one steady speed, where the two are the
@@ -457,8 +457,11 @@ def law_test(mo: Motion, others: Null, cfg, noise, bins: tuple, shape: np.ndarra
     width = mo.bin_edges[1] - mo.bin_edges[0]
     res = {"law": name}
     on = mov & (jb >= i) & (jb < j)
-    if on.sum() < 2 or not np.mean(shape[on]) > 0:
+    if on.sum() < 2:
         res.update(lr=0.0, note="the train does not move on the stretch")
+        return res
+    if not np.mean(shape[on]) > 0:
+        res.update(lr=0.0, note=f"{name} is zero on the stretch")
         return res
     law = shape / float(np.mean(shape[on]))  # the law's force relative to its mean there
     m = hi - lo

@@ -6,7 +6,9 @@ import numpy as np
 from scipy.stats import chi2
 from train_core.effects import ResistanceEffect
 
-from ..phases import MIN_CELL_TIME, _fit_columns, grid_phase
+from train_estimation.core.numerics.augmented_kf import gls
+
+from ..phases import MIN_CELL_TIME, grid_phase
 from ..stage import Stage
 from .base import Cause, fleet_se, resolved
 
@@ -125,9 +127,10 @@ class Resistance(Cause):
         js = [mo.col[n] for n in RESISTANCE_COLS]
         Dv, Ds = mo.Dv[:, js], mo.Ds[:, js]
         st = Stage(mo, others, cfg, noise=noise, big=False)
-        stat_davis = _fit_columns(st, Dv, Ds)[0]
-        stat_free = _fit_columns(st, np.hstack([Dv, Bv]), np.hstack([Ds, Bs]))[0]
-        lr = max(stat_free - stat_davis, 0.0)
+        # one filter run over [fixed, s0, Davis a, b, c, bands ...]: the Davis curve is its
+        # first five columns, the free resistance all of them
+        W = st.augmented(st.fv, st.fs, drift=(np.hstack([Dv, Bv]), np.hstack([Ds, Bs]))).W
+        lr = max(gls(W[:5, :5])[2] - gls(W)[2], 0.0)
         bar = float(chi2.isf(CURVE_ALPHA, k))
         fit.extra["free_in_speed_lr"] = float(lr)
         if lr <= bar:
