@@ -4,7 +4,8 @@
 Each fault of ``train_estimation.tools.faults`` (one or a few readings with wrong stamps, clock
 steps, drift, odometer outages while accelerating / cruising / braking, the command stream
 stopping, link latency tails, recorder and node stalls, the fuzz mix with stamps inside
-``max_future``, a balise lying metres from its map position), at several sizes and times, on
+``max_future``, a balise lying metres from its map position, an odometer whose scale is up to
+2 % off), at several sizes and times, on
 metro_demo, crh3_high_speed and wen2017_subway, is replayed through the runner the nodes use
 (node defaults: ``NodeConfig``), arrival = stamp + 50 ms. Per fault and estimator (seeds
 pooled) the table gives:
@@ -204,6 +205,11 @@ def plan(quick: bool, seeds: int, estimators, only, phase_names=None, long: floa
         drift_duration = short if quick else min(3600.0, long or math.inf)
         for d in ((-1e-2,) if quick else (-1e-2, -1e-3, 1e-3, 1e-2)):
             faults.append((F.Fault("drift", d, 0.0), drift_duration))
+        # a wheel diameter off by up to 2 %, from the start: the odometer's distance and
+        # speed both scaled, nothing but the balises to tell
+        for s in (((0.02,) if scenario == "metro_demo" else ()) if quick else
+                  (-0.02, -0.01, -0.005, 0.005, 0.01, 0.02)):
+            faults.append((F.Fault("odometer_scale", s, 0.0), short if quick else full))
         fuzz_duration = short if quick or scenario != "metro_demo" else 3000.0
         fuzz_duration = min(fuzz_duration, long or math.inf)
         faults.append((F.Fault("fuzz", fuzz_rate or (0.5 if quick else 10.0), 0.0),

@@ -94,9 +94,15 @@ def test_metro_demo_bag_replay(launch, ros_node, tmp_path):
     runs = [live_replay(launch, ros_node, tmp_path, bag, "metro_demo",
                         ["robust_filter", "gsma_estimator"], f"m{i}") for i in range(2)]
     (b1, out1, sc), (b2, _, _) = runs
-    check(out1, ["estimators.robust_filter.position.rmse<=1.0",
+    # 1.5 m, not the 1 m of an estimator that took the odometer's scale as exact (and was
+    # wrong-side when it is not): the scale (prior sd 1 %) is learnt from balises read to 1 m;
+    # this bag's first one, 1.1 m off at 350 m counted, moves the scale by a third of that over
+    # 350 m, 2-3 m at the next balise. RMSE 1.11-1.13 m here (0.63-0.65 m with a scale known to
+    # 0.2 %: odometer_scale_std, docs/benchmarks.md); the stated interval must hold throughout
+    check(out1, ["estimators.robust_filter.position.rmse<=1.5",
                  "estimators.robust_filter.position_within_3sigma>=0.99",
-                 "estimators.gsma.position.rmse<=1.0",  # gsma_estimator's default: gsma
+                 "estimators.gsma.position.rmse<=1.5",  # gsma_estimator's default: gsma
+                 "estimators.gsma.position_within_3sigma>=0.99",
                  "estimators.gsma.velocity.rmse<=0.3"])
     st = StartState(sc.start_position)
     robust = offline(bag, sc, RobustAdapter(sc.train, sc.line, st,

@@ -41,7 +41,8 @@ SEQ_RESET = "seq_reset"  # sequence number went back (sensor reboot, wrap-around
 CLOCK_RESET = "clock_reset"  # a stamp clock jumped and stayed: re-anchored
 FUSED_LATE = "fused_late"  # arrived after later readings, fused by rewinding the history
 OUTAGE = "outage"  # no odometer for longer than the outage threshold
-EVENTS = (SEQ_RESET, CLOCK_RESET, FUSED_LATE, OUTAGE)
+RELOCATED = "relocated"  # two agreeing balises moved the odometer's count by more than it claimed
+EVENTS = (SEQ_RESET, CLOCK_RESET, FUSED_LATE, OUTAGE, RELOCATED)
 
 ALL = REJECTIONS + ACCEPTED + EVENTS
 
@@ -65,6 +66,7 @@ DESCRIPTION = {
     CLOCK_RESET: "stamp clock jumped; re-anchored",
     FUSED_LATE: "arrived late, fused by rewinding",
     OUTAGE: "no odometer for longer than the outage threshold",
+    RELOCATED: "odometer count moved onto two agreeing balises",
 }
 
 

@@ -31,6 +31,9 @@ balise           m: the first balise read at or after ``at`` lies ``size`` m fur
                  the map and its telegram say (a survey error): it is read when the train has
                  run ``size`` m more (timed by the odometer's distance), reporting the map's
                  position with its usual variance
+odometer_scale   fraction: from ``at`` on the odometer counts ``1 + size`` times the distance
+                 run and reads ``1 + size`` times the speed (a worn or mis-set wheel
+                 diameter; 0.01 = 1 %); the distance is continuous at ``at``
 ===============  ========================================================================
 
 Any kind can run on a jittery link: ``Fault.jitter`` (s) adds an exponential extra latency of
@@ -71,7 +74,7 @@ AVAILABLE_LAG = 1.0  # s: an OK estimate published further from the time it clai
 #   available (counted in ``availability``)
 TRAIN_TOPICS = ("odometer", "balise")
 KINDS = ("none", "stamp", "step", "drift", "outage", "command_stop", "latency", "recorder_stall",
-         "node_stall", "fuzz", "balise")
+         "node_stall", "fuzz", "balise", "odometer_scale")
 # stamps a few seconds to minutes off: inside the runner's max_future (600 s), so the door lets
 # them in and only the clocks' and the filters' own checks stand between them and the estimate
 INSIDE_FUTURE = {
@@ -162,7 +165,8 @@ class Fault:
         n = f" x{self.count}" if self.kind == "stamp" and self.count != 1 else ""
         n += f" jitter {self.jitter:g}" if self.jitter else ""
         return f"{self.kind} {self.size:+g}{n}" if self.kind in ("stamp", "step", "drift",
-                                                                   "balise") \
+                                                                   "balise",
+                                                                   "odometer_scale") \
             else f"{self.kind} {self.size:g}{n}"
 
 
@@ -185,9 +189,14 @@ def inject(events: list, fault: Fault, rng: np.random.Generator) -> Faulted:
                        steps=((at, size),) if k == "step" else ())
     rows = []  # [topic, t, fields, stamp error, true arrival]
     hit = 0
+    d_at = None  # m, the odometer's distance at ``at`` ("odometer_scale")
     for topic, t, fields in events:
         if topic not in ("control",) + TRAIN_TOPICS:
             continue
+        if k == "odometer_scale" and topic == "odometer" and t >= at:
+            d_at = fields["distance"] if d_at is None else d_at
+            fields = {**fields, "distance": d_at + (1.0 + size) * (fields["distance"] - d_at),
+                      "speed": (1.0 + size) * fields["speed"]}
         train = topic in TRAIN_TOPICS
         if k == "outage" and train and at <= t < at + size:
             continue

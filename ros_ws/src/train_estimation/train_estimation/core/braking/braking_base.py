@@ -29,7 +29,7 @@ Pure: numpy only; randomness only through the ``rng`` argument.
 from __future__ import annotations
 
 from collections import Counter
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -164,6 +164,20 @@ class RaoBlackwellFilter:
         return self._s.theta.copy(), self._s.logw.copy()
 
     def estimate(self) -> Estimate:
+        return self._last
+
+    def shift(self, dx: float, dv: float) -> Estimate:
+        """Move every particle's (D, v) by ``dx`` m and ``dv`` m/s, covariances unchanged (the
+        frame of the readings moved: the odometer's calibration,
+        ``online/odometer_scale.py``); the summary moves with them."""
+        def moved(a):
+            a = np.array(a, dtype=float)
+            a[..., :2] += (dx, dv)  # (D, v) lead both the state and the reported mean
+            return a
+
+        last = self._last
+        self._s = replace(self._s, x=moved(self._s.x))
+        self._last = replace(last, mean=moved(last.mean), x_mean=moved(last.x_mean))
         return self._last
 
     # -- the step --------------------------------------------------------------------------

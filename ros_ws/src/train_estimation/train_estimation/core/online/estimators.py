@@ -33,6 +33,7 @@ from ..robust.filter_base import filter_params_from_train
 from ..robust.readings import BaliseReading, OdometerReading, covariance16
 from ..robust.robust_filter import RobustFilter
 from ..robust.wen_model import WenModel
+from .odometer_scale import A_MAX, BaliseFix, OdometerCalibration
 from .runner import Output
 
 NAN16 = (math.nan,) * 16
@@ -111,6 +112,8 @@ class RobustConfig:
     use_distance: bool = param(True, "", "odometer distance as a position measurement")
     distance_variance: float = param(1.0, "m^2", "variance of (initial_position + counted "
                                      "distance) as a position reading")
+    odometer_scale_std: float = param(0.01, "-", "std of the odometer's scale (true / counted "
+                                      "distance) before balises calibrate it")
     period: float = param(0.1, "s", "nominal odometer sample period (lost samples: gap / period "
                           "- 1); the node sets it from odometer_rate", node=False)
     outage_slots: int = param(8, "-", "more lost odometer slots in a row are an outage: "
@@ -124,6 +127,8 @@ class RobustConfig:
         require(self.gate > 0, "gate", self.gate, "must be > 0")
         require(self.distance_variance > 0, "distance_variance", self.distance_variance,
                 "must be > 0")
+        require(math.isfinite(self.odometer_scale_std) and self.odometer_scale_std > 0,
+                "odometer_scale_std", self.odometer_scale_std, "must be finite and > 0")
         require(self.epsilon is None or self.epsilon > 0, "epsilon", self.epsilon,
                 "must be > 0 (or None: per step)")
         require(math.isfinite(self.period) and self.period > 0, "period", self.period,
@@ -133,19 +138,99 @@ class RobustConfig:
 
 
 class _DistanceAsPosition:
-    """What both adapters read the odometer's distance as (``start_state``, ``cfg``)."""
+    """The odometer as both adapters read it (``start_state``, ``cfg``): its count mapped to
+    the track by the balise-calibrated :class:`OdometerCalibration` (when the distance is
+    used), and the calibration's own uncertainty beside the filter's (``Output.consider``)."""
+
+    def _init_odometry(self) -> None:
+        s, cfg = self.start_state, self.cfg
+        gate = cfg.gate if math.isfinite(cfg.gate) else 1e9
+        self.cal = OdometerCalibration(s.position, s.position_std, cfg.odometer_scale_std,
+                                       gate) if cfg.use_distance else None
+        self.odo: tuple | None = None  # (stamp s, distance m, speed m/s) of the last fused
+        #   odometer reading, as counted
+
+    def _mapped(self, fields: dict) -> tuple[float, float, float]:
+        """``(position m, speed m/s, speed variance)`` of an odometer reading on the track (the
+        speed by the calibrated scale too); NaN where a field is missing or not a number."""
+        try:
+            d, v, rv = (float(fields[k]) for k in ("distance", "speed", "speed_variance"))
+        except (KeyError, TypeError, ValueError):
+            return math.nan, math.nan, math.nan
+        if self.cal is None:
+            return self.start_state.position + d, v, rv
+        c = float(self.cal.theta[1])
+        return self.cal.position(d), c * v, c * c * rv
+
+    def monitor_fields(self, fields: dict) -> dict:
+        """An odometer reading as the integrity monitor judges it: the speed (and its
+        variance) by the calibrated scale, as the filter fuses it."""
+        if self.cal is None:
+            return fields
+        _, v, rv = self._mapped(fields)
+        return {**fields, "speed": v, "speed_variance": rv}
+
+    def _odometer_fused(self, stamp: float, fields: dict) -> None:
+        self.odo = (stamp, float(fields["distance"]), float(fields["speed"]))
+        if self.cal is not None:
+            self.cal.walk_to(self.odo[1])
+
+    def _count_at(self, t: float) -> float:
+        """m, the odometer's count at ``t``, carried from the last fused reading at its
+        speed."""
+        t0, d0, v0 = self.odo
+        return d0 + v0 * (t - t0)
 
     def position_reading(self, fields: dict):
-        """The odometer reading as this estimator's position measurement: ``(start position
-        + counted distance m, distance_variance m^2)``, or None when distance is not used
-        (the integrity monitor's position test)."""
+        """The odometer reading as this estimator's position measurement for the integrity
+        monitor: ``(position m, distance_variance m^2, the calibration's variance of it m^2)``,
+        or None when distance is not used."""
         if not self.cfg.use_distance:
             return None
         try:
-            return (self.start_state.position + float(fields["distance"]),
-                    float(self.cfg.distance_variance))
+            d = float(fields["distance"])
         except (KeyError, TypeError, ValueError):
             return None
+        return (self.cal.position(d), float(self.cfg.distance_variance),
+                self.cal.position_variance(d))
+
+    def _balise_fix(self, stamp: float, position: float, variance: float) -> BaliseFix | None:
+        """The balise against the odometer's count at its stamp (carried from the last reading
+        at its speed, with an acceleration error of up to ``A_MAX``), or None before the
+        first reading."""
+        if self.odo is None:
+            return None
+        dt = abs(stamp - self.odo[0])
+        c = float(self.cal.theta[1])
+        rd = self.train.odometer_speed_variance * dt * dt + (0.5 * A_MAX * dt * dt) ** 2
+        return BaliseFix(position, variance + self.cfg.distance_variance + c * c * rd,
+                         self._count_at(stamp))
+
+    def _calibrate(self, fix: BaliseFix, t_now: float) -> tuple[bool, float, float]:
+        """``(fused, dx m, dv m/s)``: the balise given to the calibration, and how far the
+        estimate at ``t_now`` moves with the mapping."""
+        old = self.cal.theta.copy()
+        ok = self.cal.balise(fix)
+        if not ok:
+            return False, 0.0, 0.0
+        d = self._count_at(t_now)
+        dx = self.cal.position(d) - float(old[0] + old[1] * d)
+        return True, dx, float(self.cal.theta[1] - old[1]) * self.odo[2]
+
+    def _consider(self, t: float) -> tuple:
+        """The calibration's (position, speed) covariance at ``t`` (module doc of
+        ``odometer_scale``), row-major 2x2; empty without a calibration."""
+        if self.cal is None or self.odo is None:
+            return ()
+        return tuple(self.cal.consider(self._count_at(max(t, self.odo[0])),
+                                       self.odo[2]).ravel())
+
+    def _odometry_snapshot(self):
+        return (self.cal.copy() if self.cal is not None else None, self.odo)
+
+    def _odometry_restore(self, snap) -> None:
+        cal, self.odo = snap
+        self.cal = cal.copy() if cal is not None else None
 
 
 class RobustAdapter(_DistanceAsPosition):
@@ -176,6 +261,7 @@ class RobustAdapter(_DistanceAsPosition):
         self.last_odo: tuple[float, int] | None = None  # (stamp, seq) of the last odometer slot
         self.outages = 0
         self._pred = None  # (state token, t, x, P, actuator) of the last prediction output
+        self._init_odometry()
 
     def start(self, t0: float) -> None:
         s = self.start_state
@@ -209,9 +295,10 @@ class RobustAdapter(_DistanceAsPosition):
             self.f.update(OdometerReading(stamp=t, seq=last_seq + i, received=False))
 
     def odometer(self, stamp: float, fields: dict) -> str:
+        pos, speed, rv = self._mapped(fields)
         r = OdometerReading(stamp=stamp, seq=int(fields["seq"]),
-                            distance=float(fields["distance"]), speed=float(fields["speed"]),
-                            speed_variance=float(fields["speed_variance"]))
+                            distance=pos - self.start_state.position, speed=speed,
+                            speed_variance=rv)
         # the reading's own checks first, so that a bad one does not enter lost slots
         kind, meas = self.f._measurement(r)
         if isinstance(meas, str):
@@ -220,14 +307,28 @@ class RobustAdapter(_DistanceAsPosition):
         d = self.f.update(r)
         if d.accepted:
             self.last_odo = (stamp, int(fields["seq"]))
+            self._odometer_fused(stamp, fields)
         return "" if d.accepted else d.reason
 
     def balise(self, stamp: float, fields: dict) -> str:
-        d = self.f.update(BaliseReading(stamp=stamp, seq=int(fields["seq"]),
-                                        balise_id=int(fields["balise_id"]),
-                                        position=float(fields["position"]),
-                                        position_variance=float(fields["position_variance"])))
-        return "" if d.accepted else d.reason
+        r = BaliseReading(stamp=stamp, seq=int(fields["seq"]),
+                          balise_id=int(fields["balise_id"]),
+                          position=float(fields["position"]),
+                          position_variance=float(fields["position_variance"]))
+        kind, meas = self.f._measurement(r)
+        fix = None if self.cal is None or isinstance(meas, str) else \
+            self._balise_fix(stamp, float(meas.y[0]), float(meas.R[0, 0]))
+        if fix is None:
+            d = self.f.update(r)  # no calibration (distance unused, or no reading yet)
+            return "" if d.accepted else d.reason
+        # the count's calibration takes the balise; the estimate moves with the mapping
+        ok, dx, dv = self._calibrate(fix, self.f.t)
+        if not ok:
+            return self.f._decide(False, R.OUTSIDE_GATE).reason
+        self.f.shift(dx, dv)
+        self.f._last_seq["balise"], self.f._last_stamp["balise"] = int(r.seq), float(stamp)
+        self.f._used = True
+        return ""
 
     def output(self, t: float) -> Output:
         f = self.f
@@ -256,7 +357,8 @@ class RobustAdapter(_DistanceAsPosition):
         return Output(stamp=t, position=float(x[0]), velocity=float(x[1]),
                       acceleration=math.nan, braking_rate=math.nan,
                       covariance=tuple(covariance16(P)),
-                      measurement_used=self.f.pop_measurement_used())
+                      measurement_used=self.f.pop_measurement_used(),
+                      consider=self._consider(t))
 
     def snapshot(self):
         """The mutable state, for the runner's rewinding (models, maps, params are shared)."""
@@ -269,11 +371,12 @@ class RobustAdapter(_DistanceAsPosition):
             elif k == "actuator":
                 v = v.copy()
             state[k] = v
-        return state, self.last_odo, self.outages, self._pred
+        return state, self.last_odo, self.outages, self._pred, self._odometry_snapshot()
 
     def restore(self, snap) -> None:
-        state, self.last_odo, self.outages, self._pred = snap
+        state, self.last_odo, self.outages, self._pred, odometry = snap
         self.f.__dict__.update(self.snapshot_copy(state))
+        self._odometry_restore(odometry)
 
     @staticmethod
     def snapshot_copy(state: dict) -> dict:
@@ -293,6 +396,8 @@ class RobustAdapter(_DistanceAsPosition):
         c = dict(self.f.counters) if self.f else {}
         if self.outages:
             c[R.OUTAGE] = self.outages
+        if self.cal is not None and self.cal.relocated:
+            c[R.RELOCATED] = self.cal.relocated
         return c
 
 
@@ -349,6 +454,8 @@ class BrakingConfig:
                              "forces)")
     ahat_var: float = param(0.001, "m^2/s^5", "white noise PSD on a_hat (actuator mismatch)")
     distance_variance: float = param(1.0, "m^2", "odometer distance as a position reading")
+    odometer_scale_std: float = param(0.01, "-", "std of the odometer's scale (true / counted "
+                                      "distance) before balises calibrate it")
     use_distance: bool = param(True, "", "odometer distance as a position measurement")
     standstill_speed: float = param(0.3, "m/s", "at or below (estimated), with a brake "
                                     "command, the train is held at rest and the braking rate "
@@ -371,6 +478,8 @@ class BrakingConfig:
         require(math.isfinite(self.braking_rate_prior_std) and self.braking_rate_prior_std > 0,
                 "braking_rate_prior_std", self.braking_rate_prior_std, "must be finite and > 0")
         require(0 <= self.sma_p_jump < 1, "sma_p_jump", self.sma_p_jump, "must be in [0, 1)")
+        require(math.isfinite(self.odometer_scale_std) and self.odometer_scale_std > 0,
+                "odometer_scale_std", self.odometer_scale_std, "must be finite and > 0")
 
 
 class BrakingAdapter(_DistanceAsPosition):
@@ -432,6 +541,7 @@ class BrakingAdapter(_DistanceAsPosition):
         self.balises = {b.id: b.position for b in line.balises}
         self.last: dict = {}  # kind -> (seq, stamp) of the last fused reading (duplicates)
         self._grad = GradientLookup(line, train.rotary_allowance)
+        self._init_odometry()
 
     def start(self, t0: float) -> None:
         s = self.start_state
@@ -520,7 +630,7 @@ class BrakingAdapter(_DistanceAsPosition):
         why = self._order("odometer", stamp, seq)
         if why:
             return why
-        pos = self.start_state.position + dist
+        pos, speed, var = self._mapped(fields)
         rows = [(1, speed, var)] + ([(0, pos, self.cfg.distance_variance)]
                                     if self.cfg.use_distance else [])
         why = self._gate(stamp, rows)
@@ -531,6 +641,7 @@ class BrakingAdapter(_DistanceAsPosition):
                                         [self.cfg.distance_variance, var, 1.0]))
         if not reason:
             self.last["odometer"] = (seq, stamp)
+            self._odometer_fused(stamp, fields)
         return reason
 
     def balise(self, stamp: float, fields: dict) -> str:
@@ -545,9 +656,20 @@ class BrakingAdapter(_DistanceAsPosition):
             return R.UNKNOWN_BALISE
         if abs(pos - sent) > self.cfg.balise_map_tolerance:
             return f"{R.BALISE_MAP_MISMATCH}: sent {sent:.1f} m, map {pos:.1f} m"
-        why = self._order("balise", stamp, seq) or self._gate(stamp, [(0, pos, var)])
+        fix = None if self.cal is None else self._balise_fix(stamp, pos, var)
+        why = self._order("balise", stamp, seq) or \
+            ("" if fix is not None else self._gate(stamp, [(0, pos, var)]))
         if why:
             return why
+        if fix is not None:
+            # the count's calibration takes the balise; the estimate moves with the mapping
+            ok, dx, dv = self._calibrate(fix, self.filt.t if self.filt.t is not None else stamp)
+            if not ok:
+                return R.OUTSIDE_GATE
+            self.est = self.filt.shift(dx, dv)
+            self.used = True
+            self.last["balise"] = (seq, stamp)
+            return ""
         reason = R.normalise(self._step(stamp, [pos, math.nan, math.nan], [True, False, False],
                                         [var, 1.0, 1.0]))
         if not reason:
@@ -563,7 +685,7 @@ class BrakingAdapter(_DistanceAsPosition):
         return Output(stamp=t, position=float(e.mean[0]), velocity=float(e.mean[1]),
                       acceleration=float(e.mean[2]), braking_rate=float(e.mean[3]),
                       covariance=tuple(float(v) for v in np.asarray(e.cov).ravel()),
-                      measurement_used=used)
+                      measurement_used=used, consider=self._consider(t))
 
     def _shared(self) -> dict:
         """deepcopy memo of the models the filter only reads (the family and the filter's view
@@ -579,14 +701,18 @@ class BrakingAdapter(_DistanceAsPosition):
         """The mutable state, for the runner's rewinding (the model family is shared)."""
         return (copy.deepcopy(self.filt, self._shared()),
                 copy.deepcopy(self.rng.bit_generator.state), self.a_tar, self.est, self.used,
-                dict(self.last))
+                dict(self.last), self._odometry_snapshot())
 
     def restore(self, snap) -> None:
-        filt, rng_state, self.a_tar, self.est, self.used, last = snap
+        filt, rng_state, self.a_tar, self.est, self.used, last, odometry = snap
         self.filt = copy.deepcopy(filt, self._shared())
         self.rng.bit_generator.state = copy.deepcopy(rng_state)
         self.last = dict(last)
+        self._odometry_restore(odometry)
 
     @property
     def counters(self) -> dict:
-        return dict(self.filt.rejected)
+        c = dict(self.filt.rejected)
+        if self.cal is not None and self.cal.relocated:
+            c[R.RELOCATED] = self.cal.relocated
+        return c

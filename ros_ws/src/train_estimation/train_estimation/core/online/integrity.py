@@ -200,6 +200,9 @@ class IntegrityMonitor:
         balise fused before it is judged again against it (:meth:`_balise_between`)."""
         try:
             z, r = float(position[0]), float(position[1])
+            # the odometer's calibration: shared with the estimate (not in the position test)
+            # but not with a balise, which the track is judged against
+            r += float(position[2]) if len(position) > 2 else 0.0
             v, rv = float(fields["speed"]), float(fields["speed_variance"])
         except (KeyError, TypeError, ValueError, IndexError):
             return
@@ -215,7 +218,7 @@ class IntegrityMonitor:
 
     def _position_bias(self, stamp: float, position: tuple) -> None:
         t0, x0, v0, a0, pxx, pvv = self.prev_pos
-        z, r = position
+        z, r = position[:2]
         dt = stamp - t0
         if not (math.isfinite(z) and math.isfinite(r) and r > 0 and 0 <= dt <= 2.0):
             return  # across a gap the test says nothing (no_measurement covers it)

@@ -77,6 +77,8 @@ from collections import Counter, deque
 from dataclasses import dataclass, field, replace
 from typing import Protocol
 
+import numpy as np
+
 from .. import reasons as R
 from ..numerics.clocks import ADMIT, HOLD, PASS, REFUSE, STEP, StepWatch, StreamClock
 from .integrity import IntegrityMonitor, IntegrityParams
@@ -102,6 +104,10 @@ class Output:
     measurement_used: bool
     integrity: int = 0  # 0 OK, 1 DEGRADED (covariance inflated to cover a doubt), 2 ALARM
     integrity_reason: str = ""  # why not OK (empty when OK)
+    consider: tuple = ()  # row-major 2x2 (position, speed) covariance the estimator's filter
+    #   does not carry (the odometer's calibration, ``odometer_scale``): added to ``covariance``
+    #   by the runner after the integrity monitor has judged the filter's own, and kept here
+    #   (the published covariance minus it is the filter's own, or the monitor's inflation)
 
 
 INTEGRITY_OK, INTEGRITY_DEGRADED, INTEGRITY_ALARM = 0, 1, 2
@@ -569,6 +575,9 @@ class EstimatorRunner:
                     del self._fused_seq[next(iter(self._fused_seq))]
             pos = getattr(self.adapter, "position_reading", None)
             gate = R.category(reason) == R.OUTSIDE_GATE if reason else False
+            mapped = getattr(self.adapter, "monitor_fields", None)
+            if mapped is not None and isinstance(fields, dict):
+                fields = mapped(fields)
             self.monitor.reading(stamp, fields if isinstance(fields, dict) else None, fused,
                                  pos(fields) if pos is not None and (fused or gate) and
                                  isinstance(fields, dict) else None, gate=gate)
@@ -587,6 +596,10 @@ class EstimatorRunner:
 
     def _emit(self, t: float, out: list) -> None:
         o = self.monitor.assess(self.adapter.output(self._filter_time(t)), t)
+        if o.consider:
+            C = np.array(o.covariance, dtype=float).reshape(4, 4)
+            C[:2, :2] += np.asarray(o.consider, dtype=float).reshape(2, 2)
+            o = replace(o, covariance=tuple(C.ravel()))
         # published on the train clock (after a step: the new one, the sample's stamp as sent)
         stamp = self._steps.as_sent(t)
         out.append(o if o.stamp == stamp else replace(o, stamp=stamp))

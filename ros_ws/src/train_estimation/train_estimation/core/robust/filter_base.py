@@ -142,6 +142,11 @@ class FilterBase:
         bound for the robust filter, NaN for FOH)."""
         return self.x.copy(), self.P.copy()
 
+    def shift(self, dx: float, dv: float) -> None:
+        """Move the estimate by ``dx`` m and ``dv`` m/s, its covariance unchanged (the frame of
+        the readings moved: the odometer's calibration, ``online/odometer_scale.py``)."""
+        self.x = self.x + np.array([dx, dv])
+
     def pop_measurement_used(self) -> bool:
         """True if a received reading entered the estimate since the last call."""
         used, self._used = self._used, False
