@@ -42,7 +42,8 @@ CLOCK_RESET = "clock_reset"  # a stamp clock jumped and stayed: re-anchored
 FUSED_LATE = "fused_late"  # arrived after later readings, fused by rewinding the history
 OUTAGE = "outage"  # no odometer for longer than the outage threshold
 RELOCATED = "relocated"  # two agreeing balises moved the odometer's count by more than it claimed
-EVENTS = (SEQ_RESET, CLOCK_RESET, FUSED_LATE, OUTAGE, RELOCATED)
+BALISE_EXCLUDED = "balise_excluded"  # a fused balise shown to lie by a later one, taken out
+EVENTS = (SEQ_RESET, CLOCK_RESET, FUSED_LATE, OUTAGE, RELOCATED, BALISE_EXCLUDED)
 
 ALL = REJECTIONS + ACCEPTED + EVENTS
 
@@ -67,6 +68,7 @@ DESCRIPTION = {
     FUSED_LATE: "arrived late, fused by rewinding",
     OUTAGE: "no odometer for longer than the outage threshold",
     RELOCATED: "odometer count moved onto two agreeing balises",
+    BALISE_EXCLUDED: "a fused balise shown to lie by a later one, taken out of the count",
 }
 
 

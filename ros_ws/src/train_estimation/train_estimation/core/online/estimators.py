@@ -114,6 +114,9 @@ class RobustConfig:
                                      "distance) as a position reading")
     odometer_scale_std: float = param(0.01, "-", "std of the odometer's scale (true / counted "
                                       "distance) before balises calibrate it")
+    balise_gate: float = param(4.0, "-", "a balise further than this many standard deviations "
+                               "from the odometer's calibrated count is held until another "
+                               "confirms it (outside_gate)")
     period: float = param(0.1, "s", "nominal odometer sample period (lost samples: gap / period "
                           "- 1); the node sets it from odometer_rate", node=False)
     outage_slots: int = param(8, "-", "more lost odometer slots in a row are an outage: "
@@ -129,6 +132,7 @@ class RobustConfig:
                 "must be > 0")
         require(math.isfinite(self.odometer_scale_std) and self.odometer_scale_std > 0,
                 "odometer_scale_std", self.odometer_scale_std, "must be finite and > 0")
+        require(self.balise_gate > 0, "balise_gate", self.balise_gate, "must be > 0")
         require(self.epsilon is None or self.epsilon > 0, "epsilon", self.epsilon,
                 "must be > 0 (or None: per step)")
         require(math.isfinite(self.period) and self.period > 0, "period", self.period,
@@ -144,9 +148,8 @@ class _DistanceAsPosition:
 
     def _init_odometry(self) -> None:
         s, cfg = self.start_state, self.cfg
-        gate = cfg.gate if math.isfinite(cfg.gate) else 1e9
         self.cal = OdometerCalibration(s.position, s.position_std, cfg.odometer_scale_std,
-                                       gate) if cfg.use_distance else None
+                                       cfg.balise_gate) if cfg.use_distance else None
         self.odo: tuple | None = None  # (stamp s, distance m, speed m/s) of the last fused
         #   odometer reading, as counted
 
@@ -224,6 +227,12 @@ class _DistanceAsPosition:
             return ()
         return tuple(self.cal.consider(self._count_at(max(t, self.odo[0])),
                                        self.odo[2]).ravel())
+
+    def _odometry_counters(self) -> dict:
+        if self.cal is None:
+            return {}
+        return {k: n for k, n in ((R.RELOCATED, self.cal.relocated),
+                                  (R.BALISE_EXCLUDED, self.cal.excluded)) if n}
 
     def _odometry_snapshot(self):
         return (self.cal.copy() if self.cal is not None else None, self.odo)
@@ -396,8 +405,7 @@ class RobustAdapter(_DistanceAsPosition):
         c = dict(self.f.counters) if self.f else {}
         if self.outages:
             c[R.OUTAGE] = self.outages
-        if self.cal is not None and self.cal.relocated:
-            c[R.RELOCATED] = self.cal.relocated
+        c.update(self._odometry_counters())
         return c
 
 
@@ -456,6 +464,9 @@ class BrakingConfig:
     distance_variance: float = param(1.0, "m^2", "odometer distance as a position reading")
     odometer_scale_std: float = param(0.01, "-", "std of the odometer's scale (true / counted "
                                       "distance) before balises calibrate it")
+    balise_gate: float = param(4.0, "-", "a balise further than this many standard deviations "
+                               "from the odometer's calibrated count is held until another "
+                               "confirms it (outside_gate)")
     use_distance: bool = param(True, "", "odometer distance as a position measurement")
     standstill_speed: float = param(0.3, "m/s", "at or below (estimated), with a brake "
                                     "command, the train is held at rest and the braking rate "
@@ -480,6 +491,7 @@ class BrakingConfig:
         require(0 <= self.sma_p_jump < 1, "sma_p_jump", self.sma_p_jump, "must be in [0, 1)")
         require(math.isfinite(self.odometer_scale_std) and self.odometer_scale_std > 0,
                 "odometer_scale_std", self.odometer_scale_std, "must be finite and > 0")
+        require(self.balise_gate > 0, "balise_gate", self.balise_gate, "must be > 0")
 
 
 class BrakingAdapter(_DistanceAsPosition):
@@ -713,6 +725,5 @@ class BrakingAdapter(_DistanceAsPosition):
     @property
     def counters(self) -> dict:
         c = dict(self.filt.rejected)
-        if self.cal is not None and self.cal.relocated:
-            c[R.RELOCATED] = self.cal.relocated
+        c.update(self._odometry_counters())
         return c

@@ -19,8 +19,9 @@ A balise read at position ``b`` when the odometer had counted ``d_b`` is the lin
 carried from the last odometer reading), fused by the Kalman update of ``theta`` (exact: the
 model is linear in ``theta`` given ``d_b``). Between balises ``theta`` walks with the distance
 run: ``x0`` by :data:`COUNT_WALK` per metre (counts lost to slips too small to see), ``c`` by
-:data:`SCALE_WALK` per metre (creep that changes with adhesion), with ``x0`` moving by ``-d``
-times ``c``'s step so that a change of scale acts on the distance run after it only.
+:data:`SCALE_WALK` per metre (creep that changes with adhesion), with ``x0`` moving by ``-s``
+times a step of ``c`` at the count ``s``, so that a change of scale acts on the distance run
+after it only (integrated along the count: :func:`_walked`).
 
 The estimators fuse the *mapped* readings ``x0^ + c^ d`` and ``c^ v_odo`` as if ``theta`` were
 known (their covariance is then the error given the calibration), and the published
@@ -31,14 +32,26 @@ covariance adds what the calibration does not know (a Schmidt "consider" term)::
 When a balise moves ``theta``, the estimate is moved with the mapping (:meth:`shift_at`), so the
 next reading continues it instead of looking like a jump the filter's gate refuses.
 
+A balise can lie: a survey error puts it metres from where its telegram says, and while the
+scale is still uncertain (the first balises, or far from the last) it is fused like any other and
+moves the calibration. Nothing tells until later balises disagree with it, so the published
+covariance also covers the solution without each of the last three balises (solution
+separation, as receiver autonomous integrity monitoring does for satellites:
+:meth:`OdometerCalibration.consider`).
+
 A balise more than ``gate`` standard deviations from where the calibration puts it is refused
-and held: the odometer lost count (a slip or slide) or the balise is not where its telegram
-says, and one reading cannot tell. When the next balise is also refused and the two agree with
-each other (the same offset from the count, within what the scale allows between them), the
-count is relocated onto them: ``x0``'s variance grows by the larger offset squared and both are
-fused (:attr:`OdometerCalibration.relocated`, counted by the adapter as ``relocated``). A
+and held: the odometer lost count (a slip or slide), its calibration went wrong, or the balise
+is not where its telegram says, and one reading cannot tell. When the next balise is also
+refused and the two agree with each other (their distance apart is what the count ran between
+them at a scale the odometer can have), the count is found again from them: ``x0`` free, the
+scale at its estimate with at least its prior's doubt, both fused
+(:attr:`OdometerCalibration.relocated`, counted by the adapter as ``relocated``). A
 balise is a surveyed reference and the count is not, but two agreeing balises are needed before
-the count is moved by more than it claims.
+the count is moved by more than it claims. Before that, balises that fit the solution without
+one of the recent balises, and with which that balise no longer fits, show that one to be the
+liar: it is taken out (fault exclusion, event ``balise_excluded``): a refused balise (with the one
+held before it, if any), or after each fusion any recent balise outside the gate of the
+solution of two or more others without it.
 """
 
 from __future__ import annotations
@@ -51,6 +64,7 @@ import numpy as np
 COUNT_WALK = 1.0e-3  # m^2 per m run: x0's random walk (1 m std after 1 km)
 SCALE_WALK = 1.0e-9  # 1 per m run: c's random walk (0.001 std after 1 km)
 A_MAX = 1.5  # m/s^2, acceleration allowed in carrying the count to a balise's stamp
+RELOCATE_X0_VAR = 1.0e6  # m^2, x0's variance when the count is found again from two balises
 
 
 @dataclass(frozen=True)
@@ -63,8 +77,36 @@ class BaliseFix:
     distance: float
 
 
+def _walked(Sigma: np.ndarray, d0: float, d1: float, count_walk: float,
+            scale_walk: float) -> np.ndarray:
+    """``Sigma`` with the random walk of the count run from ``d0`` to ``d1`` added (module
+    doc): ``x0`` by ``count_walk`` per metre; ``c`` by ``scale_walk`` per metre, a step ``w`` of
+    ``c`` at the count ``s`` moving ``x0`` by ``-w s``, integrated over ``s`` (so any path
+    between the same counts adds the same)."""
+    a, b = sorted((float(d0), float(d1)))
+    run = b - a
+    if not run > 0:
+        return Sigma
+    s1, s2, s3 = run, (b * b - a * a) / 2.0, (b ** 3 - a ** 3) / 3.0
+    return Sigma + count_walk * run * np.array([[1.0, 0.0], [0.0, 0.0]]) \
+        + scale_walk * np.array([[s3, -s2], [-s2, s1]])
+
+
+@dataclass(frozen=True)
+class _Solution:
+    """``theta = (x0, c)``, its covariance and the count up to which the walk is in it."""
+
+    theta: np.ndarray
+    Sigma: np.ndarray
+    d: float
+    n: int = 0  # balises in it
+
+
 class OdometerCalibration:
-    """``theta = (x0 m, c -)`` and its covariance (module doc)."""
+    """``theta = (x0 m, c -)`` and its covariance (module doc), and the solutions without each of
+    the last :attr:`EXCLUDED` balises (solution separation, :meth:`consider`)."""
+
+    EXCLUDED = 3  # the latest balises each of which may be the one that lies
 
     def __init__(self, start: float, start_std: float, scale_std: float, gate: float = 8.0,
                  count_walk: float = COUNT_WALK, scale_walk: float = SCALE_WALK):
@@ -74,16 +116,22 @@ class OdometerCalibration:
                              "> 0, walks >= 0")
         self.theta = np.array([float(start), 1.0])
         self.Sigma = np.diag([start_std ** 2, scale_std ** 2])
+        self.scale_std = float(scale_std)
         self.gate = float(gate)
         self.count_walk, self.scale_walk = float(count_walk), float(scale_walk)
         self.d_walked = 0.0  # m, the count up to which the walk has been added
         self.held: BaliseFix | None = None  # a refused balise, until the next one judges it
         self.relocated = 0
+        self.excluded = 0  # recent balises found to lie by a later one and taken out
+        self.n = 0  # balises in the solution
+        # the last EXCLUDED fusions: (solution before, fixes fused, x0 variance added first)
+        self.recent: list[tuple[_Solution, tuple[BaliseFix, ...], float]] = []
+        self.alternatives: list[_Solution] = []  # the solution without each of them
 
     def copy(self) -> OdometerCalibration:
+        # every update makes new arrays and lists: a shallow copy shares nothing that changes
         c = object.__new__(OdometerCalibration)
         c.__dict__.update(self.__dict__)
-        c.theta, c.Sigma = self.theta.copy(), self.Sigma.copy()
         return c
 
     # -- the mapping ------------------------------------------------------------------------
@@ -102,40 +150,124 @@ class OdometerCalibration:
 
     def consider(self, d: float, v_odo: float) -> np.ndarray:
         """2x2 covariance of (position, speed) that the calibration adds to an estimate that
-        follows the mapped readings at count ``d`` and speed reading ``v_odo``."""
+        follows the mapped readings at count ``d`` and speed reading ``v_odo``.
+
+        Solution separation (as receiver autonomous integrity monitoring does for satellites):
+        any one of the last :attr:`EXCLUDED` balises may lie elsewhere than its telegram says
+        (a survey error) by more than the stated accuracy, and nothing tells until later
+        balises disagree with it. For each, the solution without it is at ``J theta_k`` with
+        covariance ``C_k``; the diagonal grows (never shrinks) so that every variance is at
+        least ``(C_k + Delta_k Delta_k^T)_ii``, ``Delta_k = J (theta_k - theta)``."""
         J = np.array([[1.0, d], [0.0, v_odo]])
-        return J @ self.Sigma @ J.T
+        C = J @ self.Sigma @ J.T
+        need = np.diag(C).copy()
+        for alt in self.alternatives:
+            Sk = _walked(alt.Sigma, alt.d, self.d_walked, self.count_walk, self.scale_walk)
+            delta = J @ (alt.theta - self.theta)
+            need = np.maximum(need, np.diag(J @ Sk @ J.T) + delta * delta)
+        return C + np.diag(need - np.diag(C))
 
     # -- time (distance) update ---------------------------------------------------------------
     def walk_to(self, d: float) -> None:
         """Add the random walk of the distance run since the last call (module doc)."""
         if not math.isfinite(d):
             return
-        run = abs(d - self.d_walked)
-        # a change of scale here acts on the distance run from here on, not on the count so
-        # far: c moves by w and x0 by -w d (the position at the count d stays put)
-        g = np.array([-float(d), 1.0])
-        self.Sigma = self.Sigma + np.diag([self.count_walk * run, 0.0]) \
-            + self.scale_walk * run * np.outer(g, g)
+        self.Sigma = _walked(self.Sigma, self.d_walked, d, self.count_walk, self.scale_walk)
         self.d_walked = float(d)
 
     # -- balises -----------------------------------------------------------------------------
-    def _innovation(self, fix: BaliseFix) -> tuple[float, float]:
+    @staticmethod
+    def _innovation_of(theta, Sigma, fix: BaliseFix) -> tuple[float, float]:
         h = np.array([1.0, fix.distance])
-        return (fix.position - float(h @ self.theta),
-                float(h @ self.Sigma @ h) + fix.variance)
+        return fix.position - float(h @ theta), float(h @ Sigma @ h) + fix.variance
 
-    def _fuse(self, fix: BaliseFix) -> tuple[np.ndarray, np.ndarray]:
-        """(change of theta, old theta): the Kalman update with one balise."""
+    def _innovation(self, fix: BaliseFix) -> tuple[float, float]:
+        return self._innovation_of(self.theta, self.Sigma, fix)
+
+    @classmethod
+    def _fused(cls, theta, Sigma, fix: BaliseFix) -> tuple[np.ndarray, np.ndarray]:
+        """The Kalman update of ``(theta, Sigma)`` with one balise (new arrays)."""
         h = np.array([1.0, fix.distance])
-        nu, s = self._innovation(fix)
-        k = self.Sigma @ h / s
-        old = self.theta.copy()
-        self.theta = self.theta + k * nu
+        nu, s = cls._innovation_of(theta, Sigma, fix)
+        k = Sigma @ h / s
         # Joseph form: Sigma stays symmetric positive definite for any gain
         ikh = np.eye(2) - np.outer(k, h)
-        self.Sigma = ikh @ self.Sigma @ ikh.T + fix.variance * np.outer(k, k)
-        return self.theta - old, old
+        return theta + k * nu, ikh @ Sigma @ ikh.T + fix.variance * np.outer(k, k)
+
+    def _apply(self, fixes: tuple[BaliseFix, ...], inflate: float) -> None:
+        """Fuse ``fixes`` (after adding ``inflate`` to x0's variance), noting the solution
+        before them and recomputing the solutions without each recent fusion."""
+        self.recent = (self.recent + [(_Solution(self.theta, self.Sigma, self.d_walked, self.n),
+                                       fixes, inflate)])[-self.EXCLUDED:]
+        self.theta, self.Sigma = self._step(self.theta, self.Sigma, fixes, inflate)
+        self.n += len(fixes)
+        self.alternatives = [self._without(j) for j in range(len(self.recent))]
+
+    @classmethod
+    def _step(cls, theta, Sigma, fixes, inflate):
+        if inflate:
+            Sigma = Sigma + np.array([[inflate, 0.0], [0.0, 0.0]])
+        for fix in fixes:
+            theta, Sigma = cls._fused(theta, Sigma, fix)
+        return theta, Sigma
+
+    def _without(self, j: int) -> _Solution:
+        """The solution with every recent fusion but the ``j``-th, walked to the present."""
+        sol = self.recent[j][0]
+        theta, Sigma, d, n = sol.theta, sol.Sigma, sol.d, sol.n
+        for before, fixes, inflate in self.recent[j + 1:]:
+            Sigma = _walked(Sigma, d, before.d, self.count_walk, self.scale_walk)
+            theta, Sigma = self._step(theta, Sigma, fixes, inflate)
+            d, n = before.d, n + len(fixes)
+        return _Solution(theta, _walked(Sigma, d, self.d_walked, self.count_walk,
+                                        self.scale_walk), self.d_walked, n)
+
+    def _outside(self, theta, Sigma, fixes) -> bool:
+        """Whether any of ``fixes`` lies beyond the gate of the solution ``(theta, Sigma)``."""
+        for b in fixes:
+            nu, s = self._innovation_of(theta, Sigma, b)
+            if abs(nu) > self.gate * math.sqrt(s):
+                return True
+        return False
+
+    def _exclude_for(self, fixes: tuple[BaliseFix, ...]) -> bool:
+        """Fault exclusion: ``fixes`` (the new balise, after a held one) fit the solution
+        without one of the recent balises, and with them in it that balise is outside the
+        gate: it was the one that lied. Its exclusion, with ``fixes``, becomes the solution
+        (True). At least two balises must outvote one: the prior alone is wide enough to take
+        a balise that lies, and would exclude a good one."""
+        best = None
+        for j, alt in enumerate(self.alternatives):
+            if alt.n + len(fixes) < 2:
+                continue
+            theta, Sigma, worst = alt.theta, alt.Sigma, 0.0
+            for b in fixes:
+                nu, s = self._innovation_of(theta, Sigma, b)
+                worst = max(worst, abs(nu) / math.sqrt(s))
+                theta, Sigma = self._fused(theta, Sigma, b)
+            if worst <= self.gate and self._outside(theta, Sigma, self.recent[j][1]) \
+                    and (best is None or worst < best[0]):
+                best = (worst, alt)
+        if best is None:
+            return False
+        self._take(best[1], fixes)
+        return True
+
+    def _take(self, alt: _Solution, fixes: tuple[BaliseFix, ...] = ()) -> None:
+        """The solution without an excluded balise becomes the solution; ``fixes`` fused."""
+        self.theta, self.Sigma, self.n = alt.theta, alt.Sigma, alt.n
+        self.recent, self.alternatives = [], []
+        if fixes:
+            self._apply(fixes, 0.0)
+        self.excluded += 1
+
+    def _leave_one_out(self) -> None:
+        """After a fusion: a recent balise outside the gate of the solution without it, where
+        that solution has two balises or more, lied; it is taken out (one per fusion)."""
+        for j, alt in enumerate(self.alternatives):
+            if alt.n >= 2 and self._outside(alt.theta, alt.Sigma, self.recent[j][1]):
+                self._take(alt)
+                return
 
     def balise(self, fix: BaliseFix) -> bool:
         """Fuse one balise (True), or refuse and hold it (False); module doc."""
@@ -143,24 +275,37 @@ class OdometerCalibration:
                 and math.isfinite(fix.variance) and fix.variance > 0):
             return False
         self.walk_to(fix.distance)
+        if self.held is not None and self._exclude_for((self.held, fix)):
+            self.held = None  # the held balise and this one outvote a fused one
+            return True
         nu, s = self._innovation(fix)
         if abs(nu) <= self.gate * math.sqrt(s):
-            self._fuse(fix)
+            self._apply((fix,), 0.0)
+            self._leave_one_out()
+            self.held = None
+            return True
+        if self._exclude_for((fix,)):
             self.held = None
             return True
         held, self.held = self.held, fix
         if held is None:
             return False
-        nu0, _ = self._innovation(held)
-        gap = abs(fix.distance - held.distance)
-        agree = held.variance + fix.variance + self.Sigma[1, 1] * gap * gap \
-            + self.count_walk * gap
-        if abs(nu - nu0) > self.gate * math.sqrt(agree):
+        # two refused balises that agree with each other at a scale the odometer can have (its
+        # prior's doubt at least: the scale may be what went wrong): the count is lost, and is
+        # found again from the two, x0 free and the scale at its estimate with that doubt
+        c = float(self.theta[1])
+        sc2 = max(float(self.Sigma[1, 1]), self.scale_std ** 2)
+        gap = fix.distance - held.distance
+        agree = held.variance + fix.variance + sc2 * gap * gap + self.count_walk * abs(gap)
+        if abs((fix.position - held.position) - c * gap) > self.gate * math.sqrt(agree):
             return False
-        # two balises that agree with each other and not with the count: the count moved
-        self.Sigma[0, 0] += max(nu * nu, nu0 * nu0)
-        self._fuse(held)
-        self._fuse(fix)
+        self.theta = np.array([held.position - c * held.distance, c])
+        self.Sigma = np.diag([RELOCATE_X0_VAR, sc2])
+        self.n, self.recent, self.alternatives = 0, [], []
+        self._apply((held, fix), 0.0)
+        # the pair is the evidence: a solution without one of them (x0 unknown) is no
+        # alternative to cover (two balises that lie alike are beyond a single fault)
+        self.recent, self.alternatives = [], []
         self.held = None
         self.relocated += 1
         return True
