@@ -64,6 +64,8 @@ import numpy as np
 COUNT_WALK = 1.0e-3  # m^2 per m run: x0's random walk (1 m std after 1 km)
 SCALE_WALK = 1.0e-9  # 1 per m run: c's random walk (0.001 std after 1 km)
 A_MAX = 1.5  # m/s^2, acceleration allowed in carrying the count to a balise's stamp
+EXCLUDE = 2.0  # gates: a fused balise is taken out only this far outside the others' solution
+#   (a noisy good balise next to a lying one must not be the one excluded)
 RELOCATE_X0_VAR = 1.0e6  # m^2, x0's variance when the count is found again from two balises
 
 
@@ -222,11 +224,12 @@ class OdometerCalibration:
         return _Solution(theta, _walked(Sigma, d, self.d_walked, self.count_walk,
                                         self.scale_walk), self.d_walked, n)
 
-    def _outside(self, theta, Sigma, fixes) -> bool:
-        """Whether any of ``fixes`` lies beyond the gate of the solution ``(theta, Sigma)``."""
+    def _outside(self, theta, Sigma, fixes, z: float) -> bool:
+        """Whether any of ``fixes`` lies beyond ``z`` standard deviations of the solution
+        ``(theta, Sigma)``."""
         for b in fixes:
             nu, s = self._innovation_of(theta, Sigma, b)
-            if abs(nu) > self.gate * math.sqrt(s):
+            if abs(nu) > z * math.sqrt(s):
                 return True
         return False
 
@@ -245,28 +248,41 @@ class OdometerCalibration:
                 nu, s = self._innovation_of(theta, Sigma, b)
                 worst = max(worst, abs(nu) / math.sqrt(s))
                 theta, Sigma = self._fused(theta, Sigma, b)
-            if worst <= self.gate and self._outside(theta, Sigma, self.recent[j][1]) \
+            if worst <= self.gate and self._outside(theta, Sigma, self.recent[j][1],
+                                                    EXCLUDE * self.gate) \
                     and (best is None or worst < best[0]):
-                best = (worst, alt)
+                best = (worst, j)
         if best is None:
             return False
         self._take(best[1], fixes)
         return True
 
-    def _take(self, alt: _Solution, fixes: tuple[BaliseFix, ...] = ()) -> None:
-        """The solution without an excluded balise becomes the solution; ``fixes`` fused."""
-        self.theta, self.Sigma, self.n = alt.theta, alt.Sigma, alt.n
-        self.recent, self.alternatives = [], []
+    def _take(self, j: int, fixes: tuple[BaliseFix, ...] = ()) -> None:
+        """The ``j``-th recent fusion taken out: the fusions after it applied again from the
+        solution before it (each keeps its own alternative), then ``fixes``."""
+        d_now = self.d_walked
+        before, _, _ = self.recent[j]
+        rest = self.recent[j + 1:]
+        self.recent = self.recent[:j]
+        self.theta, self.Sigma, self.n, self.d_walked = before.theta, before.Sigma, before.n, \
+            before.d
+        for sol, fx, inflate in rest:
+            self.walk_to(sol.d)
+            self._apply(fx, inflate)
+        self.walk_to(d_now)
+        self.alternatives = [self._without(i) for i in range(len(self.recent))]
         if fixes:
             self._apply(fixes, 0.0)
         self.excluded += 1
 
     def _leave_one_out(self) -> None:
-        """After a fusion: a recent balise outside the gate of the solution without it, where
-        that solution has two balises or more, lied; it is taken out (one per fusion)."""
+        """After a fusion: a recent balise beyond ``EXCLUDE`` gates of the solution without it,
+        where that solution has two balises or more, lied; it is taken out (one per
+        fusion)."""
         for j, alt in enumerate(self.alternatives):
-            if alt.n >= 2 and self._outside(alt.theta, alt.Sigma, self.recent[j][1]):
-                self._take(alt)
+            if alt.n >= 2 and self._outside(alt.theta, alt.Sigma, self.recent[j][1],
+                                            EXCLUDE * self.gate):
+                self._take(j)
                 return
 
     def balise(self, fix: BaliseFix) -> bool:
