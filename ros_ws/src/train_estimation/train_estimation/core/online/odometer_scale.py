@@ -126,8 +126,8 @@ class OdometerCalibration:
         self.relocated = 0
         self.excluded = 0  # recent balises found to lie by a later one and taken out
         self.n = 0  # balises in the solution
-        # the last EXCLUDED fusions: (solution before, fixes fused, x0 variance added first)
-        self.recent: list[tuple[_Solution, tuple[BaliseFix, ...], float]] = []
+        # the last EXCLUDED fusions: (solution before, fixes fused)
+        self.recent: list[tuple[_Solution, tuple[BaliseFix, ...]]] = []
         self.alternatives: list[_Solution] = []  # the solution without each of them
 
     def copy(self) -> OdometerCalibration:
@@ -196,19 +196,17 @@ class OdometerCalibration:
         ikh = np.eye(2) - np.outer(k, h)
         return theta + k * nu, ikh @ Sigma @ ikh.T + fix.variance * np.outer(k, k)
 
-    def _apply(self, fixes: tuple[BaliseFix, ...], inflate: float) -> None:
-        """Fuse ``fixes`` (after adding ``inflate`` to x0's variance), noting the solution
-        before them and recomputing the solutions without each recent fusion."""
+    def _apply(self, fixes: tuple[BaliseFix, ...]) -> None:
+        """Fuse ``fixes``, noting the solution before them and recomputing the solutions
+        without each recent fusion."""
         self.recent = (self.recent + [(_Solution(self.theta, self.Sigma, self.d_walked, self.n),
-                                       fixes, inflate)])[-self.EXCLUDED:]
-        self.theta, self.Sigma = self._step(self.theta, self.Sigma, fixes, inflate)
+                                       fixes)])[-self.EXCLUDED:]
+        self.theta, self.Sigma = self._step(self.theta, self.Sigma, fixes)
         self.n += len(fixes)
         self.alternatives = [self._without(j) for j in range(len(self.recent))]
 
     @classmethod
-    def _step(cls, theta, Sigma, fixes, inflate):
-        if inflate:
-            Sigma = Sigma + np.array([[inflate, 0.0], [0.0, 0.0]])
+    def _step(cls, theta, Sigma, fixes):
         for fix in fixes:
             theta, Sigma = cls._fused(theta, Sigma, fix)
         return theta, Sigma
@@ -217,9 +215,9 @@ class OdometerCalibration:
         """The solution with every recent fusion but the ``j``-th, walked to the present."""
         sol = self.recent[j][0]
         theta, Sigma, d, n = sol.theta, sol.Sigma, sol.d, sol.n
-        for before, fixes, inflate in self.recent[j + 1:]:
+        for before, fixes in self.recent[j + 1:]:
             Sigma = _walked(Sigma, d, before.d, self.count_walk, self.scale_walk)
-            theta, Sigma = self._step(theta, Sigma, fixes, inflate)
+            theta, Sigma = self._step(theta, Sigma, fixes)
             d, n = before.d, n + len(fixes)
         return _Solution(theta, _walked(Sigma, d, self.d_walked, self.count_walk,
                                         self.scale_walk), self.d_walked, n)
@@ -261,18 +259,18 @@ class OdometerCalibration:
         """The ``j``-th recent fusion taken out: the fusions after it applied again from the
         solution before it (each keeps its own alternative), then ``fixes``."""
         d_now = self.d_walked
-        before, _, _ = self.recent[j]
+        before, _ = self.recent[j]
         rest = self.recent[j + 1:]
         self.recent = self.recent[:j]
         self.theta, self.Sigma, self.n, self.d_walked = before.theta, before.Sigma, before.n, \
             before.d
-        for sol, fx, inflate in rest:
+        for sol, fx in rest:
             self.walk_to(sol.d)
-            self._apply(fx, inflate)
+            self._apply(fx)
         self.walk_to(d_now)
         self.alternatives = [self._without(i) for i in range(len(self.recent))]
         if fixes:
-            self._apply(fixes, 0.0)
+            self._apply(fixes)
         self.excluded += 1
 
     def _leave_one_out(self) -> None:
@@ -296,7 +294,7 @@ class OdometerCalibration:
             return True
         nu, s = self._innovation(fix)
         if abs(nu) <= self.gate * math.sqrt(s):
-            self._apply((fix,), 0.0)
+            self._apply((fix,))
             self._leave_one_out()
             self.held = None
             return True
@@ -318,7 +316,7 @@ class OdometerCalibration:
         self.theta = np.array([held.position - c * held.distance, c])
         self.Sigma = np.diag([RELOCATE_X0_VAR, sc2])
         self.n, self.recent, self.alternatives = 0, [], []
-        self._apply((held, fix), 0.0)
+        self._apply((held, fix))
         # the pair is the evidence: a solution without one of them (x0 unknown) is no
         # alternative to cover (two balises that lie alike are beyond a single fault)
         self.recent, self.alternatives = [], []
