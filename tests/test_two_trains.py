@@ -15,6 +15,8 @@ RATE = 5.0  # sim s per wall s: at 10x one busy CI core made the estimates stale
 DURATION = 90.0  # s of simulated time
 KILL_AT = 60.0  # s: the leader's estimator is killed then
 LENGTH, MARGIN, K = 120.0, 20.0, 3.0  # zone controller's train length, margin, k sigma
+STALE = 5.0  # s: the zone controller's stale_timeout
+EST_PERIOD = 0.1  # s: the estimator's output period (10 Hz)
 
 
 def scenario_file(tmp_path, name, start, seed):
@@ -39,10 +41,11 @@ def test_two_trains_under_one_zone_controller(launch, ros_node, tmp_path):
     trains = {"/lead": (900.0, 1), "/follow": (100.0, 2)}
     truth = {ns: ros_node.collect(TrainState, f"{ns}/ground_truth") for ns in trains}
     mas = {ns: ros_node.collect(MovementAuthority, f"{ns}/movement_authority") for ns in trains}
+    lead_est = ros_node.collect(TrainState, "/lead/estimate/robust")
     launch.node("train_sim", "zone_controller", "--ros-args", "-p", "use_sim_time:=true",
                 "-p", "trains:=[/lead, /follow]", "-p", "state_topic:=estimate/robust",
                 "-p", f"line_file:={base.line_path}", "-p", f"train_length:={LENGTH}",
-                "-p", f"margin:={MARGIN}", "-p", f"k_sigma:={K}", "-p", "stale_timeout:=5.0",
+                "-p", f"margin:={MARGIN}", "-p", f"k_sigma:={K}", "-p", f"stale_timeout:={STALE}",
                 "-p", "rate:=2.0", name="zone_controller")
     estimators = {}
     for ns, (start, _) in trains.items():
@@ -96,8 +99,17 @@ def test_two_trains_under_one_zone_controller(launch, ros_node, tmp_path):
             if i >= 0 and math.isfinite(eoa[i]):
                 assert xk <= eoa[i] + 1e-6, (ns, tk, xk, eoa[i])
     assert fol_x.max() > 300.0, "the follower never moved"
-    # the leader's estimates stopped: the follower is braked
-    after = mas["/follow"][n_before:]
-    braked = [m for m in after if m.emergency_brake]
-    assert braked, "the zone controller did not brake the follower"
-    assert stamp(braked[0]) <= KILL_AT + 3.0 + 3.0, stamp(braked[0])
+    # the leader's estimates stopped: from stale_timeout after the last of them (by the zone's
+    # clock, which stamps each authority) every authority the follower gets is a brake. The
+    # zone's clock is the simulator's: a zone controller the OS does not schedule for a few wall
+    # seconds brakes at its first tick after that, so the property is checked in the zone's time,
+    # not against the kill instant. One estimate in flight at the kill may reach the zone and
+    # not this test's subscriber: one output period more.
+    assert lead_est, "no estimate of the leader was received"
+    last = max(stamp(m) for m in lead_est)
+    assert last >= KILL_AT - 1.0, f"the leader's estimates stopped early, at {last:.1f} s"
+    due = last + EST_PERIOD + STALE
+    after = [m for m in mas["/follow"] if stamp(m) > due]
+    assert after, f"no authority for the follower after {due:.1f} s"
+    granted_late = [(stamp(m), m.end_of_authority) for m in after if not m.emergency_brake]
+    assert not granted_late, (due, granted_late[:5])
