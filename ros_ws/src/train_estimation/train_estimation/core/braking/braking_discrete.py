@@ -111,6 +111,16 @@ class _DiscreteBase(RaoBlackwellFilter):
         self.prior_p = grid_prior(self.values, prior)
         self.prior = prior
         self._cell_var = cell_variance(self.values) if cell_var else np.zeros(self.values.size)
+        self._freeze("values", "prior_p", "_cell_var")
+
+    def _freeze(self, *names: str) -> None:
+        """Make the named arrays read-only copies: parameters fixed at construction, which a
+        snapshot for rewinding may share rather than copy (``_shared`` in the online
+        adapters), and which nothing can then change in place by mistake."""
+        for name in names:
+            a = np.array(getattr(self, name))
+            a.flags.writeable = False
+            setattr(self, name, a)
 
     def _initial_theta(self, rng):
         # Zheng Section 4: initial particles sampled in the discrete space (uniform prior);
@@ -171,6 +181,7 @@ class DiscreteRBPF(_DiscreteBase):
             self._child[j, :sup.size] = sup
             self._child[j, sup.size:] = j  # padding: a valid model, zero prior mass
             self._logp[j, :sup.size] = np.log(T[j, sup])
+        self._freeze("T", "cdf", "_child", "_logp")
 
     def _transition(self, s, informative, rng, dt):
         if not informative:
@@ -254,6 +265,7 @@ class _BranchingFilter(_DiscreteBase):
             self._logprior = np.log(kernel / kernel.sum(axis=1, keepdims=True))
         self.n_keep = int(n_keep)
         self.q_max = int(q_max)
+        self._freeze("allowed", "_logprior")
 
     def _transition(self, s, informative, rng, dt):
         if not informative:

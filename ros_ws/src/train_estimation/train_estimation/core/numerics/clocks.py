@@ -262,9 +262,11 @@ class StreamClock:
         self.n, self.fifo, self.sorted = n, deque(), []
         self.arrivals: deque = deque()  # arrival (s, or None) of each offset in fifo
         self._value = None  # cached centre (recomputed after an add)
+        self._at_cache = None  # ((pushes, drift), newest arrival, centre there): value_at's
         self.pending: list = []  # consecutive values away from a full window's centre
         self._fit = [0, 0.0, 0.0, 0.0, 0.0, 0.0, None]  # n, sx, sy, sxx, sxy, syy, origin
         self._closed = [0, 0, 0.0, 0.0, 0.0]  # segments, n, centred sxx, sxy, syy before a move
+        self._rate: tuple[float, float] | None = None  # rate()'s, until the fit changes
         self._level: tuple | None = None  # (centre, arrival) at the last rate point
         self._reg_last: tuple | None = None  # (stamp, arrival) of the last point in the fit
         self._top: deque = deque()  # (index, offset), decreasing: the sliding maximum
@@ -406,10 +408,21 @@ class StreamClock:
         along the drift. The plain centre is the offset of the window's middle, half a window
         ago: on a clock 1 % fast, 31 readings at 1 Hz put it 0.15 s behind the clock's
         present offset (:attr:`value` when the drift is 0 or an arrival is unknown)."""
-        if not drift or at is None or not self.fifo or None in self.arrivals:
+        if not drift or at is None or not self.fifo:
             return self.value
-        return self._centre(sorted(v + drift * (at - a)
-                                   for v, a in zip(self.fifo, self.arrivals)))
+        # Carried to the newest arrival ``a1`` and then on to ``at``: the window's shape does
+        # not depend on ``at``, so its centre is computed once per window and drift (the
+        # runner asks for it several times per message; recomputing it was a quarter of the
+        # per-message time under the fuzz mix)
+        key = (self._pushed, drift)
+        if self._at_cache is None or self._at_cache[0] != key:
+            a1 = self.arrivals[-1]
+            if a1 is None or None in self.arrivals:
+                return self.value
+            self._at_cache = (key, a1, self._centre(sorted(
+                v + drift * (a1 - a) for v, a in zip(self.fifo, self.arrivals))))
+        _, a1, c = self._at_cache
+        return c + drift * (at - a1)
 
     @property
     def scale(self) -> float:
@@ -477,6 +490,7 @@ class StreamClock:
         f[3] += x * x
         f[4] += x * y
         f[5] += y * y
+        self._rate = None
 
     def _centred(self) -> tuple[int, float, float, float]:
         """The current segment's n and centred sums (sxx, sxy, syy)."""
@@ -498,12 +512,21 @@ class StreamClock:
             c[4] += cyy
         self._fit = [0, 0.0, 0.0, 0.0, 0.0, 0.0, None]
         self._reg_last = None
+        self._rate = None
 
     def rate(self, min_n: int = 20, min_span: float = 10.0) -> tuple[float, float]:
         """(drift, its standard error): the clock's rate minus 1 (s/s) against the arrival
         clock, least squares with one intercept per level of the offset (:meth:`rate_point`);
         (0, inf) until ``min_n`` points over ~``min_span`` s of arrivals are in, or when the
-        fit says more than 10 % (not a clock)."""
+        fit says more than 10 % (not a clock). With the defaults it is kept until the fit
+        changes (the runner asks for it at every message)."""
+        if (min_n, min_span) == (20, 10.0):
+            if self._rate is None:
+                self._rate = self._rate_of(min_n, min_span)
+            return self._rate
+        return self._rate_of(min_n, min_span)
+
+    def _rate_of(self, min_n: int, min_span: float) -> tuple[float, float]:
         n1, cxx1, cxy1, cyy1 = self._centred()
         segs, n0, cxx0, cxy0, cyy0 = self._closed
         n, var, cov, vyy = n0 + n1, cxx0 + cxx1, cxy0 + cxy1, cyy0 + cyy1

@@ -707,6 +707,9 @@ class BrakingAdapter(_DistanceAsPosition):
         view = getattr(self.filt, "family", None)
         if view is not None:
             memo[id(view)] = view
+        for v in vars(self.filt).values():  # parameters made read-only at construction
+            if isinstance(v, np.ndarray) and not v.flags.writeable:
+                memo[id(v)] = v
         return memo
 
     def snapshot(self):
