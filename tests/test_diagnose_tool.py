@@ -1133,3 +1133,23 @@ def test_a_tunnel_on_a_stretch_run_at_changing_speed_is_not_confirmed_as_a_gradi
     grad = next(r for r in rep["ranking"] if r["cause"] == "gradient")
     assert grad["status"] == "not confirmed", grad
     assert grad["why"].startswith("a speed law fits better"), grad
+
+
+def test_one_pass_finds_the_single_time_span_on_a_stretch():
+    """A cause at a place is told from one acting in time only when the stretch is run twice:
+    ``_one_pass`` gives the span of a single pass, and None for two passes or none."""
+    from types import SimpleNamespace
+
+    from train_estimation.core.offline.diagnose.confirm import _one_pass
+
+    t = np.arange(0.0, 100.0, 1.0)
+    there = np.minimum(t, 100.0 - t) * 20.0  # out to 1000 m and back
+    mo = SimpleNamespace(x_ref=t * 20.0, grid=SimpleNamespace(t=t),
+                         run=SimpleNamespace(clock={"beta": 1.0}))
+    fit = CauseFit("gradient", 1.0, {"start": 400.0, "end": 600.0, "permille": 3.0})
+    assert _one_pass(mo, fit) == (20.0, 29.0)
+    mo.x_ref = there
+    assert _one_pass(mo, fit) is None  # run out and back: two passes
+    mo.x_ref = t * 2.0
+    assert _one_pass(mo, fit) is None  # never there
+    assert _one_pass(mo, CauseFit("resistance", 1.0, {"a": 1.0})) is None

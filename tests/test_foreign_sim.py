@@ -89,3 +89,5 @@ def test_a_downhill_run_in_braking_is_named_with_the_rival_it_cannot_be_told_fro
     caveat = rep["evidence"]["_model"]["confirmation"]["checks"][rep["cause"]]["caveat"]
     rival = "downhill gradient" if rep["cause"] == "adhesion_section" else "braking"
     assert rival in caveat, caveat
+    # and, a stretch run once, from what acts in time rather than at that place
+    assert "the stretch was run once" in caveat, caveat

@@ -211,6 +211,10 @@ def confirm(mo: Motion, shift: float, accepted: list, resolved_before: dict, cfg
                 a.status, a.why = "not confirmed", told
         if a.status != "confirmed" or (bey := cause.beyond(a, mo)) is None:
             continue
+        if cause.time_rival is not None and (span := _one_pass(mo, a)) is not None:
+            _caveat(checks[a.cause],
+                    f"cannot be told from {cause.time_rival}: the stretch was run once, "
+                    f"{span[0]:.0f}-{span[1]:.0f} s (runs over it at other times tell: fleet)")
         if cause.speed_rival is not None:
             sl = speed_law(mo, others, cfg, noise, a.extra["bins"])
             checks[a.cause]["speed_law"] = sl
@@ -253,6 +257,20 @@ def confirm(mo: Motion, shift: float, accepted: list, resolved_before: dict, cfg
                      f"stretch ({', '.join(pt['elsewhere'][:3])}; chi-square p "
                      f"{pt['p']:.2g})")
     return checks
+
+
+def _one_pass(mo: Motion, a) -> tuple[float, float] | None:
+    """(t0, t1) s since the first odometer stamp: the one time span the train was on the
+    stretch ``[start, end)`` of ``a``, or None when it was there in more than one (or none)."""
+    p = a.parameters
+    if "start" not in p or "end" not in p:
+        return None
+    on = (mo.x_ref >= p["start"]) & (mo.x_ref < p["end"])
+    idx = np.flatnonzero(on)
+    if idx.size == 0 or idx[-1] - idx[0] + 1 != idx.size:
+        return None
+    beta = mo.run.clock["beta"]
+    return float(mo.grid.t[idx[0]] / beta), float(mo.grid.t[idx[-1]] / beta)
 
 
 def _caveat(check: dict, told: str) -> None:

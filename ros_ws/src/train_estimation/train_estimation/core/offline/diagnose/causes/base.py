@@ -165,6 +165,11 @@ class Cause:
     # braking asked for at its place) is not; None: the cause is no such law.
     fixed_rival: str | None = None
 
+    # What acts in time rather than at a place and makes the same residual when the stretch
+    # is run once (the train is at each place of it at one moment); None: not a cause at a
+    # place. Only runs of the stretch at other times (other runs: ``fleet``) tell them apart.
+    time_rival: str | None = None
+
     def beyond(self, fit: CauseFit, mo):
         """For a cause fitted on a stretch of track: (inside, pattern), the grid points it acts
         on and its acceleration (m/s^2 per grid point) if it acted at every place in the same

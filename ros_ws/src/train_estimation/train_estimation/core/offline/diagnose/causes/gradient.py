@@ -116,6 +116,7 @@ class Gradient(Cause):
     phase_rival = "a force acting during that time"
     # g sin(theta) does not depend on speed; drag in a tunnel grows as v^2
     speed_rival = "aerodynamic drag at that place (a force growing as v^2: a tunnel)"
+    time_rival = "a force acting while the train ran it (a headwind, a traction fault)"
 
     def beyond(self, fit, mo):
         """The section's gradient force at every place run while moving."""
