@@ -183,8 +183,8 @@ def test_an_empty_train_file_is_refused_unless_the_demo_is_asked_for():
 @pytest.mark.ros
 def test_the_node_timer_publishes_a_lost_1hz_slot_before_the_next_message(launch, ros_node):
     """odometer_rate 1 Hz, slot_grace 0.2 s: the estimate of a reading that never comes leaves
-    by the node's timer (tick_period) within the grace, before the next cycle's messages are
-    sent (without the timer it waits for them, a second later)."""
+    by the node's timer (tick_period), with no later message to push it out (without the timer
+    it waits for the next cycle's messages)."""
     import time
 
     from train_core.ros import sec_to_stamp, stamp_to_sec
@@ -217,8 +217,13 @@ def test_the_node_timer_publishes_a_lost_1hz_slot_before_the_next_message(launch
         ctl.publish(c)
         if k != lost:  # that reading is lost, its cycle's command is not
             odo.publish(o)
-    # its estimate must come before the next cycle would be sent
-    wait_until_time(start + lost + 0.85)
+    # no message is sent after that cycle: only the node's timer can release the lost slot's
+    # estimate (without it the slot waits for the next message, which never comes). How soon
+    # it leaves is a latency, measured by `./run bench latency`, not timed here: a CI host
+    # that stalls a process for seconds must not fail this test
+    ros_node.wait_until(
+        lambda: any(abs(stamp_to_sec(m.header.stamp) - (start + lost)) < 1e-3 for m in est),
+        timeout=10.0, what="the lost slot's estimate")
     stamps = [stamp_to_sec(m.header.stamp) for m in est]
     assert any(abs(s - (start + lost - 1)) < 1e-3 for s in stamps), (launch.logs(), stamps)
     mine = [m for m, s in zip(est, stamps) if abs(s - (start + lost)) < 1e-3]
