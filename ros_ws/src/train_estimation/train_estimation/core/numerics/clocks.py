@@ -266,7 +266,7 @@ class StreamClock:
         self.pending: list = []  # consecutive values away from a full window's centre
         self._fit = [0, 0.0, 0.0, 0.0, 0.0, 0.0, None]  # n, sx, sy, sxx, sxy, syy, origin
         self._closed = [0, 0, 0.0, 0.0, 0.0]  # segments, n, centred sxx, sxy, syy before a move
-        self._rate: tuple[float, float] | None = None  # rate()'s, until the fit changes
+        self._rates: dict = {}  # rate()'s by (min_n, min_span), until the fit changes
         self._level: tuple | None = None  # (centre, arrival) at the last rate point
         self._reg_last: tuple | None = None  # (stamp, arrival) of the last point in the fit
         self._top: deque = deque()  # (index, offset), decreasing: the sliding maximum
@@ -490,7 +490,7 @@ class StreamClock:
         f[3] += x * x
         f[4] += x * y
         f[5] += y * y
-        self._rate = None
+        self._rates = {}
 
     def _centred(self) -> tuple[int, float, float, float]:
         """The current segment's n and centred sums (sxx, sxy, syy)."""
@@ -512,19 +512,18 @@ class StreamClock:
             c[4] += cyy
         self._fit = [0, 0.0, 0.0, 0.0, 0.0, 0.0, None]
         self._reg_last = None
-        self._rate = None
+        self._rates = {}
 
     def rate(self, min_n: int = 20, min_span: float = 10.0) -> tuple[float, float]:
         """(drift, its standard error): the clock's rate minus 1 (s/s) against the arrival
         clock, least squares with one intercept per level of the offset (:meth:`rate_point`);
         (0, inf) until ``min_n`` points over ~``min_span`` s of arrivals are in, or when the
-        fit says more than 10 % (not a clock). With the defaults it is kept until the fit
-        changes (the runner asks for it at every message)."""
-        if (min_n, min_span) == (20, 10.0):
-            if self._rate is None:
-                self._rate = self._rate_of(min_n, min_span)
-            return self._rate
-        return self._rate_of(min_n, min_span)
+        fit says more than 10 % (not a clock). Kept until the fit changes (the runner asks for
+        it at every message)."""
+        key = (min_n, min_span)
+        if key not in self._rates:
+            self._rates[key] = self._rate_of(min_n, min_span)
+        return self._rates[key]
 
     def _rate_of(self, min_n: int, min_span: float) -> tuple[float, float]:
         n1, cxx1, cxy1, cyy1 = self._centred()

@@ -388,16 +388,9 @@ class RobustAdapter(_DistanceAsPosition):
         f = self.f
         if not isinstance(f, RobustFilter):
             return None
-        act = act0.copy()
-        tc = t0
-        while t - tc > 0.0:
-            dt = min(t - tc, f.params.max_dt)
-            if t - (tc + dt) < 1e-9:
-                dt = t - tc
-            u = act.mean(tc, tc + dt)
+        for dt, u in f.steps(t0, t, act0.copy()):
             xn = self.model.step_exact(self.model.discrete(dt), x, u)
             x = self.model.standstill(x, xn, dt) if f.params.clamp_standstill else xn
-            tc += dt
         return x
 
     def snapshot(self):

@@ -182,15 +182,22 @@ class FilterBase:
     def _propagate(self, t: float):
         """Prediction to ``t`` on copies; returns (x, P, actuator)."""
         act = self.actuator.copy()
-        x, P, tc = self.x, self.P, self.t
+        x, P = self.x, self.P
+        for dt, u in self.steps(self.t, t, act):
+            x, P = self._predict(x, P, dt, u)
+        return x, P, act
+
+    def steps(self, t0: float, t: float, act):
+        """The prediction steps from ``t0`` to ``t``: ``(dt, u)``, steps of at most
+        ``params.max_dt`` s and ``u`` the mean achieved control acceleration over each through
+        ``act`` (which advances)."""
+        tc = t0
         while t - tc > 0.0:
             dt = min(t - tc, self.params.max_dt)
             if t - (tc + dt) < 1e-9:  # avoid a sliver of a step from round-off
                 dt = t - tc
-            u = act.mean(tc, tc + dt)  # mean achieved control acceleration over the step
-            x, P = self._predict(x, P, dt, u)
+            yield dt, act.mean(tc, tc + dt)
             tc += dt
-        return x, P, act
 
     def _predict(self, x, P, dt, u):  # pragma: no cover - abstract
         raise NotImplementedError
