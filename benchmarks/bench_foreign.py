@@ -14,6 +14,21 @@ integrator, sensors, link (Gilbert-Elliott losses, latency with an exponential t
 one, confirmed and alone (nominal: ``none``), and what was reported instead.
 
     ./run bench foreign --estimators --seeds 4 --jobs 2   # every estimator, about 12 min
+    ./run bench foreign --unlisted --seeds 8 --jobs 2     # effects outside the list, 4 min
+
+``--unlisted``: effects that no cause of diagnose's list describes, written in the foreign
+simulator's own terms (``foreign_sim.Effect``) and placed from its own nominal run, of a plain
+listed effect's size: a traction x 0.7-0.8 or x 1.2-1.3; x 0.6-0.75 above 40-60 % of the top
+speed; x 0.4-0.6 on a 300-600 m stretch where the train accelerates, or for 60-120 s from a
+traction onset; braking x 0.6-0.75 below 35-50 % of the top speed, or limited to P / v with the
+knee at 45-65 % of it; aerodynamic drag added in a 500-900 m tunnel run above 60 % of the top
+speed, a constant force for 60-120 s (wind), a drag while coasting, a resistance above 60-80 %
+of the top speed (hunting), a resistance decaying from the start (warming up), each 0.04-0.08
+m/s^2 where it acts; an odometer reading 0.04-0.1 m/s more or less while moving; a balise 8-20
+m from its map position; a train clock that jumps by 0.5-3 s. Printed: how often diagnose says
+`unexplained` and confirms no listed cause, how often it confirms a listed one, and whether
+its signature names the effect's phase (a coasting drag is scored only where the nominal run
+coasts 10 s or more). With ``--estimators``: every estimator's integrity on those runs.
 
 ``--estimators``: every estimator on the same runs instead (the believed model, whatever the
 world had), the clean stream the link delivered put on the integrity campaign's clocks and
@@ -44,6 +59,13 @@ from train_core.progress import Progress  # noqa: E402
 
 KINDS = ("none", "gradient", "resistance", "braking_rate", "mass", "odometer_scale",
          "brake_delay", "clock_drift", "adhesion_section", "power_limit", "traction_delay")
+# effects no listed cause describes (``--unlisted``), each with the phase diagnose's
+# ``unexplained`` signature should name
+UNLISTED = {"traction_gain": "traction", "traction_fade": "traction", "traction_cut": "traction",
+            "traction_trip": "traction", "brake_fade": "braking", "brake_power": "braking",
+            "tunnel": "all", "wind": "all", "coast_drag": "coasting", "hunting": "all",
+            "warmup": "all", "odometer_bias": "all", "balise_moved": "all", "clock_step": "all"}
+COAST_MIN = 10.0  # s the nominal run must coast for a coasting drag to be scored
 OUT = os.path.join(HERE, "out")
 
 
@@ -99,6 +121,74 @@ def effect_of(kind: str, line: dict, train: dict, rng, pilot) -> FS.Effect:
     raise ValueError(kind)
 
 
+def unlisted_effect_of(kind: str, line: dict, train: dict, rng, pilot) -> FS.Effect:
+    """One effect outside the list (``UNLISTED``), of a plain listed effect's size (an extra
+    0.04-0.08 m/s^2 where it acts, or 20-60 % of the traction or braking), placed where the
+    nominal ``pilot`` run = (x, v, command, t) at its commands exercises it."""
+    x, v, cmd, t = pilot
+    v_top = float(v.max())
+    m_eff = (1.0 + float(train.get("rotary_allowance", 0.0))) * float(train["mass"])
+    acc = float(rng.uniform(0.04, 0.08))  # m/s^2
+    span = float(t[-1] - t[0])
+
+    def mid_time(lo, hi):
+        return float(t[0] + rng.uniform(lo, hi) * span)
+
+    if kind == "traction_gain":
+        f = float(rng.uniform(0.2, 0.3))
+        return FS.Effect(traction_gain=1.0 + f if rng.random() < 0.5 else 1.0 - f)
+    if kind == "traction_fade":
+        return FS.Effect(traction_fade=(float(rng.uniform(0.4, 0.6)) * v_top,
+                                        float(rng.uniform(0.6, 0.75))))
+    if kind == "traction_cut":
+        ok = np.flatnonzero((cmd > 0.15) & (v > 3.0))
+        s0 = float(x[rng.choice(ok)]) - 100.0
+        return FS.Effect(traction_cut=(s0, s0 + float(rng.uniform(300.0, 600.0)),
+                                       float(rng.uniform(0.4, 0.6))))
+    if kind == "traction_trip":
+        on = np.flatnonzero((cmd[1:] > 0.05) & (cmd[:-1] <= 0.05)) + 1
+        mid = [i for i in on if 0.2 * span <= t[i] - t[0] <= 0.7 * span] or list(on)
+        t0 = float(t[rng.choice(mid)])
+        return FS.Effect(traction_trip=(t0, t0 + float(rng.uniform(60.0, 120.0)),
+                                        float(rng.uniform(0.4, 0.6))))
+    if kind == "brake_fade":
+        return FS.Effect(brake_fade=(float(rng.uniform(0.35, 0.5)) * v_top,
+                                     float(rng.uniform(0.6, 0.75))))
+    if kind == "brake_power":
+        brake = -cmd[(cmd < -0.05) & (v > 1.0)]
+        a_ref = float(np.median(brake)) if brake.size else 0.5
+        return FS.Effect(brake_power=float(rng.uniform(0.45, 0.65)) * v_top * a_ref)
+    if kind == "tunnel":
+        fast = np.flatnonzero(v > 0.6 * v_top)
+        length = float(rng.uniform(500.0, 900.0))
+        s0 = float(np.clip(x[rng.choice(fast)] - 0.5 * length, x.min(), x.max() - length))
+        inside = (x >= s0) & (x < s0 + length)
+        v_in = float(np.mean(v[inside])) if inside.any() else v_top
+        return FS.Effect(tunnel=(s0, s0 + length, acc * m_eff / max(v_in, 1.0) ** 2))
+    if kind == "wind":
+        dur = float(rng.uniform(60.0, 120.0))
+        moving = t[(v > 2.0) & (t > t[0] + 10.0) & (t < t[-1] - dur)]
+        t0 = float(rng.choice(moving)) if moving.size else mid_time(0.2, 0.5)
+        return FS.Effect(wind=(t0, t0 + dur, _sign(rng) * acc * m_eff))
+    if kind == "coast_drag":
+        return FS.Effect(coast_drag=acc)
+    if kind == "hunting":
+        return FS.Effect(hunting=(float(rng.uniform(0.6, 0.8)) * v_top, acc * m_eff))
+    if kind == "warmup":
+        return FS.Effect(warmup=(float(rng.uniform(0.2, 0.35)) * span, 1.5 * acc * m_eff))
+    if kind == "odometer_bias":
+        return FS.Effect(odometer_bias=_sign(rng) * float(rng.uniform(0.04, 0.1)))
+    if kind == "balise_moved":
+        xb = sorted((float(b["position"]), int(b["id"])) for b in line.get("balises", [])
+                    if x.min() < float(b["position"]) < x.max())
+        inner = [(p, i) for p, i in xb[1:-1] if np.interp(p, x, v) > 3.0]
+        _, bid = inner[int(rng.integers(len(inner)))]
+        return FS.Effect(balise_moved=(bid, _sign(rng) * float(rng.uniform(8.0, 20.0))))
+    if kind == "clock_step":
+        return FS.Effect(clock_step=(mid_time(0.3, 0.7), _sign(rng) * float(rng.uniform(0.5, 3.0))))
+    raise ValueError(kind)
+
+
 def foreign_case(seed: int, kind: str, directory: str) -> tuple:
     """Seed ``seed``'s line and believed train (``make_case``, written to ``directory``) and
     the effect of ``kind`` placed from a nominal pilot run: (case, paths, line dict, train
@@ -110,9 +200,13 @@ def foreign_case(seed: int, kind: str, directory: str) -> tuple:
     line, train = FS.load(str(paths["line"])), FS.load(str(paths["train"]))
     trace: list = []
     FS.simulate(line, train, FS.Effect(), np.random.default_rng([seed, 1]), trace=trace)
-    pilot = tuple(np.array([r[i] for r in trace]) for i in (1, 2, 3))
-    eff = effect_of(kind, line, train, np.random.default_rng([seed, 2, KINDS.index(kind)]),
-                    pilot)
+    pilot = tuple(np.array([r[i] for r in trace]) for i in (1, 2, 3, 0))
+    if kind in UNLISTED:
+        eff = unlisted_effect_of(kind, line, train, np.random.default_rng(
+            [seed, 4, list(UNLISTED).index(kind)]), pilot)
+    else:
+        eff = effect_of(kind, line, train, np.random.default_rng([seed, 2, KINDS.index(kind)]),
+                        pilot[:3])
     return case, paths, line, train, pilot, eff
 
 
@@ -121,9 +215,20 @@ def run_case(spec: dict) -> dict:
 
     seed, kind = spec["seed"], spec["kind"]
     with tempfile.TemporaryDirectory(prefix="bench_foreign_") as d:
-        case, paths, line, train, _, eff = foreign_case(seed, kind, os.path.join(d, "case"))
+        case, paths, line, train, pilot, eff = foreign_case(seed, kind,
+                                                            os.path.join(d, "case"))
         out = {**spec, "family": case.family, "effect": repr(eff)}
-        events = FS.simulate(line, train, eff, np.random.default_rng([seed, 3]))
+        if kind == "coast_drag":
+            # a drag while coasting acts only where the run coasts: this driver holds its speed
+            # with small commands and coasts little on some lines (a high-speed one under 1 s)
+            x, v, cmd, t = pilot
+            coast = float(np.sum(np.diff(t)[((cmd == 0.0) & (v > 0.5))[:-1]]))
+            if coast < COAST_MIN:
+                return {**out, "na": f"the run coasts {coast:.1f} s"}
+        try:
+            events = FS.simulate(line, train, eff, np.random.default_rng([seed, 3]))
+        except RuntimeError as exc:  # the foreign driver failed: shown, not a diagnose result
+            return {**out, "rc": f"sim: {exc}"}
         bag = os.path.join(d, "bag")
         FS.write_bag(events, bag)
         t0 = time.perf_counter()
@@ -139,6 +244,12 @@ def run_case(spec: dict) -> dict:
     out["confirmed"] = [r["cause"] for r in rep["ranking"] if r.get("status") == "confirmed"
                         and r["cause"] != "none"]
     out["unexplained"] = [u.get("phase") for u in rep.get("unexplained", [])]
+    if kind in UNLISTED:
+        # right: no listed cause confirmed and the remainder named, in the effect's phase first
+        out["phase"] = UNLISTED[kind]
+        out["right"] = rep["cause"] == "unexplained" and not out["confirmed"]
+        out["phase_right"] = bool(out["unexplained"]) and out["unexplained"][0] == out["phase"]
+        return out
     out["right"] = (rep["cause"] == kind and (kind == "none" or kind in out["confirmed"])
                     and len(out["confirmed"]) == (0 if kind == "none" else 1))
     return out
@@ -196,7 +307,7 @@ def run_estimators(spec: dict) -> list[dict]:
 def estimator_table(rows: list) -> str:
     md = ["| hidden | estimator | runs | wrong-side | availability % (min) | max err m | "
           "RMS err m (max) | non-PD cov | exceptions |", "|---|---|---|---|---|---|---|---|---|"]
-    for k in KINDS:
+    for k in KINDS + tuple(UNLISTED):
         for name in ESTIMATORS:
             sel = [r for r in rows if r["kind"] == k and r["estimator"] == name
                    and "na" not in r]
@@ -238,22 +349,64 @@ def table(results: list) -> str:
     return "\n".join(md)
 
 
+def unlisted_table(results: list) -> str:
+    """Effects outside the list: ``unexplained`` with no listed cause confirmed, a listed cause
+    confirmed, the signature's phase right (its first entry)."""
+    md = ["| effect (phase) | n | `unexplained` | listed cause confirmed | phase right | "
+          "reported |", "|---|---|---|---|---|---|"]
+
+    def pct(k, n):
+        return f"{100 * k / n:.0f} % ({k}/{n})" if n else "-"
+
+    for k in list(UNLISTED) + [None]:
+        rows = [r for r in results if r["kind"] in UNLISTED and (k is None or r["kind"] == k)
+                and "na" not in r]
+        na = [r for r in results if "na" in r and (k is None or r["kind"] == k)]
+        if not rows:
+            continue
+        n = len(rows)
+        conf = Counter(c for r in rows for c in r.get("confirmed", []))
+        rep = Counter(r.get("reported", f"rc {r.get('rc')}") for r in rows)
+        md.append(f"| {k + ' (' + UNLISTED[k] + ')' if k else '**all**'} | {n} | "
+                  f"{pct(sum(bool(r.get('right')) for r in rows), n)} | "
+                  f"{pct(sum(bool(r.get('confirmed')) for r in rows), n)}"
+                  + (f" ({', '.join(f'{c} {m}' for c, m in conf.most_common())})"
+                     if conf else "")
+                  + f" | {pct(sum(bool(r.get('phase_right')) for r in rows), n)} | "
+                  + ", ".join(f"{c} {m}" for c, m in rep.most_common())
+                  + (f"; not scored: {len(na)} ({na[0]['na']})" if na else "") + " |")
+    md.append("\ntargets (diagnose): `unexplained` >= 80 %, a listed cause confirmed <= 10 %, "
+              "the phase right >= 80 %")
+    t = [r["time"] for r in results if "time" in r]
+    md.append(f"\ntime per bag (diagnose): mean {np.mean(t):.1f} s, max {np.max(t):.1f} s")
+    return "\n".join(md)
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="bench_foreign", description=__doc__.splitlines()[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter,
                                 epilog="\n".join(__doc__.splitlines()[2:]))
     p.add_argument("--seeds", type=int, default=6, help="lines and trains drawn (default 6)")
     p.add_argument("--first", type=int, default=0, help="first seed (default 0)")
-    p.add_argument("--kinds", nargs="*", default=list(KINDS), choices=KINDS)
+    p.add_argument("--kinds", nargs="*", default=None, choices=KINDS + tuple(UNLISTED),
+                   help="effects (default: the listed causes and none; with --unlisted, the "
+                        "effects outside the list)")
+    p.add_argument("--unlisted", action="store_true",
+                   help="effects outside diagnose's list instead: how often it says "
+                        "`unexplained` and confirms no listed cause (with --estimators: "
+                        "the estimators' integrity on them)")
     p.add_argument("--jobs", type=int, default=1, help="parallel processes (default 1)")
     p.add_argument("--estimators", action="store_true",
                    help="run every estimator on the runs instead of diagnose (the integrity "
                         "campaign's figures: wrong-side, availability, error)")
     args = p.parse_args(argv)
+    if args.kinds is None:
+        args.kinds = list(UNLISTED) if args.unlisted else list(KINDS)
     specs = [{"seed": s, "kind": k} for s in range(args.first, args.first + args.seeds)
              for k in args.kinds]
     fn, name = (run_estimators, "foreign_estimators") if args.estimators else \
         (run_case, "foreign")
+    name += "_unlisted" if args.unlisted else ""
     prog = Progress(f"bench {name.replace('_', ' ')}")
     results = []
     prog(0, len(specs), "")
@@ -261,7 +414,8 @@ def main(argv=None) -> int:
         for i, r in enumerate(ex.map(fn, specs)):
             results += r if args.estimators else [r]
             prog(i + 1, len(specs), specs[i]["kind"])
-    print(estimator_table(results) if args.estimators else table(results))
+    print(estimator_table(results) if args.estimators else
+          unlisted_table(results) if args.unlisted else table(results))
     os.makedirs(OUT, exist_ok=True)
     with open(os.path.join(OUT, f"{name}.json"), "w") as f:
         json.dump(results, f, indent=1, default=str)

@@ -47,6 +47,22 @@ class Effect:
     adhesion: tuple | None = None  # (start m, end m, factor): braking delivered x factor there
     p_spec: float | None = None  # m^2/s^3: traction acceleration delivered at most p_spec / v
     traction_delay: float | None = None  # s, the traction's true transport delay
+    # what no cause of diagnose's list describes (bench_foreign --unlisted); each in its own
+    # physical terms, not in the terms of train_sim.unlisted
+    traction_gain: float = 1.0  # -, traction delivered / asked, everywhere
+    traction_fade: tuple | None = None  # (v m/s, factor): traction x factor above v
+    traction_cut: tuple | None = None  # (start m, end m, factor): traction x factor there
+    traction_trip: tuple | None = None  # (t0 s, t1 s, factor): traction x factor meanwhile
+    brake_fade: tuple | None = None  # (v m/s, factor): braking x factor below v
+    brake_power: float | None = None  # m^2/s^3: braking deceleration at most P / v
+    tunnel: tuple | None = None  # (start m, end m, c N/(m/s)^2): aerodynamic drag added there
+    wind: tuple | None = None  # (t0 s, t1 s, N): a force against the motion meanwhile
+    coast_drag: float = 0.0  # m/s^2 more deceleration while no command is delivered
+    hunting: tuple | None = None  # (v m/s, N): a resistance added above v
+    warmup: tuple | None = None  # (tau s, N): a resistance of N exp(-t / tau) added
+    odometer_bias: float = 0.0  # m/s the odometer reads more while moving (and counts)
+    balise_moved: tuple | None = None  # (balise id, m): that balise lies m further on
+    clock_step: tuple | None = None  # (t s, s): the train clock jumps by s at t
 
 
 def _profile(sections, x: float) -> float:
@@ -101,7 +117,10 @@ def simulate(line: dict, train: dict, effect: Effect, rng: np.random.Generator,
     stations = sorted(float(s["position"]) for s in line.get("stations", []))
     if len(stations) < 2:
         stations = [0.0, float(line["length"])]
-    balises = sorted((float(bl["position"]), int(bl["id"])) for bl in line.get("balises", []))
+    moved = dict([effect.balise_moved]) if effect.balise_moved is not None else {}
+    # where each balise lies (the train reads it there) and what its telegram says
+    balises = sorted((float(bl["position"]) + moved.get(int(bl["id"]), 0.0), int(bl["id"]),
+                      float(bl["position"])) for bl in line.get("balises", []))
 
     # clocks: the train's stamps at an arbitrary epoch (at the effect's drift); the ground's
     # log time at another epoch
@@ -110,7 +129,9 @@ def simulate(line: dict, train: dict, effect: Effect, rng: np.random.Generator,
     epoch_ref = 1.75e9
 
     def stamp(t):
-        return epoch_train + (1.0 + drift) * t
+        jump = effect.clock_step[1] if effect.clock_step is not None and \
+            t >= effect.clock_step[0] else 0.0
+        return epoch_train + (1.0 + drift) * t + jump
 
     # the radio link: Gilbert-Elliott losses, latency with an exponential tail
     state = {"bad": False}
@@ -140,7 +161,8 @@ def simulate(line: dict, train: dict, effect: Effect, rng: np.random.Generator,
     leg, seq_odo, seq_bal = 1, 0, 0
     next_cmd, next_odo = 0.0, 0.0
     stopping = False
-    bi = next((i for i, (p, _) in enumerate(balises) if p > x), len(balises))
+    bi = next((i for i, (p, _, _) in enumerate(balises) if p > x), len(balises))
+    odo_extra = 0.0  # m the odometer's bias has counted
     while leg < len(stations):
         if t >= next_cmd - 1e-9:
             target = stations[leg]
@@ -153,6 +175,8 @@ def simulate(line: dict, train: dict, effect: Effect, rng: np.random.Generator,
                 # of the service rate needs, plus the actuator's reaction
                 if not stopping and rem < v * v / (1.2 * b_serv) + v * (delay + tau) + 10.0:
                     stopping = True
+                elif stopping and v < 0.05 and rem >= 20.0:
+                    stopping = False  # stopped short (a drag it did not expect): creep on
                 if stopping:
                     need = v * v / (2.0 * max(rem - 1.0, 0.5))
                     cmd = -0.3 if v < 0.05 else -min(b_serv, 1.1 * need)
@@ -176,35 +200,53 @@ def simulate(line: dict, train: dict, effect: Effect, rng: np.random.Generator,
         # one first-order lag (linear): its traction and braking parts lag separately
         ah_tr = u_tr + (ah_tr - u_tr) * lag
         ah_br = effect.braking_rate * u_br + (ah_br - effect.braking_rate * u_br) * lag
-        drive_tr = ah_tr
+        drive_tr = ah_tr * effect.traction_gain
+        if effect.traction_fade is not None and v > effect.traction_fade[0]:
+            drive_tr *= effect.traction_fade[1]
+        if effect.traction_cut is not None and \
+                effect.traction_cut[0] <= x < effect.traction_cut[1]:
+            drive_tr *= effect.traction_cut[2]
+        if effect.traction_trip is not None and \
+                effect.traction_trip[0] <= t < effect.traction_trip[1]:
+            drive_tr *= effect.traction_trip[2]
         if effect.p_spec is not None and v > 0.0:
             drive_tr = min(drive_tr, effect.p_spec / v)
         drive_br = ah_br
         if effect.adhesion is not None and effect.adhesion[0] <= x < effect.adhesion[1]:
             drive_br *= effect.adhesion[2]
+        if effect.brake_fade is not None and 0.0 < v < effect.brake_fade[0]:
+            drive_br *= effect.brake_fade[1]
+        if effect.brake_power is not None and v > 0.0:
+            drive_br = max(drive_br, -effect.brake_power / v)
         acc = kappa * (drive_tr + drive_br) - grad_acc(x)
         if v > 0.0:
-            acc -= (a + b * v + c * v * v) / meff
+            acc -= (a + b * v + c * v * v + _extra_resistance(effect, t, x, v)) / meff
+            if effect.coast_drag and u_tr == 0.0 and u_br == 0.0:
+                acc -= effect.coast_drag
             v_new = max(v + acc * dt, 0.0)
         else:
             v_new = acc * dt if acc > a / meff else 0.0
         x_old = x
         x += v_new * dt
         v = v_new
+        if v > 0.0:
+            odo_extra += effect.odometer_bias * dt
         t += dt
         while bi < len(balises) and balises[bi][0] <= x:
-            p, bid = balises[bi]
+            p, bid, told = balises[bi]
             tb = t - dt + dt * (p - x_old) / max(x - x_old, 1e-12)
             seq_bal += 1
-            send(tb, "balise", {"seq": seq_bal, "balise_id": bid, "position": p,
+            send(tb, "balise", {"seq": seq_bal, "balise_id": bid, "position": told,
                                 "position_variance": p_std * p_std})
             bi += 1
         if t >= next_odo - 1e-9:
             if truth is not None:
                 truth.append((t, x, v))
             # the train never rolls back: the distance run is how far it is from the start
-            d = effect.odometer_scale * (x - stations[0]) + float(rng.normal(0.0, d_std))
-            sp = effect.odometer_scale * v + float(rng.normal(0.0, s_std))
+            d = effect.odometer_scale * (x - stations[0]) + odo_extra \
+                + float(rng.normal(0.0, d_std))
+            sp = effect.odometer_scale * v + float(rng.normal(0.0, s_std)) \
+                + (effect.odometer_bias if v > 0.0 else 0.0)
             send(t, "odometer", {"seq": seq_odo, "distance": d, "speed": sp,
                                  "speed_variance": s_std * s_std})
             seq_odo += 1
@@ -217,6 +259,20 @@ def simulate(line: dict, train: dict, effect: Effect, rng: np.random.Generator,
             raise RuntimeError("the driver did not reach the last station in 4000 s")
     out.sort(key=lambda e: e[0])
     return out
+
+
+def _extra_resistance(effect: Effect, t: float, x: float, v: float) -> float:
+    """N of resistance the believed train lacks at time ``t``, place ``x``, speed ``v`` > 0."""
+    f = 0.0
+    if effect.tunnel is not None and effect.tunnel[0] <= x < effect.tunnel[1]:
+        f += effect.tunnel[2] * v * v
+    if effect.wind is not None and effect.wind[0] <= t < effect.wind[1]:
+        f += effect.wind[2]
+    if effect.hunting is not None and v > effect.hunting[0]:
+        f += effect.hunting[1]
+    if effect.warmup is not None:
+        f += effect.warmup[1] * math.exp(-t / effect.warmup[0])
+    return f
 
 
 def write_bag(events: list, path: str) -> None:

@@ -22,7 +22,10 @@ carries it when its extra acceleration is more than ``cell_z`` standard errors a
 entry; its cells are then put into the model and the families tested again (at most
 ``max_entries``). The entry's phase is named only where the data show the pattern absent
 from the other phases (per-phase families; a place or time cell run in one phase only
-gives ``all``).
+gives ``all``, unless a per-phase family significant in the same round finds its remainder
+in that phase alone). Families are ordered by log p-values that stay finite far into the
+tail (:func:`~train_estimation.core.numerics.tails.chi2_logsf`): strong families all have a
+p-value of 0 in floating point.
 
 **Odometer family** (:func:`odometer_family`). An odometer that counts differently from a
 time on (moved to an axle with other wheels, a wheel re-profiled, a changed calibration) is
@@ -52,14 +55,15 @@ import copy
 import math
 
 import numpy as np
-from scipy.stats import chi2
 
 from train_estimation.core.numerics.augmented_kf import gls
+from train_estimation.core.numerics.tails import chi2_logsf
 
 from .motion import Motion
 from .stage import Null, Stage
 
 PHASES = ("traction", "coasting", "braking")
+PER_PHASE = ("phase", "speed", "onset")  # the families whose cells are per phase
 PHASE_ACCEL = 0.02  # m/s^2, a command part above this sets the phase
 ONSET = 4.0  # s, window after a command onset
 MIN_CELL_TIME = 5.0  # s, cells with less moving time are dropped
@@ -199,6 +203,7 @@ def structure(mo: Motion, null: Null, cfg, noise, beta: float = 1.0, alpha: floa
     for _ in range(max_entries):
         best = None
         round_tests = {}
+        fits = {}  # family -> (log p, fitted extras, cells) of the significant ones
         for name in list(fam) + (["odometer"] if odo is not None else []):
             if name == "odometer":
                 stat, th, se = _fit_columns(st, None, None, extra, meas=odo[:2])
@@ -207,12 +212,14 @@ def structure(mo: Motion, null: Null, cfg, noise, beta: float = 1.0, alpha: floa
                 stat, th, se = _fit_columns(st, *ig[name], extra)
                 floor = min_accel
             k = th.size
-            logp = float(chi2.logsf(stat, k))
+            logp = chi2_logsf(stat, k)
             cells = [j for j in range(k) if abs(th[j]) > max(cell_z * se[j], floor)]
             round_tests[name] = {"chi2": stat, "dof": k, "p": math.exp(logp),
                                  "significant": bool(logp < math.log(a_f) and cells)}
-            if round_tests[name]["significant"] and (best is None or logp < best[0]):
-                best = (logp, name, th, cells)
+            if round_tests[name]["significant"]:
+                fits[name] = (logp, th, cells)
+                if best is None or logp < best[0]:
+                    best = (logp, name, th, cells)
         bal = balise_round(mo, st, extra, bal_in, a_f, cell_z, min_offset, beta)
         round_tests["balise"] = {k: v for k, v in bal.items() if k != "entry"}
         if bal["significant"] and (best is None or bal["logp_family"] < best[0]):
@@ -239,9 +246,23 @@ def structure(mo: Motion, null: Null, cfg, noise, beta: float = 1.0, alpha: floa
             odo = None  # one odometer entry: its cells hold the change wherever it is
             continue
         R, labels = fam[name]
-        phase, c = _attribute_phase(mo, st, R[:, cells] @ th[cells], extra, cell_z,
-                                    by_phase=name in ("phase", "speed", "onset"))
+        pattern = R[:, cells] @ th[cells]
+        phase, c = _attribute_phase(mo, st, pattern, extra, cell_z,
+                                    by_phase=name in PER_PHASE)
         round_tests[name]["phase_multipliers"] = c
+        lone = _lone_phase(mo, pattern)
+        if phase == "all" and lone is not None:
+            # a place or time remainder run in one phase only: that phase is named when a
+            # family that tests every phase, significant in the same round, finds the
+            # remainder in that phase and absent from the others
+            for other in sorted((f for f in fits if f in PER_PHASE), key=lambda f: fits[f][0]):
+                _, th2, cells2 = fits[other]
+                R2 = fam[other][0]
+                p2, _ = _attribute_phase(mo, st, R2[:, cells2] @ th2[cells2], extra, cell_z)
+                if p2 == lone:
+                    phase = lone
+                    round_tests[name]["phase_from"] = other
+                    break
         found.append(_signature(mo, name, R, labels, th, cells, phase))
         # the cells found become part of the model; test again for what is left
         add_v = ig[name][0][:, cells] @ th[cells]
@@ -287,7 +308,7 @@ def balise_round(mo: Motion, st: Stage, extra, inside: list, alpha: float, cell_
         if best is None or stat > best[0]:
             best = (stat, j, float(th[-1]), float(math.sqrt(max(cov[-1, -1], 0.0))))
     stat, j, off, se = best
-    logp = float(chi2.logsf(stat, 1))
+    logp = chi2_logsf(stat, 1)
     a_n = alpha / n
     sig = bool(logp < math.log(a_n) and abs(off) > max(cell_z * se, min_offset))
     out.update(reading=j, chi2=stat, p=math.exp(logp), offset=off, std_error=se,
@@ -321,6 +342,13 @@ def _attribute_phase(mo: Motion, st: Stage, pattern: np.ndarray, extra, cell_z: 
     mult = {PHASES[p]: float(cj) for p, cj in zip(live, c)}
     need = [PHASES[p] for p, cj, sj in zip(live, c, se) if cj > 0.5 and cj > cell_z * sj]
     return (need[0] if len(need) == 1 else "all"), mult
+
+
+def _lone_phase(mo: Motion, pattern: np.ndarray) -> str | None:
+    """The phase a pattern lives in when it lives in one only, else None."""
+    ph = grid_phase(mo)
+    live = [PHASES[p] for p in range(3) if np.any(pattern[ph == p] != 0)]
+    return live[0] if len(live) == 1 else None
 
 
 def _odometer_signature(mo: Motion, odo, th, cells, add_d) -> dict:
