@@ -78,8 +78,12 @@ def test_estimator_publishes_odometry_and_diagnostics(launch, ros_node):
     assert values["source"] == "robust_filter" and values["integrity"] in ("OK", "DEGRADED",
                                                                           "ALARM")
     for key in ("odometer.rate_hz", "odometer.accepted", "control.rate_hz", "balise.received",
-                "latency_p99_ms", "integrity_reason", "odometer.age_s"):
+                "latency_p99_ms", "integrity_reason", "odometer.age_s", "odometer_scale",
+                "odometer_scale_std"):
         assert key in values, (key, values)
+    # the scale learnt so far, in the parameter's terms (a next run can start from it)
+    assert abs(float(values["odometer_scale"]) - 1.0) < 0.03, values["odometer_scale"]
+    assert 0.0 < float(values["odometer_scale_std"]) <= 0.01, values["odometer_scale_std"]
     # 10 Hz odometer at 10x: about 100 per wall second, less the link's drops (12.5 %), in a
     # period spent wholly in the run (the first and last ones hold part of it)
     rates = [float(dict((kv.key, kv.value) for kv in s.values)["odometer.rate_hz"])

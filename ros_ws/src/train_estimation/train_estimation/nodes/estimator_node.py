@@ -295,6 +295,10 @@ def build_estimator_node(name: str, topic: str, make_adapter: Callable):
             i_checks, i_values = D.integrity_check(*(integ if integ else (None, "")))
             extra = [("source", self.adapter.source), ("estimates_published",
                                                        str(self.n_published))]
+            scale = self.adapter.odometer_scale()
+            if scale is not None:  # what a next run can start from (parameter odometer_scale)
+                extra += [("odometer_scale", f"{scale[0]:.6f}"),
+                          ("odometer_scale_std", f"{scale[1]:.2e}")]
             return D.combine(checks + lat_checks + i_checks,
                              extra + values + lat_values + i_values)
 
@@ -315,5 +319,11 @@ def build_estimator_node(name: str, topic: str, make_adapter: Callable):
             self.get_logger().info(f"accepted {dict(self.runner.accepted)}; "
                                    f"rejected {dict(self.runner.rejected) or 'none'}; "
                                    f"events {dict(self.runner.events) or 'none'}")
+            scale = self.adapter.odometer_scale()
+            if scale is not None:
+                self.get_logger().info(f"odometer's scale learnt from the balises: "
+                                       f"{scale[0]:.6f} +- {scale[1]:.1e} (reading / true "
+                                       "distance; a next run of this train can start from it: "
+                                       "parameter odometer_scale)")
 
     return EstimatorNode()

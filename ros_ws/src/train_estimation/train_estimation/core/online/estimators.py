@@ -112,6 +112,9 @@ class RobustConfig:
     use_distance: bool = param(True, "", "odometer distance as a position measurement")
     distance_variance: float = param(1.0, "m^2", "variance of (initial_position + counted "
                                      "distance) as a position reading")
+    odometer_scale: float = param(1.0, "-", "the odometer's reading / true distance at start, "
+                                  "as diagnose reports it (cause odometer_scale) or an earlier "
+                                  "run learnt it (/diagnostics: odometer_scale); 1 when unknown")
     odometer_scale_std: float = param(0.01, "-", "std of the odometer's scale (true / counted "
                                       "distance) before balises calibrate it")
     balise_gate: float = param(4.0, "-", "a balise further than this many standard deviations "
@@ -132,6 +135,9 @@ class RobustConfig:
                 "must be > 0")
         require(math.isfinite(self.odometer_scale_std) and self.odometer_scale_std > 0,
                 "odometer_scale_std", self.odometer_scale_std, "must be finite and > 0")
+        require(math.isfinite(self.odometer_scale) and 0.5 <= self.odometer_scale <= 2.0,
+                "odometer_scale", self.odometer_scale, "must be in [0.5, 2] (a ratio of "
+                "distances, 1 when unknown)")
         require(self.balise_gate > 0, "balise_gate", self.balise_gate, "must be > 0")
         require(self.epsilon is None or self.epsilon > 0, "epsilon", self.epsilon,
                 "must be > 0 (or None: per step)")
@@ -149,7 +155,8 @@ class _DistanceAsPosition:
     def _init_odometry(self) -> None:
         s, cfg = self.start_state, self.cfg
         self.cal = OdometerCalibration(s.position, s.position_std, cfg.odometer_scale_std,
-                                       cfg.balise_gate) if cfg.use_distance else None
+                                       cfg.balise_gate, scale=1.0 / cfg.odometer_scale) \
+            if cfg.use_distance else None
         self.odo: tuple | None = None  # (stamp s, distance m, speed m/s) of the last fused
         #   odometer reading, as counted
 
@@ -227,6 +234,17 @@ class _DistanceAsPosition:
             return ()
         return tuple(self.cal.consider(self._count_at(max(t, self.odo[0])),
                                        self.odo[2]).ravel())
+
+    def odometer_scale(self) -> tuple[float, float] | None:
+        """The odometer's scale as learnt so far, ``(reading / true distance, its std)``, in the
+        terms of the ``odometer_scale`` parameter (a next run can start from it), or None
+        without a calibration."""
+        if self.cal is None:
+            return None
+        c, var = float(self.cal.theta[1]), float(self.cal.Sigma[1, 1])
+        if not (math.isfinite(c) and c > 0 and math.isfinite(var) and var >= 0):
+            return None
+        return 1.0 / c, math.sqrt(var) / (c * c)  # d(1/c) = -dc / c^2
 
     def _odometry_counters(self) -> dict:
         if self.cal is None:
@@ -499,6 +517,9 @@ class BrakingConfig:
                              "forces)")
     ahat_var: float = param(0.001, "m^2/s^5", "white noise PSD on a_hat (actuator mismatch)")
     distance_variance: float = param(1.0, "m^2", "odometer distance as a position reading")
+    odometer_scale: float = param(1.0, "-", "the odometer's reading / true distance at start, "
+                                  "as diagnose reports it (cause odometer_scale) or an earlier "
+                                  "run learnt it (/diagnostics: odometer_scale); 1 when unknown")
     odometer_scale_std: float = param(0.01, "-", "std of the odometer's scale (true / counted "
                                       "distance) before balises calibrate it")
     balise_gate: float = param(4.0, "-", "a balise further than this many standard deviations "
@@ -528,6 +549,9 @@ class BrakingConfig:
         require(0 <= self.sma_p_jump < 1, "sma_p_jump", self.sma_p_jump, "must be in [0, 1)")
         require(math.isfinite(self.odometer_scale_std) and self.odometer_scale_std > 0,
                 "odometer_scale_std", self.odometer_scale_std, "must be finite and > 0")
+        require(math.isfinite(self.odometer_scale) and 0.5 <= self.odometer_scale <= 2.0,
+                "odometer_scale", self.odometer_scale, "must be in [0.5, 2] (a ratio of "
+                "distances, 1 when unknown)")
         require(self.balise_gate > 0, "balise_gate", self.balise_gate, "must be > 0")
 
 

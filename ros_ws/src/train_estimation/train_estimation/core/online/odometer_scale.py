@@ -13,7 +13,10 @@ This module carries it as one. The odometer's count maps to the position along t
     x = x0 + c d                     (x0: the odometer's origin, m; c: true / counted, -)
     v = c v_odo                      (the speed, by the same wheel)
 
-with ``theta = (x0, c)`` Gaussian, ``N((start, 1), diag(start_std^2, scale_std^2))`` at start.
+with ``theta = (x0, c)`` Gaussian, ``N((start, c0), diag(start_std^2, scale_std^2))`` at start
+(``c0`` = 1, or the calibration an earlier run or the workshop found: the estimators'
+``odometer_scale`` parameter, which is the reading over the true distance as ``diagnose``
+reports it, so ``c0 = 1 / odometer_scale``).
 A balise read at position ``b`` when the odometer had counted ``d_b`` is the linear measurement
 ``b = x0 + c d_b + e``, ``e ~ N(0, r_b + c^2 r_d)`` (``r_d``: the count at the balise's stamp,
 carried from the last odometer reading), fused by the Kalman update of ``theta`` (exact: the
@@ -111,12 +114,14 @@ class OdometerCalibration:
     EXCLUDED = 3  # the latest balises each of which may be the one that lies
 
     def __init__(self, start: float, start_std: float, scale_std: float, gate: float = 8.0,
-                 count_walk: float = COUNT_WALK, scale_walk: float = SCALE_WALK):
+                 count_walk: float = COUNT_WALK, scale_walk: float = SCALE_WALK,
+                 scale: float = 1.0):
         if not (math.isfinite(start) and start_std > 0 and scale_std > 0 and gate > 0
-                and count_walk >= 0 and scale_walk >= 0):
-            raise ValueError("OdometerCalibration: start finite, start_std, scale_std and gate "
-                             "> 0, walks >= 0")
-        self.theta = np.array([float(start), 1.0])
+                and count_walk >= 0 and scale_walk >= 0 and math.isfinite(scale) and scale > 0):
+            raise ValueError("OdometerCalibration: start finite, start_std, scale_std, gate and "
+                             "scale > 0, walks >= 0")
+        # c's prior mean: 1, or what an earlier run or the workshop found (true / counted)
+        self.theta = np.array([float(start), float(scale)])
         self.Sigma = np.diag([start_std ** 2, scale_std ** 2])
         self.scale_std = float(scale_std)
         self.gate = float(gate)
