@@ -154,3 +154,23 @@ def test_a_strong_remainder_on_a_stretch_is_named_there(tmp_path):
     assert u["phase"] == "traction" and u["where"] is not None, u
     overlap = min(u["where"][1], s1) - max(u["where"][0], s0)
     assert overlap > 0.8 * (s1 - s0) and u["where"][1] - u["where"][0] < 2 * (s1 - s0), u
+
+
+def test_a_balise_off_its_map_position_is_no_low_adhesion_section(tmp_path):
+    """A balise read 18 m from where the odometer puts the train (bench_foreign --unlisted
+    balise_moved, seed 3) kinks the speed over a few metres, which a low-adhesion section of
+    3 m with braking x -4.8 fitted. A section braked over for 0.16 s is below what the data
+    resolve, and a negative factor is no adhesion loss: the balise is what is reported."""
+    from train_estimation.core.offline.diagnose.causes import adhesion_section as A
+    from train_estimation.core.offline.diagnose.result import CauseFit
+
+    rep, eff = _diagnose_foreign(tmp_path, 3, "balise_moved")
+    by = {r["cause"]: r for r in rep["ranking"]}
+    assert by["adhesion_section"]["status"] != "confirmed", by["adhesion_section"]
+    assert rep["cause"] == "unexplained"
+    u = rep["unexplained"][0]  # the balise's entry: at one place, the offset as its size
+    assert u["where"] is not None and u["where"][0] == u["where"][1], u
+    assert abs(abs(u["size"]) - abs(eff.balise_moved[1])) < 3.0, (u, eff.balise_moved)
+    fit = CauseFit("adhesion_section", 43.2, {"start": 5213.0, "end": 5216.0,
+                                              "factor": -4.765})
+    assert "not a low-adhesion section" in A.CAUSE.plausible(fit, None)

@@ -57,9 +57,26 @@ class AdhesionSection(Cause):
     def resolution(self, fit, mo) -> str | None:
         """Braking on one stretch weaker by more than 3 SE and by 5 %: a few brake
         applications over a stretch scatter by a few per cent (driver, load, rail) without
-        any low-adhesion section."""
+        any low-adhesion section. And braked over for at least ``MIN_BRAKING_TIME``: a section
+        the train brakes on for a fraction of a second is a kink in the speed that one or two
+        readings make (a balise read off where the odometer puts the train), not a stretch
+        of rail whose adhesion the data measure."""
+        inside, _ = self.beyond(fit, mo)
+        t_in = float(np.count_nonzero(inside)) * mo.grid.dt
+        if t_in < MIN_BRAKING_TIME:
+            return (f"below resolution: braked over the section for {t_in:.2f} s, less than "
+                    f"{MIN_BRAKING_TIME:g} s")
         return resolved("factor", fit.parameters["factor"] - 1.0,
                         fit.std_errors.get("factor"), 0.05)
+
+    def plausible(self, fit, mo) -> str | None:
+        """Low adhesion weakens the braking a train gets, down to none: a factor at or below
+        0 (a brake that drives the train on) is a force of another kind."""
+        f = float(fit.parameters["factor"])
+        if f > 0.0:
+            return None
+        return (f"not a low-adhesion section: braking x {f:.2f} there (a brake that drives the "
+                "train is no adhesion loss)")
 
     def beyond(self, fit, mo):
         """The section's braking factor on every brake application while moving."""
@@ -94,6 +111,7 @@ class AdhesionSection(Cause):
 
 # the section's ends are refined within one position bin either side, in this many steps per bin
 EDGE_STEPS = 8
+MIN_BRAKING_TIME = 1.0  # s of braking over a section that its factor needs (resolution)
 
 
 def _refine(st, lo: float, hi: float, quad: float, th: float, se: float) -> tuple:
