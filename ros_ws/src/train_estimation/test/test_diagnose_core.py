@@ -329,3 +329,23 @@ def test_measured_run_puts_the_stamps_after_a_change_of_rate_on_the_rate_before(
     steady = dataclasses.replace(run, odo_recv=run.odo_stamp - 1.7e9 + 5000.0 + 0.05)
     same, none = steady.without_rate_change()
     assert same is steady and none is None
+
+
+def test_causes_with_parameters_no_train_has_are_not_plausible():
+    """A braking rate, a mass, an odometer scale or a low-adhesion factor at or below 0 is a
+    force of another kind fitted by a linear cause: never confirmed (Cause.plausible)."""
+    from train_estimation.core.offline.diagnose.causes import BY_NAME
+    from train_estimation.core.offline.diagnose.result import CauseFit
+
+    bad = {"braking_rate": ({"f_start": 0.9, "f_end": -0.1}, {}),
+           "mass": ({"mass": -3e5}, {"traction_gain": -1.0}),
+           "odometer_scale": ({"scale": -0.2}, {}),
+           "adhesion_section": ({"start": 10.0, "end": 300.0, "factor": -0.5}, {})}
+    good = {"braking_rate": ({"f_start": 1.0, "f_end": 0.8}, {}),
+            "mass": ({"mass": 3.3e5}, {"traction_gain": 0.9}),
+            "odometer_scale": ({"scale": 1.02}, {}),
+            "adhesion_section": ({"start": 10.0, "end": 300.0, "factor": 0.6}, {})}
+    for name, (params, extra) in bad.items():
+        assert BY_NAME[name].plausible(CauseFit(name, 50.0, params, extra=extra), None), name
+    for name, (params, extra) in good.items():
+        assert BY_NAME[name].plausible(CauseFit(name, 50.0, params, extra=extra), None) is None

@@ -35,6 +35,15 @@ class BrakingRate(Cause):
         k = max(("f_start", "f_end"), key=lambda k: abs(p[k] - mo.f0))
         return resolved(k, p[k] - mo.f0, se.get(k), 0.02)
 
+    def plausible(self, fit, mo) -> str | None:
+        """A brake delivers some of the deceleration asked for, never a drive: f above 0 at
+        both ends (a fit at or below 0 is a force of another kind in the braking)."""
+        p = fit.parameters
+        low = min(float(p["f_start"]), float(p["f_end"]))
+        if low > 0.0:
+            return None
+        return f"not a braking rate: f reaches {low:.2f} (a brake that drives the train)"
+
     def extend_null(self, null, fit, mo) -> None:
         p = fit.parameters
         ds, de = p["f_start"] - mo.f0, p["f_end"] - mo.f0

@@ -38,6 +38,14 @@ class Mass(Cause):
         return resolved("mass (relative)", fit.parameters["mass"] / m0 - 1.0,
                         None if se is None else se / m0, 0.01)
 
+    def plausible(self, fit, mo) -> str | None:
+        """A mass is positive: a fit whose drive gain (believed / true mass) is at or below 0
+        reverses every acceleration the commands give, which no load does."""
+        k = float(fit.extra.get("traction_gain", 1.0)) if fit.extra else 1.0
+        if k > 0.0:
+            return None
+        return f"not a mass: the accelerations the commands give x {k:.2f}"
+
     def extend_null(self, null, fit, mo) -> None:
         dk = fit.extra["traction_gain"] - 1.0
         null.drive_gain = fit.extra["traction_gain"]  # the other causes' drive increments too

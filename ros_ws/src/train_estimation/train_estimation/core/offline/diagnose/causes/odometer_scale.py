@@ -34,6 +34,12 @@ class OdometerScale(Cause):
         return resolved("scale", fit.parameters["scale"] - 1.0, fit.std_errors.get("scale"),
                         1e-3)
 
+    def plausible(self, fit, mo) -> str | None:
+        """An odometer counts the distance run, more or less: a scale at or below 0 is no
+        wheel's."""
+        sc = float(fit.parameters["scale"])
+        return None if sc > 0.0 else f"not an odometer scale: {sc:.3f}"
+
     def extend_null(self, null, fit, mo) -> None:
         null.scale = fit.parameters["scale"] - 1.0
 
