@@ -54,6 +54,7 @@ import numpy as np
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, HERE)
 import foreign_sim as FS  # noqa: E402
+from bench_diagnose import pct  # noqa: E402
 from bench_integrity import ESTIMATORS, make_adapter  # noqa: E402
 from train_core.progress import Progress  # noqa: E402
 
@@ -359,9 +360,6 @@ def unlisted_table(results: list) -> str:
     confirmed, the signature's phase right (its first entry)."""
     md = ["| effect (phase) | n | `unexplained` | listed cause confirmed | phase right | "
           "reported |", "|---|---|---|---|---|---|"]
-
-    def pct(k, n):
-        return f"{100 * k / n:.0f} % ({k}/{n})" if n else "-"
 
     for k in list(UNLISTED) + [None]:
         rows = [r for r in results if r["kind"] in UNLISTED and (k is None or r["kind"] == k)

@@ -133,18 +133,23 @@ class RobustConfig:
         require(self.gate > 0, "gate", self.gate, "must be > 0")
         require(self.distance_variance > 0, "distance_variance", self.distance_variance,
                 "must be > 0")
-        require(math.isfinite(self.odometer_scale_std) and self.odometer_scale_std > 0,
-                "odometer_scale_std", self.odometer_scale_std, "must be finite and > 0")
-        require(math.isfinite(self.odometer_scale) and 0.5 <= self.odometer_scale <= 2.0,
-                "odometer_scale", self.odometer_scale, "must be in [0.5, 2] (a ratio of "
-                "distances, 1 when unknown)")
-        require(self.balise_gate > 0, "balise_gate", self.balise_gate, "must be > 0")
+        _check_odometry(self)
         require(self.epsilon is None or self.epsilon > 0, "epsilon", self.epsilon,
                 "must be > 0 (or None: per step)")
         require(math.isfinite(self.period) and self.period > 0, "period", self.period,
                 "must be > 0")
         require(self.outage_slots >= 0, "outage_slots", self.outage_slots, "must be >= 0")
         require(self.max_command > 0, "max_command", self.max_command, "must be > 0")
+
+
+def _check_odometry(cfg) -> None:
+    """The odometer-calibration parameters both configs share (``_DistanceAsPosition``)."""
+    require(math.isfinite(cfg.odometer_scale_std) and cfg.odometer_scale_std > 0,
+            "odometer_scale_std", cfg.odometer_scale_std, "must be finite and > 0")
+    require(math.isfinite(cfg.odometer_scale) and 0.5 <= cfg.odometer_scale <= 2.0,
+            "odometer_scale", cfg.odometer_scale, "must be in [0.5, 2] (a ratio of "
+            "distances, 1 when unknown)")
+    require(cfg.balise_gate > 0, "balise_gate", cfg.balise_gate, "must be > 0")
 
 
 class _DistanceAsPosition:
@@ -547,12 +552,7 @@ class BrakingConfig:
         require(math.isfinite(self.braking_rate_prior_std) and self.braking_rate_prior_std > 0,
                 "braking_rate_prior_std", self.braking_rate_prior_std, "must be finite and > 0")
         require(0 <= self.sma_p_jump < 1, "sma_p_jump", self.sma_p_jump, "must be in [0, 1)")
-        require(math.isfinite(self.odometer_scale_std) and self.odometer_scale_std > 0,
-                "odometer_scale_std", self.odometer_scale_std, "must be finite and > 0")
-        require(math.isfinite(self.odometer_scale) and 0.5 <= self.odometer_scale <= 2.0,
-                "odometer_scale", self.odometer_scale, "must be in [0.5, 2] (a ratio of "
-                "distances, 1 when unknown)")
-        require(self.balise_gate > 0, "balise_gate", self.balise_gate, "must be > 0")
+        _check_odometry(self)
 
 
 class BrakingAdapter(_DistanceAsPosition):

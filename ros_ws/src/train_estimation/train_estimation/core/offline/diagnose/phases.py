@@ -332,9 +332,8 @@ def _attribute_phase(mo: Motion, st: Stage, pattern: np.ndarray, extra, cell_z: 
     where the data show the pattern absent from the others: a family of cells per phase
     (``by_phase``) tests every phase; a place or time cell run in one phase only does not,
     and its pattern is ``all``."""
-    ph = grid_phase(mo)
-    R = np.stack([pattern * (ph == p) for p in range(3)], axis=1)
-    live = [p for p in range(3) if np.any(R[:, p] != 0)]
+    R = _by_phase(mo, pattern)
+    live = _live(R)
     if not live or (len(live) == 1 and not by_phase):
         return "all", {}
     Bv, Bs = mo.grid.integrate(R[:, live], mo.ev.t.size)
@@ -344,11 +343,21 @@ def _attribute_phase(mo: Motion, st: Stage, pattern: np.ndarray, extra, cell_z: 
     return (need[0] if len(need) == 1 else "all"), mult
 
 
+def _by_phase(mo: Motion, pattern: np.ndarray) -> np.ndarray:
+    """(n_grid, 3): ``pattern`` restricted to each phase (traction, coasting, braking)."""
+    ph = grid_phase(mo)
+    return np.stack([pattern * (ph == p) for p in range(3)], axis=1)
+
+
+def _live(R: np.ndarray) -> list[int]:
+    """The phases (indices) where a pattern split by :func:`_by_phase` is not zero."""
+    return [p for p in range(3) if np.any(R[:, p] != 0)]
+
+
 def _lone_phase(mo: Motion, pattern: np.ndarray) -> str | None:
     """The phase a pattern lives in when it lives in one only, else None."""
-    ph = grid_phase(mo)
-    live = [PHASES[p] for p in range(3) if np.any(pattern[ph == p] != 0)]
-    return live[0] if len(live) == 1 else None
+    live = _live(_by_phase(mo, pattern))
+    return PHASES[live[0]] if len(live) == 1 else None
 
 
 def _odometer_signature(mo: Motion, odo, th, cells, add_d) -> dict:
