@@ -324,24 +324,17 @@ def cancelling(mo: Motion, nulls: dict, base: Null, full: Null, cfg, noise) -> d
     return out
 
 
-def place_test(mo: Motion, full: Null, cfg, noise, inside: np.ndarray, beyond: np.ndarray,
-               alpha: float, min_share: float) -> dict:
-    """Whether a cause fitted on a stretch of track (``inside``: its grid points) acts at that
-    place or in a phase and speed band everywhere: the cause's effect continued beyond its
-    stretch (``beyond``: m/s^2 per grid point if it acted at every place) gets a free multiplier
-    per cell (phase x speed half of the stretch) outside the stretch, on top of the model
-    ``full``. A place effect leaves these at 0; a chi-square at ``alpha`` with a cell needing
-    more than ``min_share`` of the effect (beyond 3 SE, the same sign) says the same shows at
-    the other places run in that phase and speed (braking weaker at low speed at every stop,
-    not on one stretch)."""
+def place_cells(mo: Motion, inside: np.ndarray, beyond: np.ndarray) -> tuple:
+    """The cells of the place test (:func:`place_test`): (columns, labels, note), the cause's
+    effect continued beyond its stretch in each phase x speed half of the stretch that the
+    run also holds outside it; no columns and the note why when there is none (the run cannot
+    show the cause absent anywhere else)."""
     ph = grid_phase(mo)
     v = mo.v_ref
     on = inside & (beyond != 0) & (ph >= 0)
     out_ = ~inside & (beyond != 0) & (ph >= 0)
-    res = {"contradicted": False}
     if not on.any() or not out_.any():
-        res["note"] = "no data outside the stretch in its phases"
-        return res
+        return [], [], "no data outside the stretch in its phases"
     # speed halves of the stretch: a stop's last metres are run for a few seconds only, and a
     # finer band at low speed would hold too little of the other stops to test
     vm = float(np.median(v[on]))
@@ -359,8 +352,36 @@ def place_test(mo: Motion, full: Null, cfg, noise, inside: np.ndarray, beyond: n
                 continue
             cols.append(beyond * cell)
             labels.append(f"in {PHASES[p]} at {a:.0f}-{min(b, 999):.0f} m/s")
+    return cols, labels, None if cols else "no phase and speed of the stretch run elsewhere"
+
+
+def place_seen(mo: Motion, full: Null, cfg, noise, inside: np.ndarray, beyond: np.ndarray,
+               min_share: float) -> bool:
+    """Whether the run could show a cause at a place absent outside its stretch: some cell of
+    the place test (:func:`place_cells`) where a departure of ``min_share`` of the cause would
+    be a ``Z_SEEN``-standard-error result, on top of the model ``full``."""
+    cols, _, _ = place_cells(mo, inside, beyond)
     if not cols:
-        res["note"] = "no phase and speed of the stretch run elsewhere"
+        return False
+    Bv, Bs = mo.grid.integrate(np.stack(cols, axis=1), mo.ev.t.size)
+    _, _, se = _fit_columns(Stage(mo, full, cfg, noise=noise, big=False), Bv, Bs)
+    return bool(np.any(se <= min_share / Z_SEEN))
+
+
+def place_test(mo: Motion, full: Null, cfg, noise, inside: np.ndarray, beyond: np.ndarray,
+               alpha: float, min_share: float) -> dict:
+    """Whether a cause fitted on a stretch of track (``inside``: its grid points) acts at that
+    place or in a phase and speed band everywhere: the cause's effect continued beyond its
+    stretch (``beyond``: m/s^2 per grid point if it acted at every place) gets a free multiplier
+    per cell (phase x speed half of the stretch) outside the stretch, on top of the model
+    ``full``. A place effect leaves these at 0; a chi-square at ``alpha`` with a cell needing
+    more than ``min_share`` of the effect (beyond 3 SE, the same sign) says the same shows at
+    the other places run in that phase and speed (braking weaker at low speed at every stop,
+    not on one stretch)."""
+    res = {"contradicted": False}
+    cols, labels, note = place_cells(mo, inside, beyond)
+    if not cols:
+        res["note"] = note
         return res
     Bv, Bs = mo.grid.integrate(np.stack(cols, axis=1), mo.ev.t.size)
     st = Stage(mo, full, cfg, noise=noise, big=False)

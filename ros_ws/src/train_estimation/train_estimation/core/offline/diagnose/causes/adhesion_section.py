@@ -53,6 +53,7 @@ class AdhesionSection(Cause):
     # there is a gradient the map lacks (downhill: braking seems weaker)
     fixed_rival = "a downhill gradient the map lacks (a force fixed at that place)"
     time_rival = "braking weaker while the train braked there (a brake fault of that moment)"
+    global_rival = "braking_rate"
 
     def resolution(self, fit, mo) -> str | None:
         """Braking on one stretch weaker by more than 3 SE and by 5 %: a few brake

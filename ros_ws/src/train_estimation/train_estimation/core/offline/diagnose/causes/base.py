@@ -170,6 +170,13 @@ class Cause:
     # place. Only runs of the stretch at other times (other runs: ``fleet``) tell them apart.
     time_rival: str | None = None
 
+    # The listed cause that acts on the same thing at every place (a low-adhesion section:
+    # the braking rate). Where no brake application of the run outside the stretch could
+    # show the cause absent there (the place test has no cell), "only on this stretch" is a
+    # claim the data cannot test, and the search names that cause instead
+    # (:func:`..search.unlocate`); None: no such cause.
+    global_rival: str | None = None
+
     def beyond(self, fit: CauseFit, mo):
         """For a cause fitted on a stretch of track: (inside, pattern), the grid points it acts
         on and its acceleration (m/s^2 per grid point) if it acted at every place in the same
