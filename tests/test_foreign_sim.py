@@ -205,3 +205,17 @@ def test_a_section_braked_over_at_the_last_stop_is_held_out_on_its_stretch(tmp_p
     assert s0 - 50 < p["start"] < p["end"] < s1 + 50 and abs(p["factor"] - f) < 0.1, (p, eff)
     held = rep["evidence"]["_model"]["confirmation"]["checks"]["adhesion_section"]["held_out"]
     assert "alternate 30 s" not in held["test"] and held["ok"], held
+
+
+def test_a_balise_off_its_map_position_misplaces_no_gradient_change(tmp_path):
+    """A balise 12.4 m from its map position on metro_demo (bench_foreign --unlisted
+    balise_moved, seed 105): it pinned the reference trajectory 12 m off around it, which
+    misplaced a gradient change of the map 340 m on, and a -2.4 per mille gradient over 108 m
+    there was confirmed beside the balise's entry. The placement now leaves out a fix its
+    neighbours contradict (motion.consistent_fixes): only the balise is reported."""
+    rep, eff = _diagnose_foreign(tmp_path, 105, "balise_moved")
+    assert rep["cause"] == "unexplained", rep["cause"]
+    assert not [r for r in rep["ranking"] if r.get("status") == "confirmed"], rep["ranking"][:2]
+    u = rep["unexplained"][0]
+    assert u["where"] is not None and u["where"][0] == u["where"][1], u
+    assert abs(abs(u["size"]) - abs(eff.balise_moved[1])) < 3.0, (u, eff.balise_moved)

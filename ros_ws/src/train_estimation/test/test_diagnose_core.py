@@ -349,3 +349,31 @@ def test_causes_with_parameters_no_train_has_are_not_plausible():
         assert BY_NAME[name].plausible(CauseFit(name, 50.0, params, extra=extra), None), name
     for name, (params, extra) in good.items():
         assert BY_NAME[name].plausible(CauseFit(name, 50.0, params, extra=extra), None) is None
+
+
+def test_a_moved_balise_does_not_place_the_reference_trajectory():
+    """place_on_line's fixes (motion.consistent_fixes): a balise 12 m from its map position is
+    left out of the placement (every other fix then lies on its neighbours' track), while an
+    odometer that counts 2 % more, or jumps 20 m in a slip between two fixes, keeps every fix
+    (the piecewise placement is what follows them)."""
+    from train_estimation.core.offline.diagnose.motion import consistent_fixes, place_on_line
+
+    rng = np.random.default_rng(5)
+    p = np.cumsum(rng.uniform(400.0, 900.0, 12))  # map positions of twelve balises
+    noise = rng.normal(0.0, 0.8, p.size)
+    d = 1.02 * (p - p[0]) + noise  # odometer distance at each reading: 2 % long
+    k = 1.0 / 1.02  # map metres per odometer metre (place_on_line's least-squares scale)
+    assert consistent_fixes(d, p, k).all()
+    jump = d + 20.0 * (np.arange(p.size) >= 6)  # a slip of 20 m between fixes 5 and 6
+    assert consistent_fixes(jump, p, k).all()
+    moved = p.copy()
+    moved[6] += 12.0  # balise 6 lies 12 m further on than the map says: read 12 m late
+    d_moved = d.copy()
+    d_moved[6] += 12.0 * 1.02
+    keep = consistent_fixes(d_moved, p, k)
+    assert keep.sum() == p.size - 1 and not keep[6]
+    # the trajectory between its neighbours stays on the odometer's track
+    dd = np.linspace(d_moved[5], d_moved[7], 50)
+    x = place_on_line(dd, d_moved, p)
+    truth = np.interp(dd, d, p)  # where the train was
+    assert np.max(np.abs(x - truth)) < 3.0, np.max(np.abs(x - truth))
