@@ -764,11 +764,6 @@ TEST_KIND_KNOWN = {
                          "load changed is confirmed: the traction command is constant there, so "
                          "a traction x1.15 is a constant force on that stretch, and no earlier "
                          "departure at that command shows it",
-    ("resistance_warmup", 12): "a resistance (a +16 kN) and a -4.6 per mille gradient over the "
-                               "last 5.7 km are both confirmed: together they are a resistance "
-                               "confined to the first 2.5 km, which the warm-up is in one run "
-                               "(a force in time is a force at the places run in that time), "
-                               "and each passes its own checks",
     ("traction_trip", 12): "the traction fails while the train holds 35 m/s in traction on one "
                            "stretch: at one steady speed and command, a traction x0.6 there is "
                            "the same force as a gradient, which is confirmed"}

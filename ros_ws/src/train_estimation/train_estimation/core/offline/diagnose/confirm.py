@@ -40,7 +40,8 @@ reported ``confirmed`` only when the checks below pass, the same for every cause
    the same way with a force fixed there (:func:`.contradict.braking_law`: a downhill
    gradient the map lacks, which braking at one command cannot tell from it); within
    +-``law_lr`` the check states it (``caveat``), and it never decides the status.
-4. **Not cancelling** another confirmed cause in a phase (:func:`.contradict.cancelling`).
+4. **Not cancelling** another confirmed cause in a phase or on the stretch of a cause at a
+   place (:func:`.contradict.cancelling`).
 5. **Better than a flexible term.** Causes confirmed together: each must beat (by BIC) free
    accelerations per phase x speed quarter on the cells it acts in, on top of the others
    (:func:`.contradict.flexible_rival`): two listed causes can share out one effect outside the
@@ -170,9 +171,11 @@ def confirm(mo: Motion, shift: float, accepted: list, resolved_before: dict, cfg
     if len(motion) >= 2:
         nulls = {a.cause: _null_of(mo, shift, [b for b in confirmed if b is not a])
                  for a in motion}
+        stretches = {a.cause: bey[0] for a in motion
+                     if (bey := BY_NAME[a.cause].beyond(a, mo)) is not None}
         cancel = cancelling(mo, nulls, _null_of(mo, shift, [b for b in confirmed
                                                            if b not in motion]),
-                            _null_of(mo, shift, confirmed), cfg, noise)
+                            _null_of(mo, shift, confirmed), cfg, noise, stretches)
         for a in motion:
             if a.cause in cancel:
                 a.status, a.why = "not confirmed", cancel[a.cause]

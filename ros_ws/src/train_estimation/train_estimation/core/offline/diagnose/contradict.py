@@ -52,7 +52,9 @@ readings +0.4 +- 0.2 %).
 **Causes that cancel** (:func:`cancelling`). Two confirmed causes whose contributions are
 each large in a phase (> 1/4 of their own energy there) while their sum there is small (< 1/4
 of the larger) act together as one effect confined to the other phases (a heavier train and a
-stronger brake: traction alone is weaker). No listed cause is that effect.
+stronger brake: traction alone is weaker). No listed cause is that effect. The same on the
+stretch of a cause at a place: a resistance change with a gradient that takes it back over
+the last 5.7 km is a resistance confined to the first kilometres (a warm-up, in one run).
 """
 
 from __future__ import annotations
@@ -300,27 +302,36 @@ def _rng(r) -> str:
     return "-" if r is None else f"{r[0]:.0f}-{r[1]:.0f}"
 
 
-def cancelling(mo: Motion, nulls: dict, base: Null, full: Null, cfg, noise) -> dict:
+def cancelling(mo: Motion, nulls: dict, base: Null, full: Null, cfg, noise,
+               stretches: dict | None = None) -> dict:
     """Causes (``nulls``: cause -> the model of all confirmed causes but it) whose
-    contributions cancel in a phase (module docstring): cause -> reason in words."""
+    contributions cancel in a phase, or on the stretch of a cause at a place (``stretches``:
+    cause -> its grid mask; module docstring): cause -> reason in words."""
     gi = _event_grid_index(mo)
     ph = grid_phase(mo)[gi]
     fv_full = Stage(mo, full, cfg, noise=noise, big=False).fv
     total = fv_full - Stage(mo, base, cfg, noise=noise, big=False).fv
     parts = {c: fv_full - Stage(mo, n, cfg, noise=noise, big=False).fv
              for c, n in nulls.items()}
+    regions = [(ph == p, f"in {PHASES[p]}", "the other phases") for p in range(3)]
+    for c, on in (stretches or {}).items():
+        x = mo.x_ref[on]
+        if x.size:
+            regions.append((on[gi], f"on {x.min():.0f}-{x.max():.0f} m (the stretch of {c})",
+                            "the rest of the run"))
     out = {}
-    for p in range(3):
-        m = ph == p
+    for m, where, elsewhere in regions:
         big = {c: float(np.sum(d[m] ** 2)) for c, d in parts.items()
                if np.sum(d[m] ** 2) > 0.25 * max(np.sum(d ** 2), 1e-300)}
         if len(big) < 2 or np.sum(total[m] ** 2) >= 0.25 * max(big.values()):
             continue
         for c in big:
+            if c in out:
+                continue
             rest = ", ".join(sorted(set(big) - {c}))
-            out[c] = (f"cancels with {rest} in {PHASES[p]} (together they leave "
+            out[c] = (f"cancels with {rest} {where} (together they leave "
                       f"{100 * np.sum(total[m] ** 2) / max(big.values()):.0f} % of the larger "
-                      f"there: an effect confined to the other phases)")
+                      f"there: an effect confined to {elsewhere})")
     return out
 
 
