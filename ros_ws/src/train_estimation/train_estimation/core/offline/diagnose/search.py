@@ -498,16 +498,21 @@ def merge(sr: _Search, noise) -> bool:
                    stage=min(a.stage for a in group))
     at = sr.accepted.index(group[0])
     for a in group:
-        sr.accepted.remove(a)
-        a.status = "rejected"
-        a.why = (f"one {c.name} change explains it and "
-                 f"{', '.join(b.cause for b in group if b is not a)} together: the model "
-                 f"with it scores {gain:.1f} above the one with them ({len(group) - 1} "
-                 f"cause(s) and {fewer} parameter(s) fewer)")
-        sr.merged.append(a)
+        _retire(sr, a, f"one {c.name} change explains it and "
+                       f"{', '.join(b.cause for b in group if b is not a)} together: the model "
+                       f"with it scores {gain:.1f} above the one with them ({len(group) - 1} "
+                       f"cause(s) and {fewer} parameter(s) fewer)")
     sr.accepted.insert(at, fit)
     merge(sr, noise)  # the merged model may merge again
     return True
+
+
+def _retire(sr: _Search, a: CauseFit, why: str) -> None:
+    """Take the accepted fit ``a`` out of the model: ``rejected`` with ``why``, kept in
+    ``sr.merged`` for the ranking."""
+    sr.accepted.remove(a)
+    a.status, a.why = "rejected", why
+    sr.merged.append(a)
 
 
 def unlocate(sr: _Search, noise) -> bool:
@@ -542,13 +547,10 @@ def unlocate(sr: _Search, noise) -> bool:
         nonlin = [b for b in rest if not BY_NAME[b.cause].linear]
         members = [(b.cause, b.extra) for b in rest if BY_NAME[b.cause].linear]
         at = sr.accepted.index(a)
-        sr.accepted.remove(a)
-        a.status = "rejected"
-        a.why = (f"the run brakes too little outside [{a.parameters['start']:.0f}, "
-                 f"{a.parameters['end']:.0f}) m at its speeds to show the braking normal "
-                 f"anywhere else, and one {glob} change over the run says the same with a "
-                 f"parameter fewer")
-        sr.merged.append(a)
+        _retire(sr, a, f"the run brakes too little outside [{a.parameters['start']:.0f}, "
+                       f"{a.parameters['end']:.0f}) m at its speeds to show the braking normal "
+                       f"anywhere else, and one {glob} change over the run says the same with "
+                       f"a parameter fewer")
         out = True
         # the rival takes the section's place with its first-stage score (its score alone
         # against the believed model, as the section's was); an accepted one is moved there
