@@ -374,9 +374,15 @@ def place_seen(mo: Motion, full: Null, cfg, noise, inside: np.ndarray, beyond: n
     cols, _, _ = place_cells(mo, inside, beyond)
     if not cols:
         return False
-    Bv, Bs = mo.grid.integrate(np.stack(cols, axis=1), mo.ev.t.size)
-    _, _, se = _fit_columns(Stage(mo, full, cfg, noise=noise, big=False), Bv, Bs)
+    _, _, se = _fit_cells(mo, full, cfg, noise, cols)
     return bool(np.any(se <= min_share / Z_SEEN))
+
+
+def _fit_cells(mo: Motion, full: Null, cfg, noise, cols: list) -> tuple:
+    """GLS of free multipliers of the place test's grid columns ``cols`` on top of the model
+    ``full``: (chi-square statistic, multipliers, standard errors)."""
+    Bv, Bs = mo.grid.integrate(np.stack(cols, axis=1), mo.ev.t.size)
+    return _fit_columns(Stage(mo, full, cfg, noise=noise, big=False), Bv, Bs)
 
 
 def place_test(mo: Motion, full: Null, cfg, noise, inside: np.ndarray, beyond: np.ndarray,
@@ -394,9 +400,7 @@ def place_test(mo: Motion, full: Null, cfg, noise, inside: np.ndarray, beyond: n
     if not cols:
         res["note"] = note
         return res
-    Bv, Bs = mo.grid.integrate(np.stack(cols, axis=1), mo.ev.t.size)
-    st = Stage(mo, full, cfg, noise=noise, big=False)
-    stat, c, se = _fit_columns(st, Bv, Bs)
+    stat, c, se = _fit_cells(mo, full, cfg, noise, cols)
     p = float(chi2.sf(stat, len(cols)))
     res.update(chi2=stat, dof=len(cols), p=p,
                multipliers={lab: float(cj) for lab, cj in zip(labels, c)},

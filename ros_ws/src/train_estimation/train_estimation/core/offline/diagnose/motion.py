@@ -137,9 +137,9 @@ def consistent_fixes(db: np.ndarray, pb: np.ndarray, k: float) -> np.ndarray:
     keep = np.ones(db.size, bool)
     for _ in range(db.size // 4):
         idx = np.flatnonzero(keep)
-        if idx.size < 4 or np.max(np.abs(_loo(db[idx], pb[idx], k))) <= OUTLIER_FIX:
-            break
         r = np.abs(_loo(db[idx], pb[idx], k))
+        if idx.size < 4 or np.max(r) <= OUTLIER_FIX:
+            break
         best = None
         for j in range(idx.size):
             rest = np.delete(idx, j)

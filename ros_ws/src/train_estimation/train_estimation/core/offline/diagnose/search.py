@@ -95,14 +95,13 @@ def diagnose(data: MeasuredRun, line: Line, train: TrainParams, config: DiagConf
         _accept(sr, best, stage_i)
     before = {a.cause: BY_NAME[a.cause].resolution(a, sr.mo) for a in sr.accepted}
     joint_refit(sr.mo, sr.null, sr.accepted, cfg, (st.q, st.r_s))
-    if merge(sr, (st.q, st.r_s)):
-        before.update({a.cause: BY_NAME[a.cause].resolution(a, sr.mo) for a in sr.accepted
-                       if a.cause not in before})
-        joint_refit(sr.mo, sr.null, sr.accepted, cfg, (st.q, st.r_s))
-    if unlocate(sr, (st.q, st.r_s)):
-        before.update({a.cause: BY_NAME[a.cause].resolution(a, sr.mo) for a in sr.accepted
-                       if a.cause not in before})
-        joint_refit(sr.mo, sr.null, sr.accepted, cfg, (st.q, st.r_s))
+    # Occam's steps: one cause for what two were fitted to, one over the run for a section
+    # that holds every stop; a cause they bring in is resolved before its joint refit
+    for step in (merge, unlocate):
+        if step(sr, (st.q, st.r_s)):
+            before.update({a.cause: BY_NAME[a.cause].resolution(a, sr.mo)
+                           for a in sr.accepted if a.cause not in before})
+            joint_refit(sr.mo, sr.null, sr.accepted, cfg, (st.q, st.r_s))
     tick(total - 1, "confirmation and gain")
     first_stage, first_null = sr.first
     first_stage.null = first_null

@@ -172,9 +172,9 @@ class Cause:
 
     # The listed cause that acts on the same thing at every place (a low-adhesion section:
     # the braking rate). Where no brake application of the run outside the stretch could
-    # show the cause absent there (the place test has no cell), "only on this stretch" is a
-    # claim the data cannot test, and the search names that cause instead
-    # (:func:`..search.unlocate`); None: no such cause.
+    # show the cause absent there (no cell of the place test where half of it would be a 3 SE
+    # departure), "only on this stretch" is a claim the data cannot test, and the search
+    # names that cause instead (:func:`..search.unlocate`); None: no such cause.
     global_rival: str | None = None
 
     def beyond(self, fit: CauseFit, mo):
