@@ -30,6 +30,11 @@ m from its map position; a train clock that jumps by 0.5-3 s. Printed: how often
 its signature names the effect's phase (a coasting drag is scored only where the nominal run
 coasts 10 s or more). With ``--estimators``: every estimator's integrity on those runs.
 
+Variants of the driver and the link (``--odo-rate``, ``--cmd-rate``, ``--notch``,
+``--on-change``, ``--link-tail``): the same seeds and effects with an odometer sampling at
+another rate, a driver commanding at another rate, in notches or logged only on change, and a
+link whose latency has a longer tail; results go to a file named after the variant.
+
 ``--estimators``: every estimator on the same runs instead (the believed model, whatever the
 world had), the clean stream the link delivered put on the integrity campaign's clocks and
 latency (``tools.faults``, no fault) and replayed through the runner the nodes use with the node
@@ -228,7 +233,8 @@ def run_case(spec: dict) -> dict:
             if coast < COAST_MIN:
                 return {**out, "na": f"the run coasts {coast:.1f} s"}
         try:
-            events = FS.simulate(line, train, eff, np.random.default_rng([seed, 3]))
+            events = FS.simulate(line, train, eff, np.random.default_rng([seed, 3]),
+                                 **spec.get("sim", {}))
         except RuntimeError as exc:  # the foreign driver failed: shown, not a diagnose result
             return {**out, "rc": f"sim: {exc}"}
         bag = os.path.join(d, "bag")
@@ -279,7 +285,8 @@ def run_estimators(spec: dict) -> list[dict]:
                                                            os.path.join(d, "case"))
         line, train = load_line(str(paths["line"])), load_train(str(paths["train"]))
     sent, truth = [], []
-    FS.simulate(line_d, train_d, eff, np.random.default_rng([seed, 3]), sent=sent, truth=truth)
+    FS.simulate(line_d, train_d, eff, np.random.default_rng([seed, 3]), sent=sent, truth=truth,
+                **spec.get("sim", {}))
     sent.sort(key=lambda e: e[1])
     tr = np.array(truth)
     tr_d = {"t": tr[:, 0], "position": tr[:, 1], "velocity": tr[:, 2]}
@@ -402,14 +409,31 @@ def main(argv=None) -> int:
     p.add_argument("--estimators", action="store_true",
                    help="run every estimator on the runs instead of diagnose (the integrity "
                         "campaign's figures: wrong-side, availability, error)")
+    p.add_argument("--odo-rate", type=float, default=10.0,
+                   help="odometer samples per second (default 10)")
+    p.add_argument("--cmd-rate", type=float, default=5.0,
+                   help="driver commands per second (default 5)")
+    p.add_argument("--notch", type=float, default=0.0,
+                   help="m/s^2: commands rounded to a master controller's notches (default 0: "
+                        "continuous)")
+    p.add_argument("--on-change", type=float, default=0.0,
+                   help="s: a command is logged only when it changes or this long after the "
+                        "last one logged (default 0: every command)")
+    p.add_argument("--link-tail", type=float, default=0.015,
+                   help="s: mean of the link latency's exponential tail (default 0.015)")
     args = p.parse_args(argv)
+    sim = {k: v for k, v, d in (("odo_rate", args.odo_rate, 10.0),
+                                ("cmd_rate", args.cmd_rate, 5.0), ("notch", args.notch, 0.0),
+                                ("on_change", args.on_change, 0.0),
+                                ("tail", args.link_tail, 0.015)) if v != d}
     if args.kinds is None:
         args.kinds = list(UNLISTED) if args.unlisted else list(KINDS)
-    specs = [{"seed": s, "kind": k} for s in range(args.first, args.first + args.seeds)
-             for k in args.kinds]
+    specs = [{"seed": s, "kind": k, **({"sim": sim} if sim else {})}
+             for s in range(args.first, args.first + args.seeds) for k in args.kinds]
     fn, name = (run_estimators, "foreign_estimators") if args.estimators else \
         (run_case, "foreign")
     name += "_unlisted" if args.unlisted else ""
+    name += "".join(f"_{k}{v:g}" for k, v in sim.items())  # a variant's own file
     prog = Progress(f"bench {name.replace('_', ' ')}")
     results = []
     prog(0, len(specs), "")

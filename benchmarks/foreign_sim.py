@@ -75,12 +75,18 @@ def _profile(sections, x: float) -> float:
 def simulate(line: dict, train: dict, effect: Effect, rng: np.random.Generator,
              dt: float = 0.005, odo_rate: float = 10.0, cmd_rate: float = 5.0,
              dwell: float = 25.0, trace: list | None = None, sent: list | None = None,
-             truth: list | None = None) -> list:
+             truth: list | None = None, notch: float = 0.0, on_change: float = 0.0,
+             tail: float = 0.015) -> list:
     """The run from the first station to the last: [(log time s, topic, stamp s, fields)] as
     a ground recorder would log it (measured: no ground truth). ``trace`` gets (t, x, v,
     command, leg) at every command; ``sent`` the messages the link delivered as (topic, true
     sample time s, fields) in sampling order (the clean stream of ``tools.faults.inject``);
-    ``truth`` (t, x, v) at every odometer sample."""
+    ``truth`` (t, x, v) at every odometer sample.
+
+    Variants of the driver and link (the defaults are the bench's): ``notch`` m/s^2 > 0 rounds
+    each command to a master controller's notches; ``on_change`` s > 0 logs a command only when
+    it changes or this long after the last one logged (a lever logged on change with a
+    keep-alive); ``tail`` s is the mean of the link latency's exponential tail."""
     m_b = float(train["mass"])
     lam = float(train.get("rotary_allowance", 0.0))
     meff_b = (1 + lam) * m_b
@@ -140,7 +146,7 @@ def simulate(line: dict, train: dict, effect: Effect, rng: np.random.Generator,
         st = state["bad"]
         state["bad"] = (rng.random() < 0.25) if st else (rng.random() > 0.98)
         lost = rng.random() < (0.5 if state["bad"] else 0.02)
-        return None if lost else t + 0.04 + float(rng.exponential(0.015))
+        return None if lost else t + 0.04 + float(rng.exponential(tail))
 
     out = []
 
@@ -161,6 +167,7 @@ def simulate(line: dict, train: dict, effect: Effect, rng: np.random.Generator,
     leg, seq_odo, seq_bal = 1, 0, 0
     next_cmd, next_odo = 0.0, 0.0
     stopping = False
+    logged = [math.nan, -math.inf]  # the last command logged and its time (``on_change``)
     bi = next((i for i, (p, _, _) in enumerate(balises) if p > x), len(balises))
     odo_extra = 0.0  # m the odometer's bias has counted
     while leg < len(stations):
@@ -184,12 +191,16 @@ def simulate(line: dict, train: dict, effect: Effect, rng: np.random.Generator,
                     cmd = float(np.clip(0.6 * (vc - v), -0.5 * b_serv, a_max))
                     if abs(cmd) < 0.03:
                         cmd = 0.0
+            if notch > 0.0:
+                cmd = notch * round(cmd / notch)
             if trace is not None:
                 trace.append((t, x, v, cmd, leg))
-            out.append((epoch_ref + t + 0.005, "control", epoch_ref + t,
-                        {"target_acceleration": cmd}))
-            if sent is not None:
-                sent.append(("control", t, {"target_acceleration": cmd}))
+            if on_change <= 0.0 or cmd != logged[0] or t - logged[1] >= on_change - 1e-9:
+                out.append((epoch_ref + t + 0.005, "control", epoch_ref + t,
+                            {"target_acceleration": cmd}))
+                logged[:] = [cmd, t]
+                if sent is not None:
+                    sent.append(("control", t, {"target_acceleration": cmd}))
             pipe_tr.append((t + t_delay, max(cmd, 0.0)))
             pipe_br.append((t + b_delay, min(cmd, 0.0)))
             next_cmd += 1.0 / cmd_rate

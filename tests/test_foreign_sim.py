@@ -93,7 +93,7 @@ def test_a_downhill_run_in_braking_is_named_with_the_rival_it_cannot_be_told_fro
     assert "the stretch was run once" in caveat, caveat
 
 
-def _diagnose_foreign(tmp_path, seed: int, kind: str) -> tuple:
+def _diagnose_foreign(tmp_path, seed: int, kind: str, **sim_kw) -> tuple:
     import json
 
     import bench_foreign as BF
@@ -101,7 +101,7 @@ def _diagnose_foreign(tmp_path, seed: int, kind: str) -> tuple:
     from train_estimation.tools import diagnose as tool
 
     _, paths, line, train, _, eff = BF.foreign_case(seed, kind, str(tmp_path / "case"))
-    FS.write_bag(FS.simulate(line, train, eff, np.random.default_rng([seed, 3])),
+    FS.write_bag(FS.simulate(line, train, eff, np.random.default_rng([seed, 3]), **sim_kw),
                  str(tmp_path / "bag"))
     assert tool.main(["--bag", str(tmp_path / "bag"), "--line", str(paths["line"]), "--train",
                       str(paths["train"]), "--out", str(tmp_path / "out"), "--quiet"]) == 0
@@ -219,3 +219,20 @@ def test_a_balise_off_its_map_position_misplaces_no_gradient_change(tmp_path):
     u = rep["unexplained"][0]
     assert u["where"] is not None and u["where"][0] == u["where"][1], u
     assert abs(abs(u["size"]) - abs(eff.balise_moved[1])) < 3.0, (u, eff.balise_moved)
+
+
+@pytest.mark.parametrize("seed,kind", [(3, "none"), (1, "none"), (0, "resistance")])
+def test_a_link_with_a_long_latency_tail_changes_nothing(tmp_path, seed, kind):
+    """The link's latency 40 ms + Exp(0.5 s) instead of Exp(15 ms): the same readings, only
+    logged later. The clock fit puts the mean latency (0.54 s) into the clocks' offset, so the
+    commands land that early; the command offset profiled only reached 0.4 s, and the rest
+    was read as a traction and a brake delay of +0.16 s (seed 3, `unexplained`). The grid now
+    reaches the latency's mean above its floor (motion.shift_grid), and the noise is fitted
+    again at the offset found: fitted at the wrong one it was a hundred times too large (seed
+    1: an odometer "recalibration" at a creep), and with it a 40 % stronger resistance was
+    `none` at a tail of 1.5 s (seed 0)."""
+    rep, _ = _diagnose_foreign(tmp_path, seed, kind, tail=0.5 if kind == "none" else 1.5)
+    confirmed = [r["cause"] for r in rep["ranking"] if r.get("status") == "confirmed"
+                 and r["cause"] != "none"]
+    assert rep["cause"] == kind and confirmed == ([] if kind == "none" else [kind]), \
+        (rep["cause"], confirmed, rep["unexplained"])

@@ -377,3 +377,21 @@ def test_a_moved_balise_does_not_place_the_reference_trajectory():
     x = place_on_line(dd, d_moved, p)
     truth = np.interp(dd, d, p)  # where the train was
     assert np.max(np.abs(x - truth)) < 3.0, np.max(np.abs(x - truth))
+
+
+def test_the_command_offset_grid_reaches_a_long_latency_tail():
+    from train_estimation.core.offline.diagnose.motion import shift_grid
+
+    base = (-0.2, 0.4, 0.025)
+    # a radio's jitter: the grid as configured
+    np.testing.assert_allclose(shift_grid(base, 0.05), np.arange(-0.2, 0.4 + 1e-9, 0.025),
+                               atol=1e-9)
+    # a mean latency 0.5 s above the floor: up to 0.7 s at the same step
+    g = shift_grid(base, 0.5)
+    assert g[0] == -0.2 and g[-1] == pytest.approx(0.7) and np.allclose(np.diff(g), 0.025)
+    # seconds: at most 49 offsets, the step a whole number of the configured one (the braking
+    # columns are keyed by offset + delay on the configured step)
+    g = shift_grid(base, 5.0)
+    assert g.size <= 49 and g[-1] >= 5.0
+    k = np.diff(g)[0] / 0.025
+    assert abs(k - round(k)) < 1e-9 and np.allclose(np.diff(g), np.diff(g)[0])

@@ -153,6 +153,22 @@ def consistent_fixes(db: np.ndarray, pb: np.ndarray, k: float) -> np.ndarray:
     return keep
 
 
+def shift_grid(grid: tuple, excess: float, floor: float = 0.2, most: int = 49) -> np.ndarray:
+    """The command-time offsets profiled (s): ``grid`` = (lo, hi, step), reaching up to
+    ``excess + floor`` where the link's mean latency lies ``excess`` s above its floor.
+
+    The clock fit puts the odometer's mean latency into the offset between the clocks, so
+    commands stamped when they were sent land that mean latency early: the offset to profile
+    is the latency's floor (unknown, taken as at most ``floor``) plus its mean above the floor.
+    A radio's jitter of tens of milliseconds stays inside the grid; a link with a tail of half
+    a second (a congested radio) needs the grid extended, or the remainder is read as a brake
+    and a traction delay. The step grows (in whole steps) to keep at most ``most`` offsets."""
+    lo, hi, st = grid
+    hi = max(hi, excess + floor)
+    st = st * max(1, math.ceil((hi - lo) / st / (most - 1)))
+    return np.round(np.arange(lo, hi + 1e-9, st), 6)
+
+
 class Motion:
     """Columns of the motion model on the events of one run, built once.
 
@@ -192,8 +208,7 @@ class Motion:
         self.k_grad = 1.0 / (1.0 + train.rotary_allowance)
         self.a_tr0, self.a_br0 = self._act(0.0, 0.0)
         # shifts (nuisance) and extra braking delays
-        lo, hi, st = cfg.shift_grid
-        self.shifts = np.round(np.arange(lo, hi + 1e-9, st), 6)
+        self.shifts = shift_grid(cfg.shift_grid, float(run.clock.get("latency_excess", 0.0)))
         lo, hi, st = cfg.delay_grid
         self.delays = np.round(np.arange(lo, hi + 1e-9, st), 6)
         names, R = self._dense_columns()

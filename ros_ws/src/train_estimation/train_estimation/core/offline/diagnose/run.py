@@ -19,6 +19,8 @@ from train_estimation.core.numerics.clocks import ClockFit
 
 from ..measured import MeasuredRun, unwrap
 
+LATENCY_FLOOR_Q = 0.01  # the quantile of the clock fit's residuals taken as the link's floor
+
 
 class DiagnoseError(ValueError):
     """The data cannot be diagnosed (unusable input); the message is one line saying what is
@@ -93,13 +95,17 @@ def prepare(data: MeasuredRun, line: Line, cfg: DiagConfig) -> Run:
     odo_s, odo_r = _arr(data.odo_stamp), _arr(data.odo_recv)
     s_odo, r_odo = odo_s[idx], odo_r[idx]
     # ---- clock: log time r = alpha + beta * stamp + latency (OLS; latency mean in alpha) -----
-    cf = ClockFit.fit(s_odo, r_odo)
+    cf, kept = ClockFit.fit_kept(s_odo, r_odo)
     t_first, alpha, beta = cf.t_first, cf.alpha, cf.beta
     x = s_odo - t_first
+    # how far the mean latency (inside alpha) lies above the link's floor: the command-time
+    # offset the motion profiles reaches that far beyond its grid (Motion.shifts)
+    e = r_odo[kept] - alpha - beta * x[kept]
+    excess = float(-np.quantile(e, LATENCY_FLOOR_Q)) if e.size else 0.0
     if not (0.5 < beta < 1.5):
         raise DiagnoseError(f"odometer stamps and log times disagree (rate {beta:.3g}): the "
                             "bag's log times must be receive times on one clock")
-    clock = {"alpha": alpha, "beta": beta,
+    clock = {"alpha": alpha, "beta": beta, "latency_excess": excess,
              "steps": [{"when": float(at - t_first), "step": float(j)} for at, j, _ in steps],
              "rate_change": None if change is None else
              {**change, "when": change["at"] - t_first}}

@@ -249,12 +249,22 @@ def _stage(sr: _Search, stage_i: int, tick) -> Stage:
     st = Stage(mo, null, cfg)
     # the common command-time offset (nuisance) is re-estimated under every stage's null:
     # estimated under a null that misses a large effect it can be far off, and a wrong
-    # offset would then pass for a brake delay
+    # offset would then pass for a brake delay. Where a long latency tail took the offset's
+    # grid beyond the configured one (motion.shift_grid), the noise is fitted again at the
+    # offset found and the offset profiled again at that noise until it settles: fitted at an
+    # offset half a second off the process noise came out a hundred times too large and hid
+    # every effect. Within the configured grid the noise fitted at the stage's start is kept
+    # (fitting it again there too, a traction delay composed with a power limit was
+    # contradicted by its split by command level, a check that does not yet allow for the
+    # limit capping the re-timed traction)
     if not null.brake_extra:
-        s_hat, _ = st.nuisance_shift()
-        if s_hat != null.shift:
+        again = mo.shifts[-1] > cfg.shift_grid[1] + 1e-9
+        for _ in range(3 if again else 1):
+            s_hat, _ = st.nuisance_shift()
+            if s_hat == null.shift:
+                break
             null.shift = s_hat
-            st = Stage(mo, null, cfg, noise=(st.q, st.r_s))
+            st = Stage(mo, null, cfg) if again else Stage(mo, null, cfg, noise=(st.q, st.r_s))
     tick(4 + 2 * stage_i, f"stage {stage_i + 1}: causes")
     ll0 = st.null_ll()
     done = {a.cause for a in sr.accepted}
