@@ -125,7 +125,8 @@ class IntegrityParams:
                                  "re-anchored on its stamps alone (no arrival times; a step "
                                  "measured from the arrivals needs no hold)")
     command_timeout: float = param(2.0, "s", "no control command for this long while readings "
-                                   "arrive: DEGRADED")
+                                   "arrive: DEGRADED (above the keep-alive period of a command "
+                                   "stream logged only when it changes)")
     pos_window: int = param(10, "-", "fused odometer distances in the position-bias window")
     pos_z: float = param(5.0, "-", "mean position innovation beyond pos_z standard errors: "
                          "DEGRADED (position variance + the mean squared)")
