@@ -409,23 +409,21 @@ def main(argv=None) -> int:
     p.add_argument("--estimators", action="store_true",
                    help="run every estimator on the runs instead of diagnose (the integrity "
                         "campaign's figures: wrong-side, availability, error)")
-    p.add_argument("--odo-rate", type=float, default=10.0,
-                   help="odometer samples per second (default 10)")
-    p.add_argument("--cmd-rate", type=float, default=5.0,
-                   help="driver commands per second (default 5)")
-    p.add_argument("--notch", type=float, default=0.0,
-                   help="m/s^2: commands rounded to a master controller's notches (default 0: "
+    # driver and link variants: None keeps foreign_sim.simulate's own default (the bench's)
+    p.add_argument("--odo-rate", type=float, help="odometer samples per second (default 10)")
+    p.add_argument("--cmd-rate", type=float, help="driver commands per second (default 5)")
+    p.add_argument("--notch", type=float,
+                   help="m/s^2: commands rounded to a master controller's notches (default: "
                         "continuous)")
-    p.add_argument("--on-change", type=float, default=0.0,
+    p.add_argument("--on-change", type=float,
                    help="s: a command is logged only when it changes or this long after the "
-                        "last one logged (default 0: every command)")
-    p.add_argument("--link-tail", type=float, default=0.015,
+                        "last one logged (default: every command)")
+    p.add_argument("--link-tail", type=float,
                    help="s: mean of the link latency's exponential tail (default 0.015)")
     args = p.parse_args(argv)
-    sim = {k: v for k, v, d in (("odo_rate", args.odo_rate, 10.0),
-                                ("cmd_rate", args.cmd_rate, 5.0), ("notch", args.notch, 0.0),
-                                ("on_change", args.on_change, 0.0),
-                                ("tail", args.link_tail, 0.015)) if v != d}
+    sim = {k: v for k, v in (("odo_rate", args.odo_rate), ("cmd_rate", args.cmd_rate),
+                             ("notch", args.notch), ("on_change", args.on_change),
+                             ("tail", args.link_tail)) if v is not None}
     if args.kinds is None:
         args.kinds = list(UNLISTED) if args.unlisted else list(KINDS)
     specs = [{"seed": s, "kind": k, **({"sim": sim} if sim else {})}

@@ -167,7 +167,7 @@ def simulate(line: dict, train: dict, effect: Effect, rng: np.random.Generator,
     leg, seq_odo, seq_bal = 1, 0, 0
     next_cmd, next_odo = 0.0, 0.0
     stopping = False
-    logged = [math.nan, -math.inf]  # the last command logged and its time (``on_change``)
+    last_cmd, last_logged = math.nan, -math.inf  # the last command logged, when (on_change)
     bi = next((i for i, (p, _, _) in enumerate(balises) if p > x), len(balises))
     odo_extra = 0.0  # m the odometer's bias has counted
     while leg < len(stations):
@@ -195,10 +195,10 @@ def simulate(line: dict, train: dict, effect: Effect, rng: np.random.Generator,
                 cmd = notch * round(cmd / notch)
             if trace is not None:
                 trace.append((t, x, v, cmd, leg))
-            if on_change <= 0.0 or cmd != logged[0] or t - logged[1] >= on_change - 1e-9:
+            if on_change <= 0.0 or cmd != last_cmd or t - last_logged >= on_change - 1e-9:
                 out.append((epoch_ref + t + 0.005, "control", epoch_ref + t,
                             {"target_acceleration": cmd}))
-                logged[:] = [cmd, t]
+                last_cmd, last_logged = cmd, t
                 if sent is not None:
                     sent.append(("control", t, {"target_acceleration": cmd}))
             pipe_tr.append((t + t_delay, max(cmd, 0.0)))
