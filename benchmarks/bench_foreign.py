@@ -35,6 +35,11 @@ Variants of the driver and the link (``--odo-rate``, ``--cmd-rate``, ``--notch``
 another rate, a driver commanding at another rate, in notches or logged only on change, and a
 link whose latency has a longer tail; results go to a file named after the variant.
 
+``--family freight|mountain|tram``: lines and trains that our cases never draw
+(``foreign_sim.OTHER_FAMILIES``): a 1,200-2,500 t freight train with an air brake of 2-4 s
+delay on a 18-26 km line with stops 6-10 km apart; a light railcar on gradients up to 35 per
+mille; a tram of 40-70 t with stops every 350-700 m and a balise every 150-400 m.
+
 ``--estimators``: every estimator on the same runs instead (the believed model, whatever the
 world had), the clean stream the link delivered put on the integrity campaign's clocks and
 latency (``tools.faults``, no fault) and replayed through the runner the nodes use with the node
@@ -53,6 +58,7 @@ import tempfile
 import time
 from collections import Counter
 from concurrent.futures import ProcessPoolExecutor
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -196,14 +202,27 @@ def unlisted_effect_of(kind: str, line: dict, train: dict, rng, pilot) -> FS.Eff
     raise ValueError(kind)
 
 
-def foreign_case(seed: int, kind: str, directory: str) -> tuple:
-    """Seed ``seed``'s line and believed train (``make_case``, written to ``directory``) and
-    the effect of ``kind`` placed from a nominal pilot run: (case, paths, line dict, train
-    dict, the pilot's (x, v, command) at its commands, effect)."""
-    from train_sim.cases import make_case
+def foreign_case(seed: int, kind: str, directory: str, family: str | None = None) -> tuple:
+    """Seed ``seed``'s line and believed train (``make_case``; with ``family``, one of
+    ``foreign_sim.OTHER_FAMILIES`` instead), written to ``directory``, and the effect of
+    ``kind`` placed from a nominal pilot run: (case, paths, line dict, train dict, the pilot's
+    (x, v, command) at its commands, effect); ``case.family`` names the family."""
+    if family is None:
+        from train_sim.cases import make_case
 
-    case = make_case(np.random.default_rng([seed, 5]), None, "plain")
-    paths = case.write(directory)
+        case = make_case(np.random.default_rng([seed, 5]), None, "plain")
+        paths = case.write(directory)
+    else:
+        import yaml
+
+        drawn = FS.other_line_train(family, np.random.default_rng(
+            [seed, 5, 1 + list(FS.OTHER_FAMILIES).index(family)]))
+        os.makedirs(directory, exist_ok=True)
+        paths = {k: os.path.join(directory, f"{k}.yaml") for k in ("line", "train")}
+        for k, d in zip(("line", "train"), drawn):
+            with open(paths[k], "w") as f:
+                yaml.safe_dump(d, f, sort_keys=False)
+        case = SimpleNamespace(family=family)
     line, train = FS.load(str(paths["line"])), FS.load(str(paths["train"]))
     trace: list = []
     FS.simulate(line, train, FS.Effect(), np.random.default_rng([seed, 1]), trace=trace)
@@ -223,7 +242,8 @@ def run_case(spec: dict) -> dict:
     seed, kind = spec["seed"], spec["kind"]
     with tempfile.TemporaryDirectory(prefix="bench_foreign_") as d:
         case, paths, line, train, pilot, eff = foreign_case(seed, kind,
-                                                            os.path.join(d, "case"))
+                                                            os.path.join(d, "case"),
+                                                            spec.get("family"))
         out = {**spec, "family": case.family, "effect": repr(eff)}
         if kind == "coast_drag":
             # a drag while coasting acts only where the run coasts: this driver holds its speed
@@ -267,8 +287,6 @@ def run_estimators(spec: dict) -> list[dict]:
     """Every estimator on one foreign run (``--estimators``): the clean stream the link delivered,
     on the fault campaign's clocks and latency (``tools.faults``, no fault), replayed through the
     runner the nodes use with the node defaults and scored as the integrity campaign scores."""
-    from types import SimpleNamespace
-
     from train_core.model import load_line, load_train
 
     from train_estimation.core.online.estimators import NodeConfig
@@ -282,7 +300,8 @@ def run_estimators(spec: dict) -> list[dict]:
     rows = []
     with tempfile.TemporaryDirectory(prefix="bench_foreign_") as d:
         case, paths, line_d, train_d, _, eff = foreign_case(seed, kind,
-                                                           os.path.join(d, "case"))
+                                                           os.path.join(d, "case"),
+                                                           spec.get("family"))
         line, train = load_line(str(paths["line"])), load_train(str(paths["train"]))
     sent, truth = [], []
     FS.simulate(line_d, train_d, eff, np.random.default_rng([seed, 3]), sent=sent, truth=truth,
@@ -420,18 +439,23 @@ def main(argv=None) -> int:
                         "last one logged (default: every command)")
     p.add_argument("--link-tail", type=float,
                    help="s: mean of the link latency's exponential tail (default 0.015)")
+    p.add_argument("--family", choices=tuple(FS.OTHER_FAMILIES),
+                   help="lines and trains of another family than our cases' (foreign_sim."
+                        "OTHER_FAMILIES: freight, mountain, tram; default: train_sim.cases')")
     args = p.parse_args(argv)
     sim = {k: v for k, v in (("odo_rate", args.odo_rate), ("cmd_rate", args.cmd_rate),
                              ("notch", args.notch), ("on_change", args.on_change),
                              ("tail", args.link_tail)) if v is not None}
     if args.kinds is None:
         args.kinds = list(UNLISTED) if args.unlisted else list(KINDS)
-    specs = [{"seed": s, "kind": k, **({"sim": sim} if sim else {})}
+    specs = [{"seed": s, "kind": k, **({"sim": sim} if sim else {}),
+              **({"family": args.family} if args.family else {})}
              for s in range(args.first, args.first + args.seeds) for k in args.kinds]
     fn, name = (run_estimators, "foreign_estimators") if args.estimators else \
         (run_case, "foreign")
     name += "_unlisted" if args.unlisted else ""
     name += "".join(f"_{k}{v:g}" for k, v in sim.items())  # a variant's own file
+    name += f"_{args.family}" if args.family else ""
     prog = Progress(f"bench {name.replace('_', ' ')}")
     results = []
     prog(0, len(specs), "")

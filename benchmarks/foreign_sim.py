@@ -298,3 +298,83 @@ def write_bag(events: list, path: str) -> None:
 def load(path: str) -> dict:
     with open(path) as f:
         return yaml.safe_load(f)
+
+
+# Lines and trains that no case of ours draws (``train_sim.cases`` has metro, regional and
+# high-speed families): a heavy freight train with a slow air brake on a long line with few
+# stops, a light railcar on a steep line, a tram with stops every 350-700 m. Ranges are those
+# of such trains, not fitted to anything of ours.
+OTHER_FAMILIES = {
+    # line: length m, top speed m/s, steepest gradient per mille, stop spacing m, balise
+    # spacing m; train: mass kg, rotary allowance, Davis a, b, c per tonne (N, N/(m/s),
+    # N/(m/s)^2), brake time constant s, delay s, max traction, service brake m/s^2
+    "freight": {"length": (18000.0, 26000.0), "vmax": (20.0, 25.0), "gmax": 10.0,
+                "spacing": (6000.0, 10000.0), "balise": (1500.0, 3000.0),
+                "mass": (1.2e6, 2.5e6), "lam": (0.04, 0.07),
+                "davis": ((6.0, 10.0), (0.04, 0.08), (0.004, 0.008)),
+                "tau": (1.5, 3.0), "delay": (2.0, 4.0), "traction": (0.15, 0.3),
+                "brake": (0.3, 0.45)},
+    "mountain": {"length": (6000.0, 10000.0), "vmax": (16.0, 22.0), "gmax": 35.0,
+                 "spacing": (1500.0, 3000.0), "balise": (200.0, 800.0),
+                 "mass": (120e3, 220e3), "lam": (0.08, 0.14),
+                 "davis": ((10.0, 16.0), (0.3, 0.6), (0.02, 0.04)),
+                 "tau": (0.3, 0.6), "delay": (0.5, 1.2), "traction": (1.0, 1.3),
+                 "brake": (0.8, 1.1)},
+    "tram": {"length": (3000.0, 6000.0), "vmax": (12.0, 16.0), "gmax": 20.0,
+             "spacing": (350.0, 700.0), "balise": (150.0, 400.0),
+             "mass": (40e3, 70e3), "lam": (0.08, 0.14),
+             "davis": ((12.0, 20.0), (0.3, 0.7), (0.03, 0.06)),
+             "tau": (0.2, 0.4), "delay": (0.3, 0.7), "traction": (1.0, 1.3),
+             "brake": (1.0, 1.3)},
+}
+
+
+def other_line_train(family: str, rng: np.random.Generator) -> tuple[dict, dict]:
+    """A line (``line.yaml``) and the believed train (``train.yaml``) of ``family`` (one of
+    ``OTHER_FAMILIES``), as plain dicts in the contract's keys: stations over the line (at
+    most eight), gradient sections of 300-1500 m (level around the stations), balises, a
+    speed limit of 12 m/s out of the first station."""
+    f = OTHER_FAMILIES[family]
+
+    def u(lo_hi):
+        return float(rng.uniform(*lo_hi))
+
+    length, vmax = round(u(f["length"]), 1), u(f["vmax"])
+    first, last = u((100.0, 300.0)), length - u((200.0, 400.0))
+    pos = [first]
+    while pos[-1] + f["spacing"][1] < last - 0.5 * f["spacing"][0]:
+        pos.append(pos[-1] + u(f["spacing"]))
+    pos = [round(p, 1) for p in pos[:7] + [last]]
+    cuts = [0.0]
+    while cuts[-1] < length:
+        cuts.append(round(min(length, cuts[-1] + u((300.0, 1500.0))), 1))
+    grads = []
+    for a, b in zip(cuts, cuts[1:]):
+        level = any(abs(0.5 * (a + b) - p) < 150.0 + 0.5 * (b - a) for p in pos)
+        grads.append({"start": a, "end": b,
+                      "permille": 0.0 if level else round(u((-f["gmax"], f["gmax"])), 1)})
+    balises, bx = [], u((20.0, 300.0))
+    while bx < length:
+        balises.append({"id": len(balises) + 1, "position": round(bx, 1)})
+        bx += u(f["balise"])
+    line = {"name": f"{family}-line", "length": round(length, 1), "max_speed": round(vmax, 2),
+            "speed_limits": [{"start": 0.0, "end": pos[0] + 300.0,
+                              "speed": round(min(vmax, 12.0), 2)}],
+            "gradients": grads, "balises": balises,
+            "stations": [{"name": f"S{i}", "position": p, "dwell": 30.0}
+                         for i, p in enumerate(pos)]}
+    mass = u(f["mass"])
+    tonnes = mass / 1000.0
+    train = {"name": f"{family}-train", "mass": round(mass),
+             "rotary_allowance": round(u(f["lam"]), 3),
+             "davis": {k: round(u(r) * tonnes, 4) for k, r in zip("abc", f["davis"])},
+             "brake": {"time_constant": round(u(f["tau"]), 2), "delay": round(u(f["delay"]), 2),
+                       "braking_rate": 1.0},
+             "odometer": {"speed_std": round(u((0.05, 0.15)), 3),
+                          "distance_std": round(u((0.1, 0.5)), 3)},
+             "balise": {"position_std": round(u((0.5, 1.5)), 3)},
+             "performance": {"max_traction": round(u(f["traction"]), 3),
+                             "service_brake": round(u(f["brake"]), 3),
+                             "emergency_brake": round(1.5 * f["brake"][1], 3),
+                             "max_jerk": 0.5}}
+    return line, train

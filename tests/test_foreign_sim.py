@@ -93,14 +93,15 @@ def test_a_downhill_run_in_braking_is_named_with_the_rival_it_cannot_be_told_fro
     assert "the stretch was run once" in caveat, caveat
 
 
-def _diagnose_foreign(tmp_path, seed: int, kind: str, **sim_kw) -> tuple:
+def _diagnose_foreign(tmp_path, seed: int, kind: str, family: str | None = None,
+                      **sim_kw) -> tuple:
     import json
 
     import bench_foreign as BF
 
     from train_estimation.tools import diagnose as tool
 
-    _, paths, line, train, _, eff = BF.foreign_case(seed, kind, str(tmp_path / "case"))
+    _, paths, line, train, _, eff = BF.foreign_case(seed, kind, str(tmp_path / "case"), family)
     FS.write_bag(FS.simulate(line, train, eff, np.random.default_rng([seed, 3]), **sim_kw),
                  str(tmp_path / "bag"))
     assert tool.main(["--bag", str(tmp_path / "bag"), "--line", str(paths["line"]), "--train",
@@ -236,3 +237,36 @@ def test_a_link_with_a_long_latency_tail_changes_nothing(tmp_path, seed, kind):
                  and r["cause"] != "none"]
     assert rep["cause"] == kind and confirmed == ([] if kind == "none" else [kind]), \
         (rep["cause"], confirmed, rep["unexplained"])
+
+
+@pytest.mark.parametrize("family", sorted(FS.OTHER_FAMILIES))
+def test_lines_and_trains_of_other_families_load_and_run_to_the_last_stop(family, tmp_path):
+    """bench_foreign --family: the drawn files are contract files that our loaders read, and
+    the foreign driver takes each train from the first station to the last."""
+    import bench_foreign as BF
+    from train_core.model import load_line, load_train
+
+    for seed in range(3):
+        _, paths, line, train, pilot, _ = BF.foreign_case(seed, "none",
+                                                          str(tmp_path / f"c{seed}"), family)
+        ln, tr = load_line(paths["line"]), load_train(paths["train"])
+        assert tr.mass == pytest.approx(train["mass"]) and ln.length == line["length"]
+        x, v = pilot[0], pilot[1]
+        stops = [s["position"] for s in line["stations"]]
+        assert x[-1] == pytest.approx(stops[-1], abs=5.0) and v[-1] < 0.1
+        assert v.max() <= line["max_speed"] + 0.5
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("family,kind", [("freight", "none"), ("freight", "brake_delay"),
+                                         ("mountain", "none"), ("mountain", "resistance"),
+                                         ("tram", "none"), ("tram", "adhesion_section")])
+def test_diagnose_on_lines_and_trains_of_other_families(family, kind, tmp_path):
+    """A 2,000 t freight train with a slow air brake, a railcar on a steep line, a tram with a
+    stop every 500 m (seed 0 of bench_foreign --family): nothing confirmed on the nominal run,
+    the hidden cause confirmed and alone otherwise."""
+    rep, _ = _diagnose_foreign(tmp_path, 0, kind, family)
+    confirmed = [r["cause"] for r in rep["ranking"] if r["status"] == "confirmed"
+                 and r["cause"] != "none"]
+    assert rep["cause"] == kind and confirmed == ([] if kind == "none" else [kind]), \
+        rep["ranking"][:3]
