@@ -725,18 +725,21 @@ def test_a_cause_found_beside_causes_not_confirmed_is_confirmed_again_without_th
     confirmed again without it. (The gradient is seen in braking only, and a third of it
     shows in braking elsewhere, so the one-phase rule of the place test withdraws it first, and
     a resistance accepted beside them needs a negative Davis term, so the Davis check
-    withdraws that first, after which the flexible term takes the other two: both checks are
-    off here, so that this test sees the re-confirmation; with them, the verdict is the
-    same.)"""
+    withdraws that first, after which the flexible term takes the other two; and the section
+    cancels the gradient on the gradient's stretch, which the cancelling check sees when a
+    tenth of a cause's effect lies there: these checks are off here (the cancelling check at
+    its earlier quarter), so that this test sees the re-confirmation; with them, the verdict
+    is the same.)"""
     from dataclasses import replace
 
-    from train_estimation.core.offline.diagnose import confirm
+    from train_estimation.core.offline.diagnose import confirm, contradict
 
     _, paths = _unlisted_bag("brake_fade", [29, 125], tmp_path)
     rep = _unexplained(paths, tmp_path)
     assert rep["unexplained"][0]["phase"] == "braking", rep["unexplained"]
     monkeypatch.setattr(confirm, "CONFIRM", replace(confirm.CONFIRM, one_phase_elsewhere=False,
                                                     data_bounds=False))
+    monkeypatch.setattr(contradict, "CANCEL_SHARE", 0.25)
     rep = _unexplained(paths, tmp_path)
     by = {r["cause"]: r for r in rep["ranking"]}
     assert by["gradient"]["why"].startswith("without adhesion_section"), by["gradient"]

@@ -270,3 +270,17 @@ def test_diagnose_on_lines_and_trains_of_other_families(family, kind, tmp_path):
                  and r["cause"] != "none"]
     assert rep["cause"] == kind and confirmed == ([] if kind == "none" else [kind]), \
         rep["ranking"][:3]
+
+
+@pytest.mark.slow
+def test_a_weaker_traction_on_a_tram_is_not_a_heavier_train_with_a_stronger_brake(tmp_path):
+    """Traction x 0.71 on a tram (bench_foreign --family tram --unlisted, seed 1): a mass x 1.40
+    with braking x 1.30 fits it, the two summing to nothing in braking, where the mass change
+    has a quarter of its effect (24.5 %): both are not confirmed, the remainder is traction's."""
+    rep, eff = _diagnose_foreign(tmp_path, 1, "traction_gain", "tram")
+    assert eff.traction_gain == pytest.approx(0.715, abs=0.001)
+    st = {r["cause"]: r for r in rep["ranking"]}
+    assert rep["cause"] == "unexplained", rep["ranking"][:3]
+    for c, other in (("mass", "braking_rate"), ("braking_rate", "mass")):
+        assert st[c]["status"] == "not confirmed"
+        assert st[c]["why"].startswith(f"cancels with {other} in braking"), st[c]

@@ -50,11 +50,12 @@ it: such an episode is not contradicted (at a neutral section's start: fitted +1
 readings +0.4 +- 0.2 %).
 
 **Causes that cancel** (:func:`cancelling`). Two confirmed causes whose contributions are
-each large in a phase (> 1/4 of their own energy there) while their sum there is small (< 1/4
-of the larger) act together as one effect confined to the other phases (a heavier train and a
-stronger brake: traction alone is weaker). No listed cause is that effect. The same on the
-stretch of a cause at a place: a resistance change with a gradient that takes it back over
-the last 5.7 km is a resistance confined to the first kilometres (a warm-up, in one run).
+each large in a phase (> ``CANCEL_SHARE`` = 1/10 of their own energy there) while their sum
+there is small (< 1/4 of the larger) act together as one effect confined to the other phases
+(a heavier train and a stronger brake: traction alone is weaker). No listed cause is that
+effect. The same on the stretch of a cause at a place: a resistance change with a gradient
+that takes it back over the last 5.7 km is a resistance confined to the first kilometres (a
+warm-up, in one run).
 """
 
 from __future__ import annotations
@@ -302,6 +303,13 @@ def _rng(r) -> str:
     return "-" if r is None else f"{r[0]:.0f}-{r[1]:.0f}"
 
 
+# share of a cause's energy (its contribution squared) that a region must hold for the cause
+# to count as acting there in the cancelling test: a traction x 0.71 on a tram, read as a
+# heavier train (x 1.40) with a stronger brake (x 1.30), had 24.5 % of the mass change's
+# energy in braking, where the two summed to nothing (a quarter, the first bar, missed it)
+CANCEL_SHARE = 0.1
+
+
 def cancelling(mo: Motion, nulls: dict, base: Null, full: Null, cfg, noise,
                stretches: dict | None = None) -> dict:
     """Causes (``nulls``: cause -> the model of all confirmed causes but it) whose
@@ -322,7 +330,7 @@ def cancelling(mo: Motion, nulls: dict, base: Null, full: Null, cfg, noise,
     out = {}
     for m, where, elsewhere in regions:
         big = {c: float(np.sum(d[m] ** 2)) for c, d in parts.items()
-               if np.sum(d[m] ** 2) > 0.25 * max(np.sum(d ** 2), 1e-300)}
+               if np.sum(d[m] ** 2) > CANCEL_SHARE * max(np.sum(d ** 2), 1e-300)}
         if len(big) < 2 or np.sum(total[m] ** 2) >= 0.25 * max(big.values()):
             continue
         for c in big:
