@@ -31,9 +31,10 @@ its signature names the effect's phase (a coasting drag is scored only where the
 coasts 10 s or more). With ``--estimators``: every estimator's integrity on those runs.
 
 Variants of the driver and the link (``--odo-rate``, ``--cmd-rate``, ``--notch``,
-``--on-change``, ``--link-tail``): the same seeds and effects with an odometer sampling at
-another rate, a driver commanding at another rate, in notches or logged only on change, and a
-link whose latency has a longer tail; results go to a file named after the variant.
+``--on-change``, ``--link-tail``, ``--coast``): the same seeds and effects with an odometer
+sampling at another rate, a driver commanding at another rate, in notches or logged only on
+change, a driver who coasts from the cruise speed down to a fraction of it and motors back up,
+and a link whose latency has a longer tail; results go to a file named after the variant.
 
 ``--family freight|mountain|tram``: lines and trains that our cases never draw
 (``foreign_sim.OTHER_FAMILIES``): a 1,200-2,500 t freight train with an air brake of 2-4 s
@@ -202,11 +203,13 @@ def unlisted_effect_of(kind: str, line: dict, train: dict, rng, pilot) -> FS.Eff
     raise ValueError(kind)
 
 
-def foreign_case(seed: int, kind: str, directory: str, family: str | None = None) -> tuple:
+def foreign_case(seed: int, kind: str, directory: str, family: str | None = None,
+                 sim: dict | None = None) -> tuple:
     """Seed ``seed``'s line and believed train (``make_case``; with ``family``, one of
     ``foreign_sim.OTHER_FAMILIES`` instead), written to ``directory``, and the effect of
-    ``kind`` placed from a nominal pilot run: (case, paths, line dict, train dict, the pilot's
-    (x, v, command) at its commands, effect); ``case.family`` names the family."""
+    ``kind`` placed from a nominal pilot run with the same driver and link options ``sim``:
+    (case, paths, line dict, train dict, the pilot's (x, v, command) at its commands,
+    effect); ``case.family`` names the family."""
     if family is None:
         from train_sim.cases import make_case
 
@@ -225,7 +228,8 @@ def foreign_case(seed: int, kind: str, directory: str, family: str | None = None
         case = SimpleNamespace(family=family)
     line, train = FS.load(str(paths["line"])), FS.load(str(paths["train"]))
     trace: list = []
-    FS.simulate(line, train, FS.Effect(), np.random.default_rng([seed, 1]), trace=trace)
+    FS.simulate(line, train, FS.Effect(), np.random.default_rng([seed, 1]), trace=trace,
+                **(sim or {}))
     pilot = tuple(np.array([r[i] for r in trace]) for i in (1, 2, 3, 0))
     if kind in UNLISTED:
         eff = unlisted_effect_of(kind, line, train, np.random.default_rng(
@@ -243,7 +247,8 @@ def run_case(spec: dict) -> dict:
     with tempfile.TemporaryDirectory(prefix="bench_foreign_") as d:
         case, paths, line, train, pilot, eff = foreign_case(seed, kind,
                                                             os.path.join(d, "case"),
-                                                            spec.get("family"))
+                                                            spec.get("family"),
+                                                            spec.get("sim"))
         out = {**spec, "family": case.family, "effect": repr(eff)}
         if kind == "coast_drag":
             # a drag while coasting acts only where the run coasts: this driver holds its speed
@@ -301,7 +306,8 @@ def run_estimators(spec: dict) -> list[dict]:
     with tempfile.TemporaryDirectory(prefix="bench_foreign_") as d:
         case, paths, line_d, train_d, _, eff = foreign_case(seed, kind,
                                                            os.path.join(d, "case"),
-                                                           spec.get("family"))
+                                                           spec.get("family"),
+                                                           spec.get("sim"))
         line, train = load_line(str(paths["line"])), load_train(str(paths["train"]))
     sent, truth = [], []
     FS.simulate(line_d, train_d, eff, np.random.default_rng([seed, 3]), sent=sent, truth=truth,
@@ -439,13 +445,17 @@ def main(argv=None) -> int:
                         "last one logged (default: every command)")
     p.add_argument("--link-tail", type=float,
                    help="s: mean of the link latency's exponential tail (default 0.015)")
+    p.add_argument("--coast", type=float,
+                   help="coast-and-motor driving: coast from the cruise speed down to this "
+                        "fraction of it, then motor back up (default: hold the speed)")
     p.add_argument("--family", choices=tuple(FS.OTHER_FAMILIES),
                    help="lines and trains of another family than our cases' (foreign_sim."
                         "OTHER_FAMILIES: freight, mountain, tram; default: train_sim.cases')")
     args = p.parse_args(argv)
     sim = {k: v for k, v in (("odo_rate", args.odo_rate), ("cmd_rate", args.cmd_rate),
                              ("notch", args.notch), ("on_change", args.on_change),
-                             ("tail", args.link_tail)) if v is not None}
+                             ("tail", args.link_tail), ("coast", args.coast))
+           if v is not None}
     if args.kinds is None:
         args.kinds = list(UNLISTED) if args.unlisted else list(KINDS)
     specs = [{"seed": s, "kind": k, **({"sim": sim} if sim else {}),

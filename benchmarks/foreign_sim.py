@@ -76,7 +76,7 @@ def simulate(line: dict, train: dict, effect: Effect, rng: np.random.Generator,
              dt: float = 0.005, odo_rate: float = 10.0, cmd_rate: float = 5.0,
              dwell: float = 25.0, trace: list | None = None, sent: list | None = None,
              truth: list | None = None, notch: float = 0.0, on_change: float = 0.0,
-             tail: float = 0.015) -> list:
+             tail: float = 0.015, coast: float = 0.0) -> list:
     """The run from the first station to the last: [(log time s, topic, stamp s, fields)] as
     a ground recorder would log it (measured: no ground truth). ``trace`` gets (t, x, v,
     command, leg) at every command; ``sent`` the messages the link delivered as (topic, true
@@ -86,7 +86,9 @@ def simulate(line: dict, train: dict, effect: Effect, rng: np.random.Generator,
     Variants of the driver and link (the defaults are the bench's): ``notch`` m/s^2 > 0 rounds
     each command to a master controller's notches; ``on_change`` s > 0 logs a command only when
     it changes or this long after the last one logged (a lever logged on change with a
-    keep-alive); ``tail`` s is the mean of the link latency's exponential tail."""
+    keep-alive); ``tail`` s is the mean of the link latency's exponential tail; ``coast`` in
+    (0, 1) drives coast-and-motor (energy-saving driving): having reached its cruise speed the
+    driver coasts until the speed falls to ``coast`` times it, then motors back up."""
     m_b = float(train["mass"])
     lam = float(train.get("rotary_allowance", 0.0))
     meff_b = (1 + lam) * m_b
@@ -166,7 +168,7 @@ def simulate(line: dict, train: dict, effect: Effect, rng: np.random.Generator,
     t, t_end_dwell = 0.0, dwell * 0.4
     leg, seq_odo, seq_bal = 1, 0, 0
     next_cmd, next_odo = 0.0, 0.0
-    stopping = False
+    stopping = coasting = False
     last_cmd, last_logged = math.nan, -math.inf  # the last command logged, when (on_change)
     bi = next((i for i, (p, _, _) in enumerate(balises) if p > x), len(balises))
     odo_extra = 0.0  # m the odometer's bias has counted
@@ -188,7 +190,10 @@ def simulate(line: dict, train: dict, effect: Effect, rng: np.random.Generator,
                     need = v * v / (2.0 * max(rem - 1.0, 0.5))
                     cmd = -0.3 if v < 0.05 else -min(b_serv, 1.1 * need)
                 else:
-                    cmd = float(np.clip(0.6 * (vc - v), -0.5 * b_serv, a_max))
+                    if coast > 0.0:  # coast-and-motor: coast from the cruise speed down
+                        coasting = v < vc and (coasting or v >= 0.98 * vc) and v > coast * vc
+                    cmd = 0.0 if coasting else float(np.clip(0.6 * (vc - v), -0.5 * b_serv,
+                                                             a_max))
                     if abs(cmd) < 0.03:
                         cmd = 0.0
             if notch > 0.0:

@@ -93,6 +93,27 @@ def test_a_downhill_run_in_braking_is_named_with_the_rival_it_cannot_be_told_fro
     assert "the stretch was run once" in caveat, caveat
 
 
+def test_a_coasting_driver_coasts_and_still_stops_at_the_last_station():
+    """Coast-and-motor driving (bench_foreign --coast): from its cruise speed (0.9 x 20 m/s
+    here) the driver coasts, motoring again only below the given fraction of it; the default
+    holds the cruise speed (its zero commands are those of a small speed error)."""
+    runs = {}
+    for coast in (0.0, 0.8):
+        tr: list = []
+        FS.simulate(LINE, TRAIN, FS.Effect(), np.random.default_rng(0), trace=tr, coast=coast)
+        t, x, v, cmd = (np.array([r[i] for r in tr]) for i in range(4))
+        moving = v[:-1] > 1.0
+        coasting = moving & (cmd[:-1] == 0.0)
+        fast = v[:-1][coasting & (v[:-1] > 10.0)]
+        runs[coast] = (np.sum(np.diff(t)[coasting]) / np.sum(np.diff(t)[moving]), x[-1],
+                       fast.min(), fast.max())
+    share0, _, lo0, hi0 = runs[0.0]
+    share, end, lo, hi = runs[0.8]
+    assert abs(lo0 - 18.0) < 0.2 and abs(hi0 - 18.0) < 0.2, runs
+    assert share > share0 + 0.2 and 0.8 * 18.0 - 0.2 < lo < 17.0 and hi < 18.2, runs
+    assert end > 2850.0  # it reached the last station
+
+
 def _diagnose_foreign(tmp_path, seed: int, kind: str, family: str | None = None,
                       **sim_kw) -> tuple:
     import json
@@ -101,7 +122,8 @@ def _diagnose_foreign(tmp_path, seed: int, kind: str, family: str | None = None,
 
     from train_estimation.tools import diagnose as tool
 
-    _, paths, line, train, _, eff = BF.foreign_case(seed, kind, str(tmp_path / "case"), family)
+    _, paths, line, train, _, eff = BF.foreign_case(seed, kind, str(tmp_path / "case"), family,
+                                                    sim_kw)
     FS.write_bag(FS.simulate(line, train, eff, np.random.default_rng([seed, 3]), **sim_kw),
                  str(tmp_path / "bag"))
     assert tool.main(["--bag", str(tmp_path / "bag"), "--line", str(paths["line"]), "--train",
