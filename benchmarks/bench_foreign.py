@@ -38,7 +38,7 @@ and a link whose latency has a longer tail; results go to a file named after the
 
 ``--family freight|mountain|tram``: lines and trains that our cases never draw
 (``foreign_sim.OTHER_FAMILIES``): a 1,200-2,500 t freight train with an air brake of 2-4 s
-delay on a 18-26 km line with stops 6-10 km apart; a light railcar on gradients up to 35 per
+delay on an 18-26 km line with stops 6-10 km apart; a light railcar on gradients up to 35 per
 mille; a tram of 40-70 t with stops every 350-700 m and a balise every 150-400 m.
 
 ``--estimators``: every estimator on the same runs instead (the believed model, whatever the

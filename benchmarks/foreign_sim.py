@@ -362,7 +362,7 @@ def other_line_train(family: str, rng: np.random.Generator) -> tuple[dict, dict]
     while bx < length:
         balises.append({"id": len(balises) + 1, "position": round(bx, 1)})
         bx += u(f["balise"])
-    line = {"name": f"{family}-line", "length": round(length, 1), "max_speed": round(vmax, 2),
+    line = {"name": f"{family}-line", "length": length, "max_speed": round(vmax, 2),
             "speed_limits": [{"start": 0.0, "end": pos[0] + 300.0,
                               "speed": round(min(vmax, 12.0), 2)}],
             "gradients": grads, "balises": balises,
