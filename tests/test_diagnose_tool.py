@@ -77,6 +77,10 @@ def test_help_says_how_to_read_the_report(capsys):
     for word in ("--bag", "--line", "--train", "--out", "report.json", "ranking", "score",
                  "log-likelihood", "untestable", "gain", "model/", "exit status"):
         assert word.lower() in out.lower(), word
+    # every cause the tool tests is named (argparse may wrap a line at any space)
+    flat = " ".join(out.split())
+    for cause in CAUSES:
+        assert cause in flat, cause
 
 
 @pytest.mark.parametrize("missing,words", [

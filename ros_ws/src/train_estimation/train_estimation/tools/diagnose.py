@@ -5,7 +5,8 @@
 Reads the bag's ``odometer``, ``balise`` and ``control`` topics (a ``ground_truth`` topic, if
 present, is never used), aligns the believed model (line.yaml, train.yaml) with the data, fits
 one extended model per cause (docs/interfaces.md ``diagnose``: gradient, resistance, braking_rate,
-odometer_scale, wheel_slip, bursty_link, brake_delay, mass, clock_drift) and ranks them.
+odometer_scale, wheel_slip, bursty_link, brake_delay, mass, clock_drift, power_limit,
+adhesion_section, traction_delay) and ranks them.
 
 Output (DIR is created):
   DIR/report.json   cause, parameters, ranking, unexplained, untestable, evidence, gain
