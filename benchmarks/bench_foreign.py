@@ -53,6 +53,7 @@ import argparse
 import contextlib
 import io
 import json
+import math
 import os
 import sys
 import tempfile
@@ -291,14 +292,17 @@ def run_case(spec: dict) -> dict:
 def run_estimators(spec: dict) -> list[dict]:
     """Every estimator on one foreign run (``--estimators``): the clean stream the link delivered,
     on the fault campaign's clocks and latency (``tools.faults``, no fault), replayed through the
-    runner the nodes use with the node defaults and scored as the integrity campaign scores."""
+    runner the nodes use with the node defaults and scored as the integrity campaign scores.
+    With ``spec["recorded"]`` (``--as-recorded``) the messages as the ground logged them
+    instead: the train's own clock (its epoch, drift and step), the link's own latency and
+    losses (:func:`recorded_stream`)."""
     from train_core.model import load_line, load_train
 
     from train_estimation.core.online.estimators import NodeConfig
     from train_estimation.tools import faults as F
 
     seed, kind = spec["seed"], spec["kind"]
-    if kind in STAMP_KINDS:
+    if kind in STAMP_KINDS and not spec.get("recorded"):
         # the stream is stamped again on the campaign's clocks from the true sample times: the
         # foreign clock is not carried (clock faults: ./run bench integrity)
         return [{**spec, "estimator": name, "na": "stamps not carried"} for name in ESTIMATORS]
@@ -309,18 +313,21 @@ def run_estimators(spec: dict) -> list[dict]:
                                                            spec.get("family"),
                                                            spec.get("sim"))
         line, train = load_line(str(paths["line"])), load_train(str(paths["train"]))
-    sent, truth = [], []
-    FS.simulate(line_d, train_d, eff, np.random.default_rng([seed, 3]), sent=sent, truth=truth,
-                **spec.get("sim", {}))
-    sent.sort(key=lambda e: e[1])
+    sent, truth, clock = [], [], {}
+    logged = FS.simulate(line_d, train_d, eff, np.random.default_rng([seed, 3]), sent=sent,
+                         truth=truth, clock=clock, **spec.get("sim", {}))
     tr = np.array(truth)
     tr_d = {"t": tr[:, 0], "position": tr[:, 1], "velocity": tr[:, 2]}
     rate = 10.0
     cfg = NodeConfig()
-    fl = F.inject(sent, F.Fault("none"), np.random.default_rng(seed))  # the same for each
+    if spec.get("recorded"):
+        fl = recorded_stream(logged, sent, clock)
+    else:
+        sent.sort(key=lambda e: e[1])
+        fl = F.inject(sent, F.Fault("none"), np.random.default_rng(seed))  # the same for each
     sc = SimpleNamespace(train=train, line=line, start_position=float(tr[0, 1]),
                          odometer_rate=rate)
-    for name in ESTIMATORS:
+    for name in spec.get("estimators", ESTIMATORS):
         row = {**spec, "family": case.family, "estimator": name, "effect": repr(eff)}
         try:
             ad = make_adapter(sc, name)  # as the integrity campaign makes it
@@ -340,6 +347,34 @@ def run_estimators(spec: dict) -> list[dict]:
         row.update(F.score(outs, emitted, fl, tr_d, rate, float(tr[-1, 0]) + F.LATENCY))
         rows.append(row)
     return rows
+
+
+def recorded_stream(logged: list, sent: list, clock: dict):
+    """A foreign run as the ground logged it, as ``tools.faults.Faulted`` for the runner and
+    the scoring: ``logged`` = ``foreign_sim.simulate``'s [(log time, topic, stamp, fields)],
+    ``sent`` its true sample times (one per logged message, in the same order), ``clock`` its
+    clocks. Odometer and balise keep the train's stamps (an epoch of 1e8-1e9 s, the drift, the
+    step); the reference clock (log time, the commands' stamps) is moved from the foreign
+    epoch to ``faults.EPOCH``, which only names its zero, so that the scoring's true time is
+    the simulator's. Arrivals carry the foreign link's own latency; the lost messages are
+    absent."""
+    from train_estimation.tools import faults as F
+
+    shift = F.EPOCH - clock["ref_epoch"]
+    rows = sorted(((log + shift, topic, stamp + shift if topic == "control" else stamp, fields,
+                    t) for (log, topic, stamp, fields), (_, t, _) in zip(logged, sent)),
+                  key=lambda r: r[0])
+    events = [(topic, stamp, fields, recv) for recv, topic, stamp, fields, _ in rows]
+    step = clock.get("step")
+    steps, seen = (), ()
+    if step is not None:
+        steps = ((float(step[0]), float(step[1])),)
+        # the step is known from the arrival of its first reading on (faults.TrainClock)
+        seen = (min((recv - F.EPOCH for recv, topic, _, _, t in rows
+                     if topic in F.TRAIN_TOPICS and t >= step[0]), default=math.inf),)
+    tc = F.TrainClock(epoch=clock["train_epoch"], drift=clock["drift"], steps=steps, seen=seen)
+    onset = steps[0][0] if steps else 0.0
+    return F.Faulted(events, tc, onset, math.inf if steps or clock["drift"] else onset)
 
 
 def estimator_table(rows: list) -> str:
@@ -434,6 +469,10 @@ def main(argv=None) -> int:
     p.add_argument("--estimators", action="store_true",
                    help="run every estimator on the runs instead of diagnose (the integrity "
                         "campaign's figures: wrong-side, availability, error)")
+    p.add_argument("--as-recorded", action="store_true",
+                   help="with --estimators: the messages as the ground logged them (the "
+                        "train's own clock, epoch, drift and step; the link's own latency) "
+                        "instead of the clean stream on the campaign's clocks")
     # driver and link variants: None keeps foreign_sim.simulate's own default (the bench's)
     p.add_argument("--odo-rate", type=float, help="odometer samples per second (default 10)")
     p.add_argument("--cmd-rate", type=float, help="driver commands per second (default 5)")
@@ -458,11 +497,15 @@ def main(argv=None) -> int:
            if v is not None}
     if args.kinds is None:
         args.kinds = list(UNLISTED) if args.unlisted else list(KINDS)
+    if args.as_recorded and not args.estimators:
+        p.error("--as-recorded goes with --estimators")
     specs = [{"seed": s, "kind": k, **({"sim": sim} if sim else {}),
-              **({"family": args.family} if args.family else {})}
+              **({"family": args.family} if args.family else {}),
+              **({"recorded": True} if args.as_recorded else {})}
              for s in range(args.first, args.first + args.seeds) for k in args.kinds]
     fn, name = (run_estimators, "foreign_estimators") if args.estimators else \
         (run_case, "foreign")
+    name += "_as_recorded" if args.as_recorded else ""
     name += "_unlisted" if args.unlisted else ""
     name += "".join(f"_{k}{v:g}" for k, v in sim.items())  # a variant's own file
     name += f"_{args.family}" if args.family else ""

@@ -76,12 +76,15 @@ def simulate(line: dict, train: dict, effect: Effect, rng: np.random.Generator,
              dt: float = 0.005, odo_rate: float = 10.0, cmd_rate: float = 5.0,
              dwell: float = 25.0, trace: list | None = None, sent: list | None = None,
              truth: list | None = None, notch: float = 0.0, on_change: float = 0.0,
-             tail: float = 0.015, coast: float = 0.0) -> list:
+             tail: float = 0.015, coast: float = 0.0, clock: dict | None = None) -> list:
     """The run from the first station to the last: [(log time s, topic, stamp s, fields)] as
     a ground recorder would log it (measured: no ground truth). ``trace`` gets (t, x, v,
     command, leg) at every command; ``sent`` the messages the link delivered as (topic, true
     sample time s, fields) in sampling order (the clean stream of ``tools.faults.inject``);
-    ``truth`` (t, x, v) at every odometer sample.
+    ``truth`` (t, x, v) at every odometer sample; ``clock`` gets the clocks (``train_epoch``,
+    ``drift``, ``step`` (t, s) or None: the train's stamp is ``train_epoch + (1 + drift) t``
+    plus the step once ``t`` passes it; ``ref_epoch``: the log time is ``ref_epoch`` + t plus
+    the link's latency).
 
     Variants of the driver and link (the defaults are the bench's): ``notch`` m/s^2 > 0 rounds
     each command to a master controller's notches; ``on_change`` s > 0 logs a command only when
@@ -135,6 +138,9 @@ def simulate(line: dict, train: dict, effect: Effect, rng: np.random.Generator,
     epoch_train = float(rng.uniform(1e8, 1e9))
     drift = effect.clock_drift
     epoch_ref = 1.75e9
+    if clock is not None:
+        clock.update(train_epoch=epoch_train, drift=drift, step=effect.clock_step,
+                     ref_epoch=epoch_ref)
 
     def stamp(t):
         jump = effect.clock_step[1] if effect.clock_step is not None and \

@@ -306,3 +306,20 @@ def test_a_weaker_traction_on_a_tram_is_not_a_heavier_train_with_a_stronger_brak
     for c, other in (("mass", "braking_rate"), ("braking_rate", "mass")):
         assert st[c]["status"] == "not confirmed"
         assert st[c]["why"].startswith(f"cancels with {other} in braking"), st[c]
+
+
+@pytest.mark.parametrize("kind", ["clock_drift", "clock_step"])
+def test_the_estimators_take_a_run_as_the_ground_logged_it(kind):
+    """A checker plays the bag into the nodes: the train's own clock (an epoch of 1e8-1e9 s
+    against a log time at 1.75e9 s, a drift of 2e-5 to 1e-4 or a step of 0.5-3 s), the link's
+    own latency and losses. The robust filter and the KF on a tram run so logged: no
+    wrong-side estimate, no bad covariance, available through the step or the drift."""
+    import bench_foreign as BF
+
+    rows = BF.run_estimators({"seed": 0, "kind": kind, "family": "tram", "recorded": True,
+                              "estimators": ["robust_filter", "kf"]})
+    assert [r["estimator"] for r in rows] == ["robust_filter", "kf"]
+    for r in rows:
+        assert "na" not in r and "exception" not in r, r
+        assert r["outputs"] > 1000 and r["wrong_side"] == 0 and r["bad_cov"] == 0, r
+        assert r["availability"] >= 0.99, r
