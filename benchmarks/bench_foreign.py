@@ -400,23 +400,37 @@ def estimator_table(rows: list) -> str:
     return "\n".join(md)
 
 
+def right_beside_link(r: dict) -> bool:
+    """Right when a ``bursty_link`` confirmed beside the hidden cause is counted as true: this
+    simulator's link is a Gilbert-Elliott chain in every run (``foreign_sim.simulate``), so
+    the link's bursts are there to be found whatever effect is hidden."""
+    if r.get("rc") != 0 or "confirmed" not in r:
+        return False
+    want = [] if r["kind"] == "none" else [r["kind"]]
+    return ([c for c in r["confirmed"] if c != "bursty_link"] == want
+            and r["reported"] in (r["kind"], "bursty_link"))
+
+
 def table(results: list) -> str:
-    md = ["| hidden | right | reported instead |", "|---|---|---|"]
+    md = ["| hidden | right | right, the link's bursts beside it allowed | reported instead |",
+          "|---|---|---|---|"]
     for k in KINDS:
         rows = [r for r in results if r["kind"] == k]
         if not rows:
             continue
         ok = sum(bool(r.get("right")) for r in rows)
+        ok_link = sum(right_beside_link(r) for r in rows)
         other = Counter(f"{r.get('reported', 'rc ' + str(r.get('rc')))}"
                         + (f" (+{'+'.join(c for c in r['confirmed'] if c != r['reported'])})"
                            if len([c for c in r.get("confirmed", []) if c != r["reported"]])
                            else "")
                         for r in rows if not r.get("right"))
-        md.append(f"| {k} | {ok}/{len(rows)} | "
+        md.append(f"| {k} | {ok}/{len(rows)} | {ok_link}/{len(rows)} | "
                   + (", ".join(f"{n} x{c}" for n, c in other.most_common()) or "-") + " |")
     n = len(results)
     ok = sum(bool(r.get("right")) for r in results)
-    md.append(f"| all | {ok}/{n} | |")
+    ok_link = sum(right_beside_link(r) for r in results)
+    md.append(f"| all | {ok}/{n} | {ok_link}/{n} | |")
     t = [r["time"] for r in results if "time" in r]
     md.append(f"\ntime per bag (diagnose): mean {np.mean(t):.1f} s, max {np.max(t):.1f} s")
     return "\n".join(md)
