@@ -323,3 +323,20 @@ def test_the_estimators_take_a_run_as_the_ground_logged_it(kind):
         assert "na" not in r and "exception" not in r, r
         assert r["outputs"] > 1000 and r["wrong_side"] == 0 and r["bad_cov"] == 0, r
         assert r["availability"] >= 0.99, r
+
+
+def test_the_link_s_true_bursts_beside_the_hidden_cause_are_allowed_and_nothing_else():
+    import bench_foreign as BF
+
+    def row(kind, reported, confirmed, rc=0):
+        return {"kind": kind, "reported": reported, "confirmed": confirmed, "rc": rc}
+
+    assert BF.right_beside_link(row("mass", "mass", ["mass", "bursty_link"]))
+    assert BF.right_beside_link(row("mass", "bursty_link", ["bursty_link", "mass"]))
+    assert BF.right_beside_link(row("none", "bursty_link", ["bursty_link"]))
+    assert BF.right_beside_link(row("none", "none", []))
+    assert not BF.right_beside_link(row("mass", "mass", ["mass", "gradient"]))
+    assert not BF.right_beside_link(row("mass", "bursty_link", ["bursty_link"]))
+    assert not BF.right_beside_link(row("none", "gradient", ["gradient", "bursty_link"]))
+    assert not BF.right_beside_link(row("gradient", "unexplained", []))
+    assert not BF.right_beside_link(row("mass", "mass", ["mass"], rc=2))
