@@ -8,11 +8,15 @@ quarters of its position range, quarters of its time range), each with a free mu
 ``alpha`` with some |c_j| > ``min_share`` (more than 3 standard errors) says the cause does not
 show where it predicts (a braking-rate change that only shows at low speed, a mass change that
 shows in traction but not in braking). Then smooth slopes, one degree of freedom each: the
-contribution times a centred covariate (speed; the traction command in traction, the braking
-command in braking), whose coefficient is the cause's change from the covariate's 5th to its
-95th percentile; a likelihood ratio at ``alpha`` with a change of more than ``min_share`` (and
-3 SE) contradicts the cause (a traction loss above a speed taken for a power limit's
-p_spec / v; a loss that scales with the traction command taken for a gradient).
+contribution times a centred covariate (speed; time over the span where it acts; the traction
+command in traction, the braking command in braking), whose coefficient is the cause's change
+from the covariate's 5th to its 95th percentile; a likelihood ratio at ``alpha`` with a change
+of more than ``min_share`` (and 3 SE) contradicts the cause (a traction loss above a speed
+taken for a power limit's p_spec / v; a loss that scales with the traction command taken for a
+gradient; a resistance that decays as the train warms up taken for a gradient over the first
+kilometres, whose force falls across its stretch: every listed cause holds its size over the
+time it acts, a gradient section and a low-adhesion section over their stretch, a braking-rate
+drift along its own line).
 
 **A piece of a larger structure** (:func:`piece_of`). A confirmed cause whose contribution lies
 mostly (> half of its energy) inside a structure still found in the residuals, while that
@@ -119,7 +123,7 @@ def split_test(mo: Motion, others: Null, full: Null, cfg, noise, alpha: float,
     # smooth departures, one degree of freedom each (more power than the cells against a
     # cause whose shape in speed or in the command is wrong: a knee p_spec / v against a step
     # at a speed, a force fixed in place against one that scales with the traction asked for)
-    for name, z in _slopes(mo, ph, v, gi, on, energy):
+    for name, z in _slopes(mo, ph, v, gi, on, energy, t):
         stat, c, se = _fit_columns(st1, (dv * z)[:, None], (ds * z)[:, None])
         p = float(chi2.sf(stat, 1))
         out[f"slope in {name}"] = {"chi2": stat, "dof": 1, "p": p, "change": float(c[0]),
@@ -184,16 +188,19 @@ def _split_measurement(mo: Motion, st1: Stage, dmd: np.ndarray, dmv: np.ndarray,
 
 
 # the 5-95 % range of a covariate below which a slope in it is not tested (m/s, m/s^2)
-SLOPE_MIN_RANGE = {"speed": 2.0, "traction command": 0.05, "braking command": 0.05}
+SLOPE_MIN_RANGE = {"speed": 2.0, "traction command": 0.05, "braking command": 0.05,
+                   "time span": 10.0}
 
 
-def _slopes(mo: Motion, ph, v, gi, on, energy) -> list:
+def _slopes(mo: Motion, ph, v, gi, on, energy, t=None) -> list:
     """[(name, z per event)]: centred covariates over the events where the cause acts, scaled
     so that a coefficient c is the change of the cause from the 5th to the 95th percentile of
-    the covariate (x (1 - c/2) to x (1 + c/2)): speed, and the commanded traction (braking) in
-    traction (braking) where the cause holds more than 2 % of its energy there."""
+    the covariate (x (1 - c/2) to x (1 + c/2)): speed, time (``t``, s: over the events where
+    the cause acts; the train runs a stretch once, so on a place cause's stretch this is also
+    the position along it), and the commanded traction (braking) in traction (braking) where
+    the cause holds more than 2 % of its energy there."""
     out = []
-    covs = [("speed", v, on)]
+    covs = [("speed", v, on)] + ([("time span", t, on)] if t is not None else [])
     for p, name, cmd in ((0, "traction command", mo.a_tr0), (2, "braking command", -mo.a_br0)):
         m = on & (ph == p)
         if energy[m].sum() > 0.02 * energy.sum():
