@@ -519,10 +519,10 @@ def main(argv=None) -> int:
              for s in range(args.first, args.first + args.seeds) for k in args.kinds]
     fn, name = (run_estimators, "foreign_estimators") if args.estimators else \
         (run_case, "foreign")
-    name += "_as_recorded" if args.as_recorded else ""
     name += "_unlisted" if args.unlisted else ""
     name += "".join(f"_{k}{v:g}" for k, v in sim.items())  # a variant's own file
     name += f"_{args.family}" if args.family else ""
+    name += "_as_recorded" if args.as_recorded else ""
     prog = Progress(f"bench {name.replace('_', ' ')}")
     results = []
     prog(0, len(specs), "")
