@@ -197,6 +197,12 @@ def plan(quick: bool, seeds: int, estimators, only, phase_names=None, long: floa
         for _, at in outage_at:
             for L in ((60.0,) if quick else (10.0, 30.0, 60.0, 120.0)):
                 add(F.Fault("outage", L, at), L)
+        # an odometer that stops counting and reads standstill: while the train runs (the
+        # filter refuses it), and during the first dwell (the filter would follow it away)
+        dwell = 0.5 * ph["accelerating"]
+        for _, at in ([("cruising", cruise)] if quick and scenario != "metro_demo" else
+                      [("dwell", dwell)] + list(ph.items())):
+            add(F.Fault("stuck", 0.0, at), 240.0)
         for L in ((8.0,) if quick else (2.0, 8.0, 20.0)):
             add(F.Fault("recorder_stall", L, cruise), L)
             add(F.Fault("node_stall", L, cruise), L)

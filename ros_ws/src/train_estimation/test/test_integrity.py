@@ -274,3 +274,156 @@ def test_the_position_test_flags_a_distance_bias_and_covers_it(bias, want):
     assert out.integrity == want, out.integrity_reason
     if want == DEGRADED:
         assert "position" in out.integrity_reason and out.covariance[0] > 0.04 * bias ** 2
+
+
+@pytest.mark.parametrize("kind", ["robust", "kf"])
+def test_an_odometer_stuck_while_cruising_is_not_taken_again_without_a_balise(demo, kind):
+    """From the first time the train runs at 15 m/s the odometer repeats its last count and
+    reads standstill (a sensor that stopped). The filter refuses it (ALARM, blind) until the
+    train has stopped at the next station and its own prediction has grown wide enough to
+    take the stuck count, a kilometre behind: it jumps there. Nothing on board tells a lost
+    filter from a stuck odometer but a balise, and the next one disagrees: ALARM from the jump
+    on, never an OK estimate on the stuck count."""
+    sc, res = demo
+    t0 = float(res.truth["t"][np.argmax(np.asarray(res.truth["velocity"]) > 15.0)])
+    stuck = {}
+
+    def mod(topic, t, f):
+        if topic == "odometer" and t >= t0:
+            stuck.setdefault("distance", f["distance"])
+            f = dict(f, distance=stuck["distance"], speed=0.0)
+        return topic, t, f, t + LAT
+
+    outs, _ = replay(_events(res, mod), adapter(sc, kind), 0.1, control_clock="same")
+    e, sig, lab, tt = _check(outs, res, lambda i, s: s)
+    assert _wrong_side(e, sig, lab) == 0
+    why = [o.integrity_reason for o in outs]
+    jumped = next(i for i, w in enumerate(why) if w.startswith("reacquired"))
+    assert all(o.integrity == ALARM for o in outs[jumped:])
+    assert np.max(np.abs(e)) > 500.0  # the count is far behind: the case is not a mild one
+
+
+@pytest.mark.parametrize("balise_at,want_alarm", [(400.0, False), (130.0, True)])
+def test_a_jump_onto_the_odometer_after_a_blind_run_waits_for_a_balise(balise_at, want_alarm):
+    """The monitor alone: twelve readings refused, then one fused 300 m from the estimate
+    (300 sd): ALARM (reacquired). A balise fused where the odometer's track is ends it; one
+    that disagrees with the track does not. A reading fused after a blind run that continues
+    the estimate raises nothing (a recorder's stall)."""
+    def out(t, x):
+        return Output(t, x, 0.0, math.nan, math.nan,
+                      tuple(np.diag([1.0, 0.01, math.nan, math.nan]).ravel()), True)
+
+    odo = {"speed": 0.0, "speed_variance": 0.01}
+    m = IntegrityMonitor(IntegrityParams(), 0.1)
+    m.reading(10.0, odo, True, position=(100.0, 1.0))
+    assert m.assess(out(10.0, 100.0), 10.0).integrity == OK
+    for k in range(12):
+        m.reading(10.1 + 0.1 * k, odo, False)
+    assert m.assess(out(11.2, 100.0), 11.2).integrity == ALARM  # blind
+    m.reading(11.3, odo, True, position=(400.0, 1.0))
+    o = m.assess(out(11.3, 400.0), 11.3)
+    assert o.integrity == ALARM and o.integrity_reason.startswith("reacquired"), o
+    m.balise(11.4, {"position": balise_at, "position_variance": 1.0}, True)
+    m.reading(11.5, odo, True, position=(400.0, 1.0))
+    o = m.assess(out(11.5, 400.0), 11.5)
+    assert (o.integrity == ALARM and o.integrity_reason.startswith("reacquired")) == want_alarm, o
+
+    # a stall: the readings after it continue the estimate
+    m = IntegrityMonitor(IntegrityParams(), 0.1)
+    m.reading(10.0, odo, True, position=(100.0, 1.0))
+    m.assess(out(10.0, 100.0), 10.0)
+    for k in range(12):
+        m.reading(10.1 + 0.1 * k, odo, False)
+    m.assess(out(11.2, 100.0), 11.2)
+    m.reading(11.3, odo, True, position=(100.5, 1.0))
+    assert m.assess(out(11.3, 100.5), 11.3).integrity != ALARM
+
+
+@pytest.mark.parametrize("kind", ["robust", "kf"])
+def test_an_odometer_stuck_during_a_dwell_raises_an_alarm_as_the_train_departs(demo, kind):
+    """The odometer stops during the first dwell (5 s) and keeps reading standstill: at the
+    departure the filter would follow it, centimetre-sure while the train runs away. The
+    traction the driver asks for, delivered through the believed actuator, runs a standing
+    train metres within seconds on this flat start: ALARM before the error reaches five of
+    the published standard deviations, and from then on until a balise agrees."""
+    sc, res = demo
+    stuck = {}
+
+    def mod(topic, t, f):
+        if topic == "odometer" and t >= 5.0:
+            stuck.setdefault("distance", f["distance"])
+            f = dict(f, distance=stuck["distance"], speed=0.0)
+        return topic, t, f, t + LAT
+
+    outs, _ = replay(_events(res, mod), adapter(sc, kind), 0.1, control_clock="same")
+    e, sig, lab, tt = _check(outs, res, lambda i, s: s)
+    assert _wrong_side(e, sig, lab) == 0
+    first = next(i for i, o in enumerate(outs) if o.integrity_reason.startswith("standing"))
+    assert all(o.integrity == ALARM for o in outs[first:])
+    assert np.max(np.abs(e)) > 500.0
+
+
+def test_a_train_that_starts_late_or_on_a_climb_is_no_stuck_odometer():
+    """The standing check alone: a count that moves 3 m over the span is a train that
+    started; a traction at or below what holds a standing train (the believed starting
+    resistance, the map's climb, the margin) is no evidence; an outage is no standing."""
+    from train_core.model import Brake, Davis, GradientSection, Line, TrainParams
+
+    train = TrainParams(mass=300000.0, rotary_allowance=0.1, davis=Davis(3000.0, 100.0, 8.0),
+                        brake=Brake(time_constant=0.5, delay=1.0))
+    flat = Line(name="flat", length=5000.0, balises=(), gradients=())
+    climb = Line(name="climb", length=5000.0, balises=(),
+                 gradients=(GradientSection(0.0, 5000.0, 60.0),))
+
+    def fed(line, a, moved, gap=False):
+        m = IntegrityMonitor(IntegrityParams(), 0.1, train, line)
+        for k in range(300):
+            t = 0.1 * k
+            if k % 2 == 0:  # the driver's commands at 5 Hz: holding brake, then traction
+                m.command(t, -0.3 if t < 10.0 else a)
+            if gap and 15.0 <= t < 29.0:
+                continue
+            d = moved * max(t - 20.0, 0.0) / 10.0
+            m.reading(t, {"distance": d, "speed": 0.0, "speed_variance": 0.01}, True,
+                      position=(d, 1.0))
+        return m._standing(29.9, 0.0)
+
+    assert fed(flat, 0.8, 0.0).startswith("the count stood")
+    assert fed(flat, 0.8, 3.0) == ""  # the count moved: a late start
+    assert fed(climb, 0.5, 0.0) == ""  # 60 per mille holds 0.5 m/s^2 of traction
+    assert fed(flat, 0.05, 0.0) == ""  # a creep the starting resistance can hold
+    assert fed(flat, 0.8, 0.0, gap=True) == ""  # no readings over the span
+    m = IntegrityMonitor(IntegrityParams(), 0.1, train, flat)
+    m.command(0.0, -0.3)
+    m.command(10.0, 0.8)  # and then no command: the one in force now is not known
+    for k in range(300):
+        m.reading(0.1 * k, {"distance": 0.0, "speed": 0.0, "speed_variance": 0.01}, True,
+                  position=(0.0, 1.0))
+    assert m._standing(29.9, 0.0) == ""
+
+
+def test_a_count_that_stops_at_speed_is_no_train_that_stopped():
+    """The standing check alone, on fused readings at 1 Hz: a count that reads standstill two
+    readings running right after 82 m/s (no brake stops a train in 3 s) raises it; a train
+    that brakes to a stop at 1 m/s^2 and stands does not, nor does a count that jitters by
+    its stated noise at a walking pace."""
+    from train_core.model import Brake, Davis, Line, TrainParams
+
+    train = TrainParams(mass=300000.0, rotary_allowance=0.1, davis=Davis(3000.0, 100.0, 8.0),
+                        brake=Brake(time_constant=0.5, delay=1.0), odometer_distance_std=0.2)
+    flat = Line(name="flat", length=50000.0, balises=(), gradients=())
+
+    def fed(readings):
+        m = IntegrityMonitor(IntegrityParams(), 1.0, train, flat)
+        for t, d, v in readings:
+            m.reading(t, {"distance": d, "speed": v, "speed_variance": 0.01}, True,
+                      position=(d, 1.0))
+        return m._stopped_short(readings[-1][0], readings[-1][1])
+
+    run = [(float(t), 82.0 * t, 82.0) for t in range(10)]
+    assert fed(run + [(12.0, 82.0 * 10, 0.0), (13.0, 82.0 * 10, 0.0)]).startswith("the count")
+    assert fed(run + [(12.0, 82.0 * 10, 0.0)]) == ""  # one reading is no standing count
+    stop = [(float(t), 20.0 * t - 0.5 * t * t, 20.0 - t) for t in range(21)]
+    assert fed(stop + [(21.0 + k, 200.0, 0.0) for k in range(5)]) == ""
+    walk = [(float(t), 0.4 * t + 0.3 * (-1) ** t, 0.4) for t in range(12)]
+    assert fed(walk) == ""

@@ -31,6 +31,8 @@ balise           m: the first balise read at or after ``at`` lies ``size`` m fur
                  the map and its telegram say (a survey error): it is read when the train has
                  run ``size`` m more (timed by the odometer's distance), reporting the map's
                  position with its usual variance
+stuck            (none): from ``at`` on every odometer reading repeats the last count before
+                 ``at`` and reads standstill (a sensor that stopped), while the train runs on
 odometer_scale   fraction: from ``at`` on the odometer counts ``1 + size`` times the distance
                  run and reads ``1 + size`` times the speed (a worn or mis-set wheel
                  diameter; 0.01 = 1 %); the distance is continuous at ``at``
@@ -74,7 +76,7 @@ AVAILABLE_LAG = 1.0  # s: an OK estimate published further from the time it clai
 #   available (counted in ``availability``)
 TRAIN_TOPICS = ("odometer", "balise")
 KINDS = ("none", "stamp", "step", "drift", "outage", "command_stop", "latency", "recorder_stall",
-         "node_stall", "fuzz", "balise", "odometer_scale")
+         "node_stall", "fuzz", "balise", "odometer_scale", "stuck")
 # stamps a few seconds to minutes off: inside the runner's max_future (600 s), so the door lets
 # them in and only the clocks' and the filters' own checks stand between them and the estimate
 INSIDE_FUTURE = {
@@ -160,7 +162,7 @@ class Fault:
 
     @property
     def label(self) -> str:
-        if self.kind in ("none", "command_stop"):
+        if self.kind in ("none", "command_stop", "stuck"):
             return self.kind + (f" jitter {self.jitter:g}" if self.jitter else "")
         n = f" x{self.count}" if self.kind == "stamp" and self.count != 1 else ""
         n += f" jitter {self.jitter:g}" if self.jitter else ""
@@ -197,6 +199,12 @@ def inject(events: list, fault: Fault, rng: np.random.Generator) -> Faulted:
             d_at = fields["distance"] if d_at is None else d_at
             fields = {**fields, "distance": d_at + (1.0 + size) * (fields["distance"] - d_at),
                       "speed": (1.0 + size) * fields["speed"]}
+        if k == "stuck" and topic == "odometer":
+            if t < at:
+                d_at = fields["distance"]
+            else:
+                d_at = fields["distance"] if d_at is None else d_at
+                fields = {**fields, "distance": d_at, "speed": 0.0}
         train = topic in TRAIN_TOPICS
         if k == "outage" and train and at <= t < at + size:
             continue

@@ -289,6 +289,7 @@ class RobustAdapter(_DistanceAsPosition):
             use_distance=cfg.use_distance, distance_variance=cfg.distance_variance,
             odometer_origin=start.position)
         self.train, self.start_state, self.cfg, self.filter_cls = train, start, cfg, filter_cls
+        self.line = line  # the integrity monitor's standing check reads the map's gradient
         self.f: RobustFilter | None = None
         self.last_odo: tuple[float, int] | None = None  # (stamp, seq) of the last odometer slot
         self.outages = 0

@@ -28,6 +28,34 @@ Checks (each gives a reason, e.g. ``"no_measurement: 2.3 s"``):
     Readings keep arriving but the estimator refuses them all (gate, order, stale stamps): a
     filter that disagrees with every measurement is lost. ``blind_readings`` odometer readings
     refused in a row with none fused: ALARM (at 10 Hz, 1 s).
+``reacquired``
+    The first odometer reading fused after a ``blind`` run, when the estimate jumps to take it
+    (its position more than ``pos_z`` standard deviations from the estimate carried to it):
+    the filter had refused the odometer for ``blind_readings`` readings or more, and takes it
+    again only because its own prediction has grown wide enough to. Either the filter was
+    lost and the odometer is right, or the odometer failed (a count stuck while the train ran
+    on, which the filter then follows through the next departure) and the prediction was
+    right: nothing on board tells which but a balise. ALARM until a balise is fused that
+    agrees with the odometer's track (``balise`` below).
+``standing``
+    The odometer's count has not moved (less than ``still_count`` or four of its stated
+    distance deviations, three readings at least) over a span in which the traction commanded
+    was surely delivered (in force for the believed actuator's delay plus three time
+    constants before it, so at 95 % of itself) at a
+    level above what holds a standing train there (the believed starting resistance plus the
+    map's uphill gradient at the estimate plus ``still_margin``), by enough to have run the
+    train ``still_run`` m at least. The train is moving and the odometer does not see it (a
+    count stuck during a dwell, which the filter would follow through the departure). ALARM,
+    held like ``reacquired`` until a balise is fused that agrees with the odometer's track.
+    Likewise a count that has stood (two fused readings at least at one count, all but the
+    first reading standstill, the last recent) while the train, from the speed read at the
+    first of them (or, where that one reads standstill too, at the count's last move less
+    what braking takes away since) and braking at the most it can (the believed emergency
+    braking, the resistance at that speed, the map's climb and ``still_margin``), must have
+    run ``still_run`` m at least: a count stuck while the train ran, which the filter took.
+    (Needs the believed train and line: the runner gives the estimator's. A traction that
+    takes effect a second later than believed has run the train metres by then, not
+    centimetres.)
 ``speed_nis``
     The normalised innovation squared of each fused odometer speed against the previous
     estimate, ``(v_meas - v_prev)^2 / (P_vv + r + (a_max dt)^2)`` (``a_max``: the train's largest
@@ -99,6 +127,7 @@ from train_core.config import param, require, require_finite
 from .. import reasons as R
 
 OK, DEGRADED, ALARM = 0, 1, 2
+V_STILL = 0.5  # m/s: an odometer speed reading at or below this reads standstill
 UNBOUNDED = 1e12  # m^2, (m/s)^2: the variance published when the filter's is not usable
 NAMES = {OK: "OK", DEGRADED: "DEGRADED", ALARM: "ALARM"}
 
@@ -130,11 +159,18 @@ class IntegrityParams:
     pos_window: int = param(10, "-", "fused odometer distances in the position-bias window")
     pos_z: float = param(5.0, "-", "mean position innovation beyond pos_z standard errors: "
                          "DEGRADED (position variance + the mean squared)")
+    still_run: float = param(5.0, "m", "the odometer's count unmoved while the traction "
+                             "delivered must have run the train this far: ALARM")
+    still_count: float = param(0.5, "m", "a count that moves less than this is unmoved")
+    still_margin: float = param(0.05, "m/s^2", "traction beyond the starting resistance and "
+                                "the map's uphill gradient that a standing train cannot "
+                                "withstand (the map's and the resistance's errors)")
 
     def __post_init__(self):
         require_finite(self, ("degraded_after", "alarm_after", "accel_uncertainty",
                               "max_acceleration", "nis_z", "nis_alarm", "reanchor_hold",
-                              "command_timeout", "pos_z"), strict=False)
+                              "command_timeout", "pos_z", "still_run", "still_count",
+                              "still_margin"), strict=False)
         require(self.alarm_after > self.degraded_after, "alarm_after", self.alarm_after,
                 "must be > degraded_after")
         require(self.blind_readings >= 1, "blind_readings", self.blind_readings, "must be >= 1")
@@ -147,8 +183,14 @@ class IntegrityMonitor:
     :meth:`reading` for every odometer outcome, :meth:`command`, :meth:`clock`, then
     :meth:`assess` for each estimate."""
 
-    def __init__(self, params: IntegrityParams = IntegrityParams(), period: float = 0.1):
+    def __init__(self, params: IntegrityParams = IntegrityParams(), period: float = 0.1,
+                 train=None, line=None):
         self.p, self.period = params, float(period)
+        # the believed train and line (``standing``; None: that check is off)
+        self.train, self.line = train, line
+        self.commands: deque = deque()  # (stamp, m/s^2) of the commands of the last window
+        self.counts_seen: deque = deque()  # (stamp, odometer count m) of the last window
+        self.fused_seen: deque = deque()  # (stamp, count m, speed m/s) of fused readings
         self.last_fused = -math.inf  # stamp of the last fused odometer reading
         self.refused_run = 0  # odometer readings refused since the last fused one
         self.last_command = -math.inf  # stamp of the last command
@@ -169,6 +211,9 @@ class IntegrityMonitor:
         #   speed variance) of the latest odometer reading fused or refused by the gate only
         self.pending_balise: tuple | None = None  # (stamp, position, variance) of the last
         #   fused balise, until the next odometer position reading judges it again
+        self.reacquired: tuple | None = None  # (stamp, why) from the first odometer reading
+        #   fused after a blind run onto a jump, or a count standing under traction, until a
+        #   balise confirms the odometer's track
         self.counts = {NAMES[k]: 0 for k in NAMES}
         self.last_state = (OK, "")
 
@@ -182,12 +227,17 @@ class IntegrityMonitor:
         if not math.isfinite(stamp):
             self.refused_run += 1
             return
+        self._count_seen(stamp, fields)
         if fused or gate:
             self._track(stamp, fields, position, fused)
         if not fused:
             self.refused_run += 1
             return
+        if self.refused_run >= self.p.blind_readings and self._jumps(stamp, position):
+            self.reacquired = (stamp, f"the odometer taken again after {self.refused_run} "
+                                      "readings refused in a row")
         self.refused_run = 0
+        self._fused_seen(stamp, fields)
         self.last_fused = max(self.last_fused, stamp)
         self.last_reading = max(self.last_reading, stamp)
         if fields is not None and self.prev is not None:
@@ -216,6 +266,23 @@ class IntegrityMonitor:
         if self.pending_balise is not None and stamp > self.pending_balise[0]:
             self._balise_between(stamp, z, r, fused)
         self.odo_track = (stamp, z, r, v, rv)
+
+    def _jumps(self, stamp: float, position: tuple | None) -> bool:
+        """Whether a reading's position lies more than ``pos_z`` standard deviations (the
+        filter's own position variance carried to it, plus the reading's) from the last
+        estimate carried to its stamp: the estimate jumps to take it. A reading that continues
+        the prediction after the filter refused a run of late ones (a recorder's stall) does
+        not; one that moves a kilometre onto a count stuck since the last stop does."""
+        if position is None or self.prev_pos is None:
+            return False
+        t0, x0, v0, a0, pxx, pvv = self.prev_pos
+        z, r = float(position[0]), float(position[1])
+        dt = stamp - t0
+        a0 = a0 if math.isfinite(a0) else 0.0
+        s = pxx + pvv * dt * dt + r
+        if not (math.isfinite(z) and math.isfinite(s) and s > 0 and dt >= 0):
+            return False
+        return abs(z - (x0 + v0 * dt + 0.5 * a0 * dt * dt)) > self.p.pos_z * math.sqrt(s)
 
     def _position_bias(self, stamp: float, position: tuple) -> None:
         t0, x0, v0, a0, pxx, pvv = self.prev_pos
@@ -267,7 +334,8 @@ class IntegrityMonitor:
                 self.balise_doubt = None  # nothing to judge it against: taken as it is
                 return
             self.pending_balise = (stamp, pos, var)
-            self._judge_balise(stamp, pos, var, *odo, may_clear=True)
+            if self._judge_balise(stamp, pos, var, *odo, may_clear=True):
+                self.reacquired = None  # an independent position agrees with the odometer
             return
         if reason == R.OUTSIDE_GATE:
             # the two tracks: the odometer's, and the balise's (the odometer's moved by their
@@ -288,16 +356,18 @@ class IntegrityMonitor:
         return abs(z - odo[0]) <= self.p.pos_z * math.sqrt(odo[1] + r) and abs(v - v0) <= dv
 
     def _judge_balise(self, stamp: float, pos: float, var: float, z: float, s: float,
-                      may_clear: bool) -> None:
+                      may_clear: bool) -> bool:
         """A fused balise against the odometer's position ``z`` (variance ``s``) at its stamp:
         a doubt when they disagree beyond ``pos_z``; an agreement ends one only when
-        ``may_clear`` (judged on a reading the filter fused)."""
+        ``may_clear`` (judged on a reading the filter fused). True when they agree."""
         nu = pos - z
         if abs(nu) > self.p.pos_z * math.sqrt(s + var):
             self.balise_doubt = (stamp, nu, f"fused {nu:+.1f} m from the odometer's position",
                                  True)
-        elif may_clear:
+            return False
+        if may_clear:
             self.balise_doubt = None
+        return True
 
     def _balise_between(self, t1: float, z1: float, r1: float, fused: bool) -> None:
         """The last fused balise judged again once the odometer reading after it is in: the
@@ -329,9 +399,139 @@ class IntegrityMonitor:
         a = self.p.accel_uncertainty if accel is None else accel
         return z + v * dt, r + rv * dt * dt + (0.5 * a * dt * dt) ** 2
 
-    def command(self, stamp: float) -> None:
+    def command(self, stamp: float, value: float = math.nan) -> None:
         if math.isfinite(stamp):
             self.last_command = max(self.last_command, stamp)
+            if self.train is not None and math.isfinite(value):
+                self.commands.append((stamp, float(value)))
+                self._trim(self.commands, stamp)
+
+    # s, the spans over which the ``standing`` check asks whether the count moved
+    STILL_SPANS = (1.0, 1.5, 2.0, 3.0, 4.0, 6.0, 8.0, 12.0, 16.0, 24.0)
+
+    def _window(self) -> float:
+        """s: the commands and counts the ``standing`` check looks back over."""
+        b = self.train.brake
+        return b.delay + 3.0 * b.time_constant + self.STILL_SPANS[-1] + 1.0
+
+    def _trim(self, q: deque, stamp: float) -> None:
+        # keep one entry older than the window (the command in force at its start)
+        while len(q) > 1 and q[1][0] < stamp - self._window():
+            q.popleft()
+
+    def _count_seen(self, stamp: float, fields: dict | None) -> None:
+        if self.train is None or not isinstance(fields, dict):
+            return
+        try:
+            d = float(fields["distance"])
+        except (KeyError, TypeError, ValueError):
+            return
+        if math.isfinite(d):
+            self.counts_seen.append((stamp, d))
+            self._trim(self.counts_seen, stamp)
+
+    def _fused_seen(self, stamp: float, fields: dict | None) -> None:
+        if self.train is None or not isinstance(fields, dict):
+            return
+        try:
+            d, v = float(fields["distance"]), float(fields["speed"])
+        except (KeyError, TypeError, ValueError):
+            return
+        if math.isfinite(d) and math.isfinite(v):
+            self.fused_seen.append((stamp, d, v))
+            self._trim(self.fused_seen, stamp)
+
+    def _stopped_short(self, t: float, x: float) -> str:
+        """Why the count that stands since its last move cannot be a train that stopped (the
+        speed read at that move is more than any braking takes away in the time since), or
+        "" (module doc, ``standing``)."""
+        if self.train is None or self.line is None or len(self.fused_seen) < 4 or \
+                not math.isfinite(x):
+            return ""
+        p, tr = self.p, self.train
+        seen = sorted(self.fused_seen)
+        d_now = seen[-1][1]
+        tol = self._count_tolerance()
+        # the readings at the newest count: all but the first must read standstill
+        k = len(seen) - 1
+        while k >= 0 and abs(seen[k][1] - d_now) < tol:
+            k -= 1
+        at = seen[k + 1:]
+        if len(at) < 2 or at[-1][0] < t - 2.5 * self.period or \
+                any(abs(v) > V_STILL for _, _, v in at[1:]):
+            return ""  # no two readings at one count, or none lately (an outage says nothing)
+        v0 = abs(at[0][2])
+        # the strongest deceleration the train can have there: its emergency brake, its
+        # resistance at that speed, the map's climb, and the margin
+        a_stop = (tr.performance.emergency_brake + tr.resistance_accel(v0 if v0 > V_STILL else
+                                                                       abs(seen[k][2]))
+                  + max(float(self.line.gradient_accel(x)), 0.0) / (1.0 + tr.rotary_allowance)
+                  + p.still_margin)
+        if v0 <= V_STILL:
+            if k < 0:
+                return ""
+            # the count moved up to its first reading here: the least speed there, from the
+            # last move's and braking since (through an outage, to a stop)
+            v0 = max(abs(seen[k][2]) - a_stop * (at[0][0] - seen[k][0]), 0.0)
+        # the least the train runs while the readings stay at one count (lost ones between
+        # them do not matter: the count is the same at both ends of a gap)
+        span = at[-1][0] - at[0][0]
+        run = v0 * span - 0.5 * a_stop * span * span if v0 > a_stop * span else \
+            v0 * v0 / (2.0 * a_stop)
+        stood, v = at[1:], v0
+        if run < p.still_run:
+            return ""
+        return (f"the count stood {span:.1f} s ({len(stood)} readings at standstill) from "
+                f"{v:.1f} m/s at least: braking at {a_stop:.2f} m/s^2, the most there is, "
+                f"runs the train {run:.0f} m")
+
+    def _count_tolerance(self) -> float:
+        """m, the spread of counts that is no move: ``still_count`` or four of the odometer's
+        stated distance standard deviations, the larger."""
+        return max(self.p.still_count, 4.0 * float(getattr(self.train, "odometer_distance_std",
+                                                             0.0) or 0.0))
+
+    def _standing(self, t: float, x: float) -> str:
+        """Why the train cannot be standing where its odometer stands (module doc,
+        ``standing``), or ""."""
+        if self.train is None or self.line is None or not math.isfinite(x) or \
+                not self.commands or not self.counts_seen:
+            return ""
+        p, tr = self.p, self.train
+        if t - max(s for s, _ in self.commands) > p.command_timeout:
+            return ""  # the commands have stopped: the one in force now is not known
+        b = tr.brake
+        settle = b.delay + 3.0 * b.time_constant
+        hold = (tr.davis.a / tr.effective_mass
+                + max(float(self.line.gradient_accel(x)), 0.0) / (1.0 + tr.rotary_allowance)
+                + p.still_margin)
+        cmds = sorted(self.commands)
+        seen = sorted(self.counts_seen)
+        for span in self.STILL_SPANS:
+            if span < 2.5 * self.period:
+                continue  # three readings at least
+            t0 = t - span - settle
+            before = [a for s, a in cmds if s <= t0]
+            if not before:
+                return ""  # no command known in force over so long a span
+            a_sure = (1.0 - math.exp(-3.0)) * min([before[-1]]
+                                                   + [a for s, a in cmds if t0 < s <= t])
+            if a_sure <= hold:
+                return ""  # a longer span only lowers the traction surely delivered
+            if 0.5 * (a_sure - hold) * span * span < p.still_run:
+                continue
+            on = [(s, c) for s, c in seen if t - span <= s <= t]
+            d = [c for _, c in on]
+            # readings over the whole span (an outage says nothing about the count)
+            covered = len(on) >= 3 and on[0][0] <= t - span + 2.5 * self.period \
+                and on[-1][0] >= t - 2.5 * self.period
+            if covered and max(d) - min(d) < self._count_tolerance():
+                return (f"the count stood {span:g} s ({len(d)} readings within "
+                        f"{max(d) - min(d):.2f} m) while a traction of {a_sure:.2f} m/s^2 was "
+                        f"delivered, above the {hold:.2f} m/s^2 that holds the train there: "
+                        f"it must have run {0.5 * (a_sure - hold) * span * span:.0f} m")
+            return ""  # the count moved over the shortest span that decides
+        return ""
 
     def clock(self, held: int, reanchored_at: float | None = None, doubt: float = 0.0,
               conclusive: bool = False, measured: bool = False) -> None:
@@ -370,6 +570,15 @@ class IntegrityMonitor:
         if self.refused_run >= p.blind_readings:
             return self._label(out, t, ALARM, f"blind: {self.refused_run} readings refused in a "
                                            f"row", None)
+        if self.reacquired is None:
+            why_still = self._standing(t, out.position) or \
+                self._stopped_short(t, out.position)
+            if why_still:
+                self.reacquired = (t, why_still)
+        if self.reacquired is not None:
+            kind = "standing" if self.reacquired[1].startswith("the count") else "reacquired"
+            return self._label(out, t, ALARM, f"{kind}: {self.reacquired[1]}; no balise has "
+                                           "confirmed the odometer since", None)
         degraded_after = max(p.degraded_after, 2.5 * self.period)  # a slow odometer's gaps
         if tau > p.alarm_after:
             return self._label(out, t, ALARM, f"no_measurement: {tau:.1f} s", None)

@@ -208,7 +208,9 @@ class EstimatorRunner:
             raise ValueError(f"control_clock must be auto, same or reference, "
                              f"got {self.control_clock!r}")
         if self.monitor is None:
-            self.monitor = IntegrityMonitor(self.integrity, self.period)
+            self.monitor = IntegrityMonitor(self.integrity, self.period,
+                                            getattr(self.adapter, "train", None),
+                                            getattr(self.adapter, "line", None))
         if self.command_timeout is None:
             self.command_timeout = self.integrity.command_timeout
         self._steps = StepWatch(self.period, self.min_judged, self.step_back, self.small_step,
@@ -582,7 +584,11 @@ class EstimatorRunner:
                                  pos(fields) if pos is not None and (fused or gate) and
                                  isinstance(fields, dict) else None, gate=gate)
         elif kind == "control" and not reason:
-            self.monitor.command(stamp)
+            try:
+                a = float(fields["target_acceleration"])
+            except (KeyError, TypeError, ValueError):
+                a = math.nan
+            self.monitor.command(stamp, a)
         elif kind == "balise":
             self.monitor.balise(stamp, fields if isinstance(fields, dict) else None,
                                 not reason or R.category(reason) in R.ACCEPTED,
