@@ -276,6 +276,23 @@ def test_the_position_test_flags_a_distance_bias_and_covers_it(bias, want):
         assert "position" in out.integrity_reason and out.covariance[0] > 0.04 * bias ** 2
 
 
+def _stuck_odometer(sc, res, kind, t0):
+    """The run with every odometer reading from ``t0`` on repeating the last count and reading
+    standstill, replayed: (outputs, position errors), asserting no wrong-side estimate."""
+    stuck = {}
+
+    def mod(topic, t, f):
+        if topic == "odometer" and t >= t0:
+            stuck.setdefault("distance", f["distance"])
+            f = dict(f, distance=stuck["distance"], speed=0.0)
+        return topic, t, f, t + LAT
+
+    outs, _ = replay(_events(res, mod), adapter(sc, kind), 0.1, control_clock="same")
+    e, sig, lab, _ = _check(outs, res, lambda i, s: s)
+    assert _wrong_side(e, sig, lab) == 0
+    return outs, e
+
+
 @pytest.mark.parametrize("kind", ["robust", "kf"])
 def test_an_odometer_stuck_while_cruising_is_not_taken_again_without_a_balise(demo, kind):
     """From the first time the train runs at 15 m/s the odometer repeats its last count and
@@ -286,17 +303,7 @@ def test_an_odometer_stuck_while_cruising_is_not_taken_again_without_a_balise(de
     on, never an OK estimate on the stuck count."""
     sc, res = demo
     t0 = float(res.truth["t"][np.argmax(np.asarray(res.truth["velocity"]) > 15.0)])
-    stuck = {}
-
-    def mod(topic, t, f):
-        if topic == "odometer" and t >= t0:
-            stuck.setdefault("distance", f["distance"])
-            f = dict(f, distance=stuck["distance"], speed=0.0)
-        return topic, t, f, t + LAT
-
-    outs, _ = replay(_events(res, mod), adapter(sc, kind), 0.1, control_clock="same")
-    e, sig, lab, tt = _check(outs, res, lambda i, s: s)
-    assert _wrong_side(e, sig, lab) == 0
+    outs, e = _stuck_odometer(sc, res, kind, t0)
     why = [o.integrity_reason for o in outs]
     jumped = next(i for i, w in enumerate(why) if w.startswith("reacquired"))
     assert all(o.integrity == ALARM for o in outs[jumped:])
@@ -347,17 +354,7 @@ def test_an_odometer_stuck_during_a_dwell_raises_an_alarm_as_the_train_departs(d
     train metres within seconds on this flat start: ALARM before the error reaches five of
     the published standard deviations, and from then on until a balise agrees."""
     sc, res = demo
-    stuck = {}
-
-    def mod(topic, t, f):
-        if topic == "odometer" and t >= 5.0:
-            stuck.setdefault("distance", f["distance"])
-            f = dict(f, distance=stuck["distance"], speed=0.0)
-        return topic, t, f, t + LAT
-
-    outs, _ = replay(_events(res, mod), adapter(sc, kind), 0.1, control_clock="same")
-    e, sig, lab, tt = _check(outs, res, lambda i, s: s)
-    assert _wrong_side(e, sig, lab) == 0
+    outs, e = _stuck_odometer(sc, res, kind, 5.0)
     first = next(i for i, o in enumerate(outs) if o.integrity_reason.startswith("standing"))
     assert all(o.integrity == ALARM for o in outs[first:])
     assert np.max(np.abs(e)) > 500.0
