@@ -211,9 +211,8 @@ class IntegrityMonitor:
         #   speed variance) of the latest odometer reading fused or refused by the gate only
         self.pending_balise: tuple | None = None  # (stamp, position, variance) of the last
         #   fused balise, until the next odometer position reading judges it again
-        self.reacquired: tuple | None = None  # (stamp, why) from the first odometer reading
-        #   fused after a blind run onto a jump, or a count standing under traction, until a
-        #   balise confirms the odometer's track
+        self.count_doubt: tuple | None = None  # (stamp, check, why): the odometer's count in
+        #   doubt (``reacquired`` or ``standing``) until a balise confirms its track
         self.counts = {NAMES[k]: 0 for k in NAMES}
         self.last_state = (OK, "")
 
@@ -227,17 +226,18 @@ class IntegrityMonitor:
         if not math.isfinite(stamp):
             self.refused_run += 1
             return
-        self._count_seen(stamp, fields)
+        self._remember(self.counts_seen, stamp, fields, ("distance",))
         if fused or gate:
             self._track(stamp, fields, position, fused)
         if not fused:
             self.refused_run += 1
             return
         if self.refused_run >= self.p.blind_readings and self._jumps(stamp, position):
-            self.reacquired = (stamp, f"the odometer taken again after {self.refused_run} "
-                                      "readings refused in a row")
+            self.count_doubt = (stamp, "reacquired", f"the odometer taken again after "
+                                                     f"{self.refused_run} readings refused in "
+                                                     "a row")
         self.refused_run = 0
-        self._fused_seen(stamp, fields)
+        self._remember(self.fused_seen, stamp, fields, ("distance", "speed"))
         self.last_fused = max(self.last_fused, stamp)
         self.last_reading = max(self.last_reading, stamp)
         if fields is not None and self.prev is not None:
@@ -275,24 +275,27 @@ class IntegrityMonitor:
         not; one that moves a kilometre onto a count stuck since the last stop does."""
         if position is None or self.prev_pos is None:
             return False
-        t0, x0, v0, a0, pxx, pvv = self.prev_pos
         z, r = float(position[0]), float(position[1])
-        dt = stamp - t0
-        a0 = a0 if math.isfinite(a0) else 0.0
-        s = pxx + pvv * dt * dt + r
+        dt, pred, s = self._carried(stamp)
+        s += r
         if not (math.isfinite(z) and math.isfinite(s) and s > 0 and dt >= 0):
             return False
-        return abs(z - (x0 + v0 * dt + 0.5 * a0 * dt * dt)) > self.p.pos_z * math.sqrt(s)
+        return abs(z - pred) > self.p.pos_z * math.sqrt(s)
+
+    def _carried(self, stamp: float) -> tuple[float, float, float]:
+        """The last estimate whose covariance is known carried to ``stamp`` at its speed and
+        acceleration: (dt s, position m, the filter's own position variance carried, m^2)."""
+        t0, x0, v0, a0, pxx, pvv = self.prev_pos
+        dt = stamp - t0
+        a0 = a0 if math.isfinite(a0) else 0.0
+        return dt, x0 + v0 * dt + 0.5 * a0 * dt * dt, pxx + pvv * dt * dt
 
     def _position_bias(self, stamp: float, position: tuple) -> None:
-        t0, x0, v0, a0, pxx, pvv = self.prev_pos
         z, r = position[:2]
-        dt = stamp - t0
+        dt, pred, s = self._carried(stamp)
         if not (math.isfinite(z) and math.isfinite(r) and r > 0 and 0 <= dt <= 2.0):
             return  # across a gap the test says nothing (no_measurement covers it)
-        a0 = a0 if math.isfinite(a0) else 0.0
-        pred = x0 + v0 * dt + 0.5 * a0 * dt * dt
-        s = pxx + pvv * dt * dt + (0.5 * self.p.accel_uncertainty * dt * dt) ** 2 + r
+        s += (0.5 * self.p.accel_uncertainty * dt * dt) ** 2 + r
         if math.isfinite(s) and s > 0:
             self.pos.append((z - pred, s))
 
@@ -335,7 +338,7 @@ class IntegrityMonitor:
                 return
             self.pending_balise = (stamp, pos, var)
             if self._judge_balise(stamp, pos, var, *odo, may_clear=True):
-                self.reacquired = None  # an independent position agrees with the odometer
+                self.count_doubt = None  # an independent position agrees with the odometer
             return
         if reason == R.OUTSIDE_GATE:
             # the two tracks: the odometer's, and the balise's (the odometer's moved by their
@@ -419,27 +422,18 @@ class IntegrityMonitor:
         while len(q) > 1 and q[1][0] < stamp - self._window():
             q.popleft()
 
-    def _count_seen(self, stamp: float, fields: dict | None) -> None:
+    def _remember(self, q: deque, stamp: float, fields: dict | None, keys: tuple) -> None:
+        """``(stamp, fields[k] for k in keys)`` into the window ``q`` when every value is a
+        finite number (the ``standing`` check's; nothing without a believed train)."""
         if self.train is None or not isinstance(fields, dict):
             return
         try:
-            d = float(fields["distance"])
+            vals = tuple(float(fields[k]) for k in keys)
         except (KeyError, TypeError, ValueError):
             return
-        if math.isfinite(d):
-            self.counts_seen.append((stamp, d))
-            self._trim(self.counts_seen, stamp)
-
-    def _fused_seen(self, stamp: float, fields: dict | None) -> None:
-        if self.train is None or not isinstance(fields, dict):
-            return
-        try:
-            d, v = float(fields["distance"]), float(fields["speed"])
-        except (KeyError, TypeError, ValueError):
-            return
-        if math.isfinite(d) and math.isfinite(v):
-            self.fused_seen.append((stamp, d, v))
-            self._trim(self.fused_seen, stamp)
+        if all(math.isfinite(u) for u in vals):
+            q.append((stamp, *vals))
+            self._trim(q, stamp)
 
     def _stopped_short(self, t: float, x: float) -> str:
         """Why the count that stands since its last move cannot be a train that stopped (the
@@ -461,15 +455,16 @@ class IntegrityMonitor:
                 any(abs(v) > V_STILL for _, _, v in at[1:]):
             return ""  # no two readings at one count, or none lately (an outage says nothing)
         v0 = abs(at[0][2])
+        moving = v0 > V_STILL
+        if not moving and k < 0:
+            return ""
         # the strongest deceleration the train can have there: its emergency brake, its
         # resistance at that speed, the map's climb, and the margin
-        a_stop = (tr.performance.emergency_brake + tr.resistance_accel(v0 if v0 > V_STILL else
-                                                                       abs(seen[k][2]))
+        a_stop = (tr.performance.emergency_brake
+                  + tr.resistance_accel(v0 if moving else abs(seen[k][2]))
                   + max(float(self.line.gradient_accel(x)), 0.0) / (1.0 + tr.rotary_allowance)
                   + p.still_margin)
-        if v0 <= V_STILL:
-            if k < 0:
-                return ""
+        if not moving:
             # the count moved up to its first reading here: the least speed there, from the
             # last move's and braking since (through an outage, to a stop)
             v0 = max(abs(seen[k][2]) - a_stop * (at[0][0] - seen[k][0]), 0.0)
@@ -478,11 +473,10 @@ class IntegrityMonitor:
         span = at[-1][0] - at[0][0]
         run = v0 * span - 0.5 * a_stop * span * span if v0 > a_stop * span else \
             v0 * v0 / (2.0 * a_stop)
-        stood, v = at[1:], v0
         if run < p.still_run:
             return ""
-        return (f"the count stood {span:.1f} s ({len(stood)} readings at standstill) from "
-                f"{v:.1f} m/s at least: braking at {a_stop:.2f} m/s^2, the most there is, "
+        return (f"the count stood {span:.1f} s ({len(at) - 1} readings at standstill) from "
+                f"{v0:.1f} m/s at least: braking at {a_stop:.2f} m/s^2, the most there is, "
                 f"runs the train {run:.0f} m")
 
     def _count_tolerance(self) -> float:
@@ -570,15 +564,15 @@ class IntegrityMonitor:
         if self.refused_run >= p.blind_readings:
             return self._label(out, t, ALARM, f"blind: {self.refused_run} readings refused in a "
                                            f"row", None)
-        if self.reacquired is None:
+        if self.count_doubt is None:
             why_still = self._standing(t, out.position) or \
                 self._stopped_short(t, out.position)
             if why_still:
-                self.reacquired = (t, why_still)
-        if self.reacquired is not None:
-            kind = "standing" if self.reacquired[1].startswith("the count") else "reacquired"
-            return self._label(out, t, ALARM, f"{kind}: {self.reacquired[1]}; no balise has "
-                                           "confirmed the odometer since", None)
+                self.count_doubt = (t, "standing", why_still)
+        if self.count_doubt is not None:
+            _, check, why_doubt = self.count_doubt
+            return self._label(out, t, ALARM, f"{check}: {why_doubt}; no balise has confirmed "
+                                           "the odometer since", None)
         degraded_after = max(p.degraded_after, 2.5 * self.period)  # a slow odometer's gaps
         if tau > p.alarm_after:
             return self._label(out, t, ALARM, f"no_measurement: {tau:.1f} s", None)
