@@ -117,6 +117,7 @@ replay of a bag reproduces a node's labels exactly.
 
 from __future__ import annotations
 
+import bisect
 import math
 from collections import deque
 from dataclasses import dataclass, replace
@@ -128,6 +129,7 @@ from .. import reasons as R
 
 OK, DEGRADED, ALARM = 0, 1, 2
 V_STILL = 0.5  # m/s: an odometer speed reading at or below this reads standstill
+SURE = 1.0 - math.exp(-3.0)  # a first-order lag's output three time constants after a step
 UNBOUNDED = 1e12  # m^2, (m/s)^2: the variance published when the filter's is not usable
 NAMES = {OK: "OK", DEGRADED: "DEGRADED", ALARM: "ALARM"}
 
@@ -406,8 +408,7 @@ class IntegrityMonitor:
         if math.isfinite(stamp):
             self.last_command = max(self.last_command, stamp)
             if self.train is not None and math.isfinite(value):
-                self.commands.append((stamp, float(value)))
-                self._trim(self.commands, stamp)
+                self._keep(self.commands, (stamp, float(value)))
 
     # s, the spans over which the ``standing`` check asks whether the count moved
     STILL_SPANS = (1.0, 1.5, 2.0, 3.0, 4.0, 6.0, 8.0, 12.0, 16.0, 24.0)
@@ -417,9 +418,15 @@ class IntegrityMonitor:
         b = self.train.brake
         return b.delay + 3.0 * b.time_constant + self.STILL_SPANS[-1] + 1.0
 
-    def _trim(self, q: deque, stamp: float) -> None:
-        # keep one entry older than the window (the command in force at its start)
-        while len(q) > 1 and q[1][0] < stamp - self._window():
+    def _keep(self, q: deque, item: tuple) -> None:
+        """``item`` (stamp first) into the window ``q``, kept in order (a rewound runner tells
+        past items again), and what lies before the window dropped, but for one entry (the
+        command in force at its start)."""
+        if not q or item >= q[-1]:
+            q.append(item)
+        else:
+            bisect.insort(q, item)
+        while len(q) > 1 and q[1][0] < q[-1][0] - self._window():
             q.popleft()
 
     def _remember(self, q: deque, stamp: float, fields: dict | None, keys: tuple) -> None:
@@ -432,8 +439,7 @@ class IntegrityMonitor:
         except (KeyError, TypeError, ValueError):
             return
         if all(math.isfinite(u) for u in vals):
-            q.append((stamp, *vals))
-            self._trim(q, stamp)
+            self._keep(q, (stamp, *vals))
 
     def _stopped_short(self, t: float, x: float) -> str:
         """Why the count that stands since its last move cannot be a train that stopped (the
@@ -443,9 +449,11 @@ class IntegrityMonitor:
                 not math.isfinite(x):
             return ""
         p, tr = self.p, self.train
-        seen = sorted(self.fused_seen)
-        d_now = seen[-1][1]
         tol = self._count_tolerance()
+        if abs(self.fused_seen[-2][1] - self.fused_seen[-1][1]) >= tol:
+            return ""  # the count moved at the last reading (the train runs, as it mostly does)
+        seen = list(self.fused_seen)  # in stamp order (_keep)
+        d_now = seen[-1][1]
         # the readings at the newest count: all but the first must read standstill
         k = len(seen) - 1
         while k >= 0 and abs(seen[k][1] - d_now) < tol:
@@ -492,24 +500,32 @@ class IntegrityMonitor:
                 not self.commands or not self.counts_seen:
             return ""
         p, tr = self.p, self.train
-        if t - max(s for s, _ in self.commands) > p.command_timeout:
+        if t - self.commands[-1][0] > p.command_timeout:
             return ""  # the commands have stopped: the one in force now is not known
+        # the command in force at t (the window is in stamp order, _keep)
+        current = next((a for s, a in reversed(self.commands) if s <= t), None)
+        hold = tr.davis.a / tr.effective_mass + p.still_margin
+        if current is None or SURE * current <= hold:
+            return ""  # the traction in force now (a bound on every span's) holds the train
+        # on a climb the map's gradient holds it too (looked up only where the traction could
+        # matter: the lookup costs more than the rest of the check)
+        hold += max(float(self.line.gradient_accel(x)), 0.0) / (1.0 + tr.rotary_allowance)
+        if SURE * current <= hold:
+            return ""
+        stamps = [s for s, _ in self.commands]
+        vals = [a for _, a in self.commands]
+        now = bisect.bisect_right(stamps, t)  # the commands up to t
         b = tr.brake
         settle = b.delay + 3.0 * b.time_constant
-        hold = (tr.davis.a / tr.effective_mass
-                + max(float(self.line.gradient_accel(x)), 0.0) / (1.0 + tr.rotary_allowance)
-                + p.still_margin)
-        cmds = sorted(self.commands)
-        seen = sorted(self.counts_seen)
+        seen = list(self.counts_seen)
         for span in self.STILL_SPANS:
             if span < 2.5 * self.period:
                 continue  # three readings at least
             t0 = t - span - settle
-            before = [a for s, a in cmds if s <= t0]
-            if not before:
+            first = bisect.bisect_right(stamps, t0)  # the command in force at t0: first - 1
+            if first == 0:
                 return ""  # no command known in force over so long a span
-            a_sure = (1.0 - math.exp(-3.0)) * min([before[-1]]
-                                                   + [a for s, a in cmds if t0 < s <= t])
+            a_sure = SURE * min(vals[first - 1:now])
             if a_sure <= hold:
                 return ""  # a longer span only lowers the traction surely delivered
             if 0.5 * (a_sure - hold) * span * span < p.still_run:
