@@ -24,7 +24,8 @@ traction onset; braking x 0.6-0.75 below 35-50 % of the top speed, or limited to
 knee at 45-65 % of it; aerodynamic drag added in a 500-900 m tunnel run above 60 % of the top
 speed, a constant force for 60-120 s (wind), a drag while coasting, a resistance above 60-80 %
 of the top speed (hunting), a resistance decaying from the start (warming up), each 0.04-0.08
-m/s^2 where it acts; an odometer reading 0.04-0.1 m/s more or less while moving; a balise 8-20
+m/s^2 where it acts; an odometer reading 0.04-0.1 m/s more or less while moving, or a radar
+odometer whose error grows as the square of the speed (1-2 % at the top speed); a balise 8-20
 m from its map position; a train clock that jumps by 0.5-3 s. Printed: how often diagnose says
 `unexplained` and confirms no listed cause, how often it confirms a listed one, and whether
 its signature names the effect's phase (a coasting drag is scored only where the nominal run
@@ -78,7 +79,8 @@ KINDS = ("none", "gradient", "resistance", "braking_rate", "mass", "odometer_sca
 UNLISTED = {"traction_gain": "traction", "traction_fade": "traction", "traction_cut": "traction",
             "traction_trip": "traction", "brake_fade": "braking", "brake_power": "braking",
             "tunnel": "all", "wind": "all", "coast_drag": "coasting", "hunting": "all",
-            "warmup": "all", "odometer_bias": "all", "balise_moved": "all", "clock_step": "all"}
+            "warmup": "all", "odometer_bias": "all", "balise_moved": "all", "clock_step": "all",
+            "odometer_speed": "all"}
 STAMP_KINDS = ("clock_drift", "clock_step")  # effects on the train clock's stamps only
 COAST_MIN = 10.0  # s the nominal run must coast for a coasting drag to be scored
 OUT = os.path.join(HERE, "out")
@@ -193,6 +195,9 @@ def unlisted_effect_of(kind: str, line: dict, train: dict, rng, pilot) -> FS.Eff
         return FS.Effect(warmup=(float(rng.uniform(0.2, 0.35)) * span, 1.5 * acc * m_eff))
     if kind == "odometer_bias":
         return FS.Effect(odometer_bias=_sign(rng) * float(rng.uniform(0.04, 0.1)))
+    if kind == "odometer_speed":
+        # a radar whose error grows as the square of the speed: 1-2 % at the top speed
+        return FS.Effect(odometer_speed=(v_top, _sign(rng) * float(rng.uniform(0.01, 0.02))))
     if kind == "balise_moved":
         xb = sorted((float(b["position"]), int(b["id"])) for b in line.get("balises", [])
                     if x.min() < float(b["position"]) < x.max())

@@ -61,8 +61,18 @@ class Effect:
     hunting: tuple | None = None  # (v m/s, N): a resistance added above v
     warmup: tuple | None = None  # (tau s, N): a resistance of N exp(-t / tau) added
     odometer_bias: float = 0.0  # m/s the odometer reads more while moving (and counts)
+    # (v m/s, k): a radar odometer reads v (1 + k (v / v_ref)^2) and counts it
+    odometer_speed: tuple | None = None
     balise_moved: tuple | None = None  # (balise id, m): that balise lies m further on
     clock_step: tuple | None = None  # (t s, s): the train clock jumps by s at t
+
+
+def _radar(effect: Effect, v: float) -> float:
+    """m/s a radar odometer reads beyond the speed ``v`` (0 without ``odometer_speed``)."""
+    if effect.odometer_speed is None:
+        return 0.0
+    v_ref, k = effect.odometer_speed
+    return k * (v / v_ref) ** 2 * v
 
 
 def _profile(sections, x: float) -> float:
@@ -252,7 +262,7 @@ def simulate(line: dict, train: dict, effect: Effect, rng: np.random.Generator,
         x += v_new * dt
         v = v_new
         if v > 0.0:
-            odo_extra += effect.odometer_bias * dt
+            odo_extra += (effect.odometer_bias + _radar(effect, v)) * dt
         t += dt
         while bi < len(balises) and balises[bi][0] <= x:
             p, bid, told = balises[bi]
@@ -268,7 +278,7 @@ def simulate(line: dict, train: dict, effect: Effect, rng: np.random.Generator,
             d = effect.odometer_scale * (x - stations[0]) + odo_extra \
                 + float(rng.normal(0.0, d_std))
             sp = effect.odometer_scale * v + float(rng.normal(0.0, s_std)) \
-                + (effect.odometer_bias if v > 0.0 else 0.0)
+                + (effect.odometer_bias if v > 0.0 else 0.0) + _radar(effect, v)
             send(t, "odometer", {"seq": seq_odo, "distance": d, "speed": sp,
                                  "speed_variance": s_std * s_std})
             seq_odo += 1

@@ -868,6 +868,25 @@ def test_an_odometer_that_rescales_mid_run_is_not_an_odometer_scale(seed, tmp_pa
     assert "effect on the odometer is needed" in scale["why"], scale["why"]
 
 
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [11, 12, 13])
+def test_an_odometer_whose_error_grows_with_speed_is_not_an_odometer_scale(seed, tmp_path):
+    """An odometer that reads (1 + k v / v_top) times the speed and counts it (a radar's
+    error, k 1-2 %) was confirmed as one odometer scale in all three: most of the distance is
+    run near the top speed. Against a count error that grows with speed (one parameter, as the
+    scale), the balises and the odometer prefer the law: not confirmed, k fitted to a tenth,
+    and the odometer's entry names the count's sign."""
+    uc, paths = _unlisted_bag("odometer_speed_scale", seed, tmp_path)
+    rep = _unexplained(paths, tmp_path)
+    scale = next(r for r in rep["ranking"] if r["cause"] == "odometer_scale")
+    assert scale["why"].startswith("a speed law fits better"), scale
+    law = rep["evidence"]["_model"]["confirmation"]["checks"]["odometer_scale"]["count_law"]
+    k = uc.scenario.unlisted.odometer_speed_scale.k
+    assert law["lr"] > 9.0 and abs(law["k"] - k) < 0.1 * abs(k), (law, k)
+    u = rep["unexplained"][0]
+    assert tool.on_odometer(u) and np.sign(u["size"]) == np.sign(k), u
+
+
 def test_a_power_limit_and_a_traction_delay_compose_in_either_order(metro, metro_run, tmp_path):
     """The limit caps the re-timed traction: the model of both is min(a_tr(t - s - d), p / v)
     whichever was accepted first (without it, one order added the delay's uncapped traction at

@@ -40,6 +40,9 @@ reported ``confirmed`` only when the checks below pass, the same for every cause
    the same way with a force fixed there (:func:`.contradict.braking_law`: a downhill
    gradient the map lacks, which braking at one command cannot tell from it); within
    +-``law_lr`` the check states it (``caveat``), and it never decides the status.
+   An odometer scale (``Cause.count_rival``) is compared likewise with an odometer error
+   growing with speed (:func:`.contradict.count_law`: a radar's), one parameter each: above
+   ``law_lr`` not confirmed, within +-``law_lr`` a caveat.
 4. **Not cancelling** another confirmed cause in a phase or on the stretch of a cause at a
    place (:func:`.contradict.cancelling`).
 5. **Better than a flexible term.** Causes confirmed together: each must beat (by BIC) free
@@ -75,6 +78,7 @@ from .causes import BY_NAME
 from .contradict import (
     braking_law,
     cancelling,
+    count_law,
     flexible_rival,
     piece_of,
     place_test,
@@ -214,6 +218,20 @@ def confirm(mo: Motion, shift: float, accepted: list, resolved_before: dict, cfg
             checks[a.cause]["caveat"] = told
             if ccfg.one_phase:
                 a.status, a.why = "not confirmed", told
+        if a.status == "confirmed" and cause.count_rival is not None:
+            cl = count_law(mo, others, cfg, noise)
+            checks[a.cause]["count_law"] = cl
+            lr, v = cl.get("lr", 0.0), cl.get("speeds")
+            at = f"speeds {v[0]:.0f}-{v[1]:.0f} m/s" if v else "no speeds"
+            if lr > ccfg.law_lr:
+                a.status = "not confirmed"
+                a.why = (f"a speed law fits better: {cause.count_rival} explains the balises "
+                         f"and the odometer better than one scale at every speed (2 ln LR "
+                         f"{lr:+.1f} > {ccfg.law_lr:g}; k {cl['k']:+.4f}; {at})")
+                continue
+            if lr > -ccfg.law_lr:
+                _caveat(checks[a.cause], f"cannot be told from {cause.count_rival} (2 ln LR "
+                                         f"{lr:+.1f}; {at})")
         if a.status != "confirmed" or (bey := cause.beyond(a, mo)) is None:
             continue
         if cause.time_rival is not None and (span := _one_pass(mo, a)) is not None:

@@ -486,6 +486,60 @@ def braking_law(mo: Motion, others: Null, cfg, noise, bins: tuple) -> dict:
                     "the braking command")
 
 
+def count_law(mo: Motion, others: Null, cfg, noise) -> dict:
+    """An odometer that counts one ``scale`` times the distance at every speed (a worn wheel)
+    against one whose error grows with speed, k v / v_top (a Doppler radar's, an axle that
+    slips more the faster it turns): both on top of the model ``others``, one parameter each,
+    in the odometer's distance and speed readings alike.
+
+    Returns ``lr``: 2 ln of the likelihood ratio of the speed law against the scale (> 0: the
+    data prefer the law; near 0 when the run is at one speed, where the two are the same
+    count); from the fit of both together, a ((1 - b) scale + b law) with the law scaled to
+    the same count at the run's mean speed: ``b`` (0 the scale, 1 the law) and its standard
+    error; ``k`` (the law's relative error at v_top) and the speeds moved at (5-95 %)."""
+    n = mo.ev.t.size
+    o = mo.ev.odo
+    v = mo.sc_v[o]
+    moving = v > cfg.standstill_speed
+    res = {"law": "k v / v_top"}
+    if moving.sum() < 10:
+        res.update(lr=0.0, note="fewer than ten odometer readings while moving")
+        return res
+    v_top = float(np.max(v))
+    # the law's count: what the scale's distance increments become when each is weighted by
+    # the speed it was run at relative to the run's mean moving speed (the same count as the
+    # scale's over a run at that one speed), counted on; its speed reading the same
+    w = np.zeros(n)
+    w[o] = mo.sc_v[o] / float(np.mean(v[moving]))
+    inc = np.zeros(n)
+    inc[o] = np.diff(mo.sc_d[o], prepend=mo.sc_d[o][0])
+    law_d = counted_columns(mo, inc * w, [np.ones(n, bool)])[:, 0]
+    st = Stage(mo, others, cfg, noise=noise, big=False)
+    W = st.augmented(st.fv, st.fs, meas=(np.stack([mo.sc_d, law_d], axis=1),
+                                         np.stack([mo.sc_v, mo.sc_v * w], axis=1))).W
+    q0 = gls(W[:2, :2])[2]
+    stat, fitted = {}, {}
+    for name, j in (("scale", 2), ("law", 3)):
+        M = np.zeros((W.shape[0], 3))
+        M[0, 0] = M[1, 1] = M[j, 2] = 1.0
+        th, _, q1 = gls(W, M)
+        stat[name], fitted[name] = q0 - q1, float(th[1])
+    # both: a scale + c (law - scale), c / a = b
+    M = np.zeros((W.shape[0], 4))
+    M[0, 0] = M[1, 1] = 1.0
+    M[2, 2], M[3, 3], M[2, 3] = 1.0, 1.0, -1.0
+    th, cov, _ = gls(W, M)
+    amp = float(th[1])
+    share = float(th[2] / amp) if amp != 0 else float("nan")
+    se = float(math.sqrt(max(cov[2, 2], 0.0)) / abs(amp)) if amp != 0 else float("inf")
+    v_lo, v_hi = np.percentile(v[moving], [5, 95])
+    res.update(lr=float(stat["law"] - stat["scale"]), b=share, std_error=se,
+               scale=1.0 + fitted["scale"],
+               k=float(fitted["law"] * v_top / np.mean(v[moving])),
+               speeds=[float(v_lo), float(v_hi)])
+    return res
+
+
 def law_test(mo: Motion, others: Null, cfg, noise, bins: tuple, shape: np.ndarray,
              name: str) -> dict:
     """A force fixed at a place (a gradient on the position bins ``bins`` = (i, j)) against a

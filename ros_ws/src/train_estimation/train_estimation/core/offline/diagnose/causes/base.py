@@ -161,6 +161,10 @@ class Cause:
     # at its place) is not; None: the cause states no speed law of its own to test against.
     speed_rival: str | None = None
 
+    # An odometer error that grows with speed, which the cause (one scale at every speed) is
+    # not; None: the cause states no count law of its own to test against.
+    count_rival: str | None = None
+
     # A force fixed at that place (a gradient), which the cause (a force in proportion to the
     # braking asked for at its place) is not; None: the cause is no such law.
     fixed_rival: str | None = None

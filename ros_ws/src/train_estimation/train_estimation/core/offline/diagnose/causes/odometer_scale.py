@@ -13,6 +13,7 @@ class OdometerScale(Cause):
     name = "odometer_scale"
     family = "odometer"
     linear = True
+    count_rival = "an odometer error that grows with speed (k v / v_top: a radar's)"
 
     def untestable(self, run, cfg, own) -> str | None:
         if run.bal_t.size < 2:
