@@ -69,7 +69,12 @@ class Resistance(Cause):
         an aerodynamic effect at some speeds) is fitted by a Davis curve with a negative term,
         which no train has. The best fit with a, b, c >= 0 (each subset of them held at its
         bound, the rest free on the model ``others``) against the free one: 2 ln LR above
-        ``NONNEG_LR`` says the data need such a curve, and the resistance is not confirmed."""
+        ``NONNEG_LR`` says the data need such a curve, and the resistance is not confirmed.
+        At or below it the data do not need the negative term, and that best curve becomes
+        the fit (``fit.parameters``, in place): the physically right one, which the later
+        checks test. Below about 15 m/s the three terms are nearly collinear, and a free fit
+        can take a shape no train has (a tram's resistance x 0.62: a -251 N, b 217 N/(m/s),
+        c -11.4 N/(m/s)^2 for a true 387, 16, 1.2) that the split test then contradicts."""
         why = self._not_a_curve(mo, others, fit, cfg, noise)
         if why is not None:
             return why
@@ -83,19 +88,27 @@ class Resistance(Cause):
         th, _, ll_free, _ = st.fit({}, free)
         if np.all(th >= lb - 1e-12 * np.abs(lb)):
             return None
-        best = -np.inf
+        best, coef = -np.inf, None
         for mask in range(1, 8):  # the subsets held at their bound
             held = [k for k in range(3) if mask >> k & 1]
             rest = [k for k in range(3) if k not in held]
             t, _, ll, _ = st.fit({RESISTANCE_COLS[k]: lb[k] for k in held},
                                  [free[k] for k in rest])
-            if all(t[i] >= lb[k] - 1e-12 * abs(lb[k]) for i, k in enumerate(rest)):
-                best = max(best, ll)
+            if all(t[i] >= lb[k] - 1e-12 * abs(lb[k]) for i, k in enumerate(rest)) \
+                    and ll > best:
+                best, coef = ll, lb.copy()
+                coef[rest] = t
         lr = 2.0 * (ll_free - best)
         fit.extra["nonnegative_lr"] = float(lr)
+        meff = mo.train.effective_mass
         if lr <= NONNEG_LR:
+            val = (base + coef) * meff
+            fit.extra["free_fit"] = dict(fit.parameters)
+            fit.parameters = {"a": float(val[0]), "b": float(val[1]), "c": float(val[2])}
+            vr = fit.extra.get("v_ref", 0.0)
+            fit.extra["force_at_v_ref"] = float(val @ np.array([1.0, vr, vr * vr]))
             return None
-        tot = (base + th) * mo.train.effective_mass
+        tot = (base + th) * meff
         neg = ", ".join(f"{n} {v:.3g}" for n, v in zip("abc", tot) if v < 0)
         return (f"not a running resistance: the data need a Davis curve with a negative term "
                 f"({neg}; 2 ln LR {lr:.1f} > {NONNEG_LR:g} against the best with a, b, c >= 0): "
