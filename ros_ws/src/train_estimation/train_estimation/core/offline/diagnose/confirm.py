@@ -221,17 +221,10 @@ def confirm(mo: Motion, shift: float, accepted: list, resolved_before: dict, cfg
         if a.status == "confirmed" and cause.count_rival is not None:
             cl = count_law(mo, others, cfg, noise)
             checks[a.cause]["count_law"] = cl
-            lr, v = cl.get("lr", 0.0), cl.get("speeds")
-            at = f"speeds {v[0]:.0f}-{v[1]:.0f} m/s" if v else "no speeds"
-            if lr > ccfg.law_lr:
-                a.status = "not confirmed"
-                a.why = (f"a speed law fits better: {cause.count_rival} explains the balises "
-                         f"and the odometer better than one scale at every speed (2 ln LR "
-                         f"{lr:+.1f} > {ccfg.law_lr:g}; k {cl['k']:+.4f}; {at})")
+            if _law_verdict(a, checks[a.cause], cl, cause.count_rival,
+                            "the balises and the odometer better than one scale at every "
+                            "speed", ccfg, detail=f"k {cl.get('k', 0.0):+.4f}; "):
                 continue
-            if lr > -ccfg.law_lr:
-                _caveat(checks[a.cause], f"cannot be told from {cause.count_rival} (2 ln LR "
-                                         f"{lr:+.1f}; {at})")
         if a.status != "confirmed" or (bey := cause.beyond(a, mo)) is None:
             continue
         if cause.time_rival is not None and (span := _one_pass(mo, a)) is not None:
@@ -241,17 +234,10 @@ def confirm(mo: Motion, shift: float, accepted: list, resolved_before: dict, cfg
         if cause.speed_rival is not None:
             sl = speed_law(mo, others, cfg, noise, a.extra["bins"])
             checks[a.cause]["speed_law"] = sl
-            lr, v = sl.get("lr", 0.0), sl.get("speeds")
-            at = f"speeds {v[0]:.0f}-{v[1]:.0f} m/s on the stretch" if v else "no speeds"
-            if lr > ccfg.law_lr:
-                a.status = "not confirmed"
-                a.why = (f"a speed law fits better: {cause.speed_rival} explains the data "
-                         f"better than a fixed force there (2 ln LR {lr:+.1f} > "
-                         f"{ccfg.law_lr:g}; {at})")
+            if _law_verdict(a, checks[a.cause], sl, cause.speed_rival,
+                            "the data better than a fixed force there", ccfg,
+                            where=" on the stretch"):
                 continue
-            if lr > -ccfg.law_lr:
-                _caveat(checks[a.cause],
-                        f"cannot be told from {cause.speed_rival} (2 ln LR {lr:+.1f}; {at})")
         if cause.fixed_rival is not None and "bins" in a.extra:
             # the same comparison from the other side: the cause is the law (the braking
             # asked for), the rival the fixed force; told apart only where the braking asked
@@ -294,6 +280,24 @@ def _one_pass(mo: Motion, a) -> tuple[float, float] | None:
         return None
     beta = mo.run.clock["beta"]
     return float(mo.grid.t[idx[0]] / beta), float(mo.grid.t[idx[-1]] / beta)
+
+
+def _law_verdict(a, check: dict, res: dict, rival: str, than: str, ccfg: ConfirmConfig,
+                 detail: str = "", where: str = "") -> bool:
+    """The verdict of a comparison ``res`` of the cause ``a`` with a rival law of as many
+    parameters (``res["lr"]``: 2 ln LR of the law over the cause): above ``law_lr`` the cause
+    is not confirmed (returns True); within +-``law_lr`` the data cannot tell the two apart,
+    and the check's caveat says so."""
+    lr, v = res.get("lr", 0.0), res.get("speeds")
+    at = f"speeds {v[0]:.0f}-{v[1]:.0f} m/s{where}" if v else "no speeds"
+    if lr > ccfg.law_lr:
+        a.status = "not confirmed"
+        a.why = (f"a speed law fits better: {rival} explains {than} (2 ln LR {lr:+.1f} > "
+                 f"{ccfg.law_lr:g}; {detail}{at})")
+        return True
+    if lr > -ccfg.law_lr:
+        _caveat(check, f"cannot be told from {rival} (2 ln LR {lr:+.1f}; {at})")
+    return False
 
 
 def _caveat(check: dict, told: str) -> None:
