@@ -26,7 +26,9 @@ speed, a constant force for 60-120 s (wind), a drag while coasting, a resistance
 of the top speed (hunting), a resistance decaying from the start (warming up), each 0.04-0.08
 m/s^2 where it acts; an odometer reading 0.04-0.1 m/s more or less while moving, or a radar
 odometer whose error grows as the square of the speed (1-2 % at the top speed); a balise 8-20
-m from its map position; a train clock that jumps by 0.5-3 s. Printed: how often diagnose says
+m from its map position, or every balise stamped 0.2-0.5 s late; a train clock that jumps by
+0.5-3 s; brakes that fade as they heat (30-45 % weaker once they hold a stop from the top
+speed, cooling in 60-150 s). Printed: how often diagnose says
 `unexplained` and confirms no listed cause, how often it confirms a listed one, and whether
 its signature names the effect's phase (a coasting drag is scored only where the nominal run
 coasts 10 s or more). With ``--estimators``: every estimator's integrity on those runs.
@@ -80,7 +82,7 @@ UNLISTED = {"traction_gain": "traction", "traction_fade": "traction", "traction_
             "traction_trip": "traction", "brake_fade": "braking", "brake_power": "braking",
             "tunnel": "all", "wind": "all", "coast_drag": "coasting", "hunting": "all",
             "warmup": "all", "odometer_bias": "all", "balise_moved": "all", "clock_step": "all",
-            "odometer_speed": "all"}
+            "odometer_speed": "all", "brake_heat": "braking", "balise_late": "all"}
 STAMP_KINDS = ("clock_drift", "clock_step")  # effects on the train clock's stamps only
 COAST_MIN = 10.0  # s the nominal run must coast for a coasting drag to be scored
 OUT = os.path.join(HERE, "out")
@@ -195,6 +197,13 @@ def unlisted_effect_of(kind: str, line: dict, train: dict, rng, pilot) -> FS.Eff
         return FS.Effect(warmup=(float(rng.uniform(0.2, 0.35)) * span, 1.5 * acc * m_eff))
     if kind == "odometer_bias":
         return FS.Effect(odometer_bias=_sign(rng) * float(rng.uniform(0.04, 0.1)))
+    if kind == "brake_heat":
+        # brakes 30-45 % weaker once they hold the heat of a stop from the top speed, cooling
+        # with a time constant of 60-150 s
+        return FS.Effect(brake_heat=(0.5 * v_top * v_top, float(rng.uniform(60.0, 150.0)),
+                                     float(rng.uniform(0.3, 0.45))))
+    if kind == "balise_late":
+        return FS.Effect(balise_late=float(rng.uniform(0.2, 0.5)))
     if kind == "odometer_speed":
         # a radar whose error grows as the square of the speed: 1-2 % at the top speed
         return FS.Effect(odometer_speed=(v_top, _sign(rng) * float(rng.uniform(0.01, 0.02))))

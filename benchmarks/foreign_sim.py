@@ -63,6 +63,10 @@ class Effect:
     odometer_bias: float = 0.0  # m/s the odometer reads more while moving (and counts)
     # (v m/s, k): a radar odometer reads v (1 + k (v / v_ref)^2) and counts it
     odometer_speed: tuple | None = None
+    # (E0 m^2/s^2, tau s, f_max): brakes that fade as they heat, braking x (1 - f_max min(E /
+    # E0, 1)) with E the braking energy per kg, d E / dt = braking power / kg - E / tau
+    brake_heat: tuple | None = None
+    balise_late: float = 0.0  # s the balise reader stamps its readings late
     balise_moved: tuple | None = None  # (balise id, m): that balise lies m further on
     clock_step: tuple | None = None  # (t s, s): the train clock jumps by s at t
 
@@ -188,6 +192,7 @@ def simulate(line: dict, train: dict, effect: Effect, rng: np.random.Generator,
     last_cmd, last_logged = math.nan, -math.inf  # the last command logged, when (on_change)
     bi = next((i for i, (p, _, _) in enumerate(balises) if p > x), len(balises))
     odo_extra = 0.0  # m the odometer's bias has counted
+    heat = 0.0  # m^2/s^2, the brakes' heat as braking energy per kg (brake_heat)
     while leg < len(stations):
         if t >= next_cmd - 1e-9:
             target = stations[leg]
@@ -248,6 +253,10 @@ def simulate(line: dict, train: dict, effect: Effect, rng: np.random.Generator,
             drive_br *= effect.adhesion[2]
         if effect.brake_fade is not None and 0.0 < v < effect.brake_fade[0]:
             drive_br *= effect.brake_fade[1]
+        if effect.brake_heat is not None:
+            e0, tau_h, f_max = effect.brake_heat
+            drive_br *= 1.0 - f_max * min(heat / e0, 1.0)
+            heat += (-drive_br * v - heat / tau_h) * dt
         if effect.brake_power is not None and v > 0.0:
             drive_br = max(drive_br, -effect.brake_power / v)
         acc = kappa * (drive_tr + drive_br) - grad_acc(x)
@@ -268,8 +277,9 @@ def simulate(line: dict, train: dict, effect: Effect, rng: np.random.Generator,
             p, bid, told = balises[bi]
             tb = t - dt + dt * (p - x_old) / max(x - x_old, 1e-12)
             seq_bal += 1
-            send(tb, "balise", {"seq": seq_bal, "balise_id": bid, "position": told,
-                                "position_variance": p_std * p_std})
+            send(tb + effect.balise_late, "balise",
+                 {"seq": seq_bal, "balise_id": bid, "position": told,
+                  "position_variance": p_std * p_std})
             bi += 1
         if t >= next_odo - 1e-9:
             if truth is not None:
