@@ -505,12 +505,12 @@ def count_law(mo: Motion, others: Null, cfg, noise) -> dict:
     if moving.sum() < 10:
         res.update(lr=0.0, note="fewer than ten odometer readings while moving")
         return res
-    v_top = float(np.max(v))
+    v_top, v_mean = float(np.max(v)), float(np.mean(v[moving]))
     # the law's count: what the scale's distance increments become when each is weighted by
     # the speed it was run at relative to the run's mean moving speed (the same count as the
     # scale's over a run at that one speed), counted on; its speed reading the same
     w = np.zeros(n)
-    w[o] = mo.sc_v[o] / float(np.mean(v[moving]))
+    w[o] = mo.sc_v[o] / v_mean
     inc = np.zeros(n)
     inc[o] = np.diff(mo.sc_d[o], prepend=mo.sc_d[o][0])
     law_d = counted_columns(mo, inc * w, [np.ones(n, bool)])[:, 0]
@@ -528,16 +528,23 @@ def count_law(mo: Motion, others: Null, cfg, noise) -> dict:
     M = np.zeros((W.shape[0], 4))
     M[0, 0] = M[1, 1] = 1.0
     M[2, 2], M[3, 3], M[2, 3] = 1.0, 1.0, -1.0
-    th, cov, _ = gls(W, M)
-    amp = float(th[1])
-    share = float(th[2] / amp) if amp != 0 else float("nan")
-    se = float(math.sqrt(max(cov[2, 2], 0.0)) / abs(amp)) if amp != 0 else float("inf")
+    share, se = _law_share(W, M)
     v_lo, v_hi = np.percentile(v[moving], [5, 95])
     res.update(lr=float(stat["law"] - stat["scale"]), b=share, std_error=se,
                scale=1.0 + fitted["scale"],
-               k=float(fitted["law"] * v_top / np.mean(v[moving])),
+               k=fitted["law"] * v_top / v_mean,
                speeds=[float(v_lo), float(v_hi)])
     return res
+
+
+def _law_share(W: np.ndarray, M: np.ndarray) -> tuple[float, float]:
+    """From the fit of a cause and a rival law together, a g + c (h - g) (``M``'s last two
+    columns): the law's share b = c / a and its standard error."""
+    th, cov, _ = gls(W, M)
+    amp = float(th[1])
+    if amp == 0:
+        return float("nan"), float("inf")
+    return float(th[2] / amp), float(math.sqrt(max(cov[2, 2], 0.0)) / abs(amp))
 
 
 def law_test(mo: Motion, others: Null, cfg, noise, bins: tuple, shape: np.ndarray,
@@ -602,10 +609,7 @@ def law_test(mo: Motion, others: Null, cfg, noise, bins: tuple, shape: np.ndarra
     M[2 + a0:2 + b0, 2] = 1.0
     M[2 + m + a0:2 + m + b0, 3] = 1.0
     M[2 + a0:2 + b0, 3] = -1.0
-    th, cov, _ = gls(W, M)
-    amp = float(th[1])
-    share = float(th[2] / amp) if amp != 0 else float("nan")
-    se = float(math.sqrt(max(cov[2, 2], 0.0)) / abs(amp)) if amp != 0 else float("inf")
+    share, se = _law_share(W, M)
     sec = mov & (jb >= best["fixed"][1][0]) & (jb < best["fixed"][1][1])
     v_lo, v_hi = np.percentile(vm[sec], [5, 95]) if sec.any() else (0.0, 0.0)
     edges = mo.bin_edges
