@@ -54,6 +54,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import io
 import json
 import math
@@ -219,12 +220,12 @@ def unlisted_effect_of(kind: str, line: dict, train: dict, rng, pilot) -> FS.Eff
 
 
 def foreign_case(seed: int, kind: str, directory: str, family: str | None = None,
-                 sim: dict | None = None) -> tuple:
+                 sim: dict | None = None, effect: dict | None = None) -> tuple:
     """Seed ``seed``'s line and believed train (``make_case``; with ``family``, one of
     ``foreign_sim.OTHER_FAMILIES`` instead), written to ``directory``, and the effect of
     ``kind`` placed from a nominal pilot run with the same driver and link options ``sim``:
     (case, paths, line dict, train dict, the pilot's (x, v, command) at its commands,
-    effect); ``case.family`` names the family."""
+    effect, with the fields of ``effect`` set: ``--set``); ``case.family`` names the family."""
     if family is None:
         from train_sim.cases import make_case
 
@@ -252,6 +253,8 @@ def foreign_case(seed: int, kind: str, directory: str, family: str | None = None
     else:
         eff = effect_of(kind, line, train, np.random.default_rng([seed, 2, KINDS.index(kind)]),
                         pilot[:3])
+    if effect:
+        eff = dataclasses.replace(eff, **effect)
     return case, paths, line, train, pilot, eff
 
 
@@ -263,7 +266,8 @@ def run_case(spec: dict) -> dict:
         case, paths, line, train, pilot, eff = foreign_case(seed, kind,
                                                             os.path.join(d, "case"),
                                                             spec.get("family"),
-                                                            spec.get("sim"))
+                                                            spec.get("sim"),
+                                                            spec.get("effect"))
         out = {**spec, "family": case.family, "effect": repr(eff)}
         if kind == "coast_drag":
             # a drag while coasting acts only where the run coasts: this driver holds its speed
@@ -325,7 +329,8 @@ def run_estimators(spec: dict) -> list[dict]:
         case, paths, line_d, train_d, _, eff = foreign_case(seed, kind,
                                                            os.path.join(d, "case"),
                                                            spec.get("family"),
-                                                           spec.get("sim"))
+                                                           spec.get("sim"),
+                                                           spec.get("effect"))
         line, train = load_line(str(paths["line"])), load_train(str(paths["train"]))
     sent, truth, clock = [], [], {}
     logged = FS.simulate(line_d, train_d, eff, np.random.default_rng([seed, 3]), sent=sent,
@@ -359,6 +364,8 @@ def run_estimators(spec: dict) -> list[dict]:
             rows.append(row)
             continue
         row.update(F.score(outs, emitted, fl, tr_d, rate, float(tr[-1, 0]) + F.LATENCY))
+        row["events"] = dict(ad.counters)  # the adapter's events (relocated, balise_latency...)
+        row["balise_latency"] = ad.balise_latency()
         rows.append(row)
     return rows
 
@@ -518,7 +525,19 @@ def main(argv=None) -> int:
     p.add_argument("--family", choices=tuple(FS.OTHER_FAMILIES),
                    help="lines and trains of another family than our cases' (foreign_sim."
                         "OTHER_FAMILIES: freight, mountain, tram; default: train_sim.cases')")
+    p.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE",
+                   help="set a field of every drawn effect (foreign_sim.Effect), e.g. "
+                        "balise_late=1.0 with --kinds balise_late: a size the draw does not "
+                        "reach")
     args = p.parse_args(argv)
+    try:
+        fields = {f.name for f in dataclasses.fields(FS.Effect)}
+        override = {k: float(v) for k, v in (a.split("=", 1) for a in args.set)}
+    except ValueError:
+        p.error("--set takes FIELD=VALUE pairs with a number for VALUE")
+    if not set(override) <= fields:
+        p.error(f"--set: unknown field(s) {sorted(set(override) - fields)} (foreign_sim.Effect "
+                f"has {', '.join(sorted(fields))})")
     sim = {k: v for k, v in (("odo_rate", args.odo_rate), ("cmd_rate", args.cmd_rate),
                              ("notch", args.notch), ("on_change", args.on_change),
                              ("tail", args.link_tail), ("coast", args.coast))
@@ -529,7 +548,8 @@ def main(argv=None) -> int:
         p.error("--as-recorded goes with --estimators")
     specs = [{"seed": s, "kind": k, **({"sim": sim} if sim else {}),
               **({"family": args.family} if args.family else {}),
-              **({"recorded": True} if args.as_recorded else {})}
+              **({"recorded": True} if args.as_recorded else {}),
+              **({"effect": override} if override else {})}
              for s in range(args.first, args.first + args.seeds) for k in args.kinds]
     fn, name = (run_estimators, "foreign_estimators") if args.estimators else \
         (run_case, "foreign")
@@ -537,6 +557,7 @@ def main(argv=None) -> int:
     name += "".join(f"_{k}{v:g}" for k, v in sim.items())  # a variant's own file
     name += f"_{args.family}" if args.family else ""
     name += "_as_recorded" if args.as_recorded else ""
+    name += "".join(f"_{k}{v:g}" for k, v in override.items())
     prog = Progress(f"bench {name.replace('_', ' ')}")
     results = []
     prog(0, len(specs), "")

@@ -43,7 +43,8 @@ FUSED_LATE = "fused_late"  # arrived after later readings, fused by rewinding th
 OUTAGE = "outage"  # no odometer for longer than the outage threshold
 RELOCATED = "relocated"  # two agreeing balises moved the odometer's count by more than it claimed
 BALISE_EXCLUDED = "balise_excluded"  # a fused balise shown to lie by a later one, taken out
-EVENTS = (SEQ_RESET, CLOCK_RESET, FUSED_LATE, OUTAGE, RELOCATED, BALISE_EXCLUDED)
+BALISE_LATENCY = "balise_latency"  # the balise reader found to stamp later than its prior allows
+EVENTS = (SEQ_RESET, CLOCK_RESET, FUSED_LATE, OUTAGE, RELOCATED, BALISE_EXCLUDED, BALISE_LATENCY)
 
 ALL = REJECTIONS + ACCEPTED + EVENTS
 
@@ -69,6 +70,8 @@ DESCRIPTION = {
     OUTAGE: "no odometer for longer than the outage threshold",
     RELOCATED: "odometer count moved onto two agreeing balises",
     BALISE_EXCLUDED: "a fused balise shown to lie by a later one, taken out of the count",
+    BALISE_LATENCY: "the balise reader stamps later (or earlier) than balise_latency_std "
+                    "allows: its latency is now calibrated with a wide prior",
 }
 
 

@@ -299,6 +299,10 @@ def build_estimator_node(name: str, topic: str, make_adapter: Callable):
             if scale is not None:  # what a next run can start from (parameter odometer_scale)
                 extra += [("odometer_scale", f"{scale[0]:.6f}"),
                           ("odometer_scale_std", f"{scale[1]:.2e}")]
+            lat = self.adapter.balise_latency()
+            if lat is not None:  # a reader that stamps late: the fixes are moved by v tau
+                extra += [("balise_latency", f"{lat[0]:.3f}"),
+                          ("balise_latency_std", f"{lat[1]:.3f}")]
             return D.combine(checks + lat_checks + i_checks,
                              extra + values + lat_values + i_values)
 
@@ -325,5 +329,10 @@ def build_estimator_node(name: str, topic: str, make_adapter: Callable):
                                        f"{scale[0]:.6f} +- {scale[1]:.1e} (reading / true "
                                        "distance; a next run of this train can start from it: "
                                        "parameter odometer_scale)")
+            lat = self.adapter.balise_latency()
+            if lat is not None:
+                self.get_logger().info(f"balise reader's latency learnt from the balises: "
+                                       f"{lat[0]:.3f} +- {lat[1]:.3f} s (its stamp minus the "
+                                       "time the train passed the balise)")
 
     return EstimatorNode()

@@ -33,7 +33,13 @@ from ..robust.filter_base import filter_params_from_train
 from ..robust.readings import BaliseReading, OdometerReading, covariance16
 from ..robust.robust_filter import RobustFilter
 from ..robust.wen_model import WenModel
-from .odometer_scale import A_MAX, BaliseFix, OdometerCalibration
+from .odometer_scale import (
+    A_MAX,
+    LATENCY_WIDE,
+    BaliseFix,
+    OdometerCalibration,
+    latency_beyond_prior,
+)
 from .runner import Output
 
 NAN16 = (math.nan,) * 16
@@ -120,6 +126,11 @@ class RobustConfig:
     balise_gate: float = param(4.0, "-", "a balise further than this many standard deviations "
                                "from the odometer's calibrated count is held until another "
                                "confirms it (outside_gate)")
+    balise_latency_std: float = param(0.1, "s", "std of the balise reader's latency (its "
+                                      "stamp minus the time the train passed the balise) "
+                                      "before balises read at different speeds calibrate it; "
+                                      "a reader found far beyond it is calibrated with a wide "
+                                      "prior (event balise_latency)")
     period: float = param(0.1, "s", "nominal odometer sample period (lost samples: gap / period "
                           "- 1); the node sets it from odometer_rate", node=False)
     outage_slots: int = param(8, "-", "more lost odometer slots in a row are an outage: "
@@ -150,6 +161,8 @@ def _check_odometry(cfg) -> None:
             "odometer_scale", cfg.odometer_scale, "must be in [0.5, 2] (a ratio of "
             "distances, 1 when unknown)")
     require(cfg.balise_gate > 0, "balise_gate", cfg.balise_gate, "must be > 0")
+    require(math.isfinite(cfg.balise_latency_std) and cfg.balise_latency_std >= 0,
+            "balise_latency_std", cfg.balise_latency_std, "must be finite and >= 0")
 
 
 class _DistanceAsPosition:
@@ -160,8 +173,16 @@ class _DistanceAsPosition:
     def _init_odometry(self) -> None:
         s, cfg = self.start_state, self.cfg
         self.cal = OdometerCalibration(s.position, s.position_std, cfg.odometer_scale_std,
-                                       cfg.balise_gate, scale=1.0 / cfg.odometer_scale) \
+                                       cfg.balise_gate, scale=1.0 / cfg.odometer_scale,
+                                       latency_std=cfg.balise_latency_std) \
             if cfg.use_distance else None
+        # the same calibration with a wide latency prior, on the same fixes: it replaces the
+        # narrow one when the reader is found out of its prior (odometer_scale module doc)
+        self.cal_wide = OdometerCalibration(s.position, s.position_std, cfg.odometer_scale_std,
+                                            cfg.balise_gate, scale=1.0 / cfg.odometer_scale,
+                                            latency_std=LATENCY_WIDE) \
+            if cfg.use_distance and cfg.balise_latency_std < LATENCY_WIDE else None
+        self.latency_found = 0  # the wide calibration took over (event balise_latency)
         self.odo: tuple | None = None  # (stamp s, distance m, speed m/s) of the last fused
         #   odometer reading, as counted
 
@@ -185,10 +206,29 @@ class _DistanceAsPosition:
         _, v, rv = self._mapped(fields)
         return {**fields, "speed": v, "speed_variance": rv}
 
+    def monitor_balise(self, fields: dict) -> dict:
+        """A balise reading as the integrity monitor judges it against the odometer: where the
+        train was at its stamp by the reader's latency as calibrated so far (``v tau`` on from
+        the balise, with ``(v sigma_tau)^2`` more variance; module doc of ``odometer_scale``),
+        as the calibration fuses it."""
+        if self.cal is None or self.odo is None:
+            return fields
+        tau, s_tau = self.cal.latency()
+        if tau == 0.0 and s_tau == 0.0:
+            return fields
+        try:
+            pos, var = float(fields["position"]), float(fields["position_variance"])
+        except (KeyError, TypeError, ValueError):
+            return fields
+        v = float(self.cal.theta[1]) * self.odo[2]
+        return {**fields, "position": pos + v * tau, "position_variance": var + (v * s_tau) ** 2}
+
     def _odometer_fused(self, stamp: float, fields: dict) -> None:
         self.odo = (stamp, float(fields["distance"]), float(fields["speed"]))
         if self.cal is not None:
             self.cal.walk_to(self.odo[1])
+        if self.cal_wide is not None:
+            self.cal_wide.walk_to(self.odo[1])
 
     def _count_at(self, t: float) -> float:
         """m, the odometer's count at ``t``, carried from the last fused reading at its
@@ -219,13 +259,21 @@ class _DistanceAsPosition:
         c = float(self.cal.theta[1])
         rd = self.train.odometer_speed_variance * dt * dt + (0.5 * A_MAX * dt * dt) ** 2
         return BaliseFix(position, variance + self.cfg.distance_variance + c * c * rd,
-                         self._count_at(stamp))
+                         self._count_at(stamp), self.odo[2])
 
     def _calibrate(self, fix: BaliseFix, t_now: float) -> tuple[bool, float, float]:
         """``(fused, dx m, dv m/s)``: the balise given to the calibration, and how far the
         estimate at ``t_now`` moves with the mapping."""
         old = self.cal.theta.copy()
         ok = self.cal.balise(fix)
+        if self.cal_wide is not None:
+            self.cal_wide.balise(fix)
+            if latency_beyond_prior(self.cal_wide, self.cfg.balise_latency_std):
+                # the reader is out of its prior: the wide calibration (which took this balise
+                # or held it) is the model from now on
+                self.cal, self.cal_wide = self.cal_wide, None
+                self.latency_found += 1
+                ok = True
         if not ok:
             return False, 0.0, 0.0
         d = self._count_at(t_now)
@@ -251,18 +299,29 @@ class _DistanceAsPosition:
             return None
         return 1.0 / c, math.sqrt(var) / (c * c)  # d(1/c) = -dc / c^2
 
+    def balise_latency(self) -> tuple[float, float] | None:
+        """The balise reader's latency as learnt so far, ``(s, its std s)`` (the
+        ``balise_latency_std`` parameter's terms), or None without a calibration or a latency
+        prior."""
+        if self.cal is None or (self.cfg.balise_latency_std == 0.0 and not self.latency_found):
+            return None
+        return self.cal.latency()
+
     def _odometry_counters(self) -> dict:
         if self.cal is None:
             return {}
         return {k: n for k, n in ((R.RELOCATED, self.cal.relocated),
-                                  (R.BALISE_EXCLUDED, self.cal.excluded)) if n}
+                                  (R.BALISE_EXCLUDED, self.cal.excluded),
+                                  (R.BALISE_LATENCY, self.latency_found)) if n}
 
     def _odometry_snapshot(self):
-        return (self.cal.copy() if self.cal is not None else None, self.odo)
+        return tuple(c.copy() if c is not None else None for c in (self.cal, self.cal_wide)) \
+            + (self.odo, self.latency_found)
 
     def _odometry_restore(self, snap) -> None:
-        cal, self.odo = snap
+        cal, wide, self.odo, self.latency_found = snap
         self.cal = cal.copy() if cal is not None else None
+        self.cal_wide = wide.copy() if wide is not None else None
 
 
 class RobustAdapter(_DistanceAsPosition):
@@ -531,6 +590,11 @@ class BrakingConfig:
     balise_gate: float = param(4.0, "-", "a balise further than this many standard deviations "
                                "from the odometer's calibrated count is held until another "
                                "confirms it (outside_gate)")
+    balise_latency_std: float = param(0.1, "s", "std of the balise reader's latency (its "
+                                      "stamp minus the time the train passed the balise) "
+                                      "before balises read at different speeds calibrate it; "
+                                      "a reader found far beyond it is calibrated with a wide "
+                                      "prior (event balise_latency)")
     use_distance: bool = param(True, "", "odometer distance as a position measurement")
     standstill_speed: float = param(0.3, "m/s", "at or below (estimated), with a brake "
                                     "command, the train is held at rest and the braking rate "

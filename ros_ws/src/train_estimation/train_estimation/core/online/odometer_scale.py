@@ -35,6 +35,31 @@ covariance adds what the calibration does not know (a Schmidt "consider" term)::
 When a balise moves ``theta``, the estimate is moved with the mapping (:meth:`shift_at`), so the
 next reading continues it instead of looking like a jump the filter's gate refuses.
 
+A balise reader can stamp late: a reading stamped when the telegram was decoded, not when the
+antenna passed the balise's centre, says the train was at ``b`` at a time ``tau`` after it was.
+The train is then ``v tau`` further on than the reading says (25 m at 50 m/s and 0.5 s), one
+error per reading that grows with speed and that no number of readings averages away. The
+calibration carries ``tau`` as a third parameter, ``theta = (x0, c, tau)``, with the prior
+``N(0, latency_std^2)``: the balise read at the count ``d_b`` and counted speed ``v_b`` is::
+
+    b = x0 + c (d_b - v_b tau) + e
+
+linearised about the estimate (an extended Kalman update: ``h = [1, d_b - v_b tau^,
+-c^ v_b]``; the product ``c tau`` is the only non-linearity, and a scale 1 % off changes the
+latency's term by 1 %). Balises read at different speeds tell ``tau`` from ``x0``; balises read
+at one speed cannot, and the prior is then what bounds it (``latency_std`` = 0: the reader is
+trusted to stamp on time, and ``tau`` stays 0).
+
+A reader far out of its prior (a second late where 0.1 s was assumed) is not learnt by the
+calibration: its fixes lie many prior deviations off, the gate refuses them and two that agree
+relocate the count onto them, late. So a second calibration runs beside it on the same fixes
+with a wide prior (:data:`LATENCY_WIDE`), and :func:`latency_beyond_prior` tests the latency it
+finds against the narrow prior: under the narrow prior the wide solution's ``tau^`` is
+``N(0, latency_std^2 + sd_w^2)`` (``sd_w``: its own posterior sd), and beyond
+:data:`LATENCY_Z` of that the reader is out of its prior and the wide calibration replaces the
+narrow one (the adapters' event ``balise_latency``). The wide one is a valid model whatever
+the reader's latency, only less sure: the test costs nothing but width when it is wrong.
+
 A balise can lie: a survey error puts it metres from where its telegram says, and while the
 scale is still uncertain (the first balises, or far from the last) it is fused like any other and
 moves the calibration. Nothing tells until later balises disagree with it, so the published
@@ -70,16 +95,24 @@ A_MAX = 1.5  # m/s^2, acceleration allowed in carrying the count to a balise's s
 EXCLUDE = 2.0  # gates: a fused balise is taken out only this far outside the others' solution
 #   (a noisy good balise next to a lying one must not be the one excluded)
 RELOCATE_X0_VAR = 1.0e6  # m^2, x0's variance when the count is found again from two balises
+LATENCY_WIDE = 2.0  # s, the latency prior of the calibration that checks the reader's (module
+#   doc): a reader that stamps seconds late is not a reader that works
+LATENCY_Z = 4.0  # sds of the narrow prior and the wide solution's own beyond which the reader
+#   is taken to be out of its prior (tested after every balise: a strict threshold)
+LATENCY_MIN_BALISES = 2  # the wide solution's balises before its latency is tested (two read
+#   at different speeds tell the latency from the origin; the start's prior is the third datum)
 
 
 @dataclass(frozen=True)
 class BaliseFix:
     """A balise read against the count: ``position`` m (map), ``variance`` m^2 (the reading's
-    and the count's at its stamp), ``distance`` m (the odometer's count at the stamp)."""
+    and the count's at its stamp), ``distance`` m (the odometer's count at the stamp),
+    ``speed`` m/s (the odometer's counted speed at the stamp: what a late stamp costs)."""
 
     position: float
     variance: float
     distance: float
+    speed: float = 0.0
 
 
 def _walked(Sigma: np.ndarray, d0: float, d1: float, count_walk: float,
@@ -93,8 +126,10 @@ def _walked(Sigma: np.ndarray, d0: float, d1: float, count_walk: float,
     if not run > 0:
         return Sigma
     s1, s2, s3 = run, (b * b - a * a) / 2.0, (b ** 3 - a ** 3) / 3.0
-    return Sigma + count_walk * run * np.array([[1.0, 0.0], [0.0, 0.0]]) \
+    out = Sigma.copy()  # the latency (third parameter) does not walk: it is the reader's
+    out[:2, :2] += count_walk * run * np.array([[1.0, 0.0], [0.0, 0.0]]) \
         + scale_walk * np.array([[s3, -s2], [-s2, s1]])
+    return out
 
 
 @dataclass(frozen=True)
@@ -108,21 +143,23 @@ class _Solution:
 
 
 class OdometerCalibration:
-    """``theta = (x0 m, c -)`` and its covariance (module doc), and the solutions without each of
-    the last :attr:`EXCLUDED` balises (solution separation, :meth:`consider`)."""
+    """``theta = (x0 m, c -, tau s)`` and its covariance (module doc), and the solutions without
+    each of the last :attr:`EXCLUDED` balises (solution separation, :meth:`consider`)."""
 
     EXCLUDED = 3  # the latest balises each of which may be the one that lies
 
     def __init__(self, start: float, start_std: float, scale_std: float, gate: float = 8.0,
                  count_walk: float = COUNT_WALK, scale_walk: float = SCALE_WALK,
-                 scale: float = 1.0):
+                 scale: float = 1.0, latency_std: float = 0.0):
         if not (math.isfinite(start) and start_std > 0 and scale_std > 0 and gate > 0
-                and count_walk >= 0 and scale_walk >= 0 and math.isfinite(scale) and scale > 0):
+                and count_walk >= 0 and scale_walk >= 0 and math.isfinite(scale) and scale > 0
+                and math.isfinite(latency_std) and latency_std >= 0):
             raise ValueError("OdometerCalibration: start finite, start_std, scale_std, gate and "
-                             "scale > 0, walks >= 0")
-        # c's prior mean: 1, or what an earlier run or the workshop found (true / counted)
-        self.theta = np.array([float(start), float(scale)])
-        self.Sigma = np.diag([start_std ** 2, scale_std ** 2])
+                             "scale > 0, walks and latency_std >= 0")
+        # c's prior mean: 1, or what an earlier run or the workshop found (true / counted);
+        # tau's: 0, the reader stamps when it passes the balise
+        self.theta = np.array([float(start), float(scale), 0.0])
+        self.Sigma = np.diag([start_std ** 2, scale_std ** 2, latency_std ** 2])
         self.scale_std = float(scale_std)
         self.gate = float(gate)
         self.count_walk, self.scale_walk = float(count_walk), float(scale_walk)
@@ -152,8 +189,12 @@ class OdometerCalibration:
 
     def position_variance(self, d: float) -> float:
         """m^2, of :meth:`position` from the calibration alone."""
-        h = np.array([1.0, d])
+        h = np.array([1.0, d, 0.0])
         return float(h @ self.Sigma @ h)
+
+    def latency(self) -> tuple[float, float]:
+        """The balise reader's latency as learnt so far: ``(tau s, its std s)``."""
+        return float(self.theta[2]), math.sqrt(max(float(self.Sigma[2, 2]), 0.0))
 
     def consider(self, d: float, v_odo: float) -> np.ndarray:
         """2x2 covariance of (position, speed) that the calibration adds to an estimate that
@@ -165,7 +206,7 @@ class OdometerCalibration:
         balises disagree with it. For each, the solution without it is at ``J theta_k`` with
         covariance ``C_k``; the diagonal grows (never shrinks) so that every variance is at
         least ``(C_k + Delta_k Delta_k^T)_ii``, ``Delta_k = J (theta_k - theta)``."""
-        J = np.array([[1.0, d], [0.0, v_odo]])
+        J = np.array([[1.0, d, 0.0], [0.0, v_odo, 0.0]])
         C = J @ self.Sigma @ J.T
         need = np.diag(C).copy()
         for alt in self.alternatives:
@@ -184,21 +225,29 @@ class OdometerCalibration:
 
     # -- balises -----------------------------------------------------------------------------
     @staticmethod
-    def _innovation_of(theta, Sigma, fix: BaliseFix) -> tuple[float, float]:
-        h = np.array([1.0, fix.distance])
-        return fix.position - float(h @ theta), float(h @ Sigma @ h) + fix.variance
+    def _row(theta, fix: BaliseFix) -> tuple[float, np.ndarray]:
+        """Where ``theta`` puts the balise (m) and the row of its linearisation (module doc):
+        the train was over it ``tau`` before the stamp, ``v_b tau`` of count earlier."""
+        d = fix.distance - fix.speed * float(theta[2])
+        return (float(theta[0] + theta[1] * d),
+                np.array([1.0, d, -float(theta[1]) * fix.speed]))
+
+    @classmethod
+    def _innovation_of(cls, theta, Sigma, fix: BaliseFix) -> tuple[float, float]:
+        pred, h = cls._row(theta, fix)
+        return fix.position - pred, float(h @ Sigma @ h) + fix.variance
 
     def _innovation(self, fix: BaliseFix) -> tuple[float, float]:
         return self._innovation_of(self.theta, self.Sigma, fix)
 
     @classmethod
     def _fused(cls, theta, Sigma, fix: BaliseFix) -> tuple[np.ndarray, np.ndarray]:
-        """The Kalman update of ``(theta, Sigma)`` with one balise (new arrays)."""
-        h = np.array([1.0, fix.distance])
+        """The (extended) Kalman update of ``(theta, Sigma)`` with one balise (new arrays)."""
+        _, h = cls._row(theta, fix)
         nu, s = cls._innovation_of(theta, Sigma, fix)
         k = Sigma @ h / s
         # Joseph form: Sigma stays symmetric positive definite for any gain
-        ikh = np.eye(2) - np.outer(k, h)
+        ikh = np.eye(len(h)) - np.outer(k, h)
         return theta + k * nu, ikh @ Sigma @ ikh.T + fix.variance * np.outer(k, k)
 
     def _apply(self, fixes: tuple[BaliseFix, ...]) -> None:
@@ -312,14 +361,17 @@ class OdometerCalibration:
         # two refused balises that agree with each other at a scale the odometer can have (its
         # prior's doubt at least: the scale may be what went wrong): the count is lost, and is
         # found again from the two, x0 free and the scale at its estimate with that doubt
-        c = float(self.theta[1])
+        c, tau, stt = float(self.theta[1]), float(self.theta[2]), float(self.Sigma[2, 2])
         sc2 = max(float(self.Sigma[1, 1]), self.scale_std ** 2)
         gap = fix.distance - held.distance
-        agree = held.variance + fix.variance + sc2 * gap * gap + self.count_walk * abs(gap)
-        if abs((fix.position - held.position) - c * gap) > self.gate * math.sqrt(agree):
+        # a late reader moves both by their speeds: apart by the difference of those
+        gap_t = gap - (fix.speed - held.speed) * tau
+        agree = held.variance + fix.variance + sc2 * gap * gap + self.count_walk * abs(gap) \
+            + stt * (c * (fix.speed - held.speed)) ** 2
+        if abs((fix.position - held.position) - c * gap_t) > self.gate * math.sqrt(agree):
             return False
-        self.theta = np.array([held.position - c * held.distance, c])
-        self.Sigma = np.diag([RELOCATE_X0_VAR, sc2])
+        self.theta = np.array([held.position - c * (held.distance - held.speed * tau), c, tau])
+        self.Sigma = np.diag([RELOCATE_X0_VAR, sc2, stt])
         self.n, self.recent, self.alternatives = 0, [], []
         self._apply((held, fix))
         # the pair is the evidence: a solution without one of them (x0 unknown) is no
@@ -328,3 +380,15 @@ class OdometerCalibration:
         self.held = None
         self.relocated += 1
         return True
+
+
+def latency_beyond_prior(wide: OdometerCalibration, latency_std: float,
+                         z: float = LATENCY_Z) -> bool:
+    """Whether the wide-prior calibration ``wide`` finds the balise reader's latency beyond
+    ``z`` standard deviations of what a reader within the prior ``N(0, latency_std^2)`` would
+    give it (module doc): ``|tau^| > z sqrt(latency_std^2 + sd_w^2)``, with
+    :data:`LATENCY_MIN_BALISES` balises in it at least."""
+    if wide.n < LATENCY_MIN_BALISES:
+        return False
+    tau, sd = wide.latency()
+    return abs(tau) > z * math.sqrt(latency_std ** 2 + sd * sd)

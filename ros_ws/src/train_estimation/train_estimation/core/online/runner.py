@@ -590,6 +590,10 @@ class EstimatorRunner:
                 a = math.nan
             self.monitor.command(stamp, a)
         elif kind == "balise":
+            mapped = getattr(self.adapter, "monitor_balise", None)
+            if mapped is not None and isinstance(fields, dict) and \
+                    (not reason or R.category(reason) in R.ACCEPTED):
+                fields = mapped(fields)
             self.monitor.balise(stamp, fields if isinstance(fields, dict) else None,
                                 not reason or R.category(reason) in R.ACCEPTED,
                                 R.category(reason) if reason else "")
