@@ -74,6 +74,7 @@ from train_core.model import line_from_dict, load_line, load_train, train_from_d
 
 from train_estimation.core.offline.diagnose.result import jsonable
 from train_estimation.core.offline.diagnose.search import (  # noqa: F401 (SCORE_FORMULA: help)
+    LATENCY_WHY,
     RATE_WHY,
     SCORE_FORMULA,
 )
@@ -477,6 +478,8 @@ def plot_phases(s: dict, path: Path, dg=None) -> bool:
                 lim = max(lim, 1.5 * float(np.percentile(np.abs(m) + 2 * e, 90)))
         for u in s.get("unexplained") or []:
             span = u.get("where") if q is x else u.get("speed")
+            if balise_latency(u):
+                continue  # the readings' timing: no acceleration to shade
             if span and at_balise(u):
                 ax.axvline(span[0], color="0.4", ls="--", lw=1.0,
                            label=f"unexplained: balise read {u['size']:+.1f} m off")
@@ -611,6 +614,15 @@ def clock_rate(u: dict) -> bool:
             and str(best.get("why", "")).startswith(RATE_WHY))
 
 
+def balise_latency(u: dict) -> bool:
+    """An ``unexplained`` entry of a balise reader that stamps late (no ``where`` nor ``when``,
+    the closest listed cause ``clock_drift`` with the latency as the reason): its size is the
+    latency in s."""
+    best = u.get("best_listed") or {}
+    return (not u.get("where") and not u.get("when")
+            and str(best.get("why", "")).startswith(LATENCY_WHY))
+
+
 def on_odometer(u: dict) -> bool:
     """An ``unexplained`` entry of the odometer's count (``where`` and ``when`` both spans: no
     acceleration family gives both): its size is the odometer error in m (docs/diagnose.md)."""
@@ -635,6 +647,11 @@ def unexplained_line(u: dict) -> str:
         return (f"unexplained: the train's clock changes its rate at {u['when'][0]:.0f} s and "
                 f"reads {u['size']:+.3f} s more by {u['when'][1]:.0f} s than one rate says"
                 + closest)
+    if balise_latency(u):
+        sp = u["speed"]
+        return (f"unexplained: every balise reading lies {u['size']:+.3f} s x speed behind the "
+                f"train's position by the odometer (read at {sp[0]:.1f}-{sp[1]:.1f} m/s): the "
+                f"balise reader stamps late (or early), no listed cause" + closest)
     if at_balise(u):
         return (f"unexplained: the balise at {u['where'][0]:.0f} m (read at {u['when'][0]:.0f} s, "
                 f"{u['speed'][0]:.1f} m/s) is {u['size']:+.1f} m from the train's position by "

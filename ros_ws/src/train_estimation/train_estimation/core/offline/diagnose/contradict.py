@@ -245,8 +245,8 @@ def piece_of(mo: Motion, others: Null, full: Null, cfg, noise, found: list) -> s
     dt_ev = np.diff(mo.ev.t, prepend=mo.ev.t[0] - mo.grid.dt)
     acc = (dv / np.maximum(dt_ev, 1e-9))[mo.grid.k]
     for u in found:
-        if u["family"] == "balise":  # a reading's offset: no acceleration to be a piece of
-            continue
+        if u["family"] in ("balise", "balise_latency"):  # readings' offsets: no acceleration
+            continue  # to be a piece of
         on = u["mask"]
         inside = energy[on[gi]].sum() / energy.sum()
         outside = (on[:-1] & ~support).sum() / max(on[:-1].sum(), 1)

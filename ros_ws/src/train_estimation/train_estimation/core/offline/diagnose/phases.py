@@ -45,6 +45,13 @@ own; the largest that is significant (Bonferroni over the readings, within the s
 ``alpha``) and more than ``min_offset`` m competes with the families in each round; as an
 entry it has phase ``all``, ``where`` the balise's map position, ``size`` the offset in m.
 
+**Latency test** (:func:`latency_round`). A balise reader that stamps its readings late puts
+every reading ``v_b tau`` behind the train, in proportion to the speed it was read at: one
+more free parameter (the latency, a balise measurement column ``-v_b``), tested in each round
+with the same likelihood ratio and Bonferroni share until it is found; as an entry it has phase
+``all``, no ``where`` nor ``when`` (every reading), ``speed`` the range of the readings'
+speeds and ``size`` the latency in s.
+
 The checks of a confirmed cause against the rest of the data (where it must show and where it
 must not) are in :mod:`.contradict`.
 """
@@ -197,9 +204,11 @@ def structure(mo: Motion, null: Null, cfg, noise, beta: float = 1.0, alpha: floa
     st = Stage(mo, null, cfg, noise=noise, big=False)
     n_ev = mo.ev.t.size
     ig = {k: mo.grid.integrate(R, n_ev) for k, (R, _) in fam.items()}
-    a_f = alpha / (len(fam) + 1 + (odo is not None))
+    # Bonferroni over the families, the balise readings' test and the latency's
+    a_f = alpha / (len(fam) + 2 + (odo is not None))
     extra = None
     found, tests, bal_in = [], [], []
+    late = True  # the latency is still to be tested (one entry at most)
     for _ in range(max_entries):
         best = None
         round_tests = {}
@@ -224,10 +233,22 @@ def structure(mo: Motion, null: Null, cfg, noise, beta: float = 1.0, alpha: floa
         round_tests["balise"] = {k: v for k, v in bal.items() if k != "entry"}
         if bal["significant"] and (best is None or bal["logp_family"] < best[0]):
             best = (bal["logp_family"], "balise", None, None)
+        if late:
+            lat = latency_round(mo, st, extra, a_f, cell_z, min_offset)
+            round_tests["balise_latency"] = {k: v for k, v in lat.items() if k != "entry"}
+            if lat["significant"] and (best is None or lat["logp_family"] < best[0]):
+                best = (lat["logp_family"], "balise_latency", None, None)
         tests.append(round_tests)
         if best is None:
             break
         _, name, th, cells = best
+        if name == "balise_latency":
+            # the readings moved by the latency become part of the model; test again
+            found.append(lat["entry"])
+            late = False
+            st = copy.copy(st)
+            st.mb = st.mb + lat["entry"].pop("moved")
+            continue
         if name == "balise":
             # the reading's offset becomes part of the model; test again
             found.append(bal["entry"])
@@ -321,6 +342,51 @@ def balise_round(mo: Motion, st: Stage, extra, inside: list, alpha: float, cell_
                         "when": [float(ev.t[k]) / beta] * 2, "speed": [v, v], "size": off,
                         "family": "balise", "onset": False,
                         "mask": np.zeros(mo.grid.t.size, bool)}
+    return out
+
+
+def latency_round(mo: Motion, st: Stage, extra, alpha: float, cell_z: float,
+                  min_offset: float) -> dict:
+    """One round of the balise reader's latency test (module docstring): readings stamped
+    ``tau`` after the train passed their balises (a reader that stamps when it has decoded the
+    telegram, not when its antenna passed the balise) lie ``v_b tau`` behind the train:
+    ``p_b = s0 + s(t_b) - v_b tau + e_b``.
+
+    One balise measurement column, ``-v_b`` at each reading (the reference speed there), on top
+    of the model ``st`` (plus the found drift ``extra``): 2 dll of adding it is chi-square with
+    one degree of freedom under the model. Significant below ``alpha`` with ``tau`` beyond
+    ``cell_z`` SE and the fastest reading moved by more than ``min_offset`` (m: a balise's
+    location accuracy). No listed cause moves the readings by the speed they are read at: an
+    odometer scale moves them by the distance run, a clock cause the odometer's stamps with
+    the balises' (one train clock), a slip episode every reading after it. Returns the
+    figures, ``logp_family`` and, when significant, ``entry`` (with ``moved``: what the
+    latency adds to the balise measurement offsets, popped when it joins the model)."""
+    ev = mo.ev
+    n = ev.bal.size
+    out = {"readings": int(n), "significant": False}
+    if n < 3:
+        out["note"] = "fewer than three balise readings"
+        return out
+    gi = np.clip(np.searchsorted(mo.grid.t, ev.t[ev.bal]), 0, mo.grid.t.size - 1)
+    v = np.asarray(mo.v_ref, float)[gi]
+    col = np.zeros((ev.t.size, 1))
+    col[ev.bal, 0] = -v
+    fv, fs = (st.fv, st.fs) if extra is None else (st.fv + extra[0], st.fs + extra[1])
+    W = st.augmented(fv, fs, bal=col).W  # [data, s0, tau]
+    q0 = gls(W[:2, :2])[2]
+    th, cov, q1 = gls(W)
+    stat = max(q0 - q1, 0.0)
+    tau, se = float(th[-1]), float(math.sqrt(max(cov[-1, -1], 0.0)))
+    logp = chi2_logsf(stat, 1)
+    sig = bool(logp < math.log(alpha) and abs(tau) > cell_z * se
+               and abs(tau) * float(v.max()) > min_offset)
+    out.update(chi2=stat, p=math.exp(logp), latency=tau, std_error=se, significant=sig,
+               logp_family=logp)
+    if sig:
+        out["entry"] = {"phase": "all", "where": None, "when": None,
+                        "speed": [float(v.min()), float(v.max())], "size": tau,
+                        "family": "balise_latency", "onset": False,
+                        "mask": np.zeros(mo.grid.t.size, bool), "moved": col[:, 0] * tau}
     return out
 
 

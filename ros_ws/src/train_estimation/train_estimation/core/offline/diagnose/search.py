@@ -187,9 +187,22 @@ def reconfirm(sr: _Search, before: dict, noise, gctx: GainContext, checks: dict)
             checks[a.cause]["without_unconfirmed"] = again[a.cause]
 
 
+# how the reason of a balise latency entry begins (tools.diagnose tells the entry by it)
+LATENCY_WHY = "the balise readings lie behind the odometer's position"
+
+
 def _entry(u: dict, ranking: list) -> dict:
     """An ``unexplained`` entry: the signature and the listed cause that came closest (the
-    first not confirmed in the ranking) with why it does not fit."""
+    first not confirmed in the ranking) with why it does not fit (for a balise reader's
+    latency, the clock: the one listed cause about time stamps)."""
+    if u.get("family") == "balise_latency":
+        return {"phase": "all", "where": None, "when": None, "speed": u["speed"],
+                "size": u["size"],
+                "best_listed": {"cause": "clock_drift",
+                                "why": f"{LATENCY_WHY} in proportion to the speed they were "
+                                       f"read at ({u['size']:+.3f} s x speed): the balise "
+                                       "reader stamps them late; the train's clock stamps "
+                                       "the odometer and the balises alike"}}
     best = next((r for r in ranking if r.status != "confirmed" and r.cause != "none"), None)
     if best is None:
         listed = None
