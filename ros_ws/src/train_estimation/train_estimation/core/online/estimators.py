@@ -172,15 +172,16 @@ class _DistanceAsPosition:
 
     def _init_odometry(self) -> None:
         s, cfg = self.start_state, self.cfg
-        self.cal = OdometerCalibration(s.position, s.position_std, cfg.odometer_scale_std,
+
+        def calibration(latency_std: float) -> OdometerCalibration:
+            return OdometerCalibration(s.position, s.position_std, cfg.odometer_scale_std,
                                        cfg.balise_gate, scale=1.0 / cfg.odometer_scale,
-                                       latency_std=cfg.balise_latency_std) \
-            if cfg.use_distance else None
+                                       latency_std=latency_std)
+
+        self.cal = calibration(cfg.balise_latency_std) if cfg.use_distance else None
         # the same calibration with a wide latency prior, on the same fixes: it replaces the
         # narrow one when the reader is found out of its prior (odometer_scale module doc)
-        self.cal_wide = OdometerCalibration(s.position, s.position_std, cfg.odometer_scale_std,
-                                            cfg.balise_gate, scale=1.0 / cfg.odometer_scale,
-                                            latency_std=LATENCY_WIDE) \
+        self.cal_wide = calibration(LATENCY_WIDE) \
             if cfg.use_distance and cfg.balise_latency_std < LATENCY_WIDE else None
         self.latency_found = 0  # the wide calibration took over (event balise_latency)
         self.odo: tuple | None = None  # (stamp s, distance m, speed m/s) of the last fused

@@ -243,8 +243,8 @@ class OdometerCalibration:
     @classmethod
     def _fused(cls, theta, Sigma, fix: BaliseFix) -> tuple[np.ndarray, np.ndarray]:
         """The (extended) Kalman update of ``(theta, Sigma)`` with one balise (new arrays)."""
-        _, h = cls._row(theta, fix)
-        nu, s = cls._innovation_of(theta, Sigma, fix)
+        pred, h = cls._row(theta, fix)
+        nu, s = fix.position - pred, float(h @ Sigma @ h) + fix.variance
         k = Sigma @ h / s
         # Joseph form: Sigma stays symmetric positive definite for any gain
         ikh = np.eye(len(h)) - np.outer(k, h)

@@ -590,12 +590,11 @@ class EstimatorRunner:
                 a = math.nan
             self.monitor.command(stamp, a)
         elif kind == "balise":
+            fused = not reason or R.category(reason) in R.ACCEPTED
             mapped = getattr(self.adapter, "monitor_balise", None)
-            if mapped is not None and isinstance(fields, dict) and \
-                    (not reason or R.category(reason) in R.ACCEPTED):
+            if mapped is not None and fused and isinstance(fields, dict):
                 fields = mapped(fields)
-            self.monitor.balise(stamp, fields if isinstance(fields, dict) else None,
-                                not reason or R.category(reason) in R.ACCEPTED,
+            self.monitor.balise(stamp, fields if isinstance(fields, dict) else None, fused,
                                 R.category(reason) if reason else "")
 
     def _count(self, kind: str, stamp: float, reason: str) -> None:

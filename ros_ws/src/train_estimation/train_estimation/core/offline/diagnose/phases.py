@@ -175,14 +175,14 @@ def counted_columns(mo: Motion, inc: np.ndarray, cells: list) -> np.ndarray:
 
 
 def _fit_columns(st: Stage, Bv: np.ndarray | None, Bs: np.ndarray | None, extra=None,
-                 meas=None):
+                 meas=None, bal=None):
     """GLS of free drift columns (Bv, Bs), or with Bv, Bs None of free odometer measurement
-    columns ``meas`` = (Md, Mv), on top of the stage's model (plus fixed extra drift):
-    (chi-square statistic 2 dll, theta, se)."""
+    columns ``meas`` = (Md, Mv) or balise measurement columns ``bal``, on top of the stage's
+    model (plus fixed extra drift): (chi-square statistic 2 dll, theta, se)."""
     fv, fs = st.fv, st.fs
     if extra is not None:
         fv, fs = fv + extra[0], fs + extra[1]
-    kf = st.augmented(fv, fs, drift=None if Bv is None else (Bv, Bs), meas=meas)
+    kf = st.augmented(fv, fs, drift=None if Bv is None else (Bv, Bs), meas=meas, bal=bal)
     q0 = gls(kf.W[:2, :2])[2]
     th, cov, q1 = gls(kf.W)
     se = np.sqrt(np.clip(np.diag(cov), 0.0, None))
@@ -371,12 +371,8 @@ def latency_round(mo: Motion, st: Stage, extra, alpha: float, cell_z: float,
     v = np.asarray(mo.v_ref, float)[gi]
     col = np.zeros((ev.t.size, 1))
     col[ev.bal, 0] = -v
-    fv, fs = (st.fv, st.fs) if extra is None else (st.fv + extra[0], st.fs + extra[1])
-    W = st.augmented(fv, fs, bal=col).W  # [data, s0, tau]
-    q0 = gls(W[:2, :2])[2]
-    th, cov, q1 = gls(W)
-    stat = max(q0 - q1, 0.0)
-    tau, se = float(th[-1]), float(math.sqrt(max(cov[-1, -1], 0.0)))
+    stat, th, se = _fit_columns(st, None, None, extra, bal=col)
+    tau, se = float(th[-1]), float(se[-1])
     logp = chi2_logsf(stat, 1)
     sig = bool(logp < math.log(alpha) and abs(tau) > cell_z * se
                and abs(tau) * float(v.max()) > min_offset)
