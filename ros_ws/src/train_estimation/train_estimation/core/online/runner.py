@@ -568,7 +568,7 @@ class EstimatorRunner:
         if kind == "odometer":
             fused = not reason or R.category(reason) in R.ACCEPTED
             if fused and isinstance(fields, dict):
-                self._steps.fused(stamp, fields.get("distance"))
+                self._steps.fused(stamp, fields.get("distance"), fields.get("seq"))
                 self._fused_seq.pop(fields.get("seq"), None)
                 self._fused_seq[fields.get("seq")] = stamp
                 # the samples of the last `history` seconds only: a copy comes with its
