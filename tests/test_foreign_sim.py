@@ -165,6 +165,24 @@ def test_an_effect_outside_the_list_on_foreign_data_is_unexplained_in_its_phase(
     assert rep["unexplained"][0]["phase"] == "braking", rep["unexplained"][0]
 
 
+@pytest.mark.parametrize("seed,listed", [(1, "braking_rate"), (3, "adhesion_section")])
+def test_brakes_that_fade_as_they_heat_are_no_braking_rate_nor_low_adhesion(tmp_path, seed,
+                                                                          listed):
+    """Brakes 40 % (seed 1) and 32 % (seed 3) weaker once they hold the heat of a stop from the
+    top speed, cooling in 95-110 s (bench_foreign --unlisted brake_heat): each braking starts
+    strong and ends weak. A braking rate drifting over the run (seed 1, f 0.93 -> 0.83) and a
+    low-adhesion section over most of the line's brakings (seed 3, x 0.72) were confirmed; a
+    braking weaker by the brakes' heat fits the braking better by far, and the remainder is
+    named in braking."""
+    rep, eff = _diagnose_foreign(tmp_path, seed, "brake_heat")
+    assert eff.brake_heat is not None
+    by = {r["cause"]: r for r in rep["ranking"]}
+    assert by[listed]["status"] == "not confirmed", by[listed]
+    assert by[listed]["why"].startswith("a heat law fits better"), by[listed]["why"]
+    assert rep["cause"] == "unexplained", rep["cause"]
+    assert rep["unexplained"][0]["phase"] == "braking", rep["unexplained"][0]
+
+
 def test_a_strong_remainder_on_a_stretch_is_named_there(tmp_path):
     """A traction cut to 57 % on 2130-2590 m (bench_foreign --unlisted traction_cut, seed 4):
     every family's chi-square is in the thousands. The strongest family is the position

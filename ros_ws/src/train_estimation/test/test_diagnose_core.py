@@ -395,3 +395,29 @@ def test_the_command_offset_grid_reaches_a_long_latency_tail():
     assert g.size <= 49 and g[-1] >= 5.0
     k = np.diff(g)[0] / 0.025
     assert abs(k - round(k)) < 1e-9 and np.allclose(np.diff(g), np.diff(g)[0])
+
+
+def test_the_brakes_heat_state_is_the_first_order_response_to_the_braking_power():
+    """heat_state against its closed form: braking at a constant power P per kg from t = 0
+    heats the brakes as P tau (1 - exp(-t / tau)) (m^2/s^2), cooling as exp(-t / tau) once
+    the braking ends; relative to the heat of one stop from the top speed, v_top^2 / 2."""
+    from types import SimpleNamespace
+
+    from train_estimation.core.offline.diagnose.contradict import heat_state
+
+    dt, tau, n = 0.05, 60.0, 4001  # 200 s
+    t = dt * np.arange(n)
+    braking = t < 100.0
+    v = np.full(n, 20.0)  # m/s, held (the power, not the motion, is under test)
+    a_br0 = np.where(braking, -0.5, 0.0)  # m/s^2 asked for
+    mo = SimpleNamespace(f0=0.8, a_br0=a_br0, v_ref=v, moving=np.ones(n),
+                         grid=SimpleNamespace(dt=dt))
+    h = heat_state(mo, tau)
+    p = 0.8 * 0.5 * 20.0  # m^2/s^3
+    # the filter holds the heat taken before each grid point (the sum of P dt, cooled)
+    exact = np.where(braking, p * tau * (1 - np.exp(-t / tau)),
+                     p * tau * (1 - math.exp(-100.0 / tau)) * np.exp(-(t - 100.0) / tau))
+    exact /= 0.5 * 20.0 ** 2
+    # a rectangle sum of P exp(-s / tau) over steps of dt is within P dt of the integral
+    assert np.max(np.abs(h - exact)) <= p * dt / (0.5 * 20.0 ** 2) + 1e-12
+    assert h[0] == 0.0 and np.argmax(h) == np.flatnonzero(braking)[-1] + 1

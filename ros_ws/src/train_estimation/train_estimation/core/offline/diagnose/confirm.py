@@ -80,6 +80,7 @@ from .contradict import (
     cancelling,
     count_law,
     flexible_rival,
+    heat_law,
     piece_of,
     place_test,
     slip_step,
@@ -225,6 +226,15 @@ def confirm(mo: Motion, shift: float, accepted: list, resolved_before: dict, cfg
                             "the balises and the odometer better than one scale at every "
                             "speed", ccfg, detail=f"k {cl.get('k', 0.0):+.4f}; "):
                 continue
+        if a.status == "confirmed" and cause.heat_rival is not None:
+            hl = heat_law(mo, others, full, cfg, noise)
+            checks[a.cause]["heat_law"] = hl
+            if _law_verdict(a, checks[a.cause], hl, cause.heat_rival,
+                            "the braking better than the cause", ccfg,
+                            detail=f"cooling {hl.get('tau', 0):.0f} s, "
+                                   f"fade {hl.get('fade', 0):.2f} at one stop's heat; ",
+                            law="a heat law"):
+                continue
         if a.status != "confirmed" or (bey := cause.beyond(a, mo)) is None:
             continue
         if cause.time_rival is not None and (span := _one_pass(mo, a)) is not None:
@@ -283,7 +293,7 @@ def _one_pass(mo: Motion, a) -> tuple[float, float] | None:
 
 
 def _law_verdict(a, check: dict, res: dict, rival: str, than: str, ccfg: ConfirmConfig,
-                 detail: str = "", where: str = "") -> bool:
+                 detail: str = "", where: str = "", law: str = "a speed law") -> bool:
     """The verdict of a comparison ``res`` of the cause ``a`` with a rival law of as many
     parameters (``res["lr"]``: 2 ln LR of the law over the cause): above ``law_lr`` the cause
     is not confirmed (returns True); within +-``law_lr`` the data cannot tell the two apart,
@@ -292,7 +302,7 @@ def _law_verdict(a, check: dict, res: dict, rival: str, than: str, ccfg: Confirm
     at = f"speeds {v[0]:.0f}-{v[1]:.0f} m/s{where}" if v else "no speeds"
     if lr > ccfg.law_lr:
         a.status = "not confirmed"
-        a.why = (f"a speed law fits better: {rival} explains {than} (2 ln LR {lr:+.1f} > "
+        a.why = (f"{law} fits better: {rival} explains {than} (2 ln LR {lr:+.1f} > "
                  f"{ccfg.law_lr:g}; {detail}{at})")
         return True
     if lr > -ccfg.law_lr:

@@ -67,6 +67,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from scipy.signal import lfilter
 from scipy.stats import chi2
 from train_core.model import G as G_ACCEL
 
@@ -484,6 +485,60 @@ def braking_law(mo: Motion, others: Null, cfg, noise, bins: tuple) -> dict:
     br = -mo.f0 * mo.a_br0
     return law_test(mo, others, cfg, noise, bins, np.maximum(0.5 * (br[1:] + br[:-1]), 0.0),
                     "the braking command")
+
+
+# s, cooling times of brakes tried by the heat law (a tread or a disc sheds its heat over
+# minutes; the choice among them is charged 2 ln of their number)
+HEAT_TAUS = (30.0, 60.0, 120.0, 300.0)
+
+
+def heat_state(mo: Motion, tau: float) -> np.ndarray:
+    """The brakes' heat on the grid, relative to that of one stop from the run's top speed:
+    H' = P - H / tau with P = f0 |a_br| v the braking power per kg the brakes take (m^2/s^3),
+    divided by v_top^2 / 2."""
+    p = np.maximum(-mo.f0 * mo.a_br0, 0.0) * np.maximum(mo.v_ref, 0.0) * mo.moving
+    dt = mo.grid.dt
+    # h[k] = exp(-dt / tau) h[k-1] + dt p[k-1]: the heat taken up to grid point k, cooled
+    h = lfilter([0.0, dt], [1.0, -math.exp(-dt / tau)], p)
+    v_top = float(np.max(mo.v_ref * mo.moving)) if mo.moving.any() else 0.0
+    return h / max(0.5 * v_top * v_top, 1e-9)
+
+
+def heat_law(mo: Motion, others: Null, full: Null, cfg, noise) -> dict:
+    """A braking weaker by the cause (``full`` against ``others``: a braking-rate change in
+    time, a low-adhesion section) against brakes that fade as they heat: the braking asked for
+    times (c1 + c2 H), H the brakes' heat (:func:`heat_state`) at the best of ``HEAT_TAUS``,
+    two parameters on top of ``others``.
+
+    Returns ``lr``: 2 ln of the likelihood ratio of the heat law against the cause (its
+    contribution with a free multiplier), less 2 ln of the number of cooling times tried
+    (> 0: the data prefer the heat law; near 0 where every braking holds the same heat, as
+    on a run of equal stops); ``tau`` and the heat law's fade at the heat of one stop from the
+    top speed (``fade``, -c2 / (f0 + c1)); the speeds braked at (5-95 %)."""
+    st0 = Stage(mo, others, cfg, noise=noise, big=False)
+    st1 = Stage(mo, full, cfg, noise=noise, big=False)
+    dv, ds = st1.fv - st0.fv, st1.fs - st0.fs
+    res = {"law": "heat"}
+    brk = (mo.a_br0 < 0) & (mo.moving > 0)
+    if not (dv * dv).sum() > 0 or brk.sum() < 10:
+        res.update(lr=0.0, note="no braking while moving")
+        return res
+    cause = _fit_columns(st0, dv[:, None], ds[:, None])[0]
+    n_ev = mo.ev.t.size
+    best = (-math.inf, None, None)
+    for tau in HEAT_TAUS:
+        h = heat_state(mo, tau)
+        R = np.stack([mo.a_br0 * mo.moving, mo.a_br0 * h * mo.moving], axis=1)
+        stat, th, _ = _fit_columns(st0, *mo.grid.integrate(R, n_ev))
+        if stat > best[0]:
+            best = (stat, tau, th)
+    stat, tau, th = best
+    vb = mo.v_ref[brk]
+    v_lo, v_hi = np.percentile(vb, [5, 95])
+    res.update(lr=float(stat - cause - 2.0 * math.log(len(HEAT_TAUS))), tau=tau,
+               fade=float(-th[1] / (mo.f0 + th[0])) if mo.f0 + th[0] else float("nan"),
+               speeds=[float(v_lo), float(v_hi)])
+    return res
 
 
 def count_law(mo: Motion, others: Null, cfg, noise) -> dict:

@@ -54,6 +54,9 @@ class AdhesionSection(Cause):
     fixed_rival = "a downhill gradient the map lacks (a force fixed at that place)"
     time_rival = "braking weaker while the train braked there (a brake fault of that moment)"
     global_rival = "braking_rate"
+    # braking weaker at the end of each long braking (the brakes hot) is weaker there, on
+    # whichever stretch the longest braking ends
+    heat_rival = "brakes that fade as they heat"
 
     def resolution(self, fit, mo) -> str | None:
         """Braking on one stretch weaker by more than 3 SE and by 5 %: a few brake

@@ -169,6 +169,11 @@ class Cause:
     # braking asked for at its place) is not; None: the cause is no such law.
     fixed_rival: str | None = None
 
+    # Brakes that fade as they heat (weaker in proportion to the heat of the braking just
+    # done, cooling in minutes), which the cause (a braking weaker by a factor in time, or on
+    # a stretch) is not; None: the cause is not a weaker braking.
+    heat_rival: str | None = None
+
     # What acts in time rather than at a place and makes the same residual when the stretch
     # is run once (the train is at each place of it at one moment); None: not a cause at a
     # place. Only runs of the stretch at other times (other runs: ``fleet``) tell them apart.
