@@ -217,8 +217,6 @@ def clock_rate_change(stamps, recv, n_times: int = 81) -> dict | None:
 SMALL_MOVE = 0.05  # s: the least move of a clock's offset level taken as one (the runner's
 #   small_step); smaller moves are jitter and drift
 MAX_SPEED = 200.0  # m/s, beyond any train (720 km/h): a reading claiming more is corrupt
-GRID_STEP = 3  # held readings that make a step where the sample grid places them all at one
-#   residual (StepWatch._needed); min_judged elsewhere
 TOL = 5.0  # s: wider than arrival jitter (a node at 10x sees 1 Hz stamps 0.9 s apart in
 #   stamp - arrival), far narrower than a clock error worth refusing
 
@@ -661,10 +659,6 @@ class SampleGrid:
                     self._early = (P, c, self.floor, lo, hi)
         return self._early or None
 
-    def newest(self) -> int | None:
-        """The highest sample counter learnt (None before any)."""
-        return max(self._pts) if self._pts else None
-
     def tol_at(self, seq) -> float:
         """The tolerance (s) of :meth:`residual` at sample ``seq``: the trusted grid's, or the
         provisional one's grown by ``rate_tol`` periods per sample beyond the learnt ones;
@@ -908,11 +902,10 @@ class StepWatch:
         self.held.sort(key=lambda h: (h[0] != "odometer", h[1]))
         if kind == "odometer":
             chain = [h for h in self.held if h[0] == "odometer"]
-        need = self._needed(chain, med, bar)
-        if len(chain) < need:
+        if len(chain) < self.min_judged:
             yield (PASS, stamp) if refused else (HOLD,)
             return
-        step = is_step([(h[1], h[4]) for h in chain], need, self.period)
+        step = is_step([(h[1], h[4]) for h in chain], self.min_judged, self.period)
         # the first reading of the new clock came (elapsed arrival time, at least one period)
         # after the last one of the old clock
         first, a_first = chain[0][1], chain[0][4]
@@ -967,38 +960,6 @@ class StepWatch:
             yield ADMIT, (k, st - shift if on_new else st, f, rc, ar)
         yield PASS, stamp - shift
 
-    def _needed(self, chain: list, med: StreamClock, bar: float) -> int:
-        """How many held odometer readings make a step: ``GRID_STEP`` when the trusted sample
-        grid places every one of them (distinct samples newer than any learnt) at one residual
-        and, their arrivals known and the clock judged, their offsets moved by that residual
-        within ``bar`` (a clock that stepped moves both; a sample counter that skipped moves
-        the residual alone); ``min_judged`` otherwise. A reading's grid residual is its own
-        sample's stamp against its own count, which no link delay enters: three distinct
-        samples that agree on one residual off the grid (to the sampling jitter) are a clock
-        that stepped, and nothing one wrong stamp, one copy or one stall's burst can make (a
-        burst's readings are late but on the grid). At 1 Hz, nine readings of doubt held every
-        estimate after a 0.1 s step DEGRADED for 11 s, past the zone controller's limit for
-        DEGRADED."""
-        if len(chain) < GRID_STEP or self.grid.tol == math.inf:
-            # a provisional grid (three samples) is not enough: copies of the first three
-            # readings stamped 5 s ahead, admitted, made the genuine ones a -5 s step
-            return self.min_judged
-        rs = self._chain_resid(chain)
-        seqs = [h[2].get("seq") for h in chain]
-        newest = self.grid.newest()
-        # samples taken since the newest one admitted: a step sends new samples, while copies
-        # of samples admitted already, stamped alike, agree with one another as well
-        if rs is None or len(set(seqs)) < len(seqs) or \
-                (newest is not None and min(seqs) <= newest):
-            return self.min_judged
-        # the arrivals must say the same, on a clock judged
-        if any(h[3] is None for h in chain) or len(med) < self.min_judged:
-            return self.min_judged
-        offs = sorted(h[1] - h[4] for h in chain)
-        if abs(offs[len(offs) // 2] - med.value - rs[len(rs) // 2]) > bar:
-            return self.min_judged
-        return min(GRID_STEP, self.min_judged)
-
     def _resid(self, kind: str, stamp: float, fields) -> float | None:
         """The reading's residual on the sample grid (s), or None (not an odometer reading,
         the grid not trusted, or a reading whose values no train could produce: a corrupted
@@ -1020,8 +981,8 @@ class StepWatch:
         s0, d0, q0 = self._dist
         # the time between the two samples: their stamps', or their counters' when these say
         # more (after a backward step the stamps lie close while the train ran on: a genuine
-        # reading 3 s after a -3 s step at 80 m/s was taken for a corrupted one and its step
-        # waited for nine readings instead of the grid's three)
+        # reading 3 s after a -3 s step at 80 m/s was taken for a corrupted one, and the step
+        # was measured from the arrivals instead of the grid)
         q = SampleGrid._seq(fields.get("seq"))
         dt = abs(stamp - s0)
         if q is not None and q0 is not None:
