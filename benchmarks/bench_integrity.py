@@ -5,7 +5,7 @@ Each fault of ``train_estimation.tools.faults`` (one or a few readings with wron
 steps, drift, odometer outages while accelerating / cruising / braking, the command stream
 stopping, link latency tails, recorder and node stalls, the fuzz mix with stamps inside
 ``max_future``, a balise lying metres from its map position, an odometer whose scale is up to
-2 % off), at several sizes and times, on
+2 % off, a sample counter that skips or repeats samples), at several sizes and times, on
 metro_demo, crh3_high_speed and wen2017_subway, is replayed through the runner the nodes use
 (node defaults: ``NodeConfig``), arrival = stamp + 50 ms. Per fault and estimator (seeds
 pooled) the table gives:
@@ -186,6 +186,11 @@ def plan(quick: bool, seeds: int, estimators, only, phase_names=None, long: floa
             for s in (((-0.5,) if scenario == "metro_demo" else ()) if quick else
                       (-3.0, -0.5, -0.1, 0.1, 0.5, 3.0)):
                 add(F.Fault("step", s, at, jitter=JITTER), 0.0)
+            # a sample counter that skips (or repeats) samples while the clock runs on: no
+            # clock step, whatever the grid says
+            for s in (((1.0,) if scenario == "metro_demo" else ()) if quick else
+                      (-1.0, 1.0, 3.0)):
+                add(F.Fault("seq_skip", s, at), 0.0)
             add(F.Fault("command_stop", 0.0, at), 120.0 if quick else 400.0)
             # a balise that lies elsewhere than the map says: refused by the gate or fused,
             # never an estimate that claims the balise's position with the odometer's certainty

@@ -192,3 +192,45 @@ def test_a_step_back_at_speed_is_measured_on_the_sample_grid():
         t = 1000.0 + k
         acts = f.push_seq(k, t + step, t + LATENCY + rng.exponential(0.05))
     assert acts[0][0] == STEP and acts[0][1] == pytest.approx(step, abs=1e-9), acts[0]
+
+
+@pytest.mark.parametrize("skip", [1, 3, -1])
+def test_a_sample_counter_that_skips_is_no_clock_step(skip):
+    """The counter jumps by ``skip`` samples while stamps and arrivals run on (a sampling
+    loop that missed a cycle and counted it): the grid puts every later reading ``skip``
+    periods off, the arrivals do not move. Held as a possible step for nine readings, then
+    the grid learns the counter's new origin and the readings are admitted at their own
+    stamps: no step (taken for one at 1 Hz, the estimates ran 81 m off, ALARM for half a
+    minute)."""
+    rng = np.random.default_rng(7)
+    f = GridFeed()
+    for k in range(40):
+        t = 1000.0 + k
+        assert f.push_seq(k, t, t + LATENCY + rng.exponential(0.02))[-1][0] == PASS
+    answers = []
+    for k in range(40, 40 + f.w.min_judged):
+        t = 1000.0 + k
+        answers.append(f.push_seq(k + skip, t, t + LATENCY + rng.exponential(0.02)))
+    assert all(a == [(HOLD,)] for a in answers[:-1]), answers
+    assert [a[0] for a in answers[-1]] == [ADMIT] * f.w.min_judged + [HOLD]
+    assert f.w.shift == 0.0 and f.w.counter_moves == 1 and f.w.counter_move == skip
+    assert f.admitted[-f.w.min_judged:] == pytest.approx([1000.0 + k for k in range(40, 49)])
+    # the stream goes on on the re-learnt grid
+    t = 1000.0 + 49
+    assert f.push_seq(49 + skip, t, t + LATENCY) == [(PASS, t)]
+
+
+def test_a_step_of_a_whole_period_is_still_a_step():
+    """A -1 s step at 1 Hz moves the grid residual by a whole period too, but the arrivals
+    move with it: a clock step."""
+    rng = np.random.default_rng(8)
+    f = GridFeed()
+    for k in range(40):
+        t = 1000.0 + k
+        assert f.push_seq(k, t, t + LATENCY + rng.exponential(0.02))[-1][0] == PASS
+    acts = []
+    for k in range(40, 40 + f.w.min_judged):
+        t = 1000.0 + k
+        acts = f.push_seq(k, t - 1.0, t + LATENCY + rng.exponential(0.02))
+    assert acts[0][0] == STEP and acts[0][1] == pytest.approx(-1.0, abs=1e-9)
+    assert f.w.counter_moves == 0

@@ -181,6 +181,25 @@ def test_one_case_of_each_fault_class_runs_through_an_estimator(fault):
         assert [(o.stamp, o.position) for o in ref] == [(o.stamp, o.position) for o in outs]
 
 
+def test_a_sample_counter_that_skips_is_logged_and_no_clock_step():
+    """seq_skip moves only the odometer's counter; through the runner (node defaults) it is
+    the event seq_skip, not a clock_reset, and no estimate leaves its bound."""
+    base = by_topic(F.inject(clean(), F.Fault("none"), np.random.default_rng(0)).events,
+                    "odometer")
+    got = by_topic(F.inject(clean(), F.Fault("seq_skip", 2.0, 10.0),
+                            np.random.default_rng(0)).events, "odometer")
+    assert [(s, r) for s, _, r in got] == [(s, r) for s, _, r in base]
+    assert all(g[1]["seq"] - b[1]["seq"] == (2 if b[0] >= F.EPOCH + 10.0 else 0)
+               for b, g in zip(base, got))
+    sc, res = run("metro_demo", 1, 30.0)
+    fl = F.inject(res.events(), F.Fault("seq_skip", 1.0, 12.0), np.random.default_rng(0))
+    outs, emitted, runner = F.run(fl.events, adapter(sc), 0.1)
+    assert runner.events["odometer:seq_skip"] == 1, dict(runner.events)
+    assert runner.events["odometer:clock_reset"] == 0, dict(runner.events)
+    s = F.score(outs, emitted, fl, res.truth, 10.0, 30.0 + F.LATENCY)
+    assert s["wrong_side"] == 0 and s["hazards"] == 0 and s["availability"] > 0.95, s
+
+
 @pytest.mark.parametrize("jump", [0.2, -3.0])
 def test_a_stamp_at_the_step_instant_means_the_old_clock(jump):
     """The slot after the old clock's last sample, predicted at the old clock's next stamp

@@ -39,12 +39,14 @@ ACCEPTED = (OK, MISSING, IGNORED)
 # -- events: accepted input that changes how later input is read (logged once, counted) ----------
 SEQ_RESET = "seq_reset"  # sequence number went back (sensor reboot, wrap-around)
 CLOCK_RESET = "clock_reset"  # a stamp clock jumped and stayed: re-anchored
+SEQ_SKIP = "seq_skip"  # the sample counter skipped (or repeated) samples, the clock ran on
 FUSED_LATE = "fused_late"  # arrived after later readings, fused by rewinding the history
 OUTAGE = "outage"  # no odometer for longer than the outage threshold
 RELOCATED = "relocated"  # two agreeing balises moved the odometer's count by more than it claimed
 BALISE_EXCLUDED = "balise_excluded"  # a fused balise shown to lie by a later one, taken out
 BALISE_LATENCY = "balise_latency"  # the balise reader found to stamp later than its prior allows
-EVENTS = (SEQ_RESET, CLOCK_RESET, FUSED_LATE, OUTAGE, RELOCATED, BALISE_EXCLUDED, BALISE_LATENCY)
+EVENTS = (SEQ_RESET, CLOCK_RESET, SEQ_SKIP, FUSED_LATE, OUTAGE, RELOCATED, BALISE_EXCLUDED,
+          BALISE_LATENCY)
 
 ALL = REJECTIONS + ACCEPTED + EVENTS
 
@@ -66,6 +68,7 @@ DESCRIPTION = {
     IGNORED: "validated, not used",
     SEQ_RESET: "sequence number went back (reboot/wrap)",
     CLOCK_RESET: "stamp clock jumped; re-anchored",
+    SEQ_SKIP: "sample counter skipped samples while the clock ran on; grid re-learnt",
     FUSED_LATE: "arrived late, fused by rewinding",
     OUTAGE: "no odometer for longer than the outage threshold",
     RELOCATED: "odometer count moved onto two agreeing balises",

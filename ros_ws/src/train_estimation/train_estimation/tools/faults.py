@@ -33,6 +33,9 @@ balise           m: the first balise read at or after ``at`` lies ``size`` m fur
                  position with its usual variance
 stuck            (none): from ``at`` on every odometer reading repeats the last count before
                  ``at`` and reads standstill (a sensor that stopped), while the train runs on
+seq_skip         samples: from ``at`` on the odometer's sample counter (``seq``) runs ``size``
+                 ahead (< 0: behind) of the samples taken (a sampling loop that missed a cycle
+                 and counted it); stamps, values and arrivals are untouched
 odometer_scale   fraction: from ``at`` on the odometer counts ``1 + size`` times the distance
                  run and reads ``1 + size`` times the speed (a worn or mis-set wheel
                  diameter; 0.01 = 1 %); the distance is continuous at ``at``
@@ -76,7 +79,7 @@ AVAILABLE_LAG = 1.0  # s: an OK estimate published further from the time it clai
 #   available (counted in ``availability``)
 TRAIN_TOPICS = ("odometer", "balise")
 KINDS = ("none", "stamp", "step", "drift", "outage", "command_stop", "latency", "recorder_stall",
-         "node_stall", "fuzz", "balise", "odometer_scale", "stuck")
+         "node_stall", "fuzz", "balise", "odometer_scale", "stuck", "seq_skip")
 # stamps a few seconds to minutes off: inside the runner's max_future (600 s), so the door lets
 # them in and only the clocks' and the filters' own checks stand between them and the estimate
 INSIDE_FUTURE = {
@@ -167,8 +170,8 @@ class Fault:
         n = f" x{self.count}" if self.kind == "stamp" and self.count != 1 else ""
         n += f" jitter {self.jitter:g}" if self.jitter else ""
         return f"{self.kind} {self.size:+g}{n}" if self.kind in ("stamp", "step", "drift",
-                                                                   "balise",
-                                                                   "odometer_scale") \
+                                                                   "balise", "odometer_scale",
+                                                                   "seq_skip") \
             else f"{self.kind} {self.size:g}{n}"
 
 
@@ -205,6 +208,8 @@ def inject(events: list, fault: Fault, rng: np.random.Generator) -> Faulted:
             else:
                 d_at = fields["distance"] if d_at is None else d_at
                 fields = {**fields, "distance": d_at, "speed": 0.0}
+        if k == "seq_skip" and topic == "odometer" and t >= at and "seq" in fields:
+            fields = {**fields, "seq": fields["seq"] + int(size)}
         train = topic in TRAIN_TOPICS
         if k == "outage" and train and at <= t < at + size:
             continue

@@ -755,7 +755,9 @@ class StepWatch:
         self._admitted: list = []  # sorted recent odometer stamps admitted
         self._sent: dict = {}  # timeline odometer stamp -> stamp as sent (after a step)
         self.grid = SampleGrid(period, min_judged)  # odometer stamps against their seq
-        self._dist: tuple | None = None  # (stamp, counted distance) of the newest fused
+        self._dist: tuple | None = None  # (stamp, counted distance, seq) of the newest fused
+        self.counter_moves = 0  # sample counters that skipped or repeated (no clock step)
+        self.counter_move = 0  # samples the last such move skipped (< 0: repeated)
 
     # -- stamps ---------------------------------------------------------------------------
     def onto_timeline(self, stamp: float, odometer: bool) -> float:
@@ -929,6 +931,17 @@ class StepWatch:
         if not step:
             yield (PASS, stamp) if refused else (HOLD,)
             return
+        if rs is not None and self._counter_moved(chain, rs[len(rs) // 2], new_off, med):
+            # the sample counter moved, not the clock: the grid learns the counter's new
+            # origin from these readings, which are then judged as any other (on time)
+            self.grid.reset()
+            for h in chain:
+                self.grid.add(h[2].get("seq"), h[1])
+            self.counter_moves += 1
+            self.counter_move = -round(rs[len(rs) // 2] / self.period)
+            yield from self._release()  # this reading with them
+            yield (HOLD,)
+            return
         measured = all(h[3] is not None for h in chain) and len(med) >= self.min_judged
         if rs is not None:
             measured = True
@@ -959,6 +972,27 @@ class StepWatch:
                 abs(st - ar - new_off) <= abs(st - ar - med.value)
             yield ADMIT, (k, st - shift if on_new else st, f, rc, ar)
         yield PASS, stamp - shift
+
+    def _counter_moved(self, chain: list, r: float, new_off: float, med: StreamClock) -> bool:
+        """Whether the held readings that the grid puts ``r`` s off (a whole number of periods)
+        are a sample counter that skipped or repeated samples rather than a clock step: their
+        arrivals known, on a clock of at least three offsets, the median of their offsets (``new_off``) where the
+        clock's centre is, and ``r`` away from it, each by the median's own precision (1.25
+        robust spreads of the link's jitter over the square root of the readings). A train's
+        sampling loop that misses a cycle counts on; its stamps do not move, nor do their
+        arrivals: taken for a -1 s step at 1 Hz, the estimates were 81 m off and ALARM for
+        half of the next minute."""
+        # (three offsets that agree place a clock: a counter that skips in the first seconds
+        # of a 1 Hz run, taken for a step, put an estimate 3 s past the run's end)
+        if any(h[3] is None for h in chain) or len(med) < 3:
+            return False
+        k = round(r / self.period)
+        if k == 0 or abs(r - k * self.period) > max(self.grid.tol_at(h[2].get("seq"))
+                                                    for h in chain):
+            return False
+        se = 1.2533 * max(med.scale, 1e-3) / math.sqrt(len(chain))
+        moved = new_off - med.value
+        return abs(moved) <= 3.0 * se and abs(moved - r) > 6.0 * se
 
     def _resid(self, kind: str, stamp: float, fields) -> float | None:
         """The reading's residual on the sample grid (s), or None (not an odometer reading,

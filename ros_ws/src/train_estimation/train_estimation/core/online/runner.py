@@ -377,7 +377,13 @@ class EstimatorRunner:
         order (each held reading is judged as the admission of the ones before it left the
         clock); ``stamp`` comes back mapped when this reading completed a step."""
         held = False
+        moves = self._steps.counter_moves
         for act in self._steps.watch(kind, stamp, fields, recv, arrival):
+            if self._steps.counter_moves != moves:
+                moves = self._steps.counter_moves
+                self._event("odometer", stamp, f"{R.SEQ_SKIP}: the sample counter moved by "
+                                               f"{self._steps.counter_move:+d} samples while "
+                                               f"the stamps and arrivals ran on; grid re-learnt")
             if act[0] == ADMIT:
                 self._admit(*act[1], watch=False)
             elif act[0] == REFUSE:
