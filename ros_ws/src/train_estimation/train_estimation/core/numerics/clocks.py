@@ -976,9 +976,10 @@ class StepWatch:
     def _counter_moved(self, chain: list, r: float, new_off: float, med: StreamClock) -> bool:
         """Whether the held readings that the grid puts ``r`` s off (a whole number of periods)
         are a sample counter that skipped or repeated samples rather than a clock step: their
-        arrivals known, on a clock of at least three offsets, the median of their offsets (``new_off``) where the
-        clock's centre is, and ``r`` away from it, each by the median's own precision (1.25
-        robust spreads of the link's jitter over the square root of the readings). A train's
+        arrivals known, on a clock of at least three offsets, the median of their offsets
+        (``new_off``) where the clock's centre is, and ``r`` away from it, each by the
+        median's own precision (1.25 robust spreads of the link's jitter over the square root
+        of the readings). A train's
         sampling loop that misses a cycle counts on; its stamps do not move, nor do their
         arrivals: taken for a -1 s step at 1 Hz, the estimates were 81 m off and ALARM for
         half of the next minute."""
