@@ -169,10 +169,18 @@ class GridFeed(Feed):
                 self.admit(act[1], arrival, fields)
         return acts
 
-    def run_seq(self, k0, k1, epoch=1000.0):
-        for k in range(k0, k1):
-            t = epoch + k
-            assert self.push_seq(k, t, t + LATENCY)[-1][0] == PASS
+    def run_jittery(self, rng, n=40, jitter=0.02):
+        """Samples 0 .. n - 1 on time, each arriving ``LATENCY`` plus an exponential jitter."""
+        for k in range(n):
+            t = 1000.0 + k
+            assert self.push_seq(k, t, t + LATENCY + rng.exponential(jitter))[-1][0] == PASS
+
+    def then(self, rng, seq_off=0, stamp_off=0.0, k0=40, jitter=0.02):
+        """The answers to the next ``min_judged`` samples (from ``k0``), counted ``seq_off``
+        samples off and stamped ``stamp_off`` s off, arriving as in :meth:`run_jittery`."""
+        return [self.push_seq(k + seq_off, 1000.0 + k + stamp_off,
+                              1000.0 + k + LATENCY + rng.exponential(jitter))
+                for k in range(k0, k0 + self.w.min_judged)]
 
 
 def test_a_step_back_at_speed_is_measured_on_the_sample_grid():
@@ -183,14 +191,9 @@ def test_a_step_back_at_speed_is_measured_on_the_sample_grid():
     the arrivals it carried the link's jitter)."""
     rng = np.random.default_rng(5)
     f = GridFeed(speed=100.0)
-    for k in range(40):
-        t = 1000.0 + k
-        assert f.push_seq(k, t, t + LATENCY + rng.exponential(0.05))[-1][0] == PASS
+    f.run_jittery(rng, jitter=0.05)
     step = -3.0
-    acts = []
-    for k in range(40, 40 + f.w.min_judged):
-        t = 1000.0 + k
-        acts = f.push_seq(k, t + step, t + LATENCY + rng.exponential(0.05))
+    acts = f.then(rng, stamp_off=step, jitter=0.05)[-1]
     assert acts[0][0] == STEP and acts[0][1] == pytest.approx(step, abs=1e-9), acts[0]
 
 
@@ -204,13 +207,8 @@ def test_a_sample_counter_that_skips_is_no_clock_step(skip):
     minute)."""
     rng = np.random.default_rng(7)
     f = GridFeed()
-    for k in range(40):
-        t = 1000.0 + k
-        assert f.push_seq(k, t, t + LATENCY + rng.exponential(0.02))[-1][0] == PASS
-    answers = []
-    for k in range(40, 40 + f.w.min_judged):
-        t = 1000.0 + k
-        answers.append(f.push_seq(k + skip, t, t + LATENCY + rng.exponential(0.02)))
+    f.run_jittery(rng)
+    answers = f.then(rng, seq_off=skip)
     assert all(a == [(HOLD,)] for a in answers[:-1]), answers
     assert [a[0] for a in answers[-1]] == [ADMIT] * f.w.min_judged + [HOLD]
     assert f.w.shift == 0.0 and f.w.counter_moves == 1 and f.w.counter_move == skip
@@ -225,12 +223,7 @@ def test_a_step_of_a_whole_period_is_still_a_step():
     move with it: a clock step."""
     rng = np.random.default_rng(8)
     f = GridFeed()
-    for k in range(40):
-        t = 1000.0 + k
-        assert f.push_seq(k, t, t + LATENCY + rng.exponential(0.02))[-1][0] == PASS
-    acts = []
-    for k in range(40, 40 + f.w.min_judged):
-        t = 1000.0 + k
-        acts = f.push_seq(k, t - 1.0, t + LATENCY + rng.exponential(0.02))
+    f.run_jittery(rng)
+    acts = f.then(rng, stamp_off=-1.0)[-1]
     assert acts[0][0] == STEP and acts[0][1] == pytest.approx(-1.0, abs=1e-9)
     assert f.w.counter_moves == 0
