@@ -547,7 +547,7 @@ class StreamClock:
 
 # -- the train clock's steps -----------------------------------------------------------------
 
-PASS, HOLD, ADMIT, REFUSE, STEP = "pass", "hold", "admit", "refuse", "step"
+PASS, HOLD, ADMIT, REFUSE, STEP, SKIP = "pass", "hold", "admit", "refuse", "step", "skip"
 
 
 class SampleGrid:
@@ -756,8 +756,6 @@ class StepWatch:
         self._sent: dict = {}  # timeline odometer stamp -> stamp as sent (after a step)
         self.grid = SampleGrid(period, min_judged)  # odometer stamps against their seq
         self._dist: tuple | None = None  # (stamp, counted distance, seq) of the newest fused
-        self.counter_moves = 0  # sample counters that skipped or repeated (no clock step)
-        self.counter_move = 0  # samples the last such move skipped (< 0: repeated)
 
     # -- stamps ---------------------------------------------------------------------------
     def onto_timeline(self, stamp: float, odometer: bool) -> float:
@@ -821,6 +819,9 @@ class StepWatch:
         - ``(STEP, shift, first, measured)``: a step of ``shift`` s (now in :attr:`shift`), its
           first reading at timeline stamp ``first`` (before this shift), ``measured`` from the
           arrivals or assumed from the stamps (class doc); the held readings follow as ADMITs;
+        - ``(SKIP, samples)``: no step, the sample counter moved by ``samples`` (< 0: back)
+          while the stamps and arrivals ran on; the grid is re-learnt and the held readings
+          follow as ADMITs (judged as any other);
         - last, for this reading: ``(PASS, stamp)``, go on judging it at this timeline stamp
           (mapped when it completed a step; one beyond ``max_future`` is held only as evidence
           for a step and passes, to be refused at the door as always), or ``(HOLD,)``, nothing
@@ -931,14 +932,13 @@ class StepWatch:
         if not step:
             yield (PASS, stamp) if refused else (HOLD,)
             return
-        if rs is not None and self._counter_moved(chain, rs[len(rs) // 2], new_off, med):
+        if rs is not None and self._counter_moved(chain, r := rs[len(rs) // 2], new_off, med):
             # the sample counter moved, not the clock: the grid learns the counter's new
             # origin from these readings, which are then judged as any other (on time)
             self.grid.reset()
             for h in chain:
                 self.grid.add(h[2].get("seq"), h[1])
-            self.counter_moves += 1
-            self.counter_move = -round(rs[len(rs) // 2] / self.period)
+            yield SKIP, -round(r / self.period)
             yield from self._release()  # this reading with them
             yield (HOLD,)
             return
@@ -979,10 +979,9 @@ class StepWatch:
         arrivals known, on a clock of at least three offsets, the median of their offsets
         (``new_off``) where the clock's centre is, and ``r`` away from it, each by the
         median's own precision (1.25 robust spreads of the link's jitter over the square root
-        of the readings). A train's
-        sampling loop that misses a cycle counts on; its stamps do not move, nor do their
-        arrivals: taken for a -1 s step at 1 Hz, the estimates were 81 m off and ALARM for
-        half of the next minute."""
+        of the readings). A train's sampling loop that misses a cycle counts on; its stamps do
+        not move, nor do their arrivals: taken for a -1 s step at 1 Hz, the estimates were
+        81 m off and ALARM for half of the next minute."""
         # (three offsets that agree place a clock: a counter that skips in the first seconds
         # of a 1 Hz run, taken for a step, put an estimate 3 s past the run's end)
         if any(h[3] is None for h in chain) or len(med) < 3:

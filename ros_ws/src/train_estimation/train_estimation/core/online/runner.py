@@ -80,7 +80,7 @@ from typing import Protocol
 import numpy as np
 
 from .. import reasons as R
-from ..numerics.clocks import ADMIT, HOLD, PASS, REFUSE, STEP, StepWatch, StreamClock
+from ..numerics.clocks import ADMIT, HOLD, PASS, REFUSE, SKIP, STEP, StepWatch, StreamClock
 from .integrity import IntegrityMonitor, IntegrityParams
 
 KIND_ORDER = {"control": 0, "odometer": 1, "balise": 2}
@@ -377,13 +377,7 @@ class EstimatorRunner:
         order (each held reading is judged as the admission of the ones before it left the
         clock); ``stamp`` comes back mapped when this reading completed a step."""
         held = False
-        moves = self._steps.counter_moves
         for act in self._steps.watch(kind, stamp, fields, recv, arrival):
-            if self._steps.counter_moves != moves:
-                moves = self._steps.counter_moves
-                self._event("odometer", stamp, f"{R.SEQ_SKIP}: the sample counter moved by "
-                                               f"{self._steps.counter_move:+d} samples while "
-                                               f"the stamps and arrivals ran on; grid re-learnt")
             if act[0] == ADMIT:
                 self._admit(*act[1], watch=False)
             elif act[0] == REFUSE:
@@ -403,6 +397,10 @@ class EstimatorRunner:
                 self._event("odometer", stamp, f"{R.CLOCK_RESET}: train clock stepped by "
                                                f"{shift:+.3f} s at stamp {sent:.3f}; "
                                                f"re-anchored")
+            elif act[0] == SKIP:
+                self._event("odometer", stamp, f"{R.SEQ_SKIP}: the sample counter moved by "
+                                               f"{act[1]:+d} samples while the stamps and "
+                                               f"arrivals ran on; grid re-learnt")
             elif act[0] == PASS:
                 stamp = act[1]
             elif act[0] == HOLD:
