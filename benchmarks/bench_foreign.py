@@ -311,9 +311,10 @@ def run_estimators(spec: dict) -> list[dict]:
     """Every estimator on one foreign run (``--estimators``): the clean stream the link delivered,
     on the fault campaign's clocks and latency (``tools.faults``, no fault), replayed through the
     runner the nodes use with the node defaults and scored as the integrity campaign scores.
-    With ``spec["recorded"]`` (``--as-recorded``) the messages as the ground logged them
-    instead: the train's own clock (its epoch, drift and step), the link's own latency and
-    losses (:func:`recorded_stream`)."""
+    ``spec["config"]``: estimator parameters other than the defaults (``--no-distance``:
+    ``use_distance: false``). With ``spec["recorded"]`` (``--as-recorded``) the messages as
+    the ground logged them instead: the train's own clock (its epoch, drift and step), the
+    link's own latency and losses (:func:`recorded_stream`)."""
     from train_core.model import load_line, load_train
 
     from train_estimation.core.online.estimators import NodeConfig
@@ -349,7 +350,8 @@ def run_estimators(spec: dict) -> list[dict]:
     for name in spec.get("estimators", ESTIMATORS):
         row = {**spec, "family": case.family, "estimator": name, "effect": repr(eff)}
         try:
-            ad = make_adapter(sc, name)  # as the integrity campaign makes it
+            # as the integrity campaign makes it, with spec["config"]'s parameters
+            ad = make_adapter(sc, name, **spec.get("config", {}))
         except ValueError as exc:  # the estimator cannot model this train
             row["na"] = str(exc)
             rows.append(row)
@@ -504,6 +506,9 @@ def main(argv=None) -> int:
     p.add_argument("--estimators", action="store_true",
                    help="run every estimator on the runs instead of diagnose (the integrity "
                         "campaign's figures: wrong-side, availability, error)")
+    p.add_argument("--no-distance", action="store_true",
+                   help="with --estimators: the estimators with use_distance: false (the "
+                        "odometer's speed and the balises, its distance unread)")
     p.add_argument("--as-recorded", action="store_true",
                    help="with --estimators: the messages as the ground logged them (the "
                         "train's own clock, epoch, drift and step; the link's own latency) "
@@ -544,11 +549,12 @@ def main(argv=None) -> int:
            if v is not None}
     if args.kinds is None:
         args.kinds = list(UNLISTED) if args.unlisted else list(KINDS)
-    if args.as_recorded and not args.estimators:
-        p.error("--as-recorded goes with --estimators")
+    if (args.as_recorded or args.no_distance) and not args.estimators:
+        p.error("--as-recorded and --no-distance go with --estimators")
     specs = [{"seed": s, "kind": k, **({"sim": sim} if sim else {}),
               **({"family": args.family} if args.family else {}),
               **({"recorded": True} if args.as_recorded else {}),
+              **({"config": {"use_distance": False}} if args.no_distance else {}),
               **({"effect": override} if override else {})}
              for s in range(args.first, args.first + args.seeds) for k in args.kinds]
     fn, name = (run_estimators, "foreign_estimators") if args.estimators else \
@@ -557,6 +563,7 @@ def main(argv=None) -> int:
     name += "".join(f"_{k}{v:g}" for k, v in sim.items())  # a variant's own file
     name += f"_{args.family}" if args.family else ""
     name += "_as_recorded" if args.as_recorded else ""
+    name += "_no_distance" if args.no_distance else ""
     name += "".join(f"_{k}{v:g}" for k, v in override.items())
     prog = Progress(f"bench {name.replace('_', ' ')}")
     results = []

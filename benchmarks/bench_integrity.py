@@ -89,11 +89,13 @@ def _sim(scenario: str, seed: int, duration: float):
     return sc, simulate(sc, seed, duration)
 
 
-def make_adapter(sc, name: str):
+def make_adapter(sc, name: str, **config):
+    """The estimator ``name`` with its node defaults, or ``config``'s parameters instead."""
     st = StartState(sc.start_position)
     if name == "robust_filter":
-        return RobustAdapter(sc.train, sc.line, st, RobustConfig(period=1 / sc.odometer_rate))
-    return BrakingAdapter(sc.train, sc.line, st, BrakingConfig(algorithm=name))
+        return RobustAdapter(sc.train, sc.line, st,
+                             RobustConfig(period=1 / sc.odometer_rate, **config))
+    return BrakingAdapter(sc.train, sc.line, st, BrakingConfig(algorithm=name, **config))
 
 
 def phases(truth: dict) -> dict:
@@ -122,7 +124,7 @@ def run_task(task: dict) -> dict:
     tr = {k: np.asarray(v)[np.asarray(res.truth["t"]) <= end] for k, v in res.truth.items()}
     row = dict(task, exceptions=0, error="")
     try:
-        adapter = make_adapter(sc, task["estimator"])
+        adapter = make_adapter(sc, task["estimator"], **task.get("config", {}))
     except ValueError as exc:  # the estimator cannot model this train (no brake delay, ...)
         row["na"] = str(exc)
         return row
@@ -446,6 +448,9 @@ def main(argv=None) -> int:
     ap.add_argument("--only", nargs="*", default=None, help=f"fault kinds ({', '.join(F.KINDS)})")
     ap.add_argument("--jobs", type=int, default=2, help="worker processes")
     ap.add_argument("--no-zone", action="store_true")
+    ap.add_argument("--no-distance", action="store_true",
+                    help="the estimators with use_distance: false (the odometer's speed and "
+                         "the balises, its distance unread)")
     ap.add_argument("--phases", nargs="*", default=None,
                     help="reduced full campaign: stamp, step and command faults only in these "
                          "phases (accelerating, cruising, braking)")
@@ -458,6 +463,9 @@ def main(argv=None) -> int:
     estimators = args.estimators or (QUICK_ESTIMATORS if args.quick else ESTIMATORS)
     tasks = plan(args.quick, seeds, estimators, args.only, args.phases, args.long,
                  args.fuzz_rate)
+    config = {"use_distance": False} if args.no_distance else {}
+    for t in tasks:
+        t["config"] = config
     # the longest first: the pool finishes together
     tasks.sort(key=lambda t: -t["duration"] * (3 if t["fault"].kind == "fuzz" else 1))
     rows = []
@@ -475,7 +483,9 @@ def main(argv=None) -> int:
         mode = (f"reduced full: phases {', '.join(args.phases or ['all'])}, drift and fuzz "
                 f"<= {args.long or 'full'} s, fuzz {args.fuzz_rate or 10.0:g} per clean message")
     print(f"Integrity campaign ({mode}): {len(tasks)} runs, {seeds} seed(s), estimators "
-          f"{', '.join(estimators)}; node defaults (NodeConfig: control_clock "
+          f"{', '.join(estimators)}"
+          f"{' with use_distance: false' if args.no_distance else ''}; "
+          f"node defaults (NodeConfig: control_clock "
           f"{NodeConfig().control_clock!r}, max_future {NodeConfig().max_future:g} s), "
           f"arrival = stamp + {F.LATENCY:g} s\n")
     print_table(groups)

@@ -276,9 +276,10 @@ def test_the_position_test_flags_a_distance_bias_and_covers_it(bias, want):
         assert "position" in out.integrity_reason and out.covariance[0] > 0.04 * bias ** 2
 
 
-def _stuck_odometer(sc, res, kind, t0):
+def _stuck_odometer(sc, res, kind, t0, **cfg):
     """The run with every odometer reading from ``t0`` on repeating the last count and reading
-    standstill, replayed: (outputs, position errors), asserting no wrong-side estimate."""
+    standstill, replayed (the estimator's parameters ``cfg``): (outputs, position errors),
+    asserting no wrong-side estimate."""
     stuck = {}
 
     def mod(topic, t, f):
@@ -287,10 +288,24 @@ def _stuck_odometer(sc, res, kind, t0):
             f = dict(f, distance=stuck["distance"], speed=0.0)
         return topic, t, f, t + LAT
 
-    outs, _ = replay(_events(res, mod), adapter(sc, kind), 0.1, control_clock="same")
+    outs, _ = replay(_events(res, mod), adapter(sc, kind, **cfg), 0.1, control_clock="same")
     e, sig, lab, _ = _check(outs, res, lambda i, s: s)
     assert _wrong_side(e, sig, lab) == 0
     return outs, e
+
+
+@pytest.mark.parametrize("t0", [12.8, 46.8])
+def test_without_the_distance_a_speed_sensor_that_stops_is_not_taken_again_unseen(demo, t0):
+    """``use_distance: false``: the filter has no position reading, so a jump onto a stuck
+    odometer after a blind run shows in the speed alone (standstill read while the estimate
+    runs at 15-20 m/s). The monitor judged the jump on the position reading only: the KF took
+    the stuck sensor again and said OK up to 2.8 km off (107 and 2 wrong-side estimates here,
+    ``./run bench integrity --quick --no-distance``, stuck while accelerating and cruising).
+    Now ALARM (``reacquired``), held: no balise confirms a filter that stands while the train
+    runs."""
+    sc, res = demo
+    outs, e = _stuck_odometer(sc, res, "kf", t0, use_distance=False)
+    assert np.max(np.abs(e)) > 500.0  # the case is not a mild one
 
 
 @pytest.mark.parametrize("kind", ["robust", "kf"])
@@ -344,6 +359,43 @@ def test_a_jump_onto_the_odometer_after_a_blind_run_waits_for_a_balise(balise_at
     m.assess(out(11.2, 100.0), 11.2)
     m.reading(11.3, odo, True, position=(100.5, 1.0))
     assert m.assess(out(11.3, 100.5), 11.3).integrity != ALARM
+
+
+@pytest.mark.parametrize("balise_at,want_alarm", [(123.0, False), (400.0, True)])
+def test_without_a_position_reading_the_jump_after_a_blind_run_is_judged_on_the_speed(
+        balise_at, want_alarm):
+    """The monitor alone, an estimator with no position reading (``use_distance: false``):
+    twelve readings refused while the estimate runs at 20 m/s, then one fused reading
+    standstill (20 sd of speed): ALARM (reacquired). A balise fused where the estimate carried
+    to it is ends it (no odometer track to judge it by); one far from it does not. A reading
+    after a blind run that continues the estimate's speed raises nothing."""
+    def out(t, x, v):
+        return Output(t, x, v, math.nan, math.nan,
+                      tuple(np.diag([1.0, 0.01, math.nan, math.nan]).ravel()), True)
+
+    run, stop = {"speed": 20.0, "speed_variance": 0.01}, {"speed": 0.0, "speed_variance": 0.01}
+    m = IntegrityMonitor(IntegrityParams(), 0.1)
+    m.reading(10.0, run, True)
+    assert m.assess(out(10.0, 100.0, 20.0), 10.0).integrity == OK
+    for k in range(12):
+        m.reading(10.1 + 0.1 * k, stop, False)
+    assert m.assess(out(11.2, 100.0, 20.0), 11.2).integrity == ALARM  # blind
+    m.reading(11.3, stop, True)
+    o = m.assess(out(11.3, 122.0, 0.0), 11.3)
+    assert o.integrity == ALARM and o.integrity_reason.startswith("reacquired"), o
+    m.balise(11.3, {"position": balise_at, "position_variance": 1.0}, True)
+    m.reading(11.4, stop, True)
+    o = m.assess(out(11.4, 122.0, 0.0), 11.4)
+    assert (o.integrity == ALARM and o.integrity_reason.startswith("reacquired")) == want_alarm, o
+
+    m = IntegrityMonitor(IntegrityParams(), 0.1)
+    m.reading(10.0, run, True)
+    m.assess(out(10.0, 100.0, 20.0), 10.0)
+    for k in range(12):
+        m.reading(10.1 + 0.1 * k, run, False)
+    m.assess(out(11.2, 124.0, 20.0), 11.2)
+    m.reading(11.3, run, True)
+    assert m.assess(out(11.3, 126.0, 20.0), 11.3).integrity != ALARM
 
 
 @pytest.mark.parametrize("kind", ["robust", "kf"])

@@ -180,6 +180,21 @@ class RaoBlackwellFilter:
         self._last = replace(last, mean=moved(last.mean), x_mean=moved(last.x_mean))
         return self._last
 
+    def inflate(self, Q: np.ndarray) -> Estimate:
+        """Add ``Q`` (2x2: m^2, m^2/s, m^2/s^2) to every particle's (D, v) covariance: an error
+        the readings' frame carries that the model does not (the odometer's scale since the
+        last balise, ``online/estimators.py``); the summary's covariances with them."""
+        Q = np.asarray(Q, dtype=float)
+        P = np.array(self._s.P, dtype=float)
+        P[:, :2, :2] += Q
+        self._s = replace(self._s, P=P)
+        last = self._last
+        cov, x_cov = np.array(last.cov, dtype=float), np.array(last.x_cov, dtype=float)
+        cov[:2, :2] += Q
+        x_cov[:2, :2] += Q
+        self._last = replace(last, cov=cov, x_cov=x_cov)
+        return self._last
+
     # -- the step --------------------------------------------------------------------------
     def step(self, a_tar: float, y=None, mask=None, rng: np.random.Generator | None = None, *,
              t: float | None = None, meas_var=None, d: float = 0.0) -> Estimate:

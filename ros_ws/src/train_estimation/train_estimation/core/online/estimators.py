@@ -167,8 +167,30 @@ def _check_odometry(cfg) -> None:
 
 class _DistanceAsPosition:
     """The odometer as both adapters read it (``start_state``, ``cfg``): its count mapped to
-    the track by the balise-calibrated :class:`OdometerCalibration` (when the distance is
-    used), and the calibration's own uncertainty beside the filter's (``Output.consider``)."""
+    the track by the balise-calibrated :class:`OdometerCalibration`, and the calibration's own
+    uncertainty beside the filter's (``Output.consider``).
+
+    Without the distance (``use_distance: false``: a speed-only sensor, or a count that is not
+    to be trusted) the balises enter the filter as position readings, and the filter carries
+    the position from one to the next on the odometer's speed. The scale and a late balise
+    reader are then as wrong as they are with the distance, only less visible: a speed 1-2 %
+    off ran a KF 200 m from the train with a metre of variance (the balises it then met lay
+    outside its gate), and a reader stamping 0.2-0.5 s late put every fix ``v tau`` behind it
+    (thousands of wrong-side estimates per run, either way). So the calibration runs here too,
+    on a count made of the speeds (``_count``: the trapezoid between fused readings), and
+    serves the filter instead of replacing its position reading:
+
+    - the speed is fused mapped by the calibrated scale, and the estimate's speed moves with
+      the mapping when a balise changes it;
+    - a balise is fused where the calibrated latency puts the train at its stamp, ``b + c v_b
+      tau``, with ``(c v_b sd_tau)^2`` more variance;
+    - what the filter does not carry (its speed taken as exact) is the error since the last
+      balise it fused: ``dp = (run + v_b tau) dc + c v_b dtau`` (``run``: the count since that
+      balise, ``v_b`` the counted speed at it), ``dv = v_odo dc``. It is published as the
+      consider term, and added to the filter's position variance before the next balise is
+      fused (so that the balise corrects it rather than a filter sure of a drifted position
+      refusing it or taking half of it).
+    """
 
     def _init_odometry(self) -> None:
         s, cfg = self.start_state, self.cfg
@@ -178,32 +200,42 @@ class _DistanceAsPosition:
                                        cfg.balise_gate, scale=1.0 / cfg.odometer_scale,
                                        latency_std=latency_std)
 
-        self.cal = calibration(cfg.balise_latency_std) if cfg.use_distance else None
+        self.cal = calibration(cfg.balise_latency_std)
         # the same calibration with a wide latency prior, on the same fixes: it replaces the
         # narrow one when the reader is found out of its prior (odometer_scale module doc)
         self.cal_wide = calibration(LATENCY_WIDE) \
-            if cfg.use_distance and cfg.balise_latency_std < LATENCY_WIDE else None
+            if cfg.balise_latency_std < LATENCY_WIDE else None
         self.latency_found = 0  # the wide calibration took over (event balise_latency)
         self.odo: tuple | None = None  # (stamp s, distance m, speed m/s) of the last fused
-        #   odometer reading, as counted
+        #   odometer reading, as counted (without the distance: the count made of the speeds)
+        self.anchor = (0.0, 0.0)  # without the distance: (count m, counted speed m/s) at the
+        #   last balise the filter fused (the start: the count's zero, standing)
 
-    def _mapped(self, fields: dict) -> tuple[float, float, float]:
-        """``(position m, speed m/s, speed variance)`` of an odometer reading on the track (the
-        speed by the calibrated scale too); NaN where a field is missing or not a number."""
+    def _count(self, stamp: float, fields: dict) -> float:
+        """m, the odometer's count at a reading: its distance, or without the distance the
+        speeds integrated from the last fused reading (trapezoid; 0 at the first)."""
+        if self.cfg.use_distance:
+            return float(fields["distance"])
+        if self.odo is None:
+            return 0.0
+        t0, d0, v0 = self.odo
+        return d0 + 0.5 * (v0 + float(fields["speed"])) * (stamp - t0)
+
+    def _mapped(self, fields: dict, stamp: float = math.nan) -> tuple[float, float, float]:
+        """``(position m, speed m/s, speed variance)`` of an odometer reading (stamped
+        ``stamp``) on the track (the speed by the calibrated scale too); NaN where a field is
+        missing or not a number."""
         try:
-            d, v, rv = (float(fields[k]) for k in ("distance", "speed", "speed_variance"))
+            v, rv = (float(fields[k]) for k in ("speed", "speed_variance"))
+            d = self._count(stamp, fields)
         except (KeyError, TypeError, ValueError):
             return math.nan, math.nan, math.nan
-        if self.cal is None:
-            return self.start_state.position + d, v, rv
         c = float(self.cal.theta[1])
         return self.cal.position(d), c * v, c * c * rv
 
     def monitor_fields(self, fields: dict) -> dict:
         """An odometer reading as the integrity monitor judges it: the speed (and its
         variance) by the calibrated scale, as the filter fuses it."""
-        if self.cal is None:
-            return fields
         _, v, rv = self._mapped(fields)
         return {**fields, "speed": v, "speed_variance": rv}
 
@@ -212,7 +244,7 @@ class _DistanceAsPosition:
         train was at its stamp by the reader's latency as calibrated so far (``v tau`` on from
         the balise, with ``(v sigma_tau)^2`` more variance; module doc of ``odometer_scale``),
         as the calibration fuses it."""
-        if self.cal is None or self.odo is None:
+        if self.odo is None:
             return fields
         tau, s_tau = self.cal.latency()
         if tau == 0.0 and s_tau == 0.0:
@@ -225,9 +257,8 @@ class _DistanceAsPosition:
         return {**fields, "position": pos + v * tau, "position_variance": var + (v * s_tau) ** 2}
 
     def _odometer_fused(self, stamp: float, fields: dict) -> None:
-        self.odo = (stamp, float(fields["distance"]), float(fields["speed"]))
-        if self.cal is not None:
-            self.cal.walk_to(self.odo[1])
+        self.odo = (stamp, self._count(stamp, fields), float(fields["speed"]))
+        self.cal.walk_to(self.odo[1])
         if self.cal_wide is not None:
             self.cal_wide.walk_to(self.odo[1])
 
@@ -281,20 +312,46 @@ class _DistanceAsPosition:
         dx = self.cal.position(d) - float(old[0] + old[1] * d)
         return True, dx, float(self.cal.theta[1] - old[1]) * self.odo[2]
 
+    def _uncounted(self, t: float) -> np.ndarray:
+        """Without the distance: the row ``dp / d theta`` of the position the filter carries
+        at ``t`` from the last balise it fused (class doc)."""
+        c, tau = float(self.cal.theta[1]), float(self.cal.theta[2])
+        d_b, v_b = self.anchor
+        return np.array([0.0, self._count_at(max(t, self.odo[0])) - d_b + v_b * tau, c * v_b])
+
     def _consider(self, t: float) -> tuple:
         """The calibration's (position, speed) covariance at ``t`` (module doc of
-        ``odometer_scale``), row-major 2x2; empty without a calibration."""
-        if self.cal is None or self.odo is None:
+        ``odometer_scale``; without the distance, the class doc's), row-major 2x2; empty before
+        the first odometer reading."""
+        if self.odo is None:
             return ()
-        return tuple(self.cal.consider(self._count_at(max(t, self.odo[0])),
-                                       self.odo[2]).ravel())
+        if self.cfg.use_distance:
+            return tuple(self.cal.consider(self._count_at(max(t, self.odo[0])),
+                                           self.odo[2]).ravel())
+        J = np.array([self._uncounted(t), [0.0, self.odo[2], 0.0]])
+        return tuple((J @ self.cal.Sigma @ J.T).ravel())
+
+    def _balise_for_filter(self, fix: BaliseFix, stamp: float,
+                           t_now: float) -> tuple[float, float, float, float]:
+        """Without the distance: the calibration takes the balise (it learns the scale and the
+        latency); returns ``(position m, variance m^2, dv m/s, q m^2)`` for the filter: the
+        balise where the calibrated latency puts the train at its stamp, the speed's move with
+        the mapping (0 when the calibration refused the balise) and the position variance the
+        filter lacks since the last balise it fused (class doc)."""
+        h = self._uncounted(stamp)
+        q = float(h @ self.cal.Sigma @ h)
+        ok, _, dv = self._calibrate(fix, t_now)
+        tau, s_tau = self.cal.latency()
+        v = float(self.cal.theta[1]) * fix.speed
+        return fix.position + v * tau, fix.variance + (v * s_tau) ** 2, dv if ok else 0.0, q
+
+    def _balise_fused(self, fix: BaliseFix) -> None:
+        self.anchor = (fix.distance, fix.speed)
 
     def odometer_scale(self) -> tuple[float, float] | None:
         """The odometer's scale as learnt so far, ``(reading / true distance, its std)``, in the
         terms of the ``odometer_scale`` parameter (a next run can start from it), or None
         without a calibration."""
-        if self.cal is None:
-            return None
         c, var = float(self.cal.theta[1]), float(self.cal.Sigma[1, 1])
         if not (math.isfinite(c) and c > 0 and math.isfinite(var) and var >= 0):
             return None
@@ -304,24 +361,22 @@ class _DistanceAsPosition:
         """The balise reader's latency as learnt so far, ``(s, its std s)`` (the
         ``balise_latency_std`` parameter's terms), or None without a calibration or a latency
         prior."""
-        if self.cal is None or (self.cfg.balise_latency_std == 0.0 and not self.latency_found):
+        if self.cfg.balise_latency_std == 0.0 and not self.latency_found:
             return None
         return self.cal.latency()
 
     def _odometry_counters(self) -> dict:
-        if self.cal is None:
-            return {}
         return {k: n for k, n in ((R.RELOCATED, self.cal.relocated),
                                   (R.BALISE_EXCLUDED, self.cal.excluded),
                                   (R.BALISE_LATENCY, self.latency_found)) if n}
 
     def _odometry_snapshot(self):
         return tuple(c.copy() if c is not None else None for c in (self.cal, self.cal_wide)) \
-            + (self.odo, self.latency_found)
+            + (self.odo, self.latency_found, self.anchor)
 
     def _odometry_restore(self, snap) -> None:
-        cal, wide, self.odo, self.latency_found = snap
-        self.cal = cal.copy() if cal is not None else None
+        cal, wide, self.odo, self.latency_found, self.anchor = snap
+        self.cal = cal.copy()
         self.cal_wide = wide.copy() if wide is not None else None
 
 
@@ -388,7 +443,7 @@ class RobustAdapter(_DistanceAsPosition):
             self.f.update(OdometerReading(stamp=t, seq=last_seq + i, received=False))
 
     def odometer(self, stamp: float, fields: dict) -> str:
-        pos, speed, rv = self._mapped(fields)
+        pos, speed, rv = self._mapped(fields, stamp)
         r = OdometerReading(stamp=stamp, seq=int(fields["seq"]),
                             distance=pos - self.start_state.position, speed=speed,
                             speed_variance=rv)
@@ -409,10 +464,20 @@ class RobustAdapter(_DistanceAsPosition):
                           position=float(fields["position"]),
                           position_variance=float(fields["position_variance"]))
         kind, meas = self.f._measurement(r)
-        fix = None if self.cal is None or isinstance(meas, str) else \
+        fix = None if isinstance(meas, str) else \
             self._balise_fix(stamp, float(meas.y[0]), float(meas.R[0, 0]))
         if fix is None:
-            d = self.f.update(r)  # no calibration (distance unused, or no reading yet)
+            d = self.f.update(r)  # refused as it is, or no odometer reading yet
+            return "" if d.accepted else d.reason
+        if not self.cfg.use_distance:
+            # the balise enters the filter where the calibration puts the train (class doc)
+            pos, var, dv, q = self._balise_for_filter(fix, stamp, self.f.t)
+            self.f.shift(0.0, dv)
+            self.f.P = self.f.P + np.diag([q, 0.0])
+            d = self.f.update(BaliseReading(stamp=stamp, seq=r.seq, balise_id=r.balise_id,
+                                            position=pos, position_variance=var))
+            if d.accepted:
+                self._balise_fused(fix)
             return "" if d.accepted else d.reason
         # the count's calibration takes the balise; the estimate moves with the mapping
         ok, dx, dv = self._calibrate(fix, self.f.t)
@@ -769,7 +834,7 @@ class BrakingAdapter(_DistanceAsPosition):
         why = self._order("odometer", stamp, seq)
         if why:
             return why
-        pos, speed, var = self._mapped(fields)
+        pos, speed, var = self._mapped(fields, stamp)
         rows = [(1, speed, var)] + ([(0, pos, self.cfg.distance_variance)]
                                     if self.cfg.use_distance else [])
         why = self._gate(stamp, rows)
@@ -795,24 +860,35 @@ class BrakingAdapter(_DistanceAsPosition):
             return R.UNKNOWN_BALISE
         if abs(pos - sent) > self.cfg.balise_map_tolerance:
             return f"{R.BALISE_MAP_MISMATCH}: sent {sent:.1f} m, map {pos:.1f} m"
-        fix = None if self.cal is None else self._balise_fix(stamp, pos, var)
-        why = self._order("balise", stamp, seq) or \
-            ("" if fix is not None else self._gate(stamp, [(0, pos, var)]))
+        fix = self._balise_fix(stamp, pos, var)
+        why = self._order("balise", stamp, seq)
         if why:
             return why
-        if fix is not None:
+        t_now = self.filt.t if self.filt.t is not None else stamp
+        if fix is not None and self.cfg.use_distance:
             # the count's calibration takes the balise; the estimate moves with the mapping
-            ok, dx, dv = self._calibrate(fix, self.filt.t if self.filt.t is not None else stamp)
+            ok, dx, dv = self._calibrate(fix, t_now)
             if not ok:
                 return R.OUTSIDE_GATE
             self.est = self.filt.shift(dx, dv)
             self.used = True
             self.last["balise"] = (seq, stamp)
             return ""
+        if fix is not None:
+            # without the distance the balise enters the filter where the calibration puts
+            # the train, the filter's position widened by what it lacks (class doc)
+            pos, var, dv, q = self._balise_for_filter(fix, stamp, t_now)
+            self.est = self.filt.shift(0.0, dv)
+            self.est = self.filt.inflate(np.array([[q, 0.0], [0.0, 0.0]]))
+        why = self._gate(stamp, [(0, pos, var)])
+        if why:
+            return why
         reason = R.normalise(self._step(stamp, [pos, math.nan, math.nan], [True, False, False],
                                         [var, 1.0, 1.0]))
         if not reason:
             self.last["balise"] = (seq, stamp)
+            if fix is not None:
+                self._balise_fused(fix)
         return reason
 
     def output(self, t: float) -> Output:

@@ -234,7 +234,7 @@ class IntegrityMonitor:
         if not fused:
             self.refused_run += 1
             return
-        if self.refused_run >= self.p.blind_readings and self._jumps(stamp, position):
+        if self.refused_run >= self.p.blind_readings and self._jumps(stamp, position, fields):
             self.count_doubt = (stamp, "reacquired", f"the odometer taken again after "
                                                      f"{self.refused_run} readings refused in "
                                                      "a row")
@@ -269,17 +269,30 @@ class IntegrityMonitor:
             self._balise_between(stamp, z, r, fused)
         self.odo_track = (stamp, z, r, v, rv)
 
-    def _jumps(self, stamp: float, position: tuple | None) -> bool:
+    def _jumps(self, stamp: float, position: tuple | None, fields: dict | None = None) -> bool:
         """Whether a reading's position lies more than ``pos_z`` standard deviations (the
         filter's own position variance carried to it, plus the reading's) from the last
         estimate carried to its stamp: the estimate jumps to take it. A reading that continues
         the prediction after the filter refused a run of late ones (a recorder's stall) does
-        not; one that moves a kilometre onto a count stuck since the last stop does."""
-        if position is None or self.prev_pos is None:
+        not; one that moves a kilometre onto a count stuck since the last stop does. An
+        estimator without a position reading (``use_distance: false``) is judged on the speed
+        the same way: a filter that takes a speed sensor reading standstill while the train
+        runs drops its speed by more than it claims to know it."""
+        if self.prev_pos is None:
             return False
-        z, r = float(position[0]), float(position[1])
-        dt, pred, s = self._carried(stamp)
-        s += r
+        if position is None:
+            try:
+                z, r = float(fields["speed"]), float(fields["speed_variance"])
+            except (KeyError, TypeError, ValueError):
+                return False
+            t0, _, v0, a0, _, pvv = self.prev_pos
+            dt = stamp - t0
+            pred = v0 + (a0 if math.isfinite(a0) else 0.0) * dt
+            s = pvv + r + (self.p.accel_uncertainty * dt) ** 2
+        else:
+            z, r = float(position[0]), float(position[1])
+            dt, pred, s = self._carried(stamp)
+            s += r
         if not (math.isfinite(z) and math.isfinite(s) and s > 0 and dt >= 0):
             return False
         return abs(z - pred) > self.p.pos_z * math.sqrt(s)
@@ -333,6 +346,12 @@ class IntegrityMonitor:
         if not (math.isfinite(pos) and math.isfinite(stamp)):
             return
         odo = self._odometer_at(stamp)
+        if odo is None and self.odo_track is None and self.prev_pos is not None:
+            # no position readings at all (``use_distance: false``): the track a balise is
+            # judged against is the estimate carried to it on the odometer's speeds
+            dt, pred, s = self._carried(stamp)
+            if 0 <= dt <= 2.0:
+                odo = (pred, s + (0.5 * self.p.accel_uncertainty * dt * dt) ** 2)
         if fused:
             self.pending_balise = None
             if odo is None or not (math.isfinite(var) and var > 0):
