@@ -460,21 +460,26 @@ def test_a_balise_reader_that_stamps_late_leaves_no_wrong_side_estimate(late):
             assert abs(tau - late) <= 3.0 * sd and sd < 0.1, (tau, sd)
 
 
-@pytest.mark.parametrize("kind", ["balise_late", "odometer_scale"])
-def test_without_the_distance_a_late_reader_or_a_wrong_scale_leaves_no_wrong_side_estimate(
-        kind):
+@pytest.mark.parametrize("kind,seed", [("balise_late", 0), ("odometer_scale", 0),
+                                       ("balise_moved", 3)])
+def test_without_the_distance_a_late_reader_a_wrong_scale_or_a_lying_balise_is_no_hazard(
+        kind, seed):
     """``use_distance: false`` (the odometer's speed and the balises; bench_foreign
-    --estimators --no-distance, seed 0): a balise reader stamping 0.45 s late, or an odometer
-    whose speed is 1-2 % off. With the balises fused as they came and the speed as it read,
-    the robust filter made 184 wrong-side estimates on the late reader and the KF 6,715; on
-    the scale the KF ran 206 m from the train (495 wrong-side, available 13 % of the time:
-    the balises it met lay outside its gate). The calibration now runs on the speeds'
-    count: no wrong-side estimate, available over 99 % of the time."""
+    --estimators --no-distance): a balise reader stamping 0.45 s late, an odometer whose speed
+    is 1-2 % off, or a balise 8-20 m from its map position. With the balises fused as they
+    came and the speed as it read, the robust filter made 184 wrong-side estimates on the late
+    reader and the KF 6,715; on the scale the KF ran 206 m from the train (495 wrong-side,
+    available 13 % of the time: the balises it then met lay outside its gate); the lying
+    balise (seed 3) made 42 for the robust filter, 19 with the calibration but no solution
+    separation. Now: no wrong-side estimate, and available over 99 % of the time but where a
+    balise lies."""
     import bench_foreign as BF
 
-    rows = BF.run_estimators({"seed": 0, "kind": kind, "estimators": ["robust_filter", "kf"],
+    rows = BF.run_estimators({"seed": seed, "kind": kind,
+                              "estimators": ["robust_filter", "kf"],
                               "config": {"use_distance": False}})
     for r in rows:
         assert "exception" not in r and r["outputs"] > 1000, r
         assert r["wrong_side"] == 0, (r["estimator"], r["wrong_side"])
-        assert r["availability"] > 0.99, (r["estimator"], r["availability"])
+        if kind != "balise_moved":
+            assert r["availability"] > 0.99, (r["estimator"], r["availability"])

@@ -189,7 +189,11 @@ class _DistanceAsPosition:
       balise, ``v_b`` the counted speed at it), ``dv = v_odo dc``. It is published as the
       consider term, and added to the filter's position variance before the next balise is
       fused (so that the balise corrects it rather than a filter sure of a drifted position
-      refusing it or taking half of it).
+      refusing it or taking half of it);
+    - a balise can lie (a survey error), and the filter takes one that its own interval
+      holds: the published position variance also covers the filter without each of the last
+      three balises it fused (solution separation, as the calibration does with the
+      distance): that balise's move squared plus the variance before it.
     """
 
     def _init_odometry(self) -> None:
@@ -210,6 +214,8 @@ class _DistanceAsPosition:
         #   odometer reading, as counted (without the distance: the count made of the speeds)
         self.anchor = (0.0, 0.0)  # without the distance: (count m, counted speed m/s) at the
         #   last balise the filter fused (the start: the count's zero, standing)
+        self.separation: tuple = ()  # without the distance: (move m, variance before m^2) of
+        #   the last EXCLUDED balises the filter fused (solution separation, class doc)
 
     def _count(self, stamp: float, fields: dict) -> float:
         """m, the odometer's count at a reading: its distance, or without the distance the
@@ -329,7 +335,11 @@ class _DistanceAsPosition:
             return tuple(self.cal.consider(self._count_at(max(t, self.odo[0])),
                                            self.odo[2]).ravel())
         J = np.array([self._uncounted(t), [0.0, self.odo[2], 0.0]])
-        return tuple((J @ self.cal.Sigma @ J.T).ravel())
+        C = J @ self.cal.Sigma @ J.T
+        # solution separation: the filter without each of its last balises lies that balise's
+        # move away, as sure as it was before it (one may lie: a survey error)
+        C[0, 0] += max((m * m + v for m, v in self.separation), default=0.0)
+        return tuple(C.ravel())
 
     def _balise_for_filter(self, fix: BaliseFix, stamp: float,
                            t_now: float) -> tuple[float, float, float, float]:
@@ -345,8 +355,13 @@ class _DistanceAsPosition:
         v = float(self.cal.theta[1]) * fix.speed
         return fix.position + v * tau, fix.variance + (v * s_tau) ** 2, dv if ok else 0.0, q
 
-    def _balise_fused(self, fix: BaliseFix) -> None:
+    def _balise_fused(self, fix: BaliseFix, move: float, var_before: float) -> None:
+        """Without the distance: the filter fused ``fix``, which moved its position by ``move``
+        from ``var_before`` of variance (both at the balise's stamp)."""
         self.anchor = (fix.distance, fix.speed)
+        if math.isfinite(move) and math.isfinite(var_before):
+            self.separation = (self.separation + ((move, var_before),))[
+                -OdometerCalibration.EXCLUDED:]
 
     def odometer_scale(self) -> tuple[float, float] | None:
         """The odometer's scale as learnt so far, ``(reading / true distance, its std)``, in the
@@ -372,10 +387,10 @@ class _DistanceAsPosition:
 
     def _odometry_snapshot(self):
         return tuple(c.copy() if c is not None else None for c in (self.cal, self.cal_wide)) \
-            + (self.odo, self.latency_found, self.anchor)
+            + (self.odo, self.latency_found, self.anchor, self.separation)
 
     def _odometry_restore(self, snap) -> None:
-        cal, wide, self.odo, self.latency_found, self.anchor = snap
+        cal, wide, self.odo, self.latency_found, self.anchor, self.separation = snap
         self.cal = cal.copy()
         self.cal_wide = wide.copy() if wide is not None else None
 
@@ -474,10 +489,13 @@ class RobustAdapter(_DistanceAsPosition):
             pos, var, dv, q = self._balise_for_filter(fix, stamp, self.f.t)
             self.f.shift(0.0, dv)
             self.f.P = self.f.P + np.diag([q, 0.0])
+            dt = max(stamp - self.f.t, 0.0)
+            before = (float(self.f.x[0] + self.f.x[1] * dt),
+                      float(self.f.P[0, 0] + 2 * self.f.P[0, 1] * dt + self.f.P[1, 1] * dt * dt))
             d = self.f.update(BaliseReading(stamp=stamp, seq=r.seq, balise_id=r.balise_id,
                                             position=pos, position_variance=var))
             if d.accepted:
-                self._balise_fused(fix)
+                self._balise_fused(fix, float(self.f.x[0]) - before[0], before[1])
             return "" if d.accepted else d.reason
         # the count's calibration takes the balise; the estimate moves with the mapping
         ok, dx, dv = self._calibrate(fix, self.f.t)
@@ -880,6 +898,10 @@ class BrakingAdapter(_DistanceAsPosition):
             pos, var, dv, q = self._balise_for_filter(fix, stamp, t_now)
             self.est = self.filt.shift(0.0, dv)
             self.est = self.filt.inflate(np.array([[q, 0.0], [0.0, 0.0]]))
+        e, dt = self.est, max(stamp - t_now, 0.0)
+        C = np.asarray(e.cov, dtype=float)
+        before = (float(e.mean[0] + e.mean[1] * dt),
+                  float(C[0, 0] + 2 * C[0, 1] * dt + C[1, 1] * dt * dt))
         why = self._gate(stamp, [(0, pos, var)])
         if why:
             return why
@@ -888,7 +910,7 @@ class BrakingAdapter(_DistanceAsPosition):
         if not reason:
             self.last["balise"] = (seq, stamp)
             if fix is not None:
-                self._balise_fused(fix)
+                self._balise_fused(fix, float(self.est.mean[0]) - before[0], before[1])
         return reason
 
     def output(self, t: float) -> Output:
