@@ -355,10 +355,20 @@ class _DistanceAsPosition:
         v = float(self.cal.theta[1]) * fix.speed
         return fix.position + v * tau, fix.variance + (v * s_tau) ** 2, dv if ok else 0.0, q
 
-    def _balise_fused(self, fix: BaliseFix, move: float, var_before: float) -> None:
-        """Without the distance: the filter fused ``fix``, which moved its position by ``move``
-        from ``var_before`` of variance (both at the balise's stamp)."""
+    @staticmethod
+    def _carried(x, P, dt: float) -> tuple[float, float]:
+        """``(position m, its variance m^2)`` of the estimate ``x`` = (position, speed, ...)
+        with covariance ``P`` carried ``dt`` s at its speed."""
+        P = np.asarray(P, dtype=float)
+        return (float(x[0] + x[1] * dt),
+                float(P[0, 0] + 2.0 * P[0, 1] * dt + P[1, 1] * dt * dt))
+
+    def _balise_fused(self, fix: BaliseFix, position: float,
+                      before: tuple[float, float]) -> None:
+        """Without the distance: the filter fused ``fix`` and its position is now ``position``;
+        ``before``: its position and variance at the balise's stamp before (:meth:`_carried`)."""
         self.anchor = (fix.distance, fix.speed)
+        move, var_before = position - before[0], before[1]
         if math.isfinite(move) and math.isfinite(var_before):
             self.separation = (self.separation + ((move, var_before),))[
                 -OdometerCalibration.EXCLUDED:]
@@ -488,14 +498,12 @@ class RobustAdapter(_DistanceAsPosition):
             # the balise enters the filter where the calibration puts the train (class doc)
             pos, var, dv, q = self._balise_for_filter(fix, stamp, self.f.t)
             self.f.shift(0.0, dv)
-            self.f.P = self.f.P + np.diag([q, 0.0])
-            dt = max(stamp - self.f.t, 0.0)
-            before = (float(self.f.x[0] + self.f.x[1] * dt),
-                      float(self.f.P[0, 0] + 2 * self.f.P[0, 1] * dt + self.f.P[1, 1] * dt * dt))
+            self.f.inflate(np.diag([q, 0.0]))
+            before = self._carried(self.f.x, self.f.P, max(stamp - self.f.t, 0.0))
             d = self.f.update(BaliseReading(stamp=stamp, seq=r.seq, balise_id=r.balise_id,
                                             position=pos, position_variance=var))
             if d.accepted:
-                self._balise_fused(fix, float(self.f.x[0]) - before[0], before[1])
+                self._balise_fused(fix, float(self.f.x[0]), before)
             return "" if d.accepted else d.reason
         # the count's calibration takes the balise; the estimate moves with the mapping
         ok, dx, dv = self._calibrate(fix, self.f.t)
@@ -897,11 +905,8 @@ class BrakingAdapter(_DistanceAsPosition):
             # the train, the filter's position widened by what it lacks (class doc)
             pos, var, dv, q = self._balise_for_filter(fix, stamp, t_now)
             self.est = self.filt.shift(0.0, dv)
-            self.est = self.filt.inflate(np.array([[q, 0.0], [0.0, 0.0]]))
-        e, dt = self.est, max(stamp - t_now, 0.0)
-        C = np.asarray(e.cov, dtype=float)
-        before = (float(e.mean[0] + e.mean[1] * dt),
-                  float(C[0, 0] + 2 * C[0, 1] * dt + C[1, 1] * dt * dt))
+            self.est = self.filt.inflate(np.diag([q, 0.0]))
+            before = self._carried(self.est.mean, self.est.cov, max(stamp - t_now, 0.0))
         why = self._gate(stamp, [(0, pos, var)])
         if why:
             return why
@@ -910,7 +915,7 @@ class BrakingAdapter(_DistanceAsPosition):
         if not reason:
             self.last["balise"] = (seq, stamp)
             if fix is not None:
-                self._balise_fused(fix, float(self.est.mean[0]) - before[0], before[1])
+                self._balise_fused(fix, float(self.est.mean[0]), before)
         return reason
 
     def output(self, t: float) -> Output:

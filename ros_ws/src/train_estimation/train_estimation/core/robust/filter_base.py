@@ -147,6 +147,12 @@ class FilterBase:
         the readings moved: the odometer's calibration, ``online/odometer_scale.py``)."""
         self.x = self.x + np.array([dx, dv])
 
+    def inflate(self, Q: np.ndarray) -> None:
+        """Add ``Q`` (2x2: m^2, m^2/s, m^2/s^2) to the covariance: an error the readings' frame
+        carries that the model does not (the odometer's scale since the last balise,
+        ``online/estimators.py``)."""
+        self.P = self.P + np.asarray(Q, dtype=float)
+
     def pop_measurement_used(self) -> bool:
         """True if a received reading entered the estimate since the last call."""
         used, self._used = self._used, False
