@@ -1174,3 +1174,43 @@ def test_one_pass_finds_the_single_time_span_on_a_stretch():
     mo.x_ref = t * 2.0
     assert _one_pass(mo, fit) is None  # never there
     assert _one_pass(mo, CauseFit("resistance", 1.0, {"a": 1.0})) is None
+
+
+def test_a_bag_whose_variances_are_all_zero_is_read_with_the_believed_ones(metro, metro_run,
+                                                                            tmp_path):
+    """A producer that leaves speed_variance and position_variance at 0 (not stated: zeros mean
+    "unknown" in ROS's covariance fields): diagnose reads the run with train.yaml's variances,
+    as it reads the same run stating them, and says so in the report's notes."""
+    from train_estimation.core.offline.diagnose import DiagConfig, DiagnoseError, prepare
+
+    train = metro.train
+    believed = {"odometer": ("speed_variance", train.odometer_speed_variance),
+                "balise": ("position_variance", train.balise_position_std ** 2)}
+
+    def bag(path, zero: bool):
+        with BagWriter(path) as w:
+            for t_recv, topic, stamp, fields in metro_run.received_events():
+                if topic not in ("odometer", "balise", "control"):
+                    continue
+                if topic in believed:
+                    key, var = believed[topic]
+                    fields = dict(fields, **{key: 0.0 if zero else var})
+                w.write(topic, stamp, fields, t_ns=int(round(t_recv * 1e9)))
+        return path
+
+    cfg = DiagConfig()
+    runs = [prepare(tool.read_measured(bag(tmp_path / name, zero)), metro.line, cfg, train)
+            for name, zero in (("stated", False), ("zeros", True))]
+    for k in ("odo_t", "odo_v", "odo_rv", "bal_t", "bal_r"):
+        np.testing.assert_array_equal(getattr(runs[1], k), getattr(runs[0], k))
+    assert sum("not stated" in n for n in runs[1].notes) == 2, runs[1].notes
+    assert not any("not stated" in n for n in runs[0].notes)
+    # without the believed train the zeros are dropped as before: nothing usable is left, and
+    # that is said (it was an IndexError)
+    with pytest.raises(DiagnoseError, match="no usable odometer reading"):
+        prepare(tool.read_measured(tmp_path / "zeros"), metro.line, cfg)
+    # identify likewise takes train.yaml's (None: not stated)
+    assert tool.read_measured(tmp_path / "zeros").to_identify().odo_speed_variance is None
+    assert tool.read_measured(tmp_path / "stated").to_identify().odo_speed_variance is not None
+    assert run_tool(tmp_path / "zeros", metro.line_path, metro.train_path, tmp_path / "out") == 0
+    assert "not stated" in (tmp_path / "out" / "report.json").read_text()

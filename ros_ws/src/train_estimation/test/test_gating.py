@@ -47,3 +47,45 @@ def test_gross_outliers_are_gated_with_a_reason(kind):
         # the estimate stays what it was without those readings, give or take their absence
         assert np.abs(e).max() < np.abs(e0).max() + 1.0, (name, np.abs(e).max())
         assert all(np.isfinite(o.position) and np.isfinite(o.velocity) for o in outs)
+
+
+@pytest.mark.parametrize("kind", ["robust", "kf"])
+def test_a_stream_that_never_states_its_variance_is_read_with_the_believed_one(kind):
+    """A producer that leaves speed_variance and position_variance at 0 (zeros mean "unknown"
+    in ROS's covariance fields): the believed train's variances stand in, and the estimates are
+    those of the same stream stating them; one event per stream, every such reading counted.
+    A stream that has stated a variance and then sends 0 is corrupted: refused as before."""
+    sc, res = run(duration=60.0)
+    ev = restamp(res.events())
+    sv, bv = sc.train.odometer_speed_variance, sc.train.balise_position_std ** 2
+
+    def with_var(odo, bal, first=0):
+        out = []
+        for i, (t, s, f, recv) in enumerate(ev):
+            if i >= first and t == "odometer":
+                f = dict(f, speed_variance=odo)
+            elif i >= first and t == "balise":
+                f = dict(f, position_variance=bal)
+            out.append((t, s, f, recv))
+        return out
+
+    stated, r0 = replay(with_var(sv, bv), adapter(sc, kind), 0.1)
+    zeros, r1 = replay(with_var(0.0, 0.0), adapter(sc, kind), 0.1)
+    n_odo = sum(e[0] == "odometer" for e in ev)
+    n_bal = sum(e[0] == "balise" for e in ev)
+    assert n_bal > 0
+    def table(outs):  # NaN where not estimated: compared as equal
+        return np.array([(o.stamp, o.position, o.velocity, o.integrity, *o.covariance)
+                         for o in outs], float)
+
+    np.testing.assert_array_equal(table(zeros), table(stated))
+    assert r1.events[f"odometer:{R.VARIANCE_UNSTATED}"] == 1
+    assert r1.events[f"balise:{R.VARIANCE_UNSTATED}"] == 1
+    assert r1.unstated == {"odometer": n_odo, "balise": n_bal}
+    assert not r0.unstated and not r1.rejected, dict(r1.rejected)
+    # stated first, zeros later: a corrupted reading, refused
+    odo = [i for i, e in enumerate(ev) if e[0] == "odometer"]
+    _, r2 = replay(with_var(0.0, 0.0, first=odo[100]), adapter(sc, kind), 0.1)
+    assert r2.rejected[f"odometer:{R.NON_POSITIVE_VARIANCE}"] == \
+        sum(e[0] == "odometer" for e in ev[odo[100]:])
+    assert "odometer" not in r2.unstated  # (per stream: the balises' had stated nothing yet)

@@ -45,8 +45,9 @@ OUTAGE = "outage"  # no odometer for longer than the outage threshold
 RELOCATED = "relocated"  # two agreeing balises moved the odometer's count by more than it claimed
 BALISE_EXCLUDED = "balise_excluded"  # a fused balise shown to lie by a later one, taken out
 BALISE_LATENCY = "balise_latency"  # the balise reader found to stamp later than its prior allows
+VARIANCE_UNSTATED = "variance_unstated"  # a stream whose variances are 0: not stated, believed used
 EVENTS = (SEQ_RESET, CLOCK_RESET, SEQ_SKIP, FUSED_LATE, OUTAGE, RELOCATED, BALISE_EXCLUDED,
-          BALISE_LATENCY)
+          BALISE_LATENCY, VARIANCE_UNSTATED)
 
 ALL = REJECTIONS + ACCEPTED + EVENTS
 
@@ -75,6 +76,8 @@ DESCRIPTION = {
     BALISE_EXCLUDED: "a fused balise shown to lie by a later one, taken out of the count",
     BALISE_LATENCY: "the balise reader stamps later (or earlier) than balise_latency_std "
                     "allows: its latency is now calibrated with a wide prior",
+    VARIANCE_UNSTATED: "a stream states its variances as 0 (not stated): the believed train's "
+                       "value (train.yaml) is used until it states one",
 }
 
 

@@ -299,6 +299,9 @@ def build_estimator_node(name: str, topic: str, make_adapter: Callable):
             if scale is not None:  # what a next run can start from (parameter odometer_scale)
                 extra += [("odometer_scale", f"{scale[0]:.6f}"),
                           ("odometer_scale_std", f"{scale[1]:.2e}")]
+            for kind, n in sorted(self.runner.unstated.items()):
+                # readings whose variance 0 was read as not stated (train.yaml's used)
+                extra.append((f"{kind}.variance_unstated", str(n)))
             lat = self.adapter.balise_latency()
             if lat is not None:  # a reader that stamps late: the fixes are moved by v tau
                 extra += [("balise_latency", f"{lat[0]:.3f}"),

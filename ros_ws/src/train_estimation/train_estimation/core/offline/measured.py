@@ -157,7 +157,11 @@ class MeasuredRun:
         has_bal = b.size > 0
         return SIData(
             odo_t=self.odo_stamp[o], odo_distance=self.odo_distance[o],
-            odo_speed=self.odo_speed[o], odo_speed_variance=self.odo_speed_variance[o],
+            odo_speed=self.odo_speed[o],
+            # every variance 0: not stated (zeros mean "unknown" in ROS's covariance
+            # fields), so identify takes train.yaml's (None)
+            odo_speed_variance=None if np.all(self.odo_speed_variance == 0)
+            else self.odo_speed_variance[o],
             ctrl_t=ctrl_t[c], ctrl_a_tar=self.ctrl_a_tar[c],
             balise_t=self.balise_stamp[b] if has_bal else None,
             balise_position=self.balise_position[b] if has_bal else None)

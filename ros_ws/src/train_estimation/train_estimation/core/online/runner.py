@@ -127,6 +127,18 @@ _VALUES = {"odometer": (("distance", "speed"), ("speed_variance",)),
            "balise": (("position",), ("position_variance",))}
 
 
+def _believed_variance(adapter, key: str) -> float | None:
+    """The believed train's variance for a reading's field (None: the adapter has no train)."""
+    train = getattr(adapter, "train", None)
+    if train is None:
+        return None
+    if key == "speed_variance":
+        return float(train.odometer_speed_variance)
+    if key == "position_variance":
+        return float(train.balise_position_std) ** 2
+    return None
+
+
 def _content(kind: str, fields: dict) -> str:
     """Why a reading's values can say nothing (a NaN or infinite value, a variance <= 0), or
     "" (the filters judge the rest: gates, order)."""
@@ -180,6 +192,9 @@ class EstimatorRunner:
     _held: list = field(default_factory=list)  # control pushed before any odometer (raw)
     _early: dict = field(default_factory=dict)  # clock -> items waiting for min_judged
     _ready: set = field(default_factory=set)  # clocks whose early hold ended
+    _stated_kinds: set = field(default_factory=set)  # kinds whose stream stated a variance > 0
+    unstated: Counter = field(default_factory=Counter)  # kind -> readings whose variance 0
+    #   was read as not stated (:meth:`_stated`)
     _odo: list = field(default_factory=list)  # heap of the queued odometer stamps
     _anchor: tuple | None = None  # (train stamp, filter time) of the last processed odometer
     _last_mapped: float = -math.inf
@@ -238,6 +253,7 @@ class EstimatorRunner:
             seq = fields.get("seq") if isinstance(fields, dict) else None
             if not isinstance(seq, int) or isinstance(seq, bool):
                 return self._reject(kind, stamp, f"{R.INVALID}: seq {seq!r}")
+            fields = self._stated(kind, stamp, fields)
             why = _content(kind, fields)
             if why:
                 # a reading that says nothing is no evidence about its clock either: refused
@@ -286,6 +302,34 @@ class EstimatorRunner:
             # what the early hold still keeps is judged once the clock is (above)
             self._judge_early(clock, self._early.get(clock, []))
         return why
+
+    def _stated(self, kind: str, stamp: float, fields) -> dict:
+        """The reading with a variance of exactly 0 read as *not stated* while its stream has
+        never stated one (> 0): a producer that leaves the field at its default (zeros mean
+        "unknown" in ROS's covariance fields). The believed train's value stands in
+        (``train.yaml``: ``odometer.speed_std``, ``balise.position_std``), the event is logged
+        once per stream and every such reading counted (:attr:`unstated`). Once the stream has
+        stated a variance, a 0 is a corrupted reading and refused (``non_positive_variance``):
+        a copy that says it is exact is no sensor's."""
+        if not isinstance(fields, dict):
+            return fields
+        for key in _VALUES.get(kind, ((), ()))[1]:
+            v = fields.get(key)
+            if isinstance(v, bool) or not isinstance(v, int | float):
+                continue
+            if v > 0 and math.isfinite(v):
+                self._stated_kinds.add(kind)
+            elif v == 0 and kind not in self._stated_kinds:
+                default = _believed_variance(self.adapter, key)
+                if default is None:
+                    continue
+                fields = {**fields, key: default}
+                if not self.unstated[kind]:
+                    self._event(kind, stamp, f"{R.VARIANCE_UNSTATED}: {key} 0 read as not "
+                                             f"stated; the believed train's {default:.3g} used "
+                                             f"until the stream states one")
+                self.unstated[kind] += 1
+        return fields
 
     def _fused_elsewhere(self, kind: str, stamp: float, fields) -> str:
         """``duplicate`` when this odometer reading's sample was fused at another stamp in the
@@ -764,7 +808,7 @@ class EstimatorRunner:
     def counts(self) -> dict:
         """Accepted, rejected (by vocabulary name) and events, for logs and summaries."""
         return {"accepted": dict(self.accepted), "rejected": dict(self.rejected),
-                "events": dict(self.events)}
+                "events": dict(self.events), "variance_unstated": dict(self.unstated)}
 
 
 def _agreeing(items: list, e: tuple, tol: float) -> int:

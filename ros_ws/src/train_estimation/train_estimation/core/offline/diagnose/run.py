@@ -81,8 +81,10 @@ def _arr(x, dtype=float):
     return np.asarray(x if x is not None else [], dtype=dtype).ravel()
 
 
-def prepare(data: MeasuredRun, line: Line, cfg: DiagConfig) -> Run:
-    """The run on the reference clock's time axis; :class:`DiagnoseError` when unusable."""
+def prepare(data: MeasuredRun, line: Line, cfg: DiagConfig, train=None) -> Run:
+    """The run on the reference clock's time axis; :class:`DiagnoseError` when unusable.
+    ``train`` (the believed train): its variances stand in for a stream that states every
+    variance as 0 (:func:`unstated`)."""
     notes = []
     _require_topics(data)
     # the train clock's steps and change of rate out of the stamps first (MeasuredRun)
@@ -91,7 +93,7 @@ def prepare(data: MeasuredRun, line: Line, cfg: DiagConfig) -> Run:
     for at, jump, _ in steps:
         notes.append(f"the train's clock jumped by {jump:+.3f} s at stamp {at:.3f}: the "
                      "readings after it are put back on the clock before it")
-    idx, fields, seq = _odometer(data, notes)
+    idx, fields, seq = _odometer(data, notes, train)
     odo_s, odo_r = _arr(data.odo_stamp), _arr(data.odo_recv)
     s_odo, r_odo = odo_s[idx], odo_r[idx]
     # ---- clock: log time r = alpha + beta * stamp + latency (OLS; latency mean in alpha) -----
@@ -111,7 +113,7 @@ def prepare(data: MeasuredRun, line: Line, cfg: DiagConfig) -> Run:
              {**change, "when": change["at"] - t_first}}
     ctrl_t, ctrl_a = _control(data, cf)
     t_end = float(beta * (s_odo[-1] - t_first))
-    bal_t, bal_p, bal_r, bal_id = _balises(data, line, notes, beta, t_first, t_end)
+    bal_t, bal_p, bal_r, bal_id = _balises(data, line, notes, beta, t_first, t_end, train)
 
     v = fields["odo_speed"][idx]
     if t_end < cfg.min_duration:
@@ -141,11 +143,28 @@ def _require_topics(data: MeasuredRun) -> None:
                             "line (record the 'balise' topic)")
 
 
-def _odometer(data: MeasuredRun, notes: list):
+def unstated(var: np.ndarray, believed: float | None, what: str, notes: list) -> np.ndarray:
+    """``var`` with its zeros read as *not stated* when no entry states a variance (> 0): a
+    producer that leaves the field at its default (zeros mean "unknown" in ROS's covariance
+    fields); ``believed`` (train.yaml's) stands in and a note says so. A stream that states
+    variances elsewhere keeps its zeros, which the caller drops as corrupted."""
+    var = np.asarray(var, float)
+    zero = var == 0
+    if believed is None or not zero.any() or np.any(var[np.isfinite(var)] > 0):
+        return var
+    notes.append(f"{what}: every variance stated as 0 (not stated); train.yaml's "
+                 f"{believed:.3g} used")
+    return np.where(zero, float(believed), var)
+
+
+def _odometer(data: MeasuredRun, notes: list, train=None):
     """(indices of the usable odometer readings in stamp order, the value arrays, seq)."""
     odo_s, odo_r = _arr(data.odo_stamp), _arr(data.odo_recv)
     fields = {"odo_distance": _arr(data.odo_distance), "odo_speed": _arr(data.odo_speed),
-              "odo_speed_variance": _arr(data.odo_speed_variance)}
+              "odo_speed_variance": unstated(
+                  _arr(data.odo_speed_variance),
+                  None if train is None else train.odometer_speed_variance,
+                  "odometer speed_variance", notes)}
     ok = np.isfinite(odo_s) & np.isfinite(odo_r)
     for v in fields.values():
         if v.size != odo_s.size:
@@ -155,6 +174,9 @@ def _odometer(data: MeasuredRun, notes: list):
     if (~ok).sum():
         notes.append(f"{int((~ok).sum())} odometer readings with non-finite values or "
                      "non-positive variance dropped")
+    if not ok.any():
+        raise DiagnoseError(f"no usable odometer reading: all {odo_s.size} have non-finite "
+                            "values or a variance <= 0")
     seq = _arr(data.odo_seq, np.int64)
     if seq.size != odo_s.size:
         seq = np.arange(odo_s.size)
@@ -185,11 +207,14 @@ def _control(data: MeasuredRun, cf: ClockFit):
 
 
 def _balises(data: MeasuredRun, line: Line, notes: list, beta: float, t_first: float,
-             t_end: float):
+             t_end: float, train=None):
     """Balise readings inside the odometer record: (t, position, variance, id); line.yaml's
     position wins over a reading's that contradicts it."""
     bal_s = _arr(data.balise_stamp)
-    bp, br = _arr(data.balise_position), _arr(data.balise_variance)
+    bp = _arr(data.balise_position)
+    br = unstated(_arr(data.balise_variance),
+                  None if train is None else train.balise_position_std ** 2,
+                  "balise position_variance", notes)
     bid = _arr(data.balise_id, np.int64)
     okb = np.isfinite(bal_s) & np.isfinite(bp) & (np.isfinite(br) & (br > 0))
     known = {b.id: b.position for b in line.balises}

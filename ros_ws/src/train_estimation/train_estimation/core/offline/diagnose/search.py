@@ -76,7 +76,7 @@ def diagnose(data: MeasuredRun, line: Line, train: TrainParams, config: DiagConf
         if progress is not None:
             progress(i, total, what)
 
-    run = prepare(data, line, cfg)
+    run = prepare(data, line, cfg, train)
     tick(1, "clock and link")
     own = {c.name: res for c in REGISTRY if (res := c.own_test(run)) is not None}
     untestable = []
