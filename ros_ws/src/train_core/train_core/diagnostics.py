@@ -173,6 +173,21 @@ def latency_check(latencies: Sequence[float], cfg: EstimatorThresholds
     return ([(level, f"latency p99 {1e3 * p99:.0f} ms")] if level else []), values
 
 
+def rate_check(sampled: float | None, configured: float, tolerance: float = 0.2
+               ) -> tuple[list[tuple[int, str]], list[tuple[str, str]]]:
+    """The odometer's sample period as its stamps and counter give it (``sampled`` s, None
+    while unknown) against the one the node was told (``configured`` s: ``odometer_rate``):
+    WARN beyond ``tolerance`` of it, with the setting to use."""
+    if sampled is None or not math.isfinite(sampled) or sampled <= 0:
+        return [], [("odometer_period_s", "-")]
+    values = [("odometer_period_s", f"{sampled:.4g}")]
+    if abs(sampled / configured - 1.0) <= tolerance:
+        return [], values
+    return [(WARN, f"odometer samples every {sampled:.3g} s where odometer_rate "
+                   f"{1.0 / configured:.3g} Hz expects {configured:.3g} s: set odometer_rate: "
+                   f"{1.0 / sampled:.3g}")], values
+
+
 def integrity_check(integrity: int | None, reason: str
                     ) -> tuple[list[tuple[int, str]], list[tuple[str, str]]]:
     """The estimator's own integrity state (TrainState.integrity) as a check."""

@@ -128,6 +128,7 @@ def build_estimator_node(name: str, topic: str, make_adapter: Callable):
             except ValueError as exc:
                 raise ParameterError(f"parameter control_clock: {exc}") from None
             self.n_events = 0
+            self.rate_warned = False  # the odometer_rate warning logged (diagnostics)
             self.steady = Clock(clock_type=ClockType.STEADY_TIME)
             self.arrived: dict[float, float] = {}  # odometer stamp -> arrival (steady s)
             # s, odometer received -> its estimate published, in the steady state and in the
@@ -290,6 +291,11 @@ def build_estimator_node(name: str, topic: str, make_adapter: Callable):
                                             watch_stale=kind != "balise"))
             checks, values = self.diag.input_checks(now, self.started, inputs)
             lat_checks, lat_values = D.latency_check(self.window_latency, self.diag.cfg)
+            rate_checks, rate_values = D.rate_check(self.runner.sample_period(),
+                                                    self.runner.period)
+            if rate_checks and not self.rate_warned:  # once in the log; /diagnostics each time
+                self.get_logger().warning(rate_checks[0][1])
+                self.rate_warned = True
             self.window_latency = []
             integ = self.last_integrity
             i_checks, i_values = D.integrity_check(*(integ if integ else (None, "")))
@@ -306,8 +312,8 @@ def build_estimator_node(name: str, topic: str, make_adapter: Callable):
             if lat is not None:  # a reader that stamps late: the fixes are moved by v tau
                 extra += [("balise_latency", f"{lat[0]:.3f}"),
                           ("balise_latency_std", f"{lat[1]:.3f}")]
-            return D.combine(checks + lat_checks + i_checks,
-                             extra + values + lat_values + i_values)
+            return D.combine(checks + lat_checks + rate_checks + i_checks,
+                             extra + values + lat_values + rate_values + i_values)
 
         def close(self) -> None:
             if self.latency:

@@ -623,6 +623,15 @@ class SampleGrid:
         self._fit = None
         self._early = None
 
+    def sample_period(self) -> float | None:
+        """The train's sample period as the recent samples give it (s: the median of the
+        stamps' steps over the seqs'), whatever the nominal one; None before ``n_min``."""
+        if len(self._pts) < self.n_min:
+            return None
+        q = np.array(sorted(self._pts), float)
+        st = np.array([self._pts[int(k)] for k in q])
+        return float(np.median(np.diff(st) / np.diff(q)))
+
     def _robust(self):
         """The learnt samples' robust line: ``(P, c, residuals, lowest seq, highest seq)``, or
         None when the median period is not within half and twice the nominal one."""

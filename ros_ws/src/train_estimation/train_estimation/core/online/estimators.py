@@ -451,12 +451,21 @@ class RobustAdapter(_DistanceAsPosition):
             self._pred = None  # a command that acts before the cached prediction: start afresh
         return "" if d.accepted else d.reason
 
-    def _lost_slots(self, stamp: float) -> None:
-        """Enter the slots lost between the last odometer sample and one stamped ``stamp``."""
+    def _lost_slots(self, stamp: float, seq: int) -> None:
+        """Enter the slots lost between the last odometer sample and one stamped ``stamp``
+        with counter ``seq``: the stamps' gap in periods, but never more than the counter says
+        were lost (``seq`` is +1 per sample before the link: a slot is a sample). With
+        ``odometer_rate`` set above the sensor's (2 Hz for a 1 Hz odometer) the stamps alone
+        put a lost slot between every two samples, its seq the next sample's, and the robust
+        filter refused every second reading as a duplicate. A counter that went back (reset,
+        wrap) says nothing: the stamps decide; one that skipped while the stamps ran on
+        (``seq_skip``) is held to them."""
         if self.last_odo is None:
             return
         last_stamp, last_seq = self.last_odo
         n = int(round((stamp - last_stamp) / self.cfg.period)) - 1
+        if seq > last_seq:
+            n = min(n, seq - last_seq - 1)
         if n > self.cfg.outage_slots:
             self.outages += 1
             return
@@ -476,7 +485,7 @@ class RobustAdapter(_DistanceAsPosition):
         kind, meas = self.f._measurement(r)
         if isinstance(meas, str):
             return self.f._decide(False, meas).reason
-        self._lost_slots(stamp)
+        self._lost_slots(stamp, r.seq)
         d = self.f.update(r)
         if d.accepted:
             self.last_odo = (stamp, int(fields["seq"]))

@@ -804,6 +804,12 @@ class EstimatorRunner:
             return []
         return self.advance_to(max(item[0] for item in self.queue))
 
+    def sample_period(self) -> float | None:
+        """The odometer's sample period as its stamps and counter give it (s; None before the
+        sample grid has ``min_judged`` samples): against :attr:`period`, what the node was told
+        (``odometer_rate``)."""
+        return self._steps.grid.sample_period() if self._steps is not None else None
+
     @property
     def counts(self) -> dict:
         """Accepted, rejected (by vocabulary name) and events, for logs and summaries."""
