@@ -46,8 +46,9 @@ RELOCATED = "relocated"  # two agreeing balises moved the odometer's count by mo
 BALISE_EXCLUDED = "balise_excluded"  # a fused balise shown to lie by a later one, taken out
 BALISE_LATENCY = "balise_latency"  # the balise reader found to stamp later than its prior allows
 VARIANCE_UNSTATED = "variance_unstated"  # a stream whose variances are 0: not stated, believed used
+COUNT_RESET = "count_reset"  # the odometer restarted its count (counter and distance back): spliced
 EVENTS = (SEQ_RESET, CLOCK_RESET, SEQ_SKIP, FUSED_LATE, OUTAGE, RELOCATED, BALISE_EXCLUDED,
-          BALISE_LATENCY, VARIANCE_UNSTATED)
+          BALISE_LATENCY, VARIANCE_UNSTATED, COUNT_RESET)
 
 ALL = REJECTIONS + ACCEPTED + EVENTS
 
@@ -76,6 +77,8 @@ DESCRIPTION = {
     BALISE_EXCLUDED: "a fused balise shown to lie by a later one, taken out of the count",
     BALISE_LATENCY: "the balise reader stamps later (or earlier) than balise_latency_std "
                     "allows: its latency is now calibrated with a wide prior",
+    COUNT_RESET: "the odometer restarted its count (a reboot): the new count spliced onto the "
+                 "old one, the origin's variance grown by the carry's doubt",
     VARIANCE_UNSTATED: "a stream states its variances as 0 (not stated): the believed train's "
                        "value (train.yaml) is used until it states one",
 }

@@ -43,6 +43,9 @@ from .odometer_scale import (
 from .runner import Output
 
 NAN16 = (math.nan,) * 16
+RESTART_BACK = 5.0  # m: a distance this far below the count fused last, with the counter gone
+#   back too, is the odometer restarting its count (a forward run never counts back;
+#   _DistanceAsPosition._restart)
 
 
 @dataclass(frozen=True)
@@ -216,12 +219,15 @@ class _DistanceAsPosition:
         #   last balise the filter fused (the start: the count's zero, standing)
         self.separation: tuple = ()  # without the distance: (move m, variance before m^2) of
         #   the last EXCLUDED balises the filter fused (solution separation, class doc)
+        self.splice = 0.0  # m added to the odometer's distance: its count restarted (_restart)
+        self.odo_seq: int | None = None  # the counter of the last fused odometer reading
+        self.restarts = 0  # counts spliced (event count_reset)
 
     def _count(self, stamp: float, fields: dict) -> float:
         """m, the odometer's count at a reading: its distance, or without the distance the
         speeds integrated from the last fused reading (trapezoid; 0 at the first)."""
         if self.cfg.use_distance:
-            return float(fields["distance"])
+            return float(fields["distance"]) + self.splice
         if self.odo is None:
             return 0.0
         t0, d0, v0 = self.odo
@@ -262,8 +268,50 @@ class _DistanceAsPosition:
         v = float(self.cal.theta[1]) * self.odo[2]
         return {**fields, "position": pos + v * tau, "position_variance": var + (v * s_tau) ** 2}
 
+    def _restart(self, stamp: float, fields: dict):
+        """Splice a restarted count onto the old one (a sensor that rebooted: its counter and
+        its distance begin again from 0 while the train runs on). A reading whose counter went
+        back and whose distance lies more than :data:`RESTART_BACK` below the count fused last
+        (a forward run never counts back) is such a restart: the count there is the last one
+        carried at its speed (as a balise's is, :meth:`_balise_fix`), and the carry's doubt,
+        ``sigma_v^2 dt^2 + (A_MAX dt^2 / 2)^2``, is added to the origin from there on
+        (:meth:`OdometerCalibration.splice`). Taken as it came, the restarted count put the
+        estimate 730 m back: refused by the gates, ALARM until two balises relocated the count
+        (the zone controller brakes on ALARM). Returns what to restore should the reading not
+        be fused (a corrupted copy must not move the count), or None."""
+        if not self.cfg.use_distance or self.odo is None or self.odo_seq is None:
+            return None
+        try:
+            seq, d = int(fields["seq"]), float(fields["distance"])
+        except (KeyError, TypeError, ValueError):
+            return None
+        t0, d0, v0 = self.odo
+        dt = stamp - t0
+        if not (math.isfinite(d) and d >= 0.0 and 0 <= seq < self.odo_seq and dt > 0.0
+                and d + self.splice < d0 - RESTART_BACK):
+            return None
+        undo = (self.splice, self.restarts,
+                *(c.copy() if c is not None else None for c in (self.cal, self.cal_wide)))
+        carried = d0 + v0 * dt
+        var = self.train.odometer_speed_variance * dt * dt + (0.5 * A_MAX * dt * dt) ** 2
+        self.splice = carried - d
+        for cal in (self.cal, self.cal_wide):
+            if cal is not None:
+                cal.splice(carried, var)
+        self.restarts += 1
+        return undo
+
+    def _unrestart(self, undo) -> None:
+        """The reading that spliced the count was not fused: as before it (:meth:`_restart`)."""
+        if undo is not None:
+            self.splice, self.restarts, self.cal, self.cal_wide = undo
+
     def _odometer_fused(self, stamp: float, fields: dict) -> None:
         self.odo = (stamp, self._count(stamp, fields), float(fields["speed"]))
+        try:
+            self.odo_seq = int(fields["seq"])
+        except (KeyError, TypeError, ValueError):
+            self.odo_seq = None
         self.cal.walk_to(self.odo[1])
         if self.cal_wide is not None:
             self.cal_wide.walk_to(self.odo[1])
@@ -281,7 +329,7 @@ class _DistanceAsPosition:
         if not self.cfg.use_distance:
             return None
         try:
-            d = float(fields["distance"])
+            d = float(fields["distance"]) + self.splice
         except (KeyError, TypeError, ValueError):
             return None
         return (self.cal.position(d), float(self.cfg.distance_variance),
@@ -390,17 +438,25 @@ class _DistanceAsPosition:
             return None
         return self.cal.latency()
 
+    def odometry_events(self) -> dict:
+        """Event name -> how many so far, of the odometer's calibration (the runner logs each
+        new one)."""
+        return self._odometry_counters()
+
     def _odometry_counters(self) -> dict:
         return {k: n for k, n in ((R.RELOCATED, self.cal.relocated),
                                   (R.BALISE_EXCLUDED, self.cal.excluded),
-                                  (R.BALISE_LATENCY, self.latency_found)) if n}
+                                  (R.BALISE_LATENCY, self.latency_found),
+                                  (R.COUNT_RESET, self.restarts)) if n}
 
     def _odometry_snapshot(self):
         return tuple(c.copy() if c is not None else None for c in (self.cal, self.cal_wide)) \
-            + (self.odo, self.latency_found, self.anchor, self.separation)
+            + (self.odo, self.latency_found, self.anchor, self.separation, self.splice,
+               self.odo_seq, self.restarts)
 
     def _odometry_restore(self, snap) -> None:
-        cal, wide, self.odo, self.latency_found, self.anchor, self.separation = snap
+        cal, wide, self.odo, self.latency_found, self.anchor, self.separation, self.splice, \
+            self.odo_seq, self.restarts = snap
         self.cal = cal.copy()
         self.cal_wide = wide.copy() if wide is not None else None
 
@@ -477,6 +533,7 @@ class RobustAdapter(_DistanceAsPosition):
             self.f.update(OdometerReading(stamp=t, seq=last_seq + i, received=False))
 
     def odometer(self, stamp: float, fields: dict) -> str:
+        undo = self._restart(stamp, fields)
         pos, speed, rv = self._mapped(fields, stamp)
         r = OdometerReading(stamp=stamp, seq=int(fields["seq"]),
                             distance=pos - self.start_state.position, speed=speed,
@@ -484,12 +541,15 @@ class RobustAdapter(_DistanceAsPosition):
         # the reading's own checks first, so that a bad one does not enter lost slots
         kind, meas = self.f._measurement(r)
         if isinstance(meas, str):
+            self._unrestart(undo)
             return self.f._decide(False, meas).reason
         self._lost_slots(stamp, r.seq)
         d = self.f.update(r)
         if d.accepted:
             self.last_odo = (stamp, int(fields["seq"]))
             self._odometer_fused(stamp, fields)
+        else:
+            self._unrestart(undo)
         return "" if d.accepted else d.reason
 
     def balise(self, stamp: float, fields: dict) -> str:
@@ -869,11 +929,13 @@ class BrakingAdapter(_DistanceAsPosition):
         why = self._order("odometer", stamp, seq)
         if why:
             return why
+        undo = self._restart(stamp, fields)
         pos, speed, var = self._mapped(fields, stamp)
         rows = [(1, speed, var)] + ([(0, pos, self.cfg.distance_variance)]
                                     if self.cfg.use_distance else [])
         why = self._gate(stamp, rows)
         if why:
+            self._unrestart(undo)
             return why
         reason = R.normalise(self._step(stamp, [pos, speed, math.nan],
                                         [self.cfg.use_distance, True, False],
@@ -881,6 +943,8 @@ class BrakingAdapter(_DistanceAsPosition):
         if not reason:
             self.last["odometer"] = (seq, stamp)
             self._odometer_fused(stamp, fields)
+        else:
+            self._unrestart(undo)
         return reason
 
     def balise(self, stamp: float, fields: dict) -> str:

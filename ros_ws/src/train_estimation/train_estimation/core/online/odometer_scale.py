@@ -35,6 +35,11 @@ covariance adds what the calibration does not know (a Schmidt "consider" term)::
 When a balise moves ``theta``, the estimate is moved with the mapping (:meth:`shift_at`), so the
 next reading continues it instead of looking like a jump the filter's gate refuses.
 
+An odometer that reboots begins its count again from 0; the adapters splice the new count onto
+the old one, carried at its speed over the gap (``_DistanceAsPosition._restart``), and the
+carry's doubt enters here as a concentrated walk of ``x0`` at the count of the splice
+(:meth:`OdometerCalibration.splice`).
+
 A balise reader can stamp late: a reading stamped when the telegram was decoded, not when the
 antenna passed the balise's centre, says the train was at ``b`` at a time ``tau`` after it was.
 The train is then ``v tau`` further on than the reading says (25 m at 50 m/s and 0.5 s), one
@@ -116,11 +121,13 @@ class BaliseFix:
 
 
 def _walked(Sigma: np.ndarray, d0: float, d1: float, count_walk: float,
-            scale_walk: float) -> np.ndarray:
+            scale_walk: float, jumps: tuple = ()) -> np.ndarray:
     """``Sigma`` with the random walk of the count run from ``d0`` to ``d1`` added (module
     doc): ``x0`` by ``count_walk`` per metre; ``c`` by ``scale_walk`` per metre, a step ``w`` of
     ``c`` at the count ``s`` moving ``x0`` by ``-w s``, integrated over ``s`` (so any path
-    between the same counts adds the same)."""
+    between the same counts adds the same); and ``x0`` by the variance of each of ``jumps``
+    ``(count m, variance m^2)`` run over (a count spliced after the odometer restarted:
+    :meth:`OdometerCalibration.splice`)."""
     a, b = sorted((float(d0), float(d1)))
     run = b - a
     if not run > 0:
@@ -129,6 +136,7 @@ def _walked(Sigma: np.ndarray, d0: float, d1: float, count_walk: float,
     out = Sigma.copy()  # the latency (third parameter) does not walk: it is the reader's
     out[:2, :2] += count_walk * run * np.array([[1.0, 0.0], [0.0, 0.0]]) \
         + scale_walk * np.array([[s3, -s2], [-s2, s1]])
+    out[0, 0] += sum(var for at, var in jumps if a < at <= b)
     return out
 
 
@@ -171,6 +179,7 @@ class OdometerCalibration:
         # the last EXCLUDED fusions: (solution before, fixes fused)
         self.recent: list[tuple[_Solution, tuple[BaliseFix, ...]]] = []
         self.alternatives: list[_Solution] = []  # the solution without each of them
+        self.jumps: tuple = ()  # (count m, variance m^2) of each splice (:meth:`splice`)
 
     def copy(self) -> OdometerCalibration:
         # every update makes new arrays and lists: a shallow copy shares nothing that changes
@@ -210,7 +219,8 @@ class OdometerCalibration:
         C = J @ self.Sigma @ J.T
         need = np.diag(C).copy()
         for alt in self.alternatives:
-            Sk = _walked(alt.Sigma, alt.d, self.d_walked, self.count_walk, self.scale_walk)
+            Sk = _walked(alt.Sigma, alt.d, self.d_walked, self.count_walk, self.scale_walk,
+                         self.jumps)
             delta = J @ (alt.theta - self.theta)
             need = np.maximum(need, np.diag(J @ Sk @ J.T) + delta * delta)
         return C + np.diag(need - np.diag(C))
@@ -220,8 +230,17 @@ class OdometerCalibration:
         """Add the random walk of the distance run since the last call (module doc)."""
         if not math.isfinite(d):
             return
-        self.Sigma = _walked(self.Sigma, self.d_walked, d, self.count_walk, self.scale_walk)
+        self.Sigma = _walked(self.Sigma, self.d_walked, d, self.count_walk, self.scale_walk,
+                             self.jumps)
         self.d_walked = float(d)
+
+    def splice(self, at: float, variance: float) -> None:
+        """The odometer restarted its count, and the new count was spliced onto the old one at
+        the count ``at`` (m) to within ``variance`` (m^2): that much more doubt of ``x0`` from
+        there on, as a concentrated :data:`COUNT_WALK` (every solution walked over ``at``
+        takes it, the solutions without a recent balise included)."""
+        if math.isfinite(at) and math.isfinite(variance) and variance > 0:
+            self.jumps = (self.jumps + ((float(at), float(variance)),))[-16:]
 
     # -- balises -----------------------------------------------------------------------------
     @staticmethod
@@ -270,11 +289,11 @@ class OdometerCalibration:
         sol = self.recent[j][0]
         theta, Sigma, d, n = sol.theta, sol.Sigma, sol.d, sol.n
         for before, fixes in self.recent[j + 1:]:
-            Sigma = _walked(Sigma, d, before.d, self.count_walk, self.scale_walk)
+            Sigma = _walked(Sigma, d, before.d, self.count_walk, self.scale_walk, self.jumps)
             theta, Sigma = self._step(theta, Sigma, fixes)
             d, n = before.d, n + len(fixes)
         return _Solution(theta, _walked(Sigma, d, self.d_walked, self.count_walk,
-                                        self.scale_walk), self.d_walked, n)
+                                        self.scale_walk, self.jumps), self.d_walked, n)
 
     def _outside(self, theta, Sigma, fixes, z: float) -> bool:
         """Whether any of ``fixes`` lies beyond ``z`` standard deviations of the solution

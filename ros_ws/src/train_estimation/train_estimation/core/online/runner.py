@@ -192,6 +192,7 @@ class EstimatorRunner:
     _held: list = field(default_factory=list)  # control pushed before any odometer (raw)
     _early: dict = field(default_factory=dict)  # clock -> items waiting for min_judged
     _ready: set = field(default_factory=set)  # clocks whose early hold ended
+    _adapter_seen: Counter = field(default_factory=Counter)  # the adapter's events said so far
     _stated_kinds: set = field(default_factory=set)  # kinds whose stream stated a variance > 0
     unstated: Counter = field(default_factory=Counter)  # kind -> readings whose variance 0
     #   was read as not stated (:meth:`_stated`)
@@ -542,9 +543,23 @@ class EstimatorRunner:
         if kind == "odometer":
             self._anchor = (stamp, ft)
         try:
-            return getattr(self.adapter, kind)(ft, fields)
+            reason = getattr(self.adapter, kind)(ft, fields)
         except (KeyError, TypeError, ValueError, OverflowError) as exc:  # malformed fields
             return f"{R.INVALID}: {type(exc).__name__}: {exc}"
+        self._adapter_events(kind, stamp)
+        return reason
+
+    def _adapter_events(self, kind: str, stamp: float) -> None:
+        """The adapter's own events (the count relocated, a balise excluded, the reader's
+        latency found, the count restarted) as the runner's, logged once each: a count above
+        the highest seen (a rewind replays what it already said)."""
+        odometry = getattr(self.adapter, "odometry_events", None)
+        if odometry is None or kind == "control":
+            return
+        for name, n in odometry().items():
+            if n > self._adapter_seen[name]:
+                self._adapter_seen[name] = n
+                self._event(kind, stamp, f"{name}: {R.DESCRIPTION.get(name, '')}")
 
     def _process(self, entry: list) -> str:
         """Apply one item, keeping it (and the state before it, for odometer items) in the
