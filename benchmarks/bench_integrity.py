@@ -210,6 +210,10 @@ def plan(quick: bool, seeds: int, estimators, only, phase_names=None, long: floa
         for _, at in ([("cruising", cruise)] if quick and scenario != "metro_demo" else
                       [("dwell", dwell)] + list(ph.items())):
             add(F.Fault("stuck", 0.0, at), 240.0)
+        # an odometer that reboots: its counter and count begin again after a gap
+        for _, at in ([("cruising", cruise)] if quick else list(ph.items())):
+            for L in ((3.0,) if quick else (0.5, 3.0, 10.0)):
+                add(F.Fault("reboot", L, at), L + 60.0)
         for L in ((8.0,) if quick else (2.0, 8.0, 20.0)):
             add(F.Fault("recorder_stall", L, cruise), L)
             add(F.Fault("node_stall", L, cruise), L)

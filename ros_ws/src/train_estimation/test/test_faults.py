@@ -163,7 +163,8 @@ def test_score_counts_wrong_side_and_time_to_alarm():
     F.Fault("none"), F.Fault("stamp", 60.0, 10.0), F.Fault("step", -3.0, 10.0),
     F.Fault("drift", -1e-2), F.Fault("outage", 5.0, 10.0), F.Fault("command_stop", 0.0, 10.0),
     F.Fault("latency", 5.0), F.Fault("recorder_stall", 4.0, 10.0),
-    F.Fault("node_stall", 4.0, 10.0), F.Fault("fuzz", 0.5), F.Fault("balise", 10.0, 5.0)],
+    F.Fault("node_stall", 4.0, 10.0), F.Fault("fuzz", 0.5), F.Fault("balise", 10.0, 5.0),
+    F.Fault("reboot", 3.0, 10.0)],
     ids=lambda f: f.kind)
 def test_one_case_of_each_fault_class_runs_through_an_estimator(fault):
     sc, res = run("metro_demo", 1, 20.0)

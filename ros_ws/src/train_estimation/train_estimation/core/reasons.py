@@ -46,7 +46,7 @@ RELOCATED = "relocated"  # two agreeing balises moved the odometer's count by mo
 BALISE_EXCLUDED = "balise_excluded"  # a fused balise shown to lie by a later one, taken out
 BALISE_LATENCY = "balise_latency"  # the balise reader found to stamp later than its prior allows
 VARIANCE_UNSTATED = "variance_unstated"  # a stream whose variances are 0: not stated, believed used
-COUNT_RESET = "count_reset"  # the odometer restarted its count (counter and distance back): spliced
+COUNT_RESET = "count_reset"  # the odometer's counter went back (a reboot): its count spliced
 EVENTS = (SEQ_RESET, CLOCK_RESET, SEQ_SKIP, FUSED_LATE, OUTAGE, RELOCATED, BALISE_EXCLUDED,
           BALISE_LATENCY, VARIANCE_UNSTATED, COUNT_RESET)
 
@@ -77,8 +77,9 @@ DESCRIPTION = {
     BALISE_EXCLUDED: "a fused balise shown to lie by a later one, taken out of the count",
     BALISE_LATENCY: "the balise reader stamps later (or earlier) than balise_latency_std "
                     "allows: its latency is now calibrated with a wide prior",
-    COUNT_RESET: "the odometer restarted its count (a reboot): the new count spliced onto the "
-                 "old one, the origin's variance grown by the carry's doubt",
+    COUNT_RESET: "the odometer's counter went back (a reboot): its count spliced onto the "
+                 "old one where the estimate was predicted, the origin's variance grown by "
+                 "the prediction's",
     VARIANCE_UNSTATED: "a stream states its variances as 0 (not stated): the believed train's "
                        "value (train.yaml) is used until it states one",
 }

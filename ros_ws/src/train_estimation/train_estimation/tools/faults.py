@@ -36,6 +36,9 @@ stuck            (none): from ``at`` on every odometer reading repeats the last 
 seq_skip         samples: from ``at`` on the odometer's sample counter (``seq``) runs ``size``
                  ahead (< 0: behind) of the samples taken (a sampling loop that missed a cycle
                  and counted it); stamps, values and arrivals are untouched
+reboot           s: the odometer reboots at ``at``: no reading for ``size`` s, then its counter
+                 and its distance begin again from the boot (``at + size / 2``), as a sensor
+                 that restarted counts (balises and commands unaffected)
 odometer_scale   fraction: from ``at`` on the odometer counts ``1 + size`` times the distance
                  run and reads ``1 + size`` times the speed (a worn or mis-set wheel
                  diameter; 0.01 = 1 %); the distance is continuous at ``at``
@@ -79,7 +82,7 @@ AVAILABLE_LAG = 1.0  # s: an OK estimate published further from the time it clai
 #   available (counted in ``availability``)
 TRAIN_TOPICS = ("odometer", "balise")
 KINDS = ("none", "stamp", "step", "drift", "outage", "command_stop", "latency", "recorder_stall",
-         "node_stall", "fuzz", "balise", "odometer_scale", "stuck", "seq_skip")
+         "node_stall", "fuzz", "balise", "odometer_scale", "stuck", "seq_skip", "reboot")
 # stamps a few seconds to minutes off: inside the runner's max_future (600 s), so the door lets
 # them in and only the clocks' and the filters' own checks stand between them and the estimate
 INSIDE_FUTURE = {
@@ -195,6 +198,10 @@ def inject(events: list, fault: Fault, rng: np.random.Generator) -> Faulted:
     rows = []  # [topic, t, fields, stamp error, true arrival]
     hit = 0
     d_at = None  # m, the odometer's distance at ``at`` ("odometer_scale")
+    # the odometer's reading at its boot ("reboot"): what its restarted counter and count start
+    # from
+    boot = next((f for tp, tt, f in events if tp == "odometer" and tt >= at + 0.5 * size),
+                None) if k == "reboot" else None
     for topic, t, fields in events:
         if topic not in ("control",) + TRAIN_TOPICS:
             continue
@@ -210,6 +217,11 @@ def inject(events: list, fault: Fault, rng: np.random.Generator) -> Faulted:
                 fields = {**fields, "distance": d_at, "speed": 0.0}
         if k == "seq_skip" and topic == "odometer" and t >= at and "seq" in fields:
             fields = {**fields, "seq": fields["seq"] + int(size)}
+        if k == "reboot" and topic == "odometer" and t >= at:
+            if t < at + size:
+                continue  # booting
+            fields = {**fields, "seq": fields["seq"] - boot["seq"],
+                      "distance": fields["distance"] - boot["distance"]}
         train = topic in TRAIN_TOPICS
         if k == "outage" and train and at <= t < at + size:
             continue
@@ -240,7 +252,7 @@ def inject(events: list, fault: Fault, rng: np.random.Generator) -> Faulted:
     if k == "fuzz":
         out, counts = corrupt(out, rng, size, stamps={**STAMPS, **INSIDE_FUTURE})
     end = {"none": at, "stamp": at, "outage": at + size, "recorder_stall": at + size,
-           "node_stall": at + size}.get(k, math.inf)
+           "node_stall": at + size, "reboot": at + size}.get(k, math.inf)
     stalled = ((at, at + size),) if k == "node_stall" else ()
     return Faulted(out, clock, at, end, counts, stalled)
 

@@ -36,8 +36,8 @@ When a balise moves ``theta``, the estimate is moved with the mapping (:meth:`sh
 next reading continues it instead of looking like a jump the filter's gate refuses.
 
 An odometer that reboots begins its count again from 0; the adapters splice the new count onto
-the old one, carried at its speed over the gap (``_DistanceAsPosition._restart``), and the
-carry's doubt enters here as a concentrated walk of ``x0`` at the count of the splice
+the old one where their prediction puts the train (``_DistanceAsPosition._restart``), and the
+prediction's variance enters here as a concentrated walk of ``x0`` at the count of the splice
 (:meth:`OdometerCalibration.splice`).
 
 A balise reader can stamp late: a reading stamped when the telegram was decoded, not when the
