@@ -81,6 +81,10 @@ def test_estimator_publishes_odometry_and_diagnostics(launch, ros_node):
                 "latency_p99_ms", "integrity_reason", "odometer.age_s", "odometer_scale",
                 "odometer_scale_std"):
         assert key in values, (key, values)
+    # the odometer's own period from its stamps and counter: odometer_rate is right, no WARN
+    assert float(values["odometer_period_s"]) == pytest.approx(1.0 / sc.odometer_rate,
+                                                               rel=1e-3), values
+    assert "odometer_rate" not in running[-1].message, running[-1].message
     # the scale learnt so far, in the parameter's terms (a next run can start from it)
     assert abs(float(values["odometer_scale"]) - 1.0) < 0.03, values["odometer_scale"]
     assert 0.0 < float(values["odometer_scale_std"]) <= 0.01, values["odometer_scale_std"]
