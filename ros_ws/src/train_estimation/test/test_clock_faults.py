@@ -431,3 +431,37 @@ def test_a_balise_during_a_step_waits_with_the_odometer_and_is_fused_on_the_new_
     assert runner.events.get("odometer:clock_reset") == 1, runner.counts
     assert "balise:outside_gate" not in runner.rejected, runner.counts
     assert s["wrong_side"] == 0 and s["availability"] > 0.8, s
+
+
+def test_a_counter_that_restarts_counts_on_past_its_old_highest_seq_on_its_own_line():
+    """A 1 Hz odometer sampled seqs 0..9 at stamps 1..10, then rebooted and counts 0, 1, ...
+    from stamp 11: its samples are off the learnt line (restarted: no residual) until the new
+    count passes 9, where the old line would put them 11 s late. Two admitted in a row already
+    make their own line, on which they lie; they are never learnt into the old one, and nine
+    of them replace it."""
+    from train_estimation.core.numerics.clocks import SampleGrid
+
+    g = SampleGrid(1.0)
+    for q in range(10):
+        g.add(q, 1.0 + q)
+    assert g.residual(5, 6.0) == 0.0
+    for q in range(9):
+        assert g.residual(q, 11.0 + q) is None
+        g.add(q, 11.0 + q)
+    # the ninth replaced the line: the new count's own
+    assert g.residual(9, 20.0) == 0.0 and g.residual(10, 21.0) == 0.0
+    # two in a row are enough to place the one that passes the old highest seq
+    g = SampleGrid(1.0)
+    for q in range(10):
+        g.add(q, 1.0 + q)
+    for q in (7, 8):
+        g.add(q, 11.0 + q)  # admitted (off the line: no residual)
+    assert g.residual(9, 20.0) == 0.0 and g.residual(10, 21.0) == 0.0
+    g.add(9, 20.0)
+    assert g.residual(5, 6.0) == 0.0  # the old line kept what it had learnt
+    # one alone is no line (a corrupted seq): off the old line as before
+    g = SampleGrid(1.0)
+    for q in range(10):
+        g.add(q, 1.0 + q)
+    g.add(8, 19.0)
+    assert g.residual(10, 21.0) == 10.0

@@ -606,7 +606,7 @@ class SampleGrid:
         if seq is None or not math.isfinite(stamp):
             return
         if self._line() is not None:
-            r = self.residual(seq, stamp)
+            r = self._on_line(seq, stamp)
             if r is None or abs(r) > self.tol:
                 self._misfits.append((seq, stamp))
                 if len(self._misfits) < self.n_min:
@@ -681,10 +681,8 @@ class SampleGrid:
         P, _, tol, lo, hi = fit
         return tol + self.rate_tol * P * max(lo - seq, seq - hi, 0)
 
-    def residual(self, seq, stamp: float):
-        """``stamp`` less where the grid puts sample ``seq`` (s); None while the grid is
-        neither trusted nor provisional, or for a seq far from it (a counter restarted or
-        wrapped, a corrupted seq)."""
+    def _on_line(self, seq, stamp: float):
+        """:meth:`residual` on the learnt line alone (what :meth:`add` learns by)."""
         fit = self._line() or self._provisional()
         seq = self._seq(seq)
         if fit is None or seq is None:
@@ -695,6 +693,28 @@ class SampleGrid:
         if seq < hi and stamp > c + P * hi + tol:
             return None  # the seq back while the stamp went on: restarted, wrapped or corrupt
         return stamp - (c + P * seq)
+
+    def residual(self, seq, stamp: float):
+        """``stamp`` less where the grid puts sample ``seq`` (s); None while the grid is
+        neither trusted nor provisional, or for a seq far from it (a counter restarted or
+        wrapped, a corrupted seq)."""
+        r = self._on_line(seq, stamp)
+        if r is None:
+            return None
+        P, _, tol, _, _ = self._line() or self._provisional()
+        seq = self._seq(seq)
+        if abs(r) > tol and len(self._misfits) >= 2:
+            # admitted samples off the line in a row (each on it clears them): a counter that
+            # restarted, counting on past the old highest seq. A sample on their own line is
+            # on the grid that replaces this one after n_min of them (at 1 Hz an odometer
+            # rebooted at 10 s reached its old seq 9 at 20 s: held as a step of -11 samples,
+            # then its readings refused as late)
+            qs = np.array([q for q, _ in self._misfits], float)
+            cs = np.array([st for _, st in self._misfits]) - P * qs
+            cm = float(np.median(cs))
+            if float(np.max(np.abs(cs - cm))) <= tol and abs(stamp - (cm + P * seq)) <= tol:
+                return stamp - (cm + P * seq)
+        return r
 
     @property
     def tol(self) -> float:

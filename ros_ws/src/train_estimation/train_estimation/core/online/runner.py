@@ -187,7 +187,8 @@ class EstimatorRunner:
     _prev_raw: float | None = None  # the last stamp pushed (no-arrival mode, early phase)
     _admitted_high: float = -math.inf  # the latest stamp admitted (no-arrival mode)
     _recent: dict = field(default_factory=dict)  # kind -> deque of (seq, stamp)
-    _fused_seq: dict = field(default_factory=dict)  # seq -> stamp of recent fused odometer
+    _fused_seq: dict = field(default_factory=dict)  # seq -> (stamp, distance) of recent fused
+    #   odometer readings
     _last_seq: dict = field(default_factory=dict)  # kind -> (seq, stamp) of the last pushed
     _held: list = field(default_factory=list)  # control pushed before any odometer (raw)
     _early: dict = field(default_factory=dict)  # clock -> items waiting for min_judged
@@ -335,9 +336,14 @@ class EstimatorRunner:
     def _fused_elsewhere(self, kind: str, stamp: float, fields) -> str:
         """``duplicate`` when this odometer reading's sample was fused at another stamp in the
         last ``history`` seconds (a corrupted copy: a clock step sends new samples, not old
-        ones, so it is no evidence of a step either), else ""."""
-        if kind == "odometer" and isinstance(fields, dict) and \
-                self._fused_seq.get(fields.get("seq"), stamp) != stamp:
+        ones, so it is no evidence of a step either), else "". A copy carries its sample's
+        count: a reading with the seq of a fused one and another count is a new sample (an
+        odometer that rebooted counts its seqs again; at 1 Hz its first nine were refused as
+        copies of the samples before the reboot), judged as any other."""
+        if kind != "odometer" or not isinstance(fields, dict):
+            return ""
+        fused = self._fused_seq.get(fields.get("seq"))
+        if fused is not None and fused[0] != stamp and fused[1] == fields.get("distance"):
             return f"{R.DUPLICATE}: seq {fields.get('seq')} fused at another stamp"
         return ""
 
@@ -633,7 +639,7 @@ class EstimatorRunner:
             if fused and isinstance(fields, dict):
                 self._steps.fused(stamp, fields.get("distance"), fields.get("seq"))
                 self._fused_seq.pop(fields.get("seq"), None)
-                self._fused_seq[fields.get("seq")] = stamp
+                self._fused_seq[fields.get("seq")] = (stamp, fields.get("distance"))
                 # the samples of the last `history` seconds only: a copy comes with its
                 # original, while a sender restarted later reuses older seqs for new samples
                 while len(self._fused_seq) > max(8, math.ceil(self.history / self.period)):
