@@ -47,8 +47,9 @@ BALISE_EXCLUDED = "balise_excluded"  # a fused balise shown to lie by a later on
 BALISE_LATENCY = "balise_latency"  # the balise reader found to stamp later than its prior allows
 VARIANCE_UNSTATED = "variance_unstated"  # a stream whose variances are 0: not stated, believed used
 COUNT_RESET = "count_reset"  # the odometer's counter went back (a reboot): its count spliced
+COUNT_ORIGIN = "count_origin"  # the first count far from zero: origin widened until a balise
 EVENTS = (SEQ_RESET, CLOCK_RESET, SEQ_SKIP, FUSED_LATE, OUTAGE, RELOCATED, BALISE_EXCLUDED,
-          BALISE_LATENCY, VARIANCE_UNSTATED, COUNT_RESET)
+          BALISE_LATENCY, VARIANCE_UNSTATED, COUNT_RESET, COUNT_ORIGIN)
 
 ALL = REJECTIONS + ACCEPTED + EVENTS
 
@@ -80,6 +81,8 @@ DESCRIPTION = {
     COUNT_RESET: "the odometer's counter went back (a reboot): its count spliced onto the "
                  "old one where the estimate was predicted, the origin's variance grown by "
                  "the prediction's",
+    COUNT_ORIGIN: "the odometer's first count is far from zero (data from mid-run, or a count "
+                  "from power-up): its origin is widened to cover it until a balise places it",
     VARIANCE_UNSTATED: "a stream states its variances as 0 (not stated): the believed train's "
                        "value (train.yaml) is used until it states one",
 }

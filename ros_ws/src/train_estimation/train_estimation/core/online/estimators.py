@@ -43,6 +43,8 @@ from .odometer_scale import (
 from .runner import Output
 
 NAN16 = (math.nan,) * 16
+ORIGIN_FAR = 8.0  # start deviations: a first count further from zero is of unknown origin
+#   (_DistanceAsPosition._origin)
 
 
 @dataclass(frozen=True)
@@ -219,6 +221,8 @@ class _DistanceAsPosition:
         self.splice = 0.0  # m added to the odometer's distance: its count restarted (_restart)
         self.odo_seq: int | None = None  # the counter of the last fused odometer reading
         self.restarts = 0  # counts spliced (event count_reset)
+        self.origin_far = 0  # 1: the first reading's count was far from the start (_origin)
+        self.origin_seen = False  # the first odometer reading's count was looked at
 
     def _count(self, stamp: float, fields: dict) -> float:
         """m, the odometer's count at a reading: its distance, or without the distance the
@@ -304,6 +308,34 @@ class _DistanceAsPosition:
                 cal.splice(at, var)
         self.restarts += 1
         return undo
+
+    def _origin(self, fields: dict) -> None:
+        """The first odometer reading's count against ``initial_position`` (where the count is
+        zero). A count far from zero there (more than ``ORIGIN_FAR`` start deviations) is
+        either that far along the line, or a count that began before the data did (a bag
+        recorded from mid-run, a sensor that counts from its power-up): the two are told apart
+        by the first balise, not here. The calibration's origin is put where the estimate
+        starts and its variance grown by the count squared, so that both lie inside the
+        interval: the estimate is honest and wide until a balise places the count (event
+        ``count_origin``). Taken as the parameter says, a count of 5 km at the first reading
+        had every reading refused by the gates for the whole run (no estimate available), and
+        the robust filter's integrity monitor raised a TypeError on the first balise."""
+        if not self.cfg.use_distance or self.odo is not None or self.origin_seen:
+            return
+        try:
+            d = float(fields["distance"])
+        except (KeyError, TypeError, ValueError):
+            return
+        if not math.isfinite(d):
+            return
+        self.origin_seen = True
+        far = float(self.cal.theta[1]) * d
+        if abs(far) <= ORIGIN_FAR * self.start_state.position_std:
+            return
+        for cal in (self.cal, self.cal_wide):
+            if cal is not None:
+                cal.widen_origin(-far, far * far)
+        self.origin_far = 1
 
     def _unrestart(self, undo) -> None:
         """The reading that spliced the count was not fused: as before it (:meth:`_restart`)."""
@@ -451,16 +483,17 @@ class _DistanceAsPosition:
         return {k: n for k, n in ((R.RELOCATED, self.cal.relocated),
                                   (R.BALISE_EXCLUDED, self.cal.excluded),
                                   (R.BALISE_LATENCY, self.latency_found),
-                                  (R.COUNT_RESET, self.restarts)) if n}
+                                  (R.COUNT_RESET, self.restarts),
+                                  (R.COUNT_ORIGIN, self.origin_far)) if n}
 
     def _odometry_snapshot(self):
         return tuple(c.copy() if c is not None else None for c in (self.cal, self.cal_wide)) \
             + (self.odo, self.latency_found, self.anchor, self.separation, self.splice,
-               self.odo_seq, self.restarts)
+               self.odo_seq, self.restarts, self.origin_far, self.origin_seen)
 
     def _odometry_restore(self, snap) -> None:
         cal, wide, self.odo, self.latency_found, self.anchor, self.separation, self.splice, \
-            self.odo_seq, self.restarts = snap
+            self.odo_seq, self.restarts, self.origin_far, self.origin_seen = snap
         self.cal = cal.copy()
         self.cal_wide = wide.copy() if wide is not None else None
 
@@ -537,6 +570,7 @@ class RobustAdapter(_DistanceAsPosition):
             self.f.update(OdometerReading(stamp=t, seq=last_seq + i, received=False))
 
     def odometer(self, stamp: float, fields: dict) -> str:
+        self._origin(fields)
         undo = self._restart(stamp, fields)
         pos, speed, rv = self._mapped(fields, stamp)
         r = OdometerReading(stamp=stamp, seq=int(fields["seq"]),
@@ -933,6 +967,7 @@ class BrakingAdapter(_DistanceAsPosition):
         why = self._order("odometer", stamp, seq)
         if why:
             return why
+        self._origin(fields)
         undo = self._restart(stamp, fields)
         pos, speed, var = self._mapped(fields, stamp)
         rows = [(1, speed, var)] + ([(0, pos, self.cfg.distance_variance)]

@@ -400,6 +400,8 @@ class IntegrityMonitor:
         intervals only). A reading the gate refused can raise a doubt, not end one."""
         tb, pos, var = self.pending_balise
         self.pending_balise = None
+        if self.odo_track is None:
+            return  # no track yet to judge it by (every reading so far refused)
         t0, z0, r0 = self.odo_track[:3]
         if not (t0 <= tb < t1 and t1 - t0 <= 2.0):
             return

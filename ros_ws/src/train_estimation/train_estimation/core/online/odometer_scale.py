@@ -234,6 +234,14 @@ class OdometerCalibration:
                              self.jumps)
         self.d_walked = float(d)
 
+    def widen_origin(self, move: float, variance: float) -> None:
+        """The origin moved by ``move`` (m) with ``variance`` (m^2) more doubt, before any
+        balise (the first odometer reading's count far from the start:
+        ``_DistanceAsPosition._origin``)."""
+        if math.isfinite(move) and math.isfinite(variance) and variance >= 0:
+            self.theta = self.theta + np.array([move, 0.0, 0.0])
+            self.Sigma = self.Sigma + np.diag([variance, 0.0, 0.0])
+
     def splice(self, at: float, variance: float) -> None:
         """The odometer restarted its count, and the new count was spliced onto the old one at
         the count ``at`` (m) to within ``variance`` (m^2): that much more doubt of ``x0`` from
