@@ -84,6 +84,12 @@ class TrainParams:
         return max(self.odometer_speed_std ** 2, 1e-6)
 
     @property
+    def balise_position_variance(self) -> float:
+        """m^2, the balise reading variance ``train.yaml`` states (``balise.position_std``,
+        > 0): what the estimators and ``diagnose`` assume for a stream that states none."""
+        return self.balise_position_std ** 2
+
+    @property
     def odometer_distance_variance(self) -> float:
         """m^2, the variance of the counted distance as a position reading (``train.yaml``'s
         ``distance_std``), floored at 1e-4 for the same reason."""

@@ -475,11 +475,8 @@ class _DistanceAsPosition:
         return self.cal.latency()
 
     def odometry_events(self) -> dict:
-        """Event name -> how many so far, of the odometer's calibration (the runner logs each
-        new one)."""
-        return self._odometry_counters()
-
-    def _odometry_counters(self) -> dict:
+        """Event name -> how many so far, of the odometer's calibration (in :attr:`counters`;
+        the runner logs each new one)."""
         return {k: n for k, n in ((R.RELOCATED, self.cal.relocated),
                                   (R.BALISE_EXCLUDED, self.cal.excluded),
                                   (R.BALISE_LATENCY, self.latency_found),
@@ -711,7 +708,7 @@ class RobustAdapter(_DistanceAsPosition):
         c = dict(self.f.counters) if self.f else {}
         if self.outages:
             c[R.OUTAGE] = self.outages
-        c.update(self._odometry_counters())
+        c.update(self.odometry_events())
         return c
 
 
@@ -1070,5 +1067,5 @@ class BrakingAdapter(_DistanceAsPosition):
     @property
     def counters(self) -> dict:
         c = dict(self.filt.rejected)
-        c.update(self._odometry_counters())
+        c.update(self.odometry_events())
         return c

@@ -127,16 +127,15 @@ _VALUES = {"odometer": (("distance", "speed"), ("speed_variance",)),
            "balise": (("position",), ("position_variance",))}
 
 
+# a reading's variance field -> the believed train's (TrainParams) property for it
+_BELIEVED = {"speed_variance": "odometer_speed_variance",
+             "position_variance": "balise_position_variance"}
+
+
 def _believed_variance(adapter, key: str) -> float | None:
     """The believed train's variance for a reading's field (None: the adapter has no train)."""
     train = getattr(adapter, "train", None)
-    if train is None:
-        return None
-    if key == "speed_variance":
-        return float(train.odometer_speed_variance)
-    if key == "position_variance":
-        return float(train.balise_position_std) ** 2
-    return None
+    return None if train is None else float(getattr(train, _BELIEVED[key]))
 
 
 def _content(kind: str, fields: dict) -> str:

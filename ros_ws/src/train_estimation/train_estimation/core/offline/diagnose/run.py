@@ -213,7 +213,7 @@ def _balises(data: MeasuredRun, line: Line, notes: list, beta: float, t_first: f
     bal_s = _arr(data.balise_stamp)
     bp = _arr(data.balise_position)
     br = unstated(_arr(data.balise_variance),
-                  None if train is None else train.balise_position_std ** 2,
+                  None if train is None else train.balise_position_variance,
                   "balise position_variance", notes)
     bid = _arr(data.balise_id, np.int64)
     okb = np.isfinite(bal_s) & np.isfinite(bp) & (np.isfinite(br) & (br > 0))
