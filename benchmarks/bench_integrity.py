@@ -131,6 +131,10 @@ def run_task(task: dict) -> dict:
     rng = np.random.default_rng([task["seed"], zlib.crc32(
         f"{task['scenario']}|{fault.label}|{fault.at}".encode())])
     faulted = F.inject(events, fault, rng)
+    if task.get("no_counter"):  # a producer that leaves seq at 0: no sample counter
+        faulted.events = [(tp, st, {**f, "seq": 0} if tp in F.TRAIN_TOPICS and isinstance(f, dict)
+                           and isinstance(f.get("seq"), int) else f, rc)
+                          for tp, st, f, rc in faulted.events]
     cfg = NodeConfig()
     rate = sc.odometer_rate
     try:
@@ -455,6 +459,9 @@ def main(argv=None) -> int:
     ap.add_argument("--no-distance", action="store_true",
                     help="the estimators with use_distance: false (the odometer's speed and "
                          "the balises, its distance unread)")
+    ap.add_argument("--no-counter", action="store_true",
+                    help="every odometer and balise seq set to 0 (a producer without a sample "
+                         "counter: the estimators judge the readings by their stamps)")
     ap.add_argument("--phases", nargs="*", default=None,
                     help="reduced full campaign: stamp, step and command faults only in these "
                          "phases (accelerating, cruising, braking)")
@@ -470,6 +477,7 @@ def main(argv=None) -> int:
     config = {"use_distance": False} if args.no_distance else {}
     for t in tasks:
         t["config"] = config
+        t["no_counter"] = args.no_counter
     # the longest first: the pool finishes together
     tasks.sort(key=lambda t: -t["duration"] * (3 if t["fault"].kind == "fuzz" else 1))
     rows = []
@@ -488,7 +496,8 @@ def main(argv=None) -> int:
                 f"<= {args.long or 'full'} s, fuzz {args.fuzz_rate or 10.0:g} per clean message")
     print(f"Integrity campaign ({mode}): {len(tasks)} runs, {seeds} seed(s), estimators "
           f"{', '.join(estimators)}"
-          f"{' with use_distance: false' if args.no_distance else ''}; "
+          f"{' with use_distance: false' if args.no_distance else ''}"
+          f"{', every seq 0 (no sample counter)' if args.no_counter else ''}; "
           f"node defaults (NodeConfig: control_clock "
           f"{NodeConfig().control_clock!r}, max_future {NodeConfig().max_future:g} s), "
           f"arrival = stamp + {F.LATENCY:g} s\n")

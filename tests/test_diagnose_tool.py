@@ -1214,3 +1214,36 @@ def test_a_bag_whose_variances_are_all_zero_is_read_with_the_believed_ones(metro
     assert tool.read_measured(tmp_path / "stated").to_identify().odo_speed_variance is not None
     assert run_tool(tmp_path / "zeros", metro.line_path, metro.train_path, tmp_path / "out") == 0
     assert "not stated" in (tmp_path / "out" / "report.json").read_text()
+
+
+def test_a_bag_without_a_sample_counter_or_command_stamps_is_read_by_what_it_has(
+        metro, metro_run, tmp_path):
+    """A producer that leaves every seq at 0 (no sample counter) or every command's stamp at 0
+    (the header left empty): diagnose reads the run as the same bag with them, says so in the
+    notes, and the link's losses, which only a counter can count, are untestable with that
+    reason. (Commands stamped 0 lay an epoch before the odometer: exit 2 before.)"""
+    def bag(path, seq0=False, ctl0=False):
+        with BagWriter(path) as w:
+            for t_recv, topic, stamp, fields in metro_run.received_events():
+                if topic not in ("odometer", "balise", "control"):
+                    continue
+                if seq0 and topic != "control":
+                    fields = dict(fields, seq=0)
+                if ctl0 and topic == "control":
+                    stamp = 0.0
+                w.write(topic, stamp, fields, t_ns=int(round(t_recv * 1e9)))
+        return path
+
+    reports = {}
+    for name, kw in (("plain", {}), ("seq0", {"seq0": True}), ("ctl0", {"ctl0": True})):
+        assert run_tool(bag(tmp_path / name, **kw), metro.line_path, metro.train_path,
+                        tmp_path / f"{name}_out") == 0
+        reports[name] = json.loads((tmp_path / f"{name}_out" / "report.json").read_text())
+    plain, seq0, ctl0 = (reports[k] for k in ("plain", "seq0", "ctl0"))
+    assert ctl0["ranking"] == plain["ranking"]  # the log times are the commands' stamps here
+    assert seq0["cause"] == plain["cause"]
+    notes = {k: " ".join(r["evidence"]["_model"]["notes"]) for k, r in reports.items()}
+    assert "no sample counter" in notes["seq0"] and "no sample counter" not in notes["plain"]
+    assert "stamped 0" in notes["ctl0"] and "stamped 0" not in notes["plain"]
+    link = {u["cause"]: u["why"] for u in seq0["untestable"]}
+    assert "no sample counter" in link["bursty_link"]

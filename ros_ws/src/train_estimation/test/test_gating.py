@@ -89,3 +89,83 @@ def test_a_stream_that_never_states_its_variance_is_read_with_the_believed_one(k
     assert r2.rejected[f"odometer:{R.NON_POSITIVE_VARIANCE}"] == \
         sum(e[0] == "odometer" for e in ev[odo[100]:])
     assert "odometer" not in r2.unstated  # (per stream: the balises' had stated nothing yet)
+
+
+def _with_seq(ev, value=0):
+    """The stream with every odometer and balise seq at ``value`` (a producer that leaves the
+    field at its default: no sample counter)."""
+    return [(t, s, dict(f, seq=value) if t in ("odometer", "balise") else f, recv)
+            for t, s, f, recv in ev]
+
+
+def _table(outs):  # NaN where not estimated: compared as equal
+    return np.array([(o.stamp, o.position, o.velocity, o.integrity, *o.covariance)
+                     for o in outs], float)
+
+
+@pytest.mark.parametrize("kind", ["robust", "kf"])
+def test_a_stream_without_a_sample_counter_is_judged_by_its_stamps(kind):
+    """Every seq 0 (the field left at its default): before, every reading after the first was
+    refused as a copy of it and no estimate was ever published. Now the stream is found to
+    have no counter (one event per stream, every reading counted), its readings are judged by
+    their stamps and values, and the estimates are those of the same stream with its counter
+    (on a lossy link: the lost samples are counted from the stamps at the configured rate)."""
+    sc, res = run(duration=150.0)
+    ev = restamp(res.events(), epoch=1.7e9, control_epoch=1.7e9)
+    counted, r0 = replay(ev, adapter(sc, kind), 0.1)
+    bare, r1 = replay(_with_seq(ev), adapter(sc, kind), 0.1)
+    n_odo = sum(e[0] == "odometer" for e in ev)
+    n_bal = sum(e[0] == "balise" for e in ev)
+    assert n_bal >= 2 and r0.rejected == r1.rejected
+    np.testing.assert_array_equal(_table(bare), _table(counted))
+    assert r1.events[f"odometer:{R.SEQ_UNSTATED}"] == 1
+    assert r1.events[f"balise:{R.SEQ_UNSTATED}"] == 1
+    # (the first balise was taken before the second showed that its seq stands still; the
+    # odometer's first readings wait for their clock anyway)
+    assert r1.uncounted == {"odometer": n_odo, "balise": n_bal - 1}
+    assert not r0.uncounted and not r0.events[f"odometer:{R.SEQ_UNSTATED}"]
+
+
+def test_copies_of_a_first_reading_do_not_make_a_counter_of_none():
+    """Three copies of the first odometer reading at other stamps, arriving with it (the fuzz
+    mix's): one seq at distinct stamps, but not over the stream's pace; the counter is kept."""
+    sc, res = run(duration=20.0)
+    ev = restamp(res.events(), epoch=1.7e9, control_epoch=1.7e9)
+    i = next(k for k, e in enumerate(ev) if e[0] == "odometer")
+    t, s, f, recv = ev[i]
+    copies = [(t, s + d, dict(f), recv) for d in (0.5, 5.0, 60.0)]
+    outs, r = replay(ev[:i + 1] + copies + ev[i + 1:], adapter(sc, "kf"), 0.1)
+    assert not r.uncounted and not r.events[f"odometer:{R.SEQ_UNSTATED}"]
+    assert r.accepted["odometer"] > 150 and outs
+
+
+def test_a_backward_clock_step_without_a_counter_is_held_not_fused_at_the_old_clock():
+    """Without a counter a backward step's readings come at stamps already taken: refused as
+    copies of those (by their stamp alone), they left the kf estimating on the old clock, 61 m
+    off with a sigma of 7 m (4 estimates OK). A copy is now a stamp with its values: the step's
+    readings are held, the estimate is in doubt at once and the clock is re-anchored."""
+    from train_estimation.tools import faults as F
+    sc, res = run("metro_demo", 3, 90.0)
+    fl = F.inject(res.events(), F.Fault("step", -3.0, 46.8), np.random.default_rng(0))
+    fl.events = _with_seq(fl.events)
+    outs, emitted, runner = F.run(fl.events, adapter(sc, "kf"), 0.1)
+    s = F.score(outs, emitted, fl, res.truth, 10.0, 90.0 + F.LATENCY)
+    assert runner.events[f"odometer:{R.SEQ_UNSTATED}"] == 1
+    assert runner.events[f"odometer:{R.CLOCK_RESET}"] == 1
+    # 60 m off on the old clock while the step is judged: inside the widened interval
+    assert s["wrong_side"] == 0 and s["max_err"] > 30.0 and s["availability"] < 1.0, s
+
+
+def test_commands_stamped_zero_are_taken_at_their_arrival():
+    """A producer that leaves the commands' header empty (stamp 0): the contract stamps
+    commands on the reference clock, the receive time, which stands in (one event, every
+    command counted). Before, each command lay an epoch before the readings and three
+    estimates in four were not published on time."""
+    sc, res = run(duration=60.0)
+    ev = restamp(res.events(), epoch=1.7e9, control_epoch=1.7e9)
+    stated, _ = replay(ev, adapter(sc, "kf"), 0.1)
+    zeros = [(t, 0.0 if t == "control" else s, f, recv) for t, s, f, recv in ev]
+    outs, r = replay(zeros, adapter(sc, "kf"), 0.1)
+    np.testing.assert_array_equal(_table(outs), _table(stated))  # restamp: arrival = stamp
+    assert r.events[f"control:{R.STAMP_UNSTATED}"] == 1
+    assert r.unstamped == sum(e[0] == "control" for e in ev)

@@ -48,8 +48,11 @@ BALISE_LATENCY = "balise_latency"  # the balise reader found to stamp later than
 VARIANCE_UNSTATED = "variance_unstated"  # a stream whose variances are 0: not stated, believed used
 COUNT_RESET = "count_reset"  # the odometer's counter went back (a reboot): its count spliced
 COUNT_ORIGIN = "count_origin"  # the first count far from zero: origin widened until a balise
+SEQ_UNSTATED = "seq_unstated"  # a stream whose seq never moves: no counter, judged by stamps
+STAMP_UNSTATED = "stamp_unstated"  # commands stamped 0: taken at their arrival (the contract's)
 EVENTS = (SEQ_RESET, CLOCK_RESET, SEQ_SKIP, FUSED_LATE, OUTAGE, RELOCATED, BALISE_EXCLUDED,
-          BALISE_LATENCY, VARIANCE_UNSTATED, COUNT_RESET, COUNT_ORIGIN)
+          BALISE_LATENCY, VARIANCE_UNSTATED, COUNT_RESET, COUNT_ORIGIN, SEQ_UNSTATED,
+          STAMP_UNSTATED)
 
 ALL = REJECTIONS + ACCEPTED + EVENTS
 
@@ -83,6 +86,10 @@ DESCRIPTION = {
                  "the prediction's",
     COUNT_ORIGIN: "the odometer's first count is far from zero (data from mid-run, or a count "
                   "from power-up): its origin is widened to cover it until a balise places it",
+    STAMP_UNSTATED: "commands stamped 0 (no stamp stated): their arrival time is used, the "
+                    "reference clock the contract stamps commands on",
+    SEQ_UNSTATED: "a stream's seq never moves (no sample counter): duplicates are stamps "
+                  "already taken, lost samples counted from the stamps at the configured rate",
     VARIANCE_UNSTATED: "a stream states its variances as 0 (not stated): the believed train's "
                        "value (train.yaml) is used until it states one",
 }

@@ -308,6 +308,11 @@ def build_estimator_node(name: str, topic: str, make_adapter: Callable):
             for kind, n in sorted(self.runner.unstated.items()):
                 # readings whose variance 0 was read as not stated (train.yaml's used)
                 extra.append((f"{kind}.variance_unstated", str(n)))
+            for kind, n in sorted(self.runner.uncounted.items()):
+                # readings of a stream without a sample counter (seq never moves)
+                extra.append((f"{kind}.seq_unstated", str(n)))
+            if self.runner.unstamped:  # commands stamped 0, taken at their arrival
+                extra.append(("control.stamp_unstated", str(self.runner.unstamped)))
             lat = self.adapter.balise_latency()
             if lat is not None:  # a reader that stamps late: the fixes are moved by v tau
                 extra += [("balise_latency", f"{lat[0]:.3f}"),

@@ -42,6 +42,7 @@ class MeasuredRun:
     balise_variance: np.ndarray  # m^2
     ctrl_recv: np.ndarray | None = None  # s, reference clock (bag log time)
     topics: tuple = ()  # the topics the bag held (names relative to its namespace)
+    notes: tuple = ()  # what was read otherwise than recorded, and why
 
     @classmethod
     def from_bag(cls, bag) -> MeasuredRun:
@@ -56,17 +57,25 @@ class MeasuredRun:
         def recv(topic):
             return np.array([t for t, _, _ in bag.topics.get(topic, [])], dtype=float) * 1e-9
 
+        ctrl_stamp, ctrl_recv, notes = stamps("control"), recv("control"), ()
+        if ctrl_stamp.size >= 2 and ctrl_recv.size == ctrl_stamp.size and \
+                not np.any(ctrl_stamp != 0.0) and np.ptp(ctrl_recv) > 0.0:
+            # a producer that leaves the commands' header empty: the contract stamps commands
+            # on the reference clock, the receive time (as the estimators' runner reads them)
+            ctrl_stamp = ctrl_recv.copy()
+            notes = ("every control command stamped 0 (no stamp stated): their log times "
+                     "used, the reference clock the contract stamps commands on",)
         return cls(
             odo_stamp=stamps("odometer"), odo_recv=recv("odometer"),
             odo_seq=col("odometer", "seq", np.int64), odo_distance=col("odometer", "distance"),
             odo_speed=col("odometer", "speed"),
             odo_speed_variance=col("odometer", "speed_variance"),
-            ctrl_stamp=stamps("control"), ctrl_a_tar=col("control", "target_acceleration"),
+            ctrl_stamp=ctrl_stamp, ctrl_a_tar=col("control", "target_acceleration"),
             balise_stamp=stamps("balise"), balise_recv=recv("balise"),
             balise_id=col("balise", "balise_id", np.int64),
             balise_position=col("balise", "position"),
             balise_variance=col("balise", "position_variance"),
-            ctrl_recv=recv("control"), topics=tuple(sorted(bag.topics)))
+            ctrl_recv=ctrl_recv, topics=tuple(sorted(bag.topics)), notes=notes)
 
     def without_clock_steps(self) -> tuple[MeasuredRun, list]:
         """The run with the train clock's steps taken out of the odometer and balise stamps

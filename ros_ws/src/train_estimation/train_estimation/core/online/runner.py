@@ -87,6 +87,10 @@ KIND_ORDER = {"control": 0, "odometer": 1, "balise": 2}
 # the early hold waits past min_judged arrivals while two groups of offsets are as dense as
 # each other (StreamClock.one_densest), up to this many times min_judged
 EARLY_CAP = 4
+UNCOUNTED_AFTER = 3  # readings at distinct stamps, all with one seq, spread over 1.5 periods at
+#   least: a stream without a sample counter (:meth:`EstimatorRunner._note_counter`)
+TICKS = 1000.0  # per s: the counter an uncounted stream's readings are given (ms of its stamp)
+TICK0 = 2 ** 31  # the first such reading's tick (earlier stamps stay positive for 24 days)
 NO_SLOT = (R.OUT_OF_ORDER, R.DUPLICATE, R.FUTURE_STAMP, R.STALE_STAMP, R.NON_FINITE)
 CLOCK_OF = {"control": "control", "odometer": "train", "balise": "train"}
 
@@ -196,6 +200,13 @@ class EstimatorRunner:
     _stated_kinds: set = field(default_factory=set)  # kinds whose stream stated a variance > 0
     unstated: Counter = field(default_factory=Counter)  # kind -> readings whose variance 0
     #   was read as not stated (:meth:`_stated`)
+    _counters: dict = field(default_factory=dict)  # kind -> [seq, its stamps, first and last
+    #   arrival, other seqs seen(, True: decided uncounted)]; True once it counts
+    uncounted: Counter = field(default_factory=Counter)  # kind -> readings admitted without a
+    #   sample counter (:meth:`_note_counter`)
+    _tick0: dict = field(default_factory=dict)  # kind -> filter time of the counter's origin
+    _control_stamped: bool = False  # the control stream stated a stamp (not 0)
+    unstamped: int = 0  # commands stamped 0 taken at their arrival (:meth:`_control_stamp`)
     _odo: list = field(default_factory=list)  # heap of the queued odometer stamps
     _anchor: tuple | None = None  # (train stamp, filter time) of the last processed odometer
     _last_mapped: float = -math.inf
@@ -244,6 +255,8 @@ class EstimatorRunner:
         if not (isinstance(stamp, float | int) and math.isfinite(stamp)):
             return self._reject(kind, math.nan, R.NON_FINITE + ": stamp")
         stamp = float(stamp)
+        if kind == "control":
+            stamp = self._control_stamp(stamp, recv)
         if CLOCK_OF.get(kind) == "train":  # onto the timeline before the steps
             stamp = self._steps.onto_timeline(stamp, kind == "odometer")
         if recv is not None and not math.isfinite(recv):
@@ -255,6 +268,7 @@ class EstimatorRunner:
             if not isinstance(seq, int) or isinstance(seq, bool):
                 return self._reject(kind, stamp, f"{R.INVALID}: seq {seq!r}")
             fields = self._stated(kind, stamp, fields)
+            self._note_counter(kind, stamp, seq, recv)
             why = _content(kind, fields)
             if why:
                 # a reading that says nothing is no evidence about its clock either: refused
@@ -295,7 +309,9 @@ class EstimatorRunner:
             if self._clock_ready(clock, med):
                 release = early_items
             else:  # those that agree with two others already are good: no need to wait
-                release = [e for e in early_items if _agreeing(early_items, e, med.tol) >= 3]
+                uncounted = {k for k in KIND_ORDER if self._uncounted(k)}
+                release = [e for e in early_items
+                           if _agreeing(early_items, e, med.tol, uncounted) >= 3]
             self._judge_early(clock, release)
             return ""
         why = self._admit(kind, stamp, fields, recv, arrival)
@@ -332,6 +348,62 @@ class EstimatorRunner:
                 self.unstated[kind] += 1
         return fields
 
+    def _control_stamp(self, stamp: float, recv: float | None) -> float:
+        """A command stamped 0 while its stream has never stated a stamp is stamped by its
+        arrival: the contract puts commands on the reference clock, the receive time, and a
+        producer that leaves the header empty sends zeros (event ``stamp_unstated``, once;
+        counted in :attr:`unstamped`). Taken as stamped, every command lay an epoch before the
+        readings, was fused late or refused, and three estimates in four were not published
+        on time. A 0 after a stated stamp is judged as any stamp."""
+        if stamp != 0.0:
+            self._control_stamped = True
+            return stamp
+        if self._control_stamped or recv is None or not math.isfinite(recv) or abs(recv) < 1.0:
+            return stamp  # (a clock that starts at 0, as a simulation's: 0 may be the stamp)
+        if not self.unstamped:
+            self._event("control", recv, f"{R.STAMP_UNSTATED}: command stamped 0: no stamp "
+                                         f"stated; the arrival time used")
+        self.unstamped += 1
+        return float(recv)
+
+    def _note_counter(self, kind: str, stamp: float, seq: int, recv: float | None) -> None:
+        """Whether a train-clock stream has a sample counter. A stream whose readings all carry
+        one ``seq`` (``UNCOUNTED_AFTER`` readings at distinct stamps, arriving over 1.5 periods
+        at least: copies of one corrupted message arrive together) has none: a producer that
+        leaves the field at its default. Its readings are then judged without one
+        (:meth:`_uncounted`): a duplicate is a stamp already taken, the clocks judge the stamps
+        against their arrivals alone, and the filters get a counter made of the stamp (ms,
+        :meth:`_call`), so that lost samples are counted from the stamps at the configured
+        rate. Before this, every reading after the first was refused as a copy of it and the
+        estimator stayed blind for the whole run. Two readings with other values first: a
+        counter (one may be a corrupted seq). Once decided it holds for the stream; event
+        ``seq_unstated``, once."""
+        st = self._counters.get(kind)
+        if st is True or isinstance(st, list) and st[-1] is True:
+            return
+        t = recv if recv is not None else stamp
+        if st is None:
+            self._counters[kind] = [seq, {stamp}, t, t, 0]
+            return
+        if seq != st[0]:
+            st[4] += 1
+            if st[4] >= 2:
+                self._counters[kind] = True
+            return
+        if len(st[1]) < UNCOUNTED_AFTER:
+            st[1].add(stamp)
+        st[2], st[3] = min(st[2], t), max(st[3], t)
+        span = 1.5 * self.period if kind == "odometer" else 0.0
+        if len(st[1]) >= (UNCOUNTED_AFTER if kind == "odometer" else 2) and \
+                st[3] - st[2] >= span:
+            st.append(True)
+            self._event(kind, stamp, f"{R.SEQ_UNSTATED}: {len(st[1])} readings all with seq "
+                                     f"{st[0]}: no sample counter; judged by their stamps")
+
+    def _uncounted(self, kind: str) -> bool:
+        st = self._counters.get(kind)
+        return isinstance(st, list) and st[-1] is True
+
     def _fused_elsewhere(self, kind: str, stamp: float, fields) -> str:
         """``duplicate`` when this odometer reading's sample was fused at another stamp in the
         last ``history`` seconds (a corrupted copy: a clock step sends new samples, not old
@@ -340,6 +412,13 @@ class EstimatorRunner:
         odometer that rebooted counts its seqs again; at 1 Hz its first nine were refused as
         copies of the samples before the reboot), judged as any other."""
         if kind != "odometer" or not isinstance(fields, dict):
+            return ""
+        if fields.get("seq") is None:  # no counter: a moving sample's count and speed are its own
+            if fields.get("speed") == 0:
+                return ""  # (a standing train reads these again and again)
+            fused = self._fused_seq.get(_values_key(fields))
+            if fused is not None and fused[0] != stamp:
+                return f"{R.DUPLICATE}: count and speed fused at another stamp"
             return ""
         fused = self._fused_seq.get(fields.get("seq"))
         if fused is not None and fused[0] != stamp and fused[1] == fields.get("distance"):
@@ -373,7 +452,11 @@ class EstimatorRunner:
         """Judge a stamp against its clock's median offset, check seq, queue."""
         clock = CLOCK_OF[kind]
         med = self._offsets[clock]
-        if kind != "control" and (fields.get("seq"), stamp) in self._recent.get(kind, ()):
+        if kind != "control" and isinstance(fields, dict) and fields.get("seq") is not None \
+                and self._uncounted(kind):
+            fields = {**fields, "seq": None}  # no counter: nothing judged by it
+            self.uncounted[kind] += 1
+        if kind != "control" and _copy_key(fields, stamp) in self._recent.get(kind, ()):
             return self._reject(kind, stamp, R.DUPLICATE)  # a copy is no evidence of a step
         why = self._fused_elsewhere(kind, stamp, fields)
         if why:
@@ -459,6 +542,13 @@ class EstimatorRunner:
 
     def _check_seq(self, kind: str, stamp: float, fields: dict) -> str:
         seq = fields.get("seq")
+        if seq is None and self._uncounted(kind):  # no counter: a copy is its stamp and values
+            recent = self._recent.setdefault(kind, deque(maxlen=64))
+            key = _copy_key(fields, stamp)
+            if key in recent:
+                return R.DUPLICATE
+            recent.append(key)
+            return ""
         if not isinstance(seq, int) or isinstance(seq, bool):
             return f"{R.INVALID}: seq {seq!r}"
         recent = self._recent.setdefault(kind, deque(maxlen=64))
@@ -547,6 +637,12 @@ class EstimatorRunner:
         ft = self._filter_time(stamp)
         if kind == "odometer":
             self._anchor = (stamp, ft)
+        if kind != "control" and isinstance(fields, dict) and "seq" in fields \
+                and fields["seq"] is None:
+            # an uncounted stream (_note_counter): the filters order, mark duplicates and count
+            # lost samples by seq; a counter made of the stamp (ms) gives them the stamps' word
+            t0 = self._tick0.setdefault(kind, ft)
+            fields = {**fields, "seq": TICK0 + int(round((ft - t0) * TICKS))}
         try:
             reason = getattr(self.adapter, kind)(ft, fields)
         except (KeyError, TypeError, ValueError, OverflowError) as exc:  # malformed fields
@@ -637,8 +733,10 @@ class EstimatorRunner:
             fused = not reason or R.category(reason) in R.ACCEPTED
             if fused and isinstance(fields, dict):
                 self._steps.fused(stamp, fields.get("distance"), fields.get("seq"))
-                self._fused_seq.pop(fields.get("seq"), None)
-                self._fused_seq[fields.get("seq")] = (stamp, fields.get("distance"))
+                key = fields.get("seq")
+                key = _values_key(fields) if key is None else key
+                self._fused_seq.pop(key, None)
+                self._fused_seq[key] = (stamp, fields.get("distance"))
                 # the samples of the last `history` seconds only: a copy comes with its
                 # original, while a sender restarted later reuses older seqs for new samples
                 while len(self._fused_seq) > max(8, math.ceil(self.history / self.period)):
@@ -834,20 +932,38 @@ class EstimatorRunner:
     def counts(self) -> dict:
         """Accepted, rejected (by vocabulary name) and events, for logs and summaries."""
         return {"accepted": dict(self.accepted), "rejected": dict(self.rejected),
-                "events": dict(self.events), "variance_unstated": dict(self.unstated)}
+                "events": dict(self.events), "variance_unstated": dict(self.unstated),
+                "seq_unstated": dict(self.uncounted), "stamp_unstated": self.unstamped}
 
 
-def _agreeing(items: list, e: tuple, tol: float) -> int:
+def _copy_key(fields: dict, stamp: float) -> tuple:
+    """What makes a reading a copy of another: its seq and stamp, or without a counter (seq
+    None) its stamp and values (after a backward clock step a new sample comes at a stamp
+    already taken, with the count and speed of its own time)."""
+    seq = fields.get("seq")
+    if seq is not None:
+        return seq, stamp
+    return (None, stamp) + tuple(fields.get(k) for k in ("distance", "speed", "balise_id",
+                                                         "position"))
+
+
+def _values_key(fields: dict) -> tuple:
+    """An uncounted odometer reading's sample, by its values (seq None)."""
+    return "values", fields.get("distance"), fields.get("speed")
+
+
+def _agreeing(items: list, e: tuple, tol: float, uncounted=frozenset()) -> int:
     """How many distinct samples among the early hold's ``items`` (kind, stamp, fields, recv,
     arrival) have offsets (stamp - arrival) within ``tol`` of ``e``'s: a reading counts once per
     sequence number, any other item once per stamp. Copies of one corrupted message, or of
     one sample at a wrong stamp, are one piece of evidence however often they come (the fuzz
     mix sent a reading's copy 5 s ahead three times in its first second, and the early hold
-    took them for a clock of their own)."""
+    took them for a clock of their own). A stream without a counter (``uncounted``: its
+    kinds) counts once per stamp."""
     off = e[1] - e[4]
     keys = set()
     for k, st, f, _, ar in items:
         if abs(st - ar - off) <= tol:
-            seq = f.get("seq") if isinstance(f, dict) else None
+            seq = f.get("seq") if isinstance(f, dict) and k not in uncounted else None
             keys.add((k, seq) if isinstance(seq, int) else (k, "stamp", round(st, 6)))
     return len(keys)

@@ -85,7 +85,7 @@ def prepare(data: MeasuredRun, line: Line, cfg: DiagConfig, train=None) -> Run:
     """The run on the reference clock's time axis; :class:`DiagnoseError` when unusable.
     ``train`` (the believed train): its variances stand in for a stream that states every
     variance as 0 (:func:`unstated`)."""
-    notes = []
+    notes = list(getattr(data, "notes", ()))
     _require_topics(data)
     # the train clock's steps and change of rate out of the stamps first (MeasuredRun)
     data, steps = data.without_clock_steps()
@@ -180,6 +180,9 @@ def _odometer(data: MeasuredRun, notes: list, train=None):
     seq = _arr(data.odo_seq, np.int64)
     if seq.size != odo_s.size:
         seq = np.arange(odo_s.size)
+    elif seq.size > 2 and np.all(seq == seq[0]):
+        notes.append(f"every odometer seq is {int(seq[0])} (no sample counter): the link's "
+                     "losses are not counted")
     idx = np.flatnonzero(ok)
     idx = idx[np.argsort(odo_s[idx], kind="stable")]
     # duplicates (same stamp) keep the first
