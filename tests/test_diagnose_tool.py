@@ -1212,6 +1212,10 @@ def test_a_bag_whose_variances_are_all_zero_is_read_with_the_believed_ones(metro
     # identify likewise takes train.yaml's (None: not stated)
     assert tool.read_measured(tmp_path / "zeros").to_identify().odo_speed_variance is None
     assert tool.read_measured(tmp_path / "stated").to_identify().odo_speed_variance is not None
+    # one rule for both: a NaN beside the zeros states nothing either
+    from train_estimation.core.offline.measured import variances_unstated
+    assert variances_unstated([0.0, math.nan, 0.0]) and not variances_unstated([0.0, 0.01])
+    assert not variances_unstated([math.nan]) and not variances_unstated([0.01, 0.01])
     assert run_tool(tmp_path / "zeros", metro.line_path, metro.train_path, tmp_path / "out") == 0
     assert "not stated" in (tmp_path / "out" / "report.json").read_text()
 

@@ -169,11 +169,19 @@ class MeasuredRun:
             odo_speed=self.odo_speed[o],
             # every variance 0: not stated (zeros mean "unknown" in ROS's covariance
             # fields), so identify takes train.yaml's (None)
-            odo_speed_variance=None if np.all(self.odo_speed_variance == 0)
+            odo_speed_variance=None if variances_unstated(self.odo_speed_variance)
             else self.odo_speed_variance[o],
             ctrl_t=ctrl_t[c], ctrl_a_tar=self.ctrl_a_tar[c],
             balise_t=self.balise_stamp[b] if has_bal else None,
             balise_position=self.balise_position[b] if has_bal else None)
+
+
+def variances_unstated(var) -> bool:
+    """A stream that states no variance: some entries 0 and none positive and finite (zeros
+    mean "unknown" in ROS's covariance fields; a NaN beside them states nothing either). The
+    one rule of diagnose and identify (the estimators' runner decides per reading, online)."""
+    var = np.asarray(var, float)
+    return bool(np.any(var == 0) and not np.any(np.isfinite(var) & (var > 0)))
 
 
 def unwrap(seq: np.ndarray) -> np.ndarray:

@@ -17,7 +17,7 @@ from train_core.model import Line
 
 from train_estimation.core.numerics.clocks import ClockFit
 
-from ..measured import MeasuredRun, unwrap
+from ..measured import MeasuredRun, unwrap, variances_unstated
 
 LATENCY_FLOOR_Q = 0.01  # the quantile of the clock fit's residuals taken as the link's floor
 
@@ -150,7 +150,7 @@ def unstated(var: np.ndarray, believed: float | None, what: str, notes: list) ->
     variances elsewhere keeps its zeros, which the caller drops as corrupted."""
     var = np.asarray(var, float)
     zero = var == 0
-    if believed is None or not zero.any() or np.any(var[np.isfinite(var)] > 0):
+    if believed is None or not variances_unstated(var):
         return var
     notes.append(f"{what}: every variance stated as 0 (not stated); train.yaml's "
                  f"{believed:.3g} used")
