@@ -3,6 +3,7 @@ step is re-anchored, a drifting train clock is tracked, one wrong stamp never mo
 The figures are those of ``./run bench integrity`` (tools/faults.py), on a short metro_demo run
 with the kf (the estimator that was wrong-side on both)."""
 
+import math
 import os
 import sys
 
@@ -59,6 +60,26 @@ def test_stream_clock_rate_and_step_test():
     assert is_step(chain, 9, 0.1) and not is_step(chain[:8], 9, 0.1)
     burst = [(100.0 + 0.1 * k, 97.0) for k in range(9)]  # one stall's backlog, at once
     assert not is_step(burst, 9, 0.1)
+
+
+def test_a_rate_fit_over_two_levels_of_the_offset_is_not_a_drift():
+    """A clock that stepped +3 s 4 s into a 1 Hz stream, before its rate was known (no sample
+    counter to see it): the fit's points lie on two levels, about no line within the link's
+    jitter, and give no drift (it read 0.09: slots 1.09 s apart, estimates stamped after the
+    run). The same stream without the step gives its true drift."""
+    rng = np.random.default_rng(1)
+    for step, drift in ((3.0, 0.0), (0.0, 1e-3)):
+        c = StreamClock()
+        for k in range(60):
+            a = float(k) + 0.02 + rng.exponential(0.05)
+            s = k * (1.0 + drift) + (step if k >= 4 else 0.0)
+            c.add(s - a, a)
+            c.rate_point(s, a)
+        d, se = c.rate()
+        if step:
+            assert d == 0.0 and math.isinf(se)
+        else:
+            assert abs(d - drift) < 5 * se and se < 5e-4
 
 
 def test_backward_step_at_1_hz_is_in_doubt_from_its_first_reading():

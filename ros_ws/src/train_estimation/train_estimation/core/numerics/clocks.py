@@ -217,6 +217,8 @@ def clock_rate_change(stamps, recv, n_times: int = 81) -> dict | None:
 SMALL_MOVE = 0.05  # s: the least move of a clock's offset level taken as one (the runner's
 #   small_step); smaller moves are jitter and drift
 MAX_SPEED = 200.0  # m/s, beyond any train (720 km/h): a reading claiming more is corrupt
+LINE_SPREAD = 5.0  # robust spreads of the offsets: a rate fit whose points scatter wider about
+#   their line than this (and SMALL_MOVE) mixes two levels and is not used
 TOL = 5.0  # s: wider than arrival jitter (a node at 10x sees 1 Hz stamps 0.9 s apart in
 #   stamp - arrival), far narrower than a clock error worth refusing
 
@@ -538,7 +540,14 @@ class StreamClock:
         if not abs(d) < 0.1:
             return 0.0, math.inf
         rss = max(vyy - slope * cov, 0.0)
-        return d, math.sqrt(rss / max(n - 1 - segs - (n1 > 0), 1) / var)
+        dof = max(n - 1 - segs - (n1 > 0), 1)
+        if math.sqrt(rss / dof) > max(SMALL_MOVE, LINE_SPREAD * self.scale):
+            # the points lie on two levels, not about one line: a move of the offset the level
+            # test could not see yet (a step before the rate was known, at a stream's start
+            # without a sample counter: 3 s in the first 4 s of a 1 Hz run read as a drift of
+            # 0.09, the slots came 1.09 s apart and the last ones claimed times after the run)
+            return 0.0, math.inf
+        return d, math.sqrt(rss / dof / var)
 
     @property
     def drift(self) -> float:
