@@ -168,4 +168,24 @@ def test_commands_stamped_zero_are_taken_at_their_arrival():
     outs, r = replay(zeros, adapter(sc, "kf"), 0.1)
     np.testing.assert_array_equal(_table(outs), _table(stated))  # restamp: arrival = stamp
     assert r.events[f"control:{R.STAMP_UNSTATED}"] == 1
+    # the first decides nothing (its 0 may be a clock's own), the second does, and the first
+    # is still held for its clock: both at their arrival
     assert r.unstamped == sum(e[0] == "control" for e in ev)
+    # a clock that starts at 0 stamps one command 0, the node's clock elsewhere (a replayed bag)
+    late = [(t, s, f, recv + 5e4) for t, s, f, recv in ev]
+    _, r0 = replay(late, adapter(sc, "kf"), 0.1)
+    assert not r0.unstamped and not r0.events[f"control:{R.STAMP_UNSTATED}"]
+
+
+def test_a_command_hours_ahead_of_the_estimate_is_refused_as_a_reading_is():
+    """A command mapped further ahead of the filter than ``max_horizon`` (commands that arrive
+    14 h after the readings): refused as ``future_stamp``, as a reading would be; predicting
+    over it overflowed the process noise's matrix exponential."""
+    sc, res = run(duration=20.0)
+    ev = restamp(res.events())
+    ad = adapter(sc, "kf")
+    outs, _ = replay(ev, ad, 0.1)
+    before = ad.output(ad.filt.t)
+    assert ad.control(ad.filt.t + 5e4, {"target_acceleration": 0.5}) == R.FUTURE_STAMP
+    after = ad.output(ad.filt.t)
+    assert after.position == before.position and after.covariance == before.covariance

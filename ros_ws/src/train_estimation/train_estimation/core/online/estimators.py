@@ -937,6 +937,10 @@ class BrakingAdapter(_DistanceAsPosition):
             return f"{R.OUTSIDE_GATE}: command {a:.3g} m/s^2"
         if self.filt.t is not None and stamp < self.filt.t:
             return R.OUT_OF_ORDER
+        if self.filt.t is not None and stamp - self.filt.t > self.cfg.max_horizon:
+            # as a reading (_order): a prediction over hours is no estimate (one command mapped
+            # 14 h ahead of the readings overflowed the process noise's matrix exponential)
+            return R.FUTURE_STAMP
         reason = self._advance(stamp)  # the old command holds up to the new one's stamp
         if not reason:
             self.a_tar = a

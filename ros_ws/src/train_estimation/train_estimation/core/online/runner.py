@@ -206,6 +206,7 @@ class EstimatorRunner:
     #   sample counter (:meth:`_note_counter`)
     _tick0: dict = field(default_factory=dict)  # kind -> filter time of the counter's origin
     _control_stamped: bool = False  # the control stream stated a stamp (not 0)
+    _zero_recv: float | None = None  # arrival of the first command stamped 0
     unstamped: int = 0  # commands stamped 0 taken at their arrival (:meth:`_control_stamp`)
     _odo: list = field(default_factory=list)  # heap of the queued odometer stamps
     _anchor: tuple | None = None  # (train stamp, filter time) of the last processed odometer
@@ -351,18 +352,30 @@ class EstimatorRunner:
     def _control_stamp(self, stamp: float, recv: float | None) -> float:
         """A command stamped 0 while its stream has never stated a stamp is stamped by its
         arrival: the contract puts commands on the reference clock, the receive time, and a
-        producer that leaves the header empty sends zeros (event ``stamp_unstated``, once;
-        counted in :attr:`unstamped`). Taken as stamped, every command lay an epoch before the
-        readings, was fused late or refused, and three estimates in four were not published
-        on time. A 0 after a stated stamp is judged as any stamp."""
+        producer that leaves the header empty sends zeros. The second such command (arriving
+        after the first) decides it: a clock that starts at 0, as a simulation's, stamps one
+        command 0 and the next ones on (event ``stamp_unstated``, once; counted in
+        :attr:`unstamped`). Taken as stamped, every command lay an epoch before the readings,
+        was fused late or refused, and three estimates in four were not published on time. A
+        0 after a stated stamp is judged as any stamp."""
         if stamp != 0.0:
             self._control_stamped = True
             return stamp
-        if self._control_stamped or recv is None or not math.isfinite(recv) or abs(recv) < 1.0:
-            return stamp  # (a clock that starts at 0, as a simulation's: 0 may be the stamp)
+        if self._control_stamped or recv is None or not math.isfinite(recv):
+            return stamp
         if not self.unstamped:
-            self._event("control", recv, f"{R.STAMP_UNSTATED}: command stamped 0: no stamp "
-                                         f"stated; the arrival time used")
+            if self._zero_recv is None or recv <= self._zero_recv:
+                self._zero_recv = recv if self._zero_recv is None else self._zero_recv
+                return stamp  # the first: possibly a clock's own 0
+            self._event("control", recv, f"{R.STAMP_UNSTATED}: commands stamped 0: no stamp "
+                                         f"stated; their arrival times used")
+            # the first, still in the early hold: at its arrival too (its offset voted an epoch
+            # off, one wild vote among the clock's)
+            early = self._early.get("control", [])
+            for i, (k, st, f, rc, ar) in enumerate(early):
+                if st == 0.0 and rc is not None:
+                    early[i] = (k, float(rc), f, rc, ar)
+                    self.unstamped += 1
         self.unstamped += 1
         return float(recv)
 
