@@ -124,6 +124,10 @@ def test_a_stream_without_a_sample_counter_is_judged_by_its_stamps(kind):
     # odometer's first readings wait for their clock anyway)
     assert r1.uncounted == {"odometer": n_odo, "balise": n_bal - 1}
     assert not r0.uncounted and not r0.events[f"odometer:{R.SEQ_UNSTATED}"]
+    # the sensor's period for the odometer_rate check: from the stamps alone without a counter
+    # (stamps at epoch 1.7e9 are spaced by 2.4e-7 s in double precision)
+    assert r1.sample_period() == pytest.approx(r0.sample_period(), abs=1e-6)
+    assert r1.sample_period() == pytest.approx(1.0 / sc.odometer_rate, abs=1e-6)
 
 
 def test_copies_of_a_first_reading_do_not_make_a_counter_of_none():

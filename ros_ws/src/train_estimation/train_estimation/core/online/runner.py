@@ -938,8 +938,17 @@ class EstimatorRunner:
     def sample_period(self) -> float | None:
         """The odometer's sample period as its stamps and counter give it (s; None before the
         sample grid has ``min_judged`` samples): against :attr:`period`, what the node was told
-        (``odometer_rate``)."""
-        return self._steps.grid.sample_period() if self._steps is not None else None
+        (``odometer_rate``). Without a counter (:meth:`_note_counter`): the median step
+        between the recent stamps admitted (lost samples make a step of two periods or more,
+        fewer than half of them on any link the filters can use)."""
+        if self._steps is None:
+            return None
+        p = self._steps.grid.sample_period()
+        if p is None and self._uncounted("odometer"):
+            st = np.diff(np.asarray(self._steps._admitted, float))
+            st = st[st > 0]
+            p = float(np.median(st)) if st.size >= self.min_judged else None
+        return p
 
     @property
     def counts(self) -> dict:
