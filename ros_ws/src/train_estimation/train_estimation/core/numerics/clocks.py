@@ -827,6 +827,14 @@ class StepWatch:
         bisect.insort(self._admitted, stamp)
         del self._admitted[:-128]
 
+    def stamp_period(self, n_min: int) -> float | None:
+        """s, the median step between the recent odometer stamps admitted (a stream without a
+        sample counter: lost samples make steps of two periods or more, fewer than half of
+        them on any link the filters can use); None with fewer than ``n_min`` steps."""
+        st = np.diff(np.asarray(self._admitted, float))
+        st = st[st > 0]
+        return float(np.median(st)) if st.size >= n_min else None
+
     def fused(self, stamp: float, distance, seq=None) -> None:
         """The filter fused this odometer reading (timeline stamp, counted distance m, its
         sample counter): the reference of :meth:`_plausible`."""

@@ -184,6 +184,13 @@ def variances_unstated(var) -> bool:
     return bool(np.any(var == 0) and not np.any(np.isfinite(var) & (var > 0)))
 
 
+def no_counter(seq) -> bool:
+    """A stream without a sample counter: more than two readings, every seq the same (a
+    producer that leaves the field at its default)."""
+    seq = np.asarray(seq)
+    return bool(seq.size > 2 and np.all(seq == seq.flat[0]))
+
+
 def unwrap(seq: np.ndarray) -> np.ndarray:
     """uint32 sequence numbers in time order -> increasing int64 (wrap-around at 2^32)."""
     q = np.asarray(seq).astype(np.int64)

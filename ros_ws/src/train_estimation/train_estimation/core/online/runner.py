@@ -200,8 +200,7 @@ class EstimatorRunner:
     _stated_kinds: set = field(default_factory=set)  # kinds whose stream stated a variance > 0
     unstated: Counter = field(default_factory=Counter)  # kind -> readings whose variance 0
     #   was read as not stated (:meth:`_stated`)
-    _counters: dict = field(default_factory=dict)  # kind -> [seq, its stamps, first and last
-    #   arrival, other seqs seen(, True: decided uncounted)]; True once it counts
+    _counters: dict = field(default_factory=dict)  # kind -> _CounterWatch
     uncounted: Counter = field(default_factory=Counter)  # kind -> readings admitted without a
     #   sample counter (:meth:`_note_counter`)
     _tick0: dict = field(default_factory=dict)  # kind -> filter time of the counter's origin
@@ -364,8 +363,9 @@ class EstimatorRunner:
         if self._control_stamped or recv is None or not math.isfinite(recv):
             return stamp
         if not self.unstamped:
-            if self._zero_recv is None or recv <= self._zero_recv:
-                self._zero_recv = recv if self._zero_recv is None else self._zero_recv
+            if self._zero_recv is None:
+                self._zero_recv = recv
+            if recv <= self._zero_recv:
                 return stamp  # the first: possibly a clock's own 0
             self._event("control", recv, f"{R.STAMP_UNSTATED}: commands stamped 0: no stamp "
                                          f"stated; their arrival times used")
@@ -382,40 +382,40 @@ class EstimatorRunner:
     def _note_counter(self, kind: str, stamp: float, seq: int, recv: float | None) -> None:
         """Whether a train-clock stream has a sample counter. A stream whose readings all carry
         one ``seq`` (``UNCOUNTED_AFTER`` readings at distinct stamps, arriving over 1.5 periods
-        at least: copies of one corrupted message arrive together) has none: a producer that
-        leaves the field at its default. Its readings are then judged without one
-        (:meth:`_uncounted`): a duplicate is a stamp already taken, the clocks judge the stamps
-        against their arrivals alone, and the filters get a counter made of the stamp (ms,
-        :meth:`_call`), so that lost samples are counted from the stamps at the configured
-        rate. Before this, every reading after the first was refused as a copy of it and the
-        estimator stayed blind for the whole run. Two readings with other values first: a
-        counter (one may be a corrupted seq). Once decided it holds for the stream; event
-        ``seq_unstated``, once."""
-        st = self._counters.get(kind)
-        if st is True or isinstance(st, list) and st[-1] is True:
-            return
+        at least: copies of one corrupted message arrive together; two balises) has none: a
+        producer that leaves the field at its default. Its readings are then judged without
+        one (:meth:`_uncounted`): a copy is a reading with the stamp and values of one already
+        taken, the clocks judge the stamps against their arrivals alone, and the filters get a
+        counter made of the stamp (ms, :meth:`_call`), so that lost samples are counted from
+        the stamps at the configured rate. Before this, every reading after the first was
+        refused as a copy of it and the estimator stayed blind for the whole run. Two readings
+        with other values first: a counter (one may be a corrupted seq). Once decided it holds
+        for the stream; event ``seq_unstated``, once."""
+        w = self._counters.get(kind)
         t = recv if recv is not None else stamp
-        if st is None:
-            self._counters[kind] = [seq, {stamp}, t, t, 0]
+        if w is None:
+            self._counters[kind] = _CounterWatch(seq, {stamp}, t, t)
             return
-        if seq != st[0]:
-            st[4] += 1
-            if st[4] >= 2:
-                self._counters[kind] = True
+        if w.state:
             return
-        if len(st[1]) < UNCOUNTED_AFTER:
-            st[1].add(stamp)
-        st[2], st[3] = min(st[2], t), max(st[3], t)
-        span = 1.5 * self.period if kind == "odometer" else 0.0
-        if len(st[1]) >= (UNCOUNTED_AFTER if kind == "odometer" else 2) and \
-                st[3] - st[2] >= span:
-            st.append(True)
-            self._event(kind, stamp, f"{R.SEQ_UNSTATED}: {len(st[1])} readings all with seq "
-                                     f"{st[0]}: no sample counter; judged by their stamps")
+        if seq != w.seq:
+            w.others += 1
+            if w.others >= 2:
+                w.state = "counted"
+            return
+        if len(w.stamps) < UNCOUNTED_AFTER:
+            w.stamps.add(stamp)
+        w.first, w.last = min(w.first, t), max(w.last, t)
+        odo = kind == "odometer"
+        if len(w.stamps) >= (UNCOUNTED_AFTER if odo else 2) and \
+                w.last - w.first >= (1.5 * self.period if odo else 0.0):
+            w.state = "uncounted"
+            self._event(kind, stamp, f"{R.SEQ_UNSTATED}: {len(w.stamps)} readings all with seq "
+                                     f"{w.seq}: no sample counter; judged by their stamps")
 
     def _uncounted(self, kind: str) -> bool:
-        st = self._counters.get(kind)
-        return isinstance(st, list) and st[-1] is True
+        w = self._counters.get(kind)
+        return w is not None and w.state == "uncounted"
 
     def _fused_elsewhere(self, kind: str, stamp: float, fields) -> str:
         """``duplicate`` when this odometer reading's sample was fused at another stamp in the
@@ -426,16 +426,13 @@ class EstimatorRunner:
         copies of the samples before the reboot), judged as any other."""
         if kind != "odometer" or not isinstance(fields, dict):
             return ""
-        if fields.get("seq") is None:  # no counter: a moving sample's count and speed are its own
-            if fields.get("speed") == 0:
-                return ""  # (a standing train reads these again and again)
-            fused = self._fused_seq.get(_values_key(fields))
-            if fused is not None and fused[0] != stamp:
-                return f"{R.DUPLICATE}: count and speed fused at another stamp"
-            return ""
-        fused = self._fused_seq.get(fields.get("seq"))
+        seq = fields.get("seq")
+        if seq is None and fields.get("speed") == 0:
+            return ""  # no counter: a standing train reads its count and speed again and again
+        fused = self._fused_seq.get(_sample_key(fields))
         if fused is not None and fused[0] != stamp and fused[1] == fields.get("distance"):
-            return f"{R.DUPLICATE}: seq {fields.get('seq')} fused at another stamp"
+            what = "count and speed" if seq is None else f"seq {seq}"
+            return f"{R.DUPLICATE}: {what} fused at another stamp"
         return ""
 
     def _clock_ready(self, clock: str, med: StreamClock) -> bool:
@@ -555,24 +552,20 @@ class EstimatorRunner:
 
     def _check_seq(self, kind: str, stamp: float, fields: dict) -> str:
         seq = fields.get("seq")
-        if seq is None and self._uncounted(kind):  # no counter: a copy is its stamp and values
-            recent = self._recent.setdefault(kind, deque(maxlen=64))
-            key = _copy_key(fields, stamp)
-            if key in recent:
-                return R.DUPLICATE
-            recent.append(key)
-            return ""
-        if not isinstance(seq, int) or isinstance(seq, bool):
+        counted = not (seq is None and self._uncounted(kind))
+        if counted and (not isinstance(seq, int) or isinstance(seq, bool)):
             return f"{R.INVALID}: seq {seq!r}"
         recent = self._recent.setdefault(kind, deque(maxlen=64))
-        if (seq, stamp) in recent:
+        key = _copy_key(fields, stamp)
+        if key in recent:
             return R.DUPLICATE
-        last = self._last_seq.get(kind)
-        if last is not None and seq < last[0] and stamp > last[1]:
-            self._event(kind, stamp, f"{R.SEQ_RESET}: seq {last[0]} -> {seq}")
-        recent.append((seq, stamp))
-        if last is None or stamp >= last[1]:
-            self._last_seq[kind] = (seq, stamp)
+        recent.append(key)
+        if counted:
+            last = self._last_seq.get(kind)
+            if last is not None and seq < last[0] and stamp > last[1]:
+                self._event(kind, stamp, f"{R.SEQ_RESET}: seq {last[0]} -> {seq}")
+            if last is None or stamp >= last[1]:
+                self._last_seq[kind] = (seq, stamp)
         return ""
 
     def _to_train(self, stamp: float, recv: float | None) -> float:
@@ -746,8 +739,7 @@ class EstimatorRunner:
             fused = not reason or R.category(reason) in R.ACCEPTED
             if fused and isinstance(fields, dict):
                 self._steps.fused(stamp, fields.get("distance"), fields.get("seq"))
-                key = fields.get("seq")
-                key = _values_key(fields) if key is None else key
+                key = _sample_key(fields)
                 self._fused_seq.pop(key, None)
                 self._fused_seq[key] = (stamp, fields.get("distance"))
                 # the samples of the last `history` seconds only: a copy comes with its
@@ -938,16 +930,13 @@ class EstimatorRunner:
     def sample_period(self) -> float | None:
         """The odometer's sample period as its stamps and counter give it (s; None before the
         sample grid has ``min_judged`` samples): against :attr:`period`, what the node was told
-        (``odometer_rate``). Without a counter (:meth:`_note_counter`): the median step
-        between the recent stamps admitted (lost samples make a step of two periods or more,
-        fewer than half of them on any link the filters can use)."""
+        (``odometer_rate``). Without a counter (:meth:`_note_counter`): its stamps'
+        (:meth:`~.clocks.StepWatch.stamp_period`)."""
         if self._steps is None:
             return None
         p = self._steps.grid.sample_period()
         if p is None and self._uncounted("odometer"):
-            st = np.diff(np.asarray(self._steps._admitted, float))
-            st = st[st > 0]
-            p = float(np.median(st)) if st.size >= self.min_judged else None
+            p = self._steps.stamp_period(self.min_judged)
         return p
 
     @property
@@ -956,6 +945,19 @@ class EstimatorRunner:
         return {"accepted": dict(self.accepted), "rejected": dict(self.rejected),
                 "events": dict(self.events), "variance_unstated": dict(self.unstated),
                 "seq_unstated": dict(self.uncounted), "stamp_unstated": self.unstamped}
+
+
+@dataclass
+class _CounterWatch:
+    """What a train-clock stream's ``seq`` has shown so far (:meth:`EstimatorRunner.
+    _note_counter`)."""
+
+    seq: int  # the first reading's
+    stamps: set  # distinct stamps of readings with that seq (up to UNCOUNTED_AFTER)
+    first: float  # s, earliest and latest arrival of those readings
+    last: float
+    others: int = 0  # readings with another seq
+    state: str = ""  # "", "counted" or "uncounted"
 
 
 def _copy_key(fields: dict, stamp: float) -> tuple:
@@ -969,9 +971,10 @@ def _copy_key(fields: dict, stamp: float) -> tuple:
                                                          "position"))
 
 
-def _values_key(fields: dict) -> tuple:
-    """An uncounted odometer reading's sample, by its values (seq None)."""
-    return "values", fields.get("distance"), fields.get("speed")
+def _sample_key(fields: dict):
+    """An odometer reading's sample: its seq, or without a counter (seq None) its values."""
+    seq = fields.get("seq")
+    return ("values", fields.get("distance"), fields.get("speed")) if seq is None else seq
 
 
 def _agreeing(items: list, e: tuple, tol: float, uncounted=frozenset()) -> int:

@@ -17,7 +17,7 @@ from train_core.model import Line
 
 from train_estimation.core.numerics.clocks import ClockFit
 
-from ..measured import MeasuredRun, unwrap, variances_unstated
+from ..measured import MeasuredRun, no_counter, unwrap, variances_unstated
 
 LATENCY_FLOOR_Q = 0.01  # the quantile of the clock fit's residuals taken as the link's floor
 
@@ -180,7 +180,7 @@ def _odometer(data: MeasuredRun, notes: list, train=None):
     seq = _arr(data.odo_seq, np.int64)
     if seq.size != odo_s.size:
         seq = np.arange(odo_s.size)
-    elif seq.size > 2 and np.all(seq == seq[0]):
+    elif no_counter(seq):
         notes.append(f"every odometer seq is {int(seq[0])} (no sample counter): the link's "
                      "losses are not counted")
     idx = np.flatnonzero(ok)

@@ -22,6 +22,7 @@ from train_estimation.core.offline.link_hmm import (
     log_likelihood,
     markov_test,
 )
+from train_estimation.core.offline.measured import no_counter
 
 from .base import Cause, resolved
 
@@ -84,7 +85,7 @@ class BurstyLink(Cause):
 
 def link_test(run) -> dict:
     seq = run.odo_seq
-    if seq.size > 2 and np.all(seq == seq[0]):
+    if no_counter(seq):
         return {"dll": 0.0, "k": EXTRA_PARAMS, "n": 1, "parameters": {}, "untestable":
                 "no sample counter (every odometer seq the same): losses cannot be counted"}
     seq = np.unique(seq)
