@@ -19,6 +19,7 @@ Pure module (rosbags, no rclpy): the offline generator, the bag tools and the te
 
 from __future__ import annotations
 
+import math
 import os
 from dataclasses import dataclass, field
 from functools import lru_cache
@@ -96,6 +97,11 @@ def typestore():
     return ts
 
 
+# TrainState fields later than its first definition, with the value an older writer means
+_LATER_FIELDS = {"integrity": 0, "protection_level_ahead": math.inf,
+                 "protection_level_behind": math.inf}
+
+
 def _build(ts, msgtype: str, fields: dict, stamp: float, frame_id: str = "track"):
     cls = ts.types[msgtype]
     time_cls = ts.types["builtin_interfaces/msg/Time"]
@@ -105,7 +111,12 @@ def _build(ts, msgtype: str, fields: dict, stamp: float, frame_id: str = "track"
     for name in cls.__dataclass_fields__:
         if name in ("header", "__msgtype__"):
             continue
-        value = fields.get(name, 0) if name == "integrity" else fields[name]  # older writers
+        if name in _LATER_FIELDS:  # older writers: integrity 0, no protection levels (inf;
+            # ground truth's are 0)
+            value = fields.get(name, 0.0 if name != "integrity" and
+                               fields.get("source") == "truth" else _LATER_FIELDS[name])
+        else:
+            value = fields[name]
         if name == "covariance":
             value = np.asarray(value, dtype=np.float64).reshape(16)
         elif isinstance(value, (np.floating, np.integer, np.bool_)):

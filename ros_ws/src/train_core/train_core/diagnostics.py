@@ -188,13 +188,18 @@ def rate_check(sampled: float | None, configured: float, tolerance: float = 0.2
                    f"{1.0 / sampled:.3g}")], values
 
 
-def integrity_check(integrity: int | None, reason: str
+def integrity_check(integrity: int | None, reason: str, ahead: float = math.nan,
+                    behind: float = math.nan
                     ) -> tuple[list[tuple[int, str]], list[tuple[str, str]]]:
-    """The estimator's own integrity state (TrainState.integrity) as a check."""
+    """The estimator's own integrity state (TrainState.integrity, the doubts of its monitor and
+    its protection levels in m) as a check."""
     if integrity is None:
-        return [], [("integrity", "no estimate yet"), ("integrity_reason", "")]
+        return [], [("integrity", "no estimate yet"), ("integrity_reason", ""),
+                    ("protection_level_ahead", ""), ("protection_level_behind", "")]
     name = INTEGRITY_NAMES.get(integrity, f"unknown ({integrity})")
-    values = [("integrity", name), ("integrity_reason", reason)]
+    values = [("integrity", name), ("integrity_reason", reason),
+              ("protection_level_ahead", f"{ahead:.3f}"),
+              ("protection_level_behind", f"{behind:.3f}")]
     level = INTEGRITY_LEVEL.get(integrity, ERROR)
     return ([(level, f"integrity {name}" + (f": {reason}" if reason else ""))]
             if level else []), values

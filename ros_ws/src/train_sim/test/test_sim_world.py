@@ -61,7 +61,8 @@ def test_events_topics_fields_and_order(metro):
     assert fields["control"] == {"target_acceleration"}
     assert fields["ground_truth"] == {"source", "position", "velocity", "acceleration",
                                       "braking_rate", "covariance", "measurement_used",
-                                      "integrity"}
+                                      "integrity", "protection_level_ahead",
+                                      "protection_level_behind"}
     gt = next(e[2] for e in ev if e[0] == "ground_truth")
     assert gt["source"] == "truth" and len(gt["covariance"]) == 16
     assert np.array_equal(r.odometer["seq"], np.arange(n))  # +1 per sample before the link

@@ -1,17 +1,22 @@
 """Zone-controller logic against hand-computed authorities."""
 
 import math
+from statistics import NormalDist
 
 from train_sim.zone import TrainReport, ZoneController, ZoneParams
 
 
 def rep(t, x, v, var_x=1.0, var_v=0.01, f=math.nan, var_f=math.nan):
+    """A report whose protection levels are 3 sigma of ``var_x`` (hand-computed figures)."""
+    pl = 3.0 * math.sqrt(var_x)
     return TrainReport(t_received=t, stamp=t, position=x, velocity=v, var_position=var_x,
-                       var_velocity=var_v, braking_rate=f, var_braking_rate=var_f)
+                       var_velocity=var_v, braking_rate=f, var_braking_rate=var_f,
+                       pl_ahead=pl, pl_behind=pl)
 
 
-P = ZoneParams(k_sigma=3.0, stale_timeout=2.0, emergency_decel=1.0, train_length=100.0,
-               margin=10.0, danger_points=(5000.0,))
+THREE_SIGMA = 2.0 * (1.0 - NormalDist().cdf(3.0))  # the risk whose multiplier K is 3
+P = ZoneParams(integrity_risk=THREE_SIGMA, stale_timeout=2.0, emergency_decel=1.0,
+               train_length=100.0, margin=10.0, danger_points=(5000.0,))
 
 
 def test_follower_authority_ends_behind_leader_worst_case_rear():

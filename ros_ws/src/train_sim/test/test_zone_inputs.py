@@ -12,15 +12,15 @@ from train_sim import zone as Z
 from train_sim.zone import RefusalLog, TrainReport, ZoneController, ZoneParams
 from train_sim.zone_fuzz import EXPECTED, corrupt_reports
 
-P = ZoneParams(k_sigma=3.0, stale_timeout=2.0, emergency_decel=1.0, train_length=100.0,
-               margin=10.0, danger_points=(50000.0,), degraded_timeout=4.0, max_future=1.0)
+P = ZoneParams(stale_timeout=2.0, emergency_decel=1.0, train_length=100.0,
+               margin=10.0, danger_points=(50000.0,), max_future=1.0, line_length=100000.0)
 LATENCY = 0.05  # s, stamp to arrival
 
 
 def rep(t, x=1000.0, v=10.0, clock=0.0, **kw):
     """A good report sampled at zone time t, stamped on a clock ``clock`` s ahead of the
     zone's, arriving LATENCY later."""
-    kw = {"var_position": 1.0, "var_velocity": 0.01, **kw}
+    kw = {"var_position": 1.0, "var_velocity": 0.01, "pl_ahead": 5.3, "pl_behind": 5.3, **kw}
     return TrainReport(t_received=t + LATENCY, stamp=t + clock, position=x + v * t, velocity=v,
                        **kw)
 
@@ -176,22 +176,46 @@ def test_integrity_alarm_brakes_at_once_and_the_train_behind():
     assert not auth["A"].emergency_brake and not auth["B"].emergency_brake
 
 
-def test_degraded_is_used_until_degraded_timeout_then_brakes():
-    zc = ZoneController(P)  # degraded_timeout 4 s
-    zc.report("A", rep(0.0))
-    t0 = 1.0
-    states = []
-    for k in range(60):
-        t = t0 + 0.1 * k
-        zc.report("A", rep(t, integrity=Z.DEGRADED))
-        ok, a = granted(zc, t + LATENCY)
-        states.append(a.state)
-        assert ok == (t - t0 <= P.degraded_timeout + 1e-9), (t, a.reason)
-    assert states[-1] == "degraded" and "DEGRADED" in a.reason
-    zc.report("A", rep(t + 0.1))  # OK again: released, and the timer restarts
-    assert granted(zc, t + 0.1 + LATENCY)[0]
-    zc.report("A", rep(t + 0.2, integrity=Z.DEGRADED))
-    assert granted(zc, t + 0.2 + LATENCY)[0]
+def test_degraded_is_bounded_by_its_protection_levels_and_never_brakes_by_itself():
+    """DEGRADED is bounded (its protection levels exceed the alert limit): the authority uses the
+    interval as it is, for as long as it lasts; a wide interval of the leader shortens the
+    follower's authority by exactly its width."""
+    zc = ZoneController(P)
+    zc.report("A", rep(0.0, x=3000.0))
+    zc.report("B", rep(0.0, x=1000.0))
+    for k in range(100):  # 10 s DEGRADED with a 60 m interval behind
+        t = 1.0 + 0.1 * k
+        zc.report("A", rep(t, x=3000.0, integrity=Z.DEGRADED, pl_behind=60.0, pl_ahead=60.0))
+        zc.report("B", rep(t, x=1000.0))
+        auth = {a.train_id: a for a in zc.authorities(t + LATENCY, ["A", "B"])}
+        assert not auth["A"].emergency_brake, auth["A"].reason
+    lead = zc.reports["A"]
+    assert auth["B"].end_of_authority == lead.position - 60.0 - P.train_length - P.margin
+
+
+def test_implausible_reports_are_refused_and_the_train_keeps_its_last_plausible_one():
+    """A report off the line, one that jumps further than a train can run, one that puts the
+    follower past the leader, a braking rate of 1e6 and a speed of -149 m/s are refused by
+    name; the follower's authority never passes the leader's last plausible rear."""
+    zc = ZoneController(replace(P, line_length=10000.0))
+    assert zc.report("A", rep(0.0, x=3000.0, v=0.0)) == ""
+    assert zc.report("B", rep(0.0, x=1000.0, v=0.0)) == ""
+    bad = {
+        Z.OFF_LINE: rep(0.1, x=1e12, v=0.0),
+        Z.JUMP: rep(0.1, x=3200.0, v=0.0),  # 200 m in 0.1 s
+        Z.IMPLAUSIBLE_BRAKING: rep(0.1, x=3000.0, v=0.0, braking_rate=1e6,
+                                   var_braking_rate=1e-4),
+        Z.IMPLAUSIBLE_SPEED: rep(0.1, x=3000.0, v=-149.0),
+    }
+    for kind, r in bad.items():
+        assert zc.report("A", r) == kind, zc.last_refusal
+    assert zc.report("A", rep(0.1, x=-1e9, v=0.0)) == Z.OFF_LINE
+    # the follower reported just past the leader (within what it could run: not a jump)
+    assert zc.report("B", rep(30.0, x=3010.0, v=0.0)) == Z.ORDER
+    assert zc.reports["A"].position == 3000.0 and zc.reports["B"].position == 1000.0
+    auth = {a.train_id: a for a in zc.authorities(0.1 + LATENCY, ["A", "B"])}
+    assert auth["B"].end_of_authority <= 3000.0 - 5.3 - P.train_length - P.margin
+    assert zc.rejected[Z.OFF_LINE] == 2 and zc.rejected[Z.ORDER] == 1
 
 
 def test_refusals_are_logged_once_per_kind_per_interval():
@@ -215,7 +239,9 @@ def test_fuzz_no_exception_no_lock_refusals_counted_by_kind(check_stamp_age, see
         x += 0.1 * v
         clean.append(TrainReport(t_received=t + LATENCY, stamp=t, position=x, velocity=v,
                                  var_position=1.0 + 0.01 * k, var_velocity=0.01,
-                                 cov_position_velocity=0.02, cov_velocity_position=0.02))
+                                 cov_position_velocity=0.02, cov_velocity_position=0.02,
+                                 pl_ahead=5.3 * math.sqrt(1.0 + 0.01 * k),
+                                 pl_behind=5.3 * math.sqrt(1.0 + 0.01 * k)))
     stream, counts = corrupt_reports(clean, rng, per_report=5.0)
     assert sum(counts.values()) > 2500 and set(counts) == set(EXPECTED)
     zc = ZoneController(replace(P, check_stamp_age=check_stamp_age))

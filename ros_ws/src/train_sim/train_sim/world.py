@@ -282,7 +282,7 @@ class World:
         out.append((t, "ground_truth", t, {
             "source": "truth", "position": st.x, "velocity": st.v, "acceleration": acc,
             "braking_rate": f, "covariance": TRUTH_COVARIANCE, "measurement_used": False,
-            "integrity": 0}))
+            "integrity": 0, "protection_level_ahead": 0.0, "protection_level_behind": 0.0}))
         # control is on the reference clock (docs/interfaces.md): the ATO's command as issued
         self._log["control"].append((t, t, self.a_tar))
         out.append((t, "control", t, {"target_acceleration": self.a_tar}))

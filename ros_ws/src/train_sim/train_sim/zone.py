@@ -1,23 +1,28 @@
 """Zone-controller logic (pure): movement authorities from trains' position estimates.
 
-Each train reports a ``TrainState`` (position of its front end, velocity, covariance, and a braking
-rate where one is estimated). Like an ETCS confidence interval, the zone controller keeps each
-train's position as an interval::
+Each train reports a ``TrainState`` (position of its front end, velocity, covariance, a braking
+rate where one is estimated, and its protection levels). Like an ETCS confidence interval (the
+max and min safe front end), the zone controller keeps each train's position as the interval
+its estimator states at its integrity risk::
 
-    [x - k sigma_x,  x + k sigma_x]        (front end; rear end = front - train_length)
+    [x - PL_behind,  x + PL_ahead]         (front end; rear end = front - train_length)
 
 and grants movement authority (end of authority, EoA) up to the nearest danger point ahead:
 
 - the configured danger points (a red signal, an occupied block, the end of the line), and
-- the worst-case rear of the train ahead: ``x_lead - k sigma_lead - train_length`` minus a margin.
+- the min safe rear of the train ahead: ``x_lead - PL_behind_lead - train_length`` minus a
+  margin.
 
-It sets ``emergency_brake`` when the worst-case front plus the braking distance at the worst-case
+It sets ``emergency_brake`` when the max safe front plus the braking distance at the worst-case
 speed passes the EoA::
 
-    x + k sigma_x + (v + k sigma_v)^2 / (2 f_low b_emergency) > EoA,
+    x + PL_ahead + (v + K sigma_v)^2 / (2 f_low b_emergency) > EoA,
 
-where ``f_low = max(f_hat - k sigma_f, f_min)`` is the estimated braking rate's lower bound when
-a braking rate is published (``braking_rate`` finite) and 1 (nominal) otherwise.
+where ``f_low = max(f_hat - K sigma_f, f_min)`` is the estimated braking rate's lower bound when
+a braking rate is published (``braking_rate`` finite) and 1 (nominal) otherwise. The speed and
+the braking rate carry no protection level of their own: their bounds take the multiplier
+``K = Phi^-1(1 - integrity_risk / 2)`` of their standard deviations at the zone's
+``integrity_risk`` (5.33 at 1e-7), one risk for every bound.
 
 A train is unsafe (stale) when its last report arrived more than ``stale_timeout`` ago, when the
 estimate's own stamp is older than ``stale_timeout`` (an estimator that republishes old
@@ -28,26 +33,38 @@ such as ground truth, is judged by its stamps only). An unsafe train gets the em
 brake, and so does every train behind it (its rear can no longer be bounded from recent data).
 While a supervised train has not reported at all, no other train gets an authority (it may be
 anywhere). A report's ``integrity`` (TrainState: 0 OK, 1 DEGRADED, 2 ALARM) is obeyed the same
-way: ALARM brakes the train (and those behind it) at once; DEGRADED (the estimator has inflated
-its covariance to cover a doubt) is used as reported for up to ``degraded_timeout`` and brakes
-after that. Each authority carries a short ``state`` (``ok``, ``stale``, ``alarm``,
-``degraded``, ``no_estimate``, ``ahead_stale``, ``ahead_alarm``, ``ahead_degraded``,
-``ahead_unknown``, ``overrun``) so that a node logs a change of state once, not every
-publication of a reason whose numbers change.
+way: ALARM (no bound) brakes the train (and those behind it) at once; OK and DEGRADED are both
+bounded by their protection levels, which the authority uses as they are (a wide interval
+shortens the follower's authority and keeps the leader's rear far back: no timer is needed).
+Each authority carries a short ``state`` (``ok``, ``stale``, ``alarm``, ``no_estimate``,
+``ahead_stale``, ``ahead_alarm``, ``ahead_unknown``, ``overrun``) so that a node logs a change
+of state once, not every publication of a reason whose numbers change.
 
 Input checks (:meth:`ZoneController.report`). A report is refused, counted by kind and never
 stored when a field the zone reads is unusable: a non-finite stamp, position, velocity or
 variance (a NaN variance is no information, never certainty), a variance <= 0 (a report the
 node marks ``exact``, ground truth, may state 0), a position/velocity covariance that is not
 symmetric positive definite, a braking rate with no finite positive variance, an unknown
-integrity value, a speed no train runs (|velocity| > ``MAX_SPEED``), or a stamp that is
-implausible:
+integrity value, a protection level that is negative, NaN, or infinite without ALARM, a speed
+no train runs (|velocity| > ``MAX_SPEED``), or a stamp that is implausible:
 
 - *ahead*: more than ``max_future`` ahead of the zone's own clock (``check_stamp_age``: zone and
   estimates on one clock) or, on separate clocks, of the train's timeline (the largest
   ``stamp - arrival`` accepted in the last ``TIMELINE_WINDOW`` s: latency only makes that
   smaller);
 - *behind* the last accepted stamp (out of order).
+
+Plausibility (a report that passes the field checks but cannot be true; refused the same way,
+so the train keeps its last plausible report and goes stale if no plausible one follows):
+
+- *off the line*: the interval ``[x - PL_behind, x + PL_ahead]`` misses the line
+  ``[0, line_length]`` (a position of 1e12 m or -1e9 m);
+- *jump*: the interval and the last accepted one, each widened by what the train can run
+  between their stamps (``MAX_SPEED`` times the time between them), do not meet: one of the two
+  does not hold the train;
+- *order*: a train reported at or past the last accepted position of a train that was ahead of
+  it, or at or behind one that was behind it (trains on one track do not pass each other);
+- a braking rate outside [0, ``MAX_BRAKING_RATE``], a speed below ``-max_reverse_speed``.
 
 A refused stamp never moves anything, so one far-future report cannot lock out the reports that
 follow. An estimator's clock reset is followed by evidence: ``reset_reports`` consecutive
@@ -63,6 +80,8 @@ import math
 from collections import deque
 from dataclasses import dataclass, field
 
+from statistics import NormalDist
+
 from train_core.config import param, require, require_finite
 
 
@@ -71,8 +90,9 @@ class ZoneParams:
     """The zone's rules (the node declares them from this metadata; config/zone_controller.yaml
     documents them)."""
 
-    k_sigma: float = param(3.0, "-", "half-width of the position/speed confidence interval in "
-                           "standard deviations")
+    integrity_risk: float = param(1e-7, "-", "risk at which the speed and braking-rate bounds "
+                                  "are taken from their variances (the position's is the "
+                                  "estimator's protection level, stated at its own risk)")
     stale_timeout: float = param(3.0, "s", "reports (arrival or stamp) older than this: "
                                  "emergency brake")
     measurement_timeout: float = param(10.0, "s", "no measurement used for this long: "
@@ -88,8 +108,12 @@ class ZoneParams:
                                              "line); the node builds them", node=False)
     permitted_speed: float = param(22.23, "m/s", "speed granted with every authority")
     min_braking_rate: float = param(0.2, "-", "floor for the braking-rate lower bound")
-    degraded_timeout: float = param(10.0, "s", "a train whose estimator reports integrity "
-                                    "DEGRADED for longer than this: emergency brake")
+    line_length: float = param(math.inf, "m", "length of the line: a report whose interval "
+                               "misses [0, line_length] is refused (the node sets it from "
+                               "line_file)", node=False)
+    max_reverse_speed: float = param(1.0, "m/s", "a report running backwards faster than this "
+                                     "is refused (a train in a supervised zone does not reverse "
+                                     "at speed)")
     max_future: float = param(3.0, "s", "a report stamped further ahead than this (of the "
                               "zone's clock, or of the train's timeline on separate clocks) "
                               "is refused; also the agreement needed to follow a clock reset")
@@ -97,8 +121,10 @@ class ZoneParams:
                                "an estimator's clock reset is followed")
 
     def __post_init__(self):
-        require_finite(self, ("k_sigma", "stale_timeout", "measurement_timeout",
-                              "emergency_decel", "degraded_timeout", "max_future"))
+        require_finite(self, ("stale_timeout", "measurement_timeout", "emergency_decel",
+                              "max_future", "max_reverse_speed"))
+        require(0.0 < self.integrity_risk < 0.5, "integrity_risk", self.integrity_risk,
+                "must be in (0, 0.5)")
         require(int(self.reset_reports) == self.reset_reports and self.reset_reports >= 2,
                 "reset_reports", self.reset_reports, "must be an integer >= 2")
 
@@ -132,8 +158,15 @@ UNKNOWN_INTEGRITY = "unknown integrity"
 IMPLAUSIBLE_SPEED = "implausible speed"
 FUTURE_STAMP = "future stamp"
 OUT_OF_ORDER = "out-of-order stamp"
+BAD_PROTECTION = "bad protection level"
+OFF_LINE = "off the line"
+JUMP = "implausible jump"
+ORDER = "trains out of order"
+IMPLAUSIBLE_BRAKING = "implausible braking rate"
 KINDS = (NON_FINITE, NON_POSITIVE_VARIANCE, NOT_POSITIVE_DEFINITE, UNKNOWN_INTEGRITY,
-         IMPLAUSIBLE_SPEED, FUTURE_STAMP, OUT_OF_ORDER)
+         IMPLAUSIBLE_SPEED, FUTURE_STAMP, OUT_OF_ORDER, BAD_PROTECTION, OFF_LINE, JUMP, ORDER,
+         IMPLAUSIBLE_BRAKING)
+MAX_BRAKING_RATE = 2.0  # f: twice the nominal braking; a larger one is a corrupt report
 # m/s: no train runs faster (540 km/h; the fastest wheeled train in service runs 97 m/s). A
 # larger |velocity| is a corrupt report, and a large negative one must never be read as a
 # train at rest (the worst-case stop takes max(velocity, 0)).
@@ -158,6 +191,8 @@ class TrainReport:
     cov_position_velocity: float = 0.0  # m^2/s, covariance[1]
     cov_velocity_position: float = 0.0  # m^2/s, covariance[4] (must equal covariance[1])
     integrity: int = OK  # 0 OK, 1 DEGRADED, 2 ALARM
+    pl_ahead: float = 0.0  # m, protection level ahead (the max safe front end is x + this)
+    pl_behind: float = 0.0  # m, protection level behind (the min safe front end is x - this)
     exact: bool = False  # ground truth: variances of 0 are allowed
     clock_shift: float = 0.0  # s, set by the zone: its timeline's shift (stamp - zone clock)
     last_measurement: float = math.nan  # s, stamp of the last report with a measurement (set
@@ -194,6 +229,14 @@ def check_fields(rep: TrainReport) -> tuple[str, str]:
             return NON_FINITE, f"{name} is {v}"
     if rep.integrity not in (OK, DEGRADED, ALARM):
         return UNKNOWN_INTEGRITY, f"integrity {rep.integrity} (0 OK, 1 DEGRADED, 2 ALARM)"
+    for name, v in (("protection_level_ahead", rep.pl_ahead),
+                    ("protection_level_behind", rep.pl_behind)):
+        if not isinstance(v, (int, float)) or math.isnan(v) or v < 0 or \
+                (math.isinf(v) and rep.integrity != ALARM):
+            return BAD_PROTECTION, f"{name} is {v} with integrity {rep.integrity}"
+    if not math.isnan(rep.braking_rate) and not 0.0 <= rep.braking_rate <= MAX_BRAKING_RATE:
+        return IMPLAUSIBLE_BRAKING, (f"braking rate {rep.braking_rate:g} outside [0, "
+                                     f"{MAX_BRAKING_RATE:g}]")
     if abs(rep.velocity) > MAX_SPEED:
         return IMPLAUSIBLE_SPEED, f"velocity {rep.velocity:g} m/s (|v| > {MAX_SPEED:g})"
     variances = {"position variance": rep.var_position, "velocity variance": rep.var_velocity}
@@ -247,13 +290,14 @@ class ZoneController:
     clock_resets: dict[str, int] = field(default_factory=dict)  # new timelines followed
     last_refusal: tuple[str, str, str] = ("", "", "")  # (train, kind, detail) of the latest
     timelines: dict[str, _Timeline] = field(default_factory=dict)
-    degraded_since: dict[str, float] = field(default_factory=dict)  # zone time, DEGRADED run
 
     def report(self, train_id: str, rep: TrainReport) -> str:
         """Store a train's report; returns "" if accepted or the kind of refusal (one of
         :data:`KINDS`, counted in ``rejected``; ``last_refusal`` holds the detail). Never
         raises on any report content."""
         kind, detail = check_fields(rep)
+        if not kind:
+            kind, detail = self._plausible(train_id, rep)
         if not kind:
             kind, detail = self._check_stamp(train_id, rep)
             if kind and self._follows_reset(train_id, rep):
@@ -266,6 +310,41 @@ class ZoneController:
             return kind
         self._store(train_id, rep, new_timeline=False)
         return ""
+
+    def _plausible(self, train_id: str, rep: TrainReport) -> tuple[str, str]:
+        """``(kind, detail)`` where a report cannot be true (module doc: off the line, a jump,
+        trains out of order, reversing at speed); ``("", "")`` if it can. ALARM reports bound
+        nothing and are judged by their fields only."""
+        p = self.params
+        if rep.velocity < -p.max_reverse_speed:
+            return IMPLAUSIBLE_SPEED, (f"velocity {rep.velocity:g} m/s (reversing faster than "
+                                       f"{p.max_reverse_speed:g})")
+        if rep.integrity == ALARM:
+            return "", ""
+        lo, hi = rep.position - rep.pl_behind, rep.position + rep.pl_ahead
+        if hi < 0.0 or lo > p.line_length:
+            return OFF_LINE, (f"interval [{lo:.6g}, {hi:.6g}] m misses the line [0, "
+                              f"{p.line_length:g}]")
+        last = self.reports.get(train_id)
+        if last is not None and last.integrity != ALARM:
+            run = MAX_SPEED * abs(rep.stamp - last.stamp)
+            if lo > last.position + last.pl_ahead + run or \
+                    hi < last.position - last.pl_behind - run:
+                return JUMP, (f"interval [{lo:.6g}, {hi:.6g}] m is more than the "
+                              f"{run:.3g} m a train runs in {abs(rep.stamp - last.stamp):.3g} s "
+                              f"from the last one [{last.position - last.pl_behind:.6g}, "
+                              f"{last.position + last.pl_ahead:.6g}] m")
+        if last is not None:
+            for other, orep in self.reports.items():
+                if other == train_id:
+                    continue
+                ahead_before = orep.position > last.position
+                if ahead_before and rep.position >= orep.position or \
+                        not ahead_before and rep.position <= orep.position:
+                    return ORDER, (f"position {rep.position:.6g} m would put it "
+                                   f"{'past' if ahead_before else 'behind'} {other} "
+                                   f"({orep.position:.6g} m)")
+        return "", ""
 
     def _check_stamp(self, train_id: str, rep: TrainReport) -> tuple[str, str]:
         p = self.params
@@ -316,25 +395,17 @@ class ZoneController:
         else:  # carried over; NaN until a report says a measurement was used (ground truth,
             # or an estimator that does not set the flag, is judged by its stamps only)
             rep.last_measurement = last.last_measurement if last is not None else math.nan
-        if rep.integrity == DEGRADED:
-            self.degraded_since.setdefault(train_id, rep.t_received)
-        else:
-            self.degraded_since.pop(train_id, None)
         self.reports[train_id] = rep
 
     def unsafe(self, train_id: str, now: float) -> tuple[str, str]:
-        """``(reason, state)`` why a train's position cannot be bounded now (stale, integrity
-        ALARM, or DEGRADED for too long); ``("", "")`` if it can."""
+        """``(reason, state)`` why a train's position cannot be bounded now (stale, or
+        integrity ALARM); ``("", "")`` if it can."""
         rep = self.reports[train_id]
         why = self.staleness(rep, now)
         if why:
             return why, "stale"
         if rep.integrity == ALARM:
             return "estimator integrity ALARM (it cannot bound its error)", "alarm"
-        since = self.degraded_since.get(train_id)
-        if since is not None and now - since > self.params.degraded_timeout:
-            return (f"estimator integrity DEGRADED for {now - since:.1f} s "
-                    f"(> {self.params.degraded_timeout} s)"), "degraded"
         return "", ""
 
     def staleness(self, rep: TrainReport, now: float) -> str:
@@ -353,17 +424,17 @@ class ZoneController:
         return ""
 
     def _bounds(self, rep: TrainReport) -> tuple[float, float, float, float]:
-        """(worst-case front, worst-case rear, worst-case speed, braking-rate lower bound)."""
+        """(max safe front, min safe rear, worst-case speed, braking-rate lower bound)."""
         p = self.params
-        sx = math.sqrt(max(rep.var_position, 0.0))
+        k = NormalDist().inv_cdf(1.0 - p.integrity_risk / 2.0)
         sv = math.sqrt(max(rep.var_velocity, 0.0))
-        front = rep.position + p.k_sigma * sx
-        rear = rep.position - p.k_sigma * sx - p.train_length
-        speed = max(rep.velocity, 0.0) + p.k_sigma * sv
+        front = rep.position + rep.pl_ahead
+        rear = rep.position - rep.pl_behind - p.train_length
+        speed = max(rep.velocity, 0.0) + k * sv
         f_low = 1.0
         if math.isfinite(rep.braking_rate):
             sf = math.sqrt(rep.var_braking_rate) if math.isfinite(rep.var_braking_rate) else 0.0
-            f_low = max(rep.braking_rate - p.k_sigma * sf, p.min_braking_rate)
+            f_low = max(rep.braking_rate - k * sf, p.min_braking_rate)
         return front, rear, speed, f_low
 
     def authorities(self, now: float, train_ids: list[str]) -> list[Authority]:
@@ -380,7 +451,7 @@ class ZoneController:
                 continue
             front, _, speed, f_low = self._bounds(rep)
             hazards = [(d - p.margin, f"danger point at {d:.1f} m") for d in p.danger_points
-                       if d - p.margin >= rep.position - p.k_sigma * math.sqrt(rep.var_position)]
+                       if d - p.margin >= rep.position - rep.pl_behind]
             reason, state = "", "ok"
             for other in train_ids:
                 orep = self.reports.get(other)

@@ -35,6 +35,14 @@ FIELDS = {  # corruption -> (changed fields, expected refusal)
     "unknown_integrity": ({"integrity": 7}, Z.UNKNOWN_INTEGRITY),
     "huge_velocity": ({"velocity": 1e9}, Z.IMPLAUSIBLE_SPEED),
     "huge_negative_velocity": ({"velocity": -1e9}, Z.IMPLAUSIBLE_SPEED),
+    "reversing_fast": ({"velocity": -149.0}, Z.IMPLAUSIBLE_SPEED),
+    "nan_protection_level": ({"pl_ahead": math.nan}, Z.BAD_PROTECTION),
+    "negative_protection_level": ({"pl_behind": -1.0}, Z.BAD_PROTECTION),
+    "infinite_protection_level_ok": ({"pl_ahead": math.inf}, Z.BAD_PROTECTION),
+    "huge_braking_rate": ({"braking_rate": 1e6, "var_braking_rate": 1e-4},
+                          Z.IMPLAUSIBLE_BRAKING),
+    "position_far_ahead": ({"position": 1e12}, Z.OFF_LINE),
+    "position_far_behind": ({"position": -1e9}, Z.OFF_LINE),
 }
 NOT_PD = "covariance_not_positive_definite"  # |cov_xv| = 2 sqrt(var_x var_v), symmetric
 FUTURE = (3.5, 60.0, 1e6, 1e9)  # s added to the stamp (beyond max_future, default 3 s)

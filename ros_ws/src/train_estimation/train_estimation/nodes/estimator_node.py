@@ -152,7 +152,7 @@ def build_estimator_node(name: str, topic: str, make_adapter: Callable):
             self.received = dict.fromkeys(("odometer", "control", "balise"), 0)
             self.last_arrival = dict.fromkeys(self.received, math.nan)
             self.window_latency: list[float] = []
-            self.last_integrity: tuple[int, str] | None = None
+            self.last_integrity: tuple | None = None  # (label, doubts, PL ahead, PL behind)
             self.n_published = 0
             self.diag = Diagnostics(self, f"{self.adapter.source} estimator",
                                     D.EstimatorThresholds, self.diagnostics)
@@ -230,11 +230,14 @@ def build_estimator_node(name: str, topic: str, make_adapter: Callable):
                 msg.covariance = list(out.covariance)
                 msg.measurement_used = out.measurement_used
                 msg.integrity = out.integrity
+                msg.protection_level_ahead = out.protection_level_ahead
+                msg.protection_level_behind = out.protection_level_behind
                 self.pub.publish(msg)
                 self.odom_pub.publish(self._odometry(msg))
                 self.n_published += 1
                 self.last_integrity = (int(out.integrity),
-                                       str(getattr(out, "integrity_reason", "")))
+                                       str(getattr(out, "integrity_reason", "")),
+                                       out.protection_level_ahead, out.protection_level_behind)
                 t_recv = self.arrived.pop(out.stamp, None)
                 if t_recv is not None:
                     lat = self.steady.now().nanoseconds * 1e-9 - t_recv

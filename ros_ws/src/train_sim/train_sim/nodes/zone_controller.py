@@ -56,7 +56,9 @@ def build_node():
                 except Exception as exc:  # ConfigError: already a one-line reason
                     raise ParameterError(str(exc)) from None
                 points.append(line.length)
-            self.zone = ZoneController(replace(params, danger_points=tuple(points)))
+            length = line.length if line_file else math.inf
+            self.zone = ZoneController(replace(params, danger_points=tuple(points),
+                                               line_length=length))
             self.trains = [self._train_id(t) for t in trains]
             self.pubs = {}
             for ns, tid in zip(trains, self.trains):
@@ -81,7 +83,7 @@ def build_node():
                                     self.diagnostics)
             self.get_logger().info(
                 f"zone controller for {self.trains} on '{state_topic}', "
-                f"danger points {points}, k={params.k_sigma}")
+                f"danger points {points}, integrity risk {params.integrity_risk:g}")
 
         def _train_id(self, ns: str) -> str:
             if not ns:
@@ -103,7 +105,9 @@ def build_node():
                 var_position=cov[0], var_velocity=cov[5],
                 braking_rate=float(msg.braking_rate), var_braking_rate=cov[15],
                 measurement_used=bool(msg.measurement_used), cov_position_velocity=cov[1],
-                cov_velocity_position=cov[4], integrity=int(msg.integrity), exact=exact)
+                cov_velocity_position=cov[4], integrity=int(msg.integrity), exact=exact,
+                pl_ahead=float(msg.protection_level_ahead),
+                pl_behind=float(msg.protection_level_behind))
             resets = self.zone.clock_resets.get(tid, 0)
             prev = self.zone.reports.get(tid)
             kind = self.zone.report(tid, rep)

@@ -425,6 +425,18 @@ class _DistanceAsPosition:
         C[0, 0] += max((m * m + v for m, v in self.separation), default=0.0)
         return tuple(C.ravel())
 
+    def _separation(self, t: float) -> tuple:
+        """The calibration's doubt at ``t`` as solutions: ``(variance, ((shift, variance),
+        ...))`` (:meth:`OdometerCalibration.separation`; without the distance, the solution
+        without each of the filter's last balises); empty before the first odometer reading."""
+        if self.odo is None:
+            return ()
+        if self.cfg.use_distance:
+            return self.cal.separation(self._count_at(max(t, self.odo[0])), self.odo[2])
+        J = np.array(self._uncounted(t))
+        return float(J @ self.cal.Sigma @ J), tuple((float(m), float(v))
+                                                    for m, v in self.separation)
+
     def _balise_for_filter(self, fix: BaliseFix, stamp: float,
                            t_now: float) -> tuple[float, float, float, float]:
         """Without the distance: the calibration takes the balise (it learns the scale and the
@@ -651,7 +663,8 @@ class RobustAdapter(_DistanceAsPosition):
                       acceleration=math.nan, braking_rate=math.nan,
                       covariance=tuple(covariance16(P)),
                       measurement_used=self.f.pop_measurement_used(),
-                      consider=self._consider(t))
+                      consider=self._consider(t),
+                      separation=self._separation(t))
 
     def _exact_mean(self, x, t0: float, t: float, act0):
         """The mean carried from ``t0`` to ``t`` with the whole Davis resistance, or None when
@@ -1040,7 +1053,8 @@ class BrakingAdapter(_DistanceAsPosition):
         return Output(stamp=t, position=float(e.mean[0]), velocity=float(e.mean[1]),
                       acceleration=float(e.mean[2]), braking_rate=float(e.mean[3]),
                       covariance=tuple(float(v) for v in np.asarray(e.cov).ravel()),
-                      measurement_used=used, consider=self._consider(t))
+                      measurement_used=used, consider=self._consider(t),
+                      separation=self._separation(t))
 
     def _shared(self) -> dict:
         """deepcopy memo of the models the filter only reads (the family and the filter's view

@@ -126,6 +126,7 @@ import numpy as np
 from train_core.config import param, require, require_finite
 
 from .. import reasons as R
+from .protection import Hypothesis, label, protection_levels
 
 OK, DEGRADED, ALARM = 0, 1, 2
 V_STILL = 0.5  # m/s: an odometer speed reading at or below this reads standstill
@@ -167,6 +168,12 @@ class IntegrityParams:
     still_margin: float = param(0.05, "m/s^2", "traction beyond the starting resistance and "
                                 "the map's uphill gradient that a standing train cannot "
                                 "withstand (the map's and the resistance's errors)")
+    integrity_risk: float = param(1e-7, "-", "probability per estimate that the true position "
+                                  "lies outside [position - protection_level_behind, position + "
+                                  "protection_level_ahead] without an ALARM (protection.py)")
+    alert_limit: float = param(10.0, "m", "largest protection level the operation can use: "
+                               "within it the estimate is OK, beyond it DEGRADED (still "
+                               "bounded)")
 
     def __post_init__(self):
         require_finite(self, ("degraded_after", "alarm_after", "accel_uncertainty",
@@ -178,6 +185,10 @@ class IntegrityParams:
         require(self.blind_readings >= 1, "blind_readings", self.blind_readings, "must be >= 1")
         require(self.nis_window >= 2, "nis_window", self.nis_window, "must be >= 2")
         require(self.pos_window >= 2, "pos_window", self.pos_window, "must be >= 2")
+        require(0.0 < self.integrity_risk < 0.5, "integrity_risk", self.integrity_risk,
+                "must be in (0, 0.5)")
+        require(math.isfinite(self.alert_limit) and self.alert_limit > 0, "alert_limit",
+                self.alert_limit, "must be > 0")
 
 
 class IntegrityMonitor:
@@ -584,9 +595,18 @@ class IntegrityMonitor:
 
     def assess(self, out, t: float):
         """``out`` (a runner Output for stamp ``t`` on the runner's train timeline) labelled,
-        with its covariance inflated where DEGRADED."""
+        with its protection levels (``protection.py``) and its covariance inflated where a
+        check doubts it.
+
+        Each check's doubt is of one of two kinds. A fault-free widening (a silence, an
+        inconsistent speed, no commands) widens the estimate's own variance. A fault the data
+        have not excluded (a clock step, a biased distance, a balise and the odometer that
+        disagree) is a hypothesis: a solution beside the estimate, ``shift`` m from it, that the
+        protection levels cover. The published covariance holds both (a Gaussian that covers
+        every live solution at one sigma, as before); the label is the protection levels' against
+        the alert limit, so a doubt whose interval still fits the limit is OK."""
         p = self.p
-        state, why = OK, []
+        doubt, why, hyps = OK, [], []
         C = np.array(out.covariance, dtype=float).reshape(4, 4)
         P = C[:2, :2].copy()
         finite = np.all(np.isfinite(P)) and math.isfinite(out.position) \
@@ -616,25 +636,37 @@ class IntegrityMonitor:
         m = self._nis_mean()
         if m > p.nis_alarm:
             return self._label(out, t, ALARM, f"speed_nis: window mean {m:.3g}", None)
+        # fault-free widenings: the estimate's own variance
         if tau > degraded_after:
-            state = DEGRADED
+            doubt = DEGRADED
             why.append(f"no_measurement: {tau:.1f} s")
             P = P + _accel_cov(p.accel_uncertainty, tau)
         if m > 1.0 + p.nis_z * math.sqrt(2.0 / p.nis_window):
-            state = DEGRADED
+            doubt = DEGRADED
             why.append(f"speed_nis: window mean {m:.3g}")
             P = P * m
+        silent = t - self.last_command
+        no_command = math.isfinite(self.last_command) and silent > p.command_timeout
+        if no_command:
+            P = P + _accel_cov(p.accel_uncertainty, min(tau, self.period) + self.period)
+        fault_free = float(P[0, 0])
+        # faults not excluded: hypotheses (and the covariance widened to cover them)
         if self.suspect or t - self.reanchored_at < p.reanchor_hold:
-            state = DEGRADED
+            doubt = DEGRADED
             why.append("clock: " + (f"{self.held} readings held as a possible step"
                                     if self.held else "step re-anchored"))
             T = max(self.period, self.doubt if self.suspect else 0.0)
-            P = P + np.diag([(abs(out.velocity) * T) ** 2 + T ** 2, 0.0])
+            # the estimate's stamp may be read on either side of the step: the train is v T
+            # ahead of or behind where the estimate puts it
+            shift = abs(out.velocity) * T
+            hyps += [Hypothesis("clock", shift, T * T), Hypothesis("clock", -shift, T * T)]
+            P = P + np.diag([shift ** 2 + T ** 2, 0.0])
         b, se = self._bias()
         if abs(b) > p.pos_z * se:
-            state = DEGRADED
+            doubt = DEGRADED
             why.append(f"position: distance innovations {b:+.2f} m on average over "
                        f"{len(self.pos)} readings")
+            hyps.append(Hypothesis("position", b))
             P = P + np.diag([b * b, 0.0])
         if self.balise_doubt is not None:
             sb, d, what, tracked = self.balise_doubt
@@ -644,33 +676,57 @@ class IntegrityMonitor:
                 # by their disagreement ``d``): the interval holds both
                 d1 = odo[0] - out.position
                 nu = max(abs(d1), abs(d1 + d)) + math.sqrt(odo[1])
+                hyps += [Hypothesis("balise", d1, odo[1]), Hypothesis("balise", d1 + d, odo[1])]
                 told = (f"the odometer's track {d1:+.1f} m, the balise's {d1 + d:+.1f} m from "
                         "the estimate")
             elif tracked:  # no odometer reading lately (no_measurement covers the gap)
                 nu = abs(d)
+                hyps += [Hypothesis("balise", d), Hypothesis("balise", -d)]
                 told = f"the sensors {d:+.1f} m apart"
             else:
                 nu = d + out.velocity * (t - sb) - out.position
+                hyps.append(Hypothesis("balise", nu))
                 told = f"{nu:+.1f} m from the estimate"
-            state = DEGRADED
+            doubt = DEGRADED
             why.append(f"balise: {what}; {told}")
             P = P + np.diag([nu * nu, 0.0])
-        silent = t - self.last_command
-        if math.isfinite(self.last_command) and silent > p.command_timeout:
-            state = DEGRADED
+        if no_command:
+            doubt = DEGRADED
             why.append(f"no_command: {silent:.1f} s")
-            P = P + _accel_cov(p.accel_uncertainty, min(tau, self.period) + self.period)
-        return self._label(out, t, state, "; ".join(why), P if state else None)
+        return self._label(out, t, doubt, "; ".join(why), P if doubt else None,
+                           fault_free, tuple(hyps))
 
-    def _label(self, out, t: float, state: int, why: str, P):
-        self.counts[NAMES[state]] += 1
-        self.last_state = (state, why)
+    def _label(self, out, t: float, doubt: int, why: str, P, fault_free: float | None = None,
+               hyps: tuple = ()):
+        """The estimate published: the monitor's ``doubt`` (OK, DEGRADED: a check doubts it,
+        ALARM: nothing bounds it) with the covariance ``P`` widened by the doubts, and the
+        protection levels of the fault-free variance ``fault_free`` (the filter's own when
+        None) and the live hypotheses ``hyps``, which set the label (module doc of
+        ``protection.py``)."""
         C = np.array(out.covariance, dtype=float).reshape(4, 4)
         if P is not None:
             C[:2, :2] = P
+        if doubt == ALARM:
+            ahead = behind = math.inf
+        else:
+            var = float(out.covariance[0]) if fault_free is None else fault_free
+            # the odometer's calibration (the consider term the runner adds to the published
+            # covariance): its fault-free solution's variance, and the solution without each
+            # recent balise (one may lie elsewhere than its map position) as a hypothesis
+            if out.separation:
+                cal, alts = out.separation
+                hyps = hyps + tuple(Hypothesis("balise_map", m, max(0.0, v - cal))
+                                    for m, v in alts)
+                var += cal
+            elif out.consider:
+                var += float(out.consider[0])
+            ahead, behind = protection_levels(var, hyps, self.p.integrity_risk)
+        state = label(ahead, behind, self.p.alert_limit, doubt == ALARM)
+        self.counts[NAMES[state]] += 1
+        self.last_state = (state, why)
         # the speed variance the next NIS term uses: unknown (a broken or ALARM covariance)
         # counts as a wide one, so one bad estimate does not make every reading inconsistent
-        known = (state == OK or P is not None) and C[1, 1] < UNBOUNDED
+        known = (doubt == OK or P is not None) and C[1, 1] < UNBOUNDED
         if math.isfinite(out.velocity):
             self.prev = (t, float(out.velocity), float(C[1, 1]) if known else 1e6)
         # the filter's own covariance, not the inflated one: the position test judges the
@@ -683,7 +739,8 @@ class IntegrityMonitor:
         else:
             self.prev_pos = None
         return replace(out, covariance=tuple(C.ravel()), integrity=state,
-                       integrity_reason=why)
+                       integrity_reason=why, protection_level_ahead=ahead,
+                       protection_level_behind=behind)
 
 
 def _accel_cov(a: float, tau: float) -> np.ndarray:

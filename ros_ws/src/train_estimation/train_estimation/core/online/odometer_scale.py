@@ -225,6 +225,21 @@ class OdometerCalibration:
             need = np.maximum(need, np.diag(J @ Sk @ J.T) + delta * delta)
         return C + np.diag(need - np.diag(C))
 
+    def separation(self, d: float, v_odo: float) -> tuple:
+        """The calibration's position doubt as solutions (``protection.py``): ``(variance m^2,
+        ((shift m, variance m^2), ...))``, the fault-free solution's position variance at count
+        ``d`` (``J Sigma J^T``) and, for each of the last balises, where the solution without
+        it puts the train relative to this one and how sure that is (:meth:`consider` covers
+        them all with one variance instead)."""
+        J = np.array([[1.0, d, 0.0], [0.0, v_odo, 0.0]])
+        var = float((J @ self.Sigma @ J.T)[0, 0])
+        alts = []
+        for alt in self.alternatives:
+            Sk = _walked(alt.Sigma, alt.d, self.d_walked, self.count_walk, self.scale_walk,
+                         self.jumps)
+            alts.append((float(J[0] @ (alt.theta - self.theta)), float(J[0] @ Sk @ J[0])))
+        return var, tuple(alts)
+
     # -- time (distance) update ---------------------------------------------------------------
     def walk_to(self, d: float) -> None:
         """Add the random walk of the distance run since the last call (module doc)."""

@@ -106,8 +106,14 @@ class Output:
     braking_rate: float  # -
     covariance: tuple  # 16 floats, row-major 4x4 over (position, velocity, acceleration, f)
     measurement_used: bool
-    integrity: int = 0  # 0 OK, 1 DEGRADED (covariance inflated to cover a doubt), 2 ALARM
-    integrity_reason: str = ""  # why not OK (empty when OK)
+    integrity: int = 0  # 0 OK (both protection levels within the alert limit), 1 DEGRADED
+    #   (bounded, but wider), 2 ALARM (no bound)
+    integrity_reason: str = ""  # the integrity monitor's doubts (empty when it has none)
+    separation: tuple = ()  # the consider term as solutions: (fault-free position variance
+    #   m^2, ((shift m, variance m^2), ...) of the solution without each recent balise), or ()
+    protection_level_ahead: float = math.inf  # m: the true position is at most position + this
+    #   except with the integrity risk (protection.py); inf: no bound (ALARM, or not assessed)
+    protection_level_behind: float = math.inf  # m: at least position - this, likewise
     consider: tuple = ()  # row-major 2x2 (position, speed) covariance the estimator's filter
     #   does not carry (the odometer's calibration, ``odometer_scale``): added to ``covariance``
     #   by the runner after the integrity monitor has judged the filter's own, and kept here

@@ -1,0 +1,89 @@
+"""Protection levels (pure): the interval that holds the true position except with a stated risk.
+
+What a railway asks of a position source is one interval with a stated risk, as GNSS integrity
+monitoring publishes it (Blanch, Walter, Enge et al., "Baseline advanced RAIM user algorithm",
+IEEE TAES 2015) and as ETCS states the max and min safe front end. Along the track::
+
+    P( x_true > x + PL_ahead  or  x_true < x - PL_behind,  no ALARM )  <=  P_HMI
+
+with ``P_HMI`` the estimator's integrity risk per estimate (``integrity_risk``, 1e-7 by
+default). The alert limit ``AL`` (``alert_limit``) is the widest interval the operation can
+use: an estimate is OK when both protection levels are within it, DEGRADED when it is bounded
+but wider (the zone controller still bounds the train with it), ALARM when nothing bounds it
+(the protection levels are +inf).
+
+**Solution separation.** The estimate ``x`` (the filter's, with its position variance ``s0^2``
+after every fault-free widening: a silence, an inconsistency, the odometer's calibration) is the
+fault-free solution H0. Each fault the data have not excluded is a hypothesis ``H_i`` carried
+beside it as a solution of its own: the truth lies ``shift_i`` from ``x`` with the variance
+``s0^2 + extra_i`` (a clock step of the size the held readings imply: the estimate read on
+either side of it; the distance's track biased from the filter's; a balise and the odometer
+that disagree: the train on the odometer's track or on the balise's). The risk is split
+evenly over the ``n`` live solutions and the two sides, so each gets the multiplier::
+
+    K = Phi^-1(1 - P_HMI / (2 n))                           (5.33 for 1e-7 and n = 1)
+
+    PL_ahead  = max_i ( shift_i + K sqrt(s0^2 + extra_i))    (i = 0: shift 0, extra 0)
+    PL_behind = max_i (-shift_i + K sqrt(s0^2 + extra_i))
+
+A union bound: the error leaves the interval only if it leaves the side of the true
+hypothesis, with probability at most ``P_HMI / (2 n)`` per side, whichever hypothesis is true.
+(The priors of the faults are not used: each is treated as if certain, which only widens the
+interval; ARAIM's allocation by prior would be tighter and needs fault rates no one here has
+measured.) While two live hypotheses disagree, the interval covers both: a 0.1 s clock step at
+20 m/s costs 2 m of protection level, not availability, and a doubt whose separation still
+fits the alert limit leaves the estimate OK. Which hypotheses are live is the integrity
+monitor's business (``integrity.py``: each check's doubt is one of them, dropped when its test
+clears it).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from statistics import NormalDist
+
+OK, DEGRADED, ALARM = 0, 1, 2
+
+
+@dataclass(frozen=True)
+class Hypothesis:
+    """One fault the data have not excluded, as a solution beside the estimate."""
+
+    name: str  # the check that raised it (``clock``, ``balise``, ``position``, ``origin``)
+    shift: float  # m, where it puts the train relative to the estimate (+ ahead)
+    extra: float = 0.0  # m^2, its position variance beyond the estimate's
+
+
+def k_factor(risk: float, solutions: int = 1) -> float:
+    """The multiplier of each solution's standard deviation (module doc): the risk split over
+    ``solutions`` and the two sides."""
+    if not (0.0 < risk < 1.0):
+        raise ValueError(f"integrity risk must be in (0, 1), got {risk!r}")
+    return NormalDist().inv_cdf(1.0 - risk / (2.0 * max(1, int(solutions))))
+
+
+def protection_levels(variance: float, hypotheses=(), risk: float = 1e-7
+                      ) -> tuple[float, float]:
+    """``(PL_ahead, PL_behind)`` in m of an estimate whose fault-free position variance is
+    ``variance`` (m^2), with the live ``hypotheses`` (module doc); (inf, inf) when the variance
+    is not a finite positive number or a hypothesis is not finite (nothing bounds it)."""
+    if not (math.isfinite(variance) and variance > 0.0):
+        return math.inf, math.inf
+    live = [Hypothesis("fault-free", 0.0, 0.0)] + list(hypotheses)
+    k = k_factor(risk, len(live))
+    ahead = behind = 0.0
+    for h in live:
+        if not (math.isfinite(h.shift) and math.isfinite(h.extra) and h.extra >= 0.0):
+            return math.inf, math.inf
+        half = k * math.sqrt(variance + h.extra)
+        ahead, behind = max(ahead, h.shift + half), max(behind, -h.shift + half)
+    return ahead, behind
+
+
+def label(ahead: float, behind: float, alert_limit: float, alarm: bool = False) -> int:
+    """OK (both protection levels within the alert limit), DEGRADED (bounded, wider) or ALARM
+    (``alarm``, or no finite bound)."""
+    if alarm or not (math.isfinite(ahead) and math.isfinite(behind)):
+        return ALARM
+    return OK if max(ahead, behind) <= alert_limit else DEGRADED
