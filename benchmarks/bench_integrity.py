@@ -22,8 +22,9 @@ pooled) the table gives:
 
 Zone-controller rows (``train_sim.zone``, pure logic): bad reports and report streams (a
 negative or NaN braking-rate variance, a stamp 1e6 s ahead, an estimator's clock reset, ALARM,
-DEGRADED, reports stopping, fuzzed reports), counting crashes, bad reports accepted, lock-ups
-(emergency brake still on 5 s after good reports are back) and the time to brake.
+DEGRADED (bounded by its protection levels: no brake due), reports stopping, fuzzed reports),
+counting crashes, bad reports accepted, lock-ups (emergency brake still on 5 s after good
+reports are back) and the time to brake.
 
 Then one line per target of the integrity issue with PASS/FAIL.
 
@@ -272,7 +273,7 @@ def zone_case(kind: str, seed: int = 0, duration: float = 60.0, onset: float = 2
     def report(t, **kw):
         base = dict(t_received=t, stamp=t, position=10.0 * t, velocity=10.0, var_position=1.0,
                     var_velocity=0.01, braking_rate=1.0, var_braking_rate=0.01,
-                    measurement_used=True)
+                    measurement_used=True, pl_ahead=5.33, pl_behind=5.33)
         base.update(kw)
         # a TrainReport without an integrity field: the zone controller never sees it (the
         # node converts only the fields it knows), the report looks good
@@ -287,7 +288,10 @@ def zone_case(kind: str, seed: int = 0, duration: float = 60.0, onset: float = 2
                  dict(var_braking_rate=-0.01), dict(var_braking_rate=math.nan),
                  dict(braking_rate=-math.inf), dict(stamp_shift=1e6), dict(stamp_shift=-1e6),
                  dict(stamp_shift=math.nan), dict(velocity=1e9), dict(velocity=-1e9),
-                 dict(integrity=7)]  # (a NaN braking rate is "not estimated": not bad)
+                 dict(integrity=7), dict(pl_ahead=math.nan), dict(pl_behind=-1.0),
+                 dict(pl_ahead=math.inf), dict(position=1e12), dict(position=-1e9),
+                 dict(velocity=-149.0), dict(braking_rate=1e6)]
+    # (a NaN braking rate is "not estimated": not bad)
     n = int(duration * 10)
     brakes = []
     for k in range(n + 1):
@@ -299,8 +303,8 @@ def zone_case(kind: str, seed: int = 0, duration: float = 60.0, onset: float = 2
             kw["stamp"] = t - 1000.0
         if kind == "integrity ALARM" and after:
             kw["integrity"] = 2
-        if kind == "integrity DEGRADED" and after:
-            kw["integrity"] = 1
+        if kind == "integrity DEGRADED" and after:  # bounded: 60 m either way, used as it is
+            kw.update(integrity=1, pl_ahead=60.0, pl_behind=60.0)
         if not (kind == "reports stop" and after):
             if first and kind in ("braking_rate_var -0.01", "braking_rate_var NaN",
                                   "stamp +1e6"):
@@ -325,7 +329,7 @@ def zone_case(kind: str, seed: int = 0, duration: float = 60.0, onset: float = 2
             brakes.append((t, True))
             continue
         brakes.append((t, bool(auth.emergency_brake)))
-    expect_brake = kind in ("integrity ALARM", "integrity DEGRADED", "reports stop")
+    expect_brake = kind in ("integrity ALARM", "reports stop")
     t0 = brakes[0][0]
     settled = [(t, b) for t, b in brakes if t >= t0 + p.stale_timeout]
     if expect_brake:
@@ -364,8 +368,10 @@ def aggregate(rows: list[dict]) -> list[dict]:
                  na=next((r["na"] for r in rs if "na" in r), ""),
                  exceptions=sum(r["exceptions"] for r in rs),
                  error=next((r["error"] for r in rs if r["error"]), ""))
-        for k in ("wrong_side", "off_run", "hazards", "bad_cov", "corrupted", "outputs"):
+        for k in ("wrong_side", "off_run", "hazards", "bad_cov", "corrupted", "outputs",
+                  "misleading", "hazardous"):
             g[k] = sum(r[k] for r in ok)
+        g["pl_median"] = max((r["pl_median"] for r in ok), default=math.nan)
         g["twice_given"] = sum(r.get("twice_given", 0) for r in ok)
         for k in ("tta", "silence", "max_err", "rms_err", "window_err", "max_ratio"):
             vals = [r[k] for r in ok if not math.isnan(r[k])]
@@ -376,18 +382,21 @@ def aggregate(rows: list[dict]) -> list[dict]:
 
 
 def print_table(groups: list[dict]) -> None:
-    print("| scenario | fault | at | estimator | wrong-side | off-run | max err/sigma | "
-          "time to alarm s | availability % | longest silence s | max err m | RMS err m | "
-          "err to end+10 s m | non-PD cov | exceptions |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("| scenario | fault | at | estimator | misleading | hazardous | median PL m | "
+          "wrong-side | off-run | max err/sigma | "
+          "time to alarm s | availability (PL <= AL) % | longest silence s | max err m | "
+          "RMS err m | err to end+10 s m | non-PD cov | exceptions |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for g in groups:
         at = "-" if g["kind"] in ("none", "drift", "fuzz", "latency") else \
             f"{g['at']:g} s {g['phase']}".strip()
         if g["na"]:
             print(f"| {g['scenario']} | {g['label']} | {at} | {g['estimator']} | n/a: "
-                  f"{g['na'][:60]} |||||||||||")
+                  f"{g['na'][:60]} ||||||||||||||")
             continue
-        print(f"| {g['scenario']} | {g['label']} | {at} | {g['estimator']} | {g['wrong_side']} | "
+        print(f"| {g['scenario']} | {g['label']} | {at} | {g['estimator']} | "
+              f"{g['misleading']} | {g['hazardous']} | {_fmt(g['pl_median'], 1)} | "
+              f"{g['wrong_side']} | "
               f"{g['off_run']} | {_fmt(g['max_ratio'], 0)} | {_fmt(g['tta'])} | "
               f"{_fmt(100 * g['availability'], 1)} | {_fmt(g['silence'], 1)} | "
               f"{_fmt(g['max_err'])} | {_fmt(g['rms_err'])} | {_fmt(g['window_err'])} | "
@@ -399,6 +408,11 @@ def targets(groups: list[dict], zone: list[dict]) -> bool:
     ws = sum(g["wrong_side"] for g in real)
     off = sum(g["off_run"] for g in real)
     lines = []
+    mis = sum(g["misleading"] for g in real)
+    haz_ok = sum(g["hazardous"] for g in real)
+    lines.append((mis == 0, f"zero misleading estimates (|error| beyond the protection level, "
+                            f"not ALARM): {mis}; hazardous (OK, |error| > the alert limit): "
+                            f"{haz_ok}"))
     twice = sum(g["twice_given"] for g in real)
     lines.append((ws + off == 0, f"zero wrong-side estimates: {ws} wrong-side + {off} off-run "
                                  f"in {sum(g['outputs'] for g in real)} estimates ({twice} "

@@ -14,7 +14,7 @@ pytestmark = pytest.mark.ros
 RATE = 5.0  # sim s per wall s: at 10x one busy CI core made the estimates stale (0.3 s of wall)
 DURATION = 90.0  # s of simulated time
 KILL_AT = 60.0  # s: the leader's estimator is killed then
-LENGTH, MARGIN, K = 120.0, 20.0, 3.0  # zone controller's train length, margin, k sigma
+LENGTH, MARGIN = 120.0, 20.0  # zone controller's train length, margin
 STALE = 5.0  # s: the zone controller's stale_timeout
 EST_PERIOD = 0.1  # s: the estimator's output period (10 Hz)
 
@@ -45,7 +45,7 @@ def test_two_trains_under_one_zone_controller(launch, ros_node, tmp_path):
     launch.node("train_sim", "zone_controller", "--ros-args", "-p", "use_sim_time:=true",
                 "-p", "trains:=[/lead, /follow]", "-p", "state_topic:=estimate/robust",
                 "-p", f"line_file:={base.line_path}", "-p", f"train_length:={LENGTH}",
-                "-p", f"margin:={MARGIN}", "-p", f"k_sigma:={K}", "-p", f"stale_timeout:={STALE}",
+                "-p", f"margin:={MARGIN}", "-p", f"stale_timeout:={STALE}",
                 "-p", "rate:=2.0", name="zone_controller")
     estimators = {}
     for ns, (start, _) in trains.items():

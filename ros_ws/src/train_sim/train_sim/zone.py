@@ -79,7 +79,6 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass, field
-
 from statistics import NormalDist
 
 from train_core.config import param, require, require_finite

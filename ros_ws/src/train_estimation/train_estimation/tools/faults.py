@@ -317,7 +317,7 @@ def _not_pd(C: np.ndarray) -> bool:
 
 
 def score(outs: list, emitted: np.ndarray, faulted: Faulted, truth: dict, rate: float,
-          t_end: float, window: float = 10.0) -> dict:
+          t_end: float, window: float = 10.0, alert_limit: float = 10.0) -> dict:
     """Integrity figures of one run's estimates (true times: reference seconds since EPOCH).
 
     - ``wrong_side``: OK estimates with a hazardous error (module doc), whole run; ``twice_given``:
@@ -335,7 +335,12 @@ def score(outs: list, emitted: np.ndarray, faulted: Faulted, truth: dict, rate: 
     - ``max_err``/``rms_err``: |position error| from the onset on; ``window_err``: the largest
       |error| from the onset to ``window`` s after the fault's end;
     - ``bad_cov``: estimates whose position/velocity covariance is not positive definite
-      (negative or non-finite variances included).
+      (negative or non-finite variances included);
+    - ``misleading``: estimates not in ALARM whose error lies beyond their protection level
+      on its side (``protection.py``; the true position outside ``[x - behind, x + ahead]``),
+      whole run; ``hazardous``: OK estimates (both levels within ``alert_limit``) whose
+      |error| exceeds ``alert_limit``; ``pl_median``: the median of the larger protection
+      level over the estimates not in ALARM (m).
     """
     n = len(outs)
     em = np.asarray(emitted, float) - EPOCH
@@ -371,6 +376,13 @@ def score(outs: list, emitted: np.ndarray, faulted: Faulted, truth: dict, rate: 
                 if abs(e) <= WRONG_SIDE_M or abs(e) <= WRONG_SIDE_SIGMAS * sigma[i]:
                     twice[i] = True
     hazard &= ~twice
+    ahead = np.array([getattr(o, "protection_level_ahead", math.inf) for o in outs], float)
+    behind = np.array([getattr(o, "protection_level_behind", math.inf) for o in outs], float)
+    bounded = (integ != 2) & inside & ~twice
+    with np.errstate(invalid="ignore"):
+        misleading = bounded & (~np.isfinite(err) | (err < -ahead) | (err > behind))
+        hazardous = ok & inside & ~twice & ~(a <= alert_limit)
+    pl = np.maximum(ahead, behind)[integ != 2]
     after = em >= faulted.onset
     h = np.flatnonzero(hazard & after)
     alarms = np.flatnonzero(~ok & after)
@@ -402,6 +414,8 @@ def score(outs: list, emitted: np.ndarray, faulted: Faulted, truth: dict, rate: 
         rms_err=float(np.sqrt(np.mean(e_after ** 2))) if e_after.size else math.nan,
         window_err=float(a[w].max()) if np.any(w) else math.nan,
         bad_cov=int(sum(_not_pd(c) for c in C)),
+        misleading=int(np.sum(misleading)), hazardous=int(np.sum(hazardous)),
+        pl_median=float(np.median(pl)) if pl.size else math.inf,
         max_ratio=float(np.nanmax(np.where(ok & hazard, a / sigma, np.nan)))
         if np.any(ok & hazard & np.isfinite(sigma)) else math.nan,
     )

@@ -43,8 +43,6 @@ from .odometer_scale import (
 from .runner import Output
 
 NAN16 = (math.nan,) * 16
-ORIGIN_FAR = 8.0  # start deviations: a first count further from zero is of unknown origin
-#   (_DistanceAsPosition._origin)
 
 
 @dataclass(frozen=True)
@@ -311,15 +309,19 @@ class _DistanceAsPosition:
 
     def _origin(self, fields: dict) -> None:
         """The first odometer reading's count against ``initial_position`` (where the count is
-        zero). A count far from zero there (more than ``ORIGIN_FAR`` start deviations) is
-        either that far along the line, or a count that began before the data did (a bag
-        recorded from mid-run, a sensor that counts from its power-up): the two are told apart
-        by the first balise, not here. The calibration's origin is put where the estimate
-        starts and its variance grown by the count squared, so that both lie inside the
-        interval: the estimate is honest and wide until a balise places the count (event
-        ``count_origin``). Taken as the parameter says, a count of 5 km at the first reading
-        had every reading refused by the gates for the whole run (no estimate available), and
-        the robust filter's integrity monitor raised a TypeError on the first balise."""
+        zero). A count ``c`` other than zero there means one of two things, and nothing before
+        a balise tells which: the train ran ``c`` from the start before the data began
+        (``initial_position + c``), or the count began before the data did (a count not reset
+        at the start, a bag recorded from mid-run, a sensor that counts from its power-up: the
+        train at ``initial_position``). Both hypotheses are carried, whatever the size of
+        ``c``: the calibration's origin is put where the estimate starts and its variance grown
+        by ``c^2``, so that the interval holds both, and the first balise places the count. A
+        rule that took the count as distance run below 8 start deviations (40 m) and as unknown
+        above left counts of 26-39 m not reset at the start 26-53 m off with an OK label
+        through the run (the balises that contradicted it were refused by the gate); taken as
+        the parameter says, a count of 5 km had every reading refused for the whole run. The
+        event ``count_origin`` is said where the count lies beyond the start's own standard
+        deviation (below it, the widening is within what the start already allowed)."""
         if not self.cfg.use_distance or self.odo is not None or self.origin_seen:
             return
         try:
@@ -330,12 +332,12 @@ class _DistanceAsPosition:
             return
         self.origin_seen = True
         far = float(self.cal.theta[1]) * d
-        if abs(far) <= ORIGIN_FAR * self.start_state.position_std:
+        if far == 0.0:
             return
         for cal in (self.cal, self.cal_wide):
             if cal is not None:
                 cal.widen_origin(-far, far * far)
-        self.origin_far = 1
+        self.origin_far = int(abs(far) > self.start_state.position_std)
 
     def _unrestart(self, undo) -> None:
         """The reading that spliced the count was not fused: as before it (:meth:`_restart`)."""
