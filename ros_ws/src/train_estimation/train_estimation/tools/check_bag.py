@@ -53,6 +53,36 @@ def _stats(err: np.ndarray) -> dict:
             "mean": float(err.mean())}
 
 
+ALERT_LIMIT = 10.0  # m: the estimators' default alert limit (docs/integrity.md)
+
+
+def stanford_regions(rows: list, inside: np.ndarray, err: np.ndarray,
+                     alert_limit: float = ALERT_LIMIT) -> dict | None:
+    """The Stanford-diagram regions of the estimates with ground truth (``err``: position
+    error of the rows ``inside`` the truth's span), by their protection levels: ``nominal``
+    (error within the protection level, the level within the alert limit), ``unavailable``
+    (error within the level, the level beyond the limit), ``misleading`` (error beyond the
+    level on its side, not ALARM), ``hazardous`` (also beyond the alert limit), ``alarm``;
+    None for a bag recorded before estimates carried protection levels."""
+    sel = [f for (_, _, f), i in zip(rows, inside) if i]
+    if not sel or "protection_level_ahead" not in sel[0]:
+        return None
+    ahead = np.array([f["protection_level_ahead"] for f in sel], float)
+    behind = np.array([f["protection_level_behind"] for f in sel], float)
+    alarm = np.array([f.get("integrity", 0) == 2 for f in sel])
+    with np.errstate(invalid="ignore"):
+        within = (err >= -ahead) & (err <= behind)
+        pl = np.maximum(ahead, behind)
+        mis = ~alarm & ~within
+        return {"alert_limit": alert_limit, "estimates": int(len(sel)),
+                "nominal": int(np.sum(~alarm & within & (pl <= alert_limit))),
+                "unavailable": int(np.sum(~alarm & within & (pl > alert_limit))),
+                "misleading": int(np.sum(mis & ~(np.abs(err) > alert_limit))),
+                "hazardous": int(np.sum(mis & (np.abs(err) > alert_limit))),
+                "alarm": int(np.sum(alarm)),
+                "pl_median": float(np.median(pl[~alarm])) if np.any(~alarm) else math.inf}
+
+
 def estimator_report(bag: Bag, topic: str, source: str, truth: dict | None,
                      rate_factor: float | None = None) -> dict:
     rows = [(t, s, f) for t, s, f in bag.topics[topic] if f["source"] == source]
@@ -98,6 +128,9 @@ def estimator_report(bag: Bag, topic: str, source: str, truth: dict | None,
                            "fraction_within_95": float(np.mean(nees <= CHI2_95[2]))}
             sx = np.sqrt(np.maximum(c[ok][:, 0, 0], 0))
             rep["position_within_3sigma"] = float(np.mean(np.abs(ex[ok]) <= 3 * sx))
+        regions = stanford_regions(rows, inside, ex)
+        if regions is not None:
+            rep["integrity"] = regions
         series.update(xt=xt, vt=vt, ft=ft, inside=inside)
     rep["_series"] = series
     return rep
@@ -295,6 +328,14 @@ def format_report(summary: dict) -> str:
                 f"{g(v, 'rmse'):>9} {g(f, 'rmse'):>7} {'-' if nees is None else f'{nees:.2f}':>5}"
                 f"  {r.get('position_within_3sigma', float('nan')):7.3f}  "
                 f"{1e3 * lat['median']:.1f}/{1e3 * lat['p99']:.1f}")
+        for name, r in summary["estimators"].items():
+            g = r.get("integrity")
+            if g:
+                lines.append(f"{name}: protection levels (alert limit {g['alert_limit']:g} m): "
+                             f"nominal {g['nominal']}, unavailable {g['unavailable']}, "
+                             f"misleading {g['misleading']}, hazardous {g['hazardous']}, "
+                             f"alarm {g['alarm']} of {g['estimates']}; median level "
+                             f"{g['pl_median']:.2f} m")
         for name, r in summary["estimators"].items():
             fb = r.get("braking_rate_final")
             if fb:
