@@ -225,7 +225,7 @@ def test_one_command_stamped_ahead_is_refused_and_blinds_nothing():
     s = F.score(outs, emitted, fl, res.truth, 10.0, 40.0 + F.LATENCY)
     assert runner.rejected.get("control:future_stamp") == 1, runner.counts
     assert not any(k.startswith("odometer:") for k in runner.rejected), runner.counts
-    assert s["wrong_side"] == 0 and s["off_run"] == 0 and s["availability"] > 0.99, s
+    assert s["wrong_side"] == 0 and s["off_run"] == 0 and s["clear"] > 0.99, s
 
 
 def test_a_clock_faster_than_its_arrivals_is_not_ahead_of_itself():
@@ -311,7 +311,7 @@ def test_a_measured_step_is_ok_once_re_anchored():
     assert runner.events.get("odometer:clock_reset") == 1, runner.counts
     degraded = [e - F.EPOCH for o, e in zip(outs, emitted) if o.integrity and e > F.EPOCH + 30]
     assert degraded and max(degraded) < 31.1, degraded
-    assert s["availability"] >= 0.98 and s["wrong_side"] == 0 and s["hazards"] == 0, s
+    assert s["clear"] >= 0.98 and s["wrong_side"] == 0 and s["hazards"] == 0, s
 
 
 def test_a_late_reading_at_1_hz_is_no_doubt():
@@ -386,7 +386,7 @@ def test_a_recorder_stall_early_in_a_1_hz_run_does_not_move_the_clock():
     outs, emitted, runner = F.run(fl.events, adapter(sc, "robust"), 1.0)
     s = F.score(outs, emitted, fl, res.truth, 1.0, 100.0 + F.LATENCY)
     assert abs(runner._offsets["train"].value + F.LATENCY) < 0.1, runner._offsets["train"].value
-    assert s["wrong_side"] == 0 and s["availability"] > 0.85, s
+    assert s["wrong_side"] == 0 and s["clear"] > 0.85, s
 
 
 @pytest.mark.parametrize("err", [0.5, 5.0, -5.0, 60.0])
@@ -402,7 +402,7 @@ def test_a_copy_of_a_fused_sample_with_another_stamp_is_refused_and_doubts_nothi
     outs, emitted, runner = F.run(events, adapter(sc, "kf"), 0.1)
     s = F.score(outs, emitted, fl, res.truth, 10.0, 60.0 + F.LATENCY)
     assert runner.rejected.get("odometer:duplicate") == n_copies > 40, runner.counts
-    assert s["wrong_side"] == 0 and s["availability"] > 0.99, s
+    assert s["wrong_side"] == 0 and s["clear"] > 0.99, s
 
 
 @pytest.mark.parametrize("size", [-10.0, -3.0, 3.0, 10.0])
@@ -421,7 +421,7 @@ def test_a_step_in_the_first_seconds_of_a_1_hz_run_is_seen_by_the_seqs(size):
     assert runner._steps.shift == pytest.approx(size, abs=0.02)
     assert s["wrong_side"] == 0 and s["off_run"] == 0, s
     # held while the nine readings that decide the step come (9 of the 66 slots scored)
-    assert s["availability"] > 0.8, s
+    assert s["clear"] > 0.8, s
 
 
 def test_the_provisional_sample_grid():
@@ -451,7 +451,7 @@ def test_a_balise_during_a_step_waits_with_the_odometer_and_is_fused_on_the_new_
     s = F.score(outs, emitted, fl, res.truth, 1.0, 115.0 + F.LATENCY)
     assert runner.events.get("odometer:clock_reset") == 1, runner.counts
     assert "balise:outside_gate" not in runner.rejected, runner.counts
-    assert s["wrong_side"] == 0 and s["availability"] > 0.8, s
+    assert s["wrong_side"] == 0 and s["clear"] > 0.8, s
 
 
 def test_a_counter_that_restarts_counts_on_past_its_old_highest_seq_on_its_own_line():

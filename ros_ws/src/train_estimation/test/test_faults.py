@@ -151,7 +151,7 @@ def test_score_counts_wrong_side_and_time_to_alarm():
     s = F.score(outs, emitted, fl, truth, 10.0, 20.0)
     assert s["wrong_side"] == 20 and s["off_run"] == 1 and s["hazards"] == 30
     assert s["tta"] == pytest.approx(2.0)
-    assert s["availability"] == pytest.approx(140 / 150)  # the far stamp is of no use
+    assert s["clear"] == pytest.approx(140 / 150)  # the far stamp is of no use
     assert s["max_err"] == pytest.approx(30.0) and s["bad_cov"] == 0
     # a covariance claiming certainty of a hazard is no bound: wrong-side and not PD
     s = F.score([_out(F.EPOCH + 6.0, 3.0, -1.0)], np.array([F.EPOCH + 6.05]), fl, truth,
@@ -174,9 +174,9 @@ def test_one_case_of_each_fault_class_runs_through_an_estimator(fault):
     assert np.all(np.diff(emitted) >= 0)
     s = F.score(outs, emitted, fl, res.truth, 10.0, 20.0 + F.LATENCY)
     assert s["outputs"] == len(outs)
-    assert 0.0 <= s["availability"] <= 1.0 and math.isfinite(s["rms_err"])
+    assert 0.0 <= s["clear"] <= 1.0 and math.isfinite(s["rms_err"])
     if fault.kind == "none":  # the clean run is inside its bound: the scoring has no false alarm
-        assert s["wrong_side"] == 0 and s["hazards"] == 0 and s["availability"] > 0.95
+        assert s["wrong_side"] == 0 and s["hazards"] == 0 and s["clear"] > 0.95
     if fault.kind in ("none", "stamp"):  # faults.run is core.replay.replay, timed
         ref, _ = replay(fl.events, adapter(sc), 0.1, control_clock="same")
         assert [(o.stamp, o.position) for o in ref] == [(o.stamp, o.position) for o in outs]
@@ -198,7 +198,7 @@ def test_a_sample_counter_that_skips_is_logged_and_no_clock_step():
     assert runner.events["odometer:seq_skip"] == 1, dict(runner.events)
     assert runner.events["odometer:clock_reset"] == 0, dict(runner.events)
     s = F.score(outs, emitted, fl, res.truth, 10.0, 30.0 + F.LATENCY)
-    assert s["wrong_side"] == 0 and s["hazards"] == 0 and s["availability"] > 0.95, s
+    assert s["wrong_side"] == 0 and s["hazards"] == 0 and s["clear"] > 0.95, s
 
 
 @pytest.mark.parametrize("jump", [0.2, -3.0])
@@ -236,4 +236,4 @@ def test_the_start_up_is_not_scored_as_unavailable():
     first = emitted[0] - F.EPOCH
     assert first > 1.9  # the start-up: nothing before the third reading
     s = F.score(outs, emitted, fl, res.truth, 1.0, 60.0 + F.LATENCY)
-    assert s["availability"] == 1.0, s
+    assert s["clear"] == 1.0, s

@@ -267,10 +267,16 @@ def test_copies_of_the_first_readings_stamped_ahead_are_not_fused_at_their_stamp
     assert r.rejected["odometer:duplicate"] >= 1, dict(r.rejected)
     err, _ = errors(outs, res, epoch=100.0)
     sd = np.sqrt([o.covariance[0] for o in outs if 100.0 <= o.stamp <= 140.0])
-    ok = np.array([o.integrity == 0 for o in outs if 100.0 <= o.stamp <= 140.0])
+    sel = [o for o in outs if 100.0 <= o.stamp <= 140.0]
+    ok = np.array([o.integrity != 2 and not o.integrity_reason for o in sel])  # no doubt
+    bounded = np.array([o.integrity != 2 for o in sel])
+    ahead = np.array([o.protection_level_ahead for o in sel])
+    behind = np.array([o.protection_level_behind for o in sel])
     assert err.size == ok.size
     wrong = ok & (np.abs(err) > 1.0) & (np.abs(err) > 5 * sd)
     assert not wrong.any(), (err[wrong], sd[wrong])
+    misleading = bounded & ((err < -ahead) | (err > behind))
+    assert not misleading.any(), err[misleading]
     assert np.abs(err[ok]).max() < 3.0
 
 

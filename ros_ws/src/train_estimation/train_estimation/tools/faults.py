@@ -328,9 +328,12 @@ def score(outs: list, emitted: np.ndarray, faulted: Faulted, truth: dict, rate: 
     - ``hazards``: estimates, from the onset on, whose error exceeds the bound (whatever their
       integrity); ``tta``: from the first of them to the first non-OK estimate published at or
       after the onset (0 when the alarm came first; inf: never; NaN: no hazard);
-    - ``availability``: OK estimates published from the onset on (after the run's first
-      ``START_SLOTS`` slots: the start-up), within ``AVAILABLE_LAG`` of the time they claim,
-      over the odometer slots of that time (at most 1); ``silence``: the
+    - ``availability``: OK estimates (both protection levels within the alert limit) published
+      from the onset on (after the run's first ``START_SLOTS`` slots: the start-up), within
+      ``AVAILABLE_LAG`` of the time they claim, over the odometer slots of that time (at most
+      1); ``clear``: the same of the estimates no check of the integrity monitor doubts (not
+      ALARM, empty ``integrity_reason``: no widening, no live hypothesis; what the tests of
+      each check judge, whatever the alert limit); ``silence``: the
       longest time without an estimate from the onset on;
     - ``max_err``/``rms_err``: |position error| from the onset on; ``window_err``: the largest
       |error| from the onset to ``window`` s after the fault's end;
@@ -363,6 +366,8 @@ def score(outs: list, emitted: np.ndarray, faulted: Faulted, truth: dict, rate: 
         beyond = (a > WRONG_SIDE_M) & ~(a <= WRONG_SIDE_SIGMAS * sigma)
         hazard = inside & (~np.isfinite(a) | beyond)
     ok = integ == 0
+    # no doubt: bounded, and no check of the monitor doubts it (no widening, no live hypothesis)
+    clear = (integ != 2) & np.array([not getattr(o, "integrity_reason", "") for o in outs], bool)
     # A stamp the train clock gave twice within AVAILABLE_LAG (a backward step of less than
     # that, at its edge): no reader can tell which instant it means, and the estimate of one
     # of them is not judged by the other; counted apart (``twice_given``), not wrong-side
@@ -409,6 +414,8 @@ def score(outs: list, emitted: np.ndarray, faulted: Faulted, truth: dict, rate: 
         hazards=int(h.size), tta=tta,
         availability=min(1.0, float(np.sum(ok & (em >= a_from) & timely))
                          / max(1.0, math.floor(span * rate))),
+        clear=min(1.0, float(np.sum(clear & (em >= a_from) & timely))
+                  / max(1.0, math.floor(span * rate))),
         silence=float(np.max(np.diff(stamps_after))) if stamps_after.size > 1 else span,
         max_err=float(e_after.max()) if e_after.size else math.nan,
         rms_err=float(np.sqrt(np.mean(e_after ** 2))) if e_after.size else math.nan,
