@@ -90,9 +90,11 @@ def _sim(scenario: str, seed: int, duration: float):
     return sc, simulate(sc, seed, duration)
 
 
-def make_adapter(sc, name: str, **config):
-    """The estimator ``name`` with its node defaults, or ``config``'s parameters instead."""
-    st = StartState(sc.start_position)
+def make_adapter(sc, name: str, fault=None, **config):
+    """The estimator ``name`` with its node defaults, or ``config``'s parameters instead; its
+    start where ``fault`` puts it (``start_offset``: off the train's)."""
+    st = StartState(sc.start_position if fault is None else
+                    F.start_position(fault, sc.start_position))
     if name == "robust_filter":
         return RobustAdapter(sc.train, sc.line, st,
                              RobustConfig(period=1 / sc.odometer_rate, **config))
@@ -125,7 +127,7 @@ def run_task(task: dict) -> dict:
     tr = {k: np.asarray(v)[np.asarray(res.truth["t"]) <= end] for k, v in res.truth.items()}
     row = dict(task, exceptions=0, error="")
     try:
-        adapter = make_adapter(sc, task["estimator"], **task.get("config", {}))
+        adapter = make_adapter(sc, task["estimator"], fault, **task.get("config", {}))
     except ValueError as exc:  # the estimator cannot model this train (no brake delay, ...)
         row["na"] = str(exc)
         return row
@@ -232,6 +234,14 @@ def plan(quick: bool, seeds: int, estimators, only, phase_names=None, long: floa
         for s in (((0.02,) if scenario == "metro_demo" else ()) if quick else
                   (-0.02, -0.01, -0.005, 0.005, 0.01, 0.02)):
             faults.append((F.Fault("odometer_scale", s, 0.0), short if quick else full))
+        # a first count that is not the distance run (not reset at the start: 0-1,000 m), and
+        # an initial_position off the train's (0-50 m): the two readings of a count
+        for s in (((30.0,) if scenario == "metro_demo" else ()) if quick else
+                  (5.0, 26.0, 30.0, 39.0, 41.0, 100.0, 1000.0)):
+            faults.append((F.Fault("first_count", s, 0.0), short))
+        for s in (((20.0,) if scenario == "metro_demo" else ()) if quick else
+                  (-50.0, -20.0, -5.0, 5.0, 20.0, 50.0)):
+            faults.append((F.Fault("start_offset", s, 0.0), short))
         fuzz_duration = short if quick or scenario != "metro_demo" else 3000.0
         fuzz_duration = min(fuzz_duration, long or math.inf)
         faults.append((F.Fault("fuzz", fuzz_rate or (0.5 if quick else 10.0), 0.0),
@@ -388,7 +398,8 @@ def print_table(groups: list[dict]) -> None:
           "RMS err m | err to end+10 s m | non-PD cov | exceptions |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for g in groups:
-        at = "-" if g["kind"] in ("none", "drift", "fuzz", "latency") else \
+        at = "-" if g["kind"] in ("none", "drift", "fuzz", "latency", "first_count",
+                                      "start_offset", "odometer_scale") else \
             f"{g['at']:g} s {g['phase']}".strip()
         if g["na"]:
             print(f"| {g['scenario']} | {g['label']} | {at} | {g['estimator']} | n/a: "

@@ -42,6 +42,12 @@ reboot           s: the odometer reboots at ``at``: no reading for ``size`` s, t
 odometer_scale   fraction: from ``at`` on the odometer counts ``1 + size`` times the distance
                  run and reads ``1 + size`` times the speed (a worn or mis-set wheel
                  diameter; 0.01 = 1 %); the distance is continuous at ``at``
+first_count      m: every odometer distance is ``size`` m more than the distance run (a count
+                 not reset at the start, data from mid-run): the train is at
+                 ``initial_position`` with a first count of ``size``
+start_offset     m: the stream is clean, the estimator's ``initial_position`` is ``size`` m
+                 off the train's (:func:`start_position`; the count's zero is where the train
+                 truly started)
 ===============  ========================================================================
 
 Any kind can run on a jittery link: ``Fault.jitter`` (s) adds an exponential extra latency of
@@ -82,7 +88,8 @@ AVAILABLE_LAG = 1.0  # s: an OK estimate published further from the time it clai
 #   available (counted in ``availability``)
 TRAIN_TOPICS = ("odometer", "balise")
 KINDS = ("none", "stamp", "step", "drift", "outage", "command_stop", "latency", "recorder_stall",
-         "node_stall", "fuzz", "balise", "odometer_scale", "stuck", "seq_skip", "reboot")
+         "node_stall", "fuzz", "balise", "odometer_scale", "stuck", "seq_skip", "reboot",
+         "first_count", "start_offset")
 # stamps a few seconds to minutes off: inside the runner's max_future (600 s), so the door lets
 # them in and only the clocks' and the filters' own checks stand between them and the estimate
 INSIDE_FUTURE = {
@@ -205,6 +212,8 @@ def inject(events: list, fault: Fault, rng: np.random.Generator) -> Faulted:
     for topic, t, fields in events:
         if topic not in ("control",) + TRAIN_TOPICS:
             continue
+        if k == "first_count" and topic == "odometer":
+            fields = dict(fields, distance=fields["distance"] + size)
         if k == "odometer_scale" and topic == "odometer" and t >= at:
             d_at = fields["distance"] if d_at is None else d_at
             fields = {**fields, "distance": d_at + (1.0 + size) * (fields["distance"] - d_at),
@@ -281,6 +290,12 @@ class _Timed:
 
     def __getattr__(self, name):
         return getattr(self._a, name)
+
+
+def start_position(fault: Fault, true_start: float) -> float:
+    """m, the ``initial_position`` an estimator is given under ``fault`` (``start_offset``:
+    ``size`` m off the train's true start; every other kind: the true start)."""
+    return true_start + (fault.size if fault.kind == "start_offset" else 0.0)
 
 
 def run(events: list, adapter, period: float, delay: float = 0.05, fallback: float = 0.2,
