@@ -494,6 +494,9 @@ def main(argv=None) -> int:
                     help="reduced full campaign: drift and fuzz runs at most this long (s)")
     ap.add_argument("--fuzz-rate", type=float, default=None,
                     help="corrupted messages per clean one (quick 0.5, full 10)")
+    ap.add_argument("--stanford", default="benchmarks/out/stanford",
+                    help="folder for one Stanford diagram per estimator (|error| against the "
+                         "protection level, every run pooled): stanford_ESTIMATOR.png")
     args = ap.parse_args(argv)
     seeds = args.seeds or (1 if args.quick else 2)
     estimators = args.estimators or (QUICK_ESTIMATORS if args.quick else ESTIMATORS)
@@ -550,6 +553,16 @@ def main(argv=None) -> int:
         for z in zone:
             if z["error"]:
                 print(f"zone {z['kind']}: {z['error']}", file=sys.stderr)
+    if args.stanford:
+        out = Path(args.stanford)
+        out.mkdir(parents=True, exist_ok=True)
+        print()
+        for est in estimators:
+            hist = sum((r["stanford"] for r in rows if r["estimator"] == est and
+                        "stanford" in r), start=np.zeros((60, 60), np.int64))
+            path = out / f"stanford_{est}.png"
+            reg = F.plot_stanford(hist, 10.0, f"{est}: {mode} campaign", path)
+            print(f"Stanford diagram {path}: " + ", ".join(f"{k} {v}" for k, v in reg.items()))
     ok = targets(groups, zone)
     print("RESULT:", "PASS" if ok else "FAIL")
     return 0 if ok else 1

@@ -83,6 +83,7 @@ EPOCH = 1.7e9  # s, both clocks at start (a Unix time)
 LATENCY = 0.05  # s, link latency of every message in the clean stream
 WRONG_SIDE_M = 1.0  # m: smaller errors are never a hazard, whatever the covariance says
 WRONG_SIDE_SIGMAS = 5.0  # published standard deviations
+STANFORD_EDGES = np.logspace(-2.0, 4.0, 61)  # m, bins of |error| and protection level
 START_SLOTS = 2  # odometer slots of a run's start-up, not counted in ``availability``
 AVAILABLE_LAG = 1.0  # s: an OK estimate published further from the time it claims is not
 #   available (counted in ``availability``)
@@ -292,6 +293,54 @@ class _Timed:
         return getattr(self._a, name)
 
 
+def stanford_counts(err: np.ndarray, pl: np.ndarray) -> np.ndarray:
+    """The Stanford diagram's 2-D histogram (Tossaint et al., ION GNSS 2006): counts of
+    ``(|error|, protection level)`` on :data:`STANFORD_EDGES` (rows: error, columns: level;
+    values beyond the edges land in the first or last bin)."""
+    lo, hi = STANFORD_EDGES[0], STANFORD_EDGES[-1] * 0.999
+    e = np.clip(np.nan_to_num(np.abs(err), nan=hi, posinf=hi), lo, hi)
+    p = np.clip(np.nan_to_num(pl, nan=hi, posinf=hi), lo, hi)
+    h, _, _ = np.histogram2d(e, p, bins=(STANFORD_EDGES, STANFORD_EDGES))
+    return h.astype(np.int64)
+
+
+def plot_stanford(counts: np.ndarray, alert_limit: float, title: str, path) -> dict:
+    """Draw a Stanford diagram (|error| against protection level, log-log, the diagonal and
+    the alert limit marked) into ``path``; returns the counts per region: ``nominal`` (error
+    within the level, level within the limit), ``unavailable`` (level beyond the limit),
+    ``misleading`` (error beyond the level), ``hazardous`` (error beyond the level and the
+    limit). Regions are judged on bin centres (the scores' exact counts are in the table)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    c = np.sqrt(STANFORD_EDGES[:-1] * STANFORD_EDGES[1:])
+    E, P = np.meshgrid(c, c, indexing="ij")
+    regions = {"nominal": int(counts[(E <= P) & (P <= alert_limit)].sum()),
+               "unavailable": int(counts[(E <= P) & (P > alert_limit)].sum()),
+               "misleading": int(counts[(E > P) & (E <= alert_limit)].sum()),
+               "hazardous": int(counts[(E > P) & (E > alert_limit)].sum())}
+    fig, ax = plt.subplots(figsize=(6.4, 5.2))
+    masked = np.ma.masked_where(counts == 0, counts)
+    mesh = ax.pcolormesh(STANFORD_EDGES, STANFORD_EDGES, masked, norm=matplotlib.colors.LogNorm(),
+                         cmap="viridis", shading="flat")
+    fig.colorbar(mesh, ax=ax, label="estimates")
+    ax.plot(STANFORD_EDGES, STANFORD_EDGES, "k-", lw=1)
+    ax.axvline(alert_limit, color="tab:red", lw=1, ls="--")
+    ax.axhline(alert_limit, color="tab:red", lw=1, ls="--")
+    ax.set(xscale="log", yscale="log", xlabel="protection level (m, larger side)",
+           ylabel="|position error| (m)", title=title)
+    ax.text(0.02, 0.97, f"misleading {regions['misleading']}\nhazardous {regions['hazardous']}",
+            transform=ax.transAxes, va="top", fontsize=9)
+    ax.text(0.97, 0.03, f"nominal {regions['nominal']}\nunavailable {regions['unavailable']}",
+            transform=ax.transAxes, ha="right", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return regions
+
+
 def start_position(fault: Fault, true_start: float) -> float:
     """m, the ``initial_position`` an estimator is given under ``fault`` (``start_offset``:
     ``size`` m off the train's true start; every other kind: the true start)."""
@@ -438,6 +487,7 @@ def score(outs: list, emitted: np.ndarray, faulted: Faulted, truth: dict, rate: 
         bad_cov=int(sum(_not_pd(c) for c in C)),
         misleading=int(np.sum(misleading)), hazardous=int(np.sum(hazardous)),
         pl_median=float(np.median(pl)) if pl.size else math.inf,
+        stanford=stanford_counts(a[bounded], np.maximum(ahead, behind)[bounded]),
         max_ratio=float(np.nanmax(np.where(ok & hazard, a / sigma, np.nan)))
         if np.any(ok & hazard & np.isfinite(sigma)) else math.nan,
     )
