@@ -176,46 +176,25 @@ def build_estimator_node(name: str, topic: str, make_adapter: Callable):
             # would publish different estimates). There the slots follow the inputs' watermarks
             # alone: the simulator's next messages publish a lost reading's slot.
             self.clock_slots = not self.get_parameter("use_sim_time").value
-            self.waiting: list = []  # messages received before a simulated clock started
             self.n_reported = 0
             self.get_logger().info(
                 f"{self.adapter.source} on {line.name} / {train.name}, start at "
                 f"{start.position:.1f} m, output {common['odometer_rate']:g} Hz on '{topic}'")
 
-        def _arrival(self) -> float | None:
-            """s, now on the receive clock the runner judges stamps against: the steady clock;
-            on simulated time (use_sim_time) the ROS clock, which is the world's receive
-            clock there (the simulator's /clock, or a player's: a bag's log time, on which the
-            contract stamps the commands). On the steady clock a simulation at 10x real time
-            runs its stamps ten times faster than their arrivals, and the default
-            ``control_clock: auto`` refused 3,892 of 3,900 commands as stamped ahead. None
-            while the simulated clock has not started."""
-            if self.clock_slots:
-                return self.steady.now().nanoseconds * 1e-9
-            t = self.get_clock().now().nanoseconds
-            return t * 1e-9 if t > 0 else None
-
         def _push(self, kind: str, msg, fields: dict) -> None:
-            recv = self._arrival()
-            wall = self.steady.now().nanoseconds * 1e-9
-            if recv is None:  # before the first /clock: held, pushed when it starts
-                self.waiting.append((kind, msg, fields))
-                return
-            while self.waiting:
-                k, m, f = self.waiting.pop(0)
-                self._push_one(k, m, f, recv, wall)
-            self._push_one(kind, msg, fields, recv, wall)
-            self.tick()
-
-        def _push_one(self, kind: str, msg, fields: dict, recv: float, wall: float) -> None:
+            # Arrival on the steady clock: only differences of arrival times matter to the
+            # runner (stream offsets, the train clock's rate), and under use_sim_time the ROS
+            # clock can stall behind the data (a player's /clock), which arrival must not do.
+            recv = self.steady.now().nanoseconds * 1e-9
             stamp = stamp_to_sec(msg.header.stamp)
             self.received[kind] += 1
-            self.last_arrival[kind] = wall
+            self.last_arrival[kind] = recv
             reason = self.runner.push(kind, stamp, fields, recv)
             if kind == "odometer" and not reason:
-                self.arrived[stamp] = wall  # for the received -> published latency
+                self.arrived[stamp] = recv  # for the received -> published latency
             if reason:
                 self.get_logger().warning(f"{kind} rejected: {reason}", throttle_duration_sec=2.0)
+            self.tick()
 
         def on_odometer(self, msg) -> None:
             self._push("odometer", msg, {"seq": msg.seq, "distance": msg.distance,
@@ -230,9 +209,7 @@ def build_estimator_node(name: str, topic: str, make_adapter: Callable):
             self._push("control", msg, {"target_acceleration": msg.target_acceleration})
 
         def tick(self) -> None:
-            now = self._arrival()  # the arrival clock (see _arrival)
-            if now is None:
-                return
+            now = self.steady.now().nanoseconds * 1e-9  # the arrival clock (see _push)
             if self.wait_subs:  # discovery, as the simulator's wait_for_subscribers: readers
                 if self.pub.get_subscription_count() < self.wait_subs:  # that match late
                     return  # would miss the first estimates (inputs stay queued meanwhile)

@@ -206,17 +206,15 @@ def build_node():
                 return
             if self.t_sim < self.duration:
                 self.world.advance(min(target, self.duration))
-            # the world's clock first, then what has arrived by it (with link latency, later
-            # than it was sent): a node on simulated time receives each message at or after its
-            # delivery time, never before (latency >= 0 on the clock it judges stamps by)
+            # deliver what has arrived by now: with link latency, later than it was sent
+            for topic, stamp, fields in self.world.deliver(target):
+                self.pubs[topic].publish(fields_to_msg(TOPIC_TYPES[topic], stamp, fields))
+                self.counts[topic] += 1
             self.t_sim = target
             if self.publish_clock:
                 clock = Clock()
                 sec_to_stamp(self.t_sim, clock.clock)
                 self.clock_pub.publish(clock)
-            for topic, stamp, fields in self.world.deliver(target):
-                self.pubs[topic].publish(fields_to_msg(TOPIC_TYPES[topic], stamp, fields))
-                self.counts[topic] += 1
             if self.t_sim >= self.duration and not self.done:
                 self.done = True
                 self.get_logger().info(f"run ended at {self.duration:.1f} s; published "
