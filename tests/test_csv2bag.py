@@ -158,6 +158,22 @@ def test_period_numbering_counts_whole_periods_without_drifting():
     assert np.array_equal(seq, keep + 1)
 
 
+def test_samples_delivered_out_of_order_or_twice_keep_their_numbers(tmp_path, capsys):
+    """A link with jitter delivers samples out of order and the log keeps the arrival order;
+    a sample delivered twice keeps its number (a duplicate), and only the missing one is lost."""
+    assert list(csv2bag.number_samples([10.0, 10.2, 10.1, 10.4, 10.4], 0.1)) == [1, 3, 2, 5, 5]
+    p = tmp_path / "log.csv"
+    p.write_text("t,tt,v,d\n" + "".join(f"{100 + i * 0.1:.1f},{tt},1.0,{tt}\n" for i, tt in
+                                       enumerate([10.0, 10.2, 10.1, 10.4, 10.4, 10.5])))
+    assert csv2bag.main([str(p), "--out", str(tmp_path / "bag"), "--column", "time=t",
+                         "--column", "train_time=tt", "--column", "speed=v",
+                         "--column", "distance=d"]) == 0
+    out = capsys.readouterr().out
+    assert "5 of 6 in the log, 1 lost (16.7 %) in 1 gaps" in out, out
+    assert [f["seq"] for _, _, f in read_bag(tmp_path / "bag").topics["odometer"]] == \
+        [1, 3, 2, 5, 5, 6]
+
+
 def test_rows_with_commands_only_and_balise_rows(tmp_path):
     p = tmp_path / "log.csv"
     p.write_text(HEADER + "".join(r + "\n" for r in [

@@ -47,7 +47,8 @@ the previous one, so a sample missing from the log (lost on the way, or a bad ro
 shows as a lost sample, as a dropout would. How many were lost and where is printed.
 
 Clocks. Times of day (text, or numbers under 86 400 s) that step back by more than 12 h have
-crossed midnight: a day is added (printed). Rows must come in time order: a row earlier than
+crossed midnight: a day is added (printed). Rows must come in reference-time order (the train
+clock's stamps need not: a link with jitter delivers samples out of order): a row earlier than
 the one before stops the conversion unless --sort sorts the rows by the reference time (stable)
 first.
 
@@ -331,12 +332,13 @@ def _parse(row, line, col, fac, lookup, clocks) -> _Row:
 # ------------------------------------------------------------------------------------------------
 
 def sampling_period(stamps) -> float:
-    """s, the train clock's sampling period from the stamps of the samples received: the
+    """s, the train clock's sampling period from the stamps of the samples received (in any
+    order): the
     median step (robust to gaps as long as fewer than half the steps span a loss), refined over
     every step as a whole number of those periods (so it is as exact as the whole log is
     long). NaN with fewer than two stamps or no forward step."""
-    d = np.diff(np.asarray(stamps, dtype=float))
-    d = d[d > 0]
+    d = np.diff(np.sort(np.asarray(stamps, dtype=float)))  # in stamp order, not arrival's
+    d = d[d > 0]  # a sample delivered twice is no step
     if d.size == 0:
         return math.nan
     p0 = float(np.median(d))
@@ -345,16 +347,22 @@ def sampling_period(stamps) -> float:
 
 
 def number_samples(stamps, period: float) -> np.ndarray:
-    """Sample numbers (1 for the first) of samples stamped ``stamps`` (increasing) on a clock
-    sampling every ``period`` s: each step counts the whole periods since the previous sample
-    (at least one), so rounding errors never accumulate across a long log."""
+    """Sample numbers (1 for the earliest stamp) of samples stamped ``stamps`` (in any order:
+    the arrival order of a link with jitter) on a clock sampling every ``period`` s: in stamp
+    order each step counts the whole periods since the sample before, so rounding errors never
+    accumulate across a long log, and a sample delivered twice (the same stamp) keeps its
+    number (a duplicate, as the counter would say)."""
     stamps = np.asarray(stamps, dtype=float)
     if stamps.size == 0:
         return np.zeros(0, dtype=np.int64)
+    order = np.argsort(stamps, kind="stable")
     if not (math.isfinite(period) and period > 0):
-        return np.arange(1, stamps.size + 1)
-    k = np.maximum(1, np.rint(np.diff(stamps) / period)).astype(np.int64)
-    return np.concatenate([[1], 1 + np.cumsum(k)])
+        k = (np.diff(stamps[order]) > 0).astype(np.int64)
+    else:
+        k = np.maximum(0, np.rint(np.diff(stamps[order]) / period)).astype(np.int64)
+    seq = np.empty(stamps.size, dtype=np.int64)
+    seq[order] = np.concatenate([[1], 1 + np.cumsum(k)])
+    return seq
 
 
 # ------------------------------------------------------------------------------------------------
@@ -457,24 +465,18 @@ def _read(csv_path, mapping, line, skip_bad_rows, sort, res) -> list[_Row]:
         order = sorted(range(len(parsed)), key=lambda i: parsed[i].time)
         res.moved = sum(1 for i, j in enumerate(order) if i != j)
         parsed = [parsed[i] for i in order]
+    # The reference time orders the log (the recorder's clock, as it wrote the rows). The
+    # train's stamps need not follow it: a link with jitter delivers samples out of order,
+    # and the bag keeps them in arrival order as a recorder does.
     rows = []
-    last_t = last_tt = -math.inf
+    last_t = -math.inf
     for r in parsed:
-        try:
-            if r.time < last_t:
-                raise BadRow("out_of_order", f"time {r.time:.9g} s is before the previous "
-                             f"row's {last_t:.9g} s (rows out of order: --sort sorts them "
-                             "by time)")
-            if "speed" in r.values:
-                if r.train_time <= last_tt:
-                    raise BadRow("out_of_order", f"train_time {r.train_time:.9g} s is not "
-                                 f"after the previous sample's {last_tt:.9g} s")
-        except BadRow as e:
-            _bad(e, r.line, csv_path, skip_bad_rows, res)
+        if r.time < last_t:
+            _bad(BadRow("out_of_order", f"time {r.time:.9g} s is before the previous row's "
+                        f"{last_t:.9g} s (rows out of order: --sort sorts them by time)"),
+                 r.line, csv_path, skip_bad_rows, res)
             continue
         last_t = r.time
-        if "speed" in r.values:
-            last_tt = r.train_time
         rows.append(r)
     return rows
 
@@ -503,10 +505,15 @@ def _number_odometer(odo: list[_Row], res: Result) -> None:
         seq = number_samples(stamps, res.period)
     for r, s in zip(odo, seq):
         r.values["seq"] = int(s) % (SEQ_MAX + 1)
-    steps = np.diff(seq)
-    res.samples = int(len(odo) + np.clip(steps - 1, 0, None).sum())
-    res.lost = res.samples - len(odo)
-    res.gaps = [(odo[i + 1].line, int(steps[i] - 1), odo[i + 1].train_time - odo[0].train_time)
+    # the gaps in sample order (a sample delivered late is not lost; one delivered twice is
+    # counted once)
+    order = np.argsort(seq, kind="stable")
+    q = seq[order]
+    steps = np.diff(q)
+    res.samples = int(np.unique(q).size + np.clip(steps - 1, 0, None).sum())
+    res.lost = res.samples - int(np.unique(q).size)
+    t0 = odo[order[0]].train_time
+    res.gaps = [(odo[order[i + 1]].line, int(steps[i] - 1), odo[order[i + 1]].train_time - t0)
                 for i in np.flatnonzero(steps > 1)]
 
 
