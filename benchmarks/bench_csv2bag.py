@@ -3,7 +3,8 @@
 
     ./run bench csv2bag [--quick] [--seeds N] [--causes a,b,...]
 
-(``--causes`` runs a subset and adds its rows to the last results in benchmarks/out/.)
+(``--causes`` and ``--first-seed`` run a subset and add its rows to the last results in
+benchmarks/out/, e.g. more seeds after ``--quick``: ``--first-seed 1 --seeds 2 --causes ...``.)
 
 For each cause of ``train_sim.cases`` (and ``none``) a case is simulated into a measured bag;
 an independent writer (tests/helpers/recorder_csv.py: reads the bag's MCAP with the mcap
@@ -122,6 +123,8 @@ def main(argv=None) -> int:
                                 epilog="\n".join(__doc__.splitlines()[2:]))
     p.add_argument("--quick", action="store_true", help="one seed per cause (the default)")
     p.add_argument("--seeds", type=int, default=1, help="seeds per cause (default 1)")
+    p.add_argument("--first-seed", type=int, default=0,
+                   help="the seeds are FIRST .. FIRST + SEEDS - 1 (default 0)")
     p.add_argument("--causes", default=None,
                    help=f"comma-separated subset of none, {', '.join(CAUSES)}")
     args = p.parse_args(argv)
@@ -132,13 +135,16 @@ def main(argv=None) -> int:
         if bad:
             p.error(f"unknown cause(s) {bad}")
     seeds = 1 if args.quick else args.seeds
-    specs = [(c, s) for c in causes for s in range(seeds)]
+    specs = [(c, s) for c in causes
+             for s in range(args.first_seed, args.first_seed + seeds)]
     rows = [run_case(c, s) for c, s in track(specs, "csv2bag parity")]
     os.makedirs(OUT, exist_ok=True)
     raw = os.path.join(OUT, "csv2bag.json")
-    if args.causes and os.path.exists(raw):  # a subset adds to (replaces in) the last results
+    partial = args.causes or args.first_seed
+    if partial and os.path.exists(raw):  # a subset adds to (replaces in) the last results
+        done = {(c, s) for c, s in specs}
         with open(raw) as fh:
-            old = [r for r in json.load(fh) if r["cause"] not in causes]
+            old = [r for r in json.load(fh) if (r["cause"], r["seed"]) not in done]
         order = ("none",) + CAUSES
         rows = sorted(old + rows, key=lambda r: (order.index(r["cause"]), r["seed"]))
     text = table(rows)
