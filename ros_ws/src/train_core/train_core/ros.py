@@ -363,8 +363,6 @@ def parse_cli(description: str, argv: list[str] | None = None,
     if params:
         from train_core.config import param_fields, param_help
 
-        _NODE_PARAMS.update({f.name: _ros_default(f) for cls in params
-                             for f in param_fields(cls)})
         epilog += ("\n\nparameters (-p NAME:=VALUE; unit, default, allowed range, meaning; "
                    "a float parameter accepts an integer):\n" + param_help(params))
     parser = argparse.ArgumentParser(
@@ -375,6 +373,10 @@ def parse_cli(description: str, argv: list[str] | None = None,
     if extra is not None:
         extra(parser)
     args = parser.parse_args(argv)
+    if params:  # the node this process runs declares these (check_overrides)
+        _NODE_PARAMS.clear()
+        _NODE_PARAMS.update({f.name: _ros_default(f) for cls in params
+                             for f in param_fields(cls)})
     return args, ros_args
 
 
