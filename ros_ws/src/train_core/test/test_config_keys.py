@@ -106,3 +106,22 @@ def test_shipped_scenarios_load_without_warnings(path):
     with warnings.catch_warnings():
         warnings.simplefilter("error", ConfigWarning)
         load_scenario(path)
+
+
+def test_the_trains_sections_allow_extra_keys_but_not_typos(tmp_path):
+    data = yaml.safe_load(TRAINS[0].read_text())
+    data["brake"]["kind"] = "disc"  # a producer's note beside the brake's parameters
+    path = tmp_path / "train.yaml"
+    path.write_text(yaml.safe_dump(data))
+    with pytest.warns(ConfigWarning, match="brake: unknown key 'kind' is ignored"):
+        load_train(path)
+    data["odometer"] = {"speed_sd": 0.3}  # speed_std would silently stay 0.1 m/s
+    path.write_text(yaml.safe_dump(data))
+    with pytest.warns(ConfigWarning), \
+            pytest.raises(ConfigError, match="'speed_sd'.*did you mean 'speed_std'"):
+        load_train(path)
+    del data["odometer"]
+    data["davis"] = {"A": 1.0, "b": 1.0, "c": 1.0}  # a required key is still required
+    path.write_text(yaml.safe_dump(data))
+    with pytest.warns(ConfigWarning), pytest.raises(ConfigError, match="missing key 'a'"):
+        load_train(path)

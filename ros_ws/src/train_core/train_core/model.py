@@ -179,10 +179,9 @@ class Line:
 
 # ---------------------------------------------------------------------------------------------
 # Loading with validation. Extra keys are allowed (docs/interfaces.md: "extra keys"), at the top
-# level and in the line's list entries, and named in a warning with their near misses; a typo
-# of an absent key holding that key's kind of value is an error (config.check_keys). The
-# train's nested mappings with a fixed meaning are strict, so a typo in `davis: {A: ...}` is
-# caught.
+# level, in the line's list entries and in the train's sections, and named in a warning with
+# their near misses; a typo of an absent key holding that key's kind of value is an error
+# (config.check_keys), and a required key stays required (`davis: {A: ...}` lacks `a`).
 # ---------------------------------------------------------------------------------------------
 
 TRAIN_KEYS = ("mass", "rotary_allowance", "davis", "brake", "odometer")
@@ -200,16 +199,20 @@ STATION_KEYS = {"name": "string", "position": "number", "dwell": "number"}
 SPEED_LIMIT_KEYS = {"start": "number", "end": "number", "speed": "number"}
 
 
+def _numbers(*keys) -> dict:
+    return dict.fromkeys(keys, "number")
+
+
 def train_from_dict(data: dict, where: str = "train.yaml") -> TrainParams:
     s = Section(data, where)
     check_top_level(s.data, TRAIN_ALL_KEYS, where)
-    davis = s.section("davis", ("a", "b", "c"), default=REQUIRED)
-    brake = s.section("brake", ("time_constant", "delay", "braking_rate"), default=REQUIRED)
-    odo = s.section("odometer", ("speed_std", "distance_std"), default={})
-    bal = s.section("balise", ("position_std",), default={})
-    perf = s.section(
-        "performance", ("max_traction", "service_brake", "emergency_brake", "max_jerk"), default={}
-    )
+    davis = s.section("davis", _numbers("a", "b", "c"), default=REQUIRED)
+    brake = s.section("brake", _numbers("time_constant", "delay", "braking_rate"),
+                      default=REQUIRED)
+    odo = s.section("odometer", _numbers("speed_std", "distance_std"), default={})
+    bal = s.section("balise", _numbers("position_std"), default={})
+    perf = s.section("performance", _numbers("max_traction", "service_brake",
+                                             "emergency_brake", "max_jerk"), default={})
     dflt = Performance()
     return TrainParams(
         name=s.string("name", "train"),
