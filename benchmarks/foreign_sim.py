@@ -2,7 +2,7 @@
 
 ``diagnose`` is meant for data from other physics code (another driver, other numerics, another
 link and clock). This module writes such bags from the contract's meanings alone
-(``../shared/CONTRACT.md``, docs/interfaces.md) and shares no physics with ``train_core`` or
+(docs/interfaces.md, the project's public interface) and shares no physics with ``train_core`` or
 ``train_sim``: its own integrator (semi-implicit Euler, 5 ms, where ours is RK4 with an exact
 actuator), its own driver (a trapezoid speed profile between the line's stations, a P speed
 controller, a braking curve aimed at the stopping point), its own sensors, link and clock. Only

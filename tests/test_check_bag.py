@@ -183,3 +183,82 @@ def test_the_shipped_bag_of_the_live_nodes_has_no_non_finite_value():
     for topic in b.topics:
         h = check_bag.topic_health(b, topic)
         assert h["count"] > 0 and h["non_finite"] == 0, (topic, h)
+
+
+# --- a bag without the measured data's topics, or never closed ------------------------------
+
+def _inputs_bag(path, topics=("odometer", "balise", "control"), n=30, killed=False):
+    """A small bag with the given input topics; ``killed``: as ``kill -9`` leaves it after a
+    flush that held the commands and balises only (the odometer's chunk never written)."""
+    import shutil
+
+    w = BagWriter(path)
+    for i in range(n):
+        t = 100.0 + 0.1 * i
+        if "control" in topics:
+            w.write("control", t, {"target_acceleration": 0.3})
+        if "balise" in topics and i % 10 == 0:
+            w.write("balise", t, {"seq": i // 10, "balise_id": 1, "position": 10.0 * i,
+                                  "position_variance": 1.0})
+    if killed:
+        w.flush()
+        snap = path.parent / (path.name + ".snap")
+        shutil.copytree(path, snap)
+    for i in range(n):
+        if "odometer" in topics:
+            w.write("odometer", 100.0 + 0.1 * i, {"seq": i, "distance": 1.0 * i, "speed": 10.0,
+                                                   "speed_variance": 0.01})
+    w.close()
+    if killed:
+        shutil.rmtree(path)
+        snap.rename(path)
+    return path
+
+
+@pytest.mark.parametrize("missing", ["odometer", "balise", "control", "odometer,control"])
+def test_a_missing_input_topic_is_named_and_exits_2_unless_allowed(tmp_path, capsys, missing):
+    keep = [t for t in ("odometer", "balise", "control") if t not in missing.split(",")]
+    bag = _inputs_bag(tmp_path / "bag", keep)
+    assert check_bag.main([str(bag), "--no-plots"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("check_bag:"), err
+    assert f"no {' and no '.join(missing.split(','))} messages" in err[0], err
+    assert f"--allow-missing {missing}" in err[0], err
+    assert check_bag.main([str(bag), "--no-plots", "--allow-missing", missing]) == 0
+    assert check_bag.main(["--bag", str(bag), "--no-plots", "--allow-missing", missing]) == 0
+    assert check_bag.main([str(bag), "--no-plots", "--allow-missing", "gps"]) == 2
+
+
+def test_the_bag_as_an_option_and_once(tmp_path, capsys):
+    bag = _inputs_bag(tmp_path / "bag")
+    assert check_bag.main(["--bag", str(bag), "--no-plots"]) == 0
+    assert "odometer" in capsys.readouterr().out
+    with pytest.raises(SystemExit) as exc:
+        check_bag.main([str(bag), "--bag", str(bag)])
+    assert exc.value.code == 2
+    with pytest.raises(SystemExit):
+        check_bag.main(["--no-plots"])
+
+
+def test_a_truncated_bag_is_named_with_its_repair_by_every_tool(tmp_path, capsys):
+    """The recorder was killed before the odometer's chunk reached the disk: check_bag, identify
+    and diagnose all say the bag was not closed and how to repair it, not only what is
+    missing."""
+    from train_estimation.tools import diagnose, identify
+
+    bag = _inputs_bag(tmp_path / "bag", killed=True)
+    cfg = REPO / "ros_ws" / "src" / "train_core" / "config"
+    files = ["--line", str(cfg / "lines" / "metro_demo.yaml"),
+             "--train", str(cfg / "trains" / "metro_b6.yaml")]
+    runs = {"check_bag": lambda: check_bag.main([str(bag), "--no-plots"]),
+            "identify": lambda: identify.main(["--bag", str(bag), *files, "--quiet",
+                                               "--out", str(tmp_path / "t.yaml")]),
+            "diagnose": lambda: diagnose.main(["--bag", str(bag), *files, "--quiet",
+                                               "--out", str(tmp_path / "diag")])}
+    for tool, run in runs.items():
+        assert run() == 2, tool
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith(f"{tool}:"), err
+        assert "no odometer" in err[0], err
+        assert "bag was not closed" in err[0], err
+        assert f"python -m train_core.bagio repair {bag}" in err[0], err

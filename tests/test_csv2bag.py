@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 from train_core.bagio import read_bag
 
@@ -57,26 +58,193 @@ def yaml_balises():
     return yaml.safe_load(LINE.read_text())["balises"]
 
 
+def _rows10(bad_at: int | None = None, bad: str = "") -> list[str]:
+    """Ten samples 0.1 s apart (train clock in ms), the ``bad_at``-th replaced by ``bad``."""
+    rows = [f"{100 + i / 10:.1f},{5000 + 100 * i},36.0,{float(i):.1f},,0,0" for i in range(10)]
+    if bad_at is not None:
+        rows[bad_at] = bad
+    return rows
+
+
 @pytest.mark.parametrize("row,reason", [
-    ("100.1,5100,abc,1.0,,0,0", "not a number"),
-    ("100.1,5100,36,,,0,0", "no distance"),
-    ("100.1,5100,36,nan,,0,0", "distance is nan"),
-    ("99.0,5100,36,1.0,,0,0", "not after"),
-    ("100.1,5100,36,1.0,,0,-5", "< 0"),
-    ("100.1,5100,36,1.0,999,0,0", "balise 999 is not in the line file"),
+    ("100.4,5400,abc,4.0,,0,0", "not a number"),
+    ("100.4,5400,36,,,0,0", "no distance"),
+    ("100.4,5400,36,nan,,0,0", "distance is nan"),
+    ("99.0,5400,36,4.0,,0,0", "before the previous row's"),
+    ("100.4,5400,36,4.0,,0,-5", "< 0"),
+    ("100.4,5400,36,4.0,999,0,0", "balise 999 is not in the line file"),
+    ("100.4,,36,4.0,,0,0", "no train_time value"),
 ])
 def test_a_bad_row_stops_with_its_line_number_or_is_skipped_and_counted(tmp_path, capsys, row,
                                                                         reason):
-    log = _csv(tmp_path, ["100.0,5000,36.0,0.0,,0,0", row, "100.2,5200,36.0,2.0,,0,0"])
+    log = _csv(tmp_path, _rows10(4, row))
     out = tmp_path / "bag"
     assert csv2bag.main([str(log), "--out", str(out), *ARGS]) == 2
     err = capsys.readouterr().err.strip()
-    assert len(err.splitlines()) == 1 and "line 3" in err and reason in err, err
+    assert len(err.splitlines()) == 1 and "line 6" in err and reason in err, err
     assert not out.exists()
     assert csv2bag.main([str(log), "--out", str(out), *ARGS, "--skip-bad-rows"]) == 0
-    assert "skipped 1 bad rows" in capsys.readouterr().out
+    text = capsys.readouterr().out
+    assert "skipped 1 bad rows" in text
     odo = read_bag(out).topics["odometer"]
-    assert [f["seq"] for _, _, f in odo] == [1, 3]  # the skipped row shows as a lost sample
+    # the skipped row shows as a lost sample, numbered from the train clock's period
+    assert [f["seq"] for _, _, f in odo] == [1, 2, 3, 4, 6, 7, 8, 9, 10]
+    assert "9 of 10 in the log, 1 lost (10.0 %) in 1 gaps" in text, text
+
+
+def test_mass_skipping_is_an_error_with_the_reasons(tmp_path, capsys):
+    # a column in the wrong unit or format: every other row bad, far beyond 1 %
+    rows = _rows10()
+    rows[1::2] = [r.replace(",36.0,", ",fast,") for r in rows[1::2]]
+    log = _csv(tmp_path, rows)
+    out = tmp_path / "bag"
+    assert csv2bag.main([str(log), "--out", str(out), *ARGS, "--skip-bad-rows"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1, err
+    assert "5 of 10 rows would be skipped (not_a_number 5)" in err, err
+    assert "more than --max-skipped 1% (1 rows)" in err, err
+    assert not out.exists()
+    assert csv2bag.main([str(log), "--out", str(out), *ARGS, "--skip-bad-rows",
+                         "--max-skipped", "50%"]) == 0
+    assert csv2bag.main([str(log), "--out", str(tmp_path / "b2"), *ARGS, "--skip-bad-rows",
+                         "--max-skipped", "4"]) == 2
+    assert "more than --max-skipped 4 (4 rows)" in capsys.readouterr().err
+
+
+def test_the_examples_missing_samples_are_counted_and_located(tmp_path, capsys):
+    """docs/examples/recorder_log.csv lacks 356 of its 3001 samples: the bag says so (its seq
+    has the gaps) and so does check_bag's received fraction."""
+    import csv as csvmod
+
+    bag = tmp_path / "bag"
+    assert csv2bag.main([str(EXAMPLE), "--out", str(bag), *ARGS]) == 0
+    out = capsys.readouterr().out
+    rows = list(csvmod.DictReader(EXAMPLE.open()))
+    t_ms = [int(r["t_train_ms"]) for r in rows]
+    spanned = (t_ms[-1] - t_ms[0]) // 100 + 1  # the train samples every 100 ms
+    assert spanned - len(rows) == 356 and spanned == 3001
+    assert f"{len(rows)} of 3001 in the log, 356 lost (11.9 %)" in out, out
+    assert "period 0.1 s" in out, out
+    seq = [f["seq"] for _, _, f in read_bag(bag).topics["odometer"]]
+    assert seq == [(t - t_ms[0]) // 100 + 1 for t in t_ms]
+    s = check_bag.check(str(bag), tmp_path / "check")
+    received = s["topics"]["odometer"]["received_fraction"]
+    assert received == pytest.approx(len(rows) / 3001, abs=1e-3)
+
+
+def test_a_sample_counter_column_numbers_the_samples(tmp_path, capsys):
+    p = tmp_path / "log.csv"
+    p.write_text("t,n,v,d\n0.0,17,1.0,0.0\n0.1,18,1.0,0.1\n0.35,21,1.0,0.35\n")
+    assert csv2bag.main([str(p), "--out", str(tmp_path / "bag"), "--column", "time=t",
+                         "--column", "sample=n", "--column", "speed=v",
+                         "--column", "distance=d"]) == 0
+    out = capsys.readouterr().out
+    assert "numbered by the log's sample counter: 3 of 5 in the log, 2 lost" in out, out
+    assert "2 before line 4" in out, out
+    odo = read_bag(tmp_path / "bag").topics["odometer"]
+    assert [f["seq"] for _, _, f in odo] == [17, 18, 21]
+
+
+def test_period_numbering_counts_whole_periods_without_drifting():
+    # 0.1 s sampling, 10 000 samples with 1 000 lost at random, stamps with 1 ms jitter
+    rng = np.random.default_rng(3)
+    n = 10_000
+    keep = np.sort(rng.choice(np.arange(1, n), size=n - 1_001, replace=False))
+    keep = np.concatenate([[0], keep])
+    stamps = 1234.5 + 0.1 * keep + rng.uniform(-1e-3, 1e-3, keep.size)
+    period = csv2bag.sampling_period(stamps)
+    assert abs(period - 0.1) < 1e-6
+    seq = csv2bag.number_samples(stamps, period)
+    assert np.array_equal(seq, keep + 1)
+
+
+def test_samples_delivered_out_of_order_or_twice_keep_their_numbers(tmp_path, capsys):
+    """A link with jitter delivers samples out of order and the log keeps the arrival order;
+    a sample delivered twice keeps its number (a duplicate), and only the missing one is lost."""
+    assert list(csv2bag.number_samples([10.0, 10.2, 10.1, 10.4, 10.4], 0.1)) == [1, 3, 2, 5, 5]
+    p = tmp_path / "log.csv"
+    p.write_text("t,tt,v,d\n" + "".join(f"{100 + i * 0.1:.1f},{tt},1.0,{tt}\n" for i, tt in
+                                       enumerate([10.0, 10.2, 10.1, 10.4, 10.4, 10.5])))
+    assert csv2bag.main([str(p), "--out", str(tmp_path / "bag"), "--column", "time=t",
+                         "--column", "train_time=tt", "--column", "speed=v",
+                         "--column", "distance=d"]) == 0
+    out = capsys.readouterr().out
+    assert "5 of 6 in the log, 1 lost (16.7 %) in 1 gaps" in out, out
+    assert [f["seq"] for _, _, f in read_bag(tmp_path / "bag").topics["odometer"]] == \
+        [1, 3, 2, 5, 5, 6]
+
+
+def test_rows_with_commands_only_and_balise_rows(tmp_path):
+    p = tmp_path / "log.csv"
+    p.write_text(HEADER + "".join(r + "\n" for r in [
+        "100.0,5000,36.0,0.0,,,",          # a sample without a command
+        "100.05,,,,,50.0,",                 # a command alone (no train time needed)
+        "100.1,5100,36.0,1.0,,,",
+        "100.12,5120,,,2,,",                # a balise passage alone
+        "100.2,5200,36.0,2.0,,,25.0"]))      # a sample and a command
+    assert csv2bag.main([str(p), "--out", str(tmp_path / "bag"), *ARGS]) == 0
+    bag = read_bag(tmp_path / "bag")
+    ctl = bag.topics["control"]
+    assert [f["target_acceleration"] for _, _, f in ctl] == pytest.approx([0.5, -0.3])
+    assert [t for t, _, _ in ctl] == [100_050_000_000, 100_200_000_000]
+    assert [f["seq"] for _, _, f in bag.topics["odometer"]] == [1, 2, 3]
+    (b,) = bag.topics["balise"]
+    assert b[1] == pytest.approx(5.12) and b[2]["balise_id"] == 2
+
+
+@pytest.mark.parametrize("fmt", ["iso", "iso_z", "iso_offset", "of_day", "of_day_numbers"])
+def test_iso_8601_and_times_of_day_across_midnight(tmp_path, capsys, fmt):
+    """A log from 23:59:59.7 to 00:00:00.3: the times keep increasing through midnight."""
+    from datetime import datetime, timedelta, timezone
+
+    t0 = datetime(2026, 11, 30, 23, 59, 59, 700000, tzinfo=timezone.utc)
+    times = [t0 + timedelta(seconds=0.1 * i) for i in range(7)]
+    cell = {"iso": lambda t: t.replace(tzinfo=None).isoformat(timespec="milliseconds"),
+            "iso_z": lambda t: t.isoformat(timespec="milliseconds").replace("+00:00", "Z"),
+            "iso_offset": lambda t: t.astimezone(timezone(timedelta(hours=1))).isoformat(),
+            "of_day": lambda t: t.strftime("%H:%M:%S.%f")[:-3],
+            "of_day_numbers": lambda t: "%.1f" % (t.hour * 3600 + t.minute * 60 + t.second
+                                                  + t.microsecond / 1e6)}[fmt]
+    p = tmp_path / "log.csv"
+    p.write_text("when,v,d\n" + "".join(f"{cell(t)},1.0,{0.1 * i:.1f}\n"
+                                         for i, t in enumerate(times)))
+    assert csv2bag.main([str(p), "--out", str(tmp_path / "bag"), "--column", "time=when",
+                         "--column", "speed=v", "--column", "distance=d"]) == 0
+    out = capsys.readouterr().out
+    odo = read_bag(tmp_path / "bag").topics["odometer"]
+    stamps = np.array([s for _, s, _ in odo])
+    assert np.allclose(np.diff(stamps), 0.1, atol=1e-5), stamps
+    assert [f["seq"] for _, _, f in odo] == list(range(1, 8))
+    if fmt.startswith("iso"):
+        assert stamps[0] == pytest.approx(t0.timestamp(), abs=1e-5)
+        assert "midnight" not in out
+    else:
+        assert stamps[0] == pytest.approx(86399.7, abs=1e-5)
+        assert "time crossed midnight at line 5" in out, out
+
+
+def test_rows_out_of_order_are_refused_or_sorted(tmp_path, capsys):
+    rows = _rows10()
+    rows[3], rows[4] = rows[4], rows[3]
+    log = _csv(tmp_path, rows)
+    assert csv2bag.main([str(log), "--out", str(tmp_path / "bag"), *ARGS]) == 2
+    assert "--sort sorts them by time" in capsys.readouterr().err
+    assert csv2bag.main([str(log), "--out", str(tmp_path / "bag"), *ARGS, "--sort"]) == 0
+    assert "--sort moved 2 rows into time order" in capsys.readouterr().out
+    odo = read_bag(tmp_path / "bag").topics["odometer"]
+    assert [f["seq"] for _, _, f in odo] == list(range(1, 11))
+    assert [f["distance"] for _, _, f in odo] == pytest.approx([float(i) for i in range(10)])
+
+
+def test_extra_keys_in_the_map_file_are_named_not_refused(tmp_path, capsys):
+    m = tmp_path / "map.yaml"
+    m.write_text(MAP.read_text() + "recorder: DR-500\nspeed_sd: 0.2\n")
+    log = _csv(tmp_path, _rows10())
+    assert csv2bag.main([str(log), "--out", str(tmp_path / "bag"), "--map", str(m),
+                         "--line", str(LINE)]) == 0
+    err = capsys.readouterr().err
+    assert "unknown key 'recorder' is ignored" in err
+    assert "unknown key 'speed_sd' is ignored; near: 'speed_std' (given)" in err
 
 
 @pytest.mark.parametrize("extra,words", [
@@ -101,6 +269,8 @@ def test_example_csv_to_bag_then_check_bag_and_diagnose(tmp_path, capsys):
     for topic in ("odometer", "balise", "control"):
         assert s["topics"][topic]["count"] > 0 and s["topics"][topic]["non_finite"] == 0
     assert s["topics"]["odometer"]["count"] == n_rows
+    # 356 of the 3001 samples are not in the log
+    assert s["topics"]["odometer"]["received_fraction"] < 0.9
     rc = diagnose_tool.main(["--bag", str(bag), "--line", str(LINE), "--train", str(TRAIN),
                              "--out", str(tmp_path / "diag"), "--quiet"])
     assert rc == 0

@@ -214,3 +214,21 @@ def test_diagnosis_row_reads_the_typed_result():
         "odometer_scale": 1.001, "odometer_scale_se": 3e-4}
     dg.accepted = ranking[1:2]  # a section ranked but not accepted is no map evidence
     assert not any(k.startswith("gradient") for k in tool.diagnosis_row(dg, train))
+
+
+def test_manifest_extra_columns_are_allowed_a_typo_of_an_absent_one_is_not(tmp_path, capsys):
+    from train_core.config import ConfigWarning
+
+    head = "train,bag,line,train_file,time,operator,tme\n"
+    (tmp_path / "m.csv").write_text(head + "T1,bags/a,l.yaml,t.yaml,1.0,north rail,5\n")
+    with pytest.warns(ConfigWarning) as rec:
+        tasks = tool.read_manifest(str(tmp_path / "m.csv"))
+    texts = " | ".join(str(w.message) for w in rec)
+    assert "column 'operator' is ignored" in texts
+    assert "column 'tme' is ignored; near: 'time' (given)" in texts
+    assert tasks[0]["time"] == 1.0
+    # without a time column, 'tme' holding numbers is the time misspelt: the runs' order
+    # would silently be lost
+    (tmp_path / "m.csv").write_text("train,bag,line,train_file,tme\nT1,bags/a,l.yaml,t.yaml,5\n")
+    assert tool.main(["--manifest", str(tmp_path / "m.csv"), "--out", str(tmp_path)]) == 2
+    assert "column 'tme': did you mean 'time'?" in capsys.readouterr().err

@@ -68,6 +68,9 @@ def test_demo_is_reproducible_and_its_report_explains_itself(launch, tmp_path):
         assert {f["source"] for _, _, f in bag.topics["estimate/gsma"]} == {"gsma"}
         assert {f["source"] for _, _, f in bag.topics["estimate/kf"]} == {"kf"}
     for rep in reports:
+        # the demo shows its progress while it simulates (a bar on stderr, from the
+        # simulator's "simulated T of D s" lines)
+        assert "simulating (s)" in rep and f"{DURATION:.0f}/{DURATION:.0f} 100%" in rep, rep
         assert "emergency brakes: 0 during the run (incidents)" in rep
         assert "start-up: the train starts braked until the zone controller's first" in rep
         assert "latency p50/p99 (ms, wall)" in rep and "/ 20 = wall time" in rep

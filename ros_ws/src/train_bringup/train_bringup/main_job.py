@@ -47,6 +47,37 @@ LEGEND = {
 }
 
 
+class SimProgress:
+    """A progress bar (stderr) of the simulated time, read from the simulator's log lines
+    "simulated T of D s" (every 5 % of the run) as they appear."""
+
+    LINE = re.compile(rb"simulated ([0-9.]+) of ([0-9.]+) s")
+
+    def __init__(self, log: Path, duration: float):
+        from train_core.progress import bar
+
+        self.log, self.offset, self.done = log, 0, 0.0
+        self.bar = bar(round(duration), "simulating (s)")
+
+    def update(self) -> None:
+        try:
+            with open(self.log, "rb") as fh:
+                fh.seek(self.offset)
+                chunk = fh.read()
+        except OSError:
+            return
+        end = chunk.rfind(b"\n") + 1  # whole lines only; the rest is read next time
+        self.offset += end
+        found = self.LINE.findall(chunk[:end])
+        if found:
+            t = round(float(found[-1][0]))
+            self.bar.update(max(0, min(t, self.bar.total) - self.bar.n))
+
+    def close(self) -> None:
+        self.update()
+        self.bar.close()
+
+
 class Processes:
     """Processes this job started, stopped by PID only."""
 
@@ -168,7 +199,10 @@ def main(argv=None) -> int:
         print(f"main job: {args.scenario} at {args.rate_factor:g}x real time; "
               f"processes {list(procs.procs)}; logs in {logs}", flush=True)
         limit = (sc.duration if args.duration < 0 else args.duration) / args.rate_factor + 120
+        watch = SimProgress(logs / "simulator.log",
+                            sc.duration if args.duration < 0 else args.duration)
         while sim.poll() is None:
+            watch.update()
             if time.monotonic() - t0 > limit:
                 failed.append("simulator (did not finish in time)")
                 break
@@ -181,6 +215,8 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         failed.append("interrupted")
     finally:
+        if "watch" in locals():
+            watch.close()
         codes = procs.stop_all()
     wall = time.monotonic() - t0
     for name, code in codes.items():

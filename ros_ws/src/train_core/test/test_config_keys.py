@@ -1,5 +1,7 @@
-"""Top-level keys of line.yaml/train.yaml: unknown ones are named in a warning, a near miss of a
-known key is an error naming the key meant, and every shipped file loads without either."""
+"""Keys of line.yaml/train.yaml: extra keys are allowed and named in a warning with their near
+misses; a typo is an error only where it would silently change the model (the key meant is
+absent and the value has that key's kind), naming the key meant; every shipped file loads
+without either."""
 
 import warnings
 from pathlib import Path
@@ -29,7 +31,47 @@ def edited(tmp_path, src, **changes):
 
 def test_misspelt_line_key_is_an_error_naming_the_key_meant(tmp_path):
     path = edited(tmp_path, LINES[0], gradients="gradeints")
+    assert isinstance(yaml.safe_load(path.read_text())["gradeints"], list)
     with pytest.raises(ConfigError, match="'gradeints'.*did you mean 'gradients'"):
+        load_line(path)
+
+
+def test_a_producers_line_wide_speed_limit_beside_the_map_loads_with_a_warning(tmp_path):
+    data = yaml.safe_load(LINES[0].read_text())
+    data["speed_limits"] = [{"start": 0.0, "end": 100.0, "speed": 10.0}]
+    data["speed_limit"] = 22.2  # a producer's own key, near 'speed_limits', which is given
+    path = tmp_path / "line.yaml"
+    path.write_text(yaml.safe_dump(data))
+    with pytest.warns(ConfigWarning, match="'speed_limit' is ignored.*'speed_limits' \\(given\\)"):
+        line = load_line(path)
+    assert line.speed_limits[0].speed == 10.0
+    # without speed_limits a number still is not a list of sections: allowed, named
+    del data["speed_limits"]
+    path.write_text(yaml.safe_dump(data))
+    with pytest.warns(ConfigWarning, match="'speed_limit' is ignored.*'speed_limits'"):
+        assert load_line(path).speed_limits == ()
+
+
+def test_a_near_key_of_another_kind_is_a_warning_not_an_error(tmp_path):
+    data = yaml.safe_load(LINES[0].read_text())
+    data["gradient"] = "as surveyed in 2019"  # a string, not a list of sections
+    path = tmp_path / "line.yaml"
+    path.write_text(yaml.safe_dump(data))
+    with pytest.warns(ConfigWarning, match="'gradient' is ignored"):
+        load_line(path)
+
+
+def test_extra_and_misspelt_keys_inside_the_lines_entries(tmp_path):
+    data = yaml.safe_load(LINES[0].read_text())
+    data["gradients"][0]["radius"] = 300.0  # a curve radius kept beside the gradient
+    path = tmp_path / "line.yaml"
+    path.write_text(yaml.safe_dump(data))
+    with pytest.warns(ConfigWarning, match=r"gradients\[0\]: unknown key 'radius'"):
+        load_line(path)
+    data["stations"] = [{"name": "A", "position": 0.0, "dwel": 60.0}]  # dwell stays 30 s
+    path.write_text(yaml.safe_dump(data))
+    with pytest.warns(ConfigWarning, match="'radius'"), \
+            pytest.raises(ConfigError, match="'dwel'.*did you mean 'dwell'"):
         load_line(path)
 
 
@@ -41,7 +83,7 @@ def test_misspelt_train_key_is_an_error_naming_the_key_meant(tmp_path):
 
 def test_unknown_key_is_named_in_a_warning_and_the_file_loads(tmp_path):
     path = edited(tmp_path, LINES[0], operator=None)
-    with pytest.warns(ConfigWarning, match="unknown top-level key 'operator'"):
+    with pytest.warns(ConfigWarning, match="unknown key 'operator' is ignored"):
         line = load_line(path)
     assert line.length > 0
     path = edited(tmp_path, TRAINS[0], fleet_number=None)
@@ -64,3 +106,22 @@ def test_shipped_scenarios_load_without_warnings(path):
     with warnings.catch_warnings():
         warnings.simplefilter("error", ConfigWarning)
         load_scenario(path)
+
+
+def test_the_trains_sections_allow_extra_keys_but_not_typos(tmp_path):
+    data = yaml.safe_load(TRAINS[0].read_text())
+    data["brake"]["kind"] = "disc"  # a producer's note beside the brake's parameters
+    path = tmp_path / "train.yaml"
+    path.write_text(yaml.safe_dump(data))
+    with pytest.warns(ConfigWarning, match="brake: unknown key 'kind' is ignored"):
+        load_train(path)
+    data["odometer"] = {"speed_sd": 0.3}  # speed_std would silently stay 0.1 m/s
+    path.write_text(yaml.safe_dump(data))
+    with pytest.warns(ConfigWarning), \
+            pytest.raises(ConfigError, match="'speed_sd'.*did you mean 'speed_std'"):
+        load_train(path)
+    del data["odometer"]
+    data["davis"] = {"A": 1.0, "b": 1.0, "c": 1.0}  # a required key is still required
+    path.write_text(yaml.safe_dump(data))
+    with pytest.warns(ConfigWarning), pytest.raises(ConfigError, match="missing key 'a'"):
+        load_train(path)

@@ -41,34 +41,98 @@ class ConfigWarning(UserWarning):
     """A configuration file holds something the loader ignores (an unknown top-level key)."""
 
 
-def check_top_level(data: Mapping, known: Iterable[str], where: str) -> None:
-    """Top-level keys of a file whose format allows extra keys: a near miss of a known key (a
-    typo such as ``gradeints``) is a :class:`ConfigError` naming the key meant, since the file
-    would otherwise load with that section silently missing; any other unknown key is named in
-    a :class:`ConfigWarning` (it is allowed, but nothing reads it)."""
-    known = list(known)
-    for key in data:
-        if key in known:
-            continue
-        close = difflib.get_close_matches(str(key), known, n=1, cutoff=0.8)
-        if close:
-            raise ConfigError(f"{where}: unknown key '{key}': did you mean '{close[0]}'?")
-        warnings.warn(f"{where}: unknown top-level key '{key}' is ignored "
-                      f"(known: {', '.join(known)})", ConfigWarning, stacklevel=3)
+# The kinds of value a key holds, for telling a typo that would change the model from an extra
+# key a producer added: "number", "integer", "string", "boolean", "list", "mapping" or "any".
+_KIND_TESTS = {
+    "number": lambda v: isinstance(v, (int, float)) and not isinstance(v, bool),
+    "integer": lambda v: isinstance(v, int) and not isinstance(v, bool),
+    "string": lambda v: isinstance(v, str),
+    "boolean": lambda v: isinstance(v, bool),
+    "list": lambda v: isinstance(v, (list, tuple)),
+    "mapping": lambda v: isinstance(v, Mapping),
+    "any": lambda v: True,
+}
+_KIND_WORDS = {"number": "a number", "integer": "an integer", "string": "a string",
+               "boolean": "true or false", "list": "a list", "mapping": "a mapping",
+               "any": "a value"}
+NEAR_CUTOFF = 0.75  # difflib ratio from which an unknown key is named as a near miss
+
+
+def near_misses(key: str, known: Iterable[str], n: int = 3) -> list[str]:
+    """The known keys that ``key`` may be a misspelling of, closest first."""
+    return difflib.get_close_matches(str(key), list(known), n=n, cutoff=NEAR_CUTOFF)
+
+
+def unknown_key(key, value, known: Mapping[str, str], present: Iterable[str], where: str,
+                what: str = "key") -> str | None:
+    """The one rule for a key a reader does not know (every file whose format allows extras).
+
+    Returns None when ``key`` is known. Otherwise the key is allowed (a producer may keep more
+    than the project reads) and the text of a warning naming its near misses is returned,
+    except where the typo would silently change the model: a near miss that is absent
+    (``present``: the keys given) and whose kind of value (``known[near]``, see _KIND_TESTS)
+    ``value`` has, e.g. ``gradeints:`` holding a list of sections without ``gradients``. That
+    is a :class:`ConfigError` naming the key meant."""
+    if key in known:
+        return None
+    close = near_misses(key, known)
+    present = set(present)
+    for near in close:
+        kind = known[near]
+        if near not in present and _KIND_TESTS[kind](value):
+            raise ConfigError(f"{where}: unknown {what} '{key}': did you mean '{near}'? (it "
+                              f"holds {_KIND_WORDS[kind]}, as '{near}' would, and '{near}' is "
+                              f"absent: rename it, or the model goes without it)")
+    if close:
+        hint = "; near: " + ", ".join(
+            f"'{c}'" + (" (given)" if c in present else f" (holds {_KIND_WORDS[known[c]]})")
+            for c in close)
+    else:
+        hint = f" (known: {', '.join(known)})"
+    return f"{where}: unknown {what} '{key}' is ignored{hint}"
+
+
+def warn_unknown(message: str, stacklevel: int = 3) -> None:
+    """Report an unknown key: a :class:`ConfigWarning`, which Python prints on stderr (the
+    tools' log) and tests can catch."""
+    warnings.warn(message, ConfigWarning, stacklevel=stacklevel + 1)
+
+
+def check_top_level(data: Mapping, known: Mapping[str, str], where: str) -> None:
+    """Top-level keys of a file whose format allows extra keys (``known``: key -> the kind of
+    value it holds, see _KIND_TESTS): each unknown key goes through :func:`unknown_key`, a
+    :class:`ConfigWarning` naming its near misses, or a :class:`ConfigError` where it is a
+    typo of an absent key holding that key's kind of value."""
+    check_keys(data, known, where, stacklevel=4)
+
+
+def check_keys(data: Mapping, known: Mapping[str, str], where: str, what: str = "key",
+               stacklevel: int = 3) -> None:
+    """:func:`unknown_key` for every key of ``data`` (the reader of a mapping with extras)."""
+    for key, value in data.items():
+        msg = unknown_key(key, value, known, data.keys(), where, what)
+        if msg is not None:
+            warn_unknown(msg, stacklevel=stacklevel)
 
 
 class Section:
     """A view on one mapping of a YAML file that checks keys and values as they are read.
 
-    ``where`` is the file and the dotted key path, used in every error message.
+    ``where`` is the file and the dotted key path, used in every error message. ``allowed``: a
+    list of keys (any other is an error) or, for a mapping whose format allows extra keys, a
+    mapping key -> kind of value (:func:`check_keys`: an unknown key is a warning, a typo of an
+    absent key holding its kind of value an error).
     """
 
-    def __init__(self, data: Any, where: str, allowed: Iterable[str] | None = None):
+    def __init__(self, data: Any, where: str,
+                 allowed: Iterable[str] | Mapping[str, str] | None = None):
         if not isinstance(data, Mapping):
             raise ConfigError(f"{where}: expected a mapping, got {type(data).__name__}")
         self.data = dict(data)
         self.where = where
-        if allowed is not None:
+        if isinstance(allowed, Mapping):
+            check_keys(self.data, allowed, where, stacklevel=5)
+        elif allowed is not None:
             allowed = list(allowed)
             unknown = sorted(set(self.data) - set(allowed))
             if unknown:
@@ -198,17 +262,21 @@ def _range_text(lo, hi, lo_open=False, hi_open=False, unit="") -> str:
 # Parameters of a config dataclass: declared once, with unit and meaning as the field's metadata
 # ---------------------------------------------------------------------------------------------
 
-def param(default, unit: str, doc: str, *, ros: tuple | None = None, node: bool = True):
+def param(default, unit: str, doc: str, *, ros: tuple | None = None, node: bool = True,
+          lo: float | None = None, hi: float | None = None):
     """A config-dataclass field with its unit and meaning: the one declaration of a parameter.
 
     ``unit`` ("-" for dimensionless, "" for names and switches) and ``doc`` describe it to the
     node (``train_core.ros.declare_config``: the ROS ParameterDescriptor) and to the reader.
     ``ros = (to_ros, from_ros)`` converts a value a ROS parameter cannot carry (``None``) to a
     sentinel and back. ``node=False``: set by the code (from another parameter), not declared.
+    ``lo``/``hi``: the allowed range (inclusive), carried by the ROS descriptor
+    (FloatingPointRange / IntegerRange) and listed by ``--help``; the dataclass's own checks
+    stay the authority (a range states them, it does not replace them).
     """
     from dataclasses import field
 
-    md = {"unit": unit, "doc": doc, "node": node}
+    md = {"unit": unit, "doc": doc, "node": node, "lo": lo, "hi": hi}
     if ros is not None:
         md["ros"] = ros
     return field(default=default, metadata=md)
@@ -225,6 +293,27 @@ def describe(f) -> str:
     """One line for a parameter field: "unit, meaning" (or the meaning alone)."""
     unit = f.metadata["unit"]
     return f"{unit}, {f.metadata['doc']}" if unit else f.metadata["doc"]
+
+
+def param_range(f) -> tuple:
+    """(lo, hi) of a parameter field as declared with :func:`param`; None where not stated."""
+    return f.metadata.get("lo"), f.metadata.get("hi")
+
+
+def param_help(classes) -> str:
+    """The parameters of config dataclasses ``classes``, one per line, for a node's ``--help``:
+    ``name (unit) = default [lo, hi]: meaning``."""
+    lines = []
+    for cls in classes:
+        for f in param_fields(cls):
+            to_ros = f.metadata.get("ros", (None, None))[0]
+            d = to_ros(f.default) if to_ros else f.default
+            d = list(d) if isinstance(d, tuple) else d
+            unit = f.metadata["unit"]
+            lo, hi = param_range(f)
+            rng = "" if lo is None and hi is None else " " + _range_text(lo, hi)
+            lines.append(f"  {f.name} ({unit or 'no unit'}) = {d!r}{rng}: {f.metadata['doc']}")
+    return "\n".join(lines)
 
 
 def require(ok: bool, name: str, value, what: str) -> None:

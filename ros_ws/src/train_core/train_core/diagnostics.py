@@ -40,7 +40,7 @@ def _pair(obj, warn: str, error: str) -> None:
 class DiagnosticsPeriod:
     """Every node: how often it publishes its status."""
 
-    diagnostics_period: float = param(1.0, "s", "between two /diagnostics messages")
+    diagnostics_period: float = param(1.0, "s", "between two /diagnostics messages", lo=0.0)
 
     def __post_init__(self):
         v = self.diagnostics_period
@@ -51,8 +51,8 @@ class DiagnosticsPeriod:
 class StaleThresholds(DiagnosticsPeriod):
     """A node with inputs: how long an input may be silent."""
 
-    stale_warn: float = param(2.0, "s", "an input silent this long: WARN")
-    stale_error: float = param(5.0, "s", "an input silent this long: ERROR")
+    stale_warn: float = param(2.0, "s", "an input silent this long: WARN", lo=0.0)
+    stale_error: float = param(5.0, "s", "an input silent this long: ERROR", lo=0.0)
 
     def __post_init__(self):
         super().__post_init__()
@@ -64,9 +64,9 @@ class InputThresholds(StaleThresholds):
     """A node that checks its inputs: how many may be refused."""
 
     rejected_warn: float = param(0.05, "-", "fraction of an input's messages in the last "
-                                 "period that were rejected: WARN at or above")
+                                 "period that were rejected: WARN at or above", lo=0.0, hi=1.0)
     rejected_error: float = param(0.5, "-", "fraction rejected in the last period: ERROR at "
-                                  "or above")
+                                  "or above", lo=0.0, hi=1.0)
 
     def __post_init__(self):
         super().__post_init__()
@@ -80,9 +80,9 @@ class EstimatorThresholds(InputThresholds):
     """An estimator: also how late its estimates may be."""
 
     latency_warn: float = param(0.2, "s", "p99 odometer received -> estimate published over "
-                                "the last period: WARN at or above")
+                                "the last period: WARN at or above", lo=0.0)
     latency_error: float = param(1.0, "s", "p99 latency over the last period: ERROR at or "
-                                 "above")
+                                 "above", lo=0.0)
 
     def __post_init__(self):
         super().__post_init__()

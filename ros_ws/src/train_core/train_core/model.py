@@ -178,27 +178,41 @@ class Line:
 
 
 # ---------------------------------------------------------------------------------------------
-# Loading with validation. Top-level extra keys are allowed (docs/interfaces.md: "extra keys")
-# but named in a warning, and a near miss of a known key is an error (check_top_level); nested
-# mappings with a fixed meaning are strict, so a typo in `davis: {A: ...}` is caught.
+# Loading with validation. Extra keys are allowed (docs/interfaces.md: "extra keys"), at the top
+# level, in the line's list entries and in the train's sections, and named in a warning with
+# their near misses; a typo of an absent key holding that key's kind of value is an error
+# (config.check_keys), and a required key stays required (`davis: {A: ...}` lacks `a`).
 # ---------------------------------------------------------------------------------------------
 
 TRAIN_KEYS = ("mass", "rotary_allowance", "davis", "brake", "odometer")
-TRAIN_ALL_KEYS = ("name", *TRAIN_KEYS, "balise", "performance",
-                  "identification")  # every key the loader reads; identify writes the last
-LINE_KEYS = ("name", "length", "balises", "gradients", "stations", "speed_limits", "max_speed")
+# every key the loader reads (identify writes the last) -> the kind of value it holds
+TRAIN_ALL_KEYS = {"name": "string", "mass": "number", "rotary_allowance": "number",
+                  "davis": "mapping", "brake": "mapping", "odometer": "mapping",
+                  "balise": "mapping", "performance": "mapping", "identification": "mapping"}
+LINE_KEYS = {"name": "string", "length": "number", "balises": "list", "gradients": "list",
+             "stations": "list", "speed_limits": "list", "max_speed": "number"}
+# the entries of the line's lists: extra keys allowed there too (a station's platform, a
+# section's curve radius), by the same rule
+BALISE_KEYS = {"id": "integer", "position": "number"}
+GRADIENT_KEYS = {"start": "number", "end": "number", "permille": "number"}
+STATION_KEYS = {"name": "string", "position": "number", "dwell": "number"}
+SPEED_LIMIT_KEYS = {"start": "number", "end": "number", "speed": "number"}
+
+
+def _numbers(*keys) -> dict:
+    return dict.fromkeys(keys, "number")
 
 
 def train_from_dict(data: dict, where: str = "train.yaml") -> TrainParams:
     s = Section(data, where)
     check_top_level(s.data, TRAIN_ALL_KEYS, where)
-    davis = s.section("davis", ("a", "b", "c"), default=REQUIRED)
-    brake = s.section("brake", ("time_constant", "delay", "braking_rate"), default=REQUIRED)
-    odo = s.section("odometer", ("speed_std", "distance_std"), default={})
-    bal = s.section("balise", ("position_std",), default={})
-    perf = s.section(
-        "performance", ("max_traction", "service_brake", "emergency_brake", "max_jerk"), default={}
-    )
+    davis = s.section("davis", _numbers("a", "b", "c"), default=REQUIRED)
+    brake = s.section("brake", _numbers("time_constant", "delay", "braking_rate"),
+                      default=REQUIRED)
+    odo = s.section("odometer", _numbers("speed_std", "distance_std"), default={})
+    bal = s.section("balise", _numbers("position_std"), default={})
+    perf = s.section("performance", _numbers("max_traction", "service_brake",
+                                             "emergency_brake", "max_jerk"), default={})
     dflt = Performance()
     return TrainParams(
         name=s.string("name", "train"),
@@ -234,13 +248,13 @@ def line_from_dict(data: dict, where: str = "line.yaml") -> Line:
     length = s.number("length", REQUIRED, lo=0.0, lo_open=True, unit="m")
     balises = tuple(
         Balise(id=b.integer("id", REQUIRED, lo=0), position=b.number("position", REQUIRED))
-        for b in s.sections("balises", ("id", "position"), default=[])
+        for b in s.sections("balises", BALISE_KEYS, default=[])
     )
     ids = [b.id for b in balises]
     if len(set(ids)) != len(ids):
         raise ConfigError(f"{where}.balises: balise ids must be unique")
     grads = []
-    for g in s.sections("gradients", ("start", "end", "permille"), default=[]):
+    for g in s.sections("gradients", GRADIENT_KEYS, default=[]):
         start, end = g.number("start", REQUIRED), g.number("end", REQUIRED)
         if end <= start:
             raise ConfigError(f"{g.where}: end ({end:g}) must be greater than start ({start:g})")
@@ -256,12 +270,12 @@ def line_from_dict(data: dict, where: str = "line.yaml") -> Line:
             position=st.number("position", REQUIRED, lo=0.0, hi=length),
             dwell=st.number("dwell", 30.0, lo=0.0, unit="s"),
         )
-        for st in s.sections("stations", ("name", "position", "dwell"), default=[])
+        for st in s.sections("stations", STATION_KEYS, default=[])
     )
     limits = tuple(
         SpeedLimit(sl.number("start", REQUIRED), sl.number("end", REQUIRED),
                    sl.number("speed", REQUIRED, lo=0.0, lo_open=True, unit="m/s"))
-        for sl in s.sections("speed_limits", ("start", "end", "speed"), default=[])
+        for sl in s.sections("speed_limits", SPEED_LIMIT_KEYS, default=[])
     )
     return Line(
         name=s.string("name", "line"),

@@ -108,27 +108,86 @@ def inputs_matched(pubs: dict, n: int) -> bool:
 
 
 def declarer(node):
-    """``declare(name, default, text) -> value``: declare_parameter with a descriptor.
+    """``declare(name, default, text, lo=None, hi=None) -> value``: declare_parameter with a
+    descriptor (the description; ``lo``/``hi``: a FloatingPointRange or IntegerRange).
 
-    A value of the wrong type (``-p q:=abc``) raises :class:`ParameterError` with one line
-    naming the parameter, the type wanted and the value given, instead of rclpy's traceback.
+    A float parameter accepts an integer (``-p rate:=10``, ``rate: 10`` in a params file): the
+    override is converted at start-up, a ``set_parameters`` through a pre-set callback. A
+    value of another type (``-p q:=abc``) or out of range raises :class:`ParameterError` with
+    one line naming the parameter, the type or range wanted and the value given, instead of
+    rclpy's traceback.
     """
     from rcl_interfaces.msg import ParameterDescriptor
     from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 
-    def declare(name, default, text):
+    _accept_integers_for_floats(node)
+
+    def declare(name, default, text, lo=None, hi=None):
+        desc = ParameterDescriptor(description=text)
+        _set_range(desc, default, lo, hi)
+        over = node._parameter_overrides.get(name)
+        if (isinstance(default, float) and over is not None and isinstance(over.value, int)
+                and not isinstance(over.value, bool)):
+            from rclpy.parameter import Parameter
+
+            node._parameter_overrides[name] = Parameter(name, value=float(over.value))
         try:
-            return node.declare_parameter(name, default,
-                                          ParameterDescriptor(description=text)).value
+            return node.declare_parameter(name, default, desc).value
         except InvalidParameterTypeException as exc:
             m = re.search(r"to '(.*)' of type '(\w+)'", str(exc))
             given = f"{m.group(1)!r} ({m.group(2).lower()})" if m else "another type"
             raise ParameterError(f"parameter {name}: expected {_type_name(default)}, got "
                                  f"{given}") from None
         except InvalidParameterValueException as exc:
+            over = node._parameter_overrides.get(name)
+            if over is not None and (lo is not None or hi is not None):
+                from train_core.config import _range_text
+
+                raise ParameterError(f"parameter {name}: {over.value!r} is out of range, "
+                                     f"allowed {_range_text(lo, hi)}") from None
             raise ParameterError(f"parameter {name}: {getattr(exc, 'reason', exc)}") from None
 
     return declare
+
+
+INT_BOUND = 2 ** 63 - 1  # IntegerRange is int64: "unbounded" on one side
+
+
+def _set_range(desc, default, lo, hi) -> None:
+    """The descriptor's range for a numeric parameter with a declared ``lo`` and/or ``hi``."""
+    if lo is None and hi is None or isinstance(default, bool):
+        return
+    from rcl_interfaces.msg import FloatingPointRange, IntegerRange
+
+    if isinstance(default, float):
+        desc.floating_point_range = [FloatingPointRange(
+            from_value=float(-np.inf if lo is None else lo),
+            to_value=float(np.inf if hi is None else hi), step=0.0)]
+    elif isinstance(default, int):
+        desc.integer_range = [IntegerRange(
+            from_value=int(-INT_BOUND if lo is None else lo),
+            to_value=int(INT_BOUND if hi is None else hi), step=1)]
+
+
+def _accept_integers_for_floats(node) -> None:
+    """Once per node: a ``set_parameters`` giving an integer to a float parameter sets the
+    float (rclpy would refuse it: "Wrong parameter type")."""
+    if getattr(node, "_train_int_to_float", False) or not hasattr(
+            node, "add_pre_set_parameters_callback"):
+        return
+    from rclpy.parameter import Parameter
+
+    def pre_set(params):
+        out = []
+        for p in params:
+            if (p.type_ == Parameter.Type.INTEGER and node.has_parameter(p.name)
+                    and node.get_parameter(p.name).type_ == Parameter.Type.DOUBLE):
+                p = Parameter(p.name, value=float(p.value))
+            out.append(p)
+        return out
+
+    node.add_pre_set_parameters_callback(pre_set)
+    node._train_int_to_float = True
 
 
 def _type_name(default) -> str:
@@ -200,8 +259,11 @@ def declare_config(node, cls, live: tuple[str, ...] = (), on_change: Callable | 
     at start-up and for a ``set_parameters`` at run time (:func:`refuse_runtime_changes`:
     ``live`` parameters are applied through ``on_change``, the others refused).
     """
-    from train_core.config import describe, param_fields
+    from train_core.config import describe, param_fields, param_range
 
+    if _NODE_PARAMS:  # every parameter of the node is known: check its overrides first
+        check_overrides(node, {**_NODE_PARAMS,
+                               **{f.name: _ros_default(f) for f in param_fields(cls)}})
     declare = declarer(node)
     values = dict(given)
     for f in param_fields(cls):
@@ -211,7 +273,7 @@ def declare_config(node, cls, live: tuple[str, ...] = (), on_change: Callable | 
         default = f.default
         is_tuple = isinstance(default, tuple)
         ros_default = to_ros(default) if to_ros else (list(default) if is_tuple else default)
-        v = declare(f.name, ros_default, describe(f))
+        v = declare(f.name, ros_default, describe(f), *param_range(f))
         values[f.name] = from_ros(v) if from_ros else (tuple(v) if is_tuple else v)
     cfg = cls(**values)
     refuse_runtime_changes(node, cls, values, live, on_change)
@@ -283,24 +345,38 @@ class Diagnostics:
 
 
 def parse_cli(description: str, argv: list[str] | None = None,
-              extra: Callable[[argparse.ArgumentParser], None] | None = None):
+              extra: Callable[[argparse.ArgumentParser], None] | None = None,
+              params: tuple = ()):
     """Parse our own options; everything after --ros-args is left for rclpy.
 
-    ``--help`` is answered here, before rclpy starts, so it works without a ROS graph.
+    ``--help`` is answered here, before rclpy starts, so it works without a ROS graph; it
+    lists the parameters of the config dataclasses ``params`` (name, unit, default, range,
+    meaning: ``train_core.config.param_help``).
     """
     argv = list(sys.argv[1:] if argv is None else argv)
     ros_args: list[str] = []
     if "--ros-args" in argv:
         i = argv.index("--ros-args")
         argv, ros_args = argv[:i], argv[i:]
+    epilog = ("ROS arguments follow --ros-args, e.g. --ros-args -r __ns:=/train "
+              "-p use_sim_time:=true --params-file FILE")
+    if params:
+        from train_core.config import param_fields, param_help
+
+        epilog += ("\n\nparameters (-p NAME:=VALUE; unit, default, allowed range, meaning; "
+                   "a float parameter accepts an integer):\n" + param_help(params))
     parser = argparse.ArgumentParser(
-        description=description,
-        epilog="ROS arguments follow --ros-args, e.g. --ros-args -r __ns:=/train "
-               "-p use_sim_time:=true --params-file FILE",
+        description=description, epilog=epilog,
+        formatter_class=argparse.RawDescriptionHelpFormatter if params
+        else argparse.HelpFormatter,
     )
     if extra is not None:
         extra(parser)
     args = parser.parse_args(argv)
+    if params:  # the node this process runs declares these (check_overrides)
+        _NODE_PARAMS.clear()
+        _NODE_PARAMS.update({f.name: _ros_default(f) for cls in params
+                             for f in param_fields(cls)})
     return args, ros_args
 
 
@@ -349,6 +425,7 @@ def run_node(factory: Callable, ros_args: list[str]) -> int:
     code = 0
     try:
         node = factory()
+        check_overrides(node)
         # One executor with the node added once: rclpy.spin_once(node) adds and removes the
         # node on every call, rebuilding the executor's entities each time (milliseconds per
         # message: most of an estimator's receive -> publish latency)
@@ -377,6 +454,70 @@ def run_node(factory: Callable, ros_args: list[str]) -> int:
         if rclpy.ok():
             rclpy.shutdown()
     return code
+
+
+def _kind(value) -> str:
+    """The kind of a parameter value (train_core.config._KIND_TESTS's names)."""
+    if isinstance(value, bool):
+        return "boolean"
+    if isinstance(value, (int, float)):
+        return "number"  # a float parameter accepts an integer (declarer)
+    if isinstance(value, str):
+        return "string"
+    if isinstance(value, (list, tuple)) or hasattr(value, "__len__"):
+        return "list"
+    return "any"
+
+
+def unknown_overrides(declared: dict, overrides: dict, where: str) -> list[str]:
+    """The shared rule of every reader (train_core.config.unknown_key) for a node's parameter
+    overrides (a --params-file, ``-p``): ``declared`` name -> value, ``overrides`` name ->
+    value given. A parameter the node does not declare is allowed (a params file may serve
+    several nodes) and the returned warnings name its near misses; a typo of a declared
+    parameter that is not given, with a value of its kind (``integrity_rsk: 1e-6``, the risk
+    silently left at its default), raises :class:`ParameterError`."""
+    from train_core.config import ConfigError, unknown_key
+
+    known = {k: _kind(v) for k, v in declared.items()
+             if "." not in k}  # qos_overrides.* and the like are rclpy's own
+    out = []
+    for name, value in overrides.items():
+        if name in declared or "." in name:
+            continue
+        try:
+            msg = unknown_key(name, value, known, overrides.keys(), where, what="parameter")
+        except ConfigError as exc:
+            raise ParameterError(str(exc)) from None
+        if msg is not None:
+            out.append(msg)
+    return out
+
+
+# name -> ROS default of every parameter of the config classes given to parse_cli: what this
+# process's node declares, known before it declares them (so that a typo is refused before the
+# node starts)
+_NODE_PARAMS: dict = {}
+
+
+def check_overrides(node, declared: dict | None = None) -> None:
+    """:func:`unknown_overrides` on a node, once: warnings in its log, a typo refused with
+    :class:`ParameterError` (exit 2, like any invalid parameter). ``declared``: every
+    parameter the node will declare (default: those declared so far)."""
+    if getattr(node, "_train_overrides_checked", False):
+        return
+    node._train_overrides_checked = True
+    overrides = {k: p.value for k, p in getattr(node, "_parameter_overrides", {}).items()}
+    if not overrides:
+        return
+    known = {k: p.value for k, p in node._parameters.items()}
+    known.update(declared or {})
+    for msg in unknown_overrides(known, overrides, f"node {node.get_name()}"):
+        node.get_logger().warning(msg)
+
+
+def _ros_default(f):
+    to_ros = f.metadata.get("ros", (None, None))[0]
+    return to_ros(f.default) if to_ros else f.default
 
 
 class ParameterError(ValueError):

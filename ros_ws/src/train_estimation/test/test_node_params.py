@@ -82,12 +82,20 @@ def _node_output(launch, *args, name):
 @pytest.mark.ros
 @pytest.mark.parametrize("arg,want", [
     ("q:=abc", "error: parameter q: expected a number (write 5.0, not 5), got 'abc' (string)"),
-    ("q:=1", "error: parameter q: expected a number (write 5.0, not 5), got '1' (integer)"),
     ("use_distance:=3.5", "error: parameter use_distance: expected a boolean (true/false), "
                           "got '3.5' (double)"),
-    ("q:=-1.0", "error: parameter q: -1.0 must be finite and >= 0"),
+    # the descriptor's range (FloatingPointRange) refuses it first, in the same words
+    ("q:=-1.0", "error: parameter q: -1.0 is out of range, allowed [0, inf)"),
+    ("q:=-1", "error: parameter q: -1.0 is out of range, allowed [0, inf)"),  # int -> float
+    ("alpha_bar:=1.5", "error: parameter alpha_bar: 1.5 is out of range, allowed [0, 1]"),
+    ("outage_slots:=-2", "error: parameter outage_slots: -2 is out of range, allowed [0, inf)"),
     ("tick_period:=0.0", "error: parameter tick_period: 0.0 must be finite and > 0"),
-    ("slot_grace:=-0.5", "error: parameter slot_grace: -0.5 must be >= 0"),
+    ("slot_grace:=-0.5", "error: parameter slot_grace: -0.5 is out of range, allowed [0, inf)"),
+    # a typo of a parameter not given, with a value of its kind: refused (the rule of every
+    # reader, train_core.config.unknown_key); the gate would silently stay at its default
+    ("balise_gat:=3.0", "error: node robust_filter: unknown parameter 'balise_gat': did you "
+                        "mean 'balise_gate'? (it holds a number, as 'balise_gate' would, and "
+                        "'balise_gate' is absent: rename it, or the model goes without it)"),
 ])
 def test_a_bad_parameter_at_start_up_is_one_line_not_a_traceback(launch, arg, want):
     code, out = _node_output(launch, "-p", "use_demo_line:=true", "-p", arg,
@@ -96,6 +104,65 @@ def test_a_bad_parameter_at_start_up_is_one_line_not_a_traceback(launch, arg, wa
     assert "Traceback" not in out, out
     lines = [ln for ln in out.splitlines() if ln.strip()]
     assert lines == [want], out
+
+
+@pytest.mark.ros
+def test_an_integer_for_a_float_and_an_unknown_parameter_start_the_node(launch, ros_node):
+    """``q:=1`` is 1.0; a parameter the node does not know (a params file shared by several
+    nodes) is named in a warning with its near misses, and the node runs."""
+    from rcl_interfaces.srv import GetParameters
+
+    ns = "/params_int"
+    proc = launch.node("train_estimation", "robust_filter", "--ros-args", "-r", f"__ns:={ns}",
+                       "-p", "use_demo_line:=true", "-p", "q:=1", "-p", "gates:=true",
+                       "-p", "operator:=north", name="int_params")
+    get_cli = ros_node.node.create_client(GetParameters, f"{ns}/robust_filter/get_parameters")
+    ros_node.wait_until(get_cli.service_is_ready, timeout=30, what="the parameter service")
+    future = get_cli.call_async(GetParameters.Request(names=["q"]))
+    ros_node.wait_until(future.done, timeout=10, what="a parameter service answer")
+    (v,) = future.result().values
+    assert v.double_value == 1.0
+    assert proc.poll() is None
+    log = Path(proc.log_path).read_text()
+    assert "unknown parameter 'operator' is ignored (known: " in log, log
+    # 'gates' is near 'gate', but a boolean is not a gate's kind of value: allowed, named
+    assert "unknown parameter 'gates' is ignored; near: 'gate' (holds a number)" in log, log
+
+
+def test_unknown_overrides_follow_the_rule_of_every_reader():
+    from train_core.ros import ParameterError, unknown_overrides
+
+    declared = {"gate": 8.0, "balise_gate": 4.0, "seed": 0, "use_distance": True}
+    # a parameter of another node (a shared params file): named, allowed
+    (msg,) = unknown_overrides(declared, {"rate_factor": 2.0}, "node x")
+    assert msg.startswith("node x: unknown parameter 'rate_factor' is ignored (known: ")
+    # near a parameter that is given too: a second spelling, allowed
+    (msg,) = unknown_overrides(declared, {"gate": 5.0, "gates": 5.0}, "node x")
+    assert "'gates' is ignored; near: 'gate' (given)" in msg
+    # near one that is not given, of its kind: the typo would leave the gate at its default
+    with pytest.raises(ParameterError, match="'gates': did you mean 'gate'"):
+        unknown_overrides(declared, {"gates": 5.0}, "node x")
+    # an integer is a number's kind too (a float parameter accepts it)
+    with pytest.raises(ParameterError, match="'balise_gat': did you mean 'balise_gate'"):
+        unknown_overrides(declared, {"balise_gat": 3}, "node x")
+    assert unknown_overrides(declared, {"gate": 1.0, "qos_overrides./a.depth": 5}, "x") == []
+
+
+def test_help_lists_the_parameters_with_units_defaults_and_ranges(capsys):
+    from train_estimation.nodes import gsma_estimator
+
+    with pytest.raises(SystemExit) as exc:
+        gsma_estimator.main(["--help"])
+    assert exc.value.code == 0
+    out = capsys.readouterr().out
+    from train_estimation.nodes.estimator_node import node_params
+
+    for cls in node_params(BrakingConfig):
+        for f in param_fields(cls):
+            assert f"  {f.name} (" in out, f.name
+    assert "  odometer_rate (Hz) = 10.0 [0, inf): odometer sample rate" in out
+    assert "  odometer_scale (-) = 1.0 [0.5, 2]:" in out
+    assert "  algorithm (no unit) = 'gsma':" in out
 
 
 @pytest.mark.ros
@@ -138,8 +205,10 @@ def test_runtime_set_parameters_is_validated_and_refused_with_a_reason(launch, r
         (v,) = call(get_cli, GetParameters.Request(names=[name])).values
         return v.double_value
 
-    r = set_double("q", -1.0)
-    assert not r.successful and r.reason == "parameter q: -1.0 must be finite and >= 0", r.reason
+    r = set_double("q", -1.0)  # outside the descriptor's range: rclpy's own words
+    assert not r.successful and "out of range" in r.reason, r.reason
+    r = set_double("stale_warn", math.inf)  # in range, refused by the dataclass's check
+    assert not r.successful and r.reason.startswith("parameter stale_warn:"), r.reason
     # a wrong type is refused with a reason (rclpy's type check), and the node keeps running
     p = Parameter(name="q", value=ParameterValue(type=ParameterType.PARAMETER_STRING,
                                                  string_value="abc"))
@@ -155,6 +224,12 @@ def test_runtime_set_parameters_is_validated_and_refused_with_a_reason(launch, r
     r = set_double("stale_warn", 3.0)
     assert r.successful, r.reason
     assert get("stale_warn") == 3.0
+    # a float parameter accepts an integer at run time too
+    p = Parameter(name="stale_warn", value=ParameterValue(type=ParameterType.PARAMETER_INTEGER,
+                                                          integer_value=4))
+    (r,) = call(set_cli, SetParameters.Request(parameters=[p])).results
+    assert r.successful, r.reason
+    assert get("stale_warn") == 4.0
     # a live change takes effect: four statuses a second after diagnostics_period := 0.25
     from diagnostic_msgs.msg import DiagnosticArray
 

@@ -36,6 +36,17 @@ class LineChoice:
                                 "line_file or train_file is refused")
 
 
+def node_params(adapter_config) -> tuple:
+    """The config dataclasses an estimator node declares (for its ``--help``): the common ones,
+    the algorithm's ``adapter_config``, the integrity's and the diagnostics' thresholds."""
+    from train_core.diagnostics import EstimatorThresholds
+
+    from train_estimation.core.online.estimators import NodeConfig
+    from train_estimation.core.online.integrity import IntegrityParams
+
+    return (NodeConfig, LineChoice, adapter_config, IntegrityParams, EstimatorThresholds)
+
+
 def declare_common(node) -> dict:
     """Parameters every estimator node has (``core.online.estimators.NodeConfig``;
     config/*.yaml)."""

@@ -67,7 +67,7 @@ class RecorderConfig:
                                     "(docs/interfaces.md names, estimate/NAME, odom/NAME, "
                                     "/diagnostics)")
     bag: str = param("", "", "bag directory to create (must not exist)")
-    flush_period: float = param(1.0, "s", "of wall time between chunk flushes")
+    flush_period: float = param(1.0, "s", "of wall time between chunk flushes", lo=0.0)
 
     def __post_init__(self):
         require(bool(self.bag), "bag", self.bag, "is empty: give the bag directory to write")
@@ -142,7 +142,10 @@ def build_node():
 
 
 def main(argv=None) -> int:
-    _, ros_args = parse_cli(DESCRIPTION + " Parameters: see config/recorder.yaml.", argv)
+    from train_core.diagnostics import StaleThresholds
+
+    _, ros_args = parse_cli(DESCRIPTION + " Parameters: see config/recorder.yaml.", argv,
+                            params=(RecorderConfig, StaleThresholds))
     return run_node(build_node, ros_args)
 
 

@@ -1,8 +1,8 @@
 """`check_bag`: offline checks of a recorded bag (no running ROS needed).
 
-    check_bag BAG [--line line.yaml] [--train train.yaml] [--out DIR] [--title TEXT]
-              [--threshold KEY<=VALUE ...] [--thresholds FILE.yaml] [--expected-received P]
-              [--rate-factor R]
+    check_bag BAG | --bag BAG [--line line.yaml] [--train train.yaml] [--out DIR]
+              [--title TEXT] [--threshold KEY<=VALUE ...] [--thresholds FILE.yaml]
+              [--expected-received P] [--rate-factor R] [--allow-missing TOPIC,...]
 
 Reports per estimator in the bag (grouped by TrainState ``source`` on the ``estimate/*`` topics):
 position, velocity and braking-rate error against ``ground_truth`` (RMSE, 95th percentile, max),
@@ -15,6 +15,11 @@ stations, the error at rest at each station, |error| just before and 1 s after e
 passage), and the plots mark stations and balises (without it, balises from the bag's readings).
 Thresholds name a key of ``summary.json`` with dots, e.g.
 ``estimators.robust_filter.position.rmse<=5`` or ``topics.odometer.received_fraction>=0.8``.
+
+A bag lacking one of the measured data's topics (odometer, balise, control) is refused, naming
+the missing ones (and, for a bag its recorder never closed, the repair command); where that is
+intended (a bag of estimates only, a speed-only log) ``--allow-missing`` names the topics it may
+lack.
 
 Exit code: 0 every threshold passed, 1 a threshold failed, 2 the bag is unreadable or lacks what
 was asked (one-line reason). Writes ``DIR/summary.json`` and PNG plots beside it.
@@ -33,7 +38,13 @@ import numpy as np
 from train_core.bagio import Bag, BagError, read_bag
 
 from train_estimation.core.offline.measured import topic_health
-from train_estimation.tools.common import EXIT_CHECK_FAILED, EXIT_OK, fail
+from train_estimation.tools.common import (
+    EXIT_CHECK_FAILED,
+    EXIT_OK,
+    INPUT_TOPICS,
+    fail,
+    unclosed,
+)
 
 ESTIMATE_PREFIX = "estimate/"
 CHI2_95 = {1: 3.841, 2: 5.991}  # 95% quantiles of chi-square with 1 and 2 degrees of freedom
@@ -212,7 +223,8 @@ def check(bag_path: str, out_dir: Path | None = None, expected_received: float |
     summary: dict = {"bag": str(bag_path), "namespace": bag.namespace,
                      "has_ground_truth": truth is not None,
                      "topics": {t: topic_health(bag, t) for t in sorted(bag.topics)},
-                     "estimators": {}, "skipped": bag.skipped}
+                     "estimators": {}, "skipped": bag.skipped,
+                     "missing_topics": [t for t in INPUT_TOPICS if not bag.topics.get(t)]}
     if expected_received is not None:
         for t in ("odometer", "balise"):
             h = summary["topics"].get(t)
@@ -399,7 +411,12 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="check_bag", description=__doc__.splitlines()[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter,
                                 epilog="\n".join(__doc__.splitlines()[2:]))
-    p.add_argument("bag", help="rosbag2 directory (MCAP) or .mcap file")
+    p.add_argument("bag", nargs="?", help="rosbag2 directory (MCAP) or .mcap file")
+    p.add_argument("--bag", dest="bag_option", metavar="BAG",
+                   help="the bag, as an option (as identify and diagnose take it)")
+    p.add_argument("--allow-missing", action="append", default=[], metavar="TOPIC[,TOPIC]",
+                   help=f"a topic of {', '.join(INPUT_TOPICS)} the bag may lack (repeatable; "
+                        "default: each is required)")
     p.add_argument("--line", help="line.yaml: adds errors by position (sections between "
                                   "stations, each station stop, balise passages) to the report "
                                   "and marks stations and balises on the plots")
@@ -415,6 +432,13 @@ def main(argv=None) -> int:
                    help="simulated s per wall s of the recorded run: latency in wall time")
     p.add_argument("--title", default=None, help="title of the plots (default: the bag name)")
     args = p.parse_args(argv)
+    if (args.bag is None) == (args.bag_option is None):
+        p.error("give the bag once: check_bag BAG or check_bag --bag BAG")
+    args.bag = args.bag or args.bag_option
+    allowed = {t.strip() for a in args.allow_missing for t in a.split(",") if t.strip()}
+    if allowed - set(INPUT_TOPICS):
+        return fail("check_bag", f"--allow-missing {', '.join(sorted(allowed - set(INPUT_TOPICS)))}"
+                                 f": name topics of {', '.join(INPUT_TOPICS)}")
     try:
         from train_core.config import ConfigError
         from train_core.model import load_line, load_train
@@ -431,6 +455,14 @@ def main(argv=None) -> int:
         summary = check(args.bag, Path(args.out) if args.out else None, args.expected_received,
                         plots=not args.no_plots, line=line, rate_factor=args.rate_factor,
                         title=args.title)
+        missing = [t for t in summary["missing_topics"] if t not in allowed]
+        if missing:
+            raise CheckError(
+                f"{args.bag}: no {' and no '.join(missing)} messages: measured data has "
+                f"{', '.join(INPUT_TOPICS)} (docs/interfaces.md); record "
+                f"{'them' if len(missing) > 1 else 'it'}, or --allow-missing "
+                f"{','.join(missing)} if the bag is meant without"
+                f"{unclosed(summary['skipped'])}")
         results = evaluate(summary, thresholds)
     except (BagError, CheckError, ConfigError, OSError) as exc:
         return fail("check_bag", str(exc))

@@ -6,8 +6,10 @@ in the analyses (check_bag and identify start without the diagnose package)."""
 from __future__ import annotations
 
 import sys
+import warnings
 
 import numpy as np
+from train_core.config import ConfigWarning
 from train_core.progress import Progress, track
 
 # The exit-code ladder: 0 done (a diagnosis of "none" and a report listing failed bags
@@ -18,8 +20,12 @@ EXIT_CHECK_FAILED = 1
 EXIT_UNUSABLE = 2
 
 # the project's one progress-bar style (train_core.progress), re-exported for the tools
-__all__ = ["EXIT_CHECK_FAILED", "EXIT_OK", "EXIT_UNUSABLE", "Progress", "fail", "json_default",
-           "one_line", "track"]
+__all__ = ["EXIT_CHECK_FAILED", "EXIT_OK", "EXIT_UNUSABLE", "INPUT_TOPICS", "Progress", "fail",
+           "json_default", "one_line", "track", "unclosed"]
+
+# the measured data's topics (docs/interfaces.md "Measured data")
+INPUT_TOPICS = ("odometer", "balise", "control")
+UNCLOSED = "(file tail)"  # train_core.bagio's key in Bag.skipped for a bag never closed
 
 
 def one_line(exc) -> str:
@@ -40,3 +46,28 @@ def json_default(o):
     if isinstance(o, (np.floating, np.integer)):
         return o.item()
     return str(o)
+
+
+def unclosed(bag) -> str:
+    """For an error message: " (the bag was not closed: ...; the repair command)" when ``bag``
+    (a train_core.bagio Bag, its ``skipped`` dict, or None) was never closed by its recorder,
+    else "". A killed recorder is the usual reason a topic or the run's end is missing."""
+    skipped = bag if isinstance(bag, dict) else getattr(bag, "skipped", None) or {}
+    why = skipped.get(UNCLOSED)
+    return f" ({why})" if why else ""
+
+
+_show_default = warnings.showwarning
+
+
+def _show(message, category, filename, lineno, file=None, line=None):
+    """An extra key in a file the tools read (train_core.config.ConfigWarning) is one line
+    on stderr, ``warning: FILE: unknown key ...``, not Python's two-line warning with the
+    source line that emitted it."""
+    if issubclass(category, ConfigWarning):
+        print(f"warning: {message}", file=file or sys.stderr)
+    else:
+        _show_default(message, category, filename, lineno, file, line)
+
+
+warnings.showwarning = _show

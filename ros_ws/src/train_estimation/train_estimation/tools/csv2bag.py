@@ -1,26 +1,36 @@
 """`csv2bag`: a data recorder's CSV log into a measured-data bag (docs/interfaces.md).
 
     csv2bag LOG.csv --out BAG [--map MAP.yaml] [--line line.yaml] [--column KEY=NAME ...]
-            [--unit KEY=UNIT ...] [--skip-bad-rows]
+            [--unit KEY=UNIT ...] [--sort] [--skip-bad-rows] [--max-skipped N|P%]
 
-One CSV row per odometer sample. The columns (KEY: what it holds; rename with --column or the
+One CSV row per event: an odometer sample (speed and distance), a balise passage, a command,
+or several of them on one row. The columns (KEY: what it holds; rename with --column or the
 map's ``columns``, units with --unit or the map's ``units``):
 
   time        the reference clock (the recorder's), required: the bag's log time of every
-              message and the stamp of ``control``                     units: s | ms
+              message and the stamp of ``control``
+                                      units: s | ms (numbers), or text: ISO 8601 date-times
+                                      (2026-12-01T23:59:59.900Z; no zone = UTC) or times of
+                                      day (23:59:59.900)
   train_time  the train's own clock, stamping ``odometer`` and ``balise`` (the sampling time
               on the train; any epoch). Optional: without it the train clock is the reference
-                                                                        units: s | ms
-  speed       axle speed, required                                     units: m/s | km/h
-  distance    distance counted since the run started, required         units: m | km
+                                                          units: as time
+  sample      the odometer's sample counter (+1 per sample on the train), where the log has
+              one: the odometer's ``seq``. Without it the samples are numbered from the train
+              clock's period (below)
+  speed       axle speed                                               units: m/s | km/h
+  distance    distance counted since the run started                   units: m | km
+              (speed and distance are required columns; a row with both empty is a row of
+              commands or balises only)
   balise      balise id, on the row of each balise passage (empty otherwise); its surveyed
               position comes from --line (``balises``) or from a ``balise_position`` column (m)
   traction    traction command, >= 0        units: m/s^2 | percent (of ``traction_max``)
   braking     braking command magnitude, >= 0   units: m/s^2 | percent (of ``braking_max``)
-              ``control``'s target_acceleration = traction - braking (one per row, when
-              either column is mapped)
+              a row with either gives one ``control`` message, target_acceleration =
+              traction - braking (an empty one counts 0); a row with neither gives none
 
-The map file (YAML, every key optional; options override it):
+The map file (YAML, every key optional; options override it; extra keys are named in a
+warning):
 
   columns: {time: t_ref, train_time: t_train, speed: v_kmh, ...}
   units: {time: s, speed: km/h, traction: percent, braking: percent, ...}
@@ -30,10 +40,22 @@ The map file (YAML, every key optional; options override it):
   balise_std: 1.0       # m, the balise position's standard deviation
   delimiter: ","
 
-The odometer's ``seq`` is the row's sample number (1 for the first data row), so a skipped row
-shows as a lost sample, as a dropout would. A bad row (not a number, missing value, not finite,
-time not increasing, negative time or command, unknown balise) stops the conversion with its
-line number (exit 2), or with --skip-bad-rows is left out and counted by reason.
+Lost samples. The odometer's ``seq`` is the sample counter where the log has one. Otherwise the
+train clock's sampling period is estimated from the odometer stamps (the median step, refined
+over every step as a whole number of periods) and each sample is numbered by the periods since
+the previous one, so a sample missing from the log (lost on the way, or a bad row left out)
+shows as a lost sample, as a dropout would. How many were lost and where is printed.
+
+Clocks. Times of day (text, or numbers under 86 400 s) that step back by more than 12 h have
+crossed midnight: a day is added (printed). Rows must come in reference-time order (the train
+clock's stamps need not: a link with jitter delivers samples out of order): a row earlier than
+the one before stops the conversion unless --sort sorts the rows by the reference time (stable)
+first.
+
+Bad rows (not a number, missing value, not finite, out of order, negative time or command,
+unknown balise) stop the conversion with their line number (exit 2), or with --skip-bad-rows
+are left out and counted by reason, up to --max-skipped (default 1 % of the data rows): more
+is an error, no bag is written (a mass skip means the mapping or the format is wrong).
 
 Exit status: 0 the bag was written; 2 unusable input (one line on stderr).
 """
@@ -43,19 +65,22 @@ from __future__ import annotations
 import argparse
 import csv
 import math
+import re
 import shutil
 import sys
 from collections import Counter
 from dataclasses import dataclass, field
+from datetime import datetime, timezone
 from pathlib import Path
 
+import numpy as np
 import yaml
 from train_core.bagio import BagError, BagWriter
-from train_core.config import ConfigError
+from train_core.config import ConfigError, ConfigWarning, check_keys
 from train_core.model import load_line
 
-KEYS = ("time", "train_time", "speed", "distance", "balise", "balise_position", "traction",
-        "braking")
+KEYS = ("time", "train_time", "sample", "speed", "distance", "balise", "balise_position",
+        "traction", "braking")
 REQUIRED = ("time", "speed", "distance")
 UNITS = {  # key: {unit: factor to SI}
     "time": {"s": 1.0, "ms": 1e-3},
@@ -66,6 +91,12 @@ UNITS = {  # key: {unit: factor to SI}
     "traction": {"m/s^2": 1.0, "percent": None},
     "braking": {"m/s^2": 1.0, "percent": None},
 }
+MAP_KEYS = {"columns": "mapping", "units": "mapping", "traction_max": "number",
+            "braking_max": "number", "speed_std": "number", "balise_std": "number",
+            "delimiter": "string"}
+DAY = 86400.0  # s
+SEQ_MAX = 2 ** 32 - 1  # OdometerReading.seq is a uint32
+MAX_SKIPPED = "1%"
 
 
 class InputError(ValueError):
@@ -117,10 +148,10 @@ def load_mapping(path: str | None, columns=(), units=()) -> Mapping:
             raise InputError(f"cannot read the map {path}: {str(e).splitlines()[0]}") from None
         if not isinstance(d, dict):
             raise InputError(f"{path}: a mapping of columns, units, ... expected")
-        unknown = set(d) - {"columns", "units", "traction_max", "braking_max", "speed_std",
-                            "balise_std", "delimiter"}
-        if unknown:
-            raise InputError(f"{path}: unknown keys {sorted(unknown)}")
+        try:  # extra keys: the rule of every reader (train_core.config.unknown_key)
+            check_keys(d, MAP_KEYS, str(path))
+        except ConfigError as e:
+            raise InputError(str(e)) from None
     m = Mapping(columns=dict(d.get("columns") or {}), units=dict(d.get("units") or {}))
     m.columns.update(_pairs(columns, "column"))
     m.units.update(_pairs(units, "unit"))
@@ -138,7 +169,10 @@ def load_mapping(path: str | None, columns=(), units=()) -> Mapping:
         raise InputError("speed_std and balise_std must be > 0")
     m.delimiter = str(d.get("delimiter", ","))
     for k in m.units:
-        m.factor(k)  # unknown units and missing maxima fail before any row is read
+        if k in UNITS:
+            m.factor(k)  # unknown units and missing maxima fail before any row is read
+        else:
+            raise InputError(f"{k} has no unit (it is {'a count' if k == 'sample' else 'an id'})")
     return m
 
 
@@ -154,105 +188,59 @@ class Result:
     written: Counter = field(default_factory=Counter)  # topic -> messages
     skipped: Counter = field(default_factory=Counter)  # reason -> rows
     first_skipped: list = field(default_factory=list)  # "line N: why" of the first few
+    numbering: str = ""  # "counter" (the log's sample column) or "period" (from the stamps)
+    period: float = math.nan  # s, the train clock's sampling period (numbering "period")
+    samples: int = 0  # odometer samples the numbering spans (first to last)
+    lost: int = 0  # of them, missing from the log
+    gaps: list = field(default_factory=list)  # (line, samples lost before it, s since the
+    #                                           first sample on the train clock)
+    rollovers: list = field(default_factory=list)  # (column key, line) of each midnight
+    moved: int = 0  # rows --sort moved
 
 
-def convert(csv_path: str | Path, out: str | Path, mapping: Mapping, line=None,
-            skip_bad_rows: bool = False, namespace: str = "/train") -> Result:
-    """Write the bag ``out`` from the CSV (module docstring); raises InputError."""
+# ------------------------------------------------------------------------------------------------
+# Cells
+# ------------------------------------------------------------------------------------------------
+
+_TOD = re.compile(r"^(\d{1,2}):(\d{2}):(\d{2}(?:\.\d*)?)$")
+
+
+def _time_cell(text: str, key: str, factor: float) -> tuple[float, bool]:
+    """(seconds, is a time of day) of a time cell: a number in the column's unit, an ISO 8601
+    date-time (Unix seconds; no zone = UTC) or a time of day HH:MM:SS[.fff]."""
     try:
-        fh = open(csv_path, newline="")
-    except OSError as e:
-        raise InputError(f"cannot read {csv_path}: {e.strerror}") from None
-    with fh:
-        reader = csv.reader(fh, delimiter=mapping.delimiter)
-        header = next(reader, None)
-        if not header:
-            raise InputError(f"{csv_path} is empty: a header row of column names is expected")
-        header = [h.strip() for h in header]
-        col = {}
-        for key in KEYS:
-            name = mapping.columns.get(key, key)
-            if name in header:
-                col[key] = header.index(name)
-            elif key in mapping.columns or key in REQUIRED:
-                raise InputError(f"{csv_path}: no column {name!r} for {key} (columns: "
-                                 f"{', '.join(header)}; map it with --column {key}=NAME)")
-        if "balise" in col and "balise_position" not in col and line is None:
-            raise InputError("balise passages need their positions: give --line line.yaml or "
-                             "a balise_position column")
-        fac = {k: mapping.factor(k) for k in col if k in UNITS}
-        commands = "traction" in col or "braking" in col
-        res = Result()
-        if Path(out).exists():
-            raise InputError(f"{out} exists already: choose a new bag directory")
-        try:
-            writer = BagWriter(out, namespace=namespace)
-        except BagError as e:
-            raise InputError(str(e)) from None
-        try:
-            with writer:
-                _rows(reader, col, fac, line, mapping, skip_bad_rows, commands, writer, res,
-                      csv_path)
-        except (InputError, csv.Error) as e:
-            shutil.rmtree(out, ignore_errors=True)  # no half-written bag is left behind
-            if isinstance(e, csv.Error):
-                raise InputError(f"{csv_path}: not a readable CSV ({e})") from None
-            raise
-    if res.written["odometer"] == 0:
-        shutil.rmtree(out, ignore_errors=True)
-        raise InputError(f"{csv_path}: no usable data row")
-    return res
+        x = float(text)
+    except ValueError:
+        pass
+    else:
+        if not math.isfinite(x):
+            raise BadRow("non_finite", f"{key} is {text}")
+        x *= factor
+        return x, 0.0 <= x < DAY
+    m = _TOD.match(text)
+    if m:
+        h, mi, s = int(m.group(1)), int(m.group(2)), float(m.group(3))
+        if h < 24 and mi < 60 and s < 61:
+            return h * 3600.0 + mi * 60.0 + s, True
+    try:
+        dt = datetime.fromisoformat(text.replace("Z", "+00:00").replace("z", "+00:00"))
+    except ValueError:
+        raise BadRow("not_a_number", f"{key} {text!r} is neither a number, an ISO 8601 "
+                     "date-time nor a time of day HH:MM:SS") from None
+    if dt.tzinfo is None:
+        dt = dt.replace(tzinfo=timezone.utc)
+    return dt.timestamp(), False
 
 
-def _rows(reader, col, fac, line, mapping, skip_bad_rows, commands, writer, res, csv_path):
-    last_t = last_tt = -math.inf
-    n_bal = 0
-    for lineno, row in enumerate(reader, start=2):
-        if not row or all(not c.strip() for c in row):
-            continue
-        res.rows += 1
-        seq = res.rows
-        try:
-            v = _row(row, col, fac, line, lineno)
-            if v["time"] <= last_t:
-                raise BadRow("out_of_order", f"time {v['time']} s is not after the "
-                             f"previous row's {last_t} s")
-            if v["train_time"] <= last_tt:
-                raise BadRow("out_of_order", f"train_time {v['train_time']} s is not "
-                             f"after the previous row's {last_tt} s")
-        except BadRow as e:
-            if not skip_bad_rows:
-                raise InputError(f"{csv_path} line {lineno}: {e} (use --skip-bad-rows "
-                                 "to leave such rows out)") from None
-            res.skipped[e.reason] += 1
-            if len(res.first_skipped) < 5:
-                res.first_skipped.append(f"line {lineno}: {e}")
-            continue
-        last_t, last_tt = v["time"], v["train_time"]
-        t_ns = int(round(v["time"] * 1e9))
-        writer.write("odometer", v["train_time"], {
-            "seq": seq, "distance": v["distance"], "speed": v["speed"],
-            "speed_variance": mapping.speed_std ** 2}, t_ns=t_ns)
-        res.written["odometer"] += 1
-        if v.get("balise_id") is not None:
-            n_bal += 1
-            writer.write("balise", v["train_time"], {
-                "seq": n_bal, "balise_id": v["balise_id"],
-                "position": v["balise_position"],
-                "position_variance": mapping.balise_std ** 2}, t_ns=t_ns)
-            res.written["balise"] += 1
-        if commands:
-            writer.write("control", v["time"], {
-                "target_acceleration": v.get("traction", 0.0) - v.get("braking", 0.0)},
-                t_ns=t_ns)
-            res.written["control"] += 1
-
-
-def _number(row, col, key, lineno) -> float | None:
+def _cell(row, col, key) -> str:
     i = col.get(key)
-    if i is None:
-        return None
-    text = row[i].strip() if i < len(row) else ""
+    if i is None or i >= len(row):
+        return ""
+    return row[i].strip()
+
+
+def _number(row, col, key) -> float | None:
+    text = _cell(row, col, key)
     if not text:
         return None
     try:
@@ -264,39 +252,336 @@ def _number(row, col, key, lineno) -> float | None:
     return x
 
 
-def _row(row, col, fac, line, lineno) -> dict:
+@dataclass
+class _Row:
+    line: int
+    time: float  # s, reference clock (midnights added)
+    train_time: float | None  # s, train clock (midnights added); None: not on this row
+    values: dict  # speed, distance, sample, traction, braking, balise_id, balise_position
+
+
+class _Clock:
+    """A time column read in file order: times of day that step back by more than half a day
+    have crossed midnight, and a day is added from there on."""
+
+    def __init__(self, key: str, factor: float):
+        self.key, self.factor = key, factor
+        self.days = 0
+        self.last = None  # the last time of day read (s, without the added days)
+        self.rollovers: list[int] = []
+
+    def read(self, text: str, line: int) -> float:
+        x, of_day = _time_cell(text, self.key, self.factor)
+        if not of_day:
+            return x
+        if self.last is not None and x < self.last - DAY / 2:
+            self.days += 1
+            self.rollovers.append(line)
+        self.last = x
+        return x + self.days * DAY
+
+
+def _parse(row, line, col, fac, lookup, clocks) -> _Row:
+    text = _cell(row, col, "time")
+    if not text:
+        raise BadRow("missing", "no time value")
+    t = clocks["time"].read(text, line)
+    tt_text = _cell(row, col, "train_time") if "train_time" in col else text
+    tt = (clocks["train_time"].read(tt_text, line) if "train_time" in col else t) \
+        if tt_text else None
     v: dict = {}
-    for key in ("time", "train_time", "speed", "distance", "traction", "braking",
-                "balise_position"):
-        x = _number(row, col, key, lineno)
-        if x is None:
-            if key in REQUIRED:
-                raise BadRow("missing", f"no {key} value")
-            continue
-        v[key] = x * fac[key]
-    v.setdefault("train_time", v["time"])
-    for key in ("time", "train_time", "traction", "braking"):
+    for key in ("speed", "distance", "traction", "braking", "balise_position"):
+        x = _number(row, col, key)
+        if x is not None:
+            v[key] = x * fac[key]
+    n = _number(row, col, "sample")
+    if n is not None:
+        if n != int(n) or not 0 <= n <= SEQ_MAX:
+            raise BadRow("not_a_number", f"sample {n:g} is not a whole number in [0, 2^32)")
+        v["sample"] = int(n)
+    has_odo = "speed" in v or "distance" in v
+    if has_odo and not ("speed" in v and "distance" in v):
+        raise BadRow("missing", f"no {'distance' if 'speed' in v else 'speed'} value")
+    for key in ("time", "train_time"):
+        val = t if key == "time" else tt
+        if val is not None and val < 0:
+            raise BadRow("negative", f"{key} {val:g} < 0 (clocks count from 0 or an epoch)")
+    for key in ("traction", "braking"):
         if v.get(key, 0.0) < 0:
-            raise BadRow("negative", f"{key} {v[key]:g} < 0 (clocks count from 0 or an "
-                         "epoch; braking is a magnitude)")
-    bid = _number(row, col, "balise", lineno)
+            raise BadRow("negative", f"{key} {v[key]:g} < 0 (braking is a magnitude)")
+    bid = _number(row, col, "balise")
     if bid is not None:
         if bid != int(bid) or bid < 0:
             raise BadRow("not_a_number", f"balise id {bid:g} is not a whole number >= 0")
         v["balise_id"] = int(bid)
         if "balise_position" not in v:
-            b = line.balise_by_id(int(bid)) if line is not None else None
+            b = lookup(int(bid))
             if b is None:
                 raise BadRow("unknown_balise", f"balise {int(bid)} is not in the line file")
             v["balise_position"] = float(b.position)
-    return v
+    commands = "traction" in v or "braking" in v
+    if not (has_odo or commands or "balise_id" in v):
+        raise BadRow("missing", "no speed, distance, command or balise on the row")
+    if (has_odo or "balise_id" in v) and tt is None:
+        raise BadRow("missing", "no train_time value (it stamps the odometer and balises)")
+    return _Row(line, t, tt, v)
+
+
+# ------------------------------------------------------------------------------------------------
+# Sample numbers
+# ------------------------------------------------------------------------------------------------
+
+def sampling_period(stamps) -> float:
+    """s, the train clock's sampling period from the stamps of the samples received (in any
+    order): the
+    median step (robust to gaps as long as fewer than half the steps span a loss), refined over
+    every step as a whole number of those periods (so it is as exact as the whole log is
+    long). NaN with fewer than two stamps or no forward step."""
+    d = np.diff(np.sort(np.asarray(stamps, dtype=float)))  # in stamp order, not arrival's
+    d = d[d > 0]  # a sample delivered twice is no step
+    if d.size == 0:
+        return math.nan
+    p0 = float(np.median(d))
+    k = np.maximum(1, np.rint(d / p0))
+    return float(d.sum() / k.sum())
+
+
+def number_samples(stamps, period: float) -> np.ndarray:
+    """Sample numbers (1 for the earliest stamp) of samples stamped ``stamps`` (in any order:
+    the arrival order of a link with jitter) on a clock sampling every ``period`` s: in stamp
+    order each step counts the whole periods since the sample before, so rounding errors never
+    accumulate across a long log, and a sample delivered twice (the same stamp) keeps its
+    number (a duplicate, as the counter would say)."""
+    stamps = np.asarray(stamps, dtype=float)
+    if stamps.size == 0:
+        return np.zeros(0, dtype=np.int64)
+    order = np.argsort(stamps, kind="stable")
+    if not (math.isfinite(period) and period > 0):
+        k = (np.diff(stamps[order]) > 0).astype(np.int64)
+    else:
+        k = np.maximum(0, np.rint(np.diff(stamps[order]) / period)).astype(np.int64)
+    seq = np.empty(stamps.size, dtype=np.int64)
+    seq[order] = np.concatenate([[1], 1 + np.cumsum(k)])
+    return seq
+
+
+# ------------------------------------------------------------------------------------------------
+# The conversion
+# ------------------------------------------------------------------------------------------------
+
+def max_skipped_rows(spec: str, rows: int) -> int:
+    """Rows that --max-skipped allows: "N" rows or "P%" of ``rows`` (rounded up)."""
+    s = str(spec).strip()
+    try:
+        if s.endswith("%"):
+            p = float(s[:-1])
+            if not (math.isfinite(p) and 0 <= p <= 100):
+                raise ValueError
+            return int(math.ceil(p / 100.0 * rows))
+        n = int(s)
+        if n < 0:
+            raise ValueError
+        return n
+    except ValueError:
+        raise InputError(f"--max-skipped {spec!r}: a number of rows (10) or a percentage of "
+                         "the data rows (1%)") from None
+
+
+def convert(csv_path: str | Path, out: str | Path, mapping: Mapping, line=None,
+            skip_bad_rows: bool = False, namespace: str = "/train", sort: bool = False,
+            max_skipped: str = MAX_SKIPPED) -> Result:
+    """Write the bag ``out`` from the CSV (module docstring); raises InputError."""
+    if Path(out).exists():
+        raise InputError(f"{out} exists already: choose a new bag directory")
+    res = Result()
+    rows = _read(csv_path, mapping, line, skip_bad_rows, sort, res)
+    allowed = max_skipped_rows(max_skipped, res.rows)
+    n_skipped = sum(res.skipped.values())
+    if n_skipped > allowed:
+        reasons = ", ".join(f"{k} {n}" for k, n in res.skipped.most_common())
+        first = f" (first: {res.first_skipped[0]})" if res.first_skipped else ""
+        raise InputError(f"{csv_path}: {n_skipped} of {res.rows} rows would be skipped "
+                         f"({reasons}){first}, more than --max-skipped {max_skipped} "
+                         f"({allowed} rows): check the columns and units (--column, --unit, "
+                         "--map); raise --max-skipped only if so many rows are truly bad")
+    odo = [r for r in rows if "speed" in r.values]
+    if not odo:
+        raise InputError(f"{csv_path}: no usable odometer row (speed and distance)")
+    _number_odometer(odo, res)
+    try:
+        writer = BagWriter(out, namespace=namespace)
+    except BagError as e:
+        raise InputError(str(e)) from None
+    try:
+        with writer:
+            _write(rows, mapping, writer, res)
+    except BaseException:
+        shutil.rmtree(out, ignore_errors=True)  # no half-written bag is left behind
+        raise
+    return res
+
+
+def _read(csv_path, mapping, line, skip_bad_rows, sort, res) -> list[_Row]:
+    """The CSV's usable rows in time order (sorted if asked); bad rows raise or are counted."""
+    try:
+        fh = open(csv_path, newline="")
+    except OSError as e:
+        raise InputError(f"cannot read {csv_path}: {e.strerror}") from None
+    with fh:
+        reader = csv.reader(fh, delimiter=mapping.delimiter)
+        try:
+            header = next(reader, None)
+            if not header:
+                raise InputError(f"{csv_path} is empty: a header row of column names is "
+                                 "expected")
+            header = [h.strip() for h in header]
+            col = {}
+            for key in KEYS:
+                name = mapping.columns.get(key, key)
+                if name in header:
+                    col[key] = header.index(name)
+                elif key in mapping.columns or key in REQUIRED:
+                    raise InputError(f"{csv_path}: no column {name!r} for {key} (columns: "
+                                     f"{', '.join(header)}; map it with --column {key}=NAME)")
+            if "balise" in col and "balise_position" not in col and line is None:
+                raise InputError("balise passages need their positions: give --line "
+                                 "line.yaml or a balise_position column")
+            fac = {k: mapping.factor(k) for k in col if k in UNITS}
+            clocks = {k: _Clock(k, fac.get(k, 1.0)) for k in ("time", "train_time")}
+            lookup = line.balise_by_id if line is not None else (lambda i: None)
+            parsed = []
+            for lineno, row in enumerate(reader, start=2):
+                if not row or all(not c.strip() for c in row):
+                    continue
+                res.rows += 1
+                try:
+                    parsed.append(_parse(row, lineno, col, fac, lookup, clocks))
+                except BadRow as e:
+                    _bad(e, lineno, csv_path, skip_bad_rows, res)
+        except csv.Error as e:
+            raise InputError(f"{csv_path}: not a readable CSV ({e})") from None
+    res.rollovers = [(k, ln) for k, c in clocks.items() for ln in c.rollovers]
+    if sort:
+        order = sorted(range(len(parsed)), key=lambda i: parsed[i].time)
+        res.moved = sum(1 for i, j in enumerate(order) if i != j)
+        parsed = [parsed[i] for i in order]
+    # The reference time orders the log (the recorder's clock, as it wrote the rows). The
+    # train's stamps need not follow it: a link with jitter delivers samples out of order,
+    # and the bag keeps them in arrival order as a recorder does.
+    rows = []
+    last_t = -math.inf
+    for r in parsed:
+        if r.time < last_t:
+            _bad(BadRow("out_of_order", f"time {r.time:.9g} s is before the previous row's "
+                        f"{last_t:.9g} s (rows out of order: --sort sorts them by time)"),
+                 r.line, csv_path, skip_bad_rows, res)
+            continue
+        last_t = r.time
+        rows.append(r)
+    return rows
+
+
+def _bad(e: BadRow, lineno: int, csv_path, skip_bad_rows: bool, res: Result) -> None:
+    if not skip_bad_rows:
+        raise InputError(f"{csv_path} line {lineno}: {e} (use --skip-bad-rows to leave such "
+                         "rows out)") from None
+    res.skipped[e.reason] += 1
+    if len(res.first_skipped) < 5:
+        res.first_skipped.append(f"line {lineno}: {e}")
+
+
+def _number_odometer(odo: list[_Row], res: Result) -> None:
+    """Each odometer row's ``seq``: the log's counter, or numbered from the train clock's
+    period; the samples lost (gaps) are recorded in ``res``."""
+    counted = [r for r in odo if "sample" in r.values]
+    if counted and len(counted) == len(odo):
+        res.numbering = "counter"
+        seq = np.array([r.values["sample"] for r in odo], dtype=np.int64)
+    else:
+        # a counter column with empty cells is no counter (mixing would number twice)
+        res.numbering = "period"
+        stamps = np.array([r.train_time for r in odo])
+        res.period = sampling_period(stamps)
+        seq = number_samples(stamps, res.period)
+    for r, s in zip(odo, seq):
+        r.values["seq"] = int(s) % (SEQ_MAX + 1)
+    # the gaps in sample order (a sample delivered late is not lost; one delivered twice is
+    # counted once)
+    order = np.argsort(seq, kind="stable")
+    q = seq[order]
+    steps = np.diff(q)
+    res.samples = int(np.unique(q).size + np.clip(steps - 1, 0, None).sum())
+    res.lost = res.samples - int(np.unique(q).size)
+    t0 = odo[order[0]].train_time
+    res.gaps = [(odo[order[i + 1]].line, int(steps[i] - 1), odo[order[i + 1]].train_time - t0)
+                for i in np.flatnonzero(steps > 1)]
+
+
+def _write(rows: list[_Row], mapping: Mapping, writer: BagWriter, res: Result) -> None:
+    n_bal = 0
+    for r in rows:
+        v = r.values
+        t_ns = int(round(r.time * 1e9))
+        if "speed" in v:
+            writer.write("odometer", r.train_time, {
+                "seq": v["seq"], "distance": v["distance"], "speed": v["speed"],
+                "speed_variance": mapping.speed_std ** 2}, t_ns=t_ns)
+            res.written["odometer"] += 1
+        if "balise_id" in v:
+            n_bal += 1
+            writer.write("balise", r.train_time, {
+                "seq": n_bal, "balise_id": v["balise_id"], "position": v["balise_position"],
+                "position_variance": mapping.balise_std ** 2}, t_ns=t_ns)
+            res.written["balise"] += 1
+        if "traction" in v or "braking" in v:
+            writer.write("control", r.time, {
+                "target_acceleration": v.get("traction", 0.0) - v.get("braking", 0.0)},
+                t_ns=t_ns)
+            res.written["control"] += 1
+
+
+# ------------------------------------------------------------------------------------------------
+# Command line
+# ------------------------------------------------------------------------------------------------
+
+def report(res: Result, out: str) -> list[str]:
+    """The summary printed after a conversion: counts, lost samples and where, midnights."""
+    counts = ", ".join(f"{k} {n}" for k, n in sorted(res.written.items()))
+    lines = [f"wrote {out}: {res.rows} rows -> {counts}"]
+    if res.numbering == "counter":
+        how = "by the log's sample counter"
+    elif math.isfinite(res.period):
+        how = (f"from the train clock's period {res.period:.6g} s (estimated from the "
+               "stamps)")
+    else:
+        how = "one per row (a single sample: no period)"
+    share = res.lost / res.samples if res.samples else 0.0
+    lines.append(f"odometer samples numbered {how}: {res.samples - res.lost} of "
+                 f"{res.samples} in the log, {res.lost} lost ({100 * share:.1f} %) in "
+                 f"{len(res.gaps)} gaps")
+    if res.gaps:
+        big = sorted(res.gaps, key=lambda g: (-g[1], g[0]))[:3]
+        lines.append("  largest gaps: " + "; ".join(
+            f"{n} before line {ln} ({tt:.1f} s after the first sample)" for ln, n, tt in big))
+        first = res.gaps[:5]
+        lines.append("  first gaps at lines " + ", ".join(
+            f"{ln} ({n})" for ln, n, _ in first) + (" ..." if len(res.gaps) > 5 else ""))
+    for key, ln in res.rollovers:
+        lines.append(f"{key} crossed midnight at line {ln}: a day added from there on")
+    if res.moved:
+        lines.append(f"--sort moved {res.moved} rows into time order")
+    if res.skipped:
+        lines.append(f"skipped {sum(res.skipped.values())} bad rows: "
+                     + ", ".join(f"{k} {n}" for k, n in sorted(res.skipped.items())))
+        lines += [f"  {s}" for s in res.first_skipped]
+    return lines
 
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="csv2bag", description=__doc__.splitlines()[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter,
                                 epilog="\n".join(__doc__.splitlines()[2:]))
-    p.add_argument("csv", help="the recorder's CSV log (a header row, one row per sample)")
+    p.add_argument("csv", help="the recorder's CSV log (a header row, then one row per event)")
     p.add_argument("--out", required=True, help="the bag directory to write (must not exist)")
     p.add_argument("--map", help="YAML: columns, units, traction_max, braking_max, ...")
     p.add_argument("--line", help="line.yaml: balise positions by id")
@@ -304,24 +589,33 @@ def main(argv=None) -> int:
                    help="CSV column of a quantity, e.g. speed=v_kmh (repeatable)")
     p.add_argument("--unit", action="append", metavar="KEY=UNIT",
                    help="unit of a quantity, e.g. speed=km/h (repeatable)")
+    p.add_argument("--sort", action="store_true",
+                   help="sort the rows by the reference time first (default: rows out of "
+                        "order are bad rows)")
     p.add_argument("--skip-bad-rows", action="store_true",
                    help="leave bad rows out and count them (default: stop at the first)")
+    p.add_argument("--max-skipped", default=MAX_SKIPPED, metavar="N|P%",
+                   help="with --skip-bad-rows, more skipped rows than this is an error: a "
+                        f"number of rows or a percentage of the data rows (default "
+                        f"{MAX_SKIPPED.replace('%', '%%')})")
     p.add_argument("--namespace", default="/train", help="topic namespace (default /train)")
     args = p.parse_args(argv)
+    import warnings
+
     try:
-        mapping = load_mapping(args.map, args.column, args.unit)
-        line = load_line(args.line) if args.line else None
-        res = convert(args.csv, args.out, mapping, line, args.skip_bad_rows, args.namespace)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", ConfigWarning)
+            mapping = load_mapping(args.map, args.column, args.unit)
+            line = load_line(args.line) if args.line else None
+        for w in caught:  # extra keys in the map or the line file: one line each
+            print(f"csv2bag: warning: {w.message}", file=sys.stderr)
+        max_skipped_rows(args.max_skipped, 0)  # a bad value fails before any row is read
+        res = convert(args.csv, args.out, mapping, line, args.skip_bad_rows, args.namespace,
+                      sort=args.sort, max_skipped=args.max_skipped)
     except (InputError, ConfigError, BagError) as e:
         print(f"csv2bag: {e}", file=sys.stderr)
         return 2
-    counts = ", ".join(f"{k} {n}" for k, n in sorted(res.written.items()))
-    print(f"wrote {args.out}: {res.rows} rows -> {counts}")
-    if res.skipped:
-        print(f"skipped {sum(res.skipped.values())} bad rows: "
-              + ", ".join(f"{k} {n}" for k, n in sorted(res.skipped.items())))
-        for s in res.first_skipped:
-            print(f"  {s}")
+    print("\n".join(report(res, args.out)))
     return 0
 
 

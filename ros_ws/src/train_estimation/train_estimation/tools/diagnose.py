@@ -79,7 +79,7 @@ from train_estimation.core.offline.diagnose.search import (  # noqa: F401 (SCORE
     SCORE_FORMULA,
 )
 from train_estimation.core.offline.measured import TOPICS, MeasuredRun
-from train_estimation.tools.common import EXIT_OK, Progress, fail, one_line
+from train_estimation.tools.common import EXIT_OK, Progress, fail, one_line, unclosed
 from train_estimation.tools.report_html import write_report_html
 
 # ------------------------------------------------------------------------------------------------
@@ -682,15 +682,19 @@ def main(argv=None) -> int:
     from train_estimation.core.offline.diagnose import DiagnoseError, diagnose
 
     t0 = time.perf_counter()
+    bag = None
     try:
         line, train = load_line(args.line), load_train(args.train)
-        data = read_measured(args.bag)
+        bag = read_bag(args.bag, topics=TOPICS)
+        data = MeasuredRun.from_bag(bag)
+        if unclosed(bag) and not args.quiet:
+            print(f"diagnose: note: {args.bag}{unclosed(bag)}", file=sys.stderr)
         bar = None if args.quiet else Progress("diagnose", what_width=36)
         dg = diagnose(data, line, train, progress=bar)
     except (ConfigError, BagError) as exc:
         return fail("diagnose", str(exc))
-    except DiagnoseError as exc:
-        return fail("diagnose", f"cannot diagnose {args.bag}: {exc}")
+    except DiagnoseError as exc:  # a truncated bag is the usual reason: named with its repair
+        return fail("diagnose", f"cannot diagnose {args.bag}: {exc}{unclosed(bag)}")
     elapsed = time.perf_counter() - t0
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -99,6 +99,30 @@ def is_bag(p: Path) -> bool:
     return p.is_dir() and (p / "metadata.yaml").is_file()
 
 
+# the manifest's columns -> the kind of value each holds (extra columns are allowed: the
+# shared rule of every reader, train_core.config.unknown_key)
+MANIFEST_COLUMNS = {"train": "string", "bag": "string", "line": "string",
+                    "train_file": "string", "time": "number", "day": "string"}
+
+
+def _check_columns(path: str, header: list, rows: list[dict]) -> None:
+    """Extra columns: named in a warning with their near misses; a typo of an absent column
+    whose cells hold that column's kind (``tmie`` with numbers, no ``time``) is an error."""
+    from train_core.config import unknown_key, warn_unknown
+
+    for col in header:
+        if col in MANIFEST_COLUMNS or col is None:
+            continue
+        cell = next((r[col].strip() for r in rows if (r.get(col) or "").strip()), "")
+        try:
+            value = float(cell)
+        except ValueError:
+            value = cell
+        msg = unknown_key(col, value, MANIFEST_COLUMNS, header, path, what="column")
+        if msg is not None:
+            warn_unknown(msg)
+
+
 def read_manifest(path: str) -> list[dict]:
     """The manifest's tasks; a malformed row is an InputError naming its line (exit 2)."""
     base = Path(path).resolve().parent
@@ -112,6 +136,8 @@ def read_manifest(path: str) -> list[dict]:
     except (csv.Error, UnicodeDecodeError) as exc:
         raise InputError(f"{path}: not a CSV manifest ({exc})") from exc
     need = ("train", "bag", "line", "train_file")
+    if rows:
+        _check_columns(path, header, [r for _, r in rows])
     if not rows or not set(need) <= set(header):
         raise InputError(f"{path}: a manifest is a CSV with columns train, bag, line, "
                          f"train_file[, time][, day] (got {sorted(header) if rows else 'no rows'})")

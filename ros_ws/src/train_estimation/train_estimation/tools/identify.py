@@ -24,7 +24,7 @@ from train_core.config import ConfigError
 from train_core.model import TrainParams, load_line, load_train
 
 from train_estimation.core.offline.measured import MeasuredRun
-from train_estimation.tools.common import EXIT_OK, Progress, fail
+from train_estimation.tools.common import EXIT_OK, Progress, fail, unclosed
 
 
 def train_to_yaml(train: TrainParams, res, prior: TrainParams, source: str) -> str:
@@ -172,14 +172,18 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     from train_estimation.core.offline.identify import IdentificationError, identify
 
+    bag = None
     try:
         line, prior = load_line(args.line), load_train(args.train)
-        data = MeasuredRun.from_bag(read_bag(args.bag)).to_identify()
+        bag = read_bag(args.bag)
+        if unclosed(bag) and not args.quiet:
+            print(f"identify: note: {args.bag}{unclosed(bag)}", file=sys.stderr)
+        data = MeasuredRun.from_bag(bag).to_identify()
         res = identify(data, line, prior, progress=None if args.quiet else Progress("identify"))
     except (ConfigError, BagError) as exc:
         return fail("identify", str(exc))
-    except IdentificationError as exc:
-        return fail("identify", f"cannot fit {args.bag}: {exc}")
+    except IdentificationError as exc:  # a truncated bag is the usual reason: named, with the
+        return fail("identify", f"cannot fit {args.bag}: {exc}{unclosed(bag)}")  # repair
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(train_to_yaml(res.train, res, prior, args.bag))

@@ -38,9 +38,9 @@ class PlayerConfig:
     bag: str = param("", "", "bag directory (rosbag2, MCAP) to play")
     topics: tuple[str, ...] = param(("control", "odometer", "balise", "ground_truth"), "",
                                     "topics of the bag to publish (relative names)")
-    rate_factor: float = param(1.0, "-", "bag seconds per wall second")
+    rate_factor: float = param(1.0, "-", "bag seconds per wall second", lo=0.0)
     wait_for_subscribers: int = param(0, "", "start when each of control, odometer and balise "
-                                      "has this many subscribers")
+                                      "has this many subscribers", lo=0)
 
     def __post_init__(self):
         require(bool(self.bag), "bag", self.bag, "is empty: give the bag to play")
@@ -104,7 +104,7 @@ def build_node():
 
 
 def main(argv=None) -> int:
-    _, ros_args = parse_cli(DESCRIPTION, argv)
+    _, ros_args = parse_cli(DESCRIPTION, argv, params=(PlayerConfig,))
     return run_node(build_node, ros_args)
 
 

@@ -35,6 +35,9 @@ from train_core.ros import (
 DESCRIPTION = __doc__.splitlines()[0]
 
 
+PROGRESS = "simulated"  # the progress log line: "simulated T of D s"
+
+
 @dataclass(frozen=True)
 class SimulatorConfig:
     """The simulator node's parameters (declared from this metadata; config/simulator.yaml
@@ -44,25 +47,25 @@ class SimulatorConfig:
     model: str = param("", "", "a model directory written by diagnose (DIR/model: line.yaml, "
                        "train.yaml, effects.yaml) to run instead of the scenario's line, train "
                        "and effects; empty = the scenario's")
-    seed: int = param(-1, "", "random seed; -1 = the scenario's own seed")
-    rate_factor: float = param(1.0, "-", "simulated seconds per wall-clock second")
+    seed: int = param(-1, "", "random seed; -1 = the scenario's own seed", lo=-1)
+    rate_factor: float = param(1.0, "-", "simulated seconds per wall-clock second", lo=0.0)
     duration: float = param(-1.0, "s", "simulated time; -1 = the scenario's")
-    wall_step: float = param(0.01, "s", "wall-clock period of the stepping timer")
+    wall_step: float = param(0.01, "s", "wall-clock period of the stepping timer", lo=0.0)
     wait_for_subscribers: int = param(0, "", "start only when control, odometer and balise "
-                                      "have this many subscribers each")
+                                      "have this many subscribers each", lo=0)
     wait_for_truth_subscribers: int = param(0, "", "and ground_truth has this many "
-                                            "subscribers")
+                                            "subscribers", lo=0)
     publish_clock: bool = param(True, "", "publish /clock (one simulator per ROS graph should)")
     start_at: float = param(0.0, "s", "wall time (since the epoch) to start at; 0 = at once. "
-                            "Several simulators given one start_at share a time base")
+                            "Several simulators given one start_at share a time base", lo=0.0)
     summary_file: str = param("", "", "write the run's summary (JSON) here at the end; '' = no")
     start_with_emergency_brake: bool = param(False, "", "the train starts braked, as one no "
                                              "zone controller has localised yet, until an "
                                              "authority without the brake arrives")
     end_linger: float = param(0.0, "s", "of simulated time /clock keeps running after the run "
-                              "ends, so estimators release their last estimates")
+                              "ends, so estimators release their last estimates", lo=0.0)
     max_lead: float = param(0.0, "s", "> 0: simulated time runs at most this far ahead of the "
-                            "newest message stamp on every pace_topics topic; 0 = off")
+                            "newest message stamp on every pace_topics topic; 0 = off", lo=0.0)
     pace_topics: tuple[str, ...] = param(("estimate/robust",), "", "topics whose progress "
                                          "paces the world when max_lead > 0")
     exit_at_end: bool = param(True, "", "stop the node when the run ends")
@@ -141,6 +144,9 @@ def build_node():
             self.last_wall = None
             self.counts = dict.fromkeys(self.pubs, 0)
             self.t_sim = 0.0
+            # a log line every 5 % of the run (the main job draws its progress bar from them)
+            self.report_step = self.duration / 20.0
+            self.next_report = self.report_step
             self.wall0 = None
             self.finished = False
             self.done = False
@@ -211,6 +217,12 @@ def build_node():
                 self.pubs[topic].publish(fields_to_msg(TOPIC_TYPES[topic], stamp, fields))
                 self.counts[topic] += 1
             self.t_sim = target
+            if not self.done and (self.t_sim >= self.next_report
+                                  or self.t_sim >= self.duration):
+                self.get_logger().info(f"{PROGRESS} {min(self.t_sim, self.duration):.1f} of "
+                                       f"{self.duration:.1f} s")
+                while self.next_report <= self.t_sim:
+                    self.next_report += self.report_step
             if self.publish_clock:
                 clock = Clock()
                 sec_to_stamp(self.t_sim, clock.clock)
@@ -230,7 +242,10 @@ def build_node():
 
 
 def main(argv=None) -> int:
-    _, ros_args = parse_cli(DESCRIPTION + " Parameters: see config/simulator.yaml.", argv)
+    from train_core.diagnostics import StaleThresholds
+
+    _, ros_args = parse_cli(DESCRIPTION + " Parameters: see config/simulator.yaml.", argv,
+                            params=(SimulatorConfig, StaleThresholds))
     return run_node(build_node, ros_args)
 
 

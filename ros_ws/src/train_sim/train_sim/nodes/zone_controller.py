@@ -175,7 +175,12 @@ def build_node():
 
 
 def main(argv=None) -> int:
-    _, ros_args = parse_cli(DESCRIPTION + " Parameters: see config/zone_controller.yaml.", argv)
+    from train_core.diagnostics import InputThresholds
+
+    from train_sim.zone import ZoneNodeConfig, ZoneParams
+
+    _, ros_args = parse_cli(DESCRIPTION + " Parameters: see config/zone_controller.yaml.", argv,
+                            params=(ZoneParams, ZoneNodeConfig, InputThresholds))
     return run_node(build_node, ros_args)
 
 

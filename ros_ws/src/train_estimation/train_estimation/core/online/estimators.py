@@ -65,24 +65,25 @@ class NodeConfig:
                             "refused unless use_demo_line is true: then metro_demo's train)")
     initial_position: float = param(math.nan, "m", "position at start (odometer origin); NaN = "
                                     "first station of the line")
-    initial_position_std: float = param(5.0, "m", "standard deviation of the initial position")
-    odometer_rate: float = param(10.0, "Hz", "odometer sample rate = output rate")
+    initial_position_std: float = param(5.0, "m", "standard deviation of the initial position",
+                                        lo=0.0)
+    odometer_rate: float = param(10.0, "Hz", "odometer sample rate = output rate", lo=0.0)
     output_delay: float = param(0.05, "s", "without control messages, an estimate of time t is "
-                                "output at clock t + delay")
+                                "output at clock t + delay", lo=0.0)
     control_clock: str = param("auto", "", "clock of control stamps: auto (judged from "
                                "arrivals; drift tracked) | same (the odometer's: a simulator) | "
                                "reference (the receive clock)")
     max_future: float = param(600.0, "s", "a stamp this far after its arrival is refused "
-                              "(future_stamp)")
+                              "(future_stamp)", lo=0.0)
     wait_for_subscribers: int = param(0, "", "output nothing until the estimate topic has this "
-                                      "many subscribers (a recorder sees every estimate)")
+                                      "many subscribers (a recorder sees every estimate)", lo=0)
     tick_period: float = param(0.05, "s", "period of the node's timer (steady clock) that "
                                "publishes the estimates due by the clock alone: a lost "
-                               "reading's slot, a silent input")
+                               "reading's slot, a silent input", lo=0.0)
     slot_grace: float = param(0.5, "s", "a slot whose odometer reading has not arrived this long "
                               "after it was due (on the train clock's tracked offset and rate) "
                               "is published as a prediction (not on simulated time, "
-                              "use_sim_time: there the inputs' watermarks publish it)")
+                              "use_sim_time: there the inputs' watermarks publish it)", lo=0.0)
 
     def __post_init__(self):
         require_finite(self, ("initial_position_std", "odometer_rate", "tick_period"))
@@ -109,34 +110,37 @@ class RobustConfig:
     """Settings of the robust filter node (declared from this metadata, config/robust_filter.yaml
     documents them)."""
 
-    q: float = param(0.49, "N^2", "bound q on the squared wind force, w^2 <= q (Wen eq. (7))")
+    q: float = param(0.49, "N^2", "bound q on the squared wind force, w^2 <= q (Wen eq. (7))",
+                     lo=0.0)
     epsilon: float | None = param(None, "-", "epsilon of eq. (21) (> 0); -1 (None) = choose it "
                                   "per step to minimise the bound",
                                   ros=(_eps_to_ros, _eps_from_ros))
-    alpha_bar: float = param(0.875, "-", "Prob(odometer packet received), alpha-bar of eq. (12)")
-    gate: float = param(8.0, "-", "innovation gate in standard deviations")
+    alpha_bar: float = param(0.875, "-", "Prob(odometer packet received), alpha-bar of eq. (12)",
+                             lo=0.0, hi=1.0)
+    gate: float = param(8.0, "-", "innovation gate in standard deviations", lo=0.0)
     use_distance: bool = param(True, "", "odometer distance as a position measurement")
     distance_variance: float = param(1.0, "m^2", "variance of (initial_position + counted "
-                                     "distance) as a position reading")
+                                     "distance) as a position reading", lo=0.0)
     odometer_scale: float = param(1.0, "-", "the odometer's reading / true distance at start, "
                                   "as diagnose reports it (cause odometer_scale) or an earlier "
-                                  "run learnt it (/diagnostics: odometer_scale); 1 when unknown")
+                                  "run learnt it (/diagnostics: odometer_scale); 1 when unknown",
+                                  lo=0.5, hi=2.0)
     odometer_scale_std: float = param(0.01, "-", "std of the odometer's scale (true / counted "
-                                      "distance) before balises calibrate it")
+                                      "distance) before balises calibrate it", lo=0.0)
     balise_gate: float = param(4.0, "-", "a balise further than this many standard deviations "
                                "from the odometer's calibrated count is held until another "
-                               "confirms it (outside_gate)")
+                               "confirms it (outside_gate)", lo=0.0)
     balise_latency_std: float = param(0.1, "s", "std of the balise reader's latency (its "
                                       "stamp minus the time the train passed the balise) "
                                       "before balises read at different speeds calibrate it; "
                                       "a reader found far beyond it is calibrated with a wide "
-                                      "prior (event balise_latency)")
+                                      "prior (event balise_latency)", lo=0.0)
     period: float = param(0.1, "s", "nominal odometer sample period (lost samples: gap / period "
                           "- 1); the node sets it from odometer_rate", node=False)
     outage_slots: int = param(8, "-", "more lost odometer slots in a row are an outage: "
-                              "prediction only")
+                              "prediction only", lo=0)
     max_command: float = param(5.0, "m/s^2", "|a_Tar| beyond is no train's command "
-                               "(outside_gate)")
+                               "(outside_gate)", lo=0.0)
 
     def __post_init__(self):
         require(0.0 < self.alpha_bar <= 1.0, "alpha_bar", self.alpha_bar, "must be in (0, 1]")
@@ -761,66 +765,70 @@ class BrakingConfig:
         "a prior centred on the nominal 1.0 is not cut in half")
     braking_rate_prior_std: float = param(
         0.15, "-", "std of every algorithm's braking-rate prior, centred on train.yaml's "
-        "braking_rate (on a discrete set: the Gaussian's mass per value)")
+        "braking_rate (on a discrete set: the Gaussian's mass per value)", lo=0.0)
     merge: bool = param(True, "", "GSMA/SMA: merge particles on one value after each step "
                         "instead of pruning to the N best")
     #   (at most (#values) x (children) KFs per step); pruning to N every step makes GSMA
     #   over-confident on metro_drift (2-sigma coverage 0.83), Q = 500 costs a p99 of ~3 ms;
     #   merged: coverage 1.00 at the KF's accuracy (docs/benchmarks.md)
-    n_init: int = param(50, "-", "N0, initial particles (GSMA, SMA)")
-    n_keep: int = param(50, "-", "N, particles kept after pruning (GSMA, SMA)")
-    q_max: int = param(500, "-", "Q, prune when the branched count exceeds it (merge = false)")
-    rbpf_particles: int = param(250, "-", "RBPF particle count")
+    n_init: int = param(50, "-", "N0, initial particles (GSMA, SMA)", lo=1)
+    n_keep: int = param(50, "-", "N, particles kept after pruning (GSMA, SMA)", lo=1)
+    q_max: int = param(500, "-", "Q, prune when the branched count exceeds it (merge = false)",
+                       lo=1)
+    rbpf_particles: int = param(250, "-", "RBPF particle count", lo=1)
     rbpf_p_move: float = param(0.1, "-", "RBPF sticky kernel: probability of moving to a "
-                               "neighbour value")
+                               "neighbour value", lo=0.0, hi=1.0)
     branch_p_move: float = param(0.1, "-", "GSMA/SMA children prior: P(move to a neighbour "
                                  "value); -1 = the paper's uniform prior (forgets f at every "
                                  "branching)")
     sma_p_jump: float = param(1e-3, "-", "SMA children prior: P(jump to a value beyond the "
                               "neighbours) per transition, spread evenly over them (an abrupt "
-                              "change: a brake cut out, a cylinder failure -- rare)")
-    qgrbpf_particles: int = param(50, "-", "Q-GRBPF particle count")
+                              "change: a brake cut out, a cylinder failure -- rare)",
+                              lo=0.0, hi=1.0)
+    qgrbpf_particles: int = param(50, "-", "Q-GRBPF particle count", lo=1)
     qgrbpf_braking_rate_q: float = param(3e-4, "1/s", "Q-GRBPF: random-walk variance of the "
-                                         "braking rate per second (as the KF)")
+                                         "braking rate per second (as the KF)", lo=0.0)
     kf_braking_rate_q: float = param(3e-4, "1/s", "KF: random-walk variance of the braking "
-                                     "rate per second of braking")
+                                     "rate per second of braking", lo=0.0)
     #   (chosen on metro_drift: 1e-3 tracks as fast but its std breaks the ATO gate, 1e-4 lags)
     transition_interval: float = param(1.0, "s", "of braking between braking-rate "
                                        "transitions, whatever the message rate (applied with a "
                                        "reading only: f is held between readings and through "
-                                       "an outage)")
+                                       "an outage)", lo=0.0)
     accel_var: float = param(0.02, "m^2/s^3", "white acceleration noise PSD on v (unmodelled "
-                             "forces)")
-    ahat_var: float = param(0.001, "m^2/s^5", "white noise PSD on a_hat (actuator mismatch)")
-    distance_variance: float = param(1.0, "m^2", "odometer distance as a position reading")
+                             "forces)", lo=0.0)
+    ahat_var: float = param(0.001, "m^2/s^5", "white noise PSD on a_hat (actuator mismatch)",
+                            lo=0.0)
+    distance_variance: float = param(1.0, "m^2", "odometer distance as a position reading", lo=0.0)
     odometer_scale: float = param(1.0, "-", "the odometer's reading / true distance at start, "
                                   "as diagnose reports it (cause odometer_scale) or an earlier "
-                                  "run learnt it (/diagnostics: odometer_scale); 1 when unknown")
+                                  "run learnt it (/diagnostics: odometer_scale); 1 when unknown",
+                                  lo=0.5, hi=2.0)
     odometer_scale_std: float = param(0.01, "-", "std of the odometer's scale (true / counted "
-                                      "distance) before balises calibrate it")
+                                      "distance) before balises calibrate it", lo=0.0)
     balise_gate: float = param(4.0, "-", "a balise further than this many standard deviations "
                                "from the odometer's calibrated count is held until another "
-                               "confirms it (outside_gate)")
+                               "confirms it (outside_gate)", lo=0.0)
     balise_latency_std: float = param(0.1, "s", "std of the balise reader's latency (its "
                                       "stamp minus the time the train passed the balise) "
                                       "before balises read at different speeds calibrate it; "
                                       "a reader found far beyond it is calibrated with a wide "
-                                      "prior (event balise_latency)")
+                                      "prior (event balise_latency)", lo=0.0)
     use_distance: bool = param(True, "", "odometer distance as a position measurement")
     standstill_speed: float = param(0.3, "m/s", "at or below (estimated), with a brake "
                                     "command, the train is held at rest and the braking rate "
-                                    "is not observed")
+                                    "is not observed", lo=0.0)
     min_brake: float = param(0.1, "m/s^2", "weaker braking commands do not inform the braking "
-                             "rate")
+                             "rate", lo=0.0)
     seed: int = param(0, "", "particle-filter random stream")
-    gate: float = param(8.0, "-", "innovation gate in standard deviations (.inf disables)")
+    gate: float = param(8.0, "-", "innovation gate in standard deviations (.inf disables)", lo=0.0)
     gate_accel: float = param(1.5, "m/s^2", "acceleration error allowed in the gate's "
-                              "look-ahead")
-    balise_map_tolerance: float = param(1.0, "m", "max |sent position - map position|")
+                              "look-ahead", lo=0.0)
+    balise_map_tolerance: float = param(1.0, "m", "max |sent position - map position|", lo=0.0)
     max_horizon: float = param(3600.0, "s", "a reading further ahead of the estimate is "
-                               "future_stamp")
+                               "future_stamp", lo=0.0)
     max_command: float = param(5.0, "m/s^2", "|a_Tar| beyond is no train's command "
-                               "(outside_gate)")
+                               "(outside_gate)", lo=0.0)
 
     def __post_init__(self):
         require(self.algorithm in ALGORITHMS, "algorithm", self.algorithm,
