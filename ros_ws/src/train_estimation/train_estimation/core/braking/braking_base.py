@@ -33,7 +33,9 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from ..numerics import bank
 from ..numerics.batched_kf import predict, update
+from ..numerics.kalman import _selectors
 from ..numerics.smc import log_normalize
 
 __all__ = ["Estimate", "RaoBlackwellFilter"]
@@ -87,6 +89,10 @@ class _Set:
     idx: np.ndarray | None = None  # (N,) value index (discrete algorithms)
     extra: dict = field(default_factory=dict)
 
+
+_BANK_REASONS = {bank.NAN_LIK: "numerical failure: NaN likelihood",
+                 bank.BAD_WEIGHT: "numerical failure: NaN or +inf log-weight",
+                 bank.ALL_INF: "numerical failure: all log-weights are -inf"}
 
 # ----------------------------------------------------------------------------------------------
 # base
@@ -237,16 +243,21 @@ class RaoBlackwellFilter:
                 since = 0.0
             elif dt > 0:
                 s = self._transition(s, False, rng, dt)
-            if dt > 0:
-                x, P = self._predict(s, u, dt, informative)
+            if self._compiled():
+                s, est = self._bank_step(s, u, dt, informative, y_arr, mask_arr, R, fused, t)
+                if est.reason:
+                    return self._reject(est.reason)
+            else:
+                if dt > 0:
+                    x, P = self._predict(s, u, dt, informative)
+                    s = _Set(s.theta, x, P, s.logw, s.idx, s.extra)
+                x, P, loglik = update(s.x, s.P, y_arr, fam.H, R, mask_arr)
+                if np.isnan(loglik).any():
+                    return self._reject("numerical failure: NaN likelihood")
                 s = _Set(s.theta, x, P, s.logw, s.idx, s.extra)
-            x, P, loglik = update(s.x, s.P, y_arr, fam.H, R, mask_arr)
-            if np.isnan(loglik).any():
-                return self._reject("numerical failure: NaN likelihood")
-            s = _Set(s.theta, x, P, s.logw, s.idx, s.extra)
-            s, log_ev = self._reduce(s, loglik, informative, rng)
-            used = fused
-            est = self._summary(s, True, "", informative, used, log_ev if used else np.nan, t)
+                s, log_ev = self._reduce(s, loglik, informative, rng)
+                est = self._summary(s, True, "", informative, fused,
+                                    log_ev if fused else np.nan, t)
             s = self._after(s, informative, rng)
         except (ValueError, np.linalg.LinAlgError) as exc:
             return self._reject(f"numerical failure: {exc}")
@@ -260,6 +271,67 @@ class RaoBlackwellFilter:
         self.n_steps += 1
         self._last = est
         return est
+
+    # -- the compiled step ------------------------------------------------------------------
+    #: this class's _reduce is the base class's log-space reweighting (subclasses whose own
+    #: _reduce only delegates to it, e.g. DiscreteRBPF with the prior proposal, set it True)
+    _base_reduce = False
+
+    def _compiled(self) -> bool:
+        """Whether :meth:`step` runs the compiled bank step (``numerics.bank``): numba is there
+        and this algorithm's reweighting and summary are the base class's (the kernel's)."""
+        ok = self.__dict__.get("_bank_ok")
+        if ok is None:
+            cls = type(self)
+            ok = bool(bank.COMPILED and cls._summary is RaoBlackwellFilter._summary
+                      and (cls._reduce is RaoBlackwellFilter._reduce or self._base_reduce))
+            self._bank_ok = ok
+        return ok
+
+    def _bank_step(self, s, u, dt, informative, y, mask, R, fused, t):
+        """Prediction, update, reweighting and the mixture's moments in one compiled call
+        (``numerics.bank.bank_step``, the same arithmetic as the numpy form: ``_predict``,
+        ``batched_kf.update``, ``_reduce``, ``_summary``). Returns ``(set, estimate)``; the
+        estimate's ``reason`` is the numpy form's rejection, if any."""
+        fam = self.family
+        pred = f = None
+        if dt > 0:
+            if hasattr(fam, "bank_maps"):
+                pred, f = fam.bank_maps(s.theta, u, dt, informative,
+                                        **self._hold(u, informative))
+            else:
+                x, P = self._predict(s, u, dt, informative)
+                s = _Set(s.theta, x, P, s.logw, s.idx, s.extra)
+        H, sel = self._bank_rows()
+        tv = self._theta_var(s)
+        status, x, P, lw, w, mean, cov, logz, ess = bank.bank_step(
+            np.ascontiguousarray(s.x), np.ascontiguousarray(s.P), y[None], H,
+            np.ascontiguousarray(R, dtype=float), np.flatnonzero(mask), sel,
+            np.ascontiguousarray(s.logw), np.ascontiguousarray(s.theta),
+            None if tv is None else np.ascontiguousarray(tv), pred, f)
+        if status != bank.OK:
+            return s, replace(self._last, reason=_BANK_REASONS[status])
+        s = _Set(s.theta, x, P, lw, s.idx, s.extra)
+        n = x.shape[1]
+        est = self._estimate(mean, cov, n, x.shape[0], ess, informative, fused,
+                             logz if fused else np.nan, t)
+        return s, est
+
+    def _bank_rows(self):
+        fam = self.family
+        hit = self.__dict__.get("_rows")
+        if hit is None or hit[0] is not fam.H:
+            H = np.ascontiguousarray(fam.H, dtype=float)
+            hit = (fam.H, H, np.array(_selectors(H), dtype=np.int64))
+            self._rows = hit
+        return hit[1], hit[2]
+
+    def _hold(self, u, informative) -> dict:
+        fam = self.family
+        if not informative and hasattr(fam, "hold_gain"):
+            return {"hold": fam.hold_gain(u, self._last.x_mean,
+                                          float(self._last.theta_mean[0]))}
+        return {}
 
     def _validate(self, a_tar, y, mask, t, meas_var, d):
         fam = self.family
@@ -345,18 +417,24 @@ class RaoBlackwellFilter:
             c[n:, n:] += _wsum(w, tv)
         c = 0.5 * (c + c.T)
         m = np.concatenate([xm, tm])
-        ri = self._report_index(n, dth)
-        return Estimate(accepted, reason, self._t if t is None else float(t), m[ri],
-                        c[np.ix_(ri, ri)], xm, c[:n, :n], tm, c[n:, n:],
-                        int(N), float(1.0 / np.sum(w * w)), bool(informative),
-                        bool(used), float(log_ev))
+        return self._estimate(m, c, n, N, float(1.0 / np.sum(w * w)), informative, used,
+                              log_ev, t, accepted, reason)
+
+    def _estimate(self, m, c, n, N, n_eff, informative, used, log_ev, t=None, accepted=True,
+                  reason="") -> Estimate:
+        """The ``Estimate`` of the mixture's mean ``m`` and covariance ``c`` over (x, theta)."""
+        ri, rix = self._report_index(n, m.size - n)
+        return Estimate(accepted, reason, self._t if t is None else float(t), m[ri], c[rix],
+                        m[:n], c[:n, :n], m[n:], c[n:, n:], int(N), float(n_eff),
+                        bool(informative), bool(used), float(log_ev))
 
     def _report_index(self, n, dth):
-        ri = self.__dict__.get("_ri")
-        if ri is None:
+        hit = self.__dict__.get("_ri")
+        if hit is None:
             ri = np.array(list(self.family.report_index) + list(range(n, n + dth)), dtype=int)
-            self._ri = ri
-        return ri
+            hit = (ri, np.ix_(ri, ri))
+            self._ri = hit
+        return hit
 
     # -- hooks -----------------------------------------------------------------------------
     def _theta_var(self, s: _Set):
@@ -370,9 +448,7 @@ class RaoBlackwellFilter:
         matrices), else ``batched_kf.predict`` on ``family.matrices``. A step that cannot
         inform theta uses one model shared by all particles (``family.hold_gain``)."""
         fam = self.family
-        kw = {}
-        if not informative and hasattr(fam, "hold_gain"):
-            kw["hold"] = fam.hold_gain(u, self._last.x_mean, float(self._last.theta_mean[0]))
+        kw = self._hold(u, informative)
         if hasattr(fam, "predict"):
             return fam.predict(s.x, s.P, s.theta, u, dt, informative, **kw)
         return predict(s.x, s.P, *fam.matrices(s.theta, u, dt, informative, **kw))

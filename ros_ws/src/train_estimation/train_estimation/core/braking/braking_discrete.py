@@ -171,6 +171,7 @@ class DiscreteRBPF(_DiscreteBase):
         self.cdf = np.cumsum(T, axis=1)
         self.cdf[:, -1] = 1.0
         self.proposal = proposal
+        self._base_reduce = proposal == "prior"  # _reduce then only delegates to the base's
         self.ess_frac = float(ess_frac)
         # padded children table for the optimal proposal: support of each row
         kmax = int(np.max(np.sum(T > 0, axis=1)))
