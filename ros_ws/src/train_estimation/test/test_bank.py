@@ -241,3 +241,58 @@ def _kernel_case():
         x, P, np.array([[1.0, 19.0, -2.0]]), fam.H, fam.R, np.arange(3),
         np.array(_selectors(fam.H), dtype=np.int64), logw, theta, tv, pred, f)
     return xo, Po, lw, w, m, c, np.array([st, logz, ess])
+
+
+def test_gauss_hermite_equals_numpy_form():
+    """QGRBPF's quadrature transition compiled: its sums within their bound (each a weighted
+    sum of N terms; the magnitudes are those of the terms: |x|, |P| + |dx|^2, |C| |beta|)."""
+    fam = BrakingModel()
+    rng = np.random.default_rng(4)
+    filt = QGRBPF(fam, [(0.0, 1.3)], 5, braking_rate_q=1e-3, quadrature=True)
+    filt.reset([0, 20, -1, -2], 0.01 * np.eye(4), rng)
+    for N in (3, 7, 40):
+        x, P = _bank(rng, N)
+        s = filt._s.__class__(rng.uniform(0.2, 1.2, size=(N, 1)), x, P,
+                              np.log(rng.dirichlet(np.ones(N))))
+        ref = filt._quadrature_numpy(s, 0.3)
+        th, xc, Pc = bank.gauss_hermite(s.logw, s.theta, s.x, s.P, filt._gh[0], 1e-3 * 0.3,
+                                        filt.min_var, 0.0, 1.3)
+        L = 2 * N + 8
+        dx = np.abs(x).max()
+        np.testing.assert_allclose(th, ref.theta, rtol=L * EPS, atol=L * EPS)
+        beta = np.abs(xc - xc.mean(axis=0)).max() + 1.0  # |(t - mu) beta| and |beta|
+        assert np.all(np.abs(xc - ref.x) <= L * EPS * (dx + beta) * 4)
+        assert np.all(np.abs(Pc - ref.P) <= L * EPS * (np.abs(P).max() + 4 * dx * dx) * 4)
+        np.testing.assert_array_equal(Pc, np.swapaxes(Pc, 1, 2))
+    with pytest.raises(ValueError, match="all log-weights are -inf"):
+        bank.gauss_hermite(np.full(3, -np.inf), np.ones((3, 1)), x[:3], P[:3], filt._gh[0],
+                           0.0, 1e-8, 0.0, 1.3)
+
+
+def test_log_normalize_and_all_finite():
+    """smc.log_normalize's checks, messages and numbers (sums within (N + 2) eps); the
+    finiteness test of a particle set."""
+    from train_estimation.core.numerics import smc
+
+    rng = np.random.default_rng(6)
+    for N in (1, 5, 300):
+        lw = rng.normal(size=N) * 30
+        lw[rng.uniform(size=N) < 0.1] = -np.inf
+        if not np.isfinite(lw).any():
+            lw[0] = 0.0
+        w, lz = bank.log_normalize(lw)
+        wr, lzr = smc.log_normalize(lw)
+        np.testing.assert_allclose(w, wr, rtol=(N + 2) * EPS, atol=0)
+        assert abs(lz - lzr) <= (N + 2) * EPS * (1 + abs(lzr))
+    for bad, msg in (([0.0, np.nan], "NaN or \\+inf"), ([np.inf, 0.0], "NaN or \\+inf"),
+                     ([-np.inf, -np.inf], "all log-weights are -inf")):
+        for fn in (bank.log_normalize, smc.log_normalize):
+            with pytest.raises(ValueError, match=msg):
+                fn(np.array(bad))
+    x, P = _bank(rng, 4)
+    th = np.ones((4, 1))
+    assert bank.all_finite(x, P, th)
+    for arr in (x, P, th):
+        arr.ravel()[-1] = np.nan
+        assert not bank.all_finite(x, P, th)
+        arr.ravel()[-1] = 1.0

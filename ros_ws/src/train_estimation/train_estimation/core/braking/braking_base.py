@@ -28,15 +28,16 @@ Pure: numpy only; randomness only through the ``rng`` argument.
 
 from __future__ import annotations
 
+import math
 from collections import Counter
 from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from ..numerics import bank
+from ..numerics.bank import log_normalize
 from ..numerics.batched_kf import predict, update
 from ..numerics.kalman import _selectors
-from ..numerics.smc import log_normalize
 
 __all__ = ["Estimate", "RaoBlackwellFilter"]
 
@@ -261,8 +262,7 @@ class RaoBlackwellFilter:
             s = self._after(s, informative, rng)
         except (ValueError, np.linalg.LinAlgError) as exc:
             return self._reject(f"numerical failure: {exc}")
-        if not (s.theta.shape[0] > 0 and np.isfinite(s.x).all() and np.isfinite(s.P).all()
-                and np.isfinite(s.theta).all()):
+        if not (s.theta.shape[0] > 0 and bank.all_finite(s.x, s.P, s.theta)):
             return self._reject("numerical failure: non-finite particle state")
         self._s = s
         self._since = since
@@ -312,10 +312,20 @@ class RaoBlackwellFilter:
         if status != bank.OK:
             return s, replace(self._last, reason=_BANK_REASONS[status])
         s = _Set(s.theta, x, P, lw, s.idx, s.extra)
+        self._step_w = (lw, w, ess)  # for _after's N_eff test (weights_ess)
         n = x.shape[1]
         est = self._estimate(mean, cov, n, x.shape[0], ess, informative, fused,
                              logz if fused else np.nan, t)
         return s, est
+
+    def weights_ess(self, s: _Set):
+        """Normalised weights of ``s`` and ``N_eff = 1 / sum w^2``: the ones the compiled step
+        computed for this very set if it did, else ``_weights`` (numpy)."""
+        hit = self.__dict__.pop("_step_w", None)
+        if hit is not None and hit[0] is s.logw:
+            return hit[1], hit[2]
+        w = _weights(s.logw)
+        return w, float(1.0 / np.sum(w * w))
 
     def _bank_rows(self):
         fam = self.family
@@ -342,7 +352,7 @@ class RaoBlackwellFilter:
             dd = float(d)
         except (TypeError, ValueError):
             return ("non-numeric command", *bad)
-        if not (np.isfinite(a) and np.isfinite(dd)):
+        if not (math.isfinite(a) and math.isfinite(dd)):
             return (f"non-finite command: a_tar={a_tar!r}, d={d!r}", *bad)
         if t is None:
             dt = float(fam.default_dt())
@@ -351,7 +361,7 @@ class RaoBlackwellFilter:
                 tf = float(t)
             except (TypeError, ValueError):
                 return ("non-numeric time stamp", *bad)
-            if not np.isfinite(tf):
+            if not math.isfinite(tf):
                 return (f"non-finite time stamp: {t!r}", *bad)
             if self._t is None:
                 dt = 0.0
@@ -373,7 +383,7 @@ class RaoBlackwellFilter:
                         else np.asarray(mask, dtype=bool).reshape(-1))
             if mask_arr.shape != (p,):
                 return (f"bad mask shape: {mask_arr.shape} != ({p},)", *bad)
-            if not np.all(np.isfinite(y_arr[mask_arr])):
+            if not (np.isfinite(y_arr) | ~mask_arr).all():
                 return (f"non-finite measurement: {y_arr[mask_arr].tolist()}", *bad)
         if meas_var is None:
             R = np.asarray(fam.R, dtype=float)
@@ -382,7 +392,7 @@ class RaoBlackwellFilter:
             if R.shape != (p,):
                 return (f"bad measurement variance shape: {R.shape} != ({p},)", *bad)
             Rm = R[mask_arr]
-            if not (np.all(np.isfinite(Rm)) and np.all(Rm > 0)):
+            if not (np.isfinite(Rm).all() and (Rm > 0).all()):
                 return (f"non-positive or non-finite measurement variance: {Rm.tolist()}", *bad)
         if dt == 0.0 and t is None:
             return ("zero default step", *bad)

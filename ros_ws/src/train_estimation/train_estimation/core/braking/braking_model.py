@@ -286,9 +286,14 @@ class BrakingModel:
         f)``, ``maps`` the sparse rows of the same linear maps (cached per dt), ``B0 u | B1 u``
         computed as :meth:`predict` computes it, ``f`` each particle's rate (N or 1)."""
         f = self.braking_rates(theta, u, informative, hold)
-        Kx, _, _, _ = _predict_maps(self.params, float(dt))
-        xp, xc, xv, kp, kc, kv, qd, full = _bank_maps(self.params, float(dt))
-        bu = np.asarray(u, dtype=float) @ Kx[4:]
+        dt = float(dt)
+        hit = self.__dict__.get("_bank_last")  # the last dt's maps: a live filter's dt repeats
+        if hit is None or hit[0] != dt or hit[1] is not self.params:
+            Kx = _predict_maps(self.params, dt)[0]
+            hit = (dt, self.params, Kx[4:], _bank_maps(self.params, dt))
+            self._bank_last = hit
+        xp, xc, xv, kp, kc, kv, qd, full = hit[3]
+        bu = np.asarray(u, dtype=float) @ hit[2]
         return (xp, xc, xv, kp, kc, kv, bu, qd, full), f
 
     def matrices(self, theta, u, dt: float, informative: bool, hold: float | None = None):

@@ -32,10 +32,11 @@ import math
 
 import numpy as np
 
+from . import smc
 from .jit import COMPILED, jit
 
-__all__ = ["COMPILED", "bank_step", "update", "csr", "LOG2PI", "OK", "BAD_WEIGHT", "ALL_INF",
-           "NAN_LIK"]
+__all__ = ["COMPILED", "bank_step", "update", "log_normalize", "all_finite", "csr", "LOG2PI", "OK",
+           "BAD_WEIGHT", "ALL_INF", "NAN_LIK"]
 
 LOG2PI = float(np.log(2.0 * np.pi))  # the numpy form's constant (kalman._LOG2PI)
 
@@ -324,3 +325,127 @@ def bank_step(x, P, y, H, R, rows, sel, logw, theta, tv=None, pred=None, f=None)
     status, logz, ess = _bank_step(x, P, f, do, *pred, y, H, R, rows, sel, logw, theta, tv,
                                    xo, Po, lwo, w, mean, cov)
     return status, xo, Po, lwo, w, mean, cov, logz, ess
+
+
+@jit
+def _log_normalize(lw, w):
+    """``smc.log_normalize`` of a 1-D array: status, log Z; ``w`` the normalised weights."""
+    N = lw.shape[0]
+    mx = -np.inf
+    for i in range(N):
+        v = lw[i]
+        if math.isnan(v) or v == np.inf:
+            return BAD_WEIGHT, 0.0
+        if v > mx:
+            mx = v
+    if not math.isfinite(mx):
+        return ALL_INF, 0.0
+    acc = 0.0
+    for i in range(N):
+        w[i] = math.exp(lw[i] - mx)
+        acc += w[i]
+    for i in range(N):
+        w[i] = w[i] / acc
+    return OK, mx + math.log(acc)
+
+
+_LN_ERRORS = {BAD_WEIGHT: "NaN or +inf log-weight", ALL_INF: "all log-weights are -inf"}
+
+
+def log_normalize(logw):
+    """``smc.log_normalize`` of a non-empty 1-D array in one compiled call (its checks and
+    messages; the sums in index order, within their rounding bound of numpy's pairwise
+    ones). Without numba: ``smc.log_normalize`` itself."""
+    if not COMPILED:
+        return smc.log_normalize(logw)
+    lw = np.ascontiguousarray(logw, dtype=float)
+    if lw.ndim != 1 or lw.size == 0:
+        return smc.log_normalize(logw)
+    w = np.empty(lw.size)
+    status, logz = _log_normalize(lw, w)
+    if status != OK:
+        raise ValueError(_LN_ERRORS[status])
+    return w, logz
+
+
+@jit
+def _all_finite(x, P, theta):
+    for v in x.ravel():
+        if not math.isfinite(v):
+            return False
+    for v in P.ravel():
+        if not math.isfinite(v):
+            return False
+    for v in theta.ravel():
+        if not math.isfinite(v):
+            return False
+    return True
+
+
+def all_finite(x, P, theta) -> bool:
+    """Every entry of the three arrays finite (one compiled pass; numpy without numba)."""
+    if COMPILED and x.flags.c_contiguous and P.flags.c_contiguous and theta.flags.c_contiguous:
+        return bool(_all_finite(x, P, theta))
+    return bool(np.isfinite(x).all() and np.isfinite(P).all() and np.isfinite(theta).all())
+
+
+@jit
+def _gauss_hermite(logw, th, x, P, z, qdt, min_var, lo, hi, th_out, x_out, P_out):
+    """``QGRBPF._transition_quadrature`` (its formulas, sums in index order): the joint
+    Gaussian of (x, theta) under the weights, its conditional at each node ``z_j``."""
+    N, n = x.shape
+    w = np.empty(N)
+    status, _ = _log_normalize(logw, w)
+    if status != OK:
+        return status
+    mu = 0.0
+    for i in range(N):
+        mu += w[i] * th[i]
+    var = 0.0
+    for i in range(N):
+        d = th[i] - mu
+        var += w[i] * (d * d)
+    var = (var + qdt) + min_var
+    xm = np.zeros(n)
+    for i in range(N):
+        for a in range(n):
+            xm[a] += w[i] * x[i, a]
+    cxt = np.zeros(n)
+    S = np.zeros((n, n))
+    for i in range(N):
+        wd = w[i] * (th[i] - mu)
+        for a in range(n):
+            da = x[i, a] - xm[a]
+            cxt[a] += wd * da
+            wa = w[i] * da
+            for b in range(n):
+                S[a, b] += w[i] * P[i, a, b] + wa * (x[i, b] - xm[b])
+    beta = np.empty(n)
+    for a in range(n):
+        beta[a] = cxt[a] / var
+    Pc = np.empty((n, n))
+    for a in range(n):
+        for b in range(n):
+            Pc[a, b] = S[a, b] - cxt[a] * beta[b]
+    sd = math.sqrt(var)
+    for j in range(z.shape[0]):
+        t = min(max(mu + sd * z[j], lo), hi)
+        th_out[j, 0] = t
+        for a in range(n):
+            x_out[j, a] = xm[a] + (t - mu) * beta[a]
+            for b in range(n):
+                P_out[j, a, b] = 0.5 * (Pc[a, b] + Pc[b, a])
+    return OK
+
+
+def gauss_hermite(logw, theta, x, P, z, qdt, min_var, lo, hi):
+    """Compiled ``QGRBPF._transition_quadrature``: ``(theta (K, 1), x (K, n), P (K, n, n))``
+    for the K nodes ``z``; raises ``smc.log_normalize``'s ValueError."""
+    K, n = z.shape[0], x.shape[1]
+    th_out, x_out, P_out = np.empty((K, 1)), np.empty((K, n)), np.empty((K, n, n))
+    status = _gauss_hermite(np.ascontiguousarray(logw), np.ascontiguousarray(theta[:, 0]),
+                            np.ascontiguousarray(x), np.ascontiguousarray(P), z, float(qdt),
+                            float(min_var), float(lo), float(hi), th_out, x_out, P_out)
+    if status != OK:
+        raise ValueError(_LN_ERRORS[status])
+    return th_out, x_out, P_out
