@@ -111,6 +111,7 @@ class RaoBlackwellFilter:
     transition_interval: float = 0.0
 
     def __init__(self, family):
+        bank.warm_up()  # the compiled step's first call: here, not in a node's first callback
         self.family = family
         self.rejected: Counter = Counter()
         self.n_steps = 0

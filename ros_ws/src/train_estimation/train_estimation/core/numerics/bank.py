@@ -35,8 +35,8 @@ import numpy as np
 from . import smc
 from .jit import COMPILED, jit
 
-__all__ = ["COMPILED", "bank_step", "update", "log_normalize", "all_finite", "csr", "LOG2PI", "OK",
-           "BAD_WEIGHT", "ALL_INF", "NAN_LIK"]
+__all__ = ["COMPILED", "bank_step", "update", "log_normalize", "all_finite", "gauss_hermite",
+           "warm_up", "csr", "LOG2PI", "OK", "BAD_WEIGHT", "ALL_INF", "NAN_LIK"]
 
 LOG2PI = float(np.log(2.0 * np.pi))  # the numpy form's constant (kalman._LOG2PI)
 
@@ -45,6 +45,14 @@ OK = 0
 NAN_LIK = 1  # a NaN log likelihood: "numerical failure: NaN likelihood"
 BAD_WEIGHT = 2  # a NaN or +inf log-weight (smc.log_normalize)
 ALL_INF = 3  # every log-weight -inf (smc.log_normalize)
+
+
+def _c(a):
+    """``a`` as the compiled kernels take it: float64, C-contiguous, writeable (numba types a
+    read-only array apart, and each new type is a new compile); a copy only if needed."""
+    if a.dtype == np.float64 and a.flags.c_contiguous and a.flags.writeable:
+        return a
+    return np.array(a, dtype=np.float64, order="C")
 
 
 def csr(K):
@@ -192,7 +200,7 @@ def update(x, P, y, H, R, rows, sel):
     xo = np.empty(x.shape)
     Po = np.empty(P.shape)
     ll = np.empty(x.shape[0])
-    _update_bank(x, P, y, H, R, rows, sel, xo, Po, ll)
+    _update_bank(_c(x), _c(P), _c(y), _c(H), _c(R), rows, sel, xo, Po, ll)
     return xo, Po, ll
 
 
@@ -321,9 +329,9 @@ def bank_step(x, P, y, H, R, rows, sel, logw, theta, tv=None, pred=None, f=None)
         pred, f, do = _NO_PREDICT, np.zeros(1), False
     else:
         do = True
-    tv = np.zeros((0, d, d)) if tv is None else tv
-    status, logz, ess = _bank_step(x, P, f, do, *pred, y, H, R, rows, sel, logw, theta, tv,
-                                   xo, Po, lwo, w, mean, cov)
+    tv = np.zeros((0, d, d)) if tv is None else _c(tv)
+    status, logz, ess = _bank_step(_c(x), _c(P), _c(f), do, *pred, _c(y), _c(H), _c(R), rows,
+                                   sel, _c(logw), _c(theta), tv, xo, Po, lwo, w, mean, cov)
     return status, xo, Po, lwo, w, mean, cov, logz, ess
 
 
@@ -358,7 +366,7 @@ def log_normalize(logw):
     ones). Without numba: ``smc.log_normalize`` itself."""
     if not COMPILED:
         return smc.log_normalize(logw)
-    lw = np.ascontiguousarray(logw, dtype=float)
+    lw = _c(np.asarray(logw))
     if lw.ndim != 1 or lw.size == 0:
         return smc.log_normalize(logw)
     w = np.empty(lw.size)
@@ -384,8 +392,8 @@ def _all_finite(x, P, theta):
 
 def all_finite(x, P, theta) -> bool:
     """Every entry of the three arrays finite (one compiled pass; numpy without numba)."""
-    if COMPILED and x.flags.c_contiguous and P.flags.c_contiguous and theta.flags.c_contiguous:
-        return bool(_all_finite(x, P, theta))
+    if COMPILED:
+        return bool(_all_finite(_c(x), _c(P), _c(theta)))
     return bool(np.isfinite(x).all() and np.isfinite(P).all() and np.isfinite(theta).all())
 
 
@@ -443,9 +451,36 @@ def gauss_hermite(logw, theta, x, P, z, qdt, min_var, lo, hi):
     for the K nodes ``z``; raises ``smc.log_normalize``'s ValueError."""
     K, n = z.shape[0], x.shape[1]
     th_out, x_out, P_out = np.empty((K, 1)), np.empty((K, n)), np.empty((K, n, n))
-    status = _gauss_hermite(np.ascontiguousarray(logw), np.ascontiguousarray(theta[:, 0]),
-                            np.ascontiguousarray(x), np.ascontiguousarray(P), z, float(qdt),
+    status = _gauss_hermite(_c(logw), _c(theta[:, 0]), _c(x), _c(P), _c(z), float(qdt),
                             float(min_var), float(lo), float(hi), th_out, x_out, P_out)
     if status != OK:
         raise ValueError(_LN_ERRORS[status])
     return th_out, x_out, P_out
+
+
+_WARM = False
+
+
+def warm_up() -> None:
+    """Compile (first run on a machine: ~20-40 s on a loaded 2-core machine) or load from
+    numba's cache (~0.2 s) every kernel with the types the filters pass, once per process.
+    The filters call it at construction, so that a node pays this while it starts, not in the
+    callback of its first reading; ``./run setup`` calls it once after a change of this file,
+    so that the tests and nodes find the cache filled."""
+    global _WARM
+    if _WARM or not COMPILED:
+        return
+    x, P = np.zeros((2, 2)), np.tile(np.eye(2), (2, 1, 1))
+    th, lw = np.ones((2, 1)), np.full(2, -np.log(2.0))
+    H, R = np.eye(2), np.ones(2)
+    rows, sel = np.arange(2, dtype=np.int64), np.arange(2, dtype=np.int64)
+    ptr = np.zeros(5, dtype=np.int64)
+    pred = (ptr, np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(10, dtype=np.int64),
+            np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(4), np.zeros(3),
+            np.zeros(4, dtype=np.int64))
+    bank_step(x, P, np.zeros((1, 2)), H, R, rows, sel, lw, th, None, pred, np.ones(1))
+    update(x, P, np.zeros((1, 2)), H, R, rows, sel)
+    log_normalize(lw)
+    all_finite(x, P, th)
+    gauss_hermite(lw, th, x, P, np.zeros(1), 0.0, 1e-8, 0.0, 1.0)
+    _WARM = True
