@@ -296,3 +296,18 @@ def test_log_normalize_and_all_finite():
         arr.ravel()[-1] = np.nan
         assert not bank.all_finite(x, P, th)
         arr.ravel()[-1] = 1.0
+
+
+def test_clocks_median_is_numpys():
+    """numerics.clocks.median: np.median's number, bit for bit (odd and even sizes, ties,
+    NaN)."""
+    from train_estimation.core.numerics.clocks import median
+
+    rng = np.random.default_rng(8)
+    for n in (1, 2, 3, 4, 7, 8, 63, 64):
+        for a in (rng.normal(size=n) * 1e3 + 1.7e9, np.round(rng.normal(size=n)), np.ones(n)):
+            assert median(a) == float(np.median(a))
+            assert median(a) == median(a[::-1])
+    a = rng.normal(size=9)
+    a[3] = np.nan
+    assert np.isnan(median(a)) and np.isnan(np.median(a))

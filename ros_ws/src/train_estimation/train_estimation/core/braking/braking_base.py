@@ -253,7 +253,7 @@ class RaoBlackwellFilter:
                 if dt > 0:
                     x, P = self._predict(s, u, dt, informative)
                     s = _Set(s.theta, x, P, s.logw, s.idx, s.extra)
-                x, P, loglik = update(s.x, s.P, y_arr, fam.H, R, mask_arr)
+                x, P, loglik = self._update(s, y_arr, R, mask_arr)
                 if np.isnan(loglik).any():
                     return self._reject("numerical failure: NaN likelihood")
                 s = _Set(s.theta, x, P, s.logw, s.idx, s.extra)
@@ -318,6 +318,17 @@ class RaoBlackwellFilter:
         est = self._estimate(mean, cov, n, x.shape[0], ess, informative, fused,
                              logz if fused else np.nan, t)
         return s, est
+
+    def _update(self, s, y, R, mask):
+        """``batched_kf.update`` of every particle: compiled (``numerics.bank.update``, the
+        same states bit for bit) when numba is there."""
+        if not bank.COMPILED:
+            return update(s.x, s.P, y, self.family.H, R, mask)
+        rows = np.flatnonzero(mask)
+        if rows.size == 0:
+            return s.x, s.P, np.zeros(s.x.shape[0])
+        H, sel = self._bank_rows()
+        return bank.update(s.x, s.P, y[None], H, R, rows, sel)
 
     def weights_ess(self, s: _Set):
         """Normalised weights of ``s`` and ``N_eff = 1 / sum w^2``: the ones the compiled step
