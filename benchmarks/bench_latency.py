@@ -158,6 +158,17 @@ def live_rows(link: str, logs: Path, nodes) -> list[str]:
     return rows
 
 
+def _timed(fn, acc: list, clock):
+    """``fn`` that appends its own duration on ``clock`` to ``acc``."""
+    def timed(*a, **k):
+        t0 = clock()
+        try:
+            return fn(*a, **k)
+        finally:
+            acc.append(clock() - t0)
+    return timed
+
+
 def stages(names, duration: float, seed: int = 0) -> list[str]:
     """Where a callback's time goes, in process (CPU time of this thread, so another job's
     load does not count): metro_demo's received messages fed to each estimator's runner as
@@ -188,13 +199,7 @@ def stages(names, duration: float, seed: int = 0) -> list[str]:
         for attrs, acc in ((("control", "odometer", "balise", "output"), steps),
                            (("snapshot", "restore"), snaps)):
             for attr in attrs:
-                def timed(*a, _fn=getattr(adapter, attr), _acc=acc, **k):
-                    t0 = clock()
-                    try:
-                        return _fn(*a, **k)
-                    finally:
-                        _acc.append(clock() - t0)
-                setattr(adapter, attr, timed)
+                setattr(adapter, attr, _timed(getattr(adapter, attr), acc, clock))
         push, core, conv, total, core_steps, core_snaps = [], [], [], [], [], []
         for topic, stamp, fields, recv in events:
             del steps[:], snaps[:]
