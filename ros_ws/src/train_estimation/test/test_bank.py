@@ -311,3 +311,34 @@ def test_clocks_median_is_numpys():
     a = rng.normal(size=9)
     a[3] = np.nan
     assert np.isnan(median(a)) and np.isnan(np.median(a))
+
+
+@pytest.mark.parametrize("name", ["rbpf", "sma", "gsma merged", "qgrbpf", "gh3", "rw"])
+def test_snapshot_copy_is_independent(name):
+    """``copy.deepcopy`` of a filter (the runner's snapshots): the copy steps to the same
+    estimates as the original with the same random stream, and stepping it leaves the
+    original's particles as they were; the shared family stays shared."""
+    import copy
+
+    fam = BrakingModel()
+    f = _filters(fam)[name]
+    f.reset([0, 20, -1, -2], 0.01 * np.eye(4), np.random.default_rng(3))
+    f.step(-1.0, [19.5, 19.0, -2.0], None, np.random.default_rng(4), t=1.0)
+    before = f.particles, f._s.x.copy(), f._s.P.copy(), f.estimate().mean.copy()
+    g = copy.deepcopy(f, {id(fam): fam})
+    assert g.family is fam and g._s is not f._s and g.rejected is not f.rejected
+    for k in range(2, 5):
+        y = [20.0 * k - 0.5 * k * k, 20.0 - k, -2.0]
+        eg = g.step(-1.0, y, None, np.random.default_rng(k), t=float(k))
+        g.step(float("nan"), y, None, None, t=float(k))  # a rejection: counted in the copy
+        assert eg.accepted
+    np.testing.assert_array_equal(f.particles[0], before[0][0])
+    np.testing.assert_array_equal(f._s.x, before[1])
+    np.testing.assert_array_equal(f._s.P, before[2])
+    np.testing.assert_array_equal(f.estimate().mean, before[3])
+    assert sum(f.rejected.values()) == 0 and sum(g.rejected.values()) == 3
+    for k in range(2, 5):  # the original, stepped the same way, gives the copy's estimates
+        y = [20.0 * k - 0.5 * k * k, 20.0 - k, -2.0]
+        ef = f.step(-1.0, y, None, np.random.default_rng(k), t=float(k))
+    np.testing.assert_array_equal(ef.mean, eg.mean)
+    np.testing.assert_array_equal(ef.cov, eg.cov)

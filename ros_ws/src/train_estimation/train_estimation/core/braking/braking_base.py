@@ -120,6 +120,37 @@ class RaoBlackwellFilter:
         self._last: Estimate | None = None
         self._since = 0.0  # s since the last parameter transition
 
+    def __deepcopy__(self, memo):
+        """A copy for the runner's snapshots (rewinding for a late reading), without
+        ``copy.deepcopy``'s generic walk (it was the largest part of a node's callback): the
+        particle set, the last estimate, the counters and every writeable array are copied;
+        what ``memo`` holds (the shared model family) and read-only arrays are shared; tuples
+        are the filter's constants and caches (Gauss-Hermite nodes, report index, compiled
+        rows), never changed in place, and are shared; anything else goes through
+        ``copy.deepcopy``."""
+        import copy
+
+        new = self.__class__.__new__(self.__class__)
+        memo[id(self)] = new
+        for k, v in self.__dict__.items():
+            hit = memo.get(id(v))
+            if hit is not None:
+                v = hit
+            elif isinstance(v, np.ndarray):
+                v = v if not v.flags.writeable else v.copy()
+            elif isinstance(v, _Set):
+                v = _Set(*(None if a is None else a.copy()
+                           for a in (v.theta, v.x, v.P, v.logw, v.idx)), copy.deepcopy(v.extra))
+            elif isinstance(v, Estimate):
+                v = Estimate(**{f: (a.copy() if isinstance(a, np.ndarray) else a)
+                                for f, a in v.__dict__.items()})
+            elif isinstance(v, Counter):
+                v = Counter(v)
+            elif not isinstance(v, (tuple, str, int, float, bool, type(None))):
+                v = copy.deepcopy(v, memo)
+            new.__dict__[k] = v
+        return new
+
     # -- life cycle ------------------------------------------------------------------------
     def reset(self, x0, P0, rng: np.random.Generator | None = None, theta0=None,
               t0: float | None = None) -> Estimate:
