@@ -111,7 +111,9 @@ class RaoBlackwellFilter:
     transition_interval: float = 0.0
 
     def __init__(self, family):
-        bank.warm_up()  # the compiled step's first call: here, not in a node's first callback
+        # the compiled kernels' first call (a load from numba's cache): here, not in a node's
+        # first callback
+        bank.warm_up("bank_step", "update", "log_normalize", "all_finite")
         self.family = family
         self.rejected: Counter = Counter()
         self.n_steps = 0

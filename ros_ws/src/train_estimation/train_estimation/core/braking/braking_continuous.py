@@ -90,6 +90,7 @@ class QGRBPF(_ContinuousBase):
         if self.quadrature:
             if family.d != 1:
                 raise ValueError("quadrature: one parameter only")
+            bank.warm_up("gauss_hermite")
             z, wq = np.polynomial.hermite_e.hermegauss(self.n)  # nodes/weights for N(0, 1)
             self._gh = (z, np.log(wq / wq.sum()))
 

@@ -458,17 +458,19 @@ def gauss_hermite(logw, theta, x, P, z, qdt, min_var, lo, hi):
     return th_out, x_out, P_out
 
 
-_WARM = False
+_WARMED: set = set()
+KERNELS = ("bank_step", "update", "log_normalize", "all_finite", "gauss_hermite")
 
 
-def warm_up() -> None:
+def warm_up(*kernels: str) -> None:
     """Compile (first run on a machine: ~20-40 s on a loaded 2-core machine) or load from
-    numba's cache (~0.2 s) every kernel with the types the filters pass, once per process.
-    The filters call it at construction, so that a node pays this while it starts, not in the
-    callback of its first reading; ``./run setup`` calls it once after a change of this file,
-    so that the tests and nodes find the cache filled."""
-    global _WARM
-    if _WARM or not COMPILED:
+    numba's cache (a few tenths of a second each) the named kernels (default: all of
+    :data:`KERNELS`) with the types the filters pass, once per process. The filters warm the
+    ones they use at construction, so that a node pays this while it starts, not in the
+    callback of its first reading; ``./run setup`` warms all once after a change of this
+    file, so that the tests and nodes find numba's cache filled."""
+    todo = [k for k in (kernels or KERNELS) if k not in _WARMED]
+    if not todo or not COMPILED:
         return
     x, P = np.zeros((2, 2)), np.tile(np.eye(2), (2, 1, 1))
     th, lw = np.ones((2, 1)), np.full(2, -np.log(2.0))
@@ -478,9 +480,14 @@ def warm_up() -> None:
     pred = (ptr, np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(10, dtype=np.int64),
             np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(4), np.zeros(3),
             np.zeros(4, dtype=np.int64))
-    bank_step(x, P, np.zeros((1, 2)), H, R, rows, sel, lw, th, None, pred, np.ones(1))
-    update(x, P, np.zeros((1, 2)), H, R, rows, sel)
-    log_normalize(lw)
-    all_finite(x, P, th)
-    gauss_hermite(lw, th, x, P, np.zeros(1), 0.0, 1e-8, 0.0, 1.0)
-    _WARM = True
+    calls = {
+        "bank_step": lambda: bank_step(x, P, np.zeros((1, 2)), H, R, rows, sel, lw, th, None,
+                                       pred, np.ones(1)),
+        "update": lambda: update(x, P, np.zeros((1, 2)), H, R, rows, sel),
+        "log_normalize": lambda: log_normalize(lw),
+        "all_finite": lambda: all_finite(x, P, th),
+        "gauss_hermite": lambda: gauss_hermite(lw, th, x, P, np.zeros(1), 0.0, 1e-8, 0.0, 1.0),
+    }
+    for k in todo:
+        calls[k]()
+        _WARMED.add(k)
