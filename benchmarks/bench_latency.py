@@ -3,8 +3,11 @@
 what a radio link with latency and jitter does to the estimates.
 
 **Live** (per link: none, then ``--latency`` + Exp(``--jitter``) per message on odometer and
-balise): starts the simulator (metro_demo, 1x, ``--duration`` s) and the ``robust_filter`` and
-``gsma_estimator`` nodes on a private ROS domain (localhost only), stops them with SIGINT and
+balise): starts the simulator (metro_demo, 1x, ``--duration`` s), the ``robust_filter`` node,
+one ``gsma_estimator`` node per algorithm (``--algorithms``: gsma, sma, rbpf, qgrbpf, kf) and a
+bare rclpy echo node (``latency_echo.py``: publishes the same two messages per reading with no
+estimation, the floor) side by side on a private ROS domain (localhost only), stops them with
+SIGINT and
 prints the latency each node measured on its steady clock (from the callback of the odometer
 sample to the publication of the estimate stamped with it), split into waiting for the cycle's
 other inputs (a sample is released once the control watermark passes it) and processing (the
@@ -13,6 +16,10 @@ runner's work and publishing, from the tick that released it); with the readings
 p50/p99 are the steady state; the first min_judged + 3 samples (the runner starts on the third
 odometer sample and judges each clock's stamps once it has min_judged arrivals: they wait by
 design, ~0.1-0.2 s) are reported apart as the start-up maximum.
+
+**Stages** (in process, ``--stage-duration`` s of metro_demo): where an odometer callback's
+CPU time goes, per estimator: the runner's input checks, the estimator's own calls, its
+snapshots for rewinding, the rest of the runner, and the two output messages built.
 
 **Offline** (accuracy with latency vs without): metro_demo simulated for ``--seeds`` seeds with
 and without the link latency (the delays come from a generator of their own, so the same
@@ -23,6 +30,7 @@ position RMSE against the truth, readings fused late and dropped, per estimator.
 Usage::
 
     ./run bench latency                        # 60 s per link live, 10 seeds x 600 s offline
+    ./run bench latency --no-link --seeds 0    # every algorithm and the floor, no link
     ./run bench latency --duration 20 --seeds 3
     ./run bench latency --latency 0.05 --jitter 0.1
 """
