@@ -342,3 +342,39 @@ def test_snapshot_copy_is_independent(name):
         ef = f.step(-1.0, y, None, np.random.default_rng(k), t=float(k))
     np.testing.assert_array_equal(ef.mean, eg.mean)
     np.testing.assert_array_equal(ef.cov, eg.cov)
+
+
+def _run_filters(steps=8):
+    """Estimates (f mean, f var, D) of every algorithm over a few steps (for the test below)."""
+    fam = BrakingModel(BrakingParams(meas_var=(0.25, 0.09, 1e-4)))
+    out = []
+    for f in _filters(fam).values():
+        rng = np.random.default_rng(21)
+        f.reset([0, 20, -1, -2], 0.01 * np.eye(4), rng)
+        for k in range(1, steps + 1):
+            e = f.step(-1.0, [20.0 * k - 0.5 * k * k, 20.0 - k, -2.0], None, rng, t=float(k))
+        out.append([e.mean[3], e.cov[3, 3], e.mean[0]])
+    return np.array(out)
+
+
+def test_filters_run_without_numba():
+    """Without numba (TRAIN_NO_JIT=1) every algorithm runs its numpy form and gives the
+    compiled run's estimates to rounding (8 steps: the reordered sums' differences, ~1e-15
+    relative each step, stay far below 1e-9; no resampling decision sits that close)."""
+    here = str(Path(__file__).parent)
+    code = textwrap.dedent(f"""
+        import sys
+        import numpy as np
+        sys.path.insert(0, {here!r})
+        from test_bank import _run_filters
+        from train_estimation.core.numerics import bank
+        assert not bank.COMPILED
+        np.save(sys.argv[1], _run_filters())
+        """)
+    out = Path(os.environ.get("TMPDIR", "/tmp")) / f"bank_filters_{os.getpid()}.npy"
+    run = subprocess.run([sys.executable, "-c", code, str(out)], capture_output=True,
+                         text=True, env={**os.environ, "TRAIN_NO_JIT": "1"}, timeout=300)
+    assert run.returncode == 0, run.stderr
+    interpreted = np.load(out)
+    out.unlink()
+    np.testing.assert_allclose(_run_filters(), interpreted, rtol=1e-9, atol=1e-12)
