@@ -3,8 +3,11 @@
 what a radio link with latency and jitter does to the estimates.
 
 **Live** (per link: none, then ``--latency`` + Exp(``--jitter``) per message on odometer and
-balise): starts the simulator (metro_demo, 1x, ``--duration`` s) and the ``robust_filter`` and
-``gsma_estimator`` nodes on a private ROS domain (localhost only), stops them with SIGINT and
+balise): starts the simulator (metro_demo, 1x, ``--duration`` s), the ``robust_filter`` node,
+one ``gsma_estimator`` node per algorithm (``--algorithms``: gsma, sma, rbpf, qgrbpf, kf) and a
+bare rclpy echo node (``latency_echo.py``: publishes the same two messages per reading with no
+estimation, the floor) side by side on a private ROS domain (localhost only), stops them with
+SIGINT and
 prints the latency each node measured on its steady clock (from the callback of the odometer
 sample to the publication of the estimate stamped with it), split into waiting for the cycle's
 other inputs (a sample is released once the control watermark passes it) and processing (the
@@ -13,6 +16,10 @@ runner's work and publishing, from the tick that released it); with the readings
 p50/p99 are the steady state; the first min_judged + 3 samples (the runner starts on the third
 odometer sample and judges each clock's stamps once it has min_judged arrivals: they wait by
 design, ~0.1-0.2 s) are reported apart as the start-up maximum.
+
+**Stages** (in process, ``--stage-duration`` s of metro_demo): where an odometer callback's
+CPU time goes, per estimator: the runner's input checks, the estimator's own calls, its
+snapshots for rewinding, the rest of the runner, and the two output messages built.
 
 **Offline** (accuracy with latency vs without): metro_demo simulated for ``--seeds`` seeds with
 and without the link latency (the delays come from a generator of their own, so the same
@@ -23,6 +30,7 @@ position RMSE against the truth, readings fused late and dropped, per estimator.
 Usage::
 
     ./run bench latency                        # 60 s per link live, 10 seeds x 600 s offline
+    ./run bench latency --no-link --seeds 0    # every algorithm and the floor, no link
     ./run bench latency --duration 20 --seeds 3
     ./run bench latency --latency 0.05 --jitter 0.1
 """
@@ -60,6 +68,20 @@ from train_sim.world import simulate  # noqa: E402
 
 NODES = ("robust_filter", "gsma_estimator")
 OFFLINE = ("robust_filter", "kf")  # the two nodes' defaults
+ALGORITHMS = ("gsma", "sma", "rbpf", "qgrbpf", "kf")  # gsma_estimator's `algorithm`
+ECHO = "echo (bare rclpy)"
+
+
+def live_nodes(algorithms) -> list[tuple[str, str | None, list[str]]]:
+    """(label, executable, extra ROS arguments): robust_filter, gsma_estimator once per
+    algorithm (own node name and output topics, the same inputs), and the bare echo node."""
+    nodes = [("robust_filter", "robust_filter", [])]
+    for alg in algorithms:
+        nodes.append((f"gsma_estimator ({alg})", "gsma_estimator",
+                      ["-r", f"__node:=est_{alg}", "-p", f"algorithm:={alg}",
+                       "-r", f"estimate/gsma:=estimate/{alg}", "-r", f"odom/gsma:=odom/{alg}"]))
+    nodes.append((ECHO, None, []))
+    return nodes
 
 
 def scenario_with_link(path: Path, latency: float, jitter: float) -> Path:
@@ -71,26 +93,35 @@ def scenario_with_link(path: Path, latency: float, jitter: float) -> Path:
     return path
 
 
-def run_live(scenario: str, duration: float, logs: Path) -> None:
+def _log_name(label: str) -> str:
+    return re.sub(r"[^a-z0-9_]+", "_", label.lower()).strip("_") + ".log"
+
+
+def run_live(scenario: str, duration: float, logs: Path, nodes) -> None:
     env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
                ROS_DOMAIN_ID=str(random.randint(101, 200)), PYTHONUNBUFFERED="1")
     logs.mkdir(parents=True, exist_ok=True)
     procs = {}
     try:
-        for exe in NODES:
-            path = resolve_executable("train_estimation", exe)
-            procs[exe] = subprocess.Popen(
-                [path or sys.executable, *([] if path else ["-m", f"train_estimation.nodes.{exe}"]),
-                 "--ros-args", "-r", "__ns:=/lat", "-p", "use_sim_time:=true",
-                 "-p", "use_demo_line:=true"],
-                env=env, stdout=open(logs / f"{exe}.log", "w"), stderr=subprocess.STDOUT)
+        for label, exe, extra in nodes:
+            if exe is None:  # the echo node: a script of this folder
+                cmd = [sys.executable, str(Path(__file__).with_name("latency_echo.py"))]
+            else:
+                path = resolve_executable("train_estimation", exe)
+                cmd = [path or sys.executable,
+                       *([] if path else ["-m", f"train_estimation.nodes.{exe}"])]
+            procs[label] = subprocess.Popen(
+                [*cmd, "--ros-args", "-r", "__ns:=/lat", "-p", "use_sim_time:=true",
+                 *([] if exe is None else ["-p", "use_demo_line:=true"]), *extra],
+                env=env, stdout=open(logs / _log_name(label), "w"), stderr=subprocess.STDOUT)
         sim = resolve_executable("train_sim", "simulator")
+        n_est = sum(1 for _, exe, _ in nodes if exe is not None)
         procs["simulator"] = subprocess.Popen(
             [sim, "--ros-args", "-r", "__ns:=/lat", "-p", f"scenario:={scenario}",
              "-p", "rate_factor:=1.0", "-p", f"duration:={duration}",
-             "-p", f"wait_for_subscribers:={len(NODES)}"],
+             "-p", f"wait_for_subscribers:={n_est}"],
             env=env, stdout=open(logs / "simulator.log", "w"), stderr=subprocess.STDOUT)
-        procs["simulator"].wait(duration + 120)
+        procs["simulator"].wait(duration + 180)
         time.sleep(1.0)
     finally:
         for p in procs.values():
@@ -101,25 +132,119 @@ def _dict(text: str) -> dict:
     return {} if text.strip() == "none" else ast.literal_eval(text)  # the node's repr of a dict
 
 
-def live_rows(link: str, logs: Path) -> list[str]:
+def live_rows(link: str, logs: Path, nodes) -> list[str]:
     rows = []
-    for exe in NODES:
-        text = (logs / f"{exe}.log").read_text()
+    for label, exe, _ in nodes:
+        log = logs / _log_name(label)
+        text = log.read_text() if log.exists() else ""
+        if exe is None:
+            m = re.search(r"echo published: p50 ([\d.]+) ms, p99 ([\d.]+) ms, max ([\d.]+) ms "
+                          r"over (\d+) samples", text)
+            if m:
+                g = m.groups()
+                rows.append(f"| {label} | {link} | {g[0]} | {g[1]} | {g[2]} | {g[3]} | - | "
+                            f"{g[0]}/{g[1]} | - | - | - | (the floor: convert + publish) |")
+            else:
+                rows.append(f"| {label} | {link} | - | - | - | - | - | - | - | - | - | "
+                            f"(no latency line; see {log}) |")
+            continue
         m = re.search(r"p50 ([\d.]+) ms, p99 ([\d.]+) ms, max ([\d.]+) ms over (\d+) samples"
                       r" \(steady state; start-up: max ([\d.]+) ms.*?waiting for inputs p50 "
                       r"([\d.]+) ms, p99 ([\d.]+) ms; processing p50 ([\d.]+) ms, p99 ([\d.]+)",
                       text)
         c = re.search(r"rejected (.*); events (.*)$", text, re.M)
         if not m or not c:
-            rows.append(f"| {exe} | {link} | - | - | - | - | - | - | - | - | - | "
-                        f"(no latency line; see {logs / (exe + '.log')}) |")
+            rows.append(f"| {label} | {link} | - | - | - | - | - | - | - | - | - | "
+                        f"(no latency line; see {log}) |")
             continue
         g = m.groups()
         rejected, events = _dict(c.group(1)), _dict(c.group(2))
         late = sum(v for k, v in events.items() if k.endswith("fused_late"))
-        rows.append(f"| {exe} | {link} | {g[0]} | {g[1]} | {g[2]} | {g[3]} | {g[5]}/{g[6]} | "
+        rows.append(f"| {label} | {link} | {g[0]} | {g[1]} | {g[2]} | {g[3]} | {g[5]}/{g[6]} | "
                     f"{g[7]}/{g[8]} | {g[4]} | {late} | {sum(rejected.values())} | "
                     f"{c.group(1)}; {c.group(2)} |")
+    return rows
+
+
+def _timed(fn, acc: list, clock):
+    """``fn`` that appends its own duration on ``clock`` to ``acc``."""
+    def timed(*a, **k):
+        t0 = clock()
+        try:
+            return fn(*a, **k)
+        finally:
+            acc.append(clock() - t0)
+    return timed
+
+
+def stages(names, duration: float, seed: int = 0) -> list[str]:
+    """Where a callback's time goes, in process (CPU time of this thread, so another job's
+    load does not count): metro_demo's received messages fed to each estimator's runner as
+    the node feeds them (``estimator_node``: push, advance to the ready time, tick), and each
+    estimate turned into the node's two messages (TrainState, Odometry; not published: the
+    echo node's row measures converting and publishing). Per odometer callback: p50 / p99 in
+    ms of each stage; "step" = the core's estimator step inside the advance."""
+    from nav_msgs.msg import Odometry
+
+    from train_estimation.core.online.odometry import odometry_covariances
+    from train_estimation.core.online.runner import EstimatorRunner
+    from train_interfaces.msg import TrainState
+
+    sc = load_scenario("metro_demo")
+    res = simulate(sc, seed=seed, duration=duration)
+    events = [(topic, stamp, fields, t_recv)
+              for t_recv, topic, stamp, fields in res.received_events()
+              if topic in ("odometer", "control", "balise")]
+    delay = 0.05  # the nodes' output_delay default (config/*.yaml)
+    rows = []
+    clock = time.thread_time
+    for name in names:
+        adapter = make_adapter(sc, name)
+        runner = EstimatorRunner(adapter, 1 / sc.odometer_rate)
+        steps, snaps = [], []
+        # the adapter's own work (the estimator: its input and output calls) and its
+        # snapshots (kept by the runner to rewind for a late reading), timed from outside
+        for attrs, acc in ((("control", "odometer", "balise", "output"), steps),
+                           (("snapshot", "restore"), snaps)):
+            for attr in attrs:
+                setattr(adapter, attr, _timed(getattr(adapter, attr), acc, clock))
+        push, core, conv, total, core_steps, core_snaps = [], [], [], [], [], []
+        for topic, stamp, fields, recv in events:
+            del steps[:], snaps[:]
+            t0 = clock()
+            runner.push(topic, stamp, fields, recv)
+            t1 = clock()
+            outs = runner.advance_to(runner.ready_time(recv, delay, 4 * delay))
+            outs += runner.tick(recv)
+            t2 = clock()
+            for out in outs:
+                msg = TrainState()
+                msg.position, msg.velocity = out.position, out.velocity
+                msg.acceleration, msg.braking_rate = out.acceleration, out.braking_rate
+                msg.covariance = list(out.covariance)
+                msg.measurement_used = out.measurement_used
+                msg.integrity = out.integrity
+                odom = Odometry()
+                odom.pose.pose.position.x = msg.position
+                odom.twist.twist.linear.x = msg.velocity
+                odom.pose.covariance, odom.twist.covariance = \
+                    odometry_covariances(msg.covariance)
+            t3 = clock()
+            if topic == "odometer" and outs:
+                push.append(t1 - t0)
+                core.append(t2 - t1)
+                core_steps.append(sum(steps))
+                core_snaps.append(sum(snaps))
+                conv.append(t3 - t2)
+                total.append(t3 - t0)
+
+        def q(v):
+            a = 1e3 * np.asarray(v)
+            return f"{np.percentile(a, 50):.3f} / {np.percentile(a, 99):.3f}"
+
+        rest = np.asarray(core) - np.asarray(core_steps) - np.asarray(core_snaps)
+        rows.append(f"| {name} | {len(total)} | {q(push)} | {q(core)} | {q(core_steps)} | "
+                    f"{q(core_snaps)} | {q(rest)} | {q(conv)} | {q(total)} |")
     return rows
 
 
@@ -160,23 +285,50 @@ def main(argv=None) -> int:
     ap.add_argument("--seeds", type=int, default=10, help="offline seeds (0: no offline part)")
     ap.add_argument("--offline-duration", type=float, default=600.0, help="s per offline run")
     ap.add_argument("--no-live", action="store_true", help="offline part only")
+    ap.add_argument("--algorithms", default=",".join(ALGORITHMS),
+                    help="gsma_estimator algorithms run live and in the stage table, comma "
+                         "separated (each its own node beside robust_filter and the echo)")
+    ap.add_argument("--stage-duration", type=float, default=120.0,
+                    help="s of metro_demo for the in-process stage table (0: none)")
+    ap.add_argument("--no-link", action="store_true",
+                    help="live: only the run without link latency")
     args = ap.parse_args(argv)
+    algorithms = [a for a in args.algorithms.split(",") if a]
+    nodes = live_nodes(algorithms)
     logs = Path(tempfile.mkdtemp(prefix="bench_latency_"))
     lag = f"{1e3 * args.latency:g} ms + Exp({1e3 * args.jitter:g} ms)"
     if not args.no_live:
-        links = (("none", "metro_demo"),
-                 (lag, str(scenario_with_link(logs / "metro_demo_latency.yaml", args.latency,
-                                              args.jitter))))
+        links = [("none", "metro_demo")]
+        if not args.no_link:
+            links.append((lag, str(scenario_with_link(logs / "metro_demo_latency.yaml",
+                                                      args.latency, args.jitter))))
         rows = []
+        load = [os.getloadavg()[0]]
         for i, (name, scenario) in enumerate(links):
-            run_live(scenario, args.duration, logs / f"link{i}")
-            rows += live_rows(name, logs / f"link{i}")
-        print(f"metro_demo at 1x for {args.duration:g} s per link (logs in {logs})\n")
+            run_live(scenario, args.duration, logs / f"link{i}", nodes)
+            rows += live_rows(name, logs / f"link{i}", nodes)
+            load.append(os.getloadavg()[0])
+        print(f"metro_demo at 1x for {args.duration:g} s per link, {len(nodes) - 1} estimator "
+              f"nodes and the echo node side by side (logs in {logs}); load average (1 min) "
+              f"{', '.join(f'{v:.1f}' for v in load)} before / after each link\n")
         print("| node | link latency | p50 (ms) | p99 (ms) | max (ms) | samples | "
               "waiting p50/p99 (ms) | processing p50/p99 (ms) | start-up max (ms) | "
               "fused late | dropped | rejected; events |")
         print("|---|---|---|---|---|---|---|---|---|---|---|---|")
         print("\n".join(rows))
+    if args.stage_duration > 0:
+        print(f"\nWhere an odometer callback's time goes, in process (metro_demo "
+              f"{args.stage_duration:g} s, no link latency; CPU time of the thread, p50 / p99 "
+              "in ms over the callbacks that released an estimate): push = the runner's input "
+              "checks; advance = the runner's release of the estimate, of which estimator = "
+              "the adapter's input and output calls (the core filter), snapshots = the state "
+              "kept to rewind for a late reading, runner = the rest (clock mapping, integrity "
+              "monitor); messages = TrainState and Odometry built (publishing: the echo row "
+              "above)\n")
+        print("| estimator | callbacks | push | advance | of which estimator | snapshots | "
+              "runner | messages | total |")
+        print("|---|---|---|---|---|---|---|---|---|")
+        print("\n".join(stages(["robust_filter", *algorithms], args.stage_duration)))
     if args.seeds > 0:
         print(f"\nAccuracy with link latency {lag} vs without, offline: metro_demo, "
               f"{args.seeds} seeds x {args.offline_duration:g} s, replayed in arrival order "

@@ -28,13 +28,16 @@ Pure: numpy only; randomness only through the ``rng`` argument.
 
 from __future__ import annotations
 
+import math
 from collections import Counter
 from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from ..numerics import bank
+from ..numerics.bank import log_normalize
 from ..numerics.batched_kf import predict, update
-from ..numerics.smc import log_normalize
+from ..numerics.kalman import _selectors
 
 __all__ = ["Estimate", "RaoBlackwellFilter"]
 
@@ -88,6 +91,10 @@ class _Set:
     extra: dict = field(default_factory=dict)
 
 
+_BANK_REASONS = {bank.NAN_LIK: "numerical failure: NaN likelihood",
+                 bank.BAD_WEIGHT: "numerical failure: NaN or +inf log-weight",
+                 bank.ALL_INF: "numerical failure: all log-weights are -inf"}
+
 # ----------------------------------------------------------------------------------------------
 # base
 
@@ -104,6 +111,9 @@ class RaoBlackwellFilter:
     transition_interval: float = 0.0
 
     def __init__(self, family):
+        # the compiled kernels' first call (a load from numba's cache): here, not in a node's
+        # first callback
+        bank.warm_up("bank_step", "update", "log_normalize", "all_finite")
         self.family = family
         self.rejected: Counter = Counter()
         self.n_steps = 0
@@ -111,6 +121,37 @@ class RaoBlackwellFilter:
         self._t: float | None = None
         self._last: Estimate | None = None
         self._since = 0.0  # s since the last parameter transition
+
+    def __deepcopy__(self, memo):
+        """A copy for the runner's snapshots (rewinding for a late reading), without
+        ``copy.deepcopy``'s generic walk (it was the largest part of a node's callback): the
+        particle set, the last estimate, the counters and every writeable array are copied;
+        what ``memo`` holds (the shared model family) and read-only arrays are shared; tuples
+        are the filter's constants and caches (Gauss-Hermite nodes, report index, compiled
+        rows), never changed in place, and are shared; anything else goes through
+        ``copy.deepcopy``."""
+        import copy
+
+        new = self.__class__.__new__(self.__class__)
+        memo[id(self)] = new
+        for k, v in self.__dict__.items():
+            hit = memo.get(id(v))
+            if hit is not None:
+                v = hit
+            elif isinstance(v, np.ndarray):
+                v = v if not v.flags.writeable else v.copy()
+            elif isinstance(v, _Set):
+                v = _Set(*(None if a is None else a.copy()
+                           for a in (v.theta, v.x, v.P, v.logw, v.idx)), copy.deepcopy(v.extra))
+            elif isinstance(v, Estimate):
+                v = Estimate(**{f: (a.copy() if isinstance(a, np.ndarray) else a)
+                                for f, a in v.__dict__.items()})
+            elif isinstance(v, Counter):
+                v = Counter(v)
+            elif not isinstance(v, (tuple, str, int, float, bool, type(None))):
+                v = copy.deepcopy(v, memo)
+            new.__dict__[k] = v
+        return new
 
     # -- life cycle ------------------------------------------------------------------------
     def reset(self, x0, P0, rng: np.random.Generator | None = None, theta0=None,
@@ -237,21 +278,25 @@ class RaoBlackwellFilter:
                 since = 0.0
             elif dt > 0:
                 s = self._transition(s, False, rng, dt)
-            if dt > 0:
-                x, P = self._predict(s, u, dt, informative)
+            if self._compiled():
+                s, est = self._bank_step(s, u, dt, informative, y_arr, mask_arr, R, fused, t)
+                if est.reason:
+                    return self._reject(est.reason)
+            else:
+                if dt > 0:
+                    x, P = self._predict(s, u, dt, informative)
+                    s = _Set(s.theta, x, P, s.logw, s.idx, s.extra)
+                x, P, loglik = self._update(s, y_arr, R, mask_arr)
+                if np.isnan(loglik).any():
+                    return self._reject("numerical failure: NaN likelihood")
                 s = _Set(s.theta, x, P, s.logw, s.idx, s.extra)
-            x, P, loglik = update(s.x, s.P, y_arr, fam.H, R, mask_arr)
-            if np.isnan(loglik).any():
-                return self._reject("numerical failure: NaN likelihood")
-            s = _Set(s.theta, x, P, s.logw, s.idx, s.extra)
-            s, log_ev = self._reduce(s, loglik, informative, rng)
-            used = fused
-            est = self._summary(s, True, "", informative, used, log_ev if used else np.nan, t)
+                s, log_ev = self._reduce(s, loglik, informative, rng)
+                est = self._summary(s, True, "", informative, fused,
+                                    log_ev if fused else np.nan, t)
             s = self._after(s, informative, rng)
         except (ValueError, np.linalg.LinAlgError) as exc:
             return self._reject(f"numerical failure: {exc}")
-        if not (s.theta.shape[0] > 0 and np.isfinite(s.x).all() and np.isfinite(s.P).all()
-                and np.isfinite(s.theta).all()):
+        if not (s.theta.shape[0] > 0 and bank.all_finite(s.x, s.P, s.theta)):
             return self._reject("numerical failure: non-finite particle state")
         self._s = s
         self._since = since
@@ -260,6 +305,88 @@ class RaoBlackwellFilter:
         self.n_steps += 1
         self._last = est
         return est
+
+    # -- the compiled step ------------------------------------------------------------------
+    #: this class's _reduce is the base class's log-space reweighting (subclasses whose own
+    #: _reduce only delegates to it, e.g. DiscreteRBPF with the prior proposal, set it True)
+    _base_reduce = False
+
+    def _compiled(self) -> bool:
+        """Whether :meth:`step` runs the compiled bank step (``numerics.bank``): numba is there
+        and this algorithm's reweighting and summary are the base class's (the kernel's)."""
+        ok = self.__dict__.get("_bank_ok")
+        if ok is None:
+            cls = type(self)
+            ok = bool(bank.COMPILED and cls._summary is RaoBlackwellFilter._summary
+                      and (cls._reduce is RaoBlackwellFilter._reduce or self._base_reduce))
+            self._bank_ok = ok
+        return ok
+
+    def _bank_step(self, s, u, dt, informative, y, mask, R, fused, t):
+        """Prediction, update, reweighting and the mixture's moments in one compiled call
+        (``numerics.bank.bank_step``, the same arithmetic as the numpy form: ``_predict``,
+        ``batched_kf.update``, ``_reduce``, ``_summary``). Returns ``(set, estimate)``; the
+        estimate's ``reason`` is the numpy form's rejection, if any."""
+        fam = self.family
+        pred = f = None
+        if dt > 0:
+            if hasattr(fam, "bank_maps"):
+                pred, f = fam.bank_maps(s.theta, u, dt, informative,
+                                        **self._hold(u, informative))
+            else:
+                x, P = self._predict(s, u, dt, informative)
+                s = _Set(s.theta, x, P, s.logw, s.idx, s.extra)
+        H, sel = self._bank_rows()
+        tv = self._theta_var(s)
+        status, x, P, lw, w, mean, cov, logz, ess = bank.bank_step(
+            np.ascontiguousarray(s.x), np.ascontiguousarray(s.P), y[None], H,
+            np.ascontiguousarray(R, dtype=float), np.flatnonzero(mask), sel,
+            np.ascontiguousarray(s.logw), np.ascontiguousarray(s.theta),
+            None if tv is None else np.ascontiguousarray(tv), pred, f)
+        if status != bank.OK:
+            return s, replace(self._last, reason=_BANK_REASONS[status])
+        s = _Set(s.theta, x, P, lw, s.idx, s.extra)
+        self._step_w = (lw, w, ess)  # for _after's N_eff test (weights_ess)
+        n = x.shape[1]
+        est = self._estimate(mean, cov, n, x.shape[0], ess, informative, fused,
+                             logz if fused else np.nan, t)
+        return s, est
+
+    def _update(self, s, y, R, mask):
+        """``batched_kf.update`` of every particle: compiled (``numerics.bank.update``, the
+        same states bit for bit) when numba is there."""
+        if not bank.COMPILED:
+            return update(s.x, s.P, y, self.family.H, R, mask)
+        rows = np.flatnonzero(mask)
+        if rows.size == 0:
+            return s.x, s.P, np.zeros(s.x.shape[0])
+        H, sel = self._bank_rows()
+        return bank.update(s.x, s.P, y[None], H, R, rows, sel)
+
+    def weights_ess(self, s: _Set):
+        """Normalised weights of ``s`` and ``N_eff = 1 / sum w^2``: the ones the compiled step
+        computed for this very set if it did, else ``_weights`` (numpy)."""
+        hit = self.__dict__.pop("_step_w", None)
+        if hit is not None and hit[0] is s.logw:
+            return hit[1], hit[2]
+        w = _weights(s.logw)
+        return w, float(1.0 / np.sum(w * w))
+
+    def _bank_rows(self):
+        fam = self.family
+        hit = self.__dict__.get("_rows")
+        if hit is None or hit[0] is not fam.H:
+            H = np.ascontiguousarray(fam.H, dtype=float)
+            hit = (fam.H, H, np.array(_selectors(H), dtype=np.int64))
+            self._rows = hit
+        return hit[1], hit[2]
+
+    def _hold(self, u, informative) -> dict:
+        fam = self.family
+        if not informative and hasattr(fam, "hold_gain"):
+            return {"hold": fam.hold_gain(u, self._last.x_mean,
+                                          float(self._last.theta_mean[0]))}
+        return {}
 
     def _validate(self, a_tar, y, mask, t, meas_var, d):
         fam = self.family
@@ -270,7 +397,7 @@ class RaoBlackwellFilter:
             dd = float(d)
         except (TypeError, ValueError):
             return ("non-numeric command", *bad)
-        if not (np.isfinite(a) and np.isfinite(dd)):
+        if not (math.isfinite(a) and math.isfinite(dd)):
             return (f"non-finite command: a_tar={a_tar!r}, d={d!r}", *bad)
         if t is None:
             dt = float(fam.default_dt())
@@ -279,7 +406,7 @@ class RaoBlackwellFilter:
                 tf = float(t)
             except (TypeError, ValueError):
                 return ("non-numeric time stamp", *bad)
-            if not np.isfinite(tf):
+            if not math.isfinite(tf):
                 return (f"non-finite time stamp: {t!r}", *bad)
             if self._t is None:
                 dt = 0.0
@@ -301,7 +428,7 @@ class RaoBlackwellFilter:
                         else np.asarray(mask, dtype=bool).reshape(-1))
             if mask_arr.shape != (p,):
                 return (f"bad mask shape: {mask_arr.shape} != ({p},)", *bad)
-            if not np.all(np.isfinite(y_arr[mask_arr])):
+            if not (np.isfinite(y_arr) | ~mask_arr).all():
                 return (f"non-finite measurement: {y_arr[mask_arr].tolist()}", *bad)
         if meas_var is None:
             R = np.asarray(fam.R, dtype=float)
@@ -310,7 +437,7 @@ class RaoBlackwellFilter:
             if R.shape != (p,):
                 return (f"bad measurement variance shape: {R.shape} != ({p},)", *bad)
             Rm = R[mask_arr]
-            if not (np.all(np.isfinite(Rm)) and np.all(Rm > 0)):
+            if not (np.isfinite(Rm).all() and (Rm > 0).all()):
                 return (f"non-positive or non-finite measurement variance: {Rm.tolist()}", *bad)
         if dt == 0.0 and t is None:
             return ("zero default step", *bad)
@@ -345,18 +472,24 @@ class RaoBlackwellFilter:
             c[n:, n:] += _wsum(w, tv)
         c = 0.5 * (c + c.T)
         m = np.concatenate([xm, tm])
-        ri = self._report_index(n, dth)
-        return Estimate(accepted, reason, self._t if t is None else float(t), m[ri],
-                        c[np.ix_(ri, ri)], xm, c[:n, :n], tm, c[n:, n:],
-                        int(N), float(1.0 / np.sum(w * w)), bool(informative),
-                        bool(used), float(log_ev))
+        return self._estimate(m, c, n, N, float(1.0 / np.sum(w * w)), informative, used,
+                              log_ev, t, accepted, reason)
+
+    def _estimate(self, m, c, n, N, n_eff, informative, used, log_ev, t=None, accepted=True,
+                  reason="") -> Estimate:
+        """The ``Estimate`` of the mixture's mean ``m`` and covariance ``c`` over (x, theta)."""
+        ri, rix = self._report_index(n, m.size - n)
+        return Estimate(accepted, reason, self._t if t is None else float(t), m[ri], c[rix],
+                        m[:n], c[:n, :n], m[n:], c[n:, n:], int(N), float(n_eff),
+                        bool(informative), bool(used), float(log_ev))
 
     def _report_index(self, n, dth):
-        ri = self.__dict__.get("_ri")
-        if ri is None:
+        hit = self.__dict__.get("_ri")
+        if hit is None:
             ri = np.array(list(self.family.report_index) + list(range(n, n + dth)), dtype=int)
-            self._ri = ri
-        return ri
+            hit = (ri, np.ix_(ri, ri))
+            self._ri = hit
+        return hit
 
     # -- hooks -----------------------------------------------------------------------------
     def _theta_var(self, s: _Set):
@@ -370,9 +503,7 @@ class RaoBlackwellFilter:
         matrices), else ``batched_kf.predict`` on ``family.matrices``. A step that cannot
         inform theta uses one model shared by all particles (``family.hold_gain``)."""
         fam = self.family
-        kw = {}
-        if not informative and hasattr(fam, "hold_gain"):
-            kw["hold"] = fam.hold_gain(u, self._last.x_mean, float(self._last.theta_mean[0]))
+        kw = self._hold(u, informative)
         if hasattr(fam, "predict"):
             return fam.predict(s.x, s.P, s.theta, u, dt, informative, **kw)
         return predict(s.x, s.P, *fam.matrices(s.theta, u, dt, informative, **kw))

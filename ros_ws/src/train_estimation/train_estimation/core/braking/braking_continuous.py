@@ -10,9 +10,11 @@ from __future__ import annotations
 import numpy as np
 from scipy.special import ndtr
 
+from ..numerics import bank, smc
+from ..numerics.bank import log_normalize
 from ..numerics.batched_kf import mixture_moments
-from ..numerics.smc import log_normalize, systematic_resample
-from .braking_base import RaoBlackwellFilter, _Set, _weights, _wsum
+from ..numerics.smc import systematic_resample
+from .braking_base import RaoBlackwellFilter, _Set, _wsum
 
 __all__ = ["QGRBPF", "RandomWalkRBPF"]
 
@@ -88,6 +90,7 @@ class QGRBPF(_ContinuousBase):
         if self.quadrature:
             if family.d != 1:
                 raise ValueError("quadrature: one parameter only")
+            bank.warm_up("gauss_hermite")
             z, wq = np.polynomial.hermite_e.hermegauss(self.n)  # nodes/weights for N(0, 1)
             self._gh = (z, np.log(wq / wq.sum()))
 
@@ -135,7 +138,19 @@ class QGRBPF(_ContinuousBase):
         independent of x). The nodes' weighted mixture then has exactly the joint Gaussian's
         mean and covariance. Because theta enters the braking model linearly, few nodes suffice.
         """
-        w, _ = log_normalize(s.logw)
+        z, lw = self._gh
+        if bank.COMPILED:  # the same formulas in one compiled call (numerics.bank)
+            theta, x, P = bank.gauss_hermite(s.logw, s.theta, s.x, s.P, z,
+                                             self.braking_rate_q[0, 0] * dt, self.min_var,
+                                             self.lo[0], self.hi[0])
+            return _Set(theta, x, P, lw.copy())
+        return self._quadrature_numpy(s, dt)
+
+    def _quadrature_numpy(self, s, dt):
+        """The numpy form of :meth:`_transition_quadrature` (without numba; the reference
+        of ``test_bank.py``)."""
+        z, lw = self._gh
+        w, _ = smc.log_normalize(s.logw)
         th = s.theta[:, 0]
         mu = w @ th
         dth = th - mu
@@ -146,7 +161,6 @@ class QGRBPF(_ContinuousBase):
         Sx = _wsum(w, s.P) + (w[:, None] * dx).T @ dx
         beta = cxt / var
         Pc = Sx - np.outer(cxt, beta)
-        z, lw = self._gh
         theta = np.clip(mu + np.sqrt(var) * z, self.lo[0], self.hi[0])
         x = xm + (theta - mu)[:, None] * beta[None, :]
         P = np.repeat(0.5 * (Pc + Pc.T)[None], z.size, axis=0)
@@ -176,8 +190,8 @@ class RandomWalkRBPF(_ContinuousBase):
         if not informative:
             return s
         N = s.theta.shape[0]
-        w = _weights(s.logw)
-        if 1.0 / np.sum(w * w) >= self.ess_frac * N:
+        w, ess = self.weights_ess(s)
+        if ess >= self.ess_frac * N:
             return s
         a = systematic_resample(w, rng, N)
         return _Set(s.theta[a], s.x[a], s.P[a], np.full(N, -np.log(N)))

@@ -10,8 +10,9 @@ from __future__ import annotations
 import numpy as np
 from scipy.special import ndtr
 
-from ..numerics.smc import log_normalize, systematic_resample
-from .braking_base import RaoBlackwellFilter, _Set, _weights
+from ..numerics.bank import log_normalize
+from ..numerics.smc import systematic_resample
+from .braking_base import RaoBlackwellFilter, _Set
 
 __all__ = ["DiscreteRBPF", "SMA", "GSMA", "grid_prior", "cell_variance", "neighbour_groups",
            "sma_transition", "sticky_transition"]
@@ -171,6 +172,7 @@ class DiscreteRBPF(_DiscreteBase):
         self.cdf = np.cumsum(T, axis=1)
         self.cdf[:, -1] = 1.0
         self.proposal = proposal
+        self._base_reduce = proposal == "prior"  # _reduce then only delegates to the base's
         self.ess_frac = float(ess_frac)
         # padded children table for the optimal proposal: support of each row
         kmax = int(np.max(np.sum(T > 0, axis=1)))
@@ -219,8 +221,8 @@ class DiscreteRBPF(_DiscreteBase):
         if not informative:
             return s  # frozen: no resampling noise on the f marginal
         N = s.idx.size
-        w = _weights(s.logw)
-        if 1.0 / np.sum(w * w) >= self.ess_frac * N:
+        w, ess = self.weights_ess(s)
+        if ess >= self.ess_frac * N:
             return s
         a = systematic_resample(w, rng, N)
         return _Set(s.theta[a], s.x[a], s.P[a], np.full(N, -np.log(N)), s.idx[a])

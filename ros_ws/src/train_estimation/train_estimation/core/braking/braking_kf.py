@@ -135,7 +135,7 @@ class BrakingKF(RaoBlackwellFilter):
 
     def _summary(self, s, accepted, reason, informative, used, log_ev, t=None) -> Estimate:
         x, P = s.x[0], s.P[0]
-        ri = list(self.family.report_index)
+        ri, rix = self._report_index(5, 0)
         return Estimate(accepted, reason, self._t if t is None else float(t), x[ri],
-                        P[np.ix_(ri, ri)], x[:4], P[:4, :4], x[4:], P[4:, 4:], 1, 1.0,
+                        P[rix], x[:4], P[:4, :4], x[4:], P[4:, 4:], 1, 1.0,
                         bool(informative), bool(used), float(log_ev))

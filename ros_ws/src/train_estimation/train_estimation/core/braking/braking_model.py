@@ -52,6 +52,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..numerics.bank import csr
 from ..numerics.discretize import van_loan, zoh
 
 __all__ = [
@@ -280,6 +281,21 @@ class BrakingModel:
         Pu += Qd
         return xt.T.copy(), Pu.T[:, full].reshape(N, 4, 4)
 
+    def bank_maps(self, theta, u, dt: float, informative: bool, hold: float | None = None):
+        """:meth:`predict` as arguments of the compiled bank step (``numerics.bank``): ``(maps,
+        f)``, ``maps`` the sparse rows of the same linear maps (cached per dt), ``B0 u | B1 u``
+        computed as :meth:`predict` computes it, ``f`` each particle's rate (N or 1)."""
+        f = self.braking_rates(theta, u, informative, hold)
+        dt = float(dt)
+        hit = self.__dict__.get("_bank_last")  # the last dt's maps: a live filter's dt repeats
+        if hit is None or hit[0] != dt or hit[1] is not self.params:
+            Kx = _predict_maps(self.params, dt)[0]
+            hit = (dt, self.params, Kx[4:], _bank_maps(self.params, dt))
+            self._bank_last = hit
+        xp, xc, xv, kp, kc, kv, qd, full = hit[3]
+        bu = np.asarray(u, dtype=float) @ hit[2]
+        return (xp, xc, xv, kp, kc, kv, bu, qd, full), f
+
     def matrices(self, theta, u, dt: float, informative: bool, hold: float | None = None):
         """``Phi (K,4,4)``, ``Bu (K,4)``, ``Qd (4,4)``; ``K = len(theta)`` if informative else 1
         (with gain ``hold`` if given, else 1 for traction and 0 for braking)."""
@@ -334,6 +350,20 @@ def _predict_maps(params: BrakingParams, dt: float):
         K1 = (np.kron(E, P0) + np.kron(P0, E))[up]
         K2 = np.kron(E, E)[up]
         hit = (Kx, np.vstack([K0, K1, K2]), Qd.reshape(16)[up][:, None], _FULL)
+        if len(_CACHE) > 64:
+            _CACHE.clear()
+        _CACHE[key] = hit
+    return hit
+
+
+def _bank_maps(params: BrakingParams, dt: float):
+    """``_predict_maps`` as the compiled step's sparse rows (``numerics.bank.csr``), cached."""
+    key = ("bank", params, float(dt))
+    hit = _CACHE.get(key)
+    if hit is None:
+        Kx, KP, qd, full = _predict_maps(params, dt)
+        hit = (*csr(Kx[:4].T), *csr(KP), np.ascontiguousarray(qd[:, 0]),
+               full.astype(np.int64))
         if len(_CACHE) > 64:
             _CACHE.clear()
         _CACHE[key] = hit

@@ -95,6 +95,18 @@ class ClockFit:
         return self.t_first + self.ref_of_control(c) / self.beta
 
 
+def median(a) -> float:
+    """``np.median`` of a non-empty 1-D float array, the same number (the middle order
+    statistic, or the two middle ones' sum halved; NaN if any entry is NaN), without its generic
+    axis machinery: ~15 us a call less, and the sample grid is refitted at every reading."""
+    a = np.sort(np.asarray(a, dtype=float))  # NaN sorts last
+    n = a.size
+    if math.isnan(a[-1]):
+        return math.nan
+    h = n // 2
+    return float(a[h]) if n % 2 else float((a[h - 1] + a[h]) / 2.0)
+
+
 def _robust_sd(x: np.ndarray) -> float:
     """1.4826 x the median absolute deviation: the SD of a normal sample, robust to outliers."""
     return 1.4826 * float(np.median(np.abs(x - np.median(x))))
@@ -639,18 +651,18 @@ class SampleGrid:
             return None
         q = np.array(sorted(self._pts), float)
         st = np.array([self._pts[int(k)] for k in q])
-        return float(np.median(np.diff(st) / np.diff(q)))
+        return median(np.diff(st) / np.diff(q))
 
     def _robust(self):
         """The learnt samples' robust line: ``(P, c, residuals, lowest seq, highest seq)``, or
         None when the median period is not within half and twice the nominal one."""
         q = np.array(sorted(self._pts), float)
         st = np.array([self._pts[int(k)] for k in q])
-        P = float(np.median(np.diff(st) / np.diff(q)))
+        P = median(np.diff(st) / np.diff(q))
         if not 0.5 * self.period <= P <= 2.0 * self.period:
             return None
         r = st - P * q
-        c = float(np.median(r))
+        c = median(r)
         return P, c, r - c, int(q[0]), int(q[-1])
 
     def _line(self):
@@ -661,7 +673,7 @@ class SampleGrid:
             line = self._robust() if len(self._pts) >= self.n_min else None
             if line is not None:
                 P, c, r, lo, hi = line
-                tol = max(self.floor, 8.0 * 1.4826 * float(np.median(np.abs(r))))
+                tol = max(self.floor, 8.0 * 1.4826 * median(np.abs(r)))
                 if tol < 0.25 * P:
                     self._fit = (P, c, tol, lo, hi)
         return self._fit or None
@@ -720,7 +732,7 @@ class SampleGrid:
             # then its readings refused as late)
             qs = np.array([q for q, _ in self._misfits], float)
             cs = np.array([st for _, st in self._misfits]) - P * qs
-            cm = float(np.median(cs))
+            cm = median(cs)
             if float(np.max(np.abs(cs - cm))) <= tol and abs(stamp - (cm + P * seq)) <= tol:
                 return stamp - (cm + P * seq)
         return r
@@ -833,7 +845,7 @@ class StepWatch:
         them on any link the filters can use); None with fewer than ``n_min`` steps."""
         st = np.diff(np.asarray(self._admitted, float))
         st = st[st > 0]
-        return float(np.median(st)) if st.size >= n_min else None
+        return median(st) if st.size >= n_min else None
 
     def fused(self, stamp: float, distance, seq=None) -> None:
         """The filter fused this odometer reading (timeline stamp, counted distance m, its
