@@ -186,7 +186,9 @@ class Line:
 TRAIN_KEYS = ("mass", "rotary_allowance", "davis", "brake", "odometer")
 TRAIN_ALL_KEYS = ("name", *TRAIN_KEYS, "balise", "performance",
                   "identification")  # every key the loader reads; identify writes the last
-LINE_KEYS = ("name", "length", "balises", "gradients", "stations", "speed_limits", "max_speed")
+LINE_KEYS = ("name", "length", "balises", "gradients", "stations", "speed_limits", "max_speed",
+             "curves")  # curves: signed radii of an imported real line (train_core.ttobench), kept
+#                         for the reader, not modelled
 
 
 def train_from_dict(data: dict, where: str = "train.yaml") -> TrainParams:
