@@ -131,7 +131,8 @@ def run_real_case(spec: dict) -> dict:
             return out
         rep = json.load(open(os.path.join(d, "diag", "report.json")))
     out["reported"] = rep["cause"]
-    out["confirmed"] = [r["cause"] for r in rep["ranking"] if r.get("status") == "confirmed"]
+    out["confirmed"] = [r["cause"] for r in rep["ranking"] if r.get("status") == "confirmed"
+                        and r["cause"] != "none"]
     g = next((r for r in rep["ranking"] if r["cause"] == "gradient"), None)
     out["gradient"] = g and {"status": g.get("status"), "why": g.get("why"),
                              **g.get("parameters", {})}
@@ -168,8 +169,9 @@ def real_table(results: list[dict], missing: dict) -> str:
                     where += 1
                     err.append(abs(g["permille"] - t["permille"]) / abs(t["permille"]))
             md.append(f"| {name} | {'gradient' if causes else 'none'} | {len(sel)} | {rep} | "
-                      f"{pct(conf, len(ok))} | " + (pct(where, len(ok)) if causes else "-")
-                      + " | " + (f"{np.median(err):.2f}" if err else "-") + " | "
+                      f"{pct(conf, len(ok))}" + ("" if causes else " (false alarm)") + " | "
+                      + (pct(where, len(ok)) if causes else "-") + " | "
+                      + (f"{np.median(err):.2f}" if err else "-") + " | "
                       + (f"{np.mean([r['time'] for r in ok]):.1f}" if ok else "-") + " |")
     for r in results:
         g = r.get("gradient") or {}
@@ -428,7 +430,8 @@ def main(argv=None) -> int:
             for r in ex.map(run_case, specs):
                 results.append(r)
                 bar(len(results), f"{'+'.join(r['causes']) or 'none'} {r['size']}")
-    md = tables([r for r in results if not r.get("real")], sizes, args)
+    synthetic = [r for r in results if not r.get("real")]
+    md = tables(synthetic, sizes, args) if synthetic or not real else ""
     if args.real > 0:
         md += real_table([r for r in results if r.get("real")], missing)
     print(md)
