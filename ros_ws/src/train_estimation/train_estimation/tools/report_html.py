@@ -207,7 +207,7 @@ def diagnose_context(out: Path) -> dict:
         v = se.get(key) if isinstance(se, dict) else None
         return with_unit(key, v) if isinstance(v, (int, float)) else "-"
 
-    confirmed = [r for r in ranking if r.get("status") == "confirmed"]
+    confirmed = [r for r in ranking if r.get("status") == "confirmed" and r.get("cause") != "none"]
     if not confirmed and rep.get("parameters"):
         confirmed = [{"cause": cause, "parameters": rep["parameters"], "status": ""}]
     blocks = [{"cause": r.get("cause"), "status": r.get("status") or "",
