@@ -473,6 +473,9 @@ def main(argv=None) -> int:
     ap.add_argument("--estimators", nargs="*", default=None)
     ap.add_argument("--only", nargs="*", default=None, help=f"fault kinds ({', '.join(F.KINDS)})")
     ap.add_argument("--jobs", type=int, default=2, help="worker processes")
+    ap.add_argument("--scenarios", nargs="*", default=None,
+                    help="only these scenarios (default: every one here, the real lines "
+                         "where their files are)")
     ap.add_argument("--no-zone", action="store_true")
     ap.add_argument("--no-distance", action="store_true",
                     help="the estimators with use_distance: false (the odometer's speed and "
@@ -491,6 +494,13 @@ def main(argv=None) -> int:
     seeds = args.seeds or (1 if args.quick else 2)
     estimators = args.estimators or (QUICK_ESTIMATORS if args.quick else ESTIMATORS)
     scenarios = scenarios_here()
+    if args.scenarios:
+        unknown = sorted(set(args.scenarios) - set(scenarios))
+        if unknown:
+            print(f"bench_integrity: --scenarios: {', '.join(unknown)} not available here "
+                  f"(available: {', '.join(scenarios)})", file=sys.stderr)
+            return 2
+        scenarios = tuple(args.scenarios)
     tasks = plan(args.quick, seeds, estimators, args.only, args.phases, args.long,
                  args.fuzz_rate, scenarios)
     config = {"use_distance": False} if args.no_distance else {}
