@@ -6,7 +6,9 @@ steps, drift, odometer outages while accelerating / cruising / braking, the comm
 stopping, link latency tails, recorder and node stalls, the fuzz mix with stamps inside
 ``max_future``, a balise lying metres from its map position, an odometer whose scale is up to
 2 % off, a sample counter that skips or repeats samples), at several sizes and times, on
-metro_demo, crh3_high_speed and wen2017_subway, is replayed through the runner the nodes use
+metro_demo, crh3_high_speed and wen2017_subway (and the real lines yizhuang_metro and
+zurich_stadelhofen where their TTOBench files are: docs/real_lines.md; a note says where to put
+an absent one), is replayed through the runner the nodes use
 (node defaults: ``NodeConfig``), arrival = stamp + 50 ms. Per fault and estimator (seeds
 pooled) the table gives:
 
@@ -79,6 +81,7 @@ ESTIMATORS = ("robust_filter", "kf", "gsma", "sma", "rbpf", "qgrbpf")
 QUICK_ESTIMATORS = ("robust_filter", "kf")
 SCENARIOS = ("metro_demo", "crh3_high_speed", "wen2017_subway")
 AFTER = 60.0  # s of run kept after a fault's end (the recovery)
+QUICK_REAL = 600.0  # s of a real line's run in the quick campaign (Yizhuang: 4 stops, 8 km)
 JITTER = 0.05  # s, mean exponential extra latency of the jittery-link step faults
 
 
@@ -156,15 +159,30 @@ def run_task(task: dict) -> dict:
     return row
 
 
+def scenarios_here() -> tuple:
+    """SCENARIOS and the real-line ones (train_sim.real_lines) whose track file is here; a
+    note on stdout for each that is not (where to put it, how to get it)."""
+    from train_sim.real_lines import available
+
+    ok, missing = available()
+    for name, why in missing.items():
+        print(f"note: scenario {name} skipped: {why}")
+    return SCENARIOS + tuple(ok)
+
+
 def plan(quick: bool, seeds: int, estimators, only, phase_names=None, long: float | None = None,
-         fuzz_rate: float | None = None) -> list[dict]:
+         fuzz_rate: float | None = None, scenarios=SCENARIOS) -> list[dict]:
     """The campaign: tasks (scenario, seed, fault, estimator, run duration). A reduced full
     campaign: ``phase_names`` (the phases the stamp, step and command faults start in),
     ``long`` (s, the longest drift and fuzz run), ``fuzz_rate`` (corrupted per clean one)."""
+    from train_sim.real_lines import REAL_SCENARIOS
+
     tasks = []
-    for scenario in SCENARIOS:
+    for scenario in scenarios:
         sc = load_scenario(scenario)
         full = sc.duration
+        if quick and scenario in REAL_SCENARIOS:
+            full = min(full, QUICK_REAL)  # a real line's first stops: quick stays quick
         ph = phases(_sim(scenario, 0, full)[1].truth)
         cruise = ph["cruising"]
         times = [cruise] if quick else [v for k, v in ph.items()
@@ -480,6 +498,9 @@ def main(argv=None) -> int:
     ap.add_argument("--estimators", nargs="*", default=None)
     ap.add_argument("--only", nargs="*", default=None, help=f"fault kinds ({', '.join(F.KINDS)})")
     ap.add_argument("--jobs", type=int, default=2, help="worker processes")
+    ap.add_argument("--scenarios", nargs="*", default=None,
+                    help="only these scenarios (default: every one here, the real lines "
+                         "where their files are)")
     ap.add_argument("--no-zone", action="store_true")
     ap.add_argument("--no-distance", action="store_true",
                     help="the estimators with use_distance: false (the odometer's speed and "
@@ -500,8 +521,16 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     seeds = args.seeds or (1 if args.quick else 2)
     estimators = args.estimators or (QUICK_ESTIMATORS if args.quick else ESTIMATORS)
+    scenarios = scenarios_here()
+    if args.scenarios:
+        unknown = sorted(set(args.scenarios) - set(scenarios))
+        if unknown:
+            print(f"bench_integrity: --scenarios: {', '.join(unknown)} not available here "
+                  f"(available: {', '.join(scenarios)})", file=sys.stderr)
+            return 2
+        scenarios = tuple(args.scenarios)
     tasks = plan(args.quick, seeds, estimators, args.only, args.phases, args.long,
-                 args.fuzz_rate)
+                 args.fuzz_rate, scenarios)
     config = {"use_distance": False} if args.no_distance else {}
     for t in tasks:
         t["config"] = config
@@ -514,7 +543,7 @@ def main(argv=None) -> int:
         for fut in track(as_completed(futs), "fault runs", total=len(futs)):
             rows.append(fut.result())
     order = {k: i for i, k in enumerate(F.KINDS)}
-    rows.sort(key=lambda r: (SCENARIOS.index(r["scenario"]), order[r["fault"].kind],
+    rows.sort(key=lambda r: (scenarios.index(r["scenario"]), order[r["fault"].kind],
                              r["fault"].at, r["fault"].size, r["fault"].count,
                              ESTIMATORS.index(r["estimator"]), r["seed"]))
     groups = aggregate(rows)

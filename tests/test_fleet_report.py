@@ -66,3 +66,30 @@ def test_stated_criterion_is_the_applied_one():
             t_above_normal += crit > zc + 0.01
         assert alerted <= set(tables)
     assert t_above_normal > 0  # the t-quantile, not the normal one, is what was applied
+
+
+def test_first_lines_state_the_findings():
+    """The report's top (the page's verdict box) names each alerted train with its parameter
+    and size, or says that no train departs; the map errors likewise."""
+    from train_estimation.tools.fleet import findings
+
+    res = F.consensus(_fleet(np.random.default_rng(1), n_trains=6, runs=2, f_bad=0.9))
+    md = report_md(res, [], INFO, [])
+    top = md[:md.index("## Map errors")]
+    assert res.train_alerts  # the case has one degraded train
+    for a in res.train_alerts:
+        assert f"**train {a['train']}**: {a['parameter'].replace('_', ' ')}" in top, top
+    assert "- no map error" in top
+    res = F.consensus(_fleet(np.random.default_rng(2), n_trains=6, runs=3))
+    if not res.train_alerts:
+        assert "- no train departs from the fleet or trends" in "\n".join(
+            findings(res, [], {}))
+
+
+def test_a_train_without_an_alert_is_never_drawn_red():
+    """Red (C3) marks a train with an alert and orange (C1) a section found by too few: the
+    other trains' colours cycle through the rest."""
+    from train_estimation.tools.fleet import train_color
+
+    assert {train_color(i) for i in range(40)}.isdisjoint({"C3", "C1"})
+    assert len({train_color(i) for i in range(8)}) == 8

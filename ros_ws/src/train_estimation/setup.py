@@ -10,6 +10,7 @@ setup(
     name=PKG,
     version="0.1.0",
     packages=find_packages(exclude=["test"]),
+    package_data={PKG: ["tools/templates/*.j2"]},  # report.html's Jinja2 templates
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PKG}"]),
         (f"share/{PKG}", ["package.xml"]),
@@ -31,6 +32,7 @@ setup(
             "diagnose = train_estimation.tools.diagnose:main",
             "fleet = train_estimation.tools.fleet:main",
             "csv2bag = train_estimation.tools.csv2bag:main",
+            "ttobench2line = train_core.ttobench:main",  # a real line into line.yaml
         ],
     },
 )

@@ -101,8 +101,13 @@ def test_shipped_files_load_without_warnings(path):
 
 @pytest.mark.parametrize("path", SCENARIOS, ids=lambda p: p.name)
 def test_shipped_scenarios_load_without_warnings(path):
+    from train_sim.real_lines import REAL_SCENARIOS, available
     from train_sim.scenario import load_scenario
 
+    if path.stem in REAL_SCENARIOS:  # a real line's file is not in the repository
+        missing = available([path.stem])[1]
+        if missing:
+            pytest.skip(missing[path.stem])
     with warnings.catch_warnings():
         warnings.simplefilter("error", ConfigWarning)
         load_scenario(path)

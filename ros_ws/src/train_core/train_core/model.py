@@ -14,8 +14,10 @@ Pure module: numpy + PyYAML only.
 
 from __future__ import annotations
 
+import bisect
 import math
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -142,19 +144,49 @@ class Line:
     speed_limits: tuple[SpeedLimit, ...] = ()
     max_speed: float = 22.23  # m/s, line speed where no section limit applies (extra key)
 
+    @cached_property
+    def _gradient_table(self):
+        """(starts, ends, permilles) sorted by start, as lists and arrays; None where sections
+        overlap (then the last listed wins, as a loop over them decides)."""
+        secs = sorted(self.gradients, key=lambda g: g.start)
+        if any(b.start < a.end for a, b in zip(secs, secs[1:])):
+            return None
+        st, en, pm = ([g.start for g in secs], [g.end for g in secs],
+                      [float(g.permille) for g in secs])
+        return st, en, pm, np.array(st), np.array(en), np.array(pm)
+
     def gradient_permille(self, x):
-        """Gradient in per mille at position(s) ``x`` (m); 0 outside every section."""
+        """Gradient in per mille at position(s) ``x`` (m); 0 outside every section.
+
+        A lookup by bisection over the sections' starts: a real line has hundreds of sections
+        and the simulator asks four times per integration step."""
+        tab = self._gradient_table
+        if tab is None:  # overlapping sections (a hand-made Line): the last listed wins
+            x = np.asarray(x, dtype=float)
+            out = np.zeros_like(x)
+            for sec in self.gradients:
+                out = np.where((x >= sec.start) & (x < sec.end), sec.permille, out)
+            return out if out.ndim else float(out)
+        st, en, pm, a_st, a_en, a_pm = tab
+        if np.ndim(x) == 0:
+            xf = float(x)
+            i = bisect.bisect_right(st, xf) - 1
+            return pm[i] if i >= 0 and xf < en[i] else 0.0
         x = np.asarray(x, dtype=float)
-        out = np.zeros_like(x)
-        for sec in self.gradients:  # few sections: a loop over sections, vectorised over x
-            out = np.where((x >= sec.start) & (x < sec.end), sec.permille, out)
-        return out if out.ndim else float(out)
+        if not st:
+            return np.zeros_like(x)
+        i = np.searchsorted(a_st, x, side="right") - 1
+        j = np.clip(i, 0, None)
+        return np.where((i >= 0) & (x < a_en[j]), a_pm[j], 0.0)
 
     def gradient_accel(self, x):
         """m/s^2 per unit mass: g sin(theta(x)), with tan(theta) = permille / 1000.
 
         The dynamics divide this by (1 + lambda): M g sin(theta) / ((1 + lambda) M).
         """
+        if np.ndim(x) == 0:  # one position (the simulator's step): no array overhead
+            p = self.gradient_permille(x) / 1000.0
+            return G * p / math.sqrt(1.0 + p * p)
         p = np.asarray(self.gradient_permille(x), dtype=float) / 1000.0
         out = G * p / np.sqrt(1.0 + p * p)  # sin(atan(p)) without the trig calls
         return out if out.ndim else float(out)
@@ -190,7 +222,9 @@ TRAIN_ALL_KEYS = {"name": "string", "mass": "number", "rotary_allowance": "numbe
                   "davis": "mapping", "brake": "mapping", "odometer": "mapping",
                   "balise": "mapping", "performance": "mapping", "identification": "mapping"}
 LINE_KEYS = {"name": "string", "length": "number", "balises": "list", "gradients": "list",
-             "stations": "list", "speed_limits": "list", "max_speed": "number"}
+             "stations": "list", "speed_limits": "list", "max_speed": "number",
+             "curves": "list"}  # curves: signed radii of an imported real line
+#   (train_core.ttobench), kept for the reader, not modelled
 # the entries of the line's lists: extra keys allowed there too (a station's platform, a
 # section's curve radius), by the same rule
 BALISE_KEYS = {"id": "integer", "position": "number"}

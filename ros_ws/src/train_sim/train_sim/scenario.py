@@ -3,7 +3,10 @@
 ``load_scenario("metro_demo")`` reads ``<share>/scenarios/metro_demo.yaml``; a path (anything with
 a ``/`` or ending in ``.yaml``) is read as is. Inside a scenario, ``line:`` and ``train:`` are
 either bare names (``config/lines/<name>.yaml``, ``config/trains/<name>.yaml`` of train_core) or
-paths relative to the scenario file.
+paths relative to the scenario file; ``line: ttobench:ID`` is a real line from TTOBench's track
+file ``ID.json``, found at run time in $TRAIN_LINES_DIR or ``../shared/lines/`` beside the
+checkout and converted by :mod:`train_core.ttobench` (a clear error says where to put the file
+and how to get it when it is absent).
 
 Validation is strict (:mod:`train_core.config`): a missing key, a value out of range, an unknown
 effect or an unknown field raises :class:`~train_core.config.ConfigError` with a one-line message
@@ -26,6 +29,7 @@ from train_core.model import Line, TrainParams, load_line, load_train
 
 from .driver import DRIVER_MODES, DriverParams, TimetableStop
 
+TTOBENCH = "ttobench:"  # line: ttobench:ID, a real line (train_core.ttobench, docs/real_lines.md)
 SCENARIO_KEYS = ("name", "description", "line", "train", "seed", "duration", "start", "sensors",
                  "integration", "driver", "timetable", "link", "effects")
 
@@ -76,6 +80,11 @@ class Scenario:
 
 
 def _resolve(ref: str, kind: str, base: Path) -> Path:
+    if kind == "lines" and ref.startswith(TTOBENCH):
+        # a real line from TTOBench's track file, found at run time (not in the repository)
+        from train_core.ttobench import resolve_line
+
+        return resolve_line(ref[len(TTOBENCH):])
     if "/" in ref or ref.endswith(".yaml"):
         p = Path(ref)
         return p if p.is_absolute() else (base / p)

@@ -21,6 +21,7 @@ Output (DIR is created):
                     models (replay.png); the residual by phase against position and speed
                     with what is unexplained (residual_phases.png)
   DIR/report.html   the report in one self-contained page (verdict first, plots embedded)
+  DIR/inputs.json   the bag, line and train analysed and when (the page's header)
 
 How to read the report:
   cause        the first confirmed cause; "none" when nothing is confirmed and nothing is
@@ -63,6 +64,7 @@ import dataclasses
 import json
 import sys
 import time
+from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
@@ -630,6 +632,20 @@ def on_odometer(u: dict) -> bool:
     return bool(w) and bool(t) and w[0] != w[1]
 
 
+def unexplained_size(u: dict) -> str:
+    """An ``unexplained`` entry's size with its unit, which depends on the entry's kind: an
+    offset in m at a balise or on the odometer, a time in s for the clocks and the balise
+    reader, a residual acceleration in m/s^2 otherwise (docs/diagnose.md)."""
+    size = u.get("size")
+    if not isinstance(size, (int, float)):
+        return "-"
+    if on_odometer(u) or at_balise(u):
+        return f"{size:+.4g} m"
+    if clock_step(u) or clock_rate(u) or balise_latency(u):
+        return f"{size:+.4g} s"
+    return f"{size:+.4g} m/s^2"
+
+
 def unexplained_line(u: dict) -> str:
     """One line of the summary for an ``unexplained`` entry."""
     best = u.get("best_listed") or {}
@@ -662,6 +678,19 @@ def unexplained_line(u: dict) -> str:
     return (f"unexplained: {u['phase']}" + (f" on {', '.join(where)}" if where else "")
             + (f" at {sp[0]:.1f}-{sp[1]:.1f} m/s" if sp else "")
             + f", residual {u['size']:+.3f} m/s^2" + closest)
+
+
+def inputs_record(args, line, train, data) -> dict:
+    """DIR/inputs.json: what was analysed and when, for the report's header."""
+    n_odo = len(data.odo_stamp)
+    dur = float(np.ptp(data.odo_stamp)) if n_odo else 0.0
+    return {"bag": str(Path(args.bag).resolve()), "line": str(Path(args.line).resolve()),
+            "line_name": line.name, "train": str(Path(args.train).resolve()),
+            "train_name": train.name,
+            "data": f"{dur:.0f} s, {n_odo} odometer samples, {len(data.balise_stamp)} balise "
+                    f"readings, {len(data.ctrl_stamp)}"
+                    " commands",
+            "date": datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")}
 
 
 def main(argv=None) -> int:
@@ -699,6 +728,7 @@ def main(argv=None) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "report.json").write_text(json.dumps(dg.to_json(), indent=1) + "\n")
+    (out / "inputs.json").write_text(json.dumps(inputs_record(args, line, train, data)) + "\n")
     model = write_model(out, dg, args.line, args.train, data)
     if not args.no_plots:
         write_plots(dg.series, out, dg)

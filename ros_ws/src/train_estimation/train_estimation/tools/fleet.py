@@ -578,6 +578,17 @@ def _plt():
     return plt
 
 
+# Colours of trains in the plots: matplotlib's cycle without red (C3) and orange (C1), which
+# mean "map error" / "train with an alert" and "found by too few" here; a train without an
+# alert is never drawn in them.
+TRAIN_COLORS = ("C0", "C2", "C4", "C5", "C6", "C7", "C8", "C9")
+
+
+def train_color(i: int) -> str:
+    """The plot colour of the i-th train (never red nor orange)."""
+    return TRAIN_COLORS[i % len(TRAIN_COLORS)]
+
+
 def plot_line(name: str, line, d: dict, path: Path) -> None:
     """Believed gradient profile with the flagged sections; every run's section below."""
     plt = _plt()
@@ -593,7 +604,7 @@ def plot_line(name: str, line, d: dict, path: Path) -> None:
     a0.plot([b.position for b in line.balises], [y_b] * len(line.balises), "|", color="0.3",
             ms=6, label="balises")
     trains = sorted({t for s in d["sections"] for t in s["trains_found"]})
-    colors = {t: f"C{i % 10}" for i, t in enumerate(trains)}
+    colors = {t: train_color(i) for i, t in enumerate(trains)}
     y = 0
     for s in d["sections"]:
         err = s["verdict"] == "map error"
@@ -645,7 +656,7 @@ def plot_trends(trains: dict, path: Path) -> None:
             bad = (tr, p) in alerted
             ax.errorbar(r["t"], r["values"], yerr=1.96 * np.asarray(r["ses"]), fmt="o-",
                         ms=4 if bad else 3, lw=2 if bad else 0.8, capsize=2,
-                        color="C3" if bad else f"C{i % 10}", alpha=1.0 if bad else 0.6,
+                        color="C3" if bad else train_color(i), alpha=1.0 if bad else 0.6,
                         label=f"{tr} (alert)" if bad else tr)
         means = [r["mean"] for r in d["trains"].values()]
         if means:
@@ -666,6 +677,33 @@ def _f(x, fmt=".3g"):
         format(x, fmt)
 
 
+def findings(res, rows: list[dict], rel: dict) -> list[str]:
+    """The report's first lines: what was found (map errors, train alerts, failed bags), each
+    with its size, or that nothing was, with the reason it may still be there."""
+    L = ["**Findings:**", ""]
+    for m in res.map_errors:
+        L.append(f"- **map error** on line {m['line']}, [{m['start']:.0f}, {m['end']:.0f}) m: "
+                 f"{m['permille']:+.2f} +- {m['se']:.2f} per mille (true minus mapped; found "
+                 f"by {len(m['trains_found'])} of {len(m['trains_passed'])} trains, "
+                 f"{m['runs_found']} of {m['runs_passed']} runs)")
+    if not res.map_errors:
+        weak = [ln for ln, d in (rel.get("lines") or {}).items() if not d["reliable"]]
+        L.append("- no map error" + (f" (but too few runs on {', '.join(weak)} to exclude one)"
+                                     if weak else ""))
+    for a in sorted(res.train_alerts, key=lambda a: (a["train"], a["parameter"])):
+        L.append(f"- **train {a['train']}**: {a['parameter'].replace('_', ' ')} {a['kind']}: "
+                 f"{_f(a['mean'], '.4g')} +- {_f(a['se'], '.2g')} against the fleet's "
+                 f"{_f(a['fleet'], '.4g')} (z = {a['z']:+.1f}, p = {a['p']:.1e})")
+    if not res.train_alerts:
+        few = [p for p, d in (rel.get("parameters") or {}).items() if not d["reliable"]]
+        L.append("- no train departs from the fleet or trends"
+                 + (f" (but too few trains to test {', '.join(few)})" if few else ""))
+    bad = [r for r in rows if r.get("error")]
+    if bad:
+        L.append(f"- **{len(bad)} of {len(rows)} bags could not be analysed** (listed below)")
+    return L
+
+
 def report_md(res, rows: list[dict], info: dict, plots: list[str]) -> str:
     ok = [r for r in rows if not r.get("error")]
     bad = [r for r in rows if r.get("error")]
@@ -677,7 +715,7 @@ def report_md(res, rows: list[dict], info: dict, plots: list[str]) -> str:
     if bad:
         too_many = len(bad) > info.get("max_failed", 1.0) * len(rows)
         head += f": {'FAILED, ' if too_many else ''}{failure_line(rows)}"
-    L = [head, ""]
+    L = [head, ""] + findings(res, rows, rel) + [""]
     if rel and not rel.get("reliable", True):
         L += ["**The consensus is unreliable** (too few analysed runs; \"no map error\" or "
               "\"no train departs\" below does not mean that there is none): "

@@ -6,11 +6,13 @@ The page is what a reader forwards: the verdict first, then the evidence, every 
 as a ``data:image/png;base64`` URI, the styles inline, no script and no external address, so it
 opens the same from a mail attachment, a file share or a machine without a network.
 
-- a `diagnose` directory (``report.json``): the cause and its parameters, the held-out gain and
-  any unexplained structure first; then the ranking, the untestable causes, the evidence, every
-  other field of report.json, then the plots. Lists of records become tables over the union of
-  their keys and mappings become key/value tables, so fields added to report.json appear
-  without a change here.
+- a `diagnose` directory (``report.json``, ``inputs.json``), from the Jinja2 template
+  ``templates/diagnose_report.html.j2``: a header (bag, line, train, data, date), the verdict
+  (each confirmed cause's parameters with units and standard errors, its caveats, the held-out
+  gain, whether anything is left unexplained) on the first screen; then the unexplained
+  structure, the ranking, the untestable causes, the plots, the evidence per cause in rows, and
+  an appendix with the model's details (the confirmation's settings, any other field of
+  report.json, the extended model's files). Numbers have 4 significant figures.
 - a `fleet` directory (``report.md``, which already puts the verdict first): that report
   rendered (headings, tables, lists, emphasis) with its images embedded where it references
   them, then any plot it does not reference.
@@ -21,55 +23,60 @@ from __future__ import annotations
 import base64
 import html
 import json
+import math
 import re
 import sys
 from pathlib import Path
 
-__all__ = ["render_diagnose", "render_fleet", "screenshot", "write_report_html"]
+__all__ = ["page_metrics", "render_diagnose", "render_fleet", "screenshot", "write_report_html"]
 
-STYLE = """
-body{font-family:system-ui,-apple-system,'Segoe UI',Roboto,sans-serif;margin:0 auto;
-max-width:1100px;padding:1em 1.5em;color:#222;line-height:1.4}
-h1{font-size:1.5em;margin-bottom:.2em}h2{font-size:1.2em;border-bottom:1px solid #ccc;
-margin-top:1.6em}h3{font-size:1.05em}
-.verdict{border-left:6px solid #2b6cb0;background:#eef4fb;padding:.6em 1em;margin:1em 0}
-.verdict.found{border-color:#c05621;background:#fdf2e9}
-.verdict.none{border-color:#2f855a;background:#eefaf2}
-.verdict .cause{font-size:1.4em;font-weight:600}
-table{border-collapse:collapse;margin:.5em 0 1em;font-size:.9em}
-.wide{overflow-x:auto}
-th,td{border:1px solid #ccc;padding:.25em .5em;text-align:left;vertical-align:top}
-th{background:#f3f3f3}td.num{text-align:right;font-variant-numeric:tabular-nums}
-figure{margin:1em 0}figure img{max-width:100%;border:1px solid #ddd}
-figcaption{font-size:.85em;color:#555}
-code,pre{background:#f6f6f6;font-size:.88em}pre{padding:.5em;overflow-x:auto}
-.muted{color:#666;font-size:.85em}
-"""
+TEMPLATES = Path(__file__).resolve().parent / "templates"
 
-# report.json fields shown in the verdict or in their own section, in this order; any other
-# field follows them generically
-_DIAGNOSE_SECTIONS = (("unexplained", "Unexplained structure"),
-                      ("ranking", "Ranking of the causes tested"), ("gain", "Held-out gain"),
-                      ("plots", "Plots"), ("untestable", "Causes the data cannot test"),
-                      ("evidence", "Evidence"))
+# Units of the causes' parameters (docs/interfaces.md, the causes' table); a parameter not
+# listed is shown without a unit
+UNITS = {
+    "start": "m", "end": "m", "permille": "per mille",
+    "a": "N", "b": "N/(m/s)", "c": "N/(m/s)^2",
+    "f_start": "-", "f_end": "-", "scale": "-", "depths": "-", "factor": "-",
+    "intervals": "s", "delay": "s", "mass": "kg", "drift": "s/s", "p_spec": "m^2/s^3",
+    "p_good_bad": "per sample", "p_bad_good": "per sample", "loss_good": "-", "loss_bad": "-",
+}
 
 # the plots that tell the story first (the before/after replay, then where the residual is);
 # any other plot follows in name order
 _PLOT_ORDER = ("replay.png", "residual_position.png", "residual_speed.png", "speed_trace.png")
+
+# report.json fields the diagnose page shows in their own place; any other field goes to the
+# appendix, so fields added to report.json appear without a change here
+_DIAGNOSE_SHOWN = ("cause", "parameters", "ranking", "unexplained", "untestable", "evidence",
+                   "gain")
 
 
 def _e(x) -> str:
     return html.escape(str(x), quote=True)
 
 
-def _num(v) -> str:
+def sig4(v) -> str:
+    """A number as a reader takes it in: 4 significant figures, no exponent between 1e-3 and
+    1e6 (2929.8132 -> 2930, 0.012345 -> 0.01235), an exponent outside; integers as they are."""
     if isinstance(v, bool) or v is None:
         return "&ndash;" if v is None else str(v).lower()
     if isinstance(v, int):
         return str(v)
-    if isinstance(v, float):
-        return f"{v:.4g}"
-    return _e(v)
+    if not isinstance(v, float):
+        return _e(v)
+    if not math.isfinite(v):
+        return str(v)
+    if v == 0.0:
+        return "0"
+    mag = math.floor(math.log10(abs(v)))
+    if -3 <= mag < 6:
+        r = round(v, 3 - mag)
+        return f"{r:.{max(0, 3 - mag)}f}"
+    return f"{v:.3e}"
+
+
+_num = sig4
 
 
 def _inline(v) -> str:
@@ -108,10 +115,8 @@ def table_of(data) -> str:
             keys += [k for k in r if k not in keys]
         head = "".join(f"<th>{_e(k)}</th>" for k in keys)
         rows = "".join("<tr>" + "".join(_cell(r.get(k)) for k in keys) + "</tr>" for r in data)
-        return f'<div class="wide"><table><tr>{head}</tr>{rows}</table></div>'
+        return f"<table><tr>{head}</tr>{rows}</table>"
     if isinstance(data, dict):
-        if data and all(isinstance(v, dict) for v in data.values()):
-            return table_of([{"": k, **v} for k, v in data.items()])
         rows = "".join(f"<tr><th>{_e(k)}</th>{_cell(v)}</tr>" for k, v in data.items())
         return f"<table>{rows}</table>"
     return f"<p>{_inline(data)}</p>"
@@ -127,65 +132,236 @@ def _figure(path: Path) -> str:
             f"<figcaption>{_e(path.name)}</figcaption></figure>")
 
 
+def _env():
+    import jinja2
+
+    return jinja2.Environment(loader=jinja2.FileSystemLoader(str(TEMPLATES)),
+                              autoescape=True, undefined=jinja2.StrictUndefined,
+                              trim_blocks=True, lstrip_blocks=True)
+
+
 def _page(title: str, body: str) -> str:
-    return (f'<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8">'
-            f'<meta name="viewport" content="width=device-width, initial-scale=1">'
-            f"<title>{_e(title)}</title><style>{STYLE}</style></head>\n<body>\n{body}\n"
-            "</body></html>\n")
+    from markupsafe import Markup
+
+    return _env().get_template("page.html.j2").render(title=title, body=Markup(body))
 
 
 # ------------------------------------------------------------------------------------------------
 # diagnose
 # ------------------------------------------------------------------------------------------------
 
-def _verdict(rep: dict) -> str:
+def with_unit(name: str, v) -> str:
+    """A parameter's value with its unit (plain text, escaped by the template)."""
+    unit = UNITS.get(name, "")
+    unit = "" if unit in ("", "-") else f" {unit}"
+    if isinstance(v, list):
+        inner = ", ".join(with_unit("", x) if not isinstance(x, list) else
+                          "[" + ", ".join(html.unescape(sig4(y)) for y in x) + "]"
+                          for x in v[:8])
+        more = f", ... ({len(v)} in all)" if len(v) > 8 else ""
+        return f"[{inner}{more}]{unit}"
+    return html.unescape(sig4(v)) + unit
+
+
+def params_text(p: dict) -> str:
+    return "; ".join(f"{k} = {with_unit(k, v)}" for k, v in (p or {}).items()) or "-"
+
+
+def _evidence_value(cause: str, key: str, v) -> str:
+    """One field of a cause's evidence as text: a fit or standard errors as parameter = value
+    unit, other numbers to 4 significant figures."""
+    if isinstance(v, dict):
+        if all(not isinstance(x, dict) for x in v.values()):
+            return params_text(v)
+        return "; ".join(f"{k}: {_evidence_value(cause, k, x)}" for k, x in v.items())
+    if isinstance(v, list):
+        return with_unit(key, v)
+    return html.unescape(sig4(v))
+
+
+def _load_inputs(out: Path) -> dict:
+    try:
+        d = json.loads((out / "inputs.json").read_text())
+        return d if isinstance(d, dict) else {}
+    except (OSError, ValueError):
+        return {}
+
+
+def diagnose_context(out: Path) -> dict:
+    """What diagnose_report.html.j2 shows, every number formatted and with its unit."""
+    from train_estimation.tools.diagnose import unexplained_line, unexplained_size
+
+    rep = json.loads((out / "report.json").read_text())
+    inp = _load_inputs(out)
     cause = rep.get("cause", "?")
-    kind = "none" if cause == "none" else "found"
-    parts = [f'<div class="verdict {kind}" id="verdict"><div>Verdict</div>'
-             f'<div class="cause">cause: {_e(cause)}</div>']
-    if rep.get("parameters"):
-        parts.append(table_of(rep["parameters"]))
-    top = next((r for r in rep.get("ranking") or [] if r.get("cause") == cause), None)
-    for key in ("status", "why"):
-        if top is not None and top.get(key) not in (None, "", []):
-            parts.append(f"<div>{_e(key)}: {_inline(top[key])}</div>")
+    ranking = [r for r in rep.get("ranking") or [] if isinstance(r, dict)]
+    ev = rep.get("evidence") if isinstance(rep.get("evidence"), dict) else {}
+    checks = (((ev.get("_model") or {}).get("confirmation") or {}).get("checks") or {})
+
+    def caveats(name):
+        c = (checks.get(name) or {}).get("caveat")
+        return [c] if isinstance(c, str) and c else ([str(x) for x in c] if c else [])
+
+    def se_of(name, key):
+        se = ((ev.get(name) or {}).get("std_errors") or {})
+        v = se.get(key) if isinstance(se, dict) else None
+        return with_unit(key, v) if isinstance(v, (int, float)) else "-"
+
+    confirmed = [r for r in ranking if r.get("status") == "confirmed" and r.get("cause") != "none"]
+    if not confirmed and rep.get("parameters"):
+        confirmed = [{"cause": cause, "parameters": rep["parameters"], "status": ""}]
+    blocks = [{"cause": r.get("cause"), "status": r.get("status") or "",
+               "params": [{"name": k, "value": html.unescape(with_unit("", v)) if not
+                           isinstance(v, list) else with_unit("", v),
+                           "unit": UNITS.get(k, ""), "se": se_of(r.get("cause"), k)}
+                          for k, v in (r.get("parameters") or {}).items()],
+               "caveats": caveats(r.get("cause"))} for r in confirmed]
+    unexpl = [u for u in rep.get("unexplained") or [] if isinstance(u, dict)]
+    if cause == "none":
+        sentence = "Nothing significant: no listed cause is confirmed and nothing is left over."
+    elif cause == "unexplained":
+        sentence = ("No listed cause is confirmed, and the residuals hold structure that no "
+                    "listed cause explains (below).")
+    else:
+        sentence = (f"{len(confirmed)} cause{'s' if len(confirmed) != 1 else ''} confirmed "
+                    "(supported by the score and by the check on data held out from the fit).")
     g = rep.get("gain") or {}
-    if g.get("before") is not None and g.get("after") is not None:
-        parts.append(f"<div>held-out gain: {_num(g['before'])} &rarr; {_num(g['after'])} "
-                     f'<span class="muted">({_e(g.get("metric", ""))})</span></div>')
-    unexpl = rep.get("unexplained")
-    if isinstance(unexpl, list) and unexpl:
-        parts.append(f"<div><b>{len(unexpl)} unexplained residual structure"
-                     f"{'s' if len(unexpl) > 1 else ''}</b>: see below</div>")
-    elif isinstance(unexpl, list):
-        parts.append("<div>nothing left unexplained</div>")
-    parts.append("</div>")
-    return "".join(parts)
+    gain = ""
+    if isinstance(g, dict) and g.get("before") is not None and g.get("after") is not None:
+        gain = (f"{html.unescape(sig4(g['before']))} -> {html.unescape(sig4(g['after']))} "
+                f"({g.get('metric', '')})")
+    left = (f"{len(unexpl)} unexplained residual structure{'s' if len(unexpl) != 1 else ''}: "
+            "see below" if unexpl else "Nothing left unexplained.")
+    rows = [("bag", inp.get("bag", "(not recorded)")),
+            ("line", _named(inp, "line")), ("train", _named(inp, "train")),
+            ("data", inp.get("data", "-")),
+            ("analysed", inp.get("date", "-"))]
+    bag_name = Path(inp["bag"]).name if inp.get("bag") else ""
+    pngs = sorted(out.glob("*.png"), key=lambda p: (
+        _PLOT_ORDER.index(p.name) if p.name in _PLOT_ORDER else len(_PLOT_ORDER), p.name))
+    evidence = [evidence_row(k, d) for k, d in ev.items()
+                if not k.startswith("_") and isinstance(d, dict)]
+    appendix = []
+    for k, d in ev.items():
+        if not k.startswith("_") and isinstance(d, dict) and d.get("details"):
+            appendix.append({"id": f"details-{k}", "title": f"{k}: details of the fit",
+                             "html": tree_of(d["details"])})
+    for k, d in ev.items():
+        if k.startswith("_") or not isinstance(d, dict):
+            name = {"_model": "the believed model, the stages and the confirmation's checks"
+                    }.get(k, k.strip("_"))
+            appendix.append({"id": f"evidence-{k.strip('_')}", "title": name,
+                             "html": tree_of(d)})
+    for k, v in rep.items():
+        if k not in _DIAGNOSE_SHOWN:
+            appendix.append({"id": k, "title": k, "html": tree_of(v)})
+    model = out / "model"
+    if model.is_dir():
+        for f in sorted(model.glob("*.yaml")):
+            appendix.append({"id": f"model-{f.stem}", "title": f"model/{f.name} (the extended "
+                             "model)", "html": f"<pre>{_e(f.read_text())}</pre>"})
+    from markupsafe import Markup
+
+    for a in appendix:
+        a["html"] = Markup(a["html"])
+    return {
+        "title": f"diagnose: {cause}" + (f" in {bag_name}" if bag_name else ""),
+        "header": {"rows": rows, "bag_name": bag_name},
+        "verdict": {"cause": cause, "kind": "none" if cause == "none" else "found",
+                    "sentence": sentence, "confirmed": blocks, "gain": gain, "left": left},
+        "unexplained": [{"phase": u.get("phase", ""), "where": _span(u.get("where")),
+                         "when": _span(u.get("when")), "speed": _span(u.get("speed")),
+                         "size": unexplained_size(u), "reading": unexplained_line(u)}
+                        for u in unexpl],
+        "ranking": [{"cause": r.get("cause", ""), "score": html.unescape(sig4(r.get("score"))),
+                     "status": r.get("status") or "", "params": params_text(r.get("parameters")),
+                     "why": r.get("why") or ""} for r in ranking],
+        "score_note": ("the BIC-penalised log-likelihood ratio against no cause, with the prior "
+                       "odds of the causes tested; > 0: the data support the cause; none = 0"),
+        "untestable": [u for u in rep.get("untestable") or [] if isinstance(u, dict)],
+        "plots": [{"name": p.name, "uri": img_uri(p)} for p in pngs],
+        "evidence": evidence,
+        "appendix": appendix,
+    }
+
+
+_EVIDENCE_KNOWN = ("score_alone", "loglik_gain", "n_params", "n", "parameters_alone",
+                   "std_errors", "details", "accepted_at_stage")
+
+
+def evidence_row(cause: str, d: dict) -> dict:
+    """One cause's evidence as one row: its score alone, log-likelihood gain, parameter count,
+    measurements, the fit alone (value +- standard error, unit) and the stage it was accepted
+    at; other fields as "key = value"."""
+    fit = d.get("parameters_alone") if isinstance(d.get("parameters_alone"), dict) else {}
+    se = d.get("std_errors") if isinstance(d.get("std_errors"), dict) else {}
+    parts = []
+    for k, v in fit.items():
+        unit = UNITS.get(k, "")
+        unit = "" if unit in ("", "-") else f" {unit}"
+        e = se.get(k)
+        pm = f" +- {html.unescape(sig4(e))}" if isinstance(e, (int, float)) else ""
+        if isinstance(v, list):
+            parts.append(f"{k} = {with_unit(k, v)}")
+        else:
+            parts.append(f"{k} = {html.unescape(sig4(v))}{pm}{unit}")
+    other = "; ".join(f"{k} = {_evidence_value(cause, k, v)}" for k, v in d.items()
+                      if k not in _EVIDENCE_KNOWN)
+    stage = d.get("accepted_at_stage")
+    return {"cause": cause, "score": html.unescape(sig4(d.get("score_alone"))),
+            "gain": html.unescape(sig4(d.get("loglik_gain"))),
+            "k": html.unescape(sig4(d.get("n_params"))), "n": html.unescape(sig4(d.get("n"))),
+            "fit": "; ".join(parts) or "-", "stage": "-" if stage is None else str(stage),
+            "other": other}
+
+
+def tree_of(v, depth: int = 0) -> str:
+    """JSON data as nested lists of "key: value" (no table: a deep record stays as narrow as
+    its text), numbers to 4 significant figures, short lists of scalars inline."""
+    if isinstance(v, dict):
+        if not v:
+            return "&ndash;"
+        items = []
+        for k, x in v.items():
+            if isinstance(x, (dict, list)) and not _flat(x):
+                items.append(f"<li><b>{_e(k)}</b>:{tree_of(x, depth + 1)}</li>")
+            else:
+                items.append(f"<li><b>{_e(k)}</b>: {tree_of(x, depth + 1)}</li>")
+        return f'<ul class="tree">{"".join(items)}</ul>'
+    if isinstance(v, list):
+        if _flat(v):
+            return _inline(v) if v else "[]"
+        return ('<ol class="tree">' + "".join(f"<li>{tree_of(x, depth + 1)}</li>" for x in v)
+                + "</ol>")
+    return _num(v)
+
+
+def _flat(x) -> bool:
+    """A list of scalars (or of short lists of scalars) prints on one line."""
+    if isinstance(x, dict):
+        return False
+    return all(not isinstance(y, (dict, list)) or (isinstance(y, list) and len(y) <= 4 and all(
+        not isinstance(z, (dict, list)) for z in y)) for y in x)
+
+
+def _named(inp: dict, key: str) -> str:
+    path, name = inp.get(key), inp.get(f"{key}_name")
+    if not path:
+        return "(not recorded)"
+    return f"{name} ({path})" if name else str(path)
+
+
+def _span(r) -> str:
+    if not r:
+        return "-"
+    a, b = (html.unescape(sig4(float(x))) for x in r)
+    return a if a == b else f"{a} to {b}"
 
 
 def render_diagnose(out: Path) -> str:
     """report.html's text for a diagnose output directory."""
-    rep = json.loads((out / "report.json").read_text())
-    body = [f"<h1>diagnose: {_e(out.name)}</h1>", _verdict(rep)]
-    shown = {"cause", "parameters"}
-    for key, title in _DIAGNOSE_SECTIONS:
-        if key == "plots":
-            pngs = sorted(out.glob("*.png"), key=lambda p: (
-                _PLOT_ORDER.index(p.name) if p.name in _PLOT_ORDER else len(_PLOT_ORDER), p.name))
-            if pngs:
-                body.append('<h2 id="plots">Plots</h2>' + "".join(_figure(p) for p in pngs))
-        elif key in rep:
-            body.append(f'<h2 id="{_e(key)}">{_e(title)}</h2>{table_of(rep[key])}')
-            shown.add(key)
-    for key, val in rep.items():
-        if key not in shown:
-            body.append(f'<h2 id="{_e(key)}">{_e(key)}</h2>{table_of(val)}')
-    model = out / "model"
-    if model.is_dir():
-        files = "".join(f"<h3>{_e(f.name)}</h3><pre>{_e(f.read_text())}</pre>"
-                        for f in sorted(model.glob("*.yaml")))
-        body.append(f'<h2 id="model">The extended model (model/)</h2>{files}')
-    return _page(f"diagnose: {rep.get('cause', '?')}", "\n".join(body))
+    ctx = diagnose_context(Path(out))
+    return _env().get_template("diagnose_report.html.j2").render(**ctx)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -272,7 +448,8 @@ def markdown_html(md: str, out: Path, used: set) -> str:
 def render_fleet(out: Path) -> str:
     """report.html's text for a fleet output directory (its report.md, images embedded)."""
     used: set = set()
-    body = markdown_html((out / "report.md").read_text(), out, used)
+    md = (out / "report.md").read_text()
+    body = markdown_html(md, out, used)
     # the first paragraphs after the title are fleet's verdict: mark them as such
     body = body.replace("</h1>\n", '</h1>\n<div class="verdict" id="verdict">', 1)
     if 'id="verdict"' in body:
@@ -281,7 +458,8 @@ def render_fleet(out: Path) -> str:
     rest = [p for p in sorted(out.glob("*.png")) if p.name not in used]
     if rest:
         body += '\n<h2 id="plots">Plots</h2>' + "".join(_figure(p) for p in rest)
-    return _page(f"fleet: {out.name}", body)
+    m = re.search(r"^#\s+(.*)$", md, re.M)
+    return _page(m.group(1).strip() if m else "Fleet report", body)
 
 
 def write_report_html(out: str | Path, kind: str | None = None) -> Path:
@@ -300,31 +478,99 @@ def write_report_html(out: str | Path, kind: str | None = None) -> Path:
 
 
 CHROMIUM = "/usr/bin/chromium"  # Debian's package (apt-get install chromium)
+NO_CHROMIUM = (f"{CHROMIUM} is not installed: install Debian's package with "
+               "`apt-get update && apt-get install -y chromium` (./run setup does it where it "
+               "runs as root with apt-get)")
 
 
-def screenshot(page: Path, png: Path, size=(1200, 1800), chromium: str = CHROMIUM,
-               timeout: float = 120.0) -> Path:
-    """Render ``page`` in headless Chromium (a throw-away profile, no network services, no GPU,
-    no sandbox so that it runs as root in a container) into ``png``, the window's top
-    ``size`` (px)."""
+def chromium_path() -> str | None:
+    """Debian's Chromium, or a ``chromium`` on PATH; None when there is none."""
+    import shutil
+
+    return CHROMIUM if Path(CHROMIUM).is_file() else shutil.which("chromium")
+
+
+def _chromium(args: list, chromium: str | None, timeout: float):
     import shutil
     import subprocess
     import tempfile
 
-    png = Path(png).resolve()
-    png.unlink(missing_ok=True)
+    exe = chromium or chromium_path()
+    if not exe:
+        raise OSError(NO_CHROMIUM)
     profile = tempfile.mkdtemp(prefix="report_html_chromium_")
     try:
-        cmd = [chromium, "--headless", "--no-sandbox", "--disable-gpu",
+        # a throw-away profile, no network services, no GPU, no sandbox so that it runs as root
+        # in a container
+        cmd = [exe, "--headless", "--no-sandbox", "--disable-gpu",
                "--disable-background-networking", "--disable-component-update",
                "--disable-sync", "--no-first-run", "--hide-scrollbars",
-               f"--user-data-dir={profile}", f"--window-size={size[0]},{size[1]}",
-               f"--screenshot={png}", Path(page).resolve().as_uri()]
-        res = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
+               f"--user-data-dir={profile}", *args]
+        return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
     finally:
         shutil.rmtree(profile, ignore_errors=True)
+
+
+# Measures the laid-out page and writes the figures into the DOM, which --dump-dom prints: the
+# page's height and width, and every element wider than the window or whose content is wider
+# than its box (an overflow the reader has to scroll sideways for, or does not see at all).
+_MEASURE = """<script>
+window.addEventListener('load', function () {
+  var W = document.documentElement.clientWidth, bad = [];
+  document.querySelectorAll('body *').forEach(function (el) {
+    var r = el.getBoundingClientRect();
+    if (r.right > W + 1 || el.scrollWidth > el.clientWidth + 1 && el.clientWidth > 0)
+      bad.push(el.tagName.toLowerCase() + (el.id ? '#' + el.id : '') + ' ' +
+               Math.round(r.right) + '/' + el.scrollWidth + '>' + el.clientWidth);
+  });
+  var bottom = {};
+  document.querySelectorAll('[id]').forEach(function (el) {
+    bottom[el.id] = Math.round(el.getBoundingClientRect().bottom + window.scrollY);
+  });
+  var out = document.createElement('pre');
+  out.textContent = JSON.stringify({height: document.documentElement.scrollHeight,
+    bottom: bottom, width: document.documentElement.scrollWidth, window: W,
+    overflowing: bad.slice(0, 20), n_overflowing: bad.length});
+  out.id = 'page-metrics';
+  document.body.appendChild(out);
+});
+</script>"""
+
+
+def page_metrics(page: Path, width: int = 1280, chromium: str | None = None,
+                 timeout: float = 120.0) -> dict:
+    """Lay ``page`` out in headless Chromium at ``width`` px: {"height": px, "width": px,
+    "window": px, "bottom": {element id: px from the top of the page}, "overflowing": [up to
+    20 elements], "n_overflowing": n}. The page is
+    measured from a copy with a measuring script (the page itself has none)."""
+    import tempfile
+
+    text = Path(page).read_text(encoding="utf-8")
+    with tempfile.TemporaryDirectory(prefix="report_html_measure_") as d:
+        probe = Path(d) / "page.html"
+        probe.write_text(text.replace("</body>", _MEASURE + "</body>", 1), encoding="utf-8")
+        res = _chromium([f"--window-size={width},900", "--virtual-time-budget=10000",
+                         "--dump-dom", probe.as_uri()], chromium, timeout)
+    m = re.search(r'<pre id="page-metrics">(.*?)</pre>', res.stdout, re.S)
+    if not m:
+        raise OSError(f"chromium measured nothing (exit {res.returncode}: "
+                      f"{res.stderr.strip().splitlines()[-1:] or ''})")
+    return json.loads(html.unescape(m.group(1)))
+
+
+def screenshot(page: Path, png: Path, size=(1280, None), chromium: str | None = None,
+               timeout: float = 120.0) -> Path:
+    """Render ``page`` in headless Chromium into ``png``: ``size`` = (width, height) px; a
+    height of None takes the whole page (measured first)."""
+    png = Path(png).resolve()
+    png.unlink(missing_ok=True)
+    w, h = size
+    if h is None:
+        h = int(page_metrics(page, w, chromium, timeout)["height"])
+    res = _chromium([f"--window-size={w},{h}", f"--screenshot={png}",
+                     Path(page).resolve().as_uri()], chromium, timeout)
     if not png.is_file():
-        raise OSError(f"{chromium} wrote no screenshot (exit {res.returncode}: "
+        raise OSError(f"chromium wrote no screenshot (exit {res.returncode}: "
                       f"{res.stderr.strip().splitlines()[-1:] or ''})")
     return png
 
@@ -336,14 +582,16 @@ def main(argv=None) -> int:
     p.add_argument("dir", help="an output directory of diagnose or fleet")
     p.add_argument("--screenshot", metavar="PNG",
                    help="also render report.html in headless Chromium into PNG")
-    p.add_argument("--size", default="1200x1800", help="screenshot size WxH px (1200x1800)")
-    p.add_argument("--chromium", default=CHROMIUM, help=f"browser binary ({CHROMIUM})")
+    p.add_argument("--size", default="1280",
+                   help="screenshot size: W (px, the whole page's height) or WxH (1280)")
+    p.add_argument("--chromium", default=None, help=f"browser binary ({CHROMIUM})")
     args = p.parse_args(argv)
     try:
         page = write_report_html(args.dir)
         print(f"wrote {page}")
         if args.screenshot:
-            w, h = (int(v) for v in args.size.lower().split("x"))
+            parts = args.size.lower().split("x")
+            w, h = int(parts[0]), (int(parts[1]) if len(parts) > 1 else None)
             print(f"wrote {screenshot(page, Path(args.screenshot), (w, h), args.chromium)}")
     except (OSError, ValueError, json.JSONDecodeError) as exc:
         print(f"report_html: {' '.join(str(exc).split())}", file=sys.stderr)
