@@ -93,8 +93,13 @@ def test_estimator_publishes_odometry_and_diagnostics(launch, ros_node):
     rates = [float(dict((kv.key, kv.value) for kv in s.values)["odometer.rate_hz"])
              for s in running]
     assert 50 <= max(rates) <= 150, rates
-    levels = {s.level for s in running}
-    assert bytes([0]) in levels, [(s.level, s.message) for s in running]
+    # healthy: OK, or WARN for nothing but a protection level beyond the alert limit
+    # (integrity DEGRADED: bounded, unavailable to the operation; docs/integrity.md measures
+    # how often on clean runs)
+    for st in running:
+        assert st.level == bytes([0]) or (st.level == bytes([1]) and all(
+            part.startswith("integrity DEGRADED") for part in st.message.split("; "))), \
+            (st.level, st.message)
     # the simulator's status names its state and what it published
     world = _mine(diags, ns, "simulator")
     assert world and {kv.key for kv in world[-1].values} >= {"state", "sim_time_s",

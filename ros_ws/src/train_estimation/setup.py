@@ -32,7 +32,6 @@ setup(
             "diagnose = train_estimation.tools.diagnose:main",
             "fleet = train_estimation.tools.fleet:main",
             "csv2bag = train_estimation.tools.csv2bag:main",
-            "ttobench2line = train_core.ttobench:main",  # a real line into line.yaml
         ],
     },
 )

@@ -32,7 +32,7 @@ Every check of TTOBench's own validator (``utils/validateTracks.py``) is applied
 beyond line.yaml's +-60 per mille is refused; a field outside the schema is named in a warning.
 Errors are :class:`~train_core.config.ConfigError` with the file, the field and what is allowed.
 
-    python -m train_core.ttobench TRACK.json --out line.yaml   (also: ttobench2line)
+    python -m train_core.ttobench TRACK.json --out line.yaml
 
 Pure module: json, PyYAML and the shared model.
 """
@@ -271,7 +271,7 @@ def track_to_line(track: dict, *, where: str = "track.json", balise_spacing: flo
 def header(track: dict, source: str) -> str:
     meta = track.get("metadata") or {}
     alt = track.get("altitude")
-    lines = [f"Converted from TTOBench's track {meta.get('id')} ({source}) by ttobench2line.",
+    lines = [f"Converted from TTOBench's track {meta.get('id')} ({source}) by train_core.ttobench.",
              f"TTOBench: {SOURCE} ({meta.get('library version', 'version not stated')}; "
              f"licence: {meta.get('license', 'BSD-2-Clause')}; "
              f"created by {meta.get('created by', 'not stated')}).",
