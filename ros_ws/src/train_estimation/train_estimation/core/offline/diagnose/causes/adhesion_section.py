@@ -24,6 +24,10 @@ from .drive import Candidates
 
 class AdhesionSection(Cause):
     name = "adhesion_section"
+    halves = ("factor",)
+
+    def nominal(self, mo) -> dict:
+        return {"factor": 1.0}
     family = "motion"
 
     def untestable(self, run, cfg, own) -> str | None:

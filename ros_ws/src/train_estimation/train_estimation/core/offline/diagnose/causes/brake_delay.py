@@ -15,6 +15,10 @@ from .braking_rate import brakes_while_moving
 
 class BrakeDelay(Cause):
     name = "brake_delay"
+    halves = ("delay",)
+
+    def nominal(self, mo) -> dict:
+        return {"delay": mo.train.brake.delay}
     family = "motion"
 
     def untestable(self, run, cfg, own) -> str | None:

@@ -30,6 +30,10 @@ MAP_ERROR = 10.0
 
 class Gradient(Cause):
     name = "gradient"
+    halves = ("permille",)
+
+    def nominal(self, mo) -> dict:
+        return {"permille": 0.0}
     family = "motion"
     linear = True
     located = True
