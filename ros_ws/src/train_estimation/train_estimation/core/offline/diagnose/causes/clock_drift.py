@@ -78,17 +78,17 @@ def clock_test(run) -> dict:
         # a link's latency is skewed (a tail of late logs) and the second half's residuals
         # scatter less about a mean than about a median
         off0 = float(np.mean(r[half] - s[half]))
-        e0 = r[~half] - s[~half] - off0
-        d = A[~half] @ c1 - s[~half] - off0  # what the drift fitted on the first half adds
-        before = float(np.sqrt(np.mean(e0 ** 2)))
-        after = float(np.sqrt(np.mean((e0 - d) ** 2)))
-        # the score test of the motion causes' held-out check on the stamps: without a drift
-        # e0 is the jitter about the first half's mean, independent of d (fitted elsewhere),
-        # so Z = sum e0 d / (sigma sqrt(sum d^2)) is standard normal (sigma: the first half's
-        # jitter); a lower RMS alone is a coin toss when there is no drift
-        sig1 = float(np.std(r[half] - A[half] @ c1, ddof=2))
-        dd = float(np.sqrt(np.sum(d * d)))
-        z = float(np.sum(e0 * d) / (sig1 * dd)) if sig1 > 0 and dd > 0 else 0.0
+        before = float(np.sqrt(np.mean((r[~half] - s[~half] - off0) ** 2)))
+        after = float(np.sqrt(np.mean((r[~half] - A[~half] @ c1) ** 2)))
+        # the held-out score: the second half's own rate against the direction the first
+        # half's fit predicts, z = sign(b1 - 1) (b2 - 1) / se2 (b: log-time per stamp s).
+        # The halves' jitters are independent, so without a drift z is standard normal; a
+        # lower held-out RMS alone is a coin toss when there is no drift
+        c2, *_ = np.linalg.lstsq(A[~half], r[~half], rcond=None)
+        s2 = s[~half]
+        sig2h = float(np.sum((r[~half] - A[~half] @ c2) ** 2)) / max(int((~half).sum()) - 2, 1)
+        se2 = math.sqrt(max(sig2h, 1e-12) / max(float(np.sum((s2 - s2.mean()) ** 2)), 1e-12))
+        z = float(np.sign(c1[1] - 1.0) * (c2[1] - 1.0) / se2)
         gain = {"metric": "held-out stamp residual RMS (s), second half predicted from the first",
                 "before": before, "after": after}
     return {"dll": dll, "k": 1, "n": n, "parameters": {"drift": drift},
