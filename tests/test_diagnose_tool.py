@@ -1264,17 +1264,17 @@ def test_a_cause_accepted_at_the_last_stage_is_held_out_at_the_noise_of_its_mode
     """A resistance change beside a drifting clock and a bursty link: every greedy stage
     accepts a cause, the resistance last. Confirmed at the noise of the model without it (its
     own effect inflated that noise, and the held-out filter followed the odometer through
-    what the cause predicts), its held-out score was 8.0-9.0 where the fit scored about
-    25 times that in log-likelihood; at the noise of the model with every accepted cause,
-    the held-out score is what the fit's evidence says (Z ~ sqrt(score): a score test on
-    half the data in each fold, both folds summed)."""
+    what the cause predicts), its held-out score Z was 8.0-9.0 for fits that scored 133-202
+    (Z / sqrt(score) 0.62-0.78). For a true effect the held-out score test's Z^2 is about
+    2 dll, which is more than the score (2 dll less its penalties): at the noise of the model
+    with every accepted cause Z / sqrt(score) is 1.6-2.3 on these seeds."""
     case = make_case(np.random.default_rng(seed), ("clock_drift", "bursty_link", "resistance"),
                      "plain")
     rep, _ = _diagnosed(case, tmp_path)
     by = {r["cause"]: r for r in rep["ranking"]}
     held = rep["evidence"]["_model"]["confirmation"]["checks"]["resistance"]["held_out"]
     assert by["resistance"]["score"] > 100.0, by["resistance"]
-    assert held["ok"] and held["z"] > 0.5 * math.sqrt(by["resistance"]["score"]), \
+    assert held["ok"] and held["z"] > math.sqrt(by["resistance"]["score"]), \
         (held["z"], by["resistance"]["score"])
     assert held["halves"]["consistent"], held["halves"]
 
