@@ -10,8 +10,10 @@ search before it: for each cause at its plain and subtle sizes (``train_sim.case
 seeded: case i of seed S is ``default_rng([S, i])``), the measured bag is simulated, the cause
 is fitted against the believed model (with its command-time offset) at the noise of the model
 that includes it, as the search accepts a cause, and the check runs as ``confirm`` runs it
-(``confirm.heldout_motion`` with the cause's own blocks; the clock and the link:
-``confirm.heldout_own``). *Power* is the fraction of bags with the effect where it confirms.
+(``confirm.heldout_motion`` with the cause's own blocks, and its halves test: the folds'
+fits agree; the clock and the link: ``confirm.heldout_own``). *Power* is the fraction of bags
+with the effect where it confirms. ``--tables benchmarks/out/NAME.json`` prints a run's
+tables again as the checks are now (a cause whose halves test was dropped since).
 
 *False*: the same for every cause on bags with no effect (``none``: the rate at which the check
 confirms a cause that is not there; a one-sided test at Z > 2 gives at most 2.3 %) and, with
@@ -190,8 +192,29 @@ def pct(k, n):
     return f"{100.0 * k / n:.0f} % ({k}/{n})" if n else "-"
 
 
+def _confirms(h: dict, cause: str) -> bool:
+    """The check confirms: the held-out score test passes and, for a cause that has the
+    halves test now (``Cause.halves``), the folds' fits agree (results written before a
+    cause's halves test was dropped are read as the check is now)."""
+    from train_estimation.core.offline.diagnose.causes import BY_NAME
+
+    if "held" not in h:
+        return bool(h.get("ok"))
+    return bool(h["held"] and (not BY_NAME[cause].halves
+                               or h.get("halves", {}).get("consistent", True)))
+
+
+def _disagree(h: dict, cause: str) -> bool:
+    from train_estimation.core.offline.diagnose.causes import BY_NAME
+
+    return bool(BY_NAME[cause].halves) and not h.get("halves", {}).get("consistent", True)
+
+
 def tables(results: list[dict], sizes, args) -> str:
     ok = [r for r in results if r.get("rc") == 0]
+    for r in ok:
+        for c, h in r["held"].items():
+            h["ok"] = _confirms(h, c)
     md = [f"# held-out check: {args.cases} bag(s) per cause and size, {args.nominal} nominal, "
           f"{args.pairs} pairs, seed {args.seed}\n",
           f"{len(results)} bags, {len(results) - len(ok)} crashed.\n",
@@ -218,8 +241,7 @@ def tables(results: list[dict], sizes, args) -> str:
               and c in r["held"]]
         zs = [r["held"][c].get("z") for r in ok if r["causes"] == [c] and r["size"] == "plain"
               and r["held"][c].get("z") is not None]
-        hv = [not r["held"][c].get("halves", {}).get("consistent", True)
-              for r in ok if r["causes"] == [c]]
+        hv = [_disagree(r["held"][c], c) for r in ok if r["causes"] == [c]]
         md.append(f"| {c} | {cells[0]} | {cells[1]} | {pct(sum(fn), len(fn))} "
                   f"({sum(fr)}) | "
                   f"{pct(sum(fo), len(fo)) if args.cross else '-'} | "
@@ -266,7 +288,21 @@ def main(argv=None) -> int:
     p.add_argument("--quick", action="store_true",
                    help="2 bags per cause, plain only, 4 nominal (under 2 min)")
     p.add_argument("--name", default="heldout", help="output benchmarks/out/NAME.md, .json")
+    p.add_argument("--tables", metavar="JSON",
+                   help="print the tables of a run's results (benchmarks/out/NAME.json) again, "
+                        "as the checks are now, and exit")
     args = p.parse_args(argv)
+    if args.tables:
+        results = json.load(open(args.tables))
+        first = results[0] if results else {}
+        args.seed = first.get("seed", args.seed)
+        args.cases = max(sum(r["causes"] == [c] and r["size"] == "plain" for r in results)
+                         for c in CAUSES)
+        args.nominal = sum(not r["causes"] for r in results)
+        args.pairs = sum(len(r["causes"]) == 2 for r in results)
+        args.cross = any(r.get("cross") for r in results)
+        print(tables(results, sorted({r["size"] for r in results if r["causes"]}), args))
+        return 0
     if args.quick:
         args.cases, args.nominal, args.sizes = 1, 2, "plain"
     sizes = [s for s in args.sizes.split(",") if s]
