@@ -1,4 +1,4 @@
-"""Real lines: TTOBench's track JSON into line.yaml (train_core.ttobench, `python -m train_core.ttobench`).
+"""Real lines: TTOBench's track JSON into line.yaml (`python -m train_core.ttobench`).
 
 The track files written here are in TTOBench's schema with invented numbers (the real ones are
 not in the repository); the conversion is checked exactly on them, against every rule of the
