@@ -407,6 +407,18 @@ def kfs_at(points, kfs, name, target):
     return min(ok) if ok else None
 
 
+def _n_table(pts: dict, cell) -> None:
+    """A markdown table of ``pts`` (algorithm -> [(N, time, MAE)]) by particle count N, each
+    cell ``cell(name, N, time, MAE)``; an algorithm without N fills its first column only."""
+    print("| algorithm | " + " | ".join(f"N = {n}" for n in SWEEP_N) + " |")
+    print("|---" * (len(SWEEP_N) + 1) + "|")
+    for name, p in pts.items():
+        cells = [cell(name, n, t, m) for n, t, m in p]
+        if len(p) == 1:
+            cells = [cells[0] + " (no N)"] + [""] * (len(SWEEP_N) - 1)
+        print(f"| {name} | " + " | ".join(cells) + " |")
+
+
 def sweep(seeds, out: Path, reps=3):
     """f MAE against median time per step, each algorithm over its particle count."""
     sd = NOISE_LEVELS["mid"]
@@ -426,22 +438,10 @@ def sweep(seeds, out: Path, reps=3):
     print(f"\n### Accuracy against cost (ramp, mid noise, {seeds} seeds): f MAE (/ KF) and "
           f"median CPU time per step (ms; each step the minimum over {reps} identical runs) per "
           "particle count N\n")
-    print("| algorithm | " + " | ".join(f"N = {n}" for n in SWEEP_N) + " |")
-    print("|---" * (len(SWEEP_N) + 1) + "|")
-    for name, p in pts.items():
-        cells = [f"{m:.3f} ({m / ref_mae:.2f}) / {1e3 * t:.3f} ms" for _, t, m in p]
-        if len(p) == 1:
-            cells = [cells[0] + " (no N)"] + [""] * (len(SWEEP_N) - 1)
-        print(f"| {name} | " + " | ".join(cells) + " |")
+    _n_table(pts, lambda name, n, t, m: f"{m:.3f} ({m / ref_mae:.2f}) / {1e3 * t:.3f} ms")
     print(f"\n### CPU time per step against N (ms, median over {seeds} seeds x 150 steps, each "
           f"step the minimum over {reps} identical runs; KFs = Kalman filters per step, mean)\n")
-    print("| algorithm | " + " | ".join(f"N = {n}" for n in SWEEP_N) + " |")
-    print("|---" * (len(SWEEP_N) + 1) + "|")
-    for name, p in pts.items():
-        cells = [f"{1e3 * t:.3f} ({kfs[name, n]:.0f} KFs)" for n, t, _ in p]
-        if len(p) == 1:
-            cells = [cells[0] + " (no N)"] + [""] * (len(SWEEP_N) - 1)
-        print(f"| {name} | " + " | ".join(cells) + " |")
+    _n_table(pts, lambda name, n, t, m: f"{1e3 * t:.3f} ({kfs[name, n]:.0f} KFs)")
     t_n = {name: {n: t for n, t, _ in p} for name, p in pts.items()}
     for num, den in (("GSMA", "SMA"), ("Q-GRBPF", "RW-RBPF"), ("Q-GRBPF", "RBPF sticky")):
         print(f"| time {num} / {den} (equal N) | "
