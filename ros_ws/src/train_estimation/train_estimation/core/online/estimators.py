@@ -415,33 +415,25 @@ class _DistanceAsPosition:
         d_b, v_b = self.anchor
         return np.array([0.0, self._count_at(max(t, self.odo[0])) - d_b + v_b * tau, c * v_b])
 
-    def _consider(self, t: float) -> tuple:
-        """The calibration's (position, speed) covariance at ``t`` (module doc of
-        ``odometer_scale``; without the distance, the class doc's), row-major 2x2; empty before
-        the first odometer reading."""
+    def _calibration(self, t: float) -> dict:
+        """The calibration's doubt at ``t`` as an Output's ``consider`` (its (position, speed)
+        covariance, row-major 2x2: module doc of ``odometer_scale``; without the distance, the
+        class doc's) and ``separation`` (the same as solutions: ``(variance, ((shift,
+        variance), ...))``, :meth:`OdometerCalibration.doubt`); both empty before the first
+        odometer reading."""
         if self.odo is None:
-            return ()
+            return {"consider": (), "separation": ()}
         if self.cfg.use_distance:
-            return tuple(self.cal.consider(self._count_at(max(t, self.odo[0])),
-                                           self.odo[2]).ravel())
+            C, sep = self.cal.doubt(self._count_at(max(t, self.odo[0])), self.odo[2])
+            return {"consider": tuple(C.ravel()), "separation": sep}
         J = np.array([self._uncounted(t), [0.0, self.odo[2], 0.0]])
         C = J @ self.cal.Sigma @ J.T
+        var = float(C[0, 0])
         # solution separation: the filter without each of its last balises lies that balise's
         # move away, as sure as it was before it (one may lie: a survey error)
         C[0, 0] += max((m * m + v for m, v in self.separation), default=0.0)
-        return tuple(C.ravel())
-
-    def _separation(self, t: float) -> tuple:
-        """The calibration's doubt at ``t`` as solutions: ``(variance, ((shift, variance),
-        ...))`` (:meth:`OdometerCalibration.separation`; without the distance, the solution
-        without each of the filter's last balises); empty before the first odometer reading."""
-        if self.odo is None:
-            return ()
-        if self.cfg.use_distance:
-            return self.cal.separation(self._count_at(max(t, self.odo[0])), self.odo[2])
-        J = np.array(self._uncounted(t))
-        return float(J @ self.cal.Sigma @ J), tuple((float(m), float(v))
-                                                    for m, v in self.separation)
+        return {"consider": tuple(C.ravel()),
+                "separation": (var, tuple((float(m), float(v)) for m, v in self.separation))}
 
     def _balise_for_filter(self, fix: BaliseFix, stamp: float,
                            t_now: float) -> tuple[float, float, float, float]:
@@ -669,8 +661,7 @@ class RobustAdapter(_DistanceAsPosition):
                       acceleration=math.nan, braking_rate=math.nan,
                       covariance=tuple(covariance16(P)),
                       measurement_used=self.f.pop_measurement_used(),
-                      consider=self._consider(t),
-                      separation=self._separation(t))
+                      **self._calibration(t))
 
     def _exact_mean(self, x, t0: float, t: float, act0):
         """The mean carried from ``t0`` to ``t`` with the whole Davis resistance, or None when
@@ -1063,8 +1054,7 @@ class BrakingAdapter(_DistanceAsPosition):
         return Output(stamp=t, position=float(e.mean[0]), velocity=float(e.mean[1]),
                       acceleration=float(e.mean[2]), braking_rate=float(e.mean[3]),
                       covariance=tuple(float(v) for v in np.asarray(e.cov).ravel()),
-                      measurement_used=used, consider=self._consider(t),
-                      separation=self._separation(t))
+                      measurement_used=used, **self._calibration(t))
 
     def _shared(self) -> dict:
         """deepcopy memo of the models the filter only reads (the family and the filter's view

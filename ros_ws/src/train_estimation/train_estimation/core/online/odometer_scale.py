@@ -215,15 +215,7 @@ class OdometerCalibration:
         balises disagree with it. For each, the solution without it is at ``J theta_k`` with
         covariance ``C_k``; the diagonal grows (never shrinks) so that every variance is at
         least ``(C_k + Delta_k Delta_k^T)_ii``, ``Delta_k = J (theta_k - theta)``."""
-        J = np.array([[1.0, d, 0.0], [0.0, v_odo, 0.0]])
-        C = J @ self.Sigma @ J.T
-        need = np.diag(C).copy()
-        for alt in self.alternatives:
-            Sk = _walked(alt.Sigma, alt.d, self.d_walked, self.count_walk, self.scale_walk,
-                         self.jumps)
-            delta = J @ (alt.theta - self.theta)
-            need = np.maximum(need, np.diag(J @ Sk @ J.T) + delta * delta)
-        return C + np.diag(need - np.diag(C))
+        return self.doubt(d, v_odo)[0]
 
     def separation(self, d: float, v_odo: float) -> tuple:
         """The calibration's position doubt as solutions (``protection.py``): ``(variance m^2,
@@ -231,14 +223,23 @@ class OdometerCalibration:
         ``d`` (``J Sigma J^T``) and, for each of the last balises, where the solution without
         it puts the train relative to this one and how sure that is (:meth:`consider` covers
         them all with one variance instead)."""
+        return self.doubt(d, v_odo)[1]
+
+    def doubt(self, d: float, v_odo: float) -> tuple[np.ndarray, tuple]:
+        """``(consider(d, v_odo), separation(d, v_odo))`` from one pass over the solutions
+        without each recent balise (an estimate publishes both)."""
         J = np.array([[1.0, d, 0.0], [0.0, v_odo, 0.0]])
-        var = float((J @ self.Sigma @ J.T)[0, 0])
+        C = J @ self.Sigma @ J.T
+        need = np.diag(C).copy()
         alts = []
         for alt in self.alternatives:
             Sk = _walked(alt.Sigma, alt.d, self.d_walked, self.count_walk, self.scale_walk,
                          self.jumps)
-            alts.append((float(J[0] @ (alt.theta - self.theta)), float(J[0] @ Sk @ J[0])))
-        return var, tuple(alts)
+            delta = J @ (alt.theta - self.theta)
+            ck = np.diag(J @ Sk @ J.T)
+            need = np.maximum(need, ck + delta * delta)
+            alts.append((float(delta[0]), float(ck[0])))
+        return C + np.diag(need - np.diag(C)), (float(C[0, 0]), tuple(alts))
 
     # -- time (distance) update ---------------------------------------------------------------
     def walk_to(self, d: float) -> None:
