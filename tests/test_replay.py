@@ -47,6 +47,10 @@ def live_replay(launch, ros_node, tmp_path, bag, scenario, estimators, tag):
         launch.node("train_estimation", exe, "--ros-args", "-r", f"__ns:={ns}", *common)
     ros_node.wait_for_subscribers(f"{ns}/odometer", len(estimators))
     ros_node.wait_for_subscribers(f"{ns}/ground_truth", 1)
+    # the recorder and the estimators discover each other on their own: this narrows the time
+    # in which the first estimates go unrecorded, it cannot close it (see `recorded`)
+    for topic in ("estimate/robust", "estimate/gsma"):
+        ros_node.wait_for_subscribers(f"{ns}/{topic}", 1)
     player = launch.start([*PLAYER, "--ros-args", "-r", f"__ns:={ns}", "-p", f"bag:={bag}",
                            "-p", f"rate_factor:={RATE}",
                            "-p", f"wait_for_subscribers:={len(estimators)}"], name="player")
@@ -73,6 +77,21 @@ def offline(bag_path, sc, adapter):
     out, _ = replay([(t, s, f, s) for s, t, f in events], adapter,
                     1.0 / sc.odometer_rate, control_clock="same")  # the nodes' default
     return np.array([[o.stamp, o.position, o.velocity, o.braking_rate] for o in out])
+
+
+def recorded(node, core):
+    """The rows of ``core`` that the recording holds, and the recording up to the core's end.
+
+    The recorder subscribes reliably (depth 1000) but matches each estimator's publisher when
+    DDS discovery gets there: on a loaded machine that can be after the player's first seconds.
+    What it misses is therefore a prefix, and from its first estimate on it has every one.
+    """
+    assert len(node), "nothing recorded"
+    first = int(np.searchsorted(core[:, 0], node[0, 0] - 1e-9))
+    assert first < len(core), (node[0, 0], core[-1, 0])
+    n = len(core) - first
+    assert len(node) >= n, ("an estimate lost after the recording's first", len(node), n)
+    return core[first:], node[:n]
 
 
 def assert_same(node, core):
@@ -112,14 +131,13 @@ def test_metro_demo_bag_replay(launch, ros_node, tmp_path):
     gsma = offline(bag, sc, BrakingAdapter(sc.train, sc.line, st, BrakingConfig()))
     for topic, source, core in (("estimate/robust", "robust_filter", robust),
                                 ("estimate/gsma", "gsma", gsma)):
-        e1, e2 = estimates(b1, topic, source), estimates(b2, topic, source)
         # the nodes go on predicting while the player's clock runs past the last message
-        n = len(core)
-        assert len(e1) >= n and len(e2) >= n, (source, len(e1), len(e2), n)
-        # determinism: the second replay equals the first
-        np.testing.assert_array_equal(e1[:n], e2[:n])
-        # the core fed from the bag equals the node, sample for sample
-        assert_same(e1[:n], core)
+        c1, e1 = recorded(estimates(b1, topic, source), core)
+        c2, e2 = recorded(estimates(b2, topic, source), core)
+        # the core fed from the bag equals the node, sample for sample; so each replay equals
+        # the other wherever both were recorded (determinism)
+        assert_same(e1, c1)
+        assert_same(e2, c2)
 
 
 def test_wen2017_bag_replay(launch, ros_node, tmp_path):
@@ -130,6 +148,5 @@ def test_wen2017_bag_replay(launch, ros_node, tmp_path):
                 "estimators.robust_filter.velocity.rmse<=0.3"])
     core = offline(bag, sc, RobustAdapter(sc.train, sc.line, StartState(sc.start_position),
                                           RobustConfig(period=1.0 / sc.odometer_rate)))
-    e = estimates(b, "estimate/robust", "robust_filter")
-    assert len(e) >= len(core)
-    assert_same(e[: len(core)], core)
+    c, e = recorded(estimates(b, "estimate/robust", "robust_filter"), core)
+    assert_same(e, c)
