@@ -405,6 +405,9 @@ def aggregate(rows: list[dict]) -> list[dict]:
             vals = [r[k] for r in ok if not math.isnan(r[k])]
             g[k] = max(vals) if vals else math.nan
         g["availability"] = min((r["availability"] for r in ok), default=math.nan)
+        for k in ("p95_err", "pl_p50", "al99", "etcs_p50"):  # the worst run's
+            vals = [r[k] for r in ok if not math.isnan(r.get(k, math.nan))]
+            g[k] = max(vals) if vals else math.nan
         out.append(g)
     return out
 
@@ -430,6 +433,22 @@ def print_table(groups: list[dict]) -> None:
               f"{_fmt(100 * g['availability'], 1)} | {_fmt(g['silence'], 1)} | "
               f"{_fmt(g['max_err'])} | {_fmt(g['rms_err'])} | {_fmt(g['window_err'])} | "
               f"{g['bad_cov']} | {g['exceptions']} |")
+
+
+def print_tightness(groups: list[dict]) -> None:
+    """The clean runs' levels against their errors and ETCS's interval (faults.score)."""
+    rows = [g for g in groups if g["kind"] == "none" and not g["na"]]
+    if not rows:
+        return
+    print("\nTightness on clean runs, after the first balise (the worst seed's figure):")
+    print("| scenario | estimator | p95 abs err m | median PL m | PL / p95 err | "
+          "median ETCS interval m | alert limit for 99 % OK m |")
+    print("|---|---|---|---|---|---|---|")
+    for g in rows:
+        ratio = g["pl_p50"] / g["p95_err"] if g["p95_err"] > 0 else math.nan
+        print(f"| {g['scenario']} | {g['estimator']} | {_fmt(g['p95_err'])} | "
+              f"{_fmt(g['pl_p50'], 1)} | {_fmt(ratio, 1)} | {_fmt(g['etcs_p50'], 1)} | "
+              f"{_fmt(g['al99'], 1)} |")
 
 
 def targets(groups: list[dict], zone: list[dict]) -> bool:
@@ -559,6 +578,7 @@ def main(argv=None) -> int:
           f"{NodeConfig().control_clock!r}, max_future {NodeConfig().max_future:g} s), "
           f"arrival = stamp + {F.LATENCY:g} s\n")
     print_table(groups)
+    print_tightness(groups)
     corrupted = defaultdict(int)
     for r in rows:
         if r["fault"].kind == "fuzz":

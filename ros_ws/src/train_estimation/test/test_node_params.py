@@ -248,7 +248,7 @@ def test_an_empty_train_file_is_refused_unless_the_demo_is_asked_for():
 
     line = str(config_file("lines", "metro_demo"))
     common = dict(line_file=line, train_file="", initial_position=math.nan,
-                  initial_position_std=5.0)
+                  initial_position_std=5.0, initial_position_fault=50.0)
     with pytest.raises(ParameterError, match="parameter train_file: empty"):
         load_models(common)
     train, _, _ = load_models(dict(common, use_demo_line=True))

@@ -396,3 +396,77 @@ def test_a_first_count_far_from_zero_is_placed_by_the_first_balise(kind, count_f
     assert np.max(np.abs(err[tt > first])) < 3.0
     # every estimate bounded (none in ALARM): wide until the first balise, not refused
     assert np.mean([o.integrity != 2 for o in outs]) > 0.99
+
+
+def test_the_solution_without_the_start_is_the_calibration_of_an_unknown_start():
+    """The start-fault hypothesis (module doc): before any balise the train at either end of
+    the bias bound, with the start's variance; from the first balise on, the solution fused
+    with the same balises from an uninformative origin, which is exactly a calibration whose
+    start sd is 1 km (RELOCATE_X0_VAR) fed the same balises, walks and latency included."""
+    from train_estimation.core.online.odometer_scale import RELOCATE_X0_VAR
+
+    rng = np.random.default_rng(5)
+    kw = dict(scale_std=0.01, gate=8.0, latency_std=0.1)
+    cal = OdometerCalibration(100.0, 5.0, start_fault=50.0, **kw)
+    unknown = OdometerCalibration(100.0, math.sqrt(RELOCATE_X0_VAR), **kw)
+    C, (var, alts) = cal.doubt(300.0, 10.0)
+    assert var == pytest.approx(cal.position_variance(300.0)) and var > 25.0
+    assert sorted(alts) == [(-50.0, var), (50.0, var)]
+    assert C[0, 0] == pytest.approx(var + 50.0 ** 2)
+    d = np.sort(rng.uniform(100.0, 5000.0, 5))
+    for di in d:  # the train 12 m past where the start says: fused, neither excluded
+        fix = BaliseFix(float(112.0 + 1.004 * di + rng.normal(0, 1)), 1.0, float(di),
+                        float(rng.uniform(5, 25)))
+        assert cal.balise(fix) and unknown.balise(fix)
+    assert cal.free is not None and cal.start_excluded == 0, cal.llr_free
+    cal.walk_to(6000.0)
+    unknown.walk_to(6000.0)
+    _, (var, alts) = cal.doubt(6000.0, 20.0)
+    shift, v = alts[-1]  # the free solution is the last alternative
+    assert cal.position(6000.0) + shift == pytest.approx(unknown.position(6000.0), abs=1e-6)
+    assert v == pytest.approx(unknown.position_variance(6000.0), rel=1e-6)
+    # a balise 200 m from where the start puts it: the likelihood ratio excludes the start
+    # (Wald's test at EXCLUSION_RISK), and the solution without it is the calibration
+    cal = OdometerCalibration(100.0, 5.0, start_fault=50.0, **kw)
+    unknown = OdometerCalibration(100.0, math.sqrt(RELOCATE_X0_VAR), **kw)
+    for fix in (BaliseFix(600.0, 1.0, 300.0, 10.0), BaliseFix(1100.0, 1.0, 800.0, 15.0)):
+        assert cal.balise(fix) and unknown.balise(fix)
+    assert cal.start_excluded == 1 and cal.relocated == 0 and cal.free is None
+    np.testing.assert_allclose(cal.theta, unknown.theta, rtol=1e-12, atol=1e-9)
+    # its doubt: the solutions without each balise, no start hypothesis any more
+    assert len(cal.doubt(900.0, 10.0)[1][1]) == len(cal.alternatives) == 2
+
+
+@pytest.mark.parametrize("kind", ["robust", "kf"])
+@pytest.mark.parametrize("offset", [-50.0, 50.0])
+def test_a_start_50_m_off_is_inside_the_protection_levels_throughout(kind, offset):
+    """initial_position 50 m off the train (10 of its 5 m deviations; within the default
+    initial_position_fault), metro_demo seed 0: before the first balise the start-fault
+    hypothesis covers it; at the first balise (read at 17.5 m/s) and the second (21.7 m/s)
+    a reader stamping 2.5 s late explains the offset as well as a wrong start does, and the
+    wide-latency calibration takes over; the calibration it replaced (the start relocated by
+    the balises) is carried as the alternative until a balise read at another speed (7.2 m/s,
+    at 124 s) decides between them by their likelihood ratio. Without the start hypothesis
+    and the alternative, 719-1,527 estimates lay outside their protection levels."""
+    from train_estimation.core.online.estimators import (
+        BrakingAdapter,
+        BrakingConfig,
+        RobustAdapter,
+        RobustConfig,
+        StartState,
+    )
+
+    sc, res = run("metro_demo", 0, 300.0)
+    fl = F.inject(res.events(), F.Fault("none"), np.random.default_rng(0))
+    start = StartState(sc.start_position + offset)
+    a = RobustAdapter(sc.train, sc.line, start, RobustConfig(period=0.1)) if kind == "robust" \
+        else BrakingAdapter(sc.train, sc.line, start, BrakingConfig(algorithm=kind))
+    outs, emitted, runner = F.run(fl.events, a, 0.1)
+    s = F.score(outs, emitted, fl, res.truth, 10.0, 300.0 + F.LATENCY)
+    assert s["misleading"] == 0 and s["wrong_side"] == 0 and s["bad_cov"] == 0, s
+    tt = np.array([o.stamp for o in outs]) - F.EPOCH
+    err = np.array([o.position for o in outs]) - np.interp(tt, res.truth["t"],
+                                                            res.truth["position"])
+    # decided: one calibration left, the reader on time, the estimate back on the train
+    assert a.cal_alt is None and abs(a.cal.latency()[0]) < 0.5, (a.cal.latency(), a.llr)
+    assert np.max(np.abs(err[tt > 130.0])) < 5.0, np.max(np.abs(err[tt > 130.0]))

@@ -48,11 +48,12 @@ BALISE_LATENCY = "balise_latency"  # the balise reader found to stamp later than
 VARIANCE_UNSTATED = "variance_unstated"  # a stream whose variances are 0: not stated, believed used
 COUNT_RESET = "count_reset"  # the odometer's counter went back (a reboot): its count spliced
 COUNT_ORIGIN = "count_origin"  # the first count far from zero: origin widened until a balise
+START_EXCLUDED = "start_excluded"  # the balises contradict the start: calibrated without it
 SEQ_UNSTATED = "seq_unstated"  # a stream whose seq never moves: no counter, judged by stamps
 STAMP_UNSTATED = "stamp_unstated"  # commands stamped 0: taken at their arrival (the contract's)
 EVENTS = (SEQ_RESET, CLOCK_RESET, SEQ_SKIP, FUSED_LATE, OUTAGE, RELOCATED, BALISE_EXCLUDED,
-          BALISE_LATENCY, VARIANCE_UNSTATED, COUNT_RESET, COUNT_ORIGIN, SEQ_UNSTATED,
-          STAMP_UNSTATED)
+          BALISE_LATENCY, VARIANCE_UNSTATED, COUNT_RESET, COUNT_ORIGIN, START_EXCLUDED,
+          SEQ_UNSTATED, STAMP_UNSTATED)
 
 ALL = REJECTIONS + ACCEPTED + EVENTS
 
@@ -86,6 +87,9 @@ DESCRIPTION = {
                  "the prediction's",
     COUNT_ORIGIN: "the odometer's first count is far from zero (data from mid-run, or a count "
                   "from power-up): its origin is widened to cover it until a balise places it",
+    START_EXCLUDED: "the balises contradict initial_position (their likelihood ratio against "
+                    "the solution without a start passed the exclusion risk): the odometer's "
+                    "count is calibrated from the balises alone",
     STAMP_UNSTATED: "commands stamped 0 (no stamp stated): their arrival time is used, the "
                     "reference clock the contract stamps commands on",
     SEQ_UNSTATED: "a stream's seq never moves (no sample counter): duplicates are stamps "

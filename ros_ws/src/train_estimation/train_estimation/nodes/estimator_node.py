@@ -89,7 +89,8 @@ def load_models(common: dict):
     x0 = common["initial_position"]
     if not math.isfinite(x0):
         x0 = line.stations[0].position if line.stations else 0.0
-    return train, line, StartState(position=x0, position_std=common["initial_position_std"])
+    return train, line, StartState(position=x0, position_std=common["initial_position_std"],
+                                    position_fault=common["initial_position_fault"])
 
 
 def _quantiles(values: list[float]) -> tuple[float, float, float]:

@@ -470,6 +470,7 @@ def score(outs: list, emitted: np.ndarray, faulted: Faulted, truth: dict, rate: 
     # published at once, nor a claim about a time far ahead)
     timely = np.abs(em - LATENCY - t) <= AVAILABLE_LAG
     e_after = a[after & np.isfinite(a)]
+    tight = _tightness(outs, em, t, a, ahead, behind, integ, faulted, tr_t, tr_x)
     w = after & (em <= faulted.end + window) & np.isfinite(a)
     stamps_after = np.concatenate([[faulted.onset], em[after], [t_end]])
     return dict(
@@ -490,4 +491,34 @@ def score(outs: list, emitted: np.ndarray, faulted: Faulted, truth: dict, rate: 
         stanford=stanford_counts(a[bounded], np.maximum(ahead, behind)[bounded]),
         max_ratio=float(np.nanmax(np.where(ok & hazard, a / sigma, np.nan)))
         if np.any(ok & hazard & np.isfinite(sigma)) else math.nan,
+        **tight,
     )
+
+
+ETCS_LOCACC = 1.0  # m, a balise group's location accuracy (ETCS Q_LOCACC) in the comparison
+
+
+def _tightness(outs, em, t, a, ahead, behind, integ, faulted, tr_t, tr_x) -> dict:
+    """What the protection levels are worth, over the estimates published after the first
+    balise reached the estimator: ``p95_err`` (m, |error|), ``pl_p50`` (m, the median of the
+    larger level; ALARM counts as +inf), ``al99`` (m, the alert limit at which 99 % of them
+    would be OK: the 99th percentile of the larger level) and ``etcs_p50`` (m, the median of
+    ETCS's confidence interval at the same points: ``ETCS_LOCACC`` + 1 % of the true distance
+    run since the last balise read)."""
+    nan = dict(p95_err=math.nan, pl_p50=math.nan, al99=math.nan, etcs_p50=math.nan)
+    bal = sorted((float(rc) - EPOCH, float(f["position"])) for tp, _, f, rc in faulted.events
+                 if tp == "balise" and isinstance(f, dict)
+                 and np.isfinite(f.get("position", np.nan)))
+    if not bal:
+        return nan
+    sel = (em >= bal[0][0]) & np.isfinite(a)
+    if not np.any(sel):
+        return nan
+    pl = np.where(integ == 2, math.inf, np.maximum(ahead, behind))[sel]
+    read_t = np.array([b[0] for b in bal])
+    read_x = np.interp(read_t, tr_t, tr_x)  # where the train was when each was read
+    last = np.searchsorted(read_t, em[sel], side="right") - 1
+    run = np.abs(np.interp(t[sel], tr_t, tr_x) - read_x[np.maximum(last, 0)])
+    return dict(p95_err=float(np.percentile(a[sel], 95)), pl_p50=float(np.median(pl)),
+                al99=float(np.percentile(pl, 99)),
+                etcs_p50=float(np.median(ETCS_LOCACC + 0.01 * run)))

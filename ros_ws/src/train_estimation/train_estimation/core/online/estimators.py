@@ -35,10 +35,12 @@ from ..robust.robust_filter import RobustFilter
 from ..robust.wen_model import WenModel
 from .odometer_scale import (
     A_MAX,
+    EXCLUSION_RISK,
     LATENCY_WIDE,
     BaliseFix,
     OdometerCalibration,
     latency_beyond_prior,
+    log_density,
 )
 from .runner import Output
 
@@ -51,6 +53,8 @@ class StartState:
 
     position: float  # m, front end; also where the odometer distance is zero
     position_std: float = 5.0  # m
+    position_fault: float = 50.0  # m, the largest start error beyond position_std that the
+    #   protection levels cover until a balise confirms the start (odometer_scale module doc)
     velocity: float = 0.0  # m/s
     velocity_std: float = 0.5  # m/s
 
@@ -67,6 +71,11 @@ class NodeConfig:
                                     "first station of the line")
     initial_position_std: float = param(5.0, "m", "standard deviation of the initial position",
                                         lo=0.0)
+    initial_position_fault: float = param(
+        StartState.position_fault, "m", "the largest error of initial_position beyond its "
+        "standard deviation that the protection levels cover until a balise confirms the start "
+        "(a position keyed in or stored from the last mission; a bias bound, as ARAIM's b_nom); "
+        "0 = the start is trusted as stated", lo=0.0)
     odometer_rate: float = param(10.0, "Hz", "odometer sample rate = output rate", lo=0.0)
     output_delay: float = param(0.05, "s", "without control messages, an estimate of time t is "
                                 "output at clock t + delay", lo=0.0)
@@ -206,7 +215,7 @@ class _DistanceAsPosition:
         def calibration(latency_std: float) -> OdometerCalibration:
             return OdometerCalibration(s.position, s.position_std, cfg.odometer_scale_std,
                                        cfg.balise_gate, scale=1.0 / cfg.odometer_scale,
-                                       latency_std=latency_std)
+                                       latency_std=latency_std, start_fault=s.position_fault)
 
         self.cal = calibration(cfg.balise_latency_std)
         # the same calibration with a wide latency prior, on the same fixes: it replaces the
@@ -214,6 +223,12 @@ class _DistanceAsPosition:
         self.cal_wide = calibration(LATENCY_WIDE) \
             if cfg.balise_latency_std < LATENCY_WIDE else None
         self.latency_found = 0  # the wide calibration took over (event balise_latency)
+        # after it took over, the calibration it replaced, as the hypothesis "the reader is on
+        # time" (two balises at one speed cannot tell a late reader from a start or a count
+        # that is off), until a sequential likelihood-ratio test excludes one of the two
+        # (:meth:`_judge`); llr: log-likelihood of the balises under cal minus under cal_alt
+        self.cal_alt: OdometerCalibration | None = None
+        self.llr = 0.0
         self.odo: tuple | None = None  # (stamp s, distance m, speed m/s) of the last fused
         #   odometer reading, as counted (without the distance: the count made of the speeds)
         self.anchor = (0.0, 0.0)  # without the distance: (count m, counted speed m/s) at the
@@ -302,12 +317,12 @@ class _DistanceAsPosition:
         if not (math.isfinite(x) and math.isfinite(var) and var > 0.0):
             return None
         undo = (self.splice, self.restarts,
-                *(cal.copy() if cal is not None else None for cal in (self.cal, self.cal_wide)))
+                *(cal.copy() if cal is not None else None
+                  for cal in (self.cal, self.cal_wide, self.cal_alt)))
         at = (x - x0) / c  # the old count where the train is predicted
         self.splice = at - d
-        for cal in (self.cal, self.cal_wide):
-            if cal is not None:
-                cal.splice(at, var)
+        for cal in self._cals():
+            cal.splice(at, var)
         self.restarts += 1
         return undo
 
@@ -338,15 +353,14 @@ class _DistanceAsPosition:
         far = float(self.cal.theta[1]) * d
         if far == 0.0:
             return
-        for cal in (self.cal, self.cal_wide):
-            if cal is not None:
-                cal.widen_origin(-far, far * far)
+        for cal in self._cals():
+            cal.widen_origin(-far, far * far)
         self.origin_far = int(abs(far) > self.start_state.position_std)
 
     def _unrestart(self, undo) -> None:
         """The reading that spliced the count was not fused: as before it (:meth:`_restart`)."""
         if undo is not None:
-            self.splice, self.restarts, self.cal, self.cal_wide = undo
+            self.splice, self.restarts, self.cal, self.cal_wide, self.cal_alt = undo
 
     def _odometer_fused(self, stamp: float, fields: dict) -> None:
         self.odo = (stamp, self._count(stamp, fields), float(fields["speed"]))
@@ -354,9 +368,12 @@ class _DistanceAsPosition:
             self.odo_seq = int(fields["seq"])
         except (KeyError, TypeError, ValueError):
             self.odo_seq = None
-        self.cal.walk_to(self.odo[1])
-        if self.cal_wide is not None:
-            self.cal_wide.walk_to(self.odo[1])
+        for cal in self._cals():
+            cal.walk_to(self.odo[1])
+
+    def _cals(self) -> list:
+        """The calibrations alive: the model, the wide-latency check, the alternative."""
+        return [c for c in (self.cal, self.cal_wide, self.cal_alt) if c is not None]
 
     def _count_at(self, t: float) -> float:
         """m, the odometer's count at ``t``, carried from the last fused reading at its
@@ -393,13 +410,18 @@ class _DistanceAsPosition:
         """``(fused, dx m, dv m/s)``: the balise given to the calibration, and how far the
         estimate at ``t_now`` moves with the mapping."""
         old = self.cal.theta.copy()
+        judged = self._likelihoods(fix)
         ok = self.cal.balise(fix)
+        if self.cal_alt is not None:
+            self.cal_alt.balise(fix)
+            ok = self._judge(judged) or ok
         if self.cal_wide is not None:
             self.cal_wide.balise(fix)
             if latency_beyond_prior(self.cal_wide, self.cfg.balise_latency_std):
                 # the reader is out of its prior: the wide calibration (which took this balise
-                # or held it) is the model from now on
-                self.cal, self.cal_wide = self.cal_wide, None
+                # or held it) is the model from now on, the one it replaces its alternative
+                self.cal, self.cal_alt, self.cal_wide = self.cal_wide, self.cal, None
+                self.llr = 0.0
                 self.latency_found += 1
                 ok = True
         if not ok:
@@ -407,6 +429,36 @@ class _DistanceAsPosition:
         d = self._count_at(t_now)
         dx = self.cal.position(d) - float(old[0] + old[1] * d)
         return True, dx, float(self.cal.theta[1] - old[1]) * self.odo[2]
+
+    def _likelihoods(self, fix: BaliseFix) -> tuple | None:
+        """The log predictive densities of ``fix`` under the calibration and its alternative
+        (before either takes it), or None without an alternative."""
+        if self.cal_alt is None:
+            return None
+        out = []
+        for cal in (self.cal, self.cal_alt):
+            cal.walk_to(fix.distance)
+            out.append(log_density(*cal._innovation(fix)))
+        return tuple(out)
+
+    def _judge(self, judged: tuple | None) -> bool:
+        """Wald's sequential probability-ratio test between the calibration and its
+        alternative on the balises both predicted: the log-likelihood ratio summed over them,
+        and at ``log(1 / EXCLUSION_RISK)`` the one it speaks against is excluded (the
+        ratio of the wrong hypothesis over the true one is a martingale, so it ever reaches
+        ``1 / alpha`` with probability at most ``alpha``: the false exclusions stay within
+        that risk whatever the number of balises). Returns True when the alternative becomes
+        the model (the estimate moves with its mapping)."""
+        if judged is None:
+            return False
+        self.llr += judged[0] - judged[1]
+        bound = math.log(1.0 / EXCLUSION_RISK)
+        if self.llr >= bound:
+            self.cal_alt = None
+        elif self.llr <= -bound:
+            self.cal, self.cal_alt = self.cal_alt, None
+            return True
+        return False
 
     def _uncounted(self, t: float) -> np.ndarray:
         """Without the distance: the row ``dp / d theta`` of the position the filter carries
@@ -423,17 +475,30 @@ class _DistanceAsPosition:
         odometer reading."""
         if self.odo is None:
             return {"consider": (), "separation": ()}
+        d = self._count_at(max(t, self.odo[0]))
+        alt = self._alternative(d)
         if self.cfg.use_distance:
-            C, sep = self.cal.doubt(self._count_at(max(t, self.odo[0])), self.odo[2])
-            return {"consider": tuple(C.ravel()), "separation": sep}
+            C, (var, alts) = self.cal.doubt(d, self.odo[2])
+            for m, v in alt:
+                C[0, 0] = max(C[0, 0], m * m + v)
+            return {"consider": tuple(C.ravel()), "separation": (var, alts + alt)}
         J = np.array([self._uncounted(t), [0.0, self.odo[2], 0.0]])
         C = J @ self.cal.Sigma @ J.T
         var = float(C[0, 0])
         # solution separation: the filter without each of its last balises lies that balise's
         # move away, as sure as it was before it (one may lie: a survey error)
-        C[0, 0] += max((m * m + v for m, v in self.separation), default=0.0)
+        C[0, 0] += max((m * m + v for m, v in self.separation + alt), default=0.0)
         return {"consider": tuple(C.ravel()),
-                "separation": (var, tuple((float(m), float(v)) for m, v in self.separation))}
+                "separation": (var, tuple((float(m), float(v))
+                                          for m, v in self.separation + alt))}
+
+    def _alternative(self, d: float) -> tuple:
+        """``((shift m, variance m^2),)`` of the alternative calibration at the count ``d``
+        relative to the model (:attr:`cal_alt`), or ``()``."""
+        if self.cal_alt is None:
+            return ()
+        return ((self.cal_alt.position(d) - self.cal.position(d),
+                 self.cal_alt.position_variance(d)),)
 
     def _balise_for_filter(self, fix: BaliseFix, stamp: float,
                            t_now: float) -> tuple[float, float, float, float]:
@@ -491,18 +556,20 @@ class _DistanceAsPosition:
                                   (R.BALISE_EXCLUDED, self.cal.excluded),
                                   (R.BALISE_LATENCY, self.latency_found),
                                   (R.COUNT_RESET, self.restarts),
-                                  (R.COUNT_ORIGIN, self.origin_far)) if n}
+                                  (R.COUNT_ORIGIN, self.origin_far),
+                                  (R.START_EXCLUDED, self.cal.start_excluded)) if n}
 
     def _odometry_snapshot(self):
-        return tuple(c.copy() if c is not None else None for c in (self.cal, self.cal_wide)) \
-            + (self.odo, self.latency_found, self.anchor, self.separation, self.splice,
+        return tuple(c.copy() if c is not None else None
+                     for c in (self.cal, self.cal_wide, self.cal_alt)) + (self.llr, self.odo, self.latency_found, self.anchor, self.separation, self.splice,
                self.odo_seq, self.restarts, self.origin_far, self.origin_seen)
 
     def _odometry_restore(self, snap) -> None:
-        cal, wide, self.odo, self.latency_found, self.anchor, self.separation, self.splice, \
+        cal, wide, alt, self.llr, self.odo, self.latency_found, self.anchor, self.separation, self.splice, \
             self.odo_seq, self.restarts, self.origin_far, self.origin_seen = snap
         self.cal = cal.copy()
         self.cal_wide = wide.copy() if wide is not None else None
+        self.cal_alt = alt.copy() if alt is not None else None
 
 
 class RobustAdapter(_DistanceAsPosition):

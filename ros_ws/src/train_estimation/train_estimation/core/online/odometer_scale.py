@@ -72,6 +72,21 @@ covariance also covers the solution without each of the last three balises (solu
 separation, as receiver autonomous integrity monitoring does for satellites:
 :meth:`OdometerCalibration.consider`).
 
+The start itself can be wrong: a position keyed in, or stored from the last mission before the
+train was shunted, is not the train's until a balise confirms it (ETCS calls such a position
+"unknown" and runs on sight until the first balise group). ``start_std`` is the start's
+fault-free doubt; a start fault up to ``start_fault`` m beyond it (a bias bound, as ARAIM's
+``b_nom``) is a hypothesis the solutions carry: before the first balise, the train at either end
+of that bias; from the first balise on, the solution with no start at all (``x0`` uninformative,
+fused with every balise the calibration fuses: :attr:`OdometerCalibration.free`), which agrees
+with the main solution when the start was right and lies where the balises alone put the train
+when it was not. The two are judged by Wald's sequential probability-ratio test on every balise
+(the log of each one's predictive density of it, summed; :data:`EXCLUSION_RISK`): a start that
+the balises contradict is excluded and the free solution becomes the calibration (event
+``start_excluded``), one they confirm drops the free solution. A start that agrees within the
+first balise's doubt is neither: the free solution is carried on, at little cost, since the two
+then agree.
+
 A balise more than ``gate`` standard deviations from where the calibration puts it is refused
 and held: the odometer lost count (a slip or slide), its calibration went wrong, or the balise
 is not where its telegram says, and one reading cannot tell. When the next balise is also
@@ -104,6 +119,8 @@ LATENCY_WIDE = 2.0  # s, the latency prior of the calibration that checks the re
 #   doc): a reader that stamps seconds late is not a reader that works
 LATENCY_Z = 4.0  # sds of the narrow prior and the wide solution's own beyond which the reader
 #   is taken to be out of its prior (tested after every balise: a strict threshold)
+EXCLUSION_RISK = 1e-7  # probability that a sequential likelihood-ratio test between two
+#   calibrations ever excludes the true one (Wald's bound: it stops at a ratio of 1 / this)
 LATENCY_MIN_BALISES = 2  # the wide solution's balises before its latency is tested (two read
 #   at different speeds tell the latency from the origin; the start's prior is the third datum)
 
@@ -158,12 +175,13 @@ class OdometerCalibration:
 
     def __init__(self, start: float, start_std: float, scale_std: float, gate: float = 8.0,
                  count_walk: float = COUNT_WALK, scale_walk: float = SCALE_WALK,
-                 scale: float = 1.0, latency_std: float = 0.0):
+                 scale: float = 1.0, latency_std: float = 0.0, start_fault: float = 0.0):
         if not (math.isfinite(start) and start_std > 0 and scale_std > 0 and gate > 0
                 and count_walk >= 0 and scale_walk >= 0 and math.isfinite(scale) and scale > 0
-                and math.isfinite(latency_std) and latency_std >= 0):
+                and math.isfinite(latency_std) and latency_std >= 0
+                and math.isfinite(start_fault) and start_fault >= 0):
             raise ValueError("OdometerCalibration: start finite, start_std, scale_std, gate and "
-                             "scale > 0, walks and latency_std >= 0")
+                             "scale > 0, walks, latency_std and start_fault >= 0")
         # c's prior mean: 1, or what an earlier run or the workshop found (true / counted);
         # tau's: 0, the reader stamps when it passes the balise
         self.theta = np.array([float(start), float(scale), 0.0])
@@ -180,6 +198,15 @@ class OdometerCalibration:
         self.recent: list[tuple[_Solution, tuple[BaliseFix, ...]]] = []
         self.alternatives: list[_Solution] = []  # the solution without each of them
         self.jumps: tuple = ()  # (count m, variance m^2) of each splice (:meth:`splice`)
+        # the start-fault hypothesis (module doc): its bias bound before the first balise, then
+        # the solution without the start (None: no start fault carried, or the count was
+        # relocated and the main solution has no start in it either)
+        self.start_fault = float(start_fault)
+        self.llr_free = 0.0  # log-likelihood of the balises under the start minus without it
+        self.start_excluded = 0
+        self.free: _Solution | None = _Solution(
+            self.theta, np.diag([RELOCATE_X0_VAR, scale_std ** 2, latency_std ** 2]), 0.0) \
+            if start_fault > 0 else None
 
     def copy(self) -> OdometerCalibration:
         # every update makes new arrays and lists: a shallow copy shares nothing that changes
@@ -232,7 +259,13 @@ class OdometerCalibration:
         C = J @ self.Sigma @ J.T
         need = np.diag(C).copy()
         alts = []
-        for alt in self.alternatives:
+        free = self.free
+        for alt in self.alternatives + ([free] if free is not None else []):
+            if alt is free and alt.n == 0:  # a start fault, no balise yet: at its bias bound
+                for b in (self.start_fault, -self.start_fault):
+                    need[0] = max(need[0], C[0, 0] + b * b)
+                    alts.append((b, float(C[0, 0])))
+                continue
             Sk = _walked(alt.Sigma, alt.d, self.d_walked, self.count_walk, self.scale_walk,
                          self.jumps)
             delta = J @ (alt.theta - self.theta)
@@ -257,6 +290,9 @@ class OdometerCalibration:
         if math.isfinite(move) and math.isfinite(variance) and variance >= 0:
             self.theta = self.theta + np.array([move, 0.0, 0.0])
             self.Sigma = self.Sigma + np.diag([variance, 0.0, 0.0])
+            if self.free is not None:
+                self.free = _Solution(self.free.theta + np.array([move, 0.0, 0.0]),
+                                      self.free.Sigma, self.free.d, self.free.n)
 
     def splice(self, at: float, variance: float) -> None:
         """The odometer restarted its count, and the new count was spliced onto the old one at
@@ -297,8 +333,13 @@ class OdometerCalibration:
         """Fuse ``fixes``, noting the solution before them and recomputing the solutions
         without each recent fusion."""
         self.recent = (self.recent + [(_Solution(self.theta, self.Sigma, self.d_walked, self.n),
-                                       fixes)])[-self.EXCLUDED:]
+                                       fixes, self.free)])[-self.EXCLUDED:]
         self.theta, self.Sigma = self._step(self.theta, self.Sigma, fixes)
+        if self.free is not None:  # the solution without the start takes the same balises
+            f = self.free
+            self.free = _Solution(*self._step(
+                f.theta, _walked(f.Sigma, f.d, self.d_walked, self.count_walk, self.scale_walk,
+                                 self.jumps), fixes), self.d_walked, f.n + len(fixes))
         self.n += len(fixes)
         self.alternatives = [self._without(j) for j in range(len(self.recent))]
 
@@ -312,12 +353,29 @@ class OdometerCalibration:
         """The solution with every recent fusion but the ``j``-th, walked to the present."""
         sol = self.recent[j][0]
         theta, Sigma, d, n = sol.theta, sol.Sigma, sol.d, sol.n
-        for before, fixes in self.recent[j + 1:]:
+        for before, fixes, _ in self.recent[j + 1:]:
             Sigma = _walked(Sigma, d, before.d, self.count_walk, self.scale_walk, self.jumps)
             theta, Sigma = self._step(theta, Sigma, fixes)
             d, n = before.d, n + len(fixes)
         return _Solution(theta, _walked(Sigma, d, self.d_walked, self.count_walk,
                                         self.scale_walk, self.jumps), self.d_walked, n)
+
+    def _judge_start(self, fix: BaliseFix) -> None:
+        """The start-fault hypothesis's sequential test on ``fix`` (module doc): the start
+        excluded (the solution without it becomes the calibration) or confirmed (the solution
+        without it dropped) once the likelihood ratio passes ``1 / EXCLUSION_RISK``."""
+        f = self.free
+        Sf = _walked(f.Sigma, f.d, self.d_walked, self.count_walk, self.scale_walk, self.jumps)
+        self.llr_free += log_density(*self._innovation(fix)) \
+            - log_density(*self._innovation_of(f.theta, Sf, fix))
+        bound = math.log(1.0 / EXCLUSION_RISK)
+        if self.llr_free >= bound:
+            self.free = None
+        elif self.llr_free <= -bound:
+            self.theta, self.Sigma, self.n = f.theta, Sf, f.n
+            self.recent, self.alternatives, self.held = [], [], None
+            self.free = None
+            self.start_excluded += 1
 
     def _outside(self, theta, Sigma, fixes, z: float) -> bool:
         """Whether any of ``fixes`` lies beyond ``z`` standard deviations of the solution
@@ -356,12 +414,12 @@ class OdometerCalibration:
         """The ``j``-th recent fusion taken out: the fusions after it applied again from the
         solution before it (each keeps its own alternative), then ``fixes``."""
         d_now = self.d_walked
-        before, _ = self.recent[j]
+        before, _, self.free = self.recent[j]
         rest = self.recent[j + 1:]
         self.recent = self.recent[:j]
         self.theta, self.Sigma, self.n, self.d_walked = before.theta, before.Sigma, before.n, \
             before.d
-        for sol, fx in rest:
+        for sol, fx, _ in rest:
             self.walk_to(sol.d)
             self._apply(fx)
         self.walk_to(d_now)
@@ -386,6 +444,8 @@ class OdometerCalibration:
                 and math.isfinite(fix.variance) and fix.variance > 0):
             return False
         self.walk_to(fix.distance)
+        if self.free is not None:
+            self._judge_start(fix)
         if self.held is not None and self._exclude_for((self.held, fix)):
             self.held = None  # the held balise and this one outvote a fused one
             return True
@@ -420,9 +480,16 @@ class OdometerCalibration:
         # the pair is the evidence: a solution without one of them (x0 unknown) is no
         # alternative to cover (two balises that lie alike are beyond a single fault)
         self.recent, self.alternatives = [], []
+        self.free = None  # the relocated solution has no start in it: it is the free one
         self.held = None
         self.relocated += 1
         return True
+
+
+def log_density(nu: float, s: float) -> float:
+    """log N(nu; 0, s): a balise's predictive log-likelihood (innovation ``nu`` m, its
+    variance ``s`` m^2)."""
+    return -0.5 * (nu * nu / s + math.log(2.0 * math.pi * s))
 
 
 def latency_beyond_prior(wide: OdometerCalibration, latency_std: float,
