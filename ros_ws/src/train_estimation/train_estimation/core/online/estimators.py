@@ -561,12 +561,13 @@ class _DistanceAsPosition:
 
     def _odometry_snapshot(self):
         return tuple(c.copy() if c is not None else None
-                     for c in (self.cal, self.cal_wide, self.cal_alt)) + (self.llr, self.odo, self.latency_found, self.anchor, self.separation, self.splice,
-               self.odo_seq, self.restarts, self.origin_far, self.origin_seen)
+                     for c in (self.cal, self.cal_wide, self.cal_alt)) \
+            + (self.llr, self.odo, self.latency_found, self.anchor, self.separation,
+               self.splice, self.odo_seq, self.restarts, self.origin_far, self.origin_seen)
 
     def _odometry_restore(self, snap) -> None:
-        cal, wide, alt, self.llr, self.odo, self.latency_found, self.anchor, self.separation, self.splice, \
-            self.odo_seq, self.restarts, self.origin_far, self.origin_seen = snap
+        cal, wide, alt, self.llr, self.odo, self.latency_found, self.anchor, self.separation, \
+            self.splice, self.odo_seq, self.restarts, self.origin_far, self.origin_seen = snap
         self.cal = cal.copy()
         self.cal_wide = wide.copy() if wide is not None else None
         self.cal_alt = alt.copy() if alt is not None else None
