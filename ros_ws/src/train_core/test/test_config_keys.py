@@ -130,3 +130,18 @@ def test_the_trains_sections_allow_extra_keys_but_not_typos(tmp_path):
     path.write_text(yaml.safe_dump(data))
     with pytest.warns(ConfigWarning), pytest.raises(ConfigError, match="missing key 'a'"):
         load_train(path)
+
+
+def test_a_line_may_state_its_alert_limit(tmp_path):
+    """``alert_limit`` (m): the operation's on this line; NaN where the line states none, and
+    refused where it is no length (the estimators label by it)."""
+    import math
+
+    assert math.isnan(load_line(LINES[0]).alert_limit)
+    data = yaml.safe_load(LINES[0].read_text())
+    path = tmp_path / "line.yaml"
+    path.write_text(yaml.safe_dump(dict(data, alert_limit=25.0)))
+    assert load_line(path).alert_limit == 25.0
+    path.write_text(yaml.safe_dump(dict(data, alert_limit=-1.0)))
+    with pytest.raises(ConfigError, match="alert_limit"):
+        load_line(path)

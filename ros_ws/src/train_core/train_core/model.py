@@ -143,6 +143,8 @@ class Line:
     stations: tuple[Station, ...] = ()
     speed_limits: tuple[SpeedLimit, ...] = ()
     max_speed: float = 22.23  # m/s, line speed where no section limit applies (extra key)
+    alert_limit: float = math.nan  # m, the largest protection level the operation on this
+    #   line can use (extra key; NaN: not stated, the estimators' parameter decides)
 
     @cached_property
     def _gradient_table(self):
@@ -223,8 +225,9 @@ TRAIN_ALL_KEYS = {"name": "string", "mass": "number", "rotary_allowance": "numbe
                   "balise": "mapping", "performance": "mapping", "identification": "mapping"}
 LINE_KEYS = {"name": "string", "length": "number", "balises": "list", "gradients": "list",
              "stations": "list", "speed_limits": "list", "max_speed": "number",
-             "curves": "list"}  # curves: signed radii of an imported real line
-#   (train_core.ttobench), kept for the reader, not modelled
+             "alert_limit": "number", "curves": "list"}
+#   curves: signed radii of an imported real line (train_core.ttobench), kept for the reader,
+#   not modelled
 # the entries of the line's lists: extra keys allowed there too (a station's platform, a
 # section's curve radius), by the same rule
 BALISE_KEYS = {"id": "integer", "position": "number"}
@@ -319,7 +322,12 @@ def line_from_dict(data: dict, where: str = "line.yaml") -> Line:
         stations=tuple(sorted(stations, key=lambda st: st.position)),
         speed_limits=limits,
         max_speed=s.number("max_speed", 22.23, lo=0.0, lo_open=True, unit="m/s"),
+        alert_limit=_or_nan(s.number("alert_limit", None, lo=0.0, lo_open=True, unit="m")),
     )
+
+
+def _or_nan(value) -> float:
+    return math.nan if value is None else float(value)
 
 
 def load_train(path: str | Path) -> TrainParams:

@@ -210,6 +210,15 @@ def test_monitor_inflation_and_labels():
     tight.reading(10.0, {"speed": 5.0, "speed_variance": 0.01}, True)
     assert tight.assess(o, 10.0).integrity == OK
     assert tight.assess(o, 12.0).integrity == DEGRADED  # bounded, beyond the alert limit
+    # the alert limit a line states (line.yaml alert_limit) where the parameter is NaN (its
+    # default); a parameter that states one wins
+    from types import SimpleNamespace
+
+    line = SimpleNamespace(alert_limit=5.5)
+    for params, want in ((IntegrityParams(), DEGRADED), (IntegrityParams(alert_limit=10.0), OK)):
+        mon = IntegrityMonitor(params, 0.1, line=line)
+        mon.reading(10.0, {"speed": 5.0, "speed_variance": 0.01}, True)
+        assert mon.assess(o, 12.0).integrity == want
     alarm = m.assess(o, 100.0)
     assert alarm.integrity == ALARM and math.isinf(alarm.protection_level_ahead)
     bad = Output(10.0, 0.0, 5.0, math.nan, math.nan, tuple(np.diag([-1.0, 1, 1, 1]).ravel()),

@@ -64,7 +64,8 @@ def _stats(err: np.ndarray) -> dict:
             "mean": float(err.mean())}
 
 
-ALERT_LIMIT = 10.0  # m: the estimators' default alert limit (docs/integrity.md)
+ALERT_LIMIT = 10.0  # m: the estimators' alert limit where neither they nor --line state one
+#   (docs/integrity.md)
 
 
 def stanford_regions(rows: list, inside: np.ndarray, err: np.ndarray,
@@ -95,7 +96,7 @@ def stanford_regions(rows: list, inside: np.ndarray, err: np.ndarray,
 
 
 def estimator_report(bag: Bag, topic: str, source: str, truth: dict | None,
-                     rate_factor: float | None = None) -> dict:
+                     rate_factor: float | None = None, alert_limit: float = ALERT_LIMIT) -> dict:
     rows = [(t, s, f) for t, s, f in bag.topics[topic] if f["source"] == source]
     stamp = np.array([s for _, s, _ in rows])
     recv = np.array([t for t, _, _ in rows]) * 1e-9
@@ -139,7 +140,7 @@ def estimator_report(bag: Bag, topic: str, source: str, truth: dict | None,
                            "fraction_within_95": float(np.mean(nees <= CHI2_95[2]))}
             sx = np.sqrt(np.maximum(c[ok][:, 0, 0], 0))
             rep["position_within_3sigma"] = float(np.mean(np.abs(ex[ok]) <= 3 * sx))
-        regions = stanford_regions(rows, inside, ex)
+        regions = stanford_regions(rows, inside, ex, alert_limit)
         if regions is not None:
             rep["integrity"] = regions
         series.update(xt=xt, vt=vt, ft=ft, inside=inside)
@@ -239,7 +240,9 @@ def check(bag_path: str, out_dir: Path | None = None, expected_received: float |
         if not topic.startswith(ESTIMATE_PREFIX):
             continue
         for source in sorted({f["source"] for _, _, f in bag.topics[topic]}):
-            rep = estimator_report(bag, topic, source, truth, rate_factor)
+            stated = getattr(line, "alert_limit", math.nan)  # the line's, where it states one
+            rep = estimator_report(bag, topic, source, truth, rate_factor,
+                                   stated if math.isfinite(stated) else ALERT_LIMIT)
             series[source] = rep.pop("_series")
             summary["estimators"][source] = rep
     if line is not None and truth is not None:

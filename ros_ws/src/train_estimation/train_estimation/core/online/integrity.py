@@ -171,9 +171,10 @@ class IntegrityParams:
     integrity_risk: float = param(1e-7, "-", "probability per estimate that the true position "
                                   "lies outside [position - protection_level_behind, position + "
                                   "protection_level_ahead] without an ALARM (protection.py)")
-    alert_limit: float = param(10.0, "m", "largest protection level the operation can use: "
-                               "within it the estimate is OK, beyond it DEGRADED (still "
-                               "bounded)")
+    alert_limit: float = param(math.nan, "m", "largest protection level the operation can "
+                               "use: within it the estimate is OK, beyond it DEGRADED (still "
+                               "bounded); NaN = the line's (line.yaml alert_limit), 10 m where "
+                               "the line states none")
 
     def __post_init__(self):
         require_finite(self, ("degraded_after", "alarm_after", "accel_uncertainty",
@@ -187,8 +188,20 @@ class IntegrityParams:
         require(self.pos_window >= 2, "pos_window", self.pos_window, "must be >= 2")
         require(0.0 < self.integrity_risk < 0.5, "integrity_risk", self.integrity_risk,
                 "must be in (0, 0.5)")
-        require(math.isfinite(self.alert_limit) and self.alert_limit > 0, "alert_limit",
-                self.alert_limit, "must be > 0")
+        require(math.isnan(self.alert_limit) or (math.isfinite(self.alert_limit)
+                                                  and self.alert_limit > 0), "alert_limit",
+                self.alert_limit, "must be > 0 (or NaN: the line's)")
+
+
+DEFAULT_ALERT_LIMIT = 10.0  # m, where neither the parameter nor the line states one
+
+
+def alert_limit(params: IntegrityParams, line=None) -> float:
+    """m, the alert limit in force: the parameter's, else the line's, else 10 m."""
+    if math.isfinite(params.alert_limit):
+        return float(params.alert_limit)
+    stated = getattr(line, "alert_limit", math.nan)
+    return float(stated) if math.isfinite(stated) else DEFAULT_ALERT_LIMIT
 
 
 class IntegrityMonitor:
@@ -201,6 +214,7 @@ class IntegrityMonitor:
         self.p, self.period = params, float(period)
         # the believed train and line (``standing``; None: that check is off)
         self.train, self.line = train, line
+        self.alert_limit = alert_limit(params, line)
         self.commands: deque = deque()  # (stamp, m/s^2) of the commands of the last window
         self.counts_seen: deque = deque()  # (stamp, odometer count m) of the last window
         self.fused_seen: deque = deque()  # (stamp, count m, speed m/s) of fused readings
@@ -721,7 +735,7 @@ class IntegrityMonitor:
             elif out.consider:
                 var += float(out.consider[0])
             ahead, behind = protection_levels(var, hyps, self.p.integrity_risk)
-        state = label(ahead, behind, self.p.alert_limit, doubt == ALARM)
+        state = label(ahead, behind, self.alert_limit, doubt == ALARM)
         self.counts[NAMES[state]] += 1
         self.last_state = (state, why)
         # the speed variance the next NIS term uses: unknown (a broken or ALARM covariance)
