@@ -32,3 +32,16 @@ def test_not_estimated_or_invalid_variances_are_unknown_never_nan(bad):
 def test_wrong_size_is_an_error():
     with pytest.raises(ValueError, match="16"):
         odometry_covariances([0.0] * 4)
+
+
+def test_the_position_variance_overbounds_the_protection_levels():
+    """K sd at the stated risk reach the larger protection level (never below the estimator's
+    own variance); ALARM (levels +inf) is unknown."""
+    from statistics import NormalDist
+
+    cov = list(np.diag([0.25, 0.01, 0.3, 0.02]).ravel())
+    k = NormalDist().inv_cdf(1.0 - 1e-7 / 2.0)
+    pose, _ = odometry_covariances(cov, (12.0, 20.0, 1e-7))
+    assert math.isclose(k * math.sqrt(pose[0]), 20.0, rel_tol=1e-12)
+    assert odometry_covariances(cov, (1.0, 2.0, 1e-7))[0][0] == 0.25  # its own is wider
+    assert odometry_covariances(cov, (math.inf, math.inf, 1e-7))[0][0] == UNKNOWN_VARIANCE

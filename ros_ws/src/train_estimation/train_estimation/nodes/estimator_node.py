@@ -290,7 +290,9 @@ def build_estimator_node(name: str, topic: str, make_adapter: Callable):
             odom.pose.pose.position.x = state.position
             odom.pose.pose.orientation.w = 1.0  # the body x axis along the track's
             odom.twist.twist.linear.x = state.velocity
-            odom.pose.covariance, odom.twist.covariance = odometry_covariances(state.covariance)
+            odom.pose.covariance, odom.twist.covariance = odometry_covariances(
+                state.covariance, (state.protection_level_ahead, state.protection_level_behind,
+                                   self.runner.integrity.integrity_risk))
             return odom
 
         def diagnostics(self):
