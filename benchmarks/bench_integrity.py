@@ -484,6 +484,12 @@ def targets(groups: list[dict], zone: list[dict]) -> bool:
                   "availability >= 99 % through drift, steps <= 10 s and latency tails: "
                   + (f"lowest {100 * worst['availability']:.1f} % ({worst['scenario']}, "
                      f"{worst['label']}, {worst['estimator']})" if worst else "no rows")))
+    clean = [g for g in real if g["kind"] == "none" and g["p95_err"] > 0]
+    loose = max(clean, key=lambda g: g["pl_p50"] / g["p95_err"], default=None)
+    lines.append((bool(clean) and loose["pl_p50"] <= 5.0 * loose["p95_err"],
+                  "tightness: median protection level <= 5 x the p95 |error| on clean runs: "
+                  + (f"loosest {loose['pl_p50'] / loose['p95_err']:.1f} x ({loose['scenario']}, "
+                     f"{loose['estimator']})" if loose else "no rows")))
     out60 = [g for g in real if g["scenario"] == "metro_demo" and g["kind"] == "outage"
              and g["size"] == 60.0]
     w60 = max(out60, key=lambda g: g["window_err"], default=None)

@@ -237,3 +237,25 @@ def test_the_start_up_is_not_scored_as_unavailable():
     assert first > 1.9  # the start-up: nothing before the third reading
     s = F.score(outs, emitted, fl, res.truth, 1.0, 60.0 + F.LATENCY)
     assert s["clear"] == 1.0, s
+
+
+def test_the_tightness_figures_count_from_the_first_balise_and_take_alarm_as_unbounded():
+    """``faults._tightness``: over the estimates published from the first balise's arrival on,
+    the p95 |error|, the median and 99th percentile of the larger level (an ALARM is +inf, taken
+    at an estimate, not interpolated) and ETCS's 1 m + 1 % of the true distance run since the
+    last balise read."""
+    from types import SimpleNamespace
+
+    t = np.arange(30.0)
+    tr_t, tr_x = t, 10.0 * t  # 10 m/s
+    faulted = SimpleNamespace(events=[("balise", F.EPOCH + 10.0, {"position": 100.0},
+                                       F.EPOCH + 10.0)])
+    a = np.full(30, 1.0)
+    a[-1] = 3.0
+    ahead, behind = np.full(30, 4.0), np.full(30, 5.0)
+    integ = np.zeros(30, int)
+    integ[-1] = 2  # ALARM: unbounded
+    got = F._tightness(t, t, a, ahead, behind, integ, faulted, tr_t, tr_x)
+    assert got["pl_p50"] == 5.0 and got["al99"] == math.inf
+    assert got["p95_err"] == pytest.approx(np.percentile(a[10:], 95))
+    assert got["etcs_p50"] == pytest.approx(1.0 + 0.01 * 10.0 * np.median(t[10:] - 10.0))

@@ -470,7 +470,7 @@ def score(outs: list, emitted: np.ndarray, faulted: Faulted, truth: dict, rate: 
     # published at once, nor a claim about a time far ahead)
     timely = np.abs(em - LATENCY - t) <= AVAILABLE_LAG
     e_after = a[after & np.isfinite(a)]
-    tight = _tightness(outs, em, t, a, ahead, behind, integ, faulted, tr_t, tr_x)
+    tight = _tightness(em, t, a, ahead, behind, integ, faulted, tr_t, tr_x)
     w = after & (em <= faulted.end + window) & np.isfinite(a)
     stamps_after = np.concatenate([[faulted.onset], em[after], [t_end]])
     return dict(
@@ -498,7 +498,7 @@ def score(outs: list, emitted: np.ndarray, faulted: Faulted, truth: dict, rate: 
 ETCS_LOCACC = 1.0  # m, a balise group's location accuracy (ETCS Q_LOCACC) in the comparison
 
 
-def _tightness(outs, em, t, a, ahead, behind, integ, faulted, tr_t, tr_x) -> dict:
+def _tightness(em, t, a, ahead, behind, integ, faulted, tr_t, tr_x) -> dict:
     """What the protection levels are worth, over the estimates published after the first
     balise reached the estimator: ``p95_err`` (m, |error|), ``pl_p50`` (m, the median of the
     larger level; ALARM counts as +inf), ``al99`` (m, the alert limit at which 99 % of them
@@ -519,6 +519,8 @@ def _tightness(outs, em, t, a, ahead, behind, integ, faulted, tr_t, tr_x) -> dic
     read_x = np.interp(read_t, tr_t, tr_x)  # where the train was when each was read
     last = np.searchsorted(read_t, em[sel], side="right") - 1
     run = np.abs(np.interp(t[sel], tr_t, tr_x) - read_x[np.maximum(last, 0)])
-    return dict(p95_err=float(np.percentile(a[sel], 95)), pl_p50=float(np.median(pl)),
-                al99=float(np.percentile(pl, 99)),
+    # quantiles taken at an estimate (no interpolation: a level may be +inf, in ALARM)
+    return dict(p95_err=float(np.percentile(a[sel], 95)),
+                pl_p50=float(np.quantile(pl, 0.5, method="higher")),
+                al99=float(np.quantile(pl, 0.99, method="higher")),
                 etcs_p50=float(np.median(ETCS_LOCACC + 0.01 * run)))

@@ -36,8 +36,9 @@ When a balise moves ``theta``, the estimate is moved with the mapping (:meth:`sh
 next reading continues it instead of looking like a jump the filter's gate refuses.
 
 An odometer that reboots begins its count again from 0; the adapters splice the new count onto
-the old one where their prediction puts the train (``_DistanceAsPosition._restart``), and the
-prediction's variance enters here as a concentrated walk of ``x0`` at the count of the splice
+the old one where their prediction puts the train
+(``calibrated_odometry.DistanceAsPosition._restart``), and the prediction's variance enters
+here as a concentrated walk of ``x0`` at the count of the splice
 (:meth:`OdometerCalibration.splice`).
 
 A balise reader can stamp late: a reading stamped when the telegram was decoded, not when the
@@ -286,7 +287,7 @@ class OdometerCalibration:
     def widen_origin(self, move: float, variance: float) -> None:
         """The origin moved by ``move`` (m) with ``variance`` (m^2) more doubt, before any
         balise (the first odometer reading's count far from the start:
-        ``_DistanceAsPosition._origin``)."""
+        ``calibrated_odometry.DistanceAsPosition._origin``)."""
         if math.isfinite(move) and math.isfinite(variance) and variance >= 0:
             self.theta = self.theta + np.array([move, 0.0, 0.0])
             self.Sigma = self.Sigma + np.diag([variance, 0.0, 0.0])

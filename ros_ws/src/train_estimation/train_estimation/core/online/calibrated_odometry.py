@@ -1,0 +1,433 @@
+"""The odometer as both adapters read it (pure): its count mapped to the track by the
+balise-calibrated :class:`~.odometer_scale.OdometerCalibration`, the calibrations that carry the
+fault hypotheses beside it (a late balise reader, a start or count that is off), and the doubt
+they add to an estimate (``Output.consider`` and ``Output.separation``).
+
+:class:`DistanceAsPosition` is the base of ``estimators.RobustAdapter`` and
+``estimators.BrakingAdapter``; ``check_odometry`` checks the parameters their configs share.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from train_core.config import require
+
+from .. import reasons as R
+from .odometer_scale import (
+    A_MAX,
+    EXCLUSION_RISK,
+    LATENCY_WIDE,
+    BaliseFix,
+    OdometerCalibration,
+    latency_beyond_prior,
+    log_density,
+)
+
+
+def check_odometry(cfg) -> None:
+    """The odometer-calibration parameters both configs share (:class:`DistanceAsPosition`)."""
+    require(math.isfinite(cfg.odometer_scale_std) and cfg.odometer_scale_std > 0,
+            "odometer_scale_std", cfg.odometer_scale_std, "must be finite and > 0")
+    require(math.isfinite(cfg.odometer_scale) and 0.5 <= cfg.odometer_scale <= 2.0,
+            "odometer_scale", cfg.odometer_scale, "must be in [0.5, 2] (a ratio of "
+            "distances, 1 when unknown)")
+    require(cfg.balise_gate > 0, "balise_gate", cfg.balise_gate, "must be > 0")
+    require(math.isfinite(cfg.balise_latency_std) and cfg.balise_latency_std >= 0,
+            "balise_latency_std", cfg.balise_latency_std, "must be finite and >= 0")
+
+
+class DistanceAsPosition:
+    """The odometer as both adapters read it (``start_state``, ``cfg``): its count mapped to
+    the track by the balise-calibrated :class:`OdometerCalibration`, and the calibration's own
+    uncertainty beside the filter's (``Output.consider``).
+
+    Without the distance (``use_distance: false``: a speed-only sensor, or a count that is not
+    to be trusted) the balises enter the filter as position readings, and the filter carries
+    the position from one to the next on the odometer's speed. The scale and a late balise
+    reader are then as wrong as they are with the distance, only less visible: a speed 1-2 %
+    off ran a KF 200 m from the train with a metre of variance (the balises it then met lay
+    outside its gate), and a reader stamping 0.2-0.5 s late put every fix ``v tau`` behind it
+    (thousands of wrong-side estimates per run, either way). So the calibration runs here too,
+    on a count made of the speeds (``_count``: the trapezoid between fused readings), and
+    serves the filter instead of replacing its position reading:
+
+    - the speed is fused mapped by the calibrated scale, and the estimate's speed moves with
+      the mapping when a balise changes it;
+    - a balise is fused where the calibrated latency puts the train at its stamp, ``b + c v_b
+      tau``, with ``(c v_b sd_tau)^2`` more variance;
+    - what the filter does not carry (its speed taken as exact) is the error since the last
+      balise it fused: ``dp = (run + v_b tau) dc + c v_b dtau`` (``run``: the count since that
+      balise, ``v_b`` the counted speed at it), ``dv = v_odo dc``. It is published as the
+      consider term, and added to the filter's position variance before the next balise is
+      fused (so that the balise corrects it rather than a filter sure of a drifted position
+      refusing it or taking half of it);
+    - a balise can lie (a survey error), and the filter takes one that its own interval
+      holds: the published position variance also covers the filter without each of the last
+      three balises it fused (solution separation, as the calibration does with the
+      distance): that balise's move squared plus the variance before it.
+    """
+
+    def _init_odometry(self) -> None:
+        s, cfg = self.start_state, self.cfg
+
+        def calibration(latency_std: float) -> OdometerCalibration:
+            return OdometerCalibration(s.position, s.position_std, cfg.odometer_scale_std,
+                                       cfg.balise_gate, scale=1.0 / cfg.odometer_scale,
+                                       latency_std=latency_std, start_fault=s.position_fault)
+
+        self.cal = calibration(cfg.balise_latency_std)
+        # the same calibration with a wide latency prior, on the same fixes: it replaces the
+        # narrow one when the reader is found out of its prior (odometer_scale module doc)
+        self.cal_wide = calibration(LATENCY_WIDE) \
+            if cfg.balise_latency_std < LATENCY_WIDE else None
+        self.latency_found = 0  # the wide calibration took over (event balise_latency)
+        # after it took over, the calibration it replaced, as the hypothesis "the reader is on
+        # time" (two balises at one speed cannot tell a late reader from a start or a count
+        # that is off), until a sequential likelihood-ratio test excludes one of the two
+        # (:meth:`_judge`); llr: log-likelihood of the balises under cal minus under cal_alt
+        self.cal_alt: OdometerCalibration | None = None
+        self.llr = 0.0
+        self.odo: tuple | None = None  # (stamp s, distance m, speed m/s) of the last fused
+        #   odometer reading, as counted (without the distance: the count made of the speeds)
+        self.anchor = (0.0, 0.0)  # without the distance: (count m, counted speed m/s) at the
+        #   last balise the filter fused (the start: the count's zero, standing)
+        self.separation: tuple = ()  # without the distance: (move m, variance before m^2) of
+        #   the last EXCLUDED balises the filter fused (solution separation, class doc)
+        self.splice = 0.0  # m added to the odometer's distance: its count restarted (_restart)
+        self.odo_seq: int | None = None  # the counter of the last fused odometer reading
+        self.restarts = 0  # counts spliced (event count_reset)
+        self.origin_far = 0  # 1: the first reading's count was far from the start (_origin)
+        self.origin_seen = False  # the first odometer reading's count was looked at
+
+    def _count(self, stamp: float, fields: dict) -> float:
+        """m, the odometer's count at a reading: its distance, or without the distance the
+        speeds integrated from the last fused reading (trapezoid; 0 at the first)."""
+        if self.cfg.use_distance:
+            return float(fields["distance"]) + self.splice
+        if self.odo is None:
+            return 0.0
+        t0, d0, v0 = self.odo
+        return d0 + 0.5 * (v0 + float(fields["speed"])) * (stamp - t0)
+
+    def _mapped(self, fields: dict, stamp: float = math.nan) -> tuple[float, float, float]:
+        """``(position m, speed m/s, speed variance)`` of an odometer reading (stamped
+        ``stamp``) on the track (the speed by the calibrated scale too); NaN where a field is
+        missing or not a number."""
+        try:
+            v, rv = (float(fields[k]) for k in ("speed", "speed_variance"))
+            d = self._count(stamp, fields)
+        except (KeyError, TypeError, ValueError):
+            return math.nan, math.nan, math.nan
+        c = float(self.cal.theta[1])
+        return self.cal.position(d), c * v, c * c * rv
+
+    def monitor_fields(self, fields: dict) -> dict:
+        """An odometer reading as the integrity monitor judges it: the speed (and its
+        variance) by the calibrated scale, as the filter fuses it."""
+        _, v, rv = self._mapped(fields)
+        return {**fields, "speed": v, "speed_variance": rv}
+
+    def monitor_balise(self, fields: dict) -> dict:
+        """A balise reading as the integrity monitor judges it against the odometer: where the
+        train was at its stamp by the reader's latency as calibrated so far (``v tau`` on from
+        the balise, with ``(v sigma_tau)^2`` more variance; module doc of ``odometer_scale``),
+        as the calibration fuses it."""
+        if self.odo is None:
+            return fields
+        tau, s_tau = self.cal.latency()
+        if tau == 0.0 and s_tau == 0.0:
+            return fields
+        try:
+            pos, var = float(fields["position"]), float(fields["position_variance"])
+        except (KeyError, TypeError, ValueError):
+            return fields
+        v = float(self.cal.theta[1]) * self.odo[2]
+        return {**fields, "position": pos + v * tau, "position_variance": var + (v * s_tau) ** 2}
+
+    def _restart(self, stamp: float, fields: dict):
+        """Splice a restarted count onto the old one (a sensor that rebooted: its counter and
+        its distance begin again from 0 while the train runs on). A reading whose counter went
+        back (its stamp on) says its count may have too, by any amount: its count is taken to
+        be where the estimator's own prediction puts the train at its stamp (the commands
+        through the gap included), and the prediction's variance is added to the count's
+        origin from there on (:meth:`OdometerCalibration.splice`); a counter that wrapped with
+        its count going on costs one period's prediction variance until the next balise.
+        Taken as it came, the restarted count put the estimate 750 m back, refused by the
+        gates (ALARM until two balises relocated the count: the zone controller brakes on
+        ALARM), and 80 m back after a 10 s reboot early in a run, inside the KF's gate: 226
+        estimates OK while beyond 5 sigma. (A test of the distance for a step back missed that
+        one, the new count since the boot exceeding the old; a count carried at the last
+        speed, 45 m short after 10 s of acceleration, was refused by the KF's gate.) Returns
+        what to restore should the reading not be fused (a corrupted copy must not move the
+        count), or None."""
+        if not self.cfg.use_distance or self.odo is None or self.odo_seq is None:
+            return None
+        try:
+            seq, d = int(fields["seq"]), float(fields["distance"])
+        except (KeyError, TypeError, ValueError):
+            return None
+        if not (math.isfinite(d) and d >= 0.0 and 0 <= seq < self.odo_seq
+                and stamp > self.odo[0]):
+            return None
+        pred = self.output(stamp)  # on copies: the state is untouched
+        x, var = float(pred.position), float(pred.covariance[0])
+        x0, c = (float(v) for v in self.cal.theta[:2])
+        if not (math.isfinite(x) and math.isfinite(var) and var > 0.0):
+            return None
+        undo = (self.splice, self.restarts,
+                *(cal.copy() if cal is not None else None
+                  for cal in (self.cal, self.cal_wide, self.cal_alt)))
+        at = (x - x0) / c  # the old count where the train is predicted
+        self.splice = at - d
+        for cal in self._cals():
+            cal.splice(at, var)
+        self.restarts += 1
+        return undo
+
+    def _origin(self, fields: dict) -> None:
+        """The first odometer reading's count against ``initial_position`` (where the count is
+        zero). A count ``c`` other than zero there means one of two things, and nothing before
+        a balise tells which: the train ran ``c`` from the start before the data began
+        (``initial_position + c``), or the count began before the data did (a count not reset
+        at the start, a bag recorded from mid-run, a sensor that counts from its power-up: the
+        train at ``initial_position``). Both hypotheses are carried, whatever the size of
+        ``c``: the calibration's origin is put where the estimate starts and its variance grown
+        by ``c^2``, so that the interval holds both, and the first balise places the count. A
+        rule that took the count as distance run below 8 start deviations (40 m) and as unknown
+        above left counts of 26-39 m not reset at the start 26-53 m off with an OK label
+        through the run (the balises that contradicted it were refused by the gate); taken as
+        the parameter says, a count of 5 km had every reading refused for the whole run. The
+        event ``count_origin`` is said where the count lies beyond the start's own standard
+        deviation (below it, the widening is within what the start already allowed)."""
+        if not self.cfg.use_distance or self.odo is not None or self.origin_seen:
+            return
+        try:
+            d = float(fields["distance"])
+        except (KeyError, TypeError, ValueError):
+            return
+        if not math.isfinite(d):
+            return
+        self.origin_seen = True
+        far = float(self.cal.theta[1]) * d
+        if far == 0.0:
+            return
+        for cal in self._cals():
+            cal.widen_origin(-far, far * far)
+        self.origin_far = int(abs(far) > self.start_state.position_std)
+
+    def _unrestart(self, undo) -> None:
+        """The reading that spliced the count was not fused: as before it (:meth:`_restart`)."""
+        if undo is not None:
+            self.splice, self.restarts, self.cal, self.cal_wide, self.cal_alt = undo
+
+    def _odometer_fused(self, stamp: float, fields: dict) -> None:
+        self.odo = (stamp, self._count(stamp, fields), float(fields["speed"]))
+        try:
+            self.odo_seq = int(fields["seq"])
+        except (KeyError, TypeError, ValueError):
+            self.odo_seq = None
+        for cal in self._cals():
+            cal.walk_to(self.odo[1])
+
+    def _cals(self) -> list:
+        """The calibrations alive: the model, the wide-latency check, the alternative."""
+        return [c for c in (self.cal, self.cal_wide, self.cal_alt) if c is not None]
+
+    def _count_at(self, t: float) -> float:
+        """m, the odometer's count at ``t``, carried from the last fused reading at its
+        speed."""
+        t0, d0, v0 = self.odo
+        return d0 + v0 * (t - t0)
+
+    def position_reading(self, fields: dict):
+        """The odometer reading as this estimator's position measurement for the integrity
+        monitor: ``(position m, distance_variance m^2, the calibration's variance of it m^2)``,
+        or None when distance is not used."""
+        if not self.cfg.use_distance:
+            return None
+        try:
+            d = float(fields["distance"]) + self.splice
+        except (KeyError, TypeError, ValueError):
+            return None
+        return (self.cal.position(d), float(self.cfg.distance_variance),
+                self.cal.position_variance(d))
+
+    def _balise_fix(self, stamp: float, position: float, variance: float) -> BaliseFix | None:
+        """The balise against the odometer's count at its stamp (carried from the last reading
+        at its speed, with an acceleration error of up to ``A_MAX``), or None before the
+        first reading."""
+        if self.odo is None:
+            return None
+        dt = abs(stamp - self.odo[0])
+        c = float(self.cal.theta[1])
+        rd = self.train.odometer_speed_variance * dt * dt + (0.5 * A_MAX * dt * dt) ** 2
+        return BaliseFix(position, variance + self.cfg.distance_variance + c * c * rd,
+                         self._count_at(stamp), self.odo[2])
+
+    def _calibrate(self, fix: BaliseFix, t_now: float) -> tuple[bool, float, float]:
+        """``(fused, dx m, dv m/s)``: the balise given to the calibration, and how far the
+        estimate at ``t_now`` moves with the mapping."""
+        old = self.cal.theta.copy()
+        judged = self._likelihoods(fix)
+        ok = self.cal.balise(fix)
+        if self.cal_alt is not None:
+            self.cal_alt.balise(fix)
+            ok = self._judge(judged) or ok
+        if self.cal_wide is not None:
+            self.cal_wide.balise(fix)
+            if latency_beyond_prior(self.cal_wide, self.cfg.balise_latency_std):
+                # the reader is out of its prior: the wide calibration (which took this balise
+                # or held it) is the model from now on, the one it replaces its alternative
+                self.cal, self.cal_alt, self.cal_wide = self.cal_wide, self.cal, None
+                self.llr = 0.0
+                self.latency_found += 1
+                ok = True
+        if not ok:
+            return False, 0.0, 0.0
+        d = self._count_at(t_now)
+        dx = self.cal.position(d) - float(old[0] + old[1] * d)
+        return True, dx, float(self.cal.theta[1] - old[1]) * self.odo[2]
+
+    def _likelihoods(self, fix: BaliseFix) -> tuple | None:
+        """The log predictive densities of ``fix`` under the calibration and its alternative
+        (before either takes it), or None without an alternative."""
+        if self.cal_alt is None:
+            return None
+        out = []
+        for cal in (self.cal, self.cal_alt):
+            cal.walk_to(fix.distance)
+            out.append(log_density(*cal._innovation(fix)))
+        return tuple(out)
+
+    def _judge(self, judged: tuple | None) -> bool:
+        """Wald's sequential probability-ratio test between the calibration and its
+        alternative on the balises both predicted: the log-likelihood ratio summed over them,
+        and at ``log(1 / EXCLUSION_RISK)`` the one it speaks against is excluded (the
+        ratio of the wrong hypothesis over the true one is a martingale, so it ever reaches
+        ``1 / alpha`` with probability at most ``alpha``: the false exclusions stay within
+        that risk whatever the number of balises). Returns True when the alternative becomes
+        the model (the estimate moves with its mapping)."""
+        if judged is None:
+            return False
+        self.llr += judged[0] - judged[1]
+        bound = math.log(1.0 / EXCLUSION_RISK)
+        if self.llr >= bound:
+            self.cal_alt = None
+        elif self.llr <= -bound:
+            self.cal, self.cal_alt = self.cal_alt, None
+            return True
+        return False
+
+    def _uncounted(self, t: float) -> np.ndarray:
+        """Without the distance: the row ``dp / d theta`` of the position the filter carries
+        at ``t`` from the last balise it fused (class doc)."""
+        c, tau = float(self.cal.theta[1]), float(self.cal.theta[2])
+        d_b, v_b = self.anchor
+        return np.array([0.0, self._count_at(max(t, self.odo[0])) - d_b + v_b * tau, c * v_b])
+
+    def _calibration(self, t: float) -> dict:
+        """The calibration's doubt at ``t`` as an Output's ``consider`` (its (position, speed)
+        covariance, row-major 2x2: module doc of ``odometer_scale``; without the distance, the
+        class doc's) and ``separation`` (the same as solutions: ``(variance, ((shift,
+        variance), ...))``, :meth:`OdometerCalibration.doubt`); both empty before the first
+        odometer reading."""
+        if self.odo is None:
+            return {"consider": (), "separation": ()}
+        d = self._count_at(max(t, self.odo[0]))
+        alt = self._alternative(d)
+        if self.cfg.use_distance:
+            C, (var, alts) = self.cal.doubt(d, self.odo[2])
+            for m, v in alt:
+                C[0, 0] = max(C[0, 0], m * m + v)
+            return {"consider": tuple(C.ravel()), "separation": (var, alts + alt)}
+        J = np.array([self._uncounted(t), [0.0, self.odo[2], 0.0]])
+        C = J @ self.cal.Sigma @ J.T
+        var = float(C[0, 0])
+        # solution separation: the filter without each of its last balises lies that balise's
+        # move away, as sure as it was before it (one may lie: a survey error)
+        C[0, 0] += max((m * m + v for m, v in self.separation + alt), default=0.0)
+        return {"consider": tuple(C.ravel()),
+                "separation": (var, tuple((float(m), float(v))
+                                          for m, v in self.separation + alt))}
+
+    def _alternative(self, d: float) -> tuple:
+        """``((shift m, variance m^2),)`` of the alternative calibration at the count ``d``
+        relative to the model (:attr:`cal_alt`), or ``()``."""
+        if self.cal_alt is None:
+            return ()
+        return ((self.cal_alt.position(d) - self.cal.position(d),
+                 self.cal_alt.position_variance(d)),)
+
+    def _balise_for_filter(self, fix: BaliseFix, stamp: float,
+                           t_now: float) -> tuple[float, float, float, float]:
+        """Without the distance: the calibration takes the balise (it learns the scale and the
+        latency); returns ``(position m, variance m^2, dv m/s, q m^2)`` for the filter: the
+        balise where the calibrated latency puts the train at its stamp, the speed's move with
+        the mapping (0 when the calibration refused the balise) and the position variance the
+        filter lacks since the last balise it fused (class doc)."""
+        h = self._uncounted(stamp)
+        q = float(h @ self.cal.Sigma @ h)
+        ok, _, dv = self._calibrate(fix, t_now)
+        tau, s_tau = self.cal.latency()
+        v = float(self.cal.theta[1]) * fix.speed
+        return fix.position + v * tau, fix.variance + (v * s_tau) ** 2, dv if ok else 0.0, q
+
+    @staticmethod
+    def _carried(x, P, dt: float) -> tuple[float, float]:
+        """``(position m, its variance m^2)`` of the estimate ``x`` = (position, speed, ...)
+        with covariance ``P`` carried ``dt`` s at its speed."""
+        P = np.asarray(P, dtype=float)
+        return (float(x[0] + x[1] * dt),
+                float(P[0, 0] + 2.0 * P[0, 1] * dt + P[1, 1] * dt * dt))
+
+    def _balise_fused(self, fix: BaliseFix, position: float,
+                      before: tuple[float, float]) -> None:
+        """Without the distance: the filter fused ``fix`` and its position is now ``position``;
+        ``before``: its position and variance at the balise's stamp before (:meth:`_carried`)."""
+        self.anchor = (fix.distance, fix.speed)
+        move, var_before = position - before[0], before[1]
+        if math.isfinite(move) and math.isfinite(var_before):
+            self.separation = (self.separation + ((move, var_before),))[
+                -OdometerCalibration.EXCLUDED:]
+
+    def odometer_scale(self) -> tuple[float, float] | None:
+        """The odometer's scale as learnt so far, ``(reading / true distance, its std)``, in the
+        terms of the ``odometer_scale`` parameter (a next run can start from it), or None
+        without a calibration."""
+        c, var = float(self.cal.theta[1]), float(self.cal.Sigma[1, 1])
+        if not (math.isfinite(c) and c > 0 and math.isfinite(var) and var >= 0):
+            return None
+        return 1.0 / c, math.sqrt(var) / (c * c)  # d(1/c) = -dc / c^2
+
+    def balise_latency(self) -> tuple[float, float] | None:
+        """The balise reader's latency as learnt so far, ``(s, its std s)`` (the
+        ``balise_latency_std`` parameter's terms), or None without a calibration or a latency
+        prior."""
+        if self.cfg.balise_latency_std == 0.0 and not self.latency_found:
+            return None
+        return self.cal.latency()
+
+    def odometry_events(self) -> dict:
+        """Event name -> how many so far, of the odometer's calibration (in :attr:`counters`;
+        the runner logs each new one)."""
+        return {k: n for k, n in ((R.RELOCATED, self.cal.relocated),
+                                  (R.BALISE_EXCLUDED, self.cal.excluded),
+                                  (R.BALISE_LATENCY, self.latency_found),
+                                  (R.COUNT_RESET, self.restarts),
+                                  (R.COUNT_ORIGIN, self.origin_far),
+                                  (R.START_EXCLUDED, self.cal.start_excluded)) if n}
+
+    def _odometry_snapshot(self):
+        return tuple(c.copy() if c is not None else None
+                     for c in (self.cal, self.cal_wide, self.cal_alt)) \
+            + (self.llr, self.odo, self.latency_found, self.anchor, self.separation,
+               self.splice, self.odo_seq, self.restarts, self.origin_far, self.origin_seen)
+
+    def _odometry_restore(self, snap) -> None:
+        cal, wide, alt, self.llr, self.odo, self.latency_found, self.anchor, self.separation, \
+            self.splice, self.odo_seq, self.restarts, self.origin_far, self.origin_seen = snap
+        self.cal = cal.copy()
+        self.cal_wide = wide.copy() if wide is not None else None
+        self.cal_alt = alt.copy() if alt is not None else None
