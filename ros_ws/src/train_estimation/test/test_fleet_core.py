@@ -224,3 +224,46 @@ def test_runs_needed_and_unreliable_consensus():
         "runs": 22, "analysed": 2, "failed": 20, "trains": 2, "reliable": False}
     assert any(r.startswith("line north: 2 of 22 runs analysed") for r in rel["reasons"])
     assert any(r.startswith("braking_rate: values of 2 trains") for r in rel["reasons"])
+
+
+def test_speed_test_by_hand():
+    """x = a (a map error at any speed) against x = b v2 (a drag growing as v^2): each model's
+    weighted residual sum of squares on k - 1 degrees of freedom."""
+    x, se, v2 = [2.0, 4.0, 6.0], [0.5, 0.5, 0.5], [100.0, 200.0, 300.0]
+    t = F.speed_test(x, se, v2, 0.01)
+    w = 4.0  # 1 / 0.5^2
+    b = sum(w * xi * ui for xi, ui in zip(x, v2)) / sum(w * ui * ui for ui in v2)  # 0.02
+    assert t["permille_per_v2"] == pytest.approx(b) and t["permille_at_any_speed"] == 4.0
+    assert t["p_place"] == pytest.approx(stats.chi2.sf(w * (4 + 0 + 4), 2))
+    assert t["p_speed"] == pytest.approx(1.0) and t["decided"] == "speed"
+    t = F.speed_test([4.0, 4.2, 3.9], se, v2, 0.01)
+    assert t["decided"] == "place"
+    # passes at one speed: both fit; the speeds that would tell part the models by 3 se
+    t = F.speed_test([4.0, 4.1, 3.9], se, [400.0, 401.0, 399.0], 0.01)
+    assert t["decided"] == "either"
+    lo, hi = sorted(((4.0 - 1.5) / t["permille_per_v2"], (4.0 + 1.5) / t["permille_per_v2"]))
+    assert t["would_tell"]["below_m_s"] == pytest.approx(math.sqrt(lo))
+    assert t["would_tell"]["above_m_s"] == pytest.approx(math.sqrt(hi))
+    assert F.speed_test([4.0], [0.5], [100.0], 0.01) is None  # one pass cannot tell
+    assert F.speed_test(x, se, [math.nan] * 3, 0.01) is None  # no speeds (an older row)
+
+
+def test_a_section_whose_gradient_grows_as_the_passes_speed_squared_is_no_map_error():
+    """Four trains find a section at 30-80 km/h; its gradient grows with the pass's speed
+    squared (a tunnel's drag, 0.03 per mille per m^2/s^2): not a map error. The same section
+    found at the same permille at every speed is one, and says it is the same at any speed."""
+    speeds = np.array([8.3, 12.0, 16.7, 22.2])
+    tunnel = [_row(f"T{i}", "north", (1000, 1400, 0.03 * v * v, 0.5))
+              for i, v in enumerate(speeds)]
+    flat = [_row(f"T{i}", "north", (1000, 1400, 9.0 + 0.2 * (i % 2), 0.5))
+            for i, v in enumerate(speeds)]
+    for rows, v in ((tunnel, speeds), (flat, speeds)):
+        for r, vi in zip(rows, v):
+            r["gradient"]["v2"] = vi * vi
+    res = F.consensus(tunnel)
+    s = res.lines["north"]["sections"][0]
+    assert res.map_errors == [] and s["verdict"] == "drag growing with speed (a tunnel)"
+    assert s["speed_test"]["decided"] == "speed"
+    res = F.consensus(flat)
+    assert [m["verdict"] for m in res.map_errors] == ["map error"]
+    assert res.map_errors[0]["speed_test"]["decided"] == "place"

@@ -83,7 +83,7 @@ import numpy as np
 from train_estimation.tools.common import EXIT_CHECK_FAILED, EXIT_OK, fail, json_default
 from train_estimation.tools.report_html import write_report_html
 
-VERSION = "fleet-2"  # part of the cache key: bump when a task's result changes meaning
+VERSION = "fleet-3"  # part of the cache key: bump when a task's result changes meaning
 PARAMS = ("braking_rate", "mass", "odometer_scale")
 
 
@@ -301,7 +301,8 @@ def consensus_rows(rows: list[dict]) -> list[dict]:
              "coverage": r.get("coverage"), "day": r.get("day")}
         if r.get("gradient_se"):
             c["gradient"] = {"start": r["gradient_start"], "end": r["gradient_end"],
-                             "permille": r["gradient_permille"], "se": r["gradient_se"]}
+                             "permille": r["gradient_permille"], "se": r["gradient_se"],
+                             "v2": r.get("gradient_v2")}
         if r.get("resistance_dforce_se"):
             c["resistance"] = {"value": r["resistance_dforce"],
                                "se": r["resistance_dforce_se"]}
@@ -545,9 +546,32 @@ def window(rows: list[dict], days: int) -> list[dict]:
 # Output
 # ------------------------------------------------------------------------------------------------
 
+def speed_note(section: dict) -> str:
+    """What the passes' speeds say of a section found as a gradient (core.offline.fleet's
+    place-against-speed test), in words, or ''."""
+    sp = section.get("speed_test")
+    if not sp or section["verdict"] not in ("map error", "disputed",
+                                            "drag growing with speed (a tunnel)"):
+        return ""
+    kmh = f"{3.6 * sp['v_min']:.0f}-{3.6 * sp['v_max']:.0f} km/h"
+    if sp["decided"] == "place":
+        return f" (the same at {kmh}: not a drag growing with speed)"
+    if sp["decided"] == "speed":
+        return (f" ({sp['permille_per_v2'] * 1e3:+.3f} per mille per 1000 m^2/s^2 over "
+                f"passes at {kmh}: not the same at every speed, as a map error is)")
+    if sp["decided"] == "either":
+        tell = sp.get("would_tell") or {}
+        ways = [f"below {3.6 * tell['below_m_s']:.0f} km/h" if tell.get("below_m_s") else "",
+                f"above {3.6 * tell['above_m_s']:.0f} km/h" if tell.get("above_m_s") else ""]
+        ways = " or ".join(w for w in ways if w)
+        return (f" (passes at {kmh} cannot tell it from a tunnel's drag"
+                + (f"; passes {ways} would" if ways else "") + ")")
+    return ""
+
+
 COLUMNS = ("train", "bag", "line", "time", "error", "cached", "seconds", "duration_s",
            "odometer_received", "balise_received", "cause", "accepted", "gradient_start",
-           "gradient_end", "gradient_permille", "gradient_se", "gradient_score",
+           "gradient_end", "gradient_permille", "gradient_se", "gradient_score", "gradient_v2",
            "resistance_v_ref", "resistance_dforce", "resistance_dforce_se", "braking_rate",
            "braking_rate_se", "braking_rate_source", "mass", "mass_se", "mass_source",
            "odometer_scale", "odometer_scale_se",
@@ -770,7 +794,7 @@ def report_md(res, rows: list[dict], info: dict, plots: list[str]) -> str:
             dd = ", ".join(f"{k}: {f}/{n}" for k, (f, n) in sorted(s.get("days", {}).items()))
             v = s["verdict"] + (f" ({s['day_status']})" if s.get("day_status") else "") + \
                 (" (too few runs)" if s.get("too_few_runs") and s["verdict"] != "map error"
-                 else "")
+                 else "") + speed_note(s)
             L.append(f"| {ln} | [{s['start']:.0f}, {s['end']:.0f}) | {s['permille']:+.2f} +- "
                      f"{s['se']:.2f} | {s['runs_found']}/{s['runs_passed']} "
                      f"({', '.join(s['trains_found'])}) | {dd or '-'} | {v} |")

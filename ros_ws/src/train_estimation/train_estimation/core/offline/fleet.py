@@ -43,6 +43,17 @@ runs alone pass the binomial test; *withdrawn* (verdict "one day's artefact") wh
 days found it significantly less often than that day (one-sided Fisher exact test, alpha) and
 alone do not pass; otherwise it stands, found on one day only ("unconfirmed").
 
+Place against speed (several passes separate what one cannot): in one pass, a tunnel's drag is
+a gradient the map lacks. Over passes at different speeds they differ: a map error is the same
+gradient at any speed, a tunnel's extra aerodynamic drag ``c v^2`` reads as a gradient that grows
+with the square of the pass's speed. Each detection carries ``v2``, the mean square speed over
+the section in its pass; the two one-parameter models ``x_i = a`` and ``x_i = b v2_i`` are each
+tested by their weighted residual sum of squares against chi-square(k - 1) at ``alpha``
+(:func:`speed_test`). A group the first fits and the second does not is a map error at any speed;
+the reverse is *drag growing with speed (a tunnel)*; when both fit the passes' speeds were too
+alike to tell, and the report says which speeds would (where the two models differ by three of
+the detections' standard errors). A wind acts on some days only: the day test above.
+
 Reliability (``reliability``): a section needs ``n_min`` analysed runs, the fewest with which a
 map error that ``diagnose`` finds in ``p_detect`` of the runs is declared with probability
 ``power`` by the binomial test above; a line with fewer analysed runs (or runs of fewer than
@@ -240,6 +251,36 @@ def _trimmed_combine(values, ses, k_max: int, alpha: float) -> tuple[dict, int]:
     return c, n_out
 
 
+def speed_test(values, ses, v2, alpha: float) -> dict | None:
+    """The group's detections (per mille, their standard errors, each pass's mean square
+    speed over the section, m^2/s^2) against a gradient at any speed and a drag growing as v^2
+    (module doc). None with fewer than two detections that carry a speed."""
+    x, s, u = (np.asarray(a, float) for a in (values, ses, v2))
+    ok = np.isfinite(x) & np.isfinite(s) & (s > 0) & np.isfinite(u) & (u > 0)
+    x, s, u = x[ok], s[ok], u[ok]
+    k = x.size
+    if k < 2:
+        return None
+    w = 1.0 / s**2
+    a = float(np.sum(w * x) / np.sum(w))
+    b = float(np.sum(w * x * u) / np.sum(w * u * u))
+    q_place, q_speed = float(np.sum(w * (x - a) ** 2)), float(np.sum(w * (x - b * u) ** 2))
+    p_place, p_speed = (float(stats.chi2.sf(q, k - 1)) for q in (q_place, q_speed))
+    place, speed = p_place >= alpha, p_speed >= alpha
+    out = {"n": int(k), "v_min": float(np.sqrt(u.min())), "v_max": float(np.sqrt(u.max())),
+           "permille_at_any_speed": a, "permille_per_v2": b,
+           "p_place": p_place, "p_speed": p_speed,
+           "decided": ("place" if place and not speed else "speed" if speed and not place
+                       else "either" if place else "neither")}
+    if out["decided"] == "either" and b != 0.0:
+        # where the two models part by three standard errors of one detection
+        sd = 3.0 * float(np.median(s))
+        lo, hi = sorted(((a - sd) / b, (a + sd) / b))
+        out["would_tell"] = {"below_m_s": math.sqrt(lo) if lo > 0 else None,
+                             "above_m_s": math.sqrt(hi) if hi > 0 else None}
+    return out
+
+
 def _covers(row: dict, s0: float, s1: float) -> bool:
     cov = row.get("coverage")
     if not cov:
@@ -287,6 +328,10 @@ def line_consensus(rows: list[dict], cfg: FleetConfig = FleetConfig()) -> dict:
                          "trains_found": sorted({d["train"] for d in m}),
                          "trains_passed": sorted({r["train"] for r in passed}),
                          "bags": [d.get("bag") for d in m],
+                         "speed_test": speed_test([d["permille"] for d in m],
+                                                  [d["se"] for d in m],
+                                                  [d.get("v2", math.nan) for d in m],
+                                                  cfg.alpha),
                          "days": {str(k): [f, max(n, f)] for k, (f, n) in days.items()
                                   if k is not None}})
         ltrains = sorted({r["train"] for r in lr})
@@ -305,6 +350,10 @@ def line_consensus(rows: list[dict], cfg: FleetConfig = FleetConfig()) -> dict:
             agree = s["p_consistency"] >= cfg.alpha
             s["verdict"] = ("map error" if enough and unlikely and agree else
                             "disputed" if enough and unlikely else "single-train or spurious")
+            sp = s.get("speed_test") or {}
+            if s["verdict"] in ("map error", "disputed") and sp.get("decided") == "speed":
+                # the passes' gradients grow as their speeds squared: not the map's
+                s["verdict"] = "drag growing with speed (a tunnel)"
             if s["verdict"] == "map error" and len(s["days"]) >= 2:
                 s.update(_day_test(s["days"], cfg, max(n_groups, 1)))
         rc = d["resistance"]

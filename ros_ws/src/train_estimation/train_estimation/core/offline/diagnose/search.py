@@ -649,7 +649,7 @@ def _reported(fit: CauseFit, beta: float, status: str | None = None) -> CauseFit
     """A ranking entry: score rounded, parameters as docs/interfaces.md reports them."""
     return CauseFit(fit.cause, rounded(fit.score),
                     BY_NAME[fit.cause].report(clean(fit.parameters), beta),
-                    status=status or fit.status, why=fit.why)
+                    status=status or fit.status, why=fit.why, extra=fit.extra)
 
 
 def _ranking(sr: _Search, beta: float, none_status: str) -> list:

@@ -42,8 +42,14 @@ class Gradient(Cause):
     def params(self, st, th, cov, extra=None) -> tuple:
         sd = np.sqrt(np.clip(np.diag(cov), 0, None))
         bi, bj = extra["bins"]
-        return {"start": float(st.mo.bin_edges[bi]), "end": float(st.mo.bin_edges[bj]),
-                "permille": float(th[0])}, {"permille": sd[0]}, dict(extra)
+        mo = st.mo
+        start, end = float(mo.bin_edges[bi]), float(mo.bin_edges[bj])
+        # the pass's mean square speed over the section: what tells a map error (the same at
+        # any speed) from a tunnel's drag (growing as v^2) over several passes (fleet)
+        inside = (mo.moving > 0) & (mo.x_ref >= start) & (mo.x_ref < end)
+        v2 = float(np.mean(mo.v_ref[inside] ** 2)) if np.any(inside) else math.nan
+        return {"start": start, "end": end, "permille": float(th[0])}, {"permille": sd[0]}, \
+            dict(extra, v2=v2)
 
     def fit(self, st) -> tuple:
         """All sections [i, j) of the position bins, scored *against the running-resistance
@@ -153,7 +159,7 @@ class Gradient(Cause):
         p = fit.parameters
         return {"gradient_start": p["start"], "gradient_end": p["end"],
                 "gradient_permille": p["permille"], "gradient_se": fleet_se(evidence, "permille"),
-                "gradient_score": fit.score}
+                "gradient_score": fit.score, "gradient_v2": fit.extra.get("v2", math.nan)}
 
 
 CAUSE = Gradient()
