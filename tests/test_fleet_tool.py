@@ -188,7 +188,8 @@ def test_diagnosis_row_reads_the_typed_result():
     train = load_train(Path(__file__).resolve().parents[1] / "ros_ws" / "src" / "train_core"
                        / "config" / "trains" / "metro_b6.yaml")
     d = train.davis
-    ranking = [CauseFit("gradient", 30.0, {"start": 1000.0, "end": 1400.0, "permille": 4.8}),
+    ranking = [CauseFit("gradient", 30.0, {"start": 1000.0, "end": 1400.0, "permille": 4.8},
+                        extra={"v2": 256.0}),
                CauseFit("braking_rate", 12.0, {"f_start": 0.9, "f_end": 0.8}),
                CauseFit("resistance", -3.0, {"a": d.a + 100.0, "b": d.b, "c": d.c}),
                CauseFit("mass", -5.0, {"mass": 3.0e5}),
@@ -207,7 +208,7 @@ def test_diagnosis_row_reads_the_typed_result():
     assert tool.diagnosis_row(dg, train) == {
         "cause": "gradient", "accepted": "gradient+braking_rate",
         "gradient_start": 1000.0, "gradient_end": 1400.0, "gradient_permille": 4.8,
-        "gradient_se": 0.2, "gradient_score": 30.0,
+        "gradient_se": 0.2, "gradient_score": 30.0, "gradient_v2": 256.0,
         "braking_rate": pytest.approx(0.85), "braking_rate_se": pytest.approx(0.03),
         "resistance_v_ref": 12.0, "resistance_dforce": pytest.approx(100.0),
         "resistance_dforce_se": 50.0,
