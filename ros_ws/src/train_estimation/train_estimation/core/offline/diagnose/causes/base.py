@@ -192,6 +192,33 @@ class Cause:
         phases; None for a cause that is not a place effect."""
         return None
 
+    # The quantities whose fits on the held-out check's two folds must agree within their
+    # standard errors (:func:`..confirm.halves_test`): names in the fit's parameters or
+    # extra, with the standard error under the same name. Empty: no such test (slip episodes:
+    # each fold holds every episode, but its depth is the one quantity and is held out
+    # episode by episode).
+    halves: tuple = ()
+
+    def nominal(self, mo) -> dict:
+        """{quantity of :attr:`halves`: its believed value} (the cause's size is a fit's change
+        from it); {} where there is none (a power limit the believed train does not have)."""
+        return {}
+
+    def halves_values(self, params: dict, se: dict, extra: dict) -> dict:
+        """{name: (value, standard error)} of :attr:`halves` in one fold's fit (those with a
+        finite positive standard error)."""
+        out = {}
+        for k in self.halves:
+            v = params.get(k, (extra or {}).get(k))
+            e = (se or {}).get(k)
+            try:
+                v, e = float(v), float(e)
+            except (TypeError, ValueError):
+                continue
+            if math.isfinite(v) and math.isfinite(e) and e > 0:
+                out[k] = (v, e)
+        return out
+
     # -- what it becomes ------------------------------------------------------------------------
     def report(self, params: dict, beta: float) -> dict:
         """Parameters as docs/interfaces.md reports them (times on the train's stamp clock)."""

@@ -11,6 +11,10 @@ from .base import Cause, fleet_se, resolved
 
 class OdometerScale(Cause):
     name = "odometer_scale"
+    halves = ("scale",)
+
+    def nominal(self, mo) -> dict:
+        return {"scale": 1.0}
     family = "odometer"
     linear = True
     count_rival = "an odometer error that grows with speed (k v / v_top: a radar's)"
