@@ -88,6 +88,7 @@ from .contradict import (
     split_test,
 )
 from .gain import GainContext
+from .halves import bias_law
 from .motion import Motion, slip_cols
 from .result import CauseFit
 from .run import DiagConfig
@@ -234,6 +235,14 @@ def confirm(mo: Motion, shift: float, accepted: list, resolved_before: dict, cfg
             if _law_verdict(a, checks[a.cause], cl, cause.count_rival,
                             "the balises and the odometer better than one scale at every "
                             "speed", ccfg, detail=f"k {cl.get('k', 0.0):+.4f}; "):
+                continue
+            # and with an odometer that reads a speed more while moving (1 + b / v: a scale
+            # that falls with speed, which the law above does not take)
+            bl = bias_law(mo, others, cfg, noise)
+            checks[a.cause]["bias_law"] = bl
+            if _law_verdict(a, checks[a.cause], bl, cause.offset_rival, "the balises and the "
+                            "odometer better than one scale", ccfg, law="a speed offset",
+                            detail=f"b {bl.get('b', 0.0):+.3f} m/s; "):
                 continue
         if a.status == "confirmed" and cause.heat_rival is not None:
             hl = heat_law(mo, others, full, cfg, noise)
@@ -413,7 +422,8 @@ def heldout_motion(mo: Motion, others: Null, cause, cfg: DiagConfig, noise,
            "sd_under_no_effect": sd, "z": z, "z_needed": ccfg.heldout_z,
            "fitted_on_folds": fitted}
     out["ok"] = ok
-    out["halves"] = halves_test(fitted, ccfg, nominal=nominal)
+    own = cause.halves_own(mo, others, cfg, noise, ccfg.halves_alpha, ccfg.halves_min_share)
+    out["halves"] = halves_test(fitted, ccfg, nominal=nominal) if own is None else own
     if not out["ok"]:
         out["why"] = (f"held-out log-likelihood gain {gain:+.3g} (SD {sd:.3g} under no "
                       f"effect), score Z {z:.2f} <= {ccfg.heldout_z:g}" if gain <= 0 or

@@ -165,6 +165,10 @@ class Cause:
     # not; None: the cause states no count law of its own to test against.
     count_rival: str | None = None
 
+    # An odometer that reads a speed more or less while moving (a scale 1 + b / v that falls
+    # with speed), which the cause is not; tested beside ``count_rival`` (its law as rival).
+    offset_rival: str | None = None
+
     # A force fixed at that place (a gradient), which the cause (a force in proportion to the
     # braking asked for at its place) is not; None: the cause is no such law.
     fixed_rival: str | None = None
@@ -198,6 +202,14 @@ class Cause:
     # each fold holds every episode, but its depth is the one quantity and is held out
     # episode by episode).
     halves: tuple = ()
+
+    def halves_own(self, mo, others, cfg, noise, alpha: float, min_share: float) -> dict | None:
+        """A halves test of the cause's own in place of the comparison of the held-out
+        folds' fits (:func:`..confirm.halves_test`'s form), against the model ``others``
+        without the cause at ``noise``; None: the folds' fits are compared. A sensor's folds
+        are alternate samples, which both hold the whole run: its halves are halves of the
+        run (:mod:`..halves`)."""
+        return None
 
     def nominal(self, mo) -> dict:
         """{quantity of :attr:`halves`: its believed value} (the cause's size is a fit's change
