@@ -3,15 +3,17 @@
 The held-out check's folds of an odometer cause are alternate odometer samples: each fold
 holds the whole run, so their fits agree whatever the odometer does over the run, and a
 comparison of the two folds tests nothing a sensor can do. A sensor's halves are halves of
-the run instead, in the quantities its error could depend on:
+the run instead: the distance counted over the first half of the distance run against the
+second half (an odometer moved to other wheels, or re-calibrated, mid-run counts the two
+halves at two scales).
 
-- ``distance``: the distance counted over the first half of the distance run against the
-  second half (an odometer moved to other wheels, or re-calibrated, mid-run counts the two
-  halves at two scales);
-- ``speed``: the distance counted while the train ran slower than the speed below which half
-  the distance was run, against the distance counted faster (an odometer that reads a speed
-  b m/s more or less while moving counts (1 + b / v) times the distance: a larger share at
-  low speed; a radar's error grows with speed).
+A scale's dependence on speed is left to the rival laws, one parameter each against the
+scale (:func:`.contradict.count_law`: an error growing with speed; :func:`bias_law`: a speed
+read b m/s more or less while moving, a scale 1 + b / v). Halves of the distance run below and
+above the median speed were tried as a second partition: on 24 bags with a true constant
+scale (seed 7, ``train_sim.cases``), |z| was 5.5 and 5.8 in two (metro lines), far from a
+standard normal, while a bias of 0.095 m/s on a high-speed line fitted the same scale in both
+(z 0.5) and its law a 2 ln LR of 105 over the scale.
 
 Each partition is one augmented filter over the model ``others`` (the confirmed causes
 without the scale) with two odometer columns, the scale's columns restricted to each half:
@@ -37,38 +39,31 @@ from .motion import Motion
 from .phases import counted_columns
 from .stage import Null, Stage
 
-# odometer readings while moving that each half must hold to be compared at all
+# odometer readings while moving that each half must hold to be compared
 MIN_READINGS = 10
 
 
 def odometer_partitions(mo: Motion, standstill: float) -> dict:
     """{partition: (mask of the first half, mask of the second half, what each half is)} over
-    the events (only odometer events matter): the halves of the distance and of the speed
-    (module docstring), each half the distance run while moving faster than ``standstill``
-    (m/s)."""
+    the events (only odometer events matter): the halves of the distance run, each with every
+    odometer reading in it (the scale counts creeping too); halves with fewer than
+    ``MIN_READINGS`` readings faster than ``standstill`` (m/s) are not compared."""
     n = mo.ev.t.size
     o = mo.ev.odo
     inc = np.zeros(n)
     inc[o] = np.clip(np.diff(mo.sc_d[o], prepend=mo.sc_d[o][0]), 0.0, None)
-    moving = np.zeros(n, bool)
-    moving[o] = mo.sc_v[o] > standstill
+    is_odo = np.zeros(n, bool)
+    is_odo[o] = True
+    moving = is_odo & (mo.sc_v > standstill)
     out = {}
-    run = np.cumsum(inc * moving)
+    run = np.cumsum(inc)
     if run[-1] > 0:
         half = 0.5 * run[-1]
-        first = moving & (run <= half)
-        out["distance"] = (first, moving & ~first,
-                           (f"over the first {half:.0f} m", f"over the last {half:.0f} m"))
-    v = mo.sc_v
-    idx = np.flatnonzero(moving)
-    if idx.size:
-        order = idx[np.argsort(v[idx], kind="stable")]
-        w = np.cumsum(inc[order])
-        if w[-1] > 0:
-            v_med = float(v[order[np.searchsorted(w, 0.5 * w[-1])]])
-            slow = moving & (v <= v_med)
-            out["speed"] = (slow, moving & ~slow,
-                            (f"at or below {v_med:.1f} m/s", f"above {v_med:.1f} m/s"))
+        first = is_odo & (run <= half)
+        if min(np.count_nonzero(moving & first), np.count_nonzero(moving & ~first)) \
+                >= MIN_READINGS:
+            out["distance"] = (first, is_odo & ~first,
+                               (f"over the first {half:.0f} m", f"over the last {half:.0f} m"))
     return out
 
 
@@ -77,13 +72,12 @@ def odometer_halves(mo: Motion, others: Null, cfg, noise, alpha: float,
     """The halves test of an odometer scale against the model ``others`` (without the scale)
     at ``noise`` (module docstring): {tested, consistent, z_needed, quantities: {partition:
     {halves, scale: [A, B], std_errors, z, disagree}}, why (when not consistent)}."""
-    parts = {k: p for k, p in odometer_partitions(mo, cfg.standstill_speed).items()
-             if min(np.count_nonzero(p[0]), np.count_nonzero(p[1])) >= MIN_READINGS}
+    parts = odometer_partitions(mo, cfg.standstill_speed)
     if not parts:
         return {"tested": False, "consistent": True,
                 "note": f"fewer than {MIN_READINGS} odometer readings while moving in a half"}
     zc = float(norm.isf(alpha / (2 * len(parts))))
-    out = {"test": "scale over halves of the run (distance, speed)", "tested": True,
+    out = {"test": "scale over the halves of the distance run", "tested": True,
            "consistent": True, "z_needed": zc, "quantities": {}}
     st = Stage(mo, others, cfg, noise=noise, big=False)
     n = mo.ev.t.size
@@ -110,7 +104,7 @@ def odometer_halves(mo: Motion, others: Null, cfg, noise, alpha: float,
             out["consistent"] = False
             out["why"] = (f"not one scale: the odometer counts {sc[0]:.4f} times the distance "
                           f"{words[0]} and {sc[1]:.4f} {words[1]} (z {z:+.1f}, beyond "
-                          f"{zc:.1f}: {alpha:g} two-sided over {len(parts)} splits)")
+                          f"{zc:.1f}: {alpha:g} two-sided)")
     return out
 
 
