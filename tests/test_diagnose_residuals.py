@@ -46,12 +46,12 @@ def test_the_statistics_hold_their_false_alarm_rate_on_white_noise():
     ratios = []
     for _ in range(runs):
         t, v, y, rv = _readings(rng)
-        r, dof = spline_residuals(t, y, rv)
+        r, dof, sums = spline_residuals(t, y, rv, lags=10)
         sc = scatter_test(r, dof, rv, alpha)
         alarms["scatter"] += sc["finding"]
         ratios.append(sc["ratio"])
-        u = rng.standard_normal(t.size)
-        alarms["correlation"] += ljung_box(u, stretches(t), 10, alpha)["finding"]
+        alarms["correlation"] += ljung_box(r / np.sqrt(rv), stretches(t), 10, alpha, sums,
+                                           dof)["finding"]
         alarms["dependence"] += dependence_test(r / np.sqrt(rv), {"speed": v, "distance": t},
                                                 alpha)["finding"]
     bound = binom.ppf(0.999, runs, alpha)
@@ -65,7 +65,7 @@ def test_the_statistics_hold_their_false_alarm_rate_on_white_noise():
 def test_the_spline_leaves_exactly_its_degrees_of_freedom():
     rng = np.random.default_rng(1)
     t, v, y, rv = _readings(rng, sd=0.0)  # no noise: the spline misfit alone
-    r, dof = spline_residuals(t, v + 1e-12, np.full(t.size, 0.01))
+    r, dof, _ = spline_residuals(t, v + 1e-12, np.full(t.size, 0.01))
     # two stretches, each a cubic spline with knots every 2 s: n - (knots + 3) per stretch
     seg = stretches(t)
     p = sum(int((t[seg == s][-1] - t[seg == s][0]) // 2.0) + 3 for s in (0, 1))
@@ -73,7 +73,7 @@ def test_the_spline_leaves_exactly_its_degrees_of_freedom():
     # the smooth motion is followed within a tenth of the noise it is tested against
     assert np.nanmax(np.abs(r)) < 0.01, np.nanmax(np.abs(r))
     # readings sparser than MAX_PERIOD are not fitted
-    r, dof = spline_residuals(t * (2 * MAX_PERIOD / 0.1), y, rv)
+    r, dof, _ = spline_residuals(t * (2 * MAX_PERIOD / 0.1), y, rv)
     assert dof == 0 and np.isnan(r).all()
 
 
@@ -83,21 +83,26 @@ def test_each_statistic_finds_what_it_is_for():
     n = t.size
     # scatter 1.3 times the stated SD
     noisy = v + 0.13 * rng.standard_normal(n)
-    r, dof = spline_residuals(t, noisy, rv)
+    r, dof, _ = spline_residuals(t, noisy, rv)
     sc = scatter_test(r, dof, rv, 1e-3)
     assert sc["finding"] and abs(np.sqrt(sc["ratio"]) - 1.3) < 0.1, sc
-    # an AR(1) error in the innovations
-    u = np.zeros(n)
+    # an AR(1) error of the stated SD (phi 0.5)
+    e = np.zeros(n)
     for k in range(1, n):
-        u[k] = 0.5 * u[k - 1] + rng.standard_normal()
-    lb = ljung_box(u, stretches(t), 10, 1e-3)
-    assert lb["finding"] and abs(lb["rho"][0] - 0.5) < 0.1, lb
+        e[k] = 0.5 * e[k - 1] + np.sqrt(1 - 0.25) * rng.standard_normal()
+    r, dof, sums = spline_residuals(t, v + 0.1 * e, rv, lags=10)
+    lb = ljung_box(r / np.sqrt(rv), stretches(t), 10, 1e-3, sums, dof)
+    assert lb["finding"] and lb["rho"][0] > 0.3, lb
+    # white noise: the fit's own correlation is what the autocorrelations show
+    r, dof, sums = spline_residuals(t, y, rv, lags=10)
+    lb = ljung_box(r / np.sqrt(rv), stretches(t), 10, 1e-3, sums, dof)
+    assert abs(lb["rho"][0] - lb["rho_fit"][0]) < 4 / np.sqrt(n) and lb["rho_fit"][0] < -0.02, lb
     # noise whose SD doubles from standstill to the top speed
     grows = v + 0.1 * (1 + v / v.max()) * rng.standard_normal(n)
-    r, _ = spline_residuals(t, grows, rv)
+    r, _, _ = spline_residuals(t, grows, rv)
     dp = dependence_test(r / np.sqrt(rv), {"speed": v, "distance": t}, 1e-3)
     assert dp["finding"] and dp["ratio"]["speed"][1] > 2 * dp["ratio"]["speed"][0], dp
-    out = sensor_checks(t, grows, rv, rng.standard_normal(n), v, t)
+    out = sensor_checks(t, grows, rv, v, t)
     assert out["finding"] and "changes with speed" in out["signature"], out
 
 
@@ -164,7 +169,8 @@ def _grows(speed, rng, sd=0.1):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("effect,words", [(_ar1, "correlated in time"), (_grows, "changes with speed")])
+@pytest.mark.parametrize("effect,words", [(_ar1, "correlated in time"),
+                                          (_grows, "changes with speed")])
 def test_a_hidden_odometer_noise_is_found(effect, words):
     """An AR(1) error (phi 0.9, SD 0.1 m/s: 1-2 times the stated SD of these bags) and noise
     that grows with speed (to 0.1 m/s at the top speed) on nominal bags: found on each of

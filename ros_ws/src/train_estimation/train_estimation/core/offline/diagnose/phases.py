@@ -463,21 +463,15 @@ def _signature(mo: Motion, family: str, R, labels, th, cells, phase: str) -> dic
 def sensor_residuals(mo: Motion, null: Null, cfg, noise, alpha: float = 1e-3) -> dict:
     """The odometer's residual checks (:func:`.residuals.sensor_checks`, ``alpha`` the
     false-alarm rate of the three together) under the model ``null`` at ``noise``: its speed
-    readings with their stated variances less the model's speed, and the model's
-    standardised speed innovations while moving (at standstill the model follows nothing)."""
+    readings with their stated variances, less the model's speed."""
     from .residuals import sensor_checks
 
     st = Stage(mo, null, cfg, noise=noise, big=False)
-    kf = st.augmented(st.fv, st.fs, keep_innov=True)
-    s0 = gls(kf.W, np.eye(2))[0][0]
     o = mo.ev.odo
-    e, S = (kf.E0[:, 0] + s0 * kf.E1[:, 0])[o], kf.S_v[o]
-    v = mo.sc_v[o]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        u = np.where((v > cfg.standstill_speed) & (S > 0), e / np.sqrt(S), np.nan)
     # the model's speed (its velocity increments summed; a constant per stretch is the
-    # spline's) and a new stretch after every interval it does not model (a standstill)
+    # spline's) with what it adds to the readings (a scale, slip episodes), and a new stretch
+    # after every interval it does not model (a standstill)
     held = np.cumsum(mo.ev.held)[o]
     cut = np.r_[False, np.diff(held) > 0]
-    return sensor_checks(mo.ev.t[o], mo.ev.y_v[o], mo.ev.r_v[o], u, v, mo.sc_d[o], alpha,
-                         base=np.cumsum(st.fv)[o], cut=cut)
+    return sensor_checks(mo.ev.t[o], mo.ev.y_v[o], mo.ev.r_v[o], mo.sc_v[o], mo.sc_d[o],
+                         alpha, base=np.cumsum(st.fv)[o] + st.mv[o], cut=cut)

@@ -31,7 +31,8 @@ from .confirm import CONFIRM, _null_of, confirm, unneeded, unpiece
 from .contradict import place_seen
 from .gain import GainContext
 from .motion import Motion
-from .phases import structure
+from .phases import sensor_residuals, structure
+from .residuals import sensor_entry
 from .result import CauseFit, Diagnosis, clean, rounded
 from .run import DiagConfig, prepare
 from .series import series
@@ -147,12 +148,17 @@ def _verdict(sr: _Search, run, untestable: list, before: dict, noise,
     if ch is not None:
         end = mo.run.duration / beta
         clock.append(_rate_entry(ch, end, _speeds(mo, beta, ch["when"], end)))
+    # the odometer's readings against what it states, under the confirmed model
+    sens = sensor_residuals(mo, _null_of(mo, shift, confirmed), sr.cfg, noise)
+    sensor = [sensor_entry(sens, _speeds(mo, beta, 0.0, mo.run.duration / beta))] \
+        if sens["finding"] else []
     verdict = confirmed[0].cause if confirmed else \
-        ("unexplained" if found or clock else "none")
+        ("unexplained" if found or clock or sensor else "none")
     ranking = _ranking(sr, beta, "confirmed" if verdict == "none" else "rejected")
     top = ranking[0] if confirmed else None
-    unexplained = clock + [_entry(u, ranking) for u in found]
+    unexplained = clock + [_entry(u, ranking) for u in found] + sensor
     evidence = _evidence(sr, run)
+    evidence["_model"]["sensors"] = sens
     evidence["_model"]["confirmation"] = {"checks": checks, "thresholds": vars(CONFIRM)}
     evidence["_model"]["structure"] = {"tests": tests, "found": found,
                                        "thresholds": STRUCTURE}
