@@ -179,3 +179,46 @@ def test_a_hidden_odometer_noise_is_found(effect, words):
     for seed in (0, 1, 2):
         r = _bag_checks(seed, effect)
         assert r["finding"] and words in r["signature"], (seed, r["family"], r)
+
+
+@pytest.mark.slow
+def test_diagnose_names_an_odometer_with_correlated_errors_unexplained(tmp_path):
+    """End to end: a metro_demo run whose odometer speed readings carry an AR(1) error
+    (phi 0.9, SD 0.1 m/s) beside their stated noise is `unexplained`, the entry phase `all`
+    with its signature, not `none`; the same run without it is `none`."""
+    import json
+
+    from train_core.bagio import BagWriter
+
+    from train_estimation.tools import diagnose as tool
+    from train_sim.scenario import load_scenario
+    from train_sim.world import simulate
+
+    sc = load_scenario("metro_demo").with_changes(duration=300.0)
+    res = simulate(sc)
+    rng = np.random.default_rng(4)
+    err = {"x": 0.0}
+
+    def write(path, ar1):
+        with BagWriter(path) as w:
+            for t_recv, topic, stamp, fields in res.received_events():
+                if topic not in ("odometer", "balise", "control"):
+                    continue
+                if topic == "odometer" and ar1:
+                    err["x"] = 0.9 * err["x"] + 0.1 * np.sqrt(1 - 0.81) * rng.standard_normal()
+                    fields = dict(fields, speed=fields["speed"] + err["x"])
+                w.write(topic, stamp, fields, t_ns=int(round(t_recv * 1e9)))
+
+    for name, ar1 in (("nominal", False), ("ar1", True)):
+        write(tmp_path / name, ar1)
+        assert tool.main(["--bag", str(tmp_path / name), "--line", str(sc.line_path),
+                          "--train", str(sc.train_path), "--out", str(tmp_path / f"o_{name}"),
+                          "--quiet", "--no-plots"]) == 0
+    nominal = json.loads((tmp_path / "o_nominal" / "report.json").read_text())
+    assert nominal["cause"] == "none" and not nominal["evidence"]["_model"]["sensors"][
+        "finding"], nominal["unexplained"]
+    rep = json.loads((tmp_path / "o_ar1" / "report.json").read_text())
+    assert rep["cause"] == "unexplained", rep["ranking"][:3]
+    u = next(u for u in rep["unexplained"] if tool.sensor_noise(u))
+    assert u["phase"] == "all" and "correlated in time" in u["best_listed"]["why"], u
+    assert tool.unexplained_size(u).endswith("of the stated SD")
