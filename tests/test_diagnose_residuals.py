@@ -140,6 +140,11 @@ def _bag_checks(seed: int, effect=None, alpha: float = 1e-3) -> dict:
     st = Stage(mo, null, cfg)
     out = sensor_residuals(mo, null, cfg, (st.q, st.r_s), alpha)
     out["family"] = case.family
+    # the figures of docs/benchmarks.md's table (shown with pytest -s)
+    print(f"seed {seed} {case.family} {getattr(effect, '__name__', 'nominal')}: scatter "
+          f"{out['scatter'].get('ratio', float('nan')):.3f}, p scatter "
+          f"{out['scatter'].get('p', 1):.2g}, correlation {out['correlation'].get('p', 1):.2g},"
+          f" dependence {out['dependence'].get('p', 1):.2g}, finding {out['finding']}")
     return out
 
 
