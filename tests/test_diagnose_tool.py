@@ -746,8 +746,54 @@ def test_a_cause_found_beside_causes_not_confirmed_is_confirmed_again_without_th
     monkeypatch.setattr(contradict, "CANCEL_SHARE", 0.25)
     rep = _unexplained(paths, tmp_path)
     by = {r["cause"]: r for r in rep["ranking"]}
-    assert by["gradient"]["why"].startswith("without adhesion_section"), by["gradient"]
+    # at the noise of the model with all three accepted causes the phase split contradicts
+    # the gradient before the re-confirmation is reached (it fell there when the confirmation
+    # ran at the noise of the model without the last accepted cause); the rule itself:
+    # test_only_causes_the_checks_contradicted_are_left_out_of_the_re_confirmation
+    assert by["gradient"]["status"] == "not confirmed", by["gradient"]
     assert rep["unexplained"][0]["phase"] == "braking", rep["unexplained"]
+
+
+@pytest.mark.parametrize("why_b,left_out", [
+    ("held-out check failed: score Z 0.24 <= 2", False),
+    ("below resolution: f_end -0.01 from nominal", False),
+    ("contradicted by the phase split: the fitted effect ...", True),
+    ("not a running resistance: ...", True)])
+def test_only_causes_the_checks_contradicted_are_left_out_of_the_re_confirmation(
+        monkeypatch, why_b, left_out):
+    """Each cause is confirmed given the others in the model: an accepted cause that is not
+    confirmed for want of evidence (its held-out check or its resolution) stays in the model
+    the confirmed ones are confirmed in again, so a true one beside it is not taken down with
+    it; one the checks contradicted is left out, and a confirmed cause that falls without it
+    is not confirmed, with the reason."""
+    from train_estimation.core.offline.diagnose import search as S
+    from train_estimation.core.offline.diagnose.stage import Null
+
+    seen = []
+
+    def fake_confirm(mo, shift, accepted, *args, **kw):
+        seen.append([a.cause for a in accepted])
+        for a in accepted:  # the gradient holds only with the resistance beside it
+            ok = a.cause != "gradient" or any(b.cause == "resistance" for b in accepted)
+            a.status, a.why = ("confirmed", None) if ok else ("not confirmed", "held-out check "
+                                                              "failed: needs the resistance")
+        return {a.cause: {} for a in accepted}
+
+    monkeypatch.setattr(S, "confirm", fake_confirm)
+    monkeypatch.setattr(S, "joint_refit", lambda *a, **k: None)
+    monkeypatch.setattr(S, "_null_of", lambda mo, shift, fits: Null(shift=shift))
+    grad = CauseFit("gradient", 50.0, {}, status="confirmed")
+    res = CauseFit("resistance", 40.0, {}, status="not confirmed", why=why_b)
+    sr = SimpleNamespace(accepted=[grad, res], mo=None, null=Null(), cfg=None, own={})
+    checks = {"gradient": {}, "resistance": {}}
+    S.reconfirm(sr, {}, (1e-4, 1e-2), None, checks)
+    if left_out:
+        assert seen == [["gradient"]], seen
+        assert grad.status == "not confirmed" and grad.why.startswith("without resistance"), \
+            grad.why
+    else:
+        assert seen == [], seen  # nothing contradicted: the first confirmation stands
+        assert grad.status == "confirmed", grad.why
 
 
 # Effects of kinds the bench does not use (train_sim.unlisted_cases.TEST_KINDS): a traction loss
@@ -859,13 +905,21 @@ def test_a_gradient_seen_in_one_phase_that_shows_elsewhere_in_that_phase_is_not_
 @pytest.mark.parametrize("seed", [11, 12, 13])
 def test_an_odometer_that_rescales_mid_run_is_not_an_odometer_scale(seed, tmp_path):
     """One scale for the whole run fits an odometer that counts 1-2 % differently from a time
-    on better than none (it was confirmed in all three); split by time, position and speed, the
-    fitted scale is needed about x0 before the rescale and x2 after: not confirmed."""
-    _, paths = _unlisted_bag("odometer_rescale", seed, tmp_path)
+    on better than none (it was confirmed in all three); fitted over the first and the last
+    half of the distance run, the scales differ beyond their standard errors (the halves
+    test), or split by time, position and speed the fitted scale is needed about x0 before the
+    rescale and x2 after: not confirmed. The scale after the rescale differs from the scale
+    before it in the direction of the rescale."""
+    uc, paths = _unlisted_bag("odometer_rescale", seed, tmp_path)
     rep = _report(paths, tmp_path)
     scale = next(r for r in rep["ranking"] if r["cause"] == "odometer_scale")
     assert scale["status"] == "not confirmed", scale
-    assert "effect on the odometer is needed" in scale["why"], scale["why"]
+    assert scale["why"].startswith("not one scale") \
+        or "effect on the odometer is needed" in scale["why"], scale["why"]
+    halves = rep["evidence"]["_model"]["confirmation"]["checks"]["odometer_scale"][
+        "held_out"]["halves"]["quantities"]["distance"]
+    more = uc.scenario.unlisted.odometer_rescale.factor - 1.0
+    assert np.sign(halves["scale"][1] - halves["scale"][0]) == np.sign(more), (halves, more)
 
 
 @pytest.mark.slow
@@ -1251,3 +1305,128 @@ def test_a_bag_without_a_sample_counter_or_command_stamps_is_read_by_what_it_has
     assert "stamped 0" in notes["ctl0"] and "stamped 0" not in notes["plain"]
     link = {u["cause"]: u["why"] for u in seq0["untestable"]}
     assert "no sample counter" in link["bursty_link"]
+
+
+# ------------------------------------------------------------------------------------------------
+# The held-out check's power and what it compares
+# ------------------------------------------------------------------------------------------------
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [[7, 0], [7, 1], [7, 2]])
+def test_a_cause_accepted_at_the_last_stage_is_held_out_at_the_noise_of_its_model(seed,
+                                                                                 tmp_path):
+    """A resistance change beside a drifting clock and a bursty link: every greedy stage
+    accepts a cause, the resistance last. Confirmed at the noise of the model without it (its
+    own effect inflated that noise, and the held-out filter followed the odometer through
+    what the cause predicts), its held-out score Z was 8.0-9.0 for fits that scored 133-202
+    (Z / sqrt(score) 0.62-0.78). For a true effect the held-out score test's Z^2 is about
+    2 dll, which is more than the score (2 dll less its penalties): at the noise of the model
+    with every accepted cause Z / sqrt(score) is 1.6-2.3 on these seeds."""
+    case = make_case(np.random.default_rng(seed), ("clock_drift", "bursty_link", "resistance"),
+                     "plain")
+    rep, _ = _diagnosed(case, tmp_path)
+    by = {r["cause"]: r for r in rep["ranking"]}
+    held = rep["evidence"]["_model"]["confirmation"]["checks"]["resistance"]["held_out"]
+    assert by["resistance"]["score"] > 100.0, by["resistance"]
+    assert held["ok"] and held["z"] > math.sqrt(by["resistance"]["score"]), \
+        (held["z"], by["resistance"]["score"])
+    assert held["halves"]["consistent"], held["halves"]
+
+
+def test_the_halves_test_compares_the_folds_fits_within_their_standard_errors():
+    """The oracle: z = (x0 - x1) / sqrt(se0^2 + se1^2) against the two-sided quantile of
+    halves_alpha shared out over the quantities, and a difference of more than
+    halves_min_share of the cause's size (the mean fit's change from nominal)."""
+    from scipy.stats import norm
+
+    from train_estimation.core.offline.diagnose.confirm import CONFIRM, halves_test
+
+    zc1 = norm.isf(CONFIRM.halves_alpha / 2)
+    zc2 = norm.isf(CONFIRM.halves_alpha / 4)
+
+    def folds(*pairs):
+        return [{"fold": i, "halves": dict(p)} for i, p in enumerate(pairs)]
+
+    # one quantity, just inside and just beyond its quantile (mass 10 % off nominal 100)
+    se = 0.5
+    x1 = 110.0 + 0.99 * zc1 * math.hypot(se, se)
+    ok = halves_test(folds({"m": (110.0, se)}, {"m": (x1, se)}), nominal={"m": 100.0})
+    assert ok["consistent"] and ok["tested"], ok
+    x1 = 110.0 + 1.01 * zc1 * math.hypot(se, se)
+    bad = halves_test(folds({"m": (110.0, se)}, {"m": (x1, se)}), nominal={"m": 100.0})
+    assert not bad["consistent"] and "halves" in bad["why"], bad
+    assert bad["quantities"]["m"]["z"] == pytest.approx(-1.01 * zc1)
+    # two quantities: the quantile is shared out (Bonferroni)
+    x1 = 110.0 + 1.01 * zc1 * math.hypot(se, se)
+    two = halves_test(folds({"m": (110.0, se), "f": (0.8, 0.01)},
+                            {"m": (x1, se), "f": (0.8, 0.01)}), nominal={"m": 100.0})
+    assert two["consistent"] and two["z_needed"] == pytest.approx(zc2), two
+    # beyond its SEs but within a tenth of the cause's size: not another cause
+    tiny = halves_test(folds({"m": (110.0, 1e-3)}, {"m": (110.5, 1e-3)}), nominal={"m": 100.0})
+    assert tiny["consistent"], tiny
+    # a fold without the cause's data: nothing to compare
+    assert halves_test([{"fold": 0, "error": "no data"}, {"fold": 1, "halves": {}}])["consistent"]
+
+
+def test_the_clock_drift_held_out_score_is_standard_normal_without_a_drift():
+    """On stamps with no drift and a skewed latency (exponential tail), the clock's held-out
+    score is N(0, 1): P(Z > 2) ~ 2.3 %, where a lower held-out RMS alone (and a median offset
+    against a least-squares fit) confirmed a drift on most nominal bags. With a drift of 100 ppm
+    over 600 s (a tenth of the subtle case's) it is found every time."""
+    from train_estimation.core.offline.diagnose.causes.clock_drift import clock_test
+
+    rng = np.random.default_rng(5)
+    zs, found = [], []
+    for _ in range(400):
+        s = np.arange(0.0, 600.0, 0.2)
+        lat = 0.04 + rng.exponential(0.02, s.size)
+        zs.append(clock_test(SimpleNamespace(odo_stamp=s, odo_recv=s + lat))["heldout_z"])
+        found.append(clock_test(SimpleNamespace(odo_stamp=s, odo_recv=s * (1 + 1e-4) + lat))
+                     ["heldout_z"])
+    zs = np.array(zs)
+    # binomial: 400 draws at 2.3 %, mean 9, SD 3: at most 9 + 4 SD
+    assert np.sum(zs > 2.0) <= 21, np.sum(zs > 2.0)
+    assert abs(np.mean(zs)) < 4 / math.sqrt(400) and 0.85 < np.std(zs) < 1.15, \
+        (np.mean(zs), np.std(zs))
+    assert np.all(np.array(found) > 2.0), min(found)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("index", [0, 9, 11])
+def test_a_section_swapped_for_a_braking_rate_change_keeps_the_braking_deficit(index, tmp_path):
+    """Every brake x 0.82-0.90 (a constant braking-rate change, train_sim.cases seeds [11, i]):
+    a low-adhesion section over the stretch of every stop is accepted first, then a
+    braking-rate change on top of it, which fits only the brakings outside the section (f
+    0.99-1.00). The run brakes nowhere outside the section at its speeds, so the section is
+    swapped for the braking-rate change (search.unlocate): that change must carry the whole
+    deficit, fitted without the section (it kept f 0.99-1.00, "below resolution", and the
+    deficit was left unexplained)."""
+    from train_core.model import load_line, load_train
+
+    from train_estimation.core.offline.diagnose import search as S
+    from train_estimation.core.offline.diagnose.causes import REGISTRY
+    from train_estimation.core.offline.diagnose.motion import Motion
+    from train_estimation.core.offline.diagnose.run import DiagConfig, prepare
+
+    case = make_case(np.random.default_rng([11, index]), "braking_rate", "plain")
+    truth = case.truth["braking_rate"]
+    assert truth["f_start"] == truth["f_end"]  # the constant kind (30 % of the cases)
+    paths = case.write(tmp_path / "case")
+    generate(case.scenario, tmp_path / "bag", measured=True)
+    cfg = DiagConfig()
+    line, train = load_line(paths["line"]), load_train(paths["train"])
+    run = prepare(tool.read_measured(tmp_path / "bag"), line, cfg, train)
+    own = {c.name: r for c in REGISTRY if (r := c.own_test(run)) is not None}
+    sr = S._Search(Motion(run, line, train, cfg), cfg, own, set())
+    S._stage(sr, 0, lambda *a: None)
+    S._accept(sr, sr.stages[0]["scores"]["adhesion_section"], 0)
+    st = S._stage(sr, 1, lambda *a: None)
+    beside = sr.stages[1]["scores"]["braking_rate"]
+    assert min(beside.parameters.values()) > 0.98, beside.parameters  # what the section left
+    S._accept(sr, beside, 1)
+    assert S.unlocate(sr, (st.q, st.r_s))
+    assert [a.cause for a in sr.accepted] == ["braking_rate"], sr.accepted
+    fit = sr.accepted[0]
+    for k in ("f_start", "f_end"):
+        assert abs(fit.parameters[k] - truth[k]) <= max(Z * fit.std_errors[k], 0.01), \
+            (k, fit.parameters, fit.std_errors, truth)

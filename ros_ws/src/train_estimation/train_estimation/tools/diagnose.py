@@ -74,6 +74,7 @@ from train_core.config import ConfigError, Section, load_yaml
 from train_core.effects import Effects, effect_to_dict, parse_effects, true_line, true_train
 from train_core.model import line_from_dict, load_line, load_train, train_from_dict
 
+from train_estimation.core.offline.diagnose.residuals import SENSOR_WHY
 from train_estimation.core.offline.diagnose.result import jsonable
 from train_estimation.core.offline.diagnose.search import (  # noqa: F401 (SCORE_FORMULA: help)
     LATENCY_WHY,
@@ -625,6 +626,15 @@ def balise_latency(u: dict) -> bool:
             and str(best.get("why", "")).startswith(LATENCY_WHY))
 
 
+def sensor_noise(u: dict) -> bool:
+    """An ``unexplained`` entry of odometer speed readings that are not the sensor stated (no
+    ``where`` nor ``when``, the reason beginning with ``SENSOR_WHY``): its size is the
+    readings' SD over the stated SD (docs/diagnose.md)."""
+    best = u.get("best_listed") or {}
+    return (not u.get("where") and not u.get("when")
+            and str(best.get("why", "")).startswith(SENSOR_WHY))
+
+
 def on_odometer(u: dict) -> bool:
     """An ``unexplained`` entry of the odometer's count (``where`` and ``when`` both spans: no
     acceleration family gives both): its size is the odometer error in m (docs/diagnose.md)."""
@@ -635,7 +645,8 @@ def on_odometer(u: dict) -> bool:
 def unexplained_size(u: dict) -> str:
     """An ``unexplained`` entry's size with its unit, which depends on the entry's kind: an
     offset in m at a balise or on the odometer, a time in s for the clocks and the balise
-    reader, a residual acceleration in m/s^2 otherwise (docs/diagnose.md)."""
+    reader, a ratio to the stated SD for the odometer's readings, a residual acceleration in
+    m/s^2 otherwise (docs/diagnose.md)."""
     size = u.get("size")
     if not isinstance(size, (int, float)):
         return "-"
@@ -643,6 +654,8 @@ def unexplained_size(u: dict) -> str:
         return f"{size:+.4g} m"
     if clock_step(u) or clock_rate(u) or balise_latency(u):
         return f"{size:+.4g} s"
+    if sensor_noise(u):
+        return f"x{size:.4g} of the stated SD"
     return f"{size:+.4g} m/s^2"
 
 
@@ -663,6 +676,8 @@ def unexplained_line(u: dict) -> str:
         return (f"unexplained: the train's clock changes its rate at {u['when'][0]:.0f} s and "
                 f"reads {u['size']:+.3f} s more by {u['when'][1]:.0f} s than one rate says"
                 + closest)
+    if sensor_noise(u):
+        return f"unexplained: {best['why']} (phase all, the whole run)"
     if balise_latency(u):
         sp = u["speed"]
         return (f"unexplained: every balise reading lies {u['size']:+.3f} s x speed behind the "

@@ -88,6 +88,7 @@ from .contradict import (
     split_test,
 )
 from .gain import GainContext
+from .halves import bias_law
 from .motion import Motion, slip_cols
 from .result import CauseFit
 from .run import DiagConfig
@@ -113,6 +114,13 @@ class ConfirmConfig:
     # the causes' physical bounds asked of the data (Cause.plausible_data: the Davis terms of a
     # resistance >= 0)
     data_bounds: bool = True
+    # -, false-alarm rate of the halves' consistency test of a cause that is what it says
+    # (two-sided, shared out over the quantities compared)
+    halves_alpha: float = 1e-3
+    # -, the fits on the two folds disagree only where they differ by more than this share of
+    # the cause's size as well (its fitted change from nominal): a difference within the
+    # model's own slack (discretisation, a command-time grid) is not another cause
+    halves_min_share: float = 0.1
     # -, a place cause whose rival speed law (Cause.speed_rival) fits better by 2 ln LR more
     # than this is not confirmed (equal parameter counts, each on its own best stretch): with
     # b-hat ~ N(0, se^2) under the cause, 2 ln LR ~ (2 b-hat - 1) / se^2 exceeds T with at most
@@ -135,9 +143,9 @@ def confirm(mo: Motion, shift: float, accepted: list, resolved_before: dict, cfg
         if cause.in_motion_model:
             others = _null_of(mo, shift, [b for b in accepted if b is not a])
             held = heldout_motion(mo, others, cause, cfg, noise, ccfg,
-                                  place_block(mo, cause, a, cfg))
+                                  place_block(mo, cause, a, cfg), cause.nominal(mo))
         else:
-            held = heldout_own(cause, a, gain_ctx)
+            held = heldout_own(cause, a, gain_ctx, ccfg)
         res = cause.resolution(a, mo)
         odd = cause.plausible(a, mo)
         if odd is None and held["ok"] and cause.in_motion_model and ccfg.data_bounds:
@@ -162,6 +170,8 @@ def confirm(mo: Motion, shift: float, accepted: list, resolved_before: dict, cfg
                 res = cause.resolution(a, mo)
         if not held["ok"]:
             a.status, a.why = "not confirmed", f"held-out check failed: {held['why']}"
+        elif not held.get("halves", {}).get("consistent", True):
+            a.status, a.why = "not confirmed", held["halves"]["why"]
         elif res is not None:
             a.status = "not confirmed"
             a.why = ("parameters at nominal after the joint refit: " + res
@@ -225,6 +235,14 @@ def confirm(mo: Motion, shift: float, accepted: list, resolved_before: dict, cfg
             if _law_verdict(a, checks[a.cause], cl, cause.count_rival,
                             "the balises and the odometer better than one scale at every "
                             "speed", ccfg, detail=f"k {cl.get('k', 0.0):+.4f}; "):
+                continue
+            # and with an odometer that reads a speed more while moving (1 + b / v: a scale
+            # that falls with speed, which the law above does not take)
+            bl = bias_law(mo, others, cfg, noise)
+            checks[a.cause]["bias_law"] = bl
+            if _law_verdict(a, checks[a.cause], bl, cause.offset_rival, "the balises and the "
+                            "odometer better than one scale", ccfg, law="a speed offset",
+                            detail=f"b {bl.get('b', 0.0):+.3f} m/s; "):
                 continue
         if a.status == "confirmed" and cause.heat_rival is not None:
             hl = heat_law(mo, others, full, cfg, noise)
@@ -371,10 +389,13 @@ def speed_innovations(mo: Motion, null: Null, cfg: DiagConfig, noise):
 
 
 def heldout_motion(mo: Motion, others: Null, cause, cfg: DiagConfig, noise,
-                   ccfg: ConfirmConfig = CONFIRM, block_s: float | None = None) -> dict:
+                   ccfg: ConfirmConfig = CONFIRM, block_s: float | None = None,
+                   nominal: dict | None = None) -> dict:
     """The two-fold held-out score test of the module docstring for a motion-model cause,
     against the model ``others`` (the other accepted causes); ``block_s``: the blocks' length
-    (None: ``gain_block``; a cause at a place: :func:`place_block`)."""
+    (None: ``gain_block``; a cause at a place: :func:`place_block`). Its ``halves``: the
+    folds' fits compared (:func:`halves_test`; ``nominal``: {quantity: its believed value},
+    for the share of the cause's size)."""
     block = _folds(mo, cause.family, cfg, block_s)
     e0, s = speed_innovations(mo, others, cfg, noise)
     num = var = 0.0
@@ -393,17 +414,55 @@ def heldout_motion(mo: Motion, others: Null, cause, cfg: DiagConfig, noise,
         e1, _ = speed_innovations(mo, ext, cfg, noise)
         n, v = _score_terms(e0, e1, s, ~train)
         num, var = num + n, var + v
-        fitted.append({"fold": fold, "parameters": params})
+        fitted.append({"fold": fold, "parameters": params,
+                       "halves": cause.halves_values(params, se, extra)})
     gain, sd, z, ok = _score(num, var, ccfg)
     out = {"test": "held-out score test on the filter's speed innovations, two folds of "
                    + FOLDS[cause.family].format(block_s or cfg.gain_block), "gain_loglik": gain,
            "sd_under_no_effect": sd, "z": z, "z_needed": ccfg.heldout_z,
            "fitted_on_folds": fitted}
     out["ok"] = ok
+    own = cause.halves_own(mo, others, cfg, noise, ccfg.halves_alpha, ccfg.halves_min_share)
+    out["halves"] = halves_test(fitted, ccfg, nominal=nominal) if own is None else own
     if not out["ok"]:
         out["why"] = (f"held-out log-likelihood gain {gain:+.3g} (SD {sd:.3g} under no "
                       f"effect), score Z {z:.2f} <= {ccfg.heldout_z:g}" if gain <= 0 or
                       sd == 0 else f"score Z {z:.2f} <= {ccfg.heldout_z:g}")
+    return out
+
+
+def halves_test(fitted: list, ccfg: ConfirmConfig = CONFIRM, nominal: dict | None = None) -> dict:
+    """The fits of a cause on the held-out check's two folds (``fitted``: each with
+    ``halves``, {quantity: (value, SE)} from :meth:`Cause.halves_values`) against each other:
+    a cause that is what it says has one size in both halves of the data, and each
+    difference over its standard error, z = (x0 - x1) / sqrt(se0^2 + se1^2), is standard
+    normal. They disagree when some |z| exceeds the two-sided ``halves_alpha`` quantile shared
+    out over the quantities (Bonferroni) and the difference is more than
+    ``halves_min_share`` of the cause's size (the mean fit's change from ``nominal``, where
+    known): an effect of another kind that a listed cause imitates fits it differently where
+    the two halves of the run differ (an actuator's shape over other commands and speeds)."""
+    from scipy.stats import norm
+
+    vals = [f.get("halves") for f in fitted if "error" not in f]
+    if len(vals) != 2 or not vals[0] or not vals[1]:
+        return {"tested": False, "consistent": True}
+    keys = [k for k in vals[0] if k in vals[1]]
+    if not keys:
+        return {"tested": False, "consistent": True}
+    zc = float(norm.isf(ccfg.halves_alpha / (2 * len(keys))))
+    out = {"tested": True, "consistent": True, "z_needed": zc, "quantities": {}}
+    for k in keys:
+        (x0, e0), (x1, e1) = vals[0][k], vals[1][k]
+        z = (x0 - x1) / math.hypot(e0, e1)
+        size = abs(0.5 * (x0 + x1) - (nominal or {}).get(k, 0.0)) \
+            if nominal is not None and k in nominal else None
+        material = size is None or abs(x0 - x1) > ccfg.halves_min_share * size
+        bad = bool(abs(z) > zc and material)
+        out["quantities"][k] = {"folds": [x0, x1], "z": z, "disagree": bad}
+        if bad:
+            out["consistent"] = False
+            out["why"] = (f"the data's halves fit it differently: {k} {x0:.4g} and {x1:.4g} "
+                          f"(z {z:+.1f}, beyond {zc:.1f}: {ccfg.halves_alpha:g} two-sided)")
     return out
 
 
@@ -466,7 +525,7 @@ def heldout_episodes(mo: Motion, others: Null, fit: CauseFit, cfg: DiagConfig, n
     return out
 
 
-def heldout_own(cause, fit: CauseFit, ctx: GainContext) -> dict:
+def heldout_own(cause, fit: CauseFit, ctx: GainContext, ccfg: ConfirmConfig = CONFIRM) -> dict:
     """A cause with a likelihood of its own (clock, link): its held-out gain must improve on
     the believed model (higher for a likelihood, lower for an error)."""
     g = cause.gain(fit, ctx) or {}
@@ -476,9 +535,17 @@ def heldout_own(cause, fit: CauseFit, ctx: GainContext) -> dict:
         out.update(ok=False, why="no held-out data")
         return out
     better = a > b if "likelihood" in str(g.get("metric", "")) else a < b
-    out["ok"] = bool(better)
+    # a held-out score of its own test (the clock's), where it states one, and its halves
+    own = ctx.own.get(cause.name) or {}
+    z = own.get("heldout_z")
+    out["z"] = z
+    if own.get("halves_fits"):
+        out["halves"] = halves_test(own["halves_fits"], ccfg, nominal=cause.nominal(ctx.mo))
+    out["ok"] = bool(better and (z is None or z > ccfg.heldout_z))
     if not better:
         out["why"] = f"{g.get('metric', 'held-out gain')}: {b:.4g} -> {a:.4g} (no gain)"
+    elif not out["ok"]:
+        out["why"] = f"held-out score Z {z:.2f} <= {ccfg.heldout_z:g}"
     return out
 
 

@@ -458,3 +458,20 @@ def _signature(mo: Motion, family: str, R, labels, th, cells, phase: str) -> dic
             "speed": [float(np.percentile(v, 5)), float(np.percentile(v, 95))] if v.size
             else None, "size": size, "family": family,
             "onset": any(labels[j].get("onset") for j in cells), "mask": on}
+
+
+def sensor_residuals(mo: Motion, null: Null, cfg, noise, alpha: float = 1e-3) -> dict:
+    """The odometer's residual checks (:func:`.residuals.sensor_checks`, ``alpha`` the
+    false-alarm rate of the three together) under the model ``null`` at ``noise``: its speed
+    readings with their stated variances, less the model's speed."""
+    from .residuals import sensor_checks
+
+    st = Stage(mo, null, cfg, noise=noise, big=False)
+    o = mo.ev.odo
+    # the model's speed (its velocity increments summed; a constant per stretch is the
+    # spline's) with what it adds to the readings (a scale, slip episodes), and a new stretch
+    # after every interval it does not model (a standstill)
+    held = np.cumsum(mo.ev.held)[o]
+    cut = np.r_[False, np.diff(held) > 0]
+    return sensor_checks(mo.ev.t[o], mo.ev.y_v[o], mo.ev.r_v[o], mo.sc_v[o], mo.sc_d[o],
+                         alpha, base=np.cumsum(st.fv)[o] + st.mv[o], cut=cut)

@@ -165,6 +165,10 @@ class Cause:
     # not; None: the cause states no count law of its own to test against.
     count_rival: str | None = None
 
+    # An odometer that reads a speed more or less while moving (a scale 1 + b / v that falls
+    # with speed), which the cause is not; tested beside ``count_rival`` (its law as rival).
+    offset_rival: str | None = None
+
     # A force fixed at that place (a gradient), which the cause (a force in proportion to the
     # braking asked for at its place) is not; None: the cause is no such law.
     fixed_rival: str | None = None
@@ -191,6 +195,41 @@ class Cause:
         on and its acceleration (m/s^2 per grid point) if it acted at every place in the same
         phases; None for a cause that is not a place effect."""
         return None
+
+    # The quantities whose fits on the held-out check's two folds must agree within their
+    # standard errors (:func:`..confirm.halves_test`): names in the fit's parameters or
+    # extra, with the standard error under the same name. Empty: no such test (slip episodes:
+    # each fold holds every episode, but its depth is the one quantity and is held out
+    # episode by episode).
+    halves: tuple = ()
+
+    def halves_own(self, mo, others, cfg, noise, alpha: float, min_share: float) -> dict | None:
+        """A halves test of the cause's own in place of the comparison of the held-out
+        folds' fits (:func:`..confirm.halves_test`'s form), against the model ``others``
+        without the cause at ``noise``; None: the folds' fits are compared. A sensor's folds
+        are alternate samples, which both hold the whole run: its halves are halves of the
+        run (:mod:`..halves`)."""
+        return None
+
+    def nominal(self, mo) -> dict:
+        """{quantity of :attr:`halves`: its believed value} (the cause's size is a fit's change
+        from it); {} where there is none (a power limit the believed train does not have)."""
+        return {}
+
+    def halves_values(self, params: dict, se: dict, extra: dict) -> dict:
+        """{name: (value, standard error)} of :attr:`halves` in one fold's fit (those with a
+        finite positive standard error)."""
+        out = {}
+        for k in self.halves:
+            v = params.get(k, (extra or {}).get(k))
+            e = (se or {}).get(k)
+            try:
+                v, e = float(v), float(e)
+            except (TypeError, ValueError):
+                continue
+            if math.isfinite(v) and math.isfinite(e) and e > 0:
+                out[k] = (v, e)
+        return out
 
     # -- what it becomes ------------------------------------------------------------------------
     def report(self, params: dict, beta: float) -> dict:

@@ -11,6 +11,10 @@ from .base import Cause, fleet_se, resolved
 
 class BrakingRate(Cause):
     name = "braking_rate"
+    halves = ("f_start", "f_end")
+
+    def nominal(self, mo) -> dict:
+        return {"f_start": mo.f0, "f_end": mo.f0}
     family = "motion"
     linear = True
 

@@ -14,6 +14,10 @@ from .base import Cause, fleet_se, resolved
 
 class Mass(Cause):
     name = "mass"
+    halves = ("mass",)
+
+    def nominal(self, mo) -> dict:
+        return {"mass": mo.train.mass}
     family = "motion"
     linear = True
 

@@ -11,9 +11,22 @@ from .base import Cause, fleet_se, resolved
 
 class OdometerScale(Cause):
     name = "odometer_scale"
+    halves = ("scale",)
+
+    def nominal(self, mo) -> dict:
+        return {"scale": 1.0}
+
+    def halves_own(self, mo, others, cfg, noise, alpha: float, min_share: float) -> dict:
+        """The scale over the halves of the distance run and of the speeds run
+        (:func:`..halves.odometer_halves`): a scale that changed mid-run, or an error that
+        depends on speed, counts the halves differently."""
+        from ..halves import odometer_halves
+
+        return odometer_halves(mo, others, cfg, noise, alpha, min_share)
     family = "odometer"
     linear = True
     count_rival = "an odometer error that grows with speed (k v / v_top: a radar's)"
+    offset_rival = "an odometer that reads b m/s more or less than the speed while moving"
 
     def untestable(self, run, cfg, own) -> str | None:
         if run.bal_t.size < 2:

@@ -27,6 +27,7 @@ MIN_TRACTION = 0.05  # m/s^2, traction commands below this cannot show a limit
 
 class PowerLimit(Cause):
     name = "power_limit"
+    halves = ("p_spec",)
     family = "motion"
     profiled = True
 

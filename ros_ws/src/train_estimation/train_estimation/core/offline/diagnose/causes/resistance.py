@@ -26,6 +26,13 @@ CURVE_ALPHA = 1e-3
 
 class Resistance(Cause):
     name = "resistance"
+    halves = ("force_at_v_ref",)
+
+    def nominal(self, mo) -> dict:
+        """The believed force at the run's typical speed (as :meth:`params` takes it)."""
+        vr = float(np.sqrt(np.mean(mo.v_ref[mo.moving > 0] ** 2))) if mo.moving.any() \
+            else 0.0
+        return {"force_at_v_ref": float(mo.train.davis.force(vr))}
     family = "motion"
     linear = True
     model_file = "train"
@@ -47,9 +54,12 @@ class Resistance(Cause):
             else 0.0
         gv = np.array([1.0, vr, vr * vr])
         se_force = float(np.sqrt(max(gv @ cov @ gv, 0.0))) * meff
+        # the reported curve holds what the null already had in the Davis columns (a mass
+        # change scales the believed resistance: its part is there); extend_null adds only
+        # the cause's own part, so it is kept with the fit
         return {"a": val[0], "b": val[1], "c": val[2]}, \
             {"a": se[0], "b": se[1], "c": se[2], "force_at_v_ref": se_force}, \
-            {"v_ref": vr, "force_at_v_ref": float(gv @ val)}
+            {"v_ref": vr, "force_at_v_ref": float(gv @ val), "null_davis": null_res.tolist()}
 
     def fit(self, st) -> tuple:
         return self.fit_linear(st)
@@ -104,6 +114,8 @@ class Resistance(Cause):
         if lr <= NONNEG_LR:
             val = (base + coef) * meff
             fit.extra["free_fit"] = dict(fit.parameters)
+            fit.extra["null_davis"] = [float(x) for x in base - np.array(
+                [mo.alpha0, mo.beta0, mo.gamma0])]
             fit.parameters = {"a": float(val[0]), "b": float(val[1]), "c": float(val[2])}
             vr = fit.extra.get("v_ref", 0.0)
             fit.extra["force_at_v_ref"] = float(val @ np.array([1.0, vr, vr * vr]))
@@ -154,11 +166,19 @@ class Resistance(Cause):
                 "else")
 
     def extend_null(self, null, fit, mo) -> None:
+        """Add the cause's own part of the Davis terms: the reported curve less the believed
+        one and less what the null it was fitted against had in those columns (a mass
+        change's scaling of the believed resistance, ``extra["null_davis"]``), which the
+        null extended holds already. Adding the whole reported curve counted that part twice:
+        a resistance fitted on a fold beside a mass change then predicted the held-out blocks
+        with the mass change's share of the resistance once more."""
         p = fit.parameters
         meff = mo.train.effective_mass
-        for name, val, base in (("one", p["a"], mo.alpha0), ("v", p["b"], mo.beta0),
-                                ("v2", p["c"], mo.gamma0)):
-            null.drift[name] = null.drift.get(name, 0.0) + val / meff - base
+        had = (fit.extra or {}).get("null_davis") or (0.0, 0.0, 0.0)
+        for name, val, base, h in (("one", p["a"], mo.alpha0, had[0]),
+                                   ("v", p["b"], mo.beta0, had[1]),
+                                   ("v2", p["c"], mo.gamma0, had[2])):
+            null.drift[name] = null.drift.get(name, 0.0) + val / meff - base - h
 
     def effect(self, params: dict, duration: float) -> ResistanceEffect:
         return ResistanceEffect(params["a"], params["b"], params["c"])

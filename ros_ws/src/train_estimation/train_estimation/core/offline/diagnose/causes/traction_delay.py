@@ -26,6 +26,10 @@ _COLUMNS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # Motion -> {
 
 class TractionDelay(Cause):
     name = "traction_delay"
+    halves = ("delay",)
+
+    def nominal(self, mo) -> dict:
+        return {"delay": mo.train.brake.delay}
     family = "motion"
 
     def untestable(self, run, cfg, own) -> str | None:

@@ -1,0 +1,229 @@
+"""The odometer's residual checks (diagnose/residuals.py): each statistic against its exact
+null distribution on synthetic readings, its false-alarm rate on nominal simulated bags of
+several line families within the binomial bound, and its power on hidden sensor effects."""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import io
+
+import numpy as np
+import pytest
+from scipy.stats import binom
+
+from train_estimation.core.offline.diagnose.residuals import (
+    MAX_PERIOD,
+    dependence_test,
+    ljung_box,
+    scatter_test,
+    sensor_checks,
+    spline_residuals,
+    stretches,
+)
+
+
+def _readings(rng, n=1500, dt=0.1, sd=0.1, gap_at=700):
+    """A smooth speed (accelerate, cruise, brake: a cubic between 2 s knots is not exact)
+    with white noise of the stated SD, and one gap of 3 s (a link's burst)."""
+    t = np.arange(n) * dt
+    t[gap_at:] += 3.0
+    v = 15.0 * (1 - np.cos(2 * np.pi * t / t[-1])) / 2 + 0.5 * np.sin(t / 7.0)
+    rv = np.full(n, sd * sd)
+    return t, v, v + sd * rng.standard_normal(n), rv
+
+
+def test_the_stretches_split_at_gaps_of_the_link():
+    t = np.r_[np.arange(10) * 0.1, 4.0 + np.arange(5) * 0.1]
+    assert stretches(t).tolist() == [0] * 10 + [1] * 5
+
+
+def test_the_statistics_hold_their_false_alarm_rate_on_white_noise():
+    """At alpha 0.01 each, 300 synthetic runs: alarms within the binomial 99.9 % bound."""
+    rng = np.random.default_rng(5)
+    alpha, runs = 0.01, 300
+    alarms = {"scatter": 0, "correlation": 0, "dependence": 0}
+    ratios = []
+    for _ in range(runs):
+        t, v, y, rv = _readings(rng)
+        r, dof, sums = spline_residuals(t, y, rv, lags=10)
+        sc = scatter_test(r, dof, rv, alpha)
+        alarms["scatter"] += sc["finding"]
+        ratios.append(sc["ratio"])
+        alarms["correlation"] += ljung_box(r / np.sqrt(rv), stretches(t), 10, alpha, sums,
+                                           dof)["finding"]
+        alarms["dependence"] += dependence_test(r / np.sqrt(rv), {"speed": v, "distance": t},
+                                                alpha)["finding"]
+    bound = binom.ppf(0.999, runs, alpha)
+    assert all(k <= bound for k in alarms.values()), (alarms, bound)
+    # the scatter's ratio is 1 on average (chi-square over its degrees of freedom: SD
+    # sqrt(2 / dof) per run), so the spline neither follows the noise nor misses the motion
+    sd = np.sqrt(2.0 / dof) / np.sqrt(runs)
+    assert abs(np.mean(ratios) - 1.0) < 4 * sd, (np.mean(ratios), sd)
+
+
+def test_the_spline_leaves_exactly_its_degrees_of_freedom():
+    rng = np.random.default_rng(1)
+    t, v, y, rv = _readings(rng, sd=0.0)  # no noise: the spline misfit alone
+    r, dof, _ = spline_residuals(t, v + 1e-12, np.full(t.size, 0.01))
+    # two stretches, each a cubic spline with knots every 2 s: n - (knots + 3) per stretch
+    seg = stretches(t)
+    p = sum(int((t[seg == s][-1] - t[seg == s][0]) // 2.0) + 3 for s in (0, 1))
+    assert dof == t.size - p
+    # the smooth motion is followed within a tenth of the noise it is tested against
+    assert np.nanmax(np.abs(r)) < 0.01, np.nanmax(np.abs(r))
+    # readings sparser than MAX_PERIOD are not fitted
+    r, dof, _ = spline_residuals(t * (2 * MAX_PERIOD / 0.1), y, rv)
+    assert dof == 0 and np.isnan(r).all()
+
+
+def test_each_statistic_finds_what_it_is_for():
+    rng = np.random.default_rng(2)
+    t, v, y, rv = _readings(rng)
+    n = t.size
+    # scatter 1.3 times the stated SD
+    noisy = v + 0.13 * rng.standard_normal(n)
+    r, dof, _ = spline_residuals(t, noisy, rv)
+    sc = scatter_test(r, dof, rv, 1e-3)
+    assert sc["finding"] and abs(np.sqrt(sc["ratio"]) - 1.3) < 0.1, sc
+    # an AR(1) error of the stated SD (phi 0.5)
+    e = np.zeros(n)
+    for k in range(1, n):
+        e[k] = 0.5 * e[k - 1] + np.sqrt(1 - 0.25) * rng.standard_normal()
+    r, dof, sums = spline_residuals(t, v + 0.1 * e, rv, lags=10)
+    lb = ljung_box(r / np.sqrt(rv), stretches(t), 10, 1e-3, sums, dof)
+    assert lb["finding"] and lb["rho"][0] > 0.3, lb
+    # white noise: the fit's own correlation is what the autocorrelations show
+    r, dof, sums = spline_residuals(t, y, rv, lags=10)
+    lb = ljung_box(r / np.sqrt(rv), stretches(t), 10, 1e-3, sums, dof)
+    assert abs(lb["rho"][0] - lb["rho_fit"][0]) < 4 / np.sqrt(n) and lb["rho_fit"][0] < -0.02, lb
+    # noise whose SD doubles from standstill to the top speed
+    grows = v + 0.1 * (1 + v / v.max()) * rng.standard_normal(n)
+    r, _, _ = spline_residuals(t, grows, rv)
+    dp = dependence_test(r / np.sqrt(rv), {"speed": v, "distance": t}, 1e-3)
+    assert dp["finding"] and dp["ratio"]["speed"][1] > 2 * dp["ratio"]["speed"][0], dp
+    out = sensor_checks(t, grows, rv, v, t)
+    assert out["finding"] and "changes with speed" in out["signature"], out
+
+
+# ------------------------------------------------------------------------------------------
+# Simulated bags: the model's innovations as diagnose has them
+# ------------------------------------------------------------------------------------------
+
+def _bag_checks(seed: int, effect=None, alpha: float = 1e-3) -> dict:
+    """The checks on a nominal bag of ``train_sim.cases`` (seeded; its family drawn), with
+    ``effect(speeds, rng)`` added to the odometer's speed readings."""
+    import tempfile
+    from pathlib import Path
+
+    from train_estimation.core.offline.diagnose.motion import Motion
+    from train_estimation.core.offline.diagnose.phases import sensor_residuals
+    from train_estimation.core.offline.diagnose.run import DiagConfig, prepare
+    from train_estimation.core.offline.diagnose.stage import Null, Stage
+    from train_estimation.tools.diagnose import read_measured
+    from train_sim.cases import make_case
+    from train_sim.generate import generate
+
+    case = make_case(np.random.default_rng([seed, 31]), None, "plain")
+    with tempfile.TemporaryDirectory() as d:
+        with contextlib.redirect_stdout(io.StringIO()):
+            generate(case.scenario, Path(d) / "bag", measured=True)
+        data = read_measured(Path(d) / "bag")
+    if effect is not None:
+        data = dataclasses.replace(data, odo_speed=effect(data.odo_speed,
+                                                          np.random.default_rng(seed)))
+    cfg = DiagConfig()
+    sc = case.scenario
+    run = prepare(data, sc.line, cfg, sc.train)
+    mo = Motion(run, sc.line, sc.train, cfg)
+    null = Null(shift=Stage(mo, Null(), cfg).nuisance_shift()[0])
+    st = Stage(mo, null, cfg)
+    out = sensor_residuals(mo, null, cfg, (st.q, st.r_s), alpha)
+    out["family"] = case.family
+    # the figures of docs/benchmarks.md's table (shown with pytest -s)
+    print(f"seed {seed} {case.family} {getattr(effect, '__name__', 'nominal')}: scatter "
+          f"{out['scatter'].get('ratio', float('nan')):.3f}, p scatter "
+          f"{out['scatter'].get('p', 1):.2g}, correlation {out['correlation'].get('p', 1):.2g},"
+          f" dependence {out['dependence'].get('p', 1):.2g}, finding {out['finding']}")
+    return out
+
+
+@pytest.mark.slow
+def test_nominal_bags_of_several_families_hold_the_false_alarm_rate():
+    """12 nominal bags (metro, metro_demo, regional, high-speed families): at alpha 1e-3 for
+    the three tests together, at most 1 alarm (P(X >= 2) = 6.6e-5 at that rate)."""
+    res = [_bag_checks(seed) for seed in range(12)]
+    assert len({r["family"] for r in res}) >= 3, [r["family"] for r in res]
+    alarms = [(r["family"], r["signature"]) for r in res if r["finding"]]
+    assert len(alarms) <= 1, alarms
+    assert all(r["scatter"]["tested"] for r in res), [r["scatter"] for r in res]
+
+
+def _ar1(speed, rng, phi=0.9, sd=0.1):
+    eta = rng.standard_normal(speed.size) * sd * np.sqrt(1 - phi * phi)
+    x = np.zeros(speed.size)
+    for k in range(1, speed.size):
+        x[k] = phi * x[k - 1] + eta[k]
+    return speed + x
+
+
+def _grows(speed, rng, sd=0.1):
+    """Extra noise from 0 at standstill to 0.1 m/s at the top speed (1-2 times the stated SD
+    of these bags)."""
+    return speed + sd * np.abs(speed) / np.max(np.abs(speed)) * rng.standard_normal(speed.size)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("effect,words", [(_ar1, "correlated in time"),
+                                          (_grows, "changes with speed")])
+def test_a_hidden_odometer_noise_is_found(effect, words):
+    """An AR(1) error (phi 0.9, SD 0.1 m/s: 1-2 times the stated SD of these bags) and noise
+    that grows with speed (to 0.1 m/s at the top speed) on nominal bags: found on each of
+    three, each by what it is for (the AR(1) also by its scatter, the noise growing with
+    speed by its dependence)."""
+    for seed in (0, 1, 2):
+        r = _bag_checks(seed, effect)
+        assert r["finding"] and words in r["signature"], (seed, r["family"], r)
+
+
+@pytest.mark.slow
+def test_diagnose_names_an_odometer_with_correlated_errors_unexplained(tmp_path):
+    """End to end: a metro_demo run whose odometer speed readings carry an AR(1) error
+    (phi 0.9, SD 0.1 m/s) beside their stated noise is `unexplained`, the entry phase `all`
+    with its signature, not `none`; the same run without it is `none`."""
+    import json
+
+    from train_core.bagio import BagWriter
+
+    from train_estimation.tools import diagnose as tool
+    from train_sim.scenario import load_scenario
+    from train_sim.world import simulate
+
+    sc = load_scenario("metro_demo").with_changes(duration=300.0)
+    res = simulate(sc)
+    rng = np.random.default_rng(4)
+    err = {"x": 0.0}
+
+    def write(path, ar1):
+        with BagWriter(path) as w:
+            for t_recv, topic, stamp, fields in res.received_events():
+                if topic not in ("odometer", "balise", "control"):
+                    continue
+                if topic == "odometer" and ar1:
+                    err["x"] = 0.9 * err["x"] + 0.1 * np.sqrt(1 - 0.81) * rng.standard_normal()
+                    fields = dict(fields, speed=fields["speed"] + err["x"])
+                w.write(topic, stamp, fields, t_ns=int(round(t_recv * 1e9)))
+
+    for name, ar1 in (("nominal", False), ("ar1", True)):
+        write(tmp_path / name, ar1)
+        assert tool.main(["--bag", str(tmp_path / name), "--line", str(sc.line_path),
+                          "--train", str(sc.train_path), "--out", str(tmp_path / f"o_{name}"),
+                          "--quiet", "--no-plots"]) == 0
+    nominal = json.loads((tmp_path / "o_nominal" / "report.json").read_text())
+    assert nominal["cause"] == "none" and not nominal["evidence"]["_model"]["sensors"][
+        "finding"], nominal["unexplained"]
+    rep = json.loads((tmp_path / "o_ar1" / "report.json").read_text())
+    assert rep["cause"] == "unexplained", rep["ranking"][:3]
+    u = next(u for u in rep["unexplained"] if tool.sensor_noise(u))
+    assert u["phase"] == "all" and "correlated in time" in u["best_listed"]["why"], u
+    assert tool.unexplained_size(u).endswith("of the stated SD")
