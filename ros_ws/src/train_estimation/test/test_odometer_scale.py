@@ -470,3 +470,33 @@ def test_a_start_50_m_off_is_inside_the_protection_levels_throughout(kind, offse
     # decided: one calibration left, the reader on time, the estimate back on the train
     assert a.cal_alt is None and abs(a.cal.latency()[0]) < 0.5, (a.cal.latency(), a.llr)
     assert np.max(np.abs(err[tt > 130.0])) < 5.0, np.max(np.abs(err[tt > 130.0]))
+
+
+def test_a_first_balise_that_lies_does_not_take_the_start_with_it():
+    """The start is right and the first balise lies 60 m (a survey error): the likelihood
+    ratio cannot tell that from a start 60 m off (one fault either way), so the calibration
+    follows the balise, but the solution with the start and without the balise stays as its
+    alternative, inside the protection levels, until the next balises outvote the liar: two
+    honest ones fit the solution without it, and it is taken out (fault exclusion)."""
+    from train_estimation.core.online.protection import Hypothesis, protection_levels
+
+    cal = OdometerCalibration(100.0, 5.0, 0.01, gate=4.0, start_fault=50.0)
+
+    def covered(d):  # the train is at 100 + d (scale 1)
+        _, (var, alts) = cal.doubt(d, 10.0)
+        x = cal.position(d)
+        ahead, behind = protection_levels(var, [Hypothesis("cal", m, max(0.0, v - var))
+                                                for m, v in alts])
+        return x - behind <= 100.0 + d <= x + ahead
+
+    assert covered(300.0)
+    assert cal.balise(BaliseFix(100.0 + 400.0 + 60.0, 1.0, 400.0, 10.0))  # the liar
+    assert cal.start_excluded == 1 and abs(cal.position(400.0) - 560.0) < 2.0
+    for d in (600.0, 900.0):
+        cal.walk_to(d)
+        assert covered(d), d
+    for d in (1000.0, 1600.0):  # honest: held, then the two outvote the liar
+        cal.balise(BaliseFix(100.0 + d, 1.0, d, 10.0))
+        assert covered(d + 50.0), d
+    assert cal.excluded == 1 and cal.relocated == 0
+    assert abs(cal.position(1600.0) - 1700.0) < 2.0

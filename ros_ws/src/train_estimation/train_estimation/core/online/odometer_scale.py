@@ -361,10 +361,14 @@ class OdometerCalibration:
         return _Solution(theta, _walked(Sigma, d, self.d_walked, self.count_walk,
                                         self.scale_walk, self.jumps), self.d_walked, n)
 
-    def _judge_start(self, fix: BaliseFix) -> None:
+    def _judge_start(self, fix: BaliseFix) -> bool:
         """The start-fault hypothesis's sequential test on ``fix`` (module doc): the start
-        excluded (the solution without it becomes the calibration) or confirmed (the solution
-        without it dropped) once the likelihood ratio passes ``1 / EXCLUSION_RISK``."""
+        excluded or confirmed (the solution without it dropped) once the likelihood ratio
+        passes ``1 / EXCLUSION_RISK``. Excluded, the solution without the start, with ``fix``
+        fused, becomes the calibration (True: ``fix`` is fused). The test weighs the start
+        against the balises read, not against one of them lying: the solution before ``fix``
+        (with the start, without ``fix``) stays as the alternative of ``fix``, as the solution
+        without any recent balise does, until later balises outvote one or the other."""
         f = self.free
         Sf = _walked(f.Sigma, f.d, self.d_walked, self.count_walk, self.scale_walk, self.jumps)
         self.llr_free += log_density(*self._innovation(fix)) \
@@ -373,10 +377,15 @@ class OdometerCalibration:
         if self.llr_free >= bound:
             self.free = None
         elif self.llr_free <= -bound:
-            self.theta, self.Sigma, self.n = f.theta, Sf, f.n
-            self.recent, self.alternatives, self.held = [], [], None
-            self.free = None
+            before = _Solution(self.theta, self.Sigma, self.d_walked, self.n)
+            self.theta, self.Sigma = self._fused(f.theta, Sf, fix)
+            self.n = f.n + 1
+            self.recent = [(before, (fix,), None)]
+            self.free, self.held = None, None
+            self.alternatives = [self._without(0)]
             self.start_excluded += 1
+            return True
+        return False
 
     def _outside(self, theta, Sigma, fixes, z: float) -> bool:
         """Whether any of ``fixes`` lies beyond ``z`` standard deviations of the solution
@@ -445,8 +454,8 @@ class OdometerCalibration:
                 and math.isfinite(fix.variance) and fix.variance > 0):
             return False
         self.walk_to(fix.distance)
-        if self.free is not None:
-            self._judge_start(fix)
+        if self.free is not None and self._judge_start(fix):
+            return True
         if self.held is not None and self._exclude_for((self.held, fix)):
             self.held = None  # the held balise and this one outvote a fused one
             return True
