@@ -26,6 +26,8 @@ from dataclasses import dataclass
 from train_core.config import param
 from train_core.ros import ParameterError, declare_config, sec_to_stamp, stamp_to_sec
 
+EVENT_LOG_PERIOD = 2.0  # s (steady), at most one log line per kind of event in this time
+
 
 @dataclass(frozen=True)
 class LineChoice:
@@ -189,6 +191,7 @@ def build_estimator_node(name: str, topic: str, make_adapter: Callable):
             # alone: the simulator's next messages publish a lost reading's slot.
             self.clock_slots = not self.get_parameter("use_sim_time").value
             self.n_reported = 0
+            self.event_log: dict = {}  # (kind, event) -> (steady s last logged, not logged since)
             self.get_logger().info(
                 f"{self.adapter.source} on {line.name} / {train.name}, start at "
                 f"{start.position:.1f} m, output {common['odometer_rate']:g} Hz on '{topic}'")
@@ -207,6 +210,19 @@ def build_estimator_node(name: str, topic: str, make_adapter: Callable):
             if reason:
                 self.get_logger().warning(f"{kind} rejected: {reason}", throttle_duration_sec=2.0)
             self.tick()
+
+        def _log_event(self, kind: str, stamp: float, text: str, now: float) -> None:
+            """One line per event, but at most one per kind of event every EVENT_LOG_PERIOD s
+            (a lagging node fuses hundreds of readings late in a row): the next line says how
+            many were not logged (all are counted in /diagnostics)."""
+            key = (kind, text.split(":", 1)[0])
+            last, quiet = self.event_log.get(key, (-math.inf, 0))
+            if now - last < EVENT_LOG_PERIOD:
+                self.event_log[key] = (last, quiet + 1)
+                return
+            more = f" ({quiet} more like it not logged)" if quiet else ""
+            self.get_logger().info(f"{kind} at {stamp:.3f} s: {text}{more}")
+            self.event_log[key] = (now, 0)
 
         def on_odometer(self, msg) -> None:
             self._push("odometer", msg, {"seq": msg.seq, "distance": msg.distance,
@@ -267,7 +283,7 @@ def build_estimator_node(name: str, topic: str, make_adapter: Callable):
             events = sum(self.runner.events.values())
             if events > self.n_events:  # accepted input worth a line each (seq reset, ...)
                 for kind, stamp, text in self.runner.last_events[-(events - self.n_events):]:
-                    self.get_logger().info(f"{kind} at {stamp:.3f} s: {text}")
+                    self._log_event(kind, stamp, text, now)
                 self.n_events = events
             if self.runner.separate_clocks and not self.separate_logged:
                 self.separate_logged = True
