@@ -356,6 +356,23 @@ def test_an_odometer_that_reboots_is_spliced_onto_its_old_count(kind, scenario, 
     assert not runner.rejected, dict(runner.rejected)
 
 
+def _started_at(sc, kind: str, position: float):
+    """The estimator ``kind`` (robust, or a braking algorithm) of ``sc`` given the start
+    ``position`` (m) with the node defaults otherwise."""
+    from train_estimation.core.online.estimators import (
+        BrakingAdapter,
+        BrakingConfig,
+        RobustAdapter,
+        RobustConfig,
+        StartState,
+    )
+
+    start = StartState(position)
+    if kind == "robust":
+        return RobustAdapter(sc.train, sc.line, start, RobustConfig(period=0.1))
+    return BrakingAdapter(sc.train, sc.line, start, BrakingConfig(algorithm=kind))
+
+
 @pytest.mark.parametrize("kind", ["robust", "kf"])
 @pytest.mark.parametrize("count_from", ["the bag's start", "initial_position"])
 @pytest.mark.parametrize("count", [30.0, 5000.0])
@@ -368,22 +385,12 @@ def test_a_first_count_far_from_zero_is_placed_by_the_first_balise(kind, count_f
     count is zero), the first case had every reading refused for the whole run at 5 km, and
     at 26-39 m (a rule took such counts as distance run) hundreds of estimates 26-53 m off
     were labelled OK."""
-    from train_estimation.core.online.estimators import (
-        BrakingAdapter,
-        BrakingConfig,
-        RobustAdapter,
-        RobustConfig,
-        StartState,
-    )
-
     sc, res = run("metro_demo", 2, 200.0)
     fl = F.inject(res.events(), F.Fault("none"), np.random.default_rng(0))
     events = [(e[0], e[1], dict(e[2], distance=e[2]["distance"] + count)
                if e[0] == "odometer" else e[2]) + tuple(e[3:]) for e in fl.events]
-    start = StartState(sc.start_position - (count if count_from == "initial_position"
-                                            else 0.0))
-    a = RobustAdapter(sc.train, sc.line, start, RobustConfig(period=0.1)) if kind == "robust" \
-        else BrakingAdapter(sc.train, sc.line, start, BrakingConfig(algorithm=kind))
+    a = _started_at(sc, kind, sc.start_position - (count if count_from == "initial_position"
+                                                   else 0.0))
     outs, emitted, runner = F.run(events, a, 0.1)
     s = F.score(outs, emitted, fl, res.truth, 10.0, 200.0 + F.LATENCY)
     assert s["wrong_side"] == 0 and s["hazards"] == 0 and s["bad_cov"] == 0, s
@@ -448,19 +455,9 @@ def test_a_start_50_m_off_is_inside_the_protection_levels_throughout(kind, offse
     the balises) is carried as the alternative until a balise read at another speed (7.2 m/s,
     at 124 s) decides between them by their likelihood ratio. Without the start hypothesis
     and the alternative, 719-1,527 estimates lay outside their protection levels."""
-    from train_estimation.core.online.estimators import (
-        BrakingAdapter,
-        BrakingConfig,
-        RobustAdapter,
-        RobustConfig,
-        StartState,
-    )
-
     sc, res = run("metro_demo", 0, 300.0)
     fl = F.inject(res.events(), F.Fault("none"), np.random.default_rng(0))
-    start = StartState(sc.start_position + offset)
-    a = RobustAdapter(sc.train, sc.line, start, RobustConfig(period=0.1)) if kind == "robust" \
-        else BrakingAdapter(sc.train, sc.line, start, BrakingConfig(algorithm=kind))
+    a = _started_at(sc, kind, sc.start_position + offset)
     outs, emitted, runner = F.run(fl.events, a, 0.1)
     s = F.score(outs, emitted, fl, res.truth, 10.0, 300.0 + F.LATENCY)
     assert s["misleading"] == 0 and s["wrong_side"] == 0 and s["bad_cov"] == 0, s
