@@ -345,6 +345,7 @@ class DistanceAsPosition:
         J = np.array([self._uncounted(t), [0.0, self.odo[2], 0.0]])
         C = J @ self.cal.Sigma @ J.T
         var = float(C[0, 0])
+        alt = alt + self.cal.start_doubt(d)  # the start wrong (odometer_scale module doc)
         # solution separation: the filter without each of its last balises lies that balise's
         # move away, as sure as it was before it (one may lie: a survey error)
         C[0, 0] += max((m * m + v for m, v in self.separation + alt), default=0.0)

@@ -255,25 +255,38 @@ class OdometerCalibration:
 
     def doubt(self, d: float, v_odo: float) -> tuple[np.ndarray, tuple]:
         """``(consider(d, v_odo), separation(d, v_odo))`` from one pass over the solutions
-        without each recent balise (an estimate publishes both)."""
+        without each recent balise and the start's (an estimate publishes both)."""
         J = np.array([[1.0, d, 0.0], [0.0, v_odo, 0.0]])
         C = J @ self.Sigma @ J.T
         need = np.diag(C).copy()
         alts = []
-        free = self.free
-        for alt in self.alternatives + ([free] if free is not None else []):
-            if alt is free and alt.n == 0:  # a start fault, no balise yet: at its bias bound
-                for b in (self.start_fault, -self.start_fault):
-                    need[0] = max(need[0], C[0, 0] + b * b)
-                    alts.append((b, float(C[0, 0])))
-                continue
+        for alt in self.alternatives:
             Sk = _walked(alt.Sigma, alt.d, self.d_walked, self.count_walk, self.scale_walk,
                          self.jumps)
             delta = J @ (alt.theta - self.theta)
             ck = np.diag(J @ Sk @ J.T)
             need = np.maximum(need, ck + delta * delta)
             alts.append((float(delta[0]), float(ck[0])))
+        for shift, var in self.start_doubt(d, float(C[0, 0])):
+            need[0] = max(need[0], var + shift * shift)
+            alts.append((shift, var))
         return C + np.diag(need - np.diag(C)), (float(C[0, 0]), tuple(alts))
+
+    def start_doubt(self, d: float, var: float | None = None) -> tuple:
+        """The start-fault hypothesis at the count ``d`` as solutions ``((shift m, variance
+        m^2), ...)`` relative to this calibration's position (module doc): before the first
+        balise the train at either end of the bias bound with ``var`` (the position's own
+        variance, :meth:`position_variance` when None); then the solution without the start;
+        ``()`` when no start fault is carried."""
+        f = self.free
+        if f is None:
+            return ()
+        if f.n == 0:
+            v = self.position_variance(d) if var is None else float(var)
+            return ((self.start_fault, v), (-self.start_fault, v))
+        Sf = _walked(f.Sigma, f.d, self.d_walked, self.count_walk, self.scale_walk, self.jumps)
+        h = np.array([1.0, d, 0.0])
+        return ((float(h @ (f.theta - self.theta)), float(h @ Sf @ h)),)
 
     # -- time (distance) update ---------------------------------------------------------------
     def walk_to(self, d: float) -> None:
