@@ -17,12 +17,12 @@ from train_core.config import require
 from .. import reasons as R
 from .odometer_scale import (
     A_MAX,
-    EXCLUSION_RISK,
     LATENCY_WIDE,
     BaliseFix,
     OdometerCalibration,
     latency_beyond_prior,
     log_density,
+    wald,
 )
 
 
@@ -302,20 +302,17 @@ class DistanceAsPosition:
         return tuple(out)
 
     def _judge(self, judged: tuple | None) -> bool:
-        """Wald's sequential probability-ratio test between the calibration and its
-        alternative on the balises both predicted: the log-likelihood ratio summed over them,
-        and at ``log(1 / EXCLUSION_RISK)`` the one it speaks against is excluded (the
-        ratio of the wrong hypothesis over the true one is a martingale, so it ever reaches
-        ``1 / alpha`` with probability at most ``alpha``: the false exclusions stay within
-        that risk whatever the number of balises). Returns True when the alternative becomes
-        the model (the estimate moves with its mapping)."""
+        """Wald's sequential test (``odometer_scale.wald``) between the calibration and its
+        alternative on the balises both predicted: the one the summed log-likelihood ratio
+        speaks against is excluded. Returns True when the alternative becomes the model (the
+        estimate moves with its mapping)."""
         if judged is None:
             return False
         self.llr += judged[0] - judged[1]
-        bound = math.log(1.0 / EXCLUSION_RISK)
-        if self.llr >= bound:
+        decided = wald(self.llr)
+        if decided > 0:
             self.cal_alt = None
-        elif self.llr <= -bound:
+        elif decided < 0:
             self.cal, self.cal_alt = self.cal_alt, None
             return True
         return False

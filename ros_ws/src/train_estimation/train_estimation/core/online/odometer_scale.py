@@ -386,10 +386,10 @@ class OdometerCalibration:
         Sf = _walked(f.Sigma, f.d, self.d_walked, self.count_walk, self.scale_walk, self.jumps)
         self.llr_free += log_density(*self._innovation(fix)) \
             - log_density(*self._innovation_of(f.theta, Sf, fix))
-        bound = math.log(1.0 / EXCLUSION_RISK)
-        if self.llr_free >= bound:
+        decided = wald(self.llr_free)
+        if decided > 0:
             self.free = None
-        elif self.llr_free <= -bound:
+        elif decided < 0:
             before = _Solution(self.theta, self.Sigma, self.d_walked, self.n)
             self.theta, self.Sigma = self._fused(f.theta, Sf, fix)
             self.n = f.n + 1
@@ -507,6 +507,15 @@ class OdometerCalibration:
         self.held = None
         self.relocated += 1
         return True
+
+
+def wald(llr: float, risk: float = EXCLUSION_RISK) -> int:
+    """Wald's sequential test on ``llr``, the log-likelihood ratio summed so far of hypothesis
+    A over B: +1 excludes B, -1 excludes A, 0 is undecided. The ratio of the wrong hypothesis
+    over the true one is a martingale, so it ever reaches ``1 / risk`` with probability at most
+    ``risk``, however many terms come."""
+    bound = math.log(1.0 / risk)
+    return 1 if llr >= bound else -1 if llr <= -bound else 0
 
 
 def log_density(nu: float, s: float) -> float:
