@@ -205,27 +205,37 @@ def test_rejections_match_numpy_form():
         np.testing.assert_array_equal(f.particles[0], before[0])
 
 
-def test_compiled_equals_interpreted_kernel():
-    """The kernel run interpreted (TRAIN_NO_JIT=1: numba's decorator is a no-op) gives the
-    compiled kernel's numbers bit for bit (the same IEEE operations in the same order)."""
+def _kernel_values() -> np.ndarray:
+    return np.concatenate([np.ravel(a) for a in _kernel_case()])
+
+
+def _interpreted(name: str) -> np.ndarray:
+    """This module's function ``name`` (no arguments, an array back) run in a fresh process
+    without numba (TRAIN_NO_JIT=1: its decorator is a no-op), checked to be interpreted."""
     here = str(Path(__file__).parent)
     code = textwrap.dedent(f"""
         import sys
         import numpy as np
         sys.path.insert(0, {here!r})
-        from test_bank import _kernel_case
+        from test_bank import {name}
         from train_estimation.core.numerics import bank
         assert not bank.COMPILED
-        np.save(sys.argv[1], np.concatenate([np.ravel(a) for a in _kernel_case()]))
+        np.save(sys.argv[1], {name}())
         """)
-    out = Path(os.environ.get("TMPDIR", "/tmp")) / f"bank_{os.getpid()}.npy"
+    out = Path(os.environ.get("TMPDIR", "/tmp")) / f"bank_{name}_{os.getpid()}.npy"
     run = subprocess.run([sys.executable, "-c", code, str(out)], capture_output=True,
                          text=True, env={**os.environ, "TRAIN_NO_JIT": "1"}, timeout=300)
     assert run.returncode == 0, run.stderr
     interpreted = np.load(out)
     out.unlink()
-    compiled = np.concatenate([np.ravel(a) for a in _kernel_case()])
-    np.testing.assert_array_equal(compiled, interpreted)
+    return interpreted
+
+
+def test_compiled_equals_interpreted_kernel():
+    """The kernel run interpreted (TRAIN_NO_JIT=1: numba's decorator is a no-op) gives the
+    compiled kernel's numbers bit for bit (the same IEEE operations in the same order)."""
+    interpreted = _interpreted("_kernel_values")
+    np.testing.assert_array_equal(_kernel_values(), interpreted)
 
 
 def _kernel_case():
@@ -361,20 +371,5 @@ def test_filters_run_without_numba():
     """Without numba (TRAIN_NO_JIT=1) every algorithm runs its numpy form and gives the
     compiled run's estimates to rounding (8 steps: the reordered sums' differences, ~1e-15
     relative each step, stay far below 1e-9; no resampling decision sits that close)."""
-    here = str(Path(__file__).parent)
-    code = textwrap.dedent(f"""
-        import sys
-        import numpy as np
-        sys.path.insert(0, {here!r})
-        from test_bank import _run_filters
-        from train_estimation.core.numerics import bank
-        assert not bank.COMPILED
-        np.save(sys.argv[1], _run_filters())
-        """)
-    out = Path(os.environ.get("TMPDIR", "/tmp")) / f"bank_filters_{os.getpid()}.npy"
-    run = subprocess.run([sys.executable, "-c", code, str(out)], capture_output=True,
-                         text=True, env={**os.environ, "TRAIN_NO_JIT": "1"}, timeout=300)
-    assert run.returncode == 0, run.stderr
-    interpreted = np.load(out)
-    out.unlink()
+    interpreted = _interpreted("_run_filters")
     np.testing.assert_allclose(_run_filters(), interpreted, rtol=1e-9, atol=1e-12)
