@@ -23,7 +23,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from train_core.bagio import BagWriter, read_bag
+from train_core.bagio import read_bag
 from train_core.effects import GradientEffect
 from train_core.model import load_line, load_train
 
@@ -31,9 +31,9 @@ from train_estimation.core.offline import fleet as FL
 from train_estimation.core.offline.diagnose import diagnose
 from train_estimation.core.offline.measured import MeasuredRun
 from train_estimation.tools.fleet import diagnosis_row
+from train_sim.generate import generate
 from train_sim.scenario import load_scenario
 from train_sim.unlisted import TunnelDrag, Unlisted
-from train_sim.world import simulate
 
 STRETCH = (2000.0, 2700.0)  # m of metro_demo, run at cruise speed between two stations
 TUNNEL_C = 12.0  # N/(m/s)^2: 1.7 per mille at 20 m/s for metro_b6
@@ -50,13 +50,9 @@ def one_pass(kind: str, margin: float, seed: int) -> dict:
     else:
         sc = sc.with_effects(dataclasses.replace(sc.effects,
                                                  gradient=GradientEffect(*STRETCH, MAP_PERMILLE)))
-    res = simulate(sc)
     with tempfile.TemporaryDirectory() as d:
         path = Path(d) / "bag"
-        with BagWriter(path) as w:  # what the train sends: the inputs as received
-            for t_recv, topic, stamp, fields in res.received_events():
-                if topic in ("odometer", "balise", "control"):
-                    w.write(topic, stamp, fields, t_ns=int(round(t_recv * 1e9)))
+        generate(sc, path, measured=True)  # what the train sends: the inputs as received
         data = MeasuredRun.from_bag(read_bag(path))
     train = load_train(sc.train_path)
     dg = diagnose(data, load_line(sc.line_path), train)
