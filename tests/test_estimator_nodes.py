@@ -109,19 +109,14 @@ def test_gsma_estimator_converges_to_the_degraded_braking_rate(launch, ros_node)
     assert all(np.isfinite(m.covariance[15]) and m.covariance[15] >= 0 for m in est)
 
 
-@pytest.mark.parametrize("rate", [
-    1.0,
-    pytest.param(10.0, marks=pytest.mark.xfail(strict=True, reason=(
-        "faster than real time, the default control_clock 'auto' judges the commands' stamps "
-        "against wall-clock arrivals, which run rate_factor times slower: the stream clock "
-        "model tracks a drift of percents, not a rate of 10, and refuses the commands as "
-        "stamped ahead (control_clock:=same, as the main job passes, works)")))])
+@pytest.mark.parametrize("rate", [1.0, 10.0])
 def test_the_by_hand_recipe_with_default_parameters(launch, ros_node, rate):
     """docs/nodes.md's nodes by hand: the simulator at ``rate`` x real time, the estimators
     with use_sim_time and nothing else but the line and train (every other parameter at its
     default): every slot is published, no command is refused, and every estimate holds the
-    truth within its protection levels. (At 10x the default ``control_clock: auto`` refuses
-    most commands as future stamps: see the xfail's reason.)"""
+    truth within its protection levels. At 10x the stamps run ten times faster than the
+    nodes' (steady) arrival clock: the runner finds that pace from the commands
+    (clocks.ArrivalPace)."""
     from train_interfaces.msg import TrainState
 
     ns = f"/byhand{int(rate)}"

@@ -20,6 +20,7 @@ to ``/diagnostics`` once per ``diagnostics_period`` (levels by ``train_core.diag
 from __future__ import annotations
 
 import math
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -182,7 +183,7 @@ def build_estimator_node(name: str, topic: str, make_adapter: Callable):
             # made no latency difference); the replays tick at the same period.
             self.timer = self.create_timer(common["tick_period"], self.tick,
                                            clock=Clock(clock_type=ClockType.STEADY_TIME))
-            # On simulated time (use_sim_time) the arrival clock says nothing about the stamps:
+            # On simulated time (use_sim_time) the steady timer says nothing about the stamps:
             # the world runs at rate_factor x wall time and is paced by the estimates, so a
             # reading "overdue" on the steady clock is one still queued behind a command or a
             # /clock (a loaded node), and the timer's phase decided whether its slot left as a
@@ -190,26 +191,59 @@ def build_estimator_node(name: str, topic: str, make_adapter: Callable):
             # would publish different estimates). There the slots follow the inputs' watermarks
             # alone: the simulator's next messages publish a lost reading's slot.
             self.clock_slots = not self.get_parameter("use_sim_time").value
+            self.waiting: list = []  # messages received before a simulated clock started
+            self.ros_last = 0  # ns, the ROS clock's last reading seen (simulated time)
+            self.ticks: deque = deque(maxlen=64)  # s, its recent steps (arrival resolution)
             self.n_reported = 0
             self.event_log: dict = {}  # (kind, event) -> (steady s last logged, not logged since)
             self.get_logger().info(
                 f"{self.adapter.source} on {line.name} / {train.name}, start at "
                 f"{start.position:.1f} m, output {common['odometer_rate']:g} Hz on '{topic}'")
 
+        def _arrival(self) -> float | None:
+            """s, now on the receive clock the runner judges stamps against (the contract's
+            reference clock, which is the log time of a bag): the steady clock; on simulated
+            time (use_sim_time) the ROS clock, the world's /clock (the simulator's, or a
+            player's: the bag's log time). On the steady clock a simulation at 10x real time
+            runs its stamps ten times faster than their arrivals, which no stream clock is (the
+            default ``control_clock: auto`` refused 3,892 of 3,900 commands as stamped ahead).
+            None while the simulated clock has not started. Waiting (a command stream's
+            silence, EstimatorRunner.ready_time) stays on the steady clock: at 20x a stall of
+            150 ms is 3 s of simulated time, and judged there it let the readings run ahead of
+            commands that were only queued."""
+            if self.clock_slots:
+                return self.steady.now().nanoseconds * 1e-9
+            t = self.get_clock().now().nanoseconds
+            if t <= 0:
+                return None
+            if t != self.ros_last:  # /clock ticked: its step is how finely arrivals are timed
+                if self.ros_last:
+                    self.ticks.append((t - self.ros_last) * 1e-9)
+                    self.runner.arrival_resolution = max(self.ticks)
+                self.ros_last = t
+            return t * 1e-9
+
         def _push(self, kind: str, msg, fields: dict) -> None:
-            # Arrival on the steady clock: only differences of arrival times matter to the
-            # runner (stream offsets, the train clock's rate), and under use_sim_time the ROS
-            # clock can stall behind the data (a player's /clock), which arrival must not do.
-            recv = self.steady.now().nanoseconds * 1e-9
+            recv = self._arrival()
+            wall = self.steady.now().nanoseconds * 1e-9
+            if recv is None:  # before the first /clock: held, pushed when it starts
+                self.waiting.append((kind, msg, fields, wall))
+                return
+            while self.waiting:
+                k, m, f, w = self.waiting.pop(0)
+                self._push_one(k, m, f, recv, w)
+            self._push_one(kind, msg, fields, recv, wall)
+            self.tick()
+
+        def _push_one(self, kind: str, msg, fields: dict, recv: float, wall: float) -> None:
             stamp = stamp_to_sec(msg.header.stamp)
             self.received[kind] += 1
-            self.last_arrival[kind] = recv
-            reason = self.runner.push(kind, stamp, fields, recv)
+            self.last_arrival[kind] = wall
+            reason = self.runner.push(kind, stamp, fields, recv, wall=wall)
             if kind == "odometer" and not reason:
-                self.arrived[stamp] = recv  # for the received -> published latency
+                self.arrived[stamp] = wall  # for the received -> published latency
             if reason:
                 self.get_logger().warning(f"{kind} rejected: {reason}", throttle_duration_sec=2.0)
-            self.tick()
 
         def _log_event(self, kind: str, stamp: float, text: str, now: float) -> None:
             """One line per event, but at most one per kind of event every EVENT_LOG_PERIOD s
@@ -237,7 +271,9 @@ def build_estimator_node(name: str, topic: str, make_adapter: Callable):
             self._push("control", msg, {"target_acceleration": msg.target_acceleration})
 
         def tick(self) -> None:
-            now = self.steady.now().nanoseconds * 1e-9  # the arrival clock (see _push)
+            now = self._arrival()  # the arrival clock (see _arrival)
+            if now is None:
+                return
             if self.wait_subs:  # discovery, as the simulator's wait_for_subscribers: readers
                 if self.pub.get_subscription_count() < self.wait_subs:  # that match late
                     return  # would miss the first estimates (inputs stay queued meanwhile)
@@ -247,7 +283,7 @@ def build_estimator_node(name: str, topic: str, make_adapter: Callable):
             # slot whose reading is overdue on the arrival clock leaves by runner.tick.
             t_tick = self.steady.now().nanoseconds * 1e-9
             outs = self.runner.advance_to(self.runner.ready_time(now, self.delay,
-                                                                  4 * self.delay))
+                                                                  4 * self.delay, wall=t_tick))
             for out in outs + (self.runner.tick(now) if self.clock_slots else []):
                 msg = TrainState()
                 sec_to_stamp(out.stamp, msg.header.stamp)
@@ -283,7 +319,7 @@ def build_estimator_node(name: str, topic: str, make_adapter: Callable):
             events = sum(self.runner.events.values())
             if events > self.n_events:  # accepted input worth a line each (seq reset, ...)
                 for kind, stamp, text in self.runner.last_events[-(events - self.n_events):]:
-                    self._log_event(kind, stamp, text, now)
+                    self._log_event(kind, stamp, text, t_tick)
                 self.n_events = events
             if self.runner.separate_clocks and not self.separate_logged:
                 self.separate_logged = True

@@ -88,14 +88,16 @@ def build_node():
                     return
                 self.wall0 = time.monotonic()
             t_bag = self.t0_bag + (time.monotonic() - self.wall0) * self.rate
-            while self.i < len(self.items) and self.items[self.i][0] <= t_bag:
-                stamp, topic, fields = self.items[self.i]
-                self.pubs[topic].publish(fields_to_msg(TOPIC_TYPES[topic], stamp, fields))
-                self.i += 1
+            # the clock first, then what was logged by it: a node on simulated time receives
+            # each message at or after its log time, never before
             clock = Clock()
             last = self.items[-1][0] if self.items else 0.0
             sec_to_stamp(min(t_bag, last + 2.0), clock.clock)
             self.clock_pub.publish(clock)
+            while self.i < len(self.items) and self.items[self.i][0] <= t_bag:
+                stamp, topic, fields = self.items[self.i]
+                self.pubs[topic].publish(fields_to_msg(TOPIC_TYPES[topic], stamp, fields))
+                self.i += 1
             if self.i >= len(self.items) and t_bag > last + 2.0:
                 self.get_logger().info("bag played")
                 self.finished = True

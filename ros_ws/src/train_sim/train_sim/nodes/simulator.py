@@ -212,21 +212,23 @@ def build_node():
                 return
             if self.t_sim < self.duration:
                 self.world.advance(min(target, self.duration))
-            # deliver what has arrived by now: with link latency, later than it was sent
+            self.t_sim = target
+            # the world's clock first, then what has arrived by it (with link latency, later
+            # than it was sent): a node on simulated time receives each message at or after its
+            # delivery time on the clock it judges stamps by, never before (latency >= 0)
+            if self.publish_clock:
+                clock = Clock()
+                sec_to_stamp(self.t_sim, clock.clock)
+                self.clock_pub.publish(clock)
             for topic, stamp, fields in self.world.deliver(target):
                 self.pubs[topic].publish(fields_to_msg(TOPIC_TYPES[topic], stamp, fields))
                 self.counts[topic] += 1
-            self.t_sim = target
             if not self.done and (self.t_sim >= self.next_report
                                   or self.t_sim >= self.duration):
                 self.get_logger().info(f"{PROGRESS} {min(self.t_sim, self.duration):.1f} of "
                                        f"{self.duration:.1f} s")
                 while self.next_report <= self.t_sim:
                     self.next_report += self.report_step
-            if self.publish_clock:
-                clock = Clock()
-                sec_to_stamp(self.t_sim, clock.clock)
-                self.clock_pub.publish(clock)
             if self.t_sim >= self.duration and not self.done:
                 self.done = True
                 self.get_logger().info(f"run ended at {self.duration:.1f} s; published "

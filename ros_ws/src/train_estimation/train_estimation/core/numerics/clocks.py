@@ -797,6 +797,8 @@ class StepWatch:
         self.small_step, self.small_step_z = small_step, small_step_z
         self.max_future = max_future  # s: a reading this far above its clock is refused anyway
         self.same = same  # control_clock 'same': no forward steps, no small bar (sim time)
+        self.resolution = 0.0  # s, how finely arrivals are timed (the runner's
+        #   arrival_resolution: a simulated clock's tick)
         self.clock = StreamClock()  # the train clock (the runner's, fed by its admissions)
         self.shift = 0.0  # s, train-clock steps so far: timeline stamps = raw - shift
         self.last: tuple | None = None  # (stamp, arrival) of the newest odometer admitted
@@ -861,10 +863,12 @@ class StepWatch:
         ``small_step`` where the link's jitter (the offsets' robust spread) is small. A radio's
         jitter cannot shift every offset of nine readings in a row by the same amount, which a
         small step does: left unwatched, a 0.2 s step left the kf 4 m off at 20 m/s with a sigma
-        of 0.1 m."""
+        of 0.1 m. Never below the arrival clock's ``resolution``: a message timed on a clock
+        that ticks (/clock on simulated time) arrives up to a tick before the clock says so."""
         if self.same or len(clock) < self.min_judged:
-            return self.back
-        return min(self.back, max(self.small_step, self.small_step_z * clock.scale))
+            return max(self.back, self.resolution)
+        return max(min(self.back, max(self.small_step, self.small_step_z * clock.scale)),
+                   self.resolution)
 
     def watch(self, kind: str, stamp: float, fields, recv, arrival: float):
         """What to do with a train-clock reading (timeline ``stamp``; ``recv`` None when the

@@ -221,7 +221,7 @@ class EstimatorRunner:
     _last_fused: float = -math.inf  # stamp of the last odometer sample accepted (or the start)
     separate_clocks: bool = False  # control was found (or said) to be on another clock
     _steps: StepWatch | None = None  # the train clock's steps (and the train StreamClock)
-    _ctl_recv: float | None = None  # arrival of the latest command (the node's clock)
+    _ctl_recv: float | None = None  # arrival of the latest command (push's ``wall``)
     integrity: IntegrityParams = field(default_factory=IntegrityParams)
     command_slack: float = 0.25  # odometer periods: a reading stamped this little past the
     #   control watermark is processed without waiting for the next command (ready_time)
@@ -231,6 +231,19 @@ class EstimatorRunner:
     #   long after it was due is published as a prediction by :meth:`tick`
     _backlog: bool = False  # the latest message pushed came late (tick waits)
     monitor: IntegrityMonitor | None = None
+
+    @property
+    def arrival_resolution(self) -> float:
+        """s, how finely ``recv`` times an arrival: 0 on a steady clock; on simulated time the
+        ROS clock moves in /clock's ticks, and a message can be handled before the tick that
+        delivered it, up to a tick early. A step smaller than that cannot be seen: it floors
+        the bar beyond which an offset is watched as a step or refused as stamped ahead
+        (:meth:`~.clocks.StepWatch.bar`). The node sets it from the ticks it sees."""
+        return self._steps.resolution
+
+    @arrival_resolution.setter
+    def arrival_resolution(self, value: float) -> None:
+        self._steps.resolution = float(value) if math.isfinite(value) and value > 0 else 0.0
 
     @property
     def _can_rewind(self) -> bool:
@@ -251,10 +264,13 @@ class EstimatorRunner:
                                 same=self.control_clock == "same")
 
     # -- door ---------------------------------------------------------------------------------
-    def push(self, kind: str, stamp: float, fields: dict, recv: float | None = None) -> str:
+    def push(self, kind: str, stamp: float, fields: dict, recv: float | None = None,
+             wall: float | None = None) -> str:
         """Check and queue one item; returns "" or the reason it was refused at the door.
 
-        ``recv``: arrival time (s) on the node's clock (a replay: the bag's log time), or None.
+        ``recv``: arrival time (s) on the receive clock (the reference clock: a node's steady
+        clock, or /clock on simulated time; a replay: the bag's log time), or None. ``wall``:
+        the arrival on the clock waiting is measured on (:meth:`ready_time`; default ``recv``).
         """
         if kind not in KIND_ORDER:
             return self._reject(kind, math.nan, f"{R.UNKNOWN_KIND}: {kind}")
@@ -268,7 +284,8 @@ class EstimatorRunner:
         if recv is not None and not math.isfinite(recv):
             recv = None
         if kind == "control" and recv is not None:
-            self._ctl_recv = recv if self._ctl_recv is None else max(self._ctl_recv, recv)
+            w = recv if wall is None else wall
+            self._ctl_recv = w if self._ctl_recv is None else max(self._ctl_recv, w)
         if kind != "control":
             seq = fields.get("seq") if isinstance(fields, dict) else None
             if not isinstance(seq, int) or isinstance(seq, bool):
@@ -889,7 +906,8 @@ class EstimatorRunner:
             return []
         return self.advance_to(due)
 
-    def ready_time(self, now: float, delay: float, fallback: float) -> float:
+    def ready_time(self, now: float, delay: float, fallback: float,
+                   wall: float | None = None) -> float:
         """Latest stamp (train clock) a live node can process at clock ``now`` without racing
         its inputs.
 
@@ -906,7 +924,9 @@ class EstimatorRunner:
         it would have changed in the estimates already published is at most a quarter
         period of its acceleration (1.5 m/s^2 over 0.25 s at 1 Hz: 5 cm). Without control
         messages the node's clock (``now - delay``, mapped onto the train clock through the
-        odometer's offset) stands in for it. Driven by the
+        odometer's offset) stands in for it. The command stream's silence is measured on
+        ``wall`` (the clock push's ``wall`` is on; default ``now``): waiting is the node's.
+        Driven by the
         data rather than by the clock, a node emits what the offline replay of the same
         messages emits, however the executor interleaves /clock and the subscriptions.
         """
@@ -917,7 +937,8 @@ class EstimatorRunner:
         # silence on the arrival clock when arrivals are known: at 20x sim time a node's
         # 100 ms of wall jitter is 2 s of stamps, which must not make it run ahead of commands
         # that are on their way (the run would depend on the machine's load)
-        silent = now - self._ctl_recv if self._ctl_recv is not None else now_train - lead
+        silent = (now if wall is None else wall) - self._ctl_recv \
+            if self._ctl_recv is not None else now_train - lead
         if "control" in self.high and silent > self.command_timeout:
             # the command stream stopped while readings go on: waiting for it would leave the
             # train without an estimate and the queue growing; the filters hold the last
