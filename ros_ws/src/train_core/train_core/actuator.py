@@ -193,7 +193,8 @@ def grid_output(t_grid, ctrl_t, ctrl_a, tau: float, delay: float,
     (Zheng eq. (1): a_Tar(t - T) = 0 for t <= T).
     """
     import numpy as np
-    from scipy.signal import lfilter
+
+    from .lag import first_order
 
     t_grid = np.asarray(t_grid, float)
     dt = t_grid[1] - t_grid[0]
@@ -212,5 +213,6 @@ def grid_output(t_grid, ctrl_t, ctrl_a, tau: float, delay: float,
         i = np.cumsum(np.bincount(first, minlength=x.size + 1)[:x.size]) - 1
         cmd = np.where(i >= 0, ctrl_a[np.clip(i, 0, None)], 0.0)
         # y[k] = e y[k-1] + (1 - e) x[k-1]: exact for a command held over each grid step
-        out.append(lfilter([0.0, 1.0 - e], [1.0, -e], part(cmd, 0.0)))
+        out.append(first_order(part(cmd, 0.0), e, 1.0 - e))
     return out[0], out[1]
+

@@ -11,7 +11,6 @@ from __future__ import annotations
 import math
 
 from scipy.special import gammaln
-from scipy.stats import chi2
 
 
 def chi2_logsf(x: float, k: float) -> float:
@@ -27,6 +26,9 @@ def chi2_logsf(x: float, k: float) -> float:
     summed until a term is below 1e-16 of the sum or starts to grow (the series is asymptotic).
     For even ``k`` the series ends by itself and is exact: ``k = 2`` gives ``-x / 2``.
     """
+    from scipy.stats import chi2  # here: scipy.stats takes ~0.3 s to import, and most runs
+    #   of diagnose never ask for a far tail's p-value
+
     x, k = float(x), float(k)
     v = float(chi2.logsf(x, k))
     if math.isfinite(v) or not (x > 0 and k > 0) or not math.isfinite(x):

@@ -441,7 +441,7 @@ def halves_test(fitted: list, ccfg: ConfirmConfig = CONFIRM, nominal: dict | Non
     ``halves_min_share`` of the cause's size (the mean fit's change from ``nominal``, where
     known): an effect of another kind that a listed cause imitates fits it differently where
     the two halves of the run differ (an actuator's shape over other commands and speeds)."""
-    from scipy.stats import norm
+    from scipy.special import ndtri
 
     vals = [f.get("halves") for f in fitted if "error" not in f]
     if len(vals) != 2 or not vals[0] or not vals[1]:
@@ -449,7 +449,7 @@ def halves_test(fitted: list, ccfg: ConfirmConfig = CONFIRM, nominal: dict | Non
     keys = [k for k in vals[0] if k in vals[1]]
     if not keys:
         return {"tested": False, "consistent": True}
-    zc = float(norm.isf(ccfg.halves_alpha / (2 * len(keys))))
+    zc = float(-ndtri(ccfg.halves_alpha / (2 * len(keys))))
     out = {"tested": True, "consistent": True, "z_needed": zc, "quantities": {}}
     for k in keys:
         (x0, e0), (x1, e1) = vals[0][k], vals[1][k]

@@ -67,8 +67,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.signal import lfilter
-from scipy.stats import chi2
+from scipy.special import chdtrc
+from train_core.lag import first_order
 from train_core.model import G as G_ACCEL
 
 from train_estimation.core.numerics.augmented_kf import gls
@@ -126,7 +126,7 @@ def split_test(mo: Motion, others: Null, full: Null, cfg, noise, alpha: float,
     # at a speed, a force fixed in place against one that scales with the traction asked for)
     for name, z in _slopes(mo, ph, v, gi, on, energy, t):
         stat, c, se = _fit_columns(st1, (dv * z)[:, None], (ds * z)[:, None])
-        p = float(chi2.sf(stat, 1))
+        p = float(chdtrc(1, stat))
         out[f"slope in {name}"] = {"chi2": stat, "dof": 1, "p": p, "change": float(c[0]),
                                    "std_error": float(se[0])}
         if p < alpha and abs(c[0]) > max(min_share, 3.0 * se[0]):
@@ -144,7 +144,7 @@ def _cells(out: dict, part: str, cols: list, stat: float, c, se, alpha: float,
     of freedom per cell, each cell's multiplier 1 + c_j and standard error); the cells that
     contradict the cause (the partition significant at ``alpha``, two cells at least, a cell
     off by more than ``min_share`` and 3 SE), in words."""
-    p = float(chi2.sf(stat, len(cols)))
+    p = float(chdtrc(len(cols), stat))
     out[part] = {"chi2": stat, "dof": len(cols), "p": p,
                  "multipliers": {lab: 1.0 + float(cj) for (_, lab), cj in zip(cols, c)},
                  "std_errors": {lab: float(sj) for (_, lab), sj in zip(cols, se)}}
@@ -417,7 +417,7 @@ def place_test(mo: Motion, full: Null, cfg, noise, inside: np.ndarray, beyond: n
         res["note"] = note
         return res
     stat, c, se = _fit_cells(mo, full, cfg, noise, cols)
-    p = float(chi2.sf(stat, len(cols)))
+    p = float(chdtrc(len(cols), stat))
     res.update(chi2=stat, dof=len(cols), p=p,
                multipliers={lab: float(cj) for lab, cj in zip(labels, c)},
                std_errors={lab: float(sj) for lab, sj in zip(labels, se)})
@@ -499,7 +499,7 @@ def heat_state(mo: Motion, tau: float) -> np.ndarray:
     p = np.maximum(-mo.f0 * mo.a_br0, 0.0) * np.maximum(mo.v_ref, 0.0) * mo.moving
     dt = mo.grid.dt
     # h[k] = exp(-dt / tau) h[k-1] + dt p[k-1]: the heat taken up to grid point k, cooled
-    h = lfilter([0.0, dt], [1.0, -math.exp(-dt / tau)], p)
+    h = first_order(p, math.exp(-dt / tau), dt)
     v_top = float(np.max(mo.v_ref * mo.moving)) if mo.moving.any() else 0.0
     return h / max(0.5 * v_top * v_top, 1e-9)
 

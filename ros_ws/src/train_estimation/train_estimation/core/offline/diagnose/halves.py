@@ -31,7 +31,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.stats import norm
+from scipy.special import ndtri
 
 from train_estimation.core.numerics.augmented_kf import gls
 
@@ -76,7 +76,7 @@ def odometer_halves(mo: Motion, others: Null, cfg, noise, alpha: float,
     if not parts:
         return {"tested": False, "consistent": True,
                 "note": f"fewer than {MIN_READINGS} odometer readings while moving in a half"}
-    zc = float(norm.isf(alpha / (2 * len(parts))))
+    zc = float(-ndtri(alpha / (2 * len(parts))))
     out = {"test": "scale over the halves of the distance run", "tested": True,
            "consistent": True, "z_needed": zc, "quantities": {}}
     st = Stage(mo, others, cfg, noise=noise, big=False)

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
-from scipy.stats import chi2
+from scipy.special import chdtri
 from train_core.effects import ResistanceEffect
 
 from train_estimation.core.numerics.augmented_kf import gls
@@ -156,7 +156,7 @@ class Resistance(Cause):
         # first five columns, the free resistance all of them
         W = st.augmented(st.fv, st.fs, drift=(np.hstack([Dv, Bv]), np.hstack([Ds, Bs]))).W
         lr = max(gls(W[:5, :5])[2] - gls(W)[2], 0.0)
-        bar = float(chi2.isf(CURVE_ALPHA, k))
+        bar = float(chdtri(k, CURVE_ALPHA))
         fit.extra["free_in_speed_lr"] = float(lr)
         if lr <= bar:
             return None
