@@ -1,16 +1,31 @@
 """Far tails of test statistics (pure: math and scipy).
 
 Choosing the strongest of several tests by p-value needs the p-values where they are tiny.
-``scipy.stats.chi2.logsf`` returns ``-inf`` once the survival function underflows (a
-statistic of about 1,500 with three degrees of freedom), and every strong test then ties with
-every other; :func:`chi2_logsf` stays finite there.
+The chi-square survival function's log (``scipy.stats.chi2.logsf``) is ``-inf`` once the
+survival function underflows (a statistic of about 1,500 with three degrees of freedom), and
+every strong test then ties with every other; :func:`chi2_logsf` stays finite there.
 """
 
 from __future__ import annotations
 
 import math
 
-from scipy.special import gammaln
+from scipy.special import chdtr, chdtrc, gammaln
+
+
+def _logsf(x: float, k: float) -> float:
+    """log P(chi-square(k) > x) from scipy.special (scipy.stats takes ~1 s to import, and
+    every ``diagnose`` run asks for this): log1p of the distribution function where the
+    survival function is near 1, its log elsewhere (-inf once it underflows); NaN where
+    ``x`` or ``k`` is NaN or ``k <= 0``, as scipy.stats gives."""
+    if not (k > 0) or math.isnan(x):
+        return math.nan
+    if x <= 0:
+        return 0.0
+    sf = float(chdtrc(k, x))
+    if sf > 0.5:
+        return math.log1p(-float(chdtr(k, x)))
+    return math.log(sf) if sf > 0 else -math.inf
 
 
 def chi2_logsf(x: float, k: float) -> float:
@@ -26,11 +41,8 @@ def chi2_logsf(x: float, k: float) -> float:
     summed until a term is below 1e-16 of the sum or starts to grow (the series is asymptotic).
     For even ``k`` the series ends by itself and is exact: ``k = 2`` gives ``-x / 2``.
     """
-    from scipy.stats import chi2  # here: scipy.stats takes ~0.3 s to import, and most runs
-    #   of diagnose never ask for a far tail's p-value
-
     x, k = float(x), float(k)
-    v = float(chi2.logsf(x, k))
+    v = _logsf(x, k)
     if math.isfinite(v) or not (x > 0 and k > 0) or not math.isfinite(x):
         return v
     s, z = 0.5 * k, 0.5 * x
