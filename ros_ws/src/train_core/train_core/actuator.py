@@ -192,27 +192,33 @@ def grid_output(t_grid, ctrl_t, ctrl_a, tau: float, delay: float,
     same: the brake chain of :class:`Actuator`). The command before the first stamp is 0
     (Zheng eq. (1): a_Tar(t - T) = 0 for t <= T).
     """
+    return (grid_part(t_grid, ctrl_t, ctrl_a, tau, delay, "traction"),
+            grid_part(t_grid, ctrl_t, ctrl_a, tau, delay if brake_delay is None
+                      else brake_delay, "braking"))
+
+
+def grid_part(t_grid, ctrl_t, ctrl_a, tau: float, delay: float, part: str):
+    """One part of :func:`grid_output`: ``part`` "traction" (the command's positive part) or
+    "braking" (its negative part), delayed by ``delay`` and lagged by ``tau`` on ``t_grid``
+    (an analysis that re-times only one part computes only that one)."""
     import numpy as np
 
     from .lag import first_order
 
+    clip = {"traction": np.maximum, "braking": np.minimum}[part]
     t_grid = np.asarray(t_grid, float)
     dt = t_grid[1] - t_grid[0]
     e = np.exp(-dt / tau)
-    out = []
-    for part, d in ((np.maximum, delay), (np.minimum, delay if brake_delay is None
-                                          else brake_delay)):
-        # The grid, the delay and the command stamps often sit on one lattice (0.1 s): without
-        # a tolerance, round-off puts some grid points one command late, a 0.1 s jitter of the
-        # input that biased a, c and f on metro_demo (found by benchmarks/bench_identify.py).
-        # i[k] = (number of stamps <= t_grid[k] - d + 1e-9) - 1, counted from the stamps' side
-        # (each stamp's first grid point at or after it): a search per command instead of
-        # per grid point, the same comparisons
-        x = t_grid - d + 1e-9
-        first = np.searchsorted(x, ctrl_t, side="left")
-        i = np.cumsum(np.bincount(first, minlength=x.size + 1)[:x.size]) - 1
-        cmd = np.where(i >= 0, ctrl_a[np.clip(i, 0, None)], 0.0)
-        # y[k] = e y[k-1] + (1 - e) x[k-1]: exact for a command held over each grid step
-        out.append(first_order(part(cmd, 0.0), e, 1.0 - e))
-    return out[0], out[1]
+    # The grid, the delay and the command stamps often sit on one lattice (0.1 s): without
+    # a tolerance, round-off puts some grid points one command late, a 0.1 s jitter of the
+    # input that biased a, c and f on metro_demo (found by benchmarks/bench_identify.py).
+    # i[k] = (number of stamps <= t_grid[k] - d + 1e-9) - 1, counted from the stamps' side
+    # (each stamp's first grid point at or after it): a search per command instead of
+    # per grid point, the same comparisons
+    x = t_grid - delay + 1e-9
+    first = np.searchsorted(x, ctrl_t, side="left")
+    i = np.cumsum(np.bincount(first, minlength=x.size + 1)[:x.size]) - 1
+    cmd = np.where(i >= 0, ctrl_a[np.clip(i, 0, None)], 0.0)
+    # y[k] = e y[k-1] + (1 - e) x[k-1]: exact for a command held over each grid step
+    return first_order(clip(cmd, 0.0), e, 1.0 - e)
 

@@ -22,6 +22,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from train_core.actuator import grid_part
 from train_core.model import G, Line, TrainParams
 
 from train_estimation.core.numerics.augmented_kf import Events
@@ -244,17 +245,15 @@ class Motion:
         add("v2", -v * v)
         for s in self.shifts:
             if s != 0.0:
-                a_tr, _ = self._act(s, 0.0)
-                add(f"T{s:+.3f}", a_tr - self.a_tr0)
+                add(f"T{s:+.3f}", self._part(s, "traction") - self.a_tr0)
         self.braking_cols = {}
         for s in self.shifts:
             for d in self.delays:
                 key = round(float(s + d), 6)
                 if key == 0.0 or key in self.braking_cols:
                     continue
-                _, a_br = self._act(key, key)
                 self.braking_cols[key] = f"B{key:+.3f}"
-                add(f"B{key:+.3f}", self.f0 * (a_br - self.a_br0))
+                add(f"B{key:+.3f}", self.f0 * (self._part(key, "braking", key) - self.a_br0))
         return names, R
 
     def _gradient_bins(self) -> tuple[np.ndarray, np.ndarray]:
@@ -293,6 +292,13 @@ class Motion:
         b = self.train.brake
         return actuator_output(self.grid.t, self.run.ctrl_t + shift, self.run.ctrl_a,
                                b.time_constant, b.delay, b.delay - shift + brake_shift)
+
+    def _part(self, shift: float, part: str, brake_shift: float = 0.0):
+        """One part of :meth:`_act` (the re-timed columns use one each)."""
+        b = self.train.brake
+        delay = b.delay if part == "traction" else b.delay - shift + brake_shift
+        return grid_part(self.grid.t, self.run.ctrl_t + shift, self.run.ctrl_a,
+                         b.time_constant, delay, part)
 
 
 def slip_cols(mo: Motion, intervals) -> tuple[np.ndarray, np.ndarray]:

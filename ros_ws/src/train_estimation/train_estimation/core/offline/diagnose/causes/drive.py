@@ -102,7 +102,7 @@ def traction_at(mo, timing: float) -> np.ndarray:
     cache = _TRACTION.setdefault(mo, {})
     key = round(float(timing), 6)
     if key not in cache:
-        cache[key] = mo.a_tr0 if key == 0.0 else mo._act(key, 0.0)[0]
+        cache[key] = mo.a_tr0 if key == 0.0 else mo._part(key, "traction")
     return cache[key]
 
 
