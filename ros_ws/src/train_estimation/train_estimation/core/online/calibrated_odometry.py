@@ -4,15 +4,17 @@ fault hypotheses beside it (a late balise reader, a start or count that is off),
 they add to an estimate (``Output.consider`` and ``Output.separation``).
 
 :class:`DistanceAsPosition` is the base of ``estimators.RobustAdapter`` and
-``estimators.BrakingAdapter``; ``check_odometry`` checks the parameters their configs share.
+``estimators.BrakingAdapter``; :class:`OdometryConfig` holds (and checks) the parameters
+their configs share.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
-from train_core.config import require
+from train_core.config import param, require
 
 from .. import reasons as R
 from .odometer_scale import (
@@ -26,16 +28,47 @@ from .odometer_scale import (
 )
 
 
-def check_odometry(cfg) -> None:
-    """The odometer-calibration parameters both configs share (:class:`DistanceAsPosition`)."""
-    require(math.isfinite(cfg.odometer_scale_std) and cfg.odometer_scale_std > 0,
-            "odometer_scale_std", cfg.odometer_scale_std, "must be finite and > 0")
-    require(math.isfinite(cfg.odometer_scale) and 0.5 <= cfg.odometer_scale <= 2.0,
-            "odometer_scale", cfg.odometer_scale, "must be in [0.5, 2] (a ratio of "
-            "distances, 1 when unknown)")
-    require(cfg.balise_gate > 0, "balise_gate", cfg.balise_gate, "must be > 0")
-    require(math.isfinite(cfg.balise_latency_std) and cfg.balise_latency_std >= 0,
-            "balise_latency_std", cfg.balise_latency_std, "must be finite and >= 0")
+@dataclass(frozen=True)
+class OdometryConfig:
+    """The odometer, balise and command settings both estimator nodes share (the base of their
+    configs; :class:`DistanceAsPosition` reads them): declared from this metadata, the nodes'
+    YAML files document them."""
+
+    gate: float = param(8.0, "-", "innovation gate in standard deviations (.inf disables)",
+                        lo=0.0)
+    use_distance: bool = param(True, "", "odometer distance as a position measurement")
+    distance_variance: float = param(1.0, "m^2", "variance of (initial_position + counted "
+                                     "distance) as a position reading", lo=0.0)
+    odometer_scale: float = param(1.0, "-", "the odometer's reading / true distance at start, "
+                                  "as diagnose reports it (cause odometer_scale) or an earlier "
+                                  "run learnt it (/diagnostics: odometer_scale); 1 when unknown",
+                                  lo=0.5, hi=2.0)
+    odometer_scale_std: float = param(0.01, "-", "std of the odometer's scale (true / counted "
+                                      "distance) before balises calibrate it", lo=0.0)
+    balise_gate: float = param(4.0, "-", "a balise further than this many standard deviations "
+                               "from the odometer's calibrated count is held until another "
+                               "confirms it (outside_gate)", lo=0.0)
+    balise_latency_std: float = param(0.1, "s", "std of the balise reader's latency (its "
+                                      "stamp minus the time the train passed the balise) "
+                                      "before balises read at different speeds calibrate it; "
+                                      "a reader found far beyond it is calibrated with a wide "
+                                      "prior (event balise_latency)", lo=0.0)
+    max_command: float = param(5.0, "m/s^2", "|a_Tar| beyond is no train's command "
+                               "(outside_gate)", lo=0.0)
+
+    def __post_init__(self):
+        require(self.gate > 0, "gate", self.gate, "must be > 0")
+        require(self.distance_variance > 0, "distance_variance", self.distance_variance,
+                "must be > 0")
+        require(math.isfinite(self.odometer_scale_std) and self.odometer_scale_std > 0,
+                "odometer_scale_std", self.odometer_scale_std, "must be finite and > 0")
+        require(math.isfinite(self.odometer_scale) and 0.5 <= self.odometer_scale <= 2.0,
+                "odometer_scale", self.odometer_scale, "must be in [0.5, 2] (a ratio of "
+                "distances, 1 when unknown)")
+        require(self.balise_gate > 0, "balise_gate", self.balise_gate, "must be > 0")
+        require(math.isfinite(self.balise_latency_std) and self.balise_latency_std >= 0,
+                "balise_latency_std", self.balise_latency_std, "must be finite and >= 0")
+        require(self.max_command > 0, "max_command", self.max_command, "must be > 0")
 
 
 class DistanceAsPosition:

@@ -33,7 +33,7 @@ from ..robust.filter_base import filter_params_from_train
 from ..robust.readings import BaliseReading, OdometerReading, covariance16
 from ..robust.robust_filter import RobustFilter
 from ..robust.wen_model import WenModel
-from .calibrated_odometry import DistanceAsPosition, check_odometry
+from .calibrated_odometry import DistanceAsPosition, OdometryConfig
 from .runner import Output
 
 NAN16 = (math.nan,) * 16
@@ -107,7 +107,7 @@ def _eps_from_ros(v):
 
 
 @dataclass(frozen=True)
-class RobustConfig:
+class RobustConfig(OdometryConfig):
     """Settings of the robust filter node (declared from this metadata, config/robust_filter.yaml
     documents them)."""
 
@@ -118,44 +118,20 @@ class RobustConfig:
                                   ros=(_eps_to_ros, _eps_from_ros))
     alpha_bar: float = param(0.875, "-", "Prob(odometer packet received), alpha-bar of eq. (12)",
                              lo=0.0, hi=1.0)
-    gate: float = param(8.0, "-", "innovation gate in standard deviations", lo=0.0)
-    use_distance: bool = param(True, "", "odometer distance as a position measurement")
-    distance_variance: float = param(1.0, "m^2", "variance of (initial_position + counted "
-                                     "distance) as a position reading", lo=0.0)
-    odometer_scale: float = param(1.0, "-", "the odometer's reading / true distance at start, "
-                                  "as diagnose reports it (cause odometer_scale) or an earlier "
-                                  "run learnt it (/diagnostics: odometer_scale); 1 when unknown",
-                                  lo=0.5, hi=2.0)
-    odometer_scale_std: float = param(0.01, "-", "std of the odometer's scale (true / counted "
-                                      "distance) before balises calibrate it", lo=0.0)
-    balise_gate: float = param(4.0, "-", "a balise further than this many standard deviations "
-                               "from the odometer's calibrated count is held until another "
-                               "confirms it (outside_gate)", lo=0.0)
-    balise_latency_std: float = param(0.1, "s", "std of the balise reader's latency (its "
-                                      "stamp minus the time the train passed the balise) "
-                                      "before balises read at different speeds calibrate it; "
-                                      "a reader found far beyond it is calibrated with a wide "
-                                      "prior (event balise_latency)", lo=0.0)
     period: float = param(0.1, "s", "nominal odometer sample period (lost samples: gap / period "
                           "- 1); the node sets it from odometer_rate", node=False)
     outage_slots: int = param(8, "-", "more lost odometer slots in a row are an outage: "
                               "prediction only", lo=0)
-    max_command: float = param(5.0, "m/s^2", "|a_Tar| beyond is no train's command "
-                               "(outside_gate)", lo=0.0)
 
     def __post_init__(self):
         require(0.0 < self.alpha_bar <= 1.0, "alpha_bar", self.alpha_bar, "must be in (0, 1]")
         require(math.isfinite(self.q) and self.q >= 0, "q", self.q, "must be finite and >= 0")
-        require(self.gate > 0, "gate", self.gate, "must be > 0")
-        require(self.distance_variance > 0, "distance_variance", self.distance_variance,
-                "must be > 0")
-        check_odometry(self)
+        super().__post_init__()
         require(self.epsilon is None or self.epsilon > 0, "epsilon", self.epsilon,
                 "must be > 0 (or None: per step)")
         require(math.isfinite(self.period) and self.period > 0, "period", self.period,
                 "must be > 0")
         require(self.outage_slots >= 0, "outage_slots", self.outage_slots, "must be >= 0")
-        require(self.max_command > 0, "max_command", self.max_command, "must be > 0")
 
 
 class RobustAdapter(DistanceAsPosition):
@@ -396,7 +372,7 @@ ALGORITHMS = ("gsma", "sma", "rbpf", "qgrbpf", "kf")
 
 
 @dataclass(frozen=True)
-class BrakingConfig:
+class BrakingConfig(OdometryConfig):
     """Settings of the braking-rate estimator node (declared from this metadata,
     config/gsma_estimator.yaml documents them)."""
 
@@ -443,36 +419,17 @@ class BrakingConfig:
                              "forces)", lo=0.0)
     ahat_var: float = param(0.001, "m^2/s^5", "white noise PSD on a_hat (actuator mismatch)",
                             lo=0.0)
-    distance_variance: float = param(1.0, "m^2", "odometer distance as a position reading", lo=0.0)
-    odometer_scale: float = param(1.0, "-", "the odometer's reading / true distance at start, "
-                                  "as diagnose reports it (cause odometer_scale) or an earlier "
-                                  "run learnt it (/diagnostics: odometer_scale); 1 when unknown",
-                                  lo=0.5, hi=2.0)
-    odometer_scale_std: float = param(0.01, "-", "std of the odometer's scale (true / counted "
-                                      "distance) before balises calibrate it", lo=0.0)
-    balise_gate: float = param(4.0, "-", "a balise further than this many standard deviations "
-                               "from the odometer's calibrated count is held until another "
-                               "confirms it (outside_gate)", lo=0.0)
-    balise_latency_std: float = param(0.1, "s", "std of the balise reader's latency (its "
-                                      "stamp minus the time the train passed the balise) "
-                                      "before balises read at different speeds calibrate it; "
-                                      "a reader found far beyond it is calibrated with a wide "
-                                      "prior (event balise_latency)", lo=0.0)
-    use_distance: bool = param(True, "", "odometer distance as a position measurement")
     standstill_speed: float = param(0.3, "m/s", "at or below (estimated), with a brake "
                                     "command, the train is held at rest and the braking rate "
                                     "is not observed", lo=0.0)
     min_brake: float = param(0.1, "m/s^2", "weaker braking commands do not inform the braking "
                              "rate", lo=0.0)
     seed: int = param(0, "", "particle-filter random stream")
-    gate: float = param(8.0, "-", "innovation gate in standard deviations (.inf disables)", lo=0.0)
     gate_accel: float = param(1.5, "m/s^2", "acceleration error allowed in the gate's "
                               "look-ahead", lo=0.0)
     balise_map_tolerance: float = param(1.0, "m", "max |sent position - map position|", lo=0.0)
     max_horizon: float = param(3600.0, "s", "a reading further ahead of the estimate is "
                                "future_stamp", lo=0.0)
-    max_command: float = param(5.0, "m/s^2", "|a_Tar| beyond is no train's command "
-                               "(outside_gate)", lo=0.0)
 
     def __post_init__(self):
         require(self.algorithm in ALGORITHMS, "algorithm", self.algorithm,
@@ -480,7 +437,7 @@ class BrakingConfig:
         require(math.isfinite(self.braking_rate_prior_std) and self.braking_rate_prior_std > 0,
                 "braking_rate_prior_std", self.braking_rate_prior_std, "must be finite and > 0")
         require(0 <= self.sma_p_jump < 1, "sma_p_jump", self.sma_p_jump, "must be in [0, 1)")
-        check_odometry(self)
+        super().__post_init__()
 
 
 class BrakingAdapter(DistanceAsPosition):
