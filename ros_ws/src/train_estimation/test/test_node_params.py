@@ -27,7 +27,7 @@ def _same(a, b):
 @pytest.mark.parametrize("name", sorted(NODES))
 def test_params_file_has_exactly_the_declared_fields_with_their_defaults(name):
     params = yaml.safe_load((CONFIG / name).read_text())["/**"]["ros__parameters"]
-    from train_estimation.nodes.estimator_node import LineChoice
+    from train_estimation.nodes.estimator_params import LineChoice
 
     fields = (param_fields(NodeConfig) + param_fields(LineChoice) + param_fields(NODES[name])
               + param_fields(EstimatorThresholds) + param_fields(IntegrityParams))
@@ -155,7 +155,7 @@ def test_help_lists_the_parameters_with_units_defaults_and_ranges(capsys):
         gsma_estimator.main(["--help"])
     assert exc.value.code == 0
     out = capsys.readouterr().out
-    from train_estimation.nodes.estimator_node import node_params
+    from train_estimation.nodes.estimator_params import node_params
 
     for cls in node_params(BrakingConfig):
         for f in param_fields(cls):
@@ -244,7 +244,7 @@ def test_an_empty_train_file_is_refused_unless_the_demo_is_asked_for():
     # an estimator on another train's mass, resistance and brake is off with no sign of it
     from train_core.files import config_file
 
-    from train_estimation.nodes.estimator_node import ParameterError, load_models
+    from train_estimation.nodes.estimator_params import ParameterError, load_models
 
     line = str(config_file("lines", "metro_demo"))
     common = dict(line_file=line, train_file="", initial_position=math.nan,

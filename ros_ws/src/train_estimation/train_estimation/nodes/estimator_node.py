@@ -1,4 +1,5 @@
-"""The ROS layer shared by `robust_filter` and `gsma_estimator`.
+"""The ROS layer shared by `robust_filter` and `gsma_estimator`: :class:`EstimatorNode`
+(its parameters and models, without rclpy: :mod:`.estimator_params`).
 
 Callbacks push the message with its arrival time on the node's clock into the runner
 (``EstimatorRunner.push``) and at once advance the runner to its ready time, so that an odometer
@@ -22,78 +23,24 @@ from __future__ import annotations
 import math
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass
 
-from train_core.config import param
-from train_core.ros import ParameterError, declare_config, sec_to_stamp, stamp_to_sec
+from nav_msgs.msg import Odometry
+from rclpy.clock import Clock, ClockType
+from rclpy.node import Node
+from train_core import diagnostics as D
+from train_core.ros import Diagnostics, ParameterError, declare_config, sec_to_stamp, stamp_to_sec
+
+from train_estimation.core.online.odometry import odometry_covariances
+from train_estimation.core.online.runner import EstimatorRunner
+from train_estimation.nodes.estimator_params import declare_common, load_models
+from train_interfaces.msg import (
+    BaliseReading,
+    ControlCommand,
+    OdometerReading,
+    TrainState,
+)
 
 EVENT_LOG_PERIOD = 2.0  # s (steady), at most one log line per kind of event in this time
-
-
-@dataclass(frozen=True)
-class LineChoice:
-    """Whether an estimator may run on the demo's line when no line file is given."""
-
-    use_demo_line: bool = param(False, "", "with line_file or train_file empty, run on the "
-                                "demo's line and train (metro_demo, metro_b6); false: an empty "
-                                "line_file or train_file is refused")
-
-
-def node_params(adapter_config) -> tuple:
-    """The config dataclasses an estimator node declares (for its ``--help``): the common ones,
-    the algorithm's ``adapter_config``, the integrity's and the diagnostics' thresholds."""
-    from train_core.diagnostics import EstimatorThresholds
-
-    from train_estimation.core.online.estimators import NodeConfig
-    from train_estimation.core.online.integrity import IntegrityParams
-
-    return (NodeConfig, LineChoice, adapter_config, IntegrityParams, EstimatorThresholds)
-
-
-def declare_common(node) -> dict:
-    """Parameters every estimator node has (``core.online.estimators.NodeConfig``;
-    config/*.yaml)."""
-    from dataclasses import asdict
-
-    from train_estimation.core.online.estimators import NodeConfig
-
-    try:
-        common = asdict(declare_config(node, NodeConfig))
-        common.update(asdict(declare_config(node, LineChoice)))
-    except ValueError as exc:
-        raise ParameterError(str(exc)) from None
-    return common
-
-
-def load_models(common: dict):
-    """(train, line, StartState) from the file parameters; ParameterError with one line if bad."""
-    from train_core.config import ConfigError
-    from train_core.files import config_file
-    from train_core.model import load_line, load_train
-
-    from train_estimation.core.online.estimators import StartState
-
-    if not common["line_file"] and not common.get("use_demo_line", False):
-        # an estimator on the wrong line map is wrong everywhere: never guess it silently
-        raise ParameterError("parameter line_file: empty: give the line.yaml the train runs on "
-                             "(or use_demo_line:=true to run on the demo's line, metro_demo)")
-    if not common["train_file"] and not common.get("use_demo_line", False):
-        # nor on another train's mass, resistance and brake: the braking-rate and the
-        # predictions through a gap would be off with no sign of it
-        raise ParameterError("parameter train_file: empty: give the train.yaml of the train "
-                             "(mass, resistance, brake, odometer noise) (or "
-                             "use_demo_line:=true to run on the demo's train, metro_b6)")
-    line_file = common["line_file"] or str(config_file("lines", "metro_demo"))
-    train_file = common["train_file"] or str(config_file("trains", "metro_b6"))
-    try:
-        line, train = load_line(line_file), load_train(train_file)
-    except ConfigError as exc:
-        raise ParameterError(str(exc)) from None
-    x0 = common["initial_position"]
-    if not math.isfinite(x0):
-        x0 = line.stations[0].position if line.stations else 0.0
-    return train, line, StartState(position=x0, position_std=common["initial_position_std"],
-                                    position_fault=common["initial_position_fault"])
 
 
 def _quantiles(values: list[float]) -> tuple[float, float, float]:
@@ -102,320 +49,304 @@ def _quantiles(values: list[float]) -> tuple[float, float, float]:
     return v[len(v) // 2], v[min(len(v) - 1, int(0.99 * len(v)))], v[-1]
 
 
-def build_estimator_node(name: str, topic: str, make_adapter: Callable):
-    """A node that feeds ``make_adapter(node, train, line, start, common)`` through a runner."""
-    from nav_msgs.msg import Odometry
-    from rclpy.clock import Clock, ClockType
-    from rclpy.node import Node
-    from train_core import diagnostics as D
-    from train_core.ros import Diagnostics
+class EstimatorNode(Node):
+    """A node that feeds ``make_adapter(node, train, line, start, common)`` through a runner
+    (``name``: the node's name; ``topic``: where its estimates go, e.g. ``estimate/robust``)."""
 
-    from train_estimation.core.online.odometry import odometry_covariances
-    from train_estimation.core.online.runner import EstimatorRunner
-    from train_interfaces.msg import (
-        BaliseReading,
-        ControlCommand,
-        OdometerReading,
-        TrainState,
-    )
+    def __init__(self, name: str, topic: str, make_adapter: Callable):
+        super().__init__(name)
+        common = declare_common(self)
+        train, line, start = load_models(common)
+        try:
+            self.adapter = make_adapter(self, train, line, start, common)
+        except ValueError as exc:
+            raise ParameterError(str(exc)) from None
+        try:
+            from train_estimation.core.online.integrity import IntegrityParams
 
-    class EstimatorNode(Node):
-        def __init__(self):
-            super().__init__(name)
-            common = declare_common(self)
-            train, line, start = load_models(common)
-            try:
-                self.adapter = make_adapter(self, train, line, start, common)
-            except ValueError as exc:
-                raise ParameterError(str(exc)) from None
-            try:
-                from train_estimation.core.online.integrity import IntegrityParams
+            integrity = declare_config(self, IntegrityParams)
+        except ValueError as exc:
+            raise ParameterError(str(exc)) from None
+        try:
+            self.runner = EstimatorRunner(self.adapter, 1.0 / common["odometer_rate"],
+                                          control_clock=common["control_clock"],
+                                          max_future=common["max_future"],
+                                          slot_grace=common["slot_grace"],
+                                          integrity=integrity)
+        except ValueError as exc:
+            raise ParameterError(f"parameter control_clock: {exc}") from None
+        self.n_events = 0
+        self.rate_warned = False  # the odometer_rate warning logged (diagnostics)
+        self.steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self.arrived: dict[float, float] = {}  # odometer stamp -> arrival (steady s)
+        # s, odometer received -> its estimate published, in the steady state and in the
+        # start-up (the runner starts on the third sample and judges each clock's stamps
+        # once min_judged have arrived: those first samples wait by design)
+        self.latency: list[float] = []
+        self.latency_startup: list[float] = []
+        # the steady-state latency split: waiting for the cycle's other inputs (the runner
+        # releases a sample once the control watermark passes it) and processing (the
+        # runner's work and publishing, from the start of the tick that released it)
+        self.waited: list[float] = []
+        self.processed: list[float] = []
+        self.separate_logged = False
+        self.delay = common["output_delay"]
+        self.wait_subs = common["wait_for_subscribers"]
+        self.pub = self.create_publisher(TrainState, topic, 1000)
+        self.odom_topic = "odom/" + topic.rsplit("/", 1)[-1]
+        self.odom_pub = self.create_publisher(Odometry, self.odom_topic, 1000)
+        # /diagnostics: counters the runner does not keep (arrivals), read by the core
+        self.started = self.steady.now().nanoseconds * 1e-9
+        self.received = dict.fromkeys(("odometer", "control", "balise"), 0)
+        self.last_arrival = dict.fromkeys(self.received, math.nan)
+        self.window_latency: list[float] = []
+        self.last_integrity: tuple | None = None  # (label, doubts, PL ahead, PL behind)
+        self.n_published = 0
+        self.diag = Diagnostics(self, f"{self.adapter.source} estimator",
+                                D.EstimatorThresholds, self.diagnostics)
+        self.create_subscription(OdometerReading, "odometer", self.on_odometer, 2000)
+        self.create_subscription(BaliseReading, "balise", self.on_balise, 200)
+        self.create_subscription(ControlCommand, "control", self.on_control, 2000)
+        # Every message ticks the runner itself (outputs are released by the inputs'
+        # watermarks); the timer covers what only the clock can tell: a lost reading's
+        # slot, published once it is slot_grace overdue (EstimatorRunner.tick; with a 1 Hz
+        # odometer the next message comes a second later), silence on every input (a dead
+        # link: the node's clock then stands in for the commands) and discovery. 20 Hz
+        # (tick_period) is enough for that and leaves the cores to the callbacks (200 Hz
+        # made no latency difference); the replays tick at the same period.
+        self.timer = self.create_timer(common["tick_period"], self.tick,
+                                       clock=Clock(clock_type=ClockType.STEADY_TIME))
+        # On simulated time (use_sim_time) the steady timer says nothing about the stamps:
+        # the world runs at rate_factor x wall time and is paced by the estimates, so a
+        # reading "overdue" on the steady clock is one still queued behind a command or a
+        # /clock (a loaded node), and the timer's phase decided whether its slot left as a
+        # prediction, before the commands of its cycle (two runs of one scenario and seed
+        # would publish different estimates). There the slots follow the inputs' watermarks
+        # alone: the simulator's next messages publish a lost reading's slot.
+        self.clock_slots = not self.get_parameter("use_sim_time").value
+        self.waiting: list = []  # messages received before a simulated clock started
+        self.ros_last = 0  # ns, the ROS clock's last reading seen (simulated time)
+        self.ticks: deque = deque(maxlen=64)  # s, its recent steps (arrival resolution)
+        self.n_reported = 0
+        self.event_log: dict = {}  # (kind, event) -> (steady s last logged, not logged since)
+        self.get_logger().info(
+            f"{self.adapter.source} on {line.name} / {train.name}, start at "
+            f"{start.position:.1f} m, output {common['odometer_rate']:g} Hz on '{topic}'")
 
-                integrity = declare_config(self, IntegrityParams)
-            except ValueError as exc:
-                raise ParameterError(str(exc)) from None
-            try:
-                self.runner = EstimatorRunner(self.adapter, 1.0 / common["odometer_rate"],
-                                              control_clock=common["control_clock"],
-                                              max_future=common["max_future"],
-                                              slot_grace=common["slot_grace"],
-                                              integrity=integrity)
-            except ValueError as exc:
-                raise ParameterError(f"parameter control_clock: {exc}") from None
-            self.n_events = 0
-            self.rate_warned = False  # the odometer_rate warning logged (diagnostics)
-            self.steady = Clock(clock_type=ClockType.STEADY_TIME)
-            self.arrived: dict[float, float] = {}  # odometer stamp -> arrival (steady s)
-            # s, odometer received -> its estimate published, in the steady state and in the
-            # start-up (the runner starts on the third sample and judges each clock's stamps
-            # once min_judged have arrived: those first samples wait by design)
-            self.latency: list[float] = []
-            self.latency_startup: list[float] = []
-            # the steady-state latency split: waiting for the cycle's other inputs (the runner
-            # releases a sample once the control watermark passes it) and processing (the
-            # runner's work and publishing, from the start of the tick that released it)
-            self.waited: list[float] = []
-            self.processed: list[float] = []
-            self.separate_logged = False
-            self.delay = common["output_delay"]
-            self.wait_subs = common["wait_for_subscribers"]
-            self.pub = self.create_publisher(TrainState, topic, 1000)
-            self.odom_topic = "odom/" + topic.rsplit("/", 1)[-1]
-            self.odom_pub = self.create_publisher(Odometry, self.odom_topic, 1000)
-            # /diagnostics: counters the runner does not keep (arrivals), read by the core
-            self.started = self.steady.now().nanoseconds * 1e-9
-            self.received = dict.fromkeys(("odometer", "control", "balise"), 0)
-            self.last_arrival = dict.fromkeys(self.received, math.nan)
-            self.window_latency: list[float] = []
-            self.last_integrity: tuple | None = None  # (label, doubts, PL ahead, PL behind)
-            self.n_published = 0
-            self.diag = Diagnostics(self, f"{self.adapter.source} estimator",
-                                    D.EstimatorThresholds, self.diagnostics)
-            self.create_subscription(OdometerReading, "odometer", self.on_odometer, 2000)
-            self.create_subscription(BaliseReading, "balise", self.on_balise, 200)
-            self.create_subscription(ControlCommand, "control", self.on_control, 2000)
-            # Every message ticks the runner itself (outputs are released by the inputs'
-            # watermarks); the timer covers what only the clock can tell: a lost reading's
-            # slot, published once it is slot_grace overdue (EstimatorRunner.tick; with a 1 Hz
-            # odometer the next message comes a second later), silence on every input (a dead
-            # link: the node's clock then stands in for the commands) and discovery. 20 Hz
-            # (tick_period) is enough for that and leaves the cores to the callbacks (200 Hz
-            # made no latency difference); the replays tick at the same period.
-            self.timer = self.create_timer(common["tick_period"], self.tick,
-                                           clock=Clock(clock_type=ClockType.STEADY_TIME))
-            # On simulated time (use_sim_time) the steady timer says nothing about the stamps:
-            # the world runs at rate_factor x wall time and is paced by the estimates, so a
-            # reading "overdue" on the steady clock is one still queued behind a command or a
-            # /clock (a loaded node), and the timer's phase decided whether its slot left as a
-            # prediction, before the commands of its cycle (two runs of one scenario and seed
-            # would publish different estimates). There the slots follow the inputs' watermarks
-            # alone: the simulator's next messages publish a lost reading's slot.
-            self.clock_slots = not self.get_parameter("use_sim_time").value
-            self.waiting: list = []  # messages received before a simulated clock started
-            self.ros_last = 0  # ns, the ROS clock's last reading seen (simulated time)
-            self.ticks: deque = deque(maxlen=64)  # s, its recent steps (arrival resolution)
-            self.n_reported = 0
-            self.event_log: dict = {}  # (kind, event) -> (steady s last logged, not logged since)
-            self.get_logger().info(
-                f"{self.adapter.source} on {line.name} / {train.name}, start at "
-                f"{start.position:.1f} m, output {common['odometer_rate']:g} Hz on '{topic}'")
+    def _arrival(self) -> float | None:
+        """s, now on the receive clock the runner judges stamps against (the contract's
+        reference clock, which is the log time of a bag): the steady clock; on simulated
+        time (use_sim_time) the ROS clock, the world's /clock (the simulator's, or a
+        player's: the bag's log time). On the steady clock a simulation at 10x real time
+        runs its stamps ten times faster than their arrivals, which no stream clock is (the
+        default ``control_clock: auto`` refused 3,892 of 3,900 commands as stamped ahead).
+        None while the simulated clock has not started. Waiting (a command stream's
+        silence, EstimatorRunner.ready_time) stays on the steady clock: at 20x a stall of
+        150 ms is 3 s of simulated time, and judged there it let the readings run ahead of
+        commands that were only queued."""
+        if self.clock_slots:
+            return self.steady.now().nanoseconds * 1e-9
+        t = self.get_clock().now().nanoseconds
+        if t <= 0:
+            return None
+        if t != self.ros_last:  # /clock ticked: its step is how finely arrivals are timed
+            if self.ros_last:
+                self.ticks.append((t - self.ros_last) * 1e-9)
+                self.runner.arrival_resolution = max(self.ticks)
+            self.ros_last = t
+        return t * 1e-9
 
-        def _arrival(self) -> float | None:
-            """s, now on the receive clock the runner judges stamps against (the contract's
-            reference clock, which is the log time of a bag): the steady clock; on simulated
-            time (use_sim_time) the ROS clock, the world's /clock (the simulator's, or a
-            player's: the bag's log time). On the steady clock a simulation at 10x real time
-            runs its stamps ten times faster than their arrivals, which no stream clock is (the
-            default ``control_clock: auto`` refused 3,892 of 3,900 commands as stamped ahead).
-            None while the simulated clock has not started. Waiting (a command stream's
-            silence, EstimatorRunner.ready_time) stays on the steady clock: at 20x a stall of
-            150 ms is 3 s of simulated time, and judged there it let the readings run ahead of
-            commands that were only queued."""
-            if self.clock_slots:
-                return self.steady.now().nanoseconds * 1e-9
-            t = self.get_clock().now().nanoseconds
-            if t <= 0:
-                return None
-            if t != self.ros_last:  # /clock ticked: its step is how finely arrivals are timed
-                if self.ros_last:
-                    self.ticks.append((t - self.ros_last) * 1e-9)
-                    self.runner.arrival_resolution = max(self.ticks)
-                self.ros_last = t
-            return t * 1e-9
+    def _push(self, kind: str, msg, fields: dict) -> None:
+        recv = self._arrival()
+        wall = self.steady.now().nanoseconds * 1e-9
+        if recv is None:  # before the first /clock: held, pushed when it starts
+            self.waiting.append((kind, msg, fields, wall))
+            return
+        while self.waiting:
+            k, m, f, w = self.waiting.pop(0)
+            self._push_one(k, m, f, recv, w)
+        self._push_one(kind, msg, fields, recv, wall)
+        self.tick()
 
-        def _push(self, kind: str, msg, fields: dict) -> None:
-            recv = self._arrival()
-            wall = self.steady.now().nanoseconds * 1e-9
-            if recv is None:  # before the first /clock: held, pushed when it starts
-                self.waiting.append((kind, msg, fields, wall))
-                return
-            while self.waiting:
-                k, m, f, w = self.waiting.pop(0)
-                self._push_one(k, m, f, recv, w)
-            self._push_one(kind, msg, fields, recv, wall)
-            self.tick()
+    def _push_one(self, kind: str, msg, fields: dict, recv: float, wall: float) -> None:
+        stamp = stamp_to_sec(msg.header.stamp)
+        self.received[kind] += 1
+        self.last_arrival[kind] = wall
+        reason = self.runner.push(kind, stamp, fields, recv, wall=wall)
+        if kind == "odometer" and not reason:
+            self.arrived[stamp] = wall  # for the received -> published latency
+        if reason:
+            self.get_logger().warning(f"{kind} rejected: {reason}", throttle_duration_sec=2.0)
 
-        def _push_one(self, kind: str, msg, fields: dict, recv: float, wall: float) -> None:
-            stamp = stamp_to_sec(msg.header.stamp)
-            self.received[kind] += 1
-            self.last_arrival[kind] = wall
-            reason = self.runner.push(kind, stamp, fields, recv, wall=wall)
-            if kind == "odometer" and not reason:
-                self.arrived[stamp] = wall  # for the received -> published latency
-            if reason:
-                self.get_logger().warning(f"{kind} rejected: {reason}", throttle_duration_sec=2.0)
+    def _log_event(self, kind: str, stamp: float, text: str, now: float) -> None:
+        """One line per event, but at most one per kind of event every EVENT_LOG_PERIOD s
+        (a lagging node fuses hundreds of readings late in a row): the next line says how
+        many were not logged (all are counted in /diagnostics)."""
+        key = (kind, text.split(":", 1)[0])
+        last, quiet = self.event_log.get(key, (-math.inf, 0))
+        if now - last < EVENT_LOG_PERIOD:
+            self.event_log[key] = (last, quiet + 1)
+            return
+        more = f" ({quiet} more like it not logged)" if quiet else ""
+        self.get_logger().info(f"{kind} at {stamp:.3f} s: {text}{more}")
+        self.event_log[key] = (now, 0)
 
-        def _log_event(self, kind: str, stamp: float, text: str, now: float) -> None:
-            """One line per event, but at most one per kind of event every EVENT_LOG_PERIOD s
-            (a lagging node fuses hundreds of readings late in a row): the next line says how
-            many were not logged (all are counted in /diagnostics)."""
-            key = (kind, text.split(":", 1)[0])
-            last, quiet = self.event_log.get(key, (-math.inf, 0))
-            if now - last < EVENT_LOG_PERIOD:
-                self.event_log[key] = (last, quiet + 1)
-                return
-            more = f" ({quiet} more like it not logged)" if quiet else ""
-            self.get_logger().info(f"{kind} at {stamp:.3f} s: {text}{more}")
-            self.event_log[key] = (now, 0)
+    def on_odometer(self, msg) -> None:
+        self._push("odometer", msg, {"seq": msg.seq, "distance": msg.distance,
+                                     "speed": msg.speed, "speed_variance": msg.speed_variance})
 
-        def on_odometer(self, msg) -> None:
-            self._push("odometer", msg, {"seq": msg.seq, "distance": msg.distance,
-                                         "speed": msg.speed, "speed_variance": msg.speed_variance})
+    def on_balise(self, msg) -> None:
+        self._push("balise", msg, {"seq": msg.seq, "balise_id": msg.balise_id,
+                                   "position": msg.position,
+                                   "position_variance": msg.position_variance})
 
-        def on_balise(self, msg) -> None:
-            self._push("balise", msg, {"seq": msg.seq, "balise_id": msg.balise_id,
-                                       "position": msg.position,
-                                       "position_variance": msg.position_variance})
+    def on_control(self, msg) -> None:
+        self._push("control", msg, {"target_acceleration": msg.target_acceleration})
 
-        def on_control(self, msg) -> None:
-            self._push("control", msg, {"target_acceleration": msg.target_acceleration})
+    def tick(self) -> None:
+        now = self._arrival()  # the arrival clock (see _arrival)
+        if now is None:
+            return
+        if self.wait_subs:  # discovery, as the simulator's wait_for_subscribers: readers
+            if self.pub.get_subscription_count() < self.wait_subs:  # that match late
+                return  # would miss the first estimates (inputs stay queued meanwhile)
+            self.wait_subs = 0
+        # Outputs wait for the inputs' watermarks (or 4 x delay for a lost sample), so the
+        # node computes exactly what the offline replay of the same messages computes; a
+        # slot whose reading is overdue on the arrival clock leaves by runner.tick.
+        t_tick = self.steady.now().nanoseconds * 1e-9
+        outs = self.runner.advance_to(self.runner.ready_time(now, self.delay,
+                                                              4 * self.delay, wall=t_tick))
+        for out in outs + (self.runner.tick(now) if self.clock_slots else []):
+            msg = TrainState()
+            sec_to_stamp(out.stamp, msg.header.stamp)
+            msg.header.frame_id = "track"
+            msg.source = self.adapter.source
+            msg.position, msg.velocity = out.position, out.velocity
+            msg.acceleration, msg.braking_rate = out.acceleration, out.braking_rate
+            msg.covariance = list(out.covariance)
+            msg.measurement_used = out.measurement_used
+            msg.integrity = out.integrity
+            msg.protection_level_ahead = out.protection_level_ahead
+            msg.protection_level_behind = out.protection_level_behind
+            self.pub.publish(msg)
+            self.odom_pub.publish(self._odometry(msg))
+            self.n_published += 1
+            self.last_integrity = (int(out.integrity),
+                                   str(getattr(out, "integrity_reason", "")),
+                                   out.protection_level_ahead, out.protection_level_behind)
+            t_recv = self.arrived.pop(out.stamp, None)
+            if t_recv is not None:
+                lat = self.steady.now().nanoseconds * 1e-9 - t_recv
+                startup = len(self.latency) + len(self.latency_startup) < \
+                    self.runner.min_judged + 3
+                if startup:
+                    self.latency_startup.append(lat)
+                else:
+                    self.latency.append(lat)
+                    self.window_latency.append(lat)
+                    self.waited.append(max(0.0, t_tick - t_recv))
+                    self.processed.append(lat - self.waited[-1])
+        if len(self.arrived) > 1000:  # samples that never became an estimate (refused)
+            self.arrived.clear()
+        events = sum(self.runner.events.values())
+        if events > self.n_events:  # accepted input worth a line each (seq reset, ...)
+            for kind, stamp, text in self.runner.last_events[-(events - self.n_events):]:
+                self._log_event(kind, stamp, text, t_tick)
+            self.n_events = events
+        if self.runner.separate_clocks and not self.separate_logged:
+            self.separate_logged = True
+            self.get_logger().info("control is stamped on another clock than the odometer: "
+                                   "mapped onto the odometer's clock (drift "
+                                   f"{self.runner.drift:.2e} so far)")
+        total = sum(self.runner.rejected.values())
+        if total > self.n_reported:  # the core refused input: say why (throttled)
+            kind, stamp, why = self.runner.last_reasons[-1]
+            self.n_reported = total
+            self.get_logger().warning(f"{kind} at {stamp:.3f} s rejected: {why} "
+                                      f"({total} rejected so far)", throttle_duration_sec=2.0)
 
-        def tick(self) -> None:
-            now = self._arrival()  # the arrival clock (see _arrival)
-            if now is None:
-                return
-            if self.wait_subs:  # discovery, as the simulator's wait_for_subscribers: readers
-                if self.pub.get_subscription_count() < self.wait_subs:  # that match late
-                    return  # would miss the first estimates (inputs stay queued meanwhile)
-                self.wait_subs = 0
-            # Outputs wait for the inputs' watermarks (or 4 x delay for a lost sample), so the
-            # node computes exactly what the offline replay of the same messages computes; a
-            # slot whose reading is overdue on the arrival clock leaves by runner.tick.
-            t_tick = self.steady.now().nanoseconds * 1e-9
-            outs = self.runner.advance_to(self.runner.ready_time(now, self.delay,
-                                                                  4 * self.delay, wall=t_tick))
-            for out in outs + (self.runner.tick(now) if self.clock_slots else []):
-                msg = TrainState()
-                sec_to_stamp(out.stamp, msg.header.stamp)
-                msg.header.frame_id = "track"
-                msg.source = self.adapter.source
-                msg.position, msg.velocity = out.position, out.velocity
-                msg.acceleration, msg.braking_rate = out.acceleration, out.braking_rate
-                msg.covariance = list(out.covariance)
-                msg.measurement_used = out.measurement_used
-                msg.integrity = out.integrity
-                msg.protection_level_ahead = out.protection_level_ahead
-                msg.protection_level_behind = out.protection_level_behind
-                self.pub.publish(msg)
-                self.odom_pub.publish(self._odometry(msg))
-                self.n_published += 1
-                self.last_integrity = (int(out.integrity),
-                                       str(getattr(out, "integrity_reason", "")),
-                                       out.protection_level_ahead, out.protection_level_behind)
-                t_recv = self.arrived.pop(out.stamp, None)
-                if t_recv is not None:
-                    lat = self.steady.now().nanoseconds * 1e-9 - t_recv
-                    startup = len(self.latency) + len(self.latency_startup) < \
-                        self.runner.min_judged + 3
-                    if startup:
-                        self.latency_startup.append(lat)
-                    else:
-                        self.latency.append(lat)
-                        self.window_latency.append(lat)
-                        self.waited.append(max(0.0, t_tick - t_recv))
-                        self.processed.append(lat - self.waited[-1])
-            if len(self.arrived) > 1000:  # samples that never became an estimate (refused)
-                self.arrived.clear()
-            events = sum(self.runner.events.values())
-            if events > self.n_events:  # accepted input worth a line each (seq reset, ...)
-                for kind, stamp, text in self.runner.last_events[-(events - self.n_events):]:
-                    self._log_event(kind, stamp, text, t_tick)
-                self.n_events = events
-            if self.runner.separate_clocks and not self.separate_logged:
-                self.separate_logged = True
-                self.get_logger().info("control is stamped on another clock than the odometer: "
-                                       "mapped onto the odometer's clock (drift "
-                                       f"{self.runner.drift:.2e} so far)")
-            total = sum(self.runner.rejected.values())
-            if total > self.n_reported:  # the core refused input: say why (throttled)
-                kind, stamp, why = self.runner.last_reasons[-1]
-                self.n_reported = total
-                self.get_logger().warning(f"{kind} at {stamp:.3f} s rejected: {why} "
-                                          f"({total} rejected so far)", throttle_duration_sec=2.0)
+    def _odometry(self, state):
+        """The estimate as nav_msgs/Odometry (frames and covariances:
+        core/online/odometry.py)."""
+        odom = Odometry()
+        odom.header = state.header
+        odom.child_frame_id = "base_link"
+        odom.pose.pose.position.x = state.position
+        odom.pose.pose.orientation.w = 1.0  # the body x axis along the track's
+        odom.twist.twist.linear.x = state.velocity
+        odom.pose.covariance, odom.twist.covariance = odometry_covariances(
+            state.covariance, (state.protection_level_ahead, state.protection_level_behind,
+                               self.runner.integrity.integrity_risk))
+        return odom
 
-        def _odometry(self, state):
-            """The estimate as nav_msgs/Odometry (frames and covariances:
-            core/online/odometry.py)."""
-            odom = Odometry()
-            odom.header = state.header
-            odom.child_frame_id = "base_link"
-            odom.pose.pose.position.x = state.position
-            odom.pose.pose.orientation.w = 1.0  # the body x axis along the track's
-            odom.twist.twist.linear.x = state.velocity
-            odom.pose.covariance, odom.twist.covariance = odometry_covariances(
-                state.covariance, (state.protection_level_ahead, state.protection_level_behind,
-                                   self.runner.integrity.integrity_risk))
-            return odom
+    def diagnostics(self):
+        """The node's Status for /diagnostics (the rules: train_core.diagnostics)."""
+        now = self.steady.now().nanoseconds * 1e-9
+        inputs = []
+        for kind in ("odometer", "control", "balise"):
+            reasons = {k.split(":", 1)[1]: n for k, n in self.runner.rejected.items()
+                       if k.split(":", 1)[0] == kind}
+            inputs.append(D.InputCounts(kind, self.received[kind],
+                                        self.runner.accepted.get(kind, 0), reasons,
+                                        self.last_arrival[kind],
+                                        watch_stale=kind != "balise"))
+        checks, values = self.diag.input_checks(now, self.started, inputs)
+        lat_checks, lat_values = D.latency_check(self.window_latency, self.diag.cfg)
+        rate_checks, rate_values = D.rate_check(self.runner.sample_period(),
+                                                self.runner.period)
+        if rate_checks and not self.rate_warned:  # once in the log; /diagnostics each time
+            self.get_logger().warning(rate_checks[0][1])
+            self.rate_warned = True
+        self.window_latency = []
+        integ = self.last_integrity
+        i_checks, i_values = D.integrity_check(*(integ if integ else (None, "")))
+        extra = [("source", self.adapter.source), ("estimates_published",
+                                                   str(self.n_published))]
+        scale = self.adapter.odometer_scale()
+        if scale is not None:  # what a next run can start from (parameter odometer_scale)
+            extra += [("odometer_scale", f"{scale[0]:.6f}"),
+                      ("odometer_scale_std", f"{scale[1]:.2e}")]
+        for kind, n in sorted(self.runner.unstated.items()):
+            # readings whose variance 0 was read as not stated (train.yaml's used)
+            extra.append((f"{kind}.variance_unstated", str(n)))
+        for kind, n in sorted(self.runner.uncounted.items()):
+            # readings of a stream without a sample counter (seq never moves)
+            extra.append((f"{kind}.seq_unstated", str(n)))
+        if self.runner.unstamped:  # commands stamped 0, taken at their arrival
+            extra.append(("control.stamp_unstated", str(self.runner.unstamped)))
+        lat = self.adapter.balise_latency()
+        if lat is not None:  # a reader that stamps late: the fixes are moved by v tau
+            extra += [("balise_latency", f"{lat[0]:.3f}"),
+                      ("balise_latency_std", f"{lat[1]:.3f}")]
+        return D.combine(checks + lat_checks + rate_checks + i_checks,
+                         extra + values + lat_values + rate_values + i_values)
 
-        def diagnostics(self):
-            """The node's Status for /diagnostics (the rules: train_core.diagnostics)."""
-            now = self.steady.now().nanoseconds * 1e-9
-            inputs = []
-            for kind in ("odometer", "control", "balise"):
-                reasons = {k.split(":", 1)[1]: n for k, n in self.runner.rejected.items()
-                           if k.split(":", 1)[0] == kind}
-                inputs.append(D.InputCounts(kind, self.received[kind],
-                                            self.runner.accepted.get(kind, 0), reasons,
-                                            self.last_arrival[kind],
-                                            watch_stale=kind != "balise"))
-            checks, values = self.diag.input_checks(now, self.started, inputs)
-            lat_checks, lat_values = D.latency_check(self.window_latency, self.diag.cfg)
-            rate_checks, rate_values = D.rate_check(self.runner.sample_period(),
-                                                    self.runner.period)
-            if rate_checks and not self.rate_warned:  # once in the log; /diagnostics each time
-                self.get_logger().warning(rate_checks[0][1])
-                self.rate_warned = True
-            self.window_latency = []
-            integ = self.last_integrity
-            i_checks, i_values = D.integrity_check(*(integ if integ else (None, "")))
-            extra = [("source", self.adapter.source), ("estimates_published",
-                                                       str(self.n_published))]
-            scale = self.adapter.odometer_scale()
-            if scale is not None:  # what a next run can start from (parameter odometer_scale)
-                extra += [("odometer_scale", f"{scale[0]:.6f}"),
-                          ("odometer_scale_std", f"{scale[1]:.2e}")]
-            for kind, n in sorted(self.runner.unstated.items()):
-                # readings whose variance 0 was read as not stated (train.yaml's used)
-                extra.append((f"{kind}.variance_unstated", str(n)))
-            for kind, n in sorted(self.runner.uncounted.items()):
-                # readings of a stream without a sample counter (seq never moves)
-                extra.append((f"{kind}.seq_unstated", str(n)))
-            if self.runner.unstamped:  # commands stamped 0, taken at their arrival
-                extra.append(("control.stamp_unstated", str(self.runner.unstamped)))
-            lat = self.adapter.balise_latency()
-            if lat is not None:  # a reader that stamps late: the fixes are moved by v tau
-                extra += [("balise_latency", f"{lat[0]:.3f}"),
-                          ("balise_latency_std", f"{lat[1]:.3f}")]
-            return D.combine(checks + lat_checks + rate_checks + i_checks,
-                             extra + values + lat_values + rate_values + i_values)
-
-        def close(self) -> None:
-            if self.latency:
-                p50, p99, top = _quantiles(self.latency)
-                w50, w99, _ = _quantiles(self.waited)
-                c50, c99, _ = _quantiles(self.processed)
-                self.get_logger().info(f"latency odometer received -> estimate published: "
-                                       f"p50 {1e3 * p50:.2f} ms, p99 {1e3 * p99:.2f} ms, "
-                                       f"max {1e3 * top:.2f} ms over {len(self.latency)} samples"
-                                       f" (steady state; start-up: max "
-                                       f"{1e3 * max(self.latency_startup, default=0.0):.2f} ms "
-                                       f"over the first {len(self.latency_startup)}); waiting "
-                                       f"for inputs p50 {1e3 * w50:.2f} ms, p99 {1e3 * w99:.2f} "
-                                       f"ms; processing p50 {1e3 * c50:.2f} ms, p99 "
-                                       f"{1e3 * c99:.2f} ms")
-            self.get_logger().info(f"accepted {dict(self.runner.accepted)}; "
-                                   f"rejected {dict(self.runner.rejected) or 'none'}; "
-                                   f"events {dict(self.runner.events) or 'none'}")
-            scale = self.adapter.odometer_scale()
-            if scale is not None:
-                self.get_logger().info(f"odometer's scale learnt from the balises: "
-                                       f"{scale[0]:.6f} +- {scale[1]:.1e} (reading / true "
-                                       "distance; a next run of this train can start from it: "
-                                       "parameter odometer_scale)")
-            lat = self.adapter.balise_latency()
-            if lat is not None:
-                self.get_logger().info(f"balise reader's latency learnt from the balises: "
-                                       f"{lat[0]:.3f} +- {lat[1]:.3f} s (its stamp minus the "
-                                       "time the train passed the balise)")
-
-    return EstimatorNode()
+    def close(self) -> None:
+        if self.latency:
+            p50, p99, top = _quantiles(self.latency)
+            w50, w99, _ = _quantiles(self.waited)
+            c50, c99, _ = _quantiles(self.processed)
+            self.get_logger().info(f"latency odometer received -> estimate published: "
+                                   f"p50 {1e3 * p50:.2f} ms, p99 {1e3 * p99:.2f} ms, "
+                                   f"max {1e3 * top:.2f} ms over {len(self.latency)} samples"
+                                   f" (steady state; start-up: max "
+                                   f"{1e3 * max(self.latency_startup, default=0.0):.2f} ms "
+                                   f"over the first {len(self.latency_startup)}); waiting "
+                                   f"for inputs p50 {1e3 * w50:.2f} ms, p99 {1e3 * w99:.2f} "
+                                   f"ms; processing p50 {1e3 * c50:.2f} ms, p99 "
+                                   f"{1e3 * c99:.2f} ms")
+        self.get_logger().info(f"accepted {dict(self.runner.accepted)}; "
+                               f"rejected {dict(self.runner.rejected) or 'none'}; "
+                               f"events {dict(self.runner.events) or 'none'}")
+        scale = self.adapter.odometer_scale()
+        if scale is not None:
+            self.get_logger().info(f"odometer's scale learnt from the balises: "
+                                   f"{scale[0]:.6f} +- {scale[1]:.1e} (reading / true "
+                                   "distance; a next run of this train can start from it: "
+                                   "parameter odometer_scale)")
+        lat = self.adapter.balise_latency()
+        if lat is not None:
+            self.get_logger().info(f"balise reader's latency learnt from the balises: "
+                                   f"{lat[0]:.3f} +- {lat[1]:.3f} s (its stamp minus the "
+                                   "time the train passed the balise)")

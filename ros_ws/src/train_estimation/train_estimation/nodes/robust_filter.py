@@ -24,12 +24,17 @@ def make_adapter(node, train, line, start, common):
 
 def main(argv=None) -> int:
     from train_estimation.core.online.estimators import RobustConfig
-    from train_estimation.nodes.estimator_node import build_estimator_node, node_params
+    from train_estimation.nodes.estimator_params import node_params
 
     _, ros_args = parse_cli(DESCRIPTION + " Parameters: see config/robust_filter.yaml.", argv,
                             params=node_params(RobustConfig))
-    return run_node(lambda: build_estimator_node("robust_filter", "estimate/robust",
-                                                 make_adapter), ros_args)
+
+    def build():  # rclpy and the node's module only now: --help needs neither
+        from train_estimation.nodes.estimator_node import EstimatorNode
+
+        return EstimatorNode("robust_filter", "estimate/robust", make_adapter)
+
+    return run_node(build, ros_args)
 
 
 if __name__ == "__main__":
