@@ -10,7 +10,10 @@ each kind:
   innovations at its onset and at its end only);
 - ``varied``: 2-4 episodes placed on the pilot run wherever the train moves at > 3 m/s (in any
   phase, braking included), each 1-12 s long with its own depth, slip or slide, |fraction|
-  0.03-0.25, at least 15 s apart.
+  0.03-0.25, at least 15 s apart;
+- ``shaped``: the ``varied`` episodes with the slip building up and dying away as a half sine
+  (``WheelSlipEffect.shape`` "sine"), the fraction its peak: a slip as adhesion is lost and
+  regained, not a step. Its depth error is against the peak.
 
 Each case is simulated into a measured bag and diagnosed (the core's ``diagnose``, as the CLI
 runs it); the wheel_slip entry of the ranking is compared with the truth on the stamp clock:
@@ -19,7 +22,7 @@ of episodes found against the true number, and for each true episode the error o
 the found episode that overlaps it most (|found - true| / |true|). The target: 1 - IoU <= 0.3
 in every case.
 
-Usage: bench_slip_episodes.py [--cases 3] [--seed 0] [--kinds plain,subtle,long,varied]
+Usage: bench_slip_episodes.py [--cases 3] [--seed 0] [--kinds plain,subtle,long,varied,shaped]
 """
 
 from __future__ import annotations
@@ -78,9 +81,9 @@ def stretched(case, rng):
                                truth=truth)
 
 
-def varied(case, rng):
+def varied(case, rng, shape: str = "step"):
     """The case with 2-4 episodes of its own (see the module docstring), placed on a pilot run of
-    the case's world without slip, and per-episode fractions."""
+    the case's world without slip, and per-episode fractions (of ``shape``)."""
     from train_core.effects import WheelSlipEffect
 
     from train_sim.world import simulate
@@ -104,7 +107,7 @@ def varied(case, rng):
     ivs = tuple(ivs[i] for i in order)
     fr = tuple(fr[i] for i in order)
     eff = dataclasses.replace(case.scenario.effects,
-                              wheel_slip=WheelSlipEffect(ivs, fr[0], fractions=fr))
+                              wheel_slip=WheelSlipEffect(ivs, fr[0], fractions=fr, shape=shape))
     truth = {**case.truth, "wheel_slip": {"intervals": [list(iv) for iv in ivs]}}
     return dataclasses.replace(case, scenario=dataclasses.replace(case.scenario, effects=eff),
                                truth=truth)
@@ -150,7 +153,7 @@ def run(case) -> dict:
 
 
 TARGET = 0.3  # 1 - IoU of the found and the true slip time, in every case
-KINDS = ("plain", "subtle", "long", "varied")
+KINDS = ("plain", "subtle", "long", "varied", "shaped")
 
 
 def main() -> int:
@@ -179,8 +182,8 @@ def main() -> int:
             case = make_case(rng, "wheel_slip", "subtle" if kind == "subtle" else "plain")
             if kind == "long":
                 case = stretched(case, rng)
-            elif kind == "varied":
-                case = varied(case, rng)
+            elif kind in ("varied", "shaped"):
+                case = varied(case, rng, "sine" if kind == "shaped" else "step")
             rows.append(run(case))
         err = [r["err"] for r in rows]
         de = [e for r in rows for e in r["depth_err"]]

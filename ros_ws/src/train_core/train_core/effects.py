@@ -19,7 +19,9 @@ odometer_scale     odometer distance and speed are ``scale`` x the axle-free tru
 wheel_slip         during each interval [t0, t1] the axle speed is (1 + slip_fraction) v (slip if
                    > 0, slide if < 0); the counted distance integrates the axle speed, so it keeps
                    the excess afterwards. ``fractions`` (optional): one slip fraction per
-                   interval instead. Odometer values only.
+                   interval instead. ``shape`` (optional): ``step`` (default) or ``sine``, the
+                   fraction rising and falling as a half sine over the interval, peaking at
+                   slip_fraction mid-episode. Odometer values only.
 bursty_link        both topics' links become Gilbert-Elliott with p_good_bad, p_bad_good
                    (loss_good, loss_bad default 0 and 1). Which messages are received only.
 brake_delay        true transport delay (s) of *braking* commands; traction keeps train.yaml's
@@ -98,15 +100,24 @@ class WheelSlipEffect:
     # -, one slip fraction per episode (same order as ``intervals``); empty: ``slip_fraction``
     # in every episode
     fractions: tuple[float, ...] = ()
+    # "step": the fraction holds over the whole episode, from its first instant to its last;
+    # "sine": it builds up and dies away as a half sine, the fraction its peak (mid-episode), as
+    # adhesion is lost and regained over the episode rather than at once
+    shape: str = "step"
+
+    def __post_init__(self):
+        if self.shape not in ("step", "sine"):
+            raise ValueError(f"wheel_slip shape: unknown {self.shape!r} (step or sine)")
 
     def fraction(self, i: int) -> float:
-        """-, the slip fraction of episode ``i``."""
+        """-, the slip fraction of episode ``i`` (its peak with ``shape`` "sine")."""
         return self.fractions[i] if self.fractions else self.slip_fraction
 
     def factor(self, t: float) -> float:
         for i, (t0, t1) in enumerate(self.intervals):
             if t0 <= t < t1:
-                return 1.0 + self.fraction(i)
+                g = 1.0 if self.shape == "step" else math.sin(math.pi * (t - t0) / (t1 - t0))
+                return 1.0 + self.fraction(i) * g
         return 1.0
 
 
@@ -264,11 +275,12 @@ def parse_effects(sec: Section, duration: float) -> Effects:
         kw["odometer_scale"] = OdometerScaleEffect(
             s.number("scale", REQUIRED, lo=0.5, hi=1.5))
     if sec.has("wheel_slip"):
-        s = sec.section("wheel_slip", ("intervals", "slip_fraction", "fractions"))
+        s = sec.section("wheel_slip", ("intervals", "slip_fraction", "fractions", "shape"))
         ivs = s.intervals("intervals", REQUIRED)
         kw["wheel_slip"] = WheelSlipEffect(
             intervals=ivs, slip_fraction=s.number("slip_fraction", 0.1, lo=-0.9, hi=1.0),
-            fractions=_slip_fractions(s, ivs))
+            fractions=_slip_fractions(s, ivs),
+            shape=s.string("shape", "step", choices=("step", "sine")))
     if sec.has("bursty_link"):
         s = sec.section("bursty_link", ("p_good_bad", "p_bad_good", "loss_good", "loss_bad"))
         kw["bursty_link"] = BurstyLinkEffect(

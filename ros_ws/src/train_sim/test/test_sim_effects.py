@@ -93,6 +93,22 @@ def test_wheel_slip_fractions_per_episode(base):
     assert np.all(dv[out] == 0.0)
 
 
+def test_wheel_slip_of_sine_shape_builds_up_and_dies_away(base):
+    """``shape: sine``: the odometer's speed reads (1 + k sin(pi (t - t0) / (t1 - t0))) v inside
+    the episode (k at its middle), and nothing changes outside it."""
+    sc, r0 = base
+    t0, t1, k = 50.0, 60.0, 0.2
+    r1 = run(sc, wheel_slip=WheelSlipEffect(((t0, t1),), slip_fraction=k, shape="sine"))
+    t, v = r0.truth["t"], r0.truth["velocity"]
+    inside = (t >= t0) & (t < t1)
+    dv = r1.odometer["speed"] - r0.odometer["speed"]
+    assert np.allclose(dv[inside], k * np.sin(np.pi * (t[inside] - t0) / (t1 - t0)) * v[inside],
+                       atol=1e-12)
+    assert np.all(dv[~inside] == 0.0)
+    with pytest.raises(ValueError, match="shape"):
+        WheelSlipEffect(((t0, t1),), shape="square")
+
+
 def test_clock_drift_changes_only_train_stamps(base):
     sc, r0 = base
     d = 2e-4
