@@ -48,6 +48,7 @@ OUT = os.path.join(HERE, "out")
 
 from train_estimation.core.offline.fleet import consensus  # noqa: E402
 from train_estimation.tools import fleet as tool  # noqa: E402
+from train_estimation.tools import fleet_dask as runner  # noqa: E402
 from train_sim.fleet import FleetSpec, write_fleet  # noqa: E402
 
 
@@ -80,11 +81,11 @@ def throughput(tasks, workers: int, memory: bool = False):
     the workers spent (s, all workers)."""
     from dask.distributed import Client
 
-    with tool.local_cluster(workers) as cluster, Client(cluster) as client:
+    with runner.local_cluster(workers) as cluster, Client(cluster) as client:
         client.run(_warm)
         c0 = client.run(time.process_time)
         t0 = time.perf_counter()
-        rows = tool.run_tasks(tasks, workers, None, progress=False, client=client)
+        rows = runner.run_tasks(tasks, workers, None, progress=False, client=client)
         wall = time.perf_counter() - t0
         c1 = client.run(time.process_time)
         rss = sorted(client.run(_peak_rss_mb).values()) if memory else []
@@ -207,7 +208,7 @@ def main() -> int:
                 f"{os.getloadavg()[0]:.2f})")
             say()
         t1 = time.perf_counter()
-        rows = tool.run_tasks(tasks, 2, None, progress=False)
+        rows = runner.run_tasks(tasks, 2, None, progress=False)
         say(f"all {len(rows)} bags analysed on 2 workers in {time.perf_counter() - t1:.0f} s "
             f"({sum(1 for r in rows if r.get('error'))} failed)")
         say()
