@@ -110,9 +110,9 @@ def analyse(d: str, out: str, only: list | None) -> None:
         c0, w0 = time.process_time(), time.perf_counter()
         row = runner.analyse_bag(dict(b, time=None))
         cpu, wall = time.process_time() - c0, time.perf_counter() - w0
-        res["bags"].append({"label": b["label"], "cpu": cpu, "wall": wall, "row": row,
+        res["bags"].append({"label": b["label"], "cpu": cpu, "wall": wall, "row": row.to_json(),
                             **captured})
-        print(f"{b['label']}: {cpu:.2f} CPU s, {wall:.2f} wall s, {row.get('cause')}",
+        print(f"{b['label']}: {cpu:.2f} CPU s, {wall:.2f} wall s, {row.cause}",
               flush=True)
     res["load_after"] = os.getloadavg()[0]
     dmod.diagnose, imod.identify = diag0, ident0

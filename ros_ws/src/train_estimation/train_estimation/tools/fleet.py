@@ -69,6 +69,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import dataclasses
 import hashlib
 import json
 import math
@@ -87,10 +88,8 @@ from train_estimation.tools.fleet_report import (
     report_md,
     write_csv,
 )
+from train_estimation.tools.fleet_row import BagRow, consensus_rows
 from train_estimation.tools.report_html import write_report_html
-
-PARAMS = ("braking_rate", "mass", "odometer_scale")
-
 
 # ------------------------------------------------------------------------------------------------
 # Inputs
@@ -206,57 +205,36 @@ def content_key(task: dict) -> str:
     return h.hexdigest()
 
 
-def consensus_rows(rows: list[dict]) -> list[dict]:
-    """The table's rows in core.offline.fleet's input format."""
-    out = []
-    for r in rows:
-        c = {"train": r["train"], "line": r.get("line") or Path(r["line_file"]).stem,
-             "time": r.get("time") or 0.0, "bag": r["bag"], "error": r.get("error"),
-             "coverage": r.get("coverage"), "day": r.get("day")}
-        if r.get("gradient_se"):
-            c["gradient"] = {"start": r["gradient_start"], "end": r["gradient_end"],
-                             "permille": r["gradient_permille"], "se": r["gradient_se"],
-                             "v2": r.get("gradient_v2")}
-        if r.get("resistance_dforce_se"):
-            c["resistance"] = {"value": r["resistance_dforce"],
-                               "se": r["resistance_dforce_se"]}
-        for p in PARAMS:
-            if r.get(f"{p}_se"):
-                c[p] = {"value": r[p], "se": r[f"{p}_se"]}
-        out.append(c)
-    return out
-
-
-def merge_history(path: Path, rows: list[dict], day: str) -> list[dict]:
+def merge_history(path: Path, rows: list[BagRow], day: str) -> list[BagRow]:
     """Add this run's rows to the history (one JSON row per bag, by content key; a bag seen
-    before keeps its first day unless the manifest names one) and return every row."""
+    before keeps its first day unless the manifest names one) and return every row, dated."""
     hist: dict = {}
     if path.is_file():
         with open(path) as fh:
             for n, line in enumerate(fh, 1):
                 try:
-                    r = json.loads(line)
-                    hist[r["key"]] = r
+                    d = json.loads(line)
+                    hist[d["key"]] = BagRow.from_json(d)
                 except (ValueError, KeyError, TypeError):
                     print(f"fleet: {path} line {n}: not a history row, skipped", file=sys.stderr)
     for r in rows:
-        old = hist.get(r["key"])
-        r["day"] = r.get("manifest_day") or (old or {}).get("day") or day
-        hist[r["key"]] = r
+        old = hist.get(r.key)
+        hist[r.key] = dataclasses.replace(
+            r, day=r.manifest_day or (old.day if old is not None else None) or day)
     tmp = path.with_suffix(".tmp")
     with open(tmp, "w") as fh:
         for r in hist.values():
-            fh.write(json.dumps(r, default=json_default) + "\n")
+            fh.write(json.dumps(r.to_json(), default=json_default) + "\n")
     os.replace(tmp, path)  # a killed run leaves the old history whole
     return list(hist.values())
 
 
-def window(rows: list[dict], days: int) -> list[dict]:
+def window(rows: list[BagRow], days: int) -> list[BagRow]:
     """The rows of the ``days`` latest days (day labels in sort order; 0: every day)."""
     if days <= 0:
         return rows
-    keep = set(sorted({str(r.get("day")) for r in rows})[-days:])
-    return [r for r in rows if str(r.get("day")) in keep]
+    keep = set(sorted({str(r.day) for r in rows})[-days:])
+    return [r for r in rows if str(r.day) in keep]
 
 
 # ------------------------------------------------------------------------------------------------
@@ -335,10 +313,10 @@ def main(argv=None) -> int:
         t["key"] = content_key(t)
         f = cache / f"{t['key']}.json"
         if f.is_file():
-            row = json.loads(f.read_text())
-            row.update({"train": t["train"], "bag": t["bag"], "cached": True})
+            row = dataclasses.replace(BagRow.from_json(json.loads(f.read_text())),
+                                      train=t["train"], bag=t["bag"], cached=True)
             if t.get("time") is not None:
-                row["time"] = t["time"]
+                row = dataclasses.replace(row, time=t["time"])
             rows.append(row)
         else:
             todo.append(t)
@@ -357,30 +335,29 @@ def main(argv=None) -> int:
         except ClusterError as exc:
             return fail("fleet", str(exc))
         wall = time.perf_counter() - t1
+        new = [dataclasses.replace(r, cached=False) for r in new]
         for r in new:
-            r["cached"] = False
-            if not str(r.get("error") or "").startswith(_NOT_CACHED):
-                (cache / f"{r['key']}.json").write_text(json.dumps(r, default=json_default))
+            if not str(r.error or "").startswith(_NOT_CACHED):
+                (cache / f"{r.key}.json").write_text(json.dumps(r.to_json(),
+                                                                default=json_default))
         rows += new
     else:
         wall = 0.0
     info["wall_s"] = wall
     by_key = {t["key"]: t for t in tasks}
-    for r in rows:
-        r["manifest_day"] = by_key[r["key"]].get("day")
+    rows = [dataclasses.replace(r, manifest_day=by_key[r.key].get("day")) for r in rows]
     day = args.day or time.strftime("%Y-%m-%d", time.gmtime())
     if args.no_history:
-        for r in rows:
-            r["day"] = r["manifest_day"] or day
+        rows = [dataclasses.replace(r, day=r.manifest_day or day) for r in rows]
         pool = rows
     else:
         pool = window(merge_history(out / "history.jsonl", rows, day), args.days)
-    info["days"] = sorted({str(r.get("day")) for r in pool})
+    info["days"] = sorted({str(r.day) for r in pool})
     info["pool"] = len(pool)
     res = consensus(consensus_rows(pool), FleetConfig(alpha=args.alpha))
     write_csv(rows, out / "runs.csv")
     plots = []
-    crow = consensus_rows([r for r in pool if not r.get("error")])
+    crow = consensus_rows([r for r in pool if not r.error])
     by_name = {}
     for ln in lines.values():
         by_name.setdefault(ln.name, ln)
@@ -393,7 +370,7 @@ def main(argv=None) -> int:
     if res.trains["parameters"]:
         plot_trends(res.trains, out / "trends.png")
         plots.append("trends.png")
-    n_bad = sum(1 for r in rows if r.get("error"))
+    n_bad = sum(1 for r in rows if r.error)
     too_many = n_bad > args.max_failed * len(rows)
     info["max_failed"] = args.max_failed
     (out / "report.md").write_text(report_md(res, rows, info, plots))

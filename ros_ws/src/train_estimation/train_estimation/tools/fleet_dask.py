@@ -6,6 +6,7 @@ probed first).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import sys
@@ -15,6 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
+from train_estimation.tools.fleet_row import BagRow
+
 VERSION = "fleet-3"  # part of the cache key: bump when a task's result changes meaning
 
 
@@ -22,24 +25,27 @@ VERSION = "fleet-3"  # part of the cache key: bump when a task's result changes 
 # One bag (a Dask task: pure Python, no rclpy)
 # ------------------------------------------------------------------------------------------------
 
-def analyse_bag(task: dict) -> dict:
-    """check_bag + identify + diagnose of one bag -> one flat row. Never raises: a failure is
-    a row with ``error`` set (the reason in one line)."""
+def analyse_bag(task: dict) -> BagRow:
+    """check_bag + identify + diagnose of one bag -> its row. Never raises: a failure is a row
+    with ``error`` set (the reason in one line)."""
     t0 = time.perf_counter()
     row = {"train": task["train"], "bag": task["bag"], "line_file": task["line"],
            "train_file": task["train_file"], "time": task.get("time"), "key": task.get("key"),
            "error": None}
     try:
         row.update(_analyse(task))
+        out = BagRow(**row)
     except Exception as exc:  # noqa: BLE001 - any failure of one bag is reported, not fatal
-        row["error"] = f"{type(exc).__name__}: {' '.join(str(exc).split())}"[:300]
-        row["traceback_at"] = traceback.extract_tb(exc.__traceback__)[-1].name
-    row["seconds"] = round(time.perf_counter() - t0, 2)
-    return row
+        out = BagRow(**{k: row[k] for k in ("train", "bag", "line_file", "train_file", "time",
+                                            "key")},
+                     error=f"{type(exc).__name__}: {' '.join(str(exc).split())}"[:300],
+                     traceback_at=traceback.extract_tb(exc.__traceback__)[-1].name)
+    return dataclasses.replace(out, seconds=round(time.perf_counter() - t0, 2))
 
 
 def _analyse(task: dict) -> dict:
-    """One bag, read once: its topics' health, identify's fit and diagnose's ranking."""
+    """One bag, read once: its topics' health, identify's fit and diagnose's ranking (the
+    row's fields they fill)."""
     from train_core.bagio import read_bag
     from train_core.model import load_line, load_train
 
@@ -209,7 +215,7 @@ def probe_workers(client, task: dict, address: str, wait_s: float = 60.0) -> int
 
 def run_tasks(tasks: list[dict], workers: int, scheduler: str | None, progress: bool,
               client=None, dashboard: str | None = None, wait_s: float = 60.0,
-              info: dict | None = None) -> list:
+              info: dict | None = None) -> list[BagRow]:
     """Analyse ``tasks`` on Dask (``client``, else the cluster at ``scheduler``, else an
     embedded LocalCluster of ``workers`` processes with its dashboard at ``dashboard``,
     closed afterwards); rows in completion order. A task whose worker died is a row with the
@@ -234,7 +240,7 @@ def run_tasks(tasks: list[dict], workers: int, scheduler: str | None, progress: 
                     show=dashboard is not None)
 
 
-def _run(client, tasks, progress, address, wait_s, info, show=True) -> list:
+def _run(client, tasks, progress, address, wait_s, info, show=True) -> list[BagRow]:
     info["workers_n"] = probe_workers(client, tasks[0], address, wait_s)
     link = client.dashboard_link if show and _has_dashboard(client) else None
     info["dashboard"] = link
@@ -250,7 +256,8 @@ def _has_dashboard(client) -> bool:
         return False
 
 
-def _collect(client, tasks: list[dict], progress: bool, info: dict | None = None) -> list:
+def _collect(client, tasks: list[dict], progress: bool,
+             info: dict | None = None) -> list[BagRow]:
     from dask.distributed import as_completed
     from train_core.progress import bar as progress_bar
 
@@ -265,17 +272,17 @@ def _collect(client, tasks: list[dict], progress: bool, info: dict | None = None
                 row = fut.result()
             except Exception as exc:  # noqa: BLE001 - a lost worker loses one bag only
                 t = by_key[fut.key]
-                row = {"train": t["train"], "bag": t["bag"], "line_file": t["line"],
-                       "train_file": t["train_file"], "time": t.get("time"),
-                       "key": t["key"], "error": f"task failed: {type(exc).__name__}: "
-                       f"{exc}"[:300]}
-            row["worker"] = (where.get(fut.key) or [None])[0]
+                row = BagRow(train=t["train"], bag=t["bag"], line_file=t["line"],
+                             train_file=t["train_file"], time=t.get("time"),
+                             key=t["key"], error=f"task failed: {type(exc).__name__}: "
+                             f"{exc}"[:300])
+            row = dataclasses.replace(row, worker=(where.get(fut.key) or [None])[0])
             rows.append(row)
-            bar.set_postfix_str(Path(row["bag"]).name[-24:])
+            bar.set_postfix_str(Path(row.bag).name[-24:])
             bar.update(1)
     if info is not None:
         per: dict = {}
         for r in rows:
-            per[r["worker"]] = per.get(r["worker"], 0) + 1
+            per[r.worker] = per.get(r.worker, 0) + 1
         info["bags_per_worker"] = per
     return rows

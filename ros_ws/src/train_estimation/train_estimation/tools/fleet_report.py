@@ -9,21 +9,23 @@ from pathlib import Path
 
 import numpy as np
 
+from train_estimation.tools.fleet_row import BagRow
 
-def failure_groups(rows: list[dict]) -> list[tuple[int, str]]:
+
+def failure_groups(rows: list[BagRow]) -> list[tuple[int, str]]:
     """The failed bags' reasons grouped (paths and numbers blanked), most frequent first."""
     import re
 
     groups: dict = {}
     for r in rows:
-        if r.get("error"):
-            why = re.sub(r"(?:[A-Za-z]:)?(?:/[^\s:'\",()]+)+", "<path>", r["error"])
+        if r.error:
+            why = re.sub(r"(?:[A-Za-z]:)?(?:/[^\s:'\",()]+)+", "<path>", r.error)
             why = re.sub(r"\b\d+(?:\.\d+)?\b", "#", why)
             groups[why] = groups.get(why, 0) + 1
     return sorted(((n, w) for w, n in groups.items()), key=lambda x: (-x[0], x[1]))
 
 
-def failure_line(rows: list[dict], top: int = 3) -> str:
+def failure_line(rows: list[BagRow], top: int = 3) -> str:
     """'N of M bags failed: k x reason; ...' (empty when none failed)."""
     g = failure_groups(rows)
     n = sum(c for c, _ in g)
@@ -68,12 +70,12 @@ COLUMNS = ("train", "bag", "line", "time", "error", "cached", "seconds", "durati
            "identify_mass_se", "identify_error", "key")
 
 
-def write_csv(rows: list[dict], path: Path) -> None:
+def write_csv(rows: list[BagRow], path: Path) -> None:
     with open(path, "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=COLUMNS, extrasaction="ignore")
         w.writeheader()
-        for r in sorted(rows, key=lambda r: (r["train"], r.get("time") or 0.0, r["bag"])):
-            w.writerow({k: _fmt_cell(r.get(k)) for k in COLUMNS})
+        for r in sorted(rows, key=lambda r: (r.train, r.time or 0.0, r.bag)):
+            w.writerow({k: _fmt_cell(getattr(r, k)) for k in COLUMNS})
 
 
 def _fmt_cell(v):
@@ -190,7 +192,7 @@ def _f(x, fmt=".3g"):
         format(x, fmt)
 
 
-def findings(res, rows: list[dict], rel: dict) -> list[str]:
+def findings(res, rows: list[BagRow], rel: dict) -> list[str]:
     """The report's first lines: what was found (map errors, train alerts, failed bags), each
     with its size, or that nothing was, with the reason it may still be there."""
     L = ["**Findings:**", ""]
@@ -211,15 +213,15 @@ def findings(res, rows: list[dict], rel: dict) -> list[str]:
         few = [p for p, d in (rel.get("parameters") or {}).items() if not d["reliable"]]
         L.append("- no train departs from the fleet or trends"
                  + (f" (but too few trains to test {', '.join(few)})" if few else ""))
-    bad = [r for r in rows if r.get("error")]
+    bad = [r for r in rows if r.error]
     if bad:
         L.append(f"- **{len(bad)} of {len(rows)} bags could not be analysed** (listed below)")
     return L
 
 
-def report_md(res, rows: list[dict], info: dict, plots: list[str]) -> str:
-    ok = [r for r in rows if not r.get("error")]
-    bad = [r for r in rows if r.get("error")]
+def report_md(res, rows: list[BagRow], info: dict, plots: list[str]) -> str:
+    ok = [r for r in rows if not r.error]
+    bad = [r for r in rows if r.error]
     cfg = res.config
     rel = getattr(res, "reliability", None) or {}
     days = info.get("days") or []
@@ -234,7 +236,7 @@ def report_md(res, rows: list[dict], info: dict, plots: list[str]) -> str:
               "\"no train departs\" below does not mean that there is none): "
               + "; ".join(rel["reasons"]) + ".", ""]
     per = info.get("bags_per_worker") or {}
-    L += [f"{len(rows)} bags of {len({r['train'] for r in rows})} trains on "
+    L += [f"{len(rows)} bags of {len({r.train for r in rows})} trains on "
           f"{len(res.lines)} lines: {len(ok)} analysed, {len(bad)} failed; "
           f"{info['cached']} from the cache, {info['computed']} computed in "
           f"{info.get('wall_s', 0.0):.0f} s on {info['workers']}"
@@ -334,8 +336,8 @@ def report_md(res, rows: list[dict], info: dict, plots: list[str]) -> str:
     if bad:
         L += ["", "## Bags that could not be analysed", "", "| train | bag | reason |",
               "|---|---|---|"]
-        for r in sorted(bad, key=lambda r: r["bag"]):
-            L.append(f"| {r['train']} | {r['bag']} | {r['error']} |")
+        for r in sorted(bad, key=lambda r: r.bag):
+            L.append(f"| {r.train} | {r.bag} | {r.error} |")
     L += ["", "## Plots", ""] + [f"![{p}]({p})" for p in plots]
     L += ["", "## How to read it", "",
           "Each bag was checked (check_bag), fitted (identify) and diagnosed (diagnose); "
