@@ -83,7 +83,7 @@ def analyse(d: str, out: str, only: list | None) -> None:
 
     import train_estimation.core.offline.diagnose as dmod
     import train_estimation.core.offline.identify as imod
-    from train_estimation.tools import fleet as tool
+    from train_estimation.tools import fleet_dask as runner
 
     bags = json.load(open(os.path.join(d, "bags.json")))
     if only:
@@ -102,17 +102,17 @@ def analyse(d: str, out: str, only: list | None) -> None:
         return r
 
     dmod.diagnose, imod.identify = diag, ident
-    tool.analyse_bag(dict(bags[0], time=None))  # warm-up: imports, caches of the interpreter
+    runner.analyse_bag(dict(bags[0], time=None))  # warm-up: imports, caches of the interpreter
     res = {"load_before": os.getloadavg()[0], "bags": []}
     print(f"load average {res['load_before']:.2f}", flush=True)
     for b in track(bags, "bag_cpu: bags"):
         captured.clear()
         c0, w0 = time.process_time(), time.perf_counter()
-        row = tool.analyse_bag(dict(b, time=None))
+        row = runner.analyse_bag(dict(b, time=None))
         cpu, wall = time.process_time() - c0, time.perf_counter() - w0
-        res["bags"].append({"label": b["label"], "cpu": cpu, "wall": wall, "row": row,
+        res["bags"].append({"label": b["label"], "cpu": cpu, "wall": wall, "row": row.to_json(),
                             **captured})
-        print(f"{b['label']}: {cpu:.2f} CPU s, {wall:.2f} wall s, {row.get('cause')}",
+        print(f"{b['label']}: {cpu:.2f} CPU s, {wall:.2f} wall s, {row.cause}",
               flush=True)
     res["load_after"] = os.getloadavg()[0]
     dmod.diagnose, imod.identify = diag0, ident0

@@ -48,6 +48,8 @@ OUT = os.path.join(HERE, "out")
 
 from train_estimation.core.offline.fleet import consensus  # noqa: E402
 from train_estimation.tools import fleet as tool  # noqa: E402
+from train_estimation.tools import fleet_dask as runner  # noqa: E402
+from train_estimation.tools.fleet_row import consensus_rows  # noqa: E402
 from train_sim.fleet import FleetSpec, write_fleet  # noqa: E402
 
 
@@ -80,15 +82,15 @@ def throughput(tasks, workers: int, memory: bool = False):
     the workers spent (s, all workers)."""
     from dask.distributed import Client
 
-    with tool.local_cluster(workers) as cluster, Client(cluster) as client:
+    with runner.local_cluster(workers) as cluster, Client(cluster) as client:
         client.run(_warm)
         c0 = client.run(time.process_time)
         t0 = time.perf_counter()
-        rows = tool.run_tasks(tasks, workers, None, progress=False, client=client)
+        rows = runner.run_tasks(tasks, workers, None, progress=False, client=client)
         wall = time.perf_counter() - t0
         c1 = client.run(time.process_time)
         rss = sorted(client.run(_peak_rss_mb).values()) if memory else []
-    assert not any(r.get("error") for r in rows), [r["error"] for r in rows if r.get("error")]
+    assert not any(r.error for r in rows), [r.error for r in rows if r.error]
     if memory:
         return wall, 60.0 * len(tasks) / wall, rss, sum(c1[w] - c0[w] for w in c1)
     return wall, 60.0 * len(tasks) / wall
@@ -137,8 +139,8 @@ def day(a, say) -> None:
 
 
 def judge(rows, truth, trains) -> tuple[bool, bool]:
-    sub = [r for r in rows if r["train"] in trains]
-    res = consensus(tool.consensus_rows(sub))
+    sub = [r for r in rows if r.train in trains]
+    res = consensus(consensus_rows(sub))
     t = truth["map_error"]
     ok_map = len(res.map_errors) == 1 and res.map_errors[0]["line"] == t["line"] and (
         min(res.map_errors[0]["end"], t["end"]) - max(res.map_errors[0]["start"], t["start"])
@@ -207,11 +209,11 @@ def main() -> int:
                 f"{os.getloadavg()[0]:.2f})")
             say()
         t1 = time.perf_counter()
-        rows = tool.run_tasks(tasks, 2, None, progress=False)
+        rows = runner.run_tasks(tasks, 2, None, progress=False)
         say(f"all {len(rows)} bags analysed on 2 workers in {time.perf_counter() - t1:.0f} s "
-            f"({sum(1 for r in rows if r.get('error'))} failed)")
+            f"({sum(1 for r in rows if r.error)} failed)")
         say()
-        all_trains = truth_trains = sorted({r["train"] for r in rows})
+        all_trains = truth_trains = sorted({r.train for r in rows})
         deg = truth["degraded_trains"]
         rng = np.random.default_rng(a.seed)
         say("| trains | degraded among them | draws | map error right | train alerts right "

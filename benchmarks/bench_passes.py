@@ -30,7 +30,7 @@ from train_core.model import load_line, load_train
 from train_estimation.core.offline import fleet as FL
 from train_estimation.core.offline.diagnose import diagnose
 from train_estimation.core.offline.measured import MeasuredRun
-from train_estimation.tools.fleet import diagnosis_row
+from train_estimation.tools.fleet_dask import diagnosis_row
 from train_sim.generate import generate
 from train_sim.scenario import load_scenario
 from train_sim.unlisted import TunnelDrag, Unlisted

@@ -766,7 +766,7 @@ def test_only_causes_the_checks_contradicted_are_left_out_of_the_re_confirmation
     the confirmed ones are confirmed in again, so a true one beside it is not taken down with
     it; one the checks contradicted is left out, and a confirmed cause that falls without it
     is not confirmed, with the reason."""
-    from train_estimation.core.offline.diagnose import search as S
+    from train_estimation.core.offline.diagnose import verdict as V
     from train_estimation.core.offline.diagnose.stage import Null
 
     seen = []
@@ -779,14 +779,14 @@ def test_only_causes_the_checks_contradicted_are_left_out_of_the_re_confirmation
                                                               "failed: needs the resistance")
         return {a.cause: {} for a in accepted}
 
-    monkeypatch.setattr(S, "confirm", fake_confirm)
-    monkeypatch.setattr(S, "joint_refit", lambda *a, **k: None)
-    monkeypatch.setattr(S, "_null_of", lambda mo, shift, fits: Null(shift=shift))
+    monkeypatch.setattr(V, "confirm", fake_confirm)
+    monkeypatch.setattr(V, "joint_refit", lambda *a, **k: None)
+    monkeypatch.setattr(V, "_null_of", lambda mo, shift, fits: Null(shift=shift))
     grad = CauseFit("gradient", 50.0, {}, status="confirmed")
     res = CauseFit("resistance", 40.0, {}, status="not confirmed", why=why_b)
     sr = SimpleNamespace(accepted=[grad, res], mo=None, null=Null(), cfg=None, own={})
     checks = {"gradient": {}, "resistance": {}}
-    S.reconfirm(sr, {}, (1e-4, 1e-2), None, checks)
+    V.reconfirm(sr, {}, (1e-4, 1e-2), None, checks)
     if left_out:
         assert seen == [["gradient"]], seen
         assert grad.status == "not confirmed" and grad.why.startswith("without resistance"), \
@@ -1000,7 +1000,8 @@ def test_two_accepted_causes_that_one_mass_change_explains_are_merged(metro, met
 
     from train_estimation.core.offline.diagnose import DiagConfig, Motion, prepare
     from train_estimation.core.offline.diagnose.causes import REGISTRY, SCORING
-    from train_estimation.core.offline.diagnose.search import _accept, _Search, _stage, merge
+    from train_estimation.core.offline.diagnose.refit import merge
+    from train_estimation.core.offline.diagnose.search import _accept, _Search, _stage
 
     def greedy_with(sc, names):
         bag = write_bag(tmp_path / f"bag{len(list(tmp_path.iterdir()))}", simulate(sc))
@@ -1154,7 +1155,7 @@ def test_drag_growing_with_speed_is_told_from_a_gradient_where_the_speed_changes
 
     from train_estimation.core.offline.diagnose import DiagConfig, Null, Stage
     from train_estimation.core.offline.diagnose.confirm import CONFIRM
-    from train_estimation.core.offline.diagnose.contradict import speed_law
+    from train_estimation.core.offline.diagnose.laws import speed_law
     from train_sim.unlisted import TunnelDrag, Unlisted
 
     sc = metro.with_changes(duration=300.0)
@@ -1398,7 +1399,7 @@ def test_a_section_swapped_for_a_braking_rate_change_keeps_the_braking_deficit(i
     a low-adhesion section over the stretch of every stop is accepted first, then a
     braking-rate change on top of it, which fits only the brakings outside the section (f
     0.99-1.00). The run brakes nowhere outside the section at its speeds, so the section is
-    swapped for the braking-rate change (search.unlocate): that change must carry the whole
+    swapped for the braking-rate change (refit.unlocate): that change must carry the whole
     deficit, fitted without the section (it kept f 0.99-1.00, "below resolution", and the
     deficit was left unexplained)."""
     from train_core.model import load_line, load_train
@@ -1406,6 +1407,7 @@ def test_a_section_swapped_for_a_braking_rate_change_keeps_the_braking_deficit(i
     from train_estimation.core.offline.diagnose import search as S
     from train_estimation.core.offline.diagnose.causes import REGISTRY
     from train_estimation.core.offline.diagnose.motion import Motion
+    from train_estimation.core.offline.diagnose.refit import unlocate
     from train_estimation.core.offline.diagnose.run import DiagConfig, prepare
 
     case = make_case(np.random.default_rng([11, index]), "braking_rate", "plain")
@@ -1424,7 +1426,7 @@ def test_a_section_swapped_for_a_braking_rate_change_keeps_the_braking_deficit(i
     beside = sr.stages[1]["scores"]["braking_rate"]
     assert min(beside.parameters.values()) > 0.98, beside.parameters  # what the section left
     S._accept(sr, beside, 1)
-    assert S.unlocate(sr, (st.q, st.r_s))
+    assert unlocate(sr, (st.q, st.r_s))
     assert [a.cause for a in sr.accepted] == ["braking_rate"], sr.accepted
     fit = sr.accepted[0]
     for k in ("f_start", "f_end"):

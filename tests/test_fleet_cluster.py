@@ -110,10 +110,10 @@ def test_embedded_cluster_dashboard():
     """The embedded cluster's dashboard, on a free port: its status page is served."""
     import urllib.request
 
-    from train_estimation.tools import fleet as tool
+    from train_estimation.tools import fleet_dask as runner
 
     port = free_port()
-    with tool.local_cluster(1, f"127.0.0.1:{port}") as cluster:
+    with runner.local_cluster(1, f"127.0.0.1:{port}") as cluster:
         assert cluster.dashboard_link == f"http://127.0.0.1:{port}/status"
         with urllib.request.urlopen(cluster.dashboard_link, timeout=30) as page:
             assert page.status == 200 and b"bokeh" in page.read().lower()

@@ -8,7 +8,7 @@ import re
 import numpy as np
 
 from train_estimation.core.offline import fleet as F
-from train_estimation.tools.fleet import report_md
+from train_estimation.tools.fleet_report import report_md
 
 INFO = {"when": "test", "cached": 0, "computed": 0, "wall_s": 0.0, "workers": "none"}
 CELL = re.compile(r"([-+]?\d+\.\d+) \((\d+\.\d+)\)")
@@ -71,7 +71,7 @@ def test_stated_criterion_is_the_applied_one():
 def test_first_lines_state_the_findings():
     """The report's top (the page's verdict box) names each alerted train with its parameter
     and size, or says that no train departs; the map errors likewise."""
-    from train_estimation.tools.fleet import findings
+    from train_estimation.tools.fleet_report import findings
 
     res = F.consensus(_fleet(np.random.default_rng(1), n_trains=6, runs=2, f_bad=0.9))
     md = report_md(res, [], INFO, [])
@@ -89,7 +89,7 @@ def test_first_lines_state_the_findings():
 def test_a_train_without_an_alert_is_never_drawn_red():
     """Red (C3) marks a train with an alert and orange (C1) a section found by too few: the
     other trains' colours cycle through the rest."""
-    from train_estimation.tools.fleet import train_color
+    from train_estimation.tools.fleet_report import train_color
 
     assert {train_color(i) for i in range(40)}.isdisjoint({"C3", "C1"})
     assert len({train_color(i) for i in range(8)}) == 8

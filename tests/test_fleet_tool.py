@@ -14,6 +14,9 @@ import shutil
 import pytest
 
 from train_estimation.tools import fleet as tool
+from train_estimation.tools.fleet_dask import diagnosis_row
+from train_estimation.tools.fleet_report import failure_groups
+from train_estimation.tools.fleet_row import BagRow, consensus_rows
 from train_sim.fleet import FleetSpec, write_fleet
 
 
@@ -32,6 +35,11 @@ def fleet_dir(tmp_path_factory):
         csv.writer(fh).writerow(["T03", "bags/T03_corrupt", "lines/north.yaml",
                                  "trains/metro_b6.yaml", "99.0"])
     return d, truth
+
+
+def _bag_rows(csv_rows: list[dict]) -> list[BagRow]:
+    """runs.csv's rows as the tool's rows (the columns the failure lines read)."""
+    return [BagRow(r["train"], r["bag"], "", "", error=r["error"] or None) for r in csv_rows]
 
 
 def test_fleet_names_the_map_error_and_the_degraded_trains(fleet_dir, capsys):
@@ -76,7 +84,7 @@ def test_fleet_names_the_map_error_and_the_degraded_trains(fleet_dir, capsys):
     assert json.loads((out / "fleet.json").read_text())["map_errors"] == maps
     # the report's first line says how many bags failed and why
     first = (out / "report.md").read_text().splitlines()[0]
-    assert first.endswith(f"1 of 11 bags failed: 1 x {tool.failure_groups(rows)[0][1][:120]}")
+    assert first.endswith(f"1 of 11 bags failed: 1 x {failure_groups(_bag_rows(rows))[0][1][:120]}")
     assert "FAILED" not in first  # 1 of 11 is within --max-failed 0.1
     # more than --max-failed: exit 1, the report written all the same
     rc = tool.main(["--manifest", str(d / "manifest.csv"), "--out", str(out), "--quiet",
@@ -117,7 +125,7 @@ def test_second_day_adds_to_the_first(fleet_dir, tmp_path, capsys):
     # the same consensus as over both days at once (days aside)
     from train_estimation.core.offline.fleet import consensus
 
-    both = consensus(tool.consensus_rows([dict(r, day=None) for r in hist]))
+    both = consensus(consensus_rows([BagRow.from_json(dict(r, day=None)) for r in hist]))
     assert len(both.map_errors) == len(res["map_errors"]) == 1
     m, b = res["map_errors"][0], both.map_errors[0]
     assert (m["start"], m["end"], m["permille"], m["se"]) == \
@@ -205,7 +213,7 @@ def test_diagnosis_row_reads_the_typed_result():
                 "_model": {}}
     dg = Diagnosis(cause="gradient", parameters={}, ranking=ranking, untestable=[],
                    evidence=evidence, gain={}, accepted=ranking[:2])
-    assert tool.diagnosis_row(dg, train) == {
+    assert diagnosis_row(dg, train) == {
         "cause": "gradient", "accepted": "gradient+braking_rate",
         "gradient_start": 1000.0, "gradient_end": 1400.0, "gradient_permille": 4.8,
         "gradient_se": 0.2, "gradient_score": 30.0, "gradient_v2": 256.0,
@@ -214,7 +222,7 @@ def test_diagnosis_row_reads_the_typed_result():
         "resistance_dforce_se": 50.0,
         "odometer_scale": 1.001, "odometer_scale_se": 3e-4}
     dg.accepted = ranking[1:2]  # a section ranked but not accepted is no map evidence
-    assert not any(k.startswith("gradient") for k in tool.diagnosis_row(dg, train))
+    assert not any(k.startswith("gradient") for k in diagnosis_row(dg, train))
 
 
 def test_manifest_extra_columns_are_allowed_a_typo_of_an_absent_one_is_not(tmp_path, capsys):

@@ -243,7 +243,7 @@ def test_a_section_holding_every_stop_is_the_braking_rate(tmp_path):
     1.3-12.8 km held every stop of the run and scored 2.8 above the braking-rate change by
     leaving out two light brake applications before it. No brake application outside the
     stretch could show the braking normal there, so the section claims nothing more than the
-    braking rate, which is named instead (search.unlocate)."""
+    braking rate, which is named instead (refit.unlocate)."""
     rep, eff = _diagnose_foreign(tmp_path, 100, "braking_rate")
     assert rep["cause"] == "braking_rate", rep["cause"]
     p = rep["parameters"]

@@ -403,7 +403,7 @@ def test_the_brakes_heat_state_is_the_first_order_response_to_the_braking_power(
     the braking ends; relative to the heat of one stop from the top speed, v_top^2 / 2."""
     from types import SimpleNamespace
 
-    from train_estimation.core.offline.diagnose.contradict import heat_state
+    from train_estimation.core.offline.diagnose.laws import heat_state
 
     dt, tau, n = 0.05, 60.0, 4001  # 200 s
     t = dt * np.arange(n)

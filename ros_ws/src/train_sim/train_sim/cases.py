@@ -35,9 +35,10 @@ adhesion_section   factor 1 - 0.2 k U(1, 1.25) on a stretch of a braking-to-stop
 traction_delay     believed T + 0.25 k s
 =================  ===================================  =====================================
 
-The trajectory-dependent placements (gradient section, slip episodes, power limit, adhesion
-section) come from a pilot run of
-the same world without those effects, so every effect is exercised. ``main_error`` gives the
+Each cause is one record (``CaseCause`` in ``REGISTRY``: how it is drawn, what it is judged
+on); ``CAUSES`` and ``MAIN`` are derived from them. The trajectory-dependent placements
+(gradient section, slip episodes, power limit, adhesion section) come from a pilot run of the
+same world without those effects, so every effect is exercised. ``main_error`` gives the
 relative error |estimate - true| / |true - nominal| of a cause's main quantity (see there).
 
 Pure module: numpy + train_sim / train_core (no ROS). Same generator state -> same case.
@@ -45,6 +46,7 @@ Pure module: numpy + train_sim / train_core (no ROS). Same generator state -> sa
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -59,19 +61,10 @@ from train_core.model import line_from_dict, train_from_dict
 from .driver import DriverParams, TimetableStop
 from .scenario import Scenario
 
-CAUSES = ("gradient", "resistance", "braking_rate", "odometer_scale", "wheel_slip",
-          "bursty_link", "brake_delay", "mass", "clock_drift", "power_limit", "adhesion_section",
-          "traction_delay")
+# CAUSES and MAIN: derived from the causes' records, REGISTRY (below their draws)
 SIZES = ("plain", "subtle")
 FAMILIES = ("metro_demo", "metro", "regional", "highspeed")
 MIN_DURATION, MAX_DURATION = 480.0, 720.0  # s, 8-12 min
-MAIN = {"gradient": "permille", "resistance": "force at v_ref (N)",
-        "braking_rate": "mean f", "odometer_scale": "scale",
-        "wheel_slip": "slip time (symmetric difference, s)", "bursty_link": "p_bad_good",
-        "brake_delay": "delay", "mass": "mass", "clock_drift": "drift",
-        "power_limit": "1 / p_spec (s^3/m^2)", "adhesion_section": "factor",
-        "traction_delay": "delay"}
-TRAJECTORY = ("gradient", "wheel_slip", "power_limit", "adhesion_section")  # drawn after the pilot
 
 
 @dataclass(frozen=True)
@@ -139,24 +132,10 @@ def main_value(cause: str, params: dict, v_ref: float = 10.0) -> float:
     resistance (the force a + b v + c v^2 at ``v_ref``: a, b, c alone are nearly collinear),
     braking_rate (mean of f_start and f_end), wheel_slip (total slip time) and power_limit
     (1 / p_spec: 0 without a limit, so that the deviation from nominal is finite)."""
-    derived = _MAIN_VALUE.get(cause)
-    if derived is not None:
-        return float(derived(params, v_ref))
-    return float(params[_MAIN_PARAM[cause]])
-
-
-# the causes judged on a quantity derived from their parameters, and the parameter of the rest
-_MAIN_VALUE = {
-    "resistance": lambda p, v_ref: p["a"] + p["b"] * v_ref + p["c"] * v_ref**2,
-    "braking_rate": lambda p, v_ref: 0.5 * (float(p["f_start"]) + float(p["f_end"])),
-    "wheel_slip": lambda p, v_ref: sum(t1 - t0 for t0, t1 in p.get("intervals", [])),
-    "power_limit": lambda p, v_ref: 1.0 / float(p["p_spec"]),
-}
-_MAIN_PARAM = {"gradient": "permille", "odometer_scale": "scale", "bursty_link": "p_bad_good",
-               "brake_delay": "delay", "mass": "mass", "clock_drift": "drift",
-               "adhesion_section": "factor", "traction_delay": "delay"}
-EPISODES = ("wheel_slip",)  # judged on the episodes' intervals
-SECTIONS = ("gradient", "adhesion_section")  # judged on the value and the section's place
+    c = BY_NAME[cause]
+    if c.derived is not None:
+        return float(c.derived(params, v_ref))
+    return float(params[c.param])
 
 
 def main_error(cause: str, estimate: dict, truth: dict, nominal: dict,
@@ -167,7 +146,8 @@ def main_error(cause: str, estimate: dict, truth: dict, nominal: dict,
     interval sets over the true slip time (0 = the same episodes, 1 = as bad as finding none).
     gradient, adhesion_section: the value's error, plus the misplaced length of the section
     relative to its length (a right value at the wrong place is not a right answer)."""
-    if cause in EPISODES:
+    judged = BY_NAME[cause].judged
+    if judged == "episodes":
         a, b = _union(estimate.get("intervals", [])), _union(truth["intervals"])
         inter = sum(max(0.0, min(x1, y1) - max(x0, y0)) for x0, x1 in a for y0, y1 in b)
         la, lb = sum(x1 - x0 for x0, x1 in a), sum(y1 - y0 for y0, y1 in b)
@@ -175,7 +155,7 @@ def main_error(cause: str, estimate: dict, truth: dict, nominal: dict,
     est, tru = main_value(cause, estimate, v_ref), main_value(cause, truth, v_ref)
     nom = main_value(cause, {**truth, **nominal}, v_ref)
     err = abs(est - tru) / abs(tru - nom)
-    if cause in SECTIONS:
+    if judged == "section":
         s0, s1, e0, e1 = truth["start"], truth["end"], estimate["start"], estimate["end"]
         overlap = max(0.0, min(s1, e1) - max(s0, e0))
         err += ((s1 - s0) + (e1 - e0) - 2 * overlap) / (s1 - s0)
@@ -257,8 +237,8 @@ def make_case(rng: np.random.Generator, cause: str | None | tuple = None, size: 
     # Effects that do not need the trajectory are drawn first and are in the pilot run.
     eff_d, truth, nominal = {}, {}, {}
     for c in causes:
-        if c not in TRAJECTORY:
-            _draw_effect(c, k, eff_rng, line, train, link_d, eff_d, truth, nominal)
+        if not BY_NAME[c].on_run:
+            eff_d[c], truth[c], nominal[c] = BY_NAME[c].draw(k, eff_rng, train, link_d)
     pilot_sc = _build(base | {"effects": dict(eff_d)}, line, train, line_d, train_d)
     res = pilot(pilot_sc)
 
@@ -289,8 +269,8 @@ def make_case(rng: np.random.Generator, cause: str | None | tuple = None, size: 
     run = _PilotRun(line=line, res=res, t=t, x=x, v=v, t_same=t_same,
                     a_cmd=res.control["target_acceleration"][inside])
     for c in causes:
-        if c in TRAJECTORY:
-            _ON_RUN[c](k, eff_rng, run, eff_d, truth, nominal)
+        if BY_NAME[c].on_run:
+            BY_NAME[c].draw(k, eff_rng, run, eff_d, truth, nominal)
     if "braking_rate" in eff_d:
         eff_d["braking_rate"]["t_end"] = base["duration"]
     base["effects"] = eff_d
@@ -314,11 +294,6 @@ def _causes(cause) -> tuple[str, ...]:
 
 def _sign(rng) -> float:
     return 1.0 if rng.random() < 0.5 else -1.0
-
-
-def _draw_effect(c, k, rng, line, train, link_d, eff, truth, nominal) -> None:
-    """Draw cause ``c`` at size factor ``k`` (the causes that do not need the pilot run)."""
-    eff[c], truth[c], nominal[c] = _SIMPLE[c](k, rng, train, link_d)
 
 
 def _resistance(k, rng, train, link_d):
@@ -366,13 +341,6 @@ def _clock_drift(k, rng, train, link_d):
     return e, dict(e), {"drift": 0.0}
 
 
-# per cause drawn before the pilot run: (k, rng, train, link dict) -> (effect, truth, nominal)
-_SIMPLE = {"resistance": _resistance, "braking_rate": _braking_rate,
-           "odometer_scale": _odometer_scale, "bursty_link": _bursty_link,
-           "brake_delay": _actuator_delay, "mass": _mass, "clock_drift": _clock_drift,
-           "traction_delay": _actuator_delay}
-
-
 @dataclass(frozen=True)
 class _PilotRun:
     """What the causes drawn on the pilot's trajectory need of it."""
@@ -386,20 +354,9 @@ class _PilotRun:
     a_cmd: np.ndarray  # m/s^2, the commanded acceleration at those times
 
 
-# per cause drawn on the pilot run: (k, rng, run, effects, truth, nominal), filled in place
-_ON_RUN = {
-    "gradient": lambda k, rng, r, e, tr, nom: _draw_gradient(k, rng, r.line, r.x, r.v, e, tr,
-                                                             nom),
-    "wheel_slip": lambda k, rng, r, e, tr, nom: _draw_slip(k, rng, r.t, r.v, e, tr, nom),
-    "power_limit": lambda k, rng, r, e, tr, nom: _draw_power_limit(k, rng, r.a_cmd, r.v, e, tr,
-                                                                   nom),
-    "adhesion_section": lambda k, rng, r, e, tr, nom: _draw_adhesion(k, rng, r.res, r.t_same, e,
-                                                                     tr, nom),
-}
-
-
-def _draw_gradient(k, rng, line, x, v, eff, truth, nominal) -> None:
+def _draw_gradient(k, rng, run: _PilotRun, eff, truth, nominal) -> None:
     """A 300-500 m section that the pilot run crosses at > 3 m/s all along, away from stations."""
+    line, x, v = run.line, run.x, run.v
     length = float(rng.uniform(300.0, 500.0))
     grid = np.arange(0.0, line.length - length, 10.0)
     ok = np.zeros(grid.shape, bool)
@@ -420,8 +377,9 @@ def _draw_gradient(k, rng, line, x, v, eff, truth, nominal) -> None:
     nominal["gradient"] = {"permille": 0.0}
 
 
-def _draw_slip(k, rng, t, v, eff, truth, nominal) -> None:
+def _draw_slip(k, rng, run: _PilotRun, eff, truth, nominal) -> None:
     """1-3 episodes of 2-3 s at > 6 m/s (with 5 s of margin), well apart."""
+    t, v = run.t, run.v
     n = int(rng.integers(1, 4))
     fast = v > 6.0
     # candidate starts: fast over [t0 - 5, t0 + 8]
@@ -447,9 +405,10 @@ def _draw_slip(k, rng, t, v, eff, truth, nominal) -> None:
     nominal["wheel_slip"] = {"intervals": []}
 
 
-def _draw_power_limit(k, rng, a_cmd, v, eff, truth, nominal) -> None:
+def _draw_power_limit(k, rng, run: _PilotRun, eff, truth, nominal) -> None:
     """p_spec such that the largest traction command (95th percentile of the pilot's) meets the
     limit at 0.8 / k U(0.8, 1) of the top speed: a constant-power run above that knee."""
+    a_cmd, v = run.a_cmd, run.v
     trac = a_cmd[a_cmd > 0.05]
     if trac.size == 0 or v.max() < 3.0:
         raise RuntimeError("the train never pulls: cannot place a power limit")
@@ -460,9 +419,10 @@ def _draw_power_limit(k, rng, a_cmd, v, eff, truth, nominal) -> None:
     nominal["power_limit"] = {"p_spec": float("inf")}
 
 
-def _draw_adhesion(k, rng, res, t_end, eff, truth, nominal) -> None:
+def _draw_adhesion(k, rng, run: _PilotRun, eff, truth, nominal) -> None:
     """A stretch of the braking-to-stop approach of one of the run's stops (wet rail before a
     station): from 10-30 % to 80-95 % of the braking distance."""
+    res, t_end = run.res, run.t_same
     tr, ctrl = res.truth, res.control
     approaches = []
     for stop in res.stops:
@@ -486,6 +446,58 @@ def _draw_adhesion(k, rng, res, t_end, eff, truth, nominal) -> None:
                                "factor": round(factor, 4)}
     truth["adhesion_section"] = dict(eff["adhesion_section"])
     nominal["adhesion_section"] = {"factor": 1.0}
+
+
+# ------------------------------------------------------------------------------------------------
+# The causes: one record each
+# ------------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class CaseCause:
+    """One listed cause as the case generator knows it: how it is drawn and what a fit of it is
+    judged on (:func:`main_value`, :func:`main_error`)."""
+
+    name: str  # the cause, as docs/interfaces.md names it
+    main: str  # the main quantity it is judged on, as benchmark tables name it (MAIN)
+    unit: str  # the main quantity's unit ("1": a ratio or a probability)
+    # How it is drawn at size factor k. Before the pilot run (``on_run`` False):
+    # (k, rng, believed train, link dict) -> (effect, truth, nominal). On the pilot run's
+    # trajectory (``on_run`` True: a place, episodes, a knee speed the run reaches):
+    # (k, rng, _PilotRun, effects, truth, nominal), filled in place.
+    draw: Callable
+    on_run: bool = False
+    param: str | None = None  # the parameter that is the main quantity, if one is
+    # (parameters, v_ref m/s) -> the main quantity, for a cause judged on a derived one
+    derived: Callable | None = None
+    # "value": the main quantity's error; "section": plus the section's misplaced length;
+    # "episodes": the symmetric difference of the episodes' intervals (main_error)
+    judged: str = "value"
+
+
+REGISTRY = (
+    CaseCause("gradient", "permille", "per mille", _draw_gradient, on_run=True, param="permille",
+              judged="section"),
+    CaseCause("resistance", "force at v_ref (N)", "N", _resistance,
+              derived=lambda p, v_ref: p["a"] + p["b"] * v_ref + p["c"] * v_ref**2),
+    CaseCause("braking_rate", "mean f", "1", _braking_rate,
+              derived=lambda p, v_ref: 0.5 * (float(p["f_start"]) + float(p["f_end"]))),
+    CaseCause("odometer_scale", "scale", "1", _odometer_scale, param="scale"),
+    CaseCause("wheel_slip", "slip time (symmetric difference, s)", "s", _draw_slip, on_run=True,
+              derived=lambda p, v_ref: sum(t1 - t0 for t0, t1 in p.get("intervals", [])),
+              judged="episodes"),
+    CaseCause("bursty_link", "p_bad_good", "1", _bursty_link, param="p_bad_good"),
+    CaseCause("brake_delay", "delay", "s", _actuator_delay, param="delay"),
+    CaseCause("mass", "mass", "kg", _mass, param="mass"),
+    CaseCause("clock_drift", "drift", "s/s", _clock_drift, param="drift"),
+    CaseCause("power_limit", "1 / p_spec (s^3/m^2)", "s^3/m^2", _draw_power_limit, on_run=True,
+              derived=lambda p, v_ref: 1.0 / float(p["p_spec"])),
+    CaseCause("adhesion_section", "factor", "1", _draw_adhesion, on_run=True, param="factor",
+              judged="section"),
+    CaseCause("traction_delay", "delay", "s", _actuator_delay, param="delay"),
+)
+BY_NAME = {c.name: c for c in REGISTRY}
+CAUSES = tuple(c.name for c in REGISTRY)
+MAIN = {c.name: c.main for c in REGISTRY}
 
 
 def _build(d: dict, line, train, line_d: dict, train_d: dict) -> Scenario:
@@ -631,5 +643,5 @@ def _short(v):
     return v
 
 
-__all__ = ["CAUSES", "FAMILIES", "MAIN", "SIZES", "Case", "describe", "main_error", "main_value",
-           "make_case"]
+__all__ = ["CAUSES", "FAMILIES", "MAIN", "REGISTRY", "SIZES", "Case", "CaseCause", "describe",
+           "main_error", "main_value", "make_case"]

@@ -76,7 +76,7 @@ from train_core.model import line_from_dict, load_line, load_train, train_from_d
 
 from train_estimation.core.offline.diagnose.residuals import SENSOR_WHY
 from train_estimation.core.offline.diagnose.result import jsonable
-from train_estimation.core.offline.diagnose.search import (  # noqa: F401 (SCORE_FORMULA: help)
+from train_estimation.core.offline.diagnose.verdict import (  # noqa: F401 (SCORE_FORMULA: help)
     LATENCY_WHY,
     RATE_WHY,
     SCORE_FORMULA,

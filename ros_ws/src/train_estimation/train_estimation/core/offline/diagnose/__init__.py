@@ -10,7 +10,13 @@ docs/interfaces.md's causes explains the data, fit it, and rank every cause.
 - ``stage``: the null, its noise fit, the augmented Kalman filter and the GLS of any set of
   columns against it;
 - ``causes``: one module per cause and the registry;
-- ``search``: greedy stages, prior odds, the refits; ``gain``: held-out gains;
+- ``search``: greedy stages, prior odds, the refit at a cause's own noise; ``refit``: the joint
+  refit of the accepted causes and Occam's steps (merge, unlocate);
+- ``confirm``: the checks that confirm an accepted cause (``contradict``: where it shows and
+  only there; ``laws``: rival laws of its effect; ``halves``: a sensor cause's halves of the
+  run agree);
+  ``verdict``: the confirmation, what the model leaves, the ranking and the evidence;
+- ``gain``: held-out gains;
 - ``result``: :class:`CauseFit`, :class:`Diagnosis` and their JSON.
 
 Pure: numpy/scipy and train_core only.
@@ -20,9 +26,10 @@ from .causes import BY_NAME, CAUSES, REGISTRY, ModelContext
 from .causes.bursty_link import gilbert_elliott_vs_bernoulli, link_test
 from .causes.clock_drift import clock_test
 from .motion import Motion, place_on_line
+from .refit import joint_refit
 from .result import REPORT_KEYS, CauseFit, Diagnosis, jsonable
 from .run import DiagConfig, DiagnoseError, Run, prepare
-from .search import diagnose, joint_refit
+from .search import diagnose
 from .stage import Null, Stage, best_section
 
 __all__ = ["BY_NAME", "CAUSES", "REGISTRY", "REPORT_KEYS", "CauseFit", "DiagConfig",

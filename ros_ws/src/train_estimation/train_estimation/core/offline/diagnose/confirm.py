@@ -33,15 +33,15 @@ reported ``confirmed`` only when the checks below pass, the same for every cause
    ``one_phase`` it is not confirmed.
    A cause fixed at a place whatever the speed (``Cause.speed_rival``: a gradient) is
    compared with a force at that place growing as v^2 (drag in a tunnel), each on its own
-   best stretch (:func:`.contradict.speed_law`): where the law fits better by 2 ln LR >
+   best stretch (:func:`.laws.speed_law`): where the law fits better by 2 ln LR >
    ``law_lr`` the cause is not confirmed; within +-``law_lr`` (the speeds on the stretch do
    not tell them apart) the check states it (``caveat``). A cause in proportion to the
    braking asked for at a place (``Cause.fixed_rival``: a low-adhesion section) is compared
-   the same way with a force fixed there (:func:`.contradict.braking_law`: a downhill
+   the same way with a force fixed there (:func:`.laws.braking_law`: a downhill
    gradient the map lacks, which braking at one command cannot tell from it); within
    +-``law_lr`` the check states it (``caveat``), and it never decides the status.
    An odometer scale (``Cause.count_rival``) is compared likewise with an odometer error
-   growing with speed (:func:`.contradict.count_law`: a radar's), one parameter each: above
+   growing with speed (:func:`.laws.count_law`: a radar's), one parameter each: above
    ``law_lr`` not confirmed, within +-``law_lr`` a caveat.
 4. **Not cancelling** another confirmed cause in a phase or on the stretch of a cause at a
    place (:func:`.contradict.cancelling`).
@@ -59,7 +59,7 @@ reported ``confirmed`` only when the checks below pass, the same for every cause
    where the cause does not act, nor left where it acts as large as half of itself
    (:func:`.contradict.piece_of`).
 8. **Without the causes that fell**: the confirmed causes, refitted jointly without the accepted
-   ones that were not confirmed, pass 1-7 again (:func:`.search.reconfirm`).
+   ones that were not confirmed, pass 1-7 again (:func:`.verdict.reconfirm`).
 
 Every other entry of the ranking is ``rejected`` (its score is not above ``none``'s).
 """
@@ -76,19 +76,16 @@ from train_estimation.core.numerics.augmented_kf import gls
 
 from .causes import BY_NAME
 from .contradict import (
-    braking_law,
     cancelling,
-    count_law,
     flexible_rival,
-    heat_law,
     piece_of,
     place_test,
     slip_step,
-    speed_law,
     split_test,
 )
 from .gain import GainContext
 from .halves import bias_law
+from .laws import braking_law, count_law, heat_law, speed_law
 from .motion import Motion, slip_cols
 from .result import CauseFit
 from .run import DiagConfig

@@ -8,7 +8,7 @@ second half (an odometer moved to other wheels, or re-calibrated, mid-run counts
 halves at two scales).
 
 A scale's dependence on speed is left to the rival laws, one parameter each against the
-scale (:func:`.contradict.count_law`: an error growing with speed; :func:`bias_law`: a speed
+scale (:func:`.laws.count_law`: an error growing with speed; :func:`bias_law`: a speed
 read b m/s more or less while moving, a scale 1 + b / v). Halves of the distance run below and
 above the median speed were tried as a second partition: on 24 bags with a true constant
 scale (seed 7, ``train_sim.cases``), |z| was 5.5 and 5.8 in two (metro lines), far from a

@@ -187,7 +187,7 @@ class Cause:
     # the braking rate). Where no brake application of the run outside the stretch could
     # show the cause absent there (no cell of the place test where half of it would be a 3 SE
     # departure), "only on this stretch" is a claim the data cannot test, and the search
-    # names that cause instead (:func:`..search.unlocate`); None: no such cause.
+    # names that cause instead (:func:`..refit.unlocate`); None: no such cause.
     global_rival: str | None = None
 
     def beyond(self, fit: CauseFit, mo):

@@ -1,0 +1,239 @@
+"""Rival laws of a confirmed cause's effect: the same data explained by a force or a count that
+follows another law, each law fitted on its own, compared by their likelihood ratio.
+
+**Speed law** (:func:`speed_law`). A gradient is g sin(theta) at its place, whatever the
+speed; drag in a tunnel at the same place grows as v^2. Each law gets its own best stretch near
+the fitted one (same parameter count), and 2 ln of their likelihood ratio says which the data
+prefer; at one steady speed the two are the same force and the ratio is near 0.
+
+**Braking law** (:func:`braking_law`). A force fixed at a place against one in proportion to
+the braking asked for there (an adhesion section), the same way.
+
+**Heat law** (:func:`heat_law`). A braking weaker by the cause against brakes that fade as they
+heat (:func:`heat_state`).
+
+**Count law** (:func:`count_law`). An odometer that counts one scale times the distance at
+every speed against one whose error grows with speed.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from train_core.lag import first_order
+from train_core.model import G as G_ACCEL
+
+from train_estimation.core.numerics.augmented_kf import gls
+
+from .motion import Motion
+from .phases import _fit_columns, counted_columns
+from .stage import Null, Stage
+
+# position bins by which the speed-law test moves a stretch's ends (each law gets its own best
+# stretch near the fitted one: a fixed force fitted on a drag stretch overshoots it at the fast
+# end, which alone would make the drag law look worse on the fixed force's own stretch)
+LAW_REACH = 4
+
+
+def speed_law(mo: Motion, others: Null, cfg, noise, bins: tuple, power: float = 2.0) -> dict:
+    """A force fixed at a place against one that grows as v^power (aerodynamic drag: power 2,
+    drag in a tunnel): :func:`law_test` with that law."""
+    vm = 0.5 * (mo.v_ref[1:] + mo.v_ref[:-1])
+    return law_test(mo, others, cfg, noise, bins, vm ** power, f"v^{power:g}")
+
+
+def braking_law(mo: Motion, others: Null, cfg, noise, bins: tuple) -> dict:
+    """A force fixed at a place against one in proportion to the braking asked for there
+    (braking weaker on a stretch: an adhesion section): :func:`law_test` with that law."""
+    br = -mo.f0 * mo.a_br0
+    return law_test(mo, others, cfg, noise, bins, np.maximum(0.5 * (br[1:] + br[:-1]), 0.0),
+                    "the braking command")
+
+
+# s, cooling times of brakes tried by the heat law (a tread or a disc sheds its heat over
+# minutes; the choice among them is charged 2 ln of their number)
+HEAT_TAUS = (30.0, 60.0, 120.0, 300.0)
+
+
+def heat_state(mo: Motion, tau: float) -> np.ndarray:
+    """The brakes' heat on the grid, relative to that of one stop from the run's top speed:
+    H' = P - H / tau with P = f0 |a_br| v the braking power per kg the brakes take (m^2/s^3),
+    divided by v_top^2 / 2."""
+    p = np.maximum(-mo.f0 * mo.a_br0, 0.0) * np.maximum(mo.v_ref, 0.0) * mo.moving
+    dt = mo.grid.dt
+    # h[k] = exp(-dt / tau) h[k-1] + dt p[k-1]: the heat taken up to grid point k, cooled
+    h = first_order(p, math.exp(-dt / tau), dt)
+    v_top = float(np.max(mo.v_ref * mo.moving)) if mo.moving.any() else 0.0
+    return h / max(0.5 * v_top * v_top, 1e-9)
+
+
+def heat_law(mo: Motion, others: Null, full: Null, cfg, noise) -> dict:
+    """A braking weaker by the cause (``full`` against ``others``: a braking-rate change in
+    time, a low-adhesion section) against brakes that fade as they heat: the braking asked for
+    times (c1 + c2 H), H the brakes' heat (:func:`heat_state`) at the best of ``HEAT_TAUS``,
+    two parameters on top of ``others``.
+
+    Returns ``lr``: 2 ln of the likelihood ratio of the heat law against the cause (its
+    contribution with a free multiplier), less 2 ln of the number of cooling times tried
+    (> 0: the data prefer the heat law; near 0 where every braking holds the same heat, as
+    on a run of equal stops); ``tau`` and the heat law's fade at the heat of one stop from the
+    top speed (``fade``, -c2 / (f0 + c1)); the speeds braked at (5-95 %)."""
+    st0 = Stage(mo, others, cfg, noise=noise, big=False)
+    st1 = Stage(mo, full, cfg, noise=noise, big=False)
+    dv, ds = st1.fv - st0.fv, st1.fs - st0.fs
+    res = {"law": "heat"}
+    brk = (mo.a_br0 < 0) & (mo.moving > 0)
+    if not (dv * dv).sum() > 0 or brk.sum() < 10:
+        res.update(lr=0.0, note="no braking while moving")
+        return res
+    cause = _fit_columns(st0, dv[:, None], ds[:, None])[0]
+    n_ev = mo.ev.t.size
+    best = (-math.inf, None, None)
+    for tau in HEAT_TAUS:
+        h = heat_state(mo, tau)
+        R = np.stack([mo.a_br0 * mo.moving, mo.a_br0 * h * mo.moving], axis=1)
+        stat, th, _ = _fit_columns(st0, *mo.grid.integrate(R, n_ev))
+        if stat > best[0]:
+            best = (stat, tau, th)
+    stat, tau, th = best
+    vb = mo.v_ref[brk]
+    v_lo, v_hi = np.percentile(vb, [5, 95])
+    res.update(lr=float(stat - cause - 2.0 * math.log(len(HEAT_TAUS))), tau=tau,
+               fade=float(-th[1] / (mo.f0 + th[0])) if mo.f0 + th[0] else float("nan"),
+               speeds=[float(v_lo), float(v_hi)])
+    return res
+
+
+def count_law(mo: Motion, others: Null, cfg, noise) -> dict:
+    """An odometer that counts one ``scale`` times the distance at every speed (a worn wheel)
+    against one whose error grows with speed, k v / v_top (a Doppler radar's, an axle that
+    slips more the faster it turns): both on top of the model ``others``, one parameter each,
+    in the odometer's distance and speed readings alike.
+
+    Returns ``lr``: 2 ln of the likelihood ratio of the speed law against the scale (> 0: the
+    data prefer the law; near 0 when the run is at one speed, where the two are the same
+    count); from the fit of both together, a ((1 - b) scale + b law) with the law scaled to
+    the same count at the run's mean speed: ``b`` (0 the scale, 1 the law) and its standard
+    error; ``k`` (the law's relative error at v_top) and the speeds moved at (5-95 %)."""
+    n = mo.ev.t.size
+    o = mo.ev.odo
+    v = mo.sc_v[o]
+    moving = v > cfg.standstill_speed
+    res = {"law": "k v / v_top"}
+    if moving.sum() < 10:
+        res.update(lr=0.0, note="fewer than ten odometer readings while moving")
+        return res
+    v_top, v_mean = float(np.max(v)), float(np.mean(v[moving]))
+    # the law's count: what the scale's distance increments become when each is weighted by
+    # the speed it was run at relative to the run's mean moving speed (the same count as the
+    # scale's over a run at that one speed), counted on; its speed reading the same
+    w = np.zeros(n)
+    w[o] = mo.sc_v[o] / v_mean
+    inc = np.zeros(n)
+    inc[o] = np.diff(mo.sc_d[o], prepend=mo.sc_d[o][0])
+    law_d = counted_columns(mo, inc * w, [np.ones(n, bool)])[:, 0]
+    st = Stage(mo, others, cfg, noise=noise, big=False)
+    W = st.augmented(st.fv, st.fs, meas=(np.stack([mo.sc_d, law_d], axis=1),
+                                         np.stack([mo.sc_v, mo.sc_v * w], axis=1))).W
+    q0 = gls(W[:2, :2])[2]
+    stat, fitted = {}, {}
+    for name, j in (("scale", 2), ("law", 3)):
+        M = np.zeros((W.shape[0], 3))
+        M[0, 0] = M[1, 1] = M[j, 2] = 1.0
+        th, _, q1 = gls(W, M)
+        stat[name], fitted[name] = q0 - q1, float(th[1])
+    # both: a scale + c (law - scale), c / a = b
+    M = np.zeros((W.shape[0], 4))
+    M[0, 0] = M[1, 1] = 1.0
+    M[2, 2], M[3, 3], M[2, 3] = 1.0, 1.0, -1.0
+    share, se = _law_share(W, M)
+    v_lo, v_hi = np.percentile(v[moving], [5, 95])
+    res.update(lr=float(stat["law"] - stat["scale"]), b=share, std_error=se,
+               scale=1.0 + fitted["scale"],
+               k=fitted["law"] * v_top / v_mean,
+               speeds=[float(v_lo), float(v_hi)])
+    return res
+
+
+def _law_share(W: np.ndarray, M: np.ndarray) -> tuple[float, float]:
+    """From the fit of a cause and a rival law together, a g + c (h - g) (``M``'s last two
+    columns): the law's share b = c / a and its standard error."""
+    th, cov, _ = gls(W, M)
+    amp = float(th[1])
+    if amp == 0:
+        return float("nan"), float("inf")
+    return float(th[2] / amp), float(math.sqrt(max(cov[2, 2], 0.0)) / abs(amp))
+
+
+def law_test(mo: Motion, others: Null, cfg, noise, bins: tuple, shape: np.ndarray,
+             name: str) -> dict:
+    """A force fixed at a place (a gradient on the position bins ``bins`` = (i, j)) against a
+    force at a place that follows ``shape`` (per grid step, >= 0: v^2 for drag in a tunnel, the
+    braking asked for where the rail's adhesion is low), both on top of the model ``others``,
+    each on its own best stretch within ``LAW_REACH`` bins of the fitted one (same parameter
+    count: start, end, size).
+
+    Returns ``lr``: 2 ln of the likelihood ratio of the law's best stretch against the fixed
+    force's (> 0: the data prefer the law; near 0 at one steady speed, where the two are the
+    same force); on the fixed force's stretch the fit of both together, a ((1 - b) g + b h)
+    with h the law's column scaled to the same mean force: ``b`` (0 a fixed force, 1 the law)
+    and its standard error (on that stretch, whose ends a fixed force fitted to drag moves:
+    ``lr`` is the comparison); the speeds on it (5-95 %) and both stretches."""
+    g, ev = mo.grid, mo.ev
+    i, j = int(bins[0]), int(bins[1])
+    lo, hi = max(0, i - LAW_REACH), min(mo.n_bins, j + LAW_REACH)
+    vm = 0.5 * (mo.v_ref[1:] + mo.v_ref[:-1])
+    mov, jb = mo.step_moving, mo.step_bin
+    width = mo.bin_edges[1] - mo.bin_edges[0]
+    res = {"law": name}
+    on = mov & (jb >= i) & (jb < j)
+    if on.sum() < 2:
+        res.update(lr=0.0, note="the train does not move on the stretch")
+        return res
+    if not np.mean(shape[on]) > 0:
+        res.update(lr=0.0, note=f"{name} is zero on the stretch")
+        return res
+    law = shape / float(np.mean(shape[on]))  # the law's force relative to its mean there
+    m = hi - lo
+    near = mov & (jb >= lo) & (jb < hi)
+    col = jb[near] - lo
+    gper = -G_ACCEL / 1000.0 * mo.k_grad  # m/s^2 per permille
+    n_ev = ev.t.size
+    Bv, Bs = np.zeros((n_ev, 2 * m)), np.zeros((n_ev, 2 * m))
+    for off, w in ((0, np.ones(near.sum())), (m, law[near])):
+        inc = gper * g.dt * w
+        np.add.at(Bv, (g.k[near], off + col), inc)
+        np.add.at(Bs, (g.k[near], off + col), inc * g.lever[near])
+    st = Stage(mo, others, cfg, noise=noise, big=False)
+    W = st.augmented(st.fv, st.fs, drift=(Bv, Bs)).W
+    q0 = gls(W[:2, :2])[2]
+    min_len = max(1, int(math.ceil(cfg.min_section / width - 1e-9)))
+    best = {}
+    for name, off in (("fixed", 0), ("law", m)):
+        top = (-np.inf, None)
+        for a in range(m):
+            for b in range(a + min_len, m + 1):
+                M = np.zeros((W.shape[0], 3))
+                M[0, 0] = M[1, 1] = 1.0
+                M[2 + off + a:2 + off + b, 2] = 1.0
+                stat = q0 - gls(W, M)[2]
+                if stat > top[0]:
+                    top = (stat, (lo + a, lo + b))
+        best[name] = top
+    # on the fixed force's own stretch: both columns, a g + c (h - g), c / a = b
+    a0, b0 = best["fixed"][1][0] - lo, best["fixed"][1][1] - lo
+    M = np.zeros((W.shape[0], 4))
+    M[0, 0] = M[1, 1] = 1.0
+    M[2 + a0:2 + b0, 2] = 1.0
+    M[2 + m + a0:2 + m + b0, 3] = 1.0
+    M[2 + a0:2 + b0, 3] = -1.0
+    share, se = _law_share(W, M)
+    sec = mov & (jb >= best["fixed"][1][0]) & (jb < best["fixed"][1][1])
+    v_lo, v_hi = np.percentile(vm[sec], [5, 95]) if sec.any() else (0.0, 0.0)
+    edges = mo.bin_edges
+    res.update(lr=float(best["law"][0] - best["fixed"][0]), b=share, std_error=se,
+               speeds=[float(v_lo), float(v_hi)],
+               stretch_fixed=[float(edges[best["fixed"][1][0]]), float(edges[best["fixed"][1][1]])],
+               stretch_law=[float(edges[best["law"][1][0]]), float(edges[best["law"][1][1]])])
+    return res
