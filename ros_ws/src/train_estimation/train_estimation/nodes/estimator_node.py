@@ -206,6 +206,11 @@ class EstimatorNode(Node):
     def tick(self) -> None:
         now = self._arrival()  # the arrival clock (see _arrival)
         if now is None:
+            if self.waiting and self.steady.now().nanoseconds * 1e-9 - self.waiting[0][3] > 2.0:
+                self.get_logger().warning(
+                    f"use_sim_time is set and no /clock has arrived: {len(self.waiting)} "
+                    "messages held until one does (publish /clock, or run without "
+                    "use_sim_time)", throttle_duration_sec=5.0)
             return
         if self.wait_subs:  # discovery, as the simulator's wait_for_subscribers: readers
             if self.pub.get_subscription_count() < self.wait_subs:  # that match late

@@ -188,6 +188,12 @@ def build_node():
             self._arrived(topic)
             self.paced[topic] = max(self.paced[topic], stamp_to_sec(msg.header.stamp))
 
+        def _say_clock(self) -> None:
+            if self.publish_clock:
+                clock = Clock()
+                sec_to_stamp(self.t_sim, clock.clock)
+                self.clock_pub.publish(clock)
+
         def tick(self) -> None:
             now = time.monotonic()
             if self.wall0 is None:
@@ -209,6 +215,12 @@ def build_node():
                 target = (now - self.wall0) * self.rate_factor
             target = min(target, self.duration + self.linger)
             if target <= self.t_sim:
+                # paced, waiting for the estimates: the world's clock stands still, and is said
+                # again, so that a node whose /clock subscription matched after the last tick
+                # learns the time (a node on simulated time holds what it received until it
+                # has a clock: under load the world waited for a node's estimates and the node
+                # for a clock, and the run stopped)
+                self._say_clock()
                 return
             if self.t_sim < self.duration:
                 self.world.advance(min(target, self.duration))
@@ -216,10 +228,7 @@ def build_node():
             # the world's clock first, then what has arrived by it (with link latency, later
             # than it was sent): a node on simulated time receives each message at or after its
             # delivery time on the clock it judges stamps by, never before (latency >= 0)
-            if self.publish_clock:
-                clock = Clock()
-                sec_to_stamp(self.t_sim, clock.clock)
-                self.clock_pub.publish(clock)
+            self._say_clock()
             for topic, stamp, fields in self.world.deliver(target):
                 self.pubs[topic].publish(fields_to_msg(TOPIC_TYPES[topic], stamp, fields))
                 self.counts[topic] += 1
