@@ -949,7 +949,7 @@ def test_a_power_limit_and_a_traction_delay_compose_in_either_order(metro, metro
     from train_estimation.core.offline.diagnose.confirm import _null_of
 
     def traction_at(mo, timing):  # the believed traction with the commands re-timed
-        return mo._act(timing, 0.0)[0]
+        return mo._part(timing, "traction")
 
     cfg = DiagConfig()
     run = prepare(tool.read_measured(write_bag(tmp_path / "bag", metro_run)), metro.line, cfg)

@@ -162,8 +162,8 @@ class EstimatorNode(Node):
         if recv is None:  # before the first /clock: held, pushed when it starts
             self.waiting.append((kind, msg, fields, wall))
             return
-        while self.waiting:
-            k, m, f, w = self.waiting.pop(0)
+        held, self.waiting = self.waiting, []
+        for k, m, f, w in held:
             self._push_one(k, m, f, recv, w)
         self._push_one(kind, msg, fields, recv, wall)
         self.tick()

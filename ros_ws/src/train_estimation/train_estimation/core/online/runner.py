@@ -221,7 +221,7 @@ class EstimatorRunner:
     _last_fused: float = -math.inf  # stamp of the last odometer sample accepted (or the start)
     separate_clocks: bool = False  # control was found (or said) to be on another clock
     _steps: StepWatch | None = None  # the train clock's steps (and the train StreamClock)
-    _ctl_recv: float | None = None  # arrival of the latest command (push's ``wall``)
+    _ctl_wall: float | None = None  # arrival of the latest command (push's ``wall``)
     integrity: IntegrityParams = field(default_factory=IntegrityParams)
     command_slack: float = 0.25  # odometer periods: a reading stamped this little past the
     #   control watermark is processed without waiting for the next command (ready_time)
@@ -285,7 +285,7 @@ class EstimatorRunner:
             recv = None
         if kind == "control" and recv is not None:
             w = recv if wall is None else wall
-            self._ctl_recv = w if self._ctl_recv is None else max(self._ctl_recv, w)
+            self._ctl_wall = w if self._ctl_wall is None else max(self._ctl_wall, w)
         if kind != "control":
             seq = fields.get("seq") if isinstance(fields, dict) else None
             if not isinstance(seq, int) or isinstance(seq, bool):
@@ -937,8 +937,8 @@ class EstimatorRunner:
         # silence on the arrival clock when arrivals are known: at 20x sim time a node's
         # 100 ms of wall jitter is 2 s of stamps, which must not make it run ahead of commands
         # that are on their way (the run would depend on the machine's load)
-        silent = (now if wall is None else wall) - self._ctl_recv \
-            if self._ctl_recv is not None else now_train - lead
+        silent = (now if wall is None else wall) - self._ctl_wall \
+            if self._ctl_wall is not None else now_train - lead
         if "control" in self.high and silent > self.command_timeout:
             # the command stream stopped while readings go on: waiting for it would leave the
             # train without an estimate and the queue growing; the filters hold the last

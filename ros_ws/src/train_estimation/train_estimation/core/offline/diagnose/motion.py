@@ -10,7 +10,7 @@ The model (train_core physics, as ``identify``; Zheng et al. 2015 eq. (1) for th
     balise:    p_b = s0 + s(t_b) + e_b
 
 ``a_tr``/``a_br`` are the traction and braking parts of the recorded commands through the
-believed delay and lag (identify.actuator_output). A cause is a set of extra drift columns
+believed delay and lag (train_core.actuator.grid_part). A cause is a set of extra drift columns
 ``r_j`` or measurement columns ``m_j``, linear in its parameters once the nonlinear ones are
 fixed. The regressors are evaluated on a reference trajectory (smoothed odometer speed, and
 odometer distance placed on the line piecewise between balise fixes, so a wrong odometer scale
@@ -27,7 +27,7 @@ from train_core.model import G, Line, TrainParams
 
 from train_estimation.core.numerics.augmented_kf import Events
 
-from ..identify import actuator_output, moving_average
+from ..identify import moving_average
 from .run import DiagConfig, Run
 
 
@@ -207,7 +207,7 @@ class Motion:
         self.alpha0, self.beta0, self.gamma0 = (train.davis.a / meff, train.davis.b / meff,
                                                 train.davis.c / meff)
         self.k_grad = 1.0 / (1.0 + train.rotary_allowance)
-        self.a_tr0, self.a_br0 = self._act(0.0, 0.0)
+        self.a_tr0, self.a_br0 = self._part(0.0, "traction"), self._part(0.0, "braking")
         # shifts (nuisance) and extra braking delays
         self.shifts = shift_grid(cfg.shift_grid, float(run.clock.get("latency_excess", 0.0)))
         lo, hi, st = cfg.delay_grid
@@ -288,13 +288,10 @@ class Motion:
         bv0, bs0 = g.integrate(base[:, None], self.ev.t.size)
         self.base_v, self.base_s = bv0[:, 0], bs0[:, 0]
 
-    def _act(self, shift: float, brake_shift: float):
-        b = self.train.brake
-        return actuator_output(self.grid.t, self.run.ctrl_t + shift, self.run.ctrl_a,
-                               b.time_constant, b.delay, b.delay - shift + brake_shift)
-
     def _part(self, shift: float, part: str, brake_shift: float = 0.0):
-        """One part of :meth:`_act` (the re-timed columns use one each)."""
+        """The believed actuator's ``part`` ("traction" or "braking") on the grid, with the
+        commands re-timed by ``shift`` s and the braking delayed ``brake_shift`` s more than
+        the shift leaves it."""
         b = self.train.brake
         delay = b.delay if part == "traction" else b.delay - shift + brake_shift
         return grid_part(self.grid.t, self.run.ctrl_t + shift, self.run.ctrl_a,
