@@ -45,6 +45,7 @@ def replay(events: Iterable[tuple], adapter, period: float, delay: float = 0.05,
            fallback: float = 0.2, tick_period: float | None = 0.05,
            on_time: Callable[[float], None] | None = None,
            blocked: Callable[[float], bool] | None = None,
+           runner: EstimatorRunner | None = None,
            **runner_kw) -> tuple[list[Output], EstimatorRunner]:
     """Estimates from ``(topic, stamp, fields[, recv])`` events **in arrival (log-time) order**.
 
@@ -57,9 +58,12 @@ def replay(events: Iterable[tuple], adapter, period: float, delay: float = 0.05,
     terminates. ``on_time(t)`` (optional) is told each arrival and tick time before the runner
     works at it (``tools.faults.run`` notes there when each estimate was produced);
     ``blocked(t)`` (optional) is true for the arrival times at which the node's callbacks are
-    blocked (a stalled node: its timer does not fire either).
+    blocked (a stalled node: its timer does not fire either). ``runner`` (optional): the runner
+    to drive, built by the caller (who can then watch it from ``on_time``); ``adapter``,
+    ``period`` and ``runner_kw`` are then its own.
     """
-    runner = EstimatorRunner(adapter, period, **runner_kw)
+    if runner is None:
+        runner = EstimatorRunner(adapter, period, **runner_kw)
     out: list[Output] = []
     now = None
     ticks = TimerTicks(tick_period)
