@@ -66,7 +66,9 @@ def test_a_rate_fit_over_two_levels_of_the_offset_is_not_a_drift():
     """A clock that stepped +3 s 4 s into a 1 Hz stream, before its rate was known (no sample
     counter to see it): the fit's points lie on two levels, about no line within the link's
     jitter, and give no drift (it read 0.09: slots 1.09 s apart, estimates stamped after the
-    run). The same stream without the step gives its true drift."""
+    run). Either the fit sees the two levels and gives no rate, or its points (each block's
+    envelope) lie on the new level and it gives the true drift, 0, within its standard error.
+    The same stream without the step gives its true drift."""
     rng = np.random.default_rng(1)
     for step, drift in ((3.0, 0.0), (0.0, 1e-3)):
         c = StreamClock()
@@ -77,7 +79,7 @@ def test_a_rate_fit_over_two_levels_of_the_offset_is_not_a_drift():
             c.rate_point(s, a)
         d, se = c.rate()
         if step:
-            assert d == 0.0 and math.isinf(se)
+            assert (d == 0.0 and math.isinf(se)) or (abs(d) < 5 * se and se < 5e-4), (d, se)
         else:
             assert abs(d - drift) < 5 * se and se < 5e-4
 
