@@ -165,8 +165,14 @@ def test_filter_step_equals_numpy_form(name):
         N = eb.n_particles
         assert ea.n_particles == N
         sa, sb = a._s, b._s
-        np.testing.assert_array_equal(sa.theta, sb.theta)
         L = 2 * N + 8
+        if name == "qgrbpf":
+            # the redraw mu + sd z: mu and the variance are weighted sums over the old set
+            # (numpy: BLAS and einsum; compiled: index order), each within L eps of its terms
+            bound = L * EPS * (np.abs(sb.theta).max() + 1.0)
+            assert np.all(np.abs(sa.theta - sb.theta) <= bound), k
+        else:
+            np.testing.assert_array_equal(sa.theta, sb.theta)
         for u, v in ((sa.x, sb.x), (sa.P, sb.P)):
             # the prediction's sums are bounded by the particle's own scale (|Phi| |x|, |Phi|
             # |P| |Phi|^T), not by each entry, which can be a cancellation (a_hat near 0)
