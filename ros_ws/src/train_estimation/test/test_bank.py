@@ -24,11 +24,17 @@ from train_estimation.core.braking.braking_filters import (
     GSMA,
     QGRBPF,
     SMA,
+    BrakingKF,
     DiscreteRBPF,
     RandomWalkRBPF,
     sticky_transition,
 )
-from train_estimation.core.braking.braking_model import BrakingModel, BrakingParams, _predict_maps
+from train_estimation.core.braking.braking_model import (
+    BrakingModel,
+    BrakingParams,
+    _affine_pieces,
+    _predict_maps,
+)
 from train_estimation.core.numerics import bank
 from train_estimation.core.numerics.kalman import _selectors, update
 
@@ -385,8 +391,9 @@ def test_filters_run_without_numba():
 def _step_kernel_values() -> np.ndarray:
     """Every filter's compiled step kernel (``braking_compiled``) on seeded sets and draws:
     branching with pruning and with merging, the discrete draw, the random walk, the
-    Q-GRBPF redraw and its Gauss-Hermite form, an uninformative step with a shared gain, a
-    step without prediction, and the resampling (for the test below)."""
+    Q-GRBPF redraw and its Gauss-Hermite form, the resampling and the exact KF, each on an
+    informative step, an uninformative one (a shared gain) and one without prediction (for
+    the test below)."""
     from train_estimation.core.braking import braking_compiled as bc
 
     rng = np.random.default_rng(12)
@@ -436,6 +443,17 @@ def _step_kernel_values() -> np.ndarray:
         r = res[2]
         out += [np.ravel(np.asarray(a, dtype=float))
                 for a in bc.resample(r[6], 0.37, -np.log(N), r[1], r[2], r[3], r[5])]
+        # the exact KF: f the fifth state
+        z = np.append(x[0], 0.9)[None]
+        Pz = np.zeros((1, 5, 5))
+        Pz[0, :4, :4] = P[0]
+        Pz[0, 4, 4] = 0.0225
+        pieces = _affine_pieces(fam.params, max(dt, 0.1))
+        r = bc.kf_step(z, Pz, *pieces, np.array([-1.0, 0.02]), informative, 0.8, 1e-3 * dt,
+                       dt > 0, y, np.hstack([H, np.zeros((3, 1))]), fam.R.copy(),
+                       np.arange(3, dtype=np.int64), sel)
+        assert r[0] == bank.OK
+        out += [np.ravel(np.asarray(a, dtype=float)) for a in r]
     return np.concatenate(out)
 
 
@@ -446,7 +464,8 @@ def test_step_kernels_compiled_equal_interpreted():
     np.testing.assert_array_equal(compiled, _interpreted("_step_kernel_values"))
 
 
-@pytest.mark.parametrize("name", ["rbpf", "sma", "gsma", "gsma merged", "qgrbpf", "gh3", "rw"])
+@pytest.mark.parametrize("name", ["rbpf", "sma", "gsma", "gsma merged", "qgrbpf", "gh3", "rw",
+                                  "kf"])
 def test_compiled_run_equals_numpy_form(name):
     """A seeded run of 40 steps (braking, then coasting and a standstill command: the shared
     gain; readings of one or two rows; outputs without a reading; a reading at the time of
@@ -455,8 +474,12 @@ def test_compiled_run_equals_numpy_form(name):
     (every step's reordered sums differ by ~1e-15 relative; no pruning, resampling or
     pairing decision sits that close over 40 steps)."""
     fam = BrakingModel(BrakingParams(meas_var=(0.25, 0.09, 1e-4), standstill_speed=0.1))
-    a, b = _filters(fam)[name], _filters(fam)[name]
-    b._bank_ok = False  # the numpy form
+    if name == "kf":
+        a, b = (BrakingKF(fam, 1e-3, (1.0, 0.15)) for _ in range(2))
+        b._fused_ok = lambda: False  # the numpy form
+    else:
+        a, b = _filters(fam)[name], _filters(fam)[name]
+        b._bank_ok = False  # the numpy form
     assert a._fused_ok() and not b._fused_ok()
     ra, rb = np.random.default_rng(31), np.random.default_rng(31)
     for f, r in ((a, ra), (b, rb)):

@@ -100,6 +100,20 @@ _STEP_REASONS = {**_BANK_REASONS,
 _ONE = np.ones(1)  # the braking-rate argument of an informative step (unused: theta is)
 # a step without prediction (dt = 0): bank_step's arguments
 _NO_PREDICT = (False, *bank._NO_PREDICT, np.zeros(1))
+_MASKS: dict = {}
+_ALL_ROWS: dict = {}
+
+
+def _rows_mask(p: int, value: bool) -> np.ndarray:
+    """The read-only mask of ``p`` rows all ``value`` (a step with every row or none), one
+    per size: not a new array per step."""
+    hit = _MASKS.get((p, value))
+    if hit is None:
+        hit = np.full(p, value, dtype=bool)
+        hit.flags.writeable = False
+        _MASKS[p, value] = hit
+        _ALL_ROWS[p] = np.arange(p, dtype=np.int64)
+    return hit
 
 # ----------------------------------------------------------------------------------------------
 # base
@@ -264,7 +278,7 @@ class RaoBlackwellFilter:
         u = np.array([float(a_tar), float(d)])
         s = self._s
         informative = bool(fam.gate(u, self._last.x_mean))
-        fused = bool(np.any(mask_arr))
+        fused = bool(mask_arr.any())
         try:
             # seconds of braking since the last transition: f is only seen, and only forgotten,
             # while the brake acts (a random walk per second of braking, as the KF's; the
@@ -346,13 +360,23 @@ class RaoBlackwellFilter:
         fam = self.family
         c = bank._c  # float64, C-contiguous, writeable: the types the kernels were compiled for
         if dt > 0:
-            fh = _ONE if informative else np.asarray(
-                fam.braking_rates(None, u, False, **self._hold(u, informative)), dtype=float)
-            common = (True, *fam.bank_pred(u, dt), fh)
+            kw = self._hold(u, informative)
+            # the prediction's arguments, kept for the next step: a live filter's dt and
+            # command repeat from step to step
+            key = (float(dt), float(u[0]), float(u[1]), informative, kw.get("hold"))
+            hit = self.__dict__.get("_pred_last")
+            if hit is None or hit[0] != key or hit[1] is not fam.params:
+                fh = _ONE if informative else np.asarray(
+                    fam.braking_rates(None, u, False, **kw), dtype=float)
+                hit = (key, fam.params, (True, *fam.bank_pred(u, dt), fh))
+                self._pred_last = hit
+            common = hit[2]
         else:
             common = _NO_PREDICT
         H, sel = self._bank_rows()
-        common += (c(y[None]), H, c(np.asarray(R, dtype=float)), np.flatnonzero(mask), sel)
+        rows = _ALL_ROWS[H.shape[0]] if mask is _rows_mask(H.shape[0], True) else (
+            np.flatnonzero(mask))
+        common += (c(y[None]), H, c(np.asarray(R, dtype=float)), rows, sel)
         s = _Set(c(s.theta), c(s.x), c(s.P), c(s.logw),
                  None if s.idx is None else np.ascontiguousarray(s.idx, dtype=np.int64),
                  s.extra)
@@ -496,18 +520,21 @@ class RaoBlackwellFilter:
                 return (f"out-of-order or duplicate time stamp: {tf!r} <= {self._t!r}", *bad)
             else:
                 dt = tf - self._t
+        # (the checks on a few entries as Python scalars: a numpy call per check cost more
+        # than the compiled step itself)
         if y is None:
             y_arr = np.zeros(p)
-            mask_arr = np.zeros(p, dtype=bool)
+            mask_arr = _rows_mask(p, False)
         else:
             y_arr = np.asarray(y, dtype=float).reshape(-1)
             if y_arr.shape != (p,):
                 return (f"bad measurement shape: {y_arr.shape} != ({p},)", *bad)
-            mask_arr = (np.ones(p, dtype=bool) if mask is None
+            mask_arr = (_rows_mask(p, True) if mask is None
                         else np.asarray(mask, dtype=bool).reshape(-1))
             if mask_arr.shape != (p,):
                 return (f"bad mask shape: {mask_arr.shape} != ({p},)", *bad)
-            if not (np.isfinite(y_arr) | ~mask_arr).all():
+            used = mask_arr.tolist()
+            if not all(math.isfinite(v) for v, k in zip(y_arr.tolist(), used) if k):
                 return (f"non-finite measurement: {y_arr[mask_arr].tolist()}", *bad)
         if meas_var is None:
             R = np.asarray(fam.R, dtype=float)
@@ -515,9 +542,9 @@ class RaoBlackwellFilter:
             R = np.asarray(meas_var, dtype=float).reshape(-1)
             if R.shape != (p,):
                 return (f"bad measurement variance shape: {R.shape} != ({p},)", *bad)
-            Rm = R[mask_arr]
-            if not (np.isfinite(Rm).all() and (Rm > 0).all()):
-                return (f"non-positive or non-finite measurement variance: {Rm.tolist()}", *bad)
+            Rm = R[mask_arr].tolist()
+            if not all(math.isfinite(v) and v > 0 for v in Rm):
+                return (f"non-positive or non-finite measurement variance: {Rm}", *bad)
         if dt == 0.0 and t is None:
             return ("zero default step", *bad)
         return "", dt, y_arr, mask_arr, R

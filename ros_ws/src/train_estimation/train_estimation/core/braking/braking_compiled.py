@@ -18,7 +18,8 @@ only drawn then, as the numpy form draws it):
   caller), reflected into the bounds, then the bank; :func:`resample` as above;
 * :func:`qgrbpf_step` -- Q-GRBPF's redraw from the posterior's Gaussian and the pairing of
   the KF states along the principal axis (normals and their normal CDF from the caller), or
-  its Gauss-Hermite form (``bank._gauss_hermite``), then the bank.
+  its Gauss-Hermite form (``bank._gauss_hermite``), then the bank;
+* :func:`kf_step` -- the exact reference KF: its augmented model, prediction and update.
 
 Randomness stays in the caller's ``numpy.random.Generator``: the caller draws what a step
 needs, in the order and the shapes the numpy form draws it, and passes the numbers in; so the
@@ -48,10 +49,11 @@ from ..numerics import bank
 from ..numerics.bank import OK, _bank_step, _gauss_hermite, _log_normalize
 from ..numerics.jit import COMPILED, jit
 
-__all__ = ["COMPILED", "NONFINITE", "branching_step", "discrete_step", "random_walk_step",
-           "qgrbpf_step", "resample", "warm_up"]
+__all__ = ["COMPILED", "NONFINITE", "KF_LOGLIK", "branching_step", "discrete_step",
+           "random_walk_step", "qgrbpf_step", "resample", "kf_step", "warm_up"]
 
 NONFINITE = 4  # "numerical failure: non-finite particle state" (the step's final check)
+KF_LOGLIK = 5  # the KF's log likelihood infinite (BrakingKF._reduce's rejection)
 
 
 @jit
@@ -470,6 +472,85 @@ def qgrbpf_step(lo, hi, qdt, min_var, quadrature, z, uz, lw_n, gh_lw, theta, x, 
 
 
 # ----------------------------------------------------------------------------------------------
+# the exact reference KF
+
+
+@jit
+def kf_step(x, P, P0, P1, B0, B1, Qd, u, informative, gain, q_dt, do_predict, y, H, R, rows,
+            sel):
+    """``BrakingKF`` step: the augmented model of ``braking_model.augmented_model`` (f the
+    fifth state; an uninformative step the shared ``gain`` and no f column), its prediction
+    ``F x + b``, ``F P F^T + Q`` (symmetrised) and the sequential update of ``rows``
+    (``numerics.bank``). Returns ``(status, x, P, log likelihood)``; ``x (1, 5)``,
+    ``P (1, 5, 5)``; ``P0 .. Qd`` the model's affine pieces for this dt."""
+    n = x.shape[1]
+    m = n - 1
+    xt = np.empty((n, 1))
+    Pt = np.empty((n * n, 1))
+    if do_predict:
+        F = np.zeros((n, n))
+        b = np.zeros(n)
+        F[m, m] = 1.0
+        for i in range(m):
+            if informative:
+                for j in range(m):
+                    F[i, j] = P0[i, j]
+                F[i, m] = P1[i, 3] * x[0, 3] + (B1[i, 0] * u[0] + B1[i, 1] * u[1])
+                b[i] = B0[i, 0] * u[0] + B0[i, 1] * u[1]
+            else:
+                for j in range(m):
+                    F[i, j] = P0[i, j] + gain * P1[i, j]
+                b[i] = (B0[i, 0] + gain * B1[i, 0]) * u[0] + (B0[i, 1] + gain * B1[i, 1]) * u[1]
+        FP = np.zeros((n, n))
+        for i in range(n):
+            acc = 0.0
+            for j in range(n):
+                acc += F[i, j] * x[0, j]
+            xt[i, 0] = acc + b[i]
+            for j in range(n):
+                a2 = 0.0
+                for k in range(n):
+                    a2 += F[i, k] * P[0, k, j]
+                FP[i, j] = a2
+        Pp = np.empty((n, n))
+        for i in range(n):
+            for j in range(n):
+                a2 = 0.0
+                for k in range(n):
+                    a2 += FP[i, k] * F[j, k]
+                q = 0.0
+                if i < m and j < m:
+                    q = Qd[i, j]
+                elif i == m and j == m and informative:
+                    q = q_dt
+                Pp[i, j] = a2 + q
+        for i in range(n):
+            for j in range(n):
+                Pt[i * n + j, 0] = 0.5 * (Pp[i, j] + Pp[j, i])
+    else:
+        for i in range(n):
+            xt[i, 0] = x[0, i]
+            for j in range(n):
+                Pt[i * n + j, 0] = P[0, i, j]
+    ll = np.zeros(1)
+    if rows.shape[0] > 0:
+        bank._update_cols(xt, Pt, y, H, R, rows, sel, ll)
+        if math.isnan(ll[0]):
+            return bank.NAN_LIK, x, P, 0.0
+        if not math.isfinite(ll[0]):
+            return KF_LOGLIK, x, P, 0.0
+    xo = np.empty((1, n))
+    Po = np.empty((1, n, n))
+    for i in range(n):
+        xo[0, i] = xt[i, 0]
+        for j in range(n):
+            Po[0, i, j] = Pt[i * n + j, 0]
+    if not _finite_set(np.zeros((1, 1)), xo, Po):
+        return NONFINITE, x, P, 0.0
+    return OK, xo, Po, ll[0]
+
+
+# ----------------------------------------------------------------------------------------------
 
 _WARMED: set = set()
 
@@ -508,4 +589,8 @@ def warm_up() -> None:
     for quad in (False, True):
         qgrbpf_step(0.0, 1.0, 1e-3, 1e-8, quad, z, np.full(2, 0.5), -np.log(2.0), lw, th, x,
                     P, lw, True, True, *common)
+    H5 = np.hstack([common[12], np.zeros((3, 1))])
+    kf_step(np.zeros((1, 5)), np.eye(5)[None].copy(), np.eye(4), np.zeros((4, 4)),
+            np.zeros((4, 2)), np.zeros((4, 2)), np.eye(4), np.zeros(2), True, 1.0, 1e-3, True,
+            common[11], H5, common[13], common[14], common[15])
     _WARMED.add("steps")
