@@ -23,6 +23,12 @@ with ``smc.log_normalize``. One step (``RaoBlackwellFilter.step``):
 7. estimate = moments of the Gaussian mixture (law of total covariance), then resampling /
    pruning / merging if the algorithm does (``_after``).
 
+With numba (``numerics.jit``) steps 3-7 of an algorithm with a fused kernel are one compiled
+call (``braking_compiled``: its transition, the particle bank of ``numerics.bank``, its
+pruning, merging or resampling, the finiteness check), with the random numbers drawn here from
+``rng`` as the numpy form draws them; without numba (or ``TRAIN_NO_JIT=1``) the numpy form
+below runs, with the same particles for the same seed (``test_bank.py``).
+
 Pure: numpy only; randomness only through the ``rng`` argument.
 """
 
