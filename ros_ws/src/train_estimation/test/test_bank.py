@@ -24,11 +24,17 @@ from train_estimation.core.braking.braking_filters import (
     GSMA,
     QGRBPF,
     SMA,
+    BrakingKF,
     DiscreteRBPF,
     RandomWalkRBPF,
     sticky_transition,
 )
-from train_estimation.core.braking.braking_model import BrakingModel, BrakingParams, _predict_maps
+from train_estimation.core.braking.braking_model import (
+    BrakingModel,
+    BrakingParams,
+    _affine_pieces,
+    _predict_maps,
+)
 from train_estimation.core.numerics import bank
 from train_estimation.core.numerics.kalman import _selectors, update
 
@@ -144,9 +150,10 @@ def _filters(fam):
 
 @pytest.mark.parametrize("name", ["rbpf", "sma", "gsma", "gsma merged", "qgrbpf", "gh3", "rw"])
 def test_filter_step_equals_numpy_form(name):
-    """One filter step from the same particle set, compiled and numpy: the same particles and
-    weights, the estimate's moments within the summation bound (N terms per weighted sum, and
-    the weights' own normalisation: 2 N + 4 eps relative on each product)."""
+    """One filter step from the same particle set, compiled and numpy: the same particles
+    (Q-GRBPF's redraw: within its sums' bound) and weights, the estimate's moments within the
+    summation bound (N terms per weighted sum, and the weights' own normalisation: 2 N + 4 eps
+    relative on each product)."""
     fam = BrakingModel(BrakingParams(meas_var=(0.25, 0.09, 1e-4)))
     rng = np.random.default_rng(5)
     a, b = _filters(fam)[name], _filters(fam)[name]
@@ -165,8 +172,14 @@ def test_filter_step_equals_numpy_form(name):
         N = eb.n_particles
         assert ea.n_particles == N
         sa, sb = a._s, b._s
-        np.testing.assert_array_equal(sa.theta, sb.theta)
         L = 2 * N + 8
+        if name == "qgrbpf":
+            # the redraw mu + sd z: mu and the variance are weighted sums over the old set
+            # (numpy: BLAS and einsum; compiled: index order), each within L eps of its terms
+            bound = L * EPS * (np.abs(sb.theta).max() + 1.0)
+            assert np.all(np.abs(sa.theta - sb.theta) <= bound), k
+        else:
+            np.testing.assert_array_equal(sa.theta, sb.theta)
         for u, v in ((sa.x, sb.x), (sa.P, sb.P)):
             # the prediction's sums are bounded by the particle's own scale (|Phi| |x|, |Phi|
             # |P| |Phi|^T), not by each entry, which can be a cancellation (a_hat near 0)
@@ -373,3 +386,118 @@ def test_filters_run_without_numba():
     relative each step, stay far below 1e-9; no resampling decision sits that close)."""
     interpreted = _interpreted("_run_filters")
     np.testing.assert_allclose(_run_filters(), interpreted, rtol=1e-9, atol=1e-12)
+
+
+def _step_kernel_values() -> np.ndarray:
+    """Every filter's compiled step kernel (``braking_compiled``) on seeded sets and draws:
+    branching with pruning and with merging, the discrete draw, the random walk, the
+    Q-GRBPF redraw and its Gauss-Hermite form, the resampling and the exact KF, each on an
+    informative step, an uninformative one (a shared gain) and one without prediction (for
+    the test below)."""
+    from train_estimation.core.braking import braking_compiled as bc
+
+    rng = np.random.default_rng(12)
+    fam = BrakingModel()
+    H = np.ascontiguousarray(fam.H)
+    sel = np.array(_selectors(H), dtype=np.int64)
+    N, M = 9, 5
+    vals = np.linspace(1.0, 0.6, M)
+    cv = np.full(M, 0.01 / 12)
+    idx = rng.integers(0, M, N).astype(np.int64)
+    x, P = _bank(rng, N)
+    x[:, 1] = np.abs(x[:, 1])
+    lw = np.log(rng.dirichlet(np.ones(N)))
+    y = np.array([[x[0, 0] + 1.0, x[0, 1] - 0.5, -2.0]])
+    out = []
+    for informative, dt in ((True, 0.5), (False, 0.5), (True, 0.0)):
+        if dt > 0:
+            fh = np.ones(1) if informative else np.array([0.8])
+            common = (True, *fam.bank_pred(np.array([-1.0, 0.02]), dt), fh)
+        else:
+            common = (False, *bank._NO_PREDICT, np.zeros(1))
+        common += (y, H, fam.R.copy(), np.arange(3, dtype=np.int64), sel)
+        th = vals[idx][:, None]
+        allowed = np.abs(np.arange(M)[:, None] - np.arange(M)[None, :]) <= 1
+        rows = [np.flatnonzero(r) for r in allowed]
+        ptr = np.concatenate([[0], np.cumsum([r.size for r in rows])]).astype(np.int64)
+        col = np.concatenate(rows).astype(np.int64)
+        with np.errstate(divide="ignore"):
+            lp = np.log(allowed / allowed.sum(axis=1, keepdims=True))
+        res = [bc.branching_step(vals, cv, ptr, col, lp, merge, 12, 6, th, x, P, lw, idx,
+                                 True, informative, *common) for merge in (False, True)]
+        cdf = np.cumsum(np.full((M, M), 1.0 / M), axis=1)
+        res.append(bc.discrete_step(vals, cv, cdf, rng.random(N), th, x, P, lw, idx, True,
+                                    informative, *common))
+        thc = rng.uniform(0.2, 1.2, size=(N, 1))
+        z = rng.standard_normal((N, 1))
+        res.append(bc.random_walk_step(0.0, 1.3, np.sqrt(0.5), 0.03, z, thc, x, P, lw, True,
+                                       informative, *common))
+        res.append(bc.qgrbpf_step(0.0, 1.3, 1e-3, 1e-8, False, z, 0.5 * (1 + np.tanh(z[:, 0])),
+                                  -np.log(N), lw, thc, x, P, lw, True, informative, *common))
+        res.append(bc.qgrbpf_step(0.0, 1.3, 1e-3, 1e-8, True, np.array([[-1.0], [0.0], [1.0]]),
+                                  lw, -np.log(N), np.log(np.array([1 / 6, 2 / 3, 1 / 6])), thc,
+                                  x, P, lw, True, informative, *common))
+        for r in res:
+            assert r[0] == bank.OK
+            out += [np.ravel(np.asarray(a, dtype=float)) for a in r]
+        r = res[2]
+        out += [np.ravel(np.asarray(a, dtype=float))
+                for a in bc.resample(r[6], 0.37, -np.log(N), r[1], r[2], r[3], r[5])]
+        # the exact KF: f the fifth state
+        z = np.append(x[0], 0.9)[None]
+        Pz = np.zeros((1, 5, 5))
+        Pz[0, :4, :4] = P[0]
+        Pz[0, 4, 4] = 0.0225
+        pieces = _affine_pieces(fam.params, max(dt, 0.1))
+        r = bc.kf_step(z, Pz, *pieces, np.array([-1.0, 0.02]), informative, 0.8, 1e-3 * dt,
+                       dt > 0, y, np.hstack([H, np.zeros((3, 1))]), fam.R.copy(),
+                       np.arange(3, dtype=np.int64), sel)
+        assert r[0] == bank.OK
+        out += [np.ravel(np.asarray(a, dtype=float)) for a in r]
+    return np.concatenate(out)
+
+
+def test_step_kernels_compiled_equal_interpreted():
+    """Every filter's step kernel run interpreted (TRAIN_NO_JIT=1) gives the compiled
+    kernel's numbers bit for bit (the same IEEE operations in the same order)."""
+    compiled = _step_kernel_values()
+    np.testing.assert_array_equal(compiled, _interpreted("_step_kernel_values"))
+
+
+@pytest.mark.parametrize("name", ["rbpf", "sma", "gsma", "gsma merged", "qgrbpf", "gh3", "rw",
+                                  "kf"])
+def test_compiled_run_equals_numpy_form(name):
+    """A seeded run of 40 steps (braking, then coasting and a standstill command: the shared
+    gain; readings of one or two rows; outputs without a reading; a reading at the time of
+    the last output: no prediction), the whole step compiled against the numpy form with the
+    same random stream: the same particle counts and the estimates within 1e-9 relative
+    (every step's reordered sums differ by ~1e-15 relative; no pruning, resampling or
+    pairing decision sits that close over 40 steps)."""
+    fam = BrakingModel(BrakingParams(meas_var=(0.25, 0.09, 1e-4), standstill_speed=0.1))
+    if name == "kf":
+        a, b = (BrakingKF(fam, 1e-3, (1.0, 0.15)) for _ in range(2))
+        b._fused_ok = lambda: False  # the numpy form
+    else:
+        a, b = _filters(fam)[name], _filters(fam)[name]
+        b._bank_ok = False  # the numpy form
+    assert a._fused_ok() and not b._fused_ok()
+    ra, rb = np.random.default_rng(31), np.random.default_rng(31)
+    for f, r in ((a, ra), (b, rb)):
+        f.reset([0, 20, -1, -2], 0.01 * np.eye(4), r)
+    data = np.random.default_rng(32)
+    t = 0.0
+    for k in range(40):
+        t += 0.0 if k == 25 else 1.0
+        a_tar = -1.0 if k < 20 else (0.3 if k < 30 else -0.5)
+        y = np.array([20.0 * t - 0.5 * t * t, 20.0 - t, 2 * a_tar]) + data.normal(size=3)
+        mask = [None, [True, False, False], [False, True, True]][k % 3]
+        if k % 7 == 6:
+            y, mask = None, None
+        ea = a.step(a_tar, y, mask, ra, t=t)
+        eb = b.step(a_tar, y, mask, rb, t=t)
+        assert ea.accepted == eb.accepted and ea.n_particles == eb.n_particles, k
+        for u, v in ((ea.mean, eb.mean), (ea.cov, eb.cov), (ea.n_eff, eb.n_eff)):
+            np.testing.assert_allclose(u, v, rtol=1e-9, atol=1e-12 * (1 + np.abs(v).max()),
+                                       err_msg=f"step {k}")
+        assert a._s.theta.shape == b._s.theta.shape
+    assert ra.random() == rb.random()  # the same numbers drawn

@@ -23,6 +23,12 @@ with ``smc.log_normalize``. One step (``RaoBlackwellFilter.step``):
 7. estimate = moments of the Gaussian mixture (law of total covariance), then resampling /
    pruning / merging if the algorithm does (``_after``).
 
+With numba (``numerics.jit``) steps 3-7 of an algorithm with a fused kernel are one compiled
+call (``braking_compiled``: its transition, the particle bank of ``numerics.bank``, its
+pruning, merging or resampling, the finiteness check), with the random numbers drawn here from
+``rng`` as the numpy form draws them; without numba (or ``TRAIN_NO_JIT=1``) the numpy form
+below runs, with the same particles for the same seed (``test_bank.py``).
+
 Pure: numpy only; randomness only through the ``rng`` argument.
 """
 
@@ -38,6 +44,7 @@ from ..numerics import bank
 from ..numerics.bank import log_normalize
 from ..numerics.batched_kf import predict, update
 from ..numerics.kalman import _selectors
+from . import braking_compiled
 
 __all__ = ["Estimate", "RaoBlackwellFilter"]
 
@@ -94,6 +101,25 @@ class _Set:
 _BANK_REASONS = {bank.NAN_LIK: "numerical failure: NaN likelihood",
                  bank.BAD_WEIGHT: "numerical failure: NaN or +inf log-weight",
                  bank.ALL_INF: "numerical failure: all log-weights are -inf"}
+_STEP_REASONS = {**_BANK_REASONS,
+                 braking_compiled.NONFINITE: "numerical failure: non-finite particle state"}
+_ONE = np.ones(1)  # the braking-rate argument of an informative step (unused: theta is)
+# a step without prediction (dt = 0): bank_step's arguments
+_NO_PREDICT = (False, *bank._NO_PREDICT, np.zeros(1))
+_MASKS: dict = {}
+_ALL_ROWS: dict = {}
+
+
+def _rows_mask(p: int, value: bool) -> np.ndarray:
+    """The read-only mask of ``p`` rows all ``value`` (a step with every row or none), one
+    per size: not a new array per step."""
+    hit = _MASKS.get((p, value))
+    if hit is None:
+        hit = np.full(p, value, dtype=bool)
+        hit.flags.writeable = False
+        _MASKS[p, value] = hit
+        _ALL_ROWS[p] = np.arange(p, dtype=np.int64)
+    return hit
 
 # ----------------------------------------------------------------------------------------------
 # base
@@ -114,6 +140,7 @@ class RaoBlackwellFilter:
         # the compiled kernels' first call (a load from numba's cache): here, not in a node's
         # first callback
         bank.warm_up("bank_step", "update", "log_normalize", "all_finite")
+        braking_compiled.warm_up()
         self.family = family
         self.rejected: Counter = Counter()
         self.n_steps = 0
@@ -257,7 +284,7 @@ class RaoBlackwellFilter:
         u = np.array([float(a_tar), float(d)])
         s = self._s
         informative = bool(fam.gate(u, self._last.x_mean))
-        fused = bool(np.any(mask_arr))
+        fused = bool(mask_arr.any())
         try:
             # seconds of braking since the last transition: f is only seen, and only forgotten,
             # while the brake acts (a random walk per second of braking, as the KF's; the
@@ -273,31 +300,41 @@ class RaoBlackwellFilter:
             # stop) or add Monte-Carlo drift to its mean (redraws, sampling). A reading stamped
             # at the time an output already predicted to (dt = 0) takes the due transition.
             due = informative and fused and since > 0 and since >= self.transition_interval
-            if due:
-                s = self._transition(s, True, rng, since)
-                since = 0.0
-            elif dt > 0:
-                s = self._transition(s, False, rng, dt)
-            if self._compiled():
-                s, est = self._bank_step(s, u, dt, informative, y_arr, mask_arr, R, fused, t)
-                if est.reason:
-                    return self._reject(est.reason)
+            if self._fused_ok():
+                out = self._fused_step(s, u, dt, since, due, informative, y_arr, mask_arr, R,
+                                       fused, t, rng)
+                if isinstance(out, str):
+                    return self._reject(out)
+                s, est = out
+                if due:
+                    since = 0.0
             else:
-                if dt > 0:
-                    x, P = self._predict(s, u, dt, informative)
+                if due:
+                    s = self._transition(s, True, rng, since)
+                    since = 0.0
+                elif dt > 0:
+                    s = self._transition(s, False, rng, dt)
+                if self._compiled():
+                    s, est = self._bank_step(s, u, dt, informative, y_arr, mask_arr, R, fused,
+                                             t)
+                    if est.reason:
+                        return self._reject(est.reason)
+                else:
+                    if dt > 0:
+                        x, P = self._predict(s, u, dt, informative)
+                        s = _Set(s.theta, x, P, s.logw, s.idx, s.extra)
+                    x, P, loglik = self._update(s, y_arr, R, mask_arr)
+                    if np.isnan(loglik).any():
+                        return self._reject("numerical failure: NaN likelihood")
                     s = _Set(s.theta, x, P, s.logw, s.idx, s.extra)
-                x, P, loglik = self._update(s, y_arr, R, mask_arr)
-                if np.isnan(loglik).any():
-                    return self._reject("numerical failure: NaN likelihood")
-                s = _Set(s.theta, x, P, s.logw, s.idx, s.extra)
-                s, log_ev = self._reduce(s, loglik, informative, rng)
-                est = self._summary(s, True, "", informative, fused,
-                                    log_ev if fused else np.nan, t)
-            s = self._after(s, informative, rng)
+                    s, log_ev = self._reduce(s, loglik, informative, rng)
+                    est = self._summary(s, True, "", informative, fused,
+                                        log_ev if fused else np.nan, t)
+                s = self._after(s, informative, rng)
+                if not (s.theta.shape[0] > 0 and bank.all_finite(s.x, s.P, s.theta)):
+                    return self._reject("numerical failure: non-finite particle state")
         except (ValueError, np.linalg.LinAlgError) as exc:
             return self._reject(f"numerical failure: {exc}")
-        if not (s.theta.shape[0] > 0 and bank.all_finite(s.x, s.P, s.theta)):
-            return self._reject("numerical failure: non-finite particle state")
         self._s = s
         self._since = since
         if t is not None:
@@ -305,6 +342,78 @@ class RaoBlackwellFilter:
         self.n_steps += 1
         self._last = est
         return est
+
+    # -- one compiled call per step ---------------------------------------------------------
+    def _fused_ok(self) -> bool:
+        """Whether :meth:`step` runs this algorithm's whole step as one compiled call
+        (``braking_compiled``): the bank step runs compiled (:meth:`_compiled`), the algorithm
+        has a fused kernel (:meth:`_fused`) and the family the braking model's affine
+        prediction with one parameter."""
+        compiled = self._compiled()  # (a test may switch it off: _bank_ok = False)
+        ok = self.__dict__.get("_fused_flag")
+        if ok is None or ok[0] != compiled:
+            fam = self.family
+            flag = bool(compiled and type(self)._fused is not RaoBlackwellFilter._fused
+                        and hasattr(fam, "bank_pred") and getattr(fam, "d", 0) == 1)
+            ok = (compiled, flag)
+            self._fused_flag = ok
+        return ok[1]
+
+    def _fused_step(self, s, u, dt, since, due, informative, y, mask, R, fused, t, rng):
+        """The step's transition, bank, reduction and finiteness check in one compiled call
+        (:meth:`_fused`, ``braking_compiled``). Returns ``(set, estimate)`` or the rejection's
+        reason."""
+        fam = self.family
+        c = bank._c  # float64, C-contiguous, writeable: the types the kernels were compiled for
+        if dt > 0:
+            kw = self._hold(u, informative)
+            # the prediction's arguments, kept for the next step: a live filter's dt and
+            # command repeat from step to step
+            key = (float(dt), float(u[0]), float(u[1]), informative, kw.get("hold"))
+            hit = self.__dict__.get("_pred_last")
+            if hit is None or hit[0] != key or hit[1] is not fam.params:
+                fh = _ONE if informative else np.asarray(
+                    fam.braking_rates(None, u, False, **kw), dtype=float)
+                hit = (key, fam.params, (True, *fam.bank_pred(u, dt), fh))
+                self._pred_last = hit
+            common = hit[2]
+        else:
+            common = _NO_PREDICT
+        H, sel = self._bank_rows()
+        rows = _ALL_ROWS[H.shape[0]] if mask is _rows_mask(H.shape[0], True) else (
+            np.flatnonzero(mask))
+        common += (c(y[None]), H, c(np.asarray(R, dtype=float)), rows, sel)
+        s = _Set(c(s.theta), c(s.x), c(s.P), c(s.logw),
+                 None if s.idx is None else np.ascontiguousarray(s.idx, dtype=np.int64),
+                 s.extra)
+        out = self._fused(s, due, informative, common, rng, since)
+        status = out[0]
+        if status != bank.OK:
+            return _STEP_REASONS[status]
+        _, theta, x, P, lw, idx, w, mean, cov, logz, ess, n_est = out
+        est = self._estimate(mean, cov, x.shape[1], n_est, ess, informative, fused,
+                             logz if fused else np.nan, t)
+        return _Set(theta, x, P, lw, None if s.idx is None else idx, s.extra), est
+
+    def _fused(self, s, due, informative, common, rng, tdt):
+        """This algorithm's compiled step (``braking_compiled``) on the set ``s``: its
+        transition if ``due`` (over ``tdt`` seconds), the bank with the prediction and update
+        arguments ``common``, its reduction; the random numbers drawn here from ``rng`` as the
+        numpy form draws them. Returns the kernel's tuple. Not here: the base class has none."""
+        raise NotImplementedError
+
+    def _resample_if(self, out, informative, rng, ess_frac):
+        """Systematic resampling of a compiled step's set when ``N_eff < ess_frac N`` on an
+        informative step (the RBPFs' ``_after``; the uniform drawn only then, as there)."""
+        if out[0] != bank.OK or not informative:
+            return out
+        N = out[2].shape[0]
+        if out[10] >= ess_frac * N:
+            return out
+        U = rng.random((1, 1))
+        th, x, P, lw, idx = braking_compiled.resample(out[6], float(U[0, 0]), -np.log(N),
+                                                      out[1], out[2], out[3], out[5])
+        return (out[0], th, x, P, lw, idx, *out[6:])
 
     # -- the compiled step ------------------------------------------------------------------
     #: this class's _reduce is the base class's log-space reweighting (subclasses whose own
@@ -417,18 +526,21 @@ class RaoBlackwellFilter:
                 return (f"out-of-order or duplicate time stamp: {tf!r} <= {self._t!r}", *bad)
             else:
                 dt = tf - self._t
+        # (the checks on a few entries as Python scalars: a numpy call per check cost more
+        # than the compiled step itself)
         if y is None:
             y_arr = np.zeros(p)
-            mask_arr = np.zeros(p, dtype=bool)
+            mask_arr = _rows_mask(p, False)
         else:
             y_arr = np.asarray(y, dtype=float).reshape(-1)
             if y_arr.shape != (p,):
                 return (f"bad measurement shape: {y_arr.shape} != ({p},)", *bad)
-            mask_arr = (np.ones(p, dtype=bool) if mask is None
+            mask_arr = (_rows_mask(p, True) if mask is None
                         else np.asarray(mask, dtype=bool).reshape(-1))
             if mask_arr.shape != (p,):
                 return (f"bad mask shape: {mask_arr.shape} != ({p},)", *bad)
-            if not (np.isfinite(y_arr) | ~mask_arr).all():
+            used = mask_arr.tolist()
+            if not all(math.isfinite(v) for v, k in zip(y_arr.tolist(), used) if k):
                 return (f"non-finite measurement: {y_arr[mask_arr].tolist()}", *bad)
         if meas_var is None:
             R = np.asarray(fam.R, dtype=float)
@@ -436,9 +548,9 @@ class RaoBlackwellFilter:
             R = np.asarray(meas_var, dtype=float).reshape(-1)
             if R.shape != (p,):
                 return (f"bad measurement variance shape: {R.shape} != ({p},)", *bad)
-            Rm = R[mask_arr]
-            if not (np.isfinite(Rm).all() and (Rm > 0).all()):
-                return (f"non-positive or non-finite measurement variance: {Rm.tolist()}", *bad)
+            Rm = R[mask_arr].tolist()
+            if not all(math.isfinite(v) and v > 0 for v in Rm):
+                return (f"non-positive or non-finite measurement variance: {Rm}", *bad)
         if dt == 0.0 and t is None:
             return ("zero default step", *bad)
         return "", dt, y_arr, mask_arr, R

@@ -14,9 +14,12 @@ from ..numerics import bank, smc
 from ..numerics.bank import log_normalize
 from ..numerics.batched_kf import mixture_moments
 from ..numerics.smc import systematic_resample
+from . import braking_compiled
 from .braking_base import RaoBlackwellFilter, _Set, _wsum
 
 __all__ = ["QGRBPF", "RandomWalkRBPF"]
+
+_NO_DRAW, _NO_DRAW2 = np.zeros(0), np.zeros((0, 1))  # a step's random numbers when it draws none
 
 
 def _reflect(theta, lo, hi):
@@ -104,6 +107,21 @@ class QGRBPF(_ContinuousBase):
     def _initial_logw(self, N):
         return self._gh[1].copy() if self.quadrature else None
 
+    def _fused(self, s, due, informative, common, rng, tdt):
+        # the numpy form's draws: N standard normals (and their normal CDF) per redraw
+        z, uz, gh_lw = _NO_DRAW2, _NO_DRAW, _NO_DRAW
+        if due:
+            if self.quadrature:
+                z, gh_lw = self.__dict__.get("_ghc") or self.__dict__.setdefault(
+                    "_ghc", (np.ascontiguousarray(self._gh[0][:, None]), self._gh[1].copy()))
+            else:
+                z = rng.standard_normal((self.n, self.family.d))
+                uz = ndtr(z[:, 0])
+        return braking_compiled.qgrbpf_step(
+            float(self.lo[0]), float(self.hi[0]), float(self.braking_rate_q[0, 0] * tdt),
+            self.min_var, self.quadrature, z, uz, -np.log(self.n), gh_lw, s.theta, s.x, s.P,
+            s.logw, due, informative, *common)
+
     def _transition(self, s, informative, rng, dt):
         if not informative:
             return s  # frozen: keep particles and weights
@@ -179,6 +197,13 @@ class RandomWalkRBPF(_ContinuousBase):
         self.ess_frac = float(ess_frac)
         ev, V = np.linalg.eigh(self.braking_rate_q)
         self._L = V * np.sqrt(np.clip(ev, 0.0, None))
+
+    def _fused(self, s, due, informative, common, rng, tdt):
+        z = rng.standard_normal(s.theta.shape) if due else _NO_DRAW2
+        out = braking_compiled.random_walk_step(
+            float(self.lo[0]), float(self.hi[0]), float(np.sqrt(tdt)), float(self._L[0, 0]), z,
+            s.theta, s.x, s.P, s.logw, due, informative, *common)
+        return self._resample_if(out, informative, rng, self.ess_frac)
 
     def _transition(self, s, informative, rng, dt):
         if not informative:

@@ -12,7 +12,10 @@ from scipy.special import ndtr
 
 from ..numerics.bank import log_normalize
 from ..numerics.smc import systematic_resample
+from . import braking_compiled
 from .braking_base import RaoBlackwellFilter, _Set
+
+_NO_DRAW = np.zeros(0)  # a step's random numbers when it draws none
 
 __all__ = ["DiscreteRBPF", "SMA", "GSMA", "grid_prior", "cell_variance", "neighbour_groups",
            "sma_transition", "sticky_transition"]
@@ -201,6 +204,17 @@ class DiscreteRBPF(_DiscreteBase):
         return _Set(self.values[idx][:, None], s.x[parent], s.P[parent], s.logw[parent], idx,
                     {"logp": logp, "N": N, "kmax": kmax})
 
+    def _fused(self, s, due, informative, common, rng, tdt):
+        # the numpy form's draws: the transition's uniforms, the resampling's one uniform
+        k = self.__dict__.get("_kconst")
+        if k is None:  # writeable copies of the frozen tables, for the compiled call
+            k = self._kconst = (np.array(self.values), np.array(self._cell_var),
+                                np.array(self.cdf))
+        uni = rng.random(s.idx.size) if due else _NO_DRAW
+        out = braking_compiled.discrete_step(*k, uni, s.theta, s.x, s.P, s.logw, s.idx, due,
+                                             informative, *common)
+        return self._resample_if(out, informative, rng, self.ess_frac)
+
     def _reduce(self, s, loglik, informative, rng):
         if "logp" not in s.extra:
             return super()._reduce(s, loglik, informative, rng)
@@ -269,6 +283,19 @@ class _BranchingFilter(_DiscreteBase):
         self.q_max = int(q_max)
         self._freeze("allowed", "_logprior")
 
+    def _fused(self, s, due, informative, common, rng, tdt):
+        k = self.__dict__.get("_kconst")
+        if k is None:  # writeable copies of the frozen tables; the children as CSR rows
+            rows = [np.flatnonzero(r) for r in self.allowed]
+            ptr = np.zeros(len(rows) + 1, dtype=np.int64)
+            ptr[1:] = np.cumsum([r.size for r in rows])
+            k = self._kconst = (np.array(self.values), np.array(self._cell_var), ptr,
+                                np.concatenate(rows).astype(np.int64),
+                                np.array(self._logprior))
+        return braking_compiled.branching_step(*k, self.merge, self.q_max, self.n_keep,
+                                               s.theta, s.x, s.P, s.logw, s.idx, due,
+                                               informative, *common)
+
     def _transition(self, s, informative, rng, dt):
         if not informative:
             return s
@@ -301,8 +328,10 @@ class _BranchingFilter(_DiscreteBase):
         if self.merge:
             return _merge_by_value(s, self.values)
         if s.logw.size > self.q_max:
-            # keep the n_keep largest weights; sorted by index for reproducibility
-            keep = np.sort(np.argpartition(-s.logw, self.n_keep - 1)[: self.n_keep])
+            # keep the n_keep largest weights, ties to the lower index (the copies of one
+            # parent's branch are equal: which copy stays must not depend on a partition's
+            # pivots), in index order
+            keep = np.sort(np.argsort(-s.logw, kind="stable")[: self.n_keep])
             lw = s.logw[keep] - log_normalize(s.logw[keep])[1]
             return _Set(s.theta[keep], s.x[keep], s.P[keep], lw, s.idx[keep])
         return s

@@ -8,11 +8,18 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..numerics import bank
 from ..numerics.batched_kf import predict
-from .braking_base import Estimate, RaoBlackwellFilter, _Set
-from .braking_model import augmented_model
+from . import braking_compiled
+from .braking_base import _STEP_REASONS, Estimate, RaoBlackwellFilter, _Set
+from .braking_model import _affine_pieces, augmented_model
 
 __all__ = ["BrakingKF", "OracleKF"]
+
+_Z44, _Z42 = np.zeros((4, 4)), np.zeros((4, 2))
+_KF_NO_PREDICT = (_Z44, _Z44, _Z42, _Z42, _Z44, np.zeros(2), False, 0.0, 0.0, False)
+_KF_REASONS = {**_STEP_REASONS, braking_compiled.KF_LOGLIK:
+               "numerical failure: log-weights: none finite, or NaN/+inf"}
 
 
 class OracleKF(RaoBlackwellFilter):
@@ -124,6 +131,34 @@ class BrakingKF(RaoBlackwellFilter):
         if not np.isfinite(logz):
             raise ValueError("log-weights: none finite, or NaN/+inf")
         return s, logz
+
+    def _fused_ok(self) -> bool:
+        # the whole step compiled (braking_compiled.kf_step) whenever numba is there
+        return bank.COMPILED
+
+    def _fused_step(self, s, u, dt, since, due, informative, y, mask, R, fused, t, rng):
+        """:meth:`_predict`, ``_update``, :meth:`_reduce` and the finiteness check in one
+        compiled call (``braking_compiled.kf_step``, the numpy form's arithmetic)."""
+        fam = self.family
+        c = bank._c
+        if dt > 0:
+            params = fam.params
+            P0, P1, B0, B1, Qd = _affine_pieces(params, float(dt))
+            gain = 1.0
+            if not informative:
+                gain = fam.hold_gain(u, self._last.x_mean, float(self._last.theta_mean[0]))
+            pred = (P0, P1, B0, B1, Qd, c(np.asarray(u, dtype=float)), bool(informative),
+                    float(gain), self.braking_rate_q * float(dt), True)
+        else:
+            pred = _KF_NO_PREDICT
+        H, sel = self._bank_rows()
+        status, x, P, logz = braking_compiled.kf_step(
+            c(s.x), c(s.P), *pred, c(y[None]), H, c(np.asarray(R, dtype=float)),
+            np.flatnonzero(mask), sel)
+        if status != bank.OK:
+            return _KF_REASONS[status]
+        s = _Set(s.theta, x, P, s.logw, s.idx, s.extra)
+        return s, self._summary(s, True, "", informative, fused, logz if fused else np.nan, t)
 
     def _predict(self, s, u, dt, informative):
         hold = None

@@ -283,9 +283,13 @@ class BrakingModel:
 
     def bank_maps(self, theta, u, dt: float, informative: bool, hold: float | None = None):
         """:meth:`predict` as arguments of the compiled bank step (``numerics.bank``): ``(maps,
-        f)``, ``maps`` the sparse rows of the same linear maps (cached per dt), ``B0 u | B1 u``
-        computed as :meth:`predict` computes it, ``f`` each particle's rate (N or 1)."""
-        f = self.braking_rates(theta, u, informative, hold)
+        f)``, ``maps`` as :meth:`bank_pred`, ``f`` each particle's rate (N or 1)."""
+        return self.bank_pred(u, dt), self.braking_rates(theta, u, informative, hold)
+
+    def bank_pred(self, u, dt: float):
+        """The sparse rows of :meth:`predict`'s linear maps (cached per dt) and ``B0 u | B1 u``
+        computed as :meth:`predict` computes it: the prediction's arguments of the compiled
+        steps (``numerics.bank``, ``braking_compiled``), without the braking rates."""
         dt = float(dt)
         hit = self.__dict__.get("_bank_last")  # the last dt's maps: a live filter's dt repeats
         if hit is None or hit[0] != dt or hit[1] is not self.params:
@@ -294,7 +298,7 @@ class BrakingModel:
             self._bank_last = hit
         xp, xc, xv, kp, kc, kv, qd, full = hit[3]
         bu = np.asarray(u, dtype=float) @ hit[2]
-        return (xp, xc, xv, kp, kc, kv, bu, qd, full), f
+        return (xp, xc, xv, kp, kc, kv, bu, qd, full)
 
     def matrices(self, theta, u, dt: float, informative: bool, hold: float | None = None):
         """``Phi (K,4,4)``, ``Bu (K,4)``, ``Qd (4,4)``; ``K = len(theta)`` if informative else 1
