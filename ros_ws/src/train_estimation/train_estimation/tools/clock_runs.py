@@ -1,0 +1,114 @@
+"""The runner's clocks and door alone, on synthetic runs through the campaign's link (pure; used
+by ``benchmarks/bench_clocks.py`` and the tests of the clock model's contract).
+
+A train at constant speed sends odometer readings (with or without a sample counter) and a zone
+sends commands at 1 Hz (:func:`cruise`); the readings go through ``faults.inject`` (its latency,
+an exponential jitter, the train clock at a Unix epoch, a step if asked) and are replayed through
+:class:`~train_estimation.core.online.runner.EstimatorRunner` with an adapter that only records
+what it is given (:class:`Recorder`), so every figure of :func:`run_link` is the clocks' and the
+door's, not a filter's.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from train_estimation.core.online.replay import replay
+from train_estimation.core.online.runner import EstimatorRunner, Output
+from train_estimation.tools import faults as F
+
+SPEED = 20.0  # m/s, the train's constant speed
+FLOOR = F.LATENCY  # s, the link's least latency (faults.LATENCY)
+STEP_AT = 600.0  # s, true time of a step
+
+
+class Recorder:
+    """An adapter with no filter: it records the odometer readings fused (filter time, seq) and
+    publishes a fixed estimate, so that the runner's clocks and door alone are measured."""
+
+    def __init__(self):
+        self.fused: list = []
+
+    def start(self, t0: float) -> None:
+        pass
+
+    def control(self, stamp: float, fields: dict) -> str:
+        return ""
+
+    def odometer(self, stamp: float, fields: dict) -> str:
+        self.fused.append((stamp, fields["distance"]))
+        return ""
+
+    def balise(self, stamp: float, fields: dict) -> str:
+        return ""
+
+    def output(self, t: float) -> Output:
+        return Output(t, SPEED * t, SPEED, 0.0, math.nan, tuple(np.eye(4).ravel() * 0.01), True)
+
+
+def cruise(duration: float, rate: float, loss: float, counter: bool,
+           rng: np.random.Generator) -> list:
+    """``(topic, t, fields)`` of a train at :data:`SPEED`: odometer readings at ``rate`` Hz
+    (``seq`` the sample counter, or 0 for every reading without one) of which ``loss`` are lost
+    at random, and a command every second."""
+    ev = []
+    n = int(round(duration * rate))
+    for k in np.flatnonzero(rng.random(n) >= loss):
+        t = k / rate
+        ev.append(("odometer", t, {"seq": int(k) if counter else 0, "distance": SPEED * t,
+                                   "speed": SPEED, "speed_variance": 0.01}))
+    ev += [("control", float(j), {"target_acceleration": 0.0})
+           for j in range(int(duration) + 1)]
+    return sorted(ev, key=lambda e: (e[1], e[0] != "control"))
+
+
+def run_link(duration: float, rate: float, counter: bool, jitter: float, loss: float,
+             step: float | None, seed: int) -> dict:
+    """One replay (module doc); the figures of one row."""
+    rng = np.random.default_rng(seed)
+    events = cruise(duration, rate, loss, counter, rng)
+    fault = F.Fault("none", jitter=jitter) if step is None else \
+        F.Fault("step", step, STEP_AT, jitter=jitter)
+    faulted = F.inject(events, fault, rng)
+    rec = Recorder()
+    runner = EstimatorRunner(rec, 1.0 / rate)
+    arrived = {"new": 0}  # readings sampled at or after the step's instant, arrived so far
+    decided = []  # (true arrival s, new readings arrived) when the step was declared
+
+    def on_time(t_arr: float) -> None:
+        if not decided and runner.events.get("odometer:clock_reset"):
+            decided.append((t_arr - F.EPOCH, arrived["new"]))
+
+    def stream():
+        for ev in faulted.events:
+            yield ev
+            if ev[0] == "odometer" and ev[2]["distance"] / SPEED >= STEP_AT - 1e-9:
+                arrived["new"] += 1
+
+    outs, _ = replay(stream(), rec, 1.0 / rate, on_time=on_time, runner=runner)
+    hours = duration / 3600.0
+    doubted = sum("clock" in o.integrity_reason for o in outs)
+    row = {"false_steps_per_h": runner.events.get("odometer:clock_reset", 0) / hours
+           if step is None else math.nan,
+           "refused": sum(runner.rejected.values()),
+           "held": doubted / max(len(outs), 1), "doubted": doubted}
+    # where the clock is with the least latency: stamp - arrival = -FLOOR on this link
+    train = runner._offsets.get("train")
+    row["bias_ms"] = 1e3 * (train.value + FLOOR) if train is not None else math.nan
+    # one clock (the commands' and the readings' share the epoch and the rate): judged so?
+    row["separate"] = runner.separate_clocks
+    row["drift_ppm"] = 1e6 * train.rate()[0] if train is not None else math.nan
+    if step is not None:
+        row["shift_err_ms"] = 1e3 * (runner._steps.shift - step)
+        t_dec, n_new = decided[0] if decided else (math.nan, math.nan)
+        row["decided_readings"], row["decided_s"] = n_new, t_dec - STEP_AT
+        # the filter time of each reading fused after the step against its true sampling time,
+        # relative to the last one before it (the filter's time origin is its own)
+        f = np.array([(s, d / SPEED) for s, d in rec.fused], float)
+        e = f[:, 0] - f[:, 1] if f.size else f
+        before, after = f[:, 1] < STEP_AT, f[:, 1] >= STEP_AT
+        row["time_err_ms"] = 1e3 * float(np.max(np.abs(e[after] - e[before][-1]))) \
+            if after.any() and before.any() else math.nan
+    return row
