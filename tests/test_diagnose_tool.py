@@ -612,6 +612,35 @@ def test_a_long_slip_episode_is_one_episode_and_a_spurious_one_is_dropped(metro,
 
 
 @pytest.mark.slow
+def test_a_slip_that_builds_up_and_dies_away_is_found_with_its_peak(metro, metro_run, tmp_path):
+    """A hidden slip episode of 6 s whose fraction rises and falls as a half sine (peak +15 %:
+    adhesion lost and regained, not a step): the tool names wheel_slip, its found slip time
+    overlaps the true one with 1 - IoU <= 0.3 and the overlapping episode's depth is the peak,
+    -0.15, within 20 %. (A one-fraction step fitted to it comes out at about the mean, 2/pi of
+    the peak, or split into several shallower pieces.)"""
+    from train_core.effects import Effects, WheelSlipEffect
+
+    t, v = metro_run.truth["t"], metro_run.truth["velocity"]
+    fast = np.flatnonzero(np.convolve(v > 8.0, np.ones(120), "valid") == 120)
+    t0 = float(t[fast[len(fast) // 3]]) + 1.0  # 12 s at > 8 m/s from here: the episode inside
+    sc = metro.with_changes(duration=300.0, effects=Effects(
+        wheel_slip=WheelSlipEffect(((t0, t0 + 6.0),), 0.15, shape="sine")))
+    bag = write_bag(tmp_path / "bag", simulate(sc))
+    assert run_tool(bag, metro.line_path, metro.train_path, tmp_path / "out") == 0
+    rep = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert rep["cause"] == "wheel_slip", rep["ranking"][:3]
+    est = rep["ranking"][0]["parameters"]
+    first = min(s for _, s, _ in read_bag(bag).topics["odometer"])
+    a, b = sc.stamp_epoch + t0 - first, sc.stamp_epoch + t0 + 6.0 - first  # no clock drift
+    ivs = est["intervals"]
+    inter = sum(max(0.0, min(b, y) - max(a, x)) for x, y in ivs)
+    union = (b - a) + sum(y - x for x, y in ivs) - inter
+    assert 1.0 - inter / union <= 0.3, (ivs, a, b)
+    k = int(np.argmax([max(0.0, min(b, y) - max(a, x)) for x, y in ivs]))
+    assert abs(est["depths"][k] + 0.15) <= 0.2 * 0.15, (est, a, b)
+
+
+@pytest.mark.slow
 def test_each_slip_episode_is_held_out_on_its_own(metro, metro_run, tmp_path):
     """A 7 s slip episode (+10 %) and a 2 s one where nothing happened, given as one confirmed
     wheel_slip: held out one by one (its fraction fitted on alternate odometer samples, scored

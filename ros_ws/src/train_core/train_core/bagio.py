@@ -97,6 +97,25 @@ def typestore():
     return ts
 
 
+@lru_cache(maxsize=1)
+def own_typestore():
+    """The docs/interfaces.md messages with only the types they hold (Header, Time): what
+    reading a bag decodes. The same definitions, hashes and CDR layout as in :func:`typestore`,
+    without building ROS 2's standard message set from its first release on (0.1-0.2 s of every
+    ``diagnose``, ``check_bag`` and ``identify`` run); writers keep :func:`typestore`, which
+    other types (``nav_msgs``, ``diagnostic_msgs``) need."""
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+    ts = get_typestore(Stores.EMPTY)
+    types = {}
+    types.update(get_types_from_msg(TIME_DEF, "builtin_interfaces/msg/Time"))
+    types.update(get_types_from_msg(HEADER_DEF, "std_msgs/msg/Header"))
+    for name, text in msg_texts().items():
+        types.update(get_types_from_msg(text, name))
+    ts.register(types)
+    return ts
+
+
 # TrainState fields later than its first definition, with the value an older writer means
 _LATER_FIELDS = {"integrity": 0, "protection_level_ahead": math.inf,
                  "protection_level_behind": math.inf}
@@ -132,7 +151,7 @@ def serialize(msgtype: str, fields: dict, stamp: float, frame_id: str = "track")
 
 def deserialize(msgtype: str, data: bytes) -> tuple[float, dict]:
     """(stamp in s, fields dict without the header) of a CDR message."""
-    msg = typestore().deserialize_cdr(data, msgtype)
+    msg = own_typestore().deserialize_cdr(data, msgtype)
     fields = {k: getattr(msg, k) for k in msg.__dataclass_fields__
               if k not in ("header", "__msgtype__")}
     stamp = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
@@ -298,7 +317,7 @@ def read_bag(path: str | os.PathLike, namespace: str | None = None,
         return _recover(p, namespace, topics)
     paths = [p]
     try:
-        reader = AnyReader(paths, default_typestore=typestore())
+        reader = AnyReader(paths, default_typestore=own_typestore())
         reader.open()
     except Exception as exc:
         raise BagError(f"{p}: unreadable bag ({type(exc).__name__}: {exc})") from None

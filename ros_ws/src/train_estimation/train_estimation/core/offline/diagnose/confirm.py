@@ -487,7 +487,10 @@ def heldout_episodes(mo: Motion, others: Null, fit: CauseFit, cfg: DiagConfig, n
     step (:func:`.contradict.slip_step`). An episode that fails is dropped from ``fit``
     (``WheelSlip.keep_episodes``: in place; the others keep the joint fit's values). Returns
     each episode's figures."""
+    shapes = list(fit.extra.get("shapes") or [])
     ivs = [tuple(iv) for iv in fit.parameters.get("intervals", [])]
+    if len(shapes) != len(ivs):
+        shapes = ["step"] * len(ivs)
     th = list(fit.extra.get("column") or [])
     if not ivs or len(th) != len(ivs):
         return []
@@ -495,22 +498,24 @@ def heldout_episodes(mo: Motion, others: Null, fit: CauseFit, cfg: DiagConfig, n
     out, keep = [], []
     for j, iv in enumerate(ivs):
         base = copy.deepcopy(others)
-        base.slip += [(a, b, c) for i, ((a, b), c) in enumerate(zip(ivs, th)) if i != j]
+        base.slip += [(a, b, c, sh) for i, ((a, b), c, sh) in enumerate(zip(ivs, th, shapes))
+                      if i != j]
         st = Stage(mo, base, cfg, noise=noise, big=False)
         e0, s = speed_innovations(mo, base, cfg, noise)
-        md, mv = slip_cols(mo, [iv])
+        md, mv = slip_cols(mo, [(iv[0], iv[1], shapes[j])])
         num = var = 0.0
         for f in (0, 1):
             train = fold == f
             W = st.augmented(st.fv, st.fs, meas=(md[:, None], mv[:, None]), update=train).W
             c = float(gls(W)[0][1])
             ext = copy.deepcopy(base)
-            ext.slip.append((iv[0], iv[1], c))
+            ext.slip.append((iv[0], iv[1], c, shapes[j]))
             e1, _ = speed_innovations(mo, ext, cfg, noise)
             n, v = _score_terms(e0, e1, s, ~train)
             num, var = num + n, var + v
         gain, _, z, ok = _score(num, var, ccfg)
-        step = slip_step(mo, iv, th[j], others=[w for i, w in enumerate(ivs) if i != j])
+        step = slip_step(mo, iv, th[j], others=[w for i, w in enumerate(ivs) if i != j],
+                         shape=shapes[j])
         if step["contradicted"]:
             ok = False
         out.append({"interval": list(iv), "gain_loglik": gain, "z": z, "readings_step": step,

@@ -66,7 +66,7 @@ import math
 import numpy as np
 from scipy.special import chdtrc
 
-from .motion import Motion
+from .motion import Motion, slip_shape
 from .phases import (
     PHASES,
     _event_grid_index,
@@ -263,14 +263,16 @@ def piece_of(mo: Motion, others: Null, full: Null, cfg, noise, found: list) -> s
     return None
 
 
-def slip_step(mo: Motion, interval, theta: float, z: float = 3.0, others=()) -> dict:
+def slip_step(mo: Motion, interval, theta: float, z: float = 3.0, others=(),
+              shape: str = "step") -> dict:
     """The slip step test of the module docstring for one episode ``interval`` [t0, t1) (s,
     the run's clock) with the filter's column coefficient ``theta`` (the share of the reading
     inside that is slip): {step, se, contradicted}. Readings inside the ``others`` episodes
     ([t0, t1) each) are left out (they hold their own steps). The train's speed around it is
     a cubic in time plus the integrals of the traction and of the braking commanded (through
     the believed actuator), each with a free gain: it bends where the commands change,
-    whatever the drive delivers, and cannot step."""
+    whatever the drive delivers, and cannot step. With a ``shape`` (motion.SLIP_SHAPES) the
+    step is the episode's peak, the readings inside weighted by the shape."""
     r = mo.run
     t0, t1 = float(interval[0]), float(interval[1])
     pad = max(3.0, t1 - t0)
@@ -288,6 +290,7 @@ def slip_step(mo: Motion, interval, theta: float, z: float = 3.0, others=()) -> 
         drives.append(np.interp(t, g, cum))
     tau = (t - 0.5 * (t0 + t1)) / (0.5 * (t1 - t0) + pad)
     w = 1.0 / np.sqrt(np.maximum(r.odo_rv[k], 1e-8))
+    inside = slip_shape(shape, (t - t0) / max(t1 - t0, 1e-9))
     X = np.column_stack([tau ** p for p in range(4)] + drives + [y * inside]) * w[:, None]
     th, *_ = np.linalg.lstsq(X, y * w, rcond=None)
     dof = y.size - np.linalg.matrix_rank(X)

@@ -36,7 +36,7 @@ class Null:
 
     drift: dict = field(default_factory=dict)  # elementary drift column name -> coefficient
     scale: float = 0.0  # odometer (scale - 1)
-    slip: list = field(default_factory=list)  # [(t0, t1, eps)]
+    slip: list = field(default_factory=list)  # [(t0, t1, eps[, shape])]
     shift: float = 0.0  # s, command-time offset
     brake_extra: float = 0.0  # s, extra braking delay
     gradient: tuple | None = None  # (bin i, bin j, permille)
@@ -77,8 +77,8 @@ class Stage:
             fs = fs + null.drive_gain * bs
         md = null.scale * mo.sc_d
         mv = null.scale * mo.sc_v
-        for t0, t1, eps in null.slip:
-            a, b = slip_cols(mo, [(t0, t1)])
+        for t0, t1, eps, *shape in null.slip:
+            a, b = slip_cols(mo, [(t0, t1, *shape)])
             md = md + eps * a
             mv = mv + eps * b
         for d, m in null.meas:

@@ -2,14 +2,18 @@
 than the train moves; the counted distance keeps the excess afterwards.
 
 Candidate episodes are where the null's standardised speed innovation is large; each is fitted
-as an interval [t0, t1) with its own slip fraction, the boundaries profiled at the decimated
-odometer rate (per-sample measurement columns, contiguous sums); then neighbours that are one
-episode are merged and episodes that do not pay for themselves in the joint fit are dropped
-(:func:`refine_episodes`). Each episode's depth is reported: 1 - odometer speed / train speed
-(> 0: the odometer misses speed, a slide; < 0: it reads too much, a slip)."""
+as an interval [t0, t1) with its own peak slip fraction and a shape of the fraction over the
+interval (motion.SLIP_SHAPES: held, or built up and died away as adhesion is lost and
+regained), the shape chosen by the likelihood with its ramp charged as one parameter more
+(ln n), the boundaries profiled at the decimated odometer rate (per-sample measurement columns,
+contiguous weighted sums); then neighbours that are one episode are merged and episodes that do
+not pay for themselves in the joint fit are dropped (:func:`refine_episodes`). Each episode's
+depth is reported at its peak: 1 - odometer speed / train speed (> 0: the odometer misses
+speed, a slide; < 0: it reads too much, a slip); its shape is in the details (``shapes``)."""
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -18,7 +22,7 @@ from train_core.effects import WheelSlipEffect
 from train_estimation.core.numerics.augmented_kf import gls
 from train_estimation.core.offline.identify import moving_average
 
-from ..motion import counted, odometer_speed, slip_cols
+from ..motion import counted, odometer_speed, slip_cols, slip_shape
 from .base import Cause, resolved
 
 # s: neighbouring episodes closer than this are tested as one (refine_episodes)
@@ -27,8 +31,12 @@ MERGE_GAP = 10.0
 # can last a whole brake application, tens of seconds)
 MAX_EPISODE = 30.0
 # s: a window's samples reach this far before its first and after its last large innovation
-# (the filter reacts within a sample or two; the onset is found to a sample)
+# (the filter reacts within a sample or two; a step's onset is found to a sample)
 PAD_BEFORE, PAD_AFTER = 2.0, 3.0
+# s: as far for a shaped episode: a slip that builds up as a half sine crosses the threshold
+# seconds after its onset (2 s cut 4 s off a 12 s one). A step keeps the narrower pads: wider,
+# a 1.6 % step fitted a drag on a stretch (a motion misfit) at a departure.
+PAD_SHAPED = 5.0
 # -, the smallest slip fraction an episode is reported with: the odometer's speed is good to
 # about 1 % (wheel diameter, calibration), so a smaller one is not a slip
 MIN_DEPTH = 0.01
@@ -53,21 +61,26 @@ class WheelSlip(Cause):
         e1[1] = 1.0
         base_quad = gls(kf.W, np.stack([u, e1], axis=1))[2]
         pen = 3 * math.log(st.n_meas)
+        # a shaped episode's ramp is one parameter more than a step's (module docstring)
+        extra = {"step": 0.0, "sine": math.log(st.n_meas)}
         t = st.mo.ev.t[st.mo.ev.odo]
         ts = t[samples]
-        runs = [2 + np.flatnonzero((ts >= w0 - PAD_BEFORE) & (ts <= w1 + PAD_AFTER))
-                for w0, w1 in wins]
-        chosen = [(float(t[samples[c[0] - 2]]), float(t[samples[c[-1] - 2] + 1]))
-                  for c in _forward_selection(kf.W, u, e1, [r for r in runs if r.size], pen)]
+        runs = {sh: [2 + np.flatnonzero((ts >= w0 - pb) & (ts <= w1 + pa)) for w0, w1 in wins]
+                for sh, (pb, pa) in _pads(extra).items()}
+        chosen = [(float(t[samples[c[0] - 2]]), float(t[samples[c[-1] - 2] + 1]), shape)
+                  for c, shape in _forward_selection(
+                      kf.W, u, e1, {sh: [r for r in rs if r.size] for sh, rs in runs.items()},
+                      pen, extra)]
         if not chosen:
             return null_ll, 3, {"intervals": []}, {}, {"candidates": len(cands)}
-        ivs, th, se_th, quad_now = refine_episodes(st, chosen, pen)
+        ivs, th, se_th, quad_now = refine_episodes(st, chosen, pen, extra)
         eps, se = _fractions(th, se_th)
-        return null_ll + 0.5 * (base_quad - quad_now), 3 * len(ivs), \
-            {"intervals": [list(iv) for iv in ivs], "depths": [-e for e in eps]}, \
+        return null_ll + 0.5 * (base_quad - quad_now), \
+            3 * len(ivs) + sum(iv[2] != "step" for iv in ivs), \
+            {"intervals": [[iv[0], iv[1]] for iv in ivs], "depths": [-e for e in eps]}, \
             {"slip_fraction": se, "depths": se}, \
-            {"slip_fraction": eps, "column": th, "candidates": len(cands),
-             "found": len(chosen)}
+            {"slip_fraction": eps, "column": th, "shapes": [iv[2] for iv in ivs],
+             "candidates": len(cands), "found": len(chosen)}
 
     def resolution(self, fit, mo) -> str | None:
         """An episode is resolved when its slip fraction is more than ``MIN_DEPTH`` and 3 SE
@@ -89,7 +102,7 @@ class WheelSlip(Cause):
         depths, fractions (and standard errors) and columns."""
         n = len(fit.parameters.get("intervals", []))
         for d in (fit.parameters, fit.std_errors, fit.extra):
-            for k in ("intervals", "depths", "slip_fraction", "column"):
+            for k in ("intervals", "depths", "shapes", "slip_fraction", "column"):
                 if isinstance(d.get(k), list) and len(d[k]) == n:
                     d[k] = [d[k][i] for i in keep]
 
@@ -98,8 +111,9 @@ class WheelSlip(Cause):
         th = fit.extra.get("column")
         if th is None:
             th = [e / (1.0 + e) for e in fit.extra.get("slip_fraction", [])]
-        for (t0, t1), c in zip(fit.parameters["intervals"], th):
-            null.slip.append((t0, t1, c))
+        shapes = _shapes(fit)
+        for (t0, t1), c, shape in zip(fit.parameters["intervals"], th, shapes):
+            null.slip.append((t0, t1, c, shape))
 
     def report(self, params: dict, beta: float) -> dict:
         params["intervals"] = [[a / beta, b / beta] for a, b in params.get("intervals", [])]
@@ -119,7 +133,8 @@ class WheelSlip(Cause):
         if not ivs:
             return None, None
         frac = float(np.clip(slip_fraction(fit, ctx), -0.9, 1.0))
-        return WheelSlipEffect(tuple(tuple(iv) for iv in ivs), round(frac, 5)), None
+        return WheelSlipEffect(tuple(tuple(iv) for iv in ivs), round(frac, 5),
+                               shape=_one_shape(fit)), None
 
     def gain(self, fit, ctx) -> dict:
         """Odometer speed minus the model's smoothed speed inside the episodes, raw against
@@ -181,6 +196,12 @@ def _windows(cands: list) -> list:
     return out
 
 
+def _pads(shapes) -> dict:
+    """shape -> (s before, s after) a window's first and last large innovation searched."""
+    return {sh: (PAD_BEFORE, PAD_AFTER) if sh == "step" else (PAD_SHAPED, PAD_SHAPED)
+            for sh in shapes}
+
+
 def _sample_columns(st, wins: list):
     """Per-sample slip columns over every window (each odometer sample once): (odometer event
     index i of each column (ascending), Md, Mv) with column j the slip of bin [t_i, t_i+1) at
@@ -189,8 +210,9 @@ def _sample_columns(st, wins: list):
     o = ev.odo
     t = ev.t[o]
     keep = np.zeros(t.size, bool)
+    pb, pa = max(PAD_BEFORE, PAD_SHAPED), max(PAD_AFTER, PAD_SHAPED)
     for w0, w1 in wins:
-        keep |= (t >= w0 - PAD_BEFORE) & (t <= w1 + PAD_AFTER)
+        keep |= (t >= w0 - pb) & (t <= w1 + pa)
     keep[-1] = False  # the last sample has no bin after it
     samples = np.flatnonzero(keep)
     n, nc = ev.t.size, samples.size
@@ -205,18 +227,19 @@ def _sample_columns(st, wins: list):
     return samples, Md, Mv
 
 
-def _forward_selection(W, u, e1, runs: list, pen: float) -> list:
-    """Episodes added one at a time, each the contiguous run of columns within one window
-    (``runs``: each window's column indices, in time order) that most improves the joint fit
-    of the episodes chosen so far, while it pays its BIC penalty ``pen``. Returns the chosen
-    episodes' column indices.
+def _forward_selection(W, u, e1, runs: dict, pen: float, extra: dict) -> list:
+    """Episodes added one at a time, each a contiguous run of columns within one window
+    (``runs``: shape -> each window's column indices, in time order) weighted by a shape
+    (motion.SLIP_SHAPES: all alike, or a half sine over the run), the one that most improves the
+    joint fit of the episodes chosen so far, while it pays its BIC penalty ``pen`` (plus
+    ``extra[shape]``). Returns the chosen episodes as (column indices, shape).
 
     Every episode's distance excess persists in the counted distance, so episodes compete for
     the same evidence: an episode's gain and its best boundaries are those given the episodes
     already chosen (the chosen columns and s0 are profiled out of W, a Schur complement), not
     those it has alone -- alone, a short episode after a long slide would take its window's
     whole width to explain the slide's persisting distance deficit."""
-    chosen: list[np.ndarray] = []
+    chosen: list[tuple] = []
     nuis = [e1]
     quad_now = gls(W, np.stack([u, e1], axis=1))[2]
     while True:
@@ -225,26 +248,76 @@ def _forward_selection(W, u, e1, runs: list, pen: float) -> list:
         P = W - WN @ np.linalg.solve(N.T @ WN, WN.T)
         best = None
         taken = np.zeros(W.shape[0], bool)
-        for c in chosen:
+        for c, _ in chosen:
             taken[c] = True
-        for idx in runs:
-            # episodes do not overlap (two at once would be one episode of varying depth,
-            # which the model does not have): a window gives runs outside the chosen ones
-            free = idx[~taken[idx]]
-            if free.size == 0:
-                continue
-            cut = np.flatnonzero(np.diff(free) > 1) + 1
-            for part in np.split(free, cut):
-                q, a, b = _best_run(P, u, part)
-                if best is None or q < best[0]:
-                    best = (q, part[a:b])
-        if best is None or not math.isfinite(best[0]) or quad_now - best[0] - pen <= 0:
+        for shape, charge in extra.items():
+            for idx in runs[shape]:
+                # episodes do not overlap (two at once would be one episode of varying
+                # depth): a window gives runs outside the chosen ones
+                free = idx[~taken[idx]]
+                if free.size == 0:
+                    continue
+                cut = np.flatnonzero(np.diff(free) > 1) + 1
+                for part in np.split(free, cut):
+                    q, a, b = _best_run(P, u, part) if shape == "step" else \
+                        _best_shaped(P, u, part, shape)
+                    if best is None or q + charge < best[0] + best[3]:
+                        best = (q, part[a:b], shape, charge)
+        if best is None or not math.isfinite(best[0]) or \
+                quad_now - best[0] - pen - best[3] <= 0:
             return chosen
         col = np.zeros(W.shape[0])
-        col[best[1]] = 1.0
-        chosen.append(best[1])
+        col[best[1]] = _run_weights(best[2], best[1].size)
+        chosen.append((best[1], best[2]))
         nuis.append(col)
         quad_now = best[0]
+
+
+@functools.lru_cache(maxsize=4096)
+def _run_weights(shape: str, n: int) -> np.ndarray:
+    """The shape's weights of the n per-sample columns of a run (at each bin's middle; cached:
+    the search asks for the same lengths over and over; read-only)."""
+    w = slip_shape(shape, (np.arange(n) + 0.5) / n)
+    w.flags.writeable = False
+    return w
+
+
+# the shaped runs searched: start and end on a lattice of at most this many samples of a run,
+# then every sample within one lattice step of the best
+SHAPED_LATTICE = 40
+
+
+def _best_shaped(P: np.ndarray, u: np.ndarray, idx: np.ndarray, shape: str) -> tuple:
+    """:func:`_best_run` for a run weighted by ``shape`` (no prefix sums: the weights depend on
+    the run's length): the runs starting and ending on a lattice first, then every run within
+    one lattice step of the best at each end. (quad, a, b)."""
+    n = idx.size
+    pu = P[idx] @ u
+    C = P[np.ix_(idx, idx)]
+    uPu = float(u @ P @ u)
+    D = np.abs(np.diag(C))
+
+    def score(pairs):
+        pairs = [(a, b) for a, b in pairs if 0 <= a < b <= n]
+        if not pairs:
+            return math.inf, 0, 0
+        Wm = np.zeros((len(pairs), n))
+        for r, (a, b) in enumerate(pairs):
+            Wm[r, a:b] = _run_weights(shape, b - a)
+        aS = Wm @ pu
+        cS = np.einsum("ij,ij->i", Wm @ C, Wm)
+        ok = cS > 1e-9 * (Wm * Wm) @ D
+        quad = np.where(ok, uPu - aS * aS / np.where(ok, cS, 1.0), np.inf)
+        k = int(np.argmin(quad))
+        return float(quad[k]), pairs[k][0], pairs[k][1]
+
+    step = max(1, math.ceil(n / SHAPED_LATTICE))
+    ends = sorted(set(range(0, n, step)) | {n})
+    q, a, b = score([(a, b) for i, a in enumerate(ends) for b in ends[i + 1:]])
+    if step > 1 and math.isfinite(q):
+        q, a, b = score([(a + i, b + j) for i in range(-step, step + 1)
+                         for j in range(-step, step + 1)])
+    return q, a, b
 
 
 def _best_run(P: np.ndarray, u: np.ndarray, idx: np.ndarray) -> tuple:
@@ -267,35 +340,45 @@ def _best_run(P: np.ndarray, u: np.ndarray, idx: np.ndarray) -> tuple:
     return float(quad[k]), int(i[k]), int(j[k])
 
 
-def refine_episodes(st, intervals: list, pen: float) -> tuple:
+def refine_episodes(st, intervals: list, pen: float, extra: dict | None = None) -> tuple:
     """One episode where the data say one, and only episodes that pay for themselves.
 
     A long episode shows in the null's speed innovations at its onset and its end (in between
     the filter, its noise inflated by the episode, follows the odometer), so the search can
     return it as two or more pieces. Here, on the joint fit of all episodes (one filter run per
-    round over each episode's columns and each merge of neighbours closer than ``MERGE_GAP``),
-    the merge that costs least is made while it costs less than an episode's BIC penalty
-    ``pen`` (3 ln n: a merged pair has 3 parameters fewer), then the episode whose removal
-    costs least is dropped while that costs less than ``pen``, then the shallowest episode
-    below the resolution (|slip fraction| <= ``MIN_DEPTH`` or within 3 standard errors of 0:
-    a piece that only trims a neighbour's edge) while there is one. Returns (intervals,
-    column coefficients (:func:`_fractions`), their standard errors, quadratic form of the
-    final joint fit)."""
-    ivs = sorted((float(a), float(b)) for a, b in intervals)
+    round over each episode's columns and each merge of neighbours closer than ``MERGE_GAP``,
+    the merge in each shape), the merge that costs least is made while it costs less than the
+    parameters it saves (an episode's BIC penalty ``pen``, 3 ln n, plus ``extra[shape]`` for a
+    shaped one), then the episode whose removal costs least is dropped while that costs less
+    than its penalty, then the shallowest episode below the resolution (|slip fraction| <=
+    ``MIN_DEPTH`` or within 3 standard errors of 0: a piece that only trims a neighbour's
+    edge) while there is one. ``intervals``: (t0, t1) or (t0, t1, shape). Returns (intervals
+    as (t0, t1, shape), column coefficients (:func:`_fractions`; with a shape, at its peak),
+    their standard errors, quadratic form of the final joint fit)."""
+    extra = extra or {"step": 0.0}
+    ivs = sorted((float(iv[0]), float(iv[1]), iv[2] if len(iv) > 2 else "step")
+                 for iv in intervals)
+
+    def cost(iv):
+        return pen + extra.get(iv[2], 0.0)
+
     for _ in range(2 * len(ivs) + 1):
-        pairs = [i for i in range(len(ivs) - 1) if ivs[i + 1][0] - ivs[i][1] < MERGE_GAP]
-        W, cols = _episode_filter(st, ivs + [(ivs[i][0], ivs[i + 1][1]) for i in pairs])
+        pairs = [(i, sh) for i in range(len(ivs) - 1) if ivs[i + 1][0] - ivs[i][1] < MERGE_GAP
+                 for sh in extra]
+        W, cols = _episode_filter(st, ivs + [(ivs[i][0], ivs[i + 1][1], sh)
+                                             for i, sh in pairs])
         n = len(ivs)
         q_all = _quad(W, cols, range(n))
-        merges = [(_quad(W, cols, [j for j in range(n) if j not in (i, i + 1)] + [n + m]), i)
-                  for m, i in enumerate(pairs)]
-        if merges and min(merges)[0] - q_all < pen:
-            i = min(merges)[1]
-            ivs[i:i + 2] = [(ivs[i][0], ivs[i + 1][1])]
+        merges = [(_quad(W, cols, [j for j in range(n) if j not in (i, i + 1)] + [n + m])
+                   - q_all - cost(ivs[i]) - cost(ivs[i + 1]) + cost((0, 0, sh)), i, sh)
+                  for m, (i, sh) in enumerate(pairs)]
+        if merges and min(merges)[0] < 0:
+            _, i, sh = min(merges)
+            ivs[i:i + 2] = [(ivs[i][0], ivs[i + 1][1], sh)]
             continue
-        drops = [(_quad(W, cols, [j for j in range(n) if j != i]), i)
+        drops = [(_quad(W, cols, [j for j in range(n) if j != i]) - q_all - cost(ivs[i]), i)
                  for i in range(n)] if n > 1 else []
-        if drops and min(drops)[0] - q_all < pen:
+        if drops and min(drops)[0] < 0:
             del ivs[min(drops)[1]]
             continue
         th, cov, q = gls(W, cols[:, :2 + n])
@@ -309,6 +392,20 @@ def refine_episodes(st, intervals: list, pen: float) -> tuple:
             continue
         return ivs, th.tolist(), se.tolist(), float(q)
     raise RuntimeError("episode refinement did not settle")  # pragma: no cover - bounded
+
+
+def _shapes(fit) -> list:
+    """Each episode's shape of ``fit`` (motion.SLIP_SHAPES, in its details: the report's
+    parameters are the contract's; ``step`` where it gives none)."""
+    n = len(fit.parameters.get("intervals", []))
+    sh = list(fit.extra.get("shapes") or [])
+    return sh if len(sh) == n else ["step"] * n
+
+
+def _one_shape(fit) -> str:
+    """The one shape of a simulator's effect: ``sine`` if every episode is one, else ``step``."""
+    sh = _shapes(fit)
+    return "sine" if sh and all(x == "sine" for x in sh) else "step"
 
 
 def _fractions(th, se_th) -> tuple[list, list]:
