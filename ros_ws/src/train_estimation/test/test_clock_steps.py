@@ -93,17 +93,36 @@ def test_one_wrong_stamp_is_refused_not_taken_for_a_step():
 
 
 def test_a_late_reading_is_released_by_the_next_one_on_time():
+    """Reading 40 comes half a second late (a node that lagged), after 41-44, which came on
+    time: below its clock's centre, held for a step. Reading 44 came before it and says nothing
+    about it; reading 45, sampled after it arrived, continues the old clock and releases it."""
     f = Feed()
     f.run_on(0, 40)
+    f.run_on(41, 45)
     late = 1000.0 + 40 * PERIOD
-    # half a second late (a node that lagged): below its clock's centre, held for a step
     assert f.push(late, late + LATENCY + 0.5) == [(HOLD,)]
     assert f.w.doubt()[0] == 1
-    nxt = 1000.0 + 41 * PERIOD
+    nxt = 1000.0 + 45 * PERIOD
     acts = f.push(nxt, nxt + LATENCY)
     assert acts == [(ADMIT, ("odometer", late, {}, late + LATENCY + 0.5, late + LATENCY + 0.5)),
                     (PASS, nxt)]
     assert f.w.shift == 0.0 and not f.w.held and f.admitted[-2:] == [late, nxt]
+
+
+def test_a_reading_sampled_before_the_held_ones_arrived_does_not_release_them():
+    """Readings held as a possible -0.5 s step; a reading of the old clock sampled before the
+    first of them arrived (reordered by jitter) is the old clock's late one: admitted, and the
+    held ones stay held (released by it, the first readings of a -0.5 s step without a counter
+    were fused 0.5 s off their time)."""
+    f = Feed()
+    f.run_on(0, 40)
+    # sample 40 (old clock) is delayed; samples 41, 42 come on the new clock, 0.5 s back
+    for k in (41, 42):
+        t = 1000.0 + k * PERIOD
+        assert f.push(t - 0.5, t + LATENCY) == [(HOLD,)]
+    t40 = 1000.0 + 40 * PERIOD
+    assert f.push(t40, 1000.0 + 42 * PERIOD + LATENCY + 0.01) == [(PASS, t40)]
+    assert len(f.w.held) == 2
 
 
 def test_at_1_hz_a_late_reading_on_the_grid_is_no_doubt():

@@ -957,12 +957,8 @@ class StepWatch:
             # the estimate DEGRADED until the next balise)
             continuous = False
         if continuous:
-            first_seq = chain[0][2].get("seq") if chain else None
-            if kind == "odometer" and self.held and not (
-                    r is not None and isinstance(first_seq, int) and isinstance(seq, int)
-                    and seq < first_seq):
-                # (a late reading of the old clock, sampled before the held ones, says
-                # nothing against them)
+            if kind == "odometer" and self.held and not self._sampled_before(chain, stamp,
+                                                                             seq, r):
                 yield from self._release()
             yield PASS, stamp
             return
@@ -1050,6 +1046,25 @@ class StepWatch:
                 abs(st - ar - new_off) <= abs(st - ar - med.value)
             yield ADMIT, (k, st - shift if on_new else st, f, rc, ar)
         yield PASS, stamp - shift
+
+    def _sampled_before(self, chain: list, stamp: float, seq, r) -> bool:
+        """Whether a reading on the old clock was sampled before the held ones (``chain``, the
+        odometer readings held): a late reading of the old clock, which says nothing against
+        them being a new clock -- only the old clock running on after them does. By the sample
+        counter where the grid places the reading (its seq below the first held one's); else
+        by its stamp, below where the old clock stood when the first held reading arrived
+        (that arrival plus the clock's ceiling, the offset of the least latency: a reading
+        stamped below it was sampled before that arrival whatever its own latency). Released
+        by such a reading, the first three readings after a -0.5 s step without a counter on a
+        50 ms jittery link were fused as the old clock's late ones, 0.5 s off their time (10 m
+        at 20 m/s)."""
+        if not chain:
+            return False
+        first_seq = chain[0][2].get("seq")
+        if r is not None and isinstance(first_seq, int) and isinstance(seq, int):
+            return seq < first_seq
+        a1, ceiling = chain[0][4], self.clock.ceiling
+        return a1 is not None and math.isfinite(ceiling) and stamp < a1 + ceiling
 
     def _counter_moved(self, chain: list, r: float, new_off: float, med: StreamClock) -> bool:
         """Whether the held readings that the grid puts ``r`` s off (a whole number of periods)
