@@ -744,12 +744,13 @@ class IntegrityMonitor:
         if math.isfinite(out.velocity):
             self.prev = (t, float(out.velocity), float(C[1, 1]) if known else 1e6)
         # the filter's own covariance, not the inflated one: the position test judges the
-        # filter (an inflation it caused must not silence it)
-        own = np.array(out.covariance, dtype=float).reshape(4, 4)
+        # filter (an inflation it caused must not silence it); its two variances read as
+        # floats, not through a third 4x4 array per estimate
+        own_xx, own_vv = float(out.covariance[0]), float(out.covariance[5])
         if math.isfinite(out.position) and math.isfinite(out.velocity) and \
-                0 < own[0, 0] < UNBOUNDED and 0 <= own[1, 1] < UNBOUNDED:
+                0 < own_xx < UNBOUNDED and 0 <= own_vv < UNBOUNDED:
             self.prev_pos = (t, float(out.position), float(out.velocity),
-                             float(out.acceleration), float(own[0, 0]), float(own[1, 1]))
+                             float(out.acceleration), own_xx, own_vv)
         else:
             self.prev_pos = None
         return replace(out, covariance=tuple(C.ravel()), integrity=state,
