@@ -35,6 +35,7 @@ Usage::
     ./run bench latency --no-link --seeds 0    # every algorithm beside the floor, no link
     ./run bench latency --duration 20 --seeds 3
     ./run bench latency --latency 0.05 --jitter 0.1
+    ./run bench latency --no-live --seeds 0 --profile 25   # where the in-process time goes
 """
 
 from __future__ import annotations
@@ -63,7 +64,9 @@ for _p in (ROOT / "ros_ws/src/train_sim", ROOT / "ros_ws/src/train_estimation",
 
 from bench_fuzz import make_adapter, position_errors  # noqa: E402
 from train_core.procs import resolve_executable, stop_process  # noqa: E402
+from train_core.ros import sec_to_stamp  # noqa: E402
 
+from train_estimation.core.online.odometry import odometry_covariances  # noqa: E402
 from train_estimation.core.online.replay import replay  # noqa: E402
 from train_sim.scenario import load_scenario, scenario_path  # noqa: E402
 from train_sim.world import simulate  # noqa: E402
@@ -187,16 +190,24 @@ def _timed(fn, acc: list, clock):
     return timed
 
 
-def stages(names, duration: float, seed: int = 0) -> list[str]:
+def stages(names, duration: float, seed: int = 0, profile: int = 0
+           ) -> tuple[list[str], list[str]]:
     """Where a callback's time goes, in process (CPU time of this thread, so another job's
     load does not count): metro_demo's received messages fed to each estimator's runner as
     the node feeds them (``estimator_node``: push, advance to the ready time, tick), and each
-    estimate turned into the node's two messages (TrainState, Odometry; not published: the
-    echo node's row measures converting and publishing). Per odometer callback: p50 / p99 in
-    ms of each stage; "step" = the core's estimator step inside the advance."""
+    estimate turned into the node's two messages (TrainState, Odometry, refilled as the node
+    refills them; not published: the echo node's row measures converting and publishing).
+    Per odometer callback: p50 / p99 in ms of each stage; "step" = the core's estimator step
+    inside the advance. Returns the table's rows and, with ``profile`` = N > 0, per estimator
+    the N functions of most own time in a second pass of the same messages under cProfile
+    (its overhead inflates the many small calls: compare within a profile, not with the
+    table)."""
+    import cProfile
+    import io
+    import pstats
+
     from nav_msgs.msg import Odometry
 
-    from train_estimation.core.online.odometry import odometry_covariances
     from train_estimation.core.online.runner import EstimatorRunner
     from train_interfaces.msg import TrainState
 
@@ -206,9 +217,25 @@ def stages(names, duration: float, seed: int = 0) -> list[str]:
               for t_recv, topic, stamp, fields in res.received_events()
               if topic in ("odometer", "control", "balise")]
     delay = 0.05  # the nodes' output_delay default (config/*.yaml)
-    rows = []
+    rows, profiles = [], []
     clock = time.thread_time
     for name in names:
+        if profile > 0:
+            prof = cProfile.Profile()
+            runner = EstimatorRunner(make_adapter(sc, name), 1 / sc.odometer_rate)
+            msg, odom = TrainState(), Odometry()
+            prof.enable()
+            for topic, stamp, fields, recv in events:
+                runner.push(topic, stamp, fields, recv)
+                for out in runner.advance_to(runner.ready_time(recv, delay, 4 * delay)) + \
+                        runner.tick(recv):
+                    _messages(out, msg, odom, runner)
+            prof.disable()
+            text = io.StringIO()
+            pstats.Stats(prof, stream=text).strip_dirs().sort_stats("tottime") \
+                .print_stats(profile)
+            profiles.append(f"cProfile of {name}'s callbacks (top {profile} by own time):\n"
+                            + text.getvalue().split("\n\n", 1)[-1].strip())
         adapter = make_adapter(sc, name)
         runner = EstimatorRunner(adapter, 1 / sc.odometer_rate)
         steps, snaps = [], []
@@ -218,6 +245,7 @@ def stages(names, duration: float, seed: int = 0) -> list[str]:
                            (("snapshot", "restore"), snaps)):
             for attr in attrs:
                 setattr(adapter, attr, _timed(getattr(adapter, attr), acc, clock))
+        msg, odom = TrainState(), Odometry()
         push, core, conv, total, core_steps, core_snaps = [], [], [], [], [], []
         for topic, stamp, fields, recv in events:
             del steps[:], snaps[:]
@@ -228,17 +256,7 @@ def stages(names, duration: float, seed: int = 0) -> list[str]:
             outs += runner.tick(recv)
             t2 = clock()
             for out in outs:
-                msg = TrainState()
-                msg.position, msg.velocity = out.position, out.velocity
-                msg.acceleration, msg.braking_rate = out.acceleration, out.braking_rate
-                msg.covariance = list(out.covariance)
-                msg.measurement_used = out.measurement_used
-                msg.integrity = out.integrity
-                odom = Odometry()
-                odom.pose.pose.position.x = msg.position
-                odom.twist.twist.linear.x = msg.velocity
-                odom.pose.covariance, odom.twist.covariance = \
-                    odometry_covariances(msg.covariance)
+                _messages(out, msg, odom, runner)
             t3 = clock()
             if topic == "odometer" and outs:
                 push.append(t1 - t0)
@@ -255,7 +273,25 @@ def stages(names, duration: float, seed: int = 0) -> list[str]:
         rest = np.asarray(core) - np.asarray(core_steps) - np.asarray(core_snaps)
         rows.append(f"| {name} | {len(total)} | {q(push)} | {q(core)} | {q(core_steps)} | "
                     f"{q(core_snaps)} | {q(rest)} | {q(conv)} | {q(total)} |")
-    return rows
+    return rows, profiles
+
+
+def _messages(out, msg, odom, runner) -> None:
+    """An estimate into the node's two messages, as ``EstimatorNode.tick`` fills them."""
+    sec_to_stamp(out.stamp, msg.header.stamp)
+    msg.position, msg.velocity = out.position, out.velocity
+    msg.acceleration, msg.braking_rate = out.acceleration, out.braking_rate
+    msg.covariance = out.covariance
+    msg.measurement_used = out.measurement_used
+    msg.integrity = out.integrity
+    msg.protection_level_ahead = out.protection_level_ahead
+    msg.protection_level_behind = out.protection_level_behind
+    odom.header.stamp = msg.header.stamp
+    odom.pose.pose.position.x = msg.position
+    odom.twist.twist.linear.x = msg.velocity
+    odom.pose.covariance, odom.twist.covariance = odometry_covariances(
+        msg.covariance, (msg.protection_level_ahead, msg.protection_level_behind,
+                         runner.integrity.integrity_risk))
 
 
 def offline(seeds: int, duration: float, latency: float, jitter: float) -> list[str]:
@@ -301,6 +337,9 @@ def main(argv=None) -> int:
                          "robust_filter's) and in the stage table, comma separated")
     ap.add_argument("--stage-duration", type=float, default=120.0,
                     help="s of metro_demo for the in-process stage table (0: none)")
+    ap.add_argument("--profile", type=int, default=0, metavar="N",
+                    help="stage table: also a pass under cProfile per estimator, its N "
+                         "functions of most own time printed (0: none)")
     ap.add_argument("--no-link", action="store_true",
                     help="live: only the runs without link latency")
     ap.add_argument("--together", action="store_true",
@@ -348,7 +387,11 @@ def main(argv=None) -> int:
         print("| estimator | callbacks | push | advance | of which estimator | snapshots | "
               "runner | messages | total |")
         print("|---|---|---|---|---|---|---|---|---|")
-        print("\n".join(stages(["robust_filter", *algorithms], args.stage_duration)))
+        rows, profiles = stages(["robust_filter", *algorithms], args.stage_duration,
+                                profile=args.profile)
+        print("\n".join(rows))
+        for text in profiles:
+            print(f"\n{text}")
     if args.seeds > 0:
         print(f"\nAccuracy with link latency {lag} vs without, offline: metro_demo, "
               f"{args.seeds} seeds x {args.offline_duration:g} s, replayed in arrival order "
