@@ -382,8 +382,8 @@ def main(argv=None) -> int:
               "checks; advance = the runner's release of the estimate, of which estimator = "
               "the adapter's input and output calls (the core filter), snapshots = the state "
               "kept to rewind for a late reading, runner = the rest (clock mapping, integrity "
-              "monitor); messages = TrainState and Odometry built (publishing: the echo row "
-              "above)\n")
+              "monitor); messages = TrainState and Odometry filled as the node fills them "
+              "(publishing: the floor above)\n")
         print("| estimator | callbacks | push | advance | of which estimator | snapshots | "
               "runner | messages | total |")
         print("|---|---|---|---|---|---|---|---|---|")
