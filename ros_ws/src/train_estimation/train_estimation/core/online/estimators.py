@@ -213,10 +213,10 @@ class RobustAdapter(DistanceAsPosition):
                             distance=pos - self.start_state.position, speed=speed,
                             speed_variance=rv)
         # the reading's own checks first, so that a bad one does not enter lost slots
-        kind, meas = self.f._measurement(r)
-        if isinstance(meas, str):
+        bad = self.f._odometer_check(r)
+        if bad:
             self._unrestart(undo)
-            return self.f._decide(False, meas).reason
+            return self.f._decide(False, bad).reason
         self._lost_slots(stamp, r.seq)
         d = self.f.update(r)
         if d.accepted:
