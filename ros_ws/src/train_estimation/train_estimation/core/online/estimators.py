@@ -684,7 +684,9 @@ class BrakingAdapter(DistanceAsPosition):
         filter object (a restore makes a new one) and handed out as a fresh dict (deepcopy
         adds to its memo)."""
         cached = getattr(self, "_memo", None)
-        if cached is None or cached[0] is not self.filt:
+        # (the family's check: a copied adapter carries a memo keyed by the originals' ids)
+        if cached is None or cached[0] is not self.filt or \
+                cached[1].get(id(self.fam)) is not self.fam:
             memo = {id(self.fam): self.fam}
             view = getattr(self.filt, "family", None)
             if view is not None:
