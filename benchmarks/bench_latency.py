@@ -3,19 +3,21 @@
 what a radio link with latency and jitter does to the estimates.
 
 **Live** (per link: none, then ``--latency`` + Exp(``--jitter``) per message on odometer and
-balise): starts the simulator (metro_demo, 1x, ``--duration`` s), the ``robust_filter`` node,
-one ``gsma_estimator`` node per algorithm (``--algorithms``: gsma, sma, rbpf, qgrbpf, kf) and a
-bare rclpy echo node (``latency_echo.py``: publishes the same two messages per reading with no
-estimation, the floor) side by side on a private ROS domain (localhost only), stops them with
-SIGINT and
-prints the latency each node measured on its steady clock (from the callback of the odometer
+balise): one node algorithm at a time -- ``robust_filter``, then ``gsma_estimator`` once per
+algorithm (``--algorithms``: gsma, sma, rbpf, qgrbpf, kf) -- runs with the simulator (metro_demo,
+1x, ``--duration`` s) and a bare rclpy echo node (``latency_echo.py``: publishes the same two
+messages per reading with no estimation, the floor) on a private ROS domain (localhost only),
+so that on a small machine the estimators do not wait for each other's cores and each row has
+the floor measured beside it, in the same run. Each run is stopped with SIGINT and the
+latency each node measured on its steady clock is printed (from the callback of the odometer
 sample to the publication of the estimate stamped with it), split into waiting for the cycle's
 other inputs (a sample is released once the control watermark passes it) and processing (the
 runner's work and publishing, from the tick that released it); with the readings fused late
 (``fused_late``: out of sequence, fused by rewinding) and the input dropped (any rejection). The
 p50/p99 are the steady state; the first min_judged + 3 samples (the runner starts on the third
 odometer sample and judges each clock's stamps once it has min_judged arrivals: they wait by
-design, ~0.1-0.2 s) are reported apart as the start-up maximum.
+design, ~0.1-0.2 s) are reported apart as the start-up maximum. ``--together`` runs every
+estimator node at once instead (one floor for all: the nodes then contend for the cores).
 
 **Stages** (in process, ``--stage-duration`` s of metro_demo): where an odometer callback's
 CPU time goes, per estimator: the runner's input checks, the estimator's own calls, its
@@ -30,9 +32,10 @@ position RMSE against the truth, readings fused late and dropped, per estimator.
 Usage::
 
     ./run bench latency                        # 60 s per link live, 10 seeds x 600 s offline
-    ./run bench latency --no-link --seeds 0    # every algorithm and the floor, no link
+    ./run bench latency --no-link --seeds 0    # every algorithm beside the floor, no link
     ./run bench latency --duration 20 --seeds 3
     ./run bench latency --latency 0.05 --jitter 0.1
+    ./run bench latency --no-live --seeds 0 --profile 25   # where the in-process time goes
 """
 
 from __future__ import annotations
@@ -61,7 +64,9 @@ for _p in (ROOT / "ros_ws/src/train_sim", ROOT / "ros_ws/src/train_estimation",
 
 from bench_fuzz import make_adapter, position_errors  # noqa: E402
 from train_core.procs import resolve_executable, stop_process  # noqa: E402
+from train_core.ros import sec_to_stamp  # noqa: E402
 
+from train_estimation.core.online.odometry import odometry_covariances  # noqa: E402
 from train_estimation.core.online.replay import replay  # noqa: E402
 from train_sim.scenario import load_scenario, scenario_path  # noqa: E402
 from train_sim.world import simulate  # noqa: E402
@@ -132,37 +137,45 @@ def _dict(text: str) -> dict:
     return {} if text.strip() == "none" else ast.literal_eval(text)  # the node's repr of a dict
 
 
+def _echo_line(text: str):
+    m = re.search(r"echo published: p50 ([\d.]+) ms, p99 ([\d.]+) ms, max ([\d.]+) ms "
+                  r"over (\d+) samples", text)
+    return m.groups() if m else None
+
+
 def live_rows(link: str, logs: Path, nodes) -> list[str]:
+    """One row per node of a run (``logs``: its logs), the floor (the echo node of the same
+    run) beside each estimator's."""
+    echo = next((lb for lb, exe, _ in nodes if exe is None), None)
+    floor = None
+    if echo is not None:
+        log = logs / _log_name(echo)
+        floor = _echo_line(log.read_text()) if log.exists() else None
     rows = []
     for label, exe, _ in nodes:
         log = logs / _log_name(label)
         text = log.read_text() if log.exists() else ""
         if exe is None:
-            m = re.search(r"echo published: p50 ([\d.]+) ms, p99 ([\d.]+) ms, max ([\d.]+) ms "
-                          r"over (\d+) samples", text)
-            if m:
-                g = m.groups()
-                rows.append(f"| {label} | {link} | {g[0]} | {g[1]} | {g[2]} | {g[3]} | - | "
-                            f"{g[0]}/{g[1]} | - | - | - | (the floor: convert + publish) |")
-            else:
-                rows.append(f"| {label} | {link} | - | - | - | - | - | - | - | - | - | "
-                            f"(no latency line; see {log}) |")
             continue
+        fl = f"{floor[0]}/{floor[1]}" if floor else "-"
         m = re.search(r"p50 ([\d.]+) ms, p99 ([\d.]+) ms, max ([\d.]+) ms over (\d+) samples"
                       r" \(steady state; start-up: max ([\d.]+) ms.*?waiting for inputs p50 "
                       r"([\d.]+) ms, p99 ([\d.]+) ms; processing p50 ([\d.]+) ms, p99 ([\d.]+)",
                       text)
         c = re.search(r"rejected (.*); events (.*)$", text, re.M)
         if not m or not c:
-            rows.append(f"| {label} | {link} | - | - | - | - | - | - | - | - | - | "
+            rows.append(f"| {label} | {link} | - | - | - | - | {fl} | - | - | - | - | - | "
                         f"(no latency line; see {log}) |")
             continue
         g = m.groups()
         rejected, events = _dict(c.group(1)), _dict(c.group(2))
         late = sum(v for k, v in events.items() if k.endswith("fused_late"))
-        rows.append(f"| {label} | {link} | {g[0]} | {g[1]} | {g[2]} | {g[3]} | {g[5]}/{g[6]} | "
-                    f"{g[7]}/{g[8]} | {g[4]} | {late} | {sum(rejected.values())} | "
-                    f"{c.group(1)}; {c.group(2)} |")
+        rows.append(f"| {label} | {link} | {g[0]} | {g[1]} | {g[2]} | {g[3]} | {fl} | "
+                    f"{g[5]}/{g[6]} | {g[7]}/{g[8]} | {g[4]} | {late} | "
+                    f"{sum(rejected.values())} | {c.group(1)}; {c.group(2)} |")
+    if floor is None and echo is not None:
+        rows.append(f"| {echo} | {link} | - | - | - | - | - | - | - | - | - | - | "
+                    f"(no latency line; see {logs / _log_name(echo)}) |")
     return rows
 
 
@@ -177,16 +190,24 @@ def _timed(fn, acc: list, clock):
     return timed
 
 
-def stages(names, duration: float, seed: int = 0) -> list[str]:
+def stages(names, duration: float, seed: int = 0, profile: int = 0
+           ) -> tuple[list[str], list[str]]:
     """Where a callback's time goes, in process (CPU time of this thread, so another job's
     load does not count): metro_demo's received messages fed to each estimator's runner as
     the node feeds them (``estimator_node``: push, advance to the ready time, tick), and each
-    estimate turned into the node's two messages (TrainState, Odometry; not published: the
-    echo node's row measures converting and publishing). Per odometer callback: p50 / p99 in
-    ms of each stage; "step" = the core's estimator step inside the advance."""
+    estimate turned into the node's two messages (TrainState, Odometry, refilled as the node
+    refills them; not published: the echo node's row measures converting and publishing).
+    Per odometer callback: p50 / p99 in ms of each stage; "step" = the core's estimator step
+    inside the advance. Returns the table's rows and, with ``profile`` = N > 0, per estimator
+    the N functions of most own time in a second pass of the same messages under cProfile
+    (its overhead inflates the many small calls: compare within a profile, not with the
+    table)."""
+    import cProfile
+    import io
+    import pstats
+
     from nav_msgs.msg import Odometry
 
-    from train_estimation.core.online.odometry import odometry_covariances
     from train_estimation.core.online.runner import EstimatorRunner
     from train_interfaces.msg import TrainState
 
@@ -196,9 +217,25 @@ def stages(names, duration: float, seed: int = 0) -> list[str]:
               for t_recv, topic, stamp, fields in res.received_events()
               if topic in ("odometer", "control", "balise")]
     delay = 0.05  # the nodes' output_delay default (config/*.yaml)
-    rows = []
+    rows, profiles = [], []
     clock = time.thread_time
     for name in names:
+        if profile > 0:
+            prof = cProfile.Profile()
+            runner = EstimatorRunner(make_adapter(sc, name), 1 / sc.odometer_rate)
+            msg, odom = TrainState(), Odometry()
+            prof.enable()
+            for topic, stamp, fields, recv in events:
+                runner.push(topic, stamp, fields, recv)
+                for out in runner.advance_to(runner.ready_time(recv, delay, 4 * delay)) + \
+                        runner.tick(recv):
+                    _messages(out, msg, odom, runner)
+            prof.disable()
+            text = io.StringIO()
+            pstats.Stats(prof, stream=text).strip_dirs().sort_stats("tottime") \
+                .print_stats(profile)
+            profiles.append(f"cProfile of {name}'s callbacks (top {profile} by own time):\n"
+                            + text.getvalue().split("\n\n", 1)[-1].strip())
         adapter = make_adapter(sc, name)
         runner = EstimatorRunner(adapter, 1 / sc.odometer_rate)
         steps, snaps = [], []
@@ -208,6 +245,7 @@ def stages(names, duration: float, seed: int = 0) -> list[str]:
                            (("snapshot", "restore"), snaps)):
             for attr in attrs:
                 setattr(adapter, attr, _timed(getattr(adapter, attr), acc, clock))
+        msg, odom = TrainState(), Odometry()
         push, core, conv, total, core_steps, core_snaps = [], [], [], [], [], []
         for topic, stamp, fields, recv in events:
             del steps[:], snaps[:]
@@ -218,17 +256,7 @@ def stages(names, duration: float, seed: int = 0) -> list[str]:
             outs += runner.tick(recv)
             t2 = clock()
             for out in outs:
-                msg = TrainState()
-                msg.position, msg.velocity = out.position, out.velocity
-                msg.acceleration, msg.braking_rate = out.acceleration, out.braking_rate
-                msg.covariance = list(out.covariance)
-                msg.measurement_used = out.measurement_used
-                msg.integrity = out.integrity
-                odom = Odometry()
-                odom.pose.pose.position.x = msg.position
-                odom.twist.twist.linear.x = msg.velocity
-                odom.pose.covariance, odom.twist.covariance = \
-                    odometry_covariances(msg.covariance)
+                _messages(out, msg, odom, runner)
             t3 = clock()
             if topic == "odometer" and outs:
                 push.append(t1 - t0)
@@ -245,7 +273,25 @@ def stages(names, duration: float, seed: int = 0) -> list[str]:
         rest = np.asarray(core) - np.asarray(core_steps) - np.asarray(core_snaps)
         rows.append(f"| {name} | {len(total)} | {q(push)} | {q(core)} | {q(core_steps)} | "
                     f"{q(core_snaps)} | {q(rest)} | {q(conv)} | {q(total)} |")
-    return rows
+    return rows, profiles
+
+
+def _messages(out, msg, odom, runner) -> None:
+    """An estimate into the node's two messages, as ``EstimatorNode.tick`` fills them."""
+    sec_to_stamp(out.stamp, msg.header.stamp)
+    msg.position, msg.velocity = out.position, out.velocity
+    msg.acceleration, msg.braking_rate = out.acceleration, out.braking_rate
+    msg.covariance = out.covariance
+    msg.measurement_used = out.measurement_used
+    msg.integrity = out.integrity
+    msg.protection_level_ahead = out.protection_level_ahead
+    msg.protection_level_behind = out.protection_level_behind
+    odom.header.stamp = msg.header.stamp
+    odom.pose.pose.position.x = msg.position
+    odom.twist.twist.linear.x = msg.velocity
+    odom.pose.covariance, odom.twist.covariance = odometry_covariances(
+        msg.covariance, (msg.protection_level_ahead, msg.protection_level_behind,
+                         runner.integrity.integrity_risk))
 
 
 def offline(seeds: int, duration: float, latency: float, jitter: float) -> list[str]:
@@ -277,7 +323,8 @@ def offline(seeds: int, duration: float, latency: float, jitter: float) -> list[
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--duration", type=float, default=60.0, help="s of each live run")
+    ap.add_argument("--duration", type=float, default=60.0,
+                    help="s of each live run (one per node algorithm and link)")
     ap.add_argument("--latency", type=float, default=0.02,
                     help="s, fixed link delay of odometer and balise messages")
     ap.add_argument("--jitter", type=float, default=0.05,
@@ -286,15 +333,24 @@ def main(argv=None) -> int:
     ap.add_argument("--offline-duration", type=float, default=600.0, help="s per offline run")
     ap.add_argument("--no-live", action="store_true", help="offline part only")
     ap.add_argument("--algorithms", default=",".join(ALGORITHMS),
-                    help="gsma_estimator algorithms run live and in the stage table, comma "
-                         "separated (each its own node beside robust_filter and the echo)")
+                    help="gsma_estimator algorithms run live (each its own node, after "
+                         "robust_filter's) and in the stage table, comma separated")
     ap.add_argument("--stage-duration", type=float, default=120.0,
                     help="s of metro_demo for the in-process stage table (0: none)")
+    ap.add_argument("--profile", type=int, default=0, metavar="N",
+                    help="stage table: also a pass under cProfile per estimator, its N "
+                         "functions of most own time printed (0: none)")
     ap.add_argument("--no-link", action="store_true",
-                    help="live: only the run without link latency")
+                    help="live: only the runs without link latency")
+    ap.add_argument("--together", action="store_true",
+                    help="live: every estimator node in one run beside one echo node (they "
+                         "contend for the cores) instead of one at a time")
     args = ap.parse_args(argv)
     algorithms = [a for a in args.algorithms.split(",") if a]
     nodes = live_nodes(algorithms)
+    echo = nodes[-1]
+    # one estimator node with the echo at a time (module doc), or all of them at once
+    groups = [nodes] if args.together else [[n, echo] for n in nodes[:-1]]
     logs = Path(tempfile.mkdtemp(prefix="bench_latency_"))
     lag = f"{1e3 * args.latency:g} ms + Exp({1e3 * args.jitter:g} ms)"
     if not args.no_live:
@@ -305,16 +361,19 @@ def main(argv=None) -> int:
         rows = []
         load = [os.getloadavg()[0]]
         for i, (name, scenario) in enumerate(links):
-            run_live(scenario, args.duration, logs / f"link{i}", nodes)
-            rows += live_rows(name, logs / f"link{i}", nodes)
-            load.append(os.getloadavg()[0])
-        print(f"metro_demo at 1x for {args.duration:g} s per link, {len(nodes) - 1} estimator "
-              f"nodes and the echo node side by side (logs in {logs}); load average (1 min) "
-              f"{', '.join(f'{v:.1f}' for v in load)} before / after each link\n")
+            for j, group in enumerate(groups):
+                run_live(scenario, args.duration, logs / f"link{i}" / f"run{j}", group)
+                rows += live_rows(name, logs / f"link{i}" / f"run{j}", group)
+                load.append(os.getloadavg()[0])
+        how = (f"{len(nodes) - 1} estimator nodes and the echo node side by side"
+               if args.together else "each estimator node in turn, with the echo node beside it")
+        print(f"metro_demo at 1x for {args.duration:g} s per link and run, {how} (logs in "
+              f"{logs}); load average (1 min) {', '.join(f'{v:.1f}' for v in load)} before "
+              "the first run / after each\n")
         print("| node | link latency | p50 (ms) | p99 (ms) | max (ms) | samples | "
-              "waiting p50/p99 (ms) | processing p50/p99 (ms) | start-up max (ms) | "
-              "fused late | dropped | rejected; events |")
-        print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+              "floor p50/p99 (ms) | waiting p50/p99 (ms) | processing p50/p99 (ms) | "
+              "start-up max (ms) | fused late | dropped | rejected; events |")
+        print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
         print("\n".join(rows))
     if args.stage_duration > 0:
         print(f"\nWhere an odometer callback's time goes, in process (metro_demo "
@@ -323,12 +382,16 @@ def main(argv=None) -> int:
               "checks; advance = the runner's release of the estimate, of which estimator = "
               "the adapter's input and output calls (the core filter), snapshots = the state "
               "kept to rewind for a late reading, runner = the rest (clock mapping, integrity "
-              "monitor); messages = TrainState and Odometry built (publishing: the echo row "
-              "above)\n")
+              "monitor); messages = TrainState and Odometry filled as the node fills them "
+              "(publishing: the floor above)\n")
         print("| estimator | callbacks | push | advance | of which estimator | snapshots | "
               "runner | messages | total |")
         print("|---|---|---|---|---|---|---|---|---|")
-        print("\n".join(stages(["robust_filter", *algorithms], args.stage_duration)))
+        rows, profiles = stages(["robust_filter", *algorithms], args.stage_duration,
+                                profile=args.profile)
+        print("\n".join(rows))
+        for text in profiles:
+            print(f"\n{text}")
     if args.seeds > 0:
         print(f"\nAccuracy with link latency {lag} vs without, offline: metro_demo, "
               f"{args.seeds} seeds x {args.offline_duration:g} s, replayed in arrival order "

@@ -95,6 +95,17 @@ class EstimatorNode(Node):
         self.pub = self.create_publisher(TrainState, topic, 1000)
         self.odom_topic = "odom/" + topic.rsplit("/", 1)[-1]
         self.odom_pub = self.create_publisher(Odometry, self.odom_topic, 1000)
+        # The two messages of an estimate are built once and refilled for each (rclpy's
+        # publish serialises the message before it returns): constructing them, eleven
+        # nested messages for an Odometry, cost more than filling them. The fields that
+        # never change are set here.
+        self._state_msg = TrainState()
+        self._state_msg.header.frame_id = "track"
+        self._state_msg.source = self.adapter.source
+        self._odom_msg = Odometry()
+        self._odom_msg.header.frame_id = "track"
+        self._odom_msg.child_frame_id = "base_link"
+        self._odom_msg.pose.pose.orientation.w = 1.0  # the body x axis along the track's
         # /diagnostics: counters the runner does not keep (arrivals), read by the core
         self.started = self.steady.now().nanoseconds * 1e-9
         self.received = dict.fromkeys(("odometer", "control", "balise"), 0)
@@ -223,13 +234,11 @@ class EstimatorNode(Node):
         outs = self.runner.advance_to(self.runner.ready_time(now, self.delay,
                                                               4 * self.delay, wall=t_tick))
         for out in outs + (self.runner.tick(now) if self.clock_slots else []):
-            msg = TrainState()
+            msg = self._state_msg  # one message object, filled anew (publish copies it out)
             sec_to_stamp(out.stamp, msg.header.stamp)
-            msg.header.frame_id = "track"
-            msg.source = self.adapter.source
             msg.position, msg.velocity = out.position, out.velocity
             msg.acceleration, msg.braking_rate = out.acceleration, out.braking_rate
-            msg.covariance = list(out.covariance)
+            msg.covariance = out.covariance
             msg.measurement_used = out.measurement_used
             msg.integrity = out.integrity
             msg.protection_level_ahead = out.protection_level_ahead
@@ -273,12 +282,10 @@ class EstimatorNode(Node):
 
     def _odometry(self, state):
         """The estimate as nav_msgs/Odometry (frames and covariances:
-        core/online/odometry.py)."""
-        odom = Odometry()
-        odom.header = state.header
-        odom.child_frame_id = "base_link"
+        core/online/odometry.py), in the node's one Odometry object (publish copies it out)."""
+        odom = self._odom_msg
+        odom.header.stamp = state.header.stamp
         odom.pose.pose.position.x = state.position
-        odom.pose.pose.orientation.w = 1.0  # the body x axis along the track's
         odom.twist.twist.linear.x = state.velocity
         odom.pose.covariance, odom.twist.covariance = odometry_covariances(
             state.covariance, (state.protection_level_ahead, state.protection_level_behind,

@@ -213,10 +213,10 @@ class RobustAdapter(DistanceAsPosition):
                             distance=pos - self.start_state.position, speed=speed,
                             speed_variance=rv)
         # the reading's own checks first, so that a bad one does not enter lost slots
-        kind, meas = self.f._measurement(r)
-        if isinstance(meas, str):
+        bad = self.f._odometer_check(r)
+        if bad:
             self._unrestart(undo)
-            return self.f._decide(False, meas).reason
+            return self.f._decide(False, bad).reason
         self._lost_slots(stamp, r.seq)
         d = self.f.update(r)
         if d.accepted:
@@ -369,6 +369,10 @@ def cover_shift(P: np.ndarray, d: np.ndarray) -> np.ndarray:
 # ---------------------------------------------------------------------------------------------
 
 ALGORITHMS = ("gsma", "sma", "rbpf", "qgrbpf", "kf")
+# attributes of the braking filters set at construction and never changed, in place or
+# otherwise (GSMA's groups of value indices: a list of tuples, deep-copied element by
+# element at every snapshot before it was shared)
+SHARED_ATTRS = frozenset({"groups"})
 
 
 @dataclass(frozen=True)
@@ -540,10 +544,16 @@ class BrakingAdapter(DistanceAsPosition):
             return ""
         e = self.est
         dt = max(stamp - (self.filt.t if self.filt.t is not None else stamp), 0.0)
-        m = np.asarray(e.mean, dtype=float)
-        P = np.nan_to_num(np.asarray(e.cov, dtype=float)[:3, :3], nan=0.0)
+        m = np.asarray(e.mean, dtype=float)[:3]
+        P = np.asarray(e.cov, dtype=float)[:3, :3]
+        # nan_to_num is a handful of array passes: taken only when something is not finite
+        # (it leaves a finite array as it is)
+        if not np.isfinite(P).all():
+            P = np.nan_to_num(P, nan=0.0)
+        if not np.isfinite(m).all():
+            m = np.nan_to_num(m)
         F = np.array([[1.0, dt, 0.5 * dt * dt], [0.0, 1.0, dt]])
-        pred = F @ np.nan_to_num(m[:3])
+        pred = F @ m
         Pp = F @ P @ F.T
         slack = (0.5 * self.cfg.gate_accel * dt * dt, self.cfg.gate_accel * dt)
         for i, y, r in rows:
@@ -663,26 +673,35 @@ class BrakingAdapter(DistanceAsPosition):
         used, self.used = self.used, False
         return Output(stamp=t, position=float(e.mean[0]), velocity=float(e.mean[1]),
                       acceleration=float(e.mean[2]), braking_rate=float(e.mean[3]),
-                      covariance=tuple(float(v) for v in np.asarray(e.cov).ravel()),
+                      covariance=tuple(np.asarray(e.cov, dtype=float).ravel().tolist()),
                       measurement_used=used, **self._calibration(t))
 
     def _shared(self) -> dict:
         """deepcopy memo of the models the filter only reads (the family and the filter's view
-        of it, e.g. the KF's augmented one): shared by the snapshots, never copied -- copying
-        them was most of a snapshot's time, taken at every odometer sample."""
-        memo = {id(self.fam): self.fam}
-        view = getattr(self.filt, "family", None)
-        if view is not None:
-            memo[id(view)] = view
-        for v in vars(self.filt).values():  # parameters made read-only at construction
-            if isinstance(v, np.ndarray) and not v.flags.writeable:
-                memo[id(v)] = v
-        return memo
+        of it, e.g. the KF's augmented one, and the constants set at construction: read-only
+        arrays, GSMA's groups of values): shared by the snapshots, never copied -- copying
+        them was most of a snapshot's time, taken at every odometer sample. Found once per
+        filter object (a restore makes a new one) and handed out as a fresh dict (deepcopy
+        adds to its memo)."""
+        cached = getattr(self, "_memo", None)
+        # (the family's check: a copied adapter carries a memo keyed by the originals' ids)
+        if cached is None or cached[0] is not self.filt or \
+                cached[1].get(id(self.fam)) is not self.fam:
+            memo = {id(self.fam): self.fam}
+            view = getattr(self.filt, "family", None)
+            if view is not None:
+                memo[id(view)] = view
+            for k, v in vars(self.filt).items():  # parameters made read-only at construction
+                if isinstance(v, np.ndarray) and not v.flags.writeable or k in SHARED_ATTRS:
+                    memo[id(v)] = v
+            cached = self._memo = (self.filt, memo)
+        return dict(cached[1])
 
     def snapshot(self):
-        """The mutable state, for the runner's rewinding (the model family is shared)."""
+        """The mutable state, for the runner's rewinding (the model family is shared). The
+        generator's state property builds a new dict at each read: nothing to copy."""
         return (copy.deepcopy(self.filt, self._shared()),
-                copy.deepcopy(self.rng.bit_generator.state), self.a_tar, self.est, self.used,
+                self.rng.bit_generator.state, self.a_tar, self.est, self.used,
                 dict(self.last), self._odometry_snapshot())
 
     def restore(self, snap) -> None:

@@ -118,9 +118,11 @@ replay of a bag reproduces a node's labels exactly.
 from __future__ import annotations
 
 import bisect
+import itertools
 import math
 from collections import deque
 from dataclasses import dataclass, replace
+from operator import itemgetter
 
 import numpy as np
 from train_core.config import param, require, require_finite
@@ -130,6 +132,7 @@ from .protection import Hypothesis, label, protection_levels
 
 OK, DEGRADED, ALARM = 0, 1, 2
 V_STILL = 0.5  # m/s: an odometer speed reading at or below this reads standstill
+_STAMP = itemgetter(0)  # the stamp of a window's entry (bisect's key)
 SURE = 1.0 - math.exp(-3.0)  # a first-order lag's output three time constants after a step
 UNBOUNDED = 1e12  # m^2, (m/s)^2: the variance published when the filter's is not usable
 NAMES = {OK: "OK", DEGRADED: "DEGRADED", ALARM: "ALARM"}
@@ -558,25 +561,26 @@ class IntegrityMonitor:
         hold += max(float(self.line.gradient_accel(x)), 0.0) / (1.0 + tr.rotary_allowance)
         if SURE * current <= hold:
             return ""
-        stamps = [s for s, _ in self.commands]
-        vals = [a for _, a in self.commands]
-        now = bisect.bisect_right(stamps, t)  # the commands up to t
+        # both windows are in stamp order (_keep): searched in place, not copied into lists
+        # at every estimate (a few hundred entries each)
+        cmds, seen = self.commands, self.counts_seen
+        now = bisect.bisect_right(cmds, t, key=_STAMP)  # the commands up to t
         b = tr.brake
         settle = b.delay + 3.0 * b.time_constant
-        seen = list(self.counts_seen)
         for span in self.STILL_SPANS:
             if span < 2.5 * self.period:
                 continue  # three readings at least
             t0 = t - span - settle
-            first = bisect.bisect_right(stamps, t0)  # the command in force at t0: first - 1
-            if first == 0:
+            first = bisect.bisect_right(cmds, t0, key=_STAMP)  # the command in force at t0:
+            if first == 0:  # first - 1
                 return ""  # no command known in force over so long a span
-            a_sure = SURE * min(vals[first - 1:now])
+            a_sure = SURE * min(a for _, a in itertools.islice(cmds, first - 1, now))
             if a_sure <= hold:
                 return ""  # a longer span only lowers the traction surely delivered
             if 0.5 * (a_sure - hold) * span * span < p.still_run:
                 continue
-            on = [(s, c) for s, c in seen if t - span <= s <= t]
+            on = list(itertools.islice(seen, bisect.bisect_left(seen, t - span, key=_STAMP),
+                                       bisect.bisect_right(seen, t, key=_STAMP)))
             d = [c for _, c in on]
             # readings over the whole span (an outage says nothing about the count)
             covered = len(on) >= 3 and on[0][0] <= t - span + 2.5 * self.period \
@@ -744,12 +748,13 @@ class IntegrityMonitor:
         if math.isfinite(out.velocity):
             self.prev = (t, float(out.velocity), float(C[1, 1]) if known else 1e6)
         # the filter's own covariance, not the inflated one: the position test judges the
-        # filter (an inflation it caused must not silence it)
-        own = np.array(out.covariance, dtype=float).reshape(4, 4)
+        # filter (an inflation it caused must not silence it); its two variances read as
+        # floats, not through a third 4x4 array per estimate
+        own_xx, own_vv = float(out.covariance[0]), float(out.covariance[5])
         if math.isfinite(out.position) and math.isfinite(out.velocity) and \
-                0 < own[0, 0] < UNBOUNDED and 0 <= own[1, 1] < UNBOUNDED:
+                0 < own_xx < UNBOUNDED and 0 <= own_vv < UNBOUNDED:
             self.prev_pos = (t, float(out.position), float(out.velocity),
-                             float(out.acceleration), float(own[0, 0]), float(own[1, 1]))
+                             float(out.acceleration), own_xx, own_vv)
         else:
             self.prev_pos = None
         return replace(out, covariance=tuple(C.ravel()), integrity=state,

@@ -151,10 +151,19 @@ def _walked(Sigma: np.ndarray, d0: float, d1: float, count_walk: float,
     if not run > 0:
         return Sigma
     s1, s2, s3 = run, (b * b - a * a) / 2.0, (b ** 3 - a ** 3) / 3.0
+    # count_walk run [[1, 0], [0, 0]] + scale_walk [[s3, -s2], [-s2, s1]], entry by entry on
+    # floats (the same operations as on 2x2 arrays, so the same bits: this runs for every
+    # solution at every estimate, and two tiny arrays cost more than the sums)
+    k = count_walk * run
+    w00, w01, w11 = k * 1.0 + scale_walk * s3, k * 0.0 + scale_walk * -s2, \
+        k * 0.0 + scale_walk * s1
     out = Sigma.copy()  # the latency (third parameter) does not walk: it is the reader's
-    out[:2, :2] += count_walk * run * np.array([[1.0, 0.0], [0.0, 0.0]]) \
-        + scale_walk * np.array([[s3, -s2], [-s2, s1]])
-    out[0, 0] += sum(var for at, var in jumps if a < at <= b)
+    out[0, 0] += w00
+    out[0, 1] += w01
+    out[1, 0] += w01
+    out[1, 1] += w11
+    if jumps:
+        out[0, 0] += sum(var for at, var in jumps if a < at <= b)
     return out
 
 

@@ -24,7 +24,8 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from statistics import NormalDist
+
+from .protection import k_factor
 
 UNKNOWN_VARIANCE = 1.0e6  # m^2, (m/s)^2 or rad^2: "not estimated" (the ROS drivers' value)
 
@@ -56,6 +57,6 @@ def odometry_covariances(covariance: Sequence[float], protection: tuple | None =
         if not math.isfinite(level):  # ALARM: nothing bounds it
             pose[0] = UNKNOWN_VARIANCE
         elif level > 0.0 and 0.0 < risk < 1.0:
-            k = NormalDist().inv_cdf(1.0 - risk / 2.0)
+            k = k_factor(risk)
             pose[0] = min(UNKNOWN_VARIANCE, max(pose[0], (level / k) ** 2))
     return pose, twist

@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import lru_cache
 from statistics import NormalDist
 
 OK, DEGRADED, ALARM = 0, 1, 2
@@ -60,7 +61,15 @@ def k_factor(risk: float, solutions: int = 1) -> float:
     ``solutions`` and the two sides."""
     if not (0.0 < risk < 1.0):
         raise ValueError(f"integrity risk must be in (0, 1), got {risk!r}")
-    return NormalDist().inv_cdf(1.0 - risk / (2.0 * max(1, int(solutions))))
+    return _k(float(risk), max(1, int(solutions)))
+
+
+@lru_cache(maxsize=64)
+def _k(risk: float, n: int) -> float:
+    # every estimate asks for the same few (one risk, a handful of solution counts): the
+    # quantile is computed once each (NormalDist's inverse is a rational approximation whose
+    # evaluation cost a tenth of an estimate's protection levels)
+    return NormalDist().inv_cdf(1.0 - risk / (2.0 * n))
 
 
 def protection_levels(variance: float, hypotheses=(), risk: float = 1e-7

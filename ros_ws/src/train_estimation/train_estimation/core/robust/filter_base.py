@@ -236,15 +236,22 @@ class FilterBase:
             return R.NON_POSITIVE_VARIANCE
         return self._validate_order(kind, reading.stamp, int(reading.seq))
 
+    def _odometer_check(self, reading: OdometerReading) -> str | None:
+        """The reason an odometer reading is refused before the gate (its own checks and its
+        order: all :meth:`_measurement` refuses it for), or None; without building its
+        channels (an adapter asks before entering lost slots, then :meth:`update` asks
+        again)."""
+        values = ((reading.distance, reading.speed, reading.speed_variance)
+                  if reading.received else ())
+        return self._check("odometer", reading, values,
+                           reading.speed_variance if reading.received else None)
+
     def _measurement(self, reading) -> tuple[str, Measurement | str]:
         """Validate a reading and turn it into channels, or return the rejection reason."""
         p = self.params
         if isinstance(reading, OdometerReading):
             kind = "odometer"
-            values = ((reading.distance, reading.speed, reading.speed_variance)
-                      if reading.received else ())
-            bad = self._check(kind, reading, values,
-                              reading.speed_variance if reading.received else None)
+            bad = self._odometer_check(reading)
             if bad:
                 return kind, bad
             rows, ys, rs = [_VEL], [reading.speed], [reading.speed_variance]
