@@ -64,10 +64,9 @@ for _p in (ROOT / "ros_ws/src/train_sim", ROOT / "ros_ws/src/train_estimation",
 
 from bench_fuzz import make_adapter, position_errors  # noqa: E402
 from train_core.procs import resolve_executable, stop_process  # noqa: E402
-from train_core.ros import sec_to_stamp  # noqa: E402
 
-from train_estimation.core.online.odometry import odometry_covariances  # noqa: E402
 from train_estimation.core.online.replay import replay  # noqa: E402
+from train_estimation.nodes.estimator_node import fill_odometry, fill_state  # noqa: E402
 from train_sim.scenario import load_scenario, scenario_path  # noqa: E402
 from train_sim.world import simulate  # noqa: E402
 
@@ -278,20 +277,8 @@ def stages(names, duration: float, seed: int = 0, profile: int = 0
 
 def _messages(out, msg, odom, runner) -> None:
     """An estimate into the node's two messages, as ``EstimatorNode.tick`` fills them."""
-    sec_to_stamp(out.stamp, msg.header.stamp)
-    msg.position, msg.velocity = out.position, out.velocity
-    msg.acceleration, msg.braking_rate = out.acceleration, out.braking_rate
-    msg.covariance = out.covariance
-    msg.measurement_used = out.measurement_used
-    msg.integrity = out.integrity
-    msg.protection_level_ahead = out.protection_level_ahead
-    msg.protection_level_behind = out.protection_level_behind
-    odom.header.stamp = msg.header.stamp
-    odom.pose.pose.position.x = msg.position
-    odom.twist.twist.linear.x = msg.velocity
-    odom.pose.covariance, odom.twist.covariance = odometry_covariances(
-        msg.covariance, (msg.protection_level_ahead, msg.protection_level_behind,
-                         runner.integrity.integrity_risk))
+    fill_state(msg, out)
+    fill_odometry(odom, msg, runner.integrity.integrity_risk)
 
 
 def offline(seeds: int, duration: float, latency: float, jitter: float) -> list[str]:

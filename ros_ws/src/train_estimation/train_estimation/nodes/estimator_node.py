@@ -49,6 +49,29 @@ def _quantiles(values: list[float]) -> tuple[float, float, float]:
     return v[len(v) // 2], v[min(len(v) - 1, int(0.99 * len(v)))], v[-1]
 
 
+def fill_state(msg, out) -> None:
+    """A runner ``Output`` into a TrainState (filled in place: a node keeps one message object,
+    and publish copies it out)."""
+    sec_to_stamp(out.stamp, msg.header.stamp)
+    msg.position, msg.velocity = out.position, out.velocity
+    msg.acceleration, msg.braking_rate = out.acceleration, out.braking_rate
+    msg.covariance = out.covariance
+    msg.measurement_used = out.measurement_used
+    msg.integrity = out.integrity
+    msg.protection_level_ahead = out.protection_level_ahead
+    msg.protection_level_behind = out.protection_level_behind
+
+
+def fill_odometry(odom, state, risk: float) -> None:
+    """A TrainState as nav_msgs/Odometry, in place (frames and covariances:
+    core/online/odometry.py; ``risk`` the integrity risk its levels are stated at)."""
+    odom.header.stamp = state.header.stamp
+    odom.pose.pose.position.x = state.position
+    odom.twist.twist.linear.x = state.velocity
+    odom.pose.covariance, odom.twist.covariance = odometry_covariances(
+        state.covariance, (state.protection_level_ahead, state.protection_level_behind, risk))
+
+
 class EstimatorNode(Node):
     """A node that feeds ``make_adapter(node, train, line, start, common)`` through a runner
     (``name``: the node's name; ``topic``: where its estimates go, e.g. ``estimate/robust``)."""
@@ -235,14 +258,7 @@ class EstimatorNode(Node):
                                                               4 * self.delay, wall=t_tick))
         for out in outs + (self.runner.tick(now) if self.clock_slots else []):
             msg = self._state_msg  # one message object, filled anew (publish copies it out)
-            sec_to_stamp(out.stamp, msg.header.stamp)
-            msg.position, msg.velocity = out.position, out.velocity
-            msg.acceleration, msg.braking_rate = out.acceleration, out.braking_rate
-            msg.covariance = out.covariance
-            msg.measurement_used = out.measurement_used
-            msg.integrity = out.integrity
-            msg.protection_level_ahead = out.protection_level_ahead
-            msg.protection_level_behind = out.protection_level_behind
+            fill_state(msg, out)
             self.pub.publish(msg)
             self.odom_pub.publish(self._odometry(msg))
             self.n_published += 1
@@ -283,14 +299,8 @@ class EstimatorNode(Node):
     def _odometry(self, state):
         """The estimate as nav_msgs/Odometry (frames and covariances:
         core/online/odometry.py), in the node's one Odometry object (publish copies it out)."""
-        odom = self._odom_msg
-        odom.header.stamp = state.header.stamp
-        odom.pose.pose.position.x = state.position
-        odom.twist.twist.linear.x = state.velocity
-        odom.pose.covariance, odom.twist.covariance = odometry_covariances(
-            state.covariance, (state.protection_level_ahead, state.protection_level_behind,
-                               self.runner.integrity.integrity_risk))
-        return odom
+        fill_odometry(self._odom_msg, state, self.runner.integrity.integrity_risk)
+        return self._odom_msg
 
     def diagnostics(self):
         """The node's Status for /diagnostics (the rules: train_core.diagnostics)."""

@@ -46,7 +46,7 @@ import math
 import numpy as np
 
 from ..numerics import bank
-from ..numerics.bank import OK, _bank_step, _gauss_hermite, _log_normalize
+from ..numerics.bank import OK, _all_finite, _bank_step, _gauss_hermite, _log_normalize
 from ..numerics.jit import COMPILED, jit
 
 __all__ = ["COMPILED", "NONFINITE", "KF_LOGLIK", "branching_step", "discrete_step",
@@ -58,18 +58,7 @@ KF_LOGLIK = 5  # the KF's log likelihood infinite (BrakingKF._reduce's rejection
 
 @jit
 def _finite_set(theta, x, P):
-    if theta.shape[0] == 0:
-        return False
-    for v in x.ravel():
-        if not math.isfinite(v):
-            return False
-    for v in P.ravel():
-        if not math.isfinite(v):
-            return False
-    for v in theta.ravel():
-        if not math.isfinite(v):
-            return False
-    return True
+    return theta.shape[0] > 0 and _all_finite(x, P, theta)
 
 
 @jit
