@@ -22,7 +22,8 @@ of episodes found against the true number, and for each true episode the error o
 the found episode that overlaps it most (|found - true| / |true|). The target: 1 - IoU <= 0.3
 in every case.
 
-Usage: bench_slip_episodes.py [--cases 3] [--seed 0] [--kinds plain,subtle,long,varied,shaped]
+Usage: bench_slip_episodes.py [--cases 3 | --quick] [--seed 0]
+                              [--kinds plain,subtle,long,varied,shaped]
 """
 
 from __future__ import annotations
@@ -161,11 +162,14 @@ def main() -> int:
 
     from train_sim.cases import make_case
 
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--cases", type=int, default=3)
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--cases", type=int, default=3, help="cases per kind")
+    ap.add_argument("--quick", action="store_true", help="one case per kind (under 2 min)")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--kinds", default=",".join(KINDS))
+    ap.add_argument("--kinds", default=",".join(KINDS), help="comma-separated kinds")
     args = ap.parse_args()
+    if args.quick:
+        args.cases = 1
     kinds = [k for k in args.kinds.split(",") if k]
     if any(k not in KINDS for k in kinds):
         ap.error(f"--kinds: choose from {','.join(KINDS)}")
