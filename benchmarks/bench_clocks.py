@@ -4,9 +4,9 @@ clean jittery link and on a clock that steps, with no filter in the way.
 A train at constant speed sends odometer readings (with or without a sample counter) and a
 zone sends commands at 1 Hz; the readings go through the integrity campaign's own link
 (``tools.faults.inject``: 50 ms latency, an exponential jitter of mean ``jitter``, readings lost
-at random) with the train clock at a Unix epoch, and are replayed through
-``EstimatorRunner`` with an adapter that only records what it is given (:class:`Recorder`):
-every figure below is the clocks' and the door's, not a filter's.
+at random) with the train clock at a Unix epoch, and are replayed through ``EstimatorRunner``
+with an adapter that only records what it is given (``tools/clock_runs.py``): every figure
+below is the clocks' and the door's, not a filter's.
 
 Per link (rate, counter, jitter), on a clean clock:
 
@@ -15,19 +15,21 @@ Per link (rate, counter, jitter), on a clean clock:
 - **offset bias**: the train clock's centre (``StreamClock.value``, stamp minus arrival)
   against where the clock is with the least latency (the epoch less the link's 50 ms floor),
   in ms, beside the jitter's own spread (its standard deviation is ``jitter``);
-- **held**: the share of estimates published while readings were held as a possible step.
+- **held**: the share of estimates published while readings were held as a possible step;
+- **clocks judged**: one (the commands taken on the readings' clock, as they are) or separate,
+  and the train clock's **drift** as the runner estimates it (true 0).
 
 Per step of ``d`` s (at 600 s):
 
 - **decided after**: the readings (of the new clock) that arrived before the step was declared
   (the detection delay), and that time in seconds;
 - **shift error**: the step as re-anchored less ``d`` (ms);
-- **time error**: the largest |filter time - true sampling time| of the readings fused after
-  the step (ms; the mapping the filters then run on);
+- **time error**: the largest move of (filter time - true sampling time) of the readings fused
+  after the step from the last one's before it (ms; the filter's time origin is its own);
 - **doubted**: estimates published while the step was undecided (the integrity monitor's
   ``clock`` doubt).
 
-    ./run bench clocks            # one hour per link, every step (about 10 min of CPU)
+    ./run bench clocks            # one hour per link, every step (about 7 min of CPU)
     ./run bench clocks --quick    # 10 minutes per link (under 2 min)
 """
 
