@@ -25,8 +25,9 @@ STEP_AT = 600.0  # s, true time of a step
 
 
 class Recorder:
-    """An adapter with no filter: it records the odometer readings fused (filter time, seq) and
-    publishes a fixed estimate, so that the runner's clocks and door alone are measured."""
+    """An adapter with no filter: it records the odometer readings fused (filter time s,
+    counted distance m) and publishes a fixed estimate, so that the runner's clocks and door
+    alone are measured."""
 
     def __init__(self):
         self.fused: list = []
@@ -106,9 +107,10 @@ def run_link(duration: float, rate: float, counter: bool, jitter: float, loss: f
         row["decided_readings"], row["decided_s"] = n_new, t_dec - STEP_AT
         # the filter time of each reading fused after the step against its true sampling time,
         # relative to the last one before it (the filter's time origin is its own)
-        f = np.array([(s, d / SPEED) for s, d in rec.fused], float)
-        e = f[:, 0] - f[:, 1] if f.size else f
-        before, after = f[:, 1] < STEP_AT, f[:, 1] >= STEP_AT
+        f = np.array(rec.fused, float).reshape(-1, 2)
+        t_true = f[:, 1] / SPEED  # the train cruises: its count is its sampling time
+        e = f[:, 0] - t_true
+        before, after = t_true < STEP_AT, t_true >= STEP_AT
         row["time_err_ms"] = 1e3 * float(np.max(np.abs(e[after] - e[before][-1]))) \
             if after.any() and before.any() else math.nan
     return row

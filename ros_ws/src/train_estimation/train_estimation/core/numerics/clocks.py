@@ -547,9 +547,8 @@ class StreamClock:
         """(drift, its standard error): the clock's rate minus 1 (s/s) against the arrival
         clock, least squares with one intercept per level of the offset (:meth:`rate_point`);
         (0, inf) until ``min_n`` readings (in blocks, three at least) over ~``min_span`` s of
-        arrivals are in, or when the
-        fit says more than 10 % (not a clock). Kept until the fit changes (the runner asks for
-        it at every message)."""
+        arrivals are in, or when the fit says more than 10 % (not a clock). Kept until the fit
+        changes (the runner asks for it at every message)."""
         key = (min_n, min_span)
         if key not in self._rates:
             self._rates[key] = self._rate_of(min_n, min_span)
