@@ -244,6 +244,11 @@ def plan(quick: bool, seeds: int, estimators, only, phase_names=None, long: floa
             add(F.Fault("node_stall", L, cruise), L)
         for cap in ((5.0,) if quick else (1.0, 5.0)):
             faults.append((F.Fault("latency", cap, 0.0), short))
+        # a link that queues a second's readings every 30 s and then delivers them faster
+        # than they were sampled, on a jittery link: their lateness falls reading after
+        # reading, which no clock step does
+        for r in (((1.5,) if scenario == "metro_demo" else ()) if quick else (1.2, 1.5, 2.0)):
+            faults.append((F.Fault("queue", r, 0.5 * F.QUEUE_EVERY, jitter=JITTER), short))
         drift_duration = short if quick else min(3600.0, long or math.inf)
         for d in ((-1e-2,) if quick else (-1e-2, -1e-3, 1e-3, 1e-2)):
             faults.append((F.Fault("drift", d, 0.0), drift_duration))
@@ -419,7 +424,7 @@ def print_table(groups: list[dict]) -> None:
           "RMS err m | err to end+10 s m | non-PD cov | exceptions |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for g in groups:
-        at = "-" if g["kind"] in ("none", "drift", "fuzz", "latency", "first_count",
+        at = "-" if g["kind"] in ("none", "drift", "fuzz", "latency", "queue", "first_count",
                                       "start_offset", "odometer_scale") else \
             f"{g['at']:g} s {g['phase']}".strip()
         if g["na"]:

@@ -257,3 +257,64 @@ def test_a_step_of_a_whole_period_is_still_a_step():
     acts = answers[-1]
     assert acts[0][0] == STEP and acts[0][1] == pytest.approx(-1.0, abs=1e-9)
     assert not any(a[0] == SKIP for ans in answers for a in ans)
+
+
+def test_kendall_tail_is_the_exact_share_of_orders():
+    import itertools
+
+    from train_estimation.core.numerics.clocks import kendall_tail
+    for n in range(1, 7):
+        perms = list(itertools.permutations(range(n)))
+        inv = [sum(p[i] > p[j] for i in range(n) for j in range(i + 1, n)) for p in perms]
+        for k in range(n * (n - 1) // 2 + 1):
+            assert kendall_tail(n, k) == pytest.approx(sum(v <= k for v in inv) / len(perms),
+                                                       rel=1e-12)
+
+
+def test_a_draining_queue_is_no_step():
+    """A link that holds its packets for a second, then delivers them 1.5 times as fast as
+    they were sampled: the readings come late by a latency that falls to nothing, so their
+    offsets climb back to the clock. Without a sample counter nine of them were taken for a -0.78 s
+    step and every later reading was fused that far off its time."""
+    rng = np.random.default_rng(3)
+    f = Feed()
+    acts = []
+    for k in range(400):
+        t = 1000.0 + k * PERIOD
+        lat = LATENCY + rng.exponential(0.03)
+        if 200 <= k < 230:  # the queue: 1 s late at k = 200, drained by k = 230
+            lat += 1.0 - (k - 200) * PERIOD / 3.0
+        acts.append((t + lat, t))
+    for arrival, t in sorted(acts):
+        for act in f.push(t, arrival):
+            assert act[0] != STEP, act
+    assert f.w.shift == 0.0
+    # every reading judged on its own clock: admitted at its own stamp (late ones rewound)
+    assert sorted(f.admitted) == pytest.approx([1000.0 + k * PERIOD for k in range(400)])
+
+
+def test_a_late_reading_of_a_forward_step_joins_it():
+    """After a +0.5 s step the third reading of the new clock arrives 0.33 s late: within the
+    bar of the old clock's centre, but above its ceiling, where no latency puts a reading of
+    the old clock. It joins the held readings; taken as the old clock's, it released them
+    (refused as stamped ahead) and the step was absorbed, 0.5 s off to the end."""
+    rng = np.random.default_rng(5)
+    f = Feed()
+    for k in range(300):
+        t = 1000.0 + k * PERIOD
+        f.push(t, t + LATENCY + rng.exponential(0.03))
+    step, acts = 0.5, []
+    # the third 0.33 s late: 0.17 s above the old clock's ceiling, within its bar (0.2 s)
+    lats = [0.01, 0.02, 0.33, 0.3] + [0.01] * 12
+    assert 0.05 < step - lats[2] - (-LATENCY - f.w.clock.ceiling) < f.w.bar(f.w.clock)
+    new = sorted((1000.0 + (300 + i) * PERIOD + LATENCY + lat, 1000.0 + (300 + i) * PERIOD)
+                 for i, lat in enumerate(lats))
+    for arrival, t in new:
+        acts += f.push(t + step, arrival)
+    kinds = [a[0] for a in acts]
+    assert REFUSE not in kinds
+    assert kinds.count(STEP) == 1
+    assert f.w.shift == pytest.approx(step, abs=0.05)
+    # every reading of the new clock admitted on the old timeline, at its sampling time
+    assert f.admitted[-len(lats):] == pytest.approx(
+        [1000.0 + (300 + i) * PERIOD for i in range(len(lats))], abs=0.05)

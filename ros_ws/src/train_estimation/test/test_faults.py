@@ -116,6 +116,24 @@ def test_a_stall_delivers_its_backlog_in_one_burst(kind):
     assert [r for *_, r in fl.events] == sorted(r for *_, r in fl.events)
 
 
+def test_a_queue_holds_the_readings_then_delivers_them_faster():
+    """Every QUEUE_EVERY s from ``at``: a train reading sampled u s into an episode comes
+    QUEUE_BACKLOG - u (1 - 1/r) s late, until that is 0; stamps, values and commands untouched."""
+    r, at = 2.0, 5.0
+    fl = F.inject(clean(80.0), F.Fault("queue", r, at), np.random.default_rng(0))
+    for k, s, _f, rc in fl.events:
+        t = s - F.EPOCH
+        u = (t - at) % F.QUEUE_EVERY
+        extra = F.QUEUE_BACKLOG - u * (1.0 - 1.0 / r) if k != "control" and t >= at and \
+            u * (1.0 - 1.0 / r) < F.QUEUE_BACKLOG else 0.0
+        assert rc - F.EPOCH == pytest.approx(t + F.LATENCY + extra, rel=0, abs=1e-5)
+    # the first reading of each episode is the latest, 1 s; each queue drains in 2 s
+    lat = {round(s - F.EPOCH, 3): rc - s for k, s, _f, rc in fl.events if k == "odometer"}
+    assert lat[5.0] == pytest.approx(F.LATENCY + 1.0) and lat[35.0] == pytest.approx(1.05)
+    assert lat[7.0] == pytest.approx(F.LATENCY) and lat[6.0] == pytest.approx(0.55)
+    assert [r for *_, r in fl.events] == sorted(r for *_, r in fl.events)
+
+
 def test_latency_tail_is_capped_and_heavy():
     fl = F.inject(clean(300.0), F.Fault("latency", 5.0, 0.0), np.random.default_rng(1))
     lat = np.array([r - s for k, s, f, r in fl.events if k == "odometer"])
@@ -162,8 +180,9 @@ def test_score_counts_wrong_side_and_time_to_alarm():
 @pytest.mark.parametrize("fault", [
     F.Fault("none"), F.Fault("stamp", 60.0, 10.0), F.Fault("step", -3.0, 10.0),
     F.Fault("drift", -1e-2), F.Fault("outage", 5.0, 10.0), F.Fault("command_stop", 0.0, 10.0),
-    F.Fault("latency", 5.0), F.Fault("recorder_stall", 4.0, 10.0),
-    F.Fault("node_stall", 4.0, 10.0), F.Fault("fuzz", 0.5), F.Fault("balise", 10.0, 5.0),
+    F.Fault("latency", 5.0), F.Fault("queue", 1.5, 5.0, jitter=0.05),
+    F.Fault("recorder_stall", 4.0, 10.0), F.Fault("node_stall", 4.0, 10.0),
+    F.Fault("fuzz", 0.5), F.Fault("balise", 10.0, 5.0),
     F.Fault("reboot", 3.0, 10.0)],
     ids=lambda f: f.kind)
 def test_one_case_of_each_fault_class_runs_through_an_estimator(fault):

@@ -66,12 +66,15 @@ def cruise(duration: float, rate: float, loss: float, counter: bool,
 
 
 def run_link(duration: float, rate: float, counter: bool, jitter: float, loss: float,
-             step: float | None, seed: int) -> dict:
-    """One replay (module doc); the figures of one row."""
+             step: float | None, seed: int, queue: float | None = None) -> dict:
+    """One replay (module doc); the figures of one row. ``queue``: the drain factor of a link
+    that queues (the campaign's fault ``queue``, from 15 s on; no step then)."""
     rng = np.random.default_rng(seed)
     events = cruise(duration, rate, loss, counter, rng)
     fault = F.Fault("none", jitter=jitter) if step is None else \
         F.Fault("step", step, STEP_AT, jitter=jitter)
+    if queue is not None:
+        fault = F.Fault("queue", queue, 0.5 * F.QUEUE_EVERY, jitter=jitter)
     faulted = F.inject(events, fault, rng)
     rec = Recorder()
     runner = EstimatorRunner(rec, 1.0 / rate)
@@ -101,6 +104,11 @@ def run_link(duration: float, rate: float, counter: bool, jitter: float, loss: f
     # one clock (the commands' and the readings' share the epoch and the rate): judged so?
     row["separate"] = runner.separate_clocks
     row["drift_ppm"] = 1e6 * train.rate()[0] if train is not None else math.nan
+    # the filter time of each reading fused against its true sampling time, relative to the
+    # first (the filter's time origin is its own); with a step, from the last one before it
+    f = np.array(rec.fused, float).reshape(-1, 2)
+    e = f[:, 0] - f[:, 1] / SPEED  # the train cruises: its count is its sampling time
+    row["time_err_all_ms"] = 1e3 * float(np.max(np.abs(e - e[0]))) if e.size else math.nan
     if step is not None:
         row["shift_err_ms"] = 1e3 * (runner._steps.shift - step)
         t_dec, n_new = decided[0] if decided else (math.nan, math.nan)

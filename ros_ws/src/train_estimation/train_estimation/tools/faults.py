@@ -21,6 +21,11 @@ command_stop     (none): no control message from ``at`` on, odometer readings go
 latency          s: largest link latency of odometer and balise readings from ``at`` on; the
                  latency is ``LATENCY`` s times a Pareto(1.5) factor (1 % above 1 s, 0.1 %
                  above 5 s), capped at ``size``; the stream is then in arrival order
+queue            r (> 1): every ``QUEUE_EVERY`` s from ``at`` on the link holds the odometer and
+                 balise readings for ``QUEUE_BACKLOG`` s, then delivers the queue ``r`` times
+                 as fast as it was sampled: a reading sampled ``u`` s into an episode comes
+                 ``QUEUE_BACKLOG - u (1 - 1 / r)`` s later (a congested radio cell, a modem
+                 that retransmits); stamps and values untouched
 recorder_stall   s: odometer and balise readings arriving in ``[at, at + size)`` are logged at
                  ``at + size`` (the recorder's subscription blocked; commands unaffected)
 node_stall       s: every message arriving in ``[at, at + size)`` is taken at ``at + size``
@@ -88,7 +93,10 @@ START_SLOTS = 2  # odometer slots of a run's start-up, not counted in ``availabi
 AVAILABLE_LAG = 1.0  # s: an OK estimate published further from the time it claims is not
 #   available (counted in ``availability``)
 TRAIN_TOPICS = ("odometer", "balise")
-KINDS = ("none", "stamp", "step", "drift", "outage", "command_stop", "latency", "recorder_stall",
+QUEUE_EVERY = 30.0  # s between the starts of two episodes of the "queue" kind
+QUEUE_BACKLOG = 1.0  # s, the delay of the first reading of an episode ("queue")
+KINDS = ("none", "stamp", "step", "drift", "outage", "command_stop", "latency", "queue",
+         "recorder_stall",
          "node_stall", "fuzz", "balise", "odometer_scale", "stuck", "seq_skip", "reboot",
          "first_count", "start_offset")
 # stamps a few seconds to minutes off: inside the runner's max_future (600 s), so the door lets
@@ -247,6 +255,10 @@ def inject(events: list, fault: Fault, rng: np.random.Generator) -> Faulted:
             recv = t + min(size, LATENCY * (1.0 + rng.pareto(1.5)))
         if fault.jitter and train:
             recv += rng.exponential(fault.jitter)
+        if k == "queue" and train and t >= at:
+            u, slope = (t - at) % QUEUE_EVERY, 1.0 - 1.0 / size
+            if u * slope < QUEUE_BACKLOG:
+                recv += QUEUE_BACKLOG - u * slope
         if k == "recorder_stall" and train or k == "node_stall":
             if at <= recv < at + size:
                 recv = at + size

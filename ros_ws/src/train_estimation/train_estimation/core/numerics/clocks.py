@@ -42,6 +42,7 @@ import bisect
 import math
 from collections import deque
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
@@ -226,6 +227,9 @@ def clock_rate_change(stamps, recv, n_times: int = 81) -> dict | None:
 
 # -- online ----------------------------------------------------------------------------------
 
+TREND_WAIT = 0.05  # -, a held step's rank trend towards its old clock at which its decision
+#   waits for more readings (StepWatch._returning): a true step waits with this probability
+TIE = 1e-3  # s: offsets closer than this (or than the arrivals' resolution) have no order
 SMALL_MOVE = 0.05  # s: the least move of a clock's offset level taken as one (the runner's
 #   small_step); smaller moves are jitter and drift
 MAX_SPEED = 200.0  # m/s, beyond any train (720 km/h): a reading claiming more is corrupt
@@ -260,6 +264,33 @@ def is_step(chain: list, n: int, period: float) -> bool:
         return False
     (s0, a0), (s1, a1) = chain[0], chain[-1]
     return s1 - s0 >= 0.5 * (len(chain) - 1) * period and paced((s0, a0), (s1, a1))
+
+
+@lru_cache(maxsize=64)
+def _mahonian(n: int) -> tuple:
+    """Cumulative counts of the permutations of ``n`` items by their number of inversions."""
+    row = [1]
+    for k in range(2, n + 1):  # insert the k-th item: it adds 0..k-1 inversions
+        nxt = [0] * (len(row) + k - 1)
+        for i, c in enumerate(row):
+            for j in range(k):
+                nxt[i + j] += c
+        row = nxt
+    out, acc = [], 0
+    for c in row:
+        acc += c
+        out.append(acc)
+    return tuple(out)
+
+
+def kendall_tail(n: int, inversions: int) -> float:
+    """P(a uniformly random order of ``n`` distinct values has at most ``inversions``
+    pairs out of order): the exact one-sided tail of Kendall's rank statistic, free of the
+    values' distribution."""
+    if n < 2:
+        return 1.0
+    cum = _mahonian(n)
+    return cum[min(max(inversions, 0), len(cum) - 1)] / cum[-1]
 
 
 class StreamClock:
@@ -790,6 +821,15 @@ class StepWatch:
     no step (they are released as late). A step within the bar is not told from arrival jitter
     and not re-anchored; without arrival times only steps beyond ``TOL`` are seen.
 
+    Whatever its size, a step moves every later offset alike, so the held readings' offsets,
+    in stamp order, are exchangeable under it; a link that queued them and now delivers them
+    faster than they were sampled makes them climb back to the old clock instead. Kendall's
+    rank test (:meth:`_returning`, exact and free of the latency's distribution) releases them
+    at a p-value within ``trend_risk`` and makes the decision wait for more readings within
+    ``TREND_WAIT``. A reading of a forward step's clock that came with enough latency to lie
+    within the bar of the old clock but above its ceiling, where latency never puts the old
+    clock's readings, joins the held ones instead of releasing them (:meth:`_above_old`).
+
     Where the train's sample grid is known (:class:`SampleGrid`, fed by :meth:`admitted`) it
     decides first: a reading on the grid is continuous however late it arrives, one off it is
     discontinuous however small the move, held readings belong to one new clock when their grid
@@ -805,8 +845,11 @@ class StepWatch:
 
     def __init__(self, period: float, min_judged: int = 9, step_back: float = 0.3,
                  small_step: float = 0.05, small_step_z: float = 10.0,
-                 max_future: float = 600.0, same: bool = False):
+                 max_future: float = 600.0, same: bool = False, trend_risk: float = 1e-3):
         self.period = period  # s, nominal odometer period
+        self.trend_risk = trend_risk  # -, the probability that a true step's held readings
+        #   look like a draining queue (:meth:`_returning`) and are released: it delays the
+        #   step's decision, never makes one
         self.min_judged = min_judged  # arrivals before a clock is judged; readings in a step
         self.back = max(step_back, 2.5 * period)  # s: the bar on a jittery link (class doc)
         self.small_step, self.small_step_z = small_step, small_step_z
@@ -949,6 +992,9 @@ class StepWatch:
         seq = fields.get("seq") if isinstance(fields, dict) else None
         if r is not None:
             continuous = abs(r) <= self.grid.tol_at(seq)
+        if continuous and kind == "odometer" and r is None and \
+                self._above_old(chain, stamp - arrival, recv, bar):
+            continuous = False  # on the held readings' clock: it joins them (below)
         if kind != "odometer" and chain:
             # a balise while odometer readings are held as a possible step: its stamp is on
             # the same clock, in the same doubt, and waits with them (taken at once, a balise
@@ -970,7 +1016,8 @@ class StepWatch:
                 joins = abs(r - rs[len(rs) // 2]) <= self.grid.tol_at(seq)
             else:
                 joins = continues((s1, a1), (stamp, arrival)) or \
-                    self._joins(chain, stamp, arrival, bar)
+                    self._joins(chain, stamp, arrival, bar) or \
+                    self._above_old(chain, stamp - arrival, recv, bar)
             if not joins:
                 yield from self._release()
                 chain = []
@@ -989,6 +1036,18 @@ class StepWatch:
         offs = sorted(h[1] - h[4] for h in chain)  # the new clock's offsets (stamp - arrival)
         new_off = offs[len(offs) // 2]
         rs = self._chain_resid(chain)
+        p_trend = self._returning(chain, med) if rs is None else 1.0
+        if p_trend <= self.trend_risk:
+            # the held readings drift back towards the old clock: a queue draining (a link
+            # that delayed its packets by a second, then delivered them faster than they were
+            # sampled), not a step, which moves every later offset alike; late readings
+            # (released, fused by rewinding)
+            yield from self._release()  # this reading with them: judged there
+            yield (HOLD,)
+            return
+        if p_trend <= TREND_WAIT:  # undecided: the next readings tell
+            yield (PASS, stamp) if refused else (HOLD,)
+            return
         if rs is not None:
             # the grid measures the step exactly (the link's jitter does not enter)
             shift = rs[len(rs) // 2]
@@ -1045,6 +1104,64 @@ class StepWatch:
                 abs(st - ar - new_off) <= abs(st - ar - med.value)
             yield ADMIT, (k, st - shift if on_new else st, f, rc, ar)
         yield PASS, stamp - shift
+
+    def _returning(self, chain: list, med: StreamClock) -> float:
+        """How likely, were the held odometer readings (``chain``, in stamp order; arrivals
+        known, the clock judged) a step, a trend of their offsets back towards the old clock at
+        least as strong as theirs: the exact one-sided p-value of Kendall's rank statistic
+        (:func:`kendall_tail`); 1 when it cannot be judged.
+
+        A step moves the offsets of every later reading alike: in stamp order they are the
+        new level less independent latencies, exchangeable, so that each order of their ranks
+        is as likely as any other whatever the link's latency distribution. A queue that
+        drains does not: its readings came late by a latency that falls reading after
+        reading, so their offsets climb back to the old clock in stamp order (a link that
+        held its packets for a second, then delivered 20 readings in 1 s: nine of them, 1.0
+        to 0.6 s late, were taken for a -0.78 s step, and every later reading was fused 0.78
+        s off its time). :meth:`watch` releases them at a p-value within ``trend_risk`` (the
+        rate at which a true step's readings are released: its decision then waits for the
+        next ones) and waits for more readings within ``TREND_WAIT`` (a queue that drains
+        slowly against the link's jitter shows its trend over more readings)."""
+        if len(med) < self.min_judged or any(h[3] is None for h in chain):
+            return 1.0
+        drift = med.drift  # the clock's own rate moves the offsets too: taken out
+        a0 = chain[0][4]
+        offs = [h[1] - h[4] - drift * (h[4] - a0) for h in chain]
+        n = len(offs)
+        # inversions towards the old clock: pairs (earlier stamp, later stamp) whose later
+        # offset is nearer the old clock's centre (above it for readings held below it)
+        # (offsets within TIE of each other are ties, counted half: a link without jitter
+        # gives equal offsets up to rounding, which has no order)
+        up = 1.0 if sorted(offs)[n // 2] < med.value_at(a0, drift) else -1.0
+        tie = max(self.resolution, TIE)
+        inv = 0.0
+        for i in range(n):
+            for j in range(i + 1, n):
+                d = up * (offs[i] - offs[j])
+                inv += 1.0 if d > tie else 0.5 if d >= -tie else 0.0
+        return kendall_tail(n, math.ceil(inv))
+
+    def _above_old(self, chain: list, v: float, recv, bar: float) -> bool:
+        """Whether a reading of offset ``v`` (stamp - arrival) that is within the bar of the
+        old clock lies on the clock of the odometer readings held above it (``chain``, a
+        possible forward step) instead: above the old clock's ceiling by more than
+        ``small_step`` -- where no latency puts a reading of the old clock, since latency only
+        lowers an offset and the ceiling is the offset of the least latency seen -- and not
+        above the held readings' own offsets by more than the bar (some latency on their
+        clock). The bar is a tolerance for the old clock's jitter below its centre; above its
+        ceiling there is none to tolerate: after a +0.5 s step on a 50 ms jittery link the
+        third reading of the new clock, 0.23 s late, lay 0.26 s above the ceiling, within the
+        0.3 s bar; taken as the old clock's, it released the two held before it (refused as
+        stamped ahead), lifted the ceiling, and the step was absorbed: the rest of the run was
+        fused 0.5 s off its time."""
+        if self.same or not chain or recv is None or any(h[3] is None for h in chain) or \
+                len(self.clock) < self.min_judged:
+            return False
+        offs = sorted(h[1] - h[4] for h in chain)
+        ceiling = self.clock.ceiling
+        if not (math.isfinite(ceiling) and offs[len(offs) // 2] > ceiling + bar):
+            return False  # the held readings are no forward step
+        return self.clock.above(v) > self.small_step and v <= offs[-1] + bar
 
     def _sampled_before(self, chain: list, stamp: float, seq, r) -> bool:
         """Whether a reading on the old clock was sampled before the held ones (``chain``, the
