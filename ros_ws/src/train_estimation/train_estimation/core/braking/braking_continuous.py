@@ -14,7 +14,7 @@ from ..numerics import bank, smc
 from ..numerics.bank import log_normalize
 from ..numerics.batched_kf import mixture_moments
 from ..numerics.smc import systematic_resample
-from . import braking_compiled
+from . import braking_inplace
 from .braking_base import RaoBlackwellFilter, _Set, _wsum
 
 __all__ = ["QGRBPF", "RandomWalkRBPF"]
@@ -107,7 +107,7 @@ class QGRBPF(_ContinuousBase):
     def _initial_logw(self, N):
         return self._gh[1].copy() if self.quadrature else None
 
-    def _fused(self, s, due, informative, common, rng, tdt):
+    def _draws(self, N, due, rng, tdt):
         # the numpy form's draws: N standard normals (and their normal CDF) per redraw
         z, uz, gh_lw = _NO_DRAW2, _NO_DRAW, _NO_DRAW
         if due:
@@ -117,10 +117,16 @@ class QGRBPF(_ContinuousBase):
             else:
                 z = rng.standard_normal((self.n, self.family.d))
                 uz = ndtr(z[:, 0])
-        return braking_compiled.qgrbpf_step(
-            float(self.lo[0]), float(self.hi[0]), float(self.braking_rate_q[0, 0] * tdt),
-            self.min_var, self.quadrature, z, uz, -np.log(self.n), gh_lw, s.theta, s.x, s.P,
-            s.logw, due, informative, *common)
+        return float(self.braking_rate_q[0, 0] * tdt), z, uz, gh_lw
+
+    def _fused(self, buf, N, due, informative, common, draws):
+        k = self.__dict__.get("_kconst")
+        if k is None:
+            k = self._kconst = (float(self.lo[0]), float(self.hi[0]))
+        qdt, z, uz, gh_lw = draws
+        return braking_inplace.qgrbpf_run(
+            *k, qdt, self.min_var, self.quadrature, z, uz, -np.log(self.n), gh_lw, buf.th,
+            buf.x, buf.P, buf.lw, buf.idx, N, due, informative, *common)
 
     def _transition(self, s, informative, rng, dt):
         if not informative:
@@ -198,12 +204,20 @@ class RandomWalkRBPF(_ContinuousBase):
         ev, V = np.linalg.eigh(self.braking_rate_q)
         self._L = V * np.sqrt(np.clip(ev, 0.0, None))
 
-    def _fused(self, s, due, informative, common, rng, tdt):
-        z = rng.standard_normal(s.theta.shape) if due else _NO_DRAW2
-        out = braking_compiled.random_walk_step(
-            float(self.lo[0]), float(self.hi[0]), float(np.sqrt(tdt)), float(self._L[0, 0]), z,
-            s.theta, s.x, s.P, s.logw, due, informative, *common)
-        return self._resample_if(out, informative, rng, self.ess_frac)
+    def _draws(self, N, due, rng, tdt):
+        return float(np.sqrt(tdt)), (rng.standard_normal((N, 1)) if due else _NO_DRAW2)
+
+    def _fused(self, buf, N, due, informative, common, draws):
+        k = self.__dict__.get("_kconst")
+        if k is None:
+            k = self._kconst = (float(self.lo[0]), float(self.hi[0]))
+        sqdt, z = draws
+        return braking_inplace.random_walk_run(
+            *k, sqdt, float(self._L[0, 0]), z, buf.th, buf.x, buf.P, buf.lw, buf.idx, N, due,
+            informative, *common)
+
+    def _after_fused(self, buf, N, E, rng):
+        self._resample_if(buf, N, E, rng, self.ess_frac)
 
     def _transition(self, s, informative, rng, dt):
         if not informative:

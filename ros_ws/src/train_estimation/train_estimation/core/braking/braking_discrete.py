@@ -12,7 +12,7 @@ from scipy.special import ndtr
 
 from ..numerics.bank import log_normalize
 from ..numerics.smc import systematic_resample
-from . import braking_compiled
+from . import braking_inplace
 from .braking_base import RaoBlackwellFilter, _Set
 
 _NO_DRAW = np.zeros(0)  # a step's random numbers when it draws none
@@ -204,16 +204,21 @@ class DiscreteRBPF(_DiscreteBase):
         return _Set(self.values[idx][:, None], s.x[parent], s.P[parent], s.logw[parent], idx,
                     {"logp": logp, "N": N, "kmax": kmax})
 
-    def _fused(self, s, due, informative, common, rng, tdt):
-        # the numpy form's draws: the transition's uniforms, the resampling's one uniform
+    def _draws(self, N, due, rng, tdt):
+        # the numpy form's draws: the transition's uniforms (the resampling's one uniform:
+        # _after_fused, only when it resamples)
+        return rng.random(N) if due else _NO_DRAW
+
+    def _fused(self, buf, N, due, informative, common, draws):
         k = self.__dict__.get("_kconst")
         if k is None:  # writeable copies of the frozen tables, for the compiled call
             k = self._kconst = (np.array(self.values), np.array(self._cell_var),
                                 np.array(self.cdf))
-        uni = rng.random(s.idx.size) if due else _NO_DRAW
-        out = braking_compiled.discrete_step(*k, uni, s.theta, s.x, s.P, s.logw, s.idx, due,
-                                             informative, *common)
-        return self._resample_if(out, informative, rng, self.ess_frac)
+        return braking_inplace.discrete_run(*k, draws, buf.th, buf.x, buf.P, buf.lw, buf.idx,
+                                            N, due, informative, *common)
+
+    def _after_fused(self, buf, N, E, rng):
+        self._resample_if(buf, N, E, rng, self.ess_frac)
 
     def _reduce(self, s, loglik, informative, rng):
         if "logp" not in s.extra:
@@ -283,7 +288,7 @@ class _BranchingFilter(_DiscreteBase):
         self.q_max = int(q_max)
         self._freeze("allowed", "_logprior")
 
-    def _fused(self, s, due, informative, common, rng, tdt):
+    def _fused(self, buf, N, due, informative, common, draws):
         k = self.__dict__.get("_kconst")
         if k is None:  # writeable copies of the frozen tables; the children as CSR rows
             rows = [np.flatnonzero(r) for r in self.allowed]
@@ -291,10 +296,10 @@ class _BranchingFilter(_DiscreteBase):
             ptr[1:] = np.cumsum([r.size for r in rows])
             k = self._kconst = (np.array(self.values), np.array(self._cell_var), ptr,
                                 np.concatenate(rows).astype(np.int64),
-                                np.array(self._logprior))
-        return braking_compiled.branching_step(*k, self.merge, self.q_max, self.n_keep,
-                                               s.theta, s.x, s.P, s.logw, s.idx, due,
-                                               informative, *common)
+                                np.array(self._logprior), self.merge, self.q_max,
+                                self.n_keep)
+        return braking_inplace.branching_run(*k, buf.th, buf.x, buf.P, buf.lw, buf.idx, N,
+                                             due, informative, *common)
 
     def _transition(self, s, informative, rng, dt):
         if not informative:
