@@ -227,7 +227,7 @@ class _Buffers:
     """The particle set of the compiled steps (``braking_inplace``): preallocated arrays
     whose first ``n`` rows are the set, and the ``_Set`` of views of them (one per size)."""
 
-    __slots__ = ("th", "x", "P", "lw", "idx", "discrete", "n", "cur", "views")
+    __slots__ = ("th", "x", "P", "lw", "idx", "discrete", "n", "cur", "views", "arrays")
 
     def __init__(self, cap: int, n: int, d: int, discrete: bool):
         self.th = np.empty((cap, d))
@@ -249,12 +249,13 @@ class _Buffers:
             self.views[N] = v
         self.n = N
         self.cur = v
+        self.arrays = (v.theta, v.x, v.P, v.logw)
         return v
 
     def holds(self, s: _Set) -> bool:
         """``s`` is the buffers' current set, none of its arrays replaced."""
-        return (s is self.cur and s.x.base is self.x and s.P.base is self.P
-                and s.theta.base is self.th and s.logw.base is self.lw)
+        th, x, P, lw = self.arrays
+        return s is self.cur and s.x is x and s.P is P and s.theta is th and s.logw is lw
 
 
 _BANK_REASONS = {bank.NAN_LIK: "numerical failure: NaN likelihood",
@@ -266,6 +267,7 @@ _ONE = np.ones(1)  # the braking-rate argument of an informative step (unused: t
 # a step without prediction (dt = 0): bank_step's arguments
 _NO_PREDICT = (False, *braking_inplace.pack_pred(bank._NO_PREDICT, np.zeros(1)))
 _MASKS: dict = {}
+_BAD = (None, None, None, None, None)  # a rejected input's other return values
 _ALL_ROWS: dict = {}
 
 
@@ -461,7 +463,9 @@ class RaoBlackwellFilter:
             # stop) or add Monte-Carlo drift to its mean (redraws, sampling). A reading stamped
             # at the time an output already predicted to (dt = 0) takes the due transition.
             due = informative and fused and since > 0 and since >= self.transition_interval
-            if self._fused_ok():
+            ok = self.__dict__.get("_fused_flag")  # (_fused_ok, inlined: once per step)
+            if ok[1] if ok is not None and ok[0] == self.__dict__.get("_bank_ok") else (
+                    self._fused_ok()):
                 out = self._fused_step(s, u, dt, since, due, informative, y_arr, mask_arr, R,
                                        fused, t, rng)
                 if isinstance(out, str):
@@ -541,17 +545,17 @@ class RaoBlackwellFilter:
             pred = hit[2]
         else:
             pred = _NO_PREDICT
-        H, sel = self._bank_rows()
-        rows = _ALL_ROWS[H.shape[0]] if mask is _rows_mask(H.shape[0], True) else (
-            np.flatnonzero(mask))
+        kc = self._kc
+        if kc[0] is not self.family.H:  # the family's rows changed: pack them again
+            kc = self._pack()
         E = np.empty(self._esize)
-        common = (*pred, y, H, R, rows, sel, self._ri64, E)
+        common = (*pred, y, R, kc[3] if mask is kc[2] else np.flatnonzero(mask), E)
         N = buf.n
         draws = self._draws(N, due, rng, since)
-        status, N2 = self._fused(buf, N, due, informative, common, draws)
+        status, N2 = self._fused(kc[1], buf, N, due, informative, common, draws)
         if status == braking_inplace.GROW:  # the same numbers again, into larger buffers
             buf = self._load(buf.view(N), N2)
-            status, N2 = self._fused(buf, N, due, informative, common, draws)
+            status, N2 = self._fused(kc[1], buf, N, due, informative, common, draws)
         if status != bank.OK:
             return _STEP_REASONS[status]
         if informative:
@@ -587,22 +591,45 @@ class RaoBlackwellFilter:
             buf.idx[:N] = s.idx
         buf.view(N)
         self._buf = buf
-        ri = self._report_index(n, d)[0]
-        self._ri64 = np.ascontiguousarray(ri, dtype=np.int64)
-        self._lay = (n, n + d, ri.size)
-        self._esize = braking_inplace.e_size(n + d, ri.size)
+        self._fused_layout(self._report_index(n, d)[0], n, n + d)
         return buf
+
+    _kc = None  # (family.H, the packed constants, the all-rows mask, its rows)
+
+    def _fused_layout(self, ri, n, m):
+        """The estimate's layout for ``braking_inplace`` (report index ``ri``, ``n`` linear
+        states of ``m``) and the packed constants, if not packed yet for these rows."""
+        self._ri_fused = ri
+        self._lay = (n, m, ri.size)
+        self._esize = braking_inplace.e_size(m, ri.size)
+        if self._kc is None or self._kc[0] is not self.family.H:
+            self._pack()
+
+    def _pack(self):
+        """The compiled step's constants (``braking_inplace.pack_const``: the family's rows,
+        the report index, the algorithm's tables), with the all-rows mask and its rows."""
+        fam = self.family
+        H, sel = self._bank_rows()
+        p = H.shape[0]
+        self._kc = (fam.H, braking_inplace.pack_const(H, sel, self._ri_fused, *self._tables()),
+                    _rows_mask(p, True), _ALL_ROWS[p])
+        return self._kc
+
+    def _tables(self):
+        """``(floats, ints)``: this algorithm's constant tables, in the order its compiled
+        step reads them (``braking_inplace``)."""
+        return (), ()
 
     def _draws(self, N, due, rng, tdt):
         """The random numbers this step's kernel needs, drawn from ``rng`` as the numpy form
         draws them (N particles; the transition ``due`` over ``tdt`` seconds)."""
         return ()
 
-    def _fused(self, buf, N, due, informative, common, draws):
-        """This algorithm's compiled step (``braking_inplace``) on the buffers ``buf`` holding
-        N particles: its transition if ``due``, the bank with the prediction, update and
-        estimate arguments ``common``, its reduction. Returns ``(status, N')``. Not here: the
-        base class has none."""
+    def _fused(self, kc, buf, N, due, informative, common, draws):
+        """This algorithm's compiled step (``braking_inplace``) with its constants ``kc`` on
+        the buffers ``buf`` holding N particles: its transition if ``due``, the bank with the
+        prediction, update and estimate arguments ``common``, its reduction. Returns
+        ``(status, N')``. Not here: the base class has none."""
         raise NotImplementedError
 
     def _after_fused(self, buf, N, E, rng) -> None:
@@ -702,7 +729,7 @@ class RaoBlackwellFilter:
     def _validate(self, a_tar, y, mask, t, meas_var, d):
         fam = self.family
         p = fam.H.shape[0]
-        bad = (None, None, None, None, None)
+        bad = _BAD
         try:
             a = float(a_tar)
             dd = float(d)
@@ -743,7 +770,9 @@ class RaoBlackwellFilter:
             if y_arr.shape != (p,):
                 return (f"bad measurement shape: {y_arr.shape} != ({p},)", *bad)
             if mask is None:
-                mask_arr = _rows_mask(p, True)
+                mask_arr = _MASKS.get((p, True))
+                if mask_arr is None:
+                    mask_arr = _rows_mask(p, True)
                 fused = p > 0
                 acc = 0.0
                 for v in y_arr.tolist():
@@ -759,7 +788,8 @@ class RaoBlackwellFilter:
             if not finite:
                 return (f"non-finite measurement: {y_arr[mask_arr].tolist()}", *bad)
         if meas_var is None:
-            R = self._R0()
+            R = self.__dict__.get("_r0")
+            R = R[1] if R is not None and R[0] is fam.R else self._R0()
         else:
             R = np.array(meas_var, dtype=np.float64).reshape(-1)
             if R.shape != (p,):

@@ -119,14 +119,12 @@ class QGRBPF(_ContinuousBase):
                 uz = ndtr(z[:, 0])
         return float(self.braking_rate_q[0, 0] * tdt), z, uz, gh_lw
 
-    def _fused(self, buf, N, due, informative, common, draws):
-        k = self.__dict__.get("_kconst")
-        if k is None:
-            k = self._kconst = (float(self.lo[0]), float(self.hi[0]))
+    def _fused(self, kc, buf, N, due, informative, common, draws):
         qdt, z, uz, gh_lw = draws
         return braking_inplace.qgrbpf_run(
-            *k, qdt, self.min_var, self.quadrature, z, uz, -np.log(self.n), gh_lw, buf.th,
-            buf.x, buf.P, buf.lw, buf.idx, N, due, informative, *common)
+            *kc, float(self.lo[0]), float(self.hi[0]), qdt, self.min_var, self.quadrature, z,
+            uz, -np.log(self.n), gh_lw, buf.th, buf.x, buf.P, buf.lw, buf.idx, N, due,
+            informative, *common)
 
     def _transition(self, s, informative, rng, dt):
         if not informative:
@@ -207,14 +205,11 @@ class RandomWalkRBPF(_ContinuousBase):
     def _draws(self, N, due, rng, tdt):
         return float(np.sqrt(tdt)), (rng.standard_normal((N, 1)) if due else _NO_DRAW2)
 
-    def _fused(self, buf, N, due, informative, common, draws):
-        k = self.__dict__.get("_kconst")
-        if k is None:
-            k = self._kconst = (float(self.lo[0]), float(self.hi[0]))
+    def _fused(self, kc, buf, N, due, informative, common, draws):
         sqdt, z = draws
         return braking_inplace.random_walk_run(
-            *k, sqdt, float(self._L[0, 0]), z, buf.th, buf.x, buf.P, buf.lw, buf.idx, N, due,
-            informative, *common)
+            *kc, float(self.lo[0]), float(self.hi[0]), sqdt, float(self._L[0, 0]), z, buf.th,
+            buf.x, buf.P, buf.lw, buf.idx, N, due, informative, *common)
 
     def _after_fused(self, buf, N, E, rng):
         self._resample_if(buf, N, E, rng, self.ess_frac)

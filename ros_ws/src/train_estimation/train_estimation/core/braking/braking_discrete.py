@@ -209,12 +209,11 @@ class DiscreteRBPF(_DiscreteBase):
         # _after_fused, only when it resamples)
         return rng.random(N) if due else _NO_DRAW
 
-    def _fused(self, buf, N, due, informative, common, draws):
-        k = self.__dict__.get("_kconst")
-        if k is None:  # writeable copies of the frozen tables, for the compiled call
-            k = self._kconst = (np.array(self.values), np.array(self._cell_var),
-                                np.array(self.cdf))
-        return braking_inplace.discrete_run(*k, draws, buf.th, buf.x, buf.P, buf.lw, buf.idx,
+    def _tables(self):
+        return (self.values, self._cell_var, self.cdf), ()
+
+    def _fused(self, kc, buf, N, due, informative, common, draws):
+        return braking_inplace.discrete_run(*kc, draws, buf.th, buf.x, buf.P, buf.lw, buf.idx,
                                             N, due, informative, *common)
 
     def _after_fused(self, buf, N, E, rng):
@@ -288,18 +287,17 @@ class _BranchingFilter(_DiscreteBase):
         self.q_max = int(q_max)
         self._freeze("allowed", "_logprior")
 
-    def _fused(self, buf, N, due, informative, common, draws):
-        k = self.__dict__.get("_kconst")
-        if k is None:  # writeable copies of the frozen tables; the children as CSR rows
-            rows = [np.flatnonzero(r) for r in self.allowed]
-            ptr = np.zeros(len(rows) + 1, dtype=np.int64)
-            ptr[1:] = np.cumsum([r.size for r in rows])
-            k = self._kconst = (np.array(self.values), np.array(self._cell_var), ptr,
-                                np.concatenate(rows).astype(np.int64),
-                                np.array(self._logprior), self.merge, self.q_max,
-                                self.n_keep)
-        return braking_inplace.branching_run(*k, buf.th, buf.x, buf.P, buf.lw, buf.idx, N,
-                                             due, informative, *common)
+    def _tables(self):
+        # the children of each value as CSR rows of the allowed kernel
+        rows = [np.flatnonzero(r) for r in self.allowed]
+        ptr = np.zeros(len(rows) + 1, dtype=np.int64)
+        ptr[1:] = np.cumsum([r.size for r in rows])
+        return (self.values, self._cell_var, self._logprior), (ptr, np.concatenate(rows))
+
+    def _fused(self, kc, buf, N, due, informative, common, draws):
+        return braking_inplace.branching_run(*kc, self.merge, self.q_max, self.n_keep, buf.th,
+                                             buf.x, buf.P, buf.lw, buf.idx, N, due,
+                                             informative, *common)
 
     def _transition(self, s, informative, rng, dt):
         if not informative:

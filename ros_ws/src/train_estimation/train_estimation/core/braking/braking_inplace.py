@@ -45,8 +45,8 @@ from .braking_compiled import (
     resample,
 )
 
-__all__ = ["GROW", "E_TAIL", "e_size", "pack_pred", "branching_run", "discrete_run",
-           "random_walk_run", "qgrbpf_run", "resample_run", "kf_run", "warm_up"]
+__all__ = ["GROW", "E_TAIL", "e_size", "pack_pred", "pack_const", "pack_kf", "branching_run",
+           "discrete_run", "random_walk_run", "qgrbpf_run", "resample_run", "kf_run", "warm_up"]
 
 GROW = 6  # the new set exceeds the buffers' capacity: nothing written, grow and call again
 E_TAIL = 3  # log evidence, N_eff, particle count at the estimate: the last entries of E
@@ -129,35 +129,88 @@ def _finish(out, tb, xb, Pb, lb, ib, ri, E):
     return OK, x.shape[0]
 
 
+def pack_const(H, sel, ri, floats=(), ints=()):
+    """``(kf, ki)``: a filter's constants as one float64 and one int64 array -- the
+    measurement rows ``H (p, n)``, their selectors ``sel (p,)``, the report index ``ri`` and
+    the algorithm's own tables (``floats``, ``ints``: 1-D or 2-D arrays, in the order its
+    kernel reads them). ``ki[0:16]`` are the boundaries of the float segments in ``kf``,
+    ``ki[16:32]`` those of the integer segments in ``ki`` (H first, then ``floats``; sel, ri,
+    then ``ints``)."""
+    fl = [np.asarray(H, dtype=np.float64)] + [np.asarray(a, dtype=np.float64) for a in floats]
+    it = [np.asarray(sel, dtype=np.int64), np.asarray(ri, dtype=np.int64)] + [
+        np.asarray(a, dtype=np.int64) for a in ints]
+    if len(fl) > 15 or len(it) > 15:
+        raise ValueError("pack_const: at most 15 float and 15 integer arrays")
+    bf = np.zeros(16, dtype=np.int64)
+    bf[1:len(fl) + 1] = np.cumsum([a.size for a in fl])
+    bf[len(fl) + 1:] = bf[len(fl)]
+    bi = np.zeros(16, dtype=np.int64)
+    bi[1:len(it) + 1] = 32 + np.cumsum([a.size for a in it])
+    bi[0] = 32
+    bi[len(it) + 1:] = bi[len(it)]
+    kf = np.concatenate([a.ravel() for a in fl])
+    ki = np.concatenate([bf, bi] + [a.ravel() for a in it])
+    return kf, ki
+
+
 @jit
-def branching_run(values, cell_var, ptr, col, logprior, merge, q_max, n_keep,
-                  tb, xb, Pb, lb, ib, N, due, informative, do_predict, pi, pf, y, H, R, rows,
-                  sel, ri, E):
+def _fseg(kf, ki, k):
+    return kf[ki[k]:ki[k + 1]]
+
+
+@jit
+def _iseg(ki, k):
+    return ki[ki[16 + k]:ki[17 + k]]
+
+
+@jit
+def _rows(kf, ki):
+    """``(H, sel, ri)`` of :func:`pack_const`."""
+    sel = _iseg(ki, 0)
+    p = sel.shape[0]
+    h = _fseg(kf, ki, 0)
+    return h.reshape((p, h.shape[0] // p)), sel, _iseg(ki, 1)
+
+
+@jit
+def branching_run(kf, ki, merge, q_max, n_keep, tb, xb, Pb, lb, ib, N, due, informative,
+                  do_predict, pi, pf, y, R, rows, E):
     """``braking_compiled.branching_step`` on the buffers' first ``N`` rows (module
-    docstring)."""
+    docstring); ``kf, ki``: :func:`pack_const` of the values, their cell variances, the log
+    prior ``(M, M)``; the children's CSR rows ``ptr``, ``col``."""
+    H, sel, ri = _rows(kf, ki)
+    values = _fseg(kf, ki, 1)
+    M = values.shape[0]
+    logprior = _fseg(kf, ki, 3).reshape((M, M))
     xp, xc, xv, kp, kc, kv, bu, qd, full, fh = _pred(pi, pf)
-    out = branching_step(values, cell_var, ptr, col, logprior, merge, q_max, n_keep,
-                         tb[:N], xb[:N], Pb[:N], lb[:N], ib[:N], due, informative, do_predict,
-                         xp, xc, xv, kp, kc, kv, bu, qd, full, fh, y.reshape((1, y.shape[0])),
-                         H, R, rows, sel)
+    out = branching_step(values, _fseg(kf, ki, 2), _iseg(ki, 2), _iseg(ki, 3), logprior, merge,
+                         q_max, n_keep, tb[:N], xb[:N], Pb[:N], lb[:N], ib[:N], due,
+                         informative, do_predict, xp, xc, xv, kp, kc, kv, bu, qd, full, fh,
+                         y.reshape((1, y.shape[0])), H, R, rows, sel)
     return _finish(out, tb, xb, Pb, lb, ib, ri, E)
 
 
 @jit
-def discrete_run(values, cell_var, cdf, uni, tb, xb, Pb, lb, ib, N, due, informative,
-                 do_predict, pi, pf, y, H, R, rows, sel, ri, E):
-    """``braking_compiled.discrete_step`` on the buffers (module docstring)."""
+def discrete_run(kf, ki, uni, tb, xb, Pb, lb, ib, N, due, informative, do_predict, pi, pf, y,
+                 R, rows, E):
+    """``braking_compiled.discrete_step`` on the buffers (module docstring); ``kf``: the
+    values, their cell variances, the transition's CDF ``(M, M)``."""
+    H, sel, ri = _rows(kf, ki)
+    values = _fseg(kf, ki, 1)
+    M = values.shape[0]
     xp, xc, xv, kp, kc, kv, bu, qd, full, fh = _pred(pi, pf)
-    out = discrete_step(values, cell_var, cdf, uni, tb[:N], xb[:N], Pb[:N], lb[:N], ib[:N],
-                        due, informative, do_predict, xp, xc, xv, kp, kc, kv, bu, qd, full, fh,
-                        y.reshape((1, y.shape[0])), H, R, rows, sel)
+    out = discrete_step(values, _fseg(kf, ki, 2), _fseg(kf, ki, 3).reshape((M, M)), uni,
+                        tb[:N], xb[:N], Pb[:N], lb[:N], ib[:N], due, informative, do_predict,
+                        xp, xc, xv, kp, kc, kv, bu, qd, full, fh, y.reshape((1, y.shape[0])),
+                        H, R, rows, sel)
     return _finish(out, tb, xb, Pb, lb, ib, ri, E)
 
 
 @jit
-def random_walk_run(lo, hi, sqdt, L00, z, tb, xb, Pb, lb, ib, N, due, informative, do_predict,
-                    pi, pf, y, H, R, rows, sel, ri, E):
+def random_walk_run(kf, ki, lo, hi, sqdt, L00, z, tb, xb, Pb, lb, ib, N, due, informative,
+                    do_predict, pi, pf, y, R, rows, E):
     """``braking_compiled.random_walk_step`` on the buffers (module docstring)."""
+    H, sel, ri = _rows(kf, ki)
     xp, xc, xv, kp, kc, kv, bu, qd, full, fh = _pred(pi, pf)
     out = random_walk_step(lo, hi, sqdt, L00, z, tb[:N], xb[:N], Pb[:N], lb[:N], due,
                            informative, do_predict, xp, xc, xv, kp, kc, kv, bu, qd, full, fh,
@@ -166,9 +219,10 @@ def random_walk_run(lo, hi, sqdt, L00, z, tb, xb, Pb, lb, ib, N, due, informativ
 
 
 @jit
-def qgrbpf_run(lo, hi, qdt, min_var, quadrature, z, uz, lw_n, gh_lw, tb, xb, Pb, lb, ib, N,
-               due, informative, do_predict, pi, pf, y, H, R, rows, sel, ri, E):
+def qgrbpf_run(kf, ki, lo, hi, qdt, min_var, quadrature, z, uz, lw_n, gh_lw, tb, xb, Pb, lb,
+               ib, N, due, informative, do_predict, pi, pf, y, R, rows, E):
     """``braking_compiled.qgrbpf_step`` on the buffers (module docstring)."""
+    H, sel, ri = _rows(kf, ki)
     xp, xc, xv, kp, kc, kv, bu, qd, full, fh = _pred(pi, pf)
     out = qgrbpf_step(lo, hi, qdt, min_var, quadrature, z, uz, lw_n, gh_lw, tb[:N], xb[:N],
                       Pb[:N], lb[:N], due, informative, do_predict, xp, xc, xv, kp, kc, kv, bu,
@@ -198,11 +252,26 @@ def resample_run(U, lw_n, tb, xb, Pb, lb, ib, N, discrete):
     _commit(th, x, P, lwo, ia, tb, xb, Pb, lb, ib)
 
 
+def pack_kf(P0, P1, B0, B1, Qd, u):
+    """The exact KF's model pieces for one dt (``braking_model._affine_pieces``: m x m, m x
+    m, m x 2, m x 2, m x m) and the command ``u (2,)`` as one float64 array."""
+    return np.concatenate([np.ravel(a) for a in (P0, P1, B0, B1, Qd, u)]).astype(np.float64)
+
+
 @jit
-def kf_run(xb, Pb, P0, P1, B0, B1, Qd, u, informative, gain, q_dt, do_predict, y, H, R, rows,
-           sel, ri, E):
-    """``braking_compiled.kf_step`` on the filter's buffers ``x (1, 5)``, ``P (1, 5, 5)``;
-    its estimate (N_eff 1, one particle) into ``E``."""
+def kf_run(kf, ki, xb, Pb, pk, informative, gain, q_dt, do_predict, y, R, rows, E):
+    """``braking_compiled.kf_step`` on the filter's buffers ``x (1, m + 1)``, ``P (1, m + 1,
+    m + 1)`` (``kf, ki``: :func:`pack_const` of its rows and report index; ``pk``:
+    :func:`pack_kf`); its estimate (N_eff 1, one particle) into ``E``."""
+    H, sel, ri = _rows(kf, ki)
+    m = xb.shape[1] - 1
+    q = m * m
+    P0 = pk[0:q].reshape((m, m))
+    P1 = pk[q:2 * q].reshape((m, m))
+    B0 = pk[2 * q:2 * q + 2 * m].reshape((m, 2))
+    B1 = pk[2 * q + 2 * m:2 * q + 4 * m].reshape((m, 2))
+    Qd = pk[2 * q + 4 * m:3 * q + 4 * m].reshape((m, m))
+    u = pk[3 * q + 4 * m:3 * q + 4 * m + 2]
     status, xo, Po, ll = kf_step(xb, Pb, P0, P1, B0, B1, Qd, u, informative, gain, q_dt,
                                  do_predict, y.reshape((1, y.shape[0])), H, R, rows, sel)
     if status != OK:
@@ -243,21 +312,25 @@ def warm_up() -> None:
         return tb, xb, Pb, lb, ib
 
     ri = np.array([0, 1, 2, 4], dtype=np.int64)
-    tail = (do, pi, pf, y[0].copy(), H, R, rows, sel, ri, np.empty(e_size(5, 4)))
+    tail = (do, pi, pf, y[0].copy(), R, rows, np.empty(e_size(5, 4)))
     ptr, col = np.array([0, 2, 4], dtype=np.int64), np.array([0, 1, 0, 1], dtype=np.int64)
     lp = np.full((2, 2), -np.log(2.0))
+    kb = pack_const(H, sel, ri, (vals, cv, lp), (ptr, col))
     for merge in (False, True):
-        branching_run(vals, cv, ptr, col, lp, merge, 3, 2, *bufs(), 2, True, True, *tail)
+        branching_run(*kb, merge, 3, 2, *bufs(), 2, True, True, *tail)
     cdf = np.array([[1.0, 1.0], [0.0, 1.0]])
-    discrete_run(vals, cv, cdf, np.full(2, 0.5), *bufs(), 2, True, True, *tail)
+    discrete_run(*pack_const(H, sel, ri, (vals, cv, cdf)), np.full(2, 0.5), *bufs(), 2, True,
+                 True, *tail)
     z = np.zeros((2, 1))
-    random_walk_run(0.0, 1.0, 1.0, 0.1, z, *bufs(), 2, True, True, *tail)
+    kc = pack_const(H, sel, ri)
+    random_walk_run(*kc, 0.0, 1.0, 1.0, 0.1, z, *bufs(), 2, True, True, *tail)
     resample_run(0.5, -np.log(2.0), *bufs(), 2, True)
     for quad in (False, True):
-        qgrbpf_run(0.0, 1.0, 1e-3, 1e-8, quad, z, np.full(2, 0.5), -np.log(2.0), lw, *bufs(),
-                   2, True, True, *tail)
+        qgrbpf_run(*kc, 0.0, 1.0, 1e-3, 1e-8, quad, z, np.full(2, 0.5), -np.log(2.0), lw,
+                   *bufs(), 2, True, True, *tail)
     H5 = np.hstack([H, np.zeros((3, 1))])
-    kf_run(np.zeros((1, 5)), np.eye(5)[None].copy(), np.eye(4), np.zeros((4, 4)),
-           np.zeros((4, 2)), np.zeros((4, 2)), np.eye(4), np.zeros(2), True, 1.0, 1e-3, True,
-           y[0].copy(), H5, R, rows, sel, ri, np.empty(e_size(5, 4)))
+    pk = pack_kf(np.eye(4), np.zeros((4, 4)), np.zeros((4, 2)), np.zeros((4, 2)), np.eye(4),
+                 np.zeros(2))
+    kf_run(*pack_const(H5, sel, ri), np.zeros((1, 5)), np.eye(5)[None].copy(), pk, True, 1.0,
+           1e-3, True, y[0].copy(), R, rows, np.empty(e_size(5, 4)))
     _WARMED.add("inplace")

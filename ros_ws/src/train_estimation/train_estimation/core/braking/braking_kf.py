@@ -17,7 +17,8 @@ from .braking_model import _affine_pieces, augmented_model
 __all__ = ["BrakingKF", "OracleKF"]
 
 _Z44, _Z42 = np.zeros((4, 4)), np.zeros((4, 2))
-_KF_NO_PREDICT = (_Z44, _Z44, _Z42, _Z42, _Z44, np.zeros(2), False, 0.0, 0.0, False)
+_KF_NO_PREDICT = (braking_inplace.pack_kf(_Z44, _Z44, _Z42, _Z42, _Z44, np.zeros(2)), False,
+                  0.0, 0.0, False)
 _KF_REASONS = {**_STEP_REASONS, braking_compiled.KF_LOGLIK:
                "numerical failure: log-weights: none finite, or NaN/+inf"}
 
@@ -153,15 +154,17 @@ class BrakingKF(RaoBlackwellFilter):
             if hit is None or hit[0] != key or hit[1] is not self.family.params:
                 P0, P1, B0, B1, Qd = _affine_pieces(self.family.params, float(dt))
                 hit = self._pred_last = (key, self.family.params, (
-                    P0, P1, B0, B1, Qd, np.array(u, dtype=np.float64), bool(informative),
+                    braking_inplace.pack_kf(P0, P1, B0, B1, Qd, u), bool(informative),
                     float(gain), self.braking_rate_q * float(dt), True))
             pred = hit[2]
         else:
             pred = _KF_NO_PREDICT
-        H, sel = self._bank_rows()
+        kc = self._kc
+        if kc[0] is not self.family.H:
+            kc = self._pack()
         E = np.empty(self._esize)
-        status, _ = braking_inplace.kf_run(buf[1], buf[2], *pred, y, H, R,
-                                           np.flatnonzero(mask), sel, self._ri64, E)
+        status, _ = braking_inplace.kf_run(*kc[1], buf[1], buf[2], *pred, y, R,
+                                           kc[3] if mask is kc[2] else np.flatnonzero(mask), E)
         if status != bank.OK:
             return _KF_REASONS[status]
         return buf[0], Estimate._of(E, self._lay, informative, fused,
@@ -171,10 +174,8 @@ class BrakingKF(RaoBlackwellFilter):
         x = np.array(s.x, dtype=np.float64)
         P = np.array(s.P, dtype=np.float64)
         buf = self._buf = (_Set(s.theta, x, P, s.logw, s.idx, s.extra), x, P)
-        ri = self._report_index(5, 0)[0]
-        self._ri64 = np.ascontiguousarray(ri, dtype=np.int64)
-        self._lay = (4, 5, ri.size)  # f, the fifth state, reported as the parameter
-        self._esize = braking_inplace.e_size(5, ri.size)
+        # f, the fifth state, is the estimate's parameter (theta_mean), as in _summary
+        self._fused_layout(self._report_index(5, 0)[0], 4, 5)
         return buf
 
     def _predict(self, s, u, dt, informative):
