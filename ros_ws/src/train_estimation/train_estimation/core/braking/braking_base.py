@@ -641,7 +641,10 @@ class RaoBlackwellFilter:
         if E[-2] >= ess_frac * N:
             return
         U = rng.random((1, 1))
-        braking_inplace.resample_run(float(U[0, 0]), -np.log(N), buf.th, buf.x, buf.P, buf.lw,
+        hit = self.__dict__.get("_lwn_rs")  # -log N (numpy's log, as the numpy form's)
+        if hit is None or hit[0] != N:
+            hit = self._lwn_rs = (N, -np.log(N))
+        braking_inplace.resample_run(float(U[0, 0]), hit[1], buf.th, buf.x, buf.P, buf.lw,
                                      buf.idx, N, buf.discrete)
 
     # -- the compiled step ------------------------------------------------------------------
