@@ -25,9 +25,11 @@ with ``smc.log_normalize``. One step (``RaoBlackwellFilter.step``):
 
 With numba (``numerics.jit``) steps 3-7 of an algorithm with a fused kernel are one compiled
 call (``braking_compiled``: its transition, the particle bank of ``numerics.bank``, its
-pruning, merging or resampling, the finiteness check), with the random numbers drawn here from
-``rng`` as the numpy form draws them; without numba (or ``TRAIN_NO_JIT=1``) the numpy form
-below runs, with the same particles for the same seed (``test_bank.py``).
+pruning, merging or resampling, the finiteness check) on the filter's own buffers
+(``braking_inplace``: the set read from and written back into preallocated arrays, the
+estimate into one flat array that ``Estimate`` reads lazily), with the random numbers drawn
+here from ``rng`` as the numpy form draws them; without numba (or ``TRAIN_NO_JIT=1``) the numpy
+form below runs, with the same particles for the same seed (``test_bank.py``).
 
 Pure: numpy only; randomness only through the ``rng`` argument.
 """
