@@ -25,9 +25,11 @@ with ``smc.log_normalize``. One step (``RaoBlackwellFilter.step``):
 
 With numba (``numerics.jit``) steps 3-7 of an algorithm with a fused kernel are one compiled
 call (``braking_compiled``: its transition, the particle bank of ``numerics.bank``, its
-pruning, merging or resampling, the finiteness check), with the random numbers drawn here from
-``rng`` as the numpy form draws them; without numba (or ``TRAIN_NO_JIT=1``) the numpy form
-below runs, with the same particles for the same seed (``test_bank.py``).
+pruning, merging or resampling, the finiteness check) on the filter's own buffers
+(``braking_inplace``: the set read from and written back into preallocated arrays, the
+estimate into one flat array that ``Estimate`` reads lazily), with the random numbers drawn
+here from ``rng`` as the numpy form draws them; without numba (or ``TRAIN_NO_JIT=1``) the numpy
+form below runs, with the same particles for the same seed (``test_bank.py``).
 
 Pure: numpy only; randomness only through the ``rng`` argument.
 """
@@ -44,7 +46,7 @@ from ..numerics import bank
 from ..numerics.bank import log_normalize
 from ..numerics.batched_kf import predict, update
 from ..numerics.kalman import _selectors
-from . import braking_compiled
+from . import braking_compiled, braking_inplace
 
 __all__ = ["Estimate", "RaoBlackwellFilter"]
 
@@ -66,24 +68,149 @@ def _weights(logw):
     return e / e.sum()
 
 
-@dataclass(frozen=True)
-class Estimate:
-    """Posterior summary after one step (or the last good one, if the step was rejected)."""
+_NAN = float("nan")
 
-    accepted: bool
-    reason: str  # "" if accepted, else why the input was rejected (for the node's log)
-    t: float | None  # s, time of the estimate (None if the filter runs on implicit steps)
-    mean: np.ndarray  # (r + d,) e.g. (D m, v m/s, a_hat m/s^2, f -): report states + parameter
-    cov: np.ndarray  # (r + d, r + d), mixture covariance (includes the f variance and cross terms)
-    x_mean: np.ndarray  # (n,) whole linear state, e.g. (D, v, a_hat, a_z)
-    x_cov: np.ndarray  # (n, n)
-    theta_mean: np.ndarray  # (d,)
-    theta_cov: np.ndarray  # (d, d)
-    n_particles: int
-    n_eff: float
-    informative: bool  # the step could inform theta (transition not frozen)
-    measurement_used: bool
-    log_evidence: float = float("nan")  # log p(y_k | y_{1:k-1}); NaN if no measurement
+
+class Estimate:
+    """Posterior summary after one step (or the last good one, if the step was rejected).
+
+    Fields (read-only by convention, as the frozen record it replaces): ``accepted``;
+    ``reason`` ("" if accepted, else why the input was rejected, for the node's log); ``t``
+    (s, time of the estimate; None if the filter runs on implicit steps); ``mean (r + d,)``,
+    e.g. (D m, v m/s, a_hat m/s^2, f -): report states + parameter; ``cov (r + d, r + d)``,
+    the mixture covariance (with the f variance and cross terms); ``x_mean (n,)``, ``x_cov
+    (n, n)``: the whole linear state, e.g. (D, v, a_hat, a_z); ``theta_mean (d,)``,
+    ``theta_cov (d, d)``; ``n_particles``; ``n_eff``; ``informative`` (the step could inform
+    theta: transition not frozen); ``measurement_used``; ``log_evidence`` (log p(y_k |
+    y_{1:k-1}); NaN if no measurement).
+
+    A compiled step (``braking_inplace``) writes the moments into one flat array and the
+    fields are views of it, made when first read: a step does not pay for the fields its
+    caller does not read (building them all was ~4 us of a ~25 us step).
+    """
+
+    __slots__ = ("accepted", "reason", "t", "informative", "measurement_used", "_E", "_lay",
+                 "_mean", "_cov", "_x_mean", "_x_cov", "_theta_mean", "_theta_cov",
+                 "_n_particles", "_n_eff", "_log_evidence")
+    FIELDS = ("accepted", "reason", "t", "mean", "cov", "x_mean", "x_cov", "theta_mean",
+              "theta_cov", "n_particles", "n_eff", "informative", "measurement_used",
+              "log_evidence")
+
+    def __init__(self, accepted, reason, t, mean, cov, x_mean, x_cov, theta_mean, theta_cov,
+                 n_particles, n_eff, informative, measurement_used, log_evidence=_NAN):
+        self.accepted = accepted
+        self.reason = reason
+        self.t = t
+        self.informative = informative
+        self.measurement_used = measurement_used
+        self._E = None
+        self._mean, self._cov, self._x_mean, self._x_cov = mean, cov, x_mean, x_cov
+        self._theta_mean, self._theta_cov = theta_mean, theta_cov
+        self._n_particles, self._n_eff, self._log_evidence = n_particles, n_eff, log_evidence
+
+    @classmethod
+    def _of(cls, E, lay, informative: bool, used: bool, t) -> Estimate:
+        """An accepted step's estimate read from ``E`` (``braking_inplace``'s layout) with
+        ``lay = (n, m, r)``: the linear state's size, the mixture's (n + d) and the report's."""
+        e = cls.__new__(cls)
+        e.accepted = True
+        e.reason = ""
+        e.t = t
+        e.informative = informative
+        e.measurement_used = used
+        e._E = E
+        e._lay = lay
+        e._mean = e._cov = e._x_mean = e._x_cov = e._theta_mean = e._theta_cov = None
+        e._n_particles = e._n_eff = e._log_evidence = None
+        return e
+
+    def _full_cov(self):
+        n, m, r = self._lay
+        return self._E[m:m + m * m].reshape(m, m)
+
+    @property
+    def mean(self) -> np.ndarray:
+        v = self._mean
+        if v is None:
+            n, m, r = self._lay
+            o = m + m * m
+            v = self._mean = self._E[o:o + r]
+        return v
+
+    @property
+    def cov(self) -> np.ndarray:
+        v = self._cov
+        if v is None:
+            n, m, r = self._lay
+            o = m + m * m + r
+            v = self._cov = self._E[o:o + r * r].reshape(r, r)
+        return v
+
+    @property
+    def x_mean(self) -> np.ndarray:
+        v = self._x_mean
+        if v is None:
+            v = self._x_mean = self._E[:self._lay[0]]
+        return v
+
+    @property
+    def x_cov(self) -> np.ndarray:
+        v = self._x_cov
+        if v is None:
+            n = self._lay[0]
+            v = self._x_cov = self._full_cov()[:n, :n]
+        return v
+
+    @property
+    def theta_mean(self) -> np.ndarray:
+        v = self._theta_mean
+        if v is None:
+            n, m, _ = self._lay
+            v = self._theta_mean = self._E[n:m]
+        return v
+
+    @property
+    def theta_cov(self) -> np.ndarray:
+        v = self._theta_cov
+        if v is None:
+            n = self._lay[0]
+            v = self._theta_cov = self._full_cov()[n:, n:]
+        return v
+
+    @property
+    def n_particles(self) -> int:
+        v = self._n_particles
+        if v is None:
+            v = self._n_particles = int(self._E[-1])
+        return v
+
+    @property
+    def n_eff(self) -> float:
+        v = self._n_eff
+        if v is None:
+            v = self._n_eff = float(self._E[-2])
+        return v
+
+    @property
+    def log_evidence(self) -> float:
+        v = self._log_evidence
+        if v is None:
+            v = self._log_evidence = float(self._E[-3]) if self.measurement_used else _NAN
+        return v
+
+    def _replace(self, **changes) -> Estimate:
+        """A new estimate with ``changes`` (``dataclasses.replace`` of the frozen record)."""
+        kw = {f: getattr(self, f) for f in self.FIELDS}
+        kw.update(changes)
+        return Estimate(**kw)
+
+    def _copy(self) -> Estimate:
+        """A copy whose arrays are copies (the filter's snapshots)."""
+        return Estimate(**{f: (a.copy() if isinstance(a, np.ndarray) else a)
+                           for f, a in ((f, getattr(self, f)) for f in self.FIELDS)})
+
+    def __repr__(self) -> str:
+        return "Estimate(" + ", ".join(f"{f}={getattr(self, f)!r}" for f in self.FIELDS) + ")"
 
 
 @dataclass
@@ -98,6 +225,41 @@ class _Set:
     extra: dict = field(default_factory=dict)
 
 
+class _Buffers:
+    """The particle set of the compiled steps (``braking_inplace``): preallocated arrays
+    whose first ``n`` rows are the set, and the ``_Set`` of views of them (one per size)."""
+
+    __slots__ = ("th", "x", "P", "lw", "idx", "discrete", "n", "cur", "views", "arrays")
+
+    def __init__(self, cap: int, n: int, d: int, discrete: bool):
+        self.th = np.empty((cap, d))
+        self.x = np.empty((cap, n))
+        self.P = np.empty((cap, n, n))
+        self.lw = np.empty(cap)
+        self.idx = np.zeros(cap, dtype=np.int64)
+        self.discrete = discrete
+        self.n = 0
+        self.cur = None
+        self.views: dict = {}
+
+    def view(self, N: int) -> _Set:
+        """The set of the first N rows (now the filter's set)."""
+        v = self.views.get(N)
+        if v is None:
+            v = _Set(self.th[:N], self.x[:N], self.P[:N], self.lw[:N],
+                     self.idx[:N] if self.discrete else None)
+            self.views[N] = v
+        self.n = N
+        self.cur = v
+        self.arrays = (v.theta, v.x, v.P, v.logw)
+        return v
+
+    def holds(self, s: _Set) -> bool:
+        """``s`` is the buffers' current set, none of its arrays replaced."""
+        th, x, P, lw = self.arrays
+        return s is self.cur and s.x is x and s.P is P and s.theta is th and s.logw is lw
+
+
 _BANK_REASONS = {bank.NAN_LIK: "numerical failure: NaN likelihood",
                  bank.BAD_WEIGHT: "numerical failure: NaN or +inf log-weight",
                  bank.ALL_INF: "numerical failure: all log-weights are -inf"}
@@ -105,8 +267,9 @@ _STEP_REASONS = {**_BANK_REASONS,
                  braking_compiled.NONFINITE: "numerical failure: non-finite particle state"}
 _ONE = np.ones(1)  # the braking-rate argument of an informative step (unused: theta is)
 # a step without prediction (dt = 0): bank_step's arguments
-_NO_PREDICT = (False, *bank._NO_PREDICT, np.zeros(1))
+_NO_PREDICT = (False, *braking_inplace.pack_pred(bank._NO_PREDICT, np.zeros(1)))
 _MASKS: dict = {}
+_BAD = (None, None, None, None, None)  # a rejected input's other return values
 _ALL_ROWS: dict = {}
 
 
@@ -140,7 +303,7 @@ class RaoBlackwellFilter:
         # the compiled kernels' first call (a load from numba's cache): here, not in a node's
         # first callback
         bank.warm_up("bank_step", "update", "log_normalize", "all_finite")
-        braking_compiled.warm_up()
+        braking_inplace.warm_up()
         self.family = family
         self.rejected: Counter = Counter()
         self.n_steps = 0
@@ -171,8 +334,9 @@ class RaoBlackwellFilter:
                 v = _Set(*(None if a is None else a.copy()
                            for a in (v.theta, v.x, v.P, v.logw, v.idx)), copy.deepcopy(v.extra))
             elif isinstance(v, Estimate):
-                v = Estimate(**{f: (a.copy() if isinstance(a, np.ndarray) else a)
-                                for f, a in v.__dict__.items()})
+                v = v._copy()
+            elif k == "_buf":
+                v = None  # the copy makes its own buffers on its first compiled step
             elif isinstance(v, Counter):
                 v = Counter(v)
             elif not isinstance(v, (tuple, str, int, float, bool, type(None))):
@@ -245,7 +409,7 @@ class RaoBlackwellFilter:
 
         last = self._last
         self._s = replace(self._s, x=moved(self._s.x))
-        self._last = replace(last, mean=moved(last.mean), x_mean=moved(last.x_mean))
+        self._last = last._replace(mean=moved(last.mean), x_mean=moved(last.x_mean))
         return self._last
 
     def inflate(self, Q: np.ndarray) -> Estimate:
@@ -260,7 +424,7 @@ class RaoBlackwellFilter:
         cov, x_cov = np.array(last.cov, dtype=float), np.array(last.x_cov, dtype=float)
         cov[:2, :2] += Q
         x_cov[:2, :2] += Q
-        self._last = replace(last, cov=cov, x_cov=x_cov)
+        self._last = last._replace(cov=cov, x_cov=x_cov)
         return self._last
 
     # -- the step --------------------------------------------------------------------------
@@ -278,13 +442,14 @@ class RaoBlackwellFilter:
         if self._s is None:
             raise RuntimeError("call reset() first")
         fam = self.family
-        reason, dt, y_arr, mask_arr, R = self._validate(a_tar, y, mask, t, meas_var, d)
+        reason, dt, y_arr, mask_arr, R, fused = self._validate(a_tar, y, mask, t, meas_var, d)
         if reason:
             return self._reject(reason)
-        u = np.array([float(a_tar), float(d)])
+        # the command as a pair of floats (the gate and the compiled step read its entries;
+        # the numpy form below makes it an array)
+        u = (float(a_tar), float(d))
         s = self._s
         informative = bool(fam.gate(u, self._last.x_mean))
-        fused = bool(mask_arr.any())
         try:
             # seconds of braking since the last transition: f is only seen, and only forgotten,
             # while the brake acts (a random walk per second of braking, as the KF's; the
@@ -300,7 +465,9 @@ class RaoBlackwellFilter:
             # stop) or add Monte-Carlo drift to its mean (redraws, sampling). A reading stamped
             # at the time an output already predicted to (dt = 0) takes the due transition.
             due = informative and fused and since > 0 and since >= self.transition_interval
-            if self._fused_ok():
+            ok = self.__dict__.get("_fused_flag")  # (_fused_ok, inlined: once per step)
+            if ok[1] if ok is not None and ok[0] == self.__dict__.get("_bank_ok") else (
+                    self._fused_ok()):
                 out = self._fused_step(s, u, dt, since, due, informative, y_arr, mask_arr, R,
                                        fused, t, rng)
                 if isinstance(out, str):
@@ -309,6 +476,7 @@ class RaoBlackwellFilter:
                 if due:
                     since = 0.0
             else:
+                u = np.array(u)
                 if due:
                     s = self._transition(s, True, rng, since)
                     since = 0.0
@@ -361,59 +529,125 @@ class RaoBlackwellFilter:
 
     def _fused_step(self, s, u, dt, since, due, informative, y, mask, R, fused, t, rng):
         """The step's transition, bank, reduction and finiteness check in one compiled call
-        (:meth:`_fused`, ``braking_compiled``). Returns ``(set, estimate)`` or the rejection's
-        reason."""
-        fam = self.family
-        c = bank._c  # float64, C-contiguous, writeable: the types the kernels were compiled for
+        on the filter's buffers (:meth:`_fused`, ``braking_inplace``). Returns ``(set,
+        estimate)`` or the rejection's reason."""
+        buf = self._buf
+        if buf is None or not buf.holds(s):
+            buf = self._load(s)
         if dt > 0:
-            kw = self._hold(u, informative)
+            hold = None
+            if not informative and hasattr(self.family, "hold_gain"):
+                hold = self._hold(u, informative)["hold"]
             # the prediction's arguments, kept for the next step: a live filter's dt and
             # command repeat from step to step
-            key = (float(dt), float(u[0]), float(u[1]), informative, kw.get("hold"))
-            hit = self.__dict__.get("_pred_last")
-            if hit is None or hit[0] != key or hit[1] is not fam.params:
-                fh = _ONE if informative else np.asarray(
-                    fam.braking_rates(None, u, False, **kw), dtype=float)
-                hit = (key, fam.params, (True, *fam.bank_pred(u, dt), fh))
-                self._pred_last = hit
-            common = hit[2]
+            key = (dt, u[0], u[1], informative, hold)
+            hit = self._pred_last
+            if hit is None or hit[0] != key or hit[1] is not self.family.params:
+                hit = self._pred_args(key, u, dt, informative, hold)
+            pred = hit[2]
         else:
-            common = _NO_PREDICT
-        H, sel = self._bank_rows()
-        rows = _ALL_ROWS[H.shape[0]] if mask is _rows_mask(H.shape[0], True) else (
-            np.flatnonzero(mask))
-        common += (c(y[None]), H, c(np.asarray(R, dtype=float)), rows, sel)
-        s = _Set(c(s.theta), c(s.x), c(s.P), c(s.logw),
-                 None if s.idx is None else np.ascontiguousarray(s.idx, dtype=np.int64),
-                 s.extra)
-        out = self._fused(s, due, informative, common, rng, since)
-        status = out[0]
+            pred = _NO_PREDICT
+        kc = self._kc
+        if kc[0] is not self.family.H:  # the family's rows changed: pack them again
+            kc = self._pack()
+        E = np.empty(self._esize)
+        common = (*pred, y, R, kc[3] if mask is kc[2] else np.flatnonzero(mask), E)
+        N = buf.n
+        draws = self._draws(N, due, rng, since)
+        status, N2 = self._fused(kc[1], buf, N, due, informative, common, draws)
+        if status == braking_inplace.GROW:  # the same numbers again, into larger buffers
+            buf = self._load(buf.view(N), N2)
+            status, N2 = self._fused(kc[1], buf, N, due, informative, common, draws)
         if status != bank.OK:
             return _STEP_REASONS[status]
-        _, theta, x, P, lw, idx, w, mean, cov, logz, ess, n_est = out
-        est = self._estimate(mean, cov, x.shape[1], n_est, ess, informative, fused,
-                             logz if fused else np.nan, t)
-        return _Set(theta, x, P, lw, None if s.idx is None else idx, s.extra), est
+        if informative:
+            self._after_fused(buf, N2, E, rng)
+        return buf.view(N2), Estimate._of(E, self._lay, informative, fused,
+                                          self._t if t is None else float(t))
 
-    def _fused(self, s, due, informative, common, rng, tdt):
-        """This algorithm's compiled step (``braking_compiled``) on the set ``s``: its
-        transition if ``due`` (over ``tdt`` seconds), the bank with the prediction and update
-        arguments ``common``, its reduction; the random numbers drawn here from ``rng`` as the
-        numpy form draws them. Returns the kernel's tuple. Not here: the base class has none."""
+    _buf = None  # the particle set's buffers (_Buffers), made on the first compiled step
+    _pred_last = None
+
+    def _pred_args(self, key, u, dt, informative, hold):
+        """The compiled step's prediction arguments ``(do_predict, pi, pf)`` for this dt and
+        command (``braking_inplace.pack_pred``), kept for the next step."""
+        fam = self.family
+        fh = _ONE if informative else np.asarray(
+            fam.braking_rates(None, u, False, **({} if hold is None else {"hold": hold})),
+            dtype=float)
+        hit = (key, fam.params, (True, *braking_inplace.pack_pred(fam.bank_pred(u, dt), fh)))
+        self._pred_last = hit
+        return hit
+
+    def _load(self, s, cap=0):
+        """Buffers holding the set ``s`` (a set the filter did not make itself: after a reset,
+        a shift, a test's or a snapshot's), at least ``cap`` particles large."""
+        N, n = s.x.shape
+        d = s.theta.shape[1]
+        buf = _Buffers(max(2 * N, cap, 16), n, d, s.idx is not None)
+        buf.th[:N] = s.theta
+        buf.x[:N] = s.x
+        buf.P[:N] = s.P
+        buf.lw[:N] = s.logw
+        if s.idx is not None:
+            buf.idx[:N] = s.idx
+        buf.view(N)
+        self._buf = buf
+        self._fused_layout(self._report_index(n, d)[0], n, n + d)
+        return buf
+
+    _kc = None  # (family.H, the packed constants, the all-rows mask, its rows)
+
+    def _fused_layout(self, ri, n, m):
+        """The estimate's layout for ``braking_inplace`` (report index ``ri``, ``n`` linear
+        states of ``m``) and the packed constants, if not packed yet for these rows."""
+        self._ri_fused = ri
+        self._lay = (n, m, ri.size)
+        self._esize = braking_inplace.e_size(m, ri.size)
+        if self._kc is None or self._kc[0] is not self.family.H:
+            self._pack()
+
+    def _pack(self):
+        """The compiled step's constants (``braking_inplace.pack_const``: the family's rows,
+        the report index, the algorithm's tables), with the all-rows mask and its rows."""
+        fam = self.family
+        H, sel = self._bank_rows()
+        p = H.shape[0]
+        self._kc = (fam.H, braking_inplace.pack_const(H, sel, self._ri_fused, *self._tables()),
+                    _rows_mask(p, True), _ALL_ROWS[p])
+        return self._kc
+
+    def _tables(self):
+        """``(floats, ints)``: this algorithm's constant tables, in the order its compiled
+        step reads them (``braking_inplace``)."""
+        return (), ()
+
+    def _draws(self, N, due, rng, tdt):
+        """The random numbers this step's kernel needs, drawn from ``rng`` as the numpy form
+        draws them (N particles; the transition ``due`` over ``tdt`` seconds)."""
+        return ()
+
+    def _fused(self, kc, buf, N, due, informative, common, draws):
+        """This algorithm's compiled step (``braking_inplace``) with its constants ``kc`` on
+        the buffers ``buf`` holding N particles: its transition if ``due``, the bank with the
+        prediction, update and estimate arguments ``common``, its reduction. Returns
+        ``(status, N')``. Not here: the base class has none."""
         raise NotImplementedError
 
-    def _resample_if(self, out, informative, rng, ess_frac):
-        """Systematic resampling of a compiled step's set when ``N_eff < ess_frac N`` on an
-        informative step (the RBPFs' ``_after``; the uniform drawn only then, as there)."""
-        if out[0] != bank.OK or not informative:
-            return out
-        N = out[2].shape[0]
-        if out[10] >= ess_frac * N:
-            return out
+    def _after_fused(self, buf, N, E, rng) -> None:
+        """After an informative compiled step (the RBPFs: resampling)."""
+
+    def _resample_if(self, buf, N, E, rng, ess_frac):
+        """Systematic resampling of a compiled step's set in place when ``N_eff < ess_frac N``
+        (the RBPFs' ``_after``; the uniform drawn only then, as there)."""
+        if E[-2] >= ess_frac * N:
+            return
         U = rng.random((1, 1))
-        th, x, P, lw, idx = braking_compiled.resample(out[6], float(U[0, 0]), -np.log(N),
-                                                      out[1], out[2], out[3], out[5])
-        return (out[0], th, x, P, lw, idx, *out[6:])
+        hit = self.__dict__.get("_lwn_rs")  # -log N (numpy's log, as the numpy form's)
+        if hit is None or hit[0] != N:
+            hit = self._lwn_rs = (N, -np.log(N))
+        braking_inplace.resample_run(float(U[0, 0]), hit[1], buf.th, buf.x, buf.P, buf.lw,
+                                     buf.idx, N, buf.discrete)
 
     # -- the compiled step ------------------------------------------------------------------
     #: this class's _reduce is the base class's log-space reweighting (subclasses whose own
@@ -453,7 +687,7 @@ class RaoBlackwellFilter:
             np.ascontiguousarray(s.logw), np.ascontiguousarray(s.theta),
             None if tv is None else np.ascontiguousarray(tv), pred, f)
         if status != bank.OK:
-            return s, replace(self._last, reason=_BANK_REASONS[status])
+            return s, self._last._replace(reason=_BANK_REASONS[status])
         s = _Set(s.theta, x, P, lw, s.idx, s.extra)
         self._step_w = (lw, w, ess)  # for _after's N_eff test (weights_ess)
         n = x.shape[1]
@@ -500,7 +734,7 @@ class RaoBlackwellFilter:
     def _validate(self, a_tar, y, mask, t, meas_var, d):
         fam = self.family
         p = fam.H.shape[0]
-        bad = (None, None, None, None)
+        bad = _BAD
         try:
             a = float(a_tar)
             dd = float(d)
@@ -531,21 +765,38 @@ class RaoBlackwellFilter:
         if y is None:
             y_arr = np.zeros(p)
             mask_arr = _rows_mask(p, False)
+            fused = False
         else:
-            y_arr = np.asarray(y, dtype=float).reshape(-1)
+            # a new float64 C-contiguous array: the type the compiled steps were built for
+            # (a read-only or strided one would be another compilation)
+            y_arr = np.array(y, dtype=np.float64)
+            if y_arr.ndim != 1:
+                y_arr = y_arr.reshape(-1)
             if y_arr.shape != (p,):
                 return (f"bad measurement shape: {y_arr.shape} != ({p},)", *bad)
-            mask_arr = (_rows_mask(p, True) if mask is None
-                        else np.asarray(mask, dtype=bool).reshape(-1))
-            if mask_arr.shape != (p,):
-                return (f"bad mask shape: {mask_arr.shape} != ({p},)", *bad)
-            used = mask_arr.tolist()
-            if not all(math.isfinite(v) for v, k in zip(y_arr.tolist(), used) if k):
+            if mask is None:
+                mask_arr = _MASKS.get((p, True))
+                if mask_arr is None:
+                    mask_arr = _rows_mask(p, True)
+                fused = p > 0
+                acc = 0.0
+                for v in y_arr.tolist():
+                    acc += v - v  # 0 for a finite v, NaN for an infinite or NaN one
+                finite = acc == 0.0
+            else:
+                mask_arr = np.asarray(mask, dtype=bool).reshape(-1)
+                if mask_arr.shape != (p,):
+                    return (f"bad mask shape: {mask_arr.shape} != ({p},)", *bad)
+                used = mask_arr.tolist()
+                fused = any(used)
+                finite = all(math.isfinite(v) for v, k in zip(y_arr.tolist(), used) if k)
+            if not finite:
                 return (f"non-finite measurement: {y_arr[mask_arr].tolist()}", *bad)
         if meas_var is None:
-            R = np.asarray(fam.R, dtype=float)
+            R = self.__dict__.get("_r0")
+            R = R[1] if R is not None and R[0] is fam.R else self._R0()
         else:
-            R = np.asarray(meas_var, dtype=float).reshape(-1)
+            R = np.array(meas_var, dtype=np.float64).reshape(-1)
             if R.shape != (p,):
                 return (f"bad measurement variance shape: {R.shape} != ({p},)", *bad)
             Rm = R[mask_arr].tolist()
@@ -553,7 +804,16 @@ class RaoBlackwellFilter:
                 return (f"non-positive or non-finite measurement variance: {Rm}", *bad)
         if dt == 0.0 and t is None:
             return ("zero default step", *bad)
-        return "", dt, y_arr, mask_arr, R
+        return "", dt, y_arr, mask_arr, R, fused
+
+    def _R0(self) -> np.ndarray:
+        """The family's measurement variances as a float64 C-contiguous array (kept while the
+        family's ``R`` is the same object)."""
+        fam = self.family
+        hit = self.__dict__.get("_r0")
+        if hit is None or hit[0] is not fam.R:
+            hit = self._r0 = (fam.R, np.array(fam.R, dtype=np.float64).reshape(-1))
+        return hit[1]
 
     def _reject(self, reason: str) -> Estimate:
         self.rejected[reason.split(":")[0]] += 1

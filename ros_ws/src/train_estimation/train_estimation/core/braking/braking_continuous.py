@@ -7,6 +7,8 @@ Pure: numpy/scipy only; randomness only through the ``rng`` argument.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from scipy.special import ndtr
 
@@ -14,7 +16,7 @@ from ..numerics import bank, smc
 from ..numerics.bank import log_normalize
 from ..numerics.batched_kf import mixture_moments
 from ..numerics.smc import systematic_resample
-from . import braking_compiled
+from . import braking_inplace
 from .braking_base import RaoBlackwellFilter, _Set, _wsum
 
 __all__ = ["QGRBPF", "RandomWalkRBPF"]
@@ -51,6 +53,13 @@ class _ContinuousBase(RaoBlackwellFilter):
         self.braking_rate_q = np.diag(np.broadcast_to(q, (family.d,))) if q.ndim <= 1 else q
         if not np.all(np.linalg.eigvalsh(self.braking_rate_q) >= 0):
             raise ValueError("braking_rate_q must be positive semi-definite")
+
+    def _scalars(self):
+        """``(lo, hi)`` of the one parameter as floats, for the compiled steps."""
+        hit = self.__dict__.get("_lohi")
+        if hit is None or hit[0] is not self.lo or hit[1] is not self.hi:
+            hit = self._lohi = (self.lo, self.hi, float(self.lo[0]), float(self.hi[0]))
+        return hit[2], hit[3]
 
     def _initial_theta(self, rng):
         # Q-GRBPF step 1: uniform in [theta_min, theta_max]; with ``prior`` = (mean, std):
@@ -107,7 +116,7 @@ class QGRBPF(_ContinuousBase):
     def _initial_logw(self, N):
         return self._gh[1].copy() if self.quadrature else None
 
-    def _fused(self, s, due, informative, common, rng, tdt):
+    def _draws(self, N, due, rng, tdt):
         # the numpy form's draws: N standard normals (and their normal CDF) per redraw
         z, uz, gh_lw = _NO_DRAW2, _NO_DRAW, _NO_DRAW
         if due:
@@ -117,10 +126,22 @@ class QGRBPF(_ContinuousBase):
             else:
                 z = rng.standard_normal((self.n, self.family.d))
                 uz = ndtr(z[:, 0])
-        return braking_compiled.qgrbpf_step(
-            float(self.lo[0]), float(self.hi[0]), float(self.braking_rate_q[0, 0] * tdt),
-            self.min_var, self.quadrature, z, uz, -np.log(self.n), gh_lw, s.theta, s.x, s.P,
-            s.logw, due, informative, *common)
+        return float(self.braking_rate_q[0, 0] * tdt), z, uz, gh_lw
+
+    def _fused(self, kc, buf, N, due, informative, common, draws):
+        qdt, z, uz, gh_lw = draws
+        return braking_inplace.qgrbpf_run(*kc, *self._scalars(), qdt, self.min_var,
+                                          self.quadrature, z, uz, self._lw_n, gh_lw, buf.th,
+                                          buf.x, buf.P, buf.lw, buf.idx, N, due, informative,
+                                          *common)
+
+    @property
+    def _lw_n(self):
+        """``-log N``, the redraw's equal log-weight (numpy's log, as the numpy form's)."""
+        hit = self.__dict__.get("_lwn")
+        if hit is None or hit[0] != self.n:
+            hit = self._lwn = (self.n, -np.log(self.n))
+        return hit[1]
 
     def _transition(self, s, informative, rng, dt):
         if not informative:
@@ -198,12 +219,19 @@ class RandomWalkRBPF(_ContinuousBase):
         ev, V = np.linalg.eigh(self.braking_rate_q)
         self._L = V * np.sqrt(np.clip(ev, 0.0, None))
 
-    def _fused(self, s, due, informative, common, rng, tdt):
-        z = rng.standard_normal(s.theta.shape) if due else _NO_DRAW2
-        out = braking_compiled.random_walk_step(
-            float(self.lo[0]), float(self.hi[0]), float(np.sqrt(tdt)), float(self._L[0, 0]), z,
-            s.theta, s.x, s.P, s.logw, due, informative, *common)
-        return self._resample_if(out, informative, rng, self.ess_frac)
+    def _draws(self, N, due, rng, tdt):
+        # (math.sqrt: IEEE square roots are correctly rounded, numpy's is the same number)
+        return math.sqrt(tdt), (rng.standard_normal((N, 1)) if due else _NO_DRAW2)
+
+    def _fused(self, kc, buf, N, due, informative, common, draws):
+        sqdt, z = draws
+        lo, hi = self._scalars()
+        return braking_inplace.random_walk_run(
+            *kc, lo, hi, sqdt, float(self._L[0, 0]), z, buf.th, buf.x, buf.P, buf.lw, buf.idx,
+            N, due, informative, *common)
+
+    def _after_fused(self, buf, N, E, rng):
+        self._resample_if(buf, N, E, rng, self.ess_frac)
 
     def _transition(self, s, informative, rng, dt):
         if not informative:

@@ -12,7 +12,7 @@ from scipy.special import ndtr
 
 from ..numerics.bank import log_normalize
 from ..numerics.smc import systematic_resample
-from . import braking_compiled
+from . import braking_inplace
 from .braking_base import RaoBlackwellFilter, _Set
 
 _NO_DRAW = np.zeros(0)  # a step's random numbers when it draws none
@@ -204,16 +204,20 @@ class DiscreteRBPF(_DiscreteBase):
         return _Set(self.values[idx][:, None], s.x[parent], s.P[parent], s.logw[parent], idx,
                     {"logp": logp, "N": N, "kmax": kmax})
 
-    def _fused(self, s, due, informative, common, rng, tdt):
-        # the numpy form's draws: the transition's uniforms, the resampling's one uniform
-        k = self.__dict__.get("_kconst")
-        if k is None:  # writeable copies of the frozen tables, for the compiled call
-            k = self._kconst = (np.array(self.values), np.array(self._cell_var),
-                                np.array(self.cdf))
-        uni = rng.random(s.idx.size) if due else _NO_DRAW
-        out = braking_compiled.discrete_step(*k, uni, s.theta, s.x, s.P, s.logw, s.idx, due,
-                                             informative, *common)
-        return self._resample_if(out, informative, rng, self.ess_frac)
+    def _draws(self, N, due, rng, tdt):
+        # the numpy form's draws: the transition's uniforms (the resampling's one uniform:
+        # _after_fused, only when it resamples)
+        return rng.random(N) if due else _NO_DRAW
+
+    def _tables(self):
+        return (self.values, self._cell_var, self.cdf), ()
+
+    def _fused(self, kc, buf, N, due, informative, common, draws):
+        return braking_inplace.discrete_run(*kc, draws, buf.th, buf.x, buf.P, buf.lw, buf.idx,
+                                            N, due, informative, *common)
+
+    def _after_fused(self, buf, N, E, rng):
+        self._resample_if(buf, N, E, rng, self.ess_frac)
 
     def _reduce(self, s, loglik, informative, rng):
         if "logp" not in s.extra:
@@ -283,18 +287,17 @@ class _BranchingFilter(_DiscreteBase):
         self.q_max = int(q_max)
         self._freeze("allowed", "_logprior")
 
-    def _fused(self, s, due, informative, common, rng, tdt):
-        k = self.__dict__.get("_kconst")
-        if k is None:  # writeable copies of the frozen tables; the children as CSR rows
-            rows = [np.flatnonzero(r) for r in self.allowed]
-            ptr = np.zeros(len(rows) + 1, dtype=np.int64)
-            ptr[1:] = np.cumsum([r.size for r in rows])
-            k = self._kconst = (np.array(self.values), np.array(self._cell_var), ptr,
-                                np.concatenate(rows).astype(np.int64),
-                                np.array(self._logprior))
-        return braking_compiled.branching_step(*k, self.merge, self.q_max, self.n_keep,
-                                               s.theta, s.x, s.P, s.logw, s.idx, due,
-                                               informative, *common)
+    def _tables(self):
+        # the children of each value as CSR rows of the allowed kernel
+        rows = [np.flatnonzero(r) for r in self.allowed]
+        ptr = np.zeros(len(rows) + 1, dtype=np.int64)
+        ptr[1:] = np.cumsum([r.size for r in rows])
+        return (self.values, self._cell_var, self._logprior), (ptr, np.concatenate(rows))
+
+    def _fused(self, kc, buf, N, due, informative, common, draws):
+        return braking_inplace.branching_run(*kc, self.merge, self.q_max, self.n_keep, buf.th,
+                                             buf.x, buf.P, buf.lw, buf.idx, N, due,
+                                             informative, *common)
 
     def _transition(self, s, informative, rng, dt):
         if not informative:

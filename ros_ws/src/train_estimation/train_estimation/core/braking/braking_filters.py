@@ -73,13 +73,16 @@ f held, and the due transition comes with the next reading (``RaoBlackwellFilter
 non-finite or non-increasing time stamps are rejected with a reason (``Estimate.reason``,
 counted in ``filter.rejected``); a numerical failure inside a step (all likelihoods -inf,
 non-positive-definite innovation covariance) rejects the step the same way. Steps work on new
-arrays and commit at the end, so a rejection cannot leave a half-updated particle set.
+arrays and commit at the end (a compiled step writes the filter's buffers only once it has
+succeeded), so a rejection cannot leave a half-updated particle set.
 
 Pure: numpy/scipy only; randomness only through the ``rng`` argument.
 
 **Modules.** ``braking_base`` (the common step, ``Estimate``), ``braking_discrete`` (RBPF, SMA,
 GSMA, discrete priors), ``braking_continuous`` (Q-GRBPF, random-walk RBPF), ``braking_kf`` (the
-exact reference KF and the oracle); this module re-exports them, so importers need one name.
+exact reference KF and the oracle); ``braking_compiled`` and ``braking_inplace`` (each
+algorithm's step as one compiled call on the filter's buffers); this module re-exports the
+filters, so importers need one name.
 Shared numerics: ``smc`` (log-normalisation, systematic resampling, N_eff), ``batched_kf`` (the
 Kalman predict/update over a leading particle axis), ``braking_model`` (the model, its affine
 prediction).

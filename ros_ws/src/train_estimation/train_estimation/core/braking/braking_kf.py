@@ -10,14 +10,15 @@ import numpy as np
 
 from ..numerics import bank
 from ..numerics.batched_kf import predict
-from . import braking_compiled
+from . import braking_compiled, braking_inplace
 from .braking_base import _STEP_REASONS, Estimate, RaoBlackwellFilter, _Set
 from .braking_model import _affine_pieces, augmented_model
 
 __all__ = ["BrakingKF", "OracleKF"]
 
 _Z44, _Z42 = np.zeros((4, 4)), np.zeros((4, 2))
-_KF_NO_PREDICT = (_Z44, _Z44, _Z42, _Z42, _Z44, np.zeros(2), False, 0.0, 0.0, False)
+_KF_NO_PREDICT = (braking_inplace.pack_kf(_Z44, _Z44, _Z42, _Z42, _Z44, np.zeros(2)), False,
+                  0.0, 0.0, False)
 _KF_REASONS = {**_STEP_REASONS, braking_compiled.KF_LOGLIK:
                "numerical failure: log-weights: none finite, or NaN/+inf"}
 
@@ -138,27 +139,44 @@ class BrakingKF(RaoBlackwellFilter):
 
     def _fused_step(self, s, u, dt, since, due, informative, y, mask, R, fused, t, rng):
         """:meth:`_predict`, ``_update``, :meth:`_reduce` and the finiteness check in one
-        compiled call (``braking_compiled.kf_step``, the numpy form's arithmetic)."""
-        fam = self.family
-        c = bank._c
+        compiled call on the filter's own state arrays (``braking_inplace.kf_run``, the numpy
+        form's arithmetic; the estimate into one flat array)."""
+        buf = self._buf
+        if buf is None or not (s is buf[0] and s.x is buf[1] and s.P is buf[2]):
+            buf = self._load(s)
         if dt > 0:
-            params = fam.params
-            P0, P1, B0, B1, Qd = _affine_pieces(params, float(dt))
             gain = 1.0
             if not informative:
-                gain = fam.hold_gain(u, self._last.x_mean, float(self._last.theta_mean[0]))
-            pred = (P0, P1, B0, B1, Qd, c(np.asarray(u, dtype=float)), bool(informative),
-                    float(gain), self.braking_rate_q * float(dt), True)
+                gain = self.family.hold_gain(u, self._last.x_mean,
+                                             float(self._last.theta_mean[0]))
+            key = (dt, u[0], u[1], informative, gain)
+            hit = self._pred_last
+            if hit is None or hit[0] != key or hit[1] is not self.family.params:
+                P0, P1, B0, B1, Qd = _affine_pieces(self.family.params, float(dt))
+                hit = self._pred_last = (key, self.family.params, (
+                    braking_inplace.pack_kf(P0, P1, B0, B1, Qd, u), bool(informative),
+                    float(gain), self.braking_rate_q * float(dt), True))
+            pred = hit[2]
         else:
             pred = _KF_NO_PREDICT
-        H, sel = self._bank_rows()
-        status, x, P, logz = braking_compiled.kf_step(
-            c(s.x), c(s.P), *pred, c(y[None]), H, c(np.asarray(R, dtype=float)),
-            np.flatnonzero(mask), sel)
+        kc = self._kc
+        if kc[0] is not self.family.H:
+            kc = self._pack()
+        E = np.empty(self._esize)
+        status, _ = braking_inplace.kf_run(*kc[1], buf[1], buf[2], *pred, y, R,
+                                           kc[3] if mask is kc[2] else np.flatnonzero(mask), E)
         if status != bank.OK:
             return _KF_REASONS[status]
-        s = _Set(s.theta, x, P, s.logw, s.idx, s.extra)
-        return s, self._summary(s, True, "", informative, fused, logz if fused else np.nan, t)
+        return buf[0], Estimate._of(E, self._lay, informative, fused,
+                                    self._t if t is None else float(t))
+
+    def _load(self, s, cap=0):
+        x = np.array(s.x, dtype=np.float64)
+        P = np.array(s.P, dtype=np.float64)
+        buf = self._buf = (_Set(s.theta, x, P, s.logw, s.idx, s.extra), x, P)
+        # f, the fifth state, is the estimate's parameter (theta_mean), as in _summary
+        self._fused_layout(self._report_index(5, 0)[0], 4, 5)
+        return buf
 
     def _predict(self, s, u, dt, informative):
         hold = None
