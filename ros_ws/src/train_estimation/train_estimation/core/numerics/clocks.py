@@ -42,7 +42,6 @@ import bisect
 import math
 from collections import deque
 from dataclasses import dataclass
-from functools import lru_cache
 
 import numpy as np
 
@@ -229,6 +228,7 @@ def clock_rate_change(stamps, recv, n_times: int = 81) -> dict | None:
 
 TREND_WAIT = 0.05  # -, a held step's rank trend towards its old clock at which its decision
 #   waits for more readings (StepWatch._returning): a true step waits with this probability
+TREND_N = 64  # held readings at most in that rank test (its cost grows as their square)
 TIE = 1e-3  # s: offsets closer than this (or than the arrivals' resolution) have no order
 SMALL_MOVE = 0.05  # s: the least move of a clock's offset level taken as one (the runner's
 #   small_step); smaller moves are jitter and drift
@@ -266,18 +266,21 @@ def is_step(chain: list, n: int, period: float) -> bool:
     return s1 - s0 >= 0.5 * (len(chain) - 1) * period and paced((s0, a0), (s1, a1))
 
 
-@lru_cache(maxsize=64)
+_ROWS = [[1], [1]]  # the permutations of n items counted by their inversions, n = 0, 1, ...
+
+
 def _mahonian(n: int) -> tuple:
     """Cumulative counts of the permutations of ``n`` items by their number of inversions."""
-    row = [1]
-    for k in range(2, n + 1):  # insert the k-th item: it adds 0..k-1 inversions
-        nxt = [0] * (len(row) + k - 1)
-        for i, c in enumerate(row):
-            for j in range(k):
-                nxt[i + j] += c
-        row = nxt
+    while len(_ROWS) <= n:  # the k-th item inserted adds 0..k-1 inversions
+        row, k = _ROWS[-1], len(_ROWS)
+        pre = [0]
+        for c in row:
+            pre.append(pre[-1] + c)
+        m = len(row)
+        _ROWS.append([pre[min(i, m - 1) + 1] - pre[max(i - k + 1, 0)]
+                      for i in range(m + k - 1)])
     out, acc = [], 0
-    for c in row:
+    for c in _ROWS[n]:
         acc += c
         out.append(acc)
     return tuple(out)
@@ -1125,6 +1128,7 @@ class StepWatch:
         if len(med) < self.min_judged or any(h[3] is None for h in chain):
             return 1.0
         drift = med.drift  # the clock's own rate moves the offsets too: taken out
+        chain = chain[:TREND_N]  # (a queue shows its trend from its first readings on)
         a0 = chain[0][4]
         offs = [h[1] - h[4] - drift * (h[4] - a0) for h in chain]
         n = len(offs)
