@@ -22,7 +22,7 @@ from __future__ import annotations
 import math
 import os
 from dataclasses import dataclass, field
-from functools import lru_cache
+from functools import cache, lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -149,8 +149,83 @@ def serialize(msgtype: str, fields: dict, stamp: float, frame_id: str = "track")
     return bytes(ts.serialize_cdr(_build(ts, msgtype, fields, stamp, frame_id), msgtype))
 
 
+# CDR sizes (= alignments) and struct codes of the primitive types a fixed layout may hold
+_PRIMITIVES = {"float64": "d", "float32": "f", "int64": "q", "uint64": "Q", "int32": "i",
+               "uint32": "I", "int16": "h", "uint16": "H", "int8": "b", "uint8": "B",
+               "byte": "B", "char": "B", "bool": "?"}
+CDR_LE = b"\x00\x01\x00\x00"  # the encapsulation header of little-endian plain CDR
+
+
+@cache
+def _fixed_fields(msgtype: str) -> tuple | None:
+    """((name, struct code), ...) of a docs/interfaces.md message whose fields after its
+    Header are all primitive scalars, in order; None for any other (strings, arrays)."""
+    text = msg_texts().get(msgtype)
+    if text is None:
+        return None
+    fields = []
+    for line in text.splitlines():
+        words = line.split("#", 1)[0].split()
+        if not words:
+            continue
+        if len(words) != 2 or "=" in line.split("#", 1)[0]:
+            return None  # a constant or a default value: not laid out here
+        typ, name = words
+        if not fields and typ in ("std_msgs/Header", "Header") and name == "header":
+            fields.append(("header", ""))
+            continue
+        if typ not in _PRIMITIVES or not fields:
+            return None
+        fields.append((name, _PRIMITIVES[typ]))
+    return tuple(fields[1:]) if fields and fields[0][0] == "header" else None
+
+
+@cache
+def _fixed_struct(msgtype: str, frame_len: int):
+    """The struct of the fields after a Header whose frame_id takes ``frame_len`` bytes (its
+    NUL included), or None (:func:`_fixed_fields`). CDR aligns each primitive to its size,
+    counted from the end of the 4-byte encapsulation header."""
+    fields = _fixed_fields(msgtype)
+    if fields is None:
+        return None
+    import struct
+
+    at = 12 + frame_len  # sec, nanosec, the string's length, its bytes
+    fmt = "<"
+    for _, code in fields:
+        size = struct.calcsize("<" + code)
+        pad = -at % size
+        fmt += "x" * pad + code
+        at += pad + size
+    return struct.Struct(fmt), tuple(n for n, _ in fields)
+
+
+def _deserialize_fixed(msgtype: str, data: bytes):
+    """:func:`deserialize` of a little-endian CDR message of a fixed layout read with one
+    ``struct`` unpack (a tenth of the time of a decoded message object), or None where the
+    layout is not such or the bytes do not fit it exactly (then the general decoder reads it)."""
+    if data[:4] != CDR_LE or len(data) < 16:
+        return None
+    frame_len = int.from_bytes(data[12:16], "little")
+    st = _fixed_struct(msgtype, frame_len)
+    if st is None:
+        return None
+    st, names = st
+    body = 16 + frame_len
+    size = st.size
+    # the serialised message ends after its last field, padded to at most 3 bytes more
+    if not size <= len(data) - body <= size + 3 or (frame_len and data[body - 1] != 0):
+        return None
+    sec = int.from_bytes(data[4:8], "little", signed=True)
+    nsec = int.from_bytes(data[8:12], "little")
+    return sec + nsec * 1e-9, dict(zip(names, st.unpack_from(data, body)))
+
+
 def deserialize(msgtype: str, data: bytes) -> tuple[float, dict]:
     """(stamp in s, fields dict without the header) of a CDR message."""
+    fast = _deserialize_fixed(msgtype, data)
+    if fast is not None:
+        return fast
     msg = own_typestore().deserialize_cdr(data, msgtype)
     fields = {k: getattr(msg, k) for k in msg.__dataclass_fields__
               if k not in ("header", "__msgtype__")}
