@@ -100,8 +100,8 @@ def _columns(mo, p_spec: float | None = None) -> tuple[dict, tuple]:
         return cache[ck]
     keys = sorted({round(float(s + d), 6) for s in mo.shifts for d in mo.delays} - {0.0})
     a0 = capped(mo, mo.a_tr0, p_spec)
-    R = np.stack([(capped(mo, traction_at(mo, k), p_spec) - a0) * mo.moving for k in keys],
-                 axis=1)
+    R = np.stack([(capped(mo, traction_at(mo, k), p_spec) - a0) * mo.moving
+                  for k in keys]).T  # rows stacked: Grid.integrate
     Bv, Bs = mo.grid.integrate(R, mo.ev.t.size)
     index = {("T", k): i for i, k in enumerate(keys)}
     bk = sorted(mo.braking_cols)
