@@ -382,14 +382,17 @@ def read_bag(path: str | os.PathLike, namespace: str | None = None,
     Works on bags written by rosbags, by rosbag2 and by the ``mcap`` writer with ROS 2 schemas.
     Topics of other types are listed in ``Bag.skipped`` with the reason.
     """
-    from rosbags.highlevel import AnyReader
-
     p = Path(path)
     if not p.exists():
         raise BagError(f"{p}: no such bag")
     if p.is_dir() and (not (p / "metadata.yaml").exists()
                        or not all(_is_closed(f) for f in p.glob("*.mcap"))):
         return _recover(p, namespace, topics)
+    plain = _read_plain(p, namespace, topics)
+    if plain is not None:
+        return plain
+    from rosbags.highlevel import AnyReader
+
     paths = [p]
     try:
         reader = AnyReader(paths, default_typestore=own_typestore())
@@ -430,6 +433,91 @@ def read_bag(path: str | os.PathLike, namespace: str | None = None,
         raise BagError(f"{p}: unreadable bag ({type(exc).__name__}: {exc})") from None
     finally:
         reader.close()
+    return bag
+
+
+def _read_plain(p: Path, namespace: str | None, topics: tuple[str, ...] | None) -> Bag | None:
+    """:func:`read_bag` from a closed bag of one MCAP file with uncompressed
+    chunks (what the generator, the recorder and csv2bag write), its records walked here with
+    ``struct`` and its messages decoded by :func:`deserialize`; None for anything else (then
+    rosbags reads it). The same Bag as rosbags' reader gives, each topic in log-time order (ties
+    in file order), without rosbags' import and per-message objects: a third of the time."""
+    import struct
+
+    files = [p] if p.is_file() else sorted(p.glob("*.mcap"))
+    if len(files) != 1:
+        return None
+    try:
+        data = files[0].read_bytes()
+        schemas: dict[int, str] = {}
+        channels: dict[int, tuple[str, str]] = {}  # id -> (topic, message type)
+        raw: dict[int, list] = {}  # channel id -> [(log time, data)]
+        head, msg_head = struct.Struct("<BQ"), struct.Struct("<HIQQ")
+
+        def text(buf, at):
+            n = int.from_bytes(buf[at:at + 4], "little")
+            return bytes(buf[at + 4:at + 4 + n]).decode(), at + 4 + n
+
+        def walk(buf, at, end):
+            while at < end:
+                op, n = head.unpack_from(buf, at)
+                at += 9
+                if op == 0x05:  # Message
+                    cid, _, t_ns, _ = msg_head.unpack_from(buf, at)
+                    lst = raw.get(cid)
+                    if lst is None:
+                        lst = raw[cid] = []
+                    lst.append((t_ns, bytes(buf[at + 22:at + n])))
+                elif op == 0x06:  # Chunk
+                    comp, c = text(buf, at + 28)
+                    size = int.from_bytes(buf[c:c + 8], "little")
+                    if comp:
+                        raise ValueError("compressed chunk")
+                    walk(buf, c + 8, c + 8 + size)
+                elif op == 0x03:  # Schema
+                    sid = int.from_bytes(buf[at:at + 2], "little")
+                    name, c = text(buf, at + 2)
+                    enc, _ = text(buf, c)
+                    if enc != "ros2msg":
+                        raise ValueError(f"schema encoding {enc}")
+                    schemas[sid] = name
+                elif op == 0x04:  # Channel
+                    cid, sid = struct.unpack_from("<HH", buf, at)
+                    topic, c = text(buf, at + 4)
+                    enc, _ = text(buf, c)
+                    if enc != "cdr":
+                        raise ValueError(f"message encoding {enc}")
+                    channels[cid] = (topic, schemas[sid])
+                elif op in (0x0F, 0x02):  # Data End, Footer: the summary follows
+                    return
+                at += n
+
+        if data[:8] != MAGIC:
+            return None
+        walk(memoryview(data), 8, len(data))
+    except (ValueError, KeyError, IndexError, struct.error, OSError, UnicodeDecodeError):
+        return None
+    if set(raw) - set(channels):
+        return None  # a message on a channel never declared: rosbags says what is wrong
+    if namespace is None:
+        namespace = _guess_namespace([t for t, _ in channels.values()])
+    bag = Bag(path=p, namespace=namespace)
+    for cid in sorted(channels):  # rosbags lists connections in channel order
+        topic, msgtype = channels[cid]
+        rel = topic[len(namespace) + 1:] if topic.startswith(namespace + "/") else topic
+        if msgtype not in msg_texts() and msgtype != "rosgraph_msgs/msg/Clock":
+            bag.skipped[topic] = f"type {msgtype} is not a docs/interfaces.md type"
+            continue
+        if msgtype == "rosgraph_msgs/msg/Clock" or (topics is not None and rel not in topics):
+            continue
+        bag.types[rel] = msgtype
+        msgs = bag.topics.setdefault(rel, [])
+        for t_ns, buf in sorted(raw.get(cid, []), key=lambda m: m[0]):
+            try:
+                stamp, fields = deserialize(msgtype, buf)
+            except Exception:  # an older definition: the bag's own, through rosbags
+                return None
+            msgs.append((t_ns, stamp, fields))
     return bag
 
 
