@@ -53,8 +53,11 @@ class TractionDelay(Cause):
         # the profile likelihood of d (the offset maximised out at each d): the offset and the
         # extra delay trade off (both move traction), so the curvature at the best offset alone
         # would understate the delay's uncertainty
-        ds = sorted({d for (_, d) in prof})
-        lls = [max(v for (_, d2), v in prof.items() if d2 == d) for d in ds]
+        by_d: dict = {}
+        for (_, d2), v in prof.items():
+            by_d.setdefault(d2, []).append(v)
+        ds = sorted(by_d)
+        lls = [max(by_d[d]) for d in ds]  # each d's values in the profile's order
         d_hat, se = parabola(ds, lls, ds.index(d_b))
         return st.null_ll() + dll, 1, {"delay": mo.train.brake.delay + d_hat}, {"delay": se}, \
             {"offset": s_b, "extra": d_b, "profile": list(zip(ds, lls))}
