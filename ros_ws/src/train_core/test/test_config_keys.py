@@ -145,3 +145,19 @@ def test_a_line_may_state_its_alert_limit(tmp_path):
     path.write_text(yaml.safe_dump(dict(data, alert_limit=-1.0)))
     with pytest.raises(ConfigError, match="alert_limit"):
         load_line(path)
+
+
+def test_load_yaml_reads_every_shipped_file_as_the_pure_python_parser_does(tmp_path):
+    """load_yaml parses with libyaml where PyYAML has it: the same values as yaml.safe_load
+    (every shipped line, train, scenario and config file), and a broken file is a one-line
+    ConfigError naming its line either way."""
+    from train_core.config import load_yaml
+
+    files = sorted(SRC.glob("*/config/**/*.yaml")) + SCENARIOS
+    assert len(files) >= 12
+    for f in files:
+        assert repr(load_yaml(f)) == repr(yaml.safe_load(f.read_text())), f
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("mass: [1, 2\n davis: {")
+    with pytest.raises(ConfigError, match=r"bad.yaml: not valid YAML \(line 2\)$"):
+        load_yaml(bad)

@@ -19,3 +19,26 @@ def test_first_order_is_lfilter_bit_for_bit(n, a):
 def test_first_order_takes_any_float_array_view():
     x = np.arange(20.0)[::2]  # not contiguous
     assert np.array_equal(first_order(x, 0.5, 0.5), lfilter([0.0, 0.5], [1.0, -0.5], x))
+
+
+@pytest.mark.parametrize("part", ["traction", "braking"])
+def test_grid_part_holds_each_command_from_its_first_grid_point(part):
+    """actuator.grid_part: the command on the grid is the last one stamped at or before
+    t - delay (1e-9 s tolerance), 0 before the first; then the lag. Checked against that rule
+    written out, with stamps on the grid's lattice, two at one instant, before the grid and
+    after its end."""
+    from train_core.actuator import grid_part
+
+    rng = np.random.default_rng(3)
+    t_grid = 5.0 + 0.02 * np.arange(2000)
+    ctrl_t = np.sort(np.r_[0.5, 7.3, 7.3, np.round(rng.uniform(5.0, 45.0, 300), 1), 50.0])
+    ctrl_a = rng.normal(size=ctrl_t.size)
+    delay, tau = 1.2, 0.4
+    cmd = np.zeros(t_grid.size)
+    for k, t in enumerate(t_grid):
+        n = int(np.sum(ctrl_t <= t - delay + 1e-9))
+        cmd[k] = ctrl_a[n - 1] if n else 0.0
+    cmd = np.maximum(cmd, 0.0) if part == "traction" else np.minimum(cmd, 0.0)
+    e = np.exp(-(t_grid[1] - t_grid[0]) / tau)  # the grid's own step
+    want = lfilter([0.0, 1.0 - e], [1.0, -e], cmd)
+    assert np.array_equal(grid_part(t_grid, ctrl_t, ctrl_a, tau, delay, part), want)

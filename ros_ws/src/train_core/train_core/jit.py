@@ -11,7 +11,9 @@ tested). Without numba the decorator returns the function unchanged and it runs 
 
 Pure: no ROS; numba is an optional accelerator, not a modelling dependency. It lives in
 train_core so that the simulator's model (:func:`train_core.actuator.grid_output`) and the
-estimators share it; import it lazily where start-up time matters (numba takes ~0.3 s).
+estimators share it; import it lazily where start-up time matters (numba takes ~0.3 s, and its
+type system another 0.3 s at the first call). A short process's loops are also compiled ahead
+of time (:mod:`train_core.aot`), which needs no numba at run time.
 """
 
 from __future__ import annotations

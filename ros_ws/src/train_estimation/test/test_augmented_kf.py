@@ -135,21 +135,22 @@ def test_two_pass_filter_equals_the_step_by_step_filter(seed, balises, held, upd
 
 
 def test_compiled_loops_equal_the_interpreted_ones():
-    """numerics.jit: the loops numba compiles give what the same Python gives, bit for bit (no
-    fast-math: the same IEEE operations in the same order)."""
+    """The loops as they run (compiled ahead of time, train_core.aot, or by numba's jit,
+    numerics.jit) give what the same Python gives, bit for bit (no fast-math: the same IEEE
+    operations in the same order)."""
     rng = np.random.default_rng(7)
     n = 300
     ev = _events(rng, n, [3, 50, 51, 200], list(range(100, 130)))
     vecs = [rng.normal(size=n) * 0.2 for _ in range(4)]
     arrays = (ev.t, ev.kind.astype(np.int64), ev.y_d, ev.y_v, ev.r_v, ev.held, *vecs)
     compiled = A._kf2_loop(*arrays, 0.02, 0.3, 1.0)
-    interpreted = A._kf2_loop.py_func(*(a.tolist() for a in arrays), 0.02, 0.3, 1.0)
+    interpreted = A.PY["kf2_loop"](*(a.tolist() for a in arrays), 0.02, 0.3, 1.0)
     assert compiled == interpreted
 
     h = np.diff(ev.t, prepend=ev.t[0])
     upd = rng.uniform(size=n) > 0.2
     outs = []
-    for f in (A._gain_loop, A._gain_loop.py_func):
+    for f in (A._gain_loop, A.PY["gain_loop"]):
         bufs = (np.zeros((n, 2, 2)), np.zeros((n, 3)), np.full(n, np.nan), np.zeros(n, np.int64),
                 np.full(n, 2, np.int8))
         ld = f(h, ev.kind.astype(np.int64), ev.held, ev.r_v, upd, np.zeros(n), False, 0.02, 0.3,
@@ -164,7 +165,7 @@ def test_compiled_loops_equal_the_interpreted_ones():
     Bs, Bv, Md, Mv, Mb = (rng.normal(size=(n, p1)) for _ in range(5))
     gp = A._gain_pass(ev, 0.02, 0.3, 1.0, upd, None)
     res = []
-    for f in (A._column_pass, A._column_pass.py_func):
+    for f in (A._column_pass, A.PY["column_pass"]):
         Z, E = np.zeros((gp.m, p1)), np.zeros((n, 2, p1))
         f(gp.h, gp.code.astype(np.int64), Bs, Bv, Md, Mv, Mb, ev.y_d, ev.y_v, gp.K, gp.L,
           gp.row, Z, E, True)
@@ -201,3 +202,41 @@ def test_the_loops_run_without_numba():
     ev = _events(rng, 200, [5, 90], [40, 41])
     v = [rng.normal(size=200) for _ in range(4)]
     assert kf2_loglik(ev, 0.05, 0.2, *v, 1.0) == ll
+
+
+def test_the_loops_are_compiled_ahead_of_time_and_equal_numbas_jit():
+    """``./run setup`` compiles the three loops ahead of time (train_core.aot) for this source,
+    and they are what runs, so a short process never imports numba for them; numba's jit of
+    the same loops (TRAIN_NO_AOT=1, what runs when the source was edited since) gives the same
+    filter bit for bit."""
+    if os.environ.get("TRAIN_NO_JIT") or os.environ.get("TRAIN_NO_AOT"):
+        pytest.skip("compiled loops turned off in this environment")
+    assert A._AOT is not None, "not compiled ahead of time: run ./run setup"
+    assert A._kf2_loop is A._AOT.kf2_loop and A._column_pass is A._AOT.column_pass
+    here = str(Path(__file__).parent)
+    code = textwrap.dedent(f"""
+        import json, sys
+        import numpy as np
+        sys.path.insert(0, {here!r})
+        from test_augmented_kf import _events
+        from train_estimation.core.numerics import augmented_kf as A
+        rng = np.random.default_rng(4)
+        n, p1 = 250, 4
+        ev = _events(rng, n, [7, 120, 121], [60, 61, 62])
+        v = [rng.normal(size=n) for _ in range(4)]
+        cols = [rng.normal(size=(n, p1)) for _ in range(5)]
+        kf = A.augmented_kf(ev, 0.03, 0.2, *cols[:4], cols[4], 1.5, keep_innov=True)
+        print(json.dumps([A._AOT is None, A.COMPILED, "numba" in sys.modules,
+                          A.kf2_loglik(ev, 0.05, 0.2, *v, 1.0), kf.logdet,
+                          kf.W.tolist(), kf.E0.tolist()]))
+        """)
+    outs = []
+    for env in ({}, {"TRAIN_NO_AOT": "1"}):
+        run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                             env={**os.environ, **env}, timeout=120)
+        assert run.returncode == 0, run.stderr
+        outs.append(json.loads(run.stdout.strip().splitlines()[-1]))
+    (no_aot0, comp0, numba0, *res0), (no_aot1, comp1, numba1, *res1) = outs
+    assert (no_aot0, comp0, numba0) == (False, True, False)  # ahead of time, no numba
+    assert (no_aot1, comp1, numba1) == (True, True, True)  # numba's jit
+    assert json.dumps(res0) == json.dumps(res1)  # every number the same (NaN included)

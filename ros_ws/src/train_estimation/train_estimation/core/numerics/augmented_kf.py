@@ -13,6 +13,11 @@ for z = [1, theta] and any theta: the likelihood of a hypothesis that is a linea
 of the columns is then a small quadratic problem (:func:`gls`). Tested against a dense
 joint-Gaussian solve.
 
+The three scalar loops (:func:`_column_pass`, :func:`_gain_loop`, :func:`_kf2_loop`) are
+compiled ahead of time where that was built for this source (``train_core.aot``,
+:func:`build_aot`: no numba at run time, which saves a short process such as ``diagnose``
+0.6 s), else by numba at their first call (``numerics.jit``), else interpreted.
+
 Pure: numpy only.
 """
 
@@ -23,8 +28,9 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from train_core import aot
 
-from .jit import COMPILED, jit
+from . import kalman
 from .kalman import balise_update, odometer_update, predict_cov
 
 LOG2PI = math.log(2.0 * math.pi)
@@ -106,7 +112,6 @@ def augmented_kf(ev: Events, q: float, r_s: float, Bv, Bs, Md, Mv, Mb, q_held: f
     return KFResult(W=Z.T @ Z, logdet=gp.logdet, m=gp.m, E0=E0, E1=E1, S_v=S_v)
 
 
-@jit
 def _column_pass(h, code, Bs, Bv, Md, Mv, Mb, yd, yv, K, L, row, Z, E, keep):
     """The columns of an augmented filter run and their whitened innovations ``Z`` (two rows
     per odometer reading, one per balise reading; ``E`` (n, 2, p+1) the innovations when
@@ -251,13 +256,6 @@ def _gain_pass(ev: Events, q: float, r_s: float, q_held: float, update, q_per_ev
     return out
 
 
-# kalman's scalar steps, compiled for the loops below (the same functions: one definition)
-_predict_cov = jit(predict_cov)
-_odometer_update = jit(odometer_update)
-_balise_update = jit(balise_update)
-
-
-@jit
 def _gain_loop(h, kind, held, rv, upd, qs, use_qs, q, r_s, q_held, K, L, S_v, row, code):
     """_gain_pass's recursion (kalman.predict_cov, odometer_update and balise_update, compiled
     with the loop): fills K, L, S_v, row and code in place and
@@ -368,7 +366,6 @@ def kf2_loglik(ev: Events, q: float, r_s: float, bv, bs, md, mv, q_held: float) 
     return -0.5 * (logdet + m * LOG2PI + quad)
 
 
-@jit
 def _kf2_loop(t, kind, yd, yv, rv, held, bv, bs, md, mv, q, r_s, q_held):
     """kf2_loglik's recursion: (sum log det S_k, scalar measurements, W entries of the two
     columns), with kalman.predict_cov, odometer_update and balise_update on scalars (compiled
@@ -417,3 +414,45 @@ def _kf2_loop(t, kind, yd, yv, rv, held, bv, bs, md, mv, q, r_s, q_held):
             xs1 += k0 * e1
             xv1 += k1 * e1
     return logdet, m, w00, w01, w11
+
+
+# The loops above as they run: compiled ahead of time, or by numba (kalman's scalar steps, which
+# they call, compiled with them: the same functions, one definition), or interpreted. The
+# interpreted originals stay reachable as ``PY``.
+PY = {"column_pass": _column_pass, "gain_loop": _gain_loop, "kf2_loop": _kf2_loop}
+_SOURCES = [__file__, kalman.__file__]
+# numba's signatures of the compiled-ahead forms: the callers pass contiguous arrays of these
+# types (np.ascontiguousarray with the dtype)
+_C1, _C2, _C3 = "f8[::1]", "f8[:, ::1]", "f8[:, :, ::1]"
+AOT_SIGNATURES = {
+    "column_pass": f"void({_C1}, i8[::1], {', '.join([_C2] * 5)}, {_C1}, {_C1}, {_C3}, {_C2}, "
+                   f"i8[::1], {_C2}, {_C3}, b1)",
+    "gain_loop": f"Tuple((f8, i8))({_C1}, i8[::1], b1[::1], {_C1}, b1[::1], {_C1}, b1, f8, f8, "
+                 f"f8, {_C3}, {_C2}, {_C1}, i8[::1], i1[::1])",
+    "kf2_loop": f"Tuple((f8, i8, f8, f8, f8))({_C1}, i8[::1], {', '.join([_C1] * 3)}, b1[::1], "
+                f"{', '.join([_C1] * 4)}, f8, f8, f8)",
+}
+_AOT = aot.load("augmented_kf", _SOURCES)
+if _AOT is not None:
+    COMPILED = True
+    _predict_cov, _odometer_update, _balise_update = predict_cov, odometer_update, balise_update
+    _column_pass, _gain_loop, _kf2_loop = _AOT.column_pass, _AOT.gain_loop, _AOT.kf2_loop
+else:
+    from .jit import COMPILED, jit
+
+    _predict_cov = jit(predict_cov)
+    _odometer_update = jit(odometer_update)
+    _balise_update = jit(balise_update)
+    _column_pass, _gain_loop, _kf2_loop = jit(_column_pass), jit(_gain_loop), jit(_kf2_loop)
+
+
+def build_aot():
+    """Compile the three loops ahead of time for this source (``./run setup``; 10-30 s): the
+    extension :data:`_AOT` loads from the next process on. Needs numba."""
+    if _AOT is not None:
+        return aot.build("augmented_kf", _SOURCES, {})  # there already: its path
+    if not COMPILED:
+        raise RuntimeError("compiling ahead of time needs numba (TRAIN_NO_JIT is set or numba "
+                           "is missing)")
+    return aot.build("augmented_kf", _SOURCES,
+                     {k: (PY[k], AOT_SIGNATURES[k]) for k in PY})

@@ -39,7 +39,7 @@ class PowerLimit(Cause):
         if powers.size < 3:
             return -math.inf, 1, {}, {}, {}
         a_tr = null_traction(st.mo, st.null)
-        cand = Candidates(st, np.stack([deficit(st.mo, p, a_tr) for p in powers], axis=1))
+        cand = Candidates(st, np.stack([deficit(st.mo, p, a_tr) for p in powers]).T)
         dll = np.array([cand.dll(q) for q in cand.quads_each()])
         i = int(np.argmax(dll))
         x_hat, se_x = parabola(np.log(powers), dll, i)

@@ -53,8 +53,11 @@ class TractionDelay(Cause):
         # the profile likelihood of d (the offset maximised out at each d): the offset and the
         # extra delay trade off (both move traction), so the curvature at the best offset alone
         # would understate the delay's uncertainty
-        ds = sorted({d for (_, d) in prof})
-        lls = [max(v for (_, d2), v in prof.items() if d2 == d) for d in ds]
+        by_d: dict = {}
+        for (_, d2), v in prof.items():
+            by_d.setdefault(d2, []).append(v)
+        ds = sorted(by_d)
+        lls = [max(by_d[d]) for d in ds]  # each d's values in the profile's order
         d_hat, se = parabola(ds, lls, ds.index(d_b))
         return st.null_ll() + dll, 1, {"delay": mo.train.brake.delay + d_hat}, {"delay": se}, \
             {"offset": s_b, "extra": d_b, "profile": list(zip(ds, lls))}
@@ -100,8 +103,8 @@ def _columns(mo, p_spec: float | None = None) -> tuple[dict, tuple]:
         return cache[ck]
     keys = sorted({round(float(s + d), 6) for s in mo.shifts for d in mo.delays} - {0.0})
     a0 = capped(mo, mo.a_tr0, p_spec)
-    R = np.stack([(capped(mo, traction_at(mo, k), p_spec) - a0) * mo.moving for k in keys],
-                 axis=1)
+    R = np.stack([(capped(mo, traction_at(mo, k), p_spec) - a0) * mo.moving
+                  for k in keys]).T  # rows stacked: Grid.integrate
     Bv, Bs = mo.grid.integrate(R, mo.ev.t.size)
     index = {("T", k): i for i, k in enumerate(keys)}
     bk = sorted(mo.braking_cols)
