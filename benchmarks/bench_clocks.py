@@ -34,7 +34,7 @@ Per step of ``d`` s (at 600 s):
 - **doubted**: estimates published while the step was undecided (the integrity monitor's
   ``clock`` doubt).
 
-    ./run bench clocks            # one hour per link, every step (about 7 min of CPU)
+    ./run bench clocks            # one hour per link, every step (16 min of CPU, loaded)
     ./run bench clocks --quick    # 10 minutes per link (under 2 min)
 """
 
