@@ -2,10 +2,17 @@
 the train
 clock to the reference clock on which control is stamped."""
 
+import bisect
+import math
+import random
+
 import numpy as np
 
 from train_estimation.core.numerics.clocks import (
+    TOL,
     ClockFit,
+    SampleGrid,
+    StreamClock,
     clock_rate_change,
     clock_steps,
     control_on_train_clock,
@@ -145,3 +152,58 @@ def test_a_change_of_the_clocks_rate_is_found_and_one_rate_is_not():
     assert abs(ch["drift_before"] - 2e-4) < 4 * se and abs(ch["drift_after"] + 7e-4) < 4 * se, ch
     assert abs(ch["offset"] + 9e-4 * 0.6 * 599.9) < 0.02, ch
     assert clock_rate_change(*_logged(latency_shift=0.3)) is None
+
+
+def test_the_sample_grid_kept_sorted_fits_the_line_the_arrays_fit():
+    """SampleGrid keeps its samples' slopes and residuals sorted as they change (one in, one
+    out) and fits on floats: at every step the same line, tolerance and bounds, to the bit, as
+    the arrays fit from scratch -- through late samples (out of order), a sample's stamp
+    replaced, wrong stamps, the oldest dropped, the line replaced and resets."""
+    rng = random.Random(5)
+    fits = 0
+    for _ in range(300):
+        period = rng.choice([0.1, 1.0])
+        grid = SampleGrid(period)
+        q0, t0 = rng.choice([0, 4000, 2 ** 31]), rng.choice([0.0, 1.7e9, -20.0])
+        jitter = rng.choice([0.0, 1e-6, 1e-3, 0.05])
+        for k in range(rng.randint(3, 150)):
+            seq = q0 + k + (rng.randint(-5, 5) if rng.random() < 0.2 else 0)
+            stamp = t0 + period * (seq - q0) + rng.gauss(0.0, jitter)
+            if rng.random() < 0.03:
+                stamp += rng.choice([-3.0, 0.5, 1e6])
+            grid.add(seq, stamp)
+            if rng.random() < 0.01:
+                grid.reset()
+            assert grid._seqs == sorted(grid._pts)
+            if len(grid._pts) >= 3:
+                kept, arrays = grid._robust(), grid._robust_arrays()
+                assert kept == arrays, (kept, arrays)
+                fits += kept is not None
+    assert fits > 10000
+
+
+def test_the_clock_centre_and_spread_are_the_densest_and_the_median_deviation():
+    """StreamClock's centre (found at once when the window lies within ``TOL``) and robust
+    spread (kept until the next offset) against their definitions on the window it holds,
+    after every offset added: the densest value (most others within ``TOL``; the median of
+    the densest on ties) and 1.4826 times the middle of the sorted absolute deviations from
+    it, to the bit -- through jitter, wild offsets and the clock's own moves."""
+    rng = random.Random(6)
+    for _ in range(300):
+        clock = StreamClock()
+        level, scale = rng.choice([0.0, 1.7e9, -3.0]), rng.choice([1e-3, 0.05, 1.0, 4.0])
+        for k in range(rng.randint(1, 80)):
+            if rng.random() < 0.02:
+                level += rng.choice([-10.0, 3.0, 6.0])  # the clock moved
+            v = level + rng.choice([rng.gauss(0.0, scale), -rng.expovariate(1.0 / scale)])
+            if rng.random() < 0.05:
+                v += rng.choice([-1e3, 5.0, 1e6])  # a wild offset
+            clock.add(v, float(k))
+            s = sorted(clock.fifo)
+            counts = [bisect.bisect_right(s, u + TOL) - bisect.bisect_left(s, u - TOL)
+                      for u in s]
+            dense = [u for u, c in zip(s, counts) if c == max(counts)]
+            centre = dense[len(dense) // 2]
+            dev = sorted(abs(u - centre) for u in s)
+            assert clock.value == centre and clock.scale == 1.4826 * dev[len(dev) // 2]
+    assert math.isnan(StreamClock().value) and math.isnan(StreamClock().scale)

@@ -21,6 +21,7 @@ from train_estimation.core.online.integrity import (
     IntegrityMonitor,
     IntegrityParams,
     _accel_cov,
+    _accel_terms,
 )
 from train_estimation.core.online.replay import replay
 from train_estimation.core.online.runner import Output
@@ -184,6 +185,15 @@ def test_readings_all_refused_raise_an_alarm_within_a_second(demo):
     lab = np.array([o.integrity for o in outs])
     first = t[(t >= 100.0) & (lab == ALARM)]
     assert first.size and first[0] - 100.0 <= 1.0
+
+
+def test_the_widening_on_floats_is_the_arrays_to_the_bit():
+    """The monitor widens the (position, speed) block on four floats: the same numbers as
+    the 2x2 arrays it stands for (:func:`_accel_cov`)."""
+    rng = np.random.default_rng(4)
+    for a, tau in zip(rng.uniform(0.0, 2.0, 2000), 10.0 ** rng.uniform(-3.0, 3.0, 2000)):
+        assert _accel_terms(float(a), float(tau)) == tuple(_accel_cov(float(a), float(tau))
+                                                           .ravel())
 
 
 def test_monitor_inflation_and_labels():

@@ -107,6 +107,13 @@ def median(a) -> float:
     return float(a[h]) if n % 2 else float((a[h - 1] + a[h]) / 2.0)
 
 
+def _median_sorted(a: list) -> float:
+    """:func:`median` of a sorted non-empty list of floats without NaN (the same number)."""
+    n = len(a)
+    h = n // 2
+    return a[h] if n % 2 else (a[h - 1] + a[h]) / 2.0
+
+
 def _robust_sd(x: np.ndarray) -> float:
     """1.4826 x the median absolute deviation: the SD of a normal sample, robust to outliers."""
     return 1.4826 * float(np.median(np.abs(x - np.median(x))))
@@ -311,6 +318,8 @@ class StreamClock:
         self.n, self.fifo, self.sorted = n, deque(), []
         self.arrivals: deque = deque()  # arrival (s, or None) of each offset in fifo
         self._value = None  # cached centre (recomputed after an add)
+        self._scale = None  # cached robust spread (likewise: the runner asks several times per
+        #   message, the step watch's bar and the rate fit's band)
         self._at_cache = None  # ((pushes, drift), newest arrival, centre there): value_at's
         self.pending: list = []  # consecutive values away from a full window's centre
         self._fit = [0, 0.0, 0.0, 0.0, 0.0, 0.0, None]  # n, sx, sy, sxx, sxy, syy, origin
@@ -384,7 +393,7 @@ class StreamClock:
         return paced((v0 + a0, a0), (v1 + a1, a1))
 
     def _push(self, v: float, lift: bool = True, at: float | None = None) -> None:
-        self._value = None
+        self._value = self._scale = None
         self._pushed += 1
         self.fifo.append(v)
         self.arrivals.append(at)
@@ -447,8 +456,14 @@ class StreamClock:
         the densest on ties."""
         if not s:
             return math.nan
-        counts = [bisect.bisect_right(s, v + cls.tol) - bisect.bisect_left(s, v - cls.tol)
-                  for v in s]
+        tol = cls.tol
+        if s[0] + tol >= s[-1] and s[-1] - tol <= s[0]:
+            # every value within tol of every other (the usual window: a link's jitter is
+            # milliseconds): each counts all of them, and the densest are the whole window.
+            # The bounds as the counts compute them (v + tol, v - tol rounded), so this is
+            # their answer exactly, without a count per value
+            return s[len(s) // 2]
+        counts = [bisect.bisect_right(s, v + tol) - bisect.bisect_left(s, v - tol) for v in s]
         best = max(counts)
         dense = [v for v, c in zip(s, counts) if c == best]
         return dense[len(dense) // 2]
@@ -479,10 +494,17 @@ class StreamClock:
     def scale(self) -> float:
         """Robust spread of the window's offsets around the centre (1.4826 x the median
         absolute deviation, s): the link's jitter as this clock sees it."""
-        if not self.sorted:
+        if self._scale is None:
+            self._scale = self._spread(self.sorted, self.value)
+        return self._scale
+
+    @staticmethod
+    def _spread(s: list, c: float) -> float:
+        """1.4826 x the middle of the absolute deviations of ``s`` from ``c`` (nan when
+        empty)."""
+        if not s:
             return math.nan
-        c = self.value
-        dev = sorted(abs(v - c) for v in self.sorted)
+        dev = sorted([abs(v - c) for v in s])
         return 1.4826 * dev[len(dev) // 2]
 
     @property
@@ -655,6 +677,13 @@ class SampleGrid:
         self.floor = floor  # s: the smallest residual taken as off the grid (sampling jitter)
         self.keep = keep  # recent samples kept
         self._pts: dict = {}  # seq -> timeline stamp of learnt samples
+        # The line is refitted at every reading (the samples change); what it is made of is
+        # kept sorted as they change, one sample in and one out, instead of sorted again:
+        self._seqs: list = []  # the learnt samples' seqs, sorted
+        self._ratios: list | None = []  # the slopes between neighbours, sorted (None: to
+        #   be rebuilt; only for seqs exact as floats, :meth:`_robust`)
+        self._res: tuple | None = None  # (P, the residuals stamp - P seq, sorted) for the
+        #   last period fitted: kept while the period does not change (it seldom does)
         self._misfits: list = []  # (seq, stamp) admitted in a row off the trusted line
         self._fit = None  # cached (P, c, tolerance, lowest seq, highest seq), or False when not
         #   trusted
@@ -662,6 +691,9 @@ class SampleGrid:
 
     def reset(self) -> None:
         self._pts.clear()
+        self._seqs.clear()
+        self._ratios = []
+        self._res = None
         self._misfits.clear()
         self._fit = None
         self._early = None
@@ -684,14 +716,63 @@ class SampleGrid:
                 misfits = self._misfits[-self.n_min:]
                 self.reset()
                 for q, st in misfits:
-                    self._pts[q] = st
+                    self._learn(q, st)
                 return
         self._misfits.clear()
-        self._pts[seq] = stamp
+        self._learn(seq, stamp)
         if len(self._pts) > self.keep:
-            del self._pts[min(self._pts)]
+            self._pair(0, False)
+            self._resid_of(self._seqs[0], False)
+            del self._pts[self._seqs.pop(0)]  # the lowest seq
         self._fit = None
         self._early = None
+
+    def _learn(self, seq: int, stamp: float) -> None:
+        """Learn the sample ``seq`` at ``stamp`` (a new one, or a new stamp for one known),
+        keeping the sorted slopes and residuals (``__init__``) up to date."""
+        qs, pts = self._seqs, self._pts
+        if not -2 ** 53 <= seq <= 2 ** 53:
+            self._ratios = None  # not exact as a float: the arrays' way (_robust)
+        i = bisect.bisect_left(qs, seq)
+        if seq in pts:  # its slopes and residual go, the new ones come
+            self._pair(i - 1, False)
+            self._pair(i, False)
+            self._resid_of(seq, False)
+        else:
+            self._pair(i - 1, False)  # its neighbours are neighbours no more
+            qs.insert(i, seq)
+        pts[seq] = stamp
+        self._pair(i - 1, True)
+        self._pair(i, True)
+        self._resid_of(seq, True)
+
+    def _slope(self, i: int) -> float:
+        """The slope between the ``i``-th and the next learnt sample (as np.diff divides)."""
+        a, b = self._seqs[i], self._seqs[i + 1]
+        return (self._pts[b] - self._pts[a]) / (float(b) - float(a))
+
+    def _pair(self, i: int, add: bool) -> None:
+        """Add (or remove) the slope of neighbours ``i``, ``i + 1`` to the sorted slopes."""
+        r = self._ratios
+        if r is None or not 0 <= i < len(self._seqs) - 1:
+            return
+        v = self._slope(i)
+        if add:
+            bisect.insort(r, v)
+        else:
+            del r[bisect.bisect_left(r, v)]
+
+    def _resid_of(self, seq: int, add: bool) -> None:
+        """Add (or remove) sample ``seq``'s residual to those kept for the last period."""
+        if self._res is None or self._ratios is None:
+            self._res = None
+            return
+        P, r = self._res
+        v = self._pts[seq] - P * float(seq)
+        if add:
+            bisect.insort(r, v)
+        else:
+            del r[bisect.bisect_left(r, v)]
 
     def sample_period(self) -> float | None:
         """The train's sample period as the recent samples give it (s: the median of the
@@ -703,8 +784,33 @@ class SampleGrid:
         return median(np.diff(st) / np.diff(q))
 
     def _robust(self):
-        """The learnt samples' robust line: ``(P, c, residuals, lowest seq, highest seq)``, or
-        None when the median period is not within half and twice the nominal one."""
+        """The learnt samples' robust line: ``(P, c, the median and the largest of the
+        residuals' absolute values, lowest seq, highest seq)``, or None when the median period
+        is not within half and twice the nominal one.
+
+        On plain floats, the same operations as on arrays (each rounded once: the same
+        numbers), on the slopes and residuals kept sorted (``__init__``): a fifth of the cost,
+        and the grid is refitted at every reading. Seqs beyond 2**53 (not exact as floats) or
+        residuals that overflow take the arrays."""
+        qs, pts = self._seqs, self._pts
+        if not -2 ** 53 <= qs[0] <= qs[-1] <= 2 ** 53:
+            return self._robust_arrays()
+        if self._ratios is None:
+            self._ratios = sorted(self._slope(i) for i in range(len(qs) - 1))
+        P = _median_sorted(self._ratios)
+        if not 0.5 * self.period <= P <= 2.0 * self.period:
+            return None
+        if self._res is None or self._res[0] != P:
+            self._res = (P, sorted([pts[k] - P * float(k) for k in qs]))
+        r = self._res[1]
+        if not (math.isfinite(r[0]) and math.isfinite(r[-1])):
+            return self._robust_arrays()
+        c = _median_sorted(r)
+        dev = sorted([abs(v - c) for v in r])
+        return P, c, _median_sorted(dev), dev[-1], qs[0], qs[-1]
+
+    def _robust_arrays(self):
+        """:meth:`_robust` on arrays (any seq, any stamp)."""
         q = np.array(sorted(self._pts), float)
         st = np.array([self._pts[int(k)] for k in q])
         P = median(np.diff(st) / np.diff(q))
@@ -712,7 +818,8 @@ class SampleGrid:
             return None
         r = st - P * q
         c = median(r)
-        return P, c, r - c, int(q[0]), int(q[-1])
+        a = np.abs(r - c)
+        return P, c, median(a), float(np.max(a)), int(q[0]), int(q[-1])
 
     def _line(self):
         """(P s, c s, tolerance s, lowest seq, highest seq) of the grid, or None while it is
@@ -721,8 +828,8 @@ class SampleGrid:
             self._fit = False
             line = self._robust() if len(self._pts) >= self.n_min else None
             if line is not None:
-                P, c, r, lo, hi = line
-                tol = max(self.floor, 8.0 * 1.4826 * median(np.abs(r)))
+                P, c, mad, _, lo, hi = line
+                tol = max(self.floor, 8.0 * 1.4826 * mad)
                 if tol < 0.25 * P:
                     self._fit = (P, c, tol, lo, hi)
         return self._fit or None
@@ -733,8 +840,8 @@ class SampleGrid:
             self._early = False
             line = self._robust() if self.n_early <= len(self._pts) < self.n_min else None
             if line is not None:
-                P, c, r, lo, hi = line
-                if np.all(np.abs(r) <= self.floor) and self.floor < 0.25 * P:
+                P, c, _, worst, lo, hi = line
+                if worst <= self.floor and self.floor < 0.25 * P:
                     self._early = (P, c, self.floor, lo, hi)
         return self._early or None
 

@@ -567,6 +567,7 @@ class IntegrityMonitor:
         now = bisect.bisect_right(cmds, t, key=_STAMP)  # the commands up to t
         b = tr.brake
         settle = b.delay + 3.0 * b.time_constant
+        lowest, since = math.inf, now  # the least command from index ``since`` to now
         for span in self.STILL_SPANS:
             if span < 2.5 * self.period:
                 continue  # three readings at least
@@ -574,7 +575,13 @@ class IntegrityMonitor:
             first = bisect.bisect_right(cmds, t0, key=_STAMP)  # the command in force at t0:
             if first == 0:  # first - 1
                 return ""  # no command known in force over so long a span
-            a_sure = SURE * min(a for _, a in itertools.islice(cmds, first - 1, now))
+            # the least command in force since t0: the spans grow, so only the commands
+            # before the last span's are new (the first least in order, as min takes it)
+            if first - 1 < since:
+                new = min(a for _, a in itertools.islice(cmds, first - 1, since))
+                lowest = new if since == now else min(new, lowest)
+                since = first - 1
+            a_sure = SURE * lowest
             if a_sure <= hold:
                 return ""  # a longer span only lowers the traction surely delivered
             if 0.5 * (a_sure - hold) * span * span < p.still_run:
@@ -625,16 +632,18 @@ class IntegrityMonitor:
         the alert limit, so a doubt whose interval still fits the limit is OK."""
         p = self.p
         doubt, why, hyps = OK, [], []
-        C = np.array(out.covariance, dtype=float).reshape(4, 4)
-        P = C[:2, :2].copy()
-        finite = np.all(np.isfinite(P)) and math.isfinite(out.position) \
+        # the (position, speed) block as four floats (xx, xv, vx, vv), widened below with the
+        # same operations, each rounded once, as on 2x2 arrays (the same numbers, a fifth of
+        # the cost: the monitor runs at every estimate)
+        cov = out.covariance
+        P = (float(cov[0]), float(cov[1]), float(cov[4]), float(cov[5]))
+        finite = all(math.isfinite(v) for v in P) and math.isfinite(out.position) \
             and math.isfinite(out.velocity)
-        if not finite or P[0, 0] <= 0 or P[1, 1] <= 0 or \
-                P[0, 0] * P[1, 1] - P[0, 1] ** 2 <= 0:
+        if not finite or P[0] <= 0 or P[3] <= 0 or P[0] * P[3] - P[1] ** 2 <= 0:
             # the filter's own covariance is broken: published as "unbounded" (never a negative
             # or non-positive-definite matrix a consumer could take for a bound)
             return self._label(out, t, ALARM, "covariance: not positive definite",
-                               np.diag([UNBOUNDED, UNBOUNDED]))
+                               (UNBOUNDED, 0.0, 0.0, UNBOUNDED))
         tau = t - self.last_fused
         if self.refused_run >= p.blind_readings:
             return self._label(out, t, ALARM, f"blind: {self.refused_run} readings refused in a "
@@ -658,16 +667,16 @@ class IntegrityMonitor:
         if tau > degraded_after:
             doubt = DEGRADED
             why.append(f"no_measurement: {tau:.1f} s")
-            P = P + _accel_cov(p.accel_uncertainty, tau)
+            P = _plus(P, _accel_terms(p.accel_uncertainty, tau))
         if m > 1.0 + p.nis_z * math.sqrt(2.0 / p.nis_window):
             doubt = DEGRADED
             why.append(f"speed_nis: window mean {m:.3g}")
-            P = P * m
+            P = tuple(v * m for v in P)
         silent = t - self.last_command
         no_command = math.isfinite(self.last_command) and silent > p.command_timeout
         if no_command:
-            P = P + _accel_cov(p.accel_uncertainty, min(tau, self.period) + self.period)
-        fault_free = float(P[0, 0])
+            P = _plus(P, _accel_terms(p.accel_uncertainty, min(tau, self.period) + self.period))
+        fault_free = P[0]
         # faults not excluded: hypotheses (and the covariance widened to cover them)
         if self.suspect or t - self.reanchored_at < p.reanchor_hold:
             doubt = DEGRADED
@@ -678,14 +687,14 @@ class IntegrityMonitor:
             # ahead of or behind where the estimate puts it
             shift = abs(out.velocity) * T
             hyps += [Hypothesis("clock", shift, T * T), Hypothesis("clock", -shift, T * T)]
-            P = P + np.diag([shift ** 2 + T ** 2, 0.0])
+            P = _plus(P, (shift ** 2 + T ** 2, 0.0, 0.0, 0.0))
         b, se = self._bias()
         if abs(b) > p.pos_z * se:
             doubt = DEGRADED
             why.append(f"position: distance innovations {b:+.2f} m on average over "
                        f"{len(self.pos)} readings")
             hyps.append(Hypothesis("position", b))
-            P = P + np.diag([b * b, 0.0])
+            P = _plus(P, (b * b, 0.0, 0.0, 0.0))
         if self.balise_doubt is not None:
             sb, d, what, tracked = self.balise_doubt
             odo = self._odometer_at(t) if tracked else None
@@ -707,7 +716,7 @@ class IntegrityMonitor:
                 told = f"{nu:+.1f} m from the estimate"
             doubt = DEGRADED
             why.append(f"balise: {what}; {told}")
-            P = P + np.diag([nu * nu, 0.0])
+            P = _plus(P, (nu * nu, 0.0, 0.0, 0.0))
         if no_command:
             doubt = DEGRADED
             why.append(f"no_command: {silent:.1f} s")
@@ -720,10 +729,10 @@ class IntegrityMonitor:
         ALARM: nothing bounds it) with the covariance ``P`` widened by the doubts, and the
         protection levels of the fault-free variance ``fault_free`` (the filter's own when
         None) and the live hypotheses ``hyps``, which set the label (module doc of
-        ``protection.py``)."""
-        C = np.array(out.covariance, dtype=float).reshape(4, 4)
+        ``protection.py``). ``P``: the (position, speed) block (xx, xv, vx, vv), or None."""
+        C = np.array(out.covariance, dtype=float)
         if P is not None:
-            C[:2, :2] = P
+            C[0], C[1], C[4], C[5] = P
         if doubt == ALARM:
             ahead = behind = math.inf
         else:
@@ -744,9 +753,9 @@ class IntegrityMonitor:
         self.last_state = (state, why)
         # the speed variance the next NIS term uses: unknown (a broken or ALARM covariance)
         # counts as a wide one, so one bad estimate does not make every reading inconsistent
-        known = (doubt == OK or P is not None) and C[1, 1] < UNBOUNDED
+        known = (doubt == OK or P is not None) and C[5] < UNBOUNDED
         if math.isfinite(out.velocity):
-            self.prev = (t, float(out.velocity), float(C[1, 1]) if known else 1e6)
+            self.prev = (t, float(out.velocity), float(C[5]) if known else 1e6)
         # the filter's own covariance, not the inflated one: the position test judges the
         # filter (an inflation it caused must not silence it); its two variances read as
         # floats, not through a third 4x4 array per estimate
@@ -757,9 +766,20 @@ class IntegrityMonitor:
                              float(out.acceleration), own_xx, own_vv)
         else:
             self.prev_pos = None
-        return replace(out, covariance=tuple(C.ravel()), integrity=state,
+        return replace(out, covariance=tuple(C), integrity=state,
                        integrity_reason=why, protection_level_ahead=ahead,
                        protection_level_behind=behind)
+
+
+def _plus(P: tuple, Q: tuple) -> tuple:
+    """Two (xx, xv, vx, vv) blocks added (as two 2x2 arrays add)."""
+    return P[0] + Q[0], P[1] + Q[1], P[2] + Q[2], P[3] + Q[3]
+
+
+def _accel_terms(a: float, tau: float) -> tuple:
+    """:func:`_accel_cov` as (xx, xv, vx, vv) floats (the same numbers)."""
+    a2 = a * a
+    return a2 * (tau ** 4 / 4.0), a2 * (tau ** 3 / 2.0), a2 * (tau ** 3 / 2.0), a2 * tau ** 2
 
 
 def _accel_cov(a: float, tau: float) -> np.ndarray:

@@ -799,13 +799,19 @@ class EstimatorRunner:
 
     def _emit(self, t: float, out: list) -> None:
         o = self.monitor.assess(self.adapter.output(self._filter_time(t)), t)
+        changes = {}
         if o.consider:
-            C = np.array(o.covariance, dtype=float).reshape(4, 4)
-            C[:2, :2] += np.asarray(o.consider, dtype=float).reshape(2, 2)
-            o = replace(o, covariance=tuple(C.ravel()))
+            # the (position, speed) block of the row-major 4x4 (as adding the 2x2 arrays does)
+            C = np.array(o.covariance, dtype=float)
+            cons = o.consider
+            for i, k in ((0, 0), (1, 1), (4, 2), (5, 3)):
+                C[i] += float(cons[k])
+            changes["covariance"] = tuple(C)
         # published on the train clock (after a step: the new one, the sample's stamp as sent)
         stamp = self._steps.as_sent(t)
-        out.append(o if o.stamp == stamp else replace(o, stamp=stamp))
+        if o.stamp != stamp:
+            changes["stamp"] = stamp
+        out.append(replace(o, **changes) if changes else o)
         self._last_out = t
 
     def advance_to(self, t: float) -> list[Output]:

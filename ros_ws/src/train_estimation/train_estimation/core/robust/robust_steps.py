@@ -97,10 +97,15 @@ def choose_gamma(Sigma: np.ndarray, A: np.ndarray, H: np.ndarray, Eu: np.ndarray
     a Newton step leaves the bracket) converges in a few iterations.
     Returns 0.0 when ``H = 0`` (no uncertainty: the bracket is ``A Sigma A^T`` in the limit).
     """
-    h = float(np.sum(H * H))
+    return _choose_gamma(Sigma, A, float(np.sum(H * H)), Eu, None)
+
+
+def _choose_gamma(Sigma: np.ndarray, A: np.ndarray, h: float, Eu: np.ndarray, S_u) -> float:
+    """:func:`choose_gamma` with ``h = sum(H * H)`` and ``S_u = Eu Sigma Eu^T`` (None: computed
+    here) given by the caller, who has them already."""
     if h == 0.0:
         return 0.0
-    s, V = np.linalg.eigh(Eu @ Sigma @ Eu.T)
+    s, V = np.linalg.eigh(Eu @ Sigma @ Eu.T if S_u is None else S_u)
     G = A @ Sigma @ Eu.T @ V
     g = [float(v) for v in np.sum(G * G, axis=0)]
     s = [float(v) for v in s]
@@ -140,14 +145,17 @@ def robust_predict_cov(Sigma: np.ndarray, dm: DiscreteWen, q: float, lam_bar: fl
     ``gamma=None``: :func:`choose_gamma`. ``epsilon=None``: per-step minimiser ``sqrt(b/a)``.
     Raises ValueError when a given gamma violates (23).
     """
-    A, H, Eu, E = dm.A, dm.H, dm.Eu, dm.E
+    A, Eu = dm.A, dm.Eu
+    HH = dm.HH  # H H^T, computed once per period (DiscreteWen)
     check = gamma is not None
+    S_u = None
     if gamma is None:
-        gamma = choose_gamma(Sigma, A, H, Eu)
-    HH = H @ H.T
+        S_u = Eu @ Sigma @ Eu.T if dm.hh != 0.0 else None
+        gamma = _choose_gamma(Sigma, A, dm.hh, Eu, S_u)
     if gamma > 0.0:
-        S_u = Eu @ Sigma @ Eu.T
-        W = np.eye(S_u.shape[0]) / gamma - S_u
+        if S_u is None:
+            S_u = Eu @ Sigma @ Eu.T
+        W = dm.I_u / gamma - S_u
         if check and np.linalg.eigvalsh(W)[0] <= 0.0:  # choose_gamma's is inside by construction
             raise ValueError("gamma violates constraint (23): 1/gamma I - Eu Sigma Eu^T not > 0")
         SE = Sigma @ Eu.T
@@ -165,7 +173,7 @@ def robust_predict_cov(Sigma: np.ndarray, dm: DiscreteWen, q: float, lam_bar: fl
         raise ValueError("epsilon must be > 0 when lambda_bar H H^T != 0")
     else:
         out = bracket
-    out = out + q * np.outer(E, E)
+    out = out + q * dm.EE
     return 0.5 * (out + out.T), float(gamma), float(epsilon)
 
 

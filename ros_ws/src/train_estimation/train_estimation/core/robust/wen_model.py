@@ -77,6 +77,16 @@ class DiscreteWen:
     H: np.ndarray  # (2, 1) E~ F~, column of the norm-bounded uncertainty
     Eu: np.ndarray  # (r, 2) Lemma 1's E: I (paper) or [[0, 1]] (velocity only)
 
+    def __post_init__(self):
+        # the products eq. (21) uses at every step, once per period (the matrices are cached
+        # per period: discrete_matrices): H H^T, its trace as sum(H * H), E E^T, and I (r x r)
+        for name, value in (("HH", self.H @ self.H.T), ("hh", float(np.sum(self.H * self.H))),
+                            ("EE", np.outer(self.E, self.E)),
+                            ("I_u", np.eye(self.Eu.shape[0]))):
+            if isinstance(value, np.ndarray):
+                value.setflags(write=False)
+            object.__setattr__(self, name, value)
+
 
 @lru_cache(maxsize=64)
 def discrete_matrices(meff: float, b: float, c: float, v_max: float, dt: float,
