@@ -107,17 +107,13 @@ def run_link(duration: float, rate: float, counter: bool, jitter: float, loss: f
     # the filter time of each reading fused against its true sampling time, relative to the
     # first (the filter's time origin is its own); with a step, from the last one before it
     f = np.array(rec.fused, float).reshape(-1, 2)
-    e = f[:, 0] - f[:, 1] / SPEED  # the train cruises: its count is its sampling time
+    t_true = f[:, 1] / SPEED  # the train cruises: its count is its sampling time
+    e = f[:, 0] - t_true
     row["time_err_all_ms"] = 1e3 * float(np.max(np.abs(e - e[0]))) if e.size else math.nan
     if step is not None:
         row["shift_err_ms"] = 1e3 * (runner._steps.shift - step)
         t_dec, n_new = decided[0] if decided else (math.nan, math.nan)
         row["decided_readings"], row["decided_s"] = n_new, t_dec - STEP_AT
-        # the filter time of each reading fused after the step against its true sampling time,
-        # relative to the last one before it (the filter's time origin is its own)
-        f = np.array(rec.fused, float).reshape(-1, 2)
-        t_true = f[:, 1] / SPEED  # the train cruises: its count is its sampling time
-        e = f[:, 0] - t_true
         before, after = t_true < STEP_AT, t_true >= STEP_AT
         row["time_err_ms"] = 1e3 * float(np.max(np.abs(e[after] - e[before][-1]))) \
             if after.any() and before.any() else math.nan

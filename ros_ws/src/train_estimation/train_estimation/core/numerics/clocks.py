@@ -274,10 +274,14 @@ def is_step(chain: list, n: int, period: float) -> bool:
 
 
 _ROWS = [[1], [1]]  # the permutations of n items counted by their inversions, n = 0, 1, ...
+_CUMULATIVE: dict = {}  # n -> the same counts summed up to each number of inversions
 
 
 def _mahonian(n: int) -> tuple:
     """Cumulative counts of the permutations of ``n`` items by their number of inversions."""
+    cum = _CUMULATIVE.get(n)
+    if cum is not None:
+        return cum
     while len(_ROWS) <= n:  # the k-th item inserted adds 0..k-1 inversions
         row, k = _ROWS[-1], len(_ROWS)
         pre = [0]
@@ -290,7 +294,8 @@ def _mahonian(n: int) -> tuple:
     for c in _ROWS[n]:
         acc += c
         out.append(acc)
-    return tuple(out)
+    cum = _CUMULATIVE[n] = tuple(out)
+    return cum
 
 
 def kendall_tail(n: int, inversions: int) -> float:
@@ -1102,9 +1107,10 @@ class StepWatch:
         seq = fields.get("seq") if isinstance(fields, dict) else None
         if r is not None:
             continuous = abs(r) <= self.grid.tol_at(seq)
-        if continuous and kind == "odometer" and r is None and \
-                self._above_old(chain, stamp - arrival, recv, bar):
-            continuous = False  # on the held readings' clock: it joins them (below)
+        # above the old clock's ceiling, on the clock of readings held as a forward step
+        on_new = kind == "odometer" and self._above_old(chain, stamp - arrival, recv, bar)
+        if continuous and r is None and on_new:
+            continuous = False  # it joins them (below)
         if kind != "odometer" and chain:
             # a balise while odometer readings are held as a possible step: its stamp is on
             # the same clock, in the same doubt, and waits with them (taken at once, a balise
@@ -1126,8 +1132,7 @@ class StepWatch:
                 joins = abs(r - rs[len(rs) // 2]) <= self.grid.tol_at(seq)
             else:
                 joins = continues((s1, a1), (stamp, arrival)) or \
-                    self._joins(chain, stamp, arrival, bar) or \
-                    self._above_old(chain, stamp - arrival, recv, bar)
+                    self._joins(chain, stamp, arrival, bar) or on_new
             if not joins:
                 yield from self._release()
                 chain = []
