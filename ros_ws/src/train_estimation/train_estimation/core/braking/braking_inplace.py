@@ -30,11 +30,9 @@ of the compiled run (``test_bank.py``).
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
-from ..numerics.bank import OK
+from ..numerics.bank import OK, _log_normalize
 from ..numerics.jit import jit
 from .braking_compiled import (
     branching_step,
@@ -235,18 +233,11 @@ def resample_run(U, lw_n, tb, xb, Pb, lb, ib, N, discrete):
     """``braking_compiled.resample`` of the buffers' first ``N`` rows, in place; the weights
     are ``braking_base._weights`` of the log-weights, as the bank step computed them (the
     same operations: the numbers the resampling saw before)."""
-    lw = lb[:N]
-    mx = -np.inf
-    for i in range(N):
-        if lw[i] > mx:
-            mx = lw[i]
     w = np.empty(N)
-    acc = 0.0
-    for i in range(N):
-        w[i] = math.exp(lw[i] - mx)
-        acc += w[i]
-    for i in range(N):
-        w[i] = w[i] / acc
+    # bank's normalisation (the same loops); its checks do not fail here, the bank step
+    # checked these log-weights -- if they did, NaN weights, as the loops alone would give
+    if _log_normalize(lb[:N], w)[0] != OK:
+        w[:] = np.nan
     idx = ib[:N] if discrete else ib[:0]
     th, x, P, lwo, ia = resample(w, U, lw_n, tb[:N], xb[:N], Pb[:N], idx)
     _commit(th, x, P, lwo, ia, tb, xb, Pb, lb, ib)
