@@ -44,6 +44,7 @@ from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.special import chdtrc
 
 LATE = 0.5  # s: a reading this much later than its clock says came late (module doc)
 LATE_SCALES = 10.0  # robust standard deviations of the residuals, for links with a wide jitter
@@ -240,6 +241,9 @@ TIE = 1e-3  # s: offsets closer than this (or than the arrivals' resolution) hav
 SMALL_MOVE = 0.05  # s: the least move of a clock's offset level taken as one (the runner's
 #   small_step); smaller moves are jitter and drift
 MAX_SPEED = 200.0  # m/s, beyond any train (720 km/h): a reading claiming more is corrupt
+SEG_MIN = 4  # the rate fit's points off its line that can start a segment of it (StreamClock._off)
+SEG_RISK = TREND_WAIT  # -, the rate at which a true move of the line's level is held for one
+#   more point: its points scatter about one level as the line's own (chi-square at this risk)
 LINE_SPREAD = 5.0  # robust spreads of the offsets: a rate fit whose points scatter wider about
 #   their line than this (and SMALL_MOVE) mixes two levels and is not used
 TOL = 5.0  # s: wider than arrival jitter (a node at 10x sees 1 Hz stamps 0.9 s apart in
@@ -330,7 +334,8 @@ class StreamClock:
         self._fit = [0, 0.0, 0.0, 0.0, 0.0, 0.0, None]  # n, sx, sy, sxx, sxy, syy, origin
         self._closed = [0, 0, 0.0, 0.0, 0.0]  # segments, n, centred sxx, sxy, syy before a move
         self._rates: dict = {}  # rate()'s by (min_n, min_span), until the fit changes
-        self._level: tuple | None = None  # (centre, arrival) at the last rate point
+        self._held_points: list = []  # (arrival, stamp, residual) of the rate fit's points
+        #   held off its line (:meth:`_off`)
         self._block = [0, 0.0, 0.0]  # readings so far in the rate fit's block, and the
         #   (stamp, arrival) of its highest offset (:meth:`rate_point`)
         self._top: deque = deque()  # (index, offset), decreasing: the sliding maximum
@@ -538,38 +543,91 @@ class StreamClock:
         readings chosen by their own arrivals (a backlog's tail left out as not paced), gave
         drifts spread twice their stated standard error on a 200 ms jittery link, and a 5
         standard-error rate difference on one clock (-1.9e-4, true 0) made ``auto`` judge the
-        commands' clock separate. A late reading (the module's one rule) is left out; a
-        backlog's tail, arriving at once, is never its block's highest offset but for its last
-        reading, whose latency is the least (it came on time)."""
+        commands' clock separate. A late reading (the module's one rule) is left out.
+
+        Once the rate is known, each block's point is judged against the line (:meth:`_off`):
+        on it, it joins the fit; off it, it is held until the held points show where the
+        line went."""
         if not self.on_time(stamp - arrival):
             return
-        # The offset's level: a move of the centre that the drift does not explain (a step
-        # within TOL that no step test declared, absorbed by the window) starts a new segment
-        # of the fit, and only offsets near the centre inform it: the readings of a move's two
-        # levels read as a slope (a -0.5 s move on a jittery link was a drift of -7e-3, and the
-        # kf ran 1.7 m off with a sigma of 0.1 m for minutes).
-        # (the band: three robust spreads of the offsets, allowed to widen by 5 % a point: while
-        # a move fills the window its two levels widen the window's own spread at once, a link
-        # whose jitter grows widens it over tens of readings)
-        d, se = self.rate()
-        if math.isfinite(se):  # the rate is known: the level is the centre carried to now
-            c, band = self.value_at(arrival, d), max(SMALL_MOVE, 3.0 * self.scale)
-            if self._level is not None:
-                c0, a0, band0 = self._level
-                band = min(band, 1.05 * band0)
-                if abs(c - c0 - d * (arrival - a0)) > band:
-                    self._new_segment()
-            self._level = (c, arrival, band)
-            if abs(stamp - arrival - c) > band:
-                return
         b = self._block
         if b[0] == 0 or stamp - arrival > b[1] - b[2]:
             b[1], b[2] = stamp, arrival
         b[0] += 1
         if b[0] < self.block:
             return
-        stamp, arrival = b[1], b[2]
         b[0] = 0
+        point = (b[2], b[1])  # (arrival, stamp) of the block's highest offset
+        if self._off(point):
+            return
+        self._fit_add(*point)
+
+    def _off(self, point: tuple) -> bool:
+        """Whether the block's ``point`` (arrival, stamp) lies off the clock's line, and is held.
+
+        The model: stamp = line(arrival) - latency, the latency never negative and, at the
+        envelope, scattered as the fit's own residuals (``sd``). A point more than ``band`` =
+        ``LINE_SPREAD`` of those below or above the line (and at least ``SMALL_MOVE``) is held.
+        Two things put points there, and only one of them moves the line: the clock's level
+        moved (a step within ``TOL`` that no step test declared, absorbed by the window; the
+        latency's floor rose or fell and stays), or the latency rose for a while and falls back
+        (a queue that drains slowly, a latency that wanders). Under a move the held points lie
+        about one new level with the line's own scatter; a drain's climb back, or a wander,
+        scatters them wider. So the held points start a new segment of the fit (an intercept of
+        their own, the slope shared) once there are ``SEG_MIN`` of them and their scatter about
+        their mean is the line's at ``SEG_RISK`` (a chi-square test of their variance); a point
+        back on the line drops them (they were the latency's, not the clock's). A move then
+        joins the fit late by a few points; a drain never joins it. Before, the level was
+        judged by the offsets' centre, which a drain drags: a 1 s queue drained at 1.2 times
+        the sampling rate, every 30 s, started a segment of its own in each episode, their
+        climbs were read as slope, and the drift came out 250-2,300 ppm (true 0): the commands'
+        clock judged separate, the filter's time 0.8-1.6 s off after an hour."""
+        d, se = self.rate()
+        if not math.isfinite(se):  # the line is not known yet: every point informs it
+            return False
+        n1 = self._fit[0]
+        f = self._fit
+        sd = self._line_sd()
+        band = max(SMALL_MOVE, LINE_SPREAD * sd)
+        arrival, stamp = point
+        if n1:
+            # the current segment's line at this arrival: its mean point carried on the slope
+            x0, y0 = f[6]
+            resid = (stamp - y0 - f[2] / n1) - (1.0 + d) * (arrival - x0 - f[1] / n1)
+        else:
+            resid = 0.0
+        if abs(resid) <= band:
+            self._held_points = []
+            return False
+        held = self._held_points
+        held.append((arrival, stamp, resid))
+        if len(held) > TREND_N:
+            held.pop(0)
+        if len(held) < SEG_MIN:
+            return True
+        r = [h[2] for h in held]
+        mean = sum(r) / len(r)
+        chi = sum((v - mean) ** 2 for v in r) / max(sd, 1e-6) ** 2
+        if float(chdtrc(len(r) - 1, chi)) <= SEG_RISK:
+            return True  # scattered wider than one level: the latency's, not the clock's
+        self._held_points = []
+        self._new_segment()
+        for a, s, _ in held:
+            self._fit_add(a, s)
+        return True
+
+    def _line_sd(self) -> float:
+        """s: the fit's residual standard deviation (its points about their segments' lines)."""
+        n1, cxx1, cxy1, cyy1 = self._centred()
+        segs, n0, cxx0, cxy0, cyy0 = self._closed
+        n, var, cov, vyy = n0 + n1, cxx0 + cxx1, cxy0 + cxy1, cyy0 + cyy1
+        if var <= 0:
+            return 0.0
+        dof = max(n - 1 - segs - (n1 > 0), 1)
+        return math.sqrt(max(vyy - cov / var * cov, 0.0) / dof)
+
+    def _fit_add(self, arrival: float, stamp: float) -> None:
+        """One point (arrival, stamp) into the current segment's sums."""
         f = self._fit
         if f[6] is None:
             f[6] = (arrival, stamp)
@@ -601,7 +659,6 @@ class StreamClock:
             c[3] += cxy
             c[4] += cyy
         self._fit = [0, 0.0, 0.0, 0.0, 0.0, 0.0, None]
-        self._block = [0, 0.0, 0.0]
         self._rates = {}
 
     def rate(self, min_n: int = 20, min_span: float = 10.0) -> tuple[float, float]:
