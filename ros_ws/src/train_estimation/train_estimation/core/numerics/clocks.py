@@ -329,7 +329,7 @@ class StreamClock:
         self._value = None  # cached centre (recomputed after an add)
         self._scale = None  # cached robust spread (likewise: the runner asks several times per
         #   message, the step watch's bar and the rate fit's band)
-        self._at_cache = None  # ((pushes, drift), newest arrival, centre there): value_at's
+        self._at_cache = None  # ((pushes, drift), newest arrival, centre, spread there):
         self.pending: list = []  # consecutive values away from a full window's centre
         self._fit = [0, 0.0, 0.0, 0.0, 0.0, 0.0, None]  # n, sx, sy, sxx, sxy, syy, origin
         self._closed = [0, 0, 0.0, 0.0, 0.0]  # segments, n, centred sxx, sxy, syy before a move
@@ -338,7 +338,8 @@ class StreamClock:
         #   held off its line (:meth:`_off`)
         self._block = [0, 0.0, 0.0]  # readings so far in the rate fit's block, and the
         #   (stamp, arrival) of its highest offset (:meth:`rate_point`)
-        self._top: deque = deque()  # (index, offset), decreasing: the sliding maximum
+        self._top: deque = deque()  # (index, offset, arrival), decreasing: the sliding maximum
+        self._ceil_cache = None  # ((pushes, drift), the ceiling carried to the newest arrival)
         self._pushed = 0  # offsets pushed so far
 
     tol = TOL
@@ -422,7 +423,7 @@ class StreamClock:
         # no more than that bar
         while self._top and self._top[-1][1] <= v:
             self._top.pop()
-        self._top.append((self._pushed, v))
+        self._top.append((self._pushed, v, at))
         if self._top[0][0] <= self._pushed - self.horizon:
             self._top.popleft()
 
@@ -490,15 +491,38 @@ class StreamClock:
         # not depend on ``at``, so its centre is computed once per window and drift (the
         # runner asks for it several times per message; recomputing it was a quarter of the
         # per-message time under the fuzz mix)
+        carried = self._carried(drift)
+        if carried is None:
+            return self.value
+        _, a1, c, _ = carried
+        return c + drift * (at - a1)
+
+    def _carried(self, drift: float) -> tuple | None:
+        """(key, newest arrival a1, centre, spread) of the window's offsets carried along
+        ``drift`` to ``a1``, cached per window and drift; None when an arrival is unknown."""
         key = (self._pushed, drift)
         if self._at_cache is None or self._at_cache[0] != key:
             a1 = self.arrivals[-1]
             if a1 is None or None in self.arrivals:
-                return self.value
-            self._at_cache = (key, a1, self._centre(sorted(
-                v + drift * (a1 - a) for v, a in zip(self.fifo, self.arrivals))))
-        _, a1, c = self._at_cache
-        return c + drift * (at - a1)
+                return None
+            s = sorted(v + drift * (a1 - a) for v, a in zip(self.fifo, self.arrivals))
+            c = self._centre(s)
+            self._at_cache = (key, a1, c, self._spread(s, c))
+        return self._at_cache
+
+    def now(self, at: float | None) -> float:
+        """The clock's offset at arrival ``at``, carried along its own drift (:meth:`value_at`)."""
+        return self.value_at(at, self.drift)
+
+    @property
+    def jitter(self) -> float:
+        """The offsets' robust spread about the clock's line (each carried along the clock's
+        drift, :attr:`scale` without one): the link's jitter alone. About a constant centre a
+        clock 1 % off spreads 31 readings at 1 Hz over 0.31 s (a robust spread of 0.1 s for
+        50 ms of jitter), and the step bar, ten of them, hid steps of 0.5 s."""
+        d = self.drift
+        carried = self._carried(d) if d and self.fifo else None
+        return self.scale if carried is None else carried[3]
 
     @property
     def scale(self) -> float:
@@ -520,15 +544,33 @@ class StreamClock:
     @property
     def ceiling(self) -> float:
         """The largest offset that voted among the last ``horizon``, once ``settled`` were
-        in: where the clock is when the latency is least. A node that lagged its input for a
-        while moves the centre down with it; when it catches up, its offsets return to the
-        ceiling, never above it."""
-        return self._top[0][1] if self._top else math.nan
+        in, each carried along the clock's drift to the newest arrival: where the clock is when
+        the latency is least. A node that lagged its input for a while moves the centre down
+        with it; when it catches up, its offsets return to the ceiling, never above it. Carried,
+        since on a clock 1 % slow the offsets of a minute ago at 10 Hz (ten at 1 Hz) lie 0.6 s
+        (6 s) above the present ones: uncarried, that ceiling hid every forward step below it.
+        (The sliding maximum keeps the offsets that no later one exceeds; on a slow clock the
+        ones it dropped stay below the later ones when carried, on a fast one the carried
+        maximum is the newest offsets', where the centre is too.)"""
+        if not self._top:
+            return math.nan
+        d = self.drift
+        a1 = self.arrivals[-1] if self.arrivals else None
+        if not d or a1 is None:
+            return self._top[0][1]
+        key = (self._pushed, d)
+        if self._ceil_cache is None or self._ceil_cache[0] != key:
+            self._ceil_cache = (key, max(v if a is None else v + d * (a1 - a)
+                                         for _, v, a in self._top))
+        return self._ceil_cache[1]
 
     def above(self, v: float) -> float:
-        """How far the offset ``v`` lies above where its clock can be (s): only a forward step
-        or a wrong stamp puts it there, since latency only ever lowers an offset."""
-        return v - max(self.value, self.ceiling)
+        """How far the offset ``v`` (of a reading arriving now) lies above where its clock can
+        be (s): only a forward step or a wrong stamp puts it there, since latency only ever
+        lowers an offset. The centre and the ceiling carried to the newest arrival along the
+        clock's drift."""
+        a1 = self.arrivals[-1] if self.arrivals else None
+        return v - max(self.now(a1), self.ceiling)
 
     # -- rate -----------------------------------------------------------------------------
     def rate_point(self, stamp: float, arrival: float) -> None:
@@ -1097,7 +1139,7 @@ class StepWatch:
         that ticks (/clock on simulated time) arrives up to a tick before the clock says so."""
         if self.same or len(clock) < self.min_judged:
             return max(self.back, self.resolution)
-        return max(min(self.back, max(self.small_step, self.small_step_z * clock.scale)),
+        return max(min(self.back, max(self.small_step, self.small_step_z * clock.jitter)),
                    self.resolution)
 
     def watch(self, kind: str, stamp: float, fields, recv, arrival: float):
@@ -1146,7 +1188,7 @@ class StepWatch:
         on_pace = prev is None or paced(prev, (stamp, arrival)) or \
             (bool(chain) and paced((chain[0][1], chain[0][4]), (stamp, arrival)))
         behind = kind == "odometer" and on_pace and len(med) >= self.min_judged and \
-            stamp - arrival - med.value < -bar
+            stamp - arrival - med.now(arrival) < -bar
         # Ahead by more than that above where the clock can be (its centre, and the ceiling of
         # its offsets: latency only ever lowers stamp - arrival, an outage moves stamps and
         # arrivals alike): a forward step or one wrong stamp; held until later readings decide
@@ -1255,7 +1297,7 @@ class StepWatch:
             # the old clock and the first of the new, put a link's jitter into the step whole:
             # 0.17 s with 50 ms of exponential jitter, the kf 55 estimates wrong-side once
             # re-anchored)
-            shift = new_off - med.value
+            shift = new_off - med.now(chain[len(chain) // 2][4])
         self.shift += shift
         old = self.shift - shift
         if rs is None:  # measured otherwise: the grid's stamps may no longer continue
@@ -1372,8 +1414,8 @@ class StepWatch:
         if k == 0 or abs(r - k * self.period) > max(self.grid.tol_at(h[2].get("seq"))
                                                     for h in chain):
             return False
-        se = 1.2533 * max(med.scale, 1e-3) / math.sqrt(len(chain))
-        moved = new_off - med.value
+        se = 1.2533 * max(med.jitter, 1e-3) / math.sqrt(len(chain))
+        moved = new_off - med.now(chain[len(chain) // 2][4])
         return abs(moved) <= 3.0 * se and abs(moved - r) > 6.0 * se
 
     def _resid(self, kind: str, stamp: float, fields) -> float | None:
