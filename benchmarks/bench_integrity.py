@@ -249,6 +249,10 @@ def plan(quick: bool, seeds: int, estimators, only, phase_names=None, long: floa
         # reading, which no clock step does
         for r in (((1.5,) if scenario == "metro_demo" else ()) if quick else (1.2, 1.5, 2.0)):
             faults.append((F.Fault("queue", r, 0.5 * F.QUEUE_EVERY, jitter=JITTER), short))
+        # a link whose latency rises and stays (a slower route): the offsets fall as a
+        # backward clock step's would, the stamps run on
+        for L in ((1.5,) if quick else (0.45, 1.5, 3.0)):
+            add(F.Fault("route", L, cruise, jitter=JITTER), 120.0)
         drift_duration = short if quick else min(3600.0, long or math.inf)
         for d in ((-1e-2,) if quick else (-1e-2, -1e-3, 1e-3, 1e-2)):
             faults.append((F.Fault("drift", d, 0.0), drift_duration))

@@ -40,6 +40,19 @@ def test_a_queue_that_drains_is_no_step(drain, counter):
     assert r["time_err_all_ms"] < 1.0 and not r["separate"], r
 
 
+@pytest.mark.parametrize("rate", [10.0, 1.0])
+@pytest.mark.parametrize("rise", [0.45, 1.5])
+def test_a_latency_that_rises_and_stays_is_no_step(rate, rise):
+    """Without a sample counter, the link's latency rises by ``rise`` s and stays (a slower
+    route): the offsets fall as a backward step's would, but the stamps run on in the stream's
+    slots (StepWatch._stamps_ran_on): no step, one move of the latency, the filter's time on
+    the readings' own. Taken for a -1.5 s step, crh3_high_speed's estimates were up to 119 m
+    off (kf, the integrity campaign's fault ``route``)."""
+    r = run_link(900.0, rate, False, 0.03, 0.05, None, seed=0, route=rise)
+    assert r["false_steps_per_h"] == 0 and r["latency_moved"] == 1 and r["refused"] == 0, r
+    assert r["time_err_all_ms"] < 1.0, r
+
+
 @pytest.mark.parametrize("step", [-3.0, 0.1])
 def test_a_step_is_measured_exactly_on_the_sample_grid(step):
     """At 1 Hz with a sample counter a step (here -3 s or +0.1 s, inside a 50 ms jitter) is

@@ -116,6 +116,17 @@ def test_a_stall_delivers_its_backlog_in_one_burst(kind):
     assert [r for *_, r in fl.events] == sorted(r for *_, r in fl.events)
 
 
+def test_a_route_change_delays_the_train_readings_from_then_on():
+    """From ``at`` the odometer and balise readings come ``size`` s later and stay so; stamps,
+    values and commands untouched."""
+    fl = F.inject(clean(40.0), F.Fault("route", 1.5, 10.0), np.random.default_rng(0))
+    for k, s, _f, rc in fl.events:
+        t = s - F.EPOCH
+        extra = 1.5 if k != "control" and t >= 10.0 else 0.0
+        assert rc - F.EPOCH == pytest.approx(t + F.LATENCY + extra, rel=0, abs=1e-5)
+    assert [r for *_, r in fl.events] == sorted(r for *_, r in fl.events)
+
+
 def test_a_queue_holds_the_readings_then_delivers_them_faster():
     """Every QUEUE_EVERY s from ``at``: a train reading sampled u s into an episode comes
     QUEUE_BACKLOG - u (1 - 1/r) s late, until that is 0; stamps, values and commands untouched."""
@@ -181,6 +192,7 @@ def test_score_counts_wrong_side_and_time_to_alarm():
     F.Fault("none"), F.Fault("stamp", 60.0, 10.0), F.Fault("step", -3.0, 10.0),
     F.Fault("drift", -1e-2), F.Fault("outage", 5.0, 10.0), F.Fault("command_stop", 0.0, 10.0),
     F.Fault("latency", 5.0), F.Fault("queue", 1.5, 5.0, jitter=0.05),
+    F.Fault("route", 1.5, 10.0),
     F.Fault("recorder_stall", 4.0, 10.0), F.Fault("node_stall", 4.0, 10.0),
     F.Fault("fuzz", 0.5), F.Fault("balise", 10.0, 5.0),
     F.Fault("reboot", 3.0, 10.0)],

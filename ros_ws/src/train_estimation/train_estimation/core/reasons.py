@@ -40,6 +40,7 @@ ACCEPTED = (OK, MISSING, IGNORED)
 SEQ_RESET = "seq_reset"  # sequence number went back (sensor reboot, wrap-around)
 CLOCK_RESET = "clock_reset"  # a stamp clock jumped and stayed: re-anchored
 SEQ_SKIP = "seq_skip"  # the sample counter skipped (or repeated) samples, the clock ran on
+LINK_LATENCY = "link_latency"  # the link's latency moved and stayed, the stamps ran on
 FUSED_LATE = "fused_late"  # arrived after later readings, fused by rewinding the history
 OUTAGE = "outage"  # no odometer for longer than the outage threshold
 RELOCATED = "relocated"  # two agreeing balises moved the odometer's count by more than it claimed
@@ -51,9 +52,9 @@ COUNT_ORIGIN = "count_origin"  # the first count far from zero: origin widened u
 START_EXCLUDED = "start_excluded"  # the balises contradict the start: calibrated without it
 SEQ_UNSTATED = "seq_unstated"  # a stream whose seq never moves: no counter, judged by stamps
 STAMP_UNSTATED = "stamp_unstated"  # commands stamped 0: taken at their arrival (the contract's)
-EVENTS = (SEQ_RESET, CLOCK_RESET, SEQ_SKIP, FUSED_LATE, OUTAGE, RELOCATED, BALISE_EXCLUDED,
-          BALISE_LATENCY, VARIANCE_UNSTATED, COUNT_RESET, COUNT_ORIGIN, START_EXCLUDED,
-          SEQ_UNSTATED, STAMP_UNSTATED)
+EVENTS = (SEQ_RESET, CLOCK_RESET, SEQ_SKIP, LINK_LATENCY, FUSED_LATE, OUTAGE, RELOCATED,
+          BALISE_EXCLUDED, BALISE_LATENCY, VARIANCE_UNSTATED, COUNT_RESET, COUNT_ORIGIN,
+          START_EXCLUDED, SEQ_UNSTATED, STAMP_UNSTATED)
 
 ALL = REJECTIONS + ACCEPTED + EVENTS
 
@@ -76,6 +77,7 @@ DESCRIPTION = {
     SEQ_RESET: "sequence number went back (reboot/wrap)",
     CLOCK_RESET: "stamp clock jumped; re-anchored",
     SEQ_SKIP: "sample counter skipped samples while the clock ran on; grid re-learnt",
+    LINK_LATENCY: "the link's latency moved and stayed while the stamps ran on; no clock step",
     FUSED_LATE: "arrived late, fused by rewinding",
     OUTAGE: "no odometer for longer than the outage threshold",
     RELOCATED: "odometer count moved onto two agreeing balises",

@@ -66,15 +66,20 @@ def cruise(duration: float, rate: float, loss: float, counter: bool,
 
 
 def run_link(duration: float, rate: float, counter: bool, jitter: float, loss: float,
-             step: float | None, seed: int, queue: float | None = None) -> dict:
+             step: float | None, seed: int, queue: float | None = None,
+             route: float | None = None) -> dict:
     """One replay (module doc); the figures of one row. ``queue``: the drain factor of a link
-    that queues (the campaign's fault ``queue``, from 15 s on; no step then)."""
+    that queues (the campaign's fault ``queue``, from 15 s on; no step then); ``route``: s by
+    which the link's latency rises at :data:`STEP_AT` and stays (the fault ``route``; no
+    step then)."""
     rng = np.random.default_rng(seed)
     events = cruise(duration, rate, loss, counter, rng)
     fault = F.Fault("none", jitter=jitter) if step is None else \
         F.Fault("step", step, STEP_AT, jitter=jitter)
     if queue is not None:
         fault = F.Fault("queue", queue, 0.5 * F.QUEUE_EVERY, jitter=jitter)
+    if route is not None:
+        fault = F.Fault("route", route, STEP_AT, jitter=jitter)
     faulted = F.inject(events, fault, rng)
     rec = Recorder()
     runner = EstimatorRunner(rec, 1.0 / rate)
@@ -97,7 +102,8 @@ def run_link(duration: float, rate: float, counter: bool, jitter: float, loss: f
     row = {"false_steps_per_h": runner.events.get("odometer:clock_reset", 0) / hours
            if step is None else math.nan,
            "refused": sum(runner.rejected.values()),
-           "held": doubted / max(len(outs), 1), "doubted": doubted}
+           "held": doubted / max(len(outs), 1), "doubted": doubted,
+           "latency_moved": runner.events.get("odometer:link_latency", 0)}
     # where the clock is with the least latency: stamp - arrival = -FLOOR on this link
     train = runner._offsets.get("train")
     row["bias_ms"] = 1e3 * (train.value + FLOOR) if train is not None else math.nan

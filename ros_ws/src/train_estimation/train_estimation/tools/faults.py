@@ -26,6 +26,9 @@ queue            r (> 1): every ``QUEUE_EVERY`` s from ``at`` on the link holds 
                  as fast as it was sampled: a reading sampled ``u`` s into an episode comes
                  ``QUEUE_BACKLOG - u (1 - 1 / r)`` s later (a congested radio cell, a modem
                  that retransmits); stamps and values untouched
+route            s: from ``at`` on the odometer and balise readings come ``size`` s later and
+                 stay so (the link changed its route: a handover, a satellite path, a
+                 congested backhaul); stamps and values untouched
 recorder_stall   s: odometer and balise readings arriving in ``[at, at + size)`` are logged at
                  ``at + size`` (the recorder's subscription blocked; commands unaffected)
 node_stall       s: every message arriving in ``[at, at + size)`` is taken at ``at + size``
@@ -95,7 +98,7 @@ AVAILABLE_LAG = 1.0  # s: an OK estimate published further from the time it clai
 TRAIN_TOPICS = ("odometer", "balise")
 QUEUE_EVERY = 30.0  # s between the starts of two episodes of the "queue" kind
 QUEUE_BACKLOG = 1.0  # s, the delay of the first reading of an episode ("queue")
-KINDS = ("none", "stamp", "step", "drift", "outage", "command_stop", "latency", "queue",
+KINDS = ("none", "stamp", "step", "drift", "outage", "command_stop", "latency", "queue", "route",
          "recorder_stall",
          "node_stall", "fuzz", "balise", "odometer_scale", "stuck", "seq_skip", "reboot",
          "first_count", "start_offset")
@@ -259,6 +262,8 @@ def inject(events: list, fault: Fault, rng: np.random.Generator) -> Faulted:
             u, slope = (t - at) % QUEUE_EVERY, 1.0 - 1.0 / size
             if u * slope < QUEUE_BACKLOG:
                 recv += QUEUE_BACKLOG - u * slope
+        if k == "route" and train and t >= at:
+            recv += size
         if k == "recorder_stall" and train or k == "node_stall":
             if at <= recv < at + size:
                 recv = at + size

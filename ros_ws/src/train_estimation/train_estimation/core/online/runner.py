@@ -80,7 +80,17 @@ from typing import Protocol
 import numpy as np
 
 from .. import reasons as R
-from ..numerics.clocks import ADMIT, HOLD, PASS, REFUSE, SKIP, STEP, StepWatch, StreamClock
+from ..numerics.clocks import (
+    ADMIT,
+    HOLD,
+    LATENCY,
+    PASS,
+    REFUSE,
+    SKIP,
+    STEP,
+    StepWatch,
+    StreamClock,
+)
 from .integrity import IntegrityMonitor, IntegrityParams
 
 KIND_ORDER = {"control": 0, "odometer": 1, "balise": 2}
@@ -563,6 +573,10 @@ class EstimatorRunner:
                 self._event("odometer", stamp, f"{R.CLOCK_RESET}: train clock stepped by "
                                                f"{shift:+.3f} s at stamp {sent:.3f}; "
                                                f"re-anchored")
+            elif act[0] == LATENCY:
+                self._event("odometer", stamp, f"{R.LINK_LATENCY}: the readings' latency "
+                                               f"moved by {-act[1]:+.3f} s and stayed while "
+                                               f"their stamps ran on; no clock step")
             elif act[0] == SKIP:
                 self._event("odometer", stamp, f"{R.SEQ_SKIP}: the sample counter moved by "
                                                f"{act[1]:+d} samples while the stamps and "
