@@ -45,6 +45,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from . import link_estep
+
 EPS = 1e-10  # -, every fitted probability stays in [EPS, 1 - EPS]
 MIN_SAMPLES = 20  # odometer samples: fewer and the fit is not attempted
 
@@ -258,7 +260,13 @@ def statistics(lost, pi, a, q):
     constant, the forward messages are alpha M^r and the backward ones M^(L-1-r) beta, and the
     sums over the run are sum_r M^(L-1-r) C M^r with C = beta alpha -- the upper right block of
     [[M, C], [0, M]]^L (powers by squaring, shared by all runs of the same length and
-    observation; all entries are non-negative, so nothing cancels)."""
+    observation; all entries are non-negative, so nothing cancels).
+
+    The powers and the two scans over the runs are loops compiled where numba (or the module it
+    compiled ahead of time) is there (:mod:`.link_estep`: numpy's operations in numpy's order,
+    the logarithms by numpy: the same bits where BLAS sums a 4x4 product by fused
+    multiply-adds, tested), else numpy (:func:`_powers_numpy`); the posteriors from them are
+    numpy's either way."""
     lost = np.asarray(lost, bool)
     S = pi.shape[0]
     e0 = np.where(lost[0], q, 1.0 - q)
@@ -275,7 +283,43 @@ def statistics(lost, pi, a, q):
     key = l_r * 2 + o_r
     uniq, inv = np.unique(key, return_inverse=True)
     o_u, l_u = uniq % 2, uniq // 2
-    U = uniq.size
+    kern = link_estep.kernels()
+    powers = _powers_numpy if kern is None else _powers_compiled
+    p_u, n_u, log_r, pf, pb, lf = powers(m_o, o_u, l_u, inv, kern)
+    p_r = p_u[:, inv]
+    alpha = np.empty((S, R, 2))  # forward message entering each run
+    alpha[:, 0] = v0
+    alpha[:, 1:, 0] = v0[:, 0, None] * pf[0][:, :-1] + v0[:, 1, None] * pf[2][:, :-1]
+    alpha[:, 1:, 1] = v0[:, 0, None] * pf[1][:, :-1] + v0[:, 1, None] * pf[3][:, :-1]
+    alpha /= alpha.sum(axis=2, keepdims=True)
+    beta = np.ones((S, R, 2))  # backward message leaving each run
+    beta[:, :-1, 0] = pb[0][:, 1:] + pb[1][:, 1:]
+    beta[:, :-1, 1] = pb[2][:, 1:] + pb[3][:, 1:]
+    beta /= beta.max(axis=2, keepdims=True)
+    z = np.einsum("sri,srij,srj->sr", alpha, p_r, beta)
+    c = beta[:, :, :, None] * alpha[:, :, None, :]  # C[a, b] = beta_a alpha_b
+    n_r = np.einsum("srk,srkij->srij", c.reshape(S, R, 4), n_u[:, inv])
+    n_r /= z[..., None, None]
+    m_r = m_o[:, o_r]  # (S, R, 2, 2)
+    xi = (m_r * np.swapaxes(n_r, 2, 3)).sum(axis=1)
+    occ_r = np.einsum("srij,srji->sri", n_r, m_r)
+    beta0 = np.stack([pb[0][:, 0] + pb[1][:, 0], pb[2][:, 0] + pb[3][:, 0]], axis=1)
+    g0 = v0 * beta0
+    g0 /= g0.sum(axis=1, keepdims=True)
+    occ = occ_r.sum(axis=1) + g0
+    hit = (occ_r * o_r[None, :, None]).sum(axis=1) + g0 * float(lost[0])
+    last = (v0[:, 0] * (pf[0][:, -1] + pf[1][:, -1]) + v0[:, 1] * (pf[2][:, -1] + pf[3][:, -1]))
+    ll = np.log(last) + lf + log_r[:, inv].sum(axis=1)
+    return g0, xi, occ, hit, ll
+
+
+def _powers_numpy(m_o, o_u, l_u, inv, _kern=None):
+    """The runs' block powers [[M, E_ab], [0, M]]^L by squaring (scaled: their largest entry
+    1, the log of the scale in ``log_r``) and the scaled forward and backward scans of the
+    runs' M^L: (M^L (S, U, 2, 2), the upper right blocks (S, U, ab, 2, 2), log_r (S, U), the
+    scans' entries (4 x (S, R)) forward and backward, the forward scan's log scale at the
+    last run (S,))."""
+    S, U = m_o.shape[0], l_u.size
     # block matrices per (s, o, ab): [[M, E_ab], [0, M]]
     blk = np.zeros((S, 2, 4, 4, 4))
     blk[..., :2, :2] = m_o[:, :, None]
@@ -306,30 +350,27 @@ def statistics(lost, pi, a, q):
     entries = (p_r[..., 0, 0], p_r[..., 0, 1], p_r[..., 1, 0], p_r[..., 1, 1])
     pf, lf = _scan(entries, False)
     pb, _ = _scan(entries, True)
-    alpha = np.empty((S, R, 2))  # forward message entering each run
-    alpha[:, 0] = v0
-    alpha[:, 1:, 0] = v0[:, 0, None] * pf[0][:, :-1] + v0[:, 1, None] * pf[2][:, :-1]
-    alpha[:, 1:, 1] = v0[:, 0, None] * pf[1][:, :-1] + v0[:, 1, None] * pf[3][:, :-1]
-    alpha /= alpha.sum(axis=2, keepdims=True)
-    beta = np.ones((S, R, 2))  # backward message leaving each run
-    beta[:, :-1, 0] = pb[0][:, 1:] + pb[1][:, 1:]
-    beta[:, :-1, 1] = pb[2][:, 1:] + pb[3][:, 1:]
-    beta /= beta.max(axis=2, keepdims=True)
-    z = np.einsum("sri,srij,srj->sr", alpha, p_r, beta)
-    c = beta[:, :, :, None] * alpha[:, :, None, :]  # C[a, b] = beta_a alpha_b
-    n_r = np.einsum("srk,srkij->srij", c.reshape(S, R, 4), n_u[:, inv])
-    n_r /= z[..., None, None]
-    m_r = m_o[:, o_r]  # (S, R, 2, 2)
-    xi = (m_r * np.swapaxes(n_r, 2, 3)).sum(axis=1)
-    occ_r = np.einsum("srij,srji->sri", n_r, m_r)
-    beta0 = np.stack([pb[0][:, 0] + pb[1][:, 0], pb[2][:, 0] + pb[3][:, 0]], axis=1)
-    g0 = v0 * beta0
-    g0 /= g0.sum(axis=1, keepdims=True)
-    occ = occ_r.sum(axis=1) + g0
-    hit = (occ_r * o_r[None, :, None]).sum(axis=1) + g0 * float(lost[0])
-    last = (v0[:, 0] * (pf[0][:, -1] + pf[1][:, -1]) + v0[:, 1] * (pf[2][:, -1] + pf[3][:, -1]))
-    ll = np.log(last) + lf[:, -1] + log_r[:, inv].sum(axis=1)
-    return g0, xi, occ, hit, ll
+    return p_u, n_u, log_r, pf, pb, lf[:, -1]
+
+
+def _powers_compiled(m_o, o_u, l_u, inv, kern):
+    """:func:`_powers_numpy` by the compiled loops (:mod:`.link_estep`), the logarithms of
+    their scale factors by numpy, added up in numpy's order by the second loop."""
+    powers, log_sums = kern
+    f8, i8 = np.float64, np.int64
+    S, U, R = m_o.shape[0], l_u.size, inv.size
+    bits = int(l_u.max()).bit_length()
+    levels = (R - 1).bit_length()
+    o_u, l_u, inv = (np.ascontiguousarray(x, i8) for x in (o_u, l_u, inv.ravel()))
+    sc_res, sc_blk, sc_scan = np.empty((bits, S, U)), np.empty((bits, S, 2)), np.empty(
+        (levels, S, R))
+    p_u, n_u = np.empty((S, U, 2, 2)), np.empty((S, U, 4, 2, 2))
+    pf, pb = np.empty((4, S, R)), np.empty((4, S, R))
+    powers(np.ascontiguousarray(m_o, f8), o_u, l_u, inv, sc_res, sc_blk, sc_scan, p_u, n_u,
+           pf, pb)
+    log_r, lf = np.empty((S, U)), np.empty(S)
+    log_sums(l_u, o_u, np.log(sc_res), np.log(sc_blk), np.log(sc_scan), log_r, lf)
+    return p_u, n_u, log_r, pf, pb, lf
 
 
 def _sums(lost, gamma, xi):
