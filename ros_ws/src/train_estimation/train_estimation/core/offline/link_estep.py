@@ -1,20 +1,20 @@
-"""The costly part of the Gilbert-Elliott E-step (:func:`link_hmm.statistics`) as compiled loops.
+"""The Gilbert-Elliott E-step on runs (:func:`link_hmm.statistics`) as compiled loops.
 
 ``diagnose`` fits the link's hidden chain by EM: some 240 E-steps on a bursty bag, each a few
 hundred numpy calls on arrays of a few hundred entries (the runs' block-matrix powers by
-squaring, the two scans over the runs), which was a third of the CPU of such a bag. Those two
-parts are written here as loops over the models, the runs and the entries (the posteriors from
-them stay numpy's: a dozen whole-array calls).
+squaring, the two scans over the runs, the posteriors), which was a third of the CPU of such a
+bag. The E-step is written here as loops over the models, the runs and the entries.
 
-The loops repeat :func:`link_hmm._powers_numpy` operation for operation, so they give its bits
-wherever numpy's own arithmetic is what is repeated here:
+The loops repeat :func:`link_hmm._powers_numpy` and :func:`link_hmm._posteriors_numpy`
+operation for operation, so they give their bits wherever numpy's own arithmetic is what is
+repeated here:
 
 - a product of two 4x4 blocks (``np.matmul``, BLAS's dgemm) is summed over k = 0..3 in order
   by fused multiply-adds (what OpenBLAS's kernels do on a machine with FMA; :func:`_fma` is
   LLVM's correctly rounded ``fma``), the terms with an exact zero of the blocks' structure left
   out (they add an exact 0: every entry is finite and >= 0);
 - the scans' 2x2 products and the scalings are elementwise (no fused operations: numba
-  compiles without fast-math);
+  compiles without fast-math), and the posteriors' sums are in the order written there;
 - the logarithms are not taken here: numpy's ``log`` (its own SIMD code) and the C library's
   differ in the last bit now and then, so the loops return the scale factors, the caller takes
   numpy's log of them and :func:`_log_sums` adds them up in numpy's order.
@@ -31,12 +31,12 @@ from __future__ import annotations
 
 import numpy as np
 
-_KERNELS = None  # (powers, log_sums) once loaded; False when there is no compiler
+_KERNELS = None  # (estep, log_sums) once loaded; False when there is no compiler
 _HELPERS = False  # the helpers below replaced by their compiled forms
 
 
 def kernels():
-    """(the powers-and-scans loop, the log-sum loop) compiled, or None (``TRAIN_NO_JIT``, no
+    """(the E-step's loop, the log-sum loop) compiled, or None (``TRAIN_NO_JIT``, no
     numba)."""
     global _KERNELS
     if _KERNELS is None:
@@ -44,7 +44,7 @@ def kernels():
 
         mod = aot.load("link_estep", [__file__])
         if mod is not None:
-            _KERNELS = (mod.powers, mod.log_sums)
+            _KERNELS = (mod.estep, mod.log_sums)
         else:
             jitted = _jitted()
             _KERNELS = jitted if jitted is not None else False
@@ -57,7 +57,7 @@ def _jitted():
     if not COMPILED:
         return None
     _compile_helpers(jit)
-    return jit(_powers), jit(_log_sums)
+    return jit(_estep), jit(_log_sums)
 
 
 def _compile_helpers(jit):
@@ -68,7 +68,7 @@ def _compile_helpers(jit):
         return
     _define_fma()
     g = globals()
-    for name in ("_blockmul", "_divide", "_scan"):
+    for name in ("_blockmul", "_divide", "_scan", "_posteriors"):
         g[name] = jit(g[name])
     _HELPERS = True
 
@@ -133,6 +133,9 @@ def _divide(p, t, sc):
                 t[ab, i, j] = t[ab, i, j] / sc
 
 
+_TINY = np.finfo(np.float64).tiny
+
+
 def _scan(p, reverse, scales):
     """link_hmm._scan on one model's entries p (4, R) in place; the divisors of each level in
     ``scales`` (levels, R) when given (the forward scan's: their logs are summed later)."""
@@ -140,7 +143,6 @@ def _scan(p, reverse, scales):
     tmp = np.empty((4, n))
     d = 1
     level = 0
-    tiny = np.finfo(np.float64).tiny
     while d < n:
         for k in range(n - d):
             a0, a1, a2, a3 = p[0, k], p[1, k], p[2, k], p[3, k]
@@ -155,7 +157,7 @@ def _scan(p, reverse, scales):
                 p[e, k + off] = tmp[e, k]
         for k in range(n):
             s = max(max(p[0, k], p[1, k]), max(p[2, k], p[3, k]))
-            s = max(s, tiny)
+            s = max(s, _TINY)
             for e in range(4):
                 p[e, k] = p[e, k] / s
             if scales.shape[0] > 0:
@@ -164,13 +166,15 @@ def _scan(p, reverse, scales):
         level += 1
 
 
-def _powers(m_o, o_u, l_u, inv, sc_res, sc_blk, sc_scan, p_u, n_u, pf, pb):
-    """link_hmm._powers_numpy for S models (their transfer matrices ``m_o`` (S, o, 2, 2)) over
-    U run kinds and R >= 1 runs, without its logarithms: fills the runs' scaled M^L ``p_u``
+def _estep(m_o, o_u, l_u, inv, sc_res, sc_blk, sc_scan, p_u, n_u, pf, pb, v0, o_r, lost0, g0,
+           xi, occ, hit, last):
+    """link_hmm.statistics for S models (their transfer matrices ``m_o`` (S, o, 2, 2)) over U
+    run kinds and R >= 1 runs, without its logarithms (:func:`_powers_numpy` and
+    :func:`_posteriors_numpy` there): fills the runs' scaled M^L ``p_u``
     (S, U, 2, 2) and upper right blocks ``n_u`` (S, U, ab, 2, 2), the scans' entries ``pf``,
-    ``pb`` (4, S, R), and the divisors: ``sc_res`` (bits, S, U) of the runs' powers (1 where a
+    ``pb`` (S, 4, R), and the divisors: ``sc_res`` (bits, S, U) of the runs' powers (1 where a
     bit is not set), ``sc_blk`` (bits, S, 2) of the squared blocks (1 at the last bit),
-    ``sc_scan`` (levels, S, R) of the forward scan."""
+    ``sc_scan`` (S, levels, R) of the forward scan; then the posteriors (:func:`_posteriors`)."""
     S = m_o.shape[0]
     R = inv.shape[0]
     U = o_u.shape[0]
@@ -220,21 +224,86 @@ def _powers(m_o, o_u, l_u, inv, sc_res, sc_blk, sc_scan, p_u, n_u, pf, pb):
         n_u[s] = rt
         for r in range(R):
             u = inv[r]
-            pf[0, s, r] = rp[u, 0, 0]
-            pf[1, s, r] = rp[u, 0, 1]
-            pf[2, s, r] = rp[u, 1, 0]
-            pf[3, s, r] = rp[u, 1, 1]
+            pf[s, 0, r] = rp[u, 0, 0]
+            pf[s, 1, r] = rp[u, 0, 1]
+            pf[s, 2, r] = rp[u, 1, 0]
+            pf[s, 3, r] = rp[u, 1, 1]
             for e in range(4):
-                pb[e, s, r] = pf[e, s, r]
-        _scan(pf[:, s, :], False, sc_scan[:, s, :])
-        _scan(pb[:, s, :], True, none)
+                pb[s, e, r] = pf[s, e, r]
+        _scan(pf[s], False, sc_scan[s])
+        _scan(pb[s], True, none)
+        _posteriors(s, v0[s], m_o[s], o_r, inv, p_u[s], n_u[s], pf[s], pb[s], lost0, g0, xi,
+                    occ, hit, last)
+
+
+def _posteriors(s, v0, m_o, o_r, inv, p_u, n_u, pf, pb, lost0, g0, xi, occ, hit, last):
+    """link_hmm._posteriors_numpy for model ``s``: its gamma_0, xi sums, occupancy, lost
+    samples per state and ``last`` (the likelihood before its scale factors) from the runs'
+    powers and the scans, every sum in the order written there."""
+    R = o_r.shape[0]
+    alpha = np.empty((R, 2))
+    alpha[0, 0], alpha[0, 1] = v0[0], v0[1]
+    for r in range(1, R):
+        alpha[r, 0] = v0[0] * pf[0, r - 1] + v0[1] * pf[2, r - 1]
+        alpha[r, 1] = v0[0] * pf[1, r - 1] + v0[1] * pf[3, r - 1]
+    for r in range(R):
+        tot = alpha[r, 0] + alpha[r, 1]
+        alpha[r, 0] = alpha[r, 0] / tot
+        alpha[r, 1] = alpha[r, 1] / tot
+    beta = np.ones((R, 2))
+    for r in range(R - 1):
+        beta[r, 0] = pb[0, r + 1] + pb[1, r + 1]
+        beta[r, 1] = pb[2, r + 1] + pb[3, r + 1]
+    for r in range(R):
+        mx = max(beta[r, 0], beta[r, 1])
+        beta[r, 0] = beta[r, 0] / mx
+        beta[r, 1] = beta[r, 1] / mx
+    x00 = x01 = x10 = x11 = 0.0
+    oc0 = oc1 = h0 = h1 = 0.0
+    nr = np.empty((2, 2))
+    for r in range(R):
+        u = inv[r]
+        o = o_r[r]
+        z = 0.0
+        for i in range(2):
+            for j in range(2):
+                z += alpha[r, i] * p_u[u, i, j] * beta[r, j]
+        for i in range(2):
+            for j in range(2):
+                acc = 0.0
+                for k in range(4):
+                    acc += (beta[r, k // 2] * alpha[r, k % 2]) * n_u[u, k, i, j]
+                nr[i, j] = acc / z
+        x00 += m_o[o, 0, 0] * nr[0, 0]
+        x01 += m_o[o, 0, 1] * nr[1, 0]
+        x10 += m_o[o, 1, 0] * nr[0, 1]
+        x11 += m_o[o, 1, 1] * nr[1, 1]
+        c0 = nr[0, 0] * m_o[o, 0, 0] + nr[0, 1] * m_o[o, 1, 0]
+        c1 = nr[1, 0] * m_o[o, 0, 1] + nr[1, 1] * m_o[o, 1, 1]
+        oc0 += c0
+        oc1 += c1
+        h0 += c0 * o
+        h1 += c1 * o
+    xi[s, 0, 0], xi[s, 0, 1], xi[s, 1, 0], xi[s, 1, 1] = x00, x01, x10, x11
+    ga = v0[0] * (pb[0, 0] + pb[1, 0])
+    gb = v0[1] * (pb[2, 0] + pb[3, 0])
+    tot = ga + gb
+    g0[s, 0] = ga / tot
+    g0[s, 1] = gb / tot
+    occ[s, 0] = oc0 + g0[s, 0]
+    occ[s, 1] = oc1 + g0[s, 1]
+    lo = 1.0 if lost0 else 0.0
+    hit[s, 0] = h0 + g0[s, 0] * lo
+    hit[s, 1] = h1 + g0[s, 1] * lo
+    last[s] = (v0[0] * (pf[0, R - 1] + pf[1, R - 1])
+               + v0[1] * (pf[2, R - 1] + pf[3, R - 1]))
 
 
 def _log_sums(l_u, o_u, log_res, log_blk, log_scan, log_r, lf):
     """The scale factors' logs added up as link_hmm._powers_numpy adds them: ``log_r``
     (S, U) of the runs' powers and ``lf`` (S,) the forward scan's at its last run."""
     bits, S, U = log_res.shape
-    levels = log_scan.shape[0]
+    levels = log_scan.shape[1]
     R = log_scan.shape[2]
     logs = np.empty(R)
     lg = np.empty(R)
@@ -262,7 +331,7 @@ def _log_sums(l_u, o_u, log_res, log_blk, log_scan, log_r, lf):
             for k in range(R - d):
                 logs[k + d] = lg[k]
             for r in range(R):
-                logs[r] += log_scan[level, s, r]
+                logs[r] += log_scan[s, level, r]
             d *= 2
         lf[s] = logs[R - 1]
 
@@ -270,8 +339,9 @@ def _log_sums(l_u, o_u, log_res, log_blk, log_scan, log_r, lf):
 _C1, _C2, _C3 = "f8[::1]", "f8[:, ::1]", "f8[:, :, ::1]"
 _I1 = "i8[::1]"
 AOT_SIGNATURES = {
-    "powers": f"void(f8[:, :, :, ::1], {_I1}, {_I1}, {_I1}, {_C3}, {_C3}, {_C3}, "
-              f"f8[:, :, :, ::1], f8[:, :, :, :, ::1], {_C3}, {_C3})",
+    "estep": f"void(f8[:, :, :, ::1], {_I1}, {_I1}, {_I1}, {_C3}, {_C3}, {_C3}, "
+             f"f8[:, :, :, ::1], f8[:, :, :, :, ::1], {_C3}, {_C3}, {_C2}, {_I1}, b1, {_C2}, "
+             f"{_C3}, {_C2}, {_C2}, {_C1})",
     "log_sums": f"void({_I1}, {_I1}, {_C3}, {_C3}, {_C3}, {_C2}, {_C1})",
 }
 
@@ -286,6 +356,6 @@ def build_aot():
         raise RuntimeError("compiling ahead of time needs numba (TRAIN_NO_JIT is set or numba "
                            "is missing)")
     _compile_helpers(jit)
-    return aot.build("link_estep", [__file__], {"powers": (_powers, AOT_SIGNATURES["powers"]),
+    return aot.build("link_estep", [__file__], {"estep": (_estep, AOT_SIGNATURES["estep"]),
                                                 "log_sums": (_log_sums,
                                                              AOT_SIGNATURES["log_sums"])})
