@@ -118,9 +118,10 @@ def _column_pass(h, code, Bs, Bv, Md, Mv, Mb, yd, yv, K, L, row, Z, E, keep):
     """The columns of an augmented filter run and their whitened innovations ``Z`` (two rows
     per odometer reading, one per balise reading; ``E`` (n, 2, 2) the innovations of columns 0
     and 1 when ``keep``: no caller reads the others). Per element the operations of a filter
-    written out step by step, in its order: predict (s += h v, then the drift), then the odometer update (innovation -M - x + y; gain
-    columns K[:, :, 0] on distance and K[:, :, 1] on speed) or the balise update (distance
-    only); whitening by the Cholesky factor L of S_k."""
+    written out step by step, in its order: predict (s += h v, then the drift), then the
+    odometer update (innovation -M - x + y; gain columns K[:, :, 0] on distance and K[:, :, 1]
+    on speed) or the balise update (distance only); whitening by the Cholesky factor L of
+    S_k."""
     n, p1 = Bs.shape[0], Bs.shape[1]
     xs = -Md[0].copy()
     xv = -Mv[0].copy()
