@@ -35,7 +35,8 @@ Bernoulli link (exact, a fit per replicate). The default decision uses the insta
 likelihood-ratio test of Bernoulli against a Markov chain of the losses (:func:`markov_test`,
 chi-square with one degree of freedom), which a bursty link fails.
 
-Pure module: numpy only. Inputs are explicit (the lost/received sequence, ``rng``).
+Pure module: numpy (the E-step compiled by numba where it is there: :mod:`.link_estep`). Inputs
+are explicit (the lost/received sequence, ``rng``).
 """
 
 from __future__ import annotations
