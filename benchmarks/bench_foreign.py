@@ -59,6 +59,7 @@ import io
 import json
 import math
 import os
+import shutil
 import sys
 import tempfile
 import time
@@ -262,7 +263,13 @@ def run_case(spec: dict) -> dict:
     from train_estimation.tools import diagnose as tool
 
     seed, kind = spec["seed"], spec["kind"]
-    with tempfile.TemporaryDirectory(prefix="bench_foreign_") as d:
+    keep = spec.get("keep")
+    if keep:  # the case's files, its bag and diagnose's output kept in KEEP/KIND-SEED
+        keep = os.path.join(keep, f"{kind}-{seed}")
+        shutil.rmtree(keep, ignore_errors=True)
+        os.makedirs(keep)
+    with contextlib.nullcontext(keep) if keep else \
+            tempfile.TemporaryDirectory(prefix="bench_foreign_") as d:
         case, paths, line, train, pilot, eff = foreign_case(seed, kind,
                                                             os.path.join(d, "case"),
                                                             spec.get("family"),
@@ -530,6 +537,10 @@ def main(argv=None) -> int:
     p.add_argument("--family", choices=tuple(FS.OTHER_FAMILIES),
                    help="lines and trains of another family than our cases' (foreign_sim."
                         "OTHER_FAMILIES: freight, mountain, tram; default: train_sim.cases')")
+    p.add_argument("--keep", metavar="DIR",
+                   help="keep each case in DIR/KIND-SEED (line.yaml and train.yaml in case/, "
+                        "the bag in bag/, diagnose's output in diag/; replaced if there) "
+                        "instead of a temporary directory: the bags to run diagnose on again")
     p.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE",
                    help="set a field of every drawn effect (foreign_sim.Effect), e.g. "
                         "balise_late=1.0 with --kinds balise_late: a size the draw does not "
@@ -555,7 +566,8 @@ def main(argv=None) -> int:
               **({"family": args.family} if args.family else {}),
               **({"recorded": True} if args.as_recorded else {}),
               **({"config": {"use_distance": False}} if args.no_distance else {}),
-              **({"effect": override} if override else {})}
+              **({"effect": override} if override else {}),
+              **({"keep": os.path.abspath(args.keep)} if args.keep else {})}
              for s in range(args.first, args.first + args.seeds) for k in args.kinds]
     fn, name = (run_estimators, "foreign_estimators") if args.estimators else \
         (run_case, "foreign")

@@ -218,12 +218,13 @@ def test_extended_residual_removes_what_the_accepted_cause_explains(worn):
     """On worn brakes the believed model's residual while braking is about (f - f0) a_br
     (a_br < 0, f0 = 1); the extended model's is about zero; the replay follows the data."""
     from train_estimation.core.offline.diagnose import diagnose
+    from train_estimation.core.offline.diagnose.series import with_replay
     from train_estimation.core.offline.measured import MeasuredRun
 
     sc, bag = worn
     data = MeasuredRun.from_bag(read_bag(bag))
     dg = diagnose(data, sc.line, sc.train)
-    s = dg.series
+    s = with_replay(dg.series)  # the replay is made for its plot
     br = np.asarray(s["commanded_braking"])
     r, e = np.asarray(s["residual_accel"]), np.asarray(s["residual_accel_extended"])
     sel = (br < -0.3) & np.isfinite(r) & np.isfinite(e)

@@ -76,6 +76,7 @@ from train_core.model import line_from_dict, load_line, load_train, train_from_d
 
 from train_estimation.core.offline.diagnose.residuals import SENSOR_WHY
 from train_estimation.core.offline.diagnose.result import jsonable
+from train_estimation.core.offline.diagnose.series import with_replay
 from train_estimation.core.offline.diagnose.verdict import (  # noqa: F401 (SCORE_FORMULA: help)
     LATENCY_WHY,
     RATE_WHY,
@@ -523,6 +524,7 @@ def _title(dg, what: str) -> str:
 
 
 def write_plots(series: dict, out: Path, dg=None) -> list[Path]:
+    series = with_replay(series or {})  # the replay's runs are made here, for its plot
     written = []
     for name, fn in PLOTS:
         try:

@@ -86,7 +86,9 @@ def augmented_kf(ev: Events, q: float, r_s: float, Bv, Bs, Md, Mv, Mb, q_held: f
     gp = _gain_pass(ev, q, r_s, q_held, update, q_per_event)
     odo, bal = gp.odo, gp.bal
     Z = np.empty((gp.m, p1))  # the whitened innovations, two rows per odometer reading
-    E = np.zeros((n, 2, p1) if keep_innov or not COMPILED else (1, 2, 1))
+    # the innovations: every column's for the loop without numba (its working rows); compiled,
+    # only those of columns 0 and 1 (E0, E1 below), and none without keep_innov
+    E = np.zeros((n, 2, p1) if not COMPILED else (n, 2, 2) if keep_innov else (1, 2, 1))
     if COMPILED:  # the columns and their whitening in one compiled loop, no stacked copies
         f8 = np.float64
         _column_pass(np.ascontiguousarray(gp.h, f8), np.ascontiguousarray(gp.code, np.int64),
@@ -114,11 +116,12 @@ def augmented_kf(ev: Events, q: float, r_s: float, Bv, Bs, Md, Mv, Mb, q_held: f
 
 def _column_pass(h, code, Bs, Bv, Md, Mv, Mb, yd, yv, K, L, row, Z, E, keep):
     """The columns of an augmented filter run and their whitened innovations ``Z`` (two rows
-    per odometer reading, one per balise reading; ``E`` (n, 2, p+1) the innovations when
-    ``keep``). Per element the operations of a filter written out step by step, in its order:
-    predict (s += h v, then the drift), then the odometer update (innovation -M - x + y; gain
-    columns K[:, :, 0] on distance and K[:, :, 1] on speed) or the balise update (distance
-    only); whitening by the Cholesky factor L of S_k."""
+    per odometer reading, one per balise reading; ``E`` (n, 2, 2) the innovations of columns 0
+    and 1 when ``keep``: no caller reads the others). Per element the operations of a filter
+    written out step by step, in its order: predict (s += h v, then the drift), then the
+    odometer update (innovation -M - x + y; gain columns K[:, :, 0] on distance and K[:, :, 1]
+    on speed) or the balise update (distance only); whitening by the Cholesky factor L of
+    S_k."""
     n, p1 = Bs.shape[0], Bs.shape[1]
     xs = -Md[0].copy()
     xv = -Mv[0].copy()
@@ -145,7 +148,7 @@ def _column_pass(h, code, Bs, Bv, Md, Mv, Mb, yd, yv, K, L, row, Z, E, keep):
                 z0 = es / L[k, 0]
                 Z[r, j] = z0
                 Z[r + 1, j] = (ev_ - L[k, 1] * z0) / L[k, 2]
-                if keep:
+                if keep and j < 2:
                     E[k, 0, j] = es
                     E[k, 1, j] = ev_
             elif c == 1:  # balise reading
@@ -155,7 +158,7 @@ def _column_pass(h, code, Bs, Bv, Md, Mv, Mb, yd, yv, K, L, row, Z, E, keep):
                 s_ = s_ + K[k, 0, 0] * eb
                 v_ = v_ + K[k, 1, 0] * eb
                 Z[r, j] = eb / L[k, 0]
-                if keep:
+                if keep and j < 2:
                     E[k, 0, j] = eb
             xs[j] = s_
             xv[j] = v_

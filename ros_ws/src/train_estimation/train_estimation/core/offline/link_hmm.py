@@ -35,7 +35,8 @@ Bernoulli link (exact, a fit per replicate). The default decision uses the insta
 likelihood-ratio test of Bernoulli against a Markov chain of the losses (:func:`markov_test`,
 chi-square with one degree of freedom), which a bursty link fails.
 
-Pure module: numpy only. Inputs are explicit (the lost/received sequence, ``rng``).
+Pure module: numpy (the E-step compiled by numba where it is there: :mod:`.link_estep`). Inputs
+are explicit (the lost/received sequence, ``rng``).
 """
 
 from __future__ import annotations
@@ -44,6 +45,8 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+
+from . import link_estep
 
 EPS = 1e-10  # -, every fitted probability stays in [EPS, 1 - EPS]
 MIN_SAMPLES = 20  # odometer samples: fewer and the fit is not attempted
@@ -258,7 +261,12 @@ def statistics(lost, pi, a, q):
     constant, the forward messages are alpha M^r and the backward ones M^(L-1-r) beta, and the
     sums over the run are sum_r M^(L-1-r) C M^r with C = beta alpha -- the upper right block of
     [[M, C], [0, M]]^L (powers by squaring, shared by all runs of the same length and
-    observation; all entries are non-negative, so nothing cancels)."""
+    observation; all entries are non-negative, so nothing cancels).
+
+    The E-step is loops compiled where numba (or the module it compiled ahead of time) is
+    there (:mod:`.link_estep`: the operations of :func:`_powers_numpy` and
+    :func:`_posteriors_numpy` in their order, the logarithms by numpy: the same bits where BLAS
+    sums a 4x4 product by fused multiply-adds, tested), else those two in numpy."""
     lost = np.asarray(lost, bool)
     S = pi.shape[0]
     e0 = np.where(lost[0], q, 1.0 - q)
@@ -274,8 +282,26 @@ def statistics(lost, pi, a, q):
     m_o = a[:, None, :, :] * em[:, :, None, :]
     key = l_r * 2 + o_r
     uniq, inv = np.unique(key, return_inverse=True)
+    inv = inv.ravel()
     o_u, l_u = uniq % 2, uniq // 2
-    U = uniq.size
+    kern = link_estep.kernels()
+    if kern is None:
+        p_u, n_u, log_r, pf, pb, lf = _powers_numpy(m_o, o_u, l_u, inv)
+        g0, xi, occ, hit, last = _posteriors_numpy(lost, v0, m_o, o_r, inv, p_u, n_u, pf, pb)
+    else:
+        g0, xi, occ, hit, last, log_r, lf = _estep_compiled(kern, lost, v0, m_o, o_r, o_u, l_u,
+                                                            inv)
+    ll = np.log(last) + lf + log_r[:, inv].sum(axis=1)
+    return g0, xi, occ, hit, ll
+
+
+def _powers_numpy(m_o, o_u, l_u, inv):
+    """The runs' block powers [[M, E_ab], [0, M]]^L by squaring (scaled: their largest entry
+    1, the log of the scale in ``log_r``) and the scaled forward and backward scans of the
+    runs' M^L: (M^L (S, U, 2, 2), the upper right blocks (S, U, ab, 2, 2), log_r (S, U), the
+    scans' entries (4 x (S, R)) forward and backward, the forward scan's log scale at the
+    last run (S,))."""
+    S, U = m_o.shape[0], l_u.size
     # block matrices per (s, o, ab): [[M, E_ab], [0, M]]
     blk = np.zeros((S, 2, 4, 4, 4))
     blk[..., :2, :2] = m_o[:, :, None]
@@ -306,6 +332,18 @@ def statistics(lost, pi, a, q):
     entries = (p_r[..., 0, 0], p_r[..., 0, 1], p_r[..., 1, 0], p_r[..., 1, 1])
     pf, lf = _scan(entries, False)
     pb, _ = _scan(entries, True)
+    return p_u, n_u, log_r, pf, pb, lf[:, -1]
+
+
+def _posteriors_numpy(lost, v0, m_o, o_r, inv, p_u, n_u, pf, pb):
+    """gamma_0, the xi sums, the occupancy, the lost samples per state and the likelihood
+    before its scale factors, from :func:`_powers_numpy`. Every sum in a stated order (over
+    (i, j) row by row, over ab, over the runs one after another: ``cumsum``), the order the
+    compiled E-step follows, so that the two agree bit for bit whatever the shapes (numpy's
+    einsum and sum choose their order by the arrays' layout)."""
+    S, R = v0.shape[0], o_r.size
+    p_r = p_u[:, inv]
+    n_rr = n_u[:, inv]
     alpha = np.empty((S, R, 2))  # forward message entering each run
     alpha[:, 0] = v0
     alpha[:, 1:, 0] = v0[:, 0, None] * pf[0][:, :-1] + v0[:, 1, None] * pf[2][:, :-1]
@@ -315,21 +353,49 @@ def statistics(lost, pi, a, q):
     beta[:, :-1, 0] = pb[0][:, 1:] + pb[1][:, 1:]
     beta[:, :-1, 1] = pb[2][:, 1:] + pb[3][:, 1:]
     beta /= beta.max(axis=2, keepdims=True)
-    z = np.einsum("sri,srij,srj->sr", alpha, p_r, beta)
+    z = np.zeros((S, R))  # alpha M^L beta
+    for i in range(2):
+        for j in range(2):
+            z += alpha[..., i] * p_r[..., i, j] * beta[..., j]
     c = beta[:, :, :, None] * alpha[:, :, None, :]  # C[a, b] = beta_a alpha_b
-    n_r = np.einsum("srk,srkij->srij", c.reshape(S, R, 4), n_u[:, inv])
+    n_r = np.zeros((S, R, 2, 2))
+    for ab in range(4):
+        n_r += c[..., ab // 2, ab % 2, None, None] * n_rr[:, :, ab]
     n_r /= z[..., None, None]
     m_r = m_o[:, o_r]  # (S, R, 2, 2)
-    xi = (m_r * np.swapaxes(n_r, 2, 3)).sum(axis=1)
-    occ_r = np.einsum("srij,srji->sri", n_r, m_r)
+    xi = np.cumsum(m_r * np.swapaxes(n_r, 2, 3), axis=1)[:, -1]
+    occ_r = np.stack([n_r[..., i, 0] * m_r[..., 0, i] + n_r[..., i, 1] * m_r[..., 1, i]
+                      for i in range(2)], axis=2)
     beta0 = np.stack([pb[0][:, 0] + pb[1][:, 0], pb[2][:, 0] + pb[3][:, 0]], axis=1)
     g0 = v0 * beta0
     g0 /= g0.sum(axis=1, keepdims=True)
-    occ = occ_r.sum(axis=1) + g0
-    hit = (occ_r * o_r[None, :, None]).sum(axis=1) + g0 * float(lost[0])
+    occ = np.cumsum(occ_r, axis=1)[:, -1] + g0
+    hit = np.cumsum(occ_r * o_r[None, :, None], axis=1)[:, -1] + g0 * float(lost[0])
     last = (v0[:, 0] * (pf[0][:, -1] + pf[1][:, -1]) + v0[:, 1] * (pf[2][:, -1] + pf[3][:, -1]))
-    ll = np.log(last) + lf[:, -1] + log_r[:, inv].sum(axis=1)
-    return g0, xi, occ, hit, ll
+    return g0, xi, occ, hit, last
+
+
+def _estep_compiled(kern, lost, v0, m_o, o_r, o_u, l_u, inv):
+    """:func:`_powers_numpy` and :func:`_posteriors_numpy` by the compiled loops
+    (:mod:`.link_estep`); the logarithms of their scale factors by numpy, added up in numpy's
+    order by the second loop: (g0, xi, occ, hit, last, log_r, lf)."""
+    estep, log_sums = kern
+    f8, i8 = np.float64, np.int64
+    S, U, R = m_o.shape[0], l_u.size, inv.size
+    bits = int(l_u.max()).bit_length()
+    levels = (R - 1).bit_length()
+    o_u, l_u, inv, o_r = (np.ascontiguousarray(x, i8) for x in (o_u, l_u, inv, o_r))
+    sc_res, sc_blk, sc_scan = np.empty((bits, S, U)), np.empty((bits, S, 2)), np.empty(
+        (S, levels, R))
+    p_u, n_u = np.empty((S, U, 2, 2)), np.empty((S, U, 4, 2, 2))
+    pf, pb = np.empty((S, 4, R)), np.empty((S, 4, R))
+    g0, xi, occ, hit, last = (np.empty((S, 2)), np.empty((S, 2, 2)), np.empty((S, 2)),
+                              np.empty((S, 2)), np.empty(S))
+    estep(np.ascontiguousarray(m_o, f8), o_u, l_u, inv, sc_res, sc_blk, sc_scan, p_u, n_u, pf,
+          pb, np.ascontiguousarray(v0, f8), o_r, bool(lost[0]), g0, xi, occ, hit, last)
+    log_r, lf = np.empty((S, U)), np.empty(S)
+    log_sums(l_u, o_u, np.log(sc_res), np.log(sc_blk), np.log(sc_scan), log_r, lf)
+    return g0, xi, occ, hit, last, log_r, lf
 
 
 def _sums(lost, gamma, xi):

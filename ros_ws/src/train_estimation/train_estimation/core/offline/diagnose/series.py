@@ -3,6 +3,8 @@ and time, the commands, the speed trace, the loss runs, and the accepted causes'
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 from .causes import BY_NAME
@@ -35,7 +37,22 @@ def series(mo: Motion, accepted: list, own: dict) -> dict:
         BY_NAME[a.cause].series(a.parameters, mo, out)
     if accepted:
         out["residual_accel_extended"] = res[sl] - extended_accel(mo, accepted)[sl]
-        out.update(replay_series(mo, accepted))
+        # the open-loop replays of the whole run (two runs of the simulator's physics per gain
+        # block: two thirds of a diagnose run's replays) are for a plot only: made when it is
+        # drawn (with_replay), not for a run without plots or for the fleet's rows
+        out["replay"] = functools.partial(replay_series, mo, accepted)
+    return out
+
+
+def with_replay(s: dict) -> dict:
+    """The series ``s`` with the replay's arrays (``replay_t``, ``replay_measured``,
+    ``replay_believed``, ``replay_extended``, ``replay_block``: :func:`replay_series`) in
+    place of the replay :func:`series` leaves to be made: what the plots take."""
+    make = s.get("replay")
+    if not callable(make):
+        return s
+    out = {k: v for k, v in s.items() if k != "replay"}
+    out.update(make())
     return out
 
 
