@@ -1051,8 +1051,8 @@ def test_a_brake_delay_and_a_low_adhesion_section_are_one_braking_chain(tmp_path
     braking x 0.52 on 1620-2041 m). The section was built on the braking at the believed
     timing, so the delay's re-timing was not scaled on its stretch: the delay was fitted
     1.04 s and its split needed it x0.39 over the braking that held the section (not
-    confirmed). The section now scales the braking at the null's timing, and the delay is
-    profiled with the section's part re-timed with it."""
+    confirmed). The section now scales the braking delayed by the brake delay, and the delay
+    is profiled with the section's part delayed with it."""
     case = make_case(np.random.default_rng([31, 7]), ("brake_delay", "adhesion_section"),
                      "plain")
     rep, truth = _diagnosed(case, tmp_path)

@@ -85,11 +85,11 @@ class BrakeDelay(Cause):
 
 def _lls_with_sections(st, grid: list) -> list:
     """The log-likelihood of each (offset, extra delay) of ``grid`` under a null with
-    low-adhesion sections (``Null.brake_sections``): a section scales the braking at the
-    null's timing on its stretch (train_core dynamics.py), so re-timing the braking moves its
-    part there too. One augmented filter over the re-timed traction of each offset and the
-    re-timed braking of each timing with the sections' part at that timing, each less the
-    null's own; per grid point the fixed combination of its two columns, s0 profiled (as
+    low-adhesion sections (``Null.brake_sections``): a section scales the delayed braking on
+    its stretch (train_core dynamics.py; ``adhesion_section.null_braking``), so a brake delay
+    moves its part there too. One augmented filter over the re-timed traction of each offset,
+    the re-timed braking of each timing and the sections' part at each extra delay, each less
+    the null's own; per grid point the fixed combination of its three columns, s0 profiled (as
     ``Stage.fixed_lls`` on the elementary columns without sections)."""
     from .adhesion_section import section_increments
 
@@ -114,19 +114,23 @@ def _lls_with_sections(st, grid: list) -> list:
     s0v, s0s = section_increments(mo, null)
     shifts = sorted({s for s, _ in grid})
     keys = sorted({round(s + d, 6) for s, d in grid})
+    extras = sorted({d for _, d in grid})
     cv, cs = [], []
     for s in shifts:
         v, x = elem(t_name(s))
         cv.append(v - t0v)
         cs.append(x - t0s)
-    g = null.drive_gain
     for k in keys:
         v, x = elem(b_name(k))
+        cv.append(v - b0v)
+        cs.append(x - b0s)
+    g = null.drive_gain
+    for d in extras:
         at = copy.copy(null)
-        at.shift, at.brake_extra = k, 0.0
+        at.brake_extra = d
         sv, ss = section_increments(mo, at)
-        cv.append(v - b0v + g * (sv - s0v))
-        cs.append(x - b0s + g * (ss - s0s))
+        cv.append(g * (sv - s0v))
+        cs.append(g * (ss - s0s))
     kf = st.augmented(st.fv, st.fs, drift=(np.stack(cv, axis=1), np.stack(cs, axis=1)),
                       update=st.update)
     W = kf.W
@@ -136,6 +140,7 @@ def _lls_with_sections(st, grid: list) -> list:
         u[0] = 1.0
         u[2 + shifts.index(s)] += 1.0
         u[2 + len(shifts) + keys.index(round(s + d, 6))] += 1.0
+        u[2 + len(shifts) + len(keys) + extras.index(d)] += 1.0
         w1 = u @ W[:, 1]
         quad = float(u @ W @ u - w1 * w1 / W[1, 1]) if W[1, 1] > 0 else float(u @ W @ u)
         out.append(-0.5 * (kf.logdet + kf.m * LOG2PI + quad))
