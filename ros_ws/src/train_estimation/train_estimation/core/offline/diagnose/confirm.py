@@ -61,6 +61,11 @@ reported ``confirmed`` only when the checks below pass, the same for every cause
 8. **Without the causes that fell**: the confirmed causes, refitted jointly without the accepted
    ones that were not confirmed, pass 1-7 again (:func:`.verdict.reconfirm`).
 
+Every check judges a cause with the other accepted causes in the model, less those the data
+contradict: one not confirmed for want of evidence (:func:`without_evidence`) stays, in checks
+3-7 as in check 1, so a cause that fails for want of evidence does not take a true one beside
+it down.
+
 Every other entry of the ranking is ``rejected`` (its score is not above ``none``'s).
 """
 
