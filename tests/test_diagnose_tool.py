@@ -1020,15 +1020,14 @@ def test_a_power_limit_is_profiled_again_for_each_cause_scored_after_it(tmp_path
 
 
 @pytest.mark.slow
-def test_a_braking_rate_whose_course_the_heat_law_fits_better_keeps_its_deficit(tmp_path):
-    """A pair the benchmark missed (seed 23, pair 8: a high-speed line, a gradient of 4.9 per
-    mille run in braking and a braking rate drifting 0.81 -> 0.78). Brakes that fade as they
-    heat fitted the braking better than the rate's linear drift (2 ln LR +48.8, cooling
-    300 s), so the braking rate was not confirmed, and the gradient, confirmed again without
-    it, was contradicted by the split: neither was named. Under that heat law the brakes are
-    x 0.81 cold and fade by 0.02 at one stop's heat: it needs the deficit itself, and only its
-    course over the run, which one run cannot tell from the heat's, is in doubt. Both are
-    confirmed, the braking rate with that caveat."""
+@pytest.mark.xfail(strict=True, reason=(
+    "brakes that fade as they heat (cooling 300 s) fit the braking rate's drift better (2 ln LR "
+    "+48.8) and it is not confirmed; the gradient beside it, judged without it, is a piece of "
+    "(or contradicted by) the braking left unexplained (docs/benchmarks.md, the pairs' table)"))
+def test_a_gradient_beside_a_braking_rate_the_heat_law_takes_is_confirmed(tmp_path):
+    """A pair the benchmark misses (seed 23, pair 8: a high-speed line, a gradient of 4.9 per
+    mille run in braking and a braking rate drifting 0.81 -> 0.78): both are true, and both
+    should be confirmed."""
     case = make_case(np.random.default_rng([23, 8]), ("gradient", "braking_rate"), "plain")
     rep, truth = _diagnosed(case, tmp_path)
     by = {r["cause"]: r for r in rep["ranking"]}
@@ -1036,14 +1035,8 @@ def test_a_braking_rate_whose_course_the_heat_law_fits_better_keeps_its_deficit(
         rep["ranking"][:3]
     for c in ("gradient", "braking_rate"):
         assert by[c]["status"] == "confirmed", (c, by[c].get("why"))
-    heat = rep["evidence"]["_model"]["confirmation"]["checks"]["braking_rate"]
-    assert heat["heat_law"]["lr"] > 9.0, heat["heat_law"]  # the heat law does fit better
-    assert "the deficit stands" in heat["caveat"], heat["caveat"]
-    assert abs(heat["heat_law"]["f_cold"] - truth["braking_rate"]["f_start"]) < 0.02, heat
     check_parameters("gradient", by["gradient"]["parameters"], truth["gradient"],
                      rep["evidence"], case.v_ref)
-    # the braking rate's mean is within 3 % of the deficit; its start is biased by the
-    # gradient run in braking (0.825 for 0.809): that is the fit's, not the confirmation's
     f = by["braking_rate"]["parameters"]
     assert main_error("braking_rate", f, truth["braking_rate"], case.nominal["braking_rate"],
                       case.v_ref) <= 0.05, (f, truth["braking_rate"])

@@ -42,11 +42,7 @@ reported ``confirmed`` only when the checks below pass, the same for every cause
    +-``law_lr`` the check states it (``caveat``), and it never decides the status.
    An odometer scale (``Cause.count_rival``) is compared likewise with an odometer error
    growing with speed (:func:`.laws.count_law`: a radar's), one parameter each: above
-   ``law_lr`` not confirmed, within +-``law_lr`` a caveat. A weaker braking
-   (``Cause.heat_rival``) is compared with brakes that fade as they heat
-   (:func:`.laws.heat_law`) the same way, but a braking-rate change whose level that law
-   needs too (``Cause.heat_holds_level``, :func:`_cold_level`) keeps its deficit: only its
-   course over the run is in doubt, and the check states it (``caveat``).
+   ``law_lr`` not confirmed, within +-``law_lr`` a caveat.
 4. **Not cancelling** another confirmed cause in a phase or on the stretch of a cause at a
    place (:func:`.contradict.cancelling`).
 5. **Better than a flexible term.** Causes confirmed together: each must beat (by BIC) free
@@ -259,16 +255,7 @@ def confirm(mo: Motion, shift: float, accepted: list, resolved_before: dict, cfg
         if a.status == "confirmed" and cause.heat_rival is not None:
             hl = heat_law(mo, others, full, cfg, noise)
             checks[a.cause]["heat_law"] = hl
-            if cause.heat_holds_level and _cold_level(a, mo, hl, ccfg):
-                # the heat law needs the cause's level itself: the deficit stands, its course
-                # over the run is the heat's or the cause's drift, which one run cannot tell
-                _caveat(checks[a.cause],
-                        f"its course over the run cannot be told from {cause.heat_rival} "
-                        f"(2 ln LR {hl['lr']:+.1f} for the heat law, cooling "
-                        f"{hl.get('tau', 0):.0f} s; under it f {hl['f_cold']:.3f} +- "
-                        f"{hl['f_cold_se']:.3f} with the brakes cold, fade "
-                        f"{hl.get('fade', 0):.2f} at one stop's heat): the deficit stands")
-            elif _law_verdict(a, checks[a.cause], hl, cause.heat_rival,
+            if _law_verdict(a, checks[a.cause], hl, cause.heat_rival,
                             "the braking better than the cause", ccfg,
                             detail=f"cooling {hl.get('tau', 0):.0f} s, "
                                    f"fade {hl.get('fade', 0):.2f} at one stop's heat; ",
@@ -329,6 +316,7 @@ def without_evidence(fit: CauseFit) -> bool:
     return (fit.why or "").startswith(WITHOUT_EVIDENCE)
 
 
+
 def _one_pass(mo: Motion, a) -> tuple[float, float] | None:
     """(t0, t1) s since the first odometer stamp: the one time span the train was on the
     stretch ``[start, end)`` of ``a``, or None when it was there in more than one (or none)."""
@@ -341,24 +329,6 @@ def _one_pass(mo: Motion, a) -> tuple[float, float] | None:
         return None
     beta = mo.run.clock["beta"]
     return float(mo.grid.t[idx[0]] / beta), float(mo.grid.t[idx[-1]] / beta)
-
-
-def _cold_level(a, mo: Motion, hl: dict, ccfg: ConfirmConfig) -> bool:
-    """Whether brakes that fade as they heat (:func:`.laws.heat_law`, ``hl``), where they fit
-    better than the braking-rate change ``a`` (2 ln LR > ``law_lr``), still need its level:
-    the braking rate with the brakes cold differs from nominal by more than 3 SE and in the
-    cause's direction by more than half (``split_min_share``) of the cause's mean change. A
-    braking rate drifting 0.81 -> 0.78 on a high-speed line lost to a heat law whose brakes
-    are x 0.81 cold and fade by 0.02 at one stop's heat (2 ln LR +48.8): the rate's course,
-    not its deficit, was what the heat law told apart; brakes that are nominal cold and fade
-    as they heat leave no such level."""
-    if not hl.get("lr", 0.0) > ccfg.law_lr or "f_cold" not in hl:
-        return False
-    p = a.parameters
-    change = 0.5 * (float(p["f_start"]) + float(p["f_end"])) - mo.f0
-    cold = hl["f_cold"] - mo.f0
-    return bool(change != 0.0 and abs(cold) > 3.0 * hl["f_cold_se"]
-                and cold / change > 1.0 - ccfg.split_min_share)
 
 
 def _law_verdict(a, check: dict, res: dict, rival: str, than: str, ccfg: ConfirmConfig,

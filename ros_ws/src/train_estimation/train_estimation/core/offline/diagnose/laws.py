@@ -78,8 +78,7 @@ def heat_law(mo: Motion, others: Null, full: Null, cfg, noise) -> dict:
     contribution with a free multiplier), less 2 ln of the number of cooling times tried
     (> 0: the data prefer the heat law; near 0 where every braking holds the same heat, as
     on a run of equal stops); ``tau`` and the heat law's fade at the heat of one stop from the
-    top speed (``fade``, -c2 / (f0 + c1)); the braking rate with the brakes cold, f0 + c1
-    (``f_cold``, ``f_cold_se``); the speeds braked at (5-95 %)."""
+    top speed (``fade``, -c2 / (f0 + c1)); the speeds braked at (5-95 %)."""
     st0 = Stage(mo, others, cfg, noise=noise, big=False)
     st1 = Stage(mo, full, cfg, noise=noise, big=False)
     dv, ds = st1.fv - st0.fv, st1.fs - st0.fs
@@ -90,19 +89,18 @@ def heat_law(mo: Motion, others: Null, full: Null, cfg, noise) -> dict:
         return res
     cause = _fit_columns(st0, dv[:, None], ds[:, None])[0]
     n_ev = mo.ev.t.size
-    best = (-math.inf, None, None, None)
+    best = (-math.inf, None, None)
     for tau in HEAT_TAUS:
         h = heat_state(mo, tau)
         R = np.stack([mo.a_br0 * mo.moving, mo.a_br0 * h * mo.moving], axis=1)
-        stat, th, se = _fit_columns(st0, *mo.grid.integrate(R, n_ev))
+        stat, th, _ = _fit_columns(st0, *mo.grid.integrate(R, n_ev))
         if stat > best[0]:
-            best = (stat, tau, th, se)
-    stat, tau, th, se = best
+            best = (stat, tau, th)
+    stat, tau, th = best
     vb = mo.v_ref[brk]
     v_lo, v_hi = np.percentile(vb, [5, 95])
     res.update(lr=float(stat - cause - 2.0 * math.log(len(HEAT_TAUS))), tau=tau,
                fade=float(-th[1] / (mo.f0 + th[0])) if mo.f0 + th[0] else float("nan"),
-               f_cold=float(mo.f0 + th[0]), f_cold_se=float(se[0]),
                speeds=[float(v_lo), float(v_hi)])
     return res
 

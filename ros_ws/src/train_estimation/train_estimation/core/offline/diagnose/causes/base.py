@@ -177,13 +177,6 @@ class Cause:
     # done, cooling in minutes), which the cause (a braking weaker by a factor in time, or on
     # a stretch) is not; None: the cause is not a weaker braking.
     heat_rival: str | None = None
-    # The heat law holds the cause's level: its term in the braking asked for, c1, is this
-    # cause with one value over the run (a braking-rate change), so where the heat law fits
-    # better and still needs c1 (the brakes weaker cold, by more than half of the cause's mean
-    # change and beyond 3 SE) the deficit is there whatever its course over the run, which
-    # one run cannot tell from the heat's (it builds as the time does): confirmed with that
-    # caveat. A cause that is not such a level (a section: weaker on a stretch only) is not.
-    heat_holds_level: bool = False
 
     # What acts in time rather than at a place and makes the same residual when the stretch
     # is run once (the train is at each place of it at one moment); None: not a cause at a

@@ -21,7 +21,6 @@ class BrakingRate(Cause):
     # a braking that fades within and after each application, as the brakes heat, is weaker
     # by a heat that builds and cools, neither a factor drifting in time nor one on a stretch
     heat_rival = "brakes that fade as they heat"
-    heat_holds_level = True
 
     def untestable(self, run, cfg, own) -> str | None:
         return None if brakes_while_moving(run, cfg) else "no braking while moving in the data"
