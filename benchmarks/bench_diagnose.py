@@ -230,6 +230,7 @@ def run_case_(spec: dict) -> dict:
                                        else "rejected") for r in rep["ranking"]}
     out["confirmed"] = [c for c in out["ranking"] if out["status"].get(c) == "confirmed"
                         and c != "none"]
+    out["why"] = {r["cause"]: r["why"] for r in rep["ranking"] if r.get("why")}
     out["unexplained"] = rep.get("unexplained", [])
     out["untestable"] = [u["cause"] for u in rep["untestable"]]
     out["gain"] = rep.get("gain", {})

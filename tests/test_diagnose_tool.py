@@ -1019,6 +1019,82 @@ def test_a_power_limit_is_profiled_again_for_each_cause_scored_after_it(tmp_path
         check_parameters(c, by[c]["parameters"], truth[c], rep["evidence"], case.v_ref)
 
 
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason=(
+    "brakes that fade as they heat (cooling 300 s) fit the braking rate's drift better (2 ln LR "
+    "+48.8) and it is not confirmed; the gradient beside it, judged without it, is a piece of "
+    "(or contradicted by) the braking left unexplained (docs/benchmarks.md, the pairs' table)"))
+def test_a_gradient_beside_a_braking_rate_the_heat_law_takes_is_confirmed(tmp_path):
+    """A pair the benchmark misses (seed 23, pair 8: a high-speed line, a gradient of 4.9 per
+    mille run in braking and a braking rate drifting 0.81 -> 0.78): both are true, and both
+    should be confirmed."""
+    case = make_case(np.random.default_rng([23, 8]), ("gradient", "braking_rate"), "plain")
+    rep, truth = _diagnosed(case, tmp_path)
+    by = {r["cause"]: r for r in rep["ranking"]}
+    assert {r["cause"] for r in rep["ranking"][:2]} == {"gradient", "braking_rate"}, \
+        rep["ranking"][:3]
+    for c in ("gradient", "braking_rate"):
+        assert by[c]["status"] == "confirmed", (c, by[c].get("why"))
+    check_parameters("gradient", by["gradient"]["parameters"], truth["gradient"],
+                     rep["evidence"], case.v_ref)
+    f = by["braking_rate"]["parameters"]
+    assert main_error("braking_rate", f, truth["braking_rate"], case.nominal["braking_rate"],
+                      case.v_ref) <= 0.05, (f, truth["braking_rate"])
+
+
+@pytest.mark.slow
+def test_a_brake_delay_and_a_low_adhesion_section_are_one_braking_chain(tmp_path):
+    """A pair the benchmark missed (seed 31, pair 7: metro_demo, a brake delay of 1.21 s and
+    braking x 0.52 on 1620-2041 m). The section was built on the braking at the believed
+    timing, so the delay's re-timing was not scaled on its stretch: the delay was fitted
+    1.04 s and its split needed it x0.39 over the braking that held the section (not
+    confirmed). The section now scales the braking delayed by the brake delay, and the delay
+    is profiled with the section's part delayed with it."""
+    case = make_case(np.random.default_rng([31, 7]), ("brake_delay", "adhesion_section"),
+                     "plain")
+    rep, truth = _diagnosed(case, tmp_path)
+    by = {r["cause"]: r for r in rep["ranking"]}
+    assert {r["cause"] for r in rep["ranking"][:2]} == {"brake_delay", "adhesion_section"}, \
+        rep["ranking"][:3]
+    for c in ("brake_delay", "adhesion_section"):
+        assert by[c]["status"] == "confirmed", (c, by[c].get("why"))
+        check_parameters(c, by[c]["parameters"], truth[c], rep["evidence"], case.v_ref)
+
+
+def test_the_brake_delay_profile_with_a_section_is_the_likelihood_of_each_model(metro, tmp_path):
+    """The brake delay's profile under a null with a low-adhesion section
+    (``brake_delay._lls_with_sections``) against the exact oracle: each grid point's
+    log-likelihood is that of the null re-timed to it (the section at the new timing), its
+    own stage at the same noise; without sections, the elementary columns' ``fixed_lls``."""
+    from train_core.effects import AdhesionSectionEffect, BrakeDelayEffect, Effects
+
+    from train_estimation.core.offline.diagnose import DiagConfig, Motion, prepare
+    from train_estimation.core.offline.diagnose.causes.brake_delay import _lls_with_sections
+    from train_estimation.core.offline.diagnose.stage import Null, Stage
+
+    sc = metro.with_changes(duration=200.0, effects=Effects(
+        brake_delay=BrakeDelayEffect(metro.train.brake.delay + 0.4),
+        adhesion_section=AdhesionSectionEffect(300.0, 1500.0, 0.6)))
+    bag = write_bag(tmp_path / "bag", simulate(sc))
+    cfg = DiagConfig()
+    mo = Motion(prepare(tool.read_measured(bag), sc.line, cfg), sc.line, sc.train, cfg)
+    plain = Null(shift=0.05)
+    st = Stage(mo, plain, cfg)
+    grid = [(0.05, 0.2), (0.0, 0.4), (0.1, 0.4), (-0.05, 0.6)]
+    assert np.allclose(_lls_with_sections(st, grid),
+                       st.fixed_lls([st.retime(s, d) for s, d in grid]), rtol=0, atol=1e-6)
+    null = Null(shift=0.05, brake_extra=0.1, brake_sections=[(300.0, 1500.0, 0.6)])
+    st = Stage(mo, null, cfg)
+    noise = (st.q, st.r_s)
+    got = _lls_with_sections(st, grid)
+    for (s, d), ll in zip(grid, got):
+        want = Stage(mo, Null(shift=s, brake_extra=d, brake_sections=null.brake_sections), cfg,
+                     noise=noise, big=False).fixed_loglik()
+        assert ll == pytest.approx(want, abs=1e-6 * abs(want) + 1e-6), (s, d)
+    # the section changes the profile (the oracle above is not the plain one)
+    assert not np.allclose(got, st.fixed_lls([st.retime(s, d) for s, d in grid]), atol=1e-3)
+
+
 def test_two_accepted_causes_that_one_mass_change_explains_are_merged(metro, metro_run, tmp_path):
     """The merge step: a train 10 % heavier than believed, with the greedy stages made to accept
     a braking-rate change and then a resistance change (what a power limit accepted first left

@@ -85,7 +85,7 @@ def joint_model(mo: Motion, shift: float, nonlinear: list, members: list, cfg: D
         new = next((BY_NAME[c].params(st, th[i:i + k], cov[i:i + k, i:i + k], extra)[2]
                     ["traction_gain"] for (c, extra), (_, i, k) in zip(members, blocks)
                     if c == "mass"), None)
-        if new is None or not null.extra or abs(new - gain) < 1e-5:
+        if new is None or not (null.extra or null.brake_sections) or abs(new - gain) < 1e-5:
             break
         gain = new
     return ll, len(free), st.n_meas, th, cov, blocks, fits

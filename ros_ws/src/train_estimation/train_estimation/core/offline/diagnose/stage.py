@@ -53,6 +53,15 @@ class Null:
     # is that gain times the whole delivered drive, so the increments in ``extra`` (all of the
     # drive: a power limit, a traction delay, a low-adhesion section) are scaled by it
     drive_gain: float = 1.0
+    # low-adhesion sections, (start m, end m, factor): the braking the null delivers on each
+    # stretch is ``factor`` times the braking delayed by the brake delay's extra (brake_extra;
+    # adhesion_section.null_braking), as in the train (train_core dynamics.py scales the
+    # actuator's braking output, delay and lag included), whichever of the section and a brake
+    # delay was accepted first: a section built on the braking at another timing leaves the
+    # delay's re-timing unscaled on its stretch (a brake delay beside a section of x 0.52 was
+    # fitted 1.04 s for 1.21 s and its split then needed it x 0.39 over the braking that held
+    # the section)
+    brake_sections: list = field(default_factory=list)
     # odometer measurement offsets (distance, speed), each (n_ev,), of structure found in the
     # residuals that no listed cause explains (an odometer that counts differently from a
     # time on: phases.odometer_family), put into the model to test what else is still needed
@@ -73,6 +82,12 @@ class Stage:
             fv += c * mo.Dv[:, j]
             fs += c * mo.Ds[:, j]
         for bv, bs in null.extra:
+            fv = fv + null.drive_gain * bv
+            fs = fs + null.drive_gain * bs
+        if null.brake_sections:
+            from .causes.adhesion_section import section_increments  # causes import stage
+
+            bv, bs = section_increments(mo, null)
             fv = fv + null.drive_gain * bv
             fs = fs + null.drive_gain * bs
         md = null.scale * mo.sc_d

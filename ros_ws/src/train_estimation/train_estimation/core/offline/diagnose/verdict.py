@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from .causes import BY_NAME, REGISTRY
-from .confirm import CONFIRM, _null_of, confirm, unneeded, unpiece
+from .confirm import CONFIRM, _null_of, confirm, unneeded, unpiece, without_evidence
 from .gain import GainContext
 from .phases import sensor_residuals, structure
 from .refit import joint_refit
@@ -96,12 +96,6 @@ def conclude(sr: _Search, run, untestable: list, before: dict, noise,
                      accepted=confirmed, series=plots, unexplained=unexplained)
 
 
-# how the reasons of a cause that is not confirmed for want of evidence begin (confirm.py):
-# its fit is not shown beyond doubt, which contradicts nothing
-WITHOUT_EVIDENCE = ("held-out check failed", "below resolution",
-                    "parameters at nominal after the joint refit")
-
-
 def reconfirm(sr: _Search, before: dict, noise, gctx: GainContext, checks: dict) -> None:
     """Confirm the confirmed causes again without the accepted causes that were not confirmed.
 
@@ -114,17 +108,17 @@ def reconfirm(sr: _Search, before: dict, noise, gctx: GainContext, checks: dict)
     then is not confirmed, with the reason, and the step repeats until no more fall. The
     reported parameters stay those of the whole accepted model's refit.
 
-    Only causes the checks contradicted are left out (``WITHOUT_EVIDENCE``: a cause whose fit
-    is merely not shown beyond doubt, by its held-out check or its resolution, stays in the
-    model the others are confirmed in): each cause is confirmed given the others, so a true
-    cause whose held-out check lacked the power does not take a true one beside it down
-    with it (a gradient fitted to 0.5 % was left unconfirmed once the resistance change
-    beside it, which failed its held-out check, was taken out and the gradient's refit took
-    the resistance's part)."""
+    Only causes the checks contradicted are left out (:func:`.confirm.without_evidence`: a
+    cause whose fit is merely not shown beyond doubt, by its held-out check or its resolution,
+    stays in the model the others are confirmed in): each cause is confirmed given the
+    others, so a true cause whose held-out check lacked the power does not take a true one
+    beside it down with it (a gradient fitted to 0.5 % was left unconfirmed once the
+    resistance change beside it, which failed its held-out check, was taken out and the
+    gradient's refit took the resistance's part)."""
     for _ in range(len(sr.accepted)):
         confirmed = [a for a in sr.accepted if a.status == "confirmed"]
         dropped = [a.cause for a in sr.accepted if a.status != "confirmed"
-                   and not (a.why or "").startswith(WITHOUT_EVIDENCE)]
+                   and not without_evidence(a)]
         kept = [a for a in sr.accepted if a.status != "confirmed" and a.cause not in dropped]
         if not dropped or not confirmed:
             return

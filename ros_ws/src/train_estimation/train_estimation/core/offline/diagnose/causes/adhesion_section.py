@@ -13,6 +13,8 @@ every braking bin is the braking rate by another name and scores below it (one p
 
 from __future__ import annotations
 
+import weakref
+
 import numpy as np
 from train_core.effects import AdhesionSectionEffect
 
@@ -38,7 +40,8 @@ class AdhesionSection(Cause):
 
     def fit(self, st) -> tuple:
         mo = st.mo
-        bins, drift = braking_bins(mo)
+        a_br = null_braking(mo, st.null)
+        bins, drift = braking_bins(mo, a_br)
         if bins.size == 0:
             return st.null_ll(), 3, {}, {}, {}
         cand = Candidates(st, drift=drift)
@@ -51,7 +54,8 @@ class AdhesionSection(Cause):
         if not np.isfinite(quad):
             return st.null_ll(), 3, {}, {}, {}
         i, j = int(bins[a]), int(bins[b - 1]) + 1
-        quad, start, end, th, se = _refine(st, mo.bin_edges[i], mo.bin_edges[j], quad, th, se)
+        quad, start, end, th, se = _refine(st, mo.bin_edges[i], mo.bin_edges[j], quad, th, se,
+                                           a_br)
         return st.null_ll() + cand.dll(quad), 3, \
             {"start": start, "end": end, "factor": 1.0 + th}, {"factor": se}, \
             {"bins": (i, j)}
@@ -97,9 +101,9 @@ class AdhesionSection(Cause):
         return inside, (p["factor"] - 1.0) * brk
 
     def extend_null(self, null, fit, mo) -> None:
+        # built by the stage at the null's braking timing (Null.brake_sections)
         p = fit.parameters
-        bv, bs = braking_on(mo, np.array([p["start"], p["end"]]))
-        null.extra.append(((p["factor"] - 1.0) * bv[:, 0], (p["factor"] - 1.0) * bs[:, 0]))
+        null.brake_sections.append((float(p["start"]), float(p["end"]), float(p["factor"])))
 
     def effect(self, params: dict, duration: float) -> AdhesionSectionEffect:
         return AdhesionSectionEffect(float(params["start"]), float(params["end"]),
@@ -125,14 +129,15 @@ EDGE_STEPS = 8
 MIN_BRAKING_TIME = 1.0  # s of braking over a section that its factor needs (resolution)
 
 
-def _refine(st, lo: float, hi: float, quad: float, th: float, se: float) -> tuple:
+def _refine(st, lo: float, hi: float, quad: float, th: float, se: float,
+            a_br: np.ndarray | None = None) -> tuple:
     """The section [lo, hi) found on the position bins with its ends refined to 1/EDGE_STEPS of
     a bin (the world's section ends anywhere; a quarter bin of 47 % weaker braking left out at
     an end is a residual the gradient search then takes for a section of its own): cells of
     that width over a bin either side of each end (one cell between them where the ends are
     far apart), and the best contiguous run of cells (``stage.best_section``, weaker only).
     Returns (quad, start, end, theta, se); the binned section's where the refined one is not
-    better."""
+    better. ``a_br``: the braking the cells scale (None: the believed ``mo.a_br0``)."""
     mo = st.mo
     w = float(mo.bin_edges[1] - mo.bin_edges[0]) if mo.bin_edges.size > 1 else 0.0
     if not w > 0.0:
@@ -143,7 +148,7 @@ def _refine(st, lo: float, hi: float, quad: float, th: float, se: float) -> tupl
     else:
         cuts = np.concatenate([np.arange(lo - w, lo + w + fine / 2, fine),
                                np.arange(hi - w, hi + w + fine / 2, fine)])
-    cand = Candidates(st, drift=braking_on(mo, cuts, cells=True))
+    cand = Candidates(st, drift=braking_on(mo, cuts, cells=True, a_br=a_br))
     e0, e1 = np.zeros(cand.k + 2), np.zeros(cand.k + 2)
     e0[0], e1[1] = 1.0, 1.0
     q, a, b, t, s = best_section(cand.W, e0, e1, np.arange(2, cand.k + 2), 1, sign=-1.0)
@@ -152,28 +157,66 @@ def _refine(st, lo: float, hi: float, quad: float, th: float, se: float) -> tupl
     return q, float(cuts[a]), float(cuts[b]), t, s
 
 
-def braking_on(mo, cuts: np.ndarray, cells: bool = False) -> tuple:
-    """The drift increments (Bv, Bs) of the believed braking f0 a_br on the grid steps whose
-    mid position is in [cuts[0], cuts[-1]): one column (``cells`` False: two cuts, a section)
-    or one per cell [cuts[k], cuts[k + 1])."""
+def braking_on(mo, cuts: np.ndarray, cells: bool = False,
+               a_br: np.ndarray | None = None) -> tuple:
+    """The drift increments (Bv, Bs) of the braking f0 a_br (``a_br`` on the grid, None: the
+    believed ``mo.a_br0``) on the grid steps whose mid position is in [cuts[0], cuts[-1]): one
+    column (``cells`` False: two cuts, a section) or one per cell [cuts[k], cuts[k + 1])."""
     xm = 0.5 * (mo.x_ref[1:] + mo.x_ref[:-1])
     col = np.searchsorted(cuts, xm, side="right") - 1
     inside = (col >= 0) & (col < cuts.size - 1)
     if not cells:
         col = np.zeros_like(col)
-    return _braking_columns(mo, np.where(inside, col, -1), cuts.size - 1 if cells else 1)
+    return _braking_columns(mo, np.where(inside, col, -1), cuts.size - 1 if cells else 1, a_br)
 
 
-def _step_braking(mo) -> np.ndarray:
-    """m/s^2 per grid step: the believed braking f0 a_br while moving (step means)."""
-    return mo.f0 * 0.5 * (mo.a_br0[1:] + mo.a_br0[:-1]) * 0.5 * (mo.moving[1:] + mo.moving[:-1])
+def braking_at(mo, timing: float) -> np.ndarray:
+    """m/s^2 on the grid: the believed braking through the actuator with the commands re-timed
+    by ``timing`` s (the braking columns' ``B<timing>`` plus the believed braking; cached)."""
+    cache = _BRAKING.setdefault(mo, {})
+    key = round(float(timing), 6)
+    if key not in cache:
+        cache[key] = mo.a_br0 if key == 0.0 else mo._part(key, "braking", key)
+    return cache[key]
 
 
-def _braking_columns(mo, col: np.ndarray, n: int) -> tuple:
-    """(Bv, Bs) (n_ev, ``n``): the believed braking f0 a_br of each grid step added to its
-    column ``col`` (per grid step; < 0: in none)."""
+def null_braking(mo, null) -> np.ndarray:
+    """The braking a section of the null scales: delayed by the accepted brake delay's extra.
+    Not re-timed by the common command-time offset (a nuisance of the clocks, a few tenths of
+    a second at most), as the braking rate's columns are not: with it, a section fitted at a
+    greedy stage whose offset stood at its grid's edge (a traction delay not yet accepted)
+    moved the search (a traction delay of 1.31 s fitted 1.22 +- 0.015 s for 1.26 +- 0.04)."""
+    return braking_at(mo, null.brake_extra)
+
+
+def section_increments(mo, null) -> tuple[np.ndarray, np.ndarray]:
+    """(bv, bs), each (n_ev,): what the null's low-adhesion sections (``Null.brake_sections``)
+    add to its drift: (factor - 1) times the braking at the null's timing on each stretch."""
+    a_br = null_braking(mo, null)
+    n = mo.ev.t.size
+    bv, bs = np.zeros(n), np.zeros(n)
+    for start, end, factor in null.brake_sections:
+        cv, cs = braking_on(mo, np.array([start, end]), a_br=a_br)
+        bv += (factor - 1.0) * cv[:, 0]
+        bs += (factor - 1.0) * cs[:, 0]
+    return bv, bs
+
+
+_BRAKING: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # Motion -> {timing: a_br}
+
+
+def _step_braking(mo, a_br: np.ndarray | None = None) -> np.ndarray:
+    """m/s^2 per grid step: the braking f0 a_br while moving (step means; ``a_br`` None: the
+    believed ``mo.a_br0``)."""
+    a = mo.a_br0 if a_br is None else a_br
+    return mo.f0 * 0.5 * (a[1:] + a[:-1]) * 0.5 * (mo.moving[1:] + mo.moving[:-1])
+
+
+def _braking_columns(mo, col: np.ndarray, n: int, a_br: np.ndarray | None = None) -> tuple:
+    """(Bv, Bs) (n_ev, ``n``): the braking f0 a_br of each grid step (``a_br`` None: the
+    believed one) added to its column ``col`` (per grid step; < 0: in none)."""
     g, ev = mo.grid, mo.ev
-    brk = _step_braking(mo)
+    brk = _step_braking(mo, a_br)
     on = (brk < 0.0) & (col >= 0)
     Bv, Bs = np.zeros((ev.t.size, n)), np.zeros((ev.t.size, n))
     inc = brk[on] * g.dt
@@ -182,13 +225,14 @@ def _braking_columns(mo, col: np.ndarray, n: int) -> tuple:
     return Bv, Bs
 
 
-def braking_bins(mo) -> tuple[np.ndarray, tuple]:
+def braking_bins(mo, a_br: np.ndarray | None = None) -> tuple[np.ndarray, tuple]:
     """The position bins (of the gradient search, ``mo.bin_edges``) the run brakes in and, per
-    bin, the drift increments (Bv, Bs) (n_ev, n) of the believed braking f0 a_br there."""
+    bin, the drift increments (Bv, Bs) (n_ev, n) of the braking f0 a_br there (``a_br`` None:
+    the believed one)."""
     j = mo.step_bin
-    bins = np.unique(j[_step_braking(mo) < 0.0])
+    bins = np.unique(j[_step_braking(mo, a_br) < 0.0])
     # steps outside these bins do not brake: _braking_columns leaves them out
-    return bins, _braking_columns(mo, np.searchsorted(bins, j), bins.size)
+    return bins, _braking_columns(mo, np.searchsorted(bins, j), bins.size, a_br)
 
 
 CAUSE = AdhesionSection()

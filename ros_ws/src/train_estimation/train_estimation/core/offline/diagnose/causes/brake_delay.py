@@ -4,10 +4,13 @@ columns, jointly with the common command-time offset (a nuisance)."""
 
 from __future__ import annotations
 
+import copy
 import math
 
 import numpy as np
 from train_core.effects import BrakeDelayEffect
+
+from train_estimation.core.numerics.augmented_kf import LOG2PI
 
 from .base import Cause, resolved
 from .braking_rate import brakes_while_moving
@@ -40,7 +43,12 @@ class BrakeDelay(Cause):
                 if key not in mo.braking_cols and key != 0.0:
                     continue
                 grid.append((float(s), float(d)))
-        lls = st.fixed_lls([st.retime(s, d) for s, d in grid]).tolist() if grid else []
+        if not grid:
+            lls = []
+        elif st.null.brake_sections:
+            lls = _lls_with_sections(st, grid)
+        else:
+            lls = st.fixed_lls([st.retime(s, d) for s, d in grid]).tolist()
         prof = dict(zip(grid, lls))
         if not prof:
             return -math.inf, 1, {}, {}, {}
@@ -73,6 +81,70 @@ class BrakeDelay(Cause):
 
     def effect(self, params: dict, duration: float) -> BrakeDelayEffect:
         return BrakeDelayEffect(float(params["delay"]))
+
+
+def _lls_with_sections(st, grid: list) -> list:
+    """The log-likelihood of each (offset, extra delay) of ``grid`` under a null with
+    low-adhesion sections (``Null.brake_sections``): a section scales the delayed braking on
+    its stretch (train_core dynamics.py; ``adhesion_section.null_braking``), so a brake delay
+    moves its part there too. One augmented filter over the re-timed traction of each offset,
+    the re-timed braking of each timing and the sections' part at each extra delay, each less
+    the null's own; per grid point the fixed combination of its three columns, s0 profiled (as
+    ``Stage.fixed_lls`` on the elementary columns without sections)."""
+    from .adhesion_section import section_increments
+
+    mo, null = st.mo, st.null
+    n = mo.ev.t.size
+
+    def elem(name):
+        if name is None:
+            return np.zeros(n), np.zeros(n)
+        j = mo.col[name]
+        return mo.Dv[:, j], mo.Ds[:, j]
+
+    def t_name(s):
+        return None if round(s, 6) == 0.0 else f"T{s:+.3f}"
+
+    def b_name(k):
+        return None if k == 0.0 else mo.braking_cols[k]
+
+    k_null = round(null.shift + null.brake_extra, 6)
+    t0v, t0s = elem(t_name(null.shift))
+    b0v, b0s = elem(b_name(k_null))
+    s0v, s0s = section_increments(mo, null)
+    shifts = sorted({s for s, _ in grid})
+    keys = sorted({round(s + d, 6) for s, d in grid})
+    extras = sorted({d for _, d in grid})
+    cv, cs = [], []
+    for s in shifts:
+        v, x = elem(t_name(s))
+        cv.append(v - t0v)
+        cs.append(x - t0s)
+    for k in keys:
+        v, x = elem(b_name(k))
+        cv.append(v - b0v)
+        cs.append(x - b0s)
+    g = null.drive_gain
+    for d in extras:
+        at = copy.copy(null)
+        at.brake_extra = d
+        sv, ss = section_increments(mo, at)
+        cv.append(g * (sv - s0v))
+        cs.append(g * (ss - s0s))
+    kf = st.augmented(st.fv, st.fs, drift=(np.stack(cv, axis=1), np.stack(cs, axis=1)),
+                      update=st.update)
+    W = kf.W
+    out = []
+    for s, d in grid:
+        u = np.zeros(W.shape[0])
+        u[0] = 1.0
+        u[2 + shifts.index(s)] += 1.0
+        u[2 + len(shifts) + keys.index(round(s + d, 6))] += 1.0
+        u[2 + len(shifts) + len(keys) + extras.index(d)] += 1.0
+        w1 = u @ W[:, 1]
+        quad = float(u @ W @ u - w1 * w1 / W[1, 1]) if W[1, 1] > 0 else float(u @ W @ u)
+        out.append(-0.5 * (kf.logdet + kf.m * LOG2PI + quad))
+    return out
 
 
 def _parabola(ds: list, lls: list, i: int) -> tuple[float, float]:
