@@ -110,7 +110,6 @@ def main(argv=None) -> int:
                   f"{'separate' if r['separate'] else 'one'} | {r['drift_ppm']:+.1f} |",
                   flush=True)
     routes = (0.45, 1.5) if args.quick else (0.2, 0.45, 1.5, 3.0)
-    dur = STEP_AT + 300.0
     print(f"\n## A link whose latency rises by L s at {STEP_AT:g} s and stays (jitter 30 ms, "
           f"{args.loss:.0%} lost)\n")
     print("| rate (Hz) | counter | L (s) | false steps | latency moves | refused | held "

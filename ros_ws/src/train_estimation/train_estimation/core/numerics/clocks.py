@@ -638,8 +638,8 @@ class StreamClock:
         d, se = self.rate()
         if not math.isfinite(se):  # the line is not known yet: every point informs it
             return False
-        n1 = self._fit[0]
         f = self._fit
+        n1 = f[0]
         sd = self._line_sd()
         band = max(SMALL_MOVE, LINE_SPREAD * sd)
         arrival, stamp = point
@@ -671,13 +671,18 @@ class StreamClock:
 
     def _line_sd(self) -> float:
         """s: the fit's residual standard deviation (its points about their segments' lines)."""
+        _, var, _, rss, dof = self._pooled()
+        return math.sqrt(rss / dof) if var > 0 else 0.0
+
+    def _pooled(self) -> tuple:
+        """(n, var, cov, rss, dof) of the fit over all its segments (an intercept each, the
+        slope shared): points, centred sums of squares and products, the residual sum of
+        squares about the pooled line (0 while var is not positive), its degrees of freedom."""
         n1, cxx1, cxy1, cyy1 = self._centred()
         segs, n0, cxx0, cxy0, cyy0 = self._closed
         n, var, cov, vyy = n0 + n1, cxx0 + cxx1, cxy0 + cxy1, cyy0 + cyy1
-        if var <= 0:
-            return 0.0
-        dof = max(n - 1 - segs - (n1 > 0), 1)
-        return math.sqrt(max(vyy - cov / var * cov, 0.0) / dof)
+        rss = max(vyy - cov / var * cov, 0.0) if var > 0 else 0.0
+        return n, var, cov, rss, max(n - 1 - segs - (n1 > 0), 1)
 
     def _fit_add(self, arrival: float, stamp: float) -> None:
         """One point (arrival, stamp) into the current segment's sums."""
@@ -726,19 +731,14 @@ class StreamClock:
         return self._rates[key]
 
     def _rate_of(self, min_n: int, min_span: float) -> tuple[float, float]:
-        n1, cxx1, cxy1, cyy1 = self._centred()
-        segs, n0, cxx0, cxy0, cyy0 = self._closed
-        n, var, cov, vyy = n0 + n1, cxx0 + cxx1, cxy0 + cxy1, cyy0 + cyy1
+        n, var, cov, rss, dof = self._pooled()
         if n < max(3, math.ceil(min_n / self.block)):  # min_n readings, in blocks
             return 0.0, math.inf
         if var < n * min_span ** 2 / 12:  # less than ~min_span of arrivals
             return 0.0, math.inf
-        slope = cov / var
-        d = slope - 1.0
+        d = cov / var - 1.0
         if not abs(d) < 0.1:
             return 0.0, math.inf
-        rss = max(vyy - slope * cov, 0.0)
-        dof = max(n - 1 - segs - (n1 > 0), 1)
         if math.sqrt(rss / dof) > max(SMALL_MOVE, LINE_SPREAD * self.scale):
             # the points lie on two levels, not about one line: a move of the offset the level
             # test could not see yet (a step before the rate was known, at a stream's start
@@ -1303,10 +1303,11 @@ class StepWatch:
             yield (HOLD,)
             return
         measured = all(h[3] is not None for h in chain) and len(med) >= self.min_judged
+        # the new clock's offsets less the old clock's, carried to the held readings' middle
+        moved = new_off - med.now(chain[len(chain) // 2][4]) if measured else math.nan
         if rs is None and measured and shift < 0 and self._stamps_ran_on(chain, s0):
             # the stamps ran on where the old clock's would have: the link's latency rose and
             # stays (a route change), not the clock (module doc of _stamps_ran_on)
-            moved = new_off - med.now(chain[len(chain) // 2][4])
             med.move(moved)
             yield LATENCY, moved
             yield from self._release()  # this reading with them, now on time
@@ -1320,7 +1321,7 @@ class StepWatch:
             # the old clock and the first of the new, put a link's jitter into the step whole:
             # 0.17 s with 50 ms of exponential jitter, the kf 55 estimates wrong-side once
             # re-anchored)
-            shift = new_off - med.now(chain[len(chain) // 2][4])
+            shift = moved
         self.shift += shift
         old = self.shift - shift
         if rs is None:  # measured otherwise: the grid's stamps may no longer continue
