@@ -20,6 +20,18 @@ from train_estimation.core.numerics.clocks import (
 PERIOD, LATENCY = 0.1, 0.05
 
 
+def silent_after(lost: int, got: int, risk: float = 1e-7) -> int:
+    """The readings a step needs by the stated rule (clocks.silence_risk), computed here as the
+    Beta function ratio B(lost + n + 1, got + n + 1) / B(lost + 1, got + n + 1) in logs."""
+    for n in range(1, 1000):
+        a, b = lost + 1, got + n + 1
+        log_bf = (math.lgamma(a + n) + math.lgamma(a + b) - math.lgamma(a)
+                  - math.lgamma(a + b + n))
+        if log_bf <= math.log(risk):
+            return n
+    raise AssertionError("no n")
+
+
 class Feed:
     """A 10 Hz odometer through a StepWatch; admission reduced to what the watch sees (the
     reading's offset votes for the train clock, the watch is told)."""
@@ -242,14 +254,15 @@ class GridFeed(Feed):
 def test_a_step_back_at_speed_is_measured_on_the_sample_grid():
     """At 1 Hz and 100 m/s a -3 s step puts the first new reading's stamp on a slot already
     fused, 300 m past the distance fused there: out of reach in the stamps' time, though the
-    counters say 3 s passed. Judged by the counters it is a genuine reading, the step's nine
+    counters say 3 s passed. Judged by the counters it is a genuine reading, the step's
     readings all lie on the grid, and the step is their grid residual exactly (measured from
     the arrivals it carried the link's jitter)."""
     rng = np.random.default_rng(5)
     f = GridFeed(speed=100.0)
     f.run_jittery(rng, jitter=0.05)
     step = -3.0
-    acts = f.then(rng, stamp_off=step, jitter=0.05)[-1]
+    answers = f.then(rng, stamp_off=step, jitter=0.05)
+    acts = answers[silent_after(0, 40) - 1]
     assert acts[0][0] == STEP and acts[0][1] == pytest.approx(step, abs=1e-9), acts[0]
 
 
@@ -257,19 +270,22 @@ def test_a_step_back_at_speed_is_measured_on_the_sample_grid():
 def test_a_sample_counter_that_skips_is_no_clock_step(skip):
     """The counter jumps by ``skip`` samples while stamps and arrivals run on (a sampling
     loop that missed a cycle and counted it): the grid puts every later reading ``skip``
-    periods off, the arrivals do not move. Held as a possible step for nine readings, then
-    the grid learns the counter's new origin and the readings are admitted at their own
-    stamps: no step (taken for one at 1 Hz, the estimates ran 81 m off, ALARM for half a
-    minute)."""
+    periods off, the arrivals do not move. Held as a possible step until the old clock's
+    silence is a step's at the stated risk (six readings after forty on time), then the grid
+    learns the counter's new origin and the readings are admitted at their own stamps: no
+    step (taken for one at 1 Hz, the estimates ran 81 m off, ALARM for half a minute)."""
     rng = np.random.default_rng(7)
     f = GridFeed()
     f.run_jittery(rng)
     answers = f.then(rng, seq_off=skip)
-    assert all(a == [(HOLD,)] for a in answers[:-1]), answers
-    assert answers[-1][0] == (SKIP, skip)
-    assert [a[0] for a in answers[-1][1:]] == [ADMIT] * f.w.min_judged + [HOLD]
+    n = silent_after(0, 40)  # 40 samples before, none lost: 6 held readings decide
+    assert n == 6
+    assert all(a == [(HOLD,)] for a in answers[:n - 1]), answers
+    assert answers[n - 1][0] == (SKIP, skip)
+    assert [a[0] for a in answers[n - 1][1:]] == [ADMIT] * n + [HOLD]
+    assert all(a == [(PASS, 1000.0 + 40 + k)] for k, a in enumerate(answers) if k >= n)
     assert f.w.shift == 0.0
-    assert f.admitted[-f.w.min_judged:] == pytest.approx([1000.0 + k for k in range(40, 49)])
+    assert f.admitted[-len(answers):] == pytest.approx([1000.0 + k for k in range(40, 49)])
     # the stream goes on on the re-learnt grid
     t = 1000.0 + 49
     assert f.push_seq(49 + skip, t, t + LATENCY) == [(PASS, t)]
@@ -282,7 +298,7 @@ def test_a_step_of_a_whole_period_is_still_a_step():
     f = GridFeed()
     f.run_jittery(rng)
     answers = f.then(rng, stamp_off=-1.0)
-    acts = answers[-1]
+    acts = answers[silent_after(0, 40) - 1]
     assert acts[0][0] == STEP and acts[0][1] == pytest.approx(-1.0, abs=1e-9)
     assert not any(a[0] == SKIP for ans in answers for a in ans)
 
@@ -385,3 +401,42 @@ def test_a_step_on_a_drifting_clock_is_measured_against_the_clocks_line(drift, s
     assert runner.events.get("odometer:clock_reset", 0) == 1
     assert len(err) == len(clean)
     assert np.max(np.abs(err[-100:] - clean[-100:])) < 0.05, np.max(np.abs(err - clean))
+
+
+@pytest.mark.parametrize("lost,got,n", [(0, 0, 1), (0, 40, 6), (16, 112, 9), (3, 5, 4),
+                                        (60, 4, 2)])
+def test_silence_risk_is_the_beta_moment_of_the_loss_rate(lost, got, n):
+    """The step's evidence (clocks.silence_risk) against its definition: the loss rate q
+    uniform a priori, the ratio of the data's likelihood without a step (the old clock's n
+    readings lost too) to that with one, integrated over q numerically."""
+    from scipy.integrate import quad
+
+    from train_estimation.core.numerics.clocks import silence_risk
+    no_step = quad(lambda q: q ** (lost + n) * (1 - q) ** (got + n), 0.0, 1.0)[0]
+    step = quad(lambda q: q ** lost * (1 - q) ** (got + n), 0.0, 1.0)[0]
+    assert silence_risk(lost, got, n) == pytest.approx(no_step / step, rel=1e-9)
+
+
+def test_a_step_needs_more_readings_on_a_lossier_link():
+    """The same step at 10 Hz after a minute of readings: decided after the readings the old
+    clock's silence needs on that link -- a link that lost none of the minute's readings, one
+    that lost one in eight, one that lost every other (the count from silent_after)."""
+    counts = {}
+    for every in (0, 8, 2):  # a reading lost every ``every`` slots (0: none)
+        f = Feed()
+        for k in range(600):
+            if every and k % every == every - 1:
+                continue
+            t = 1000.0 + k * PERIOD
+            f.push(t, t + LATENCY)
+        got = len(f.w._admitted)
+        lost = round((f.w._admitted[-1] - f.w._admitted[0]) / PERIOD) + 1 - got
+        n = 0
+        for k in range(600, 700):
+            n += 1
+            t = 1000.0 + k * PERIOD
+            if f.push(t - 3.0, t + LATENCY)[0][0] == STEP:
+                break
+        counts[every] = n
+        assert n == max(f.w.min_judged, silent_after(lost, got)), (every, n, lost, got)
+    assert counts[0] == 9 and counts[8] == 9 and counts[2] > 9, counts

@@ -277,6 +277,27 @@ def is_step(chain: list, n: int, period: float) -> bool:
     return s1 - s0 >= 0.5 * (len(chain) - 1) * period and paced((s0, a0), (s1, a1))
 
 
+def silence_risk(lost: int, got: int, n: int) -> float:
+    """The probability that the old clock's next ``n`` readings were all lost, given that the
+    link lost ``lost`` and delivered ``got`` of its recent slots and delivered the ``n`` held
+    readings themselves: the Bayes factor of "no step, the old clock's readings lost (and the
+    held ones from elsewhere)" against "a step: the old clock has no more readings".
+
+    Each reading is lost with an unknown probability ``q``, the same for every message on the
+    link, uniform a priori. Under no step the data have the likelihood ``q^(lost + n) (1 -
+    q)^(got + n)``, under a step ``q^lost (1 - q)^(got + n)``; their ratio, integrated over
+    ``q``, is ``B(lost + n + 1, got + n + 1) / B(lost + 1, got + n + 1)``, the n-th moment of
+    ``q`` under Beta(lost + 1, got + n + 1). A step is declared when it is at most
+    ``step_risk``: about 9 readings on a link that loses one in eight, 3 on one that loses
+    none, 13 before any history (the losses counted from the gaps between the stamps
+    admitted: :meth:`StepWatch._silent`)."""
+    a, b = lost + 1.0, got + n + 1.0
+    p = 1.0
+    for i in range(n):
+        p *= (a + i) / (a + b + i)
+    return p
+
+
 _ROWS = [[1], [1]]  # the permutations of n items counted by their inversions, n = 0, 1, ...
 _CUMULATIVE: dict = {}  # n -> the same counts summed up to each number of inversions
 
@@ -1032,8 +1053,10 @@ class StepWatch:
     arrivals alike, and a node whose callbacks lag sees small stamp gaps whatever its arrivals,
     so neither is discontinuous. Discontinuous readings are held back (the integrity monitor
     says DEGRADED from the second one, the position variance grown by the candidate step:
-    :meth:`doubt`); the step test (:func:`is_step`: ``min_judged`` odometer readings in a row
-    that continue one another at a plausible pace, arriving at their stamps' pace) with no
+    :meth:`doubt`); the step test (:func:`is_step`: odometer readings in a row that continue
+    one another at a plausible pace, arriving at their stamps' pace, as many as make the old
+    clock's silence over them a chance of at most ``step_risk`` on this link
+    (:func:`silence_risk`), and without the sample grid at least ``min_judged``) with no
     continuous reading between them makes a step: every later train-clock stamp is mapped back
     onto the old timeline (``stamp - shift``), the held readings are admitted, and the runner
     logs the event ``clock_reset``. With arrival times known for every reading of the step and
@@ -1073,8 +1096,11 @@ class StepWatch:
 
     def __init__(self, period: float, min_judged: int = 9, step_back: float = 0.3,
                  small_step: float = 0.05, small_step_z: float = 10.0,
-                 max_future: float = 600.0, same: bool = False, trend_risk: float = 1e-3):
+                 max_future: float = 600.0, same: bool = False, trend_risk: float = 1e-3,
+                 step_risk: float = 1e-7):
         self.period = period  # s, nominal odometer period
+        self.step_risk = step_risk  # -, the probability that readings held as a step are
+        #   declared one while the old clock's readings were only lost (:func:`silence_risk`)
         self.trend_risk = trend_risk  # -, the probability that a true step's held readings
         #   look like a draining queue (:meth:`_returning`) and are released: it delays the
         #   step's decision, never makes one
@@ -1126,6 +1152,19 @@ class StepWatch:
             self.last = (stamp, arrival)
         bisect.insort(self._admitted, stamp)
         del self._admitted[:-128]
+
+    def _silent(self, n: int) -> bool:
+        """``n`` held readings are enough for a step at ``step_risk``: the old clock's silence
+        over them is that unlikely on this link (:func:`silence_risk`), its losses counted over
+        the recent odometer stamps admitted (the slots between them at the stamps' period that
+        none filled). The nominal period spaces the slots: the stamps' own (their median step)
+        is two periods on a link that loses every other reading, which then looked lossless;
+        a clock 1 % off the nominal rate miscounts one slot in a hundred."""
+        adm = self._admitted
+        got, lost = len(adm), 0
+        if got > 1:
+            lost = max(round((adm[-1] - adm[0]) / self.period) + 1 - got, 0)
+        return silence_risk(lost, got, n) <= self.step_risk
 
     def stamp_period(self, n_min: int) -> float | None:
         """s, the median step between the recent odometer stamps admitted (a stream without a
@@ -1253,17 +1292,21 @@ class StepWatch:
         self.held.sort(key=lambda h: (h[0] != "odometer", h[1]))
         if kind == "odometer":
             chain = [h for h in self.held if h[0] == "odometer"]
-        if len(chain) < self.min_judged:
+        rs = self._chain_resid(chain)
+        # enough readings: as many as the old clock's silence needs at step_risk (_silent)
+        # and, where the sample grid does not place them (a residual each, exact), min_judged,
+        # whose offsets measure the step (their median, to the link's jitter)
+        need = 2 if rs is not None else self.min_judged
+        if len(chain) < need or not self._silent(len(chain)):
             yield (PASS, stamp) if refused else (HOLD,)
             return
-        step = is_step([(h[1], h[4]) for h in chain], self.min_judged, self.period)
+        step = is_step([(h[1], h[4]) for h in chain], need, self.period)
         # the first reading of the new clock came (elapsed arrival time, at least one period)
         # after the last one of the old clock
         first, a_first = chain[0][1], chain[0][4]
         shift = first - (s0 + max(a_first - a0, self.period))
         offs = sorted(h[1] - h[4] for h in chain)  # the new clock's offsets (stamp - arrival)
         new_off = offs[len(offs) // 2]
-        rs = self._chain_resid(chain)
         p_trend = self._returning(chain, med) if rs is None else 1.0
         if p_trend <= self.trend_risk:
             # the held readings drift back towards the old clock: a queue draining (a link

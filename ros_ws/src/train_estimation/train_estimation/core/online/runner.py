@@ -192,6 +192,9 @@ class EstimatorRunner:
     #   far from its clock (and beyond small_step_z robust spreads of the link's jitter) is
     #   watched as a possible step too (not with control_clock 'same': step_back alone)
     small_step_z: float = 10.0  # robust spreads of the offsets (StreamClock.scale)
+    step_risk: float = 1e-7  # -, the probability that readings held as a possible step are
+    #   declared one while the old clock ran on and only its readings were lost on the link
+    #   (clocks.silence_risk: the link's own loss rate sets how many readings that takes)
     queue: list = field(default_factory=list)
     rejected: Counter = field(default_factory=Counter)  # "kind:reason" -> count
     accepted: Counter = field(default_factory=Counter)
@@ -271,7 +274,7 @@ class EstimatorRunner:
             self.command_timeout = self.integrity.command_timeout
         self._steps = StepWatch(self.period, self.min_judged, self.step_back, self.small_step,
                                 self.small_step_z, self.max_future,
-                                same=self.control_clock == "same")
+                                same=self.control_clock == "same", step_risk=self.step_risk)
 
     # -- door ---------------------------------------------------------------------------------
     def push(self, kind: str, stamp: float, fields: dict, recv: float | None = None,
