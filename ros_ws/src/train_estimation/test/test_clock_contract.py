@@ -57,14 +57,14 @@ def test_a_latency_that_rises_and_stays_is_no_step(rate, rise):
 def test_a_step_is_measured_exactly_on_the_sample_grid(step):
     """At 1 Hz with a sample counter a step (here -3 s or +0.1 s, inside a 50 ms jitter) is
     measured by the grid, not the arrivals: re-anchored by exactly the step, the readings after
-    it fused at their true sampling times, decided once the old clock's silence is a step's at
-    the stated risk (clocks.silence_risk: on this link, which lost 3 of the 131 slots before
-    the step, six readings of the new clock), the estimates of the five held before the sixth
-    published meanwhile in doubt."""
+    it fused at their true sampling times, decided after min_judged (9) readings of the new
+    clock (the old clock's silence alone would have taken six on this link, which lost 3 of
+    the 131 slots before the step: clocks.silence_risk), the estimates published meanwhile in
+    doubt."""
     r = run_link(900.0, 1.0, True, 0.05, 0.05, step, seed=0)
     assert r["shift_err_ms"] == pytest.approx(0.0, abs=1e-3), r
     assert r["time_err_ms"] == pytest.approx(0.0, abs=1e-3), r
-    assert r["decided_readings"] == 6 and r["doubted"] == 5, r
+    assert r["decided_readings"] == 9 and r["doubted"] == 9, r
     assert r["refused"] == 0, r
 
 

@@ -287,10 +287,11 @@ def silence_risk(lost: int, got: int, n: int) -> float:
     link, uniform a priori. Under no step the data have the likelihood ``q^(lost + n) (1 -
     q)^(got + n)``, under a step ``q^lost (1 - q)^(got + n)``; their ratio, integrated over
     ``q``, is ``B(lost + n + 1, got + n + 1) / B(lost + 1, got + n + 1)``, the n-th moment of
-    ``q`` under Beta(lost + 1, got + n + 1). A step is declared when it is at most
-    ``step_risk``: about 9 readings on a link that loses one in eight, 3 on one that loses
-    none, 13 before any history (the losses counted from the gaps between the stamps
-    admitted: :meth:`StepWatch._silent`)."""
+    ``q`` under Beta(lost + 1, got + n + 1). A step needs it at most ``step_risk`` (and
+    ``min_judged`` readings, the longest burst of alike wrong stamps covered): at 1e-7 that
+    is 9 readings on a link that loses one in eight, 22 on one that loses every other, 3 on
+    one that loses none, 13 before any history (the losses counted from the gaps between the
+    stamps admitted: :meth:`StepWatch._silent`)."""
     a, b = lost + 1.0, got + n + 1.0
     p = 1.0
     for i in range(n):
@@ -1053,17 +1054,17 @@ class StepWatch:
     arrivals alike, and a node whose callbacks lag sees small stamp gaps whatever its arrivals,
     so neither is discontinuous. Discontinuous readings are held back (the integrity monitor
     says DEGRADED from the second one, the position variance grown by the candidate step:
-    :meth:`doubt`); the step test (:func:`is_step`: odometer readings in a row that continue
-    one another at a plausible pace, arriving at their stamps' pace, as many as make the old
-    clock's silence over them a chance of at most ``step_risk`` on this link
-    (:func:`silence_risk`), and without the sample grid at least ``min_judged``) with no
-    continuous reading between them makes a step: every later train-clock stamp is mapped back
-    onto the old timeline (``stamp - shift``), the held readings are admitted, and the runner
-    logs the event ``clock_reset``. With arrival times known for every reading of the step and
-    the clock judged, ``shift`` is *measured*: the median offset of those readings less the
-    clock's centre (known to the link's jitter); otherwise it is assumed from the stamps: the
-    jump less the elapsed arrival time, at least one period. Estimates keep the sample's own
-    stamp (the new clock: :meth:`as_sent`).
+    :meth:`doubt`); the step test (:func:`is_step`: odometer readings in a row that continue one
+    another at a plausible pace, arriving at their stamps' pace: at least ``min_judged``, more
+    than the longest burst of alike wrong stamps covered, and as many as make the old clock's
+    silence over them a chance of at most ``step_risk`` on this link's losses
+    (:func:`silence_risk`)) with no continuous reading between them makes a step: every later
+    train-clock stamp is mapped back onto the old timeline (``stamp - shift``), the held
+    readings are admitted, and the runner logs the event ``clock_reset``. With arrival times
+    known for every reading of the step and the clock judged, ``shift`` is *measured*: the
+    median offset of those readings less the clock's centre (known to the link's jitter);
+    otherwise it is assumed from the stamps: the jump less the elapsed arrival time, at least
+    one period. Estimates keep the sample's own stamp (the new clock: :meth:`as_sent`).
     Otherwise the held readings are judged as any other (a stale stamp), except that one
     stamped ahead of its stream or of its clock, which no later reading continued, is refused
     (``future_stamp``). A step smaller than ``back`` must also move every held reading's offset
@@ -1104,7 +1105,8 @@ class StepWatch:
         self.trend_risk = trend_risk  # -, the probability that a true step's held readings
         #   look like a draining queue (:meth:`_returning`) and are released: it delays the
         #   step's decision, never makes one
-        self.min_judged = min_judged  # arrivals before a clock is judged; readings in a step
+        self.min_judged = min_judged  # arrivals before a clock is judged; the fewest readings
+        #   of a step (more than the longest burst of alike wrong stamps covered)
         self.back = max(step_back, 2.5 * period)  # s: the bar on a jittery link (class doc)
         self.small_step, self.small_step_z = small_step, small_step_z
         self.max_future = max_future  # s: a reading this far above its clock is refused anyway
@@ -1293,14 +1295,14 @@ class StepWatch:
         if kind == "odometer":
             chain = [h for h in self.held if h[0] == "odometer"]
         rs = self._chain_resid(chain)
-        # enough readings: as many as the old clock's silence needs at step_risk (_silent)
-        # and, where the sample grid does not place them (a residual each, exact), min_judged,
-        # whose offsets measure the step (their median, to the link's jitter)
-        need = 2 if rs is not None else self.min_judged
-        if len(chain) < need or not self._silent(len(chain)):
+        # enough readings: more than the longest burst of readings stamped alike wrongly that
+        # the design covers (min_judged: such a burst and a step undone after as many readings
+        # are the same data), and as many as the old clock's silence needs at step_risk on
+        # this link (_silent: its readings lost, not ended)
+        if len(chain) < self.min_judged or not self._silent(len(chain)):
             yield (PASS, stamp) if refused else (HOLD,)
             return
-        step = is_step([(h[1], h[4]) for h in chain], need, self.period)
+        step = is_step([(h[1], h[4]) for h in chain], self.min_judged, self.period)
         # the first reading of the new clock came (elapsed arrival time, at least one period)
         # after the last one of the old clock
         first, a_first = chain[0][1], chain[0][4]

@@ -183,7 +183,9 @@ class EstimatorRunner:
     same_clock_tolerance: float = 2.0  # s, "auto": closer clocks are one clock ...
     same_clock_rate: float = 1e-4  # s/s, ... unless their rates differ by more (significantly)
     max_gap_outputs: int = 6000  # predicted slots after the last fused sample (10 min at 10 Hz)
-    min_judged: int = 9  # arrivals of a clock before its stamps are judged (earlier ones wait)
+    min_judged: int = 9  # arrivals of a clock before its stamps are judged (earlier ones wait);
+    #   the fewest readings of a clock step: longer than any burst of readings stamped alike
+    #   wrongly (a burst and a step undone after as many readings are the same data)
     history: float = 3.0  # s of fused input kept: a reading up to this late is fused by rewinding
     step_back: float = 0.3  # s: an odometer stamp this far behind the newest one admitted is
     #   held as a possible backward clock step (at least 2.5 periods); min_judged such readings
