@@ -155,8 +155,45 @@ def run_task(task: dict) -> dict:
         row["trace"] = traceback.format_exc(limit=3)
         return row
     row.update(F.score(outs, emitted, faulted, tr, rate, end + F.LATENCY))
+    row.update(zone_in_loop(outs, emitted, tr))
     row["corrupted"] = sum(faulted.counts.values())
     return row
+
+
+FOLLOWER_AT = 1.0  # m, where the follower of zone_in_loop stands (behind any leader's start)
+
+
+def zone_in_loop(outs: list, emitted, truth: dict) -> dict:
+    """The run's estimates as the leader's reports to a zone controller, a follower standing
+    behind it: at every estimate's publication the follower's end of authority against the
+    leader's true rear then. ``past_rear``: authorities granted (no emergency brake) that
+    reach past it; ``granted``: authorities granted. The zone's margin is 0 (the authority
+    is the leader's min safe rear itself: only its protection level guards it) and it judges
+    stamps by arrival (the train clock may step or drift: ``check_stamp_age`` false)."""
+    p = ZoneParams(check_stamp_age=False, margin=0.0)
+    zc = ZoneController(p)
+    em = np.asarray(emitted, float)
+    tr_t, tr_x = np.asarray(truth["t"], float), np.asarray(truth["position"], float)
+    past = granted = 0
+    for o, e in zip(outs, em):
+        c = o.covariance
+        zc.report("leader", TrainReport(
+            t_received=float(e), stamp=float(o.stamp), position=float(o.position),
+            velocity=float(o.velocity), var_position=float(c[0]), var_velocity=float(c[5]),
+            cov_position_velocity=float(c[1]), cov_velocity_position=float(c[4]),
+            measurement_used=bool(getattr(o, "measurement_used", True)),
+            integrity=int(o.integrity), pl_ahead=float(o.protection_level_ahead),
+            pl_behind=float(o.protection_level_behind)))
+        zc.report("follower", TrainReport(
+            t_received=float(e), stamp=float(e), position=FOLLOWER_AT, velocity=0.0,
+            var_position=0.01, var_velocity=0.01, pl_ahead=0.5, pl_behind=0.5))
+        auth = zc.authorities(float(e), ["leader", "follower"])[1]
+        if auth.emergency_brake:
+            continue
+        granted += 1
+        true_rear = float(np.interp(e - F.EPOCH, tr_t, tr_x)) - p.train_length
+        past += auth.end_of_authority > true_rear
+    return dict(past_rear=int(past), granted=int(granted))
 
 
 def scenarios_here() -> tuple:
@@ -406,7 +443,7 @@ def aggregate(rows: list[dict]) -> list[dict]:
                  exceptions=sum(r["exceptions"] for r in rs),
                  error=next((r["error"] for r in rs if r["error"]), ""))
         for k in ("wrong_side", "off_run", "hazards", "bad_cov", "corrupted", "outputs",
-                  "misleading", "hazardous"):
+                  "misleading", "hazardous", "past_rear", "granted"):
             g[k] = sum(r[k] for r in ok)
         g["pl_median"] = max((r["pl_median"] for r in ok), default=math.nan)
         g["twice_given"] = sum(r.get("twice_given", 0) for r in ok)
@@ -525,6 +562,10 @@ def targets(groups: list[dict], zone: list[dict]) -> bool:
         lines.append((alarm["brake_after"] <= stale,
                       f"zone controller brakes on ALARM within its staleness time ({stale:g} s): "
                       f"{_fmt(alarm['brake_after'])} s"))
+    past = sum(g["past_rear"] for g in real)
+    lines.append((past == 0, f"zone controller in the loop (each run's estimates as a leader's "
+                             f"reports, margin 0): no authority past the leader's true rear: "
+                             f"{past} of {sum(g['granted'] for g in real)} granted"))
     ok = True
     print()
     for passed, text in lines:

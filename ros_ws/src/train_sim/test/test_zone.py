@@ -156,3 +156,38 @@ def test_simulator_params_file_has_exactly_the_declared_fields_with_their_defaul
     for f in fields:
         want = list(f.default) if isinstance(f.default, tuple) else f.default
         assert params[f.name] == want, f.name
+
+
+def test_an_alarm_position_does_not_take_the_leader_off_the_followers_track():
+    """A leader in ALARM reporting a position behind its follower (a count that restarted at 0,
+    mapped 1.2 km back): its position bounds nothing, so the trains stay in the order their
+    bounded reports put them in and the follower brakes; its authority never ends beyond the
+    leader's last bounded rear. (Taken as behind, the leader left the follower an open line.)"""
+    from train_sim.zone import ALARM, ORDER
+    zc = ZoneController(P)
+    zc.report("A", rep(0.0, 2000.0, 10.0))
+    zc.report("B", rep(0.0, 1000.0, 10.0))
+    bad = rep(0.5, -1200.0, 10.0)
+    bad = TrainReport(**{**bad.__dict__, "integrity": ALARM, "pl_ahead": math.inf,
+                         "pl_behind": math.inf})
+    assert zc.report("A", bad) == ""  # accepted: an ALARM bounds nothing, the brake is due
+    zc.report("B", rep(0.5, 1005.0, 10.0))
+    auth = {a.train_id: a for a in zc.authorities(0.6, ["A", "B"])}
+    assert auth["A"].emergency_brake and auth["A"].state == "alarm"
+    assert auth["B"].emergency_brake and auth["B"].state == "ahead_alarm", auth["B"]
+    assert auth["B"].end_of_authority <= 2000.0 - 3.0 - 100.0 - 10.0
+    # the follower's reports are judged against the leader's bounded position, not the ALARM one
+    assert zc.report("B", rep(1.0, 1010.0, 10.0)) == ""
+    # past the leader's last bounded place (and a plausible run from its last report)
+    assert zc.report("B", rep(11.0, 2001.0, 10.0)) == ORDER
+
+
+def test_a_train_in_alarm_from_its_first_report_may_be_anywhere():
+    from train_sim.zone import ALARM
+    zc = ZoneController(P)
+    zc.report("B", rep(0.0, 1000.0, 10.0))
+    first = TrainReport(**{**rep(0.0, 3000.0, 10.0).__dict__, "integrity": ALARM,
+                           "pl_ahead": math.inf, "pl_behind": math.inf})
+    assert zc.report("A", first) == ""
+    auth = {a.train_id: a for a in zc.authorities(0.1, ["A", "B"])}
+    assert auth["B"].emergency_brake and auth["B"].state in ("ahead_unknown", "ahead_alarm")

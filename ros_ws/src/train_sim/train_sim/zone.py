@@ -36,6 +36,10 @@ anywhere). A report's ``integrity`` (TrainState: 0 OK, 1 DEGRADED, 2 ALARM) is o
 way: ALARM (no bound) brakes the train (and those behind it) at once; OK and DEGRADED are both
 bounded by their protection levels, which the authority uses as they are (a wide interval
 shortens the follower's authority and keeps the leader's rear far back: no timer is needed).
+An ALARM report's position bounds nothing, so it never orders the trains: which train is ahead
+of which is judged by each train's last bounded report (a train in ALARM since its first
+report may be anywhere, as one not yet localised), and the train behind an ALARM one brakes
+wherever the ALARM report puts it.
 Each authority carries a short ``state`` (``ok``, ``stale``, ``alarm``, ``no_estimate``,
 ``ahead_stale``, ``ahead_alarm``, ``ahead_unknown``, ``overrun``) so that a node logs a change
 of state once, not every publication of a reason whose numbers change.
@@ -289,6 +293,8 @@ class ZoneController:
     clock_resets: dict[str, int] = field(default_factory=dict)  # new timelines followed
     last_refusal: tuple[str, str, str] = ("", "", "")  # (train, kind, detail) of the latest
     timelines: dict[str, _Timeline] = field(default_factory=dict)
+    bounded: dict[str, TrainReport] = field(default_factory=dict)  # each train's last report
+    #   that bounds it (not ALARM): where it stands in the trains' order on the track
 
     def report(self, train_id: str, rep: TrainReport) -> str:
         """Store a train's report; returns "" if accepted or the kind of refusal (one of
@@ -333,8 +339,11 @@ class ZoneController:
                               f"{run:.3g} m a train runs in {abs(rep.stamp - last.stamp):.3g} s "
                               f"from the last one [{last.position - last.pl_behind:.6g}, "
                               f"{last.position + last.pl_ahead:.6g}] m")
+        last = self.bounded.get(train_id)
         if last is not None:
-            for other, orep in self.reports.items():
+            # the order the trains' bounded reports put them in (an ALARM report's position
+            # bounds nothing and orders nothing)
+            for other, orep in self.bounded.items():
                 if other == train_id:
                     continue
                 ahead_before = orep.position > last.position
@@ -395,6 +404,8 @@ class ZoneController:
             # or an estimator that does not set the flag, is judged by its stamps only)
             rep.last_measurement = last.last_measurement if last is not None else math.nan
         self.reports[train_id] = rep
+        if rep.integrity != ALARM:
+            self.bounded[train_id] = rep
 
     def unsafe(self, train_id: str, now: float) -> tuple[str, str]:
         """``(reason, state)`` why a train's position cannot be bounded now (stale, or
@@ -452,14 +463,22 @@ class ZoneController:
             hazards = [(d - p.margin, f"danger point at {d:.1f} m") for d in p.danger_points
                        if d - p.margin >= rep.position - rep.pl_behind]
             reason, state = "", "ok"
+            mine = self.bounded.get(tid, rep)
             for other in train_ids:
                 orep = self.reports.get(other)
                 if other == tid:
                     continue
-                if orep is None:  # a supervised train not yet localised may be anywhere ahead
+                where = self.bounded.get(other)
+                if orep is None or where is None:
+                    # a supervised train not yet localised (or never bounded: ALARM from its
+                    # first report) may be anywhere ahead
                     reason, state = f"position of {other} unknown", "ahead_unknown"
                     continue
-                if orep.position <= rep.position:
+                # ahead or behind by the trains' bounded reports: an ALARM report's position is
+                # no bound and may put a train ahead behind the one it endangers (a restarted
+                # count at -1.2 km took a leader off the follower's track: its authority ran to
+                # the open line)
+                if where.position <= mine.position:
                     continue
                 _, orear, _, _ = self._bounds(orep)
                 hazards.append((orear - p.margin, f"rear of {other}"))

@@ -1,0 +1,54 @@
+"""The integrity campaign's zone controller in the loop (benchmarks/bench_integrity.zone_in_loop):
+a run's estimates as a leader's reports, the follower's authority against the leader's true
+rear."""
+
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+
+import bench_integrity as B  # noqa: E402
+
+from train_estimation.core.online.runner import Output  # noqa: E402
+from train_estimation.tools import faults as F  # noqa: E402
+
+COV = tuple((np.eye(4) * 0.01).ravel())
+
+
+def leader(offset: float, behind: float, integrity: int = 0, n: int = 300):
+    """A leader at 200 + 10 t m reported at 10 Hz ``offset`` m from the truth with the level
+    ``behind``; the truth and the emission times."""
+    t = 0.1 * np.arange(n)
+    outs = [Output(F.EPOCH + s, 200.0 + 10.0 * s + offset, 10.0, 0.0, math.nan, COV, True,
+                   integrity=integrity, protection_level_ahead=5.0 if integrity < 2 else math.inf,
+                   protection_level_behind=behind if integrity < 2 else math.inf)
+            for s in t]
+    truth = {"t": t, "position": 200.0 + 10.0 * t}
+    return outs, F.EPOCH + t + 0.05, truth
+
+
+def test_an_honest_leader_grants_no_authority_past_its_rear():
+    outs, em, truth = leader(offset=3.0, behind=5.0)
+    r = B.zone_in_loop(outs, em, truth)
+    assert r["past_rear"] == 0 and r["granted"] == len(outs)
+
+
+@pytest.mark.parametrize("behind", [1.0, 2.4])
+def test_a_level_that_does_not_cover_the_error_grants_authority_past_the_rear(behind):
+    """3 m ahead of the truth with a level behind of less than the 2.5 m that remain when the
+    report is judged (published 0.05 s after its stamp, the train 0.5 m further on): the
+    follower's end of authority (the leader's min safe rear, margin 0) lies past the true rear
+    at every report."""
+    outs, em, truth = leader(offset=3.0, behind=behind)
+    r = B.zone_in_loop(outs, em, truth)
+    assert r["granted"] == len(outs) and r["past_rear"] == len(outs)
+
+
+def test_an_alarm_brakes_the_follower():
+    outs, em, truth = leader(offset=30.0, behind=1.0, integrity=2)
+    r = B.zone_in_loop(outs, em, truth)
+    assert r["granted"] == 0 and r["past_rear"] == 0
