@@ -164,17 +164,23 @@ FOLLOWER_AT = 1.0  # m, where the follower of zone_in_loop stands (behind any le
 
 
 def zone_in_loop(outs: list, emitted, truth: dict) -> dict:
-    """The run's estimates as the leader's reports to a zone controller, a follower standing
-    behind it: at every estimate's publication the follower's end of authority against the
-    leader's true rear then. ``past_rear``: authorities granted (no emergency brake) that
-    reach past it; ``granted``: authorities granted. The zone's margin is 0 (the authority
-    is the leader's min safe rear itself: only its protection level guards it) and it judges
-    stamps by arrival (the train clock may step or drift: ``check_stamp_age`` false)."""
+    """The run's estimates as the leader's reports to a zone controller, a follower standing behind
+    it: at every estimate's publication the follower's end of authority against the leader's
+    true rear then. ``past_rear``: authorities granted (no emergency brake) that reach past it;
+    ``granted``: authorities granted. The zone's margin is 0 (the authority is the leader's min
+    safe rear itself: only its protection level guards it) and it judges stamps by arrival (the
+    train clock may step or drift: ``check_stamp_age`` false).
+    ``stop_short``: reports the zone bounds (not ALARM, fresh) whose worst-case stopping point
+    (max safe front carried to the present plus the stop from the worst-case speed at the
+    nominal emergency braking: what the zone brakes on) lies short of the train's true one (true
+    front plus the stop from its true speed): the supervision of the leader's own authority
+    would brake too late."""
     p = ZoneParams(check_stamp_age=False, margin=0.0)
     zc = ZoneController(p)
     em = np.asarray(emitted, float)
     tr_t, tr_x = np.asarray(truth["t"], float), np.asarray(truth["position"], float)
-    past = granted = 0
+    tr_v = np.asarray(truth["velocity"], float)
+    past = granted = short = 0
     for o, e in zip(outs, em):
         c = o.covariance
         zc.report("leader", TrainReport(
@@ -187,13 +193,20 @@ def zone_in_loop(outs: list, emitted, truth: dict) -> dict:
         zc.report("follower", TrainReport(
             t_received=float(e), stamp=float(e), position=FOLLOWER_AT, velocity=0.0,
             var_position=0.01, var_velocity=0.01, pl_ahead=0.5, pl_behind=0.5))
-        auth = zc.authorities(float(e), ["leader", "follower"])[1]
+        lead, auth = zc.authorities(float(e), ["leader", "follower"])
+        x_true = float(np.interp(e - F.EPOCH, tr_t, tr_x))
+        if lead.state in ("ok", "overrun"):  # bounded and fresh: supervised by its bounds
+            rep = zc.reports["leader"]
+            front, _, speed, f_low = zc._bounds(rep)
+            front += speed * zc._age("leader", rep, float(e))  # carried to now, as it brakes
+            v_true = max(float(np.interp(e - F.EPOCH, tr_t, tr_v)), 0.0)
+            short += front + speed * speed / (2.0 * f_low * p.emergency_decel) < \
+                x_true + v_true * v_true / (2.0 * p.emergency_decel)
         if auth.emergency_brake:
             continue
         granted += 1
-        true_rear = float(np.interp(e - F.EPOCH, tr_t, tr_x)) - p.train_length
-        past += auth.end_of_authority > true_rear
-    return dict(past_rear=int(past), granted=int(granted))
+        past += auth.end_of_authority > x_true - p.train_length
+    return dict(past_rear=int(past), granted=int(granted), stop_short=int(short))
 
 
 def scenarios_here() -> tuple:
@@ -443,7 +456,7 @@ def aggregate(rows: list[dict]) -> list[dict]:
                  exceptions=sum(r["exceptions"] for r in rs),
                  error=next((r["error"] for r in rs if r["error"]), ""))
         for k in ("wrong_side", "off_run", "hazards", "bad_cov", "corrupted", "outputs",
-                  "misleading", "hazardous", "past_rear", "granted"):
+                  "misleading", "hazardous", "past_rear", "granted", "stop_short"):
             g[k] = sum(r[k] for r in ok)
         g["pl_median"] = max((r["pl_median"] for r in ok), default=math.nan)
         g["twice_given"] = sum(r.get("twice_given", 0) for r in ok)
@@ -566,6 +579,10 @@ def targets(groups: list[dict], zone: list[dict]) -> bool:
     lines.append((past == 0, f"zone controller in the loop (each run's estimates as a leader's "
                              f"reports, margin 0): no authority past the leader's true rear: "
                              f"{past} of {sum(g['granted'] for g in real)} granted"))
+    short = sum(g["stop_short"] for g in real)
+    lines.append((short == 0, f"zone controller in the loop: no worst-case stopping point short "
+                              f"of the true one (position level, speed + K sigma, nominal "
+                              f"braking): {short}"))
     ok = True
     print()
     for passed, text in lines:

@@ -19,15 +19,16 @@ from train_estimation.tools import faults as F  # noqa: E402
 COV = tuple((np.eye(4) * 0.01).ravel())
 
 
-def leader(offset: float, behind: float, integrity: int = 0, n: int = 300):
+def leader(offset: float, behind: float, integrity: int = 0, n: int = 300, speed: float = 10.0):
     """A leader at 200 + 10 t m reported at 10 Hz ``offset`` m from the truth with the level
-    ``behind``; the truth and the emission times."""
+    ``behind`` (and 5 m ahead), at the speed ``speed`` (sd 0.1 m/s); the truth and the emission
+    times."""
     t = 0.1 * np.arange(n)
-    outs = [Output(F.EPOCH + s, 200.0 + 10.0 * s + offset, 10.0, 0.0, math.nan, COV, True,
+    outs = [Output(F.EPOCH + s, 200.0 + 10.0 * s + offset, speed, 0.0, math.nan, COV, True,
                    integrity=integrity, protection_level_ahead=5.0 if integrity < 2 else math.inf,
                    protection_level_behind=behind if integrity < 2 else math.inf)
             for s in t]
-    truth = {"t": t, "position": 200.0 + 10.0 * t}
+    truth = {"t": t, "position": 200.0 + 10.0 * t, "velocity": np.full(t.size, 10.0)}
     return outs, F.EPOCH + t + 0.05, truth
 
 
@@ -52,3 +53,15 @@ def test_an_alarm_brakes_the_follower():
     outs, em, truth = leader(offset=30.0, behind=1.0, integrity=2)
     r = B.zone_in_loop(outs, em, truth)
     assert r["granted"] == 0 and r["past_rear"] == 0
+
+
+def test_a_speed_stated_too_low_stops_short_of_the_truth():
+    """The leader's own supervision: its worst-case stopping point (max safe front, carried to
+    the present, plus the stop from the speed + K sigma at 1.2 m/s^2) against the true one
+    (the true front plus 41.7 m from 10 m/s). Stated at 10 m/s with a sigma of 0.1 m/s: 5 m of
+    level and 46.2 m of stop, beyond it. Stated at 8 m/s: 8.53 m/s, 30.3 m of stop, 6 m short
+    of the truth once the level's 5 m are added."""
+    outs, em, truth = leader(offset=0.0, behind=5.0)
+    assert B.zone_in_loop(outs, em, truth)["stop_short"] == 0
+    outs, em, truth = leader(offset=0.0, behind=5.0, speed=8.0)
+    assert B.zone_in_loop(outs, em, truth)["stop_short"] == len(outs)

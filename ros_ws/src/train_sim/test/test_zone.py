@@ -191,3 +191,14 @@ def test_a_train_in_alarm_from_its_first_report_may_be_anywhere():
     assert zc.report("A", first) == ""
     auth = {a.train_id: a for a in zc.authorities(0.1, ["A", "B"])}
     assert auth["B"].emergency_brake and auth["B"].state in ("ahead_unknown", "ahead_alarm")
+
+
+def test_the_max_safe_front_is_carried_to_the_present():
+    """A report 1.9 s old (within the stale timeout) states where the train was: by now it may
+    be 1.9 s further at its worst-case speed. 4750 m at 20 m/s: 4753 + 206 m of stop is within
+    the 4990 m EoA at once, but 1.9 s later the front may be 38.6 m on: the brake is due."""
+    zc = ZoneController(P)
+    zc.report("A", rep(0.0, 4750.0, 20.0))
+    assert not zc.authorities(0.1, ["A"])[0].emergency_brake
+    a = zc.authorities(1.9, ["A"])[0]
+    assert a.emergency_brake and a.state == "overrun", a

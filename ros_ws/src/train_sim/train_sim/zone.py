@@ -13,10 +13,13 @@ and grants movement authority (end of authority, EoA) up to the nearest danger p
 - the min safe rear of the train ahead: ``x_lead - PL_behind_lead - train_length`` minus a
   margin.
 
-It sets ``emergency_brake`` when the max safe front plus the braking distance at the worst-case
-speed passes the EoA::
+It sets ``emergency_brake`` when the max safe front, carried to the present at the worst-case
+speed, plus the braking distance at that speed passes the EoA::
 
-    x + PL_ahead + (v + K sigma_v)^2 / (2 f_low b_emergency) > EoA,
+    x + PL_ahead + (v + K sigma_v) age + (v + K sigma_v)^2 / (2 f_low b_emergency) > EoA,
+
+(``age``: the time since the report's sample on the zone's clock, at least; a report that waited
+in a stalled node is that much behind the train)
 
 where ``f_low = max(f_hat - K sigma_f, f_min)`` is the estimated braking rate's lower bound when
 a braking rate is published (``braking_rate`` finite) and 1 (nominal) otherwise. The speed and
@@ -447,6 +450,18 @@ class ZoneController:
             f_low = max(rep.braking_rate - k * sf, p.min_braking_rate)
         return front, rear, speed, f_low
 
+    def _age(self, train_id: str, rep: TrainReport, now: float) -> float:
+        """s since the report's sample, on the zone's clock, at least: with one clock the
+        stamp's age on the followed timeline; on separate clocks from the train timeline's
+        least latency (the largest ``stamp - arrival`` in the window: this report's sample
+        was at the latest its stamp less that); never less than since it arrived."""
+        tl = self.timelines.get(train_id)
+        age = now - rep.t_received
+        if tl is not None and tl.recent:
+            ref = tl.shift if self.params.check_stamp_age else tl.offset
+            age = max(age, now - rep.stamp + ref)
+        return max(age, 0.0)
+
     def authorities(self, now: float, train_ids: list[str]) -> list[Authority]:
         """One authority per train in ``train_ids`` at zone-controller time ``now`` (s)."""
         p = self.params
@@ -460,6 +475,10 @@ class ZoneController:
                                      "no_estimate"))
                 continue
             front, _, speed, f_low = self._bounds(rep)
+            # the max safe front end now, not at the report's sample: the train may have run
+            # on at its worst-case speed since (a node that stalled 8 s delivered its backlog
+            # within the stale timeout, and the fronts it stated were metres behind the train)
+            front += speed * self._age(tid, rep, now)
             hazards = [(d - p.margin, f"danger point at {d:.1f} m") for d in p.danger_points
                        if d - p.margin >= rep.position - rep.pl_behind]
             reason, state = "", "ok"
