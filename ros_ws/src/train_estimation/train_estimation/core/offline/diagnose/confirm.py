@@ -64,7 +64,11 @@ reported ``confirmed`` only when the checks below pass, the same for every cause
 Check 1 and the re-confirmation (8) judge a cause with the other accepted causes in the model,
 less those the data contradict: one not confirmed for want of evidence
 (:func:`without_evidence`) stays, so it does not take a true one beside it down. Checks 3-7
-judge it against the confirmed causes.
+judge it against the confirmed causes. A cause that lost to a rival law (the heat law of
+check 3) leaves that law's fit in its place (:func:`rival_fit`, ``CauseFit.rival``) in the
+re-confirmation's models and in the model what is left is tested in: its effect is in the
+data. The law's parameters are nuisance parameters there (:func:`refit_rivals`): fitted again
+beside the refitted causes, and for check 1 without the cause judged.
 
 Every other entry of the ranking is ``rejected`` (its score is not above ``none``'s).
 """

@@ -128,7 +128,10 @@ def reconfirm(sr: _Search, before: dict, noise, gctx: GainContext, checks: dict)
     others, so a true cause whose held-out check lacked the power does not take a true one
     beside it down with it (a gradient fitted to 0.5 % was left unconfirmed once the
     resistance change beside it, which failed its held-out check, was taken out and the
-    gradient's refit took the resistance's part)."""
+    gradient's refit took the resistance's part). A cause that lost to a rival law leaves the
+    law's fit (``CauseFit.rival``) in its place, fitted again beside the refitted causes (a
+    true gradient beside a braking-rate drift that brakes fading as they heat explain better
+    was contradicted by the split with no weaker braking in the model)."""
     for _ in range(len(sr.accepted)):
         confirmed = [a for a in sr.accepted if a.status == "confirmed"]
         dropped = [a.cause for a in sr.accepted if a.status != "confirmed"
