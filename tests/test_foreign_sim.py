@@ -165,22 +165,28 @@ def test_an_effect_outside_the_list_on_foreign_data_is_unexplained_in_its_phase(
     assert rep["unexplained"][0]["phase"] == "braking", rep["unexplained"][0]
 
 
-@pytest.mark.parametrize("seed,listed", [(1, "braking_rate"), (3, "adhesion_section")])
+@pytest.mark.parametrize("seed,listed", [(1, "braking_rate"), (3, "adhesion_section"),
+                                         (5, "braking_rate")])
 def test_brakes_that_fade_as_they_heat_are_no_braking_rate_nor_low_adhesion(tmp_path, seed,
                                                                           listed):
-    """Brakes 40 % (seed 1) and 32 % (seed 3) weaker once they hold the heat of a stop from the
-    top speed, cooling in 95-110 s (bench_foreign --unlisted brake_heat): each braking starts
-    strong and ends weak. A braking rate drifting over the run (seed 1, f 0.93 -> 0.83) and a
-    low-adhesion section over most of the line's brakings (seed 3, x 0.72) were confirmed; a
-    braking weaker by the brakes' heat fits the braking better by far, and the remainder is
-    named in braking."""
+    """Brakes 40 % (seed 1), 32 % (seed 3) and 35 % (seed 5) weaker once they hold the heat of
+    a stop from the top speed, cooling in 88-110 s (bench_foreign --unlisted brake_heat): each
+    braking starts strong and ends weak. A braking rate drifting over the run (seed 1, f 0.93
+    -> 0.83) and a low-adhesion section over most of the line's brakings (seed 3, x 0.72) were
+    confirmed; a braking weaker by the brakes' heat fits the braking better by far, and the
+    braking is named as theirs. On seed 5 a 4.3 per mille gradient at one stop was accepted
+    beside the braking rate; the heat law takes the braking rate's place in the model the
+    gradient is judged in, its cooling fitted again without the gradient: at the comparison's
+    120 s the gradient held out at Z 2.0, at 95 s (steps of a quarter) it predicts nothing."""
     rep, eff = _diagnose_foreign(tmp_path, seed, "brake_heat")
     assert eff.brake_heat is not None
     by = {r["cause"]: r for r in rep["ranking"]}
     assert by[listed]["status"] == "not confirmed", by[listed]
     assert by[listed]["why"].startswith("a heat law fits better"), by[listed]["why"]
     assert rep["cause"] == "unexplained", rep["cause"]
-    assert rep["unexplained"][0]["phase"] == "braking", rep["unexplained"][0]
+    u = rep["unexplained"][0]
+    assert u["phase"] == "braking" and u["best_listed"]["cause"] == listed, u
+    assert u["size"] > 0, u  # the brakes deliver less than believed
 
 
 def test_a_strong_remainder_on_a_stretch_is_named_there(tmp_path):

@@ -637,6 +637,16 @@ def sensor_noise(u: dict) -> bool:
             and str(best.get("why", "")).startswith(SENSOR_WHY))
 
 
+def heat_fade(u: dict) -> bool:
+    """An ``unexplained`` entry of a braking weaker than believed that brakes fading as they
+    heat explain better than the closest listed cause (phase braking, no ``where`` nor
+    ``when``, the reason saying so): its size is the heat law's largest change of the
+    acceleration in m/s^2 (> 0: less braking), not a residual."""
+    best = u.get("best_listed") or {}
+    return (u.get("phase") == "braking" and not u.get("where") and not u.get("when")
+            and "a heat law fits better" in str(best.get("why", "")))
+
+
 def on_odometer(u: dict) -> bool:
     """An ``unexplained`` entry of the odometer's count (``where`` and ``when`` both spans: no
     acceleration family gives both): its size is the odometer error in m (docs/diagnose.md)."""
@@ -680,6 +690,11 @@ def unexplained_line(u: dict) -> str:
                 + closest)
     if sensor_noise(u):
         return f"unexplained: {best['why']} (phase all, the whole run)"
+    if heat_fade(u):
+        sp = u["speed"]
+        return (f"unexplained: the brakes deliver less than believed (up to {u['size']:+.3f} "
+                f"m/s^2, braking at {sp[0]:.1f}-{sp[1]:.1f} m/s), as brakes that fade as they "
+                f"heat: no listed cause; closest listed: {best['cause']} ({best['why']})")
     if balise_latency(u):
         sp = u["speed"]
         return (f"unexplained: every balise reading lies {u['size']:+.3f} s x speed behind the "

@@ -64,7 +64,11 @@ reported ``confirmed`` only when the checks below pass, the same for every cause
 Check 1 and the re-confirmation (8) judge a cause with the other accepted causes in the model,
 less those the data contradict: one not confirmed for want of evidence
 (:func:`without_evidence`) stays, so it does not take a true one beside it down. Checks 3-7
-judge it against the confirmed causes.
+judge it against the confirmed causes. A cause that lost to a rival law (the heat law of
+check 3) leaves that law's fit in its place (:func:`rival_fit`, ``CauseFit.rival``) in the
+re-confirmation's models and in the model what is left is tested in: its effect is in the
+data. The law's parameters are nuisance parameters there (:func:`refit_rivals`): fitted again
+beside the refitted causes, and for check 1 without the cause judged.
 
 Every other entry of the ranking is ``rejected`` (its score is not above ``none``'s).
 """
@@ -90,7 +94,7 @@ from .contradict import (
 )
 from .gain import GainContext
 from .halves import bias_law
-from .laws import braking_law, count_law, heat_law, speed_law
+from .laws import braking_law, count_law, heat_fit, heat_law, heat_refit, speed_law
 from .motion import Motion, slip_cols
 from .result import CauseFit
 from .run import DiagConfig
@@ -134,16 +138,29 @@ CONFIRM = ConfirmConfig()
 
 
 def confirm(mo: Motion, shift: float, accepted: list, resolved_before: dict, cfg: DiagConfig,
-            noise, own: dict, gain_ctx: GainContext, ccfg: ConfirmConfig | None = None) -> dict:
+            noise, own: dict, gain_ctx: GainContext, ccfg: ConfirmConfig | None = None,
+            rivals: list = ()) -> dict:
     """Set ``status`` and ``why`` of every accepted cause (in place); returns the checks'
     figures per cause for the evidence. ``resolved_before``: cause -> the resolution verdict
-    before the joint refit; ``ccfg``: the thresholds (None: the module's ``CONFIRM``)."""
+    before the joint refit; ``ccfg``: the thresholds (None: the module's ``CONFIRM``);
+    ``rivals``: the fits of rival laws that explain an effect better than the cause accepted
+    for it (:func:`rival_fit`), part of every model the causes are judged in. A cause that
+    loses to its heat law gets that law's fit (``CauseFit.rival``)."""
     ccfg = CONFIRM if ccfg is None else ccfg
+
+    def null_of(fits: list) -> Null:
+        return _null_of(mo, shift, fits, rivals)
+
     checks = {}
     for a in accepted:
         cause = BY_NAME[a.cause]
         if cause.in_motion_model:
-            others = _null_of(mo, shift, [b for b in accepted if b is not a])
+            # the rival laws' parameters are nuisance parameters of this test: fitted again
+            # without the cause (the null hypothesis' own best fit), so that a cause that only
+            # mends where a rival law was fitted with it in the model shows no gain
+            others = _null_of(mo, shift, [b for b in accepted if b is not a],
+                              refit_rivals(mo, shift, [b for b in accepted if b is not a],
+                                           rivals, cfg, noise))
             held = heldout_motion(mo, others, cause, cfg, noise, ccfg,
                                   place_block(mo, cause, a, cfg), cause.nominal(mo))
         else:
@@ -192,38 +209,41 @@ def confirm(mo: Motion, shift: float, accepted: list, resolved_before: dict, cfg
     confirmed = [a for a in accepted if a.status == "confirmed"]
     motion = [a for a in confirmed if BY_NAME[a.cause].in_motion_model]
     if len(motion) >= 2:
-        nulls = {a.cause: _null_of(mo, shift, [b for b in confirmed if b is not a])
+        nulls = {a.cause: null_of([b for b in confirmed if b is not a])
                  for a in motion}
         stretches = {a.cause: bey[0] for a in motion
                      if (bey := BY_NAME[a.cause].beyond(a, mo)) is not None}
-        cancel = cancelling(mo, nulls, _null_of(mo, shift, [b for b in confirmed
+        cancel = cancelling(mo, nulls, null_of([b for b in confirmed
                                                            if b not in motion]),
-                            _null_of(mo, shift, confirmed), cfg, noise, stretches)
+                            null_of(confirmed), cfg, noise, stretches)
         for a in motion:
             if a.cause in cancel:
                 a.status, a.why = "not confirmed", cancel[a.cause]
                 checks[a.cause]["cancels"] = cancel[a.cause]
         confirmed = [a for a in accepted if a.status == "confirmed"]
         motion = [a for a in confirmed if BY_NAME[a.cause].in_motion_model]
-    if len(motion) >= 2:
+    if len(motion) + len(rivals) >= 2:
         # causes confirmed together: each must do better than a flexible term in the phases
-        # and speeds it acts in (two listed causes can share out one effect outside the list)
+        # and speeds it acts in (two listed causes can share out one effect outside the list;
+        # so can a listed cause and a rival law in the model, which is one more effect)
         for a in motion:
-            others = _null_of(mo, shift, [b for b in confirmed if b is not a])
-            fr = flexible_rival(mo, others, _null_of(mo, shift, confirmed), cfg, noise,
+            others = null_of([b for b in confirmed if b is not a])
+            fr = flexible_rival(mo, others, null_of(confirmed), cfg, noise,
                                 _n_params(a))
             checks[a.cause]["flexible"] = fr
             if not fr["better"]:
+                beside = [b.cause for b in motion if b is not a] + \
+                    [f"{BY_NAME[r['cause']].heat_rival} in place of {r['cause']}" for r in rivals]
                 a.status = "not confirmed"
-                a.why = (f"with {', '.join(b.cause for b in motion if b is not a)} it does no "
+                a.why = (f"with {', '.join(beside)} it does no "
                          f"better than a free acceleration per phase and speed band "
                          f"({fr['k_flexible']} cells) in place of it")
         confirmed = [a for a in accepted if a.status == "confirmed"]
     for a in confirmed:
         if not BY_NAME[a.cause].in_motion_model:
             continue
-        others = _null_of(mo, shift, [b for b in confirmed if b is not a])
-        full = _null_of(mo, shift, confirmed)
+        others = null_of([b for b in confirmed if b is not a])
+        full = null_of(confirmed)
         cause = BY_NAME[a.cause]
         sp = split_test(mo, others, full, cfg, noise, ccfg.split_alpha, ccfg.split_min_share)
         checks[a.cause]["split"] = sp
@@ -257,9 +277,15 @@ def confirm(mo: Motion, shift: float, accepted: list, resolved_before: dict, cfg
             checks[a.cause]["heat_law"] = hl
             if _law_verdict(a, checks[a.cause], hl, cause.heat_rival,
                             "the braking better than the cause", ccfg,
-                            detail=f"cooling {hl.get('tau', 0):.0f} s, "
+                            detail=f"f {hl.get('f_cold', 0):.3f} cold, "
+                                   f"cooling {hl.get('tau', 0):.0f} s, "
                                    f"fade {hl.get('fade', 0):.2f} at one stop's heat; ",
                             law="a heat law"):
+                # the braking the cause was fitted to is there (it passed checks 1-2): the
+                # law that explains it better takes its place in the model the other causes
+                # are judged in, not nothing (without any weaker braking, a true gradient
+                # beside a braking-rate drift the heat law took was contradicted by the split)
+                a.rival = rival_fit(mo, a, hl)
                 continue
         if a.status != "confirmed" or (bey := cause.beyond(a, mo)) is None:
             continue
@@ -360,12 +386,34 @@ def _n_params(fit: CauseFit) -> int:
     return max(1, sum(np.size(v) for v in fit.parameters.values()))
 
 
-def _null_of(mo: Motion, shift: float, fits: list) -> Null:
-    """The believed model extended by ``fits`` (with the command-time offset ``shift``)."""
+def _null_of(mo: Motion, shift: float, fits: list, rivals: list = ()) -> Null:
+    """The believed model extended by ``fits`` (with the command-time offset ``shift``) and by
+    the fits of the rival laws ``rivals`` (:func:`rival_fit`)."""
     null = Null(shift=shift)
     for f in fits:
         BY_NAME[f.cause].extend_null(null, f, mo)
+    null.extra += [(r["bv"], r["bs"]) for r in rivals]
     return null
+
+
+def refit_rivals(mo: Motion, shift: float, fits: list, rivals: list, cfg: DiagConfig,
+                 noise) -> list:
+    """The rival laws' fits (:func:`rival_fit`) fitted again, one after the other, on the
+    model of ``fits`` and the rivals before them (their parameters maximised on that model)."""
+    out = []
+    for r in rivals:
+        law = heat_refit(mo, _null_of(mo, shift, fits, out), cfg, noise, r["law"])
+        out.append(rival_fit(mo, CauseFit(r["cause"], 0.0, {}), law))
+    return out
+
+
+def rival_fit(mo: Motion, fit: CauseFit, law: dict) -> dict:
+    """The fit of a rival law (:func:`.laws.heat_law`'s result ``law``) that explains the
+    effect the accepted ``fit`` was fitted to better than the cause does, as a part of a model:
+    its drift increments (``bv``, ``bs``: ``Null.extra``'s form) and acceleration on the grid
+    (``acc``), the cause it displaces and the comparison."""
+    bv, bs, acc = heat_fit(mo, law)
+    return {"cause": fit.cause, "law": law, "bv": bv, "bs": bs, "acc": acc}
 
 
 # How data are held out, by the family of data a cause acts on: the dynamics act through time
@@ -576,7 +624,7 @@ def heldout_own(cause, fit: CauseFit, ctx: GainContext, ccfg: ConfirmConfig = CO
 
 
 def unneeded(mo: Motion, shift: float, confirmed: list, cfg: DiagConfig, noise, found: list,
-             ccfg: ConfirmConfig = CONFIRM) -> bool:
+             ccfg: ConfirmConfig = CONFIRM, rivals: list = ()) -> bool:
     """Withdraw the confirmation of every confirmed motion cause that is no longer needed once
     the odometer's changed count ``found`` in the residuals (``phases.odometer_family``) is in
     the model: its held-out check (1) against the other confirmed causes plus that count fails.
@@ -591,7 +639,7 @@ def unneeded(mo: Motion, shift: float, confirmed: list, cfg: DiagConfig, noise, 
         cause = BY_NAME[a.cause]
         if not cause.in_motion_model:
             continue
-        others = _null_of(mo, shift, [b for b in confirmed if b is not a])
+        others = _null_of(mo, shift, [b for b in confirmed if b is not a], rivals)
         others.meas = list(meas)
         held = heldout_motion(mo, others, cause, cfg, noise, ccfg,
                               place_block(mo, cause, a, cfg))
@@ -605,15 +653,16 @@ def unneeded(mo: Motion, shift: float, confirmed: list, cfg: DiagConfig, noise, 
 
 
 def unpiece(mo: Motion, shift: float, confirmed: list, cfg: DiagConfig, noise,
-            found: list) -> bool:
+            found: list, rivals: list = ()) -> bool:
     """Withdraw the confirmation of every confirmed motion cause that is a piece of a structure
-    still ``found`` in the residuals (:func:`.contradict.piece_of`); True if any was withdrawn."""
+    still ``found`` in the residuals (:func:`.contradict.piece_of`; ``rivals``: rival laws'
+    fits in the model, :func:`rival_fit`); True if any was withdrawn."""
     out = False
     for a in confirmed:
         if not BY_NAME[a.cause].in_motion_model:
             continue
-        others = _null_of(mo, shift, [b for b in confirmed if b is not a])
-        why = piece_of(mo, others, _null_of(mo, shift, confirmed), cfg, noise, found)
+        others = _null_of(mo, shift, [b for b in confirmed if b is not a], rivals)
+        why = piece_of(mo, others, _null_of(mo, shift, confirmed, rivals), cfg, noise, found)
         if why is not None:
             a.status, a.why = "not confirmed", f"a piece of an unexplained structure: {why}"
             out = True

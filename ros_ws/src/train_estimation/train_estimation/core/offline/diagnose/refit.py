@@ -27,7 +27,8 @@ if TYPE_CHECKING:  # the search's state (search.py imports this module)
     from .search import _Search
 
 
-def joint_refit(mo: Motion, null: Null, accepted: list, cfg: DiagConfig, noise) -> None:
+def joint_refit(mo: Motion, null: Null, accepted: list, cfg: DiagConfig, noise,
+                rivals: list = ()) -> None:
     """Re-estimate the accepted linear causes' parameters jointly (in place).
 
     Greedy stages fit each cause on top of the earlier ones held fixed: a cause accepted first
@@ -35,13 +36,15 @@ def joint_refit(mo: Motion, null: Null, accepted: list, cfg: DiagConfig, noise) 
     change is biased by it). Given the discrete choices (sections, delays, slip episodes,
     command offset), the accepted linear causes are one GLS problem: fit them together. An
     accepted cause with a profiled parameter (a power limit), fitted before the linear ones,
-    took part of them: it is profiled again with them free (:func:`joint_model`)."""
+    took part of them: it is profiled again with them free (:func:`joint_model`). ``rivals``:
+    rival laws' fits held in the model (:func:`.confirm.rival_fit`)."""
     lin = [a for a in accepted if BY_NAME[a.cause].linear]
     nonlin = [a for a in accepted if not BY_NAME[a.cause].linear]
     if not lin or (len(lin) < 2 and not any(BY_NAME[a.cause].profiled for a in nonlin)):
         return
     _, _, _, th, cov, blocks, fits = joint_model(mo, null.shift, nonlin,
-                                                 [(a.cause, a.extra) for a in lin], cfg, noise)
+                                                 [(a.cause, a.extra) for a in lin], cfg, noise,
+                                                 rivals)
     for a, f in zip(nonlin, fits):
         a.parameters, a.std_errors = f.parameters, f.std_errors
     for a, (st, i, k) in zip(lin, blocks):
@@ -54,7 +57,7 @@ GAIN_ROUNDS = 4
 
 
 def joint_model(mo: Motion, shift: float, nonlinear: list, members: list, cfg: DiagConfig,
-                noise) -> tuple:
+                noise, rivals: list = ()) -> tuple:
     """One model fitted as the joint refit fits the accepted one: the ``nonlinear`` fits
     (copies) with their profiled parameters (a power limit's p_spec) profiled with the linear
     ``members`` ([(cause, extra)]) free, then those fitted jointly (GLS) on the null of the
@@ -72,8 +75,8 @@ def joint_model(mo: Motion, shift: float, nonlinear: list, members: list, cfg: D
     for _ in range(GAIN_ROUNDS):
         for f in fits:
             if BY_NAME[f.cause].profiled:
-                _profile_jointly(mo, shift, fits, free_of, f, cfg, noise, gain)
-        null = _null_of(mo, shift, fits)
+                _profile_jointly(mo, shift, fits, free_of, f, cfg, noise, gain, rivals)
+        null = _null_of(mo, shift, fits, rivals)
         null.drive_gain = gain
         st = Stage(mo, null, cfg, noise=noise)
         free, blocks = [], []
@@ -216,7 +219,7 @@ def unlocate(sr: _Search, noise) -> bool:
 
 
 def _profile_jointly(mo: Motion, shift: float, accepted: list, lin: list, fit: CauseFit,
-                     cfg: DiagConfig, noise, gain: float = 1.0) -> bool:
+                     cfg: DiagConfig, noise, gain: float = 1.0, rivals: list = ()) -> bool:
     """Re-fit the profiled parameter of the accepted cause ``fit`` (``Cause.profile``) jointly
     with the free columns of the accepted linear causes ``lin`` (in place): one augmented
     filter over [the other nonlinear causes' null, s0, the linear causes' columns, the
@@ -225,7 +228,7 @@ def _profile_jointly(mo: Motion, shift: float, accepted: list, lin: list, fit: C
     it was re-fitted."""
     cause = BY_NAME[fit.cause]
     others = [b for b in accepted if b is not fit and not BY_NAME[b.cause].linear]
-    null = _null_of(mo, shift, others)
+    null = _null_of(mo, shift, others, rivals)
     null.drive_gain = gain  # the drive's gain from a mass change among lin (joint_model)
     st = Stage(mo, null, cfg, noise=noise, big=False)
     prof = cause.profile(st)

@@ -30,6 +30,9 @@ class CauseFit:
     stage: int | None = None  # greedy stage that accepted it (None: not accepted)
     status: str | None = None  # the confirmation's verdict, when one is made
     why: str | None = None  # the reason for ``status``
+    # the fit of a rival law that explains the cause's effect better (confirm.rival_fit: brakes
+    # that fade as they heat for a braking-rate drift), which takes its place in the model
+    rival: dict | None = None
 
     def to_json(self) -> dict:
         """A ranking entry: cause, score, parameters (status and why when set)."""

@@ -12,7 +12,15 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from .causes import BY_NAME, REGISTRY
-from .confirm import CONFIRM, _null_of, confirm, unneeded, unpiece, without_evidence
+from .confirm import (
+    CONFIRM,
+    _null_of,
+    confirm,
+    refit_rivals,
+    unneeded,
+    unpiece,
+    without_evidence,
+)
 from .gain import GainContext
 from .phases import sensor_residuals, structure
 from .refit import joint_refit
@@ -51,15 +59,19 @@ def conclude(sr: _Search, run, untestable: list, before: dict, noise,
     reconfirm(sr, before, noise, gctx, checks)
     noise, left_out = verdict_noise(sr, shift, noise)
     confirmed = [a for a in sr.accepted if a.status == "confirmed"]
-    found, tests = structure(mo, _null_of(mo, shift, confirmed), sr.cfg, noise,
+    # the rival laws that took an accepted cause's effect (brakes that fade as they heat for a
+    # braking-rate drift) are part of the model what is left is tested in: the effect is in
+    # the data, and is reported as the law's entry (below), not found again in pieces
+    rivals = refit_rivals(mo, shift, confirmed, _rivals(sr), sr.cfg, noise)
+    found, tests = structure(mo, _null_of(mo, shift, confirmed, rivals), sr.cfg, noise,
                              beta, **STRUCTURE)
     if found:
-        pieces = unpiece(mo, shift, confirmed, sr.cfg, noise, found)
+        pieces = unpiece(mo, shift, confirmed, sr.cfg, noise, found, rivals)
         confirmed = [a for a in sr.accepted if a.status == "confirmed"]
-        if unneeded(mo, shift, confirmed, sr.cfg, noise, found) or pieces:
+        if unneeded(mo, shift, confirmed, sr.cfg, noise, found, rivals=rivals) or pieces:
             confirmed = [a for a in sr.accepted if a.status == "confirmed"]
-            found, tests = structure(mo, _null_of(mo, shift, confirmed), sr.cfg, noise,
-                                     beta, **STRUCTURE)
+            found, tests = structure(mo, _null_of(mo, shift, confirmed, rivals), sr.cfg,
+                                     noise, beta, **STRUCTURE)
     for u in found:
         u.pop("mask")
         u.pop("meas", None)
@@ -70,14 +82,16 @@ def conclude(sr: _Search, run, untestable: list, before: dict, noise,
         end = mo.run.duration / beta
         clock.append(_rate_entry(ch, end, _speeds(mo, beta, ch["when"], end)))
     # the odometer's readings against what it states, under the confirmed model
-    sens = sensor_residuals(mo, _null_of(mo, shift, confirmed), sr.cfg, noise)
+    sens = sensor_residuals(mo, _null_of(mo, shift, confirmed, rivals), sr.cfg, noise)
     sensor = [sensor_entry(sens, _speeds(mo, beta, 0.0, mo.run.duration / beta))] \
         if sens["finding"] else []
+    law = [_rival_entry(a, r) for a, r in zip(
+        [a for a in sr.accepted if a.status != "confirmed" and a.rival is not None], rivals)]
     verdict = confirmed[0].cause if confirmed else \
-        ("unexplained" if found or clock or sensor else "none")
+        ("unexplained" if found or clock or sensor or law else "none")
     ranking = _ranking(sr, beta, "confirmed" if verdict == "none" else "rejected")
     top = ranking[0] if confirmed else None
-    unexplained = clock + [_entry(u, ranking) for u in found] + sensor
+    unexplained = clock + law + [_entry(u, ranking) for u in found] + sensor
     evidence = _evidence(sr, run)
     evidence["_model"]["sensors"] = sens
     evidence["_model"]["confirmation"] = {"checks": checks, "thresholds": vars(CONFIRM)}
@@ -114,7 +128,10 @@ def reconfirm(sr: _Search, before: dict, noise, gctx: GainContext, checks: dict)
     others, so a true cause whose held-out check lacked the power does not take a true one
     beside it down with it (a gradient fitted to 0.5 % was left unconfirmed once the
     resistance change beside it, which failed its held-out check, was taken out and the
-    gradient's refit took the resistance's part)."""
+    gradient's refit took the resistance's part). A cause that lost to a rival law leaves the
+    law's fit (``CauseFit.rival``) in its place, fitted again beside the refitted causes (a
+    true gradient beside a braking-rate drift that brakes fading as they heat explain better
+    was contradicted by the split with no weaker braking in the model)."""
     for _ in range(len(sr.accepted)):
         confirmed = [a for a in sr.accepted if a.status == "confirmed"]
         dropped = [a.cause for a in sr.accepted if a.status != "confirmed"
@@ -122,18 +139,50 @@ def reconfirm(sr: _Search, before: dict, noise, gctx: GainContext, checks: dict)
         kept = [a for a in sr.accepted if a.status != "confirmed" and a.cause not in dropped]
         if not dropped or not confirmed:
             return
+        # a cause that lost to a rival law leaves that law's fit in its place: its effect is
+        # in the data, and the others are judged with it explained as the data prefer
+        rivals = _rivals(sr)
         sub = copy.deepcopy(confirmed)
         rest = copy.deepcopy(kept)
         shift = _null_of(sr.mo, sr.null.shift, sub + rest).shift
-        joint_refit(sr.mo, Null(shift=shift), sub + rest, sr.cfg, noise)
-        again = confirm(sr.mo, shift, sub + rest, before, sr.cfg, noise, sr.own, gctx)
+        joint_refit(sr.mo, Null(shift=shift), sub + rest, sr.cfg, noise, rivals)
+        # and the laws given the causes so refitted (the law was fitted beside the cause it
+        # displaced)
+        rivals = refit_rivals(sr.mo, shift, sub + rest, rivals, sr.cfg, noise)
+        again = confirm(sr.mo, shift, sub + rest, before, sr.cfg, noise, sr.own, gctx,
+                        rivals=rivals)
         fell = [(a, s) for a, s in zip(confirmed, sub) if s.status != "confirmed"]
         if not fell:
             return
+        laws = "".join(f"; {BY_NAME[r['cause']].heat_rival} in place of {r['cause']}"
+                       for r in rivals)
         for a, s in fell:
             a.status = "not confirmed"
-            a.why = f"without {', '.join(dropped)} (not confirmed): {s.why}"
+            a.why = f"without {', '.join(dropped)} (not confirmed{laws}): {s.why}"
+            a.rival = s.rival
             checks[a.cause]["without_unconfirmed"] = again[a.cause]
+
+
+def _rivals(sr: _Search) -> list:
+    """The fits of the rival laws that took the effect of an accepted cause that is not
+    confirmed (``CauseFit.rival``, :func:`.confirm.rival_fit`)."""
+    return [a.rival for a in sr.accepted if a.status != "confirmed" and a.rival is not None]
+
+
+def _rival_entry(a: CauseFit, r: dict) -> dict:
+    """An ``unexplained`` entry for the effect of the accepted cause ``a`` that a rival law
+    explains better (``r``: its fit in the confirmed model, :func:`.confirm.rival_fit`;
+    brakes that fade as they heat for a braking-rate drift): the
+    effect is in the data (the cause passed its held-out check and its resolution) and is no
+    listed cause. Phase ``braking`` (the heat law acts there), no ``where`` nor ``when`` (it
+    acts at every braking), ``speed`` the speeds braked at, ``size`` the law's largest change
+    of the acceleration (m/s^2; > 0: the brakes deliver less than believed), ``best_listed``
+    the cause with why the law fits better."""
+    acc = np.asarray(r["acc"], float)
+    i = int(np.argmax(np.abs(acc))) if acc.size else 0
+    return {"phase": "braking", "where": None, "when": None, "speed": r["law"]["speeds"],
+            "size": float(acc[i]) if acc.size else 0.0,
+            "best_listed": {"cause": a.cause, "why": a.why}}
 
 
 # how the reasons of a cause not confirmed because the data contradict its fitted effect begin
