@@ -16,7 +16,6 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.optimize import minimize_scalar
 
 from train_estimation.core.numerics.augmented_kf import (
     LOG2PI,
@@ -25,6 +24,7 @@ from train_estimation.core.numerics.augmented_kf import (
     gls,
     kf2_loglik,
 )
+from train_estimation.core.numerics.brent import minimize_bounded
 
 from .motion import Motion, slip_cols
 from .run import DiagConfig
@@ -182,12 +182,9 @@ class Stage:
         q_lo, q_hi, r_lo, r_hi = (math.log(cfg.q_floor), math.log(1.0), math.log(1e-6),
                                   math.log(25))
         opts = {"xatol": 0.1, "maxiter": 14}
-        lq = minimize_scalar(lambda x: -ll(x, lr), bounds=(q_lo, q_hi), method="bounded",
-                             options=opts).x
-        lr = minimize_scalar(lambda x: -ll(lq, x), bounds=(r_lo, r_hi), method="bounded",
-                             options=opts).x
-        lq = minimize_scalar(lambda x: -ll(x, lr), bounds=(q_lo, q_hi), method="bounded",
-                             options=opts).x
+        lq = minimize_bounded(lambda x: -ll(x, lr), q_lo, q_hi, **opts)[0]
+        lr = minimize_bounded(lambda x: -ll(lq, x), r_lo, r_hi, **opts)[0]
+        lq = minimize_bounded(lambda x: -ll(x, lr), q_lo, q_hi, **opts)[0]
         return float(math.exp(lq)), float(math.exp(lr))
 
     def fixed_loglik(self) -> float:
