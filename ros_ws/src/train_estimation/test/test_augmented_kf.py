@@ -180,6 +180,57 @@ def test_compiled_loops_equal_the_interpreted_ones():
     assert not res[0][1][..., 2:].any() and E[..., 2:].any()
 
 
+def _same_bits(a, b):
+    a, b = np.asarray(a), np.asarray(b)
+    return a.shape == b.shape and a.tobytes() == b.tobytes()  # -0.0 and NaN included
+
+
+@pytest.mark.parametrize("kernel", ["as_it_runs", "interpreted", "filled_in"])
+@pytest.mark.parametrize("seed,a,b,c,update,keep", [
+    (0, 6, 2, 0, None, True),
+    (1, 0, 3, 2, [4, 9, 30], False),  # no drift block; held-out readings
+    (2, 12, 0, 0, None, False),  # the stage's big filter's shape: drift and no measurement
+    (3, 0, 0, 0, [11], True),  # [fixed, s0] only
+    (4, 5, 1, 3, None, True),
+])
+def test_blocks_equal_the_filled_matrices(monkeypatch, kernel, seed, a, b, c, update, keep):
+    """augmented_kf_blocks is augmented_kf on the five matrices filled in from the blocks, bit
+    for bit (signed zeros included: columns zero over stretches, and all zero), whichever
+    kernel runs it (compiled, interpreted, or the matrices filled in without a compiled one)."""
+    rng = np.random.default_rng(seed)
+    n = 120
+    ev = _events(rng, n, [3, 40, 41, 100], list(range(60, 70)))
+    fixed = tuple(rng.normal(size=n) * 0.1 for _ in range(4)) + (rng.normal(size=n),)
+    Dv, Ds = rng.normal(size=(n, a)) * 0.1, rng.normal(size=(n, a)) * 0.05
+    Dv[:50], Ds[:50] = 0.0, 0.0  # zero until the train reaches a bin, as a gradient's
+    if a:
+        Dv[:, 0] = Ds[:, 0] = 0.0  # a column that never acts
+        Ds[70:, 1] = -0.0
+    Mdb, Mvb = rng.normal(size=(n, b)) * 0.2, rng.normal(size=(n, b)) * 0.1
+    Mbb = rng.normal(size=(n, c))
+    upd = None
+    if update is not None:
+        upd = np.ones(n, bool)
+        upd[update] = False
+    p1 = 2 + a + b + c
+    Bv, Bs, Md, Mv, Mb = (np.zeros((n, p1)) for _ in range(5))
+    Bv[:, 0], Bs[:, 0], Md[:, 0], Mv[:, 0], Mb[:, 0], Mb[:, 1] = *fixed, 1.0
+    Bv[:, 2:a + 2], Bs[:, 2:a + 2] = Dv, Ds
+    Md[:, a + 2:a + b + 2], Mv[:, a + 2:a + b + 2] = Mdb, Mvb
+    Mb[:, a + b + 2:] = Mbb
+    ref = augmented_kf(ev, 0.03, 0.2, Bv, Bs, Md, Mv, Mb, 1.5, keep_innov=keep, update=upd)
+    if kernel == "interpreted":
+        monkeypatch.setattr(A, "_column_pass_blocks", A.PY["column_pass_blocks"])
+    elif kernel == "filled_in":
+        monkeypatch.setattr(A, "COMPILED", False)
+    kf = A.augmented_kf_blocks(ev, 0.03, 0.2, fixed, drift=(Dv, Ds) if a else None,
+                               meas=(Mdb, Mvb) if b else None, bal=Mbb if c else None,
+                               q_held=1.5, keep_innov=keep, update=upd)
+    assert kf.m == ref.m and kf.logdet == ref.logdet
+    for x, y in ((kf.W, ref.W), (kf.E0, ref.E0), (kf.E1, ref.E1), (kf.S_v, ref.S_v)):
+        assert (x is None and y is None) or _same_bits(x, y)
+
+
 def test_the_loops_run_without_numba():
     """Without numba (TRAIN_NO_JIT=1 stands in for a missing numba) the same functions run
     interpreted and give the same log-likelihood."""
@@ -215,6 +266,7 @@ def test_the_loops_are_compiled_ahead_of_time_and_equal_numbas_jit():
         pytest.skip("compiled loops turned off in this environment")
     assert A._AOT is not None, "not compiled ahead of time: run ./run setup"
     assert A._kf2_loop is A._AOT.kf2_loop and A._column_pass is A._AOT.column_pass
+    assert A._column_pass_blocks is A._AOT.column_pass_blocks
     here = str(Path(__file__).parent)
     code = textwrap.dedent(f"""
         import json, sys

@@ -13,10 +13,11 @@ for z = [1, theta] and any theta: the likelihood of a hypothesis that is a linea
 of the columns is then a small quadratic problem (:func:`gls`). Tested against a dense
 joint-Gaussian solve.
 
-The three scalar loops (:func:`_column_pass`, :func:`_gain_loop`, :func:`_kf2_loop`) are
-compiled ahead of time where that was built for this source (``train_core.aot``,
-:func:`build_aot`: no numba at run time, which saves a short process such as ``diagnose``
-0.6 s), else by numba at their first call (``numerics.jit``), else interpreted.
+The scalar loops (:func:`_column_pass` and :func:`_column_pass_blocks`, :func:`_gain_loop`,
+:func:`_kf2_loop`) are compiled ahead of time where that was built for this source
+(``train_core.aot``, :func:`build_aot`: no numba at run time, which saves a short process such
+as ``diagnose`` 0.6 s), else by numba at their first call (``numerics.jit``), else
+interpreted.
 
 Pure: numpy only.
 """
@@ -102,8 +103,15 @@ def augmented_kf(ev: Events, q: float, r_s: float, Bv, Bs, Md, Mv, Mb, q_held: f
         Z[gp.row[odo]] = z0
         Z[gp.row[odo] + 1] = (E[odo, 1] - L[odo, 1, None] * z0) / L[odo, 2, None]
         Z[gp.row[bal]] = E[bal, 0] / L[bal, 0, None]
+    return _result(gp, Z, E, keep_innov)
+
+
+def _result(gp, Z: np.ndarray, E: np.ndarray, keep_innov: bool) -> KFResult:
+    """The run's KFResult from its gains, whitened innovations ``Z`` and innovations ``E``
+    (those of columns 0 and 1 read when ``keep_innov``)."""
     if not keep_innov:
         return KFResult(W=Z.T @ Z, logdet=gp.logdet, m=gp.m)
+    n, odo, bal = gp.h.size, gp.odo, gp.bal
     E0, E1 = np.zeros((n, 2)), np.zeros((n, 2))
     E0[odo] = E[odo, ::-1, 0]  # (speed, distance)
     E1[odo] = E[odo, ::-1, 1]
@@ -153,6 +161,133 @@ def _column_pass(h, code, Bs, Bv, Md, Mv, Mb, yd, yv, K, L, row, Z, E, keep):
                     E[k, 1, j] = ev_
             elif c == 1:  # balise reading
                 eb = -Mb[k, j] - s_
+                if j == 0:
+                    eb += yd[k]
+                s_ = s_ + K[k, 0, 0] * eb
+                v_ = v_ + K[k, 1, 0] * eb
+                Z[r, j] = eb / L[k, 0]
+                if keep and j < 2:
+                    E[k, 0, j] = eb
+            xs[j] = s_
+            xv[j] = v_
+
+
+def augmented_kf_blocks(ev: Events, q: float, r_s: float, fixed, drift=None, meas=None,
+                        bal=None, q_held: float = 0.0, keep_innov: bool = False,
+                        update: np.ndarray | None = None) -> KFResult:
+    """:func:`augmented_kf` over the columns [fixed part, s0, drift columns..., measurement
+    columns..., balise columns...] given as blocks instead of five (n_ev, p+1) matrices that
+    are zero but for them: ``fixed = (fv, fs, md, mv, mb)`` column 0's drift increments (speed,
+    distance), odometer measurement offsets (distance, speed) and balise offsets, each (n_ev,);
+    ``drift = (Dv, Ds)``, ``meas = (Md, Mv)``, each (n_ev, k), and ``bal`` (n_ev, k), or None.
+    s0 is column 1 (balise measurement 1). The same result, bit for bit, as
+    :func:`augmented_kf` on the matrices filled in (tested): compiled, the kernel reads the
+    blocks where it read the matrices, and a zero of the matrices as 0.0; a run of diagnose
+    with 361 columns no longer fills and reads five 7 MB matrices of which two columns are
+    not zero. Without the compiled kernel, the matrices are filled in."""
+    n = ev.t.size
+    f8 = np.float64
+    blocks = []
+    for pair, k in ((drift, 2), (meas, 2), ((bal,), 1)):
+        if pair is None or pair[0] is None:
+            pair = (np.zeros((n, 0)),) * k
+        blocks.extend(np.ascontiguousarray(x, f8) for x in pair)
+    Dv, Ds, Mdb, Mvb, Mbb = blocks
+    if not COMPILED:  # the matrices filled in, as augmented_kf takes them
+        a, b, c = Dv.shape[1], Mdb.shape[1], Mbb.shape[1]
+        Bv, Bs, Md, Mv, Mb = (np.zeros((n, a + b + c + 2)) for _ in range(5))
+        fv, fs, md, mv, mb = fixed
+        Bv[:, 0], Bs[:, 0], Md[:, 0], Mv[:, 0], Mb[:, 0], Mb[:, 1] = fv, fs, md, mv, mb, 1.0
+        Bv[:, 2:a + 2], Bs[:, 2:a + 2] = Dv, Ds
+        Md[:, a + 2:a + b + 2], Mv[:, a + 2:a + b + 2] = Mdb, Mvb
+        Mb[:, a + b + 2:] = Mbb
+        return augmented_kf(ev, q, r_s, Bv, Bs, Md, Mv, Mb, q_held, keep_innov=keep_innov,
+                            update=update)
+    gp = _gain_pass(ev, q, r_s, q_held, update, None)
+    p1 = 2 + Dv.shape[1] + Mdb.shape[1] + Mbb.shape[1]
+    Z = np.empty((gp.m, p1))
+    E = np.zeros((n, 2, 2) if keep_innov else (1, 2, 1))
+    F = np.empty((5, n))
+    F[0], F[1], F[2], F[3], F[4] = fixed[1], fixed[0], fixed[2], fixed[3], fixed[4]
+    _column_pass_blocks(np.ascontiguousarray(gp.h, f8), np.ascontiguousarray(gp.code, np.int64),
+                        F, Ds, Dv, Mdb, Mvb, Mbb, np.ascontiguousarray(ev.y_d, f8),
+                        np.ascontiguousarray(ev.y_v, f8), np.ascontiguousarray(gp.K), gp.L,
+                        gp.row, Z, E, keep_innov)
+    return _result(gp, Z, E, keep_innov)
+
+
+def _column_pass_blocks(h, code, F, Ds, Dv, Mdb, Mvb, Mbb, yd, yv, K, L, row, Z, E, keep):
+    """:func:`_column_pass` on the columns as blocks (:func:`augmented_kf_blocks`): ``F``
+    (5, n) column 0's (Bs, Bv, Md, Mv, Mb); column 1 balise measurement 1; then the drift
+    columns (Ds, Dv), the measurement columns (Mdb, Mvb) and the balise columns (Mbb). Each
+    element's operations are _column_pass's, in its order, on the entry the matrices would
+    hold (0.0 where they hold nothing)."""
+    n = h.size
+    a2 = 2 + Ds.shape[1]
+    ab2 = a2 + Mdb.shape[1]
+    p1 = ab2 + Mbb.shape[1]
+    xs = np.empty(p1)
+    xv = np.empty(p1)
+    for j in range(p1):
+        md = 0.0
+        mv = 0.0
+        if j == 0:
+            md = F[2, 0]
+            mv = F[3, 0]
+        elif a2 <= j < ab2:
+            md = Mdb[0, j - a2]
+            mv = Mvb[0, j - a2]
+        xs[j] = -md
+        xv[j] = -mv
+    xs[0] += yd[0]
+    xv[0] += yv[0]
+    for k in range(1, n):
+        hk = h[k]
+        c = code[k]
+        r = row[k]
+        for j in range(p1):
+            bs = 0.0
+            bv = 0.0
+            md = 0.0
+            mv = 0.0
+            mb = 0.0
+            if j == 0:
+                bs = F[0, k]
+                bv = F[1, k]
+                md = F[2, k]
+                mv = F[3, k]
+                mb = F[4, k]
+            elif j == 1:
+                mb = 1.0
+            elif j < a2:
+                bs = Ds[k, j - 2]
+                bv = Dv[k, j - 2]
+            elif j < ab2:
+                md = Mdb[k, j - a2]
+                mv = Mvb[k, j - a2]
+            else:
+                mb = Mbb[k, j - ab2]
+            s_ = xs[j] + xv[j] * hk
+            s_ = s_ + bs
+            v_ = xv[j] + bv
+            if c == 0:  # odometer reading
+                es = -md - s_
+                ev_ = -mv - v_
+                if j == 0:
+                    es += yd[k]
+                    ev_ += yv[k]
+                s_ = s_ + K[k, 0, 0] * es
+                v_ = v_ + K[k, 1, 0] * es
+                s_ = s_ + K[k, 0, 1] * ev_
+                v_ = v_ + K[k, 1, 1] * ev_
+                z0 = es / L[k, 0]
+                Z[r, j] = z0
+                Z[r + 1, j] = (ev_ - L[k, 1] * z0) / L[k, 2]
+                if keep and j < 2:
+                    E[k, 0, j] = es
+                    E[k, 1, j] = ev_
+            elif c == 1:  # balise reading
+                eb = -mb - s_
                 if j == 0:
                     eb += yd[k]
                 s_ = s_ + K[k, 0, 0] * eb
@@ -422,7 +557,8 @@ def _kf2_loop(t, kind, yd, yv, rv, held, bv, bs, md, mv, q, r_s, q_held):
 # The loops above as they run: compiled ahead of time, or by numba (kalman's scalar steps, which
 # they call, compiled with them: the same functions, one definition), or interpreted. The
 # interpreted originals stay reachable as ``PY``.
-PY = {"column_pass": _column_pass, "gain_loop": _gain_loop, "kf2_loop": _kf2_loop}
+PY = {"column_pass": _column_pass, "column_pass_blocks": _column_pass_blocks,
+      "gain_loop": _gain_loop, "kf2_loop": _kf2_loop}
 _SOURCES = [__file__, kalman.__file__]
 # numba's signatures of the compiled-ahead forms: the callers pass contiguous arrays of these
 # types (np.ascontiguousarray with the dtype)
@@ -430,6 +566,8 @@ _C1, _C2, _C3 = "f8[::1]", "f8[:, ::1]", "f8[:, :, ::1]"
 AOT_SIGNATURES = {
     "column_pass": f"void({_C1}, i8[::1], {', '.join([_C2] * 5)}, {_C1}, {_C1}, {_C3}, {_C2}, "
                    f"i8[::1], {_C2}, {_C3}, b1)",
+    "column_pass_blocks": f"void({_C1}, i8[::1], {', '.join([_C2] * 6)}, {_C1}, {_C1}, {_C3}, "
+                          f"{_C2}, i8[::1], {_C2}, {_C3}, b1)",
     "gain_loop": f"Tuple((f8, i8))({_C1}, i8[::1], b1[::1], {_C1}, b1[::1], {_C1}, b1, f8, f8, "
                  f"f8, {_C3}, {_C2}, {_C1}, i8[::1], i1[::1])",
     "kf2_loop": f"Tuple((f8, i8, f8, f8, f8))({_C1}, i8[::1], {', '.join([_C1] * 3)}, b1[::1], "
@@ -440,6 +578,7 @@ if _AOT is not None:
     COMPILED = True
     _predict_cov, _odometer_update, _balise_update = predict_cov, odometer_update, balise_update
     _column_pass, _gain_loop, _kf2_loop = _AOT.column_pass, _AOT.gain_loop, _AOT.kf2_loop
+    _column_pass_blocks = _AOT.column_pass_blocks
 else:
     from .jit import COMPILED, jit
 
@@ -447,10 +586,11 @@ else:
     _odometer_update = jit(odometer_update)
     _balise_update = jit(balise_update)
     _column_pass, _gain_loop, _kf2_loop = jit(_column_pass), jit(_gain_loop), jit(_kf2_loop)
+    _column_pass_blocks = jit(_column_pass_blocks)
 
 
 def build_aot():
-    """Compile the three loops ahead of time for this source (``./run setup``; 10-30 s): the
+    """Compile the loops ahead of time for this source (``./run setup``; 10-30 s): the
     extension :data:`_AOT` loads from the next process on. Needs numba."""
     if _AOT is not None:
         return aot.build("augmented_kf", _SOURCES, {})  # there already: its path

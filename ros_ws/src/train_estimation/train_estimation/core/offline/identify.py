@@ -58,7 +58,6 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.optimize import minimize
 from train_core.actuator import grid_output as actuator_output
 from train_core.model import Davis, Line, TrainParams
 
@@ -398,6 +397,10 @@ def _fit(run: _Run, free: dict, prior_vals: dict, Bv, Bs, q_vec, r_s):
 
 def _fit_noise(run, free, prior_vals, Bv, Bs, qvec, log_q, log_rs, cfg: SIConfig):
     """(log q, log r_s) by the profile likelihood (Nelder-Mead on logs)."""
+    # imported here: diagnose imports this module for moving_average, and scipy.optimize's
+    # import is some 0.2 s of CPU that a diagnose process would pay for nothing
+    from scipy.optimize import minimize
+
     def negll(z):
         try:
             return -_fit(run, free, prior_vals, Bv, Bs, qvec(z[0]), np.exp(z[1]))[3]

@@ -43,8 +43,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.interpolate import BSpline, make_lsq_spline
 from scipy.special import chdtrc
+
+from train_estimation.core.numerics import lsq_spline
 
 # s, knot spacing of the speed's spline: a train's speed follows a cubic on 2 s (its
 # acceleration changes through the actuator's lag of 0.3-1 s), the readings' noise does not;
@@ -109,14 +110,14 @@ def spline_residuals(t: np.ndarray, y: np.ndarray, rv: np.ndarray,
         inner = x[0] + (x[-1] - x[0]) * np.arange(1, m) / m
         knots = np.r_[[x[0]] * 4, inner, [x[-1]] * 4]
         w = 1.0 / np.sqrt(rv[i])
-        try:
-            sp = make_lsq_spline(x, y[i], knots, k=3, w=w)
+        try:  # scipy's make_lsq_spline, without importing scipy.interpolate (lsq_spline)
+            c = lsq_spline.lsq_coefficients(x, y[i], knots, 3, w)
         except (ValueError, np.linalg.LinAlgError):  # a stretch the knots do not fit
             continue
-        r[i] = y[i] - sp(x)
+        r[i] = y[i] - lsq_spline.evaluate(knots, c, 3, x)
         dof += i.size - (knots.size - 4)
         if lags:
-            A = BSpline.design_matrix(x, knots, 3).toarray() * w[:, None]
+            A = lsq_spline.design_matrix(x, knots, 3) * w[:, None]
             M = A @ np.linalg.pinv(A.T @ A)
             for lag in range(1, min(lags, i.size - 1) + 1):
                 lag_sums[lag - 1] -= float(np.sum(M[:-lag] * A[lag:]))

@@ -16,15 +16,15 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.optimize import minimize_scalar
 
 from train_estimation.core.numerics.augmented_kf import (
     LOG2PI,
-    augmented_kf,
+    augmented_kf_blocks,
     digest,
     gls,
     kf2_loglik,
 )
+from train_estimation.core.numerics.brent import minimize_bounded
 
 from .motion import Motion, slip_cols
 from .run import DiagConfig
@@ -130,22 +130,9 @@ class Stage:
         fs; the null's measurement part), s0, drift columns ``drift = (Dv, Ds)``...,
         measurement columns ``meas = (Md, Mv)``..., balise measurement columns ``bal``...]
         (each pair (n_ev, k), ``bal`` (n_ev, k), or None)."""
-        n = self.mo.ev.t.size
-        a = 0 if drift is None else drift[0].shape[1]
-        b = 0 if meas is None else meas[0].shape[1]
-        c = 0 if bal is None else bal.shape[1]
-        Bv, Bs, Md, Mv, Mb = (np.zeros((n, a + b + c + 2)) for _ in range(5))
-        Bv[:, 0], Bs[:, 0] = fv, fs
-        Md[:, 0], Mv[:, 0] = self.md, self.mv
-        Mb[:, 0], Mb[:, 1] = self.mb, 1.0
-        if a:
-            Bv[:, 2:a + 2], Bs[:, 2:a + 2] = drift
-        if b:
-            Md[:, a + 2:a + b + 2], Mv[:, a + 2:a + b + 2] = meas
-        if c:
-            Mb[:, a + b + 2:] = bal
-        return augmented_kf(self.mo.ev, self.q, self.r_s, Bv, Bs, Md, Mv, Mb,
-                            self.cfg.standstill_q, **kw)
+        return augmented_kf_blocks(self.mo.ev, self.q, self.r_s,
+                                   (fv, fs, self.md, self.mv, self.mb), drift=drift, meas=meas,
+                                   bal=bal, q_held=self.cfg.standstill_q, **kw)
 
     def _null_drift(self) -> dict:
         null, mo = self.null, self.mo
@@ -182,12 +169,9 @@ class Stage:
         q_lo, q_hi, r_lo, r_hi = (math.log(cfg.q_floor), math.log(1.0), math.log(1e-6),
                                   math.log(25))
         opts = {"xatol": 0.1, "maxiter": 14}
-        lq = minimize_scalar(lambda x: -ll(x, lr), bounds=(q_lo, q_hi), method="bounded",
-                             options=opts).x
-        lr = minimize_scalar(lambda x: -ll(lq, x), bounds=(r_lo, r_hi), method="bounded",
-                             options=opts).x
-        lq = minimize_scalar(lambda x: -ll(x, lr), bounds=(q_lo, q_hi), method="bounded",
-                             options=opts).x
+        lq = minimize_bounded(lambda x: -ll(x, lr), q_lo, q_hi, **opts)[0]
+        lr = minimize_bounded(lambda x: -ll(lq, x), r_lo, r_hi, **opts)[0]
+        lq = minimize_bounded(lambda x: -ll(x, lr), q_lo, q_hi, **opts)[0]
         return float(math.exp(lq)), float(math.exp(lr))
 
     def fixed_loglik(self) -> float:
