@@ -122,6 +122,42 @@ def _result(gp, Z: np.ndarray, E: np.ndarray, keep_innov: bool) -> KFResult:
     return KFResult(W=Z.T @ Z, logdet=gp.logdet, m=gp.m, E0=E0, E1=E1, S_v=S_v)
 
 
+def _element(k, j, c, r, hk, bs, bv, md, mv, mb, yd, yv, K, L, Z, E, keep, xs, xv):
+    """One column ``j`` of an augmented filter at event ``k`` (code ``c``, first row ``r`` of
+    ``Z``), its inputs' entries ``bs, bv, md, mv, mb`` there: predict, update, whiten, in the
+    order both column passes share (their results bit for bit the same)."""
+    s_ = xs[j] + xv[j] * hk
+    s_ = s_ + bs
+    v_ = xv[j] + bv
+    if c == 0:  # odometer reading
+        es = -md - s_
+        ev_ = -mv - v_
+        if j == 0:
+            es += yd[k]
+            ev_ += yv[k]
+        s_ = s_ + K[k, 0, 0] * es
+        v_ = v_ + K[k, 1, 0] * es
+        s_ = s_ + K[k, 0, 1] * ev_
+        v_ = v_ + K[k, 1, 1] * ev_
+        z0 = es / L[k, 0]
+        Z[r, j] = z0
+        Z[r + 1, j] = (ev_ - L[k, 1] * z0) / L[k, 2]
+        if keep and j < 2:
+            E[k, 0, j] = es
+            E[k, 1, j] = ev_
+    elif c == 1:  # balise reading
+        eb = -mb - s_
+        if j == 0:
+            eb += yd[k]
+        s_ = s_ + K[k, 0, 0] * eb
+        v_ = v_ + K[k, 1, 0] * eb
+        Z[r, j] = eb / L[k, 0]
+        if keep and j < 2:
+            E[k, 0, j] = eb
+    xs[j] = s_
+    xv[j] = v_
+
+
 def _column_pass(h, code, Bs, Bv, Md, Mv, Mb, yd, yv, K, L, row, Z, E, keep):
     """The columns of an augmented filter run and their whitened innovations ``Z`` (two rows
     per odometer reading, one per balise reading; ``E`` (n, 2, 2) the innovations of columns 0
@@ -140,36 +176,8 @@ def _column_pass(h, code, Bs, Bv, Md, Mv, Mb, yd, yv, K, L, row, Z, E, keep):
         c = code[k]
         r = row[k]
         for j in range(p1):
-            s_ = xs[j] + xv[j] * hk
-            s_ = s_ + Bs[k, j]
-            v_ = xv[j] + Bv[k, j]
-            if c == 0:  # odometer reading
-                es = -Md[k, j] - s_
-                ev_ = -Mv[k, j] - v_
-                if j == 0:
-                    es += yd[k]
-                    ev_ += yv[k]
-                s_ = s_ + K[k, 0, 0] * es
-                v_ = v_ + K[k, 1, 0] * es
-                s_ = s_ + K[k, 0, 1] * ev_
-                v_ = v_ + K[k, 1, 1] * ev_
-                z0 = es / L[k, 0]
-                Z[r, j] = z0
-                Z[r + 1, j] = (ev_ - L[k, 1] * z0) / L[k, 2]
-                if keep and j < 2:
-                    E[k, 0, j] = es
-                    E[k, 1, j] = ev_
-            elif c == 1:  # balise reading
-                eb = -Mb[k, j] - s_
-                if j == 0:
-                    eb += yd[k]
-                s_ = s_ + K[k, 0, 0] * eb
-                v_ = v_ + K[k, 1, 0] * eb
-                Z[r, j] = eb / L[k, 0]
-                if keep and j < 2:
-                    E[k, 0, j] = eb
-            xs[j] = s_
-            xv[j] = v_
+            _element(k, j, c, r, hk, Bs[k, j], Bv[k, j], Md[k, j], Mv[k, j], Mb[k, j], yd, yv,
+                     K, L, Z, E, keep, xs, xv)
 
 
 def augmented_kf_blocks(ev: Events, q: float, r_s: float, fixed, drift=None, meas=None,
@@ -267,36 +275,7 @@ def _column_pass_blocks(h, code, F, Ds, Dv, Mdb, Mvb, Mbb, yd, yv, K, L, row, Z,
                 mv = Mvb[k, j - a2]
             else:
                 mb = Mbb[k, j - ab2]
-            s_ = xs[j] + xv[j] * hk
-            s_ = s_ + bs
-            v_ = xv[j] + bv
-            if c == 0:  # odometer reading
-                es = -md - s_
-                ev_ = -mv - v_
-                if j == 0:
-                    es += yd[k]
-                    ev_ += yv[k]
-                s_ = s_ + K[k, 0, 0] * es
-                v_ = v_ + K[k, 1, 0] * es
-                s_ = s_ + K[k, 0, 1] * ev_
-                v_ = v_ + K[k, 1, 1] * ev_
-                z0 = es / L[k, 0]
-                Z[r, j] = z0
-                Z[r + 1, j] = (ev_ - L[k, 1] * z0) / L[k, 2]
-                if keep and j < 2:
-                    E[k, 0, j] = es
-                    E[k, 1, j] = ev_
-            elif c == 1:  # balise reading
-                eb = -mb - s_
-                if j == 0:
-                    eb += yd[k]
-                s_ = s_ + K[k, 0, 0] * eb
-                v_ = v_ + K[k, 1, 0] * eb
-                Z[r, j] = eb / L[k, 0]
-                if keep and j < 2:
-                    E[k, 0, j] = eb
-            xs[j] = s_
-            xv[j] = v_
+            _element(k, j, c, r, hk, bs, bv, md, mv, mb, yd, yv, K, L, Z, E, keep, xs, xv)
 
 
 def _column_pass_numpy(ev: Events, gp, Bs, Bv, Md, Mv, Mb, E):
@@ -583,6 +562,7 @@ else:
     from .jit import COMPILED, jit
 
     _predict_cov = jit(predict_cov)
+    _element = jit(_element)  # the column passes' shared step, compiled into both
     _odometer_update = jit(odometer_update)
     _balise_update = jit(balise_update)
     _column_pass, _gain_loop, _kf2_loop = jit(_column_pass), jit(_gain_loop), jit(_kf2_loop)
