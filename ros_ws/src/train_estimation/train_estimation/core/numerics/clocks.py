@@ -1158,10 +1158,10 @@ class StepWatch:
     def _silent(self, n: int) -> bool:
         """``n`` held readings are enough for a step at ``step_risk``: the old clock's silence
         over them is that unlikely on this link (:func:`silence_risk`), its losses counted over
-        the recent odometer stamps admitted (the slots between them at the stamps' period that
-        none filled). The nominal period spaces the slots: the stamps' own (their median step)
-        is two periods on a link that loses every other reading, which then looked lossless;
-        a clock 1 % off the nominal rate miscounts one slot in a hundred."""
+        the recent odometer stamps admitted (the slots between them, a nominal period apart,
+        that none filled). Not the stamps' own period (their median step): that is two periods
+        on a link that loses every other reading, which then looked lossless; a clock 1 % off
+        the nominal rate miscounts one slot in a hundred."""
         adm = self._admitted
         got, lost = len(adm), 0
         if got > 1:
