@@ -17,7 +17,7 @@ one, confirmed and alone (nominal: ``none``), and what was reported instead.
 
 ``--subtle``: each listed effect of the same draw and place at half its deviation from the
 believed train (``train_sim.cases``' subtle size): 2-3 per mille, Davis x 0.8-0.88 or x
-1.15-1.25, f 0.88-0.93, and so on; a power limit's knee at 80-120 % of the top speed.
+1.15-1.25, f 0.88-0.93, and so on; a power limit's knee at 70-80 % of the top speed.
 
     ./run bench foreign --estimators --seeds 4 --jobs 2   # every estimator, about 12 min
     ./run bench foreign --unlisted --seeds 8 --jobs 2     # effects outside the list, 4 min
@@ -148,11 +148,14 @@ def effect_of(kind: str, line: dict, train: dict, rng, pilot) -> FS.Effect:
     raise ValueError(kind)
 
 
-def subtle(eff: FS.Effect, train: dict) -> FS.Effect:
+def subtle(eff: FS.Effect, train: dict, v_top: float) -> FS.Effect:
     """``eff`` at half its deviation from the believed train (``--subtle``), as
     ``train_sim.cases``' subtle size is half its plain one: the same draw and place, each
     quantity half-way between the believed value and the plain effect's (a gradient's per mille
-    and a clock's drift halved, a power limit's 1 / p_spec halved: its knee twice as fast)."""
+    and a clock's drift halved). A power limit is half-way between the plain one and the limit
+    whose knee is the run's top speed ``v_top`` (m/s): one that binds over half the speeds.
+    (Halving 1 / p_spec instead puts the knee at 80-120 % of the top speed: on seeds 0 and 1 it
+    bound for 1 s and never; no data can show it.)"""
     def mid(true: float, believed: float) -> float:
         return believed + 0.5 * (true - believed)
 
@@ -168,7 +171,8 @@ def subtle(eff: FS.Effect, train: dict) -> FS.Effect:
         clock_drift=0.5 * eff.clock_drift,
         adhesion=None if eff.adhesion is None else (*eff.adhesion[:2],
                                                     mid(eff.adhesion[2], 1.0)),
-        p_spec=None if eff.p_spec is None else 2.0 * eff.p_spec,
+        p_spec=None if eff.p_spec is None else mid(
+            eff.p_spec, float(train.get("performance", {}).get("max_traction", 0.8)) * v_top),
         traction_delay=None if eff.traction_delay is None else mid(eff.traction_delay, delay))
 
 
@@ -287,7 +291,7 @@ def foreign_case(seed: int, kind: str, directory: str, family: str | None = None
         eff = effect_of(kind, line, train, np.random.default_rng([seed, 2, KINDS.index(kind)]),
                         pilot[:3])
         if size == "subtle":
-            eff = subtle(eff, train)
+            eff = subtle(eff, train, float(pilot[1].max()))
     if effect:
         eff = dataclasses.replace(eff, **effect)
     return case, paths, line, train, pilot, eff

@@ -502,12 +502,16 @@ def test_a_subtle_effect_is_the_plain_draw_at_half_its_deviation():
                       braking_rate=0.8, mass=1.16, odometer_scale=0.98, brake_delay=T + 0.6,
                       clock_drift=8e-5, adhesion=(2000.0, 2300.0, 0.6), p_spec=6.0,
                       traction_delay=T + 0.8, traction_gain=0.7)
-    s = BF.subtle(plain, TRAIN)
+    a_max, v_top = TRAIN["performance"]["max_traction"], 20.0
+    s = BF.subtle(plain, TRAIN, v_top)
     assert s.gradient == (1000.0, 1400.0, -2.5)
     assert np.allclose(s.davis, (1.2 * d["a"], 1.2 * d["b"], 1.2 * d["c"]), rtol=1e-12)
     assert np.allclose([s.braking_rate, s.mass, s.odometer_scale, s.brake_delay, s.clock_drift,
-                        s.adhesion[2], 1.0 / s.p_spec, s.traction_delay],
-                       [0.9, 1.08, 0.99, T + 0.3, 4e-5, 0.8, 1.0 / 12.0, T + 0.4], rtol=1e-12)
+                        s.adhesion[2], s.p_spec, s.traction_delay],
+                       [0.9, 1.08, 0.99, T + 0.3, 4e-5, 0.8, (6.0 + a_max * v_top) / 2, T + 0.4],
+                       rtol=1e-12)
+    # the power limit's knee half-way between the plain one and the top speed
+    assert np.isclose(s.p_spec / a_max, (6.0 / a_max + v_top) / 2, rtol=1e-12)
     assert s.adhesion[:2] == (2000.0, 2300.0)
     assert s.traction_gain == 0.7  # an effect outside the list has one size: left as it is
-    assert BF.subtle(FS.Effect(), TRAIN) == FS.Effect()  # nominal stays nominal
+    assert BF.subtle(FS.Effect(), TRAIN, v_top) == FS.Effect()  # nominal stays nominal
