@@ -13,6 +13,12 @@ integrator, sensors, link (Gilbert-Elliott losses, latency with an exponential t
 (an arbitrary epoch) are its own. Printed: per kind, how often the reported cause is the hidden
 one, confirmed and alone (nominal: ``none``), and what was reported instead.
 
+    ./run bench foreign --subtle --seeds 4 --jobs 2   # the same effects at half their size
+
+``--subtle``: each listed effect of the same draw and place at half its deviation from the
+believed train (``train_sim.cases``' subtle size): 2-3 per mille, Davis x 0.8-0.88 or x
+1.15-1.25, f 0.88-0.93, and so on; a power limit's knee at 70-80 % of the top speed.
+
     ./run bench foreign --estimators --seeds 4 --jobs 2   # every estimator, about 12 min
     ./run bench foreign --unlisted --seeds 8 --jobs 2     # effects outside the list, 4 min
 
@@ -142,6 +148,34 @@ def effect_of(kind: str, line: dict, train: dict, rng, pilot) -> FS.Effect:
     raise ValueError(kind)
 
 
+def subtle(eff: FS.Effect, train: dict, v_top: float) -> FS.Effect:
+    """``eff`` at half its deviation from the believed train (``--subtle``), as
+    ``train_sim.cases``' subtle size is half its plain one: the same draw and place, each
+    quantity half-way between the believed value and the plain effect's (a gradient's per mille
+    and a clock's drift halved). A power limit is half-way between the plain one and the limit
+    whose knee is the run's top speed ``v_top`` (m/s): one that binds over half the speeds.
+    (Halving 1 / p_spec instead puts the knee at 80-120 % of the top speed: on seeds 0 and 1 it
+    bound for 1 s and never; no data can show it.)"""
+    def mid(true: float, believed: float) -> float:
+        return believed + 0.5 * (true - believed)
+
+    d, delay = train["davis"], float(train["brake"]["delay"])
+    return dataclasses.replace(
+        eff,
+        gradient=None if eff.gradient is None else (*eff.gradient[:2], 0.5 * eff.gradient[2]),
+        davis=None if eff.davis is None else tuple(
+            mid(v, float(d[k])) for v, k in zip(eff.davis, ("a", "b", "c"))),
+        braking_rate=mid(eff.braking_rate, 1.0), mass=mid(eff.mass, 1.0),
+        odometer_scale=mid(eff.odometer_scale, 1.0),
+        brake_delay=None if eff.brake_delay is None else mid(eff.brake_delay, delay),
+        clock_drift=0.5 * eff.clock_drift,
+        adhesion=None if eff.adhesion is None else (*eff.adhesion[:2],
+                                                    mid(eff.adhesion[2], 1.0)),
+        p_spec=None if eff.p_spec is None else mid(
+            eff.p_spec, float(train.get("performance", {}).get("max_traction", 0.8)) * v_top),
+        traction_delay=None if eff.traction_delay is None else mid(eff.traction_delay, delay))
+
+
 def unlisted_effect_of(kind: str, line: dict, train: dict, rng, pilot) -> FS.Effect:
     """One effect outside the list (``UNLISTED``), of a plain listed effect's size (an extra
     0.04-0.08 m/s^2 where it acts, or 20-60 % of the traction or braking), placed where the
@@ -221,12 +255,14 @@ def unlisted_effect_of(kind: str, line: dict, train: dict, rng, pilot) -> FS.Eff
 
 
 def foreign_case(seed: int, kind: str, directory: str, family: str | None = None,
-                 sim: dict | None = None, effect: dict | None = None) -> tuple:
+                 sim: dict | None = None, effect: dict | None = None,
+                 size: str = "plain") -> tuple:
     """Seed ``seed``'s line and believed train (``make_case``; with ``family``, one of
     ``foreign_sim.OTHER_FAMILIES`` instead), written to ``directory``, and the effect of
     ``kind`` placed from a nominal pilot run with the same driver and link options ``sim``:
     (case, paths, line dict, train dict, the pilot's (x, v, command) at its commands,
-    effect, with the fields of ``effect`` set: ``--set``); ``case.family`` names the family."""
+    effect, with the fields of ``effect`` set: ``--set``); ``case.family`` names the family.
+    ``size`` "subtle": a listed effect at half its plain deviation (:func:`subtle`)."""
     if family is None:
         from train_sim.cases import make_case
 
@@ -254,6 +290,8 @@ def foreign_case(seed: int, kind: str, directory: str, family: str | None = None
     else:
         eff = effect_of(kind, line, train, np.random.default_rng([seed, 2, KINDS.index(kind)]),
                         pilot[:3])
+        if size == "subtle":
+            eff = subtle(eff, train, float(pilot[1].max()))
     if effect:
         eff = dataclasses.replace(eff, **effect)
     return case, paths, line, train, pilot, eff
@@ -274,7 +312,8 @@ def run_case(spec: dict) -> dict:
                                                             os.path.join(d, "case"),
                                                             spec.get("family"),
                                                             spec.get("sim"),
-                                                            spec.get("effect"))
+                                                            spec.get("effect"),
+                                                            spec.get("size", "plain"))
         out = {**spec, "family": case.family, "effect": repr(eff)}
         if kind == "coast_drag":
             # a drag while coasting acts only where the run coasts: this driver holds its speed
@@ -509,6 +548,10 @@ def main(argv=None) -> int:
                    help="effects outside diagnose's list instead: how often it says "
                         "`unexplained` and confirms no listed cause (with --estimators: "
                         "the estimators' integrity on them)")
+    p.add_argument("--subtle", action="store_true",
+                   help="listed effects at half their plain deviation from the believed train "
+                        "(the same draws and places; train_sim.cases' subtle size), results in "
+                        "foreign_subtle")
     p.add_argument("--jobs", type=int, default=1, help="parallel processes (default 1)")
     p.add_argument("--estimators", action="store_true",
                    help="run every estimator on the runs instead of diagnose (the integrity "
@@ -560,6 +603,8 @@ def main(argv=None) -> int:
            if v is not None}
     if args.kinds is None:
         args.kinds = list(UNLISTED) if args.unlisted else list(KINDS)
+    if args.subtle and args.unlisted:
+        p.error("--subtle halves the listed effects; the effects outside the list have one size")
     if (args.as_recorded or args.no_distance) and not args.estimators:
         p.error("--as-recorded and --no-distance go with --estimators")
     specs = [{"seed": s, "kind": k, **({"sim": sim} if sim else {}),
@@ -567,11 +612,13 @@ def main(argv=None) -> int:
               **({"recorded": True} if args.as_recorded else {}),
               **({"config": {"use_distance": False}} if args.no_distance else {}),
               **({"effect": override} if override else {}),
+              **({"size": "subtle"} if args.subtle else {}),
               **({"keep": os.path.abspath(args.keep)} if args.keep else {})}
              for s in range(args.first, args.first + args.seeds) for k in args.kinds]
     fn, name = (run_estimators, "foreign_estimators") if args.estimators else \
         (run_case, "foreign")
     name += "_unlisted" if args.unlisted else ""
+    name += "_subtle" if args.subtle else ""
     name += "".join(f"_{k}{v:g}" for k, v in sim.items())  # a variant's own file
     name += f"_{args.family}" if args.family else ""
     name += "_as_recorded" if args.as_recorded else ""

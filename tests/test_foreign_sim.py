@@ -489,3 +489,29 @@ def test_without_the_distance_a_late_reader_a_wrong_scale_or_a_lying_balise_is_n
         assert r["wrong_side"] == 0, (r["estimator"], r["wrong_side"])
         if kind != "balise_moved":
             assert r["misleading"] == 0 and r["clear"] > 0.99, (r["estimator"], r["clear"])
+
+
+def test_a_subtle_effect_is_the_plain_draw_at_half_its_deviation():
+    """bench_foreign --subtle: the same draw and place as the plain effect, each quantity
+    half-way between the believed train and the plain effect (train_sim.cases' subtle size)."""
+    import bench_foreign as BF
+
+    d, T = TRAIN["davis"], TRAIN["brake"]["delay"]
+    plain = FS.Effect(gradient=(1000.0, 1400.0, -5.0), davis=(1.4 * d["a"], 1.4 * d["b"],
+                                                              1.4 * d["c"]),
+                      braking_rate=0.8, mass=1.16, odometer_scale=0.98, brake_delay=T + 0.6,
+                      clock_drift=8e-5, adhesion=(2000.0, 2300.0, 0.6), p_spec=6.0,
+                      traction_delay=T + 0.8, traction_gain=0.7)
+    a_max, v_top = TRAIN["performance"]["max_traction"], 20.0
+    s = BF.subtle(plain, TRAIN, v_top)
+    assert s.gradient == (1000.0, 1400.0, -2.5)
+    assert np.allclose(s.davis, (1.2 * d["a"], 1.2 * d["b"], 1.2 * d["c"]), rtol=1e-12)
+    assert np.allclose([s.braking_rate, s.mass, s.odometer_scale, s.brake_delay, s.clock_drift,
+                        s.adhesion[2], s.p_spec, s.traction_delay],
+                       [0.9, 1.08, 0.99, T + 0.3, 4e-5, 0.8, (6.0 + a_max * v_top) / 2, T + 0.4],
+                       rtol=1e-12)
+    # the power limit's knee half-way between the plain one and the top speed
+    assert np.isclose(s.p_spec / a_max, (6.0 / a_max + v_top) / 2, rtol=1e-12)
+    assert s.adhesion[:2] == (2000.0, 2300.0)
+    assert s.traction_gain == 0.7  # an effect outside the list has one size: left as it is
+    assert BF.subtle(FS.Effect(), TRAIN, v_top) == FS.Effect()  # nominal stays nominal
