@@ -196,11 +196,8 @@ def zone_in_loop(outs: list, emitted, truth: dict) -> dict:
         lead, auth = zc.authorities(float(e), ["leader", "follower"])
         x_true = float(np.interp(e - F.EPOCH, tr_t, tr_x))
         if lead.state in ("ok", "overrun"):  # bounded and fresh: supervised by its bounds
-            rep = zc.reports["leader"]
-            front, _, speed, f_low = zc._bounds(rep)
-            front += speed * zc._age("leader", rep, float(e))  # carried to now, as it brakes
             v_true = max(float(np.interp(e - F.EPOCH, tr_t, tr_v)), 0.0)
-            short += front + speed * speed / (2.0 * f_low * p.emergency_decel) < \
+            short += zc.worst_stop("leader", zc.reports["leader"], float(e)) < \
                 x_true + v_true * v_true / (2.0 * p.emergency_decel)
         if auth.emergency_brake:
             continue

@@ -462,6 +462,16 @@ class ZoneController:
             age = max(age, now - rep.stamp + ref)
         return max(age, 0.0)
 
+    def worst_stop(self, train_id: str, rep: TrainReport, now: float) -> float:
+        """m, where the train stops at worst from ``now`` on (module doc): its max safe front
+        end carried to the present at the worst-case speed (the train may have run on since
+        the report's sample: a node that stalled 8 s delivered its backlog within the stale
+        timeout, and the fronts it stated were metres behind the train), plus the braking
+        distance from that speed at the braking rate's lower bound."""
+        front, _, speed, f_low = self._bounds(rep)
+        front += speed * self._age(train_id, rep, now)
+        return front + speed * speed / (2.0 * f_low * self.params.emergency_decel)
+
     def authorities(self, now: float, train_ids: list[str]) -> list[Authority]:
         """One authority per train in ``train_ids`` at zone-controller time ``now`` (s)."""
         p = self.params
@@ -474,11 +484,6 @@ class ZoneController:
                 out.append(Authority(tid, -math.inf, 0.0, True, "no estimate received yet",
                                      "no_estimate"))
                 continue
-            front, _, speed, f_low = self._bounds(rep)
-            # the max safe front end now, not at the report's sample: the train may have run
-            # on at its worst-case speed since (a node that stalled 8 s delivered its backlog
-            # within the stale timeout, and the fronts it stated were metres behind the train)
-            front += speed * self._age(tid, rep, now)
             hazards = [(d - p.margin, f"danger point at {d:.1f} m") for d in p.danger_points
                        if d - p.margin >= rep.position - rep.pl_behind]
             reason, state = "", "ok"
@@ -508,10 +513,9 @@ class ZoneController:
             if unsafe[tid][0]:
                 reason, state = unsafe[tid]
             elif not reason:
-                stop_dist = speed * speed / (2.0 * f_low * p.emergency_decel)
-                if front + stop_dist > eoa:
-                    reason = (f"worst-case stop {front + stop_dist:.1f} m passes EoA {eoa:.1f} m "
-                              f"({what})")
+                stop = self.worst_stop(tid, rep, now)
+                if stop > eoa:
+                    reason = f"worst-case stop {stop:.1f} m passes EoA {eoa:.1f} m ({what})"
                     state = "overrun"
             out.append(Authority(tid, eoa, p.permitted_speed, bool(reason), reason, state))
         return out
