@@ -207,7 +207,9 @@ class RobustAdapter(DistanceAsPosition):
 
     def odometer(self, stamp: float, fields: dict) -> str:
         self._origin(fields)
-        undo = self._restart(stamp, fields)
+        undo, held = self._restart(stamp, fields)
+        if held:  # a count off its course without a counter: the next reading decides
+            return held
         pos, speed, rv = self._mapped(fields, stamp)
         r = OdometerReading(stamp=stamp, seq=int(fields["seq"]),
                             distance=pos - self.start_state.position, speed=speed,
@@ -603,7 +605,9 @@ class BrakingAdapter(DistanceAsPosition):
         if why:
             return why
         self._origin(fields)
-        undo = self._restart(stamp, fields)
+        undo, held = self._restart(stamp, fields)
+        if held:  # a count off its course without a counter: the next reading decides
+            return held
         pos, speed, var = self._mapped(fields, stamp)
         rows = [(1, speed, var)] + ([(0, pos, self.cfg.distance_variance)]
                                     if self.cfg.use_distance else [])

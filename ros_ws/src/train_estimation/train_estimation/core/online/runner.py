@@ -91,6 +91,7 @@ from ..numerics.clocks import (
     StepWatch,
     StreamClock,
 )
+from .calibrated_odometry import SEQ_MADE
 from .integrity import IntegrityMonitor, IntegrityParams
 
 KIND_ORDER = {"control": 0, "odometer": 1, "balise": 2}
@@ -690,7 +691,9 @@ class EstimatorRunner:
             # an uncounted stream (_note_counter): the filters order, mark duplicates and count
             # lost samples by seq; a counter made of the stamp (ms) gives them the stamps' word
             t0 = self._tick0.setdefault(kind, ft)
-            fields = {**fields, "seq": TICK0 + int(round((ft - t0) * TICKS))}
+            # (marked as made: the adapters do not read a restart from it)
+            fields = {**fields, "seq": TICK0 + int(round((ft - t0) * TICKS)),
+                      SEQ_MADE: True}
         try:
             reason = getattr(self.adapter, kind)(ft, fields)
         except (KeyError, TypeError, ValueError, OverflowError) as exc:  # malformed fields
