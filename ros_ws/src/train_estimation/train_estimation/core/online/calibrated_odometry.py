@@ -28,7 +28,6 @@ from .odometer_scale import (
     wald,
 )
 
-
 COUNT_JUMP_RISK = 1e-7  # probability per reading that a count running its course is found off it
 #   (``DistanceAsPosition._off_course``; without a sample counter a count off its course is held
 #   as a possible restart: a false one costs a reading and, twice in a row, a splice)
