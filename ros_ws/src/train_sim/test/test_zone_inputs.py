@@ -90,16 +90,41 @@ def test_far_future_stamp_is_refused_without_poisoning_later_reports(check_stamp
     assert zc.rejected == {Z.FUTURE_STAMP: 1}
 
 
-def test_future_stamp_on_separate_clocks_is_judged_against_the_recent_timeline():
-    """A train clock 1 % slow for an hour: its timeline moves 36 s back; a report stamped 10 s
-    ahead of it is still refused (the timeline is the recent maximum, not the all-time one)."""
+def test_future_stamp_on_separate_clocks_is_judged_against_the_drifting_timeline():
+    """A train clock slow by the stated max_clock_drift for an hour: its timeline moves 3.6 s
+    back, and the zone's follows it; a report stamped 3.5 s ahead of it is refused (the
+    timeline is not the all-time maximum), one on it accepted."""
+    d = P.max_clock_drift
     zc = ZoneController(replace(P, check_stamp_age=False))
     for k in range(36000):
         t = 0.1 * k
-        assert zc.report("A", rep(t, clock=-0.01 * t)) == ""
-    bad = rep(3600.0, clock=-36.0 + 10.0)
+        assert zc.report("A", rep(t, clock=-d * t)) == ""
+    bad = rep(3600.0, clock=-d * 3600.0 + 3.5)
     assert zc.report("A", bad) == Z.FUTURE_STAMP
-    assert zc.report("A", rep(3600.1, clock=-36.001)) == ""
+    assert zc.report("A", rep(3600.1, clock=-d * 3600.1)) == ""
+
+
+def test_a_latency_that_rises_and_stays_is_carried_into_the_age_on_separate_clocks():
+    """The link's latency rises by 3 s and stays (a slower route), the train's clock separate
+    from the zone's: the two read alike, and the zone keeps the latency. Five minutes later a
+    report's worst-case stop is still carried over those 3 s of running (a 60 s window of
+    least latency took them for the clock's offset after a minute: fronts 3 s x v short)."""
+    zc = ZoneController(replace(P, check_stamp_age=False))
+    v = 10.0
+    for k in range(3000):  # 300 s at 10 Hz, the last 240 s 3 s later
+        t = 0.1 * k
+        late = 3.0 if t >= 60.0 else 0.0
+        r = rep(t, v=v)
+        r.t_received += late
+        assert zc.report("A", r) == ""
+    now = r.t_received
+    front, _, speed, _ = zc._bounds(r)
+    # the report's sample was 3 s more than the least latency before its arrival: carried at
+    # least that far, less the drift the zone allows the clocks since the last report on the
+    # quick route (243 s); the 60 s window carried 0 s
+    allowed = P.max_clock_drift * (now - (60.0 + LATENCY - 0.1))
+    assert zc._age("A", r, now) >= 3.0 - allowed - 1e-9
+    assert zc.worst_stop("A", r, now) >= front + speed * (3.0 - allowed) - 1e-9
 
 
 def test_a_stream_of_future_stamps_is_never_followed_on_one_clock():

@@ -57,8 +57,8 @@ no train runs (|velocity| > ``MAX_SPEED``), or a stamp that is implausible:
 
 - *ahead*: more than ``max_future`` ahead of the zone's own clock (``check_stamp_age``: zone and
   estimates on one clock) or, on separate clocks, of the train's timeline (the largest
-  ``stamp - arrival`` accepted in the last ``TIMELINE_WINDOW`` s: latency only makes that
-  smaller);
+  ``stamp - arrival`` accepted, lowered since by what the clocks may drift apart,
+  ``max_clock_drift``: latency only makes ``stamp - arrival`` smaller);
 - *behind* the last accepted stamp (out of order).
 
 Plausibility (a report that passes the field checks but cannot be true; refused the same way,
@@ -84,7 +84,6 @@ timeline in between breaks such a run.
 from __future__ import annotations
 
 import math
-from collections import deque
 from dataclasses import dataclass, field
 from statistics import NormalDist
 
@@ -125,10 +124,18 @@ class ZoneParams:
                               "is refused; also the agreement needed to follow a clock reset")
     reset_reports: int = param(5, "-", "consecutive reports on one new timeline after which "
                                "an estimator's clock reset is followed")
+    max_clock_drift: float = param(1e-3, "s/s", "separate clocks (check_stamp_age false): the "
+                                   "fastest a train's clock drifts from the zone's; the "
+                                   "least latency seen is lowered no faster, so a latency that "
+                                   "rose and stayed is carried into every report's age (a "
+                                   "clock drifting faster reads as latency: fronts carried "
+                                   "further, never short)", lo=0.0)
 
     def __post_init__(self):
         require_finite(self, ("stale_timeout", "measurement_timeout", "emergency_decel",
-                              "max_future", "max_reverse_speed"))
+                              "max_future", "max_reverse_speed", "max_clock_drift"))
+        require(self.max_clock_drift >= 0.0, "max_clock_drift", self.max_clock_drift,
+                "must be >= 0")
         require(0.0 < self.integrity_risk < 0.5, "integrity_risk", self.integrity_risk,
                 "must be in (0, 0.5)")
         require(int(self.reset_reports) == self.reset_reports and self.reset_reports >= 2,
@@ -177,10 +184,6 @@ MAX_BRAKING_RATE = 2.0  # f: twice the nominal braking; a larger one is a corrup
 # larger |velocity| is a corrupt report, and a large negative one must never be read as a
 # train at rest (the worst-case stop takes max(velocity, 0)).
 MAX_SPEED = 150.0
-# s of arrivals over which the largest stamp - arrival accepted is a train's timeline on separate
-# clocks: link latency varies within seconds, and a clock drift of 1e-2 moves the timeline only
-# 0.6 s in this time (a plain running maximum would let a slow clock's timeline lag by hours)
-TIMELINE_WINDOW = 60.0
 
 
 @dataclass
@@ -267,25 +270,31 @@ def check_fields(rep: TrainReport) -> tuple[str, str]:
 class _Timeline:
     """One train's stamp timeline as the zone follows it (stamps are the estimator's)."""
 
-    recent: deque = field(default_factory=deque)  # (arrival, stamp - arrival) accepted in the
-    #   last TIMELINE_WINDOW s, offsets decreasing (a monotone queue: its head is the maximum)
+    ref: float = -math.inf  # s, the largest stamp - arrival accepted, each lowered since its
+    #   arrival by max_clock_drift per s (offset_at); -inf before the first
+    t_ref: float = 0.0  # s, zone clock when ref was last brought up to date
     run: list = field(default_factory=list)  # (stamp, offset) of consecutive stamp-refused
     #   reports that agree with each other: evidence of a new timeline
     shift: float = 0.0  # s, stamp - zone clock of this timeline (0: the estimator's clock is
     #   the zone's; after a followed reset, the new timeline's offset at the reset)
 
-    @property
-    def offset(self) -> float:
-        """s, the largest stamp - arrival accepted in the window (the least latency)."""
-        return self.recent[0][1]
+    def offset_at(self, t: float, drift: float) -> float:
+        """s, the train's timeline at zone time ``t`` (separate clocks): the largest ``stamp -
+        arrival`` accepted, each lowered by ``drift`` per s since it arrived. Latency only
+        lowers ``stamp - arrival``, so the clock offset is at least this while the clocks
+        drift apart no faster than ``drift``. A latency that rose and stayed is thus carried
+        (the reports' ages grow by it) and not taken for the clock's offset: on separate
+        clocks the two read alike, and only the latency is safe to assume (a 60 s window
+        adopted a route's 3 s as offset after a minute, and the fronts it carried fell short of
+        the train's by those 3 s of running). A clock that steps back is followed as a new
+        timeline (``reset_reports``); one that drifts faster reads as latency: older ages,
+        fronts carried further, never short."""
+        return self.ref - drift * max(t - self.t_ref, 0.0)
 
-    def add(self, t_received: float, offset: float) -> None:
-        q = self.recent
-        while q and q[-1][1] <= offset:
-            q.pop()
-        q.append((t_received, offset))
-        while q[0][0] < t_received - TIMELINE_WINDOW:
-            q.popleft()
+    def add(self, t_received: float, offset: float, drift: float) -> None:
+        first = not math.isfinite(self.ref)
+        self.ref = max(self.offset_at(t_received, drift), offset)
+        self.t_ref = t_received if first else max(self.t_ref, t_received)
 
 
 @dataclass
@@ -362,7 +371,7 @@ class ZoneController:
         offset = rep.stamp - rep.t_received
         tl = self.timelines.get(train_id)
         ref = (tl.shift if tl is not None else 0.0) if p.check_stamp_age else \
-            (tl.offset if tl is not None else offset)
+            (tl.offset_at(rep.t_received, p.max_clock_drift) if tl is not None else offset)
         if offset - ref > p.max_future:
             return FUTURE_STAMP, (f"stamped {offset - ref:.3g} s ahead of the "
                                   f"{'zone clock' if p.check_stamp_age else 'train timeline'}"
@@ -398,7 +407,7 @@ class ZoneController:
             # towards "older")
             tl = self.timelines[train_id] = _Timeline(shift=offset if new_timeline else 0.0)
         rep.clock_shift = tl.shift
-        tl.add(rep.t_received, offset)
+        tl.add(rep.t_received, offset, self.params.max_clock_drift)
         tl.run.clear()  # a good report on this timeline breaks a run of outliers
         last = None if new_timeline else self.reports.get(train_id)
         if rep.measurement_used:
@@ -452,13 +461,14 @@ class ZoneController:
 
     def _age(self, train_id: str, rep: TrainReport, now: float) -> float:
         """s since the report's sample, on the zone's clock, at least: with one clock the
-        stamp's age on the followed timeline; on separate clocks from the train timeline's
-        least latency (the largest ``stamp - arrival`` in the window: this report's sample
-        was at the latest its stamp less that); never less than since it arrived."""
+        stamp's age on the followed timeline; on separate clocks from the train timeline
+        (:meth:`_Timeline.offset_at`: this report's sample was at the latest its stamp less
+        that); never less than since it arrived."""
         tl = self.timelines.get(train_id)
         age = now - rep.t_received
-        if tl is not None and tl.recent:
-            ref = tl.shift if self.params.check_stamp_age else tl.offset
+        if tl is not None and math.isfinite(tl.ref):
+            ref = tl.shift if self.params.check_stamp_age else \
+                tl.offset_at(now, self.params.max_clock_drift)
             age = max(age, now - rep.stamp + ref)
         return max(age, 0.0)
 
