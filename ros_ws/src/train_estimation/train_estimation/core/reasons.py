@@ -47,7 +47,8 @@ RELOCATED = "relocated"  # two agreeing balises moved the odometer's count by mo
 BALISE_EXCLUDED = "balise_excluded"  # a fused balise shown to lie by a later one, taken out
 BALISE_LATENCY = "balise_latency"  # the balise reader found to stamp later than its prior allows
 VARIANCE_UNSTATED = "variance_unstated"  # a stream whose variances are 0: not stated, believed used
-COUNT_RESET = "count_reset"  # the odometer's counter went back (a reboot): its count spliced
+COUNT_RESET = "count_reset"  # the odometer restarted its count (a reboot: its counter went back,
+#   or without a counter two readings off the old count's course): its count spliced
 COUNT_ORIGIN = "count_origin"  # the first count far from zero: origin widened until a balise
 START_EXCLUDED = "start_excluded"  # the balises contradict the start: calibrated without it
 SEQ_UNSTATED = "seq_unstated"  # a stream whose seq never moves: no counter, judged by stamps
@@ -84,9 +85,10 @@ DESCRIPTION = {
     BALISE_EXCLUDED: "a fused balise shown to lie by a later one, taken out of the count",
     BALISE_LATENCY: "the balise reader stamps later (or earlier) than balise_latency_std "
                     "allows: its latency is now calibrated with a wide prior",
-    COUNT_RESET: "the odometer's counter went back (a reboot): its count spliced onto the "
-                 "old one where the estimate was predicted, the origin's variance grown by "
-                 "the prediction's",
+    COUNT_RESET: "the odometer restarted its count (a reboot: its counter went back, or "
+                 "without a counter two readings agreed off the old count's course): spliced "
+                 "onto the old one where the estimate was predicted, the origin's variance "
+                 "grown by the prediction's",
     COUNT_ORIGIN: "the odometer's first count is far from zero (data from mid-run, or a count "
                   "from power-up): its origin is widened to cover it until a balise places it",
     START_EXCLUDED: "the balises contradict initial_position (their likelihood ratio against "
