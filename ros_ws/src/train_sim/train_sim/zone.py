@@ -16,10 +16,12 @@ and grants movement authority (end of authority, EoA) up to the nearest danger p
 It sets ``emergency_brake`` when the max safe front, carried to the present at the worst-case
 speed, plus the braking distance at that speed passes the EoA::
 
-    x + PL_ahead + (v + K sigma_v) age + (v + K sigma_v)^2 / (2 f_low b_emergency) > EoA,
+    x + PL_ahead + (v + K sigma_v) age + a_max age^2 / 2
+      + (v + K sigma_v + a_max age)^2 / (2 f_low b_emergency) > EoA,
 
 (``age``: the time since the report's sample on the zone's clock, at least; a report that waited
-in a stalled node is that much behind the train)
+in a stalled node is that much behind the train; ``a_max``: ``max_acceleration``, what the train
+may have gained since)
 
 where ``f_low = max(f_hat - K sigma_f, f_min)`` is the estimated braking rate's lower bound when
 a braking rate is published (``braking_rate`` finite) and 1 (nominal) otherwise. The speed and
@@ -124,6 +126,10 @@ class ZoneParams:
                               "is refused; also the agreement needed to follow a clock reset")
     reset_reports: int = param(5, "-", "consecutive reports on one new timeline after which "
                                "an estimator's clock reset is followed")
+    max_acceleration: float = param(1.5, "m/s^2", "the greatest acceleration of a supervised "
+                                    "train (traction and a downhill gradient): a report's "
+                                    "front and speed are carried over its age at this",
+                                    lo=0.0)
     max_clock_drift: float = param(1e-3, "s/s", "separate clocks (check_stamp_age false): the "
                                    "fastest a train's clock drifts from the zone's; the "
                                    "least latency seen is lowered no faster, so a latency that "
@@ -133,7 +139,10 @@ class ZoneParams:
 
     def __post_init__(self):
         require_finite(self, ("stale_timeout", "measurement_timeout", "emergency_decel",
-                              "max_future", "max_reverse_speed", "max_clock_drift"))
+                              "max_future", "max_reverse_speed", "max_clock_drift",
+                              "max_acceleration"))
+        require(self.max_acceleration >= 0.0, "max_acceleration", self.max_acceleration,
+                "must be >= 0")
         require(self.max_clock_drift >= 0.0, "max_clock_drift", self.max_clock_drift,
                 "must be >= 0")
         require(0.0 < self.integrity_risk < 0.5, "integrity_risk", self.integrity_risk,
@@ -477,9 +486,17 @@ class ZoneController:
         end carried to the present at the worst-case speed (the train may have run on since
         the report's sample: a node that stalled 8 s delivered its backlog within the stale
         timeout, and the fronts it stated were metres behind the train), plus the braking
-        distance from that speed at the braking rate's lower bound."""
+        distance from that speed at the braking rate's lower bound. Over the report's age the
+        train may also have accelerated at up to ``max_acceleration``: the front runs that much
+        further and the speed braked from is that much higher."""
         front, _, speed, f_low = self._bounds(rep)
-        front += speed * self._age(train_id, rep, now)
+        age = self._age(train_id, rep, now)
+        # the train may have accelerated since its sample (a report 3 s old on a slower route
+        # stated the speed of a metro pulling away, 3 m/s below its speed then: its worst stop
+        # fell 1-7 m short)
+        a = self.params.max_acceleration
+        front += speed * age + 0.5 * a * age * age
+        speed += a * age
         return front + speed * speed / (2.0 * f_low * self.params.emergency_decel)
 
     def authorities(self, now: float, train_ids: list[str]) -> list[Authority]:
