@@ -86,7 +86,8 @@ DESCRIPTION = {
     BALISE_LATENCY: "the balise reader stamps later (or earlier) than balise_latency_std "
                     "allows: its latency is now calibrated with a wide prior",
     COUNT_RESET: "the odometer restarted its count (a reboot: its counter went back, or "
-                 "without a counter two readings agreed off the old count's course): spliced "
+                 "without a counter two readings agreed off the old count's course), or may "
+                 "have (without a counter, after a silence it could have rebooted in): spliced "
                  "onto the old one where the estimate was predicted, the origin's variance "
                  "grown by the prediction's",
     COUNT_ORIGIN: "the odometer's first count is far from zero (data from mid-run, or a count "
