@@ -145,6 +145,8 @@ class DistanceAsPosition:
         #   held reading whose count left its course (_restart)
         self.odo_dt: float | None = None  # s, the least interval between fused odometer
         #   readings: the sample period (a longer one missed samples: _after_silence)
+        self.odo_heard: tuple | None = None  # (stamp s, count m, speed m/s) of the last
+        #   odometer reading looked at, fused or not (without a counter: _restart)
         self.origin_far = 0  # 1: the first reading's count was far from the start (_origin)
         self.origin_seen = False  # the first odometer reading's count was looked at
 
@@ -242,10 +244,17 @@ class DistanceAsPosition:
             return (self._splice(stamp, d) if 0 <= seq < self.odo_seq and d >= 0.0
                     else None), ""
         here = (stamp, d + self.splice, v)
+        # the sensor's last word before this one, fused or not: a sensor that sent readings
+        # did not reboot meanwhile (refused ones included: a stuck count refused reading after
+        # reading is no silence)
+        heard = self.odo if self.odo_heard is None or self.odo_heard[0] < self.odo[0] \
+            else self.odo_heard
+        if self.odo_heard is None or stamp > self.odo_heard[0]:
+            self.odo_heard = here
         off = self._off_course(self.odo, here, rv)
         if off is None:
             self.jump = None
-            return self._after_silence(stamp, d, v, rv), ""
+            return self._after_silence(heard, stamp, d, v, rv), ""
         held, self.jump = self.jump, here
         if held is None or not held[0] < stamp or self._off_course(held, here, rv) is not None:
             return None, (f"{R.OUTSIDE_GATE}: the odometer's count left its course by "
@@ -256,22 +265,27 @@ class DistanceAsPosition:
         self.jump = None
         return self._splice(stamp, d), ""
 
-    def _after_silence(self, stamp: float, d: float, v: float, rv: float):
-        """Without a counter, the first reading after a silence (at least one sample missed),
-        on the old count's course and yet small enough to be a count restarted in the silence
-        (at most the travel since the last fused reading, ``COUNT_A_BOUND dt^2 / 4`` and the
-        noise included): the data allow both hypotheses. The count is spliced where the
+    def _after_silence(self, heard: tuple, stamp: float, d: float, v: float, rv: float):
+        """Without a counter, the first reading after a silence (at least one sample missed
+        since ``heard``, the sensor's last reading, fused or not), on the old count's course
+        and yet small enough to be a count restarted in the silence (at most the travel in it,
+        ``COUNT_A_BOUND dt^2 / 4`` and the noise included): the data allow both hypotheses.
+        Where the two would place the train further apart than the count's noise (a restart
+        puts it at least the old count further on), the count is spliced where the
         prediction puts the train, as a restart is (:meth:`_splice`): right under both, since
         the prediction does not use the count, at the cost of the count's word on the distance
         run in the silence (a balise gives it back). Taken as a continuing count, a reboot
         within a 60 s silence early in a run (metro_demo at 47 s: 646 m counted since the boot,
         the old course 1,624 m on, both within the 2,250 m an acceleration of 2.5 m/s^2 allows
-        in 60 s) put the robust filter 1.09 km off with levels of 45-374 m. Returns what to
-        restore should the reading not be fused, or None when the case does not arise."""
-        t0, d0, v0 = self.odo
+        in 60 s) put the robust filter 1.09 km off with levels of 45-374 m. Measured from the
+        last reading fused instead of the last heard, a stuck count refused reading after
+        reading had every link loss taken for such a silence and spliced (291 misleading).
+        Returns what to restore should the reading not be fused, or None when the case does
+        not arise."""
+        t0, d0, v0 = heard  # the sensor's last reading before this one, fused or not
         dt = stamp - t0
         if self.odo_dt is None or dt < 1.5 * self.odo_dt or d < 0.0:
-            return None
+            return None  # no silence: no sample missed since the sensor was last heard
         trap = 0.5 * (v0 + v) * dt
         slack = 0.25 * COUNT_A_BOUND * dt * dt
         noise = 2.0 * self.cfg.distance_variance + max(rv, 0.0) * dt * dt
@@ -559,12 +573,12 @@ class DistanceAsPosition:
                      for c in (self.cal, self.cal_wide, self.cal_alt)) \
             + (self.llr, self.odo, self.latency_found, self.anchor, self.separation,
                self.splice, self.odo_seq, self.restarts, self.origin_far, self.origin_seen,
-               self.jump, self.odo_dt)
+               self.jump, self.odo_dt, self.odo_heard)
 
     def _odometry_restore(self, snap) -> None:
         cal, wide, alt, self.llr, self.odo, self.latency_found, self.anchor, self.separation, \
             self.splice, self.odo_seq, self.restarts, self.origin_far, self.origin_seen, \
-            self.jump, self.odo_dt = snap
+            self.jump, self.odo_dt, self.odo_heard = snap
         self.cal = cal.copy()
         self.cal_wide = wide.copy() if wide is not None else None
         self.cal_alt = alt.copy() if alt is not None else None
