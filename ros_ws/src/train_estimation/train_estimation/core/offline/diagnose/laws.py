@@ -238,7 +238,7 @@ def law_test(mo: Motion, others: Null, cfg, noise, bins: tuple, shape: np.ndarra
     st = Stage(mo, others, cfg, noise=noise, big=False)
     # the bins [lo, hi) each one column
     split = np.zeros(mo.n_bins, bool)
-    W, col_bin, _ = _law_columns(mo, st, law, lo, hi, split)
+    W, _ = _law_columns(mo, st, law, lo, hi, split)
     m = hi - lo
     q0 = gls(W[:2, :2])[2]
     min_len = max(1, int(math.ceil(cfg.min_section / width - 1e-9)))
@@ -267,8 +267,7 @@ LAW_SPLIT = 8
 def _law_columns(mo: Motion, st: Stage, law: np.ndarray, lo: int, hi: int, split: np.ndarray):
     """The augmented filter's information W over the fixed force's and the law's columns on the
     bins [lo, hi): one column per bin, ``LAW_SPLIT`` per bin where ``split``; the fixed force's
-    columns first, then the law's. Returns W, each column's first bin and the columns' edges
-    (m)."""
+    columns first, then the law's. Returns W and the columns' edges (m)."""
     g, ev = mo.grid, mo.ev
     mov, jb = mo.step_moving, mo.step_bin
     edges = mo.bin_edges
@@ -291,8 +290,7 @@ def _law_columns(mo: Motion, st: Stage, law: np.ndarray, lo: int, hi: int, split
     W = st.augmented(st.fv, st.fs, drift=(Bv, Bs)).W
     col_edges = np.concatenate([edges[b] + width * np.arange(p) / p
                                 for b, p in zip(range(lo, hi), parts)] + [[edges[hi]]])
-    col_bin = np.repeat(np.arange(lo, hi), parts)
-    return W, col_bin, col_edges
+    return W, col_edges
 
 
 def _refined(mo: Motion, st: Stage, law: np.ndarray, lo: int, hi: int, best: dict,
@@ -304,7 +302,7 @@ def _refined(mo: Motion, st: Stage, law: np.ndarray, lo: int, hi: int, best: dic
     for _, (a, b) in best.values():
         for e in (a, b):
             split[max(lo, e - 1):min(hi, e + 1)] = True
-    W, _, col_edges = _law_columns(mo, st, law, lo, hi, split)
+    W, col_edges = _law_columns(mo, st, law, lo, hi, split)
     n = col_edges.size - 1
     q0 = gls(W[:2, :2])[2]
     u, e1 = np.zeros(W.shape[0]), np.zeros(W.shape[0])
