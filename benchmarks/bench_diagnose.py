@@ -231,6 +231,10 @@ def run_case_(spec: dict) -> dict:
     out["confirmed"] = [c for c in out["ranking"] if out["status"].get(c) == "confirmed"
                         and c != "none"]
     out["why"] = {r["cause"]: r["why"] for r in rep["ranking"] if r.get("why")}
+    # what one run's data cannot tell each confirmed cause from (its checks' caveats)
+    checks = rep["evidence"].get("_model", {}).get("confirmation", {}).get("checks", {})
+    out["caveats"] = {c: checks[c]["caveat"] for c in out["confirmed"]
+                      if checks.get(c, {}).get("caveat")}
     out["unexplained"] = rep.get("unexplained", [])
     out["untestable"] = [u["cause"] for u in rep["untestable"]]
     out["gain"] = rep.get("gain", {})
@@ -381,6 +385,8 @@ def unlisted_table(rows: list[dict]) -> str:
         md.append(f"- {r['describe']}: {r['reported']}; confirmed {r['confirmed'] or '-'}; "
                   f"phase {u.get('phase', '-')} (true {r['phase']}), where {u.get('where')}, "
                   f"when {u.get('when')}, speed {u.get('speed')}")
+        for c, told in (r.get("caveats") or {}).items():
+            md.append(f"  - {c}: {told}")
     return "\n".join(md) + "\n"
 
 

@@ -55,8 +55,9 @@ class ConfirmConfig:
     # the cause's size as well (its fitted change from nominal): a difference within the
     # model's own slack (discretisation, a command-time grid) is not another cause
     halves_min_share: float = 0.1
-    # -, a place cause whose rival speed law (Cause.speed_rival) fits better by 2 ln LR more
-    # than this is not confirmed (equal parameter counts, each on its own best stretch): with
+    # -, a place cause whose rival law (Cause.speed_rival: drag growing as v^2;
+    # Cause.fixed_rival: a force fixed there) fits better by 2 ln LR more than this is not
+    # confirmed (equal parameter counts, each on its own best stretch): with
     # b-hat ~ N(0, se^2) under the cause, 2 ln LR ~ (2 b-hat - 1) / se^2 exceeds T with at most
     # P(Z > sqrt(T)) whatever se: 0.13 % for 9
     law_lr: float = 9.0

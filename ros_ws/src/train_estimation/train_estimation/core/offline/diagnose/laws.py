@@ -28,7 +28,7 @@ from train_estimation.core.numerics.augmented_kf import gls
 
 from .motion import Motion
 from .phases import _fit_columns, counted_columns
-from .stage import Null, Stage
+from .stage import Null, Stage, best_section
 
 # position bins by which the speed-law test moves a stretch's ends (each law gets its own best
 # stretch near the fitted one: a fixed force fitted on a drag stretch overshoots it at the fast
@@ -213,18 +213,17 @@ def law_test(mo: Motion, others: Null, cfg, noise, bins: tuple, shape: np.ndarra
     force at a place that follows ``shape`` (per grid step, >= 0: v^2 for drag in a tunnel, the
     braking asked for where the rail's adhesion is low), both on top of the model ``others``,
     each on its own best stretch within ``LAW_REACH`` bins of the fitted one (same parameter
-    count: start, end, size).
+    count: start, end, size), its ends then refined to a ``LAW_SPLIT``-th of a bin
+    (:func:`_refined`).
 
     Returns ``lr``: 2 ln of the likelihood ratio of the law's best stretch against the fixed
     force's (> 0: the data prefer the law; near 0 at one steady speed, where the two are the
     same force); on the fixed force's stretch the fit of both together, a ((1 - b) g + b h)
     with h the law's column scaled to the same mean force: ``b`` (0 a fixed force, 1 the law)
     and its standard error (on that stretch, whose ends a fixed force fitted to drag moves:
-    ``lr`` is the comparison); the speeds on it (5-95 %) and both stretches."""
-    g, ev = mo.grid, mo.ev
+    ``lr`` is the comparison); the speeds on it (5-95 %) and both stretches (m)."""
     i, j = int(bins[0]), int(bins[1])
     lo, hi = max(0, i - LAW_REACH), min(mo.n_bins, j + LAW_REACH)
-    vm = 0.5 * (mo.v_ref[1:] + mo.v_ref[:-1])
     mov, jb = mo.step_moving, mo.step_bin
     width = mo.bin_edges[1] - mo.bin_edges[0]
     res = {"law": name}
@@ -236,22 +235,15 @@ def law_test(mo: Motion, others: Null, cfg, noise, bins: tuple, shape: np.ndarra
         res.update(lr=0.0, note=f"{name} is zero on the stretch")
         return res
     law = shape / float(np.mean(shape[on]))  # the law's force relative to its mean there
-    m = hi - lo
-    near = mov & (jb >= lo) & (jb < hi)
-    col = jb[near] - lo
-    gper = -G_ACCEL / 1000.0 * mo.k_grad  # m/s^2 per permille
-    n_ev = ev.t.size
-    Bv, Bs = np.zeros((n_ev, 2 * m)), np.zeros((n_ev, 2 * m))
-    for off, w in ((0, np.ones(near.sum())), (m, law[near])):
-        inc = gper * g.dt * w
-        np.add.at(Bv, (g.k[near], off + col), inc)
-        np.add.at(Bs, (g.k[near], off + col), inc * g.lever[near])
     st = Stage(mo, others, cfg, noise=noise, big=False)
-    W = st.augmented(st.fv, st.fs, drift=(Bv, Bs)).W
+    # the bins [lo, hi) each one column
+    split = np.zeros(mo.n_bins, bool)
+    W, _ = _law_columns(mo, st, law, lo, hi, split)
+    m = hi - lo
     q0 = gls(W[:2, :2])[2]
     min_len = max(1, int(math.ceil(cfg.min_section / width - 1e-9)))
     best = {}
-    for name, off in (("fixed", 0), ("law", m)):
+    for key, off in (("fixed", 0), ("law", m)):
         top = (-np.inf, None)
         for a in range(m):
             for b in range(a + min_len, m + 1):
@@ -261,20 +253,83 @@ def law_test(mo: Motion, others: Null, cfg, noise, bins: tuple, shape: np.ndarra
                 stat = q0 - gls(W, M)[2]
                 if stat > top[0]:
                     top = (stat, (lo + a, lo + b))
-        best[name] = top
+        best[key] = top
+    return _refined(mo, st, law, lo, hi, best, res)
+
+
+# parts of a position bin to which the law tests refine the ends of each law's stretch: a
+# fixed force and a law on stretches of whole bins (tens of metres) differ at the ends by more
+# than the laws do where a stretch ends at a stop (the slow end of a braking, where the train
+# spends seconds on a few metres) or at a tunnel's portal
+LAW_SPLIT = 8
+
+
+def _law_columns(mo: Motion, st: Stage, law: np.ndarray, lo: int, hi: int, split: np.ndarray):
+    """The augmented filter's information W over the fixed force's and the law's columns on the
+    bins [lo, hi): one column per bin, ``LAW_SPLIT`` per bin where ``split``; the fixed force's
+    columns first, then the law's. Returns W and the columns' edges (m)."""
+    g, ev = mo.grid, mo.ev
+    mov, jb = mo.step_moving, mo.step_bin
+    edges = mo.bin_edges
+    width = edges[1] - edges[0]
+    parts = np.where(split[lo:hi], LAW_SPLIT, 1)
+    first = np.concatenate([[0], np.cumsum(parts)])  # column of each bin's first part
+    ncol = int(first[-1])
+    near = mov & (jb >= lo) & (jb < hi)
+    xm = 0.5 * (mo.x_ref[1:] + mo.x_ref[:-1])
+    rel = jb[near] - lo
+    sub = np.clip(((xm[near] - edges[jb[near]]) / (width / LAW_SPLIT)).astype(int), 0,
+                  LAW_SPLIT - 1)
+    col = first[rel] + np.where(parts[rel] > 1, sub, 0)
+    gper = -G_ACCEL / 1000.0 * mo.k_grad  # m/s^2 per permille
+    Bv, Bs = np.zeros((ev.t.size, 2 * ncol)), np.zeros((ev.t.size, 2 * ncol))
+    for off, w in ((0, np.ones(near.sum())), (ncol, law[near])):
+        inc = gper * g.dt * w
+        np.add.at(Bv, (g.k[near], off + col), inc)
+        np.add.at(Bs, (g.k[near], off + col), inc * g.lever[near])
+    W = st.augmented(st.fv, st.fs, drift=(Bv, Bs)).W
+    col_edges = np.concatenate([edges[b] + width * np.arange(p) / p
+                                for b, p in zip(range(lo, hi), parts)] + [[edges[hi]]])
+    return W, col_edges
+
+
+def _refined(mo: Motion, st: Stage, law: np.ndarray, lo: int, hi: int, best: dict,
+             res: dict) -> dict:
+    """The comparison of :func:`law_test` with each law's stretch ``best`` (whole bins) refined:
+    the bins within one of either law's ends split in ``LAW_SPLIT`` parts, and each law's best
+    stretch over those columns (it includes the stretch of whole bins)."""
+    split = np.zeros(mo.n_bins, bool)
+    for _, (a, b) in best.values():
+        for e in (a, b):
+            split[max(lo, e - 1):min(hi, e + 1)] = True
+    W, col_edges = _law_columns(mo, st, law, lo, hi, split)
+    n = col_edges.size - 1
+    q0 = gls(W[:2, :2])[2]
+    u, e1 = np.zeros(W.shape[0]), np.zeros(W.shape[0])
+    u[0], e1[1] = 1.0, 1.0
+    fine = {}
+    for key, off in (("fixed", 0), ("law", n)):
+        quad, a, b, _, _ = best_section(W, u, e1, 2 + off + np.arange(n), 1)
+        fine[key] = (q0 - quad, (a, b)) if np.isfinite(quad) else None
+    if fine["fixed"] is None or fine["law"] is None:
+        fine = {k: (s, (int(np.searchsorted(col_edges, mo.bin_edges[a])),
+                        int(np.searchsorted(col_edges, mo.bin_edges[b]))))
+                for k, (s, (a, b)) in best.items()}
     # on the fixed force's own stretch: both columns, a g + c (h - g), c / a = b
-    a0, b0 = best["fixed"][1][0] - lo, best["fixed"][1][1] - lo
+    a0, b0 = fine["fixed"][1]
     M = np.zeros((W.shape[0], 4))
     M[0, 0] = M[1, 1] = 1.0
     M[2 + a0:2 + b0, 2] = 1.0
-    M[2 + m + a0:2 + m + b0, 3] = 1.0
+    M[2 + n + a0:2 + n + b0, 3] = 1.0
     M[2 + a0:2 + b0, 3] = -1.0
     share, se = _law_share(W, M)
-    sec = mov & (jb >= best["fixed"][1][0]) & (jb < best["fixed"][1][1])
+    vm = 0.5 * (mo.v_ref[1:] + mo.v_ref[:-1])
+    xm = 0.5 * (mo.x_ref[1:] + mo.x_ref[:-1])
+    sec = mo.step_moving & (xm >= col_edges[a0]) & (xm < col_edges[b0])
     v_lo, v_hi = np.percentile(vm[sec], [5, 95]) if sec.any() else (0.0, 0.0)
-    edges = mo.bin_edges
-    res.update(lr=float(best["law"][0] - best["fixed"][0]), b=share, std_error=se,
+    res.update(lr=float(fine["law"][0] - fine["fixed"][0]), b=share, std_error=se,
                speeds=[float(v_lo), float(v_hi)],
-               stretch_fixed=[float(edges[best["fixed"][1][0]]), float(edges[best["fixed"][1][1]])],
-               stretch_law=[float(edges[best["law"][1][0]]), float(edges[best["law"][1][1]])])
+               stretch_fixed=[float(col_edges[a0]), float(col_edges[b0])],
+               stretch_law=[float(col_edges[fine["law"][1][0]]),
+                            float(col_edges[fine["law"][1][1]])])
     return res
