@@ -99,6 +99,23 @@ def test_backward_step_at_1_hz_is_in_doubt_from_its_first_reading():
 
 
 
+def test_a_backward_step_without_a_counter_stays_in_doubt_when_its_readings_run_on():
+    """Without a counter, at 1 Hz, a -10 s step while braking (crh3_high_speed, 618 s, kf):
+    the new clock's first ten readings land on slots already fused and are held; the eleventh
+    is stamped on the old grid past its newest slot, the held ones are refused as stale, and it
+    alone is held, 10 s later than the clock's lateness bar allows. The slot published then
+    claims, on the stepped clock, a time 10 s after its content: it must stay in doubt (one
+    estimate was 790 m behind the train inside its levels)."""
+    sc, res = run("crh3_high_speed", 0, 700.0)
+    fl = F.inject(res.events(), F.Fault("step", -10.0, at=618.0), np.random.default_rng(0))
+    fl.events = [(e[0], e[1], {**e[2], "seq": 0} if e[0] in F.TRAIN_TOPICS else e[2]) +
+                 tuple(e[3:]) for e in fl.events]
+    outs, emitted, runner = F.run(fl.events, adapter(sc, "kf"), 1.0)
+    s = F.score(outs, emitted, fl, res.truth, 1.0, 700.0 + F.LATENCY)
+    assert runner.events.get("odometer:clock_reset") == 1, dict(runner.events)
+    assert s["misleading"] == 0 and s["wrong_side"] == 0, s
+
+
 def test_a_node_catching_up_is_not_above_its_clock():
     """Offsets drift down while a node falls 3 s behind (each reading a little later: the
     centre follows); when it catches up they return to where the clock is: above the centre by

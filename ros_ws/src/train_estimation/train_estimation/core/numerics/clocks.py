@@ -1627,6 +1627,13 @@ class StepWatch:
             return True
         if self.period <= 0.5:
             return False
+        if recv is not None and -self.clock.above(stamp - arrival) > self.clock.late:
+            # later than the clock's lateness bar: a latency tail that long, or the first of a
+            # clock stepped back, whose slot's estimate then claims another time (a -10 s step
+            # on crh3_high_speed without a counter: the 8 readings it held were refused as
+            # stale when the ninth came on the old grid, and the slot published with that
+            # one alone held was 790 m behind the train)
+            return True
         # A slow odometer: the next reading, which decides, comes later than an alarm may
         # wait, so a held reading is in doubt at once -- except one stamped on the stream's
         # grid (within small_step) at a slot not yet filled: a late reading of the slot it was
