@@ -189,7 +189,7 @@ def _load_inputs(out: Path) -> dict:
 
 def diagnose_context(out: Path) -> dict:
     """What diagnose_report.html.j2 shows, every number formatted and with its unit."""
-    from train_estimation.tools.diagnose import unexplained_line, unexplained_size
+    from train_estimation.tools.diagnose_unexplained import unexplained_line, unexplained_size
 
     rep = json.loads((out / "report.json").read_text())
     inp = _load_inputs(out)
