@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from train_estimation.tools import diagnose as tool
+from train_estimation.tools import diagnose_plots as plots
 
 
 @pytest.fixture
@@ -32,7 +32,7 @@ def figures(monkeypatch):
         def close(self, fig=None):
             pass
 
-    monkeypatch.setattr(tool, "_plt", lambda: Keep())
+    monkeypatch.setattr(plots, "_plt", lambda: Keep())
     yield kept
     for f in kept:
         plt.close(f)
@@ -59,7 +59,7 @@ def _has_zero_line(ax) -> bool:
 @pytest.mark.parametrize("extended", [False, True])
 def test_every_residual_speed_panel_has_its_label_zero_line_and_grid(figures, tmp_path,
                                                                      extended):
-    assert tool.plot_speed(series(extended), tmp_path / "r.png")
+    assert plots.plot_speed(series(extended), tmp_path / "r.png")
     (fig,) = figures
     axes = fig.get_axes()
     assert len(axes) == 3
@@ -72,11 +72,11 @@ def test_every_residual_speed_panel_has_its_label_zero_line_and_grid(figures, tm
 
 
 def test_braking_rate_axis_holds_nominal_and_a_minimum_span():
-    lo, hi = tool.f_axis([0.9987, 1.0])  # a change of 0.1 % must not fill the panel
-    assert lo <= 0.9987 and hi >= 1.0 and hi - lo >= tool.F_MIN_SPAN
-    lo, hi = tool.f_axis([0.7, 0.7])  # worn brakes: both the fit and nominal 1 in view
+    lo, hi = plots.f_axis([0.9987, 1.0])  # a change of 0.1 % must not fill the panel
+    assert lo <= 0.9987 and hi >= 1.0 and hi - lo >= plots.F_MIN_SPAN
+    lo, hi = plots.f_axis([0.7, 0.7])  # worn brakes: both the fit and nominal 1 in view
     assert lo < 0.7 and hi > 1.0
-    lo, hi = tool.f_axis([])
+    lo, hi = plots.f_axis([])
     assert lo < 1.0 < hi
 
 
@@ -84,6 +84,6 @@ def test_speed_trace_draws_f_on_that_axis(figures, tmp_path):
     t = np.linspace(0, 300, 600)
     s = {"odo_t": t, "odo_speed": np.full(t.size, 10.0),
          "f_t": (np.array([0.0, 300.0]), np.array([0.9995, 0.9987]))}
-    assert tool.plot_speed_trace(s, tmp_path / "s.png")
+    assert plots.plot_speed_trace(s, tmp_path / "s.png")
     lo, hi = figures[0].get_axes()[1].get_ylim()
-    assert lo <= 0.9987 and hi >= 1.0 and hi - lo >= tool.F_MIN_SPAN
+    assert lo <= 0.9987 and hi >= 1.0 and hi - lo >= plots.F_MIN_SPAN

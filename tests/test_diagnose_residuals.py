@@ -196,6 +196,7 @@ def test_diagnose_names_an_odometer_with_correlated_errors_unexplained(tmp_path)
     from train_core.bagio import BagWriter
 
     from train_estimation.tools import diagnose as tool
+    from train_estimation.tools.diagnose_unexplained import sensor_noise, unexplained_size
     from train_sim.scenario import load_scenario
     from train_sim.world import simulate
 
@@ -224,6 +225,6 @@ def test_diagnose_names_an_odometer_with_correlated_errors_unexplained(tmp_path)
         "finding"], nominal["unexplained"]
     rep = json.loads((tmp_path / "o_ar1" / "report.json").read_text())
     assert rep["cause"] == "unexplained", rep["ranking"][:3]
-    u = next(u for u in rep["unexplained"] if tool.sensor_noise(u))
+    u = next(u for u in rep["unexplained"] if sensor_noise(u))
     assert u["phase"] == "all" and "correlated in time" in u["best_listed"]["why"], u
-    assert tool.unexplained_size(u).endswith("of the stated SD")
+    assert unexplained_size(u).endswith("of the stated SD")

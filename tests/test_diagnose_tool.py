@@ -22,6 +22,8 @@ from train_core.effects import parse_effects
 
 from train_estimation.core.offline.diagnose import CAUSES, CauseFit, Diagnosis
 from train_estimation.tools import diagnose as tool
+from train_estimation.tools import diagnose_unexplained as unexplained
+from train_estimation.tools.diagnose_plots import write_plots
 from train_sim.cases import main_error, make_case
 from train_sim.generate import generate
 from train_sim.scenario import load_scenario, with_model
@@ -517,7 +519,7 @@ def test_hidden_effect_is_found(cause, size, seed, tmp_path, capsys):
 
 
 def test_plots_draw_what_the_series_hold(tmp_path):
-    assert tool.write_plots({}, tmp_path) == []
+    assert write_plots({}, tmp_path) == []
     rng = np.random.default_rng(0)
     t = np.arange(0.0, 300.0, 0.5)
     x = 10.0 * t
@@ -530,7 +532,7 @@ def test_plots_draw_what_the_series_hold(tmp_path):
          "phase": np.arange(t.size) % 3,
          "unexplained": [{"phase": "braking", "where": None, "when": None, "speed": [2, 8],
                           "size": 0.05, "best_listed": None}]}
-    names = {p.name for p in tool.write_plots(s, tmp_path)}
+    names = {p.name for p in write_plots(s, tmp_path)}
     assert names == {"residual_position.png", "residual_speed.png", "speed_trace.png",
                      "loss_runs.png", "residual_phases.png"}
     assert all((tmp_path / n).stat().st_size > 5000 for n in names)
@@ -881,7 +883,7 @@ def test_an_effect_of_a_kind_the_bench_does_not_use_is_unexplained(kind, seed, t
         # the odometer family's entry: what the odometer counts differently, as an error in m
         # of the sign of the change (it counts more: ahead of the train)
         u = rep["unexplained"][0]
-        assert tool.on_odometer(u), u
+        assert unexplained.on_odometer(u), u
         un = uc.scenario.unlisted
         more = un.odometer_rescale.factor - 1.0 if kind == "odometer_rescale" \
             else un.odometer_bias.bias
@@ -891,14 +893,14 @@ def test_an_effect_of_a_kind_the_bench_does_not_use_is_unexplained(kind, seed, t
         # first sample is at true time 0 and the clock drifts by < 0.2 %), of its size
         u = rep["unexplained"][0]
         st = uc.scenario.unlisted.clock_step
-        assert tool.clock_step(u), u
+        assert unexplained.clock_step(u), u
         assert abs(u["when"][0] - st.t0) < 1.0 and abs(u["size"] - st.step) < 0.01, (u, st)
     if kind == "clock_slew":
         # the change of rate from where it happened, of the sign of the change (the clock
         # reads more by the end when it runs faster)
         u = rep["unexplained"][0]
         sl = uc.scenario.unlisted.clock_slew
-        assert tool.clock_rate(u), u
+        assert unexplained.clock_rate(u), u
         assert abs(u["when"][0] - sl.t0) < 20.0 and np.sign(u["size"]) == np.sign(sl.rate), (u, sl)
     if kind == "misplaced_balise":
         # the entry is at that balise, and its offset is the balise's (reading minus the
@@ -992,7 +994,7 @@ def test_an_odometer_whose_error_grows_with_speed_is_not_an_odometer_scale(seed,
     k = uc.scenario.unlisted.odometer_speed_scale.k
     assert law["lr"] > 9.0 and abs(law["k"] - k) < 0.1 * abs(k), (law, k)
     u = rep["unexplained"][0]
-    assert tool.on_odometer(u) and np.sign(u["size"]) == np.sign(k), u
+    assert unexplained.on_odometer(u) and np.sign(u["size"]) == np.sign(k), u
 
 
 def test_a_power_limit_and_a_traction_delay_compose_in_either_order(metro, metro_run, tmp_path):
@@ -1076,7 +1078,7 @@ def test_a_gradient_beside_a_braking_rate_the_heat_law_takes_is_confirmed(tmp_pa
     u = rep["unexplained"][0]
     assert u["phase"] == "braking" and u["best_listed"]["cause"] == "braking_rate", u
     assert u["best_listed"]["why"] == br["why"] and u["size"] > 0, u
-    assert tool.heat_fade(u) and "brakes deliver less" in tool.unexplained_line(u)
+    assert unexplained.heat_fade(u) and "brakes deliver less" in unexplained.unexplained_line(u)
 
 
 @pytest.mark.slow

@@ -210,18 +210,18 @@ def test_a_balise_reader_that_stamps_late_is_unexplained_with_its_latency(tmp_pa
     delay behind the odometer's track. Before the latency test this was `none` or a listed
     cause in 3 of 8 bags; now the remainder is the reader's latency, with its size in s within
     3 standard errors of the truth, and the summary line says what it is."""
-    from train_estimation.tools import diagnose as tool
+    from train_estimation.tools.diagnose_unexplained import balise_latency, unexplained_line
 
     rep, eff = _diagnose_foreign(tmp_path, seed, "balise_late")
     assert rep["cause"] == "unexplained", rep["cause"]
     assert not [r for r in rep["ranking"] if r.get("status") == "confirmed"]
-    late = [u for u in rep["unexplained"] if tool.balise_latency(u)]
+    late = [u for u in rep["unexplained"] if balise_latency(u)]
     assert len(late) == 1, rep["unexplained"]
     u = late[0]
     assert u["phase"] == "all" and u["where"] is None and u["when"] is None, u
     lat = rep["evidence"]["_model"]["structure"]["tests"][0]["balise_latency"]
     assert abs(u["size"] - eff.balise_late) <= 3.0 * lat["std_error"], (u["size"], lat)
-    assert "stamps late" in tool.unexplained_line(u)
+    assert "stamps late" in unexplained_line(u)
 
 
 def test_a_balise_off_its_map_position_is_no_low_adhesion_section(tmp_path):
@@ -410,7 +410,7 @@ def test_a_radar_odometer_whose_error_grows_with_speed_is_no_odometer_scale(tmp_
     scale of 0.990 fits it better than none by a score of 12,400 and passed every check. An
     odometer error growing with speed, one parameter as the scale, fits better still (2 ln LR
     +159): not confirmed, and what is left is named on the odometer, of the count's sign."""
-    from train_estimation.tools import diagnose as tool
+    from train_estimation.tools.diagnose_unexplained import on_odometer
 
     rep, eff = _diagnose_foreign(tmp_path, 0, "odometer_speed")
     st = {r["cause"]: r for r in rep["ranking"]}
@@ -418,7 +418,7 @@ def test_a_radar_odometer_whose_error_grows_with_speed_is_no_odometer_scale(tmp_
     assert rep["cause"] == "unexplained", rep["ranking"][:3]
     assert not [r for r in rep["ranking"] if r["status"] == "confirmed"], rep["ranking"][:3]
     u = rep["unexplained"][0]
-    assert tool.on_odometer(u) and np.sign(u["size"]) == np.sign(eff.odometer_speed[1]), (u, eff)
+    assert on_odometer(u) and np.sign(u["size"]) == np.sign(eff.odometer_speed[1]), (u, eff)
 
 
 @pytest.mark.slow

@@ -19,15 +19,13 @@ import pytest
 from train_core.bagio import read_bag
 
 from train_estimation.tools import diagnose as diagnose_tool
-from train_estimation.tools.report_html import (
+from train_estimation.tools.report_browser import (
     NO_CHROMIUM,
     chromium_path,
-    markdown_html,
     page_metrics,
     screenshot,
-    sig4,
-    write_report_html,
 )
+from train_estimation.tools.report_html import markdown_html, sig4, write_report_html
 from train_sim.generate import generate
 from train_sim.scenario import load_scenario
 

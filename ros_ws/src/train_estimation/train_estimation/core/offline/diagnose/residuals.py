@@ -226,7 +226,7 @@ def sensor_checks(t: np.ndarray, y: np.ndarray, rv: np.ndarray, v: np.ndarray,
             "finding": bool(words), "signature": "; ".join(words) or None}
 
 
-# how the reason of a sensor entry begins (tools.diagnose tells the entry by it)
+# how the reason of a sensor entry begins (tools.diagnose_unexplained tells the entry by it)
 SENSOR_WHY = "the odometer's speed readings are not the sensor it states"
 
 

@@ -221,7 +221,7 @@ def verdict_noise(sr: _Search, shift: float, noise) -> tuple:
     return (st.q, st.r_s), [a.cause for a in out]
 
 
-# how the reason of a balise latency entry begins (tools.diagnose tells the entry by it)
+# how the reason of a balise latency entry begins (tools.diagnose_unexplained tells the entry by it)
 LATENCY_WHY = "the balise readings lie behind the odometer's position"
 
 
@@ -273,7 +273,7 @@ def _clock_entry(step: dict, speed: list) -> dict:
                                    "drift is a rate"}}
 
 
-# how the reason of a clock rate entry begins (tools.diagnose tells the entry by it)
+# how the reason of a clock rate entry begins (tools.diagnose_unexplained tells the entry by it)
 RATE_WHY = "the train clock's rate changes at"
 
 
