@@ -26,6 +26,7 @@ from .drive import Candidates
 
 class AdhesionSection(Cause):
     name = "adhesion_section"
+    range_bound = True  # plausible() is a sign bound
     # no halves test: each fold's fit chooses its own stretch (blocks of a quarter of the time
     # on it), so the two sizes are of two sections, not two estimates of one (a true 4.8 per
     # mille gradient fitted 2.75 and 6.06 on the folds of a high-speed pair, z -8.8)
