@@ -1537,6 +1537,52 @@ def test_the_clock_drift_held_out_score_is_standard_normal_without_a_drift():
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize("size", ["plain", "subtle"])
+def test_a_section_fitted_outside_its_range_leaves_the_stage_to_the_next_cause(size, tmp_path):
+    """A downhill gradient of -4.9 (plain) or -2.45 (subtle) per mille on a stretch run in
+    light braking at 35 m/s (train_sim.cases seed 103; the braking asked for there is
+    0.023-0.043 m/s^2). Plain: a low-adhesion section fits it best as braking x -0.14 there,
+    a brake that drives the train; accepted at the first stage, it was refused by the
+    confirmation, the gradient was never tried and the run was `unexplained`. Subtle: a
+    section of braking x 0.14 there was confirmed, weakening a brake that asks for an
+    adhesion of 0.004, which every rail gives. Out of the running at the greedy stage
+    (search._refuse, AdhesionSection.plausible), the gradient is accepted and confirmed."""
+    from train_core.model import load_line, load_train
+
+    from train_estimation.core.offline.diagnose import search as S
+    from train_estimation.core.offline.diagnose.causes import REGISTRY
+    from train_estimation.core.offline.diagnose.motion import Motion
+    from train_estimation.core.offline.diagnose.run import DiagConfig, prepare
+
+    case = make_case(np.random.default_rng(103), "gradient", size)
+    rep, truth = _diagnosed(case, tmp_path)
+    by = {r["cause"]: r for r in rep["ranking"]}
+    assert rep["cause"] == "gradient", rep["ranking"][:3]
+    assert by["gradient"]["status"] == "confirmed", by["gradient"]
+    assert by["adhesion_section"]["status"] == "rejected", by["adhesion_section"]
+    assert not rep["unexplained"], rep["unexplained"]
+    est, tru = by["gradient"]["parameters"], truth["gradient"]
+    assert abs(est["start"] - tru["start"]) <= 100.0 and abs(est["end"] - tru["end"]) <= 100.0
+    # one pass at one speed fixes the force over the stretch (per mille x metres) far better
+    # than the per mille and the ends apiece (plain: -5.7 over 260 m for -4.9 over 312 m)
+    force = est["permille"] * (est["end"] - est["start"])
+    assert force == pytest.approx(tru["permille"] * (tru["end"] - tru["start"]), rel=0.1)
+    # the first stage: the section scored, refused for its range, the gradient the best left
+    paths = case.write(tmp_path / "case2")
+    cfg = DiagConfig()
+    line, train = load_line(paths["line"]), load_train(paths["train"])
+    run = prepare(tool.read_measured(tmp_path / "bag"), line, cfg, train)
+    own = {c.name: r for c in REGISTRY if (r := c.own_test(run)) is not None}
+    sr = S._Search(Motion(run, line, train, cfg), cfg, own, set())
+    S._stage(sr, 0, lambda *a: None)
+    scores = sr.stages[0]["scores"]
+    sec = scores["adhesion_section"]
+    assert sec.why is not None and sec.why.startswith("refused"), (sec, sec.why)
+    best = max((f for f in scores.values() if f.why is None), key=lambda f: f.score)
+    assert best.cause == "gradient" and best.score > 0, best
+
+
+@pytest.mark.slow
 @pytest.mark.parametrize("index", [0, 9, 11])
 def test_a_section_swapped_for_a_braking_rate_change_keeps_the_braking_deficit(index, tmp_path):
     """Every brake x 0.82-0.90 (a constant braking-rate change, train_sim.cases seeds [11, i]):

@@ -73,7 +73,8 @@ def diagnose(data: MeasuredRun, line: Line, train: TrainParams, config: DiagConf
     st = None
     for stage_i in range(cfg.stages):
         st = _stage(sr, stage_i, tick)
-        best = max(sr.stages[-1]["scores"].values(), key=lambda f: f.score, default=None)
+        best = max((f for f in sr.stages[-1]["scores"].values() if f.why is None),
+                   key=lambda f: f.score, default=None)
         if best is None or best.score <= 0:
             break
         _accept(sr, best, stage_i)
@@ -132,6 +133,7 @@ def _stage(sr: _Search, stage_i: int, tick) -> Stage:
             continue
         scores[c.name] = c.score(st, sr.own.get(c.name), ll0)
     _reprofile(sr, st, scores)
+    _refuse(sr, scores)
     _refit_noise(sr, st, scores, ll0)
     # Prior odds: `none` against K causes, each 1/K as likely a priori as some effect at
     # all (BIC is the log Bayes factor at even odds): 2 ln K off every score. Without it
@@ -147,6 +149,22 @@ def _stage(sr: _Search, stage_i: int, tick) -> Stage:
     return st
 
 
+def _refuse(sr: _Search, scores: dict) -> None:
+    """Candidates fitted outside their parameters' physical range (``Cause.plausible`` where
+    ``Cause.range_bound``: a low-adhesion section's braking factor, a braking rate, a mass's
+    drive gain or an odometer scale at or below 0) are out of the running (in place: ``why``
+    says so, and the stage's best is chosen among the others). The
+    confirmation refuses such a fit anyway; accepted first, it took the effect from the cause
+    that describes it, which was then never tried (a downhill gradient on a stretch run in
+    braking fitted as braking x -0.14 there, and the run was `unexplained`). A refused cause
+    is scored again at the next stage, against the null with the cause accepted instead."""
+    for name, f in scores.items():
+        c = BY_NAME[name]
+        odd = c.plausible(f, sr.mo) if c.range_bound and f.parameters else None
+        if odd is not None:
+            f.why = f"refused at the greedy stage: {odd}"
+
+
 def _refit_noise(sr: _Search, st: Stage, scores: dict, ll0: float) -> None:
     """A cause's likelihood ratio with the noise re-maximised under it: an unmodelled effect
     inflates the null's process noise q, which understates the effect's own evidence. For the
@@ -156,7 +174,7 @@ def _refit_noise(sr: _Search, st: Stage, scores: dict, ll0: float) -> None:
     has three parameters) can rank it below them, and a cause left out here is never
     reconsidered at its own noise."""
     n = st.n_meas
-    prelim = sorted((c for c in scores if BY_NAME[c].in_motion_model),
+    prelim = sorted((c for c in scores if BY_NAME[c].in_motion_model and scores[c].why is None),
                     key=lambda c: -scores[c].dll)[:sr.cfg.noise_refits]
     for name in prelim:
         f = scores[name]

@@ -17,15 +17,22 @@ import weakref
 
 import numpy as np
 from train_core.effects import AdhesionSectionEffect
+from train_core.model import G
 
 from ..stage import best_section
 from .base import Cause, resolved
 from .braking_rate import brakes_while_moving
 from .drive import Candidates
 
+# The lowest adhesion coefficient a rail gives (leaf-covered, wet rail's worst is of this
+# order): a brake asking for less than MU_MIN g is delivered whole on any rail, so adhesion
+# cannot weaken it; a section that weakens only such brakings is a force of another kind.
+MU_MIN = 0.02
+
 
 class AdhesionSection(Cause):
     name = "adhesion_section"
+    range_bound = True  # plausible() is a physical range: the factor, the braking asked for
     # no halves test: each fold's fit chooses its own stretch (blocks of a quarter of the time
     # on it), so the two sizes are of two sections, not two estimates of one (a true 4.8 per
     # mille gradient fitted 2.75 and 6.06 on the folds of a high-speed pair, z -8.8)
@@ -86,12 +93,25 @@ class AdhesionSection(Cause):
 
     def plausible(self, fit, mo) -> str | None:
         """Low adhesion weakens the braking a train gets, down to none: a factor at or below
-        0 (a brake that drives the train on) is a force of another kind."""
+        0 (a brake that drives the train on) is a force of another kind. And it limits only a
+        braking that asks for more than the rail's adhesion gives: where every braking asked
+        for on the stretch is below ``MU_MIN`` g, no rail limits it, and a deficit there is a
+        force of another kind (a downhill gradient run in light braking)."""
         f = float(fit.parameters["factor"])
-        if f > 0.0:
+        if f <= 0.0:
+            return (f"not a low-adhesion section: braking x {f:.2f} there (a brake that drives "
+                    "the train is no adhesion loss)")
+        if mo is None:
             return None
-        return (f"not a low-adhesion section: braking x {f:.2f} there (a brake that drives the "
-                "train is no adhesion loss)")
+        inside, _ = self.beyond(fit, mo)
+        if not inside.any():
+            return None
+        asked = float(np.max(-mo.f0 * mo.a_br0[inside]))
+        if asked > MU_MIN * G:
+            return None
+        return (f"not a low-adhesion section: the braking asked for there is at most "
+                f"{asked:.3f} m/s^2, which any rail gives (adhesion {asked / G:.4f}, the lowest "
+                f"a rail has about {MU_MIN:g})")
 
     def beyond(self, fit, mo):
         """The section's braking factor on every brake application while moving."""

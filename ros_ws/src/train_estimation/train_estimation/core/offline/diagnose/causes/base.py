@@ -157,6 +157,12 @@ class Cause:
     # cause acts in one phase by its nature); the confirmation then cannot tell them apart.
     phase_rival: str | None = None
 
+    # ``plausible`` states the range of the cause's parameters (a sign: a braking factor, a
+    # drive gain, a scale above 0), a bound on any fit of this cause, not a judgement of an
+    # effect's kind from its size (a gradient steeper than a map's error, a clock whose rate
+    # turns): a fit outside it is out of the running at the greedy stage (search._refuse).
+    range_bound: bool = False
+
     # A force at a place that grows with speed, which the cause (a force independent of speed
     # at its place) is not; None: the cause states no speed law of its own to test against.
     speed_rival: str | None = None

@@ -11,6 +11,7 @@ from .base import Cause, fleet_se, resolved
 
 class BrakingRate(Cause):
     name = "braking_rate"
+    range_bound = True  # plausible() is a sign bound
     halves = ("f_start", "f_end")
 
     def nominal(self, mo) -> dict:

@@ -14,6 +14,7 @@ from .base import Cause, fleet_se, resolved
 
 class Mass(Cause):
     name = "mass"
+    range_bound = True  # plausible() is a sign bound
     halves = ("mass",)
 
     def nominal(self, mo) -> dict:

@@ -11,6 +11,7 @@ from .base import Cause, fleet_se, resolved
 
 class OdometerScale(Cause):
     name = "odometer_scale"
+    range_bound = True  # plausible() is a sign bound
     halves = ("scale",)
 
     def nominal(self, mo) -> dict:
