@@ -473,6 +473,24 @@ def check_parameters(cause: str, est: dict, truth: dict, evidence: dict, v_ref: 
     assert abs(est[k] - truth[k]) <= Z * se, (k, est[k], truth[k], se)
 
 
+def _search(case, case_dir, bag):
+    """diagnose's greedy search (``search._Search``) set up on ``bag``, the line and train of
+    ``case`` written to ``case_dir``, the default config: for tests of its stages."""
+    from train_core.model import load_line, load_train
+
+    from train_estimation.core.offline.diagnose import search as S
+    from train_estimation.core.offline.diagnose.causes import REGISTRY
+    from train_estimation.core.offline.diagnose.motion import Motion
+    from train_estimation.core.offline.diagnose.run import DiagConfig, prepare
+
+    paths = case.write(case_dir)
+    cfg = DiagConfig()
+    line, train = load_line(paths["line"]), load_train(paths["train"])
+    run = prepare(tool.read_measured(bag), line, cfg, train)
+    own = {c.name: r for c in REGISTRY if (r := c.own_test(run)) is not None}
+    return S._Search(Motion(run, line, train, cfg), cfg, own, set())
+
+
 def _diagnosed(case, tmp_path) -> tuple[dict, dict]:
     """The case (train_sim.cases) written, simulated into a measured bag and diagnosed as a
     user runs the tool (no plots: they have tests of their own): (report.json, the truth over
@@ -1547,12 +1565,8 @@ def test_a_section_fitted_outside_its_range_leaves_the_stage_to_the_next_cause(s
     section of braking x 0.14 there was confirmed, weakening a brake that asks for an
     adhesion of 0.004, which every rail gives. Out of the running at the greedy stage
     (search._refuse, AdhesionSection.plausible), the gradient is accepted and confirmed."""
-    from train_core.model import load_line, load_train
 
     from train_estimation.core.offline.diagnose import search as S
-    from train_estimation.core.offline.diagnose.causes import REGISTRY
-    from train_estimation.core.offline.diagnose.motion import Motion
-    from train_estimation.core.offline.diagnose.run import DiagConfig, prepare
 
     case = make_case(np.random.default_rng(103), "gradient", size)
     rep, truth = _diagnosed(case, tmp_path)
@@ -1568,12 +1582,7 @@ def test_a_section_fitted_outside_its_range_leaves_the_stage_to_the_next_cause(s
     force = est["permille"] * (est["end"] - est["start"])
     assert force == pytest.approx(tru["permille"] * (tru["end"] - tru["start"]), rel=0.1)
     # the first stage: the section scored, refused for its range, the gradient the best left
-    paths = case.write(tmp_path / "case2")
-    cfg = DiagConfig()
-    line, train = load_line(paths["line"]), load_train(paths["train"])
-    run = prepare(tool.read_measured(tmp_path / "bag"), line, cfg, train)
-    own = {c.name: r for c in REGISTRY if (r := c.own_test(run)) is not None}
-    sr = S._Search(Motion(run, line, train, cfg), cfg, own, set())
+    sr = _search(case, tmp_path / "case2", tmp_path / "bag")
     S._stage(sr, 0, lambda *a: None)
     scores = sr.stages[0]["scores"]
     sec = scores["adhesion_section"]
@@ -1592,24 +1601,15 @@ def test_a_section_swapped_for_a_braking_rate_change_keeps_the_braking_deficit(i
     swapped for the braking-rate change (refit.unlocate): that change must carry the whole
     deficit, fitted without the section (it kept f 0.99-1.00, "below resolution", and the
     deficit was left unexplained)."""
-    from train_core.model import load_line, load_train
 
     from train_estimation.core.offline.diagnose import search as S
-    from train_estimation.core.offline.diagnose.causes import REGISTRY
-    from train_estimation.core.offline.diagnose.motion import Motion
     from train_estimation.core.offline.diagnose.refit import unlocate
-    from train_estimation.core.offline.diagnose.run import DiagConfig, prepare
 
     case = make_case(np.random.default_rng([11, index]), "braking_rate", "plain")
     truth = case.truth["braking_rate"]
     assert truth["f_start"] == truth["f_end"]  # the constant kind (30 % of the cases)
-    paths = case.write(tmp_path / "case")
     generate(case.scenario, tmp_path / "bag", measured=True)
-    cfg = DiagConfig()
-    line, train = load_line(paths["line"]), load_train(paths["train"])
-    run = prepare(tool.read_measured(tmp_path / "bag"), line, cfg, train)
-    own = {c.name: r for c in REGISTRY if (r := c.own_test(run)) is not None}
-    sr = S._Search(Motion(run, line, train, cfg), cfg, own, set())
+    sr = _search(case, tmp_path / "case", tmp_path / "bag")
     S._stage(sr, 0, lambda *a: None)
     S._accept(sr, sr.stages[0]["scores"]["adhesion_section"], 0)
     st = S._stage(sr, 1, lambda *a: None)

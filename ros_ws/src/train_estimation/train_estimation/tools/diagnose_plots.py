@@ -137,15 +137,10 @@ def plot_speed(s: dict, path: Path, dg=None) -> bool:
             if c.size:
                 ax.errorbar(c, m, yerr=2 * e, fmt="s-", ms=3, color="C3",
                             label="extended model: binned mean +-2 SE")
-        ax.axhline(0, color="k", lw=0.6)
-        ax.set_xlabel(label)
-        ax.grid(alpha=0.3)
-    if lim > 0:
-        axes[0].set_ylim(-lim, lim)
-    axes[0].set_ylabel("residual accel. (m/s^2)")
-    axes[0].legend(fontsize=8)
-    fig.suptitle(_title(dg, "residual acceleration against speed and commands"), fontsize=10)
-    return _save(fig, path)
+        _residual_axis(ax, label)
+    return _finish_residuals(fig, axes, lim, "residual accel. (m/s^2)", 8,
+                             _title(dg, "residual acceleration against speed and commands"),
+                             path)
 
 
 def _extended(s: dict, r: np.ndarray):
@@ -304,21 +299,34 @@ def plot_phases(s: dict, path: Path, dg=None) -> bool:
             elif span:
                 ax.axvspan(span[0], span[1], color="0.5", alpha=0.2,
                            label=f"unexplained ({u['phase']}, {u['size']:+.3f} m/s^2)")
-        ax.axhline(0, color="k", lw=0.6)
-        ax.set_xlabel(label)
-        ax.grid(alpha=0.3)
-    if lim > 0:
-        axes[0].set_ylim(-lim, lim)
-    axes[0].set_ylabel("residual accel., believed model (m/s^2)")
-    axes[0].legend(fontsize=7)
-    fig.suptitle(_title(dg, "residual by phase"), fontsize=10)
-    return _save(fig, path)
+        _residual_axis(ax, label)
+    return _finish_residuals(fig, axes, lim, "residual accel., believed model (m/s^2)", 7,
+                             _title(dg, "residual by phase"), path)
 
 
 PLOTS = (("residual_position.png", plot_position), ("residual_speed.png", plot_speed),
          ("residual_phases.png", plot_phases),
          ("speed_trace.png", plot_speed_trace), ("loss_runs.png", plot_loss_runs),
          ("replay.png", plot_replay))
+
+
+def _residual_axis(ax, label: str) -> None:
+    """One panel of residuals against ``label``: the zero line, the label, the grid."""
+    ax.axhline(0, color="k", lw=0.6)
+    ax.set_xlabel(label)
+    ax.grid(alpha=0.3)
+
+
+def _finish_residuals(fig, axes, lim: float, ylabel: str, legend_size: int, title: str,
+                      path: Path) -> bool:
+    """The residual panels' shared y range (+-``lim`` when > 0), label and legend on the
+    first, the title, saved to ``path``."""
+    if lim > 0:
+        axes[0].set_ylim(-lim, lim)
+    axes[0].set_ylabel(ylabel)
+    axes[0].legend(fontsize=legend_size)
+    fig.suptitle(title, fontsize=10)
+    return _save(fig, path)
 
 
 def _save(fig, path: Path) -> bool:
