@@ -35,14 +35,13 @@ class CauseFit:
     rival: dict | None = None
 
     def to_json(self) -> dict:
-        """A ranking entry: cause, score, parameters (status when set; why with ``not
-        confirmed`` only, as the contract's report states it: a fit refused at the greedy
-        stage keeps its reason here, for the printed ranking, and is ``rejected`` in the
-        report)."""
+        """A ranking entry: cause, score, parameters (status when set; why when set, never
+        with ``confirmed``: a fit refused at one greedy stage and accepted at a later one
+        carries no stale reason)."""
         out = {"cause": self.cause, "score": self.score}
         if self.status is not None:
             out["status"] = self.status
-        if self.why is not None and self.status == "not confirmed":
+        if self.why is not None and self.status != "confirmed":
             out["why"] = self.why
         out["parameters"] = self.parameters
         return out
