@@ -138,9 +138,7 @@ def run_task(task: dict) -> dict:
         f"{task['scenario']}|{fault.label}|{fault.at}".encode())])
     faulted = F.inject(events, fault, rng)
     if task.get("no_counter"):  # a producer that leaves seq at 0: no sample counter
-        faulted.events = [(tp, st, {**f, "seq": 0} if tp in F.TRAIN_TOPICS and isinstance(f, dict)
-                           and isinstance(f.get("seq"), int) else f, rc)
-                          for tp, st, f, rc in faulted.events]
+        faulted.events = F.uncounted(faulted.events)
     cfg = NodeConfig()
     rate = sc.odometer_rate
     try:

@@ -356,12 +356,6 @@ def test_an_odometer_that_reboots_is_spliced_onto_its_old_count(kind, scenario, 
     assert not runner.rejected, dict(runner.rejected)
 
 
-def _uncounted(events: list) -> list:
-    """The stream as a producer without a sample counter sends it: every seq 0."""
-    return [(e[0], e[1], {**e[2], "seq": 0} if e[0] in F.TRAIN_TOPICS else e[2]) + tuple(e[3:])
-            for e in events]
-
-
 @pytest.mark.parametrize("kind, scenario, gap, at", [
     (k, *case) for case in (("metro_demo", 3.0, 60.0), ("crh3_high_speed", 10.0, 100.0),
                             ("metro_demo", 60.0, 47.0))
@@ -380,7 +374,7 @@ def test_an_odometer_without_a_counter_that_reboots_is_spliced_by_its_count(kind
     sc, res = run(scenario, 2, 150.0)
     rate = sc.odometer_rate
     fl = F.inject(res.events(), F.Fault("reboot", gap, at), np.random.default_rng(0))
-    events = _uncounted(fl.events)
+    events = F.uncounted(fl.events)
     outs, emitted, runner = F.run(events, adapter(sc, kind), 1.0 / rate)
     s = F.score(outs, emitted, fl, res.truth, rate, 150.0 + F.LATENCY)
     assert s["wrong_side"] == 0 and s["hazards"] == 0 and s["bad_cov"] == 0, s
@@ -400,7 +394,7 @@ def test_a_stuck_count_without_a_counter_is_no_silence(kind):
     up to 3.8 km off."""
     sc, res = run("metro_demo", 2, 150.0)
     fl = F.inject(res.events(), F.Fault("stuck", 0.0, 12.8), np.random.default_rng(0))
-    outs, emitted, runner = F.run(_uncounted(fl.events), adapter(sc, kind),
+    outs, emitted, runner = F.run(F.uncounted(fl.events), adapter(sc, kind),
                                   1.0 / sc.odometer_rate)
     s = F.score(outs, emitted, fl, res.truth, sc.odometer_rate, 150.0 + F.LATENCY)
     assert s["misleading"] == 0 and s["wrong_side"] == 0, s
@@ -413,7 +407,7 @@ def test_one_corrupt_count_without_a_counter_is_not_a_restart(kind):
     the held reading is dropped, nothing is spliced, and the count runs on."""
     sc, res = run("metro_demo", 2, 150.0)
     fl = F.inject(res.events(), F.Fault("none"), np.random.default_rng(0))
-    events = _uncounted(fl.events)
+    events = F.uncounted(fl.events)
     i = next(k for k, e in enumerate(events) if e[0] == "odometer" and e[1] - F.EPOCH >= 60.0)
     events[i] = (events[i][0], events[i][1], {**events[i][2], "distance": 0.0}) + \
         tuple(events[i][3:])

@@ -207,6 +207,14 @@ class Faulted:
     stalled: tuple = ()  # (t0, t1) s, true times in which the node's callbacks are blocked
 
 
+def uncounted(events: list) -> list:
+    """``events`` (``(topic, t, fields, ...)``) as a producer without a sample counter sends
+    them: every train reading's ``seq`` 0."""
+    return [(e[0], e[1], {**e[2], "seq": 0}) + tuple(e[3:])
+            if e[0] in TRAIN_TOPICS and isinstance(e[2], dict)
+            and isinstance(e[2].get("seq"), int) else e for e in events]
+
+
 def inject(events: list, fault: Fault, rng: np.random.Generator) -> Faulted:
     """The received stream of a clean run ``events`` = ``(topic, t, fields)`` (true time ``t``)
     with ``fault`` applied (module doc). Topics other than control, odometer and balise are

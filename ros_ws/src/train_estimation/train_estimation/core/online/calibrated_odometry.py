@@ -211,7 +211,7 @@ class DistanceAsPosition:
         speed, 45 m short after 10 s of acceleration, was refused by the KF's gate.)
 
         Without a sample counter (its seq the last fused reading's, or one the runner made of the
-        stamp: ``runner.SEQ_MADE``; it says nothing of a reboot) the count
+        stamp: :data:`SEQ_MADE`; it says nothing of a reboot) the count
         itself is the only witness, and two hypotheses explain a count that left its course
         (:meth:`_off_course`): the reading is corrupt, or the count's origin moved (a reboot).
         They differ in what follows: the next reading returns to the old course, or follows
@@ -282,14 +282,10 @@ class DistanceAsPosition:
         reading had every link loss taken for such a silence and spliced (291 misleading).
         Returns what to restore should the reading not be fused, or None when the case does
         not arise."""
-        t0, d0, v0 = heard  # the sensor's last reading before this one, fused or not
-        dt = stamp - t0
-        if self.odo_dt is None or dt < 1.5 * self.odo_dt or d < 0.0:
+        d0 = heard[1]  # the sensor's last reading before this one, fused or not
+        if self.odo_dt is None or stamp - heard[0] < 1.5 * self.odo_dt or d < 0.0:
             return None  # no silence: no sample missed since the sensor was last heard
-        trap = 0.5 * (v0 + v) * dt
-        slack = 0.25 * COUNT_A_BOUND * dt * dt
-        noise = 2.0 * self.cfg.distance_variance + max(rv, 0.0) * dt * dt
-        bound = COUNT_JUMP_K * math.sqrt(noise)
+        trap, slack, bound = self._course(heard, stamp, v, rv)
         if d > trap + slack + bound:
             return None  # more than the train can have run since: no restart in the silence
         # where a restart would put the train against where this count does: at least the old
@@ -308,13 +304,21 @@ class DistanceAsPosition:
         beyond that, both counts' noise (``distance_variance``) and the speeds' over the
         interval, at :data:`COUNT_JUMP_RISK`. The count and the speed come from one axle, so a
         slip, a slide or a worn wheel moves both alike and stays on the course."""
-        t0, d0, v0 = ref
         t, d, v = here
-        dt = t - t0
-        resid = (d - d0) - 0.5 * (v0 + v) * dt
-        var = 2.0 * self.cfg.distance_variance + max(rv, 0.0) * dt * dt
-        bound = 0.25 * COUNT_A_BOUND * dt * dt + COUNT_JUMP_K * math.sqrt(var)
-        return resid if abs(resid) > bound else None
+        trap, slack, bound = self._course(ref, t, v, rv)
+        resid = (d - ref[1]) - trap
+        return resid if abs(resid) > slack + bound else None
+
+    def _course(self, ref: tuple, t: float, v: float, rv: float) -> tuple:
+        """The count's course from ``ref`` = ``(stamp, count, speed)`` to a reading at ``t``
+        read at speed ``v`` (variance ``rv``): ``(travel, slack, bound)`` in m, the trapezoid
+        of the two speeds, what any acceleration up to ``COUNT_A_BOUND`` may add to it
+        (``COUNT_A_BOUND dt^2 / 4``), and the counts' and speeds' noise at
+        :data:`COUNT_JUMP_RISK` (:meth:`_off_course`, :meth:`_after_silence`)."""
+        dt = t - ref[0]
+        noise = 2.0 * self.cfg.distance_variance + max(rv, 0.0) * dt * dt
+        return (0.5 * (ref[2] + v) * dt, 0.25 * COUNT_A_BOUND * dt * dt,
+                COUNT_JUMP_K * math.sqrt(noise))
 
     def _splice(self, stamp: float, d: float):
         """The count ``d`` at ``stamp`` spliced where the prediction puts the train
