@@ -18,23 +18,28 @@ fault-free solution H0. Each fault the data have not excluded is a hypothesis ``
 beside it as a solution of its own: the truth lies ``shift_i`` from ``x`` with the variance
 ``s0^2 + extra_i`` (a clock step of the size the held readings imply: the estimate read on
 either side of it; the distance's track biased from the filter's; a balise and the odometer
-that disagree: the train on the odometer's track or on the balise's). The risk is split
-evenly over the ``n`` live solutions and the two sides, so each gets the multiplier::
+that disagree: the train on the odometer's track or on the balise's). Every solution gets the
+same multiplier, the two-sided normal quantile of the risk::
 
-    K = Phi^-1(1 - P_HMI / (2 n))                           (5.33 for 1e-7 and n = 1)
+    K = Phi^-1(1 - P_HMI / 2)                               (5.33 for 1e-7)
 
     PL_ahead  = max_i ( shift_i + K sqrt(s0^2 + extra_i))    (i = 0: shift 0, extra 0)
     PL_behind = max_i (-shift_i + K sqrt(s0^2 + extra_i))
 
-A union bound: the error leaves the interval only if it leaves the side of the true
-hypothesis, with probability at most ``P_HMI / (2 n)`` per side, whichever hypothesis is true.
-(The priors of the faults are not used: each is treated as if certain, which only widens the
-interval; ARAIM's allocation by prior would be tighter and needs fault rates no one here has
-measured.) While two live hypotheses disagree, the interval covers both: a 0.1 s clock step at
-20 m/s costs 2 m of protection level, not availability, and a doubt whose separation still
-fits the alert limit leaves the estimate OK. Which hypotheses are live is the integrity
-monitor's business (``integrity.py``: each check's doubt is one of them, dropped when its test
-clears it).
+One fault at a time is true (or none), and which one is not known: whichever ``H_j`` it is, the
+train lies outside ``[x_j - K s_j, x_j + K s_j]`` with probability ``2 Q(K) = P_HMI``, and the
+interval holds that one, so the error leaves it with at most ``P_HMI`` whichever hypothesis
+is true; averaged over any prior on the hypotheses it is still at most ``P_HMI``. (ARAIM
+splits the risk over the hypotheses in proportion to their prior probabilities, ``sum_j p_j 2
+Q(K_j) <= P_HMI``, which is tighter where the priors are known and small; with no prior stated
+the worst case over priors is the bound above. Splitting it evenly over the ``n`` solutions, as
+if each were certain at once, would count ``n`` probabilities of one and widen every level by
+``Phi^-1(1 - P_HMI / 2n) / K``, 5 % with five solutions, for nothing.) Simultaneous faults are
+not a hypothesis: no solution is carried for them. While two live hypotheses disagree, the
+interval covers both: a 0.1 s clock step at 20 m/s costs 2 m of protection level, not
+availability, and a doubt whose separation still fits the alert limit leaves the estimate OK.
+Which hypotheses are live is the integrity monitor's business (``integrity.py``: each check's
+doubt is one of them, dropped when its test clears it).
 """
 
 from __future__ import annotations
@@ -56,20 +61,20 @@ class Hypothesis:
     extra: float = 0.0  # m^2, its position variance beyond the estimate's
 
 
-def k_factor(risk: float, solutions: int = 1) -> float:
-    """The multiplier of each solution's standard deviation (module doc): the risk split over
-    ``solutions`` and the two sides."""
+def k_factor(risk: float) -> float:
+    """The multiplier of each solution's standard deviation (module doc): the two-sided normal
+    quantile of the risk, the same for every solution."""
     if not (0.0 < risk < 1.0):
         raise ValueError(f"integrity risk must be in (0, 1), got {risk!r}")
-    return _k(float(risk), max(1, int(solutions)))
+    return _k(float(risk))
 
 
 @lru_cache(maxsize=64)
-def _k(risk: float, n: int) -> float:
-    # every estimate asks for the same few (one risk, a handful of solution counts): the
-    # quantile is computed once each (NormalDist's inverse is a rational approximation whose
-    # evaluation cost a tenth of an estimate's protection levels)
-    return NormalDist().inv_cdf(1.0 - risk / (2.0 * n))
+def _k(risk: float) -> float:
+    # every estimate asks for the same one or two risks: the quantile is computed once each
+    # (NormalDist's inverse is a rational approximation whose evaluation cost a tenth of an
+    # estimate's protection levels)
+    return NormalDist().inv_cdf(1.0 - risk / 2.0)
 
 
 def protection_levels(variance: float, hypotheses=(), risk: float = 1e-7
@@ -80,7 +85,7 @@ def protection_levels(variance: float, hypotheses=(), risk: float = 1e-7
     if not (math.isfinite(variance) and variance > 0.0):
         return math.inf, math.inf
     live = [Hypothesis("fault-free", 0.0, 0.0)] + list(hypotheses)
-    k = k_factor(risk, len(live))
+    k = k_factor(risk)
     ahead = behind = 0.0
     for h in live:
         if not (math.isfinite(h.shift) and math.isfinite(h.extra) and h.extra >= 0.0):
