@@ -447,8 +447,13 @@ def recorded_stream(logged: list, sent: list, clock: dict):
 
 
 def estimator_table(rows: list) -> str:
-    md = ["| hidden | estimator | runs | wrong-side | availability % (min) | max err m | "
-          "RMS err m (max) | non-PD cov | exceptions |", "|---|---|---|---|---|---|---|---|---|"]
+    """Per hidden effect and estimator, the integrity campaign's figures (``faults.score``):
+    misleading estimates (the true position outside the published protection levels, not
+    ALARM), wrong-side ones (OK with an error beyond the alert limit), availability (both
+    levels within the alert limit), the median protection level, the errors."""
+    md = ["| hidden | estimator | runs | misleading | wrong-side | availability % (min) | "
+          "median PL m (max) | max err m | RMS err m (max) | non-PD cov | exceptions |",
+          "|---|---|---|---|---|---|---|---|---|---|---|"]
     for k in KINDS + tuple(UNLISTED):
         for name in ESTIMATORS:
             sel = [r for r in rows if r["kind"] == k and r["estimator"] == name
@@ -456,16 +461,19 @@ def estimator_table(rows: list) -> str:
             if not sel:
                 continue
             ok = [r for r in sel if "exception" not in r]
+            mis = sum(r["misleading"] for r in ok)
             ws = sum(r["wrong_side"] for r in ok)
             av = min((100 * r["availability"] for r in ok), default=float("nan"))
+            pl = max((r["pl_median"] for r in ok), default=float("nan"))
             me = max((r["max_err"] for r in ok), default=float("nan"))
             rm = max((r["rms_err"] for r in ok), default=float("nan"))
             pd = sum(r["bad_cov"] for r in ok)
-            md.append(f"| {k} | {name} | {len(sel)} | {ws} | {av:.1f} | {me:.2f} | {rm:.2f} | "
-                      f"{pd} | {len(sel) - len(ok)} |")
+            md.append(f"| {k} | {name} | {len(sel)} | {mis} | {ws} | {av:.1f} | {pl:.1f} | "
+                      f"{me:.2f} | {rm:.2f} | {pd} | {len(sel) - len(ok)} |")
     n = sum(r.get("outputs", 0) for r in rows)
+    mis = sum(r.get("misleading", 0) for r in rows)
     ws = sum(r.get("wrong_side", 0) for r in rows)
-    md.append(f"\nwrong-side estimates: {ws} of {n}")
+    md.append(f"\nmisleading estimates: {mis} of {n}; wrong-side: {ws}")
     return "\n".join(md)
 
 
@@ -555,7 +563,8 @@ def main(argv=None) -> int:
     p.add_argument("--jobs", type=int, default=1, help="parallel processes (default 1)")
     p.add_argument("--estimators", action="store_true",
                    help="run every estimator on the runs instead of diagnose (the integrity "
-                        "campaign's figures: wrong-side, availability, error)")
+                        "campaign's figures: misleading, wrong-side, availability, "
+                        "protection level, error)")
     p.add_argument("--no-distance", action="store_true",
                    help="with --estimators: the estimators with use_distance: false (the "
                         "odometer's speed and the balises, its distance unread)")
