@@ -8,11 +8,9 @@ import random
 
 import numpy as np
 
-from train_estimation.core.numerics.clocks import (
-    TOL,
+from train_estimation.core.numerics.clocks import TOL, SampleGrid, StreamClock
+from train_estimation.core.offline.clock_fit import (
     ClockFit,
-    SampleGrid,
-    StreamClock,
     clock_rate_change,
     clock_steps,
     control_on_train_clock,

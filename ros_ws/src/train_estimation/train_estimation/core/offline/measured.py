@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .. import reasons as R
-from ..numerics.clocks import clock_rate_change, clock_steps, control_on_train_clock
+from .clock_fit import clock_rate_change, clock_steps, control_on_train_clock
 
 TOPICS = ("odometer", "balise", "control")  # never ground_truth
 
@@ -79,7 +79,7 @@ class MeasuredRun:
 
     def without_clock_steps(self) -> tuple[MeasuredRun, list]:
         """The run with the train clock's steps taken out of the odometer and balise stamps
-        (:func:`~train_estimation.core.numerics.clocks.clock_steps` on the odometer's
+        (:func:`~train_estimation.core.offline.clock_fit.clock_steps` on the odometer's
         readings in sequence order): every reading from a step on is put back on the clock
         before it; a balise reading is after a step when it was logged after halfway between
         the last odometer reading before it and the first after it. Returns (run, steps),
@@ -114,7 +114,7 @@ class MeasuredRun:
 
     def without_rate_change(self) -> tuple[MeasuredRun, dict | None]:
         """The run with a change of the train clock's rate taken out of the odometer and
-        balise stamps (:func:`~train_estimation.core.numerics.clocks.clock_rate_change` on
+        balise stamps (:func:`~train_estimation.core.offline.clock_fit.clock_rate_change` on
         the odometer's stamps and log times): stamps after the bend are put on the rate
         before it, s' = at + (s - at) (1 + drift_before) / (1 + drift_after). Returns (run,
         the change with ``at``, the stamp of the bend), or (self, None) without one."""

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 from train_core.model import Line
 
-from train_estimation.core.numerics.clocks import ClockFit
+from train_estimation.core.offline.clock_fit import ClockFit
 
 from ..measured import MeasuredRun, no_counter, unwrap, variances_unstated
 

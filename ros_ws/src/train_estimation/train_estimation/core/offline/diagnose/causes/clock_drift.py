@@ -34,7 +34,7 @@ class ClockDrift(Cause):
 
     def plausible(self, fit, mo) -> str | None:
         """A drift is one rate for the run: where the stamps show the rate changing once
-        (numerics.clocks.clock_rate_change, run.prepare), the fitted rate is an average of
+        (offline.clock_fit.clock_rate_change, run.prepare), the fitted rate is an average of
         two and predicts neither."""
         ch = mo.run.clock.get("rate_change")
         if ch is None:
