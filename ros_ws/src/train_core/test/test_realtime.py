@@ -35,3 +35,38 @@ def test_user_choice_kept_and_offline_untouched():
     assert var == "2"
     var, _ = run_probe("import train_estimation.core.robust.robust_filter")
     assert var == "None"
+
+
+class _Node:
+    def __init__(self):
+        self.me = self  # a reference cycle: only the cyclic collector frees it
+
+
+def _cycle():
+    import weakref
+    return weakref.ref(_Node())
+
+
+def test_collect_due_runs_the_due_collection_and_only_then():
+    import gc
+
+    from train_core.realtime import collect_due
+    saved = gc.get_threshold()
+    try:
+        gc.set_threshold(10_000, 3, 1_000_000)
+        gc.collect()
+        ref = _cycle()
+        assert collect_due() is None and ref() is not None  # not due: left to later
+        keep = [[] for _ in range(6_000)]  # the youngest count past half its threshold
+        assert collect_due() == 0 and ref() is None
+        gens = []
+        for _ in range(4):
+            keep += [[] for _ in range(6_000)]
+            gens.append(collect_due())
+        assert gens == [0, 0, 0, 1]  # the middle generation once its count passes 3
+        gc.disable()
+        keep += [[] for _ in range(6_000)]
+        assert collect_due() is None  # a disabled collector stays off
+    finally:
+        gc.enable()
+        gc.set_threshold(*saved)

@@ -28,6 +28,7 @@ from nav_msgs.msg import Odometry
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from train_core import diagnostics as D
+from train_core.realtime import collect_due, settle_heap
 from train_core.ros import Diagnostics, ParameterError, declare_config, sec_to_stamp, stamp_to_sec
 
 from train_estimation.core.online.odometry import odometry_covariances
@@ -166,6 +167,8 @@ class EstimatorNode(Node):
         self.get_logger().info(
             f"{self.adapter.source} on {line.name} / {train.name}, start at "
             f"{start.position:.1f} m, output {common['odometer_rate']:g} Hz on '{topic}'")
+        # start-up's objects out of every later garbage collection (train_core.realtime)
+        settle_heap()
 
     def _arrival(self) -> float | None:
         """s, now on the receive clock the runner judges stamps against (the contract's
@@ -295,6 +298,9 @@ class EstimatorNode(Node):
             self.n_reported = total
             self.get_logger().warning(f"{kind} at {stamp:.3f} s rejected: {why} "
                                       f"({total} rejected so far)", throttle_duration_sec=2.0)
+        # the garbage collection the allocations made due, now that the estimates are out,
+        # rather than inside the next callback before its estimate (train_core.realtime)
+        collect_due()
 
     def _odometry(self, state):
         """The estimate as nav_msgs/Odometry (frames and covariances:

@@ -162,7 +162,10 @@ class RobustAdapter(DistanceAsPosition):
         self.f: RobustFilter | None = None
         self.last_odo: tuple[float, int] | None = None  # (stamp, seq) of the last odometer slot
         self.outages = 0
-        self._pred = None  # (state token, t, x, P, actuator, exact mean) of the last prediction
+        # (state token, t, x, P, actuator, exact mean, source) of the last prediction; source =
+        # (x, P, actuator, number of commands) of the filter it was made from when made in one go
+        # from the filter's own state (a lost slot's update takes it then: _predicted)
+        self._pred = None
         self._init_odometry()
 
     def start(self, t0: float) -> None:
@@ -203,7 +206,28 @@ class RobustAdapter(DistanceAsPosition):
             t = last_stamp + i * step
             if t <= self.f.t:  # a balise was fused after this slot: the slot is past
                 continue
-            self.f.update(OdometerReading(stamp=t, seq=last_seq + i, received=False))
+            self.f.update(OdometerReading(stamp=t, seq=last_seq + i, received=False),
+                          self._predicted(t))
+
+    def _predicted(self, t: float):
+        """The filter's prediction to ``t`` -- ``(x, P, actuator)`` as ``f._propagate(t)`` returns
+        it -- when :meth:`output` made it already, in one go from the filter's present state
+        (the same arrays, actuator and commands: a lost slot's estimate is published before the
+        slot enters the filter, and the two predictions were the same arithmetic twice); else
+        None. A command given since that acts before ``t`` voids it."""
+        c, f = self._pred, self.f
+        if c is None or c[6] is None or c[1] != t:
+            return None
+        x0, P0, act0, n = c[6]
+        act = f.actuator
+        if x0 is not f.x or P0 is not f.P or act0 is not act or c[0][0] != f.t:
+            return None
+        if any(ts + act.delay < t for ts, _ in act._cmds[n:]):
+            return None
+        new = c[4].copy()  # the lag state at t; the command list as the filter's now
+        new._cmds = list(act._cmds)
+        new._prune(t)
+        return c[2], c[3], new
 
     def odometer(self, stamp: float, fields: dict) -> str:
         self._origin(fields)
@@ -270,7 +294,7 @@ class RobustAdapter(DistanceAsPosition):
                 # the cached actuator's lag state, with every command known now: commands
                 # given since the cached prediction must drive this one (a copy without them
                 # held the speed through a 60 s outage while the train accelerated)
-                act0 = c[4].copy()
+                act0, source = c[4].copy(), None
                 act0._cmds = list(f.actuator._cmds)
                 t0, xe = c[1], c[5]
                 saved = f.x, f.P, f.t, f.actuator
@@ -282,8 +306,9 @@ class RobustAdapter(DistanceAsPosition):
             else:
                 act0, t0, xe = f.actuator, f.t, f.x
                 x, P, act = f._propagate(t)
+                source = (f.x, f.P, f.actuator, len(f.actuator._cmds))
             xe = self._exact_mean(xe, t0, t, act0)
-            self._pred = (token, t, x, P, act, xe)
+            self._pred = (token, t, x, P, act, xe, source)
             if xe is not None:
                 x, P = xe, cover_shift(P, xe - x)
         else:

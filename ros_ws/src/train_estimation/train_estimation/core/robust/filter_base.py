@@ -297,12 +297,14 @@ class FilterBase:
         nu = meas.y[m] - C @ x
         return bool(np.all(np.abs(nu) <= g * np.sqrt(S)))
 
-    def update(self, reading) -> Decision:
-        """Validate and apply one reading (predicting to its stamp first). See class doc."""
+    def update(self, reading, predicted=None) -> Decision:
+        """Validate and apply one reading (predicting to its stamp first). See class doc.
+        ``predicted``: ``self._propagate(reading.stamp)``'s result when the caller has it from
+        this very state (``online/estimators.py``: a lost slot's published prediction)."""
         kind, meas = self._measurement(reading)
         if isinstance(meas, str):
             return self._decide(False, meas)
-        x, P, act = self._propagate(float(reading.stamp))
+        x, P, act = self._propagate(float(reading.stamp)) if predicted is None else predicted
         if not self._gate_ok(x, P, meas):
             return self._decide(False, R.OUTSIDE_GATE)
         x, P = self._apply(x, P, meas)
