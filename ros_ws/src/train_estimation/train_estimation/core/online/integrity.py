@@ -82,11 +82,13 @@ Checks (each gives a reason, e.g. ``"no_measurement: 2.3 s"``):
     than 2 Hz, any: the reading that decides comes too late to wait for), or a step
     re-anchored less than ``reanchor_hold`` s ago (a step whose size was assumed from the
     stamps alone, without arrival times; one measured from the arrivals of the readings that
-    decided it is known to the link's jitter and needs no hold): DEGRADED, position variance
-    increased by
-    ``(v T)^2``: while readings are held, ``T`` is the largest discontinuity among them (the
-    candidate step: the estimate's stamp may be read on either side of it), after a step one
-    sample period (a re-anchored step is known to about that).
+    decided it is known to the link's jitter and needs no hold): two solutions, the train where
+    the estimate's motion puts it ``T`` s after and before its stamp (the stamp may be read on
+    either side of the step: ``x +- v T + a T^2 / 2``, ``a`` the estimate's acceleration, with
+    the variance ``T^2 P_vv + (accel_uncertainty T^2 / 2)^2`` beyond the estimate's: its speed's
+    and the unmodelled acceleration's), and the published position variance grown to cover them.
+    While readings are held, ``T`` is the largest discontinuity among them (the candidate
+    step), after a step one sample period (a re-anchored step is known to about that).
 ``balise``
     A balise and the odometer that disagree by more than either claims: either the balise
     lies elsewhere than the map says or the estimate (and the odometer) is off, and nothing
@@ -683,11 +685,24 @@ class IntegrityMonitor:
             why.append("clock: " + (f"{self.held} readings held as a possible step"
                                     if self.held else "step re-anchored"))
             T = max(self.period, self.doubt if self.suspect else 0.0)
-            # the estimate's stamp may be read on either side of the step: the train is v T
-            # ahead of or behind where the estimate puts it
-            shift = abs(out.velocity) * T
-            hyps += [Hypothesis("clock", shift, T * T), Hypothesis("clock", -shift, T * T)]
-            P = _plus(P, (shift ** 2 + T ** 2, 0.0, 0.0, 0.0))
+            # the estimate's stamp may be read on either side of the step: the train is where
+            # its motion puts it T s later or earlier, x +- v T + a T^2 / 2. Its variance there
+            # is at most (sd_x + T sd_v + T^2 sd_a / 2)^2 whatever the state's correlations,
+            # plus the unmodelled acceleration's over T (m^2; the stamp's seconds are not
+            # metres): beyond the estimate's own, the rest is the solution's extra
+            run = out.velocity * T
+            pa = float(cov[10])
+            if math.isfinite(out.acceleration) and math.isfinite(pa) and pa >= 0.0:
+                bend, sd_a = 0.5 * out.acceleration * T * T, math.sqrt(pa)
+            else:  # no acceleration estimated: any the train can do
+                bend, sd_a = 0.0, p.max_acceleration
+            sd_x = math.sqrt(P[0])
+            carried = sd_x + T * math.sqrt(P[3]) + 0.5 * T * T * sd_a
+            extra = carried * carried - P[0] + _accel_terms(p.accel_uncertainty, T)[0]
+            hyps += [Hypothesis("clock", run + bend, extra),
+                     Hypothesis("clock", -run + bend, extra)]
+            far = max(abs(run + bend), abs(-run + bend))
+            P = _plus(P, (far * far + extra, 0.0, 0.0, 0.0))
         b, se = self._bias()
         if abs(b) > p.pos_z * se:
             doubt = DEGRADED
