@@ -236,6 +236,40 @@ def test_monitor_inflation_and_labels():
     assert m.assess(bad, 10.0).integrity == ALARM
 
 
+@pytest.mark.parametrize("T", [0.1, 1.0, 10.0])
+@pytest.mark.parametrize("accel", [0.8, math.nan])
+def test_a_held_clock_step_is_two_solutions_where_the_motion_puts_the_train(T, accel):
+    """Readings held as a possible step of T s: the estimate's stamp may be read on either
+    side of it, so the train is where its motion puts it T s later or earlier, x +- v T + a
+    T^2 / 2, with the variance (sd_x + T sd_v + T^2 sd_a / 2)^2 plus the unmodelled
+    acceleration's over T (in m^2; it was T^2, seconds squared taken for metres squared, and
+    without the a T^2 / 2). Without an acceleration estimate (the robust filter) the train's
+    largest acceleration bounds it. The levels are those of protection.py over exactly these
+    solutions."""
+    p = IntegrityParams()
+    m = IntegrityMonitor(p, 0.1)
+    v, pxx, pvv, paa = 20.0, 1.0, 0.04, 0.09
+    cov = tuple(np.diag([pxx, pvv, paa if math.isfinite(accel) else math.nan, math.nan])
+                .ravel())
+    o = Output(10.0, 0.0, v, accel, math.nan, cov, True)
+    m.reading(10.0, {"speed": v, "speed_variance": 0.01}, True)
+    m.clock(held=3, doubt=T, conclusive=True)
+    out = m.assess(o, 10.0)
+    assert out.integrity_reason.startswith("clock: 3 readings held")
+    a, sd_a = (accel, math.sqrt(paa)) if math.isfinite(accel) else (0.0, p.max_acceleration)
+    bend = 0.5 * a * T * T
+    carried = math.sqrt(pxx) + T * math.sqrt(pvv) + 0.5 * T * T * sd_a
+    extra = carried ** 2 - pxx + (0.5 * p.accel_uncertainty * T * T) ** 2
+    k = 5.326723886
+    sols = [(0.0, pxx), (v * T + bend, pxx + extra), (-v * T + bend, pxx + extra)]
+    assert math.isclose(out.protection_level_ahead,
+                        max(sh + k * math.sqrt(var) for sh, var in sols), rel_tol=1e-9)
+    assert math.isclose(out.protection_level_behind,
+                        max(-sh + k * math.sqrt(var) for sh, var in sols), rel_tol=1e-9)
+    # the published covariance covers both solutions at one sigma
+    assert out.covariance[0] >= (v * T + abs(bend)) ** 2 + extra - 1e-9
+
+
 @pytest.mark.parametrize("kind", ["robust", "kf"])
 def test_a_start_the_first_balise_contradicts_is_excluded_by_it(kind):
     """Started 60 m off with a claimed 5 m (a wrong stabling point): the first balise (41.8 s)
