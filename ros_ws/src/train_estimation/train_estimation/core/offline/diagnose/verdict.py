@@ -154,8 +154,7 @@ def reconfirm(sr: _Search, before: dict, noise, gctx: GainContext, checks: dict)
         fell = [(a, s) for a, s in zip(confirmed, sub) if s.status != "confirmed"]
         if not fell:
             return
-        laws = "".join(f"; {BY_NAME[r['cause']].heat_rival} in place of {r['cause']}"
-                       for r in rivals)
+        laws = "".join(f"; {r['label']}" for r in rivals)
         for a, s in fell:
             a.status = "not confirmed"
             a.why = f"without {', '.join(dropped)} (not confirmed{laws}): {s.why}"
@@ -177,10 +176,13 @@ def _rival_entry(a: CauseFit, r: dict) -> dict:
     listed cause. Phase ``braking`` (the heat law acts there), no ``where`` nor ``when`` (it
     acts at every braking), ``speed`` the speeds braked at, ``size`` the law's largest change
     of the acceleration (m/s^2; > 0: the brakes deliver less than believed), ``best_listed``
-    the cause with why the law fits better."""
+    the cause with why the law fits better. A cause that a rival law fits as well (a
+    low-adhesion section and a force fixed at its place, :func:`.confirm.undecided_fit`):
+    its own effect, with its stretch (``where``) and the time it was run (``when``)."""
     acc = np.asarray(r["acc"], float)
     i = int(np.argmax(np.abs(acc))) if acc.size else 0
-    return {"phase": "braking", "where": None, "when": None, "speed": r["law"]["speeds"],
+    return {"phase": "braking", "where": r.get("where"), "when": r.get("when"),
+            "speed": r["law"]["speeds"],
             "size": float(acc[i]) if acc.size else 0.0,
             "best_listed": {"cause": a.cause, "why": a.why}}
 
