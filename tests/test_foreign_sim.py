@@ -99,6 +99,11 @@ def test_a_downhill_run_in_braking_is_named_with_the_rival_it_cannot_be_told_fro
     assert overlap > 0.8 * (s1 - s0), (u, eff.gradient)
     # the gradient's 4.15 per mille is 0.041 m/s^2 less braking there
     assert abs(u["size"] + 9.81 * pm / 1000.0) < 0.015, (u, pm)
+    # printed as what it is, not as the odometer's count (an entry with a stretch and a span)
+    from train_estimation.tools.diagnose_unexplained import unexplained_line
+
+    line_ = unexplained_line(u)
+    assert "one run cannot tell" in line_ and "odometer counts" not in line_, line_
 
 
 def test_a_coasting_driver_coasts_and_still_stops_at_the_last_station():

@@ -364,6 +364,7 @@ def _law_verdict(a, check: dict, res: dict, rival: str, than: str, ccfg: Confirm
 
 # how the reason of a cause that a rival law of its check 3 fits as well begins (with ``tell``
 # in _law_verdict): one run does not say which of the two its effect is
+# (tools.diagnose_unexplained tells the entry by it)
 UNDECIDED = "one run cannot tell it from "
 
 
@@ -435,11 +436,9 @@ def undecided_fit(mo: Motion, fit: CauseFit, others: Null, full: Null, cfg: Diag
     p = fit.parameters
     on = (mo.x_ref >= p["start"]) & (mo.x_ref < p["end"])
     acc = (1.0 - p["factor"]) * np.maximum(-mo.f0 * mo.a_br0, 0.0) * mo.moving * on
-    span = _one_pass(mo, fit)
     return {"cause": fit.cause, "undecided": True, "law": {"speeds": bl.get("speeds")},
             "bv": st1.fv - st0.fv, "bs": st1.fs - st0.fs, "acc": acc,
-            "where": [float(p["start"]), float(p["end"])],
-            "when": list(span) if span else None, "label": f"{fit.cause}'s effect"}
+            "where": [float(p["start"]), float(p["end"])], "label": f"{fit.cause}'s effect"}
 
 
 # How data are held out, by the family of data a cause acts on: the dynamics act through time

@@ -178,10 +178,11 @@ def _rival_entry(a: CauseFit, r: dict) -> dict:
     of the acceleration (m/s^2; > 0: the brakes deliver less than believed), ``best_listed``
     the cause with why the law fits better. A cause that a rival law fits as well (a
     low-adhesion section and a force fixed at its place, :func:`.confirm.undecided_fit`):
-    its own effect, with its stretch (``where``) and the time it was run (``when``)."""
+    its own effect, with its stretch (``where``; no ``when``: an entry with both spans is the
+    odometer's count, tools.diagnose_unexplained)."""
     acc = np.asarray(r["acc"], float)
     i = int(np.argmax(np.abs(acc))) if acc.size else 0
-    return {"phase": "braking", "where": r.get("where"), "when": r.get("when"),
+    return {"phase": "braking", "where": r.get("where"), "when": None,
             "speed": r["law"]["speeds"],
             "size": float(acc[i]) if acc.size else 0.0,
             "best_listed": {"cause": a.cause, "why": a.why}}
