@@ -106,6 +106,22 @@ def test_a_downhill_run_in_braking_is_named_with_the_rival_it_cannot_be_told_fro
     assert "one run cannot tell" in line_ and "odometer counts" not in line_, line_
 
 
+def test_a_section_undecided_beside_causes_that_fall_is_judged_again_without_them(tmp_path):
+    """A resistance decaying from the start (bench_foreign --unlisted warmup, seed 2) drew a
+    gradient, a resistance and a low-adhesion section braked over at one command, which one
+    run cannot tell from a fixed force (2 ln LR +0.6). The split then contradicted the
+    gradient and the resistance; judged again without them, the section predicts nothing (held
+    out at Z -0.46): it is not reported as a braking effect on its stretch, and the
+    remainder's first entry is in every phase, as a warm-up acts."""
+    rep, _ = _diagnose_foreign(tmp_path, 2, "warmup")
+    assert rep["cause"] == "unexplained", rep["cause"]
+    sec = next(r for r in rep["ranking"] if r["cause"] == "adhesion_section")
+    assert sec["status"] == "not confirmed" and "held-out check failed" in sec["why"], sec
+    assert rep["unexplained"][0]["phase"] == "all", rep["unexplained"]
+    assert not [u for u in rep["unexplained"]
+                if (u.get("best_listed") or {}).get("cause") == "adhesion_section"]
+
+
 def test_a_coasting_driver_coasts_and_still_stops_at_the_last_station():
     """Coast-and-motor driving (bench_foreign --coast): from its cruise speed (0.9 x 20 m/s
     here) the driver coasts, motoring again only below the given fraction of it; the default

@@ -322,6 +322,12 @@ def without_evidence(fit: CauseFit) -> bool:
 
 
 
+def undecided(fit: CauseFit) -> bool:
+    """Whether the accepted ``fit`` is not confirmed because a rival law fits as well
+    (``UNDECIDED``, :func:`undecided_fit`)."""
+    return fit.status != "confirmed" and (fit.why or "").startswith(UNDECIDED)
+
+
 def _one_pass(mo: Motion, a) -> tuple[float, float] | None:
     """(t0, t1) s since the first odometer stamp: the one time span the train was on the
     stretch ``[start, end)`` of ``a``, or None when it was there in more than one (or none)."""
