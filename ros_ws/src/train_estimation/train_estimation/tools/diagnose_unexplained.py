@@ -68,6 +68,20 @@ def heat_fade(u: dict) -> bool:
             and "a heat law fits better" in str(best.get("why", "")))
 
 
+# how the reason of a cause that one run cannot tell from a rival law begins
+# (core/offline/diagnose/confirm.py, UNDECIDED)
+UNDECIDED_WHY = "one run cannot tell it from "
+
+
+def undecided(u: dict) -> bool:
+    """An ``unexplained`` entry of a low-adhesion section that a force fixed at its place fits
+    as well (phase braking, ``where`` its stretch, the reason saying so): its size is the
+    section's largest braking deficit in m/s^2 (> 0: less braking), not a residual."""
+    best = u.get("best_listed") or {}
+    return (u.get("phase") == "braking" and bool(u.get("where"))
+            and str(best.get("why", "")).startswith(UNDECIDED_WHY))
+
+
 def on_odometer(u: dict) -> bool:
     """An ``unexplained`` entry of the odometer's count (``where`` and ``when`` both spans: no
     acceleration family gives both): its size is the odometer error in m (docs/diagnose.md)."""
@@ -116,6 +130,12 @@ def unexplained_line(u: dict) -> str:
         return (f"unexplained: the brakes deliver less than believed (up to {u['size']:+.3f} "
                 f"m/s^2, braking at {sp[0]:.1f}-{sp[1]:.1f} m/s), as brakes that fade as they "
                 f"heat: no listed cause; closest listed: {best['cause']} ({best['why']})")
+    if undecided(u):
+        sp = u.get("speed") or [0.0, 0.0]
+        return (f"unexplained: braking on {_span(u['where'], 'm')} at {sp[0]:.1f}-{sp[1]:.1f} "
+                f"m/s delivers up to {u['size']:+.3f} m/s^2 less than believed, a low-adhesion "
+                f"section or a force fixed there: one run cannot tell; closest listed: "
+                f"{best['cause']} ({best['why']})")
     if balise_latency(u):
         sp = u["speed"]
         return (f"unexplained: every balise reading lies {u['size']:+.3f} s x speed behind the "

@@ -38,8 +38,10 @@ reported ``confirmed`` only when the checks below pass, the same for every cause
    not tell them apart) the check states it (``caveat``). A cause in proportion to the
    braking asked for at a place (``Cause.fixed_rival``: a low-adhesion section) is compared
    the same way with a force fixed there (:func:`.laws.braking_law`: a downhill
-   gradient the map lacks, which braking at one command cannot tell from it); within
-   +-``law_lr`` the check states it (``caveat``), and it never decides the status.
+   gradient the map lacks, which braking at one command cannot tell from it), and it must
+   win: within +-``law_lr`` (a stretch braked at one command, nothing seen outside
+   braking there) it is not confirmed either, the reason naming the rival and what
+   would tell them apart.
    An odometer scale (``Cause.count_rival``) is compared likewise with an odometer error
    growing with speed (:func:`.laws.count_law`: a radar's), one parameter each: above
    ``law_lr`` not confirmed, within +-``law_lr`` a caveat.
@@ -101,7 +103,7 @@ from .laws import braking_law, count_law, heat_fit, heat_law, heat_refit, speed_
 from .motion import Motion
 from .result import CauseFit
 from .run import DiagConfig
-from .stage import Null
+from .stage import Null, Stage
 
 
 def confirm(mo: Motion, shift: float, accepted: list, resolved_before: dict, cfg: DiagConfig,
@@ -273,14 +275,22 @@ def confirm(mo: Motion, shift: float, accepted: list, resolved_before: dict, cfg
             # changes over the stretch, and at a stop: a force that acts while the train
             # moves there ends where it stops, braking weaker ends with the braking. Above
             # law_lr the section is not confirmed (a tail wind over a braking approach, fitted
-            # as braking x 0.86 there, favours a fixed force by 35)
+            # as braking x 0.86 there, favours a fixed force by 35). The section must also
+            # win by law_lr: braked at one command over its stretch, a section and a fixed
+            # force are the same data (a downhill gradient run wholly in a braking approach
+            # was confirmed as a section at 2 ln LR +1.4), and the search's pick between
+            # them is noise
             bl = braking_law(mo, others, cfg, noise, a.extra["bins"])
             checks[a.cause]["braking_law"] = bl
             fixed = dict(bl, lr=-bl.get("lr", 0.0))  # > 0: the fixed force fits better
             if _law_verdict(a, checks[a.cause], fixed, cause.fixed_rival,
                             "the braking there better than braking weaker in proportion to "
                             "the braking asked for", ccfg, where=" on the stretch",
-                            law="a fixed force"):
+                            law="a fixed force", tell=_braking_tell(bl)):
+                if a.why.startswith(UNDECIDED):
+                    # its effect is in the data (checks 1-2) and is one of the two: it stays
+                    # in the model the others are judged in, and is reported as left
+                    a.rival = undecided_fit(mo, a, others, full, cfg, noise, bl)
                 continue
         pt = place_test(mo, full, cfg, noise, *bey, ccfg.split_alpha, ccfg.split_min_share)
         checks[a.cause]["place"] = pt
@@ -312,6 +322,12 @@ def without_evidence(fit: CauseFit) -> bool:
 
 
 
+def undecided(fit: CauseFit) -> bool:
+    """Whether the accepted ``fit`` is not confirmed because a rival law fits as well
+    (``UNDECIDED``, :func:`undecided_fit`)."""
+    return fit.status != "confirmed" and (fit.why or "").startswith(UNDECIDED)
+
+
 def _one_pass(mo: Motion, a) -> tuple[float, float] | None:
     """(t0, t1) s since the first odometer stamp: the one time span the train was on the
     stretch ``[start, end)`` of ``a``, or None when it was there in more than one (or none)."""
@@ -327,11 +343,13 @@ def _one_pass(mo: Motion, a) -> tuple[float, float] | None:
 
 
 def _law_verdict(a, check: dict, res: dict, rival: str, than: str, ccfg: ConfirmConfig,
-                 detail: str = "", where: str = "", law: str = "a speed law") -> bool:
+                 detail: str = "", where: str = "", law: str = "a speed law",
+                 tell: str | None = None) -> bool:
     """The verdict of a comparison ``res`` of the cause ``a`` with a rival law of as many
     parameters (``res["lr"]``: 2 ln LR of the law over the cause): above ``law_lr`` the cause
-    is not confirmed (returns True); within +-``law_lr`` the data cannot tell the two apart,
-    and the check's caveat says so."""
+    is not confirmed (returns True); within +-``law_lr`` the data cannot tell the two apart:
+    the check's caveat says so, or, with ``tell`` (what would tell them apart), the cause is
+    not confirmed (``UNDECIDED``, returns True)."""
     lr, v = res.get("lr", 0.0), res.get("speeds")
     at = f"speeds {v[0]:.0f}-{v[1]:.0f} m/s{where}" if v else "no speeds"
     if lr > ccfg.law_lr:
@@ -340,8 +358,31 @@ def _law_verdict(a, check: dict, res: dict, rival: str, than: str, ccfg: Confirm
                  f"{ccfg.law_lr:g}; {detail}{at})")
         return True
     if lr > -ccfg.law_lr:
-        _caveat(check, f"cannot be told from {rival} (2 ln LR {lr:+.1f}; {at})")
+        told = f"cannot be told from {rival} (2 ln LR {lr:+.1f}; {at})"
+        if tell is None:
+            _caveat(check, told)
+            return False
+        a.status = "not confirmed"
+        a.why = f"{UNDECIDED}{told[len('cannot be told from '):]}: {tell}"
+        return True
     return False
+
+
+# how the reason of a cause that a rival law of its check 3 fits as well begins (with ``tell``
+# in _law_verdict): one run does not say which of the two its effect is
+# (tools.diagnose_unexplained tells the entry by it)
+UNDECIDED = "one run cannot tell it from "
+
+
+def _braking_tell(bl: dict) -> str:
+    """What would tell a low-adhesion section from a force fixed at its place, with the braking
+    asked for on the stretch (:func:`.laws.braking_law`'s ``shape``: 5-95 % of it over its
+    mean)."""
+    sh = bl.get("shape")
+    on = (f"the braking asked for on the stretch {sh[0]:.2f}-{sh[1]:.2f} of its mean; "
+          if sh else "")
+    return (f"{on}a pass braked differently there, or run there in traction or coasting, "
+            f"would tell (fleet)")
 
 
 def _caveat(check: dict, told: str) -> None:
@@ -371,6 +412,9 @@ def refit_rivals(mo: Motion, shift: float, fits: list, rivals: list, cfg: DiagCo
     model of ``fits`` and the rivals before them (their parameters maximised on that model)."""
     out = []
     for r in rivals:
+        if r.get("undecided"):  # a cause's own fit, which no law replaced: as it was fitted
+            out.append(r)
+            continue
         law = heat_refit(mo, _null_of(mo, shift, fits, out), cfg, noise, r["law"])
         out.append(rival_fit(mo, CauseFit(r["cause"], 0.0, {}), law))
     return out
@@ -382,7 +426,25 @@ def rival_fit(mo: Motion, fit: CauseFit, law: dict) -> dict:
     its drift increments (``bv``, ``bs``: ``Null.extra``'s form) and acceleration on the grid
     (``acc``), the cause it displaces and the comparison."""
     bv, bs, acc = heat_fit(mo, law)
-    return {"cause": fit.cause, "law": law, "bv": bv, "bs": bs, "acc": acc}
+    return {"cause": fit.cause, "law": law, "bv": bv, "bs": bs, "acc": acc,
+            "label": f"{BY_NAME[fit.cause].heat_rival} in place of {fit.cause}"}
+
+
+def undecided_fit(mo: Motion, fit: CauseFit, others: Null, full: Null, cfg: DiagConfig, noise,
+                  bl: dict) -> dict:
+    """The effect of a low-adhesion section ``fit`` that a force fixed at its place fits as
+    well (:func:`.laws.braking_law`'s result ``bl``), as a part of a model in
+    :func:`rival_fit`'s form: the section's own contribution (``full`` against ``others``),
+    its acceleration on the grid (m/s^2, > 0 where the braking delivered is less than
+    believed), its stretch and the speeds on it."""
+    st0 = Stage(mo, others, cfg, noise=noise, big=False)
+    st1 = Stage(mo, full, cfg, noise=noise, big=False)
+    p = fit.parameters
+    on = (mo.x_ref >= p["start"]) & (mo.x_ref < p["end"])
+    acc = (1.0 - p["factor"]) * np.maximum(-mo.f0 * mo.a_br0, 0.0) * mo.moving * on
+    return {"cause": fit.cause, "undecided": True, "law": {"speeds": bl.get("speeds")},
+            "bv": st1.fv - st0.fv, "bs": st1.fs - st0.fs, "acc": acc,
+            "where": [float(p["start"]), float(p["end"])], "label": f"{fit.cause}'s effect"}
 
 
 # How data are held out, by the family of data a cause acts on: the dynamics act through time

@@ -221,7 +221,8 @@ def law_test(mo: Motion, others: Null, cfg, noise, bins: tuple, shape: np.ndarra
     same force); on the fixed force's stretch the fit of both together, a ((1 - b) g + b h)
     with h the law's column scaled to the same mean force: ``b`` (0 a fixed force, 1 the law)
     and its standard error (on that stretch, whose ends a fixed force fitted to drag moves:
-    ``lr`` is the comparison); the speeds on it (5-95 %) and both stretches (m)."""
+    ``lr`` is the comparison); the speeds on it and the law over its mean there (``shape``;
+    5-95 %) and both stretches (m)."""
     i, j = int(bins[0]), int(bins[1])
     lo, hi = max(0, i - LAW_REACH), min(mo.n_bins, j + LAW_REACH)
     mov, jb = mo.step_moving, mo.step_bin
@@ -327,8 +328,11 @@ def _refined(mo: Motion, st: Stage, law: np.ndarray, lo: int, hi: int, best: dic
     xm = 0.5 * (mo.x_ref[1:] + mo.x_ref[:-1])
     sec = mo.step_moving & (xm >= col_edges[a0]) & (xm < col_edges[b0])
     v_lo, v_hi = np.percentile(vm[sec], [5, 95]) if sec.any() else (0.0, 0.0)
+    # the law over its mean on that stretch (5-95 %): near 1 throughout, the two are one force
+    s_lo, s_hi = np.percentile(law[sec] / np.mean(law[sec]), [5, 95]) \
+        if sec.any() and np.mean(law[sec]) > 0 else (0.0, 0.0)
     res.update(lr=float(fine["law"][0] - fine["fixed"][0]), b=share, std_error=se,
-               speeds=[float(v_lo), float(v_hi)],
+               speeds=[float(v_lo), float(v_hi)], shape=[float(s_lo), float(s_hi)],
                stretch_fixed=[float(col_edges[a0]), float(col_edges[b0])],
                stretch_law=[float(col_edges[fine["law"][1][0]]),
                             float(col_edges[fine["law"][1][1]])])

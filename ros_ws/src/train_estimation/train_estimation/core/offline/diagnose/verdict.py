@@ -17,6 +17,7 @@ from .confirm import (
     _null_of,
     confirm,
     refit_rivals,
+    undecided,
     unneeded,
     unpiece,
     without_evidence,
@@ -133,16 +134,23 @@ def reconfirm(sr: _Search, before: dict, noise, gctx: GainContext, checks: dict)
     true gradient beside a braking-rate drift that brakes fading as they heat explain better
     was contradicted by the split with no weaker braking in the model)."""
     for _ in range(len(sr.accepted)):
-        confirmed = [a for a in sr.accepted if a.status == "confirmed"]
+        # a section one run cannot tell from a fixed force (confirm.UNDECIDED) was judged so
+        # beside the others: it is judged again with them, as a confirmed cause is (a section
+        # undecided beside a gradient and a resistance that the split then contradicted
+        # predicted nothing without them: held out at Z -0.46)
+        confirmed = [a for a in sr.accepted if a.status == "confirmed" or undecided(a)]
         dropped = [a.cause for a in sr.accepted if a.status != "confirmed"
-                   and not without_evidence(a)]
-        kept = [a for a in sr.accepted if a.status != "confirmed" and a.cause not in dropped]
+                   and not without_evidence(a) and not undecided(a)]
+        kept = [a for a in sr.accepted if a.status != "confirmed" and a.cause not in dropped
+                and not undecided(a)]
         if not dropped or not confirmed:
             return
         # a cause that lost to a rival law leaves that law's fit in its place: its effect is
         # in the data, and the others are judged with it explained as the data prefer
-        rivals = _rivals(sr)
+        rivals = [r for r in _rivals(sr) if not r.get("undecided")]
         sub = copy.deepcopy(confirmed)
+        for s in sub:
+            s.rival = None
         rest = copy.deepcopy(kept)
         shift = _null_of(sr.mo, sr.null.shift, sub + rest).shift
         joint_refit(sr.mo, Null(shift=shift), sub + rest, sr.cfg, noise, rivals)
@@ -151,14 +159,16 @@ def reconfirm(sr: _Search, before: dict, noise, gctx: GainContext, checks: dict)
         rivals = refit_rivals(sr.mo, shift, sub + rest, rivals, sr.cfg, noise)
         again = confirm(sr.mo, shift, sub + rest, before, sr.cfg, noise, sr.own, gctx,
                         rivals=rivals)
-        fell = [(a, s) for a, s in zip(confirmed, sub) if s.status != "confirmed"]
+        fell = [(a, s) for a, s in zip(confirmed, sub) if s.status != "confirmed"
+                and not (undecided(a) and undecided(s))]
         if not fell:
             return
-        laws = "".join(f"; {BY_NAME[r['cause']].heat_rival} in place of {r['cause']}"
-                       for r in rivals)
+        laws = "".join(f"; {r['label']}" for r in rivals)
         for a, s in fell:
+            without = f"without {', '.join(dropped)} (not confirmed{laws})"
             a.status = "not confirmed"
-            a.why = f"without {', '.join(dropped)} (not confirmed{laws}): {s.why}"
+            # an undecided reason keeps its beginning (the report and the bench tell it by it)
+            a.why = f"{s.why} ({without})" if undecided(s) else f"{without}: {s.why}"
             a.rival = s.rival
             checks[a.cause]["without_unconfirmed"] = again[a.cause]
 
@@ -177,10 +187,14 @@ def _rival_entry(a: CauseFit, r: dict) -> dict:
     listed cause. Phase ``braking`` (the heat law acts there), no ``where`` nor ``when`` (it
     acts at every braking), ``speed`` the speeds braked at, ``size`` the law's largest change
     of the acceleration (m/s^2; > 0: the brakes deliver less than believed), ``best_listed``
-    the cause with why the law fits better."""
+    the cause with why the law fits better. A cause that a rival law fits as well (a
+    low-adhesion section and a force fixed at its place, :func:`.confirm.undecided_fit`):
+    its own effect, with its stretch (``where``; no ``when``: an entry with both spans is the
+    odometer's count, tools.diagnose_unexplained)."""
     acc = np.asarray(r["acc"], float)
     i = int(np.argmax(np.abs(acc))) if acc.size else 0
-    return {"phase": "braking", "where": None, "when": None, "speed": r["law"]["speeds"],
+    return {"phase": "braking", "where": r.get("where"), "when": None,
+            "speed": r["law"]["speeds"],
             "size": float(acc[i]) if acc.size else 0.0,
             "best_listed": {"cause": a.cause, "why": a.why}}
 
