@@ -7,6 +7,7 @@ in the summary. The summary, the plots and report.html read entries through thes
 
 from __future__ import annotations
 
+from train_estimation.core.offline.diagnose.confirm import UNDECIDED
 from train_estimation.core.offline.diagnose.residuals import SENSOR_WHY
 from train_estimation.core.offline.diagnose.verdict import LATENCY_WHY, RATE_WHY
 
@@ -68,18 +69,13 @@ def heat_fade(u: dict) -> bool:
             and "a heat law fits better" in str(best.get("why", "")))
 
 
-# how the reason of a cause that one run cannot tell from a rival law begins
-# (core/offline/diagnose/confirm.py, UNDECIDED)
-UNDECIDED_WHY = "one run cannot tell it from "
-
-
 def undecided(u: dict) -> bool:
     """An ``unexplained`` entry of a low-adhesion section that a force fixed at its place fits
     as well (phase braking, ``where`` its stretch, the reason saying so): its size is the
     section's largest braking deficit in m/s^2 (> 0: less braking), not a residual."""
     best = u.get("best_listed") or {}
     return (u.get("phase") == "braking" and bool(u.get("where"))
-            and str(best.get("why", "")).startswith(UNDECIDED_WHY))
+            and str(best.get("why", "")).startswith(UNDECIDED))
 
 
 def on_odometer(u: dict) -> bool:

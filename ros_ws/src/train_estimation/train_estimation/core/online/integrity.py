@@ -85,8 +85,10 @@ Checks (each gives a reason, e.g. ``"no_measurement: 2.3 s"``):
     decided it is known to the link's jitter and needs no hold): two solutions, the train where
     the estimate's motion puts it ``T`` s after and before its stamp (the stamp may be read on
     either side of the step: ``x +- v T + a T^2 / 2``, ``a`` the estimate's acceleration, with
-    the variance ``T^2 P_vv + (accel_uncertainty T^2 / 2)^2`` beyond the estimate's: its speed's
-    and the unmodelled acceleration's), and the published position variance grown to cover them.
+    the variance ``(sd_x + T sd_v + T^2 sd_a / 2)^2 + (accel_uncertainty T^2 / 2)^2``: its state
+    carried over ``T`` whatever its correlations, and the unmodelled acceleration's; without an
+    acceleration estimate ``sd_a`` is ``max_acceleration`` and ``a`` 0), and the published
+    position variance grown to cover them.
     While readings are held, ``T`` is the largest discontinuity among them (the candidate
     step), after a step one sample period (a re-anchored step is known to about that).
 ``balise``
@@ -701,7 +703,7 @@ class IntegrityMonitor:
             extra = carried * carried - P[0] + _accel_terms(p.accel_uncertainty, T)[0]
             hyps += [Hypothesis("clock", run + bend, extra),
                      Hypothesis("clock", -run + bend, extra)]
-            far = max(abs(run + bend), abs(-run + bend))
+            far = abs(run) + abs(bend)  # the farther of the two
             P = _plus(P, (far * far + extra, 0.0, 0.0, 0.0))
         b, se = self._bias()
         if abs(b) > p.pos_z * se:
