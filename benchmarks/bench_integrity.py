@@ -158,7 +158,9 @@ def run_task(task: dict) -> dict:
     return row
 
 
-FOLLOWER_AT = 1.0  # m, where the follower of zone_in_loop stands (behind any leader's start)
+FOLLOWER_AT = 1.0  # m, where the follower of zone_in_loop stands
+FOLLOWER_GAP = 10.0  # m, at least between the follower's front and the leader's true rear at the
+#   leader's first estimate (zone_in_loop lifts the leader's line coordinates to make room)
 
 
 def zone_in_loop(outs: list, emitted, truth: dict) -> dict:
@@ -168,6 +170,11 @@ def zone_in_loop(outs: list, emitted, truth: dict) -> dict:
     ``granted``: authorities granted. The zone's margin is 0 (the authority is the leader's min
     safe rear itself: only its protection level guards it) and it judges stamps by arrival (the
     train clock may step or drift: ``check_stamp_age`` false).
+    The follower stands ``FOLLOWER_GAP`` behind the leader's true rear at its first estimate:
+    where the leader starts nearer the line's origin than that (a real line's first station
+    at 0 m, the train's rear 120 m before it), the leader's reports and its truth are lifted
+    along the line by the difference (the zone's rules do not depend on where the origin is;
+    a follower placed ahead of the leader would be the zone's first train, never limited by it).
     ``stop_short``: reports the zone bounds (not ALARM, fresh) whose worst-case stopping point
     (max safe front carried to the present plus the stop from the worst-case speed at the
     nominal emergency braking: what the zone brakes on) lies short of the train's true one (true
@@ -178,11 +185,14 @@ def zone_in_loop(outs: list, emitted, truth: dict) -> dict:
     em = np.asarray(emitted, float)
     tr_t, tr_x = np.asarray(truth["t"], float), np.asarray(truth["position"], float)
     tr_v = np.asarray(truth["velocity"], float)
+    x0 = float(np.interp(em[0] - F.EPOCH, tr_t, tr_x)) if em.size else 0.0
+    lift = max(0.0, FOLLOWER_AT + FOLLOWER_GAP + p.train_length - x0)
+    tr_x = tr_x + lift
     past = granted = short = 0
     for o, e in zip(outs, em):
         c = o.covariance
         zc.report("leader", TrainReport(
-            t_received=float(e), stamp=float(o.stamp), position=float(o.position),
+            t_received=float(e), stamp=float(o.stamp), position=float(o.position) + lift,
             velocity=float(o.velocity), var_position=float(c[0]), var_velocity=float(c[5]),
             cov_position_velocity=float(c[1]), cov_velocity_position=float(c[4]),
             measurement_used=bool(getattr(o, "measurement_used", True)),

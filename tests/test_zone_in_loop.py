@@ -19,16 +19,18 @@ from train_estimation.tools import faults as F  # noqa: E402
 COV = tuple((np.eye(4) * 0.01).ravel())
 
 
-def leader(offset: float, behind: float, integrity: int = 0, n: int = 300, speed: float = 10.0):
-    """A leader at 200 + 10 t m reported at 10 Hz ``offset`` m from the truth with the level
+def leader(offset: float, behind: float, integrity: int = 0, n: int = 300, speed: float = 10.0,
+           start: float = 200.0, dwell: float = 0.0):
+    """A leader at ``start`` + 10 t m (standing there for the first ``dwell`` s) reported at 10 Hz ``offset`` m from the truth with the level
     ``behind`` (and 5 m ahead), at the speed ``speed`` (sd 0.1 m/s); the truth and the emission
     times."""
     t = 0.1 * np.arange(n)
-    outs = [Output(F.EPOCH + s, 200.0 + 10.0 * s + offset, speed, 0.0, math.nan, COV, True,
+    x = start + 10.0 * np.maximum(t - dwell, 0.0)
+    outs = [Output(F.EPOCH + s, xs + offset, speed, 0.0, math.nan, COV, True,
                    integrity=integrity, protection_level_ahead=5.0 if integrity < 2 else math.inf,
                    protection_level_behind=behind if integrity < 2 else math.inf)
-            for s in t]
-    truth = {"t": t, "position": 200.0 + 10.0 * t, "velocity": np.full(t.size, 10.0)}
+            for s, xs in zip(t, x)]
+    truth = {"t": t, "position": x, "velocity": np.full(t.size, 10.0)}
     return outs, F.EPOCH + t + 0.05, truth
 
 
@@ -36,6 +38,20 @@ def test_an_honest_leader_grants_no_authority_past_its_rear():
     outs, em, truth = leader(offset=3.0, behind=5.0)
     r = B.zone_in_loop(outs, em, truth)
     assert r["past_rear"] == 0 and r["granted"] == len(outs)
+
+
+@pytest.mark.parametrize("start", [0.0, 0.5, 50.0])
+def test_a_leader_starting_at_the_line_origin_is_still_ahead_of_the_follower(start):
+    """A real line's first station is its origin: the leader stands at 0 m for its dwell, its
+    rear 120 m before it. The follower still stands behind that rear (the leader's coordinates
+    lifted), not ahead of the leader, where the zone takes it for the first train: the leader
+    then passes it (refused, trains out of order), goes stale behind it, and every authority
+    of the follower runs past the leader's rear."""
+    outs, em, truth = leader(offset=0.0, behind=5.0, start=start, dwell=2.0)
+    r = B.zone_in_loop(outs, em, truth)
+    assert r["past_rear"] == 0 and r["granted"] == len(outs)
+    outs, em, truth = leader(offset=3.0, behind=1.0, start=start, dwell=2.0)
+    assert B.zone_in_loop(outs, em, truth)["past_rear"] == len(outs)
 
 
 @pytest.mark.parametrize("behind", [1.0, 2.4])
