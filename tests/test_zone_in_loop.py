@@ -21,9 +21,9 @@ COV = tuple((np.eye(4) * 0.01).ravel())
 
 def leader(offset: float, behind: float, integrity: int = 0, n: int = 300, speed: float = 10.0,
            start: float = 200.0, dwell: float = 0.0):
-    """A leader at ``start`` + 10 t m (standing there for the first ``dwell`` s) reported at 10 Hz ``offset`` m from the truth with the level
-    ``behind`` (and 5 m ahead), at the speed ``speed`` (sd 0.1 m/s); the truth and the emission
-    times."""
+    """A leader at ``start`` + 10 t m (standing there for the first ``dwell`` s) reported at
+    10 Hz ``offset`` m from the truth with the level ``behind`` (and 5 m ahead), at the speed
+    ``speed`` (sd 0.1 m/s); the truth and the emission times."""
     t = 0.1 * np.arange(n)
     x = start + 10.0 * np.maximum(t - dwell, 0.0)
     outs = [Output(F.EPOCH + s, xs + offset, speed, 0.0, math.nan, COV, True,
