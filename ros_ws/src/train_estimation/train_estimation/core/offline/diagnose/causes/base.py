@@ -179,6 +179,12 @@ class Cause:
     # braking asked for at its place) is not; None: the cause is no such law.
     fixed_rival: str | None = None
 
+    # The mirror of ``fixed_rival``: braking weaker in proportion to the braking asked for at
+    # that place (a low-adhesion section), which the cause (a force fixed at its place) is not;
+    # None: the cause is no force fixed at a place. Both sides are judged by one comparison
+    # (check 3's braking law, confirm._braking_verdict).
+    braking_rival: str | None = None
+
     # Brakes that fade as they heat (weaker in proportion to the heat of the braking just
     # done, cooling in minutes), which the cause (a braking weaker by a factor in time, or on
     # a stretch) is not; None: the cause is not a weaker braking.

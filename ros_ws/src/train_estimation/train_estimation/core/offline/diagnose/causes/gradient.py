@@ -130,6 +130,10 @@ class Gradient(Cause):
     # g sin(theta) does not depend on speed; drag in a tunnel grows as v^2
     speed_rival = "aerodynamic drag at that place (a force growing as v^2: a tunnel)"
     time_rival = "a force acting while the train ran it (a headwind, a traction fault)"
+    # run downhill in braking only, a map error is braking weaker there to the data (the braking
+    # asked for at one level over the stretch: the same force)
+    braking_rival = ("a low-adhesion section (braking weaker there in proportion to the braking "
+                     "asked for)")
 
     def beyond(self, fit, mo):
         """The section's gradient force at every place run while moving."""
