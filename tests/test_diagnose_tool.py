@@ -414,6 +414,12 @@ SPECS = [(c, "plain", 200 + i) for i, c in enumerate(CAUSES)] + [
     ("adhesion_section", "subtle", 243), ("traction_delay", "subtle", 244)]
 HIDDEN = [pytest.param(c, s, n, marks=[pytest.mark.xfail(reason=KNOWN[(c, n)], strict=True)]
                        if (c, n) in KNOWN else []) for c, s, n in SPECS]
+# (cause, seed) -> why one run cannot tell the hidden effect from a rival (docs/diagnose.md,
+# check 3): found where it is and of its size, not confirmed with a reason that says so, and
+# its effect the report's entry on its stretch
+UNTOLD = {("gradient", 240): "a downhill gradient of -2.29 per mille run wholly in braking at "
+                             "35-42 m/s, the braking asked for 0.90-1.24 of its mean there: "
+                             "the braking law gives -0.2, the same force as braking x 0.96"}
 
 
 def _id(p):
@@ -517,6 +523,16 @@ def test_hidden_effect_is_found(cause, size, seed, tmp_path, capsys):
     names = [r["cause"] for r in rep["ranking"]]
     if not case.causes:
         assert rep["cause"] == "none", rep["ranking"][:3]
+        return
+    if (case.expected, seed) in UNTOLD:
+        from train_estimation.core.offline.diagnose.confirm import UNDECIDED
+
+        fit = next(r for r in rep["ranking"] if r["cause"] == case.expected)
+        assert rep["cause"] == "unexplained", (case.truth, rep["ranking"][:3])
+        assert fit["status"] == "not confirmed" and fit["why"].startswith(UNDECIDED), fit
+        assert rep["unexplained"][0]["best_listed"]["cause"] == case.expected, rep["unexplained"]
+        check_parameters(case.expected, fit["parameters"], truth[case.expected],
+                         rep["evidence"], case.v_ref)
         return
     if len(case.causes) == 1:
         assert rep["cause"] == case.expected, (case.truth, rep["ranking"][:3])

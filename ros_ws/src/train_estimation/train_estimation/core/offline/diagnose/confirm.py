@@ -379,13 +379,18 @@ def _braking_verdict(mo: Motion, a: CauseFit, cause, check: dict, others: Null, 
     the data (checks 1-2) and is one of the two. Returns True when the cause is not confirmed
     (the figures in ``check["braking_law"]``).
 
-    No comparison where the rival explains nothing: a fixed force that is no braking deficit
-    on its stretch (an uphill map error: a low-adhesion section only weakens the braking), or
-    a stretch with no braking asked for (the law is zero there: ``braking_law``'s ``note``)."""
+    No comparison for a force fixed at a place whose rival the railway could not have there
+    (``Cause.braking_rival_fit`` and the rival's own ``plausible``: no section gives an uphill
+    map error; a brake asking for less than any rail's adhesion gives is never weakened by
+    it), nor where the braking asked for is zero on the stretch (``braking_law``'s
+    ``note``)."""
     law_side = cause.fixed_rival is not None
     if not law_side:
-        inside, force = cause.beyond(a, mo)
-        if not (inside.any() and float(np.mean(force[inside])) > 0.0):
+        hyp = cause.braking_rival_fit(a, mo)
+        odd = "no braking deficit on the stretch" if hyp is None else \
+            BY_NAME[hyp.cause].plausible(hyp, mo)
+        if odd is not None:
+            check["braking_law"] = {"rival": odd}
             return False
     bl = braking_law(mo, others, cfg, noise, a.extra["bins"])
     check["braking_law"] = bl
