@@ -414,6 +414,12 @@ SPECS = [(c, "plain", 200 + i) for i, c in enumerate(CAUSES)] + [
     ("adhesion_section", "subtle", 243), ("traction_delay", "subtle", 244)]
 HIDDEN = [pytest.param(c, s, n, marks=[pytest.mark.xfail(reason=KNOWN[(c, n)], strict=True)]
                        if (c, n) in KNOWN else []) for c, s, n in SPECS]
+# (cause, seed) -> why one run cannot tell the hidden effect from a rival (docs/diagnose.md,
+# check 3): found where it is and of its size, not confirmed with a reason that says so, and
+# its effect the report's entry on its stretch
+UNTOLD = {("gradient", 240): "a downhill gradient of -2.29 per mille run wholly in braking at "
+                             "35-42 m/s, the braking asked for 0.90-1.24 of its mean there: "
+                             "the braking law gives -0.2, the same force as braking x 0.96"}
 
 
 def _id(p):
@@ -518,6 +524,16 @@ def test_hidden_effect_is_found(cause, size, seed, tmp_path, capsys):
     if not case.causes:
         assert rep["cause"] == "none", rep["ranking"][:3]
         return
+    if (case.expected, seed) in UNTOLD:
+        from train_estimation.core.offline.diagnose.confirm import UNDECIDED
+
+        fit = next(r for r in rep["ranking"] if r["cause"] == case.expected)
+        assert rep["cause"] == "unexplained", (case.truth, rep["ranking"][:3])
+        assert fit["status"] == "not confirmed" and fit["why"].startswith(UNDECIDED), fit
+        assert rep["unexplained"][0]["best_listed"]["cause"] == case.expected, rep["unexplained"]
+        check_parameters(case.expected, fit["parameters"], truth[case.expected],
+                         rep["evidence"], case.v_ref)
+        return
     if len(case.causes) == 1:
         assert rep["cause"] == case.expected, (case.truth, rep["ranking"][:3])
     else:
@@ -537,6 +553,77 @@ def test_hidden_effect_is_found(cause, size, seed, tmp_path, capsys):
     if sc.train.davis != case.scenario.train.davis:
         in_model.add("resistance")
     assert set(case.causes) <= in_model, in_model
+
+
+def _gradient_over_an_approach(tmp_path, through: bool) -> tuple[dict, tuple, float]:
+    """A downhill gradient the map lacks, -5 per mille, on the stretch of a braking-to-stop
+    approach that ``train_sim.cases`` draws for a low-adhesion section (seed 8: a regional
+    line, 7,679-8,600 m before the stop at 8,661 m, braked over at 10-32 m/s at a command
+    within 10 % of its mean); with ``through``, on from there past the stop by as much again
+    (the train leaves the station over it in traction). Diagnosed as a user runs the tool:
+    (report.json, the gradient's stretch, its per mille)."""
+    case = make_case(np.random.default_rng(8), "adhesion_section", "plain")
+    sec = case.truth["adhesion_section"]
+    stop = min(s.position for s in case.scenario.timetable if s.position >= sec["end"])
+    start, end, pm = sec["start"], sec["end"], -5.0
+    if through:
+        end = stop + (end - start)
+    eff = parse_effects(Section({"gradient": {"start": start, "end": end, "permille": pm}},
+                                "test.effects"), case.scenario.duration)
+    paths = case.write(tmp_path / "case")
+    generate(case.scenario.with_effects(eff), tmp_path / "bag", measured=True)
+    return _report(paths, tmp_path), (start, end), pm
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("searched", ["adhesion_section", "gradient"])
+def test_a_gradient_braked_through_at_one_command_is_not_told_from_a_section(
+        tmp_path, monkeypatch, searched):
+    """Braked over at one command, a downhill gradient the map lacks and braking weaker there
+    are the same force, and one run cannot tell them apart (docs/diagnose.md, check 3: the
+    braking law). On these data the search takes the section; with the section left out of
+    it, it takes the gradient (as it can on other data: the search's pick between them is
+    noise). From either side the verdict is the same: not confirmed, the reason naming the
+    rival and what would tell, the 2 ln LR within +-9, and the effect reported as left in
+    braking on its stretch. (The gradient was confirmed, with a caveat, before the braking
+    law judged it.)"""
+    from train_estimation.core.offline.diagnose.causes.adhesion_section import AdhesionSection
+    from train_estimation.core.offline.diagnose.confirm import UNDECIDED
+
+    if searched == "gradient":
+        monkeypatch.setattr(AdhesionSection, "untestable",
+                            lambda self, run, cfg, own: "left out by the test")
+    rep, (s0, s1), pm = _gradient_over_an_approach(tmp_path, through=False)
+    assert rep["cause"] == "unexplained", rep["ranking"][:2]
+    assert not [r for r in rep["ranking"] if r["status"] == "confirmed"], rep["ranking"][:2]
+    fit = next(r for r in rep["ranking"] if r["cause"] == searched)
+    assert fit["status"] == "not confirmed" and fit["why"].startswith(UNDECIDED), fit
+    rival = "downhill gradient" if searched == "adhesion_section" else "low-adhesion section"
+    assert rival in fit["why"] and "traction or coasting" in fit["why"], fit["why"]
+    lr = rep["evidence"]["_model"]["confirmation"]["checks"][searched]["braking_law"]["lr"]
+    assert abs(lr) <= 9.0, lr
+    u = rep["unexplained"][0]
+    assert u["phase"] == "braking" and u["best_listed"]["cause"] == searched, u
+    overlap = min(u["where"][1], s1) - max(u["where"][0], s0)
+    assert overlap > 0.8 * (s1 - s0), (u, s0, s1)
+    # 5 per mille downhill is 0.049 m/s^2 less braking there (less the rotating masses' share)
+    assert abs(u["size"] + 9.81 * pm / 1000.0) < 0.015, u
+    assert "one run cannot tell" in unexplained.unexplained_line(u)
+
+
+@pytest.mark.slow
+def test_the_same_gradient_run_on_in_traction_is_confirmed(tmp_path):
+    """The gradient of the test above, on from the approach past the stop by as much again: the
+    train leaves the station over it in traction, where braking weaker explains nothing. The
+    braking law favours the fixed force far beyond 9, and the gradient is confirmed where it
+    is."""
+    rep, (s0, s1), pm = _gradient_over_an_approach(tmp_path, through=True)
+    assert rep["cause"] == "gradient", rep["ranking"][:2]
+    assert rep["ranking"][0]["status"] == "confirmed", rep["ranking"][0]
+    lr = rep["evidence"]["_model"]["confirmation"]["checks"]["gradient"]["braking_law"]["lr"]
+    assert lr < -9.0, lr
+    check_parameters("gradient", rep["parameters"], {"start": s0, "end": s1, "permille": pm},
+                     rep["evidence"], 0.0)
 
 
 def test_plots_draw_what_the_series_hold(tmp_path):

@@ -71,8 +71,9 @@ def heat_fade(u: dict) -> bool:
 
 def undecided(u: dict) -> bool:
     """An ``unexplained`` entry of a low-adhesion section that a force fixed at its place fits
-    as well (phase braking, ``where`` its stretch, the reason saying so): its size is the
-    section's largest braking deficit in m/s^2 (> 0: less braking), not a residual."""
+    as well, or of a downhill gradient that such a section fits as well (phase braking,
+    ``where`` its stretch, the reason saying so): its size is the largest braking deficit
+    there in m/s^2 (> 0: less braking), not a residual."""
     best = u.get("best_listed") or {}
     return (u.get("phase") == "braking" and bool(u.get("where"))
             and str(best.get("why", "")).startswith(UNDECIDED))

@@ -36,12 +36,13 @@ reported ``confirmed`` only when the checks below pass, the same for every cause
    best stretch (:func:`.laws.speed_law`): where the law fits better by 2 ln LR >
    ``law_lr`` the cause is not confirmed; within +-``law_lr`` (the speeds on the stretch do
    not tell them apart) the check states it (``caveat``). A cause in proportion to the
-   braking asked for at a place (``Cause.fixed_rival``: a low-adhesion section) is compared
-   the same way with a force fixed there (:func:`.laws.braking_law`: a downhill
-   gradient the map lacks, which braking at one command cannot tell from it), and it must
-   win: within +-``law_lr`` (a stretch braked at one command, nothing seen outside
-   braking there) it is not confirmed either, the reason naming the rival and what
-   would tell them apart.
+   braking asked for at a place (``Cause.fixed_rival``: a low-adhesion section) and a force
+   fixed at a place that weakens the braking there (``Cause.braking_rival``: a downhill
+   gradient the map lacks) are compared the same way with each other
+   (:func:`.laws.braking_law`; one statistic and one verdict for both sides,
+   :func:`_braking_verdict`), and the cause must win: within +-``law_lr`` (a stretch braked
+   at one command, nothing seen outside braking there) it is not confirmed either, the
+   reason naming the rival and what would tell them apart.
    An odometer scale (``Cause.count_rival``) is compared likewise with an odometer error
    growing with speed (:func:`.laws.count_law`: a radar's), one parameter each: above
    ``law_lr`` not confirmed, within +-``law_lr`` a caveat.
@@ -269,28 +270,19 @@ def confirm(mo: Motion, shift: float, accepted: list, resolved_before: dict, cfg
                             "the data better than a fixed force there", ccfg,
                             where=" on the stretch"):
                 continue
-        if cause.fixed_rival is not None and "bins" in a.extra:
-            # the same comparison from the other side: the cause is the law (the braking
-            # asked for), the rival the fixed force; told apart where the braking asked for
-            # changes over the stretch, and at a stop: a force that acts while the train
-            # moves there ends where it stops, braking weaker ends with the braking. Above
-            # law_lr the section is not confirmed (a tail wind over a braking approach, fitted
-            # as braking x 0.86 there, favours a fixed force by 35). The section must also
-            # win by law_lr: braked at one command over its stretch, a section and a fixed
-            # force are the same data (a downhill gradient run wholly in a braking approach
-            # was confirmed as a section at 2 ln LR +1.4), and the search's pick between
-            # them is noise
-            bl = braking_law(mo, others, cfg, noise, a.extra["bins"])
-            checks[a.cause]["braking_law"] = bl
-            fixed = dict(bl, lr=-bl.get("lr", 0.0))  # > 0: the fixed force fits better
-            if _law_verdict(a, checks[a.cause], fixed, cause.fixed_rival,
-                            "the braking there better than braking weaker in proportion to "
-                            "the braking asked for", ccfg, where=" on the stretch",
-                            law="a fixed force", tell=_braking_tell(bl)):
-                if a.why.startswith(UNDECIDED):
-                    # its effect is in the data (checks 1-2) and is one of the two: it stays
-                    # in the model the others are judged in, and is reported as left
-                    a.rival = undecided_fit(mo, a, others, full, cfg, noise, bl)
+        if (cause.fixed_rival or cause.braking_rival) is not None and "bins" in a.extra:
+            # a force in proportion to the braking asked for at a place (a section) against a
+            # force fixed there (a gradient), from whichever side the search accepted: the
+            # same statistic, the same verdict. Told apart where the braking asked for changes
+            # over the stretch, where the train runs it outside braking, and at a stop (a
+            # force that acts while the train moves there ends where it stops, braking weaker
+            # ends with the braking); a tail wind over a braking approach, fitted as braking
+            # x 0.86 there, favours a fixed force by 35. The cause must win by law_lr: braked
+            # at one command over its stretch, the two are the same data (a downhill gradient
+            # run wholly in a braking approach was confirmed as a section at 2 ln LR +1.4, and
+            # one the search took as a gradient, at +0.4, as a gradient), and the search's
+            # pick between them is noise
+            if _braking_verdict(mo, a, cause, checks[a.cause], others, full, cfg, noise, ccfg):
                 continue
         pt = place_test(mo, full, cfg, noise, *bey, ccfg.split_alpha, ccfg.split_min_share)
         checks[a.cause]["place"] = pt
@@ -374,6 +366,51 @@ def _law_verdict(a, check: dict, res: dict, rival: str, than: str, ccfg: Confirm
 UNDECIDED = "one run cannot tell it from "
 
 
+def _braking_verdict(mo: Motion, a: CauseFit, cause, check: dict, others: Null, full: Null,
+                     cfg: DiagConfig, noise, ccfg: ConfirmConfig) -> bool:
+    """Check 3's braking law (:func:`.laws.braking_law`: 2 ln LR of a force in proportion to
+    the braking asked for at a place over a force fixed there, each on its own best stretch)
+    for the cause ``a``, from either side: a cause that is the law (``Cause.fixed_rival``: a
+    low-adhesion section) against the fixed force, or a force fixed at a place
+    (``Cause.braking_rival``: a gradient) against the law. The same verdict both ways
+    (:func:`_law_verdict` with what would tell them apart): the rival ahead by more than
+    ``law_lr``, the cause is not confirmed; within +-``law_lr`` it is not confirmed either
+    (``UNDECIDED``) and its fit stays in the model (:func:`undecided_fit`): its effect is in
+    the data (checks 1-2) and is one of the two. Returns True when the cause is not confirmed
+    (the figures in ``check["braking_law"]``).
+
+    No comparison for a force fixed at a place whose rival the railway could not have there
+    (``Cause.braking_rival_fit`` and the rival's own ``plausible``: no section gives an uphill
+    map error; a brake asking for less than any rail's adhesion gives is never weakened by
+    it), nor where the braking asked for is zero on the stretch (``braking_law``'s
+    ``note``)."""
+    law_side = cause.fixed_rival is not None
+    if not law_side:
+        hyp = cause.braking_rival_fit(a, mo)
+        odd = "no braking deficit on the stretch" if hyp is None else \
+            BY_NAME[hyp.cause].plausible(hyp, mo)
+        if odd is not None:
+            check["braking_law"] = {"rival": odd}
+            return False
+    bl = braking_law(mo, others, cfg, noise, a.extra["bins"])
+    check["braking_law"] = bl
+    if "note" in bl and not law_side:
+        return False
+    if law_side:  # > 0: the fixed force fits better
+        verdict = _law_verdict(a, check, dict(bl, lr=-bl.get("lr", 0.0)), cause.fixed_rival,
+                               "the braking there better than braking weaker in proportion "
+                               "to the braking asked for", ccfg, where=" on the stretch",
+                               law="a fixed force", tell=_braking_tell(bl))
+    else:  # > 0: the law fits better
+        verdict = _law_verdict(a, check, bl, cause.braking_rival,
+                               "the braking there better than a force fixed there", ccfg,
+                               where=" on the stretch", law="the braking law",
+                               tell=_braking_tell(bl))
+    if verdict and a.why.startswith(UNDECIDED):
+        a.rival = undecided_fit(mo, a, others, full, cfg, noise, bl)
+    return verdict
+
+
 def _braking_tell(bl: dict) -> str:
     """What would tell a low-adhesion section from a force fixed at its place, with the braking
     asked for on the stretch (:func:`.laws.braking_law`'s ``shape``: 5-95 % of it over its
@@ -432,16 +469,17 @@ def rival_fit(mo: Motion, fit: CauseFit, law: dict) -> dict:
 
 def undecided_fit(mo: Motion, fit: CauseFit, others: Null, full: Null, cfg: DiagConfig, noise,
                   bl: dict) -> dict:
-    """The effect of a low-adhesion section ``fit`` that a force fixed at its place fits as
-    well (:func:`.laws.braking_law`'s result ``bl``), as a part of a model in
-    :func:`rival_fit`'s form: the section's own contribution (``full`` against ``others``),
-    its acceleration on the grid (m/s^2, > 0 where the braking delivered is less than
-    believed), its stretch and the speeds on it."""
+    """The effect of a cause ``fit`` at a place that its braking law's rival fits as well
+    (:func:`_braking_verdict`, :func:`.laws.braking_law`'s result ``bl``: a low-adhesion
+    section and a force fixed at its place, either way round), as a part of a model in
+    :func:`rival_fit`'s form: the cause's own contribution (``full`` against ``others``), its
+    acceleration on the grid where it acts (``Cause.beyond``; m/s^2, > 0 where the braking
+    delivered is less than believed), its stretch and the speeds on it."""
     st0 = Stage(mo, others, cfg, noise=noise, big=False)
     st1 = Stage(mo, full, cfg, noise=noise, big=False)
     p = fit.parameters
-    on = (mo.x_ref >= p["start"]) & (mo.x_ref < p["end"])
-    acc = (1.0 - p["factor"]) * np.maximum(-mo.f0 * mo.a_br0, 0.0) * mo.moving * on
+    inside, force = BY_NAME[fit.cause].beyond(fit, mo)
+    acc = np.where(inside, force, 0.0)
     return {"cause": fit.cause, "undecided": True, "law": {"speeds": bl.get("speeds")},
             "bv": st1.fv - st0.fv, "bs": st1.fs - st0.fs, "acc": acc,
             "where": [float(p["start"]), float(p["end"])], "label": f"{fit.cause}'s effect"}

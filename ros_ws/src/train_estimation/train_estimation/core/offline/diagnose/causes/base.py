@@ -179,6 +179,18 @@ class Cause:
     # braking asked for at its place) is not; None: the cause is no such law.
     fixed_rival: str | None = None
 
+    # The mirror of ``fixed_rival``: braking weaker in proportion to the braking asked for at
+    # that place (a low-adhesion section), which the cause (a force fixed at its place) is not;
+    # None: the cause is no force fixed at a place. Both sides are judged by one comparison
+    # (check 3's braking law, confirm._braking_verdict), where :meth:`braking_rival_fit` gives
+    # a rival the railway could have.
+    braking_rival: str | None = None
+
+    def braking_rival_fit(self, fit: CauseFit, mo) -> CauseFit | None:
+        """The fit of ``braking_rival`` as a listed cause that gives the effect of ``fit`` on
+        its stretch (None: no such fit). The default states none."""
+        return None
+
     # Brakes that fade as they heat (weaker in proportion to the heat of the braking just
     # done, cooling in minutes), which the cause (a braking weaker by a factor in time, or on
     # a stretch) is not; None: the cause is not a weaker braking.

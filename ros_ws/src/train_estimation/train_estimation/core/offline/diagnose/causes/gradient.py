@@ -19,6 +19,7 @@ from train_core.model import G
 
 from train_estimation.core.numerics.augmented_kf import LOG2PI, gls
 
+from ..result import CauseFit
 from ..stage import Stage, best_section
 from .base import Cause, fleet_se, resolved
 from .resistance import RESISTANCE_COLS
@@ -130,6 +131,28 @@ class Gradient(Cause):
     # g sin(theta) does not depend on speed; drag in a tunnel grows as v^2
     speed_rival = "aerodynamic drag at that place (a force growing as v^2: a tunnel)"
     time_rival = "a force acting while the train ran it (a headwind, a traction fault)"
+    # run downhill in braking only, a map error is braking weaker there to the data (the braking
+    # asked for at one level over the stretch: the same force)
+    braking_rival = ("a low-adhesion section (braking weaker there in proportion to the braking "
+                     "asked for)")
+
+    def braking_rival_fit(self, fit, mo) -> CauseFit | None:
+        """The low-adhesion section on the gradient's stretch that weakens the braking asked
+        for there by the gradient's force on average (factor 1 - force / braking asked, over
+        the braking done on it), or None where no section gives that force: an uphill map
+        error (more braking than believed: a low-adhesion section only weakens it), no braking
+        asked for on the stretch. Whether the railway could have that section is the
+        section's own rule (``AdhesionSection.plausible``: a brake asking for less than any
+        rail's adhesion gives is never weakened by it)."""
+        inside, force = self.beyond(fit, mo)
+        asked = np.maximum(-mo.f0 * mo.a_br0, 0.0) * mo.moving
+        on = inside & (asked > 0)
+        if not on.any() or not float(np.mean(force[on])) > 0.0:
+            return None
+        p = fit.parameters
+        factor = 1.0 - float(np.mean(force[on])) / float(np.mean(asked[on]))
+        return CauseFit("adhesion_section", 0.0,
+                        {"start": float(p["start"]), "end": float(p["end"]), "factor": factor})
 
     def beyond(self, fit, mo):
         """The section's gradient force at every place run while moving."""
