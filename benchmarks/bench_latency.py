@@ -19,7 +19,12 @@ odometer sample and judges each clock's stamps once it has min_judged arrivals: 
 design, ~0.1-0.2 s) are reported apart as the start-up maximum. ``--together`` runs every
 estimator node at once instead (one floor for all: the nodes then contend for the cores).
 
-**Stages** (in process, ``--stage-duration`` s of metro_demo): where an odometer callback's
+With ``--trace`` the estimator nodes record their callbacks and their executor's waits
+(``train_core.realtime.CallbackTrace``) and each estimate's time is split into stages, each on
+the steady clock and on the thread's CPU clock (wall above CPU: it waited for a core).
+
+**Stages** (in process, ``--stage-duration`` s of metro_demo, fed back to back, or at 1x real
+time with ``--paced``): where an odometer callback's
 CPU time goes, per estimator: the runner's input checks, the estimator's own calls, its
 snapshots for rewinding, the rest of the runner, and the two output messages built; and, apart,
 the garbage collection the node runs after publishing (``train_core.realtime``), with the heap
@@ -38,6 +43,8 @@ Usage::
     ./run bench latency --duration 20 --seeds 3
     ./run bench latency --latency 0.05 --jitter 0.1
     ./run bench latency --no-live --seeds 0 --profile 25   # where the in-process time goes
+    ./run bench latency --no-live --seeds 0 --paced        # in process, fed at 1x real time
+    ./run bench latency --no-link --seeds 0 --trace        # live, per stage, wall and CPU
 """
 
 from __future__ import annotations

@@ -18,6 +18,10 @@ compiled kernels loaded at start-up. :func:`settle_heap` (once the node is built
 start-up left, so no later collection walks it, and :func:`collect_due` (after a callback has
 published) runs the collection that the allocations have made due, so that the next callback
 does not: the same generations, collected after the estimate leaves instead of before.
+
+:class:`CallbackTrace` (off unless ``TRAIN_NODE_TRACE`` names a directory) records where a live
+node's time goes: its callbacks and its executor's waits on the steady and the thread CPU clocks
+(``benchmarks/bench_latency.py --trace``).
 """
 
 from __future__ import annotations
