@@ -271,9 +271,11 @@ class EstimatorNode(Node):
             trace.mark("tick")
         outs = self.runner.advance_to(self.runner.ready_time(now, self.delay,
                                                               4 * self.delay, wall=t_tick))
+        if self.clock_slots:
+            outs += self.runner.tick(now)
         if trace:
             trace.mark("advanced")
-        for out in outs + (self.runner.tick(now) if self.clock_slots else []):
+        for out in outs:
             msg = self._state_msg  # one message object, filled anew (publish copies it out)
             fill_state(msg, out)
             if trace:
