@@ -19,7 +19,12 @@ odometer sample and judges each clock's stamps once it has min_judged arrivals: 
 design, ~0.1-0.2 s) are reported apart as the start-up maximum. ``--together`` runs every
 estimator node at once instead (one floor for all: the nodes then contend for the cores).
 
-**Stages** (in process, ``--stage-duration`` s of metro_demo): where an odometer callback's
+With ``--trace`` the estimator nodes record their callbacks and their executor's waits
+(``train_core.realtime.CallbackTrace``) and each estimate's time is split into stages, each on
+the steady clock and on the thread's CPU clock (wall above CPU: it waited for a core).
+
+**Stages** (in process, ``--stage-duration`` s of metro_demo, fed back to back, or at 1x real
+time with ``--paced``): where an odometer callback's
 CPU time goes, per estimator: the runner's input checks, the estimator's own calls, its
 snapshots for rewinding, the rest of the runner, and the two output messages built; and, apart,
 the garbage collection the node runs after publishing (``train_core.realtime``), with the heap
@@ -38,12 +43,16 @@ Usage::
     ./run bench latency --duration 20 --seeds 3
     ./run bench latency --latency 0.05 --jitter 0.1
     ./run bench latency --no-live --seeds 0 --profile 25   # where the in-process time goes
+    ./run bench latency --no-live --seeds 0 --paced        # in process, fed at 1x real time
+    ./run bench latency --no-link --seeds 0 --trace        # live, per stage, wall and CPU
 """
 
 from __future__ import annotations
 
 import argparse
 import ast
+import glob
+import json
 import os
 import random
 import re
@@ -66,7 +75,7 @@ for _p in (ROOT / "ros_ws/src/train_sim", ROOT / "ros_ws/src/train_estimation",
 
 from bench_fuzz import make_adapter, position_errors  # noqa: E402
 from train_core.procs import resolve_executable, stop_process  # noqa: E402
-from train_core.realtime import collect_due, settle_heap  # noqa: E402
+from train_core.realtime import TRACE_VARIABLE, collect_due, settle_heap  # noqa: E402
 
 from train_estimation.core.online.replay import replay  # noqa: E402
 from train_estimation.nodes.estimator_node import fill_odometry, fill_state  # noqa: E402
@@ -104,9 +113,12 @@ def _log_name(label: str) -> str:
     return re.sub(r"[^a-z0-9_]+", "_", label.lower()).strip("_") + ".log"
 
 
-def run_live(scenario: str, duration: float, logs: Path, nodes) -> None:
+def run_live(scenario: str, duration: float, logs: Path, nodes, trace: bool = False) -> None:
     env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
                ROS_DOMAIN_ID=str(random.randint(101, 200)), PYTHONUNBUFFERED="1")
+    env.pop(TRACE_VARIABLE, None)
+    if trace:  # the estimator nodes trace their callbacks (train_core.realtime.CallbackTrace)
+        env[TRACE_VARIABLE] = str(logs)
     logs.mkdir(parents=True, exist_ok=True)
     procs = {}
     try:
@@ -181,6 +193,99 @@ def live_rows(link: str, logs: Path, nodes) -> list[str]:
     return rows
 
 
+TRACE_STAGES = (
+    ("reading's push", "the reading's callback from its start to the runner's push done"),
+    ("to the release", "from there to the runner's advance in the callback that released the "
+                       "estimate: the reading's own (its tick), or the cycle's command's (the "
+                       "reading's tick that released nothing, the executor taking the command, "
+                       "the command's push)"),
+    ("advance", "the runner's advance that released the estimate"),
+    ("messages", "TrainState and Odometry filled and published"),
+    ("total", "the reading's callback start -> the estimate's Odometry published"),
+)
+
+
+def trace_breakdown(marks: list, skip: int = 12) -> dict:
+    """A live node's callback trace (``CallbackTrace`` marks: label, steady ns, thread CPU ns,
+    value) split per estimate into ``TRACE_STAGES``, each a list of (wall, CPU) in s, over the
+    estimates of a reading after the first ``skip`` (the start-up's); the executor's CPU per
+    wait (``before_wait``: from a callback's end to the wait; ``after_wait``: from the
+    wake-up to the next callback, s); ``cpu_per_s`` (in callbacks, in the executor between
+    them) in s of CPU per s of the run; ``released_by`` (callback name -> count)."""
+    cbs, cur = [], None
+    for m in marks:
+        if m[0].startswith("B:"):
+            cur = [m]
+        elif m[0].startswith("E:"):
+            if cur is not None:
+                cbs.append(cur + [m])
+            cur = None
+        elif cur is not None:
+            cur.append(m)
+    readings = {}  # stamp -> (callback index, its "pushed" mark)
+    for i, cb in enumerate(cbs):
+        for j, m in enumerate(cb):
+            if m[0] == "reading":
+                readings[m[3]] = (i, next(x for x in cb[j:] if x[0] == "pushed"))
+    out = {name: [] for name, _ in TRACE_STAGES}
+    released, n = {}, 0
+    for cb in cbs:
+        ticks = [m for m in cb if m[0] in ("tick", "advanced")]
+        for m in cb:
+            if m[0] != "published" or m[3] not in readings:
+                continue
+            n += 1
+            if n <= skip:
+                continue
+            ri, pushed = readings[m[3]]
+            start = cbs[ri][0]
+            # the tick of this callback that released the estimate: the last one before it
+            tick, adv = [t for t in ticks if t[1] <= m[1]][-2:]
+            for name, a, b in (("reading's push", start, pushed), ("to the release", pushed, tick),
+                               ("advance", tick, adv), ("messages", adv, m),
+                               ("total", start, m)):
+                out[name].append(((b[1] - a[1]) * 1e-9, (b[2] - a[2]) * 1e-9))
+            name = cb[0][0][2:]
+            released[name] = released.get(name, 0) + 1
+    # the executor between callbacks: before its wait (the last callback's task retired, a
+    # wait set built) and after it (the ready entities found, the message taken), CPU s
+    before, after, last = [], [], None
+    for m in marks:
+        if m[0].startswith("E:") or m[0] == "woken":
+            last = m
+        elif m[0] == "wait" and last is not None and last[0].startswith("E:"):
+            before.append((m[2] - last[2]) * 1e-9)
+        elif m[0].startswith("B:") and last is not None and last[0] == "woken":
+            after.append((m[2] - last[2]) * 1e-9)
+    span = (marks[-1][1] - marks[0][1]) * 1e-9 if marks else 0.0
+    in_cbs = sum((cb[-1][2] - cb[0][2]) * 1e-9 for cb in cbs)
+    between = sum((b[0][2] - a[-1][2]) * 1e-9 for a, b in zip(cbs, cbs[1:]))
+    return dict(out, before_wait=before, after_wait=after, released_by=released,
+                cpu_per_s=(in_cbs / span if span else float("nan"),
+                           between / span if span else float("nan")))
+
+
+def trace_rows(label: str, logs: Path) -> list[str]:
+    """The per-stage row of each estimator node's trace in ``logs`` (medians, wall / CPU ms)."""
+    rows = []
+    for path in sorted(glob.glob(str(logs / "trace_*.json"))):
+        b = trace_breakdown(json.loads(Path(path).read_text()))
+        if not b["total"]:
+            continue
+
+        def med(v):
+            w, c = np.median(np.asarray(v), axis=0) * 1e3
+            return f"{w:.3f} / {c:.3f}"
+        by = ", ".join(f"{k.split()[-1].rsplit('/', 1)[-1]} {v}"
+                       for k, v in sorted(b["released_by"].items()))
+        rows.append(f"| {label} | {len(b['total'])} | {by} | "
+                    + " | ".join(med(b[name]) for name, _ in TRACE_STAGES)
+                    + f" | {1e3 * np.median(b['before_wait']):.3f} / "
+                    f"{1e3 * np.median(b['after_wait']):.3f} ({len(b['after_wait'])}) | "
+                    f"{1e3 * b['cpu_per_s'][0]:.0f} / {1e3 * b['cpu_per_s'][1]:.0f} |")
+    return rows
+
+
 def _timed(fn, acc: list, clock):
     """``fn`` that appends its own duration on ``clock`` to ``acc``."""
     def timed(*a, **k):
@@ -192,7 +297,7 @@ def _timed(fn, acc: list, clock):
     return timed
 
 
-def stages(names, duration: float, seed: int = 0, profile: int = 0
+def stages(names, duration: float, seed: int = 0, profile: int = 0, paced: bool = False
            ) -> tuple[list[str], list[str]]:
     """Where a callback's time goes, in process (CPU time of this thread, so another job's
     load does not count): metro_demo's received messages fed to each estimator's runner as
@@ -200,10 +305,13 @@ def stages(names, duration: float, seed: int = 0, profile: int = 0
     estimate turned into the node's two messages (TrainState, Odometry, refilled as the node
     refills them; not published: the echo node's row measures converting and publishing).
     Per odometer callback: p50 / p99 in ms of each stage; "step" = the core's estimator step
-    inside the advance. Returns the table's rows and, with ``profile`` = N > 0, per estimator
-    the N functions of most own time in a second pass of the same messages under cProfile
-    (its overhead inflates the many small calls: compare within a profile, not with the
-    table)."""
+    inside the advance. ``paced``: each message fed at its arrival time at 1x real time
+    (sleeping until then, as a live node waits for its next message) instead of right
+    after the previous one, so that each callback starts with what the machine left in
+    the caches meanwhile, as a live node's does. Returns the table's rows and, with
+    ``profile`` = N > 0, per estimator the N functions of most own time in a second pass
+    of the same messages under cProfile (its overhead inflates the many small calls:
+    compare within a profile, not with the table)."""
     import cProfile
     import io
     import pstats
@@ -250,7 +358,10 @@ def stages(names, duration: float, seed: int = 0, profile: int = 0
         msg, odom = TrainState(), Odometry()
         settle_heap()  # as the node, once built
         push, core, conv, total, core_steps, core_snaps, after = [], [], [], [], [], [], []
+        w0, r0 = time.monotonic(), events[0][3]
         for topic, stamp, fields, recv in events:
+            if paced:
+                time.sleep(max(0.0, w0 + recv - r0 - time.monotonic()))
             del steps[:], snaps[:]
             t0 = clock()
             runner.push(topic, stamp, fields, recv)
@@ -331,6 +442,13 @@ def main(argv=None) -> int:
                          "robust_filter's) and in the stage table, comma separated")
     ap.add_argument("--stage-duration", type=float, default=120.0,
                     help="s of metro_demo for the in-process stage table (0: none)")
+    ap.add_argument("--paced", action="store_true",
+                    help="stage table: the messages fed at 1x real time (sleeping between "
+                         "them as a live node does) instead of back to back")
+    ap.add_argument("--trace", action="store_true",
+                    help="live: the estimator nodes trace their callbacks "
+                         "(train_core.realtime.CallbackTrace); a table of where each "
+                         "estimate's time goes, wall and CPU")
     ap.add_argument("--profile", type=int, default=0, metavar="N",
                     help="stage table: also a pass under cProfile per estimator, its N "
                          "functions of most own time printed (0: none)")
@@ -352,12 +470,16 @@ def main(argv=None) -> int:
         if not args.no_link:
             links.append((lag, str(scenario_with_link(logs / "metro_demo_latency.yaml",
                                                       args.latency, args.jitter))))
-        rows = []
+        rows, traced = [], []
         load = [os.getloadavg()[0]]
         for i, (name, scenario) in enumerate(links):
             for j, group in enumerate(groups):
-                run_live(scenario, args.duration, logs / f"link{i}" / f"run{j}", group)
+                run_live(scenario, args.duration, logs / f"link{i}" / f"run{j}", group,
+                         trace=args.trace)
                 rows += live_rows(name, logs / f"link{i}" / f"run{j}", group)
+                if args.trace:
+                    traced += trace_rows(f"{group[0][0]}, link {name}",
+                                         logs / f"link{i}" / f"run{j}")
                 load.append(os.getloadavg()[0])
         how = (f"{len(nodes) - 1} estimator nodes and the echo node side by side"
                if args.together else "each estimator node in turn, with the echo node beside it")
@@ -369,22 +491,39 @@ def main(argv=None) -> int:
               "start-up max (ms) | fused late | dropped | rejected; events |")
         print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
         print("\n".join(rows))
+        if args.trace:
+            print("\nWhere each estimate's time goes, live (the nodes' callback traces; "
+                  "median wall / CPU time of the thread, ms, over the estimates of a reading "
+                  "after the start-up's): "
+                  + "; ".join(f"{name} = {text}" for name, text in TRACE_STAGES)
+                  + "; executor = rclpy's executor, the thread's CPU from a callback's end to "
+                  "its next wait (the task retired, a wait set built) / from the wake-up to the "
+                  "next callback (the ready entities found, the message taken: before the "
+                  "reading's callback starts, so in no latency above), median (and count of "
+                  "wake-ups); CPU per s = the thread's CPU in callbacks / in the executor "
+                  "between them, ms per s of the run\n")
+            print("| node | estimates | released by | "
+                  + " | ".join(name for name, _ in TRACE_STAGES)
+                  + " | executor before / after a wait (n) | CPU per s |")
+            print("|---" * (len(TRACE_STAGES) + 5) + "|")
+            print("\n".join(traced))
     if args.stage_duration > 0:
-        print(f"\nWhere an odometer callback's time goes, in process (metro_demo "
-              f"{args.stage_duration:g} s, no link latency; CPU time of the thread, p50 / p99 "
-              "in ms over the callbacks that released an estimate): push = the runner's input "
-              "checks; advance = the runner's release of the estimate, of which estimator = "
-              "the adapter's input and output calls (the core filter), snapshots = the state "
-              "kept to rewind for a late reading, runner = the rest (clock mapping, integrity "
-              "monitor); messages = TrainState and Odometry filled as the node fills them "
-              "(publishing: the floor above); total = push to messages; after = the garbage "
-              "collection the node runs once the estimates are out (train_core.realtime."
-              "collect_due; not in total)\n")
+        pace = ("fed at 1x real time" if args.paced else "fed back to back")
+        print("\nWhere an odometer callback's time goes, in process (metro_demo "
+              f"{args.stage_duration:g} s, no link latency, messages {pace}; CPU time of the"
+              " thread, p50 / p99 in ms over the callbacks that released an estimate): push"
+              " = the runner's input checks; advance = the runner's release of the "
+              "estimate, of which estimator = the adapter's input and output calls (the "
+              "core filter), snapshots = the state kept to rewind for a late reading, "
+              "runner = the rest (clock mapping, integrity monitor); messages = TrainState "
+              "and Odometry filled as the node fills them (publishing: the floor above); "
+              "total = push to messages; after = the garbage collection the node runs once "
+              "the estimates are out (train_core.realtime.collect_due; not in total)\n")
         print("| estimator | callbacks | push | advance | of which estimator | snapshots | "
               "runner | messages | total | after (gc) |")
         print("|---|---|---|---|---|---|---|---|---|---|")
         rows, profiles = stages(["robust_filter", *algorithms], args.stage_duration,
-                                profile=args.profile)
+                                profile=args.profile, paced=args.paced)
         print("\n".join(rows))
         for text in profiles:
             print(f"\n{text}")

@@ -18,13 +18,19 @@ compiled kernels loaded at start-up. :func:`settle_heap` (once the node is built
 start-up left, so no later collection walks it, and :func:`collect_due` (after a callback has
 published) runs the collection that the allocations have made due, so that the next callback
 does not: the same generations, collected after the estimate leaves instead of before.
+
+:class:`CallbackTrace` (off unless ``TRAIN_NODE_TRACE`` names a directory) records where a live
+node's time goes: its callbacks and its executor's waits on the steady and the thread CPU clocks
+(``benchmarks/bench_latency.py --trace``).
 """
 
 from __future__ import annotations
 
 import gc
+import inspect
 import os
 import sys
+import time
 
 BLAS_THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
 
@@ -59,3 +65,90 @@ def collect_due(fraction: float = 0.5) -> int | None:
     gen = 2 if c1 > t1 and c2 > t2 else 1 if c1 > t1 else 0
     gc.collect(gen)
     return gen
+
+
+TRACE_VARIABLE = "TRAIN_NODE_TRACE"  # a directory: an estimator node traces its callbacks there
+
+
+class CallbackTrace:
+    """Where a live node's time goes (``bench_latency --trace``): every callback's start and end
+    and marks inside it, each on the steady clock and on the thread's CPU clock (ns), written
+    as JSON at shutdown. The CPU clock tells work from waiting: a stage whose wall time
+    exceeds its CPU time waited for a core; the CPU time between two callbacks is the
+    executor's own (building its wait set, taking the message). Off unless
+    ``TRAIN_NODE_TRACE`` names a directory (:meth:`from_env`): a few microseconds per mark."""
+
+    def __init__(self, directory: str):
+        self.directory = directory
+        self.marks: list = []  # (label, steady ns, thread CPU ns, value)
+
+    @classmethod
+    def from_env(cls) -> CallbackTrace | None:
+        directory = os.environ.get(TRACE_VARIABLE)
+        return cls(directory) if directory else None
+
+    def mark(self, label: str, value=None) -> None:
+        self.marks.append((label, time.monotonic_ns(), time.thread_time_ns(), value))
+
+    def _wrapped(self, name: str, fn):
+        def traced(*args):
+            self.mark("B:" + name)
+            try:
+                return fn(*args)
+            finally:
+                self.mark("E:" + name)
+        # rclpy reads a subscription callback's arity from its signature
+        traced.__signature__ = inspect.signature(fn)
+        return traced
+
+    def wrap(self, node) -> None:
+        """Every subscription, timer and service callback of ``node`` (rclpy's /clock one
+        included) marked at its start ``B:`` and end ``E:`` with the topic, period or service;
+        and the executor's waits (``wait``, ``woken``): rclpy's executor builds a wait set in
+        Python for each wait (this process-wide patch of its module marks them)."""
+        import rclpy.executors as executors
+
+        if not isinstance(executors._rclpy, _TracedImpl):
+            executors._rclpy = _TracedImpl(executors._rclpy, self)
+        for sub in node.subscriptions:
+            sub.callback = self._wrapped("sub " + sub.topic_name, sub.callback)
+        for tmr in node.timers:
+            tmr.callback = self._wrapped(f"timer {tmr.timer_period_ns * 1e-9:g} s", tmr.callback)
+        for srv in node.services:
+            srv.callback = self._wrapped("service " + srv.srv_name, srv.callback)
+
+    def dump(self, name: str) -> str:
+        import json
+
+        path = os.path.join(self.directory, f"trace_{name}_{os.getpid()}.json")
+        with open(path, "w") as f:
+            json.dump(self.marks, f)
+        return path
+
+
+class _TracedImpl:
+    """rclpy's C extension as the executor sees it, with its wait sets' waits marked."""
+
+    def __init__(self, impl, trace: CallbackTrace):
+        self._impl, self._trace = impl, trace
+
+    def __getattr__(self, name):
+        return getattr(self._impl, name)
+
+    def WaitSet(self, *args):  # noqa: N802 (rclpy's name)
+        return _TracedWaitSet(self._impl.WaitSet(*args), self._trace)
+
+
+class _TracedWaitSet:
+    def __init__(self, ws, trace: CallbackTrace):
+        self._ws, self._trace = ws, trace
+
+    def __getattr__(self, name):
+        return getattr(self._ws, name)
+
+    def wait(self, timeout):
+        self._trace.mark("wait")
+        try:
+            return self._ws.wait(timeout)
+        finally:
+            self._trace.mark("woken")

@@ -28,7 +28,7 @@ from nav_msgs.msg import Odometry
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from train_core import diagnostics as D
-from train_core.realtime import collect_due, settle_heap
+from train_core.realtime import CallbackTrace, collect_due, settle_heap
 from train_core.ros import Diagnostics, ParameterError, declare_config, sec_to_stamp, stamp_to_sec
 
 from train_estimation.core.online.odometry import odometry_covariances
@@ -169,6 +169,11 @@ class EstimatorNode(Node):
             f"{start.position:.1f} m, output {common['odometer_rate']:g} Hz on '{topic}'")
         # start-up's objects out of every later garbage collection (train_core.realtime)
         settle_heap()
+        # where the callbacks' time goes, live (off unless TRAIN_NODE_TRACE names a directory:
+        # train_core.realtime.CallbackTrace, benchmarks/bench_latency.py --trace)
+        self.trace = CallbackTrace.from_env()
+        if self.trace:
+            self.trace.wrap(self)
 
     def _arrival(self) -> float | None:
         """s, now on the receive clock the runner judges stamps against (the contract's
@@ -203,6 +208,8 @@ class EstimatorNode(Node):
         for k, m, f, w in held:
             self._push_one(k, m, f, recv, w)
         self._push_one(kind, msg, fields, recv, wall)
+        if self.trace:
+            self.trace.mark("pushed")
         self.tick()
 
     def _push_one(self, kind: str, msg, fields: dict, recv: float, wall: float) -> None:
@@ -212,6 +219,8 @@ class EstimatorNode(Node):
         reason = self.runner.push(kind, stamp, fields, recv, wall=wall)
         if kind == "odometer" and not reason:
             self.arrived[stamp] = wall  # for the received -> published latency
+            if self.trace:
+                self.trace.mark("reading", stamp)
         if reason:
             self.get_logger().warning(f"{kind} rejected: {reason}", throttle_duration_sec=2.0)
 
@@ -257,13 +266,29 @@ class EstimatorNode(Node):
         # node computes exactly what the offline replay of the same messages computes; a
         # slot whose reading is overdue on the arrival clock leaves by runner.tick.
         t_tick = self.steady.now().nanoseconds * 1e-9
+        trace = self.trace
+        if trace:
+            trace.mark("tick")
         outs = self.runner.advance_to(self.runner.ready_time(now, self.delay,
                                                               4 * self.delay, wall=t_tick))
-        for out in outs + (self.runner.tick(now) if self.clock_slots else []):
+        if self.clock_slots:
+            outs += self.runner.tick(now)
+        if trace:
+            trace.mark("advanced")
+        for out in outs:
             msg = self._state_msg  # one message object, filled anew (publish copies it out)
             fill_state(msg, out)
+            if trace:
+                trace.mark("filled")
             self.pub.publish(msg)
-            self.odom_pub.publish(self._odometry(msg))
+            if trace:
+                trace.mark("state published")
+            odom = self._odometry(msg)
+            if trace:
+                trace.mark("odometry filled")
+            self.odom_pub.publish(odom)
+            if trace:
+                trace.mark("published", out.stamp)
             self.n_published += 1
             self.last_integrity = (int(out.integrity),
                                    str(getattr(out, "integrity_reason", "")),
@@ -351,6 +376,9 @@ class EstimatorNode(Node):
                          extra + values + lat_values + rate_values + i_values)
 
     def close(self) -> None:
+        if self.trace:
+            self.get_logger().info(f"callback trace written to "
+                                   f"{self.trace.dump(self.get_name())}")
         if self.latency:
             p50, p99, top = _quantiles(self.latency)
             w50, w99, _ = _quantiles(self.waited)
