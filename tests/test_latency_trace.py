@@ -33,8 +33,7 @@ def _trace():
         _m("E:sub /odometer", 9340, 341),
         _m("B:sub /control", 9400, 401), _m("pushed", 9450, 451), _m("tick", 9460, 461),
         _m("advanced", 10060, 961),  # 600 us of wall, 500 of CPU: it waited 100 for a core
-        _m("filled", 10080, 981), _m("state published", 10130, 1031),
-        _m("odometry filled", 10160, 1061), _m("published", 10220, 1121, 1.0),
+        _m("published", 10220, 1121, 1.0),
         _m("E:sub /control", 10240, 1141),
         _m("wait", 10500, 1400), _m("woken", 19000, 1401),
         _m("B:sub /control", 19050, 1451), _m("pushed", 19100, 1501), _m("tick", 19110, 1511),
@@ -42,8 +41,7 @@ def _trace():
         _m("wait", 19200, 1600), _m("woken", 19300, 1601),
         _m("B:sub /odometer", 19400, 1701), _m("reading", 19600, 1901, 1.1),
         _m("pushed", 19610, 1911), _m("tick", 19620, 1921), _m("advanced", 20020, 2321),
-        _m("filled", 20040, 2341), _m("state published", 20090, 2391),
-        _m("odometry filled", 20120, 2421), _m("published", 20180, 2481, 1.1),
+        _m("published", 20180, 2481, 1.1),
         _m("E:sub /odometer", 20200, 2501),
     ]
 

@@ -15,6 +15,9 @@ PROBE = ("import os, sys; {imports}; import numpy, scipy.linalg; "
 
 def run_probe(imports: str, **extra) -> tuple[str, int]:
     env = {k: v for k, v in os.environ.items() if k not in BLAS_THREAD_VARIABLES}
+    # the node modules import rclpy but the probe never calls rclpy.init (no DDS participant);
+    # were one made, it stays on loopback in the session's domain (conftest.py)
+    env.update(ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", ROS_DOMAIN_ID=os.environ["ROS_DOMAIN_ID"])
     env.update(extra)
     out = subprocess.run([sys.executable, "-c", PROBE.format(imports=imports)], env=env,
                          capture_output=True, text=True, check=True, timeout=60).stdout.split()

@@ -278,15 +278,8 @@ class EstimatorNode(Node):
         for out in outs:
             msg = self._state_msg  # one message object, filled anew (publish copies it out)
             fill_state(msg, out)
-            if trace:
-                trace.mark("filled")
             self.pub.publish(msg)
-            if trace:
-                trace.mark("state published")
-            odom = self._odometry(msg)
-            if trace:
-                trace.mark("odometry filled")
-            self.odom_pub.publish(odom)
+            self.odom_pub.publish(self._odometry(msg))
             if trace:
                 trace.mark("published", out.stamp)
             self.n_published += 1
