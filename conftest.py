@@ -4,8 +4,9 @@ ROS isolation is done here, at import time, before any test or fixture can start
 node process, so that no test depends on the developer's shell:
 
 - ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST`` (DDS discovery and traffic stay on loopback);
-- ``ROS_DOMAIN_ID``: one random id per test session in [1, 100] (``TRAIN_ROS_DOMAIN_ID``
-  overrides it), so two test runs on one machine do not see each other's nodes;
+- ``ROS_DOMAIN_ID``: one random id per test session in [1, 90] (``TRAIN_ROS_DOMAIN_ID``
+  overrides it), so two test runs on one machine do not see each other's nodes; pytest-xdist's
+  worker gwN uses that id + N, so two workers never share a ROS graph;
 - ``ROS_LOG_DIR`` inside the repo's ignored ``.cache/`` folder.
 
 Fixtures:
@@ -30,9 +31,15 @@ import pytest
 
 REPO = Path(__file__).resolve().parent
 
-_domain = os.environ.get("TRAIN_ROS_DOMAIN_ID")
-if not _domain:
-    _domain = str(random.SystemRandom().randint(1, 100))
+# The session's domain is drawn once, in pytest's main process, and handed to pytest-xdist's
+# workers through the environment; worker gwN takes that domain + N, so that workers running
+# node tests side by side never share a graph (two draws of their own would collide 1 time in 100)
+_base = os.environ.get("TRAIN_ROS_DOMAIN_ID") or os.environ.get("_TRAIN_TEST_DOMAIN_BASE")
+if not _base:
+    _base = str(random.SystemRandom().randint(1, 90))
+os.environ["_TRAIN_TEST_DOMAIN_BASE"] = _base
+_worker = os.environ.get("PYTEST_XDIST_WORKER", "")
+_domain = str(int(_base) + (int(_worker[2:]) if _worker[2:].isdigit() else 0))
 os.environ["ROS_DOMAIN_ID"] = _domain
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 os.environ.pop("ROS_STATIC_PEERS", None)
@@ -131,8 +138,9 @@ _ROS_FIXTURES = {"launch", "ros_node"}  # node processes, rclpy in the test
 
 def pytest_collection_modifyitems(config, items):
     """Every test that starts processes in the ROS environment is marked ``ros``, whether or not
-    its module says so: ``./run test`` runs those one at a time on an otherwise idle machine
-    (their timing is real time) after the rest has run in parallel."""
+    its module says so: ``./run test`` runs those two at a time, each worker on its own ROS
+    domain, after the CPU-bound rest has run in parallel (their timing is real time: a node test
+    keeps about half a core busy)."""
     for item in items:
         if _ROS_FIXTURES & set(getattr(item, "fixturenames", ())):
             item.add_marker(pytest.mark.ros)
