@@ -12,6 +12,7 @@ door's, not a filter's.
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 
@@ -67,20 +68,29 @@ def cruise(duration: float, rate: float, loss: float, counter: bool,
 
 def run_link(duration: float, rate: float, counter: bool, jitter: float, loss: float,
              step: float | None, seed: int, queue: float | None = None,
-             route: float | None = None) -> dict:
+             route: float | None = None, shape: str = "exp") -> dict:
     """One replay (module doc); the figures of one row. ``queue``: the drain factor of a link
     that queues (the campaign's fault ``queue``, from 15 s on; no step then); ``route``: s by
     which the link's latency rises at :data:`STEP_AT` and stays (the fault ``route``; no
-    step then)."""
+    step then); ``shape``: the jitter's law, ``exp`` (the campaign's, exponential of mean
+    ``jitter``) or ``gamma`` (Gamma of shape 4 and the same mean: a latency that seldom comes
+    near its floor, so that the offsets' envelope is blunt)."""
     rng = np.random.default_rng(seed)
     events = cruise(duration, rate, loss, counter, rng)
-    fault = F.Fault("none", jitter=jitter) if step is None else \
-        F.Fault("step", step, STEP_AT, jitter=jitter)
+    if shape not in ("exp", "gamma"):
+        raise ValueError(f"shape must be exp or gamma, got {shape!r}")
+    link = jitter if shape == "exp" else 0.0
+    fault = F.Fault("none", jitter=link) if step is None else \
+        F.Fault("step", step, STEP_AT, jitter=link)
     if queue is not None:
-        fault = F.Fault("queue", queue, 0.5 * F.QUEUE_EVERY, jitter=jitter)
+        fault = F.Fault("queue", queue, 0.5 * F.QUEUE_EVERY, jitter=link)
     if route is not None:
-        fault = F.Fault("route", route, STEP_AT, jitter=jitter)
+        fault = F.Fault("route", route, STEP_AT, jitter=link)
     faulted = F.inject(events, fault, rng)
+    if shape == "gamma":
+        ev = [(tp, st, f, ar + (rng.gamma(4.0, jitter / 4.0) if tp in F.TRAIN_TOPICS else 0.0))
+              for tp, st, f, ar in faulted.events]
+        faulted = replace(faulted, events=sorted(ev, key=lambda e: e[3]))
     rec = Recorder()
     runner = EstimatorRunner(rec, 1.0 / rate)
     arrived = {"new": 0}  # readings sampled at or after the step's instant, arrived so far

@@ -29,6 +29,8 @@ from collections import deque
 import numpy as np
 from scipy.special import chdtrc
 
+from . import envelope
+
 LATE = 0.5  # s: a reading this much later than its clock says came late (module doc)
 
 
@@ -182,6 +184,7 @@ class StreamClock:
         self._top: deque = deque()  # (index, offset, arrival), decreasing: the sliding maximum
         self._ceil_cache = None  # ((pushes, drift), the ceiling carried to the newest arrival)
         self._pushed = 0  # offsets pushed so far
+        self._lifted = 0  # offsets that could lift the ceiling since it was last cleared
 
     tol = TOL
     late = LATE
@@ -229,6 +232,7 @@ class StreamClock:
             self.arrivals.clear()
             self.sorted = []
             self._top.clear()  # the clock itself moved: where it was says nothing now
+            self._lifted = 0
             for p, a in self.pending[:-1]:
                 self._push(p, at=a)
             self.pending = []
@@ -262,6 +266,7 @@ class StreamClock:
         # ahead then took a genuine one's slot). Later ones are judged before they vote (the
         # runner holds a reading above the ceiling by more than its bar), so one lifts it by
         # no more than that bar
+        self._lifted += 1
         while self._top and self._top[-1][1] <= v:
             self._top.pop()
         self._top.append((self._pushed, v, at))
@@ -415,6 +420,18 @@ class StreamClock:
             self._ceil_cache = (key, max(v if a is None else v + d * (a1 - a)
                                          for _, v, a in self._top))
         return self._ceil_cache[1]
+
+    @property
+    def ceiling_n(self) -> int:
+        """How many offsets the ceiling is the largest of (the envelope test's ``n``)."""
+        return min(self._lifted, self.horizon)
+
+    def lift(self, v: float) -> float:
+        """:meth:`above` on one clock (no drift): how far the offset ``v`` lies above the
+        centre and the largest offset of the last ``horizon`` as they voted, not carried along
+        the rate fit, whose error the envelope cannot absorb (a fit locked at -0.4 % on a 1 Hz
+        link with 200 ms of jitter put clean readings 0.05 s above the carried ceiling)."""
+        return v - max(self.value, self._top[0][1]) if self._top else -math.inf
 
     def above(self, v: float) -> float:
         """How far the offset ``v`` (of a reading arriving now) lies above where its clock can
@@ -917,8 +934,10 @@ class StepWatch:
     def __init__(self, period: float, min_judged: int = 9, step_back: float = 0.3,
                  small_step: float = 0.05, small_step_z: float = 10.0,
                  max_future: float = 600.0, same: bool = False, trend_risk: float = 1e-3,
-                 step_risk: float = 1e-7):
+                 step_risk: float = 1e-7, false_step_rate: float = 1e-4):
         self.period = period  # s, nominal odometer period
+        # the envelope test's p-value for a step: false steps at most false_step_rate per hour
+        self.env_level = envelope.level(false_step_rate, period, TREND_N)
         self.step_risk = step_risk  # -, the probability that readings held as a step are
         #   declared one while the old clock's readings were only lost (:func:`silence_risk`)
         self.trend_risk = trend_risk  # -, the probability that a true step's held readings
@@ -941,6 +960,7 @@ class StepWatch:
         self._sent: dict = {}  # timeline odometer stamp -> stamp as sent (after a step)
         self.grid = SampleGrid(period, min_judged)  # odometer stamps against their seq
         self._dist: tuple | None = None  # (stamp, counted distance, seq) of the newest fused
+        self._drift = 0.0  # the train clock's rate minus 1 as the runner maps it (watch)
 
     # -- stamps ---------------------------------------------------------------------------
     def onto_timeline(self, stamp: float, odometer: bool) -> float:
@@ -1016,9 +1036,10 @@ class StepWatch:
         return max(min(self.back, max(self.small_step, self.small_step_z * clock.jitter)),
                    self.resolution)
 
-    def watch(self, kind: str, stamp: float, fields, recv, arrival: float):
+    def watch(self, kind: str, stamp: float, fields, recv, arrival: float, drift: float = 0.0):
         """What to do with a train-clock reading (timeline ``stamp``; ``recv`` None when the
-        arrival is inferred), once an odometer reading was admitted with its arrival. Yields
+        arrival is inferred; ``drift`` the train clock's rate minus 1 as the runner maps it, 0
+        on one clock), once an odometer reading was admitted with its arrival. Yields
         actions, one at a time (class doc):
 
         - ``(ADMIT, (kind, stamp, fields, recv, arrival))``: a held reading to admit (unwatched);
@@ -1035,6 +1056,7 @@ class StepWatch:
           for a step and passes, to be refused at the door as always), or ``(HOLD,)``, nothing
           more to do (held, or judged among the released)."""
         tol = TOL
+        self._drift = drift
         s0, a0 = self.last
         # Back by more than step_back: possibly a small backward step (a clock resynchronised
         # by a few seconds), held until later readings decide. A reading late by jitter is
@@ -1070,8 +1092,15 @@ class StepWatch:
         # stalls under load and stamps then run ahead of arrivals by seconds
         ahead = not self.same and recv is not None and \
             len(med) >= self.min_judged and med.above(stamp - arrival) > bar
+        # above the ceiling by more than small_step, where under the old clock only the least
+        # late reading of all lands: possibly a small forward step, held and judged on the
+        # envelope (module envelope: a +0.1 s step hid in a 50 ms jitter's 0.36 s bar)
+        # (on one clock: drift 0, see _envelope)
+        lift = med.lift(stamp - arrival) if kind == "odometer" and not drift and \
+            not self.same and recv is not None and len(med) >= self.min_judged and \
+            envelope.holds(1, 1, med.ceiling_n, TREND_WAIT) else -math.inf
         continuous = -back <= stamp - s0 <= max(arrival - a0, 0.0) + tol and not behind \
-            and not ahead
+            and not ahead and not lift > self.small_step
         # The sample grid decides where it is known: a stamp on the train's own grid is on
         # the clock, however late it arrives; one off it by more than the grid's tolerance
         # is not, however small the move (a 0.1 s step hides in a link's jitter, and the kf
@@ -1084,6 +1113,16 @@ class StepWatch:
         on_new = kind == "odometer" and self._above_old(chain, stamp - arrival, recv, bar)
         if continuous and r is None and on_new:
             continuous = False  # it joins them (below)
+        # held as a small forward step (_envelope): a reading of the new clock may come as late
+        # as to lie within the old clock's envelope; it joins them while at least half of
+        # them lie above the old ceiling (a step of d puts a reading there when its latency's
+        # excess is below d: half or more of them for a step beyond the excess's median)
+        env = self._envelope(chain, bar) if r is None and kind == "odometer" else None
+        env_join = env is not None and -bar <= lift <= self.back and \
+            (not continuous or not self._sampled_before(chain, stamp, seq, r)) and \
+            envelope.holds(env[0] + 1, env[1] + (lift > 0.0), med.ceiling_n, TREND_WAIT)
+        if env_join:
+            continuous = False
         if kind != "odometer" and chain:
             # a balise while odometer readings are held as a possible step: its stamp is on
             # the same clock, in the same doubt, and waits with them (taken at once, a balise
@@ -1105,7 +1144,7 @@ class StepWatch:
                 joins = abs(r - rs[len(rs) // 2]) <= self.grid.tol_at(seq)
             else:
                 joins = continues((s1, a1), (stamp, arrival)) or \
-                    self._joins(chain, stamp, arrival, bar) or on_new
+                    self._joins(chain, stamp, arrival, bar) or on_new or env_join
             if not joins:
                 yield from self._release()
                 chain = []
@@ -1140,9 +1179,23 @@ class StepWatch:
         if p_trend <= TREND_WAIT:  # undecided: the next readings tell
             yield (PASS, stamp) if refused else (HOLD,)
             return
+        env = self._envelope(chain, bar) if rs is None else None
         if rs is not None:
             # the grid measures the step exactly (the link's jitter does not enter)
             shift = rs[len(rs) // 2]
+        elif env is not None:
+            # on the envelope: min_judged of them above the old ceiling (more than the longest
+            # burst of alike wrong stamps covered), as unlikely under one clock as the stated
+            # false-step rate allows (envelope.level); else the next readings tell, up to
+            # TREND_N held
+            k, j = env
+            if j < self.min_judged or envelope.above_p(k, j, med.ceiling_n) > self.env_level:
+                if k >= TREND_N:
+                    yield from self._release()
+                    yield (HOLD,)
+                    return
+                yield (PASS, stamp) if refused else (HOLD,)
+                return
         elif abs(shift) < back:
             # a small step (below step_back) moves every offset of the new clock alike: its
             # readings agree with one another. A node falling further behind its input also
@@ -1169,7 +1222,8 @@ class StepWatch:
         measured = all(h[3] is not None for h in chain) and len(med) >= self.min_judged
         # the new clock's offsets less the old clock's, carried to the held readings' middle
         moved = new_off - med.now(chain[len(chain) // 2][4]) if measured else math.nan
-        if rs is None and measured and shift < 0 and self._stamps_ran_on(chain, s0):
+        if rs is None and env is None and measured and shift < 0 and \
+                self._stamps_ran_on(chain, s0):
             # the stamps ran on where the old clock's would have: the link's latency rose and
             # stays (a route change), not the clock (module doc of _stamps_ran_on)
             med.move(moved)
@@ -1206,6 +1260,19 @@ class StepWatch:
                 abs(st - ar - new_off) <= abs(st - ar - med.value)
             yield ADMIT, (k, st - shift if on_new else st, f, rc, ar)
         yield PASS, stamp - shift
+
+    def _envelope(self, chain: list, bar: float) -> tuple[int, int] | None:
+        """(k, j): the held odometer readings (``chain``) and how many of them lie above the
+        old clock's ceiling, when they are held as a small forward step
+        (:func:`~.envelope.candidate`), else None. Only on one clock (the runner's drift 0):
+        carried along a rate fit, the ceiling is as wrong as the fit, and the envelope has no
+        room for that."""
+        med = self.clock
+        if self.same or self._drift or len(med) < self.min_judged or \
+                any(h[3] is None for h in chain):
+            return None
+        return envelope.candidate([med.lift(h[1] - h[4]) for h in chain], med.ceiling_n,
+                                  self.small_step, self.back, bar, TREND_WAIT)
 
     def _returning(self, chain: list, med: StreamClock) -> float:
         """How likely, were the held odometer readings (``chain``, in stamp order; arrivals

@@ -198,6 +198,8 @@ class EstimatorRunner:
     step_risk: float = 1e-7  # -, the probability that readings held as a possible step are
     #   declared one while the old clock ran on and only its readings were lost on the link
     #   (clocks.silence_risk: the link's own loss rate sets how many readings that takes)
+    false_step_rate: float = 1e-4  # 1/h: false small forward steps per hour at most (the
+    #   envelope test's threshold, numerics/envelope.py)
     queue: list = field(default_factory=list)
     rejected: Counter = field(default_factory=Counter)  # "kind:reason" -> count
     accepted: Counter = field(default_factory=Counter)
@@ -277,7 +279,8 @@ class EstimatorRunner:
             self.command_timeout = self.integrity.command_timeout
         self._steps = StepWatch(self.period, self.min_judged, self.step_back, self.small_step,
                                 self.small_step_z, self.max_future,
-                                same=self.control_clock == "same", step_risk=self.step_risk)
+                                same=self.control_clock == "same", step_risk=self.step_risk,
+                                false_step_rate=self.false_step_rate)
 
     # -- door ---------------------------------------------------------------------------------
     def push(self, kind: str, stamp: float, fields: dict, recv: float | None = None,
@@ -559,7 +562,7 @@ class EstimatorRunner:
         order (each held reading is judged as the admission of the ones before it left the
         clock); ``stamp`` comes back mapped when this reading completed a step."""
         held = False
-        for act in self._steps.watch(kind, stamp, fields, recv, arrival):
+        for act in self._steps.watch(kind, stamp, fields, recv, arrival, self.drift):
             if act[0] == ADMIT:
                 self._admit(*act[1], watch=False)
             elif act[0] == REFUSE:
