@@ -258,7 +258,10 @@ def trace_breakdown(marks: list, skip: int = 12) -> dict:
     estimates of a reading after the first ``skip`` (the start-up's); the executor's CPU per
     wait (``before_wait``: from a callback's end to the wait; ``after_wait``: from the
     wake-up to the next callback, s); ``cpu_per_s`` (in callbacks, in the executor between
-    them) in s of CPU per s of the run; ``released_by`` (callback name -> count)."""
+    them) in s of CPU per s of the run; ``released_by`` (callback name -> count);
+    ``from_reception``: per estimate, s from its reading's DDS reception (the subscription's
+    MessageInfo, :meth:`~train_core.realtime.CallbackTrace.wrap`) to its Odometry published,
+    the queue wait before the callback included (wall time)."""
     cbs, cur = [], None
     for m in marks:
         if m[0].startswith("B:"):
@@ -275,6 +278,7 @@ def trace_breakdown(marks: list, skip: int = 12) -> dict:
             if m[0] == "reading":
                 readings[m[3]] = (i, next(x for x in cb[j:] if x[0] == "pushed"))
     out = {name: [] for name, _ in TRACE_STAGES}
+    received = []  # s, the reading's DDS reception -> the estimate's Odometry published
     released, n = {}, 0
     for cb in cbs:
         ticks = [m for m in cb if m[0] in ("tick", "advanced")]
@@ -292,6 +296,8 @@ def trace_breakdown(marks: list, skip: int = 12) -> dict:
                                ("advance", tick, adv), ("messages", adv, m),
                                ("total", start, m)):
                 out[name].append(((b[1] - a[1]) * 1e-9, (b[2] - a[2]) * 1e-9))
+            if isinstance(start[3], list | tuple) and start[3][1]:  # the MessageInfo stamps
+                received.append((m[1] - start[1] + start[3][2] - start[3][1]) * 1e-9)
             name = cb[0][0][2:]
             released[name] = released.get(name, 0) + 1
     # the executor between callbacks: before its wait (the last callback's task retired, a
@@ -308,6 +314,7 @@ def trace_breakdown(marks: list, skip: int = 12) -> dict:
     in_cbs = sum((cb[-1][2] - cb[0][2]) * 1e-9 for cb in cbs)
     between = sum((b[0][2] - a[-1][2]) * 1e-9 for a, b in zip(cbs, cbs[1:]))
     return dict(out, before_wait=before, after_wait=after, released_by=released,
+                from_reception=received,
                 cpu_per_s=(in_cbs / span if span else float("nan"),
                            between / span if span else float("nan")))
 
@@ -391,12 +398,16 @@ def clock_rows(label: str, logs: Path) -> list[str]:
     """The /clock row of each estimator node's trace in ``logs`` (:func:`clock_costs`), with
     the echo node's queue wait (its log) beside the node's."""
     log = logs / _log_name(ECHO)
-    m = re.search(r"queue wait .*?: p50 ([\d.]+) ms, p99 ([\d.]+) ms",
+    m = re.search(r"queue wait .*?: p50 ([\d.]+) ms, p99 ([\d.]+) ms(?:; DDS reception -> "
+                  r"echo published: p50 ([\d.]+) ms, p99 ([\d.]+) ms)?",
                   log.read_text() if log.exists() else "")
     floor = f"{m.group(1)} / {m.group(2)}" if m else "-"
+    floor_whole = f"{m.group(3)} / {m.group(4)}" if m and m.group(3) else "-"
     rows = []
     for path in sorted(glob.glob(str(logs / "trace_*.json"))):
-        c = clock_costs(json.loads(Path(path).read_text()))
+        marks = json.loads(Path(path).read_text())
+        c = clock_costs(marks)
+        whole = trace_breakdown(marks)["from_reception"]
 
         def q(v, p):
             return f"{1e3 * np.percentile(v, p):.3f}" if len(v) else "-"
@@ -406,7 +417,7 @@ def clock_rows(label: str, logs: Path) -> list[str]:
                     f"{q(c['alone'], 50)} / {q(c['alone'], 99)} ({len(c['alone'])}) | "
                     f"{1e3 * c['cpu_per_s']:.0f} | {q(c['queue'], 50)} / {q(c['queue'], 99)} | "
                     f"{floor} | {len(behind)} of {len(c['behind'])} | {q(behind, 50)} / "
-                    f"{q(rest, 50)} |")
+                    f"{q(rest, 50)} | {q(whole, 50)} / {q(whole, 99)} | {floor_whole} |")
     return rows
 
 
@@ -656,12 +667,16 @@ def main(argv=None) -> int:
                   "reading's wait in the node's queue (DDS reception -> its callback's start, "
                   "median / p99, ms: before the latency above starts; the echo node's "
                   "beside it), how many of them "
-                  "queued while a wake-up that ran a /clock callback was under way, and the "
-                  "median queue wait of those and of the others\n")
+                  "queued while a wake-up that ran a /clock callback was under way, the "
+                  "median queue wait of those and of the others; and from each reading's DDS "
+                  "reception to its estimate's Odometry published (the queue wait and the "
+                  "latency above; median / p99 over the estimates after the start-up's, "
+                  "ms), the echo node's beside it\n")
             print("| node | /clock per s | its callback (ms) | wake-ups for it alone (ms) | "
                   "CPU on /clock (ms/s) | reading's queue wait (ms) | the floor's (ms) | "
-                  "readings behind a /clock | their queue wait / the others' (ms) |")
-            print("|---" * 9 + "|")
+                  "readings behind a /clock | their queue wait / the others' (ms) | "
+                  "reading received -> estimate published (ms) | the floor's (ms) |")
+            print("|---" * 11 + "|")
             print("\n".join(clocked))
     if args.stage_duration > 0:
         pace = ("fed at 1x real time" if args.paced else "fed back to back")
