@@ -102,10 +102,11 @@ def build_node():
             # the clock first, then what was logged by it: a node on simulated time receives
             # each message at or after its log time, never before. Without messages, every
             # clock_period: each /clock costs every node on simulated time a wake-up of its
-            # executor (the simulator's clock_period, docs/benchmarks.md "Latency")
+            # executor (the simulator's clock_period, docs/benchmarks.md "Latency"); and the
+            # last one (2 s past the last message), which the nodes wait for
             last = self.items[-1][0] if self.items else 0.0
             due = self.i < len(self.items) and self.items[self.i][0] <= t_bag
-            if due or now - self.clock_said >= self.clock_period:
+            if due or t_bag > last + 2.0 or now - self.clock_said >= self.clock_period:
                 clock = Clock()
                 sec_to_stamp(min(t_bag, last + 2.0), clock.clock)
                 self.clock_pub.publish(clock)

@@ -246,7 +246,8 @@ def build_node():
             # than it was sent): a node on simulated time receives each message at or after its
             # delivery time on the clock it judges stamps by, never before (latency >= 0)
             delivered = self.world.deliver(target)
-            self._say_clock(now, due=bool(delivered))
+            # and the run's last instant (duration + end_linger), which the nodes wait for
+            self._say_clock(now, due=bool(delivered) or target >= self.duration + self.linger)
             for topic, stamp, fields in delivered:
                 self.pubs[topic].publish(fields_to_msg(TOPIC_TYPES[topic], stamp, fields))
                 self.counts[topic] += 1
