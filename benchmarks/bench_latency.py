@@ -18,10 +18,19 @@ p50/p99 are the steady state; the first min_judged + 3 samples (the runner start
 odometer sample and judges each clock's stamps once it has min_judged arrivals: they wait by
 design, ~0.1-0.2 s) are reported apart as the start-up maximum. ``--together`` runs every
 estimator node at once instead (one floor for all: the nodes then contend for the cores).
+``--clocks`` (default ``wall,sim``) runs each group once per clock the nodes (estimators and
+echo alike) run on: the system clock (``use_sim_time`` false, as on a train's computer, which
+has no /clock; the simulator at 1x still publishes /clock, which they then do not take) and the
+simulator's /clock (``use_sim_time`` true; its rate: ``--clock-period``, the simulator's
+``clock_period``). Each row gives its p50 and p99 over its own floor's and each process's CPU
+per s of the run (``/proc``).
 
 With ``--trace`` the estimator nodes record their callbacks and their executor's waits
 (``train_core.realtime.CallbackTrace``) and each estimate's time is split into stages, each on
-the steady clock and on the thread's CPU clock (wall above CPU: it waited for a core).
+the steady clock and on the thread's CPU clock (wall above CPU: it waited for a core); and what
+/clock costs them (:func:`clock_costs`: CPU per /clock, how many readings queued behind one)
+and each reading's wait in the node's queue before its callback and its time from DDS
+reception to its estimate published (the subscriptions' MessageInfo stamps), the echo's beside.
 
 **Stages** (in process, ``--stage-duration`` s of metro_demo, fed back to back, or at 1x real
 time with ``--paced``): where an odometer callback's
@@ -45,6 +54,7 @@ Usage::
     ./run bench latency --no-live --seeds 0 --profile 25   # where the in-process time goes
     ./run bench latency --no-live --seeds 0 --paced        # in process, fed at 1x real time
     ./run bench latency --no-link --seeds 0 --trace        # live, per stage, wall and CPU
+    ./run bench latency --no-link --seeds 0 --clocks sim --clock-period 0   # /clock every step
 """
 
 from __future__ import annotations

@@ -3,9 +3,9 @@
 Steps the pure :class:`train_sim.world.World` at ``rate_factor`` times real time and publishes
 what it emits: ``odometer`` and ``balise`` after the lossy radio link, ``control`` (the ATO's
 command) and ``ground_truth``, each stamped with its sample time, plus ``/clock`` (the world's
-time) so every other node can run with ``use_sim_time``: before each step's messages, and
-otherwise every ``clock_period`` of wall time (not every step: each /clock costs every node on
-simulated time a wake-up). Subscribes ``movement_authority`` and
+time) so every other node can run with ``use_sim_time``: before each step's messages, at the
+run's last instant, and otherwise every ``clock_period`` of wall time (not every step: each
+/clock costs every node on simulated time a wake-up). Subscribes ``movement_authority`` and
 hands it to the ATO. Same scenario and seed, same message contents as the offline generator.
 Its health (state, simulated time, messages published, the authorities and paced topics it
 receives) goes to ``/diagnostics`` once per ``diagnostics_period``.
@@ -201,7 +201,7 @@ def build_node():
             """/clock at the world's time when ``due`` (messages follow it) or when
             clock_period has passed since the last one (the timers of nodes on simulated
             time fire when it moves). Each /clock costs every node on simulated time a
-            wake-up of its executor and rclpy's TimeSource callback, 0.4-0.7 ms of CPU
+            wake-up of its executor and rclpy's TimeSource callback, 0.6-0.8 ms of CPU
             (docs/benchmarks.md, Latency): at 100 Hz, more than the estimators' own
             callbacks."""
             if self.publish_clock and (due or now - self.clock_said >= self.clock_period):
