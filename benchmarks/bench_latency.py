@@ -18,10 +18,19 @@ p50/p99 are the steady state; the first min_judged + 3 samples (the runner start
 odometer sample and judges each clock's stamps once it has min_judged arrivals: they wait by
 design, ~0.1-0.2 s) are reported apart as the start-up maximum. ``--together`` runs every
 estimator node at once instead (one floor for all: the nodes then contend for the cores).
+``--clocks`` (default ``wall,sim``) runs each group once per clock the nodes (estimators and
+echo alike) run on: the system clock (``use_sim_time`` false, as on a train's computer, which
+has no /clock; the simulator at 1x still publishes /clock, which they then do not take) and the
+simulator's /clock (``use_sim_time`` true; its rate: ``--clock-period``, the simulator's
+``clock_period``). Each row gives its p50 and p99 over its own floor's and each process's CPU
+per s of the run (``/proc``).
 
 With ``--trace`` the estimator nodes record their callbacks and their executor's waits
 (``train_core.realtime.CallbackTrace``) and each estimate's time is split into stages, each on
-the steady clock and on the thread's CPU clock (wall above CPU: it waited for a core).
+the steady clock and on the thread's CPU clock (wall above CPU: it waited for a core); and what
+/clock costs them (:func:`clock_costs`: CPU per /clock, how many readings queued behind one)
+and each reading's wait in the node's queue before its callback and its time from DDS
+reception to its estimate published (the subscriptions' MessageInfo stamps), the echo's beside.
 
 **Stages** (in process, ``--stage-duration`` s of metro_demo, fed back to back, or at 1x real
 time with ``--paced``): where an odometer callback's
@@ -45,14 +54,17 @@ Usage::
     ./run bench latency --no-live --seeds 0 --profile 25   # where the in-process time goes
     ./run bench latency --no-live --seeds 0 --paced        # in process, fed at 1x real time
     ./run bench latency --no-link --seeds 0 --trace        # live, per stage, wall and CPU
+    ./run bench latency --no-link --seeds 0 --clocks sim --clock-period 0   # /clock every step
 """
 
 from __future__ import annotations
 
 import argparse
 import ast
+import bisect
 import glob
 import json
+import math
 import os
 import random
 import re
@@ -86,6 +98,7 @@ NODES = ("robust_filter", "gsma_estimator")
 OFFLINE = ("robust_filter", "kf")  # the two nodes' defaults
 ALGORITHMS = ("gsma", "sma", "rbpf", "qgrbpf", "kf")  # gsma_estimator's `algorithm`
 ECHO = "echo (bare rclpy)"
+CLOCKS = {"wall": "system", "sim": "simulated"}  # --clocks -> the table's "node clock"
 
 
 def live_nodes(algorithms) -> list[tuple[str, str | None, list[str]]]:
@@ -113,7 +126,23 @@ def _log_name(label: str) -> str:
     return re.sub(r"[^a-z0-9_]+", "_", label.lower()).strip("_") + ".log"
 
 
-def run_live(scenario: str, duration: float, logs: Path, nodes, trace: bool = False) -> None:
+def _cpu_seconds(pid: int) -> float:
+    """s of CPU (user + system) the process has used so far (/proc; nan if unreadable)."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, IndexError, ValueError):
+        return math.nan
+
+
+def run_live(scenario: str, duration: float, logs: Path, nodes, trace: bool = False,
+             sim_time: bool = True, clock_period: float | None = None) -> dict:
+    """One live run; returns each process's CPU per s of the run (ms/s; from the simulator's
+    first progress line, 5 % into the run, to its end: the nodes' start-up left out).
+    ``sim_time``: the nodes (estimators and echo alike) on the simulator's /clock
+    (``use_sim_time``) or on the system clock, as a train's computer runs them (the simulator
+    at 1x keeps publishing /clock, which they then do not subscribe to). ``clock_period``:
+    the simulator's parameter (None: its default)."""
     env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
                ROS_DOMAIN_ID=str(random.randint(101, 200)), PYTHONUNBUFFERED="1")
     env.pop(TRACE_VARIABLE, None)
@@ -130,7 +159,8 @@ def run_live(scenario: str, duration: float, logs: Path, nodes, trace: bool = Fa
                 cmd = [path or sys.executable,
                        *([] if path else ["-m", f"train_estimation.nodes.{exe}"])]
             procs[label] = subprocess.Popen(
-                [*cmd, "--ros-args", "-r", "__ns:=/lat", "-p", "use_sim_time:=true",
+                [*cmd, "--ros-args", "-r", "__ns:=/lat",
+                 "-p", f"use_sim_time:={'true' if sim_time else 'false'}",
                  *([] if exe is None else ["-p", "use_demo_line:=true"]), *extra],
                 env=env, stdout=open(logs / _log_name(label), "w"), stderr=subprocess.STDOUT)
         sim = resolve_executable("train_sim", "simulator")
@@ -138,13 +168,24 @@ def run_live(scenario: str, duration: float, logs: Path, nodes, trace: bool = Fa
         procs["simulator"] = subprocess.Popen(
             [sim, "--ros-args", "-r", "__ns:=/lat", "-p", f"scenario:={scenario}",
              "-p", "rate_factor:=1.0", "-p", f"duration:={duration}",
-             "-p", f"wait_for_subscribers:={n_est}"],
+             "-p", f"wait_for_subscribers:={n_est}",
+             *([] if clock_period is None else ["-p", f"clock_period:={clock_period}"])],
             env=env, stdout=open(logs / "simulator.log", "w"), stderr=subprocess.STDOUT)
-        procs["simulator"].wait(duration + 180)
+        sim, t_end = procs["simulator"], time.monotonic() + duration + 180
+        while sim.poll() is None and time.monotonic() < t_end and \
+                "simulated" not in (logs / "simulator.log").read_text():
+            time.sleep(0.1)
+        first = {label: (_cpu_seconds(p.pid), time.monotonic()) for label, p in procs.items()}
+        last = dict(first)
+        while sim.poll() is None and time.monotonic() < t_end:
+            last = {label: (_cpu_seconds(p.pid), time.monotonic()) for label, p in procs.items()}
+            time.sleep(0.2)
         time.sleep(1.0)
     finally:
         for p in procs.values():
             stop_process(p)
+    return {label: 1e3 * (last[label][0] - c0) / (last[label][1] - t0)
+            if last[label][1] > t0 else math.nan for label, (c0, t0) in first.items()}
 
 
 def _dict(text: str) -> dict:
@@ -157,14 +198,18 @@ def _echo_line(text: str):
     return m.groups() if m else None
 
 
-def live_rows(link: str, logs: Path, nodes) -> list[str]:
+def live_rows(link: str, logs: Path, nodes, clock: str = "simulated",
+              cpu: dict | None = None) -> list[str]:
     """One row per node of a run (``logs``: its logs), the floor (the echo node of the same
-    run) beside each estimator's."""
+    run) beside each estimator's, with the ratios of the node's p50 and p99 to the floor's
+    and each one's CPU per s of the run (``cpu``: label -> ms/s, :func:`run_live`)."""
+    cpu = cpu or {}
     echo = next((lb for lb, exe, _ in nodes if exe is None), None)
     floor = None
     if echo is not None:
         log = logs / _log_name(echo)
         floor = _echo_line(log.read_text()) if log.exists() else None
+    c_floor = cpu.get(echo, math.nan)
     rows = []
     for label, exe, _ in nodes:
         log = logs / _log_name(label)
@@ -172,25 +217,37 @@ def live_rows(link: str, logs: Path, nodes) -> list[str]:
         if exe is None:
             continue
         fl = f"{floor[0]}/{floor[1]}" if floor else "-"
+        c = (f"{cpu.get(label, math.nan):.0f} / {c_floor:.0f} / "
+             f"{cpu.get('simulator', math.nan):.0f}")
         m = re.search(r"p50 ([\d.]+) ms, p99 ([\d.]+) ms, max ([\d.]+) ms over (\d+) samples"
                       r" \(steady state; start-up: max ([\d.]+) ms.*?waiting for inputs p50 "
                       r"([\d.]+) ms, p99 ([\d.]+) ms; processing p50 ([\d.]+) ms, p99 ([\d.]+)",
                       text)
-        c = re.search(r"rejected (.*); events (.*)$", text, re.M)
-        if not m or not c:
-            rows.append(f"| {label} | {link} | - | - | - | - | {fl} | - | - | - | - | - | "
-                        f"(no latency line; see {log}) |")
+        r = re.search(r"rejected (.*); events (.*)$", text, re.M)
+        if not m or not r:
+            rows.append(f"| {label} | {link} | {clock} | - | - | - | - | {fl} | - | - | - | - | "
+                        f"- | {c} | - | (no latency line; see {log}) |")
             continue
         g = m.groups()
-        rejected, events = _dict(c.group(1)), _dict(c.group(2))
+        ratio = (f"{float(g[0]) / float(floor[0]):.1f} / {float(g[1]) / float(floor[1]):.1f}"
+                 if floor and float(floor[0]) > 0 and float(floor[1]) > 0 else "-")
+        rejected, events = _dict(r.group(1)), _dict(r.group(2))
         late = sum(v for k, v in events.items() if k.endswith("fused_late"))
-        rows.append(f"| {label} | {link} | {g[0]} | {g[1]} | {g[2]} | {g[3]} | {fl} | "
-                    f"{g[5]}/{g[6]} | {g[7]}/{g[8]} | {g[4]} | {late} | "
-                    f"{sum(rejected.values())} | {c.group(1)}; {c.group(2)} |")
+        rows.append(f"| {label} | {link} | {clock} | {g[0]} | {g[1]} | {g[2]} | {g[3]} | {fl} | "
+                    f"{ratio} | {g[5]}/{g[6]} | {g[7]}/{g[8]} | {g[4]} | {c} | {late} | "
+                    f"{sum(rejected.values())} | {r.group(1)}; {r.group(2)} |")
     if floor is None and echo is not None:
-        rows.append(f"| {echo} | {link} | - | - | - | - | - | - | - | - | - | - | "
-                    f"(no latency line; see {logs / _log_name(echo)}) |")
+        rows.append(f"| {echo} | {link} | {clock} | - | - | - | - | - | - | - | - | - | "
+                    f"- / {c_floor:.0f} | - | - | (no latency line; see "
+                    f"{logs / _log_name(echo)}) |")
     return rows
+
+
+LIVE_HEADER = ("| node | link latency | node clock | p50 (ms) | p99 (ms) | max (ms) | samples | "
+               "floor p50/p99 (ms) | p50 / p99 over the floor's | waiting p50/p99 (ms) | "
+               "processing p50/p99 (ms) | start-up max (ms) | "
+               "CPU node / floor / simulator (ms/s) | fused late | dropped | "
+               "rejected; events |\n" + "|---" * 16 + "|")
 
 
 TRACE_STAGES = (
@@ -211,7 +268,10 @@ def trace_breakdown(marks: list, skip: int = 12) -> dict:
     estimates of a reading after the first ``skip`` (the start-up's); the executor's CPU per
     wait (``before_wait``: from a callback's end to the wait; ``after_wait``: from the
     wake-up to the next callback, s); ``cpu_per_s`` (in callbacks, in the executor between
-    them) in s of CPU per s of the run; ``released_by`` (callback name -> count)."""
+    them) in s of CPU per s of the run; ``released_by`` (callback name -> count);
+    ``from_reception``: per estimate, s from its reading's DDS reception (the subscription's
+    MessageInfo, :meth:`~train_core.realtime.CallbackTrace.wrap`) to its Odometry published,
+    the queue wait before the callback included (wall time)."""
     cbs, cur = [], None
     for m in marks:
         if m[0].startswith("B:"):
@@ -228,6 +288,7 @@ def trace_breakdown(marks: list, skip: int = 12) -> dict:
             if m[0] == "reading":
                 readings[m[3]] = (i, next(x for x in cb[j:] if x[0] == "pushed"))
     out = {name: [] for name, _ in TRACE_STAGES}
+    received = []  # s, the reading's DDS reception -> the estimate's Odometry published
     released, n = {}, 0
     for cb in cbs:
         ticks = [m for m in cb if m[0] in ("tick", "advanced")]
@@ -245,6 +306,8 @@ def trace_breakdown(marks: list, skip: int = 12) -> dict:
                                ("advance", tick, adv), ("messages", adv, m),
                                ("total", start, m)):
                 out[name].append(((b[1] - a[1]) * 1e-9, (b[2] - a[2]) * 1e-9))
+            if isinstance(start[3], list | tuple) and start[3][1]:  # the MessageInfo stamps
+                received.append((m[1] - start[1] + start[3][2] - start[3][1]) * 1e-9)
             name = cb[0][0][2:]
             released[name] = released.get(name, 0) + 1
     # the executor between callbacks: before its wait (the last callback's task retired, a
@@ -261,6 +324,7 @@ def trace_breakdown(marks: list, skip: int = 12) -> dict:
     in_cbs = sum((cb[-1][2] - cb[0][2]) * 1e-9 for cb in cbs)
     between = sum((b[0][2] - a[-1][2]) * 1e-9 for a, b in zip(cbs, cbs[1:]))
     return dict(out, before_wait=before, after_wait=after, released_by=released,
+                from_reception=received,
                 cpu_per_s=(in_cbs / span if span else float("nan"),
                            between / span if span else float("nan")))
 
@@ -283,6 +347,87 @@ def trace_rows(label: str, logs: Path) -> list[str]:
                     + f" | {1e3 * np.median(b['before_wait']):.3f} / "
                     f"{1e3 * np.median(b['after_wait']):.3f} ({len(b['after_wait'])}) | "
                     f"{1e3 * b['cpu_per_s'][0]:.0f} / {1e3 * b['cpu_per_s'][1]:.0f} |")
+    return rows
+
+
+def clock_costs(marks: list, topic: str = "sub /clock", reading: str = "/odometer") -> dict:
+    """What /clock costs a live node and what it does to the readings, from its callback trace:
+    per wake-up of the executor (from ``woken`` to its next ``wait``: taking the messages,
+    the callbacks, retiring them and building the next wait set) the callbacks it ran. Returns
+    the thread's CPU of each wake-up that ran ``topic``'s callback alone (``alone``, s), of
+    each of ``topic``'s callbacks (``callback``, s), their count per s of the run (``per_s``)
+    and the CPU per s they cost (``cpu_per_s``: the wake-ups for ``topic`` alone, whole, and
+    the callback's own time in the others); and for each callback of a topic named ``reading``
+    (in any namespace) the time its
+    message waited in the node's queue (``queue``: DDS reception -> callback start, s, from
+    the MessageInfo stamps :meth:`~train_core.realtime.CallbackTrace.wrap` keeps) and whether
+    a wake-up that ran ``topic``'s callback was under way in that time (``behind``:
+    booleans)."""
+    wakes, cur = [], None  # each wake-up: [woken mark, [(B, E) of its callbacks], wait mark]
+    for m in marks:
+        if m[0] == "woken":
+            cur = [m, [], None]
+        elif cur is None:
+            continue
+        elif m[0] == "wait":
+            cur[2] = m
+            wakes.append(cur)
+            cur = None
+        elif m[0].startswith("B:"):
+            cur[1].append([m, None])
+        elif m[0].startswith("E:") and cur[1] and cur[1][-1][1] is None:
+            cur[1][-1][1] = m
+    alone, callback, spans, in_mixed = [], [], [], 0.0
+    for woken, cbs, wait in wakes:
+        own = [(e[2] - b[2]) * 1e-9 for b, e in cbs if b[0] == "B:" + topic and e is not None]
+        if own:  # the wake-up's steady span: the executor's work for it is in the way too
+            spans.append((woken[1], wait[1]))
+        callback += own
+        if cbs and all(b[0] == "B:" + topic for b, _ in cbs):
+            alone.append((wait[2] - woken[2]) * 1e-9)
+        else:
+            in_mixed += sum(own)
+    span = (marks[-1][1] - marks[0][1]) * 1e-9 if marks else 0.0
+    ends = [e for _, e in spans]  # in order, as the wake-ups are
+    queue, behind = [], []
+    for m in marks:
+        if m[0].startswith("B:sub ") and m[0].endswith(reading) and \
+                isinstance(m[3], list | tuple) and m[3][1]:
+            _, received, now = m[3]
+            queue.append((now - received) * 1e-9)
+            arrived = m[1] - (now - received)  # the reception on the steady clock
+            # a wake-up that ran the topic's callback and was under way while it queued
+            i = bisect.bisect_right(ends, arrived)
+            behind.append(i < len(spans) and spans[i][0] < m[1])
+    return dict(alone=alone, callback=callback, queue=queue, behind=behind,
+                per_s=len(callback) / span if span else math.nan,
+                cpu_per_s=(sum(alone) + in_mixed) / span if span else math.nan)
+
+
+def clock_rows(label: str, logs: Path) -> list[str]:
+    """The /clock row of each estimator node's trace in ``logs`` (:func:`clock_costs`), with
+    the echo node's queue wait (its log) beside the node's."""
+    log = logs / _log_name(ECHO)
+    m = re.search(r"queue wait .*?: p50 ([\d.]+) ms, p99 ([\d.]+) ms(?:; DDS reception -> "
+                  r"echo published: p50 ([\d.]+) ms, p99 ([\d.]+) ms)?",
+                  log.read_text() if log.exists() else "")
+    floor = f"{m.group(1)} / {m.group(2)}" if m else "-"
+    floor_whole = f"{m.group(3)} / {m.group(4)}" if m and m.group(3) else "-"
+    rows = []
+    for path in sorted(glob.glob(str(logs / "trace_*.json"))):
+        marks = json.loads(Path(path).read_text())
+        c = clock_costs(marks)
+        whole = trace_breakdown(marks)["from_reception"]
+
+        def q(v, p):
+            return f"{1e3 * np.percentile(v, p):.3f}" if len(v) else "-"
+        behind = [w for w, b in zip(c["queue"], c["behind"]) if b]
+        rest = [w for w, b in zip(c["queue"], c["behind"]) if not b]
+        rows.append(f"| {label} | {c['per_s']:.1f} | {q(c['callback'], 50)} | "
+                    f"{q(c['alone'], 50)} / {q(c['alone'], 99)} ({len(c['alone'])}) | "
+                    f"{1e3 * c['cpu_per_s']:.0f} | {q(c['queue'], 50)} / {q(c['queue'], 99)} | "
+                    f"{floor} | {len(behind)} of {len(c['behind'])} | {q(behind, 50)} / "
+                    f"{q(rest, 50)} | {q(whole, 50)} / {q(whole, 99)} | {floor_whole} |")
     return rows
 
 
@@ -454,6 +599,14 @@ def main(argv=None) -> int:
                          "functions of most own time printed (0: none)")
     ap.add_argument("--no-link", action="store_true",
                     help="live: only the runs without link latency")
+    ap.add_argument("--clocks", default="wall,sim",
+                    help="live: the clocks the nodes (estimators and echo alike) run on, "
+                         "comma separated, each its own runs: wall = the system clock, as on "
+                         "a train (use_sim_time false; the simulator at 1x still publishes "
+                         "/clock); sim = the simulator's /clock (use_sim_time true)")
+    ap.add_argument("--clock-period", type=float, default=None,
+                    help="live: the simulator's clock_period (s of simulated time between two "
+                         "/clock messages at most; default: the simulator's)")
     ap.add_argument("--together", action="store_true",
                     help="live: every estimator node in one run beside one echo node (they "
                          "contend for the cores) instead of one at a time")
@@ -470,26 +623,35 @@ def main(argv=None) -> int:
         if not args.no_link:
             links.append((lag, str(scenario_with_link(logs / "metro_demo_latency.yaml",
                                                       args.latency, args.jitter))))
-        rows, traced = [], []
+        clocks = [c for c in args.clocks.split(",") if c]
+        unknown = [c for c in clocks if c not in CLOCKS]
+        if unknown:
+            ap.error(f"--clocks: unknown {unknown} (allowed: {', '.join(CLOCKS)})")
+        rows, traced, clocked = [], [], []
         load = [os.getloadavg()[0]]
         for i, (name, scenario) in enumerate(links):
-            for j, group in enumerate(groups):
-                run_live(scenario, args.duration, logs / f"link{i}" / f"run{j}", group,
-                         trace=args.trace)
-                rows += live_rows(name, logs / f"link{i}" / f"run{j}", group)
-                if args.trace:
-                    traced += trace_rows(f"{group[0][0]}, link {name}",
-                                         logs / f"link{i}" / f"run{j}")
-                load.append(os.getloadavg()[0])
+            for clock in clocks:
+                for j, group in enumerate(groups):
+                    where = logs / f"link{i}" / clock / f"run{j}"
+                    cpu = run_live(scenario, args.duration, where, group, trace=args.trace,
+                                   sim_time=clock == "sim", clock_period=args.clock_period)
+                    rows += live_rows(name, where, group, CLOCKS[clock], cpu)
+                    if args.trace:
+                        what = f"{group[0][0]}, link {name}, {CLOCKS[clock]}"
+                        traced += trace_rows(what, where)
+                        clocked += clock_rows(what, where)
+                    load.append(os.getloadavg()[0])
         how = (f"{len(nodes) - 1} estimator nodes and the echo node side by side"
                if args.together else "each estimator node in turn, with the echo node beside it")
         print(f"metro_demo at 1x for {args.duration:g} s per link and run, {how} (logs in "
               f"{logs}); load average (1 min) {', '.join(f'{v:.1f}' for v in load)} before "
-              "the first run / after each\n")
-        print("| node | link latency | p50 (ms) | p99 (ms) | max (ms) | samples | "
-              "floor p50/p99 (ms) | waiting p50/p99 (ms) | processing p50/p99 (ms) | "
-              "start-up max (ms) | fused late | dropped | rejected; events |")
-        print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+              "the first run / after each. node clock: the clock the estimator and the "
+              "echo node of a row run on (system: use_sim_time false, as on a train; "
+              "simulated: the simulator's /clock, use_sim_time true); p50 / p99 over the "
+              "floor's: the row's p50 and p99 divided by its own floor's; CPU: each "
+              "process's CPU time per s of the run (ms/s; /proc, from 5 % into the run to "
+              "its end)\n")
+        print(LIVE_HEADER)
         print("\n".join(rows))
         if args.trace:
             print("\nWhere each estimate's time goes, live (the nodes' callback traces; "
@@ -507,6 +669,25 @@ def main(argv=None) -> int:
                   + " | executor before / after a wait (n) | CPU per s |")
             print("|---" * (len(TRACE_STAGES) + 5) + "|")
             print("\n".join(traced))
+            print("\n/clock in the estimator nodes (their traces): /clock callbacks per s; "
+                  "the CPU of one (the TimeSource's callback; median, ms) and of the "
+                  "executor's wake-ups that ran it alone (taking it, the callback, the next "
+                  "wait set; median / p99, ms, and their count); the CPU per s they cost "
+                  "(those wake-ups whole, and the callback in the others); each odometer "
+                  "reading's wait in the node's queue (DDS reception -> its callback's start, "
+                  "median / p99, ms: before the latency above starts; the echo node's "
+                  "beside it), how many of them "
+                  "queued while a wake-up that ran a /clock callback was under way, the "
+                  "median queue wait of those and of the others; and from each reading's DDS "
+                  "reception to its estimate's Odometry published (the queue wait and the "
+                  "latency above; median / p99 over the estimates after the start-up's, "
+                  "ms), the echo node's beside it\n")
+            print("| node | /clock per s | its callback (ms) | wake-ups for it alone (ms) | "
+                  "CPU on /clock (ms/s) | reading's queue wait (ms) | the floor's (ms) | "
+                  "readings behind a /clock | their queue wait / the others' (ms) | "
+                  "reading received -> estimate published (ms) | the floor's (ms) |")
+            print("|---" * 11 + "|")
+            print("\n".join(clocked))
     if args.stage_duration > 0:
         pace = ("fed at 1x real time" if args.paced else "fed back to back")
         print("\nWhere an odometer callback's time goes, in process (metro_demo "

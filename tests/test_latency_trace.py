@@ -1,6 +1,6 @@
 """The live latency's per-stage split (``bench_latency --trace``): a node's callback trace
-(``train_core.realtime.CallbackTrace``) cut into stages, checked exactly on a trace written by
-hand, and the trace's callback wrapper as rclpy sees it."""
+(``train_core.realtime.CallbackTrace``) cut into stages and into what /clock costs, checked
+exactly on traces written by hand, and the trace's callback wrappers as rclpy sees them."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
-from bench_latency import trace_breakdown  # noqa: E402
+from bench_latency import clock_costs, trace_breakdown  # noqa: E402
 from train_core.realtime import CallbackTrace  # noqa: E402
 
 US = 1_000  # ns
@@ -86,3 +86,67 @@ def test_wrapper_keeps_the_arity_rclpy_reads_and_marks_an_exception():
         wrapped("boom")
     assert [m[0] for m in trace.marks] == ["B:sub /x", "E:sub /x"]
     assert trace.marks[0][1] <= trace.marks[1][1] and trace.marks[0][2] <= trace.marks[1][2]
+
+
+def test_subscription_wrapper_takes_the_message_info_and_keeps_its_stamps():
+    """rclpy hands a two-argument callback the MessageInfo: the wrapper takes it, marks its
+    start with the DDS stamps, and calls a one-argument callback with the message only (and a
+    two-argument one with both)."""
+    trace = CallbackTrace("/nonexistent")
+    got = []
+    one = trace._wrapped_sub("sub /x", lambda msg: got.append(msg))
+    two = trace._wrapped_sub("sub /y", lambda msg, info: got.append((msg, info)))
+    for wrapped in (one, two):
+        inspect.signature(wrapped).bind(object(), object())
+        with pytest.raises(TypeError):
+            inspect.signature(wrapped).bind(object())
+    info = {"source_timestamp": 5, "received_timestamp": 7}
+    one("a", info)
+    two("b", info)
+    assert got == ["a", ("b", info)]
+    assert [m[0] for m in trace.marks] == ["B:sub /x", "E:sub /x", "B:sub /y", "E:sub /y"]
+    published, received, now = trace.marks[0][3]
+    assert (published, received) == (5, 7) and now > 7
+
+
+def _clock_trace():
+    """Three wake-ups: /clock alone; /clock, then a reading that was received (system clock,
+    the trace's steady clock + 1000 s) while that wake-up was under way; a reading alone,
+    received after the wake-up for /clock had ended."""
+    sys_off = 1_000_000 * 1_000 * US  # the system clock's lead on the steady clock, ns
+
+    def info(recv_us, start_us):
+        return (0, recv_us * US + sys_off, start_us * US + sys_off)
+    return [
+        _m("wait", 0, 0), _m("woken", 1000, 10),
+        _m("B:sub /clock", 1100, 110, info(990, 1100)), _m("E:sub /clock", 1130, 140),
+        _m("wait", 1700, 700),  # 690 us of CPU for /clock alone
+        _m("woken", 2000, 701),
+        _m("B:sub /clock", 2300, 1001, info(1995, 2300)), _m("E:sub /clock", 2340, 1041),
+        _m("B:sub /lat/odometer", 2600, 1301, info(2100, 2600)),
+        _m("E:sub /lat/odometer", 3600, 2301),
+        _m("wait", 3900, 2600),
+        _m("woken", 5000, 2601),
+        _m("B:sub /lat/odometer", 5200, 2801, info(4900, 5200)),
+        _m("E:sub /lat/odometer", 6000, 3601), _m("wait", 6100, 3700),
+    ]
+
+
+def test_clock_costs_exactly():
+    c = clock_costs(_clock_trace())
+
+    def d(us):
+        return us * US * 1e-9
+    assert c["alone"] == [d(690)]
+    assert c["callback"] == [d(30), d(40)]
+    assert c["per_s"] == pytest.approx(2 / d(6100), rel=1e-12)
+    assert c["cpu_per_s"] == pytest.approx((d(690) + d(40)) / d(6100), rel=1e-12)
+    assert c["queue"] == pytest.approx([d(500), d(300)], abs=1e-15)
+    assert c["behind"] == [True, False]
+
+
+def test_clock_costs_without_clock():
+    marks = [m for m in _clock_trace() if "clock" not in m[0]]
+    c = clock_costs(marks)
+    assert c["alone"] == [] and c["callback"] == [] and c["per_s"] == 0.0
+    assert c["behind"] == [False, False]

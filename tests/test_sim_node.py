@@ -226,3 +226,37 @@ def test_bad_scenario_is_refused_with_one_line_and_exit_code_2(launch, tmp_path)
     text = sim.log_path.read_text().strip().splitlines()
     assert text and text[-1].startswith("error: ") and "bad.yaml" in text[-1], text
     assert "Traceback" not in "\n".join(text)
+
+
+def test_clock_before_each_delivery_and_not_every_step(launch, ros_node):
+    """/clock (clock_period 0.1 s at 1x): said with the messages of each step, so that each
+    ground-truth sample finds a /clock at or after its stamp soon after it (within 1 s: a
+    loaded machine stretches a step); otherwise at most every clock_period of wall time, so
+    far fewer than one per 10 ms step (350 in this run); and the run's last instant is said."""
+    from rosgraph_msgs.msg import Clock
+
+    from train_interfaces.msg import ControlCommand, OdometerReading, TrainState
+
+    ns, duration = "/clocked", 3.0
+    clock = ros_node.collect(Clock, "/clock")
+    ros_node.collect(OdometerReading, f"{ns}/odometer")
+    ros_node.collect(ControlCommand, f"{ns}/control")
+    truth = ros_node.collect(TrainState, f"{ns}/ground_truth")
+    sim = launch.node("train_sim", "simulator", "--ros-args", "-r", f"__ns:={ns}",
+                      "-p", "rate_factor:=1.0", "-p", f"duration:={duration}",
+                      "-p", "end_linger:=0.5", "-p", "clock_period:=0.1",
+                      "-p", "wait_for_truth_subscribers:=1")
+    ros_node.wait_until(lambda: sim.poll() is not None, timeout=duration + 60,
+                        what="the simulator to finish its run")
+    ros_node.spin_for(0.5)
+    assert sim.returncode == 0, launch.logs()
+    said = np.array(sorted(m.clock.sec + 1e-9 * m.clock.nanosec for m in clock))
+    stamps = [m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec for m in truth]
+    assert len(stamps) >= 25, len(stamps)
+    for s in stamps:  # a /clock at or after each sample, with the step that delivered it
+        i = np.searchsorted(said, s - 1e-9)
+        assert i < len(said) and said[i] - s < 1.0, (s, said[max(0, i - 1):i + 2])
+    # the deliveries (ground truth, control, odometer at 10 Hz; balises) and once per
+    # clock_period between them: at most 2 x 10 per s of the run and its linger, not 100
+    assert len(said) <= 2 * 10 * (duration + 0.5) + 2, len(said)
+    assert said[-1] == pytest.approx(duration + 0.5, abs=1e-9)  # the run's last instant

@@ -101,9 +101,26 @@ class CallbackTrace:
         traced.__signature__ = inspect.signature(fn)
         return traced
 
+    def _wrapped_sub(self, name: str, fn):
+        """A subscription's callback taking rclpy's MessageInfo too, whose stamps the start
+        mark keeps: (published, received, now), ns on the system clock (the DDS layer's own
+        stamps: received -> now is the time the message waited in the node's queue, behind
+        the executor and the callbacks before it). ``fn`` gets what it asked for."""
+        with_info = _takes_two(fn)
+
+        def traced(msg, info):
+            self.mark("B:" + name, (info.get("source_timestamp"),
+                                    info.get("received_timestamp"), time.time_ns()))
+            try:
+                return fn(msg, info) if with_info else fn(msg)
+            finally:
+                self.mark("E:" + name)
+        return traced
+
     def wrap(self, node) -> None:
         """Every subscription, timer and service callback of ``node`` (rclpy's /clock one
-        included) marked at its start ``B:`` and end ``E:`` with the topic, period or service;
+        included) marked at its start ``B:`` and end ``E:`` with the topic, period or service
+        (a subscription's start with its message's DDS stamps, :meth:`_wrapped_sub`);
         and the executor's waits (``wait``, ``woken``): rclpy's executor builds a wait set in
         Python for each wait (this process-wide patch of its module marks them)."""
         import rclpy.executors as executors
@@ -111,7 +128,7 @@ class CallbackTrace:
         if not isinstance(executors._rclpy, _TracedImpl):
             executors._rclpy = _TracedImpl(executors._rclpy, self)
         for sub in node.subscriptions:
-            sub.callback = self._wrapped("sub " + sub.topic_name, sub.callback)
+            sub.callback = self._wrapped_sub("sub " + sub.topic_name, sub.callback)
         for tmr in node.timers:
             tmr.callback = self._wrapped(f"timer {tmr.timer_period_ns * 1e-9:g} s", tmr.callback)
         for srv in node.services:
@@ -124,6 +141,15 @@ class CallbackTrace:
         with open(path, "w") as f:
             json.dump(self.marks, f)
         return path
+
+
+def _takes_two(fn) -> bool:
+    """Whether rclpy would hand ``fn`` the MessageInfo too (its own test of the signature)."""
+    try:
+        inspect.signature(fn).bind(object(), object())
+    except TypeError:
+        return False
+    return True
 
 
 class _TracedImpl:

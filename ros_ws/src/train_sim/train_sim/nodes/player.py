@@ -5,12 +5,15 @@
 
 Publishes the chosen topics of the bag in stamp order at ``rate_factor`` times real time, each
 message exactly as recorded (decoded and re-encoded: the same field values), and ``/clock``
-after the messages of each step, so that nodes with ``use_sim_time`` see bag time. The clock
-follows the messages' header stamps (the sample times).
+before the messages of each step (a node on simulated time receives each message at or after
+its stamp on its clock), and otherwise every ``clock_period`` of wall time, so that nodes with
+``use_sim_time`` see bag time. The clock follows the messages' header stamps (the sample
+times).
 """
 
 from __future__ import annotations
 
+import math
 import sys
 import time
 from dataclasses import dataclass
@@ -41,9 +44,15 @@ class PlayerConfig:
     rate_factor: float = param(1.0, "-", "bag seconds per wall second", lo=0.0)
     wait_for_subscribers: int = param(0, "", "start when each of control, odometer and balise "
                                       "has this many subscribers", lo=0)
+    clock_period: float = param(0.1, "s", "wall time between two /clock messages at most; "
+                                "/clock is also said before every step that publishes "
+                                "messages. <= 0.005 (the stepping timer's period): every "
+                                "step", lo=0.0)
 
     def __post_init__(self):
         require(bool(self.bag), "bag", self.bag, "is empty: give the bag to play")
+        require(math.isfinite(self.clock_period) and self.clock_period >= 0, "clock_period",
+                self.clock_period, "must be >= 0")
 
 
 def build_node():
@@ -61,6 +70,7 @@ def build_node():
                 raise ParameterError(str(exc)) from None
             bag, topics = cfg.bag, list(cfg.topics)
             self.rate, self.wait_subs = cfg.rate_factor, cfg.wait_for_subscribers
+            self.clock_period, self.clock_said = cfg.clock_period, -math.inf
             try:
                 data = read_bag(bag)
             except BagError as exc:
@@ -87,13 +97,20 @@ def build_node():
                 if not inputs_matched(self.pubs, self.wait_subs):
                     return
                 self.wall0 = time.monotonic()
-            t_bag = self.t0_bag + (time.monotonic() - self.wall0) * self.rate
+            now = time.monotonic()
+            t_bag = self.t0_bag + (now - self.wall0) * self.rate
             # the clock first, then what was logged by it: a node on simulated time receives
-            # each message at or after its log time, never before
-            clock = Clock()
+            # each message at or after its log time, never before. Without messages, every
+            # clock_period: each /clock costs every node on simulated time a wake-up of its
+            # executor (the simulator's clock_period, docs/benchmarks.md "Latency"); and the
+            # last one (2 s past the last message), which the nodes wait for
             last = self.items[-1][0] if self.items else 0.0
-            sec_to_stamp(min(t_bag, last + 2.0), clock.clock)
-            self.clock_pub.publish(clock)
+            due = self.i < len(self.items) and self.items[self.i][0] <= t_bag
+            if due or t_bag > last + 2.0 or now - self.clock_said >= self.clock_period:
+                clock = Clock()
+                sec_to_stamp(min(t_bag, last + 2.0), clock.clock)
+                self.clock_pub.publish(clock)
+                self.clock_said = now
             while self.i < len(self.items) and self.items[self.i][0] <= t_bag:
                 stamp, topic, fields = self.items[self.i]
                 self.pubs[topic].publish(fields_to_msg(TOPIC_TYPES[topic], stamp, fields))

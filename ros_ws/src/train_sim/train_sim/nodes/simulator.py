@@ -3,7 +3,9 @@
 Steps the pure :class:`train_sim.world.World` at ``rate_factor`` times real time and publishes
 what it emits: ``odometer`` and ``balise`` after the lossy radio link, ``control`` (the ATO's
 command) and ``ground_truth``, each stamped with its sample time, plus ``/clock`` (the world's
-time) so every other node can run with ``use_sim_time``. Subscribes ``movement_authority`` and
+time) so every other node can run with ``use_sim_time``: before each step's messages, at the
+run's last instant, and otherwise every ``clock_period`` of wall time (not every step: each
+/clock costs every node on simulated time a wake-up). Subscribes ``movement_authority`` and
 hands it to the ATO. Same scenario and seed, same message contents as the offline generator.
 Its health (state, simulated time, messages published, the authorities and paced topics it
 receives) goes to ``/diagnostics`` once per ``diagnostics_period``.
@@ -51,6 +53,9 @@ class SimulatorConfig:
     rate_factor: float = param(1.0, "-", "simulated seconds per wall-clock second", lo=0.0)
     duration: float = param(-1.0, "s", "simulated time; -1 = the scenario's")
     wall_step: float = param(0.01, "s", "wall-clock period of the stepping timer", lo=0.0)
+    clock_period: float = param(0.1, "s", "wall time between two /clock messages at most; "
+                                "/clock is also said before every step that delivers "
+                                "messages. <= wall_step: every step", lo=0.0)
     wait_for_subscribers: int = param(0, "", "start only when control, odometer and balise "
                                       "have this many subscribers each", lo=0)
     wait_for_truth_subscribers: int = param(0, "", "and ground_truth has this many "
@@ -73,6 +78,8 @@ class SimulatorConfig:
     def __post_init__(self):
         require(self.rate_factor > 0, "rate_factor", self.rate_factor, "must be > 0")
         require(self.wall_step > 0, "wall_step", self.wall_step, "must be > 0")
+        require(math.isfinite(self.clock_period) and self.clock_period >= 0, "clock_period",
+                self.clock_period, "must be >= 0")
         require(math.isfinite(self.end_linger) and self.end_linger >= 0, "end_linger",
                 self.end_linger, "must be >= 0")
         require(math.isfinite(self.max_lead) and self.max_lead >= 0, "max_lead", self.max_lead,
@@ -106,6 +113,8 @@ def build_node():
                 raise ParameterError(str(exc)) from None
             scenario, model_dir, seed, duration = cfg.scenario, cfg.model, cfg.seed, cfg.duration
             self.rate_factor, self.step = cfg.rate_factor, cfg.wall_step
+            self.clock_period = cfg.clock_period
+            self.clock_said = -math.inf  # monotonic s of the last /clock
             self.exit_at_end, self.summary_file = cfg.exit_at_end, cfg.summary_file
             self.wait_subs, self.wait_truth = cfg.wait_for_subscribers, \
                 cfg.wait_for_truth_subscribers
@@ -188,11 +197,18 @@ def build_node():
             self._arrived(topic)
             self.paced[topic] = max(self.paced[topic], stamp_to_sec(msg.header.stamp))
 
-        def _say_clock(self) -> None:
-            if self.publish_clock:
+        def _say_clock(self, now: float, due: bool = False) -> None:
+            """/clock at the world's time when ``due`` (messages follow it) or when
+            clock_period has passed since the last one (the timers of nodes on simulated
+            time fire when it moves). Each /clock costs every node on simulated time a
+            wake-up of its executor and rclpy's TimeSource callback, 0.6-0.8 ms of CPU
+            (docs/benchmarks.md, Latency): at 100 Hz, more than the estimators' own
+            callbacks."""
+            if self.publish_clock and (due or now - self.clock_said >= self.clock_period):
                 clock = Clock()
                 sec_to_stamp(self.t_sim, clock.clock)
                 self.clock_pub.publish(clock)
+                self.clock_said = now
 
         def tick(self) -> None:
             now = time.monotonic()
@@ -216,11 +232,12 @@ def build_node():
             target = min(target, self.duration + self.linger)
             if target <= self.t_sim:
                 # paced, waiting for the estimates: the world's clock stands still, and is said
-                # again, so that a node whose /clock subscription matched after the last tick
+                # again (each clock_period), so that a node whose /clock subscription matched
+                # after the last tick
                 # learns the time (a node on simulated time holds what it received until it
                 # has a clock: under load the world waited for a node's estimates and the node
                 # for a clock, and the run stopped)
-                self._say_clock()
+                self._say_clock(now)
                 return
             if self.t_sim < self.duration:
                 self.world.advance(min(target, self.duration))
@@ -228,8 +245,10 @@ def build_node():
             # the world's clock first, then what has arrived by it (with link latency, later
             # than it was sent): a node on simulated time receives each message at or after its
             # delivery time on the clock it judges stamps by, never before (latency >= 0)
-            self._say_clock()
-            for topic, stamp, fields in self.world.deliver(target):
+            delivered = self.world.deliver(target)
+            # and the run's last instant (duration + end_linger), which the nodes wait for
+            self._say_clock(now, due=bool(delivered) or target >= self.duration + self.linger)
+            for topic, stamp, fields in delivered:
                 self.pubs[topic].publish(fields_to_msg(TOPIC_TYPES[topic], stamp, fields))
                 self.counts[topic] += 1
             if not self.done and (self.t_sim >= self.next_report
