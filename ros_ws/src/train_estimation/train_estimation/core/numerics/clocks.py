@@ -960,7 +960,6 @@ class StepWatch:
         self._sent: dict = {}  # timeline odometer stamp -> stamp as sent (after a step)
         self.grid = SampleGrid(period, min_judged)  # odometer stamps against their seq
         self._dist: tuple | None = None  # (stamp, counted distance, seq) of the newest fused
-        self._drift = 0.0  # the train clock's rate minus 1 as the runner maps it (watch)
 
     # -- stamps ---------------------------------------------------------------------------
     def onto_timeline(self, stamp: float, odometer: bool) -> float:
@@ -1056,7 +1055,6 @@ class StepWatch:
           for a step and passes, to be refused at the door as always), or ``(HOLD,)``, nothing
           more to do (held, or judged among the released)."""
         tol = TOL
-        self._drift = drift
         s0, a0 = self.last
         # Back by more than step_back: possibly a small backward step (a clock resynchronised
         # by a few seconds), held until later readings decide. A reading late by jitter is
@@ -1117,7 +1115,7 @@ class StepWatch:
         # as to lie within the old clock's envelope; it joins them while at least half of
         # them lie above the old ceiling (a step of d puts a reading there when its latency's
         # excess is below d: half or more of them for a step beyond the excess's median)
-        env = self._envelope(chain, bar) if r is None and kind == "odometer" else None
+        env = self._envelope(chain, bar, drift) if r is None and kind == "odometer" else None
         env_join = env is not None and -bar <= lift <= self.back and \
             (not continuous or not self._sampled_before(chain, stamp, seq, r)) and \
             envelope.holds(env[0] + 1, env[1] + (lift > 0.0), med.ceiling_n, TREND_WAIT)
@@ -1179,7 +1177,7 @@ class StepWatch:
         if p_trend <= TREND_WAIT:  # undecided: the next readings tell
             yield (PASS, stamp) if refused else (HOLD,)
             return
-        env = self._envelope(chain, bar) if rs is None else None
+        env = self._envelope(chain, bar, drift) if rs is None else None
         if rs is not None:
             # the grid measures the step exactly (the link's jitter does not enter)
             shift = rs[len(rs) // 2]
@@ -1261,14 +1259,14 @@ class StepWatch:
             yield ADMIT, (k, st - shift if on_new else st, f, rc, ar)
         yield PASS, stamp - shift
 
-    def _envelope(self, chain: list, bar: float) -> tuple[int, int] | None:
+    def _envelope(self, chain: list, bar: float, drift: float) -> tuple[int, int] | None:
         """(k, j): the held odometer readings (``chain``) and how many of them lie above the
         old clock's ceiling, when they are held as a small forward step
         (:func:`~.envelope.candidate`), else None. Only on one clock (the runner's drift 0):
         carried along a rate fit, the ceiling is as wrong as the fit, and the envelope has no
         room for that."""
         med = self.clock
-        if self.same or self._drift or len(med) < self.min_judged or \
+        if self.same or drift or len(med) < self.min_judged or \
                 any(h[3] is None for h in chain):
             return None
         return envelope.candidate([med.lift(h[1] - h[4]) for h in chain], med.ceiling_n,
