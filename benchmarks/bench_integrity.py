@@ -72,6 +72,7 @@ from train_estimation.core.online.estimators import (  # noqa: E402
     RobustConfig,
     StartState,
 )
+from train_estimation.core.online.integrity import IntegrityParams  # noqa: E402
 from train_estimation.tools import faults as F  # noqa: E402
 from train_sim.scenario import load_scenario  # noqa: E402
 from train_sim.world import simulate  # noqa: E402
@@ -146,7 +147,9 @@ def run_task(task: dict) -> dict:
                                       tick_period=cfg.tick_period,
                                       control_clock=cfg.control_clock,
                                       max_future=cfg.max_future, slot_grace=cfg.slot_grace,
-                                      stalled=faulted.stalled)
+                                      stalled=faulted.stalled,
+                                      **({"integrity": task["integrity"]}
+                                         if "integrity" in task else {}))
     except Exception as exc:  # counted and shown: the campaign must see every failure
         row["exceptions"] = 1
         row["error"] = f"{type(exc).__name__}: {exc}"
@@ -624,7 +627,13 @@ def main(argv=None) -> int:
     ap.add_argument("--stanford", default="benchmarks/out/stanford",
                     help="folder for one Stanford diagram per estimator (|error| against the "
                          "protection level, every run pooled): stanford_ESTIMATOR.png")
+    ap.add_argument("--balise-map-prior", type=float, default=None,
+                    help="the estimators' balise_map_prior: the stated prior probability that "
+                         "a balise's surveyed position is wrong (default: the node's, 1 = not "
+                         "stated)")
     args = ap.parse_args(argv)
+    if args.balise_map_prior is not None and not 0.0 <= args.balise_map_prior <= 1.0:
+        ap.error("--balise-map-prior must be in [0, 1]")
     seeds = args.seeds or (1 if args.quick else 2)
     estimators = args.estimators or (QUICK_ESTIMATORS if args.quick else ESTIMATORS)
     scenarios = scenarios_here()
@@ -641,6 +650,8 @@ def main(argv=None) -> int:
     for t in tasks:
         t["config"] = config
         t["no_counter"] = args.no_counter
+        if args.balise_map_prior is not None:
+            t["integrity"] = IntegrityParams(balise_map_prior=args.balise_map_prior)
     # the longest first: the pool finishes together
     tasks.sort(key=lambda t: -t["duration"] * (3 if t["fault"].kind == "fuzz" else 1))
     rows = []
@@ -657,10 +668,13 @@ def main(argv=None) -> int:
     if not args.quick and (args.phases or args.long or args.fuzz_rate):
         mode = (f"reduced full: phases {', '.join(args.phases or ['all'])}, drift and fuzz "
                 f"<= {args.long or 'full'} s, fuzz {args.fuzz_rate or 10.0:g} per clean message")
+    prior = ("" if args.balise_map_prior is None else
+             f", balise_map_prior {args.balise_map_prior:g}")
     print(f"Integrity campaign ({mode}): {len(tasks)} runs, {seeds} seed(s), estimators "
           f"{', '.join(estimators)}"
           f"{' with use_distance: false' if args.no_distance else ''}"
-          f"{', every seq 0 (no sample counter)' if args.no_counter else ''}; "
+          f"{', every seq 0 (no sample counter)' if args.no_counter else ''}"
+          f"{prior}; "
           f"node defaults (NodeConfig: control_clock "
           f"{NodeConfig().control_clock!r}, max_future {NodeConfig().max_future:g} s), "
           f"arrival = stamp + {F.LATENCY:g} s\n")

@@ -25,6 +25,7 @@ from train_estimation.core.online.integrity import (
 )
 from train_estimation.core.online.replay import replay
 from train_estimation.core.online.runner import Output
+from train_estimation.tools import faults as F
 
 sys.path.insert(0, os.path.dirname(__file__))
 from clocks import adapter, run  # noqa: E402
@@ -576,3 +577,27 @@ def test_a_count_that_stops_at_speed_is_no_train_that_stopped():
     assert fed(stop + [(21.0 + k, 200.0, 0.0) for k in range(5)]) == ""
     walk = [(float(t), 0.4 * t + 0.3 * (-1) ** t, 0.4) for t in range(12)]
     assert fed(walk) == ""
+
+
+@pytest.mark.parametrize("size", [-10.0, 30.0])
+def test_a_stated_balise_map_prior_tightens_the_levels_and_still_covers_a_misplaced_one(size):
+    """balise_map_prior 1e-5 (protection.py, rare faults): the solutions without each recent
+    balise are covered at their own multiplier (2.8-3.1 against 5.33) and the others at 5.45
+    (the exact risk of each level: test_protection.py), so where a map solution binds the level
+    falls, and the median by over a fifth; a balise placed
+    ``size`` m from its map position (read in the cruise, metro_demo seed 0, the campaign's
+    fault) still lies inside them: no estimate beyond its level. A prior of 1 is none: the
+    levels of the node defaults to the bit."""
+    sc, res = run("metro_demo", 0, 240.0)
+    fl = F.inject(res.events(), F.Fault("balise", size, 46.8), np.random.default_rng(0))
+    levels = {}
+    for prior in (None, 1.0, 1e-5):
+        kw = {} if prior is None else {"integrity": IntegrityParams(balise_map_prior=prior)}
+        outs, emitted, _ = F.run(fl.events, adapter(sc, "kf"), 0.1, **kw)
+        s = F.score(outs, emitted, fl, res.truth, 10.0, 240.0 + F.LATENCY)
+        assert s["misleading"] == 0 and s["wrong_side"] == 0, (prior, s)
+        levels[prior] = np.array([(o.protection_level_ahead, o.protection_level_behind)
+                                  for o in outs])
+    assert np.array_equal(levels[None], levels[1.0])
+    bounded = np.isfinite(levels[None])
+    assert np.median(levels[1e-5][bounded]) < 0.8 * np.median(levels[None][bounded])

@@ -483,8 +483,9 @@ class DistanceAsPosition:
         """The calibration's doubt at ``t`` as an Output's ``consider`` (its (position, speed)
         covariance, row-major 2x2: module doc of ``odometer_scale``; without the distance, the
         class doc's) and ``separation`` (the same as solutions: ``(variance, ((shift,
-        variance), ...))``, :meth:`OdometerCalibration.doubt`); both empty before the first
-        odometer reading."""
+        variance, map), ...))``, :meth:`OdometerCalibration.doubt`, with ``map`` true for a
+        solution that leaves out one balise: a map fault's, whose prior a line may state);
+        both empty before the first odometer reading."""
         if self.odo is None:
             return {"consider": (), "separation": ()}
         d = self._count_at(max(t, self.odo[0]))
@@ -493,7 +494,9 @@ class DistanceAsPosition:
             C, (var, alts) = self.cal.doubt(d, self.odo[2])
             for m, v in alt:
                 C[0, 0] = max(C[0, 0], m * m + v)
-            return {"consider": tuple(C.ravel()), "separation": (var, alts + alt)}
+            # the doubt lists the solutions without each recent balise first, then the start's
+            return {"consider": tuple(C.ravel()),
+                    "separation": (var, _tagged(alts + alt, len(self.cal.alternatives)))}
         J = np.array([self._uncounted(t), [0.0, self.odo[2], 0.0]])
         C = J @ self.cal.Sigma @ J.T
         var = float(C[0, 0])
@@ -502,8 +505,7 @@ class DistanceAsPosition:
         # move away, as sure as it was before it (one may lie: a survey error)
         C[0, 0] += max((m * m + v for m, v in self.separation + alt), default=0.0)
         return {"consider": tuple(C.ravel()),
-                "separation": (var, tuple((float(m), float(v))
-                                          for m, v in self.separation + alt))}
+                "separation": (var, _tagged(self.separation + alt, len(self.separation)))}
 
     def _alternative(self, d: float) -> tuple:
         """``((shift m, variance m^2),)`` of the alternative calibration at the count ``d``
@@ -586,3 +588,9 @@ class DistanceAsPosition:
         self.cal = cal.copy()
         self.cal_wide = wide.copy() if wide is not None else None
         self.cal_alt = alt.copy() if alt is not None else None
+
+
+def _tagged(solutions: tuple, n_map: int) -> tuple:
+    """``((shift, variance), ...)`` as ``((shift, variance, map), ...)``: the first ``n_map``
+    leave out one balise each (a map fault's solutions), the rest do not."""
+    return tuple((float(m), float(v), i < n_map) for i, (m, v) in enumerate(solutions))

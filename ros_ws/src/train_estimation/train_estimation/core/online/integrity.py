@@ -178,6 +178,11 @@ class IntegrityParams:
     integrity_risk: float = param(1e-7, "-", "probability per estimate that the true position "
                                   "lies outside [position - protection_level_behind, position + "
                                   "protection_level_ahead] without an ALARM (protection.py)")
+    balise_map_prior: float = param(1.0, "-", "prior probability that a balise's surveyed "
+                                    "position is wrong by more than its stated accuracy (per "
+                                    "balise: a survey or map error): the solutions without each "
+                                    "recent balise get the risk it allots (protection.py, rare "
+                                    "faults); 1 = not stated, each covered as if certain")
     alert_limit: float = param(math.nan, "m", "largest protection level the operation can "
                                "use: within it the estimate is OK, beyond it DEGRADED (still "
                                "bounded); NaN = the line's (line.yaml alert_limit), 10 m where "
@@ -195,6 +200,8 @@ class IntegrityParams:
         require(self.pos_window >= 2, "pos_window", self.pos_window, "must be >= 2")
         require(0.0 < self.integrity_risk < 0.5, "integrity_risk", self.integrity_risk,
                 "must be in (0, 0.5)")
+        require(0.0 <= self.balise_map_prior <= 1.0, "balise_map_prior", self.balise_map_prior,
+                "must be in [0, 1]")
         require(math.isnan(self.alert_limit) or (math.isfinite(self.alert_limit)
                                                   and self.alert_limit > 0), "alert_limit",
                 self.alert_limit, "must be > 0 (or NaN: the line's)")
@@ -759,8 +766,10 @@ class IntegrityMonitor:
             # recent balise (one may lie elsewhere than its map position) as a hypothesis
             if out.separation:
                 cal, alts = out.separation
-                hyps = hyps + tuple(Hypothesis("balise_map", m, max(0.0, v - cal))
-                                    for m, v in alts)
+                prior = self.p.balise_map_prior
+                hyps = hyps + tuple(Hypothesis("balise_map" if is_map else "calibration", m,
+                                               max(0.0, v - cal), prior if is_map else 1.0)
+                                    for m, v, is_map in alts)
                 var += cal
             elif out.consider:
                 var += float(out.consider[0])

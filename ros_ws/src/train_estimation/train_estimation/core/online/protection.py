@@ -29,17 +29,35 @@ same multiplier, the two-sided normal quantile of the risk::
 One fault at a time is true (or none), and which one is not known: whichever ``H_j`` it is, the
 train lies outside ``[x_j - K s_j, x_j + K s_j]`` with probability ``2 Q(K) = P_HMI``, and the
 interval holds that one, so the error leaves it with at most ``P_HMI`` whichever hypothesis
-is true; averaged over any prior on the hypotheses it is still at most ``P_HMI``. (ARAIM
-splits the risk over the hypotheses in proportion to their prior probabilities, ``sum_j p_j 2
-Q(K_j) <= P_HMI``, which is tighter where the priors are known and small; with no prior stated
-the worst case over priors is the bound above. Splitting it evenly over the ``n`` solutions, as
-if each were certain at once, would count ``n`` probabilities of one and widen every level by
-``Phi^-1(1 - P_HMI / 2n) / K``, 5 % with five solutions, for nothing.) Simultaneous faults are
-not a hypothesis: no solution is carried for them. While two live hypotheses disagree, the
-interval covers both: a 0.1 s clock step at 20 m/s costs 2 m of protection level, not
-availability, and a doubt whose separation still fits the alert limit leaves the estimate OK.
-Which hypotheses are live is the integrity monitor's business (``integrity.py``: each check's
-doubt is one of them, dropped when its test clears it).
+is true; averaged over any prior on the hypotheses it is still at most ``P_HMI``. (Splitting it
+evenly over the ``n`` solutions, as if each were certain at once, would count ``n``
+probabilities of one and widen every level by ``Phi^-1(1 - P_HMI / 2n) / K``, 5 % with five
+solutions, for nothing.)
+
+**Rare faults with a stated prior** (the risk allocation of ARAIM, Blanch, Walter, Enge et al.
+2015, in one dimension). A hypothesis that the data raised (a clock step the held readings
+imply, a balise and the odometer that disagree) has no prior: it is live because the data point
+at it. A fault that is there before any data, such as a balise whose surveyed position is wrong,
+has one when its source states it (``Hypothesis.prior``, per hypothesis; 1 = not stated). With
+the rare ones ``R`` (prior ``p_j < 1``, at most one of them true, each exclusive of the others)
+the risk on each side, ``P_HMI / 2``, is split: the share ``RARE_SHARE`` goes to ``R`` in
+equal parts ``a = RARE_SHARE P_HMI / (2 |R|)``, the rest to the others::
+
+    K_N = Phi^-1(1 - (1 - RARE_SHARE) P_HMI / 2)            every hypothesis without a prior
+    K_j = Phi^-1(1 - a / p_j)                               a rare one, if p_j > a
+    P(miss on a side) <= 1 x Q(K_N) + sum_j p_j Q(K_j) <= P_HMI / 2
+
+A rare fault whose prior is within its share (``p_j <= a``) needs no solution at all: even
+certain to miss while it holds, it adds at most ``a`` (ARAIM leaves such faults unmonitored).
+The split is fixed, not chosen per estimate (a minimum over allocations chosen after seeing
+the solutions would not be a bound at the stated risk); with no rare hypothesis live, or none
+stated, ``K_N = K`` and the levels are the ones above.
+
+Simultaneous faults are not a hypothesis: no solution is carried for them. While two live
+hypotheses disagree, the interval covers both: a 0.1 s clock step at 20 m/s costs 2 m of
+protection level, not availability, and a doubt whose separation still fits the alert limit
+leaves the estimate OK. Which hypotheses are live is the integrity monitor's business
+(``integrity.py``: each check's doubt is one of them, dropped when its test clears it).
 """
 
 from __future__ import annotations
@@ -59,6 +77,14 @@ class Hypothesis:
     name: str  # the check that raised it (``clock``, ``balise``, ``position``, ``origin``)
     shift: float  # m, where it puts the train relative to the estimate (+ ahead)
     extra: float = 0.0  # m^2, its position variance beyond the estimate's
+    prior: float = 1.0  # -, its stated prior probability, a rare fault's (module doc); 1 = none
+    #   stated (a hypothesis the data raised, or a fault whose source states no rate)
+
+
+RARE_SHARE = 0.5  # -, the share of the integrity risk allotted to the rare faults whose priors
+#   are stated (module doc): half, since a rare fault's solution lies further from the
+#   estimate than the fault-free one (it leaves a balise out) and gains most from a smaller
+#   multiplier, while the others' multiplier grows from 5.33 to 5.45 at 1e-7
 
 
 def k_factor(risk: float) -> float:
@@ -85,12 +111,22 @@ def protection_levels(variance: float, hypotheses=(), risk: float = 1e-7
     if not (math.isfinite(variance) and variance > 0.0):
         return math.inf, math.inf
     live = [Hypothesis("fault-free", 0.0, 0.0)] + list(hypotheses)
-    k = k_factor(risk)
+    for h in live:
+        if not (math.isfinite(h.shift) and math.isfinite(h.extra) and h.extra >= 0.0
+                and 0.0 <= h.prior <= 1.0):
+            return math.inf, math.inf
+    n_rare = sum(h.prior < 1.0 for h in live)
+    k = k_factor(risk) if not n_rare else k_factor((1.0 - RARE_SHARE) * risk)
+    share = RARE_SHARE * risk / (2.0 * n_rare) if n_rare else 0.0  # one side's, each
     ahead = behind = 0.0
     for h in live:
-        if not (math.isfinite(h.shift) and math.isfinite(h.extra) and h.extra >= 0.0):
-            return math.inf, math.inf
-        half = k * math.sqrt(variance + h.extra)
+        if h.prior < 1.0:
+            if h.prior <= share:
+                continue  # unmonitored: within its share even if it always missed
+            kj = _k(2.0 * share / h.prior)  # one side's tail share / p_j
+        else:
+            kj = k
+        half = kj * math.sqrt(variance + h.extra)
         ahead, behind = max(ahead, h.shift + half), max(behind, -h.shift + half)
     return ahead, behind
 
