@@ -491,7 +491,7 @@ def print_table(groups: list[dict]) -> None:
     print("| scenario | fault | at | estimator | misleading | hazardous | median PL m | "
           "wrong-side | off-run | max err/sigma | "
           "time to alarm s | availability (PL <= AL) % | longest silence s | max err m | "
-          "RMS err m | err to end+10 s m | non-PD cov | exceptions |")
+          "RMS err m | max err, onset to the fault's end + 10 s, m | non-PD cov | exceptions |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for g in groups:
         at = "-" if g["kind"] in ("none", "drift", "fuzz", "latency", "queue", "first_count",
@@ -631,9 +631,15 @@ def main(argv=None) -> int:
                     help="the estimators' balise_map_prior: the stated prior probability that "
                          "a balise's surveyed position is wrong (default: the node's, 1 = not "
                          "stated)")
+    ap.add_argument("--start-fault-prior", type=float, default=None,
+                    help="the estimators' start_fault_prior: the stated prior probability "
+                         "that the start is wrong (default: the node's, 1 = not stated)")
     args = ap.parse_args(argv)
-    if args.balise_map_prior is not None and not 0.0 <= args.balise_map_prior <= 1.0:
-        ap.error("--balise-map-prior must be in [0, 1]")
+    priors = {k: v for k, v in (("balise_map_prior", args.balise_map_prior),
+                                ("start_fault_prior", args.start_fault_prior)) if v is not None}
+    for k, v in priors.items():
+        if not 0.0 <= v <= 1.0:
+            ap.error(f"--{k.replace('_', '-')} must be in [0, 1]")
     seeds = args.seeds or (1 if args.quick else 2)
     estimators = args.estimators or (QUICK_ESTIMATORS if args.quick else ESTIMATORS)
     scenarios = scenarios_here()
@@ -650,8 +656,8 @@ def main(argv=None) -> int:
     for t in tasks:
         t["config"] = config
         t["no_counter"] = args.no_counter
-        if args.balise_map_prior is not None:
-            t["integrity"] = IntegrityParams(balise_map_prior=args.balise_map_prior)
+        if priors:
+            t["integrity"] = IntegrityParams(**priors)
     # the longest first: the pool finishes together
     tasks.sort(key=lambda t: -t["duration"] * (3 if t["fault"].kind == "fuzz" else 1))
     rows = []
@@ -668,8 +674,7 @@ def main(argv=None) -> int:
     if not args.quick and (args.phases or args.long or args.fuzz_rate):
         mode = (f"reduced full: phases {', '.join(args.phases or ['all'])}, drift and fuzz "
                 f"<= {args.long or 'full'} s, fuzz {args.fuzz_rate or 10.0:g} per clean message")
-    prior = ("" if args.balise_map_prior is None else
-             f", balise_map_prior {args.balise_map_prior:g}")
+    prior = "".join(f", {k} {v:g}" for k, v in priors.items())
     print(f"Integrity campaign ({mode}): {len(tasks)} runs, {seeds} seed(s), estimators "
           f"{', '.join(estimators)}"
           f"{' with use_distance: false' if args.no_distance else ''}"

@@ -601,3 +601,21 @@ def test_a_stated_balise_map_prior_tightens_the_levels_and_still_covers_a_mispla
     assert np.array_equal(levels[None], levels[1.0])
     bounded = np.isfinite(levels[None])
     assert np.median(levels[1e-5][bounded]) < 0.8 * np.median(levels[None][bounded])
+
+
+@pytest.mark.parametrize("offset", [-50.0, 20.0])
+def test_a_stated_start_prior_still_covers_a_start_that_is_off(offset):
+    """start_fault_prior and balise_map_prior 1e-5: the solution without the start is covered
+    at its share of the risk (protection.py, rare faults); a start ``offset`` m off the train
+    (the campaign's start_offset, metro_demo seed 0) still lies inside every level."""
+    sc, res = run("metro_demo", 0, 240.0)
+    fault = F.Fault("start_offset", offset, 0.0)
+    fl = F.inject(res.events(), fault, np.random.default_rng(0))
+    from train_estimation.core.online.estimators import BrakingAdapter, BrakingConfig, StartState
+
+    a0 = BrakingAdapter(sc.train, sc.line, StartState(F.start_position(fault, sc.start_position)),
+                        BrakingConfig(algorithm="kf"))
+    priors = IntegrityParams(balise_map_prior=1e-5, start_fault_prior=1e-5)
+    outs, emitted, _ = F.run(fl.events, a0, 0.1, integrity=priors)
+    s = F.score(outs, emitted, fl, res.truth, 10.0, 240.0 + F.LATENCY)
+    assert s["misleading"] == 0 and s["wrong_side"] == 0, s

@@ -483,9 +483,11 @@ class DistanceAsPosition:
         """The calibration's doubt at ``t`` as an Output's ``consider`` (its (position, speed)
         covariance, row-major 2x2: module doc of ``odometer_scale``; without the distance, the
         class doc's) and ``separation`` (the same as solutions: ``(variance, ((shift,
-        variance, map), ...))``, :meth:`OdometerCalibration.doubt`, with ``map`` true for a
-        solution that leaves out one balise: a map fault's, whose prior a line may state);
-        both empty before the first odometer reading."""
+        variance, kind), ...))``, :meth:`OdometerCalibration.doubt`, with ``kind`` "map" for
+        a solution that leaves out one balise (a map fault's), "start" for the start's (the
+        start wrong) and "reader" for the other calibration (a late balise reader): the rare
+        faults whose priors may be stated, protection.py); both empty before the first
+        odometer reading."""
         if self.odo is None:
             return {"consider": (), "separation": ()}
         d = self._count_at(max(t, self.odo[0]))
@@ -495,17 +497,18 @@ class DistanceAsPosition:
             for m, v in alt:
                 C[0, 0] = max(C[0, 0], m * m + v)
             # the doubt lists the solutions without each recent balise first, then the start's
+            n = len(self.cal.alternatives)
             return {"consider": tuple(C.ravel()),
-                    "separation": (var, _tagged(alts + alt, len(self.cal.alternatives)))}
+                    "separation": (var, _tagged(map=alts[:n], start=alts[n:], reader=alt))}
         J = np.array([self._uncounted(t), [0.0, self.odo[2], 0.0]])
         C = J @ self.cal.Sigma @ J.T
         var = float(C[0, 0])
-        alt = alt + self.cal.start_doubt(d)  # the start wrong (odometer_scale module doc)
+        start = self.cal.start_doubt(d)  # the start wrong (odometer_scale module doc)
         # solution separation: the filter without each of its last balises lies that balise's
         # move away, as sure as it was before it (one may lie: a survey error)
-        C[0, 0] += max((m * m + v for m, v in self.separation + alt), default=0.0)
+        C[0, 0] += max((m * m + v for m, v in self.separation + alt + start), default=0.0)
         return {"consider": tuple(C.ravel()),
-                "separation": (var, _tagged(self.separation + alt, len(self.separation)))}
+                "separation": (var, _tagged(map=self.separation, start=start, reader=alt))}
 
     def _alternative(self, d: float) -> tuple:
         """``((shift m, variance m^2),)`` of the alternative calibration at the count ``d``
@@ -590,7 +593,7 @@ class DistanceAsPosition:
         self.cal_alt = alt.copy() if alt is not None else None
 
 
-def _tagged(solutions: tuple, n_map: int) -> tuple:
-    """``((shift, variance), ...)`` as ``((shift, variance, map), ...)``: the first ``n_map``
-    leave out one balise each (a map fault's solutions), the rest do not."""
-    return tuple((float(m), float(v), i < n_map) for i, (m, v) in enumerate(solutions))
+def _tagged(**groups) -> tuple:
+    """``((shift, variance, kind), ...)`` of the solutions ``((shift, variance), ...)`` of each
+    kind (:meth:`CalibratedOdometry._calibration`)."""
+    return tuple((float(m), float(v), kind) for kind, sols in groups.items() for m, v in sols)

@@ -183,6 +183,12 @@ class IntegrityParams:
                                     "balise: a survey or map error): the solutions without each "
                                     "recent balise get the risk it allots (protection.py, rare "
                                     "faults); 1 = not stated, each covered as if certain")
+    start_fault_prior: float = param(1.0, "-", "prior probability that the start "
+                                     "(initial_position) is wrong by more than its stated "
+                                     "standard deviation (per run: a position keyed in or "
+                                     "carried over wrong): the solution without the start gets "
+                                     "the risk it allots (protection.py, rare faults); 1 = not "
+                                     "stated")
     alert_limit: float = param(math.nan, "m", "largest protection level the operation can "
                                "use: within it the estimate is OK, beyond it DEGRADED (still "
                                "bounded); NaN = the line's (line.yaml alert_limit), 10 m where "
@@ -200,12 +206,16 @@ class IntegrityParams:
         require(self.pos_window >= 2, "pos_window", self.pos_window, "must be >= 2")
         require(0.0 < self.integrity_risk < 0.5, "integrity_risk", self.integrity_risk,
                 "must be in (0, 0.5)")
-        require(0.0 <= self.balise_map_prior <= 1.0, "balise_map_prior", self.balise_map_prior,
-                "must be in [0, 1]")
+        for name in ("balise_map_prior", "start_fault_prior"):
+            require(0.0 <= getattr(self, name) <= 1.0, name, getattr(self, name),
+                    "must be in [0, 1]")
         require(math.isnan(self.alert_limit) or (math.isfinite(self.alert_limit)
                                                   and self.alert_limit > 0), "alert_limit",
                 self.alert_limit, "must be > 0 (or NaN: the line's)")
 
+
+# the odometer calibration's solutions (Output.separation) by kind, as hypotheses
+_CAL_NAMES = {"map": "balise_map", "start": "start", "reader": "late_reader"}
 
 DEFAULT_ALERT_LIMIT = 10.0  # m, where neither the parameter nor the line states one
 
@@ -766,10 +776,10 @@ class IntegrityMonitor:
             # recent balise (one may lie elsewhere than its map position) as a hypothesis
             if out.separation:
                 cal, alts = out.separation
-                prior = self.p.balise_map_prior
-                hyps = hyps + tuple(Hypothesis("balise_map" if is_map else "calibration", m,
-                                               max(0.0, v - cal), prior if is_map else 1.0)
-                                    for m, v, is_map in alts)
+                prior = {"map": self.p.balise_map_prior, "start": self.p.start_fault_prior}
+                hyps = hyps + tuple(Hypothesis(_CAL_NAMES[kind], m, max(0.0, v - cal),
+                                               prior.get(kind, 1.0))
+                                    for m, v, kind in alts)
                 var += cal
             elif out.consider:
                 var += float(out.consider[0])

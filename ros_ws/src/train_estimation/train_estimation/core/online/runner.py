@@ -121,8 +121,8 @@ class Output:
     #   (bounded, but wider), 2 ALARM (no bound)
     integrity_reason: str = ""  # the integrity monitor's doubts (empty when it has none)
     separation: tuple = ()  # the consider term as solutions: (fault-free position variance
-    #   m^2, ((shift m, variance m^2, map), ...) of the solution without each recent balise
-    #   (map true) and the start's or the reader's alternatives (false)), or ()
+    #   m^2, ((shift m, variance m^2, kind), ...): kind "map" the solution without each recent
+    #   balise, "start" the start's, "reader" the late reader's), or ()
     protection_level_ahead: float = math.inf  # m: the true position is at most position + this
     #   except with the integrity risk (protection.py); inf: no bound (ALARM, or not assessed)
     protection_level_behind: float = math.inf  # m: at least position - this, likewise
