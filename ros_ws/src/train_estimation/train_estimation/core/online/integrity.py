@@ -182,13 +182,14 @@ class IntegrityParams:
                                     "position is wrong by more than its stated accuracy (per "
                                     "balise: a survey or map error): the solutions without each "
                                     "recent balise get the risk it allots (protection.py, rare "
-                                    "faults); 1 = not stated, each covered as if certain")
+                                    "faults); 1 = not stated, each covered as if certain",
+                                    lo=0.0, hi=1.0)
     start_fault_prior: float = param(1.0, "-", "prior probability that the start "
                                      "(initial_position) is wrong by more than its stated "
                                      "standard deviation (per run: a position keyed in or "
                                      "carried over wrong): the solution without the start gets "
                                      "the risk it allots (protection.py, rare faults); 1 = not "
-                                     "stated")
+                                     "stated", lo=0.0, hi=1.0)
     alert_limit: float = param(math.nan, "m", "largest protection level the operation can "
                                "use: within it the estimate is OK, beyond it DEGRADED (still "
                                "bounded); NaN = the line's (line.yaml alert_limit), 10 m where "
