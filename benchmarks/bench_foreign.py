@@ -84,6 +84,8 @@ from bench_diagnose import pct  # noqa: E402
 from bench_integrity import ESTIMATORS, make_adapter  # noqa: E402
 from train_core.progress import Progress  # noqa: E402
 
+from train_estimation.core.online.integrity import IntegrityParams  # noqa: E402
+
 KINDS = ("none", "gradient", "resistance", "braking_rate", "mass", "odometer_scale",
          "brake_delay", "clock_drift", "adhesion_section", "power_limit", "traction_delay")
 # effects no listed cause describes (``--unlisted``), each with the phase diagnose's
@@ -366,7 +368,7 @@ def run_estimators(spec: dict) -> list[dict]:
     on the fault campaign's clocks and latency (``tools.faults``, no fault), replayed through the
     runner the nodes use with the node defaults and scored as the integrity campaign scores.
     ``spec["config"]``: estimator parameters other than the defaults (``--no-distance``:
-    ``use_distance: false``). With ``spec["recorded"]`` (``--as-recorded``) the messages as
+    ``use_distance: false``); ``spec["priors"]``: the integrity monitor's stated priors. With ``spec["recorded"]`` (``--as-recorded``) the messages as
     the ground logged them instead: the train's own clock (its epoch, drift and step), the
     link's own latency and losses (:func:`recorded_stream`)."""
     from train_core.model import load_line, load_train
@@ -414,7 +416,8 @@ def run_estimators(spec: dict) -> list[dict]:
             outs, emitted, _ = F.run(fl.events, ad, 1 / rate, delay=cfg.output_delay,
                                      tick_period=cfg.tick_period,
                                      control_clock=cfg.control_clock,
-                                     max_future=cfg.max_future, slot_grace=cfg.slot_grace)
+                                     max_future=cfg.max_future, slot_grace=cfg.slot_grace,
+                                     integrity=IntegrityParams(**spec.get("priors", {})))
         except Exception as exc:  # counted and shown
             row["exception"] = f"{type(exc).__name__}: {exc}"
             rows.append(row)
@@ -607,7 +610,19 @@ def main(argv=None) -> int:
                    help="set a field of every drawn effect (foreign_sim.Effect), e.g. "
                         "balise_late=1.0 with --kinds balise_late: a size the draw does not "
                         "reach")
+    p.add_argument("--balise-map-prior", type=float, default=None,
+                   help="with --estimators: their balise_map_prior, the stated prior that a "
+                        "balise's surveyed position is wrong (default: the node's, 1 = none)")
+    p.add_argument("--start-fault-prior", type=float, default=None,
+                   help="with --estimators: their start_fault_prior (default: the node's, 1 = "
+                        "none)")
     args = p.parse_args(argv)
+    priors = {k: v for k, v in (("balise_map_prior", args.balise_map_prior),
+                                ("start_fault_prior", args.start_fault_prior)) if v is not None}
+    if priors and not args.estimators:
+        p.error("--balise-map-prior and --start-fault-prior go with --estimators")
+    if any(not 0.0 <= v <= 1.0 for v in priors.values()):
+        p.error("a prior must be in [0, 1]")
     try:
         fields = {f.name for f in dataclasses.fields(FS.Effect)}
         override = {k: float(v) for k, v in (a.split("=", 1) for a in args.set)}
@@ -630,6 +645,7 @@ def main(argv=None) -> int:
               **({"family": args.family} if args.family else {}),
               **({"recorded": True} if args.as_recorded else {}),
               **({"config": {"use_distance": False}} if args.no_distance else {}),
+              **({"priors": priors} if priors else {}),
               **({"effect": override} if override else {}),
               **({"size": "subtle"} if args.subtle else {}),
               **({"keep": os.path.abspath(args.keep)} if args.keep else {})}
