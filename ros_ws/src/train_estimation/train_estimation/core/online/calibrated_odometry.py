@@ -595,5 +595,5 @@ class DistanceAsPosition:
 
 def _tagged(**groups) -> tuple:
     """``((shift, variance, kind), ...)`` of the solutions ``((shift, variance), ...)`` of each
-    kind (:meth:`CalibratedOdometry._calibration`)."""
+    kind (:meth:`DistanceAsPosition._calibration`)."""
     return tuple((float(m), float(v), kind) for kind, sols in groups.items() for m, v in sols)

@@ -51,7 +51,9 @@ A rare fault whose prior is within its share (``p_j <= a``) needs no solution at
 certain to miss while it holds, it adds at most ``a`` (ARAIM leaves such faults unmonitored).
 The split is fixed, not chosen per estimate (a minimum over allocations chosen after seeing
 the solutions would not be a bound at the stated risk); with no rare hypothesis live, or none
-stated, ``K_N = K`` and the levels are the ones above.
+stated, ``K_N = K`` and the levels are the ones above. Two rare faults at once are not a
+hypothesis: with their priors stated, that is about ``p_i p_j`` (1e-10 at 1e-5 each), well inside
+the risk.
 
 Simultaneous faults are not a hypothesis: no solution is carried for them. While two live
 hypotheses disagree, the interval covers both: a 0.1 s clock step at 20 m/s costs 2 m of
