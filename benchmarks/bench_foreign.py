@@ -81,7 +81,7 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, HERE)
 import foreign_sim as FS  # noqa: E402
 from bench_diagnose import pct  # noqa: E402
-from bench_integrity import ESTIMATORS, make_adapter  # noqa: E402
+from bench_integrity import ESTIMATORS, add_prior_args, make_adapter, stated_priors  # noqa: E402
 from train_core.progress import Progress  # noqa: E402
 
 from train_estimation.core.online.integrity import IntegrityParams  # noqa: E402
@@ -368,7 +368,8 @@ def run_estimators(spec: dict) -> list[dict]:
     on the fault campaign's clocks and latency (``tools.faults``, no fault), replayed through the
     runner the nodes use with the node defaults and scored as the integrity campaign scores.
     ``spec["config"]``: estimator parameters other than the defaults (``--no-distance``:
-    ``use_distance: false``); ``spec["priors"]``: the integrity monitor's stated priors. With ``spec["recorded"]`` (``--as-recorded``) the messages as
+    ``use_distance: false``); ``spec["priors"]``: the integrity monitor's stated priors.
+    With ``spec["recorded"]`` (``--as-recorded``) the messages as
     the ground logged them instead: the train's own clock (its epoch, drift and step), the
     link's own latency and losses (:func:`recorded_stream`)."""
     from train_core.model import load_line, load_train
@@ -610,19 +611,11 @@ def main(argv=None) -> int:
                    help="set a field of every drawn effect (foreign_sim.Effect), e.g. "
                         "balise_late=1.0 with --kinds balise_late: a size the draw does not "
                         "reach")
-    p.add_argument("--balise-map-prior", type=float, default=None,
-                   help="with --estimators: their balise_map_prior, the stated prior that a "
-                        "balise's surveyed position is wrong (default: the node's, 1 = none)")
-    p.add_argument("--start-fault-prior", type=float, default=None,
-                   help="with --estimators: their start_fault_prior (default: the node's, 1 = "
-                        "none)")
+    add_prior_args(p)  # with --estimators
     args = p.parse_args(argv)
-    priors = {k: v for k, v in (("balise_map_prior", args.balise_map_prior),
-                                ("start_fault_prior", args.start_fault_prior)) if v is not None}
+    priors = stated_priors(p, args)
     if priors and not args.estimators:
         p.error("--balise-map-prior and --start-fault-prior go with --estimators")
-    if any(not 0.0 <= v <= 1.0 for v in priors.values()):
-        p.error("a prior must be in [0, 1]")
     try:
         fields = {f.name for f in dataclasses.fields(FS.Effect)}
         override = {k: float(v) for k, v in (a.split("=", 1) for a in args.set)}

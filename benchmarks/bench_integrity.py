@@ -599,6 +599,30 @@ def targets(groups: list[dict], zone: list[dict]) -> bool:
     return ok
 
 
+PRIORS = ("balise_map_prior", "start_fault_prior")  # IntegrityParams' stated priors
+
+
+def add_prior_args(ap) -> None:
+    """``--balise-map-prior`` and ``--start-fault-prior``: the estimators' stated priors of a
+    map fault and a start fault (IntegrityParams; protection.py, rare faults)."""
+    ap.add_argument("--balise-map-prior", type=float, default=None,
+                    help="the estimators' balise_map_prior: the stated prior probability that "
+                         "a balise's surveyed position is wrong (default: the node's, 1 = not "
+                         "stated)")
+    ap.add_argument("--start-fault-prior", type=float, default=None,
+                    help="the estimators' start_fault_prior: the stated prior probability "
+                         "that the start is wrong (default: the node's, 1 = not stated)")
+
+
+def stated_priors(ap, args) -> dict:
+    """{IntegrityParams field: value} of the priors given on the command line."""
+    priors = {k: getattr(args, k) for k in PRIORS if getattr(args, k) is not None}
+    for k, v in priors.items():
+        if not 0.0 <= v <= 1.0:
+            ap.error(f"--{k.replace('_', '-')} must be in [0, 1]")
+    return priors
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true",
@@ -627,19 +651,9 @@ def main(argv=None) -> int:
     ap.add_argument("--stanford", default="benchmarks/out/stanford",
                     help="folder for one Stanford diagram per estimator (|error| against the "
                          "protection level, every run pooled): stanford_ESTIMATOR.png")
-    ap.add_argument("--balise-map-prior", type=float, default=None,
-                    help="the estimators' balise_map_prior: the stated prior probability that "
-                         "a balise's surveyed position is wrong (default: the node's, 1 = not "
-                         "stated)")
-    ap.add_argument("--start-fault-prior", type=float, default=None,
-                    help="the estimators' start_fault_prior: the stated prior probability "
-                         "that the start is wrong (default: the node's, 1 = not stated)")
+    add_prior_args(ap)
     args = ap.parse_args(argv)
-    priors = {k: v for k, v in (("balise_map_prior", args.balise_map_prior),
-                                ("start_fault_prior", args.start_fault_prior)) if v is not None}
-    for k, v in priors.items():
-        if not 0.0 <= v <= 1.0:
-            ap.error(f"--{k.replace('_', '-')} must be in [0, 1]")
+    priors = stated_priors(ap, args)
     seeds = args.seeds or (1 if args.quick else 2)
     estimators = args.estimators or (QUICK_ESTIMATORS if args.quick else ESTIMATORS)
     scenarios = scenarios_here()
