@@ -68,13 +68,15 @@ def cruise(duration: float, rate: float, loss: float, counter: bool,
 
 def run_link(duration: float, rate: float, counter: bool, jitter: float, loss: float,
              step: float | None, seed: int, queue: float | None = None,
-             route: float | None = None, shape: str = "exp") -> dict:
+             route: float | None = None, shape: str = "exp", drift: float = 0.0) -> dict:
     """One replay (module doc); the figures of one row. ``queue``: the drain factor of a link
     that queues (the campaign's fault ``queue``, from 15 s on; no step then); ``route``: s by
     which the link's latency rises at :data:`STEP_AT` and stays (the fault ``route``; no
     step then); ``shape``: the jitter's law, ``exp`` (the campaign's, exponential of mean
     ``jitter``) or ``gamma`` (Gamma of shape 4 and the same mean: a latency that seldom comes
-    near its floor, so that the offsets' envelope is blunt)."""
+    near its floor, so that the offsets' envelope is blunt); ``drift``: s/s, the train clock runs
+    at ``1 + drift`` against the commands' and the arrivals' clock (the fault ``drift``; no step
+    then)."""
     rng = np.random.default_rng(seed)
     events = cruise(duration, rate, loss, counter, rng)
     if shape not in ("exp", "gamma"):
@@ -86,6 +88,8 @@ def run_link(duration: float, rate: float, counter: bool, jitter: float, loss: f
         fault = F.Fault("queue", queue, 0.5 * F.QUEUE_EVERY, jitter=link)
     if route is not None:
         fault = F.Fault("route", route, STEP_AT, jitter=link)
+    if drift:
+        fault = F.Fault("drift", drift, 0.0, jitter=link)
     faulted = F.inject(events, fault, rng)
     if shape == "gamma":
         ev = [(tp, st, f, ar + (rng.gamma(4.0, jitter / 4.0) if tp in F.TRAIN_TOPICS else 0.0))
@@ -119,7 +123,8 @@ def run_link(duration: float, rate: float, counter: bool, jitter: float, loss: f
     row["bias_ms"] = 1e3 * (train.value + FLOOR) if train is not None else math.nan
     # one clock (the commands' and the readings' share the epoch and the rate): judged so?
     row["separate"] = runner.separate_clocks
-    row["drift_ppm"] = 1e6 * train.rate()[0] if train is not None else math.nan
+    row["drift_ppm"], row["drift_se_ppm"] = (1e6 * v for v in train.rate()) \
+        if train is not None else (math.nan, math.nan)
     # the filter time of each reading fused against its true sampling time, relative to the
     # first (the filter's time origin is its own); with a step, from the last one before it
     f = np.array(rec.fused, float).reshape(-1, 2)

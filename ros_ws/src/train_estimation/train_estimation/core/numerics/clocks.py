@@ -23,11 +23,12 @@ short to measure a tail, so the bar is ``LATE``.
 from __future__ import annotations
 
 import bisect
+import functools
 import math
 from collections import deque
 
 import numpy as np
-from scipy.special import chdtrc
+from scipy.special import chdtrc, ndtr, stdtrit
 
 from . import envelope
 
@@ -51,7 +52,6 @@ def _median_sorted(a: list) -> float:
     n = len(a)
     h = n // 2
     return a[h] if n % 2 else (a[h - 1] + a[h]) / 2.0
-
 
 
 TREND_WAIT = 0.05  # -, a held step's rank trend towards its old clock at which its decision
@@ -208,16 +208,13 @@ class StreamClock:
         # A clock that stepped keeps its new offset as time goes on; a backlog does not: after
         # a stall (a node or recorder blocked for longer than tol), the readings of the stall
         # arrive in one burst, their offsets sweeping from -stall towards 0 as the stamps
-        # advance with the arrival frozen. Taken for a step, such a burst moved one clock's
-        # centre by seconds and not the other's, so "auto" judged the clocks separate and
-        # mapped the commands seconds off (tens of metres of error after an 8 s recorder
-        # stall). So the far run must also be paced (:func:`paced`); older values of a run
-        # that is not are dropped from it.
+        # advance with the arrival frozen (taken for a step, it moved one clock's centre by
+        # seconds and "auto" judged the clocks separate). So the far run must also be paced
+        # (:func:`paced`); older values of a run that is not are dropped from it.
         if len(self.fifo) >= self.settled and -self.tol <= v - self.value < -self.late:
             # came late (module doc): neither votes nor informs the rate -- from the moment
-            # the centre is settled, not only once the window is full: a recorder stalled 8 s
-            # at 26 s of a 1 Hz run (26 readings) voted its burst into the centre, which moved
-            # 4 s, and the run was published 4 s late to its end (availability 50 %)
+            # the centre is settled, not only once the window is full (a recorder stalled 8 s
+            # at 26 s of a 1 Hz run voted its burst into the centre, which moved 4 s)
             self.pending = []
             return
         if len(self.fifo) >= self.n and abs(v - self.value) > self.tol:
@@ -404,11 +401,10 @@ class StreamClock:
         in, each carried along the clock's drift to the newest arrival: where the clock is when
         the latency is least. A node that lagged its input for a while moves the centre down
         with it; when it catches up, its offsets return to the ceiling, never above it. Carried,
-        since on a clock 1 % slow the offsets of a minute ago at 10 Hz (ten at 1 Hz) lie 0.6 s
-        (6 s) above the present ones: uncarried, that ceiling hid every forward step below it.
-        (The sliding maximum keeps the offsets that no later one exceeds; on a slow clock the
-        ones it dropped stay below the later ones when carried, on a fast one the carried
-        maximum is the newest offsets', where the centre is too.)"""
+        since on a clock 1 % slow the offsets of a minute ago at 10 Hz lie 0.6 s above the
+        present ones, and hid every forward step below it. (The sliding maximum keeps the
+        offsets that no later one exceeds; on a slow clock the ones it dropped stay below the
+        later ones when carried, on a fast one the carried maximum is the newest offsets'.)"""
         if not self._top:
             return math.nan
         d = self.drift
@@ -429,8 +425,8 @@ class StreamClock:
     def lift(self, v: float) -> float:
         """:meth:`above` on one clock (no drift): how far the offset ``v`` lies above the
         centre and the largest offset of the last ``horizon`` as they voted, not carried along
-        the rate fit, whose error the envelope cannot absorb (a fit locked at -0.4 % on a 1 Hz
-        link with 200 ms of jitter put clean readings 0.05 s above the carried ceiling)."""
+        the rate fit, whose error (its standard error times a minute) the envelope cannot
+        absorb."""
         return v - max(self.value, self._top[0][1]) if self._top else -math.inf
 
     def above(self, v: float) -> float:
@@ -450,11 +446,8 @@ class StreamClock:
         least latency among ``block`` in a row lies closest to it: the fit takes each block's
         highest offset (its stamp against its arrival), whose latency is the least of
         ``block`` draws -- a link's jitter shrunk about ``block`` times, the blocks
-        independent of one another. Least squares over every reading instead, with the
-        readings chosen by their own arrivals (a backlog's tail left out as not paced), gave
-        drifts spread twice their stated standard error on a 200 ms jittery link, and a 5
-        standard-error rate difference on one clock (-1.9e-4, true 0) made ``auto`` judge the
-        commands' clock separate. A late reading (the module's one rule) is left out.
+        independent of one another (least squares over every reading stated half its error on
+        a 200 ms jittery link). A late reading (the module's one rule) is left out.
 
         Once the rate is known, each block's point is judged against the line (:meth:`_off`):
         on it, it joins the fit; off it, it is held until the held points show where the
@@ -477,8 +470,13 @@ class StreamClock:
         """Whether the block's ``point`` (arrival, stamp) lies off the clock's line, and is held.
 
         The model: stamp = line(arrival) - latency, the latency never negative and, at the
-        envelope, scattered as the fit's own residuals (``sd``). A point more than ``band`` =
-        ``LINE_SPREAD`` of those below or above the line (and at least ``SMALL_MOVE``) is held.
+        envelope, scattered as the fit's own residuals (``sd``). A point is held when it lies
+        farther below or above the line than the fit can predict it (and than ``SMALL_MOVE``):
+        :func:`t_spread` of its prediction's standard errors, the residuals' and the line's
+        own (intercept and slope, the latter growing with the distance from the points' mean),
+        so that a point of the line is held at the Gaussian ``LINE_SPREAD`` sigma's rate
+        whatever the number of points (``LINE_SPREAD`` spreads alone: a line of 4 points 20 s
+        into a 1 Hz stream stated -3,988 ppm and held every later point off it for the hour).
         Two things put points there, and only one of them moves the line: the clock's level
         moved (a step within ``TOL`` that no step test declared, absorbed by the window; the
         latency's floor rose or fell and stays), or the latency rose for a while and falls back
@@ -488,26 +486,24 @@ class StreamClock:
         their own, the slope shared) once there are ``SEG_MIN`` of them and their scatter about
         their mean is the line's at ``SEG_RISK`` (a chi-square test of their variance); a point
         back on the line drops them (they were the latency's, not the clock's). A move then
-        joins the fit late by a few points; a drain never joins it. Before, the level was
-        judged by the offsets' centre, which a drain drags: a 1 s queue drained at 1.2 times
-        the sampling rate, every 30 s, started a segment of its own in each episode, their
-        climbs were read as slope, and the drift came out 250-2,300 ppm (true 0): the commands'
-        clock judged separate, the filter's time 0.8-1.6 s off after an hour."""
+        joins the fit late by a few points; a drain never joins it (judged by the offsets'
+        centre, which a drain drags, slow drains' climbs were read as slope: 250-2,300 ppm)."""
         d, se = self.rate()
         if not math.isfinite(se):  # the line is not known yet: every point informs it
             return False
         f = self._fit
         n1 = f[0]
-        sd = self._line_sd()
-        band = max(SMALL_MOVE, LINE_SPREAD * sd)
+        _, var, _, rss, dof = self._pooled()
+        sd = math.sqrt(rss / dof)
         arrival, stamp = point
+        resid = band = 0.0
         if n1:
             # the current segment's line at this arrival: its mean point carried on the slope
             x0, y0 = f[6]
-            resid = (stamp - y0 - f[2] / n1) - (1.0 + d) * (arrival - x0 - f[1] / n1)
-        else:
-            resid = 0.0
-        if abs(resid) <= band:
+            dx = arrival - x0 - f[1] / n1
+            resid = (stamp - y0 - f[2] / n1) - (1.0 + d) * dx
+            band = t_spread(dof) * sd * math.sqrt(1.0 + 1.0 / n1 + dx * dx / var)
+        if abs(resid) <= max(SMALL_MOVE, band):
             self._held_points = []
             return False
         held = self._held_points
@@ -526,11 +522,6 @@ class StreamClock:
         for a, s, _ in held:
             self._fit_add(a, s)
         return True
-
-    def _line_sd(self) -> float:
-        """s: the fit's residual standard deviation (its points about their segments' lines)."""
-        _, var, _, rss, dof = self._pooled()
-        return math.sqrt(rss / dof) if var > 0 else 0.0
 
     def _pooled(self) -> tuple:
         """(n, var, cov, rss, dof) of the fit over all its segments (an intercept each, the
@@ -599,15 +590,23 @@ class StreamClock:
             return 0.0, math.inf
         if math.sqrt(rss / dof) > max(SMALL_MOVE, LINE_SPREAD * self.scale):
             # the points lie on two levels, not about one line: a move of the offset the level
-            # test could not see yet (a step before the rate was known, at a stream's start
-            # without a sample counter: 3 s in the first 4 s of a 1 Hz run read as a drift of
-            # 0.09, the slots came 1.09 s apart and the last ones claimed times after the run)
+            # test could not see yet (a step before the rate was known: 3 s in the first 4 s
+            # of a 1 Hz run without a counter read as a drift of 0.09)
             return 0.0, math.inf
-        return d, math.sqrt(rss / dof / var)
+        # widened for the few points' guess of their own spread (t_spread): 4 or 5 points of
+        # a 1 Hz stream stated a tenth of their error, and one clock was judged two
+        return d, math.sqrt(rss / dof / var) * t_spread(dof) / LINE_SPREAD
 
     @property
     def drift(self) -> float:
         return self.rate()[0]
+
+
+@functools.cache
+def t_spread(dof: int) -> float:
+    """Estimated standard errors of a fit with ``dof`` degrees of freedom that a value exceeds
+    as seldom as ``LINE_SPREAD`` true ones (Student's t): ``LINE_SPREAD`` for many, 1,321 for 2."""
+    return float(-stdtrit(dof, ndtr(-LINE_SPREAD)))
 
 
 # -- the train clock's steps -----------------------------------------------------------------
