@@ -140,14 +140,14 @@ def test_no_false_step_on_the_envelope_of_a_clean_link(rate, jitter, shape):
 @pytest.mark.parametrize("jitter", [0.05, 0.2])
 @pytest.mark.parametrize("rate", [10.0, 1.0])
 def test_the_rate_fit_finds_the_clocks_rate_within_its_stated_error(rate, jitter, shape):
-    """On a clean jittery link without a counter (five minutes at 10 Hz, a quarter of an hour
-    at 1 Hz, 5 % lost) the train clock's fitted rate lies within 4 of its stated standard errors
-    of the truth: seeds of one clock shared with the commands (ten at 1 Hz, where the early points are
-    few, three at 10 Hz), which ``control_clock: auto`` must judge one, and a clock 1e-4 and
+    """On a clean jittery link without a counter (five minutes at 10 Hz, a quarter of an hour at
+    1 Hz, 5 % lost) the train clock's fitted rate lies within 4 of its stated standard errors of
+    the truth: seeds of one clock shared with the commands (ten at 1 Hz, where the early points
+    are few, three at 10 Hz), which ``control_clock: auto`` must judge one, and a clock 1e-4 and
     1e-3 fast and slow (the fault ``drift``), which at 1e-3 it must judge separate. A fit that
-    took 4 points 20 s into a 1 Hz stream for its line held every later point off it and
-    stayed at -3,988 ppm (stated error 445) for the hour; fits of 4 or 5 points stating a
-    tenth of their error judged one clock two."""
+    took 4 points 20 s into a 1 Hz stream for its line held every later point off it and stayed
+    at -3,988 ppm (stated error 445) for the hour; fits of 4 or 5 points stating a tenth of
+    their error judged one clock two."""
     dur = 300.0 if rate == 10.0 else 900.0  # the lock and the wrong verdicts came in 30 s
     for drift, seeds in ((0.0, range(10 if rate == 1.0 else 3)), (1e-4, [0]), (-1e-4, [0]),
                          (1e-3, [0]), (-1e-3, [0])):
