@@ -277,3 +277,67 @@ def test_example_csv_to_bag_then_check_bag_and_diagnose(tmp_path, capsys):
     rep = json.loads((tmp_path / "diag" / "report.json").read_text())
     # a nominal simulated run of the believed train on the believed line
     assert rep["cause"] == "none", rep["ranking"][:3]
+
+
+def _bag_topics(path) -> dict:
+    return {k: list(v) for k, v in read_bag(path).topics.items()}
+
+
+def _export(rows: list[str], sep: str, comma_decimal: bool) -> list[str]:
+    """The example's rows as another spreadsheet writes them: its separator, and 0,36 for 0.36
+    where the comma is the decimal mark."""
+    return [r.replace(",", sep).replace(".", ",") if comma_decimal else r.replace(",", sep)
+            for r in rows]
+
+
+@pytest.mark.parametrize("form", ["excel_de", "bom_crlf", "tab", "bar", "quoted"])
+def test_every_common_csv_form_gives_the_same_bag(tmp_path, capsys, form):
+    """One log written as spreadsheets and recorders write CSV: a German Excel export (UTF-8
+    byte-order mark, Windows line ends, ``;`` separators and decimal commas), a UTF-8 export
+    with a BOM, tab- and bar-separated text, quoted cells with a space after each comma: the
+    same bag as the plain form, with what was found said where it is not the plain form."""
+    rows = [HEADER.strip()] + _rows10() + ["101.0,6000,36.0,10.5,2,0,25"]
+    plain = tmp_path / "plain.csv"
+    plain.write_text("\n".join(rows) + "\n")
+    assert csv2bag.main([str(plain), "--out", str(tmp_path / "ref"), *ARGS]) == 0
+    assert "read with" not in capsys.readouterr().out
+    text, said = {
+        "excel_de": ("\ufeff" + "\r\n".join(_export(rows, ";", True)) + "\r\n", "';' and the "
+                     "decimal mark ','"),
+        "bom_crlf": ("\ufeff" + "\r\n".join(rows) + "\r\n", None),
+        "tab": ("\n".join(_export(rows, "\t", False)) + "\n", "'\\t'"),
+        "bar": ("\n".join(_export(rows, "|", False)) + "\n", "'|'"),
+        "quoted": ("\n".join(", ".join(f'"{c}"' for c in r.split(",")) for r in rows) + "\n",
+                   None),
+    }[form]
+    log = tmp_path / "log.csv"
+    log.write_bytes(text.encode("utf-8"))
+    assert csv2bag.main([str(log), "--out", str(tmp_path / "bag"), *ARGS]) == 0
+    out = capsys.readouterr().out
+    assert (said is None) == ("read with" not in out) and (said is None or said in out), out
+    assert _bag_topics(tmp_path / "bag") == _bag_topics(tmp_path / "ref")
+
+
+def test_a_stated_format_is_used_and_text_in_another_encoding_says_what_to_do(tmp_path,
+                                                                              capsys):
+    """A Latin-1 (cp1252) export with an accented column name stops with the byte where
+    UTF-8 failed and the option that fixes it; stated, it converts. A stated delimiter is
+    used as stated (a comma-separated file read with ``;`` has no columns)."""
+    rows = ["t_ref;t_train_ms;vitesse_km/h_équiv;odo_m"] + \
+        [f"{100 + i / 10:.1f};{5000 + 100 * i};36.0;{i}.0".replace(".", ",") for i in range(10)]
+    log = tmp_path / "log.csv"
+    log.write_bytes(("\r\n".join(rows) + "\r\n").encode("cp1252"))
+    args = [str(log), "--column", "time=t_ref", "--column", "train_time=t_train_ms",
+            "--unit", "train_time=ms", "--column", "speed=vitesse_km/h_équiv",
+            "--unit", "speed=km/h", "--column", "distance=odo_m"]
+    assert csv2bag.main([*args, "--out", str(tmp_path / "a")]) == 2
+    err = capsys.readouterr().err
+    assert "not utf-8 text" in err and "--encoding cp1252" in err, err
+    assert csv2bag.main([*args, "--out", str(tmp_path / "b"), "--encoding", "cp1252"]) == 0
+    odo = read_bag(tmp_path / "b").topics["odometer"]
+    assert [f["speed"] for _, _, f in odo] == pytest.approx([10.0] * 10)
+    assert [f["distance"] for _, _, f in odo] == pytest.approx(list(range(10)))
+    plain = _csv(tmp_path, _rows10())
+    assert csv2bag.main([str(plain), "--out", str(tmp_path / "c"), *ARGS,
+                         "--delimiter", ";"]) == 2
+    assert "separated by ';'" in capsys.readouterr().err

@@ -1,7 +1,8 @@
 """`csv2bag`: a data recorder's CSV log into a measured-data bag (docs/interfaces.md).
 
     csv2bag LOG.csv --out BAG [--map MAP.yaml] [--line line.yaml] [--column KEY=NAME ...]
-            [--unit KEY=UNIT ...] [--sort] [--skip-bad-rows] [--max-skipped N|P%]
+            [--unit KEY=UNIT ...] [--delimiter D] [--decimal . | ,] [--encoding E] [--sort]
+            [--skip-bad-rows] [--max-skipped N|P%]
 
 One CSV row per event: an odometer sample (speed and distance), a balise passage, a command,
 or several of them on one row. The columns (KEY: what it holds; rename with --column or the
@@ -38,7 +39,19 @@ warning):
   braking_max: 1.2      # m/s^2 at 100 % braking
   speed_std: 0.1        # m/s, the odometer's stated speed noise (speed_variance = std^2)
   balise_std: 1.0       # m, the balise position's standard deviation
-  delimiter: ","
+  delimiter: ";"        # the field separator (default: found from the file's first lines)
+  decimal: ","          # the decimal mark of numbers (default: found from the file)
+  encoding: cp1252      # the text's encoding (default utf-8, with or without a BOM)
+
+The file's format. Spreadsheets and recorders write CSV in more than one way: the separator
+is a comma, a semicolon (where the comma is the decimal mark), a tab or a bar, and numbers may
+be written 0,36 instead of 0.36. Unless stated (the map or the options), the separator is the
+one of ``, ; TAB |`` that splits the header into the most columns and the first data rows into
+as many, and the decimal mark is a comma where the separator is not one and the first rows
+write their numbers with a comma and never with a point; what was found is printed when it is
+not the plain form. Quoted cells, spaces after the separator, Windows line ends and a UTF-8
+byte-order mark (a spreadsheet's "CSV UTF-8") are read as they are meant. Text that is not
+UTF-8 (an older Windows export) stops with the byte where it failed: state its encoding.
 
 Lost samples. The odometer's ``seq`` is the sample counter where the log has one. Otherwise the
 train clock's sampling period is estimated from the odometer stamps (the median step, refined
@@ -63,6 +76,7 @@ Exit status: 0 the bag was written; 2 unusable input (one line on stderr).
 from __future__ import annotations
 
 import argparse
+import codecs
 import csv
 import math
 import re
@@ -93,7 +107,7 @@ UNITS = {  # key: {unit: factor to SI}
 }
 MAP_KEYS = {"columns": "mapping", "units": "mapping", "traction_max": "number",
             "braking_max": "number", "speed_std": "number", "balise_std": "number",
-            "delimiter": "string"}
+            "delimiter": "string", "decimal": "string", "encoding": "string"}
 DAY = 86400.0  # s
 SEQ_MAX = 2 ** 32 - 1  # OdometerReading.seq is a uint32
 MAX_SKIPPED = "1%"
@@ -113,7 +127,9 @@ class Mapping:
     braking_max: float | None = None  # m/s^2 at 100 % braking
     speed_std: float = 0.1  # m/s, odometer speed noise (1 sigma)
     balise_std: float = 1.0  # m, balise position noise (1 sigma)
-    delimiter: str = ","
+    delimiter: str | None = None  # field separator; None: found from the file (_dialect)
+    decimal: str | None = None  # "." or ","; None: found from the file (_dialect)
+    encoding: str = "utf-8"  # the text's encoding (a UTF-8 byte-order mark is skipped)
 
     def factor(self, key: str) -> float:
         unit = self.units.get(key, next(iter(UNITS[key])))
@@ -138,8 +154,10 @@ def _pairs(items, what: str) -> dict:
     return out
 
 
-def load_mapping(path: str | None, columns=(), units=()) -> Mapping:
-    """The map file (if any) with the command line's --column/--unit on top."""
+def load_mapping(path: str | None, columns=(), units=(), delimiter: str | None = None,
+                 decimal: str | None = None, encoding: str | None = None) -> Mapping:
+    """The map file (if any) with the command line's --column/--unit (and the format's
+    options) on top."""
     d: dict = {}
     if path:
         try:
@@ -167,7 +185,26 @@ def load_mapping(path: str | None, columns=(), units=()) -> Mapping:
     if not (math.isfinite(m.speed_std) and m.speed_std > 0 and math.isfinite(m.balise_std)
             and m.balise_std > 0):
         raise InputError("speed_std and balise_std must be > 0")
-    m.delimiter = str(d.get("delimiter", ","))
+    delimiter = delimiter if delimiter is not None else d.get("delimiter")
+    if delimiter is not None:
+        m.delimiter = {"tab": "\t", "\\t": "\t"}.get(str(delimiter), str(delimiter))
+        if len(m.delimiter) != 1 or m.delimiter in "\"\r\n" or m.delimiter.isalnum():
+            raise InputError(f"delimiter {delimiter!r}: one character such as , ; | or tab")
+    decimal = decimal if decimal is not None else d.get("decimal")
+    if decimal is not None:
+        m.decimal = str(decimal)
+        if m.decimal not in (".", ","):
+            raise InputError(f"decimal {decimal!r}: . or ,")
+    if m.decimal == "," and m.delimiter == ",":
+        raise InputError("decimal , needs another delimiter than , (e.g. ;)")
+    encoding = encoding if encoding is not None else d.get("encoding")
+    if encoding is not None:
+        m.encoding = str(encoding)
+        try:
+            codecs.lookup(m.encoding)
+        except LookupError:
+            raise InputError(f"encoding {m.encoding!r} is not known (e.g. utf-8, cp1252, "
+                             "latin-1)") from None
     for k in m.units:
         if k in UNITS:
             m.factor(k)  # unknown units and missing maxima fail before any row is read
@@ -196,6 +233,7 @@ class Result:
     #                                           first sample on the train clock)
     rollovers: list = field(default_factory=list)  # (column key, line) of each midnight
     moved: int = 0  # rows --sort moved
+    dialect: tuple = (",", ".", "")  # (delimiter, decimal, what was found rather than stated)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -421,45 +459,94 @@ def convert(csv_path: str | Path, out: str | Path, mapping: Mapping, line=None,
     return res
 
 
+DELIMITERS = (",", ";", "\t", "|")
+DIALECT_LINES = 50  # the first lines that the separator and the decimal mark are found from
+_COMMA_NUMBER = re.compile(r"^[+-]?\d+,\d+$")
+_POINT_NUMBER = re.compile(r"^[+-]?\d*\.\d+$")
+
+
+def _dialect(lines: list[str], mapping: Mapping) -> tuple[str, str, str]:
+    """(delimiter, decimal mark, what was found rather than stated) of a file whose first lines
+    are ``lines`` (module doc, "The file's format")."""
+    found = []
+    delim = mapping.delimiter
+    if delim is None:
+        best = None
+        for d in DELIMITERS:
+            rows = [r for r in csv.reader(lines, delimiter=d, skipinitialspace=True) if r]
+            if not rows or len(rows[0]) < 2:
+                continue
+            score = (sum(len(r) == len(rows[0]) for r in rows[1:]), len(rows[0]))
+            if best is None or score > best[0]:
+                best = (score, d)
+        delim = best[1] if best else ","
+        found.append("delimiter")
+    dec = mapping.decimal
+    if dec is None:
+        cells = [c.strip() for r in csv.reader(lines[1:], delimiter=delim) for c in r]
+        dec = "," if delim != "," and any(_COMMA_NUMBER.match(c) for c in cells) and \
+            not any(_POINT_NUMBER.match(c) for c in cells) else "."
+        found.append("decimal")
+    return delim, dec, " and ".join(found)
+
+
 def _read(csv_path, mapping, line, skip_bad_rows, sort, res) -> list[_Row]:
     """The CSV's usable rows in time order (sorted if asked); bad rows raise or are counted."""
+    enc = "utf-8-sig" if codecs.lookup(mapping.encoding).name == "utf-8" else mapping.encoding
     try:
-        fh = open(csv_path, newline="")
+        fh = open(csv_path, newline="", encoding=enc)
     except OSError as e:
         raise InputError(f"cannot read {csv_path}: {e.strerror}") from None
-    with fh:
-        reader = csv.reader(fh, delimiter=mapping.delimiter)
-        try:
-            header = next(reader, None)
-            if not header:
-                raise InputError(f"{csv_path} is empty: a header row of column names is "
-                                 "expected")
-            header = [h.strip() for h in header]
-            col = {}
-            for key in KEYS:
-                name = mapping.columns.get(key, key)
-                if name in header:
-                    col[key] = header.index(name)
-                elif key in mapping.columns or key in REQUIRED:
-                    raise InputError(f"{csv_path}: no column {name!r} for {key} (columns: "
-                                     f"{', '.join(header)}; map it with --column {key}=NAME)")
-            if "balise" in col and "balise_position" not in col and line is None:
-                raise InputError("balise passages need their positions: give --line "
-                                 "line.yaml or a balise_position column")
-            fac = {k: mapping.factor(k) for k in col if k in UNITS}
-            clocks = {k: _Clock(k, fac.get(k, 1.0)) for k in ("time", "train_time")}
-            lookup = line.balise_by_id if line is not None else (lambda i: None)
-            parsed = []
-            for lineno, row in enumerate(reader, start=2):
-                if not row or all(not c.strip() for c in row):
-                    continue
-                res.rows += 1
-                try:
-                    parsed.append(_parse(row, lineno, col, fac, lookup, clocks))
-                except BadRow as e:
-                    _bad(e, lineno, csv_path, skip_bad_rows, res)
-        except csv.Error as e:
-            raise InputError(f"{csv_path}: not a readable CSV ({e})") from None
+    try:
+        with fh:
+            return _read_rows(fh, csv_path, mapping, line, skip_bad_rows, sort, res)
+    except UnicodeDecodeError as e:
+        raise InputError(f"{csv_path}: not {mapping.encoding} text ({e.reason} at byte "
+                         f"{e.start} of a line): state the file's encoding, e.g. --encoding "
+                         "cp1252 (an older Windows export) or latin-1") from None
+
+
+def _read_rows(fh, csv_path, mapping, line, skip_bad_rows, sort, res) -> list[_Row]:
+    head = [ln for ln in (fh.readline() for _ in range(DIALECT_LINES)) if ln]
+    fh.seek(0)
+    delim, dec, found = _dialect(head, mapping)
+    res.dialect = (delim, dec, found)
+    with_comma = dec == ","  # 0,36: every comma of a cell is its decimal mark
+    reader = csv.reader(fh, delimiter=delim, skipinitialspace=True)
+    try:
+        header = next(reader, None)
+        if not header:
+            raise InputError(f"{csv_path} is empty: a header row of column names is "
+                             "expected")
+        header = [h.strip() for h in header]
+        col = {}
+        for key in KEYS:
+            name = mapping.columns.get(key, key)
+            if name in header:
+                col[key] = header.index(name)
+            elif key in mapping.columns or key in REQUIRED:
+                raise InputError(f"{csv_path}: no column {name!r} for {key} (columns: "
+                                 f"{', '.join(header)}, separated by {delim!r}; map it with "
+                                 f"--column {key}=NAME, or state --delimiter)")
+        if "balise" in col and "balise_position" not in col and line is None:
+            raise InputError("balise passages need their positions: give --line "
+                             "line.yaml or a balise_position column")
+        fac = {k: mapping.factor(k) for k in col if k in UNITS}
+        clocks = {k: _Clock(k, fac.get(k, 1.0)) for k in ("time", "train_time")}
+        lookup = line.balise_by_id if line is not None else (lambda i: None)
+        parsed = []
+        for lineno, row in enumerate(reader, start=2):
+            if not row or all(not c.strip() for c in row):
+                continue
+            res.rows += 1
+            if with_comma:
+                row = [c.replace(",", ".") for c in row]
+            try:
+                parsed.append(_parse(row, lineno, col, fac, lookup, clocks))
+            except BadRow as e:
+                _bad(e, lineno, csv_path, skip_bad_rows, res)
+    except csv.Error as e:
+        raise InputError(f"{csv_path}: not a readable CSV ({e})") from None
     res.rollovers = [(k, ln) for k, c in clocks.items() for ln in c.rollovers]
     if sort:
         order = sorted(range(len(parsed)), key=lambda i: parsed[i].time)
@@ -566,6 +653,11 @@ def report(res: Result, out: str) -> list[str]:
         first = res.gaps[:5]
         lines.append("  first gaps at lines " + ", ".join(
             f"{ln} ({n})" for ln, n, _ in first) + (" ..." if len(res.gaps) > 5 else ""))
+    delim, dec, found = res.dialect
+    if (delim, dec) != (",", "."):  # not the plain form: say how it was read, and whence
+        lines.append(f"read with the delimiter {delim!r} and the decimal mark {dec!r}"
+                     + (f" ({found} found from the file's first lines: state them with "
+                        "--delimiter, --decimal or the map if that is wrong)" if found else ""))
     for key, ln in res.rollovers:
         lines.append(f"{key} crossed midnight at line {ln}: a day added from there on")
     if res.moved:
@@ -589,6 +681,13 @@ def main(argv=None) -> int:
                    help="CSV column of a quantity, e.g. speed=v_kmh (repeatable)")
     p.add_argument("--unit", action="append", metavar="KEY=UNIT",
                    help="unit of a quantity, e.g. speed=km/h (repeatable)")
+    p.add_argument("--delimiter", metavar="D",
+                   help="the field separator: , ; | or tab (default: found from the file)")
+    p.add_argument("--decimal", choices=(".", ","),
+                   help="the decimal mark of numbers (default: found from the file)")
+    p.add_argument("--encoding", metavar="E",
+                   help="the text's encoding, e.g. cp1252 (default utf-8, with or without "
+                        "a byte-order mark)")
     p.add_argument("--sort", action="store_true",
                    help="sort the rows by the reference time first (default: rows out of "
                         "order are bad rows)")
@@ -605,7 +704,8 @@ def main(argv=None) -> int:
     try:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", ConfigWarning)
-            mapping = load_mapping(args.map, args.column, args.unit)
+            mapping = load_mapping(args.map, args.column, args.unit, args.delimiter,
+                                   args.decimal, args.encoding)
             line = load_line(args.line) if args.line else None
         for w in caught:  # extra keys in the map or the line file: one line each
             print(f"csv2bag: warning: {w.message}", file=sys.stderr)
