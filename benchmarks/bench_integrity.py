@@ -49,6 +49,7 @@ import zlib
 from collections import defaultdict
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import fields as dc_fields
+from dataclasses import replace
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -89,9 +90,23 @@ JITTER = 0.05  # s, mean exponential extra latency of the jittery-link step faul
 # -- runs ------------------------------------------------------------------------------------------
 
 @functools.lru_cache(maxsize=4)
-def _sim(scenario: str, seed: int, duration: float):
+def _sim(scenario: str, seed: int, duration: float, groups: float = 0.0):
     sc = load_scenario(scenario)
+    if groups:
+        sc = with_balise_groups(sc, groups)
     return sc, simulate(sc, seed, duration)
+
+
+def with_balise_groups(sc, spacing: float):
+    """The scenario with a second balise ``spacing`` m after each of its line's, in the map
+    and on the track (a group of two at each place, as ETCS lays them; the new ids follow the
+    line's highest): what references of another kind than the line's single balises give."""
+    line = sc.line
+    top = max((b.id for b in line.balises), default=0)
+    twins = [replace(b, id=top + 1 + i, position=b.position + spacing)
+             for i, b in enumerate(line.balises) if b.position + spacing < line.length]
+    both = tuple(sorted((*line.balises, *twins), key=lambda b: b.position))
+    return replace(sc, line=line.with_changes(balises=both)).with_effects(sc.effects)
 
 
 def make_adapter(sc, name: str, fault=None, **config):
@@ -124,7 +139,8 @@ def phases(truth: dict) -> dict:
 
 def run_task(task: dict) -> dict:
     """One fault on one scenario and seed through one estimator: the scores (faults.score)."""
-    sc, res = _sim(task["scenario"], task["seed"], task["sim_duration"])
+    sc, res = _sim(task["scenario"], task["seed"], task["sim_duration"],
+                   task.get("balise_groups", 0.0))
     fault = task["fault"]
     end = task["duration"]
     events = [e for e in res.events() if e[1] <= end]
@@ -652,8 +668,18 @@ def main(argv=None) -> int:
                     help="folder for one Stanford diagram per estimator (|error| against the "
                          "protection level, every run pooled): stanford_ESTIMATOR.png")
     add_prior_args(ap)
+    ap.add_argument("--balise-latency-std", type=float, default=None, metavar="S",
+                    help="the estimators' balise_latency_std (s): how late the balise reader "
+                         "is stated to stamp (default: the node's, 0.1 s)")
+    ap.add_argument("--balise-groups", type=float, default=0.0, metavar="D",
+                    help="a second balise D m after each of the line's, in the map and on the "
+                         "track (groups of two, as ETCS lays them; default 0: the line's own)")
     args = ap.parse_args(argv)
     priors = stated_priors(ap, args)
+    if args.balise_latency_std is not None and not args.balise_latency_std >= 0:
+        ap.error("--balise-latency-std must be >= 0")
+    if not 0 <= args.balise_groups < 1e3:
+        ap.error("--balise-groups must be in [0, 1000) m")
     seeds = args.seeds or (1 if args.quick else 2)
     estimators = args.estimators or (QUICK_ESTIMATORS if args.quick else ESTIMATORS)
     scenarios = scenarios_here()
@@ -667,8 +693,11 @@ def main(argv=None) -> int:
     tasks = plan(args.quick, seeds, estimators, args.only, args.phases, args.long,
                  args.fuzz_rate, scenarios)
     config = {"use_distance": False} if args.no_distance else {}
+    if args.balise_latency_std is not None:
+        config["balise_latency_std"] = args.balise_latency_std
     for t in tasks:
         t["config"] = config
+        t["balise_groups"] = args.balise_groups
         t["no_counter"] = args.no_counter
         if priors:
             t["integrity"] = IntegrityParams(**priors)
@@ -689,11 +718,15 @@ def main(argv=None) -> int:
         mode = (f"reduced full: phases {', '.join(args.phases or ['all'])}, drift and fuzz "
                 f"<= {args.long or 'full'} s, fuzz {args.fuzz_rate or 10.0:g} per clean message")
     prior = "".join(f", {k} {v:g}" for k, v in priors.items())
+    stated = "".join(x for x, on in (
+        (f", balise_latency_std {args.balise_latency_std} s", args.balise_latency_std is not None),
+        (f", balises in groups of two {args.balise_groups:g} m apart", args.balise_groups))
+        if on)
     print(f"Integrity campaign ({mode}): {len(tasks)} runs, {seeds} seed(s), estimators "
           f"{', '.join(estimators)}"
           f"{' with use_distance: false' if args.no_distance else ''}"
           f"{', every seq 0 (no sample counter)' if args.no_counter else ''}"
-          f"{prior}; "
+          f"{prior}{stated}; "
           f"node defaults (NodeConfig: control_clock "
           f"{NodeConfig().control_clock!r}, max_future {NodeConfig().max_future:g} s), "
           f"arrival = stamp + {F.LATENCY:g} s\n")
