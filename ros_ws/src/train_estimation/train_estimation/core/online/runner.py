@@ -600,14 +600,12 @@ class EstimatorRunner:
         return held, stamp
 
     def _check_seq(self, kind: str, stamp: float, fields: dict) -> str:
-        seq = fields.get("seq")
-        counted = not (seq is None and self._uncounted(kind))
-        if counted and (not isinstance(seq, int) or isinstance(seq, bool)):
-            return f"{R.INVALID}: seq {seq!r}"
+        """``duplicate`` for a copy of a recent message; a seq reset logged. (``seq`` is an
+        int, checked by :meth:`push`, or None on a stream without a counter.)"""
         if self._order.copy_of(kind, _copy_key(fields, stamp), keep=True):
             return R.DUPLICATE
-        last = self._order.last.get(kind)
-        if counted and self._order.took(kind, stamp, seq):
+        seq, last = fields.get("seq"), self._order.last.get(kind)
+        if seq is not None and self._order.took(kind, stamp, seq):
             self._event(kind, stamp, f"{R.SEQ_RESET}: seq {last[0]} -> {seq}")
         return ""
 
