@@ -29,6 +29,7 @@ from ..braking.braking_filters import (
     sticky_transition,
 )
 from ..braking.braking_model import BrakingModel, BrakingParams
+from ..numerics.stamp_order import StampOrder
 from ..robust.filter_base import filter_params_from_train
 from ..robust.readings import BaliseReading, OdometerReading, covariance16
 from ..robust.robust_filter import RobustFilter
@@ -279,7 +280,7 @@ class RobustAdapter(DistanceAsPosition):
         if not ok:
             return self.f._decide(False, R.OUTSIDE_GATE).reason
         self.f.shift(dx, dv)
-        self.f._last_seq["balise"], self.f._last_stamp["balise"] = int(r.seq), float(stamp)
+        self.f.order.took("balise", float(stamp), int(r.seq))
         self.f._used = True
         return ""
 
@@ -346,7 +347,7 @@ class RobustAdapter(DistanceAsPosition):
                 v = v.copy()
             elif isinstance(v, dict | list):  # Counter, seq/stamp dicts, FOH history
                 v = copy.deepcopy(v) if k == "_hist" else type(v)(v)
-            elif k == "actuator":
+            elif k in ("actuator", "order"):
                 v = v.copy()
             state[k] = v
         return state, self.last_odo, self.outages, self._pred, self._odometry_snapshot()
@@ -364,7 +365,7 @@ class RobustAdapter(DistanceAsPosition):
                 v = v.copy()
             elif isinstance(v, dict | list):
                 v = copy.deepcopy(v) if k == "_hist" else type(v)(v)
-            elif k == "actuator":
+            elif k in ("actuator", "order"):
                 v = v.copy()
             out[k] = v
         return out
@@ -528,7 +529,9 @@ class BrakingAdapter(DistanceAsPosition):
         self.est = None
         self.used = False
         self.balises = {b.id: b.position for b in line.balises}
-        self.last: dict = {}  # kind -> (seq, stamp) of the last fused reading (duplicates)
+        # the last fused reading of each kind (duplicates): a copy of it is a duplicate even
+        # when stamped before the filter's time (which moves with every output)
+        self.order = StampOrder(cfg.max_horizon, copies_first=True, kind_order=False)
         self._grad = GradientLookup(line, train.rotary_allowance)
         self._init_odometry()
 
@@ -596,27 +599,15 @@ class BrakingAdapter(DistanceAsPosition):
             return R.NON_FINITE
         if abs(a) > self.cfg.max_command:
             return f"{R.OUTSIDE_GATE}: command {a:.3g} m/s^2"
-        if self.filt.t is not None and stamp < self.filt.t:
-            return R.OUT_OF_ORDER
-        if self.filt.t is not None and stamp - self.filt.t > self.cfg.max_horizon:
-            # as a reading (_order): a prediction over hours is no estimate (one command mapped
-            # 14 h ahead of the readings overflowed the process noise's matrix exponential)
-            return R.FUTURE_STAMP
+        # as a reading: a prediction over hours is no estimate (one command mapped 14 h ahead
+        # of the readings overflowed the process noise's matrix exponential)
+        why = self.order.judge(None, stamp, t=self.filt.t)
+        if why:
+            return why
         reason = self._advance(stamp)  # the old command holds up to the new one's stamp
         if not reason:
             self.a_tar = a
         return reason
-
-    def _order(self, kind: str, stamp: float, seq: int) -> str:
-        """Order by stamp; seq only marks duplicates (a seq reset is counted by the runner)."""
-        last = self.last.get(kind)
-        if last is not None and (seq == last[0] or stamp == last[1]):
-            return R.DUPLICATE
-        if self.filt.t is not None and stamp < self.filt.t:
-            return R.OUT_OF_ORDER
-        if self.filt.t is not None and stamp - self.filt.t > self.cfg.max_horizon:
-            return R.FUTURE_STAMP
-        return ""
 
     def odometer(self, stamp: float, fields: dict) -> str:
         seq = int(fields["seq"])
@@ -626,7 +617,7 @@ class BrakingAdapter(DistanceAsPosition):
             return R.NON_FINITE
         if var <= 0:
             return R.NON_POSITIVE_VARIANCE
-        why = self._order("odometer", stamp, seq)
+        why = self.order.judge("odometer", stamp, seq, self.filt.t)
         if why:
             return why
         self._origin(fields)
@@ -644,7 +635,7 @@ class BrakingAdapter(DistanceAsPosition):
                                         [self.cfg.use_distance, True, False],
                                         [self.cfg.distance_variance, var, 1.0]))
         if not reason:
-            self.last["odometer"] = (seq, stamp)
+            self.order.took("odometer", stamp, seq)
             self._odometer_fused(stamp, fields)
         else:
             self._unrestart(undo)
@@ -663,7 +654,7 @@ class BrakingAdapter(DistanceAsPosition):
         if abs(pos - sent) > self.cfg.balise_map_tolerance:
             return f"{R.BALISE_MAP_MISMATCH}: sent {sent:.1f} m, map {pos:.1f} m"
         fix = self._balise_fix(stamp, pos, var)
-        why = self._order("balise", stamp, seq)
+        why = self.order.judge("balise", stamp, seq, self.filt.t)
         if why:
             return why
         t_now = self.filt.t if self.filt.t is not None else stamp
@@ -674,7 +665,7 @@ class BrakingAdapter(DistanceAsPosition):
                 return R.OUTSIDE_GATE
             self.est = self.filt.shift(dx, dv)
             self.used = True
-            self.last["balise"] = (seq, stamp)
+            self.order.took("balise", stamp, seq)
             return ""
         if fix is not None:
             # without the distance the balise enters the filter where the calibration puts
@@ -689,7 +680,7 @@ class BrakingAdapter(DistanceAsPosition):
         reason = R.normalise(self._step(stamp, [pos, math.nan, math.nan], [True, False, False],
                                         [var, 1.0, 1.0]))
         if not reason:
-            self.last["balise"] = (seq, stamp)
+            self.order.took("balise", stamp, seq)
             if fix is not None:
                 self._balise_fused(fix, float(self.est.mean[0]), before)
         return reason
@@ -731,13 +722,13 @@ class BrakingAdapter(DistanceAsPosition):
         generator's state property builds a new dict at each read: nothing to copy."""
         return (copy.deepcopy(self.filt, self._shared()),
                 self.rng.bit_generator.state, self.a_tar, self.est, self.used,
-                dict(self.last), self._odometry_snapshot())
+                self.order.copy(), self._odometry_snapshot())
 
     def restore(self, snap) -> None:
-        filt, rng_state, self.a_tar, self.est, self.used, last, odometry = snap
+        filt, rng_state, self.a_tar, self.est, self.used, order, odometry = snap
         self.filt = copy.deepcopy(filt, self._shared())
         self.rng.bit_generator.state = copy.deepcopy(rng_state)
-        self.last = dict(last)
+        self.order = order.copy()
         self._odometry_restore(odometry)
 
     @property

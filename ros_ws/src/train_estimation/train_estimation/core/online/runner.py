@@ -63,17 +63,20 @@ clock by more than the same bar (:meth:`~.clocks.StepWatch.bar`) is refused (``f
 it still votes, so a control clock that truly stepped is followed once the step fills half the
 window.
 
-Sequence numbers only detect duplicates (same ``seq`` and stamp as a recent reading) and resets
-(``seq`` goes back while the stamp goes on: a sensor reboot or a wrap-around, accepted and
-counted as the event ``seq_reset``). Order is decided by stamps, so ``seq = 2**32 - 1`` cannot
-blind a stream.
+Duplicates and sequence resets are judged by a :class:`~..numerics.stamp_order.StampOrder`,
+the one rule the filters' own checks use too: sequence numbers only detect duplicates (same
+``seq`` and stamp as a recent reading, or a sample fused at another stamp) and resets (``seq``
+goes back while the stamp goes on: a sensor reboot or a wrap-around, accepted and counted as
+the event ``seq_reset``). Order is decided by stamps, so ``seq = 2**32 - 1`` cannot blind a
+stream; a reading older than the history is refused by the estimator's own
+:class:`~..numerics.stamp_order.StampOrder` (``out_of_order``).
 """
 
 from __future__ import annotations
 
 import heapq
 import math
-from collections import Counter, deque
+from collections import Counter
 from dataclasses import dataclass, field, replace
 from typing import Protocol
 
@@ -91,6 +94,7 @@ from ..numerics.clocks import (
     StepWatch,
     StreamClock,
 )
+from ..numerics.stamp_order import StampOrder
 from .calibrated_odometry import SEQ_MADE
 from .integrity import IntegrityMonitor, IntegrityParams
 
@@ -214,10 +218,7 @@ class EstimatorRunner:
     _offsets: dict = field(default_factory=dict)  # clock -> StreamClock (offset, rate)
     _prev_raw: float | None = None  # the last stamp pushed (no-arrival mode, early phase)
     _admitted_high: float = -math.inf  # the latest stamp admitted (no-arrival mode)
-    _recent: dict = field(default_factory=dict)  # kind -> deque of (seq, stamp)
-    _fused_seq: dict = field(default_factory=dict)  # seq -> (stamp, distance) of recent fused
-    #   odometer readings
-    _last_seq: dict = field(default_factory=dict)  # kind -> (seq, stamp) of the last pushed
+    _order: StampOrder | None = None  # copies of a message or a sample, seq resets
     _held: list = field(default_factory=list)  # control pushed before any odometer (raw)
     _early: dict = field(default_factory=dict)  # clock -> items waiting for min_judged
     _ready: set = field(default_factory=set)  # clocks whose early hold ended
@@ -278,6 +279,8 @@ class EstimatorRunner:
                                             getattr(self.adapter, "line", None))
         if self.command_timeout is None:
             self.command_timeout = self.integrity.command_timeout
+        # the samples of the last ``history`` seconds are judged for copies (StampOrder)
+        self._order = StampOrder(samples=max(8, math.ceil(self.history / self.period)))
         self._steps = StepWatch(self.period, self.min_judged, self.step_back, self.small_step,
                                 self.small_step_z, self.max_future,
                                 same=self.control_clock == "same", step_risk=self.step_risk,
@@ -472,8 +475,7 @@ class EstimatorRunner:
         seq = fields.get("seq")
         if seq is None and fields.get("speed") == 0:
             return ""  # no counter: a standing train reads its count and speed again and again
-        fused = self._fused_seq.get(_sample_key(fields))
-        if fused is not None and fused[0] != stamp and fused[1] == fields.get("distance"):
+        if self._order.elsewhere(_sample_key(fields), stamp, fields.get("distance")):
             what = "count and speed" if seq is None else f"seq {seq}"
             return f"{R.DUPLICATE}: {what} fused at another stamp"
         return ""
@@ -509,7 +511,7 @@ class EstimatorRunner:
                 and self._uncounted(kind):
             fields = {**fields, "seq": None}  # no counter: nothing judged by it
             self.uncounted[kind] += 1
-        if kind != "control" and _copy_key(fields, stamp) in self._recent.get(kind, ()):
+        if kind != "control" and self._order.copy_of(kind, _copy_key(fields, stamp)):
             return self._reject(kind, stamp, R.DUPLICATE)  # a copy is no evidence of a step
         why = self._fused_elsewhere(kind, stamp, fields)
         if why:
@@ -598,21 +600,13 @@ class EstimatorRunner:
         return held, stamp
 
     def _check_seq(self, kind: str, stamp: float, fields: dict) -> str:
-        seq = fields.get("seq")
-        counted = not (seq is None and self._uncounted(kind))
-        if counted and (not isinstance(seq, int) or isinstance(seq, bool)):
-            return f"{R.INVALID}: seq {seq!r}"
-        recent = self._recent.setdefault(kind, deque(maxlen=64))
-        key = _copy_key(fields, stamp)
-        if key in recent:
+        """``duplicate`` for a copy of a recent message; a seq reset logged. (``seq`` is an
+        int, checked by :meth:`push`, or None on a stream without a counter.)"""
+        if self._order.copy_of(kind, _copy_key(fields, stamp), keep=True):
             return R.DUPLICATE
-        recent.append(key)
-        if counted:
-            last = self._last_seq.get(kind)
-            if last is not None and seq < last[0] and stamp > last[1]:
-                self._event(kind, stamp, f"{R.SEQ_RESET}: seq {last[0]} -> {seq}")
-            if last is None or stamp >= last[1]:
-                self._last_seq[kind] = (seq, stamp)
+        seq, last = fields.get("seq"), self._order.last.get(kind)
+        if seq is not None and self._order.took(kind, stamp, seq):
+            self._event(kind, stamp, f"{R.SEQ_RESET}: seq {last[0]} -> {seq}")
         return ""
 
     def _to_train(self, stamp: float, recv: float | None) -> float:
@@ -788,13 +782,7 @@ class EstimatorRunner:
             fused = not reason or R.category(reason) in R.ACCEPTED
             if fused and isinstance(fields, dict):
                 self._steps.fused(stamp, fields.get("distance"), fields.get("seq"))
-                key = _sample_key(fields)
-                self._fused_seq.pop(key, None)
-                self._fused_seq[key] = (stamp, fields.get("distance"))
-                # the samples of the last `history` seconds only: a copy comes with its
-                # original, while a sender restarted later reuses older seqs for new samples
-                while len(self._fused_seq) > max(8, math.ceil(self.history / self.period)):
-                    del self._fused_seq[next(iter(self._fused_seq))]
+                self._order.fuse(_sample_key(fields), stamp, fields.get("distance"))
             pos = getattr(self.adapter, "position_reading", None)
             gate = R.category(reason) == R.OUTSIDE_GATE if reason else False
             mapped = getattr(self.adapter, "monitor_fields", None)

@@ -26,9 +26,10 @@ untouched: ``non_finite``, ``non_positive_variance``, ``out_of_order``, ``duplic
 ``unknown_balise``, ``balise_map_mismatch``, ``outside_gate`` (normalised innovation
 ``|nu_i| / sqrt(S_ii) > gate`` on any channel, S from the filter's own covariance / bound),
 ``future_stamp`` (more than ``max_horizon`` ahead), ``numerical_failure`` -- the names of
-``core/reasons.py``. Order is by stamp; ``seq`` marks duplicates only, and a ``seq`` that goes
-back while the stamp goes on (a sensor reset, a wrap-around) is accepted and counted as
-``seq_reset``.
+``core/reasons.py``. Duplicates, order and the horizon are judged by the estimator's
+:class:`~..numerics.stamp_order.StampOrder` (order by stamp; ``seq`` marks duplicates only, and
+a ``seq`` that goes back while the stamp goes on, a sensor reset or a wrap-around, is accepted
+and counted as ``seq_reset``).
 
 Lost packets are not bad input: an odometer slot with ``received=False`` is accepted with
 reason ``missing``. Accepted ``predict_to``/``set_control`` calls are not counted.
@@ -46,6 +47,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .. import reasons as R
+from ..numerics.stamp_order import StampOrder
 from .readings import BaliseReading, Decision, OdometerReading
 from .robust_steps import Measurement
 from .wen_model import Actuator, WenModel
@@ -119,8 +121,7 @@ class FilterBase:
         self.P = np.asarray(P0, dtype=float).copy()
         self.t = float(t0)
         self.counters: Counter = Counter()
-        self._last_seq: dict[str, int] = {}
-        self._last_stamp: dict[str, float] = {}
+        self.order = StampOrder(params.max_horizon)  # readings and commands taken (order)
         # Control history -> input of each step. Without a brake model (or actuator=False) the
         # step [t0, t1) uses the last command issued at or before t0 (Wen's ZOH u(kT)), so the
         # result does not depend on whether a command stamped t1 is fed before the reading at t1.
@@ -162,10 +163,10 @@ class FilterBase:
     def set_control(self, stamp: float, target_acceleration: float) -> Decision:
         if not _finite(stamp, target_acceleration):
             return self._decide(False, R.NON_FINITE)
-        last = self._last_stamp.get("control", -math.inf)
-        if stamp < last:
-            return self._decide(False, R.OUT_OF_ORDER)
-        self._last_stamp["control"] = float(stamp)
+        why = self.order.judge("control", stamp)  # commands in order among themselves
+        if why:
+            return self._decide(False, why)
+        self.order.took("control", float(stamp))
         self.actuator.command(stamp, target_acceleration)
         return Decision(True, R.OK)  # accepted commands are not counted (rejections are)
 
@@ -175,10 +176,9 @@ class FilterBase:
         as a command issued at the current filter time first."""
         if not _finite(t) or (control is not None and not _finite(control)):
             return self._decide(False, R.NON_FINITE)
-        if t < self.t:
-            return self._decide(False, R.OUT_OF_ORDER)
-        if t - self.t > self.params.max_horizon:
-            return self._decide(False, R.FUTURE_STAMP)
+        why = self.order.judge(None, t, t=self.t)
+        if why:
+            return self._decide(False, why)
         if control is not None:
             self.set_control(self.t, control)
         self.x, self.P, self.actuator = self._propagate(t)
@@ -212,29 +212,14 @@ class FilterBase:
         raise NotImplementedError
 
     # -- measurement update --------------------------------------------------------------------
-    def _validate_order(self, kind: str, stamp: float, seq: int) -> str | None:
-        """Order by stamp; ``seq`` only marks duplicates. A seq that goes back while the stamp
-        goes on is a sensor reset or a wrap-around: accepted, counted as ``seq_reset``."""
-        if stamp < self.t:
-            return R.OUT_OF_ORDER
-        if stamp - self.t > self.params.max_horizon:  # a clock error, not a long outage
-            return R.FUTURE_STAMP
-        last_seq = self._last_seq.get(kind)
-        last_stamp = self._last_stamp.get(kind)
-        if last_seq is not None and (seq == last_seq or stamp == last_stamp):
-            return R.DUPLICATE
-        if last_stamp is not None and stamp < last_stamp:
-            return R.OUT_OF_ORDER
-        return None
-
     def _check(self, kind: str, reading, values: tuple, variance: float | None) -> str | None:
         """The checks every reading gets: finite stamp and values, an integer seq, a positive
-        stated variance, then the order (:meth:`_validate_order`). None when it passes."""
+        stated variance, then the order (:class:`StampOrder`). None when it passes."""
         if not _finite(reading.stamp, *values) or not isinstance(reading.seq, (int, np.integer)):
             return R.NON_FINITE
         if variance is not None and variance <= 0.0:
             return R.NON_POSITIVE_VARIANCE
-        return self._validate_order(kind, reading.stamp, int(reading.seq))
+        return self.order.judge(kind, reading.stamp, int(reading.seq), self.t) or None
 
     def _odometer_check(self, reading: OdometerReading) -> str | None:
         """The reason an odometer reading is refused before the gate (its own checks and its
@@ -311,10 +296,8 @@ class FilterBase:
         if not (np.all(np.isfinite(x)) and _finite_or_nan_cov(P)):
             return self._decide(False, R.NUMERICAL_FAILURE)  # keep the old state
         self.x, self.P, self.actuator, self.t = x, P, act, float(reading.stamp)
-        if self._last_seq.get(kind, -1) > int(reading.seq):
+        if self.order.took(kind, float(reading.stamp), int(reading.seq)):
             self.counters[R.SEQ_RESET] += 1
-        self._last_seq[kind] = int(reading.seq)
-        self._last_stamp[kind] = float(reading.stamp)
         received = bool(np.any(meas.mask))
         if kind == "odometer" and received:
             self._speed_var = float(reading.speed_variance)

@@ -174,8 +174,7 @@ class FOHFilter(FilterBase):
         if kind == "balise":  # time moves on (as for the other filters), data unused
             self.x = np.array([self._extrapolate(0, t), self._extrapolate(1, t)])
             self.t = t
-            self._last_seq[kind] = int(reading.seq)
-            self._last_stamp[kind] = t
+            self.order.took(kind, t, int(reading.seq))
             return self._decide(True, R.IGNORED)
         hist = [list(h) for h in self._hist]
         for row, y, ok in zip(meas.C, meas.y, meas.mask):
@@ -188,8 +187,7 @@ class FOHFilter(FilterBase):
         self._hist = hist
         self.x = np.array([self._extrapolate(0, t), self._extrapolate(1, t)])
         self.t = t
-        self._last_seq[kind] = int(reading.seq)
-        self._last_stamp[kind] = t
+        self.order.took(kind, t, int(reading.seq))
         received = bool(np.any(meas.mask))
         self._used |= received
         return self._decide(True, R.OK if received else R.MISSING)
