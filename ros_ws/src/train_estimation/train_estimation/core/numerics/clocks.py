@@ -939,7 +939,7 @@ class StepWatch:
         self.env_level = envelope.level(false_step_rate, period, TREND_N)
         # ... and the phase's: a stamp on it is judged off it at most as often (one per reading)
         self.phase_level = false_step_rate * period / 3600.0
-        self._phase: tuple = (-1, None)  # (admissions, phase()) cached
+        self._phase: tuple = (-min_judged, None)  # (admissions, phase()) when last fitted
         self.step_risk = step_risk  # -, the probability that readings held as a step are
         #   declared one while the old clock's readings were only lost (:func:`silence_risk`)
         self.trend_risk = trend_risk  # -, the probability that a true step's held readings
@@ -1034,12 +1034,12 @@ class StepWatch:
         (``PHASE_RES``). ``tol`` is Student's t quantile (the spread estimated from the
         stamps) at which a stamp on the phase lies beyond it with probability
         ``phase_level``: one reading judged each ``period``, so at most ``false_step_rate``
-        per hour. A clock step moves the stamps themselves: by a fraction of a period it puts
+        per hour. Refitted every ``min_judged`` stamps admitted. A clock step moves the stamps themselves: by a fraction of a period it puts
         every later one off the phase, however small the step and whatever the link's jitter
         (a -0.1 s step at 1 Hz moved the offsets within a 50 ms link's jitter, and nothing
         else saw it); a latency that moves leaves them on it (:meth:`_stamps_ran_on`)."""
-        if self._phase[0] == self._n_admitted:
-            return self._phase[1]
+        if self._n_admitted - self._phase[0] < self.min_judged:
+            return self._phase[1]  # refitted every min_judged stamps: it moves by far less
         out, p0 = None, self.stamp_period(self.min_judged)
         if p0:
             adm = self._admitted
@@ -1560,10 +1560,9 @@ class StepWatch:
             yield ADMIT, (k, st, f, rc, ar)
 
     # -- the integrity monitor's view -----------------------------------------------------
-    def doubt(self, drift: float = 0.0) -> tuple[int, float, bool]:
+    def doubt(self) -> tuple[int, float, bool]:
         """(odometer readings held, the largest discontinuity among the held readings (s), and
-        whether one of them is conclusive: :meth:`_conclusive`; ``drift`` the train clock's
-        rate minus 1 as the runner uses it, 0 on one clock)."""
+        whether one of them is conclusive: :meth:`_conclusive`)."""
         s0, a0 = self.last
         odo = [h for h in self.held if h[0] == "odometer"]
         doubt = max((abs(h[1] - s0 - (h[4] - a0)) for h in self.held), default=0.0)
@@ -1571,18 +1570,18 @@ class StepWatch:
         # a held reading the grid places is off it, and in doubt at once
         rs = [self._resid(*h[:3]) for h in odo]
         doubt = max([doubt] + [abs(r) for r in rs if r is not None])
-        return len(odo), doubt, any(r is not None or self._conclusive(h[1], h[3], h[4], drift)
+        return len(odo), doubt, any(r is not None or self._conclusive(h[1], h[3], h[4])
                                     for h, r in zip(odo, rs))
 
-    def _conclusive(self, stamp: float, recv, arrival, drift: float = 0.0) -> bool:
+    def _conclusive(self, stamp: float, recv, arrival) -> bool:
         """One held odometer reading that no lateness explains: stamped above its clock's
         centre (latency only lowers stamp - arrival), or behind the newest one on a slot already
         fused, or where readings were fused at the slot's pace all along (a late reading fills
         a slot that has none).
         Not yet a step (:func:`is_step` decides), but the estimate is in doubt at once: at 1 Hz,
         waiting for a second reading left one estimate wrong-side after a -3 s step. With a
-        period over 0.5 s so is any held reading not stamped on the stream's grid at a slot not
-        yet filled (below); ``drift`` spaces that grid."""
+        period over 0.5 s so is any held reading not on the stream's sampling phase at a slot
+        not yet filled (below)."""
         if recv is not None and self.clock.above(stamp - arrival) > self.back:
             return True
         adm = self._admitted
@@ -1602,14 +1601,10 @@ class StepWatch:
             # one alone held was 790 m behind the train)
             return True
         # A slow odometer: the next reading, which decides, comes later than an alarm may
-        # wait, so a held reading is in doubt at once -- except one stamped on the stream's
-        # grid (within small_step) at a slot not yet filled: a late reading of the slot it was
-        # due for (a latency tail). A backward step lands there only if smaller than
-        # small_step (not told from jitter anyway); a larger one lands off the grid or on a
+        # wait, so a held reading is in doubt at once -- except one on the stream's sampling
+        # phase (:meth:`phase`) at a slot not yet filled: a late reading of the slot it was
+        # due for (a latency tail). A backward step lands there only by whole periods, on a
         # slot already fused. (Every held reading at 1 Hz was in doubt: a 1 s latency cap cost
         # 9 % of the estimates.)
-        if i == 0:
-            return True
-        pace = self.period * (1.0 + drift)
-        k = round((stamp - adm[i - 1]) / pace)
-        return k < 1 or abs(stamp - adm[i - 1] - k * pace) > self.small_step
+        ph, off = self.phase(), self.phase_resid(stamp)
+        return i == 0 or ph is None or stamp - adm[i - 1] < 0.5 * ph[0] or abs(off) > ph[3]
