@@ -1020,26 +1020,27 @@ class StepWatch:
 
     def phase(self) -> tuple | None:
         """The stream's sampling phase, measured from the recent odometer stamps admitted:
-        ``(P, s1, c, tol)``, a stamp on it lying ``c`` s past the newest ``s1`` plus a whole
-        number of periods ``P`` (s) up to the sampling scatter, and the residual beyond which
-        a stamp lies off it; None before ``min_judged`` steps, or without a phase (stamps
-        scattered over the period).
+        ``(P, s1, c, tol)``: a stamp on it lies ``c`` s past the newest ``s1`` plus a whole
+        number of periods ``P`` (s), up to the sampling scatter, and one whose residual is
+        beyond ``tol`` lies off it; None before ``min_judged`` steps, or without a phase
+        (stamps scattered over the period). Refitted every ``min_judged`` stamps admitted.
 
         The model: ``stamp = s1 + c + P k + e`` (``k`` whole: lost samples skip some), ``e``
-        the sampling scatter, Gaussian of spread ``sd`` -- a sampling loop's own timing, not the
-        link's: the stamp is taken where the sample is. Each stamp's ``k`` is counted from its
+        the sampling scatter, Gaussian -- a sampling loop's own timing, not the link's: the
+        stamp is taken where the sample is. Each stamp's ``k`` is counted from its
         neighbour's (a period known to a stamp's scatter would misplace the stamps of two
-        minutes), ``P`` the median slope between stamps half the window apart, ``c`` the
-        median residual, ``sd`` their robust spread, at least the stamps' resolution
+        minutes), ``P`` is the median slope between stamps half the window apart, ``c`` the
+        median residual, the scatter their robust spread, at least the stamps' resolution
         (``PHASE_RES``). ``tol`` is Student's t quantile (the spread estimated from the
-        stamps) at which a stamp on the phase lies beyond it with probability
-        ``phase_level``: one reading judged each ``period``, so at most ``false_step_rate``
-        per hour. Refitted every ``min_judged`` stamps admitted. A clock step moves the stamps themselves: by a fraction of a period it puts
-        every later one off the phase, however small the step and whatever the link's jitter
-        (a -0.1 s step at 1 Hz moved the offsets within a 50 ms link's jitter, and nothing
-        else saw it); a latency that moves leaves them on it (:meth:`_stamps_ran_on`)."""
+        stamps) beyond which a stamp on the phase lies with probability ``phase_level``: one
+        reading judged each ``period``, so at most ``false_step_rate`` per hour.
+
+        A clock step moves the stamps themselves: by a fraction of a period it puts every
+        later one off the phase, however small the step and whatever the link's jitter (a
+        -0.1 s step at 1 Hz moved the offsets within a 50 ms link's jitter, and nothing else
+        saw it); a latency that moves leaves them on it (:meth:`_stamps_ran_on`)."""
         if self._n_admitted - self._phase[0] < self.min_judged:
-            return self._phase[1]  # refitted every min_judged stamps: it moves by far less
+            return self._phase[1]  # (it moves by far less than its tolerance meanwhile)
         out, p0 = None, self.stamp_period(self.min_judged)
         if p0:
             adm = self._admitted
