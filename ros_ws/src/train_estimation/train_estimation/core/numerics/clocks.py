@@ -921,7 +921,10 @@ class StepWatch:
     decides first: a reading on the grid is continuous however late it arrives, one off it is
     discontinuous however small the move, held readings belong to one new clock when their grid
     residuals agree, and the step is their median residual (``measured``, to the sampling
-    jitter). A jittery link then neither hides a small step nor breaks a step's chain.
+    jitter). A jittery link then neither hides a small step nor breaks a step's chain. Without
+    it the stamps' sampling phase (:meth:`phase`) does the same for a step by a fraction of a
+    period: a reading off the phase is discontinuous, held readings on one residual off it are
+    a step whatever their offsets, and every step is put onto the phase when measured.
 
     The runner keeps admission (duplicates, sequence numbers, ``max_future``, the offsets' votes)
     and acts; this decides. :meth:`watch` answers one reading with a sequence of actions,
