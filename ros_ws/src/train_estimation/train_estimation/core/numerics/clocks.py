@@ -1022,26 +1022,22 @@ class StepWatch:
         return median(st) if st.size >= n_min else None
 
     def phase(self) -> tuple | None:
-        """The stream's sampling phase, measured from the recent odometer stamps admitted:
-        ``(P, s1, c, tol)``: a stamp on it lies ``c`` s past the newest ``s1`` plus a whole
-        number of periods ``P`` (s), up to the sampling scatter, and one whose residual is
-        beyond ``tol`` lies off it; None before ``min_judged`` steps, or without a phase
-        (stamps scattered over the period). Refitted every ``min_judged`` stamps admitted.
+        """The stream's sampling phase from the recent odometer stamps admitted, ``(P, s1, c,
+        tol)``: a stamp on it lies ``c`` s past the newest ``s1`` plus whole periods ``P``
+        (s), one whose residual is beyond ``tol`` lies off it; None before ``min_judged`` steps
+        or without a phase (stamps scattered over the period). Refitted every ``min_judged``.
 
-        The model: ``stamp = s1 + c + P k + e`` (``k`` whole: lost samples skip some), ``e``
-        the sampling scatter, Gaussian -- a sampling loop's own timing, not the link's: the
-        stamp is taken where the sample is. Each stamp's ``k`` is counted from its
-        neighbour's (a period known to a stamp's scatter would misplace the stamps of two
-        minutes), ``P`` is the median slope between stamps half the window apart, ``c`` the
-        median residual, the scatter their robust spread, at least the stamps' resolution
-        (``PHASE_RES``). ``tol`` is Student's t quantile (the spread estimated from the
-        stamps) beyond which a stamp on the phase lies with probability ``phase_level``: one
-        reading judged each ``period``, so at most ``false_step_rate`` per hour.
-
-        A clock step moves the stamps themselves: by a fraction of a period it puts every
-        later one off the phase, however small the step and whatever the link's jitter (a
-        -0.1 s step at 1 Hz moved the offsets within a 50 ms link's jitter, and nothing else
-        saw it); a latency that moves leaves them on it (:meth:`_stamps_ran_on`)."""
+        The model: ``stamp = s1 + c + P k + e``, ``k`` whole (lost samples skip some), ``e``
+        the sampling loop's own Gaussian scatter, not the link's (the stamp is taken with the
+        sample). ``k`` is counted from the neighbour's (a period known to a stamp's scatter
+        misplaces the stamps of two minutes), ``P`` is the median slope between stamps half
+        the window apart, ``c`` the median residual, the scatter their robust spread, at least
+        the stamps' resolution ``PHASE_RES``; ``tol`` its Student's t quantile at
+        ``phase_level``: one reading judged per period, off the phase while on it at most
+        ``false_step_rate`` times an hour. A step by a fraction of a period puts every later
+        stamp off the phase, whatever the link's jitter (a -0.1 s step at 1 Hz moved the
+        offsets within a 50 ms link's jitter, and nothing else saw it); a latency that moves
+        leaves them on it (:meth:`_stamps_ran_on`)."""
         if self._n_admitted - self._phase[0] < self.min_judged:
             return self._phase[1]  # (it moves by far less than its tolerance meanwhile)
         out, p0 = None, self.stamp_period(self.min_judged)
@@ -1399,18 +1395,14 @@ class StepWatch:
 
     def _stamps_ran_on(self, chain: list, s0: float) -> bool:
         """Whether the held odometer readings' stamps continue the old clock's stream: each on
-        its sampling phase (:meth:`phase`) and after its newest stamp ``s0``, or at or before it
-        only in a slot the stream never filled (a slower route's first readings reordered by
-        the link), within its memory. Their offsets fell (arrivals later against stamps) by as
-        much as a backward step would move them, but a step moves the stamps themselves: back
-        by a fraction of a period, they lie off the phase; by whole periods, its first readings
-        take the stamps of readings already admitted. A link whose latency rose and stays (a
-        handover to a slower route) leaves the stamps where they were. Taken for a -1.5 s step
-        without a sample counter, crh3_high_speed's estimates were published 1.5 s off their
-        content, up to 119 m from the train. (A step by a whole number of periods whose first
-        readings were all lost reads as one too: at 10 Hz with 5 % of the readings lost, a
-        -0.5 s step one time in 3e7.) With a counter the grid decides first; without a
-        measured phase this is a step."""
+        its sampling phase (:meth:`phase`), after its newest stamp ``s0`` or else in a slot the
+        stream never filled, within its memory (a slower route's first readings reordered by
+        the link). Their offsets fell as a backward step's would, but a step moves the stamps:
+        by a fraction of a period off the phase, by whole ones onto slots already admitted; a
+        latency that rose and stays (a slower route) leaves them where they were. Taken for a
+        -1.5 s step without a counter, crh3_high_speed's estimates were up to 119 m off. (A
+        step by whole periods whose first readings were all lost reads as one too: at 10 Hz
+        with 5 % lost, a -0.5 s step one time in 3e7.) Without a measured phase: a step."""
         ph = self.phase()
         if ph is None:
             return False
