@@ -140,15 +140,20 @@ def test_a_reading_sampled_before_the_held_ones_arrived_does_not_release_them():
 
 
 def test_at_1_hz_a_late_reading_on_the_grid_is_no_doubt():
-    """At 1 Hz a held reading stamped on the stream's grid at a slot not yet filled is a late
-    one (no doubt); one off the grid (a backward step) or on a slot already fused is in doubt
-    at once; the grid is spaced by the drift given."""
+    """At 1 Hz a held reading stamped on the stream's sampling phase at a slot not yet filled
+    is a late one (no doubt); one off the phase (a backward step) or on a slot already fused is
+    in doubt at once; the phase is the stamps' own, whatever the nominal period."""
     f = Feed(period=1.0)
     f.run_on(0, 40)
     late = 1000.0 + 40.0
     assert f.push(late, late + LATENCY + 0.5) == [(HOLD,)]  # below the centre: held
     assert f.w.doubt() == (1, pytest.approx(0.5), False)
-    assert f.w.doubt(drift=0.1)[2]  # 1.1 s apart, the grid puts no reading at late
+    for late, doubt in ((1000.0 + 40 * 1.1, False), (1000.0 + 39 * 1.1 + 1.0, True)):
+        g = Feed(period=1.0)
+        g.period = 1.1  # stamps 1.1 s apart (a clock 10 % fast): their phase, not the nominal
+        g.run_on(0, 40)
+        assert g.push(late, late + LATENCY + 0.5) == [(HOLD,)]
+        assert g.w.doubt()[2] == doubt
     f = Feed(period=1.0)
     f.run_on(0, 40)
     off = 1000.0 + 39.0 + 0.7  # 0.3 s back, off the grid

@@ -51,14 +51,17 @@ class Recorder:
 
 
 def cruise(duration: float, rate: float, loss: float, counter: bool,
-           rng: np.random.Generator) -> list:
+           rng: np.random.Generator, sampling: float = 0.0) -> list:
     """``(topic, t, fields)`` of a train at :data:`SPEED`: odometer readings at ``rate`` Hz
     (``seq`` the sample counter, or 0 for every reading without one) of which ``loss`` are lost
-    at random, and a command every second."""
+    at random, and a command every second. ``sampling``: s, the sampling loop's own jitter:
+    each sample is taken (and stamped) a Gaussian of this spread off its slot."""
     ev = []
     n = int(round(duration * rate))
-    for k in np.flatnonzero(rng.random(n) >= loss):
-        t = k / rate
+    kept = np.flatnonzero(rng.random(n) >= loss)
+    late = rng.normal(0.0, sampling, kept.size) if sampling else np.zeros(kept.size)
+    for k, dt in zip(kept, late):
+        t = k / rate + float(dt)
         ev.append(("odometer", t, {"seq": int(k) if counter else 0, "distance": SPEED * t,
                                    "speed": SPEED, "speed_variance": 0.01}))
     ev += [("control", float(j), {"target_acceleration": 0.0})
@@ -68,7 +71,8 @@ def cruise(duration: float, rate: float, loss: float, counter: bool,
 
 def run_link(duration: float, rate: float, counter: bool, jitter: float, loss: float,
              step: float | None, seed: int, queue: float | None = None,
-             route: float | None = None, shape: str = "exp", drift: float = 0.0) -> dict:
+             route: float | None = None, shape: str = "exp", drift: float = 0.0,
+             sampling: float = 0.0) -> dict:
     """One replay (module doc); the figures of one row. ``queue``: the drain factor of a link
     that queues (the campaign's fault ``queue``, from 15 s on; no step then); ``route``: s by
     which the link's latency rises at :data:`STEP_AT` and stays (the fault ``route``; no
@@ -76,9 +80,9 @@ def run_link(duration: float, rate: float, counter: bool, jitter: float, loss: f
     ``jitter``) or ``gamma`` (Gamma of shape 4 and the same mean: a latency that seldom comes
     near its floor, so that the offsets' envelope is blunt); ``drift``: s/s, the train clock runs
     at ``1 + drift`` against the commands' and the arrivals' clock (the fault ``drift``; no step
-    then)."""
+    then); ``sampling``: s, the sampling loop's jitter on the stamps (:func:`cruise`)."""
     rng = np.random.default_rng(seed)
-    events = cruise(duration, rate, loss, counter, rng)
+    events = cruise(duration, rate, loss, counter, rng, sampling)
     if shape not in ("exp", "gamma"):
         raise ValueError(f"shape must be exp or gamma, got {shape!r}")
     link = jitter if shape == "exp" else 0.0

@@ -613,8 +613,8 @@ def t_spread(dof: int) -> float:
 
 PASS, HOLD, ADMIT, REFUSE, STEP, SKIP = "pass", "hold", "admit", "refuse", "step", "skip"
 LATENCY = "latency"  # the step watch's answer: the link's latency moved, not the clock
-PHASE_TOL = 0.1  # sample periods: a stamp this near a whole number of periods from another lies
-#   on its stream's sampling grid (stamps are sampling times: their own jitter is far less)
+PHASE_RES = 1e-6  # s: the stamps' resolution, the least scatter of a stream's sampling phase
+#   (StepWatch.phase): a float Unix time resolves 2.4e-7 s, a ROS stamp 1e-9 s
 
 
 class SampleGrid:
@@ -921,7 +921,10 @@ class StepWatch:
     decides first: a reading on the grid is continuous however late it arrives, one off it is
     discontinuous however small the move, held readings belong to one new clock when their grid
     residuals agree, and the step is their median residual (``measured``, to the sampling
-    jitter). A jittery link then neither hides a small step nor breaks a step's chain.
+    jitter). A jittery link then neither hides a small step nor breaks a step's chain. Without
+    it the stamps' sampling phase (:meth:`phase`) does the same for a step by a fraction of a
+    period: a reading off the phase is discontinuous, held readings on one residual off it are
+    a step whatever their offsets, and every step is put onto the phase when measured.
 
     The runner keeps admission (duplicates, sequence numbers, ``max_future``, the offsets' votes)
     and acts; this decides. :meth:`watch` answers one reading with a sequence of actions,
@@ -937,6 +940,9 @@ class StepWatch:
         self.period = period  # s, nominal odometer period
         # the envelope test's p-value for a step: false steps at most false_step_rate per hour
         self.env_level = envelope.level(false_step_rate, period, TREND_N)
+        # ... and the phase's: a stamp on it is judged off it at most as often (one per reading)
+        self.phase_level = false_step_rate * period / 3600.0
+        self._phase: tuple = (-min_judged, None)  # (admissions, phase()) when last fitted
         self.step_risk = step_risk  # -, the probability that readings held as a step are
         #   declared one while the old clock's readings were only lost (:func:`silence_risk`)
         self.trend_risk = trend_risk  # -, the probability that a true step's held readings
@@ -956,6 +962,7 @@ class StepWatch:
         self.held: list = []  # (kind, stamp, fields, recv, arrival, refused): discontinuous
         self._pushed: tuple | None = None  # (stamp, arrival) of the last odometer watched
         self._admitted: list = []  # sorted recent odometer stamps admitted
+        self._n_admitted = 0  # odometer readings admitted so far
         self._sent: dict = {}  # timeline odometer stamp -> stamp as sent (after a step)
         self.grid = SampleGrid(period, min_judged)  # odometer stamps against their seq
         self._dist: tuple | None = None  # (stamp, counted distance, seq) of the newest fused
@@ -991,6 +998,7 @@ class StepWatch:
             self.last = (stamp, arrival)
         bisect.insort(self._admitted, stamp)
         del self._admitted[:-128]
+        self._n_admitted += 1
 
     def _silent(self, n: int) -> bool:
         """``n`` held readings are enough for a step at ``step_risk``: the old clock's silence
@@ -1012,6 +1020,68 @@ class StepWatch:
         st = np.diff(np.asarray(self._admitted, float))
         st = st[st > 0]
         return median(st) if st.size >= n_min else None
+
+    def phase(self) -> tuple | None:
+        """The stream's sampling phase from the recent odometer stamps admitted, ``(P, s1, c,
+        tol)``: a stamp on it lies ``c`` s past the newest ``s1`` plus whole periods ``P``
+        (s), one whose residual is beyond ``tol`` lies off it; None before ``min_judged`` steps
+        or without a phase (stamps scattered over the period). Refitted every ``min_judged``.
+
+        The model: ``stamp = s1 + c + P k + e``, ``k`` whole (lost samples skip some), ``e``
+        the sampling loop's own Gaussian scatter, not the link's (the stamp is taken with the
+        sample). ``k`` is counted from the neighbour's (a period known to a stamp's scatter
+        misplaces the stamps of two minutes), ``P`` is the median slope between stamps half
+        the window apart, ``c`` the median residual, the scatter their robust spread, at least
+        the stamps' resolution ``PHASE_RES``; ``tol`` its Student's t quantile at
+        ``phase_level``: one reading judged per period, off the phase while on it at most
+        ``false_step_rate`` times an hour. A step by a fraction of a period puts every later
+        stamp off the phase, whatever the link's jitter (a -0.1 s step at 1 Hz moved the
+        offsets within a 50 ms link's jitter, and nothing else saw it); a latency that moves
+        leaves them on it (:meth:`_stamps_ran_on`)."""
+        if self._n_admitted - self._phase[0] < self.min_judged:
+            return self._phase[1]  # (it moves by far less than its tolerance meanwhile)
+        out, p0 = None, self.stamp_period(self.min_judged)
+        if p0:
+            adm = self._admitted
+            a = np.asarray(adm, float) - adm[-1]
+            k = np.concatenate(([0.0], np.cumsum(np.round(np.diff(a) / p0))))
+            h = len(a) // 2
+            dk = k[h:] - k[:len(k) - h]
+            P = median((a[h:] - a[:len(a) - h])[dk > 0] / dk[dk > 0])
+            e = a - P * (k - k[-1])
+            c = median(e)
+            sd = max(1.4826 * median(np.abs(e - c)), PHASE_RES)
+            tol = -float(stdtrit(max(len(a) - 2, 1), 0.5 * self.phase_level)) * sd
+            if tol < 0.25 * P:
+                out = (P, adm[-1], c, tol)
+        self._phase = (self._n_admitted, out)
+        return out
+
+    def phase_resid(self, stamp: float) -> float | None:
+        """How far (s) ``stamp`` lies from the stream's sampling phase (:meth:`phase`), within
+        half a period either side; None while it is not measured."""
+        ph = self.phase()
+        if ph is None:
+            return None
+        P, s1, c, _ = ph
+        x = (stamp - s1) - c
+        return x - P * round(x / P)
+
+    def _chain_phase(self, chain: list) -> tuple | None:
+        """``(r, off)``: the held odometer readings' common residual on the stream's phase (s)
+        and whether it lies off it, when their residuals agree (within the phase's tolerance
+        of one another: one clock), else None."""
+        ph = self.phase()
+        if ph is None or not chain:
+            return None
+        P, tol = ph[0], ph[3]
+        rr = [self.phase_resid(h[1]) for h in chain]
+        d = [x - rr[0] - P * round((x - rr[0]) / P) for x in rr]
+        if max(d) - min(d) > 2.0 * tol:
+            return None
+        r = rr[0] + median(d)
+        r -= P * round(r / P)
+        return r, abs(r) > tol
 
     def fused(self, stamp: float, distance, seq=None) -> None:
         """The filter fused this odometer reading (timeline stamp, counted distance m, its
@@ -1106,6 +1176,11 @@ class StepWatch:
         seq = fields.get("seq") if isinstance(fields, dict) else None
         if r is not None:
             continuous = abs(r) <= self.grid.tol_at(seq)
+        elif continuous and kind == "odometer":
+            # without the grid, the stamps' sampling phase (:meth:`phase`): a reading off it is
+            # not the stream's clock as it was, however small the move
+            off = self.phase_resid(stamp)
+            continuous = off is None or abs(off) <= self.phase()[3]
         # above the old clock's ceiling, on the clock of readings held as a forward step
         on_new = kind == "odometer" and self._above_old(chain, stamp - arrival, recv, bar)
         if continuous and r is None and on_new:
@@ -1164,6 +1239,7 @@ class StepWatch:
         shift = first - (s0 + max(a_first - a0, self.period))
         offs = sorted(h[1] - h[4] for h in chain)  # the new clock's offsets (stamp - arrival)
         new_off = offs[len(offs) // 2]
+        ph = self._chain_phase(chain) if rs is None else None
         p_trend = self._returning(chain, med) if rs is None else 1.0
         if p_trend <= self.trend_risk:
             # the held readings drift back towards the old clock: a queue draining (a link
@@ -1176,10 +1252,13 @@ class StepWatch:
         if p_trend <= TREND_WAIT:  # undecided: the next readings tell
             yield (PASS, stamp) if refused else (HOLD,)
             return
-        env = self._envelope(chain, bar, drift) if rs is None else None
+        off = ph is not None and ph[1]
+        env = self._envelope(chain, bar, drift) if rs is None and not off else None
         if rs is not None:
             # the grid measures the step exactly (the link's jitter does not enter)
             shift = rs[len(rs) // 2]
+        elif off:
+            pass  # off the stream's phase together: a step, whatever its size (measured below)
         elif env is not None:
             # on the envelope: min_judged of them above the old ceiling (more than the longest
             # burst of alike wrong stamps covered), as unlikely under one clock as the stated
@@ -1219,7 +1298,7 @@ class StepWatch:
         measured = all(h[3] is not None for h in chain) and len(med) >= self.min_judged
         # the new clock's offsets less the old clock's, carried to the held readings' middle
         moved = new_off - med.now(chain[len(chain) // 2][4]) if measured else math.nan
-        if rs is None and env is None and measured and shift < 0 and \
+        if rs is None and env is None and not off and measured and shift < 0 and \
                 self._stamps_ran_on(chain, s0):
             # the stamps ran on where the old clock's would have: the link's latency rose and
             # stays (a route change), not the clock (module doc of _stamps_ran_on)
@@ -1237,6 +1316,12 @@ class StepWatch:
             # 0.17 s with 50 ms of exponential jitter, the kf 55 estimates wrong-side once
             # re-anchored)
             shift = moved
+        if ph is not None:
+            # the stamps' phase measures the step's part of a period exactly, the arrivals (or
+            # the stamps' jump) how many whole periods it adds; so the stamps mapped stay on
+            # the stream's phase
+            P = self.phase()[0]
+            shift = ph[0] + P * round((shift - ph[0]) / P)
         self.shift += shift
         old = self.shift - shift
         if rs is None:  # measured otherwise: the grid's stamps may no longer continue
@@ -1309,30 +1394,25 @@ class StepWatch:
         return kendall_tail(n, math.ceil(inv))
 
     def _stamps_ran_on(self, chain: list, s0: float) -> bool:
-        """Whether the held odometer readings' stamps continue the old clock's stream: each
-        after its last stamp ``s0`` by a whole number of sample periods (within
-        ``PHASE_TOL``). Their offsets fell (arrivals later against stamps) by as much as a
-        backward step would move them, but a step moves the stamps themselves: back by more
-        than a period, the first readings after it take the stamps of readings already
-        admitted; by less, or by a fraction of one, they lie off the stream's sampling phase.
-        A link whose latency rose and stays (a handover to a slower route) leaves the stamps
-        where they were. Taken for
-        a -1.5 s step without a sample counter, crh3_high_speed's estimates were published
-        1.5 s off their content, up to 119 m from the train. (A step by a whole number of
-        periods whose first readings were all lost reads as one too: at 10 Hz with 5 % of
-        the readings lost, a -0.5 s step one time in 3e7.) With a counter the grid decides
-        first."""
-        p = self.stamp_period(self.min_judged) or self.period
-        adm, tol = self._admitted, PHASE_TOL * p
+        """Whether the held odometer readings' stamps continue the old clock's stream: each on
+        its sampling phase (:meth:`phase`), after its newest stamp ``s0`` or else in a slot the
+        stream never filled, within its memory (a slower route's first readings reordered by
+        the link). Their offsets fell as a backward step's would, but a step moves the stamps:
+        by a fraction of a period off the phase, by whole ones onto slots already admitted; a
+        latency that rose and stays (a slower route) leaves them where they were. Taken for a
+        -1.5 s step without a counter, crh3_high_speed's estimates were up to 119 m off. (A
+        step by whole periods whose first readings were all lost reads as one too: at 10 Hz
+        with 5 % lost, a -0.5 s step one time in 3e7.) Without a measured phase: a step."""
+        ph = self.phase()
+        if ph is None:
+            return False
+        P, tol, adm = ph[0], ph[3], self._admitted
         for h in chain:
-            k = (h[1] - s0) / p
-            if abs(k - round(k)) > PHASE_TOL:
+            if not abs(self.phase_resid(h[1])) <= tol:
                 return False
-            if k < 0.5:
-                # at or before the newest stamp (a slower route's first readings reordered by
-                # the link): only into a slot the stream never filled, within its memory
+            if h[1] < s0 + 0.5 * P:
                 i = bisect.bisect_left(adm, h[1] - tol)
-                if not adm or h[1] < adm[0] - tol or i < len(adm) and adm[i] <= h[1] + tol:
+                if h[1] < adm[0] - tol or i < len(adm) and adm[i] <= h[1] + tol:
                     return False
         return True
 
@@ -1476,10 +1556,9 @@ class StepWatch:
             yield ADMIT, (k, st, f, rc, ar)
 
     # -- the integrity monitor's view -----------------------------------------------------
-    def doubt(self, drift: float = 0.0) -> tuple[int, float, bool]:
+    def doubt(self) -> tuple[int, float, bool]:
         """(odometer readings held, the largest discontinuity among the held readings (s), and
-        whether one of them is conclusive: :meth:`_conclusive`; ``drift`` the train clock's
-        rate minus 1 as the runner uses it, 0 on one clock)."""
+        whether one of them is conclusive: :meth:`_conclusive`)."""
         s0, a0 = self.last
         odo = [h for h in self.held if h[0] == "odometer"]
         doubt = max((abs(h[1] - s0 - (h[4] - a0)) for h in self.held), default=0.0)
@@ -1487,18 +1566,18 @@ class StepWatch:
         # a held reading the grid places is off it, and in doubt at once
         rs = [self._resid(*h[:3]) for h in odo]
         doubt = max([doubt] + [abs(r) for r in rs if r is not None])
-        return len(odo), doubt, any(r is not None or self._conclusive(h[1], h[3], h[4], drift)
+        return len(odo), doubt, any(r is not None or self._conclusive(h[1], h[3], h[4])
                                     for h, r in zip(odo, rs))
 
-    def _conclusive(self, stamp: float, recv, arrival, drift: float = 0.0) -> bool:
+    def _conclusive(self, stamp: float, recv, arrival) -> bool:
         """One held odometer reading that no lateness explains: stamped above its clock's
         centre (latency only lowers stamp - arrival), or behind the newest one on a slot already
         fused, or where readings were fused at the slot's pace all along (a late reading fills
         a slot that has none).
         Not yet a step (:func:`is_step` decides), but the estimate is in doubt at once: at 1 Hz,
         waiting for a second reading left one estimate wrong-side after a -3 s step. With a
-        period over 0.5 s so is any held reading not stamped on the stream's grid at a slot not
-        yet filled (below); ``drift`` spaces that grid."""
+        period over 0.5 s so is any held reading not on the stream's sampling phase at a slot
+        not yet filled (below)."""
         if recv is not None and self.clock.above(stamp - arrival) > self.back:
             return True
         adm = self._admitted
@@ -1518,14 +1597,10 @@ class StepWatch:
             # one alone held was 790 m behind the train)
             return True
         # A slow odometer: the next reading, which decides, comes later than an alarm may
-        # wait, so a held reading is in doubt at once -- except one stamped on the stream's
-        # grid (within small_step) at a slot not yet filled: a late reading of the slot it was
-        # due for (a latency tail). A backward step lands there only if smaller than
-        # small_step (not told from jitter anyway); a larger one lands off the grid or on a
+        # wait, so a held reading is in doubt at once -- except one on the stream's sampling
+        # phase (:meth:`phase`) at a slot not yet filled: a late reading of the slot it was
+        # due for (a latency tail). A backward step lands there only by whole periods, on a
         # slot already fused. (Every held reading at 1 Hz was in doubt: a 1 s latency cap cost
         # 9 % of the estimates.)
-        if i == 0:
-            return True
-        pace = self.period * (1.0 + drift)
-        k = round((stamp - adm[i - 1]) / pace)
-        return k < 1 or abs(stamp - adm[i - 1] - k * pace) > self.small_step
+        ph, off = self.phase(), self.phase_resid(stamp)
+        return i == 0 or ph is None or stamp - adm[i - 1] < 0.5 * ph[0] or abs(off) > ph[3]

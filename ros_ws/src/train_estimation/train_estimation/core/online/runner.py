@@ -518,7 +518,7 @@ class EstimatorRunner:
             return self._reject(kind, stamp, why)
         if watch and clock == "train" and arrival is not None and self._steps.last is not None:
             held, stamp = self._watch_step(kind, stamp, fields, recv, arrival)
-            n, doubt, conclusive = self._steps.doubt(self.drift)
+            n, doubt, conclusive = self._steps.doubt()
             self.monitor.clock(n, doubt=doubt, conclusive=conclusive)
             if held:
                 return ""
