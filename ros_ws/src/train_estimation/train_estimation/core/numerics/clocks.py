@@ -66,7 +66,7 @@ SEG_RISK = TREND_WAIT  # -, the rate at which a true move of the line's level is
 #   more point: its points scatter about one level as the line's own (chi-square at this risk)
 LINE_SPREAD = 5.0  # robust spreads of the offsets: a rate fit whose points scatter wider about
 #   their line than this (and SMALL_MOVE) mixes two levels and is not used
-DIP_REF = 0.5  # the rate fit's points' standard deviations: half the least dip of its envelope
+DIP_REF = 0.5  # the rate fit's standard errors of a point: half the least dip of its envelope
 #   (a latency that rises for a while) it watches for, the CUSUM's reference (StreamClock._off)
 DIP_RISK = 1e-4  # -, per point: the rate at which the fit's clean points start a false dip
 #   (then a few of them leave the fit)
@@ -484,9 +484,9 @@ class StreamClock:
         wanders, or one that rose and stays: the step watch's to declare, :meth:`move`), and a
         clock's rate does not wander, so the envelope's dips stay out of the fit: a point far
         below, and a run within the band that together lies below the line (a one-sided CUSUM
-        of the points' fall in ``sd``, reference ``DIP_REF``, each capped at the band, alarm at
-        :func:`dip_bar`): the points fitted since it was last 0 leave the fit, and none joins
-        until one lies within ``DIP_REF`` sd of the line again. (Fitted, a wander's climb back
+        of the points' fall in the band's standard errors, reference ``DIP_REF``, each capped at
+        the band, alarm at :func:`dip_bar`): the points fitted since it was last 0 leave the
+        fit, and none joins until one lies within ``DIP_REF`` of them below the line again. (Fitted, a wander's climb back
         read as slope: 0.4 s over two minutes, +528 ppm.) Above it latency never puts one: the
         line's level rose (the latency's floor fell, or a step within ``TOL`` that no step test
         declared). Those points are held and start a new segment of the fit (an intercept of
@@ -501,22 +501,23 @@ class StreamClock:
         _, var, _, rss, dof = self._pooled()
         sd = max(math.sqrt(rss / dof), 1e-6)
         arrival, stamp = point
-        resid = band = 0.0
+        resid, band = 0.0, LINE_SPREAD * sd
         if n1:
             # the current segment's line at this arrival: its mean point carried on the slope
             x0, y0 = f[6]
             dx = arrival - x0 - f[1] / n1
             resid = (stamp - y0 - f[2] / n1) - (1.0 + d) * dx
             band = t_spread(dof) * sd * math.sqrt(1.0 + 1.0 / n1 + dx * dx / var)
-        band = max(SMALL_MOVE, band)
+        unit, band = band / LINE_SPREAD, max(SMALL_MOVE, band)
         if resid <= band:
             self._held_points = []
             dip = self._dip
-            fall = min(-resid, band) / sd
+            fall = min(-resid, band) / unit
             if dip[2] and fall > DIP_REF:
                 return True  # the dip goes on
-            dip[0] = 0.0 if dip[2] else max(dip[0] + fall - DIP_REF, 0.0)
-            dip[2] = False
+            if dip[2]:  # back on the line: a new CUSUM from this point
+                dip[:] = [0.0, [], False]
+            dip[0] = max(dip[0] + fall - DIP_REF, 0.0)
             if dip[0] > dip_bar():
                 for a, s in dip[1]:  # the dip's points leave the fit
                     self._fit_add(a, s, -1.0)
@@ -625,7 +626,7 @@ class StreamClock:
 
 @functools.cache
 def dip_bar() -> float:
-    """The rate fit's dip CUSUM's alarm (its points' sd, StreamClock._off): ``DIP_RISK`` false
+    """The rate fit's dip CUSUM's alarm (standard errors, StreamClock._off): ``DIP_RISK`` false
     dips per point, ``exp(-theta h)`` (Lundberg's bound) with ``theta`` the root of ``E exp(theta
     (L / mean - 1 - DIP_REF)) = 1`` for an exponential latency ``L``, whose envelope's lower tail
     is the heaviest of the links measured: 15.8 for 1e-4."""
