@@ -486,13 +486,13 @@ class StreamClock:
         below, and a run within the band that together lies below the line (a one-sided CUSUM
         of the points' fall in the band's standard errors, reference ``DIP_REF``, each capped at
         the band, alarm at :func:`dip_bar`): the points fitted since it was last 0 leave the
-        fit, and none joins until one lies within ``DIP_REF`` of them below the line again. (Fitted, a wander's climb back
-        read as slope: 0.4 s over two minutes, +528 ppm.) Above it latency never puts one: the
-        line's level rose (the latency's floor fell, or a step within ``TOL`` that no step test
-        declared). Those points are held and start a new segment of the fit (an intercept of
-        their own, the slope shared) once there are ``SEG_MIN`` of them and their scatter about
-        their mean is the line's at ``SEG_RISK`` (a chi-square test of their variance); a point
-        back on the line drops them."""
+        fit, and none joins until one lies within ``DIP_REF`` of them below the line again.
+        (Fitted, a wander's climb back read as slope: 0.4 s over two minutes, +528 ppm.) Above
+        it latency never puts one: the line's level rose (the latency's floor fell, or a step
+        within ``TOL`` that no step test declared). Those points are held and start a new
+        segment of the fit (an intercept of their own, the slope shared) once there are
+        ``SEG_MIN`` of them and their scatter about their mean is the line's at ``SEG_RISK`` (a
+        chi-square test of their variance); a point back on the line drops them."""
         d, se = self.rate()
         if not math.isfinite(se):  # the line is not known yet: every point informs it
             return False
