@@ -56,6 +56,22 @@ def test_a_latency_that_rises_and_stays_is_no_step(rate, rise):
     assert r["time_err_all_ms"] < 1.0, r
 
 
+@pytest.mark.parametrize("rate", [10.0, 1.0])
+@pytest.mark.parametrize("period", [60.0, 120.0])
+def test_a_latency_that_wanders_is_no_clock_rate(period, rate):
+    """Without a sample counter, on one clock, the link's latency rises by 0.4 s from 120 s and
+    falls back over ``period`` s (a raised cosine): the offsets dip and climb back as a clock
+    whose rate wandered would, but a clock's rate does not wander (StreamClock._off leaves the
+    envelope's dips out of the rate fit). One clock judged one, the rate within 4 of its stated
+    standard errors of 0, the filter's time on the readings' own. Fitted, the dip's climb back
+    read as +528 ppm over two minutes at 10 Hz, the clocks were judged separate and the
+    filter's time ended 0.40 s off."""
+    r = run_link(600.0, rate, False, 0.05, 0.05, None, seed=0, wander=(0.4, period))
+    assert r["false_steps_per_h"] == 0 and r["refused"] == 0, r
+    assert not r["separate"] and abs(r["drift_ppm"]) <= 4.0 * r["drift_se_ppm"], r
+    assert r["time_err_all_ms"] < 1.0, r
+
+
 @pytest.mark.parametrize("step", [-3.0, 0.1])
 def test_a_step_is_measured_exactly_on_the_sample_grid(step):
     """At 1 Hz with a sample counter a step (here -3 s or +0.1 s, inside a 50 ms jitter) is

@@ -23,6 +23,7 @@ from train_estimation.tools import faults as F
 SPEED = 20.0  # m/s, the train's constant speed
 FLOOR = F.LATENCY  # s, the link's least latency (faults.LATENCY)
 STEP_AT = 600.0  # s, true time of a step
+WANDER_AT = 120.0  # s, true time at which a wandering latency starts to rise
 
 
 class Recorder:
@@ -72,7 +73,7 @@ def cruise(duration: float, rate: float, loss: float, counter: bool,
 def run_link(duration: float, rate: float, counter: bool, jitter: float, loss: float,
              step: float | None, seed: int, queue: float | None = None,
              route: float | None = None, shape: str = "exp", drift: float = 0.0,
-             sampling: float = 0.0) -> dict:
+             sampling: float = 0.0, wander: tuple | None = None) -> dict:
     """One replay (module doc); the figures of one row. ``queue``: the drain factor of a link
     that queues (the campaign's fault ``queue``, from 15 s on; no step then); ``route``: s by
     which the link's latency rises at :data:`STEP_AT` and stays (the fault ``route``; no
@@ -80,7 +81,10 @@ def run_link(duration: float, rate: float, counter: bool, jitter: float, loss: f
     ``jitter``) or ``gamma`` (Gamma of shape 4 and the same mean: a latency that seldom comes
     near its floor, so that the offsets' envelope is blunt); ``drift``: s/s, the train clock runs
     at ``1 + drift`` against the commands' and the arrivals' clock (the fault ``drift``; no step
-    then); ``sampling``: s, the sampling loop's jitter on the stamps (:func:`cruise`)."""
+    then); ``sampling``: s, the sampling loop's jitter on the stamps (:func:`cruise`);
+    ``wander``: (rise s, period s), the link's latency rises by ``rise`` from
+    :data:`WANDER_AT` and falls back over ``period`` (a raised cosine), a link that slows down
+    for a while (no step then)."""
     rng = np.random.default_rng(seed)
     events = cruise(duration, rate, loss, counter, rng, sampling)
     if shape not in ("exp", "gamma"):
@@ -98,6 +102,13 @@ def run_link(duration: float, rate: float, counter: bool, jitter: float, loss: f
     if shape == "gamma":
         ev = [(tp, st, f, ar + (rng.gamma(4.0, jitter / 4.0) if tp in F.TRAIN_TOPICS else 0.0))
               for tp, st, f, ar in faulted.events]
+        faulted = replace(faulted, events=sorted(ev, key=lambda e: e[3]))
+    if wander is not None:
+        rise, period = wander
+        ev = [(tp, st, f, ar + (0.5 * rise * (1.0 - math.cos(
+            2.0 * math.pi * (f["distance"] / SPEED - WANDER_AT) / period))
+            if tp in F.TRAIN_TOPICS and 0.0 <= f["distance"] / SPEED - WANDER_AT <= period
+            else 0.0)) for tp, st, f, ar in faulted.events]
         faulted = replace(faulted, events=sorted(ev, key=lambda e: e[3]))
     rec = Recorder()
     runner = EstimatorRunner(rec, 1.0 / rate)

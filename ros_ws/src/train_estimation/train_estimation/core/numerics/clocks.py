@@ -28,7 +28,7 @@ import math
 from collections import deque
 
 import numpy as np
-from scipy.special import chdtrc, ndtr, stdtrit
+from scipy.special import chdtrc, lambertw, ndtr, stdtrit
 
 from . import envelope
 
@@ -66,6 +66,10 @@ SEG_RISK = TREND_WAIT  # -, the rate at which a true move of the line's level is
 #   more point: its points scatter about one level as the line's own (chi-square at this risk)
 LINE_SPREAD = 5.0  # robust spreads of the offsets: a rate fit whose points scatter wider about
 #   their line than this (and SMALL_MOVE) mixes two levels and is not used
+DIP_REF = 0.5  # the rate fit's standard errors of a point: half the least dip of its envelope
+#   (a latency that rises for a while) it watches for, the CUSUM's reference (StreamClock._off)
+DIP_RISK = 1e-4  # -, per point: the rate at which the fit's clean points start a false dip
+#   (then a few of them leave the fit)
 TOL = 5.0  # s: wider than arrival jitter (a node at 10x sees 1 Hz stamps 0.9 s apart in
 #   stamp - arrival), far narrower than a clock error worth refusing
 
@@ -178,7 +182,9 @@ class StreamClock:
         self._closed = [0, 0, 0.0, 0.0, 0.0]  # segments, n, centred sxx, sxy, syy before a move
         self._rates: dict = {}  # rate()'s by (min_n, min_span), until the fit changes
         self._held_points: list = []  # (arrival, stamp, residual) of the rate fit's points
-        #   held off its line (:meth:`_off`)
+        #   held above its line (:meth:`_off`)
+        self._dip: list = [0.0, [], False]  # the CUSUM of the points' fall below the line, the
+        #   points fitted since it was last 0, whether a dip is under way (:meth:`_off`)
         self._block = [0, 0.0, 0.0]  # readings so far in the rate fit's block, and the
         #   (stamp, arrival) of its highest offset (:meth:`rate_point`)
         self._top: deque = deque()  # (index, offset, arrival), decreasing: the sliding maximum
@@ -276,7 +282,7 @@ class StreamClock:
         self.fifo = deque(v + d for v in self.fifo)
         self.sorted = [v + d for v in self.sorted]
         self._top = deque((i, v + d, a) for i, v, a in self._top)
-        self.pending, self._held_points = [], []
+        self.pending, self._held_points, self._dip = [], [], [0.0, [], False]
         self._value = self._scale = self._at_cache = self._ceil_cache = None
         self._new_segment()
         self._block = [0, 0.0, 0.0]
@@ -470,42 +476,58 @@ class StreamClock:
         """Whether the block's ``point`` (arrival, stamp) lies off the clock's line, and is held.
 
         The model: stamp = line(arrival) - latency, the latency never negative and, at the
-        envelope, scattered as the fit's own residuals (``sd``). A point is held when it lies
-        farther below or above the line than the fit can predict it (and than ``SMALL_MOVE``):
-        :func:`t_spread` of its prediction's standard errors, the residuals' and the line's
-        own (intercept and slope, the latter growing with the distance from the points' mean),
-        so that a point of the line is held at the Gaussian ``LINE_SPREAD`` sigma's rate
-        whatever the number of points (``LINE_SPREAD`` spreads alone: a line of 4 points 20 s
-        into a 1 Hz stream stated -3,988 ppm and held every later point off it for the hour).
-        Two things put points there, and only one of them moves the line: the clock's level
-        moved (a step within ``TOL`` that no step test declared, absorbed by the window; the
-        latency's floor rose or fell and stays), or the latency rose for a while and falls back
-        (a queue that drains slowly, a latency that wanders). Under a move the held points lie
-        about one new level with the line's own scatter; a drain's climb back, or a wander,
-        scatters them wider. So the held points start a new segment of the fit (an intercept of
-        their own, the slope shared) once there are ``SEG_MIN`` of them and their scatter about
-        their mean is the line's at ``SEG_RISK`` (a chi-square test of their variance); a point
-        back on the line drops them (they were the latency's, not the clock's). A move then
-        joins the fit late by a few points; a drain never joins it (judged by the offsets'
-        centre, which a drain drags, slow drains' climbs were read as slope: 250-2,300 ppm)."""
+        envelope, scattered as the fit's own residuals (``sd``). A point is off the line beyond
+        ``SMALL_MOVE`` and :func:`t_spread` of its prediction's standard errors (the residuals'
+        and the line's own, growing with the distance from the points' mean): a point of the
+        line lies there at the Gaussian ``LINE_SPREAD`` sigma's rate whatever their number.
+        Below the line is where latency puts a point (a queue that drains, a latency that
+        wanders, or one that rose and stays: the step watch's to declare, :meth:`move`), and a
+        clock's rate does not wander, so the envelope's dips stay out of the fit: a point far
+        below, and a run within the band that together lies below the line (a one-sided CUSUM
+        of the points' fall in the band's standard errors, reference ``DIP_REF``, each capped at
+        the band, alarm at :func:`dip_bar`): the points fitted since it was last 0 leave the
+        fit, and none joins until one lies within ``DIP_REF`` of them below the line again.
+        (Fitted, a wander's climb back read as slope: 0.4 s over two minutes, +528 ppm.) Above
+        it latency never puts one: the line's level rose (the latency's floor fell, or a step
+        within ``TOL`` that no step test declared). Those points are held and start a new
+        segment of the fit (an intercept of their own, the slope shared) once there are
+        ``SEG_MIN`` of them and their scatter about their mean is the line's at ``SEG_RISK`` (a
+        chi-square test of their variance); a point back on the line drops them."""
         d, se = self.rate()
         if not math.isfinite(se):  # the line is not known yet: every point informs it
             return False
         f = self._fit
         n1 = f[0]
         _, var, _, rss, dof = self._pooled()
-        sd = math.sqrt(rss / dof)
+        sd = max(math.sqrt(rss / dof), 1e-6)
         arrival, stamp = point
-        resid = band = 0.0
+        resid, band = 0.0, LINE_SPREAD * sd
         if n1:
             # the current segment's line at this arrival: its mean point carried on the slope
             x0, y0 = f[6]
             dx = arrival - x0 - f[1] / n1
             resid = (stamp - y0 - f[2] / n1) - (1.0 + d) * dx
             band = t_spread(dof) * sd * math.sqrt(1.0 + 1.0 / n1 + dx * dx / var)
-        if abs(resid) <= max(SMALL_MOVE, band):
+        unit, band = band / LINE_SPREAD, max(SMALL_MOVE, band)
+        if resid <= band:
             self._held_points = []
+            dip = self._dip
+            fall = min(-resid, band) / unit
+            if dip[2] and fall > DIP_REF:
+                return True  # the dip goes on
+            if dip[2]:  # back on the line: a new CUSUM from this point
+                dip[:] = [0.0, [], False]
+            dip[0] = max(dip[0] + fall - DIP_REF, 0.0)
+            if dip[0] > dip_bar():
+                for a, s in dip[1]:  # the dip's points leave the fit
+                    self._fit_add(a, s, -1.0)
+                dip[:] = [0.0, [], True]
+                return True
+            if resid < -band:
+                return True  # far below: the latency's
+            dip[1] = dip[1] + [(arrival, stamp)] if dip[0] > 0.0 else []  # (short runs)
             return False
+        self._dip = [0.0, [], False]
         held = self._held_points
         held.append((arrival, stamp, resid))
         if len(held) > TREND_N:
@@ -514,9 +536,9 @@ class StreamClock:
             return True
         r = [h[2] for h in held]
         mean = sum(r) / len(r)
-        chi = sum((v - mean) ** 2 for v in r) / max(sd, 1e-6) ** 2
+        chi = sum((v - mean) ** 2 for v in r) / sd ** 2
         if float(chdtrc(len(r) - 1, chi)) <= SEG_RISK:
-            return True  # scattered wider than one level: the latency's, not the clock's
+            return True  # scattered wider than one level: not yet a move
         self._held_points = []
         self._new_segment()
         for a, s, _ in held:
@@ -533,18 +555,18 @@ class StreamClock:
         rss = max(vyy - cov / var * cov, 0.0) if var > 0 else 0.0
         return n, var, cov, rss, max(n - 1 - segs - (n1 > 0), 1)
 
-    def _fit_add(self, arrival: float, stamp: float) -> None:
-        """One point (arrival, stamp) into the current segment's sums."""
+    def _fit_add(self, arrival: float, stamp: float, w: float = 1.0) -> None:
+        """One point (arrival, stamp) into the current segment's sums (``w`` -1: out of them)."""
         f = self._fit
         if f[6] is None:
             f[6] = (arrival, stamp)
         x, y = arrival - f[6][0], stamp - f[6][1]
-        f[0] += 1
-        f[1] += x
-        f[2] += y
-        f[3] += x * x
-        f[4] += x * y
-        f[5] += y * y
+        f[0] += int(w)
+        f[1] += w * x
+        f[2] += w * y
+        f[3] += w * x * x
+        f[4] += w * x * y
+        f[5] += w * y * y
         self._rates = {}
 
     def _centred(self) -> tuple[int, float, float, float]:
@@ -600,6 +622,17 @@ class StreamClock:
     @property
     def drift(self) -> float:
         return self.rate()[0]
+
+
+@functools.cache
+def dip_bar() -> float:
+    """The rate fit's dip CUSUM's alarm (standard errors, StreamClock._off): ``DIP_RISK`` false
+    dips per point, ``exp(-theta h)`` (Lundberg's bound) with ``theta`` the root of ``E exp(theta
+    (L / mean - 1 - DIP_REF)) = 1`` for an exponential latency ``L``, whose envelope's lower tail
+    is the heaviest of the links measured: 15.8 for 1e-4."""
+    c = 1.0 + DIP_REF
+    theta = 1.0 + float(lambertw(-c * math.exp(-c)).real) / c
+    return math.log(1.0 / DIP_RISK) / theta
 
 
 @functools.cache
