@@ -717,16 +717,16 @@ def main(argv=None) -> int:
     if not args.quick and (args.phases or args.long or args.fuzz_rate):
         mode = (f"reduced full: phases {', '.join(args.phases or ['all'])}, drift and fuzz "
                 f"<= {args.long or 'full'} s, fuzz {args.fuzz_rate or 10.0:g} per clean message")
-    prior = "".join(f", {k} {v:g}" for k, v in priors.items())
-    stated = "".join(x for x, on in (
-        (f", balise_latency_std {args.balise_latency_std} s", args.balise_latency_std is not None),
-        (f", balises in groups of two {args.balise_groups:g} m apart", args.balise_groups))
-        if on)
+    stated = "".join(f", {k} {v:g}" for k, v in priors.items())
+    if args.balise_latency_std is not None:
+        stated += f", balise_latency_std {args.balise_latency_std:g} s"
+    if args.balise_groups:
+        stated += f", balises in groups of two {args.balise_groups:g} m apart"
     print(f"Integrity campaign ({mode}): {len(tasks)} runs, {seeds} seed(s), estimators "
           f"{', '.join(estimators)}"
           f"{' with use_distance: false' if args.no_distance else ''}"
           f"{', every seq 0 (no sample counter)' if args.no_counter else ''}"
-          f"{prior}{stated}; "
+          f"{stated}; "
           f"node defaults (NodeConfig: control_clock "
           f"{NodeConfig().control_clock!r}, max_future {NodeConfig().max_future:g} s), "
           f"arrival = stamp + {F.LATENCY:g} s\n")

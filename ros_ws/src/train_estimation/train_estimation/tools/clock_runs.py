@@ -70,6 +70,14 @@ def cruise(duration: float, rate: float, loss: float, counter: bool,
     return sorted(ev, key=lambda e: (e[1], e[0] != "control"))
 
 
+def _later(faulted, extra):
+    """The stream with each odometer and balise reading arriving ``extra(fields)`` s later
+    (called for them in stream order), in arrival order again."""
+    ev = [(tp, st, f, ar + (extra(f) if tp in F.TRAIN_TOPICS else 0.0))
+          for tp, st, f, ar in faulted.events]
+    return replace(faulted, events=sorted(ev, key=lambda e: e[3]))
+
+
 def run_link(duration: float, rate: float, counter: bool, jitter: float, loss: float,
              step: float | None, seed: int, queue: float | None = None,
              route: float | None = None, shape: str = "exp", drift: float = 0.0,
@@ -100,16 +108,16 @@ def run_link(duration: float, rate: float, counter: bool, jitter: float, loss: f
         fault = F.Fault("drift", drift, 0.0, jitter=link)
     faulted = F.inject(events, fault, rng)
     if shape == "gamma":
-        ev = [(tp, st, f, ar + (rng.gamma(4.0, jitter / 4.0) if tp in F.TRAIN_TOPICS else 0.0))
-              for tp, st, f, ar in faulted.events]
-        faulted = replace(faulted, events=sorted(ev, key=lambda e: e[3]))
+        faulted = _later(faulted, lambda f: rng.gamma(4.0, jitter / 4.0))
     if wander is not None:
         rise, period = wander
-        ev = [(tp, st, f, ar + (0.5 * rise * (1.0 - math.cos(
-            2.0 * math.pi * (f["distance"] / SPEED - WANDER_AT) / period))
-            if tp in F.TRAIN_TOPICS and 0.0 <= f["distance"] / SPEED - WANDER_AT <= period
-            else 0.0)) for tp, st, f, ar in faulted.events]
-        faulted = replace(faulted, events=sorted(ev, key=lambda e: e[3]))
+
+        def wandered(f):
+            u = f["distance"] / SPEED - WANDER_AT  # s since the rise began (the sample's time)
+            return 0.5 * rise * (1.0 - math.cos(2.0 * math.pi * u / period)) \
+                if 0.0 <= u <= period else 0.0
+
+        faulted = _later(faulted, wandered)
     rec = Recorder()
     runner = EstimatorRunner(rec, 1.0 / rate)
     arrived = {"new": 0}  # readings sampled at or after the step's instant, arrived so far

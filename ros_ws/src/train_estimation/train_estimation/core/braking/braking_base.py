@@ -46,7 +46,6 @@ from ..numerics import bank
 from ..numerics.bank import log_normalize
 from ..numerics.batched_kf import predict, update
 from ..numerics.kalman import _selectors
-from ..numerics.stamp_order import StampOrder
 from . import braking_compiled, braking_inplace
 
 __all__ = ["Estimate", "RaoBlackwellFilter"]
@@ -271,7 +270,6 @@ _ONE = np.ones(1)  # the braking-rate argument of an informative step (unused: t
 _NO_PREDICT = (False, *braking_inplace.pack_pred(bank._NO_PREDICT, np.zeros(1)))
 _MASKS: dict = {}
 _BAD = (None, None, None, None, None)  # a rejected input's other return values
-_TIME = StampOrder()  # a step's stamp against the filter's time (no horizon: the adapters')
 _ALL_ROWS: dict = {}
 
 
@@ -755,7 +753,7 @@ class RaoBlackwellFilter:
                 return (f"non-finite time stamp: {t!r}", *bad)
             if self._t is None:
                 dt = 0.0
-            elif _TIME.judge(None, tf, t=self._t) or (tf == self._t and y is None):
+            elif tf < self._t or (tf == self._t and y is None):
                 # A reading stamped at the time of the previous step (two sensors sampled at
                 # one instant, or a command and a reading of the same cycle) is an update with
                 # dt = 0; only an earlier stamp, or an empty step to the same time, is refused.

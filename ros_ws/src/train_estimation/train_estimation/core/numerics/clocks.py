@@ -525,7 +525,10 @@ class StreamClock:
                 return True
             if resid < -band:
                 return True  # far below: the latency's
-            dip[1] = dip[1] + [(arrival, stamp)] if dip[0] > 0.0 else []  # (short runs)
+            if dip[0] > 0.0:
+                dip[1].append((arrival, stamp))
+            else:
+                dip[1].clear()  # (short runs)
             return False
         self._dip = [0.0, [], False]
         held = self._held_points
