@@ -341,3 +341,12 @@ def test_a_stated_format_is_used_and_text_in_another_encoding_says_what_to_do(tm
     assert csv2bag.main([str(plain), "--out", str(tmp_path / "c"), *ARGS,
                          "--delimiter", ";"]) == 2
     assert "separated by ';'" in capsys.readouterr().err
+
+
+def test_a_stated_decimal_comma_is_never_taken_for_the_separator():
+    """Lines that split into as many cells at the comma as at the semicolon (a column name
+    with a comma, one decimal comma per row): found alone the separator could be either; with
+    the decimal mark stated as ``,`` the comma is the numbers' and the separator is ``;``."""
+    lines = ["zeit_s;weg, m", "100,5;12", "100,6;13", "100,7;14"]
+    assert csv2bag._dialect(lines, csv2bag.Mapping(decimal=","))[:2] == (";", ",")
+    assert csv2bag._dialect(lines, csv2bag.Mapping())[0] == ","  # undecidable: the first kind

@@ -47,9 +47,9 @@ The file's format. Spreadsheets and recorders write CSV in more than one way: th
 is a comma, a semicolon (where the comma is the decimal mark), a tab or a bar, and numbers may
 be written 0,36 instead of 0.36. Unless stated (the map or the options), the separator is the
 one of ``, ; TAB |`` that splits the header into the most columns and the first data rows into
-as many, and the decimal mark is a comma where the separator is not one and the first rows
-write their numbers with a comma and never with a point; what was found is printed when it is
-not the plain form. Quoted cells, spaces after the separator, Windows line ends and a UTF-8
+as many (never the comma where the decimal mark is stated as one), and the decimal mark is a
+comma where the separator is not one and the first rows write their numbers with a comma and
+never with a point; what was found is printed when it is not the plain form. Quoted cells, spaces after the separator, Windows line ends and a UTF-8
 byte-order mark (a spreadsheet's "CSV UTF-8") are read as they are meant. Text that is not
 UTF-8 (an older Windows export) stops with the byte where it failed: state its encoding.
 
@@ -472,7 +472,8 @@ def _dialect(lines: list[str], mapping: Mapping) -> tuple[str, str, str]:
     delim = mapping.delimiter
     if delim is None:
         best = None
-        for d in DELIMITERS:
+        # a stated decimal comma cannot also separate the fields (load_mapping refuses both)
+        for d in (d for d in DELIMITERS if not (d == "," and mapping.decimal == ",")):
             rows = [r for r in csv.reader(lines, delimiter=d, skipinitialspace=True) if r]
             if not rows or len(rows[0]) < 2:
                 continue
