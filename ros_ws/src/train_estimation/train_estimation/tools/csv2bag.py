@@ -43,15 +43,16 @@ warning):
   decimal: ","          # the decimal mark of numbers (default: found from the file)
   encoding: cp1252      # the text's encoding (default utf-8, with or without a BOM)
 
-The file's format. Spreadsheets and recorders write CSV in more than one way: the separator
-is a comma, a semicolon (where the comma is the decimal mark), a tab or a bar, and numbers may
-be written 0,36 instead of 0.36. Unless stated (the map or the options), the separator is the
-one of ``, ; TAB |`` that splits the header into the most columns and the first data rows into
-as many (never the comma where the decimal mark is stated as one), and the decimal mark is a
-comma where the separator is not one and the first rows write their numbers with a comma and
-never with a point; what was found is printed when it is not the plain form. Quoted cells, spaces after the separator, Windows line ends and a UTF-8
-byte-order mark (a spreadsheet's "CSV UTF-8") are read as they are meant. Text that is not
-UTF-8 (an older Windows export) stops with the byte where it failed: state its encoding.
+The file's format. Spreadsheets and recorders write CSV in more than one way: the separator is a
+comma, a semicolon (where the comma is the decimal mark), a tab or a bar, and numbers may be
+written 0,36 instead of 0.36. Unless stated (the map or the options), the separator is the one
+of ``, ; TAB |`` that splits the header into the most columns and the first data rows into as
+many (never the comma where the decimal mark is stated as one), and the decimal mark is a comma
+where the separator is not one and the first rows write their numbers with a comma and never
+with a point; what was found is printed when it is not the plain form. Quoted cells, spaces
+after the separator, Windows line ends and a UTF-8 byte-order mark (a spreadsheet's "CSV UTF-8")
+are read as they are meant. Text that is not UTF-8 (an older Windows export) stops with the byte
+where it failed: state its encoding.
 
 Lost samples. The odometer's ``seq`` is the sample counter where the log has one. Otherwise the
 train clock's sampling period is estimated from the odometer stamps (the median step, refined
