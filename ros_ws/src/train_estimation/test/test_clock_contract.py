@@ -72,6 +72,20 @@ def test_a_latency_that_wanders_is_no_clock_rate(period, rate):
     assert r["time_err_all_ms"] < 1.0, r
 
 
+@pytest.mark.parametrize("rate", [10.0, 1.0])
+def test_a_latency_that_falls_and_stays_is_no_clock_rate(rate):
+    """Without a sample counter, on one clock, the link's latency falls by 30 ms at 600 s and
+    stays (a faster route), less than the step watch's least move (50 ms): the offsets' level
+    rises, and latency never lifts a point above the clock's line, so the rate fit's points
+    above it are a new level, not a slope (StreamClock._off's rise CUSUM). Absorbed into the
+    line, they read as +75 ppm at 49 standard errors at 10 Hz (15 at 1 Hz) after ten more
+    minutes."""
+    r = run_link(1200.0, rate, False, 0.05, 0.05, None, seed=0, route=-0.03)
+    assert r["false_steps_per_h"] == 0 and r["refused"] == 0, r
+    assert not r["separate"] and abs(r["drift_ppm"]) <= 4.0 * r["drift_se_ppm"], r
+    assert r["time_err_all_ms"] < 1.0, r
+
+
 @pytest.mark.parametrize("step", [-3.0, 0.1])
 def test_a_step_is_measured_exactly_on_the_sample_grid(step):
     """At 1 Hz with a sample counter a step (here -3 s or +0.1 s, inside a 50 ms jitter) is
