@@ -316,8 +316,11 @@ class EstimatorNode(Node):
             self.n_reported = total
             self.get_logger().warning(f"{kind} at {stamp:.3f} s rejected: {why} "
                                       f"({total} rejected so far)", throttle_duration_sec=2.0)
-        # the garbage collection the allocations made due, now that the estimates are out,
+        # the state a late reading would rewind to, copied now that the estimates are out
+        # rather than between the next reading's arrival and its estimate
+        # (EstimatorRunner.settle), and the garbage collection the allocations made due,
         # rather than inside the next callback before its estimate (train_core.realtime)
+        self.runner.settle()
         collect_due()
 
     def _odometry(self, state):

@@ -51,7 +51,11 @@ after the late reading is restored (``snapshot``/``restore``) and everything sin
 re-filtered with the late reading in its place (event ``fused_late``). Estimates already
 published stay published; the next ones carry the correction. Older readings are refused
 (``out_of_order``). A replay in arrival order meets the same lateness, so it reproduces the
-node's estimates.
+node's estimates. The state kept for a reading need not be copied between its arrival and its
+estimate: ``settle()``, called once the estimates are out (the node after publishing), copies
+the adapter's state then, and a reading processed after nothing but commands keeps that copy
+with the commands' calls, which a rewind makes again (:class:`_Replayed`: the same calls on
+the same state, so the same state as a copy taken just before the reading).
 
 Clock steps (a train clock reset to 0 by a reboot, or set to GPS time) are watched by a
 :class:`~.clocks.StepWatch` (``core/numerics/clocks.py``, where its docstring states the rules):
@@ -251,6 +255,8 @@ class EstimatorRunner:
     #   long after it was due is published as a prediction by :meth:`tick`
     _backlog: bool = False  # the latest message pushed came late (tick waits)
     monitor: IntegrityMonitor | None = None
+    _base: tuple | None = None  # (the adapter's snapshot taken by settle, [(filter time,
+    #   fields) of each control call since]); None once any other call changed the adapter
 
     @property
     def arrival_resolution(self) -> float:
@@ -692,9 +698,16 @@ class EstimatorRunner:
             # (marked as made: the adapters do not read a restart from it)
             fields = {**fields, "seq": TICK0 + int(round((ft - t0) * TICKS)),
                       SEQ_MADE: True}
+        base = self._base
+        if base is not None:  # the settled copy stands while only commands follow it
+            if kind == "control":
+                base[1].append((ft, fields))
+            else:
+                self._base = None
         try:
             reason = getattr(self.adapter, kind)(ft, fields)
         except (KeyError, TypeError, ValueError, OverflowError) as exc:  # malformed fields
+            self._base = None  # (a call that raised is not made again: a fresh copy)
             return f"{R.INVALID}: {type(exc).__name__}: {exc}"
         self._adapter_events(kind, stamp)
         return reason
@@ -711,11 +724,35 @@ class EstimatorRunner:
                 self._adapter_seen[name] = n
                 self._event(kind, stamp, f"{name}: {R.DESCRIPTION.get(name, '')}")
 
+    def settle(self) -> None:
+        """Copy the adapter's state now, for the next odometer reading's rewind point
+        (:class:`_Replayed`), unless a copy taken since the last change still stands: called
+        once the estimates are out (the node after publishing them), so that the copy, a
+        tenth of an estimate's work, is not made between a reading's arrival and its
+        estimate. Nothing changes in what is computed: without it each reading's state is
+        copied just before the reading, as a rewind needs it."""
+        if self._base is None and self._started and self._can_rewind:
+            self._base = (self.adapter.snapshot(), [])
+
+    def _restore(self, snap) -> None:
+        """The adapter back to a history entry's state (its snapshot, or the settled one with
+        the control calls made since, made again)."""
+        self._base = None
+        if isinstance(snap, _Replayed):
+            self.adapter.restore(snap.base)
+            for ft, fields in snap.controls:
+                self.adapter.control(ft, fields)
+        else:
+            self.adapter.restore(snap)
+
     def _process(self, entry: list) -> str:
         """Apply one item, keeping it (and the state before it, for odometer items) in the
         history that a late item rewinds."""
         if self.history > 0 and entry[3] == "odometer" and self._can_rewind:
-            entry[5] = (self.adapter.snapshot(), self._anchor)
+            base = self._base
+            snap = _Replayed(base[0], tuple(base[1])) if base is not None \
+                else self.adapter.snapshot()
+            entry[5] = (snap, self._anchor)
         reason = self._call(entry[0], entry[3], entry[4])
         if self.history > 0:
             self._hist.append(entry)
@@ -756,7 +793,7 @@ class EstimatorRunner:
                 snap, anchor = hist[i][5]
                 redo = hist[i:]
                 del hist[i:]
-                self.adapter.restore(snap)
+                self._restore(snap)
                 self._anchor = anchor
                 redo.insert(j - i, entry)
                 reason = ""
@@ -812,6 +849,7 @@ class EstimatorRunner:
             self.accepted[kind] += 1
 
     def _emit(self, t: float, out: list) -> None:
+        self._base = None  # an output may step the filter (the braking filters')
         o = self.monitor.assess(self.adapter.output(self._filter_time(t)), t)
         changes = {}
         if o.consider:
@@ -992,6 +1030,16 @@ class EstimatorRunner:
         return {"accepted": dict(self.accepted), "rejected": dict(self.rejected),
                 "events": dict(self.events), "variance_unstated": dict(self.unstated),
                 "seq_unstated": dict(self.uncounted), "stamp_unstated": self.unstamped}
+
+
+@dataclass(frozen=True)
+class _Replayed:
+    """A history entry's state as the settled copy (:meth:`EstimatorRunner.settle`) and the
+    control calls ``(filter time, fields)`` the adapter was given after it, in order: restored,
+    the copy, then the same calls."""
+
+    base: object
+    controls: tuple
 
 
 @dataclass
