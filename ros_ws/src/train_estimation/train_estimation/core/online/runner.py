@@ -81,7 +81,7 @@ from __future__ import annotations
 import heapq
 import math
 from collections import Counter
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Protocol
 
 import numpy as np
@@ -755,16 +755,20 @@ class EstimatorRunner:
             entry[5] = (snap, self._anchor)
         reason = self._call(entry[0], entry[3], entry[4])
         if self.history > 0:
-            self._hist.append(entry)
+            hist = self._hist
+            hist.append(entry)
             self._high_done = max(self._high_done, entry[0])
             # keep the history back to the first snapshot older than the horizon
             cut = self._high_done - self.history
-            while len(self._hist) > 1:
-                first_snap = next((k for k in range(1, len(self._hist))
-                                   if self._hist[k][5] is not None), None)
-                if first_snap is None or self._hist[first_snap][0] > cut:
+            while len(hist) > 1:
+                for first_snap in range(1, len(hist)):
+                    if hist[first_snap][5] is not None:
+                        break
+                else:
                     break
-                del self._hist[:first_snap]
+                if hist[first_snap][0] > cut:
+                    break
+                del hist[:first_snap]
         return reason
 
     def _apply(self, stamp: float, order: int, n: int, kind: str, fields: dict) -> str:
@@ -853,17 +857,19 @@ class EstimatorRunner:
         o = self.monitor.assess(self.adapter.output(self._filter_time(t)), t)
         changes = {}
         if o.consider:
-            # the (position, speed) block of the row-major 4x4 (as adding the 2x2 arrays does)
-            C = np.array(o.covariance, dtype=float)
+            # the (position, speed) block of the row-major 4x4, each entry plus its consider
+            # term in one float64 addition, as adding the 2x2 arrays does (the monitor's
+            # covariance is of float64 scalars already: no 16-entry array to build and unpack)
+            C = list(o.covariance)
             cons = o.consider
             for i, k in ((0, 0), (1, 1), (4, 2), (5, 3)):
-                C[i] += float(cons[k])
+                C[i] = np.float64(C[i]) + float(cons[k])
             changes["covariance"] = tuple(C)
         # published on the train clock (after a step: the new one, the sample's stamp as sent)
         stamp = self._steps.as_sent(t)
         if o.stamp != stamp:
             changes["stamp"] = stamp
-        out.append(replace(o, **changes) if changes else o)
+        out.append(_changed(o, changes) if changes else o)
         self._last_out = t
 
     def advance_to(self, t: float) -> list[Output]:
@@ -1032,14 +1038,26 @@ class EstimatorRunner:
                 "seq_unstated": dict(self.uncounted), "stamp_unstated": self.unstamped}
 
 
-@dataclass(frozen=True)
 class _Replayed:
     """A history entry's state as the settled copy (:meth:`EstimatorRunner.settle`) and the
     control calls ``(filter time, fields)`` the adapter was given after it, in order: restored,
     the copy, then the same calls."""
 
-    base: object
-    controls: tuple
+    __slots__ = ("base", "controls")
+
+    def __init__(self, base, controls: tuple):
+        self.base, self.controls = base, controls
+
+
+def _changed(o: Output, changes: dict) -> Output:
+    """``dataclasses.replace(o, **changes)`` for the runner's own fields of an Output (no
+    __post_init__ to run, no field to check): a copy of its attributes, a fifth of the cost,
+    at every estimate."""
+    new = object.__new__(Output)
+    d = new.__dict__
+    d.update(o.__dict__)
+    d.update(changes)
+    return new
 
 
 @dataclass
