@@ -112,6 +112,9 @@ TICKS = 1000.0  # per s: the counter an uncounted stream's readings are given (m
 TICK0 = 2 ** 31  # the first such reading's tick (earlier stamps stay positive for 24 days)
 NO_SLOT = (R.OUT_OF_ORDER, R.DUPLICATE, R.FUTURE_STAMP, R.STALE_STAMP, R.NON_FINITE)
 CLOCK_OF = {"control": "control", "odometer": "train", "balise": "train"}
+SETTLED_CALLS = 8  # commands a settled copy carries at most (EstimatorRunner.settle): one per
+#   reading at the usual rates; more (an odometer silent while commands flow) and the next
+#   settle copies the state afresh rather than keep a list that a rewind would make again
 
 
 @dataclass(frozen=True)
@@ -700,7 +703,7 @@ class EstimatorRunner:
                       SEQ_MADE: True}
         base = self._base
         if base is not None:  # the settled copy stands while only commands follow it
-            if kind == "control":
+            if kind == "control" and len(base[1]) < SETTLED_CALLS:
                 base[1].append((ft, fields))
             else:
                 self._base = None
