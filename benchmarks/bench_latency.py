@@ -514,16 +514,18 @@ def stages(names, duration: float, seed: int = 0, profile: int = 0, paced: bool 
             outs = runner.advance_to(runner.ready_time(recv, delay, 4 * delay))
             outs += runner.tick(recv)
             t2 = clock()
+            snapped = sum(snaps)  # (settle's copy below is after the estimate: not in it)
             for out in outs:
                 _messages(out, msg, odom, runner)
             t3 = clock()
-            collect_due()  # as the node, after publishing
+            runner.settle()  # as the node, after publishing
+            collect_due()
             t4 = clock()
             if topic == "odometer" and outs:
                 push.append(t1 - t0)
                 core.append(t2 - t1)
                 core_steps.append(sum(steps))
-                core_snaps.append(sum(snaps))
+                core_snaps.append(snapped)
                 conv.append(t3 - t2)
                 total.append(t3 - t0)
                 after.append(t4 - t3)
@@ -695,13 +697,16 @@ def main(argv=None) -> int:
               " thread, p50 / p99 in ms over the callbacks that released an estimate): push"
               " = the runner's input checks; advance = the runner's release of the "
               "estimate, of which estimator = the adapter's input and output calls (the "
-              "core filter), snapshots = the state kept to rewind for a late reading, "
+              "core filter), snapshots = the state copied inside it to rewind for a late "
+              "reading (where no copy settled after the last estimate stands), "
               "runner = the rest (clock mapping, integrity monitor); messages = TrainState "
               "and Odometry filled as the node fills them (publishing: the floor above); "
-              "total = push to messages; after = the garbage collection the node runs once "
-              "the estimates are out (train_core.realtime.collect_due; not in total)\n")
+              "total = push to messages; after = what the node does once the estimates are "
+              "out: the state copied for a later reading's rewind (EstimatorRunner.settle) "
+              "and the garbage collection due (train_core.realtime.collect_due); not in "
+              "total\n")
         print("| estimator | callbacks | push | advance | of which estimator | snapshots | "
-              "runner | messages | total | after (gc) |")
+              "runner | messages | total | after (copy, gc) |")
         print("|---|---|---|---|---|---|---|---|---|---|")
         rows, profiles = stages(["robust_filter", *algorithms], args.stage_duration,
                                 profile=args.profile, paced=args.paced)

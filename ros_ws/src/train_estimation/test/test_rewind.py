@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from train_estimation.core.online.replay import replay
+from train_estimation.core.online.runner import EstimatorRunner, _Replayed
 
 sys.path.insert(0, os.path.dirname(__file__))
 from clocks import adapter, errors, restamp, run  # noqa: E402
@@ -55,3 +56,36 @@ def test_readings_older_than_the_history_are_refused_with_a_reason():
     ev.insert(i + 80, late)  # arrives 8 s late: beyond the 3 s history
     _, r = replay(ev, adapter(sc), 0.1)
     assert r.rejected == {"odometer:out_of_order": 1}
+
+
+class _Unsettled(EstimatorRunner):
+    """A runner whose state for each reading is copied just before the reading (settle does
+    nothing): the rewind points as they were before settle existed."""
+
+    def settle(self) -> None:
+        pass
+
+
+def _bits(outs) -> list:
+    return [tuple(v.hex() if isinstance(v, float) else repr(v) for v in vars(o).values())
+            for o in outs]
+
+
+@pytest.mark.parametrize("kind", ["robust", "kf", "rbpf"])
+def test_the_state_copied_after_publishing_rewinds_to_the_same_bits(kind):
+    """settle() copies the state once the estimates are out and a reading after it keeps that
+    copy and the commands given since; a late reading that rewinds there makes the commands'
+    calls again. Every field of every estimate, and the counts, are those of a runner that
+    copies the state just before each reading."""
+    sc, res = run(duration=40.0)
+    ev = jittered(restamp(res.events()), np.random.default_rng(3))
+    restores = []
+    ref, r0 = replay(ev, None, 0.1, runner=_Unsettled(adapter(sc, kind), 0.1))
+    runner = EstimatorRunner(adapter(sc, kind), 0.1)
+    restore = runner._restore
+    runner._restore = lambda snap: (restores.append(snap), restore(snap))
+    outs, r = replay(ev, None, 0.1, runner=runner)
+    # the rewinds met settled copies with a command to make again (the path under test)
+    assert sum(isinstance(s, _Replayed) and len(s.controls) > 0 for s in restores) > 20
+    assert _bits(outs) == _bits(ref)
+    assert r.counts == r0.counts and r.events == r0.events

@@ -21,6 +21,7 @@ to ``/diagnostics`` once per ``diagnostics_period`` (levels by ``train_core.diag
 from __future__ import annotations
 
 import math
+import time
 from collections import deque
 from collections.abc import Callable
 
@@ -42,6 +43,13 @@ from train_interfaces.msg import (
 )
 
 EVENT_LOG_PERIOD = 2.0  # s (steady), at most one log line per kind of event in this time
+
+
+def _steady() -> float:
+    """s, now on the steady clock: rclpy's (rcutils') steady clock is CLOCK_MONOTONIC, which
+    ``time.monotonic_ns`` reads without building an rclpy Time (4 us each, read five times
+    between a reading's arrival and its estimate)."""
+    return time.monotonic_ns() * 1e-9
 
 
 def _quantiles(values: list[float]) -> tuple[float, float, float]:
@@ -101,7 +109,6 @@ class EstimatorNode(Node):
             raise ParameterError(f"parameter control_clock: {exc}") from None
         self.n_events = 0
         self.rate_warned = False  # the odometer_rate warning logged (diagnostics)
-        self.steady = Clock(clock_type=ClockType.STEADY_TIME)
         self.arrived: dict[float, float] = {}  # odometer stamp -> arrival (steady s)
         # s, odometer received -> its estimate published, in the steady state and in the
         # start-up (the runner starts on the third sample and judges each clock's stamps
@@ -131,7 +138,7 @@ class EstimatorNode(Node):
         self._odom_msg.child_frame_id = "base_link"
         self._odom_msg.pose.pose.orientation.w = 1.0  # the body x axis along the track's
         # /diagnostics: counters the runner does not keep (arrivals), read by the core
-        self.started = self.steady.now().nanoseconds * 1e-9
+        self.started = _steady()
         self.received = dict.fromkeys(("odometer", "control", "balise"), 0)
         self.last_arrival = dict.fromkeys(self.received, math.nan)
         self.window_latency: list[float] = []
@@ -187,7 +194,7 @@ class EstimatorNode(Node):
         150 ms is 3 s of simulated time, and judged there it let the readings run ahead of
         commands that were only queued."""
         if self.clock_slots:
-            return self.steady.now().nanoseconds * 1e-9
+            return _steady()
         t = self.get_clock().now().nanoseconds
         if t <= 0:
             return None
@@ -200,7 +207,7 @@ class EstimatorNode(Node):
 
     def _push(self, kind: str, msg, fields: dict) -> None:
         recv = self._arrival()
-        wall = self.steady.now().nanoseconds * 1e-9
+        wall = _steady()
         if recv is None:  # before the first /clock: held, pushed when it starts
             self.waiting.append((kind, msg, fields, wall))
             return
@@ -252,7 +259,7 @@ class EstimatorNode(Node):
     def tick(self) -> None:
         now = self._arrival()  # the arrival clock (see _arrival)
         if now is None:
-            if self.waiting and self.steady.now().nanoseconds * 1e-9 - self.waiting[0][3] > 2.0:
+            if self.waiting and _steady() - self.waiting[0][3] > 2.0:
                 self.get_logger().warning(
                     f"use_sim_time is set and no /clock has arrived: {len(self.waiting)} "
                     "messages held until one does (publish /clock, or run without "
@@ -265,39 +272,20 @@ class EstimatorNode(Node):
         # Outputs wait for the inputs' watermarks (or 4 x delay for a lost sample), so the
         # node computes exactly what the offline replay of the same messages computes; a
         # slot whose reading is overdue on the arrival clock leaves by runner.tick.
-        t_tick = self.steady.now().nanoseconds * 1e-9
+        t_tick = _steady()
         trace = self.trace
         if trace:
             trace.mark("tick")
         outs = self.runner.advance_to(self.runner.ready_time(now, self.delay,
                                                               4 * self.delay, wall=t_tick))
-        if self.clock_slots:
-            outs += self.runner.tick(now)
         if trace:
             trace.mark("advanced")
-        for out in outs:
-            msg = self._state_msg  # one message object, filled anew (publish copies it out)
-            fill_state(msg, out)
-            self.pub.publish(msg)
-            self.odom_pub.publish(self._odometry(msg))
-            if trace:
-                trace.mark("published", out.stamp)
-            self.n_published += 1
-            self.last_integrity = (int(out.integrity),
-                                   str(getattr(out, "integrity_reason", "")),
-                                   out.protection_level_ahead, out.protection_level_behind)
-            t_recv = self.arrived.pop(out.stamp, None)
-            if t_recv is not None:
-                lat = self.steady.now().nanoseconds * 1e-9 - t_recv
-                startup = len(self.latency) + len(self.latency_startup) < \
-                    self.runner.min_judged + 3
-                if startup:
-                    self.latency_startup.append(lat)
-                else:
-                    self.latency.append(lat)
-                    self.window_latency.append(lat)
-                    self.waited.append(max(0.0, t_tick - t_recv))
-                    self.processed.append(lat - self.waited[-1])
+        self._publish(outs, t_tick)
+        if self.clock_slots:
+            # the slots the arrival clock alone makes due, once what the inputs released is
+            # out (a reading's estimate does not wait for this check; the same estimates in
+            # the same order)
+            self._publish(self.runner.tick(now), t_tick)
         if len(self.arrived) > 1000:  # samples that never became an estimate (refused)
             self.arrived.clear()
         events = sum(self.runner.events.values())
@@ -316,9 +304,40 @@ class EstimatorNode(Node):
             self.n_reported = total
             self.get_logger().warning(f"{kind} at {stamp:.3f} s rejected: {why} "
                                       f"({total} rejected so far)", throttle_duration_sec=2.0)
-        # the garbage collection the allocations made due, now that the estimates are out,
+        # the state a late reading would rewind to, copied now that the estimates are out
+        # rather than between the next reading's arrival and its estimate
+        # (EstimatorRunner.settle), and the garbage collection the allocations made due,
         # rather than inside the next callback before its estimate (train_core.realtime)
+        self.runner.settle()
         collect_due()
+
+    def _publish(self, outs: list, t_tick: float) -> None:
+        """Publish the estimates (TrainState and Odometry) and note their latency (``t_tick``:
+        s, the steady clock when the tick that released them began)."""
+        trace = self.trace
+        for out in outs:
+            msg = self._state_msg  # one message object, filled anew (publish copies it out)
+            fill_state(msg, out)
+            self.pub.publish(msg)
+            self.odom_pub.publish(self._odometry(msg))
+            if trace:
+                trace.mark("published", out.stamp)
+            self.n_published += 1
+            self.last_integrity = (int(out.integrity),
+                                   str(getattr(out, "integrity_reason", "")),
+                                   out.protection_level_ahead, out.protection_level_behind)
+            t_recv = self.arrived.pop(out.stamp, None)
+            if t_recv is not None:
+                lat = _steady() - t_recv
+                startup = len(self.latency) + len(self.latency_startup) < \
+                    self.runner.min_judged + 3
+                if startup:
+                    self.latency_startup.append(lat)
+                else:
+                    self.latency.append(lat)
+                    self.window_latency.append(lat)
+                    self.waited.append(max(0.0, t_tick - t_recv))
+                    self.processed.append(lat - self.waited[-1])
 
     def _odometry(self, state):
         """The estimate as nav_msgs/Odometry (frames and covariances:
@@ -328,7 +347,7 @@ class EstimatorNode(Node):
 
     def diagnostics(self):
         """The node's Status for /diagnostics (the rules: train_core.diagnostics)."""
-        now = self.steady.now().nanoseconds * 1e-9
+        now = _steady()
         inputs = []
         for kind in ("odometer", "control", "balise"):
             reasons = {k.split(":", 1)[1]: n for k, n in self.runner.rejected.items()

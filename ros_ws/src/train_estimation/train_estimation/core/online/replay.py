@@ -55,8 +55,10 @@ def replay(events: Iterable[tuple], adapter, period: float, delay: float = 0.05,
     (s) is the arrival time (the bag's log time); without it the arrival is judged from the
     other clock's stamps (see the runner) and there are no ticks. Every step is bounded by the
     stamps pushed, and a stamp far in the future is refused at the door, so the replay always
-    terminates. ``on_time(t)`` (optional) is told each arrival and tick time before the runner
-    works at it (``tools.faults.run`` notes there when each estimate was produced);
+    terminates. After each message and tick the runner settles (``EstimatorRunner.settle``),
+    as the node does once it has published. ``on_time(t)`` (optional) is told each arrival and
+    tick time before the runner works at it (``tools.faults.run`` notes there when each
+    estimate was produced);
     ``blocked(t)`` (optional) is true for the arrival times at which the node's callbacks are
     blocked (a stalled node: its timer does not fire either). ``runner`` (optional): the runner
     to drive, built by the caller (who can then watch it from ``on_time``); ``adapter``,
@@ -78,6 +80,7 @@ def replay(events: Iterable[tuple], adapter, period: float, delay: float = 0.05,
             if on_time is not None:
                 on_time(t)
             out += runner.tick(t)
+            runner.settle()
         if on_time is not None and recv is not None:
             on_time(recv)
         runner.push(topic, stamp, fields, recv)
@@ -86,4 +89,5 @@ def replay(events: Iterable[tuple], adapter, period: float, delay: float = 0.05,
                                                    fallback))
         if recv is not None:
             out += runner.tick(recv)
+        runner.settle()  # as the node once it has published (EstimatorRunner.settle)
     return out + runner.drain(), runner

@@ -51,7 +51,11 @@ after the late reading is restored (``snapshot``/``restore``) and everything sin
 re-filtered with the late reading in its place (event ``fused_late``). Estimates already
 published stay published; the next ones carry the correction. Older readings are refused
 (``out_of_order``). A replay in arrival order meets the same lateness, so it reproduces the
-node's estimates.
+node's estimates. The state kept for a reading need not be copied between its arrival and its
+estimate: ``settle()``, called once the estimates are out (the node after publishing), copies
+the adapter's state then, and a reading processed after nothing but commands keeps that copy
+with the commands' calls, which a rewind makes again (:class:`_Replayed`: the same calls on
+the same state, so the same state as a copy taken just before the reading).
 
 Clock steps (a train clock reset to 0 by a reboot, or set to GPS time) are watched by a
 :class:`~.clocks.StepWatch` (``core/numerics/clocks.py``, where its docstring states the rules):
@@ -77,7 +81,7 @@ from __future__ import annotations
 import heapq
 import math
 from collections import Counter
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Protocol
 
 import numpy as np
@@ -108,6 +112,9 @@ TICKS = 1000.0  # per s: the counter an uncounted stream's readings are given (m
 TICK0 = 2 ** 31  # the first such reading's tick (earlier stamps stay positive for 24 days)
 NO_SLOT = (R.OUT_OF_ORDER, R.DUPLICATE, R.FUTURE_STAMP, R.STALE_STAMP, R.NON_FINITE)
 CLOCK_OF = {"control": "control", "odometer": "train", "balise": "train"}
+SETTLED_CALLS = 8  # commands a settled copy carries at most (EstimatorRunner.settle): one per
+#   reading at the usual rates; more (an odometer silent while commands flow) and the next
+#   settle copies the state afresh rather than keep a list that a rewind would make again
 
 
 @dataclass(frozen=True)
@@ -251,6 +258,8 @@ class EstimatorRunner:
     #   long after it was due is published as a prediction by :meth:`tick`
     _backlog: bool = False  # the latest message pushed came late (tick waits)
     monitor: IntegrityMonitor | None = None
+    _base: tuple | None = None  # (the adapter's snapshot taken by settle, [(filter time,
+    #   fields) of each control call since]); None once any other call changed the adapter
 
     @property
     def arrival_resolution(self) -> float:
@@ -692,9 +701,16 @@ class EstimatorRunner:
             # (marked as made: the adapters do not read a restart from it)
             fields = {**fields, "seq": TICK0 + int(round((ft - t0) * TICKS)),
                       SEQ_MADE: True}
+        base = self._base
+        if base is not None:  # the settled copy stands while only commands follow it
+            if kind == "control" and len(base[1]) < SETTLED_CALLS:
+                base[1].append((ft, fields))
+            else:
+                self._base = None
         try:
             reason = getattr(self.adapter, kind)(ft, fields)
         except (KeyError, TypeError, ValueError, OverflowError) as exc:  # malformed fields
+            self._base = None  # (a call that raised is not made again: a fresh copy)
             return f"{R.INVALID}: {type(exc).__name__}: {exc}"
         self._adapter_events(kind, stamp)
         return reason
@@ -711,23 +727,51 @@ class EstimatorRunner:
                 self._adapter_seen[name] = n
                 self._event(kind, stamp, f"{name}: {R.DESCRIPTION.get(name, '')}")
 
+    def settle(self) -> None:
+        """Copy the adapter's state now, for the next odometer reading's rewind point
+        (:class:`_Replayed`), unless a copy taken since the last change still stands: called
+        once the estimates are out (the node after publishing them), so that the copy, a
+        tenth of an estimate's work, is not made between a reading's arrival and its
+        estimate. Nothing changes in what is computed: without it each reading's state is
+        copied just before the reading, as a rewind needs it."""
+        if self._base is None and self._started and self._can_rewind:
+            self._base = (self.adapter.snapshot(), [])
+
+    def _restore(self, snap) -> None:
+        """The adapter back to a history entry's state (its snapshot, or the settled one with
+        the control calls made since, made again)."""
+        self._base = None
+        if isinstance(snap, _Replayed):
+            self.adapter.restore(snap.base)
+            for ft, fields in snap.controls:
+                self.adapter.control(ft, fields)
+        else:
+            self.adapter.restore(snap)
+
     def _process(self, entry: list) -> str:
         """Apply one item, keeping it (and the state before it, for odometer items) in the
         history that a late item rewinds."""
         if self.history > 0 and entry[3] == "odometer" and self._can_rewind:
-            entry[5] = (self.adapter.snapshot(), self._anchor)
+            base = self._base
+            snap = _Replayed(base[0], tuple(base[1])) if base is not None \
+                else self.adapter.snapshot()
+            entry[5] = (snap, self._anchor)
         reason = self._call(entry[0], entry[3], entry[4])
         if self.history > 0:
-            self._hist.append(entry)
+            hist = self._hist
+            hist.append(entry)
             self._high_done = max(self._high_done, entry[0])
             # keep the history back to the first snapshot older than the horizon
             cut = self._high_done - self.history
-            while len(self._hist) > 1:
-                first_snap = next((k for k in range(1, len(self._hist))
-                                   if self._hist[k][5] is not None), None)
-                if first_snap is None or self._hist[first_snap][0] > cut:
+            while len(hist) > 1:
+                for first_snap in range(1, len(hist)):
+                    if hist[first_snap][5] is not None:
+                        break
+                else:
                     break
-                del self._hist[:first_snap]
+                if hist[first_snap][0] > cut:
+                    break
+                del hist[:first_snap]
         return reason
 
     def _apply(self, stamp: float, order: int, n: int, kind: str, fields: dict) -> str:
@@ -756,7 +800,7 @@ class EstimatorRunner:
                 snap, anchor = hist[i][5]
                 redo = hist[i:]
                 del hist[i:]
-                self.adapter.restore(snap)
+                self._restore(snap)
                 self._anchor = anchor
                 redo.insert(j - i, entry)
                 reason = ""
@@ -812,20 +856,23 @@ class EstimatorRunner:
             self.accepted[kind] += 1
 
     def _emit(self, t: float, out: list) -> None:
+        self._base = None  # an output may step the filter (the braking filters')
         o = self.monitor.assess(self.adapter.output(self._filter_time(t)), t)
         changes = {}
         if o.consider:
-            # the (position, speed) block of the row-major 4x4 (as adding the 2x2 arrays does)
-            C = np.array(o.covariance, dtype=float)
+            # the (position, speed) block of the row-major 4x4, each entry plus its consider
+            # term in one float64 addition, as adding the 2x2 arrays does (the monitor's
+            # covariance is of float64 scalars already: no 16-entry array to build and unpack)
+            C = list(o.covariance)
             cons = o.consider
             for i, k in ((0, 0), (1, 1), (4, 2), (5, 3)):
-                C[i] += float(cons[k])
+                C[i] = np.float64(C[i]) + float(cons[k])
             changes["covariance"] = tuple(C)
         # published on the train clock (after a step: the new one, the sample's stamp as sent)
         stamp = self._steps.as_sent(t)
         if o.stamp != stamp:
             changes["stamp"] = stamp
-        out.append(replace(o, **changes) if changes else o)
+        out.append(_changed(o, changes) if changes else o)
         self._last_out = t
 
     def advance_to(self, t: float) -> list[Output]:
@@ -992,6 +1039,28 @@ class EstimatorRunner:
         return {"accepted": dict(self.accepted), "rejected": dict(self.rejected),
                 "events": dict(self.events), "variance_unstated": dict(self.unstated),
                 "seq_unstated": dict(self.uncounted), "stamp_unstated": self.unstamped}
+
+
+class _Replayed:
+    """A history entry's state as the settled copy (:meth:`EstimatorRunner.settle`) and the
+    control calls ``(filter time, fields)`` the adapter was given after it, in order: restored,
+    the copy, then the same calls."""
+
+    __slots__ = ("base", "controls")
+
+    def __init__(self, base, controls: tuple):
+        self.base, self.controls = base, controls
+
+
+def _changed(o: Output, changes: dict) -> Output:
+    """``dataclasses.replace(o, **changes)`` for the runner's own fields of an Output (no
+    __post_init__ to run, no field to check): a copy of its attributes, a fifth of the cost,
+    at every estimate."""
+    new = object.__new__(Output)
+    d = new.__dict__
+    d.update(o.__dict__)
+    d.update(changes)
+    return new
 
 
 @dataclass
