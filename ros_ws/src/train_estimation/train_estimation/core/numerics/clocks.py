@@ -1019,6 +1019,7 @@ class StepWatch:
         #   arrival_resolution: a simulated clock's tick)
         self.clock = StreamClock()  # the train clock (the runner's, fed by its admissions)
         self.shift = 0.0  # s, train-clock steps so far: timeline stamps = raw - shift
+        self.raised = 0.0  # s, the link's latency raised by the latency moves declared so far
         self.last: tuple | None = None  # (stamp, arrival) of the newest odometer admitted
         self.held: list = []  # (kind, stamp, fields, recv, arrival, refused): discontinuous
         self._pushed: tuple | None = None  # (stamp, arrival) of the last odometer watched
@@ -1364,6 +1365,7 @@ class StepWatch:
             # the stamps ran on where the old clock's would have: the link's latency rose and
             # stays (a route change), not the clock (module doc of _stamps_ran_on)
             med.move(moved)
+            self.raised -= moved
             yield LATENCY, moved
             yield from self._release()  # this reading with them, now on time
             yield (HOLD,)
@@ -1383,14 +1385,17 @@ class StepWatch:
             # the stream's phase
             P = self.phase()[0]
             shift = ph[0] + P * round((shift - ph[0]) / P)
-        if rs is None and measured and shift > 0 and first < s0 + shift + 0.5 * self.period:
+        if rs is None and measured and 0 < moved <= self.raised + self.small_step and \
+                first < s0 + shift + 0.5 * self.period:
             # a clock stepped forward by ``shift`` stamps its first reading a period and the
             # shift after the old clock's last (more where readings were lost): one stamped
-            # sooner is the old clock's stream arriving sooner, its latency fell (a queue
-            # drained after a route change was declared in it, a faster route), no step: the
-            # clock's offset follows. (A queue draining at 1.2x, taken for a slower route, then
-            # made 4 steps an hour of +0.3-0.4 s and the filter's time 1.4 s off.)
+            # sooner is the old clock's stream arriving sooner, its latency fell back by at
+            # most what the latency moves declared raised it (a queue's readings back on time
+            # after its drain was taken for a slower route), no step: the clock's offset
+            # follows. (Taken for steps: a queue draining at 1.2x made 4 an hour of +0.3-0.4 s
+            # and the filter's time 1.4 s off.)
             med.move(moved)
+            self.raised -= moved
             yield LATENCY, moved
             yield from self._release()  # this reading with them, now on time
             yield (HOLD,)
