@@ -1360,16 +1360,10 @@ class StepWatch:
         measured = all(h[3] is not None for h in chain) and len(med) >= self.min_judged
         # the new clock's offsets less the old clock's, carried to the held readings' middle
         moved = new_off - med.now(chain[len(chain) // 2][4]) if measured else math.nan
-        if rs is None and env is None and not off and measured and shift < 0 and \
-                self._stamps_ran_on(chain, s0):
-            # the stamps ran on where the old clock's would have: the link's latency rose and
-            # stays (a route change), not the clock (module doc of _stamps_ran_on)
-            med.move(moved)
-            self.raised -= moved
-            yield LATENCY, moved
-            yield from self._release()  # this reading with them, now on time
-            yield (HOLD,)
-            return
+        # the stamps ran on where the old clock's would have: the link's latency rose and
+        # stays (a route change), not the clock (module doc of _stamps_ran_on)
+        route = rs is None and env is None and not off and measured and shift < 0 and \
+            self._stamps_ran_on(chain, s0)
         if rs is not None:
             measured = True
         elif measured:
@@ -1385,15 +1379,15 @@ class StepWatch:
             # the stream's phase
             P = self.phase()[0]
             shift = ph[0] + P * round((shift - ph[0]) / P)
-        if rs is None and measured and 0 < moved <= self.raised + self.small_step and \
-                first < s0 + shift + 0.5 * self.period:
-            # a clock stepped forward by ``shift`` stamps its first reading a period and the
-            # shift after the old clock's last (more where readings were lost): one stamped
-            # sooner is the old clock's stream arriving sooner, its latency fell back by at
-            # most what the latency moves declared raised it (a queue's readings back on time
-            # after its drain was taken for a slower route), no step: the clock's offset
-            # follows. (Taken for steps: a queue draining at 1.2x made 4 an hour of +0.3-0.4 s
-            # and the filter's time 1.4 s off.)
+        # a clock stepped forward by ``shift`` stamps its first reading a period and the shift
+        # after the old clock's last (more where readings were lost): one stamped sooner is the
+        # old clock's stream arriving sooner, its latency fell back by at most what the latency
+        # moves declared raised it (a queue's readings back on time after its drain was taken
+        # for a slower route), no step. (Taken for steps: a queue draining at 1.2x made 4 an
+        # hour of +0.3-0.4 s and the filter's time 1.4 s off.) Either way the clock's offset
+        # follows the latency, nothing is re-anchored
+        if route or rs is None and measured and 0 < moved <= self.raised + self.small_step \
+                and first < s0 + shift + 0.5 * self.period:
             med.move(moved)
             self.raised -= moved
             yield LATENCY, moved
