@@ -284,9 +284,9 @@ class StreamClock:
         self.fifo = deque(v + d for v in self.fifo)
         self.sorted = [v + d for v in self.sorted]
         self._top = deque((i, v + d, a) for i, v, a in self._top)
-        self.pending, self._held_points, self._dip = [], [], [0.0, [], False]
+        self.pending, self._held_points = [], []
         self._value = self._scale = self._at_cache = self._ceil_cache = None
-        self._new_segment()
+        self._new_segment()  # (the dip's and the rise's runs start afresh with it)
         self._block = [0, 0.0, 0.0]
 
     def __len__(self) -> int:
@@ -1386,8 +1386,8 @@ class StepWatch:
         # for a slower route), no step. (Taken for steps: a queue draining at 1.2x made 4 an
         # hour of +0.3-0.4 s and the filter's time 1.4 s off.) Either way the clock's offset
         # follows the latency, nothing is re-anchored
-        if route or rs is None and measured and 0 < moved <= self.raised + self.small_step \
-                and first < s0 + shift + 0.5 * self.period:
+        if route or (rs is None and measured and 0 < moved <= self.raised + self.small_step
+                     and first < s0 + shift + 0.5 * self.period):
             med.move(moved)
             self.raised -= moved
             yield LATENCY, moved
