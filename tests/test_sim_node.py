@@ -260,3 +260,38 @@ def test_clock_before_each_delivery_and_not_every_step(launch, ros_node):
     # clock_period between them: at most 2 x 10 per s of the run and its linger, not 100
     assert len(said) <= 2 * 10 * (duration + 0.5) + 2, len(said)
     assert said[-1] == pytest.approx(duration + 0.5, abs=1e-9)  # the run's last instant
+
+
+def test_a_world_that_waits_says_for_what(launch, ros_node):
+    """A simulator whose readers are not there stands still and says, once per
+    wait_log_period, which input lacks subscribers; paced, it names the topic it waits for.
+    The main job's progress reader keeps that line, so a run that does not finish reports
+    its cause instead of only 'did not finish in time'."""
+    from train_bringup.main_job import SimProgress
+    from train_interfaces.msg import BaliseReading, ControlCommand, OdometerReading
+
+    ns = "/waiting_world"
+    sim = launch.node("train_sim", "simulator", "--ros-args", "-r", f"__ns:={ns}",
+                      "-p", "scenario:=metro_demo", "-p", "rate_factor:=20.0",
+                      "-p", "duration:=30.0", "-p", "wait_for_subscribers:=1",
+                      "-p", "wait_log_period:=0.5", "-p", "max_lead:=1.0",
+                      "-p", "pace_topics:=[estimate/robust]")
+    watch = SimProgress(Path(sim.log_path), 30.0)
+    try:
+        ros_node.wait_until(lambda: (watch.update(), watch.waiting)[1], timeout=30,
+                            what="the simulator's log line on what it waits for")
+        assert watch.waiting.startswith(
+            "waiting for subscribers: odometer 0 of 1, balise 0 of 1, control 0 of 1, "
+            "ground_truth 0 of 0 ("), watch.waiting
+        assert watch.bar.n == 0  # it did not start
+        # the readers come: the world starts, runs 1 s ahead of estimate/robust (never
+        # published here) and says that it waits for it
+        for msg_type, topic in ((OdometerReading, "odometer"), (BaliseReading, "balise"),
+                                (ControlCommand, "control")):
+            ros_node.collect(msg_type, f"{ns}/{topic}")
+        ros_node.wait_until(lambda: (watch.update(), "paced at" in watch.waiting)[1],
+                            timeout=30, what="the paced world's log line")
+    finally:
+        watch.close()
+    assert watch.waiting.startswith("paced at t = 1.00 s, waiting for estimate/robust "
+                                    "(newest stamp 0.00 s, 0 received)"), watch.waiting

@@ -49,14 +49,18 @@ LEGEND = {
 
 class SimProgress:
     """A progress bar (stderr) of the simulated time, read from the simulator's log lines
-    "simulated T of D s" (every 5 % of the run) as they appear."""
+    "simulated T of D s" (every 5 % of the run) as they appear; ``waiting`` keeps the last line
+    in which the world said what it stands waiting for (a reader not matched, an estimate that
+    does not come), which a run that does not finish reports."""
 
     LINE = re.compile(rb"simulated ([0-9.]+) of ([0-9.]+) s")
+    WAIT = re.compile(rb"\]: ((?:waiting for subscribers|paced at t =)[^\n]*)")
 
     def __init__(self, log: Path, duration: float):
         from train_core.progress import bar
 
         self.log, self.offset, self.done = log, 0, 0.0
+        self.waiting = ""
         self.bar = bar(round(duration), "simulating (s)")
 
     def update(self) -> None:
@@ -69,6 +73,9 @@ class SimProgress:
         end = chunk.rfind(b"\n") + 1  # whole lines only; the rest is read next time
         self.offset += end
         found = self.LINE.findall(chunk[:end])
+        waits = self.WAIT.findall(chunk[:end])
+        if waits:
+            self.waiting = waits[-1].decode(errors="replace")
         if found:
             t = round(float(found[-1][0]))
             self.bar.update(max(0, min(t, self.bar.total) - self.bar.n))
@@ -204,7 +211,9 @@ def main(argv=None) -> int:
         while sim.poll() is None:
             watch.update()
             if time.monotonic() - t0 > limit:
-                failed.append("simulator (did not finish in time)")
+                watch.update()
+                failed.append("simulator (did not finish in time"
+                              + (f"; it last said: {watch.waiting})" if watch.waiting else ")"))
                 break
             for name, proc in procs.procs.items():
                 if name != "simulator" and proc.poll() is not None:

@@ -266,8 +266,13 @@ class EstimatorNode(Node):
                     "use_sim_time)", throttle_duration_sec=5.0)
             return
         if self.wait_subs:  # discovery, as the simulator's wait_for_subscribers: readers
-            if self.pub.get_subscription_count() < self.wait_subs:  # that match late
-                return  # would miss the first estimates (inputs stay queued meanwhile)
+            matched = self.pub.get_subscription_count()
+            if matched < self.wait_subs:  # that match late would miss the first estimates
+                self.get_logger().info(  # (inputs stay queued meanwhile)
+                    f"waiting for subscribers: {self.pub.topic_name} {matched} of "
+                    f"{self.wait_subs}; estimates held until they match",
+                    throttle_duration_sec=10.0)
+                return
             self.wait_subs = 0
         # Outputs wait for the inputs' watermarks (or 4 x delay for a lost sample), so the
         # node computes exactly what the offline replay of the same messages computes; a

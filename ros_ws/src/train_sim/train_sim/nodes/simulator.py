@@ -74,12 +74,17 @@ class SimulatorConfig:
     pace_topics: tuple[str, ...] = param(("estimate/robust",), "", "topics whose progress "
                                          "paces the world when max_lead > 0")
     exit_at_end: bool = param(True, "", "stop the node when the run ends")
+    wait_log_period: float = param(10.0, "s", "wall time between two log lines that say what a "
+                                   "world standing still waits for (subscribers not matched, "
+                                   "paced topics behind)", lo=0.0)
 
     def __post_init__(self):
         require(self.rate_factor > 0, "rate_factor", self.rate_factor, "must be > 0")
         require(self.wall_step > 0, "wall_step", self.wall_step, "must be > 0")
         require(math.isfinite(self.clock_period) and self.clock_period >= 0, "clock_period",
                 self.clock_period, "must be >= 0")
+        require(math.isfinite(self.wait_log_period) and self.wait_log_period > 0,
+                "wait_log_period", self.wait_log_period, "must be > 0")
         require(math.isfinite(self.end_linger) and self.end_linger >= 0, "end_linger",
                 self.end_linger, "must be >= 0")
         require(math.isfinite(self.max_lead) and self.max_lead >= 0, "max_lead", self.max_lead,
@@ -113,7 +118,7 @@ def build_node():
                 raise ParameterError(str(exc)) from None
             scenario, model_dir, seed, duration = cfg.scenario, cfg.model, cfg.seed, cfg.duration
             self.rate_factor, self.step = cfg.rate_factor, cfg.wall_step
-            self.clock_period = cfg.clock_period
+            self.clock_period, self.wait_log_period = cfg.clock_period, cfg.wait_log_period
             self.clock_said = -math.inf  # monotonic s of the last /clock
             self.exit_at_end, self.summary_file = cfg.exit_at_end, cfg.summary_file
             self.wait_subs, self.wait_truth = cfg.wait_for_subscribers, \
@@ -157,6 +162,7 @@ def build_node():
             self.report_step = self.duration / 20.0
             self.next_report = self.report_step
             self.wall0 = None
+            self.waiting_since = None  # monotonic s since the world has stood waiting
             self.finished = False
             self.done = False
             self.timer = self.create_timer(self.step, self.tick)
@@ -210,6 +216,16 @@ def build_node():
                 self.clock_pub.publish(clock)
                 self.clock_said = now
 
+        def _say_waiting(self, now: float, what: str) -> None:
+            """Log what the world waits for, once per wait_log_period of wall time that it
+            waits: a run that stalls (a reader never matched, an estimator
+            that stopped) names its cause in the simulator's log, which the main job reports."""
+            if self.waiting_since is None:
+                self.waiting_since, self.wait_said = now, now
+            elif now - self.wait_said >= self.wait_log_period:
+                self.get_logger().info(f"{what} ({now - self.waiting_since:.0f} s of wall time)")
+                self.wait_said = now
+
         def tick(self) -> None:
             now = time.monotonic()
             if self.wall0 is None:
@@ -217,12 +233,17 @@ def build_node():
                 # the first sample, or they would miss the start of the run.
                 if not inputs_matched(self.pubs, self.wait_subs) or \
                         self.pubs["ground_truth"].get_subscription_count() < self.wait_truth:
+                    self._say_waiting(now, "waiting for subscribers: " + ", ".join(
+                        f"{t} {p.get_subscription_count()} of "
+                        f"{self.wait_truth if t == 'ground_truth' else self.wait_subs}"
+                        for t, p in self.pubs.items()))
                     return
                 if self.start_at > 0:
                     if time.time() < self.start_at:
                         return
                     now -= time.time() - self.start_at  # the shared instant, not this tick
                 self.wall0 = now
+                self.waiting_since = None
             if self.paced:  # advance by wall time elapsed, up to the slowest paced topic
                 last, self.last_wall = self.last_wall or now, now
                 target = min(self.t_sim + (now - last) * self.rate_factor,
@@ -238,7 +259,14 @@ def build_node():
                 # has a clock: under load the world waited for a node's estimates and the node
                 # for a clock, and the run stopped)
                 self._say_clock(now)
+                if self.paced:
+                    behind = [f"{t} (newest stamp {s:.2f} s, {self.in_received[t]} received)"
+                              for t, s in self.paced.items()
+                              if s + self.max_lead <= self.t_sim]
+                    self._say_waiting(now, f"paced at t = {self.t_sim:.2f} s, waiting for "
+                                      + ", ".join(behind))
                 return
+            self.waiting_since = None
             if self.t_sim < self.duration:
                 self.world.advance(min(target, self.duration))
             self.t_sim = target
