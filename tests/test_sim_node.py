@@ -268,6 +268,7 @@ def test_a_world_that_waits_says_for_what(launch, ros_node):
     The main job's progress reader keeps that line, so a run that does not finish reports
     its cause instead of only 'did not finish in time'."""
     from train_bringup.main_job import SimProgress
+
     from train_interfaces.msg import BaliseReading, ControlCommand, OdometerReading
 
     ns = "/waiting_world"
