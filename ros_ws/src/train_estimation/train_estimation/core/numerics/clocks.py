@@ -28,7 +28,7 @@ import math
 from collections import deque
 
 import numpy as np
-from scipy.special import chdtrc, lambertw, ndtr, stdtrit
+from scipy.special import chdtrc, fdtrc, lambertw, ndtr, stdtrit
 
 from . import envelope
 
@@ -69,7 +69,10 @@ LINE_SPREAD = 5.0  # robust spreads of the offsets: a rate fit whose points scat
 DIP_REF = 0.5  # the rate fit's standard errors of a point: half the least dip of its envelope
 #   (a latency that rises for a while) it watches for, the CUSUM's reference (StreamClock._off)
 DIP_RISK = 1e-4  # -, per point: the rate at which the fit's clean points start a false dip
-#   (then a few of them leave the fit)
+#   (then a few of them leave the fit), and a false level move (an intercept more, the slope
+#   unbiased: StreamClock._level_move)
+MOVE_SPLITS = 32  # the rate fit's candidate times of a level move in its current segment, at
+#   most (StreamClock._level_move): its cost per point; they thin out as the segment grows
 TOL = 5.0  # s: wider than arrival jitter (a node at 10x sees 1 Hz stamps 0.9 s apart in
 #   stamp - arrival), far narrower than a clock error worth refusing
 
@@ -180,11 +183,12 @@ class StreamClock:
         self.pending: list = []  # consecutive values away from a full window's centre
         self._fit = [0, 0.0, 0.0, 0.0, 0.0, 0.0, None]  # n, sx, sy, sxx, sxy, syy, origin
         self._closed = [0, 0, 0.0, 0.0, 0.0]  # segments, n, centred sxx, sxy, syy before a move
+        self._snaps: list = []  # the current segment's sums up to a point, and its arrival:
+        #   the candidate times of a level move (:meth:`_level_move`)
+        self._snap_every, self._since_snap = 1, 0  # points between two of them, since the last
         self._rates: dict = {}  # rate()'s by (min_n, min_span), until the fit changes
         self._held_points: list = []  # (arrival, stamp, residual) of the rate fit's points
         #   held above its line (:meth:`_off`)
-        self._rise: list = [0.0, []]  # the mirror CUSUM of the points' rise above the line and
-        #   the points fitted since it was last 0 (:meth:`_off`)
         self._dip: list = [0.0, [], False]  # the CUSUM of the points' fall below the line, the
         #   points fitted since it was last 0, whether a dip is under way (:meth:`_off`)
         self._block = [0, 0.0, 0.0]  # readings so far in the rate fit's block, and the
@@ -286,7 +290,7 @@ class StreamClock:
         self._top = deque((i, v + d, a) for i, v, a in self._top)
         self.pending, self._held_points = [], []
         self._value = self._scale = self._at_cache = self._ceil_cache = None
-        self._new_segment()  # (the dip's and the rise's runs start afresh with it)
+        self._new_segment()  # (the dip's run starts afresh with it)
         self._block = [0, 0.0, 0.0]
 
     def __len__(self) -> int:
@@ -473,6 +477,7 @@ class StreamClock:
         if self._off(point):
             return
         self._fit_add(*point)
+        self._level_move()
 
     def _off(self, point: tuple) -> bool:
         """Whether the block's ``point`` (arrival, stamp) lies off the clock's line, and is held.
@@ -494,10 +499,8 @@ class StreamClock:
         within ``TOL`` that no step test declared). Points beyond the band are held and start a
         new segment of the fit (an intercept of their own, the slope shared) once there are
         ``SEG_MIN`` of them and their scatter about their mean is the line's at ``SEG_RISK`` (a
-        chi-square test of their variance); a point back on the line drops them. A run within
-        the band that together lies above the line (the dip's mirror CUSUM, same reference and
-        bar) starts one from where that CUSUM was last 0: a latency 30 ms faster, below the
-        step watch's least move, was absorbed as slope (+75 ppm at 49 standard errors)."""
+        chi-square test of their variance); a point back on the line drops them. A level
+        that moves by less than the band, either way, is :meth:`_level_move`'s."""
         d, se = self.rate()
         if not math.isfinite(se):  # the line is not known yet: every point informs it
             return False
@@ -527,7 +530,6 @@ class StreamClock:
                 for a, s in dip[1]:  # the dip's points leave the fit
                     self._fit_add(a, s, -1.0)
                 dip[:] = [0.0, [], True]
-                self._rise = [0.0, []]  # (its run may share points with the dip's)
                 return True
             if resid < -band:
                 return True  # far below: the latency's
@@ -535,23 +537,6 @@ class StreamClock:
                 dip[1].append((arrival, stamp))
             else:
                 dip[1].clear()  # (short runs)
-            # the mirror: a run that together lies above the line, within the band, is the
-            # line's level risen by less than the band (latency never lifts a point), not a
-            # slope: its points from where this CUSUM was last 0 start a new segment
-            rise = self._rise
-            rise[0] = max(rise[0] + min(resid, band) / unit - DIP_REF, 0.0)
-            if rise[0] > dip_bar():
-                run = rise[1] + [(arrival, stamp)]
-                for a, s in run[:-1]:
-                    self._fit_add(a, s, -1.0)
-                self._new_segment()
-                for a, s in run:
-                    self._fit_add(a, s)
-                return True
-            if rise[0] > 0.0:
-                rise[1].append((arrival, stamp))
-            else:
-                rise[1].clear()
             return False
         self._dip = [0.0, [], False]
         held = self._held_points
@@ -594,6 +579,21 @@ class StreamClock:
         f[4] += w * x * y
         f[5] += w * y * y
         self._rates = {}
+        snaps = self._snaps
+        if w < 0:  # a point that leaves the fit leaves the sums that hold it
+            for sn in reversed(snaps):
+                if sn[6] < arrival:
+                    break
+                for i, v in enumerate((1, x, y, x * x, x * y, y * y)):
+                    sn[i] -= v
+            return
+        self._since_snap += 1
+        if self._since_snap >= self._snap_every:
+            self._since_snap = 0
+            snaps.append([*f[:6], arrival])
+            if len(snaps) > MOVE_SPLITS:  # bounded: every other one, twice as far apart
+                del snaps[::2]
+                self._snap_every *= 2
 
     def _centred(self) -> tuple[int, float, float, float]:
         """The current segment's n and centred sums (sxx, sxy, syy)."""
@@ -615,8 +615,58 @@ class StreamClock:
             c[4] += cyy
         self._fit = [0, 0.0, 0.0, 0.0, 0.0, 0.0, None]
         self._rates = {}
-        # the CUSUMs' runs hold points of the segment closed
-        self._rise, self._dip = [0.0, []], [0.0, [], False]
+        self._snaps, self._snap_every, self._since_snap = [], 1, 0
+        # the dip CUSUM's run holds points of the segment closed
+        self._dip = [0.0, [], False]
+
+    def _level_move(self) -> None:
+        """Whether the current segment's points lie on two levels of one slope rather than on
+        one line: a level move within the band, which :meth:`_off` cannot see since the line it
+        judges points against tilts towards the new level point by point (a latency 10 ms
+        slower for good, 1 sd of the envelope at 10 Hz, read as -25 ppm at 14 standard errors;
+        a 30 ms faster one as +75 ppm at 49, before a CUSUM of the rise). A generalised
+        likelihood ratio over the candidate times (the sums kept at up to ``MOVE_SPLITS`` of
+        the segment's points): the F statistic of an intercept more at the best one, its tail
+        times the candidates tried (Bonferroni) against ``DIP_RISK``. On alarm the points
+        before it close a segment of their own. A false move costs the slope some precision,
+        never a bias (an intercept more is free under one line); a true one left in biases it
+        by up to 1.5 move / span."""
+        snaps, f = self._snaps, self._fit
+        if len(snaps) < 2 or not math.isfinite(self.rate()[1]):
+            return
+        n, var, cov, rss, dof = self._pooled()
+        if dof < 2 or not rss > 0.0:
+            return
+        cyy0 = self._closed[4]
+        best = None
+        for k, sn in enumerate(snaps):
+            na, nb = sn[0], f[0] - sn[0]
+            if na < SEG_MIN or nb < SEG_MIN:
+                continue
+            a, b = _centred_sums(sn), _centred_sums([f[i] - sn[i] for i in range(6)])
+            v = var - (f[3] - f[1] * f[1] / f[0]) + a[0] + b[0]
+            c = cov - (f[4] - f[1] * f[2] / f[0]) + a[1] + b[1]
+            yy = cyy0 + a[2] + b[2]
+            r = max(yy - c * c / v, 0.0) if v > 0 else math.inf
+            if best is None or r < best[0]:
+                best = (r, k)
+        if best is None:
+            return
+        r, k = best
+        stat = (rss - r) / max(r / (dof - 1), 1e-300)
+        if float(fdtrc(1, dof - 1, stat)) * len(snaps) > DIP_RISK:
+            return
+        sn = snaps[k]
+        a = _centred_sums(sn)
+        cl = self._closed
+        cl[0] += 1
+        cl[1] += sn[0]
+        for i in range(3):
+            cl[2 + i] += a[i]
+        for i in range(6):  # the points after it are the current segment (same origin)
+            f[i] -= sn[i]
+        self._snaps = [[s[i] - sn[i] for i in range(6)] + [s[6]] for s in snaps[k + 1:]]
+        self._rates = {}
 
     def rate(self, min_n: int = 20, min_span: float = 10.0) -> tuple[float, float]:
         """(drift, its standard error): the clock's rate minus 1 (s/s) against the arrival
@@ -650,6 +700,12 @@ class StreamClock:
     @property
     def drift(self) -> float:
         return self.rate()[0]
+
+
+def _centred_sums(s) -> tuple[float, float, float]:
+    """(sxx, sxy, syy) about their means from the raw sums [n, sx, sy, sxx, sxy, syy]."""
+    n, sx, sy, sxx, sxy, syy = s[:6]
+    return sxx - sx * sx / n, sxy - sx * sy / n, syy - sy * sy / n
 
 
 @functools.cache
