@@ -645,12 +645,13 @@ class StreamClock:
                 continue
             a, b = _centred_sums(sn), _centred_sums([f[i] - sn[i] for i in range(6)])
             v = var - (f[3] - f[1] * f[1] / f[0]) + a[0] + b[0]
+            if not v > 0.0:
+                continue
             c = cov - (f[4] - f[1] * f[2] / f[0]) + a[1] + b[1]
-            yy = cyy0 + a[2] + b[2]
-            r = max(yy - c * c / v, 0.0) if v > 0 else math.inf
+            r = max(cyy0 + a[2] + b[2] - c * c / v, 0.0)
             if best is None or r < best[0]:
                 best = (r, k)
-        if best is None:
+        if best is None or not best[0] < rss:
             return
         r, k = best
         stat = (rss - r) / max(r / (dof - 1), 1e-300)
@@ -667,6 +668,8 @@ class StreamClock:
             f[i] -= sn[i]
         self._snaps = [[s[i] - sn[i] for i in range(6)] + [s[6]] for s in snaps[k + 1:]]
         self._rates = {}
+        # the dip CUSUM's run may hold points now closed (no dip is under way: a point joined)
+        self._dip = [0.0, [], False]
 
     def rate(self, min_n: int = 20, min_span: float = 10.0) -> tuple[float, float]:
         """(drift, its standard error): the clock's rate minus 1 (s/s) against the arrival
