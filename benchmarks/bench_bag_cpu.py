@@ -9,6 +9,8 @@ runs it) on a fixed set of bags, and the reports it gives, for comparing two ver
                                               (time.process_time) and the full reports -> F
     ./run bench bag_cpu --compare A B         the CPU table of A against B and the largest
                                               relative difference between their reports
+    ./run bench bag_cpu --quick [--out F]     two cases (nominal, gradient) made in a
+                                              temporary folder and the shipped bags (1 min)
 
 Run two versions side by side (a second git worktree) on the same DIR to compare them; the
 machine's load average is printed with each run.
@@ -43,7 +45,7 @@ SHIPPED = [("metro_demo_short", "metro_demo", "metro_b6"),
            ("wen2017_subway", "wen2017", "wen2017_subway")]
 
 
-def make(d: str) -> None:
+def make(d: str, cases: list = CASES, fleet: bool = True) -> None:
     from train_core.progress import track
 
     from train_sim.cases import make_case
@@ -52,7 +54,7 @@ def make(d: str) -> None:
 
     os.makedirs(d, exist_ok=True)
     bags = []
-    for label, causes, size, family in track(CASES, "bag_cpu: cases"):
+    for label, causes, size, family in track(cases, "bag_cpu: cases"):
         case = make_case(np.random.default_rng([24, len(bags)]), causes or None, size, family)
         sub = os.path.join(d, label)
         paths = case.write(sub)
@@ -61,6 +63,9 @@ def make(d: str) -> None:
                      "bag": os.path.join(sub, "bag"), "line": str(paths["line"]),
                      "train_file": str(paths["train"]), "train": label})
     fd = os.path.join(d, "fleet")
+    if not fleet:
+        json.dump(bags + _shipped(), open(os.path.join(d, "bags.json"), "w"), indent=1)
+        return
     write_fleet(fd, FleetSpec(trains=2, runs=2, degraded=1, seed=3, stops=3, dwell=40.0,
                               map_error=("north", 1000.0, 1400.0, 5.0)))
     from train_estimation.tools import fleet as tool
@@ -69,13 +74,16 @@ def make(d: str) -> None:
         bags.append({"label": f"fleet {t['train']} {os.path.basename(t['bag'])}",
                      "bag": t["bag"], "line": t["line"], "train_file": t["train_file"],
                      "train": t["train"]})
-    cfg = os.path.join(REPO, "ros_ws", "src", "train_core", "config")
-    for bag, line, train in SHIPPED:
-        bags.append({"label": f"shipped {bag}", "bag": os.path.join(REPO, "bags", bag),
-                     "line": os.path.join(cfg, "lines", f"{line}.yaml"),
-                     "train_file": os.path.join(cfg, "trains", f"{train}.yaml"),
-                     "train": bag})
+    bags += _shipped()
     json.dump(bags, open(os.path.join(d, "bags.json"), "w"), indent=1)
+
+
+def _shipped() -> list[dict]:
+    cfg = os.path.join(REPO, "ros_ws", "src", "train_core", "config")
+    return [{"label": f"shipped {bag}", "bag": os.path.join(REPO, "bags", bag),
+             "line": os.path.join(cfg, "lines", f"{line}.yaml"),
+             "train_file": os.path.join(cfg, "trains", f"{train}.yaml"), "train": bag}
+            for bag, line, train in SHIPPED]
 
 
 def analyse(d: str, out: str, only: list | None) -> None:
@@ -194,7 +202,16 @@ def main() -> int:
     p.add_argument("--out")
     p.add_argument("--only", nargs="*")
     p.add_argument("--compare", nargs=2)
+    p.add_argument("--quick", action="store_true",
+                   help="two cases made in a temporary folder and the shipped bags, "
+                        "reports to --out")
     a = p.parse_args()
+    if a.quick:
+        import tempfile
+
+        d = tempfile.mkdtemp(prefix="bag_cpu_")
+        make(d, CASES[:2], fleet=False)
+        analyse(d, a.out or os.path.join(d, "quick.json"), a.only)
     if a.make:
         make(a.make)
     if a.run:

@@ -612,7 +612,14 @@ def main(argv=None) -> int:
                         "balise_late=1.0 with --kinds balise_late: a size the draw does not "
                         "reach")
     add_prior_args(p)  # with --estimators
+    p.add_argument("--quick", action="store_true",
+                   help="about 70 s: 2 seeds on 2 processes (each option given overrides), results "
+                        "in NAME_quick")
     args = p.parse_args(argv)
+    if args.quick:  # the quick values for the options left at their defaults
+        for key, value in dict(seeds=2, jobs=2).items():
+            if getattr(args, key) == p.get_default(key):
+                setattr(args, key, value)
     priors = stated_priors(p, args)
     if priors and not args.estimators:
         p.error("--balise-map-prior and --start-fault-prior go with --estimators")
@@ -651,6 +658,7 @@ def main(argv=None) -> int:
     name += f"_{args.family}" if args.family else ""
     name += "_as_recorded" if args.as_recorded else ""
     name += "_no_distance" if args.no_distance else ""
+    name += "_quick" if args.quick else ""
     name += "".join(f"_{k}{v:g}" for k, v in override.items())
     prog = Progress(f"bench {name.replace('_', ' ')}")
     results = []
