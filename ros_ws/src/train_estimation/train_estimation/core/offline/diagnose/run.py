@@ -117,7 +117,7 @@ def prepare(data: MeasuredRun, line: Line, cfg: DiagConfig, train=None) -> Run:
 
     v = fields["odo_speed"][idx]
     if t_end < cfg.min_duration:
-        raise DiagnoseError(f"run too short: {t_end:.0f} s of odometer data (need >= "
+        raise DiagnoseError(f"run too short: {t_end:.1f} s of odometer data (need >= "
                             f"{cfg.min_duration:g} s)")
     if np.max(v) < cfg.min_speed:
         raise DiagnoseError(f"the train never moves (max odometer speed {np.max(v):.2f} m/s)")
