@@ -98,14 +98,14 @@ def test_a_latency_that_falls_and_stays_is_no_clock_rate(rate):
     assert r["time_err_all_ms"] < 1.0, r
 
 
-@pytest.mark.parametrize("seed", [1, 2])
-def test_a_latency_that_rises_a_little_and_stays_is_no_clock_rate(seed):
+def test_a_latency_that_rises_a_little_and_stays_is_no_clock_rate():
     """The mirror at 10 Hz: the latency rises by 10 ms at 600 s and stays, about one standard
     deviation of the rate fit's envelope points. Each point lies a little below the line, and
     the line, judged point by point, tilted towards them (-13 to -20 standard errors in seeds
     1-4, the dip test never firing); the points on two levels of one slope are one more
-    intercept (StreamClock._level_move's likelihood ratio over the candidate times)."""
-    r = run_link(1200.0, 10.0, False, 0.05, 0.05, None, seed=seed, route=0.01)
+    intercept (StreamClock._level_move's likelihood ratio over the candidate times). Seed 1
+    (-15 standard errors without it); `./run bench clocks` runs seeds 0-5 of this link."""
+    r = run_link(1200.0, 10.0, False, 0.05, 0.05, None, seed=1, route=0.01)
     assert r["false_steps_per_h"] == 0 and r["refused"] == 0, r
     assert not r["separate"] and abs(r["drift_ppm"]) <= 4.0 * r["drift_se_ppm"], r
     assert r["time_err_all_ms"] < 1.0, r
