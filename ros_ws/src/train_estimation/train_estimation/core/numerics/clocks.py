@@ -597,22 +597,23 @@ class StreamClock:
 
     def _centred(self) -> tuple[int, float, float, float]:
         """The current segment's n and centred sums (sxx, sxy, syy)."""
-        n, sx, sy, sxx, sxy, syy, _ = self._fit
-        if n == 0:
-            return 0, 0.0, 0.0, 0.0
-        return n, sxx - sx * sx / n, sxy - sx * sy / n, syy - sy * sy / n
+        n = self._fit[0]
+        return (n, *_centred_sums(self._fit)) if n else (0, 0.0, 0.0, 0.0)
+
+    def _close(self, sums) -> None:
+        """Points with these raw sums [n, sx, sy, sxx, sxy, syy] become a closed segment: an
+        intercept of their own, the slope shared."""
+        c = self._closed
+        c[0] += 1
+        c[1] += sums[0]
+        for i, v in enumerate(_centred_sums(sums)):
+            c[2 + i] += v
 
     def _new_segment(self) -> None:
         """The offset's level moved: later points get an intercept of their own and share the
         slope with the earlier ones."""
-        n, cxx, cxy, cyy = self._centred()
-        if n:
-            c = self._closed
-            c[0] += 1
-            c[1] += n
-            c[2] += cxx
-            c[3] += cxy
-            c[4] += cyy
+        if self._fit[0]:
+            self._close(self._fit)
         self._fit = [0, 0.0, 0.0, 0.0, 0.0, 0.0, None]
         self._rates = {}
         self._snaps, self._snap_every, self._since_snap = [], 1, 0
@@ -637,17 +638,18 @@ class StreamClock:
         n, var, cov, rss, dof = self._pooled()
         if dof < 2 or not rss > 0.0:
             return
-        cyy0 = self._closed[4]
+        # the closed segments' sums: the pooled ones less the current segment's
+        _, cxx1, cxy1, _ = self._centred()
+        cxx0, cxy0, cyy0 = var - cxx1, cov - cxy1, self._closed[4]
         best = None
         for k, sn in enumerate(snaps):
-            na, nb = sn[0], f[0] - sn[0]
-            if na < SEG_MIN or nb < SEG_MIN:
+            if sn[0] < SEG_MIN or f[0] - sn[0] < SEG_MIN:
                 continue
             a, b = _centred_sums(sn), _centred_sums([f[i] - sn[i] for i in range(6)])
-            v = var - (f[3] - f[1] * f[1] / f[0]) + a[0] + b[0]
+            v = cxx0 + a[0] + b[0]
             if not v > 0.0:
                 continue
-            c = cov - (f[4] - f[1] * f[2] / f[0]) + a[1] + b[1]
+            c = cxy0 + a[1] + b[1]
             r = max(cyy0 + a[2] + b[2] - c * c / v, 0.0)
             if best is None or r < best[0]:
                 best = (r, k)
@@ -658,12 +660,7 @@ class StreamClock:
         if float(fdtrc(1, dof - 1, stat)) * len(snaps) > DIP_RISK:
             return
         sn = snaps[k]
-        a = _centred_sums(sn)
-        cl = self._closed
-        cl[0] += 1
-        cl[1] += sn[0]
-        for i in range(3):
-            cl[2 + i] += a[i]
+        self._close(sn)
         for i in range(6):  # the points after it are the current segment (same origin)
             f[i] -= sn[i]
         self._snaps = [[s[i] - sn[i] for i in range(6)] + [s[6]] for s in snaps[k + 1:]]
