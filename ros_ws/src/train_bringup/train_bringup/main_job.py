@@ -210,8 +210,7 @@ def main(argv=None) -> int:
                             sc.duration if args.duration < 0 else args.duration)
         while sim.poll() is None:
             watch.update()
-            if time.monotonic() - t0 > limit:
-                watch.update()
+            if time.monotonic() - t0 > limit:  # (watch read the log just above)
                 failed.append("simulator (did not finish in time"
                               + (f"; it last said: {watch.waiting})" if watch.waiting else ")"))
                 break

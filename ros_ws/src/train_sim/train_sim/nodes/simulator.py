@@ -216,15 +216,32 @@ def build_node():
                 self.clock_pub.publish(clock)
                 self.clock_said = now
 
-        def _say_waiting(self, now: float, what: str) -> None:
-            """Log what the world waits for, once per wait_log_period of wall time that it
-            waits: a run that stalls (a reader never matched, an estimator
-            that stopped) names its cause in the simulator's log, which the main job reports."""
+        def _say_waiting(self, now: float, what) -> None:
+            """Log what the world waits for (``what()``, a line, or "" for nothing), once per
+            wait_log_period of wall time that it waits: a run that stalls (a reader never
+            matched, an estimator that stopped) names its cause in the simulator's log, which
+            the main job reports. The line is made only when it is due (the world waits at
+            many ticks of a paced run)."""
             if self.waiting_since is None:
-                self.waiting_since, self.wait_said = now, now
+                self.waiting_since = self.wait_said = now
             elif now - self.wait_said >= self.wait_log_period:
-                self.get_logger().info(f"{what} ({now - self.waiting_since:.0f} s of wall time)")
                 self.wait_said = now
+                line = what()
+                if line:
+                    self.get_logger().info(
+                        f"{line} ({now - self.waiting_since:.0f} s of wall time)")
+
+        def _subscribers_short(self) -> str:
+            return "waiting for subscribers: " + ", ".join(
+                f"{t} {p.get_subscription_count()} of "
+                f"{self.wait_truth if t == 'ground_truth' else self.wait_subs}"
+                for t, p in self.pubs.items())
+
+        def _paced_behind(self) -> str:
+            behind = [f"{t} (newest stamp {s:.2f} s, {self.in_received[t]} received)"
+                      for t, s in self.paced.items() if s + self.max_lead <= self.t_sim]
+            return f"paced at t = {self.t_sim:.2f} s, waiting for " + ", ".join(behind) \
+                if behind else ""  # (standing at the run's end waits for nothing)
 
         def tick(self) -> None:
             now = time.monotonic()
@@ -233,10 +250,7 @@ def build_node():
                 # the first sample, or they would miss the start of the run.
                 if not inputs_matched(self.pubs, self.wait_subs) or \
                         self.pubs["ground_truth"].get_subscription_count() < self.wait_truth:
-                    self._say_waiting(now, "waiting for subscribers: " + ", ".join(
-                        f"{t} {p.get_subscription_count()} of "
-                        f"{self.wait_truth if t == 'ground_truth' else self.wait_subs}"
-                        for t, p in self.pubs.items()))
+                    self._say_waiting(now, self._subscribers_short)
                     return
                 if self.start_at > 0:
                     if time.time() < self.start_at:
@@ -260,11 +274,7 @@ def build_node():
                 # for a clock, and the run stopped)
                 self._say_clock(now)
                 if self.paced:
-                    behind = [f"{t} (newest stamp {s:.2f} s, {self.in_received[t]} received)"
-                              for t, s in self.paced.items()
-                              if s + self.max_lead <= self.t_sim]
-                    self._say_waiting(now, f"paced at t = {self.t_sim:.2f} s, waiting for "
-                                      + ", ".join(behind))
+                    self._say_waiting(now, self._paced_behind)
                 return
             self.waiting_since = None
             if self.t_sim < self.duration:
