@@ -415,13 +415,10 @@ def main(argv=None) -> int:
                    help="under a minute: one plain case per cause, one pair, one nominal bag, no "
                         "real line, 2 processes, output NAME diagnose_quick (each option given "
                         "overrides)")
+    if p.parse_known_args(argv)[0].quick:  # the quick values as defaults: given ones win
+        p.set_defaults(cases=1, sizes="plain", pairs=1, nominal=1, real=0, jobs=2,
+                       name="diagnose_quick")
     args = p.parse_args(argv)
-    if args.quick:  # the quick values for the options left at their defaults
-        quick = dict(cases=1, sizes="plain", pairs=1, nominal=1, real=0, jobs=2,
-                     name="diagnose_quick")
-        for key, value in quick.items():
-            if getattr(args, key) == p.get_default(key):
-                setattr(args, key, value)
     if args.pairs is None:
         args.pairs = 3 * args.cases
     sizes = [s for s in args.sizes.split(",") if s]

@@ -173,11 +173,9 @@ def main() -> int:
     p.add_argument("--quick", action="store_true",
                    help="about 2 min: 4 trains x 2 runs (one degraded), 2 timing bags, 5 "
                         "draws (each option given overrides); written to fleet_quick.md")
+    if p.parse_known_args()[0].quick:  # the quick values as defaults: given ones win
+        p.set_defaults(trains=4, degraded=1, timing_bags=2, draws=5)
     a = p.parse_args()
-    if a.quick:  # the quick values for the options left at their defaults
-        for key, value in dict(trains=4, degraded=1, timing_bags=2, draws=5).items():
-            if getattr(a, key) == p.get_default(key):
-                setattr(a, key, value)
     lines = []
 
     def say(s=""):

@@ -615,11 +615,9 @@ def main(argv=None) -> int:
     p.add_argument("--quick", action="store_true",
                    help="about 70 s: 2 seeds on 2 processes (each option given overrides), results "
                         "in NAME_quick")
+    if p.parse_known_args(argv)[0].quick:  # the quick values as defaults: given ones win
+        p.set_defaults(seeds=2, jobs=2)
     args = p.parse_args(argv)
-    if args.quick:  # the quick values for the options left at their defaults
-        for key, value in dict(seeds=2, jobs=2).items():
-            if getattr(args, key) == p.get_default(key):
-                setattr(args, key, value)
     priors = stated_priors(p, args)
     if priors and not args.estimators:
         p.error("--balise-map-prior and --start-fault-prior go with --estimators")

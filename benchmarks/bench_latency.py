@@ -616,13 +616,10 @@ def main(argv=None) -> int:
                     help="under 2 min: 15 s live runs on the wall clock without link latency, "
                          "the first algorithm, 2 offline seeds of 120 s, a 30 s stage table "
                          "(each given option overrides)")
+    if ap.parse_known_args(argv)[0].quick:  # the quick values as defaults: given ones win
+        ap.set_defaults(duration=15.0, seeds=2, offline_duration=120.0, stage_duration=30.0,
+                        no_link=True, clocks="wall", algorithms=ALGORITHMS[0])
     args = ap.parse_args(argv)
-    if args.quick:  # the quick values for the options left at their defaults
-        quick = dict(duration=15.0, seeds=2, offline_duration=120.0, stage_duration=30.0,
-                     no_link=True, clocks="wall", algorithms=ALGORITHMS[0])
-        for key, value in quick.items():
-            if getattr(args, key) == ap.get_default(key):
-                setattr(args, key, value)
     algorithms = [a for a in args.algorithms.split(",") if a]
     nodes = live_nodes(algorithms)
     echo = nodes[-1]
