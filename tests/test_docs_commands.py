@@ -102,6 +102,7 @@ def _cases():
 
 CASES = list(_cases())
 SUBCOMMANDS = None
+HELP: dict = {}  # program (argv) -> its --help's CompletedProcess, once per test process
 
 
 def _run_subcommands() -> set[str]:
@@ -125,8 +126,11 @@ def test_program_and_options_exist(cmd, run, ros_env):
     if n == 0:
         assert argv[1] in _run_subcommands(), f"./run has no sub-command {argv[1]!r}"
         return
-    out = subprocess.run([*argv[:n], "--help"], capture_output=True, text=True, timeout=120,
-                         cwd=REPO, env=ros_env)
+    key = tuple(argv[:n])
+    if key not in HELP:  # many commands of the docs share a program: one --help each
+        HELP[key] = subprocess.run([*key, "--help"], capture_output=True, text=True,
+                                   timeout=120, cwd=REPO, env=ros_env)
+    out = HELP[key]
     assert out.returncode == 0, f"{argv[:n]} --help: {out.stderr[-1500:]}"
     args = argv[n:]
     if "--ros-args" in args:
