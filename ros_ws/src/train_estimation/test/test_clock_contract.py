@@ -177,34 +177,24 @@ def test_the_envelope_threshold_is_the_stated_rate():
 @pytest.mark.parametrize("shape", ["exp", "gamma"])
 @pytest.mark.parametrize("jitter", [0.05, 0.2])
 @pytest.mark.parametrize("rate", [10.0, 1.0])
-def test_no_false_step_on_the_envelope_of_a_clean_link(rate, jitter, shape):
-    """False steps per hour on a clean jittery link without a counter, where the envelope test
-    could err: two seeds of ten minutes at 10 Hz, of an hour at 1 Hz, an exponential and a
-    Gamma(4) latency (the envelope sharp and blunt). The stated rate is 1e-4 per hour
-    (EstimatorRunner.false_step_rate): one false step in these 0.33 to 2 hours would reject
-    it at p <= 2e-4, so none may be seen. (Nor did the envelope hold any reading on these
-    links: the estimates in doubt were the same with it and without it, docs/integrity.md.)"""
-    dur = 600.0 if rate == 10.0 else 3600.0
-    for seed in range(2):
-        r = run_link(dur, rate, False, jitter, 0.05, None, seed=seed, shape=shape)
-        assert r["false_steps_per_h"] == 0 and r["refused"] == 0, (seed, r)
-
-
-@pytest.mark.slow
-@pytest.mark.parametrize("shape", ["exp", "gamma"])
-@pytest.mark.parametrize("jitter", [0.05, 0.2])
-@pytest.mark.parametrize("rate", [10.0, 1.0])
 def test_the_rate_fit_finds_the_clocks_rate_within_its_stated_error(rate, jitter, shape):
     """On a clean jittery link without a counter (five minutes at 10 Hz, a quarter of an hour at
     1 Hz, 5 % lost) the train clock's fitted rate lies within 4 of its stated standard errors of
     the truth: seeds of one clock shared with the commands (ten at 1 Hz, where the early points
-    are few, three at 10 Hz), which ``control_clock: auto`` must judge one, and a clock 1e-4 and
+    are few, four at 10 Hz), which ``control_clock: auto`` must judge one, and a clock 1e-4 and
     1e-3 fast and slow (the fault ``drift``), which at 1e-3 it must judge separate. A fit that
     took 4 points 20 s into a 1 Hz stream for its line held every later point off it and stayed
     at -3,988 ppm (stated error 445) for the hour; fits of 4 or 5 points stating a tenth of
-    their error judged one clock two."""
+    their error judged one clock two.
+
+    No false step either, where the envelope test could err (an exponential and a Gamma(4)
+    latency: the envelope sharp and blunt): the stated rate is 1e-4 per hour
+    (EstimatorRunner.false_step_rate), and the one-clock runs alone are 0.33 h at 10 Hz and 2.5
+    h at 1 Hz, in which one false step would reject it at p <= 2e-4, so none may be seen. (Nor
+    did the envelope hold any reading on these links: the estimates in doubt were the same with
+    it and without it, docs/integrity.md.)"""
     dur = 300.0 if rate == 10.0 else 900.0  # the lock and the wrong verdicts came in 30 s
-    for drift, seeds in ((0.0, range(10 if rate == 1.0 else 3)), (1e-4, [0]), (-1e-4, [0]),
+    for drift, seeds in ((0.0, range(10 if rate == 1.0 else 4)), (1e-4, [0]), (-1e-4, [0]),
                          (1e-3, [0]), (-1e-3, [0])):
         for seed in seeds:
             r = run_link(dur, rate, False, jitter, 0.05, None, seed=seed, shape=shape,
