@@ -180,6 +180,26 @@ class RosProbe:
             self.executor.spin_once(timeout_sec=0.05)
         raise TimeoutError(f"timed out after {timeout:.0f} s waiting for {what}")
 
+    def call(self, client, request, timeout: float = 20.0, what: str = "a service answer",
+             resend: float = 5.0):
+        """The service's response to ``request``, the request sent again every ``resend`` s
+        until one comes (the requests here are idempotent: a get, or a set of the same value).
+        A service may drop its response while the client's response reader is not yet matched
+        ("failed to send response (timeout): client will not receive response", on a loaded
+        machine), and a request sent once then waits for ever."""
+        end = time.monotonic() + timeout
+        futures = []
+        while time.monotonic() < end:
+            futures.append(client.call_async(request))
+            until = min(end, time.monotonic() + resend)
+            while time.monotonic() < until:
+                for future in futures:
+                    if future.done():
+                        return future.result()
+                self.executor.spin_once(timeout_sec=0.05)
+        raise TimeoutError(f"timed out after {timeout:.0f} s waiting for {what} "
+                           f"({len(futures)} requests sent)")
+
     def wait_for_publishers(self, topic: str, count: int = 1, timeout: float = 20.0) -> None:
         self.wait_until(lambda: self.node.count_publishers(topic) >= count, timeout,
                         f"{count} publisher(s) on {topic}")

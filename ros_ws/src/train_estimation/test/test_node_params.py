@@ -118,10 +118,9 @@ def test_an_integer_for_a_float_and_an_unknown_parameter_start_the_node(launch, 
                        "-p", "operator:=north", name="int_params")
     get_cli = ros_node.node.create_client(GetParameters, f"{ns}/robust_filter/get_parameters")
     ros_node.wait_until(get_cli.service_is_ready, timeout=30, what="the parameter service")
-    future = get_cli.call_async(GetParameters.Request(names=["q"]))
     # answered once the node's construction is done (the first answer waits for its start-up)
-    ros_node.wait_until(future.done, timeout=60, what="the node's first parameter answer")
-    (v,) = future.result().values
+    (v,) = ros_node.call(get_cli, GetParameters.Request(names=["q"]), timeout=60,
+                         what="the node's first parameter answer").values
     assert v.double_value == 1.0
     assert proc.poll() is None
     log = Path(proc.log_path).read_text()
@@ -192,9 +191,7 @@ def test_runtime_set_parameters_is_validated_and_refused_with_a_reason(launch, r
                         timeout=30, what="the node's parameter services")
 
     def call(client, request, timeout=10.0, what="a parameter service answer"):
-        future = client.call_async(request)
-        ros_node.wait_until(future.done, timeout=timeout, what=what)
-        return future.result()
+        return ros_node.call(client, request, timeout=timeout, what=what)
 
     # the services are discovered as soon as rclpy's Node is made, and answered once the node's
     # construction (models, filter, kernels) is done and it spins: the first answer waits for
