@@ -138,7 +138,7 @@ _ROS_FIXTURES = {"launch", "ros_node"}  # node processes, rclpy in the test
 
 def pytest_collection_modifyitems(config, items):
     """Every test that starts processes in the ROS environment is marked ``ros``, whether or not
-    its module says so: ``./run test`` runs those two at a time, each worker on its own ROS
+    its module says so: ``./run test`` runs those three at a time, each worker on its own ROS
     domain, after the CPU-bound rest has run in parallel (their timing is real time: a node test
     keeps about half a core busy)."""
     for item in items:

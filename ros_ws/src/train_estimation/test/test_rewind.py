@@ -58,6 +58,24 @@ def test_readings_older_than_the_history_are_refused_with_a_reason():
     assert r.rejected == {"odometer:out_of_order": 1}
 
 
+def test_an_adapter_without_snapshots_keeps_no_history():
+    """Nothing rewinds an adapter that cannot copy its state, so the runner keeps only the last
+    item it fused (what a later one is judged late against), not every item of the run: the
+    history stays one item long however long the run, and each reading is fused as it came."""
+    from train_estimation.tools.clock_runs import Recorder
+
+    sc, res = run(duration=30.0)
+    ev = restamp(res.events())
+    rec = Recorder()
+    runner = EstimatorRunner(rec, 0.1)
+    outs, r = replay(ev, rec, 0.1, runner=runner)
+    n_odo = sum(e[0] == "odometer" for e in ev)
+    assert runner.history > 0 and not runner._can_rewind
+    assert len(runner._hist) == 1
+    assert r.accepted["odometer"] == n_odo == len(rec.fused) and not r.rejected
+    assert len(outs) >= n_odo
+
+
 class _Unsettled(EstimatorRunner):
     """A runner whose state for each reading is copied just before the reading (settle does
     nothing): the rewind points as they were before settle existed."""

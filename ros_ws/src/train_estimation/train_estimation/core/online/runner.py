@@ -761,6 +761,11 @@ class EstimatorRunner:
             hist = self._hist
             hist.append(entry)
             self._high_done = max(self._high_done, entry[0])
+            if not self._can_rewind:
+                # an adapter without snapshots is never rewound: only the last item is read
+                # (what is late); the whole history kept would be scanned below per item
+                del hist[:-1]
+                return reason
             # keep the history back to the first snapshot older than the horizon
             cut = self._high_done - self.history
             while len(hist) > 1:
