@@ -41,7 +41,7 @@ class Recorder:
         return ""
 
     def odometer(self, stamp: float, fields: dict) -> str:
-        self.fused.append((stamp, fields["distance"]))
+        self.fused.append((stamp, fields.get("true_distance", fields["distance"])))
         return ""
 
     def balise(self, stamp: float, fields: dict) -> str:
@@ -52,19 +52,27 @@ class Recorder:
 
 
 def cruise(duration: float, rate: float, loss: float, counter: bool,
-           rng: np.random.Generator, sampling: float = 0.0) -> list:
+           rng: np.random.Generator, sampling: float = 0.0, noise: tuple = (0.0, 0.0)) -> list:
     """``(topic, t, fields)`` of a train at :data:`SPEED`: odometer readings at ``rate`` Hz
     (``seq`` the sample counter, or 0 for every reading without one) of which ``loss`` are lost
     at random, and a command every second. ``sampling``: s, the sampling loop's own jitter:
-    each sample is taken (and stamped) a Gaussian of this spread off its slot."""
+    each sample is taken (and stamped) a Gaussian of this spread off its slot. ``noise``: (m,
+    m/s), the standard deviations of the count's and the speed's Gaussian noise per reading
+    (the true count rides along as ``true_distance``, for the time errors)."""
     ev = []
     n = int(round(duration * rate))
     kept = np.flatnonzero(rng.random(n) >= loss)
     late = rng.normal(0.0, sampling, kept.size) if sampling else np.zeros(kept.size)
-    for k, dt in zip(kept, late):
+    sd_d, sd_v = noise
+    e_d = rng.normal(0.0, sd_d, kept.size) if sd_d else np.zeros(kept.size)
+    e_v = rng.normal(0.0, sd_v, kept.size) if sd_v else np.zeros(kept.size)
+    for k, dt, ed, ev_ in zip(kept, late, e_d, e_v):
         t = k / rate + float(dt)
-        ev.append(("odometer", t, {"seq": int(k) if counter else 0, "distance": SPEED * t,
-                                   "speed": SPEED, "speed_variance": 0.01}))
+        f = {"seq": int(k) if counter else 0, "distance": SPEED * t + float(ed),
+             "speed": SPEED + float(ev_), "speed_variance": max(sd_v, 0.1) ** 2}
+        if sd_d:
+            f["true_distance"] = SPEED * t
+        ev.append(("odometer", t, f))
     ev += [("control", float(j), {"target_acceleration": 0.0})
            for j in range(int(duration) + 1)]
     return sorted(ev, key=lambda e: (e[1], e[0] != "control"))
@@ -81,7 +89,8 @@ def _later(faulted, extra):
 def run_link(duration: float, rate: float, counter: bool, jitter: float, loss: float,
              step: float | None, seed: int, queue: float | None = None,
              route: float | None = None, shape: str = "exp", drift: float = 0.0,
-             sampling: float = 0.0, wander: tuple | None = None) -> dict:
+             sampling: float = 0.0, wander: tuple | None = None,
+             count_clock: bool = True, noise: tuple = (0.0, 0.0)) -> dict:
     """One replay (module doc); the figures of one row. ``queue``: the drain factor of a link
     that queues (the campaign's fault ``queue``, from 15 s on; no step then); ``route``: s by
     which the link's latency rises at :data:`STEP_AT` and stays (the fault ``route``; no
@@ -92,9 +101,11 @@ def run_link(duration: float, rate: float, counter: bool, jitter: float, loss: f
     then); ``sampling``: s, the sampling loop's jitter on the stamps (:func:`cruise`);
     ``wander``: (rise s, period s), the link's latency rises by ``rise`` from
     :data:`WANDER_AT` and falls back over ``period`` (a raised cosine), a link that slows down
-    for a while (no step then)."""
+    for a while (no step then); ``count_clock``: the runner's (False: a stream without a
+    counter judged by its arrivals alone, as when the train is slow); ``noise``: the count's
+    and the speed's noise (m, m/s; :func:`cruise`)."""
     rng = np.random.default_rng(seed)
-    events = cruise(duration, rate, loss, counter, rng, sampling)
+    events = cruise(duration, rate, loss, counter, rng, sampling, noise)
     if shape not in ("exp", "gamma"):
         raise ValueError(f"shape must be exp or gamma, got {shape!r}")
     link = jitter if shape == "exp" else 0.0
@@ -113,13 +124,14 @@ def run_link(duration: float, rate: float, counter: bool, jitter: float, loss: f
         rise, period = wander
 
         def wandered(f):
-            u = f["distance"] / SPEED - WANDER_AT  # s since the rise began (the sample's time)
+            # s since the rise began (the sample's time)
+            u = f.get("true_distance", f["distance"]) / SPEED - WANDER_AT
             return 0.5 * rise * (1.0 - math.cos(2.0 * math.pi * u / period)) \
                 if 0.0 <= u <= period else 0.0
 
         faulted = _later(faulted, wandered)
     rec = Recorder()
-    runner = EstimatorRunner(rec, 1.0 / rate)
+    runner = EstimatorRunner(rec, 1.0 / rate, count_clock=count_clock)
     arrived = {"new": 0}  # readings sampled at or after the step's instant, arrived so far
     decided = []  # (true arrival s, new readings arrived) when the step was declared
 
@@ -130,7 +142,8 @@ def run_link(duration: float, rate: float, counter: bool, jitter: float, loss: f
     def stream():
         for ev in faulted.events:
             yield ev
-            if ev[0] == "odometer" and ev[2]["distance"] / SPEED >= STEP_AT - 1e-9:
+            if ev[0] == "odometer" and \
+                    ev[2].get("true_distance", ev[2]["distance"]) / SPEED >= STEP_AT - 1e-9:
                 arrived["new"] += 1
 
     outs, _ = replay(stream(), rec, 1.0 / rate, on_time=on_time, runner=runner)

@@ -61,6 +61,22 @@ TIE = 1e-3  # s: offsets closer than this (or than the arrivals' resolution) hav
 SMALL_MOVE = 0.05  # s: the least move of a clock's offset level taken as one (the runner's
 #   small_step); smaller moves are jitter and drift
 MAX_SPEED = 200.0  # m/s, beyond any train (720 km/h): a reading claiming more is corrupt
+# The odometer's count as a clock (StepWatch._count_resid): moving, the time between two samples
+# is twice their count's difference over the sum of their speeds (exact at constant
+# acceleration), whatever the link did to their arrivals
+COUNT_Z = 5.0  # standard deviations of the count's residual (learnt, robust) beyond which a
+#   reading's stamp is off its clock (a Gaussian's two-sided tail: 6e-7 per reading)
+COUNT_MIN_SPEED = 1.0  # m/s: below this mean speed of two samples the count times them too
+#   coarsely (the link's arrivals judge them, as without it)
+COUNT_SPAN = 5.0  # s: the longest time one link of the count's chain spans (a lost reading or
+#   two at 1 Hz); the trapezoid's error from a change of acceleration grows as its cube
+COUNT_JERK = 1.0  # m/s^3, the rate of change of acceleration the trapezoid tolerates (a
+#   passenger train's comfort limit is 0.5-1): at most jerk dt^3 / 12 of count between samples
+COUNT_LAG = 0.5  # s, how far the odometer's speed may lag its count (a filtered speed): its
+#   error on the time between two samples is the lag times their speed change over their mean
+COUNT_LEARN = 16  # count residuals learnt at speed before the count judges stamps
+COUNT_RATE = 1e-2  # -, the rate between the train clock's seconds and the count's (its speed's)
+#   that the count's residual tolerates: the train clocks measured, up to 1 % off
 SEG_MIN = 4  # the rate fit's points off its line that can start a segment of it (StreamClock._off)
 SEG_RISK = TREND_WAIT  # -, the rate at which a true move of the line's level is held for one
 #   more point: its points scatter about one level as the line's own (chi-square at this risk)
@@ -739,6 +755,23 @@ class StreamClock:
         return self.rate()[0]
 
 
+def _count_link(s0: float, d0: float, v0, s1: float, d1: float, v1):
+    """``(r s, mean speed m/s, speed change m/s)`` of two odometer samples of one stream
+    (stamps ``s``, counts ``d`` m, speeds ``v`` m/s): the stamps' difference less the time the
+    count puts between them, ``2 (d1 - d0) / (v0 + v1)`` (the trapezoid: exact at constant
+    acceleration); None when the train is not moving forward at ``COUNT_MIN_SPEED`` or the
+    samples lie more than ``COUNT_SPAN`` apart."""
+    if not all(isinstance(x, int | float) and math.isfinite(x) for x in (v0, v1, d0, d1)):
+        return None
+    vbar = 0.5 * (v0 + v1)
+    if min(v0, v1) <= 0.0 or vbar < COUNT_MIN_SPEED:
+        return None
+    dt = (d1 - d0) / vbar
+    if abs(dt) > COUNT_SPAN:
+        return None
+    return (s1 - s0) - dt, vbar, v1 - v0
+
+
 def _centred_sums(s) -> tuple[float, float, float]:
     """(sxx, sxy, syy) about their means from the raw sums [n, sx, sy, sxx, sxy, syy]."""
     n, sx, sy, sxx, sxy, syy = s[:6]
@@ -1090,8 +1123,10 @@ class StepWatch:
     def __init__(self, period: float, min_judged: int = 9, step_back: float = 0.3,
                  small_step: float = 0.05, small_step_z: float = 10.0,
                  max_future: float = 600.0, same: bool = False, trend_risk: float = 1e-3,
-                 step_risk: float = 1e-7, false_step_rate: float = 1e-4):
+                 step_risk: float = 1e-7, false_step_rate: float = 1e-4, count: bool = True):
         self.period = period  # s, nominal odometer period
+        self.count = count  # without a sample counter, judge the stamps by the odometer's
+        #   count while moving (:meth:`_count_resid`)
         # the envelope test's p-value for a step: false steps at most false_step_rate per hour
         self.env_level = envelope.level(false_step_rate, period, TREND_N)
         # ... and the phase's: a stamp on it is judged off it at most as often (one per reading)
@@ -1120,7 +1155,9 @@ class StepWatch:
         self._n_admitted = 0  # odometer readings admitted so far
         self._sent: dict = {}  # timeline odometer stamp -> stamp as sent (after a step)
         self.grid = SampleGrid(period, min_judged)  # odometer stamps against their seq
-        self._dist: tuple | None = None  # (stamp, counted distance, seq) of the newest fused
+        self._dist: tuple | None = None  # (stamp, counted distance, seq, speed) of the newest
+        #   fused odometer reading
+        self._count_e: deque = deque(maxlen=64)  # m: |count residual| of recent fused pairs
 
     # -- stamps ---------------------------------------------------------------------------
     def onto_timeline(self, stamp: float, odometer: bool) -> float:
@@ -1238,12 +1275,21 @@ class StepWatch:
         r -= P * round(r / P)
         return r, abs(r) > tol
 
-    def fused(self, stamp: float, distance, seq=None) -> None:
+    def fused(self, stamp: float, distance, seq=None, speed=None) -> None:
         """The filter fused this odometer reading (timeline stamp, counted distance m, its
-        sample counter): the reference of :meth:`_plausible`."""
+        sample counter, speed m/s): the reference of :meth:`_plausible` and of the count's
+        residual (:meth:`_count_resid`), whose scale it learns from consecutive fused readings
+        at speed."""
         if isinstance(distance, int | float) and math.isfinite(distance) and \
                 (self._dist is None or stamp > self._dist[0]):
-            self._dist = (stamp, float(distance), SampleGrid._seq(seq))
+            v = float(speed) if isinstance(speed, int | float) and math.isfinite(speed) \
+                else None
+            prev = self._dist
+            self._dist = (stamp, float(distance), SampleGrid._seq(seq), v)
+            if prev is not None and prev[2] is None and seq is None:
+                link = _count_link(prev[0], prev[1], prev[3], stamp, float(distance), v)
+                if link is not None:
+                    self._count_e.append(abs(link[0]) * link[1])  # back to metres
 
     # -- judging --------------------------------------------------------------------------
     def bar(self, clock: StreamClock) -> float:
@@ -1327,10 +1373,11 @@ class StepWatch:
         # the clock, however late it arrives; one off it by more than the grid's tolerance
         # is not, however small the move (a 0.1 s step hides in a link's jitter, and the kf
         # then stayed 2 m off with a sigma of 0.1 m for 7 s)
-        r = self._resid(kind, stamp, fields)
+        chain0 = [h for h in self.held if h[0] == "odometer"]
+        r, r_tol = self._resid_tol(kind, stamp, fields, chain0)
         seq = fields.get("seq") if isinstance(fields, dict) else None
         if r is not None:
-            continuous = abs(r) <= self.grid.tol_at(seq)
+            continuous = abs(r) <= r_tol
         elif continuous and kind == "odometer":
             # without the grid, the stamps' sampling phase (:meth:`phase`): a reading off it is
             # not the stream's clock as it was, however small the move
@@ -1346,7 +1393,7 @@ class StepWatch:
         # excess is below d: half or more of them for a step beyond the excess's median)
         env = self._envelope(chain, bar, drift) if r is None and kind == "odometer" else None
         env_join = env is not None and -bar <= lift <= self.back and \
-            (not continuous or not self._sampled_before(chain, stamp, seq, r)) and \
+            (not continuous or not self._sampled_before(chain, stamp, seq, r, fields)) and \
             envelope.holds(env[0] + 1, env[1] + (lift > 0.0), med.ceiling_n, TREND_WAIT)
         if env_join:
             continuous = False
@@ -1358,7 +1405,7 @@ class StepWatch:
             continuous = False
         if continuous:
             if kind == "odometer" and self.held and not self._sampled_before(chain, stamp,
-                                                                             seq, r):
+                                                                             seq, r, fields):
                 yield from self._release()
             yield PASS, stamp
             return
@@ -1368,7 +1415,7 @@ class StepWatch:
             _, s1, _, _, a1, _ = chain[-1]
             rs = self._chain_resid(chain)
             if rs is not None and r is not None:  # one new clock: one residual
-                joins = abs(r - rs[len(rs) // 2]) <= self.grid.tol_at(seq)
+                joins = abs(r - rs[len(rs) // 2]) <= r_tol
             else:
                 joins = continues((s1, a1), (stamp, arrival)) or \
                     self._joins(chain, stamp, arrival, bar) or on_new or env_join
@@ -1410,8 +1457,13 @@ class StepWatch:
         off = ph is not None and ph[1]
         env = self._envelope(chain, bar, drift) if rs is None and not off else None
         if rs is not None:
-            # the grid measures the step exactly (the link's jitter does not enter)
+            # the grid measures the step exactly (the link's jitter does not enter); without a
+            # counter the count measures it to its noise, and the stamps' phase gives the part
+            # of a period exactly where the stream has one (the count the whole periods)
             shift = rs[len(rs) // 2]
+            if chain[0][2].get("seq") is None and (cph := self._chain_phase(chain)) is not None:
+                P = self.phase()[0]
+                shift = cph[0] + P * round((shift - cph[0]) / P)
         elif off:
             pass  # off the stream's phase together: a step, whatever its size (measured below)
         elif env is not None:
@@ -1603,7 +1655,7 @@ class StepWatch:
             return False  # the held readings are no forward step
         return self.clock.above(v) > self.small_step and v <= offs[-1] + bar
 
-    def _sampled_before(self, chain: list, stamp: float, seq, r) -> bool:
+    def _sampled_before(self, chain: list, stamp: float, seq, r, fields=None) -> bool:
         """Whether a reading on the old clock was sampled before the held ones (``chain``, the
         odometer readings held): a late reading of the old clock, which says nothing against
         them being a new clock -- only the old clock running on after them does. By the sample
@@ -1619,6 +1671,12 @@ class StepWatch:
         first_seq = chain[0][2].get("seq")
         if r is not None and isinstance(first_seq, int) and isinstance(seq, int):
             return seq < first_seq
+        if r is not None and seq is None and isinstance(fields, dict):
+            # no counter, the count placing it: moving forward, the count orders the samples
+            d = fields.get("distance")
+            ds = [h[2].get("distance") for h in chain]
+            if isinstance(d, int | float) and all(isinstance(x, int | float) for x in ds):
+                return d < min(ds)
         a1, ceiling = chain[0][4], self.clock.ceiling
         return a1 is not None and math.isfinite(ceiling) and stamp < a1 + ceiling
 
@@ -1633,8 +1691,8 @@ class StepWatch:
         81 m off and ALARM for half of the next minute."""
         # (three offsets that agree place a clock: a counter that skips in the first seconds
         # of a 1 Hz run, taken for a step, put an estimate 3 s past the run's end)
-        if any(h[3] is None for h in chain) or len(med) < 3:
-            return False
+        if any(h[3] is None or h[2].get("seq") is None for h in chain) or len(med) < 3:
+            return False  # (no counter: the count's residual, which a counter cannot move)
         k = round(r / self.period)
         if k == 0 or abs(r - k * self.period) > max(self.grid.tol_at(h[2].get("seq"))
                                                     for h in chain):
@@ -1643,14 +1701,81 @@ class StepWatch:
         moved = new_off - med.now(chain[len(chain) // 2][4])
         return abs(moved) <= 3.0 * se and abs(moved - r) > 6.0 * se
 
-    def _resid(self, kind: str, stamp: float, fields) -> float | None:
-        """The reading's residual on the sample grid (s), or None (not an odometer reading,
-        the grid not trusted, or a reading whose values no train could produce: a corrupted
-        copy is no evidence about the clock, and the filters' gates refuse it)."""
+    def _resid(self, kind: str, stamp: float, fields, chain: list | None = None) \
+            -> float | None:
+        """:meth:`_resid_tol`'s residual alone."""
+        return self._resid_tol(kind, stamp, fields, chain)[0]
+
+    def _resid_tol(self, kind: str, stamp: float, fields, chain: list | None = None) -> tuple:
+        """``(r, tol)``: the reading's residual (s) on the sample grid, or for a stream without
+        a sample counter on the count's clock (:meth:`_count_resid`, through the held readings
+        ``chain``), and its tolerance; ``(None, inf)`` when neither places it (not an odometer
+        reading, the grid not trusted, the train slow, or a reading whose values no train could
+        produce: a corrupted copy is no evidence about the clock, and the filters' gates refuse
+        it)."""
         if kind != "odometer" or not isinstance(fields, dict) or not self._plausible(stamp,
                                                                                   fields):
-            return None
-        return self.grid.residual(fields.get("seq"), stamp)
+            return None, math.inf
+        seq = fields.get("seq")
+        if seq is None:
+            return self._count_resid(stamp, fields, chain or [])
+        r = self.grid.residual(seq, stamp)
+        return (r, self.grid.tol_at(seq)) if r is not None else (None, math.inf)
+
+    def _count_resid(self, stamp: float, fields: dict, chain: list) -> tuple:
+        """``(r, tol)``: how far (s) the reading's stamp lies from where the old clock would
+        have stamped it, timed by the odometer's count from the newest fused reading: each link
+        between two samples next in count (the fused one, the held ``chain``, this one) adds
+        its stamps' difference less the count's time between them (:func:`_count_link`), so a
+        step of any size shows whole in every later reading, and a jittery link's arrivals do
+        not enter. ``tol``: ``COUNT_Z`` learnt standard deviations of the count (the robust
+        scale of consecutive fused readings' residuals, m, over the mean speed),
+        ``COUNT_LAG`` for a speed that lags its count and ``COUNT_JERK`` for the trapezoid,
+        summed over the links, and ``COUNT_RATE``
+        of the time they span (at least ``TIE``); ``(None, inf)``
+        while fewer than ``COUNT_LEARN`` residuals were learnt, the train slow or reversing,
+        a link longer than ``COUNT_SPAN``, or a tolerance that resolves less than the
+        arrivals' bar."""
+        ref = self._dist
+        if not self.count or ref is None or len(self._count_e) < COUNT_LEARN or \
+                ref[2] is not None or \
+                ref[3] is None:
+            return None, math.inf
+        sd = max(1.4826 * median(list(self._count_e)), 1e-6)  # m, the count's residual
+        d = fields.get("distance")
+        # the samples before this one in count order: the fused one, then the held ones
+        pts = [(ref[1], ref[0], ref[3])]
+        for h in chain:
+            f = h[2]
+            if h[0] == "odometer" and isinstance(f, dict) and h[1] != stamp and \
+                    isinstance(f.get("distance"), int | float) and ref[1] < f["distance"] < d:
+                pts.append((f["distance"], h[1], f.get("speed")))
+        pts.sort(key=lambda q: q[0])
+        pts.append((d, stamp, fields.get("speed")))
+        # the train clock's rate against the arrivals (the count's seconds are true ones):
+        # the stamps' difference corrected by it, its doubt (5 standard errors) in the bound
+        rho, se = self.clock.rate()
+        rate_doubt = COUNT_RATE if not math.isfinite(se) else min(5.0 * se + 1e-5, COUNT_RATE)
+        if not math.isfinite(se):
+            rho = 0.0
+        r, jerk, span, vmin = 0.0, 0.0, 0.0, math.inf
+        for (d0, s0, v0), (d1, s1, v1) in zip(pts, pts[1:]):
+            link = _count_link(s0, d0, v0, s1, d1, v1)
+            if link is None:
+                return None, math.inf
+            dt = (s1 - s0) - link[0]  # the count's time between them
+            r += link[0] - rho * dt
+            jerk += COUNT_JERK * abs(dt) ** 3 / (12.0 * link[1])
+            span += abs(dt)
+            vmin = min(vmin, link[1])
+        # the inner samples' counts cancel in the sum (each adds to one link what it takes from
+        # the next): the count's noise is the two ends', at the slowest link's speed
+        v_ref, v_new = pts[0][2], pts[-1][2]
+        tol = COUNT_Z * math.sqrt(2.0) * sd / vmin + COUNT_LAG * abs(v_new - v_ref) / vmin + \
+            jerk + max(rate_doubt * span, TIE)
+        if tol >= self.bar(self.clock):
+            return None, math.inf
+        return r, tol
 
     def _plausible(self, stamp: float, fields: dict) -> bool:
         """Speed within ``MAX_SPEED`` and the counted distance within reach of the newest fused
@@ -1661,7 +1786,7 @@ class StepWatch:
             return False
         if self._dist is None:
             return True
-        s0, d0, q0 = self._dist
+        s0, d0, q0, _ = self._dist
         # the time between the two samples: their stamps', or their counters' when these say
         # more (after a backward step the stamps lie close while the train ran on: a genuine
         # reading 3 s after a -3 s step at 80 m/s was taken for a corrupted one, and the step
@@ -1673,13 +1798,13 @@ class StepWatch:
         return abs(d - d0) <= MAX_SPEED * (dt + self.period) + 1.0
 
     def _chain_resid(self, chain: list) -> list | None:
-        """The held odometer readings' grid residuals, sorted, when the grid places them all
-        and they agree (a new clock: one residual), else None."""
-        rs = [self._resid(h[0], h[1], h[2]) for h in chain]
-        if not rs or any(r is None for r in rs):
+        """The held odometer readings' grid (or count) residuals, sorted, when the grid (or
+        the count) places them all and they agree (a new clock: one residual), else None."""
+        rts = [self._resid_tol(h[0], h[1], h[2], chain) for h in chain]
+        if not rts or any(r is None for r, _ in rts):
             return None
-        tol = max(self.grid.tol_at(h[2].get("seq")) for h in chain)
-        rs.sort()
+        tol = max(t for _, t in rts)
+        rs = sorted(r for r, _ in rts)
         return rs if rs[-1] - rs[0] <= 2.0 * tol else None
 
     @staticmethod
@@ -1714,8 +1839,8 @@ class StepWatch:
                 continue
             # off the sample grid, and no step: its stamp lies about when it was sampled (a
             # copy 0.5 s ahead was admitted and fused 10 m off its time)
-            r = self._resid(k, st, f)
-            if r is not None and abs(r) > self.grid.tol_at(f.get("seq")):
+            r, r_tol = self._resid_tol(k, st, f)
+            if r is not None and abs(r) > r_tol:
                 yield REFUSE, k, st, r
                 continue
             yield ADMIT, (k, st, f, rc, ar)
@@ -1729,7 +1854,7 @@ class StepWatch:
         doubt = max((abs(h[1] - s0 - (h[4] - a0)) for h in self.held), default=0.0)
         # the grid's residual is the step itself (exact), where the link put jitter into it;
         # a held reading the grid places is off it, and in doubt at once
-        rs = [self._resid(*h[:3]) for h in odo]
+        rs = [self._resid(*h[:3], odo) for h in odo]
         doubt = max([doubt] + [abs(r) for r in rs if r is not None])
         return len(odo), doubt, any(r is not None or self._conclusive(h[1], h[3], h[4])
                                     for h, r in zip(odo, rs))

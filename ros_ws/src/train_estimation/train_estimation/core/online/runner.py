@@ -212,6 +212,8 @@ class EstimatorRunner:
     #   (clocks.silence_risk: the link's own loss rate sets how many readings that takes)
     false_step_rate: float = 1e-4  # 1/h: false small forward steps per hour at most (the
     #   envelope test's threshold, numerics/envelope.py)
+    count_clock: bool = True  # an odometer without a sample counter: its stamps judged by its
+    #   count while the train moves (StepWatch._count_resid), else by their arrivals alone
     queue: list = field(default_factory=list)
     rejected: Counter = field(default_factory=Counter)  # "kind:reason" -> count
     accepted: Counter = field(default_factory=Counter)
@@ -293,7 +295,7 @@ class EstimatorRunner:
         self._steps = StepWatch(self.period, self.min_judged, self.step_back, self.small_step,
                                 self.small_step_z, self.max_future,
                                 same=self.control_clock == "same", step_risk=self.step_risk,
-                                false_step_rate=self.false_step_rate)
+                                false_step_rate=self.false_step_rate, count=self.count_clock)
 
     # -- door ---------------------------------------------------------------------------------
     def push(self, kind: str, stamp: float, fields: dict, recv: float | None = None,
@@ -830,7 +832,8 @@ class EstimatorRunner:
         if kind == "odometer":
             fused = not reason or R.category(reason) in R.ACCEPTED
             if fused and isinstance(fields, dict):
-                self._steps.fused(stamp, fields.get("distance"), fields.get("seq"))
+                self._steps.fused(stamp, fields.get("distance"), fields.get("seq"),
+                                  fields.get("speed"))
                 self._order.fuse(_sample_key(fields), stamp, fields.get("distance"))
             pos = getattr(self.adapter, "position_reading", None)
             gate = R.category(reason) == R.OUTSIDE_GATE if reason else False
