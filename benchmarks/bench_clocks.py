@@ -64,20 +64,26 @@ def main(argv=None) -> int:
     ap.add_argument("--steps", type=float, nargs="+", metavar="D",
                     help="the steps (s) of the step tables (default -10 -3 -0.5 -0.1 0.1 0.5 3 "
                          "10; with --quick -3 -0.1 0.1 3)")
+    ap.add_argument("--count-noise", type=float, nargs=2, default=[0.0, 0.0],
+                    metavar=("M", "V"), help="standard deviations of the odometer's count (m) "
+                    "and speed (m/s) per reading (default 0 0: exact; a train's are 0.1-1 m "
+                    "and about 0.1 m/s)")
     args = ap.parse_args(argv)
+    noise = tuple(args.count_noise)
     clean = 600.0 if args.quick else 3600.0
     t0 = time.process_time()
     links = [(10.0, True), (10.0, False), (1.0, True), (1.0, False)]
     jitters = (0.005, 0.05, 0.2)
     print(f"## The train clock on a clean link ({clean / 60:g} min per row, {args.loss:.0%} "
-          f"lost, latency {FLOOR * 1e3:g} ms + Exp(jitter), seed {args.seed})\n")
+          f"lost, latency {FLOOR * 1e3:g} ms + Exp(jitter), seed {args.seed}; the count's and "
+          f"the speed's noise {noise[0]:g} m and {noise[1]:g} m/s)\n")
     print("| rate (Hz) | counter | jitter (ms) | false steps / h | refused / h | "
           "held (share of estimates) | offset bias (ms) | clocks judged | drift (ppm) |")
     print("|---|---|---|---|---|---|---|---|---|")
     worst = 0.0
     for rate, counter in links:
         for jit in jitters:
-            r = run_link(clean, rate, counter, jit, args.loss, None, args.seed)
+            r = run_link(clean, rate, counter, jit, args.loss, None, args.seed, noise=noise)
             worst = max(worst, r["false_steps_per_h"])
             print(f"| {rate:g} | {'yes' if counter else 'no'} | {jit * 1e3:g} | "
                   f"{r['false_steps_per_h']:.1f} | {r['refused'] / (clean / 3600.0):.1f} | "
@@ -97,7 +103,7 @@ def main(argv=None) -> int:
         print("|---|---|---|---|---|---|---|---|---|")
         for rate, counter in links:
             for d in steps:
-                r = run_link(dur, rate, counter, step_jit, args.loss, d, args.seed)
+                r = run_link(dur, rate, counter, step_jit, args.loss, d, args.seed, noise=noise)
                 missed += not math.isfinite(r["decided_s"])
                 print(f"| {rate:g} | {'yes' if counter else 'no'} | {d:+g} | "
                       f"{r['decided_readings']} | {r['decided_s']:.2f} | "
