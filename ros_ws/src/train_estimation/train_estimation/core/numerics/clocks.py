@@ -1376,9 +1376,16 @@ class StepWatch:
         chain0 = [h for h in self.held if h[0] == "odometer"]
         r, r_tol = self._resid_tol(kind, stamp, fields, chain0)
         seq = fields.get("seq") if isinstance(fields, dict) else None
+        if r is not None and seq is None and abs(r) <= r_tol:
+            # the count (no counter) places it on its clock within r_tol: a move of the bar's
+            # size (behind, ahead, a stamp jump) is excluded, a small forward step on the
+            # envelope only where the count resolves small_step, a fraction of a period off
+            # the phase never; below, the arrivals and the phase judge what it leaves open
+            continuous = not (lift > self.small_step and r_tol >= self.small_step)
+            r = None
         if r is not None:
             continuous = abs(r) <= r_tol
-        elif continuous and kind == "odometer":
+        if r is None and continuous and kind == "odometer":
             # without the grid, the stamps' sampling phase (:meth:`phase`): a reading off it is
             # not the stream's clock as it was, however small the move
             off = self.phase_resid(stamp)
@@ -1701,6 +1708,16 @@ class StepWatch:
         moved = new_off - med.now(chain[len(chain) // 2][4])
         return abs(moved) <= 3.0 * se and abs(moved - r) > 6.0 * se
 
+    def _placed(self, kind: str, stamp: float, fields, chain: list | None = None) \
+            -> float | None:
+        """The residual of a reading the grid places, or the count places off its clock (a
+        count's residual within its tolerance leaves a small move open: None)."""
+        r, tol = self._resid_tol(kind, stamp, fields, chain)
+        if r is not None and isinstance(fields, dict) and fields.get("seq") is None and \
+                abs(r) <= tol:
+            return None
+        return r
+
     def _resid(self, kind: str, stamp: float, fields, chain: list | None = None) \
             -> float | None:
         """:meth:`_resid_tol`'s residual alone."""
@@ -1805,6 +1822,8 @@ class StepWatch:
             return None
         tol = max(t for _, t in rts)
         rs = sorted(r for r, _ in rts)
+        if chain[0][2].get("seq") is None and abs(rs[len(rs) // 2]) <= tol:
+            return None  # the count does not resolve their move: the arrivals and phase judge
         return rs if rs[-1] - rs[0] <= 2.0 * tol else None
 
     @staticmethod
@@ -1854,7 +1873,7 @@ class StepWatch:
         doubt = max((abs(h[1] - s0 - (h[4] - a0)) for h in self.held), default=0.0)
         # the grid's residual is the step itself (exact), where the link put jitter into it;
         # a held reading the grid places is off it, and in doubt at once
-        rs = [self._resid(*h[:3], odo) for h in odo]
+        rs = [self._placed(*h[:3], odo) for h in odo]
         doubt = max([doubt] + [abs(r) for r in rs if r is not None])
         return len(odo), doubt, any(r is not None or self._conclusive(h[1], h[3], h[4])
                                     for h, r in zip(odo, rs))
