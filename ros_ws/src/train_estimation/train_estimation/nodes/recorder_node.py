@@ -1,6 +1,7 @@
-"""The `recorder` node as a class at module level. rclpy is imported here, so the command line
-(`train_estimation.nodes.recorder`: --help and the parameters' metadata, without rclpy) imports
-this module only to start the node."""
+"""`Recorder`: every message of the chosen topics written, raw, into a rosbag2 (MCAP) bag with its
+arrival time, flushed every `flush_period`, closed on shutdown. `recorder.py` holds its
+parameters (`RecorderConfig`) and command line and imports this module, and rclpy, only to start
+it."""
 
 from __future__ import annotations
 

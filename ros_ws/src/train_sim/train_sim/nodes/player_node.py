@@ -1,6 +1,6 @@
-"""The `player` node as a class at module level. rclpy is imported here, so the command line
-(`train_sim.nodes.player`: --help and the parameters' metadata, without rclpy) imports this
-module only to start the node."""
+"""`Player`, the bag player's node: a bag's messages in stamp order at rate_factor times real time,
+/clock before each step that publishes. Its parameters (`PlayerConfig`) and command line live in
+`player.py`, which imports this module, and rclpy with it, only to start the node."""
 
 from __future__ import annotations
 

@@ -1,6 +1,7 @@
-"""The `simulator` node as a class at module level. rclpy is imported here, so the command line
-(`train_sim.nodes.simulator`: --help and the parameters' metadata, without rclpy) imports this
-module only to start the node."""
+"""`SimulatorNode`: steps the pure `train_sim.world.World` on a wall timer and publishes the
+odometer, balise, control and ground-truth messages it emits, /clock and its diagnostics; hands
+the movement authorities to the ATO. Its parameters (`SimulatorConfig`) and command line live in
+`simulator.py`, which imports this module (and rclpy) only to start the node."""
 
 from __future__ import annotations
 

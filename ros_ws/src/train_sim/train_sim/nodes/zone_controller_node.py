@@ -1,6 +1,7 @@
-"""The `zone_controller` node as a class at module level. rclpy is imported here, so the command
-line (`train_sim.nodes.zone_controller`: --help and the parameters' metadata, without rclpy)
-imports this module only to start the node."""
+"""`ZoneControllerNode`: each train's TrainState reports checked and handed to the pure
+`train_sim.zone.ZoneController`, its movement authorities published at `rate` and at once on an
+alarm. Parameters and command line: `zone_controller.py`, which imports this module (rclpy with
+it) when it starts the node."""
 
 from __future__ import annotations
 
