@@ -756,7 +756,7 @@ class StreamClock:
 
 
 def _count_link(s0: float, d0: float, v0, s1: float, d1: float, v1):
-    """``(r s, mean speed m/s, speed change m/s)`` of two odometer samples of one stream
+    """``(r s, mean speed m/s)`` of two odometer samples of one stream
     (stamps ``s``, counts ``d`` m, speeds ``v`` m/s): the stamps' difference less the time the
     count puts between them, ``2 (d1 - d0) / (v0 + v1)`` (the trapezoid: exact at constant
     acceleration); None when the train is not moving forward at ``COUNT_MIN_SPEED`` or the
@@ -769,7 +769,7 @@ def _count_link(s0: float, d0: float, v0, s1: float, d1: float, v1):
     dt = (d1 - d0) / vbar
     if abs(dt) > COUNT_SPAN:
         return None
-    return (s1 - s0) - dt, vbar, v1 - v0
+    return (s1 - s0) - dt, vbar
 
 
 def _centred_sums(s) -> tuple[float, float, float]:
@@ -1158,6 +1158,7 @@ class StepWatch:
         self._dist: tuple | None = None  # (stamp, counted distance, seq, speed) of the newest
         #   fused odometer reading
         self._count_e: deque = deque(maxlen=64)  # m: |count residual| of recent fused pairs
+        self._count_sd = math.inf  # m: their robust standard deviation (:meth:`fused`)
 
     # -- stamps ---------------------------------------------------------------------------
     def onto_timeline(self, stamp: float, odometer: bool) -> float:
@@ -1290,6 +1291,7 @@ class StepWatch:
                 link = _count_link(prev[0], prev[1], prev[3], stamp, float(distance), v)
                 if link is not None:
                     self._count_e.append(abs(link[0]) * link[1])  # back to metres
+                    self._count_sd = max(1.4826 * median(list(self._count_e)), 1e-6)
 
     # -- judging --------------------------------------------------------------------------
     def bar(self, clock: StreamClock) -> float:
@@ -1373,8 +1375,7 @@ class StepWatch:
         # the clock, however late it arrives; one off it by more than the grid's tolerance
         # is not, however small the move (a 0.1 s step hides in a link's jitter, and the kf
         # then stayed 2 m off with a sigma of 0.1 m for 7 s)
-        chain0 = [h for h in self.held if h[0] == "odometer"]
-        r, r_tol = self._resid_tol(kind, stamp, fields, chain0)
+        r, r_tol = self._resid_tol(kind, stamp, fields, chain)
         seq = fields.get("seq") if isinstance(fields, dict) else None
         if r is not None and seq is None and abs(r) <= r_tol:
             # the count (no counter) places it on its clock within r_tol: a move of the bar's
@@ -1400,7 +1401,7 @@ class StepWatch:
         # excess is below d: half or more of them for a step beyond the excess's median)
         env = self._envelope(chain, bar, drift) if r is None and kind == "odometer" else None
         env_join = env is not None and -bar <= lift <= self.back and \
-            (not continuous or not self._sampled_before(chain, stamp, seq, r, fields)) and \
+            (not continuous or not self._sampled_before(chain, stamp, seq, r)) and \
             envelope.holds(env[0] + 1, env[1] + (lift > 0.0), med.ceiling_n, TREND_WAIT)
         if env_join:
             continuous = False
@@ -1412,7 +1413,7 @@ class StepWatch:
             continuous = False
         if continuous:
             if kind == "odometer" and self.held and not self._sampled_before(chain, stamp,
-                                                                             seq, r, fields):
+                                                                             seq, r):
                 yield from self._release()
             yield PASS, stamp
             return
@@ -1662,7 +1663,7 @@ class StepWatch:
             return False  # the held readings are no forward step
         return self.clock.above(v) > self.small_step and v <= offs[-1] + bar
 
-    def _sampled_before(self, chain: list, stamp: float, seq, r, fields=None) -> bool:
+    def _sampled_before(self, chain: list, stamp: float, seq, r) -> bool:
         """Whether a reading on the old clock was sampled before the held ones (``chain``, the
         odometer readings held): a late reading of the old clock, which says nothing against
         them being a new clock -- only the old clock running on after them does. By the sample
@@ -1678,12 +1679,6 @@ class StepWatch:
         first_seq = chain[0][2].get("seq")
         if r is not None and isinstance(first_seq, int) and isinstance(seq, int):
             return seq < first_seq
-        if r is not None and seq is None and isinstance(fields, dict):
-            # no counter, the count placing it: moving forward, the count orders the samples
-            d = fields.get("distance")
-            ds = [h[2].get("distance") for h in chain]
-            if isinstance(d, int | float) and all(isinstance(x, int | float) for x in ds):
-                return d < min(ds)
         a1, ceiling = chain[0][4], self.clock.ceiling
         return a1 is not None and math.isfinite(ceiling) and stamp < a1 + ceiling
 
@@ -1718,11 +1713,6 @@ class StepWatch:
             return None
         return r
 
-    def _resid(self, kind: str, stamp: float, fields, chain: list | None = None) \
-            -> float | None:
-        """:meth:`_resid_tol`'s residual alone."""
-        return self._resid_tol(kind, stamp, fields, chain)[0]
-
     def _resid_tol(self, kind: str, stamp: float, fields, chain: list | None = None) -> tuple:
         """``(r, tol)``: the reading's residual (s) on the sample grid, or for a stream without
         a sample counter on the count's clock (:meth:`_count_resid`, through the held readings
@@ -1745,20 +1735,20 @@ class StepWatch:
         between two samples next in count (the fused one, the held ``chain``, this one) adds
         its stamps' difference less the count's time between them (:func:`_count_link`), so a
         step of any size shows whole in every later reading, and a jittery link's arrivals do
-        not enter. ``tol``: ``COUNT_Z`` learnt standard deviations of the count (the robust
-        scale of consecutive fused readings' residuals, m, over the mean speed),
-        ``COUNT_LAG`` for a speed that lags its count and ``COUNT_JERK`` for the trapezoid,
-        summed over the links, and ``COUNT_RATE``
-        of the time they span (at least ``TIE``); ``(None, inf)``
-        while fewer than ``COUNT_LEARN`` residuals were learnt, the train slow or reversing,
-        a link longer than ``COUNT_SPAN``, or a tolerance that resolves less than the
-        arrivals' bar."""
+        not enter. The stamps are corrected by the train clock's rate against the arrivals (the
+        count's seconds are true ones). ``tol``: ``COUNT_Z`` learnt standard deviations of the
+        count at the two ends (the robust scale of consecutive fused readings' residuals, m,
+        over the slowest link's mean speed; the inner samples' counts cancel), ``COUNT_LAG``
+        for a speed that lags its count, ``COUNT_JERK`` for each link's trapezoid, and the
+        rate's doubt (``COUNT_RATE`` until it is measured) over the time spanned (at least
+        ``TIE``); ``(None, inf)`` while fewer than ``COUNT_LEARN`` residuals were learnt, the
+        train slow or reversing, a link longer than ``COUNT_SPAN``, or a tolerance that
+        resolves less than the arrivals' bar."""
         ref = self._dist
         if not self.count or ref is None or len(self._count_e) < COUNT_LEARN or \
-                ref[2] is not None or \
-                ref[3] is None:
+                ref[2] is not None or ref[3] is None:
             return None, math.inf
-        sd = max(1.4826 * median(list(self._count_e)), 1e-6)  # m, the count's residual
+        sd = self._count_sd
         d = fields.get("distance")
         # the samples before this one in count order: the fused one, then the held ones
         pts = [(ref[1], ref[0], ref[3])]
@@ -1772,9 +1762,10 @@ class StepWatch:
         # the train clock's rate against the arrivals (the count's seconds are true ones):
         # the stamps' difference corrected by it, its doubt (5 standard errors) in the bound
         rho, se = self.clock.rate()
-        rate_doubt = COUNT_RATE if not math.isfinite(se) else min(5.0 * se + 1e-5, COUNT_RATE)
-        if not math.isfinite(se):
-            rho = 0.0
+        if math.isfinite(se):
+            rate_doubt = min(5.0 * se + 1e-5, COUNT_RATE)
+        else:  # not measured: no correction, the bound's doubt
+            rho, rate_doubt = 0.0, COUNT_RATE
         r, jerk, span, vmin = 0.0, 0.0, 0.0, math.inf
         for (d0, s0, v0), (d1, s1, v1) in zip(pts, pts[1:]):
             link = _count_link(s0, d0, v0, s1, d1, v1)
