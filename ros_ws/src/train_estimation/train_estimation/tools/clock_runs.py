@@ -52,13 +52,16 @@ class Recorder:
 
 
 def cruise(duration: float, rate: float, loss: float, counter: bool,
-           rng: np.random.Generator, sampling: float = 0.0, noise: tuple = (0.0, 0.0)) -> list:
+           rng: np.random.Generator, sampling: float = 0.0, noise: tuple = (0.0, 0.0),
+           speed_scale: float = 1.0) -> list:
     """``(topic, t, fields)`` of a train at :data:`SPEED`: odometer readings at ``rate`` Hz
     (``seq`` the sample counter, or 0 for every reading without one) of which ``loss`` are lost
     at random, and a command every second. ``sampling``: s, the sampling loop's own jitter:
     each sample is taken (and stamped) a Gaussian of this spread off its slot. ``noise``: (m,
     m/s), the standard deviations of the count's and the speed's Gaussian noise per reading
-    (the true count rides along as ``true_distance``, for the time errors)."""
+    (the true count rides along as ``true_distance``, for the time errors). ``speed_scale``: the
+    speed field's scale against the count's rate (a speed from another sensor: a radar, a
+    second axle)."""
     ev = []
     n = int(round(duration * rate))
     kept = np.flatnonzero(rng.random(n) >= loss)
@@ -69,7 +72,7 @@ def cruise(duration: float, rate: float, loss: float, counter: bool,
     for k, dt, ed, ev_ in zip(kept, late, e_d, e_v):
         t = k / rate + float(dt)
         f = {"seq": int(k) if counter else 0, "distance": SPEED * t + float(ed),
-             "speed": SPEED + float(ev_), "speed_variance": max(sd_v, 0.1) ** 2}
+             "speed": SPEED * speed_scale + float(ev_), "speed_variance": max(sd_v, 0.1) ** 2}
         if sd_d:
             f["true_distance"] = SPEED * t
         ev.append(("odometer", t, f))
@@ -90,7 +93,8 @@ def run_link(duration: float, rate: float, counter: bool, jitter: float, loss: f
              step: float | None, seed: int, queue: float | None = None,
              route: float | None = None, shape: str = "exp", drift: float = 0.0,
              sampling: float = 0.0, wander: tuple | None = None,
-             count_clock: bool = True, noise: tuple = (0.0, 0.0)) -> dict:
+             count_clock: bool = True, noise: tuple = (0.0, 0.0),
+             speed_scale: float = 1.0) -> dict:
     """One replay (module doc); the figures of one row. ``queue``: the drain factor of a link
     that queues (the campaign's fault ``queue``, from 15 s on; no step then); ``route``: s by
     which the link's latency rises at :data:`STEP_AT` and stays (the fault ``route``; no
@@ -103,9 +107,10 @@ def run_link(duration: float, rate: float, counter: bool, jitter: float, loss: f
     :data:`WANDER_AT` and falls back over ``period`` (a raised cosine), a link that slows down
     for a while (no step then); ``count_clock``: the runner's (False: a stream without a
     counter judged by its arrivals alone, as when the train is slow); ``noise``: the count's
-    and the speed's noise (m, m/s; :func:`cruise`)."""
+    and the speed's noise (m, m/s; :func:`cruise`); ``speed_scale``: the speed field's scale
+    against the count (:func:`cruise`)."""
     rng = np.random.default_rng(seed)
-    events = cruise(duration, rate, loss, counter, rng, sampling, noise)
+    events = cruise(duration, rate, loss, counter, rng, sampling, noise, speed_scale)
     if shape not in ("exp", "gamma"):
         raise ValueError(f"shape must be exp or gamma, got {shape!r}")
     link = jitter if shape == "exp" else 0.0

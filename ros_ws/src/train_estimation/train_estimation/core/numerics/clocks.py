@@ -75,8 +75,6 @@ COUNT_JERK = 1.0  # m/s^3, the rate of change of acceleration the trapezoid tole
 COUNT_LAG = 0.5  # s, how far the odometer's speed may lag its count (a filtered speed): its
 #   error on the time between two samples is the lag times their speed change over their mean
 COUNT_LEARN = 16  # count residuals learnt at speed before the count judges stamps
-COUNT_RATE = 1e-2  # -, the rate between the train clock's seconds and the count's (its speed's)
-#   that the count's residual tolerates: the train clocks measured, up to 1 % off
 SEG_MIN = 4  # the rate fit's points off its line that can start a segment of it (StreamClock._off)
 SEG_RISK = TREND_WAIT  # -, the rate at which a true move of the line's level is held for one
 #   more point: its points scatter about one level as the line's own (chi-square at this risk)
@@ -772,6 +770,29 @@ def _count_link(s0: float, d0: float, v0, s1: float, d1: float, v1):
     return (s1 - s0) - dt, vbar
 
 
+def _count_fit(links) -> tuple[float, float, float]:
+    """``(rate, its standard error, sd m)`` of the count's clock from recent fused pairs'
+    links ``(r s, count's time dt s, mean speed m/s)`` (:func:`_count_link`): the stamps' seconds
+    per count second, less one. It holds the train clock's rate and the speed field's scale
+    against the count (a speed from another sensor, a radar or a second axle, reads a few %
+    off: each link's residual is then that share of its time, and the chain's sum grows with
+    its span). Robust: the cumulative residual ``R`` against the cumulative count time ``D``
+    (the inner counts cancel in ``R``), its slope the two halves' medians' difference over
+    their mean times'; ``sd`` the robust scale of the links' residuals about it, in metres
+    (their count's noise, both ends); the slope's error the halves' medians' (``sd`` at the
+    ends, ``1.2533 / sqrt(n / 2)`` each) over their distance."""
+    r = np.array([q[0] for q in links])
+    dt = np.array([q[1] for q in links])
+    v = np.array([q[2] for q in links])
+    R, D = np.cumsum(r), np.cumsum(dt)
+    h = len(links) // 2
+    gap = float(D[h:].mean() - D[:h].mean())
+    rate = (median(R[h:]) - median(R[:h])) / gap
+    sd = max(1.4826 * median(np.abs(r - rate * dt) * v), 1e-6)
+    se = 1.2533 * math.sqrt(2.0 / h) * sd / (math.sqrt(2.0) * median(v)) / gap
+    return rate, se, sd
+
+
 def _centred_sums(s) -> tuple[float, float, float]:
     """(sxx, sxy, syy) about their means from the raw sums [n, sx, sy, sxx, sxy, syy]."""
     n, sx, sy, sxx, sxy, syy = s[:6]
@@ -1157,8 +1178,10 @@ class StepWatch:
         self.grid = SampleGrid(period, min_judged)  # odometer stamps against their seq
         self._dist: tuple | None = None  # (stamp, counted distance, seq, speed) of the newest
         #   fused odometer reading
-        self._count_e: deque = deque(maxlen=64)  # m: |count residual| of recent fused pairs
-        self._count_sd = math.inf  # m: their robust standard deviation (:meth:`fused`)
+        self._count_e: deque = deque(maxlen=64)  # (r s, dt s, speed m/s) of the links of
+        #   recent fused pairs (:func:`_count_link`)
+        self._count_fit = (0.0, math.inf, math.inf)  # their rate, its error, sd m
+        #   (:func:`_count_fit`)
 
     # -- stamps ---------------------------------------------------------------------------
     def onto_timeline(self, stamp: float, odometer: bool) -> float:
@@ -1290,8 +1313,9 @@ class StepWatch:
             if prev is not None and prev[2] is None and seq is None:
                 link = _count_link(prev[0], prev[1], prev[3], stamp, float(distance), v)
                 if link is not None:
-                    self._count_e.append(abs(link[0]) * link[1])  # back to metres
-                    self._count_sd = max(1.4826 * median(list(self._count_e)), 1e-6)
+                    self._count_e.append((link[0], stamp - prev[0] - link[0], link[1]))
+                    if len(self._count_e) >= COUNT_LEARN:
+                        self._count_fit = _count_fit(self._count_e)
 
     # -- judging --------------------------------------------------------------------------
     def bar(self, clock: StreamClock) -> float:
@@ -1735,20 +1759,20 @@ class StepWatch:
         between two samples next in count (the fused one, the held ``chain``, this one) adds
         its stamps' difference less the count's time between them (:func:`_count_link`), so a
         step of any size shows whole in every later reading, and a jittery link's arrivals do
-        not enter. The stamps are corrected by the train clock's rate against the arrivals (the
-        count's seconds are true ones). ``tol``: ``COUNT_Z`` learnt standard deviations of the
-        count at the two ends (the robust scale of consecutive fused readings' residuals, m,
-        over the slowest link's mean speed; the inner samples' counts cancel), ``COUNT_LAG``
-        for a speed that lags its count, ``COUNT_JERK`` for each link's trapezoid, and the
-        rate's doubt (``COUNT_RATE`` until it is measured) over the time spanned (at least
-        ``TIE``); ``(None, inf)`` while fewer than ``COUNT_LEARN`` residuals were learnt, the
-        train slow or reversing, a link longer than ``COUNT_SPAN``, or a tolerance that
-        resolves less than the arrivals' bar."""
+        not enter. The count's time is taken at the rate learnt from the fused pairs
+        (:func:`_count_fit`: the train clock's and the speed field's). ``tol``: ``COUNT_Z``
+        learnt standard deviations of the count at the two ends (the robust scale of
+        consecutive fused readings' residuals about that rate, m, over the slowest link's mean
+        speed; the inner samples' counts cancel), ``COUNT_LAG`` for a speed that lags its
+        count, ``COUNT_JERK`` for each link's trapezoid, and ``COUNT_Z`` standard errors of the
+        rate over the time spanned (at least ``TIE``); ``(None, inf)`` while fewer than
+        ``COUNT_LEARN`` residuals were learnt, the train slow or reversing, a link longer than
+        ``COUNT_SPAN``, or a tolerance that resolves less than the arrivals' bar."""
         ref = self._dist
         if not self.count or ref is None or len(self._count_e) < COUNT_LEARN or \
                 ref[2] is not None or ref[3] is None:
             return None, math.inf
-        sd = self._count_sd
+        rate, se, sd = self._count_fit
         d = fields.get("distance")
         # the samples before this one in count order: the fused one, then the held ones
         pts = [(ref[1], ref[0], ref[3])]
@@ -1759,20 +1783,13 @@ class StepWatch:
                 pts.append((f["distance"], h[1], f.get("speed")))
         pts.sort(key=lambda q: q[0])
         pts.append((d, stamp, fields.get("speed")))
-        # the train clock's rate against the arrivals (the count's seconds are true ones):
-        # the stamps' difference corrected by it, its doubt (5 standard errors) in the bound
-        rho, se = self.clock.rate()
-        if math.isfinite(se):
-            rate_doubt = min(5.0 * se + 1e-5, COUNT_RATE)
-        else:  # not measured: no correction, the bound's doubt
-            rho, rate_doubt = 0.0, COUNT_RATE
         r, jerk, span, vmin = 0.0, 0.0, 0.0, math.inf
         for (d0, s0, v0), (d1, s1, v1) in zip(pts, pts[1:]):
             link = _count_link(s0, d0, v0, s1, d1, v1)
             if link is None:
                 return None, math.inf
             dt = (s1 - s0) - link[0]  # the count's time between them
-            r += link[0] - rho * dt
+            r += link[0] - rate * dt  # the stamps' difference less the count's time, at its rate
             jerk += COUNT_JERK * abs(dt) ** 3 / (12.0 * link[1])
             span += abs(dt)
             vmin = min(vmin, link[1])
@@ -1780,7 +1797,7 @@ class StepWatch:
         # the next): the count's noise is the two ends', at the slowest link's speed
         v_ref, v_new = pts[0][2], pts[-1][2]
         tol = COUNT_Z * math.sqrt(2.0) * sd / vmin + COUNT_LAG * abs(v_new - v_ref) / vmin + \
-            jerk + max(rate_doubt * span, TIE)
+            jerk + max((COUNT_Z * se + 1e-5) * span, TIE)
         if tol >= self.bar(self.clock):
             return None, math.inf
         return r, tol
