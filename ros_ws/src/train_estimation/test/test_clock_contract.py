@@ -314,3 +314,34 @@ def test_a_speed_off_its_count_keeps_the_count_a_clock(rate, jitter, step, scale
     clean = run(None)
     assert clean["false_steps_per_h"] == 0 and clean["refused"] == 0, clean
     assert clean["time_err_all_ms"] < 1e-3, clean
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_a_smoothed_count_is_judged_at_its_chains_span(seed):
+    """A producer that smooths its count (its noise correlated 0.9 from one reading to the next,
+    0.5 m of spread, 10 Hz): neighbours' counts differ by a third of what two ends of a chain
+    of held readings do. The count's scale is learnt over both spans (clocks._count_fit), so a
+    clean link refuses nothing and declares no step, and a -0.3 s step is declared after
+    min_judged readings and measured exactly; learnt from neighbours alone, one good reading
+    was refused in each of these seeds."""
+    def run(step):
+        return run_link(STEP_AT + 100.0, 10.0, False, 0.05, 0.05, step, seed=seed,
+                        noise=(0.5, 0.1), noise_corr=0.9)
+    clean = run(None)
+    assert clean["false_steps_per_h"] == 0 and clean["refused"] == 0, clean
+    assert clean["time_err_all_ms"] < 1e-3, clean
+    r = run(-0.3)
+    assert r["decided_readings"] == 9 and r["refused"] == 0, r
+    assert abs(r["shift_err_ms"]) < 1e-3 and r["time_err_all_ms"] < 1e-3, r
+
+
+def test_a_reading_stamped_as_the_last_fused_one_after_a_backward_step_is_no_corrupt_one():
+    """After a -1 s step at 10 Hz and 20 m/s, the reading sampled 1 s after the last one fused
+    on the old clock carries its stamp and a count 21 m further on: more than any train runs
+    in a period. Without counters the count's own time (at most COUNT_SPAN) bounds the time
+    between two samples, as the counters do where there are some (StepWatch._plausible), so
+    the chain's count measures the step exactly; taken for a corrupted reading, it left the
+    chain unresolved and the arrivals measured the step a period (100 ms) off."""
+    r = run_link(STEP_AT + 300.0, 10.0, False, 0.2, 0.05, -1.0, seed=0, noise=(0.5, 0.1))
+    assert r["decided_readings"] == 9 and r["refused"] == 0, r
+    assert abs(r["shift_err_ms"]) < 1e-3 and r["time_err_all_ms"] < 1e-3, r

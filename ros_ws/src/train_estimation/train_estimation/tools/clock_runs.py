@@ -53,7 +53,7 @@ class Recorder:
 
 def cruise(duration: float, rate: float, loss: float, counter: bool,
            rng: np.random.Generator, sampling: float = 0.0, noise: tuple = (0.0, 0.0),
-           speed_scale: float = 1.0) -> list:
+           speed_scale: float = 1.0, noise_corr: float = 0.0) -> list:
     """``(topic, t, fields)`` of a train at :data:`SPEED`: odometer readings at ``rate`` Hz
     (``seq`` the sample counter, or 0 for every reading without one) of which ``loss`` are lost
     at random, and a command every second. ``sampling``: s, the sampling loop's own jitter:
@@ -61,13 +61,16 @@ def cruise(duration: float, rate: float, loss: float, counter: bool,
     m/s), the standard deviations of the count's and the speed's Gaussian noise per reading
     (the true count rides along as ``true_distance``, for the time errors). ``speed_scale``: the
     speed field's scale against the count's rate (a speed from another sensor: a radar, a
-    second axle)."""
+    second axle). ``noise_corr``: the count's noise's correlation from one reading to the next
+    (an AR(1) of the same spread: a count smoothed by its producer)."""
     ev = []
     n = int(round(duration * rate))
     kept = np.flatnonzero(rng.random(n) >= loss)
     late = rng.normal(0.0, sampling, kept.size) if sampling else np.zeros(kept.size)
     sd_d, sd_v = noise
     e_d = rng.normal(0.0, sd_d, kept.size) if sd_d else np.zeros(kept.size)
+    for i in range(1, kept.size if noise_corr else 0):
+        e_d[i] = noise_corr * e_d[i - 1] + math.sqrt(1.0 - noise_corr ** 2) * e_d[i]
     e_v = rng.normal(0.0, sd_v, kept.size) if sd_v else np.zeros(kept.size)
     for k, dt, ed, ev_ in zip(kept, late, e_d, e_v):
         t = k / rate + float(dt)
@@ -94,7 +97,7 @@ def run_link(duration: float, rate: float, counter: bool, jitter: float, loss: f
              route: float | None = None, shape: str = "exp", drift: float = 0.0,
              sampling: float = 0.0, wander: tuple | None = None,
              count_clock: bool = True, noise: tuple = (0.0, 0.0),
-             speed_scale: float = 1.0) -> dict:
+             speed_scale: float = 1.0, noise_corr: float = 0.0) -> dict:
     """One replay (module doc); the figures of one row. ``queue``: the drain factor of a link
     that queues (the campaign's fault ``queue``, from 15 s on; no step then); ``route``: s by
     which the link's latency rises at :data:`STEP_AT` and stays (the fault ``route``; no
@@ -108,9 +111,9 @@ def run_link(duration: float, rate: float, counter: bool, jitter: float, loss: f
     for a while (no step then); ``count_clock``: the runner's (False: a stream without a
     counter judged by its arrivals alone, as when the train is slow); ``noise``: the count's
     and the speed's noise (m, m/s; :func:`cruise`); ``speed_scale``: the speed field's scale
-    against the count (:func:`cruise`)."""
+    against the count, and ``noise_corr`` its noise's correlation (:func:`cruise`)."""
     rng = np.random.default_rng(seed)
-    events = cruise(duration, rate, loss, counter, rng, sampling, noise, speed_scale)
+    events = cruise(duration, rate, loss, counter, rng, sampling, noise, speed_scale, noise_corr)
     if shape not in ("exp", "gamma"):
         raise ValueError(f"shape must be exp or gamma, got {shape!r}")
     link = jitter if shape == "exp" else 0.0

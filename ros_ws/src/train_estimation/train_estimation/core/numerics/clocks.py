@@ -778,17 +778,22 @@ def _count_fit(links) -> tuple[float, float, float]:
     off: each link's residual is then that share of its time, and the chain's sum grows with
     its span). Robust: the cumulative residual ``R`` against the cumulative count time ``D``
     (the inner counts cancel in ``R``), its slope the two halves' medians' difference over
-    their mean times'; ``sd`` the robust scale of the links' residuals about it, in metres
-    (their count's noise, both ends); the slope's error the halves' medians' (``sd`` at the
-    ends, ``1.2533 / sqrt(n / 2)`` each) over their distance."""
-    r = np.array([q[0] for q in links])
-    dt = np.array([q[1] for q in links])
-    v = np.array([q[2] for q in links])
+    their mean times'; ``sd`` the robust scale about it of ``R``'s differences, in metres: the
+    noise of a chain's two ends (what :meth:`StepWatch._count_resid` bounds), the larger of
+    neighbours' and of samples ``COUNT_LEARN / 2`` apart (a smoothed count's noise is
+    correlated from one sample to the next, and the speed's noise adds up along a chain); the
+    slope's error the halves' medians' (an end's noise, ``sd / sqrt 2``, times ``1.2533 /
+    sqrt(n / 2)`` each) over their distance."""
+    a = np.array(links, dtype=float)
+    r, dt, v = a[:, 0], a[:, 1], a[:, 2]
     R, D = np.cumsum(r), np.cumsum(dt)
     h = len(links) // 2
     gap = float(D[h:].mean() - D[:h].mean())
     rate = (median(R[h:]) - median(R[:h])) / gap
-    sd = max(1.4826 * median(np.abs(r - rate * dt) * v), 1e-6)
+    sd = 1e-6
+    for m in (1, COUNT_LEARN // 2):
+        e = (R[m:] - R[:-m] - rate * (D[m:] - D[:-m])) * v[m:]
+        sd = max(sd, 1.4826 * median(np.abs(e)))
     se = 1.2533 * math.sqrt(2.0 / h) * sd / (math.sqrt(2.0) * median(v)) / gap
     return rate, se, sd
 
@@ -1796,7 +1801,7 @@ class StepWatch:
         # the inner samples' counts cancel in the sum (each adds to one link what it takes from
         # the next): the count's noise is the two ends', at the slowest link's speed
         v_ref, v_new = pts[0][2], pts[-1][2]
-        tol = COUNT_Z * math.sqrt(2.0) * sd / vmin + COUNT_LAG * abs(v_new - v_ref) / vmin + \
+        tol = COUNT_Z * sd / vmin + COUNT_LAG * abs(v_new - v_ref) / vmin + \
             jerk + max((COUNT_Z * se + 1e-5) * span, TIE)
         if tol >= self.bar(self.clock):
             return None, math.inf
@@ -1815,11 +1820,16 @@ class StepWatch:
         # the time between the two samples: their stamps', or their counters' when these say
         # more (after a backward step the stamps lie close while the train ran on: a genuine
         # reading 3 s after a -3 s step at 80 m/s was taken for a corrupted one, and the step
-        # was measured from the arrivals instead of the grid)
+        # was measured from the arrivals instead of the grid); without counters, the count's
+        # time at the reading's speed, up to COUNT_SPAN (the same reading 1 s after a -1 s step
+        # at 20 m/s, stamped as the last fused one, was taken for a corrupted one: the chain's
+        # count left unresolved, the step measured from the arrivals a period off)
         q = SampleGrid._seq(fields.get("seq"))
         dt = abs(stamp - s0)
         if q is not None and q0 is not None:
             dt = max(dt, abs(q - q0) * self.period)
+        elif q is None and q0 is None and abs(v) >= COUNT_MIN_SPEED:
+            dt = max(dt, min(abs(d - d0) / abs(v), COUNT_SPAN))
         return abs(d - d0) <= MAX_SPEED * (dt + self.period) + 1.0
 
     def _chain_resid(self, chain: list) -> list | None:
