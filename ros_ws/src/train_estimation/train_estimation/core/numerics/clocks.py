@@ -1174,6 +1174,9 @@ class StepWatch:
         self.clock = StreamClock()  # the train clock (the runner's, fed by its admissions)
         self.shift = 0.0  # s, train-clock steps so far: timeline stamps = raw - shift
         self.raised = 0.0  # s, the link's latency raised by the latency moves declared so far
+        self._late: list = []  # the latest readings in a row (as held ones) that the count
+        #   placed on its clock while their arrivals put them off it, all on one side
+        #   (:meth:`_latency_moved`)
         self.last: tuple | None = None  # (stamp, arrival) of the newest odometer admitted
         self.held: list = []  # (kind, stamp, fields, recv, arrival, refused): discontinuous
         self._pushed: tuple | None = None  # (stamp, arrival) of the last odometer watched
@@ -1413,8 +1416,13 @@ class StepWatch:
             # the phase never; below, the arrivals and the phase judge what it leaves open
             continuous = not (lift > self.small_step and r_tol >= self.small_step)
             r = None
+            yield from self._latency_moved((kind, stamp, fields, recv, arrival, False),
+                                           behind, ahead, med)
         if r is not None:
             continuous = abs(r) <= r_tol
+            if continuous:  # on the grid: the latency, if its arrival is off the clock
+                yield from self._latency_moved((kind, stamp, fields, recv, arrival, False),
+                                               behind, ahead, med)
         if r is None and continuous and kind == "odometer":
             # without the grid, the stamps' sampling phase (:meth:`phase`): a reading off it is
             # not the stream's clock as it was, however small the move
@@ -1596,6 +1604,42 @@ class StepWatch:
                 abs(st - ar - new_off) <= abs(st - ar - med.value)
             yield ADMIT, (k, st - shift if on_new else st, f, rc, ar)
         yield PASS, stamp - shift
+
+    def _latency_moved(self, entry: tuple, behind: bool, ahead: bool, med: StreamClock):
+        """A reading the count or the grid placed on its clock although its arrival put it
+        ``behind`` the
+        clock by more than the bar (or ``ahead``, within the latency raised so far): the
+        link's latency, not the stamps. An isolated one is jitter; ``min_judged`` in a row on
+        one side (as many as a step needs), whose offsets do not climb back towards the clock
+        (:meth:`_returning`: a queue draining), are a latency that moved and stays, which the
+        clock's offset follows as for the arrivals' route answer (yields ``(LATENCY,
+        moved)``). Left there after a route change, every later reading came late: fused by
+        rewinding, the estimates published late, and where the train slowed below the count's
+        speed the arrivals held them as a step (0.3 s more of silence on crh3_high_speed's
+        1.5 s route change at 1 Hz)."""
+        v = entry[1] - entry[4] - med.now(entry[4])
+        side = -1 if behind else 1 if ahead and 0.0 < v <= self.raised + self.small_step \
+            else 0
+        if not side or self.held or entry[3] is None:
+            self._late = []
+            return
+        if self._late and (self._late[0][1] - self._late[0][4] > med.now(entry[4])) != \
+                (side > 0):
+            self._late = []
+        self._late = (self._late + [entry])[-TREND_N:]
+        if len(self._late) < self.min_judged:
+            return
+        p = self._returning(self._late, med)
+        if p <= self.trend_risk:
+            self._late = []  # a queue draining: late readings, fused by rewinding
+            return
+        if p <= TREND_WAIT:
+            return  # undecided: the next readings tell
+        moved = median([h[1] - h[4] - med.now(h[4]) for h in self._late])
+        self._late = []
+        med.move(moved)
+        self.raised -= moved
+        yield LATENCY, moved
 
     def _envelope(self, chain: list, bar: float, drift: float) -> tuple[int, int] | None:
         """(k, j): the held odometer readings (``chain``) and how many of them lie above the
