@@ -1177,8 +1177,8 @@ class StepWatch:
         self.clock = StreamClock()  # the train clock (the runner's, fed by its admissions)
         self.shift = 0.0  # s, train-clock steps so far: timeline stamps = raw - shift
         self.raised = 0.0  # s, the link's latency raised by the latency moves declared so far
-        self._late: list = []  # the latest readings in a row (as held ones) that the count
-        #   placed on its clock while their arrivals put them off it, all on one side
+        self._late: list = []  # the latest readings in a row (as held ones) that the grid or
+        #   the count placed on its clock while their arrivals put them off it, on one side
         #   (:meth:`_latency_moved`)
         self.last: tuple | None = None  # (stamp, arrival) of the newest odometer admitted
         self.held: list = []  # (kind, stamp, fields, recv, arrival, refused): discontinuous
@@ -1610,16 +1610,15 @@ class StepWatch:
 
     def _latency_moved(self, entry: tuple, behind: bool, ahead: bool, med: StreamClock):
         """A reading the count or the grid placed on its clock although its arrival put it
-        ``behind`` the
-        clock by more than the bar (or ``ahead``, within the latency raised so far): the
-        link's latency, not the stamps. An isolated one is jitter; ``min_judged`` in a row on
-        one side (as many as a step needs), whose offsets do not climb back towards the clock
-        (:meth:`_returning`: a queue draining), are a latency that moved and stays, which the
-        clock's offset follows as for the arrivals' route answer (yields ``(LATENCY,
-        moved)``). Left there after a route change, every later reading came late: fused by
-        rewinding, the estimates published late, and where the train slowed below the count's
-        speed the arrivals held them as a step (0.3 s more of silence on crh3_high_speed's
-        1.5 s route change at 1 Hz)."""
+        ``behind`` the clock by more than the bar (or ``ahead``, within the latency raised so
+        far): the link's latency, not the stamps. An isolated one is jitter; ``min_judged`` in
+        a row on one side (as many as a step needs), whose offsets do not climb back towards
+        the clock (:meth:`_returning`: a queue draining), are a latency that moved and stays,
+        which the clock's offset follows as for the arrivals' route answer (yields
+        ``(LATENCY, moved)``). Left there after a route change, every later reading came
+        late: fused by rewinding, the estimates published late, and where the train slowed
+        below the count's speed the arrivals held them as a step (0.3 s more of silence on
+        crh3_high_speed's 1.5 s route change at 1 Hz)."""
         v = entry[1] - entry[4] - med.now(entry[4])
         side = -1 if behind else 1 if ahead and 0.0 < v <= self.raised + self.small_step \
             else 0
@@ -1813,8 +1812,8 @@ class StepWatch:
         step of any size shows whole in every later reading, and a jittery link's arrivals do
         not enter. The count's time is taken at the rate learnt from the fused pairs
         (:func:`_count_fit`: the train clock's and the speed field's). ``tol``: ``COUNT_Z``
-        learnt standard deviations of the count at the two ends (the robust scale of
-        consecutive fused readings' residuals about that rate, m, over the slowest link's mean
+        learnt standard deviations of the count at the two ends (:func:`_count_fit`'s robust
+        scale of the fused readings' residuals about that rate, m, over the slowest link's mean
         speed; the inner samples' counts cancel), ``COUNT_LAG`` for a speed that lags its
         count, ``COUNT_JERK`` for each link's trapezoid, and ``COUNT_Z`` standard errors of the
         rate over the time spanned (at least ``TIE``); ``(None, inf)`` while fewer than
