@@ -771,21 +771,25 @@ def _count_link(s0: float, d0: float, v0, s1: float, d1: float, v1):
     return (s1 - s0) - dt, vbar
 
 
-def _count_fit(links) -> tuple[float, float, float]:
-    """``(rate, its standard error, sd m)`` of the count's clock from recent fused pairs'
-    links ``(r s, count's time dt s, mean speed m/s)`` (:func:`_count_link`): the stamps' seconds
-    per count second, less one. It holds the train clock's rate and the speed field's scale
-    against the count (a speed from another sensor, a radar or a second axle, reads a few %
-    off: each link's residual is then that share of its time, and the chain's sum grows with
+def _count_fit(links) -> tuple[float, float, float, float]:
+    """``(rate, its standard error, sd m, lag share 1/s)`` of the count's clock from recent fused
+    pairs' links ``(r s, count's time dt s, mean speed m/s)`` (:func:`_count_link`): the stamps'
+    seconds per count second, less one. It holds the train clock's rate and the speed field's
+    scale against the count (a speed from another sensor, a radar or a second axle, reads a few
+    % off: each link's residual is then that share of its time, and the chain's sum grows with
     its span). Robust: the cumulative residual ``R`` against the cumulative count time ``D``
-    (the inner counts cancel in ``R``), its slope the two halves' medians' difference over
-    their mean times'; ``sd`` the robust scale about it of ``R``'s differences, in metres: the
-    noise of a chain's two ends (what :meth:`StepWatch._count_resid` bounds), the larger of
-    neighbours' and of samples ``COUNT_LEARN / 2`` apart (a smoothed count's noise is
-    correlated from one sample to the next, and the speed's noise adds up along a chain); the
-    slope's error the halves' medians' (an end's noise, ``sd / sqrt 2``, times ``1.2533 /
-    sqrt(n / 2)`` each) over their distance. (Plain lists: at 64 links numpy's per-call cost
-    was a third more, on every fused reading of a stream without a counter.)"""
+    (the inner counts cancel in ``R``), its slope the two halves' medians' difference over their
+    mean times'; ``sd`` the robust scale about it of ``R``'s differences, in metres: the noise
+    of a chain's two ends (what :meth:`StepWatch._count_resid` bounds), the larger of
+    neighbours' and of samples ``COUNT_LEARN / 2`` apart (a smoothed count's noise is correlated
+    from one sample to the next, and the speed's noise adds up along a chain); the slope's error
+    the halves' medians' (an end's noise, ``sd / sqrt 2``, times ``1.2533 / sqrt(n / 2)`` each)
+    over their distance. A speed that lags its count by ``tau`` adds ``-tau ln(v1 / v0)`` to
+    ``R`` between two links (it comes back to nothing when the speed does), which the slope
+    takes in while the train brakes or accelerates and carries on after: the lag share is the
+    same slope of ``ln v``, so that ``COUNT_LAG`` times it bounds what a lag put into the rate.
+    (Plain lists: at 64 links numpy's per-call cost was a third more, on every fused reading of
+    a stream without a counter.)"""
     R = list(accumulate(q[0] for q in links))
     D = list(accumulate(q[1] for q in links))
     v = [q[2] for q in links]
@@ -798,7 +802,9 @@ def _count_fit(links) -> tuple[float, float, float]:
         e = sorted(abs(R[i] - R[i - m] - rate * (D[i] - D[i - m])) * v[i] for i in range(m, n))
         sd = max(sd, 1.4826 * _median_sorted(e))
     se = 1.2533 * math.sqrt(2.0 / h) * sd / (math.sqrt(2.0) * _median_sorted(sorted(v))) / gap
-    return rate, se, sd
+    lv = [math.log(x) for x in v]
+    lag = abs(_median_sorted(sorted(lv[h:])) - _median_sorted(sorted(lv[:h]))) / gap
+    return rate, se, sd, lag
 
 
 def _centred_sums(s) -> tuple[float, float, float]:
@@ -1191,8 +1197,8 @@ class StepWatch:
         #   fused odometer reading
         self._count_e: deque = deque(maxlen=64)  # (r s, dt s, speed m/s) of the links of
         #   recent fused pairs (:func:`_count_link`)
-        self._count_fit = (0.0, math.inf, math.inf)  # their rate, its error, sd m
-        #   (:func:`_count_fit`)
+        self._count_fit = (0.0, math.inf, math.inf, 0.0)  # their rate, its error, sd m, the
+        #   lag's share (:func:`_count_fit`)
 
     # -- stamps ---------------------------------------------------------------------------
     def onto_timeline(self, stamp: float, odometer: bool) -> float:
@@ -1816,14 +1822,15 @@ class StepWatch:
         scale of the fused readings' residuals about that rate, m, over the slowest link's mean
         speed; the inner samples' counts cancel), ``COUNT_LAG`` for a speed that lags its
         count, ``COUNT_JERK`` for each link's trapezoid, and ``COUNT_Z`` standard errors of the
-        rate over the time spanned (at least ``TIE``); ``(None, inf)`` while fewer than
+        rate and what a lag of ``COUNT_LAG`` put into it over the time spanned (at least
+        ``TIE``); ``(None, inf)`` while fewer than
         ``COUNT_LEARN`` residuals were learnt, the train slow or reversing, a link longer than
         ``COUNT_SPAN``, or a tolerance that resolves less than the arrivals' bar."""
         ref = self._dist
         if not self.count or ref is None or len(self._count_e) < COUNT_LEARN or \
                 ref[2] is not None or ref[3] is None:
             return None, math.inf
-        rate, se, sd = self._count_fit
+        rate, se, sd, lag = self._count_fit
         d = fields.get("distance")
         # the samples before this one in count order: the fused one, then the held ones
         pts = [(ref[1], ref[0], ref[3])]
@@ -1848,7 +1855,7 @@ class StepWatch:
         # the next): the count's noise is the two ends', at the slowest link's speed
         v_ref, v_new = pts[0][2], pts[-1][2]
         tol = COUNT_Z * sd / vmin + COUNT_LAG * abs(v_new - v_ref) / vmin + \
-            jerk + max((COUNT_Z * se + 1e-5) * span, TIE)
+            jerk + max((COUNT_Z * se + COUNT_LAG * lag + 1e-5) * span, TIE)
         if tol >= self.bar(self.clock):
             return None, math.inf
         return r, tol
