@@ -102,6 +102,7 @@ class EstimatorNode(Node):
         try:
             self.runner = EstimatorRunner(self.adapter, 1.0 / common["odometer_rate"],
                                           control_clock=common["control_clock"],
+                                          count_clock=common["count_clock"],
                                           max_future=common["max_future"],
                                           slot_grace=common["slot_grace"],
                                           integrity=integrity)

@@ -75,6 +75,10 @@ class NodeConfig:
     control_clock: str = param("auto", "", "clock of control stamps: auto (judged from "
                                "arrivals; drift tracked) | same (the odometer's: a simulator) | "
                                "reference (the receive clock)")
+    count_clock: bool = param(True, "", "without a sample counter, judge the odometer's stamps "
+                              "by its count while the train moves (the speed as the count's "
+                              "rate, lagging it by at most 0.5 s); false: by their arrivals "
+                              "alone, for a producer whose speed is not its count's")
     max_future: float = param(600.0, "s", "a stamp this far after its arrival is refused "
                               "(future_stamp)", lo=0.0)
     wait_for_subscribers: int = param(0, "", "output nothing until the estimate topic has this "
