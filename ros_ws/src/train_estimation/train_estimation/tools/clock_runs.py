@@ -69,8 +69,9 @@ def cruise(duration: float, rate: float, loss: float, counter: bool,
     late = rng.normal(0.0, sampling, kept.size) if sampling else np.zeros(kept.size)
     sd_d, sd_v = noise
     e_d = rng.normal(0.0, sd_d, kept.size) if sd_d else np.zeros(kept.size)
-    for i in range(1, kept.size if noise_corr else 0):
-        e_d[i] = noise_corr * e_d[i - 1] + math.sqrt(1.0 - noise_corr ** 2) * e_d[i]
+    if noise_corr:  # an AR(1) of the same spread
+        for i in range(1, kept.size):
+            e_d[i] = noise_corr * e_d[i - 1] + math.sqrt(1.0 - noise_corr ** 2) * e_d[i]
     e_v = rng.normal(0.0, sd_v, kept.size) if sd_v else np.zeros(kept.size)
     for k, dt, ed, ev_ in zip(kept, late, e_d, e_v):
         t = k / rate + float(dt)

@@ -796,15 +796,17 @@ def _count_fit(links) -> tuple[float, float, float, float]:
     n = len(R)
     h = n // 2
     gap = sum(D[h:]) / (n - h) - sum(D[:h]) / h
-    rate = (_median_sorted(sorted(R[h:])) - _median_sorted(sorted(R[:h]))) / gap
+
+    def slope(x: list) -> float:  # the two halves' medians' difference over their times'
+        return (_median_sorted(sorted(x[h:])) - _median_sorted(sorted(x[:h]))) / gap
+
+    rate = slope(R)
     sd = 1e-6
     for m in (1, COUNT_LEARN // 2):
         e = sorted(abs(R[i] - R[i - m] - rate * (D[i] - D[i - m])) * v[i] for i in range(m, n))
         sd = max(sd, 1.4826 * _median_sorted(e))
     se = 1.2533 * math.sqrt(2.0 / h) * sd / (math.sqrt(2.0) * _median_sorted(sorted(v))) / gap
-    lv = [math.log(x) for x in v]
-    lag = abs(_median_sorted(sorted(lv[h:])) - _median_sorted(sorted(lv[:h]))) / gap
-    return rate, se, sd, lag
+    return rate, se, sd, abs(slope([math.log(x) for x in v]))
 
 
 def _centred_sums(s) -> tuple[float, float, float]:
@@ -1424,14 +1426,14 @@ class StepWatch:
             # envelope only where the count resolves small_step, a fraction of a period off
             # the phase never; below, the arrivals and the phase judge what it leaves open
             continuous = not (lift > self.small_step and r_tol >= self.small_step)
-            r = None
+            r, placed = None, True
+        else:
+            placed = r is not None and abs(r) <= r_tol  # on the grid
+        if r is not None:
+            continuous = placed
+        if placed:  # on the count's or the grid's clock: the latency, if its arrival is off
             yield from self._latency_moved((kind, stamp, fields, recv, arrival, False),
                                            behind, ahead, med)
-        if r is not None:
-            continuous = abs(r) <= r_tol
-            if continuous:  # on the grid: the latency, if its arrival is off the clock
-                yield from self._latency_moved((kind, stamp, fields, recv, arrival, False),
-                                               behind, ahead, med)
         if r is None and continuous and kind == "odometer":
             # without the grid, the stamps' sampling phase (:meth:`phase`): a reading off it is
             # not the stream's clock as it was, however small the move
