@@ -76,9 +76,9 @@ class NodeConfig:
                                "arrivals; drift tracked) | same (the odometer's: a simulator) | "
                                "reference (the receive clock)")
     count_clock: bool = param(True, "", "without a sample counter, judge the odometer's stamps "
-                              "by its count while the train moves (the speed as the count's "
-                              "rate, lagging it by at most 0.5 s); false: by their arrivals "
-                              "alone, for a producer whose speed is not its count's")
+                              "by its count while the train moves (the speed's scale and "
+                              "its lag behind the count learnt); false: by their arrivals "
+                              "alone, for a producer whose speed is not its count's rate")
     max_future: float = param(600.0, "s", "a stamp this far after its arrival is refused "
                               "(future_stamp)", lo=0.0)
     wait_for_subscribers: int = param(0, "", "output nothing until the estimate topic has this "
