@@ -352,12 +352,16 @@ def test_a_reading_stamped_as_the_last_fused_one_after_a_backward_step_is_no_cor
     assert abs(r["shift_err_ms"]) < 1e-3 and r["time_err_all_ms"] < 1e-3, r
 
 
-def _braking_cycles(lag: float, seed: int, duration: float = 900.0, rate: float = 10.0):
+def _braking_run(lag: float, seed: int, duration: float = 900.0, rate: float = 10.0,
+                 slide: tuple | None = None, fault=None):
     """A stream without a counter from a train that cruises at 20 m/s, brakes at 0.8 m/s^2 to
     4 m/s, runs on and accelerates back at 0.4 m/s^2 every 120 s, its acceleration following
     its set point at 1 m/s^3 (COUNT_JERK); the speed field lags the count by ``lag`` s (a rate
-    over a window of pulses). Through the campaign's 50 ms link, 5 % lost; the runner's
-    clock_reset events, refusals and estimates in doubt."""
+    over a window of pulses). ``slide`` ``(ratio, from s, for s)``: in every cycle the wheel
+    that is counted slides (ratio > 0: counts that share less than the train runs) or spins (<
+    0) while the speed field is the train's (a radar's). Through the campaign's 50 ms link, 5 %
+    lost, with the campaign's ``fault`` (faults.Fault) if given: the runner and its
+    estimates."""
     from train_estimation.core.online.replay import replay
     from train_estimation.core.online.runner import EstimatorRunner
     from train_estimation.tools import faults as F
@@ -370,7 +374,11 @@ def _braking_cycles(lag: float, seed: int, duration: float = 900.0, rate: float 
     for k in range(1, t.size):
         a[k] = a[k - 1] + np.clip(want[k] - a[k - 1], -dt, dt)
     v = 20.0 + np.cumsum(a) * dt
-    x = np.cumsum(v) * dt
+    wheel = v
+    if slide is not None:
+        ratio, t0, span = slide
+        wheel = v * (1.0 - np.where((ph >= t0) & (ph < t0 + span), ratio, 0.0))
+    x = np.cumsum(wheel) * dt
     rng = np.random.default_rng(seed)
     ev = [("odometer", k / rate, {"seq": 0, "distance": float(x[int(round(k / rate / dt))]),
                                   "speed": float(v[max(int(round((k / rate - lag) / dt)), 0)]),
@@ -378,10 +386,17 @@ def _braking_cycles(lag: float, seed: int, duration: float = 900.0, rate: float 
           for k in range(int(duration * rate)) if rng.random() >= 0.05]
     ev += [("control", float(s), {"target_acceleration": 0.0}) for s in range(int(duration) + 1)]
     ev.sort(key=lambda e: (e[1], e[0] != "control"))
-    faulted = F.inject(ev, F.Fault("none", jitter=0.05), rng)
+    faulted = F.inject(ev, fault or F.Fault("none", jitter=0.05), rng)
     rec = Recorder()
     runner = EstimatorRunner(rec, 1.0 / rate)
     outs, _ = replay(iter(faulted.events), rec, 1.0 / rate, runner=runner)
+    return runner, outs
+
+
+def _braking_cycles(lag: float, seed: int, duration: float = 900.0, rate: float = 10.0,
+                    slide: tuple | None = None):
+    """:func:`_braking_run`'s clock_reset events, refusals and estimates in doubt."""
+    runner, outs = _braking_run(lag, seed, duration, rate, slide)
     return (runner.events.get("odometer:clock_reset", 0), sum(runner.rejected.values()),
             sum("clock" in o.integrity_reason for o in outs))
 
@@ -397,6 +412,38 @@ def test_a_speed_that_lags_its_count_through_braking_is_no_step(seed, lag):
     and the chain's residual is taken less it: no step, nothing refused, no estimate in
     doubt."""
     assert _braking_cycles(lag, seed) == (0, 0, 0)
+
+
+@pytest.mark.parametrize("slide", [(0.15, 42.0, 3.0), (0.05, 42.0, 8.0), (-0.2, 82.0, 3.0)])
+def test_a_wheel_that_slides_or_spins_is_no_clock_step(slide):
+    """The counted wheel slides 15 % for 3 s or 5 % for 8 s in every braking, or spins 20 % for
+    3 s in every acceleration, exact counts, while the speed field is the train's (a radar):
+    each link of the slide adds its share to the count's residual, which stays where the
+    slide left it. The stamps and their arrivals stay on their clock. Taken for the stamps',
+    every slide made a false step of +0.1 to +0.4 s and 130-200 readings were refused as
+    stamped ahead in 10 min. The count's reach of a slip (StepWatch._slip_room: COUNT_SLIP of
+    the stamps' time, where the train brakes or accelerates by COUNT_SLIP_ACCEL) and the
+    arrivals that stayed (StepWatch._count_moved) make it the count's: no clock step, nothing
+    refused, and the count_slip event says so."""
+    runner, _ = _braking_run(0.0, 0, 600.0, slide=slide)
+    assert runner.events.get("odometer:clock_reset", 0) == 0
+    assert sum(runner.rejected.values()) == 0
+    assert runner.events.get("odometer:count_slip", 0) >= 1
+
+
+@pytest.mark.parametrize("step", [-0.3, 0.5])
+def test_a_clock_step_in_braking_is_still_one(step):
+    """A clock step while the train brakes (0.8 m/s^2, exact counts, no slide): a slide puts at
+    most COUNT_SLIP of the stamps' time into the count's residual of a link, and only forward
+    (counts less) while braking; -0.3 s puts a reading on the stamp of the one before it, +0.5 s
+    is 0.5 of 0.6 s. One clock_reset, at the step's size, nothing refused."""
+    from train_estimation.tools import faults as F
+    runner, _ = _braking_run(0.0, 0, 200.0, fault=F.Fault("step", step, 163.0, jitter=0.05))
+    assert runner.events.get("odometer:clock_reset", 0) == 1
+    assert runner.events.get("odometer:count_slip", 0) == 0
+    assert sum(runner.rejected.values()) == 0
+    text = next(e[2] for e in runner.last_events if "clock_reset" in e[2])
+    assert f"{step:+.3f} s" in text
 
 
 def _braking_links(seed: int, rate: float, lag: float, noise: float, accel: float = -0.8):

@@ -41,6 +41,8 @@ SEQ_RESET = "seq_reset"  # sequence number went back (sensor reboot, wrap-around
 CLOCK_RESET = "clock_reset"  # a stamp clock jumped and stayed: re-anchored
 SEQ_SKIP = "seq_skip"  # the sample counter skipped (or repeated) samples, the clock ran on
 LINK_LATENCY = "link_latency"  # the link's latency moved and stayed, the stamps ran on
+COUNT_SLIP = "count_slip"  # the odometer's count left its speed (a wheel slip or slide), the
+#   stamps stayed on their clock (no sample counter)
 FUSED_LATE = "fused_late"  # arrived after later readings, fused by rewinding the history
 OUTAGE = "outage"  # no odometer for longer than the outage threshold
 RELOCATED = "relocated"  # two agreeing balises moved the odometer's count by more than it claimed
@@ -53,8 +55,8 @@ COUNT_ORIGIN = "count_origin"  # the first count far from zero: origin widened u
 START_EXCLUDED = "start_excluded"  # the balises contradict the start: calibrated without it
 SEQ_UNSTATED = "seq_unstated"  # a stream whose seq never moves: no counter, judged by stamps
 STAMP_UNSTATED = "stamp_unstated"  # commands stamped 0: taken at their arrival (the contract's)
-EVENTS = (SEQ_RESET, CLOCK_RESET, SEQ_SKIP, LINK_LATENCY, FUSED_LATE, OUTAGE, RELOCATED,
-          BALISE_EXCLUDED, BALISE_LATENCY, VARIANCE_UNSTATED, COUNT_RESET, COUNT_ORIGIN,
+EVENTS = (SEQ_RESET, CLOCK_RESET, SEQ_SKIP, LINK_LATENCY, COUNT_SLIP, FUSED_LATE, OUTAGE,
+          RELOCATED, BALISE_EXCLUDED, BALISE_LATENCY, VARIANCE_UNSTATED, COUNT_RESET, COUNT_ORIGIN,
           START_EXCLUDED, SEQ_UNSTATED, STAMP_UNSTATED)
 
 ALL = REJECTIONS + ACCEPTED + EVENTS
@@ -79,6 +81,9 @@ DESCRIPTION = {
     CLOCK_RESET: "stamp clock jumped; re-anchored",
     SEQ_SKIP: "sample counter skipped samples while the clock ran on; grid re-learnt",
     LINK_LATENCY: "the link's latency moved and stayed while the stamps ran on; no clock step",
+    COUNT_SLIP: "the odometer's count (no sample counter) left its speed while the stamps and "
+                "their arrivals stayed on their clock (a wheel slip or slide): no clock step, "
+                "the count's clock restarts",
     FUSED_LATE: "arrived late, fused by rewinding",
     OUTAGE: "no odometer for longer than the outage threshold",
     RELOCATED: "odometer count moved onto two agreeing balises",

@@ -86,6 +86,16 @@ COUNT_LAG = 0.5  # s, the prior standard deviation of the lag of the odometer's 
 #   its count (a filtered speed, a rate over a window of pulses) until brakings measure it
 #   (_count_fit): a lag tau puts -tau ln(v1 / v0) into the time the count gives two samples
 COUNT_LEARN = 16  # count residuals learnt at speed before the count judges stamps
+COUNT_SLIP = 0.3  # -, the largest slip ratio of the wheel the count comes from: under braking
+#   it slides and counts less than the train runs, in traction it spins and counts more (wheel-
+#   slide and anti-slip protection hold 10-20 %, transients more); a reading the count puts off
+#   its clock by less than this share of the stamps' time since the newest fused reading (and
+#   its tolerance) may be the count's, not the stamp's (StepWatch._slip_room)
+COUNT_ACCEL_SPAN = 2.0  # s of the count's links over which the train's acceleration is taken
+#   (StepWatch._slip_room; clocks._accel): its noise against the lag it adds at a braking's onset
+COUNT_SLIP_ACCEL = 0.2  # m/s^2, the least deceleration (acceleration) of a train whose braking
+#   (traction) may exceed the rail's adhesion: 0.02 g, the worst wet, leaf-covered rail's
+#   (the diagnose tool's MU_MIN); below it the wheel rolls and the count is a clock
 SEG_MIN = 4  # the rate fit's points off its line that can start a segment of it (StreamClock._off)
 SEG_RISK = TREND_WAIT  # -, the rate at which a true move of the line's level is held for one
 #   more point: its points scatter about one level as the line's own (chi-square at this risk)
@@ -863,6 +873,26 @@ def _count_fit(links, lag_prior: tuple | None) -> tuple[float, float, tuple, flo
     return a * k, b * k, (k ** 4 * c_aa, b * k ** 4 * c_aa + k ** 3 * c_ab, c_ll), sd
 
 
+def _accel(links, span: float) -> float:
+    """m/s^2, the train's acceleration over the last ``span`` s of the count's links
+    (:func:`_count_link`): the least-squares slope of their later samples' speeds against
+    their stamps (one pair's speeds, a period apart, differ by their noise: 1.4 m/s^2 at 10 Hz
+    and 0.1 m/s; a slope over 2 s of 20 samples has 0.04 m/s^2 of it); 0 with fewer than 3."""
+    ts, vs, t = [], [], 0.0
+    for r, dt, _, v in reversed(links):
+        ts.append(t)
+        vs.append(v)
+        t -= r + dt
+        if -t > span:
+            break
+    n = len(ts)
+    if n < 3:
+        return 0.0
+    tm, vm = sum(ts) / n, sum(vs) / n
+    sxx = sum((x - tm) ** 2 for x in ts)
+    return sum((x - tm) * (y - vm) for x, y in zip(ts, vs)) / sxx if sxx > 0.0 else 0.0
+
+
 def _centred_sums(s) -> tuple[float, float, float]:
     """(sxx, sxy, syy) about their means from the raw sums [n, sx, sy, sxx, sxy, syy]."""
     n, sx, sy, sxx, sxy, syy = s[:6]
@@ -890,6 +920,7 @@ def t_spread(dof: int) -> float:
 # -- the train clock's steps -----------------------------------------------------------------
 
 PASS, HOLD, ADMIT, REFUSE, STEP, SKIP = "pass", "hold", "admit", "refuse", "step", "skip"
+SLIP = "slip"
 LATENCY = "latency"  # the step watch's answer: the link's latency moved, not the clock
 PHASE_RES = 1e-6  # s: the stamps' resolution, the least scatter of a stream's sampling phase
 #   (StepWatch.phase): a float Unix time resolves 2.4e-7 s, a ROS stamp 1e-9 s
@@ -1261,6 +1292,9 @@ class StepWatch:
         #   of 64 links before the current window
         self._lag_block: tuple | None = None  # (links learnt at its end, lag, information) of
         #   the newest disjoint window, until the current window has left it
+        self._accel = 0.0  # m/s^2, the train's acceleration by the fused readings' speeds
+        self._slipped: set = set()  # timeline stamps of readings admitted off the count's clock
+        #   within a slip's reach (:meth:`_count_off`): no link to them is learnt
 
     # -- stamps ---------------------------------------------------------------------------
     def onto_timeline(self, stamp: float, odometer: bool) -> float:
@@ -1389,11 +1423,18 @@ class StepWatch:
                 else None
             prev = self._dist
             self._dist = (stamp, float(distance), SampleGrid._seq(seq), v)
-            if prev is not None and prev[2] is None and seq is None:
+            slipped = stamp in self._slipped
+            if self._slipped:
+                self._slipped = {x for x in self._slipped if x > stamp}
+            if prev is not None and prev[2] is None and seq is None and not slipped:
+                # (not to a reading that the count put off its clock as a slip may: a slide's
+                # links learnt took the rate and the lag with them, and every braking after it
+                # was misjudged)
                 link = _count_link(prev[0], prev[1], prev[3], stamp, float(distance), v)
                 if link is not None:
                     self._count_e.append((link[0], stamp - prev[0] - link[0], link[1], v))
                     self._count_n += 1
+                    self._accel = _accel(self._count_e, COUNT_ACCEL_SPAN)
                     if len(self._count_e) >= COUNT_LEARN:
                         self._count_fit = _count_fit(self._count_e, self._lag_prior())
                     if self._count_n % self._count_e.maxlen == 0:
@@ -1445,6 +1486,10 @@ class StepWatch:
         - ``(SKIP, samples)``: no step, the sample counter moved by ``samples`` (< 0: back)
           while the stamps and arrivals ran on; the grid is re-learnt and the held readings
           follow as ADMITs (judged as any other);
+        - ``(SLIP, r)``: no step, the odometer's count (no counter) left its speed by ``r`` s
+          of count time (a wheel that slid or slipped) while the stamps and arrivals stayed on
+          their clock (:meth:`_count_moved`); the count's chain restarts at the next fused
+          reading and the held readings follow as ADMITs (judged as any other);
         - last, for this reading: ``(PASS, stamp)``, go on judging it at this timeline stamp
           (mapped when it completed a step; one beyond ``max_future`` is held only as evidence
           for a step and passes, to be refused at the door as always), or ``(HOLD,)``, nothing
@@ -1600,6 +1645,14 @@ class StepWatch:
             if chain[0][2].get("seq") is None and (cph := self._chain_phase(chain)) is not None:
                 P = self.phase()[0]
                 shift = cph[0] + P * round((shift - cph[0]) / P)
+                if abs(shift - rs[len(rs) // 2]) > max(t for _, t in map(
+                        lambda h: self._resid_tol(h[0], h[1], h[2], chain), chain)):
+                    # no step the stamps' phase allows is where the count puts them (a part
+                    # of a period is the phase's, exactly): the count left its speed (after a
+                    # slide, the last of its links before the held readings) -- taken for a
+                    # step of the phase's, 0 s
+                    yield from self._count_slipped(rs[len(rs) // 2])
+                    return
         elif off:
             pass  # off the stream's phase together: a step, whatever its size (measured below)
         elif env is not None:
@@ -1637,6 +1690,9 @@ class StepWatch:
             yield SKIP, -round(r / self.period)
             yield from self._release()  # this reading with them
             yield (HOLD,)
+            return
+        if rs is not None and self._count_moved(chain, r := rs[len(rs) // 2], new_off, med):
+            yield from self._count_slipped(r)
             return
         measured = all(h[3] is not None for h in chain) and len(med) >= self.min_judged
         # the new clock's offsets less the old clock's, carried to the held readings' middle
@@ -1847,34 +1903,120 @@ class StepWatch:
 
     def _counter_moved(self, chain: list, r: float, new_off: float, med: StreamClock) -> bool:
         """Whether the held readings that the grid puts ``r`` s off (a whole number of periods)
-        are a sample counter that skipped or repeated samples rather than a clock step: their
-        arrivals known, on a clock of at least three offsets, the median of their offsets
-        (``new_off``) where the clock's centre is, and ``r`` away from it, each by the
-        median's own precision (1.25 robust spreads of the link's jitter over the square root
-        of the readings). A train's sampling loop that misses a cycle counts on; its stamps do
-        not move, nor do their arrivals: taken for a -1 s step at 1 Hz, the estimates were
-        81 m off and ALARM for half of the next minute."""
-        # (three offsets that agree place a clock: a counter that skips in the first seconds
-        # of a 1 Hz run, taken for a step, put an estimate 3 s past the run's end)
-        if any(h[3] is None or h[2].get("seq") is None for h in chain) or len(med) < 3:
+        are a sample counter that skipped or repeated samples rather than a clock step: the
+        grid's ``r`` a whole number of periods, and their arrivals on the old clock
+        (:meth:`_arrivals_stayed`). A train's sampling loop that misses a cycle counts on; its
+        stamps do not move, nor do their arrivals: taken for a -1 s step at 1 Hz, the
+        estimates were 81 m off and ALARM for half of the next minute."""
+        if any(h[2].get("seq") is None for h in chain):
             return False  # (no counter: the count's residual, which a counter cannot move)
         k = round(r / self.period)
         if k == 0 or abs(r - k * self.period) > max(self.grid.tol_at(h[2].get("seq"))
                                                     for h in chain):
             return False
-        se = 1.2533 * max(med.jitter, 1e-3) / math.sqrt(len(chain))
-        moved = new_off - med.now(chain[len(chain) // 2][4])
-        return abs(moved) <= 3.0 * se and abs(moved - r) > 6.0 * se
+        return self._arrivals_stayed(chain, r, new_off, med)
+
+    def _count_slipped(self, r: float):
+        """The held readings that the count put ``r`` s off its clock are a count that left its
+        speed, not a clock step: the count's chain restarts at the next fused reading (the
+        speed taken off the reference: no link to it is learnt, no residual is chained through
+        it), and the held readings are judged as any other, by their arrivals."""
+        self._dist = self._dist[:3] + (None,)
+        yield SLIP, r
+        yield from self._release()  # this reading with them
+        yield (HOLD,)
+
+    def _count_moved(self, chain: list, r: float, new_off: float, med: StreamClock) -> bool:
+        """Whether the held readings that the odometer's count (no counter) puts ``r`` s off
+        its clock are a count that left its speed rather than a clock step: their arrivals on
+        the old clock (:meth:`_arrivals_stayed`). The count is a clock only while the wheel it
+        counts rolls: a wheel that slides under braking (or spins in traction) counts less (or
+        more) than the train runs, and a speed from another source (a radar, another axle)
+        does not follow it, so every link of the slide adds its share to the count's residual,
+        which then stays where the slide left it. The stamps stay on their clock, and so do
+        their arrivals: a 15 % slide for 3 s in each braking, taken for +0.4 s steps, made a
+        false step per braking and refused the readings after it as stamped ahead."""
+        if any(h[2].get("seq") is not None for h in chain):
+            return False
+        if self._arrivals_stayed(chain, r, new_off, med):
+            return True
+        # within a slip's reach of the newest fused reading (:meth:`_slip_room`) at the first
+        # held reading on their level (a step puts the first there, a slide the first after
+        # it ends), the count alone cannot tell a slip from a step: a step only where the
+        # arrivals moved with it (:meth:`_arrivals_moved`)
+        rts = [self._resid_tol(h[0], h[1], h[2], chain) for h in chain]
+        at = next((h[1] for h, (rh, th) in zip(chain, rts) if abs(rh - r) <= th), chain[0][1])
+        if not abs(r) <= max(t for _, t in rts) + self._slip_room(at, r):
+            return False
+        return not self._arrivals_moved(chain, r, new_off, med)
+
+    def _arrivals_moved(self, chain: list, r: float, new_off: float, med: StreamClock) \
+            -> bool:
+        """Whether the held readings' arrivals moved ``r`` s off the old clock with them: the
+        median of their offsets (``new_off``) off the clock's centre and within ``r`` of it,
+        each by 3 of the median's own precision (:meth:`_arrivals_shift`)."""
+        m = self._arrivals_shift(chain, new_off, med)
+        return m is not None and abs(m[0] - r) <= 3.0 * m[1] and abs(m[0]) > 3.0 * m[1]
+
+    def _arrivals_stayed(self, chain: list, r: float, new_off: float, med: StreamClock) \
+            -> bool:
+        """Whether the held readings' arrivals put them on the old clock while the grid or the
+        count puts them ``r`` s off it: the median of their offsets (``new_off``) within 3 of
+        its precision of the clock's centre, and ``r`` beyond 6 of it
+        (:meth:`_arrivals_shift`)."""
+        m = self._arrivals_shift(chain, new_off, med)
+        return m is not None and abs(m[0]) <= 3.0 * m[1] and abs(m[0] - r) > 6.0 * m[1]
+
+    def _arrivals_shift(self, chain: list, new_off: float, med: StreamClock) -> tuple | None:
+        """``(moved s, its precision s)``: how far the held readings' offsets (their median
+        ``new_off``) lie from the old clock's centre, and the median's precision (1.25 robust
+        spreads of the link's jitter over the square root of the readings); None unless every
+        arrival is known and the clock holds at least three offsets."""
+        # (three offsets that agree place a clock: a counter that skips in the first seconds
+        # of a 1 Hz run, taken for a step, put an estimate 3 s past the run's end)
+        if any(h[3] is None for h in chain) or len(med) < 3:
+            return None
+        return new_off - med.now(chain[len(chain) // 2][4]), \
+            1.2533 * max(med.jitter, 1e-3) / math.sqrt(len(chain))
 
     def _placed(self, kind: str, stamp: float, fields, chain: list | None = None) \
             -> float | None:
         """The residual of a reading the grid places, or the count places off its clock (a
-        count's residual within its tolerance leaves a small move open: None)."""
+        count's residual within its tolerance, or one a slip may have put in, leaves a small
+        move open: None)."""
         r, tol = self._resid_tol(kind, stamp, fields, chain)
         if r is not None and isinstance(fields, dict) and fields.get("seq") is None and \
-                abs(r) <= tol:
+                not self._count_off(stamp, r, tol):
             return None
         return r
+
+    def _count_off(self, stamp: float, r: float, tol: float) -> bool:
+        """Whether one reading that the count (no counter) puts ``r`` s off its clock has a
+        wrong stamp rather than a count that left its speed: beyond its tolerance ``tol`` and
+        what a slip may have put in (:meth:`_slip_room`). With exact counts, every reading of a
+        15 % slide in braking was refused as stamped ahead: 3 s of the odometer lost in every
+        braking, then a false step of +0.4 s. A persistent level is judged as a chain
+        (:meth:`watch`, :meth:`_count_moved`)."""
+        return abs(r) > tol + self._slip_room(stamp, r)
+
+    def _slip_room(self, stamp: float, r: float) -> float:
+        """s: how far a slip of the counted wheel may have put a reading stamped ``stamp`` off
+        the count's clock (residual ``r``) since the newest fused reading: ``COUNT_SLIP`` of
+        the stamps' time between them, where the train decelerates (a slide: the count falls
+        behind, ``r > 0``) or accelerates (a spin: ``r < 0``) by ``COUNT_SLIP_ACCEL`` or more;
+        else none. A slide moves the count a little at every sample, a clock step the stamps
+        at once: -1 s at 1 Hz or -0.1 s at 10 Hz puts a reading on the stamp of the one before
+        it, and no slip puts any count there; a cruise (the wheel rolls) leaves no room."""
+        ref = self._dist
+        if ref is None:
+            return 0.0
+        a = self._accel
+        # (a reading stamped before the fused one, arrived late, lies back along the count: its
+        # residual's sign turns)
+        fwd = r if stamp >= ref[0] else -r
+        if (fwd > 0.0 and a <= -COUNT_SLIP_ACCEL) or (fwd < 0.0 and a >= COUNT_SLIP_ACCEL):
+            return COUNT_SLIP * abs(stamp - ref[0])
+        return 0.0
 
     def _resid_tol(self, kind: str, stamp: float, fields, chain: list | None = None) -> tuple:
         """``(r, tol)``: the reading's residual (s) on the sample grid, or for a stream without
@@ -2022,9 +2164,12 @@ class StepWatch:
             # off the sample grid, and no step: its stamp lies about when it was sampled (a
             # copy 0.5 s ahead was admitted and fused 10 m off its time)
             r, r_tol = self._resid_tol(k, st, f)
-            if r is not None and abs(r) > r_tol:
+            if r is not None and (abs(r) > r_tol if f.get("seq") is not None
+                                  else self._count_off(st, r, r_tol)):
                 yield REFUSE, k, st, r
                 continue
+            if r is not None and abs(r) > r_tol:
+                self._slipped.add(st)  # the count's, not the stamp's (_count_off)
             yield ADMIT, (k, st, f, rc, ar)
 
     # -- the integrity monitor's view -----------------------------------------------------

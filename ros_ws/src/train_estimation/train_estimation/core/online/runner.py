@@ -94,6 +94,7 @@ from ..numerics.clocks import (
     PASS,
     REFUSE,
     SKIP,
+    SLIP,
     STEP,
     StepWatch,
     StreamClock,
@@ -604,6 +605,11 @@ class EstimatorRunner:
                 self._event("odometer", stamp, f"{R.SEQ_SKIP}: the sample counter moved by "
                                                f"{act[1]:+d} samples while the stamps and "
                                                f"arrivals ran on; grid re-learnt")
+            elif act[0] == SLIP:
+                self._event("odometer", stamp, f"{R.COUNT_SLIP}: the odometer's count left its "
+                                               f"speed by {act[1]:+.3f} s of count time while "
+                                               f"the stamps stayed on their clock (a wheel "
+                                               f"slip or slide); no clock step")
             elif act[0] == PASS:
                 stamp = act[1]
             elif act[0] == HOLD:
