@@ -353,14 +353,17 @@ def test_a_reading_stamped_as_the_last_fused_one_after_a_backward_step_is_no_cor
 
 
 def _braking_run(lag: float, seed: int, duration: float = 900.0, rate: float = 10.0,
-                 slide: tuple | None = None, fault=None):
+                 slide: tuple | None = None, fault=None, rounding: tuple = (0.0, 0.0),
+                 ripple: float = 0.0):
     """A stream without a counter from a train that cruises at 20 m/s, brakes at 0.8 m/s^2 to
     4 m/s, runs on and accelerates back at 0.4 m/s^2 every 120 s, its acceleration following
     its set point at 1 m/s^3 (COUNT_JERK); the speed field lags the count by ``lag`` s (a rate
     over a window of pulses). ``slide`` ``(ratio, from s, for s)``: in every cycle the wheel
     that is counted slides (ratio > 0: counts that share less than the train runs) or spins (<
     0) while the speed field is the train's (a radar's). Through the campaign's 50 ms link, 5 %
-    lost, with the campaign's ``fault`` (faults.Fault) if given: the runner and its
+    lost, with the campaign's ``fault`` (faults.Fault) if given. ``rounding`` ``(m, m/s)``: the
+    grids the producer rounds its count and speed to (0: none); ``ripple`` m/s^2, a sine of
+    17 s on the acceleration (a cruise's speed is never one number). The runner and its
     estimates."""
     from train_estimation.core.online.replay import replay
     from train_estimation.core.online.runner import EstimatorRunner
@@ -369,7 +372,8 @@ def _braking_run(lag: float, seed: int, duration: float = 900.0, rate: float = 1
     dt = 1e-3
     t = np.arange(0.0, duration + 5.0, dt)
     ph = t % 120.0
-    want = np.where((ph >= 40) & (ph < 60), -0.8, np.where(ph >= 80, 0.4, 0.0))
+    want = np.where((ph >= 40) & (ph < 60), -0.8, np.where(ph >= 80, 0.4, 0.0)) + \
+        ripple * np.sin(2.0 * np.pi * t / 17.0)
     a = np.zeros_like(t)
     for k in range(1, t.size):
         a[k] = a[k - 1] + np.clip(want[k] - a[k - 1], -dt, dt)
@@ -380,8 +384,15 @@ def _braking_run(lag: float, seed: int, duration: float = 900.0, rate: float = 1
         wheel = v * (1.0 - np.where((ph >= t0) & (ph < t0 + span), ratio, 0.0))
     x = np.cumsum(wheel) * dt
     rng = np.random.default_rng(seed)
-    ev = [("odometer", k / rate, {"seq": 0, "distance": float(x[int(round(k / rate / dt))]),
-                                  "speed": float(v[max(int(round((k / rate - lag) / dt)), 0)]),
+    dq, vq = rounding
+
+    def rounded(y, q):
+        return float(round(y / q) * q) if q else float(y)
+
+    ev = [("odometer", k / rate, {"seq": 0,
+                                  "distance": rounded(x[int(round(k / rate / dt))], dq),
+                                  "speed": rounded(v[max(int(round((k / rate - lag) / dt)), 0)],
+                                                   vq),
                                   "speed_variance": 0.01})
           for k in range(int(duration * rate)) if rng.random() >= 0.05]
     ev += [("control", float(s), {"target_acceleration": 0.0}) for s in range(int(duration) + 1)]
@@ -444,6 +455,47 @@ def test_a_clock_step_in_braking_is_still_one(step):
     assert sum(runner.rejected.values()) == 0
     text = next(e[2] for e in runner.last_events if "clock_reset" in e[2])
     assert f"{step:+.3f} s" in text
+
+
+@pytest.mark.parametrize("rate", [10.0, 1.0])
+@pytest.mark.parametrize("rounding", [(1.0, 1.0 / 3.6), (1.0, 0.1 / 3.6), (0.1, 1.0 / 3.6)])
+@pytest.mark.parametrize("ripple", [0.0, 0.05])
+def test_a_count_and_speed_rounded_by_their_producer_are_read_right(rounding, rate, ripple):
+    """A recorder that logs the count in whole metres (or decimetres) and the speed in whole
+    (or tenths of) km/h, no counter, through the braking cycles: no step, nothing refused. At
+    4 m/s and 10 Hz a whole-metre count stays put for two or three samples, and with the speed
+    rounded the readings were refused as copies of a fused one (half of them, 900 in 10 min);
+    the count's rounding, bounded and seen only when the speed carries a count across a grid
+    line, was refused as stamps off the count's clock (the count's noise learnt as 0 between
+    the crossings), and so was the speed's (whole km/h: 1.4 ms a link at 20 m/s). The
+    producer's grids are learnt from its values (clocks.Grid); a count that cannot have moved
+    by a grid step between the two stamps is no copy (runner._count_moves), and a chain's
+    tolerance holds both roundings (StepWatch._count_resid)."""
+    runner, _ = _braking_run(0.0, 0, 600.0, rate, rounding=rounding, ripple=ripple)
+    assert runner.events.get("odometer:clock_reset", 0) == 0
+    assert dict(runner.rejected) == {}
+
+
+def test_a_producers_grid_is_the_coarsest_its_values_lie_on():
+    """clocks.Grid: whole metres, then a half: 0.5; 0.5 and 0.4: 0.1 (not 0.2, which 0.5 is
+    not on); km/h as m/s (k / 3.6) and tenths of m/s; values that are not rounded: none; one
+    that lies on a grid by chance (2 m) leaves it at the next."""
+    from train_estimation.core.numerics.clocks import COUNT_GRIDS, SPEED_GRIDS, Grid
+
+    def grid(values, grids=COUNT_GRIDS):
+        g = Grid(grids)
+        for x in values:
+            g.add(x)
+        return g.q
+
+    assert grid([1234.0, 1236.0, 1237.0]) == 1.0
+    assert grid([1234.0, 1234.5]) == 0.5
+    assert grid([0.5, 0.4]) == pytest.approx(0.1)
+    assert grid([12345.6, 12346.1]) == pytest.approx(0.1)
+    assert grid([k / 3.6 for k in (72, 71, 40)], SPEED_GRIDS) == pytest.approx(1 / 3.6)
+    assert grid([20.1, 19.7, 3.3], SPEED_GRIDS) == pytest.approx(0.1)
+    assert grid(list(np.random.default_rng(0).uniform(0, 1e4, 5))) == 0.0
+    assert grid([2.0, 4.0, 6.0, 7.93]) == 0.01
 
 
 def _braking_links(seed: int, rate: float, lag: float, noise: float, accel: float = -0.8):

@@ -487,10 +487,23 @@ class EstimatorRunner:
         seq = fields.get("seq")
         if seq is None and fields.get("speed") == 0:
             return ""  # no counter: a standing train reads its count and speed again and again
-        if self._order.elsewhere(_sample_key(fields), stamp, fields.get("distance")):
+        key = _sample_key(fields)
+        if self._order.elsewhere(key, stamp, fields.get("distance")):
+            if seq is None and not self._count_moves(fields, stamp - self._order.fused[key][0]):
+                # no counter, and a count rounded to a grid coarser than the train ran between
+                # the two stamps: a new sample that the rounding left where the last one was
+                # (a recorder's whole metres and km/h at 4 m/s and 10 Hz: half the readings
+                # were refused as copies), or a copy within the count's own resolution
+                return ""
             what = "count and speed" if seq is None else f"seq {seq}"
             return f"{R.DUPLICATE}: {what} fused at another stamp"
         return ""
+
+    def _count_moves(self, fields: dict, dt: float) -> bool:
+        """Whether an odometer's count (no counter) moves by more than its grid
+        (:attr:`~.clocks.StepWatch.count_grid`) at the reading's speed over ``dt`` s."""
+        v = fields.get("speed")
+        return not isinstance(v, int | float) or abs(v * dt) > self._steps.count_grid
 
     def _clock_ready(self, clock: str, med: StreamClock) -> bool:
         """The early hold's end for a clock: ``min_judged`` offsets in, one group of them
