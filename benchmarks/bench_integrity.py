@@ -343,6 +343,10 @@ def plan(quick: bool, seeds: int, estimators, only, phase_names=None, long: floa
         for s in (((20.0,) if scenario == "metro_demo" else ()) if quick else
                   (-50.0, -20.0, -5.0, 5.0, 20.0, 50.0)):
             faults.append((F.Fault("start_offset", s, 0.0), short))
+        # a recorder that rounds the count to whole metres (decimetres) and the speed to whole
+        # km/h: at 4 m/s and 10 Hz a whole-metre count stays put for two or three samples
+        for s in (((1.0,) if scenario == "metro_demo" else ()) if quick else (0.1, 1.0)):
+            faults.append((F.Fault("rounded", s, 0.0), short))
         fuzz_duration = short if quick or scenario != "metro_demo" else 3000.0
         fuzz_duration = min(fuzz_duration, long or math.inf)
         faults.append((F.Fault("fuzz", fuzz_rate or (0.5 if quick else 10.0), 0.0),
@@ -511,7 +515,7 @@ def print_table(groups: list[dict]) -> None:
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for g in groups:
         at = "-" if g["kind"] in ("none", "drift", "fuzz", "latency", "queue", "first_count",
-                                      "start_offset", "odometer_scale") else \
+                                      "start_offset", "odometer_scale", "rounded") else \
             f"{g['at']:g} s {g['phase']}".strip()
         if g["na"]:
             print(f"| {g['scenario']} | {g['label']} | {at} | {g['estimator']} | n/a: "

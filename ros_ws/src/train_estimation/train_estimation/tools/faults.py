@@ -53,6 +53,8 @@ odometer_scale   fraction: from ``at`` on the odometer counts ``1 + size`` times
 first_count      m: every odometer distance is ``size`` m more than the distance run (a count
                  not reset at the start, data from mid-run): the train is at
                  ``initial_position`` with a first count of ``size``
+rounded          m: every odometer distance is rounded to a grid of ``size`` m and its speed to
+                 whole km/h (a recorder that logs whole metres, or decimetres, and km/h)
 start_offset     m: the stream is clean, the estimator's ``initial_position`` is ``size`` m
                  off the train's (:func:`start_position`; the count's zero is where the train
                  truly started)
@@ -101,7 +103,7 @@ QUEUE_BACKLOG = 1.0  # s, the delay of the first reading of an episode ("queue")
 KINDS = ("none", "stamp", "step", "drift", "outage", "command_stop", "latency", "queue", "route",
          "recorder_stall",
          "node_stall", "fuzz", "balise", "odometer_scale", "stuck", "seq_skip", "reboot",
-         "first_count", "start_offset")
+         "first_count", "start_offset", "rounded")
 # stamps a few seconds to minutes off: inside the runner's max_future (600 s), so the door lets
 # them in and only the clocks' and the filters' own checks stand between them and the estimate
 INSIDE_FUTURE = {
@@ -234,6 +236,9 @@ def inject(events: list, fault: Fault, rng: np.random.Generator) -> Faulted:
             continue
         if k == "first_count" and topic == "odometer":
             fields = dict(fields, distance=fields["distance"] + size)
+        if k == "rounded" and topic == "odometer":
+            fields = dict(fields, distance=round(fields["distance"] / size) * size,
+                          speed=round(fields["speed"] * 3.6) / 3.6)
         if k == "odometer_scale" and topic == "odometer" and t >= at:
             d_at = fields["distance"] if d_at is None else d_at
             fields = {**fields, "distance": d_at + (1.0 + size) * (fields["distance"] - d_at),
