@@ -93,6 +93,8 @@ COUNT_SLIP = 0.3  # -, the largest slip ratio of the wheel the count comes from:
 #   its tolerance) may be the count's, not the stamp's (StepWatch._slip_room)
 COUNT_GRIDS = (1.0, 0.5, 0.2, 0.1, 0.05, 0.02, 0.01, 0.005, 0.002, 0.001)  # m: the grids a
 #   producer may round its count to (a recorder's whole metres or decimetres) (Grid)
+STAMP_GRIDS = (1.0, 0.5, 0.1, 0.05, 0.01, 0.005, 0.001)  # s: and its stamps to (a log's
+#   whole, tenths, hundredths or thousandths of seconds) (Grid)
 SPEED_GRIDS = (1.0 / 3.6, 0.5 / 3.6, 0.1, 0.1 / 3.6, 0.01, 0.01 / 3.6, 0.001)  # m/s: and its
 #   speed to (whole, half or tenths of km/h, tenths or hundredths of m/s) (Grid)
 COUNT_ACCEL_SPAN = 2.0  # s of the count's links over which the train's acceleration is taken
@@ -785,11 +787,13 @@ class Grid:
     only shrink: values that lie on a coarser grid by chance (2 m a sample at 20 m/s and 10
     Hz) leave it when the speed changes."""
 
-    def __init__(self, grids: tuple):
+    def __init__(self, grids: tuple, tol: float = 0.0):
         self._left = list(grids)  # the grids every value seen so far lies on
+        self.tol = tol  # the values' own error besides their float's (a stamp less its first)
 
     def add(self, x: float) -> None:
-        tol = 1e-9 * max(1.0, abs(x))  # (float64 values of a decimal grid, parsed or scaled)
+        # (float64 values of a decimal grid, parsed or scaled)
+        tol = max(1e-9 * max(1.0, abs(x)), self.tol)
         if self._left:
             self._left = [q for q in self._left
                           if q > 10.0 * tol and abs(x - round(x / q) * q) <= tol]
@@ -797,6 +801,7 @@ class Grid:
     @property
     def q(self) -> float:
         return max(self._left, default=0.0)
+
 
 
 def _count_link(s0: float, d0: float, v0, s1: float, d1: float, v1):
@@ -1318,8 +1323,11 @@ class StepWatch:
         self._lag_block: tuple | None = None  # (links learnt at its end, lag, information) of
         #   the newest disjoint window, until the current window has left it
         self._rounded = False  # the count's rounding to its grid was seen (:meth:`watch`)
-        self._grids = (Grid(COUNT_GRIDS), Grid(SPEED_GRIDS))  # the count's and the speed's
-        #   rounding (no counter; :attr:`count_grid`)
+        self._grids = (Grid(COUNT_GRIDS), Grid(SPEED_GRIDS), None)  # the count's, the speed's
+        #   and the stamps' rounding (no counter; :attr:`count_grid`; the stamps' Grid made at
+        #   the first: stamps less it)
+        self._stamp0 = 0.0  # s, the first stamp (:meth:`_rounding_seen`)
+        self._stamps_rounded = False  # the stamps' rounding to their grid was seen
         self._accel = 0.0  # m/s^2, the train's acceleration by the fused readings' speeds
         self._slipped: set = set()  # timeline stamps of readings admitted off the count's clock
         #   within a slip's reach (:meth:`_count_off`): no link to them is learnt
@@ -1409,6 +1417,11 @@ class StepWatch:
             c = median(e)
             sd = max(1.4826 * median(np.abs(e - c)), PHASE_RES)
             tol = -float(stdtrit(max(len(a) - 2, 1), 0.5 * self.phase_level)) * sd
+            if self._stamps_rounded:
+                # stamps rounded to a grid hide the loop's scatter below half a step, and one
+                # in so many lands a whole step off (_rounding_seen): 3.4 % of the estimates
+                # were in doubt with a log's hundredths of a second and a 4 ms jittery loop
+                tol += self.stamp_grid
             if tol < 0.25 * P:
                 out = (P, adm[-1], c, tol)
         self._phase = (self._n_admitted, out)
@@ -1484,22 +1497,49 @@ class StepWatch:
         where none."""
         return self._grids[0].q
 
-    def _rounding_seen(self, r: float, fields: dict) -> bool:
-        """Whether this reading (no counter, count residual ``r`` s) first shows its count's
-        rounding: its count on :attr:`count_grid` (learnt from it too) and ``r`` off the clock
-        by a quarter to a whole grid step at its speed, where a rounded count's end moves when
-        the speed carries it across a grid line. From then on a chain's tolerance holds the
-        grid (:meth:`_count_resid`). An exact count never shows it, though one sampled at a
-        steady speed lies on a grid (2 m a sample at 20 m/s and 10 Hz): its residuals are
-        rounding errors of the float, and a step of a grid step or more is no rounding."""
-        d, v = fields.get("distance"), fields.get("speed")
-        self._grids[0].add(float(d))
-        self._grids[1].add(float(v))
-        q = self.count_grid
-        if self._rounded or not q > 0.0 or not abs(v) > 0.0:
-            return False
-        self._rounded = 0.25 * q <= abs(r * v) <= q
-        return self._rounded
+    @property
+    def stamp_grid(self) -> float:
+        """s, the grid the odometer's stamps are rounded to (:class:`Grid`) where it is finer
+        than a tenth of the period, else 0: stamps that all lie on the sampling's own grid (k /
+        10 s at 10 Hz, whole seconds at 1 Hz) are the sampling's, exactly, and a whole-period
+        step lies on that grid too; a rounded stamp leaves it whenever the loop's own jitter
+        carries it across a line of the finer grid."""
+        g = self._grids[2]
+        return g.q if g is not None and g.q <= 0.1 * self.period else 0.0
+
+    def _learn_grids(self, stamp: float, fields: dict) -> None:
+        """Learn the producer's grids from an odometer reading (:class:`Grid`): its stamp's,
+        and without a counter its count's and speed's."""
+        if fields.get("seq") is None:
+            self._grids[0].add(float(fields["distance"]))
+            self._grids[1].add(float(fields["speed"]))
+        if self._grids[2] is None:
+            # (stamps at a Unix epoch: their float's own spacing, 2.4e-7 s at 1.7e9, bounds how
+            # finely their grid is seen)
+            self._stamp0 = stamp
+            self._grids = self._grids[:2] + (Grid(STAMP_GRIDS, 8.0 * math.ulp(stamp)),)
+        self._grids[2].add(stamp - self._stamp0)
+
+    def _rounding_seen(self, r: float, tol: float, fields: dict) -> bool:
+        """Whether a held reading that no later one continued (:meth:`_release`; residual
+        ``r`` s on the sample grid or the count's clock, ``tol`` its tolerance) first shows a
+        rounding by its producer, off its clock beyond its tolerance by up to a step of it: of its
+        count (:attr:`count_grid`, at its speed; where the speed carries the count across a
+        grid line) or of its stamp (:attr:`stamp_grid`; where the sampling's own jitter
+        carries a stamp across). From then on the tolerances hold the grid
+        (:meth:`_count_resid`, :meth:`_resid_tol`, :meth:`phase`). An exact count or stamp
+        never shows it, though one sampled at a steady speed and rate lies on a grid (2 m and
+        0.1 s a sample at 20 m/s and 10 Hz), and a step's readings continue one another."""
+        seen = False
+        q, v = self.count_grid, fields.get("speed")
+        if fields.get("seq") is None and not self._rounded and q > 0.0 and abs(v) > 0.0 and \
+                abs(r * v) <= q + tol * abs(v):
+            self._rounded = seen = True
+        q = self.stamp_grid
+        if not self._stamps_rounded and q > 0.0 and abs(r) <= q + tol:
+            self._stamps_rounded = seen = True
+            self._phase = (-math.inf, None)  # its tolerance refitted with the grid
+        return seen
 
     def _lag_prior(self) -> tuple:
         """``(mean s, variance s^2)`` of the speed's lag behind its count before the current
@@ -1599,10 +1639,10 @@ class StepWatch:
         # the clock, however late it arrives; one off it by more than the grid's tolerance
         # is not, however small the move (a 0.1 s step hides in a link's jitter, and the kf
         # then stayed 2 m off with a sigma of 0.1 m for 7 s)
+        if kind == "odometer" and isinstance(fields, dict) and self._plausible(stamp, fields):
+            self._learn_grids(stamp, fields)
         r, r_tol = self._resid_tol(kind, stamp, fields, chain)
         seq = fields.get("seq") if isinstance(fields, dict) else None
-        if r is not None and seq is None and self._rounding_seen(r, fields):
-            r, r_tol = self._resid_tol(kind, stamp, fields, chain)
         if r is not None and seq is None and abs(r) <= r_tol:
             # the count (no counter) places it on its clock within r_tol: a move of the bar's
             # size (behind, ahead, a stamp jump) is excluded, a small forward step on the
@@ -2090,7 +2130,9 @@ class StepWatch:
         if seq is None:
             return self._count_resid(stamp, fields, chain or [])
         r = self.grid.residual(seq, stamp)
-        return (r, self.grid.tol_at(seq)) if r is not None else (None, math.inf)
+        # (a stamp rounded to its grid: up to a step off, _rounding_seen)
+        return (r, self.grid.tol_at(seq) + (self.stamp_grid if self._stamps_rounded else 0.0)) \
+            if r is not None else (None, math.inf)
 
     def _count_resid(self, stamp: float, fields: dict, chain: list) -> tuple:
         """``(r, tol)``: how far (s) the reading's stamp lies from where the old clock would
@@ -2154,10 +2196,15 @@ class StepWatch:
         # rounding was seen (watch: an exact count at 20 m/s and 10 Hz lies on whole metres
         # and never shows it)
         # and a speed rounded to its grid times the count by up to half of it over the mean
-        # speed (whole km/h at 4 m/s: 3.5 % of each link's time, refused at a braking's onset)
+        # speed (whole km/h at 4 m/s: 3.5 % of each link's time, refused at a braking's onset); and
+        # stamps rounded to theirs hide the sampling's own jitter where it is below half a
+        # step (a log's hundredths of a second, a loop 3 ms jittery: nine stamps in ten on the
+        # nominal slot, the robust scale 0, and the tenth a whole step off, refused): up to a
+        # step at each end
         tol = COUNT_Z * sd / vmin + jerk + max(COUNT_Z * model + 1e-5 * abs(span), TIE) + \
             (self.count_grid / vmin if self._rounded else 0.0) + \
-            abs(span) * self._grids[1].q / (2.0 * vmin)
+            abs(span) * self._grids[1].q / (2.0 * vmin) + \
+            (2.0 * self.stamp_grid if self._stamps_rounded else 0.0)
         if tol >= self.bar(self.clock):
             return None, math.inf
         return r, tol
@@ -2232,6 +2279,8 @@ class StepWatch:
             # off the sample grid, and no step: its stamp lies about when it was sampled (a
             # copy 0.5 s ahead was admitted and fused 10 m off its time)
             r, r_tol = self._resid_tol(k, st, f)
+            if r is not None and abs(r) > r_tol and self._rounding_seen(r, r_tol, f):
+                r, r_tol = self._resid_tol(k, st, f)  # a rounding's crossing, not its stamp's
             if r is not None and (abs(r) > r_tol if f.get("seq") is not None
                                   else self._count_off(st, r, r_tol)):
                 yield REFUSE, k, st, r
