@@ -803,7 +803,6 @@ class Grid:
         return max(self._left, default=0.0)
 
 
-
 def _count_link(s0: float, d0: float, v0, s1: float, d1: float, v1):
     """``(r s, mean speed m/s)`` of two odometer samples of one stream
     (stamps ``s``, counts ``d`` m, speeds ``v`` m/s): the stamps' difference less the time the
@@ -1322,10 +1321,10 @@ class StepWatch:
         #   of 64 links before the current window
         self._lag_block: tuple | None = None  # (links learnt at its end, lag, information) of
         #   the newest disjoint window, until the current window has left it
-        self._rounded = False  # the count's rounding to its grid was seen (:meth:`watch`)
-        self._grids = (Grid(COUNT_GRIDS), Grid(SPEED_GRIDS), None)  # the count's, the speed's
-        #   and the stamps' rounding (no counter; :attr:`count_grid`; the stamps' Grid made at
-        #   the first: stamps less it)
+        self._rounded = False  # the count's rounding to its grid was seen (:meth:`_rounding_seen`)
+        self._grids = (Grid(COUNT_GRIDS), Grid(SPEED_GRIDS), None)  # the count's and the speed's
+        #   rounding (no counter; :attr:`count_grid`) and the stamps' (:attr:`stamp_grid`; made
+        #   at the first stamp: stamps less it) (:meth:`_learn_grids`)
         self._stamp0 = 0.0  # s, the first stamp (:meth:`_rounding_seen`)
         self._stamps_rounded = False  # the stamps' rounding to their grid was seen
         self._accel = 0.0  # m/s^2, the train's acceleration by the fused readings' speeds
@@ -1464,7 +1463,7 @@ class StepWatch:
                 else None
             prev = self._dist
             self._dist = (stamp, float(distance), SampleGrid._seq(seq), v)
-            if seq is None:
+            if seq is None:  # (as watched, :meth:`_learn_grids`; a value seen twice is one)
                 self._grids[0].add(float(distance))
                 if v is not None:
                     self._grids[1].add(v)
@@ -1482,7 +1481,6 @@ class StepWatch:
                     self._accel = _accel(self._count_e, COUNT_ACCEL_SPAN)
                     if len(self._count_e) >= COUNT_LEARN:
                         self._count_fit = _count_fit(self._count_e, self._lag_prior())
-
                     if self._count_n % self._count_e.maxlen == 0:
                         # a disjoint window's own fit: what it says of the lag (a producer's
                         # speed lags its count alike all run; only braking and accelerating
