@@ -1518,7 +1518,7 @@ class StepWatch:
             self._grids = self._grids[:2] + (Grid(STAMP_GRIDS, 8.0 * math.ulp(stamp)),)
         self._grids[2].add(stamp - self._stamp0)
 
-    def _rounding_seen(self, r: float, tol: float, fields: dict) -> bool:
+    def _rounding_seen(self, r: float, tol: float, fields: dict, count: bool = True) -> bool:
         """Whether a held reading that no later one continued (:meth:`_release`; residual
         ``r`` s on the sample grid or the count's clock, ``tol`` its tolerance) first shows a
         rounding by its producer, off its clock beyond its tolerance by up to a step of it: of its
@@ -1527,11 +1527,13 @@ class StepWatch:
         carries a stamp across). From then on the tolerances hold the grid
         (:meth:`_count_resid`, :meth:`_resid_tol`, :meth:`phase`). An exact count or stamp
         never shows it, though one sampled at a steady speed and rate lies on a grid (2 m and
-        0.1 s a sample at 20 m/s and 10 Hz), and a step's readings continue one another."""
+        0.1 s a sample at 20 m/s and 10 Hz), and a step's readings continue one another.
+        ``count`` False: ``r`` is the stamp's residual on its sampling phase (:meth:`phase`),
+        which says nothing of the count's rounding."""
         seen = False
         q, v = self.count_grid, fields.get("speed")
-        if fields.get("seq") is None and not self._rounded and q > 0.0 and abs(v) > 0.0 and \
-                abs(r * v) <= q + tol * abs(v):
+        if count and fields.get("seq") is None and not self._rounded and q > 0.0 and \
+                abs(v) > 0.0 and abs(r * v) <= q + tol * abs(v):
             self._rounded = seen = True
         q = self.stamp_grid
         if not self._stamps_rounded and q > 0.0 and abs(r) <= q + tol:
@@ -2279,6 +2281,13 @@ class StepWatch:
             r, r_tol = self._resid_tol(k, st, f)
             if r is not None and abs(r) > r_tol and self._rounding_seen(r, r_tol, f):
                 r, r_tol = self._resid_tol(k, st, f)  # a rounding's crossing, not its stamp's
+            elif r is None and k == "odometer" and self.phase() is not None:
+                # where nothing places it on its clock (count_clock off, the train slow) its
+                # phase may show the stamps' rounding as well (38-58 estimates in doubt in 10
+                # min with a log's hundredths of a second, none refused)
+                off = self.phase_resid(st)
+                if abs(off) > self.phase()[3]:
+                    self._rounding_seen(off, self.phase()[3], f, count=False)
             if r is not None and (abs(r) > r_tol if f.get("seq") is not None
                                   else self._count_off(st, r, r_tol)):
                 yield REFUSE, k, st, r
