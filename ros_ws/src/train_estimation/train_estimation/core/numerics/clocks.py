@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import bisect
 import functools
+import itertools
 import math
 from collections import deque
 
@@ -102,6 +103,16 @@ COUNT_ACCEL_SPAN = 2.0  # s of the count's links over which the train's accelera
 COUNT_SLIP_ACCEL = 0.2  # m/s^2, the least deceleration (acceleration) of a train whose braking
 #   (traction) may exceed the rail's adhesion: 0.02 g, the worst wet, leaf-covered rail's
 #   (the diagnose tool's MU_MIN); below it the wheel rolls and the count is a clock
+LEVEL_WINDOW = 128  # the count's links over which its level is tested (StepWatch._level_test):
+#   the readings before a candidate change give the level and its line (a speed a few per cent
+#   off the count's rate tilts it), and at least LEVEL_PRE of them
+LEVEL_PRE = 32
+LEVEL_LEARN = 600  # links of steady stretches learnt before the count's level is tested: its
+#   noise's spread and correlation to a few per cent (StepWatch._learn_noise)
+LEVEL_MEMORY = 3000  # links, the memory of that learning (5 min at 10 Hz)
+LEVEL_SPAN = (3, 2.0)  # the fewest readings after a candidate change (one reading's spike, within
+#   the count's tolerance, moves the mean of three by less than the test's bar) and the longest
+#   time (s) after it that the test looks back, within the runner's history, which it re-stamps
 SEG_MIN = 4  # the rate fit's points off its line that can start a segment of it (StreamClock._off)
 SEG_RISK = TREND_WAIT  # -, the rate at which a true move of the line's level is held for one
 #   more point: its points scatter about one level as the line's own (chi-square at this risk)
@@ -928,6 +939,12 @@ def _centred_sums(s) -> tuple[float, float, float]:
     return sxx - sx * sx / n, sxy - sx * sy / n, syy - sy * sy / n
 
 
+@functools.lru_cache(maxsize=64)
+def _t_bar(dof: int, p: float) -> float:
+    """Student's t quantile with ``dof`` degrees of freedom beyond which lies ``p``."""
+    return -float(stdtrit(dof, p))
+
+
 @functools.cache
 def dip_bar() -> float:
     """The rate fit's dip CUSUM's alarm (standard errors, StreamClock._off): ``DIP_RISK`` false
@@ -1330,6 +1347,17 @@ class StepWatch:
         self._accel = 0.0  # m/s^2, the train's acceleration by the fused readings' speeds
         self._slipped: set = set()  # timeline stamps of readings admitted off the count's clock
         #   within a slip's reach (:meth:`_count_off`): no link to them is learnt
+        self._level: deque = deque(maxlen=LEVEL_WINDOW)  # the count's links as in _count_e,
+        #   (r s, dt s, mean speed m/s, speed m/s, timeline stamp and count m of the later
+        #   sample), over a longer window (:meth:`_level_test`)
+        self._arr: dict = {}  # timeline stamp -> arrival of the recent odometer readings admitted
+        self._noise = [0.0, 0.0, 0.0, None]  # the count's noise over the run's steady stretches
+        #   (:meth:`_learn_noise`): links learnt, the mean square of the links' residuals and
+        #   of neighbours' products (exponentially weighted), the previous link's residual
+        self.late: tuple | None = None  # (STEP or SLIP, first timeline stamp, s, count m):
+        #   what the count's level test found among readings already fused (:meth:`_level_test`)
+        #   from the odometer reading after the one of that count on, for the runner to act on
+        #   (a step: re-stamp them)
 
     # -- stamps ---------------------------------------------------------------------------
     def onto_timeline(self, stamp: float, odometer: bool) -> float:
@@ -1363,6 +1391,11 @@ class StepWatch:
         bisect.insort(self._admitted, stamp)
         del self._admitted[:-128]
         self._n_admitted += 1
+        if arrival is not None:
+            self._arr[stamp] = arrival
+            if len(self._arr) > 256:
+                keep = sorted(self._arr)[-128:]
+                self._arr = {k: self._arr[k] for k in keep}
 
     def _silent(self, n: int) -> bool:
         """``n`` held readings are enough for a step at ``step_risk``: the old clock's silence
@@ -1479,8 +1512,16 @@ class StepWatch:
                     self._count_e.append((link[0], stamp - prev[0] - link[0], link[1], v))
                     self._count_n += 1
                     self._accel = _accel(self._count_e, COUNT_ACCEL_SPAN)
+                    if not abs(self._accel) < COUNT_SLIP_ACCEL:
+                        self._level.clear()  # (the level is tested over a steady stretch)
+                        self._noise[3] = None
+                    else:
+                        self._level.append(self._count_e[-1] + (stamp, float(distance)))
                     if len(self._count_e) >= COUNT_LEARN:
                         self._count_fit = _count_fit(self._count_e, self._lag_prior())
+                        if self._level:
+                            self._learn_noise()
+                            self._level_test()
                     if self._count_n % self._count_e.maxlen == 0:
                         # a disjoint window's own fit: what it says of the lag (a producer's
                         # speed lags its count alike all run; only braking and accelerating
@@ -1540,6 +1581,182 @@ class StepWatch:
             self._stamps_rounded = seen = True
             self._phase = (-math.inf, None)  # its tolerance refitted with the grid
         return seen
+
+    def _learn_noise(self) -> None:
+        """Learn the count's noise from the newest link of a steady stretch (:meth:`fused`):
+        its residual less the count fit's rate, the mean square of those residuals and of
+        neighbours' products, exponentially weighted over ``LEVEL_MEMORY`` links (the
+        differences of the readings' noise: for noise of correlation r from one reading to the
+        next, their lag-1 correlation is -(1 - r) / 2), each residual within 5 of the learnt
+        spread (a step's link is no noise)."""
+        rate = self._count_fit[0]
+        r, dt = self._level[-1][:2]
+        u = r - rate * dt
+        nl = self._noise
+        if nl[0] >= COUNT_LEARN and nl[1] > 0.0:
+            lim = 5.0 * math.sqrt(nl[1])
+            u = min(max(u, -lim), lim)
+        w = 1.0 / min(nl[0] + 1.0, LEVEL_MEMORY)
+        nl[1] += w * (u * u - nl[1])
+        if nl[3] is not None:
+            nl[2] += w * (u * nl[3] - nl[2])
+        nl[0] += 1
+        nl[3] = u
+
+    def _level_test(self) -> None:
+        """A step of the stamps by a part of the count's noise, among the readings already
+        fused (a stream without a counter): the count's clock moved by ``D`` s from some reading
+        on, every later link continuing it. A chain's two ends cannot show it (-0.1 s at 10 Hz
+        and 20 m/s is 2 m, within 3 of the two ends' noise at 0.5 m a reading, and the step
+        watch's bar on a 50 ms link is 0.36 s), but the level of the count's cumulative residual
+        (:func:`_count_fit`: ``R`` less its model, whose inner counts cancel, so that each
+        reading carries its own noise alone) moves by ``D`` and stays.
+
+        The test, over the steady stretch's last ``LEVEL_WINDOW`` links: a line (the stamps'
+        rate against the count's) and one level move ``m`` readings back, for each ``m`` within
+        ``LEVEL_SPAN``'s time, fitted by least squares; the largest move in its standard errors
+        (the level's long-run variance from the noise learnt over the run,
+        :meth:`_learn_noise`) is the generalised likelihood ratio of one move, at its most
+        likely place. A step is declared beyond Student's quantile of ``phase_level``
+        (``false_step_rate`` per hour, one test a reading) shared over the candidates, at least
+        ``LEVEL_SPAN[0]`` readings back and larger than what the producer's roundings and the
+        lag model's own error move a level by. Not while the train brakes or accelerates by
+        ``COUNT_SLIP_ACCEL`` or more (a slip's count moves as a step's would: the held
+        readings' tests judge those), nor while readings are held or a slip was let in.
+
+        Then the arrivals: offsets that stayed where they were while the count moved
+        (:meth:`_arrivals_stayed`' bars, the medians after and before the change) are the
+        count's move (a wheel, a producer correcting its count), not the clock's: the count's
+        series carries it, no step. Otherwise a step of ``D``, measured by the count, its
+        part of a period the stamps' phase's where the stream has one: the readings from the
+        change on are mapped onto the timeline again (:meth:`_restamp`; the
+        runner fuses them again at their new stamps, :attr:`late`)."""
+        n_min, span = LEVEL_SPAN
+        n = len(self._level)
+        m_max = min(n - LEVEL_PRE, int(span / self.period))
+        if self.late is not None or m_max < n_min or self.held or self._slipped or \
+                not abs(self._accel) < COUNT_SLIP_ACCEL or self._dist[3] is None:
+            return
+        rate, lag, _, sd = self._count_fit
+        # the readings' noise as learnt over the run (:meth:`_learn_noise`): a window of a
+        # hundred readings measures its long-run error too loosely for this test's level (a
+        # white count's lag-1 correlation read 0.2-0.3 there)
+        n_l, s0, s1, _ = self._noise
+        if n_l < LEVEL_LEARN or not (math.isfinite(sd) and math.isfinite(rate) and
+                                     math.isfinite(lag)):
+            return
+        rho = min(max(1.0 + 2.0 * s1 / s0, 0.0), 0.98) if s0 > 0.0 else 0.0
+        q = np.fromiter(itertools.chain.from_iterable(self._level), float,
+                        count=6 * n).reshape(n, 6)
+        # the cumulative residual less the speed's lag (_count_fit: R = c + a S + b ln v), its
+        # line and a level move fitted anew: the count fit's rate, over 64 links, leans towards
+        # a move at its end (-0.1 s read as -0.06 s and a rate of -0.02 within 1.5 s of it)
+        R = np.cumsum(q[:, 0])
+        S = np.cumsum(q[:, 0] + q[:, 1])
+        y = R + lag / (1.0 + rate) * np.log(q[:, 3])
+        # What else moves the level, at the slowest link's speed: a count or stamps rounded by
+        # their producer (their grids as learnt, seen or not: a level known to within the
+        # rounding, whose offset moves wherever the speed or the sampling's phase changes; whole
+        # metres at 20 m/s and 10 Hz show no noise, and their offset moved by 0.02 s from one
+        # cruise to the next), a speed rounded to its grid (each link timed up to half of it
+        # over the speed off: a rate that changes wherever the rounded speed does, up to that
+        # share of the window's time), and the lag model's own error, first order
+        # (_count_resid: an acceleration that changed within the readings after the move or
+        # the lag before them; 3-4 ms at 4 m/s where a braked train sets off again, its speed
+        # 0.3 s behind an exact count)
+        v = float(np.min(q[:, 2]))
+        tau = abs(lag) + math.sqrt(self._count_fit[2][2])
+        grid = self.count_grid / v + self.stamp_grid + \
+            float(S[-1] - S[0]) * self._grids[1].q / (2.0 * v) + \
+            COUNT_JERK * (float(S[-1] - S[-m_max - 1]) + tau) * tau * tau / (2.0 * v)
+        # the level's long-run variance: a reading's, s0 / (2 (1 - rho)), times (1 + rho) /
+        # (1 - rho) for means of correlated readings (exact counts and stamps: at least their
+        # resolution, and the bound above as a uniform error)
+        var = max(s0 / (2.0 * (1.0 - rho)), PHASE_RES ** 2, grid * grid / 12.0) * \
+            (1.0 + rho) / (1.0 - rho)
+        # least squares of y on (1, x, the move's indicator of the last m readings), x the
+        # stamps' time centred: the move by the Schur complement of the line's normal
+        # equations, every m at once from sums over the last m readings (located among all;
+        # decided with n_min after it)
+        N = y.size
+        x = S - S.mean()
+        y = y - y.mean()
+        sxx, sxy = float(x @ x), float(x @ y)
+        m = np.arange(1, m_max + 1)
+        px, py = np.cumsum(x[::-1])[:m_max], np.cumsum(y[::-1])[:m_max]
+        den = m - m * m / N - px * px / sxx  # 1 / the move's variance in units of var
+        d = (py - px * sxy / sxx) / den
+        z = d * d * den / var
+        i = int(np.argmax(z))
+        if m[i] < n_min or z[i] <= _t_bar(min(int(n_l), LEVEL_MEMORY),
+                                          0.5 * self.phase_level / m.size) ** 2:
+            return  # (a move most likely fewer than n_min readings back: the next ones tell)
+        se = math.sqrt(var / den[i])
+        m, d = int(m[i]), float(d[i])
+        stamps = q[:, 4].tolist()
+        first, count0 = stamps[-m], float(q[-m - 1, 5])
+        ph = self.phase()
+        if ph is not None:
+            # the stamps' phase gives the step's part of a period exactly (the readings after
+            # it were on the phase, or they would have been held), the count the whole periods
+            P = ph[0]
+            c = median([self.phase_resid(x) for x in stamps[-m:]])
+            snap = c + P * round((d - c) / P)
+            if abs(snap - d) <= 3.0 * se:
+                d = snap
+        if abs(d) < max(TIE, grid):
+            return  # no move worth a stamp (the phase puts it on none), or a rounding's
+        offs = [[s - self._arr[s] for s in st if s in self._arr]
+                for st in (stamps[-m:], stamps[-m - LEVEL_PRE:-m])]
+        if len(offs[0]) >= n_min and len(offs[1]) >= n_min and len(self.clock) >= 3:
+            moved = median(offs[0]) - median(offs[1])
+            prec = 1.2533 * max(self.clock.jitter, 1e-3) * math.sqrt(1.0 / len(offs[0]) +
+                                                                      1.0 / len(offs[1]))
+            if abs(moved) <= 3.0 * prec and abs(moved - d) > 6.0 * prec:
+                # the count moved, the stamps stayed: its series carries the move from here
+                self._link_less(first, d)
+                self.late = (SLIP, first, d, count0)
+                return
+        self._restamp(first, d)
+        self.late = (STEP, first, d, count0)
+
+    def _link_less(self, first: float, d: float) -> None:
+        """The count's link into the reading at timeline stamp ``first`` less ``d`` s (a move
+        found across it: the level after it is the level before), in both series."""
+        lv = self._level
+        j = next((k for k in range(len(lv) - 1, -1, -1) if lv[k][4] == first), None)
+        if j is None:
+            return
+        r, dt, vb, vv, st, x = lv[j]
+        lv[j] = (r - d, dt, vb, vv, st, x)
+        k = len(self._count_e) - (len(lv) - j)
+        if k >= 0:
+            self._count_e[k] = (r - d, dt, vb, vv)
+            self._count_fit = _count_fit(self._count_e, self._lag_prior())
+
+    def _restamp(self, first: float, d: float) -> None:
+        """A step of ``d`` s found among the readings fused from timeline stamp ``first`` on
+        (:meth:`_level_test`): every
+        later train-clock stamp is mapped ``d`` further back (:attr:`shift`), and so is every
+        reference this watch keeps of the readings from ``first`` on."""
+        def moved(x: float) -> float:
+            return x - d if x >= first else x
+
+        self.shift += d
+        if self.last is not None:
+            self.last = (moved(self.last[0]), self.last[1])
+        if self._pushed is not None:
+            self._pushed = (moved(self._pushed[0]), self._pushed[1])
+        if self._dist is not None:
+            self._dist = (moved(self._dist[0]),) + self._dist[1:]
+        self._admitted = sorted(moved(x) for x in self._admitted)
+        self._slipped = {moved(x) for x in self._slipped}
+        self._arr = {moved(x): a for x, a in self._arr.items()}
+        self._sent = {moved(x): a for x, a in self._sent.items()}
+        self._link_less(first, d)  # the link across it: the stamps' step taken out
+        self._level = deque((h[:4] + (moved(h[4]), h[5]) for h in self._level),
+                            maxlen=self._level.maxlen)
+        self._phase = (-math.inf, None)
 
     def _lag_prior(self) -> tuple:
         """``(mean s, variance s^2)`` of the speed's lag behind its count before the current

@@ -947,7 +947,65 @@ class EstimatorRunner:
             if kind == "odometer" and R.category(reason) not in NO_SLOT and (
                     self._last_out is None or stamp > self._last_out + 0.5 * self.period):
                 self._emit(stamp, out)
+            if self._steps.late is not None:
+                self._late_step()
         return out
+
+    def _late_step(self) -> None:
+        """Act on what the count's level test found among readings already fused
+        (:meth:`~.clocks.StepWatch._level_test`), once their estimates are out: a count that
+        moved (logged as the count's slip), or a step of the train clock that began at
+        timeline stamp ``first``. Then the train-clock readings from ``first`` on, fused or
+        queued, take their stamps on the new clock (``d`` s earlier on the timeline), and those
+        fused are fused again from the copy before the first of them, in the new order (as for
+        a late reading; an adapter without copies keeps what it fused)."""
+        what, first, d, count0 = self._steps.late
+        self._steps.late = None
+        if what == SLIP:
+            self._event("odometer", first, f"{R.COUNT_SLIP}: the odometer's count left its "
+                                           f"speed by {d:+.3f} s of count time while the "
+                                           f"stamps stayed on their clock; no clock step")
+            return
+
+        def moved(kind: str, x: float, f=None) -> float:
+            # an odometer reading by its count (one after a backward step of a period carries
+            # the stamp of the last one before it), a balise by its stamp
+            if kind == "odometer" and isinstance(f, dict) and \
+                    isinstance(f.get("distance"), int | float):
+                return x - d if f["distance"] > count0 and x >= first - abs(d) - 1e-9 else x
+            return x - d if CLOCK_OF.get(kind) == "train" and x >= first else x
+
+        if any(moved(k, s, f) != s for s, _, _, k, f in self.queue):
+            self.queue = [(moved(k, s, f), o, n, k, f) for s, o, n, k, f in self.queue]
+            heapq.heapify(self.queue)
+            self._odo = [s for s, _, _, k, _ in self.queue if k == "odometer"]
+            heapq.heapify(self._odo)
+        for k in ("odometer", "balise"):
+            if k in self.high:
+                self.high[k] = moved(k, self.high[k])
+        hist = self._hist
+        j = next((i for i, e in enumerate(hist) if moved(e[3], e[0], e[4]) != e[0]), None)
+        i = next((i for i in range(j, -1, -1) if hist[i][5] is not None), None) \
+            if j is not None and self._can_rewind else None
+        if i is not None:
+            snap, anchor = hist[i][5]
+            redo = hist[i:]
+            del hist[i:]
+            self._restore(snap)
+            self._anchor = anchor
+            for e in redo:
+                e[0], e[5] = moved(e[3], e[0], e[4]), None
+            redo.sort(key=lambda e: (e[0], e[1]))
+            for e in redo:
+                self._process(e)
+            self._high_done = max(e[0] for e in hist)
+        if self._last_out is not None:
+            self._last_out = moved("odometer", self._last_out)
+        self._last_fused = moved("odometer", self._last_fused)
+        self.monitor.clock(0, reanchored_at=first - d, measured=True)
+        self._event("odometer", first, f"{R.CLOCK_RESET}: train clock stepped by {d:+.3f} s "
+                                       f"at stamp {first + self._steps.shift - d:.3f}, found by "
+                                       f"the count's level among readings fused; re-stamped")
 
     def _next_odometer(self) -> float:
         return self._odo[0] if self._odo else math.inf
