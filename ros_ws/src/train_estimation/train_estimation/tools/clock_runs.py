@@ -104,7 +104,7 @@ def run_link(duration: float, rate: float, counter: bool, jitter: float, loss: f
              route: float | None = None, shape: str = "exp", drift: float = 0.0,
              sampling: float = 0.0, wander: tuple | None = None,
              count_clock: bool = True, noise: tuple = (0.0, 0.0),
-             speed_scale: float = 1.0, noise_corr: float = 0.0) -> dict:
+             speed_scale: float = 1.0, noise_corr: float = 0.0, count_jump: float = 0.0) -> dict:
     """One replay (module doc); the figures of one row. ``queue``: the drain factor of a link
     that queues (the campaign's fault ``queue``, from 15 s on; no step then); ``route``: s by
     which the link's latency rises at :data:`STEP_AT` and stays (the fault ``route``; no
@@ -118,9 +118,17 @@ def run_link(duration: float, rate: float, counter: bool, jitter: float, loss: f
     for a while (no step then); ``count_clock``: the runner's (False: a stream without a
     counter judged by its arrivals alone, as when the train is slow); ``noise``: the count's
     and the speed's noise (m, m/s; :func:`cruise`); ``speed_scale``: the speed field's scale
-    against the count, and ``noise_corr`` its noise's correlation (:func:`cruise`)."""
+    against the count, and ``noise_corr`` its noise's correlation (:func:`cruise`);
+    ``count_jump``: m added to every count sampled from :data:`STEP_AT` on (a producer that
+    re-bases its count; the stamps stay)."""
     rng = np.random.default_rng(seed)
     events = cruise(duration, rate, loss, counter, rng, sampling, noise, speed_scale, noise_corr)
+    if count_jump:
+        for ev in events:
+            f = ev[2]
+            if ev[0] == "odometer" and ev[1] >= STEP_AT - 1e-9:
+                f["true_distance"] = f.get("true_distance", f["distance"])
+                f["distance"] += count_jump
     if shape not in ("exp", "gamma"):
         raise ValueError(f"shape must be exp or gamma, got {shape!r}")
     link = jitter if shape == "exp" else 0.0
@@ -168,7 +176,8 @@ def run_link(duration: float, rate: float, counter: bool, jitter: float, loss: f
            if step is None else math.nan,
            "refused": sum(runner.rejected.values()),
            "held": doubted / max(len(outs), 1), "doubted": doubted,
-           "latency_moved": runner.events.get("odometer:link_latency", 0)}
+           "latency_moved": runner.events.get("odometer:link_latency", 0),
+           "count_slips": runner.events.get("odometer:count_slip", 0)}
     # where the clock is with the least latency: stamp - arrival = -FLOOR on this link
     train = runner._offsets.get("train")
     row["bias_ms"] = 1e3 * (train.value + FLOOR) if train is not None else math.nan

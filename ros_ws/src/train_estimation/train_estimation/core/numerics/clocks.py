@@ -107,6 +107,9 @@ LEVEL_WINDOW = 128  # the count's links over which its level is tested (StepWatc
 #   the readings before a candidate change give the level and its line (a speed a few per cent
 #   off the count's rate tilts it), and at least LEVEL_PRE of them
 LEVEL_PRE = 32
+LEVEL_LLR = 4.5  # the log-likelihood ratio (2 ln LR 9: three of the arrivals' standard errors
+#   between the two) at which the arrivals tell a step of the stamps from a move of the count,
+#   where they can (StepWatch._level_test); where they cannot (a jittery link), the step
 LEVEL_LEARN = 600  # links of steady stretches learnt before the count's level is tested: its
 #   noise's spread and correlation to a few per cent (StepWatch._learn_noise)
 LEVEL_MEMORY = 3000  # links, the memory of that learning (5 min at 10 Hz)
@@ -939,6 +942,17 @@ def _centred_sums(s) -> tuple[float, float, float]:
     return sxx - sx * sx / n, sxy - sx * sy / n, syy - sy * sy / n
 
 
+def arrivals_llr(r: float, moved: float, prec: float) -> float | None:
+    """The log-likelihood ratio of readings' arrivals that moved ``moved`` s off their old
+    clock (Gaussian to ``prec`` s) for a step of ``r`` s of their stamps (the offsets moved by
+    ``r``) against a move of what timed them (a sample counter, the count: the offsets
+    stayed); None where no ratio beyond ``LEVEL_LLR`` either way could come (``r`` within 3
+    precisions: the link's jitter cannot tell the two apart)."""
+    if r * r <= 2.0 * LEVEL_LLR * prec * prec:
+        return None
+    return r * (2.0 * moved - r) / (2.0 * prec * prec)
+
+
 @functools.lru_cache(maxsize=64)
 def _t_bar(dof: int, p: float) -> float:
     """Student's t quantile with ``dof`` degrees of freedom beyond which lies ``p``."""
@@ -1624,10 +1638,13 @@ class StepWatch:
         ``COUNT_SLIP_ACCEL`` or more (a slip's count moves as a step's would: the held
         readings' tests judge those), nor while readings are held or a slip was let in.
 
-        Then the arrivals: offsets that stayed where they were while the count moved
-        (:meth:`_arrivals_stayed`' bars, the medians after and before the change) are the
-        count's move (a wheel, a producer correcting its count), not the clock's: the count's
-        series carries it, no step. Otherwise a step of ``D``, measured by the count, its
+        Then the arrivals, where they can tell the two apart: offsets that stayed where they
+        were while the count moved (the log-likelihood ratio of the medians' move after and
+        before the change, against one of ``D``, beyond ``LEVEL_LLR``) are the count's move (a
+        wheel, a producer re-basing its count), not the clock's: the count's series carries
+        it, no step; undecided, the next readings tell, up to the span's end (then the likelier
+        of the two). Otherwise (or where the link's jitter cannot tell them apart) a step of
+        ``D``, measured by the count, its
         part of a period the stamps' phase's where the stream has one: the readings from the
         change on are mapped onto the timeline again (:meth:`_restamp`; the
         runner fuses them again at their new stamps, :attr:`late`)."""
@@ -1709,14 +1726,21 @@ class StepWatch:
         offs = [[s - self._arr[s] for s in st if s in self._arr]
                 for st in (stamps[-m:], stamps[-m - LEVEL_PRE:-m])]
         if len(offs[0]) >= n_min and len(offs[1]) >= n_min and len(self.clock) >= 3:
+            # the arrivals' word: the medians' move after and before it, Gaussian to the link's
+            # jitter; the log-likelihood ratio of offsets that moved by d (a step) against
+            # offsets that stayed (the count's move: a wheel, a producer re-basing its count)
             moved = median(offs[0]) - median(offs[1])
             prec = 1.2533 * max(self.clock.jitter, 1e-3) * math.sqrt(1.0 / len(offs[0]) +
                                                                       1.0 / len(offs[1]))
-            if abs(moved) <= 3.0 * prec and abs(moved - d) > 6.0 * prec:
-                # the count moved, the stamps stayed: its series carries the move from here
-                self._link_less(first, d)
-                self.late = (SLIP, first, d, count0)
-                return
+            llr = arrivals_llr(d, moved, prec)
+            if llr is not None:  # (they can tell the two apart)
+                if -llr > LEVEL_LLR or (m == m_max and llr <= 0.0):
+                    # the count moved, the stamps stayed: its series carries the move from here
+                    self._link_less(first, d)
+                    self.late = (SLIP, first, d, count0)
+                    return
+                if llr <= LEVEL_LLR and m < m_max:
+                    return  # not yet: the next readings tell
         self._restamp(first, d)
         self.late = (STEP, first, d, count0)
 
@@ -2267,20 +2291,22 @@ class StepWatch:
 
     def _arrivals_moved(self, chain: list, r: float, new_off: float, med: StreamClock) \
             -> bool:
-        """Whether the held readings' arrivals moved ``r`` s off the old clock with them: the
-        median of their offsets (``new_off``) off the clock's centre and within ``r`` of it,
-        each by 3 of the median's own precision (:meth:`_arrivals_shift`)."""
+        """Whether the held readings' arrivals moved ``r`` s off the old clock with them
+        (:func:`arrivals_llr` beyond ``LEVEL_LLR``, where they can tell)."""
         m = self._arrivals_shift(chain, new_off, med)
-        return m is not None and abs(m[0] - r) <= 3.0 * m[1] and abs(m[0]) > 3.0 * m[1]
+        llr = arrivals_llr(r, *m) if m is not None else None
+        return llr is not None and llr > LEVEL_LLR
 
     def _arrivals_stayed(self, chain: list, r: float, new_off: float, med: StreamClock) \
             -> bool:
         """Whether the held readings' arrivals put them on the old clock while the grid or the
-        count puts them ``r`` s off it: the median of their offsets (``new_off``) within 3 of
-        its precision of the clock's centre, and ``r`` beyond 6 of it
-        (:meth:`_arrivals_shift`)."""
+        count puts them ``r`` s off it (:func:`arrivals_llr` below ``-LEVEL_LLR``, where they
+        can tell). (With 3 and 6 of the median's precision as bars, a count re-based by 4 m at
+        20 m/s on a 50 ms link, whose arrivals moved 27 ms against 0.26 s, 3.2 precisions,
+        was a step of -0.3 s.)"""
         m = self._arrivals_shift(chain, new_off, med)
-        return m is not None and abs(m[0]) <= 3.0 * m[1] and abs(m[0] - r) > 6.0 * m[1]
+        llr = arrivals_llr(r, *m) if m is not None else None
+        return llr is not None and llr < -LEVEL_LLR
 
     def _arrivals_shift(self, chain: list, new_off: float, med: StreamClock) -> tuple | None:
         """``(moved s, its precision s)``: how far the held readings' offsets (their median
