@@ -1598,14 +1598,17 @@ class StepWatch:
 
     def _learn_noise(self) -> None:
         """Learn the count's noise from the newest link of a steady stretch (:meth:`fused`):
-        its residual less the count fit's rate, the mean square of those residuals and of
-        neighbours' products, exponentially weighted over ``LEVEL_MEMORY`` links (the
+        its residual less the count fit's rate, in metres at the link's speed (the count's
+        noise is metres whatever the speed: learnt in seconds over a run that cruises at 20 and
+        at 4 m/s, it was a fifth of a 4 m/s cruise's, and the test made false steps there),
+        the mean square of those residuals and of neighbours' products, exponentially weighted
+        over ``LEVEL_MEMORY`` links (the
         differences of the readings' noise: for noise of correlation r from one reading to the
         next, their lag-1 correlation is -(1 - r) / 2), each residual within 5 of the learnt
         spread (a step's link is no noise)."""
         rate = self._count_fit[0]
-        r, dt = self._level[-1][:2]
-        u = r - rate * dt
+        r, dt, vbar = self._level[-1][:3]
+        u = (r - rate * dt) * vbar  # (in metres: the count's noise is, whatever the speed)
         nl = self._noise
         if nl[0] >= COUNT_LEARN and nl[1] > 0.0:
             lim = 5.0 * math.sqrt(nl[1])
@@ -1686,10 +1689,11 @@ class StepWatch:
         grid = self.count_grid / v + self.stamp_grid + \
             float(S[-1] - S[0]) * self._grids[1].q / (2.0 * v) + \
             COUNT_JERK * (float(S[-1] - S[-m_max - 1]) + tau) * tau * tau / (2.0 * v)
-        # the level's long-run variance: a reading's, s0 / (2 (1 - rho)), times (1 + rho) /
+        # the level's long-run variance: a reading's, s0 / (2 (1 - rho)) m^2 over the slowest
+        # speed squared, times (1 + rho) /
         # (1 - rho) for means of correlated readings (exact counts and stamps: at least their
         # resolution, and the bound above as a uniform error)
-        var = max(s0 / (2.0 * (1.0 - rho)), PHASE_RES ** 2, grid * grid / 12.0) * \
+        var = max(s0 / (2.0 * (1.0 - rho) * v * v), PHASE_RES ** 2, grid * grid / 12.0) * \
             (1.0 + rho) / (1.0 - rho)
         # least squares of y on (1, x, the move's indicator of the last m readings), x the
         # stamps' time centred: the move by the Schur complement of the line's normal
