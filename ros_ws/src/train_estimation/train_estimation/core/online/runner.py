@@ -823,11 +823,7 @@ class EstimatorRunner:
             i = next((k for k in range(j, -1, -1) if k < len(hist) and hist[k][5] is not None),
                      None)
             if i is not None:
-                snap, anchor = hist[i][5]
-                redo = hist[i:]
-                del hist[i:]
-                self._restore(snap)
-                self._anchor = anchor
+                redo = self._rewind_to(i)
                 redo.insert(j - i, entry)
                 reason = ""
                 for e in redo:
@@ -845,6 +841,17 @@ class EstimatorRunner:
         self._count(kind, stamp, reason)
         self._observe(kind, stamp, fields, reason)
         return reason
+
+    def _rewind_to(self, i: int) -> list:
+        """The adapter back to the state before history entry ``i`` (its copy); the entries from
+        ``i`` on, taken out of the history, to be fused again."""
+        hist = self._hist
+        snap, anchor = hist[i][5]
+        redo = hist[i:]
+        del hist[i:]
+        self._restore(snap)
+        self._anchor = anchor
+        return redo
 
     def _observe(self, kind: str, stamp: float, fields: dict, reason: str) -> None:
         """Tell the integrity monitor what became of an item the filter processed."""
@@ -988,11 +995,7 @@ class EstimatorRunner:
         i = next((i for i in range(j, -1, -1) if hist[i][5] is not None), None) \
             if j is not None and self._can_rewind else None
         if i is not None:
-            snap, anchor = hist[i][5]
-            redo = hist[i:]
-            del hist[i:]
-            self._restore(snap)
-            self._anchor = anchor
+            redo = self._rewind_to(i)
             for e in redo:
                 e[0], e[5] = moved(e[3], e[0], e[4]), None
             redo.sort(key=lambda e: (e[0], e[1]))
