@@ -111,7 +111,8 @@ LEVEL_LLR = 4.5  # the log-likelihood ratio (2 ln LR 9: three of the arrivals' s
 #   between the two) at which the arrivals tell a step of the stamps from a move of the count,
 #   where they can (StepWatch._level_test); where they cannot (a jittery link), the step
 LEVEL_LEARN = 600  # links of steady stretches learnt before the count's level is tested: its
-#   noise's spread and correlation to a few per cent (StepWatch._learn_noise)
+#   noise's spread to about 6 % and its correlation to about 0.15 (StepWatch._learn_noise; a
+#   correlation read above the truth only widens the test's bar)
 LEVEL_MEMORY = 3000  # links, the memory of that learning (5 min at 10 Hz)
 LEVEL_SPAN = (3, 2.0)  # the fewest readings after a candidate change (one reading's spike, within
 #   the count's tolerance, moves the mean of three by less than the test's bar) and the longest
@@ -1602,10 +1603,9 @@ class StepWatch:
         noise is metres whatever the speed: learnt in seconds over a run that cruises at 20 and
         at 4 m/s, it was a fifth of a 4 m/s cruise's, and the test made false steps there),
         the mean square of those residuals and of neighbours' products, exponentially weighted
-        over ``LEVEL_MEMORY`` links (the
-        differences of the readings' noise: for noise of correlation r from one reading to the
-        next, their lag-1 correlation is -(1 - r) / 2), each residual within 5 of the learnt
-        spread (a step's link is no noise)."""
+        over ``LEVEL_MEMORY`` links (the differences of the readings' noise: for noise of
+        correlation r from one reading to the next, their lag-1 correlation is -(1 - r) / 2),
+        each residual within 5 of the learnt spread (a step's link is no noise)."""
         rate = self._count_fit[0]
         r, dt, vbar = self._level[-1][:3]
         u = (r - rate * dt) * vbar  # (in metres: the count's noise is, whatever the speed)
@@ -1647,10 +1647,9 @@ class StepWatch:
         wheel, a producer re-basing its count), not the clock's: the count's series carries
         it, no step; undecided, the next readings tell, up to the span's end (then the likelier
         of the two). Otherwise (or where the link's jitter cannot tell them apart) a step of
-        ``D``, measured by the count, its
-        part of a period the stamps' phase's where the stream has one: the readings from the
-        change on are mapped onto the timeline again (:meth:`_restamp`; the
-        runner fuses them again at their new stamps, :attr:`late`)."""
+        ``D``, measured by the count, its part of a period the stamps' phase's where the stream
+        has one: the readings from the change on are mapped onto the timeline again
+        (:meth:`_restamp`; the runner fuses them again at their new stamps, :attr:`late`)."""
         n_min, span = LEVEL_SPAN
         n = len(self._level)
         m_max = min(n - LEVEL_PRE, int(span / self.period))
