@@ -1463,7 +1463,7 @@ class StepWatch:
             e = a - P * (k - k[-1])
             c = median(e)
             sd = max(1.4826 * median(np.abs(e - c)), PHASE_RES)
-            tol = -float(stdtrit(max(len(a) - 2, 1), 0.5 * self.phase_level)) * sd
+            tol = _t_bar(max(len(a) - 2, 1), 0.5 * self.phase_level) * sd
             if self._stamps_rounded:
                 # stamps rounded to a grid hide the loop's scatter below half a step, and one
                 # in so many lands a whole step off (_rounding_seen): 3.4 % of the estimates
@@ -1597,6 +1597,16 @@ class StepWatch:
             self._phase = (-math.inf, None)  # its tolerance refitted with the grid
         return seen
 
+    def _lag_error(self, span: float, v: float) -> float:
+        """s, the lag model's own error over ``span`` s of count at speed ``v``: it is first
+        order (the speed tau ago is the speed less tau times the acceleration then), so an
+        acceleration that changed by j (span + tau) within the span or the lag before it leaves
+        up to j tau^2 / 2 of count per unit speed, j = ``COUNT_JERK``; tau the fitted lag and
+        its standard deviation (before brakings measure it, the prior's)."""
+        _, lag, (_, _, c_ll), _ = self._count_fit
+        tau = abs(lag) + math.sqrt(c_ll)
+        return COUNT_JERK * (abs(span) + tau) * tau * tau / (2.0 * v)
+
     def _learn_noise(self) -> None:
         """Learn the count's noise from the newest link of a steady stretch (:meth:`fused`):
         its residual less the count fit's rate, in metres at the link's speed (the count's
@@ -1684,14 +1694,12 @@ class StepWatch:
         # the lag before them; 3-4 ms at 4 m/s where a braked train sets off again, its speed
         # 0.3 s behind an exact count)
         v = float(np.min(q[:, 2]))
-        tau = abs(lag) + math.sqrt(self._count_fit[2][2])
         grid = self.count_grid / v + self.stamp_grid + \
             float(S[-1] - S[0]) * self._grids[1].q / (2.0 * v) + \
-            COUNT_JERK * (float(S[-1] - S[-m_max - 1]) + tau) * tau * tau / (2.0 * v)
+            self._lag_error(float(S[-1] - S[-m_max - 1]), v)
         # the level's long-run variance: a reading's, s0 / (2 (1 - rho)) m^2 over the slowest
-        # speed squared, times (1 + rho) /
-        # (1 - rho) for means of correlated readings (exact counts and stamps: at least their
-        # resolution, and the bound above as a uniform error)
+        # speed squared, times (1 + rho) / (1 - rho) for means of correlated readings (exact
+        # counts and stamps: at least their resolution, and the bound above as a uniform error)
         var = max(s0 / (2.0 * (1.0 - rho) * v * v), PHASE_RES ** 2, grid * grid / 12.0) * \
             (1.0 + rho) / (1.0 - rho)
         # least squares of y on (1, x, the move's indicator of the last m readings), x the
@@ -1763,9 +1771,9 @@ class StepWatch:
 
     def _restamp(self, first: float, d: float) -> None:
         """A step of ``d`` s found among the readings fused from timeline stamp ``first`` on
-        (:meth:`_level_test`): every
-        later train-clock stamp is mapped ``d`` further back (:attr:`shift`), and so is every
-        reference this watch keeps of the readings from ``first`` on."""
+        (:meth:`_level_test`): every later train-clock stamp is mapped ``d`` further back
+        (:attr:`shift`), and so is every reference this watch keeps of the readings from
+        ``first`` on."""
         def moved(x: float) -> float:
             return x - d if x >= first else x
 
@@ -2429,12 +2437,7 @@ class StepWatch:
         # the next): the count's noise is the two ends', at the slowest link's speed; the model's
         # error over the chain, (span, -dl) through the fit's covariance
         model = math.sqrt(max(span * span * c_rr - 2.0 * span * dl * c_rl + dl * dl * c_ll, 0.0))
-        # the lag model's own error: it is first order (the speed tau ago is the speed less tau
-        # times the acceleration then), so an acceleration that changed by j (span + tau) within
-        # the chain or the lag before it leaves up to j tau^2 / 2 of count per unit speed (the
-        # lag's standard deviation in tau: before brakings measure it, the prior's)
-        tau = abs(lag) + math.sqrt(c_ll)
-        jerk += COUNT_JERK * (abs(span) + tau) * tau * tau / (2.0 * vmin)
+        jerk += self._lag_error(span, vmin)
         # a count rounded to a grid (count_grid) is off by at most half of it at each end:
         # bounded, not Gaussian, and seen seldom where the speed moves the rounding's phase
         # slowly (a robust scale learns nothing of it, and the crossings were refused as off
@@ -2527,13 +2530,13 @@ class StepWatch:
             r, r_tol = self._resid_tol(k, st, f)
             if r is not None and abs(r) > r_tol and self._rounding_seen(r, r_tol, f):
                 r, r_tol = self._resid_tol(k, st, f)  # a rounding's crossing, not its stamp's
-            elif r is None and k == "odometer" and self.phase() is not None:
+            elif r is None and k == "odometer" and (ph := self.phase()) is not None:
                 # where nothing places it on its clock (count_clock off, the train slow) its
                 # phase may show the stamps' rounding as well (38-58 estimates in doubt in 10
                 # min with a log's hundredths of a second, none refused)
                 off = self.phase_resid(st)
-                if abs(off) > self.phase()[3]:
-                    self._rounding_seen(off, self.phase()[3], f, count=False)
+                if abs(off) > ph[3]:
+                    self._rounding_seen(off, ph[3], f, count=False)
             if r is not None and (abs(r) > r_tol if f.get("seq") is not None
                                   else self._count_off(st, r, r_tol)):
                 yield REFUSE, k, st, r

@@ -619,10 +619,7 @@ class EstimatorRunner:
                                                f"{act[1]:+d} samples while the stamps and "
                                                f"arrivals ran on; grid re-learnt")
             elif act[0] == SLIP:
-                self._event("odometer", stamp, f"{R.COUNT_SLIP}: the odometer's count left its "
-                                               f"speed by {act[1]:+.3f} s of count time while "
-                                               f"the stamps stayed on their clock (a wheel "
-                                               f"slip or slide); no clock step")
+                self._slip_event(stamp, act[1])
             elif act[0] == PASS:
                 stamp = act[1]
             elif act[0] == HOLD:
@@ -958,6 +955,14 @@ class EstimatorRunner:
                 self._late_step()
         return out
 
+    def _slip_event(self, stamp: float, r: float) -> None:
+        """Log the step watch's answer that the odometer's count, not the clock, moved by ``r``
+        s of count time (``count_slip``)."""
+        self._event("odometer", stamp, f"{R.COUNT_SLIP}: the odometer's count left its speed by "
+                                       f"{r:+.3f} s of count time while the stamps stayed on "
+                                       f"their clock (a wheel slip or slide, a count re-based); "
+                                       f"no clock step")
+
     def _late_step(self) -> None:
         """Act on what the count's level test found among readings already fused
         (:meth:`~.clocks.StepWatch._level_test`), once their estimates are out: a count that
@@ -969,9 +974,7 @@ class EstimatorRunner:
         what, first, d, count0 = self._steps.late
         self._steps.late = None
         if what == SLIP:
-            self._event("odometer", first, f"{R.COUNT_SLIP}: the odometer's count left its "
-                                           f"speed by {d:+.3f} s of count time while the "
-                                           f"stamps stayed on their clock; no clock step")
+            self._slip_event(first, d)
             return
 
         def moved(kind: str, x: float, f=None) -> float:
