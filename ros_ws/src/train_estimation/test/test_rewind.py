@@ -127,7 +127,7 @@ def test_a_step_found_by_the_counts_level_is_fused_again_as_without_it(kind):
     the step equals, bit for bit, the one at the same true time of the same run without it,
     but those published before the step was found (at most its 2 s); the first reading after
     the step, stamped as the last one before it, was refused by the filter as its duplicate
-    and is fused at its time by the re-stamp."""
+    and is fused at its time by the re-stamp, and counted as fused, not as refused."""
     sc, res = run(duration=300.0)
 
     def events(step):
@@ -159,3 +159,6 @@ def test_a_step_found_by_the_counts_level_is_fused_again_as_without_it(kind):
             else:
                 differ += 1
     assert differ <= 20 and same >= 900, (same, differ)
+    # the duplicate refused before the step was found is counted by what it became: fused
+    assert r.rejected == r0.rejected and r.accepted == r0.accepted, (
+        dict(r.rejected), dict(r0.rejected), dict(r.accepted), dict(r0.accepted))

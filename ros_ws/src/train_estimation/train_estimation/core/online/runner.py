@@ -775,6 +775,16 @@ class EstimatorRunner:
                 else self.adapter.snapshot()
             entry[5] = (snap, self._anchor)
         reason = self._call(entry[0], entry[3], entry[4])
+        if len(entry) > 6:
+            # fused again after a rewind: the item is counted once, by what it is now (the
+            # first reading after a backward step, stamped as the last one before it, was
+            # refused as its duplicate; re-stamped it is fused)
+            if R.normalise(entry[6]) != R.normalise(reason):
+                self._uncount(entry[3], entry[6])
+                self._count(entry[3], entry[0], reason)
+            entry[6] = reason
+        else:
+            entry.append(reason)
         if self.history > 0:
             hist = self._hist
             hist.append(entry)
@@ -879,6 +889,16 @@ class EstimatorRunner:
                 fields = mapped(fields)
             self.monitor.balise(stamp, fields if isinstance(fields, dict) else None, fused,
                                 R.category(reason) if reason else "")
+
+    def _uncount(self, kind: str, reason: str) -> None:
+        """Take back the count of an item's earlier outcome (fused again after a rewind)."""
+        if reason:
+            key = f"{kind}:{R.category(R.normalise(reason))}"
+            self.rejected[key] -= 1
+            if self.rejected[key] <= 0:
+                del self.rejected[key]
+        else:
+            self.accepted[kind] -= 1
 
     def _count(self, kind: str, stamp: float, reason: str) -> None:
         if reason:
