@@ -1,6 +1,8 @@
 """Estimator nodes on the live simulator (localhost-only ROS graph)."""
 
 import math
+import os
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -109,17 +111,21 @@ def test_gsma_estimator_converges_to_the_degraded_braking_rate(launch, ros_node)
     assert all(np.isfinite(m.covariance[15]) and m.covariance[15] >= 0 for m in est)
 
 
-@pytest.mark.parametrize("rate", [1.0, 10.0])
-def test_the_by_hand_recipe_with_default_parameters(launch, ros_node, rate):
+@pytest.mark.parametrize("rate,hogs", [(1.0, 0), (10.0, 0), (10.0, os.cpu_count() or 1)])
+def test_the_by_hand_recipe_with_default_parameters(launch, ros_node, rate, hogs):
     """docs/nodes.md's nodes by hand: the simulator at ``rate`` x real time, the estimators
     with use_sim_time and nothing else but the line and train (every other parameter at its
     default): every slot is published, no command is refused, and every estimate holds the
     truth within its protection levels. At 10x the stamps run ten times faster than the
     nodes' (steady) arrival clock: the runner finds that pace from the commands
-    (clocks.ArrivalPace)."""
+    (clocks.ArrivalPace). With ``hogs`` busy loops at normal priority (one per core, started
+    before the nodes and ended with them), on a loaded machine: the nodes then get part of a
+    core each, their arrivals stretch and bunch, and the defaults must still be right."""
     from train_interfaces.msg import TrainState
 
-    ns = f"/byhand{int(rate)}"
+    for i in range(hogs):
+        launch.start([sys.executable, "-c", "while True: pass"], name=f"cpu_hog{i}")
+    ns = f"/byhand{int(rate)}{'hog' if hogs else ''}"
     duration = 60.0 if rate > 1 else 20.0
     sc = load_scenario("metro_demo")
     truth = ros_node.collect(TrainState, f"{ns}/ground_truth")
