@@ -156,6 +156,9 @@ def run_task(task: dict) -> dict:
     faulted = F.inject(events, fault, rng)
     if task.get("no_counter"):  # a producer that leaves seq at 0: no sample counter
         faulted.events = F.uncounted(faulted.events)
+    if task.get("count_noise"):  # a producer whose count is read with noise
+        faulted.events = F.noisy_count(faulted.events, task["count_noise"], np.random.default_rng(
+            [task["seed"], 7, zlib.crc32(f"{task['scenario']}|{fault.label}|{fault.at}".encode())]))
     cfg = NodeConfig()
     rate = sc.odometer_rate
     try:
@@ -661,6 +664,10 @@ def main(argv=None) -> int:
     ap.add_argument("--no-counter", action="store_true",
                     help="every odometer and balise seq set to 0 (a producer without a sample "
                          "counter: the estimators judge the readings by their stamps)")
+    ap.add_argument("--count-noise", type=float, default=0.0, metavar="M",
+                    help="white Gaussian noise (standard deviation, m) on every odometer "
+                         "distance, unstated in the messages (a producer whose count is read "
+                         "with noise; default 0)")
     ap.add_argument("--phases", nargs="*", default=None,
                     help="reduced full campaign: stamp, step and command faults only in these "
                          "phases (accelerating, cruising, braking)")
@@ -684,6 +691,8 @@ def main(argv=None) -> int:
         ap.error("--balise-latency-std must be >= 0")
     if not 0 <= args.balise_groups < 1e3:
         ap.error("--balise-groups must be in [0, 1000) m")
+    if not 0 <= args.count_noise < 1e3:
+        ap.error("--count-noise must be in [0, 1000) m")
     seeds = args.seeds or (1 if args.quick else 2)
     estimators = args.estimators or (QUICK_ESTIMATORS if args.quick else ESTIMATORS)
     scenarios = scenarios_here()
@@ -703,6 +712,7 @@ def main(argv=None) -> int:
         t["config"] = config
         t["balise_groups"] = args.balise_groups
         t["no_counter"] = args.no_counter
+        t["count_noise"] = args.count_noise
         if priors:
             t["integrity"] = IntegrityParams(**priors)
     # the longest first: the pool finishes together
@@ -730,6 +740,7 @@ def main(argv=None) -> int:
           f"{', '.join(estimators)}"
           f"{' with use_distance: false' if args.no_distance else ''}"
           f"{', every seq 0 (no sample counter)' if args.no_counter else ''}"
+          f"{f', the count {args.count_noise:g} m noisy' if args.count_noise else ''}"
           f"{stated}; "
           f"node defaults (NodeConfig: control_clock "
           f"{NodeConfig().control_clock!r}, max_future {NodeConfig().max_future:g} s), "

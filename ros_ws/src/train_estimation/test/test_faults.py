@@ -43,6 +43,22 @@ def test_clean_stream_is_stamped_on_one_epoch_with_the_link_latency():
     assert [r for *_, r in out] == sorted(r for *_, r in out)
 
 
+def test_a_noisy_count_moves_only_the_odometers_distance_by_its_stated_scatter():
+    out = F.inject(clean(300.0), F.Fault("none"), np.random.default_rng(0)).events
+    got = F.noisy_count(out, 0.5, np.random.default_rng(1))
+    assert [(k, s, r) for k, s, _f, r in got] == [(k, s, r) for k, s, _f, r in out]
+    d = []
+    for (k, _s, f0, _r), (_k, _s1, f1, _r1) in zip(out, got):
+        if k == "odometer":
+            assert {**f1, "distance": f0["distance"]} == f0
+            d.append(f1["distance"] - f0["distance"])
+        else:
+            assert f1 == f0
+    # 3,000 draws: the sample sd within 5 of its standard errors (0.5 / sqrt(2 n)) of 0.5
+    assert len(d) == 3000 and abs(np.std(d) - 0.5) < 5 * 0.5 / math.sqrt(2 * len(d))
+    assert F.noisy_count(out, 0.5, np.random.default_rng(1)) == got  # seeded
+
+
 @pytest.mark.parametrize("count", [1, 3])
 def test_a_stamp_fault_moves_only_the_stamps_of_count_readings(count):
     f = F.Fault("stamp", 60.0, 10.0, count=count)

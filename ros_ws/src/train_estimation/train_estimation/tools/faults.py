@@ -217,6 +217,17 @@ def uncounted(events: list) -> list:
             and isinstance(e[2].get("seq"), int) else e for e in events]
 
 
+def noisy_count(events: list, sigma: float, rng: np.random.Generator) -> list:
+    """``events`` (``(topic, stamp, fields, ...)``) with ``sigma`` m of white Gaussian noise on
+    every odometer distance: a producer whose count is read with noise (a count interpolated
+    between pulses, a distance from a noisy speed), which the contract does not state. The
+    noise is the count's, not the stamps': a clock step of less than about ``5 sigma / v``
+    then hides in it (:meth:`~train_estimation.core.numerics.clocks.StepWatch._level_test`)."""
+    return [(e[0], e[1], {**e[2], "distance": e[2]["distance"] + rng.normal(0.0, sigma)})
+            + tuple(e[3:]) if e[0] == "odometer" and isinstance(e[2], dict)
+            and isinstance(e[2].get("distance"), float) else e for e in events]
+
+
 def inject(events: list, fault: Fault, rng: np.random.Generator) -> Faulted:
     """The received stream of a clean run ``events`` = ``(topic, t, fields)`` (true time ``t``)
     with ``fault`` applied (module doc). Topics other than control, odometer and balise are
