@@ -453,13 +453,58 @@ def test_the_provisional_sample_grid():
         g.add(q, 50.0 + q)
     assert g.residual(2, 52.0) is None  # two samples: no line yet
     g.add(2, 52.0)
-    assert g.residual(5, 55.0) == pytest.approx(0.0) and g.tol_at(5) == pytest.approx(0.07)
+    # 3 samples beyond the learnt ones: the floor, plus per sample the clock's rate (0.02 of
+    # the period) and the period's own doubt (4 floors over the learnt span of 2 samples)
+    assert g.residual(5, 55.0) == pytest.approx(0.0) and g.tol_at(5) == pytest.approx(0.13)
     assert g.residual(14, 54.0) == pytest.approx(-10.0)  # a -10 s step, 11 samples on
     assert g.tol_at(1) == pytest.approx(0.01)  # inside the learnt span: the floor
     h = SampleGrid(1.0, n_min=9)
     for q, st in ((0, 50.0), (1, 51.0), (7, 52.0)):  # a corrupted seq among three: no line
         h.add(q, st)
     assert h.residual(3, 53.0) is None and h.tol_at(3) == float("inf")
+
+
+def test_the_provisional_grid_holds_the_period_its_few_samples_allow():
+    """Three samples of a 0.1 s grid, each sampled within the floor (10 ms) of its slot, can lie
+    on a line of period 0.090 s; the samples after them, on the true grid, must lie within the
+    provisional grid's tolerance, which grows by what the period of so few samples may be off
+    (4 floors over their span per sample). At 0.02 periods per sample alone they were refused
+    as ahead of their stream, and never learnt from."""
+    from train_estimation.core.numerics.clocks import SampleGrid
+    g = SampleGrid(0.1, n_min=9)
+    for q, st in ((0, 0.010), (1, 0.100), (2, 0.190)):  # period 0.090 s, on the true grid +-10 ms
+        g.add(q, st)
+    for q in range(3, 9):
+        for jitter in (-0.01, 0.0, 0.01):  # the true grid, within the floor
+            assert abs(g.residual(q, 0.1 * q + jitter)) <= g.tol_at(q), (q, jitter)
+
+
+@pytest.mark.parametrize("jitter_seed", [5, 6, 11])
+def test_a_sampling_loop_that_wobbles_is_no_stream_ahead_of_itself(jitter_seed):
+    """metro_demo 300 s, every odometer sample taken up to 15 ms off its 10 Hz slot (uniform;
+    the stamp is the true sampling instant, the values the truth there), a constant link: every
+    reading is good. Its first three samples fitted a provisional grid of period 0.094 s, whose
+    tolerance grew by 2 ms a sample while the stamps left it by 6-9: 3-17 readings refused as
+    ahead of their stream in the first seconds. Now none."""
+    sc, res = run("metro_demo", seed=0, duration=300.0)
+    tr = res.truth
+    rng = np.random.default_rng(jitter_seed)
+    ev = []
+    for topic, t, f in res.events():
+        if topic == "odometer":
+            noise = f["speed"] - float(np.interp(t, tr["t"], tr["velocity"]))
+            ts = max(0.0, t + rng.uniform(-0.015, 0.015))
+            f = {**f, "distance": float(np.interp(ts, tr["t"], tr["position"]))
+                 - sc.start_position,
+                 "speed": float(np.interp(ts, tr["t"], tr["velocity"])) + noise}
+            t = ts
+        ev.append((topic, t, f))
+    ev.sort(key=lambda e: e[1])
+    fl = F.inject(ev, F.Fault("none"), np.random.default_rng(1))
+    outs, emitted, runner = F.run(fl.events, adapter(sc, "robust"), 0.1)
+    assert not runner.rejected, dict(runner.rejected)
+    s = F.score(outs, emitted, fl, tr, 10.0, 300.0 + F.LATENCY)
+    assert s["wrong_side"] == 0 and s["misleading"] == 0, s
 
 
 def test_a_balise_during_a_step_waits_with_the_odometer_and_is_fused_on_the_new_clock():

@@ -1192,8 +1192,14 @@ class SampleGrid:
 
     def tol_at(self, seq) -> float:
         """The tolerance (s) of :meth:`residual` at sample ``seq``: the trusted grid's, or the
-        provisional one's grown by ``rate_tol`` periods per sample beyond the learnt ones;
-        inf without a grid."""
+        provisional one's grown per sample beyond the learnt ones by ``rate_tol`` periods
+        (a clock's rate) and by what the provisional period itself may be off: its samples
+        lie within ``floor`` of its line and, by the floor's own statement, within ``floor``
+        of the true one, so the two lines part by up to 2 ``floor`` at each end of the learnt
+        samples and their slopes by 4 ``floor`` over their span (a period of 0.094 s fitted
+        to three samples of a 0.1 s grid sampled 20 ms apart at random: the readings after
+        them, taken as off the grid, were refused as ahead of their stream, and never learnt
+        from); inf without a grid."""
         fit = self._line()
         if fit:
             return fit[2]
@@ -1201,7 +1207,8 @@ class SampleGrid:
         if fit is None or seq is None:
             return math.inf
         P, _, tol, lo, hi = fit
-        return tol + self.rate_tol * P * max(lo - seq, seq - hi, 0)
+        slope = 4.0 * self.floor / max(hi - lo, 1)
+        return tol + (self.rate_tol * P + slope) * max(lo - seq, seq - hi, 0)
 
     def _on_line(self, seq, stamp: float):
         """:meth:`residual` on the learnt line alone (what :meth:`add` learns by)."""
