@@ -262,3 +262,33 @@ def test_a_truncated_bag_is_named_with_its_repair_by_every_tool(tmp_path, capsys
         assert "no odometer" in err[0], err
         assert "bag was not closed" in err[0], err
         assert f"python -m train_core.bagio repair {bag}" in err[0], err
+
+
+def test_a_counter_that_wraps_or_restarts_is_read_by_its_runs(tmp_path):
+    """The received fraction from the sample counter, per run of it: unwrapped past 2^32 - 1
+    (a wrap lost nothing: it read 1.4e-7 on a lossless bag), and restarted where the counter
+    goes back while the stamps go on (both runs' seqs over one span, a fifth of the samples
+    lost read as none); a reading the link delivered late is neither."""
+    from train_estimation.core.offline.measured import counter_gaps, counter_runs
+
+    def write(path, seqs):
+        with BagWriter(path) as w:
+            for k, q in enumerate(seqs):
+                if q is not None:
+                    w.write("odometer", 100.0 + 0.1 * k, {"seq": q, "distance": float(k),
+                                                          "speed": 10.0, "speed_variance": 0.01})
+        return check_bag.check(str(path))["topics"]["odometer"]
+
+    wrap = [(2 ** 32 - 300 + k) % 2 ** 32 for k in range(600)]
+    odo = write(tmp_path / "wrap", wrap)
+    assert odo["received_fraction"] == 1.0 and odo["seq_span"] == 600 and odo["seq_gaps"] == 0
+    # every fifth sample lost, the counter from 0 again halfway through
+    lost = [None if k % 5 == 4 else (k if k < 300 else k - 300) for k in range(600)]
+    odo = write(tmp_path / "restart", lost)
+    assert odo["seq_restarts"] == 1 and odo["seq_span"] == 598 and odo["seq_gaps"] == 118
+    assert odo["received_fraction"] == 480 / 598
+    # a late reading (its seq and stamp behind the highest) is no restart; a run's own late
+    # reading after the restart goes to its run
+    q, runs = counter_runs([5, 6, 8, 7, 9, 0, 4, 1], [0.5, 0.6, 0.8, 0.7, 0.9, 1.0, 0.4, 1.1])
+    assert list(runs) == [0, 0, 0, 0, 0, 1, 0, 1]
+    assert counter_gaps(q, runs) == [(6, 6, 0), (2, 2, 0)]

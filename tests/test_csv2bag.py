@@ -145,6 +145,28 @@ def test_a_sample_counter_column_numbers_the_samples(tmp_path, capsys):
     assert [f["seq"] for _, _, f in odo] == [17, 18, 21]
 
 
+def test_a_sample_counter_that_wraps_or_restarts_loses_nothing_by_it(tmp_path, capsys):
+    """A uint32 counter wraps past 2^32 - 1 to 0: no sample lost (before: 4,294,967,293 of
+    4,294,967,296 lost). A counter that starts again from 0 while the train clock runs on (a
+    recorder restarted) counts its runs apart: only the samples missing within them are lost."""
+    p = tmp_path / "log.csv"
+    wrap = [2 ** 32 - 2, 2 ** 32 - 1, 0, 1, 3]  # 2 missing after the wrap
+    p.write_text("t,n,v,d\n" + "".join(f"{0.1 * i:.1f},{n},1.0,{0.1 * i:.1f}\n"
+                                       for i, n in enumerate(wrap)))
+    cols = ["--column", "time=t", "--column", "sample=n", "--column", "speed=v",
+            "--column", "distance=d"]
+    assert csv2bag.main([str(p), "--out", str(tmp_path / "bag"), *cols]) == 0
+    out = capsys.readouterr().out
+    assert "5 of 6 in the log, 1 lost (16.7 %) in 1 gaps" in out, out
+    assert [f["seq"] for _, _, f in read_bag(tmp_path / "bag").topics["odometer"]] == wrap
+    p.write_text("t,n,v,d\n" + "".join(f"{0.1 * i:.1f},{n},1.0,{0.1 * i:.1f}\n"
+                                       for i, n in enumerate([40, 41, 43, 0, 1, 2, 4])))
+    assert csv2bag.main([str(p), "--out", str(tmp_path / "bag2"), *cols]) == 0
+    out = capsys.readouterr().out
+    assert "7 of 9 in the log, 2 lost (22.2 %) in 2 gaps; the counter restarted 1 time" in out, \
+        out
+
+
 def test_period_numbering_counts_whole_periods_without_drifting():
     # 0.1 s sampling, 10 000 samples with 1 000 lost at random, stamps with 1 ms jitter
     rng = np.random.default_rng(3)

@@ -94,6 +94,8 @@ from train_core.bagio import BagError, BagWriter
 from train_core.config import ConfigError, ConfigWarning, check_keys
 from train_core.model import load_line
 
+from train_estimation.core.offline.measured import counter_runs
+
 KEYS = ("time", "train_time", "sample", "speed", "distance", "balise", "balise_position",
         "traction", "braking")
 REQUIRED = ("time", "speed", "distance")
@@ -234,6 +236,7 @@ class Result:
     #                                           first sample on the train clock)
     rollovers: list = field(default_factory=list)  # (column key, line) of each midnight
     moved: int = 0  # rows --sort moved
+    restarts: int = 0  # times the log's sample counter went back while the train clock ran on
     dialect: tuple = (",", ".", "")  # (delimiter, decimal, what was found rather than stated)
 
 
@@ -595,15 +598,24 @@ def _number_odometer(odo: list[_Row], res: Result) -> None:
     for r, s in zip(odo, seq):
         r.values["seq"] = int(s) % (SEQ_MAX + 1)
     # the gaps in sample order (a sample delivered late is not lost; one delivered twice is
-    # counted once)
-    order = np.argsort(seq, kind="stable")
-    q = seq[order]
-    steps = np.diff(q)
-    res.samples = int(np.unique(q).size + np.clip(steps - 1, 0, None).sum())
-    res.lost = res.samples - int(np.unique(q).size)
-    t0 = odo[order[0]].train_time
-    res.gaps = [(odo[order[i + 1]].line, int(steps[i] - 1), odo[order[i + 1]].train_time - t0)
-                for i in np.flatnonzero(steps > 1)]
+    # counted once), per run of the counter: unwrapped past 2^32 - 1 (a counter that wraps
+    # lost nothing) and restarted where it goes back while the train clock runs on (the
+    # samples between two runs are not counted)
+    q, runs = counter_runs(seq, np.array([r.train_time for r in odo]))
+    res.samples = res.lost = 0
+    res.gaps = []
+    res.restarts = int(runs[-1]) if runs.size else 0
+    t0 = None
+    for run in np.unique(runs):
+        idx = np.flatnonzero(runs == run)
+        order = idx[np.argsort(q[idx], kind="stable")]
+        steps = np.diff(q[order])
+        n = int(np.unique(q[order]).size)
+        res.samples += n + int(np.clip(steps - 1, 0, None).sum())
+        res.lost += int(np.clip(steps - 1, 0, None).sum())
+        t0 = odo[order[0]].train_time if t0 is None else t0
+        res.gaps += [(odo[order[i + 1]].line, int(steps[i] - 1),
+                      odo[order[i + 1]].train_time - t0) for i in np.flatnonzero(steps > 1)]
 
 
 def _write(rows: list[_Row], mapping: Mapping, writer: BagWriter, res: Result) -> None:
@@ -647,7 +659,10 @@ def report(res: Result, out: str) -> list[str]:
     share = res.lost / res.samples if res.samples else 0.0
     lines.append(f"odometer samples numbered {how}: {res.samples - res.lost} of "
                  f"{res.samples} in the log, {res.lost} lost ({100 * share:.1f} %) in "
-                 f"{len(res.gaps)} gaps")
+                 f"{len(res.gaps)} gaps" + (f"; the counter restarted {res.restarts} "
+                                             f"time{'s' if res.restarts > 1 else ''} (samples "
+                                             f"between its runs not counted)"
+                                             if res.restarts else ""))
     if res.gaps:
         big = sorted(res.gaps, key=lambda g: (-g[1], g[0]))[:3]
         lines.append("  largest gaps: " + "; ".join(

@@ -199,6 +199,41 @@ def unwrap(seq: np.ndarray) -> np.ndarray:
     return np.concatenate([[0], np.cumsum(d)]) + (q[0] if q.size else 0)
 
 
+def counter_runs(seq, stamp) -> tuple[np.ndarray, np.ndarray]:
+    """A sample counter in log order: its values unwrapped past 2^32 - 1 (:func:`unwrap`) and
+    the run of the counter each belongs to. A run ends where the counter goes back while the
+    stamps go on past the highest sample's (a sender that restarted its count); a counter that
+    goes back with its stamp is a reading the link delivered late, and one ahead of the run's
+    highest with a stamp before it is a late reading of the run before. Counts of received and
+    lost samples are per run: across a restart the counter says nothing about losses."""
+    q = unwrap(np.asarray(seq))
+    st = np.asarray(stamp, float)
+    runs = np.zeros(q.size, dtype=np.int64)
+    if q.size == 0:
+        return q, runs
+    r, hi_q, hi_s = 0, q[0], st[0]
+    for i in range(1, q.size):
+        if q[i] > hi_q:
+            if r and st[i] < hi_s:
+                runs[i] = r - 1  # late, from the run before the restart
+                continue
+            hi_q, hi_s = q[i], st[i]
+        elif q[i] < hi_q and st[i] > hi_s:
+            r, hi_q, hi_s = r + 1, q[i], st[i]  # restarted
+        runs[i] = r
+    return q, runs
+
+
+def counter_gaps(q: np.ndarray, runs: np.ndarray) -> list[tuple[int, int, int]]:
+    """Per run of a counter (:func:`counter_runs`): (samples received, samples the counter
+    spans, gaps in it)."""
+    out = []
+    for r in np.unique(runs):
+        u = np.unique(q[runs == r])
+        out.append((int(u.size), int(u[-1] - u[0] + 1), int(np.sum(np.diff(u) > 1))))
+    return out
+
+
 def _stamp_order(stamp) -> np.ndarray:
     """Indices of ``stamp`` in increasing order, a repeated stamp's first reading only."""
     stamp = np.asarray(stamp, float)
@@ -249,9 +284,12 @@ def topic_health(bag, topic: str) -> dict:
     out[R.NON_FINITE] = int(sum(1 for _, s, f in msgs if _non_finite(s, f)))
     out["max_gap_s"] = float(d.max()) if d.size else 0.0
     if "seq" in msgs[0][2]:
-        seq = bag.series(topic, "seq")
-        span = int(seq.max() - seq.min() + 1)
+        # per run of the counter, unwrapped past 2^32 - 1 (a counter that wraps lost nothing;
+        # one that restarted says nothing of the samples between its runs)
+        runs = counter_gaps(*counter_runs(bag.series(topic, "seq"), stamps))
+        span = sum(n for _, n, _ in runs)
         out["seq_span"] = span
-        out["received_fraction"] = len(np.unique(seq)) / span
-        out["seq_gaps"] = int(np.sum(np.diff(np.sort(seq)) > 1))
+        out["received_fraction"] = sum(k for k, _, _ in runs) / span
+        out["seq_gaps"] = sum(g for _, _, g in runs)
+        out["seq_restarts"] = len(runs) - 1
     return out
