@@ -224,6 +224,8 @@ class EstimatorRunner:
     high: dict = field(default_factory=dict)  # kind -> largest stamp queued (the watermark)
     _started: bool = False
     _last_out: float | None = None  # stamp of the last estimate emitted
+    _out_applied: float | None = None  # stamp of the latest estimate output to the adapter's
+    #   state as it is now (a rewind's state is without the outputs after its copy)
     _n: int = 0  # insertion counter: FIFO among equal stamps and kinds
     _offsets: dict = field(default_factory=dict)  # clock -> StreamClock (offset, rate)
     _prev_raw: float | None = None  # the last stamp pushed (no-arrival mode, early phase)
@@ -773,7 +775,9 @@ class EstimatorRunner:
             base = self._base
             snap = _Replayed(base[0], tuple(base[1])) if base is not None \
                 else self.adapter.snapshot()
-            entry[5] = (snap, self._anchor)
+            # (with the stamp of the latest estimate output to the state copied: a braking
+            # filter's output is a time update of the filter itself, which the copy holds)
+            entry[5] = (snap, self._anchor, self._out_applied)
         reason = self._call(entry[0], entry[3], entry[4])
         if len(entry) > 6:
             # fused again after a rewind: the item is counted once, by what it is now (the
@@ -827,8 +831,13 @@ class EstimatorRunner:
             # rewind to the state before the first fused item after it, and re-filter
             j = next((k for k in range(len(hist)) if (hist[k][0], hist[k][1]) > (stamp, order)),
                      len(hist))
-            i = next((k for k in range(j, -1, -1) if k < len(hist) and hist[k][5] is not None),
-                     None)
+            # ... to a copy of a state that no estimate later than this item was output to: the
+            # braking filters' outputs step the filter itself, and a copy taken after a lost
+            # reading's slot was predicted holds the filter at that slot's time (a reading
+            # sampled a few ms before its nominal slot, late on the link, was then refused as
+            # out of order)
+            i = next((k for k in range(j, -1, -1) if k < len(hist) and hist[k][5] is not None
+                      and (hist[k][5][2] is None or hist[k][5][2] <= stamp)), None)
             if i is not None:
                 redo = self._rewind_to(i)
                 redo.insert(j - i, entry)
@@ -853,11 +862,12 @@ class EstimatorRunner:
         """The adapter back to the state before history entry ``i`` (its copy); the entries from
         ``i`` on, taken out of the history, to be fused again."""
         hist = self._hist
-        snap, anchor = hist[i][5]
+        snap, anchor, out = hist[i][5]
         redo = hist[i:]
         del hist[i:]
         self._restore(snap)
         self._anchor = anchor
+        self._out_applied = out  # (outputs are not made again: the state is without them)
         return redo
 
     def _observe(self, kind: str, stamp: float, fields: dict, reason: str) -> None:
@@ -925,6 +935,7 @@ class EstimatorRunner:
             changes["stamp"] = stamp
         out.append(_changed(o, changes) if changes else o)
         self._last_out = t
+        self._out_applied = t
 
     def advance_to(self, t: float) -> list[Output]:
         """Process everything queued with stamp <= t; the estimates that became due."""
@@ -1015,7 +1026,12 @@ class EstimatorRunner:
                 self.high[k] = moved(k, self.high[k])
         hist = self._hist
         j = next((i for i, e in enumerate(hist) if moved(e[3], e[0], e[4]) != e[0]), None)
-        i = next((i for i in range(j, -1, -1) if hist[i][5] is not None), None) \
+        # (as for a late item: a copy of a state that no estimate later than the first moved
+        # item's new stamp was output to)
+        earliest = min((moved(e[3], e[0], e[4]) for e in hist[j:]), default=math.inf) \
+            if j is not None else math.inf
+        i = next((i for i in range(j, -1, -1) if hist[i][5] is not None and
+                  (hist[i][5][2] is None or hist[i][5][2] <= earliest)), None) \
             if j is not None and self._can_rewind else None
         if i is not None:
             redo = self._rewind_to(i)
