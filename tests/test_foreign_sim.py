@@ -544,3 +544,38 @@ def test_a_subtle_effect_is_the_plain_draw_at_half_its_deviation():
     assert s.adhesion[:2] == (2000.0, 2300.0)
     assert s.traction_gain == 0.7  # an effect outside the list has one size: left as it is
     assert BF.subtle(FS.Effect(), TRAIN, v_top) == FS.Effect()  # nominal stays nominal
+
+
+@pytest.mark.parametrize("kind", ["kf", "robust"])
+def test_a_command_given_before_the_estimators_start_is_the_one_in_force_at_it(tmp_path, kind):
+    """The second simulator's driver gives its first command 45 ms before the odometer's first
+    sample, on the reference clock at another epoch than the train's: the commands wait until
+    their clock is judged, and the estimators start at the odometer's third sample. A command
+    older than the start is the one in force at it: the braking filters refused it as out of
+    order in every run of this simulator."""
+    import bench_foreign as BF
+    from train_core.model import load_line, load_train
+
+    from train_estimation.core.online.estimators import (
+        BrakingAdapter,
+        BrakingConfig,
+        RobustAdapter,
+        RobustConfig,
+        StartState,
+    )
+    from train_estimation.tools import faults as F
+
+    _, paths, line_d, train_d, _, eff = BF.foreign_case(0, "none", str(tmp_path / "c"))
+    line, train = load_line(str(paths["line"])), load_train(str(paths["train"]))
+    sent, truth, clock = [], [], {}
+    logged = FS.simulate(line_d, train_d, eff, np.random.default_rng([0, 3]), sent=sent,
+                         truth=truth, clock=clock)
+    fl = BF.recorded_stream(logged, sent, clock)
+    first = next(e for e in fl.events if e[0] == "control")
+    assert first[3] < next(e for e in fl.events if e[0] == "odometer")[3]
+    st = StartState(float(truth[0][1]))
+    a = RobustAdapter(train, line, st, RobustConfig(period=0.1)) if kind == "robust" else \
+        BrakingAdapter(train, line, st, BrakingConfig(algorithm=kind))
+    _, _, runner = F.run(fl.events, a, 0.1)
+    assert not runner.rejected, dict(runner.rejected)
+    assert runner.accepted["control"] == sum(1 for e in fl.events if e[0] == "control")

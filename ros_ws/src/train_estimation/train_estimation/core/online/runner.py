@@ -223,6 +223,7 @@ class EstimatorRunner:
     last_events: list = field(default_factory=list)  # (kind, stamp, event text)
     high: dict = field(default_factory=dict)  # kind -> largest stamp queued (the watermark)
     _started: bool = False
+    _t0: float | None = None  # the estimator's start (advance_to)
     _last_out: float | None = None  # stamp of the last estimate emitted
     _out_applied: float | None = None  # stamp of the latest estimate output to the adapter's
     #   state as it is now (a rewind's state is without the outputs after its copy)
@@ -816,6 +817,10 @@ class EstimatorRunner:
         # copies of one sample admitted before either was fused (the early hold released a
         # copy stamped 5 s ahead with the original; fused 5 s late with its sample's distance,
         # it left the robust filter 11 m behind with a sigma of 1.1 m)
+        if kind == "control" and self._t0 is not None and stamp < self._t0:
+            # given before the estimator's start: the command in force at it (the filters start
+            # at t0; the braking filters refused a command 45 ms older as out of order)
+            stamp = self._t0
         reason = self._fused_elsewhere(kind, stamp, fields)
         if reason:
             self._count(kind, stamp, reason)
@@ -949,6 +954,7 @@ class EstimatorRunner:
             first = sorted(self._odo[:3]) if len(self._odo) == 3 else sorted(self._odo)[:3]
             t0 = min(s for s, *_ in self.queue if s >= first[1] - 2.0)
             self.adapter.start(t0)
+            self._t0 = t0
             self._anchor = (t0, t0)
             self._last_fused = t0
             self._started = True
