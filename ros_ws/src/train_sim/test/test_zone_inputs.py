@@ -319,3 +319,110 @@ def test_the_worst_stop_covers_a_train_that_accelerated_since_its_report(age):
     v_true = 5.0 + a * age
     true_stop = x_true + v_true * v_true / (2.0 * P.emergency_decel)
     assert zc.worst_stop("A", zc.reports["A"], age) >= true_stop
+
+
+def _r(stamp, x, v=0.0, arrive=None, pl=5.0, **kw):
+    kw = {"var_position": 1.0, "var_velocity": 0.01, **kw}
+    return TrainReport(t_received=stamp + LATENCY if arrive is None else arrive, stamp=stamp,
+                       position=x, velocity=v, pl_ahead=pl, pl_behind=pl, **kw)
+
+
+def test_a_danger_point_within_the_margin_still_bounds_the_authority():
+    """A train 4 m short of the line's end (margin 10 m here): the end is still ahead of it and
+    its worst stop passes the end less the margin: braked. The end was dropped once the train
+    came within the margin of it, and the train got the open line."""
+    zc = ZoneController(P)
+    assert zc.report("A", _r(0.0, 49996.0, v=15.0)) == ""
+    (a,) = zc.authorities(0.1, ["A"])
+    assert a.end_of_authority == 50000.0 - P.margin and a.emergency_brake
+    assert a.state == "overrun"
+
+
+@pytest.mark.parametrize("lead_at, follow_at", [(940.0, 950.0), (940.0, 940.0)])
+def test_trains_whose_intervals_allow_either_order_each_keep_behind_the_other(lead_at,
+                                                                             follow_at):
+    """The leader's front truly at 1000 m, the follower's at 895 m (5 m behind the leader's
+    rear), both DEGRADED with levels of 100 m that hold the truth, the follower's estimate at
+    or ahead of the leader's. Ordered by the point estimates, the follower was taken for the
+    leader and given the open line. While the intervals allow either order, each train's
+    authority ends at the other's min safe rear: neither is granted past the other."""
+    zc = ZoneController(P)
+    assert zc.report("lead", _r(10.0, lead_at, pl=100.0, integrity=Z.DEGRADED)) == ""
+    assert zc.report("follow", _r(10.0, follow_at, pl=100.0, integrity=Z.DEGRADED)) == ""
+    auth = {a.train_id: a for a in zc.authorities(10.1, ["lead", "follow"])}
+    true_rear = 1000.0 - P.train_length
+    assert auth["follow"].emergency_brake or auth["follow"].end_of_authority <= true_rear
+    assert auth["follow"].end_of_authority <= lead_at - 100.0 - P.train_length - P.margin
+    assert auth["lead"].end_of_authority <= follow_at - 100.0 - P.train_length - P.margin
+
+
+def test_trains_apart_by_more_than_their_intervals_keep_their_order():
+    """Tight intervals 500 m apart: the train behind is no hazard to the one ahead."""
+    zc = ZoneController(P)
+    zc.report("A", _r(0.0, 3000.0))
+    zc.report("B", _r(0.0, 2500.0))
+    auth = {a.train_id: a for a in zc.authorities(0.1, ["A", "B"])}
+    assert auth["A"].end_of_authority == 50000.0 - P.margin and not auth["A"].emergency_brake
+    assert auth["B"].end_of_authority < 3000.0 - P.train_length
+
+
+def test_a_zone_clock_that_goes_back_makes_every_report_stale():
+    """The zone's clock steps back 100 s 0.5 s after a train's last report (a /clock that
+    restarted, a bag played again): the report's age cannot be known on it, so the train is
+    braked at once; it was braked only after 103 s, its age negative meanwhile."""
+    for csa in (True, False):
+        zc = ZoneController(replace(P, check_stamp_age=csa))
+        for i in range(100):
+            t = 1000.0 + 0.1 * i
+            assert zc.report("A", _r(t, 1000.0 + 20.0 * t, v=20.0)) == ""
+        assert granted(zc, 1010.0)[0]
+        ok, a = granted(zc, 910.5)
+        assert not ok and a.state == "stale" and "went back" in a.reason
+
+
+def test_a_followed_clock_reset_keeps_the_age_of_the_last_measurement():
+    """An estimator that predicts without measurements from 5 s on, its clock reset by -3,600 s
+    at 8 s (separate clocks, followed after reset_reports reports): still braked
+    measurement_timeout after its last measurement (never, when the reset forgot it)."""
+    zc = ZoneController(replace(P, check_stamp_age=False, stale_timeout=3.0))
+    first = None
+    for i in range(300):
+        t = 0.1 * i
+        stamp = t - (3600.0 if t >= 8.0 else 0.0)
+        zc.report("A", _r(stamp, 1000.0 + 10.0 * t, v=10.0, arrive=t + LATENCY,
+                          measurement_used=t < 5.0))
+        ok, _ = granted(zc, t + LATENCY)
+        if not ok and first is None and t >= 5.0:
+            first = t
+    assert zc.clock_resets == {"A": 1}
+    assert first is not None and first <= 4.9 + P.measurement_timeout + 0.3, first
+
+
+def test_a_replayed_burst_of_old_reports_is_no_clock_reset():
+    """A follower at 20 m/s, then five of its reports of a minute before delivered at once (each
+    stamped behind the last: out of order). They put the train 1.2 km behind where it was a
+    moment ago, farther than a train reverses in that time: refused as implausible, never
+    followed as the estimator's clock reset (it was, and the old position stood as fresh)."""
+    for csa in (True, False):
+        zc = ZoneController(replace(P, check_stamp_age=csa, stale_timeout=3.0))
+        for i in range(1000):
+            t = 0.1 * i
+            assert zc.report("F", _r(t, 750.0 + 20.0 * t, v=20.0)) == ""
+        for j in range(5):
+            s = 40.0 + 0.1 * j
+            assert zc.report("F", _r(s, 750.0 + 20.0 * s, v=20.0, arrive=99.96 + 0.001 * j)) \
+                == Z.JUMP
+        assert zc.clock_resets == {} and zc.reports["F"].stamp == pytest.approx(99.9)
+
+
+def test_a_reversing_leaders_rear_is_carried_back_over_its_age():
+    """A leader backing at 1 m/s, stating it (-1 +- 0.1 m/s), checked 2.9 s after its report,
+    margin 0: the follower's authority ends at its min safe rear carried back over those 2.9 s
+    at the report's worst reverse speed (K of its standard deviations past it); uncarried, it
+    lay 2.4 m past the leader's true rear."""
+    zc = ZoneController(replace(P, margin=0.0, stale_timeout=3.0))
+    assert zc.report("L", _r(10.0, 3000.0, v=-1.0, pl=1.0)) == ""
+    assert zc.report("F", _r(10.0, 2000.0)) == ""
+    auth = {a.train_id: a for a in zc.authorities(12.9, ["L", "F"])}
+    true_rear = 3000.0 - 1.0 * (12.9 - 10.0) - P.train_length
+    assert auth["F"].end_of_authority < true_rear

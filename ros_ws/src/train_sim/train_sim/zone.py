@@ -11,7 +11,12 @@ and grants movement authority (end of authority, EoA) up to the nearest danger p
 
 - the configured danger points (a red signal, an occupied block, the end of the line), and
 - the min safe rear of the train ahead: ``x_lead - PL_behind_lead - train_length`` minus a
-  margin.
+  margin, carried back over the report's age at its worst reverse speed (its speed's lower
+  bound, ``K`` standard deviations below it, where that is negative). A train is ahead when
+  its bounded report is, and also wherever the two intervals allow it (this train's min safe
+  front short of the other's max safe rear): while the order is open each train keeps behind
+  the other's min safe rear. A danger point bounds the authority until the train's min safe
+  front has passed it, however close it is.
 
 It sets ``emergency_brake`` when the max safe front, carried to the present at the worst-case
 speed, plus the braking distance at that speed passes the EoA::
@@ -29,7 +34,8 @@ the braking rate carry no protection level of their own: their bounds take the m
 ``K = Phi^-1(1 - integrity_risk / 2)`` of their standard deviations at the zone's
 ``integrity_risk`` (5.33 at 1e-7), one risk for every bound.
 
-A train is unsafe (stale) when its last report arrived more than ``stale_timeout`` ago, when the
+A train is unsafe (stale) when its last report arrived more than ``stale_timeout`` ago (or
+after the zone's clock reads now: a clock that went back leaves every age unknown), when the
 estimate's own stamp is older than ``stale_timeout`` (an estimator that republishes old
 estimates), or when its estimator has not used a measurement for ``measurement_timeout``
 (``stamp - stamp of the last report with measurement_used``, both on the estimator's clock: an
@@ -69,8 +75,11 @@ so the train keeps its last plausible report and goes stale if no plausible one 
 - *off the line*: the interval ``[x - PL_behind, x + PL_ahead]`` misses the line
   ``[0, line_length]`` (a position of 1e12 m or -1e9 m);
 - *jump*: the interval and the last accepted one, each widened by what the train can run
-  between their stamps (``MAX_SPEED`` times the time between them), do not meet: one of the two
-  does not hold the train;
+  between their stamps (``MAX_SPEED`` times the time between them), do not meet, or the
+  interval lies behind the last one by more than the train reverses between them
+  (``max_reverse_speed``; for a report stamped before the last one, a reset or a replay, over
+  the time between their arrivals plus ``stale_timeout``): one of the two does not hold the
+  train;
 - *order*: a train reported at or past the last accepted position of a train that was ahead of
   it, or at or behind one that was behind it (trains on one track do not pass each other);
 - a braking rate outside [0, ``MAX_BRAKING_RATE``], a speed below ``-max_reverse_speed``.
@@ -80,7 +89,8 @@ follow. An estimator's clock reset is followed by evidence: ``reset_reports`` co
 stamp-refused reports whose ``stamp - arrival`` agree within ``max_future`` and whose stamps
 increase form a new timeline, which is adopted (on one clock only where it is not ahead of the
 zone's clock, so a stream of future stamps is never followed). A good report on the current
-timeline in between breaks such a run.
+timeline in between breaks such a run. The age of the last measurement used is carried onto
+the new timeline (by the time between the two reports' arrivals).
 """
 
 from __future__ import annotations
@@ -90,6 +100,9 @@ from dataclasses import dataclass, field
 from statistics import NormalDist
 
 from train_core.config import param, require, require_finite
+
+CLOCK_RES = 1e-6  # s: the zone clock's resolution as read here (a float Unix time resolves
+#   2.4e-7 s; a ROS time 1 ns): an arrival later than now by more is a clock that went back
 
 
 @dataclass(frozen=True)
@@ -360,6 +373,19 @@ class ZoneController:
                               f"{run:.3g} m a train runs in {abs(rep.stamp - last.stamp):.3g} s "
                               f"from the last one [{last.position - last.pl_behind:.6g}, "
                               f"{last.position + last.pl_ahead:.6g}] m")
+            # nor back by more than it reverses (max_reverse_speed) between the two samples:
+            # on one timeline the stamps tell that time; a report stamped before the last one
+            # (a reset, a replay) was sampled at most stale_timeout before it arrived, as was
+            # the last one (a burst of reports a minute old, each refused as out of order,
+            # was followed as the estimator's clock reset and put the train 1.2 km back)
+            dt = rep.stamp - last.stamp if rep.stamp >= last.stamp else \
+                abs(rep.t_received - last.t_received) + p.stale_timeout
+            back = p.max_reverse_speed * dt
+            if hi < last.position - last.pl_behind - back:
+                return JUMP, (f"interval [{lo:.6g}, {hi:.6g}] m lies more than the {back:.3g} m "
+                              f"a train reverses in {dt:.3g} s behind the last one "
+                              f"[{last.position - last.pl_behind:.6g}, "
+                              f"{last.position + last.pl_ahead:.6g}] m")
         last = self.bounded.get(train_id)
         if last is not None:
             # the order the trains' bounded reports put them in (an ALARM report's position
@@ -418,9 +444,15 @@ class ZoneController:
         rep.clock_shift = tl.shift
         tl.add(rep.t_received, offset, self.params.max_clock_drift)
         tl.run.clear()  # a good report on this timeline breaks a run of outliers
-        last = None if new_timeline else self.reports.get(train_id)
+        last = self.reports.get(train_id)
         if rep.measurement_used:
             rep.last_measurement = rep.stamp
+        elif last is not None and new_timeline:
+            # carried onto the new timeline: as old as it was at the last report, and older
+            # by the time between the two arrivals (forgotten, a reset kept an estimator that
+            # predicted without measurements supervised for good)
+            rep.last_measurement = rep.stamp - (last.stamp - last.last_measurement) - \
+                max(rep.t_received - last.t_received, 0.0)
         else:  # carried over; NaN until a report says a measurement was used (ground truth,
             # or an estimator that does not set the flag, is judged by its stamps only)
             rep.last_measurement = last.last_measurement if last is not None else math.nan
@@ -442,6 +474,11 @@ class ZoneController:
     def staleness(self, rep: TrainReport, now: float) -> str:
         """Why a report is too old to bound the train ("" if fresh)."""
         p = self.params
+        if now < rep.t_received - CLOCK_RES:
+            # the zone's clock went back (a restarted /clock, a bag played again): how old the
+            # report is cannot be known on it
+            return f"estimates stale: the zone's clock went back {rep.t_received - now:.3g} s " \
+                   f"past the last report's arrival"
         if now - rep.t_received > p.stale_timeout:
             return f"estimates stale: none received for {now - rep.t_received:.1f} s " \
                    f"(> {p.stale_timeout} s)"
@@ -511,8 +548,11 @@ class ZoneController:
                 out.append(Authority(tid, -math.inf, 0.0, True, "no estimate received yet",
                                      "no_estimate"))
                 continue
+            # every danger point the train may not yet have passed (its min safe front short
+            # of it), however close: one within the margin was dropped, and a train 10 m short
+            # of the line's end got the open line
             hazards = [(d - p.margin, f"danger point at {d:.1f} m") for d in p.danger_points
-                       if d - p.margin >= rep.position - rep.pl_behind]
+                       if d >= rep.position - rep.pl_behind]
             reason, state = "", "ok"
             mine = self.bounded.get(tid, rep)
             for other in train_ids:
@@ -529,9 +569,21 @@ class ZoneController:
                 # no bound and may put a train ahead behind the one it endangers (a restarted
                 # count at -1.2 km took a leader off the follower's track: its authority ran to
                 # the open line)
-                if where.position <= mine.position:
+                # and ahead wherever the intervals allow it: its rear may lie ahead of this
+                # train's front while this train's min safe front lies short of the other's
+                # max safe rear (ordered by the point estimates of two overlapping intervals,
+                # the true follower was taken for the leader and given the open line)
+                if where.position <= mine.position and mine.position - mine.pl_behind >= \
+                        where.position + where.pl_ahead - p.train_length:
                     continue
                 _, orear, _, _ = self._bounds(orep)
+                # the rear carried back over the report's age at the report's worst reverse
+                # speed (its speed's lower bound, K of its standard deviations, as the worst-
+                # case speed ahead): a leader backing at 1 m/s, 2.9 s after its report, lay
+                # 2.4 m behind the rear the follower was granted up to at a margin of 0
+                k = NormalDist().inv_cdf(1.0 - p.integrity_risk / 2.0)
+                back = max(k * math.sqrt(max(orep.var_velocity, 0.0)) - orep.velocity, 0.0)
+                orear -= back * self._age(other, orep, now)
                 hazards.append((orear - p.margin, f"rear of {other}"))
                 why, kind = unsafe[other]
                 if why:
