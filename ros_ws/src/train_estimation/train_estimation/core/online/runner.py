@@ -771,8 +771,14 @@ class EstimatorRunner:
 
     def _process(self, entry: list) -> str:
         """Apply one item, keeping it (and the state before it, for odometer items) in the
-        history that a late item rewinds."""
-        if self.history > 0 and entry[3] == "odometer" and self._can_rewind:
+        history that a late item rewinds. The history stays in stamp order: an item older than
+        its last one (beyond the history's reach, or with no copy before it) is placed at its
+        stamp without a copy of its own (appended with the copy taken after the outputs since,
+        it became the first copy kept, the ones before it were let go, and the braking filters
+        refused every late reading after it that the history still reached)."""
+        hist = self._hist
+        in_order = not hist or (entry[0], entry[1]) >= (hist[-1][0], hist[-1][1])
+        if self.history > 0 and entry[3] == "odometer" and self._can_rewind and in_order:
             base = self._base
             snap = _Replayed(base[0], tuple(base[1])) if base is not None \
                 else self.adapter.snapshot()
@@ -791,8 +797,11 @@ class EstimatorRunner:
         else:
             entry.append(reason)
         if self.history > 0:
-            hist = self._hist
-            hist.append(entry)
+            if in_order:
+                hist.append(entry)
+            else:
+                key = (entry[0], entry[1])
+                hist.insert(next(k for k, h in enumerate(hist) if (h[0], h[1]) > key), entry)
             self._high_done = max(self._high_done, entry[0])
             if not self._can_rewind:
                 # an adapter without snapshots is never rewound: only the last item is read
