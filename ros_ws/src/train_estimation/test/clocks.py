@@ -58,3 +58,22 @@ def errors(outs, res, epoch=0.0, phase=0.0, drift=0.0):
 def run_replay(sc, res, kind="robust", events=None, **clock):
     ev = events if events is not None else restamp(res.events(), **clock)
     return replay(ev, adapter(sc, kind), 1 / sc.odometer_rate)
+
+
+def wobbled(sc, res, jitter: float, rng: np.random.Generator) -> list:
+    """``res.events()`` of a sampling loop that wobbles: every odometer sample taken up to
+    ``jitter`` s off its slot (uniform), stamped at that instant with the truth there (and the
+    simulator's own speed noise); ``(topic, t, fields)`` in stamp order."""
+    tr = res.truth
+    ev = []
+    for topic, t, f in res.events():
+        if topic == "odometer":
+            noise = f["speed"] - float(np.interp(t, tr["t"], tr["velocity"]))
+            ts = max(0.0, t + rng.uniform(-jitter, jitter))
+            f = {**f, "distance": float(np.interp(ts, tr["t"], tr["position"]))
+                 - sc.start_position,
+                 "speed": float(np.interp(ts, tr["t"], tr["velocity"])) + noise}
+            t = ts
+        ev.append((topic, t, f))
+    ev.sort(key=lambda e: e[1])
+    return ev

@@ -14,7 +14,7 @@ from train_estimation.core.numerics.clocks import LINE_SPREAD, StreamClock, is_s
 from train_estimation.tools import faults as F
 
 sys.path.insert(0, os.path.dirname(__file__))
-from clocks import adapter, run  # noqa: E402
+from clocks import adapter, run, wobbled  # noqa: E402
 
 
 def _campaign_case(fault, duration=40.0):
@@ -488,18 +488,7 @@ def test_a_sampling_loop_that_wobbles_is_no_stream_ahead_of_itself(jitter_seed):
     ahead of their stream in the first seconds. Now none."""
     sc, res = run("metro_demo", seed=0, duration=300.0)
     tr = res.truth
-    rng = np.random.default_rng(jitter_seed)
-    ev = []
-    for topic, t, f in res.events():
-        if topic == "odometer":
-            noise = f["speed"] - float(np.interp(t, tr["t"], tr["velocity"]))
-            ts = max(0.0, t + rng.uniform(-0.015, 0.015))
-            f = {**f, "distance": float(np.interp(ts, tr["t"], tr["position"]))
-                 - sc.start_position,
-                 "speed": float(np.interp(ts, tr["t"], tr["velocity"])) + noise}
-            t = ts
-        ev.append((topic, t, f))
-    ev.sort(key=lambda e: e[1])
+    ev = wobbled(sc, res, 0.015, np.random.default_rng(jitter_seed))
     fl = F.inject(ev, F.Fault("none"), np.random.default_rng(1))
     outs, emitted, runner = F.run(fl.events, adapter(sc, "robust"), 0.1)
     assert not runner.rejected, dict(runner.rejected)

@@ -10,7 +10,7 @@ from train_estimation.core.online.replay import replay
 from train_estimation.core.online.runner import EstimatorRunner, _Replayed
 
 sys.path.insert(0, os.path.dirname(__file__))
-from clocks import adapter, errors, restamp, run  # noqa: E402
+from clocks import adapter, errors, restamp, run, wobbled  # noqa: E402
 
 
 def jittered(events, rng, max_latency=0.4):
@@ -178,18 +178,7 @@ def test_a_reading_sampled_before_its_predicted_slot_is_fused_late_not_refused(k
 
     sc, res = run(duration=300.0)
     tr = res.truth
-    rng = np.random.default_rng(5)
-    ev = []
-    for topic, t, f in res.events():
-        if topic == "odometer":
-            noise = f["speed"] - float(np.interp(t, tr["t"], tr["velocity"]))
-            ts = max(0.0, t + rng.uniform(-0.01, 0.01))
-            f = {**f, "distance": float(np.interp(ts, tr["t"], tr["position"]))
-                 - sc.start_position,
-                 "speed": float(np.interp(ts, tr["t"], tr["velocity"])) + noise}
-            t = ts
-        ev.append((topic, t, f))
-    ev.sort(key=lambda e: e[1])
+    ev = wobbled(sc, res, 0.01, np.random.default_rng(5))
     fl = F.inject(ev, F.Fault("none", jitter=0.05), np.random.default_rng(1))
     outs, emitted, runner = F.run(fl.events, adapter(sc, kind), 0.1)
     assert not runner.rejected, dict(runner.rejected)
