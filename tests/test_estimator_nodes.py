@@ -124,7 +124,11 @@ def test_the_by_hand_recipe_with_default_parameters(launch, ros_node, rate, hogs
     from train_interfaces.msg import TrainState
 
     for i in range(hogs):
-        launch.start([sys.executable, "-c", "while True: pass"], name=f"cpu_hog{i}")
+        # (SIGINT at its default: a shell's background job inherits it ignored, and the
+        # launcher's stop then waited its 10 s for SIGTERM)
+        launch.start([sys.executable, "-c", "import signal\n"
+                      "signal.signal(signal.SIGINT, signal.SIG_DFL)\nwhile True: pass"],
+                     name=f"cpu_hog{i}")
     ns = f"/byhand{int(rate)}{'hog' if hogs else ''}"
     duration = 60.0 if rate > 1 else 20.0
     sc = load_scenario("metro_demo")
