@@ -151,14 +151,14 @@ def run_task(task: dict) -> dict:
     except ValueError as exc:  # the estimator cannot model this train (no brake delay, ...)
         row["na"] = str(exc)
         return row
-    rng = np.random.default_rng([task["seed"], zlib.crc32(
-        f"{task['scenario']}|{fault.label}|{fault.at}".encode())])
+    case = zlib.crc32(f"{task['scenario']}|{fault.label}|{fault.at}".encode())
+    rng = np.random.default_rng([task["seed"], case])
     faulted = F.inject(events, fault, rng)
     if task.get("no_counter"):  # a producer that leaves seq at 0: no sample counter
         faulted.events = F.uncounted(faulted.events)
     if task.get("count_noise"):  # a producer whose count is read with noise
-        faulted.events = F.noisy_count(faulted.events, task["count_noise"], np.random.default_rng(
-            [task["seed"], 7, zlib.crc32(f"{task['scenario']}|{fault.label}|{fault.at}".encode())]))
+        faulted.events = F.noisy_count(faulted.events, task["count_noise"],
+                                       np.random.default_rng([task["seed"], 7, case]))
     cfg = NodeConfig()
     rate = sc.odometer_rate
     try:

@@ -118,7 +118,7 @@ def test_a_latency_that_rises_and_stays_is_carried_into_the_age_on_separate_cloc
         r.t_received += late
         assert zc.report("A", r) == ""
     now = r.t_received
-    front, _, speed, _ = zc._bounds(r)
+    front, _, speed, _, _ = zc._bounds(r)
     # the report's sample was 3 s more than the least latency before its arrival: carried at
     # least that far, less the drift the zone allows the clocks since the last report on the
     # quick route (243 s); the 60 s window carried 0 s

@@ -491,8 +491,9 @@ class ZoneController:
                     f"{rep.stamp - rep.last_measurement:.1f} s (> {p.measurement_timeout} s)")
         return ""
 
-    def _bounds(self, rep: TrainReport) -> tuple[float, float, float, float]:
-        """(max safe front, min safe rear, worst-case speed, braking-rate lower bound)."""
+    def _bounds(self, rep: TrainReport) -> tuple[float, float, float, float, float]:
+        """(max safe front, min safe rear, worst-case speed, braking-rate lower bound, worst
+        reverse speed: the speed's lower bound below 0, else 0)."""
         p = self.params
         k = NormalDist().inv_cdf(1.0 - p.integrity_risk / 2.0)
         sv = math.sqrt(max(rep.var_velocity, 0.0))
@@ -503,7 +504,7 @@ class ZoneController:
         if math.isfinite(rep.braking_rate):
             sf = math.sqrt(rep.var_braking_rate) if math.isfinite(rep.var_braking_rate) else 0.0
             f_low = max(rep.braking_rate - k * sf, p.min_braking_rate)
-        return front, rear, speed, f_low
+        return front, rear, speed, f_low, max(k * sv - rep.velocity, 0.0)
 
     def _age(self, train_id: str, rep: TrainReport, now: float) -> float:
         """s since the report's sample, on the zone's clock, at least: with one clock the
@@ -526,7 +527,7 @@ class ZoneController:
         distance from that speed at the braking rate's lower bound. Over the report's age the
         train may also have accelerated at up to ``max_acceleration``: the front runs that much
         further and the speed braked from is that much higher."""
-        front, _, speed, f_low = self._bounds(rep)
+        front, _, speed, f_low, _ = self._bounds(rep)
         age = self._age(train_id, rep, now)
         # the train may have accelerated since its sample (a report 3 s old on a slower route
         # stated the speed of a metro pulling away, 3 m/s below its speed then: its worst stop
@@ -576,13 +577,11 @@ class ZoneController:
                 if where.position <= mine.position and mine.position - mine.pl_behind >= \
                         where.position + where.pl_ahead - p.train_length:
                     continue
-                _, orear, _, _ = self._bounds(orep)
+                _, orear, _, _, back = self._bounds(orep)
                 # the rear carried back over the report's age at the report's worst reverse
                 # speed (its speed's lower bound, K of its standard deviations, as the worst-
                 # case speed ahead): a leader backing at 1 m/s, 2.9 s after its report, lay
                 # 2.4 m behind the rear the follower was granted up to at a margin of 0
-                k = NormalDist().inv_cdf(1.0 - p.integrity_risk / 2.0)
-                back = max(k * math.sqrt(max(orep.var_velocity, 0.0)) - orep.velocity, 0.0)
                 orear -= back * self._age(other, orep, now)
                 hazards.append((orear - p.margin, f"rear of {other}"))
                 why, kind = unsafe[other]

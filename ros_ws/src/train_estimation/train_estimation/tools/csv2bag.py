@@ -94,7 +94,7 @@ from train_core.bagio import BagError, BagWriter
 from train_core.config import ConfigError, ConfigWarning, check_keys
 from train_core.model import load_line
 
-from train_estimation.core.offline.measured import counter_runs
+from train_estimation.core.offline.measured import counter_gaps, counter_runs
 
 KEYS = ("time", "train_time", "sample", "speed", "distance", "balise", "balise_position",
         "traction", "braking")
@@ -602,17 +602,16 @@ def _number_odometer(odo: list[_Row], res: Result) -> None:
     # lost nothing) and restarted where it goes back while the train clock runs on (the
     # samples between two runs are not counted)
     q, runs = counter_runs(seq, np.array([r.train_time for r in odo]))
-    res.samples = res.lost = 0
+    per_run = counter_gaps(q, runs)
+    res.samples = sum(n for _, n, _ in per_run)
+    res.lost = res.samples - sum(k for k, _, _ in per_run)
+    res.restarts = len(per_run) - 1
     res.gaps = []
-    res.restarts = int(runs[-1]) if runs.size else 0
     t0 = None
-    for run in np.unique(runs):
+    for run in np.unique(runs):  # where the gaps are: the line after each, and its time
         idx = np.flatnonzero(runs == run)
         order = idx[np.argsort(q[idx], kind="stable")]
         steps = np.diff(q[order])
-        n = int(np.unique(q[order]).size)
-        res.samples += n + int(np.clip(steps - 1, 0, None).sum())
-        res.lost += int(np.clip(steps - 1, 0, None).sum())
         t0 = odo[order[0]].train_time if t0 is None else t0
         res.gaps += [(odo[order[i + 1]].line, int(steps[i] - 1),
                       odo[order[i + 1]].train_time - t0) for i in np.flatnonzero(steps > 1)]

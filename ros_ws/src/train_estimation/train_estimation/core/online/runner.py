@@ -845,13 +845,7 @@ class EstimatorRunner:
             # rewind to the state before the first fused item after it, and re-filter
             j = next((k for k in range(len(hist)) if (hist[k][0], hist[k][1]) > (stamp, order)),
                      len(hist))
-            # ... to a copy of a state that no estimate later than this item was output to: the
-            # braking filters' outputs step the filter itself, and a copy taken after a lost
-            # reading's slot was predicted holds the filter at that slot's time (a reading
-            # sampled a few ms before its nominal slot, late on the link, was then refused as
-            # out of order)
-            i = next((k for k in range(j, -1, -1) if k < len(hist) and hist[k][5] is not None
-                      and (hist[k][5][2] is None or hist[k][5][2] <= stamp)), None)
+            i = self._copy_before(j, stamp)
             if i is not None:
                 redo = self._rewind_to(i)
                 redo.insert(j - i, entry)
@@ -871,6 +865,16 @@ class EstimatorRunner:
         self._count(kind, stamp, reason)
         self._observe(kind, stamp, fields, reason)
         return reason
+
+    def _copy_before(self, j: int, stamp: float) -> int | None:
+        """The latest history entry at or before ``j`` with a copy of a state that no estimate
+        later than ``stamp`` was output to (None: none kept). The braking filters' outputs step
+        the filter itself, and a copy taken after a lost reading's slot was predicted holds the
+        filter at that slot's time (a reading sampled a few ms before its nominal slot, late on
+        the link, was refused as out of order)."""
+        hist = self._hist
+        return next((k for k in range(min(j, len(hist) - 1), -1, -1) if hist[k][5] is not None
+                     and (hist[k][5][2] is None or hist[k][5][2] <= stamp)), None)
 
     def _rewind_to(self, i: int) -> list:
         """The adapter back to the state before history entry ``i`` (its copy); the entries from
@@ -1041,12 +1045,7 @@ class EstimatorRunner:
                 self.high[k] = moved(k, self.high[k])
         hist = self._hist
         j = next((i for i, e in enumerate(hist) if moved(e[3], e[0], e[4]) != e[0]), None)
-        # (as for a late item: a copy of a state that no estimate later than the first moved
-        # item's new stamp was output to)
-        earliest = min((moved(e[3], e[0], e[4]) for e in hist[j:]), default=math.inf) \
-            if j is not None else math.inf
-        i = next((i for i in range(j, -1, -1) if hist[i][5] is not None and
-                  (hist[i][5][2] is None or hist[i][5][2] <= earliest)), None) \
+        i = self._copy_before(j, min(moved(e[3], e[0], e[4]) for e in hist[j:])) \
             if j is not None and self._can_rewind else None
         if i is not None:
             redo = self._rewind_to(i)
