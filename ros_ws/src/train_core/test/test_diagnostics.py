@@ -90,7 +90,8 @@ def test_integrity_maps_to_levels_with_its_reason_and_the_worst_check_wins():
 @pytest.mark.parametrize("bad,named", [
     ({"stale_warn": 0.0}, "stale_warn"), ({"stale_warn": 6.0}, "stale_error"),  # the pair
     ({"rejected_error": 1.5}, "rejected_error"), ({"latency_error": 0.1}, "latency_error"),
-    ({"diagnostics_period": math.nan}, "diagnostics_period")])
+    ({"diagnostics_period": math.nan}, "diagnostics_period"),
+    ({"diagnostics_period": 1e-9}, "diagnostics_period")])  # a busy loop, not a status
 def test_thresholds_are_checked_with_the_parameter_named(bad, named):
     with pytest.raises(ConfigError, match=f"parameter {named}:"):
         D.EstimatorThresholds(**bad)

@@ -28,6 +28,8 @@ OK, WARN, ERROR = 0, 1, 2  # diagnostic_msgs/DiagnosticStatus levels
 LEVEL_NAMES = {OK: "OK", WARN: "WARN", ERROR: "ERROR"}
 INTEGRITY_LEVEL = {0: OK, 1: WARN, 2: ERROR}  # TrainState.integrity -> level
 INTEGRITY_NAMES = {0: "OK", 1: "DEGRADED", 2: "ALARM"}
+MIN_PERIOD = 0.05  # s, the shortest diagnostics_period: 20 statuses a second (1e-9 was
+#   accepted and made the node publish 1,674 a second, a third of a core)
 
 
 def _pair(obj, warn: str, error: str) -> None:
@@ -40,11 +42,14 @@ def _pair(obj, warn: str, error: str) -> None:
 class DiagnosticsPeriod:
     """Every node: how often it publishes its status."""
 
-    diagnostics_period: float = param(1.0, "s", "between two /diagnostics messages", lo=0.0)
+    diagnostics_period: float = param(1.0, "s", "between two /diagnostics messages (at least "
+                                      "0.05: a status is for people and aggregators, and each "
+                                      "one costs the node a callback)", lo=MIN_PERIOD)
 
     def __post_init__(self):
         v = self.diagnostics_period
-        require(math.isfinite(v) and v > 0, "diagnostics_period", v, "must be > 0")
+        require(math.isfinite(v) and v >= MIN_PERIOD, "diagnostics_period", v,
+                f"must be finite and >= {MIN_PERIOD:g}")
 
 
 @dataclass(frozen=True)

@@ -121,6 +121,7 @@ def declarer(node):
     from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 
     _accept_integers_for_floats(node)
+    _hold_use_sim_time(node)
 
     def declare(name, default, text, lo=None, hi=None):
         desc = ParameterDescriptor(description=text)
@@ -190,6 +191,30 @@ def _accept_integers_for_floats(node) -> None:
     node._train_int_to_float = True
 
 
+def _hold_use_sim_time(node) -> None:
+    """Once per node: ``use_sim_time`` is read at start-up only. A node's stamps, arrival times,
+    timers and the estimators' stream clocks are all on the time base it started on; switched at
+    run time (rclpy's own parameter, which its TimeSource applies at once), an estimator on
+    /clock's 18 s found its clock at the system's 1.7e9 s, published 6,125 predictions in ten
+    seconds and refused every reading after them. Refused with a reason, as any start-up
+    parameter. (This callback is added after the TimeSource's, so rclpy asks it first.)"""
+    if getattr(node, "_train_clock_held", False):
+        return
+    from rcl_interfaces.msg import SetParametersResult
+
+    def callback(params):
+        for p in params:
+            if p.name == "use_sim_time" and node.has_parameter(p.name) \
+                    and p.value != node.get_parameter(p.name).value:
+                return SetParametersResult(
+                    successful=False, reason="parameter use_sim_time: read at start-up only; "
+                                             "restart the node to change it")
+        return SetParametersResult(successful=True)
+
+    node.add_on_set_parameters_callback(callback)
+    node._train_clock_held = True
+
+
 def _type_name(default) -> str:
     if isinstance(default, bool):
         return "a boolean (true/false)"
@@ -221,19 +246,25 @@ def refuse_runtime_changes(node, cls, values: dict, live: tuple[str, ...] = (),
     names = {f.name: f for f in param_fields(cls)}
     current = dict(values)
 
-    def callback(params):
+    def proposal(params) -> tuple[list, dict]:
         mine = [p for p in params if p.name in names]
-        if not mine:
-            return SetParametersResult(successful=True)
         proposed = dict(current)
         for p in mine:
             f = names[p.name]
             from_ros = f.metadata.get("ros", (None, None))[1]
-            v = p.value
+            v = _list_value(f, p.value)
             proposed[p.name] = from_ros(v) if from_ros else (
                 tuple(v) if isinstance(f.default, tuple) else v)
+        return mine, proposed
+
+    def callback(params):
+        # judges only: another config's callback on the same node may still refuse the set
+        # (set_parameters_atomically), and then nothing of it may be in force
+        mine, proposed = proposal(params)
+        if not mine:
+            return SetParametersResult(successful=True)
         try:
-            new = cls(**proposed)
+            cls(**proposed)
         except (ValueError, TypeError) as exc:
             return SetParametersResult(successful=False, reason=str(exc))
         fixed = [p.name for p in mine if p.name not in live]
@@ -241,12 +272,25 @@ def refuse_runtime_changes(node, cls, values: dict, live: tuple[str, ...] = (),
             return SetParametersResult(
                 successful=False, reason=f"parameter {fixed[0]}: read at start-up only; "
                                          "restart the node to change it")
-        current.update(proposed)
-        if on_change is not None:
-            on_change(new)
         return SetParametersResult(successful=True)
 
+    def applied(params):
+        # rclpy calls this only once every callback accepted the whole set
+        mine, proposed = proposal(params)
+        if not mine:
+            return
+        current.update(proposed)
+        if on_change is not None:
+            on_change(cls(**proposed))
+
     node.add_on_set_parameters_callback(callback)
+    node.add_post_set_parameters_callback(applied)
+
+
+def _list_value(f, v):
+    """A list parameter set to an empty list arrives from rclpy as None (PARAMETER_NOT_SET):
+    it is the empty list, for the dataclass's own check to judge."""
+    return [] if v is None and isinstance(f.default, tuple) else v
 
 
 def declare_config(node, cls, live: tuple[str, ...] = (), on_change: Callable | None = None,
@@ -273,7 +317,7 @@ def declare_config(node, cls, live: tuple[str, ...] = (), on_change: Callable | 
         default = f.default
         is_tuple = isinstance(default, tuple)
         ros_default = to_ros(default) if to_ros else (list(default) if is_tuple else default)
-        v = declare(f.name, ros_default, describe(f), *param_range(f))
+        v = _list_value(f, declare(f.name, ros_default, describe(f), *param_range(f)))
         values[f.name] = from_ros(v) if from_ros else (tuple(v) if is_tuple else v)
     cfg = cls(**values)
     refuse_runtime_changes(node, cls, values, live, on_change)

@@ -73,8 +73,8 @@ def test_recorder_params_file_has_exactly_the_declared_fields():
 
 # --- the running node: start-up refusals in one line, runtime changes validated ------------
 
-def _node_output(launch, *args, name):
-    proc = launch.node("train_estimation", "robust_filter", "--ros-args", *args, name=name)
+def _node_output(launch, *args, name, node="robust_filter"):
+    proc = launch.node("train_estimation", node, "--ros-args", *args, name=name)
     proc.wait(timeout=60)
     return proc.returncode, Path(proc.log_path).read_text()
 
@@ -96,6 +96,14 @@ def _node_output(launch, *args, name):
     ("balise_gat:=3.0", "error: node robust_filter: unknown parameter 'balise_gat': did you "
                         "mean 'balise_gate'? (it holds a number, as 'balise_gate' would, and "
                         "'balise_gate' is absent: rename it, or the model goes without it)"),
+    # a start off the line (+-inf was read as NaN, the first station); a status busy loop
+    ("initial_position:=-100000.0", "error: parameter initial_position: -100000 m is off the "
+                                    "line (metro_demo: 0 to 7000 m); NaN starts at its first "
+                                    "station"),
+    ("initial_position:=.inf", "error: parameter initial_position: inf m is off the line "
+                               "(metro_demo: 0 to 7000 m); NaN starts at its first station"),
+    ("diagnostics_period:=1e-9", "error: parameter diagnostics_period: 1e-09 is out of range, "
+                                 "allowed [0.05, inf)"),
 ])
 def test_a_bad_parameter_at_start_up_is_one_line_not_a_traceback(launch, arg, want):
     code, out = _node_output(launch, "-p", "use_demo_line:=true", "-p", arg,
@@ -104,6 +112,29 @@ def test_a_bad_parameter_at_start_up_is_one_line_not_a_traceback(launch, arg, wa
     assert "Traceback" not in out, out
     lines = [ln for ln in out.splitlines() if ln.strip()]
     assert lines == [want], out
+
+
+@pytest.mark.ros
+@pytest.mark.parametrize("arg,want", [
+    # an empty list arrives from rclpy as "not set": it was a TypeError's traceback
+    ("values:=[]", "error: parameter values: [] must be one or more braking rates in [0, 2], "
+                   "distinct and in order (rising or falling)"),
+    # a negative braking rate, and a set out of order (the priors move by index), were taken
+    ("values:=[-1.0,1.0]", "error: parameter values: [-1.0, 1.0] must be one or more braking "
+                           "rates in [0, 2], distinct and in order (rising or falling)"),
+    ("values:=[1.0,0.5,0.7]", "error: parameter values: [1.0, 0.5, 0.7] must be one or more "
+                              "braking rates in [0, 2], distinct and in order (rising or "
+                              "falling)"),
+    # the kernel's own words ("every value needs an allowed child") named no parameter
+    ("branch_p_move:=2.0", "error: parameter branch_p_move: 2.0 is out of range, allowed "
+                           "[-1, 1]"),
+    ("seed:=-5", "error: parameter seed: -5 is out of range, allowed [0, inf)"),  # numpy's words
+])
+def test_a_bad_braking_parameter_at_start_up_names_itself(launch, arg, want):
+    code, out = _node_output(launch, "-p", "use_demo_line:=true", "-p", arg,
+                             name=f"bad_{arg.split(':')[0]}", node="gsma_estimator")
+    assert code == 2, out
+    assert [ln for ln in out.splitlines() if ln.strip()] == [want], out
 
 
 @pytest.mark.ros
@@ -243,6 +274,32 @@ def test_runtime_set_parameters_is_validated_and_refused_with_a_reason(launch, r
     ros_node.spin_for(2.0)
     mine = [s for a in box for s in a.status if s.hardware_id == ns]
     assert 6 <= len(mine) <= 9, len(mine)
+    # a set refused as a whole changes nothing: the period (live) with q (start-up only) in one
+    # atomic set; the period was applied before q's refusal, 40 statuses in 2 s instead of 8
+    from rcl_interfaces.srv import SetParametersAtomically
+
+    atomic = node.create_client(SetParametersAtomically,
+                                f"{ns}/robust_filter/set_parameters_atomically")
+    ros_node.wait_until(atomic.service_is_ready, timeout=30, what="the atomic set service")
+    both = [Parameter(name=n, value=ParameterValue(type=ParameterType.PARAMETER_DOUBLE,
+                                                  double_value=v))
+            for n, v in (("diagnostics_period", 0.05), ("q", 0.5))]
+    r = call(atomic, SetParametersAtomically.Request(parameters=both)).result
+    assert not r.successful and r.reason.startswith("parameter q: read at start-up only"), r
+    assert get("diagnostics_period") == 0.25
+    box.clear()
+    ros_node.spin_for(2.0)
+    mine = [s for a in box for s in a.status if s.hardware_id == ns]
+    assert 6 <= len(mine) <= 9, len(mine)
+    # use_sim_time is read at start-up too: switched at run time, the node's clock jumped to
+    # another time base under estimates already out
+    p = Parameter(name="use_sim_time", value=ParameterValue(type=ParameterType.PARAMETER_BOOL,
+                                                            bool_value=True))
+    (r,) = call(set_cli, SetParameters.Request(parameters=[p])).results
+    assert not r.successful, r
+    assert r.reason == ("parameter use_sim_time: read at start-up only; restart the node to "
+                        "change it")
+    assert proc.poll() is None
 
 
 def test_an_empty_train_file_is_refused_unless_the_demo_is_asked_for():

@@ -217,3 +217,29 @@ def test_a_reading_beyond_the_history_leaves_the_history_for_those_within_it(kin
     F.run(fl.events, adapter(sc, kind), 0.1)
     within = [r for lag, r in lags.values() if lag <= 3.0]
     assert len(within) >= 20 and not any(within), within
+
+
+@pytest.mark.parametrize("kind", ["robust", "kf"])
+@pytest.mark.parametrize("first", [True, False])
+def test_a_corrupted_copy_of_a_sample_never_costs_the_true_one(kind, first):
+    """Two messages with one seq and stamp whose counts differ are a sample and a corruption of
+    it, not copies: whichever comes first, the corrupted one (5 km off) is refused and the true
+    one fused. Keyed by seq and stamp alone, a corrupted copy that came first and was refused by
+    the gate made the true sample after it a duplicate, and it was lost."""
+    sc, res = run(duration=60.0)
+    ev = restamp(res.events())
+    ref, r0 = replay(ev, adapter(sc, kind), 0.1)
+    i = [k for k, e in enumerate(ev) if e[0] == "odometer"][300]
+    t, s, f, rc = ev[i]
+    bad = (t, s, {**f, "distance": f["distance"] + 5000.0}, rc)
+    outs, r = replay(ev[:i] + [bad] + ev[i:] if first else ev[:i + 1] + [bad] + ev[i + 1:],
+                     adapter(sc, kind), 0.1)
+    assert r.accepted == r0.accepted
+    assert dict(r.rejected) == ({"odometer:outside_gate": 1} if first
+                                else {"odometer:duplicate": 1})
+    # every estimate as without the corruption, bit for bit; the true sample's own slot was
+    # published when the corrupted one was refused (one estimate per slot), a prediction of it
+    got = {o.stamp: (o.position, o.velocity) for o in outs}
+    want = {o.stamp: (o.position, o.velocity) for o in ref}
+    assert got.keys() == want.keys()
+    assert [k for k in want if got[k] != want[k]] == ([s] if first else [])

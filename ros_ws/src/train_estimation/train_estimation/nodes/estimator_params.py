@@ -70,7 +70,11 @@ def load_models(common: dict):
     except ConfigError as exc:
         raise ParameterError(str(exc)) from None
     x0 = common["initial_position"]
-    if not math.isfinite(x0):
+    if math.isnan(x0):
         x0 = line.stations[0].position if line.stations else 0.0
+    elif not 0.0 <= x0 <= line.length:  # +-inf included: NaN alone means the first station
+        raise ParameterError(f"parameter initial_position: {x0:g} m is off the line "
+                             f"({line.name}: 0 to {line.length:g} m); NaN starts at its "
+                             "first station")
     return train, line, StartState(position=x0, position_std=common["initial_position_std"],
                                     position_fault=common["initial_position_fault"])

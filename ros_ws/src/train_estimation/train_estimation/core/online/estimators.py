@@ -416,7 +416,7 @@ class BrakingConfig(OdometryConfig):
                            "al.'s GSMA, the node's name; kf: the exact estimator of the same "
                            "model, docs/benchmarks.md 'Braking-rate estimation')")
     values: tuple[float, ...] = param(
-        tuple(np.round(np.linspace(1.3, 0.0, 14), 10)), "-",
+        tuple(float(v) for v in np.round(np.linspace(1.3, 0.0, 14), 10)), "-",
         "discrete braking-rate set (GSMA, SMA, RBPF; Q-GRBPF uses its range); up to 1.3 so that "
         "a prior centred on the nominal 1.0 is not cut in half")
     braking_rate_prior_std: float = param(
@@ -435,8 +435,8 @@ class BrakingConfig(OdometryConfig):
     rbpf_p_move: float = param(0.1, "-", "RBPF sticky kernel: probability of moving to a "
                                "neighbour value", lo=0.0, hi=1.0)
     branch_p_move: float = param(0.1, "-", "GSMA/SMA children prior: P(move to a neighbour "
-                                 "value); -1 = the paper's uniform prior (forgets f at every "
-                                 "branching)")
+                                 "value), in [0, 1]; -1 = the paper's uniform prior (forgets f "
+                                 "at every branching)", lo=-1.0, hi=1.0)
     sma_p_jump: float = param(1e-3, "-", "SMA children prior: P(jump to a value beyond the "
                               "neighbours) per transition, spread evenly over them (an abrupt "
                               "change: a brake cut out, a cylinder failure -- rare)",
@@ -460,7 +460,7 @@ class BrakingConfig(OdometryConfig):
                                     "is not observed", lo=0.0)
     min_brake: float = param(0.1, "m/s^2", "weaker braking commands do not inform the braking "
                              "rate", lo=0.0)
-    seed: int = param(0, "", "particle-filter random stream")
+    seed: int = param(0, "", "particle-filter random stream", lo=0)
     gate_accel: float = param(1.5, "m/s^2", "acceleration error allowed in the gate's "
                               "look-ahead", lo=0.0)
     balise_map_tolerance: float = param(1.0, "m", "max |sent position - map position|", lo=0.0)
@@ -473,6 +473,19 @@ class BrakingConfig(OdometryConfig):
         require(math.isfinite(self.braking_rate_prior_std) and self.braking_rate_prior_std > 0,
                 "braking_rate_prior_std", self.braking_rate_prior_std, "must be finite and > 0")
         require(0 <= self.sma_p_jump < 1, "sma_p_jump", self.sma_p_jump, "must be in [0, 1)")
+        # a braking rate is a fraction of the nominal deceleration: below 0 the brake would
+        # accelerate the train; above 2 (the zone controller's plausible range) it is no train's
+        # and the set is a grid: GSMA's children and the sticky priors move to the neighbours
+        # by index, so the values must run one way
+        d = np.diff(self.values)
+        require(len(self.values) > 0 and all(math.isfinite(v) and 0.0 <= v <= 2.0
+                                             for v in self.values)
+                and (np.all(d < 0) or np.all(d > 0)),
+                "values", list(self.values), "must be one or more braking rates in [0, 2], "
+                "distinct and in order (rising or falling)")
+        p = self.branch_p_move
+        require(p == -1.0 or 0.0 <= p <= 1.0, "branch_p_move", p,
+                "must be in [0, 1], or -1 for the paper's uniform prior")
         super().__post_init__()
 
 

@@ -1218,14 +1218,14 @@ class _CounterWatch:
 
 
 def _copy_key(fields: dict, stamp: float) -> tuple:
-    """What makes a reading a copy of another: its seq and stamp, or without a counter (seq
-    None) its stamp and values (after a backward clock step a new sample comes at a stamp
-    already taken, with the count and speed of its own time)."""
-    seq = fields.get("seq")
-    if seq is not None:
-        return seq, stamp
-    return (None, stamp) + tuple(fields.get(k) for k in ("distance", "speed", "balise_id",
-                                                         "position"))
+    """What makes a reading a copy of another: the same seq, stamp and values. Without a
+    counter (seq None) a backward clock step sends a new sample at a stamp already taken, with
+    the count and speed of its own time; with one, two messages of one seq and stamp whose
+    values differ are not copies but one sample and a corruption of it, and the filters judge
+    both (a copy key without the values let a corrupted copy that came first, and was refused
+    by the gate, refuse the true sample after it as its duplicate)."""
+    return (fields.get("seq"), stamp) + tuple(fields.get(k) for k in (
+        "distance", "speed", "balise_id", "position"))
 
 
 def _sample_key(fields: dict):
