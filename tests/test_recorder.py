@@ -64,3 +64,59 @@ def test_kill_9_keeps_everything_up_to_the_last_flush(launch, ros_node, tmp_path
     with AnyReader([bag]) as r:  # rosbags opens it as it is
         got = [r.deserialize(raw, c.msgtype).seq for c, _, raw in r.messages()]
     assert got == seqs
+
+
+def test_one_topic_given_twice_is_refused_before_a_bag_is_made(launch, tmp_path):
+    """``odometer`` and ``/rec/odometer`` are one topic: recorded twice, every message was
+    written twice (949 in the bag for 475 published)."""
+    bag = tmp_path / "bag"
+    proc = launch.node("train_estimation", "recorder", "--ros-args", "-r", f"__ns:={NS}",
+                       "-p", f"bag:={bag}", "-p", f"topics:=[odometer,{NS}/odometer]")
+    proc.wait(timeout=60)
+    out = open(proc.log_path).read()
+    assert proc.returncode == 2, out
+    assert [ln for ln in out.splitlines() if ln.strip()] == [
+        "error: parameter topics: 'odometer' and '/rec/odometer' are one topic, "
+        "/rec/odometer: give it once"], out
+    assert not bag.exists()
+
+
+@pytest.mark.parametrize("given,named", [({"flush_period": 0.0}, "flush_period"),
+                                         ({"topics": ("odometer", "odometer")}, "topics"),
+                                         ({"topics": ()}, "topics")])
+def test_the_recorders_config_names_what_it_refuses(given, named):
+    from train_core.config import ConfigError
+
+    from train_estimation.nodes.recorder import RecorderConfig
+
+    with pytest.raises(ConfigError, match=f"parameter {named}:"):
+        RecorderConfig(bag="b", **given)
+
+
+def test_a_stop_takes_what_the_subscriptions_hold_and_no_more_than_its_budget():
+    """At a stop, the messages delivered to the recorder but not yet taken are taken (the run
+    loop drains until the count of messages taken stays), and a publisher that goes on
+    cannot hold the stop past the budget."""
+    from train_core.ros import _drain
+
+    class Node:
+        taken = 0
+
+    class Executor:
+        def __init__(self, queued, endless=False):
+            self.queued, self.endless = queued, endless
+
+        def spin_once(self, timeout_sec):
+            if self.queued or self.endless:
+                self.queued = max(self.queued - 1, 0)
+                node.taken += 1
+
+    node = Node()
+    _drain(Executor(500), node)
+    assert node.taken == 500
+    node.taken = 0
+    import time
+
+    t0 = time.monotonic()
+    _drain(Executor(0, endless=True), node, budget=0.2)
+    assert 0.2 <= time.monotonic() - t0 < 5.0 and node.taken > 0

@@ -151,6 +151,7 @@ def declarer(node):
     return declare
 
 
+DRAIN_BUDGET = 2.0  # s, the longest a node that records drains its queues at a stop
 INT_BOUND = 2 ** 63 - 1  # IntegerRange is int64: "unbounded" on one side
 
 
@@ -479,6 +480,8 @@ def run_node(factory: Callable, ros_args: list[str]) -> int:
             executor.spin_once(timeout_sec=0.05)
             if getattr(node, "finished", False):
                 break
+        if stop["flag"] and rclpy.ok() and hasattr(node, "taken"):
+            _drain(executor, node)
     except ParameterError as exc:
         print(f"error: {exc}", file=sys.stderr)
         code = 2
@@ -498,6 +501,20 @@ def run_node(factory: Callable, ros_args: list[str]) -> int:
         if rclpy.ok():
             rclpy.shutdown()
     return code
+
+
+def _drain(executor, node, budget: float = DRAIN_BUDGET) -> None:
+    """Take what the node's subscriptions hold when it is told to stop: a recorder that lags
+    its topics has messages delivered to it but not yet taken, and they belong in the bag.
+    Spins without waiting until ``node.taken`` (messages taken) stays put over a few turns,
+    for at most ``budget`` s (a publisher that goes on must not hold the stop)."""
+    import time
+
+    end, still = time.monotonic() + budget, 0
+    while still < 3 and time.monotonic() < end:
+        before = node.taken
+        executor.spin_once(timeout_sec=0.0)
+        still = still + 1 if node.taken == before else 0
 
 
 def _kind(value) -> str:

@@ -85,3 +85,27 @@ def test_ground_truth_covariance_is_nan():
     assert truth and all(len(f["covariance"]) == 16 and all(math.isnan(c)
                                                               for c in f["covariance"])
                          for f in truth)
+
+
+@pytest.mark.parametrize("eoa,speed,why", [
+    (math.nan, 22.23, "non_finite: end_of_authority is NaN"),
+    (LINE_END, math.nan, "bad_speed: permitted_speed nan is not >= 0"),
+    (LINE_END, -1.0, "bad_speed: permitted_speed -1.0 is not >= 0"),
+])
+def test_an_authority_that_says_nothing_is_refused_and_the_one_in_force_kept(eoa, speed, why):
+    """One authority with a NaN end or speed stopped the train where it was, for good; refused
+    with its reason, the run is the one without it. An emergency brake in such a message is
+    still applied (the safe side), its end and speed not taken."""
+    ref = _run([2.0], duration=60.0)
+    w = World(load_scenario("metro_demo"))
+    w.set_movement_authority(-math.inf, 0.0, True)
+    w.advance(2.0)
+    w.set_movement_authority(LINE_END, 22.23, False)
+    w.advance(30.0)
+    assert w.set_movement_authority(eoa, speed, False) == why
+    w.advance(60.0)
+    a, b = ref.result().truth, w.result().truth
+    assert all(np.array_equal(a[k], b[k]) for k in a)
+    assert w.set_movement_authority(eoa, speed, True) == why
+    assert w.driver.emergency and w.driver.eoa == LINE_END
+    assert w.set_movement_authority(math.inf, 22.23, False) == ""  # the open line

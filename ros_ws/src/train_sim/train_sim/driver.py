@@ -117,14 +117,28 @@ class Driver:
         self.braking_rate_belief = float(braking_rate)
 
     def set_movement_authority(self, end_of_authority: float, permitted_speed: float,
-                               emergency_brake: bool) -> None:
+                               emergency_brake: bool) -> str:
+        """Take the zone controller's authority; "" or why its end or speed was refused
+        (``name: detail``).
+
+        An end of authority that is NaN (+-inf are the open line and none) or a permitted speed
+        that is NaN or negative says nothing the train can stop at: the authority in force is
+        kept (one such message stopped the train where it was, for good). An emergency brake
+        is applied whatever its other fields say: it is the safe side."""
+        why = ("non_finite: end_of_authority is NaN" if math.isnan(end_of_authority)
+               else "" if permitted_speed >= 0.0 else
+               f"bad_speed: permitted_speed {permitted_speed!r} is not >= 0")
+        if why and not emergency_brake:
+            return why
         if emergency_brake and not self.emergency:
             self.emergency_brakes += 1
             self.startup_emergency_brakes += not self.authorised
         self.authorised |= not emergency_brake
         self.emergency = bool(emergency_brake)
-        self.eoa = float(end_of_authority)
-        self.permitted_speed = float(permitted_speed)
+        if not why:
+            self.eoa = float(end_of_authority)
+            self.permitted_speed = float(permitted_speed)
+        return why
 
     # -- the control law -------------------------------------------------------------------------
     def update(self, t: float, x: float, v: float, stopped: bool) -> float:

@@ -155,10 +155,13 @@ class World:
 
     # -- inputs ----------------------------------------------------------------------------------
     def set_movement_authority(self, end_of_authority: float, permitted_speed: float,
-                               emergency_brake: bool) -> None:
-        """Hand the zone controller's authority to the ATO (takes effect at its next cycle)."""
-        if self.driver is not None:
-            self.driver.set_movement_authority(end_of_authority, permitted_speed, emergency_brake)
+                               emergency_brake: bool) -> str:
+        """Hand the zone controller's authority to the ATO (takes effect at its next cycle);
+        "" or why it was refused (``Driver.set_movement_authority``)."""
+        if self.driver is None:
+            return ""
+        return self.driver.set_movement_authority(end_of_authority, permitted_speed,
+                                                  emergency_brake)
 
     def set_braking_rate_belief(self, braking_rate: float) -> None:
         if self.driver is not None:

@@ -229,20 +229,21 @@ class EstimatorNode(Node):
             self.arrived[stamp] = wall  # for the received -> published latency
             if self.trace:
                 self.trace.mark("reading", stamp)
-        if reason:
-            self.get_logger().warning(f"{kind} rejected: {reason}", throttle_duration_sec=2.0)
 
-    def _log_event(self, kind: str, stamp: float, text: str, now: float) -> None:
-        """One line per event, but at most one per kind of event every EVENT_LOG_PERIOD s
-        (a lagging node fuses hundreds of readings late in a row): the next line says how
-        many were not logged (all are counted in /diagnostics)."""
-        key = (kind, text.split(":", 1)[0])
+    def _log_event(self, kind: str, stamp: float, text: str, now: float,
+                   warn: bool = False, what: str | None = None) -> None:
+        """One line per event (``warn``: per input refused), but at most one per kind of
+        event and input every EVENT_LOG_PERIOD s (a lagging node fuses hundreds of readings
+        late in a row): the next line says how many were not logged (all are counted in
+        /diagnostics)."""
+        key = (kind, what or text.split(":", 1)[0])
         last, quiet = self.event_log.get(key, (-math.inf, 0))
         if now - last < EVENT_LOG_PERIOD:
             self.event_log[key] = (last, quiet + 1)
             return
         more = f" ({quiet} more like it not logged)" if quiet else ""
-        self.get_logger().info(f"{kind} at {stamp:.3f} s: {text}{more}")
+        log = self.get_logger()
+        (log.warning if warn else log.info)(f"{kind} at {stamp:.3f} s: {text}{more}")
         self.event_log[key] = (now, 0)
 
     def on_odometer(self, msg) -> None:
@@ -305,11 +306,13 @@ class EstimatorNode(Node):
                                    "mapped onto the odometer's clock (drift "
                                    f"{self.runner.drift:.2e} so far)")
         total = sum(self.runner.rejected.values())
-        if total > self.n_reported:  # the core refused input: say why (throttled)
-            kind, stamp, why = self.runner.last_reasons[-1]
+        if total > self.n_reported:  # the door or the core refused input: say why, once
+            # (the runner keeps the last 20 reasons; every one is counted in /diagnostics)
+            fresh = self.runner.last_reasons[-min(total - self.n_reported, 20):]
             self.n_reported = total
-            self.get_logger().warning(f"{kind} at {stamp:.3f} s rejected: {why} "
-                                      f"({total} rejected so far)", throttle_duration_sec=2.0)
+            for kind, stamp, why in fresh:
+                self._log_event(kind, stamp, f"rejected: {why} ({total} rejected so far)",
+                                t_tick, warn=True, what="rejected " + why.split(":", 1)[0])
         # the state a late reading would rewind to, copied now that the estimates are out
         # rather than between the next reading's arrival and its estimate
         # (EstimatorRunner.settle), and the garbage collection the allocations made due,

@@ -17,6 +17,7 @@ silence; bytes written) goes to ``/diagnostics``.
 
 from __future__ import annotations
 
+import math
 import sys
 from dataclasses import dataclass
 
@@ -30,6 +31,7 @@ from train_core.ros import (
 DESCRIPTION = __doc__.splitlines()[0]
 DEFAULT_TOPICS = ["odometer", "balise", "control", "ground_truth", "estimate/robust",
                   "estimate/gsma", "movement_authority"]
+MIN_FLUSH = 0.01  # s, the shortest flush_period
 SPARSE = ("balise",)  # minutes apart by design: never judged stale
 
 
@@ -64,10 +66,20 @@ class RecorderConfig:
                                     "(docs/interfaces.md names, estimate/NAME, odom/NAME, "
                                     "/diagnostics)")
     bag: str = param("", "", "bag directory to create (must not exist)")
-    flush_period: float = param(1.0, "s", "of wall time between chunk flushes", lo=0.0)
+    flush_period: float = param(1.0, "s", "of steady (wall) time between chunk flushes, at "
+                                "least 0.01 (a flush is a write to disk: at 0 the recorder "
+                                "flushed without pause and fell behind its topics)",
+                                lo=MIN_FLUSH)
 
     def __post_init__(self):
         require(bool(self.bag), "bag", self.bag, "is empty: give the bag directory to write")
+        require(math.isfinite(self.flush_period) and self.flush_period >= MIN_FLUSH,
+                "flush_period", self.flush_period, f"must be finite and >= {MIN_FLUSH:g}")
+        require(len(self.topics) > 0, "topics", list(self.topics), "is empty: give the "
+                "topics to record")
+        twice = sorted({t for t in self.topics if self.topics.count(t) > 1})
+        require(not twice, "topics", twice, "given twice: each message would be written "
+                "twice")
         unknown = [t for t in self.topics if topic_type(t) is None]
         require(not unknown, "topics", unknown, f"unknown (allowed: {sorted(TOPIC_TYPES)}, "
                 "estimate/NAME, odom/NAME, /diagnostics)")

@@ -29,6 +29,15 @@ class Recorder(Node):
         except ValueError as exc:
             raise ParameterError(str(exc)) from None
         topics, bag, flush = list(cfg.topics), cfg.bag, cfg.flush_period
+        given: dict[str, str] = {}  # resolved name -> the name given
+        for topic in topics:
+            full = self.resolve_topic_name(topic)
+            if full in given:  # two names of one topic: every message would be written twice
+                raise ParameterError(f"parameter topics: {given[full]!r} and {topic!r} are "
+                                     f"one topic, {full}: give it once")
+            given[full] = topic
+        # every parameter judged before the bag's directory is made
+        self.diag = Diagnostics(self, "bag recorder", D.StaleThresholds, self.diagnostics)
         ns = self.get_namespace()
         try:
             self.writer = BagWriter(bag, namespace=ns if ns != "/" else "")
@@ -39,17 +48,21 @@ class Recorder(Node):
         self.started = self.steady.now().nanoseconds * 1e-9
         self.received: dict[str, int] = {}
         self.last_arrival: dict[str, float] = {}
-        for topic in topics:
+        for full, topic in given.items():
             msgtype = topic_type(topic)
-            full = self.resolve_topic_name(topic)
             self.received[full], self.last_arrival[full] = 0, math.nan
             self.create_subscription(
                 type_class(msgtype), topic,
                 lambda data, full=full, msgtype=msgtype: self.on_msg(full, msgtype, data),
                 1000, raw=True)
-        self.timer = self.create_timer(flush, self.writer.flush)
-        self.diag = Diagnostics(self, "bag recorder", D.StaleThresholds, self.diagnostics)
+        # steady time, as the parameter says: on simulated time /clock may stop or race
+        self.timer = self.create_timer(flush, self.writer.flush, clock=self.steady)
         self.get_logger().info(f"recording {topics} in {ns} to {bag}")
+
+    @property
+    def taken(self) -> int:
+        """Messages taken so far (``run_node`` drains the queues at a stop until it stays)."""
+        return sum(self.received.values())
 
     def on_msg(self, topic: str, msgtype: str, data: bytes) -> None:
         t_ns = self.get_clock().now().nanoseconds

@@ -100,6 +100,7 @@ class SimulatorNode(Node):
         self.started = self.steady.now().nanoseconds * 1e-9
         self.in_received = dict.fromkeys(["movement_authority", *self.paced], 0)
         self.in_last = dict.fromkeys(self.in_received, math.nan)
+        self.ma_rejected: dict[str, int] = {}  # why -> authorities refused
         self.diag = Diagnostics(self, "train world", D.StaleThresholds, self.diagnostics)
         self.get_logger().info(
             f"scenario {self.sc.name}, seed {self.world.seed}, {self.duration:.0f} s at "
@@ -111,7 +112,9 @@ class SimulatorNode(Node):
 
     def diagnostics(self):
         now = self.steady.now().nanoseconds * 1e-9
-        inputs = [D.InputCounts(t, n, n, {}, self.in_last[t], watch_stale=n > 0)
+        bad = {"movement_authority": self.ma_rejected}
+        inputs = [D.InputCounts(t, n, n - sum(bad.get(t, {}).values()), bad.get(t, {}),
+                                self.in_last[t], watch_stale=n > 0)
                   for t, n in self.in_received.items()]
         checks, values = self.diag.input_checks(now, self.started, inputs)
         state = ("waiting for subscribers" if self.wall0 is None
@@ -123,8 +126,15 @@ class SimulatorNode(Node):
 
     def on_ma(self, msg) -> None:
         self._arrived("movement_authority")
-        self.world.set_movement_authority(msg.end_of_authority, msg.permitted_speed,
-                                          msg.emergency_brake)
+        why = self.world.set_movement_authority(msg.end_of_authority, msg.permitted_speed,
+                                                msg.emergency_brake)
+        if why:
+            name = why.split(":")[0]
+            self.ma_rejected[name] = self.ma_rejected.get(name, 0) + 1
+            self.get_logger().warning(
+                f"movement authority refused ({why}; the one in force kept"
+                f"{', its emergency brake applied' if msg.emergency_brake else ''})",
+                throttle_duration_sec=2.0)
 
     def on_paced(self, topic: str, msg) -> None:
         self._arrived(topic)
