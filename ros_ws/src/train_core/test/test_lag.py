@@ -42,3 +42,27 @@ def test_grid_part_holds_each_command_from_its_first_grid_point(part):
     e = np.exp(-(t_grid[1] - t_grid[0]) / tau)  # the grid's own step
     want = lfilter([0.0, 1.0 - e], [1.0, -e], cmd)
     assert np.array_equal(grid_part(t_grid, ctrl_t, ctrl_a, tau, delay, part), want)
+
+
+@pytest.mark.parametrize("part", ["traction", "braking"])
+def test_a_command_inside_a_grid_step_acts_from_its_stamp_with_substep(part):
+    """actuator.grid_part with ``substep``: commands stamped anywhere (a producer off the
+    grid's lattice, two in one step) give on a 0.1 s grid the lag's exact response, the one a
+    1 ms grid with every stamp on it gives at the same instants; stamps on the lattice give
+    the same bits as without it."""
+    from train_core.actuator import grid_part
+
+    rng = np.random.default_rng(4)
+    ctrl_t = np.sort(np.round(rng.uniform(5.0, 45.0, 300), 3))
+    ctrl_a = rng.normal(size=ctrl_t.size)
+    delay, tau = 1.2, 0.4
+    fine = 5.0 + 0.001 * np.arange(50001)
+    exact = grid_part(fine, ctrl_t, ctrl_a, tau, delay, part)
+    coarse = fine[::100]
+    got = grid_part(coarse, ctrl_t, ctrl_a, tau, delay, part, substep=True)
+    assert np.max(np.abs(got - exact[::100])) < 1e-9
+    held = grid_part(coarse, ctrl_t, ctrl_a, tau, delay, part)
+    assert np.max(np.abs(held - exact[::100])) > 0.05  # up to a step late without it
+    on = np.round(ctrl_t, 1)
+    assert np.array_equal(grid_part(coarse, on, ctrl_a, tau, delay, part, substep=True),
+                          grid_part(coarse, on, ctrl_a, tau, delay, part))

@@ -182,25 +182,40 @@ def step_response(t, amplitude: float, time_constant: float, delay: float,
     return np.where(t < delay, 0.0, ue * (1.0 - np.exp(-(t - delay) / time_constant)))
 
 
+SUBSTEP_RES = 1e-6  # s: a command stamped closer than this before a grid point acts from it
+
+
 def grid_output(t_grid, ctrl_t, ctrl_a, tau: float, delay: float,
-                brake_delay: float | None = None):
+                brake_delay: float | None = None, substep: bool = False):
     """(traction, braking) actuator outputs on ``t_grid`` (uniform): delayed zero-order-hold
     command split at zero, each through the first-order lag tau (exact discretisation); the
     braking part before the braking rate f (module docstring: why this and :class:`Actuator`).
 
     The traction part is delayed by ``delay``, the braking part by ``brake_delay`` (default the
     same: the brake chain of :class:`Actuator`). The command before the first stamp is 0
-    (Zheng eq. (1): a_Tar(t - T) = 0 for t <= T).
+    (Zheng eq. (1): a_Tar(t - T) = 0 for t <= T). ``substep``: each command acts from its own
+    stamp, not from the grid point after it (:func:`grid_part`).
     """
-    return (grid_part(t_grid, ctrl_t, ctrl_a, tau, delay, "traction"),
+    return (grid_part(t_grid, ctrl_t, ctrl_a, tau, delay, "traction", substep),
             grid_part(t_grid, ctrl_t, ctrl_a, tau, delay if brake_delay is None
-                      else brake_delay, "braking"))
+                      else brake_delay, "braking", substep))
 
 
-def grid_part(t_grid, ctrl_t, ctrl_a, tau: float, delay: float, part: str):
+def grid_part(t_grid, ctrl_t, ctrl_a, tau: float, delay: float, part: str,
+              substep: bool = False):
     """One part of :func:`grid_output`: ``part`` "traction" (the command's positive part) or
     "braking" (its negative part), delayed by ``delay`` and lagged by ``tau`` on ``t_grid``
-    (an analysis that re-times only one part computes only that one)."""
+    (an analysis that re-times only one part computes only that one).
+
+    Each command is held from the first grid point at or after its (delayed) stamp. With
+    ``substep`` (stamps in order), a command that falls inside a grid step acts from its stamp
+    on: the lag's exact response to an input that switches at ``s`` within the step
+    (t_k-1, t_k] is that of the input held over it at ``u_old + (u_new - u_old) (1 -
+    exp(-(t_k - s) / tau)) / (1 - exp(-dt / tau))``. Without it a producer whose commands are
+    stamped off the grid's lattice has its actuator up to a grid step late (0.1 s: identify's
+    mass and braking rate 6-10 standard errors off on another simulator's nominal runs). A
+    stamp within 1 us of a grid point is on it: on-lattice data gives the same bits either way.
+    """
     import numpy as np
 
     from .lag import first_order
@@ -222,6 +237,16 @@ def grid_part(t_grid, ctrl_t, ctrl_a, tau: float, delay: float, part: str):
         # next one's, 0 before the first: the same selection as below, a fifth of its time
         cmd = np.repeat(np.concatenate([[0.0], np.asarray(ctrl_a, float)]),
                         np.diff(np.concatenate([[0], first, [x.size]])))
+        if substep:
+            u = clip(cmd, 0.0)
+            vals = clip(np.asarray(ctrl_a, float), 0.0)
+            jump = np.diff(np.concatenate([[0.0], vals]))  # the clipped command's steps
+            inner = (first >= 1) & (first < x.size)
+            k = first[inner]
+            lead = t_grid[k] - (np.asarray(ctrl_t, float)[inner] + delay)  # s before t_k
+            on = lead > SUBSTEP_RES
+            np.add.at(u, k[on] - 1, jump[inner][on] * -np.expm1(-lead[on] / tau) / (1.0 - e))
+            return first_order(u, e, 1.0 - e)
     else:
         i = np.cumsum(np.bincount(first, minlength=x.size + 1)[:x.size]) - 1
         cmd = np.where(i >= 0, ctrl_a[np.clip(i, 0, None)], 0.0)

@@ -62,7 +62,11 @@ def train_to_yaml(train: TrainParams, res, prior: TrainParams, source: str) -> s
         f"  c: {d.c:.6g}                  # N/(m/s)^2, {note('davis.c')}",
         "brake:",
         f"  time_constant: {train.brake.time_constant:g}   # s, from the prior",
-        f"  delay: {train.brake.delay:g}           # s, from the prior",
+        f"  delay: {train.brake.delay:.4g}           # s, "
+        + (f"the prior's {prior.brake.delay:g} + the commands' time offset "
+           f"{res.diagnostics['command_offset_s']:+.3f} +- "
+           f"{res.diagnostics.get('command_offset_se', math.nan):.3f}"
+           if train.brake.delay != prior.brake.delay else "from the prior"),
         f"  braking_rate: {train.brake.braking_rate:.4g}    # -, {note('braking_rate')}",
         f"odometer: {{speed_std: {train.odometer_speed_std:g}, "
         f"distance_std: {train.odometer_distance_std:g}}}   # m/s, m (prior)",
@@ -114,6 +118,13 @@ def print_identifiability(res, out=None) -> None:
     """The force at the reference speed, the correlations and inflation factors of the free
     parameters, the parameters the rule fixed, and the rule (to ``out``, default stdout)."""
     out = sys.stdout if out is None else out
+    off = res.diagnostics.get("command_offset_s")
+    if off is not None:
+        se = res.diagnostics.get("command_offset_se", math.nan)
+        print(f"commands act {off:+.3f} s +- {se:.3f} s after their stamps (profiled; every "
+              "standard error above holds this doubt)", file=out)
+        if "command_offset" in res.reasons:
+            print(f"  {res.reasons['command_offset']}", file=out)
     f = res.force_at_reference_speed
     if f:
         print(f"resistance force at {f['speed']:.1f} m/s (median moving speed): fitted "
@@ -169,8 +180,11 @@ def main(argv=None) -> int:
     p.add_argument("--train", required=True, help="train.yaml: the prior")
     p.add_argument("--out", required=True, help="fitted train.yaml to write")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--commands-as-stamped", action="store_true",
+                   help="take the commands to act when stamped (a producer known to stamp "
+                        "them so) instead of profiling their time offset (docs/identify.md)")
     args = p.parse_args(argv)
-    from train_estimation.core.offline.identify import IdentificationError, identify
+    from train_estimation.core.offline.identify import IdentificationError, SIConfig, identify
 
     bag = None
     try:
@@ -179,7 +193,9 @@ def main(argv=None) -> int:
         if unclosed(bag) and not args.quiet:
             print(f"identify: note: {args.bag}{unclosed(bag)}", file=sys.stderr)
         data = MeasuredRun.from_bag(bag).to_identify()
-        res = identify(data, line, prior, progress=None if args.quiet else Progress("identify"))
+        cfg = SIConfig(command_offsets=None) if args.commands_as_stamped else SIConfig()
+        res = identify(data, line, prior, cfg,
+                       progress=None if args.quiet else Progress("identify"))
     except (ConfigError, BagError) as exc:
         return fail("identify", str(exc))
     except IdentificationError as exc:  # a truncated bag is the usual reason: named, with the
