@@ -179,3 +179,21 @@ def test_commands_that_act_later_than_stamped_are_found_and_doubted(c_plus_30):
     for name, se in alone.std_errors.items():
         if np.isfinite(se):
             assert res.std_errors[name] >= se * (1 - 1e-9), name
+
+
+def test_a_brake_delay_longer_than_believed_is_found_beyond_the_range():
+    """A train whose actuator answers 0.6 s later than train.yaml says: the best offset lies
+    past the profile's +0.5 s, so the range goes on, and the offset found is the 0.6 s within
+    3 of its standard errors, f and the mass within 3 of theirs; the fitted train's delay
+    carries it. (Taken as stamped, f came 3.6 of its standard errors off the truth.)"""
+    from dataclasses import replace
+
+    true = METRO.with_changes(brake=replace(METRO.brake, delay=METRO.brake.delay + 0.6))
+    run = simulate_run(true, LINE, np.random.default_rng(14), 1200.0)
+    res = identify(_data(run), LINE, METRO)
+    dg = res.diagnostics
+    assert abs(dg["command_offset_s"] - 0.6) < 3 * dg["command_offset_se"], dg
+    assert "command_offset" not in res.reasons
+    for name, want in (("mass", true.mass), ("braking_rate", 1.0)):
+        assert abs(res.values[name] - want) < 3 * res.std_errors[name], name
+    assert res.train.brake.delay == pytest.approx(METRO.brake.delay + dg["command_offset_s"])

@@ -634,6 +634,7 @@ def identify(data: SIData, line: Line, prior: TrainParams, config: SIConfig = SI
 
 OFFSET_TOL = 0.002  # s, the command offset's search resolution (its SE is 0.01 on 10-min runs)
 OFFSET_H = 0.01  # s, the half-width of the parabola for the offset's variance
+OFFSET_MAX = 2.0  # s, the latest the profile looks for the commands to act after their stamps
 
 
 def _profiled(d: dict, duration, lo, hi, line: Line, prior: TrainParams, cfg: SIConfig,
@@ -676,7 +677,20 @@ def _profiled(d: dict, duration, lo, hi, line: Line, prior: TrainParams, cfg: SI
                 fits[sh] = None
         return -math.inf if fits[sh] is None else fits[sh].diagnostics["loglik"]
 
-    coarse = np.array([ll(sh) for sh in grid])
+    coarse = [ll(sh) for sh in grid]
+    # the best at an end of the range: the range goes on a step at a time, up to OFFSET_MAX
+    # later (a brake delay 0.6 s longer than believed is an offset of +0.6 s) and down to the
+    # believed delay (commands cannot act before they are given)
+    grid = list(grid)
+    while np.isfinite(coarse[-1]) and int(np.argmax(coarse)) == len(grid) - 1 \
+            and grid[-1] + step <= OFFSET_MAX + 1e-9:
+        grid.append(grid[-1] + step)
+        coarse.append(ll(grid[-1]))
+    while np.isfinite(coarse[0]) and int(np.argmax(coarse)) == 0 \
+            and prior.brake.delay + grid[0] - step > 0.0:
+        grid.insert(0, grid[0] - step)
+        coarse.insert(0, ll(grid[0]))
+    grid, coarse = np.asarray(grid), np.asarray(coarse)
     if not np.any(np.isfinite(coarse)):
         raise first_error[0]
     i = int(np.argmax(coarse))
@@ -708,6 +722,11 @@ def _profiled(d: dict, duration, lo, hi, line: Line, prior: TrainParams, cfg: SI
                 best = round(best + float(np.clip((l0 - l2) / (2.0 * h * curv), -h, h)), 9)
             else:
                 lo_f = hi_f = None
+        if not math.isfinite(var):
+            reasons_extra["command_offset"] = (
+                "the likelihood is not curved about the offset found (the model's actuator "
+                "lag or delay may be off, or the fit flat in it): its doubt is in no "
+                "standard error")
     out = _identify_at(d, best, duration, lo, hi, line, prior, cfg, None)
     std = dict(out.std_errors)
     if math.isfinite(var) and lo_f is not None and hi_f is not None:
