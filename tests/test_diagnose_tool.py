@@ -791,8 +791,9 @@ def test_a_slip_episode_must_step_in_the_odometer_readings():
     command drops from 0.3 to 0.12 m/s^2 (through a 0.5 s lag) inside the episode, and which
     delivers 80 % of what is commanded: its speed bends there but does not step. An episode
     fitted at +2 % where the readings do not step is contradicted; readings that read 5 %
-    more inside [t0, t1) show that step (within 3 SE) and are not; a step of 0.1 % is below
-    what the readings resolve and is not contradicted either; another episode's readings
+    more inside [t0, t1) show that step (within 3 SE) and are not, and support it; a step of
+    0.1 % is below what the readings resolve: neither contradicted nor supported, so not the
+    slip's (it was confirmed, as nothing could contradict it); another episode's readings
     nearby are left out."""
     from types import SimpleNamespace
 
@@ -814,14 +815,14 @@ def test_a_slip_episode_must_step_in_the_odometer_readings():
                                grid=SimpleNamespace(t=g), a_tr0=a_tr0, a_br0=np.zeros(g.size))
 
     smooth = slip_step(mo(v + noise), (t0, t1), 0.02)
-    assert smooth["contradicted"], smooth
+    assert smooth["contradicted"] and not smooth["supported"], smooth
     eps = 0.05  # the odometer reads (1 + eps) v inside: column coefficient eps / (1 + eps)
     slipped = slip_step(mo(v * np.where(inside, 1.0 + eps, 1.0) + noise), (t0, t1),
                         eps / (1 + eps))
-    assert not slipped["contradicted"], slipped
+    assert not slipped["contradicted"] and slipped["supported"], slipped
     assert abs(slipped["step"] - eps / (1 + eps)) < 3 * slipped["se"], slipped
     small = slip_step(mo(v + noise), (t0, t1), 0.001)
-    assert not small["contradicted"], small
+    assert not small["contradicted"] and not small["supported"], small
     # a true 8 % slip on [19, 22) within the window: its readings are left out as another
     # episode's, and the smooth episode is still contradicted
     near = v * np.where((t >= 19.0) & (t < 22.0), 1.08, 1.0) + noise

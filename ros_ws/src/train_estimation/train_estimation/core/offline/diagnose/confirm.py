@@ -17,8 +17,8 @@ reported ``confirmed`` only when the checks below pass, the same for every cause
    one block counts at its own noise). Confirmed when D > 0 and Z > ``heldout_z``.
    Causes with a likelihood of their own (clock, link) use their own held-out gain. Slip
    episodes are then held out one by one (:func:`heldout_episodes`): an episode that the
-   other samples do not confirm, or whose readings on their own reject its step
-   (:func:`.contradict.slip_step`), is dropped.
+   other samples do not confirm, or whose readings on their own reject its step or do not
+   show one (:func:`.contradict.slip_step`), is dropped.
 2. **Resolution.** The fitted size is more than the data can resolve: each cause states its
    rule (``Cause.resolution``). Checked on the parameters after the joint refit; a fit that
    passes before the joint refit but not after is ``parameters at nominal after the joint
@@ -151,6 +151,14 @@ def confirm(mo: Motion, shift: float, accepted: list, resolved_before: dict, cfg
                 a.why = ("not a slip: the odometer's speed readings step by less than half the "
                          "fitted depth at the episodes' ends (the train's motion differs from "
                          "the model there, not the odometer)")
+                continue
+            if not a.parameters.get("intervals") and all(
+                    not e["readings_step"]["supported"] for e in eps):
+                a.status = "not confirmed"
+                a.why = (f"{NOT_SHOWN}: the speed readings on their own show no step at the "
+                         "episodes' ends, nor exclude one of half the fitted depth (the "
+                         "odometer's or the train's: a slip and a brief change of the train's "
+                         "motion fit alike)")
                 continue
             if not a.parameters.get("intervals"):
                 held = dict(held, ok=False, why="no episode confirmed on its own (held out "
@@ -305,6 +313,10 @@ def confirm(mo: Motion, shift: float, accepted: list, resolved_before: dict, cfg
 # shown beyond doubt, which contradicts nothing (the others are confirmed with it in the model)
 WITHOUT_EVIDENCE = ("held-out check failed", "below resolution",
                     "parameters at nominal after the joint refit")
+
+
+# how the reason of a slip whose episodes' readings neither show nor exclude a step begins
+NOT_SHOWN = "no slip shown"
 
 
 def without_evidence(fit: CauseFit) -> bool:

@@ -40,15 +40,20 @@ step by the episode's depth where it begins and step back where it ends, while t
 speed (smooth: the drive goes through the actuator's lag) does not. Around each episode the
 readings alone get a smooth curve in time (a cubic, plus the integrated traction and braking
 commands with free gains: it bends where the commands change) plus the episode's step (the
-same column as the filter's: the reading's own speed inside it). An episode whose readings
-reject a step of half its fitted size (one-sided, ``z`` SE, the SE widened by the local fit's
-reduced chi-square when above 1) stands in for motion the model lacks, not for slip: where
-a traction failed at a departure the filter's fit was +38 % while the readings stepped
-+3 +- 4 %; on the bench's slips the readings give 0.77-1.09 of the fitted depth at 9-70 SE.
+same column as the filter's: the reading's own speed inside it). Two one-sided tests at
+``z`` SE (the SE widened by the local fit's reduced chi-square when above 1), one per
+hypothesis. Readings that reject a step of half the fitted size *contradict* the slip: the
+episode stands in for motion the model lacks (where a traction failed at a departure the
+filter's fit was +38 % while the readings stepped +3 +- 4 %). Readings that do not reject
+*no step* leave it *unsupported*: the episode may be the odometer's or the train's, and the
+data cannot say which (a passing train's pressure wave, 4 s of a 0.3 m/s^2 retarding force,
+fitted as a 1.4 % slip whose readings stepped -0.2 +- 0.2 %, where half the fit was only 2.9
+SE: nothing could have contradicted it, and it was confirmed). Either way the episode is not
+the slip's. On the bench's slips the readings give 0.77-1.09 of the fitted depth at 9-70 SE.
 A change of the drive inside the episode that the commands do not show (a traction lost where
 the command holds) bends the speed where the cubic cannot follow, and the step takes part of
-it: such an episode is not contradicted (at a neutral section's start: fitted +1.4 %, the
-readings +0.4 +- 0.2 %).
+it (at a neutral section's start: fitted +1.4 %, the readings +0.4 +- 0.2 %, 2 SE:
+unsupported).
 
 **Causes that cancel** (:func:`cancelling`). Two confirmed causes whose contributions are
 each large in a phase (> ``CANCEL_SHARE`` = 1/10 of their own energy there) while their sum
@@ -265,14 +270,15 @@ def piece_of(mo: Motion, others: Null, full: Null, cfg, noise, found: list) -> s
 
 def slip_step(mo: Motion, interval, theta: float, z: float = 3.0, others=(),
               shape: str = "step") -> dict:
-    """The slip step test of the module docstring for one episode ``interval`` [t0, t1) (s,
+    """The slip step tests of the module docstring for one episode ``interval`` [t0, t1) (s,
     the run's clock) with the filter's column coefficient ``theta`` (the share of the reading
-    inside that is slip): {step, se, contradicted}. Readings inside the ``others`` episodes
-    ([t0, t1) each) are left out (they hold their own steps). The train's speed around it is
-    a cubic in time plus the integrals of the traction and of the braking commanded (through
-    the believed actuator), each with a free gain: it bends where the commands change,
-    whatever the drive delivers, and cannot step. With a ``shape`` (motion.SLIP_SHAPES) the
-    step is the episode's peak, the readings inside weighted by the shape."""
+    inside that is slip): {step, se, contradicted, supported}. Readings inside the ``others``
+    episodes ([t0, t1) each) are left out (they hold their own steps). The train's speed
+    around it is a cubic in time plus the integrals of the traction and of the braking
+    commanded (through the believed actuator), each with a free gain: it bends where the
+    commands change, whatever the drive delivers, and cannot step. With a ``shape``
+    (motion.SLIP_SHAPES) the step is the episode's peak, the readings inside weighted by the
+    shape."""
     r = mo.run
     t0, t1 = float(interval[0]), float(interval[1])
     pad = max(3.0, t1 - t0)
@@ -282,7 +288,7 @@ def slip_step(mo: Motion, interval, theta: float, z: float = 3.0, others=(),
     t, y = r.odo_t[k], r.odo_v[k]
     inside = (t >= t0) & (t < t1)
     if inside.sum() < 2 or (~inside).sum() < 8:
-        return {"step": None, "se": None, "contradicted": False}
+        return {"step": None, "se": None, "contradicted": False, "supported": False}
     g = mo.grid.t
     drives = []
     for part in (mo.a_tr0, mo.a_br0):
@@ -300,7 +306,10 @@ def slip_step(mo: Motion, interval, theta: float, z: float = 3.0, others=(),
     step = float(th[-1])
     # one-sided: the readings' step falls short of half the fitted one by more than z SE
     short = (0.5 * abs(theta) - math.copysign(1.0, theta) * step) / se if se > 0 else 0.0
-    return {"step": step, "se": se, "contradicted": bool(dof > 0 and short > z)}
+    # and the other way: the readings step, in the fit's direction, by more than z SE
+    beyond = math.copysign(1.0, theta) * step / se if se > 0 else 0.0
+    return {"step": step, "se": se, "contradicted": bool(dof > 0 and short > z),
+            "supported": bool(dof > 0 and beyond > z)}
 
 
 def _rng(r) -> str:

@@ -202,8 +202,9 @@ def heldout_episodes(mo: Motion, others: Null, fit: CauseFit, cfg: DiagConfig, n
     model ``others`` plus the other episodes at their fitted coefficients, the episode's
     coefficient is fitted on alternate odometer samples and scored on the others (the score
     test of :func:`heldout_motion`, both folds), and its readings on their own must show its
-    step (:func:`.contradict.slip_step`). An episode that fails is dropped from ``fit``
-    (``WheelSlip.keep_episodes``: in place; the others keep the joint fit's values). Returns
+    step: not contradict it, and support it against no step (:func:`.contradict.slip_step`).
+    An episode that fails is dropped from ``fit`` (``WheelSlip.keep_episodes``: in place; the
+    others keep the joint fit's values). Returns
     each episode's figures."""
     shapes = list(fit.extra.get("shapes") or [])
     ivs = [tuple(iv) for iv in fit.parameters.get("intervals", [])]
@@ -234,7 +235,7 @@ def heldout_episodes(mo: Motion, others: Null, fit: CauseFit, cfg: DiagConfig, n
         gain, _, z, ok = _score(num, var, ccfg)
         step = slip_step(mo, iv, th[j], others=[w for i, w in enumerate(ivs) if i != j],
                          shape=shapes[j])
-        if step["contradicted"]:
+        if step["contradicted"] or not step["supported"]:
             ok = False
         out.append({"interval": list(iv), "gain_loglik": gain, "z": z, "readings_step": step,
                     "confirmed": ok})

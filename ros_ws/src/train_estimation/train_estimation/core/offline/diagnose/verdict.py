@@ -14,6 +14,7 @@ import numpy as np
 from .causes import BY_NAME, REGISTRY
 from .confirm import (
     CONFIRM,
+    NOT_SHOWN,
     _null_of,
     confirm,
     refit_rivals,
@@ -202,7 +203,9 @@ def _rival_entry(a: CauseFit, r: dict) -> dict:
 # how the reasons of a cause not confirmed because the data contradict its fitted effect begin
 # (confirm.py): the phase split needs it changed by more than half of itself in a cell, or the
 # odometer's readings do not step at a slip episode's ends
-CONTRADICTED = ("contradicted by the phase split", "not a slip")
+# a slip whose readings show no step is among them: whether its effect is in the data is
+# not shown, and it took its part of the residuals out of the process noise all the same
+CONTRADICTED = ("contradicted by the phase split", "not a slip", NOT_SHOWN)
 
 
 def verdict_noise(sr: _Search, shift: float, noise) -> tuple:
