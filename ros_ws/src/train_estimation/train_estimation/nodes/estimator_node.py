@@ -242,8 +242,13 @@ class EstimatorNode(Node):
             self.event_log[key] = (last, quiet + 1)
             return
         more = f" ({quiet} more like it not logged)" if quiet else ""
-        log = self.get_logger()
-        (log.warning if warn else log.info)(f"{kind} at {stamp:.3f} s: {text}{more}")
+        # one call site per severity: rclpy's logger refuses a call site whose severity
+        # changes between calls (ValueError in the callback: the node died)
+        line = f"{kind} at {stamp:.3f} s: {text}{more}"
+        if warn:
+            self.get_logger().warning(line)
+        else:
+            self.get_logger().info(line)
         self.event_log[key] = (now, 0)
 
     def on_odometer(self, msg) -> None:
