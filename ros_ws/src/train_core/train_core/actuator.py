@@ -232,24 +232,25 @@ def grid_part(t_grid, ctrl_t, ctrl_a, tau: float, delay: float, part: str,
     # per grid point, the same comparisons
     x = t_grid - delay + 1e-9
     first = np.searchsorted(x, ctrl_t, side="left")
-    if first.size and np.all(first[1:] >= first[:-1]):
+    ordered = first.size and np.all(first[1:] >= first[:-1])
+    if ordered:
         # stamps in order (as recorded): each command held from its first grid point to the
         # next one's, 0 before the first: the same selection as below, a fifth of its time
-        cmd = np.repeat(np.concatenate([[0.0], np.asarray(ctrl_a, float)]),
-                        np.diff(np.concatenate([[0], first, [x.size]])))
-        if substep:
-            u = clip(cmd, 0.0)
-            vals = clip(np.asarray(ctrl_a, float), 0.0)
-            jump = np.diff(np.concatenate([[0.0], vals]))  # the clipped command's steps
-            inner = (first >= 1) & (first < x.size)
-            k = first[inner]
-            lead = t_grid[k] - (np.asarray(ctrl_t, float)[inner] + delay)  # s before t_k
-            on = lead > SUBSTEP_RES
-            np.add.at(u, k[on] - 1, jump[inner][on] * -np.expm1(-lead[on] / tau) / (1.0 - e))
-            return first_order(u, e, 1.0 - e)
+        a = np.asarray(ctrl_a, float)
+        cmd = np.repeat(np.concatenate([[0.0], a]), np.diff(np.concatenate([[0], first,
+                                                                            [x.size]])))
     else:
         i = np.cumsum(np.bincount(first, minlength=x.size + 1)[:x.size]) - 1
         cmd = np.where(i >= 0, ctrl_a[np.clip(i, 0, None)], 0.0)
+    u = clip(cmd, 0.0)
+    if substep and ordered:
+        # each command's step of the clipped input, from its stamp to the end of its grid step
+        jump = np.diff(np.concatenate([[0.0], clip(a, 0.0)]))
+        inner = (first >= 1) & (first < x.size)
+        k = first[inner]
+        lead = t_grid[k] - (np.asarray(ctrl_t, float)[inner] + delay)  # s before t_k
+        on = lead > SUBSTEP_RES
+        np.add.at(u, k[on] - 1, jump[inner][on] * -np.expm1(-lead[on] / tau) / (1.0 - e))
     # y[k] = e y[k-1] + (1 - e) x[k-1]: exact for a command held over each grid step
-    return first_order(clip(cmd, 0.0), e, 1.0 - e)
+    return first_order(u, e, 1.0 - e)
 

@@ -728,23 +728,25 @@ def _profiled(d: dict, duration, lo, hi, line: Line, prior: TrainParams, cfg: SI
                 "lag or delay may be off, or the fit flat in it): its doubt is in no "
                 "standard error")
     out = _identify_at(d, best, duration, lo, hi, line, prior, cfg, None)
-    std = dict(out.std_errors)
-    if math.isfinite(var) and lo_f is not None and hi_f is not None:
-        for name, se in out.std_errors.items():
-            v0, v1 = lo_f.values.get(name), hi_f.values.get(name)
-            if se is None or v0 is None or v1 is None or not math.isfinite(se):
-                continue
-            slope = (float(v1) - float(v0)) / (2.0 * OFFSET_H)
-            if math.isfinite(slope):
-                std[name] = math.sqrt(se ** 2 + slope ** 2 * var)
+
+    def with_doubt(se, v0, v1):
+        """``se`` with the offset's doubt: its value's slope along the profile (``v0``, ``v1``
+        at -+OFFSET_H) times the offset's standard deviation, added in quadrature."""
+        if lo_f is None or not all(isinstance(v, float | int) and math.isfinite(v)
+                                   for v in (se, v0, v1)):
+            return se
+        return math.sqrt(se ** 2 + ((v1 - v0) / (2.0 * OFFSET_H)) ** 2 * var)
+
+    std = {name: with_doubt(se, lo_f.values.get(name) if lo_f else None,
+                            hi_f.values.get(name) if hi_f else None)
+           for name, se in out.std_errors.items()}
     force = dict(out.force_at_reference_speed)
-    if math.isfinite(var) and lo_f is not None and hi_f is not None and force:
-        f0 = lo_f.force_at_reference_speed.get("fitted", math.nan)
-        f1 = hi_f.force_at_reference_speed.get("fitted", math.nan)
-        slope = (f1 - f0) / (2.0 * OFFSET_H)
-        if math.isfinite(slope) and math.isfinite(force.get("std_error", math.nan)):
-            force["std_error"] = math.sqrt(force["std_error"] ** 2 + slope ** 2 * var)
-            force["z_vs_prior"] = (force["fitted"] - force["prior"]) / force["std_error"]
+    if force and lo_f is not None:
+        se = with_doubt(force.get("std_error"), lo_f.force_at_reference_speed.get("fitted"),
+                        hi_f.force_at_reference_speed.get("fitted"))
+        if se != force.get("std_error"):
+            force["std_error"] = se
+            force["z_vs_prior"] = (force["fitted"] - force["prior"]) / se
     if progress is not None:
         progress(1, 1, "done")
     # commands that act later than stamped are an actuator that answers later: the fitted

@@ -145,22 +145,21 @@ def confirm(mo: Motion, shift: float, accepted: list, resolved_before: dict, cfg
             # each episode held out on its own: those the other samples do not confirm go
             eps = heldout_episodes(mo, others, a, cfg, noise, ccfg)
             checks[a.cause]["episodes"] = eps
-            if not a.parameters.get("intervals") and all(e["readings_step"]["contradicted"]
-                                                         for e in eps):
-                a.status = "not confirmed"
-                a.why = ("not a slip: the odometer's speed readings step by less than half the "
-                         "fitted depth at the episodes' ends (the train's motion differs from "
-                         "the model there, not the odometer)")
-                continue
-            if not a.parameters.get("intervals") and all(
-                    not e["readings_step"]["supported"] for e in eps):
-                a.status = "not confirmed"
-                a.why = (f"{NOT_SHOWN}: the speed readings on their own show no step at the "
-                         "episodes' ends, nor exclude one of half the fitted depth (the "
-                         "odometer's or the train's: a slip and a brief change of the train's "
-                         "motion fit alike)")
-                continue
             if not a.parameters.get("intervals"):
+                steps = [e["readings_step"] for e in eps]
+                if all(s["contradicted"] for s in steps):
+                    a.status = "not confirmed"
+                    a.why = ("not a slip: the odometer's speed readings step by less than half "
+                             "the fitted depth at the episodes' ends (the train's motion "
+                             "differs from the model there, not the odometer)")
+                    continue
+                if not any(s["supported"] for s in steps):
+                    a.status = "not confirmed"
+                    a.why = (f"{NOT_SHOWN}: the speed readings on their own show no step at "
+                             "the episodes' ends, nor exclude one of half the fitted depth "
+                             "(the odometer's or the train's: a slip and a brief change of "
+                             "the train's motion fit alike)")
+                    continue
                 held = dict(held, ok=False, why="no episode confirmed on its own (held out "
                                                 "one by one)")
             else:

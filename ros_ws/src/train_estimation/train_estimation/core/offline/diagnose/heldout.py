@@ -204,8 +204,7 @@ def heldout_episodes(mo: Motion, others: Null, fit: CauseFit, cfg: DiagConfig, n
     test of :func:`heldout_motion`, both folds), and its readings on their own must show its
     step: not contradict it, and support it against no step (:func:`.contradict.slip_step`).
     An episode that fails is dropped from ``fit`` (``WheelSlip.keep_episodes``: in place; the
-    others keep the joint fit's values). Returns
-    each episode's figures."""
+    others keep the joint fit's values). Returns each episode's figures."""
     shapes = list(fit.extra.get("shapes") or [])
     ivs = [tuple(iv) for iv in fit.parameters.get("intervals", [])]
     if len(shapes) != len(ivs):
