@@ -197,3 +197,46 @@ def test_a_brake_delay_longer_than_believed_is_found_beyond_the_range():
     for name, want in (("mass", true.mass), ("braking_rate", 1.0)):
         assert abs(res.values[name] - want) < 3 * res.std_errors[name], name
     assert res.train.brake.delay == pytest.approx(METRO.brake.delay + dg["command_offset_s"])
+
+
+def test_the_runs_place_on_the_line_is_in_the_standard_errors():
+    """The run is placed on the line by the median of its balises' offsets; taken as exact, its
+    doubt was in no standard error (on metro_demo the mass, the rotary allowance and f spread
+    1.15-1.38 of their SEs over 20 seeds of one trajectory; 0.94-1.03 with it). The place's
+    variance is (pi / 2) var / n, var the larger of train.yaml's and the offsets' own robust
+    spread; moving every balise by its standard deviation either way moves the values the
+    gradients carry by about what the doubt added (the fit refits its noise and offset, the
+    doubt's sigma points do not: within a factor of 2), and on a line without gradients the
+    place moves nothing."""
+    from dataclasses import replace
+
+    from train_estimation.core.offline.identify import SIConfig
+
+    run = simulate_run(METRO, LINE, np.random.default_rng(12), 900.0)
+    data = _data(run)
+    data = replace(data, balise_position=data.balise_position
+                   + np.random.default_rng(5).normal(0.0, 3.0, data.balise_position.size))
+    cfg = SIConfig(command_offsets=None)
+    bare_cfg = SIConfig(command_offsets=None, placement_doubt=False)
+    res, bare = identify(data, LINE, METRO, cfg), identify(data, LINE, METRO, bare_cfg)
+    offs = data.balise_position - np.interp(data.balise_t, data.odo_t, data.odo_distance)
+    spread = (1.4826 * np.median(np.abs(offs - np.median(offs)))) ** 2
+    stated = METRO.balise_position_variance + METRO.odometer_distance_variance
+    assert spread > stated  # the balises scatter more than train.yaml says: their spread counts
+    var = res.diagnostics["position_offset_var"]
+    assert var == pytest.approx(0.5 * np.pi * spread / offs.size, rel=1e-12)
+    assert res.diagnostics["position_offset_m"] == pytest.approx(np.median(offs), rel=1e-12)
+    moved = [identify(replace(data, balise_position=data.balise_position + s * np.sqrt(var)),
+                      LINE, METRO, bare_cfg) for s in (1.0, -1.0)]
+    for name in ("mass", "rotary_allowance", "braking_rate"):
+        added = np.sqrt(res.std_errors[name] ** 2 - bare.std_errors[name] ** 2)
+        rms = np.sqrt(np.mean([(m.values[name] - bare.values[name]) ** 2 for m in moved]))
+        assert 0.5 * added < rms < 2.0 * added, (name, added, rms)
+        assert res.values[name] == bare.values[name]  # the doubt moves no value
+
+    flat = Line(name="flat", length=60000.0, balises=LINE.balises)
+    run = simulate_run(METRO, flat, np.random.default_rng(13), 900.0)
+    res, bare = (identify(_data(run), flat, METRO, c) for c in (cfg, bare_cfg))
+    assert res.std_errors.keys() == bare.std_errors.keys()
+    for name, se in res.std_errors.items():  # bit for bit (nan where held at the prior)
+        assert se == bare.std_errors[name] or np.isnan(se) and np.isnan(bare.std_errors[name])

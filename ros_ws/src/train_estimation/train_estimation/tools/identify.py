@@ -125,6 +125,13 @@ def print_identifiability(res, out=None) -> None:
               "standard error above holds this doubt)", file=out)
         if "command_offset" in res.reasons:
             print(f"  {res.reasons['command_offset']}", file=out)
+    pv = res.diagnostics.get("position_offset_var", math.nan)
+    if math.isfinite(pv):
+        print(f"the run placed on the line at odometer distance 0 = "
+              f"{res.diagnostics['position_offset_m']:.2f} m +- {math.sqrt(pv):.2f} m (the "
+              f"balises' median offset; every standard error above holds this doubt)", file=out)
+    if "position_offset" in res.reasons:
+        print(f"  {res.reasons['position_offset']}", file=out)
     f = res.force_at_reference_speed
     if f:
         print(f"resistance force at {f['speed']:.1f} m/s (median moving speed): fitted "
