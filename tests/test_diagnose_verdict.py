@@ -64,3 +64,22 @@ def test_a_contradicted_cause_before_a_kept_one_is_left_out_of_a_noise_fitted_ag
     merged = _search([grad1, slip2], merged=[_fit("resistance", 1, "not confirmed")])
     assert verdict.verdict_noise(merged, 0.0, FULL) == ((7e-5, 0.06), ["wheel_slip"])
     assert seen[-1] == ["gradient"]
+
+
+def test_a_balise_latency_entry_says_which_way_the_streams_are_off():
+    """The latency test's tau > 0: the balises lie behind the odometer's position, the reader
+    stamps late. tau < 0: they lie ahead of it, and either the reader stamps early or the
+    odometer's readings are older than their stamps (a whole odometer message 0.3 s old was
+    reported as a reader that stamps late). Both are told as a balise latency by the tool."""
+    from train_estimation.tools.diagnose_unexplained import balise_latency, unexplained_line
+
+    entries = {tau: verdict._entry({"family": "balise_latency", "speed": [5.0, 30.0],
+                                    "size": tau}, []) for tau in (0.3, -0.3)}
+    late, early = (entries[t]["best_listed"]["why"] for t in (0.3, -0.3))
+    assert "+0.300 s x speed; behind it): the balise reader stamps them late" in late
+    assert "-0.300 s x speed; ahead of it)" in early and "stamps them late" not in early
+    assert "odometer's readings are older than their stamps" in early
+    assert all(balise_latency(e) for e in entries.values())
+    line = {t: unexplained_line(dict(e, where=None, when=None)) for t, e in entries.items()}
+    assert "0.300 s x speed behind" in line[0.3] and "reader stamps late" in line[0.3]
+    assert "0.300 s x speed ahead of" in line[-0.3] and "stamps late" not in line[-0.3]

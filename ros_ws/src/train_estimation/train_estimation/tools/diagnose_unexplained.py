@@ -135,9 +135,12 @@ def unexplained_line(u: dict) -> str:
                 f"{best['cause']} ({best['why']})")
     if balise_latency(u):
         sp = u["speed"]
-        return (f"unexplained: every balise reading lies {u['size']:+.3f} s x speed behind the "
-                f"train's position by the odometer (read at {sp[0]:.1f}-{sp[1]:.1f} m/s): the "
-                f"balise reader stamps late (or early), no listed cause" + closest)
+        side, who = (("behind", "the balise reader stamps late") if u["size"] >= 0 else
+                     ("ahead of", "the balise reader stamps early, or the odometer's readings "
+                                  "are older than their stamps"))
+        return (f"unexplained: every balise reading lies {abs(u['size']):.3f} s x speed {side} "
+                f"the train's position by the odometer (read at {sp[0]:.1f}-{sp[1]:.1f} m/s): "
+                f"{who}, no listed cause" + closest)
     if at_balise(u):
         return (f"unexplained: the balise at {u['where'][0]:.0f} m (read at {u['when'][0]:.0f} s, "
                 f"{u['speed'][0]:.1f} m/s) is {u['size']:+.1f} m from the train's position by "

@@ -239,7 +239,7 @@ def verdict_noise(sr: _Search, shift: float, noise) -> tuple:
 
 
 # how the reason of a balise latency entry begins (tools.diagnose_unexplained tells the entry by it)
-LATENCY_WHY = "the balise readings lie behind the odometer's position"
+LATENCY_WHY = "the balise readings lie off the odometer's position"
 
 
 def _entry(u: dict, ranking: list) -> dict:
@@ -249,11 +249,7 @@ def _entry(u: dict, ranking: list) -> dict:
     if u.get("family") == "balise_latency":
         return {"phase": "all", "where": None, "when": None, "speed": u["speed"],
                 "size": u["size"],
-                "best_listed": {"cause": "clock_drift",
-                                "why": f"{LATENCY_WHY} in proportion to the speed they were "
-                                       f"read at ({u['size']:+.3f} s x speed): the balise "
-                                       "reader stamps them late; the train's clock stamps "
-                                       "the odometer and the balises alike"}}
+                "best_listed": {"cause": "clock_drift", "why": _latency_why(u["size"])}}
     best = next((r for r in ranking if r.status != "confirmed" and r.cause != "none"), None)
     if best is None:
         listed = None
@@ -264,6 +260,22 @@ def _entry(u: dict, ranking: list) -> dict:
                                               "none's 0 (not supported by the data)"}
     return {"phase": u["phase"], "where": u["where"], "when": u["when"], "speed": u["speed"],
             "size": u["size"], "best_listed": listed}
+
+
+def _latency_why(tau: float) -> str:
+    """The reason of a balise latency entry (``tau`` s: the balises lie ``tau`` x speed behind
+    the odometer's position at their stamps). Behind: the balise reader stamps them late.
+    Ahead: the reader stamps them early, or the odometer's readings are older than their
+    stamps (a sensor or link that sends them late, stamped when sent): one run's balises and
+    odometer cannot tell which of the two streams is off, only that they are off each other."""
+    if tau >= 0.0:
+        side = ("behind", "the balise reader stamps them late")
+    else:
+        side = ("ahead of", "the balise reader stamps them early, or the odometer's readings "
+                            "are older than their stamps (sent late, stamped when sent)")
+    return (f"{LATENCY_WHY} in proportion to the speed they were read at ({tau:+.3f} s x "
+            f"speed; {side[0]} it): {side[1]}; the train's clock stamps the odometer and the "
+            "balises alike")
 
 
 def _speeds(mo, beta: float, t0: float, t1: float) -> list:
