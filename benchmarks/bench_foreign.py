@@ -33,7 +33,8 @@ knee at 45-65 % of it; aerodynamic drag added in a 500-900 m tunnel run above 60
 speed, a constant force for 60-120 s (wind), a drag while coasting, a resistance above 60-80 %
 of the top speed (hunting), a resistance decaying from the start (warming up), each 0.04-0.08
 m/s^2 where it acts; an odometer reading 0.04-0.1 m/s more or less while moving, or a radar
-odometer whose error grows as the square of the speed (1-2 % at the top speed); a balise 8-20
+odometer whose error grows as the square of the speed (1-2 % at the top speed), or whose
+speed readings lag the train by 0.2-0.4 s while its count does not; a balise 8-20
 m from its map position, or every balise stamped 0.2-0.5 s late; a train clock that jumps by
 0.5-3 s; brakes that fade as they heat (30-45 % weaker once they hold a stop from the top
 speed, cooling in 60-150 s). Printed: how often diagnose says
@@ -94,7 +95,8 @@ UNLISTED = {"traction_gain": "traction", "traction_fade": "traction", "traction_
             "traction_trip": "traction", "brake_fade": "braking", "brake_power": "braking",
             "tunnel": "all", "wind": "all", "coast_drag": "coasting", "hunting": "all",
             "warmup": "all", "odometer_bias": "all", "balise_moved": "all", "clock_step": "all",
-            "odometer_speed": "all", "brake_heat": "braking", "balise_late": "all"}
+            "odometer_speed": "all", "brake_heat": "braking", "balise_late": "all",
+            "odometer_lag": "all"}
 STAMP_KINDS = ("clock_drift", "clock_step")  # effects on the train clock's stamps only
 COAST_MIN = 10.0  # s the nominal run must coast for a coasting drag to be scored
 OUT = os.path.join(HERE, "out")
@@ -244,6 +246,8 @@ def unlisted_effect_of(kind: str, line: dict, train: dict, rng, pilot) -> FS.Eff
                                      float(rng.uniform(0.3, 0.45))))
     if kind == "balise_late":
         return FS.Effect(balise_late=float(rng.uniform(0.2, 0.5)))
+    if kind == "odometer_lag":  # a speed filtered or computed over a gate, the count on time
+        return FS.Effect(odometer_lag=float(rng.uniform(0.2, 0.4)))
     if kind == "odometer_speed":
         # a radar whose error grows as the square of the speed: 1-2 % at the top speed
         return FS.Effect(odometer_speed=(v_top, _sign(rng) * float(rng.uniform(0.01, 0.02))))

@@ -69,6 +69,7 @@ class Effect:
     balise_late: float = 0.0  # s the balise reader stamps its readings late
     balise_moved: tuple | None = None  # (balise id, m): that balise lies m further on
     clock_step: tuple | None = None  # (t s, s): the train clock jumps by s at t
+    odometer_lag: float = 0.0  # s the odometer's speed reading lags the train (its count not)
 
 
 def _radar(effect: Effect, v: float) -> float:
@@ -192,6 +193,7 @@ def simulate(line: dict, train: dict, effect: Effect, rng: np.random.Generator,
     last_cmd, last_logged = math.nan, -math.inf  # the last command logged, when (on_change)
     bi = next((i for i, (p, _, _) in enumerate(balises) if p > x), len(balises))
     odo_extra = 0.0  # m the odometer's bias has counted
+    lag_t, lag_v = [0.0], [0.0]  # the speed's recent past, for a speed reading that lags
     heat = 0.0  # m^2/s^2, the brakes' heat as braking energy per kg (brake_heat)
     while leg < len(stations):
         if t >= next_cmd - 1e-9:
@@ -273,6 +275,11 @@ def simulate(line: dict, train: dict, effect: Effect, rng: np.random.Generator,
         if v > 0.0:
             odo_extra += (effect.odometer_bias + _radar(effect, v)) * dt
         t += dt
+        if effect.odometer_lag > 0.0:
+            lag_t.append(t)
+            lag_v.append(v)
+            if len(lag_t) > 4096:  # the last 20 s at 5 ms are more than any lag needs
+                del lag_t[:2048], lag_v[:2048]
         while bi < len(balises) and balises[bi][0] <= x:
             p, bid, told = balises[bi]
             tb = t - dt + dt * (p - x_old) / max(x - x_old, 1e-12)
@@ -287,8 +294,10 @@ def simulate(line: dict, train: dict, effect: Effect, rng: np.random.Generator,
             # the train never rolls back: the distance run is how far it is from the start
             d = effect.odometer_scale * (x - stations[0]) + odo_extra \
                 + float(rng.normal(0.0, d_std))
-            sp = effect.odometer_scale * v + float(rng.normal(0.0, s_std)) \
-                + (effect.odometer_bias if v > 0.0 else 0.0) + _radar(effect, v)
+            vr = float(np.interp(t - effect.odometer_lag, lag_t, lag_v)) \
+                if effect.odometer_lag > 0.0 else v
+            sp = effect.odometer_scale * vr + float(rng.normal(0.0, s_std)) \
+                + (effect.odometer_bias if vr > 0.0 else 0.0) + _radar(effect, vr)
             send(t, "odometer", {"seq": seq_odo, "distance": d, "speed": sp,
                                  "speed_variance": s_std * s_std})
             seq_odo += 1

@@ -462,7 +462,7 @@ def _signature(mo: Motion, family: str, R, labels, th, cells, phase: str) -> dic
 
 def sensor_residuals(mo: Motion, null: Null, cfg, noise, alpha: float = 1e-3) -> dict:
     """The odometer's residual checks (:func:`.residuals.sensor_checks`, ``alpha`` the
-    false-alarm rate of the three together) under the model ``null`` at ``noise``: its speed
+    false-alarm rate of the four together) under the model ``null`` at ``noise``: its speed
     readings with their stated variances, less the model's speed."""
     from .residuals import sensor_checks
 
@@ -473,5 +473,8 @@ def sensor_residuals(mo: Motion, null: Null, cfg, noise, alpha: float = 1e-3) ->
     # after every interval it does not model (a standstill)
     held = np.cumsum(mo.ev.held)[o]
     cut = np.r_[False, np.diff(held) > 0]
+    r = mo.run
+    raw = (r.odo_t, r.odo_d, r.odo_v, np.interp(r.odo_t, mo.grid.t, mo.v_ref))
     return sensor_checks(mo.ev.t[o], mo.ev.y_v[o], mo.ev.r_v[o], mo.sc_v[o], mo.sc_d[o],
-                         alpha, base=np.cumsum(st.fv)[o] + st.mv[o], cut=cut)
+                         alpha, base=np.cumsum(st.fv)[o] + st.mv[o], cut=cut, raw=raw,
+                         min_speed=cfg.standstill_speed)
