@@ -70,6 +70,10 @@ class Effect:
     balise_moved: tuple | None = None  # (balise id, m): that balise lies m further on
     clock_step: tuple | None = None  # (t s, s): the train clock jumps by s at t
     odometer_lag: float = 0.0  # s the odometer's speed reading lags the train (its count not)
+    # (stop index k, factor): from the arrival at station k on the train carries factor x its
+    # believed mass (a payload taken on; translational, its traction and brake forces as asked
+    # for the believed train: neither load-weighed)
+    payload: tuple | None = None
 
 
 def _radar(effect: Effect, v: float) -> float:
@@ -303,6 +307,9 @@ def simulate(line: dict, train: dict, effect: Effect, rng: np.random.Generator,
             seq_odo += 1
             next_odo += 1.0 / odo_rate
         if stopping and v < 0.01 and stations[leg] - x < 20.0:
+            if effect.payload is not None and leg == effect.payload[0]:
+                meff = meff_b * effect.mass + (effect.payload[1] - 1.0) * m_b
+                kappa = meff_b / meff
             leg += 1
             t_end_dwell = t + dwell
             stopping = False

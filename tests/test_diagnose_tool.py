@@ -953,10 +953,6 @@ TEST_KIND_KNOWN = {
                              "confirmed: the traction lost there while the command holds "
                              "bends the speed inside the episode, and the odometer's readings "
                              "alone (+0.4 +- 0.2 %) do not reject half its step",
-    ("load_change", 13): "a gradient of 8.9 per mille over the 3 km of the departure after the "
-                         "load changed is confirmed: the traction command is constant there, so "
-                         "a traction x1.15 is a constant force on that stretch, and no earlier "
-                         "departure at that command shows it",
     ("traction_trip", 12): "the traction fails while the train holds 35 m/s in traction on one "
                            "stretch: at one steady speed and command, a traction x0.6 there is "
                            "the same force as a gradient, which is confirmed"}

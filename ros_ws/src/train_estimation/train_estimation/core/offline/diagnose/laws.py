@@ -14,6 +14,11 @@ heat (:func:`heat_state`).
 
 **Count law** (:func:`count_law`). An odometer that counts one scale times the distance at
 every speed against one whose error grows with speed.
+
+**Stop law** (:func:`stop_law`). Causes at places (a gradient the map lacks, a low-adhesion
+section) against a train that changed at a stop: from a departure on, its traction and its
+braking deliver other multiples of what is asked (a payload taken on with brakes that are not
+load-weighed, a motor or a brake cut out while standing).
 """
 
 from __future__ import annotations
@@ -144,6 +149,60 @@ def heat_fit(mo: Motion, res: dict) -> tuple:
     acc = _heat_columns(mo, res["tau"]) @ np.asarray(res["coefficients"], float)
     bv, bs = mo.grid.integrate(acc[:, None], mo.ev.t.size)
     return bv[:, 0], bs[:, 0], acc
+
+
+def stops(mo: Motion) -> list:
+    """Grid indices of the departures after each stop of the run: where the reference speed
+    rises to the standstill speed again after a standstill (not the run's first departure:
+    a change from it on is one for the whole run, a listed cause's)."""
+    mv = mo.moving > 0
+    dep = np.flatnonzero(mv[1:] & ~mv[:-1]) + 1
+    first = int(np.argmax(mv)) if mv.any() else mv.size
+    return [int(k) for k in dep if k > first]
+
+
+def stop_law(mo: Motion, others: Null, full: Null, cfg, noise, k_causes: int) -> dict:
+    """Causes at places (``full`` against ``others``: their contribution, with a free
+    multiplier; ``k_causes`` parameters fitted, their places included) against a train that
+    changed at a stop: from the departure after stop k on, the traction and the braking asked
+    for (through the believed actuator) times 1 + g_tr and 1 + g_br, two parameters, k the
+    best of the run's stops (:func:`stops`; charged 2 ln of their number).
+
+    The two have different numbers of parameters, so they are compared as the search scores
+    causes (BIC: each parameter ln n, n the measurements): ``lr`` = (chi-square of the law -
+    2 ln n - 2 ln stops) - (chi-square of the causes - k_causes ln n), > 0 where the data
+    prefer a change at a stop (twice the log of an approximate Bayes factor); the departure's
+    time ``t`` (s) and the factors ``traction`` and ``braking``; ``chi2`` of each; the run's
+    speeds (5-95 %). Without stops, ``lr`` 0 and a note."""
+    res = {"law": "stop"}
+    deps = stops(mo)
+    st0 = Stage(mo, others, cfg, noise=noise, big=False)
+    st1 = Stage(mo, full, cfg, noise=noise, big=False)
+    dv, ds = st1.fv - st0.fv, st1.fs - st0.fs
+    if not deps or not (dv * dv).sum() > 0:
+        res.update(lr=0.0, note="no stop after the first departure" if not deps else
+                   "no contribution")
+        return res
+    causes = _fit_columns(st0, dv[:, None], ds[:, None])[0]
+    n_ev = mo.ev.t.size
+    base = np.stack([mo.a_tr0 * mo.moving, mo.f0 * mo.a_br0 * mo.moving], axis=1)
+    best = (-math.inf, None, None)
+    for k in deps:
+        cols = base.copy()
+        cols[:k] = 0.0
+        stat, th, _ = _fit_columns(st0, *mo.grid.integrate(cols, n_ev))
+        if stat > best[0]:
+            best = (stat, k, th)
+    stat, k, th = best
+    v = mo.v_ref[mo.moving > 0]
+    lo, hi = np.percentile(v, [5, 95]) if v.size else (0.0, 0.0)
+    ln_n = math.log(max(n_ev, 2))
+    res.update(lr=float((stat - 2.0 * ln_n - 2.0 * math.log(len(deps)))
+                        - (causes - k_causes * ln_n)),
+               t=float(mo.grid.t[k]), traction=float(1.0 + th[0]), braking=float(1.0 + th[1]),
+               chi2_law=float(stat), chi2_causes=float(causes), k_causes=int(k_causes),
+               speeds=[float(lo), float(hi)], stops=len(deps))
+    return res
 
 
 def count_law(mo: Motion, others: Null, cfg, noise) -> dict:
