@@ -35,7 +35,8 @@ of the top speed (hunting), a resistance decaying from the start (warming up), e
 m/s^2 where it acts; an odometer reading 0.04-0.1 m/s more or less while moving, or a radar
 odometer whose error grows as the square of the speed (1-2 % at the top speed), or whose
 speed readings lag the train by 0.2-0.4 s while its count does not; a payload of 5-12 % of
-the mass taken on at the middle stop, the brakes not load-weighed; a balise 8-20
+the mass taken on at the middle stop, the brakes not load-weighed; every balise 5-10 m off
+its map position, the same way (a datum shift against the gradients); a balise 8-20
 m from its map position, or every balise stamped 0.2-0.5 s late; a train clock that jumps by
 0.5-3 s; brakes that fade as they heat (30-45 % weaker once they hold a stop from the top
 speed, cooling in 60-150 s). Printed: how often diagnose says
@@ -97,7 +98,7 @@ UNLISTED = {"traction_gain": "traction", "traction_fade": "traction", "traction_
             "tunnel": "all", "wind": "all", "coast_drag": "coasting", "hunting": "all",
             "warmup": "all", "odometer_bias": "all", "balise_moved": "all", "clock_step": "all",
             "odometer_speed": "all", "brake_heat": "braking", "balise_late": "all",
-            "odometer_lag": "all", "payload": "all"}
+            "odometer_lag": "all", "payload": "all", "balise_datum": "all"}
 STAMP_KINDS = ("clock_drift", "clock_step")  # effects on the train clock's stamps only
 COAST_MIN = 10.0  # s the nominal run must coast for a coasting drag to be scored
 OUT = os.path.join(HERE, "out")
@@ -249,6 +250,8 @@ def unlisted_effect_of(kind: str, line: dict, train: dict, rng, pilot) -> FS.Eff
         return FS.Effect(balise_late=float(rng.uniform(0.2, 0.5)))
     if kind == "odometer_lag":  # a speed filtered or computed over a gate, the count on time
         return FS.Effect(odometer_lag=float(rng.uniform(0.2, 0.4)))
+    if kind == "balise_datum":  # the balise map surveyed on another datum than the gradients
+        return FS.Effect(balise_datum=_sign(rng) * float(rng.uniform(5.0, 10.0)))
     if kind == "payload":  # a load taken on at a middle stop, the brake not load-weighed
         k = len(line["stations"]) // 2
         return FS.Effect(payload=(k, float(rng.uniform(1.05, 1.12))))

@@ -68,6 +68,7 @@ class Effect:
     brake_heat: tuple | None = None
     balise_late: float = 0.0  # s the balise reader stamps its readings late
     balise_moved: tuple | None = None  # (balise id, m): that balise lies m further on
+    balise_datum: float = 0.0  # m every balise lies further on than the map (its telegram) says
     clock_step: tuple | None = None  # (t s, s): the train clock jumps by s at t
     odometer_lag: float = 0.0  # s the odometer's speed reading lags the train (its count not)
     # (stop index k, factor): from the arrival at station k on the train carries factor x its
@@ -149,8 +150,8 @@ def simulate(line: dict, train: dict, effect: Effect, rng: np.random.Generator,
         stations = [0.0, float(line["length"])]
     moved = dict([effect.balise_moved]) if effect.balise_moved is not None else {}
     # where each balise lies (the train reads it there) and what its telegram says
-    balises = sorted((float(bl["position"]) + moved.get(int(bl["id"]), 0.0), int(bl["id"]),
-                      float(bl["position"])) for bl in line.get("balises", []))
+    balises = sorted((float(bl["position"]) + moved.get(int(bl["id"]), 0.0) + effect.balise_datum,
+                      int(bl["id"]), float(bl["position"])) for bl in line.get("balises", []))
 
     # clocks: the train's stamps at an arbitrary epoch (at the effect's drift); the ground's
     # log time at another epoch

@@ -628,3 +628,23 @@ def test_a_payload_taken_on_at_a_stop_is_no_gradient_and_section(tmp_path, seed)
         assert law["lr"] > 9.0, law
         assert abs(law["traction"] - want) < 0.02 and abs(law["braking"] - want) < 0.02, \
             (law, want)
+
+
+@pytest.mark.parametrize("seed", [1, 4])
+def test_a_balise_map_on_another_datum_than_the_gradients_is_unexplained(tmp_path, seed):
+    """Every balise 5.7 m further on (seed 1) or 5.2 m earlier (seed 4) than its telegram and
+    the map say, the gradients where the map has them (bench_foreign --unlisted
+    balise_datum): each reading agrees with the odometer, so no balise test sees it, and the
+    verdict was `none`. The map's gradient changes then act that far from where the balises
+    place the run: the datum test names it, `unexplained`, its shift within 3 standard errors
+    of the truth."""
+    from train_estimation.tools.diagnose_unexplained import datum_shift, unexplained_line
+
+    rep, eff = _diagnose_foreign(tmp_path, seed, "balise_datum")
+    assert rep["cause"] == "unexplained", rep["cause"]
+    assert not [r for r in rep["ranking"] if r.get("status") == "confirmed"]
+    found = [u for u in rep["unexplained"] if datum_shift(u)]
+    assert len(found) == 1, rep["unexplained"]
+    test = rep["evidence"]["_model"]["structure"]["tests"][0]["datum"]
+    assert abs(found[0]["size"] - eff.balise_datum) < 3 * test["std_error"], (test, eff)
+    assert "two surveys on two datums" in unexplained_line(found[0])

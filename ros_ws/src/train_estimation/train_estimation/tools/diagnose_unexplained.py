@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from train_estimation.core.offline.diagnose.confirm import UNDECIDED
 from train_estimation.core.offline.diagnose.residuals import SENSOR_WHY
-from train_estimation.core.offline.diagnose.verdict import LATENCY_WHY, RATE_WHY
+from train_estimation.core.offline.diagnose.verdict import DATUM_WHY, LATENCY_WHY, RATE_WHY
 
 
 def _span(r, unit: str) -> str | None:
@@ -48,6 +48,15 @@ def balise_latency(u: dict) -> bool:
     best = u.get("best_listed") or {}
     return (not u.get("where") and not u.get("when")
             and str(best.get("why", "")).startswith(LATENCY_WHY))
+
+
+def datum_shift(u: dict) -> bool:
+    """An ``unexplained`` entry of the map's gradients lying apart from the balises (no
+    ``where`` nor ``when``, the reason beginning with ``DATUM_WHY``): its size is the shift in
+    m (> 0: the gradients act further on than the balises place the run)."""
+    best = u.get("best_listed") or {}
+    return (not u.get("where") and not u.get("when")
+            and str(best.get("why", "")).startswith(DATUM_WHY))
 
 
 def sensor_noise(u: dict) -> bool:
@@ -94,7 +103,7 @@ def unexplained_size(u: dict) -> str:
     size = u.get("size")
     if not isinstance(size, (int, float)):
         return "-"
-    if on_odometer(u) or at_balise(u):
+    if on_odometer(u) or at_balise(u) or datum_shift(u):
         return f"{size:+.4g} m"
     if clock_step(u) or clock_rate(u) or balise_latency(u):
         return f"{size:+.4g} s"
@@ -112,6 +121,9 @@ def unexplained_line(u: dict) -> str:
                 f"({_span(u['when'], 's')}), {u['size']:+.1f} m from the train's position by "
                 f"the end of it: it moved to other wheels or its calibration changed, not one "
                 f"scale for the run" + closest)
+    if datum_shift(u):
+        return (f"unexplained: the map's gradients act {u['size']:+.1f} m from where the "
+                f"balises place the run (two surveys on two datums), no listed cause" + closest)
     if clock_step(u):
         return (f"unexplained: the train's clock jumped by {u['size']:+.3f} s at "
                 f"{u['when'][0]:.1f} s (the odometer's sample grid moved at once): the readings "

@@ -52,6 +52,16 @@ with the same likelihood ratio and Bonferroni share until it is found; as an ent
 ``all``, no ``where`` nor ``when`` (every reading), ``speed`` the range of the readings'
 speeds and ``size`` the latency in s.
 
+**Datum test** (:func:`datum_round`). The balises place the run on the line, and the map's
+gradients act where they place it; a balise map surveyed on another datum than the gradient
+profile (every balise some metres off the gradients) moves each gradient change by that much,
+which no listed cause and no single balise shows (each reading agrees with the odometer). One
+more free parameter, the shift delta of the gradients against the balises (a drift column:
+the change of the gradient's pull per metre of shift, a central difference over
+``DATUM_STEP``), tested in each round until it is found; as an entry it has phase ``all``, no
+``where`` nor ``when``, ``size`` delta in m (> 0: the gradients act further on than the
+balises place them).
+
 The checks of a confirmed cause against the rest of the data (where it must show and where it
 must not) are in :mod:`.contradict`.
 """
@@ -204,11 +214,12 @@ def structure(mo: Motion, null: Null, cfg, noise, beta: float = 1.0, alpha: floa
     st = Stage(mo, null, cfg, noise=noise, big=False)
     n_ev = mo.ev.t.size
     ig = {k: mo.grid.integrate(R, n_ev) for k, (R, _) in fam.items()}
-    # Bonferroni over the families, the balise readings' test and the latency's
-    a_f = alpha / (len(fam) + 2 + (odo is not None))
+    # Bonferroni over the families, the balise readings' test, the latency's and the datum's
+    a_f = alpha / (len(fam) + 3 + (odo is not None))
     extra = None
     found, tests, bal_in = [], [], []
     late = True  # the latency is still to be tested (one entry at most)
+    datum = _datum_columns(mo)  # the datum's column, None on a line without gradients
     for _ in range(max_entries):
         best = None
         round_tests = {}
@@ -238,10 +249,22 @@ def structure(mo: Motion, null: Null, cfg, noise, beta: float = 1.0, alpha: floa
             round_tests["balise_latency"] = {k: v for k, v in lat.items() if k != "entry"}
             if lat["significant"] and (best is None or lat["logp_family"] < best[0]):
                 best = (lat["logp_family"], "balise_latency", None, None)
+        if datum is not None:
+            dat = datum_round(mo, st, extra, datum, a_f, cell_z, min_offset)
+            round_tests["datum"] = {k: v for k, v in dat.items() if k != "entry"}
+            if dat["significant"] and (best is None or dat["logp_family"] < best[0]):
+                best = (dat["logp_family"], "datum", None, None)
         tests.append(round_tests)
         if best is None:
             break
         _, name, th, cells = best
+        if name == "datum":
+            # the gradients moved by the shift become part of the model; test again
+            found.append(dat["entry"])
+            add_v, add_s = (c * dat["entry"]["size"] for c in datum)
+            extra = (add_v, add_s) if extra is None else (extra[0] + add_v, extra[1] + add_s)
+            datum = None  # one datum shift
+            continue
         if name == "balise_latency":
             # the readings moved by the latency become part of the model; test again
             found.append(lat["entry"])
@@ -341,6 +364,46 @@ def balise_round(mo: Motion, st: Stage, extra, inside: list, alpha: float, cell_
         out["entry"] = {"phase": "all", "where": [float(ev.y_d[k])] * 2,
                         "when": [float(ev.t[k]) / beta] * 2, "speed": [v, v], "size": off,
                         "family": "balise", "onset": False,
+                        "mask": np.zeros(mo.grid.t.size, bool)}
+    return out
+
+
+# m, half the span of the central difference that makes the datum test's column (the map's
+# gradient changes are steps: a span of metres puts each on the 0.1 s grid at every speed)
+DATUM_STEP = 5.0
+
+
+def _datum_columns(mo: Motion):
+    """(Bv, Bs) at the events: the drift a shift of one metre of the map's gradients against the
+    balises' placement adds (:func:`datum_round`), or None where the gradients do not change
+    along the run."""
+    g = mo.line.gradient_accel
+    acc = -(g(mo.x_ref + DATUM_STEP) - g(mo.x_ref - DATUM_STEP)) / (2.0 * DATUM_STEP) \
+        * mo.k_grad * mo.moving
+    if not np.any(acc):
+        return None
+    bv, bs = mo.grid.integrate(acc[:, None], mo.ev.t.size)
+    return bv[:, 0], bs[:, 0]
+
+
+def datum_round(mo: Motion, st: Stage, extra, cols: tuple, alpha: float, cell_z: float,
+                min_offset: float) -> dict:
+    """One round of the datum test (module docstring): the drift column ``cols``
+    (:func:`_datum_columns`) on top of the model ``st`` (plus the found drift ``extra``), 2 dll
+    chi-square with one degree of freedom under the model; significant below ``alpha`` with
+    the shift beyond ``cell_z`` SE and ``min_offset`` m (a balise's location accuracy).
+    Returns the figures, ``logp_family`` and, when significant, ``entry``."""
+    stat, th, se = _fit_columns(st, cols[0][:, None], cols[1][:, None], extra)
+    delta, se = float(th[-1]), float(se[-1])
+    logp = chi2_logsf(stat, 1)
+    sig = bool(logp < math.log(alpha) and abs(delta) > cell_z * se and abs(delta) > min_offset)
+    out = {"chi2": stat, "p": math.exp(logp), "shift": delta, "std_error": se,
+           "significant": sig, "logp_family": logp}
+    if sig:
+        v = mo.v_ref[mo.moving > 0]
+        out["entry"] = {"phase": "all", "where": None, "when": None,
+                        "speed": [float(np.percentile(v, 5)), float(np.percentile(v, 95))],
+                        "size": delta, "family": "datum", "onset": False,
                         "mask": np.zeros(mo.grid.t.size, bool)}
     return out
 

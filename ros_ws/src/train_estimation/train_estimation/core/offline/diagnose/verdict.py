@@ -242,6 +242,10 @@ def verdict_noise(sr: _Search, shift: float, noise) -> tuple:
 LATENCY_WHY = "the balise readings lie off the odometer's position"
 
 
+# how the reason of a datum entry begins (tools.diagnose_unexplained tells the entry by it)
+DATUM_WHY = "the map's gradients and the balises lie apart"
+
+
 def _entry(u: dict, ranking: list) -> dict:
     """An ``unexplained`` entry: the signature and the listed cause that came closest (the
     first not confirmed in the ranking) with why it does not fit (for a balise reader's
@@ -250,6 +254,14 @@ def _entry(u: dict, ranking: list) -> dict:
         return {"phase": "all", "where": None, "when": None, "speed": u["speed"],
                 "size": u["size"],
                 "best_listed": {"cause": "clock_drift", "why": _latency_why(u["size"])}}
+    if u.get("family") == "datum":
+        return {"phase": "all", "where": None, "when": None, "speed": u["speed"],
+                "size": u["size"],
+                "best_listed": {"cause": "gradient", "why": (
+                    f"{DATUM_WHY}: every gradient change acts {abs(u['size']):.1f} m "
+                    f"{'further on' if u['size'] > 0 else 'earlier'} than the balises place "
+                    "the run (a balise map and a gradient profile surveyed on two datums); a "
+                    "gradient the map lacks acts on one stretch, not at every change")}}
     best = next((r for r in ranking if r.status != "confirmed" and r.cause != "none"), None)
     if best is None:
         listed = None
