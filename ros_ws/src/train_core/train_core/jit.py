@@ -30,10 +30,14 @@ except ImportError:  # pragma: no cover - exercised by the fallback test in a su
 COMPILED = _njit is not None
 
 
-def jit(fn):
+def jit(fn, inline: bool = False):
     """``fn`` compiled by numba (``nopython``, cached, GIL released), or ``fn`` itself without
-    numba. The interpreted original stays reachable as ``.py_func`` in both cases."""
+    numba. The interpreted original stays reachable as ``.py_func`` in both cases. ``inline``:
+    numba puts its body into each compiled caller (its IR, before LLVM: the same operations in
+    the same order) instead of calling it, for a small step called per element of a loop."""
     if _njit is None:
         fn.py_func = fn
         return fn
+    if inline:
+        return _njit(cache=True, nogil=True, inline="always")(fn)
     return _njit(cache=True, nogil=True)(fn)

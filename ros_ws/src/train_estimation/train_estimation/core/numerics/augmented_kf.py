@@ -562,7 +562,10 @@ else:
     from .jit import COMPILED, jit
 
     _predict_cov = jit(predict_cov)
-    _element = jit(_element)  # the column passes' shared step, compiled into both
+    # the column passes' shared step, inlined into both: called as a function (19 arguments,
+    # eight of them arrays) it was 0.07 us per element, and a foreign traction-cut bag's 78
+    # column passes took 2.2 s of its 3.7 s (0.40 s before the step was shared)
+    _element = jit(_element, inline=True)
     _odometer_update = jit(odometer_update)
     _balise_update = jit(balise_update)
     _column_pass, _gain_loop, _kf2_loop = jit(_column_pass), jit(_gain_loop), jit(_kf2_loop)
