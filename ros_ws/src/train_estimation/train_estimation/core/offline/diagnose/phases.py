@@ -261,8 +261,7 @@ def structure(mo: Motion, null: Null, cfg, noise, beta: float = 1.0, alpha: floa
         if name == "datum":
             # the gradients moved by the shift become part of the model; test again
             found.append(dat["entry"])
-            add_v, add_s = (c * dat["entry"]["size"] for c in datum)
-            extra = (add_v, add_s) if extra is None else (extra[0] + add_v, extra[1] + add_s)
+            extra = _plus(extra, *(c * dat["entry"]["size"] for c in datum))
             datum = None  # one datum shift
             continue
         if name == "balise_latency":
@@ -309,10 +308,14 @@ def structure(mo: Motion, null: Null, cfg, noise, beta: float = 1.0, alpha: floa
                     break
         found.append(_signature(mo, name, R, labels, th, cells, phase))
         # the cells found become part of the model; test again for what is left
-        add_v = ig[name][0][:, cells] @ th[cells]
-        add_s = ig[name][1][:, cells] @ th[cells]
-        extra = (add_v, add_s) if extra is None else (extra[0] + add_v, extra[1] + add_s)
+        extra = _plus(extra, ig[name][0][:, cells] @ th[cells], ig[name][1][:, cells] @ th[cells])
     return found, tests
+
+
+def _plus(extra, add_v: np.ndarray, add_s: np.ndarray) -> tuple:
+    """The found drift ``extra`` ((Bv, Bs) at the events, or None) with (``add_v``, ``add_s``)
+    added: what an entry of the structure test puts into the model the next round tests."""
+    return (add_v, add_s) if extra is None else (extra[0] + add_v, extra[1] + add_s)
 
 
 def balise_round(mo: Motion, st: Stage, extra, inside: list, alpha: float, cell_z: float,
