@@ -99,13 +99,19 @@ def analyse(d: str, out: str, only: list | None) -> None:
     captured = {}
     diag0, ident0 = dmod.diagnose, imod.identify
 
+    spent = {}  # CPU s of identify and diagnose within the bag's analysis
+
     def diag(*a, **k):
+        c = time.process_time()
         r = diag0(*a, **k)
+        spent["diagnose"] = time.process_time() - c
         captured["diagnose"] = r.to_json()
         return r
 
     def ident(*a, **k):
+        c = time.process_time()
         r = ident0(*a, **k)
+        spent["identify"] = time.process_time() - c
         captured["identify"] = _plain(r)
         return r
 
@@ -115,12 +121,14 @@ def analyse(d: str, out: str, only: list | None) -> None:
     print(f"load average {res['load_before']:.2f}", flush=True)
     for b in track(bags, "bag_cpu: bags"):
         captured.clear()
+        spent.clear()
         c0, w0 = time.process_time(), time.perf_counter()
         row = runner.analyse_bag(dict(b, time=None))
         cpu, wall = time.process_time() - c0, time.perf_counter() - w0
         res["bags"].append({"label": b["label"], "cpu": cpu, "wall": wall, "row": row.to_json(),
-                            **captured})
-        print(f"{b['label']}: {cpu:.2f} CPU s, {wall:.2f} wall s, {row.cause}",
+                            "cpu_parts": dict(spent), **captured})
+        parts = ", ".join(f"{k} {v:.2f}" for k, v in spent.items())
+        print(f"{b['label']}: {cpu:.2f} CPU s ({parts}), {wall:.2f} wall s, {row.cause}",
               flush=True)
     res["load_after"] = os.getloadavg()[0]
     dmod.diagnose, imod.identify = diag0, ident0
