@@ -14,6 +14,7 @@ from train_estimation.core.numerics.augmented_kf import LOG2PI
 
 from .base import Cause, resolved
 from .braking_rate import brakes_while_moving
+from .drive import envelope
 
 
 class BrakeDelay(Cause):
@@ -32,7 +33,8 @@ class BrakeDelay(Cause):
 
     def fit(self, st) -> tuple:
         """Profile over (common offset, extra braking delay > 0): the brake chain's own
-        timing; the delay refined by a parabola through the profile at the best offset."""
+        timing; the delay refined by a parabola fitted to the profile at the best offset around its
+        best (:func:`.drive.envelope`)."""
         mo = st.mo
         grid = []
         for s in mo.shifts:
@@ -55,7 +57,7 @@ class BrakeDelay(Cause):
         (s_b, d_b), ll = max(prof.items(), key=lambda kv: kv[1])
         ds = sorted(d for (s, d) in prof if s == s_b)
         lls = [prof[(s_b, d)] for d in ds]
-        d_hat, se = _parabola(ds, lls, ds.index(d_b))
+        d_hat, se = envelope(ds, lls, ds.index(d_b))
         delay = mo.train.brake.delay + d_hat
         return ll, 1, {"delay": delay}, {"delay": se}, {"offset": s_b, "extra": d_hat,
                                                           "profile": [(d, lls[k]) for k, d in
@@ -145,20 +147,6 @@ def _lls_with_sections(st, grid: list) -> list:
         quad = float(u @ W @ u - w1 * w1 / W[1, 1]) if W[1, 1] > 0 else float(u @ W @ u)
         out.append(-0.5 * (kf.logdet + kf.m * LOG2PI + quad))
     return out
-
-
-def _parabola(ds: list, lls: list, i: int) -> tuple[float, float]:
-    """Vertex of the parabola through the profile at i - 1, i, i + 1 and its standard error
-    from the curvature of the profile log-likelihood; (ds[i], nan) at an edge or when flat."""
-    d_hat, se = ds[i], math.nan
-    if 0 < i < len(ds) - 1:
-        y0, y1, y2 = lls[i - 1], lls[i], lls[i + 1]
-        h = ds[i + 1] - ds[i]
-        den = y0 - 2 * y1 + y2
-        if den < 0:
-            d_hat = ds[i] + 0.5 * h * (y0 - y2) / den
-            se = h / math.sqrt(-den)
-    return d_hat, se
 
 
 CAUSE = BrakeDelay()

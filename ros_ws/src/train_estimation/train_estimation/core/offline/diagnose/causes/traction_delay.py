@@ -18,7 +18,7 @@ import numpy as np
 from train_core.effects import TractionDelayEffect
 
 from .base import Cause, resolved
-from .drive import Candidates, capped, parabola, traction_at, untestable_without_traction
+from .drive import Candidates, capped, envelope, traction_at, untestable_without_traction
 
 MIN_TRACTION = 0.05  # m/s^2, as power_limit: a traction command that can show a delay
 _COLUMNS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # Motion -> {p_spec: columns}
@@ -37,7 +37,7 @@ class TractionDelay(Cause):
 
     def fit(self, st) -> tuple:
         """Profile over (s, d > 0) on the grids of brake_delay; the delay refined by a parabola
-        through the profile likelihood of d."""
+        fitted to the profile likelihood of d around its best (:func:`.drive.envelope`)."""
         mo = st.mo
         keys, cols = _columns(mo, st.null.p_spec)
         cand = Candidates(st, drift=cols)
@@ -58,7 +58,7 @@ class TractionDelay(Cause):
             by_d.setdefault(d2, []).append(v)
         ds = sorted(by_d)
         lls = [max(by_d[d]) for d in ds]  # each d's values in the profile's order
-        d_hat, se = parabola(ds, lls, ds.index(d_b))
+        d_hat, se = envelope(ds, lls, ds.index(d_b))
         return st.null_ll() + dll, 1, {"delay": mo.train.brake.delay + d_hat}, {"delay": se}, \
             {"offset": s_b, "extra": d_b, "profile": list(zip(ds, lls))}
 
