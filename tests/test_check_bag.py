@@ -73,6 +73,25 @@ def test_exit_codes(bag_with_estimate, tmp_path, capsys):
     assert err and all(line.startswith("check_bag:") for line in err)
 
 
+@pytest.mark.parametrize("text, code, what", [
+    ("estimators.fake.position.rmse: {max: 3}\n", 0, None),
+    ("estimators.fake.position.rmse: {max: 0.5}\n", 1, None),
+    ("- estimators.fake.position.rmse<=3\n", 2, "expected a mapping at the top level"),
+    ("estimators.fake.position.rmse:\n\t{max: 3}\n", 2, "a tab on that line"),
+    ("estimators.fake.position.rmse: {max: three}\n", 2, "max must be a number"),
+    ("estimators.fake.position.rmse: {}\n", 2, "expected {max: V}"),
+])
+def test_a_thresholds_file_is_read_or_refused_in_one_line(bag_with_estimate, tmp_path, capsys,
+                                                          text, code, what):
+    bag, _ = bag_with_estimate
+    (tmp_path / "t.yaml").write_text(text)
+    assert check_bag.main([str(bag), "--no-plots", "--thresholds", str(tmp_path / "t.yaml")]) \
+        == code
+    err = capsys.readouterr().err
+    if what:
+        assert what in err and err.startswith("check_bag:")
+
+
 def test_reads_bags_written_by_the_mcap_writer(tmp_path):
     from mcap_ros2.writer import Writer
 

@@ -372,3 +372,26 @@ def test_a_stated_decimal_comma_is_never_taken_for_the_separator():
     lines = ["zeit_s;weg, m", "100,5;12", "100,6;13", "100,7;14"]
     assert csv2bag._dialect(lines, csv2bag.Mapping(decimal=","))[:2] == (";", ",")
     assert csv2bag._dialect(lines, csv2bag.Mapping())[0] == ","  # undecidable: the first kind
+
+
+def test_epoch_milliseconds_without_a_unit_are_refused_with_the_unit(tmp_path, capsys):
+    log = tmp_path / "ms.csv"
+    log.write_text("time,speed,distance\n" + "".join(
+        f"{1732521600000 + 100 * i},10.0,{i}\n" for i in range(4)))
+    assert csv2bag.main([str(log), "--out", str(tmp_path / "bag")]) == 2
+    assert "Unix time in ms? --unit time=ms" in capsys.readouterr().err
+    assert csv2bag.main([str(log), "--out", str(tmp_path / "bag"), "--unit", "time=ms"]) == 0
+    odo = read_bag(tmp_path / "bag").topics["odometer"]
+    assert [s for _, s, _ in odo] == pytest.approx([1732521600.0 + 0.1 * i for i in range(4)])
+
+
+@pytest.mark.parametrize("text, what", [("columns: [t_ref, v_kmh, odo_m]", "columns must map"),
+                                        ("units: km/h", "units must map"),
+                                        ("columns:\n  time: t\ncolumns:\n  speed: v",
+                                         "given twice")])
+def test_a_map_file_of_the_wrong_shape_is_refused_by_name(tmp_path, capsys, text, what):
+    log = _csv(tmp_path, ["100.0,5000,36.0,0.0,,50.0,0.0"])
+    (tmp_path / "map.yaml").write_text(text + "\n")
+    assert csv2bag.main([str(log), "--out", str(tmp_path / "bag"),
+                         "--map", str(tmp_path / "map.yaml")]) == 2
+    assert what in capsys.readouterr().err

@@ -150,7 +150,7 @@ def test_a_line_may_state_its_alert_limit(tmp_path):
 def test_load_yaml_reads_every_shipped_file_as_the_pure_python_parser_does(tmp_path):
     """load_yaml parses with libyaml where PyYAML has it: the same values as yaml.safe_load
     (every shipped line, train, scenario and config file), and a broken file is a one-line
-    ConfigError naming its line either way."""
+    ConfigError naming its line (and the parser's problem) either way."""
     from train_core.config import load_yaml
 
     files = sorted(SRC.glob("*/config/**/*.yaml")) + SCENARIOS
@@ -159,5 +159,39 @@ def test_load_yaml_reads_every_shipped_file_as_the_pure_python_parser_does(tmp_p
         assert repr(load_yaml(f)) == repr(yaml.safe_load(f.read_text())), f
     bad = tmp_path / "bad.yaml"
     bad.write_text("mass: [1, 2\n davis: {")
-    with pytest.raises(ConfigError, match=r"bad.yaml: not valid YAML \(line 2\)$"):
+    with pytest.raises(ConfigError, match=r"bad.yaml: not valid YAML \(line 2\): [^\n]+$"):
         load_yaml(bad)
+
+
+def _line_text(tmp_path, text: str, data: bytes | None = None):
+    path = tmp_path / "line.yaml"
+    if data is not None:
+        path.write_bytes(data)
+    else:
+        path.write_text(text)
+    return path
+
+
+def test_a_key_given_twice_is_refused_not_silently_replaced(tmp_path):
+    text = ("name: t\nlength: 7000.0\ngradients:\n  - {start: 0, end: 500, permille: 2}\n"
+            "gradients:\n  - {start: 4000, end: 4500, permille: 9}\n")
+    with pytest.raises(ConfigError, match=r"key 'gradients' given twice .*lines 3 and 5"):
+        load_line(_line_text(tmp_path, text))
+
+
+def test_a_decimal_comma_in_a_flow_mapping_is_refused(tmp_path):
+    text = "name: t\nlength: 5000.0\ngradients:\n  - {start: 0.0, end: 2000.0, permille: -3,5}\n"
+    with pytest.raises(ConfigError, match=r"'permille: -3,5' .* write -3.5"):
+        load_line(_line_text(tmp_path, text))
+
+
+def test_another_encoding_is_refused_with_what_to_do(tmp_path):
+    path = _line_text(tmp_path, "", "name: Zürich\nlength: 5000.0\n".encode("cp1252"))
+    with pytest.raises(ConfigError, match=r"not UTF-8 text \(byte 0xfc on line 1\).*iconv"):
+        load_line(path)
+
+
+def test_yaml_1_2_exponents_are_numbers_and_tabs_are_named(tmp_path):
+    assert load_line(_line_text(tmp_path, "name: t\nlength: 5e3\n")).length == 5000.0
+    with pytest.raises(ConfigError, match=r"line 3.*a tab on that line"):
+        load_line(_line_text(tmp_path, "name: t\nlength:\n\t5000\n"))

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import difflib
 import math
+import re
 import warnings
 from collections.abc import Iterable, Mapping
 from pathlib import Path
@@ -26,17 +27,86 @@ class ConfigError(ValueError):
 _SAFE_LOADER = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
 
 
+class _Loader(_SAFE_LOADER):
+    """The safe loader, reading numbers as YAML 1.2 does too: ``5e3`` and ``1E-4`` (no dot or
+    no exponent sign) are floats, not strings (YAML 1.1's resolver wants ``5.0e+3``), so a
+    mass of ``5e3`` is not refused as "expected a number"."""
+
+
+_Loader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"^[-+]?(?:[0-9][0-9_]*)(?:\.[0-9_]*)?[eE][-+]?[0-9]+$"),
+    list("-+0123456789"))
+
+
+def _text(p: Path) -> str:
+    """The file's text: UTF-8 (a byte-order mark dropped). Another encoding is refused by name,
+    with what to do: a latin-1 or cp1252 file (a station named Zürich from a Windows editor)
+    would otherwise fail deep in the parser."""
+    raw = p.read_bytes()
+    if raw[:2] in (b"\xff\xfe", b"\xfe\xff"):
+        raise ConfigError(f"{p}: UTF-16 text (a byte-order mark {raw[:2].hex()}); save it as "
+                          f"UTF-8 (e.g. iconv -f utf-16 -t utf-8)")
+    try:
+        return raw.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        line = raw[:exc.start].count(b"\n") + 1
+        raise ConfigError(f"{p}: not UTF-8 text (byte 0x{raw[exc.start]:02x} on line {line}); "
+                          f"save it as UTF-8 (e.g. iconv -f cp1252 -t utf-8)") from None
+
+
+def _check_nodes(p: Path, text: str) -> None:
+    """Refuse what YAML reads without a word but not as written: a mapping that gives one key
+    twice (loaders keep the last: a second ``gradients:`` block would drop the first block's
+    sections), and a decimal comma in a flow mapping (``{permille: -3,5}`` is ``permille: -3``
+    and a key ``5`` with no value)."""
+    def walk(node) -> None:
+        if isinstance(node, yaml.MappingNode):
+            seen: dict = {}
+            for i, (k, v) in enumerate(node.value):
+                if node.flow_style and i > 0 and isinstance(k, yaml.ScalarNode) and \
+                        k.value.isdigit() and isinstance(v, yaml.ScalarNode) and v.value == "" \
+                        and re.fullmatch(r"[-+]?[0-9.]+", str(node.value[i - 1][1].value)):
+                    prev = node.value[i - 1]
+                    raise ConfigError(
+                        f"{p}: line {k.start_mark.line + 1}: '{prev[0].value}: "
+                        f"{prev[1].value},{k.value}' reads as {prev[1].value} and a key "
+                        f"'{k.value}': a decimal comma? write {prev[1].value}.{k.value}")
+                if isinstance(k, yaml.ScalarNode):
+                    if k.value in seen:
+                        raise ConfigError(
+                            f"{p}: key '{k.value}' given twice in one mapping (lines "
+                            f"{seen[k.value]} and {k.start_mark.line + 1}): YAML would keep "
+                            f"the second only; merge them into one")
+                    seen[k.value] = k.start_mark.line + 1
+                walk(v)
+        elif isinstance(node, yaml.SequenceNode):
+            for v in node.value:
+                walk(v)
+
+    walk(yaml.compose(text, Loader=_Loader))
+
+
 def load_yaml(path: str | Path) -> dict:
-    """Read a YAML mapping, turning every failure into a one-line :class:`ConfigError`."""
+    """Read a YAML mapping (UTF-8, no key given twice in one mapping, no decimal comma in a
+    flow mapping: :func:`_check_nodes`), turning every failure into a one-line
+    :class:`ConfigError`."""
     p = Path(path)
     if not p.is_file():
         raise ConfigError(f"{p}: file not found")
+    text = _text(p)
     try:
-        data = yaml.load(p.read_text(), Loader=_SAFE_LOADER)
+        data = yaml.load(text, Loader=_Loader)
+        _check_nodes(p, text)
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" (line {mark.line + 1})" if mark is not None else ""
-        raise ConfigError(f"{p}: not valid YAML{where}") from None
+        problem = getattr(exc, "problem", None)
+        why = f": {problem}" if problem else ""
+        lines = text.splitlines()
+        if mark is not None and mark.line < len(lines) and "\t" in lines[mark.line]:
+            why += " (a tab on that line: YAML indents with spaces, not tabs)"
+        raise ConfigError(f"{p}: not valid YAML{where}{why}") from None
     if not isinstance(data, dict):
         raise ConfigError(f"{p}: expected a mapping at the top level, got {type(data).__name__}")
     return data

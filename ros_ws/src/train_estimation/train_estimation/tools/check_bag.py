@@ -290,17 +290,23 @@ def parse_threshold(text: str) -> tuple[str, str, float]:
 
 
 def load_thresholds(path: str) -> list[tuple[str, str, float]]:
-    import yaml
+    """``{summary key: {max: V, min: V}}`` from a YAML file (read as every YAML the project
+    reads: :func:`train_core.config.load_yaml`); an empty file holds none."""
+    from train_core.config import load_yaml
 
-    data = yaml.safe_load(Path(path).read_text()) or {}
+    if not Path(path).read_text(errors="replace").strip():
+        return []
+    data = load_yaml(path)  # ConfigError: one line, exit 2
     out = []
     for key, spec in data.items():
-        if not isinstance(spec, dict) or not set(spec) <= {"max", "min"}:
+        if not isinstance(spec, dict) or not spec or not set(spec) <= {"max", "min"}:
             raise CheckError(f"{path}: {key}: expected {{max: V}} and/or {{min: V}}")
-        if "max" in spec:
-            out.append((key, "<=", float(spec["max"])))
-        if "min" in spec:
-            out.append((key, ">=", float(spec["min"])))
+        for bound, op in (("max", "<="), ("min", ">=")):
+            if bound in spec:
+                v = spec[bound]
+                if isinstance(v, bool) or not isinstance(v, int | float) or math.isnan(v):
+                    raise CheckError(f"{path}: {key}: {bound} must be a number, got {v!r}")
+                out.append((key, op, float(v)))
     return out
 
 

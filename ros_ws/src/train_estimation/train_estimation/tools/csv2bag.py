@@ -10,7 +10,8 @@ map's ``columns``, units with --unit or the map's ``units``):
 
   time        the reference clock (the recorder's), required: the bag's log time of every
               message and the stamp of ``control``
-                                      units: s | ms (numbers), or text: ISO 8601 date-times
+                                      units: s | ms | us | ns (numbers), or text: ISO 8601
+                                      date-times
                                       (2026-12-01T23:59:59.900Z; no zone = UTC) or times of
                                       day (23:59:59.900)
   train_time  the train's own clock, stamping ``odometer`` and ``balise`` (the sampling time
@@ -89,9 +90,8 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
-import yaml
 from train_core.bagio import BagError, BagWriter
-from train_core.config import ConfigError, ConfigWarning, check_keys
+from train_core.config import ConfigError, ConfigWarning, check_keys, load_yaml
 from train_core.model import load_line
 
 from train_estimation.core.offline.measured import counter_gaps, counter_runs
@@ -100,8 +100,8 @@ KEYS = ("time", "train_time", "sample", "speed", "distance", "balise", "balise_p
         "traction", "braking")
 REQUIRED = ("time", "speed", "distance")
 UNITS = {  # key: {unit: factor to SI}
-    "time": {"s": 1.0, "ms": 1e-3},
-    "train_time": {"s": 1.0, "ms": 1e-3},
+    "time": {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9},
+    "train_time": {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9},
     "speed": {"m/s": 1.0, "km/h": 1 / 3.6},
     "distance": {"m": 1.0, "km": 1000.0},
     "balise_position": {"m": 1.0, "km": 1000.0},
@@ -112,6 +112,7 @@ MAP_KEYS = {"columns": "mapping", "units": "mapping", "traction_max": "number",
             "braking_max": "number", "speed_std": "number", "balise_std": "number",
             "delimiter": "string", "decimal": "string", "encoding": "string"}
 DAY = 86400.0  # s
+TIME_MAX = 2.0 ** 31  # s: a stamp's int32 seconds (builtin_interfaces/Time): 2038-01-19
 SEQ_MAX = 2 ** 32 - 1  # OdometerReading.seq is a uint32
 MAX_SKIPPED = "1%"
 
@@ -163,17 +164,26 @@ def load_mapping(path: str | None, columns=(), units=(), delimiter: str | None =
     options) on top."""
     d: dict = {}
     if path:
-        try:
-            d = yaml.safe_load(Path(path).read_text()) or {}
-        except (OSError, yaml.YAMLError) as e:
-            raise InputError(f"cannot read the map {path}: {str(e).splitlines()[0]}") from None
-        if not isinstance(d, dict):
-            raise InputError(f"{path}: a mapping of columns, units, ... expected")
-        try:  # extra keys: the rule of every reader (train_core.config.unknown_key)
+        try:  # the rules of every YAML the project reads (UTF-8, no key given twice, ...)
+            empty = not Path(path).read_text(errors="replace").strip()
+            d = {} if empty else load_yaml(path)
+            # extra keys: the rule of every reader (train_core.config.unknown_key)
             check_keys(d, MAP_KEYS, str(path))
+        except OSError as e:
+            raise InputError(f"cannot read the map {path}: {str(e).splitlines()[0]}") from None
         except ConfigError as e:
             raise InputError(str(e)) from None
-    m = Mapping(columns=dict(d.get("columns") or {}), units=dict(d.get("units") or {}))
+        for key in ("columns", "units"):  # each {quantity: a column's name or a unit}
+            v = d.get(key)
+            if v is not None and not (isinstance(v, dict) and all(
+                    isinstance(x, str | int | float) and not isinstance(x, bool)
+                    for x in v.values())):
+                raise InputError(f"{path}: {key} must map a quantity to a "
+                                 f"{'column name' if key == 'columns' else 'unit'}, e.g. "
+                                 f"{'speed: v_kmh' if key == 'columns' else 'speed: km/h'}; "
+                                 f"got {v!r}")
+    m = Mapping(columns={k: str(v) for k, v in (d.get("columns") or {}).items()},
+                units={k: str(v) for k, v in (d.get("units") or {}).items()})
     m.columns.update(_pairs(columns, "column"))
     m.units.update(_pairs(units, "unit"))
     for k in list(m.columns) + list(m.units):
@@ -257,6 +267,14 @@ def _time_cell(text: str, key: str, factor: float) -> tuple[float, bool]:
     else:
         if not math.isfinite(x):
             raise BadRow("non_finite", f"{key} is {text}")
+        if abs(x * factor) >= TIME_MAX:
+            # a whole column in another unit (a recorder's epoch milliseconds or nanoseconds),
+            # not one bad row: stamps hold seconds up to 2038 only
+            unit = next((u for u, f in UNITS[key].items() if f < factor and
+                         abs(x * f) < TIME_MAX and abs(x * f) >= 1e8), None)
+            raise InputError(f"{key} {text} is {x * factor:.4g} s, beyond what a stamp holds "
+                             f"(2038)" + (f": Unix time in {unit}? --unit {key}={unit}"
+                                          if unit else f": state its unit (--unit {key}=...)"))
         x *= factor
         return x, 0.0 <= x < DAY
     m = _TOD.match(text)
