@@ -395,3 +395,57 @@ def test_a_map_file_of_the_wrong_shape_is_refused_by_name(tmp_path, capsys, text
     assert csv2bag.main([str(log), "--out", str(tmp_path / "bag"),
                          "--map", str(tmp_path / "map.yaml")]) == 2
     assert what in capsys.readouterr().err
+
+
+def _plain(tmp_path, text: str, name: str = "p.csv") -> Path:
+    p = tmp_path / name
+    p.write_text(text)
+    return p
+
+
+def test_units_written_in_the_header_or_a_units_row_are_read(tmp_path, capsys):
+    rows = "".join(f"{100 + i}.0,36,{0.01 * i:.2f}\n" for i in range(4))
+    for i, head in enumerate(("time,speed [km/h],distance (km)\n",
+                              "time,speed,distance\ns,km/h,km\n")):
+        out = tmp_path / f"bag{i}"
+        assert csv2bag.main([str(_plain(tmp_path, head + rows)), "--out", str(out)]) == 0
+        assert "speed km/h, distance km" in capsys.readouterr().out
+        odo = read_bag(out).topics["odometer"]
+        assert [f["speed"] for _, _, f in odo] == pytest.approx([10.0] * 4)
+        assert [f["distance"] for _, _, f in odo] == pytest.approx([0, 10, 20, 30])
+    log = _plain(tmp_path, "time,speed [km/h],distance\n" + rows)
+    assert csv2bag.main([str(log), "--out", str(tmp_path / "c"), "--unit", "speed=m/s"]) == 2
+    assert "the file gives speed in km/h, the mapping says m/s" in capsys.readouterr().err
+    log = _plain(tmp_path, "time,speed [mph],distance\n" + rows)
+    assert csv2bag.main([str(log), "--out", str(tmp_path / "d")]) == 2
+    assert "'mph': use one of m/s, km/h" in capsys.readouterr().err
+
+
+def test_rows_that_would_be_misread_are_bad_rows(tmp_path, capsys):
+    head = "time,speed,distance,seq\n"
+    rows = [f"{100 + i}.0,10.0,{i},{1000 + 2 * i}" for i in range(6)]
+    bad = {"counter": rows[:3] + ["103.0,10.0,3,"] + rows[4:],
+           "ragged": rows[:3] + ["103.0,12,5,3,1006"] + rows[4:]}
+    for what, rs in bad.items():
+        log = _plain(tmp_path, head + "".join(r + "\n" for r in rs), f"{what}.csv")
+        assert csv2bag.main([str(log), "--out", str(tmp_path / what),
+                             "--column", "sample=seq"]) == 2
+        err = capsys.readouterr().err
+        assert "line 5" in err and ("no sample counter" in err if what == "counter"
+                                    else "5 cells under a header of 4" in err)
+    # a decimal-comma file (found from its first 50 lines) writing 1002 m as 1.002 from line 52
+    log = _plain(tmp_path, "time;speed;distance\n" + "".join(
+        f"{100 + i};10,5;{950 + i if i < 50 else f'1.{i - 50:03d}'}\n" for i in range(60)))
+    assert csv2bag.main([str(log), "--out", str(tmp_path / "th")]) == 2
+    assert "line 52: distance '1.000' has a '.' in a file whose decimal mark is ','" \
+        in capsys.readouterr().err
+
+
+def test_rows_with_a_time_only_are_samples_that_did_not_come(tmp_path, capsys):
+    text = "time,speed,distance\n" + "".join(
+        f"{100 + i}.0,,\n" if i % 10 == 5 else f"{100 + i}.0,10.0,{10 * i}\n"
+        for i in range(40))
+    assert csv2bag.main([str(_plain(tmp_path, text)), "--out", str(tmp_path / "bag")]) == 0
+    out = capsys.readouterr().out
+    assert "4 rows hold a time and nothing else" in out
+    assert "36 of 40 in the log, 4 lost" in out

@@ -80,6 +80,7 @@ from __future__ import annotations
 import argparse
 import codecs
 import csv
+import itertools
 import math
 import re
 import shutil
@@ -99,6 +100,7 @@ from train_estimation.core.offline.measured import counter_gaps, counter_runs
 KEYS = ("time", "train_time", "sample", "speed", "distance", "balise", "balise_position",
         "traction", "braking")
 REQUIRED = ("time", "speed", "distance")
+NUMERIC = ("sample", "speed", "distance", "balise", "balise_position", "traction", "braking")
 UNITS = {  # key: {unit: factor to SI}
     "time": {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9},
     "train_time": {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9},
@@ -108,6 +110,11 @@ UNITS = {  # key: {unit: factor to SI}
     "traction": {"m/s^2": 1.0, "percent": None},
     "braking": {"m/s^2": 1.0, "percent": None},
 }
+# a unit as a recorder or a spreadsheet writes it -> its name in UNITS
+UNIT_ALIASES = {"sec": "s", "secs": "s", "kmh": "km/h", "kph": "km/h", "km/hr": "km/h",
+                "mps": "m/s", "m/s2": "m/s^2", "m/s\u00b2": "m/s^2", "%": "percent",
+                "\u00b5s": "us"}
+_HEADER_UNIT = re.compile(r"^(.*?)\s*[\[(]\s*([^\])]+?)\s*[\])]$")  # "speed [km/h]"
 MAP_KEYS = {"columns": "mapping", "units": "mapping", "traction_max": "number",
             "braking_max": "number", "speed_std": "number", "balise_std": "number",
             "delimiter": "string", "decimal": "string", "encoding": "string"}
@@ -248,6 +255,8 @@ class Result:
     moved: int = 0  # rows --sort moved
     restarts: int = 0  # times the log's sample counter went back while the train clock ran on
     dialect: tuple = (",", ".", "")  # (delimiter, decimal, what was found rather than stated)
+    file_units: dict = field(default_factory=dict)  # key -> unit the file wrote (header or row)
+    time_only: int = 0  # rows with a time and nothing else (a recorder's row for a lost sample)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -341,6 +350,12 @@ class _Clock:
         return x + self.days * DAY
 
 
+class _TimeOnly(Exception):
+    """A row with a time and every other cell read empty: a recorder that writes a row per
+    period whether or not a sample came (the lost ones empty). Left out and counted; the
+    numbering finds the samples lost."""
+
+
 def _parse(row, line, col, fac, lookup, clocks) -> _Row:
     text = _cell(row, col, "time")
     if not text:
@@ -362,6 +377,11 @@ def _parse(row, line, col, fac, lookup, clocks) -> _Row:
     has_odo = "speed" in v or "distance" in v
     if has_odo and not ("speed" in v and "distance" in v):
         raise BadRow("missing", f"no {'distance' if 'speed' in v else 'speed'} value")
+    if has_odo and "sample" in col and "sample" not in v:
+        # the counter numbers the samples and counts the lost ones: a sample without it
+        # cannot be placed (numbering the log by the stamps instead reported 0 % lost for 49 %)
+        raise BadRow("missing", "no sample counter on an odometer row (the sample column "
+                                "numbers the samples)")
     for key in ("time", "train_time"):
         val = t if key == "time" else tt
         if val is not None and val < 0:
@@ -381,6 +401,8 @@ def _parse(row, line, col, fac, lookup, clocks) -> _Row:
             v["balise_position"] = float(b.position)
     commands = "traction" in v or "braking" in v
     if not (has_odo or commands or "balise_id" in v):
+        if not any(_cell(row, col, k) for k in col if k not in ("time", "train_time")):
+            raise _TimeOnly()  # a recorder's row for a sample it did not get: nothing to read
         raise BadRow("missing", "no speed, distance, command or balise on the row")
     if (has_odo or "balise_id" in v) and tt is None:
         raise BadRow("missing", "no train_time value (it stamps the odometer and balises)")
@@ -513,6 +535,53 @@ def _dialect(lines: list[str], mapping: Mapping) -> tuple[str, str, str]:
     return delim, dec, " and ".join(found)
 
 
+def _split_unit(header: str) -> tuple[str, str | None]:
+    """A column name and the unit written in it: ``speed [km/h]`` or ``speed (km/h)``."""
+    m = _HEADER_UNIT.match(header)
+    return (m.group(1), m.group(2)) if m and m.group(1) else (header, None)
+
+
+def _unit_name(text: str) -> str:
+    return UNIT_ALIASES.get(text.strip().lower(), text.strip())
+
+
+def _is_units_row(row: list, col: dict) -> bool:
+    """Whether ``row``, the first under the header, is a row of units: no cell is a number and
+    a column read holds a unit of its quantity (``s,km/h,m``)."""
+    cells = [c.strip() for c in row]
+    for c in cells:
+        try:
+            float(c.replace(",", "."))
+            return False
+        except ValueError:
+            pass
+    return any(k in UNITS and i < len(cells) and _unit_name(cells[i]) in UNITS[k]
+               for k, i in col.items())
+
+
+def _written_units(written: dict, mapping: Mapping, csv_path) -> dict:
+    """Take the units the file writes (in its header or a units row) where none is stated;
+    refuse one the file contradicts or one this tool does not know: a km/h column read as m/s
+    would be 3.6 times too fast without a word. Returns the units taken from the file."""
+    taken = {}
+    for key, text in written.items():
+        if not text or key not in UNITS:
+            continue
+        unit = _unit_name(text)
+        stated = mapping.units.get(key)
+        if unit not in UNITS[key] and stated is not None:
+            continue  # a word this tool does not know, which the mapping says what it means
+        if unit not in UNITS[key]:
+            raise InputError(f"{csv_path}: the file gives {key} in {text!r}: use one of "
+                             f"{', '.join(UNITS[key])} (state it with --unit {key}=UNIT if "
+                             f"the file's word means one of them)")
+        if stated is not None and stated != unit:
+            raise InputError(f"{csv_path}: the file gives {key} in {unit}, the mapping says "
+                             f"{stated}: remove one")
+        mapping.units[key] = taken[key] = unit
+    return taken
+
+
 def _read(csv_path, mapping, line, skip_bad_rows, sort, res) -> list[_Row]:
     """The CSV's usable rows in time order (sorted if asked); bad rows raise or are counted."""
     enc = "utf-8-sig" if codecs.lookup(mapping.encoding).name == "utf-8" else mapping.encoding
@@ -547,10 +616,19 @@ def _read_rows(fh, csv_path, mapping, line, skip_bad_rows, sort, res) -> list[_R
             name = mapping.columns.get(key, key)
             if name in header:
                 col[key] = header.index(name)
+            elif name in (_split_unit(h)[0] for h in header):  # "speed [km/h]" for speed
+                col[key] = [_split_unit(h)[0] for h in header].index(name)
             elif key in mapping.columns or key in REQUIRED:
                 raise InputError(f"{csv_path}: no column {name!r} for {key} (columns: "
                                  f"{', '.join(header)}, separated by {delim!r}; map it with "
                                  f"--column {key}=NAME, or state --delimiter)")
+        written = {k: _split_unit(header[i])[1] for k, i in col.items()}
+        first = next(reader, None)
+        units_row = first is not None and _is_units_row(first, col)
+        if units_row:  # a row of units under the header (a recorder's export)
+            written = {k: u or (first[i].strip() if i < len(first) else "") or None
+                       for (k, u), i in zip(written.items(), col.values())}
+        res.file_units = _written_units(written, mapping, csv_path)
         if "balise" in col and "balise_position" not in col and line is None:
             raise InputError("balise passages need their positions: give --line "
                              "line.yaml or a balise_position column")
@@ -558,14 +636,28 @@ def _read_rows(fh, csv_path, mapping, line, skip_bad_rows, sort, res) -> list[_R
         clocks = {k: _Clock(k, fac.get(k, 1.0)) for k in ("time", "train_time")}
         lookup = line.balise_by_id if line is not None else (lambda i: None)
         parsed = []
-        for lineno, row in enumerate(reader, start=2):
+        rows = reader if first is None else itertools.chain([] if units_row else [first], reader)
+        for lineno, row in enumerate(rows, start=3 if units_row else 2):
             if not row or all(not c.strip() for c in row):
                 continue
             res.rows += 1
-            if with_comma:
-                row = [c.replace(",", ".") for c in row]
             try:
+                if len(row) > len(header) and any(c.strip() for c in row[len(header):]):
+                    raise BadRow("ragged", f"{len(row)} cells under a header of {len(header)}"
+                                 + (" (a decimal comma in a comma-separated file? such cells "
+                                    "must be quoted)" if delim == "," else ""))
+                if with_comma:
+                    dotted = next((k for k in NUMERIC if k in col and col[k] < len(row)
+                                   and "." in row[col[k]]), None)
+                    if dotted is not None:  # 1.002 in a decimal-comma file: 1002, or 1.002?
+                        raise BadRow("thousands", f"{dotted} {row[col[dotted]].strip()!r} has a "
+                                     "'.' in a file whose decimal mark is ',': a thousands "
+                                     "separator? (write numbers without one)")
+                    row = [c.replace(",", ".") for c in row]
                 parsed.append(_parse(row, lineno, col, fac, lookup, clocks))
+            except _TimeOnly:
+                res.rows -= 1
+                res.time_only += 1
             except BadRow as e:
                 _bad(e, lineno, csv_path, skip_bad_rows, res)
     except csv.Error as e:
@@ -692,6 +784,12 @@ def report(res: Result, out: str) -> list[str]:
         lines.append(f"read with the delimiter {delim!r} and the decimal mark {dec!r}"
                      + (f" ({found} found from the file's first lines: state them with "
                         "--delimiter, --decimal or the map if that is wrong)" if found else ""))
+    if res.time_only:
+        lines.append(f"{res.time_only} rows hold a time and nothing else (a row written for a "
+                     "sample that did not come): left out, not counted as bad")
+    if res.file_units:
+        lines.append("units as the file writes them: " + ", ".join(
+            f"{k} {u}" for k, u in res.file_units.items()))
     for key, ln in res.rollovers:
         lines.append(f"{key} crossed midnight at line {ln}: a day added from there on")
     if res.moved:
