@@ -311,3 +311,26 @@ def test_a_counter_that_wraps_or_restarts_is_read_by_its_runs(tmp_path):
     q, runs = counter_runs([5, 6, 8, 7, 9, 0, 4, 1], [0.5, 0.6, 0.8, 0.7, 0.9, 1.0, 0.4, 1.1])
     assert list(runs) == [0, 0, 0, 0, 0, 1, 0, 1]
     assert counter_gaps(q, runs) == [(6, 6, 0), (2, 2, 0)]
+
+
+def test_a_foreign_topic_with_a_contract_name_does_not_move_the_namespace(tmp_path, capsys):
+    """A vehicle's own /vehicle/odometer (std_msgs/String) written before /train/*: the
+    namespace is the one whose topics carry the contract's types."""
+    from train_core.bagio import typestore
+
+    ts, s = typestore(), "std_msgs/msg/String"
+    with BagWriter(tmp_path / "bag") as w:
+        w.write_raw("/vehicle/odometer", s, 10**9, bytes(ts.serialize_cdr(ts.types[s](data="x"),
+                                                                         s)))
+        for i in range(50):
+            t = 1.0 + 0.1 * i
+            w.write("odometer", t, {"seq": i + 1, "distance": 1.0 * i, "speed": 10.0,
+                                    "speed_variance": 0.01})
+            w.write("control", t, {"target_acceleration": 0.1})
+            if i % 10 == 0:
+                w.write("balise", t, {"seq": i // 10 + 1, "balise_id": 1, "position": 100.0,
+                                      "position_variance": 1.0})
+    bag = read_bag(tmp_path / "bag")
+    assert bag.namespace == "/train" and len(bag.topics["odometer"]) == 50
+    assert check_bag.main([str(tmp_path / "bag"), "--no-plots"]) == 0
+    assert "not checked: /vehicle/odometer (std_msgs/String)" in capsys.readouterr().out

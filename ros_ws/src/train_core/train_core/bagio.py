@@ -424,7 +424,7 @@ def read_bag(path: str | os.PathLike, namespace: str | None = None,
     try:
         conns = list(reader.connections)
         if namespace is None:
-            namespace = _guess_namespace([c.topic for c in conns])
+            namespace = _guess_namespace([(c.topic, c.msgtype) for c in conns])
         bag = Bag(path=p, namespace=namespace)
         usable = []
         for c in conns:
@@ -520,7 +520,7 @@ def _read_plain(p: Path, namespace: str | None, topics: tuple[str, ...] | None) 
     if set(raw) - set(channels):
         return None  # a message on a channel never declared: rosbags says what is wrong
     if namespace is None:
-        namespace = _guess_namespace([t for t, _ in channels.values()])
+        namespace = _guess_namespace(list(channels.values()))
     bag = Bag(path=p, namespace=namespace)
     for cid in sorted(channels):  # rosbags lists connections in channel order
         topic, msgtype = channels[cid]
@@ -565,11 +565,21 @@ def _is_closed(mcap: Path) -> bool:
             and int.from_bytes(tail[9:17], "little") != 0)
 
 
-def _guess_namespace(topics: list[str]) -> str:
-    for t in topics:
-        for rel in TOPIC_TYPES:
-            if t.endswith("/" + rel):
-                return t[: -len(rel) - 1] or ""
+def _guess_namespace(topics: list[tuple[str, str]]) -> str:
+    """The namespace of a bag's contract topics, from its (topic, message type) pairs: the
+    prefix under which the most topics carry their contract type (``odometer`` an
+    OdometerReading, ...). A topic of another type that ends in a contract name (a vehicle's
+    own ``/vehicle/odometer`` as std_msgs/String) says nothing about it: taken first, it made
+    every input look missing."""
+    for typed in (True, False):  # by name alone where no topic has its type (then refused
+        votes: dict = {}         # by type, with the reason, rather than looked for elsewhere)
+        for t, msgtype in topics:
+            for rel, want in TOPIC_TYPES.items():
+                if t.endswith("/" + rel) and (msgtype == want or not typed):
+                    ns = t[: -len(rel) - 1]
+                    votes[ns] = votes.get(ns, 0) + 1
+        if votes:
+            return max(votes, key=lambda ns: (votes[ns], -len(ns)))
     return ""
 
 
@@ -613,7 +623,7 @@ def _recover(p: Path, namespace: str | None, topics: tuple[str, ...] | None = No
         raise BagError(f"{p}: no metadata.yaml and no .mcap file: not a rosbag2/MCAP bag")
     msgs, truncated = _complete_messages(files)
     if namespace is None:
-        namespace = _guess_namespace(sorted({m[1] for m in msgs}))
+        namespace = _guess_namespace(sorted({(m[1], m[2]) for m in msgs}))
     bag = Bag(path=p, namespace=namespace)
     bag.skipped["(file tail)"] = (f"bag was not closed; read up to the last complete record"
                                   f"{f' ({truncated})' if truncated else ''}; "
