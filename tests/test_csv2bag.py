@@ -449,3 +449,17 @@ def test_rows_with_a_time_only_are_samples_that_did_not_come(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "4 rows hold a time and nothing else" in out
     assert "36 of 40 in the log, 4 lost" in out
+
+
+def test_a_train_clock_restarted_mid_log_is_numbered_on_not_counted_lost(tmp_path, capsys):
+    text = "time,tt,speed,distance\n" + "".join(
+        f"{1000 + 0.1 * i:.1f},{3600 + 0.1 * i if i < 50 else 0.1 * (i - 50):.1f},10,{i}\n"
+        for i in range(100) if i != 70)  # one sample lost after the reboot
+    log = _plain(tmp_path, text)
+    assert csv2bag.main([str(log), "--out", str(tmp_path / "bag"),
+                         "--column", "train_time=tt"]) == 0
+    out = capsys.readouterr().out
+    assert "99 of 100 in the log, 1 lost (1.0 %) in 1 gaps" in out
+    assert "the train clock restarted 1 time (at line 52" in out
+    seq = [f["seq"] for _, _, f in read_bag(tmp_path / "bag").topics["odometer"]]
+    assert seq == [*range(1, 71), *range(72, 101)]

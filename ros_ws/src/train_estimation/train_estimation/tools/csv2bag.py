@@ -257,6 +257,7 @@ class Result:
     dialect: tuple = (",", ".", "")  # (delimiter, decimal, what was found rather than stated)
     file_units: dict = field(default_factory=dict)  # key -> unit the file wrote (header or row)
     time_only: int = 0  # rows with a time and nothing else (a recorder's row for a lost sample)
+    clock_restarts: list = field(default_factory=list)  # lines where the train clock restarted
 
 
 # ------------------------------------------------------------------------------------------------
@@ -692,6 +693,28 @@ def _bad(e: BadRow, lineno: int, csv_path, skip_bad_rows: bool, res: Result) -> 
         res.first_skipped.append(f"line {lineno}: {e}")
 
 
+# s: a train clock that goes back by more than this while the reference clock runs on has
+# restarted (an on-board computer rebooted: its clock from 0 again), not delivered a sample late
+# (a link's delays are seconds at most)
+CLOCK_RESTART = 60.0
+
+
+def _clock_restarts(odo: list[_Row]) -> list[int]:
+    """Indices (log order) where each run of the train clock starts: 0, then every row whose
+    train stamp lies more than ``CLOCK_RESTART`` s before the highest of its run while its
+    reference time is after that sample's. Numbered by the stamps across such a restart, the
+    log of a clock rebooted after an hour was 100 samples "of 36,050", 99.7 % lost."""
+    starts = [0]
+    hi_tt, hi_t = -math.inf, -math.inf
+    for i, r in enumerate(odo):
+        if r.train_time < hi_tt - CLOCK_RESTART and r.time >= hi_t:
+            starts.append(i)
+            hi_tt, hi_t = r.train_time, r.time
+        elif r.train_time > hi_tt:
+            hi_tt, hi_t = r.train_time, r.time
+    return starts
+
+
 def _number_odometer(odo: list[_Row], res: Result) -> None:
     """Each odometer row's ``seq``: the log's counter, or numbered from the train clock's
     period; the samples lost (gaps) are recorded in ``res``."""
@@ -704,7 +727,15 @@ def _number_odometer(odo: list[_Row], res: Result) -> None:
         res.numbering = "period"
         stamps = np.array([r.train_time for r in odo])
         res.period = sampling_period(stamps)
-        seq = number_samples(stamps, res.period)
+        seq = np.empty(stamps.size, dtype=np.int64)
+        starts = _clock_restarts(odo)
+        res.clock_restarts = [odo[i].line for i in starts[1:]]
+        base = 0
+        for a, b in zip(starts, starts[1:] + [len(odo)]):
+            # numbered on across a restart of the train clock (a sample counter would count
+            # on): the samples between the last before it and the first after are not known
+            seq[a:b] = base + number_samples(stamps[a:b], res.period)
+            base = int(seq[a:b].max())
     for r, s in zip(odo, seq):
         r.values["seq"] = int(s) % (SEQ_MAX + 1)
     # the gaps in sample order (a sample delivered late is not lost; one delivered twice is
@@ -784,6 +815,13 @@ def report(res: Result, out: str) -> list[str]:
         lines.append(f"read with the delimiter {delim!r} and the decimal mark {dec!r}"
                      + (f" ({found} found from the file's first lines: state them with "
                         "--delimiter, --decimal or the map if that is wrong)" if found else ""))
+    if res.clock_restarts:
+        lines.append(f"the train clock restarted {len(res.clock_restarts)} time"
+                     f"{'s' if len(res.clock_restarts) > 1 else ''} (at line"
+                     f"{'s' if len(res.clock_restarts) > 1 else ''} "
+                     f"{', '.join(map(str, res.clock_restarts[:5]))}: its stamps went back while "
+                     "the reference clock ran on): numbered on across it, the samples between "
+                     "not counted")
     if res.time_only:
         lines.append(f"{res.time_only} rows hold a time and nothing else (a row written for a "
                      "sample that did not come): left out, not counted as bad")
