@@ -463,3 +463,25 @@ def test_a_train_clock_restarted_mid_log_is_numbered_on_not_counted_lost(tmp_pat
     assert "the train clock restarted 1 time (at line 52" in out
     seq = [f["seq"] for _, _, f in read_bag(tmp_path / "bag").topics["odometer"]]
     assert seq == [*range(1, 71), *range(72, 101)]
+
+
+def test_what_a_spreadsheet_writes_around_the_table_is_read(tmp_path, capsys):
+    body = "time\tspeed\tdistance\r\n1.0\t1.0\t1.0\r\n1.1\t1.0\t2.0\r\n"
+    (tmp_path / "u16.csv").write_bytes(body.encode("utf-16"))  # "Unicode text": BOM + UTF-16
+    assert csv2bag.main([str(tmp_path / "u16.csv"), "--out", str(tmp_path / "a")]) == 0
+    assert "read as UTF-16 (its byte-order mark)" in capsys.readouterr().out
+    log = _plain(tmp_path, "# recorder XY v2\nsep=;\ntime;speed;distance\n1,0;1,0;1,0\n"
+                           "1,1;1,0;x\n")
+    assert csv2bag.main([str(log), "--out", str(tmp_path / "b")]) == 2
+    assert "line 5: distance 'x' is not a number" in capsys.readouterr().err  # lines as in file
+    log = _plain(tmp_path, "time,speed,distance\n" + "".join(
+        f"{i}.0,10.0,{i}\n" for i in range(60)) + "60.0,1,5,60\n", "late_comma.csv")
+    assert csv2bag.main([str(log), "--out", str(tmp_path / "c")]) == 2
+    log = _plain(tmp_path, "time;speed;distance\n" + "".join(
+        f"{i};10;{i}\n" for i in range(60)) + "60;1,5;60\n", "late_comma2.csv")
+    assert csv2bag.main([str(log), "--out", str(tmp_path / "c")]) == 2
+    assert "speed '1,5' is not a number (a decimal comma? state --decimal ," \
+        in capsys.readouterr().err
+    log = _plain(tmp_path, "time,speed,distance,speed\n1,1,1,2\n", "twice.csv")
+    assert csv2bag.main([str(log), "--out", str(tmp_path / "d")]) == 2
+    assert "the header names 'speed' twice" in capsys.readouterr().err

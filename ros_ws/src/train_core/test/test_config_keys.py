@@ -195,3 +195,17 @@ def test_yaml_1_2_exponents_are_numbers_and_tabs_are_named(tmp_path):
     assert load_line(_line_text(tmp_path, "name: t\nlength: 5e3\n")).length == 5000.0
     with pytest.raises(ConfigError, match=r"line 3.*a tab on that line"):
         load_line(_line_text(tmp_path, "name: t\nlength:\n\t5000\n"))
+
+
+@pytest.mark.parametrize("extra, what", [
+    ("balises:\n  - {id: 1, position: 5200.0}\n", r"balises\[0\].position"),
+    ("balises:\n  - {id: 1, position: -3.0}\n", r"balises\[0\].position"),
+    ("gradients:\n  - {start: 4000.0, end: 5500.0, permille: 2}\n", r"gradients\[0\].end"),
+    ("speed_limits:\n  - {start: 300.0, end: 100.0, speed: 10}\n",
+     r"speed_limits\[0\]: end \(100\) must be greater than start \(300\)"),
+])
+def test_places_off_the_line_are_refused(tmp_path, extra, what):
+    """A balise or a section beyond the line's end is a unit slip (km for m) or another line's
+    map; a speed limit that ends before it starts is a typo: refused, not read."""
+    with pytest.raises(ConfigError, match=what):
+        load_line(_line_text(tmp_path, "name: t\nlength: 5000.0\n" + extra))

@@ -283,8 +283,11 @@ def line_from_dict(data: dict, where: str = "line.yaml") -> Line:
     s = Section(data, where)
     check_top_level(s.data, LINE_KEYS, where)
     length = s.number("length", REQUIRED, lo=0.0, lo_open=True, unit="m")
+    # positions on the line, as the stations' (a balise or a section beyond the line's end is
+    # a unit slip, km for m, or a map of another line)
     balises = tuple(
-        Balise(id=b.integer("id", REQUIRED, lo=0), position=b.number("position", REQUIRED))
+        Balise(id=b.integer("id", REQUIRED, lo=0),
+               position=b.number("position", REQUIRED, lo=0.0, hi=length, unit="m"))
         for b in s.sections("balises", BALISE_KEYS, default=[])
     )
     ids = [b.id for b in balises]
@@ -292,7 +295,8 @@ def line_from_dict(data: dict, where: str = "line.yaml") -> Line:
         raise ConfigError(f"{where}.balises: balise ids must be unique")
     grads = []
     for g in s.sections("gradients", GRADIENT_KEYS, default=[]):
-        start, end = g.number("start", REQUIRED), g.number("end", REQUIRED)
+        start = g.number("start", REQUIRED, lo=0.0, hi=length, unit="m")
+        end = g.number("end", REQUIRED, lo=0.0, hi=length, unit="m")
         if end <= start:
             raise ConfigError(f"{g.where}: end ({end:g}) must be greater than start ({start:g})")
         grads.append(GradientSection(start, end, g.number("permille", REQUIRED, lo=-60, hi=60)))
@@ -309,11 +313,14 @@ def line_from_dict(data: dict, where: str = "line.yaml") -> Line:
         )
         for st in s.sections("stations", STATION_KEYS, default=[])
     )
-    limits = tuple(
-        SpeedLimit(sl.number("start", REQUIRED), sl.number("end", REQUIRED),
-                   sl.number("speed", REQUIRED, lo=0.0, lo_open=True, unit="m/s"))
-        for sl in s.sections("speed_limits", SPEED_LIMIT_KEYS, default=[])
-    )
+    limits = []
+    for sl in s.sections("speed_limits", SPEED_LIMIT_KEYS, default=[]):
+        start, end = sl.number("start", REQUIRED), sl.number("end", REQUIRED)
+        if end <= start:
+            raise ConfigError(f"{sl.where}: end ({end:g}) must be greater than start ({start:g})")
+        limits.append(SpeedLimit(start, end, sl.number("speed", REQUIRED, lo=0.0, lo_open=True,
+                                                        unit="m/s")))
+    limits = tuple(limits)
     return Line(
         name=s.string("name", "line"),
         length=length,

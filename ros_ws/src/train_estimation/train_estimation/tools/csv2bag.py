@@ -80,6 +80,7 @@ from __future__ import annotations
 import argparse
 import codecs
 import csv
+import dataclasses
 import itertools
 import math
 import re
@@ -258,6 +259,8 @@ class Result:
     file_units: dict = field(default_factory=dict)  # key -> unit the file wrote (header or row)
     time_only: int = 0  # rows with a time and nothing else (a recorder's row for a lost sample)
     clock_restarts: list = field(default_factory=list)  # lines where the train clock restarted
+    encoding: str = ""  # the encoding found from the file's byte-order mark, if not stated
+    preamble: int = 0  # lines before the header: comments (#) and a spreadsheet's sep= line
 
 
 # ------------------------------------------------------------------------------------------------
@@ -316,7 +319,9 @@ def _number(row, col, key) -> float | None:
     try:
         x = float(text)
     except ValueError:
-        raise BadRow("not_a_number", f"{key} {text!r} is not a number") from None
+        hint = " (a decimal comma? state --decimal , where the file writes them)" \
+            if _COMMA_NUMBER.match(text) else ""
+        raise BadRow("not_a_number", f"{key} {text!r} is not a number{hint}") from None
     if not math.isfinite(x):
         raise BadRow("non_finite", f"{key} is {text}")
     return x
@@ -507,6 +512,7 @@ def convert(csv_path: str | Path, out: str | Path, mapping: Mapping, line=None,
 DELIMITERS = (",", ";", "\t", "|")
 DIALECT_LINES = 50  # the first lines that the separator and the decimal mark are found from
 _COMMA_NUMBER = re.compile(r"^[+-]?\d+,\d+$")
+_SEP_LINE = re.compile(r'^\s*"?sep=(.)"?\s*$')  # a spreadsheet's first line: "sep=;"
 _POINT_NUMBER = re.compile(r"^[+-]?\d*\.\d+$")
 
 
@@ -587,6 +593,11 @@ def _read(csv_path, mapping, line, skip_bad_rows, sort, res) -> list[_Row]:
     """The CSV's usable rows in time order (sorted if asked); bad rows raise or are counted."""
     enc = "utf-8-sig" if codecs.lookup(mapping.encoding).name == "utf-8" else mapping.encoding
     try:
+        with open(csv_path, "rb") as raw:
+            bom = raw.read(2)
+        if enc == "utf-8-sig" and bom in (codecs.BOM_UTF16_LE, codecs.BOM_UTF16_BE):
+            # a spreadsheet's "Unicode text": UTF-16, which its byte-order mark says
+            enc = res.encoding = "utf-16"
         fh = open(csv_path, newline="", encoding=enc)
     except OSError as e:
         raise InputError(f"cannot read {csv_path}: {e.strerror}") from None
@@ -601,8 +612,20 @@ def _read(csv_path, mapping, line, skip_bad_rows, sort, res) -> list[_Row]:
 
 def _read_rows(fh, csv_path, mapping, line, skip_bad_rows, sort, res) -> list[_Row]:
     head = [ln for ln in (fh.readline() for _ in range(DIALECT_LINES)) if ln]
+    # lines before the header: a recorder's comments (#) and a spreadsheet's "sep=;" line,
+    # which states the separator
+    pre, sep = 0, None
+    while pre < len(head) and (head[pre].lstrip().startswith("#") or _SEP_LINE.match(head[pre])):
+        m = _SEP_LINE.match(head[pre])
+        sep = m.group(1) if m else sep
+        pre += 1
+    res.preamble = pre
     fh.seek(0)
-    delim, dec, found = _dialect(head, mapping)
+    for _ in range(pre):
+        fh.readline()
+    if sep is not None and mapping.delimiter is None:
+        mapping = dataclasses.replace(mapping, delimiter=sep)
+    delim, dec, found = _dialect(head[pre:], mapping)
     res.dialect = (delim, dec, found)
     with_comma = dec == ","  # 0,36: every comma of a cell is its decimal mark
     reader = csv.reader(fh, delimiter=delim, skipinitialspace=True)
@@ -615,6 +638,11 @@ def _read_rows(fh, csv_path, mapping, line, skip_bad_rows, sort, res) -> list[_R
         col = {}
         for key in KEYS:
             name = mapping.columns.get(key, key)
+            if header.count(name) > 1 or name not in header and \
+                    [_split_unit(h)[0] for h in header].count(name) > 1:
+                raise InputError(f"{csv_path}: the header names {name!r} twice (columns "
+                                 f"{', '.join(header)}): which one is {key} is not "
+                                 f"known; rename one in the file")
             if name in header:
                 col[key] = header.index(name)
             elif name in (_split_unit(h)[0] for h in header):  # "speed [km/h]" for speed
@@ -638,7 +666,7 @@ def _read_rows(fh, csv_path, mapping, line, skip_bad_rows, sort, res) -> list[_R
         lookup = line.balise_by_id if line is not None else (lambda i: None)
         parsed = []
         rows = reader if first is None else itertools.chain([] if units_row else [first], reader)
-        for lineno, row in enumerate(rows, start=3 if units_row else 2):
+        for lineno, row in enumerate(rows, start=pre + (3 if units_row else 2)):
             if not row or all(not c.strip() for c in row):
                 continue
             res.rows += 1
@@ -815,6 +843,11 @@ def report(res: Result, out: str) -> list[str]:
         lines.append(f"read with the delimiter {delim!r} and the decimal mark {dec!r}"
                      + (f" ({found} found from the file's first lines: state them with "
                         "--delimiter, --decimal or the map if that is wrong)" if found else ""))
+    if res.encoding:
+        lines.append(f"read as {res.encoding.upper()} (its byte-order mark)")
+    if res.preamble:
+        lines.append(f"{res.preamble} line{'s' if res.preamble > 1 else ''} before the header "
+                     "left out (comments, a sep= line)")
     if res.clock_restarts:
         lines.append(f"the train clock restarted {len(res.clock_restarts)} time"
                      f"{'s' if len(res.clock_restarts) > 1 else ''} (at line"
