@@ -110,3 +110,17 @@ def test_repair_command_line(tmp_path):
     res = subprocess.run([sys.executable, "-m", "train_core.bagio", "repair", str(bag)],
                          capture_output=True, text=True, timeout=120)
     assert res.returncode == 2 and "nothing to repair" in res.stderr
+
+
+def test_a_closed_bag_without_its_metadata_is_read_and_not_called_unclosed(tmp_path):
+    """A bag copied without metadata.yaml: its .mcap is complete (summary and footer)."""
+    bag = tmp_path / "bag"
+    with BagWriter(bag) as w:
+        for s in range(20):
+            w.write("odometer", 1.0 + 0.1 * s, {"seq": s, "distance": 1.0 * s, "speed": 2.0,
+                                                 "speed_variance": 0.01})
+    (bag / "metadata.yaml").unlink()
+    rec = read_bag(bag)
+    assert [f["seq"] for _, _, f in rec.topics["odometer"]] == list(range(20))
+    note = rec.skipped["(file tail)"]
+    assert "no metadata.yaml; the .mcap files are complete" in note and "not closed" not in note

@@ -625,9 +625,15 @@ def _recover(p: Path, namespace: str | None, topics: tuple[str, ...] | None = No
     if namespace is None:
         namespace = _guess_namespace(sorted({(m[1], m[2]) for m in msgs}))
     bag = Bag(path=p, namespace=namespace)
-    bag.skipped["(file tail)"] = (f"bag was not closed; read up to the last complete record"
-                                  f"{f' ({truncated})' if truncated else ''}; "
-                                  f"'python -m train_core.bagio repair {p}' indexes it")
+    if not truncated and all(_is_closed(f) for f in files):
+        # only metadata.yaml is missing (copied without it): every file is complete
+        bag.skipped["(file tail)"] = (f"no metadata.yaml; the .mcap files are complete and "
+                                      f"were read as they are ('python -m train_core.bagio "
+                                      f"repair {p}' writes it)")
+    else:
+        bag.skipped["(file tail)"] = (f"bag was not closed; read up to the last complete "
+                                      f"record{f' ({truncated})' if truncated else ''}; "
+                                      f"'python -m train_core.bagio repair {p}' indexes it")
     for t_ns, topic, msgtype, _, data in sorted(msgs, key=lambda r: r[0]):
         rel = topic[len(namespace) + 1:] if topic.startswith(namespace + "/") else topic
         if msgtype not in msg_texts():
