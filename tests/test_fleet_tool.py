@@ -241,3 +241,40 @@ def test_manifest_extra_columns_are_allowed_a_typo_of_an_absent_one_is_not(tmp_p
     (tmp_path / "m.csv").write_text("train,bag,line,train_file,tme\nT1,bags/a,l.yaml,t.yaml,5\n")
     assert tool.main(["--manifest", str(tmp_path / "m.csv"), "--out", str(tmp_path)]) == 2
     assert "column 'tme': did you mean 'time'?" in capsys.readouterr().err
+
+
+def test_what_a_person_or_a_spreadsheet_gives_the_fleet_is_read_right(tmp_path, capsys):
+    """A manifest saved with a byte-order mark, day labels, a run listed twice, a cache entry
+    cut off by a killed run, history values written as text, a line name that is no file name."""
+    from pathlib import Path
+
+    from train_estimation.tools.fleet_dask import worker_check
+
+    repo = Path(__file__).resolve().parents[1]
+    bag = repo / "bags" / "metro_demo_short"
+    conf = repo / "ros_ws" / "src" / "train_core" / "config"
+    row = f"{bag},{conf / 'lines' / 'metro_demo.yaml'},{conf / 'trains' / 'metro_b6.yaml'}"
+    m = tmp_path / "m.csv"
+    m.write_text(f"train,bag,line,train_file,day\nT1,{row},2026-11-8\n", encoding="utf-8-sig")
+    assert [t["day"] for t in tool.read_manifest(str(m))] == ["2026-11-08"]
+    m.write_text(f"train,bag,line,train_file,day\nT1,{row},30.11.2026\n")
+    with pytest.raises(tool.InputError, match="line 2: day '30.11.2026' is not a date"):
+        tool.read_manifest(str(m))
+    # the same run under two trains: refused before any cluster starts
+    m.write_text(f"train,bag,line,train_file\nT2,{row}\nT3,{row}\n")
+    assert tool.main(["--manifest", str(m), "--out", str(tmp_path / "o"), "--quiet"]) == 2
+    assert "line 3: the same bag as" in capsys.readouterr().err
+    # a cache entry cut off mid-write is no entry (the bag is analysed again)
+    f = tmp_path / "k.json"
+    f.write_text('{"train": "T1", "bag": "x", "line_f')
+    assert tool._cached(f) is None
+    f.write_text(json.dumps({"train": "T1", "bag": "x", "line_file": "l", "train_file": "t",
+                             "braking_rate": "0.60", "braking_rate_se": "0.01"}))
+    r = tool._cached(f)
+    assert r.braking_rate == 0.6 and r.braking_rate_se == 0.01
+    with pytest.raises(ValueError, match="braking_rate 'fast' is not a number"):
+        BagRow.from_json({"train": "T1", "bag": "x", "line_file": "l", "train_file": "t",
+                          "braking_rate": "fast"})
+    assert tool._file_name("S1/S12") == "S1_S12" and tool._file_name("../x") == "_x"
+    # the workers' probe without a task the client can see checks the imports only
+    assert worker_check({})["problem"] is None

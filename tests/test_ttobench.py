@@ -125,6 +125,9 @@ def test_a_level_straight_track_has_one_level_section_and_no_curves():
      ["\"infinity\""]),
     (lambda t: t["curvatures"]["values"].__setitem__(1, [500.0, 0, 800.0]), ["radius of 0"]),
     (lambda t: t["metadata"].pop("id"), ["metadata", "'id'"]),
+    (lambda t: t["speed limits"]["values"].__setitem__(1, [400.0, 1e308]),
+     ["faster than any railway", "check its unit"]),
+    (lambda t: t["stops"].update(values=[0.0, 1e12]), ["more than 100,000 balises"]),
 ])
 def test_a_track_outside_the_schema_is_refused_naming_the_field(change, words):
     t = _track()
@@ -138,6 +141,21 @@ def test_a_track_outside_the_schema_is_refused_naming_the_field(change, words):
 def test_a_field_outside_the_schema_is_named_in_a_warning():
     with pytest.warns(ConfigWarning, match="'tunnels'"):
         T.track_to_line(_track(tunnels=[]))
+    t = _track()
+    t["stops"]["note"] = "surveyed 2019"  # inside a field too: named, not refused
+    with pytest.warns(ConfigWarning, match="stops: keys outside TTOBench's schema.*'note'"):
+        assert T.track_to_line(t)["length"] == 3000.0
+
+
+def test_a_header_value_with_a_newline_stays_a_comment_and_a_bom_is_read(tmp_path, capsys):
+    t = _track()
+    t["metadata"]["created by"] = "A. Person\nmax_speed: 1"
+    src = tmp_path / "XX_Test_Line.json"
+    src.write_text(json.dumps(t), encoding="utf-8-sig")
+    assert T.main([str(src), "--out", str(tmp_path / "line.yaml")]) == 0
+    line = load_line(tmp_path / "line.yaml")
+    assert line.max_speed == pytest.approx(25.0)  # the header's text is no key
+    assert "created by A. Person max_speed: 1)" in (tmp_path / "line.yaml").read_text()
 
 
 # ------------------------------------------------------------------------------------------------

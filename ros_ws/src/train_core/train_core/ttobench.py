@@ -60,6 +60,8 @@ FIELDS_OPTIONAL = ("altitude", "gradients", "curvatures")
 _LENGTH = {"m": 1.0, "km": 1000.0}
 _SPEED = {"m/s": 1.0, "km/h": 1.0 / 3.6}
 MAX_PERMILLE = 60.0  # line.yaml's bound on a gradient
+MAX_SPEED = 170.0  # m/s (612 km/h): above any railway's, maglev included: a unit slip
+MAX_BALISES = 100_000  # balises the importer places: more is a unit slip or a spacing typo
 
 # where a scenario's ``line: ttobench:ID`` is looked for (resolve_line)
 LINES_ENV = "TRAIN_LINES_DIR"
@@ -104,9 +106,15 @@ def _unit(d: dict, key: str, allowed: dict, where: str) -> float:
 
 
 def _keys(d, expected: set, where: str) -> dict:
-    if not isinstance(d, dict) or set(d) != expected:
+    """``d`` with the keys ``expected``: one missing is refused, one more is named in a warning
+    (as a field outside the schema at the top: a producer may add a note)."""
+    if not isinstance(d, dict) or not expected <= set(d):
         got = sorted(d) if isinstance(d, dict) else type(d).__name__
         raise _fail(where, f"expected the keys {sorted(expected)}, got {got}")
+    extra = sorted(set(d) - expected)
+    if extra:
+        warnings.warn(f"{where}: keys outside TTOBench's schema ignored: "
+                      f"{', '.join(map(repr, extra))}", ConfigWarning, stacklevel=3)
     return d
 
 
@@ -153,7 +161,7 @@ def load_track(path: str | Path) -> dict:
     """A TTOBench track file's JSON; ConfigError when it cannot be read."""
     p = Path(path)
     try:
-        data = json.loads(p.read_text(encoding="utf-8"))
+        data = json.loads(p.read_text(encoding="utf-8-sig"))  # a byte-order mark: dropped
     except FileNotFoundError:
         raise ConfigError(f"{p}: no such file") from None
     except (OSError, UnicodeDecodeError) as exc:
@@ -212,6 +220,10 @@ def track_to_line(track: dict, *, where: str = "track.json", balise_spacing: flo
             raise _fail(f"{where}.stops.values[{i}]", "stops must be strictly increasing "
                                                       f"({stops[i]:g} m after {stops[i - 1]:g} m)")
     length = stops[-1]
+    if length / balise_spacing + len(stops) > MAX_BALISES:
+        raise _fail(f"{where}.stops", f"{length:g} m at a balise every {balise_spacing:g} m "
+                                      f"is more than {MAX_BALISES:,} balises: check the stops' "
+                                      f"unit, or the balise spacing")
 
     def ends(secs):
         return [(s[0], (secs[i + 1][0] if i + 1 < len(secs) else length), *s[1:])
@@ -222,6 +234,10 @@ def track_to_line(track: dict, *, where: str = "track.json", balise_spacing: flo
         if v <= 0:
             raise _fail(f"{where}.speed limits.values[{i}]", f"a speed limit must be > 0, got "
                                                              f"{v:g} m/s at {a:g} m")
+        if v > MAX_SPEED:
+            raise _fail(f"{where}.speed limits.values[{i}]",
+                        f"{v:g} m/s ({v * 3.6:g} km/h) at {a:g} m is faster than any railway "
+                        f"(<= {MAX_SPEED:g} m/s): check its unit")
     vmax = max(v for _, _, v in limits)
     grads = [(0.0, length, 0.0)]
     if "gradients" in track:
@@ -279,7 +295,9 @@ def header(track: dict, source: str) -> str:
              "has none); curves: signed radii (m, + right), not modelled by the simulator."]
     if isinstance(alt, dict) and "value" in alt:
         lines.append(f"Altitude at the start: {alt['value']} {alt.get('unit', 'm')}.")
-    return "".join(f"# {x}\n" for x in lines)
+    # one comment line each: a value holding a newline ("A. Person\nmax_speed: 1") would
+    # otherwise end the comment and become a key of the file
+    return "".join(f"# {' '.join(x.split())}\n" for x in lines)
 
 
 def write_line(line: dict, path: str | Path, head: str = "") -> Path:
@@ -365,6 +383,16 @@ def main(argv=None) -> int:
     p.add_argument("--dwell", type=float, default=30.0,
                    help="s, planned dwell at each station (default 30)")
     args = p.parse_args(argv)
+    show = warnings.showwarning
+
+    def one_line(message, category, filename, lineno, file=None, line=None):
+        # a field outside the schema: one line on stderr, not Python's two with the source
+        if issubclass(category, ConfigWarning):
+            print(f"warning: {message}", file=file or sys.stderr)
+        else:
+            show(message, category, filename, lineno, file, line)
+
+    warnings.showwarning = one_line
     try:
         track = load_track(args.track)
         line = track_to_line(track, where=args.track, balise_spacing=args.balise_spacing,
@@ -373,6 +401,8 @@ def main(argv=None) -> int:
     except (ConfigError, OSError) as exc:
         print(f"ttobench2line: {' '.join(str(exc).split())}", file=sys.stderr)
         return 2
+    finally:
+        warnings.showwarning = show
     g = [s["permille"] for s in line["gradients"]]
     print(f"wrote {args.out}: {line['name']}, {line['length']:.0f} m, {len(line['stations'])} "
           f"stations, {len(line['gradients'])} gradient sections ({min(g):+g} to {max(g):+g} "

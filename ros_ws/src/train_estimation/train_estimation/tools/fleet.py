@@ -74,8 +74,10 @@ import hashlib
 import json
 import math
 import os
+import re
 import sys
 import time
+from datetime import datetime
 from pathlib import Path
 
 from train_estimation.tools.common import EXIT_CHECK_FAILED, EXIT_OK, fail, json_default
@@ -131,7 +133,7 @@ def read_manifest(path: str) -> list[dict]:
     """The manifest's tasks; a malformed row is an InputError naming its line (exit 2)."""
     base = Path(path).resolve().parent
     try:
-        with open(path, newline="") as fh:
+        with open(path, newline="", encoding="utf-8-sig") as fh:  # a spreadsheet's BOM
             reader = csv.DictReader(fh)
             rows = [(reader.line_num, r) for r in reader]
             header = reader.fieldnames or []
@@ -166,9 +168,38 @@ def read_manifest(path: str) -> list[dict]:
         if t["time"] is not None and not math.isfinite(t["time"]):
             raise InputError(f"{path} line {num}: time {tm!r} is not finite")
         day = (r.get("day") or "").strip()
-        t["day"] = day or None
+        t["day"] = _day(day, f"{path} line {num}") if day else None
+        t["where"] = f"{path} line {num}"
         tasks.append(t)
     return tasks
+
+
+def _day(text: str, where: str) -> str:
+    """A day label as YYYY-MM-DD (2026-11-8 written as 2026-11-08): the history's days are
+    ordered as text, so another form (30.11.2026, or 2026-11-8 before 2026-11-10) would keep
+    the wrong days in --days' window."""
+    try:
+        return datetime.strptime(text, "%Y-%m-%d").date().isoformat()
+    except ValueError:
+        raise InputError(f"{where}: day {text!r} is not a date YYYY-MM-DD") from None
+
+
+def _cached(f: Path) -> BagRow | None:
+    """The cached row in ``f``, or None: absent, or not a row this version wrote whole (a
+    file cut off by a killed run, or edited): the bag is analysed again."""
+    if not f.is_file():
+        return None
+    try:
+        return BagRow.from_json(json.loads(f.read_text()))
+    except (OSError, ValueError, TypeError, KeyError, AttributeError):
+        return None
+
+
+def _file_name(name: str) -> str:
+    """A line's name as a file name: what is not a letter, digit, '-', '_' or '.' becomes '_'
+    (a line named S1/S12 or ../x must not name a folder)."""
+    out = re.sub(r"[^A-Za-z0-9._-]", "_", name).lstrip(".")
+    return out or "line"
 
 
 def read_folder(folder: str, line: str, train: str) -> list[dict]:
@@ -215,8 +246,9 @@ def merge_history(path: Path, rows: list[BagRow], day: str) -> list[BagRow]:
                 try:
                     d = json.loads(line)
                     hist[d["key"]] = BagRow.from_json(d)
-                except (ValueError, KeyError, TypeError):
-                    print(f"fleet: {path} line {n}: not a history row, skipped", file=sys.stderr)
+                except (ValueError, KeyError, TypeError) as exc:
+                    print(f"fleet: {path} line {n}: not a history row ({exc}), skipped",
+                          file=sys.stderr)
     for r in rows:
         old = hist.get(r.key)
         hist[r.key] = dataclasses.replace(
@@ -290,6 +322,8 @@ def main(argv=None) -> int:
     try:
         if not 0.0 <= args.max_failed <= 1.0:
             raise InputError(f"--max-failed {args.max_failed}: a fraction in [0, 1]")
+        if args.day is not None:
+            args.day = _day(args.day, "--day")
         if args.manifest:
             tasks = read_manifest(args.manifest)
         else:
@@ -309,12 +343,22 @@ def main(argv=None) -> int:
     cache = Path(args.cache) if args.cache else out / "cache"
     cache.mkdir(parents=True, exist_ok=True)
     rows, todo = [], []
+    seen: dict = {}
     for t in tasks:
         t["key"] = content_key(t)
+        if t["key"] in seen:  # one run under two rows: it would count twice, under one train
+            first = seen[t["key"]]
+            same = "the same bag" if Path(first["bag"]) == Path(t["bag"]) else \
+                f"the same data as {first['bag']} (identical files)"
+            return fail("fleet", f"{t.get('where', t['bag'])}: {same} as "
+                                 f"{first.get('where', first['bag'])} (train {first['train']}): "
+                                 f"list each run once")
+        seen[t["key"]] = t
+    for t in tasks:
         f = cache / f"{t['key']}.json"
-        if f.is_file():
-            row = dataclasses.replace(BagRow.from_json(json.loads(f.read_text())),
-                                      train=t["train"], bag=t["bag"], cached=True)
+        cached = _cached(f)
+        if cached is not None:
+            row = dataclasses.replace(cached, train=t["train"], bag=t["bag"], cached=True)
             if t.get("time") is not None:
                 row = dataclasses.replace(row, time=t["time"])
             rows.append(row)
@@ -338,8 +382,11 @@ def main(argv=None) -> int:
         new = [dataclasses.replace(r, cached=False) for r in new]
         for r in new:
             if not str(r.error or "").startswith(_NOT_CACHED):
-                (cache / f"{r.key}.json").write_text(json.dumps(r.to_json(),
-                                                                default=json_default))
+                # written whole or not at all: a run killed mid-write leaves no half entry
+                f = cache / f"{r.key}.json"
+                tmp = f.with_suffix(".json.part")
+                tmp.write_text(json.dumps(r.to_json(), default=json_default))
+                os.replace(tmp, f)
         rows += new
     else:
         wall = 0.0
@@ -363,7 +410,7 @@ def main(argv=None) -> int:
         by_name.setdefault(ln.name, ln)
     for name, d in res.lines.items():
         if name in by_name:
-            fn = f"line_{name}.png"
+            fn = f"line_{_file_name(name)}.png"
             plot_line(name, by_name[name], dict(d, _runs=[r for r in crow if r["line"] == name]),
                       out / fn)
             plots.append(fn)

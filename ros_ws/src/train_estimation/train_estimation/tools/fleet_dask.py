@@ -32,20 +32,24 @@ def analyse_bag(task: dict) -> BagRow:
     row = {"train": task["train"], "bag": task["bag"], "line_file": task["line"],
            "train_file": task["train_file"], "time": task.get("time"), "key": task.get("key"),
            "error": None}
+    read: dict = {}  # the bag once read: why it failed may be that it was never closed
     try:
-        row.update(_analyse(task))
+        row.update(_analyse(task, read))
         out = BagRow(**row)
     except Exception as exc:  # noqa: BLE001 - any failure of one bag is reported, not fatal
+        from train_estimation.tools.common import unclosed
+
+        why = f"{type(exc).__name__}: {' '.join(str(exc).split())}"[:300]
         out = BagRow(**{k: row[k] for k in ("train", "bag", "line_file", "train_file", "time",
                                             "key")},
-                     error=f"{type(exc).__name__}: {' '.join(str(exc).split())}"[:300],
+                     error=why + unclosed(read.get("bag")),
                      traceback_at=traceback.extract_tb(exc.__traceback__)[-1].name)
     return dataclasses.replace(out, seconds=round(time.perf_counter() - t0, 2))
 
 
-def _analyse(task: dict) -> dict:
+def _analyse(task: dict, read: dict | None = None) -> dict:
     """One bag, read once: its topics' health, identify's fit and diagnose's ranking (the
-    row's fields they fill)."""
+    row's fields they fill). ``read["bag"]`` holds the bag once read."""
     from train_core.bagio import read_bag
     from train_core.model import load_line, load_train
 
@@ -55,6 +59,8 @@ def _analyse(task: dict) -> dict:
     line, train = load_line(task["line"]), load_train(task["train_file"])
     out: dict = {"line": line.name}
     bag = read_bag(task["bag"], topics=TOPICS)
+    if read is not None:
+        read["bag"] = bag
     # topic health (check_bag's received fractions, gaps)
     for tp in TOPICS:
         h = topic_health(bag, tp)
@@ -158,6 +164,8 @@ def worker_check(paths: dict) -> dict:
     except Exception as exc:  # noqa: BLE001 - reported, as what the worker lacks
         out["problem"] = f"{type(exc).__name__}: {exc}"
         return out
+    if not paths:  # no task whose files the client sees: only the imports are checked
+        return out
     for what in ("bag", "line", "train_file"):
         if not os.path.exists(paths[what]):
             out["problem"] = (f"cannot see {paths[what]} (every worker needs the bags and "
@@ -185,17 +193,18 @@ def _probe_function(paths: dict):
     return probe
 
 
-def probe_workers(client, task: dict, address: str, wait_s: float = 60.0) -> int:
-    """Check before submitting that every worker can run the analysis; the number of workers.
-    Raises ClusterError with one line: which workers, what is missing, how to start them."""
+def probe_workers(client, task: dict | None, address: str, wait_s: float = 60.0) -> int:
+    """Check before submitting that every worker can run the analysis (and sees ``task``'s
+    files, if given); the number of workers. Raises ClusterError with one line: which
+    workers, what is missing, how to start them."""
     hint = WORKER_HINT.format(address=address)
     try:
         client.wait_for_workers(1, timeout=wait_s)
     except (TimeoutError, OSError) as exc:
         raise ClusterError(f"no worker connected to the scheduler at {address} within "
                            f"{wait_s:.0f} s; start workers with: {hint}") from exc
-    res = client.run(_probe_function({k: task[k] for k in ("bag", "line", "train_file")}),
-                     on_error="return")
+    paths = {} if task is None else {k: task[k] for k in ("bag", "line", "train_file")}
+    res = client.run(_probe_function(paths), on_error="return")
     bad = {}
     for w, r in sorted(res.items()):
         if isinstance(r, BaseException):
@@ -240,8 +249,28 @@ def run_tasks(tasks: list[dict], workers: int, scheduler: str | None, progress: 
                     show=dashboard is not None)
 
 
+def _readable(task: dict) -> bool:
+    """Whether the client sees the task's bag and reads its line and train files."""
+    from train_core.config import ConfigError
+    from train_core.model import load_line, load_train
+
+    if not os.path.exists(task["bag"]):
+        return False
+    try:
+        load_line(task["line"])
+        load_train(task["train_file"])
+    except (ConfigError, OSError):
+        return False
+    return True
+
+
 def _run(client, tasks, progress, address, wait_s, info, show=True) -> list[BagRow]:
-    info["workers_n"] = probe_workers(client, tasks[0], address, wait_s)
+    # the workers must see what the client sees: probed with the first task whose bag, line
+    # and train files the client finds and reads (a bag missing here is that task's own
+    # failure, one row: probed with it, a first bag still being copied stopped the whole run
+    # as "workers cannot see it")
+    probe = next((t for t in tasks if _readable(t)), None)
+    info["workers_n"] = probe_workers(client, probe, address, wait_s)
     link = client.dashboard_link if show and _has_dashboard(client) else None
     info["dashboard"] = link
     if link:

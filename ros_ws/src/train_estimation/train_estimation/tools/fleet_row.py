@@ -84,7 +84,7 @@ class BagRow:
         TypeError when ``d`` is not a JSON object."""
         if not isinstance(d, dict):
             raise TypeError(f"a row is a JSON object, not {type(d).__name__}")
-        return cls(**{f.name: d.get(f.name) for f in dataclasses.fields(cls)})
+        return cls(**{f.name: _typed(f, d.get(f.name)) for f in dataclasses.fields(cls)})
 
 
 def consensus_rows(rows: list[BagRow]) -> list[dict]:
@@ -106,3 +106,19 @@ def consensus_rows(rows: list[BagRow]) -> list[dict]:
                 c[p] = {"value": getattr(r, p), "se": getattr(r, f"{p}_se")}
         out.append(c)
     return out
+
+
+def _typed(f: dataclasses.Field, value):
+    """A field's value as its type says: a number written as text (a history exported or merged
+    by hand: "0.60") is read as the number, not skipped by the consensus without a word; text
+    that is no number in a numeric field is a ValueError naming the field."""
+    kind = str(f.type)
+    if isinstance(value, str) and ("float" in kind or "int" in kind):
+        try:
+            x = float(value)
+        except ValueError:
+            raise ValueError(f"{f.name} {value!r} is not a number") from None
+        return int(x) if "int" in kind and "float" not in kind and x.is_integer() else x
+    if isinstance(value, bool) and ("float" in kind or "int" in kind) and "bool" not in kind:
+        raise ValueError(f"{f.name} {value!r} is not a number")
+    return value
