@@ -165,6 +165,30 @@ def test_diagnose_page_without_inputs_says_so(tmp_path):
     assert "(not recorded)" in text and tmp_path.name not in text
 
 
+@pytest.mark.parametrize("edit, where", [
+    (lambda r: r["ranking"][0].update(parameters="see email"), "ranking[0].parameters"),
+    (lambda r: r.update(parameters=["a"]), "parameters should be a mapping"),
+    (lambda r: r["unexplained"][0].update(where=["100", "200"]), "unexplained[0].where"),
+])
+def test_an_edited_report_is_refused_naming_the_field(tmp_path, capsys, edit, where):
+    """A report.json forwarded and edited by hand: one line naming the field, exit 2."""
+    from train_estimation.tools.report_html import main
+
+    rep = _report()
+    edit(rep)
+    (tmp_path / "report.json").write_text(json.dumps(rep))
+    assert main([str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert where in err and len(err.splitlines()) == 1 and "diagnose --out" in err
+    # a list at the top, a byte-order mark, an inputs.json with a number for the bag
+    (tmp_path / "report.json").write_text(json.dumps([rep]))
+    assert main([str(tmp_path)]) == 2 and "the top level" in capsys.readouterr().err
+    (tmp_path / "report.json").write_text(json.dumps(_report()), encoding="utf-8-sig")
+    (tmp_path / "inputs.json").write_text(json.dumps(dict(INPUTS, bag=5)))
+    assert main([str(tmp_path)]) == 0
+    assert "(not recorded)" in (tmp_path / "report.html").read_text()
+
+
 def test_fleet_page_renders_its_markdown_and_embeds_the_images_it_references(tmp_path):
     shutil.copy(DOCS / "fleet_report_example.md", tmp_path / "report.md")
     for name in ("fleet_line_north.png", "fleet_line_south.png", "fleet_trends.png"):

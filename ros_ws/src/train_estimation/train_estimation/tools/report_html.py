@@ -180,18 +180,61 @@ def _evidence_value(cause: str, key: str, v) -> str:
 
 
 def _load_inputs(out: Path) -> dict:
+    """inputs.json's mapping; a value of another kind than diagnose writes (a number for the
+    bag's path: an edited file) is left out, shown as not recorded."""
     try:
-        d = json.loads((out / "inputs.json").read_text())
-        return d if isinstance(d, dict) else {}
+        d = json.loads((out / "inputs.json").read_text(encoding="utf-8-sig"))
     except (OSError, ValueError):
         return {}
+    if not isinstance(d, dict):
+        return {}
+    return {k: v for k, v in d.items() if not (k in ("bag", "data", "date")
+                                               and not isinstance(v, str))}
+
+
+# report.json's fields this page reads and the kind each must have (diagnose writes them so; a
+# file edited or forwarded by hand may not): a list of numbers (or null) or a mapping
+_SPANS = ("where", "when", "speed")
+
+
+def _load_report(out: Path) -> dict:
+    """report.json, its fields of the kinds this page reads; another kind is a ValueError
+    naming the field (one line, exit 2), not a traceback in the template."""
+    f = out / "report.json"
+    rep = json.loads(f.read_text(encoding="utf-8-sig"))
+
+    def bad(where, what, v):
+        return ValueError(f"{f}: {where} should be {what}, not {type(v).__name__} {v!r:.40} "
+                          f"(an edited report? diagnose --out writes it again)")
+
+    if not isinstance(rep, dict):
+        raise bad("the top level", "a mapping", rep)
+    if rep.get("parameters") is not None and not isinstance(rep["parameters"], dict):
+        raise bad("parameters", "a mapping", rep["parameters"])
+    if rep.get("ranking") is not None and not isinstance(rep["ranking"], list):
+        raise bad("ranking", "a list", rep["ranking"])
+    for i, r in enumerate(rep.get("ranking") or []):
+        if isinstance(r, dict) and r.get("parameters") is not None and \
+                not isinstance(r["parameters"], dict):
+            raise bad(f"ranking[{i}].parameters", "a mapping", r["parameters"])
+    for i, u in enumerate(rep.get("unexplained") or []):
+        if not isinstance(u, dict):
+            continue
+        for k in _SPANS:
+            v = u.get(k)
+            if v is not None and not (isinstance(v, list) and all(
+                    isinstance(x, int | float) and not isinstance(x, bool) for x in v)):
+                raise bad(f"unexplained[{i}].{k}", "a list of numbers", v)
+        if u.get("size") is not None and not isinstance(u["size"], int | float):
+            raise bad(f"unexplained[{i}].size", "a number", u["size"])
+    return rep
 
 
 def diagnose_context(out: Path) -> dict:
     """What diagnose_report.html.j2 shows, every number formatted and with its unit."""
     from train_estimation.tools.diagnose_unexplained import unexplained_line, unexplained_size
 
-    rep = json.loads((out / "report.json").read_text())
+    rep = _load_report(out)
     inp = _load_inputs(out)
     cause = rep.get("cause", "?")
     ranking = [r for r in rep.get("ranking") or [] if isinstance(r, dict)]

@@ -117,7 +117,9 @@ def prepare(data: MeasuredRun, line: Line, cfg: DiagConfig, train=None) -> Run:
 
     v = fields["odo_speed"][idx]
     if t_end < cfg.min_duration:
-        raise DiagnoseError(f"run too short: {t_end:.1f} s of odometer data (need >= "
+        # as many digits as tell the two apart (119.95 s printed as "120.0 s ... >= 120 s")
+        digits = next((d for d in range(1, 7) if round(t_end, d) < cfg.min_duration), 6)
+        raise DiagnoseError(f"run too short: {t_end:.{digits}f} s of odometer data (need >= "
                             f"{cfg.min_duration:g} s)")
     if np.max(v) < cfg.min_speed:
         raise DiagnoseError(f"the train never moves (max odometer speed {np.max(v):.2f} m/s)")
