@@ -485,3 +485,9 @@ def test_what_a_spreadsheet_writes_around_the_table_is_read(tmp_path, capsys):
     log = _plain(tmp_path, "time,speed,distance,speed\n1,1,1,2\n", "twice.csv")
     assert csv2bag.main([str(log), "--out", str(tmp_path / "d")]) == 2
     assert "the header names 'speed' twice" in capsys.readouterr().err
+
+
+def test_a_command_above_100_percent_is_a_bad_row(tmp_path, capsys):
+    log = _csv(tmp_path, ["100.0,5000,36.0,0.0,,50.0,0.0", "100.1,5100,36.0,1.0,,150.0,0.0"])
+    assert csv2bag.main([str(log), "--out", str(tmp_path / "bag"), *ARGS]) == 2
+    assert "line 3: traction 150 % is above 100 % of traction_max" in capsys.readouterr().err

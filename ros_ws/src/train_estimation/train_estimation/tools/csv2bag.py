@@ -662,6 +662,8 @@ def _read_rows(fh, csv_path, mapping, line, skip_bad_rows, sort, res) -> list[_R
             raise InputError("balise passages need their positions: give --line "
                              "line.yaml or a balise_position column")
         fac = {k: mapping.factor(k) for k in col if k in UNITS}
+        pct = [k for k in ("traction", "braking") if k in col
+               and mapping.units.get(k) == "percent"]
         clocks = {k: _Clock(k, fac.get(k, 1.0)) for k in ("time", "train_time")}
         lookup = line.balise_by_id if line is not None else (lambda i: None)
         parsed = []
@@ -683,7 +685,12 @@ def _read_rows(fh, csv_path, mapping, line, skip_bad_rows, sort, res) -> list[_R
                                      "'.' in a file whose decimal mark is ',': a thousands "
                                      "separator? (write numbers without one)")
                     row = [c.replace(",", ".") for c in row]
-                parsed.append(_parse(row, lineno, col, fac, lookup, clocks))
+                r = _parse(row, lineno, col, fac, lookup, clocks)
+                for k in pct:  # a command beyond its maximum: a column in another unit
+                    if r.values.get(k, 0.0) > 100.0 * fac[k] * (1 + 1e-9):
+                        raise BadRow("out_of_range", f"{k} {r.values[k] / fac[k]:g} % is above "
+                                     f"100 % of {k}_max (is the column in percent?)")
+                parsed.append(r)
             except _TimeOnly:
                 res.rows -= 1
                 res.time_only += 1
