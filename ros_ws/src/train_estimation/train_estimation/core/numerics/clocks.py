@@ -1,4 +1,4 @@
-"""The train clock online (pure; docs/integrity.md, "One clock model per stream").
+"""The train clock online (pure; docs/integrity.md, "The clock model's named parameters").
 
 :class:`StreamClock` follows one clock's offset against the arrival clock and (for the train
 clock) its rate, one reading at a time, as the
