@@ -116,6 +116,26 @@ class ConfigWarning(UserWarning):
     """A configuration file holds something the loader ignores (an unknown top-level key)."""
 
 
+def show_config_warnings_on_one_line() -> None:
+    """From now on a :class:`ConfigWarning` shows as one line on stderr, ``warning: FILE:
+    unknown key ...``, not Python's two lines with the source line that emitted it; other
+    warnings as before. For command-line tools (idempotent)."""
+    import sys
+
+    default = warnings.showwarning
+    if getattr(default, "config_one_line", False):
+        return
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        if issubclass(category, ConfigWarning):
+            print(f"warning: {message}", file=file or sys.stderr)
+        else:
+            default(message, category, filename, lineno, file, line)
+
+    show.config_one_line = True
+    warnings.showwarning = show
+
+
 # The kinds of value a key holds, for telling a typo that would change the model from an extra
 # key a producer added: "number", "integer", "string", "boolean", "list", "mapping" or "any".
 _KIND_TESTS = {

@@ -50,7 +50,7 @@ from pathlib import Path
 
 import yaml
 
-from train_core.config import ConfigError, ConfigWarning
+from train_core.config import ConfigError, ConfigWarning, show_config_warnings_on_one_line
 from train_core.model import line_from_dict
 
 __all__ = ["find_track", "load_track", "track_to_line", "write_line", "resolve_line", "main"]
@@ -383,16 +383,7 @@ def main(argv=None) -> int:
     p.add_argument("--dwell", type=float, default=30.0,
                    help="s, planned dwell at each station (default 30)")
     args = p.parse_args(argv)
-    show = warnings.showwarning
-
-    def one_line(message, category, filename, lineno, file=None, line=None):
-        # a field outside the schema: one line on stderr, not Python's two with the source
-        if issubclass(category, ConfigWarning):
-            print(f"warning: {message}", file=file or sys.stderr)
-        else:
-            show(message, category, filename, lineno, file, line)
-
-    warnings.showwarning = one_line
+    show_config_warnings_on_one_line()  # a field outside the schema: one line on stderr
     try:
         track = load_track(args.track)
         line = track_to_line(track, where=args.track, balise_spacing=args.balise_spacing,
@@ -401,8 +392,6 @@ def main(argv=None) -> int:
     except (ConfigError, OSError) as exc:
         print(f"ttobench2line: {' '.join(str(exc).split())}", file=sys.stderr)
         return 2
-    finally:
-        warnings.showwarning = show
     g = [s["permille"] for s in line["gradients"]]
     print(f"wrote {args.out}: {line['name']}, {line['length']:.0f} m, {len(line['stations'])} "
           f"stations, {len(line['gradients'])} gradient sections ({min(g):+g} to {max(g):+g} "

@@ -6,10 +6,9 @@ in the analyses (check_bag and identify start without the diagnose package)."""
 from __future__ import annotations
 
 import sys
-import warnings
 
 import numpy as np
-from train_core.config import ConfigWarning
+from train_core.config import show_config_warnings_on_one_line
 from train_core.progress import Progress, track
 
 # The exit-code ladder: 0 done (a diagnosis of "none" and a report listing failed bags
@@ -57,17 +56,5 @@ def unclosed(bag) -> str:
     return f" ({why})" if why else ""
 
 
-_show_default = warnings.showwarning
-
-
-def _show(message, category, filename, lineno, file=None, line=None):
-    """An extra key in a file the tools read (train_core.config.ConfigWarning) is one line
-    on stderr, ``warning: FILE: unknown key ...``, not Python's two-line warning with the
-    source line that emitted it."""
-    if issubclass(category, ConfigWarning):
-        print(f"warning: {message}", file=file or sys.stderr)
-    else:
-        _show_default(message, category, filename, lineno, file, line)
-
-
-warnings.showwarning = _show
+# an extra key in a file the tools read is one line on stderr (train_core.config)
+show_config_warnings_on_one_line()
