@@ -413,6 +413,13 @@ def test_units_written_in_the_header_or_a_units_row_are_read(tmp_path, capsys):
         odo = read_bag(out).topics["odometer"]
         assert [f["speed"] for _, _, f in odo] == pytest.approx([10.0] * 4)
         assert [f["distance"] for _, _, f in odo] == pytest.approx([0, 10, 20, 30])
+    # a mapping used for two files: the first's header units are not the second's
+    m = csv2bag.Mapping()
+    csv2bag.convert(_plain(tmp_path, "time,speed [km/h],distance\n" + rows, "e.csv"),
+                    tmp_path / "e", m)
+    csv2bag.convert(_plain(tmp_path, "time,speed,distance\n" + rows, "f.csv"), tmp_path / "f", m)
+    assert m.units == {} and [f["speed"] for _, _, f in
+                              read_bag(tmp_path / "f").topics["odometer"]] == [36.0] * 4
     log = _plain(tmp_path, "time,speed [km/h],distance\n" + rows)
     assert csv2bag.main([str(log), "--out", str(tmp_path / "c"), "--unit", "speed=m/s"]) == 2
     assert "the file gives speed in km/h, the mapping says m/s" in capsys.readouterr().err

@@ -611,6 +611,9 @@ def _read(csv_path, mapping, line, skip_bad_rows, sort, res) -> list[_Row]:
 
 
 def _read_rows(fh, csv_path, mapping, line, skip_bad_rows, sort, res) -> list[_Row]:
+    # this file's own copy: the units its header states (_written_units) are not the next
+    # file's, converted with the same mapping
+    mapping = dataclasses.replace(mapping, units=dict(mapping.units))
     head = [ln for ln in (fh.readline() for _ in range(DIALECT_LINES)) if ln]
     # lines before the header: a recorder's comments (#) and a spreadsheet's "sep=;" line,
     # which states the separator
