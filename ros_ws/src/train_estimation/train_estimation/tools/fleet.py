@@ -348,9 +348,9 @@ def main(argv=None) -> int:
         t["key"] = content_key(t)
         if t["key"] in seen:  # one run under two rows: it would count twice, under one train
             first = seen[t["key"]]
-            same = "the same bag" if Path(first["bag"]) == Path(t["bag"]) else \
-                f"the same data as {first['bag']} (identical files)"
-            return fail("fleet", f"{t.get('where', t['bag'])}: {same} as "
+            same = "the same bag as" if Path(first["bag"]) == Path(t["bag"]) else \
+                f"{t['bag']} holds the same files as {first['bag']} at"
+            return fail("fleet", f"{t.get('where', t['bag'])}: {same} "
                                  f"{first.get('where', first['bag'])} (train {first['train']}): "
                                  f"list each run once")
         seen[t["key"]] = t
