@@ -1709,3 +1709,24 @@ def test_a_section_swapped_for_a_braking_rate_change_keeps_the_braking_deficit(i
     for k in ("f_start", "f_end"):
         assert abs(fit.parameters[k] - truth[k]) <= max(Z * fit.std_errors[k], 0.01), \
             (k, fit.parameters, fit.std_errors, truth)
+
+
+def test_outputs_go_to_dir_whole_replacing_an_earlier_run_and_only_diagnose_s(metro, metro_run,
+                                                                              tmp_path, capsys):
+    """A file in the way is one line (no analysis run); a second run into the same DIR without
+    plots leaves none of the first run's plots beside its report, and a user's own file."""
+    bag = write_bag(tmp_path / "bag", metro_run)
+    (tmp_path / "afile").write_text("x")
+    assert run_tool(bag, metro.line_path, metro.train_path, tmp_path / "afile") == 2
+    assert "--out" in one_error_line(capsys) and (tmp_path / "afile").read_text() == "x"
+    out = tmp_path / "out"
+    assert run_tool(bag, metro.line_path, metro.train_path, out) == 0
+    assert any(out.glob("*.png"))
+    (out / "mine.txt").write_text("kept")
+    assert tool.main(["--bag", str(bag), "--line", str(metro.line_path), "--train",
+                      str(metro.train_path), "--out", str(out), "--quiet", "--no-plots"]) == 0
+    capsys.readouterr()
+    assert not any(out.glob("*.png")) and (out / "mine.txt").read_text() == "kept"
+    assert not [p for p in out.iterdir() if p.name.startswith(".")]  # no stage left
+    assert {"report.json", "inputs.json", "report.html", "model"} <= {p.name for p in
+                                                                      out.iterdir()}

@@ -100,3 +100,14 @@ def test_fitted_yaml_says_which_prior_an_unidentifiable_davis_term_kept(crh3, tm
     path = tmp_path / "fitted.yaml"
     path.write_text(text)
     assert load_train(path).davis.b == pytest.approx(1.2 * d.b, rel=1e-5)
+
+
+def test_an_out_that_would_overwrite_itself_or_is_a_directory_is_refused(tmp_path, capsys):
+    """--out fit.png named the plot and the fitted train.yaml the same file: refused first."""
+    from train_estimation.tools import identify as tool
+
+    for out in (tmp_path / "fit.png", tmp_path):
+        assert tool.main(["--bag", str(tmp_path / "nobag"), "--line", "l.yaml", "--train",
+                          "t.yaml", "--out", str(out), "--quiet"]) == 2
+        err = capsys.readouterr().err
+        assert "name the fitted train.yaml" in err and len(err.splitlines()) == 1

@@ -56,3 +56,14 @@ def test_common_does_not_import_the_analyses():
                          timeout=120, env={"PYTHONPATH": src, "PATH": "/usr/bin:/bin"})
     assert out.returncode == 0, out.stderr[-2000:]
     assert json.loads(out.stdout.strip().splitlines()[-1]) == []
+
+
+def test_a_reader_that_goes_away_stops_a_tool_quietly():
+    """``check_bag BAG | head -1``: the tool stops with 141 (SIGPIPE's), no traceback."""
+    p = subprocess.Popen([sys.executable, "-m", "train_estimation.tools.check_bag",
+                          str(REPO / "bags" / "metro_demo_short"), "--no-plots"],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    p.stdout.close()  # the reader is gone before the tool writes
+    err = p.stderr.read().decode()
+    assert p.wait(timeout=120) == 141, err
+    assert "Traceback" not in err

@@ -43,6 +43,7 @@ from train_estimation.tools.common import (
     EXIT_OK,
     INPUT_TOPICS,
     fail,
+    pipe_safe,
     unclosed,
 )
 
@@ -416,6 +417,7 @@ def format_by_position(summary: dict) -> list[str]:
     return lines
 
 
+@pipe_safe
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="check_bag", description=__doc__.splitlines()[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter,

@@ -5,6 +5,8 @@ in the analyses (check_bag and identify start without the diagnose package)."""
 
 from __future__ import annotations
 
+import functools
+import os
 import sys
 
 import numpy as np
@@ -17,10 +19,13 @@ from train_core.progress import Progress, track
 EXIT_OK = 0
 EXIT_CHECK_FAILED = 1
 EXIT_UNUSABLE = 2
+EXIT_INTERRUPTED = 130  # Ctrl-C (128 + SIGINT), as a shell reports it
+EXIT_BROKEN_PIPE = 141  # the reader of stdout went away (128 + SIGPIPE)
 
 # the project's one progress-bar style (train_core.progress), re-exported for the tools
-__all__ = ["EXIT_CHECK_FAILED", "EXIT_OK", "EXIT_UNUSABLE", "INPUT_TOPICS", "Progress", "fail",
-           "json_default", "one_line", "track", "unclosed"]
+__all__ = ["EXIT_BROKEN_PIPE", "EXIT_CHECK_FAILED", "EXIT_INTERRUPTED", "EXIT_OK",
+           "EXIT_UNUSABLE", "INPUT_TOPICS", "Progress", "fail", "json_default", "one_line",
+           "pipe_safe", "track", "unclosed"]
 
 # the measured data's topics (docs/interfaces.md "Measured data")
 INPUT_TOPICS = ("odometer", "balise", "control")
@@ -58,3 +63,18 @@ def unclosed(bag) -> str:
 
 # an extra key in a file the tools read is one line on stderr (train_core.config)
 show_config_warnings_on_one_line()
+
+
+def pipe_safe(main):
+    """A tool's ``main`` that stops quietly when the reader of its output goes away
+    (``diagnose ... | head -1``), as Unix tools do: exit status 141 (SIGPIPE), no traceback.
+    stdout is pointed at /dev/null so that the interpreter's last flush does not fail again."""
+    @functools.wraps(main)
+    def run(argv=None) -> int:
+        try:
+            return main(argv)
+        except BrokenPipeError:
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, sys.stdout.fileno())
+            return EXIT_BROKEN_PIPE
+    return run

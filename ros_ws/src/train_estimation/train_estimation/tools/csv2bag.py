@@ -97,6 +97,7 @@ from train_core.config import ConfigError, ConfigWarning, check_keys, load_yaml
 from train_core.model import load_line
 
 from train_estimation.core.offline.measured import counter_gaps, counter_runs
+from train_estimation.tools.common import pipe_safe
 
 KEYS = ("time", "train_time", "sample", "speed", "distance", "balise", "balise_position",
         "traction", "braking")
@@ -500,6 +501,8 @@ def convert(csv_path: str | Path, out: str | Path, mapping: Mapping, line=None,
         writer = BagWriter(out, namespace=namespace)
     except BagError as e:
         raise InputError(str(e)) from None
+    except OSError as e:  # a read-only place, a file in the way
+        raise InputError(f"--out {out}: cannot write there ({e.strerror or e})") from None
     try:
         with writer:
             _write(rows, mapping, writer, res)
@@ -882,6 +885,7 @@ def report(res: Result, out: str) -> list[str]:
     return lines
 
 
+@pipe_safe
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="csv2bag", description=__doc__.splitlines()[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter,

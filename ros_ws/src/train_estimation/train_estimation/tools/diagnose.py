@@ -62,7 +62,10 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import os
+import shutil
 import sys
+import tempfile
 import time
 from datetime import datetime, timezone
 from pathlib import Path
@@ -77,8 +80,16 @@ from train_core.model import line_from_dict, load_line, load_train, train_from_d
 from train_estimation.core.offline.diagnose.result import jsonable
 from train_estimation.core.offline.diagnose.verdict import SCORE_FORMULA  # noqa: F401 (help)
 from train_estimation.core.offline.measured import TOPICS, MeasuredRun
-from train_estimation.tools.common import EXIT_OK, Progress, fail, one_line, unclosed
-from train_estimation.tools.diagnose_plots import write_plots
+from train_estimation.tools.common import (
+    EXIT_INTERRUPTED,
+    EXIT_OK,
+    Progress,
+    fail,
+    one_line,
+    pipe_safe,
+    unclosed,
+)
+from train_estimation.tools.diagnose_plots import PLOTS, write_plots
 from train_estimation.tools.diagnose_unexplained import unexplained_line
 from train_estimation.tools.report_html import write_report_html
 
@@ -219,8 +230,11 @@ def summary(dg, bag_path, data, elapsed: float, model: dict) -> list[str]:
     n_odo, n_bal = len(data.odo_stamp), len(data.balise_stamp)
     dur = float(np.ptp(data.odo_stamp)) if n_odo else 0.0
     out = [f"diagnose {bag_path}: {dur:.0f} s, {n_odo} odometer samples, {n_bal} balise "
-           f"readings, {elapsed:.1f} s",
-           f"{'rank':<5}{'cause':<16}{'score':>10}  {'status':<14} parameters"]
+           f"readings, {elapsed:.1f} s"]
+    # what was done to the data before the analysis (readings left out, values taken from
+    # the map or train.yaml): on the terminal too, not only in report.json
+    out += [f"data: {n}" for n in ((dg.evidence or {}).get("_model") or {}).get("notes") or []]
+    out.append(f"{'rank':<5}{'cause':<16}{'score':>10}  {'status':<14} parameters")
     checks = (((dg.evidence or {}).get("_model") or {}).get("confirmation") or {}).get(
         "checks") or {}
     for i, r in enumerate(dg.ranking[:6]):
@@ -263,6 +277,7 @@ def inputs_record(args, line, train, data) -> dict:
             "date": datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")}
 
 
+@pipe_safe
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="diagnose", description=__doc__.splitlines()[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -282,30 +297,87 @@ def main(argv=None) -> int:
 
     t0 = time.perf_counter()
     bag = None
-    try:
-        line, train = load_line(args.line), load_train(args.train)
-        bag = read_bag(args.bag, topics=TOPICS)
-        data = MeasuredRun.from_bag(bag)
-        if unclosed(bag) and not args.quiet:
-            print(f"diagnose: note: {args.bag}{unclosed(bag)}", file=sys.stderr)
-        bar = None if args.quiet else Progress("diagnose", what_width=36)
-        dg = diagnose(data, line, train, progress=bar)
-    except (ConfigError, BagError) as exc:
-        return fail("diagnose", str(exc))
-    except DiagnoseError as exc:  # a truncated bag is the usual reason: named with its repair
-        return fail("diagnose", f"cannot diagnose {args.bag}: {exc}{unclosed(bag)}")
-    elapsed = time.perf_counter() - t0
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "report.json").write_text(json.dumps(dg.to_json(), indent=1) + "\n")
-    (out / "inputs.json").write_text(json.dumps(inputs_record(args, line, train, data)) + "\n")
-    model = write_model(out, dg, args.line, args.train, data)
-    if not args.no_plots:
-        write_plots(dg.series, out, dg)
-    lines = summary(dg, args.bag, data, elapsed, model)
-    lines.insert(-1, f"report: {write_report_html(out, 'diagnose')}")  # "cause: ..." stays last
-    print("\n".join(lines))
-    return EXIT_OK
+    why = _unwritable(out)  # checked first: an analysis is not run to be lost
+    if why:
+        return fail("diagnose", f"--out {args.out}: {why}; name a directory you can write")
+    stage, made = None, not out.exists()
+    try:
+        try:
+            line, train = load_line(args.line), load_train(args.train)
+            bag = read_bag(args.bag, topics=TOPICS)
+            data = MeasuredRun.from_bag(bag)
+            if unclosed(bag) and not args.quiet:
+                print(f"diagnose: note: {args.bag}{unclosed(bag)}", file=sys.stderr)
+            bar = None if args.quiet else Progress("diagnose", what_width=36)
+            dg = diagnose(data, line, train, progress=bar)
+        except (ConfigError, BagError) as exc:
+            return fail("diagnose", str(exc))
+        except DiagnoseError as exc:  # a truncated bag is the usual reason: named, repaired
+            return fail("diagnose", f"cannot diagnose {args.bag}: {exc}{unclosed(bag)}")
+        elapsed = time.perf_counter() - t0
+        out.mkdir(parents=True, exist_ok=True)
+        stage = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out))
+        # every output is written into a stage inside DIR, then moved into DIR at once, over
+        # what an earlier run wrote there: an interrupted run leaves DIR as it was, and a run
+        # without plots does not show an earlier run's plots in its report.html
+        (stage / "report.json").write_text(json.dumps(dg.to_json(), indent=1) + "\n")
+        (stage / "inputs.json").write_text(json.dumps(inputs_record(args, line, train, data))
+                                           + "\n")
+        model = write_model(stage, dg, args.line, args.train, data)
+        if not args.no_plots:
+            write_plots(dg.series, stage, dg)
+        lines = summary(dg, args.bag, data, elapsed, model)
+        write_report_html(stage, "diagnose")
+        _publish(stage, out)
+        lines.insert(-1, f"report: {out / 'report.html'}")  # "cause: ..." stays last
+        print("\n".join(lines))
+        return EXIT_OK
+    except KeyboardInterrupt:
+        print("diagnose: interrupted; nothing written", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except BrokenPipeError:
+        raise  # the reader of stdout went away: pipe_safe
+    except OSError as exc:
+        return fail("diagnose", f"--out {args.out}: cannot write there ({exc.strerror or exc})")
+    finally:
+        if stage is not None:
+            shutil.rmtree(stage, ignore_errors=True)
+        if made and out.is_dir() and not any(out.iterdir()):
+            out.rmdir()  # a run that wrote nothing leaves no DIR behind
+
+
+def _unwritable(out: Path) -> str:
+    """Why outputs cannot go to the directory ``out`` ("" if they can), without creating it:
+    a file in the way, or a nearest existing folder that cannot be written."""
+    if out.exists() and not out.is_dir():
+        return "is a file"
+    p = out
+    while not p.exists() and p != p.parent:
+        p = p.parent
+    if not p.is_dir():
+        return f"{p} is a file"
+    if not os.access(p, os.W_OK | os.X_OK):
+        return f"cannot write in {p}"
+    return ""
+
+
+# what diagnose writes into DIR: an earlier run's are replaced by this run's, or removed
+OUTPUTS = ("report.json", "inputs.json", "report.html", "model",
+           *(name for name, _ in PLOTS))
+
+
+def _publish(stage: Path, out: Path) -> None:
+    """Move the staged outputs into ``out``, removing an earlier run's outputs first (only
+    the names diagnose writes: a user's own files in DIR are left)."""
+    for name in OUTPUTS:
+        old = out / name
+        if old.is_dir() and not old.is_symlink():
+            shutil.rmtree(old)
+        elif old.exists() or old.is_symlink():
+            old.unlink()
+    for item in stage.iterdir():
+        os.replace(item, out / item.name)
 
 
 if __name__ == "__main__":

@@ -24,7 +24,7 @@ from train_core.config import ConfigError
 from train_core.model import TrainParams, load_line, load_train
 
 from train_estimation.core.offline.measured import MeasuredRun
-from train_estimation.tools.common import EXIT_OK, Progress, fail, unclosed
+from train_estimation.tools.common import EXIT_OK, Progress, fail, pipe_safe, unclosed
 
 
 def train_to_yaml(train: TrainParams, res, prior: TrainParams, source: str) -> str:
@@ -178,6 +178,7 @@ def plot_fit(res, path: Path) -> None:
     plt.close(fig)
 
 
+@pipe_safe
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="identify", description=__doc__.splitlines()[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -194,6 +195,18 @@ def main(argv=None) -> int:
     from train_estimation.core.offline.identify import IdentificationError, SIConfig, identify
 
     bag = None
+    out = Path(args.out)
+    plot = out.with_suffix(".png")
+    # where the outputs go is checked first: a fit is not run to be lost or to overwrite
+    # itself (--out fit.png named the plot and the fitted train.yaml the same file)
+    if out.suffix.lower() == ".png" or out.is_dir():
+        eg = out / "fit.yaml" if out.is_dir() else out.with_suffix(".yaml")
+        return fail("identify", f"--out {args.out}: name the fitted train.yaml, e.g. {eg} "
+                                f"(its plot goes beside it as .png)")
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        return fail("identify", f"--out {args.out}: cannot write there ({exc.strerror or exc})")
     try:
         line, prior = load_line(args.line), load_train(args.train)
         bag = read_bag(args.bag)
@@ -207,11 +220,11 @@ def main(argv=None) -> int:
         return fail("identify", str(exc))
     except IdentificationError as exc:  # a truncated bag is the usual reason: named, with the
         return fail("identify", f"cannot fit {args.bag}: {exc}{unclosed(bag)}")  # repair
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(train_to_yaml(res.train, res, prior, args.bag))
-    plot = out.with_suffix(".png")
-    plot_fit(res, plot)
+    try:
+        out.write_text(train_to_yaml(res.train, res, prior, args.bag))
+        plot_fit(res, plot)
+    except OSError as exc:
+        return fail("identify", f"--out {args.out}: cannot write there ({exc.strerror or exc})")
     load_train(out)  # what we wrote must be a valid train.yaml
     print(f"{'parameter':<18}{'prior':>14}{'fitted':>14}{'std err':>12}  identifiable")
     for name, get in (("davis.a", lambda t: t.davis.a), ("davis.b", lambda t: t.davis.b),

@@ -225,6 +225,15 @@ def _balises(data: MeasuredRun, line: Line, notes: list, beta: float, t_first: f
     known = {b.id: b.position for b in line.balises}
     if known:
         unknown = np.array([int(i) not in known for i in bid], dtype=bool)
+        # a reading of a balise the map does not list, reported off the line: its position
+        # cannot be right, and taken as a fix it moved the run by kilometres (a slip of
+        # 4e7 and a gradient of -45,890 per mille were fitted to absorb it)
+        off = unknown & ((bp < 0.0) | (bp > line.length))
+        if off.any():
+            notes.append(f"{int(off.sum())} balise readings with ids not in line.yaml reported "
+                         f"off the line (beyond [0, {line.length:g}] m): left out")
+            okb &= ~off
+            unknown &= ~off
         contra = np.array([(int(i) in known and abs(known[int(i)] - p) > 1.0)
                            for i, p in zip(bid, bp)], dtype=bool)
         if unknown.any():
