@@ -55,7 +55,7 @@ def _text(p: Path) -> str:
                           f"save it as UTF-8 (e.g. iconv -f cp1252 -t utf-8)") from None
 
 
-def _check_nodes(p: Path, text: str) -> None:
+def _check_nodes(p: Path, root) -> None:
     """Refuse what YAML reads without a word but not as written: a mapping that gives one key
     twice (loaders keep the last: a second ``gradients:`` block would drop the first block's
     sections), and a decimal comma in a flow mapping (``{permille: -3,5}`` is ``permille: -3``
@@ -84,7 +84,8 @@ def _check_nodes(p: Path, text: str) -> None:
             for v in node.value:
                 walk(v)
 
-    walk(yaml.compose(text, Loader=_Loader))
+    if root is not None:
+        walk(root)
 
 
 def load_yaml(path: str | Path) -> dict:
@@ -96,8 +97,14 @@ def load_yaml(path: str | Path) -> dict:
         raise ConfigError(f"{p}: file not found")
     text = _text(p)
     try:
-        data = yaml.load(text, Loader=_Loader)
-        _check_nodes(p, text)
+        # one parse: the node tree is checked, then made into Python values
+        loader = _Loader(text)
+        try:
+            root = loader.get_single_node()
+            _check_nodes(p, root)
+            data = None if root is None else loader.construct_document(root)
+        finally:
+            loader.dispose()
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" (line {mark.line + 1})" if mark is not None else ""

@@ -295,10 +295,7 @@ def line_from_dict(data: dict, where: str = "line.yaml") -> Line:
         raise ConfigError(f"{where}.balises: balise ids must be unique")
     grads = []
     for g in s.sections("gradients", GRADIENT_KEYS, default=[]):
-        start = g.number("start", REQUIRED, lo=0.0, hi=length, unit="m")
-        end = g.number("end", REQUIRED, lo=0.0, hi=length, unit="m")
-        if end <= start:
-            raise ConfigError(f"{g.where}: end ({end:g}) must be greater than start ({start:g})")
+        start, end = _span(g, 0.0, length)
         grads.append(GradientSection(start, end, g.number("permille", REQUIRED, lo=-60, hi=60)))
     grads.sort(key=lambda g: g.start)
     for a, b in zip(grads, grads[1:]):
@@ -315,9 +312,7 @@ def line_from_dict(data: dict, where: str = "line.yaml") -> Line:
     )
     limits = []
     for sl in s.sections("speed_limits", SPEED_LIMIT_KEYS, default=[]):
-        start, end = sl.number("start", REQUIRED), sl.number("end", REQUIRED)
-        if end <= start:
-            raise ConfigError(f"{sl.where}: end ({end:g}) must be greater than start ({start:g})")
+        start, end = _span(sl)
         limits.append(SpeedLimit(start, end, sl.number("speed", REQUIRED, lo=0.0, lo_open=True,
                                                         unit="m/s")))
     limits = tuple(limits)
@@ -331,6 +326,16 @@ def line_from_dict(data: dict, where: str = "line.yaml") -> Line:
         max_speed=s.number("max_speed", 22.23, lo=0.0, lo_open=True, unit="m/s"),
         alert_limit=_or_nan(s.number("alert_limit", None, lo=0.0, lo_open=True, unit="m")),
     )
+
+
+def _span(sec: Section, lo: float | None = None, hi: float | None = None) -> tuple:
+    """A section's (start, end) in m, each within [lo, hi] where given, the end after the
+    start."""
+    start = sec.number("start", REQUIRED, lo=lo, hi=hi, unit="m")
+    end = sec.number("end", REQUIRED, lo=lo, hi=hi, unit="m")
+    if end <= start:
+        raise ConfigError(f"{sec.where}: end ({end:g}) must be greater than start ({start:g})")
+    return start, end
 
 
 def _or_nan(value) -> float:

@@ -8,6 +8,7 @@ from __future__ import annotations
 import functools
 import os
 import sys
+from pathlib import Path
 
 import numpy as np
 from train_core.config import show_config_warnings_on_one_line
@@ -25,7 +26,7 @@ EXIT_BROKEN_PIPE = 141  # the reader of stdout went away (128 + SIGPIPE)
 # the project's one progress-bar style (train_core.progress), re-exported for the tools
 __all__ = ["EXIT_BROKEN_PIPE", "EXIT_CHECK_FAILED", "EXIT_INTERRUPTED", "EXIT_OK",
            "EXIT_UNUSABLE", "INPUT_TOPICS", "Progress", "fail", "json_default", "one_line",
-           "pipe_safe", "track", "unclosed"]
+           "cannot_write", "pipe_safe", "track", "unclosed", "unwritable"]
 
 # the measured data's topics (docs/interfaces.md "Measured data")
 INPUT_TOPICS = ("odometer", "balise", "control")
@@ -78,3 +79,24 @@ def pipe_safe(main):
             os.dup2(devnull, sys.stdout.fileno())
             return EXIT_BROKEN_PIPE
     return run
+
+
+def unwritable(out: Path) -> str:
+    """Why outputs cannot go to the directory ``out`` ("" if they can), without creating it:
+    a file in the way, or a nearest existing folder that cannot be written. A tool checks it
+    before its analysis, which is then not run to be lost."""
+    if out.exists() and not out.is_dir():
+        return "is a file"
+    p = out
+    while not p.exists() and p != p.parent:
+        p = p.parent
+    if not p.is_dir():
+        return f"{p} is a file"
+    if not os.access(p, os.W_OK | os.X_OK):
+        return f"cannot write in {p}"
+    return ""
+
+
+def cannot_write(prog: str, out, exc: OSError) -> int:
+    """:func:`fail` for outputs that could not be written to ``out`` (--out)."""
+    return fail(prog, f"--out {out}: cannot write there ({exc.strerror or exc})")

@@ -84,10 +84,12 @@ from train_estimation.tools.common import (
     EXIT_INTERRUPTED,
     EXIT_OK,
     Progress,
+    cannot_write,
     fail,
     one_line,
     pipe_safe,
     unclosed,
+    unwritable,
 )
 from train_estimation.tools.diagnose_plots import PLOTS, write_plots
 from train_estimation.tools.diagnose_unexplained import unexplained_line
@@ -298,7 +300,7 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     bag = None
     out = Path(args.out)
-    why = _unwritable(out)  # checked first: an analysis is not run to be lost
+    why = unwritable(out)  # checked first: an analysis is not run to be lost
     if why:
         return fail("diagnose", f"--out {args.out}: {why}; name a directory you can write")
     stage, made = None, not out.exists()
@@ -339,27 +341,12 @@ def main(argv=None) -> int:
     except BrokenPipeError:
         raise  # the reader of stdout went away: pipe_safe
     except OSError as exc:
-        return fail("diagnose", f"--out {args.out}: cannot write there ({exc.strerror or exc})")
+        return cannot_write("diagnose", args.out, exc)
     finally:
         if stage is not None:
             shutil.rmtree(stage, ignore_errors=True)
         if made and out.is_dir() and not any(out.iterdir()):
             out.rmdir()  # a run that wrote nothing leaves no DIR behind
-
-
-def _unwritable(out: Path) -> str:
-    """Why outputs cannot go to the directory ``out`` ("" if they can), without creating it:
-    a file in the way, or a nearest existing folder that cannot be written."""
-    if out.exists() and not out.is_dir():
-        return "is a file"
-    p = out
-    while not p.exists() and p != p.parent:
-        p = p.parent
-    if not p.is_dir():
-        return f"{p} is a file"
-    if not os.access(p, os.W_OK | os.X_OK):
-        return f"cannot write in {p}"
-    return ""
 
 
 # what diagnose writes into DIR: an earlier run's are replaced by this run's, or removed

@@ -24,7 +24,15 @@ from train_core.config import ConfigError
 from train_core.model import TrainParams, load_line, load_train
 
 from train_estimation.core.offline.measured import MeasuredRun
-from train_estimation.tools.common import EXIT_OK, Progress, fail, pipe_safe, unclosed
+from train_estimation.tools.common import (
+    EXIT_OK,
+    Progress,
+    cannot_write,
+    fail,
+    pipe_safe,
+    unclosed,
+    unwritable,
+)
 
 
 def train_to_yaml(train: TrainParams, res, prior: TrainParams, source: str) -> str:
@@ -203,10 +211,10 @@ def main(argv=None) -> int:
         eg = out / "fit.yaml" if out.is_dir() else out.with_suffix(".yaml")
         return fail("identify", f"--out {args.out}: name the fitted train.yaml, e.g. {eg} "
                                 f"(its plot goes beside it as .png)")
-    try:
-        out.parent.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        return fail("identify", f"--out {args.out}: cannot write there ({exc.strerror or exc})")
+    why = unwritable(out.parent)
+    if why:
+        return fail("identify", f"--out {args.out}: {why}; name a file in a folder you can "
+                                f"write")
     try:
         line, prior = load_line(args.line), load_train(args.train)
         bag = read_bag(args.bag)
@@ -221,10 +229,11 @@ def main(argv=None) -> int:
     except IdentificationError as exc:  # a truncated bag is the usual reason: named, with the
         return fail("identify", f"cannot fit {args.bag}: {exc}{unclosed(bag)}")  # repair
     try:
+        out.parent.mkdir(parents=True, exist_ok=True)
         out.write_text(train_to_yaml(res.train, res, prior, args.bag))
         plot_fit(res, plot)
     except OSError as exc:
-        return fail("identify", f"--out {args.out}: cannot write there ({exc.strerror or exc})")
+        return cannot_write("identify", args.out, exc)
     load_train(out)  # what we wrote must be a valid train.yaml
     print(f"{'parameter':<18}{'prior':>14}{'fitted':>14}{'std err':>12}  identifiable")
     for name, get in (("davis.a", lambda t: t.davis.a), ("davis.b", lambda t: t.davis.b),

@@ -84,6 +84,19 @@ def parabola(xs, lls, i: int) -> tuple[float, float]:
     return x_hat, se
 
 
+def delay_profile(prof: dict) -> tuple[list, list, dict]:
+    """The profile likelihood of an extra delay d from {(offset s, d): log-likelihood}: the
+    offset maximised out at each d (the two trade off: both move a chain's timing, so the
+    curvature at the best offset alone understates the delay's doubt). Returns the delays in
+    order, their values and {d: the best offset at d}."""
+    best: dict = {}
+    for (s, d), v in prof.items():
+        if d not in best or v > best[d][0]:
+            best[d] = (v, s)
+    ds = sorted(best)
+    return ds, [best[d][0] for d in ds], {d: best[d][1] for d in ds}
+
+
 # the profile log-likelihood's drop from its best within which a delay's profile is fitted by
 # a parabola (:func:`envelope`): 8 is +-4 standard errors of a quadratic profile
 ENVELOPE_DROP = 8.0

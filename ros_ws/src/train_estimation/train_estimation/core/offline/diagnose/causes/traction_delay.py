@@ -18,7 +18,14 @@ import numpy as np
 from train_core.effects import TractionDelayEffect
 
 from .base import Cause, resolved
-from .drive import Candidates, capped, envelope, traction_at, untestable_without_traction
+from .drive import (
+    Candidates,
+    capped,
+    delay_profile,
+    envelope,
+    traction_at,
+    untestable_without_traction,
+)
 
 MIN_TRACTION = 0.05  # m/s^2, as power_limit: a traction command that can show a delay
 _COLUMNS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # Motion -> {p_spec: columns}
@@ -50,14 +57,7 @@ class TractionDelay(Cause):
                 u = base + _fixed(cand.k, keys, float(s), st.null.brake_extra, 1.0, float(d))
                 prof[(float(s), float(d))] = cand.dll(cand.quad_fixed(u))
         (s_b, d_b), dll = max(prof.items(), key=lambda kv: kv[1])
-        # the profile likelihood of d (the offset maximised out at each d): the offset and the
-        # extra delay trade off (both move traction), so the curvature at the best offset alone
-        # would understate the delay's uncertainty
-        by_d: dict = {}
-        for (_, d2), v in prof.items():
-            by_d.setdefault(d2, []).append(v)
-        ds = sorted(by_d)
-        lls = [max(by_d[d]) for d in ds]  # each d's values in the profile's order
+        ds, lls, _ = delay_profile(prof)  # the offset maximised out at each d
         d_hat, se = envelope(ds, lls, ds.index(d_b))
         return st.null_ll() + dll, 1, {"delay": mo.train.brake.delay + d_hat}, {"delay": se}, \
             {"offset": s_b, "extra": d_b, "profile": list(zip(ds, lls))}
