@@ -71,11 +71,11 @@ def test_kind_order_refuses_a_reading_behind_its_kind_while_the_estimate_lags():
 
 def test_copies_of_a_message_within_the_window():
     o = StampOrder(window=3)
-    assert not o.copy_of("odometer", (1, 1.0), keep=True)
+    assert not o.copy_of("odometer", (1, 1.0))
     assert o.copy_of("odometer", (1, 1.0))
     assert not o.copy_of("balise", (1, 1.0))  # per kind
     for k in range(2, 5):
-        o.copy_of("odometer", (k, float(k)), keep=True)
+        o.copy_of("odometer", (k, float(k)))
     assert not o.copy_of("odometer", (1, 1.0))  # three messages later: out of the window
 
 
@@ -93,11 +93,11 @@ def test_a_sample_fused_at_another_stamp_with_its_count_is_a_copy():
 def test_copy_is_independent():
     o = StampOrder(horizon=5.0, copies_first=True, kind_order=False, window=4, samples=3)
     o.took("odometer", 1.0, 1)
-    o.copy_of("odometer", (1, 1.0), keep=True)
+    o.copy_of("odometer", (1, 1.0))
     o.fuse(1, 1.0, 2.0)
     c = o.copy()
     c.took("odometer", 2.0, 2)
-    c.copy_of("odometer", (2, 2.0), keep=True)
+    c.copy_of("odometer", (2, 2.0))
     c.fuse(2, 2.0, 3.0)
     assert o.last["odometer"] == (1, 1.0) and not o.copy_of("odometer", (2, 2.0))
     assert not o.elsewhere(2, 5.0, 3.0)

@@ -235,8 +235,11 @@ class StreamClock:
     (:meth:`rate_point`). Lateness by the module's one rule.
     """
 
-    def __init__(self, n: int = 31):
+    def __init__(self, n: int = 31, settled: int = 9):
         self.n, self.fifo, self.sorted = n, deque(), []
+        self.settled = settled  # offsets in the window before its centre says where the clock
+        #   is (the runner's ``min_judged``, :attr:`judged`): earlier ones do not lift the
+        #   ceiling, nor are later ones judged late against it
         self.arrivals: deque = deque()  # arrival (s, or None) of each offset in fifo
         self._value = None  # cached centre (recomputed after an add)
         self._scale = None  # cached robust spread (likewise: the runner asks several times per
@@ -263,8 +266,6 @@ class StreamClock:
     tol = TOL
     late = LATE
     horizon = 600  # offsets over which the ceiling is the maximum (1 min at 10 Hz)
-    settled = 9  # offsets in the window before its centre says where the clock is (the
-    #   runner's min_judged): earlier ones do not lift the ceiling
     block = 5  # readings per point of the rate fit: its highest offset (:meth:`rate_point`)
 
     # -- offset ---------------------------------------------------------------------------
@@ -285,7 +286,7 @@ class StreamClock:
         # advance with the arrival frozen (taken for a step, it moved one clock's centre by
         # seconds and "auto" judged the clocks separate). So the far run must also be paced
         # (:func:`paced`); older values of a run that is not are dropped from it.
-        if len(self.fifo) >= self.settled and -self.tol <= v - self.value < -self.late:
+        if self.judged and -self.tol <= v - self.value < -self.late:
             # came late (module doc): neither votes nor informs the rate -- from the moment
             # the centre is settled, not only once the window is full (a recorder stalled 8 s
             # at 26 s of a 1 Hz run voted its burst into the centre, which moved 4 s)
@@ -357,6 +358,13 @@ class StreamClock:
 
     def __len__(self) -> int:
         return len(self.fifo)
+
+    @property
+    def judged(self) -> bool:
+        """Whether the clock is known: its centre rests on ``settled`` offsets, and stamps
+        are judged against it (late, above its ceiling, a step from it). The one answer to
+        "is this clock known yet?" that the runner and the step watch ask."""
+        return len(self.fifo) >= self.settled
 
     def on_time(self, v: float) -> bool:
         """``v`` (stamp - arrival) is at most ``LATE`` s below the centre, and not far above."""
@@ -1335,7 +1343,8 @@ class StepWatch:
         self.same = same  # control_clock 'same': no forward steps, no small bar (sim time)
         self.resolution = 0.0  # s, how finely arrivals are timed (the runner's
         #   arrival_resolution: a simulated clock's tick)
-        self.clock = StreamClock()  # the train clock (the runner's, fed by its admissions)
+        # the train clock (the runner's, fed by its admissions), known after min_judged
+        self.clock = StreamClock(settled=min_judged)
         self.shift = 0.0  # s, train-clock steps so far: timeline stamps = raw - shift
         self.raised = 0.0  # s, the link's latency raised by the latency moves declared so far
         self._late: list = []  # the latest readings in a row (as held ones) that the grid or
@@ -1821,7 +1830,7 @@ class StepWatch:
         small step does: left unwatched, a 0.2 s step left the kf 4 m off at 20 m/s with a sigma
         of 0.1 m. Never below the arrival clock's ``resolution``: a message timed on a clock
         that ticks (/clock on simulated time) arrives up to a tick before the clock says so."""
-        if self.same or len(clock) < self.min_judged:
+        if self.same or not clock.judged:
             return max(self.back, self.resolution)
         return max(min(self.back, max(self.small_step, self.small_step_z * clock.jitter)),
                    self.resolution)
@@ -1876,7 +1885,7 @@ class StepWatch:
         # once and is paced against neither
         on_pace = prev is None or paced(prev, (stamp, arrival)) or \
             (bool(chain) and paced((chain[0][1], chain[0][4]), (stamp, arrival)))
-        behind = kind == "odometer" and on_pace and len(med) >= self.min_judged and \
+        behind = kind == "odometer" and on_pace and med.judged and \
             stamp - arrival - med.now(arrival) < -bar
         # Ahead by more than that above where the clock can be (its centre, and the ceiling of
         # its offsets: latency only ever lowers stamp - arrival, an outage moves stamps and
@@ -1884,13 +1893,13 @@ class StepWatch:
         # Not with control_clock "same" (the simulator's launch, sim time): a node's sim clock
         # stalls under load and stamps then run ahead of arrivals by seconds
         ahead = not self.same and recv is not None and \
-            len(med) >= self.min_judged and med.above(stamp - arrival) > bar
+            med.judged and med.above(stamp - arrival) > bar
         # above the ceiling by more than small_step, where under the old clock only the least
         # late reading of all lands: possibly a small forward step, held and judged on the
         # envelope (module envelope: a +0.1 s step hid in a 50 ms jitter's 0.36 s bar)
         # (on one clock: drift 0, see _envelope)
         lift = med.lift(stamp - arrival) if kind == "odometer" and not drift and \
-            not self.same and recv is not None and len(med) >= self.min_judged and \
+            not self.same and recv is not None and med.judged and \
             envelope.holds(1, 1, med.ceiling_n, TREND_WAIT) else -math.inf
         continuous = -back <= stamp - s0 <= max(arrival - a0, 0.0) + tol and not behind \
             and not ahead and not lift > self.small_step
@@ -2051,7 +2060,7 @@ class StepWatch:
         if rs is not None and self._count_moved(chain, r := rs[len(rs) // 2], new_off, med):
             yield from self._count_slipped(r)
             return
-        measured = all(h[3] is not None for h in chain) and len(med) >= self.min_judged
+        measured = all(h[3] is not None for h in chain) and med.judged
         # the new clock's offsets less the old clock's, carried to the held readings' middle
         moved = new_off - med.now(chain[len(chain) // 2][4]) if measured else math.nan
         # the stamps ran on where the old clock's would have: the link's latency rose and
@@ -2151,7 +2160,7 @@ class StepWatch:
         carried along a rate fit, the ceiling is as wrong as the fit, and the envelope has no
         room for that."""
         med = self.clock
-        if self.same or drift or len(med) < self.min_judged or \
+        if self.same or drift or not med.judged or \
                 any(h[3] is None for h in chain):
             return None
         return envelope.candidate([med.lift(h[1] - h[4]) for h in chain], med.ceiling_n,
@@ -2174,7 +2183,7 @@ class StepWatch:
         rate at which a true step's readings are released: its decision then waits for the
         next ones) and waits for more readings within ``TREND_WAIT`` (a queue that drains
         slowly against the link's jitter shows its trend over more readings)."""
-        if len(med) < self.min_judged or any(h[3] is None for h in chain):
+        if not med.judged or any(h[3] is None for h in chain):
             return 1.0
         drift = med.drift  # the clock's own rate moves the offsets too: taken out
         chain = chain[:TREND_N]  # (a queue shows its trend from its first readings on)
@@ -2231,7 +2240,7 @@ class StepWatch:
         stamped ahead), lifted the ceiling, and the step was absorbed: the rest of the run was
         fused 0.5 s off its time."""
         if self.same or not chain or recv is None or any(h[3] is None for h in chain) or \
-                len(self.clock) < self.min_judged:
+                not self.clock.judged:
             return False
         offs = sorted(h[1] - h[4] for h in chain)
         ceiling = self.clock.ceiling

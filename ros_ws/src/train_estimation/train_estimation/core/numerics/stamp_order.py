@@ -84,16 +84,15 @@ class StampOrder:
             self.last[kind] = (seq, stamp)
         return reset
 
-    def copy_of(self, kind: str, key, keep: bool = False) -> bool:
+    def copy_of(self, kind: str, key) -> bool:
         """Whether a message with copy ``key`` came among the last ``window`` of its kind;
-        ``keep``: remember this one (when it is not a copy)."""
+        one that did not is remembered."""
         recent = self.recent.get(kind)
         if recent is not None and key in recent:
             return True
-        if keep:
-            if recent is None:
-                recent = self.recent[kind] = deque(maxlen=self.window)
-            recent.append(key)
+        if recent is None:
+            recent = self.recent[kind] = deque(maxlen=self.window)
+        recent.append(key)
         return False
 
     def elsewhere(self, key, stamp: float, value) -> bool:

@@ -341,7 +341,8 @@ class EstimatorRunner:
         clock = CLOCK_OF[kind]
         med = self._offsets.get(clock)
         if med is None:  # the train clock is the one the step watch follows
-            med = self._offsets[clock] = self._steps.clock if clock == "train" else StreamClock()
+            med = self._offsets[clock] = self._steps.clock if clock == "train" else \
+                StreamClock(settled=self.min_judged)
         early = not self._clock_ready(clock, med)
         if recv is not None:
             arrival = recv
@@ -539,8 +540,12 @@ class EstimatorRunner:
                 and self._uncounted(kind):
             fields = {**fields, "seq": None}  # no counter: nothing judged by it
             self.uncounted[kind] += 1
-        if kind != "control" and self._order.copy_of(kind, _copy_key(fields, stamp)):
-            return self._reject(kind, stamp, R.DUPLICATE)  # a copy is no evidence of a step
+        # a copy of a message already come (its seq, stamp and values) is judged once, here,
+        # as it comes (a reading the step watch held comes back with ``watch`` False): it is
+        # no evidence of a step, nor of anything else
+        if kind != "control" and watch and \
+                self._order.copy_of(kind, _copy_key(fields, stamp)):
+            return self._reject(kind, stamp, R.DUPLICATE)
         why = self._fused_elsewhere(kind, stamp, fields)
         if why:
             return self._reject(kind, stamp, why)
@@ -556,16 +561,14 @@ class EstimatorRunner:
                 return self._reject(kind, stamp, f"{R.FUTURE_STAMP}: {off - med.value:.3g} s "
                                                  f"ahead of its arrival")
         if kind != "control":
-            why = self._check_seq(kind, stamp, fields)
-            if why:
-                return self._reject(kind, stamp, why)
+            self._note_seq(kind, stamp, fields)
         # a command stamped above where its clock can be (latency only lowers stamp - arrival)
         # is refused, though it still votes: one command stamped 300 s ahead made the
         # control watermark run 300 s ahead, the runner predicted every slot up to it at once
         # and then refused every genuine reading as out of order (a clock that truly stepped
         # moves the window, and its commands are taken again)
         lead = med.above(stamp - arrival) if kind == "control" and recv is not None and \
-            self.control_clock != "same" and len(med) >= self.min_judged else -math.inf
+            self.control_clock != "same" and med.judged else -math.inf
         bar = self._steps.bar(med) if lead > 0 else math.inf
         if arrival is not None and not counted:
             med.add(stamp - arrival, arrival, lift=not lead > bar)
@@ -629,15 +632,12 @@ class EstimatorRunner:
                 held = True
         return held, stamp
 
-    def _check_seq(self, kind: str, stamp: float, fields: dict) -> str:
-        """``duplicate`` for a copy of a recent message; a seq reset logged. (``seq`` is an
-        int, checked by :meth:`push`, or None on a stream without a counter.)"""
-        if self._order.copy_of(kind, _copy_key(fields, stamp), keep=True):
-            return R.DUPLICATE
+    def _note_seq(self, kind: str, stamp: float, fields: dict) -> None:
+        """A seq reset logged. (``seq`` is an int, checked by :meth:`push`, or None on a
+        stream without a counter.)"""
         seq, last = fields.get("seq"), self._order.last.get(kind)
         if seq is not None and self._order.took(kind, stamp, seq):
             self._event(kind, stamp, f"{R.SEQ_RESET}: seq {last[0]} -> {seq}")
-        return ""
 
     def _to_train(self, stamp: float, recv: float | None) -> float:
         """A control stamp on the train (odometer) clock (module doc), for a command that
@@ -1089,7 +1089,7 @@ class EstimatorRunner:
         nine are nine seconds, and a reading lost in them was published only with the next one
         (a second late: not available)."""
         med = self._offsets.get(clock)
-        return med is not None and (len(med) >= self.min_judged or
+        return med is not None and (med.judged or
                                     (len(med) >= 3 and med.near(med.value) >= 3))
 
     def tick(self, now: float) -> list[Output]:
