@@ -247,6 +247,7 @@ class EstimatorRunner:
     _zero_recv: float | None = None  # arrival of the first command stamped 0
     unstamped: int = 0  # commands stamped 0 taken at their arrival (:meth:`_control_stamp`)
     _odo: list = field(default_factory=list)  # heap of the queued odometer stamps
+    _first_odometer: float | None = None  # stamp of the first odometer reading queued
     _anchor: tuple | None = None  # (train stamp, filter time) of the last processed odometer
     _last_mapped: float = -math.inf
     _hist: list = field(default_factory=list)  # [stamp, order, n, kind, fields, snapshot]
@@ -694,6 +695,8 @@ class EstimatorRunner:
         heapq.heappush(self.queue, (stamp, KIND_ORDER[kind], self._n, kind, fields))
         if kind == "odometer":
             heapq.heappush(self._odo, stamp)
+            if self._first_odometer is None:
+                self._first_odometer = stamp
         self.high[kind] = max(self.high.get(kind, -math.inf), stamp)
         self._n += 1
 
@@ -1076,7 +1079,7 @@ class EstimatorRunner:
         -inf before the train clock is known (:meth:`_judged`: until then the commands wait
         too)."""
         train = self._offsets.get("train")
-        if not self._judged("train") or not math.isfinite(now):
+        if not self._judged("train") or not math.isfinite(now) or self._awaiting_commands():
             return -math.inf
         at = now - self.slot_grace
         due = at + train.value_at(at, train.drift)
@@ -1130,14 +1133,17 @@ class EstimatorRunner:
         command waited a whole command period (1 s at 1 Hz: the estimate published too late
         to use). A command that does come later inside the slack is fused by rewinding; what
         it would have changed in the estimates already published is at most a quarter
-        period of its acceleration (1.5 m/s^2 over 0.25 s at 1 Hz: 5 cm). Without control
-        messages the node's clock (``now - delay``, mapped onto the train clock through the
-        odometer's offset) stands in for it. The command stream's silence is measured on
-        ``wall`` (the clock push's ``wall`` is on; default ``now``): waiting is the node's.
-        Driven by the
-        data rather than by the clock, a node emits what the offline replay of the same
-        messages emits, however the executor interleaves /clock and the subscriptions.
+        period of its acceleration (1.5 m/s^2 over 0.25 s at 1 Hz: 5 cm). Until a first
+        command is queued, the readings wait for one (:meth:`_awaiting_commands`); without
+        control messages after that, the node's clock (``now - delay``, mapped onto the train
+        clock through the odometer's offset) stands in for it. The command stream's silence
+        is measured on ``wall`` (the clock push's ``wall`` is on; default ``now``): waiting
+        is the node's. Driven by the data rather than by the clock, a node emits what the
+        offline replay of the same messages emits, however the executor interleaves /clock
+        and the subscriptions.
         """
+        if self._awaiting_commands():
+            return -math.inf
         train = self._offsets.get("train")
         now_train = now - delay + (train.value if train is not None and len(train) else 0.0)
         lead = self.high.get("control", now_train)
@@ -1155,6 +1161,26 @@ class EstimatorRunner:
             lead = max(lead, min(now_train, odo))
         slack = self.command_slack * self.period if "control" in self.high else 0.0
         return min(lead + slack, max(odo, lead - fallback))
+
+    def _awaiting_commands(self) -> bool:
+        """Whether the readings wait for the command stream, none of it queued yet: commands
+        came and wait for their clock or the train's to be judged (where on the train clock
+        they lie is not known yet: a reading processed now would be fused without the commands
+        sampled before it), or none came and the readings queued span less than
+        ``command_timeout`` s of their own stamps. Both are the data's, not the node's clock:
+        the node's clock stood in for the missing watermark, and a node stalled for a moment at
+        its start (on simulated time, the paced simulator 2 s ahead when it resumed) fused its
+        first readings before the commands it had already received, then published estimates
+        that a replay of the same messages does not (3e-8 m off under the brake's first
+        command). The wait is bounded: the early hold ends by ``EARLY_CAP`` x ``min_judged``
+        offsets, and a stream that sends no command costs its first ``command_timeout`` s of
+        estimates a delay of as much, once."""
+        if "control" in self.high:
+            return False
+        if self._held or self._early.get("control"):
+            return True
+        first = self._first_odometer
+        return first is None or self.high["odometer"] - first < self.command_timeout
 
     def drain(self) -> list[Output]:
         """Process everything queued (offline use): estimates up to the last item's stamp."""
