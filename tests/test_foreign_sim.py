@@ -390,8 +390,11 @@ def test_the_estimators_take_a_run_as_the_ground_logged_it(kind):
     """A checker plays the bag into the nodes: the train's own clock (an epoch of 1e8-1e9 s
     against a log time at 1.75e9 s, a drift of 2e-5 to 1e-4 or a step of 0.5-3 s), the link's
     own latency and losses. The robust filter and the KF on a tram run so logged: no
-    wrong-side estimate, no bad covariance, available through the step or the drift."""
+    wrong-side estimate, no bad covariance, available through the step or the drift (but for
+    the readings after a step that its burst hypothesis lives on: burst_readings)."""
     import bench_foreign as BF
+
+    from train_estimation.core.online.integrity import IntegrityParams, burst_readings
 
     rows = BF.run_estimators({"seed": 0, "kind": kind, "family": "tram", "recorded": True,
                               "estimators": ["robust_filter", "kf"]})
@@ -399,7 +402,8 @@ def test_the_estimators_take_a_run_as_the_ground_logged_it(kind):
     for r in rows:
         assert "na" not in r and "exception" not in r, r
         assert r["outputs"] > 1000 and r["wrong_side"] == 0 and r["bad_cov"] == 0, r
-        assert r["misleading"] == 0 and r["clear"] >= 0.99, r
+        burst = burst_readings(IntegrityParams()) if kind == "clock_step" else 0
+        assert r["misleading"] == 0 and r["clear"] >= 0.99 - burst / r["outputs"], r
 
 
 def test_the_link_s_true_bursts_beside_the_hidden_cause_are_allowed_and_nothing_else():

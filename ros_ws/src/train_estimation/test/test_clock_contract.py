@@ -130,11 +130,15 @@ def test_a_step_is_measured_exactly_on_the_sample_grid(step):
     it fused at their true sampling times, decided after min_judged (9) readings of the new
     clock (the old clock's silence alone would have taken six on this link, which lost 3 of
     the 131 slots before the step: clocks.silence_risk), the estimates published meanwhile in
-    doubt."""
+    doubt; the ones after carry the step's burst hypothesis, from the ninth reading of the new
+    clock to its prior's last (integrity.burst_readings)."""
+    from train_estimation.core.online.integrity import IntegrityParams, burst_readings
+
     r = run_link(900.0, 1.0, True, 0.05, 0.05, step, seed=0)
     assert r["shift_err_ms"] == pytest.approx(0.0, abs=1e-3), r
     assert r["time_err_ms"] == pytest.approx(0.0, abs=1e-3), r
     assert r["decided_readings"] == 9 and r["doubted"] == 9, r
+    assert r["burst"] == burst_readings(IntegrityParams()) - 9 + 1, r
     assert r["refused"] == 0, r
 
 

@@ -271,6 +271,74 @@ def test_a_held_clock_step_is_two_solutions_where_the_motion_puts_the_train(T, a
     assert out.covariance[0] >= (v * T + abs(bend)) ** 2 + extra - 1e-9
 
 
+@pytest.mark.parametrize("step", [2.0, -4.5])
+def test_a_declared_step_is_carried_as_a_burst_while_its_prior_is_above_its_share(step):
+    """A step declared from its readings may be a burst of wrong stamps that ends: the
+    estimate (published on the new clock) is then ``step`` s off in its stamp, the train where
+    its motion puts it ``step`` s on -- a rare fault of prior q^(n-1) after n readings on the
+    new clock, monitored while that exceeds its share of the risk (protection.py), charged
+    until a thousandth of it, then dropped."""
+    from train_estimation.core.online.integrity import BURST_NEGLIGIBLE
+    from train_estimation.core.online.protection import RARE_SHARE, Hypothesis, protection_levels
+
+    p = IntegrityParams()
+    q, risk = p.stamp_burst_continue, p.integrity_risk
+    v, pxx, pvv, paa, accel = 20.0, 1.0, 0.04, 0.09, 0.3
+    cov = tuple(np.diag([pxx, pvv, paa, math.nan]).ravel())
+    m = IntegrityMonitor(p, 0.1)
+    m.clock(0, reanchored_at=10.0, measured=True, step=step)
+    share = RARE_SHARE * risk / 2.0
+    t, n, seen = 10.0, 0, set()
+    while True:
+        m.reading(t, {"speed": v, "speed_variance": 0.01}, True)
+        n += 1
+        out = m.assess(Output(t, 0.0, v, accel, math.nan, cov, True), t)
+        prior = q ** (n - 1)
+        if prior <= BURST_NEGLIGIBLE * share:
+            assert m.burst is None and out.integrity_reason == ""
+            assert out.protection_level_ahead == protection_levels(pxx)[0]
+            break
+        bend = 0.5 * accel * step * step
+        carried = math.sqrt(pxx) + abs(step) * math.sqrt(pvv) + 0.5 * step * step * \
+            math.sqrt(paa)
+        extra = carried ** 2 - pxx + (0.5 * p.accel_uncertainty * step * step) ** 2
+        want = protection_levels(pxx, [Hypothesis("clock", v * step + bend, extra, prior)],
+                                 risk)
+        assert (out.protection_level_ahead, out.protection_level_behind) == want
+        assert "may be a burst" in out.integrity_reason
+        seen.add(prior > share)  # monitored, or within its share (charged, no solution)
+        if prior >= 2.0 * share:  # its multiplier >= 0: the interval holds where it puts it
+            assert want[0] >= v * step + bend and want[1] >= -(v * step + bend)
+        t += 0.1
+    assert seen == {True, False}  # monitored, then charged, then dropped
+    assert n - 1 > math.log(BURST_NEGLIGIBLE * share) / math.log(q) - 1
+    # no burst without a prior for one, nor after a step of 0
+    for params, size in ((IntegrityParams(stamp_burst_continue=0.0), step), (p, 0.0)):
+        m = IntegrityMonitor(params, 0.1)
+        m.clock(0, reanchored_at=10.0, measured=True, step=size)
+        assert m.burst is None
+
+
+@pytest.mark.parametrize("kind", ["robust", "kf"])
+def test_a_burst_of_ten_wrong_stamps_is_no_step_confirmed(kind):
+    """Ten readings in a row stamped 4.5 s ahead, then right again: the step watch declares a
+    step after nine, and the burst's end is a step back. The estimates published between were
+    90 m off within a 39 m protection level; the step's burst hypothesis covers them."""
+    from train_estimation.core.online.estimators import NodeConfig
+
+    sc, res = run("metro_demo", 0, 110.0)
+    events = [e for e in res.events() if e[1] <= 106.8]
+    fl = F.inject(events, F.Fault("stamp", 4.5, 46.8, count=10), np.random.default_rng(0))
+    cfg = NodeConfig()  # the node's defaults
+    outs, emitted, _ = F.run(fl.events, adapter(sc, kind), 0.1, delay=cfg.output_delay,
+                             tick_period=cfg.tick_period, control_clock=cfg.control_clock,
+                             max_future=cfg.max_future, slot_grace=cfg.slot_grace)
+    tr = {k: np.asarray(v)[np.asarray(res.truth["t"]) <= 106.8] for k, v in res.truth.items()}
+    row = F.score(outs, emitted, fl, tr, 10.0, 106.8 + F.LATENCY)
+    assert row["max_err"] > 80.0  # the burst's estimates are that far off in their stamps
+    assert row["misleading"] == 0 and row["wrong_side"] == 0
+
+
 @pytest.mark.parametrize("kind", ["robust", "kf"])
 def test_a_start_the_first_balise_contradicts_is_excluded_by_it(kind):
     """Started 60 m off with a claimed 5 m (a wrong stabling point): the first balise (41.8 s)

@@ -268,7 +268,12 @@ def test_copies_of_the_first_readings_stamped_ahead_are_not_fused_at_their_stamp
     err, _ = errors(outs, res, epoch=100.0)
     sd = np.sqrt([o.covariance[0] for o in outs if 100.0 <= o.stamp <= 140.0])
     sel = [o for o in outs if 100.0 <= o.stamp <= 140.0]
-    ok = np.array([o.integrity != 2 and not o.integrity_reason for o in sel])  # no doubt
+    # no doubt but, possibly, that the step back from the copies' clock to the readings' own
+    # was a burst of wrong stamps (a rare fault: a solution beside the estimate, its
+    # covariance the filter's own)
+    ok = np.array([o.integrity != 2 and
+                   not [w for w in o.integrity_reason.split("; ") if w and "burst" not in w]
+                   for o in sel])
     bounded = np.array([o.integrity != 2 for o in sel])
     ahead = np.array([o.protection_level_ahead for o in sel])
     behind = np.array([o.protection_level_behind for o in sel])

@@ -132,11 +132,14 @@ import numpy as np
 from train_core.config import param, require, require_finite
 
 from .. import reasons as R
-from .protection import Hypothesis, label, protection_levels
+from .protection import RARE_SHARE, Hypothesis, label, protection_levels
 
 OK, DEGRADED, ALARM = 0, 1, 2
 V_STILL = 0.5  # m/s: an odometer speed reading at or below this reads standstill
 _STAMP = itemgetter(0)  # the stamp of a window's entry (bisect's key)
+BURST_NEGLIGIBLE = 1e-3  # -, a step's burst hypothesis (IntegrityMonitor.clock) is dropped once
+#   its prior is this fraction of its share of the risk: until then protection_levels charges
+#   it its share, monitored or not; after, what it could still add is a thousandth of that
 SURE = 1.0 - math.exp(-3.0)  # a first-order lag's output three time constants after a step
 UNBOUNDED = 1e12  # m^2, (m/s)^2: the variance published when the filter's is not usable
 NAMES = {OK: "OK", DEGRADED: "DEGRADED", ALARM: "ALARM"}
@@ -163,6 +166,14 @@ class IntegrityParams:
     reanchor_hold: float = param(2.0, "s", "DEGRADED for this long after a clock step was "
                                  "re-anchored on its stamps alone (no arrival times; a step "
                                  "measured from the arrivals needs no hold)")
+    stamp_burst_continue: float = param(0.5, "-", "probability that a burst of readings "
+                                        "stamped alike wrongly (a sender's clock read wrong, "
+                                        "then right again) goes on for one reading more: a "
+                                        "declared clock step is carried as such a burst, prior "
+                                        "continue^(n-1) after n readings on the new clock, "
+                                        "until that is within its share of the integrity risk "
+                                        "(protection.py, rare faults); 0 = no burst outlasts "
+                                        "the readings that declare a step", lo=0.0, hi=0.99)
     command_timeout: float = param(2.0, "s", "no control command for this long while readings "
                                    "arrive: DEGRADED (above the keep-alive period of a command "
                                    "stream logged only when it changes)")
@@ -207,6 +218,8 @@ class IntegrityParams:
         require(self.pos_window >= 2, "pos_window", self.pos_window, "must be >= 2")
         require(0.0 < self.integrity_risk < 0.5, "integrity_risk", self.integrity_risk,
                 "must be in (0, 0.5)")
+        require(0.0 <= self.stamp_burst_continue < 1.0, "stamp_burst_continue",
+                self.stamp_burst_continue, "must be in [0, 1)")
         for name in ("balise_map_prior", "start_fault_prior"):
             require(0.0 <= getattr(self, name) <= 1.0, name, getattr(self, name),
                     "must be in [0, 1]")
@@ -248,6 +261,8 @@ class IntegrityMonitor:
         self.last_command = -math.inf  # stamp of the last command
         self.last_reading = -math.inf  # stamp of the latest odometer reading seen
         self.reanchored_at = -math.inf  # stamp of the last step re-anchored by assumption
+        self.burst: list | None = None  # [the last declared step (s), its first stamp on the
+        #   new clock, readings seen on it]: the hypothesis that it was a burst (:meth:`clock`)
         self.held = 0  # readings the runner holds as a possible clock step
         self.doubt = 0.0  # s, the largest discontinuity among them
         self.suspect = False  # they put the estimate in doubt (see clock)
@@ -278,6 +293,8 @@ class IntegrityMonitor:
         if not math.isfinite(stamp):
             self.refused_run += 1
             return
+        if self.burst is not None and stamp >= self.burst[1]:
+            self.burst[2] += 1
         self._remember(self.counts_seen, stamp, fields, ("distance",))
         if fused or gate:
             self._track(stamp, fields, position, fused)
@@ -623,17 +640,31 @@ class IntegrityMonitor:
         return ""
 
     def clock(self, held: int, reanchored_at: float | None = None, doubt: float = 0.0,
-              conclusive: bool = False, measured: bool = False) -> None:
+              conclusive: bool = False, measured: bool = False, step: float = 0.0) -> None:
         """The runner's clock state: readings held as a possible step, the largest
-        discontinuity among them (s), whether one of them is no late reading; a step
-        re-anchored, ``measured`` from the offsets of the readings that decided it against
-        their clock's centre (then known to the link's jitter: no hold) or assumed from the
-        stamps alone (then held for ``reanchor_hold``)."""
+        discontinuity among them (s), whether one of them is no late reading; a step of
+        ``step`` s re-anchored at ``reanchored_at`` (its first stamp on the new clock),
+        ``measured`` from the offsets of the readings that decided it against their clock's
+        centre (then known to the link's jitter: no hold) or assumed from the stamps alone
+        (then held for ``reanchor_hold``).
+
+        A declared step is also carried as what the same data say otherwise: a burst of
+        readings stamped alike wrongly, after which the old clock comes back. The readings are
+        placed right either way (the step's readings at their stamps minus the step); what
+        differs is the clock the estimates are published on, the new one, which a burst would
+        make ``step`` s wrong. No reading tells the two apart while the burst lasts, so the
+        hypothesis is dropped by its prior alone: ``stamp_burst_continue^(n-1)`` after ``n``
+        readings on the new clock, until that is within its share of the risk (a step
+        declared after ``min_judged`` readings was confirmed by a count of readings, and one
+        burst of ten wrong stamps 4.5 s off published estimates 90 m off within a 39 m
+        protection level)."""
         self.held = held
         self.suspect = held >= 2 or (held >= 1 and conclusive)
         self.doubt = doubt if held else 0.0
         if reanchored_at is not None:
             self.reanchored_at = -math.inf if measured else reanchored_at
+            self.burst = [step, reanchored_at, 0] if step and math.isfinite(step) and \
+                self.p.stamp_burst_continue > 0.0 else None
 
     # -- output ---------------------------------------------------------------------------------
     def _nis_mean(self) -> float:
@@ -705,24 +736,26 @@ class IntegrityMonitor:
             why.append("clock: " + (f"{self.held} readings held as a possible step"
                                     if self.held else "step re-anchored"))
             T = max(self.period, self.doubt if self.suspect else 0.0)
-            # the estimate's stamp may be read on either side of the step: the train is where
-            # its motion puts it T s later or earlier, x +- v T + a T^2 / 2. Its variance there
-            # is at most (sd_x + T sd_v + T^2 sd_a / 2)^2 whatever the state's correlations,
-            # plus the unmodelled acceleration's over T (m^2; the stamp's seconds are not
-            # metres): beyond the estimate's own, the rest is the solution's extra
-            run = out.velocity * T
-            pa = float(cov[10])
-            if math.isfinite(out.acceleration) and math.isfinite(pa) and pa >= 0.0:
-                bend, sd_a = 0.5 * out.acceleration * T * T, math.sqrt(pa)
-            else:  # no acceleration estimated: any the train can do
-                bend, sd_a = 0.0, p.max_acceleration
-            sd_x = math.sqrt(P[0])
-            carried = sd_x + T * math.sqrt(P[3]) + 0.5 * T * T * sd_a
-            extra = carried * carried - P[0] + _accel_terms(p.accel_uncertainty, T)[0]
+            # the estimate's stamp may be read on either side of the step
+            run, bend, extra = self._moved(out, P, T)
             hyps += [Hypothesis("clock", run + bend, extra),
                      Hypothesis("clock", -run + bend, extra)]
             far = abs(run) + abs(bend)  # the farther of the two
             P = _plus(P, (far * far + extra, 0.0, 0.0, 0.0))
+        if self.burst is not None:
+            step, _, n = self.burst
+            prior = p.stamp_burst_continue ** max(n - 1, 0)
+            if n >= burst_readings(p):
+                self.burst = None
+            else:
+                # a burst: the estimate's stamp, on the new clock, is ``step`` s ahead of the
+                # old one it would be read on, and the train there is where its motion puts
+                # it ``step`` s on. A rare fault: its prior, not the data, keeps it live, and
+                # once within its share protection_levels leaves it unmonitored (charged)
+                run, bend, extra = self._moved(out, P, step)
+                hyps.append(Hypothesis("clock", run + bend, extra, prior))
+                why.append(f"clock: the step of {step:+.3f} s re-anchored {n} readings ago "
+                           f"may be a burst of wrong stamps (prior {prior:.2g})")
         b, se = self._bias()
         if abs(b) > p.pos_z * se:
             doubt = DEGRADED
@@ -757,6 +790,25 @@ class IntegrityMonitor:
             why.append(f"no_command: {silent:.1f} s")
         return self._label(out, t, doubt, "; ".join(why), P if doubt else None,
                            fault_free, tuple(hyps))
+
+    def _moved(self, out, P: tuple, T: float) -> tuple:
+        """``(run, bend, extra)``: the train ``T`` s after the estimate's stamp (``T`` < 0:
+        before) is where its motion puts it, ``run + bend = v T + a T^2 / 2`` m from the
+        estimate. Its variance there is at most ``(sd_x + |T| sd_v + T^2 sd_a / 2)^2`` whatever
+        the state's correlations, plus the unmodelled acceleration's over ``T`` (m^2; the
+        stamp's seconds are not metres): beyond the estimate's own (``P``'s), the rest is the
+        solution's ``extra``. Without an acceleration estimate ``a`` is 0 and ``sd_a`` any the
+        train can do."""
+        p = self.p
+        run = out.velocity * T
+        pa = float(out.covariance[10])
+        if math.isfinite(out.acceleration) and math.isfinite(pa) and pa >= 0.0:
+            bend, sd_a = 0.5 * out.acceleration * T * T, math.sqrt(pa)
+        else:  # no acceleration estimated: any the train can do
+            bend, sd_a = 0.0, p.max_acceleration
+        sd_x = math.sqrt(P[0])
+        carried = sd_x + abs(T) * math.sqrt(P[3]) + 0.5 * T * T * sd_a
+        return run, bend, carried * carried - P[0] + _accel_terms(p.accel_uncertainty, T)[0]
 
     def _label(self, out, t: float, doubt: int, why: str, P, fault_free: float | None = None,
                hyps: tuple = ()):
@@ -806,6 +858,18 @@ class IntegrityMonitor:
         return replace(out, covariance=tuple(C), integrity=state,
                        integrity_reason=why, protection_level_ahead=ahead,
                        protection_level_behind=behind)
+
+
+def burst_readings(p: IntegrityParams) -> int:
+    """The readings on a declared step's new clock by which its burst hypothesis is dropped
+    (:meth:`IntegrityMonitor.clock`): the fewest ``n`` whose prior ``stamp_burst_continue^(n-1)``
+    is at most ``BURST_NEGLIGIBLE`` of its share of the risk (37 at the defaults; 0 without
+    a prior for bursts)."""
+    q = p.stamp_burst_continue
+    if q <= 0.0:
+        return 0
+    bar = BURST_NEGLIGIBLE * RARE_SHARE * p.integrity_risk / 2.0
+    return 1 + math.ceil(math.log(bar) / math.log(q) - 1e-9)
 
 
 def _plus(P: tuple, Q: tuple) -> tuple:

@@ -610,7 +610,8 @@ class EstimatorRunner:
                                        f"grid, not continued by later readings")
             elif act[0] == STEP:
                 _, shift, first, measured = act
-                self.monitor.clock(0, reanchored_at=first - shift, measured=measured)
+                self.monitor.clock(0, reanchored_at=first - shift, measured=measured,
+                                   step=shift)
                 # the first new reading's stamp as sent: its timeline stamp plus the shifts
                 # before this one
                 sent = first + self._steps.shift - shift
@@ -1061,7 +1062,7 @@ class EstimatorRunner:
         if self._last_out is not None:
             self._last_out = moved("odometer", self._last_out)
         self._last_fused = moved("odometer", self._last_fused)
-        self.monitor.clock(0, reanchored_at=first - d, measured=True)
+        self.monitor.clock(0, reanchored_at=first - d, measured=True, step=d)
         self._event("odometer", first, f"{R.CLOCK_RESET}: train clock stepped by {d:+.3f} s "
                                        f"at stamp {first + self._steps.shift - d:.3f}, found by "
                                        f"the count's level among readings fused; re-stamped")
