@@ -80,7 +80,7 @@ from __future__ import annotations
 
 import heapq
 import math
-from collections import Counter
+from collections import Counter, deque
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -248,6 +248,8 @@ class EstimatorRunner:
     unstamped: int = 0  # commands stamped 0 taken at their arrival (:meth:`_control_stamp`)
     _odo: list = field(default_factory=list)  # heap of the queued odometer stamps
     _first_odometer: float | None = None  # stamp of the first odometer reading queued
+    _lags: deque = field(default_factory=lambda: deque(maxlen=31))  # s, how far the control
+    #   watermark led each of the latest odometer readings as it was queued (ready_time)
     _anchor: tuple | None = None  # (train stamp, filter time) of the last processed odometer
     _last_mapped: float = -math.inf
     _hist: list = field(default_factory=list)  # [stamp, order, n, kind, fields, snapshot]
@@ -589,6 +591,8 @@ class EstimatorRunner:
             held, self._held = self._held, []
             for s, rc, f in held:
                 self._queue("control", self._to_train(s, rc), f)
+        if kind == "odometer" and "control" in self.high:
+            self._lags.append(self.high["control"] - stamp)
         self._queue(kind, stamp, fields)
         return ""
 
@@ -1127,7 +1131,8 @@ class EstimatorRunner:
         stamp queued per topic (its watermark) says how far that topic is complete. ``control``
         is not sent over the lossy link: its watermark leads. The odometer is complete up to
         its watermark, or -- when samples were lost -- up to ``fallback`` seconds behind the
-        control watermark. A reading stamped no more than ``command_slack`` periods past the
+        control watermark beyond how far it usually leads the readings (:meth:`_odometer_lag`:
+        a slow link is no loss). A reading stamped no more than ``command_slack`` periods past the
         control watermark does not wait for the next command: a reading and a command sampled
         together on two clocks are mapped apart by the mapping's error (the two links'
         latencies, a drift not yet found), and a reading mapped a millisecond after its
@@ -1161,7 +1166,20 @@ class EstimatorRunner:
             # lead instead (not the clock alone: without arrival times ``now`` is a stamp)
             lead = max(lead, min(now_train, odo))
         slack = self.command_slack * self.period if "control" in self.high else 0.0
-        return min(lead + slack, max(odo, lead - fallback))
+        return min(lead + slack, max(odo, lead - fallback - self._odometer_lag()))
+
+    def _odometer_lag(self) -> float:
+        """s, how far the commands usually lead the odometer's readings as they come: the
+        median of the last 31 leads of the control watermark over a reading's stamp as it was
+        queued (0 when the readings lead). A slot is given up as lost ``fallback`` s beyond
+        that: a link that delivers every reading 0.7 s after the commands of its cycle had each
+        slot predicted before its reading came (``fallback`` 0.2 s), fused late, and every
+        estimate published without a measurement (DEGRADED all run)."""
+        if not self._lags:
+            return 0.0
+        lags = sorted(self._lags)
+        n = len(lags)
+        return max(0.0, 0.5 * (lags[(n - 1) // 2] + lags[n // 2]))
 
     def _awaiting_commands(self) -> bool:
         """Whether the readings wait for the command stream, none of it queued yet: commands
