@@ -591,7 +591,8 @@ class EstimatorRunner:
             held, self._held = self._held, []
             for s, rc, f in held:
                 self._queue("control", self._to_train(s, rc), f)
-        if kind == "odometer" and "control" in self.high:
+        if kind == "odometer" and "control" in self.high and not self._backlog:
+            # (a backlog's readings say how long the stall was, not how the link delivers)
             self._lags.append(self.high["control"] - stamp)
         self._queue(kind, stamp, fields)
         return ""
