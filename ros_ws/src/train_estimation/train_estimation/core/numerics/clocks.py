@@ -286,7 +286,7 @@ class StreamClock:
         # advance with the arrival frozen (taken for a step, it moved one clock's centre by
         # seconds and "auto" judged the clocks separate). So the far run must also be paced
         # (:func:`paced`); older values of a run that is not are dropped from it.
-        if self.judged and -self.tol <= v - self.value < -self.late:
+        if self.judged and v - self.value >= -self.tol and self.is_late(v):
             # came late (module doc): neither votes nor informs the rate -- from the moment
             # the centre is settled, not only once the window is full (a recorder stalled 8 s
             # at 26 s of a 1 Hz run voted its burst into the centre, which moved 4 s)
@@ -366,9 +366,16 @@ class StreamClock:
         "is this clock known yet?" that the runner and the step watch ask."""
         return len(self.fifo) >= self.settled
 
+    def is_late(self, v: float) -> bool:
+        """``v`` (stamp - arrival) lies more than ``LATE`` s below the centre: the item came
+        late (module doc). The one lateness rule: such an offset does not vote once the clock
+        is judged (:meth:`add`), is no point of the rate fit (:meth:`on_time`), and the
+        runner's tick waits while the latest message came so (a backlog being caught up)."""
+        return v - self.value < -self.late
+
     def on_time(self, v: float) -> bool:
-        """``v`` (stamp - arrival) is at most ``LATE`` s below the centre, and not far above."""
-        return -self.late <= v - self.value <= self.tol
+        """``v`` (stamp - arrival) is not late (:meth:`is_late`), and not far above."""
+        return not self.is_late(v) and v - self.value <= self.tol
 
     def near(self, v: float) -> int:
         """How many values of the window lie within ``tol`` of ``v``."""

@@ -358,7 +358,7 @@ class EstimatorRunner:
             # a message later than its clock's lateness bar (LATE): the node or its link is
             # catching up with a backlog (a stall's burst), whose next messages may well hold
             # the readings the arrival clock says are overdue; tick waits for one on time
-            self._backlog = stamp - arrival - med.value < -med.late
+            self._backlog = med.is_late(stamp - arrival)
         if early and not (clock == "train" and recv is not None and
                           self._steps.last is not None):
             # too early to judge a stamp against its clock: hold it until the clock's median
