@@ -26,7 +26,7 @@ EXIT_BROKEN_PIPE = 141  # the reader of stdout went away (128 + SIGPIPE)
 # the project's one progress-bar style (train_core.progress), re-exported for the tools
 __all__ = ["EXIT_BROKEN_PIPE", "EXIT_CHECK_FAILED", "EXIT_INTERRUPTED", "EXIT_OK",
            "EXIT_UNUSABLE", "INPUT_TOPICS", "Progress", "fail", "json_default", "one_line",
-           "cannot_write", "pipe_safe", "track", "unclosed", "unwritable"]
+           "cannot_write", "cannot_write_there", "pipe_safe", "track", "unclosed", "unwritable"]
 
 # the measured data's topics (docs/interfaces.md "Measured data")
 INPUT_TOPICS = ("odometer", "balise", "control")
@@ -97,6 +97,11 @@ def unwritable(out: Path) -> str:
     return ""
 
 
+def cannot_write_there(out, exc: OSError) -> str:
+    """What to say when outputs could not be written to ``out`` (--out)."""
+    return f"--out {out}: cannot write there ({exc.strerror or exc})"
+
+
 def cannot_write(prog: str, out, exc: OSError) -> int:
     """:func:`fail` for outputs that could not be written to ``out`` (--out)."""
-    return fail(prog, f"--out {out}: cannot write there ({exc.strerror or exc})")
+    return fail(prog, cannot_write_there(out, exc))

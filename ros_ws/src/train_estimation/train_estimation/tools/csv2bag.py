@@ -97,7 +97,7 @@ from train_core.config import ConfigError, ConfigWarning, check_keys, load_yaml
 from train_core.model import load_line
 
 from train_estimation.core.offline.measured import counter_gaps, counter_runs
-from train_estimation.tools.common import pipe_safe
+from train_estimation.tools.common import cannot_write_there, pipe_safe
 
 KEYS = ("time", "train_time", "sample", "speed", "distance", "balise", "balise_position",
         "traction", "braking")
@@ -502,7 +502,7 @@ def convert(csv_path: str | Path, out: str | Path, mapping: Mapping, line=None,
     except BagError as e:
         raise InputError(str(e)) from None
     except OSError as e:  # a read-only place, a file in the way
-        raise InputError(f"--out {out}: cannot write there ({e.strerror or e})") from None
+        raise InputError(cannot_write_there(out, e)) from None
     try:
         with writer:
             _write(rows, mapping, writer, res)

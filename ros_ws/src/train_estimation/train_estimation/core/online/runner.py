@@ -80,6 +80,7 @@ from __future__ import annotations
 
 import heapq
 import math
+import statistics
 from collections import Counter, deque
 from dataclasses import dataclass, field
 from typing import Protocol
@@ -1176,11 +1177,7 @@ class EstimatorRunner:
         that: a link that delivers every reading 0.7 s after the commands of its cycle had each
         slot predicted before its reading came (``fallback`` 0.2 s), fused late, and every
         estimate published without a measurement (DEGRADED all run)."""
-        if not self._lags:
-            return 0.0
-        lags = sorted(self._lags)
-        n = len(lags)
-        return max(0.0, 0.5 * (lags[(n - 1) // 2] + lags[n // 2]))
+        return max(0.0, statistics.median(self._lags)) if self._lags else 0.0
 
     def _awaiting_commands(self) -> bool:
         """Whether the readings wait for the command stream, none of it queued yet: commands
