@@ -46,6 +46,10 @@ class OdometryConfig:
 
     gate: float = param(8.0, "-", "innovation gate in standard deviations (.inf disables)",
                         lo=0.0)
+    gate_accel: float = param(1.5, "m/s^2", "acceleration error allowed in the gate's "
+                              "look-ahead, over the time since the last odometer reading fused "
+                              "(so a filter that refused readings for long takes them again)",
+                              lo=0.0)
     use_distance: bool = param(True, "", "odometer distance as a position measurement")
     distance_variance: float = param(1.0, "m^2", "variance of (initial_position + counted "
                                      "distance) as a position reading", lo=0.0)

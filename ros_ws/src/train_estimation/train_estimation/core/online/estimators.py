@@ -160,8 +160,8 @@ class RobustAdapter(DistanceAsPosition):
         self.model = WenModel.from_params(train, line, q=cfg.q)
         self.params = filter_params_from_train(
             train, alpha_bar=cfg.alpha_bar, epsilon=cfg.epsilon, gate=cfg.gate,
-            use_distance=cfg.use_distance, distance_variance=cfg.distance_variance,
-            odometer_origin=start.position)
+            gate_accel=cfg.gate_accel, use_distance=cfg.use_distance,
+            distance_variance=cfg.distance_variance, odometer_origin=start.position)
         self.train, self.start_state, self.cfg, self.filter_cls = train, start, cfg, filter_cls
         self.line = line  # the integrity monitor's standing check reads the map's gradient
         self.f: RobustFilter | None = None
@@ -461,10 +461,6 @@ class BrakingConfig(OdometryConfig):
     min_brake: float = param(0.1, "m/s^2", "weaker braking commands do not inform the braking "
                              "rate", lo=0.0)
     seed: int = param(0, "", "particle-filter random stream", lo=0)
-    gate_accel: float = param(1.5, "m/s^2", "acceleration error allowed in the gate's "
-                              "look-ahead, over the time since the last odometer reading fused "
-                              "(so a filter that refused readings for long takes them again)",
-                              lo=0.0)
     balise_map_tolerance: float = param(1.0, "m", "max |sent position - map position|", lo=0.0)
     max_horizon: float = param(3600.0, "s", "a reading further ahead of the estimate is "
                                "future_stamp", lo=0.0)

@@ -64,6 +64,8 @@ class FilterParams:
     epsilon: float | None = None  # -, eq. (21); None = per-step minimiser of the trace
     gain: str = "corrected"  # "corrected" (minimises tr (22)) or "paper" (eq. (24) literally)
     gate: float = 8.0  # -, reject if |innovation| > gate * sqrt(S_ii); math.inf disables
+    gate_accel: float = 0.0  # m/s^2, acceleration error allowed in the gate's look-ahead over
+    #   the time since the last odometer reading taken (0: none; the nodes' gate_accel)
     use_distance: bool = True  # odometer distance as a position measurement
     distance_variance: float = 1.0  # m^2, variance of origin + distance as a position reading
     speed_variance: float = 0.01  # (m/s)^2, odometer speed variance until a packet states it
@@ -120,6 +122,7 @@ class FilterBase:
         self.x = np.asarray(x0, dtype=float).copy()
         self.P = np.asarray(P0, dtype=float).copy()
         self.t = float(t0)
+        self.t_fix = float(t0)  # s, the last received odometer reading taken, or the start
         self.counters: Counter = Counter()
         self.order = StampOrder(params.max_horizon)  # readings and commands taken (order)
         # Control history -> input of each step. Without a brake model (or actuator=False) the
@@ -272,13 +275,21 @@ class FilterBase:
                 mask=np.array([True]))
         raise TypeError(f"unknown reading type {type(reading).__name__}")
 
-    def _gate_ok(self, x, P, meas: Measurement) -> bool:
+    def _gate_ok(self, x, P, meas: Measurement, since: float = 0.0) -> bool:
+        """Every channel's innovation within ``gate`` standard deviations of ``S = C P C^T + R``
+        plus the effect of an acceleration error up to ``gate_accel`` over ``since`` (s, the
+        time since the last odometer reading taken: the prediction's own error grows for as
+        long as no reading corrects it, so a filter that was wrong, e.g. started on a moving
+        train, takes the odometer again once the train could have reached its reading)."""
         g = self.params.gate
         if not math.isfinite(g) or not np.any(meas.mask) or not np.all(np.isfinite(P)):
             return True
         m = meas.mask
         C = meas.C[m]
         S = np.einsum("ij,jk,ik->i", C, P, C) + np.diag(meas.R)[m]
+        a = self.params.gate_accel
+        if a > 0.0 and since > 0.0:
+            S = S + (C @ np.array([0.5 * a * since * since, a * since])) ** 2
         nu = meas.y[m] - C @ x
         return bool(np.all(np.abs(nu) <= g * np.sqrt(S)))
 
@@ -290,7 +301,7 @@ class FilterBase:
         if isinstance(meas, str):
             return self._decide(False, meas)
         x, P, act = self._propagate(float(reading.stamp)) if predicted is None else predicted
-        if not self._gate_ok(x, P, meas):
+        if not self._gate_ok(x, P, meas, float(reading.stamp) - self.t_fix):
             return self._decide(False, R.OUTSIDE_GATE)
         x, P = self._apply(x, P, meas)
         if not (np.all(np.isfinite(x)) and _finite_or_nan_cov(P)):
@@ -301,6 +312,7 @@ class FilterBase:
         received = bool(np.any(meas.mask))
         if kind == "odometer" and received:
             self._speed_var = float(reading.speed_variance)
+            self.t_fix = self.t
         self._used |= received
         return self._decide(True, R.OK if received else R.MISSING)
 
