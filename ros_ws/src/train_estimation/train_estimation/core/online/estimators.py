@@ -585,17 +585,14 @@ class BrakingAdapter(DistanceAsPosition):
         negative entries count as 0, so a collapsed covariance cannot close the gate), and the
         slack of an acceleration error up to ``gate_accel`` over the time since the last
         odometer reading the filter fused (or its start): the model neglects the resistance in
-        this look-ahead, and its error grows for as long as no reading corrects the state. Not
-        since the filter's own time, which every published estimate moves by a time update:
-        timed from there, a filter that was wrong (a node started on a moving train, whose
-        start state says standing) refused every reading for the rest of the run, 1,157 of
-        1,600 on metro_demo joined at 40 s, and never found the train again. Timed from the
-        last correction it is the robust filter's rule (its prediction runs from its last
-        reading) and the integrity monitor's ``blind`` and ``reacquired`` say what it is
-        worth: ALARM while readings are refused, and after the estimate jumps to take one,
-        until a balise agrees with the odometer (a filter that was lost, or an odometer that
-        stopped while the train ran on, which it then follows: nothing else on board tells
-        which).
+        this look-ahead, and its error grows for as long as no reading corrects the state (the
+        robust filter's gate, ``FilterBase._gate_ok``, is the same). Not since the filter's
+        own time, which every published estimate moves by a time update: a filter that was
+        wrong (a node started on a moving train, whose start state says standing) then refused
+        every reading to the end of the run. What a reading taken after a long refusal is worth
+        the integrity monitor says (``blind``, ``reacquired``: ALARM until a balise agrees with
+        the odometer; a filter that was lost and an odometer that stopped while the train ran
+        on look alike until then).
         """
         g = self.cfg.gate
         if not math.isfinite(g):

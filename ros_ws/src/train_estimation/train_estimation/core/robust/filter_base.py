@@ -24,7 +24,8 @@ step instead (``WenModel.standstill``): a braked train at rest does not roll bac
 Bad input is rejected with a reason (``Decision``), counted in ``counters`` and leaves the state
 untouched: ``non_finite``, ``non_positive_variance``, ``out_of_order``, ``duplicate``,
 ``unknown_balise``, ``balise_map_mismatch``, ``outside_gate`` (normalised innovation
-``|nu_i| / sqrt(S_ii) > gate`` on any channel, S from the filter's own covariance / bound),
+``|nu_i| / sqrt(S_ii) > gate`` on any channel, S from the filter's own covariance / bound and
+``gate_accel``: :meth:`FilterBase._gate_ok`),
 ``future_stamp`` (more than ``max_horizon`` ahead), ``numerical_failure`` -- the names of
 ``core/reasons.py``. Duplicates, order and the horizon are judged by the estimator's
 :class:`~..numerics.stamp_order.StampOrder` (order by stamp; ``seq`` marks duplicates only, and
