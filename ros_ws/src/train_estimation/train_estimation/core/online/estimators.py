@@ -542,7 +542,7 @@ class BrakingAdapter(DistanceAsPosition):
         self.rng = np.random.default_rng(cfg.seed)
         self.a_tar = 0.0
         self.est = None
-        self._t_fix = None  # s, the last odometer reading fused, or the start (_gate)
+        self._t_start = None  # s, the filter's start (_gate, before any reading is fused)
         self.used = False
         self.balises = {b.id: b.position for b in line.balises}
         # the last fused reading of each kind (duplicates): a copy of it is a duplicate even
@@ -555,7 +555,7 @@ class BrakingAdapter(DistanceAsPosition):
         s = self.start_state
         P0 = np.diag([s.position_std ** 2, s.velocity_std ** 2, 0.01, 0.01])
         self.est = self.filt.reset([s.position, s.velocity, 0.0, 0.0], P0, rng=self.rng, t0=t0)
-        self._t_fix = t0
+        self._t_start = t0
 
     def _d(self) -> float:
         """m/s^2, known acceleration on v: -(Davis resistance + gradient) per effective mass."""
@@ -599,7 +599,8 @@ class BrakingAdapter(DistanceAsPosition):
             return ""
         e = self.est
         dt = max(stamp - (self.filt.t if self.filt.t is not None else stamp), 0.0)
-        since = dt if self._t_fix is None else max(stamp - self._t_fix, 0.0)
+        fixed = self.odo[0] if self.odo is not None else self._t_start  # last fused reading
+        since = dt if fixed is None else max(stamp - fixed, 0.0)
         m = np.asarray(e.mean, dtype=float)[:3]
         P = np.asarray(e.cov, dtype=float)[:3, :3]
         # nan_to_num is a handful of array passes: taken only when something is not finite
@@ -661,7 +662,6 @@ class BrakingAdapter(DistanceAsPosition):
                                         [self.cfg.use_distance, True, False],
                                         [self.cfg.distance_variance, var, 1.0]))
         if not reason:
-            self._t_fix = stamp
             self.order.took("odometer", stamp, seq)
             self._odometer_fused(stamp, fields)
         else:
@@ -749,10 +749,10 @@ class BrakingAdapter(DistanceAsPosition):
         generator's state property builds a new dict at each read: nothing to copy."""
         return (copy.deepcopy(self.filt, self._shared()),
                 self.rng.bit_generator.state, self.a_tar, self.est, self.used,
-                self.order.copy(), self._odometry_snapshot(), self._t_fix)
+                self.order.copy(), self._odometry_snapshot())
 
     def restore(self, snap) -> None:
-        filt, rng_state, self.a_tar, self.est, self.used, order, odometry, self._t_fix = snap
+        filt, rng_state, self.a_tar, self.est, self.used, order, odometry = snap
         self.filt = copy.deepcopy(filt, self._shared())
         self.rng.bit_generator.state = copy.deepcopy(rng_state)
         self.order = order.copy()

@@ -425,6 +425,12 @@ class OdometerCalibration:
                 return True
         return False
 
+    def _consistent(self, alt: _Solution) -> bool:
+        """Whether a solution without a recent balise took each later balise within
+        ``EXCLUDE`` gates of itself, the bar a liar must pass (:meth:`_exclude_for`): only
+        such a subset solution may exclude the balise it leaves out."""
+        return alt.worst <= EXCLUDE * self.gate
+
     def _exclude_for(self, fixes: tuple[BaliseFix, ...]) -> bool:
         """Fault exclusion: ``fixes`` (the new balise, after a held one) fit the solution
         without one of the recent balises, and with them in it that balise is outside the
@@ -445,7 +451,7 @@ class OdometerCalibration:
         for j, alt in enumerate(self.alternatives):
             if alt.n + len(fixes) < 2:
                 continue
-            if alt.worst > EXCLUDE * self.gate:
+            if not self._consistent(alt):
                 continue
             theta, Sigma, worst = alt.theta, alt.Sigma, 0.0
             for b in fixes:
@@ -484,7 +490,7 @@ class OdometerCalibration:
         where that solution has two balises or more and took each within ``EXCLUDE`` gates
         (:meth:`_exclude_for`), lied; it is taken out (one per fusion)."""
         for j, alt in enumerate(self.alternatives):
-            if alt.n >= 2 and alt.worst <= EXCLUDE * self.gate and \
+            if alt.n >= 2 and self._consistent(alt) and \
                     self._outside(alt.theta, alt.Sigma, self.recent[j][1], EXCLUDE * self.gate):
                 self._take(j)
                 return
