@@ -138,6 +138,11 @@ class BaliseFix:
     speed: float = 0.0
 
 
+def _nanmax(a: float, b: float) -> float:
+    """``np.maximum`` of two floats: the larger, NaN if either is."""
+    return a if a >= b or a != a else b
+
+
 def _walked(Sigma: np.ndarray, d0: float, d1: float, count_walk: float,
             scale_walk: float, jumps: tuple = ()) -> np.ndarray:
     """``Sigma`` with the random walk of the count run from ``d0`` to ``d1`` added (module
@@ -269,19 +274,24 @@ class OdometerCalibration:
         without each recent balise and the start's (an estimate publishes both)."""
         J = np.array([[1.0, d, 0.0], [0.0, v_odo, 0.0]])
         C = J @ self.Sigma @ J.T
-        need = np.diag(C).copy()
+        # the matrix products in numpy, the elementwise rest on floats (the same IEEE
+        # operations as on the 2-vectors: this runs at every estimate)
+        c00, c01, c10, c11 = C.ravel().tolist()
+        n0, n1 = c00, c11  # the diagonal needed: the largest over the solutions
         alts = []
         for alt in self.alternatives:
             Sk = _walked(alt.Sigma, alt.d, self.d_walked, self.count_walk, self.scale_walk,
                          self.jumps)
-            delta = J @ (alt.theta - self.theta)
-            ck = np.diag(J @ Sk @ J.T)
-            need = np.maximum(need, ck + delta * delta)
-            alts.append((float(delta[0]), float(ck[0])))
-        for shift, var in self.start_doubt(d, float(C[0, 0])):
-            need[0] = max(need[0], var + shift * shift)
+            d0, d1 = (J @ (alt.theta - self.theta)).tolist()
+            K = J @ Sk @ J.T
+            k0, k1 = float(K[0, 0]), float(K[1, 1])
+            n0, n1 = _nanmax(n0, k0 + d0 * d0), _nanmax(n1, k1 + d1 * d1)
+            alts.append((d0, k0))
+        for shift, var in self.start_doubt(d, c00):
+            n0 = max(n0, var + shift * shift)
             alts.append((shift, var))
-        return C + np.diag(need - np.diag(C)), (float(C[0, 0]), tuple(alts))
+        return np.array([[c00 + (n0 - c00), c01 + 0.0], [c10 + 0.0, c11 + (n1 - c11)]]), \
+            (c00, tuple(alts))
 
     def start_doubt(self, d: float, var: float | None = None) -> tuple:
         """The start-fault hypothesis at the count ``d`` as solutions ``((shift m, variance

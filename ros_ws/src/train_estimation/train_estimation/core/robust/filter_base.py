@@ -283,7 +283,7 @@ class FilterBase:
         long as no reading corrects it, so a filter that was wrong, e.g. started on a moving
         train, takes the odometer again once the train could have reached its reading)."""
         g = self.params.gate
-        if not math.isfinite(g) or not np.any(meas.mask) or not np.all(np.isfinite(P)):
+        if not math.isfinite(g) or not meas.mask.any() or not np.isfinite(P).all():
             return True
         m = meas.mask
         C = meas.C[m]
@@ -292,7 +292,7 @@ class FilterBase:
         if a > 0.0 and since > 0.0:
             S = S + (C @ np.array([0.5 * a * since * since, a * since])) ** 2
         nu = meas.y[m] - C @ x
-        return bool(np.all(np.abs(nu) <= g * np.sqrt(S)))
+        return bool((np.abs(nu) <= g * np.sqrt(S)).all())
 
     def update(self, reading, predicted=None) -> Decision:
         """Validate and apply one reading (predicting to its stamp first). See class doc.
@@ -319,4 +319,5 @@ class FilterBase:
 
 
 def _finite_or_nan_cov(P) -> bool:
-    return bool(np.all(np.isfinite(P)) or np.all(np.isnan(P)))
+    P = np.asarray(P)  # (the array's own reductions: np.all's dispatch costs more than they)
+    return bool(np.isfinite(P).all() or np.isnan(P).all())
