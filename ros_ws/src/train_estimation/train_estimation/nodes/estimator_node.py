@@ -147,9 +147,12 @@ class EstimatorNode(Node):
         self.n_published = 0
         self.diag = Diagnostics(self, f"{self.adapter.source} estimator",
                                 D.EstimatorThresholds, self.diagnostics)
+        # Commands first: the executor takes the messages that are ready together in the
+        # order their subscriptions were made, and the runner fuses a cycle's command before
+        # its reading (KIND_ORDER), so a reading taken before its command waits for it
+        self.create_subscription(ControlCommand, "control", self.on_control, 2000)
         self.create_subscription(OdometerReading, "odometer", self.on_odometer, 2000)
         self.create_subscription(BaliseReading, "balise", self.on_balise, 200)
-        self.create_subscription(ControlCommand, "control", self.on_control, 2000)
         # Every message ticks the runner itself (outputs are released by the inputs'
         # watermarks); the timer covers what only the clock can tell: a lost reading's
         # slot, published once it is slot_grace overdue (EstimatorRunner.tick; with a 1 Hz

@@ -870,6 +870,7 @@ def changed(o, changes: dict):
     d.update(changes)
     return new
 
+
 def burst_readings(p: IntegrityParams) -> int:
     """The readings on a declared step's new clock by which its burst hypothesis is dropped
     (:meth:`IntegrityMonitor.clock`): the fewest ``n`` whose prior ``stamp_burst_continue^(n-1)``
