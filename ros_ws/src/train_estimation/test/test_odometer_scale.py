@@ -559,3 +559,28 @@ def test_a_first_balise_that_lies_does_not_take_the_start_with_it():
         assert covered(d + 50.0), d
     assert cal.excluded == 1 and cal.relocated == 0
     assert abs(cal.position(1600.0) - 1700.0) < 2.0
+
+
+def test_the_walk_is_charged_on_counts_run_not_on_the_counts_scatter():
+    """The calibration walks with the metres run (module doc). A standing train's count
+    scatters by its reading noise (the simulator's: about half a metre per reading); walked
+    along that path, an hour at a terminus was charged as kilometres run and the protection
+    level grew from 13.8 to 23 m. Walked to the furthest count only, the scatter adds
+    nothing, and a forward run is walked exactly as before, reading by reading."""
+    rng = np.random.default_rng(3)
+    jitter = OdometerCalibration(100.0, 5.0, 0.01)
+    for d in 500.0 + rng.normal(0.0, 0.5, 2000):
+        jitter.walk_to(float(d))
+    once = OdometerCalibration(100.0, 5.0, 0.01)
+    once.walk_to(jitter.d_walked)
+    # (the same metres walked in pieces: equal to the last few bits of the sums)
+    np.testing.assert_allclose(jitter.Sigma, once.Sigma, rtol=1e-12, atol=1e-18)
+    assert jitter.d_walked < 502.0  # the scatter's furthest count, not 2000 readings of it
+    steps = OdometerCalibration(100.0, 5.0, 0.01)
+    for d in np.linspace(0.0, 1000.0, 11)[1:]:
+        steps.walk_to(float(d))
+    # the same metres in one call: the walk's sums, integrated along the count (_walked)
+    whole = OdometerCalibration(100.0, 5.0, 0.01)
+    whole.walk_to(1000.0)
+    np.testing.assert_allclose(steps.Sigma, whole.Sigma, rtol=1e-12, atol=1e-18)
+    assert steps.Sigma[0, 0] > once.Sigma[0, 0]
