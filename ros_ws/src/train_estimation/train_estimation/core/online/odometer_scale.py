@@ -312,10 +312,11 @@ class OdometerCalibration:
     # -- time (distance) update ---------------------------------------------------------------
     def walk_to(self, d: float) -> None:
         """Add the random walk of the count run past the furthest count walked so far (module
-        doc). A count that comes back below it is the count's own noise (a reading's metre of
-        scatter), not metres run: walked along its path, a standing train's readings were
-        charged as a train running 0.5 m per reading (75 m per 15 s at 10 Hz on metro_demo),
-        and its protection level grew by minutes of standing."""
+        doc). A count that comes back below it is its readings' scatter, not metres run:
+        walked along its path, a standing train's readings were charged as a train running
+        0.5 m per reading (75 m per 15 s at 10 Hz on metro_demo), and its protection level
+        grew by minutes of standing. A train that rolls back and on again over the same
+        counts is charged for them once."""
         if not math.isfinite(d) or d <= self.d_walked:
             return
         self.Sigma = _walked(self.Sigma, self.d_walked, d, self.count_walk, self.scale_walk,
