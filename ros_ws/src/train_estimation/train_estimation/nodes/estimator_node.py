@@ -1,16 +1,17 @@
 """The ROS layer shared by `robust_filter` and `gsma_estimator`: :class:`EstimatorNode`
 (its parameters and models, without rclpy: :mod:`.estimator_params`).
 
-Callbacks push the message with its arrival time on the node's clock into the runner
-(``EstimatorRunner.push``) and at once advance the runner to its ready time, so that an odometer
-sample's estimate is published as soon as the sample (and the command of its cycle) is in; a
-steady wall-clock timer (``tick_period``) publishes the slots the clock alone makes due: a lost
-sample's predicted slot once it is ``slot_grace`` overdue (``EstimatorRunner.tick``), except on
-simulated time (``use_sim_time``), where the inputs' watermarks alone publish the slots. Each
-estimate is a TrainState stamped with its sample's own stamp (the odometer's clock). Rejected
-input is logged
-with its reason (throttled; names of ``core/reasons.py``) and counted; events (a sequence
-reset, separate clocks found) are logged once each; the counts are logged at shutdown.
+Callbacks push the message (with every input message already received, in the order they were
+sent: :meth:`EstimatorNode._take_in_order`) with its arrival time on the node's clock into the
+runner (``EstimatorRunner.push``) and at once advance the runner to its ready time, so that an
+odometer sample's estimate is published as soon as the sample (and the command of its cycle) is
+in; a steady wall-clock timer (``tick_period``) publishes the slots the clock alone makes due:
+a lost sample's predicted slot once it is ``slot_grace`` overdue (``EstimatorRunner.tick``),
+except on simulated time (``use_sim_time``), where the inputs' watermarks alone publish the
+slots. Each estimate is a TrainState stamped with its sample's own stamp (the odometer's
+clock). Rejected input is logged with its reason (throttled; names of ``core/reasons.py``) and
+counted; events (a sequence reset, separate clocks found) are logged once each; the counts are
+logged at shutdown.
 
 Besides the TrainState, each estimate is published as ``nav_msgs/Odometry`` on ``odom/<name>``
 (``estimate/robust`` -> ``odom/robust``; covariances by ``core/online/odometry.py``), and the node's
@@ -43,6 +44,13 @@ from train_interfaces.msg import (
 )
 
 EVENT_LOG_PERIOD = 2.0  # s (steady), at most one log line per kind of event in this time
+FIELDS: dict[str, Callable] = {  # an input message's fields, as EstimatorRunner.push takes them
+    "odometer": lambda m: {"seq": m.seq, "distance": m.distance, "speed": m.speed,
+                           "speed_variance": m.speed_variance},
+    "balise": lambda m: {"seq": m.seq, "balise_id": m.balise_id, "position": m.position,
+                         "position_variance": m.position_variance},
+    "control": lambda m: {"target_acceleration": m.target_acceleration},
+}
 
 
 def _steady() -> float:
@@ -147,12 +155,19 @@ class EstimatorNode(Node):
         self.n_published = 0
         self.diag = Diagnostics(self, f"{self.adapter.source} estimator",
                                 D.EstimatorThresholds, self.diagnostics)
-        # Commands first: the executor takes the messages that are ready together in the
-        # order their subscriptions were made, and the runner fuses a cycle's command before
-        # its reading (KIND_ORDER), so a reading taken before its command waits for it
-        self.create_subscription(ControlCommand, "control", self.on_control, 2000)
-        self.create_subscription(OdometerReading, "odometer", self.on_odometer, 2000)
-        self.create_subscription(BaliseReading, "balise", self.on_balise, 200)
+        # The inputs in the order they were sent (_take_in_order): rclpy's executor takes the
+        # messages that are ready together in the order these subscriptions were made
+        self.inputs = (
+            ("control", self.create_subscription(ControlCommand, "control",
+                                                 self.on_control, 2000)),
+            ("odometer", self.create_subscription(OdometerReading, "odometer",
+                                                  self.on_odometer, 2000)),
+            ("balise", self.create_subscription(BaliseReading, "balise", self.on_balise, 200)))
+        # ... and on simulated time the world's /clock among them (rclpy's own subscription,
+        # made with the node): an input taken ahead of the /clock sent before it would be
+        # timed by the step before, one clock tick ahead of its stream
+        self.clock_in = next(((sub, sub.callback) for sub in self.subscriptions
+                              if sub.topic_name == "/clock"), None)
         # Every message ticks the runner itself (outputs are released by the inputs'
         # watermarks); the timer covers what only the clock can tell: a lost reading's
         # slot, published once it is slot_grace overdue (EstimatorRunner.tick; with a 1 Hz
@@ -254,17 +269,52 @@ class EstimatorNode(Node):
             self.get_logger().info(line)
         self.event_log[key] = (now, 0)
 
-    def on_odometer(self, msg) -> None:
-        self._push("odometer", msg, {"seq": msg.seq, "distance": msg.distance,
-                                     "speed": msg.speed, "speed_variance": msg.speed_variance})
+    def on_odometer(self, msg, info) -> None:
+        self._take_in_order("odometer", msg, info)
 
-    def on_balise(self, msg) -> None:
-        self._push("balise", msg, {"seq": msg.seq, "balise_id": msg.balise_id,
-                                   "position": msg.position,
-                                   "position_variance": msg.position_variance})
+    def on_balise(self, msg, info) -> None:
+        self._take_in_order("balise", msg, info)
 
-    def on_control(self, msg) -> None:
-        self._push("control", msg, {"target_acceleration": msg.target_acceleration})
+    def on_control(self, msg, info) -> None:
+        self._take_in_order("control", msg, info)
+
+    def _take_in_order(self, kind: str, msg, info) -> None:
+        """Push ``msg`` and every input message already received, in the order they were sent.
+
+        rclpy's executor takes the messages that are ready together one per subscription, in
+        the order the subscriptions were made, whatever order they were sent in. The runner's
+        output depends on that order where a reading is stamped before a slot its cycle's
+        command releases (a balise read 30 ms before an odometer slot and sent just before
+        the slot's command: pushed first it is in that slot's estimate, pushed after the
+        command it is fused late, into the next ones). A node that had waited a moment then
+        published what a replay of the same messages in their order does not. So each
+        callback takes every input message already waiting (the executor's own take: one it
+        finds taken is skipped) and pushes them by their writer's source timestamp, each
+        followed by its tick as if it had come alone: the node's arrival order is the order
+        sent, on a loaded machine as on an idle one. A simulator or a player publishes all
+        inputs from one process, so that order is theirs; between producers on two machines
+        it is only as good as their clocks' agreement, over messages that arrived together
+        anyway. Ties (and a middleware without source timestamps, 0) keep the take order. On
+        simulated time the /clock messages waiting are taken with them (its queue keeps the
+        latest only), so each input is timed by the last /clock sent before it that came."""
+        got = [(info["source_timestamp"], 0, kind, msg)]
+        subs = self.inputs if self.clock_in is None else \
+            (("clock", self.clock_in[0]), *self.inputs)
+        for k, sub in subs:
+            try:
+                with sub.handle:
+                    while (taken := sub.handle.take_message(sub.msg_type, sub.raw)):
+                        got.append((taken[1]["source_timestamp"], len(got), k, taken[0]))
+            except Exception:  # a subscription destroyed at shutdown: nothing more to take
+                # (rclpy's InvalidHandle, which the executor's own take also skips)
+                pass
+        if len(got) > 1:
+            got.sort(key=lambda g: g[:2])
+        for _, _, k, m in got:
+            if k == "clock":  # the node's ROS clock set to it, as rclpy's callback does
+                self.clock_in[1](m)
+            else:
+                self._push(k, m, FIELDS[k](m))
 
     def tick(self) -> None:
         now = self._arrival()  # the arrival clock (see _arrival)
