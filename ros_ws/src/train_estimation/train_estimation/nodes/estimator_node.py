@@ -163,9 +163,8 @@ class EstimatorNode(Node):
             ("odometer", self.create_subscription(OdometerReading, "odometer",
                                                   self.on_odometer, 2000)),
             ("balise", self.create_subscription(BaliseReading, "balise", self.on_balise, 200)))
-        # ... and on simulated time the world's /clock among them (rclpy's own subscription,
-        # made with the node): an input taken ahead of the /clock sent before it would be
-        # timed by the step before, one clock tick ahead of its stream
+        # ... and on simulated time the world's /clock before them (rclpy's own subscription,
+        # made with the node: _take_in_order)
         self.clock_in = next(((sub, sub.callback) for sub in self.subscriptions
                               if sub.topic_name == "/clock"), None)
         # Every message ticks the runner itself (outputs are released by the inputs'
@@ -294,13 +293,24 @@ class EstimatorNode(Node):
         sent, on a loaded machine as on an idle one. A simulator or a player publishes all
         inputs from one process, so that order is theirs; between producers on two machines
         it is only as good as their clocks' agreement, over messages that arrived together
-        anyway. Ties (and a middleware without source timestamps, 0) keep the take order. On
-        simulated time the /clock messages waiting are taken with them (its queue keeps the
-        latest only), so each input is timed by the last /clock sent before it that came."""
+        anyway. Ties (and a middleware without source timestamps, 0) keep the take order.
+
+        On simulated time a /clock that came is taken first, as the executor takes it before
+        the inputs it finds with it (rclpy made that subscription with the node): each input
+        is timed by the latest /clock the node has, never by one from before its own step.
+        The /clock queue keeps one message, so under load the clocks between are lost, and
+        an input timed by the last one applied before it was sent would look ahead of its
+        stream by the steps lost (the step watch refuses a lone balise that far ahead)."""
+        if self.clock_in is not None:
+            sub, apply = self.clock_in
+            try:
+                with sub.handle:
+                    while (taken := sub.handle.take_message(sub.msg_type, sub.raw)):
+                        apply(taken[0])  # the node's ROS clock set, as rclpy's callback does
+            except Exception:  # destroyed at shutdown (below)
+                pass
         got = [(info["source_timestamp"], 0, kind, msg)]
-        subs = self.inputs if self.clock_in is None else \
-            (("clock", self.clock_in[0]), *self.inputs)
-        for k, sub in subs:
+        for k, sub in self.inputs:
             try:
                 with sub.handle:
                     while (taken := sub.handle.take_message(sub.msg_type, sub.raw)):
@@ -311,10 +321,7 @@ class EstimatorNode(Node):
         if len(got) > 1:
             got.sort(key=lambda g: g[:2])
         for _, _, k, m in got:
-            if k == "clock":  # the node's ROS clock set to it, as rclpy's callback does
-                self.clock_in[1](m)
-            else:
-                self._push(k, m, FIELDS[k](m))
+            self._push(k, m, FIELDS[k](m))
 
     def tick(self) -> None:
         now = self._arrival()  # the arrival clock (see _arrival)
