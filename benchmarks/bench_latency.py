@@ -90,7 +90,7 @@ from train_core.procs import resolve_executable, stop_process  # noqa: E402
 from train_core.realtime import TRACE_VARIABLE, collect_due, settle_heap  # noqa: E402
 
 from train_estimation.core.online.replay import replay  # noqa: E402
-from train_estimation.nodes.estimator_node import fill_odometry, fill_state  # noqa: E402
+from train_estimation.nodes.estimate_cdr import EstimateCdr  # noqa: E402
 from train_sim.scenario import load_scenario, scenario_path  # noqa: E402
 from train_sim.world import simulate  # noqa: E402
 
@@ -257,7 +257,7 @@ TRACE_STAGES = (
                        "reading's tick that released nothing, the executor taking the command, "
                        "the command's push)"),
     ("advance", "the runner's advance that released the estimate"),
-    ("messages", "TrainState and Odometry filled and published"),
+    ("messages", "TrainState and Odometry written and published"),
     ("total", "the reading's callback start -> the estimate's Odometry published"),
 )
 
@@ -447,8 +447,9 @@ def stages(names, duration: float, seed: int = 0, profile: int = 0, paced: bool 
     """Where a callback's time goes, in process (CPU time of this thread, so another job's
     load does not count): metro_demo's received messages fed to each estimator's runner as
     the node feeds them (``estimator_node``: push, advance to the ready time, tick), and each
-    estimate turned into the node's two messages (TrainState, Odometry, refilled as the node
-    refills them; not published: the echo node's row measures converting and publishing).
+    estimate turned into the node's two messages (TrainState, Odometry, written as CDR bytes
+    from templates as the node writes them; not published: the echo node's row measures
+    publishing).
     Per odometer callback: p50 / p99 in ms of each stage; "step" = the core's estimator step
     inside the advance. ``paced``: each message fed at its arrival time at 1x real time
     (sleeping until then, as a live node waits for its next message) instead of right
@@ -461,10 +462,7 @@ def stages(names, duration: float, seed: int = 0, profile: int = 0, paced: bool 
     import io
     import pstats
 
-    from nav_msgs.msg import Odometry
-
     from train_estimation.core.online.runner import EstimatorRunner
-    from train_interfaces.msg import TrainState
 
     sc = load_scenario("metro_demo")
     res = simulate(sc, seed=seed, duration=duration)
@@ -478,13 +476,13 @@ def stages(names, duration: float, seed: int = 0, profile: int = 0, paced: bool 
         if profile > 0:
             prof = cProfile.Profile()
             runner = EstimatorRunner(make_adapter(sc, name), 1 / sc.odometer_rate)
-            msg, odom = TrainState(), Odometry()
+            cdr = _node_cdr(runner)
             prof.enable()
             for topic, stamp, fields, recv in events:
                 runner.push(topic, stamp, fields, recv)
                 for out in runner.advance_to(runner.ready_time(recv, delay, 4 * delay)) + \
                         runner.tick(recv):
-                    _messages(out, msg, odom, runner)
+                    _messages(out, cdr, runner)
             prof.disable()
             text = io.StringIO()
             pstats.Stats(prof, stream=text).strip_dirs().sort_stats("tottime") \
@@ -500,7 +498,7 @@ def stages(names, duration: float, seed: int = 0, profile: int = 0, paced: bool 
                            (("snapshot", "restore"), snaps)):
             for attr in attrs:
                 setattr(adapter, attr, _timed(getattr(adapter, attr), acc, clock))
-        msg, odom = TrainState(), Odometry()
+        cdr = _node_cdr(runner)
         settle_heap()  # as the node, once built
         push, core, conv, total, core_steps, core_snaps, after = [], [], [], [], [], [], []
         w0, r0 = time.monotonic(), events[0][3]
@@ -516,7 +514,7 @@ def stages(names, duration: float, seed: int = 0, profile: int = 0, paced: bool 
             t2 = clock()
             snapped = sum(snaps)  # (settle's copy below is after the estimate: not in it)
             for out in outs:
-                _messages(out, msg, odom, runner)
+                _messages(out, cdr, runner)
             t3 = clock()
             runner.settle()  # as the node, after publishing
             collect_due()
@@ -540,10 +538,23 @@ def stages(names, duration: float, seed: int = 0, profile: int = 0, paced: bool 
     return rows, profiles
 
 
-def _messages(out, msg, odom, runner) -> None:
-    """An estimate into the node's two messages, as ``EstimatorNode.tick`` fills them."""
-    fill_state(msg, out)
-    fill_odometry(odom, msg, runner.integrity.integrity_risk)
+def _node_cdr(runner) -> EstimateCdr:
+    """The templates of an estimator node's two messages (EstimatorNode's frame ids)."""
+    from nav_msgs.msg import Odometry
+
+    from train_interfaces.msg import TrainState
+
+    msg, odom = TrainState(), Odometry()
+    msg.header.frame_id, msg.source = "track", runner.adapter.source
+    odom.header.frame_id, odom.child_frame_id = "track", "base_link"
+    odom.pose.pose.orientation.w = 1.0
+    return EstimateCdr(msg, odom)
+
+
+def _messages(out, cdr: EstimateCdr, runner) -> bytes:
+    """An estimate as the node's two messages' bytes, as ``EstimatorNode._publish`` writes
+    them."""
+    return cdr.encode(out, runner.integrity.integrity_risk)
 
 
 def offline(seeds: int, duration: float, latency: float, jitter: float) -> list[str]:
@@ -707,7 +718,7 @@ def main(argv=None) -> int:
               "core filter), snapshots = the state copied inside it to rewind for a late "
               "reading (where no copy settled after the last estimate stands), "
               "runner = the rest (clock mapping, integrity monitor); messages = TrainState "
-              "and Odometry filled as the node fills them (publishing: the floor above); "
+              "and Odometry written as the node writes them (publishing: the floor above); "
               "total = push to messages; after = what the node does once the estimates are "
               "out: the state copied for a later reading's rewind (EstimatorRunner.settle) "
               "and the garbage collection due (train_core.realtime.collect_due); not in "

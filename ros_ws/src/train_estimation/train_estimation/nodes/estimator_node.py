@@ -35,6 +35,7 @@ from train_core.ros import Diagnostics, ParameterError, declare_config, sec_to_s
 
 from train_estimation.core.online.odometry import odometry_covariances
 from train_estimation.core.online.runner import EstimatorRunner
+from train_estimation.nodes.estimate_cdr import EstimateCdr
 from train_estimation.nodes.estimator_params import declare_common, load_models
 from train_interfaces.msg import (
     BaliseReading,
@@ -146,6 +147,10 @@ class EstimatorNode(Node):
         self._odom_msg.header.frame_id = "track"
         self._odom_msg.child_frame_id = "base_link"
         self._odom_msg.pose.pose.orientation.w = 1.0  # the body x axis along the track's
+        # the two written as bytes from templates of these (estimate_cdr: the same messages;
+        # 12 us an estimate at the median with both published, against 34 us filled and
+        # converted by rclpy: ./run bench publish)
+        self.cdr = EstimateCdr(self._state_msg, self._odom_msg)
         # /diagnostics: counters the runner does not keep (arrivals), read by the core
         self.started = _steady()
         self.received = dict.fromkeys(("odometer", "control", "balise"), 0)
@@ -390,10 +395,15 @@ class EstimatorNode(Node):
         s, the steady clock when the tick that released them began)."""
         trace = self.trace
         for out in outs:
-            msg = self._state_msg  # one message object, filled anew (publish copies it out)
-            fill_state(msg, out)
-            self.pub.publish(msg)
-            self.odom_pub.publish(self._odometry(msg))
+            raw = self.cdr.encode(out, self.runner.integrity.integrity_risk)
+            if raw is not None:
+                self.pub.publish(raw[0])
+                self.odom_pub.publish(raw[1])
+            else:  # a stamp beyond int32 seconds: rclpy's messages, as they make it
+                msg = self._state_msg  # one message object, filled anew (publish copies it)
+                fill_state(msg, out)
+                self.pub.publish(msg)
+                self.odom_pub.publish(self._odometry(msg))
             if trace:
                 trace.mark("published", out.stamp)
             self.n_published += 1
