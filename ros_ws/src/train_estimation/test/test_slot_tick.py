@@ -182,3 +182,30 @@ def test_a_slow_odometer_link_is_no_loss(kind):
     late = [o.stamp for o in outs if "no_measurement" in o.integrity_reason]
     assert not late, late[:5]
     assert "odometer:fused_late" not in runner.events, runner.counts
+
+
+@pytest.mark.parametrize("kind", ["robust", "kf"])
+def test_readings_after_the_commands_stopped_leave_on_a_clock_that_stood_still(kind):
+    """The commands stop and the arrival clock stands still after the last readings (a
+    simulation's end: no /clock comes any more), while the node's steady clock runs on past
+    the command timeout: every reading received is estimated. The node's clock (its last
+    arrival less output_delay, through the odometer's offset) lies below the last readings'
+    stamps, and they waited for it for ever."""
+    from train_estimation.core.online.runner import EstimatorRunner
+
+    sc, _res, ev = stream("metro_demo", 60.0)
+    stop = F.EPOCH + 50.0
+    ev = [e for e in ev if not (e[0] == "control" and e[1] > stop)]
+    runner = EstimatorRunner(adapter(sc, kind), 1 / sc.odometer_rate)
+    outs, delay = [], 0.05
+    for topic, stamp, fields, recv in ev:
+        runner.push(topic, stamp, fields, recv, wall=recv)
+        outs += runner.advance_to(runner.ready_time(recv, delay, 4 * delay, wall=recv))
+    last = max(e[1] for e in ev if e[0] == "odometer")
+    assert last > stop + 5.0
+    now = ev[-1][3]  # the arrival clock stands here; the steady clock runs on
+    for wall in np.arange(now, now + 3.0 * runner.command_timeout, TICK):
+        outs += runner.advance_to(runner.ready_time(now, delay, 4 * delay, wall=wall))
+        outs += runner.tick(now)
+    assert_one_per_slot_in_order(outs)
+    assert outs[-1].stamp == last, (outs[-1].stamp, last)

@@ -1142,9 +1142,11 @@ class EstimatorRunner:
         to use). A command that does come later inside the slack is fused by rewinding; what
         it would have changed in the estimates already published is at most a quarter
         period of its acceleration (1.5 m/s^2 over 0.25 s at 1 Hz: 5 cm). Until a first
-        command is queued, the readings wait for one (:meth:`_awaiting_commands`); without
-        control messages after that, the node's clock (``now - delay``, mapped onto the train
-        clock through the odometer's offset) stands in for it. The command stream's silence
+        command is queued, the readings wait for one (:meth:`_awaiting_commands`); a stream
+        that sent none by then has the node's clock (``now - delay``, mapped onto the train
+        clock through the odometer's offset) stand in for its watermark; once a command stream
+        has been silent for ``command_timeout`` s the readings admitted lead, as they come.
+        The command stream's silence
         is measured on ``wall`` (the clock push's ``wall`` is on; default ``now``): waiting
         is the node's. Driven by the data rather than by the clock, a node emits what the
         offline replay of the same messages emits, however the executor interleaves /clock
@@ -1165,8 +1167,11 @@ class EstimatorRunner:
             # the command stream stopped while readings go on: waiting for it would leave the
             # train without an estimate and the queue growing; the filters hold the last
             # command, the integrity monitor says DEGRADED (no_command). The readings admitted
-            # lead instead (not the clock alone: without arrival times ``now`` is a stamp)
-            lead = max(lead, min(now_train, odo))
+            # lead instead, as they come: no command is awaited, and the node's clock is no
+            # bound on them (without arrival times ``now`` is a stamp; on simulated time it
+            # stands still once the world stops, and the last readings, stamped above the
+            # clock less output_delay, waited for it for ever)
+            lead = max(lead, odo)
         slack = self.command_slack * self.period if "control" in self.high else 0.0
         return min(lead + slack, max(odo, lead - fallback - self._odometer_lag()))
 
