@@ -28,6 +28,7 @@ from collections.abc import Callable
 
 from nav_msgs.msg import Odometry
 from rclpy.clock import Clock, ClockType
+from rclpy.exceptions import InvalidHandle
 from rclpy.node import Node
 from train_core import diagnostics as D
 from train_core.realtime import CallbackTrace, collect_due, settle_heap
@@ -312,7 +313,7 @@ class EstimatorNode(Node):
                 with sub.handle:
                     while (taken := sub.handle.take_message(sub.msg_type, sub.raw)):
                         apply(taken[0])  # the node's ROS clock set, as rclpy's callback does
-            except Exception:  # destroyed at shutdown (below)
+            except InvalidHandle:  # destroyed at shutdown (below)
                 pass
         got = [(info["source_timestamp"], 0, kind, msg)]
         for k, sub in self.inputs:
@@ -320,9 +321,8 @@ class EstimatorNode(Node):
                 with sub.handle:
                     while (taken := sub.handle.take_message(sub.msg_type, sub.raw)):
                         got.append((taken[1]["source_timestamp"], len(got), k, taken[0]))
-            except Exception:  # a subscription destroyed at shutdown: nothing more to take
-                # (rclpy's InvalidHandle, which the executor's own take also skips)
-                pass
+            except InvalidHandle:  # a subscription destroyed at shutdown: nothing more to
+                pass  # take (the executor's own take skips it too)
         if len(got) > 1:
             got.sort(key=lambda g: g[:2])
         for _, _, k, m in got:
