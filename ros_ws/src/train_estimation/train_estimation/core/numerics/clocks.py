@@ -286,18 +286,6 @@ class StreamClock:
         # advance with the arrival frozen (taken for a step, it moved one clock's centre by
         # seconds and "auto" judged the clocks separate). So the far run must also be paced
         # (:func:`paced`); older values of a run that is not are dropped from it.
-        #
-        # Items that arrive at one instant came queued behind one another, and latency only
-        # lowers an offset: only the newest stamp among them can be on time, the others are
-        # late by their stamps' distance to it. They are one observation of the clock, the
-        # highest offset: a node on simulated time that joined a running world timed three
-        # seconds of commands received before its first /clock at that /clock, they were the
-        # control clock's first votes, and its centre lay 1.2 s below the commands that then
-        # came on time, which it refused as stamped ahead (14-28 per node at 10x)
-        if at is not None and self.fifo and self.arrivals[-1] == at:
-            if v <= self.fifo[-1]:
-                return  # queued behind the one before
-            self._pop_newest()
         if self.judged and v - self.value >= -self.tol and self.is_late(v):
             # came late (module doc): neither votes nor informs the rate -- from the moment
             # the centre is settled, not only once the window is full (a recorder stalled 8 s
@@ -323,16 +311,6 @@ class StreamClock:
         elif self.pending:
             self.pending = []
         self._push(v, lift, at)
-
-    def _pop_newest(self) -> None:
-        """Take back the newest offset's vote (:meth:`add`: a later item of its instant)."""
-        v = self.fifo.pop()
-        self.arrivals.pop()
-        del self.sorted[bisect.bisect_left(self.sorted, v)]
-        if self._top and self._top[-1][0] == self._pushed:  # it lifted the ceiling
-            self._top.pop()
-            self._lifted -= 1
-        self._value = self._scale = None
 
     @staticmethod
     def _persists(run: list) -> bool:
