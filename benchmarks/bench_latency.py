@@ -476,7 +476,7 @@ def stages(names, duration: float, seed: int = 0, profile: int = 0, paced: bool 
         if profile > 0:
             prof = cProfile.Profile()
             runner = EstimatorRunner(make_adapter(sc, name), 1 / sc.odometer_rate)
-            cdr = _node_cdr(runner)
+            cdr = EstimateCdr(runner.adapter.source)
             prof.enable()
             for topic, stamp, fields, recv in events:
                 runner.push(topic, stamp, fields, recv)
@@ -498,7 +498,7 @@ def stages(names, duration: float, seed: int = 0, profile: int = 0, paced: bool 
                            (("snapshot", "restore"), snaps)):
             for attr in attrs:
                 setattr(adapter, attr, _timed(getattr(adapter, attr), acc, clock))
-        cdr = _node_cdr(runner)
+        cdr = EstimateCdr(runner.adapter.source)
         settle_heap()  # as the node, once built
         push, core, conv, total, core_steps, core_snaps, after = [], [], [], [], [], [], []
         w0, r0 = time.monotonic(), events[0][3]
@@ -536,19 +536,6 @@ def stages(names, duration: float, seed: int = 0, profile: int = 0, paced: bool 
         rows.append(f"| {name} | {len(total)} | {q(push)} | {q(core)} | {q(core_steps)} | "
                     f"{q(core_snaps)} | {q(rest)} | {q(conv)} | {q(total)} | {q(after)} |")
     return rows, profiles
-
-
-def _node_cdr(runner) -> EstimateCdr:
-    """The templates of an estimator node's two messages (EstimatorNode's frame ids)."""
-    from nav_msgs.msg import Odometry
-
-    from train_interfaces.msg import TrainState
-
-    msg, odom = TrainState(), Odometry()
-    msg.header.frame_id, msg.source = "track", runner.adapter.source
-    odom.header.frame_id, odom.child_frame_id = "track", "base_link"
-    odom.pose.pose.orientation.w = 1.0
-    return EstimateCdr(msg, odom)
 
 
 def _messages(out, cdr: EstimateCdr, runner) -> bytes:

@@ -26,7 +26,7 @@ import rclpy  # noqa: E402
 from nav_msgs.msg import Odometry  # noqa: E402
 
 from train_estimation.core.online.runner import Output  # noqa: E402
-from train_estimation.nodes.estimate_cdr import EstimateCdr  # noqa: E402
+from train_estimation.nodes.estimate_cdr import EstimateCdr, node_messages  # noqa: E402
 from train_estimation.nodes.estimator_node import fill_odometry, fill_state  # noqa: E402
 from train_interfaces.msg import TrainState  # noqa: E402
 
@@ -53,11 +53,8 @@ def main() -> None:
     try:
         pub = node.create_publisher(TrainState, "estimate/bench", 1000)
         opub = node.create_publisher(Odometry, "odom/bench", 1000)
-        state, odom = TrainState(), Odometry()
-        state.header.frame_id, state.source = "track", "gsma"
-        odom.header.frame_id, odom.child_frame_id = "track", "base_link"
-        odom.pose.pose.orientation.w = 1.0
-        cdr = EstimateCdr(state, odom)
+        state, odom = node_messages("gsma")
+        cdr = EstimateCdr("gsma")
         risk = 1e-7
 
         def filled(out):  # the messages path (EstimatorNode before the templates)

@@ -11,19 +11,9 @@ from nav_msgs.msg import Odometry
 from rclpy.serialization import deserialize_message, serialize_message
 
 from train_estimation.core.online.runner import Output
-from train_estimation.nodes.estimate_cdr import EstimateCdr
+from train_estimation.nodes.estimate_cdr import EstimateCdr, node_messages
 from train_estimation.nodes.estimator_node import fill_odometry, fill_state
 from train_interfaces.msg import TrainState
-
-
-def _messages(source: str):
-    """The node's two messages as EstimatorNode sets them up."""
-    state = TrainState()
-    state.header.frame_id, state.source = "track", source
-    odom = Odometry()
-    odom.header.frame_id, odom.child_frame_id = "track", "base_link"
-    odom.pose.pose.orientation.w = 1.0
-    return state, odom
 
 
 def _outputs(rng: np.random.Generator, n: int):
@@ -67,8 +57,8 @@ def _same(fast: bytes, ref: bytes, msg_type) -> bool:
 
 @pytest.mark.parametrize("source", ["robust_filter", "gsma", "kf", "a_source_name_of_odd_len"])
 def test_template_bytes_are_rclpys_bytes(source):
-    state, odom = _messages(source)
-    cdr = EstimateCdr(state, odom)
+    state, odom = node_messages(source)  # the node's own, refilled as it refills them
+    cdr = EstimateCdr(source)
     rng = np.random.default_rng(5)
     for risk in (1e-7, 0.5, math.nan):
         for out in _outputs(rng, 300):
@@ -81,7 +71,7 @@ def test_template_bytes_are_rclpys_bytes(source):
 
 def test_a_stamp_beyond_int32_seconds_is_left_to_rclpy():
     """rclpy serialises such a stamp somehow; the node then fills the messages as before."""
-    cdr = EstimateCdr(*_messages("kf"))
+    cdr = EstimateCdr("kf")
     for stamp in (2.0 ** 31, -2.0 ** 31 - 1.0, 3e9):
         out = Output(stamp=stamp, position=0.0, velocity=0.0, acceleration=0.0,
                      braking_rate=1.0, covariance=(0.0,) * 16, measurement_used=False)

@@ -4,10 +4,10 @@ rclpy would serialise, from per-node templates.
 Filled as Python messages, rclpy converts both to C structs and serialises them in
 ``publish``: 34 us per estimate at the median and 75 us at the p99 with both published;
 ``struct.pack_into`` on a template of each, published as bytes (``publish_raw``), costs 12 and
-26 us (``./run bench publish``, docs/benchmarks.md). The messages are the same:
-a template is the node's own message (its frame ids, source, orientation) serialised once by
-rclpy, and only the fields an estimate sets are written, at offsets found by serialising marker
-values (CDR puts fixed-size fields at fixed offsets, and these two messages hold no string or
+26 us (``./run bench publish``, docs/benchmarks.md). The messages are the same: a template is
+the node's own message (:func:`node_messages`) serialised once by rclpy, and only the fields
+an estimate sets are written, at offsets found by serialising marker values (CDR puts
+fixed-size fields at fixed offsets, and these two messages hold no string or
 sequence an estimate changes). ``tests/test_estimate_cdr.py`` checks every field against
 rclpy's serialisation for estimates of every kind (NaN, infinite levels, negative and large
 stamps); the alignment padding is whatever each serialiser's buffer held.
@@ -21,9 +21,11 @@ from __future__ import annotations
 
 import struct
 
+from nav_msgs.msg import Odometry
 from rclpy.serialization import serialize_message
 
 from train_estimation.core.online.odometry import odometry_covariances
+from train_interfaces.msg import TrainState
 
 _SEC, _NSEC = 0x5A5A5A5A, 0x3C3C3C3C  # marker stamp (each packed value occurs once)
 _STATE_FLOATS = ("position", "velocity", "acceleration", "braking_rate",
@@ -38,13 +40,24 @@ def _at(blob: bytes, value: bytes) -> int:
     return i
 
 
-class EstimateCdr:
-    """The CDR bytes of one node's TrainState and Odometry per estimate (``state`` and ``odom``:
-    the node's messages with their constant fields set; neither is changed)."""
+def node_messages(source: str) -> tuple[TrainState, Odometry]:
+    """An estimator node's TrainState and Odometry with the fields no estimate changes set:
+    the frames (docs/ros.md), the TrainState's ``source``, the Odometry's orientation (the
+    body x axis along the track's)."""
+    state = TrainState()
+    state.header.frame_id, state.source = "track", source
+    odom = Odometry()
+    odom.header.frame_id, odom.child_frame_id = "track", "base_link"
+    odom.pose.pose.orientation.w = 1.0
+    return state, odom
 
-    def __init__(self, state, odom):
-        s = type(state)()
-        s.header.frame_id, s.source = state.header.frame_id, state.source
+
+class EstimateCdr:
+    """The CDR bytes of one node's TrainState and Odometry per estimate (``source``: the
+    TrainState's; the rest as :func:`node_messages` sets it)."""
+
+    def __init__(self, source: str):
+        s, o = node_messages(source)
         s.header.stamp.sec, s.header.stamp.nanosec = _SEC, _NSEC
         marks = {k: 1000.0 + 0.123456789 * (i + 1) for i, k in enumerate(_STATE_FLOATS)}
         for k, v in marks.items():
@@ -65,14 +78,6 @@ class EstimateCdr:
         self.s_used, self.s_integrity = diff
         self.state = bytearray(blob)
 
-        o = type(odom)()
-        o.header.frame_id, o.child_frame_id = odom.header.frame_id, odom.child_frame_id
-        o.pose.pose.orientation = odom.pose.pose.orientation
-        o.pose.pose.position.y, o.pose.pose.position.z = (odom.pose.pose.position.y,
-                                                          odom.pose.pose.position.z)
-        o.twist.twist.linear.y, o.twist.twist.linear.z = (odom.twist.twist.linear.y,
-                                                          odom.twist.twist.linear.z)
-        o.twist.twist.angular = odom.twist.twist.angular
         o.header.stamp.sec, o.header.stamp.nanosec = _SEC, _NSEC
         o.pose.pose.position.x = 3000.123456789
         o.twist.twist.linear.x = 4000.123456789

@@ -36,7 +36,7 @@ from train_core.ros import Diagnostics, ParameterError, declare_config, sec_to_s
 
 from train_estimation.core.online.odometry import odometry_covariances
 from train_estimation.core.online.runner import EstimatorRunner
-from train_estimation.nodes.estimate_cdr import EstimateCdr
+from train_estimation.nodes.estimate_cdr import EstimateCdr, node_messages
 from train_estimation.nodes.estimator_params import declare_common, load_models
 from train_interfaces.msg import (
     BaliseReading,
@@ -60,6 +60,20 @@ def _steady() -> float:
     ``time.monotonic_ns`` reads without building an rclpy Time (4 us each, read five times
     between a reading's arrival and its estimate)."""
     return time.monotonic_ns() * 1e-9
+
+
+def _waiting(sub) -> list:
+    """(message, MessageInfo) of every message ``sub`` has received and not yet given out, by
+    rclpy's own take (the executor's take then finds none and skips); none once the
+    subscription is destroyed at shutdown (InvalidHandle, which the executor skips too)."""
+    out = []
+    try:
+        with sub.handle:
+            while (taken := sub.handle.take_message(sub.msg_type, sub.raw)):
+                out.append(taken)
+    except InvalidHandle:
+        pass
+    return out
 
 
 def _quantiles(values: list[float]) -> tuple[float, float, float]:
@@ -137,21 +151,13 @@ class EstimatorNode(Node):
         self.pub = self.create_publisher(TrainState, topic, 1000)
         self.odom_topic = "odom/" + topic.rsplit("/", 1)[-1]
         self.odom_pub = self.create_publisher(Odometry, self.odom_topic, 1000)
-        # The two messages of an estimate are built once and refilled for each (rclpy's
-        # publish serialises the message before it returns): constructing them, eleven
-        # nested messages for an Odometry, cost more than filling them. The fields that
-        # never change are set here.
-        self._state_msg = TrainState()
-        self._state_msg.header.frame_id = "track"
-        self._state_msg.source = self.adapter.source
-        self._odom_msg = Odometry()
-        self._odom_msg.header.frame_id = "track"
-        self._odom_msg.child_frame_id = "base_link"
-        self._odom_msg.pose.pose.orientation.w = 1.0  # the body x axis along the track's
-        # the two written as bytes from templates of these (estimate_cdr: the same messages;
-        # 12 us an estimate at the median with both published, against 34 us filled and
-        # converted by rclpy: ./run bench publish)
-        self.cdr = EstimateCdr(self._state_msg, self._odom_msg)
+        # An estimate's two messages are written as bytes from templates of the node's own
+        # (estimate_cdr: the same messages; 12 us an estimate at the median with both
+        # published, against 34 us filled and converted by rclpy: ./run bench publish). The
+        # messages themselves, with the fields that never change set, are built once and
+        # refilled only for a stamp the templates leave to rclpy (_publish)
+        self.cdr = EstimateCdr(self.adapter.source)
+        self._state_msg, self._odom_msg = node_messages(self.adapter.source)
         # /diagnostics: counters the runner does not keep (arrivals), read by the core
         self.started = _steady()
         self.received = dict.fromkeys(("odometer", "control", "balise"), 0)
@@ -309,20 +315,12 @@ class EstimatorNode(Node):
         stream by the steps lost (the step watch refuses a lone balise that far ahead)."""
         if self.clock_in is not None:
             sub, apply = self.clock_in
-            try:
-                with sub.handle:
-                    while (taken := sub.handle.take_message(sub.msg_type, sub.raw)):
-                        apply(taken[0])  # the node's ROS clock set, as rclpy's callback does
-            except InvalidHandle:  # destroyed at shutdown (below)
-                pass
+            for m, _ in _waiting(sub):
+                apply(m)  # the node's ROS clock set, as rclpy's callback does
         got = [(info["source_timestamp"], 0, kind, msg)]
         for k, sub in self.inputs:
-            try:
-                with sub.handle:
-                    while (taken := sub.handle.take_message(sub.msg_type, sub.raw)):
-                        got.append((taken[1]["source_timestamp"], len(got), k, taken[0]))
-            except InvalidHandle:  # a subscription destroyed at shutdown: nothing more to
-                pass  # take (the executor's own take skips it too)
+            got += [(i["source_timestamp"], len(got) + j, k, m)
+                    for j, (m, i) in enumerate(_waiting(sub))]
         if len(got) > 1:
             got.sort(key=lambda g: g[:2])
         for _, _, k, m in got:

@@ -1146,11 +1146,10 @@ class EstimatorRunner:
         that sent none by then has the node's clock (``now - delay``, mapped onto the train
         clock through the odometer's offset) stand in for its watermark; once a command stream
         has been silent for ``command_timeout`` s the readings admitted lead, as they come.
-        The command stream's silence
-        is measured on ``wall`` (the clock push's ``wall`` is on; default ``now``): waiting
-        is the node's. Driven by the data rather than by the clock, a node emits what the
-        offline replay of the same messages emits, however the executor interleaves /clock
-        and the subscriptions.
+        The command stream's silence is measured on ``wall`` (the clock push's ``wall`` is
+        on; default ``now``): waiting is the node's. Driven by the data rather than by the
+        clock, a node emits what the offline replay of the same messages emits, however the
+        executor interleaves /clock and the subscriptions.
         """
         if self._awaiting_commands():
             return -math.inf
