@@ -8,7 +8,7 @@ import random
 
 import numpy as np
 
-from train_estimation.core.numerics.clocks import TOL, SampleGrid, StreamClock
+from train_estimation.core.numerics.clocks import LATE, TOL, SampleGrid, StreamClock
 from train_estimation.core.offline.clock_fit import (
     ClockFit,
     clock_rate_change,
@@ -265,3 +265,33 @@ def test_a_level_move_below_the_ratios_power_is_in_the_rates_stated_error(monkey
         ses.append([_stream(10.0, 600.0, lambda t: 0.0, seed).rate()[1] for seed in range(3)])
     for se, se0 in zip(*ses):
         assert se0 <= se <= 1.2 * se0, (se, se0)
+
+
+def test_offsets_queued_behind_their_instants_newest_do_not_vote():
+    """A node that joins a running simulation times the 3 s of 10 Hz commands it received
+    before its first /clock at that /clock (offsets -3.225 .. -0.025): latency only lowers an
+    offset, so each is late by its stamp's distance to the newest, and those more than LATE
+    below it came late. In either order within the instant the same votes stay: the newest
+    half-second's. The commands that then come on time are not above the clock (its centre
+    was the burst's middle, -1.6 s: each was refused as stamped 1.2-1.6 s ahead), and the
+    centre moves onto them. A stamp beyond ``tol`` of the others (a wild one) takes back no
+    vote and is not taken back."""
+    stamps = [13.1 + 0.1 * k for k in range(33)]  # to 16.3
+    kept = None
+    for order in (1, -1):
+        c = StreamClock()
+        for s in stamps[::order]:
+            c.add(s - 16.325, 16.325)
+        votes = sorted(c.fifo)
+        assert votes == sorted(s - 16.325 for s in stamps if 16.3 - s <= LATE), votes
+        assert kept is None or votes == kept
+        kept = votes
+        for k in range(1, 20):  # on time from here, 25 ms latency
+            v = (16.3 + 0.1 * k) - (16.325 + 0.1 * k)
+            assert c.above(v) < LATE / 2, (k, c.above(v))
+            c.add(v, 16.325 + 0.1 * k)
+        assert c.judged and abs(c.value + 0.025) < 1e-9
+    c = StreamClock()
+    for s in (10.0, 10.1, 10.2, 10.2 + 2 * c.tol):
+        c.add(s - 10.3, 10.3)
+    assert len(c) == 4

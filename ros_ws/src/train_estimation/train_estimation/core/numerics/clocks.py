@@ -262,6 +262,8 @@ class StreamClock:
         self._ceil_cache = None  # ((pushes, drift), the ceiling carried to the newest arrival)
         self._pushed = 0  # offsets pushed so far
         self._lifted = 0  # offsets that could lift the ceiling since it was last cleared
+        self._instant = [None, -math.inf, []]  # the newest arrival instant: its arrival, the
+        #   highest offset that arrived at it, its votes (push index, offset, lifted) (:meth:`add`)
 
     tol = TOL
     late = LATE
@@ -286,6 +288,8 @@ class StreamClock:
         # advance with the arrival frozen (taken for a step, it moved one clock's centre by
         # seconds and "auto" judged the clocks separate). So the far run must also be paced
         # (:func:`paced`); older values of a run that is not are dropped from it.
+        if self._queued(v, at):
+            return
         if self.judged and v - self.value >= -self.tol and self.is_late(v):
             # came late (module doc): neither votes nor informs the rate -- from the moment
             # the centre is settled, not only once the window is full (a recorder stalled 8 s
@@ -305,12 +309,59 @@ class StreamClock:
             self.sorted = []
             self._top.clear()  # the clock itself moved: where it was says nothing now
             self._lifted = 0
+            self._instant = [None, -math.inf, []]
             for p, a in self.pending[:-1]:
                 self._push(p, at=a)
             self.pending = []
         elif self.pending:
             self.pending = []
         self._push(v, lift, at)
+
+    def _queued(self, v: float, at: float | None) -> bool:
+        """Whether the offset ``v`` arriving at ``at`` came late behind another of its
+        instant; and such votes of the instant taken back. Items that arrive at one instant
+        were queued behind one another, and latency only lowers an offset: each is late by at
+        least its stamp's distance to the newest among them, and one more than ``LATE`` below
+        an offset of its instant that agrees with it (within ``tol``) came late by the
+        module's one rule, before any centre says so. Without this a node on simulated time
+        that joined a running world (what it received before its first /clock, and the
+        middleware's repairs of what was sent before it matched, all timed at one /clock)
+        had the control clock's first votes spread over the 1-3 s of that backlog: the
+        centre lay about 1.2 s below the commands that then came on time, refused as stamped
+        ahead (11-28 per node at 10x). The newest half-second of the backlog still votes, so
+        a clock that only a backlog has shown is judged from it."""
+        inst = self._instant
+        if at is None or at != inst[0]:
+            self._instant = [at, v, []]
+            return False
+        if inst[1] - v > self.late and inst[1] - v <= self.tol:
+            return True
+        if v > inst[1] and v - inst[1] <= self.tol:
+            inst[1] = v
+            gone = [e for e in inst[2] if v - e[1] > self.late]
+            if gone:
+                self._take_back(gone)
+        return False
+
+    def _take_back(self, gone: list) -> None:
+        """Take back the votes ``gone`` (push index, offset, lifted) of the newest instant,
+        the last of the window's (:meth:`_queued`)."""
+        idx = {e[0] for e in gone}
+        k = len(self._instant[2])
+        tail_v = [self.fifo.pop() for _ in range(k)][::-1]
+        tail_a = [self.arrivals.pop() for _ in range(k)][::-1]
+        keep = []
+        for e, v, a in zip(self._instant[2], tail_v, tail_a):
+            if e[0] in idx:
+                del self.sorted[bisect.bisect_left(self.sorted, v)]
+                self._lifted -= e[2]
+            else:
+                self.fifo.append(v)
+                self.arrivals.append(a)
+                keep.append(e)
+        self._instant[2] = keep
+        self._top = deque(t for t in self._top if t[0] not in idx)
+        self._value = self._scale = self._at_cache = self._ceil_cache = None
 
     @staticmethod
     def _persists(run: list) -> bool:
@@ -330,7 +381,12 @@ class StreamClock:
             old = self.fifo.popleft()
             self.arrivals.popleft()
             del self.sorted[bisect.bisect_left(self.sorted, old)]
-        if len(self.fifo) <= self.settled or not lift:
+        inst = self._instant
+        lifts = len(self.fifo) > self.settled and lift
+        if at is not None and at == inst[0]:
+            inst[2].append((self._pushed, v, lifts))
+            del inst[2][:-len(self.fifo)]  # (the window's, the last of it)
+        if not lifts:
             return
         # only offsets that voted once the clock had a centre: among the first few a wild
         # stamp (1e9 s ahead) votes unjudged, and as the ceiling it hid every forward step and
@@ -351,6 +407,7 @@ class StreamClock:
         self.fifo = deque(v + d for v in self.fifo)
         self.sorted = [v + d for v in self.sorted]
         self._top = deque((i, v + d, a) for i, v, a in self._top)
+        self._instant = [None, -math.inf, []]
         self.pending, self._held_points = [], []
         self._value = self._scale = self._at_cache = self._ceil_cache = None
         self._new_segment()  # (the dip's run starts afresh with it)
