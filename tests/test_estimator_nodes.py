@@ -125,7 +125,8 @@ def test_gsma_estimator_converges_to_the_degraded_braking_rate(launch, ros_node)
     assert all(np.isfinite(m.covariance[15]) and m.covariance[15] >= 0 for m in est)
 
 
-@pytest.mark.parametrize("rate,hogs", [(1.0, 0), (10.0, 0), (10.0, os.cpu_count() or 1)])
+@pytest.mark.parametrize("rate,hogs", [(1.0, 0), (1.0, os.cpu_count() or 1), (10.0, 0),
+                                       (10.0, os.cpu_count() or 1)])
 def test_the_by_hand_recipe_with_default_parameters(launch, ros_node, rate, hogs):
     """docs/nodes.md's nodes by hand, in its order: the simulator at ``rate`` x real time with
     its defaults (it starts at once, waiting for nobody), then the estimators with
