@@ -7,6 +7,7 @@ import sys
 import numpy as np
 import pytest
 
+from train_estimation.core.numerics.clocks import LATE
 from train_estimation.core.online.replay import replay
 from train_estimation.core.online.runner import EstimatorRunner
 
@@ -386,3 +387,41 @@ def test_a_node_that_joins_a_running_world_takes_its_backlog_as_late(kind, clock
     assert joined[1:] == on_time[1:]
     assert [o[0] for o in joined[0]] == [o[0] for o in on_time[0]]
     assert max(abs(a[1] - b[1]) for a, b in zip(joined[0], on_time[0])) < 0.01
+
+
+def _published(sc, kind: str, ev: list, now: float, backlog: bool) -> list:
+    """The estimates' stamps a node publishes by ``now`` from ``ev`` (``(kind, stamp, fields,
+    recv)``), each pushed at its arrival or, as a ``backlog``, all at ``now``."""
+    runner = EstimatorRunner(adapter(sc, kind), 1 / sc.odometer_rate)
+    outs = []
+    for k, s, f, rc in ev:
+        t = now if backlog else rc
+        assert runner.push(k, s, f, t) == "", (k, s)
+        outs += runner.advance_to(runner.ready_time(t, 0.05, 0.2, wall=t))
+    outs += runner.tick(now)
+    outs += runner.advance_to(runner.ready_time(now, 0.05, 0.2, wall=now))
+    return [o.stamp for o in outs]
+
+
+@pytest.mark.parametrize("kind", ["robust", "kf"])
+def test_a_backlog_alone_judges_its_clocks(kind):
+    """A paced world stands still once it is ahead of the estimates: a node that joins it
+    receives a backlog at one instant and then nothing until it publishes. Only the
+    backlog's newest half-second votes on each clock (the older stamps came late), and that
+    is enough to judge the clocks: the node publishes, at that one arrival time, the slots
+    it would have published had each message come on time, all but the newest half-second's
+    at most, on the simulator's one clock and on two clocks apart. A node that published
+    nothing here would hold a paced world for ever."""
+    sc, res = run(duration=60.0)
+    for clock in ({}, dict(epoch=1.7e9, phase=0.03, control_epoch=5.0)):
+        ev = [e for e in restamp(res.events(), **clock)
+              if 30.0 <= e[3] - clock.get("control_epoch", 0.0) < 32.0]
+        now = 32.0 + clock.get("control_epoch", 0.0)
+        got = _published(sc, kind, ev, now, backlog=True)
+        on_time = _published(sc, kind, ev, now, backlog=False)
+        # the same slots, but for the backlog's newest half-second at most (LATE: the votes):
+        # commands that the early hold keeps until three of them agree or their clock has
+        # min_judged votes (on two clocks, until both have), which the next message releases
+        newest = max(s for k, s, _, _ in ev if k == "odometer")
+        assert got == on_time[:len(got)], (clock, got, on_time)
+        assert len(got) >= sum(t <= newest - LATE for t in on_time), (clock, got, on_time)
