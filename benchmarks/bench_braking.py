@@ -419,8 +419,10 @@ def _n_table(pts: dict, cell) -> None:
         print(f"| {name} | " + " | ".join(cells) + " |")
 
 
-def sweep(seeds, out: Path, reps=3):
-    """f MAE against median time per step, each algorithm over its particle count."""
+def sweep(seeds, out: Path, reps=3, to_docs=False):
+    """f MAE against median time per step, each algorithm over its particle count. The plot
+    goes to ``out``, and to docs/ only with ``to_docs`` (a full run: the figure docs/benchmarks.md
+    describes is the full run's, and a quick run must not replace it)."""
     sd = NOISE_LEVELS["mid"]
     pts = {}  # name -> [(N, median step s, MAE)]
     kfs = {}  # (name, N) -> mean KFs per step
@@ -507,10 +509,14 @@ def sweep(seeds, out: Path, reps=3):
     ax.legend(fontsize=8)
     fig.tight_layout()
     out.mkdir(parents=True, exist_ok=True)
-    for path in (out / "braking_mae_vs_time.png", ROOT / "docs" / "braking_mae_vs_time.png"):
+    paths = [out / "braking_mae_vs_time.png"]
+    if to_docs:
+        paths.append(ROOT / "docs" / "braking_mae_vs_time.png")
+    for path in paths:
         fig.savefig(path, dpi=110)
     plt.close(fig)
-    print(f"\nplot: {out / 'braking_mae_vs_time.png'} (copy in docs/)")
+    print(f"\nplot: {paths[0]}" + (" (copy in docs/)" if to_docs else
+                                   " (a quick run: docs/ keeps the full run's)"))
     return equal
 
 
@@ -744,7 +750,8 @@ def main(argv=None):
         fixed_parts()
         return
     if args.sweep_only:
-        headline(sweep(3 if args.quick else max(5, seeds // 5), Path(args.out), args.reps),
+        headline(sweep(3 if args.quick else max(5, seeds // 5), Path(args.out), args.reps,
+                       to_docs=not args.quick),
                  2 if args.quick else 5, args.reps)
         return
     print("# Braking-rate estimation benchmark\n")
@@ -783,7 +790,8 @@ def main(argv=None):
     res = run_toy(NOISE_LEVELS["mid"], seeds, f_step, label="step fault")
     step_table(res, f_step, seeds)
     if not args.skip_sweep:
-        ratios += sweep(3 if args.quick else max(5, seeds // 5), Path(args.out), args.reps)
+        ratios += sweep(3 if args.quick else max(5, seeds // 5), Path(args.out), args.reps,
+                        to_docs=not args.quick)
     if not args.skip_qgrbpf_example:
         ratios += table3(max(2, seeds // 5) if args.quick else seeds)
     headline(ratios, 2 if args.quick else 5, args.reps)
