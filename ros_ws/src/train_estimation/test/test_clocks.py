@@ -7,6 +7,7 @@ import math
 import random
 
 import numpy as np
+import pytest
 
 from train_estimation.core.numerics.clocks import LATE, TOL, SampleGrid, StreamClock
 from train_estimation.core.offline.clock_fit import (
@@ -295,3 +296,24 @@ def test_offsets_queued_behind_their_instants_newest_do_not_vote():
     for s in (10.0, 10.1, 10.2, 10.2 + 2 * c.tol):
         c.add(s - 10.3, 10.3)
     assert len(c) == 4
+
+
+@pytest.mark.parametrize("ahead", [0.8, 2.0, 4.9])
+@pytest.mark.parametrize("clean_first", [True, False])
+def test_a_lone_stamp_ahead_does_not_head_its_instant(ahead, clean_first):
+    """A fuzzed stream sends corrupted copies beside each message, at its instant: one stamped
+    ``ahead`` s later than the good one (within ``tol``) is one stamp alone, and a queue's head
+    is its newest half-second, which agrees with itself. So the good offset votes, in either
+    order, and the copy does too (the window's centre judges it). Taken as the head, a copy
+    took the good one's vote at every instant, the clock's first votes were the copies' and
+    the good offsets then lay more than LATE below its centre (the full integrity campaign's
+    crh3_high_speed fuzz run, seed 1: 82.9 m off, one estimate outside its levels, 10
+    authorities past the leader's rear). Two offsets that agree head it as before."""
+    c = StreamClock()
+    pair = [-0.05, -0.05 + ahead]
+    for v in pair if clean_first else pair[::-1]:
+        c.add(v, 100.0)
+    assert sorted(c.fifo) == pytest.approx(pair, abs=1e-12)
+    # a second one that agrees with the copy makes it the head: the good one is late behind it
+    c.add(-0.05 + ahead - 0.1, 100.0)
+    assert sorted(c.fifo) == pytest.approx([-0.05 + ahead - 0.1, -0.05 + ahead], abs=1e-12)

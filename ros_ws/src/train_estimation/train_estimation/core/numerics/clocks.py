@@ -262,8 +262,9 @@ class StreamClock:
         self._ceil_cache = None  # ((pushes, drift), the ceiling carried to the newest arrival)
         self._pushed = 0  # offsets pushed so far
         self._lifted = 0  # offsets that could lift the ceiling since it was last cleared
-        self._instant = [None, -math.inf, []]  # the newest arrival instant: its arrival, the
-        #   highest offset that arrived at it, its votes (push index, offset, lifted) (:meth:`add`)
+        self._instant = [None, -math.inf, [], []]  # the newest arrival instant: its arrival,
+        #   its head (:meth:`_queued`), its votes (push index, offset, lifted), and its offsets
+        #   that may head it, sorted
 
     tol = TOL
     late = LATE
@@ -288,7 +289,7 @@ class StreamClock:
         # advance with the arrival frozen (taken for a step, it moved one clock's centre by
         # seconds and "auto" judged the clocks separate). So the far run must also be paced
         # (:func:`paced`); older values of a run that is not are dropped from it.
-        if self._queued(v, at):
+        if self._queued(v, at, lift):
             return
         if self.judged and v - self.value >= -self.tol and self.is_late(v):
             # came late (module doc): neither votes nor informs the rate -- from the moment
@@ -309,7 +310,7 @@ class StreamClock:
             self.sorted = []
             self._top.clear()  # the clock itself moved: where it was says nothing now
             self._lifted = 0
-            self._instant = [None, -math.inf, []]
+            self._instant = [None, -math.inf, [], []]
             for p, a in self.pending[:-1]:
                 self._push(p, at=a)
             self.pending = []
@@ -317,13 +318,18 @@ class StreamClock:
             self.pending = []
         self._push(v, lift, at)
 
-    def _queued(self, v: float, at: float | None) -> bool:
+    def _queued(self, v: float, at: float | None, lift: bool = True) -> bool:
         """Whether the offset ``v`` arriving at ``at`` came late behind another of its
         instant; and such votes of the instant taken back. Items that arrive at one instant
         were queued behind one another, and latency only lowers an offset: each is late by at
         least its stamp's distance to the newest among them, and one more than ``LATE`` below
-        an offset of its instant that agrees with it (within ``tol``) came late by the
-        module's one rule, before any centre says so. Without this a node on simulated time
+        the instant's head (within ``tol`` of it) came late by the module's one rule, before
+        any centre says so. The head is the highest offset of the instant that another of it
+        agrees with (within ``LATE``): a queue's newest half-second, never one stamp alone,
+        which may be wrong (a fuzzed stream sends corrupted copies beside each message, at its
+        instant: one stamped 5 s ahead, taken as the head, took the good one's vote at every
+        instant, and the clock followed the wrong stamps); nor an item refused as stamped above
+        its clock (``lift`` False). Without this a node on simulated time
         that joined a running world (what it received before its first /clock, and the
         middleware's repairs of what was sent before it matched, all timed at one /clock)
         had the control clock's first votes spread over the 1-3 s of that backlog: the
@@ -332,16 +338,20 @@ class StreamClock:
         a clock that only a backlog has shown is judged from it."""
         inst = self._instant
         if at is None or at != inst[0]:
-            self._instant = [at, v, []]
-            return False
-        if inst[1] - v > self.late and inst[1] - v <= self.tol:
-            return True
-        if v > inst[1] and v - inst[1] <= self.tol:
-            inst[1] = v
-            gone = [e for e in inst[2] if v - e[1] > self.late]
-            if gone:
-                self._take_back(gone)
-        return False
+            self._instant = inst = [at, -math.inf, [], []]
+            if at is None:
+                return False
+        if lift:
+            offs = inst[3]
+            bisect.insort(offs, v)
+            head = next((offs[j] for j in range(len(offs) - 1, 0, -1)
+                         if offs[j] - offs[j - 1] <= self.late), -math.inf)
+            if head > inst[1] and (inst[1] == -math.inf or head - inst[1] <= self.tol):
+                inst[1] = head
+                gone = [e for e in inst[2] if head - e[1] > self.late]
+                if gone:
+                    self._take_back(gone)
+        return inst[1] - v > self.late and inst[1] - v <= self.tol
 
     def _take_back(self, gone: list) -> None:
         """Take back the votes ``gone`` (push index, offset, lifted) of the newest instant,
@@ -407,7 +417,7 @@ class StreamClock:
         self.fifo = deque(v + d for v in self.fifo)
         self.sorted = [v + d for v in self.sorted]
         self._top = deque((i, v + d, a) for i, v, a in self._top)
-        self._instant = [None, -math.inf, []]
+        self._instant = [None, -math.inf, [], []]
         self.pending, self._held_points = [], []
         self._value = self._scale = self._at_cache = self._ceil_cache = None
         self._new_segment()  # (the dip's run starts afresh with it)
