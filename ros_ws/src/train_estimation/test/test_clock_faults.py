@@ -55,6 +55,34 @@ def test_forward_clock_step_is_re_anchored(size):
     assert s["wrong_side"] == 0 and s["hazards"] == 0, s  # the bound holds throughout
 
 
+@pytest.mark.parametrize("link_seed", [0, 2])
+def test_a_forward_step_on_a_fast_jittery_link_is_no_latency_move(link_seed):
+    """A 50 Hz odometer over a link with 0.1 s of exponential jitter (five samples reordered),
+    its train clock stepped 2 s forward while braking (metro_demo, 120 s): the step is declared
+    and measured. A late reading of the old clock was among the held ones, so their first stamp
+    lay before the old clock's newest and they read as a latency that rose while the stamps ran
+    on (a route change), though their offsets had risen by the step: the clock's offset moved
+    2 s as a latency, every later reading was 2 s ahead of its slot, 405-428 were refused by the
+    filter's gate and the estimate was blind, then reacquired, for 80 s (link seeds 0 and 2 of
+    four). A latency that rose lowers the offsets; it is no answer to offsets that rose."""
+    import dataclasses
+
+    from train_sim.scenario import load_scenario
+    from train_sim.world import simulate
+
+    sc = dataclasses.replace(load_scenario("metro_demo"), odometer_rate=50.0)
+    res = simulate(sc, 1, 160.0)
+    fl = F.inject(res.events(), F.Fault("step", 2.0, at=120.0, jitter=0.1),
+                  np.random.default_rng(link_seed))
+    outs, emitted, runner = F.run(fl.events, adapter(sc, "kf"), 1 / 50.0)
+    assert runner.events.get("odometer:clock_reset") == 1, runner.events
+    assert "odometer:link_latency" not in runner.events, runner.events
+    assert runner._steps.shift == pytest.approx(2.0, abs=0.02)
+    assert "odometer:outside_gate" not in runner.rejected, runner.rejected
+    s = F.score(outs, emitted, fl, res.truth, 50.0, 160.0 + F.LATENCY)
+    assert s["misleading"] == 0 and s["wrong_side"] == 0, s
+
+
 def test_one_stamp_ahead_is_refused_and_moves_no_clock():
     s, runner = _campaign_case(F.Fault("stamp", 1.0, at=20.0))
     assert "odometer:clock_reset" not in runner.events and runner._steps.shift == 0.0

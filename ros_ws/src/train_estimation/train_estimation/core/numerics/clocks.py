@@ -2138,9 +2138,12 @@ class StepWatch:
         # the new clock's offsets less the old clock's, carried to the held readings' middle
         moved = new_off - med.now(chain[len(chain) // 2][4]) if measured else math.nan
         # the stamps ran on where the old clock's would have: the link's latency rose and
-        # stays (a route change), not the clock (module doc of _stamps_ran_on)
+        # stays (a route change), not the clock (module doc of _stamps_ran_on). A latency
+        # that rose lowers the offsets (``moved`` < 0): held readings whose first stamp lies
+        # before the old clock's newest (``shift`` < 0: a late reading of the old clock among
+        # them) but whose offsets rose are a forward step, not a route
         route = rs is None and env is None and not off and measured and shift < 0 and \
-            self._stamps_ran_on(chain, s0)
+            moved < 0 and self._stamps_ran_on(chain, s0)
         if rs is not None:
             measured = True
         elif measured:
