@@ -317,3 +317,14 @@ def test_a_lone_stamp_ahead_does_not_head_its_instant(ahead, clean_first):
     # a second one that agrees with the copy makes it the head: the good one is late behind it
     c.add(-0.05 + ahead - 0.1, 100.0)
     assert sorted(c.fifo) == pytest.approx([-0.05 + ahead - 0.1, -0.05 + ahead], abs=1e-12)
+
+
+def test_two_wild_copies_that_agree_take_back_no_vote():
+    """Two corrupted copies stamped 1e6 s ahead (0.03 s apart) agree with each other and head
+    their instant; a good offset that came before them at that instant, alone until then, lies
+    far beyond ``tol`` below: it is no queue behind them and keeps its vote (it was taken
+    back), as does the good one after them."""
+    c = StreamClock()
+    for v in (-0.05, 1e6 - 0.05, 1e6 - 0.02, -0.02):
+        c.add(v, 100.0)
+    assert sorted(c.fifo)[:2] == pytest.approx([-0.05, -0.02], abs=1e-12)

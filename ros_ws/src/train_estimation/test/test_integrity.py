@@ -279,6 +279,14 @@ def test_monitor_inflation_and_labels():
     bad = Output(10.0, 0.0, 5.0, math.nan, math.nan, tuple(np.diag([-1.0, 1, 1, 1]).ravel()),
                  True)
     assert m.assess(bad, 10.0).integrity == ALARM
+    # finite but beyond what a float squares (a diverged filter's; 1e200 raised OverflowError
+    # in the campaign): judged without raising. Singular or indefinite is no bound; a wide
+    # positive definite one is a bound, a useless one
+    for xx, xv, vv, want in ((1e200, 1e200, 1e200, ALARM), (1.0, 1e160, 1.0, ALARM),
+                             (1e200, 0.0, 1e200, DEGRADED)):
+        huge = Output(10.0, 0.0, 5.0, math.nan, math.nan,
+                      (xx, xv, 0.0, 0.0, xv, vv) + (0.0,) * 10, True)
+        assert m.assess(huge, 10.0).integrity == want, (xx, xv, vv)
 
 
 @pytest.mark.parametrize("T", [0.1, 1.0, 10.0])

@@ -329,7 +329,8 @@ class StreamClock:
         which may be wrong (a fuzzed stream sends corrupted copies beside each message, at its
         instant: one stamped 5 s ahead, taken as the head, took the good one's vote at every
         instant, and the clock followed the wrong stamps); nor an item refused as stamped above
-        its clock (``lift`` False). Without this a node on simulated time
+        its clock (``lift`` False). A head beyond ``tol`` of a vote (two wild copies that
+        agree, 1e6 s ahead) says nothing of it, either way. Without this a node on simulated time
         that joined a running world (what it received before its first /clock, and the
         middleware's repairs of what was sent before it matched, all timed at one /clock)
         had the control clock's first votes spread over the 1-3 s of that backlog: the
@@ -348,7 +349,7 @@ class StreamClock:
                          if offs[j] - offs[j - 1] <= self.late), -math.inf)
             if head > inst[1] and (inst[1] == -math.inf or head - inst[1] <= self.tol):
                 inst[1] = head
-                gone = [e for e in inst[2] if head - e[1] > self.late]
+                gone = [e for e in inst[2] if self.late < head - e[1] <= self.tol]
                 if gone:
                     self._take_back(gone)
         return inst[1] - v > self.late and inst[1] - v <= self.tol

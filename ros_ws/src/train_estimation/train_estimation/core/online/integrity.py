@@ -692,9 +692,12 @@ class IntegrityMonitor:
         P = (float(cov[0]), float(cov[1]), float(cov[4]), float(cov[5]))
         finite = all(math.isfinite(v) for v in P) and math.isfinite(out.position) \
             and math.isfinite(out.velocity)
-        if not finite or P[0] <= 0 or P[3] <= 0 or P[0] * P[3] - P[1] ** 2 <= 0:
+        if not finite or not (P[0] > 0 and P[3] > 0 and P[0] * P[3] - P[1] * P[1] > 0):
             # the filter's own covariance is broken: published as "unbounded" (never a negative
-            # or non-positive-definite matrix a consumer could take for a bound)
+            # or non-positive-definite matrix a consumer could take for a bound). Products, not
+            # powers: a float's ** raises past 1e308 where * gives inf (a filter diverged to a
+            # covariance of 1e200 raised OverflowError here and stopped the run), and a
+            # determinant that is inf - inf (NaN) is no bound either
             return self._label(out, t, ALARM, "covariance: not positive definite",
                                (UNBOUNDED, 0.0, 0.0, UNBOUNDED))
         tau = t - self.last_fused
