@@ -142,6 +142,20 @@ def test_a_step_is_measured_exactly_on_the_sample_grid(step):
     assert r["refused"] == 0, r
 
 
+@pytest.mark.parametrize("seed", [0, 3, 5])
+def test_at_50_hz_a_step_is_measured_exactly_on_the_sample_grid(seed):
+    """At 50 Hz with a sample counter, on a link with 0.1 s of exponential jitter (five
+    periods), a +2 s step is measured by the grid as at 1 Hz: exactly, the filter's time on the
+    readings' own, nothing refused. The grid's least tolerance (10 ms) was above the quarter
+    period its trust asks (5 ms), so a 50 Hz grid was never trusted; the step was measured from
+    the arrivals, whole periods off (20, 40 and 60 ms in 3 of 6 seeds, the filter's time as far
+    off to the end), and seed 5 decided it after 118 readings, refusing 8."""
+    r = run_link(640.0, 50.0, True, 0.1, 0.05, 2.0, seed)
+    assert r["shift_err_ms"] == pytest.approx(0.0, abs=1e-3), r
+    assert r["time_err_all_ms"] < 1.0, r
+    assert r["refused"] == 0, r
+
+
 @pytest.mark.parametrize("count_clock", [False, True])
 def test_without_a_counter_a_step_beyond_the_jitter_is_measured_from_the_arrivals(count_clock):
     """Without a sample counter the step is the held readings' offsets against the clock's

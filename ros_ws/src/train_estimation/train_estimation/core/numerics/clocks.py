@@ -1257,7 +1257,7 @@ class SampleGrid:
             line = self._robust() if len(self._pts) >= self.n_min else None
             if line is not None:
                 P, c, mad, _, lo, hi = line
-                tol = max(self.floor, 8.0 * 1.4826 * mad)
+                tol = max(self._floor(P), 8.0 * 1.4826 * mad)
                 if tol < 0.25 * P:
                     self._fit = (P, c, tol, lo, hi)
         return self._fit or None
@@ -1269,9 +1269,18 @@ class SampleGrid:
             line = self._robust() if self.n_early <= len(self._pts) < self.n_min else None
             if line is not None:
                 P, c, _, worst, lo, hi = line
-                if worst <= self.floor and self.floor < 0.25 * P:
-                    self._early = (P, c, self.floor, lo, hi)
+                floor = self._floor(P)
+                if worst <= floor and floor < 0.25 * P:
+                    self._early = (P, c, floor, lo, hi)
         return self._early or None
+
+    def _floor(self, P: float) -> float:
+        """The least tolerance of a line of period ``P``: ``floor``, at most a fifth of the
+        period, below the quarter its trust asks (a 10 ms floor against a 5 ms quarter made
+        the grid of a 50 Hz odometer never trusted, and a step there was measured from the
+        arrivals, whole periods off: 20-60 ms in 3 of 6 link seeds, the filter's time as far
+        off to the end). 10 Hz and slower keep ``floor`` itself."""
+        return min(self.floor, 0.2 * P)
 
     def tol_at(self, seq) -> float:
         """The tolerance (s) of :meth:`residual` at sample ``seq``: the trusted grid's, or the
