@@ -3,6 +3,7 @@ step is re-anchored, a drifting train clock is tracked, one wrong stamp never mo
 The figures are those of ``./run bench integrity`` (tools/faults.py), on a short metro_demo run
 with the kf (the estimator that was wrong-side on both)."""
 
+import dataclasses
 import math
 import os
 import sys
@@ -13,6 +14,8 @@ import pytest
 from train_estimation.core.numerics.clocks import LINE_SPREAD, StreamClock, is_step, t_spread
 from train_estimation.core.online.integrity import IntegrityParams, burst_readings
 from train_estimation.tools import faults as F
+from train_sim.scenario import load_scenario
+from train_sim.world import simulate
 
 sys.path.insert(0, os.path.dirname(__file__))
 from clocks import adapter, run, wobbled  # noqa: E402
@@ -65,11 +68,6 @@ def test_a_forward_step_on_a_fast_jittery_link_is_no_latency_move(link_seed):
     2 s as a latency, every later reading was 2 s ahead of its slot, 405-428 were refused by the
     filter's gate and the estimate was blind, then reacquired, for 80 s (link seeds 0 and 2 of
     four). A latency that rose lowers the offsets; it is no answer to offsets that rose."""
-    import dataclasses
-
-    from train_sim.scenario import load_scenario
-    from train_sim.world import simulate
-
     sc = dataclasses.replace(load_scenario("metro_demo"), odometer_rate=50.0)
     res = simulate(sc, 1, 160.0)
     fl = F.inject(res.events(), F.Fault("step", 2.0, at=120.0, jitter=0.1),

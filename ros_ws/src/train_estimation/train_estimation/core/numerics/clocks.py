@@ -352,7 +352,7 @@ class StreamClock:
                 gone = [e for e in inst[2] if self.late < head - e[1] <= self.tol]
                 if gone:
                     self._take_back(gone)
-        return inst[1] - v > self.late and inst[1] - v <= self.tol
+        return self.late < inst[1] - v <= self.tol
 
     def _take_back(self, gone: list) -> None:
         """Take back the votes ``gone`` (push index, offset, lifted) of the newest instant,
