@@ -90,8 +90,11 @@ JITTER = 0.05  # s, mean exponential extra latency of the jittery-link step faul
 # -- runs ------------------------------------------------------------------------------------------
 
 @functools.lru_cache(maxsize=4)
-def _sim(scenario: str, seed: int, duration: float, groups: float = 0.0):
+def _sim(scenario: str, seed: int, duration: float, groups: float = 0.0,
+         rate: float | None = None):
     sc = load_scenario(scenario)
+    if rate:  # another odometer: its samples (and the commands, the truth, the radio's
+        sc = sc.with_changes(odometer_rate=rate)  # cycle) at ``rate`` Hz
     if groups:
         sc = with_balise_groups(sc, groups)
     return sc, simulate(sc, seed, duration)
@@ -140,7 +143,7 @@ def phases(truth: dict) -> dict:
 def run_task(task: dict) -> dict:
     """One fault on one scenario and seed through one estimator: the scores (faults.score)."""
     sc, res = _sim(task["scenario"], task["seed"], task["sim_duration"],
-                   task.get("balise_groups", 0.0))
+                   task.get("balise_groups", 0.0), task.get("odometer_rate"))
     fault = task["fault"]
     end = task["duration"]
     events = [e for e in res.events() if e[1] <= end]
@@ -685,8 +688,14 @@ def main(argv=None) -> int:
     ap.add_argument("--balise-groups", type=float, default=0.0, metavar="D",
                     help="a second balise D m after each of the line's, in the map and on the "
                          "track (groups of two, as ETCS lays them; default 0: the line's own)")
+    ap.add_argument("--odometer-rate", type=float, default=None, metavar="HZ",
+                    help="every scenario's odometer (and command, truth, radio cycle) at HZ "
+                         "instead of its own rate (default: the scenario's, 1-10 Hz); the "
+                         "estimators told the same rate, as their node's odometer_rate")
     args = ap.parse_args(argv)
     priors = stated_priors(ap, args)
+    if args.odometer_rate is not None and not 0.1 <= args.odometer_rate <= 200:
+        ap.error("--odometer-rate must be in [0.1, 200] Hz")
     if args.balise_latency_std is not None and not args.balise_latency_std >= 0:
         ap.error("--balise-latency-std must be >= 0")
     if not 0 <= args.balise_groups < 1e3:
@@ -713,6 +722,7 @@ def main(argv=None) -> int:
         t["balise_groups"] = args.balise_groups
         t["no_counter"] = args.no_counter
         t["count_noise"] = args.count_noise
+        t["odometer_rate"] = args.odometer_rate
         if priors:
             t["integrity"] = IntegrityParams(**priors)
     # the longest first: the pool finishes together
@@ -736,6 +746,8 @@ def main(argv=None) -> int:
         stated += f", balise_latency_std {args.balise_latency_std:g} s"
     if args.balise_groups:
         stated += f", balises in groups of two {args.balise_groups:g} m apart"
+    if args.odometer_rate:
+        stated += f", every odometer at {args.odometer_rate:g} Hz"
     print(f"Integrity campaign ({mode}): {len(tasks)} runs, {seeds} seed(s), estimators "
           f"{', '.join(estimators)}"
           f"{' with use_distance: false' if args.no_distance else ''}"

@@ -25,10 +25,12 @@ OUTSIDE_GATE = "outside_gate"  # innovation beyond the gate (gross outlier)
 UNKNOWN_KIND = "unknown_kind"  # not control, odometer or balise
 INVALID = "invalid"  # malformed otherwise (wrong type or shape)
 NUMERICAL_FAILURE = "numerical_failure"  # the update produced NaN: the old state is kept
+ESTIMATOR_FAILED = "estimator_failed"  # the estimator raised an exception earlier: its state
+#   is not trusted, nothing is fused, every reading's slot is an ALARM estimate
 
 REJECTIONS = (NON_FINITE, NON_POSITIVE_VARIANCE, OUT_OF_ORDER, DUPLICATE, FUTURE_STAMP,
               STALE_STAMP, UNKNOWN_BALISE, BALISE_MAP_MISMATCH, OUTSIDE_GATE, UNKNOWN_KIND,
-              INVALID, NUMERICAL_FAILURE)
+              INVALID, NUMERICAL_FAILURE, ESTIMATOR_FAILED)
 
 # -- accepted outcomes (not rejections) ----------------------------------------------------------
 OK = "ok"
@@ -74,6 +76,7 @@ DESCRIPTION = {
     UNKNOWN_KIND: "not control, odometer or balise",
     INVALID: "malformed reading",
     NUMERICAL_FAILURE: "update produced NaN; state kept",
+    ESTIMATOR_FAILED: "the estimator failed earlier (an exception): ALARM, nothing fused",
     OK: "fused",
     MISSING: "lost odometer slot (alpha = 0)",
     IGNORED: "validated, not used",

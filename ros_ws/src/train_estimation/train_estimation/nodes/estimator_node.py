@@ -129,10 +129,11 @@ class EstimatorNode(Node):
                                           count_clock=common["count_clock"],
                                           max_future=common["max_future"],
                                           slot_grace=common["slot_grace"],
-                                          integrity=integrity)
+                                          integrity=integrity, fail_safe=True)
         except ValueError as exc:
             raise ParameterError(f"parameter control_clock: {exc}") from None
         self.n_events = 0
+        self.failure_logged = False  # the runner's failure (fail_safe) said in the log
         self.rate_warned = False  # the odometer_rate warning logged (diagnostics)
         self.arrived: dict[float, float] = {}  # odometer stamp -> arrival (steady s)
         # s, odometer received -> its estimate published, in the steady state and in the
@@ -363,6 +364,12 @@ class EstimatorNode(Node):
             self._publish(self.runner.tick(now), t_tick)
         if len(self.arrived) > 1000:  # samples that never became an estimate (refused)
             self.arrived.clear()
+        if self.runner.failure and not self.failure_logged:
+            self.failure_logged = True
+            self.get_logger().error(
+                f"the estimator failed ({self.runner.failure}); every estimate from here on "
+                "is ALARM and no input is fused: restart the node (a defect: please report "
+                f"this log)\n{self.runner.failure_trace}")
         events = sum(self.runner.events.values())
         if events > self.n_events:  # accepted input worth a line each (seq reset, ...)
             for kind, stamp, text in self.runner.last_events[-(events - self.n_events):]:
@@ -450,6 +457,11 @@ class EstimatorNode(Node):
         i_checks, i_values = D.integrity_check(*(integ if integ else (None, "")))
         extra = [("source", self.adapter.source), ("estimates_published",
                                                    str(self.n_published))]
+        if self.runner.failure:  # the adapter's state is not trusted (nor asked) any more
+            return D.combine(checks + lat_checks + rate_checks + i_checks
+                             + [(D.ERROR, f"estimator failed: {self.runner.failure}")],
+                             extra + values + lat_values + rate_values + i_values
+                             + [("failure", self.runner.failure)])
         scale = self.adapter.odometer_scale()
         if scale is not None:  # what a next run can start from (parameter odometer_scale)
             extra += [("odometer_scale", f"{scale[0]:.6f}"),
@@ -489,6 +501,9 @@ class EstimatorNode(Node):
         self.get_logger().info(f"accepted {dict(self.runner.accepted)}; "
                                f"rejected {dict(self.runner.rejected) or 'none'}; "
                                f"events {dict(self.runner.events) or 'none'}")
+        if self.runner.failure:
+            self.get_logger().error(f"the estimator had failed: {self.runner.failure}")
+            return
         scale = self.adapter.odometer_scale()
         if scale is not None:
             self.get_logger().info(f"odometer's scale learnt from the balises: "

@@ -78,9 +78,11 @@ stream; a reading older than the history is refused by the estimator's own
 
 from __future__ import annotations
 
+import functools
 import heapq
 import math
 import statistics
+import traceback
 from collections import Counter, deque
 from dataclasses import dataclass, field
 from typing import Protocol
@@ -102,7 +104,7 @@ from ..numerics.clocks import (
 )
 from ..numerics.stamp_order import StampOrder
 from .calibrated_odometry import SEQ_MADE
-from .integrity import IntegrityMonitor, IntegrityParams, changed
+from .integrity import UNBOUNDED, IntegrityMonitor, IntegrityParams, changed
 
 KIND_ORDER = {"control": 0, "odometer": 1, "balise": 2}
 # the early hold waits past min_judged arrivals while two groups of offsets are as dense as
@@ -189,6 +191,28 @@ def _content(kind: str, fields: dict) -> str:
     return ""
 
 
+def _fail_safe(on_failure):
+    """A runner call that, with :attr:`EstimatorRunner.fail_safe`, never raises: an exception
+    from the core (a defect, or an input no check foresaw) latches the runner as failed
+    (:meth:`EstimatorRunner._fail`) and ``on_failure`` answers this call and every later
+    one. The state the exception left is not trusted again: a half-applied update is not a
+    state the filter's covariance describes. Without ``fail_safe`` (offline analysis, tests,
+    the campaign) the exception propagates, so that it is seen and counted."""
+    def wrap(method):
+        @functools.wraps(method)
+        def call(self, *args, **kw):
+            if self.failure is None:
+                if not self.fail_safe:
+                    return method(self, *args, **kw)
+                try:
+                    return method(self, *args, **kw)
+                except Exception as exc:  # noqa: BLE001 - the node's last resort: latched,
+                    self._fail(method.__name__, exc)  # logged, ALARM published from here
+            return on_failure(self, *args, **kw)
+        return call
+    return wrap
+
+
 @dataclass
 class EstimatorRunner:
     adapter: Adapter
@@ -270,6 +294,12 @@ class EstimatorRunner:
     monitor: IntegrityMonitor | None = None
     _base: tuple | None = None  # (the adapter's snapshot taken by settle, [(filter time,
     #   fields) of each control call since]); None once any other call changed the adapter
+    fail_safe: bool = False  # an exception inside a call latches the runner as failed (ALARM
+    #   from then on, :func:`_fail_safe`) instead of propagating: the nodes' setting
+    failure: str | None = None  # what failed ("call: Type: message"), once latched
+    failure_trace: str = ""  # its traceback, for the node's log
+    _alarms: list = field(default_factory=list)  # ALARM estimates not yet returned (failed)
+    _published: Output | None = None  # the latest estimate emitted
 
     @property
     def arrival_resolution(self) -> float:
@@ -306,6 +336,7 @@ class EstimatorRunner:
                                 false_step_rate=self.false_step_rate, count=self.count_clock)
 
     # -- door ---------------------------------------------------------------------------------
+    @_fail_safe(lambda self, *a, **k: self._failed_push(*a, **k))
     def push(self, kind: str, stamp: float, fields: dict, recv: float | None = None,
              wall: float | None = None) -> str:
         """Check and queue one item; returns "" or the reason it was refused at the door.
@@ -758,6 +789,7 @@ class EstimatorRunner:
                 self._adapter_seen[name] = n
                 self._event(kind, stamp, f"{name}: {R.DESCRIPTION.get(name, '')}")
 
+    @_fail_safe(lambda self, *a, **k: self._failed_nothing(*a, **k))
     def settle(self) -> None:
         """Copy the adapter's state now, for the next odometer reading's rewind point
         (:class:`_Replayed`), unless a copy taken since the last change still stands: called
@@ -961,10 +993,13 @@ class EstimatorRunner:
         stamp = self._steps.as_sent(t)
         if o.stamp != stamp:
             changes["stamp"] = stamp
-        out.append(changed(o, changes) if changes else o)
+        o = changed(o, changes) if changes else o
+        out.append(o)
+        self._published = o
         self._last_out = t
         self._out_applied = t
 
+    @_fail_safe(lambda self, *a, **k: self._failed_outputs(*a, **k))
     def advance_to(self, t: float) -> list[Output]:
         """Process everything queued with stamp <= t; the estimates that became due."""
         out: list[Output] = []
@@ -1102,6 +1137,7 @@ class EstimatorRunner:
         return med is not None and (med.judged or
                                     (len(med) >= 3 and med.near(med.value) >= 3))
 
+    @_fail_safe(lambda self, *a, **k: self._failed_outputs(*a, **k))
     def tick(self, now: float) -> list[Output]:
         """The estimates that became due by the arrival clock alone at ``now`` (s, as
         ``recv``): the nodes call it from a timer and after each message, the replays at the
@@ -1124,6 +1160,7 @@ class EstimatorRunner:
             return []
         return self.advance_to(due)
 
+    @_fail_safe(lambda self, *a, **k: self._failed_ready(*a, **k))
     def ready_time(self, now: float, delay: float, fallback: float,
                    wall: float | None = None) -> float:
         """Latest stamp (train clock) a live node can process at clock ``now`` without racing
@@ -1208,6 +1245,45 @@ class EstimatorRunner:
         if not self.queue:
             return []
         return self.advance_to(max(item[0] for item in self.queue))
+
+    # -- failed (fail_safe) ----------------------------------------------------------------------
+    def _fail(self, call: str, exc: Exception) -> None:
+        """Latch the failure: from here on every odometer reading pushed is answered by an
+        ALARM estimate at its stamp (:meth:`_failed_push`) and nothing is fused. The filter
+        is not restarted: where the train is after a half-done update is not known to it,
+        and a restart from the start parameters would claim the train is there."""
+        self.failure = f"{call}: {type(exc).__name__}: {exc}"[:300]
+        self.failure_trace = traceback.format_exc()
+
+    def _failed_push(self, kind: str, stamp, fields=None, recv=None, wall=None) -> str:
+        """A message after the failure: refused (counted), and an odometer reading's slot
+        published as ALARM, stamped as the reading, in order after the last estimate, at the
+        last estimate's position and speed (where the train was last known; ALARM bounds
+        nothing: protection levels +inf, position and speed variances :data:`UNBOUNDED`),
+        so that a consumer brakes at once rather than after its staleness timeout."""
+        last = self._published
+        if kind == "odometer" and last is not None and isinstance(stamp, float | int) \
+                and math.isfinite(stamp) and stamp > last.stamp:
+            C = list(last.covariance)
+            C[0], C[1], C[4], C[5] = UNBOUNDED, 0.0, 0.0, UNBOUNDED
+            self._published = changed(last, dict(
+                stamp=float(stamp), covariance=tuple(C), measurement_used=False,
+                integrity=INTEGRITY_ALARM, integrity_reason=f"{R.ESTIMATOR_FAILED}: "
+                f"{self.failure}", protection_level_ahead=math.inf,
+                protection_level_behind=math.inf, separation=(), consider=()))
+            self._alarms.append(self._published)
+        return self._reject(kind, stamp if isinstance(stamp, float | int) else math.nan,
+                            R.ESTIMATOR_FAILED)
+
+    def _failed_outputs(self, *_args, **_kw) -> list[Output]:
+        out, self._alarms = self._alarms, []
+        return out
+
+    def _failed_ready(self, now: float, *_args, **_kw) -> float:
+        return now
+
+    def _failed_nothing(self, *_args, **_kw) -> None:
+        return None
 
     def sample_period(self) -> float | None:
         """The odometer's sample period as its stamps and counter give it (s; None before the
