@@ -426,3 +426,36 @@ def test_a_reversing_leaders_rear_is_carried_back_over_its_age():
     auth = {a.train_id: a for a in zc.authorities(12.9, ["L", "F"])}
     true_rear = 3000.0 - 1.0 * (12.9 - 10.0) - P.train_length
     assert auth["F"].end_of_authority < true_rear
+
+
+@pytest.mark.parametrize("where", ["_plausible", "worst_stop"])
+def test_a_zone_that_fails_brakes_every_train_and_reads_nothing_more(where):
+    """The node's setting (fail_safe): an exception inside the zone controller (a defect)
+    never ends the node; every train is braked from then on, every report refused by name.
+    Without it (offline, tests) the exception propagates."""
+    def broken(*_a, **_k):
+        raise ZeroDivisionError("injected defect")
+
+    for safe in (False, True):
+        zc = ZoneController(P, fail_safe=safe)
+        assert zc.report("A", rep(0.0)) == "" and zc.report("B", rep(0.0, x=3000.0)) == ""
+        assert granted(zc, 0.1, "A")[0] and zc.failure is None
+        setattr(zc, where, broken)
+        if not safe:
+            with pytest.raises(ZeroDivisionError):
+                zc.report("A", rep(0.2)) if where == "_plausible" else \
+                    zc.authorities(0.2, ["A", "B"])
+            continue
+        first = zc.report("A", rep(0.2))
+        auths = zc.authorities(0.3, ["A", "B"])
+        call = "report" if where == "_plausible" else "authorities"
+        assert zc.failure == f"{call}: ZeroDivisionError: injected defect"
+        assert "injected defect" in zc.failure_trace
+        assert first == (Z.FAILED if where == "_plausible" else "")
+        assert [(a.train_id, a.emergency_brake, a.end_of_authority, a.permitted_speed,
+                 a.state) for a in auths] == [("A", True, -math.inf, 0.0, "failed"),
+                                              ("B", True, -math.inf, 0.0, "failed")]
+        # latched: a good report is refused, the brakes stay set
+        assert zc.report("B", rep(0.4, x=3000.0)) == Z.FAILED
+        assert all(a.emergency_brake for a in zc.authorities(0.5, ["A", "B"]))
+        assert zc.rejected[Z.FAILED] == (2 if where == "_plausible" else 1)

@@ -52,8 +52,10 @@ of which is judged by each train's last bounded report (a train in ALARM since i
 report may be anywhere, as one not yet localised), and the train behind an ALARM one brakes
 wherever the ALARM report puts it.
 Each authority carries a short ``state`` (``ok``, ``stale``, ``alarm``, ``no_estimate``,
-``ahead_stale``, ``ahead_alarm``, ``ahead_unknown``, ``overrun``) so that a node logs a change
-of state once, not every publication of a reason whose numbers change.
+``ahead_stale``, ``ahead_alarm``, ``ahead_unknown``, ``overrun``, ``failed``) so that a node
+logs a change of state once, not every publication of a reason whose numbers change. With
+``fail_safe`` (the node's), an exception inside the zone controller (a defect) latches it as
+failed: every train's emergency brake is set and every report refused from then on.
 
 Input checks (:meth:`ZoneController.report`). A report is refused, counted by kind and never
 stored when a field the zone reads is unusable: a non-finite stamp, position, velocity or
@@ -96,6 +98,7 @@ the new timeline (by the time between the two reports' arrivals).
 from __future__ import annotations
 
 import math
+import traceback
 from dataclasses import dataclass, field
 from statistics import NormalDist
 
@@ -198,9 +201,10 @@ OFF_LINE = "off the line"
 JUMP = "implausible jump"
 ORDER = "trains out of order"
 IMPLAUSIBLE_BRAKING = "implausible braking rate"
+FAILED = "zone controller failed"  # an exception inside the zone controller (fail_safe)
 KINDS = (NON_FINITE, NON_POSITIVE_VARIANCE, NOT_POSITIVE_DEFINITE, UNKNOWN_INTEGRITY,
          IMPLAUSIBLE_SPEED, FUTURE_STAMP, OUT_OF_ORDER, BAD_PROTECTION, OFF_LINE, JUMP, ORDER,
-         IMPLAUSIBLE_BRAKING)
+         IMPLAUSIBLE_BRAKING, FAILED)
 MAX_BRAKING_RATE = 2.0  # f: twice the nominal braking; a larger one is a corrupt report
 # m/s: no train runs faster (540 km/h; the fastest wheeled train in service runs 97 m/s). A
 # larger |velocity| is a corrupt report, and a large negative one must never be read as a
@@ -329,8 +333,45 @@ class ZoneController:
     timelines: dict[str, _Timeline] = field(default_factory=dict)
     bounded: dict[str, TrainReport] = field(default_factory=dict)  # each train's last report
     #   that bounds it (not ALARM): where it stands in the trains' order on the track
+    fail_safe: bool = False  # an exception inside report or authorities latches the zone as
+    #   failed: every report refused (FAILED), every train's emergency brake set from then on
+    #   (the node's setting; offline and in tests the exception propagates, to be seen)
+    failure: str | None = None  # what failed ("call: Type: message"), once latched
+    failure_trace: str = ""  # its traceback, for the node's log
+
+    def _guarded(self, call: str, fn, *args):
+        """``fn(*args)``, or with ``fail_safe`` the failure latched if it raises: the
+        zone's state after a half-done update is not trusted to separate trains (None)."""
+        if not self.fail_safe:
+            return fn(*args)
+        try:
+            return fn(*args)
+        except Exception as exc:  # noqa: BLE001 - the node's last resort: every train braked
+            self.failure = f"{call}: {type(exc).__name__}: {exc}"[:300]
+            self.failure_trace = traceback.format_exc()
+            return None
 
     def report(self, train_id: str, rep: TrainReport) -> str:
+        """:meth:`_report`; once failed (``fail_safe``), every report refused as FAILED."""
+        if self.failure is None:
+            kind = self._guarded("report", self._report, train_id, rep)
+            if kind is not None:
+                return kind
+        self.rejected[FAILED] = self.rejected.get(FAILED, 0) + 1
+        self.last_refusal = (train_id, FAILED, self.failure)
+        return FAILED
+
+    def authorities(self, now: float, train_ids: list[str]) -> list[Authority]:
+        """:meth:`_authorities`; once failed (``fail_safe``), every train braked, no
+        authority (end -inf, as a train not yet heard of)."""
+        if self.failure is None:
+            out = self._guarded("authorities", self._authorities, now, train_ids)
+            if out is not None:
+                return out
+        return [Authority(tid, -math.inf, 0.0, True, f"{FAILED}: {self.failure}", "failed")
+                for tid in train_ids]
+
+    def _report(self, train_id: str, rep: TrainReport) -> str:
         """Store a train's report; returns "" if accepted or the kind of refusal (one of
         :data:`KINDS`, counted in ``rejected``; ``last_refusal`` holds the detail). Never
         raises on any report content."""
@@ -537,7 +578,7 @@ class ZoneController:
         speed += a * age
         return front + speed * speed / (2.0 * f_low * self.params.emergency_decel)
 
-    def authorities(self, now: float, train_ids: list[str]) -> list[Authority]:
+    def _authorities(self, now: float, train_ids: list[str]) -> list[Authority]:
         """One authority per train in ``train_ids`` at zone-controller time ``now`` (s)."""
         p = self.params
         unsafe = {tid: self.unsafe(tid, now) if tid in self.reports else ("no estimate", "")

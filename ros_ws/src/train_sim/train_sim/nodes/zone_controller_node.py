@@ -51,7 +51,8 @@ class ZoneControllerNode(Node):
             points.append(line.length)
         length = line.length if line_file else math.inf
         self.zone = ZoneController(replace(params, danger_points=tuple(points),
-                                           line_length=length))
+                                           line_length=length), fail_safe=True)
+        self.failure_logged = False
         self.trains = [self._train_id(t) for t in trains]
         self.pubs = {}
         for ns, tid in zip(trains, self.trains):
@@ -104,6 +105,8 @@ class ZoneControllerNode(Node):
         resets = self.zone.clock_resets.get(tid, 0)
         prev = self.zone.reports.get(tid)
         kind = self.zone.report(tid, rep)
+        if self.zone.failure and not self.failure_logged:
+            self._failed()
         self.received[tid] += 1
         self.last_arrival[tid] = self.steady.now().nanoseconds * 1e-9
         if kind:
@@ -123,9 +126,23 @@ class ZoneControllerNode(Node):
         if rep.integrity == ALARM and (prev is None or prev.integrity != ALARM):
             self.publish()  # brake now, not at the next tick
 
+    def _failed(self) -> None:
+        """The zone controller failed (an exception, latched by ZoneController.fail_safe):
+        said once with its traceback, every train braked at once."""
+        self.failure_logged = True
+        self.get_logger().error(f"the zone controller failed ({self.zone.failure}): every "
+                                "train's emergency brake is set and no report is read from "
+                                "here on; restart the node (a defect: please report this log)\n"
+                                f"{self.zone.failure_trace}")
+        self.publish()
+
     def publish(self) -> None:
         now = self.now()
-        for auth in self.zone.authorities(now, self.trains):
+        auths = self.zone.authorities(now, self.trains)
+        if self.zone.failure and not self.failure_logged:
+            self._failed()
+            return
+        for auth in auths:
             msg = self.msg_type()
             msg.header.stamp = self.get_clock().now().to_msg()
             msg.header.frame_id = "track"
