@@ -7,10 +7,15 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import io
+import os
+import sys
 
 import numpy as np
 import pytest
 from scipy.stats import binom
+
+sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "benchmarks"))
+import bench_balise_scatter as BS  # noqa: E402
 
 from train_estimation.core.offline.diagnose.residuals import (
     MAX_PERIOD,
@@ -279,3 +284,82 @@ def test_diagnose_names_an_odometer_with_correlated_errors_unexplained(tmp_path)
     u = next(u for u in rep["unexplained"] if sensor_noise(u))
     assert u["phase"] == "all" and "correlated in time" in u["best_listed"]["why"], u
     assert unexplained_size(u).endswith("of the stated SD")
+
+
+# -- the balise readings' scatter (diagnose/phases.scatter_round) ------------------------------
+
+def _scatter(seed: int, k: float = 1.0) -> dict:
+    """The balise scatter test (round 1, at alpha 1e-3) on case ``seed``'s bag whose balise
+    reader's errors are ``k`` times the SD its readings state (benchmarks/bench_balise_scatter,
+    whose table is these figures over more seeds)."""
+    out = BS.scatter_on_case(seed, k, alpha=1e-3)
+    print(f"seed {seed} {out['family']} k {k}: {out['readings']} readings, ratio "
+          f"{out.get('ratio', float('nan')):.2f}, p {out.get('p', float('nan')):.2g}")
+    return out
+
+
+@pytest.mark.slow
+def test_the_balise_scatter_holds_its_false_alarm_rate_on_nominal_bags():
+    """12 nominal bags of several families at alpha 1e-3: at most 1 alarm (P(X >= 2) =
+    6.6e-5 at that rate); the sum of squares is tested on every bag (3 readings or more)."""
+    res = [_scatter(seed) for seed in range(12)]
+    assert all("chi2" in r for r in res), [r.get("note") for r in res]
+    assert sum(r["significant"] for r in res) <= 1, [r["p"] for r in res]
+
+
+@pytest.mark.slow
+def test_a_balise_reader_three_times_noisier_than_stated_is_found():
+    """Readings whose errors are 3 times the stated SD (seeds whose 10-16 readings are each
+    about 7-10 times the stated variance in all): found, the scale within a factor of 2."""
+    for seed in (20, 22, 23):
+        r = _scatter(seed, 3.0)
+        assert r["significant"] and 9.0 / 2 < r["ratio"] < 9.0 * 2, (seed, r)
+        assert r["entry"]["family"] == "balise_scatter"
+
+
+@pytest.mark.slow
+def test_diagnose_names_a_noisy_balise_reader_not_a_misplaced_balise(tmp_path):
+    """End to end on metro_demo (600 s, seed 1): its balise reader's errors 3 times the SD the
+    readings state. Tested one reading at a time the largest had been named a balise lying
+    5.0 m from its map position; now one entry for every reading, their SD over the stated
+    one, and no balise named. The same run with the reader as stated is `none`."""
+    import json
+
+    from train_core.bagio import BagWriter
+
+    from train_estimation.tools import diagnose as tool
+    from train_estimation.tools.diagnose_unexplained import (
+        at_balise,
+        balise_scatter,
+        unexplained_line,
+        unexplained_size,
+    )
+    from train_sim.scenario import load_scenario
+    from train_sim.world import simulate
+
+    sc = load_scenario("metro_demo")
+    stated = sc.train.balise_position_variance
+    reports = {}
+    for k in (1.0, 3.0):
+        res = simulate(sc.with_changes(train=dataclasses.replace(
+            sc.train, balise_position_std=k * sc.train.balise_position_std)), 1)
+        bag = tmp_path / f"bag{k:g}"
+        with BagWriter(bag) as w:
+            for t_recv, topic, stamp, fields in res.received_events():
+                if topic == "balise":
+                    fields = dict(fields, position_variance=stated)
+                if topic in ("odometer", "balise", "control"):
+                    w.write(topic, stamp, fields, t_ns=int(round(t_recv * 1e9)))
+        out = tmp_path / f"out{k:g}"
+        assert tool.main(["--bag", str(bag), "--line", str(sc.line_path), "--train",
+                          str(sc.train_path), "--out", str(out), "--quiet",
+                          "--no-plots"]) == 0
+        reports[k] = json.loads((out / "report.json").read_text())
+    assert reports[1.0]["cause"] == "none", reports[1.0]["unexplained"]
+    rep = reports[3.0]
+    assert rep["cause"] == "unexplained", rep["ranking"][:3]
+    (u,) = [u for u in rep["unexplained"] if balise_scatter(u)]
+    assert not any(at_balise(v) for v in rep["unexplained"]), rep["unexplained"]
+    assert u["phase"] == "all" and 1.5 < u["size"] < 6.0, u
+    assert unexplained_size(u).endswith("of the stated SD")
+    assert "scatter about the odometer's track" in unexplained_line(u)

@@ -1,6 +1,7 @@
 """The ``unexplained`` entries of diagnose's report.json as a reader sees them: which kind an
 entry is (a balise reading, the odometer's count, a step or a rate change of the train's clock,
-the balise reader's latency, the odometer's readings against their stated SD, brakes that fade
+the balise reader's latency, the odometer's or the balises' readings against their stated SD,
+brakes that fade
 as they heat, else a residual acceleration), its size with the unit of that kind, and its line
 in the summary. The summary, the plots and report.html read entries through these functions.
 """
@@ -9,7 +10,12 @@ from __future__ import annotations
 
 from train_estimation.core.offline.diagnose.confirm import UNDECIDED
 from train_estimation.core.offline.diagnose.residuals import SENSOR_WHY
-from train_estimation.core.offline.diagnose.verdict import DATUM_WHY, LATENCY_WHY, RATE_WHY
+from train_estimation.core.offline.diagnose.verdict import (
+    DATUM_WHY,
+    LATENCY_WHY,
+    RATE_WHY,
+    SCATTER_WHY,
+)
 
 
 def _span(r, unit: str) -> str | None:
@@ -68,6 +74,15 @@ def sensor_noise(u: dict) -> bool:
             and str(best.get("why", "")).startswith(SENSOR_WHY))
 
 
+def balise_scatter(u: dict) -> bool:
+    """An ``unexplained`` entry of balise readings that scatter more than they state (no
+    ``where`` nor ``when``, the reason beginning with ``SCATTER_WHY``): its size is their SD
+    over the stated SD."""
+    best = u.get("best_listed") or {}
+    return (not u.get("where") and not u.get("when")
+            and str(best.get("why", "")).startswith(SCATTER_WHY))
+
+
 def heat_fade(u: dict) -> bool:
     """An ``unexplained`` entry of a braking weaker than believed that brakes fading as they
     heat explain better than the closest listed cause (phase braking, no ``where`` nor
@@ -107,7 +122,7 @@ def unexplained_size(u: dict) -> str:
         return f"{size:+.4g} m"
     if clock_step(u) or clock_rate(u) or balise_latency(u):
         return f"{size:+.4g} s"
-    if sensor_noise(u):
+    if sensor_noise(u) or balise_scatter(u):
         return f"x{size:.4g} of the stated SD"
     return f"{size:+.4g} m/s^2"
 
@@ -132,7 +147,7 @@ def unexplained_line(u: dict) -> str:
         return (f"unexplained: the train's clock changes its rate at {u['when'][0]:.0f} s and "
                 f"reads {u['size']:+.3f} s more by {u['when'][1]:.0f} s than one rate says"
                 + closest)
-    if sensor_noise(u):
+    if sensor_noise(u) or balise_scatter(u):
         return f"unexplained: {best['why']} (phase all, the whole run)"
     if heat_fade(u):
         sp = u["speed"]

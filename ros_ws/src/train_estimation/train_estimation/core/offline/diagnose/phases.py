@@ -62,6 +62,24 @@ the change of the gradient's pull per metre of shift, a central difference over
 ``where`` nor ``when``, ``size`` delta in m (> 0: the gradients act further on than the
 balises place them).
 
+**Scatter test** (:func:`scatter_round`). A balise reader whose readings scatter more than
+they state (its timing noisier than stated, or a map surveyed worse than it says) puts every
+reading a random few metres off the odometer's track; tested one reading at a time, the
+largest of them looks like one balise lying elsewhere, at every reading's stated variance. The
+hypothesis is one more parameter, a scale of every balise reading's variance. Under the stated
+variances the readings' whitened innovations (the odometer's track through the model, the
+count's origin s0 fitted to the balises) are independent standard normals, so their sum of
+squares is chi-square with one degree of freedom per reading less one for s0 and one for each
+reading whose offset is in the model: excess scatter is its upper tail, tested in each round
+with the same Bonferroni share until it is found. A single balise off by metres, or an
+odometer that counts differently from a time on, raises the sum too. A structure that a motion
+or the odometer family finds goes first (tested at the stated variance); against a balise's
+offset, the latency or the datum, a variance and a mean being alternatives of different kinds,
+the scatter is chosen when its likelihood is the higher (BIC over the readings).
+As an entry it has phase ``all``, no ``where`` nor ``when`` (every reading), ``size`` the
+readings' SD over their stated SD, and the readings' variances are scaled by its square in
+the rounds that follow (a reading that is still an outlier at the found scatter is one).
+
 The checks of a confirmed cause against the rest of the data (where it must show and where it
 must not) are in :mod:`.contradict`.
 """
@@ -214,11 +232,13 @@ def structure(mo: Motion, null: Null, cfg, noise, beta: float = 1.0, alpha: floa
     st = Stage(mo, null, cfg, noise=noise, big=False)
     n_ev = mo.ev.t.size
     ig = {k: mo.grid.integrate(R, n_ev) for k, (R, _) in fam.items()}
-    # Bonferroni over the families, the balise readings' test, the latency's and the datum's
-    a_f = alpha / (len(fam) + 3 + (odo is not None))
+    # Bonferroni over the families, the balise readings' tests (one reading, their scatter),
+    # the latency's and the datum's
+    a_f = alpha / (len(fam) + 4 + (odo is not None))
     extra = None
     found, tests, bal_in = [], [], []
     late = True  # the latency is still to be tested (one entry at most)
+    scatter = True  # the balise readings' scatter is still to be tested (one entry at most)
     datum = _datum_columns(mo)  # the datum's column, None on a line without gradients
     for _ in range(max_entries):
         best = None
@@ -244,6 +264,9 @@ def structure(mo: Motion, null: Null, cfg, noise, beta: float = 1.0, alpha: floa
         round_tests["balise"] = {k: v for k, v in bal.items() if k != "entry"}
         if bal["significant"] and (best is None or bal["logp_family"] < best[0]):
             best = (bal["logp_family"], "balise", None, None)
+        if scatter:
+            sca = scatter_round(mo, st, extra, bal_in, a_f, beta)
+            round_tests["balise_scatter"] = {k: v for k, v in sca.items() if k != "entry"}
         if late:
             lat = latency_round(mo, st, extra, a_f, cell_z, min_offset)
             round_tests["balise_latency"] = {k: v for k, v in lat.items() if k != "entry"}
@@ -254,6 +277,9 @@ def structure(mo: Motion, null: Null, cfg, noise, beta: float = 1.0, alpha: floa
             round_tests["datum"] = {k: v for k, v in dat.items() if k != "entry"}
             if dat["significant"] and (best is None or dat["logp_family"] < best[0]):
                 best = (dat["logp_family"], "datum", None, None)
+        if scatter and sca["significant"] and not fits and _scatter_wins(sca, best,
+                                                                         round_tests):
+            best = (sca["logp_family"], "balise_scatter", None, None)
         tests.append(round_tests)
         if best is None:
             break
@@ -263,6 +289,13 @@ def structure(mo: Motion, null: Null, cfg, noise, beta: float = 1.0, alpha: floa
             found.append(dat["entry"])
             extra = _plus(extra, *(c * dat["entry"]["size"] for c in datum))
             datum = None  # one datum shift
+            continue
+        if name == "balise_scatter":
+            # every reading's variance scaled by the scatter found; test again at it
+            found.append(sca["entry"])
+            scatter = False
+            st = copy.copy(st)
+            st.bal_scale *= sca["ratio"]
             continue
         if name == "balise_latency":
             # the readings moved by the latency become part of the model; test again
@@ -367,6 +400,62 @@ def balise_round(mo: Motion, st: Stage, extra, inside: list, alpha: float, cell_
         out["entry"] = {"phase": "all", "where": [float(ev.y_d[k])] * 2,
                         "when": [float(ev.t[k]) / beta] * 2, "speed": [v, v], "size": off,
                         "family": "balise", "onset": False,
+                        "mask": np.zeros(mo.grid.t.size, bool)}
+    return out
+
+
+def _scatter_wins(sca: dict, best, round_tests: dict) -> bool:
+    """Whether the balise readings' scatter explains a round's balise readings better than
+    ``best``, the round's other finding about them (None: none): a balise's offset, the
+    reader's latency or the datum. A variance and a mean are alternatives of different kinds,
+    and their p-values under the null do not say which explains better; their likelihoods do,
+    each parameter charged ln n over the n readings (BIC): the scatter's log-likelihood ratio
+    ``lr`` against the other's chi-square, one parameter each. (A structure that a motion or
+    the odometer family finds goes first, tested at the stated variance: on the few balise
+    readings of a run the scatter's likelihood came within a few units of an odometer that
+    counts differently from a time on, whose cells did not fit it exactly.)"""
+    if best is None:
+        return True
+    pen = math.log(max(sca["readings"], 2))
+    return sca["lr"] - pen > round_tests[best[1]]["chi2"] - pen
+
+
+def scatter_round(mo: Motion, st: Stage, extra, inside: list, alpha: float,
+                  beta: float = 1.0) -> dict:
+    """One round of the scatter test (module doc): whether the balise readings scatter about
+    the odometer's track more than their stated variances say, under the model ``st`` (plus
+    the found drift ``extra``; ``inside``: readings whose offset is in the model). Returns the
+    figures (``ratio``: the sum of squares over its degrees of freedom, the variance scale),
+    ``logp_family`` (the round's comparison) and, when significant, ``entry``."""
+    ev = mo.ev
+    n = ev.bal.size
+    dof = n - 1 - len(inside)
+    out = {"readings": int(n), "significant": False}
+    if dof < 2:
+        out["note"] = "fewer than three balise readings outside the model"
+        return out
+    fv, fs = (st.fv, st.fs) if extra is None else (st.fv + extra[0], st.fs + extra[1])
+    kf = st.augmented(fv, fs, keep_innov=True)  # [data, s0]
+    th = gls(kf.W)[0]  # [s0] at the GLS optimum
+    # the whitened innovations at s0 (a reading whose offset is fitted is about 0: one
+    # degree of freedom less each)
+    z = kf.Z_bal[:, 0] + th[0] * kf.Z_bal[:, 1]
+    q = float(np.sum(z * z))
+    ratio = q / dof
+    logp = chi2_logsf(q, dof)
+    # 2 x the log-likelihood ratio of the variance scale at its best, ratio, against 1
+    lr = q - dof - dof * math.log(ratio) if ratio > 1.0 else 0.0
+    sig = bool(logp < math.log(alpha))
+    out.update(chi2=q, dof=int(dof), ratio=ratio, p=math.exp(logp), significant=sig,
+               logp_family=logp, lr=lr)
+    if sig:
+        t = ev.t[ev.bal]
+        gi = np.clip(np.searchsorted(mo.grid.t, t), 0, mo.grid.t.size - 1)
+        v = mo.v_ref[gi]
+        out["entry"] = {"phase": "all", "where": None, "when": None,
+                        "speed": [float(np.percentile(v, 5)), float(np.percentile(v, 95))],
+                        "size": math.sqrt(ratio), "family": "balise_scatter", "onset": False,
+                        "readings": int(n), "p": out["p"],
                         "mask": np.zeros(mo.grid.t.size, bool)}
     return out
 

@@ -12,6 +12,7 @@ are profiled over grids (the causes do that).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 
@@ -101,6 +102,9 @@ class Stage:
         self.fv, self.fs, self.md, self.mv = fv, fs, md, mv
         # fixed balise offsets (m, at balise events): readings the structure test found off
         self.mb = np.zeros(mo.ev.t.size)
+        # the balise readings' variances times this: a reader (or a map) that scatters more
+        # than it states, as the structure test found it (phases.scatter_round)
+        self.bal_scale = 1.0
         self.update = update  # events whose measurement the filter uses (None: all)
         # The search meets the same null more than once (the next stage's null is the last
         # refit's extended null; a stage rebuilt at the same noise): its noise fit and big
@@ -130,9 +134,18 @@ class Stage:
         fs; the null's measurement part), s0, drift columns ``drift = (Dv, Ds)``...,
         measurement columns ``meas = (Md, Mv)``..., balise measurement columns ``bal``...]
         (each pair (n_ev, k), ``bal`` (n_ev, k), or None)."""
-        return augmented_kf_blocks(self.mo.ev, self.q, self.r_s,
+        return augmented_kf_blocks(self.events(), self.q, self.r_s,
                                    (fv, fs, self.md, self.mv, self.mb), drift=drift, meas=meas,
                                    bal=bal, q_held=self.cfg.standstill_q, **kw)
+
+    def events(self):
+        """The run's events with the balise readings' variances times :attr:`bal_scale`."""
+        ev = self.mo.ev
+        if self.bal_scale == 1.0:
+            return ev
+        r = ev.r_v.copy()
+        r[ev.bal] *= self.bal_scale
+        return dataclasses.replace(ev, r_v=r)
 
     def _null_drift(self) -> dict:
         null, mo = self.null, self.mo

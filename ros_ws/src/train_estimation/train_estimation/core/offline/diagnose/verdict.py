@@ -246,6 +246,10 @@ LATENCY_WHY = "the balise readings lie off the odometer's position"
 DATUM_WHY = "the map's gradients and the balises lie apart"
 
 
+# how the reason of a balise scatter entry begins (tools.diagnose_unexplained tells it by it)
+SCATTER_WHY = "the balise readings scatter about the odometer's track more than they state"
+
+
 def _entry(u: dict, ranking: list) -> dict:
     """An ``unexplained`` entry: the signature and the listed cause that came closest (the
     first not confirmed in the ranking) with why it does not fit (for a balise reader's
@@ -254,6 +258,15 @@ def _entry(u: dict, ranking: list) -> dict:
         return {"phase": "all", "where": None, "when": None, "speed": u["speed"],
                 "size": u["size"],
                 "best_listed": {"cause": "clock_drift", "why": _latency_why(u["size"])}}
+    if u.get("family") == "balise_scatter":
+        return {"phase": "all", "where": None, "when": None, "speed": u["speed"],
+                "size": u["size"],
+                "best_listed": {"cause": "odometer_scale", "why": (
+                    f"{SCATTER_WHY}: their SD is {u['size']:.2f} times the stated one over "
+                    f"{u['readings']} readings (p {u['p']:.2g}): the reader's timing or the "
+                    "balises' survey is worse than the readings' position_variance says; an "
+                    "odometer scale moves the readings in proportion to the distance, one "
+                    "misplaced balise moves one reading, not every one at random")}}
     if u.get("family") == "datum":
         return {"phase": "all", "where": None, "when": None, "speed": u["speed"],
                 "size": u["size"],

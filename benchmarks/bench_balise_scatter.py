@@ -1,0 +1,96 @@
+#!/usr/bin/env python3
+"""Power and false-alarm rate of diagnose's test of the balise readings' scatter.
+
+    ./run bench balise_scatter --quick         # 8 bags per row: about 1 min
+    ./run bench balise_scatter --seeds 20      # 20 bags per row
+
+The scatter test (docs/diagnose.md, "What is left"; ``phases.scatter_round``) on its own, in
+the first round of the structure test under the believed model, at its share of diagnose's
+alpha (0.001 over the round's nine tests): bags of ``train_sim.cases`` (case seed [S, 31],
+family drawn: metro, metro_demo, regional, high-speed) whose balise reader's errors are k
+times the SD the readings state (k = 1: nominal, the false-alarm rate; k = 2, 3: power). The
+readings keep stating the believed train's variance. Per row: bags, found, the sum of squares
+over its degrees of freedom (the variance scale; k^2 expected) and the p-values' range.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import dataclasses
+import io
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+# the round's share of diagnose's alpha: 1e-3 over its families (5), the odometer's, the two
+# balise tests, the latency's and the datum's (phases.structure)
+ROUND_ALPHA = 1e-3 / 9
+
+
+def scatter_on_case(seed: int, k: float = 1.0, alpha: float = ROUND_ALPHA) -> dict:
+    """The scatter test's figures (``scatter_round``) on case ``seed``'s bag, its balise
+    reader's errors ``k`` times the stated SD; plus ``family``."""
+    from train_estimation.core.offline.diagnose.motion import Motion
+    from train_estimation.core.offline.diagnose.phases import scatter_round
+    from train_estimation.core.offline.diagnose.run import DiagConfig, prepare
+    from train_estimation.core.offline.diagnose.stage import Null, Stage
+    from train_estimation.tools.diagnose import read_measured
+    from train_sim.cases import make_case
+    from train_sim.generate import generate
+
+    case = make_case(np.random.default_rng([seed, 31]), None, "plain")
+    sc, train = case.scenario, case.scenario.train
+    true = sc.with_changes(train=dataclasses.replace(
+        train, balise_position_std=k * train.balise_position_std))
+    with tempfile.TemporaryDirectory() as d:
+        with contextlib.redirect_stdout(io.StringIO()):
+            generate(true, Path(d) / "bag", measured=True)
+        data = read_measured(Path(d) / "bag")
+    data = dataclasses.replace(data, balise_variance=np.full(
+        data.balise_variance.size, train.balise_position_variance))
+    cfg = DiagConfig()
+    run = prepare(data, sc.line, cfg, train)
+    mo = Motion(run, sc.line, train, cfg)
+    null = Null(shift=Stage(mo, Null(), cfg).nuisance_shift()[0])
+    st = Stage(mo, null, cfg, big=False)
+    out = scatter_round(mo, st, None, [], alpha)
+    out["family"] = case.family
+    return out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="8 bags per row")
+    ap.add_argument("--seeds", type=int, default=20, help="bags per row (default 20)")
+    ap.add_argument("--k", type=float, nargs="*", default=[1.0, 2.0, 3.0],
+                    help="the reader's errors over the stated SD, one row each")
+    args = ap.parse_args(argv)
+    n = 8 if args.quick else args.seeds
+    if n < 1 or any(not k > 0 for k in args.k):
+        ap.error("--seeds must be >= 1 and every --k > 0")
+    print(f"| k (errors / stated SD) | bags | found (alpha {ROUND_ALPHA:.2g}) | families | "
+          "variance scale | p |")
+    print("|---|---|---|---|---|---|")
+    for k in args.k:
+        rows = []
+        for seed in range(n):
+            r = scatter_on_case(seed, k)
+            rows.append(r)
+            print(f"  seed {seed} {r['family']}: {r['readings']} readings, scale "
+                  f"{r.get('ratio', float('nan')):.2f}, p {r.get('p', float('nan')):.2g}",
+                  file=sys.stderr, flush=True)
+        tested = [r for r in rows if "chi2" in r]
+        fams = sorted({r["family"] for r in rows})
+        ratio = [r["ratio"] for r in tested]
+        ps = [r["p"] for r in tested]
+        print(f"| {k:g} | {len(tested)} of {n} tested | {sum(r['significant'] for r in tested)}"
+              f" | {', '.join(fams)} | {min(ratio):.2f}-{max(ratio):.2f} (median "
+              f"{np.median(ratio):.2f}) | {min(ps):.2g} - {max(ps):.2g} |", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
