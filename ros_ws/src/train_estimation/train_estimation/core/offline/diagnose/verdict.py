@@ -255,26 +255,20 @@ def _entry(u: dict, ranking: list) -> dict:
     first not confirmed in the ranking) with why it does not fit (for a balise reader's
     latency, the clock: the one listed cause about time stamps)."""
     if u.get("family") == "balise_latency":
-        return {"phase": "all", "where": None, "when": None, "speed": u["speed"],
-                "size": u["size"],
-                "best_listed": {"cause": "clock_drift", "why": _latency_why(u["size"])}}
+        return _whole_run(u, "clock_drift", _latency_why(u["size"]))
     if u.get("family") == "balise_scatter":
-        return {"phase": "all", "where": None, "when": None, "speed": u["speed"],
-                "size": u["size"],
-                "best_listed": {"cause": "odometer_scale", "why": (
-                    f"{SCATTER_WHY}: their SD is {u['size']:.2f} times the stated one over "
-                    f"{u['readings']} readings (p {u['p']:.2g}): the reader's timing or the "
-                    "balises' survey is worse than the readings' position_variance says; an "
-                    "odometer scale moves the readings in proportion to the distance, one "
-                    "misplaced balise moves one reading, not every one at random")}}
+        return _whole_run(u, "odometer_scale", (
+            f"{SCATTER_WHY}: their SD is {u['size']:.2f} times the stated one over "
+            f"{u['readings']} readings (p {u['p']:.2g}): the reader's timing or the balises' "
+            "survey is worse than the readings' position_variance says; an odometer scale "
+            "moves the readings in proportion to the distance, one misplaced balise moves one "
+            "reading, not every one at random"))
     if u.get("family") == "datum":
-        return {"phase": "all", "where": None, "when": None, "speed": u["speed"],
-                "size": u["size"],
-                "best_listed": {"cause": "gradient", "why": (
-                    f"{DATUM_WHY}: every gradient change acts {abs(u['size']):.1f} m "
-                    f"{'further on' if u['size'] > 0 else 'earlier'} than the balises place "
-                    "the run (a balise map and a gradient profile surveyed on two datums); a "
-                    "gradient the map lacks acts on one stretch, not at every change")}}
+        return _whole_run(u, "gradient", (
+            f"{DATUM_WHY}: every gradient change acts {abs(u['size']):.1f} m "
+            f"{'further on' if u['size'] > 0 else 'earlier'} than the balises place the run (a "
+            "balise map and a gradient profile surveyed on two datums); a gradient the map "
+            "lacks acts on one stretch, not at every change"))
     best = next((r for r in ranking if r.status != "confirmed" and r.cause != "none"), None)
     if best is None:
         listed = None
@@ -285,6 +279,13 @@ def _entry(u: dict, ranking: list) -> dict:
                                               "none's 0 (not supported by the data)"}
     return {"phase": u["phase"], "where": u["where"], "when": u["when"], "speed": u["speed"],
             "size": u["size"], "best_listed": listed}
+
+
+def _whole_run(u: dict, cause: str, why: str) -> dict:
+    """An ``unexplained`` entry of every reading (phase ``all``, no ``where`` nor ``when``) with
+    the closest listed ``cause`` and ``why`` it does not fit."""
+    return {"phase": "all", "where": None, "when": None, "speed": u["speed"], "size": u["size"],
+            "best_listed": {"cause": cause, "why": why}}
 
 
 def _latency_why(tau: float) -> str:
