@@ -4,7 +4,7 @@
     ./run bench balise_scatter --quick         # 8 bags per row: about 1 min
     ./run bench balise_scatter --seeds 20      # 20 bags per row
 
-The scatter test (docs/diagnose.md, "What is left"; ``phases.scatter_round``) on its own, in
+The scatter test (docs/diagnose.md, "What is left"; ``balise_rounds.scatter_round``) on its own, in
 the first round of the structure test under the believed model, at its share of diagnose's
 alpha (0.001 over the round's nine tests): bags of ``train_sim.cases`` (case seed [S, 31],
 family drawn: metro, metro_demo, regional, high-speed) whose balise reader's errors are k
@@ -33,8 +33,8 @@ ROUND_ALPHA = 1e-3 / 9
 def scatter_on_case(seed: int, k: float = 1.0, alpha: float = ROUND_ALPHA) -> dict:
     """The scatter test's figures (``scatter_round``) on case ``seed``'s bag, its balise
     reader's errors ``k`` times the stated SD; plus ``family``."""
+    from train_estimation.core.offline.diagnose.balise_rounds import scatter_round
     from train_estimation.core.offline.diagnose.motion import Motion
-    from train_estimation.core.offline.diagnose.phases import scatter_round
     from train_estimation.core.offline.diagnose.run import DiagConfig, prepare
     from train_estimation.core.offline.diagnose.stage import Null, Stage
     from train_estimation.tools.diagnose import read_measured

@@ -286,7 +286,7 @@ def test_diagnose_names_an_odometer_with_correlated_errors_unexplained(tmp_path)
     assert unexplained_size(u).endswith("of the stated SD")
 
 
-# -- the balise readings' scatter (diagnose/phases.scatter_round) ------------------------------
+# -- the balise readings' scatter (diagnose/balise_rounds.scatter_round) ----------------
 
 def _scatter(seed: int, k: float = 1.0) -> dict:
     """The balise scatter test (round 1, at alpha 1e-3) on case ``seed``'s bag whose balise

@@ -75,12 +75,11 @@ from .motion import Motion, slip_shape
 from .phases import (
     PHASES,
     _event_grid_index,
-    _fit_columns,
     counted_columns,
     families,
     grid_phase,
 )
-from .stage import Null, Stage
+from .stage import Null, Stage, fit_columns
 
 # s, a cell of the place test holds at least this much time outside the stretch (a stop's last
 # few m/s of braking last a few seconds; the cell's standard error states what it can test)
@@ -112,7 +111,7 @@ def split_test(mo: Motion, others: Null, full: Null, cfg, noise, alpha: float,
             continue
         Bv = np.stack([dv * m for m, _ in cols], axis=1)
         Bs = np.stack([ds * m for m, _ in cols], axis=1)
-        stat, c, se = _fit_columns(st1, Bv, Bs)
+        stat, c, se = fit_columns(st1, Bv, Bs)
         bad += _cells(out, part, cols, stat, c, se, alpha, min_share)
         if part == "phase":
             # the phases where the data could have shown the cause off by min_share (at
@@ -123,7 +122,7 @@ def split_test(mo: Motion, others: Null, full: Null, cfg, noise, alpha: float,
     # cause whose shape in speed or in the command is wrong: a knee p_spec / v against a step
     # at a speed, a force fixed in place against one that scales with the traction asked for)
     for name, z in _slopes(mo, ph, v, gi, on, energy, t):
-        stat, c, se = _fit_columns(st1, (dv * z)[:, None], (ds * z)[:, None])
+        stat, c, se = fit_columns(st1, (dv * z)[:, None], (ds * z)[:, None])
         p = float(chdtrc(1, stat))
         out[f"slope in {name}"] = {"chi2": stat, "dof": 1, "p": p, "change": float(c[0]),
                                    "std_error": float(se[0])}
@@ -178,7 +177,7 @@ def _split_measurement(mo: Motion, st1: Stage, dmd: np.ndarray, dmv: np.ndarray,
             continue
         Md = counted_columns(mo, inc, [m for m, _ in cols])
         Mv = np.stack([dmv * m for m, _ in cols], axis=1)
-        stat, c, se = _fit_columns(st1, None, None, meas=(Md, Mv))
+        stat, c, se = fit_columns(st1, None, None, meas=(Md, Mv))
         bad += _cells(out, part, cols, stat, c, se, alpha, min_share)
     if bad:
         out["contradicted"] = True
@@ -403,7 +402,7 @@ def _fit_cells(mo: Motion, full: Null, cfg, noise, cols: list) -> tuple:
     """GLS of free multipliers of the place test's grid columns ``cols`` on top of the model
     ``full``: (chi-square statistic, multipliers, standard errors)."""
     Bv, Bs = mo.grid.integrate(np.stack(cols, axis=1), mo.ev.t.size)
-    return _fit_columns(Stage(mo, full, cfg, noise=noise, big=False), Bv, Bs)
+    return fit_columns(Stage(mo, full, cfg, noise=noise, big=False), Bv, Bs)
 
 
 def place_test(mo: Motion, full: Null, cfg, noise, inside: np.ndarray, beyond: np.ndarray,
@@ -460,8 +459,8 @@ def flexible_rival(mo: Motion, others: Null, full: Null, cfg, noise, k_cause: in
     if not keep:
         return {"better": True, "note": "no flexible term to compare"}
     Bv, Bs = mo.grid.integrate(R[:, keep], mo.ev.t.size)
-    stat_f = _fit_columns(st0, Bv, Bs)[0]
-    stat_c = _fit_columns(st0, dv[:, None], ds[:, None])[0]
+    stat_f = fit_columns(st0, Bv, Bs)[0]
+    stat_c = fit_columns(st0, dv[:, None], ds[:, None])[0]
     ln_n = math.log(max(mo.ev.t.size, 2))
     bic_c = stat_c - k_cause * ln_n
     bic_f = stat_f - len(keep) * ln_n

@@ -32,8 +32,8 @@ from train_core.model import G as G_ACCEL
 from train_estimation.core.numerics.augmented_kf import gls
 
 from .motion import Motion
-from .phases import _fit_columns, counted_columns
-from .stage import Null, Stage, best_section
+from .phases import counted_columns
+from .stage import Null, Stage, best_section, fit_columns
 
 # position bins by which the speed-law test moves a stretch's ends (each law gets its own best
 # stretch near the fitted one: a fixed force fitted on a drag stretch overshoots it at the fast
@@ -92,7 +92,7 @@ def heat_law(mo: Motion, others: Null, full: Null, cfg, noise) -> dict:
     if not (dv * dv).sum() > 0 or brk.sum() < 10:
         res.update(lr=0.0, note="no braking while moving")
         return res
-    cause = _fit_columns(st0, dv[:, None], ds[:, None])[0]
+    cause = fit_columns(st0, dv[:, None], ds[:, None])[0]
     fit = _heat_profile(mo, st0)
     vb = mo.v_ref[brk]
     v_lo, v_hi = np.percentile(vb, [5, 95])
@@ -126,7 +126,7 @@ def _heat_profile(mo: Motion, st: Stage, taus: tuple = HEAT_TAUS) -> dict:
     n_ev = mo.ev.t.size
     best = (-math.inf, None, None)
     for tau in taus:
-        stat, th, _ = _fit_columns(st, *mo.grid.integrate(_heat_columns(mo, tau), n_ev))
+        stat, th, _ = fit_columns(st, *mo.grid.integrate(_heat_columns(mo, tau), n_ev))
         if stat > best[0]:
             best = (stat, tau, th)
     stat, tau, th = best
@@ -183,14 +183,14 @@ def stop_law(mo: Motion, others: Null, full: Null, cfg, noise, k_causes: int) ->
         res.update(lr=0.0, note="no stop after the first departure" if not deps else
                    "no contribution")
         return res
-    causes = _fit_columns(st0, dv[:, None], ds[:, None])[0]
+    causes = fit_columns(st0, dv[:, None], ds[:, None])[0]
     n_ev = mo.ev.t.size
     base = np.stack([mo.a_tr0 * mo.moving, mo.f0 * mo.a_br0 * mo.moving], axis=1)
     best = (-math.inf, None, None)
     for k in deps:
         cols = base.copy()
         cols[:k] = 0.0
-        stat, th, _ = _fit_columns(st0, *mo.grid.integrate(cols, n_ev))
+        stat, th, _ = fit_columns(st0, *mo.grid.integrate(cols, n_ev))
         if stat > best[0]:
             best = (stat, k, th)
     stat, k, th = best

@@ -139,7 +139,7 @@ def consistent_fixes(db: np.ndarray, pb: np.ndarray, k: float) -> np.ndarray:
     ``OUTLIER_FIX``; an odometer that counts more or less (a slip episode, a changed scale)
     between fixes moves two fixes or more off that track by as much, and is left to the
     piecewise placement. At most a quarter of the fixes go. The diagnosis still reports the
-    reading (phases.balise_round)."""
+    reading (balise_rounds.balise_round)."""
     keep = np.ones(db.size, bool)
     for _ in range(db.size // 4):
         idx = np.flatnonzero(keep)

@@ -103,7 +103,7 @@ class Stage:
         # fixed balise offsets (m, at balise events): readings the structure test found off
         self.mb = np.zeros(mo.ev.t.size)
         # the balise readings' variances times this: a reader (or a map) that scatters more
-        # than it states, as the structure test found it (phases.scatter_round)
+        # than it states, as the structure test found it (balise_rounds.scatter_round)
         self.bal_scale = 1.0
         self.update = update  # events whose measurement the filter uses (None: all)
         # The search meets the same null more than once (the next stage's null is the last
@@ -266,6 +266,21 @@ class Stage:
 
     def null_ll(self) -> float:
         return self.fit({}, [])[2]
+
+
+def fit_columns(st: Stage, Bv: np.ndarray | None, Bs: np.ndarray | None, extra=None,
+                meas=None, bal=None):
+    """GLS of free drift columns (Bv, Bs), or with Bv, Bs None of free odometer measurement
+    columns ``meas`` = (Md, Mv) or balise measurement columns ``bal``, on top of the stage's
+    model (plus fixed extra drift): (chi-square statistic 2 dll, theta, se)."""
+    fv, fs = st.fv, st.fs
+    if extra is not None:
+        fv, fs = fv + extra[0], fs + extra[1]
+    kf = st.augmented(fv, fs, drift=None if Bv is None else (Bv, Bs), meas=meas, bal=bal)
+    q0 = gls(kf.W[:2, :2])[2]
+    th, cov, q1 = gls(kf.W)
+    se = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    return max(q0 - q1, 0.0), th[1:], se[1:]
 
 
 def _memo(mo: Motion) -> dict:
