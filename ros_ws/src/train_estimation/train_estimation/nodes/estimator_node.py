@@ -447,8 +447,9 @@ class EstimatorNode(Node):
                                         watch_stale=kind != "balise"))
         checks, values = self.diag.input_checks(now, self.started, inputs)
         lat_checks, lat_values = D.latency_check(self.window_latency, self.diag.cfg)
-        rate_checks, rate_values = D.rate_check(self.runner.sample_period(),
-                                                self.runner.period)
+        # (a failed runner's state is not asked: the failure is the check, below)
+        rate_checks, rate_values = ([], []) if self.runner.failure else \
+            D.rate_check(self.runner.sample_period(), self.runner.period)
         if rate_checks and not self.rate_warned:  # once in the log; /diagnostics each time
             self.get_logger().warning(rate_checks[0][1])
             self.rate_warned = True
