@@ -60,7 +60,6 @@ class KFResult:
     S_v: np.ndarray | None = None  # innovation variance of the speed (odometer events)
     Z_bal: np.ndarray | None = None  # (balise updates, 2) their whitened innovations (e /
     #   sqrt(S)) of columns 0 and 1: at s0, Z_bal[:, 0] + s0 Z_bal[:, 1]
-    bal: np.ndarray | None = None  # the events of those balise updates
 
     def loglik(self, z: np.ndarray) -> float:
         return -0.5 * (self.logdet + self.m * LOG2PI + z @ self.W @ z)
@@ -123,7 +122,7 @@ def _result(gp, Z: np.ndarray, E: np.ndarray, keep_innov: bool) -> KFResult:
     S_v = np.full(n, np.nan)
     S_v[odo] = gp.S_v[odo]
     return KFResult(W=Z.T @ Z, logdet=gp.logdet, m=gp.m, E0=E0, E1=E1, S_v=S_v,
-                    Z_bal=Z[gp.row[bal], :2].copy(), bal=bal)
+                    Z_bal=Z[gp.row[bal], :2].copy())
 
 
 def _step(first, c, xs, xv, hk, bs, bv, md, mv, mb, ydk, yvk, k00, k10, k01, k11, l0, l1, l2):

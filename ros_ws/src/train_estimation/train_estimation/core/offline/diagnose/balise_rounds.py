@@ -54,7 +54,7 @@ from train_estimation.core.numerics.augmented_kf import gls
 from train_estimation.core.numerics.tails import chi2_logsf
 
 from .motion import Motion
-from .stage import Stage, fit_columns
+from .stage import Stage, fit_columns, plus_drift
 
 
 def balise_round(mo: Motion, st: Stage, extra, inside: list, alpha: float, cell_z: float,
@@ -83,7 +83,7 @@ def balise_round(mo: Motion, st: Stage, extra, inside: list, alpha: float, cell_
         return out
     cols = np.zeros((ev.t.size, len(left)))
     cols[ev.bal[left], np.arange(len(left))] = 1.0
-    fv, fs = (st.fv, st.fs) if extra is None else (st.fv + extra[0], st.fs + extra[1])
+    fv, fs = plus_drift(extra, st.fv, st.fs)
     W = st.augmented(fv, fs, bal=cols).W  # [data, s0, o_j for j in left]
     q0 = gls(W[:2, :2])[2]
     best = None
@@ -126,8 +126,7 @@ def scatter_wins(sca: dict, best, round_tests: dict) -> bool:
     return sca["lr"] - pen > round_tests[best[1]]["chi2"] - pen
 
 
-def scatter_round(mo: Motion, st: Stage, extra, inside: list, alpha: float,
-                  beta: float = 1.0) -> dict:
+def scatter_round(mo: Motion, st: Stage, extra, inside: list, alpha: float) -> dict:
     """One round of the scatter test (module doc): whether the balise readings scatter about
     the odometer's track more than their stated variances say, under the model ``st`` (plus
     the found drift ``extra``; ``inside``: readings whose offset is in the model). Returns the
@@ -140,7 +139,7 @@ def scatter_round(mo: Motion, st: Stage, extra, inside: list, alpha: float,
     if dof < 2:
         out["note"] = "fewer than three balise readings outside the model"
         return out
-    fv, fs = (st.fv, st.fs) if extra is None else (st.fv + extra[0], st.fs + extra[1])
+    fv, fs = plus_drift(extra, st.fv, st.fs)
     kf = st.augmented(fv, fs, keep_innov=True)  # [data, s0]
     th = gls(kf.W)[0]  # [s0] at the GLS optimum
     # the whitened innovations at s0 (a reading whose offset is fitted is about 0: one

@@ -64,7 +64,7 @@ from .balise_rounds import (
     scatter_wins,
 )
 from .motion import Motion
-from .stage import Null, Stage, fit_columns
+from .stage import Null, Stage, fit_columns, plus_drift
 
 PHASES = ("traction", "coasting", "braking")
 PER_PHASE = ("phase", "speed", "onset")  # the families whose cells are per phase
@@ -219,7 +219,7 @@ def structure(mo: Motion, null: Null, cfg, noise, beta: float = 1.0, alpha: floa
         if bal["significant"] and (best is None or bal["logp_family"] < best[0]):
             best = (bal["logp_family"], "balise", None, None)
         if scatter:
-            sca = scatter_round(mo, st, extra, bal_in, a_f, beta)
+            sca = scatter_round(mo, st, extra, bal_in, a_f)
             round_tests["balise_scatter"] = {k: v for k, v in sca.items() if k != "entry"}
         if late:
             lat = latency_round(mo, st, extra, a_f, cell_z, min_offset)
@@ -241,7 +241,7 @@ def structure(mo: Motion, null: Null, cfg, noise, beta: float = 1.0, alpha: floa
         if name == "datum":
             # the gradients moved by the shift become part of the model; test again
             found.append(dat["entry"])
-            extra = _plus(extra, *(c * dat["entry"]["size"] for c in datum))
+            extra = plus_drift(extra, *(c * dat["entry"]["size"] for c in datum))
             datum = None  # one datum shift
             continue
         if name == "balise_scatter":
@@ -295,14 +295,9 @@ def structure(mo: Motion, null: Null, cfg, noise, beta: float = 1.0, alpha: floa
                     break
         found.append(_signature(mo, name, R, labels, th, cells, phase))
         # the cells found become part of the model; test again for what is left
-        extra = _plus(extra, ig[name][0][:, cells] @ th[cells], ig[name][1][:, cells] @ th[cells])
+        extra = plus_drift(extra, ig[name][0][:, cells] @ th[cells],
+                           ig[name][1][:, cells] @ th[cells])
     return found, tests
-
-
-def _plus(extra, add_v: np.ndarray, add_s: np.ndarray) -> tuple:
-    """The found drift ``extra`` ((Bv, Bs) at the events, or None) with (``add_v``, ``add_s``)
-    added: what an entry of the structure test puts into the model the next round tests."""
-    return (add_v, add_s) if extra is None else (extra[0] + add_v, extra[1] + add_s)
 
 
 def _attribute_phase(mo: Motion, st: Stage, pattern: np.ndarray, extra, cell_z: float,

@@ -268,15 +268,20 @@ class Stage:
         return self.fit({}, [])[2]
 
 
+def plus_drift(extra, add_v: np.ndarray, add_s: np.ndarray) -> tuple:
+    """The found drift ``extra`` ((Bv, Bs) at the events, or None) with (``add_v``, ``add_s``)
+    added: what an entry of the structure test puts into the model the next round tests, and
+    a stage's fixed drift (fv, fs) with what the rounds found so far."""
+    return (add_v, add_s) if extra is None else (extra[0] + add_v, extra[1] + add_s)
+
+
 def fit_columns(st: Stage, Bv: np.ndarray | None, Bs: np.ndarray | None, extra=None,
                 meas=None, bal=None):
     """GLS of free drift columns (Bv, Bs), or with Bv, Bs None of free odometer measurement
     columns ``meas`` = (Md, Mv) or balise measurement columns ``bal``, on top of the stage's
     model (plus fixed extra drift): (chi-square statistic 2 dll, theta, se)."""
-    fv, fs = st.fv, st.fs
-    if extra is not None:
-        fv, fs = fv + extra[0], fs + extra[1]
-    kf = st.augmented(fv, fs, drift=None if Bv is None else (Bv, Bs), meas=meas, bal=bal)
+    kf = st.augmented(*plus_drift(extra, st.fv, st.fs),
+                      drift=None if Bv is None else (Bv, Bs), meas=meas, bal=bal)
     q0 = gls(kf.W[:2, :2])[2]
     th, cov, q1 = gls(kf.W)
     se = np.sqrt(np.clip(np.diag(cov), 0.0, None))
