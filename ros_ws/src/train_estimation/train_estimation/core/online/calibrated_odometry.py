@@ -245,8 +245,18 @@ class DistanceAsPosition:
         if seq != self.odo_seq and not fields.get(SEQ_MADE):
             # the sensor's counter speaks: it went back (a reboot) or it went on
             self.jump = None
-            return (self._splice(stamp, d) if 0 <= seq < self.odo_seq and d >= 0.0
-                    else None), ""
+            if not (0 <= seq < self.odo_seq and d >= 0.0):
+                return None, ""
+            # went back: a reboot, whose count began again after the sensor's last reading
+            # (fused or not), so it is at most the travel since that reading; a count beyond it
+            # is no reboot's (a counter that wrapped with its count going on, or one corrupted
+            # message: the fuzz sent the counter's jump to 2^32 - 1 and, next, a copy with a
+            # count 1e6 m on and a counter below it, whose splice put every later genuine
+            # reading 1e6 m off the count, refused for 100 s)
+            heard = self.odo if self.odo_heard is None or self.odo_heard[0] < self.odo[0] \
+                else self.odo_heard
+            trap, slack, bound = self._course(heard, stamp, v, rv)
+            return (self._splice(stamp, d) if d <= trap + slack + bound else None), ""
         here = (stamp, d + self.splice, v)
         # the sensor's last word before this one, fused or not: a sensor that sent readings
         # did not reboot meanwhile (refused ones included: a stuck count refused reading after
