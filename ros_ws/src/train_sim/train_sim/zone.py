@@ -98,11 +98,11 @@ the new timeline (by the time between the two reports' arrivals).
 from __future__ import annotations
 
 import math
-import traceback
 from dataclasses import dataclass, field
 from statistics import NormalDist
 
 from train_core.config import param, require, require_finite
+from train_core.failsafe import guarded
 
 CLOCK_RES = 1e-6  # s: the zone clock's resolution as read here (a float Unix time resolves
 #   2.4e-7 s; a ROS time 1 ns): an arrival later than now by more is a clock that went back
@@ -339,39 +339,20 @@ class ZoneController:
     failure: str | None = None  # what failed ("call: Type: message"), once latched
     failure_trace: str = ""  # its traceback, for the node's log
 
-    def _guarded(self, call: str, fn, *args):
-        """``fn(*args)``, or with ``fail_safe`` the failure latched if it raises: the
-        zone's state after a half-done update is not trusted to separate trains (None)."""
-        if not self.fail_safe:
-            return fn(*args)
-        try:
-            return fn(*args)
-        except Exception as exc:  # noqa: BLE001 - the node's last resort: every train braked
-            self.failure = f"{call}: {type(exc).__name__}: {exc}"[:300]
-            self.failure_trace = traceback.format_exc()
-            return None
-
-    def report(self, train_id: str, rep: TrainReport) -> str:
-        """:meth:`_report`; once failed (``fail_safe``), every report refused as FAILED."""
-        if self.failure is None:
-            kind = self._guarded("report", self._report, train_id, rep)
-            if kind is not None:
-                return kind
+    def _failed_report(self, train_id: str, _rep=None) -> str:
+        """A report once failed (``fail_safe``): refused as FAILED, counted."""
         self.rejected[FAILED] = self.rejected.get(FAILED, 0) + 1
         self.last_refusal = (train_id, FAILED, self.failure)
         return FAILED
 
-    def authorities(self, now: float, train_ids: list[str]) -> list[Authority]:
-        """:meth:`_authorities`; once failed (``fail_safe``), every train braked, no
-        authority (end -inf, as a train not yet heard of)."""
-        if self.failure is None:
-            out = self._guarded("authorities", self._authorities, now, train_ids)
-            if out is not None:
-                return out
+    def _failed_authorities(self, _now: float, train_ids: list[str]) -> list[Authority]:
+        """Once failed (``fail_safe``): every train braked, no authority (end -inf, as a train
+        not yet heard of)."""
         return [Authority(tid, -math.inf, 0.0, True, f"{FAILED}: {self.failure}", "failed")
                 for tid in train_ids]
 
-    def _report(self, train_id: str, rep: TrainReport) -> str:
+    @guarded(_failed_report)
+    def report(self, train_id: str, rep: TrainReport) -> str:
         """Store a train's report; returns "" if accepted or the kind of refusal (one of
         :data:`KINDS`, counted in ``rejected``; ``last_refusal`` holds the detail). Never
         raises on any report content."""
@@ -578,7 +559,8 @@ class ZoneController:
         speed += a * age
         return front + speed * speed / (2.0 * f_low * self.params.emergency_decel)
 
-    def _authorities(self, now: float, train_ids: list[str]) -> list[Authority]:
+    @guarded(_failed_authorities)
+    def authorities(self, now: float, train_ids: list[str]) -> list[Authority]:
         """One authority per train in ``train_ids`` at zone-controller time ``now`` (s)."""
         p = self.params
         unsafe = {tid: self.unsafe(tid, now) if tid in self.reports else ("no estimate", "")

@@ -78,16 +78,15 @@ stream; a reading older than the history is refused by the estimator's own
 
 from __future__ import annotations
 
-import functools
 import heapq
 import math
 import statistics
-import traceback
 from collections import Counter, deque
 from dataclasses import dataclass, field
 from typing import Protocol
 
 import numpy as np
+from train_core.failsafe import guarded
 
 from .. import reasons as R
 from ..numerics.clocks import (
@@ -191,28 +190,6 @@ def _content(kind: str, fields: dict) -> str:
     return ""
 
 
-def _fail_safe(on_failure):
-    """A runner call that, with :attr:`EstimatorRunner.fail_safe`, never raises: an exception
-    from the core (a defect, or an input no check foresaw) latches the runner as failed
-    (:meth:`EstimatorRunner._fail`) and ``on_failure`` answers this call and every later
-    one. The state the exception left is not trusted again: a half-applied update is not a
-    state the filter's covariance describes. Without ``fail_safe`` (offline analysis, tests,
-    the campaign) the exception propagates, so that it is seen and counted."""
-    def wrap(method):
-        @functools.wraps(method)
-        def call(self, *args, **kw):
-            if self.failure is None:
-                if not self.fail_safe:
-                    return method(self, *args, **kw)
-                try:
-                    return method(self, *args, **kw)
-                except Exception as exc:  # noqa: BLE001 - the node's last resort: latched,
-                    self._fail(method.__name__, exc)  # logged, ALARM published from here
-            return on_failure(self, *args, **kw)
-        return call
-    return wrap
-
-
 @dataclass
 class EstimatorRunner:
     adapter: Adapter
@@ -295,7 +272,7 @@ class EstimatorRunner:
     _base: tuple | None = None  # (the adapter's snapshot taken by settle, [(filter time,
     #   fields) of each control call since]); None once any other call changed the adapter
     fail_safe: bool = False  # an exception inside a call latches the runner as failed (ALARM
-    #   from then on, :func:`_fail_safe`) instead of propagating: the nodes' setting
+    #   from then on, :mod:`train_core.failsafe`) instead of propagating: the nodes' setting
     failure: str | None = None  # what failed ("call: Type: message"), once latched
     failure_trace: str = ""  # its traceback, for the node's log
     _alarms: list = field(default_factory=list)  # ALARM estimates not yet returned (failed)
@@ -336,7 +313,7 @@ class EstimatorRunner:
                                 false_step_rate=self.false_step_rate, count=self.count_clock)
 
     # -- door ---------------------------------------------------------------------------------
-    @_fail_safe(lambda self, *a, **k: self._failed_push(*a, **k))
+    @guarded(lambda self, *a, **k: self._failed_push(*a, **k))
     def push(self, kind: str, stamp: float, fields: dict, recv: float | None = None,
              wall: float | None = None) -> str:
         """Check and queue one item; returns "" or the reason it was refused at the door.
@@ -789,7 +766,7 @@ class EstimatorRunner:
                 self._adapter_seen[name] = n
                 self._event(kind, stamp, f"{name}: {R.DESCRIPTION.get(name, '')}")
 
-    @_fail_safe(lambda self, *a, **k: self._failed_nothing(*a, **k))
+    @guarded(lambda self, *a, **k: self._failed_nothing(*a, **k))
     def settle(self) -> None:
         """Copy the adapter's state now, for the next odometer reading's rewind point
         (:class:`_Replayed`), unless a copy taken since the last change still stands: called
@@ -999,7 +976,7 @@ class EstimatorRunner:
         self._last_out = t
         self._out_applied = t
 
-    @_fail_safe(lambda self, *a, **k: self._failed_outputs(*a, **k))
+    @guarded(lambda self, *a, **k: self._failed_outputs(*a, **k))
     def advance_to(self, t: float) -> list[Output]:
         """Process everything queued with stamp <= t; the estimates that became due."""
         out: list[Output] = []
@@ -1137,7 +1114,7 @@ class EstimatorRunner:
         return med is not None and (med.judged or
                                     (len(med) >= 3 and med.near(med.value) >= 3))
 
-    @_fail_safe(lambda self, *a, **k: self._failed_outputs(*a, **k))
+    @guarded(lambda self, *a, **k: self._failed_outputs(*a, **k))
     def tick(self, now: float) -> list[Output]:
         """The estimates that became due by the arrival clock alone at ``now`` (s, as
         ``recv``): the nodes call it from a timer and after each message, the replays at the
@@ -1160,7 +1137,7 @@ class EstimatorRunner:
             return []
         return self.advance_to(due)
 
-    @_fail_safe(lambda self, *a, **k: self._failed_ready(*a, **k))
+    @guarded(lambda self, *a, **k: self._failed_ready(*a, **k))
     def ready_time(self, now: float, delay: float, fallback: float,
                    wall: float | None = None) -> float:
         """Latest stamp (train clock) a live node can process at clock ``now`` without racing
@@ -1247,14 +1224,6 @@ class EstimatorRunner:
         return self.advance_to(max(item[0] for item in self.queue))
 
     # -- failed (fail_safe) ----------------------------------------------------------------------
-    def _fail(self, call: str, exc: Exception) -> None:
-        """Latch the failure: from here on every odometer reading pushed is answered by an
-        ALARM estimate at its stamp (:meth:`_failed_push`) and nothing is fused. The filter
-        is not restarted: where the train is after a half-done update is not known to it,
-        and a restart from the start parameters would claim the train is there."""
-        self.failure = f"{call}: {type(exc).__name__}: {exc}"[:300]
-        self.failure_trace = traceback.format_exc()
-
     def _failed_push(self, kind: str, stamp, fields=None, recv=None, wall=None) -> str:
         """A message after the failure: refused (counted), and an odometer reading's slot
         published as ALARM, stamped as the reading, in order after the last estimate, at the
