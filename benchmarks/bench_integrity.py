@@ -147,7 +147,11 @@ def run_task(task: dict) -> dict:
     fault = task["fault"]
     end = task["duration"]
     events = [e for e in res.events() if e[1] <= end]
-    tr = {k: np.asarray(v)[np.asarray(res.truth["t"]) <= end] for k, v in res.truth.items()}
+    # the truth a second past the end where simulated: estimates stamped up to a second past
+    # the last reading (a corrupted stamp's slot) are judged against the train, not its last
+    # position (F.score judges none past the truth's end)
+    tr = {k: np.asarray(v)[np.asarray(res.truth["t"]) <= end + 1.0]
+          for k, v in res.truth.items()}
     row = dict(task, exceptions=0, error="")
     try:
         adapter = make_adapter(sc, task["estimator"], fault, **task.get("config", {}))

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from train_estimation.core.online.replay import replay
-from train_estimation.core.online.runner import Output
+from train_estimation.core.online.runner import EstimatorRunner, Output
 from train_estimation.tools import faults as F
 
 sys.path.insert(0, os.path.dirname(__file__))
@@ -202,6 +202,45 @@ def test_score_counts_wrong_side_and_time_to_alarm():
     s = F.score([_out(F.EPOCH + 6.0, 3.0, -1.0)], np.array([F.EPOCH + 6.05]), fl, truth,
                 10.0, 20.0)
     assert s["wrong_side"] == 1 and s["bad_cov"] == 1 and s["tta"] == math.inf
+
+
+def test_an_estimate_past_the_truths_end_is_not_judged_by_its_last_place():
+    """A train running at 10 m/s, its truth ending at 19.9 s, estimated right to 20.4 s: the
+    five estimates stamped past the truth are not judged (held at its last place the truth
+    read them 1-5 m off with a 0.1 m sigma: wrong-side, hazardous and misleading), and within
+    a second of the run they are no off-run either."""
+    t = 0.1 * np.arange(200)
+    truth = {"t": t, "position": 10.0 * t}
+    fl = F.Faulted([], F.TrainClock(), onset=0.0, end=0.0)
+    ts = 0.1 * np.arange(205)
+    outs = [_out(F.EPOCH + u, 10.0 * u, 0.01) for u in ts]
+    s = F.score(outs, F.EPOCH + ts + F.LATENCY, fl, truth, 10.0, 20.5)
+    assert (s["wrong_side"], s["hazards"], s["misleading"], s["off_run"]) == (0, 0, 0, 0), s
+
+
+@pytest.mark.parametrize("ahead", [0.5, 2.0])
+def test_the_replays_end_publishes_nothing_stamped_past_the_trains_present(ahead):
+    """At the stream's end an odometer item stamped ``ahead`` s past the last reading is
+    queued (a corrupted copy the door admitted: a fuzzed 50 Hz stream's copies 5 s ahead had
+    voted the clock's ceiling there, so nothing below it was ahead of the clock). A live node
+    would fuse it (or refuse it) only once its stamp came; the replay's drain at the last
+    arrival published every slot up to it, predictions as if the train were there already
+    (a zone controller then granted the train behind an authority past this one's rear). The
+    clean run's estimates stand and none is stamped past the present."""
+    sc, res = run("metro_demo", 1, 40.0)
+    events = F.inject(res.events(), F.Fault("none"), np.random.default_rng(0)).events
+    last = max((e for e in events if e[0] == "odometer"), key=lambda e: e[1])
+
+    class Copied(EstimatorRunner):
+        def drain(self):
+            self._queue("odometer", last[1] + ahead, dict(last[2]))
+            return super().drain()
+
+    period = 1.0 / sc.odometer_rate
+    outs0, _ = replay(events, adapter(sc, "kf"), period)
+    outs, _ = replay(events, None, period, runner=Copied(adapter(sc, "kf"), period))
+    assert max(o.stamp for o in outs) <= last[1] + 0.5 * period
+    assert [o.stamp for o in outs] == [o.stamp for o in outs0]
 
 
 @pytest.mark.parametrize("fault", [
