@@ -10,6 +10,8 @@ import pytest
 from train_estimation.core.numerics.clocks import LATE
 from train_estimation.core.online.replay import replay
 from train_estimation.core.online.runner import EstimatorRunner
+from train_sim.scenario import load_scenario
+from train_sim.world import simulate
 
 sys.path.insert(0, os.path.dirname(__file__))
 from clocks import adapter, errors, restamp, run, run_replay  # noqa: E402
@@ -425,3 +427,27 @@ def test_a_backlog_alone_judges_its_clocks(kind):
         newest = max(s for k, s, _, _ in ev if k == "odometer")
         assert got == on_time[:len(got)], (clock, got, on_time)
         assert len(got) >= sum(t <= newest - LATE for t in on_time), (clock, got, on_time)
+
+
+def test_a_copy_stamped_ahead_as_the_clock_is_first_judged_lifts_no_ceiling():
+    """A 50 Hz odometer fuzzed at five corrupted messages per clean one: within 0.1 s the
+    train clock has its settled votes, and the step watch judged the first readings while it
+    had not (nothing is ahead of an unjudged clock). One copy stamped 5 s ahead came so and
+    voted, and as the clock's ceiling (the largest offset, where latency is least) it hid
+    every stamp below +4.95 s for the rest of the run: copies 0.5 and 5 s ahead were taken
+    as on their clock, and the train was lost for 160 s (crh3_high_speed, the KF 653 m off
+    under ALARM). Only an offset judged against its clock lifts the ceiling. (The campaign's
+    draw of that case: the copy must come at the instant the clock is first judged; eight
+    other draws never lifted it.)"""
+    import zlib
+
+    from train_estimation.tools import faults as F
+
+    sc = load_scenario("crh3_high_speed").with_changes(odometer_rate=50.0)
+    res = simulate(sc, 0, 20.0)
+    fault = F.Fault("fuzz", 5.0, 0.0)
+    case = zlib.crc32(f"crh3_high_speed|{fault.label}|{fault.at}".encode())
+    fl = F.inject(res.events(), fault, np.random.default_rng([0, case]))
+    outs, r = replay(fl.events, adapter(sc, "kf"), 1.0 / 50.0)
+    clock = r._offsets["train"]
+    assert clock.ceiling - clock.value < LATE, (clock.ceiling, clock.value)
