@@ -242,6 +242,11 @@ class DistanceAsPosition:
         if not (math.isfinite(d) and math.isfinite(v) and math.isfinite(rv) and rv > 0.0
                 and stamp > self.odo[0]):
             return None, ""
+        # the sensor's last word before this one, fused or not: a sensor that sent readings
+        # did not reboot meanwhile (refused ones included: a stuck count refused reading after
+        # reading is no silence)
+        heard = self.odo if self.odo_heard is None or self.odo_heard[0] < self.odo[0] \
+            else self.odo_heard
         if seq != self.odo_seq and not fields.get(SEQ_MADE):
             # the sensor's counter speaks: it went back (a reboot) or it went on
             self.jump = None
@@ -253,16 +258,9 @@ class DistanceAsPosition:
             # message: the fuzz sent the counter's jump to 2^32 - 1 and, next, a copy with a
             # count 1e6 m on and a counter below it, whose splice put every later genuine
             # reading 1e6 m off the count, refused for 100 s)
-            heard = self.odo if self.odo_heard is None or self.odo_heard[0] < self.odo[0] \
-                else self.odo_heard
             trap, slack, bound = self._course(heard, stamp, v, rv)
             return (self._splice(stamp, d) if d <= trap + slack + bound else None), ""
         here = (stamp, d + self.splice, v)
-        # the sensor's last word before this one, fused or not: a sensor that sent readings
-        # did not reboot meanwhile (refused ones included: a stuck count refused reading after
-        # reading is no silence)
-        heard = self.odo if self.odo_heard is None or self.odo_heard[0] < self.odo[0] \
-            else self.odo_heard
         if self.odo_heard is None or stamp > self.odo_heard[0]:
             self.odo_heard = here
         off = self._off_course(self.odo, here, rv)
