@@ -3,6 +3,7 @@
 
     ./run bench balise_scatter --quick         # 8 bags per row: about 1 min
     ./run bench balise_scatter --seeds 20      # 20 bags per row
+    ./run bench balise_scatter --checks --seeds 20   # the correlation and dependence tests
 
 The scatter test (docs/diagnose.md, "What is left"; ``balise_rounds.scatter_round``) on its own, in
 the first round of the structure test under the believed model, at its share of diagnose's
@@ -19,6 +20,7 @@ import argparse
 import contextlib
 import dataclasses
 import io
+import math
 import sys
 import tempfile
 from pathlib import Path
@@ -30,10 +32,11 @@ import numpy as np
 ROUND_ALPHA = 1e-3 / 9
 
 
-def scatter_on_case(seed: int, k: float = 1.0, alpha: float = ROUND_ALPHA) -> dict:
-    """The scatter test's figures (``scatter_round``) on case ``seed``'s bag, its balise
-    reader's errors ``k`` times the stated SD; plus ``family``."""
-    from train_estimation.core.offline.diagnose.balise_rounds import scatter_round
+def _case(seed: int, k: float = 1.0, error=None):
+    """(Motion, Stage under the believed model, family) of case ``seed``'s bag, its balise
+    reader's errors ``k`` times the stated SD; ``error(rng, speed, sd)``: instead, the reader
+    reads without error and each reading gets ``error``'s value (m) added, ``speed`` the
+    odometer's speed at the readings, ``sd`` the stated SD (rng: [seed, 37])."""
     from train_estimation.core.offline.diagnose.motion import Motion
     from train_estimation.core.offline.diagnose.run import DiagConfig, prepare
     from train_estimation.core.offline.diagnose.stage import Null, Stage
@@ -43,22 +46,92 @@ def scatter_on_case(seed: int, k: float = 1.0, alpha: float = ROUND_ALPHA) -> di
 
     case = make_case(np.random.default_rng([seed, 31]), None, "plain")
     sc, train = case.scenario, case.scenario.train
-    true = sc.with_changes(train=dataclasses.replace(
-        train, balise_position_std=k * train.balise_position_std))
+    sd = k * train.balise_position_std if error is None else 1e-6
+    true = sc.with_changes(train=dataclasses.replace(train, balise_position_std=sd))
     with tempfile.TemporaryDirectory() as d:
         with contextlib.redirect_stdout(io.StringIO()):
             generate(true, Path(d) / "bag", measured=True)
         data = read_measured(Path(d) / "bag")
-    data = dataclasses.replace(data, balise_variance=np.full(
+    pos = data.balise_position
+    if error is not None:
+        v = np.interp(data.balise_stamp, data.odo_stamp, data.odo_speed)
+        pos = pos + error(np.random.default_rng([seed, 37]), v, train.balise_position_std)
+    data = dataclasses.replace(data, balise_position=pos, balise_variance=np.full(
         data.balise_variance.size, train.balise_position_variance))
     cfg = DiagConfig()
     run = prepare(data, sc.line, cfg, train)
     mo = Motion(run, sc.line, train, cfg)
     null = Null(shift=Stage(mo, Null(), cfg).nuisance_shift()[0])
-    st = Stage(mo, null, cfg, big=False)
+    return mo, Stage(mo, null, cfg, big=False), case.family
+
+
+def scatter_on_case(seed: int, k: float = 1.0, alpha: float = ROUND_ALPHA) -> dict:
+    """The scatter test's figures (``scatter_round``) on case ``seed``'s bag, its balise
+    reader's errors ``k`` times the stated SD; plus ``family``."""
+    from train_estimation.core.offline.diagnose.balise_rounds import scatter_round
+
+    mo, st, family = _case(seed, k)
     out = scatter_round(mo, st, None, [], alpha)
-    out["family"] = case.family
+    out["family"] = family
     return out
+
+
+def _ar1(rho: float):
+    """A reader error that varies slowly: AR(1) from one reading to the next, correlation
+    ``rho``, the stated SD as its marginal SD (the scatter as stated)."""
+    def error(rng, v, sd):
+        e = np.empty(v.size)
+        x = sd * rng.standard_normal()
+        for j in range(v.size):
+            e[j] = x
+            x = rho * x + math.sqrt(1.0 - rho * rho) * sd * rng.standard_normal()
+        return e
+    return error
+
+
+def _jitter(rng, v, sd):
+    """A reader's timing jitter: each error's SD in proportion to the speed the balise was
+    passed at, the stated SD at the readings' RMS speed (the scatter as stated on the whole)."""
+    return sd * v / math.sqrt(float(np.mean(v * v))) * rng.standard_normal(v.size)
+
+
+# the balise readings' residual checks' effects (none: the reader as stated)
+EFFECTS = {"none": None, "ar1_0.9": _ar1(0.9), "ar1_0.7": _ar1(0.7), "jitter": _jitter}
+
+
+def checks_on_case(seed: int, effect: str = "none", alpha: float = 1e-3) -> dict:
+    """diagnose's balise readings' checks (``phases.balise_residuals``, at its ``alpha``) under
+    the believed model on case ``seed``'s bag with the reader's ``effect`` (:data:`EFFECTS`);
+    plus ``family``."""
+    from train_estimation.core.offline.diagnose.phases import balise_residuals
+
+    mo, st, family = _case(seed, error=EFFECTS[effect])
+    out = balise_residuals(mo, st.null, st.cfg, (st.q, st.r_s), [], alpha)
+    out["family"] = family
+    return out
+
+
+def _checks_table(n: int) -> int:
+    print("| reader | bags | tested (>= 8 readings) | readings | found (alpha 1e-3) | "
+          "correlation | speed | distance |")
+    print("|---|---|---|---|---|---|---|---|")
+    for effect in EFFECTS:
+        rows = []
+        for seed in range(n):
+            r = checks_on_case(seed, effect)
+            rows.append(r)
+            print(f"  seed {seed} {r['family']}: {r['readings']} readings, "
+                  + (", ".join(f"{k} p {r[k]['p']:.2g}" for k in ("correlation", "speed",
+                                                                    "distance") if "p" in r[k])
+                     if r["tested"] else r.get("note", "")), file=sys.stderr, flush=True)
+        tested = [r for r in rows if r["tested"]]
+        k = [r["readings"] for r in rows]
+        hits = {c: sum(r[c]["finding"] for r in tested) for c in ("correlation", "speed",
+                                                                  "distance")}
+        print(f"| {effect} | {n} | {len(tested)} | {min(k)}-{max(k)} | "
+              f"{sum(r['finding'] for r in tested)} | {hits['correlation']} | {hits['speed']} | "
+              f"{hits['distance']} |", flush=True)
+    return 0
 
 
 def main(argv=None) -> int:
@@ -67,10 +140,16 @@ def main(argv=None) -> int:
     ap.add_argument("--seeds", type=int, default=20, help="bags per row (default 20)")
     ap.add_argument("--k", type=float, nargs="*", default=[1.0, 2.0, 3.0],
                     help="the reader's errors over the stated SD, one row each")
+    ap.add_argument("--checks", action="store_true",
+                    help="instead, the readings' correlation in time and dependence on speed "
+                         "and distance (phases.balise_residuals, alpha 1e-3), one row per "
+                         "reader effect: " + ", ".join(EFFECTS))
     args = ap.parse_args(argv)
     n = 8 if args.quick else args.seeds
     if n < 1 or any(not k > 0 for k in args.k):
         ap.error("--seeds must be >= 1 and every --k > 0")
+    if args.checks:
+        return _checks_table(n)
     print(f"| k (errors / stated SD) | bags | found (alpha {ROUND_ALPHA:.2g}) | families | "
           "variance scale | p |")
     print("|---|---|---|---|---|---|")

@@ -19,9 +19,11 @@ import bench_balise_scatter as BS  # noqa: E402
 
 from train_estimation.core.offline.diagnose.residuals import (
     MAX_PERIOD,
+    balise_checks,
     count_consistency,
     dependence_test,
     ljung_box,
+    positive_sf,
     scatter_test,
     sensor_checks,
     spline_residuals,
@@ -363,3 +365,116 @@ def test_diagnose_names_a_noisy_balise_reader_not_a_misplaced_balise(tmp_path):
     assert u["phase"] == "all" and 1.5 < u["size"] < 6.0, u
     assert unexplained_size(u).endswith("of the stated SD")
     assert "scatter about the odometer's track" in unexplained_line(u)
+
+
+# -- the balise readings' correlation in time and dependence on speed and distance -------
+
+def test_the_weighted_chi_square_tail_is_exact():
+    """positive_sf against closed forms: two weights (g1^2 / g2^2 is F(1, 1): 1 - 2/pi
+    arctan sqrt(b / a)), one positive against fourteen equal negative ones (F(1, 14)), down to
+    tail probabilities of 4e-5; and the all-one-sign and the empty cases."""
+    from scipy.stats import f as fdist
+
+    for a, b in ((1.0, 1.0), (1.0, 4.0), (1.0, 100.0), (3.0, 0.01)):
+        exact = 1.0 - 2.0 / np.pi * np.arctan(np.sqrt(b / a))
+        assert positive_sf(np.array([a, -b])) == pytest.approx(exact, rel=1e-9, abs=1e-12)
+    for w in (60.0, 8.0, 1.0, 0.4):
+        exact = fdist.sf(14.0 / w, 1, 14)
+        got = positive_sf(np.r_[np.full(14, -1.0), w] * 3.7)  # the scale does not matter
+        assert got == pytest.approx(exact, rel=1e-6), (w, got, exact)
+    assert positive_sf(np.array([1.0, 2.0, 0.0])) == 1.0
+    assert positive_sf(np.array([-1.0, -2.0])) == 0.0
+    assert positive_sf(np.zeros(3)) == 0.5
+
+
+def _origin_cov(rng, n):
+    """(C, c, I_s0): the covariance a fitted origin leaves n whitened innovations, I - c c^T /
+    I_s0, the origin's column c over the balises carrying part of its information I_s0 (the
+    odometer's innovations the rest)."""
+    c = rng.uniform(0.3, 1.0, n)
+    info = float(c @ c) + rng.uniform(0.0, 2.0)
+    return np.eye(n) - np.outer(c, c) / info, c, info
+
+
+def _fitted(rng, err, c, info):
+    """The whitened innovations at the fitted origin of readings whose errors are ``err``
+    (whitened by the stated SD): the origin's error is (c^T err + the odometer's share) /
+    I_s0, and its covariance is C for white ``err``."""
+    other = np.sqrt(info - float(c @ c)) * rng.standard_normal()
+    return err - c * (float(c @ err) + other) / info
+
+
+def test_the_balise_checks_hold_their_false_alarm_rate_at_every_size():
+    """Under the stated readings (z ~ N(0, C), C what the fitted origin leaves), each of the
+    three exact tests at 10 to 40 readings: the p-values uniform (alarms at 0.05 and 0.2 within
+    the binomial 99.9 % bounds over 600 runs per size)."""
+    rng = np.random.default_rng(11)
+    runs = 600
+    for n in (10, 20, 40):
+        ps = {"correlation": [], "speed": [], "distance": []}
+        for _ in range(runs):
+            C, c, info = _origin_cov(rng, n)
+            z = _fitted(rng, rng.standard_normal(n), c, info)
+            v = rng.uniform(5.0, 25.0, n)
+            x = np.sort(rng.uniform(0.0, 8000.0, n))
+            out = balise_checks(z, C, v, x, alpha=1e-3)
+            for k in ps:
+                ps[k].append(out[k]["p"])
+        for k, p in ps.items():
+            p = np.array(p)
+            for a in (0.05, 0.2):
+                lo, hi = binom.ppf([0.0005, 0.9995], runs, a)
+                assert lo <= np.sum(p < a) <= hi, (n, k, a, np.sum(p < a))
+
+
+def test_the_balise_checks_find_what_each_is_for():
+    """Ten runs of 120 readings (a fleet's passes, or hours of one train; a 10-minute bag has
+    7-16 and the tests there have little power: docs/benchmarks.md): an error that varies
+    slowly (AR(1), correlation 0.8 from one reading to the next) is found as a correlation in
+    time in every run (100 of 100 in a longer draw); errors whose SD grows fivefold with the
+    speed (power 0.96 at 120 readings: 96 of 100 runs) as a dependence on speed in at least 8
+    of 10 (P(fewer) = 6e-3 at that power), on distance in at most 1; white noise of the
+    stated SD as neither in at least 9."""
+    rng = np.random.default_rng(12)
+    n = 120
+    found = {"correlation": 0, "speed": 0, "distance": 0, "white": 0}
+    for _ in range(10):
+        C, c, info = _origin_cov(rng, n)
+        v = rng.uniform(5.0, 25.0, n)
+        x = np.sort(rng.uniform(0.0, 8000.0, n))
+
+        def whitened(err, c=c, info=info):  # the innovations with the origin fitted
+            return _fitted(rng, err, c, info)
+
+        e = np.empty(n)
+        e[0] = rng.standard_normal()
+        for k in range(1, n):
+            e[k] = 0.8 * e[k - 1] + 0.6 * rng.standard_normal()
+        out = balise_checks(whitened(e), C, v, x)
+        found["correlation"] += out["correlation"]["finding"] and out["correlation"]["lag1"] > 0.4
+        if out["correlation"]["finding"]:
+            assert "correlated from one reading to the next" in out["signature"]
+        jit = v * rng.standard_normal(n) / np.sqrt(np.mean(v * v))
+        out = balise_checks(whitened(jit), C, v, x)
+        found["speed"] += out["speed"]["finding"] and out["speed"]["ratio"][1] > \
+            2 * out["speed"]["ratio"][0]
+        found["distance"] += out["distance"]["finding"]
+        found["white"] += balise_checks(whitened(rng.standard_normal(n)), C, v, x)["finding"]
+    assert found["correlation"] == 10 and found["speed"] >= 8, found
+    assert found["distance"] <= 1 and found["white"] <= 1, found
+    # too few readings: not tested, said so
+    out = balise_checks(np.ones(5), np.eye(5), v[:5], x[:5])
+    assert out["tested"] is False and "fewer than" in out["note"]
+
+
+@pytest.mark.slow
+def test_the_balise_checks_hold_their_false_alarm_rate_on_nominal_bags():
+    """12 nominal case bags (several families) under the believed model at alpha 1e-3: at most
+    one alarm (P(X >= 2) = 6.6e-5 at that rate); tested wherever a bag has 8 readings."""
+    res = [BS.checks_on_case(seed) for seed in range(12)]
+    for seed, r in enumerate(res):
+        print(f"seed {seed} {r['family']}: {r['readings']} readings, tested {r['tested']}, "
+              + ", ".join(f"{k} p {r[k]['p']:.2g}" for k in ("correlation", "speed", "distance")
+                          if k in r and "p" in r[k]))
+    assert sum(r["tested"] for r in res) >= 6, [r["readings"] for r in res]
+    assert sum(r["finding"] for r in res) <= 1, [r.get("signature") for r in res]

@@ -9,7 +9,7 @@ in the summary. The summary, the plots and report.html read entries through thes
 from __future__ import annotations
 
 from train_estimation.core.offline.diagnose.confirm import UNDECIDED
-from train_estimation.core.offline.diagnose.residuals import SENSOR_WHY
+from train_estimation.core.offline.diagnose.residuals import BALISE_WHY, SENSOR_WHY
 from train_estimation.core.offline.diagnose.verdict import (
     DATUM_WHY,
     LATENCY_WHY,
@@ -66,12 +66,12 @@ def datum_shift(u: dict) -> bool:
 
 
 def sensor_noise(u: dict) -> bool:
-    """An ``unexplained`` entry of odometer speed readings that are not the sensor stated (no
-    ``where`` nor ``when``, the reason beginning with ``SENSOR_WHY``): its size is the
-    readings' SD over the stated SD (docs/diagnose.md)."""
+    """An ``unexplained`` entry of odometer speed readings or balise readings that are not the
+    sensor stated (no ``where`` nor ``when``, the reason beginning with ``SENSOR_WHY`` or
+    ``BALISE_WHY``): its size is the readings' SD over the stated SD (docs/diagnose.md)."""
     best = u.get("best_listed") or {}
     return (not u.get("where") and not u.get("when")
-            and str(best.get("why", "")).startswith(SENSOR_WHY))
+            and str(best.get("why", "")).startswith((SENSOR_WHY, BALISE_WHY)))
 
 
 def balise_scatter(u: dict) -> bool:

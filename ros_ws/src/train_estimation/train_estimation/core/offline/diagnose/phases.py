@@ -53,6 +53,7 @@ import math
 
 import numpy as np
 
+from train_estimation.core.numerics.augmented_kf import gls
 from train_estimation.core.numerics.tails import chi2_logsf
 
 from .balise_rounds import (
@@ -392,3 +393,32 @@ def sensor_residuals(mo: Motion, null: Null, cfg, noise, alpha: float = 1e-3) ->
     return sensor_checks(mo.ev.t[o], mo.ev.y_v[o], mo.ev.r_v[o], mo.sc_v[o], mo.sc_d[o],
                          alpha, base=np.cumsum(st.fv)[o] + st.mv[o], cut=cut, raw=raw,
                          min_speed=cfg.standstill_speed)
+
+
+# the families of the structure test that model the balise readings or the count between them:
+# with one of them found, the readings' residuals are that entry's, not tested again
+READING_FAMILIES = ("balise", "balise_scatter", "balise_latency", "datum", "odometer")
+
+
+def balise_residuals(mo: Motion, null: Null, cfg, noise, found: list,
+                     alpha: float = 1e-3) -> dict:
+    """The balise readings' residual checks (:func:`.residuals.balise_checks`, ``alpha`` the
+    false-alarm rate of the three together) under the model ``null`` at ``noise``: their
+    whitened innovations with the count's origin at its GLS value, and the covariance that
+    fitting the origin leaves them."""
+    from .residuals import balise_checks
+
+    ev = mo.ev
+    kinds = sorted({u.get("family") for u in found} & set(READING_FAMILIES))
+    if kinds:
+        return {"readings": int(ev.bal.size), "tested": False, "finding": False,
+                "signature": None, "note": f"the readings' structure is an entry ({kinds[0]})"}
+    st = Stage(mo, null, cfg, noise=noise, big=False)
+    kf = st.augmented(st.fv, st.fs, keep_innov=True)  # [data, s0]
+    s0 = gls(kf.W)[0][0]
+    z = kf.Z_bal[:, 0] + s0 * kf.Z_bal[:, 1]
+    c = kf.Z_bal[:, 1]
+    cov = np.eye(z.size) - np.outer(c, c) / kf.W[1, 1] if kf.W[1, 1] > 0 else np.eye(z.size)
+    gi = np.clip(np.searchsorted(mo.grid.t, ev.t[ev.bal]), 0, mo.grid.t.size - 1)
+    return balise_checks(z, cov, np.asarray(mo.v_ref, float)[gi],
+                         np.asarray(mo.x_ref, float)[gi], alpha)

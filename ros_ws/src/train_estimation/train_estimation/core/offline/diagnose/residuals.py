@@ -50,6 +50,26 @@ verdict was ``none``). Three tests, each at a stated false-alarm rate under the 
 
 ``alpha`` of :func:`sensor_checks` is the false-alarm rate of the four together (shared out
 equally, Bonferroni).
+
+**The balise readings** (:func:`balise_checks`). Their scatter is a hypothesis of the structure
+test (``balise_rounds.scatter_round``); their correlation in time and their dependence on speed
+and distance are tested here, on the readings' whitened innovations z (the odometer's track
+through the model, the count's origin at its least-squares value). A run has ten to forty
+readings, too few for the asymptotic statistics above, so each test is exact: under the stated
+readings z is normal with covariance C = I - c c^T / I_s0 (c the origin's column of the
+whitened innovations, I_s0 its information: fitting the origin takes one degree of freedom),
+and each statistic is a ratio of quadratic forms T = z^T A z / z^T z, whose tail P(T >= r) =
+P(z^T (A - r I) z >= 0) is that of a weighted sum of chi-square variables with the
+eigenvalues of C^(1/2) (A - r I) C^(1/2) as weights (Imhof 1961, computed by
+:func:`positive_sf`). Two-sided, each at a third of ``alpha``:
+
+- **Correlation in time**: A the lag-1 products, T the readings' lag-1 autocorrelation. A
+  reader error that varies slowly (its timing drifting, a section of the map surveyed off the
+  same way) is positively correlated from one reading to the next.
+- **Dependence on speed** and **on distance**: A = diag(x - mean x), T the squared
+  innovations' covariance with x over their sum. A reader's timing jitter grows its errors
+  with the speed at which balises are passed; a count drifting from the balises, or a map
+  whose error grows along the line, with the distance.
 """
 
 from __future__ import annotations
@@ -325,3 +345,107 @@ def sensor_entry(checks: dict, speed: list) -> dict:
             "best_listed": {"cause": "odometer_scale",
                             "why": f"{SENSOR_WHY}: {checks['signature']}; a scale changes "
                                    "what it counts, not how its readings scatter"}}
+
+
+# -- the balise readings (module docstring) ----------------------------------------------------
+
+# nodes and weights of the Gauss-Legendre rule on [0, 1) for positive_sf's integral (400
+# nodes: within 1e-9 of the integral by adaptive quadrature at tail probabilities of 1e-5)
+_GL_S, _GL_W = np.polynomial.legendre.leggauss(400)
+_GL_S, _GL_W = 0.5 * (_GL_S + 1.0), 0.5 * _GL_W
+# readings the balise tests need (a lag-1 correlation of fewer says nothing at 1e-3)
+BALISE_MIN = 8
+
+
+def positive_sf(lam: np.ndarray) -> float:
+    """P(sum_j lam_j g_j^2 > 0), g_j independent standard normals (Imhof 1961, eq. 3.2 at
+    x = 0): 1/2 + (1/pi) int_0^inf sin(theta(u)) / (u rho(u)) du, theta(u) = sum_j
+    arctan(lam_j u) / 2, rho(u) = prod_j (1 + lam_j^2 u^2)^(1/4); u = s / (1 - s) maps the
+    integral onto [0, 1), where a fixed Gauss-Legendre rule takes it (no scipy.integrate,
+    whose import costs diagnose a fifth of a second)."""
+    lam = np.asarray(lam, float)
+    top = float(np.max(np.abs(lam))) if lam.size else 0.0
+    if top == 0.0:
+        return 0.5
+    lam = lam[np.abs(lam) > 1e-12 * top] / top  # the probability does not see the scale
+    if np.all(lam > 0):
+        return 1.0
+    if np.all(lam < 0):
+        return 0.0
+    u = _GL_S / (1.0 - _GL_S)
+    lu = lam[None, :] * u[:, None]
+    theta = 0.5 * np.sum(np.arctan(lu), axis=1)
+    rho = np.exp(0.25 * np.sum(np.log1p(lu * lu), axis=1))
+    f = np.sin(theta) / (u * rho) / (1.0 - _GL_S) ** 2
+    return float(min(max(0.5 + float(np.dot(_GL_W, f)) / math.pi, 0.0), 1.0))
+
+
+def ratio_test(z: np.ndarray, cov: np.ndarray, A: np.ndarray) -> tuple[float, float]:
+    """(T, p): T = z^T A z / z^T z and its two-sided p-value for z ~ N(0, ``cov``) (module
+    docstring)."""
+    T = float(z @ A @ z) / float(z @ z)
+    w, V = np.linalg.eigh(cov)
+    half = (V * np.sqrt(np.clip(w, 0.0, None))) @ V.T
+    upper = positive_sf(np.linalg.eigvalsh(half @ (A - T * np.eye(z.size)) @ half))
+    return T, float(min(1.0, 2.0 * min(upper, 1.0 - upper)))
+
+
+def balise_checks(z: np.ndarray, cov: np.ndarray, speed: np.ndarray, position: np.ndarray,
+                  alpha: float = 1e-3) -> dict:
+    """The balise readings' whitened innovations ``z`` (covariance ``cov`` under the stated
+    readings), in time order, with the speed and the position where each was read, against
+    white noise (module docstring): {readings, correlation, speed, distance, finding,
+    signature}; ``alpha`` the false-alarm rate of the three together."""
+    n = int(z.size)
+    out = {"readings": n, "alpha": alpha, "finding": False, "signature": None}
+    if n < BALISE_MIN or not np.all(np.isfinite(z)):
+        out["tested"] = False
+        out["note"] = f"fewer than {BALISE_MIN} balise readings"
+        return out
+    a = alpha / 3.0
+    out["tested"] = True
+    out["sd_ratio"] = math.sqrt(float(z @ z) / max(float(np.trace(cov)), 1.0))
+    lag = np.eye(n, k=1)
+    T, p = ratio_test(z, cov, 0.5 * (lag + lag.T))
+    out["correlation"] = {"lag1": T, "p": p, "finding": bool(p < a)}
+    words = []
+    if p < a:
+        words.append(f"their errors are correlated from one reading to the next (lag-1 "
+                     f"correlation {T:+.2f}, p {p:.2g})")
+    for name, x, unit in (("speed", speed, "m/s"), ("distance", position, "m")):
+        x = np.asarray(x, float)
+        dx = x - x.mean()
+        if not np.any(dx):
+            out[name] = {"tested": False, "finding": False}
+            continue
+        T, p = ratio_test(z, cov, np.diag(dx))
+        # the squared innovations' mean below and above x's median over their mean: what
+        # the variance does with x, in words a reader takes in
+        e2, mid = z * z, float(np.median(x))
+        m = float(e2.mean())
+        ratio = [float(e2[x <= mid].mean()) / m, float(e2[x > mid].mean()) / m] \
+            if np.any(x > mid) else [1.0, 1.0]
+        out[name] = {"T": T, "p": p, "ratio": ratio, "median": mid, "finding": bool(p < a)}
+        if p < a:
+            words.append(f"their error variance changes with {name} (x{ratio[0]:.2f} of the "
+                         f"mean below {mid:.0f} {unit}, x{ratio[1]:.2f} above; p {p:.2g})")
+    out["finding"] = bool(words)
+    out["signature"] = "; ".join(words) or None
+    return out
+
+
+# how the reason of a balise readings entry begins (tools.diagnose_unexplained tells the entry
+# by it, as the odometer's)
+BALISE_WHY = "the balise readings are not the sensor they state"
+
+
+def balise_entry(checks: dict, speed: list) -> dict:
+    """The ``unexplained`` entry of :func:`balise_checks`' finding (phase ``all``, no ``where``
+    nor ``when``: the whole run): ``size`` the readings' SD over the stated SD, ``speed`` [v0,
+    v1] m/s of the run, its signature as the reason."""
+    return {"phase": "all", "where": None, "when": None, "speed": speed,
+            "size": checks["sd_ratio"],
+            "best_listed": {"cause": "odometer_scale",
+                            "why": f"{BALISE_WHY}: {checks['signature']}; the listed "
+                                   "causes move the readings' mean (an odometer scale by a "
+                                   "share of the distance run), not how they scatter"}}

@@ -24,9 +24,9 @@ from .confirm import (
     without_evidence,
 )
 from .gain import GainContext
-from .phases import sensor_residuals, structure
+from .phases import balise_residuals, sensor_residuals, structure
 from .refit import joint_refit
-from .residuals import sensor_entry
+from .residuals import balise_entry, sensor_entry
 from .result import CauseFit, Diagnosis, clean, rounded
 from .series import series
 from .stage import Null, Stage
@@ -87,6 +87,10 @@ def conclude(sr: _Search, run, untestable: list, before: dict, noise,
     sens = sensor_residuals(mo, _null_of(mo, shift, confirmed, rivals), sr.cfg, noise)
     sensor = [sensor_entry(sens, _speeds(mo, beta, 0.0, mo.run.duration / beta))] \
         if sens["finding"] else []
+    # and the balise readings', unless the structure found their shape already
+    bal = balise_residuals(mo, _null_of(mo, shift, confirmed, rivals), sr.cfg, noise, found)
+    if bal["finding"]:
+        sensor.append(balise_entry(bal, _speeds(mo, beta, 0.0, mo.run.duration / beta)))
     law = [_rival_entry(a, r) for a, r in zip(
         [a for a in sr.accepted if a.status != "confirmed" and a.rival is not None], rivals)]
     verdict = confirmed[0].cause if confirmed else \
@@ -96,6 +100,7 @@ def conclude(sr: _Search, run, untestable: list, before: dict, noise,
     unexplained = clock + law + [_entry(u, ranking) for u in found] + sensor
     evidence = _evidence(sr, run)
     evidence["_model"]["sensors"] = sens
+    evidence["_model"]["balise_readings"] = bal
     evidence["_model"]["confirmation"] = {"checks": checks, "thresholds": vars(CONFIRM)}
     evidence["_model"]["structure"] = {"tests": tests, "found": found,
                                        "thresholds": STRUCTURE}
