@@ -152,3 +152,71 @@ def test_believed_actuator_state_is_the_event_actuator():
             i += 1
         believed.mean(t0, t1)
         assert believed._a == pytest.approx(event.advance(t1, f), abs=1e-12)
+
+
+class _ScanActuator(Actuator):
+    """The oracle: every lookup a linear scan of the commands in stamp order (the definition
+    of 'the command in force at s'), with no index kept beside them."""
+
+    def _delayed(self, s):
+        c = 0.0
+        for ts, val in self._cmds:
+            if ts + self.delay <= s:
+                c = val
+            else:
+                break
+        return self._g(c)
+
+    def mean(self, t0, t1):
+        acts = self._acts
+        self._acts = [ts + self.delay for ts, _ in self._cmds]  # recomputed from the stamps
+        try:
+            return super().mean(t0, t1)
+        finally:
+            self._acts = acts if len(acts) == len(self._cmds) else [
+                ts + self.delay for ts, _ in self._cmds]
+
+    def _prune(self, t):
+        keep_from = 0
+        for i, (ts, _) in enumerate(self._cmds):
+            if ts + self.delay <= t:
+                keep_from = i
+            else:
+                break
+        if keep_from:
+            del self._cmds[:keep_from]
+        self._acts = [ts + self.delay for ts, _ in self._cmds]
+
+
+@pytest.mark.parametrize("enabled", [True, False])
+@pytest.mark.parametrize("seed", range(4))
+def test_the_indexed_command_lookup_is_the_scan_to_the_bit(seed, enabled):
+    """The actuator finds the command in force by bisecting the commands' effect times: its
+    step means, lag state and kept commands equal a scan's to the bit, with commands waiting
+    seconds ahead of the filter (as at 50 Hz), repeated stamps, late commands clamped to the
+    latest stamp, effect times falling exactly on a step's ends, and copies."""
+    rng = np.random.default_rng(seed)
+    fast = Actuator(0.4, 0.7, braking_rate=0.8, enabled=enabled)
+    slow = _ScanActuator(0.4, 0.7, braking_rate=0.8, enabled=enabled)
+    t, stamp, held = 0.0, 3.0, 0  # the commands start 3 s ahead of the filter's time
+    for k in range(2000):
+        stamp += 0.02  # a cycle's commands: none, one, or repeats; some late (clamped)
+        for _ in range(int(rng.integers(0, 3))):
+            a = float(rng.uniform(-1.2, 1.0))
+            late = stamp - 0.05 * (rng.uniform() < 0.1)
+            fast.command(late, a)
+            slow.command(late, a)
+        # steps of 20 ms; some end exactly where a held command takes effect, some are empty
+        near = [s for s in fast._acts if t < s <= t + 0.05]
+        r = rng.uniform()
+        t1 = t if r < 0.05 else near[int(rng.integers(len(near)))] if near and r < 0.3 else \
+            t + 0.02
+        if rng.uniform() < 0.1:
+            fast, slow = fast.copy(), slow.copy()
+        assert repr(fast.mean(t, t1)) == repr(slow.mean(t, t1)), k
+        assert (repr(fast._a), fast._t) == (repr(slow._a), slow._t)
+        assert fast._cmds == slow._cmds
+        assert fast._acts == [ts + fast.delay for ts, _ in fast._cmds]
+        held = max(held, len(fast._cmds))
+        t = max(t, t1)
+    assert held > 100  # the lookups ran over long lists of commands waiting ahead

@@ -227,10 +227,9 @@ class RobustAdapter(DistanceAsPosition):
         act = f.actuator
         if x0 is not f.x or P0 is not f.P or act0 is not act or c[0][0] != f.t:
             return None
-        if any(ts + act.delay < t for ts, _ in act._cmds[n:]):
+        if act.acts_before(n, t):
             return None
-        new = c[4].copy()  # the lag state at t; the command list as the filter's now
-        new._cmds = list(act._cmds)
+        new = c[4].with_commands_of(act)  # the lag state at t; the commands as the filter's now
         new._prune(t)
         return c[2], c[3], new
 
@@ -299,8 +298,7 @@ class RobustAdapter(DistanceAsPosition):
                 # the cached actuator's lag state, with every command known now: commands
                 # given since the cached prediction must drive this one (a copy without them
                 # held the speed through a 60 s outage while the train accelerated)
-                act0, source = c[4].copy(), None
-                act0._cmds = list(f.actuator._cmds)
+                act0, source = c[4].with_commands_of(f.actuator), None
                 t0, xe = c[1], c[5]
                 saved = f.x, f.P, f.t, f.actuator
                 f.x, f.P, f.t, f.actuator = c[2], c[3], c[1], act0
@@ -311,7 +309,7 @@ class RobustAdapter(DistanceAsPosition):
             else:
                 act0, t0, xe = f.actuator, f.t, f.x
                 x, P, act = f._propagate(t)
-                source = (f.x, f.P, f.actuator, len(f.actuator._cmds))
+                source = (f.x, f.P, f.actuator, f.actuator.commands())
             xe = self._exact_mean(xe, t0, t, act0)
             self._pred = (token, t, x, P, act, xe, source)
             if xe is not None:
