@@ -112,9 +112,12 @@ def checks_on_case(seed: int, effect: str = "none", alpha: float = 1e-3) -> dict
 
 
 def _checks_table(n: int) -> int:
+    from train_estimation.core.offline.fleet_readers import reader_consensus
+
     print("| reader | bags | tested (>= 8 readings) | readings | found (alpha 1e-3) | "
-          "correlation | speed | distance |")
-    print("|---|---|---|---|---|---|---|---|")
+          "correlation | speed | distance | the bags pooled (fleet): readings, p corr / speed "
+          "/ dist |")
+    print("|---|---|---|---|---|---|---|---|---|")
     for effect in EFFECTS:
         rows = []
         for seed in range(n):
@@ -128,9 +131,15 @@ def _checks_table(n: int) -> int:
         k = [r["readings"] for r in rows]
         hits = {c: sum(r[c]["finding"] for r in tested) for c in ("correlation", "speed",
                                                                   "distance")}
+        # the same bags as one reader's passes (core.offline.fleet_readers, alpha 1e-3)
+        pool = reader_consensus([{"train": "T", "time": float(i), "balise": r["innovations"]}
+                                 for i, r in enumerate(rows) if r.get("innovations")], 1e-3)
+        pr = pool["trains"].get("T") or {}
+        ps = " / ".join(f"{pr[c]['p']:.2g}" if "p" in pr.get(c, {}) else "-"
+                        for c in ("correlation", "speed", "distance"))
         print(f"| {effect} | {n} | {len(tested)} | {min(k)}-{max(k)} | "
               f"{sum(r['finding'] for r in tested)} | {hits['correlation']} | {hits['speed']} | "
-              f"{hits['distance']} |", flush=True)
+              f"{hits['distance']} | {pr.get('readings', 0)}, {ps} |", flush=True)
     return 0
 
 

@@ -220,9 +220,14 @@ def test_diagnosis_row_reads_the_typed_result():
         "braking_rate": pytest.approx(0.85), "braking_rate_se": pytest.approx(0.03),
         "resistance_v_ref": 12.0, "resistance_dforce": pytest.approx(100.0),
         "resistance_dforce_se": 50.0,
-        "odometer_scale": 1.001, "odometer_scale_se": 3e-4}
+        "odometer_scale": 1.001, "odometer_scale_se": 3e-4, "balise": None}
     dg.accepted = ranking[1:2]  # a section ranked but not accepted is no map evidence
     assert not any(k.startswith("gradient") for k in diagnosis_row(dg, train))
+    # the balise innovations diagnose kept pass to the row as they are (fleet_readers)
+    inn = {"z": [0.5, -1.0], "c": [0.7, 0.6], "info": 1.2, "speed": [10.0, 12.0],
+           "position": [100.0, 600.0]}
+    evidence["_model"]["balise_readings"] = {"tested": False, "innovations": inn}
+    assert diagnosis_row(dg, train)["balise"] == inn
 
 
 def test_manifest_extra_columns_are_allowed_a_typo_of_an_absent_one_is_not(tmp_path, capsys):

@@ -424,7 +424,8 @@ def main(argv=None) -> int:
     (out / "fleet.json").write_text(json.dumps(
         {"map_errors": res.map_errors, "train_alerts": res.train_alerts, "lines": res.lines,
          "trains": res.trains, "config": res.config, "reliability": res.reliability,
-         "failures": failure_groups(rows), "run": info}, indent=1, default=json_default))
+         "balise_readers": res.readers, "failures": failure_groups(rows), "run": info},
+        indent=1, default=json_default))
     print(f"fleet: {len(rows)} bags ({n_bad} failed), {len(todo)} analysed in {wall:.0f} s, "
           f"total {time.perf_counter() - t0:.0f} s; consensus over {len(pool)} runs of "
           f"{len(info['days'])} days")
@@ -434,6 +435,8 @@ def main(argv=None) -> int:
               f"trains, {m['runs_found']}/{m['runs_passed']} runs)")
     for a in sorted(res.train_alerts, key=lambda a: (a["train"], a["parameter"])):
         print(f"train alert: {a['train']} {a['parameter']} {a['kind']} (z = {a['z']:+.1f})")
+    for a in res.readers.get("alerts", []):
+        print(f"balise reader: {a['train']} {a['signature']} ({a['runs']} runs)")
     for why in res.reliability.get("reasons", []):
         print(f"unreliable: {why}")
     print(f"wrote {out / 'report.md'}, {write_report_html(out, 'fleet')}, {out / 'runs.csv'}, "

@@ -113,7 +113,9 @@ def diagnosis_row(dg, train) -> dict:
     from train_estimation.core.offline.diagnose import BY_NAME, jsonable
 
     accepted = [a.cause for a in dg.accepted]
-    out = {"cause": dg.cause, "accepted": "+".join(accepted)}
+    out = {"cause": dg.cause, "accepted": "+".join(accepted),
+           "balise": ((dg.evidence.get("_model") or {}).get("balise_readings") or {}).get(
+               "innovations")}
     ranked = {r.cause: r for r in dg.ranking if r.cause in BY_NAME}
     for name, fit in ranked.items():
         out.update(BY_NAME[name].fleet_row(fit, dg.evidence.get(name) or {}, name in accepted,

@@ -68,6 +68,9 @@ class BagRow:
     odometer_scale: float | None = None  # distance counted per metre run (1)
     odometer_scale_se: float | None = None
     coverage: list | None = None  # m, [first, last] track position the run covered
+    # diagnose's balise innovations of the run ({z, c, info, speed, position}: the reader's
+    # checks pooled over the train's passes, core.offline.fleet_readers); not in runs.csv
+    balise: dict | None = None
     seconds: float | None = None  # s, the analysis' wall time on its worker
     worker: str | None = None  # the address of the Dask worker that analysed it
     cached: bool | None = None  # taken from the cache (True) or analysed by this run
@@ -93,7 +96,7 @@ def consensus_rows(rows: list[BagRow]) -> list[dict]:
     for r in rows:
         c = {"train": r.train, "line": r.line or Path(r.line_file).stem,
              "time": r.time or 0.0, "bag": r.bag, "error": r.error,
-             "coverage": r.coverage, "day": r.day}
+             "coverage": r.coverage, "day": r.day, "balise": r.balise}
         if r.gradient_se:
             c["gradient"] = {"start": r.gradient_start, "end": r.gradient_end,
                              "permille": r.gradient_permille, "se": r.gradient_se,

@@ -82,6 +82,9 @@ Train consensus (per parameter: braking rate, mass, odometer scale):
   false alert in the whole fleet's table (each kind) is about 1 % or less, whatever the
   fleet's size; no threshold is tuned to a scenario.
 
+Balise readers (per train, :mod:`.fleet_readers`): the runs' balise innovations pooled and
+tested for correlation in time and dependence on speed and distance, alpha over the trains.
+
 Pure: numpy/scipy only.
 """
 
@@ -93,6 +96,8 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 from scipy import stats
+
+from .fleet_readers import reader_consensus
 
 PARAMETERS = ("braking_rate", "mass", "odometer_scale")
 UNITS = {"braking_rate": "-", "mass": "kg", "odometer_scale": "-", "resistance": "N",
@@ -583,6 +588,7 @@ class FleetResult:
     train_alerts: list  # [{"train", "parameter", "kind", "z", ...}]
     config: dict
     reliability: dict = field(default_factory=dict)  # see ``reliability``
+    readers: dict = field(default_factory=dict)  # fleet_readers.reader_consensus
 
 
 def consensus(rows: list[dict], cfg: FleetConfig = FleetConfig()) -> FleetResult:
@@ -594,4 +600,5 @@ def consensus(rows: list[dict], cfg: FleetConfig = FleetConfig()) -> FleetResult
             if s["verdict"] == "map error"]
     return FleetResult(lines=lines, trains=trains, map_errors=maps,
                        train_alerts=trains["alerts"], config=asdict(cfg),
-                       reliability=reliability(rows, lines, trains, cfg))
+                       reliability=reliability(rows, lines, trains, cfg),
+                       readers=reader_consensus(ok, cfg.alpha))

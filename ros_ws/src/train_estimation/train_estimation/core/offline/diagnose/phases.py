@@ -415,10 +415,16 @@ def balise_residuals(mo: Motion, null: Null, cfg, noise, found: list,
                 "signature": None, "note": f"the readings' structure is an entry ({kinds[0]})"}
     st = Stage(mo, null, cfg, noise=noise, big=False)
     kf = st.augmented(st.fv, st.fs, keep_innov=True)  # [data, s0]
+    if ev.bal.size == 0 or not kf.W[1, 1] > 0:
+        return {"readings": int(ev.bal.size), "tested": False, "finding": False,
+                "signature": None, "note": "no balise reading places the run"}
     s0 = gls(kf.W)[0][0]
     z = kf.Z_bal[:, 0] + s0 * kf.Z_bal[:, 1]
-    c = kf.Z_bal[:, 1]
-    cov = np.eye(z.size) - np.outer(c, c) / kf.W[1, 1] if kf.W[1, 1] > 0 else np.eye(z.size)
+    c, info = kf.Z_bal[:, 1], float(kf.W[1, 1])
     gi = np.clip(np.searchsorted(mo.grid.t, ev.t[ev.bal]), 0, mo.grid.t.size - 1)
-    return balise_checks(z, cov, np.asarray(mo.v_ref, float)[gi],
-                         np.asarray(mo.x_ref, float)[gi], alpha)
+    v, x = np.asarray(mo.v_ref, float)[gi], np.asarray(mo.x_ref, float)[gi]
+    out = balise_checks(z, np.eye(z.size) - np.outer(c, c) / info, v, x, alpha)
+    # what a fleet pools over a train's passes (fleet_readers): a run has too few readings
+    out["innovations"] = {"z": z.tolist(), "c": c.tolist(), "info": info,
+                          "speed": v.tolist(), "position": x.tolist()}
+    return out

@@ -375,27 +375,33 @@ def positive_sf(lam: np.ndarray) -> float:
     u = _GL_S / (1.0 - _GL_S)
     lu = lam[None, :] * u[:, None]
     theta = 0.5 * np.sum(np.arctan(lu), axis=1)
-    rho = np.exp(0.25 * np.sum(np.log1p(lu * lu), axis=1))
-    f = np.sin(theta) / (u * rho) / (1.0 - _GL_S) ** 2
+    decay = np.exp(-0.25 * np.sum(np.log1p(lu * lu), axis=1))  # 1 / rho(u): 0, not inf
+    f = np.sin(theta) * decay / u / (1.0 - _GL_S) ** 2
     return float(min(max(0.5 + float(np.dot(_GL_W, f)) / math.pi, 0.0), 1.0))
 
 
-def ratio_test(z: np.ndarray, cov: np.ndarray, A: np.ndarray) -> tuple[float, float]:
-    """(T, p): T = z^T A z / z^T z and its two-sided p-value for z ~ N(0, ``cov``) (module
-    docstring)."""
-    T = float(z @ A @ z) / float(z @ z)
+def cov_half(cov: np.ndarray) -> np.ndarray:
+    """The symmetric square root of a covariance (its negative rounding clipped)."""
     w, V = np.linalg.eigh(cov)
-    half = (V * np.sqrt(np.clip(w, 0.0, None))) @ V.T
+    return (V * np.sqrt(np.clip(w, 0.0, None))) @ V.T
+
+
+def ratio_test(z: np.ndarray, half: np.ndarray, A: np.ndarray) -> tuple[float, float]:
+    """(T, p): T = z^T A z / z^T z and its two-sided p-value for z ~ N(0, C), ``half`` =
+    C^(1/2) (:func:`cov_half`) (module docstring)."""
+    T = float(z @ A @ z) / float(z @ z)
     upper = positive_sf(np.linalg.eigvalsh(half @ (A - T * np.eye(z.size)) @ half))
     return T, float(min(1.0, 2.0 * min(upper, 1.0 - upper)))
 
 
 def balise_checks(z: np.ndarray, cov: np.ndarray, speed: np.ndarray, position: np.ndarray,
-                  alpha: float = 1e-3) -> dict:
+                  alpha: float = 1e-3, seg: np.ndarray | None = None) -> dict:
     """The balise readings' whitened innovations ``z`` (covariance ``cov`` under the stated
     readings), in time order, with the speed and the position where each was read, against
     white noise (module docstring): {readings, correlation, speed, distance, finding,
-    signature}; ``alpha`` the false-alarm rate of the three together."""
+    signature}; ``alpha`` the false-alarm rate of the three together. ``seg``: the run each
+    reading belongs to, when several runs are pooled (a fleet's passes, ``cov`` block
+    diagonal): lag-1 products within a run only."""
     n = int(z.size)
     out = {"readings": n, "alpha": alpha, "finding": False, "signature": None}
     if n < BALISE_MIN or not np.all(np.isfinite(z)):
@@ -405,8 +411,11 @@ def balise_checks(z: np.ndarray, cov: np.ndarray, speed: np.ndarray, position: n
     a = alpha / 3.0
     out["tested"] = True
     out["sd_ratio"] = math.sqrt(float(z @ z) / max(float(np.trace(cov)), 1.0))
+    half = cov_half(cov)
     lag = np.eye(n, k=1)
-    T, p = ratio_test(z, cov, 0.5 * (lag + lag.T))
+    if seg is not None:  # no product across two runs
+        lag[np.arange(n - 1), np.arange(1, n)] = np.asarray(seg)[1:] == np.asarray(seg)[:-1]
+    T, p = ratio_test(z, half, 0.5 * (lag + lag.T))
     out["correlation"] = {"lag1": T, "p": p, "finding": bool(p < a)}
     words = []
     if p < a:
@@ -418,7 +427,7 @@ def balise_checks(z: np.ndarray, cov: np.ndarray, speed: np.ndarray, position: n
         if not np.any(dx):
             out[name] = {"tested": False, "finding": False}
             continue
-        T, p = ratio_test(z, cov, np.diag(dx))
+        T, p = ratio_test(z, half, np.diag(dx))
         # the squared innovations' mean below and above x's median over their mean: what
         # the variance does with x, in words a reader takes in
         e2, mid = z * z, float(np.median(x))
