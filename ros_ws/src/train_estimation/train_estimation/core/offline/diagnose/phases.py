@@ -405,7 +405,9 @@ def balise_residuals(mo: Motion, null: Null, cfg, noise, found: list,
     """The balise readings' residual checks (:func:`.residuals.balise_checks`, ``alpha`` the
     false-alarm rate of the three together) under the model ``null`` at ``noise``: their
     whitened innovations with the count's origin at its GLS value, and the covariance that
-    fitting the origin leaves them."""
+    fitting the origin leaves them. ``innovations`` keeps them ({z, c, info, speed,
+    position}) for the fleet to pool over a train's runs (:mod:`..fleet_readers`), also when
+    one run has too few to be tested."""
     from .residuals import balise_checks
 
     ev = mo.ev

@@ -1,6 +1,7 @@
-"""The odometer's residuals against what it states: scatter, correlation in time, dependence
-on speed and distance, and its speed readings against its own count (pure: arrays in, figures
-out).
+"""The sensors' residuals against what they state: the odometer's scatter, correlation in
+time, dependence on speed and distance, and its speed readings against its own count; the
+balise readings' correlation in time and dependence on speed and distance (pure: arrays in,
+figures out).
 
 A sensor whose readings scatter more than its stated variance, whose errors are correlated in
 time, or whose noise grows with speed is not the sensor the estimators assume, and no listed
@@ -54,8 +55,9 @@ equally, Bonferroni).
 **The balise readings** (:func:`balise_checks`). Their scatter is a hypothesis of the structure
 test (``balise_rounds.scatter_round``); their correlation in time and their dependence on speed
 and distance are tested here, on the readings' whitened innovations z (the odometer's track
-through the model, the count's origin at its least-squares value). A run has ten to forty
-readings, too few for the asymptotic statistics above, so each test is exact: under the stated
+through the model, the count's origin at its least-squares value). A run has 3 to 17 readings
+(20 case bags of four families), too few for the asymptotic statistics above, so each test is
+exact: under the stated
 readings z is normal with covariance C = I - c c^T / I_s0 (c the origin's column of the
 whitened innovations, I_s0 its information: fitting the origin takes one degree of freedom),
 and each statistic is a ratio of quadratic forms T = z^T A z / z^T z, whose tail P(T >= r) =
@@ -404,9 +406,12 @@ def balise_checks(z: np.ndarray, cov: np.ndarray, speed: np.ndarray, position: n
     diagonal): lag-1 products within a run only."""
     n = int(z.size)
     out = {"readings": n, "alpha": alpha, "finding": False, "signature": None}
-    if n < BALISE_MIN or not np.all(np.isfinite(z)):
+    why = f"fewer than {BALISE_MIN} balise readings" if n < BALISE_MIN else \
+        "an innovation is not finite" if not np.all(np.isfinite(z)) else \
+        "every innovation is 0" if not float(z @ z) > 0 else None
+    if why:
         out["tested"] = False
-        out["note"] = f"fewer than {BALISE_MIN} balise readings"
+        out["note"] = why
         return out
     a = alpha / 3.0
     out["tested"] = True
