@@ -155,8 +155,9 @@ def test_believed_actuator_state_is_the_event_actuator():
 
 
 class _ScanActuator(Actuator):
-    """The oracle: every lookup a linear scan of the commands in stamp order (the definition
-    of 'the command in force at s'), with no index kept beside them."""
+    """The oracle: the definition written out. The step splits at every command's effect time
+    inside it, each segment under the command in force at its start, found by a linear scan
+    of the commands in stamp order; no index kept beside them."""
 
     def _delayed(self, s):
         c = 0.0
@@ -168,13 +169,29 @@ class _ScanActuator(Actuator):
         return self._g(c)
 
     def mean(self, t0, t1):
-        acts = self._acts
-        self._acts = [ts + self.delay for ts, _ in self._cmds]  # recomputed from the stamps
-        try:
+        if not self.enabled:
             return super().mean(t0, t1)
-        finally:
-            self._acts = acts if len(acts) == len(self._cmds) else [
-                ts + self.delay for ts, _ in self._cmds]
+        if not math.isfinite(self._t):
+            self._t, self._a = t0, self._delayed(t0)
+        t0 = self._t
+        if t1 <= t0:
+            return self._a
+        knots = [t0] + [ts + self.delay for ts, _ in self._cmds if t0 < ts + self.delay < t1]
+        knots.append(t1)
+        integral, a = 0.0, self._a
+        for s0, s1 in zip(knots[:-1], knots[1:]):
+            c = self._delayed(s0)
+            d = s1 - s0
+            if self.tau > 0:
+                decay = math.exp(-d / self.tau)
+                integral += c * d + (a - c) * self.tau * (1.0 - decay)
+                a = c + (a - c) * decay
+            else:
+                integral += c * d
+                a = c
+        self._a, self._t = a, t1
+        self._prune(t1)
+        return integral / (t1 - t0)
 
     def _prune(self, t):
         keep_from = 0
@@ -198,7 +215,9 @@ def test_the_indexed_command_lookup_is_the_scan_to_the_bit(seed, enabled):
     rng = np.random.default_rng(seed)
     fast = Actuator(0.4, 0.7, braking_rate=0.8, enabled=enabled)
     slow = _ScanActuator(0.4, 0.7, braking_rate=0.8, enabled=enabled)
-    t, stamp, held = 0.0, 3.0, 0  # the commands start 3 s ahead of the filter's time
+    # the commands start 8 s ahead of the filter's time, off its 20 ms grid; a step of up to
+    # a second spans dozens of them, several sharing an effect time
+    t, stamp, held, inside, shared = 0.0, 8.0071, 0, 0, 0
     for k in range(2000):
         stamp += 0.02  # a cycle's commands: none, one, or repeats; some late (clamped)
         for _ in range(int(rng.integers(0, 3))):
@@ -210,13 +229,16 @@ def test_the_indexed_command_lookup_is_the_scan_to_the_bit(seed, enabled):
         near = [s for s in fast._acts if t < s <= t + 0.05]
         r = rng.uniform()
         t1 = t if r < 0.05 else near[int(rng.integers(len(near)))] if near and r < 0.3 else \
-            t + 0.02
+            t + float(rng.uniform(0.05, 1.0)) if r > 0.85 and stamp - t > 2.5 else t + 0.02
         if rng.uniform() < 0.1:
             fast, slow = fast.copy(), slow.copy()
+        k = [s for s in fast._acts if max(t, fast._t) < s < t1]  # effect times inside the step
+        inside, shared = inside + len(k), shared + len(k) - len(set(k))
         assert repr(fast.mean(t, t1)) == repr(slow.mean(t, t1)), k
         assert (repr(fast._a), fast._t) == (repr(slow._a), slow._t)
         assert fast._cmds == slow._cmds
         assert fast._acts == [ts + fast.delay for ts, _ in fast._cmds]
         held = max(held, len(fast._cmds))
         t = max(t, t1)
-    assert held > 100  # the lookups ran over long lists of commands waiting ahead
+    assert held > 50  # the lookups ran over long lists of commands waiting ahead
+    assert inside > 100 and shared > 20, (inside, shared)  # steps spanned effect times

@@ -238,7 +238,7 @@ class Actuator:
         self._t = -math.inf
 
     def copy(self) -> Actuator:
-        new = Actuator.__new__(Actuator)
+        new = Actuator.__new__(type(self))  # a subclass stays itself (the tests' oracle)
         new.__dict__.update(self.__dict__)
         new._cmds = list(self._cmds)
         new._acts = list(self._acts)
@@ -284,21 +284,37 @@ class Actuator:
         t0 = self._t
         if t1 <= t0:
             return self._a
-        acts = self._acts  # the commands taking effect inside (t0, t1) split the step
-        knots = [t0] + acts[bisect.bisect_right(acts, t0):bisect.bisect_left(acts, t1)]
-        knots.append(t1)
-        integral = 0.0
-        a = self._a
-        for s0, s1 in zip(knots[:-1], knots[1:]):
-            c = self._delayed(s0)
+        # the commands taking effect inside (t0, t1) split the step into segments, each under
+        # the command in force at its start: from acts[i] on, the last of the commands taking
+        # effect then (several share a time: repeated stamps, late ones clamped); walked in
+        # order instead of looked up per segment (a 50 Hz step of a second holds ~50 of them)
+        acts, cmds, tau, f = self._acts, self._cmds, self.tau, self.braking_rate
+        i, hi = bisect.bisect_right(acts, t0), bisect.bisect_left(acts, t1)
+        integral, a = 0.0, self._a
+        s0, c = t0, self._delayed(t0)
+        while True:
+            s1 = acts[i] if i < hi else t1
             d = s1 - s0
-            if self.tau > 0:
-                decay = math.exp(-d / self.tau)
-                integral += c * d + (a - c) * self.tau * (1.0 - decay)  # int of the lag response
-                a = c + (a - c) * decay
+            if tau > 0:
+                if d == 0.0:  # exp(0) = 1: the general step below, bit for bit, adds nothing
+                    a = c + (a - c)  # to the integral; what it does to a it does here
+                else:
+                    decay = math.exp(-d / tau)
+                    integral += c * d + (a - c) * tau * (1.0 - decay)  # int of the lag response
+                    a = c + (a - c) * decay
             else:
                 integral += c * d
                 a = c
+            if i >= hi:
+                break
+            if i == 0 or acts[i - 1] != s1:  # a new effect time: its last command rules
+                j = i
+                while j + 1 < hi and acts[j + 1] == s1:
+                    j += 1
+                v = cmds[j][1]
+                c = v if v >= 0.0 else f * v  # g (eq. 1's braking rate)
+            s0 = s1
+            i += 1
         self._a, self._t = a, t1
         self._prune(t1)
         return integral / (t1 - t0)
