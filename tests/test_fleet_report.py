@@ -86,6 +86,29 @@ def test_first_lines_state_the_findings():
             findings(res, [], {}))
 
 
+def test_a_balise_reader_alert_is_among_the_findings():
+    """A train whose balise reader's passes, pooled, show errors correlated from one reading to
+    the next is named in the findings with the signature and the runs it was pooled over."""
+    rng = np.random.default_rng(7)
+    rows = _fleet(rng, n_trains=3, runs=20)
+    for r in rows:  # each run's innovations; T0's reader drifts (AR(1) 0.9), the others not
+        n, rho = 12, 0.9 if r["train"] == "T0" else 0.0
+        e = np.empty(n)
+        e[0] = rng.standard_normal()
+        for k in range(1, n):
+            e[k] = rho * e[k - 1] + np.sqrt(1 - rho * rho) * rng.standard_normal()
+        r["balise"] = {"z": (e - e.mean()).tolist(), "c": [1.0 / np.sqrt(n)] * n, "info": 1.0,
+                       "speed": rng.uniform(5, 25, n).tolist(),
+                       "position": np.sort(rng.uniform(0, 6000, n)).tolist()}
+    res = F.consensus(rows)
+    assert [a["train"] for a in res.readers["alerts"]] == ["T0"], res.readers["alerts"]
+    md = report_md(res, [], INFO, [])
+    top = md[:md.index("## Map errors")]
+    assert "**train T0's balise reader** is not the sensor its readings state: their errors " \
+        "are correlated from one reading to the next" in top, top
+    assert "its 20 runs pooled, 240 readings" in top, top
+
+
 def test_a_train_without_an_alert_is_never_drawn_red():
     """Red (C3) marks a train with an alert and orange (C1) a section found by too few: the
     other trains' colours cycle through the rest."""
