@@ -198,8 +198,8 @@ def main(argv=None) -> int:
           + ", ".join(f"{k} {v}" for k, v in reasons.most_common()))
     print("bound: final |error| <= clean + 1 m and RMSE <= 1.1 clean + 0.1 m; "
           "non-PD (4x4) includes the braking-rate variance. Corrupted but not "
-          "rejected: duplicated commands (same stamp and value: harmless), the seq jump and the "
-          "seq reset (accepted, counted as events)")
+          "rejected: the seq jump and the seq reset (accepted, counted as events); a copy of "
+          "any message, commands too, is a duplicate")
     print("RESULT:", "PASS" if ok_all else "FAIL")
     return 0 if ok_all else 1
 

@@ -559,11 +559,12 @@ class EstimatorRunner:
                 and self._uncounted(kind):
             fields = {**fields, "seq": None}  # no counter: nothing judged by it
             self.uncounted[kind] += 1
-        # a copy of a message already come (its seq, stamp and values) is judged once, here,
-        # as it comes (a reading the step watch held comes back with ``watch`` False): it is
-        # no evidence of a step, nor of anything else
-        if kind != "control" and watch and \
-                self._order.copy_of(kind, _copy_key(fields, stamp)):
+        # a copy of a message already come (its seq, stamp and values; a command's stamp and
+        # target) is judged once, here, as it comes (a reading the step watch held comes back
+        # with ``watch`` False): it is no evidence of a step, nor of anything else, and a
+        # command's copy fused late made the runner rewind for nothing (a 50 Hz fuzzed run:
+        # 2,433 of its 6,598 late commands)
+        if watch and self._order.copy_of(kind, _copy_key(fields, stamp)):
             return self._reject(kind, stamp, R.DUPLICATE)
         why = self._fused_elsewhere(kind, stamp, fields)
         if why:
@@ -1339,7 +1340,7 @@ def _copy_key(fields: dict, stamp: float) -> tuple:
     both (a copy key without the values let a corrupted copy that came first, and was refused
     by the gate, refuse the true sample after it as its duplicate)."""
     return (fields.get("seq"), stamp) + tuple(fields.get(k) for k in (
-        "distance", "speed", "balise_id", "position"))
+        "distance", "speed", "balise_id", "position", "target_acceleration"))
 
 
 def _sample_key(fields: dict):
