@@ -213,7 +213,7 @@ def findings(res, rows: list[BagRow], rel: dict) -> list[str]:
         few = [p for p, d in (rel.get("parameters") or {}).items() if not d["reliable"]]
         L.append("- no train departs from the fleet or trends"
                  + (f" (but too few trains to test {', '.join(few)})" if few else ""))
-    for a in (getattr(res, "readers", None) or {}).get("alerts", []):
+    for a in res.readers.get("alerts", []):
         L.append(f"- **train {a['train']}'s balise reader** is not the sensor its readings "
                  f"state: {a['signature']} (its {a['runs']} runs pooled, {a['readings']} "
                  "readings)")

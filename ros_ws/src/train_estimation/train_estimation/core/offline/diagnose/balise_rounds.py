@@ -126,6 +126,21 @@ def scatter_wins(sca: dict, best, round_tests: dict) -> bool:
     return sca["lr"] - pen > round_tests[best[1]]["chi2"] - pen
 
 
+def reading_points(mo: Motion) -> np.ndarray:
+    """The grid point at each balise reading (its time, clipped to the grid): where the
+    reference speed and position of a reading are read."""
+    return np.clip(np.searchsorted(mo.grid.t, mo.ev.t[mo.ev.bal]), 0, mo.grid.t.size - 1)
+
+
+def origin_innovations(st: Stage, fv: np.ndarray, fs: np.ndarray):
+    """(z, kf): the balise readings' whitened innovations under the model ``st`` with the drift
+    ``fv``, ``fs``, the count's origin s0 at its GLS optimum, and the augmented filter
+    ([data, s0]) they come from (its ``W`` and ``Z_bal[:, 1]``, the origin's column)."""
+    kf = st.augmented(fv, fs, keep_innov=True)  # [data, s0]
+    s0 = gls(kf.W)[0][0]
+    return kf.Z_bal[:, 0] + s0 * kf.Z_bal[:, 1], kf
+
+
 def scatter_round(mo: Motion, st: Stage, extra, inside: list, alpha: float) -> dict:
     """One round of the scatter test (module doc): whether the balise readings scatter about
     the odometer's track more than their stated variances say, under the model ``st`` (plus
@@ -139,12 +154,9 @@ def scatter_round(mo: Motion, st: Stage, extra, inside: list, alpha: float) -> d
     if dof < 2:
         out["note"] = "fewer than three balise readings outside the model"
         return out
-    fv, fs = plus_drift(extra, st.fv, st.fs)
-    kf = st.augmented(fv, fs, keep_innov=True)  # [data, s0]
-    th = gls(kf.W)[0]  # [s0] at the GLS optimum
     # the whitened innovations at s0 (a reading whose offset is fitted is about 0: one
     # degree of freedom less each)
-    z = kf.Z_bal[:, 0] + th[0] * kf.Z_bal[:, 1]
+    z, _ = origin_innovations(st, *plus_drift(extra, st.fv, st.fs))
     q = float(np.sum(z * z))
     ratio = q / dof
     logp = chi2_logsf(q, dof)
@@ -154,9 +166,7 @@ def scatter_round(mo: Motion, st: Stage, extra, inside: list, alpha: float) -> d
     out.update(chi2=q, dof=int(dof), ratio=ratio, p=math.exp(logp), significant=sig,
                logp_family=logp, lr=lr)
     if sig:
-        t = ev.t[ev.bal]
-        gi = np.clip(np.searchsorted(mo.grid.t, t), 0, mo.grid.t.size - 1)
-        v = mo.v_ref[gi]
+        v = mo.v_ref[reading_points(mo)]
         out["entry"] = {"phase": "all", "where": None, "when": None,
                         "speed": [float(np.percentile(v, 5)), float(np.percentile(v, 95))],
                         "size": math.sqrt(ratio), "family": "balise_scatter", "onset": False,
@@ -227,8 +237,7 @@ def latency_round(mo: Motion, st: Stage, extra, alpha: float, cell_z: float,
     if n < 3:
         out["note"] = "fewer than three balise readings"
         return out
-    gi = np.clip(np.searchsorted(mo.grid.t, ev.t[ev.bal]), 0, mo.grid.t.size - 1)
-    v = np.asarray(mo.v_ref, float)[gi]
+    v = np.asarray(mo.v_ref, float)[reading_points(mo)]
     col = np.zeros((ev.t.size, 1))
     col[ev.bal, 0] = -v
     stat, th, se = fit_columns(st, None, None, extra, bal=col)

@@ -53,7 +53,6 @@ import math
 
 import numpy as np
 
-from train_estimation.core.numerics.augmented_kf import gls
 from train_estimation.core.numerics.tails import chi2_logsf
 
 from .balise_rounds import (
@@ -61,6 +60,8 @@ from .balise_rounds import (
     datum_columns,
     datum_round,
     latency_round,
+    origin_innovations,
+    reading_points,
     scatter_round,
     scatter_wins,
 )
@@ -415,15 +416,16 @@ def balise_residuals(mo: Motion, null: Null, cfg, noise, found: list,
     if kinds:
         return {"readings": int(ev.bal.size), "tested": False, "finding": False,
                 "signature": None, "note": f"the readings' structure is an entry ({kinds[0]})"}
+    if ev.bal.size == 0:
+        return {"readings": 0, "tested": False, "finding": False, "signature": None,
+                "note": "no balise reading places the run"}
     st = Stage(mo, null, cfg, noise=noise, big=False)
-    kf = st.augmented(st.fv, st.fs, keep_innov=True)  # [data, s0]
-    if ev.bal.size == 0 or not kf.W[1, 1] > 0:
+    z, kf = origin_innovations(st, st.fv, st.fs)
+    c, info = kf.Z_bal[:, 1], float(kf.W[1, 1])
+    if not info > 0:
         return {"readings": int(ev.bal.size), "tested": False, "finding": False,
                 "signature": None, "note": "no balise reading places the run"}
-    s0 = gls(kf.W)[0][0]
-    z = kf.Z_bal[:, 0] + s0 * kf.Z_bal[:, 1]
-    c, info = kf.Z_bal[:, 1], float(kf.W[1, 1])
-    gi = np.clip(np.searchsorted(mo.grid.t, ev.t[ev.bal]), 0, mo.grid.t.size - 1)
+    gi = reading_points(mo)
     v, x = np.asarray(mo.v_ref, float)[gi], np.asarray(mo.x_ref, float)[gi]
     out = balise_checks(z, np.eye(z.size) - np.outer(c, c) / info, v, x, alpha)
     # what a fleet pools over a train's passes (fleet_readers): a run has too few readings

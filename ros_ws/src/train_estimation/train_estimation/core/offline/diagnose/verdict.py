@@ -84,13 +84,14 @@ def conclude(sr: _Search, run, untestable: list, before: dict, noise,
         end = mo.run.duration / beta
         clock.append(_rate_entry(ch, end, _speeds(mo, beta, ch["when"], end)))
     # the odometer's readings against what it states, under the confirmed model
-    sens = sensor_residuals(mo, _null_of(mo, shift, confirmed, rivals), sr.cfg, noise)
-    sensor = [sensor_entry(sens, _speeds(mo, beta, 0.0, mo.run.duration / beta))] \
-        if sens["finding"] else []
+    model = _null_of(mo, shift, confirmed, rivals)
+    whole = _speeds(mo, beta, 0.0, mo.run.duration / beta)
+    sens = sensor_residuals(mo, model, sr.cfg, noise)
+    sensor = [sensor_entry(sens, whole)] if sens["finding"] else []
     # and the balise readings', unless the structure found their shape already
-    bal = balise_residuals(mo, _null_of(mo, shift, confirmed, rivals), sr.cfg, noise, found)
+    bal = balise_residuals(mo, model, sr.cfg, noise, found)
     if bal["finding"]:
-        sensor.append(balise_entry(bal, _speeds(mo, beta, 0.0, mo.run.duration / beta)))
+        sensor.append(balise_entry(bal, whole))
     law = [_rival_entry(a, r) for a, r in zip(
         [a for a in sr.accepted if a.status != "confirmed" and a.rival is not None], rivals)]
     verdict = confirmed[0].cause if confirmed else \
