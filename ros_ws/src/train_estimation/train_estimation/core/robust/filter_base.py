@@ -294,6 +294,13 @@ class FilterBase:
         nu = meas.y[m] - C @ x
         return bool((np.abs(nu) <= g * np.sqrt(S)).all())
 
+    def _gated_apply(self, x, P, meas: Measurement, since: float):
+        """:meth:`_apply` if the reading passes :meth:`_gate_ok`, else None: one hook, so that
+        a filter can do both in one call (``RobustFilter``: one compiled step)."""
+        if not self._gate_ok(x, P, meas, since):
+            return None
+        return self._apply(x, P, meas)
+
     def update(self, reading, predicted=None) -> Decision:
         """Validate and apply one reading (predicting to its stamp first). See class doc.
         ``predicted``: ``self._propagate(reading.stamp)``'s result when the caller has it from
@@ -302,9 +309,10 @@ class FilterBase:
         if isinstance(meas, str):
             return self._decide(False, meas)
         x, P, act = self._propagate(float(reading.stamp)) if predicted is None else predicted
-        if not self._gate_ok(x, P, meas, float(reading.stamp) - self.t_fix):
+        applied = self._gated_apply(x, P, meas, float(reading.stamp) - self.t_fix)
+        if applied is None:
             return self._decide(False, R.OUTSIDE_GATE)
-        x, P = self._apply(x, P, meas)
+        x, P = applied
         if not (np.all(np.isfinite(x)) and _finite_or_nan_cov(P)):
             return self._decide(False, R.NUMERICAL_FAILURE)  # keep the old state
         self.x, self.P, self.actuator, self.t = x, P, act, float(reading.stamp)

@@ -29,6 +29,7 @@ import numpy as np
 
 from .. import reasons as R
 from ..numerics import kalman
+from . import robust_compiled
 from .filter_base import FilterBase, FilterParams, filter_params_from_train
 from .readings import REASONS, BaliseReading, Decision, OdometerReading, covariance16
 from .robust_steps import (
@@ -83,22 +84,53 @@ class RobustFilter(FilterBase):
     """
 
     name = "robust"
+    #: each prediction and each gated update one compiled call (``robust_compiled``: the
+    #: formulas of ``robust_steps`` on scalars, equal to rounding); False, or without numba:
+    #: ``robust_steps``' numpy form
+    compiled = robust_compiled.COMPILED
 
     def __init__(self, model: WenModel, params: FilterParams, x0, Sigma0, t0: float = 0.0,
                  brake=None):
         super().__init__(model, params, x0, Sigma0, t0, brake)
         self.last_gamma = math.nan
         self.last_epsilon = math.nan
+        if self.compiled:
+            robust_compiled.warm_up()  # numba's cache loaded here, not in a first callback
 
     def _predict(self, x, P, dt, u):
         dm = self.model.discrete(dt)
+        eps = self.params.epsilon
+        if self.compiled:
+            m = self.model
+            # the known input's two forces as WenModel.known_input forms them
+            status, xp, Sp, gamma, eps_used = robust_compiled.predict(
+                x, P, dm.A, dm.B, dm.E, dm.HH, dm.hh, dm.EE, dm.Eu.shape[0] == 1, float(m.q),
+                eps is None, 0.0 if eps is None else float(eps), m.drive_mass * u,
+                m.a + m.gradient_force(x[0]), float(dt), bool(self.params.clamp_standstill))
+            if status == robust_compiled.OK:
+                self.last_gamma, self.last_epsilon = gamma, eps_used
+                return xp, Sp
+            # FALLBACK: the numpy form raises, or gives the non-finite state, as it always did
         xp, Sp, self.last_gamma, self.last_epsilon = robust_predict(
-            x, P, self.model, dm, u, self.params.epsilon, self.params.clamp_standstill)
+            x, P, self.model, dm, u, eps, self.params.clamp_standstill)
         return xp, Sp
 
     def _apply(self, x, P, meas):
         xn, Sn, _ = robust_update(x, P, meas, self.params.gain)
         return xn, Sn
+
+    def _gated_apply(self, x, P, meas, since):
+        gain = self.params.gain
+        if self.compiled and gain in ("corrected", "paper"):
+            p = self.params
+            status, xn, Sn = robust_compiled.update(
+                x, P, meas.y, meas.C, meas.R, meas.abar, meas.group, meas.mask,
+                gain == "corrected", float(p.gate), float(p.gate_accel), since)
+            if status == robust_compiled.OK:
+                return xn, Sn
+            if status == robust_compiled.GATE:
+                return None
+        return super()._gated_apply(x, P, meas, since)  # the numpy form, gate and all
 
 
 class IntermittentKF(FilterBase):
