@@ -313,12 +313,12 @@ class FilterBase:
         if applied is None:
             return self._decide(False, R.OUTSIDE_GATE)
         x, P = applied
-        if not (np.all(np.isfinite(x)) and _finite_or_nan_cov(P)):
+        if not (np.isfinite(x).all() and _finite_or_nan_cov(P)):
             return self._decide(False, R.NUMERICAL_FAILURE)  # keep the old state
         self.x, self.P, self.actuator, self.t = x, P, act, float(reading.stamp)
         if self.order.took(kind, float(reading.stamp), int(reading.seq)):
             self.counters[R.SEQ_RESET] += 1
-        received = bool(np.any(meas.mask))
+        received = bool(meas.mask.any())
         if kind == "odometer" and received:
             self._speed_var = float(reading.speed_variance)
             self.t_fix = self.t

@@ -5,6 +5,9 @@ Where the pieces are:
 
 * ``robust_steps``: the paper's maths -- eq. (13), (21)-(24), the rule for gamma and epsilon,
   the paper slip in the gain (module docstring there);
+* ``robust_compiled``: the same prediction and gated update as one compiled scalar call each
+  (numba), which :class:`RobustFilter` runs (``robust_steps`` where numba is missing, and for
+  what the kernels leave to it: exceptions, non-finite states);
 * ``readings``: the message-shaped readings, decisions and the covariance layout;
 * ``filter_base``: settings (:class:`FilterParams`), validation with reasons, counters, time
   keeping and the believed actuator, shared by the filters below;
