@@ -161,7 +161,7 @@ def update_cases(n, seed):
 
 
 def _kernel_predict(kernel, model, dm, S, x, u, eps, clamp):
-    return kernel(x, S, dm.A, dm.B, dm.E, dm.HH, dm.hh, dm.EE, dm.Eu.shape[0] == 1,
+    return kernel(x, S, dm.A, dm.B, dm.E, dm.HH, dm.hh, dm.EE, dm.Eu,
                   float(model.q), eps is None, 0.0 if eps is None else float(eps),
                   model.drive_mass * u, model.a + model.gradient_force(x[0]), dm.dt, clamp)
 
@@ -359,7 +359,7 @@ def test_gate_decides_as_gate_ok():
     assert n_out > 200
 
 
-@pytest.mark.filterwarnings("ignore:overflow encountered")
+@pytest.mark.filterwarnings("ignore:overflow encountered", "ignore:invalid value encountered")
 def test_fallbacks_raise_or_fail_as_numpy_form(monkeypatch):
     """Where the numpy form raises or gives a non-finite state, the compiled path gives the
     same (it runs the numpy form): zero Sigma (ZeroDivisionError in the gamma rule), epsilon 0
@@ -397,6 +397,12 @@ def test_fallbacks_raise_or_fail_as_numpy_form(monkeypatch):
                 np.testing.assert_array_equal(u, v)
         kinds.append(a if isinstance(a, str) else "finite" if np.isfinite(a[1]).all() else "nan")
     assert kinds[:2] == ["ZeroDivisionError", "ValueError"] and "LinAlgError" in kinds
+    # an Eu of neither form (Lemma 1 allows any): the kernel declines, the numpy form runs
+    toy = _toy("paper", 0.1)
+    odd = DiscreteWen(dt=1.0, A1=toy.A1, B=toy.B, E=toy.E, A2=toy.A2, A=toy.A, F=toy.F,
+                      H=toy.H, Eu=np.array([[1.0, 0.0]]))
+    assert _kernel_predict(rc.predict, model, odd, np.eye(2), np.ones(2), 0.0, None,
+                           True)[0] == rc.FALLBACK
 
 
 def _run(f, seed: int, n: int = 400):

@@ -165,16 +165,24 @@ def _finite(*vals):
 
 
 @jit
-def predict(x, P, A, B, E, HH, hh, EE, velocity, q, eps_auto, eps_set, fb, fe, dt, clamp):
+def predict(x, P, A, B, E, HH, hh, EE, Eu, q, eps_auto, eps_set, fb, fe, dt, clamp):
     """``robust_steps.robust_predict`` on the 2-state model: ``(status, x(k+1|k) (2,),
     Sigma(k+1|k) (2, 2), gamma, epsilon)``.
 
-    ``A, B, E, HH = H H^T, hh = tr(H H^T), EE = E E^T``: the period's ``DiscreteWen``;
-    ``velocity``: ``Eu = [[0, 1]]`` (else ``Eu = I``); ``eps_auto``: epsilon per step
-    (``epsilon=None``), else ``eps_set``; ``fb, fe``: the known input's forces
-    (``WenModel.known_input``: drive, resistance + gravity); ``clamp``: the standstill rule."""
+    ``A, B, E, HH = H H^T, hh = tr(H H^T), EE = E E^T, Eu``: the period's ``DiscreteWen``
+    (``Eu`` one of its two forms, ``[[0, 1]]`` or ``I``; another: :data:`FALLBACK`);
+    ``eps_auto``: epsilon per step (``epsilon=None``), else ``eps_set``; ``fb, fe``: the known
+    input's forces (``WenModel.known_input``: drive, resistance + gravity); ``clamp``: the
+    standstill rule."""
     xo = np.empty(2)
     Po = np.empty((2, 2))
+    velocity = Eu.shape[0] == 1
+    if velocity:
+        if Eu.shape[1] != 2 or Eu[0, 0] != 0.0 or Eu[0, 1] != 1.0:
+            return FALLBACK, xo, Po, 0.0, 0.0
+    elif (Eu.shape[0] != 2 or Eu.shape[1] != 2 or Eu[0, 0] != 1.0 or Eu[0, 1] != 0.0
+          or Eu[1, 0] != 0.0 or Eu[1, 1] != 1.0):
+        return FALLBACK, xo, Po, 0.0, 0.0
     x0, x1 = x[0], x[1]
     s00, s01, s10, s11 = P[0, 0], P[0, 1], P[1, 0], P[1, 1]
     if not _finite(x0, x1, s00, s01, s10, s11):
@@ -423,8 +431,8 @@ def warm_up() -> None:
     for unc in ("paper", "velocity"):
         dm = discrete_matrices(3e5, 100.0, 8.0, 20.0, 0.1, unc)
         for auto in (True, False):
-            predict(x, P, dm.A, dm.B, dm.E, dm.HH, dm.hh, dm.EE, unc == "velocity", 0.49, auto,
-                    0.5, 0.0, 0.0, 0.1, True)
+            predict(x, P, dm.A, dm.B, dm.E, dm.HH, dm.hh, dm.EE, dm.Eu, 0.49, auto, 0.5, 0.0,
+                    0.0, 0.1, True)
     for m in (1, 2):
         update(x, P, np.zeros(m), np.eye(m, 2), np.eye(m), np.ones(m), np.zeros(m, np.int64),
                np.ones(m, np.bool_), True, 8.0, 0.0, 0.0)

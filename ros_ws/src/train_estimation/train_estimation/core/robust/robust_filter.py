@@ -107,7 +107,7 @@ class RobustFilter(FilterBase):
             m = self.model
             # the known input's two forces as WenModel.known_input forms them
             status, xp, Sp, gamma, eps_used = robust_compiled.predict(
-                x, P, dm.A, dm.B, dm.E, dm.HH, dm.hh, dm.EE, dm.Eu.shape[0] == 1, float(m.q),
+                x, P, dm.A, dm.B, dm.E, dm.HH, dm.hh, dm.EE, dm.Eu, float(m.q),
                 eps is None, 0.0 if eps is None else float(eps), m.drive_mass * u,
                 m.a + m.gradient_force(x[0]), float(dt), bool(self.params.clamp_standstill))
             if status == robust_compiled.OK:
