@@ -282,7 +282,6 @@ def update_bound(x, S, meas, gain):
 
 # -- the tests ------------------------------------------------------------------------------
 
-@needs_numba
 def test_predict_within_bound_of_numpy_form():
     """Eq. (21), the gamma rule, epsilon, the mean and the clamp: 4000 random cases."""
     worst = {"P": 0.0, "x": 0.0, "gamma": 0.0, "eps": 0.0, "P / (u max|P|)": 0.0,
@@ -312,7 +311,6 @@ def test_predict_within_bound_of_numpy_form():
     print("largest difference / bound:", worst)
 
 
-@needs_numba
 def test_update_within_bound_of_numpy_form():
     """Eq. (22) with both gains: 4000 random cases (channels, masks, lost packets, drops)."""
     worst = {"P": 0.0, "x": 0.0, "P / (u max|P|)": 0.0}
@@ -334,7 +332,6 @@ def test_update_within_bound_of_numpy_form():
     print("largest difference / bound:", worst)
 
 
-@needs_numba
 def test_gate_decides_as_gate_ok():
     """The kernel's gate and FilterBase._gate_ok on the filter's channels (unit rows: both
     exact), near the threshold too, with and without gate_accel."""
@@ -366,8 +363,8 @@ def test_fallbacks_raise_or_fail_as_numpy_form(monkeypatch):
     with a cross term (ValueError), a NaN or overflowing Sigma, a singular gain solve."""
     model = WenModel.from_params(TRAIN, LINE, uncertainty="velocity")
 
-    def outcome(compiled, step):
-        monkeypatch.setattr(RobustFilter, "compiled", compiled)
+    def outcome(kernels, step):
+        monkeypatch.setattr(RobustFilter, "kernels", kernels)
         f = RobustFilter(model, FilterParams(epsilon=step.get("eps")), np.array([10.0, 5.0]),
                          np.eye(2))
         try:
@@ -443,7 +440,6 @@ def _filter(unc, gain, eps):
                         brake=TRAIN.brake)
 
 
-@needs_numba
 @pytest.mark.parametrize("unc,gain,eps", [("velocity", "corrected", None),
                                           ("paper", "corrected", None),
                                           ("paper", "paper", 0.5),
@@ -455,7 +451,7 @@ def test_whole_run_within_bound_of_numpy_form(unc, gain, eps):
     entries, and the filter's recursion does not amplify a past difference: the error
     dynamics (I - K C) A contract), gamma and epsilon within n * 1.2e-14 relative."""
     a, b = _filter(unc, gain, eps), _filter(unc, gain, eps)
-    b.compiled = False
+    b.kernels = False
     ra, rb = _run(a, 5), _run(b, 5)
     n = len(ra)
     assert [r[0] for r in ra] == [r[0] for r in rb]
@@ -473,7 +469,7 @@ def test_whole_run_within_bound_of_numpy_form(unc, gain, eps):
 
 def _kernel_values() -> np.ndarray:
     """Every kernel output on seeded cases and a whole run, flattened (for the test below);
-    without numba the kernels run interpreted (the compiled path forced)."""
+    without numba the kernels run interpreted."""
     out = []
     for case in predict_cases(300, 7):
         st, xk, Pk, gk, ek = _kernel_predict(rc.predict, *case)
@@ -482,7 +478,6 @@ def _kernel_values() -> np.ndarray:
         st, xk, Pk = _kernel_update(rc.update, x, S, meas, gain, 2.0, 0.1, 1.0)
         out += [[st], xk if st == rc.OK else [], Pk.ravel() if st == rc.OK else []]
     f = _filter("paper", "corrected", None)
-    f.compiled = True
     for _, x, P, gam, eps in _run(f, 6, 150):
         out += [x, P.ravel(), [gam, eps]]
     return np.concatenate([np.ravel(np.asarray(v, dtype=float)) for v in out])

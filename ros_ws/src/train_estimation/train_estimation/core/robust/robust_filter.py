@@ -6,8 +6,8 @@ Where the pieces are:
 * ``robust_steps``: the paper's maths -- eq. (13), (21)-(24), the rule for gamma and epsilon,
   the paper slip in the gain (module docstring there);
 * ``robust_compiled``: the same prediction and gated update as one compiled scalar call each
-  (numba), which :class:`RobustFilter` runs (``robust_steps`` where numba is missing, and for
-  what the kernels leave to it: exceptions, non-finite states);
+  (numba; interpreted without it, the same bits), which :class:`RobustFilter` runs
+  (``robust_steps`` for what the kernels leave to it: exceptions, non-finite states);
 * ``readings``: the message-shaped readings, decisions and the covariance layout;
 * ``filter_base``: settings (:class:`FilterParams`), validation with reasons, counters, time
   keeping and the believed actuator, shared by the filters below;
@@ -87,23 +87,23 @@ class RobustFilter(FilterBase):
     """
 
     name = "robust"
-    #: each prediction and each gated update one compiled call (``robust_compiled``: the
-    #: formulas of ``robust_steps`` on scalars, equal to rounding); False, or without numba:
-    #: ``robust_steps``' numpy form
-    compiled = robust_compiled.COMPILED
+    #: each prediction and each gated update one call of ``robust_compiled``'s scalar kernels
+    #: (the formulas of ``robust_steps``, equal to rounding; compiled by numba where installed,
+    #: else interpreted: the same bits); False: ``robust_steps``' numpy form
+    kernels = True
 
     def __init__(self, model: WenModel, params: FilterParams, x0, Sigma0, t0: float = 0.0,
                  brake=None):
         super().__init__(model, params, x0, Sigma0, t0, brake)
         self.last_gamma = math.nan
         self.last_epsilon = math.nan
-        if self.compiled:
+        if self.kernels:
             robust_compiled.warm_up()  # numba's cache loaded here, not in a first callback
 
     def _predict(self, x, P, dt, u):
         dm = self.model.discrete(dt)
         eps = self.params.epsilon
-        if self.compiled:
+        if self.kernels:
             m = self.model
             # the known input's two forces as WenModel.known_input forms them
             status, xp, Sp, gamma, eps_used = robust_compiled.predict(
@@ -124,7 +124,7 @@ class RobustFilter(FilterBase):
 
     def _gated_apply(self, x, P, meas, since):
         gain = self.params.gain
-        if self.compiled and gain in ("corrected", "paper"):
+        if self.kernels and gain in ("corrected", "paper"):
             p = self.params
             status, xn, Sn = robust_compiled.update(
                 x, P, meas.y, meas.C, meas.R, meas.abar, meas.group, meas.mask,
