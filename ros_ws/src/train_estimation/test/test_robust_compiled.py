@@ -62,7 +62,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_robust_filter import LINE, TRAIN
 from train_core.model import Brake, Davis, TrainParams
 
 from train_estimation.core.robust import robust_compiled as rc
@@ -76,6 +75,9 @@ from train_estimation.core.robust.robust_filter import (
     robust_update,
 )
 from train_estimation.core.robust.wen_model import DiscreteWen, WenModel
+
+sys.path.insert(0, os.path.dirname(__file__))
+from test_robust_filter import LINE, TRAIN  # noqa: E402  (the same train and line)
 
 U = 2.0 ** -53
 
