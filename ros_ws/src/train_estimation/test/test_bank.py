@@ -12,10 +12,7 @@ summation, Higham 2002 eq. (4.4), u = eps / 2, L terms), so the two differ by at
 from __future__ import annotations
 
 import os
-import subprocess
 import sys
-import textwrap
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -37,6 +34,9 @@ from train_estimation.core.braking.braking_model import (
 )
 from train_estimation.core.numerics import bank
 from train_estimation.core.numerics.kalman import _selectors, update
+
+sys.path.insert(0, os.path.dirname(__file__))
+import nojit  # noqa: E402  (the interpreted run in a fresh process)
 
 EPS = np.finfo(float).eps
 pytestmark = pytest.mark.skipif(not bank.COMPILED, reason="numba not installed")
@@ -225,23 +225,7 @@ def _kernel_values() -> np.ndarray:
 def _interpreted(name: str) -> np.ndarray:
     """This module's function ``name`` (no arguments, an array back) run in a fresh process
     without numba (TRAIN_NO_JIT=1: its decorator is a no-op), checked to be interpreted."""
-    here = str(Path(__file__).parent)
-    code = textwrap.dedent(f"""
-        import sys
-        import numpy as np
-        sys.path.insert(0, {here!r})
-        from test_bank import {name}
-        from train_estimation.core.numerics import bank
-        assert not bank.COMPILED
-        np.save(sys.argv[1], {name}())
-        """)
-    out = Path(os.environ.get("TMPDIR", "/tmp")) / f"bank_{name}_{os.getpid()}.npy"
-    run = subprocess.run([sys.executable, "-c", code, str(out)], capture_output=True,
-                         text=True, env={**os.environ, "TRAIN_NO_JIT": "1"}, timeout=300)
-    assert run.returncode == 0, run.stderr
-    interpreted = np.load(out)
-    out.unlink()
-    return interpreted
+    return nojit.interpreted("test_bank", name, "train_estimation.core.numerics.bank", 300.0)
 
 
 def test_compiled_equals_interpreted_kernel():

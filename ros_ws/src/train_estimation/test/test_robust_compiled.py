@@ -55,10 +55,7 @@ the largest entry, 87-96 % (prediction) and 44-46 % (update) of the steps equal 
 
 import math
 import os
-import subprocess
 import sys
-import textwrap
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -77,6 +74,7 @@ from train_estimation.core.robust.robust_filter import (
 from train_estimation.core.robust.wen_model import DiscreteWen, WenModel
 
 sys.path.insert(0, os.path.dirname(__file__))
+import nojit  # noqa: E402
 from test_robust_filter import LINE, TRAIN  # noqa: E402  (the same train and line)
 
 U = 2.0 ** -53
@@ -501,20 +499,6 @@ def test_compiled_equals_interpreted():
         if a[0] == rc.OK:
             np.testing.assert_array_equal(a[1], b[1])
             np.testing.assert_array_equal(a[2], b[2])
-    here = str(Path(__file__).parent)
-    code = textwrap.dedent(f"""
-        import sys
-        import numpy as np
-        sys.path.insert(0, {here!r})
-        from test_robust_compiled import _kernel_values
-        from train_estimation.core.robust import robust_compiled
-        assert not robust_compiled.COMPILED
-        np.save(sys.argv[1], _kernel_values())
-        """)
-    path = Path(os.environ.get("TMPDIR", "/tmp")) / f"robust_kernels_{os.getpid()}.npy"
-    run = subprocess.run([sys.executable, "-c", code, str(path)], capture_output=True,
-                         text=True, env={**os.environ, "TRAIN_NO_JIT": "1"}, timeout=600)
-    assert run.returncode == 0, run.stderr
-    interpreted = np.load(path)
-    path.unlink()
+    interpreted = nojit.interpreted("test_robust_compiled", "_kernel_values",
+                                    "train_estimation.core.robust.robust_compiled")
     np.testing.assert_array_equal(_kernel_values(), interpreted)
