@@ -214,6 +214,7 @@ class OdometerCalibration:
         # the last EXCLUDED fusions: (solution before, fixes fused)
         self.recent: list[tuple[_Solution, tuple[BaliseFix, ...]]] = []
         self.alternatives: list[_Solution] = []  # the solution without each of them
+        self._stack: tuple | None = None  # what :meth:`doubt` reuses (:meth:`_stacked`)
         self.jumps: tuple = ()  # (count m, variance m^2) of each splice (:meth:`splice`)
         # the start-fault hypothesis (module doc): its bias bound before the first balise, then
         # the solution without the start (None: no start fault carried, or the count was
@@ -273,18 +274,14 @@ class OdometerCalibration:
         """``(consider(d, v_odo), separation(d, v_odo))`` from one pass over the solutions
         without each recent balise and the start's (an estimate publishes both)."""
         J = np.array([[1.0, d, 0.0], [0.0, v_odo, 0.0]])
-        C = J @ self.Sigma @ J.T
-        # the matrix products in numpy, the elementwise rest on floats (the same IEEE
-        # operations as on the 2-vectors: this runs at every estimate)
-        c00, c01, c10, c11 = C.ravel().tolist()
+        # the matrix products in numpy (on stacks: :meth:`_stacked`), the elementwise rest on
+        # floats (the same IEEE operations as on the 2-vectors: this runs at every estimate)
+        S, D = self._stacked()
+        K = (J @ S @ J.T).tolist()
+        (c00, c01), (c10, c11) = K[0]
         n0, n1 = c00, c11  # the diagonal needed: the largest over the solutions
         alts = []
-        for alt in self.alternatives:
-            Sk = _walked(alt.Sigma, alt.d, self.d_walked, self.count_walk, self.scale_walk,
-                         self.jumps)
-            d0, d1 = (J @ (alt.theta - self.theta)).tolist()
-            K = J @ Sk @ J.T
-            k0, k1 = float(K[0, 0]), float(K[1, 1])
+        for ((k0, _), (_, k1)), ((d0,), (d1,)) in zip(K[1:], (J @ D).tolist() if K[1:] else ()):
             n0, n1 = _nanmax(n0, k0 + d0 * d0), _nanmax(n1, k1 + d1 * d1)
             alts.append((d0, k0))
         for shift, var in self.start_doubt(d, c00):
@@ -292,6 +289,23 @@ class OdometerCalibration:
             alts.append((shift, var))
         return np.array([[c00 + (n0 - c00), c01 + 0.0], [c10 + 0.0, c11 + (n1 - c11)]]), \
             (c00, tuple(alts))
+
+    def _stacked(self) -> tuple:
+        """``(S, D)`` of :meth:`doubt`: ``Sigma`` and each alternative's covariance walked to
+        :attr:`d_walked`, stacked ``(n + 1, 3, 3)``, and the alternatives' ``theta`` less this
+        one's ``(n, 3, 1)``. numpy makes the same BLAS call on each slice of a stack as on a lone
+        array (the same numbers, a third of the calls); each part is kept while the objects it
+        is made of stand (every update makes new ones: a standing train reuses both)."""
+        alts, c = self.alternatives, self._stack
+        if c is None or c[0] is not alts or c[1] is not self.theta:
+            c = (alts, self.theta, np.array([a.theta - self.theta for a in alts])[:, :, None]
+                 if alts else None, None, None, None, None)
+        if c[3] is not self.Sigma or c[4] != self.d_walked or c[5] is not self.jumps:
+            c = c[:3] + (self.Sigma, self.d_walked, self.jumps, np.array(
+                [self.Sigma] + [_walked(a.Sigma, a.d, self.d_walked, self.count_walk,
+                                        self.scale_walk, self.jumps) for a in alts]))
+        self._stack = c
+        return c[6], c[2]
 
     def start_doubt(self, d: float, var: float | None = None) -> tuple:
         """The start-fault hypothesis at the count ``d`` as solutions ``((shift m, variance
