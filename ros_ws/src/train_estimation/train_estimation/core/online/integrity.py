@@ -256,6 +256,12 @@ class IntegrityMonitor:
         self.commands: deque = deque()  # (stamp, m/s^2) of the commands of the last window
         self.counts_seen: deque = deque()  # (stamp, odometer count m) of the last window
         self.fused_seen: deque = deque()  # (stamp, count m, speed m/s) of fused readings
+        # kept along with it, for _stopped_short at every estimate (a dwell's readings are not
+        # scanned again each time): how far from its end (1: the last) its latest reading that
+        # does not read standstill lies, and (count m, readings) of its last readings within
+        # the count's tolerance of that count (None: not known, scanned when asked)
+        self.still_fast = math.inf
+        self.still_run: tuple | None = None
         self.last_fused = -math.inf  # stamp of the last fused odometer reading
         self.refused_run = 0  # odometer readings refused since the last fused one
         self.last_command = -math.inf  # stamp of the last command
@@ -306,7 +312,9 @@ class IntegrityMonitor:
                                                      f"{self.refused_run} readings refused in "
                                                      "a row")
         self.refused_run = 0
-        self._remember(self.fused_seen, stamp, fields, ("distance", "speed"))
+        kept = self._remember(self.fused_seen, stamp, fields, ("distance", "speed"))
+        if kept is not None:
+            self._seen_fused(kept)
         self.last_fused = max(self.last_fused, stamp)
         self.last_reading = max(self.last_reading, stamp)
         if fields is not None and self.prev is not None:
@@ -506,28 +514,50 @@ class IntegrityMonitor:
         b = self.train.brake
         return b.delay + 3.0 * b.time_constant + self.STILL_SPANS[-1] + 1.0
 
-    def _keep(self, q: deque, item: tuple) -> None:
+    def _keep(self, q: deque, item: tuple) -> bool:
         """``item`` (stamp first) into the window ``q``, kept in order (a rewound runner tells
         past items again), and what lies before the window dropped, but for one entry (the
-        command in force at its start)."""
-        if not q or item >= q[-1]:
+        command in force at its start). True when ``item`` went to the end."""
+        last = not q or item >= q[-1]
+        if last:
             q.append(item)
         else:
             bisect.insort(q, item)
         while len(q) > 1 and q[1][0] < q[-1][0] - self._window():
             q.popleft()
+        return last
 
-    def _remember(self, q: deque, stamp: float, fields: dict | None, keys: tuple) -> None:
+    def _remember(self, q: deque, stamp: float, fields: dict | None, keys: tuple) -> bool | None:
         """``(stamp, fields[k] for k in keys)`` into the window ``q`` when every value is a
-        finite number (the ``standing`` check's; nothing without a believed train)."""
+        finite number (the ``standing`` check's; nothing without a believed train): what
+        :meth:`_keep` returns, None when nothing was kept."""
         if self.train is None or not isinstance(fields, dict):
-            return
+            return None
         try:
             vals = tuple(float(fields[k]) for k in keys)
         except (KeyError, TypeError, ValueError):
-            return
+            return None
         if all(math.isfinite(u) for u in vals):
-            self._keep(q, (stamp, *vals))
+            return self._keep(q, (stamp, *vals))
+        return None
+
+    def _seen_fused(self, last: bool) -> None:
+        """``still_fast`` and ``still_run`` after a fused reading went into ``fused_seen``
+        (``last``: at its end). Readings dropped from its start move neither end: the run is
+        cut at the window's start, a reading at speed beyond it is beyond the run."""
+        q = self.fused_seen
+        if not last:  # placed among earlier readings (a rewind): the latest at speed found again
+            self.still_run = None
+            self.still_fast = next((j for j, (_, _, v) in enumerate(reversed(q), 1)
+                                    if abs(v) > V_STILL), math.inf)
+            return
+        _, d, v = q[-1]
+        self.still_fast = 1 if abs(v) > V_STILL else self.still_fast + 1
+        run = self.still_run
+        # a reading at the very count of the run extends it (the same tolerance of the same
+        # count); any other count has a run of its own, scanned when asked
+        self.still_run = (d, min(run[1] + 1, len(q))) if run is not None and d == run[0] \
+            else None
 
     def _stopped_short(self, t: float, x: float) -> str:
         """Why the count that stands since its last move cannot be a train that stopped (the
@@ -538,19 +568,26 @@ class IntegrityMonitor:
             return ""
         p, tr = self.p, self.train
         tol = self._count_tolerance()
-        if abs(self.fused_seen[-2][1] - self.fused_seen[-1][1]) >= tol:
+        seen = self.fused_seen  # in stamp order (_keep)
+        if abs(seen[-2][1] - seen[-1][1]) >= tol:
             return ""  # the count moved at the last reading (the train runs, as it mostly does)
-        seen = list(self.fused_seen)  # in stamp order (_keep)
         d_now = seen[-1][1]
-        # the readings at the newest count: all but the first must read standstill
-        k = len(seen) - 1
-        while k >= 0 and abs(seen[k][1] - d_now) < tol:
-            k -= 1
-        at = seen[k + 1:]
-        if len(at) < 2 or at[-1][0] < t - 2.5 * self.period or \
-                any(abs(v) > V_STILL for _, _, v in at[1:]):
+        # the readings at the newest count (``at``, the last ``n``; ``seen[k]`` the one before
+        # them): all but the first must read standstill (still_run and still_fast, kept as
+        # the readings come: :meth:`_seen_fused`)
+        if self.still_run is None or self.still_run[0] != d_now:
+            n = 0
+            for _, d, _ in reversed(seen):
+                if not abs(d - d_now) < tol:
+                    break
+                n += 1
+            self.still_run = (d_now, n)
+        n = self.still_run[1]
+        k = len(seen) - 1 - n
+        if n < 2 or seen[-1][0] < t - 2.5 * self.period or self.still_fast < n:
             return ""  # no two readings at one count, or none lately (an outage says nothing)
-        v0 = abs(at[0][2])
+        at0, last = seen[-n], seen[-1]
+        v0 = abs(at0[2])
         moving = v0 > V_STILL
         if not moving and k < 0:
             return ""
@@ -563,15 +600,15 @@ class IntegrityMonitor:
         if not moving:
             # the count moved up to its first reading here: the least speed there, from the
             # last move's and braking since (through an outage, to a stop)
-            v0 = max(abs(seen[k][2]) - a_stop * (at[0][0] - seen[k][0]), 0.0)
+            v0 = max(abs(seen[k][2]) - a_stop * (at0[0] - seen[k][0]), 0.0)
         # the least the train runs while the readings stay at one count (lost ones between
         # them do not matter: the count is the same at both ends of a gap)
-        span = at[-1][0] - at[0][0]
+        span = last[0] - at0[0]
         run = v0 * span - 0.5 * a_stop * span * span if v0 > a_stop * span else \
             v0 * v0 / (2.0 * a_stop)
         if run < p.still_run:
             return ""
-        return (f"the count stood {span:.1f} s ({len(at) - 1} readings at standstill) from "
+        return (f"the count stood {span:.1f} s ({n - 1} readings at standstill) from "
                 f"{v0:.1f} m/s at least: braking at {a_stop:.2f} m/s^2, the most there is, "
                 f"runs the train {run:.0f} m")
 
