@@ -136,7 +136,8 @@ from .protection import RARE_SHARE, Hypothesis, label, protection_levels
 
 OK, DEGRADED, ALARM = 0, 1, 2
 V_STILL = 0.5  # m/s: an odometer speed reading at or below this reads standstill
-_STAMP = itemgetter(0)  # the stamp of a window's entry (bisect's key)
+_STAMP = _FIRST = itemgetter(0)  # the stamp of a window's entry (bisect's key)
+_SECOND = itemgetter(1)
 BURST_NEGLIGIBLE = 1e-3  # -, a step's burst hypothesis (IntegrityMonitor.clock) is dropped once
 #   its prior is this fraction of its share of the risk: until then protection_levels charges
 #   it its share, monitored or not; after, what it could still add is a thousandth of that
@@ -334,7 +335,8 @@ class IntegrityMonitor:
             v, rv = float(fields["speed"]), float(fields["speed_variance"])
         except (KeyError, TypeError, ValueError, IndexError):
             return
-        if not all(math.isfinite(q) for q in (z, r, v, rv)) or r <= 0 or rv < 0:
+        if not (math.isfinite(z) and math.isfinite(r) and math.isfinite(v)
+                and math.isfinite(rv)) or r <= 0 or rv < 0:
             return
         if self.odo_track is not None and stamp < self.odo_track[0]:
             return
@@ -396,8 +398,7 @@ class IntegrityMonitor:
         n = len(self.pos)
         if n == 0:
             return 0.0, math.inf
-        return (sum(nu for nu, _ in self.pos) / n,
-                math.sqrt(sum(s for _, s in self.pos) / n / n))
+        return (sum(map(_FIRST, self.pos)) / n, math.sqrt(sum(map(_SECOND, self.pos)) / n / n))
 
     def _speed_nis(self, stamp: float, fields: dict) -> None:
         t0, v0, pvv = self.prev
@@ -534,10 +535,10 @@ class IntegrityMonitor:
         if self.train is None or not isinstance(fields, dict):
             return None
         try:
-            vals = tuple(float(fields[k]) for k in keys)
+            vals = [float(fields[k]) for k in keys]
         except (KeyError, TypeError, ValueError):
             return None
-        if all(math.isfinite(u) for u in vals):
+        if all(map(math.isfinite, vals)):
             return self._keep(q, (stamp, *vals))
         return None
 
@@ -727,8 +728,8 @@ class IntegrityMonitor:
         # the cost: the monitor runs at every estimate)
         cov = out.covariance
         P = (float(cov[0]), float(cov[1]), float(cov[4]), float(cov[5]))
-        finite = all(math.isfinite(v) for v in P) and math.isfinite(out.position) \
-            and math.isfinite(out.velocity)
+        finite = math.isfinite(P[0]) and math.isfinite(P[1]) and math.isfinite(P[2]) \
+            and math.isfinite(P[3]) and math.isfinite(out.position) and math.isfinite(out.velocity)
         if not finite or not (P[0] > 0 and P[3] > 0 and P[0] * P[3] - P[1] * P[1] > 0):
             # the filter's own covariance is broken: published as "unbounded" (never a negative
             # or non-positive-definite matrix a consumer could take for a bound). Products, not
@@ -870,9 +871,8 @@ class IntegrityMonitor:
             if out.separation:
                 cal, alts = out.separation
                 prior = {"map": self.p.balise_map_prior, "start": self.p.start_fault_prior}
-                hyps = hyps + tuple(Hypothesis(_CAL_NAMES[kind], m, max(0.0, v - cal),
-                                               prior.get(kind, 1.0))
-                                    for m, v, kind in alts)
+                hyps = (*hyps, *[Hypothesis(_CAL_NAMES[kind], m, max(0.0, v - cal),
+                                            prior.get(kind, 1.0)) for m, v, kind in alts])
                 var += cal
             elif out.consider:
                 var += float(out.consider[0])

@@ -84,6 +84,8 @@ class Hypothesis(NamedTuple):
     #   stated (a hypothesis the data raised, or a fault whose source states no rate)
 
 
+FAULT_FREE = Hypothesis("fault-free", 0.0, 0.0)  # the estimate itself, the first solution
+
 RARE_SHARE = 0.5  # -, the share of the integrity risk allotted to the rare faults whose priors
 #   are stated (module doc): half, since a rare fault's solution lies further from the
 #   estimate than the fault-free one (it leaves a balise out) and gains most from a smaller
@@ -113,12 +115,13 @@ def protection_levels(variance: float, hypotheses=(), risk: float = 1e-7
     is not a finite positive number or a hypothesis is not finite (nothing bounds it)."""
     if not (math.isfinite(variance) and variance > 0.0):
         return math.inf, math.inf
-    live = [Hypothesis("fault-free", 0.0, 0.0)] + list(hypotheses)
+    live = (FAULT_FREE, *hypotheses)
+    n_rare = 0
     for h in live:
         if not (math.isfinite(h.shift) and math.isfinite(h.extra) and h.extra >= 0.0
                 and 0.0 <= h.prior <= 1.0):
             return math.inf, math.inf
-    n_rare = sum(h.prior < 1.0 for h in live)
+        n_rare += h.prior < 1.0
     k = k_factor(risk) if not n_rare else k_factor((1.0 - RARE_SHARE) * risk)
     share = RARE_SHARE * risk / (2.0 * n_rare) if n_rare else 0.0  # one side's, each
     ahead = behind = 0.0
