@@ -78,9 +78,9 @@ stream; a reading older than the history is refused by the estimator's own
 
 from __future__ import annotations
 
+import bisect
 import heapq
 import math
-import statistics
 from collections import Counter, deque
 from dataclasses import dataclass, field
 from typing import Protocol
@@ -253,6 +253,7 @@ class EstimatorRunner:
     _first_odometer: float | None = None  # stamp of the first odometer reading queued
     _lags: deque = field(default_factory=lambda: deque(maxlen=31))  # s, how far the control
     #   watermark led each of the latest odometer readings as it was queued (ready_time)
+    _lags_sorted: list = field(default_factory=list)  # the same, in order (_odometer_lag)
     _anchor: tuple | None = None  # (train stamp, filter time) of the last processed odometer
     _last_mapped: float = -math.inf
     _hist: list = field(default_factory=list)  # [stamp, order, n, kind, fields, snapshot]
@@ -619,7 +620,7 @@ class EstimatorRunner:
                 self._queue("control", self._to_train(s, rc), f)
         if kind == "odometer" and "control" in self.high and not self._backlog:
             # (a backlog's readings say how long the stall was, not how the link delivers)
-            self._lags.append(self.high["control"] - stamp)
+            self._lag(self.high["control"] - stamp)
         self._queue(kind, stamp, fields)
         return ""
 
@@ -814,7 +815,8 @@ class EstimatorRunner:
         refused every late reading after it that the history still reached)."""
         hist = self._hist
         in_order = not hist or (entry[0], entry[1]) >= (hist[-1][0], hist[-1][1])
-        if self.history > 0 and entry[3] == "odometer" and self._can_rewind and in_order:
+        rewinds = self._can_rewind  # (asked once: a wrapped adapter answers through getattr)
+        if entry[3] == "odometer" and rewinds and in_order:
             base = self._base
             snap = _Replayed(base[0], tuple(base[1])) if base is not None \
                 else self.adapter.snapshot()
@@ -839,7 +841,7 @@ class EstimatorRunner:
                 key = (entry[0], entry[1])
                 hist.insert(next(k for k, h in enumerate(hist) if (h[0], h[1]) > key), entry)
             self._high_done = max(self._high_done, entry[0])
-            if not self._can_rewind:
+            if not rewinds:
                 # an adapter without snapshots is never rewound: only the last item is read
                 # (what is late); the whole history kept would be scanned below per item
                 del hist[:-1]
@@ -1115,7 +1117,10 @@ class EstimatorRunner:
         -inf before the train clock is known (:meth:`_judged`: until then the commands wait
         too)."""
         train = self._offsets.get("train")
-        if not self._judged("train") or not math.isfinite(now) or self._awaiting_commands():
+        # (_judged("train"), on the clock in hand: asked at every tick)
+        if train is None or not (train.judged or (len(train) >= 3 and
+                                                  train.near(train.value) >= 3)) \
+                or not math.isfinite(now) or self._awaiting_commands():
             return -math.inf
         at = now - self.slot_grace
         due = at + train.value_at(at, train.drift)
@@ -1212,7 +1217,22 @@ class EstimatorRunner:
         that: a link that delivers every reading 0.7 s after the commands of its cycle had each
         slot predicted before its reading came (``fallback`` 0.2 s), fused late, and every
         estimate published without a measurement (DEGRADED all run)."""
-        return max(0.0, statistics.median(self._lags)) if self._lags else 0.0
+        s = self._lags_sorted  # (statistics.median's, on the leads kept in order: _lag)
+        n = len(s)
+        if not n:
+            return 0.0
+        return max(0.0, s[n // 2] if n % 2 else (s[n // 2 - 1] + s[n // 2]) / 2)
+
+    def _lag(self, lead: float) -> None:
+        """A lead of the control watermark into the last 31 (:meth:`_odometer_lag`), kept in
+        order too: their median is asked at every message, the leads change with odometer
+        readings only. (Of two equal leads, either may be the one dropped: 0.0 and -0.0
+        alike give a lag of 0.)"""
+        lags, s = self._lags, self._lags_sorted
+        if len(lags) == lags.maxlen:
+            del s[bisect.bisect_left(s, lags[0])]
+        lags.append(lead)
+        bisect.insort(s, lead)
 
     def _awaiting_commands(self) -> bool:
         """Whether the readings wait for the command stream, none of it queued yet: commands
@@ -1339,8 +1359,9 @@ def _copy_key(fields: dict, stamp: float) -> tuple:
     values differ are not copies but one sample and a corruption of it, and the filters judge
     both (a copy key without the values let a corrupted copy that came first, and was refused
     by the gate, refuse the true sample after it as its duplicate)."""
-    return (fields.get("seq"), stamp) + tuple(fields.get(k) for k in (
-        "distance", "speed", "balise_id", "position", "target_acceleration"))
+    get = fields.get
+    return (get("seq"), stamp, get("distance"), get("speed"), get("balise_id"), get("position"),
+            get("target_acceleration"))
 
 
 def _sample_key(fields: dict):
