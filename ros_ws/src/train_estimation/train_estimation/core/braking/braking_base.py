@@ -205,9 +205,10 @@ class Estimate:
         return Estimate(**kw)
 
     def _copy(self) -> Estimate:
-        """A copy whose arrays are copies (the filter's snapshots)."""
-        return Estimate(**{f: (a.copy() if isinstance(a, np.ndarray) else a)
-                           for f, a in ((f, getattr(self, f)) for f in self.FIELDS)})
+        """A copy whose arrays are copies (the filter's snapshots; FIELDS are the
+        constructor's arguments in order)."""
+        return Estimate(*[a.copy() if isinstance(a, np.ndarray) else a
+                          for a in [getattr(self, f) for f in self.FIELDS]])
 
     def __repr__(self) -> str:
         return "Estimate(" + ", ".join(f"{f}={getattr(self, f)!r}" for f in self.FIELDS) + ")"
@@ -269,6 +270,7 @@ _ONE = np.ones(1)  # the braking-rate argument of an informative step (unused: t
 # a step without prediction (dt = 0): bank_step's arguments
 _NO_PREDICT = (False, *braking_inplace.pack_pred(bank._NO_PREDICT, np.zeros(1)))
 _MASKS: dict = {}
+_IMMUTABLE = frozenset({tuple, str, int, float, bool, type(None)})  # shared by __deepcopy__
 _BAD = (None, None, None, None, None)  # a rejected input's other return values
 _ALL_ROWS: dict = {}
 
@@ -328,11 +330,16 @@ class RaoBlackwellFilter:
             hit = memo.get(id(v))
             if hit is not None:
                 v = hit
+            elif type(v) in _IMMUTABLE and k != "_buf":
+                pass  # (the last branch's, found before the instance tests: most of them)
             elif isinstance(v, np.ndarray):
                 v = v if not v.flags.writeable else v.copy()
             elif isinstance(v, _Set):
-                v = _Set(*(None if a is None else a.copy()
-                           for a in (v.theta, v.x, v.P, v.logw, v.idx)), copy.deepcopy(v.extra))
+                # (an empty extra, the usual one, is a new empty dict: deepcopy's walk for it
+                # cost as much as the arrays' copies)
+                v = _Set(*[None if a is None else a.copy()
+                           for a in (v.theta, v.x, v.P, v.logw, v.idx)],
+                         {} if type(v.extra) is dict and not v.extra else copy.deepcopy(v.extra))
             elif isinstance(v, Estimate):
                 v = v._copy()
             elif k == "_buf":
