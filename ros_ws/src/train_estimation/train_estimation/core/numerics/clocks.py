@@ -516,7 +516,7 @@ class StreamClock:
             a1 = self.arrivals[-1]
             if a1 is None or None in self.arrivals:
                 return None
-            s = sorted(v + drift * (a1 - a) for v, a in zip(self.fifo, self.arrivals))
+            s = sorted([v + drift * (a1 - a) for v, a in zip(self.fifo, self.arrivals)])
             c = self._centre(s)
             self._at_cache = (key, a1, c, self._spread(s, c))
         return self._at_cache

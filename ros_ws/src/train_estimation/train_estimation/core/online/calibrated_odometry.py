@@ -582,12 +582,11 @@ class DistanceAsPosition:
     def odometry_events(self) -> dict:
         """Event name -> how many so far, of the odometer's calibration (in :attr:`counters`;
         the runner logs each new one)."""
-        return {k: n for k, n in ((R.RELOCATED, self.cal.relocated),
-                                  (R.BALISE_EXCLUDED, self.cal.excluded),
-                                  (R.BALISE_LATENCY, self.latency_found),
-                                  (R.COUNT_RESET, self.restarts),
-                                  (R.COUNT_ORIGIN, self.origin_far),
-                                  (R.START_EXCLUDED, self.cal.start_excluded)) if n}
+        counts = (self.cal.relocated, self.cal.excluded, self.latency_found, self.restarts,
+                  self.origin_far, self.cal.start_excluded)
+        if not any(counts):  # (the usual answer, asked after every reading)
+            return {}
+        return {k: n for k, n in zip(_EVENTS, counts) if n}
 
     def _odometry_snapshot(self):
         return tuple(c.copy() if c is not None else None
@@ -605,7 +604,11 @@ class DistanceAsPosition:
         self.cal_alt = alt.copy() if alt is not None else None
 
 
+_EVENTS = (R.RELOCATED, R.BALISE_EXCLUDED, R.BALISE_LATENCY, R.COUNT_RESET, R.COUNT_ORIGIN,
+           R.START_EXCLUDED)  # odometry_events' names, in its order
+
+
 def _tagged(**groups) -> tuple:
     """``((shift, variance, kind), ...)`` of the solutions ``((shift, variance), ...)`` of each
     kind (:meth:`DistanceAsPosition._calibration`)."""
-    return tuple((float(m), float(v), kind) for kind, sols in groups.items() for m, v in sols)
+    return tuple([(float(m), float(v), kind) for kind, sols in groups.items() for m, v in sols])

@@ -10,6 +10,7 @@ The ROS nodes and the offline replay (``replay.py``) use the same adapters throu
 from __future__ import annotations
 
 import copy
+import itertools
 import math
 from dataclasses import dataclass
 
@@ -602,10 +603,11 @@ class BrakingAdapter(DistanceAsPosition):
         m = np.asarray(e.mean, dtype=float)[:3]
         P = np.asarray(e.cov, dtype=float)[:3, :3]
         # nan_to_num is a handful of array passes: taken only when something is not finite
-        # (it leaves a finite array as it is)
-        if not np.isfinite(P).all():
+        # (it leaves a finite array as it is); found on the floats (np.isfinite's answer, a
+        # quarter of its cost with the reductions)
+        if not all(map(math.isfinite, itertools.chain.from_iterable(P.tolist()))):
             P = np.nan_to_num(P, nan=0.0)
-        if not np.isfinite(m).all():
+        if not all(map(math.isfinite, m.tolist())):
             m = np.nan_to_num(m)
         F = np.array([[1.0, dt, 0.5 * dt * dt], [0.0, 1.0, dt]])
         pred = F @ m

@@ -231,6 +231,7 @@ class IntegrityParams:
 
 # the odometer calibration's solutions (Output.separation) by kind, as hypotheses
 _CAL_NAMES = {"map": "balise_map", "start": "start", "reader": "late_reader"}
+_NEW = tuple.__new__
 
 DEFAULT_ALERT_LIMIT = 10.0  # m, where neither the parameter nor the line states one
 
@@ -877,8 +878,9 @@ class IntegrityMonitor:
             if out.separation:
                 cal, alts = out.separation
                 prior = {"map": self.p.balise_map_prior, "start": self.p.start_fault_prior}
-                hyps = (*hyps, *[Hypothesis(_CAL_NAMES[kind], m, max(0.0, v - cal),
-                                            prior.get(kind, 1.0)) for m, v, kind in alts])
+                # (tuple.__new__: Hypothesis's own, without its Python-level __new__)
+                hyps = (*hyps, *[_NEW(Hypothesis, (_CAL_NAMES[kind], m, max(0.0, v - cal),
+                                                   prior.get(kind, 1.0))) for m, v, kind in alts])
                 var += cal
             elif out.consider:
                 var += float(out.consider[0])
