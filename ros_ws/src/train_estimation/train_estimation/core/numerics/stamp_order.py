@@ -51,6 +51,7 @@ class StampOrder:
         self.samples = samples  # fused samples kept (:meth:`elsewhere`)
         self.last: dict = {}  # kind -> (seq, stamp) of the last reading taken
         self.recent: dict = {}  # kind -> deque of copy keys (:meth:`copy_of`)
+        self.keyed: dict = {}  # kind -> [{hashable key in recent: how often}, unhashable ones]
         self.fused: dict = {}  # sample key -> (stamp, value) of the last samples fused
 
     def judge(self, kind: str | None, stamp: float, seq: int | None = None,
@@ -86,14 +87,42 @@ class StampOrder:
 
     def copy_of(self, kind: str, key) -> bool:
         """Whether a message with copy ``key`` came among the last ``window`` of its kind;
-        one that did not is remembered."""
+        one that did not is remembered. Looked up by hash (``keyed``: every message asks, and
+        the window is 64 keys long) while every key in the window has one (equal keys hash
+        alike); else by comparing with each, as ``in`` does."""
         recent = self.recent.get(kind)
-        if recent is not None and key in recent:
-            return True
         if recent is None:
             recent = self.recent[kind] = deque(maxlen=self.window)
+            self.keyed[kind] = [{}, 0]
+        keyed = self.keyed[kind]
+        try:
+            hash(key)
+        except TypeError:  # (a corrupted field's list, say)
+            hashable = False
+        else:
+            hashable = True
+        if key in recent if keyed[1] or not hashable else key in keyed[0]:
+            return True
+        if len(recent) == recent.maxlen:  # the oldest leaves the window
+            self._unkey(keyed, recent[0])
         recent.append(key)
+        if hashable:
+            keyed[0][key] = keyed[0].get(key, 0) + 1
+        else:
+            keyed[1] += 1
         return False
+
+    @staticmethod
+    def _unkey(keyed: list, key) -> None:
+        try:
+            n = keyed[0][key]
+        except TypeError:
+            keyed[1] -= 1
+            return
+        if n > 1:
+            keyed[0][key] = n - 1
+        else:
+            del keyed[0][key]
 
     def elsewhere(self, key, stamp: float, value) -> bool:
         """Whether the sample ``key`` was fused at another stamp with the same ``value`` (its
@@ -116,5 +145,6 @@ class StampOrder:
                          self.samples)
         new.last = dict(self.last)
         new.recent = {k: deque(v, maxlen=self.window) for k, v in self.recent.items()}
+        new.keyed = {k: [dict(c), u] for k, (c, u) in self.keyed.items()}
         new.fused = dict(self.fused)
         return new
