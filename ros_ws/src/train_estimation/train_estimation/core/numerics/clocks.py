@@ -2565,8 +2565,8 @@ class StepWatch:
         """Speed within ``MAX_SPEED`` and the counted distance within reach of the newest fused
         reading's at that speed (and a period's slack)."""
         v, d = fields.get("speed"), fields.get("distance")
-        if not all(isinstance(x, int | float) and math.isfinite(x) for x in (v, d)) or \
-                abs(v) > MAX_SPEED:
+        if not (isinstance(v, int | float) and math.isfinite(v) and isinstance(d, int | float)
+                and math.isfinite(d)) or abs(v) > MAX_SPEED:
             return False
         if self._dist is None:
             return True
