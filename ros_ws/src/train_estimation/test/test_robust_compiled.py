@@ -502,3 +502,44 @@ def test_compiled_equals_interpreted():
     interpreted = nojit.interpreted("test_robust_compiled", "_kernel_values",
                                     "train_estimation.core.robust.robust_compiled")
     np.testing.assert_array_equal(_kernel_values(), interpreted)
+
+
+@needs_numba
+def test_a_filter_never_compiles_after_it_starts():
+    """After a filter is made (``warm_up``), numba has one specialization of each kernel and
+    compiles no other in the process: a whole run, then read-only, Fortran-ordered and strided
+    copies of every array argument, Python ints for floats, give the same numbers through the
+    one general signature. (Each new combination of layouts was a compilation of seconds inside
+    a node's callback on a loaded machine.)"""
+    f = _filter("paper", "corrected", None)
+    general = rc._signatures()
+    for kernel, sig in zip((rc.predict, rc.update), general):
+        assert sig in [tuple(s) for s in kernel.signatures]
+        assert not kernel._can_compile
+    # (other tests of this process may have called the kernels before any filter was made:
+    # those specializations stay, none is added from here on)
+    before = [len(rc.predict.signatures), len(rc.update.signatures)]
+    _run(f, 5, 40)
+
+    def odd(a):  # the same values, read-only and (2-D) Fortran-ordered, or strided (1-D)
+        if not isinstance(a, np.ndarray):
+            return a
+        b = np.asfortranarray(a) if a.ndim == 2 else np.repeat(a, 2)[::2]
+        b = b.copy(order="K") if a.ndim == 2 else b
+        b.setflags(write=False)
+        return b
+
+    for case in predict_cases(50, 11):
+        ref = _kernel_predict(rc.predict, *case)
+        got = _kernel_predict(lambda *args: rc.predict(*map(odd, args)), *case)
+        for a, b in zip(ref, got):
+            np.testing.assert_array_equal(a, b)
+    for x, S, meas, gain in update_cases(50, 12):
+        ref = _kernel_update(rc.update, x, S, meas, gain, 3.0, 0.1, 1.0)
+        got = _kernel_update(lambda *args: rc.update(*map(odd, args)), x, S, meas, gain, 3,
+                             0.1, 1)
+        assert ref[0] == got[0]
+        if ref[0] == rc.OK:
+            np.testing.assert_array_equal(ref[1], got[1])
+            np.testing.assert_array_equal(ref[2], got[2])
+    assert [len(rc.predict.signatures), len(rc.update.signatures)] == before

@@ -427,21 +427,32 @@ def update(x, P, y, C, R, abar, group, mask, corrected, gate, gate_accel, since)
 _WARMED: list = []
 
 
+def _signatures():
+    """The kernels' one signature each, general enough for every array the filter passes:
+    float64 of any layout (``A``: a model's cached, read-only matrices, slices of them,
+    transposes) and either writability, integer and Boolean flags as numba converts them."""
+    from numba import types as t
+
+    f8, b1 = t.float64, t.boolean
+    vec, mat = t.Array(f8, 1, "A", readonly=True), t.Array(f8, 2, "A", readonly=True)
+    ints, flags = t.Array(t.int64, 1, "A", readonly=True), t.Array(b1, 1, "A", readonly=True)
+    return ((vec, mat, mat, vec, vec, mat, f8, mat, mat, f8, b1, f8, f8, f8, f8, b1),
+            (vec, mat, vec, mat, mat, vec, ints, flags, b1, f8, f8, f8))
+
+
 def warm_up() -> None:
     """Compile (first run after a change of this file) or load from numba's cache the two
-    kernels with the filter's argument types, once per process: a node pays it while it
-    starts (``RobustFilter.__init__``), not in its first reading's callback."""
+    kernels, once per process, each for one general signature (:func:`_signatures`), and then
+    forbid numba to compile them again in this process: every later call converts its arguments
+    to that signature (a contiguous writable array is a read-only ``A`` one without a copy).
+    So a node pays this while it starts (``RobustFilter.__init__``), never in a reading's
+    callback: numba compiles a new specialization for each new combination of layouts and
+    writability it meets (the model's cached matrices are read-only, a slice is not
+    contiguous), which was seconds of a loaded machine's CPU at a node's first reading or at a
+    restored state's."""
     if not COMPILED or _WARMED:
         return
-    from .wen_model import discrete_matrices
-
-    x, P = np.array([1.0, 2.0]), np.eye(2)
-    for unc in ("paper", "velocity"):
-        dm = discrete_matrices(3e5, 100.0, 8.0, 20.0, 0.1, unc)
-        for auto in (True, False):
-            predict(x, P, dm.A, dm.B, dm.E, dm.HH, dm.hh, dm.EE, dm.Eu, 0.49, auto, 0.5, 0.0,
-                    0.0, 0.1, True)
-    for m in (1, 2):
-        update(x, P, np.zeros(m), np.eye(m, 2), np.eye(m), np.ones(m), np.zeros(m, np.int64),
-               np.ones(m, np.bool_), True, 8.0, 0.0, 0.0)
+    for kernel, sig in zip((predict, update), _signatures()):
+        kernel.compile(sig)
+        kernel.disable_compile()
     _WARMED.append(True)
