@@ -451,3 +451,68 @@ def test_a_copy_stamped_ahead_as_the_clock_is_first_judged_lifts_no_ceiling():
     outs, r = replay(fl.events, adapter(sc, "kf"), 1.0 / 50.0)
     clock = r._offsets["train"]
     assert clock.ceiling - clock.value < LATE, (clock.ceiling, clock.value)
+
+
+def _as_node(sc, kind: str, ev: list):
+    """``(outputs, runner)``: ``ev`` (``(kind, stamp, fields, recv)``, in arrival order) driven
+    as a node on simulated time drives its runner: each message pushed at its arrival and the
+    runner advanced to its ready time; the arrivals' resolution the largest of the last 64
+    steps of the node's clock (``EstimatorNode._arrival``)."""
+    runner = EstimatorRunner(adapter(sc, kind), 1 / sc.odometer_rate)
+    outs, steps, last = [], [], None
+    for k, s, f, rc in ev:
+        if last is not None and rc != last:
+            steps = (steps + [rc - last])[-64:]
+            runner.arrival_resolution = max(steps)
+        last = rc
+        runner.push(k, s, f, rc, wall=rc)
+        outs += runner.advance_to(runner.ready_time(rc, 0.05, 0.2, wall=rc))
+        runner.settle()
+    return outs + runner.drain(), runner
+
+
+def _stalled(ev: list, kinds: tuple, start: float, first: float, end: float) -> list:
+    """``ev`` with the messages of ``kinds`` that arrived in ``[start, end)`` delivered late:
+    the odometer's arrived by ``first`` at ``first``, the rest at ``end``, that one instant in
+    their stamps' order (a node's callback takes every queued input so). ``first == start``:
+    one burst. The arrivals are on a clock of 0.1 s (a node times an input by its latest
+    /clock: at 10x, every 10 ms of wall time)."""
+    ev = [(k, s, f, math.ceil(round(rc / 0.1, 6)) * 0.1) for k, s, f, rc in ev]
+    early = [e for e in ev if e[0] == "odometer" and "odometer" in kinds and start <= e[3] < first]
+    burst = sorted((e for e in ev if e[0] in kinds and start <= e[3] < end and e not in early),
+                   key=lambda e: e[1])
+    out = [e for e in ev if e[3] < start or (e[3] < end and e[0] not in kinds)]
+    out += [(k, s, f, first) for k, s, f, _ in early] + [(k, s, f, end) for k, s, f, _ in burst]
+    return out + [e for e in ev if e[3] >= end]
+
+
+@pytest.mark.parametrize("kind", ["robust", "gsma"])
+def test_a_stall_at_one_instant_is_no_second_clock(kind):
+    """Stalls that nodes met joining a simulation at 10x on a loaded machine (logged): a
+    node whose first /clock came 2.9 s of simulated time late takes its queue at one instant
+    (the world's first readings a moment before); one that stalled 4.4 s takes the readings
+    at one instant and then the rest; the commands' topic delivers 32 s of them at one
+    instant while the readings came on time (a reliable reader's first gap waits for the
+    writer's repair). One clock (the simulator's): "auto" must not call the commands
+    another clock. Decided from the first commands of a burst (their offsets seconds below
+    the readings'), it did, for the whole run, and mapped the commands by the centres'
+    wandering difference (8 to 28 refused as ahead of their clock). A command that arrives
+    later than the history (3 s) is out of order, whatever the clocks. With the commands on
+    another clock the same stalls are still found to be two."""
+    sc, res = run(duration=120.0)
+    for clock in ({}, dict(epoch=1.7e9, phase=0.03, control_epoch=5.0)):
+        ev = restamp(res.events(), **clock)
+        b = clock.get("control_epoch", 0.0)
+        every = ("odometer", "control", "balise")
+        for stalled in (_stalled(ev, every, b + 0.4, b + 0.41, b + 3.2),
+                        _stalled(ev, every, b + 5.7, b + 7.19, b + 10.13),
+                        _stalled(ev, ("control",), b + 34.5, b + 34.5, b + 66.57)):
+            outs, r = _as_node(sc, kind, stalled)
+            assert r.separate_clocks == bool(clock), clock
+            refused = {k: n for k, n in r.rejected.items() if k.startswith("control")}
+            assert set(refused) <= {"control:out_of_order"}, (clock, refused)
+            # (refused as out of order: stamped before the newest fused reading less the
+            # history, and nothing is fused before it arrives)
+            late = sum(1 for k, s, _, rc in stalled if k == "control" and rc - s > r.history)
+            assert refused.get("control:out_of_order", 0) <= late, (clock, refused, late)
+            assert len(outs) >= 0.99 * sc.odometer_rate * 120.0, (clock, len(outs))

@@ -574,6 +574,15 @@ class StreamClock:
                                          for _, v, a in self._top))
         return self._ceil_cache[1]
 
+    def span(self) -> tuple[float, float]:
+        """Where the clock's offset can lie (s, stamp - arrival at zero latency): from the
+        centre, which a queue or a backlog pulls down by as much as the node lagged, up to the
+        highest offset that voted (the window's, or the ceiling), since latency only lowers an
+        offset; a stamp written ahead may have lifted that end, never the centre."""
+        lo = self.value
+        hi = max(self.sorted[-1] if self.sorted else lo, self.ceiling if self._top else lo)
+        return lo, max(hi, lo)
+
     @property
     def ceiling_n(self) -> int:
         """How many offsets the ceiling is the largest of (the envelope test's ``n``)."""

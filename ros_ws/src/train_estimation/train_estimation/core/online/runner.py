@@ -23,12 +23,14 @@ came on time (lateness: the one rule of ``core/numerics/clocks.py``, ``LATE`` = 
 centre,
 e.g. the burst that follows a stalled recorder or node, does not vote); a control stamp is mapped
 onto the train clock by adding ``median(odometer offset) - median(control offset)`` (the error is
-the difference of the two streams' median latencies, milliseconds for a radio link). When that
-difference is below ``same_clock_tolerance`` and the train clock's rate against the arrivals
-differs from 1 by no more than ``same_clock_rate`` (or not significantly) the two clocks are
-taken as one (the simulator: mapping 0, exactly, so that a node and its replay compute the same
-numbers); once found
-"separate" stays so (commands wait until both clocks have ``min_judged`` arrivals).
+the difference of the two streams' median latencies, milliseconds for a radio link). When the
+clocks' offsets can agree within ``same_clock_tolerance`` (each lies between its centre, which
+a queue pulls down, and its quickest offsets: :meth:`EstimatorRunner._clock_gap`) and the train
+clock's rate against the arrivals differs from 1 by no more than ``same_clock_rate`` (or not
+significantly) the two clocks are taken as one (the simulator: mapping 0, exactly, so that a
+node and its replay compute the same numbers); once found "separate" stays so, but never from
+offsets that all came at one instant while the commands could be on the train clock (commands
+wait until the train clock is judged).
 ``control_clock`` forces ``"same"`` (the simulator's launch) or ``"reference"``; ``"auto"`` is
 the default, in the nodes and offline. On separate clocks the train clock's rate (least squares
 of odometer stamps on the arrival times of the readings on time, ``drift``) is used and the
@@ -98,6 +100,7 @@ from ..numerics.clocks import (
     SKIP,
     SLIP,
     STEP,
+    TIE,
     StepWatch,
     StreamClock,
 )
@@ -231,6 +234,7 @@ class EstimatorRunner:
     #   state as it is now (a rewind's state is without the outputs after its copy)
     _n: int = 0  # insertion counter: FIFO among equal stamps and kinds
     _offsets: dict = field(default_factory=dict)  # clock -> StreamClock (offset, rate)
+    _first_train: float = math.inf  # the lowest train-clock stamp admitted (_one_clock_possible)
     _prev_raw: float | None = None  # the last stamp pushed (no-arrival mode, early phase)
     _admitted_high: float = -math.inf  # the latest stamp admitted (no-arrival mode)
     _last_recv: float = -math.inf  # the latest arrival pushed (s, receive clock): drain's present
@@ -609,6 +613,8 @@ class EstimatorRunner:
         self._steps.admitted(kind, stamp, arrival, fields.get("seq") if isinstance(fields, dict)
                              else None)
         self._admitted_high = max(self._admitted_high, stamp)
+        if kind != "control":
+            self._first_train = min(self._first_train, stamp)
         if kind == "control":
             if not self._judged("train"):
                 self._held.append((stamp, recv, fields))
@@ -675,14 +681,29 @@ class EstimatorRunner:
 
     def _to_train(self, stamp: float, recv: float | None) -> float:
         """A control stamp on the train (odometer) clock (module doc), for a command that
-        arrived at ``recv``."""
+        arrived at ``recv``.
+
+        One clock while the two clocks' offsets can agree (:meth:`_clock_gap` within
+        ``same_clock_tolerance``) and their rates do (:meth:`_drifting`), asked again at every
+        command; two once they cannot, and that answer stays. But not from one instant: the
+        offsets that arrived at one instant are one latency, and a queue's (a topic whose
+        delivery stalled, a node that joined under load) lie below their clock by as much as
+        it stalled. While every vote of either clock came at one arrival instant and the
+        command's stamp could be on the train clock (:meth:`_one_clock_possible`), the answer
+        waits and the command is taken on the train clock. (Decided from the first three
+        commands of a joining node's backlog, 32 s below the odometer's offsets because the
+        topic's first delivery had waited for a repair, "separate" stayed for the run and
+        mapped the commands by the centres' wandering difference: 8-28 refused as ahead.)"""
         if self.control_clock == "same" or recv is None:
             return stamp
         train, control = self._offsets["train"], self._offsets["control"]
-        shift = train.value - control.value
-        if self.control_clock == "auto" and not self.separate_clocks \
-                and abs(shift) < self.same_clock_tolerance and not self._drifting():
-            return stamp
+        if self.control_clock == "auto" and not self.separate_clocks:
+            if self._clock_gap(train, control) < self.same_clock_tolerance \
+                    and not self._drifting():
+                return stamp
+            if (self._one_instant(train) or self._one_instant(control)) \
+                    and self._one_clock_possible(stamp, recv):
+                return stamp
         self.separate_clocks = True
         # both offsets where they are at the command's arrival, not half a window ago: on a
         # train clock 1e-2 fast the plain centres mapped every command 0.15 s early, below the
@@ -693,6 +714,34 @@ class EstimatorRunner:
         mapped = max(stamp + shift, self._last_mapped)
         self._last_mapped = mapped
         return mapped
+
+    @staticmethod
+    def _clock_gap(train: StreamClock, control: StreamClock) -> float:
+        """s, the least distance between the two clocks' offsets that their stamps allow: the
+        gap between their spans (:meth:`~.clocks.StreamClock.span`, from the centre up to the
+        quickest offsets), 0 where they overlap. The centres alone, compared as a node joined
+        a running world under load (a 2.9 s stall at 10x: a window of offsets half on time and
+        half a backlog), fell on either side by the luck of one more command, 2.3 s apart,
+        and "separate" stayed for the run: 28 commands refused as ahead."""
+        (lt, ht), (lc, hc) = train.span(), control.span()
+        return max(lt - hc, lc - ht, 0.0)
+
+    def _one_instant(self, clock: StreamClock) -> bool:
+        """Every vote of ``clock``'s window arrived at one instant (within the arrivals'
+        resolution): one latency, however many stamps."""
+        a = clock.arrivals
+        if not a or a[0] is None or a[-1] is None:
+            return False
+        return a[-1] - a[0] <= max(TIE, self.arrival_resolution)
+
+    def _one_clock_possible(self, stamp: float, recv: float) -> bool:
+        """Whether a command stamped ``stamp`` that arrived at ``recv`` can be on the train
+        clock: sent no earlier than the first train-clock stamp this runner took (a node
+        receives what is sent once it listens; ``same_clock_tolerance`` for a reading lost
+        or matched a moment later), and not after its arrival on that clock (the train
+        clock's highest offset; the same tolerance)."""
+        tol = self.same_clock_tolerance
+        return self._first_train - tol <= stamp <= recv + self._offsets["train"].span()[1] + tol
 
     def _drifting(self) -> bool:
         """The train clock's rate differs from the control clock's (each against the
