@@ -167,20 +167,32 @@ def discretize(braking_rate, params: BrakingParams, dt: float | None = None
 
 
 _CACHE: dict = {}
+# entries of _CACHE before it is emptied: a few kinds per dt, and a live filter meets a few
+# dts (a period's, and the ulps its stamps differ by); on a drifting train clock or with
+# commands on another clock nearly every dt is new, and a bound this small was emptied
+# every twenty steps
+_CACHE_SIZE = 1024
+
+
+def _cached(key, make):
+    """``_CACHE[key]``, made by ``make()`` when missing (the cache emptied when full)."""
+    hit = _CACHE.get(key)
+    if hit is None:
+        hit = make()
+        if len(_CACHE) >= _CACHE_SIZE:
+            _CACHE.clear()
+        _CACHE[key] = hit
+    return hit
 
 
 def _affine_pieces(params: BrakingParams, dt: float):
     """``Phi(0), Phi(1) - Phi(0), B(0), B(1) - B(0), Qd`` for one dt, cached (bounded)."""
-    key = (params, float(dt))
-    hit = _CACHE.get(key)
-    if hit is None:
+    def make():
         A, B = continuous_matrices(np.array([0.0, 1.0]), params)
         Phi, Bd = zoh(A, B, dt)  # the core's one ZOH, batched over f
-        hit = (Phi[0], Phi[1] - Phi[0], Bd[0], Bd[1] - Bd[0], process_noise(params, dt))
-        if len(_CACHE) > 64:
-            _CACHE.clear()
-        _CACHE[key] = hit
-    return hit
+        return Phi[0], Phi[1] - Phi[0], Bd[0], Bd[1] - Bd[0], process_noise(params, dt)
+
+    return _cached((params, float(dt)), make)
 
 
 class BrakingModel:
@@ -291,13 +303,17 @@ class BrakingModel:
         computed as :meth:`predict` computes it: the prediction's arguments of the compiled
         steps (``numerics.bank``, ``braking_compiled``), without the braking rates."""
         dt = float(dt)
-        hit = self.__dict__.get("_bank_last")  # the last dt's maps: a live filter's dt repeats
-        if hit is None or hit[0] != dt or hit[1] is not self.params:
-            Kx = _predict_maps(self.params, dt)[0]
-            hit = (dt, self.params, Kx[4:], _bank_maps(self.params, dt))
-            self._bank_last = hit
-        xp, xc, xv, kp, kc, kv, qd, full = hit[3]
-        bu = np.asarray(u, dtype=float) @ hit[2]
+        # this model's maps by dt, without hashing its parameters at each step (a live filter
+        # alternates a few dts: the reading's step, the command's)
+        own = self.__dict__.get("_bank_own")
+        if own is None or own[0] is not self.params or len(own[1]) >= _CACHE_SIZE:
+            own = self._bank_own = (self.params, {})
+        hit = own[1].get(dt)
+        if hit is None:
+            hit = own[1][dt] = (_predict_maps(self.params, dt)[0][4:],
+                                _bank_maps(self.params, dt))
+        xp, xc, xv, kp, kc, kv, qd, full = hit[1]
+        bu = np.asarray(u, dtype=float) @ hit[0]
         return (xp, xc, xv, kp, kc, kv, bu, qd, full)
 
     def matrices(self, theta, u, dt: float, informative: bool, hold: float | None = None):
@@ -339,39 +355,41 @@ def _predict_maps(params: BrakingParams, dt: float):
     ``KP (30, 16)`` (``vec(P)`` -> the 10 distinct entries of the f^0, f^1 and f^2
     coefficients of P', row-major vec), ``Qd``'s 10 distinct entries (a column) and the
     index that spreads 10 distinct entries over the 16 of a symmetric matrix."""
-    key = ("maps", params, float(dt))
-    hit = _CACHE.get(key)
-    if hit is None:
+    def make():
         P0, E, B0, B1, Qd = _affine_pieces(params, dt)
         Kx = np.zeros((6, 8))
         Kx[:4, :4] = P0.T
         Kx[:4, 4:] = E.T
         Kx[4:, :4] = B0.T
         Kx[4:, 4:] = B1.T
-        # vec(A P B^T) = kron(A, B) vec(P) for row-major vec
-        up = [4 * i + j for i, j in _UPPER]
-        K0 = np.kron(P0, P0)[up]
-        K1 = (np.kron(E, P0) + np.kron(P0, E))[up]
-        K2 = np.kron(E, E)[up]
-        hit = (Kx, np.vstack([K0, K1, K2]), Qd.reshape(16)[up][:, None], _FULL)
-        if len(_CACHE) > 64:
-            _CACHE.clear()
-        _CACHE[key] = hit
-    return hit
+        # vec(A P B^T) = kron(A, B) vec(P) for row-major vec: the rows of (i, j) in _UPPER,
+        # kron(A, B)[4 i + j, 4 k + l] = A[i, k] B[j, l], each one product as np.kron forms it
+        K0 = _kron_upper(P0, P0)
+        K1 = _kron_upper(E, P0) + _kron_upper(P0, E)
+        K2 = _kron_upper(E, E)
+        return Kx, np.vstack([K0, K1, K2]), Qd.reshape(16)[_UP][:, None], _FULL
+
+    return _cached(("maps", params, float(dt)), make)
+
+
+_UI = np.array([i for i, _ in _UPPER])
+_UJ = np.array([j for _, j in _UPPER])
+_UP = 4 * _UI + _UJ
+
+
+def _kron_upper(A, B):
+    """``np.kron(A, B)[_UP]`` for 4 x 4 ``A, B``: the 10 rows of the upper triangle's entries."""
+    return (A[_UI][:, :, None] * B[_UJ][:, None, :]).reshape(10, 16)
 
 
 def _bank_maps(params: BrakingParams, dt: float):
     """``_predict_maps`` as the compiled step's sparse rows (``numerics.bank.csr``), cached."""
-    key = ("bank", params, float(dt))
-    hit = _CACHE.get(key)
-    if hit is None:
+    def make():
         Kx, KP, qd, full = _predict_maps(params, dt)
-        hit = (*csr(Kx[:4].T), *csr(KP), np.ascontiguousarray(qd[:, 0]),
-               full.astype(np.int64))
-        if len(_CACHE) > 64:
-            _CACHE.clear()
-        _CACHE[key] = hit
-    return hit
+        return (*csr(Kx[:4].T), *csr(KP), np.ascontiguousarray(qd[:, 0]),
+                full.astype(np.int64))
+
+    return _cached(("bank", params, float(dt)), make)
 
 
 def augmented_model(params: BrakingParams, u, dt: float, az_mean: float, informative: bool,

@@ -59,14 +59,10 @@ def csr(K):
     """Rows of a small dense matrix as (start, column, value) arrays of its non-zero entries:
     the compiled products skip the zeros (the braking model's maps are mostly zeros)."""
     K = np.asarray(K, dtype=float)
+    rows, cols = np.nonzero(K)  # row-major: each row's columns in increasing order
     ptr = np.zeros(K.shape[0] + 1, dtype=np.int64)
-    cols, vals = [], []
-    for k, row in enumerate(K):
-        nz = np.flatnonzero(row)
-        cols.extend(nz.tolist())
-        vals.extend(row[nz].tolist())
-        ptr[k + 1] = len(cols)
-    return ptr, np.array(cols, dtype=np.int64), np.array(vals, dtype=float)
+    np.cumsum(np.bincount(rows, minlength=K.shape[0]), out=ptr[1:])
+    return ptr, cols.astype(np.int64), K[rows, cols]
 
 
 @jit
