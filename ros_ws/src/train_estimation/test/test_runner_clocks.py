@@ -496,9 +496,9 @@ def test_a_stall_at_one_instant_is_no_second_clock(kind):
     writer's repair). One clock (the simulator's): "auto" must not call the commands
     another clock. Decided from the first commands of a burst (their offsets seconds below
     the readings'), it did, for the whole run, and mapped the commands by the centres'
-    wandering difference (8 to 28 refused as ahead of their clock). A command that arrives
-    later than the history (3 s) is out of order, whatever the clocks. With the commands on
-    another clock the same stalls are still found to be two."""
+    wandering difference (8 to 28 refused, as ahead of it or out of order). A command that
+    arrives later than the history (3 s) is out of order, whatever the clocks. With the
+    commands on another clock the same stalls are still found to be two."""
     sc, res = run(duration=120.0)
     for clock in ({}, dict(epoch=1.7e9, phase=0.03, control_epoch=5.0)):
         ev = restamp(res.events(), **clock)

@@ -693,7 +693,8 @@ class EstimatorRunner:
         waits and the command is taken on the train clock. (Decided from the first three
         commands of a joining node's backlog, 32 s below the odometer's offsets because the
         topic's first delivery had waited for a repair, "separate" stayed for the run and
-        mapped the commands by the centres' wandering difference: 8-28 refused as ahead.)"""
+        mapped the commands by the centres' wandering difference: 8-28 refused, as ahead or
+        out of order.)"""
         if self.control_clock == "same" or recv is None:
             return stamp
         train, control = self._offsets["train"], self._offsets["control"]
