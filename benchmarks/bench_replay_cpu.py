@@ -20,40 +20,18 @@ import argparse
 import statistics
 import sys
 import time
+from pathlib import Path
 
-from train_estimation.core.online.estimators import (
-    BrakingAdapter,
-    BrakingConfig,
-    RobustAdapter,
-    RobustConfig,
-    StartState,
-)
-from train_estimation.core.online.replay import replay
-from train_sim.scenario import load_scenario
-from train_sim.world import simulate
+# the tests' helpers (``test/clocks.py``): a simulated run restamped as measured data's clocks,
+# and the estimators' adapters with the nodes' defaults -- the same as the clock tests replay
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "ros_ws/src/train_estimation/test"))
+from clocks import adapter, restamp  # noqa: E402
+
+from train_estimation.core.online.replay import replay  # noqa: E402
+from train_sim.scenario import load_scenario  # noqa: E402
+from train_sim.world import simulate  # noqa: E402
 
 KINDS = ("robust", "kf", "gsma", "sma", "rbpf", "qgrbpf")
-
-
-def restamp(events, epoch: float, phase: float, drift: float, control_epoch: float) -> list:
-    """``(topic, stamp, fields, recv)``: odometer and balise on the train clock ``epoch +
-    phase + t (1 + drift)``, control on ``control_epoch + t``, arriving at ``control_epoch +
-    t`` (no latency); ``t`` the simulator's stamp."""
-    out = []
-    for topic, t, fields in events:
-        if topic in ("odometer", "balise"):
-            out.append((topic, epoch + phase + t * (1.0 + drift), fields, control_epoch + t))
-        elif topic == "control":
-            out.append((topic, control_epoch + t, fields, control_epoch + t))
-    return out
-
-
-def adapter(sc, kind: str):
-    start = StartState(sc.start_position)
-    if kind == "robust":
-        return RobustAdapter(sc.train, sc.line, start,
-                             RobustConfig(period=1.0 / sc.odometer_rate))
-    return BrakingAdapter(sc.train, sc.line, start, BrakingConfig(algorithm=kind))
 
 
 def cpu_per_estimate(sc, kind: str, events: list, repeats: int) -> float:
@@ -80,8 +58,8 @@ def main(argv=None) -> int:
         a.duration, a.repeats, a.estimators = 300.0, 1, ["gsma", "kf"]
     sc = load_scenario(a.scenario)
     raw = simulate(sc, a.seed, a.duration).events()
-    clocks = {"one": restamp(raw, 0.0, 0.0, 0.0, 0.0),
-              "drift": restamp(raw, 1000.0, 0.003, 1e-5, 50.0)}
+    clocks = {"one": restamp(raw),
+              "drift": restamp(raw, epoch=1000.0, phase=0.003, drift=1e-5, control_epoch=50.0)}
     print(f"thread CPU per estimate (us), {a.scenario} {a.duration:g} s seed {a.seed}, "
           f"least of {a.repeats}")
     print("| estimator | one clock | drifting clock | ratio |")
