@@ -583,6 +583,13 @@ class StreamClock:
         hi = max(self.sorted[-1] if self.sorted else lo, self.ceiling if self._top else lo)
         return lo, max(hi, lo)
 
+    def one_instant(self, resolution: float) -> bool:
+        """Every vote of the window arrived at one instant (within ``resolution`` s, the
+        arrivals'): one latency, however many stamps."""
+        a = self.arrivals
+        return bool(a) and a[0] is not None and a[-1] is not None and \
+            a[-1] - a[0] <= resolution
+
     @property
     def ceiling_n(self) -> int:
         """How many offsets the ceiling is the largest of (the envelope test's ``n``)."""

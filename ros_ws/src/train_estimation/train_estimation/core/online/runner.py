@@ -613,17 +613,17 @@ class EstimatorRunner:
         self._steps.admitted(kind, stamp, arrival, fields.get("seq") if isinstance(fields, dict)
                              else None)
         self._admitted_high = max(self._admitted_high, stamp)
-        if kind != "control":
-            self._first_train = min(self._first_train, stamp)
         if kind == "control":
             if not self._judged("train"):
                 self._held.append((stamp, recv, fields))
                 return ""
             stamp = self._to_train(stamp, recv)
-        elif self._held:
-            held, self._held = self._held, []
-            for s, rc, f in held:
-                self._queue("control", self._to_train(s, rc), f)
+        else:
+            self._first_train = min(self._first_train, stamp)
+            if self._held:
+                held, self._held = self._held, []
+                for s, rc, f in held:
+                    self._queue("control", self._to_train(s, rc), f)
         if kind == "odometer" and "control" in self.high and not self._backlog:
             # (a backlog's readings say how long the stall was, not how the link delivers)
             self._lag(self.high["control"] - stamp)
@@ -702,7 +702,8 @@ class EstimatorRunner:
             if self._clock_gap(train, control) < self.same_clock_tolerance \
                     and not self._drifting():
                 return stamp
-            if (self._one_instant(train) or self._one_instant(control)) \
+            res = max(TIE, self.arrival_resolution)
+            if (train.one_instant(res) or control.one_instant(res)) \
                     and self._one_clock_possible(stamp, recv):
                 return stamp
         self.separate_clocks = True
@@ -726,14 +727,6 @@ class EstimatorRunner:
         and "separate" stayed for the run: 28 commands refused as ahead."""
         (lt, ht), (lc, hc) = train.span(), control.span()
         return max(lt - hc, lc - ht, 0.0)
-
-    def _one_instant(self, clock: StreamClock) -> bool:
-        """Every vote of ``clock``'s window arrived at one instant (within the arrivals'
-        resolution): one latency, however many stamps."""
-        a = clock.arrivals
-        if not a or a[0] is None or a[-1] is None:
-            return False
-        return a[-1] - a[0] <= max(TIE, self.arrival_resolution)
 
     def _one_clock_possible(self, stamp: float, recv: float) -> bool:
         """Whether a command stamped ``stamp`` that arrived at ``recv`` can be on the train
