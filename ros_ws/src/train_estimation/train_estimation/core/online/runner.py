@@ -1161,9 +1161,8 @@ class EstimatorRunner:
         too)."""
         train = self._offsets.get("train")
         # (_judged("train"), on the clock in hand: asked at every tick)
-        if train is None or not (train.judged or (len(train) >= 3 and
-                                                  train.near(train.value) >= 3)) \
-                or not math.isfinite(now) or self._awaiting_commands():
+        if train is None or not _known(train) or not math.isfinite(now) \
+                or self._awaiting_commands():
             return -math.inf
         at = now - self.slot_grace
         due = at + train.value_at(at, train.drift)
@@ -1176,8 +1175,7 @@ class EstimatorRunner:
         nine are nine seconds, and a reading lost in them was published only with the next one
         (a second late: not available)."""
         med = self._offsets.get(clock)
-        return med is not None and (med.judged or
-                                    (len(med) >= 3 and med.near(med.value) >= 3))
+        return med is not None and _known(med)
 
     @guarded(lambda self, *a, **k: self._failed_outputs(*a, **k))
     def tick(self, now: float) -> list[Output]:
@@ -1393,6 +1391,12 @@ class _CounterWatch:
     last: float
     others: int = 0  # readings with another seq
     state: str = ""  # "", "counted" or "uncounted"
+
+
+def _known(med: StreamClock) -> bool:
+    """:meth:`EstimatorRunner._judged` on the clock itself: ``min_judged`` offsets, or three
+    that agree."""
+    return med.judged or (len(med) >= 3 and med.near(med.value) >= 3)
 
 
 def _copy_key(fields: dict, stamp: float) -> tuple:
