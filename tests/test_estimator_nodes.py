@@ -192,6 +192,11 @@ def test_the_by_hand_recipe_with_default_parameters(launch, ros_node, rate, hogs
     refused = [(what, int(n)) for r in rejected
                for what, n in re.findall(r"'control:([a-z_]+)': (\d+)", r)]
     assert {what for what, _ in refused} <= {"out_of_order"}, (refused, logs[-3000:])
+    # and each logged one says how late it came: beyond the runner's history (3 s; one within
+    # it would be a rewind that failed)
+    lags = [float(x) for x in re.findall(r"out_of_order: ([\d.]+) s older than the newest "
+                                         r"input fused", logs)]
+    assert bool(lags) == bool(refused) and all(x > 3.0 for x in lags), (lags, refused)
     assert "stamped on another clock" not in logs, logs[-3000:]
     t_truth = np.array([m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec for m in truth])
     x_truth = np.array([m.position for m in truth])

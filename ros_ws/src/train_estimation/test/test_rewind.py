@@ -1,6 +1,7 @@
 """Out-of-sequence readings within the history are fused by rewinding."""
 
 import os
+import re
 import sys
 
 import numpy as np
@@ -53,9 +54,17 @@ def test_readings_older_than_the_history_are_refused_with_a_reason():
     ev = restamp(res.events())
     i = [k for k, e in enumerate(ev) if e[0] == "odometer"][100]
     late = ev.pop(i)
-    ev.insert(i + 80, late)  # arrives 8 s late: beyond the 3 s history
+    ev.insert(i + 80, late)  # arrives 80 messages (about 4 s) late: beyond the 3 s history
     _, r = replay(ev, adapter(sc), 0.1)
     assert r.rejected == {"odometer:out_of_order": 1}
+    # the reason says how late: beyond the history, by no more than the newest stamp that
+    # arrived before it (the runner fuses what its watermarks release)
+    newest = max(e[1] for e in ev[:i + 80])
+    (kind, stamp, why), = r.last_reasons
+    assert (kind, stamp) == ("odometer", late[1]), r.last_reasons
+    m = re.fullmatch(r"out_of_order: ([\d.]+) s older than the newest input fused "
+                     r"\(history 3 s\)", why)
+    assert m and r.history < float(m.group(1)) <= newest - late[1], (why, newest)
 
 
 def test_an_adapter_without_snapshots_keeps_no_history():

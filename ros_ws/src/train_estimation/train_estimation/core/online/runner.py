@@ -943,6 +943,11 @@ class EstimatorRunner:
                                              f"late")
                 return reason
         reason = self._process(entry)
+        if late and reason == R.OUT_OF_ORDER:
+            # how late, so that a log or /diagnostics tells a link that delivers later than
+            # the history (raise `history`, or mend the link) from input that is misordered
+            reason += (f": {self._high_done - stamp:.3f} s older than the newest input fused "
+                       f"(history {self.history:g} s)")
         self._count(kind, stamp, reason)
         self._observe(kind, stamp, fields, reason)
         return reason
