@@ -1152,38 +1152,45 @@ def test_a_power_limit_is_profiled_again_for_each_cause_scored_after_it(tmp_path
 
 
 @pytest.mark.slow
-def test_a_gradient_beside_a_braking_rate_the_heat_law_takes_is_confirmed(tmp_path):
-    """A pair the benchmark missed (seed 23, pair 8: a high-speed line, a gradient of 4.9 per
-    mille run in braking and a braking rate drifting 0.81 -> 0.78). Brakes that fade as they
-    heat fit the braking better than the drift (2 ln LR +48.8), so the braking rate is not
-    confirmed; judged then without any weaker braking in the model, the true gradient beside
-    it was contradicted by the split (x-6.9 of itself in braking). The heat law's fit now takes
-    the braking rate's place in the model the gradient is judged in: the gradient is confirmed,
-    and the braking deficit is in the report with its size, as braking no listed cause
-    explains, the braking rate its closest listed cause."""
+def test_a_gradient_beside_a_drifting_braking_rate_are_both_confirmed(tmp_path):
+    """A pair (seed 23, pair 8: a high-speed line, a gradient of 4.9 per mille run in braking
+    and a braking rate drifting 0.81 -> 0.78). The heat law (brakes that fade as they heat)
+    is compared with the braking rate fitted in its own two parameters on the law's stage:
+    held at the joint refit's shape with one multiplier free, the rate lost to the law by
+    2 ln LR +48.8 and was not confirmed. Fitted free, the drift is preferred to the heat by
+    far, both causes are confirmed and nothing is left unexplained."""
     case = make_case(np.random.default_rng([23, 8]), ("gradient", "braking_rate"), "plain")
     rep, truth = _diagnosed(case, tmp_path)
     by = {r["cause"]: r for r in rep["ranking"]}
     assert {r["cause"] for r in rep["ranking"][:2]} == {"gradient", "braking_rate"}, \
         rep["ranking"][:3]
-    assert rep["cause"] == "gradient" and by["gradient"]["status"] == "confirmed", \
-        by["gradient"]
+    for c in ("gradient", "braking_rate"):
+        assert by[c]["status"] == "confirmed", by[c]
     check_parameters("gradient", by["gradient"]["parameters"], truth["gradient"],
                      rep["evidence"], case.v_ref)
-    br = by["braking_rate"]
-    assert br["status"] == "not confirmed" and br["why"].startswith("a heat law fits better"), br
-    # the deficit is the one the data hold, whichever law it is read with
-    assert main_error("braking_rate", br["parameters"], truth["braking_rate"],
-                      case.nominal["braking_rate"], case.v_ref) <= 0.05, br
-    # read with the heat law, the brakes cold are the drift's start (as main_error's 5 %)
+    # the rate within 5 % of its change (its start 0.825 for 0.809: beyond its standard
+    # error, the gradient fitted short of its stretch's ends leaves it some of the climb)
+    assert main_error("braking_rate", by["braking_rate"]["parameters"], truth["braking_rate"],
+                      case.nominal["braking_rate"], case.v_ref) <= 0.05, by["braking_rate"]
     law = rep["evidence"]["_model"]["confirmation"]["checks"]["braking_rate"]["heat_law"]
-    f0 = truth["braking_rate"]["f_start"]
-    assert abs(law["f_cold"] - f0) <= 0.05 * abs(f0 - case.nominal["braking_rate"]["f_start"]), \
-        (law, f0)
-    u = rep["unexplained"][0]
-    assert u["phase"] == "braking" and u["best_listed"]["cause"] == "braking_rate", u
-    assert u["best_listed"]["why"] == br["why"] and u["size"] > 0, u
-    assert unexplained.heat_fade(u) and "brakes deliver less" in unexplained.unexplained_line(u)
+    assert law["lr"] < -9.0, law
+    assert not rep["unexplained"], rep["unexplained"]
+
+
+@pytest.mark.slow
+def test_a_constant_braking_rate_beside_a_gradient_is_not_a_heat_law(tmp_path):
+    """A pair (seed 29, pair 2: a high-speed line, braking x 0.92 throughout and a gradient of
+    4.8 per mille). The joint refit gives the rate a drift (0.936 -> 0.921); held at that
+    shape, it lost to the heat law by 2 ln LR +80 with the law's fade at 0.0006 (a constant
+    factor that the rate's own two parameters contain). Fitted free on the law's stage, the
+    rate does as well as the law, which pays for its cooling times: both causes confirmed."""
+    case = make_case(np.random.default_rng([29, 2]), ("braking_rate", "gradient"), "plain")
+    rep, truth = _diagnosed(case, tmp_path)
+    by = {r["cause"]: r for r in rep["ranking"]}
+    assert by["braking_rate"]["status"] == by["gradient"]["status"] == "confirmed", \
+        rep["ranking"][:3]
+    law = rep["evidence"]["_model"]["confirmation"]["checks"]["braking_rate"]["heat_law"]
+    assert law["lr"] < 0.0 and abs(law["fade"]) < 0.01, law
 
 
 @pytest.mark.slow

@@ -250,7 +250,8 @@ def confirm(mo: Motion, shift: float, accepted: list, resolved_before: dict, cfg
                             detail=f"b {bl.get('b', 0.0):+.3f} m/s; "):
                 continue
         if a.status == "confirmed" and cause.heat_rival is not None:
-            hl = heat_law(mo, others, full, cfg, noise)
+            hl = heat_law(mo, others, full, cfg, noise,
+                          cause.free(None, a.extra) if cause.linear else None)
             checks[a.cause]["heat_law"] = hl
             if _law_verdict(a, checks[a.cause], hl, cause.heat_rival,
                             "the braking better than the cause", ccfg,
