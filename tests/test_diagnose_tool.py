@@ -1177,6 +1177,41 @@ def test_a_gradient_beside_a_drifting_braking_rate_are_both_confirmed(tmp_path):
     assert not rep["unexplained"], rep["unexplained"]
 
 
+def test_a_cause_is_compared_in_its_own_parameters(metro, tmp_path):
+    """``stage.cause_stat``, the statistic the heat law and the flexible term compare a cause
+    by. Brakes that deliver 0.9 of the believed braking throughout; the braking rate's
+    contribution held at a drift that is not the data's (f 1.0 -> 0.8) fits worse than the
+    rate with its two parameters free, which contain that drift (nested least squares) and
+    find the constant 0.9 (within 4 standard errors); the cause's statistic is the larger. A
+    cause with a measurement column (an odometer scale) keeps its contribution's."""
+    from train_core.effects import BrakingRateEffect, Effects
+
+    from train_estimation.core.offline.diagnose import DiagConfig, Motion, Null, Stage, prepare
+    from train_estimation.core.offline.diagnose.causes import BY_NAME
+    from train_estimation.core.offline.diagnose.stage import cause_stat, fit_columns
+
+    sc = metro.with_changes(duration=300.0, effects=Effects(
+        braking_rate=BrakingRateEffect(0.9, 0.9)))
+    cfg = DiagConfig()
+    bag = write_bag(tmp_path / "bag", simulate(sc))
+    mo = Motion(prepare(tool.read_measured(bag), sc.line, cfg), sc.line, sc.train, cfg)
+    st = Stage(mo, Null(), cfg, big=False)
+    br, brt = mo.col["br"], mo.col["brt"]
+    d0, d1 = 1.0 - mo.f0, 0.8 - mo.f0  # the drift held: f - f0 at the start and the end
+    dv = d0 * mo.Dv[:, br] + (d1 - d0) * mo.Dv[:, brt]
+    ds = d0 * mo.Ds[:, br] + (d1 - d0) * mo.Ds[:, brt]
+    held = fit_columns(st, dv[:, None], ds[:, None])[0]
+    free, th, se = fit_columns(st, mo.Dv[:, [br, brt]], mo.Ds[:, [br, brt]])
+    assert free > held + 9.0, (held, free)  # (the laws' bar, 2 ln LR 9)
+    f_start, f_end = mo.f0 + th[0], mo.f0 + th[0] + th[1]
+    assert abs(f_start - 0.9) <= 4 * se[0] and abs(f_end - 0.9) <= 4 * math.hypot(*se), th
+    rate, scale = BY_NAME["braking_rate"], BY_NAME["odometer_scale"]
+    got = cause_stat(st, dv, ds, lambda s: rate.free(s, {}))
+    assert abs(got - free) <= 1e-9 * free, (got, free)  # (the same span in another basis)
+    assert cause_stat(st, dv, ds) == held
+    assert cause_stat(st, dv, ds, lambda s: scale.free(s, {})) == held
+
+
 @pytest.mark.slow
 def test_a_constant_braking_rate_beside_a_gradient_is_not_a_heat_law(tmp_path):
     """A pair (seed 29, pair 2: a high-speed line, braking x 0.92 throughout and a gradient of

@@ -205,8 +205,8 @@ def confirm(mo: Motion, shift: float, accepted: list, resolved_before: dict, cfg
         # so can a listed cause and a rival law in the model, which is one more effect)
         for a in motion:
             others = null_of([b for b in confirmed if b is not a])
-            fr = flexible_rival(mo, others, null_of(confirmed), cfg, noise,
-                                _n_params(a))
+            fr = flexible_rival(mo, others, null_of(confirmed), cfg, noise, _n_params(a),
+                                _free_of(a))
             checks[a.cause]["flexible"] = fr
             if not fr["better"]:
                 beside = [b.cause for b in motion if b is not a] + \
@@ -250,8 +250,7 @@ def confirm(mo: Motion, shift: float, accepted: list, resolved_before: dict, cfg
                             detail=f"b {bl.get('b', 0.0):+.3f} m/s; "):
                 continue
         if a.status == "confirmed" and cause.heat_rival is not None:
-            hl = heat_law(mo, others, full, cfg, noise,
-                          cause.free(None, a.extra) if cause.linear else None)
+            hl = heat_law(mo, others, full, cfg, noise, _free_of(a))
             checks[a.cause]["heat_law"] = hl
             if _law_verdict(a, checks[a.cause], hl, cause.heat_rival,
                             "the braking better than the cause", ccfg,
@@ -478,6 +477,14 @@ def _caveat(check: dict, told: str) -> None:
     """Add ``told`` to a cause's check's ``caveat`` (what one run cannot tell it from)."""
     old = check.get("caveat")
     check["caveat"] = told if old is None else f"{old}; {told}"
+
+
+def _free_of(fit: CauseFit):
+    """A linear cause's free combinations on a stage (``st -> Cause.free(st, extra)``), for
+    the comparisons that fit it in its own parameters; None for a cause that is not linear
+    (its place or timing fixed, its contribution fitted with a free multiplier)."""
+    cause = BY_NAME[fit.cause]
+    return (lambda st: cause.free(st, fit.extra)) if cause.linear else None
 
 
 def _n_params(fit: CauseFit) -> int:

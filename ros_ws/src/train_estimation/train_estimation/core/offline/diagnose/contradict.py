@@ -79,7 +79,7 @@ from .phases import (
     families,
     grid_phase,
 )
-from .stage import Null, Stage, fit_columns
+from .stage import Null, Stage, cause_stat, fit_columns
 
 # s, a cell of the place test holds at least this much time outside the stretch (a stop's last
 # few m/s of braking last a few seconds; the cell's standard error states what it can test)
@@ -439,12 +439,14 @@ def place_test(mo: Motion, full: Null, cfg, noise, inside: np.ndarray, beyond: n
     return res
 
 
-def flexible_rival(mo: Motion, others: Null, full: Null, cfg, noise, k_cause: int) -> dict:
+def flexible_rival(mo: Motion, others: Null, full: Null, cfg, noise, k_cause: int,
+                   free=None) -> dict:
     """Whether a cause confirmed together with others explains the data better than a flexible
     term in the phases and speeds it acts in: free extra accelerations per phase x quarter of
     the top speed (the structure test's ``speed`` family) on the cells holding its
     contribution, on top of the other causes (``others``). Both by BIC (``k_cause``: the
-    cause's parameters, one per cell for the flexible term): {"better", figures}."""
+    cause's parameters, one per cell for the flexible term): {"better", figures}. The cause
+    is fitted in the parameters BIC charges it (:func:`.stage.cause_stat`)."""
     st0 = Stage(mo, others, cfg, noise=noise, big=False)
     dv = Stage(mo, full, cfg, noise=noise, big=False).fv - st0.fv
     ds = Stage(mo, full, cfg, noise=noise, big=False).fs - st0.fs
@@ -460,7 +462,7 @@ def flexible_rival(mo: Motion, others: Null, full: Null, cfg, noise, k_cause: in
         return {"better": True, "note": "no flexible term to compare"}
     Bv, Bs = mo.grid.integrate(R[:, keep], mo.ev.t.size)
     stat_f = fit_columns(st0, Bv, Bs)[0]
-    stat_c = fit_columns(st0, dv[:, None], ds[:, None])[0]
+    stat_c = cause_stat(st0, dv, ds, free)
     ln_n = math.log(max(mo.ev.t.size, 2))
     bic_c = stat_c - k_cause * ln_n
     bic_f = stat_f - len(keep) * ln_n

@@ -33,7 +33,7 @@ from train_estimation.core.numerics.augmented_kf import gls
 
 from .motion import Motion
 from .phases import counted_columns
-from .stage import Null, Stage, best_section, fit_columns
+from .stage import Null, Stage, best_section, cause_stat, fit_columns
 
 # position bins by which the speed-law test moves a stretch's ends (each law gets its own best
 # stretch near the fitted one: a fixed force fitted on a drag stretch overshoots it at the fast
@@ -73,26 +73,24 @@ def heat_state(mo: Motion, tau: float) -> np.ndarray:
     return h / max(0.5 * v_top * v_top, 1e-9)
 
 
-def heat_law(mo: Motion, others: Null, full: Null, cfg, noise, free: list | None = None
-              ) -> dict:
+def heat_law(mo: Motion, others: Null, full: Null, cfg, noise, free=None) -> dict:
     """A braking weaker by the cause (``full`` against ``others``: a braking-rate change in
     time, a low-adhesion section) against brakes that fade as they heat: the braking asked for
     times (c1 + c2 H), H the brakes' heat (:func:`heat_state`) at the best of ``HEAT_TAUS``,
     two parameters on top of ``others``.
 
-    The cause is fitted in its own parameters on the same stage: ``free`` (a linear cause's
-    combinations of the motion's elementary columns, ``Cause.free``) each free, else (a cause
-    at a place, its stretch fixed) its contribution with a free multiplier. A cause with two
-    parameters held at the shape the joint refit gave it, one multiplier free, lost to a
-    constant braking factor that it contains: a braking rate 0.924 throughout, beside a
-    gradient, held as a drift 0.936 -> 0.921 lost to the heat law by 2 ln LR +80 with its
-    fade at 0.0006, while the rate free on the heat law's stage fits as well as the law.
+    The cause is fitted in its own parameters on the same stage (:func:`.stage.cause_stat`,
+    ``free`` its combinations). A cause with two parameters held at the shape the joint refit
+    gave it, one multiplier free, lost to a constant braking factor that it contains: a
+    braking rate 0.924 throughout, beside a gradient, held as a drift 0.936 -> 0.921 lost to
+    the heat law by 2 ln LR +80 with its fade at 0.0006, while the rate free on the heat
+    law's stage fits as well as the law.
 
     Returns ``lr``: 2 ln of the likelihood ratio of the heat law against the cause, less 2 ln
-    of the number of cooling times tried
-    (> 0: the data prefer the heat law; near 0 where every braking holds the same heat, as
-    on a run of equal stops); ``tau`` and the heat law's fade at the heat of one stop from the
-    top speed (``fade``, -c2 / (f0 + c1)); the speeds braked at (5-95 %)."""
+    of the number of cooling times tried (> 0: the data prefer the heat law; near 0 where
+    every braking holds the same heat, as on a run of equal stops); ``tau`` and the heat law's
+    fade at the heat of one stop from the top speed (``fade``, -c2 / (f0 + c1)); the speeds
+    braked at (5-95 %)."""
     st0 = Stage(mo, others, cfg, noise=noise, big=False)
     st1 = Stage(mo, full, cfg, noise=noise, big=False)
     dv, ds = st1.fv - st0.fv, st1.fs - st0.fs
@@ -101,25 +99,13 @@ def heat_law(mo: Motion, others: Null, full: Null, cfg, noise, free: list | None
     if not (dv * dv).sum() > 0 or brk.sum() < 10:
         res.update(lr=0.0, note="no braking while moving")
         return res
-    cols = _columns_of(mo, free) if free else None
-    cause = fit_columns(st0, *(cols if cols is not None else (dv[:, None], ds[:, None])))[0]
+    cause = cause_stat(st0, dv, ds, free)
     fit = _heat_profile(mo, st0)
     vb = mo.v_ref[brk]
     v_lo, v_hi = np.percentile(vb, [5, 95])
     res.update(lr=float(fit.pop("stat") - cause - 2.0 * math.log(len(HEAT_TAUS))), **fit,
                speeds=[float(v_lo), float(v_hi)])
     return res
-
-
-def _columns_of(mo: Motion, free: list) -> tuple | None:
-    """The drift columns (Bv, Bs) of ``free`` (``Cause.free``'s combinations of the motion's
-    elementary columns, by name), or None if one names a column the motion does not have
-    (a measurement column)."""
-    if not all(n in mo.col for f in free for n in f):
-        return None
-    Bv = np.stack([sum(w * mo.Dv[:, mo.col[n]] for n, w in f.items()) for f in free], axis=1)
-    Bs = np.stack([sum(w * mo.Ds[:, mo.col[n]] for n, w in f.items()) for f in free], axis=1)
-    return Bv, Bs
 
 
 def heat_refit(mo: Motion, null: Null, cfg, noise, law: dict) -> dict:

@@ -288,6 +288,26 @@ def fit_columns(st: Stage, Bv: np.ndarray | None, Bs: np.ndarray | None, extra=N
     return max(q0 - q1, 0.0), th[1:], se[1:]
 
 
+def cause_stat(st: Stage, dv: np.ndarray, ds: np.ndarray, free=None) -> float:
+    """A cause's chi-square statistic (2 dll) on top of the stage ``st``, fitted as well as its
+    parameters allow: its contribution (``dv``, ``ds``: the model with it less the model
+    without it, as the joint refit fitted it) with a free multiplier, and, for a linear cause,
+    each of its combinations free (``free``: ``st -> Cause.free(st, extra)``, the motion's
+    elementary columns by name), the larger of the two. The contribution alone holds the
+    cause at the shape the joint refit gave it beside causes that may have left the model
+    (a braking rate's drift); the combinations alone miss what the cause does through the
+    others (a mass change scales a power limit's deficit too)."""
+    stat = fit_columns(st, dv[:, None], ds[:, None])[0]
+    if free is None:
+        return stat
+    mo, combos = st.mo, free(st)
+    if not all(n in mo.col for f in combos for n in f):  # a measurement column (a scale)
+        return stat
+    Bv = np.stack([sum(w * mo.Dv[:, mo.col[n]] for n, w in f.items()) for f in combos], axis=1)
+    Bs = np.stack([sum(w * mo.Ds[:, mo.col[n]] for n, w in f.items()) for f in combos], axis=1)
+    return max(stat, fit_columns(st, Bv, Bs)[0])
+
+
 def _memo(mo: Motion) -> dict:
     """The per-run memo of noise fits and big filters (on the Motion: it lives as long as the
     run's analysis; the big filters' results are shared, never modified)."""
