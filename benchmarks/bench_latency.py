@@ -55,6 +55,7 @@ Usage::
     ./run bench latency --no-live --seeds 0 --paced        # in process, fed at 1x real time
     ./run bench latency --no-link --seeds 0 --trace        # live, per stage, wall and CPU
     ./run bench latency --no-link --seeds 0 --clocks sim --clock-period 0   # /clock every step
+    ./run bench latency --no-link --seeds 0 --clocks wall --realtime 50     # nodes SCHED_FIFO
 """
 
 from __future__ import annotations
@@ -68,6 +69,7 @@ import math
 import os
 import random
 import re
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -136,13 +138,18 @@ def _cpu_seconds(pid: int) -> float:
 
 
 def run_live(scenario: str, duration: float, logs: Path, nodes, trace: bool = False,
-             sim_time: bool = True, clock_period: float | None = None) -> dict:
+             sim_time: bool = True, clock_period: float | None = None,
+             realtime: int = 0) -> dict:
     """One live run; returns each process's CPU per s of the run (ms/s; from the simulator's
     first progress line, 5 % into the run, to its end: the nodes' start-up left out).
     ``sim_time``: the nodes (estimators and echo alike) on the simulator's /clock
     (``use_sim_time``) or on the system clock, as a train's computer runs them (the simulator
     at 1x keeps publishing /clock, which they then do not subscribe to). ``clock_period``:
-    the simulator's parameter (None: its default)."""
+    the simulator's parameter (None: its default). ``realtime`` > 0: the estimator and echo
+    nodes start under ``chrt -f realtime`` (SCHED_FIFO at that priority, every thread of the
+    process, the middleware's included, as a launch ``prefix`` sets it on a train's computer);
+    the simulator, the world, keeps the default scheduler."""
+    prefix = ["chrt", "-f", str(realtime)] if realtime > 0 else []
     env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
                ROS_DOMAIN_ID=str(random.randint(101, 200)), PYTHONUNBUFFERED="1")
     env.pop(TRACE_VARIABLE, None)
@@ -159,7 +166,7 @@ def run_live(scenario: str, duration: float, logs: Path, nodes, trace: bool = Fa
                 cmd = [path or sys.executable,
                        *([] if path else ["-m", f"train_estimation.nodes.{exe}"])]
             procs[label] = subprocess.Popen(
-                [*cmd, "--ros-args", "-r", "__ns:=/lat",
+                [*prefix, *cmd, "--ros-args", "-r", "__ns:=/lat",
                  "-p", f"use_sim_time:={'true' if sim_time else 'false'}",
                  *([] if exe is None else ["-p", "use_demo_line:=true"]), *extra],
                 env=env, stdout=open(logs / _log_name(label), "w"), stderr=subprocess.STDOUT)
@@ -607,6 +614,11 @@ def main(argv=None) -> int:
     ap.add_argument("--clock-period", type=float, default=None,
                     help="live: the simulator's clock_period (s of simulated time between two "
                          "/clock messages at most; default: the simulator's)")
+    ap.add_argument("--realtime", type=int, default=0, metavar="PRIORITY",
+                    help="live: start the estimator and echo nodes under SCHED_FIFO at this "
+                         "priority (1-99, `chrt -f`), as a train's computer would run them; "
+                         "needs the right to (root, CAP_SYS_NICE or an rtprio limit). "
+                         "0 (default): the default scheduler")
     ap.add_argument("--together", action="store_true",
                     help="live: every estimator node in one run beside one echo node (they "
                          "contend for the cores) instead of one at a time")
@@ -618,6 +630,17 @@ def main(argv=None) -> int:
         ap.set_defaults(duration=15.0, seeds=2, offline_duration=120.0, stage_duration=30.0,
                         no_link=True, clocks="wall", algorithms=ALGORITHMS[0])
     args = ap.parse_args(argv)
+    if not 0 <= args.realtime <= 99:
+        ap.error("--realtime: a SCHED_FIFO priority, 1-99 (0: off)")
+    if args.realtime > 0 and not args.no_live:
+        probe = subprocess.run(["chrt", "-f", str(args.realtime), "true"], capture_output=True,
+                               text=True) if shutil.which("chrt") else None
+        if probe is None or probe.returncode != 0:
+            ap.error("--realtime: cannot run under SCHED_FIFO here ("
+                     + ("no chrt: install util-linux" if probe is None else
+                        probe.stderr.strip() or "chrt failed")
+                     + "); run as root, give CAP_SYS_NICE, or raise the rtprio limit "
+                     "(ulimit -r, /etc/security/limits.conf)")
     algorithms = [a for a in args.algorithms.split(",") if a]
     nodes = live_nodes(algorithms)
     echo = nodes[-1]
@@ -641,7 +664,8 @@ def main(argv=None) -> int:
                 for j, group in enumerate(groups):
                     where = logs / f"link{i}" / clock / f"run{j}"
                     cpu = run_live(scenario, args.duration, where, group, trace=args.trace,
-                                   sim_time=clock == "sim", clock_period=args.clock_period)
+                                   sim_time=clock == "sim", clock_period=args.clock_period,
+                                   realtime=args.realtime)
                     rows += live_rows(name, where, group, CLOCKS[clock], cpu)
                     if args.trace:
                         what = f"{group[0][0]}, link {name}, {CLOCKS[clock]}"
@@ -650,6 +674,9 @@ def main(argv=None) -> int:
                     load.append(os.getloadavg()[0])
         how = (f"{len(nodes) - 1} estimator nodes and the echo node side by side"
                if args.together else "each estimator node in turn, with the echo node beside it")
+        if args.realtime > 0:
+            how += (f", the estimator and echo nodes under SCHED_FIFO priority {args.realtime}"
+                    " (chrt)")
         print(f"metro_demo at 1x for {args.duration:g} s per link and run, {how} (logs in "
               f"{logs}); load average (1 min) {', '.join(f'{v:.1f}' for v in load)} before "
               "the first run / after each. node clock: the clock the estimator and the "
