@@ -448,8 +448,8 @@ def flexible_rival(mo: Motion, others: Null, full: Null, cfg, noise, k_cause: in
     cause's parameters, one per cell for the flexible term): {"better", figures}. The cause
     is fitted in the parameters BIC charges it (:func:`.stage.cause_stat`)."""
     st0 = Stage(mo, others, cfg, noise=noise, big=False)
-    dv = Stage(mo, full, cfg, noise=noise, big=False).fv - st0.fv
-    ds = Stage(mo, full, cfg, noise=noise, big=False).fs - st0.fs
+    st1 = Stage(mo, full, cfg, noise=noise, big=False)
+    dv, ds = st1.fv - st0.fv, st1.fs - st0.fs
     fam = families(mo).get("speed")
     if fam is None or not np.any(dv):
         return {"better": True, "note": "no flexible term to compare"}

@@ -21,7 +21,7 @@ from .contradict import place_seen
 from .motion import Motion
 from .result import CauseFit
 from .run import DiagConfig
-from .stage import Null, Stage
+from .stage import Null, Stage, combo_drift
 
 if TYPE_CHECKING:  # the search's state (search.py imports this module)
     from .search import _Search
@@ -239,9 +239,9 @@ def _profile_jointly(mo: Motion, shift: float, accepted: list, lin: list, fit: C
     dv, ds, mv_d, mv_v = [], [], [], []
     for b in lin:
         for combo in BY_NAME[b.cause].free(st, b.extra):
-            if all(c in mo.col for c in combo):
-                dv.append(sum(w * mo.Dv[:, mo.col[c]] for c, w in combo.items()))
-                ds.append(sum(w * mo.Ds[:, mo.col[c]] for c, w in combo.items()))
+            if (drift := combo_drift(mo, combo)) is not None:
+                dv.append(drift[0])
+                ds.append(drift[1])
             elif set(combo) == {"scale"}:
                 mv_d.append(combo["scale"] * mo.sc_d)
                 mv_v.append(combo["scale"] * mo.sc_v)

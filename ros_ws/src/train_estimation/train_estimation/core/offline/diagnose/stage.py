@@ -300,12 +300,21 @@ def cause_stat(st: Stage, dv: np.ndarray, ds: np.ndarray, free=None) -> float:
     stat = fit_columns(st, dv[:, None], ds[:, None])[0]
     if free is None:
         return stat
-    mo, combos = st.mo, free(st)
-    if not all(n in mo.col for f in combos for n in f):  # a measurement column (a scale)
+    cols = [combo_drift(st.mo, f) for f in free(st)]
+    if any(c is None for c in cols):  # a measurement column (a scale)
         return stat
-    Bv = np.stack([sum(w * mo.Dv[:, mo.col[n]] for n, w in f.items()) for f in combos], axis=1)
-    Bs = np.stack([sum(w * mo.Ds[:, mo.col[n]] for n, w in f.items()) for f in combos], axis=1)
+    Bv, Bs = (np.stack(c, axis=1) for c in zip(*cols))
     return max(stat, fit_columns(st, Bv, Bs)[0])
+
+
+def combo_drift(mo: Motion, combo: dict) -> tuple | None:
+    """The drift increments (at the events, of speed and of distance) of a combination of the
+    motion's elementary columns (``{name: weight}``, a ``Cause.free`` entry), or None if it
+    names a column that is not a drift column (the odometer scale's measurement column)."""
+    if not all(n in mo.col for n in combo):
+        return None
+    return (sum(w * mo.Dv[:, mo.col[n]] for n, w in combo.items()),
+            sum(w * mo.Ds[:, mo.col[n]] for n, w in combo.items()))
 
 
 def _memo(mo: Motion) -> dict:
