@@ -323,6 +323,10 @@ def plan(quick: bool, seeds: int, estimators, only, phase_names=None, long: floa
         for _, at in ([("cruising", cruise)] if quick else list(ph.items())):
             for L in ((3.0,) if quick else (0.5, 3.0, 10.0)):
                 add(F.Fault("reboot", L, at), L + 60.0)
+            # and one whose clock steps with it (a unit that rebooted with its clock): after
+            # the silence a step back reads as a link whose latency rose as much
+            for d in ((-3.0,) if quick else (-10.0, -3.0, -0.5, 3.0)):
+                add(F.Fault("reboot", 5.0, at, clock_step=d, jitter=JITTER), 65.0)
         for L in ((8.0,) if quick else (2.0, 8.0, 20.0)):
             add(F.Fault("recorder_stall", L, cruise), L)
             add(F.Fault("node_stall", L, cruise), L)

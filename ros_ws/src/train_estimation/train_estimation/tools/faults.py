@@ -61,7 +61,8 @@ start_offset     m: the stream is clean, the estimator's ``initial_position`` is
 ===============  ========================================================================
 
 Any kind can run on a jittery link: ``Fault.jitter`` (s) adds an exponential extra latency of
-that mean to every odometer and balise reading, so that arrivals leave sending order.
+that mean to every odometer and balise reading, so that arrivals leave sending order; and with a
+clock that steps at its onset: ``Fault.clock_step`` (s; a unit that rebooted with its clock).
 
 Clocks: odometer and balise are stamped by the train clock ``EPOCH + t (1 + drift)`` plus the
 steps so far (:class:`TrainClock`); control by the reference clock ``EPOCH + t``; the arrival is
@@ -182,6 +183,8 @@ class Fault:
     count: int = 1  # readings affected ("stamp")
     jitter: float = 0.0  # s, mean of an exponential extra latency of every odometer and balise
     #   reading, whatever the kind (a jittery link: arrivals then no longer keep sending order)
+    clock_step: float = 0.0  # s by which the train clock steps at ``at`` as well, whatever the
+    #   kind (a unit that rebooted with its clock; the kind ``step`` is this alone)
 
     def __post_init__(self):
         if self.kind not in KINDS:
@@ -192,6 +195,7 @@ class Fault:
         if self.kind in ("none", "command_stop", "stuck"):
             return self.kind + (f" jitter {self.jitter:g}" if self.jitter else "")
         n = f" x{self.count}" if self.kind == "stamp" and self.count != 1 else ""
+        n += f" clock {self.clock_step:+g}" if self.clock_step else ""
         n += f" jitter {self.jitter:g}" if self.jitter else ""
         return f"{self.kind} {self.size:+g}{n}" if self.kind in ("stamp", "step", "drift",
                                                                    "balise", "odometer_scale",
@@ -234,7 +238,8 @@ def inject(events: list, fault: Fault, rng: np.random.Generator) -> Faulted:
     left out."""
     k, size, at = fault.kind, fault.size, fault.at
     clock = TrainClock(drift=size if k == "drift" else 0.0,
-                       steps=((at, size),) if k == "step" else ())
+                       steps=((at, size),) if k == "step" else
+                       ((at, fault.clock_step),) if fault.clock_step else ())
     rows = []  # [topic, t, fields, stamp error, true arrival]
     hit = 0
     d_at = None  # m, the odometer's distance at ``at`` ("odometer_scale")

@@ -1454,6 +1454,14 @@ class StepWatch:
         self.held: list = []  # (kind, stamp, fields, recv, arrival, refused): discontinuous
         self._pushed: tuple | None = None  # (stamp, arrival) of the last odometer watched
         self._admitted: list = []  # sorted recent odometer stamps admitted
+        self._untimed: list | None = None  # [first stamp, readings on the old offset since,
+        #   slots unfilled before it] after a gap that nothing timed, until the readings after
+        #   it show the old clock's offset (min_judged of them) or a decision is taken
+        #   (:meth:`_note_silence`)
+        self._stray: tuple | None = None  # (stamp, arrival) of a reading of another topic
+        #   that came later than lateness allows since the last odometer reading (:meth:`stray`)
+        self._placement: dict = {}  # odometer stamp -> placed on its clock by the grid or
+        #   the count when watched (the latest 64)
         self._n_admitted = 0  # odometer readings admitted so far
         self._sent: dict = {}  # timeline odometer stamp -> stamp as sent (after a step)
         self.grid = SampleGrid(period, min_judged)  # odometer stamps against their seq
@@ -1517,8 +1525,11 @@ class StepWatch:
         if kind != "odometer":
             return
         self.grid.add(seq, stamp)
+        before = self.last
         if arrival is not None and (self.last is None or stamp > self.last[0]):
             self.last = (stamp, arrival)
+        self._stray = None
+        self._note_silence(stamp, arrival, before)
         bisect.insort(self._admitted, stamp)
         del self._admitted[:-128]
         self._n_admitted += 1
@@ -1527,6 +1538,54 @@ class StepWatch:
             if len(self._arr) > 256:
                 keep = sorted(self._arr)[-128:]
                 self._arr = {k: self._arr[k] for k in keep}
+
+    def _note_silence(self, stamp: float, arrival: float | None, before: tuple | None) -> None:
+        """Whether the reading admitted at ``stamp`` is the first after a gap in the stream
+        that neither the sample grid nor the count placed on its clock (a counter that
+        restarted, a count that went back or whose link spans too long), a silence of the
+        arrivals as well (:func:`paced` against ``before``, the newest reading admitted
+        before it, as (stamp, arrival): stamps that jump ahead while readings keep coming are
+        no silence): the two re-learn
+        their references from the readings after it, which they then place wherever their
+        stamps say, so until the readings show the old clock's offset again (``min_judged``
+        of them within the bar) a latency decision on their word leaves a step back open
+        (:meth:`_step_open`; ``_latency_moved``: a reboot with a -3 s step on metro_demo,
+        cruising, published 174 estimates 62 m off within levels of 39-45 m)."""
+        if self._untimed is not None and arrival is not None and self.clock.judged and \
+                abs(stamp - arrival - self.clock.now(arrival)) <= self.bar(self.clock):
+            self._untimed[1] += 1
+            if self._untimed[1] >= self.min_judged:
+                self._untimed = None
+        adm = self._admitted
+        if adm and stamp > adm[-1] and not self._placement.get(stamp, False) and \
+                before is not None and arrival is not None and \
+                paced(before, (stamp, arrival)):
+            gap = self._gap(stamp, adm[-1])
+            if gap:
+                self._untimed = [stamp, 0, gap]
+
+    def stray(self) -> float:
+        """s: how far below its clock lies a reading of another topic that came later than
+        lateness allows since the last odometer reading admitted (0: none). Where the
+        odometer then falls silent the reading that decides is not coming, and the estimates
+        are in doubt by that much (``IntegrityMonitor.clock``: a reboot with a -3 s step on
+        metro_demo, its first balise stamped on the new clock refused as out of order, the
+        slots predicted through the silence read 3 s off: 10 estimates 66 m off within
+        levels of 65 m)."""
+        if self._stray is None:
+            return 0.0
+        return max(-self.clock.above(self._stray[0] - self._stray[1]), 0.0)
+
+    def untimed_moved(self) -> bool:
+        """The readings admitted since an untimed gap (:meth:`_note_silence`) are in doubt:
+        the newest lies where no lateness puts a reading of the old clock (below its centre by
+        more than the clock's lateness bar, or above where it can be by more than
+        ``step_back``), as :meth:`_conclusive` judges one held reading; a reading late by a
+        jittery link's tail after a lost one is not."""
+        if self._untimed is None or self.last is None or not self.clock.judged:
+            return False
+        v = self.last[0] - self.last[1]
+        return self.clock.is_late(v) or self.clock.above(v) > self.back
 
     def _silent(self, n: int) -> bool:
         """``n`` held readings are enough for a step at ``step_risk``: the old clock's silence
@@ -1944,9 +2003,14 @@ class StepWatch:
         - ``(ADMIT, (kind, stamp, fields, recv, arrival))``: a held reading to admit (unwatched);
         - ``(REFUSE, kind, stamp, ahead)``: a held reading stamped ``ahead`` s ahead of its
           stream or clock, that no later reading continued: refuse it (``future_stamp``);
-        - ``(STEP, shift, first, measured)``: a step of ``shift`` s (now in :attr:`shift`), its
-          first reading at timeline stamp ``first`` (before this shift), ``measured`` from the
-          arrivals or assumed from the stamps (class doc); the held readings follow as ADMITs;
+        - ``(STEP, shift, first, measured, unsure)``: a step of ``shift`` s (now in
+          :attr:`shift`), its first reading at timeline stamp ``first`` (before this shift),
+          ``measured`` from the arrivals or assumed from the stamps (class doc); ``unsure``: a
+          step back after a silence that nothing timed, which a latency that rose as much
+          explains as well (:meth:`_step_open`); the held readings follow as ADMITs;
+        - ``(LATENCY, moved, unsure)``: no step, the link's latency moved by ``-moved`` s and
+          stays (the clock's offset follows it); ``unsure``: after a silence that nothing
+          timed, where a step back by as much explains the readings as well;
         - ``(SKIP, samples)``: no step, the sample counter moved by ``samples`` (< 0: back)
           while the stamps and arrivals ran on; the grid is re-learnt and the held readings
           follow as ADMITs (judged as any other);
@@ -1976,6 +2040,11 @@ class StepWatch:
         prev = self._pushed
         if kind == "odometer":
             self._pushed = (stamp, arrival)
+        elif recv is not None and med.judged and med.is_late(stamp - arrival):
+            # a reading of another topic on this clock, later than lateness allows: a latency
+            # tail, or the first of a clock stepped back, which the next odometer reading
+            # decides (:meth:`stray`)
+            self._stray = (stamp, arrival)
         chain = [h for h in self.held if h[0] == "odometer"]
         # the pace against the previous reading, or against the first held one: between two
         # neighbours a link's jitter alone breaks the pace (50 ms of exponential jitter at 10
@@ -2022,6 +2091,10 @@ class StepWatch:
             placed = r is not None and abs(r) <= r_tol  # on the grid
         if r is not None:
             continuous = placed
+        if kind == "odometer":
+            self._placement[stamp] = placed
+            if len(self._placement) > 64:
+                del self._placement[next(iter(self._placement))]
         if placed:  # on the count's or the grid's clock: the latency, if its arrival is off
             yield from self._latency_moved((kind, stamp, fields, recv, arrival, False),
                                            behind, ahead, med)
@@ -2170,6 +2243,19 @@ class StepWatch:
         # them) but whose offsets rose are a forward step, not a route
         route = rs is None and env is None and not off and measured and shift < 0 and \
             moved < 0 and self._stamps_ran_on(chain, s0)
+        # the stamps fell back after a gap that neither the count nor the grid timed: where
+        # the link's losses leave it open (:meth:`_step_open`), a step back and a latency that
+        # rose by as much differ only in how long the gap lasted, so whichever is taken the
+        # other is carried beside it (the runner tells the integrity monitor) until a balise
+        # places the train
+        after = [h for h in chain if h[1] > s0 + 0.5 * self.period]
+        gap = self._gap(min(h[1] for h in after), s0) \
+            if after and measured and paced((s0, a0), min((h[1], h[4]) for h in after)) \
+            else None
+        untimed = not off and measured and (
+            rs is None and gap is not None and self._step_open(gap, moved)
+            or self._untimed is not None and self._step_open(self._untimed[2], moved))
+        self._untimed = None
         if rs is not None:
             measured = True
         elif measured:
@@ -2196,10 +2282,11 @@ class StepWatch:
                      and first < s0 + shift + 0.5 * self.period):
             med.move(moved)
             self.raised -= moved
-            yield LATENCY, moved
+            yield LATENCY, moved, untimed and route
             yield from self._release()  # this reading with them, now on time
             yield (HOLD,)
             return
+        unsure = untimed and shift < 0
         self.shift += shift
         old = self.shift - shift
         if rs is None:  # measured otherwise: the grid's stamps may no longer continue
@@ -2208,7 +2295,7 @@ class StepWatch:
         for h in held:
             if h[0] == "odometer" and (not h[5] or h is entry):
                 self._sent[h[1] - shift] = h[1] + old  # as sent
-        yield STEP, shift, first, measured
+        yield STEP, shift, first, measured, unsure
         for h in held:
             k, st, f, rc, ar, ref = h
             if h is entry or ref:
@@ -2254,7 +2341,10 @@ class StepWatch:
         self._late = []
         med.move(moved)
         self.raised -= moved
-        yield LATENCY, moved
+        untimed = self._untimed is not None and moved < 0 and \
+            self._step_open(self._untimed[2], moved)
+        self._untimed = None
+        yield LATENCY, moved, untimed
 
     def _envelope(self, chain: list, bar: float, drift: float) -> tuple[int, int] | None:
         """(k, j): the held odometer readings (``chain``) and how many of them lie above the
@@ -2315,7 +2405,13 @@ class StepWatch:
         latency that rose and stays (a slower route) leaves them where they were. Taken for a
         -1.5 s step without a counter, crh3_high_speed's estimates were up to 119 m off. (A
         step by whole periods whose first readings were all lost reads as one too: at 10 Hz
-        with 5 % lost, a -0.5 s step one time in 3e7.) Without a measured phase: a step."""
+        with 5 % lost, a -0.5 s step one time in 3e7.) Without a measured phase: a step.
+
+        After a silence that the link's losses do not make (:meth:`_step_open`) the phase
+        is the only word: a step by whole periods lands on it as well, and its readings
+        would have landed on admitted slots only had the silence been shorter than it. A
+        route is then the likelier (a clock set again by GPS or NTP is on the phase one time
+        in ``P / 2 tol``), not a certain one, and the runner carries the step beside it."""
         ph = self.phase()
         if ph is None:
             return False
@@ -2328,6 +2424,25 @@ class StepWatch:
                 if h[1] < adm[0] - tol or i < len(adm) and adm[i] <= h[1] + tol:
                     return False
         return True
+
+    def _gap(self, first: float, s0: float) -> int:
+        """The odometer slots between the stamp ``s0`` and ``first`` that nothing filled."""
+        return max(round((first - s0) / self.period) - 1, 0)
+
+    def _step_open(self, unfilled: int, step: float) -> bool:
+        """Whether the link's losses leave a step back of ``|step|`` s open where the readings
+        say a latency rose as much (or the other way round): the latency needs ``unfilled``
+        slots lost in a row before the readings, the step ``|step| / period`` more (its first
+        readings would have landed on them). The losses tell them apart only where the first
+        silence is one they make (at more than ``step_risk``, :func:`silence_risk`) and the
+        second is not; after a silence they do not make (an outage, a sensor that rebooted)
+        the two differ only in how long it lasted, which nothing states."""
+        adm = self._admitted
+        got = len(adm)
+        lost = max(round((adm[-1] - adm[0]) / self.period) + 1 - got, 0) if got > 1 else 0
+        m = max(round(abs(step) / self.period), 1)
+        return silence_risk(lost, got, unfilled) <= self.step_risk or \
+            silence_risk(lost, got, unfilled + m) > self.step_risk
 
     def _above_old(self, chain: list, v: float, recv, bar: float) -> bool:
         """Whether a reading of offset ``v`` (stamp - arrival) that is within the bar of the
@@ -2675,8 +2790,23 @@ class StepWatch:
         # a held reading the grid places is off it, and in doubt at once
         rs = [self._placed(*h[:3], odo) for h in odo]
         doubt = max([doubt] + [abs(r) for r in rs if r is not None])
-        return len(odo), doubt, any(r is not None or self._conclusive(h[1], h[3], h[4])
-                                    for h, r in zip(odo, rs))
+        n, conclusive = len(odo), any(r is not None or self._conclusive(h[1], h[3], h[4])
+                                      for h, r in zip(odo, rs))
+        if any(h[0] == "balise" and h[3] is not None and
+               self.clock.above(h[1] - h[4]) > self.back for h in self.held):
+            # a balise held above where its clock can be: a forward step or a wrong stamp, in
+            # doubt at once as such an odometer reading is (a reboot with its clock stepped +3 s
+            # on metro_demo: the odometer silent, the slots predicted through the silence on
+            # the old clock were read 3 s off on the new one, 48 estimates 63 m off within
+            # levels of 65 m)
+            n, conclusive = max(n, 1), True
+        if self.untimed_moved():
+            # the readings admitted since an untimed silence, off the old clock's offset: the
+            # clock is in question until a decision (the grid and the count, re-learnt from
+            # them, place the held readings on their new clock and see no discontinuity)
+            n, conclusive = max(n, 1), True
+            doubt = max(doubt, abs(s0 - a0 - self.clock.now(a0)))
+        return n, doubt, conclusive
 
     def _conclusive(self, stamp: float, recv, arrival) -> bool:
         """One held odometer reading that no lateness explains: stamped above its clock's
@@ -2696,9 +2826,15 @@ class StepWatch:
         if near < 0.25 * self.period or \
                 (0 < i < len(adm) and adm[i] - adm[i - 1] < 1.5 * self.period):
             return True
+        # the odometer silent before it (nothing admitted for 1.5 periods): the reading that
+        # would decide may not come soon either, as at a slow rate (a reboot whose clock
+        # stepped back 3 s: the slots predicted through its silence, published while its
+        # first reading was held, were read 3 s off)
+        late = recv is not None and -self.clock.above(stamp - arrival) > self.clock.late
         if self.period <= 0.5:
-            return False
-        if recv is not None and -self.clock.above(stamp - arrival) > self.clock.late:
+            return late and self.last is not None and \
+                arrival - self.last[1] > 1.5 * self.period
+        if late:
             # later than the clock's lateness bar: a latency tail that long, or the first of a
             # clock stepped back, whose slot's estimate then claims another time (a -10 s step
             # on crh3_high_speed without a counter: the 8 readings it held were refused as

@@ -271,6 +271,10 @@ class IntegrityMonitor:
         self.reanchored_at = -math.inf  # stamp of the last step re-anchored by assumption
         self.burst: list | None = None  # [the last declared step (s), its first stamp on the
         #   new clock, readings seen on it]: the hypothesis that it was a burst (:meth:`clock`)
+        self.unsure: list | None = None  # [the step (s), its separation (m), its variance
+        #   (m^2)]: the other reading of a clock decision after a silence that nothing timed,
+        #   carried until a balise places the train (:meth:`untimed`)
+        self.stray = 0.0  # s, a balise this late since the last odometer reading (clock)
         self.held = 0  # readings the runner holds as a possible clock step
         self.doubt = 0.0  # s, the largest discontinuity among them
         self.suspect = False  # they put the estimate in doubt (see clock)
@@ -437,6 +441,7 @@ class IntegrityMonitor:
             self.pending_balise = (stamp, pos, var)
             if self._judge_balise(stamp, pos, var, *odo, may_clear=True):
                 self.count_doubt = None  # an independent position agrees with the odometer
+                self._place_untimed(pos - odo[0], odo[1] + var)
             return
         if reason == R.OUTSIDE_GATE:
             # the two tracks: the odometer's, and the balise's (the odometer's moved by their
@@ -685,7 +690,8 @@ class IntegrityMonitor:
         return ""
 
     def clock(self, held: int, reanchored_at: float | None = None, doubt: float = 0.0,
-              conclusive: bool = False, measured: bool = False, step: float = 0.0) -> None:
+              conclusive: bool = False, measured: bool = False, step: float = 0.0,
+              stray: float = 0.0) -> None:
         """The runner's clock state: readings held as a possible step, the largest
         discontinuity among them (s), whether one of them is no late reading; a step of
         ``step`` s re-anchored at ``reanchored_at`` (its first stamp on the new clock),
@@ -702,7 +708,13 @@ class IntegrityMonitor:
         readings on the new clock, until that is within its share of the risk (a step
         declared after ``min_judged`` readings was confirmed by a count of readings, and one
         burst of ten wrong stamps 4.5 s off published estimates 90 m off within a 39 m
-        protection level)."""
+        protection level).
+
+        ``stray`` (s): a balise came that much later than lateness allows since the last
+        odometer reading; where the odometer stays silent beyond 1.5 periods (the reading
+        that would tell a latency tail from a clock stepped back is not coming), the estimate
+        is in doubt as while readings are held, by that much."""
+        self.stray = stray
         self.held = held
         self.suspect = held >= 2 or (held >= 1 and conclusive)
         self.doubt = doubt if held else 0.0
@@ -710,6 +722,34 @@ class IntegrityMonitor:
             self.reanchored_at = -math.inf if measured else reanchored_at
             self.burst = [step, reanchored_at, 0] if step and math.isfinite(step) and \
                 self.p.stamp_burst_continue > 0.0 else None
+
+    def untimed(self, step: float) -> None:
+        """The runner's clock decided, after a silence that neither the odometer's count nor
+        its sample counter timed (an outage, a sensor that rebooted, with its clock or not),
+        between a step back of the train clock by ``|step|`` s and a link latency that rose by
+        as much: the two differ only in how long the silence lasted, which no reading states
+        (``StepWatch._step_open``). The other solution is where the train would be had
+        the silence lasted ``|step|`` s longer or shorter: ``|step|`` s of the estimate's
+        motion ahead or behind (:meth:`_moved`, taken at the first estimate after the decision
+        and kept, since the count restarted at that moment carries the difference on
+        unchanged). No rate is stated for either, so it is carried until a balise is fused
+        that agrees with the odometer (:meth:`balise`). Without it, a reboot whose clock
+        stepped back 3 s, taken for a latency on its stamps' phase, published 130 estimates
+        59 m off within levels of 31 m (metro_demo, braking)."""
+        if step and math.isfinite(step):
+            self.unsure = [step, math.nan, 0.0]
+
+    def _place_untimed(self, nu: float, s: float) -> None:
+        """A fused balise ``nu`` m from the odometer's track (variance ``s`` m^2 of the two),
+        which agrees with it: it ends the other reading of an untimed clock decision
+        (:meth:`untimed`) when it lies beyond ``pos_z`` of that solution as well (a track
+        whose own variance covers both tells neither)."""
+        if self.unsure is None or not math.isfinite(self.unsure[1]):
+            return
+        _, sep, extra = self.unsure
+        bar = self.p.pos_z * math.sqrt(s + extra)
+        if abs(nu - sep) > bar and abs(nu + sep) > bar:
+            self.unsure = None
 
     # -- output ---------------------------------------------------------------------------------
     def _nis_mean(self) -> float:
@@ -779,17 +819,31 @@ class IntegrityMonitor:
             P = _plus(P, _accel_terms(p.accel_uncertainty, min(tau, self.period) + self.period))
         fault_free = P[0]
         # faults not excluded: hypotheses (and the covariance widened to cover them)
-        if self.suspect or t - self.reanchored_at < p.reanchor_hold:
+        stray = self.stray if self.stray and tau > 1.5 * self.period else 0.0
+        if self.suspect or t - self.reanchored_at < p.reanchor_hold or stray:
             doubt = DEGRADED
             why.append("clock: " + (f"{self.held} readings held as a possible step"
-                                    if self.held else "step re-anchored"))
-            T = max(self.period, self.doubt if self.suspect else 0.0)
+                                    if self.held else "step re-anchored"
+                                    if not stray else f"a balise {stray:.2f} s late and the "
+                                    "odometer silent since"))
+            T = max(self.period, self.doubt if self.suspect else 0.0, stray)
             # the estimate's stamp may be read on either side of the step
             run, bend, extra = self._moved(out, P, T)
             hyps += [Hypothesis("clock", run + bend, extra),
                      Hypothesis("clock", -run + bend, extra)]
             far = abs(run) + abs(bend)  # the farther of the two
             P = _plus(P, (far * far + extra, 0.0, 0.0, 0.0))
+        if self.unsure is not None:
+            step, sep, extra = self.unsure
+            if not math.isfinite(sep):
+                run, bend, extra = self._moved(out, P, abs(step))
+                sep = abs(run) + abs(bend)
+                self.unsure = [step, sep, extra]
+            doubt = DEGRADED
+            why.append(f"clock: after a silence, a step of {-abs(step):+.3f} s or a latency "
+                       f"that rose as much (the train {sep:.1f} m apart); no balise since")
+            hyps += [Hypothesis("clock", sep, extra), Hypothesis("clock", -sep, extra)]
+            P = _plus(P, (sep * sep + extra, 0.0, 0.0, 0.0))
         if self.burst is not None:
             step, _, n = self.burst
             prior = p.stamp_burst_continue ** max(n - 1, 0)

@@ -578,7 +578,7 @@ class EstimatorRunner:
         if watch and clock == "train" and arrival is not None and self._steps.last is not None:
             held, stamp = self._watch_step(kind, stamp, fields, recv, arrival)
             n, doubt, conclusive = self._steps.doubt()
-            self.monitor.clock(n, doubt=doubt, conclusive=conclusive)
+            self.monitor.clock(n, doubt=doubt, conclusive=conclusive, stray=self._steps.stray())
             if held:
                 return ""
         if arrival is not None:
@@ -612,6 +612,10 @@ class EstimatorRunner:
             med.rate_point(stamp, recv)  # only stamps on time inform the rate (not a backlog's)
         self._steps.admitted(kind, stamp, arrival, fields.get("seq") if isinstance(fields, dict)
                              else None)
+        if self._steps.untimed_moved():
+            # the first reading after an untimed silence, off its clock: in doubt at once
+            n, doubt, conclusive = self._steps.doubt()
+            self.monitor.clock(n, doubt=doubt, conclusive=conclusive, stray=self._steps.stray())
         self._admitted_high = max(self._admitted_high, stamp)
         if kind == "control":
             if not self._judged("train"):
@@ -647,9 +651,11 @@ class EstimatorRunner:
                     self._count(k, st, f"{R.STALE_STAMP}: {-ahead:.3g} s behind its sample "
                                        f"grid, not continued by later readings")
             elif act[0] == STEP:
-                _, shift, first, measured = act
+                _, shift, first, measured, unsure = act
                 self.monitor.clock(0, reanchored_at=first - shift, measured=measured,
                                    step=shift)
+                if unsure:
+                    self.monitor.untimed(shift)
                 # the first new reading's stamp as sent: its timeline stamp plus the shifts
                 # before this one
                 sent = first + self._steps.shift - shift
@@ -657,6 +663,8 @@ class EstimatorRunner:
                                                f"{shift:+.3f} s at stamp {sent:.3f}; "
                                                f"re-anchored")
             elif act[0] == LATENCY:
+                if act[2]:
+                    self.monitor.untimed(act[1])
                 self._event("odometer", stamp, f"{R.LINK_LATENCY}: the readings' latency "
                                                f"moved by {-act[1]:+.3f} s and stayed while "
                                                f"their stamps ran on; no clock step")
