@@ -90,7 +90,10 @@ Checks (each gives a reason, e.g. ``"no_measurement: 2.3 s"``):
     acceleration estimate ``sd_a`` is ``max_acceleration`` and ``a`` 0), and the published
     position variance grown to cover them.
     While readings are held, ``T`` is the largest discontinuity among them (the candidate
-    step), after a step one sample period (a re-anchored step is known to about that).
+    step), after a step one sample period (a re-anchored step is known to about that). So too
+    a balise later than lateness allows while the odometer is silent (``T`` its lateness),
+    and, until a balise places the train, the other reading of a clock decision taken after
+    a gap that neither the counter nor the count timed (:meth:`IntegrityMonitor.untimed`).
 ``balise``
     A balise and the odometer that disagree by more than either claims: either the balise
     lies elsewhere than the map says or the estimate (and the odometer) is off, and nothing

@@ -577,8 +577,7 @@ class EstimatorRunner:
         judged = med.judged  # (before the readings the step watch may release vote)
         if watch and clock == "train" and arrival is not None and self._steps.last is not None:
             held, stamp = self._watch_step(kind, stamp, fields, recv, arrival)
-            n, doubt, conclusive = self._steps.doubt()
-            self.monitor.clock(n, doubt=doubt, conclusive=conclusive, stray=self._steps.stray())
+            self._clock_doubt()
             if held:
                 return ""
         if arrival is not None:
@@ -613,9 +612,7 @@ class EstimatorRunner:
         self._steps.admitted(kind, stamp, arrival, fields.get("seq") if isinstance(fields, dict)
                              else None)
         if self._steps.untimed_moved():
-            # the first reading after an untimed silence, off its clock: in doubt at once
-            n, doubt, conclusive = self._steps.doubt()
-            self.monitor.clock(n, doubt=doubt, conclusive=conclusive, stray=self._steps.stray())
+            self._clock_doubt()  # the first reading after an untimed gap, off its clock
         self._admitted_high = max(self._admitted_high, stamp)
         if kind == "control":
             if not self._judged("train"):
@@ -633,6 +630,12 @@ class EstimatorRunner:
             self._lag(self.high["control"] - stamp)
         self._queue(kind, stamp, fields)
         return ""
+
+    def _clock_doubt(self) -> None:
+        """Tell the integrity monitor the step watch's doubt: the readings it holds, the
+        largest discontinuity among them, whether one is conclusive, and a late balise."""
+        n, doubt, conclusive = self._steps.doubt()
+        self.monitor.clock(n, doubt=doubt, conclusive=conclusive, stray=self._steps.stray())
 
     def _watch_step(self, kind: str, stamp: float, fields: dict, recv, arrival):
         """``(held, stamp)``: act on the step watch's answer for a train-clock reading, in
