@@ -2154,6 +2154,14 @@ class StepWatch:
         if len(chain) < self.min_judged or not self._silent(len(chain)):
             yield (PASS, stamp) if refused else (HOLD,)
             return
+        if rs is not None and self._counter_restarted(chain, r := rs[len(rs) // 2], med):
+            # the counter began again on a clock that stepped with it: the grid re-learns the
+            # counter from these readings and no longer times them; their arrivals do (below)
+            self.grid.reset()
+            for h in chain:
+                self.grid.add(h[2].get("seq"), h[1])
+            yield SKIP, -round(r / self.period)
+            rs = None
         step = is_step([(h[1], h[4]) for h in chain], self.min_judged, self.period)
         # the first reading of the new clock came (elapsed arrival time, at least one period)
         # after the last one of the old clock
@@ -2548,10 +2556,34 @@ class StepWatch:
         count puts them ``r`` s off it (:func:`arrivals_llr` below ``-LEVEL_LLR``, where they
         can tell). (With 3 and 6 of the median's precision as bars, a count re-based by 4 m at
         20 m/s on a 50 ms link, whose arrivals moved 27 ms against 0.26 s, 3.2 precisions,
-        was a step of -0.3 s.)"""
+        was a step of -0.3 s.) And they must lie on it, within the clock's bar or three
+        precisions: arrivals that moved by neither ``r`` nor 0 stayed on no clock (a reboot
+        whose clock stepped -10 s, its counter begun again ``r`` = +95 s off the grid, was
+        read as a counter that moved and a clock that stayed: estimates 146 m off within
+        levels of 36 m; :meth:`_counter_restarted`)."""
         m = self._arrivals_shift(chain, new_off, med)
         llr = arrivals_llr(r, *m) if m is not None else None
-        return llr is not None and llr < -LEVEL_LLR
+        return llr is not None and llr < -LEVEL_LLR and \
+            abs(m[0]) <= max(self.bar(med), 3.0 * m[1])
+
+    def _counter_restarted(self, chain: list, r: float, med: StreamClock) -> bool:
+        """Whether the held readings are a sample counter that began again (the grid puts them
+        a whole number of periods ``r`` s off, as :meth:`_counter_moved`) on a clock that
+        stepped as well: their arrivals moved, by neither 0 (a counter alone) nor ``r`` (a
+        clock alone), beyond the clock's bar or three precisions of either. A unit that
+        rebooted with its clock: the grid no longer times these readings, the arrivals do."""
+        if any(h[2].get("seq") is None for h in chain):
+            return False
+        k = round(r / self.period)
+        if k == 0 or abs(r - k * self.period) > max(self.grid.tol_at(h[2].get("seq"))
+                                                    for h in chain):
+            return False
+        offs = sorted(h[1] - h[4] for h in chain)
+        m = self._arrivals_shift(chain, offs[len(offs) // 2], med)
+        if m is None:
+            return False
+        bar = max(self.bar(med), 3.0 * m[1])
+        return abs(m[0]) > bar and abs(m[0] - r) > bar
 
     def _arrivals_shift(self, chain: list, new_off: float, med: StreamClock) -> tuple | None:
         """``(moved s, its precision s)``: how far the held readings' offsets (their median
