@@ -1594,11 +1594,15 @@ class StepWatch:
         that none filled). Not the stamps' own period (their median step): that is two periods
         on a link that loses every other reading, which then looked lossless; a clock 1 % off
         the nominal rate miscounts one slot in a hundred."""
+        return silence_risk(*self._losses(), n) <= self.step_risk
+
+    def _losses(self) -> tuple[int, int]:
+        """``(lost, got)``: the odometer slots of the recent stamps admitted that none filled
+        (a nominal period apart, from the first to the newest), and the readings admitted."""
         adm = self._admitted
-        got, lost = len(adm), 0
-        if got > 1:
-            lost = max(round((adm[-1] - adm[0]) / self.period) + 1 - got, 0)
-        return silence_risk(lost, got, n) <= self.step_risk
+        got = len(adm)
+        return (max(round((adm[-1] - adm[0]) / self.period) + 1 - got, 0) if got > 1 else 0,
+                got)
 
     def stamp_period(self, n_min: int) -> float | None:
         """s, the median step between the recent odometer stamps admitted (a stream without a
@@ -2154,14 +2158,6 @@ class StepWatch:
         if len(chain) < self.min_judged or not self._silent(len(chain)):
             yield (PASS, stamp) if refused else (HOLD,)
             return
-        if rs is not None and self._counter_restarted(chain, r := rs[len(rs) // 2], med):
-            # the counter began again on a clock that stepped with it: the grid re-learns the
-            # counter from these readings and no longer times them; their arrivals do (below)
-            self.grid.reset()
-            for h in chain:
-                self.grid.add(h[2].get("seq"), h[1])
-            yield SKIP, -round(r / self.period)
-            rs = None
         step = is_step([(h[1], h[4]) for h in chain], self.min_judged, self.period)
         # the first reading of the new clock came (elapsed arrival time, at least one period)
         # after the last one of the old clock
@@ -2169,6 +2165,15 @@ class StepWatch:
         shift = first - (s0 + max(a_first - a0, self.period))
         offs = sorted(h[1] - h[4] for h in chain)  # the new clock's offsets (stamp - arrival)
         new_off = offs[len(offs) // 2]
+        if rs is not None and \
+                self._counter_restarted(chain, r := rs[len(rs) // 2], new_off, med):
+            # the counter began again on a clock that stepped with it: the grid re-learns the
+            # counter from these readings and no longer times them; their arrivals do (below)
+            self.grid.reset()
+            for h in chain:
+                self.grid.add(h[2].get("seq"), h[1])
+            yield SKIP, -round(r / self.period)
+            rs = None
         ph = self._chain_phase(chain) if rs is None else None
         p_trend = self._returning(chain, med) if rs is None else 1.0
         if p_trend <= self.trend_risk:
@@ -2445,9 +2450,7 @@ class StepWatch:
         silence is one they make (at more than ``step_risk``, :func:`silence_risk`) and the
         second is not; after a silence they do not make (an outage, a sensor that rebooted)
         the two differ only in how long it lasted, which nothing states."""
-        adm = self._admitted
-        got = len(adm)
-        lost = max(round((adm[-1] - adm[0]) / self.period) + 1 - got, 0) if got > 1 else 0
+        lost, got = self._losses()
         m = max(round(abs(step) / self.period), 1)
         return silence_risk(lost, got, unfilled) <= self.step_risk or \
             silence_risk(lost, got, unfilled + m) > self.step_risk
@@ -2500,13 +2503,18 @@ class StepWatch:
         (:meth:`_arrivals_stayed`). A train's sampling loop that misses a cycle counts on; its
         stamps do not move, nor do their arrivals: taken for a -1 s step at 1 Hz, the
         estimates were 81 m off and ALARM for half of the next minute."""
+        return self._counter_off(chain, r) and self._arrivals_stayed(chain, r, new_off, med)
+
+    def _counter_off(self, chain: list, r: float) -> bool:
+        """Whether the grid puts the held readings, every one with a sample counter, a whole
+        number (not 0) of periods ``r`` s off: their counter moved, whatever their clock did
+        (:meth:`_counter_moved`, :meth:`_counter_restarted`). Without a counter the residual
+        is the count's, which a counter cannot move."""
         if any(h[2].get("seq") is None for h in chain):
-            return False  # (no counter: the count's residual, which a counter cannot move)
-        k = round(r / self.period)
-        if k == 0 or abs(r - k * self.period) > max(self.grid.tol_at(h[2].get("seq"))
-                                                    for h in chain):
             return False
-        return self._arrivals_stayed(chain, r, new_off, med)
+        k = round(r / self.period)
+        return k != 0 and abs(r - k * self.period) <= max(self.grid.tol_at(h[2].get("seq"))
+                                                          for h in chain)
 
     def _count_slipped(self, r: float):
         """The held readings that the count put ``r`` s off its clock are a count that left its
@@ -2563,27 +2571,26 @@ class StepWatch:
         levels of 36 m; :meth:`_counter_restarted`)."""
         m = self._arrivals_shift(chain, new_off, med)
         llr = arrivals_llr(r, *m) if m is not None else None
-        return llr is not None and llr < -LEVEL_LLR and \
-            abs(m[0]) <= max(self.bar(med), 3.0 * m[1])
+        return llr is not None and llr < -LEVEL_LLR and self._arrivals_at(m, 0.0, med)
 
-    def _counter_restarted(self, chain: list, r: float, med: StreamClock) -> bool:
+    def _counter_restarted(self, chain: list, r: float, new_off: float, med: StreamClock) \
+            -> bool:
         """Whether the held readings are a sample counter that began again (the grid puts them
         a whole number of periods ``r`` s off, as :meth:`_counter_moved`) on a clock that
         stepped as well: their arrivals moved, by neither 0 (a counter alone) nor ``r`` (a
         clock alone), beyond the clock's bar or three precisions of either. A unit that
         rebooted with its clock: the grid no longer times these readings, the arrivals do."""
-        if any(h[2].get("seq") is None for h in chain):
+        if not self._counter_off(chain, r):
             return False
-        k = round(r / self.period)
-        if k == 0 or abs(r - k * self.period) > max(self.grid.tol_at(h[2].get("seq"))
-                                                    for h in chain):
-            return False
-        offs = sorted(h[1] - h[4] for h in chain)
-        m = self._arrivals_shift(chain, offs[len(offs) // 2], med)
-        if m is None:
-            return False
-        bar = max(self.bar(med), 3.0 * m[1])
-        return abs(m[0]) > bar and abs(m[0] - r) > bar
+        m = self._arrivals_shift(chain, new_off, med)
+        return m is not None and not self._arrivals_at(m, 0.0, med) and \
+            not self._arrivals_at(m, r, med)
+
+    def _arrivals_at(self, m: tuple, x: float, med: StreamClock) -> bool:
+        """Whether the held readings' arrivals, moved ``m`` = (s, precision s) off the old
+        clock (:meth:`_arrivals_shift`), lie ``x`` s off it: within the clock's bar or three
+        precisions of the median's."""
+        return abs(m[0] - x) <= max(self.bar(med), 3.0 * m[1])
 
     def _arrivals_shift(self, chain: list, new_off: float, med: StreamClock) -> tuple | None:
         """``(moved s, its precision s)``: how far the held readings' offsets (their median
