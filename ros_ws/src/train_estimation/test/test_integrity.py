@@ -23,6 +23,7 @@ from train_estimation.core.online.integrity import (
     _accel_cov,
     _accel_terms,
 )
+from train_estimation.core.online.protection import k_factor
 from train_estimation.core.online.replay import replay
 from train_estimation.core.online.runner import Output
 from train_estimation.tools import faults as F
@@ -580,6 +581,63 @@ def test_a_jump_onto_the_odometer_after_a_blind_run_waits_for_a_balise(balise_at
     m.assess(out(11.2, 100.0), 11.2)
     m.reading(11.3, odo, True, position=(100.5, 1.0))
     assert m.assess(out(11.3, 100.5), 11.3).integrity != ALARM
+
+
+@pytest.mark.parametrize("balise_at,excluded", [(400.0, True), (100.0, False)])
+def test_a_jump_after_a_silence_carries_the_estimate_before_it(balise_at, excluded):
+    """The monitor alone: a reading fused at 100 m, two seconds of silence (nothing refused,
+    so no blind run), then one fused 300 m from the estimate (200 sd): not ALARM, but the
+    estimate before the jump is carried as a solution beside the new one (DEGRADED, the level
+    behind covers it). A balise fused where the odometer's track is excludes it; one where the
+    estimate before the jump is (off the odometer's track) does not."""
+    def out(t, x):
+        return Output(t, x, 0.0, math.nan, math.nan,
+                      tuple(np.diag([1.0, 0.01, math.nan, math.nan]).ravel()), True)
+
+    odo = {"speed": 0.0, "speed_variance": 0.01}
+    m = IntegrityMonitor(IntegrityParams(), 0.1)
+    m.reading(10.0, odo, True, position=(100.0, 1.0))
+    assert m.assess(out(10.0, 100.0), 10.0).integrity == OK
+    m.reading(12.0, odo, True, position=(400.0, 1.0))
+    o = m.assess(out(12.0, 400.0), 12.0)
+    assert o.integrity == DEGRADED and "jumped" in o.integrity_reason, o
+    k = k_factor(1e-7)
+    # the solution 300 m behind, its own variance (1 + 0.01 * 2^2 + (0.075 * 2^2)^2) beside
+    # the estimate's 1 m^2
+    assert o.protection_level_behind == pytest.approx(
+        300.0 + k * math.sqrt(1.0 + 1.0 + 0.04 + 0.09), rel=1e-12), o
+    m.balise(12.05, {"position": balise_at, "position_variance": 1.0}, True)
+    m.reading(12.1, odo, True, position=(400.0, 1.0))
+    o = m.assess(out(12.1, 400.0), 12.1)
+    assert ("jumped" in o.integrity_reason) != excluded, o
+
+
+@pytest.mark.parametrize("balise_at,excluded", [(200.0, True), (220.0, False)])
+def test_a_speed_no_train_reaches_carries_the_estimate_before_it(balise_at, excluded):
+    """The monitor alone: the estimate runs at 20 m/s and a fused reading reads standstill a
+    tenth of a second later, its distance on course (a speed sensor stuck at zero and a count
+    spliced where the estimate was): 20 m/s in 0.1 s is 130 of the speed test's standard
+    deviations (max_acceleration). The estimate before it, carried on at 20 m/s, is a solution
+    beside the one that took it: a second later 20 m ahead. A balise where the odometer's
+    track is excludes it; one where the estimate carried on is does not."""
+    def out(t, x, v):
+        return Output(t, x, v, math.nan, math.nan,
+                      tuple(np.diag([1.0, 0.01, math.nan, math.nan]).ravel()), True)
+
+    m = IntegrityMonitor(IntegrityParams(), 0.1)
+    m.reading(10.0, {"speed": 20.0, "speed_variance": 0.01}, True, position=(200.0, 1.0))
+    assert m.assess(out(10.0, 200.0, 20.0), 10.0).integrity == OK
+    stop = {"speed": 0.0, "speed_variance": 0.01}
+    m.reading(10.1, stop, True, position=(202.0, 1.0))
+    m.assess(out(10.1, 202.0, 0.0), 10.1)
+    m.reading(11.0, stop, True, position=(202.0, 1.0))
+    o = m.assess(out(11.0, 202.0, 0.0), 11.0)
+    assert o.integrity == DEGRADED and "no train reaches" in o.integrity_reason, o
+    assert o.protection_level_ahead > 20.0 - 2.0 + k_factor(1e-7), o
+    m.balise(11.0, {"position": balise_at, "position_variance": 1.0}, True)
+    m.reading(11.1, stop, True, position=(202.0, 1.0))
+    o = m.assess(out(11.1, 202.0, 0.0), 11.1)
+    assert ("no train reaches" in o.integrity_reason) != excluded, o
 
 
 @pytest.mark.parametrize("balise_at,want_alarm", [(123.0, False), (400.0, True)])

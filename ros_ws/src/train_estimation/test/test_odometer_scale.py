@@ -674,3 +674,26 @@ def test_a_count_beyond_the_travel_since_the_last_reading_is_no_reboot(kind):
     assert runner.events["odometer:count_reset"] == 0, dict(runner.events)
     after = [o.integrity != 2 for o, e in zip(outs, emitted) if e - F.EPOCH >= 60.0]
     assert all(after), s
+
+
+@pytest.mark.parametrize("kind", ["robust", "kf"])
+@pytest.mark.parametrize("counted", [True, False])
+def test_a_count_that_stuck_before_an_outage_is_carried_beside_the_estimate(kind, counted):
+    """crh3_high_speed at 81 m/s: the odometer stops counting and reads standstill (fault
+    ``stuck``, 248 s), its readings are refused, and 5 s later the link loses everything for
+    20 s. After the outage the filter's prediction is wide enough to take the stuck count,
+    2.1 km behind (with a sample counter), or the standstill speed at a count spliced onto
+    the prediction (without one): the estimate jumps, with no run of refused readings before
+    it (``reacquired`` needs one). The estimate before the jump is carried beside it until a
+    balise excludes it: the kf had published the first estimate on the stuck count 2.1 km
+    behind within levels of 47 m (without a counter two, 109-180 m behind within 85 m), and
+    the ALARM of the stuck count (``standing``) came 4 s later."""
+    sc, res = run("crh3_high_speed", 0, 330.0)
+    events = [e for e in res.events() if e[1] <= 300.0]
+    fl = _then(F.inject(events, F.Fault("stuck", 0.0, 248.0), np.random.default_rng(0)),
+               F.Fault("outage", 20.0, 253.0))
+    outs, emitted, runner = F.run(fl.events if counted else F.uncounted(fl.events),
+                                  adapter(sc, kind), 1.0 / sc.odometer_rate)
+    s = F.score(outs, emitted, fl, res.truth, sc.odometer_rate, 300.0 + F.LATENCY)
+    assert s["misleading"] == 0 and s["wrong_side"] == 0, s
+    assert s["max_err"] > 1000.0, s  # the stuck count is far behind: not a mild case

@@ -37,6 +37,22 @@ Checks (each gives a reason, e.g. ``"no_measurement: 2.3 s"``):
     on, which the filter then follows through the next departure) and the prediction was
     right: nothing on board tells which but a balise. ALARM until a balise is fused that
     agrees with the odometer's track (``balise`` below).
+``position`` (a jump)
+    The same two readings after a silence with nothing refused in it (an outage, a slow
+    odometer's gaps), or a refused run shorter than ``blind_readings``: a fused reading whose
+    position lies more than ``pos_z`` standard deviations (the estimate's own, the reading's
+    and the odometer calibration's) from the last estimate carried to it. The estimate before
+    the jump is carried as a solution beside the new one: its separation taken at the first
+    estimate after the jump (the estimate carried on at its speed and acceleration, with
+    ``accel_uncertainty``'s growth, less the new estimate) and kept, since a count that was
+    wrong by so much carries its error on. DEGRADED until a balise fused on the odometer's
+    track lies beyond ``pos_z`` of that solution too. Likewise a fused speed that no train
+    reaches from the last estimate's (its speed-test term beyond ``pos_z`` squared, with
+    ``max_acceleration``): a speed sensor stuck at standstill under a count spliced where the
+    estimate was; the estimate before it is carried on at its own speed (the separation
+    grows), until a balise excludes it the same way. Neither counts readings: the jump itself
+    is the evidence (a consistent filter's estimate jumps beyond 5 sigma with probability
+    about 6e-7).
 ``standing``
     The odometer's count has not moved (less than ``still_count`` or four of its stated
     distance deviations, three readings at least) over a span in which the traction commanded
@@ -293,6 +309,11 @@ class IntegrityMonitor:
         #   speed variance) of the latest odometer reading fused or refused by the gate only
         self.pending_balise: tuple | None = None  # (stamp, position, variance) of the last
         #   fused balise, until the next odometer position reading judges it again
+        self.jumped: list | None = None  # [prev_pos's six before a fused odometer reading
+        #   that made the estimate jump, the separation m and variance m^2 of that solution,
+        #   taken at the next estimate (NaN until then)], until a balise excludes it
+        self.sped: tuple | None = None  # prev_pos's six before a fused odometer speed that
+        #   no train reaches from it: that solution carried on, until a balise excludes it
         self.count_doubt: tuple | None = None  # (stamp, check, why): the odometer's count in
         #   doubt (``reacquired`` or ``standing``) until a balise confirms its track
         self.counts = {NAMES[k]: 0 for k in NAMES}
@@ -320,6 +341,12 @@ class IntegrityMonitor:
             self.count_doubt = (stamp, "reacquired", f"the odometer taken again after "
                                                      f"{self.refused_run} readings refused in "
                                                      "a row")
+        elif self.jumped is None and self._jumps(stamp, position, fields, calibrated=True):
+            # the estimate jumps to take this reading (beyond its own and the calibration's
+            # doubt): the reading is right and the estimate was off, or it is wrong (a count
+            # stuck through a silence) and the estimate carried on was right. Nothing but a
+            # balise tells which: the estimate before the jump is carried beside the new one
+            self.jumped = [self.prev_pos, math.nan, math.nan]
         self.refused_run = 0
         kept = self._remember(self.fused_seen, stamp, fields, ("distance", "speed"))
         if kept is not None:
@@ -327,7 +354,12 @@ class IntegrityMonitor:
         self.last_fused = max(self.last_fused, stamp)
         self.last_reading = max(self.last_reading, stamp)
         if fields is not None and self.prev is not None:
-            self._speed_nis(stamp, fields)
+            if self._speed_nis(stamp, fields) > self.p.pos_z ** 2 and self.sped is None \
+                    and self.prev_pos is not None:
+                # a speed no train reaches from the last estimate's (beyond pos_z with
+                # max_acceleration): the reading is wrong (a speed stuck at standstill) or
+                # the estimate was; the estimate before it, carried on, beside the new one
+                self.sped = self.prev_pos
         if position is not None and self.prev_pos is not None:
             self._position_bias(stamp, position)
 
@@ -354,7 +386,8 @@ class IntegrityMonitor:
             self._balise_between(stamp, z, r, fused)
         self.odo_track = (stamp, z, r, v, rv)
 
-    def _jumps(self, stamp: float, position: tuple | None, fields: dict | None = None) -> bool:
+    def _jumps(self, stamp: float, position: tuple | None, fields: dict | None = None,
+               calibrated: bool = False) -> bool:
         """Whether a reading's position lies more than ``pos_z`` standard deviations (the
         filter's own position variance carried to it, plus the reading's) from the last
         estimate carried to its stamp: the estimate jumps to take it. A reading that continues
@@ -378,7 +411,9 @@ class IntegrityMonitor:
             z, r = float(position[0]), float(position[1])
             dt, pred, s = self._carried(stamp)
             s += r
-        if not (math.isfinite(z) and math.isfinite(s) and s > 0 and dt >= 0):
+            if calibrated and len(position) > 2:
+                s += float(position[2])  # the calibration's, which moves the reading's origin
+        if not (math.isfinite(z) and math.isfinite(s) and s > 0 and (dt >= 0 or calibrated)):
             return False
         return abs(z - pred) > self.p.pos_z * math.sqrt(s)
 
@@ -408,18 +443,21 @@ class IntegrityMonitor:
             return 0.0, math.inf
         return (sum(map(_FIRST, self.pos)) / n, math.sqrt(sum(map(_SECOND, self.pos)) / n / n))
 
-    def _speed_nis(self, stamp: float, fields: dict) -> None:
+    def _speed_nis(self, stamp: float, fields: dict) -> float:
+        """The reading's NIS term, appended to the window (0 when it adds none)."""
         t0, v0, pvv = self.prev
         try:
             v, r = float(fields["speed"]), float(fields["speed_variance"])
         except (KeyError, TypeError, ValueError):
-            return
+            return 0.0
         dt = stamp - t0
         if not (math.isfinite(v) and math.isfinite(r) and r > 0 and 0 <= dt <= 2.0):
-            return  # across a gap the test says nothing (no_measurement covers it)
+            return 0.0  # across a gap the test says nothing (no_measurement covers it)
         s = pvv + r + (self.p.max_acceleration * max(dt, self.period)) ** 2
         if s > 0 and math.isfinite(s):
             self.nis.append((v - v0) ** 2 / s)
+            return self.nis[-1]
+        return 0.0
 
     def balise(self, stamp: float, fields: dict | None, fused: bool, reason: str = "") -> None:
         """A balise reading's outcome: fused, or refused (``reason``, a rejection name)."""
@@ -445,6 +483,7 @@ class IntegrityMonitor:
             if self._judge_balise(stamp, pos, var, *odo, may_clear=True):
                 self.count_doubt = None  # an independent position agrees with the odometer
                 self._place_untimed(pos - odo[0], odo[1] + var)
+                self._place_jumped(stamp, pos, var)
             return
         if reason == R.OUTSIDE_GATE:
             # the two tracks: the odometer's, and the balise's (the odometer's moved by their
@@ -754,6 +793,31 @@ class IntegrityMonitor:
         if abs(nu - sep) > bar and abs(nu + sep) > bar:
             self.unsure = None
 
+    def _before(self, state: tuple, t: float) -> tuple[float, float]:
+        """(position m, variance m^2) at ``t`` of an estimate left by a jump (``state``:
+        :attr:`prev_pos`'s six), carried at its speed and acceleration with the unmodelled
+        acceleration's growth (as a silence widens the estimate, ``no_measurement``)."""
+        t0, x0, v0, a0, pxx, pvv = state
+        dt = max(t - t0, 0.0)
+        a0 = a0 if math.isfinite(a0) else 0.0
+        return (x0 + v0 * dt + 0.5 * a0 * dt * dt,
+                pxx + pvv * dt * dt + (0.5 * self.p.accel_uncertainty * dt * dt) ** 2)
+
+    def _place_jumped(self, stamp: float, pos: float, var: float) -> None:
+        """A fused balise at ``pos`` (variance ``var``) that agrees with the odometer: it
+        excludes the solution before a jump (:attr:`jumped`) when it lies beyond ``pos_z``
+        of that solution too (one that agrees with both tells neither)."""
+        if self.sped is not None:
+            x, s = self._before(self.sped, stamp)
+            if abs(pos - x) > self.p.pos_z * math.sqrt(s + var):
+                self.sped = None
+        if self.jumped is None or not math.isfinite(self.jumped[1]) or self.prev_pos is None:
+            return
+        _, sep, extra = self.jumped
+        dt, x, s = self._carried(stamp)
+        if abs(pos - x - sep) > self.p.pos_z * math.sqrt(s + extra + var):
+            self.jumped = None
+
     # -- output ---------------------------------------------------------------------------------
     def _nis_mean(self) -> float:
         n = len(self.nis)
@@ -846,6 +910,28 @@ class IntegrityMonitor:
             why.append(f"clock: after a silence, a step of {-abs(step):+.3f} s or a latency "
                        f"that rose as much (the train {sep:.1f} m apart); no balise since")
             hyps += [Hypothesis("clock", sep, extra), Hypothesis("clock", -sep, extra)]
+            P = _plus(P, (sep * sep + extra, 0.0, 0.0, 0.0))
+        if self.jumped is not None:
+            state, sep, extra = self.jumped
+            if not math.isfinite(sep):
+                # the separation, taken at the first estimate after the jump and then kept:
+                # a reading that was wrong by so much carries its error on in the count
+                x, extra = self._before(state, t)
+                sep = x - out.position
+                self.jumped = [state, sep, extra]
+            doubt = DEGRADED
+            why.append(f"position: the estimate jumped to take an odometer reading; the "
+                       f"solution had it been wrong {sep:+.1f} m away; no balise since")
+            hyps.append(Hypothesis("position", sep, extra))
+            P = _plus(P, (sep * sep + extra, 0.0, 0.0, 0.0))
+        if self.sped is not None:
+            x, extra = self._before(self.sped, t)
+            sep = x - out.position
+            doubt = DEGRADED
+            why.append(f"speed: the odometer read a speed no train reaches from the estimate's "
+                       f"at {self.sped[0]:.2f} s; the estimate before it carried on, {sep:+.1f} "
+                       "m away; no balise since")
+            hyps.append(Hypothesis("position", sep, extra))
             P = _plus(P, (sep * sep + extra, 0.0, 0.0, 0.0))
         if self.burst is not None:
             step, _, n = self.burst
