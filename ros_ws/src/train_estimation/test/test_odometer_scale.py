@@ -697,3 +697,49 @@ def test_a_count_that_stuck_before_an_outage_is_carried_beside_the_estimate(kind
     s = F.score(outs, emitted, fl, res.truth, sc.odometer_rate, 300.0 + F.LATENCY)
     assert s["misleading"] == 0 and s["wrong_side"] == 0, s
     assert s["max_err"] > 1000.0, s  # the stuck count is far behind: not a mild case
+
+
+def _frozen(scenario: str, t0: float, duration: float = 300.0):
+    """The run with the odometer's count frozen from ``t0`` on while its speed reads on (a
+    distance register that stopped; the speed from another path): (scenario, result,
+    faulted stream)."""
+    sc, res = run(scenario, 0, duration + 30.0)
+    events, d0 = [], None
+    for tp, st, f in res.events():
+        if st > duration:
+            continue
+        if tp == "odometer" and st >= t0:
+            d0 = f["distance"] if d0 is None else d0
+            f = {**f, "distance": d0}
+        events.append((tp, st, f))
+    fl = F.inject(events, F.Fault("none"), np.random.default_rng(1))
+    fl.onset = t0
+    return sc, res, fl
+
+
+@pytest.mark.parametrize("kind", ["robust", "kf"])
+def test_a_count_that_freezes_while_the_speed_reads_on_is_carried_by_the_speed(kind):
+    """metro_demo: the count freezes at 120 s, braking into a station at 10 m/s, while the
+    speed reads on. The robust filter followed the count and stopped 70 m short of the true
+    stop; the next balise disagreed and was refused, and its track, the count's moved by the
+    disagreement (30 m), was carried, while the count fell further behind: 436 misleading
+    estimates. A balise that disagrees with the odometer is now carried on by the odometer's
+    speed readings as well (its other channel): the truth is on one of the three tracks."""
+    sc, res, fl = _frozen("metro_demo", 120.0)
+    outs, emitted, runner = F.run(fl.events, adapter(sc, kind), 1.0 / sc.odometer_rate)
+    s = F.score(outs, emitted, fl, res.truth, sc.odometer_rate, 300.0 + F.LATENCY)
+    assert s["misleading"] == 0 and s["wrong_side"] == 0, s
+    assert s["max_err"] > 50.0, s  # not a mild case
+
+
+@pytest.mark.parametrize("kind", ["robust", "kf"])
+def test_a_frozen_count_without_a_counter_is_no_clock(kind):
+    """Without a counter the count times the stamps (``clocks._count_fit``). A count frozen
+    while the speed reads on gives its samples no time at all (the fit's rate infinite): the
+    fit divided by zero and the replay stopped; a node latched ALARM to its end. Now that
+    count is no clock (unknown, as before any fit) and the run goes on."""
+    sc, res, fl = _frozen("metro_demo", 12.8)
+    outs, emitted, runner = F.run(F.uncounted(fl.events), adapter(sc, kind),
+                                  1.0 / sc.odometer_rate)
+    s = F.score(outs, emitted, fl, res.truth, sc.odometer_rate, 300.0 + F.LATENCY)
+    assert s["misleading"] == 0 and s["wrong_side"] == 0, s

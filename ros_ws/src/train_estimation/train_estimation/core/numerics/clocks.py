@@ -1010,6 +1010,11 @@ def _count_fit(links, lag_prior: tuple | None) -> tuple[float, float, tuple, flo
     sd = ends_sd(a, b)
     if sd / (math.sqrt(2.0) * vmed) > s:  # correlated residuals: the ends' noise scales it
         a, b, cov = solve(w, sd / (math.sqrt(2.0) * vmed))
+    if not a < 1.0:
+        # the stamps' time all residual (a = 1): a count that does not move while its speed
+        # reads on (frozen) gives its samples no time at all, so it is no clock: unknown, as
+        # before any fit (ZeroDivisionError here had latched a node's estimator in ALARM)
+        return 0.0, 0.0, (math.inf, 0.0, math.inf), math.inf
     k = 1.0 / (1.0 - a)  # through the Jacobian of (a, b) -> (rate, lag), [[k^2, 0], [b k^2, k]]
     c_aa, c_ab, c_bb = cov
     c_ll = b * b * k ** 4 * c_aa + 2.0 * b * k ** 3 * c_ab + k * k * c_bb

@@ -305,6 +305,9 @@ class IntegrityMonitor:
         self.balise_doubt: tuple | None = None  # (stamp, offset m or position m, what,
         #   track-based) of a balise refused by the gate or fused while it disagrees with the
         #   odometer, until a balise is fused that agrees with the odometer
+        self.by_speed: list | None = None  # [balise stamp, balise position m, stamp, metres
+        #   run, speed m/s, variance m^2 by then, that speed's variance]: the balise of
+        #   balise_doubt carried on by the odometer's speed readings (its other channel)
         self.odo_track: tuple | None = None  # (stamp, position m, variance m^2, speed m/s,
         #   speed variance) of the latest odometer reading fused or refused by the gate only
         self.pending_balise: tuple | None = None  # (stamp, position, variance) of the last
@@ -312,6 +315,8 @@ class IntegrityMonitor:
         self.jumped: list | None = None  # [prev_pos's six before a fused odometer reading
         #   that made the estimate jump, the separation m and variance m^2 of that solution,
         #   taken at the next estimate (NaN until then)], until a balise excludes it
+        self.agreed: tuple | None = None  # (stamp, position m, variance m^2) of the latest
+        #   balise that agreed with the odometer's track
         self.sped: tuple | None = None  # prev_pos's six before a fused odometer speed that
         #   no train reaches from it: that solution carried on, until a balise excludes it
         self.count_doubt: tuple | None = None  # (stamp, check, why): the odometer's count in
@@ -341,11 +346,13 @@ class IntegrityMonitor:
             self.count_doubt = (stamp, "reacquired", f"the odometer taken again after "
                                                      f"{self.refused_run} readings refused in "
                                                      "a row")
-        elif self.jumped is None and self._jumps(stamp, position, fields, calibrated=True):
+        elif self.jumped is None and self._jumps(stamp, position, fields, calibrated=True) \
+                and not self._excluded(self.prev_pos):
             # the estimate jumps to take this reading (beyond its own and the calibration's
             # doubt): the reading is right and the estimate was off, or it is wrong (a count
             # stuck through a silence) and the estimate carried on was right. Nothing but a
             # balise tells which: the estimate before the jump is carried beside the new one
+            # (unless the balise that moved the count's calibration there told already)
             self.jumped = [self.prev_pos, math.nan, math.nan]
         self.refused_run = 0
         kept = self._remember(self.fused_seen, stamp, fields, ("distance", "speed"))
@@ -385,6 +392,11 @@ class IntegrityMonitor:
         if self.pending_balise is not None and stamp > self.pending_balise[0]:
             self._balise_between(stamp, z, r, fused)
         self.odo_track = (stamp, z, r, v, rv)
+        b = self.by_speed
+        if b is not None and stamp > b[2]:
+            dt = stamp - b[2]  # the trapezoid of the two speeds, their variances with it
+            b[2:] = [stamp, b[3] + 0.5 * (b[4] + v) * dt, v, b[5] + 0.25 * dt * dt * (b[6] + rv),
+                     rv]
 
     def _jumps(self, stamp: float, position: tuple | None, fields: dict | None = None,
                calibrated: bool = False) -> bool:
@@ -477,7 +489,7 @@ class IntegrityMonitor:
         if fused:
             self.pending_balise = None
             if odo is None or not (math.isfinite(var) and var > 0):
-                self.balise_doubt = None  # nothing to judge it against: taken as it is
+                self.balise_doubt = self.by_speed = None  # nothing to judge it against
                 return
             self.pending_balise = (stamp, pos, var)
             if self._judge_balise(stamp, pos, var, *odo, may_clear=True):
@@ -490,6 +502,7 @@ class IntegrityMonitor:
             # disagreement); without the odometer's, the balise carried at the estimated speed
             self.balise_doubt = (stamp, pos - odo[0], "refused by the gate", True) \
                 if odo is not None else (stamp, pos, "refused by the gate", False)
+            self._carry_by_speed(stamp, pos, var)
 
     def _continues(self, stamp: float, z: float, r: float, v: float, rv: float) -> bool:
         """Whether a reading continues the odometer's track: its distance within ``pos_z``
@@ -512,10 +525,25 @@ class IntegrityMonitor:
         if abs(nu) > self.p.pos_z * math.sqrt(s + var):
             self.balise_doubt = (stamp, nu, f"fused {nu:+.1f} m from the odometer's position",
                                  True)
+            self._carry_by_speed(stamp, pos, var)
             return False
         if may_clear:
-            self.balise_doubt = None
+            self.balise_doubt = self.by_speed = None
+        self.agreed = (stamp, pos, var)
         return True
+
+    def _carry_by_speed(self, stamp: float, pos: float, var: float) -> None:
+        """Start carrying a balise that disagrees with the odometer (at ``pos``, variance
+        ``var``) on by the odometer's speed readings (:attr:`by_speed`): where the truth is if
+        the balise is right and the count is wrong, the speed right (a count that froze while
+        the speed reads on). The count's track moved by the disagreement assumes the count's
+        increments right; this one assumes its speeds right."""
+        if self.odo_track is None or not math.isfinite(var) or (
+                self.by_speed is not None and self.by_speed[0] == stamp):
+            return
+        t0, _, _, v, rv = self.odo_track
+        dt = max(t0 - stamp, 0.0)  # an odometer reading after the balise already in
+        self.by_speed = [stamp, pos, max(t0, stamp), v * dt, v, var + rv * dt * dt, rv]
 
     def _balise_between(self, t1: float, z1: float, r1: float, fused: bool) -> None:
         """The last fused balise judged again once the odometer reading after it is in: the
@@ -803,6 +831,17 @@ class IntegrityMonitor:
         return (x0 + v0 * dt + 0.5 * a0 * dt * dt,
                 pxx + pvv * dt * dt + (0.5 * self.p.accel_uncertainty * dt * dt) ** 2)
 
+    def _excluded(self, state: tuple) -> bool:
+        """Whether the latest balise that agreed with the odometer's track, if it came after
+        the estimate ``state`` (:attr:`prev_pos`'s six), lies beyond ``pos_z`` of that estimate
+        carried to it: a jump onto a count that a balise has just placed (the calibration
+        relocated on it) carries no solution before it."""
+        b = self.agreed
+        if b is None or b[0] < state[0]:
+            return False
+        x, s = self._before(state, b[0])
+        return abs(b[1] - x) > self.p.pos_z * math.sqrt(s + b[2])
+
     def _place_jumped(self, stamp: float, pos: float, var: float) -> None:
         """A fused balise at ``pos`` (variance ``var``) that agrees with the odometer: it
         excludes the solution before a jump (:attr:`jumped`) when it lies beyond ``pos_z``
@@ -963,6 +1002,15 @@ class IntegrityMonitor:
                 d1 = odo[0] - out.position
                 nu = max(abs(d1), abs(d1 + d)) + math.sqrt(odo[1])
                 hyps += [Hypothesis("balise", d1, odo[1]), Hypothesis("balise", d1 + d, odo[1])]
+                b = self.by_speed
+                if b is not None and b[0] == sb:
+                    # the balise's track by the speed readings too: the count may be the
+                    # channel that failed
+                    dt = t - b[2]
+                    d2 = b[1] + b[3] + b[4] * dt - out.position
+                    s2 = b[5] + b[6] * dt * dt + (0.5 * p.accel_uncertainty * dt * dt) ** 2
+                    hyps.append(Hypothesis("balise", d2, s2))
+                    nu = max(nu, abs(d2) + math.sqrt(s2))
                 told = (f"the odometer's track {d1:+.1f} m, the balise's {d1 + d:+.1f} m from "
                         "the estimate")
             elif tracked:  # no odometer reading lately (no_measurement covers the gap)
