@@ -547,40 +547,48 @@ def test_an_odometer_stuck_while_cruising_is_not_taken_again_without_a_balise(de
     assert np.max(np.abs(e)) > 500.0  # the count is far behind: the case is not a mild one
 
 
+STILL = {"speed": 0.0, "speed_variance": 0.01}  # an odometer reading standstill
+
+
+def _out(t: float, x: float, v: float = 0.0) -> Output:
+    """An estimate at ``x`` m and ``v`` m/s with standard deviations of 1 m and 0.1 m/s."""
+    return Output(t, x, v, math.nan, math.nan,
+                  tuple(np.diag([1.0, 0.01, math.nan, math.nan]).ravel()), True)
+
+
+def _standing_at_100() -> IntegrityMonitor:
+    """A monitor with one reading fused, standing at 100 m at 10 s, its estimate OK."""
+    m = IntegrityMonitor(IntegrityParams(), 0.1)
+    m.reading(10.0, STILL, True, position=(100.0, 1.0))
+    assert m.assess(_out(10.0, 100.0), 10.0).integrity == OK
+    return m
+
+
 @pytest.mark.parametrize("balise_at,want_alarm", [(400.0, False), (130.0, True)])
 def test_a_jump_onto_the_odometer_after_a_blind_run_waits_for_a_balise(balise_at, want_alarm):
     """The monitor alone: twelve readings refused, then one fused 300 m from the estimate
     (300 sd): ALARM (reacquired). A balise fused where the odometer's track is ends it; one
     that disagrees with the track does not. A reading fused after a blind run that continues
     the estimate raises nothing (a recorder's stall)."""
-    def out(t, x):
-        return Output(t, x, 0.0, math.nan, math.nan,
-                      tuple(np.diag([1.0, 0.01, math.nan, math.nan]).ravel()), True)
-
-    odo = {"speed": 0.0, "speed_variance": 0.01}
-    m = IntegrityMonitor(IntegrityParams(), 0.1)
-    m.reading(10.0, odo, True, position=(100.0, 1.0))
-    assert m.assess(out(10.0, 100.0), 10.0).integrity == OK
+    m = _standing_at_100()
     for k in range(12):
-        m.reading(10.1 + 0.1 * k, odo, False)
-    assert m.assess(out(11.2, 100.0), 11.2).integrity == ALARM  # blind
-    m.reading(11.3, odo, True, position=(400.0, 1.0))
-    o = m.assess(out(11.3, 400.0), 11.3)
+        m.reading(10.1 + 0.1 * k, STILL, False)
+    assert m.assess(_out(11.2, 100.0), 11.2).integrity == ALARM  # blind
+    m.reading(11.3, STILL, True, position=(400.0, 1.0))
+    o = m.assess(_out(11.3, 400.0), 11.3)
     assert o.integrity == ALARM and o.integrity_reason.startswith("reacquired"), o
     m.balise(11.4, {"position": balise_at, "position_variance": 1.0}, True)
-    m.reading(11.5, odo, True, position=(400.0, 1.0))
-    o = m.assess(out(11.5, 400.0), 11.5)
+    m.reading(11.5, STILL, True, position=(400.0, 1.0))
+    o = m.assess(_out(11.5, 400.0), 11.5)
     assert (o.integrity == ALARM and o.integrity_reason.startswith("reacquired")) == want_alarm, o
 
     # a stall: the readings after it continue the estimate
-    m = IntegrityMonitor(IntegrityParams(), 0.1)
-    m.reading(10.0, odo, True, position=(100.0, 1.0))
-    m.assess(out(10.0, 100.0), 10.0)
+    m = _standing_at_100()
     for k in range(12):
-        m.reading(10.1 + 0.1 * k, odo, False)
-    m.assess(out(11.2, 100.0), 11.2)
-    m.reading(11.3, odo, True, position=(100.5, 1.0))
-    assert m.assess(out(11.3, 100.5), 11.3).integrity != ALARM
+        m.reading(10.1 + 0.1 * k, STILL, False)
+    m.assess(_out(11.2, 100.0), 11.2)
+    m.reading(11.3, STILL, True, position=(100.5, 1.0))
+    assert m.assess(_out(11.3, 100.5), 11.3).integrity != ALARM
 
 
 @pytest.mark.parametrize("balise_at,excluded", [(400.0, True), (100.0, False)])
@@ -590,16 +598,9 @@ def test_a_jump_after_a_silence_carries_the_estimate_before_it(balise_at, exclud
     estimate before the jump is carried as a solution beside the new one (DEGRADED, the level
     behind covers it). A balise fused where the odometer's track is excludes it; one where the
     estimate before the jump is (off the odometer's track) does not."""
-    def out(t, x):
-        return Output(t, x, 0.0, math.nan, math.nan,
-                      tuple(np.diag([1.0, 0.01, math.nan, math.nan]).ravel()), True)
-
-    odo = {"speed": 0.0, "speed_variance": 0.01}
-    m = IntegrityMonitor(IntegrityParams(), 0.1)
-    m.reading(10.0, odo, True, position=(100.0, 1.0))
-    assert m.assess(out(10.0, 100.0), 10.0).integrity == OK
-    m.reading(12.0, odo, True, position=(400.0, 1.0))
-    o = m.assess(out(12.0, 400.0), 12.0)
+    m = _standing_at_100()
+    m.reading(12.0, STILL, True, position=(400.0, 1.0))
+    o = m.assess(_out(12.0, 400.0), 12.0)
     assert o.integrity == DEGRADED and "jumped" in o.integrity_reason, o
     k = k_factor(1e-7)
     # the solution 300 m behind, its own variance (1 + 0.01 * 2^2 + (0.075 * 2^2)^2) beside
@@ -607,8 +608,8 @@ def test_a_jump_after_a_silence_carries_the_estimate_before_it(balise_at, exclud
     assert o.protection_level_behind == pytest.approx(
         300.0 + k * math.sqrt(1.0 + 1.0 + 0.04 + 0.09), rel=1e-12), o
     m.balise(12.05, {"position": balise_at, "position_variance": 1.0}, True)
-    m.reading(12.1, odo, True, position=(400.0, 1.0))
-    o = m.assess(out(12.1, 400.0), 12.1)
+    m.reading(12.1, STILL, True, position=(400.0, 1.0))
+    o = m.assess(_out(12.1, 400.0), 12.1)
     assert ("jumped" in o.integrity_reason) != excluded, o
 
 
@@ -620,23 +621,18 @@ def test_a_speed_no_train_reaches_carries_the_estimate_before_it(balise_at, excl
     deviations (max_acceleration). The estimate before it, carried on at 20 m/s, is a solution
     beside the one that took it: a second later 20 m ahead. A balise where the odometer's
     track is excludes it; one where the estimate carried on is does not."""
-    def out(t, x, v):
-        return Output(t, x, v, math.nan, math.nan,
-                      tuple(np.diag([1.0, 0.01, math.nan, math.nan]).ravel()), True)
-
     m = IntegrityMonitor(IntegrityParams(), 0.1)
     m.reading(10.0, {"speed": 20.0, "speed_variance": 0.01}, True, position=(200.0, 1.0))
-    assert m.assess(out(10.0, 200.0, 20.0), 10.0).integrity == OK
-    stop = {"speed": 0.0, "speed_variance": 0.01}
-    m.reading(10.1, stop, True, position=(202.0, 1.0))
-    m.assess(out(10.1, 202.0, 0.0), 10.1)
-    m.reading(11.0, stop, True, position=(202.0, 1.0))
-    o = m.assess(out(11.0, 202.0, 0.0), 11.0)
+    assert m.assess(_out(10.0, 200.0, 20.0), 10.0).integrity == OK
+    m.reading(10.1, STILL, True, position=(202.0, 1.0))
+    m.assess(_out(10.1, 202.0, 0.0), 10.1)
+    m.reading(11.0, STILL, True, position=(202.0, 1.0))
+    o = m.assess(_out(11.0, 202.0, 0.0), 11.0)
     assert o.integrity == DEGRADED and "no train reaches" in o.integrity_reason, o
     assert o.protection_level_ahead > 20.0 - 2.0 + k_factor(1e-7), o
     m.balise(11.0, {"position": balise_at, "position_variance": 1.0}, True)
-    m.reading(11.1, stop, True, position=(202.0, 1.0))
-    o = m.assess(out(11.1, 202.0, 0.0), 11.1)
+    m.reading(11.1, STILL, True, position=(202.0, 1.0))
+    o = m.assess(_out(11.1, 202.0, 0.0), 11.1)
     assert ("no train reaches" in o.integrity_reason) != excluded, o
 
 
@@ -648,33 +644,29 @@ def test_without_a_position_reading_the_jump_after_a_blind_run_is_judged_on_the_
     standstill (20 sd of speed): ALARM (reacquired). A balise fused where the estimate carried
     to it is ends it (no odometer track to judge it by); one far from it does not. A reading
     after a blind run that continues the estimate's speed raises nothing."""
-    def out(t, x, v):
-        return Output(t, x, v, math.nan, math.nan,
-                      tuple(np.diag([1.0, 0.01, math.nan, math.nan]).ravel()), True)
-
     run, stop = {"speed": 20.0, "speed_variance": 0.01}, {"speed": 0.0, "speed_variance": 0.01}
     m = IntegrityMonitor(IntegrityParams(), 0.1)
     m.reading(10.0, run, True)
-    assert m.assess(out(10.0, 100.0, 20.0), 10.0).integrity == OK
+    assert m.assess(_out(10.0, 100.0, 20.0), 10.0).integrity == OK
     for k in range(12):
         m.reading(10.1 + 0.1 * k, stop, False)
-    assert m.assess(out(11.2, 100.0, 20.0), 11.2).integrity == ALARM  # blind
+    assert m.assess(_out(11.2, 100.0, 20.0), 11.2).integrity == ALARM  # blind
     m.reading(11.3, stop, True)
-    o = m.assess(out(11.3, 122.0, 0.0), 11.3)
+    o = m.assess(_out(11.3, 122.0, 0.0), 11.3)
     assert o.integrity == ALARM and o.integrity_reason.startswith("reacquired"), o
     m.balise(11.3, {"position": balise_at, "position_variance": 1.0}, True)
     m.reading(11.4, stop, True)
-    o = m.assess(out(11.4, 122.0, 0.0), 11.4)
+    o = m.assess(_out(11.4, 122.0, 0.0), 11.4)
     assert (o.integrity == ALARM and o.integrity_reason.startswith("reacquired")) == want_alarm, o
 
     m = IntegrityMonitor(IntegrityParams(), 0.1)
     m.reading(10.0, run, True)
-    m.assess(out(10.0, 100.0, 20.0), 10.0)
+    m.assess(_out(10.0, 100.0, 20.0), 10.0)
     for k in range(12):
         m.reading(10.1 + 0.1 * k, run, False)
-    m.assess(out(11.2, 124.0, 20.0), 11.2)
+    m.assess(_out(11.2, 124.0, 20.0), 11.2)
     m.reading(11.3, run, True)
-    assert m.assess(out(11.3, 126.0, 20.0), 11.3).integrity != ALARM
+    assert m.assess(_out(11.3, 126.0, 20.0), 11.3).integrity != ALARM
 
 
 @pytest.mark.parametrize("kind", ["robust", "kf"])
