@@ -346,13 +346,17 @@ class IntegrityMonitor:
             self.count_doubt = (stamp, "reacquired", f"the odometer taken again after "
                                                      f"{self.refused_run} readings refused in "
                                                      "a row")
-        elif self.jumped is None and self._jumps(stamp, position, fields, calibrated=True) \
+        elif self.jumped is None and position is not None \
+                and self._jumps(stamp, position, fields, calibrated=True) \
                 and not self._excluded(self.prev_pos):
             # the estimate jumps to take this reading (beyond its own and the calibration's
             # doubt): the reading is right and the estimate was off, or it is wrong (a count
             # stuck through a silence) and the estimate carried on was right. Nothing but a
             # balise tells which: the estimate before the jump is carried beside the new one
-            # (unless the balise that moved the count's calibration there told already)
+            # (unless the balise that moved the count's calibration there told already). On
+            # a position reading only: without one (use_distance false) a speed is judged by
+            # what no train reaches (sped, below), not by the unmodelled acceleration alone,
+            # which a balise's correction of a speed read 1-2 % off exceeds at every reading
             self.jumped = [self.prev_pos, math.nan, math.nan]
         self.refused_run = 0
         kept = self._remember(self.fused_seen, stamp, fields, ("distance", "speed"))
