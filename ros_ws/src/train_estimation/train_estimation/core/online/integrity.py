@@ -411,7 +411,10 @@ class IntegrityMonitor:
         not; one that moves a kilometre onto a count stuck since the last stop does. An
         estimator without a position reading (``use_distance: false``) is judged on the speed
         the same way: a filter that takes a speed sensor reading standstill while the train
-        runs drops its speed by more than it claims to know it."""
+        runs drops its speed by more than it claims to know it. ``calibrated`` (the jump
+        hypothesis, :attr:`jumped`): the odometer calibration's variance in the test too, and
+        a reading older than the estimate (fused again after a rewind) judged as well, the
+        estimate carried back to it."""
         if self.prev_pos is None:
             return False
         if position is None:
@@ -436,10 +439,7 @@ class IntegrityMonitor:
     def _carried(self, stamp: float) -> tuple[float, float, float]:
         """The last estimate whose covariance is known carried to ``stamp`` at its speed and
         acceleration: (dt s, position m, the filter's own position variance carried, m^2)."""
-        t0, x0, v0, a0, pxx, pvv = self.prev_pos
-        dt = stamp - t0
-        a0 = a0 if math.isfinite(a0) else 0.0
-        return dt, x0 + v0 * dt + 0.5 * a0 * dt * dt, pxx + pvv * dt * dt
+        return _carry(self.prev_pos, stamp)
 
     def _position_bias(self, stamp: float, position: tuple) -> None:
         z, r = position[:2]
@@ -829,11 +829,8 @@ class IntegrityMonitor:
         """(position m, variance m^2) at ``t`` of an estimate left by a jump (``state``:
         :attr:`prev_pos`'s six), carried at its speed and acceleration with the unmodelled
         acceleration's growth (as a silence widens the estimate, ``no_measurement``)."""
-        t0, x0, v0, a0, pxx, pvv = state
-        dt = max(t - t0, 0.0)
-        a0 = a0 if math.isfinite(a0) else 0.0
-        return (x0 + v0 * dt + 0.5 * a0 * dt * dt,
-                pxx + pvv * dt * dt + (0.5 * self.p.accel_uncertainty * dt * dt) ** 2)
+        dt, x, s = _carry(state, max(t, state[0]))
+        return x, s + (0.5 * self.p.accel_uncertainty * dt * dt) ** 2
 
     def _excluded(self, state: tuple) -> bool:
         """Whether the latest balise that agreed with the odometer's track, if it came after
@@ -848,8 +845,9 @@ class IntegrityMonitor:
 
     def _place_jumped(self, stamp: float, pos: float, var: float) -> None:
         """A fused balise at ``pos`` (variance ``var``) that agrees with the odometer: it
-        excludes the solution before a jump (:attr:`jumped`) when it lies beyond ``pos_z``
-        of that solution too (one that agrees with both tells neither)."""
+        excludes the solution before a jump (:attr:`jumped`, and before a speed no train
+        reaches, :attr:`sped`) when it lies beyond ``pos_z`` of that solution too (one that
+        agrees with both tells neither)."""
         if self.sped is not None:
             x, s = self._before(self.sped, stamp)
             if abs(pos - x) > self.p.pos_z * math.sqrt(s + var):
@@ -1124,6 +1122,16 @@ def burst_readings(p: IntegrityParams) -> int:
         return 0
     bar = BURST_NEGLIGIBLE * RARE_SHARE * p.integrity_risk / 2.0
     return 1 + math.ceil(math.log(bar) / math.log(q) - 1e-9)
+
+
+def _carry(state: tuple, t: float) -> tuple[float, float, float]:
+    """An estimate ``state`` = (stamp, position, speed, acceleration, P_xx, P_vv) carried to
+    ``t`` at its speed and acceleration (none when not finite): (dt s, position m, its
+    position variance carried, m^2)."""
+    t0, x0, v0, a0, pxx, pvv = state
+    dt = t - t0
+    a0 = a0 if math.isfinite(a0) else 0.0
+    return dt, x0 + v0 * dt + 0.5 * a0 * dt * dt, pxx + pvv * dt * dt
 
 
 def _plus(P: tuple, Q: tuple) -> tuple:
