@@ -417,7 +417,14 @@ def test_an_odometer_that_reboots_with_its_clock(kind, scenario, at, step, jitte
     clock stayed, since the arrivals were nearer 0 than the grid's +95 s, the kf published 10
     estimates 146 m off within levels of 36 m). (Without jitter, at 60 s,
     the slot published at the very instant the first new reading arrives, before it is
-    taken in, is read on the new clock: one estimate, not asserted here.)"""
+    taken in, is read on the new clock: one estimate, not asserted here.)
+
+    The restarted count is spliced where the prediction puts the train at the reading's
+    stamp, and that stamp is in doubt by the step: so is the splice (``CLOCK_UNSURE``), and
+    the next balise places the count instead of being read as a reader seconds late. Spliced
+    at the prediction's own variance, the estimate was still 26-214 m off 40 s after the
+    reboot, each balise since agreeing with the wrong track through a latency; now within
+    the balises' metre (1.1-2.5 m measured)."""
     sc, res = run(scenario, 2, 150.0)
     rate = sc.odometer_rate
     fl = F.inject(res.events(), F.Fault("reboot", 5.0, at, clock_step=step, jitter=jitter),
@@ -425,11 +432,46 @@ def test_an_odometer_that_reboots_with_its_clock(kind, scenario, at, step, jitte
     outs, emitted, runner = F.run(fl.events, adapter(sc, kind), 1.0 / rate)
     s = F.score(outs, emitted, fl, res.truth, rate, 150.0 + F.LATENCY)
     assert s["wrong_side"] == 0 and s["bad_cov"] == 0 and s["misleading"] == 0, s
+    t, err = _errors(outs, emitted, fl, res.truth)
+    assert np.abs(err[t >= at + 40.0]).max() < 5.0
     assert runner.events["odometer:count_reset"] == 1, dict(runner.events)
     if step < -5.0:  # longer than the silence: a step, certain
         assert runner.events["odometer:clock_reset"] == 1, dict(runner.events)
     elif step < 0:  # the other reading of the decision is carried
         assert any("after a silence" in o.integrity_reason for o in outs)
+
+
+def _errors(outs, emitted, fl: F.Faulted, truth: dict) -> tuple[np.ndarray, np.ndarray]:
+    """(true time s, position error m) of each estimate, its stamp read on the clock as known
+    when it was published (as ``faults.score`` reads it)."""
+    em = np.asarray(emitted, float) - F.EPOCH
+    t = np.array([fl.clock.known_at(e).true_time(o.stamp, e - F.LATENCY)
+                  for o, e in zip(outs, em)])
+    x = np.array([o.position for o in outs])
+    return t, x - np.interp(t, truth["t"], truth["position"])
+
+
+def test_a_reboot_with_its_clock_at_speed_without_a_counter_is_placed_by_the_next_balise():
+    """The integrity campaign's case without a counter (``--no-counter``): crh3_high_speed
+    at 81 m/s, the odometer reboots for 5 s at 251 s and the train clock steps back 3 s
+    with it. The restarted count was spliced at the prediction with its own few metres of
+    variance, while the stamp it was spliced at meant either of two instants 246 m of travel
+    apart. The next balise, 249 m off that count, was explained as a reader 4.5 s late
+    with a scale of 1.093; that calibration then predicted the following balises, which
+    dropped the clock's other reading while the KF was 355-430 m off: 12 estimates beyond
+    their levels, up to 557 m off to the end of the run. Spliced with the step's doubt, the
+    balise moves the count's origin (2.2 m off from 20 s after the reboot on)."""
+    sc, res = run("crh3_high_speed", 0, 300.0)
+    at = 251.0
+    fl = F.inject(res.events(), F.Fault("reboot", 5.0, at, clock_step=-3.0, jitter=0.05),
+                  np.random.default_rng(0))
+    fl.events = F.uncounted(fl.events)
+    outs, emitted, runner = F.run(fl.events, adapter(sc, "kf"), 1.0 / sc.odometer_rate)
+    s = F.score(outs, emitted, fl, res.truth, sc.odometer_rate, 300.0 + F.LATENCY)
+    assert s["misleading"] == 0 and s["wrong_side"] == 0, s
+    assert runner.adapter.latency_found == 0  # no reader was found late
+    t, err = _errors(outs, emitted, fl, res.truth)
+    assert np.abs(err[t >= at + 20.0]).max() < 5.0
 
 
 @pytest.mark.parametrize("kind", ["robust", "kf"])

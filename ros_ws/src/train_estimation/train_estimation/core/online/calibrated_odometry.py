@@ -33,6 +33,9 @@ COUNT_JUMP_RISK = 1e-7  # probability per reading that a count running its cours
 #   as a possible restart: a false one costs a reading and, twice in a row, a splice)
 SEQ_MADE = "seq_from_stamp"  # fields key: the seq is not a sensor's counter but one the runner
 #   made of the stamp for a stream without one (runner.EstimatorRunner._call): no reboot shows in it
+CLOCK_UNSURE = "clock_unsure"  # fields key (s): the reading's stamp is in doubt by this much, the
+#   runner's clock decision after a gap nothing timed (a step back or a latency that rose as
+#   much: ``IntegrityMonitor.untimed``), so a count spliced at it is in doubt by the motion in it
 COUNT_A_BOUND = 2.5  # m/s^2, no train accelerates or brakes harder (emergency braking with
 #   magnetic track brakes), gradients included: bounds the count between two odometer readings
 COUNT_JUMP_K = NormalDist().inv_cdf(1.0 - COUNT_JUMP_RISK / 2.0)  # its two-sided bound, in sds
@@ -259,14 +262,14 @@ class DistanceAsPosition:
             # count 1e6 m on and a counter below it, whose splice put every later genuine
             # reading 1e6 m off the count, refused for 100 s)
             trap, slack, bound = self._course(heard, stamp, v, rv)
-            return (self._splice(stamp, d) if d <= trap + slack + bound else None), ""
+            return (self._splice(stamp, d, fields) if d <= trap + slack + bound else None), ""
         here = (stamp, d + self.splice, v)
         if self.odo_heard is None or stamp > self.odo_heard[0]:
             self.odo_heard = here
         off = self._off_course(self.odo, here, rv)
         if off is None:
             self.jump = None
-            return self._after_silence(heard, stamp, d, v, rv), ""
+            return self._after_silence(heard, stamp, d, v, rv, fields), ""
         held = self.jump
         why = (f"{R.OUTSIDE_GATE}: the odometer's count left its course by {off:+.1f} m without "
                f"a sample counter (held: a restart if the next reading follows it)")
@@ -286,9 +289,10 @@ class DistanceAsPosition:
         # two readings that agree with each other over a travel a stopped count would not
         # show, and not with the old course: the count's origin moved
         self.jump = None
-        return self._splice(stamp, d), ""
+        return self._splice(stamp, d, fields), ""
 
-    def _after_silence(self, heard: tuple, stamp: float, d: float, v: float, rv: float):
+    def _after_silence(self, heard: tuple, stamp: float, d: float, v: float, rv: float,
+                       fields: dict):
         """Without a counter, the first reading after a silence (at least one sample missed
         since ``heard``, the sensor's last reading, fused or not), on the old count's course
         and yet small enough to be a count restarted in the silence (at most the travel in it,
@@ -316,7 +320,7 @@ class DistanceAsPosition:
         # well; within the noise (a standing start, the count near 0) the two agree
         if d0 + max(0.0, trap + slack - d) <= bound:
             return None
-        return self._splice(stamp, d)
+        return self._splice(stamp, d, fields)
 
     def _off_course(self, ref: tuple, here: tuple, rv: float) -> float | None:
         """How far (m of count) the reading ``here`` = ``(stamp, count, speed)`` lies from the
@@ -343,11 +347,24 @@ class DistanceAsPosition:
         return (0.5 * (ref[2] + v) * dt, 0.25 * COUNT_A_BOUND * dt * dt,
                 COUNT_JUMP_K * math.sqrt(noise))
 
-    def _splice(self, stamp: float, d: float):
+    def _splice(self, stamp: float, d: float, fields: dict):
         """The count ``d`` at ``stamp`` spliced where the prediction puts the train
-        (:meth:`_restart`); what to restore, or None when the prediction is not usable."""
+        (:meth:`_restart`); what to restore, or None when the prediction is not usable.
+
+        Where the reading's stamp is itself in doubt (:data:`CLOCK_UNSURE`: after a gap that
+        neither a counter nor the count timed, a step back of the train clock by ``T`` s and a
+        link latency that rose as much read alike), the prediction at it is in doubt by the
+        train's motion over ``T``, and so is the origin spliced there: ``(v T)^2`` more
+        variance. Spliced at the prediction's own variance, a reboot whose clock stepped
+        back 3 s at 82 m/s (crh3_high_speed, no counter) left the next balise 249 m off a
+        count stated to a few metres, which the calibration could explain only as a reader
+        4.5 s late with a scale of 1.093; the balises after it then agreed with that track
+        while the train was 355-430 m behind it (12 estimates outside their levels)."""
         pred = self.output(stamp)  # on copies: the state is untouched
         x, var = float(pred.position), float(pred.covariance[0])
+        unsure = fields.get(CLOCK_UNSURE)
+        if unsure:
+            var += (float(pred.velocity) * float(unsure)) ** 2
         x0, c = (float(v) for v in self.cal.theta[:2])
         if not (math.isfinite(x) and math.isfinite(var) and var > 0.0):
             return None

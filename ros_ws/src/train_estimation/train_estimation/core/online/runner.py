@@ -105,7 +105,7 @@ from ..numerics.clocks import (
     StreamClock,
 )
 from ..numerics.stamp_order import StampOrder
-from .calibrated_odometry import SEQ_MADE
+from .calibrated_odometry import CLOCK_UNSURE, SEQ_MADE
 from .integrity import UNBOUNDED, IntegrityMonitor, IntegrityParams, changed
 
 KIND_ORDER = {"control": 0, "odometer": 1, "balise": 2}
@@ -779,6 +779,11 @@ class EstimatorRunner:
         return f0 + (stamp - s0) / (1.0 + self.drift)
 
     def _queue(self, kind: str, stamp: float, fields: dict) -> None:
+        unsure = self.monitor.unsure
+        if unsure is not None and kind == "odometer" and isinstance(fields, dict):
+            # the clock's reading after an untimed gap is in doubt (IntegrityMonitor.untimed):
+            # so is this stamp, for a count that restarted and is spliced at it
+            fields = {**fields, CLOCK_UNSURE: abs(unsure[0])}
         heapq.heappush(self.queue, (stamp, KIND_ORDER[kind], self._n, kind, fields))
         if kind == "odometer":
             heapq.heappush(self._odo, stamp)
