@@ -613,6 +613,39 @@ def test_a_jump_after_a_silence_carries_the_estimate_before_it(balise_at, exclud
     assert ("jumped" in o.integrity_reason) != excluded, o
 
 
+def test_a_count_that_runs_at_half_its_speeds_is_carried_by_them():
+    """The monitor alone: readings at 10 Hz at 20 m/s, the count on their course until 11 s;
+    then the count runs at half the distance while the speeds read on (a register that lost
+    one of its two pulse channels) and the estimate follows the count. The speeds carry the
+    train from the count's first reading (no balise yet): while the two channels agree that
+    solution lies on the estimate and the level is the estimate's at the larger of the two
+    variances; 5 s into the fault they are 50 m apart, the check names it and the level ahead
+    covers the train where the speeds put it, at that solution's own variance (the anchor's
+    1 m^2, each interval's trapezoid of two speed variances and its unmodelled
+    acceleration)."""
+    p = IntegrityParams()
+    m = IntegrityMonitor(p, 0.1)
+    run = {"speed": 20.0, "speed_variance": 0.01}
+    k = k_factor(p.integrity_risk)
+
+    def own(n):  # the speed solution's variance n intervals after its anchor
+        return 1.0 + n * (0.25 * 0.01 * 0.02 + (0.25 * p.accel_uncertainty * 0.01) ** 2)
+
+    for i in range(11):  # 10.0 .. 11.0 s, count and speeds on one course
+        t = 10.0 + 0.1 * i
+        m.reading(t, run, True, position=(100.0 + 20.0 * (t - 10.0), 1.0))
+        o = m.assess(_out(t, 100.0 + 20.0 * (t - 10.0), 20.0), t)
+        assert o.integrity == OK and not o.integrity_reason, o
+    assert o.protection_level_ahead == pytest.approx(k * math.sqrt(own(10)), rel=1e-12), o
+    for i in range(1, 51):  # 11.1 .. 16.0 s: the count at half
+        t = 11.0 + 0.1 * i
+        x = 120.0 + 10.0 * (t - 11.0)
+        m.reading(t, run, True, position=(x, 1.0))
+        o = m.assess(_out(t, x, 20.0), t)
+    assert o.integrity == DEGRADED and "odometer: its speed readings" in o.integrity_reason, o
+    assert o.protection_level_ahead == pytest.approx(50.0 + k * math.sqrt(own(60)), rel=1e-9), o
+
+
 @pytest.mark.parametrize("balise_at,excluded", [(200.0, True), (220.0, False)])
 def test_a_speed_no_train_reaches_carries_the_estimate_before_it(balise_at, excluded):
     """The monitor alone: the estimate runs at 20 m/s and a fused reading reads standstill a
@@ -791,17 +824,17 @@ def test_a_stated_start_prior_still_covers_a_start_that_is_off(offset):
     assert s["misleading"] == 0 and s["wrong_side"] == 0, s
 
 
-@pytest.mark.xfail(strict=True, reason="two faults at once (a start and the first balise's "
-                   "map position, both off the same way) are read as one: a late balise reader "
-                   "(docs/integrity.md, 'Two faults at once are not a hypothesis')")
-def test_a_start_and_a_first_balise_off_the_same_way():
-    """A known hole, kept as a test so that it is seen: the start 50 m ahead (within
-    ``initial_position_fault``) and the first balise read 20 m early (a map position 20 m
-    off), each a fault the levels carry alone. Together the wide-latency calibration reads
-    them as a reader 2.1 s late and excludes the calibration that was right; on metro_demo
-    seed 1 the kf publishes hundreds of DEGRADED estimates outside their levels to the end of
-    the run, through five right balises (a tester's probe, 2026-12-05: 667 for the kf, the
-    robust filter and GSMA alike). Strict: when this passes, the marker goes."""
+@pytest.mark.parametrize("kind", ["kf", "robust", "gsma"])
+def test_a_start_and_a_first_balise_off_the_same_way(kind):
+    """Two faults at once: the start 50 m ahead (within ``initial_position_fault``) and the
+    first balise read 20 m early (a map position 20 m off), each a fault the levels carry
+    alone. Together the wide-latency calibration reads them as a reader 2.1 s late and
+    excludes the calibration that was right; on metro_demo seed 1 the kf, the robust filter
+    and GSMA published 667 DEGRADED estimates outside their levels to the end of the run,
+    through five right balises (a tester's probe, 2026-12-05). The balise readings as they
+    came, without the reader latency the calibration found, are carried beside it, and so
+    is the train where the odometer's speeds carry it from each balise: nothing
+    misleading."""
     from dataclasses import replace as _replace
 
     from train_estimation.core.online.estimators import StartState
@@ -815,7 +848,7 @@ def test_a_start_and_a_first_balise_off_the_same_way():
         events.append(e)
     events.sort(key=lambda e: e[1])
     fl = F.inject(events, F.Fault("none"), np.random.default_rng(0))
-    a = adapter(sc, "kf")
+    a = adapter(sc, kind)
     a = type(a)(sc.train, sc.line, StartState(sc.start_position + 50.0), a.cfg)
     outs, emitted, _ = F.run(fl.events, a, 0.1)
     s = F.score(outs, emitted, _replace(fl, onset=0.0, end=math.inf), res.truth, 10.0,

@@ -33,6 +33,8 @@ COUNT_JUMP_RISK = 1e-7  # probability per reading that a count running its cours
 #   as a possible restart: a false one costs a reading and, twice in a row, a splice)
 SEQ_MADE = "seq_from_stamp"  # fields key: the seq is not a sensor's counter but one the runner
 #   made of the stamp for a stream without one (runner.EstimatorRunner._call): no reboot shows in it
+ON_TIME = "position_on_time"  # fields key (m): a balise reading's position read without the
+#   calibrated reader latency (``DistanceAsPosition.monitor_balise``)
 CLOCK_UNSURE = "clock_unsure"  # fields key (s): the reading's stamp is in doubt by this much, the
 #   runner's clock decision after a gap nothing timed (a step back or a latency that rose as
 #   much: ``IntegrityMonitor.untimed``), so a count spliced at it is in doubt by the motion in it
@@ -189,7 +191,9 @@ class DistanceAsPosition:
         """A balise reading as the integrity monitor judges it against the odometer: where the
         train was at its stamp by the reader's latency as calibrated so far (``v tau`` on from
         the balise, with ``(v sigma_tau)^2`` more variance; module doc of ``odometer_scale``),
-        as the calibration fuses it."""
+        as the calibration fuses it, and where it read the train without that latency
+        (``ON_TIME``: the calibration's latency is a hypothesis of its own, which a count
+        that failed can make up, and the monitor keeps the reading's own word beside it)."""
         if self.odo is None:
             return fields
         tau, s_tau = self.cal.latency()
@@ -200,7 +204,8 @@ class DistanceAsPosition:
         except (KeyError, TypeError, ValueError):
             return fields
         v = float(self.cal.theta[1]) * self.odo[2]
-        return {**fields, "position": pos + v * tau, "position_variance": var + (v * s_tau) ** 2}
+        return {**fields, "position": pos + v * tau, "position_variance": var + (v * s_tau) ** 2,
+                ON_TIME: pos}
 
     def _restart(self, stamp: float, fields: dict) -> tuple:
         """Splice a restarted count onto the old one (a sensor that rebooted: its counter and

@@ -151,6 +151,7 @@ import numpy as np
 from train_core.config import param, require, require_finite
 
 from .. import reasons as R
+from .calibrated_odometry import ON_TIME
 from .protection import RARE_SHARE, Hypothesis, label, protection_levels
 
 OK, DEGRADED, ALARM = 0, 1, 2
@@ -303,14 +304,23 @@ class IntegrityMonitor:
         #   P_vv) of the last estimate whose covariance is known
         self.pos: deque = deque(maxlen=params.pos_window)  # (nu, S) of fused distances
         self.balise_doubt: tuple | None = None  # (stamp, offset m or position m, what,
-        #   track-based) of a balise refused by the gate or fused while it disagrees with the
-        #   odometer, until a balise is fused that agrees with the odometer
+        #   track-based, m the reading without the calibrated reader latency lies from it) of
+        #   a balise refused by the gate or fused while it disagrees with the odometer, until
+        #   a balise is fused that agrees with the odometer
         self.by_speed: list | None = None  # [balise stamp, balise position m, stamp, metres
-        #   run, speed m/s, variance m^2 by then, that speed's variance]: the balise of
-        #   balise_doubt carried on by the odometer's speed readings (its other channel)
+        #   run, speed m/s, variance m^2 by then, that speed's variance, m to the reading
+        #   without the latency]: the balise of balise_doubt carried on by the odometer's speed
+        #   readings (its other channel)
+        self.since: list | None = None  # the same of the latest fused balise, whether it agreed
+        #   or not (before the first, of the first odometer reading): where the train is if
+        #   the count failed since then and its speeds did not
+        self.balise_fused = False  # a balise has been fused (since is anchored on balises)
+        self.since_doubt: bool | None = None  # since's distance beyond its noise at the last
+        #   estimate at a reading (None: since not assessed yet)
+        self.since_own = math.inf  # m^2, that estimate's fault-free position variance
         self.odo_track: tuple | None = None  # (stamp, position m, variance m^2, speed m/s,
         #   speed variance) of the latest odometer reading fused or refused by the gate only
-        self.pending_balise: tuple | None = None  # (stamp, position, variance) of the last
+        self.pending_balise: tuple | None = None  # (stamp, position, variance, late) of the last
         #   fused balise, until the next odometer position reading judges it again
         self.jumped: list | None = None  # [prev_pos's six before a fused odometer reading
         #   that made the estimate jump, the separation m and variance m^2 of that solution,
@@ -339,6 +349,8 @@ class IntegrityMonitor:
         self._remember(self.counts_seen, stamp, fields, ("distance",))
         if fused or gate:
             self._track(stamp, fields, position, fused)
+        if fields is not None:
+            self._speeds(stamp, fields)
         if not fused:
             self.refused_run += 1
             return
@@ -396,11 +408,44 @@ class IntegrityMonitor:
         if self.pending_balise is not None and stamp > self.pending_balise[0]:
             self._balise_between(stamp, z, r, fused)
         self.odo_track = (stamp, z, r, v, rv)
-        b = self.by_speed
-        if b is not None and stamp > b[2]:
-            dt = stamp - b[2]  # the trapezoid of the two speeds, their variances with it
-            b[2:] = [stamp, b[3] + 0.5 * (b[4] + v) * dt, v, b[5] + 0.25 * dt * dt * (b[6] + rv),
-                     rv]
+        if self.since is None and fused and (not self.balise_fused or self.since_doubt is False):
+            # the count's first word (until a balise), or its first after a silence
+            self.since = self._speed_track(stamp, z, r)
+
+    def _speeds(self, stamp: float, fields: dict) -> None:
+        """The speed tracks (:attr:`by_speed`, :attr:`since`) run on by a reading's speed,
+        whatever became of its count (a count that failed is refused, its speeds are what
+        these tracks hold): the trapezoid of the two speeds, their variances with it and an
+        unmodelled acceleration of ``accel_uncertainty`` over the interval (``dt^2 / 4`` of it
+        is what the trapezoid can miss). A speed no train reaches from the track's last
+        (``max_acceleration``, beyond ``pos_z``) is not taken (a corrupted reading).
+
+        Across a silence neither channel read, and the speeds' trapezoid over it says little
+        once its own variance exceeds the estimate's at the last reading (a standard deviation
+        of 135 m over a 60 s outage, which the track then kept to the next balise: protection
+        levels of 0.4-8 km after an outage; a few tenths of a metre over the 3 s a lossy link
+        leaves between 1 Hz readings). :attr:`since` then starts again from the count's next
+        fused reading, unless the two channels already disagreed before the silence (its
+        doubt, :meth:`assess`): a count that fails after the silence is seen from there as
+        from a balise, one that failed before it was seen before it and stays carried."""
+        try:
+            v, rv = float(fields["speed"]), float(fields["speed_variance"])
+        except (KeyError, TypeError, ValueError):
+            return
+        if not (math.isfinite(v) and math.isfinite(rv) and rv >= 0):
+            return
+        p = self.p
+        for b in (self.by_speed, self.since):
+            if b is None or not stamp > b[2]:
+                continue
+            dt = stamp - b[2]
+            if abs(v - b[4]) > p.max_acceleration * dt + p.pos_z * math.sqrt(rv + b[6]):
+                continue
+            gap = 0.25 * dt * dt * (b[6] + rv) + (0.25 * p.accel_uncertainty * dt * dt) ** 2
+            if b is self.since and not self.since_doubt and gap > self.since_own:
+                self.since = None  # from the count's next fused reading (_track)
+                continue
+            b[2:7] = [stamp, b[3] + 0.5 * (b[4] + v) * dt, v, b[5] + gap, rv]
 
     def _jumps(self, stamp: float, position: tuple | None, fields: dict | None = None,
                calibrated: bool = False) -> bool:
@@ -483,6 +528,16 @@ class IntegrityMonitor:
             pos = var = math.nan
         if not (math.isfinite(pos) and math.isfinite(stamp)):
             return
+        # the calibration placed the balise by the reader's latency it found; the reading
+        # itself says the train was at the balise at its stamp (the reader on time). The
+        # latency is the calibration's own hypothesis and a sensor fault can make one up (a
+        # count at half the distance read as a reader 7.6 s early), so a balise that
+        # disagrees with the odometer is carried both ways
+        try:
+            late = float(fields.get(ON_TIME, pos)) - pos
+        except (TypeError, ValueError):
+            late = 0.0
+        late = late if math.isfinite(late) else 0.0
         odo = self._odometer_at(stamp)
         if odo is None and self.odo_track is None and self.prev_pos is not None:
             # no position readings at all (``use_distance: false``): the track a balise is
@@ -493,10 +548,12 @@ class IntegrityMonitor:
         if fused:
             self.pending_balise = None
             if odo is None or not (math.isfinite(var) and var > 0):
-                self.balise_doubt = self.by_speed = None  # nothing to judge it against
+                self.balise_doubt = self.by_speed = self.since = None  # nothing to judge by
                 return
-            self.pending_balise = (stamp, pos, var)
-            if self._judge_balise(stamp, pos, var, *odo, may_clear=True):
+            self.pending_balise = (stamp, pos, var, late)
+            self.since = self._speed_track(stamp, pos, var, late)
+            self.balise_fused = True
+            if self._judge_balise(stamp, pos, var, *odo, may_clear=True, late=late):
                 self.count_doubt = None  # an independent position agrees with the odometer
                 self._place_untimed(pos - odo[0], odo[1] + var)
                 self._place_jumped(stamp, pos, var)
@@ -504,8 +561,8 @@ class IntegrityMonitor:
         if reason == R.OUTSIDE_GATE:
             # the two tracks: the odometer's, and the balise's (the odometer's moved by their
             # disagreement); without the odometer's, the balise carried at the estimated speed
-            self.balise_doubt = (stamp, pos - odo[0], "refused by the gate", True) \
-                if odo is not None else (stamp, pos, "refused by the gate", False)
+            self.balise_doubt = (stamp, pos - odo[0], "refused by the gate", True, 0.0) \
+                if odo is not None else (stamp, pos, "refused by the gate", False, 0.0)
             self._carry_by_speed(stamp, pos, var)
 
     def _continues(self, stamp: float, z: float, r: float, v: float, rv: float) -> bool:
@@ -521,40 +578,49 @@ class IntegrityMonitor:
         return abs(z - odo[0]) <= self.p.pos_z * math.sqrt(odo[1] + r) and abs(v - v0) <= dv
 
     def _judge_balise(self, stamp: float, pos: float, var: float, z: float, s: float,
-                      may_clear: bool) -> bool:
+                      may_clear: bool, late: float = 0.0) -> bool:
         """A fused balise against the odometer's position ``z`` (variance ``s``) at its stamp:
         a doubt when they disagree beyond ``pos_z``; an agreement ends one only when
-        ``may_clear`` (judged on a reading the filter fused). True when they agree."""
+        ``may_clear`` (judged on a reading the filter fused). True when they agree. ``late``:
+        m from ``pos`` to the reading without the calibrated reader latency (:meth:`balise`)."""
         nu = pos - z
         if abs(nu) > self.p.pos_z * math.sqrt(s + var):
             self.balise_doubt = (stamp, nu, f"fused {nu:+.1f} m from the odometer's position",
-                                 True)
-            self._carry_by_speed(stamp, pos, var)
+                                 True, late)
+            self._carry_by_speed(stamp, pos, var, late)
             return False
         if may_clear:
             self.balise_doubt = self.by_speed = None
         self.agreed = (stamp, pos, var)
         return True
 
-    def _carry_by_speed(self, stamp: float, pos: float, var: float) -> None:
+    def _carry_by_speed(self, stamp: float, pos: float, var: float, late: float = 0.0) -> None:
         """Start carrying a balise that disagrees with the odometer (at ``pos``, variance
         ``var``) on by the odometer's speed readings (:attr:`by_speed`): where the truth is if
         the balise is right and the count is wrong, the speed right (a count that froze while
         the speed reads on). The count's track moved by the disagreement assumes the count's
         increments right; this one assumes its speeds right."""
-        if self.odo_track is None or not math.isfinite(var) or (
-                self.by_speed is not None and self.by_speed[0] == stamp):
-            return
+        if self.by_speed is None or self.by_speed[0] != stamp:
+            self.by_speed = self._speed_track(stamp, pos, var, late)
+
+    def _speed_track(self, stamp: float, pos: float, var: float, late: float = 0.0):
+        """A balise at ``pos`` (variance ``var``; ``late`` m from it the reading without the
+        calibrated reader latency) carried on by the odometer's speed readings from its stamp:
+        ``[stamp, pos, last reading's stamp, metres run, speed, variance, speed's variance,
+        late]`` (:attr:`by_speed`, :attr:`since`; :meth:`_speeds` runs it on), or None without
+        an odometer track."""
+        if self.odo_track is None or not math.isfinite(var):
+            return None
         t0, _, _, v, rv = self.odo_track
         dt = max(t0 - stamp, 0.0)  # an odometer reading after the balise already in
-        self.by_speed = [stamp, pos, max(t0, stamp), v * dt, v, var + rv * dt * dt, rv]
+        return [stamp, pos, max(t0, stamp), v * dt, v, var + rv * dt * dt, rv, late]
 
     def _balise_between(self, t1: float, z1: float, r1: float, fused: bool) -> None:
         """The last fused balise judged again once the odometer reading after it is in: the
         odometer's position interpolated between the readings either side (tighter than the
         track carried at a speed: an acceleration error of ``accel_uncertainty`` over the two
         intervals only). A reading the gate refused can raise a doubt, not end one."""
-        tb, pos, var = self.pending_balise
+        tb, pos, var, late = self.pending_balise
         self.pending_balise = None
         if self.odo_track is None:
             return  # no track yet to judge it by (every reading so far refused)
@@ -565,7 +631,7 @@ class IntegrityMonitor:
         z = z0 + w * (z1 - z0)
         s = (1 - w) ** 2 * r0 + w * w * r1 + (0.5 * self.p.accel_uncertainty * (tb - t0)
                                               * (t1 - tb)) ** 2
-        self._judge_balise(tb, pos, var, z, s, may_clear=fused)
+        self._judge_balise(tb, pos, var, z, s, may_clear=fused, late=late)
 
     def _odometer_at(self, stamp: float, accel: float | None = None) -> tuple | None:
         """(position m, variance m^2) of the odometer's track carried to ``stamp`` at its own
@@ -996,23 +1062,16 @@ class IntegrityMonitor:
             hyps.append(Hypothesis("position", b))
             P = _plus(P, (b * b, 0.0, 0.0, 0.0))
         if self.balise_doubt is not None:
-            sb, d, what, tracked = self.balise_doubt
+            sb, d, what, tracked, late = self.balise_doubt
             odo = self._odometer_at(t) if tracked else None
             if odo is not None:
                 # the truth is on the odometer's track or on the balise's (the odometer's moved
-                # by their disagreement ``d``): the interval holds both
+                # by their disagreement ``d``): the interval holds both; the balise's by the
+                # calibrated reader latency and, where that moved it, without it
                 d1 = odo[0] - out.position
-                nu = max(abs(d1), abs(d1 + d)) + math.sqrt(odo[1])
-                hyps += [Hypothesis("balise", d1, odo[1]), Hypothesis("balise", d1 + d, odo[1])]
-                b = self.by_speed
-                if b is not None and b[0] == sb:
-                    # the balise's track by the speed readings too: the count may be the
-                    # channel that failed
-                    dt = t - b[2]
-                    d2 = b[1] + b[3] + b[4] * dt - out.position
-                    s2 = b[5] + b[6] * dt * dt + (0.5 * p.accel_uncertainty * dt * dt) ** 2
-                    hyps.append(Hypothesis("balise", d2, s2))
-                    nu = max(nu, abs(d2) + math.sqrt(s2))
+                offs = (d1, d1 + d, d1 + d + late) if late else (d1, d1 + d)
+                nu = max(abs(o) for o in offs) + math.sqrt(odo[1])
+                hyps += [Hypothesis("balise", o, odo[1]) for o in offs]
                 told = (f"the odometer's track {d1:+.1f} m, the balise's {d1 + d:+.1f} m from "
                         "the estimate")
             elif tracked:  # no odometer reading lately (no_measurement covers the gap)
@@ -1023,14 +1082,54 @@ class IntegrityMonitor:
                 nu = d + out.velocity * (t - sb) - out.position
                 hyps.append(Hypothesis("balise", nu))
                 told = f"{nu:+.1f} m from the estimate"
+            b = self.by_speed
+            if b is not None and b[0] == sb:
+                # the balise's track by the speed readings too: the count may be the channel
+                # that failed (carried over a silence at the last speed, as the estimate is)
+                for o, s2 in self._by_speeds(b, out.position, t):
+                    hyps.append(Hypothesis("balise", o, s2))
+                    nu = max(nu, abs(o) + math.sqrt(s2))
             doubt = DEGRADED
             why.append(f"balise: {what}; {told}")
             P = _plus(P, (nu * nu, 0.0, 0.0, 0.0))
+        b = self.since
+        if b is not None and not (
+                self.balise_doubt is not None and self.by_speed is not None
+                and self.by_speed[0] == b[0]):
+            # the count may have failed since the latest balise while its speeds read on (a
+            # register that froze or counts half the pulses): where the speeds carry the
+            # train from that balise (before the first, from the count's first reading).
+            # Always a solution, at the distance the two channels put between them (within
+            # their noise while both work, so the levels grow by that much), and a doubt
+            # once that exceeds the noise. Its variance is its own, ``s2``, not added to the
+            # estimate's (the solution does not contain the estimate): the variance beyond
+            # the estimate's, as the calibration's solutions are given (_label)
+            tracks = self._by_speeds(b, out.position, t)
+            hyps += [Hypothesis("odometer", o, max(0.0, s2 - fault_free)) for o, s2 in tracks]
+            o, s2 = min(tracks, key=lambda e: abs(e[0]))
+            if t - b[2] <= self.period:  # judged where a reading is (not on its extrapolation)
+                self.since_doubt = abs(o) > p.pos_z * math.sqrt(s2 + fault_free)
+                self.since_own = fault_free
+            if self.since_doubt:
+                doubt = DEGRADED
+                why.append(f"odometer: its speed readings carry the train {o:+.1f} m from the "
+                           f"estimate since {b[0]:.2f} s; its count does not")
+                far = max(abs(e[0]) for e in tracks)
+                P = _plus(P, (far * far + s2, 0.0, 0.0, 0.0))
         if no_command:
             doubt = DEGRADED
             why.append(f"no_command: {silent:.1f} s")
         return self._label(out, t, doubt, "; ".join(why), P if doubt else None,
                            fault_free, tuple(hyps))
+
+    def _by_speeds(self, b: list, x: float, t: float) -> tuple:
+        """``((shift m, variance m^2), ...)`` of the speed track ``b`` (:meth:`_speed_track`)
+        carried to ``t`` at its last speed, from an estimate at ``x``: the balise as the
+        calibration placed it and, where its reader latency moved it, the reading itself."""
+        dt = t - b[2]
+        s2 = b[5] + b[6] * dt * dt + (0.5 * self.p.accel_uncertainty * dt * dt) ** 2
+        d2 = b[1] + b[3] + b[4] * dt - x
+        return ((d2, s2), (d2 + b[7], s2)) if b[7] else ((d2, s2),)
 
     def _moved(self, out, P: tuple, T: float) -> tuple:
         """``(run, bend, extra)``: the train ``T`` s after the estimate's stamp (``T`` < 0:
