@@ -444,9 +444,7 @@ def test_an_odometer_that_reboots_with_its_clock(kind, scenario, at, step, jitte
 def _errors(outs, emitted, fl: F.Faulted, truth: dict) -> tuple[np.ndarray, np.ndarray]:
     """(true time s, position error m) of each estimate, its stamp read on the clock as known
     when it was published (as ``faults.score`` reads it)."""
-    em = np.asarray(emitted, float) - F.EPOCH
-    t = np.array([fl.clock.known_at(e).true_time(o.stamp, e - F.LATENCY)
-                  for o, e in zip(outs, em)])
+    _, t = F.true_times(outs, np.asarray(emitted, float) - F.EPOCH, fl)
     x = np.array([o.position for o in outs])
     return t, x - np.interp(t, truth["t"], truth["position"])
 

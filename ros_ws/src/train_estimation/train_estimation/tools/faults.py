@@ -426,6 +426,15 @@ def _not_pd(C: np.ndarray) -> bool:
         return True
 
 
+def true_times(outs: list, em: np.ndarray, faulted: Faulted) -> tuple[list, np.ndarray]:
+    """``(clocks, t)``: each estimate's stamp read on the train clock as known when it was
+    published (``em``: reference seconds since EPOCH; :meth:`TrainClock.known_at`), and the
+    true time (s since EPOCH) that stamp means on it."""
+    clocks = [faulted.clock.known_at(e) for e in em]
+    return clocks, np.array([c.true_time(o.stamp, e - LATENCY)
+                             for c, o, e in zip(clocks, outs, em)], float)
+
+
 def score(outs: list, emitted: np.ndarray, faulted: Faulted, truth: dict, rate: float,
           t_end: float, window: float = 10.0, alert_limit: float = 10.0) -> dict:
     """Integrity figures of one run's estimates (true times: reference seconds since EPOCH).
@@ -461,10 +470,7 @@ def score(outs: list, emitted: np.ndarray, faulted: Faulted, truth: dict, rate: 
     x = np.array([o.position for o in outs], float)
     C = [np.array(o.covariance, float).reshape(4, 4)[:2, :2] for o in outs]
     var = np.array([c[0, 0] for c in C], float)
-    # each estimate read on the clock as known when it was published (TrainClock.known_at)
-    clocks = [faulted.clock.known_at(e) for e in em]
-    t = np.array([c.true_time(o.stamp, e - LATENCY) for c, o, e in zip(clocks, outs, em)],
-                 float)
+    clocks, t = true_times(outs, em, faulted)
     tr_t, tr_x = np.asarray(truth["t"], float), np.asarray(truth["position"], float)
     inside = (t >= tr_t[0] - 1.0) & (t <= tr_t[-1] + 1.0)  # (else off-run, if said OK)
     # judged where the truth is known: before its first time the train stands where it starts
