@@ -197,7 +197,8 @@ def test_the_by_hand_recipe_with_default_parameters(launch, ros_node, rate, hogs
     lags = [float(x) for x in re.findall(r"out_of_order: ([\d.]+) s older than the newest "
                                          r"input fused", logs)]
     assert bool(lags) == bool(refused) and all(x > 3.0 for x in lags), (lags, refused)
-    assert "stamped on another clock" not in logs, logs[-3000:]
+    assert "stamped on another clock" not in logs, \
+        [line for line in logs.splitlines() if "another clock" in line]
     t_truth = np.array([m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec for m in truth])
     x_truth = np.array([m.position for m in truth])
     period = 1.0 / sc.odometer_rate

@@ -441,6 +441,37 @@ def test_an_odometer_that_reboots_with_its_clock(kind, scenario, at, step, jitte
         assert any("after a silence" in o.integrity_reason for o in outs)
 
 
+@pytest.mark.parametrize("kind", ["robust", "kf"])
+@pytest.mark.parametrize("scenario, at, jitter", [
+    ("metro_demo", 60.0, 0.05), ("metro_demo", 100.0, 0.0), ("crh3_high_speed", 60.0, 0.0)])
+def test_a_reboot_whose_first_reading_is_overtaken_is_spliced_with_the_clocks_doubt(
+        kind, scenario, at, jitter):
+    """As above (a 5 s reboot, the clock stepped back 3 s with it), with the link putting the
+    second reading after the reboot ahead of the first: the step watch holds the second as
+    a possible step, and the first comes while it is held. Its stamp is then as much in
+    doubt as the held one's, and so is the count spliced at it. (Spliced as sure, on
+    TTOBench's Yizhuang line at 21 m/s, the next balise lay 54 m off a count stated to
+    0.3 m, and the kf published 172 estimates up to 116 m off within levels of 99 m.) (At
+    60 s without jitter, the slot published as the first new reading arrives is read on the
+    new clock, as above: jitter there.)"""
+    sc, res = run(scenario, 2, 150.0)
+    fl = F.inject(res.events(), F.Fault("reboot", 5.0, at, clock_step=-3.0, jitter=jitter),
+                  np.random.default_rng(0))
+    after = [i for i, e in enumerate(fl.events)
+             if e[0] == "odometer" and e[3] >= F.EPOCH + at + 5.0][:2]
+    (i, j), ev = after, fl.events
+    # the second arrives first, at the first's arrival, and the first a millisecond later
+    ev[i], ev[j] = ev[j][:3] + (ev[i][3],), ev[i][:3] + (ev[i][3] + 1e-3,)
+    assert ev[j][3] <= ev[j + 1][3]  # (still in arrival order)
+    rate = sc.odometer_rate
+    outs, emitted, runner = F.run(ev, adapter(sc, kind), 1.0 / rate)
+    s = F.score(outs, emitted, fl, res.truth, rate, 150.0 + F.LATENCY)
+    assert s["misleading"] == 0 and s["wrong_side"] == 0, s
+    t, err = _errors(outs, emitted, fl, res.truth)
+    assert np.abs(err[t >= at + 40.0]).max() < 5.0
+    assert runner.events["odometer:count_reset"] == 1, dict(runner.events)
+
+
 def _errors(outs, emitted, fl: F.Faulted, truth: dict) -> tuple[np.ndarray, np.ndarray]:
     """(true time s, position error m) of each estimate, its stamp read on the clock as known
     when it was published (as ``faults.score`` reads it)."""

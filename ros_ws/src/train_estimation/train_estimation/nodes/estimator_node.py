@@ -379,7 +379,7 @@ class EstimatorNode(Node):
             self.separate_logged = True
             self.get_logger().info("control is stamped on another clock than the odometer: "
                                    "mapped onto the odometer's clock (drift "
-                                   f"{self.runner.drift:.2e} so far)")
+                                   f"{self.runner.drift:.2e} so far): {self.runner.separate_why}")
         total = sum(self.runner.rejected.values())
         if total > self.n_reported:  # the door or the core refused input: say why, once
             # (the runner keeps the last 20 reasons; every one is counted in /diagnostics)
@@ -502,6 +502,7 @@ class EstimatorNode(Node):
         self.get_logger().info(f"accepted {dict(self.runner.accepted)}; "
                                f"rejected {dict(self.runner.rejected) or 'none'}; "
                                f"events {dict(self.runner.events) or 'none'}")
+        self.get_logger().info(f"clocks: {self.runner.clock_summary()}")
         if self.runner.failure:
             self.get_logger().error(f"the estimator had failed: {self.runner.failure}")
             return
