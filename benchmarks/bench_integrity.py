@@ -319,6 +319,11 @@ def plan(quick: bool, seeds: int, estimators, only, phase_names=None, long: floa
         for _, at in ([("cruising", cruise)] if quick and scenario != "metro_demo" else
                       [("dwell", dwell)] + list(ph.items())):
             add(F.Fault("stuck", 0.0, at), 240.0)
+        # a count that freezes, or advances at half the distance, while its speed reads on:
+        # each reading within its noise of the last one's course, nothing refuses it
+        for _, at in ([("cruising", cruise)] if quick else list(ph.items())):
+            for r in (0.0, 0.5):
+                add(F.Fault("count_rate", r, at), 240.0)
         # an odometer that reboots: its counter and count begin again after a gap
         for _, at in ([("cruising", cruise)] if quick else list(ph.items())):
             for L in ((3.0,) if quick else (0.5, 3.0, 10.0)):

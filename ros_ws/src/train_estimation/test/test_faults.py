@@ -243,6 +243,24 @@ def test_the_replays_end_publishes_nothing_stamped_past_the_trains_present(ahead
     assert [o.stamp for o in outs] == [o.stamp for o in outs0]
 
 
+@pytest.mark.parametrize("rate", [0.0, 0.5])
+def test_a_count_rate_fault_moves_the_count_alone_from_its_onset(rate):
+    """``count_rate``: from ``at`` the count advances ``rate`` times the distance run (0: it
+    froze), continuous at the onset; the speed, stamps and everything else untouched."""
+    ev = [(tp, t, dict(f, distance=10.0 * t, speed=10.0) if tp == "odometer" else f)
+          for tp, t, f in clean()]
+    out = F.inject(ev, F.Fault("count_rate", rate, 12.0), np.random.default_rng(0)).events
+    ref = F.inject(ev, F.Fault("none"), np.random.default_rng(0)).events
+    assert [(k, s, r) for k, s, _f, r in out] == [(k, s, r) for k, s, _f, r in ref]
+    for (k, s, f, _), (_, _, f0, _) in zip(out, ref):
+        t = s - F.EPOCH
+        if k != "odometer" or t < 12.0 - 1e-9:
+            assert f == f0
+            continue
+        assert f["distance"] == pytest.approx(120.0 + rate * (10.0 * t - 120.0))
+        assert {**f, "distance": f0["distance"]} == f0
+
+
 @pytest.mark.parametrize("fault", [
     F.Fault("none"), F.Fault("stamp", 60.0, 10.0), F.Fault("step", -3.0, 10.0),
     F.Fault("drift", -1e-2), F.Fault("outage", 5.0, 10.0), F.Fault("command_stop", 0.0, 10.0),
@@ -250,7 +268,7 @@ def test_the_replays_end_publishes_nothing_stamped_past_the_trains_present(ahead
     F.Fault("route", 1.5, 10.0),
     F.Fault("recorder_stall", 4.0, 10.0), F.Fault("node_stall", 4.0, 10.0),
     F.Fault("fuzz", 0.5), F.Fault("balise", 10.0, 5.0),
-    F.Fault("reboot", 3.0, 10.0)],
+    F.Fault("reboot", 3.0, 10.0), F.Fault("count_rate", 0.5, 10.0)],
     ids=lambda f: f.kind)
 def test_one_case_of_each_fault_class_runs_through_an_estimator(fault):
     sc, res = run("metro_demo", 1, 20.0)

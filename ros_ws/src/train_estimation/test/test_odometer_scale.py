@@ -808,6 +808,22 @@ def test_a_count_that_freezes_while_the_speed_reads_on_is_carried_by_the_speed(k
     assert s["max_err"] > 50.0, s  # not a mild case
 
 
+@pytest.mark.parametrize("t0", [26.0, 55.0])
+def test_a_balise_after_a_frozen_count_restarts_the_speeds_track_from_it(t0):
+    """wen2017_subway at 1 Hz: the count freezes at ``t0`` (cruising, braking) while the
+    speed reads on, and the robust filter (no gate) goes back onto the count at each reading
+    it takes after refusing a few. The next balise comes with no odometer track near it to
+    judge it by (every reading since refused). That balise used to end the train the speeds
+    carry (nothing to judge by), and with it the solution that held the truth: 15-16
+    estimates 764-1,037 m off within levels of 670 m. The speeds carry the train on from the
+    balise instead."""
+    sc, res, fl = _frozen("wen2017_subway", t0)
+    outs, emitted, runner = F.run(fl.events, adapter(sc, "robust"), 1.0 / sc.odometer_rate)
+    s = F.score(outs, emitted, fl, res.truth, sc.odometer_rate, 300.0 + F.LATENCY)
+    assert s["misleading"] == 0 and s["wrong_side"] == 0, s
+    assert s["max_err"] > 200.0, s  # not a mild case
+
+
 @pytest.mark.parametrize("scenario, t0, kind, counted", [
     ("metro_demo", 46.8, "robust", False), ("metro_demo", 102.3, "robust", False),
     ("crh3_high_speed", 10.0, "kf", True), ("crh3_high_speed", 10.0, "robust", True)])

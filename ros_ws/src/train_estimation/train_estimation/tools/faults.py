@@ -39,6 +39,10 @@ balise           m: the first balise read at or after ``at`` lies ``size`` m fur
                  the map and its telegram say (a survey error): it is read when the train has
                  run ``size`` m more (timed by the odometer's distance), reporting the map's
                  position with its usual variance
+count_rate       fraction: from ``at`` on the odometer's count advances ``size`` times the
+                 distance run while its speed reads true (0: a distance register that froze,
+                 the speed from another path; 0.5: one that lost one of its two pulse
+                 channels); each reading within its noise of the last one's course
 stuck            (none): from ``at`` on every odometer reading repeats the last count before
                  ``at`` and reads standstill (a sensor that stopped), while the train runs on
 seq_skip         samples: from ``at`` on the odometer's sample counter (``seq``) runs ``size``
@@ -104,7 +108,7 @@ QUEUE_BACKLOG = 1.0  # s, the delay of the first reading of an episode ("queue")
 KINDS = ("none", "stamp", "step", "drift", "outage", "command_stop", "latency", "queue", "route",
          "recorder_stall",
          "node_stall", "fuzz", "balise", "odometer_scale", "stuck", "seq_skip", "reboot",
-         "first_count", "start_offset", "rounded")
+         "first_count", "start_offset", "rounded", "count_rate")
 # stamps a few seconds to minutes off: inside the runner's max_future (600 s), so the door lets
 # them in and only the clocks' and the filters' own checks stand between them and the estimate
 INSIDE_FUTURE = {
@@ -265,6 +269,9 @@ def inject(events: list, fault: Fault, rng: np.random.Generator) -> Faulted:
             else:
                 d_at = fields["distance"] if d_at is None else d_at
                 fields = {**fields, "distance": d_at, "speed": 0.0}
+        if k == "count_rate" and topic == "odometer" and t >= at:
+            d_at = fields["distance"] if d_at is None else d_at
+            fields = {**fields, "distance": d_at + size * (fields["distance"] - d_at)}
         if k == "seq_skip" and topic == "odometer" and t >= at and "seq" in fields:
             fields = {**fields, "seq": fields["seq"] + int(size)}
         if k == "reboot" and topic == "odometer" and t >= at:
