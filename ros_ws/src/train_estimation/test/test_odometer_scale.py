@@ -18,6 +18,7 @@ from train_estimation.core.online.odometer_scale import (
     OdometerCalibration,
     latency_beyond_prior,
 )
+from train_estimation.core.online.protection import k_factor
 from train_estimation.tools import faults as F
 
 sys.path.insert(0, os.path.dirname(__file__))
@@ -845,6 +846,28 @@ def test_a_count_at_half_the_distance_is_carried_by_the_speeds(scenario, t0, kin
     s = F.score(outs, emitted, fl, res.truth, sc.odometer_rate, 300.0 + F.LATENCY)
     assert s["misleading"] == 0 and s["wrong_side"] == 0, s
     assert s["max_err"] > 100.0, s  # not a mild case
+    assert any("odometer: its speed readings" in o.integrity_reason for o in outs)
+
+
+@pytest.mark.parametrize("kind", ["robust", "kf"])
+def test_the_speed_of_a_count_at_half_the_distance_is_covered_by_its_speed_readings(kind):
+    """crh3_high_speed at 82 m/s, the count at half the distance from 251 s on, the speed
+    readings true. The filter takes both and runs between them (the kf at 76-77 m/s) with a
+    speed variance of its own (0.2-1.1 m/s), while the train runs at the speed readings'
+    82.6: the zone controller's worst-case stop (speed + K sigma at the emergency braking)
+    fell up to 440 m short of the true one, 21 times. Where the speed readings carry the
+    train away from the estimate (the ``odometer`` doubt), the published speed variance
+    covers their speed too: every bounded estimate's speed within K sigma of the truth."""
+    sc, res, fl = _frozen("crh3_high_speed", 251.0, rate=0.5)
+    outs, emitted, runner = F.run(fl.events, adapter(sc, kind), 1.0 / sc.odometer_rate)
+    s = F.score(outs, emitted, fl, res.truth, sc.odometer_rate, 300.0 + F.LATENCY)
+    assert s["misleading"] == 0, s
+    t, _ = _errors(outs, emitted, fl, res.truth)
+    v_true = np.interp(t, res.truth["t"], res.truth["velocity"])
+    k = k_factor(1e-7)
+    short = [(ti, o.velocity, vt) for o, ti, vt in zip(outs, t, v_true) if o.integrity != 2
+             and abs(o.velocity - vt) > k * math.sqrt(o.covariance[5])]
+    assert not short, short[:5]
     assert any("odometer: its speed readings" in o.integrity_reason for o in outs)
 
 

@@ -15,7 +15,8 @@ the ROS clock, and the most the world's clock can be past it (s of simulated tim
 largest recent step of the ROS clock seen (one tick), or the steady time since it last moved
 times the world's pace (simulated s per steady s, from the recent steps), the larger. (With
 the resolution one tick alone, a node that joined a 10x run on a loaded machine refused a
-command as 0.3 s ahead of its clock: three ``/clock`` messages had not reached it.)
+command as 0.3 s ahead of its clock, three ticks: what a node sees when three ``/clock``
+messages have not reached it, the likeliest reading of that log.)
 """
 
 from __future__ import annotations
