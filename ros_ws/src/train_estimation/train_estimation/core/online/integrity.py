@@ -553,12 +553,15 @@ class IntegrityMonitor:
             if odo is None:
                 # no odometer track at the balise to judge it by (its count refused since
                 # before it: one that froze while the speeds read on), but the speeds still
-                # carry the train from it. (Dropped here, the solution that held a frozen
-                # count's train went with it, and the robust filter, back on the count,
-                # published 16 estimates 764-1,037 m off within levels of 670 m: wen2017_subway
-                # at 1 Hz)
+                # carry the train from it, from the latest speed read (the track's may be
+                # seconds old). (Dropped here, the solution that held a frozen count's train
+                # went with it, and the robust filter, back on the count, published 16
+                # estimates 764-1,037 m off within levels of 670 m: wen2017_subway at 1 Hz)
+                b = self.since
+                newer = b is not None and (self.odo_track is None or b[2] > self.odo_track[0])
                 self.balise_doubt = self.by_speed = None
-                self.since = self._speed_track(stamp, pos, var, late)
+                self.since = self._speed_track(stamp, pos, var, late,
+                                               (b[2], b[4], b[6]) if newer else None)
                 self.balise_fused = True
                 return
             self.pending_balise = (stamp, pos, var, late)
@@ -614,15 +617,22 @@ class IntegrityMonitor:
         if self.by_speed is None or self.by_speed[0] != stamp:
             self.by_speed = self._speed_track(stamp, pos, var, late)
 
-    def _speed_track(self, stamp: float, pos: float, var: float, late: float = 0.0):
+    def _speed_track(self, stamp: float, pos: float, var: float, late: float = 0.0,
+                     speed: tuple | None = None):
         """A balise at ``pos`` (variance ``var``; ``late`` m from it the reading without the
         calibrated reader latency) carried on by the odometer's speed readings from its stamp:
         ``[stamp, pos, last reading's stamp, metres run, speed, variance, speed's variance,
-        late]`` (:attr:`by_speed`, :attr:`since`; :meth:`_speeds` runs it on), or None without
-        an odometer track."""
-        if self.odo_track is None or not math.isfinite(var):
+        late]`` (:attr:`by_speed`, :attr:`since`; :meth:`_speeds` runs it on), from ``speed``
+        (its stamp, the speed and its variance) or else the odometer track's latest reading;
+        None without either."""
+        if speed is None:
+            if self.odo_track is None:
+                return None
+            t0, _, _, v, rv = self.odo_track
+        else:
+            t0, v, rv = speed
+        if not math.isfinite(var):
             return None
-        t0, _, _, v, rv = self.odo_track
         dt = max(t0 - stamp, 0.0)  # an odometer reading after the balise already in
         return [stamp, pos, max(t0, stamp), v * dt, v, var + rv * dt * dt, rv, late]
 
