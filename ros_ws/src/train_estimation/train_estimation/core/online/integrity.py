@@ -408,9 +408,24 @@ class IntegrityMonitor:
         if self.pending_balise is not None and stamp > self.pending_balise[0]:
             self._balise_between(stamp, z, r, fused)
         self.odo_track = (stamp, z, r, v, rv)
-        if self.since is None and fused and (not self.balise_fused or self.since_doubt is False):
-            # the count's first word (until a balise), or its first after a silence
-            self.since = self._speed_track(stamp, z, r)
+        if self.since is None and fused and not self.balise_fused:
+            self.since = self._speed_track(stamp, z, r)  # the count's first word (until a balise)
+        elif self.since is None and fused and self.since_doubt is False:
+            # its first after a silence: from the reading where it agrees with the estimate
+            # carried to it (within pos_z of the two), else from that estimate: a reading the
+            # estimate jumps to take is a count in question, no anchor (from the reading
+            # itself, a count at half the distance re-anchored the track 145 m behind the
+            # train, and the kf's next jump, 484 m, was outside its levels: crh3_high_speed
+            # at 1 Hz, a reading lost while braking). (From the estimate always, a 60 s
+            # outage anchored the track on an estimate carried through it: levels of 6.5 km
+            # to the next balise, wen2017_subway)
+            dt, pred, s = self._carried(stamp) if self.prev_pos is not None else \
+                (math.nan, math.nan, math.nan)
+            s += (0.5 * self.p.accel_uncertainty * dt * dt) ** 2
+            jump = dt >= 0 and math.isfinite(pred) and math.isfinite(s) and s > 0 and \
+                abs(z - pred) > self.p.pos_z * math.sqrt(s + r)
+            self.since = self._speed_track(stamp, pred, s) if jump else \
+                self._speed_track(stamp, z, r)
 
     def _speeds(self, stamp: float, fields: dict) -> None:
         """The speed tracks (:attr:`by_speed`, :attr:`since`) run on by a reading's speed,
