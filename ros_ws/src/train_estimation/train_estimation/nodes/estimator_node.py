@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections import deque
 from collections.abc import Callable
 
 from nav_msgs.msg import Odometry
@@ -33,7 +34,6 @@ from train_core import diagnostics as D
 from train_core.realtime import CallbackTrace, collect_due, settle_heap
 from train_core.ros import Diagnostics, ParameterError, declare_config, sec_to_stamp, stamp_to_sec
 
-from train_estimation.core.online.arrival import SimArrival
 from train_estimation.core.online.odometry import odometry_covariances
 from train_estimation.core.online.runner import EstimatorRunner
 from train_estimation.nodes.estimate_cdr import EstimateCdr, node_messages
@@ -198,7 +198,8 @@ class EstimatorNode(Node):
         # alone: the simulator's next messages publish a lost reading's slot.
         self.clock_slots = not self.get_parameter("use_sim_time").value
         self.waiting: list = []  # messages received before a simulated clock started
-        self.sim_arrival = SimArrival()  # how finely arrivals are timed on simulated time
+        self.ros_last = 0  # ns, the ROS clock's last reading seen (simulated time)
+        self.ticks: deque = deque(maxlen=64)  # s, its recent steps (arrival resolution)
         self.n_reported = 0
         self.event_log: dict = {}  # (kind, event) -> (steady s last logged, not logged since)
         self.get_logger().info(
@@ -228,10 +229,12 @@ class EstimatorNode(Node):
         t = self.get_clock().now().nanoseconds
         if t <= 0:
             return None
-        # the world's clock may be past what /clock last told this node, by a tick or by what
-        # it ran since at its pace (a /clock message late or lost: core/online/arrival.py)
-        recv, self.runner.arrival_resolution = self.sim_arrival.observe(t * 1e-9, _steady())
-        return recv
+        if t != self.ros_last:  # /clock ticked: its step is how finely arrivals are timed
+            if self.ros_last:
+                self.ticks.append((t - self.ros_last) * 1e-9)
+                self.runner.arrival_resolution = max(self.ticks)
+            self.ros_last = t
+        return t * 1e-9
 
     def _push(self, kind: str, msg, fields: dict) -> None:
         recv = self._arrival()
