@@ -565,23 +565,22 @@ class IntegrityMonitor:
             if not (math.isfinite(var) and var > 0):
                 self.balise_doubt = self.by_speed = self.since = None  # nothing to judge by
                 return
+            # the speeds carry the train on from the balise. With no odometer track at it to
+            # judge it by (its count refused since before it: one that froze while the speeds
+            # read on), from the latest speed read, the track's being seconds old; and the
+            # track is kept (dropped, the solution that held a frozen count's train went with
+            # it, and the robust filter, back on the count, published 16 estimates 764-1,037 m
+            # off within levels of 670 m: wen2017_subway at 1 Hz)
+            b = self.since
+            newer = odo is None and b is not None and \
+                (self.odo_track is None or b[2] > self.odo_track[0])
+            self.since = self._speed_track(stamp, pos, var, late,
+                                           (b[2], b[4], b[6]) if newer else None)
+            self.balise_fused = True
             if odo is None:
-                # no odometer track at the balise to judge it by (its count refused since
-                # before it: one that froze while the speeds read on), but the speeds still
-                # carry the train from it, from the latest speed read (the track's may be
-                # seconds old). (Dropped here, the solution that held a frozen count's train
-                # went with it, and the robust filter, back on the count, published 16
-                # estimates 764-1,037 m off within levels of 670 m: wen2017_subway at 1 Hz)
-                b = self.since
-                newer = b is not None and (self.odo_track is None or b[2] > self.odo_track[0])
-                self.balise_doubt = self.by_speed = None
-                self.since = self._speed_track(stamp, pos, var, late,
-                                               (b[2], b[4], b[6]) if newer else None)
-                self.balise_fused = True
+                self.balise_doubt = self.by_speed = None  # nothing to judge the balise by
                 return
             self.pending_balise = (stamp, pos, var, late)
-            self.since = self._speed_track(stamp, pos, var, late)
-            self.balise_fused = True
             if self._judge_balise(stamp, pos, var, *odo, may_clear=True, late=late):
                 self.count_doubt = None  # an independent position agrees with the odometer
                 self._place_untimed(pos - odo[0], odo[1] + var)

@@ -816,10 +816,11 @@ class EstimatorRunner:
         # reading, overtaken on a jittery link by the one after it, came while that one was
         # held and was spliced as sure: yizhuang_metro, the clock stepped back 3 s at 21 m/s,
         # the next balise 54 m off a count stated to 0.3 m, the kf 116 m off within 99 m)
-        unsure = abs(mon.unsure[0]) if mon.unsure is not None else mon.doubt if mon.held \
-            else 0.0
-        if unsure > 0.0 and kind == "odometer" and isinstance(fields, dict):
-            fields = {**fields, CLOCK_UNSURE: unsure}
+        if kind == "odometer" and isinstance(fields, dict):
+            unsure = abs(mon.unsure[0]) if mon.unsure is not None else mon.doubt if mon.held \
+                else 0.0
+            if unsure > 0.0:
+                fields = {**fields, CLOCK_UNSURE: unsure}
         heapq.heappush(self.queue, (stamp, KIND_ORDER[kind], self._n, kind, fields))
         if kind == "odometer":
             heapq.heappush(self._odo, stamp)
