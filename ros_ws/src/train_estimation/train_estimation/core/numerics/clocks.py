@@ -133,6 +133,11 @@ MOVE_PRIOR = 0.1  # -, the prior probability that the link's latency level moved
 #   (StreamClock._rate_of). On clean links it widens the error by 0-6 % at 10 Hz, up to 2.3x
 #   at 1 Hz where a split fits by chance; 1 Hz moves of 10 ms read 8.4 errors at 0, 3.4 at it
 #   (docs/integrity.md)
+SERIAL_CHAIN = 512  # the rate fit's latest points whose differences are kept (the residuals'
+#   serial correlation, StreamClock._serial): a dip's points that leave the fit are unlinked
+#   from among them
+SERIAL_LAG = 8  # points (4 s at 10 Hz in blocks of 5): the longer lag of the residuals'
+#   variogram, whose correlation against lag one's tells a wander from the envelope's own noise
 MOVE_SPLITS = 32  # the rate fit's candidate times of a level move in its current segment, at
 #   most (StreamClock._level_move): its cost per point; they thin out as the segment grows
 TOL = 5.0  # s: wider than arrival jitter (a node at 10x sees 1 Hz stamps 0.9 s apart in
@@ -254,6 +259,14 @@ class StreamClock:
         self._rates: dict = {}  # rate()'s by (min_n, min_span), until the fit changes
         self._held_points: list = []  # (arrival, stamp, residual) of the rate fit's points
         #   held above its line (:meth:`_off`)
+        self._coarse = [[0, 0.0, 0.0, 0.0, 0.0, 0.0, None], [0, 0, 0.0, 0.0, 0.0]]  # the
+        #   same points with an intercept per declared level only (:meth:`rate_apart`): the
+        #   current one's raw sums and origin, and the closed ones' like ``_closed``
+        self._pairs = {1: [0, 0.0, 0.0, 0.0], SERIAL_LAG: [0, 0.0, 0.0, 0.0]}  # by lag, the
+        #   points of one declared level that many apart: how many, and the sums of
+        #   d(offset)^2, d(offset) d(arrival), d(arrival)^2 (:meth:`_serial`)
+        self._chain: deque = deque(maxlen=SERIAL_CHAIN)  # the current declared level's latest
+        #   fit points (arrival, stamp), in order: the pairs they make
         self._dip: list = [0.0, [], False]  # the CUSUM of the points' fall below the line, the
         #   points fitted since it was last 0, whether a dip is under way (:meth:`_off`)
         self._block = [0, 0.0, 0.0]  # readings so far in the rate fit's block, and the
@@ -740,6 +753,14 @@ class StreamClock:
         f[4] += w * x * y
         f[5] += w * y * y
         self._rates = {}
+        self._link(arrival, stamp, w)
+        c = self._coarse[0]
+        if c[6] is None:
+            c[6] = (arrival, stamp)
+        xc, yc = arrival - c[6][0], stamp - c[6][1]
+        c[0] += int(w)
+        for i, v in enumerate((xc, yc, xc * xc, xc * yc, yc * yc), 1):
+            c[i] += w * v
         snaps = self._snaps
         if w < 0:  # a point that leaves the fit leaves the sums that hold it
             for sn in reversed(snaps):
@@ -756,15 +777,91 @@ class StreamClock:
                 del snaps[::2]
                 self._snap_every *= 2
 
+    def _pair(self, p: tuple, q: tuple, w: float, lag: int = 1) -> None:
+        """The fit points ``p``, ``q`` (arrival, stamp), ``lag`` apart, into the pairs' sums
+        (``w`` -1: out of them), by the offset's change and the arrival's (the stamps' own
+        change would cancel to a few digits in the slope's residual)."""
+        dx = q[0] - p[0]
+        do = (q[1] - p[1]) - dx
+        pr = self._pairs[lag]
+        pr[0] += int(w)
+        pr[1] += w * do * do
+        pr[2] += w * do * dx
+        pr[3] += w * dx * dx
+
+    def _link(self, arrival: float, stamp: float, w: float) -> None:
+        """A point joins the chain of the current declared level's fit points, or leaves it (a
+        dip's, in the middle of the chain: its two neighbours become successive; the pairs
+        ``SERIAL_LAG`` apart across it are left out, not re-linked)."""
+        chain, pt, k = self._chain, (arrival, stamp), SERIAL_LAG
+        if w > 0:
+            if chain:
+                self._pair(chain[-1], pt, 1.0)
+            if len(chain) >= k:
+                self._pair(chain[-k], pt, 1.0, k)
+            chain.append(pt)
+            return
+        try:
+            i = chain.index(pt)
+        except ValueError:  # beyond the chain kept: its pairs stay (one in SERIAL_CHAIN)
+            return
+        prev = chain[i - 1] if i > 0 else None
+        nxt = chain[i + 1] if i + 1 < len(chain) else None
+        if prev is not None:
+            self._pair(prev, pt, -1.0)
+        if nxt is not None:
+            self._pair(pt, nxt, -1.0)
+        if prev is not None and nxt is not None:
+            self._pair(prev, nxt, 1.0)
+        if i >= k:
+            self._pair(chain[i - k], pt, -1.0, k)
+        if i + k < len(chain):
+            self._pair(pt, chain[i + k], -1.0, k)
+        del chain[i]
+
+    def _serial(self, d: float, rss: float, dof: int) -> float:
+        """The factor by which the rate fit's residuals about the line of drift ``d`` (rss and
+        dof about it) state the slope's variance too small for their serial correlation (1
+        and above): the long-run variance's ratio to the variance, 1 + 2 sum of the
+        autocorrelations.
+
+        A latency that wanders (a loaded host, a node behind at 10x: milliseconds over tens of
+        seconds) leaves runs of residuals on one side of the line, which the fit's own spread
+        cannot see; blocks of a white latency's envelope are independent. The model: an AR(1)
+        wander (coefficient phi) beside the envelope's white noise, whose autocorrelation is
+        rho_1 phi^(k-1) at lag k >= 1 (an ARMA(1, 1)); the factor 1 + 2 rho_1 / (1 - phi).
+        Each rho from the variogram, 1 - (mean square difference of residuals k apart) / (2
+        their variance), in which each level's own intercept cancels; phi from lags 1 and
+        ``SERIAL_LAG``. Lag one alone (AR(1), Durbin-Watson) read a 3 ms wander under 1 ms of
+        envelope noise as rho 0.3 and stated the slope's error 3 times too small."""
+        if not rss > 0.0:
+            return 1.0
+        var = rss / dof
+
+        def rho(lag: int) -> float | None:
+            m, soo, sox, sxx = self._pairs[lag]
+            if m < 3:
+                return None
+            dr2 = max(soo - 2.0 * d * sox + d * d * sxx, 0.0) / m
+            return min(max(1.0 - dr2 / (2.0 * var), 0.0), 0.999)
+
+        r1 = rho(1)
+        if not r1:
+            return 1.0
+        rk = rho(SERIAL_LAG) if self._pairs[SERIAL_LAG][0] >= 2 * SERIAL_LAG else None
+        phi = r1 if rk is None else \
+            min(max((rk / r1) ** (1.0 / (SERIAL_LAG - 1)), r1), 0.999) if rk > 0.0 else r1
+        return 1.0 + 2.0 * r1 / (1.0 - phi)
+
     def _centred(self) -> tuple[int, float, float, float]:
         """The current segment's n and centred sums (sxx, sxy, syy)."""
         n = self._fit[0]
         return (n, *_centred_sums(self._fit)) if n else (0, 0.0, 0.0, 0.0)
 
-    def _close(self, sums) -> None:
+    def _close(self, sums, c: list | None = None) -> None:
         """Points with these raw sums [n, sx, sy, sxx, sxy, syy] become a closed segment: an
-        intercept of their own, the slope shared."""
-        c = self._closed
+        intercept of their own, the slope shared (in ``c``; the rate fit's own by default)."""
+        c = self._closed if c is None else c
         c[0] += 1
         c[1] += sums[0]
         for i, v in enumerate(_centred_sums(sums)):
@@ -776,8 +873,13 @@ class StreamClock:
         if self._fit[0]:
             self._close(self._fit)
         self._fit = [0, 0.0, 0.0, 0.0, 0.0, 0.0, None]
+        c = self._coarse
+        if c[0][0]:
+            self._close(c[0], c[1])
+        c[0] = [0, 0.0, 0.0, 0.0, 0.0, 0.0, None]
         self._rates = {}
         self._snaps, self._snap_every, self._since_snap = [], 1, 0
+        self._chain.clear()  # no pair across two levels
         # the dip CUSUM's run holds points of the segment closed
         self._dip = [0.0, [], False]
 
@@ -888,6 +990,40 @@ class StreamClock:
             + math.log(MOVE_PRIOR / (1.0 - MOVE_PRIOR))
         p = 1.0 / (1.0 + math.exp(-min(log_odds, 700.0)))
         return d, math.sqrt((1.0 - p) * se * se + p * (se1 * se1 + (d1 - d) ** 2))
+
+    def rate_apart(self, min_n: int = 20, min_span: float = 10.0) -> tuple[float, float]:
+        """(drift, its standard error) as :meth:`rate`, for telling this clock from another:
+        one line through the same points, an intercept per declared level only (a step of
+        the clock, a move of the latency that the step watch declared), its error widened
+        for the residuals' serial correlation (:meth:`_serial`), as many fewer independent
+        points (the effective sample size, at most n), the degrees of freedom of
+        :func:`t_spread`. (0, inf) where :meth:`rate` is.
+
+        :meth:`rate` models the latency's floor as levels that move now and then, split where
+        the likelihood says (:meth:`_level_move`). A floor that wanders (a loaded host; a
+        node behind at 10x on simulated time: milliseconds over tens of seconds) is cut
+        there into a score of short levels, and the slope they share is the wander's own
+        local slope: two streams of one simulated clock read 2.2e-4 apart at 5.4 of its
+        standard errors, and the control clock was judged another one."""
+        key = ("apart", min_n, min_span)
+        if key not in self._rates:
+            d, se = self.rate(min_n, min_span)
+            if math.isfinite(se):
+                c, (segs, n0, cxx0, cxy0, cyy0) = self._coarse
+                n1 = c[0]
+                cxx1, cxy1, cyy1 = _centred_sums(c) if n1 else (0.0, 0.0, 0.0)
+                n, var, cov = n0 + n1, cxx0 + cxx1, cxy0 + cxy1
+                if var > 0.0:
+                    d = cov / var - 1.0
+                    rss = max(cyy0 + cyy1 - cov / var * cov, 0.0)
+                    dof = max(n - 1 - segs - (n1 > 0), 1)
+                    infl = min(self._serial(d, rss, dof), float(n))
+                    dof_e = max(int((dof + 1) / infl) - 1, 1)
+                    se = math.sqrt(rss / dof / var * infl) * t_spread(dof_e) / LINE_SPREAD
+                else:
+                    d, se = 0.0, math.inf
+            self._rates[key] = (d, se) if abs(d) < 0.1 else (0.0, math.inf)
+        return self._rates[key]
 
     @property
     def drift(self) -> float:

@@ -736,8 +736,8 @@ class EstimatorRunner:
         """Why the clocks were taken as two (for the log): what each test said."""
         if self.control_clock == "reference":
             return "control_clock: reference"
-        d_t, se_t = train.rate()
-        d_c, se_c = control.rate()
+        d_t, se_t = train.rate_apart()
+        d_c, se_c = control.rate_apart()
         return (f"offsets {self._clock_gap(train, control):.3f} s apart at least "
                 f"(tolerance {self.same_clock_tolerance:g}); rates {d_t - d_c:.2e} apart "
                 f"+- {math.hypot(se_t, se_c):.1e} (bound {self.same_clock_rate:g} or 5 se); "
@@ -784,9 +784,10 @@ class EstimatorRunner:
         s; taken as one until then, the commands were mapped up to 2 s off). Rates against
         each other, not against the arrivals: a node falling behind its input (sim time at
         10x on a loaded machine) sees every stream's latency grow alike, which is no second
-        clock."""
-        d_t, se_t = self._offsets["train"].rate()
-        d_c, se_c = self._offsets["control"].rate()
+        clock; and each with its error as :meth:`~.clocks.StreamClock.rate_apart` states it,
+        whose latency may wander."""
+        d_t, se_t = self._offsets["train"].rate_apart()
+        d_c, se_c = self._offsets["control"].rate_apart()
         d, se = d_t - d_c, math.hypot(se_t, se_c)
         return abs(d) > max(self.same_clock_rate, 5.0 * se)
 
