@@ -161,6 +161,34 @@ def test_a_queue_holds_the_readings_then_delivers_them_faster():
     assert [r for *_, r in fl.events] == sorted(r for *_, r in fl.events)
 
 
+def test_a_wander_delays_each_topic_by_its_own_slowly_moving_latency():
+    """``wander``: from ``at`` each topic's link adds |x| to its latency, x an Ornstein-Uhlenbeck
+    process of ``size`` s and WANDER_TAU s: stamps, values and the order of each topic's own
+    messages' stamps untouched; the mean square of the added latency is ``size``^2 (about 15
+    correlation times of it in 600 s: within a factor 2.5 either way, 4 of its relative
+    errors sqrt(2 / 15)); successive messages 0.1 s apart carry nearly the same latency (lag-one
+    correlation exp(-0.1 / 20) = 0.995 for x); the topics' wanders are not one."""
+    size, at = 0.05, 10.0
+    ev = clean(600.0)
+    base = F.inject(ev, F.Fault("none"), np.random.default_rng(0)).events
+    fl = F.inject(ev, F.Fault("wander", size, at), np.random.default_rng(0)).events
+    assert sorted((k, s, str(f)) for k, s, f, _ in fl) == \
+        sorted((k, s, str(f)) for k, s, f, _ in base)
+    assert [r for *_, r in fl] == sorted(r for *_, r in fl)
+    extra = {}
+    for k, s, _f, rc in fl:
+        t = s - F.EPOCH
+        x = rc - F.EPOCH - t - F.LATENCY
+        assert x >= -1e-6 and (t >= at or abs(x) < 1e-6), (k, t, x)  # (stamps near 1.7e9 s)
+        if t >= at:
+            extra.setdefault(k, []).append(x)
+    for k in ("odometer", "control"):
+        x = np.array(extra[k])
+        assert 0.4 * size ** 2 < float(np.mean(x * x)) < 2.5 * size ** 2, (k, np.mean(x * x))
+        assert np.corrcoef(x[1:], x[:-1])[0, 1] > 0.9, k
+    assert not np.allclose(extra["odometer"], extra["control"])
+
+
 def test_latency_tail_is_capped_and_heavy():
     fl = F.inject(clean(300.0), F.Fault("latency", 5.0, 0.0), np.random.default_rng(1))
     lat = np.array([r - s for k, s, f, r in fl.events if k == "odometer"])
@@ -268,7 +296,8 @@ def test_a_count_rate_fault_moves_the_count_alone_from_its_onset(rate):
     F.Fault("route", 1.5, 10.0),
     F.Fault("recorder_stall", 4.0, 10.0), F.Fault("node_stall", 4.0, 10.0),
     F.Fault("fuzz", 0.5), F.Fault("balise", 10.0, 5.0),
-    F.Fault("reboot", 3.0, 10.0), F.Fault("count_rate", 0.5, 10.0)],
+    F.Fault("reboot", 3.0, 10.0), F.Fault("count_rate", 0.5, 10.0),
+    F.Fault("wander", 0.1, 5.0)],
     ids=lambda f: f.kind)
 def test_one_case_of_each_fault_class_runs_through_an_estimator(fault):
     sc, res = run("metro_demo", 1, 20.0)

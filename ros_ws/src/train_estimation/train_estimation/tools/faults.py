@@ -29,6 +29,11 @@ queue            r (> 1): every ``QUEUE_EVERY`` s from ``at`` on the link holds 
 route            s: from ``at`` on the odometer and balise readings come ``size`` s later and
                  stay so (the link changed its route: a handover, a satellite path, a
                  congested backhaul); stamps and values untouched
+wander           s: from ``at`` on each topic's link (the commands' too, on its own) adds a
+                 latency that wanders: an Ornstein-Uhlenbeck process of ``size`` s standard
+                 deviation and ``WANDER_TAU`` s correlation time, folded to stay above the
+                 floor (a loaded host, a radio link whose quality drifts); stamps and values
+                 untouched
 recorder_stall   s: odometer and balise readings arriving in ``[at, at + size)`` are logged at
                  ``at + size`` (the recorder's subscription blocked; commands unaffected)
 node_stall       s: every message arriving in ``[at, at + size)`` is taken at ``at + size``
@@ -105,10 +110,11 @@ AVAILABLE_LAG = 1.0  # s: an OK estimate published further from the time it clai
 TRAIN_TOPICS = ("odometer", "balise")
 QUEUE_EVERY = 30.0  # s between the starts of two episodes of the "queue" kind
 QUEUE_BACKLOG = 1.0  # s, the delay of the first reading of an episode ("queue")
+WANDER_TAU = 20.0  # s, the correlation time of a link's wandering latency ("wander")
 KINDS = ("none", "stamp", "step", "drift", "outage", "command_stop", "latency", "queue", "route",
          "recorder_stall",
          "node_stall", "fuzz", "balise", "odometer_scale", "stuck", "seq_skip", "reboot",
-         "first_count", "start_offset", "rounded", "count_rate")
+         "first_count", "start_offset", "rounded", "count_rate", "wander")
 # stamps a few seconds to minutes off: inside the runner's max_future (600 s), so the door lets
 # them in and only the clocks' and the filters' own checks stand between them and the estimate
 INSIDE_FUTURE = {
@@ -251,6 +257,7 @@ def inject(events: list, fault: Fault, rng: np.random.Generator) -> Faulted:
     # from
     boot = next((f for tp, tt, f in events if tp == "odometer" and tt >= at + 0.5 * size),
                 None) if k == "reboot" else None
+    wander: dict = {}  # topic -> (true time s, its link's wander s) of its last message
     for topic, t, fields in events:
         if topic not in ("control",) + TRAIN_TOPICS:
             continue
@@ -300,6 +307,15 @@ def inject(events: list, fault: Fault, rng: np.random.Generator) -> Faulted:
                 recv += QUEUE_BACKLOG - u * slope
         if k == "route" and train and t >= at:
             recv += size
+        if k == "wander" and t >= at:
+            # each topic's own link (the commands' too): its latency wanders above the
+            # floor, an Ornstein-Uhlenbeck process of ``size`` s and WANDER_TAU folded to stay
+            # above it (a loaded host, a radio link whose quality drifts)
+            t0, x = wander.get(topic, (t, rng.normal(0.0, size)))
+            a = math.exp(-max(t - t0, 0.0) / WANDER_TAU)
+            x = a * x + rng.normal(0.0, size * math.sqrt(1.0 - a * a))
+            wander[topic] = (t, x)
+            recv += abs(x)
         if k == "recorder_stall" and train or k == "node_stall":
             if at <= recv < at + size:
                 recv = at + size
