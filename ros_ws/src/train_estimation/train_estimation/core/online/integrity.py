@@ -419,9 +419,7 @@ class IntegrityMonitor:
             # at 1 Hz, a reading lost while braking). (From the estimate always, a 60 s
             # outage anchored the track on an estimate carried through it: levels of 6.5 km
             # to the next balise, wen2017_subway)
-            dt, pred, s = self._carried(stamp) if self.prev_pos is not None else \
-                (math.nan, math.nan, math.nan)
-            s += (0.5 * self.p.accel_uncertainty * dt * dt) ** 2
+            dt, pred, s = self._carried_moving(stamp)
             jump = dt >= 0 and math.isfinite(pred) and math.isfinite(s) and s > 0 and \
                 abs(z - pred) > self.p.pos_z * math.sqrt(s + r)
             self.since = self._speed_track(stamp, pred, s) if jump else \
@@ -501,6 +499,15 @@ class IntegrityMonitor:
         acceleration: (dt s, position m, the filter's own position variance carried, m^2)."""
         return _carry(self.prev_pos, stamp)
 
+    def _carried_moving(self, stamp: float) -> tuple[float, float, float]:
+        """:meth:`_carried`, its variance with an unmodelled acceleration of
+        ``accel_uncertainty`` over the interval too (``(a dt^2 / 2)^2``): where the train is
+        by the estimate, as a track to judge a reading against; NaNs without an estimate."""
+        if self.prev_pos is None:
+            return math.nan, math.nan, math.nan
+        dt, pred, s = self._carried(stamp)
+        return dt, pred, s + (0.5 * self.p.accel_uncertainty * dt * dt) ** 2
+
     def _position_bias(self, stamp: float, position: tuple) -> None:
         z, r = position[:2]
         dt, pred, s = self._carried(stamp)
@@ -557,9 +564,9 @@ class IntegrityMonitor:
         if odo is None and self.odo_track is None and self.prev_pos is not None:
             # no position readings at all (``use_distance: false``): the track a balise is
             # judged against is the estimate carried to it on the odometer's speeds
-            dt, pred, s = self._carried(stamp)
+            dt, pred, s = self._carried_moving(stamp)
             if 0 <= dt <= 2.0:
-                odo = (pred, s + (0.5 * self.p.accel_uncertainty * dt * dt) ** 2)
+                odo = (pred, s)
         if fused:
             self.pending_balise = None
             if not (math.isfinite(var) and var > 0):
