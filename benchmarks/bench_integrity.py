@@ -354,6 +354,14 @@ def plan(quick: bool, seeds: int, estimators, only, phase_names=None, long: floa
         drift_duration = short if quick else min(3600.0, long or math.inf)
         for d in ((-1e-2,) if quick else (-1e-2, -1e-3, 1e-3, 1e-2)):
             faults.append((F.Fault("drift", d, 0.0), drift_duration))
+        if not quick:
+            # the clock's faults on links whose latency wanders: a step, a reboot with its
+            # clock and a drift, each to be told from the latency's own moves
+            for s in (-3.0, -0.5, 0.5, 3.0):
+                add(F.Fault("step", s, cruise, wander=0.1), 0.0)
+            add(F.Fault("reboot", 5.0, cruise, clock_step=-3.0, wander=0.1), 65.0)
+            for d in (-1e-3, 1e-3):
+                faults.append((F.Fault("drift", d, 0.0, wander=0.03), drift_duration))
         # a wheel diameter off by up to 2 %, from the start: the odometer's distance and
         # speed both scaled, nothing but the balises to tell
         for s in (((0.02,) if scenario == "metro_demo" else ()) if quick else

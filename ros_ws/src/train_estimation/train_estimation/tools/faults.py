@@ -69,6 +69,9 @@ start_offset     m: the stream is clean, the estimator's ``initial_position`` is
                  truly started)
 ===============  ========================================================================
 
+Any kind can run on links whose latency wanders as well (``Fault.wander``, s: the kind
+``wander``'s process, from the start; drawn after each message's other draws, so that a fault
+without it draws as before).
 Any kind can run on a jittery link: ``Fault.jitter`` (s) adds an exponential extra latency of
 that mean to every odometer and balise reading, so that arrivals leave sending order; and with a
 clock that steps at its onset: ``Fault.clock_step`` (s; a unit that rebooted with its clock).
@@ -195,6 +198,8 @@ class Fault:
     #   reading, whatever the kind (a jittery link: arrivals then no longer keep sending order)
     clock_step: float = 0.0  # s by which the train clock steps at ``at`` as well, whatever the
     #   kind (a unit that rebooted with its clock; the kind ``step`` is this alone)
+    wander: float = 0.0  # s, a wandering latency on every topic's link from the start, whatever
+    #   the kind (the kind ``wander`` is this alone, from ``at``)
 
     def __post_init__(self):
         if self.kind not in KINDS:
@@ -207,6 +212,7 @@ class Fault:
         n = f" x{self.count}" if self.kind == "stamp" and self.count != 1 else ""
         n += f" clock {self.clock_step:+g}" if self.clock_step else ""
         n += f" jitter {self.jitter:g}" if self.jitter else ""
+        n += f" wander {self.wander:g}" if self.wander else ""
         return f"{self.kind} {self.size:+g}{n}" if self.kind in ("stamp", "step", "drift",
                                                                    "balise", "odometer_scale",
                                                                    "seq_skip") \
@@ -258,6 +264,7 @@ def inject(events: list, fault: Fault, rng: np.random.Generator) -> Faulted:
     boot = next((f for tp, tt, f in events if tp == "odometer" and tt >= at + 0.5 * size),
                 None) if k == "reboot" else None
     wander: dict = {}  # topic -> (true time s, its link's wander s) of its last message
+    w_size, w_at = (size, at) if k == "wander" else (fault.wander, 0.0)
     for topic, t, fields in events:
         if topic not in ("control",) + TRAIN_TOPICS:
             continue
@@ -307,13 +314,13 @@ def inject(events: list, fault: Fault, rng: np.random.Generator) -> Faulted:
                 recv += QUEUE_BACKLOG - u * slope
         if k == "route" and train and t >= at:
             recv += size
-        if k == "wander" and t >= at:
+        if w_size > 0.0 and t >= w_at:
             # each topic's own link (the commands' too): its latency wanders above the
-            # floor, an Ornstein-Uhlenbeck process of ``size`` s and WANDER_TAU folded to stay
-            # above it (a loaded host, a radio link whose quality drifts)
-            t0, x = wander.get(topic, (t, rng.normal(0.0, size)))
+            # floor, an Ornstein-Uhlenbeck process of ``w_size`` s and WANDER_TAU folded to
+            # stay above it (a loaded host, a radio link whose quality drifts)
+            t0, x = wander.get(topic, (t, rng.normal(0.0, w_size)))
             a = math.exp(-max(t - t0, 0.0) / WANDER_TAU)
-            x = a * x + rng.normal(0.0, size * math.sqrt(1.0 - a * a))
+            x = a * x + rng.normal(0.0, w_size * math.sqrt(1.0 - a * a))
             wander[topic] = (t, x)
             recv += abs(x)
         if k == "recorder_stall" and train or k == "node_stall":
