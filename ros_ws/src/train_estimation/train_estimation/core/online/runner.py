@@ -746,15 +746,17 @@ class EstimatorRunner:
     def clock_summary(self) -> str:
         """One line on the clocks as judged so far (for a node's closing log): whether control
         is taken on the odometer's clock, and each clock's rate against the arrivals with its
-        standard error and the spread of its offsets."""
+        standard error (the rate fit's, and as the two clocks are told apart: StreamClock.
+        rate_apart) and the spread of its offsets."""
         where = f"on another clock: {self.separate_why}" if self.separate_clocks \
             else "on the odometer clock"
         parts = [f"control {where} ({self.control_clock})"]
         for name in ("train", "control"):
             c = self._offsets.get(name)
             if c is not None and len(c):
-                d, se = c.rate()
-                parts.append(f"{name} rate {d:+.2e} +- {se:.1e}, offsets spread {c.scale:.3g} s")
+                (d, se), (da, sa) = c.rate(), c.rate_apart()
+                parts.append(f"{name} rate {d:+.2e} +- {se:.1e} (apart {da:+.2e} +- {sa:.1e}), "
+                             f"offsets spread {c.scale:.3g} s")
         return "; ".join(parts)
 
     @staticmethod
