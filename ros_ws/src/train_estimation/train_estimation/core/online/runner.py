@@ -26,11 +26,12 @@ onto the train clock by adding ``median(odometer offset) - median(control offset
 the difference of the two streams' median latencies, milliseconds for a radio link). When the
 clocks' offsets can agree within ``same_clock_tolerance`` (each lies between its centre, which
 a queue pulls down, and its quickest offsets: :meth:`EstimatorRunner._clock_gap`) and the train
-clock's rate against the arrivals differs from 1 by no more than ``same_clock_rate`` (or not
-significantly) the two clocks are taken as one (the simulator: mapping 0, exactly, so that a
-node and its replay compute the same numbers); once found "separate" stays so, but never from
-offsets that all came at one instant while the commands could be on the train clock (commands
-wait until the train clock is judged).
+clock's rate against the arrivals differs from the control clock's by no more than
+``same_clock_rate`` (or not significantly, by each rate's error as a latency that wanders
+allows: :meth:`~.clocks.StreamClock.rate_apart`) the two clocks are taken as one (the
+simulator: mapping 0, exactly, so that a node and its replay compute the same numbers); once
+found "separate" stays so, but never from offsets that all came at one instant while the
+commands could be on the train clock (commands wait until the train clock is judged).
 ``control_clock`` forces ``"same"`` (the simulator's launch) or ``"reference"``; ``"auto"`` is
 the default, in the nodes and offline. On separate clocks the train clock's rate (least squares
 of odometer stamps on the arrival times of the readings on time, ``drift``) is used and the
