@@ -362,3 +362,38 @@ def test_the_rate_errors_serial_widening_is_the_long_run_variances_ratio(phi, wa
     res = (stamp - stamp.mean()) - (1.0 + d) * xm
     factor = c._serial(d, float(res @ res), n - 2)
     assert factor == pytest.approx(expected, rel=0.25), factor
+
+
+def test_the_serial_sums_follow_points_that_leave_the_fit():
+    """A dip's points leave the rate fit (StreamClock._fit_add with w = -1): the pairs' sums
+    at both lags are then those of the points left, successive (exact, to rounding); a
+    declared level starts a chain of its own."""
+    from train_estimation.core.numerics.clocks import SERIAL_LAG
+
+    rng = np.random.default_rng(2)
+    pts = [(10.0 + 0.5 * i, 10.0 + 0.5 * i * (1.0 + 1e-4) + 1e-3 * rng.standard_normal())
+           for i in range(60)]
+    c = StreamClock()
+    for a, s in pts:
+        c._fit_add(a, s)
+    gone = {pts[20], pts[21], pts[40]}
+    for p in sorted(gone):
+        c._fit_add(*p, -1.0)
+
+    def sums(pairs):
+        out = np.zeros(4)
+        for p, q in pairs:
+            dx = q[0] - p[0]
+            do = (q[1] - p[1]) - dx
+            out += (1, do * do, do * dx, dx * dx)
+        return out
+
+    left = [p for p in pts if p not in gone]
+    lag1 = sums(zip(left[:-1], left[1:]))
+    k = SERIAL_LAG
+    lagk = sums(zip(left[:-k], left[k:]))
+    assert np.allclose(c._pairs[1], lag1, rtol=1e-9, atol=1e-15)
+    assert np.allclose(c._pairs[k], lagk, rtol=1e-9, atol=1e-15)
+    c._new_segment()
+    c._fit_add(100.0, 100.0)
+    assert np.allclose(c._pairs[1], lag1, rtol=1e-9, atol=1e-15)  # no pair across the levels

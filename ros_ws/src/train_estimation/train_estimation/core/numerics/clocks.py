@@ -791,8 +791,9 @@ class StreamClock:
 
     def _link(self, arrival: float, stamp: float, w: float) -> None:
         """A point joins the chain of the current declared level's fit points, or leaves it (a
-        dip's, in the middle of the chain: its two neighbours become successive; the pairs
-        ``SERIAL_LAG`` apart across it are left out, not re-linked)."""
+        dip's, in the middle of the chain): the pairs' sums are then those of the points left,
+        successive, at both lags (the pairs that held or spanned it out, the ones its leaving
+        makes in; exact within the chain kept)."""
         chain, pt, k = self._chain, (arrival, stamp), SERIAL_LAG
         if w > 0:
             if chain:
@@ -805,18 +806,12 @@ class StreamClock:
             i = chain.index(pt)
         except ValueError:  # beyond the chain kept: its pairs stay (one in SERIAL_CHAIN)
             return
-        prev = chain[i - 1] if i > 0 else None
-        nxt = chain[i + 1] if i + 1 < len(chain) else None
-        if prev is not None:
-            self._pair(prev, pt, -1.0)
-        if nxt is not None:
-            self._pair(pt, nxt, -1.0)
-        if prev is not None and nxt is not None:
-            self._pair(prev, nxt, 1.0)
-        if i >= k:
-            self._pair(chain[i - k], pt, -1.0, k)
-        if i + k < len(chain):
-            self._pair(pt, chain[i + k], -1.0, k)
+        n = len(chain)
+        for lag in (1, k):
+            for m in range(max(i - lag, 0), min(i, n - 1 - lag) + 1):  # held or spanned it
+                self._pair(chain[m], chain[m + lag], -1.0, lag)
+            for m in range(max(i - lag, 0), min(i, n - 1 - lag)):  # m and m + lag + 1 now
+                self._pair(chain[m], chain[m + lag + 1], 1.0, lag)
         del chain[i]
 
     def _serial(self, d: float, rss: float, dof: int) -> float:
