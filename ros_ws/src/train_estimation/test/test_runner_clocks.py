@@ -10,6 +10,7 @@ import pytest
 from train_estimation.core.numerics.clocks import LATE
 from train_estimation.core.online.replay import replay
 from train_estimation.core.online.runner import EstimatorRunner
+from train_estimation.tools.faults import wandered
 from train_sim.scenario import load_scenario
 from train_sim.world import simulate
 
@@ -524,15 +525,12 @@ def test_a_stall_at_one_instant_is_no_second_clock(kind):
 def _wandering(ev: list, rng: np.random.Generator, sd: float = 0.01, tau: float = 20.0,
                jitter: float = 0.005) -> list:
     """``ev`` delivered over links whose latency wanders: each topic's own Ornstein-Uhlenbeck
-    process (``sd`` s, correlation time ``tau`` s, folded to stay positive) plus an exponential
-    jitter of mean ``jitter`` s above a floor of 20 ms; in arrival order."""
+    process (``sd`` s, correlation time ``tau`` s, folded to stay positive: faults.wandered)
+    plus an exponential jitter of mean ``jitter`` s above a floor of 20 ms; in arrival order."""
     out, state = [], {}
     for k, s, f, rc in ev:
-        last_t, x = state.get(k, (rc, rng.normal(0.0, sd)))
-        a = math.exp(-(rc - last_t) / tau)
-        x = a * x + rng.normal(0.0, sd * math.sqrt(1.0 - a * a))
-        state[k] = (rc, x)
-        out.append((k, s, f, rc + 0.02 + abs(x) + rng.exponential(jitter)))
+        x = wandered(state, k, rc, sd, rng, tau)
+        out.append((k, s, f, rc + 0.02 + x + rng.exponential(jitter)))
     return sorted(out, key=lambda e: e[3])
 
 

@@ -248,6 +248,19 @@ def noisy_count(events: list, sigma: float, rng: np.random.Generator) -> list:
             and isinstance(e[2].get("distance"), float) else e for e in events]
 
 
+def wandered(state: dict, key, t: float, size: float, rng: np.random.Generator,
+             tau: float = WANDER_TAU) -> float:
+    """s, the extra latency at true time ``t`` of the link ``key`` whose latency wanders
+    (``wander``): an Ornstein-Uhlenbeck process of ``size`` s standard deviation and ``tau`` s
+    correlation time, exact over the time since the link's last message (``state``: key ->
+    (that time, the process there), updated), folded to stay above the link's floor."""
+    t0, x = state.get(key, (t, rng.normal(0.0, size)))
+    a = math.exp(-max(t - t0, 0.0) / tau)
+    x = a * x + rng.normal(0.0, size * math.sqrt(1.0 - a * a))
+    state[key] = (t, x)
+    return abs(x)
+
+
 def inject(events: list, fault: Fault, rng: np.random.Generator) -> Faulted:
     """The received stream of a clean run ``events`` = ``(topic, t, fields)`` (true time ``t``)
     with ``fault`` applied (module doc). Topics other than control, odometer and balise are
@@ -318,11 +331,7 @@ def inject(events: list, fault: Fault, rng: np.random.Generator) -> Faulted:
             # each topic's own link (the commands' too): its latency wanders above the
             # floor, an Ornstein-Uhlenbeck process of ``w_size`` s and WANDER_TAU folded to
             # stay above it (a loaded host, a radio link whose quality drifts)
-            t0, x = wander.get(topic, (t, rng.normal(0.0, w_size)))
-            a = math.exp(-max(t - t0, 0.0) / WANDER_TAU)
-            x = a * x + rng.normal(0.0, w_size * math.sqrt(1.0 - a * a))
-            wander[topic] = (t, x)
-            recv += abs(x)
+            recv += wandered(wander, topic, t, w_size, rng)
         if k == "recorder_stall" and train or k == "node_stall":
             if at <= recv < at + size:
                 recv = at + size

@@ -743,24 +743,10 @@ class StreamClock:
     def _fit_add(self, arrival: float, stamp: float, w: float = 1.0) -> None:
         """One point (arrival, stamp) into the current segment's sums (``w`` -1: out of them)."""
         f = self._fit
-        if f[6] is None:
-            f[6] = (arrival, stamp)
-        x, y = arrival - f[6][0], stamp - f[6][1]
-        f[0] += int(w)
-        f[1] += w * x
-        f[2] += w * y
-        f[3] += w * x * x
-        f[4] += w * x * y
-        f[5] += w * y * y
+        x, y = _sums_add(f, arrival, stamp, w)
+        _sums_add(self._coarse[0], arrival, stamp, w)
         self._rates = {}
         self._link(arrival, stamp, w)
-        c = self._coarse[0]
-        if c[6] is None:
-            c[6] = (arrival, stamp)
-        xc, yc = arrival - c[6][0], stamp - c[6][1]
-        c[0] += int(w)
-        for i, v in enumerate((xc, yc, xc * xc, xc * yc, yc * yc), 1):
-            c[i] += w * v
         snaps = self._snaps
         if w < 0:  # a point that leaves the fit leaves the sums that hold it
             for sn in reversed(snaps):
@@ -1172,6 +1158,22 @@ def _accel(links, span: float) -> float:
     tm, vm = sum(ts) / n, sum(vs) / n
     sxx = sum((x - tm) ** 2 for x in ts)
     return sum((x - tm) * (y - vm) for x, y in zip(ts, vs)) / sxx if sxx > 0.0 else 0.0
+
+
+def _sums_add(s: list, arrival: float, stamp: float, w: float) -> tuple[float, float]:
+    """One point (arrival, stamp) into the raw sums ``s`` = [n, sx, sy, sxx, sxy, syy, origin]
+    of a line fit, about their origin (its first point); ``w`` -1 takes it out. Returns the
+    point about the origin, (x, y)."""
+    if s[6] is None:
+        s[6] = (arrival, stamp)
+    x, y = arrival - s[6][0], stamp - s[6][1]
+    s[0] += int(w)
+    s[1] += w * x
+    s[2] += w * y
+    s[3] += w * x * x
+    s[4] += w * x * y
+    s[5] += w * y * y
+    return x, y
 
 
 def _centred_sums(s) -> tuple[float, float, float]:
