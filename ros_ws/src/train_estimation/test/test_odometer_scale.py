@@ -794,6 +794,15 @@ def _frozen(scenario: str, t0: float, duration: float = 300.0, rate: float = 0.0
     return sc, res, fl
 
 
+def _count_off(original: list, faulted: list) -> float:
+    """m, the largest distance between a faulted stream's count and the count it replaced,
+    reading by reading (the same sample counter): what the fault did to the data, whatever
+    an estimator makes of it (the guard that a case is not a mild one)."""
+    true = {e[2]["seq"]: e[2]["distance"] for e in original if e[0] == "odometer"}
+    return max((abs(e[2]["distance"] - true[e[2]["seq"]]) for e in faulted
+                if e[0] == "odometer" and e[2]["seq"] in true), default=0.0)
+
+
 @pytest.mark.parametrize("kind", ["robust", "kf"])
 def test_a_count_that_freezes_while_the_speed_reads_on_is_carried_by_the_speed(kind):
     """metro_demo: the count freezes at 120 s, braking into a station at 10 m/s, while the
@@ -806,7 +815,7 @@ def test_a_count_that_freezes_while_the_speed_reads_on_is_carried_by_the_speed(k
     outs, emitted, runner = F.run(fl.events, adapter(sc, kind), 1.0 / sc.odometer_rate)
     s = F.score(outs, emitted, fl, res.truth, sc.odometer_rate, 300.0 + F.LATENCY)
     assert s["misleading"] == 0 and s["wrong_side"] == 0, s
-    assert s["max_err"] > 50.0, s  # not a mild case
+    assert _count_off(res.events(), fl.events) > 500.0  # not a mild case
 
 
 @pytest.mark.parametrize("t0", [26.0, 55.0])
@@ -822,7 +831,7 @@ def test_a_balise_after_a_frozen_count_restarts_the_speeds_track_from_it(t0):
     outs, emitted, runner = F.run(fl.events, adapter(sc, "robust"), 1.0 / sc.odometer_rate)
     s = F.score(outs, emitted, fl, res.truth, sc.odometer_rate, 300.0 + F.LATENCY)
     assert s["misleading"] == 0 and s["wrong_side"] == 0, s
-    assert s["max_err"] > 200.0, s  # not a mild case
+    assert _count_off(res.events(), fl.events) > 200.0  # not a mild case
 
 
 @pytest.mark.parametrize("scenario, t0, kind, counted", [
@@ -845,7 +854,7 @@ def test_a_count_at_half_the_distance_is_carried_by_the_speeds(scenario, t0, kin
     outs, emitted, runner = F.run(events, adapter(sc, kind), 1.0 / sc.odometer_rate)
     s = F.score(outs, emitted, fl, res.truth, sc.odometer_rate, 300.0 + F.LATENCY)
     assert s["misleading"] == 0 and s["wrong_side"] == 0, s
-    assert s["max_err"] > 100.0, s  # not a mild case
+    assert _count_off(res.events(), fl.events) > 500.0  # not a mild case
     assert any("odometer: its speed readings" in o.integrity_reason for o in outs)
 
 
@@ -891,7 +900,92 @@ def test_after_a_lost_reading_the_speeds_track_starts_again_where_the_estimate_s
                                   slot_grace=cfg.slot_grace)
     s = F.score(outs, emitted, fl, res.truth, sc.odometer_rate, 900.0 + F.LATENCY)
     assert s["misleading"] == 0 and s["wrong_side"] == 0, s
-    assert s["max_err"] > 1000.0, s  # not a mild case
+    assert _count_off(res.events(), fl.events) > 1000.0  # not a mild case
+
+
+@pytest.mark.parametrize("kind", ["robust", "kf", "gsma"])
+@pytest.mark.parametrize("rate", [0.0, 0.5])
+def test_a_failed_count_is_excluded_and_the_speeds_and_balises_carry_the_train(kind, rate):
+    """metro_demo, the count frozen (``rate`` 0) or at half the distance (0.5) from 46.8 s
+    (cruising at 21 m/s) while the speeds read on. The next balise the count contradicts
+    agrees with the speeds integrated from the last balise that agreed with the count, and
+    their likelihood ratio against a balise that lies (the count and the speeds would then
+    agree) passes Wald's bound at the exclusion risk: the count is excluded (event
+    ``count_excluded``) and the estimator reads the speeds and the balises, as with
+    ``use_distance`` false, its calibration started again from its priors. Without the
+    exclusion the robust filter and the kf followed the count to the end of the run, 1.5-5.9
+    km behind the train (DEGRADED, inside its levels: the quick integrity campaign's rows);
+    from the exclusion on they are within 3.4-5.3 m of
+    the train (one balise's metre, the speeds' integral and a 1 % scale prior over 360-700 m
+    between balises: 10 m is three of those standard deviations)."""
+    sc, res, fl = _frozen("metro_demo", 46.8, rate=rate)
+    outs, emitted, runner = F.run(fl.events, adapter(sc, kind), 1.0 / sc.odometer_rate)
+    s = F.score(outs, emitted, fl, res.truth, sc.odometer_rate, 300.0 + F.LATENCY)
+    assert s["misleading"] == 0 and s["wrong_side"] == 0, s
+    assert _count_off(res.events(), fl.events) > 500.0  # not a mild case
+    assert runner.events["balise:count_excluded"] == 1, dict(runner.events)
+    assert not runner.adapter.reads_distance
+    _, err = _errors(outs, emitted, fl, res.truth)
+    after = np.array([o.stamp for o in outs]) > runner.adapter.count_out
+    assert after.sum() > 2000  # the exclusion came at the first balise after the fault
+    assert np.abs(err[after]).max() < 10.0
+
+
+@pytest.mark.parametrize("kind", ["robust", "kf"])
+@pytest.mark.parametrize("fault", [F.Fault("none"), F.Fault("balise", 30.0, 100.0),
+                                   F.Fault("balise", -30.0, 100.0),
+                                   F.Fault("step", 3.0, 100.0)])
+def test_a_count_that_agrees_with_its_speeds_is_not_excluded(kind, fault):
+    """A balise that lies 30 m from its map position, refused by the count's calibration, and
+    a train clock that steps 3 s (the balises and the count read on the new clock alike):
+    the count and its speeds agree, so no likelihood ratio favours a failed count, and the
+    count stays read. A start 50 m off likewise (the speeds start where the count does)."""
+    sc, res = run("metro_demo", 0, 330.0)
+    events = [e for e in res.events() if e[1] <= 300.0]
+    fl = F.inject(events, fault, np.random.default_rng(0))
+    outs, emitted, runner = F.run(fl.events, adapter(sc, kind), 1.0 / sc.odometer_rate)
+    assert "balise:count_excluded" not in runner.events, dict(runner.events)
+    assert runner.adapter.reads_distance
+    moved = _started_at(sc, kind, sc.start_position + 50.0)
+    F.run(fl.events, moved, 1.0 / sc.odometer_rate)
+    assert moved.count_out is None
+
+
+@pytest.mark.parametrize("kind", ["robust", "kf"])
+def test_the_exclusion_is_part_of_the_state_a_rewind_restores(kind):
+    """The runner rewinds the adapter to a copy for a late reading and fuses again: the
+    copy taken before the balise that excluded the count reads the distance again once
+    restored (the robust filter's own position reading included), and the same balise
+    excludes it again to the same estimate, bit for bit."""
+    sc, res, fl = _frozen("metro_demo", 46.8)
+    a = adapter(sc, kind)
+    events = sorted(((e[1], e[0], e[2]) for e in res.events()
+                     if e[1] <= 120.0 and e[0] in ("control", "odometer", "balise")),
+                    key=lambda e: e[0])
+    a.start(events[0][0])
+    frozen = {e[2]["seq"]: e[2]["distance"] for e in fl.events if e[0] == "odometer"}
+    for stamp, topic, fields in events:
+        if topic == "odometer":
+            fields = {**fields, "distance": frozen.get(fields["seq"], fields["distance"])}
+        if topic != "balise" or a.count_out is not None:
+            getattr(a, topic)(stamp, fields)
+            continue
+        snap = a.snapshot()
+        getattr(a, topic)(stamp, fields)
+        if a.count_out is None:
+            continue
+        first = a.output(stamp + 0.05)
+        a.restore(snap)
+        assert a.reads_distance and a.count_out is None
+        if kind == "robust":
+            assert a.f.params.use_distance
+        a.balise(stamp, fields)
+        assert a.count_out == stamp
+        again = a.output(stamp + 0.05)
+        assert repr(first) == repr(again)  # every field (repr: exact floats, NaN as nan)
+        break
+    else:
+        pytest.fail("no balise excluded the count")
 
 
 @pytest.mark.parametrize("kind", ["robust", "kf"])

@@ -55,11 +55,13 @@ COUNT_RESET = "count_reset"  # the odometer restarted its count (a reboot: its c
 #   or without a counter two readings off the old count's course): its count spliced
 COUNT_ORIGIN = "count_origin"  # the first count far from zero: origin widened until a balise
 START_EXCLUDED = "start_excluded"  # the balises contradict the start: calibrated without it
+COUNT_EXCLUDED = "count_excluded"  # a balise and the odometer's speeds contradict its count:
+#   the count is no longer read (the estimator runs as with use_distance false)
 SEQ_UNSTATED = "seq_unstated"  # a stream whose seq never moves: no counter, judged by stamps
 STAMP_UNSTATED = "stamp_unstated"  # commands stamped 0: taken at their arrival (the contract's)
 EVENTS = (SEQ_RESET, CLOCK_RESET, SEQ_SKIP, LINK_LATENCY, COUNT_SLIP, FUSED_LATE, OUTAGE,
           RELOCATED, BALISE_EXCLUDED, BALISE_LATENCY, VARIANCE_UNSTATED, COUNT_RESET, COUNT_ORIGIN,
-          START_EXCLUDED, SEQ_UNSTATED, STAMP_UNSTATED)
+          START_EXCLUDED, COUNT_EXCLUDED, SEQ_UNSTATED, STAMP_UNSTATED)
 
 ALL = REJECTIONS + ACCEPTED + EVENTS
 
@@ -103,6 +105,10 @@ DESCRIPTION = {
     START_EXCLUDED: "the balises contradict initial_position (their likelihood ratio against "
                     "the solution without a start passed the exclusion risk): the odometer's "
                     "count is calibrated from the balises alone",
+    COUNT_EXCLUDED: "a balise the odometer's count contradicts agrees with the odometer's "
+                    "speeds integrated from the last balise (their likelihood ratio against "
+                    "a balise that lies passed the exclusion risk): the count is no longer "
+                    "read, the speeds and the balises place the train (as use_distance false)",
     STAMP_UNSTATED: "commands stamped 0 (no stamp stated): their arrival time is used, the "
                     "reference clock the contract stamps commands on",
     SEQ_UNSTATED: "a stream's seq never moves (no sample counter): duplicates are stamps "

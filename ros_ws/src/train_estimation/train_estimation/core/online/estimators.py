@@ -12,7 +12,7 @@ from __future__ import annotations
 import copy
 import itertools
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from train_core.config import param, require, require_finite
@@ -236,6 +236,7 @@ class RobustAdapter(DistanceAsPosition):
 
     def odometer(self, stamp: float, fields: dict) -> str:
         self._origin(fields)
+        self._heard(stamp, fields)
         undo, held = self._restart(stamp, fields)
         if held:  # a count off its course without a counter: the next reading decides
             return held
@@ -268,7 +269,7 @@ class RobustAdapter(DistanceAsPosition):
         if fix is None:
             d = self.f.update(r)  # refused as it is, or no odometer reading yet
             return "" if d.accepted else d.reason
-        if not self.cfg.use_distance:
+        if not self.reads_distance:
             # the balise enters the filter where the calibration puts the train (class doc)
             pos, var, dv, q = self._balise_for_filter(fix, stamp, self.f.t)
             self.f.shift(0.0, dv)
@@ -279,6 +280,14 @@ class RobustAdapter(DistanceAsPosition):
             if d.accepted:
                 self._balise_fused(fix, float(self.f.x[0]), before)
             return "" if d.accepted else d.reason
+        if self._count_failed(stamp, fix, float(meas.R[0, 0])):
+            # the count failed: the filter onto the speeds' track, read without the distance
+            dx, dv, Q = self._exclude_count(stamp, self.f.t, *self.f.x[:2])
+            self.f.params = replace(self.f.params, use_distance=False)
+            self.f.shift(dx, dv)
+            self.f.inflate(Q)
+            self._pred = None
+            return self.balise(stamp, fields)
         # the count's calibration takes the balise; the estimate moves with the mapping
         ok, dx, dv = self._calibrate(fix, self.f.t)
         if not ok:
@@ -648,18 +657,19 @@ class BrakingAdapter(DistanceAsPosition):
         if why:
             return why
         self._origin(fields)
+        self._heard(stamp, fields)
         undo, held = self._restart(stamp, fields)
         if held:  # a count off its course without a counter: the next reading decides
             return held
         pos, speed, var = self._mapped(fields, stamp)
         rows = [(1, speed, var)] + ([(0, pos, self.cfg.distance_variance)]
-                                    if self.cfg.use_distance else [])
+                                    if self.reads_distance else [])
         why = self._gate(stamp, rows)
         if why:
             self._unrestart(undo)
             return why
         reason = R.normalise(self._step(stamp, [pos, speed, math.nan],
-                                        [self.cfg.use_distance, True, False],
+                                        [self.reads_distance, True, False],
                                         [self.cfg.distance_variance, var, 1.0]))
         if not reason:
             self.order.took("odometer", stamp, seq)
@@ -685,8 +695,14 @@ class BrakingAdapter(DistanceAsPosition):
         if why:
             return why
         t_now = self.filt.t if self.filt.t is not None else stamp
-        if fix is not None and self.cfg.use_distance:
+        if fix is not None and self.reads_distance:
             # the count's calibration takes the balise; the estimate moves with the mapping
+            if self._count_failed(stamp, fix, var):
+                # the count failed: the filter onto the speeds' track, read without the distance
+                dx, dv, Q = self._exclude_count(stamp, t_now, *self.est.mean[:2])
+                self.est = self.filt.shift(dx, dv)
+                self.est = self.filt.inflate(Q)
+                return self.balise(stamp, fields)
             ok, dx, dv = self._calibrate(fix, t_now)
             if not ok:
                 return R.OUTSIDE_GATE

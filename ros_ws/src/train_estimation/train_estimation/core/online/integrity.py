@@ -331,8 +331,27 @@ class IntegrityMonitor:
         #   no train reaches from it: that solution carried on, until a balise excludes it
         self.count_doubt: tuple | None = None  # (stamp, check, why): the odometer's count in
         #   doubt (``reacquired`` or ``standing``) until a balise confirms its track
+        self.count_out = False  # the estimator excluded the odometer's count (count_excluded)
         self.counts = {NAMES[k]: 0 for k in NAMES}
         self.last_state = (OK, "")
+
+    def count_excluded(self) -> None:
+        """The estimator excluded the odometer's count (a balise and the odometer's speeds
+        contradicted it: ``calibrated_odometry.DistanceAsPosition._count_failed``) and reads
+        no distance from here on: the count's checks (``standing``, the tracks and doubts
+        built on its positions) and the solutions carried beside an estimate that followed
+        it go, as does the last estimate (the filter was moved onto the speeds' track: the
+        jump is the exclusion's, judged by its likelihood ratio, not a reading's). The
+        exclusion's own risk is the ratio's bound, charged as the calibration's are."""
+        self.count_out = True
+        self.odo_track = self.pending_balise = self.balise_doubt = self.by_speed = None
+        self.since = self.jumped = self.sped = self.count_doubt = self.agreed = None
+        self.since_doubt, self.since_own = None, math.inf
+        self.prev = self.prev_pos = None
+        self.pos.clear()
+        self.counts_seen.clear()
+        self.fused_seen.clear()
+        self.still_fast, self.still_run = math.inf, None
 
     # -- inputs ---------------------------------------------------------------------------------
     def reading(self, stamp: float, fields: dict | None, fused: bool,
@@ -346,7 +365,8 @@ class IntegrityMonitor:
             return
         if self.burst is not None and stamp >= self.burst[1]:
             self.burst[2] += 1
-        self._remember(self.counts_seen, stamp, fields, ("distance",))
+        if not self.count_out:
+            self._remember(self.counts_seen, stamp, fields, ("distance",))
         if fused or gate:
             self._track(stamp, fields, position, fused)
         if fields is not None:
@@ -371,7 +391,8 @@ class IntegrityMonitor:
             # which a balise's correction of a speed read 1-2 % off exceeds at every reading
             self.jumped = [self.prev_pos, math.nan, math.nan]
         self.refused_run = 0
-        kept = self._remember(self.fused_seen, stamp, fields, ("distance", "speed"))
+        kept = None if self.count_out else \
+            self._remember(self.fused_seen, stamp, fields, ("distance", "speed"))
         if kept is not None:
             self._seen_fused(kept)
         self.last_fused = max(self.last_fused, stamp)

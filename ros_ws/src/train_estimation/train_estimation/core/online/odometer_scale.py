@@ -337,6 +337,22 @@ class OdometerCalibration:
                              self.jumps)
         self.d_walked = float(d)
 
+    def place(self, d: float, x: float, variance: float) -> None:
+        """Before any balise: the count ``d`` (m) puts the train at ``x`` (m, ``variance``
+        m^2), the scale and the latency at their priors: ``x0 = x - c d``, its variance and
+        its covariance with ``c`` such that the position at ``d`` has ``variance`` (a count
+        made of the speeds from where a track placed the train:
+        ``calibrated_odometry.DistanceAsPosition._exclude_count``); the walk is charged from
+        ``d`` on."""
+        c, sc2 = float(self.theta[1]), float(self.Sigma[1, 1])
+        self.theta = np.array([x - c * d, c, float(self.theta[2])])
+        S = np.array(self.Sigma, dtype=float)
+        S[0, 0] = variance + d * d * sc2
+        S[0, 1] = S[1, 0] = -d * sc2
+        S[0, 2] = S[2, 0] = 0.0
+        self.Sigma = S
+        self.d_walked = max(self.d_walked, float(d))
+
     def widen_origin(self, move: float, variance: float) -> None:
         """The origin moved by ``move`` (m) with ``variance`` (m^2) more doubt, before any
         balise (the first odometer reading's count far from the start:

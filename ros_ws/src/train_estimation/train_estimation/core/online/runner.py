@@ -1033,6 +1033,8 @@ class EstimatorRunner:
 
     def _observe(self, kind: str, stamp: float, fields: dict, reason: str) -> None:
         """Tell the integrity monitor what became of an item the filter processed."""
+        if not self.monitor.count_out and getattr(self.adapter, "count_out", None) is not None:
+            self.monitor.count_excluded()  # (asked at every item: a rewind may have excluded)
         if kind == "odometer":
             fused = not reason or R.category(reason) in R.ACCEPTED
             if fused and isinstance(fields, dict):
