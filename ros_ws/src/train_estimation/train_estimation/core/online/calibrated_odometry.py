@@ -152,7 +152,7 @@ class DistanceAsPosition:
         self.speeds: tuple | None = None  # with the distance: the odometer's speeds integrated
         #   from the count at the last balise the calibration took, over every reading heard
         #   (fused or not): (stamp s, count m, speed m/s, variance m^2, speed variance, the
-        #   count read then m)
+        #   count read then m, the count read at the reading before less the track there m)
         self.odo_rv = math.nan  # speed variance of the last fused odometer reading
 
     def _new_calibrations(self, place: tuple | None = None) -> None:
@@ -497,7 +497,7 @@ class DistanceAsPosition:
         count it continues, agreed by the balise the calibration just took (or the first)."""
         t, d, v = self.odo
         rv = self.odo_rv if math.isfinite(self.odo_rv) else 0.0
-        self.speeds = (t, d, v, 0.0, rv, d)
+        self.speeds = (t, d, v, 0.0, rv, d, 0.0)
 
     def _heard(self, stamp: float, fields: dict) -> None:
         """An odometer reading heard (fused or not, before any check of its count) runs the
@@ -505,7 +505,8 @@ class DistanceAsPosition:
         what an acceleration up to :data:`COUNT_A_BOUND` may add to it (``COUNT_A_BOUND dt^2
         / 4``, taken as a standard deviation). A speed no train reaches from the track's last
         (beyond :data:`COUNT_JUMP_K` of the two readings' noise) is not taken (a corrupted
-        reading). The count itself is kept beside it as it was read (:meth:`_count_failed`)."""
+        reading). The count itself is kept beside it as it was read, and its distance from
+        the track at the reading before (:meth:`_count_failed`)."""
         sp = self.speeds
         if sp is None or not self.reads_distance:
             return
@@ -521,7 +522,7 @@ class DistanceAsPosition:
         if abs(v - sp[2]) > COUNT_A_BOUND * dt + COUNT_JUMP_K * math.sqrt(rv + sp[4]):
             return
         var = sp[3] + 0.25 * (sp[4] + rv) * dt * dt + (0.25 * COUNT_A_BOUND * dt * dt) ** 2
-        self.speeds = (stamp, sp[1] + 0.5 * (sp[2] + v) * dt, v, var, rv, d)
+        self.speeds = (stamp, sp[1] + 0.5 * (sp[2] + v) * dt, v, var, rv, d, sp[5] - sp[1])
 
     def _count_failed(self, stamp: float, fix: BaliseFix, variance: float) -> bool:
         """Whether a balise stamped ``stamp`` that the count's calibration refuses (``fix``,
@@ -544,25 +545,34 @@ class DistanceAsPosition:
         sp = self.speeds
         if sp is None or not self.reads_distance:
             return False
-        self.cal.walk_to(fix.distance)  # (as the calibration's own test of it does first)
-        nu, s_nu = self.cal._innovation(fix)
-        if not abs(nu) > self.cfg.balise_gate * math.sqrt(s_nu):
-            return False  # the count's calibration takes it (or cannot judge it: NaN)
         dt = stamp - sp[0]
         if not abs(dt) <= 2.0:
             return False  # no reading near the balise (an outage): the track says little
-        c = float(self.cal.theta[1])
+        # the count as read (not as last fused: a filter that refused a failed count's
+        # readings carries its last fused one at its speed, as the speeds do), off the
+        # speeds' track by the smaller of its last two readings' distances from it (one
+        # corrupted message is no count that failed: both must lie off it, on one side)
+        off_now, off_before = sp[5] - sp[1], sp[6]
+        off = min(off_now, off_before, key=abs) if off_now * off_before > 0.0 else 0.0
+        as_read = BaliseFix(fix.position, fix.variance, sp[1] + off + sp[2] * dt, fix.speed)
+        cal = self.cal.copy()  # (walked as the calibration's own test does first; a copy:
+        #   nothing of the calibration moves unless the count is excluded)
+        cal.walk_to(max(as_read.distance, fix.distance))
+        nu, s_nu = cal._innovation(as_read)
+        if not abs(nu) > self.cfg.balise_gate * math.sqrt(s_nu):
+            return False  # the count's calibration takes it (or cannot judge it: NaN)
+        c = float(cal.theta[1])
         # the speeds' count carried to the stamp at its last speed, as the count is
         # (_balise_fix), with an acceleration error of up to A_MAX
         var = sp[3] + sp[4] * dt * dt + (0.5 * A_MAX * dt * dt) ** 2
         by_speeds = BaliseFix(fix.position, variance + c * c * var, sp[1] + sp[2] * dt, sp[2])
-        nu, s_nu = self.cal._innovation(by_speeds)
+        nu, s_nu = cal._innovation(by_speeds)
         if not (math.isfinite(nu) and s_nu > 0.0) or \
                 abs(nu) > self.cfg.balise_gate * math.sqrt(s_nu):
             return False
-        # the count read against the speeds' count at one stamp (the track's latest reading):
-        # both channels' noise, the count's at both ends
-        apart = c * (sp[5] - sp[1])
+        # the count read against the speeds' count (both channels' noise, the count's at
+        # both ends)
+        apart = c * off
         s_apart = c * c * sp[3] + 2.0 * float(self.cfg.distance_variance)
         if not s_apart > 0.0:
             return False
