@@ -525,10 +525,11 @@ class DistanceAsPosition:
         self.speeds = (stamp, sp[1] + 0.5 * (sp[2] + v) * dt, v, var, rv, d, sp[5] - sp[1])
 
     def _count_failed(self, stamp: float, fix: BaliseFix, variance: float) -> bool:
-        """Whether a balise stamped ``stamp`` that the count's calibration refuses (``fix``,
-        outside ``balise_gate``; ``variance`` m^2, the reading's own) excludes the odometer's
-        count: fault detection and exclusion, as ARAIM does for a
-        satellite. The count and the speeds come from one sensor but fail apart (a register
+        """Whether a balise stamped ``stamp`` (``fix``, against the count as last fused;
+        ``variance`` m^2, the reading's own) that the count's calibration refuses on the
+        count as read (outside ``balise_gate``) excludes the odometer's count: fault
+        detection and exclusion, as ARAIM does for a satellite. The count and the speeds
+        come from one sensor but fail apart (a register
         that froze or lost one of its two pulse channels while the speeds read on). Two
         single faults explain a balise that the count contradicts: the balise lies elsewhere
         than the map says (the count and the speeds then agree with each other), or the count
