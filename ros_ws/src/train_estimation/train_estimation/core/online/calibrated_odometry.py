@@ -122,16 +122,15 @@ class DistanceAsPosition:
     """
 
     def _init_odometry(self) -> None:
+        # cal, cal_wide; cal_alt: after the wide one took over, the calibration it replaced,
+        # as the hypothesis "the reader is on time" (two balises at one speed cannot tell a
+        # late reader from a start or a count that is off), until a sequential
+        # likelihood-ratio test excludes one of the two (:meth:`_judge`); llr: log-likelihood
+        # of the balises under cal minus under cal_alt
         self._new_calibrations()
         self.latency_found = 0  # the wide calibration took over (event balise_latency)
         self.count_out: float | None = None  # stamp of the balise at which the count was
         #   excluded (:meth:`_count_failed`): from then on the estimator reads no distance
-        # after it took over, the calibration it replaced, as the hypothesis "the reader is on
-        # time" (two balises at one speed cannot tell a late reader from a start or a count
-        # that is off), until a sequential likelihood-ratio test excludes one of the two
-        # (:meth:`_judge`); llr: log-likelihood of the balises under cal minus under cal_alt
-        self.cal_alt: OdometerCalibration | None = None
-        self.llr = 0.0
         self.odo: tuple | None = None  # (stamp s, distance m, speed m/s) of the last fused
         #   odometer reading, as counted (without the distance: the count made of the speeds)
         self.anchor = (0.0, 0.0)  # without the distance: (count m, counted speed m/s) at the
@@ -175,7 +174,8 @@ class DistanceAsPosition:
         self.cal = calibration(cfg.balise_latency_std)
         self.cal_wide = calibration(LATENCY_WIDE) \
             if cfg.balise_latency_std < LATENCY_WIDE else None
-        self.cal_alt, self.llr = None, 0.0
+        self.cal_alt: OdometerCalibration | None = None
+        self.llr = 0.0
 
     @property
     def reads_distance(self) -> bool:
@@ -521,8 +521,9 @@ class DistanceAsPosition:
         dt = stamp - sp[0]
         if abs(v - sp[2]) > COUNT_A_BOUND * dt + COUNT_JUMP_K * math.sqrt(rv + sp[4]):
             return
-        var = sp[3] + 0.25 * (sp[4] + rv) * dt * dt + (0.25 * COUNT_A_BOUND * dt * dt) ** 2
-        self.speeds = (stamp, sp[1] + 0.5 * (sp[2] + v) * dt, v, var, rv, d, sp[5] - sp[1])
+        trap, slack, _ = self._course(sp, stamp, v, rv)  # (the count's course from sp)
+        var = sp[3] + 0.25 * (sp[4] + rv) * dt * dt + slack ** 2
+        self.speeds = (stamp, sp[1] + trap, v, var, rv, d, sp[5] - sp[1])
 
     def _count_failed(self, stamp: float, fix: BaliseFix, variance: float) -> bool:
         """Whether a balise stamped ``stamp`` (``fix``, against the count as last fused;
