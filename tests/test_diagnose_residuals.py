@@ -4,9 +4,7 @@ several line families within the binomial bound, and its power on hidden sensor 
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
-import io
 import os
 import sys
 
@@ -169,22 +167,12 @@ def test_the_speed_against_the_count_holds_its_false_alarm_rate_and_finds_a_lag(
 def _bag_checks(seed: int, effect=None, alpha: float = 1e-3) -> dict:
     """The checks on a nominal bag of ``train_sim.cases`` (seeded; its family drawn), with
     ``effect(speeds, rng)`` added to the odometer's speed readings."""
-    import tempfile
-    from pathlib import Path
-
     from train_estimation.core.offline.diagnose.motion import Motion
     from train_estimation.core.offline.diagnose.phases import sensor_residuals
     from train_estimation.core.offline.diagnose.run import DiagConfig, prepare
     from train_estimation.core.offline.diagnose.stage import Null, Stage
-    from train_estimation.tools.diagnose import read_measured
-    from train_sim.cases import make_case
-    from train_sim.generate import generate
 
-    case = make_case(np.random.default_rng([seed, 31]), None, "plain")
-    with tempfile.TemporaryDirectory() as d:
-        with contextlib.redirect_stdout(io.StringIO()):
-            generate(case.scenario, Path(d) / "bag", measured=True)
-        data = read_measured(Path(d) / "bag")
+    case, data = BS.nominal_bag(seed)  # (the balise checks' false-alarm tests read them too)
     if effect is not None:
         data = dataclasses.replace(data, odo_speed=effect(data.odo_speed,
                                                           np.random.default_rng(seed),
