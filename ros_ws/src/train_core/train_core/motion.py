@@ -13,6 +13,7 @@ Pure module: the standard library and numpy.
 from __future__ import annotations
 
 import math
+from bisect import bisect_right
 from collections.abc import Callable
 
 import numpy as np
@@ -57,26 +58,78 @@ class Motion:
         braking_rate_const = self.braking_rate_const
         split = dyn.split
         act.track_br = split
-        for i in range(n):
+        if not split:
+            self._integrate_plain(t_start, n, h, visit)
+        for i in range(n if split else 0):  # the delivered drive's effects at each stage
             t0 = t_start + i * h
             f = braking_rate_const if braking_rate_const is not None else \
                 self.braking_rate_of_t(t0 + 0.5 * h)
             ue = act.effective(f)  # constant over the span (it ends at the next input change)
-            if split:
-                ub = f * act.u_br
-                a0, a_mid, a_end = act.segment(h, f)
-                x0 = st.x
-                dyn.t = t0 + 0.5 * h
-                dyn.step(st, h, a0, a_mid, a_end, ue, tau, (*act.br_stages, ub))
-            else:
-                a0, a_mid, a_end = act.segment(h, f)
-                x0 = st.x
-                dyn.step(st, h, a0, a_mid, a_end, ue, tau)
+            ub = f * act.u_br
+            a0, a_mid, a_end = act.segment(h, f)
+            x0 = st.x
+            dyn.t = t0 + 0.5 * h
+            dyn.step(st, h, a0, a_mid, a_end, ue, tau, (*act.br_stages, ub))
             if visit is not None and st.x > x0:
                 visit(t0, h, x0, st.x)
         self.t = t_next
         act.t = t_next  # no round-off drift between the actuator and the caller's clock
         act._activate()
+
+    def _integrate_plain(self, t_start: float, n: int, h: float, visit) -> None:
+        """:meth:`integrate`'s loop for the nominal drive (no power limit, adhesion section or
+        hook): ``Actuator.segment``, ``Dynamics.step``'s RK4 and ``Dynamics.accel`` written out
+        with the same operations in the same order, so the same floats (the simulator and the
+        driver's pilot runs spent about half of their time in those calls). A step that starts
+        at rest or ends in a stop goes through ``Dynamics.step``, which recomputes the same RK4
+        and cuts it at the stopping instant."""
+        act, dyn, st = self.act, self.dyn, self.state
+        tau = act.tau
+        f_const, f_of = self.braking_rate_const, self.braking_rate_of_t
+        e = math.exp(-0.5 * h / tau)  # (Actuator.segment's factor: h and tau fixed here)
+        kappa, ra, rb, rc = dyn.kappa, dyn.ra, dyn.rb, dyn.rc
+        bounds, values = dyn.grad.bounds, dyn.grad.values
+        pipe, bpipe = act._pipe, act._bpipe
+        h2 = 0.5 * h
+        for i in range(n):
+            t0 = t_start + i * h
+            f = f_const if f_const is not None else f_of(t0 + 0.5 * h)
+            ue = act.u_tr + f * act.u_br  # Actuator.effective
+            a0 = act.a  # Actuator.segment (its braking part untracked: track_br False)
+            a_mid = ue + (a0 - ue) * e
+            a_end = ue + (a_mid - ue) * e
+            act.a = a_end
+            act.t += h
+            ta = act.t + _EPS
+            if (pipe and pipe[0][0] <= ta) or (bpipe and bpipe[0][0] <= ta):
+                act._activate()
+            x = x0 = st.x
+            if st.stopped:
+                dyn.step(st, h, a0, a_mid, a_end, ue, tau)
+            else:
+                # Dynamics._rk4 with Dynamics.accel at its four stages (v >= 0 as there)
+                v = st.v
+                w = 0.0 if v < 0.0 else v
+                k1 = kappa * a0 - (ra + (rb + rc * w) * w) - values[bisect_right(bounds, x)]
+                v2 = v + h2 * k1
+                w = 0.0 if v2 < 0.0 else v2
+                k2 = kappa * a_mid - (ra + (rb + rc * w) * w) - \
+                    values[bisect_right(bounds, x + h2 * v)]
+                v3 = v + h2 * k2
+                w = 0.0 if v3 < 0.0 else v3
+                k3 = kappa * a_mid - (ra + (rb + rc * w) * w) - \
+                    values[bisect_right(bounds, x + h2 * v2)]
+                v4 = v + h * k3
+                w = 0.0 if v4 < 0.0 else v4
+                k4 = kappa * a_end - (ra + (rb + rc * w) * w) - \
+                    values[bisect_right(bounds, x + h * v3)]
+                v1 = v + h * (k1 + 2.0 * k2 + 2.0 * k3 + k4) / 6.0
+                if v1 > 0.0:
+                    st.x, st.v = x + h * (v + 2.0 * v2 + 2.0 * v3 + v4) / 6.0, v1
+                else:
+                    dyn.step(st, h, a0, a_mid, a_end, ue, tau)
+            if visit is not None and st.x > x0:
+                visit(t0, h, x0, st.x)
 
     @property
     def drive_acceleration(self) -> float:
