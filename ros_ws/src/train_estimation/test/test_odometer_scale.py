@@ -931,6 +931,44 @@ def test_a_failed_count_is_excluded_and_the_speeds_and_balises_carry_the_train(k
     assert np.abs(err[after]).max() < 10.0
 
 
+@pytest.mark.slow
+def test_a_count_frozen_while_braking_without_a_counter_is_excluded_not_taken_for_a_clock():
+    """The full campaign's crh3_high_speed row without a counter (``--no-counter``): the count
+    frozen from 618 s while the train brakes from 82 m/s at 1 Hz, the kf. Without a counter
+    the count times the stamps, and each frozen reading lies a second further off the count's
+    clock; its arrival lies on the clock the stream kept, which a step of a second would have
+    moved (the link's jitter is 30 ms). Each was held and refused as stamped ahead: no odometer
+    for 70 s (ALARM), then the frozen count taken up again 6.8 km behind the train to the end.
+    The arrivals say the count left the train's course, not the stamps (``count_slip``): the
+    readings are judged by the filter, and the next balise excludes the count."""
+    import zlib
+
+    from train_estimation.core.online.estimators import NodeConfig
+
+    sc, res = run("crh3_high_speed", 0, 918.0)
+    fault = F.Fault("count_rate", 0.0, 618.0)
+    events = [e for e in res.events() if e[1] <= 918.0]
+    case = zlib.crc32(f"crh3_high_speed|{fault.label}|{fault.at}".encode())
+    fl = F.inject(events, fault, np.random.default_rng([0, case]))  # the campaign's draw
+    assert _count_off(res.events(), fl.events) > 1000.0  # not a mild case
+    fl.events = F.uncounted(fl.events)
+    cfg = NodeConfig()
+    outs, emitted, runner = F.run(fl.events, adapter(sc, "kf"), 1.0 / sc.odometer_rate,
+                                  delay=cfg.output_delay, tick_period=cfg.tick_period,
+                                  control_clock=cfg.control_clock, max_future=cfg.max_future,
+                                  slot_grace=cfg.slot_grace)
+    assert runner.events["balise:count_excluded"] == 1, dict(runner.events)
+    # (each reading while the train braked to its stop, some 80 s; a standing train's count
+    # times no stamp)
+    assert runner.events["odometer:count_slip"] > 60, dict(runner.events)
+    assert runner.rejected["odometer:future_stamp"] == 0, dict(runner.rejected)
+    s = F.score(outs, emitted, fl, res.truth, sc.odometer_rate, 918.0 + F.LATENCY)
+    assert s["misleading"] == 0 and s["wrong_side"] == 0, s
+    _, err = _errors(outs, emitted, fl, res.truth)
+    after = np.array([o.stamp for o in outs]) > runner.adapter.count_out
+    assert after.sum() > 200 and np.abs(err[after]).max() < 10.0
+
+
 @pytest.mark.parametrize("kind", ["robust", "kf"])
 @pytest.mark.parametrize("fault", [F.Fault("none"), F.Fault("balise", 30.0, 100.0),
                                    F.Fault("balise", -30.0, 100.0),

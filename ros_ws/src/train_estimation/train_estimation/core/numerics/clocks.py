@@ -2160,8 +2160,9 @@ class StepWatch:
           follow as ADMITs (judged as any other);
         - ``(SLIP, r)``: no step, the odometer's count (no counter) left its speed by ``r`` s
           of count time (a wheel that slid or slipped) while the stamps and arrivals stayed on
-          their clock (:meth:`_count_moved`); the count's chain restarts at the next fused
-          reading and the held readings follow as ADMITs (judged as any other);
+          their clock (:meth:`_count_moved`; or this reading alone, where its arrival tells);
+          the count's chain restarts at the next fused reading and the held readings follow as
+          ADMITs (judged as any other);
         - last, for this reading: ``(PASS, stamp)``, go on judging it at this timeline stamp
           (mapped when it completed a step; one beyond ``max_future`` is held only as evidence
           for a step and passes, to be refused at the door as always), or ``(HOLD,)``, nothing
@@ -2224,6 +2225,23 @@ class StepWatch:
             self._learn_grids(stamp, fields)
         r, r_tol = self._resid_tol(kind, stamp, fields, chain)
         seq = fields.get("seq") if isinstance(fields, dict) else None
+        if r is not None and seq is None and abs(r) > r_tol and not chain and on_pace and \
+                recv is not None and med.judged and \
+                self._arrivals_stayed([(kind, stamp, fields, recv, arrival, False)], r,
+                                      stamp - arrival, med):
+            # The count (no counter) puts it r s off its clock while its arrival lies on the
+            # clock the stream kept, where the link's jitter can tell the two apart
+            # (arrivals_llr below -LEVEL_LLR): the count left the train's course (it froze,
+            # counts at another rate, slid), not the stamps. The count is then no evidence on
+            # this stamp: judged by the arrivals and the phase as without a count, no link of
+            # the count's chain learnt into it, its content left to the filter and to the
+            # count's exclusion. (Taken as a stamp ahead, every reading of a count frozen while
+            # the train braked was refused, the estimate had no odometer for 70 s, and then
+            # took up the frozen count again 6.8 km behind the train.) Logged as the count's
+            # slip, as a held chain's (_count_moved) is.
+            self._slipped.add(stamp)
+            yield SLIP, r
+            r = None
         if r is not None and seq is None and abs(r) <= r_tol:
             # the count (no counter) places it on its clock within r_tol: a move of the bar's
             # size (behind, ahead, a stamp jump) is excluded, a small forward step on the
