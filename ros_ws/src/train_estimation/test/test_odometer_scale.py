@@ -931,6 +931,51 @@ def test_a_failed_count_is_excluded_and_the_speeds_and_balises_carry_the_train(k
     assert np.abs(err[after]).max() < 10.0
 
 
+def test_without_the_distance_the_robust_filter_fuses_balises_where_the_latency_puts_them():
+    """The robust filter without the distance (``use_distance: false``, as after the count's
+    exclusion) takes a balise where the calibration's reader latency puts the train: the map
+    position plus the speed times the latency. That position went to the filter as the
+    message's sent position, which the filter checks against its map to 1 m: at 82 m/s
+    (crh3_high_speed) every balise was refused as ``balise_map_mismatch`` and the position's
+    bound grew without one (to 10.8 km in the campaign), and a slower train's balise was fused
+    at the map's position, the latency ignored. Now the message is checked as sent and the
+    filter fuses the position the calibration gives (``BaliseReading.measured``)."""
+    sc, res = run("crh3_high_speed", 0, 400.0)
+    events = [e for e in res.events() if e[1] <= 400.0]
+    a = adapter(sc, "robust", use_distance=False)
+    outs, emitted, runner = F.run(events, a, 1.0 / sc.odometer_rate)
+    read = sum(e[0] == "balise" for e in events)
+    assert read >= 5
+    assert runner.rejected["balise:balise_map_mismatch"] == 0, dict(runner.rejected)
+    assert a.f.counters["balise_map_mismatch"] == 0, dict(a.f.counters)
+    fused = [o for o in outs if o.stamp > 200.0]  # (at speed: 60-82 m/s)
+    s = F.score(outs, emitted, F.inject(events, F.Fault("none"), np.random.default_rng(0)),
+                res.truth, sc.odometer_rate, 400.0 + F.LATENCY)
+    assert s["misleading"] == 0 and s["wrong_side"] == 0, s
+    # the bound stays that of a filter that meets a balise every few km, not one without any
+    assert max(o.protection_level_ahead for o in fused) < 2000.0
+
+
+def test_a_balise_reading_is_fused_at_its_measured_position_and_checked_as_sent():
+    """``BaliseReading.measured``: the filter fuses it, and still refuses a message whose sent
+    position is off its map, or a measured position that is not finite."""
+    from train_estimation.core.robust.readings import BaliseReading
+
+    sc, _ = run("metro_demo", 0, 10.0)
+    bid, pos = sc.line.balises[0].id, sc.line.balises[0].position
+    a = adapter(sc, "robust", use_distance=False)
+    a.start(0.0)
+    f = a.f
+    kind, m = f._measurement(BaliseReading(1.0, 1, bid, pos, 1.0, measured=pos + 7.5))
+    assert kind == "balise" and float(m.y[0]) == pos + 7.5
+    _, m = f._measurement(BaliseReading(1.0, 1, bid, pos, 1.0))
+    assert float(m.y[0]) == pos
+    _, why = f._measurement(BaliseReading(1.0, 1, bid, pos + 7.5, 1.0, measured=pos + 7.5))
+    assert why == "balise_map_mismatch"
+    _, why = f._measurement(BaliseReading(1.0, 1, bid, pos, 1.0, measured=math.nan))
+    assert why == "non_finite"
+
+
 @pytest.mark.slow
 def test_a_count_frozen_while_braking_without_a_counter_is_excluded_not_taken_for_a_clock():
     """The full campaign's crh3_high_speed row without a counter (``--no-counter``): the count

@@ -275,8 +275,13 @@ class RobustAdapter(DistanceAsPosition):
             self.f.shift(0.0, dv)
             self.f.inflate(np.diag([q, 0.0]))
             before = self._carried(self.f.x, self.f.P, max(stamp - self.f.t, 0.0))
+            # (the message's position stays what was sent, checked against the map; ``pos``
+            # is where the train stood: passed as the sent position, a latency moving it by
+            # more than the map's tolerance, 1 m, had every balise refused at speed, and one
+            # within it was fused at the map's position, the latency ignored)
             d = self.f.update(BaliseReading(stamp=stamp, seq=r.seq, balise_id=r.balise_id,
-                                            position=pos, position_variance=var))
+                                            position=r.position, position_variance=var,
+                                            measured=pos))
             if d.accepted:
                 self._balise_fused(fix, float(self.f.x[0]), before)
             return "" if d.accepted else d.reason

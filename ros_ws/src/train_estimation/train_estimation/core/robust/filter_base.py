@@ -270,6 +270,10 @@ class FilterBase:
                 return kind, R.UNKNOWN_BALISE
             if abs(pos - reading.position) > p.balise_map_tolerance:
                 return kind, R.BALISE_MAP_MISMATCH
+            if reading.measured is not None:
+                if not math.isfinite(reading.measured):
+                    return kind, R.NON_FINITE
+                pos = float(reading.measured)
             return kind, Measurement(
                 y=np.array([pos]), C=_POS.copy(), R=np.array([[reading.position_variance]]),
                 abar=np.array([p.alpha_bar_balise]), group=np.zeros(1, int),

@@ -48,6 +48,10 @@ class BaliseReading:
     balise_id: int
     position: float  # m, surveyed position as sent
     position_variance: float  # m^2
+    # m, where the train stood at ``stamp`` by this reading when that is not the map position
+    # itself (the calibration's reader latency moves it by the speed times the latency); None:
+    # the map position. ``position`` is still checked against the map (the message as sent).
+    measured: float | None = None
 
 
 def covariance16(Sigma: np.ndarray) -> list[float]:
