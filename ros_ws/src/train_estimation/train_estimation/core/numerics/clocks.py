@@ -2226,19 +2226,17 @@ class StepWatch:
         r, r_tol = self._resid_tol(kind, stamp, fields, chain)
         seq = fields.get("seq") if isinstance(fields, dict) else None
         if r is not None and seq is None and abs(r) > r_tol and not chain and on_pace and \
-                recv is not None and med.judged and \
-                self._arrivals_stayed([(kind, stamp, fields, recv, arrival, False)], r,
-                                      stamp - arrival, med):
-            # The count (no counter) puts it r s off its clock while its arrival lies on the
-            # clock the stream kept, where the link's jitter can tell the two apart
-            # (arrivals_llr below -LEVEL_LLR): the count left the train's course (it froze,
-            # counts at another rate, slid), not the stamps. The count is then no evidence on
-            # this stamp: judged by the arrivals and the phase as without a count, no link of
-            # the count's chain learnt into it, its content left to the filter and to the
-            # count's exclusion. (Taken as a stamp ahead, every reading of a count frozen while
-            # the train braked was refused, the estimate had no odometer for 70 s, and then
-            # took up the frozen count again 6.8 km behind the train.) Logged as the count's
-            # slip, as a held chain's (_count_moved) is.
+                recv is not None and med.judged and self._arrival_stayed(r, stamp - arrival,
+                                                                         arrival, med):
+            # The count (no counter) puts it r s off its clock while its arrival tells that the
+            # stamps did not move (_arrival_stayed): the count left the train's course (it
+            # froze, counts at another rate, slid), not the stamps. The count is then no
+            # evidence on this stamp: judged by the arrivals and the phase as without a count,
+            # no link of the count's chain learnt into it, its content left to the filter and
+            # to the count's exclusion. (Taken as a stamp ahead, every reading of a count frozen
+            # while the train braked was refused, the estimate had no odometer for 70 s, and
+            # then took up the frozen count again 6.8 km behind the train.) Logged as the
+            # count's slip, as a held chain's (_count_moved) is.
             self._slipped.add(stamp)
             yield SLIP, r
             r = None
@@ -2730,6 +2728,21 @@ class StepWatch:
         m = self._arrivals_shift(chain, new_off, med)
         llr = arrivals_llr(r, *m) if m is not None else None
         return llr is not None and llr < -LEVEL_LLR and self._arrivals_at(m, 0.0, med)
+
+    def _arrival_stayed(self, r: float, off: float, arrival: float, med: StreamClock) -> bool:
+        """Whether one reading's arrival (offset ``off`` s at ``arrival``) tells that its stamp
+        did not move by the ``r`` s its count puts it off its clock. A link's latency is its
+        floor plus a one-sided excess, about exponential: a stamp moved by ``r`` puts the offset
+        ``r`` further from where the link's excess would have put it, so that for a reading
+        within the clock's envelope the likelihood ratio of "stayed" against "moved" is
+        exp(|r| / j), j the excess's mean (the robust spread, 1.4826 MADs, is 0.71 of an
+        exponential's mean), whatever the reading's own latency. Beyond ``LEVEL_LLR`` (|r| >
+        4.5 j), and the offset nearer the clock than the move: it stayed. (A Gaussian of the
+        spread took a late reading of a +0.1 s step on a 50 ms link, its offset 0.1 s below the
+        clock's centre, for one that stayed.)"""
+        j = max(med.jitter, 1e-3) / 0.71
+        moved = off - med.now(arrival)
+        return abs(r) > LEVEL_LLR * j and abs(moved) < abs(moved - r)
 
     def _counter_restarted(self, chain: list, r: float, new_off: float, med: StreamClock) \
             -> bool:
