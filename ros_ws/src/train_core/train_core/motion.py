@@ -58,20 +58,21 @@ class Motion:
         braking_rate_const = self.braking_rate_const
         split = dyn.split
         act.track_br = split
-        if not split:
+        if split:  # the delivered drive's effects at each stage
+            for i in range(n):
+                t0 = t_start + i * h
+                f = braking_rate_const if braking_rate_const is not None else \
+                    self.braking_rate_of_t(t0 + 0.5 * h)
+                ue = act.effective(f)  # constant over the span (ends at the next input change)
+                ub = f * act.u_br
+                a0, a_mid, a_end = act.segment(h, f)
+                x0 = st.x
+                dyn.t = t0 + 0.5 * h
+                dyn.step(st, h, a0, a_mid, a_end, ue, tau, (*act.br_stages, ub))
+                if visit is not None and st.x > x0:
+                    visit(t0, h, x0, st.x)
+        else:
             self._integrate_plain(t_start, n, h, visit)
-        for i in range(n if split else 0):  # the delivered drive's effects at each stage
-            t0 = t_start + i * h
-            f = braking_rate_const if braking_rate_const is not None else \
-                self.braking_rate_of_t(t0 + 0.5 * h)
-            ue = act.effective(f)  # constant over the span (it ends at the next input change)
-            ub = f * act.u_br
-            a0, a_mid, a_end = act.segment(h, f)
-            x0 = st.x
-            dyn.t = t0 + 0.5 * h
-            dyn.step(st, h, a0, a_mid, a_end, ue, tau, (*act.br_stages, ub))
-            if visit is not None and st.x > x0:
-                visit(t0, h, x0, st.x)
         self.t = t_next
         act.t = t_next  # no round-off drift between the actuator and the caller's clock
         act._activate()
