@@ -39,20 +39,27 @@ def nominal_bag(seed: int):
     its nominal bag as diagnose reads it. Kept, with its arrays read-only: the false-alarm tests
     of the balise and odometer checks read the same twelve bags (generating each took about a
     second, three times over)."""
-    from train_estimation.tools.diagnose import read_measured
     from train_sim.cases import make_case
-    from train_sim.generate import generate
 
     case = make_case(np.random.default_rng([seed, 31]), None, "plain")
-    with tempfile.TemporaryDirectory() as d:
-        with contextlib.redirect_stdout(io.StringIO()):
-            generate(case.scenario, Path(d) / "bag", measured=True)
-        data = read_measured(Path(d) / "bag")
+    data = _bag(case.scenario)
     for f in dataclasses.fields(data):
         a = getattr(data, f.name)
         if isinstance(a, np.ndarray):
             a.flags.writeable = False
     return case, data
+
+
+def _bag(scenario):
+    """The measured data of ``scenario``'s bag, generated into a temporary folder and read back as
+    diagnose reads a bag."""
+    from train_estimation.tools.diagnose import read_measured
+    from train_sim.generate import generate
+
+    with tempfile.TemporaryDirectory() as d:
+        with contextlib.redirect_stdout(io.StringIO()):
+            generate(scenario, Path(d) / "bag", measured=True)
+        return read_measured(Path(d) / "bag")
 
 
 def _case(seed: int, k: float = 1.0, error=None):
@@ -63,9 +70,7 @@ def _case(seed: int, k: float = 1.0, error=None):
     from train_estimation.core.offline.diagnose.motion import Motion
     from train_estimation.core.offline.diagnose.run import DiagConfig, prepare
     from train_estimation.core.offline.diagnose.stage import Null, Stage
-    from train_estimation.tools.diagnose import read_measured
     from train_sim.cases import make_case
-    from train_sim.generate import generate
 
     if k == 1.0 and error is None:  # the reader as stated: the nominal bag
         case, data = nominal_bag(seed)
@@ -74,11 +79,7 @@ def _case(seed: int, k: float = 1.0, error=None):
         case = make_case(np.random.default_rng([seed, 31]), None, "plain")
         sc, train = case.scenario, case.scenario.train
         sd = k * train.balise_position_std if error is None else 1e-6
-        true = sc.with_changes(train=dataclasses.replace(train, balise_position_std=sd))
-        with tempfile.TemporaryDirectory() as d:
-            with contextlib.redirect_stdout(io.StringIO()):
-                generate(true, Path(d) / "bag", measured=True)
-            data = read_measured(Path(d) / "bag")
+        data = _bag(sc.with_changes(train=dataclasses.replace(train, balise_position_std=sd)))
     pos = data.balise_position
     if error is not None:
         v = np.interp(data.balise_stamp, data.odo_stamp, data.odo_speed)
