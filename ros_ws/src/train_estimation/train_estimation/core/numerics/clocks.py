@@ -2737,7 +2737,8 @@ class StepWatch:
         within the clock's envelope the likelihood ratio of "stayed" against "moved" is
         exp(|r| / j), j the excess's mean (the robust spread, 1.4826 MADs, is 0.71 of an
         exponential's mean), whatever the reading's own latency. Beyond ``LEVEL_LLR`` (|r| >
-        4.5 j), and the offset nearer the clock than the move: it stayed. (A Gaussian of the
+        4.5 j), and the offset nearer the clock's centre than the move (which stands in for
+        the envelope: the ceiling itself is not asked): it stayed. (A Gaussian of the
         spread took a late reading of a +0.1 s step on a 50 ms link, its offset 0.1 s below the
         clock's centre, for one that stayed.)"""
         j = max(med.jitter, 1e-3) / 0.71
