@@ -107,6 +107,26 @@ def inputs_matched(pubs: dict, n: int) -> bool:
     return all(pubs[t].get_subscription_count() >= n for t in ESTIMATOR_INPUTS if t in pubs)
 
 
+def unacknowledged(pubs: dict, counts: dict) -> list[str]:
+    """The topics (of ``pubs``: topic -> publisher) that published (``counts``: topic ->
+    messages sent) and whose reliable readers have not all acknowledged every message yet.
+
+    A matched subscription count is the writer's side of discovery only: the reader may
+    discover the writer later, and until it does it drops the writer's data, which the
+    writer then sends again. One reader can thus get a topic's first messages a moment after
+    another topic's (at 20x real time, 100 ms of wall time are 2 s of stamps): a fresh-clone
+    CI run had the GSMA's first command reach it after 2.2 s of odometer readings, fused late,
+    and its estimate at 0.1 s differed from the same run's in the 8th digit. A sender that
+    waits for its first messages to be acknowledged before sending more knows every reader
+    has each topic from its first message on; after that, a reliable topic is delivered in
+    order. (Non-blocking: rmw's wait with a zero timeout; a best-effort reader acknowledges
+    nothing and is not waited for.)"""
+    from rclpy.duration import Duration
+
+    now = Duration(seconds=0)
+    return [t for t, p in pubs.items() if counts.get(t) and not p.wait_for_all_acked(now)]
+
+
 def declarer(node):
     """``declare(name, default, text, lo=None, hi=None) -> value``: declare_parameter with a
     descriptor (the description; ``lo``/``hi``: a FloatingPointRange or IntegerRange).

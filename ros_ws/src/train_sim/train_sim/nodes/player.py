@@ -35,7 +35,8 @@ class PlayerConfig:
                                     "topics of the bag to publish (relative names)")
     rate_factor: float = param(1.0, "-", "bag seconds per wall second", lo=0.0)
     wait_for_subscribers: int = param(0, "", "start when each of control, odometer and balise "
-                                      "has this many subscribers", lo=0)
+                                      "has this many subscribers, and go on past the first "
+                                      "messages once every reader acknowledged them", lo=0)
     clock_period: float = param(0.1, "s", "wall time between two /clock messages at most; "
                                 "/clock is also said before every step that publishes "
                                 "messages. <= 0.005 (the stepping timer's period): every "

@@ -18,6 +18,7 @@ from train_core.ros import (
     inputs_matched,
     msg_class,
     sec_to_stamp,
+    unacknowledged,
 )
 
 from train_sim.nodes.player import PlayerConfig
@@ -50,6 +51,10 @@ class Player(Node):
         self.i = 0
         self.t0_bag = self.items[0][0] if self.items else 0.0
         self.wall0 = None
+        # with readers waited for, the messages after the first ones follow once every reader
+        # has acknowledged those (train_core.ros.unacknowledged)
+        self.acked = not self.wait_subs
+        self.sent = dict.fromkeys(self.pubs, 0)
         self.finished = False
         self.timer = self.create_timer(0.005, self.tick)
         self.get_logger().info(f"playing {len(self.items)} messages of {bag} "
@@ -61,6 +66,12 @@ class Player(Node):
                 return
             self.wall0 = time.monotonic()
         now = time.monotonic()
+        if not self.acked and self.i:
+            if unacknowledged(self.pubs, self.sent):
+                return
+            # the bag goes on from the last message sent: the wait is no bag time
+            self.acked = True
+            self.wall0 = now - (self.items[self.i - 1][0] - self.t0_bag) / self.rate
         t_bag = self.t0_bag + (now - self.wall0) * self.rate
         # the clock first, then what was logged by it: a node on simulated time receives
         # each message at or after its log time, never before. Without messages, every
@@ -77,6 +88,7 @@ class Player(Node):
         while self.i < len(self.items) and self.items[self.i][0] <= t_bag:
             stamp, topic, fields = self.items[self.i]
             self.pubs[topic].publish(fields_to_msg(TOPIC_TYPES[topic], stamp, fields))
+            self.sent[topic] += 1
             self.i += 1
         if self.i >= len(self.items) and t_bag > last + 2.0:
             self.get_logger().info("bag played")

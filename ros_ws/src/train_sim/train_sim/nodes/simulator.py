@@ -47,7 +47,9 @@ class SimulatorConfig:
                                 "/clock is also said before every step that delivers "
                                 "messages. <= wall_step: every step", lo=0.0)
     wait_for_subscribers: int = param(0, "", "start only when control, odometer and balise "
-                                      "have this many subscribers each", lo=0)
+                                      "have this many subscribers each, and go on past the "
+                                      "first messages once every reader acknowledged them",
+                                      lo=0)
     wait_for_truth_subscribers: int = param(0, "", "and ground_truth has this many "
                                             "subscribers", lo=0)
     publish_clock: bool = param(True, "", "publish /clock (one simulator per ROS graph should)")

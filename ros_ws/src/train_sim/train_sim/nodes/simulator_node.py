@@ -26,6 +26,7 @@ from train_core.ros import (
     msg_class,
     sec_to_stamp,
     stamp_to_sec,
+    unacknowledged,
 )
 
 from train_interfaces.msg import MovementAuthority
@@ -89,6 +90,9 @@ class SimulatorNode(Node):
         self.report_step = self.duration / 20.0
         self.next_report = self.report_step
         self.wall0 = None
+        # with readers waited for, the world goes on past its first messages once every
+        # reader has acknowledged them (train_core.ros.unacknowledged)
+        self.acked = not (self.wait_subs or self.wait_truth)
         self.waiting_since = None  # monotonic s since the world has stood waiting
         self.finished = False
         self.done = False
@@ -195,6 +199,22 @@ class SimulatorNode(Node):
                 now -= time.time() - self.start_at  # the shared instant, not this tick
             self.wall0 = now
             self.waiting_since = None
+        if not self.acked and any(self.counts.values()):
+            late = unacknowledged(self.pubs, self.counts)
+            if late:  # the world stands, its clock said again, until every reader has them
+                self._say_clock(now)
+                self._say_waiting(now, lambda: "waiting for every reader to acknowledge the "
+                                               "first messages on " + ", ".join(late))
+                return
+            waited = 0.0 if self.waiting_since is None else now - self.waiting_since
+            self.get_logger().info(f"the first messages acknowledged by every reader "
+                                   f"({waited * 1e3:.0f} ms waited)")
+            self.acked, self.waiting_since = True, None
+            # the wait is no simulated time (a shared start_at keeps its time base)
+            if self.paced:
+                self.last_wall = now
+            elif not self.start_at:
+                self.wall0 = now - self.t_sim / self.rate_factor
         if self.paced:  # advance by wall time elapsed, up to the slowest paced topic
             last, self.last_wall = self.last_wall or now, now
             target = min(self.t_sim + (now - last) * self.rate_factor,
