@@ -431,9 +431,15 @@ def _braking_run(lag: float, seed: int, duration: float = 900.0, rate: float = 1
     ph = t % 120.0
     want = np.where((ph >= 40) & (ph < 60), -0.8, np.where(ph >= 80, 0.4, 0.0)) + \
         ripple * np.sin(2.0 * np.pi * t / 17.0)
-    a = np.zeros_like(t)
-    for k in range(1, t.size):
-        a[k] = a[k - 1] + np.clip(want[k] - a[k - 1], -dt, dt)
+    # the set point followed at COUNT_JERK: a[k] = a[k-1] + clip(want[k] - a[k-1], -dt, dt),
+    # on Python floats (the same comparisons and sums as np.clip's on numpy scalars, at a
+    # twentieth of their cost: 900,000 steps a run)
+    acc, prev = [0.0] * t.size, 0.0
+    for k, w in enumerate(want.tolist()[1:], 1):
+        d = w - prev
+        prev += dt if d > dt else -dt if d < -dt else d
+        acc[k] = prev
+    a = np.array(acc)
     v = 20.0 + np.cumsum(a) * dt
     wheel = v
     if slide is not None:
