@@ -153,6 +153,10 @@ class DistanceAsPosition:
         #   (fused or not): (stamp s, count m, speed m/s, variance m^2, speed variance, the
         #   count read then m, the count read at the reading before less the track there m)
         self.odo_rv = math.nan  # speed variance of the last fused odometer reading
+        self.unsure_taken = False  # without the distance: the doubt of the readings' stamps
+        #   (CLOCK_UNSURE) is in the calibrations' origin (_unsure_count)
+        self.unsure_var = 0.0  # m^2, that doubt, not yet given to the filter (the position it
+        #   carries on the speeds is in doubt as much: _balise_for_filter)
 
     def _new_calibrations(self, place: tuple | None = None) -> None:
         """The calibration (:attr:`cal`) from its priors, the same with a wide latency prior
@@ -442,7 +446,41 @@ class DistanceAsPosition:
         if undo is not None:
             self.splice, self.restarts, self.cal, self.cal_wide, self.cal_alt = undo
 
+    def _unsure_count(self, stamp: float, fields: dict) -> None:
+        """Without the distance, the count is the speeds integrated over the stamps
+        (:meth:`_count`), and across a silence after which the stamps are in doubt by ``T``
+        s (:data:`CLOCK_UNSURE`: a step back of the train clock and a link latency that rose
+        as much read alike) that integral is in doubt by the train's motion over ``T``: the
+        calibrations' origin takes ``(c v T)^2`` more variance from this count on, once per
+        such doubt (its first fused reading spans the silence; the readings after it are
+        timed against one another). Without it, a reboot whose clock stepped back 3 s at 82
+        m/s (crh3_high_speed, kf without the distance) had the count 246 m short at the next
+        balise, stated to a few metres: the wide calibration explained it as a reader 4.9 s
+        late with a scale of 1.10, and the speeds it then mapped carried the kf 8.5 m/s fast,
+        its estimates up to 390 m off. The filter, which carried its position on the same
+        speeds and stamps, is in doubt as much: its next balise inflates it by that variance
+        (:meth:`_balise_for_filter`; its gate refused the balise 248 m off otherwise)."""
+        unsure = fields.get(CLOCK_UNSURE)
+        if not unsure:
+            self.unsure_taken = False
+            return
+        if self.unsure_taken or self.reads_distance or self.odo is None \
+                or not stamp > self.odo[0]:
+            return
+        try:
+            v = 0.5 * (self.odo[2] + float(fields["speed"]))
+        except (KeyError, TypeError, ValueError):
+            return
+        var = (float(self.cal.theta[1]) * v * float(unsure)) ** 2
+        if math.isfinite(var):
+            d = self._count(stamp, fields)
+            for cal in self._cals():
+                cal.splice(d, var)
+            self.unsure_taken = True
+            self.unsure_var += var
+
     def _odometer_fused(self, stamp: float, fields: dict) -> None:
+        self._unsure_count(stamp, fields)
         if self.odo is not None and stamp > self.odo[0]:
             gap = stamp - self.odo[0]
             self.odo_dt = gap if self.odo_dt is None else min(self.odo_dt, gap)
@@ -726,7 +764,8 @@ class DistanceAsPosition:
         the mapping (0 when the calibration refused the balise) and the position variance the
         filter lacks since the last balise it fused (class doc)."""
         h = self._uncounted(stamp)
-        q = float(h @ self.cal.Sigma @ h)
+        q = float(h @ self.cal.Sigma @ h) + self.unsure_var  # (the stamps' doubt once)
+        self.unsure_var = 0.0
         ok, _, dv = self._calibrate(fix, t_now)
         tau, s_tau = self.cal.latency()
         v = float(self.cal.theta[1]) * fix.speed
@@ -781,13 +820,14 @@ class DistanceAsPosition:
                      for c in (self.cal, self.cal_wide, self.cal_alt)) \
             + (self.llr, self.odo, self.latency_found, self.anchor, self.separation,
                self.splice, self.odo_seq, self.restarts, self.origin_far, self.origin_seen,
-               self.jump, self.odo_dt, self.odo_heard, self.count_out, self.speeds, self.odo_rv)
+               self.jump, self.odo_dt, self.odo_heard, self.count_out, self.speeds, self.odo_rv,
+               self.unsure_taken, self.unsure_var)
 
     def _odometry_restore(self, snap) -> None:
         cal, wide, alt, self.llr, self.odo, self.latency_found, self.anchor, self.separation, \
             self.splice, self.odo_seq, self.restarts, self.origin_far, self.origin_seen, \
             self.jump, self.odo_dt, self.odo_heard, self.count_out, self.speeds, \
-            self.odo_rv = snap
+            self.odo_rv, self.unsure_taken, self.unsure_var = snap
         self.cal = cal.copy()
         self.cal_wide = wide.copy() if wide is not None else None
         self.cal_alt = alt.copy() if alt is not None else None
