@@ -534,6 +534,28 @@ def test_without_the_distance_a_reboot_with_its_clock_at_speed_doubts_the_speeds
     assert np.abs(v - vt)[t >= at + 10.0].max() < 1.0
 
 
+@pytest.mark.parametrize("kind", ["kf", "robust"])
+def test_without_the_distance_the_solution_without_a_balise_is_where_the_filter_stood(kind):
+    """Solution separation without the distance: the solution that leaves out the balise
+    the filter just fused lies where the filter stood before it, ``-move`` from the estimate
+    (protection.py: a shift is where the truth lies under the fault). crh3_high_speed's first
+    balise stamped when the train had run 30 m past it (``Fault("balise", 30)``) pulls the
+    estimate about 23 m back; stored with the move's sign, that solution lay 23 m further back
+    still, and the level ahead was 18 m while the train was 24 m ahead: 16 estimates beyond
+    their levels (the campaign without the distance, the KF)."""
+    sc, res = run("crh3_high_speed", 0, 120.0)
+    fl = F.inject(res.events(), F.Fault("balise", 30.0, 10.0), np.random.default_rng(0))
+    outs, emitted, runner = F.run(fl.events, adapter(sc, kind, use_distance=False),
+                                  1.0 / sc.odometer_rate)
+    s = F.score(outs, emitted, fl, res.truth, sc.odometer_rate, 120.0 + F.LATENCY)
+    assert s["misleading"] == 0 and s["wrong_side"] == 0, s
+    t, err = _errors(outs, emitted, fl, res.truth)
+    moved = [(o, e) for o, e, tt in zip(outs, err, t) if 58.0 <= tt <= 63.0]
+    assert moved and all(e > -o.protection_level_ahead for o, e in moved)
+    # (the balise pulled the estimate back: the solution without it lies ahead)
+    assert any(sh > 10.0 for o, _ in moved for sh, _v, kd in o.separation[1] if kd == "map")
+
+
 @pytest.mark.parametrize("kind", ["robust", "kf"])
 def test_an_odometer_that_reboots_while_its_link_slows(kind):
     """The same reboot with the clock running on and the link's latency risen 3 s at the

@@ -135,7 +135,7 @@ class DistanceAsPosition:
         #   odometer reading, as counted (without the distance: the count made of the speeds)
         self.anchor = (0.0, 0.0)  # without the distance: (count m, counted speed m/s) at the
         #   last balise the filter fused (the start: the count's zero, standing)
-        self.separation: tuple = ()  # without the distance: (move m, variance before m^2) of
+        self.separation: tuple = ()  # without the distance: (shift m, variance before m^2) of
         #   the last EXCLUDED balises the filter fused (solution separation, class doc)
         self.splice = 0.0  # m added to the odometer's distance: its count restarted (_restart)
         self.odo_seq: int | None = None  # the counter of the last fused odometer reading
@@ -786,7 +786,11 @@ class DistanceAsPosition:
         self.anchor = (fix.distance, fix.speed)
         move, var_before = position - before[0], before[1]
         if math.isfinite(move) and math.isfinite(var_before):
-            self.separation = (self.separation + ((move, var_before),))[
+            # the solution without this balise lies where the filter stood before it: ``-move``
+            # from the estimate (a shift is where the truth lies from it under the fault,
+            # protection.py; stored as ``move``, a balise stamped 30 m of travel late pulled
+            # the KF 23 m back while the level ahead of it said 18 m: 16 estimates beyond it)
+            self.separation = (self.separation + ((-move, var_before),))[
                 -OdometerCalibration.EXCLUDED:]
 
     def odometer_scale(self) -> tuple[float, float] | None:
