@@ -110,8 +110,6 @@ from .calibrated_odometry import CLOCK_UNSURE, SEQ_MADE
 from .integrity import UNBOUNDED, IntegrityMonitor, IntegrityParams, changed
 
 KIND_ORDER = {"control": 0, "odometer": 1, "balise": 2}
-AHEAD_JUDGED = 3  # arrival instants of later commands after which a command held above a clock
-#   that queued items set is judged by them (EstimatorRunner._judge_ahead)
 # the early hold waits past min_judged arrivals while two groups of offsets are as dense as
 # each other (StreamClock.one_densest), up to this many times min_judged
 EARLY_CAP = 4
@@ -245,6 +243,7 @@ class EstimatorRunner:
     _held: list = field(default_factory=list)  # control pushed before any odometer (raw)
     _ahead: list = field(default_factory=list)  # commands held above a control clock that
     #   queued items set (_hold_ahead)
+    _ctl_first: float | None = None  # arrival of the first command (_hold_ahead)
     _early: dict = field(default_factory=dict)  # clock -> items waiting for min_judged
     _ready: set = field(default_factory=set)  # clocks whose early hold ended
     _adapter_seen: Counter = field(default_factory=Counter)  # the adapter's events said so far
@@ -611,8 +610,10 @@ class EstimatorRunner:
         if arrival is not None and not counted:
             med.add(stamp - arrival, arrival, lift=not lead > bar and (judged or
                                                                       clock != "train"))
+        if kind == "control" and arrival is not None and self._ctl_first is None:
+            self._ctl_first = arrival
         if kind == "control" and self._ahead:
-            self._judge_ahead(med, stamp - arrival, arrival)
+            self._judge_ahead(med)
         if lead > bar:
             if self._hold_ahead(med, stamp, fields, recv, arrival):
                 return ""
@@ -623,54 +624,48 @@ class EstimatorRunner:
 
     def _hold_ahead(self, med: StreamClock, stamp: float, fields: dict, recv, arrival) -> bool:
         """Whether a command above its clock is held rather than refused: the clock rests on
-        queued items, fewer than ``min_judged`` arrival instants or no more instants than
-        items queued behind others. Items that arrive at one instant were queued (what a node
-        received before its first /clock, or the middleware's repair of what was sent before
-        it matched, all timed at one /clock; a simulated clock that ticks coarsely): their
+        the stream's first arrival instant still (its window holds votes of it). The items
+        that arrive together at a stream's start were queued (what a node received before its
+        first /clock, or the middleware's repair of what was sent before it matched, all timed
+        at one /clock): their
         offsets bound the clock from below only, by how long they waited, which nothing
         states. A command on time is then above that clock, and refused as stamped ahead it
         would be lost: a node that joined a run at 10x beside two busy loops refused 25
         (offline, a backlog timed 0.4 s late refused 5-7 commands, 0.8 s 9-15). Held, it is
-        judged by the commands that come after it (:meth:`_judge_ahead`); meanwhile the
+        judged as the commands after it move the clock (:meth:`_judge_ahead`); meanwhile the
         commands' watermark stays where the admitted ones put it, so a stamp far ahead moves
         nothing."""
-        n = med.instants()
-        if n >= self.min_judged and 2 * n > len(med):
+        if not self._hold_on(med):
             return False
-        # (its stamp, fields, arrival, offset, the highest offset after it, later instants,
-        # the latest of them)
-        self._ahead.append([stamp, fields, recv, arrival, stamp - arrival, -math.inf, 0,
-                            arrival])
+        self._ahead.append((stamp, fields, recv, arrival, stamp - arrival))
         return True
 
-    def _judge_ahead(self, med: StreamClock, v: float = -math.inf, at=None,
-                     force: bool = False) -> None:
-        """A command's offset ``v`` (arrived at ``at``) continues each held command
-        (:meth:`_hold_ahead`) that came at an earlier instant. Each held command is judged
-        once the commands of ``AHEAD_JUDGED`` later instants have come (``force``: all, at
-        the end of the data), as the step watch judges a reading held ahead: latency only
-        lowers an offset, so a stamp that later commands continue (its offset no more than the
-        step watch's bar above theirs) was on time, and is admitted; one that none continued,
-        and that lies above its clock as well, was stamped ahead (``future_stamp``: a wrong
-        stamp, which later commands do not repeat)."""
-        keep, done = [], []
-        for h in self._ahead:
-            if at is not None and at != h[3]:
-                h[5] = max(h[5], v)
-                if at != h[7]:
-                    h[6], h[7] = h[6] + 1, at
-            (done if force or h[6] >= AHEAD_JUDGED else keep).append(h)
-        self._ahead = keep
-        if not done:
-            return
+    def _judge_ahead(self, med: StreamClock, force: bool = False) -> None:
+        """The held commands (:meth:`_hold_ahead`) judged against their clock as the commands
+        after them move it: one that now lies within the step watch's bar of it was on time,
+        and is admitted; once the clock no longer rests on its first instant (or ``force``: at
+        the end of the data) one still above it was stamped ahead (``future_stamp``: a wrong
+        stamp, which the commands after it did not follow). (Judged by the commands after it
+        alone, a fuzzed stream's corrupted copies continued one another: a stream of five
+        copies per command lost its estimates for minutes.)"""
         bar = self._steps.bar(med)
-        for stamp, fields, recv, arrival, off, cont, *_ in sorted(done, key=lambda h: h[0]):
-            lead = min(off - cont, med.above(off))
-            if lead > bar:
+        final = force or not self._hold_on(med)
+        keep = []
+        for h in sorted(self._ahead, key=lambda h: h[0]):
+            stamp, fields, recv, arrival, off = h
+            lead = med.above(off)
+            if lead <= bar:
+                self._admitted("control", stamp, fields, recv, arrival)
+            elif final:
                 self._reject("control", stamp, f"{R.FUTURE_STAMP}: {lead:.3g} s ahead of its "
                                                f"clock")
             else:
-                self._admitted("control", stamp, fields, recv, arrival)
+                keep.append(h)
+        self._ahead = keep
+
+    def _hold_on(self, med: StreamClock) -> bool:
+        """Whether the control clock still rests on its stream's first arrival instant."""
+        return self._ctl_first is not None and self._ctl_first in med.arrivals
 
     def _admitted(self, kind: str, stamp: float, fields: dict, recv, arrival) -> str:
         """Queue an item its clock admitted (the end of :meth:`_admit`)."""
