@@ -447,12 +447,6 @@ class StreamClock:
         "is this clock known yet?" that the runner and the step watch ask."""
         return len(self.fifo) >= self.settled
 
-    def instants(self) -> int:
-        """How many distinct arrival instants the window's offsets came at (an offset of
-        unknown arrival is an instant of its own): items that arrived together were queued,
-        and bound the clock from below only (:meth:`_queued`)."""
-        return len(set(self.arrivals)) + max(0, sum(a is None for a in self.arrivals) - 1)
-
     def is_late(self, v: float) -> bool:
         """``v`` (stamp - arrival) lies more than ``LATE`` s below the centre: the item came
         late (module doc). The one lateness rule: such an offset does not vote once the clock

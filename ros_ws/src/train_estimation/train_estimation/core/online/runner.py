@@ -627,12 +627,11 @@ class EstimatorRunner:
         the stream's first arrival instant still (its window holds votes of it). The items
         that arrive together at a stream's start were queued (what a node received before its
         first /clock, or the middleware's repair of what was sent before it matched, all timed
-        at one /clock): their
-        offsets bound the clock from below only, by how long they waited, which nothing
-        states. A command on time is then above that clock, and refused as stamped ahead it
-        would be lost: a node that joined a run at 10x beside two busy loops refused 25
-        (offline, a backlog timed 0.4 s late refused 5-7 commands, 0.8 s 9-15). Held, it is
-        judged as the commands after it move the clock (:meth:`_judge_ahead`); meanwhile the
+        at one /clock): their offsets bound the clock from below only, by how long they
+        waited, which nothing states. A command on time is then above that clock, and refused
+        as stamped ahead it would be lost: a node that joined a run at 10x beside two busy
+        loops refused 25 (offline, a backlog timed 0.4 s late refused 5-7 commands, 0.8 s
+        9-15). Held, it is judged as the commands after it move the clock (:meth:`_judge_ahead`); meanwhile the
         commands' watermark stays where the admitted ones put it, so a stamp far ahead moves
         nothing."""
         if not self._hold_on(med):
@@ -1430,7 +1429,7 @@ class EstimatorRunner:
         fuzzed stream's copies 5 s ahead had voted it there. Without arrival times, or with
         ``control_clock`` 'same' (a simulated clock that stalls under load stamps the
         readings seconds ahead of their arrivals), the last item's stamp."""
-        if self._ahead:  # (commands held above a clock that only a backlog has shown)
+        if self._ahead:  # (commands held above a clock that its first instant set)
             self._judge_ahead(self._offsets[CLOCK_OF["control"]], force=True)
         if not self.queue:
             return []
