@@ -631,9 +631,9 @@ class EstimatorRunner:
         waited, which nothing states. A command on time is then above that clock, and refused
         as stamped ahead it would be lost: a node that joined a run at 10x beside two busy
         loops refused 25 (offline, a backlog timed 0.4 s late refused 5-7 commands, 0.8 s
-        9-15). Held, it is judged as the commands after it move the clock (:meth:`_judge_ahead`); meanwhile the
-        commands' watermark stays where the admitted ones put it, so a stamp far ahead moves
-        nothing."""
+        9-15). Held, it is judged as the commands after it move the clock
+        (:meth:`_judge_ahead`); meanwhile the commands' watermark stays where the admitted ones
+        put it, so a stamp far ahead moves nothing."""
         if not self._hold_on(med):
             return False
         self._ahead.append((stamp, fields, recv, arrival, stamp - arrival))
