@@ -107,9 +107,9 @@ def inputs_matched(pubs: dict, n: int) -> bool:
     return all(pubs[t].get_subscription_count() >= n for t in ESTIMATOR_INPUTS if t in pubs)
 
 
-def unacknowledged(pubs: dict, counts: dict) -> list[str]:
-    """The topics (of ``pubs``: topic -> publisher) that published (``counts``: topic ->
-    messages sent) and whose reliable readers have not all acknowledged every message yet.
+def unacknowledged(pubs: dict) -> list[str]:
+    """The topics (of ``pubs``: topic -> publisher) whose reliable readers have not all
+    acknowledged every message yet (a publisher that sent nothing has nothing unacknowledged).
 
     A matched subscription count is the writer's side of discovery only: the reader may
     discover the writer later, and until it does it drops the writer's data, which the
@@ -124,7 +124,7 @@ def unacknowledged(pubs: dict, counts: dict) -> list[str]:
     from rclpy.duration import Duration
 
     now = Duration(seconds=0)
-    return [t for t, p in pubs.items() if counts.get(t) and not p.wait_for_all_acked(now)]
+    return [t for t, p in pubs.items() if not p.wait_for_all_acked(now)]
 
 
 def declarer(node):

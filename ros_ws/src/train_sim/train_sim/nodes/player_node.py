@@ -54,7 +54,6 @@ class Player(Node):
         # with readers waited for, the messages after the first ones follow once every reader
         # has acknowledged those (train_core.ros.unacknowledged)
         self.acked = not self.wait_subs
-        self.sent = dict.fromkeys(self.pubs, 0)
         self.finished = False
         self.timer = self.create_timer(0.005, self.tick)
         self.get_logger().info(f"playing {len(self.items)} messages of {bag} "
@@ -67,7 +66,7 @@ class Player(Node):
             self.wall0 = time.monotonic()
         now = time.monotonic()
         if not self.acked and self.i:
-            if unacknowledged(self.pubs, self.sent):
+            if unacknowledged(self.pubs):
                 return
             # the bag goes on from the last message sent: the wait is no bag time
             self.acked = True
@@ -88,7 +87,6 @@ class Player(Node):
         while self.i < len(self.items) and self.items[self.i][0] <= t_bag:
             stamp, topic, fields = self.items[self.i]
             self.pubs[topic].publish(fields_to_msg(TOPIC_TYPES[topic], stamp, fields))
-            self.sent[topic] += 1
             self.i += 1
         if self.i >= len(self.items) and t_bag > last + 2.0:
             self.get_logger().info("bag played")

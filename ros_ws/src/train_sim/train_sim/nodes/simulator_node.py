@@ -200,7 +200,7 @@ class SimulatorNode(Node):
             self.wall0 = now
             self.waiting_since = None
         if not self.acked and any(self.counts.values()):
-            late = unacknowledged(self.pubs, self.counts)
+            late = unacknowledged(self.pubs)
             if late:  # the world stands, its clock said again, until every reader has them
                 self._say_clock(now)
                 self._say_waiting(now, lambda: "waiting for every reader to acknowledge the "

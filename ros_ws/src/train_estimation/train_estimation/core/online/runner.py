@@ -617,7 +617,7 @@ class EstimatorRunner:
         if lead > bar:
             if self._hold_ahead(med, stamp, fields, recv, arrival):
                 return ""
-            return self._reject(kind, stamp, f"{R.FUTURE_STAMP}: {lead:.3g} s ahead of its clock")
+            return self._refuse_ahead(kind, stamp, lead)
         if kind in ("odometer", "control") and recv is not None:
             med.rate_point(stamp, recv)  # only stamps on time inform the rate (not a backlog's)
         return self._admitted(kind, stamp, fields, recv, arrival)
@@ -656,11 +656,14 @@ class EstimatorRunner:
             if lead <= bar:
                 self._admitted("control", stamp, fields, recv, arrival)
             elif final:
-                self._reject("control", stamp, f"{R.FUTURE_STAMP}: {lead:.3g} s ahead of its "
-                                               f"clock")
+                self._refuse_ahead("control", stamp, lead)
             else:
                 keep.append(h)
         self._ahead = keep
+
+    def _refuse_ahead(self, kind: str, stamp: float, lead: float) -> str:
+        """Refuse an item stamped ``lead`` s above its clock (``future_stamp``)."""
+        return self._reject(kind, stamp, f"{R.FUTURE_STAMP}: {lead:.3g} s ahead of its clock")
 
     def _hold_on(self, med: StreamClock) -> bool:
         """Whether the control clock still rests on its stream's first arrival instant."""
