@@ -433,60 +433,57 @@ def test_a_backlog_alone_judges_its_clocks(kind):
         assert len(got) >= sum(t <= newest - LATE for t in on_time), (clock, got, on_time)
 
 
-def _joined(sc, res, kind: str, late: float, wild: float | None = None) -> EstimatorRunner:
-    """A node that joins a running world at 33.8 s: what it received before its first /clock
-    (the last 2 s) timed at that /clock, ``late`` s after the newest of it; what was sent
-    meanwhile at the next /clock tick (0.1 s); from then on each message at the tick after
-    its stamp (the odometer's link 20 ms). ``wild``: one more command, stamped that far ahead
-    of the first command 0.5 s after the join and arriving with it (a corrupted copy)."""
-    join, tick = 33.8, 0.1
+def _joined(sc, res, kind: str, late: float, clock: dict,
+            wild: float | None = None) -> EstimatorRunner:
+    """The runner of a node that joins a running world at 33.8 s (``restamp``'s ``clock``):
+    what it received before its first /clock (the last 2 s) timed at that /clock, ``late`` s
+    after the newest of it; what was sent meanwhile at the next /clock tick (0.1 s); from then
+    on each message at the tick after its arrival. ``wild``: one more command, stamped that
+    far ahead of the first command 0.5 s after the join and arriving with it (a corrupted
+    copy). Replayed as a node's (``replay``)."""
+    join, tick = 33.8 + clock.get("control_epoch", 0.0), 0.1  # (on the arrivals' clock)
     first = join + late
-    r = EstimatorRunner(adapter(sc, kind), 1.0 / sc.odometer_rate)
-
-    def push(topic, t, f, arr):
-        r.push(topic, t, f, arr)
-        r.advance_to(r.ready_time(arr, 0.05, 0.2))
-
-    for topic, t, f in (e for e in res.events() if e[1] >= join - 2.0):
-        if t <= join:
-            arr = first
-        elif t <= first:
-            arr = first + tick
-        else:
-            link = 0.02 if topic != "control" else 0.0
-            arr = max(first + tick, math.ceil(round((t + link) / tick, 9)) * tick)
-        push(topic, t, f, arr)
-        if wild is not None and topic == "control" and t >= join + 0.5:
-            push("control", t + wild, {"target_acceleration": 0.3}, arr)
+    ev = []
+    for k, s, f, rc in restamp(res.events(), **clock):
+        if rc < join - 2.0:
+            continue
+        arr = first if rc <= join else first + tick if rc <= first else \
+            max(first + tick, math.ceil(round(rc / tick, 9)) * tick)
+        ev.append((k, s, f, arr))
+        if wild is not None and k == "control" and rc >= join + 0.5:
+            ev.append(("control", s + wild, {"target_acceleration": 0.3}, arr))
             wild = None
-    r.drain()
-    return r
+    return replay(ev, adapter(sc, kind), 1 / sc.odometer_rate)[1]
 
 
 @pytest.mark.parametrize("kind", ["robust", "gsma"])
+@pytest.mark.parametrize("clock", [{}, dict(epoch=1.7e9, phase=0.03, control_epoch=5.0)])
 @pytest.mark.parametrize("late", [0.0, 0.4, 0.8])
-def test_a_node_that_joins_behind_a_backlog_refuses_no_command(kind, late):
+def test_a_node_that_joins_behind_a_backlog_refuses_no_command(kind, clock, late):
     """A node that joins a running world times everything it received before its first
     /clock at that /clock. When that /clock came ``late`` s after the newest of it (a node
     on a loaded machine), the commands' clock is first judged from items that waited: their
-    offsets bound it from below only. The commands that then come on time lie above it; held
-    and judged by the commands after them, they are admitted. Refused as stamped ahead, a
-    node that joined at 10x beside two busy loops lost 25 commands (the by-hand recipe's
-    test); offline, a backlog 0.4 s late lost 5-7 and 0.8 s 9-15."""
+    offsets bound it from below only. The commands that then come on time lie above it; held,
+    they are admitted once the commands after them move the clock to them. Refused as stamped
+    ahead, a node that joined at 10x beside two busy loops lost 25 commands (the by-hand
+    recipe's test); offline, a backlog 0.4 s late lost 5-7 and 0.8 s 9-15. On one clock and
+    with the train's at an epoch of 1.7e9 s and the commands' on another."""
     sc, res = run(duration=60.0)
-    r = _joined(sc, res, kind, late)
+    r = _joined(sc, res, kind, late, clock)
     refused = {k: n for k, n in r.rejected.items() if k.startswith("control")}
     assert not refused, refused
     assert not r._ahead
 
 
 @pytest.mark.parametrize("kind", ["robust", "gsma"])
-def test_a_command_stamped_ahead_behind_a_backlog_is_still_refused(kind):
+@pytest.mark.parametrize("clock", [{}, dict(epoch=1.7e9, phase=0.03, control_epoch=5.0)])
+def test_a_command_stamped_ahead_behind_a_backlog_is_still_refused(kind, clock):
     """The same join (0.8 s late) with one extra command stamped 3 s ahead of its clock
-    right after it: held with the on-time ones, no later command continues it, and it is
-    refused as stamped ahead; the on-time commands around it are admitted."""
+    right after it: held with the on-time ones, the commands after it do not move the clock
+    to it, and once the clock no longer rests on the backlog it is refused as stamped ahead;
+    the on-time commands around it are admitted."""
     sc, res = run(duration=60.0)
-    r = _joined(sc, res, kind, 0.8, wild=3.0)
+    r = _joined(sc, res, kind, 0.8, clock, wild=3.0)
     refused = {k: n for k, n in r.rejected.items() if k.startswith("control")}
     assert refused == {"control:future_stamp": 1}, refused
 
