@@ -150,8 +150,11 @@ def run_live(scenario: str, duration: float, logs: Path, nodes, trace: bool = Fa
     process, the middleware's included, as a launch ``prefix`` sets it on a train's computer);
     the simulator, the world, keeps the default scheduler."""
     prefix = ["chrt", "-f", str(realtime)] if realtime > 0 else []
+    # domain 91-101: above the test sessions' (conftest.py: 1-90 + the worker's index) and
+    # within the 0-101 whose DDS ports stay below Linux's ephemeral range (ROS 2 docs, "About
+    # Domain ID": above it a participant's port can be one the kernel gave another socket)
     env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
-               ROS_DOMAIN_ID=str(random.randint(101, 200)), PYTHONUNBUFFERED="1")
+               ROS_DOMAIN_ID=str(random.randint(91, 101)), PYTHONUNBUFFERED="1")
     env.pop(TRACE_VARIABLE, None)
     if trace:  # the estimator nodes trace their callbacks (train_core.realtime.CallbackTrace)
         env[TRACE_VARIABLE] = str(logs)

@@ -19,7 +19,9 @@ import time
 
 # a private domain on loopback before rclpy is imported (rules: no DDS traffic off the host)
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
-os.environ["ROS_DOMAIN_ID"] = str(random.randint(101, 200))
+# 91-101: above the test sessions' domains (conftest.py: 1-90 + the worker's index) and within
+# the 0-101 whose DDS ports stay below Linux's ephemeral range (ROS 2 docs, "About Domain ID")
+os.environ["ROS_DOMAIN_ID"] = str(random.randint(91, 101))
 
 import numpy as np  # noqa: E402
 import rclpy  # noqa: E402

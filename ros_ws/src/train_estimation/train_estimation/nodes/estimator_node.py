@@ -204,7 +204,8 @@ class EstimatorNode(Node):
         self.event_log: dict = {}  # (kind, event) -> (steady s last logged, not logged since)
         self.get_logger().info(
             f"{self.adapter.source} on {line.name} / {train.name}, start at "
-            f"{start.position:.1f} m, output {common['odometer_rate']:g} Hz on '{topic}'")
+            f"{start.position:.1f} m, output {common['odometer_rate']:g} Hz on "
+            f"'{self.pub.topic_name}' and '{self.odom_pub.topic_name}' (remappings applied)")
         # start-up's objects out of every later garbage collection (train_core.realtime)
         settle_heap()
         # where the callbacks' time goes, live (off unless TRAIN_NODE_TRACE names a directory:
