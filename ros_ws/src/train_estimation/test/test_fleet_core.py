@@ -236,8 +236,22 @@ def test_speed_test_by_hand():
     assert t["permille_per_v2"] == pytest.approx(b) and t["permille_at_any_speed"] == 4.0
     assert t["p_place"] == pytest.approx(stats.chi2.sf(w * (4 + 0 + 4), 2))
     assert t["p_speed"] == pytest.approx(1.0) and t["decided"] == "speed"
+    # the passes that decided it: the fewest whose misfit under the model rejected reaches the
+    # bar chi2(2).isf(0.01) = 9.21 on its own: here the slowest pass's (w (2 - 4)^2 = 16; the
+    # fastest's is as large, and the first of equals is taken)
+    assert t["decided_by"] == [0]
     t = F.speed_test([4.0, 4.2, 3.9], se, v2, 0.01)
     assert t["decided"] == "place"
+    # under x = b v2 (b = 2410 / 140000) the misfits are w (x - b v2)^2 = 20.8, 2.3 and 6.3:
+    # the slowest pass, where a drag would be a third of the fastest's, reaches the bar alone
+    assert t["decided_by"] == [0]
+    x4, u4 = np.array([4.0, 4.2, 3.9, 4.1]), np.array([1.0, 100.0, 200.0, 300.0])
+    r = 4.0 * (x4 - np.sum(x4 * u4) / np.sum(u4 * u4) * u4) ** 2  # 63.4, 24.2, 0.7, 5.0
+    t = F.speed_test(x4, [0.5] * 4, u4, stats.chi2.sf(75.0, 3))  # the bar at 75
+    assert t["decided"] == "place" and r.max() < 75.0 < r[0] + r[1]
+    # no pass alone reaches that bar: the largest misfits, the least speed first, until they do
+    assert t["decided_by"] == [0, 1]
+    assert "decided_by" not in F.speed_test([4.0, 4.1, 3.9], se, [400.0, 401.0, 399.0], 0.01)
     # passes at one speed: both fit; the speeds that would tell part the models by 3 se
     t = F.speed_test([4.0, 4.1, 3.9], se, [400.0, 401.0, 399.0], 0.01)
     assert t["decided"] == "either"
@@ -264,6 +278,11 @@ def test_a_section_whose_gradient_grows_as_the_passes_speed_squared_is_no_map_er
     s = res.lines["north"]["sections"][0]
     assert res.map_errors == [] and s["verdict"] == "drag growing with speed (a tunnel)"
     assert s["speed_test"]["decided"] == "speed"
+    # and names the passes that decided it (the report prints them: tools/fleet_report.py)
+    by = s["speed_test"]["decided_by"]
+    assert by and all(d["train"] in {"T0", "T1", "T2", "T3"} for d in by)
+    assert all(d["v_m_s"] == pytest.approx(speeds[int(d["train"][1])]) for d in by)
     res = F.consensus(flat)
     assert [m["verdict"] for m in res.map_errors] == ["map error"]
     assert res.map_errors[0]["speed_test"]["decided"] == "place"
+    assert res.map_errors[0]["speed_test"]["decided_by"]

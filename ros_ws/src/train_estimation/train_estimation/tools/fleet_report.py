@@ -45,11 +45,16 @@ def speed_note(section: dict) -> str:
                                             "drag growing with speed (a tunnel)"):
         return ""
     kmh = f"{3.6 * sp['v_min']:.0f}-{3.6 * sp['v_max']:.0f} km/h"
+    by = "; decided by " + ", ".join(
+        f"{d['train']}'s pass" + (f" {d['bag']}" if d.get("bag") else "")
+        + (f" on {d['day']}" if d.get("day") else "")
+        + f" at {3.6 * d['v_m_s']:.0f} km/h ({d['permille']:.2f} per mille)"
+        for d in sp.get("decided_by") or [])
     if sp["decided"] == "place":
-        return f" (the same at {kmh}: not a drag growing with speed)"
+        return f" (the same at {kmh}: not a drag growing with speed{by})"
     if sp["decided"] == "speed":
         return (f" ({sp['permille_per_v2'] * 1e3:+.3f} per mille per 1000 m^2/s^2 over "
-                f"passes at {kmh}: not the same at every speed, as a map error is)")
+                f"passes at {kmh}: not the same at every speed, as a map error is{by})")
     if sp["decided"] == "either":
         tell = sp.get("would_tell") or {}
         ways = [f"below {3.6 * tell['below_m_s']:.0f} km/h" if tell.get("below_m_s") else "",

@@ -277,6 +277,15 @@ def speed_test(values, ses, v2, alpha: float) -> dict | None:
            "p_place": p_place, "p_speed": p_speed,
            "decided": ("place" if place and not speed else "speed" if speed and not place
                        else "either" if place else "neither")}
+    if out["decided"] in ("place", "speed"):
+        # the passes that decided it: the fewest whose misfit under the model rejected (the
+        # largest first) reaches the test's bar on its own (indices into the arguments)
+        fit = b * u if out["decided"] == "place" else np.full(k, a)
+        r = w * (x - fit) ** 2
+        bar = float(stats.chi2.isf(alpha, k - 1))
+        order = np.argsort(-r, kind="stable")
+        n = int(np.searchsorted(np.cumsum(r[order]), bar)) + 1
+        out["decided_by"] = [int(i) for i in np.flatnonzero(ok)[order[:min(n, k)]]]
     if out["decided"] == "either" and b != 0.0:
         # where the two models part by three standard errors of one detection
         sd = 3.0 * float(np.median(s))
@@ -325,6 +334,13 @@ def line_consensus(rows: list[dict], cfg: FleetConfig = FleetConfig()) -> dict:
                 days.setdefault(r.get("day"), [0, 0])[1] += 1
             for d in m:
                 days.setdefault(d.get("day"), [0, 0])[0] += 1
+            sp = speed_test([d["permille"] for d in m], [d["se"] for d in m],
+                            [d.get("v2", math.nan) for d in m], cfg.alpha)
+            if sp and "decided_by" in sp:  # those passes, as the report names them
+                sp["decided_by"] = [{"train": m[i]["train"], "bag": m[i].get("bag"),
+                                     "day": m[i].get("day"), "permille": m[i]["permille"],
+                                     "v_m_s": math.sqrt(m[i]["v2"])}
+                                    for i in sp["decided_by"]]
             secs.append({"start": s0, "end": s1, "permille": c["mean"], "se": c["se"],
                          "ci95": [c["mean"] - 1.96 * c["se"], c["mean"] + 1.96 * c["se"]],
                          "z": c["z"], "q": c["q"], "df": c["df"],
@@ -333,10 +349,7 @@ def line_consensus(rows: list[dict], cfg: FleetConfig = FleetConfig()) -> dict:
                          "trains_found": sorted({d["train"] for d in m}),
                          "trains_passed": sorted({r["train"] for r in passed}),
                          "bags": [d.get("bag") for d in m],
-                         "speed_test": speed_test([d["permille"] for d in m],
-                                                  [d["se"] for d in m],
-                                                  [d.get("v2", math.nan) for d in m],
-                                                  cfg.alpha),
+                         "speed_test": sp,
                          "days": {str(k): [f, max(n, f)] for k, (f, n) in days.items()
                                   if k is not None}})
         ltrains = sorted({r["train"] for r in lr})
