@@ -332,6 +332,12 @@ def plan(quick: bool, seeds: int, estimators, only, phase_names=None, long: floa
             # the silence a step back reads as a link whose latency rose as much
             for d in ((-3.0,) if quick else (-10.0, -3.0, -0.5, 3.0)):
                 add(F.Fault("reboot", 5.0, at, clock_step=d, jitter=JITTER), 65.0)
+            # one whose clock resumed where it stopped (stepped back by the silence: the
+            # stamps run on without a gap, a latency that rose as much reads the same), and
+            # on a full run the same twice, 20 s apart, before a balise can tell the first
+            add(F.Fault("reboot", 3.0, at, clock_step=-3.0), 65.0)
+            if not quick:
+                add(F.Fault("reboot", 3.0, at, clock_step=-3.0, again=20.0), 85.0)
         for L in ((8.0,) if quick else (2.0, 8.0, 20.0)):
             add(F.Fault("recorder_stall", L, cruise), L)
             add(F.Fault("node_stall", L, cruise), L)

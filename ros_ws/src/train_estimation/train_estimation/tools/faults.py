@@ -200,6 +200,8 @@ class Fault:
     #   kind (a unit that rebooted with its clock; the kind ``step`` is this alone)
     wander: float = 0.0  # s, a wandering latency on every topic's link from the start, whatever
     #   the kind (the kind ``wander`` is this alone, from ``at``)
+    again: float = 0.0  # s after ``at``: a reboot (with its clock step) happens once more
+    #   (0: once; a unit that fails twice before a balise can tell the first)
 
     def __post_init__(self):
         if self.kind not in KINDS:
@@ -213,6 +215,7 @@ class Fault:
         n += f" clock {self.clock_step:+g}" if self.clock_step else ""
         n += f" jitter {self.jitter:g}" if self.jitter else ""
         n += f" wander {self.wander:g}" if self.wander else ""
+        n += f" again {self.again:g}" if self.again else ""
         return f"{self.kind} {self.size:+g}{n}" if self.kind in ("stamp", "step", "drift",
                                                                    "balise", "odometer_scale",
                                                                    "seq_skip") \
@@ -266,16 +269,18 @@ def inject(events: list, fault: Fault, rng: np.random.Generator) -> Faulted:
     with ``fault`` applied (module doc). Topics other than control, odometer and balise are
     left out."""
     k, size, at = fault.kind, fault.size, fault.at
+    onsets = (at, at + fault.again) if k == "reboot" and fault.again > 0 else (at,)
     clock = TrainClock(drift=size if k == "drift" else 0.0,
                        steps=((at, size),) if k == "step" else
-                       ((at, fault.clock_step),) if fault.clock_step else ())
+                       tuple((o, fault.clock_step) for o in onsets) if fault.clock_step
+                       else ())
     rows = []  # [topic, t, fields, stamp error, true arrival]
     hit = 0
     d_at = None  # m, the odometer's distance at ``at`` ("odometer_scale")
     # the odometer's reading at its boot ("reboot"): what its restarted counter and count start
     # from
-    boot = next((f for tp, tt, f in events if tp == "odometer" and tt >= at + 0.5 * size),
-                None) if k == "reboot" else None
+    boots = [next((f for tp, tt, f in events if tp == "odometer" and tt >= o + 0.5 * size),
+                  None) for o in onsets] if k == "reboot" else []
     wander: dict = {}  # topic -> (true time s, its link's wander s) of its last message
     w_size, w_at = (size, at) if k == "wander" else (fault.wander, 0.0)
     for topic, t, fields in events:
@@ -302,10 +307,11 @@ def inject(events: list, fault: Fault, rng: np.random.Generator) -> Faulted:
         if k == "seq_skip" and topic == "odometer" and t >= at and "seq" in fields:
             fields = {**fields, "seq": fields["seq"] + int(size)}
         if k == "reboot" and topic == "odometer" and t >= at:
-            if t < at + size:
+            j = max(i for i, o in enumerate(onsets) if o <= t)  # the latest boot
+            if t < onsets[j] + size:
                 continue  # booting
-            fields = {**fields, "seq": fields["seq"] - boot["seq"],
-                      "distance": fields["distance"] - boot["distance"]}
+            fields = {**fields, "seq": fields["seq"] - boots[j]["seq"],
+                      "distance": fields["distance"] - boots[j]["distance"]}
         train = topic in TRAIN_TOPICS
         if k == "outage" and train and at <= t < at + size:
             continue
@@ -347,7 +353,7 @@ def inject(events: list, fault: Fault, rng: np.random.Generator) -> Faulted:
     if k == "fuzz":
         out, counts = corrupt(out, rng, size, stamps={**STAMPS, **INSIDE_FUTURE})
     end = {"none": at, "stamp": at, "outage": at + size, "recorder_stall": at + size,
-           "node_stall": at + size, "reboot": at + size}.get(k, math.inf)
+           "node_stall": at + size, "reboot": onsets[-1] + size}.get(k, math.inf)
     stalled = ((at, at + size),) if k == "node_stall" else ()
     return Faulted(out, clock, at, end, counts, stalled)
 
@@ -369,9 +375,12 @@ class _Timed:
 
     def __init__(self, adapter):
         self._a, self.now, self.emitted = adapter, math.nan, []
+        self.taken = 0  # events the replay has taken so far
+        self.after = []  # the events taken when each estimate was produced
 
     def output(self, t):
         self.emitted.append(self.now)
+        self.after.append(self.taken)
         return self._a.output(t)
 
     def __getattr__(self, name):
@@ -449,10 +458,28 @@ def run(events: list, adapter, period: float, delay: float = 0.05, fallback: flo
     def blocked(t):
         return any(t0 <= t - EPOCH < t1 for t0, t1 in stalled)
 
-    out, runner = replay(events, timed, period, delay=delay, fallback=fallback,
+    def taken():
+        for ev in events:
+            timed.taken += 1
+            yield ev
+
+    out, runner = replay(taken(), timed, period, delay=delay, fallback=fallback,
                          tick_period=tick_period, on_time=at,
                          blocked=blocked if stalled else None, **runner_kw)
-    return out, np.array(timed.emitted, float), runner
+    # An estimate produced at the arrival instant of a train reading not yet taken (a command
+    # arrived with it and was taken first, as the node takes them) was published before that
+    # reading: just before its arrival time, so that a clock step it is the first reading of
+    # is not known to it (TrainClock.known_at)
+    em = np.array(timed.emitted, float)
+    arrivals = [e[3] if len(e) > 3 else None for e in events]
+    for i, (t, n) in enumerate(zip(timed.emitted, timed.after)):
+        k = n
+        while k < len(events) and arrivals[k] == t:
+            if events[k][0] in TRAIN_TOPICS:
+                em[i] = t - 2e-6
+                break
+            k += 1
+    return out, em, runner
 
 
 def _not_pd(C: np.ndarray) -> bool:

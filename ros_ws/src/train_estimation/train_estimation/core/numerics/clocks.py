@@ -1595,9 +1595,10 @@ class StepWatch:
         self._pushed: tuple | None = None  # (stamp, arrival) of the last odometer watched
         self._admitted: list = []  # sorted recent odometer stamps admitted
         self._untimed: list | None = None  # [first stamp, readings on the old offset since,
-        #   slots unfilled before it] after a gap that nothing timed, until the readings after
-        #   it show the old clock's offset (min_judged of them) or a decision is taken
-        #   (:meth:`_note_silence`)
+        #   slots unfilled before it, whether the sample counter began again there] after a
+        #   gap that nothing timed, until the readings after it show the old clock's offset
+        #   (min_judged of them) or a decision is taken (:meth:`_note_silence`)
+        self._seq_last = None  # the sample counter of the newest odometer reading admitted
         self._stray: tuple | None = None  # (stamp, arrival) of a reading of another topic
         #   that came later than lateness allows since the last odometer reading (:meth:`stray`)
         self._placement: dict = {}  # odometer stamp -> placed on its clock by the grid or
@@ -1666,10 +1667,14 @@ class StepWatch:
             return
         self.grid.add(seq, stamp)
         before = self.last
-        if arrival is not None and (self.last is None or stamp > self.last[0]):
-            self.last = (stamp, arrival)
+        n = SampleGrid._seq(seq)
+        restarted = n is not None and self._seq_last is not None and n < self._seq_last
+        if self.last is None or stamp > self.last[0]:
+            self._seq_last = n
+            if arrival is not None:
+                self.last = (stamp, arrival)
         self._stray = None
-        self._note_silence(stamp, arrival, before)
+        self._note_silence(stamp, arrival, before, restarted)
         bisect.insort(self._admitted, stamp)
         del self._admitted[:-128]
         self._n_admitted += 1
@@ -1679,7 +1684,8 @@ class StepWatch:
                 keep = sorted(self._arr)[-128:]
                 self._arr = {k: self._arr[k] for k in keep}
 
-    def _note_silence(self, stamp: float, arrival: float | None, before: tuple | None) -> None:
+    def _note_silence(self, stamp: float, arrival: float | None, before: tuple | None,
+                      restarted: bool = False) -> None:
         """Whether the reading admitted at ``stamp`` is the first after a gap in the stream
         that neither the sample grid nor the count placed on its clock (a counter that
         restarted, a count that went back or whose link spans too long), a silence of the
@@ -1690,7 +1696,15 @@ class StepWatch:
         stamps say, so until the readings show the old clock's offset again (``min_judged``
         of them within the bar) a latency decision on their word leaves a step back open
         (:meth:`_step_open`; ``_latency_moved``: a reboot with a -3 s step on metro_demo,
-        cruising, published 174 estimates 62 m off within levels of 39-45 m)."""
+        cruising, published 174 estimates 62 m off within levels of 39-45 m).
+
+        ``restarted``: the sample counter began again at this reading (a unit that rebooted).
+        Its silence is then the unit's, not the link's losses (:meth:`_step_open`), and it is
+        one even where the stamps show no gap while the arrivals do: a unit whose clock
+        resumed where it stopped (stepped back by as long as it was silent) reads, stamp for
+        stamp, as a link whose latency rose by that much (metro_demo, a 3 s reboot whose
+        clock stepped back 3 s, cruising: taken for a latency with nothing beside it, 34
+        estimates 63 m off within levels of 51-60 m)."""
         if self._untimed is not None and arrival is not None and self.clock.judged and \
                 abs(stamp - arrival - self.clock.now(arrival)) <= self.bar(self.clock):
             self._untimed[1] += 1
@@ -1701,8 +1715,9 @@ class StepWatch:
                 before is not None and arrival is not None and \
                 paced(before, (stamp, arrival)):
             gap = self._gap(stamp, adm[-1])
-            if gap:
-                self._untimed = [stamp, 0, gap]
+            if gap or restarted and arrival - before[1] - (stamp - before[0]) > \
+                    self.bar(self.clock):
+                self._untimed = [stamp, 0, gap, restarted]
 
     def stray(self) -> float:
         """s: how far below its clock lies a reading of another topic that came later than
@@ -2421,9 +2436,15 @@ class StepWatch:
         gap = self._gap(min(h[1] for h in after), s0) \
             if after and measured and paced((s0, a0), min((h[1], h[4]) for h in after)) \
             else None
+        # (the sample counter began again with them: the unit rebooted, and was silent as
+        # long as that took, whatever its stamps say)
+        fields0 = min(after, key=lambda h: h[1])[2] if after else None
+        seq0 = SampleGrid._seq(fields0.get("seq")) if isinstance(fields0, dict) else None
+        restarted = seq0 is not None and self._seq_last is not None and seq0 < self._seq_last
         untimed = not off and measured and (
-            rs is None and gap is not None and self._step_open(gap, moved)
-            or self._untimed is not None and self._step_open(self._untimed[2], moved))
+            rs is None and gap is not None and self._step_open(gap, moved, restarted)
+            or self._untimed is not None and self._step_open(self._untimed[2], moved,
+                                                             self._untimed[3]))
         self._untimed = None
         if rs is not None:
             measured = True
@@ -2511,7 +2532,7 @@ class StepWatch:
         med.move(moved)
         self.raised -= moved
         untimed = self._untimed is not None and moved < 0 and \
-            self._step_open(self._untimed[2], moved)
+            self._step_open(self._untimed[2], moved, self._untimed[3])
         self._untimed = None
         yield LATENCY, moved, untimed
 
@@ -2598,14 +2619,18 @@ class StepWatch:
         """The odometer slots between the stamp ``s0`` and ``first`` that nothing filled."""
         return max(round((first - s0) / self.period) - 1, 0)
 
-    def _step_open(self, unfilled: int, step: float) -> bool:
+    def _step_open(self, unfilled: int, step: float, restarted: bool = False) -> bool:
         """Whether the link's losses leave a step back of ``|step|`` s open where the readings
         say a latency rose as much (or the other way round): the latency needs ``unfilled``
         slots lost in a row before the readings, the step ``|step| / period`` more (its first
         readings would have landed on them). The losses tell them apart only where the first
         silence is one they make (at more than ``step_risk``, :func:`silence_risk`) and the
         second is not; after a silence they do not make (an outage, a sensor that rebooted)
-        the two differ only in how long it lasted, which nothing states."""
+        the two differ only in how long it lasted, which nothing states: so always after a
+        sample counter that began again (``restarted``), whose unit was silent as long as it
+        took to boot."""
+        if restarted:
+            return True
         lost, got = self._losses()
         m = max(round(abs(step) / self.period), 1)
         return silence_risk(lost, got, unfilled) <= self.step_risk or \
