@@ -23,6 +23,7 @@ the paper's linear model; the simulator adds resistance and stops).
 from __future__ import annotations
 
 import argparse
+import itertools
 import sys
 import time
 from pathlib import Path
@@ -613,13 +614,21 @@ def table3(seeds, steps=200, n=1000):
              float(n), float(n), None, None)]
 
 
+# the live case of ``fixed_parts``: a node's command and its known acceleration d (resistance,
+# gradient: they follow the train's speed and position) are new at every step; these are
+# stepped through in turn, so that no step has the previous one's (a_Tar, d)
+LIVE_COMMANDS = [(-1.0 - 0.01 * k, -0.05 - 0.001 * k) for k in range(7)]
+
+
 def fixed_parts(calls=2000):
     """Each part of a step's fixed cost timed on its own (``time.thread_time`` of ``calls``
-    calls, median, us; after 30 steps of the ramp, mid noise): the whole step; the input
-    checks (``_validate``); the gate; the random draws; the compiled call alone (its
-    arguments captured from a step, called again on the filter's buffers); the ``Estimate``;
-    and the rest of the Python around the call (the whole step with the compiled call
-    replaced by one returning its result at once: its status and its estimate copied in)."""
+    calls, median, us; after 30 steps of the ramp, mid noise): the whole step, with the same
+    command at every step (the toy's) and with a new command and d at every step (a live
+    node's, ``LIVE_COMMANDS``); the input checks (``_validate``); the gate; the random draws;
+    the compiled call alone (its arguments captured from a step, called again on the filter's
+    buffers); the ``Estimate``; and the rest of the Python around the call, with either
+    command (the whole step with the compiled call replaced by one returning its result at
+    once: its status and its estimate copied in)."""
     from train_estimation.core.braking import braking_inplace as bi
     from train_estimation.core.braking.braking_base import Estimate
 
@@ -649,11 +658,14 @@ def fixed_parts(calls=2000):
 
     print(f"\n### A step's fixed cost by part (us, CPU time: the least of 5 medians of "
           f"{calls // 5} calls each, "
-          f"less the timer's own {base:.1f} us; ramp, mid noise, after 30 steps; the RBPF's "
-          "Python includes its resampling call where the timed step resamples)\n")
-    print("| algorithm (KFs) | whole step | compiled call | Python around it | of which: input "
-          "checks | gate | draws | `Estimate` |")
-    print("|---|---|---|---|---|---|---|---|")
+          f"less the timer's own {base:.1f} us; ramp, mid noise, after 30 steps; 'same "
+          "command': a_Tar = -1, d = 0 at every step, the toy's; 'new command': a_Tar and d "
+          "new at every step, a live node's; the RBPF's Python includes its resampling call "
+          "where the timed step resamples)\n")
+    print("| algorithm (KFs) | whole step, same command | whole step, new command | compiled "
+          "call | Python around it, same command | Python around it, new command | of which: "
+          "input checks | gate | draws | `Estimate` |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for label, make in (("KF (exact)", maker(REF)), ("Q-GRBPF GH-3", maker("Q-GRBPF GH-3")),
                         ("RBPF sticky N = 10", maker("RBPF sticky", 10)),
                         ("GSMA sticky merged", maker("GSMA sticky merged"))):
@@ -669,10 +681,21 @@ def fixed_parts(calls=2000):
 
 
 def _step_parts(f, fam, yj, r, med, bi, Estimate):
-    """``fixed_parts``' row of the filter ``f``: whole step, compiled call, the Python around
-    it, input checks, gate, draws, ``Estimate`` (us)."""
+    """``fixed_parts``' row of the filter ``f``: whole step (same command, new command),
+    compiled call, the Python around it (same command, new command), input checks, gate,
+    draws, ``Estimate`` (us)."""
     kernels = ("branching_run", "discrete_run", "random_walk_run", "qgrbpf_run", "kf_run")
-    whole = med(lambda: f.step(-1.0, yj, None, r))
+    live = itertools.cycle(LIVE_COMMANDS)
+
+    def same():
+        f.step(-1.0, yj, None, r)
+
+    def new():
+        a, d = next(live)
+        f.step(a, yj, None, r, d=d)
+
+    whole = med(same)
+    whole_new = med(new)
     checks = med(lambda: f._validate(-1.0, yj, None, None, None, 0.0))
     gate = med(lambda: fam.gate((-1.0, 0.0), f._last.x_mean))
     n = f._buf.n if hasattr(f._buf, "n") else 1
@@ -702,12 +725,13 @@ def _step_parts(f, fam, yj, r, med, bi, Estimate):
 
         for k in kernels:
             setattr(bi, k, done)
-        glue = med(lambda: f.step(-1.0, yj, None, r))
+        glue = med(same)
+        glue_new = med(new)
     finally:
         for k, fn in saved.items():
             setattr(bi, k, fn)
     call = med(lambda: kernel(*args))
-    return whole, call, glue, checks, gate, draws, est
+    return whole, whole_new, call, glue, glue_new, checks, gate, draws, est
 
 
 def headline(rows, seeds, reps=3):

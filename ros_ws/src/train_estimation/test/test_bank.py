@@ -561,3 +561,52 @@ def test_inplace_run_equals_interpreted():
     not one of them."""
     reference = _interpreted("_inplace_run")
     np.testing.assert_array_equal(_inplace_run(), reference)
+
+
+@pytest.mark.parametrize("name", ["rbpf", "gsma merged", "qgrbpf", "gh3", "kf"])
+def test_prediction_packed_per_dt_is_packed_per_step(name):
+    """A live node's command and known acceleration d are new at every step while its dts
+    repeat: the compiled step's prediction arguments, this dt's pack made once with the
+    command's entries written in, are bit for bit those packed afresh for the step
+    (``pack_pred`` of ``bank_pred`` and the braking rate; ``pack_kf``), braking, coasting
+    and a weak brake trim (the shared gain: 1, f's estimate) and at standstill alike; one
+    pack per dt."""
+    from train_estimation.core.braking import braking_inplace as bi
+
+    fam = BrakingModel(BrakingParams(meas_var=(0.25, 0.09, 1e-4), standstill_speed=0.1,
+                                     min_brake=0.2))
+    f = _inplace_filters(fam)[name]
+    if not bank.COMPILED:  # the compiled path forced, its kernels interpreted (as above)
+        if name == "kf":
+            f._fused_ok = lambda: True
+        else:
+            f._bank_ok = True
+    rng = np.random.default_rng(43)
+    f.reset([0, 20, -1, -2], 0.01 * np.eye(4), rng, t0=0.0)
+    t, seen, holds = 0.0, set(), set()
+    for k in range(30):
+        dt = (1.0, 0.4, 0.1)[k % 3]
+        t += dt
+        # braking; coasting (gain 1); a weak trim (below min_brake: f's estimate); braking
+        a_tar = (-1.0 - 0.01 * k, 0.3 + 0.01 * k, -0.1 - 0.001 * k, -0.5)[min(k // 6, 3)]
+        d = -0.05 - 0.001 * k
+        v = 0.0 if k >= 24 else 20.0 - t  # standing from step 24 on: braking does not inform
+        e = f.step(a_tar, [20.0 * t - 0.5 * t * t, v, 2 * a_tar], None, rng, t=t, d=d)
+        assert e.accepted, k
+        key, _, got = f._pred_last
+        dt_k, u = key[0], (key[1], key[2])
+        assert abs(dt_k - dt) < 1e-9 and u == (a_tar, d), k  # this step's prediction
+        seen.add(dt_k)  # (the stamps' differences: dts that differ by an ulp, as a node's)
+        informative, hold = key[3], key[4]
+        holds.add(hold)
+        if name == "kf":
+            want = (bi.pack_kf(*_affine_pieces(fam.params, dt_k), u),)
+            got = got[:1]
+        else:
+            fh = np.ones(1) if informative else fam.braking_rates(None, u, False, hold=hold)
+            want = bi.pack_pred(fam.bank_pred(u, dt_k), fh)
+            got = got[1:]
+        for a, b in zip(got, want):
+            assert a.dtype == b.dtype and a.tobytes() == b.tobytes(), k
+    assert set(f._dt_cache[1]) == seen and len(seen) < 30
+    assert any(h not in (None, 1.0) for h in holds)  # a shared gain of f's estimate written in

@@ -47,6 +47,7 @@ from ..numerics.bank import log_normalize
 from ..numerics.batched_kf import predict, update
 from ..numerics.kalman import _selectors
 from . import braking_compiled, braking_inplace
+from .braking_model import _CACHE_SIZE
 
 __all__ = ["Estimate", "RaoBlackwellFilter"]
 
@@ -545,8 +546,8 @@ class RaoBlackwellFilter:
             hold = None
             if not informative and hasattr(self.family, "hold_gain"):
                 hold = self._hold(u, informative)["hold"]
-            # the prediction's arguments, kept for the next step: a live filter's dt and
-            # command repeat from step to step
+            # the prediction's arguments, kept for the next step (a command held, the train
+            # standing: the same dt and command again)
             key = (dt, u[0], u[1], informative, hold)
             hit = self._pred_last
             if hit is None or hit[0] != key or hit[1] is not self.family.params:
@@ -577,13 +578,34 @@ class RaoBlackwellFilter:
 
     def _pred_args(self, key, u, dt, informative, hold):
         """The compiled step's prediction arguments ``(do_predict, pi, pf)`` for this dt and
-        command (``braking_inplace.pack_pred``), kept for the next step."""
+        command, kept for the next step: this dt's packed maps (``braking_inplace.PredPack``,
+        made once per dt) with the command's ``B0 u | B1 u`` and braking rate written in."""
         fam = self.family
         fh = _ONE if informative else np.asarray(
             fam.braking_rates(None, u, False, **({} if hold is None else {"hold": hold})),
             dtype=float)
-        hit = (key, fam.params, (True, *braking_inplace.pack_pred(fam.bank_pred(u, dt), fh)))
+        pred = fam.bank_pred(u, dt)
+        bu = pred[6]  # B0 u | B1 u: the only map that depends on the command
+        pack = self._per_dt(dt, lambda: braking_inplace.PredPack(pred, fh))
+        hit = (key, fam.params, (True, *pack.arrays(bu, fh)))
         self._pred_last = hit
+        return hit
+
+    _dt_cache = None  # (family.params, {dt: that dt's packed prediction}): _per_dt
+
+    def _per_dt(self, dt, make):
+        """``make()``: the compiled step's packed prediction for ``dt``, made once per dt of
+        the family's parameters and kept (bounded, as the model's own caches). Why: a live
+        filter meets a few dts (a period's, and the ulps its stamps differ by) while its
+        command changes at every step. The tuple is shared with the runner's snapshots
+        (``__deepcopy__``): its entries are only added, and never written."""
+        params = self.family.params
+        c = self._dt_cache
+        if c is None or c[0] is not params or len(c[1]) >= _CACHE_SIZE:
+            c = self._dt_cache = (params, {})
+        hit = c[1].get(dt)
+        if hit is None:
+            hit = c[1][dt] = make()
         return hit
 
     def _load(self, s, cap=0):

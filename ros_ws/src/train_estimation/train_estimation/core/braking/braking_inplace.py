@@ -15,7 +15,8 @@ filters the papers' cost ratios are measured at. Here:
   the numbers are those of that kernel to the last bit) and, only if it succeeded, copies the
   new set into the buffers' first N' rows (a rejected step leaves them as they were);
 * the prediction's eleven maps are two arrays (:func:`pack_pred`: the integer and the float
-  ones with their boundaries), built once per (dt, command), as the filter caches them;
+  ones with their boundaries), packed once per dt (:class:`PredPack`), the command's entries
+  written into a copy at each step;
 * the estimate goes into ``E``: the mixture's mean ``(m,)`` and covariance ``(m, m)`` over
   (x, theta), the reported mean and covariance (``ri``: the report index), the log evidence,
   N_eff and the particle count at the estimate (:data:`E_TAIL`). ``Estimate`` reads its
@@ -43,8 +44,9 @@ from .braking_compiled import (
     resample,
 )
 
-__all__ = ["GROW", "E_TAIL", "e_size", "pack_pred", "pack_const", "pack_kf", "branching_run",
-           "discrete_run", "random_walk_run", "qgrbpf_run", "resample_run", "kf_run", "warm_up"]
+__all__ = ["GROW", "E_TAIL", "e_size", "pack_pred", "PredPack", "pack_const", "pack_kf",
+           "kf_command", "branching_run", "discrete_run", "random_walk_run", "qgrbpf_run",
+           "resample_run", "kf_run", "warm_up"]
 
 GROW = 6  # the new set exceeds the buffers' capacity: nothing written, grow and call again
 E_TAIL = 3  # log evidence, N_eff, particle count at the estimate: the last entries of E
@@ -68,6 +70,38 @@ def pack_pred(pred, fh):
     pi = np.concatenate([bi, bf] + [np.asarray(a, dtype=np.int64).ravel() for a in ints])
     pf = np.concatenate([np.asarray(a, dtype=np.float64).ravel() for a in flts])
     return pi.astype(np.int64), pf
+
+
+class PredPack:
+    """:func:`pack_pred`'s two arrays for one dt, with the entries that depend on the command
+    ``u = (a_Tar, d)`` -- ``B0 u | B1 u`` and the shared braking rate ``fh`` -- written anew
+    at each step (:meth:`arrays`).
+
+    Why. A live node's command and its known acceleration d (resistance and gradient, which
+    follow the train's speed and position) change at every step, while its dts repeat (a
+    period's, and the ulps its stamps differ by). Packing the eleven maps takes ~12 us, as
+    much as the rest of a small filter's step; their rows depend on dt alone, so the filters
+    keep one of these per dt (``RaoBlackwellFilter._per_dt``) and write a step's command
+    into a copy (~0.6 us)."""
+
+    __slots__ = ("pi", "_pf", "_bu", "_fh")
+
+    def __init__(self, pred, fh):
+        """From ``BrakingModel.bank_pred``'s maps of this dt and a braking rate ``fh`` (the
+        command's entries of this template are overwritten at each step)."""
+        self.pi, self._pf = pack_pred(pred, fh)
+        b = self.pi
+        self._bu = slice(int(b[8]), int(b[9]))
+        self._fh = slice(int(b[10]), int(b[11]))
+
+    def arrays(self, bu, fh):
+        """``(pi, pf)``: :func:`pack_pred`'s arrays of this dt's maps with ``bu`` (``B0 u | B1
+        u``, as ``bank_pred`` computes it) and ``fh``, the very numbers it packs. ``pf`` is a
+        new array: the template is shared by the filter's snapshots and never written."""
+        pf = self._pf.copy()
+        pf[self._bu] = bu
+        pf[self._fh] = fh
+        return self.pi, pf
 
 
 @jit
@@ -247,6 +281,15 @@ def pack_kf(P0, P1, B0, B1, Qd, u):
     """The exact KF's model pieces for one dt (``braking_model._affine_pieces``: m x m, m x
     m, m x 2, m x 2, m x m) and the command ``u (2,)`` as one float64 array."""
     return np.concatenate([np.ravel(a) for a in (P0, P1, B0, B1, Qd, u)]).astype(np.float64)
+
+
+def kf_command(pk, u):
+    """:func:`pack_kf`'s array ``pk`` (one dt's pieces, kept per dt: the command changes at
+    every step of a live node, the pieces with dt alone) with the command ``u (2,)`` in place of
+    its own: a new array (``pk`` is shared by the filter's snapshots and never written)."""
+    out = pk.copy()
+    out[-2:] = u
+    return out
 
 
 @jit

@@ -17,7 +17,8 @@ from .braking_model import _affine_pieces, augmented_model
 __all__ = ["BrakingKF", "OracleKF"]
 
 _Z44, _Z42 = np.zeros((4, 4)), np.zeros((4, 2))
-_KF_NO_PREDICT = (braking_inplace.pack_kf(_Z44, _Z44, _Z42, _Z42, _Z44, np.zeros(2)), False,
+_NO_U = np.zeros(2)  # the command of a per-dt template (kf_command writes each step's)
+_KF_NO_PREDICT = (braking_inplace.pack_kf(_Z44, _Z44, _Z42, _Z42, _Z44, _NO_U), False,
                   0.0, 0.0, False)
 _KF_REASONS = {**_STEP_REASONS, braking_compiled.KF_LOGLIK:
                "numerical failure: log-weights: none finite, or NaN/+inf"}
@@ -151,11 +152,14 @@ class BrakingKF(RaoBlackwellFilter):
                                              float(self._last.theta_mean[0]))
             key = (dt, u[0], u[1], informative, gain)
             hit = self._pred_last
-            if hit is None or hit[0] != key or hit[1] is not self.family.params:
-                P0, P1, B0, B1, Qd = _affine_pieces(self.family.params, float(dt))
-                hit = self._pred_last = (key, self.family.params, (
-                    braking_inplace.pack_kf(P0, P1, B0, B1, Qd, u), bool(informative),
-                    float(gain), self.braking_rate_q * float(dt), True))
+            params = self.family.params
+            if hit is None or hit[0] != key or hit[1] is not params:
+                # this dt's model pieces, packed once per dt; the command written in
+                pk = self._per_dt(dt, lambda: braking_inplace.pack_kf(
+                    *_affine_pieces(params, float(dt)), _NO_U))
+                hit = self._pred_last = (key, params, (
+                    braking_inplace.kf_command(pk, u), bool(informative), float(gain),
+                    self.braking_rate_q * float(dt), True))
             pred = hit[2]
         else:
             pred = _KF_NO_PREDICT
