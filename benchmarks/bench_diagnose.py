@@ -476,7 +476,8 @@ def part_slips(args) -> tuple[dict, str]:
 
     rows = {k: SE.kind_rows(k, args.slips, args.seed) for k in SLIP_KINDS}
     err = [r["err"] for k in SLIP_KINDS for r in rows[k]]
-    md = [f"\n## Deep slips ({SE.DEEP[0]:.0%}-{SE.DEEP[1]:.0%} depth; bench_slip_episodes "
+    md = [f"\n## Deep slips ({100 * SE.DEEP[0]:.0f}-{100 * SE.DEEP[1]:.0f} % depth; "
+          "bench_slip_episodes "
           f"--kinds {','.join(SLIP_KINDS)} --cases {args.slips} --seed {args.seed})\n", SE.HEAD]
     md += [SE.kind_line(k, rows[k]) for k in SLIP_KINDS]
     return {"within": (sum(e <= SE.TARGET for e in err), len(err)),
