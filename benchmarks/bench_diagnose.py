@@ -25,7 +25,8 @@ FAIL or not-run (a part not selected), and on how many bags (a quick run says so
   at their stated 0.1 %) and with an AR(1) error or noise growing with speed hidden in the
   speed readings (found on every bag);
 - ``cpu``: the ``diagnose`` executable, one process per run with its start included, on
-  bench_bag_cpu's cases (8-12 minutes of data): CPU (user + system) per 10-minute bag < 2 s.
+  bench_bag_cpu's cases (8-12 minutes of data), with ``--no-plots`` (as ``fleet`` runs it) and
+  with report.html's plots (the tool's default): CPU (user + system) per 10-minute bag < 2 s.
 
 Printed by ``cases`` (and written to benchmarks/out/NAME.md with the other parts' tables and the
 targets, raw results to NAME.json and NAME_targets.json):
@@ -532,9 +533,13 @@ def process_cpu(argv: list[str]) -> float | None:
     return None if rc else (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
 
 
+CPU_MODES = {"no_plots": ["--no-plots"], "plots": []}  # as the fleet runs it; the default
+
+
 def part_cpu(args) -> tuple[dict, str]:
-    """CPU per bag of the ``diagnose`` executable, one process per run, as a user runs it (no
-    plots), on bench_bag_cpu's cases (8-12 minutes each): median per bag, per 10 minutes."""
+    """CPU per bag of the ``diagnose`` executable, one process per run as a user runs it, with
+    ``--no-plots`` (as ``fleet`` runs it) and with report.html's plots (the tool's default), on
+    bench_bag_cpu's cases (8-12 minutes each): median per bag, per 10 minutes of data."""
     import shutil
 
     import bench_bag_cpu as BC
@@ -549,23 +554,31 @@ def part_cpu(args) -> tuple[dict, str]:
             BC.make(d, BC.CASES[:args.cpu_bags], fleet=False)
         bags = [b for b in json.load(open(os.path.join(d, "bags.json"))) if "duration" in b]
         for b in track(bags, "bench diagnose: cpu"):
-            cpu = [process_cpu([exe, "--bag", b["bag"], "--line", b["line"], "--train",
-                                b["train_file"], "--out", os.path.join(d, "out"), "--quiet",
-                                "--no-plots"]) for _ in range(args.cpu_runs)]
-            ok = [c for c in cpu if c is not None]
-            med = float(np.median(ok)) if ok else np.nan
-            rows.append({"label": b["label"], "cpu": cpu, "median": med,
-                         "per10": med * 600.0 / b["duration"], "failed": len(cpu) - len(ok)})
+            row = {"label": b["label"]}
+            for mode, extra in CPU_MODES.items():
+                cpu = [process_cpu([exe, "--bag", b["bag"], "--line", b["line"], "--train",
+                                    b["train_file"], "--out", os.path.join(d, "out"),
+                                    "--quiet", *extra]) for _ in range(args.cpu_runs)]
+                ok = [c for c in cpu if c is not None]
+                med = float(np.median(ok)) if ok else np.nan
+                row[mode] = {"cpu": cpu, "median": med, "per10": med * 600.0 / b["duration"],
+                             "failed": len(cpu) - len(ok)}
+            rows.append(row)
     load.append(os.getloadavg()[0])
-    md = [f"\n## CPU per bag (`diagnose --no-plots`, one process per run, its start included; "
-          f"{args.cpu_runs} run(s) per bag; load average {load[0]:.1f} -> {load[1]:.1f})\n",
-          "| bag | CPU per process, median (runs) | per 10 minutes of data |", "|---|---|---|"]
-    md += [f"| {r['label']} | {r['median']:.2f} s ("
-           + ", ".join("failed" if c is None else f"{c:.2f}" for c in r["cpu"])
-           + f") | {r['per10']:.2f} s |" for r in rows]
-    per10 = [r["per10"] for r in rows]
-    return {"per10": per10, "medians": [r["median"] for r in rows], "load": load,
-            "failed": sum(r["failed"] for r in rows)}, "\n".join(md) + "\n"
+    md = [f"\n## CPU per bag (`diagnose`, one process per run, its start included; "
+          f"{args.cpu_runs} run(s) per bag and mode; load average {load[0]:.1f} -> "
+          f"{load[1]:.1f})\n",
+          "| bag | `--no-plots`: CPU per process, median (runs) | per 10 minutes of data | "
+          "with the plots: CPU per process | per 10 minutes |", "|---|---|---|---|---|"]
+
+    def cell(m: dict) -> str:
+        runs = ", ".join("failed" if c is None else f"{c:.2f}" for c in m["cpu"])
+        return f"{m['median']:.2f} s ({runs}) | {m['per10']:.2f} s"
+
+    md += [f"| {r['label']} | {cell(r['no_plots'])} | {cell(r['plots'])} |" for r in rows]
+    return {mode: {"per10": [r[mode]["per10"] for r in rows],
+                   "failed": sum(r[mode]["failed"] for r in rows)} for mode in CPU_MODES} | {
+        "load": load}, "\n".join(md) + "\n"
 
 
 def module_lines() -> list[tuple[int, str]]:
@@ -654,22 +667,25 @@ def targets(fig: dict, args) -> str:
     row("deep slips (12-25 % depth): 1 - IoU <= 0.3", "slips",
         (m + f", max {sl['max']:.2f}" if ok is not None else m, ok), "<= 0.3 in every case",
         f"{args.slips} case(s) of each of {', '.join(SLIP_KINDS)}")
-    r = fig.get("residuals", {"alarms": (0, 0), "bound": 0, "families": []})
+    r = fig.get("residuals", {"alarms": (0, 0), "bound": None, "families": []})
     k, n = r["alarms"]
     row("odometer residual checks: false alarms, nominal bags", "residuals",
         (f"{k}/{n} bags", k <= r["bound"]) if n else ("-", None),
-        f"<= {r['bound']} (binomial 99.9 % bound at the stated 0.1 %)",
+        ("<=" if r["bound"] is None else f"<= {r['bound']}")
+        + " (binomial 99.9 % bound at the stated 0.1 %)",
         f"{n} bag(s), {len(r['families'])} line families")
     for key, what in OC.LABELS.items():
         row(f"odometer residual checks: {what} found", "residuals",
             _every(*r.get(key, (0, 0))), "every bag", f"{r.get(key, (0, 0))[1]} bag(s)")
     cp = fig.get("cpu", {})
-    per10 = cp.get("per10", [])
-    row("CPU per 10-minute bag, process start included", "cpu",
-        (f"max {max(per10):.2f} s, median {np.median(per10):.2f} s (load average "
-         f"{cp['load'][0]:.1f}-{cp['load'][1]:.1f})", max(per10) < 2.0 and not cp["failed"])
-        if per10 else ("-", None), "< 2 s",
-        f"{len(per10)} of bench_bag_cpu's cases, {args.cpu_runs} run(s) each")
+    for mode, how in (("no_plots", "`--no-plots` (as `fleet` runs it)"),
+                      ("plots", "with report.html's plots (the tool's default)")):
+        per10 = cp.get(mode, {}).get("per10", [])
+        row(f"CPU per 10-minute bag, process start included, {how}", "cpu",
+            (f"max {max(per10):.2f} s, median {np.median(per10):.2f} s (load average "
+             f"{cp['load'][0]:.1f}-{cp['load'][1]:.1f})",
+             max(per10) < 2.0 and not cp[mode]["failed"]) if per10 else ("-", None), "< 2 s",
+            f"{len(per10)} of bench_bag_cpu's cases, {args.cpu_runs} run(s) each")
     lines = fig["modules"]
     row("no module of the diagnose package over 600 lines", None,
         (f"largest: {lines[0][1]}, {lines[0][0]}", lines[0][0] <= 600), "<= 600 lines",
@@ -733,12 +749,12 @@ def main(argv=None) -> int:
                    help="under 2 minutes on 2 processes: one case per cause and size, one "
                         "pair, one nominal bag, no real line; held-out 1 bag per cause and 2 "
                         "nominal; 1 slip case per deep kind; residuals on 2 nominal bags and 1 "
-                        "per error; CPU on 2 bags, 2 runs each; output NAME diagnose_quick "
-                        "(each option given overrides)")
+                        "per error; CPU on 2 bags, one run each per mode; output NAME "
+                        "diagnose_quick (each option given overrides)")
     if p.parse_known_args(argv)[0].quick:  # the quick values as defaults: given ones win
         p.set_defaults(cases=1, pairs=1, nominal=1, real=0, jobs=2, heldout=1,
                        heldout_nominal=2, slips=1, residual_bags=2, residual_effect=1,
-                       cpu_bags=2, cpu_runs=2, name="diagnose_quick")
+                       cpu_bags=2, cpu_runs=1, name="diagnose_quick")
     args = p.parse_args(argv)
     parts = [x for x in args.parts.split(",") if x]
     if any(x not in PARTS for x in parts):
