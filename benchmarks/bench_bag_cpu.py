@@ -61,7 +61,8 @@ def make(d: str, cases: list = CASES, fleet: bool = True) -> None:
         generate(case.scenario, os.path.join(sub, "bag"), measured=True)
         bags.append({"label": f"{label} ({case.family}, {case.scenario.duration:.0f} s)",
                      "bag": os.path.join(sub, "bag"), "line": str(paths["line"]),
-                     "train_file": str(paths["train"]), "train": label})
+                     "train_file": str(paths["train"]), "train": label,
+                     "duration": case.scenario.duration})
     fd = os.path.join(d, "fleet")
     if not fleet:
         json.dump(bags + _shipped(), open(os.path.join(d, "bags.json"), "w"), indent=1)

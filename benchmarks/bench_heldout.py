@@ -35,14 +35,13 @@ import os
 import sys
 import tempfile
 import time
-from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 OUT = os.path.join(HERE, "out")
 
-from train_core.progress import Progress  # noqa: E402
+from bench_diagnose import pct, run_specs  # noqa: E402
 
 from train_sim.cases import CAUSES, make_case  # noqa: E402
 
@@ -190,10 +189,6 @@ def run_case_(spec: dict) -> dict:
     return out
 
 
-def pct(k, n):
-    return f"{100.0 * k / n:.0f} % ({k}/{n})" if n else "-"
-
-
 def _confirms(h: dict, cause: str) -> bool:
     """The check confirms: the held-out score test passes and, for a cause that has the
     halves test now (``Cause.halves``), the folds' fits agree (results written before a
@@ -212,11 +207,42 @@ def _disagree(h: dict, cause: str) -> bool:
     return bool(BY_NAME[cause].halves) and not h.get("halves", {}).get("consistent", True)
 
 
-def tables(results: list[dict], sizes, args) -> str:
+def figures(results: list[dict]) -> dict:
+    """The counts the tables show, the checks read as they are now (``_confirms``): per cause
+    {"plain", "subtle": power (k, n), "nominal": false confirmations on bags with no effect
+    (k, n), "resolved": of those, beyond the cause's resolution (k), "other": on the bags of
+    another cause (k, n), "z": the plain bags' Z, "halves": true causes whose folds' fits
+    disagree (k, n)}, and "pairs": both confirmed (k, n)."""
     ok = [r for r in results if r.get("rc") == 0]
     for r in ok:
         for c, h in r["held"].items():
             h["ok"] = _confirms(h, c)
+    nominal = [r for r in ok if not r["causes"]]
+    out = {}
+    for c in CAUSES:
+        f = {}
+        for size in ("plain", "subtle"):
+            rows = [r for r in ok if r["causes"] == [c] and r["size"] == size]
+            f[size] = (sum(r["held"][c]["ok"] for r in rows), len(rows))
+        held = [r["held"][c] for r in nominal if c in r["held"]]
+        f["nominal"] = (sum(h["ok"] for h in held), len(held))
+        f["resolved"] = sum(h["ok"] and h.get("resolved", False) for h in held)
+        fo = [r["held"][c]["ok"] for r in ok if len(r["causes"]) == 1 and r["causes"] != [c]
+              and c in r["held"]]
+        f["other"] = (sum(fo), len(fo))
+        f["z"] = [r["held"][c].get("z") for r in ok if r["causes"] == [c]
+                  and r["size"] == "plain" and r["held"][c].get("z") is not None]
+        hv = [_disagree(r["held"][c], c) for r in ok if r["causes"] == [c]]
+        f["halves"] = (sum(hv), len(hv))
+        out[c] = f
+    pairs = [r for r in ok if len(r["causes"]) == 2]
+    out["pairs"] = (sum(all(r["held"][c]["ok"] for c in r["causes"]) for r in pairs), len(pairs))
+    return out
+
+
+def tables(results: list[dict], sizes, args) -> str:
+    ok = [r for r in results if r.get("rc") == 0]
+    fig = figures(results)
     md = [f"# held-out check: {args.cases} bag(s) per cause and size, {args.nominal} nominal, "
           f"{args.pairs} pairs, seed {args.seed}\n",
           f"{len(results)} bags, {len(results) - len(ok)} crashed.\n",
@@ -226,33 +252,17 @@ def tables(results: list[dict], sizes, args) -> str:
           "the fit is also beyond the cause's resolution, check 2, as a confirmation needs).\n",
           "| cause | power, plain | power, subtle | false, nominal | false, other cause | "
           "Z plain (median) | halves disagree (true cause) |", "|---|---|---|---|---|---|---|"]
-    nominal = [r for r in ok if not r["causes"]]
     for c in CAUSES:
-        cells = []
-        for size in ("plain", "subtle"):
-            rows = [r for r in ok if r["causes"] == [c] and r["size"] == size]
-            if size not in sizes:
-                cells.append("-")
-                continue
-            k = sum(r["held"][c]["ok"] for r in rows)
-            cells.append(pct(k, len(rows)))
-        fn = [r["held"][c]["ok"] for r in nominal if c in r["held"]]
-        fr = [r["held"][c]["ok"] and r["held"][c].get("resolved", False) for r in nominal
-              if c in r["held"]]
-        fo = [r["held"][c]["ok"] for r in ok if len(r["causes"]) == 1 and r["causes"] != [c]
-              and c in r["held"]]
-        zs = [r["held"][c].get("z") for r in ok if r["causes"] == [c] and r["size"] == "plain"
-              and r["held"][c].get("z") is not None]
-        hv = [_disagree(r["held"][c], c) for r in ok if r["causes"] == [c]]
-        md.append(f"| {c} | {cells[0]} | {cells[1]} | {pct(sum(fn), len(fn))} "
-                  f"({sum(fr)}) | "
-                  f"{pct(sum(fo), len(fo)) if args.cross else '-'} | "
-                  + (f"{np.median(zs):.1f}" if zs else "-") + f" | {pct(sum(hv), len(hv))} |")
+        f = fig[c]
+        cells = [pct(*f[size]) if size in sizes else "-" for size in ("plain", "subtle")]
+        md.append(f"| {c} | {cells[0]} | {cells[1]} | {pct(*f['nominal'])} ({f['resolved']}) | "
+                  f"{pct(*f['other']) if args.cross else '-'} | "
+                  + (f"{np.median(f['z']):.1f}" if f["z"] else "-")
+                  + f" | {pct(*f['halves'])} |")
     pairs = [r for r in ok if len(r["causes"]) == 2]
     if pairs:
-        both = sum(all(r["held"][c]["ok"] for c in r["causes"]) for r in pairs)
         md.append(f"\npairs, each held out with the other in the model, both confirmed: "
-                  f"**{pct(both, len(pairs))}**\n")
+                  f"**{pct(*fig['pairs'])}**\n")
         for r in pairs:
             md.append(f"- {' + '.join(r['causes'])} ({r['family']}): " + ", ".join(
                 f"{c} {'ok' if r['held'][c]['ok'] else 'failed'}"
@@ -313,18 +323,7 @@ def main(argv=None) -> int:
              if not s["causes"] or len(s["causes"]) == 2 or s["causes"][0] in chosen]
     for s in specs:
         s["cross"] = args.cross
-    prog = Progress("bench heldout")
-    results = []
-    prog(0, len(specs), "")
-    if args.jobs <= 1:
-        for s in specs:
-            results.append(run_case(s))
-            prog(len(results), len(specs), f"{'+'.join(s['causes']) or 'none'} {s['size']}")
-    else:
-        with ProcessPoolExecutor(max_workers=args.jobs) as ex:
-            for r in ex.map(run_case, specs):
-                results.append(r)
-                prog(len(results), len(specs), f"{'+'.join(r['causes']) or 'none'}")
+    results = run_specs(run_case, specs, args.jobs, "bench heldout")
     md = tables(results, sizes, args)
     print(md)
     os.makedirs(OUT, exist_ok=True)

@@ -13,7 +13,10 @@ each kind:
   0.03-0.25, at least 15 s apart;
 - ``shaped``: the ``varied`` episodes with the slip building up and dying away as a half sine
   (``WheelSlipEffect.shape`` "sine"), the fraction its peak: a slip as adhesion is lost and
-  regained, not a step. Its depth error is against the peak.
+  regained, not a step. Its depth error is against the peak;
+- ``deep``, ``deep_shaped`` (not run unless chosen with ``--kinds``): the ``varied`` and
+  ``shaped`` episodes at the same places, each |fraction| 0.12-0.25 (issue 49's deep slips,
+  which came out shallow and long; ``./run bench diagnose`` judges its target on them).
 
 Each case is simulated into a measured bag and diagnosed (the core's ``diagnose``, as the CLI
 runs it); the wheel_slip entry of the ranking is compared with the truth on the stamp clock:
@@ -23,7 +26,7 @@ the found episode that overlaps it most (|found - true| / |true|). The target: 1
 in every case.
 
 Usage: bench_slip_episodes.py [--cases 3 | --quick] [--seed 0]
-                              [--kinds plain,subtle,long,varied,shaped]
+                              [--kinds plain,subtle,long,varied,shaped,deep,deep_shaped]
 """
 
 from __future__ import annotations
@@ -82,9 +85,10 @@ def stretched(case, rng):
                                truth=truth)
 
 
-def varied(case, rng, shape: str = "step"):
+def varied(case, rng, shape: str = "step", depths=(0.03, 0.25)):
     """The case with 2-4 episodes of its own (see the module docstring), placed on a pilot run of
-    the case's world without slip, and per-episode fractions (of ``shape``)."""
+    the case's world without slip, and per-episode fractions (of ``shape``; |fraction| drawn
+    uniformly within ``depths``)."""
     from train_core.effects import WheelSlipEffect
 
     from train_sim.world import simulate
@@ -101,7 +105,7 @@ def varied(case, rng, shape: str = "step"):
                                           for a, b in ivs):
             continue
         ivs.append((round(float(t0), 2), round(float(t0) + dur, 2)))
-        fr.append(round(float(rng.choice([-1.0, 1.0]) * rng.uniform(0.03, 0.25)), 4))
+        fr.append(round(float(rng.choice([-1.0, 1.0]) * rng.uniform(*depths)), 4))
         if len(ivs) == n:
             break
     order = np.argsort([a for a, _ in ivs])
@@ -154,19 +158,61 @@ def run(case) -> dict:
 
 
 TARGET = 0.3  # 1 - IoU of the found and the true slip time, in every case
-KINDS = ("plain", "subtle", "long", "varied", "shaped")
+KINDS = ("plain", "subtle", "long", "varied", "shaped", "deep", "deep_shaped")
+DEFAULT_KINDS = KINDS[:5]
+DEEP = (0.12, 0.25)  # |slip fraction| of the deep kinds (issue 49: 12-25 % depth)
+
+
+def make_slip_case(kind: str, seed: int, i: int):
+    """Case ``i`` of ``kind`` (seeded ``[seed, 77, i]``: the kinds share their line, train and
+    places, ``varied`` and ``deep`` their episodes' times)."""
+    from train_sim.cases import make_case
+
+    rng = np.random.default_rng([seed, 77, i])
+    case = make_case(rng, "wheel_slip", "subtle" if kind == "subtle" else "plain")
+    if kind == "long":
+        return stretched(case, rng)
+    if kind in ("varied", "shaped", "deep", "deep_shaped"):
+        return varied(case, rng, "sine" if kind.endswith("shaped") else "step",
+                      DEEP if kind.startswith("deep") else (0.03, 0.25))
+    return case
+
+
+def kind_rows(kind: str, n: int, seed: int) -> list[dict]:
+    """``run`` on cases 0..n-1 of ``kind`` (a progress bar on stderr)."""
+    from train_core.progress import track
+
+    return [run(make_slip_case(kind, seed, i))
+            for i in track(range(n), f"slip_episodes: {kind}")]
+
+
+HEAD = ("| kind | named | 1 - IoU median (max) | 1 - IoU <= 0.3 | target | episodes found / "
+        "true (1 - IoU), each case | depth error median (share <= 0.2) | s/bag |\n"
+        "|---|---|---|---|---|---|---|---|")
+
+
+def kind_line(kind: str, rows: list[dict]) -> str:
+    """The table's row (``HEAD``) of ``kind``'s cases."""
+    err = [r["err"] for r in rows]
+    de = [e for r in rows for e in r["depth_err"]]
+    de_ok = [e is not None and e <= 0.2 for e in de]
+    de_med = np.median([e if e is not None else np.inf for e in de]) if de else np.nan
+    ok = sum(e <= TARGET for e in err)
+    return (f"| {kind} | {sum(r['named'] for r in rows)}/{len(rows)} | {np.median(err):.2f} "
+            f"({max(err):.2f}) | {ok}/{len(err)} | {'pass' if ok == len(err) else 'FAIL'} | "
+            + ", ".join(f"{r['found']}/{r['true']} ({r['err']:.2f})" for r in rows)
+            + f" | {de_med:.2f} ({sum(de_ok)}/{len(de)}) "
+            f"| {np.median([r['time'] for r in rows]):.0f} |")
 
 
 def main() -> int:
-    from train_core.progress import track
-
-    from train_sim.cases import make_case
-
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--cases", type=int, default=3, help="cases per kind")
     ap.add_argument("--quick", action="store_true", help="one case per kind (under 2 min)")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--kinds", default=",".join(KINDS), help="comma-separated kinds")
+    ap.add_argument("--kinds", default=",".join(DEFAULT_KINDS),
+                    help=f"comma-separated kinds of {','.join(KINDS)} "
+                         f"(default {','.join(DEFAULT_KINDS)})")
     args = ap.parse_args()
     if args.quick:
         args.cases = 1
@@ -175,31 +221,12 @@ def main() -> int:
         ap.error(f"--kinds: choose from {','.join(KINDS)}")
     print(f"{args.cases} wheel_slip cases per kind, seed {args.seed}; target: 1 - IoU <= "
           f"{TARGET:g} in every case\n")
-    print("| kind | named | 1 - IoU median (max) | 1 - IoU <= 0.3 | target | episodes found / "
-          "true (1 - IoU), each case | depth error median (share <= 0.2) | s/bag |")
-    print("|---|---|---|---|---|---|---|---|")
+    print(HEAD)
     every = []
     for kind in kinds:
-        rows = []
-        for i in track(range(args.cases), f"slip_episodes: {kind}"):
-            rng = np.random.default_rng([args.seed, 77, i])
-            case = make_case(rng, "wheel_slip", "subtle" if kind == "subtle" else "plain")
-            if kind == "long":
-                case = stretched(case, rng)
-            elif kind in ("varied", "shaped"):
-                case = varied(case, rng, "sine" if kind == "shaped" else "step")
-            rows.append(run(case))
-        err = [r["err"] for r in rows]
-        de = [e for r in rows for e in r["depth_err"]]
-        de_ok = [e is not None and e <= 0.2 for e in de]
-        de_med = np.median([e if e is not None else np.inf for e in de]) if de else np.nan
-        ok = sum(e <= TARGET for e in err)
-        every += err
-        print(f"| {kind} | {sum(r['named'] for r in rows)}/{len(rows)} | {np.median(err):.2f} "
-              f"({max(err):.2f}) | {ok}/{len(err)} | {'pass' if ok == len(err) else 'FAIL'} | "
-              + ", ".join(f"{r['found']}/{r['true']} ({r['err']:.2f})" for r in rows)
-              + f" | {de_med:.2f} ({sum(de_ok)}/{len(de)}) "
-              f"| {np.median([r['time'] for r in rows]):.0f} |", flush=True)
+        rows = kind_rows(kind, args.cases, args.seed)
+        every += [r["err"] for r in rows]
+        print(kind_line(kind, rows), flush=True)
     ok = sum(e <= TARGET for e in every)
     print(f"\nall kinds: 1 - IoU <= {TARGET:g} in {ok}/{len(every)} cases: "
           f"{'pass' if ok == len(every) else 'FAIL'}")

@@ -14,6 +14,7 @@ from scipy.stats import binom
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "benchmarks"))
 import bench_balise_scatter as BS  # noqa: E402
+import odometer_checks as OC  # noqa: E402
 
 from train_estimation.core.offline.diagnose.residuals import (
     MAX_PERIOD,
@@ -166,27 +167,11 @@ def test_the_speed_against_the_count_holds_its_false_alarm_rate_and_finds_a_lag(
 
 def _bag_checks(seed: int, effect=None, alpha: float = 1e-3) -> dict:
     """The checks on a nominal bag of ``train_sim.cases`` (seeded; its family drawn), with
-    ``effect(speeds, rng)`` added to the odometer's speed readings."""
-    from train_estimation.core.offline.diagnose.motion import Motion
-    from train_estimation.core.offline.diagnose.phases import sensor_residuals
-    from train_estimation.core.offline.diagnose.run import DiagConfig, prepare
-    from train_estimation.core.offline.diagnose.stage import Null, Stage
-
-    case, data = BS.nominal_bag(seed)  # (the balise checks' false-alarm tests read them too)
-    if effect is not None:
-        data = dataclasses.replace(data, odo_speed=effect(data.odo_speed,
-                                                          np.random.default_rng(seed),
-                                                          data.odo_stamp))
-    cfg = DiagConfig()
-    sc = case.scenario
-    run = prepare(data, sc.line, cfg, sc.train)
-    mo = Motion(run, sc.line, sc.train, cfg)
-    null = Null(shift=Stage(mo, Null(), cfg).nuisance_shift()[0])
-    st = Stage(mo, null, cfg)
-    out = sensor_residuals(mo, null, cfg, (st.q, st.r_s), alpha)
-    out["family"] = case.family
+    ``effect(speeds, rng, stamps)`` added to the odometer's speed readings
+    (benchmarks/odometer_checks, which ``./run bench diagnose`` reports too)."""
+    out = OC.checks_on_case(seed, effect, alpha)
     # the figures of docs/benchmarks.md's table (shown with pytest -s)
-    print(f"seed {seed} {case.family} {getattr(effect, '__name__', 'nominal')}: scatter "
+    print(f"seed {seed} {out['family']} {getattr(effect, '__name__', 'nominal')}: scatter "
           f"{out['scatter'].get('ratio', float('nan')):.3f}, p scatter "
           f"{out['scatter'].get('p', 1):.2g}, correlation {out['correlation'].get('p', 1):.2g},"
           f" dependence {out['dependence'].get('p', 1):.2g}, count {out['count'].get('p', 1):.2g}"
@@ -205,23 +190,8 @@ def test_nominal_bags_of_several_families_hold_the_false_alarm_rate():
     assert all(r["scatter"]["tested"] for r in res), [r["scatter"] for r in res]
 
 
-def _ar1(speed, rng, t, phi=0.9, sd=0.1):
-    eta = rng.standard_normal(speed.size) * sd * np.sqrt(1 - phi * phi)
-    x = np.zeros(speed.size)
-    for k in range(1, speed.size):
-        x[k] = phi * x[k - 1] + eta[k]
-    return speed + x
-
-
-def _grows(speed, rng, t, sd=0.1):
-    """Extra noise from 0 at standstill to 0.1 m/s at the top speed (1-2 times the stated SD
-    of these bags)."""
-    return speed + sd * np.abs(speed) / np.max(np.abs(speed)) * rng.standard_normal(speed.size)
-
-
 @pytest.mark.slow
-@pytest.mark.parametrize("effect,words", [(_ar1, "correlated in time"),
-                                          (_grows, "changes with speed")])
+@pytest.mark.parametrize("effect,words", list(OC.EFFECTS.values()))
 def test_a_hidden_odometer_noise_is_found(effect, words):
     """An AR(1) error (phi 0.9, SD 0.1 m/s: 1-2 times the stated SD of these bags) and noise
     that grows with speed (to 0.1 m/s at the top speed) on nominal bags: found on each of
