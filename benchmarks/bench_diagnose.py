@@ -5,7 +5,7 @@
     ./run bench diagnose --cases N [--seed S] [--jobs 1] [--sizes plain,subtle] [--pairs N]
     ./run bench diagnose --parts heldout,cpu --heldout 10    # some parts only
 
-It ends with one table, a row per target of issue 49: the figure measured, the target, PASS,
+It ends with one table, a row per target of `diagnose`: the figure measured, the target, PASS,
 FAIL or not-run (a part not selected), and on how many bags (a quick run says so). Its parts
 (``--parts``, default all), each run by the code that measures it on its own:
 
@@ -451,7 +451,7 @@ def unlisted_table(rows: list[dict]) -> str:
 
 
 # ------------------------------------------------------------------------------------------------
-# The other parts: the targets of issue 49 the cases above do not measure, each by the code of
+# The other parts: the targets the cases above do not measure, each by the code of
 # the bench or test that measures it on its own
 # ------------------------------------------------------------------------------------------------
 
@@ -612,7 +612,7 @@ def _every(k: int, n: int, what: str = "bags"):
 
 
 def targets(fig: dict, args) -> str:
-    """One row per target of issue 49: what was measured, the target, PASS / FAIL / not-run,
+    """One row per target of diagnose: what was measured, the target, PASS / FAIL / not-run,
     and on what (a quick run's few bags said so)."""
     import odometer_checks as OC
 
@@ -697,11 +697,11 @@ def targets(fig: dict, args) -> str:
     row("several passes: a map error told from a tunnel's drag", None,
         ("not measured by this bench", None), "`fleet` says which", "./run bench passes",
         sample=False)
-    md = ["\n## Targets (issue 49)\n"]
+    md = ["\n## Targets\n"]
     if args.quick:
         md.append("A quick run (`--quick`): one or two bags per row, so a PASS says the target "
                   "can be met, not that its rate is.\n")
-    md += ["| issue 49 | measured | target | verdict | on |", "|---|---|---|---|---|"]
+    md += ["| target | measured | target value | verdict | on |", "|---|---|---|---|---|"]
     md += ["| " + " | ".join(x) + " |" for x in rows]
     return "\n".join(md) + "\n"
 
@@ -777,7 +777,7 @@ def main(argv=None) -> int:
         md += out
     md += targets(fig, args) + "\nwall time per part: " + ", ".join(
         f"{k} {v:.0f} s" for k, v in seconds.items()) + "\n"
-    print(md[md.index("\n## Targets (issue 49)"):])
+    print(md[md.index("\n## Targets"):])
     with open(os.path.join(OUT, f"{args.name}.md"), "w") as f:
         f.write(md)
     with open(os.path.join(OUT, f"{args.name}_targets.json"), "w") as f:

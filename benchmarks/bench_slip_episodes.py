@@ -15,7 +15,7 @@ each kind:
   (``WheelSlipEffect.shape`` "sine"), the fraction its peak: a slip as adhesion is lost and
   regained, not a step. Its depth error is against the peak;
 - ``deep``, ``deep_shaped`` (not run unless chosen with ``--kinds``): the ``varied`` and
-  ``shaped`` episodes at the same places, each |fraction| 0.12-0.25 (issue 49's deep slips,
+  ``shaped`` episodes at the same places, each |fraction| 0.12-0.25 (the deep slips `bench_diagnose` judges,
   which came out shallow and long; ``./run bench diagnose`` judges its target on them).
 
 Each case is simulated into a measured bag and diagnosed (the core's ``diagnose``, as the CLI
@@ -160,7 +160,7 @@ def run(case) -> dict:
 TARGET = 0.3  # 1 - IoU of the found and the true slip time, in every case
 KINDS = ("plain", "subtle", "long", "varied", "shaped", "deep", "deep_shaped")
 DEFAULT_KINDS = KINDS[:5]
-DEEP = (0.12, 0.25)  # |slip fraction| of the deep kinds (issue 49: 12-25 % depth)
+DEEP = (0.12, 0.25)  # |slip fraction| of the deep kinds (12-25 % depth: bench_diagnose's target)
 
 
 def make_slip_case(kind: str, seed: int, i: int):

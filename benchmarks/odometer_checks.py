@@ -1,7 +1,7 @@
 """The odometer's residual checks (``diagnose.phases.sensor_residuals``) on the nominal bags of
 ``train_sim.cases`` and on the same bags with an error hidden in the odometer's speed readings:
 what tests/test_diagnose_residuals.py asserts and ``./run bench diagnose`` (part ``residuals``)
-reports against issue 49's targets.
+reports against its targets.
 """
 
 from __future__ import annotations
