@@ -15,8 +15,8 @@ each kind:
   (``WheelSlipEffect.shape`` "sine"), the fraction its peak: a slip as adhesion is lost and
   regained, not a step. Its depth error is against the peak;
 - ``deep``, ``deep_shaped`` (not run unless chosen with ``--kinds``): the ``varied`` and
-  ``shaped`` episodes at the same places, each |fraction| 0.12-0.25 (the deep slips `bench_diagnose` judges,
-  which came out shallow and long; ``./run bench diagnose`` judges its target on them).
+  ``shaped`` episodes at the same places, each |fraction| 0.12-0.25 (deep slips, which came
+  out shallow and long; ``./run bench diagnose`` judges its target on them).
 
 Each case is simulated into a measured bag and diagnosed (the core's ``diagnose``, as the CLI
 runs it); the wheel_slip entry of the ranking is compared with the truth on the stamp clock:
