@@ -292,8 +292,16 @@ class DistanceAsPosition:
             # is no reboot's (a counter that wrapped with its count going on, or one corrupted
             # message: the fuzz sent the counter's jump to 2^32 - 1 and, next, a copy with a
             # count 1e6 m on and a counter below it, whose splice put every later genuine
-            # reading 1e6 m off the count, refused for 100 s)
-            trap, slack, bound = self._course(heard, stamp, v, rv)
+            # reading 1e6 m off the count, refused for 100 s). Where its stamp is in doubt by
+            # T s (CLOCK_UNSURE: a step back of the clock by T read as a latency that rose as
+            # much), the silence may have lasted T s longer, and so may the count's run: on
+            # the stamps alone a 10 s reboot whose clock resumed where it stopped had run 194
+            # m in 1 s, taken for no reboot, and every estimate then followed the count's new
+            # origin, 1.5-1.9 km behind the train (crh3_high_speed at 100 s; the robust filter
+            # outside its levels)
+            unsure = fields.get(CLOCK_UNSURE)
+            trap, slack, bound = self._course(heard, stamp + (float(unsure) if unsure else 0.0),
+                                              v, rv)
             return (self._splice(stamp, d, fields) if d <= trap + slack + bound else None), ""
         here = (stamp, d + self.splice, v)
         if self.odo_heard is None or stamp > self.odo_heard[0]:
