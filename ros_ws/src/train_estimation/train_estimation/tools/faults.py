@@ -446,7 +446,8 @@ def run(events: list, adapter, period: float, delay: float = 0.05, fallback: flo
     """``(outputs, emitted, runner)``: ``core.online.replay.replay`` itself (the runner the
     nodes use, its ticks at the node timer's times), with ``emitted[i]`` the arrival time (s,
     reference clock) of the message or timer tick after which ``outputs[i]`` was produced (the
-    drain at the end: the last arrival). ``stalled``: ``(t0, t1)`` true-time intervals in which
+    drain at the end: the last arrival; 2 us earlier where a train reading arriving at that
+    same instant was taken after it). ``stalled``: ``(t0, t1)`` true-time intervals in which
     the node's callbacks are blocked (:attr:`Faulted.stalled`): its timer does not fire."""
     from train_estimation.core.online.replay import replay
 
