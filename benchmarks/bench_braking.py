@@ -763,7 +763,8 @@ def main(argv=None):
     ap.add_argument("--skip-sweep", action="store_true", help="no MAE-vs-time sweep / plot")
     ap.add_argument("--sweep-only", action="store_true", help="only the MAE-vs-time sweep")
     ap.add_argument("--parts", action="store_true",
-                    help="only the table of a step's fixed cost by part (about 30 s)")
+                    help="only the table of a step's fixed cost by part (a few seconds once "
+                         "numba's cache is warm)")
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "out"))
     ap.add_argument("--reps", type=int, default=3,
                     help="identical runs per timed filter; per-step time = their minimum")
