@@ -1667,10 +1667,9 @@ class StepWatch:
             return
         self.grid.add(seq, stamp)
         before = self.last
-        n = SampleGrid._seq(seq)
-        restarted = n is not None and self._seq_last is not None and n < self._seq_last
+        restarted = self._restarted(seq)
         if self.last is None or stamp > self.last[0]:
-            self._seq_last = n
+            self._seq_last = SampleGrid._seq(seq)
             if arrival is not None:
                 self.last = (stamp, arrival)
         self._stray = None
@@ -1683,6 +1682,12 @@ class StepWatch:
             if len(self._arr) > 256:
                 keep = sorted(self._arr)[-128:]
                 self._arr = {k: self._arr[k] for k in keep}
+
+    def _restarted(self, seq) -> bool:
+        """Whether a reading's sample counter ``seq`` lies below the newest admitted one's:
+        the counter began again (a unit that rebooted)."""
+        n = SampleGrid._seq(seq)
+        return n is not None and self._seq_last is not None and n < self._seq_last
 
     def _note_silence(self, stamp: float, arrival: float | None, before: tuple | None,
                       restarted: bool = False) -> None:
@@ -2439,8 +2444,7 @@ class StepWatch:
         # (the sample counter began again with them: the unit rebooted, and was silent as
         # long as that took, whatever its stamps say)
         fields0 = min(after, key=lambda h: h[1])[2] if after else None
-        seq0 = SampleGrid._seq(fields0.get("seq")) if isinstance(fields0, dict) else None
-        restarted = seq0 is not None and self._seq_last is not None and seq0 < self._seq_last
+        restarted = isinstance(fields0, dict) and self._restarted(fields0.get("seq"))
         untimed = not off and measured and (
             rs is None and gap is not None and self._step_open(gap, moved, restarted)
             or self._untimed is not None and self._step_open(self._untimed[2], moved,
