@@ -31,6 +31,14 @@ import pytest
 
 REPO = Path(__file__).resolve().parent
 
+# pytest rewrites the asserts of every test module it imports (about 7 s of CPU for the suite's
+# 200 modules) and keeps the result in __pycache__ only where the process may write bytecode:
+# scripts/env.sh forbids it for every process (PYTHONDONTWRITEBYTECODE, so that no node writes
+# beside the sources; `./run setup` compiles the workspace), which made each pytest worker of
+# both phases rewrite them all again. The test processes themselves may write it (the node
+# processes they start keep the environment's rule).
+sys.dont_write_bytecode = False
+
 # The session's domain is drawn once, in pytest's main process, and handed to pytest-xdist's
 # workers through the environment; worker gwN takes that domain + N, so that workers running
 # node tests side by side never share a graph (two draws of their own would collide 1 time in 100)
