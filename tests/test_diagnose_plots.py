@@ -12,30 +12,17 @@ from train_estimation.tools import diagnose_plots as plots
 
 @pytest.fixture
 def figures(monkeypatch):
-    """The figures the plot functions draw, kept open for inspection."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    """The figures the plot functions draw, kept for inspection."""
     kept = []
+    make = plots._subplots
 
-    class Keep:
-        def __getattr__(self, name):
-            return getattr(plt, name)
+    def keep(*a, **kw):
+        fig, ax = make(*a, **kw)
+        kept.append(fig)
+        return fig, ax
 
-        def subplots(self, *a, **kw):
-            fig, ax = plt.subplots(*a, **kw)
-            kept.append(fig)
-            return fig, ax
-
-        def close(self, fig=None):
-            pass
-
-    monkeypatch.setattr(plots, "_plt", lambda: Keep())
-    yield kept
-    for f in kept:
-        plt.close(f)
+    monkeypatch.setattr(plots, "_subplots", keep)
+    return kept
 
 
 def series(extended: bool) -> dict:
@@ -87,3 +74,28 @@ def test_speed_trace_draws_f_on_that_axis(figures, tmp_path):
     assert plots.plot_speed_trace(s, tmp_path / "s.png")
     lo, hi = figures[0].get_axes()[1].get_ylim()
     assert lo <= 0.9987 and hi >= 1.0 and hi - lo >= plots.F_MIN_SPAN
+
+
+def test_the_plots_are_the_same_bytes_for_the_same_series(tmp_path):
+    """Two runs on the same data write the same files (no date, no run-dependent state), each
+    an opaque RGB PNG at the plots' resolution."""
+    from PIL import Image
+
+    rng = np.random.default_rng(1)
+    t = np.arange(0.0, 200.0, 0.5)
+    v = 10.0 + np.sin(t / 20.0)
+    s = {"t": t, "position": 10.0 * t, "speed": v, "residual_accel": rng.normal(0, 0.05, t.size),
+         "residual_accel_extended": rng.normal(0, 0.04, t.size), "odo_t": t, "odo_speed": v,
+         "phase": np.arange(t.size) % 3, "line_gradient": [(0.0, 2000.0, 1.0)],
+         "loss_runs": np.array([1, 2, 1, 4]), "loss_fraction": 0.05,
+         "replay_t": t, "replay_measured": v, "replay_believed": v + 0.1,
+         "replay_extended": v + 0.02, "replay_block": 30.0}
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    first = plots.write_plots(s, tmp_path / "a")
+    second = plots.write_plots(s, tmp_path / "b")
+    assert [p.name for p in first] == [p.name for p in second] and len(first) == 6
+    for a, b in zip(first, second):
+        assert a.read_bytes() == b.read_bytes(), a.name
+        with Image.open(a) as im:
+            assert im.mode == "RGB" and round(im.info["dpi"][0]) == plots.DPI, a.name

@@ -1,15 +1,18 @@
 """``Motion._integrate_plain`` (the nominal drive's loop, written out for speed) against the loop
-it replaces, bit for bit: ``Actuator.segment`` and ``Dynamics.step`` called per step."""
+it replaces, bit for bit: ``Actuator.segment`` and ``Dynamics.step`` called per step; and
+``warm_actuator``, which skips the commands long before whose effect a later one overwrites,
+against the walk over every earlier command."""
 
 from __future__ import annotations
 
 import math
 from pathlib import Path
 
+import numpy as np
 import pytest
 from train_core.actuator import Actuator
 from train_core.model import load_line, load_train
-from train_core.motion import Motion
+from train_core.motion import Motion, warm_actuator
 
 CONFIG = Path(__file__).resolve().parents[1] / "config"
 
@@ -78,3 +81,31 @@ def test_the_plain_loop_is_the_generic_one_bit_for_bit(line, train, varying):
     assert any(s for *_, s, _ in got[5:]) and max(v for _, _, v, _, _ in got) > 10.0
     assert got == want  # every float, exactly
     assert got_visits == want_visits
+
+
+def _warm_reference(train, t_cmd, a_cmd, t0: float, warmup: float = 30.0) -> Actuator:
+    """``warm_actuator`` as it was: every command before ``t0`` visited in turn."""
+    act = Actuator(train.brake.time_constant, train.brake.delay, t0=-warmup)
+    act.track_br = True
+    f = train.brake.braking_rate
+    for t_i, a_i in zip(t_cmd[t_cmd < t0] - t0, a_cmd[t_cmd < t0]):
+        if t_i >= -warmup:
+            act.advance(t_i, f)
+            act.command(t_i, a_i)
+        else:
+            act.u_tr, act.u_br = max(a_i, 0.0), min(a_i, 0.0)
+    act.advance(0.0, f)
+    act.t = 0.0
+    return act
+
+
+@pytest.mark.parametrize("t0", [0.0, 20.0, 31.0, 95.3, 400.0])
+def test_warm_actuator_skips_only_commands_whose_effect_is_overwritten(t0):
+    tr = load_train(CONFIG / "trains" / "metro_b6.yaml")
+    rng = np.random.default_rng(5)
+    t_cmd = np.round(np.arange(0.0, 500.0, 0.1), 6)  # a recorder's 10 Hz commands
+    a_cmd = np.where(rng.random(t_cmd.size) < 0.5, rng.uniform(-1.2, 1.0, t_cmd.size), 0.0)
+    got, want = warm_actuator(tr, t_cmd, a_cmd, t0), _warm_reference(tr, t_cmd, a_cmd, t0)
+    assert vars(got).keys() == vars(want).keys()
+    for k, v in vars(want).items():
+        assert getattr(got, k) == v, k  # every float, exactly (the delay lines too)

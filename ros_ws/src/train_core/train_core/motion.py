@@ -158,7 +158,16 @@ def warm_actuator(train: TrainParams, t_cmd, a_cmd, t0: float, warmup: float = 3
     act.track_br = True  # the braking part too, for a Motion with drive effects
     t_cmd = np.asarray(t_cmd, dtype=float)
     a_cmd = np.asarray(a_cmd, dtype=float)
-    for t_i, a_i in zip(t_cmd[t_cmd < t0] - t0, a_cmd[t_cmd < t0]):
+    before = t_cmd < t0
+    t_b, a_b = t_cmd[before] - t0, a_cmd[before]
+    # of a run of consecutive commands long before, only its last one leaves a trace (each
+    # overwrites the parts in force): the others are not visited (a replay late in a long run
+    # would walk every earlier command), the state is the same
+    early = t_b < -warmup
+    keep = ~early
+    keep[:-1] |= early[:-1] & ~early[1:]
+    keep[-1:] |= early[-1:]
+    for t_i, a_i in zip(t_b[keep], a_b[keep]):
         if t_i >= -warmup:
             act.advance(t_i, f_of(t_i + t0))
             act.command(t_i, a_i)

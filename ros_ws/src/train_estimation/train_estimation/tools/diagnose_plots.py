@@ -3,8 +3,9 @@ model against position (with the line profile and the fitted gradient section), 
 and the commands, and by phase with what is unexplained; the speed trace with slip episodes and
 f(t); the loss-run histogram; the recorded commands replayed through both models.
 
-Each plot takes ``Diagnosis.series`` and is drawn only when its series exist; matplotlib is
-imported on the first plot (Agg), so ``diagnose --no-plots`` never loads it.
+Each plot takes ``Diagnosis.series`` and is drawn only when its series exist; matplotlib (its
+Figure on the Agg canvas, not pyplot) is imported on the first plot, so ``diagnose --no-plots``
+never loads it.
 """
 
 from __future__ import annotations
@@ -18,13 +19,16 @@ from train_estimation.core.offline.diagnose.series import with_replay
 from train_estimation.tools.diagnose_unexplained import at_balise, balise_latency, on_odometer
 
 
-def _plt():
-    import matplotlib
+def _subplots(*grid, figsize, **kw):
+    """A figure of ``figsize`` inches at DPI on matplotlib's Agg canvas and its axes, as
+    ``pyplot.subplots(*grid, figsize=figsize, **kw)`` makes them, without pyplot: no figure
+    manager, no registry of open figures to close, no backend to select."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
+    fig = Figure(figsize=figsize, dpi=DPI)
+    FigureCanvasAgg(fig)
+    return fig, fig.subplots(*grid, **kw)
 
 
 def _decimal_log_formatter():
@@ -70,9 +74,8 @@ def plot_position(s: dict, path: Path, dg=None) -> bool:
     xy = _get(s, "position", "residual_accel")
     if xy is None:
         return False
-    plt = _plt()
     x, r = xy
-    fig, (a0, a1) = plt.subplots(2, 1, figsize=(10, 6), sharex=True,
+    fig, (a0, a1) = _subplots(2, 1, figsize=(10, 6), sharex=True,
                                  gridspec_kw={"height_ratios": [2, 1]})
     a0.plot(x, r, ".", ms=1, alpha=0.15, color="0.5", label="residual (believed model)")
     span = float(np.nanmax(x) - np.nanmin(x)) if np.isfinite(x).any() else 0.0
@@ -123,7 +126,6 @@ def plot_speed(s: dict, path: Path, dg=None) -> bool:
     xy = _get(s, "speed", "residual_accel")
     if xy is None:
         return False
-    plt = _plt()
     v, r = xy
     ext = _extended(s, r)
     panels = [("speed (m/s)", v)]
@@ -132,7 +134,7 @@ def plot_speed(s: dict, path: Path, dg=None) -> bool:
         xs = _get(s, key, "residual_accel")
         if xs is not None:
             panels.append((label, xs[0]))
-    fig, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels), 4), sharey=True)
+    fig, axes = _subplots(1, len(panels), figsize=(4.2 * len(panels), 4), sharey=True)
     axes = np.atleast_1d(axes)
     lim = 0.0
     for ax, (label, x) in zip(axes, panels):
@@ -183,10 +185,9 @@ def plot_speed_trace(s: dict, path: Path, dg=None) -> bool:
     tv = _get(s, "odo_t", "odo_speed")
     if tv is None:
         return False
-    plt = _plt()
     t, v = tv
     has_f = s.get("f_t") is not None
-    fig, axes = plt.subplots(2 if has_f else 1, 1, figsize=(10, 6 if has_f else 3.5),
+    fig, axes = _subplots(2 if has_f else 1, 1, figsize=(10, 6 if has_f else 3.5),
                              sharex=True)
     axes = np.atleast_1d(axes)
     axes[0].plot(t, v, lw=0.7, label="odometer speed")
@@ -218,10 +219,9 @@ def plot_loss_runs(s: dict, path: Path, dg=None) -> bool:
     runs = s.get("loss_runs")
     if runs is None or len(runs) == 0:
         return False
-    plt = _plt()
     runs = np.asarray(runs, dtype=int)
     k = np.arange(1, max(int(runs.max()), 5) + 1)
-    fig, ax = plt.subplots(figsize=(6, 4))
+    fig, ax = _subplots(figsize=(6, 4))
     counts = np.bincount(runs, minlength=k[-1] + 1)[1:]
     ax.bar(k, counts / runs.size, color="0.6", label=f"data ({runs.size} runs)")
     q = s.get("loss_fraction")
@@ -252,9 +252,8 @@ def plot_replay(s: dict, path: Path, dg=None) -> bool:
     tv = _get(s, "replay_t", "replay_measured", "replay_believed", "replay_extended")
     if tv is None:
         return False
-    plt = _plt()
     t, y, vb, va = tv
-    fig, (a0, a1) = plt.subplots(2, 1, figsize=(10, 6), sharex=True,
+    fig, (a0, a1) = _subplots(2, 1, figsize=(10, 6), sharex=True,
                                  gridspec_kw={"height_ratios": [2, 1]})
     a0.plot(t, y, color="k", lw=1.0, label="measured (odometer, 1 s average)")
     a0.plot(t, vb, color="C0", lw=0.9, label="believed model")
@@ -264,10 +263,11 @@ def plot_replay(s: dict, path: Path, dg=None) -> bool:
     a1.plot(t, va - y, color="C3", lw=0.8, label=f"extended - measured (RMS {rms[1]:.3f} m/s)")
     a1.axhline(0, color="k", lw=0.6)
     block = s.get("replay_block")
-    if block:
-        for tb in np.arange(t[0], t[-1], float(block)):
-            for ax in (a0, a1):
-                ax.axvline(tb, color="0.7", lw=0.5, ls=":")
+    if block:  # the restarts as one collection a panel (one artist, not one per line)
+        starts = np.arange(t[0], t[-1], float(block))
+        for ax in (a0, a1):
+            ax.vlines(starts, 0, 1, transform=ax.get_xaxis_transform(), color="0.7", lw=0.5,
+                      ls=":")
     a0.set_ylabel("speed (m/s)")
     a1.set_ylabel("speed error (m/s)")
     a1.set_xlabel("time since the first odometer stamp (s); dotted: restart from the measured "
@@ -289,9 +289,8 @@ def plot_phases(s: dict, path: Path, dg=None) -> bool:
     xy = _get(s, "position", "speed", "residual_accel", "phase")
     if xy is None:
         return False
-    plt = _plt()
     x, v, r, ph = xy
-    fig, axes = plt.subplots(1, 2, figsize=(12, 4.2), sharey=True)
+    fig, axes = _subplots(1, 2, figsize=(12, 4.2), sharey=True)
     lim = 0.0
     for ax, q, label in ((axes[0], x, "track position (m)"), (axes[1], v, "speed (m/s)")):
         for i, (name, col) in enumerate(PHASE_COLOURS):
@@ -363,9 +362,29 @@ def _save(fig, path: Path, top: float = 0.4, space: float = 0.2) -> bool:
     ah = (h - bottom - top - space * (rows - 1)) / rows
     fig.subplots_adjust(left=left / w, right=1 - right / w, bottom=bottom / h, top=1 - top / h,
                         wspace=space / aw, hspace=space / ah)
-    fig.savefig(path, dpi=DPI)
-    _plt().close(fig)
+    _write_png(fig, path)
     return True
+
+
+PNG_COMPRESSION = 2  # zlib's level: half the CPU of PIL's default 6, the files ~10 % larger
+
+
+def _write_png(fig, path: Path) -> None:
+    """Draw the figure once and write it as an RGB PNG (the page is opaque: its alpha channel,
+    255 everywhere, is left out, as matplotlib's savefig keeps it), with savefig's metadata
+    (the resolution, the software: no date, so that a plot's bytes depend on its data only)."""
+    import matplotlib
+    from PIL import Image, PngImagePlugin
+
+    fig.canvas.draw()
+    rgba = np.asarray(fig.canvas.buffer_rgba())
+    opaque = bool((rgba[:, :, 3] == 255).all())
+    img = Image.fromarray(np.ascontiguousarray(rgba[:, :, :3]) if opaque else rgba,
+                          "RGB" if opaque else "RGBA")
+    info = PngImagePlugin.PngInfo()
+    info.add_text("Software", f"Matplotlib version{matplotlib.__version__}, "
+                              "https://matplotlib.org/")
+    img.save(path, format="png", compress_level=PNG_COMPRESSION, dpi=(DPI, DPI), pnginfo=info)
 
 
 def _set_title(ax, dg, what: str) -> None:
