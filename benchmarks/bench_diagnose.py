@@ -20,6 +20,11 @@ FAIL or not-run (a part not selected), and on how many bags (a quick run says so
   no effect (its bar, Z > 2 one-sided: <= 2.3 %);
 - ``slips``: slip episodes at 12-25 % depth (bench_slip_episodes' kinds ``deep`` and
   ``deep_shaped``): 1 - IoU of the found and the true slip time <= 0.3 in every case;
+- ``swaps``: braking-rate cases whose change is constant (every brake x f; seed 11's first
+  draws have a low-adhesion section over the stops accepted first and then swapped for the
+  change): the change confirmed with its size (main error <= 0.2) in every bag;
+- ``passes``: bench_passes' passes through one stretch of metro_demo at three cruise speeds,
+  with a tunnel's drag or a map error there: the fleet's place-against-speed test says which;
 - ``residuals``: the odometer's residual checks (benchmarks/odometer_checks, what
   tests/test_diagnose_residuals.py asserts) on nominal bags (alarms within the binomial bound
   at their stated 0.1 %) and with an AR(1) error or noise growing with speed hidden in the
@@ -455,7 +460,7 @@ def unlisted_table(rows: list[dict]) -> str:
 # the bench or test that measures it on its own
 # ------------------------------------------------------------------------------------------------
 
-PARTS = ("cases", "heldout", "slips", "residuals", "cpu")
+PARTS = ("cases", "heldout", "slips", "swaps", "passes", "residuals", "cpu")
 SLIP_KINDS = ("deep", "deep_shaped")  # bench_slip_episodes' kinds at 12-25 % depth
 
 
@@ -483,6 +488,60 @@ def part_slips(args) -> tuple[dict, str]:
     md += [SE.kind_line(k, rows[k]) for k in SLIP_KINDS]
     return {"within": (sum(e <= SE.TARGET for e in err), len(err)),
             "max": max(err, default=np.nan)}, "\n".join(md) + "\n"
+
+
+def constant_f_specs(n: int, seed: int) -> list[dict]:
+    """The first ``n`` braking-rate cases at the plain size (``make_case(default_rng([seed,
+    i]))``, i = 0, 1, ...) whose change is constant over the run (every brake x f, 30 % of the
+    draws; the others drift), as case specs for :func:`run_case`."""
+    specs, i = [], 0
+    while len(specs) < n:
+        f = make_case(np.random.default_rng([seed, i]), "braking_rate",
+                      "plain").truth["braking_rate"]
+        if f["f_start"] == f["f_end"]:
+            specs.append({"index": i, "seed": seed, "causes": ("braking_rate",),
+                          "size": "plain", "f_true": f["f_start"]})
+        i += 1
+    return specs
+
+
+def part_swaps(args) -> tuple[dict, str]:
+    """A constant braking-rate change through the whole of ``diagnose``: the change confirmed
+    with its size (main error <= 0.2), whether or not a low-adhesion section over the stops
+    was accepted first and swapped for it (refit.unlocate)."""
+    specs = constant_f_specs(args.swaps, args.swap_seed)
+    rows = run_specs(run_case, specs, args.jobs, "bench diagnose: swaps")
+    md = [f"\n## A constant braking-rate change (the first {args.swaps} constant draws of "
+          f"seed {args.swap_seed}, plain)\n",
+          "| case | confirmed | f true | main error | why not |", "|---|---|---|---|---|"]
+    good = 0
+    for sp, r in zip(specs, rows):
+        err = r.get("errors", {}).get("braking_rate")
+        ok = r.get("rc") == 0 and "braking_rate" in r.get("confirmed", []) and \
+            err is not None and err <= 0.2
+        good += ok
+        md.append(f"| [{sp['seed']}, {sp['index']}] {r.get('describe', '')} | "
+                  f"{', '.join(r.get('confirmed', [])) or '-'} | "
+                  f"{sp['f_true']:.3f} | {'-' if err is None else f'{err:.2f}'} | "
+                  f"{'' if ok else r.get('why', {}).get('braking_rate', r.get('error', ''))} |")
+    return {"kept": (good, len(rows))}, "\n".join(md) + "\n"
+
+
+def part_passes(args) -> tuple[dict, str]:
+    """Several passes through one stretch (bench_passes): a map error at any speed, a tunnel's
+    drag growing as v^2; the fleet's place-against-speed test must say which."""
+    import bench_passes as BP
+
+    from train_estimation.core.offline import fleet as FL
+
+    seeds = tuple(range(1, 1 + args.passes))
+    md, right = [f"\n## Several passes (bench_passes: {len(BP.MARGINS)} speeds x "
+                 f"{args.passes} seed(s) per kind)"], 0
+    for kind in ("tunnel", "map error"):
+        rows, t, ok = BP.kind_passes(kind, seeds, FL.FleetConfig().alpha, args.jobs)
+        md.append(BP.report(kind, rows, t, ok))
+        right += ok
+    return {"told": (right, 2), "speeds": len(BP.MARGINS)}, "\n".join(md) + "\n"
 
 
 def part_residuals(args) -> tuple[dict, str]:
@@ -690,13 +749,14 @@ def targets(fig: dict, args) -> str:
     row("no module of the diagnose package over 600 lines", None,
         (f"largest: {lines[0][1]}, {lines[0][0]}", lines[0][0] <= 600), "<= 600 lines",
         f"{len(lines)} modules", sample=False)
-    row("a braking deficit a section explained first keeps its size as a rate change", None,
-        ("not measured by this bench", None), "the fitted f kept",
-        "tests/test_diagnose_tool.py::test_a_section_swapped_for_a_braking_rate_change_keeps"
-        "_the_braking_deficit", sample=False)
-    row("several passes: a map error told from a tunnel's drag", None,
-        ("not measured by this bench", None), "`fleet` says which", "./run bench passes",
-        sample=False)
+    row("a constant braking-rate change keeps its size (a section accepted first or not): "
+        "confirmed, main error <= 0.2", "swaps", _every(*fig.get("swaps", {}).get(
+            "kept", (0, 0))), "every bag",
+        f"{args.swaps} constant-f bag(s) of seed {args.swap_seed}")
+    row("several passes: a map error told from a tunnel's drag (the fleet's test)", "passes",
+        _every(*fig.get("passes", {}).get("told", (0, 0)), "kinds"), "both kinds",
+        f"{fig.get('passes', {}).get('speeds', '-')} speeds x {args.passes} seed(s) per "
+        "kind")
     md = ["\n## Targets\n"]
     if args.quick:
         md.append("A quick run (`--quick`): one or two bags per row, so a PASS says the target "
@@ -737,6 +797,13 @@ def main(argv=None) -> int:
                    help="part heldout: bags with no effect (default 12)")
     p.add_argument("--slips", type=int, default=5,
                    help=f"part slips: cases of each of {', '.join(SLIP_KINDS)} (default 5)")
+    p.add_argument("--swaps", type=int, default=6,
+                   help="part swaps: constant braking-rate bags (default 6)")
+    p.add_argument("--swap-seed", type=int, default=11,
+                   help="part swaps: their seed (default 11, whose first draws have a "
+                        "low-adhesion section accepted first)")
+    p.add_argument("--passes", type=int, default=2,
+                   help="part passes: seeds per speed and kind (default 2)")
     p.add_argument("--residual-bags", type=int, default=12,
                    help="part residuals: nominal bags (seeds 0..N-1; default 12)")
     p.add_argument("--residual-effect", type=int, default=3,
@@ -746,15 +813,16 @@ def main(argv=None) -> int:
     p.add_argument("--cpu-runs", type=int, default=3,
                    help="part cpu: processes per bag (default 3; the median is judged)")
     p.add_argument("--quick", action="store_true",
-                   help="under 2 minutes on 2 processes: one case per cause and size, one "
+                   help="few bags per part on 2 processes: one case per cause and size, one "
                         "pair, one nominal bag, no real line; held-out 1 bag per cause and 2 "
-                        "nominal; 1 slip case per deep kind; residuals on 2 nominal bags and 1 "
+                        "nominal; 1 slip case per deep kind; 1 constant braking-rate bag; "
+                        "passes at 3 speeds, one seed; residuals on 2 nominal bags and 1 "
                         "per error; CPU on 2 bags, one run each per mode; output NAME "
                         "diagnose_quick (each option given overrides)")
     if p.parse_known_args(argv)[0].quick:  # the quick values as defaults: given ones win
         p.set_defaults(cases=1, pairs=1, nominal=1, real=0, jobs=2, heldout=1,
-                       heldout_nominal=2, slips=1, residual_bags=2, residual_effect=1,
-                       cpu_bags=2, cpu_runs=1, name="diagnose_quick")
+                       heldout_nominal=2, slips=1, swaps=1, passes=1, residual_bags=2,
+                       residual_effect=1, cpu_bags=2, cpu_runs=1, name="diagnose_quick")
     args = p.parse_args(argv)
     parts = [x for x in args.parts.split(",") if x]
     if any(x not in PARTS for x in parts):
@@ -771,6 +839,7 @@ def main(argv=None) -> int:
                 json.dump(results, f, indent=1, default=str)
         else:
             fig[part], out = {"heldout": part_heldout, "slips": part_slips,
+                              "swaps": part_swaps, "passes": part_passes,
                               "residuals": part_residuals, "cpu": part_cpu}[part](args)
         seconds[part] = time.perf_counter() - t0
         print(out, flush=True)

@@ -9,23 +9,26 @@ seeds each, with either a tunnel (``train_sim.unlisted.TunnelDrag``, not a liste
 map error (the true line steeper there: the ``gradient`` effect), runs `diagnose` on each pass's
 measured bag, and prints what each pass found and the place-against-speed test over them.
 
-    ./run bench passes            # 12 passes (about 4 min on two cores)
-    ./run bench passes --quick    # 6 passes: one seed per speed (under 2 min)
+    ./run bench passes --jobs 2            # 12 passes (about 4 min on two cores)
+    ./run bench passes --quick --jobs 2    # 6 passes: one seed per speed (under 2 min)
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import math
 import sys
 import tempfile
 import time
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 from train_core.bagio import read_bag
 from train_core.effects import GradientEffect
 from train_core.model import load_line, load_train
+from train_core.progress import track
 
 from train_estimation.core.offline import fleet as FL
 from train_estimation.core.offline.diagnose import diagnose
@@ -63,46 +66,68 @@ def one_pass(kind: str, margin: float, seed: int) -> dict:
             "v2": row.get("gradient_v2")}
 
 
+def _timed_pass(run: tuple) -> dict:
+    t0 = time.perf_counter()
+    return {**one_pass(*run), "s": time.perf_counter() - t0}
+
+
+def kind_passes(kind: str, seeds, alpha: float, jobs: int = 1
+                ) -> tuple[list[dict], dict | None, bool]:
+    """Every pass of ``kind`` (``tunnel`` or ``map error``) at the three cruise speeds and
+    ``seeds`` (on ``jobs`` processes), the place-against-speed test over those that found the
+    stretch (None: fewer than two), and whether it decided right (``speed`` for the tunnel,
+    ``place`` for the map)."""
+    runs = [(kind, m, s) for m in MARGINS for s in seeds]
+    with contextlib.ExitStack() as stack:
+        pool = stack.enter_context(ProcessPoolExecutor(max_workers=jobs)) if jobs > 1 else None
+        rows = list(track(pool.map(_timed_pass, runs) if pool else map(_timed_pass, runs),
+                          f"passes: {kind}", total=len(runs)))
+    got = [r for r in rows if r["se"] is not None and r["v2"] is not None
+           and r["permille"] is not None]
+    t = FL.speed_test([r["permille"] for r in got], [r["se"] for r in got],
+                      [r["v2"] for r in got], alpha)
+    want = "speed" if kind == "tunnel" else "place"
+    return rows, t, t is not None and t["decided"] == want
+
+
+def report(kind: str, rows: list[dict], t: dict | None, ok: bool) -> str:
+    """The passes of one kind as a markdown table, and the test's line."""
+    want = "speed" if kind == "tunnel" else "place"
+    md = [f"\n{kind} on [{STRETCH[0]:.0f}, {STRETCH[1]:.0f}) m of metro_demo "
+          + (f"(extra drag {TUNNEL_C:g} v^2 N)" if kind == "tunnel" else
+             f"(the true line {MAP_PERMILLE:+g} per mille steeper)"),
+          "| cruise margin m/s | seed | diagnose | section m | per mille +- se | "
+          "speed over it km/h | s |", "|---|---|---|---|---|---|---|"]
+    for r in rows:
+        found = r["se"] is not None and r["v2"] is not None and r["permille"] is not None
+        where = f"[{r['start']:.0f}, {r['end']:.0f})" if found else "-"
+        pm = f"{r['permille']:+.3f} +- {r['se']:.3f}" if found else "-"
+        v = f"{3.6 * math.sqrt(r['v2']):.0f}" if found else "-"
+        md.append(f"| {r['margin']:g} | {r['seed']} | {r['cause']} | {where} | {pm} | {v} | "
+                  f"{r['s']:.0f} |")
+    if t is None:
+        md.append("place against speed: fewer than two passes found it -> FAIL")
+    else:
+        md.append(f"place against speed over {t['n']} passes at {3.6 * t['v_min']:.0f}-"
+                  f"{3.6 * t['v_max']:.0f} km/h: p(the same at any speed) = "
+                  f"{t['p_place']:.3g}, p(growing as v^2) = {t['p_speed']:.3g} -> "
+                  f"{t['decided']} ({'PASS' if ok else 'FAIL'}: want {want})")
+    return "\n".join(md)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="one seed per speed")
     ap.add_argument("--alpha", type=float, default=FL.FleetConfig().alpha,
                     help="the test's false-alarm rate (the fleet's alpha)")
+    ap.add_argument("--jobs", type=int, default=1, help="parallel processes (default 1)")
     args = ap.parse_args(argv)
     seeds = (1,) if args.quick else (1, 2)
     ok = True
     for kind in ("tunnel", "map error"):
-        print(f"\n{kind} on [{STRETCH[0]:.0f}, {STRETCH[1]:.0f}) m of metro_demo "
-              + (f"(extra drag {TUNNEL_C:g} v^2 N)" if kind == "tunnel" else
-                 f"(the true line {MAP_PERMILLE:+g} per mille steeper)"))
-        print("| cruise margin m/s | seed | diagnose | section m | per mille +- se | "
-              "speed over it km/h | s |")
-        print("|---|---|---|---|---|---|---|")
-        rows = []
-        for margin in MARGINS:
-            for seed in seeds:
-                t0 = time.perf_counter()
-                r = one_pass(kind, margin, seed)
-                rows.append(r)
-                found = r["se"] is not None and r["v2"] is not None and r["permille"] is not None
-                where = f"[{r['start']:.0f}, {r['end']:.0f})" if found else "-"
-                pm = f"{r['permille']:+.3f} +- {r['se']:.3f}" if found else "-"
-                v = f"{3.6 * math.sqrt(r['v2']):.0f}" if found else "-"
-                print(f"| {margin:g} | {seed} | {r['cause']} | {where} | {pm} | {v} | "
-                      f"{time.perf_counter() - t0:.0f} |", flush=True)
-        got = [r for r in rows if r["se"] is not None and r["v2"] is not None]
-        t = FL.speed_test([r["permille"] for r in got], [r["se"] for r in got],
-                          [r["v2"] for r in got], args.alpha)
-        want = "speed" if kind == "tunnel" else "place"
-        if t is None:
-            print("place against speed: fewer than two passes found it -> FAIL")
-            ok = False
-            continue
-        print(f"place against speed over {t['n']} passes at {3.6 * t['v_min']:.0f}-"
-              f"{3.6 * t['v_max']:.0f} km/h: p(the same at any speed) = {t['p_place']:.3g}, "
-              f"p(growing as v^2) = {t['p_speed']:.3g} -> {t['decided']} "
-              f"({'PASS' if t['decided'] == want else 'FAIL'}: want {want})")
-        ok &= t["decided"] == want
+        rows, t, right = kind_passes(kind, seeds, args.alpha, args.jobs)
+        print(report(kind, rows, t, right), flush=True)
+        ok &= right
     print(f"\nRESULT: {'PASS' if ok else 'FAIL'}")
     return 0 if ok else 1
 
