@@ -1517,6 +1517,13 @@ def test_one_pass_finds_the_single_time_span_on_a_stretch():
     assert _one_pass(mo, fit) == (20.0, 29.0)
     mo.x_ref = there
     assert _one_pass(mo, fit) is None  # run out and back: two passes
+    mo.x_ref = np.clip(t * 20.0, None, 400.0) + 0.1 * (-1.0) ** t  # stands at its start
+    assert _one_pass(mo, fit) == (20.0, 98.0)  # crossing its edge by noise: still one pass
+    x = np.where(t <= 30.0, t * 20.0, 590.0)
+    for off, passes in ((9.0, (20.0, 99.0)), (11.0, None)):  # off its end and back on
+        x[31] = 600.0 + off
+        mo.x_ref = x
+        assert _one_pass(mo, fit) == passes, off
     mo.x_ref = t * 2.0
     assert _one_pass(mo, fit) is None  # never there
     assert _one_pass(mo, CauseFit("resistance", 1.0, {"a": 1.0})) is None

@@ -373,13 +373,16 @@ def undecided(fit: CauseFit) -> bool:
 
 def _one_pass(mo: Motion, a) -> tuple[float, float] | None:
     """(t0, t1) s since the first odometer stamp: the one time span the train was on the
-    stretch ``[start, end)`` of ``a``, or None when it was there in more than one (or none)."""
+    stretch ``[start, end)`` of ``a``, or None when it was there in more than one (it left by
+    more than ``PASS_AWAY`` and came back) or in none."""
     p = a.parameters
     if "start" not in p or "end" not in p:
         return None
-    on = (mo.x_ref >= p["start"]) & (mo.x_ref < p["end"])
-    idx = np.flatnonzero(on)
-    if idx.size == 0 or idx[-1] - idx[0] + 1 != idx.size:
+    idx = np.flatnonzero((mo.x_ref >= p["start"]) & (mo.x_ref < p["end"]))
+    # twice there only if it went away in between (standing at an edge, it crosses it by the
+    # position's noise: a stop at 2099.6 m of a stretch from 2099.6 m had lost the caveat)
+    if idx.size == 0 or np.any(np.maximum(p["start"] - (x := mo.x_ref[idx[0]:idx[-1] + 1]),
+                                          x - p["end"]) > PASS_AWAY):
         return None
     beta = mo.run.clock["beta"]
     return float(mo.grid.t[idx[0]] / beta), float(mo.grid.t[idx[-1]] / beta)
@@ -415,6 +418,8 @@ def _law_verdict(a, check: dict, res: dict, rival: str, than: str, ccfg: Confirm
 # in _law_verdict): one run does not say which of the two its effect is
 # (tools.diagnose_unexplained tells the entry by it)
 UNDECIDED = "one run cannot tell it from "
+PASS_AWAY = 10.0  # m off a stretch between two moments on it that make them two passes: far
+#   beyond the reference position's noise at a stop (centimetres) and a balise's correction
 
 
 def _braking_verdict(mo: Motion, a: CauseFit, cause, check: dict, others: Null, full: Null,
