@@ -160,6 +160,42 @@ def test_the_installed_executable_exits_2_with_one_line(metro, tmp_path, ros_env
     assert len(out.stderr.strip().splitlines()) == 1 and "no such bag" in out.stderr
 
 
+def test_a_run_with_its_plots_writes_svg_figures_without_loading_matplotlib(metro, metro_run,
+                                                                            tmp_path, ros_env):
+    """The installed executable, plots included: no matplotlib module is imported (python's
+    -X importtime lists every import), each figure is a well-formed SVG document and
+    report.html embeds each one."""
+    import xml.etree.ElementTree as ET
+
+    from conftest import executable
+
+    bag = write_bag(tmp_path / "bag", metro_run)
+    out = tmp_path / "out"
+    res = subprocess.run([sys.executable, "-X", "importtime",
+                          executable("train_estimation", "diagnose"), "--bag", str(bag),
+                          "--line", metro.line_path, "--train", metro.train_path,
+                          "--out", str(out), "--quiet"],
+                         capture_output=True, text=True, timeout=300, env=ros_env)
+    assert res.returncode == 0, res.stderr[-2000:]
+    imported = [ln.rsplit("|", 1)[-1].strip() for ln in res.stderr.splitlines()
+                if ln.startswith("import time:")]
+    assert "numpy" in imported  # the listing is there
+    assert not [m for m in imported if m.split(".")[0] in ("matplotlib", "PIL")]
+    svgs = sorted(out.glob("*.svg"))
+    assert {"residual_position.svg", "speed_trace.svg"} <= {p.name for p in svgs}
+    for p in svgs:
+        root = ET.parse(p).getroot()
+        assert root.tag == "{http://www.w3.org/2000/svg}svg", p.name
+        assert len(list(root.iter("{http://www.w3.org/2000/svg}path"))) >= 4, p.name
+    texts = {t.text for t in ET.parse(out / "residual_position.svg").getroot().iter(
+        "{http://www.w3.org/2000/svg}text")}
+    assert {"residual (believed model)", "believed model: mean per 100 m, +-2 SE",
+            "track position (m)", "residual accel. (m/s^2)"} <= texts
+    page = (out / "report.html").read_text()
+    assert page.count('src="data:image/svg+xml;base64,') == len(svgs)
+    assert not list(out.glob("*.png"))
+
+
 # ------------------------------------------------------------------------------------------------
 # The model directory (no core needed: a Diagnosis with every cause accepted)
 # ------------------------------------------------------------------------------------------------
@@ -353,7 +389,7 @@ def test_report_has_the_contract_shape(diagnosed, capsys):
     assert all(isinstance(r["score"], float) for r in rep["ranking"])
     assert {"metric", "before", "after"} <= set(rep["gain"])
     assert all(set(u) == {"cause", "why"} for u in rep["untestable"])
-    assert list(out.glob("*.png")), "no plot written"
+    assert list(out.glob("*.svg")), "no plot written"
     for f in ("line.yaml", "train.yaml", "effects.yaml"):
         assert (out / "model" / f).is_file()
 
@@ -519,7 +555,7 @@ def test_hidden_effect_is_found(cause, size, seed, tmp_path, capsys):
     rep, truth = _diagnosed(case, tmp_path)
     assert capsys.readouterr().out.strip().splitlines()[-1] == f"cause: {rep['cause']}"
     assert (tmp_path / "out" / "report.html").is_file()
-    assert not list((tmp_path / "out").glob("*.png"))  # --no-plots
+    assert not list((tmp_path / "out").glob("*.svg"))  # --no-plots
     names = [r["cause"] for r in rep["ranking"]]
     if not case.causes:
         assert rep["cause"] == "none", rep["ranking"][:3]
@@ -641,9 +677,14 @@ def test_plots_draw_what_the_series_hold(tmp_path):
          "unexplained": [{"phase": "braking", "where": None, "when": None, "speed": [2, 8],
                           "size": 0.05, "best_listed": None}]}
     names = {p.name for p in write_plots(s, tmp_path)}
-    assert names == {"residual_position.png", "residual_speed.png", "speed_trace.png",
-                     "loss_runs.png", "residual_phases.png"}
-    assert all((tmp_path / n).stat().st_size > 5000 for n in names)
+    assert names == {"residual_position.svg", "residual_speed.svg", "speed_trace.svg",
+                     "loss_runs.svg", "residual_phases.svg"}
+    import xml.etree.ElementTree as ET
+
+    for n in names:  # each a drawn figure: a grid, ticks and its series
+        assert len(list(ET.parse(tmp_path / n).iter("{http://www.w3.org/2000/svg}path"))) >= 4
+    loss = ET.parse(tmp_path / "loss_runs.svg")
+    assert len(list(loss.iter("{http://www.w3.org/2000/svg}rect"))) >= 4  # bars (k = 1, 2, 3, 5)
 
 
 def test_a_negative_davis_fit_is_written_as_the_closest_nonnegative_curve(metro, tmp_path):
@@ -1770,12 +1811,15 @@ def test_outputs_go_to_dir_whole_replacing_an_earlier_run_and_only_diagnose_s(me
     assert "--out" in one_error_line(capsys) and (tmp_path / "afile").read_text() == "x"
     out = tmp_path / "out"
     assert run_tool(bag, metro.line_path, metro.train_path, out) == 0
-    assert any(out.glob("*.png"))
+    assert any(out.glob("*.svg"))
+    (out / "earlier.png").write_text("x")  # a user's file of an image's name
+    (out / "replay.png").write_text("x")  # a plot's name as earlier versions wrote it
     (out / "mine.txt").write_text("kept")
     assert tool.main(["--bag", str(bag), "--line", str(metro.line_path), "--train",
                       str(metro.train_path), "--out", str(out), "--quiet", "--no-plots"]) == 0
     capsys.readouterr()
-    assert not any(out.glob("*.png")) and (out / "mine.txt").read_text() == "kept"
+    assert not any(out.glob("*.svg")) and (out / "mine.txt").read_text() == "kept"
+    assert [p.name for p in out.glob("*.png")] == ["earlier.png"]
     assert not [p for p in out.iterdir() if p.name.startswith(".")]  # no stage left
     assert {"report.json", "inputs.json", "report.html", "model"} <= {p.name for p in
                                                                       out.iterdir()}

@@ -16,3 +16,9 @@ def test_no_diagnose_or_fleet_module_is_over_max_lines():
     sizes = {str(p.relative_to(PKG)): len(p.read_text().splitlines()) for p in files}
     over = {k: n for k, n in sizes.items() if n > MAX_LINES}
     assert not over, f"over {MAX_LINES} lines: {over} (split by role)"
+
+
+def test_the_svg_plot_writer_stays_small():
+    """tools/svgplot.py, diagnose's plot writer, is under 400 lines: a writer for the few
+    kinds of mark the plots use, not a plotting library."""
+    assert len((PKG / "tools" / "svgplot.py").read_text().splitlines()) < 400

@@ -12,6 +12,7 @@ import base64
 import json
 import re
 import shutil
+import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import numpy as np
@@ -31,6 +32,16 @@ from train_sim.scenario import load_scenario
 
 DOCS = Path(__file__).resolve().parents[1] / "docs"
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
+def _svg(path: Path, color="C0") -> Path:
+    """A small figure as diagnose writes its plots (svgplot)."""
+    from train_estimation.tools.svgplot import Figure
+
+    fig = Figure(3, 2)
+    fig.axes[0].line([0, 1, 2], [0, 1, 0], color=color, lw=2.0)
+    fig.save(path)
+    return path
 
 
 def _png(path: Path, color="C0") -> Path:
@@ -99,9 +110,12 @@ def _check_page(text: str, n_images: int) -> None:
     assert not re.search(r"https?://|//[a-z0-9.-]+\.[a-z]{2,}/", text, re.I), "an external URL"
     srcs = re.findall(r'<img src="([^"]+)"', text)
     assert len(srcs) == n_images
-    for s in srcs:
-        assert s.startswith("data:image/png;base64,")
-        assert base64.b64decode(s.split(",", 1)[1]).startswith(PNG_MAGIC)
+    for s in srcs:  # diagnose's plots are SVG documents, fleet's PNG images
+        data = base64.b64decode(s.split(",", 1)[1])
+        if s.startswith("data:image/svg+xml;base64,"):
+            assert ET.fromstring(data).tag == "{http://www.w3.org/2000/svg}svg"
+        else:
+            assert s.startswith("data:image/png;base64,") and data.startswith(PNG_MAGIC)
     # the verdict comes before every section of evidence
     v = text.find('id="verdict"')
     assert 0 <= v < text.find("<h2")
@@ -118,8 +132,8 @@ def test_sig4_prints_four_significant_figures():
 
 def test_diagnose_page_puts_the_verdict_first_embeds_plots_and_shows_every_field(tmp_path):
     _write(tmp_path)
-    _png(tmp_path / "residual_position.png")
-    _png(tmp_path / "replay.png", "C3")
+    _svg(tmp_path / "residual_position.svg")
+    _svg(tmp_path / "replay.svg", "C3")
     (tmp_path / "model").mkdir()
     (tmp_path / "model" / "line.yaml").write_text("name: x  # <fitted> & kept\n")
     text = write_report_html(tmp_path).read_text()
@@ -140,7 +154,7 @@ def test_diagnose_page_puts_the_verdict_first_embeds_plots_and_shows_every_field
     assert re.search(r"<td>start</td><td class=\"num\">1000</td><td>m</td>", verdict)
     assert CAVEAT in verdict
     # the before/after replay is the first plot
-    assert text.find('alt="replay.png"') < text.find('alt="residual_position.png"')
+    assert text.find('alt="replay.svg"') < text.find('alt="residual_position.svg"')
     # 4 significant figures with units, never a float's repr
     assert "mass = 293000 kg" in text and "292981.3" not in text
     # every field of report.json, known or not
@@ -232,8 +246,8 @@ def test_diagnose_writes_report_html_with_the_replay_plot(worn, tmp_path):
     assert rc == 0
     out = tmp_path / "out"
     text = (out / "report.html").read_text()
-    _check_page(text, len(list(out.glob("*.png"))))
-    assert "cause: braking_rate" in text and 'alt="replay.png"' in text
+    _check_page(text, len(list(out.glob("*.svg"))))
+    assert "cause: braking_rate" in text and 'alt="replay.svg"' in text
 
 
 def test_extended_residual_removes_what_the_accepted_cause_explains(worn):
@@ -276,7 +290,7 @@ def test_chromium_renders_the_page_with_the_verdict_at_the_top(tmp_path):
     import matplotlib.image as mpimg
 
     _write(tmp_path)
-    _png(tmp_path / "replay.png")
+    _svg(tmp_path / "replay.svg")
     page = write_report_html(tmp_path)
     png = screenshot(page, tmp_path / "shot.png", size=(1000, 1400))
     img = mpimg.imread(png)[..., :3]  # floats in [0, 1]

@@ -14,12 +14,12 @@ Output (DIR is created):
   DIR/model/        line.yaml, train.yaml, effects.yaml: the believed model extended by every
                     confirmed cause; run it with
                     python -m train_sim.generate --scenario S --model DIR/model --out BAG
-  DIR/*.png         residual acceleration of the believed and the extended model against
+  DIR/*.svg         residual acceleration of the believed and the extended model against
                     position (with the line profile and the fitted gradient section), against
                     speed and against the commands; the speed trace with slip episodes; f(t);
                     the loss-run histogram; the recorded commands replayed through both
-                    models (replay.png); the residual by phase against position and speed
-                    with what is unexplained (residual_phases.png)
+                    models (replay.svg); the residual by phase against position and speed
+                    with what is unexplained (residual_phases.svg)
   DIR/report.html   the report in one self-contained page (verdict first, plots embedded)
   DIR/inputs.json   the bag, line and train analysed and when (the page's header)
 
@@ -292,8 +292,8 @@ def main(argv=None) -> int:
                    help="output directory: report.json, plots and model/ (created)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--no-plots", action="store_true",
-                   help="no PNG plots (report.json, model/ and report.html without figures; "
-                        "the plots take longer than the analysis on a short bag)")
+                   help="no SVG plots (report.json, model/ and report.html without "
+                        "figures)")
     args = p.parse_args(argv)
     from train_estimation.core.offline.diagnose import DiagnoseError, diagnose
 
@@ -349,9 +349,10 @@ def main(argv=None) -> int:
             out.rmdir()  # a run that wrote nothing leaves no DIR behind
 
 
-# what diagnose writes into DIR: an earlier run's are replaced by this run's, or removed
+# what diagnose writes into DIR: an earlier run's are replaced by this run's, or removed (the
+# plots' PNG names too, which earlier versions wrote)
 OUTPUTS = ("report.json", "inputs.json", "report.html", "model",
-           *(name for name, _ in PLOTS))
+           *(name for name, _ in PLOTS), *(name[:-4] + ".png" for name, _ in PLOTS))
 
 
 def _publish(stage: Path, out: Path) -> None:

@@ -3,8 +3,9 @@
     python -m train_estimation.tools.report_html DIR [--screenshot PNG]
 
 The page is what a reader forwards: the verdict first, then the evidence, every plot embedded
-as a ``data:image/png;base64`` URI, the styles inline, no script and no external address, so it
-opens the same from a mail attachment, a file share or a machine without a network.
+as a ``data:`` URI (diagnose's SVG figures, fleet's PNGs), the styles inline, no script and no
+external address, so it opens the same from a mail attachment, a file share or a machine
+without a network.
 
 - a `diagnose` directory (``report.json``, ``inputs.json``), from the Jinja2 template
   ``templates/diagnose_report.html.j2``: a header (bag, line, train, data, date), the verdict
@@ -44,7 +45,7 @@ UNITS = {
 
 # the plots that tell the story first (the before/after replay, then where the residual is);
 # any other plot follows in name order
-_PLOT_ORDER = ("replay.png", "residual_position.png", "residual_speed.png", "speed_trace.png")
+_PLOT_ORDER = ("replay.svg", "residual_position.svg", "residual_speed.svg", "speed_trace.svg")
 
 # report.json fields the diagnose page shows in their own place; any other field goes to the
 # appendix, so fields added to report.json appear without a change here
@@ -122,9 +123,13 @@ def table_of(data) -> str:
     return f"<p>{_inline(data)}</p>"
 
 
+_MIME = {".png": "image/png", ".svg": "image/svg+xml"}
+
+
 def img_uri(path: Path) -> str:
-    """A PNG as a data URI (the page holds the image itself)."""
-    return "data:image/png;base64," + base64.b64encode(path.read_bytes()).decode("ascii")
+    """A PNG or SVG image as a data URI (the page holds the image itself)."""
+    return (f"data:{_MIME[path.suffix]};base64,"
+            + base64.b64encode(path.read_bytes()).decode("ascii"))
 
 
 def _figure(path: Path) -> str:
@@ -280,7 +285,7 @@ def diagnose_context(out: Path) -> dict:
             ("data", inp.get("data", "-")),
             ("analysed", inp.get("date", "-"))]
     bag_name = Path(inp["bag"]).name if inp.get("bag") else ""
-    pngs = sorted(out.glob("*.png"), key=lambda p: (
+    figures = sorted(out.glob("*.svg"), key=lambda p: (
         _PLOT_ORDER.index(p.name) if p.name in _PLOT_ORDER else len(_PLOT_ORDER), p.name))
     evidence = [evidence_row(k, d) for k, d in ev.items()
                 if not k.startswith("_") and isinstance(d, dict)]
@@ -322,7 +327,7 @@ def diagnose_context(out: Path) -> dict:
         "score_note": ("the BIC-penalised log-likelihood ratio against no cause, with the prior "
                        "odds of the causes tested; > 0: the data support the cause; none = 0"),
         "untestable": [u for u in rep.get("untestable") or [] if isinstance(u, dict)],
-        "plots": [{"name": p.name, "uri": img_uri(p)} for p in pngs],
+        "plots": [{"name": p.name, "uri": img_uri(p)} for p in figures],
         "evidence": evidence,
         "appendix": appendix,
     }
