@@ -140,7 +140,7 @@ def held_out_(mo, cfg, own, null, name: str, others: list | None = None) -> dict
         return {"ok": bool(h["ok"] and halves.get("consistent", True)), "held": bool(h["ok"]),
                 "halves": halves, "z": None, "gain": None, "fit": fit}
     h = heldout_motion(mo, base, cause, cfg, noise, CONFIRM, place_block(mo, cause, fit, cfg),
-                       cause.nominal(mo))
+                       cause.nominal(mo), fit)
     halves = h.get("halves", {})
     return {"ok": bool(h["ok"] and halves.get("consistent", True)), "held": bool(h["ok"]),
             "halves": halves, "z": h["z"], "gain": h["gain_loglik"], "fit": fit,
