@@ -126,7 +126,8 @@ def delay_halves(cause, mo, others, fit, cfg, noise, alpha: float, min_share: fl
             st.fixed_lls([st.retime(a, d) for a, d in grid]).tolist()
         ds = [d for _, d in grid]
         d_hat, se = envelope(ds, lls, int(np.argmax(lls)))
-        fitted.append({"halves": {"delay": (mo.train.brake.delay + d_hat, se)}})
+        ok = math.isfinite(se) and se > 0  # a profile not concave at its best: no SE
+        fitted.append({"halves": {"delay": (mo.train.brake.delay + d_hat, se)} if ok else {}})
     out = halves_test(fitted, _ccfg(alpha, min_share), nominal=cause.nominal(mo))
     out["test"] = (f"delay over the halves of the run's braking (before and after {cut:.0f} s), "
                    f"the offset fixed at {s:+.3f} s")
