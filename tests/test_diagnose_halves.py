@@ -232,3 +232,42 @@ def test_a_brake_delay_fits_both_halves_of_the_braking(metro, tmp_path):
     assert "the offset fixed at" in h["test"], h
     assert abs(q["z"]) < h["z_needed"], q
     assert all(abs(v - 1.6) < 0.1 for v in q["folds"]), q
+
+
+def _link_halves(lost):
+    from train_estimation.core.offline.diagnose.causes.bursty_link import (
+        gilbert_elliott_vs_bernoulli,
+    )
+    from train_estimation.core.offline.diagnose.heldout import halves_test
+
+    own = gilbert_elliott_vs_bernoulli(~lost)
+    return own, halves_test(own["halves_fits"], CONFIRM, nominal=BY_NAME["bursty_link"].nominal(
+        None))
+
+
+def test_a_bursty_link_is_one_chain_over_both_halves():
+    """Bursts of 8 samples on average, 15 % lost, over 3000 samples: both halves fit the
+    chain within their standard errors."""
+    from train_estimation.core.offline.link_hmm import GilbertElliott, simulate
+
+    lost = simulate(GilbertElliott(0.15 / 0.85 / 8, 1 / 8, 0.0, 1.0), 3000,
+                    np.random.default_rng(5)).astype(bool)
+    own, h = _link_halves(lost)
+    assert own["dll"] > 0 and h["tested"] and h["consistent"], h
+    assert set(h["quantities"]) == {"p_good_bad", "p_bad_good"}, h
+    assert all(abs(q["z"]) < h["z_needed"] for q in h["quantities"].values()), h
+
+
+def test_a_link_whose_bursts_change_mid_run_fails_the_halves():
+    """The same loss rate, bursts of 3 samples over the first half and of 24 over the second:
+    the whole run fits one chain, its halves two."""
+    from train_estimation.core.offline.link_hmm import GilbertElliott, simulate
+
+    rng = np.random.default_rng(5)
+    lost = np.concatenate([simulate(GilbertElliott(0.15 / 0.85 / b, 1 / b, 0.0, 1.0), 1500, rng)
+                           for b in (3.0, 24.0)]).astype(bool)
+    own, h = _link_halves(lost)
+    q = h["quantities"]["p_bad_good"]
+    assert own["dll"] > 0 and h["tested"] and not h["consistent"], h
+    assert q["disagree"] and q["folds"][0] > q["folds"][1], q
+    assert h["why"].startswith("the data's halves fit it differently"), h
