@@ -1,11 +1,11 @@
-"""The halves tests of diagnose/halves.py and the brake delay's.
+"""The halves tests of diagnose/halves.py and the bursty link's.
 
 The odometer's halves test and its speed-offset rival: the partition is exact, a true constant
 scale passes, a scale that changes mid-run and an odometer that reads a speed more while moving
 do not pass as one scale. A cause at a place (gradient, low-adhesion section) is compared over
 the halves of the stretch the whole data's fit found: a true one passes, an effect it imitates
-that differs between the halves does not. A true brake delay fits the halves of the run's
-braking alike."""
+that differs between the halves does not. A bursty link is one chain over both halves of its
+sequence."""
 
 from __future__ import annotations
 
@@ -16,7 +16,6 @@ import numpy as np
 import pytest
 from train_core.effects import (
     AdhesionSectionEffect,
-    BrakeDelayEffect,
     Effects,
     GradientEffect,
     OdometerScaleEffect,
@@ -219,19 +218,6 @@ def test_a_place_cause_acting_too_briefly_is_not_compared(metro, tmp_path):
                                        CONFIRM.halves_min_share, short)
     assert h["tested"] is False and h["consistent"] is True, h
     assert f"less than {MIN_HALF_TIME:g} s in each half" in h["note"], h
-
-
-@pytest.mark.slow
-def test_a_brake_delay_fits_both_halves_of_the_braking(metro, tmp_path):
-    """1.6 s against the believed 1.2 s: the delay on the braking before and after the run's
-    median braking time, the offset fixed, agrees."""
-    fit, h = _own_halves(_with(metro, brake_delay=BrakeDelayEffect(1.6)), tmp_path,
-                         "brake_delay")
-    q = h["quantities"]["delay"]
-    assert h["tested"] and h["consistent"], h
-    assert "the offset fixed at" in h["test"], h
-    assert abs(q["z"]) < h["z_needed"], q
-    assert all(abs(v - 1.6) < 0.1 for v in q["folds"]), q
 
 
 def _link_halves(lost):

@@ -19,20 +19,23 @@ from .drive import delay_profile, envelope
 
 class BrakeDelay(Cause):
     name = "brake_delay"
-    # the halves of the run's braking with the offset fixed (:meth:`halves_own`), not the
-    # held-out folds': their fits of a true delay can sit on two modes of the (offset, delay)
-    # profile: with the offset profiled out (:meth:`fit`), a foreign subtle delay of 1.332 s
-    # was fitted 1.488 +- 0.030 and 1.238 +- 0.036 s on the folds (z +5.4; the other 13 of 14
-    # foreign delay bags within |z| 1.9); at the best offset alone, 1.638 and 1.580 s (z +4.2)
-    halves = ("delay",)
+    # No halves test, measured: the folds' fits of a true delay can sit on two modes of the
+    # (offset, delay) profile (a foreign subtle delay of 1.332 s fitted 1.488 +- 0.030 and
+    # 1.238 +- 0.036 s on the folds, z +5.4), and halves of the run's braking (cut at its
+    # median time, the offset fixed at the whole fit's) reject true delays too often: on the
+    # bench's 80 true delays (seed 0, 40 plain, 40 subtle) 2 beyond the 0.1 % quantile
+    # (z +4.2, -5.9; rms 1.67 on the subtle ones, 8 of 40 beyond 1.96), where the binomial
+    # bound allows 1, and 1 of 3 plain delays of the tool's cases. The bench's runs of 8-12
+    # minutes brake from speed two to four times (the stops), a half once or twice: its delay
+    # rests on the timing of one or two onsets and releases against the command and odometer
+    # grids, an error the profile's curvature does not show; with the offset profiled in each
+    # half as well the halves still differed (z -5.9 -> -2.9 on one bag, +2.4 -> +2.6 on
+    # another). A standard error from the scatter over so few applications would leave the
+    # test without power.
+    halves = ()
 
     def nominal(self, mo) -> dict:
         return {"delay": mo.train.brake.delay}
-
-    def halves_own(self, mo, others, cfg, noise, alpha, min_share, fit=None) -> dict:
-        """The delay fitted on each half of the run's braking with the common command-time
-        offset fixed at the whole data's fit (:func:`delay_halves`)."""
-        return delay_halves(self, mo, others, fit, cfg, noise, alpha, min_share)
     family = "motion"
 
     def untestable(self, run, cfg, own) -> str | None:
@@ -95,49 +98,6 @@ class BrakeDelay(Cause):
 
     def effect(self, params: dict, duration: float) -> BrakeDelayEffect:
         return BrakeDelayEffect(float(params["delay"]))
-
-
-def delay_halves(cause, mo, others, fit, cfg, noise, alpha: float, min_share: float) -> dict:
-    """The brake delay on each half of the run's braking: the run cut where half the time
-    braked while moving is done, the delay profiled on the odometer readings of each half
-    (``Stage(update=...)``: the other half's readings unused) with the common command-time
-    offset fixed at the whole data's fit (``fit.extra["offset"]``), each half's delay and
-    standard error from its profile's envelope (:func:`.drive.envelope`), then the z rule of
-    :func:`..heldout.halves_test`. The offset is the clocks' and the link's, one for the run
-    and fitted on traction as well; profiled out in each half (or in each fold of alternate
-    blocks) it trades off with the delay and the halves' fits landed on two modes of the
-    pair. Fixed, an error in it moves both halves' delays alike and leaves their difference."""
-    from ..heldout import halves_test
-    from ..stage import Stage
-
-    if fit is None or "offset" not in (fit.extra or {}):
-        return {"tested": False, "consistent": True, "note": "no fitted offset"}
-    s = float(fit.extra["offset"])
-    grid = [(s, float(d)) for d in mo.delays
-            if d > 0.0 and round(float(s + d), 6) in mo.braking_cols]
-    brk = (mo.f0 * mo.a_br0 * mo.moving) < 0.0
-    if len(grid) < 3 or not brk.any():
-        return {"tested": False, "consistent": True, "note": "no braking while moving"}
-    cut = float(np.median(mo.grid.t[brk]))
-    fitted = []
-    for half in (mo.ev.t < cut, mo.ev.t >= cut):
-        st = Stage(mo, others, cfg, noise=noise, update=half)
-        lls = _lls_with_sections(st, grid) if others.brake_sections else \
-            st.fixed_lls([st.retime(a, d) for a, d in grid]).tolist()
-        ds = [d for _, d in grid]
-        d_hat, se = envelope(ds, lls, int(np.argmax(lls)))
-        ok = math.isfinite(se) and se > 0  # a profile not concave at its best: no SE
-        fitted.append({"halves": {"delay": (mo.train.brake.delay + d_hat, se)} if ok else {}})
-    out = halves_test(fitted, _ccfg(alpha, min_share), nominal=cause.nominal(mo))
-    out["test"] = (f"delay over the halves of the run's braking (before and after {cut:.0f} s), "
-                   f"the offset fixed at {s:+.3f} s")
-    return out
-
-
-def _ccfg(alpha: float, min_share: float):
-    from ..heldout import ConfirmConfig
-
-    return ConfirmConfig(halves_alpha=alpha, halves_min_share=min_share)
 
 
 def _lls_with_sections(st, grid: list) -> list:
