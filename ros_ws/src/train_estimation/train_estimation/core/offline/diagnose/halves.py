@@ -1,4 +1,6 @@
-"""The halves test of a sensor cause: one odometer scale counts every half of the run alike.
+"""The halves tests of their own: one odometer scale counts every half of the run alike
+(:func:`odometer_halves`), and a cause at a place is one size over both halves of its stretch
+(:func:`place_halves`).
 
 The held-out check's folds of an odometer cause are alternate odometer samples: each fold
 holds the whole run, so their fits agree whatever the odometer does over the run, and a
