@@ -140,7 +140,7 @@ def held_out_(mo, cfg, own, null, name: str, others: list | None = None) -> dict
         return {"ok": bool(h["ok"] and halves.get("consistent", True)), "held": bool(h["ok"]),
                 "halves": halves, "z": None, "gain": None, "fit": fit}
     h = heldout_motion(mo, base, cause, cfg, noise, CONFIRM, place_block(mo, cause, fit, cfg),
-                       cause.nominal(mo))
+                       cause.nominal(mo), fit)
     halves = h.get("halves", {})
     return {"ok": bool(h["ok"] and halves.get("consistent", True)), "held": bool(h["ok"]),
             "halves": halves, "z": h["z"], "gain": h["gain_loglik"], "fit": fit,
@@ -234,10 +234,21 @@ def figures(results: list[dict]) -> dict:
                   and r["size"] == "plain" and r["held"][c].get("z") is not None]
         hv = [_disagree(r["held"][c], c) for r in ok if r["causes"] == [c]]
         f["halves"] = (sum(hv), len(hv))
+        f["halves_z"] = [abs(q["z"]) for r in ok if r["causes"] == [c]
+                         for q in (r["held"][c].get("halves", {}).get("quantities") or {}
+                                   ).values() if q.get("z") is not None]
         out[c] = f
     pairs = [r for r in ok if len(r["causes"]) == 2]
     out["pairs"] = (sum(all(r["held"][c]["ok"] for c in r["causes"]) for r in pairs), len(pairs))
     return out
+
+
+def _zs(z: list) -> str:
+    """The halves' |z| of the true causes: median, max and how many beyond 1.96."""
+    if not z:
+        return "-"
+    return (f"{np.median(z):.2f}, {max(z):.2f}, "
+            f"{sum(x > 1.96 for x in z)}/{len(z)}")
 
 
 def tables(results: list[dict], sizes, args) -> str:
@@ -251,14 +262,15 @@ def tables(results: list[dict], sizes, args) -> str:
           "false, nominal: bags with no effect where it confirms the cause (in brackets: where "
           "the fit is also beyond the cause's resolution, check 2, as a confirmation needs).\n",
           "| cause | power, plain | power, subtle | false, nominal | false, other cause | "
-          "Z plain (median) | halves disagree (true cause) |", "|---|---|---|---|---|---|---|"]
+          "Z plain (median) | halves disagree (true cause) | halves \\|z\\| (true cause): "
+          "median, max, > 1.96 |", "|---|---|---|---|---|---|---|---|"]
     for c in CAUSES:
         f = fig[c]
         cells = [pct(*f[size]) if size in sizes else "-" for size in ("plain", "subtle")]
         md.append(f"| {c} | {cells[0]} | {cells[1]} | {pct(*f['nominal'])} ({f['resolved']}) | "
                   f"{pct(*f['other']) if args.cross else '-'} | "
                   + (f"{np.median(f['z']):.1f}" if f["z"] else "-")
-                  + f" | {pct(*f['halves'])} |")
+                  + f" | {pct(*f['halves'])} | " + _zs(f["halves_z"]) + " |")
     pairs = [r for r in ok if len(r["causes"]) == 2]
     if pairs:
         md.append(f"\npairs, each held out with the other in the model, both confirmed: "

@@ -14,7 +14,7 @@ docs/interfaces.md's causes explains the data, fit it, and rank every cause.
   refit of the accepted causes and Occam's steps (merge, unlocate);
 - ``confirm``: the checks that confirm an accepted cause (``contradict``: where it shows and
   only there; ``laws``: rival laws of its effect; ``halves``: a sensor cause's halves of the
-  run agree);
+  run, and a place cause's halves of its stretch, agree);
   ``verdict``: the confirmation, what the model leaves, the ranking and the evidence;
 - ``gain``: held-out gains;
 - ``result``: :class:`CauseFit`, :class:`Diagnosis` and their JSON.

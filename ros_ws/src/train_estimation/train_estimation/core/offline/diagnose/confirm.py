@@ -132,7 +132,7 @@ def confirm(mo: Motion, shift: float, accepted: list, resolved_before: dict, cfg
                               refit_rivals(mo, shift, [b for b in accepted if b is not a],
                                            rivals, cfg, noise))
             held = heldout_motion(mo, others, cause, cfg, noise, ccfg,
-                                  place_block(mo, cause, a, cfg), cause.nominal(mo))
+                                  place_block(mo, cause, a, cfg), cause.nominal(mo), a)
         else:
             held = heldout_own(cause, a, gain_ctx, ccfg)
         res = cause.resolution(a, mo)
@@ -572,7 +572,7 @@ def unneeded(mo: Motion, shift: float, confirmed: list, cfg: DiagConfig, noise, 
         others = _null_of(mo, shift, [b for b in confirmed if b is not a], rivals)
         others.meas = list(meas)
         held = heldout_motion(mo, others, cause, cfg, noise, ccfg,
-                              place_block(mo, cause, a, cfg))
+                              place_block(mo, cause, a, cfg), fit=a)
         if not held["ok"]:
             when = next(u["when"] for u in found if u.get("family") == "odometer")
             a.status = "not confirmed"

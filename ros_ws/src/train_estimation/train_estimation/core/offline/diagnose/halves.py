@@ -1,4 +1,6 @@
-"""The halves test of a sensor cause: one odometer scale counts every half of the run alike.
+"""The halves tests of their own: one odometer scale counts every half of the run alike
+(:func:`odometer_halves`), and a cause at a place is one size over both halves of its stretch
+(:func:`place_halves`).
 
 The held-out check's folds of an odometer cause are alternate odometer samples: each fold
 holds the whole run, so their fits agree whatever the odometer does over the run, and a
@@ -142,3 +144,61 @@ def bias_law(mo: Motion, others: Null, cfg, noise) -> dict:
     return {"law": "b m/s while moving", "lr": float(stat["bias"] - stat["scale"]),
             "b": fit["bias"], "std_error": se["bias"], "scale": 1.0 + fit["scale"],
             "speeds": [float(x) for x in np.percentile(mo.sc_v[moving], [5, 95])]}
+
+
+# s, the least time a cause at a place acts in each half of its stretch for the halves to be
+# compared (ten odometer samples at 5 Hz, as a held-out block's least: heldout.MIN_PLACE_BLOCK)
+MIN_HALF_TIME = 2.0
+
+
+def place_halves(mo: Motion, others: Null, cause, fit, cfg, noise, alpha: float,
+                 min_share: float) -> dict:
+    """The halves test of a cause at a place (``Cause.beyond``: a gradient, a low-adhesion
+    section): the stretch stays the one the whole data's fit found, cut where half the time the
+    cause acts on it is done (the median place of its acting time, so that both halves hold
+    about the same information), and the cause's size on each half comes from one augmented
+    filter over the model ``others`` (without the cause) at ``noise`` with the cause's columns
+    restricted to each half (``cause.half_columns``): c_A, c_B with their covariance, z =
+    (c_A - c_B) / sd(c_A - c_B), standard normal when the cause is one size over its stretch.
+    They disagree beyond the two-sided ``alpha`` quantile and more than ``min_share`` of the
+    cause's fitted size (as :func:`.heldout.halves_test`). The folds of the held-out check are
+    not compared: each chooses its own stretch, so their two sizes are of two sections."""
+    bey = cause.beyond(fit, mo)
+    if bey is None:
+        return {"tested": False, "consistent": True, "note": "not a cause at a place"}
+    inside, pattern = bey
+    on = inside & (pattern != 0)
+    x_on = mo.x_ref[on]
+    t_half = 0.5 * float(np.count_nonzero(on)) * mo.grid.dt
+    if t_half < MIN_HALF_TIME:
+        return {"tested": False, "consistent": True,
+                "note": f"acts for {2 * t_half:.1f} s on its stretch, less than "
+                        f"{MIN_HALF_TIME:g} s in each half"}
+    start, end = float(fit.parameters["start"]), float(fit.parameters["end"])
+    cut = float(np.median(x_on))
+    zc = float(-ndtri(alpha / 2))
+    st = Stage(mo, others, cfg, noise=noise, big=False)
+    Bv, Bs = cause.half_columns(fit, mo, others, np.array([start, cut, end]))
+    th, cov, _ = gls(st.augmented(st.fv, st.fs, drift=(Bv, Bs)).W)
+    c, C = th[1:3], cov[1:3, 1:3]
+    var = float(C[0, 0] + C[1, 1] - 2.0 * C[0, 1])
+    se = [float(math.sqrt(max(C[i, i], 0.0))) for i in (0, 1)]
+    key, value = cause.half_quantity
+    words = (f"on [{start:.0f}, {cut:.0f}) m", f"on [{cut:.0f}, {end:.0f}) m")
+    out = {"test": f"{key} over the halves of its stretch (half its acting time each)",
+           "tested": True, "consistent": True, "z_needed": zc, "quantities": {}}
+    if not (var > 0 and all(s > 0 for s in se)):
+        out.update(tested=False, note="no information in a half")
+        return out
+    z = float((c[0] - c[1]) / math.sqrt(var))
+    size = abs(0.5 * (c[0] + c[1]))
+    bad = bool(abs(z) > zc and abs(c[0] - c[1]) > min_share * size)
+    vals = [value(float(c[0])), value(float(c[1]))]
+    out["quantities"][key] = {"halves": list(words), "folds": vals, "std_errors": se, "z": z,
+                              "disagree": bad}
+    if bad:
+        out["consistent"] = False
+        out["why"] = (f"the data's halves fit it differently: {key} {vals[0]:.4g} {words[0]} "
+                      f"and {vals[1]:.4g} {words[1]} (z {z:+.1f}, beyond {zc:.1f}: "
+                      f"{alpha:g} two-sided)")
+    return out

@@ -105,12 +105,13 @@ def speed_innovations(mo: Motion, null: Null, cfg: DiagConfig, noise):
 
 def heldout_motion(mo: Motion, others: Null, cause, cfg: DiagConfig, noise,
                    ccfg: ConfirmConfig = CONFIRM, block_s: float | None = None,
-                   nominal: dict | None = None) -> dict:
+                   nominal: dict | None = None, fit: CauseFit | None = None) -> dict:
     """The two-fold held-out score test of the module docstring for a motion-model cause,
     against the model ``others`` (the other accepted causes); ``block_s``: the blocks' length
     (None: ``gain_block``; a cause at a place: :func:`place_block`). Its ``halves``: the
     folds' fits compared (:func:`halves_test`; ``nominal``: {quantity: its believed value},
-    for the share of the cause's size)."""
+    for the share of the cause's size), or the cause's own (``Cause.halves_own``, given the
+    whole data's ``fit``)."""
     block = _folds(mo, cause.family, cfg, block_s)
     e0, s = speed_innovations(mo, others, cfg, noise)
     num = var = 0.0
@@ -137,7 +138,8 @@ def heldout_motion(mo: Motion, others: Null, cause, cfg: DiagConfig, noise,
            "sd_under_no_effect": sd, "z": z, "z_needed": ccfg.heldout_z,
            "fitted_on_folds": fitted}
     out["ok"] = ok
-    own = cause.halves_own(mo, others, cfg, noise, ccfg.halves_alpha, ccfg.halves_min_share)
+    own = cause.halves_own(mo, others, cfg, noise, ccfg.halves_alpha, ccfg.halves_min_share,
+                           fit)
     out["halves"] = halves_test(fitted, ccfg, nominal=nominal) if own is None else own
     if not out["ok"]:
         out["why"] = (f"held-out log-likelihood gain {gain:+.3g} (SD {sd:.3g} under no "

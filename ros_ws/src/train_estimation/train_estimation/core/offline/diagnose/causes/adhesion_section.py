@@ -33,13 +33,27 @@ MU_MIN = 0.02
 class AdhesionSection(Cause):
     name = "adhesion_section"
     range_bound = True  # plausible() is a physical range: the factor, the braking asked for
-    # no halves test: each fold's fit chooses its own stretch (blocks of a quarter of the time
-    # on it), so the two sizes are of two sections, not two estimates of one (a true 4.8 per
-    # mille gradient fitted 2.75 and 6.06 on the folds of a high-speed pair, z -8.8)
-    halves = ()
+    # the halves of its stretch (:meth:`halves_own`), not the held-out folds': each fold's fit
+    # chooses its own stretch, so the two sizes are of two sections, not two estimates of one
+    halves = ("factor",)
+    half_quantity = ("factor", lambda c: 1.0 + c)
 
     def nominal(self, mo) -> dict:
         return {"factor": 1.0}
+
+    def halves_own(self, mo, others, cfg, noise, alpha, min_share, fit=None) -> dict:
+        """The factor on each half of the stretch the whole data's fit found, cut where half
+        its braking time there is done (:func:`..halves.place_halves`)."""
+        from ..halves import place_halves
+
+        return place_halves(mo, others, self, fit, cfg, noise, alpha, min_share)
+
+    def half_columns(self, fit, mo, others, cuts) -> tuple:
+        """(Bv, Bs) (n_ev, 2): the braking of the model ``others`` (delayed by its brake delay,
+        scaled by its mass change) on [cuts[0], cuts[1]) and on [cuts[1], cuts[2]), per unit
+        of factor - 1."""
+        Bv, Bs = braking_on(mo, cuts, cells=True, a_br=null_braking(mo, others))
+        return others.drive_gain * Bv, others.drive_gain * Bs
     family = "motion"
 
     def untestable(self, run, cfg, own) -> str | None:

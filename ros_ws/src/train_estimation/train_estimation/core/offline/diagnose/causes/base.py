@@ -221,12 +221,15 @@ class Cause:
     # episode by episode).
     halves: tuple = ()
 
-    def halves_own(self, mo, others, cfg, noise, alpha: float, min_share: float) -> dict | None:
+    def halves_own(self, mo, others, cfg, noise, alpha: float, min_share: float,
+                   fit: CauseFit | None = None) -> dict | None:
         """A halves test of the cause's own in place of the comparison of the held-out
         folds' fits (:func:`..confirm.halves_test`'s form), against the model ``others``
-        without the cause at ``noise``; None: the folds' fits are compared. A sensor's folds
-        are alternate samples, which both hold the whole run: its halves are halves of the
-        run (:mod:`..halves`)."""
+        without the cause at ``noise`` (``fit``: the whole data's fit); None: the folds' fits
+        are compared. A sensor's folds are alternate samples, which both hold the whole run:
+        its halves are halves of the run (:mod:`..halves`); a cause at a place keeps the
+        stretch the whole data found and compares its halves; a brake delay keeps the
+        offset."""
         return None
 
     def nominal(self, mo) -> dict:

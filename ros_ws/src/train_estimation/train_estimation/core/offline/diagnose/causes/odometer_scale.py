@@ -17,7 +17,8 @@ class OdometerScale(Cause):
     def nominal(self, mo) -> dict:
         return {"scale": 1.0}
 
-    def halves_own(self, mo, others, cfg, noise, alpha: float, min_share: float) -> dict:
+    def halves_own(self, mo, others, cfg, noise, alpha: float, min_share: float,
+                   fit=None) -> dict:
         """The scale over the halves of the distance run and of the speeds run
         (:func:`..halves.odometer_halves`): a scale that changed mid-run, or an error that
         depends on speed, counts the halves differently."""
