@@ -41,13 +41,6 @@ class AdhesionSection(Cause):
     def nominal(self, mo) -> dict:
         return {"factor": 1.0}
 
-    def halves_own(self, mo, others, cfg, noise, alpha, min_share, fit=None) -> dict:
-        """The factor on each half of the stretch the whole data's fit found, cut where half
-        its braking time there is done (:func:`..halves.place_halves`)."""
-        from ..halves import place_halves
-
-        return place_halves(mo, others, self, fit, cfg, noise, alpha, min_share)
-
     def half_columns(self, fit, mo, others, cuts) -> tuple:
         """(Bv, Bs) (n_ev, 2): the braking of the model ``others`` (delayed by its brake delay,
         scaled by its mass change) on [cuts[0], cuts[1]) and on [cuts[1], cuts[2]), per unit

@@ -221,16 +221,25 @@ class Cause:
     # episode by episode).
     halves: tuple = ()
 
+    # A cause at a place: (its quantity's name, the quantity from the fitted column's
+    # coefficient) for the halves of its stretch (:func:`..halves.place_halves`, with the
+    # cause's ``half_columns``); None: not such a cause.
+    half_quantity: tuple | None = None
+
     def halves_own(self, mo, others, cfg, noise, alpha: float, min_share: float,
                    fit: CauseFit | None = None) -> dict | None:
         """A halves test of the cause's own in place of the comparison of the held-out
         folds' fits (:func:`..confirm.halves_test`'s form), against the model ``others``
         without the cause at ``noise`` (``fit``: the whole data's fit); None: the folds' fits
         are compared. A sensor's folds are alternate samples, which both hold the whole run:
-        its halves are halves of the run (:mod:`..halves`); a cause at a place keeps the
-        stretch the whole data found and compares its halves; a brake delay keeps the
-        offset."""
-        return None
+        its halves are halves of the run (:mod:`..halves`); a cause at a place
+        (:attr:`half_quantity`) keeps the stretch the whole data found and compares its size on
+        the stretch's halves (:func:`..halves.place_halves`)."""
+        if self.half_quantity is None:
+            return None
+        from ..halves import place_halves
+
+        return place_halves(mo, others, self, fit, cfg, noise, alpha, min_share)
 
     def nominal(self, mo) -> dict:
         """{quantity of :attr:`halves`: its believed value} (the cause's size is a fit's change

@@ -40,13 +40,6 @@ class Gradient(Cause):
     def nominal(self, mo) -> dict:
         return {"permille": 0.0}
 
-    def halves_own(self, mo, others, cfg, noise, alpha, min_share, fit=None) -> dict:
-        """The permille on each half of the stretch the whole data's fit found
-        (:func:`..halves.place_halves`): a map error is one grade over its stretch."""
-        from ..halves import place_halves
-
-        return place_halves(mo, others, self, fit, cfg, noise, alpha, min_share)
-
     def half_columns(self, fit, mo, others, cuts) -> tuple:
         """(Gv, Gs) (n_ev, 2): one permille of gradient on the grid steps moving on [cuts[0],
         cuts[1]) and on [cuts[1], cuts[2]) (as the position bins' columns are built)."""
