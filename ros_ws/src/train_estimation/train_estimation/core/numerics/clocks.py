@@ -1054,90 +1054,14 @@ def _count_link(s0: float, d0: float, v0, s1: float, d1: float, v1):
 
 
 def _count_fit(links, lag_prior: tuple | None) -> tuple[float, float, tuple, float]:
-    """``(rate, lag s, covariance of (rate, lag), sd m)`` of the count's clock from recent
-    fused pairs' links ``(r s, count's time dt s, mean speed m/s, the later sample's speed
-    m/s)`` (:func:`_count_link`): one linear model of the cumulative residual ``R`` (the inner
-    counts cancel in it), ``R = rate D - lag ln v + c`` with ``D`` the count's time, fitted
-    against the stamps' time and ``ln v`` (below).
+    """``(rate, lag s, covariance of (rate, lag), sd m)`` of the count's clock from recent fused
+    pairs' links (:func:`_count_link` and the count's time): the model and its fit are
+    :func:`~train_estimation.core.numerics.count_fit.count_fit`'s, one compiled call. Imported
+    here, where a count is fitted, so that a process that only reads a bag's clocks offline
+    (``clock_fit``, which takes this module's constants) does not import numba."""
+    from .count_fit import count_fit
 
-    - ``rate``, the stamps' seconds per count second less one, holds the train clock's rate and
-      the speed field's scale against the count (a speed from a radar or a second axle reads a
-      few % off: each link's residual is then that share of its time).
-    - ``lag``: a speed that lags its count by ``tau`` (a rate over a window of pulses, a
-      filter) reads ``tau a`` off the count's while the train brakes or accelerates, so each
-      link's count time is ``tau a / v`` off: ``-tau ln(v1 / v0)`` between two samples, which
-      comes back to nothing when the speed does (taken as rate, it made false steps after
-      every braking). Only speed changes identify it: ``lag_prior`` ``(mean, variance)`` holds
-      what earlier windows learnt (:meth:`StepWatch.fused`) while the train cruises; None fits
-      the window alone (covariance inf where its speed did not change).
-    - Weighted least squares with that prior, once more with Huber weights (1.345 robust scales
-      of the residuals) against the odd glitch; the covariance at the larger of the residuals'
-      robust scale and the ends' noise below (a smoothed count's residuals are correlated, and
-      their scale about the line then understates the slopes' errors).
-    - ``sd``: the robust scale of ``R``'s differences about the model, in metres (times the
-      speed): the noise of a chain's two ends, which :meth:`StepWatch._count_resid` bounds;
-      the larger of neighbours' and of samples ``COUNT_LEARN / 2`` apart (a smoothed count's
-      noise is correlated from one sample to the next, and the speed's noise adds up along a
-      chain).
-
-    (numpy at 64 links, medians by partition: 60-70 us a fit, on every fused reading of a
-    stream without a counter.)
-    """
-    q = np.array(links)
-    # the stamps' time S, not the count's, as the regressor: the count's noise is in both R and
-    # the count's time, and braking at one rate makes ln v nearly a line in time, so that the
-    # count's time fitted beside it took the noise in (a lag of 0.7 s fitted as 1.9 +- 0.7 over
-    # a window braked at 0.8 m/s^2 with 0.3 m of count noise); R = c + a S - b L, then
-    # rate = a / (1 - a) and lag = b / (1 - a) (the count's time is (S + lag L) / (1 + rate))
-    R, L, v = q[:, 0].cumsum(), -np.log(q[:, 3]), q[:, 2]
-    S = R + q[:, 1].cumsum()
-    vmed = _median_finite(v)
-
-    def ends_sd(a: float, b: float, ms=(1, COUNT_LEARN // 2)) -> float:
-        sd = 1e-6
-        for m in ms:
-            e = R[m:] - R[:-m] - a * (S[m:] - S[:-m]) - b * (L[m:] - L[:-m])
-            sd = max(sd, 1.4826 * _median_finite(np.abs(e) * v[m:]))
-        return sd
-
-    M = np.vstack((S, L, R))
-    M = np.vstack((np.ones(R.size), M - M.mean(axis=1, keepdims=True)))  # centred first: the
-    #   weighted sums' own centring then cancels no digits (L of a cruise is one number)
-
-    def solve(w, s: float) -> tuple:  # the weighted fit with the lag's prior, its covariance
-        G = (M * w) @ M.T  # every weighted sum at once, then centred (the intercept taken out)
-        G -= np.outer(G[0], G[0]) / G[0, 0]
-        a, b, c, ry, xy = float(G[1, 1]), float(G[1, 2]), float(G[2, 2]), float(G[1, 3]), \
-            float(G[2, 3])
-        if lag_prior is not None:  # (lag - mean)^2 / var in units of the residuals' variance
-            c += s * s / lag_prior[1]
-            xy += s * s * lag_prior[0] / lag_prior[1]
-        det = a * c - b * b
-        if not det > 1e-12 * a * c:  # the speed did not change (no prior): the rate alone
-            return ry / a, 0.0, (s * s / a, 0.0, math.inf)
-        return (c * ry - b * xy) / det, (a * xy - b * ry) / det, \
-            (s * s * c / det, -s * s * b / det, s * s * a / det)
-
-    s = ends_sd(0.0, 0.0, (1,)) / (math.sqrt(2.0) * vmed)
-    w = np.ones(R.size)
-    a, b, _ = solve(w, s)
-    e = R - a * S - b * L
-    e = np.abs(e - _median_finite(e))
-    s = max(1.4826 * _median_finite(e), 1e-9)
-    w = np.minimum(1.0, 1.345 * s / np.maximum(e, 1e-300))
-    a, b, cov = solve(w, s)
-    sd = ends_sd(a, b)
-    if sd / (math.sqrt(2.0) * vmed) > s:  # correlated residuals: the ends' noise scales it
-        a, b, cov = solve(w, sd / (math.sqrt(2.0) * vmed))
-    if not a < 1.0:
-        # the stamps' time all residual (a = 1): a count that does not move while its speed
-        # reads on (frozen) gives its samples no time at all, so it is no clock: unknown, as
-        # before any fit (ZeroDivisionError here had latched a node's estimator in ALARM)
-        return 0.0, 0.0, (math.inf, 0.0, math.inf), math.inf
-    k = 1.0 / (1.0 - a)  # through the Jacobian of (a, b) -> (rate, lag), [[k^2, 0], [b k^2, k]]
-    c_aa, c_ab, c_bb = cov
-    c_ll = b * b * k ** 4 * c_aa + 2.0 * b * k ** 3 * c_ab + k * k * c_bb
-    return a * k, b * k, (k ** 4 * c_aa, b * k ** 4 * c_aa + k ** 3 * c_ab, c_ll), sd
+    return count_fit(links, lag_prior, COUNT_LEARN // 2)
 
 
 def _accel(links, span: float) -> float:
@@ -1612,6 +1536,9 @@ class StepWatch:
         #   the links of recent fused pairs (:func:`_count_link`)
         self._count_fit = (0.0, 0.0, (math.inf, 0.0, math.inf), math.inf)  # their rate, lag
         #   s, covariance, sd m (:func:`_count_fit`)
+        from .count_fit import warm_up
+
+        warm_up()  # (the fit's compiled code loaded now, while a node starts, not at a reading)
         self._count_n = 0  # links learnt so far
         self._lag_learnt = [1.0 / COUNT_LAG ** 2, 0.0]  # the lag's long memory (:meth:`fused`):
         #   information 1/s^2 and information times lag s, the prior's and the disjoint windows'
@@ -2017,11 +1944,12 @@ class StepWatch:
         q = np.fromiter(itertools.chain.from_iterable(self._level), float,
                         count=6 * n).reshape(n, 6)
         # the cumulative residual less the speed's lag (_count_fit: R = c + a S + b ln v), its
-        # line and a level move fitted anew: the count fit's rate, over 64 links, leans towards
-        # a move at its end (-0.1 s read as -0.06 s and a rate of -0.02 within 1.5 s of it)
-        R = np.cumsum(q[:, 0])
-        S = np.cumsum(q[:, 0] + q[:, 1])
-        y = R + lag / (1.0 + rate) * np.log(q[:, 3])
+        # line and a level move fitted anew (count_fit.level_scan, one compiled call): the
+        # count fit's rate, over 64 links, leans towards a move at its end (-0.1 s read as
+        # -0.06 s and a rate of -0.02 within 1.5 s of it)
+        from .count_fit import level_scan
+
+        v, span_all, span_m, m, d, den, z = level_scan(q, lag, rate, m_max)
         # What else moves the level, at the slowest link's speed: a count or stamps rounded by
         # their producer (their grids as learnt, seen or not: a level known to within the
         # rounding, whose offset moves wherever the speed or the sampling's phase changes; whole
@@ -2032,34 +1960,20 @@ class StepWatch:
         # (_count_resid: an acceleration that changed within the readings after the move or
         # the lag before them; 3-4 ms at 4 m/s where a braked train sets off again, its speed
         # 0.3 s behind an exact count)
-        v = float(np.min(q[:, 2]))
         grid = self.count_grid / v + self.stamp_grid + \
-            float(S[-1] - S[0]) * self._grids[1].q / (2.0 * v) + \
-            self._lag_error(float(S[-1] - S[-m_max - 1]), v)
+            span_all * self._grids[1].q / (2.0 * v) + self._lag_error(span_m, v)
         # the level's long-run variance: a reading's, s0 / (2 (1 - rho)) m^2 over the slowest
         # speed squared, times (1 + rho) / (1 - rho) for means of correlated readings (exact
         # counts and stamps: at least their resolution, and the bound above as a uniform error)
         var = max(s0 / (2.0 * (1.0 - rho) * v * v), PHASE_RES ** 2, grid * grid / 12.0) * \
             (1.0 + rho) / (1.0 - rho)
-        # least squares of y on (1, x, the move's indicator of the last m readings), x the
-        # stamps' time centred: the move by the Schur complement of the line's normal
-        # equations, every m at once from sums over the last m readings (located among all;
+        # the move in its standard errors at its most likely place (located among all;
         # decided with n_min after it)
-        N = y.size
-        x = S - S.mean()
-        y = y - y.mean()
-        sxx, sxy = float(x @ x), float(x @ y)
-        m = np.arange(1, m_max + 1)
-        px, py = np.cumsum(x[::-1])[:m_max], np.cumsum(y[::-1])[:m_max]
-        den = m - m * m / N - px * px / sxx  # 1 / the move's variance in units of var
-        d = (py - px * sxy / sxx) / den
-        z = d * d * den / var
-        i = int(np.argmax(z))
-        if m[i] < n_min or z[i] <= _t_bar(min(int(n_l), LEVEL_MEMORY),
-                                          0.5 * self.phase_level / m.size) ** 2:
+        z /= var
+        if m < n_min or z <= _t_bar(min(int(n_l), LEVEL_MEMORY), 0.5 * self.phase_level /
+                                    m_max) ** 2:
             return  # (a move most likely fewer than n_min readings back: the next ones tell)
-        se = math.sqrt(var / den[i])
-        m, d = int(m[i]), float(d[i])
+        se = math.sqrt(var / den)
         stamps = q[:, 4].tolist()
         first, count0 = stamps[-m], float(q[-m - 1, 5])
         ph = self.phase()
