@@ -191,9 +191,24 @@ def replay(line: Line, train: TrainParams, t_cmd, a_cmd, t0: float, t_out,
     makes
     forces for (default ``train``), ``brake_delay`` the braking chain's delay (default the
     train's delay), ``traction_delay`` the traction chain's (default the train's delay),
-    ``p_spec``/``adhesion`` a power limit and a low-adhesion section (dynamics.py)."""
+    ``p_spec``/``adhesion`` a power limit and a low-adhesion section (dynamics.py).
+
+    With a constant braking rate the loop runs compiled (:mod:`train_core.replay_loop`: the
+    same operations, the same floats) where numba or its ahead-of-time build is there."""
     t_cmd = np.asarray(t_cmd, dtype=float)
     a_cmd = np.asarray(a_cmd, dtype=float)
+    if braking_rate_of_t is None:
+        out = _replay_compiled(line, train, t_cmd, a_cmd, t0, t_out, x0, v0, believed,
+                               brake_delay, max_step, traction_delay, p_spec, adhesion)
+        if out is not None:
+            return out
+    return _replay_python(line, train, t_cmd, a_cmd, t0, t_out, x0, v0, believed, brake_delay,
+                          braking_rate_of_t, max_step, traction_delay, p_spec, adhesion)
+
+
+def _replay_python(line, train, t_cmd, a_cmd, t0, t_out, x0, v0, believed, brake_delay,
+                   braking_rate_of_t, max_step, traction_delay, p_spec, adhesion):
+    """:func:`replay`'s loop, interpreted."""
     shifted_f = None if braking_rate_of_t is None else (lambda t: braking_rate_of_t(t + t0))
     act = warm_actuator(train, t_cmd, a_cmd, t0, brake_delay=brake_delay,
                         braking_rate_of_t=braking_rate_of_t, traction_delay=traction_delay)
@@ -219,3 +234,46 @@ def replay(line: Line, train: TrainParams, t_cmd, a_cmd, t0: float, t_out,
                 break
         xs[i], vs[i] = mot.state.x, mot.state.v
     return xs, vs
+
+
+WARMUP = 30.0  # s, warm_actuator's default, as replay uses it
+
+
+def _replay_compiled(line, train, t_cmd, a_cmd, t0, t_out, x0, v0, believed, brake_delay,
+                     max_step, traction_delay, p_spec, adhesion):
+    """:func:`replay` through :mod:`train_core.replay_loop`'s compiled loop (a constant braking
+    rate): warm_actuator's choice of commands, the actuator's and the dynamics' parameters as
+    their constructors make them; None without the compiled loop, for commands out of time
+    order (the interpreted replay raises) or parameters the constructors refuse."""
+    from . import replay_loop
+
+    kern = replay_loop.kernel()
+    if kern is None:
+        return None
+    try:
+        act = Actuator(train.brake.time_constant,
+                       train.brake.delay if traction_delay is None else traction_delay,
+                       t0=-WARMUP,
+                       brake_delay=train.brake.delay if brake_delay is None else brake_delay)
+        dyn = Dynamics(train, line, believed or train, p_spec, adhesion)
+    except ValueError:
+        return None
+    before = t_cmd < t0  # warm_actuator's commands: of a run long before, only its last one
+    t_b, a_b = t_cmd[before] - t0, a_cmd[before]
+    early = t_b < -WARMUP
+    keep = ~early
+    keep[:-1] |= early[:-1] & ~early[1:]
+    keep[-1:] |= early[-1:]
+    after = t_cmd >= t0
+    t_rel = np.asarray(t_out, dtype=float) - t0
+    ad = dyn.adhesion
+    D = np.array([dyn.kappa, dyn.ra, dyn.rb, dyn.rc, dyn.static,
+                  0.0 if dyn.p_spec is None else dyn.p_spec, float(dyn.p_spec is not None),
+                  *(ad if ad is not None else (0.0, 0.0, 0.0)), float(ad is not None)])
+    xs, vs = np.empty(t_rel.size), np.empty(t_rel.size)
+    c = np.ascontiguousarray
+    rc = kern(c(t_b[keep]), c(a_b[keep]), c(t_cmd[after] - t0), c(a_cmd[after]), c(t_rel),
+              float(x0), float(v0), float(train.brake.braking_rate), act.tau, act.delay,
+              act.brake_delay, WARMUP, D, np.array(dyn.grad.bounds, dtype=float),
+              np.array(dyn.grad.values, dtype=float), float(max_step), xs, vs)
+    return (xs, vs) if rc == 0 else None

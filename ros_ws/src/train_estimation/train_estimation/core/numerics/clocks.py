@@ -29,9 +29,9 @@ import math
 from collections import deque
 
 import numpy as np
-from scipy.special import chdtrc, fdtrc, lambertw, ndtr, stdtrit
 
 from . import envelope
+from .special import chdtrc, fdtrc, lambertw, ndtr, stdtrit
 
 LATE = 0.5  # s: a reading this much later than its clock says came late (module doc)
 

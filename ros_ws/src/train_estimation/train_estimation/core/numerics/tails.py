@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 
-from scipy.special import chdtr, chdtrc, gammaln
+from .special import chdtr, chdtrc, gammaln
 
 
 def _logsf(x: float, k: float) -> float:

@@ -69,7 +69,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.special import chdtrc
+
+from train_estimation.core.numerics.special import chdtrc
 
 from .motion import Motion, slip_shape
 from .phases import (

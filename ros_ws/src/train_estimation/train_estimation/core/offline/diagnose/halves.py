@@ -33,9 +33,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.special import ndtri
 
 from train_estimation.core.numerics.augmented_kf import gls
+from train_estimation.core.numerics.special import ndtri
 
 from .motion import Motion
 from .phases import counted_columns

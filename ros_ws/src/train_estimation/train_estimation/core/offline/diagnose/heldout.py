@@ -158,7 +158,7 @@ def halves_test(fitted: list, ccfg: ConfirmConfig = CONFIRM, nominal: dict | Non
     ``halves_min_share`` of the cause's size (the mean fit's change from ``nominal``, where
     known): an effect of another kind that a listed cause imitates fits it differently where
     the two halves of the run differ (an actuator's shape over other commands and speeds)."""
-    from scipy.special import ndtri
+    from train_estimation.core.numerics.special import ndtri
 
     vals = [f.get("halves") for f in fitted if "error" not in f]
     if len(vals) != 2 or not vals[0] or not vals[1]:

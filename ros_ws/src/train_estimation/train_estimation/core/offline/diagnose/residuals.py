@@ -79,9 +79,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.special import chdtrc
 
 from train_estimation.core.numerics import lsq_spline
+from train_estimation.core.numerics.special import chdtrc
 
 # s, knot spacing of the speed's spline: a train's speed follows a cubic on 2 s (its
 # acceleration changes through the actuator's lag of 0.3-1 s), the readings' noise does not;

@@ -3,10 +3,10 @@
 from __future__ import annotations
 
 import numpy as np
-from scipy.special import chdtri
 from train_core.effects import ResistanceEffect
 
 from train_estimation.core.numerics.augmented_kf import gls
+from train_estimation.core.numerics.special import chdtri
 
 from ..phases import MIN_CELL_TIME, grid_phase
 from ..stage import Stage
