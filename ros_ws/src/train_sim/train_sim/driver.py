@@ -183,22 +183,23 @@ class Driver:
             while t < t_new - _EPS:  # Actuator.advance(t + h, f)
                 ta = pipe[i][0] if i < ni else inf  # next_switch
                 tb = bpipe[j][0] if j < nj else inf
-                t_stop = ta if ta < tb else tb
-                if not t_stop < t_new:
-                    t_stop = t_new
+                t_switch = ta if ta < tb else tb
+                t_stop = t_switch if t_switch < t_new else t_new
                 hs = t_stop - t  # segment(hs, f)
                 ub = f * u_br
                 ue = u_tr + ub
                 e = exp(-0.5 * hs / tau)
                 a_mid = ue + (a - ue) * e
                 a = ue + (a_mid - ue) * e
-                for te in (t + hs + _EPS, t_stop + _EPS):  # _activate after t += hs, t = t_stop
-                    while i < ni and pipe[i][0] <= te:
-                        u_tr = pipe[i][1]
-                        i += 1
-                    while j < nj and bpipe[j][0] <= te:
-                        u_br = bpipe[j][1]
-                        j += 1
+                t_seg = t + hs + _EPS
+                if t_switch <= t_seg or t_switch <= t_stop + _EPS:  # else neither pops
+                    for te in (t_seg, t_stop + _EPS):  # _activate after t += hs, t = t_stop
+                        while i < ni and pipe[i][0] <= te:
+                            u_tr = pipe[i][1]
+                            i += 1
+                        while j < nj and bpipe[j][0] <= te:
+                            u_br = bpipe[j][1]
+                            j += 1
                 t = t_stop
             dv = h * (0.5 * (a_start + a) - (ra + (rb + rc * v) * v + values[bisect.bisect_right(
                 bounds, x)]))
