@@ -24,6 +24,7 @@ Pure module: numpy, yaml and the bag writer.
 from __future__ import annotations
 
 import math
+from bisect import bisect_right
 from collections import deque
 from dataclasses import dataclass
 
@@ -92,6 +93,19 @@ def _profile(sections, x: float) -> float:
     return 0.0
 
 
+def _table(f, cuts) -> tuple[list, list]:
+    """(bounds, values) with ``f(x) == values[bisect_right(bounds, x)]`` for every x, for an
+    ``f`` that can change only at the points ``cuts`` (each of its tests ``start <= x < end``
+    with start and end among them): ``f`` evaluated once per piece, at the piece's left end, so
+    a lookup gives the very float ``f`` gives, at a bisection's cost instead of a scan."""
+    bounds = sorted(set(cuts) | {math.inf})
+    return bounds, [f(-math.inf)] + [f(b) for b in bounds]
+
+
+def _cuts(sections) -> list:
+    return [s[k] for s in sections for k in ("start", "end")]
+
+
 def simulate(line: dict, train: dict, effect: Effect, rng: np.random.Generator,
              dt: float = 0.005, odo_rate: float = 10.0, cmd_rate: float = 5.0,
              dwell: float = 25.0, trace: list | None = None, sent: list | None = None,
@@ -144,6 +158,12 @@ def simulate(line: dict, train: dict, effect: Effect, rng: np.random.Generator,
     def v_limit(x):
         v = _profile(limits, x)
         return v if v > 0 else v_line
+
+    # both as lookup tables (a scan of the sections at every step would be most of the
+    # loop's time)
+    g_bounds, g_values = _table(grad_acc, _cuts(line.get("gradients", []))
+                                + list(effect.gradient[:2] if effect.gradient is not None else ()))
+    l_bounds, l_values = _table(v_limit, _cuts(limits))
 
     stations = sorted(float(s["position"]) for s in line.get("stations", []))
     if len(stations) < 2:
@@ -200,14 +220,28 @@ def simulate(line: dict, train: dict, effect: Effect, rng: np.random.Generator,
     odo_extra = 0.0  # m the odometer's bias has counted
     lag_t, lag_v = [0.0], [0.0]  # the speed's recent past, for a speed reading that lags
     heat = 0.0  # m^2/s^2, the brakes' heat as braking energy per kg (brake_heat)
-    while leg < len(stations):
+    # the effect's fields as locals, and the next activation and balise as plain floats: the
+    # step loop runs some 10^5 times per run
+    f_br, gain, coast_drag = effect.braking_rate, effect.traction_gain, effect.coast_drag
+    fade, cut, trip, p_spec = (effect.traction_fade, effect.traction_cut, effect.traction_trip,
+                               effect.p_spec)
+    adhesion, b_fade, b_heat, b_power = (effect.adhesion, effect.brake_fade, effect.brake_heat,
+                                         effect.brake_power)
+    extra = (effect.tunnel, effect.wind, effect.hunting, effect.warmup) != (None,) * 4
+    radar = effect.odometer_speed is not None
+    o_bias, o_lag, o_scale = effect.odometer_bias, effect.odometer_lag, effect.odometer_scale
+    n_st, n_bal = len(stations), len(balises)
+    next_bal = balises[bi][0] if bi < n_bal else math.inf
+    due_tr = due_br = math.inf  # activation time of the head of each pipe
+    while leg < n_st:
         if t >= next_cmd - 1e-9:
             target = stations[leg]
             if t < t_end_dwell:
                 cmd = -0.3  # holding brake while dwelling
             else:
                 rem = target - x
-                vc = 0.9 * min(v_limit(x), v_limit(x + 50.0), v_line)
+                vc = 0.9 * min(l_values[bisect_right(l_bounds, x)],
+                               l_values[bisect_right(l_bounds, x + 50.0)], v_line)
                 # the braking curve: latched once the distance left is what a braking at 60 %
                 # of the service rate needs, plus the actuator's reaction
                 if not stopping and rem < v * v / (1.2 * b_serv) + v * (delay + tau) + 10.0:
@@ -220,8 +254,8 @@ def simulate(line: dict, train: dict, effect: Effect, rng: np.random.Generator,
                 else:
                     if coast > 0.0:  # coast-and-motor: coast from the cruise speed down
                         coasting = v < vc and (coasting or v >= 0.98 * vc) and v > coast * vc
-                    cmd = 0.0 if coasting else float(np.clip(0.6 * (vc - v), -0.5 * b_serv,
-                                                             a_max))
+                    # (a clip; a zero it gives is made 0.0 below whatever its sign)
+                    cmd = 0.0 if coasting else min(max(0.6 * (vc - v), -0.5 * b_serv), a_max)
                     if abs(cmd) < 0.03:
                         cmd = 0.0
             if notch > 0.0:
@@ -236,73 +270,79 @@ def simulate(line: dict, train: dict, effect: Effect, rng: np.random.Generator,
                     sent.append(("control", t, {"target_acceleration": cmd}))
             pipe_tr.append((t + t_delay, max(cmd, 0.0)))
             pipe_br.append((t + b_delay, min(cmd, 0.0)))
+            due_tr, due_br = pipe_tr[0][0], pipe_br[0][0]
             next_cmd += 1.0 / cmd_rate
-        while pipe_tr and pipe_tr[0][0] <= t + 1e-9:
-            u_tr = pipe_tr.popleft()[1]
-        while pipe_br and pipe_br[0][0] <= t + 1e-9:
-            u_br = pipe_br.popleft()[1]
+        if due_tr <= t + 1e-9:
+            while pipe_tr and pipe_tr[0][0] <= t + 1e-9:
+                u_tr = pipe_tr.popleft()[1]
+            due_tr = pipe_tr[0][0] if pipe_tr else math.inf
+        if due_br <= t + 1e-9:
+            while pipe_br and pipe_br[0][0] <= t + 1e-9:
+                u_br = pipe_br.popleft()[1]
+            due_br = pipe_br[0][0] if pipe_br else math.inf
         # one first-order lag (linear): its traction and braking parts lag separately
         ah_tr = u_tr + (ah_tr - u_tr) * lag
-        ah_br = effect.braking_rate * u_br + (ah_br - effect.braking_rate * u_br) * lag
-        drive_tr = ah_tr * effect.traction_gain
-        if effect.traction_fade is not None and v > effect.traction_fade[0]:
-            drive_tr *= effect.traction_fade[1]
-        if effect.traction_cut is not None and \
-                effect.traction_cut[0] <= x < effect.traction_cut[1]:
-            drive_tr *= effect.traction_cut[2]
-        if effect.traction_trip is not None and \
-                effect.traction_trip[0] <= t < effect.traction_trip[1]:
-            drive_tr *= effect.traction_trip[2]
-        if effect.p_spec is not None and v > 0.0:
-            drive_tr = min(drive_tr, effect.p_spec / v)
+        ah_br = f_br * u_br + (ah_br - f_br * u_br) * lag
+        drive_tr = ah_tr * gain
+        if fade is not None and v > fade[0]:
+            drive_tr *= fade[1]
+        if cut is not None and cut[0] <= x < cut[1]:
+            drive_tr *= cut[2]
+        if trip is not None and trip[0] <= t < trip[1]:
+            drive_tr *= trip[2]
+        if p_spec is not None and v > 0.0:
+            drive_tr = min(drive_tr, p_spec / v)
         drive_br = ah_br
-        if effect.adhesion is not None and effect.adhesion[0] <= x < effect.adhesion[1]:
-            drive_br *= effect.adhesion[2]
-        if effect.brake_fade is not None and 0.0 < v < effect.brake_fade[0]:
-            drive_br *= effect.brake_fade[1]
-        if effect.brake_heat is not None:
-            e0, tau_h, f_max = effect.brake_heat
+        if adhesion is not None and adhesion[0] <= x < adhesion[1]:
+            drive_br *= adhesion[2]
+        if b_fade is not None and 0.0 < v < b_fade[0]:
+            drive_br *= b_fade[1]
+        if b_heat is not None:
+            e0, tau_h, f_max = b_heat
             drive_br *= 1.0 - f_max * min(heat / e0, 1.0)
             heat += (-drive_br * v - heat / tau_h) * dt
-        if effect.brake_power is not None and v > 0.0:
-            drive_br = max(drive_br, -effect.brake_power / v)
-        acc = kappa * (drive_tr + drive_br) - grad_acc(x)
+        if b_power is not None and v > 0.0:
+            drive_br = max(drive_br, -b_power / v)
+        acc = kappa * (drive_tr + drive_br) - g_values[bisect_right(g_bounds, x)]
         if v > 0.0:
-            acc -= (a + b * v + c * v * v + _extra_resistance(effect, t, x, v)) / meff
-            if effect.coast_drag and u_tr == 0.0 and u_br == 0.0:
-                acc -= effect.coast_drag
-            v_new = max(v + acc * dt, 0.0)
+            acc -= (a + b * v + c * v * v + (_extra_resistance(effect, t, x, v) if extra
+                                             else 0.0)) / meff
+            if coast_drag and u_tr == 0.0 and u_br == 0.0:
+                acc -= coast_drag
+            v_new = v + acc * dt
+            if v_new < 0.0:  # (max(v_new, 0.0) without its call)
+                v_new = 0.0
         else:
             v_new = acc * dt if acc > a / meff else 0.0
         x_old = x
         x += v_new * dt
         v = v_new
         if v > 0.0:
-            odo_extra += (effect.odometer_bias + _radar(effect, v)) * dt
+            odo_extra += (o_bias + (_radar(effect, v) if radar else 0.0)) * dt
         t += dt
-        if effect.odometer_lag > 0.0:
+        if o_lag > 0.0:
             lag_t.append(t)
             lag_v.append(v)
             if len(lag_t) > 4096:  # the last 20 s at 5 ms are more than any lag needs
                 del lag_t[:2048], lag_v[:2048]
-        while bi < len(balises) and balises[bi][0] <= x:
-            p, bid, told = balises[bi]
-            tb = t - dt + dt * (p - x_old) / max(x - x_old, 1e-12)
-            seq_bal += 1
-            send(tb + effect.balise_late, "balise",
-                 {"seq": seq_bal, "balise_id": bid, "position": told,
-                  "position_variance": p_std * p_std})
-            bi += 1
+        if next_bal <= x:
+            while bi < n_bal and balises[bi][0] <= x:
+                p, bid, told = balises[bi]
+                tb = t - dt + dt * (p - x_old) / max(x - x_old, 1e-12)
+                seq_bal += 1
+                send(tb + effect.balise_late, "balise",
+                     {"seq": seq_bal, "balise_id": bid, "position": told,
+                      "position_variance": p_std * p_std})
+                bi += 1
+            next_bal = balises[bi][0] if bi < n_bal else math.inf
         if t >= next_odo - 1e-9:
             if truth is not None:
                 truth.append((t, x, v))
             # the train never rolls back: the distance run is how far it is from the start
-            d = effect.odometer_scale * (x - stations[0]) + odo_extra \
-                + float(rng.normal(0.0, d_std))
-            vr = float(np.interp(t - effect.odometer_lag, lag_t, lag_v)) \
-                if effect.odometer_lag > 0.0 else v
-            sp = effect.odometer_scale * vr + float(rng.normal(0.0, s_std)) \
-                + (effect.odometer_bias if vr > 0.0 else 0.0) + _radar(effect, vr)
+            d = o_scale * (x - stations[0]) + odo_extra + float(rng.normal(0.0, d_std))
+            vr = float(np.interp(t - o_lag, lag_t, lag_v)) if o_lag > 0.0 else v
+            sp = o_scale * vr + float(rng.normal(0.0, s_std)) \
+                + (o_bias if vr > 0.0 else 0.0) + _radar(effect, vr)
             send(t, "odometer", {"seq": seq_odo, "distance": d, "speed": sp,
                                  "speed_variance": s_std * s_std})
             seq_odo += 1

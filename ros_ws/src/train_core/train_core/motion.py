@@ -88,25 +88,38 @@ class Motion:
         tau = act.tau
         f_const, f_of = self.braking_rate_const, self.braking_rate_of_t
         e = math.exp(-0.5 * h / tau)  # (Actuator.segment's factor: h and tau fixed here)
-        kappa, ra, rb, rc = dyn.kappa, dyn.ra, dyn.rb, dyn.rc
+        kappa, ra, rb, rc, static = dyn.kappa, dyn.ra, dyn.rb, dyn.rc, dyn.static
         bounds, values = dyn.grad.bounds, dyn.grad.values
         pipe, bpipe = act._pipe, act._bpipe
         h2 = 0.5 * h
+        inf = math.inf
+        # the next activation time (the earlier pipe head), and with a constant f the input
+        # ue, which only an activation changes (from the next step on): both kept between
+        # steps, not recomputed
+        due = min(pipe[0][0] if pipe else inf, bpipe[0][0] if bpipe else inf)
+        stale = True  # ue to be computed
         for i in range(n):
             t0 = t_start + i * h
-            f = f_const if f_const is not None else f_of(t0 + 0.5 * h)
-            ue = act.u_tr + f * act.u_br  # Actuator.effective
+            if f_const is None:
+                ue = act.u_tr + f_of(t0 + 0.5 * h) * act.u_br  # Actuator.effective
+            elif stale:
+                ue = act.u_tr + f_const * act.u_br
+                stale = False
             a0 = act.a  # Actuator.segment (its braking part untracked: track_br False)
             a_mid = ue + (a0 - ue) * e
             a_end = ue + (a_mid - ue) * e
             act.a = a_end
             act.t += h
-            ta = act.t + _EPS
-            if (pipe and pipe[0][0] <= ta) or (bpipe and bpipe[0][0] <= ta):
+            if due <= act.t + _EPS:
                 act._activate()
+                due = min(pipe[0][0] if pipe else inf, bpipe[0][0] if bpipe else inf)
+                stale = True
             x = x0 = st.x
             if st.stopped:
-                dyn.step(st, h, a0, a_mid, a_end, ue, tau)
+                # held at rest unless Dynamics.can_start (a step that only tests it, often the
+                # most common kind: a dwell, the end of a run)
+                if kappa * a0 - values[bisect_right(bounds, x)] > static:
+                    dyn.step(st, h, a0, a_mid, a_end, ue, tau)
             else:
                 # Dynamics._rk4 with Dynamics.accel at its four stages (v >= 0 as there)
                 v = st.v

@@ -46,7 +46,7 @@ import bisect
 import math
 from dataclasses import dataclass
 
-from train_core.actuator import Actuator
+from train_core.actuator import _EPS, Actuator
 from train_core.dynamics import GradientLookup
 from train_core.model import Line, TrainParams
 
@@ -160,14 +160,49 @@ class Driver:
         return max(a_hat / self.braking_rate_belief, -perf.service_brake)
 
     def _predict(self, x: float, v: float) -> tuple[float, float]:
-        """Believed (x, v) at t + H: delay line and lag exact, motion by trapezoid steps."""
-        act = self._act.copy()
+        """Believed (x, v) at t + H: delay line and lag exact, motion by trapezoid steps.
+
+        The believed actuator is run forward on local copies of its state, not stepped:
+        ``Actuator.advance``, ``segment`` and ``_activate`` and :meth:`_resist` written out with
+        the same operations in the same order, so the same floats (the calls cost three times
+        the loop itself)."""
+        act = self._act
+        f, tau = self.braking_rate_belief, act.tau
+        t, a, u_tr, u_br = act.t, act.a, act.u_tr, act.u_br
+        pipe, bpipe = act._pipe, act._bpipe  # read, not consumed: i, j are their heads
+        ni, nj = len(pipe), len(bpipe)
+        i = j = 0
+        ra, rb, rc = self._ra, self._rb, self._rc
+        bounds, values = self._grad.bounds, self._grad.values
+        inf, exp = math.inf, math.exp
         n = max(3, math.ceil(self.horizon / 0.1))
         h = self.horizon / n
         for _ in range(n):
-            a_start = act.a
-            a_end = act.advance(act.t + h, self.braking_rate_belief)
-            dv = h * (0.5 * (a_start + a_end) - self._resist(x, v))
+            a_start = a
+            t_new = t + h
+            while t < t_new - _EPS:  # Actuator.advance(t + h, f)
+                ta = pipe[i][0] if i < ni else inf  # next_switch
+                tb = bpipe[j][0] if j < nj else inf
+                t_switch = ta if ta < tb else tb
+                t_stop = t_switch if t_switch < t_new else t_new
+                hs = t_stop - t  # segment(hs, f)
+                ub = f * u_br
+                ue = u_tr + ub
+                e = exp(-0.5 * hs / tau)
+                a_mid = ue + (a - ue) * e
+                a = ue + (a_mid - ue) * e
+                t_seg = t + hs + _EPS
+                if t_switch <= t_seg or t_switch <= t_stop + _EPS:  # else neither pops
+                    for te in (t_seg, t_stop + _EPS):  # _activate after t += hs, t = t_stop
+                        while i < ni and pipe[i][0] <= te:
+                            u_tr = pipe[i][1]
+                            i += 1
+                        while j < nj and bpipe[j][0] <= te:
+                            u_br = bpipe[j][1]
+                            j += 1
+                t = t_stop
+            dv = h * (0.5 * (a_start + a) - (ra + (rb + rc * v) * v + values[bisect.bisect_right(
+                bounds, x)]))
             v_new = v + dv
             if v_new <= 0.0:  # stops inside this sub-step
                 frac = v / (v - v_new) if v > v_new else 0.0

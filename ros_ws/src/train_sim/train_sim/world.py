@@ -141,6 +141,9 @@ class World:
         self._drift = eff.clock_drift.drift if eff.clock_drift else 0.0
         self._epoch = sc.stamp_epoch
         self._slip = eff.wheel_slip
+        # without a bias the axle's count gains exactly 0.0 per step from it: skipped
+        self._biased = sc.unlisted is not None and (sc.unlisted.odometer_bias is not None or
+                                                    sc.unlisted.odometer_speed_scale is not None)
         self._slip_times = sorted({t for iv in self._slip.intervals for t in iv}) if self._slip \
             else []
         self._rate = sc.odometer_rate
@@ -200,6 +203,7 @@ class World:
         event time <= t_end is released by the next call, with its exact stamp.
         """
         out: list = []
+        motion, slips = self.motion, bool(self._slip_times)
         while True:
             if not self._due_done:
                 if self.t > t_end + _EPS:
@@ -207,7 +211,8 @@ class World:
                 self._due(out)
                 self._due_done = True
             t_sample, t_ctrl = self._k_sample / self._rate, self._next_command_time()
-            t_next = min(t_sample, t_ctrl, self.act.next_switch(), self._next_slip())
+            t_next = min(t_sample, t_ctrl, motion.act.next_switch(),
+                         self._next_slip() if slips else math.inf)
             # Snap to the canonical sample/cycle time when another event coincides with it
             # up to round-off (e.g. 10.0 + 1.2 vs 112 / 10), so times never depend on it.
             for t_canon in (t_sample, t_ctrl):
@@ -251,16 +256,24 @@ class World:
         mid = 0.5 * (t_start + t_next)
         factor = self._scale * (self._slip.factor(mid) if self._slip else 1.0) * \
             odometer_factor(self.scenario.unlisted, mid)
+        unlisted, biased = self.scenario.unlisted, self._biased
+        # the axle's count in a local between balises (visit runs at every integration step)
+        axle = self.axle_distance
+        trigger = br.next_trigger
 
         def visit(t0, h, x0, x1):
-            self.axle_distance += factor * (x1 - x0)
-            if h > 0.0:  # an odometer bias (unlisted test effect) counts bias x time moving
-                self.axle_distance += odometer_bias(self.scenario.unlisted, (x1 - x0) / h) * h
-            if x1 >= br.next_trigger:
+            nonlocal axle, trigger
+            axle += factor * (x1 - x0)
+            if biased and h > 0.0:
+                # an odometer bias (unlisted test effect) counts bias x time moving
+                axle += odometer_bias(unlisted, (x1 - x0) / h) * h
+            if x1 >= trigger:
                 for tb, bal in br.crossings(t0, x0, t0 + h, x1):
                     self._emit_balise(tb, bal, out)
+                trigger = br.next_trigger
 
         self.motion.integrate(t_next, visit)
+        self.axle_distance = axle
         self.t = t_next
 
     def _due(self, out: list) -> None:
