@@ -447,3 +447,47 @@ def test_grid_integrals_are_the_midpoint_rule_in_either_memory_order():
             want_s[k, c] += inc * (ev.t[k] - mid)
     np.testing.assert_allclose(Bv, want_v, rtol=1e-12, atol=1e-15)
     np.testing.assert_allclose(Bs, want_s, rtol=1e-12, atol=1e-15)
+
+
+@pytest.mark.parametrize("cause,params", [
+    ("power_limit", {"p_spec": 4.0}),
+    ("traction_delay", {"delay": 1.2}),
+    ("adhesion_section", {"start": 500.0, "end": 900.0, "factor": 0.6}),
+    ("brake_delay", {"delay": 0.8})])
+def test_the_replay_plot_runs_the_effects_the_held_out_gain_runs(monkeypatch, cause, params):
+    """The replay plot's extended model (``series.replay_series``) replays the recorded
+    commands with every effect of the fitted cause that the simulator would run, the very
+    keywords the held-out gain's replay takes (``gain.extended_model``): the plot once left a
+    power limit, a traction delay and a low-adhesion section out, and drew the believed
+    model's speed as the extended one's."""
+    from types import SimpleNamespace
+
+    import train_core.motion as motion
+
+    from train_estimation.core.offline.diagnose import series
+    from train_estimation.core.offline.diagnose.causes import BY_NAME
+    from train_estimation.core.offline.diagnose.gain import extended_model
+    from train_estimation.core.offline.diagnose.result import CauseFit
+    from train_sim.scenario import load_scenario
+
+    sc = load_scenario("metro_demo")
+    t = np.arange(0.0, 120.0, 0.1)
+    run = SimpleNamespace(duration=120.0, odo_t=t, ctrl_t=np.array([0.0, 60.0]),
+                          ctrl_a=np.array([0.5, -0.5]))
+    mo = SimpleNamespace(run=run, cfg=SimpleNamespace(gain_block=60.0), train=sc.train,
+                         line=sc.line, grid=SimpleNamespace(t=t), v_ref=np.full(t.size, 10.0),
+                         x_ref=10.0 * t)
+    calls = []
+
+    def fake_replay(line, train, t_cmd, a_cmd, t0, t_out, x0, v0, **kw):
+        calls.append(kw)
+        return np.zeros(len(t_out)), np.zeros(len(t_out))
+
+    monkeypatch.setattr(motion, "replay", fake_replay)
+    monkeypatch.setattr(series, "_null_of", lambda mo, acc: SimpleNamespace(shift=0.0))
+    series.replay_series(mo, [CauseFit(cause, 10.0, dict(params))])
+    extended = [kw for kw in calls if "believed" in kw]
+    assert extended, calls
+    want = extended_model(BY_NAME[cause], params, mo)[2]
+    for kw in extended:
+        assert {k: v for k, v in kw.items() if k not in ("believed", "max_step")} == want, kw

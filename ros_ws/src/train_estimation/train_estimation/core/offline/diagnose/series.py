@@ -84,8 +84,10 @@ def replay_series(mo: Motion, accepted: list) -> dict:
     """The recorded commands replayed open loop through the believed and the extended model
     (the simulator's physics, train_core.motion), restarted from the measured state at the
     start of every gain block (cfg.gain_block s), against the odometer speed averaged over 1 s:
-    the before/after picture of the held-out gain, over the whole run."""
-    from train_core.effects import Effects, true_line, true_train
+    the before/after picture of the held-out gain, over the whole run. The extended model runs
+    every effect the simulator would (``train_core.effects.replay_effects``, as the held-out gain
+    does: the delays, the braking-rate schedule, a power limit and a low-adhesion section)."""
+    from train_core.effects import Effects, replay_effects, true_line, true_train
     from train_core.motion import replay
 
     run, cfg = mo.run, mo.cfg
@@ -97,9 +99,7 @@ def replay_series(mo: Motion, accepted: list) -> dict:
     if not fields:
         return {}
     eff = Effects(**fields)
-    train, line = true_train(mo.train, eff), true_line(mo.line, eff)
-    brake_delay = eff.brake_delay.delay if eff.brake_delay is not None else None
-    f_of_t = eff.braking_rate.value if eff.braking_rate is not None else None
+    train, line, effects = true_train(mo.train, eff), true_line(mo.line, eff), replay_effects(eff)
     shift = _null_of(mo, accepted).shift
     period = float(np.median(np.diff(run.odo_t))) if run.odo_t.size > 1 else 1.0
     t_all = run.odo_t[::max(1, int(round(0.5 / max(period, 1e-3))))]  # ~2 Hz: for a plot
@@ -116,7 +116,6 @@ def replay_series(mo: Motion, accepted: list) -> dict:
         vb[sel] = replay(mo.line, mo.train, run.ctrl_t, run.ctrl_a, t_out[0], t_out, x0, v0,
                          max_step=0.05)[1]
         va[sel] = replay(line, train, run.ctrl_t + shift, run.ctrl_a, t_out[0], t_out, x0, v0,
-                         believed=mo.train, brake_delay=brake_delay,
-                         braking_rate_of_t=f_of_t, max_step=0.05)[1]
+                         believed=mo.train, max_step=0.05, **effects)[1]
     return {"replay_t": t_all, "replay_measured": np.interp(t_all, mo.grid.t, mo.v_ref),
             "replay_believed": vb, "replay_extended": va, "replay_block": cfg.gain_block}
