@@ -27,7 +27,7 @@ from .causes import BY_NAME, REGISTRY, SCORING
 from .confirm import _null_of
 from .gain import GainContext
 from .motion import Motion
-from .refit import joint_model, joint_refit, merge, unlocate
+from .refit import joint_model, joint_refit, merge, refit_given_others, unlocate
 from .result import CauseFit, Diagnosis
 from .run import DiagConfig, prepare
 from .stage import Null, Stage
@@ -95,6 +95,7 @@ def diagnose(data: MeasuredRun, line: Line, train: TrainParams, config: DiagConf
             before.update({a.cause: BY_NAME[a.cause].resolution(a, sr.mo)
                            for a in sr.accepted if a.cause not in before})
             joint_refit(sr.mo, sr.null, sr.accepted, cfg, (st.q, st.r_s))
+    refit_given_others(sr, (st.q, st.r_s))
     tick(total - 1, "confirmation and gain")
     first_stage, first_null = sr.first
     first_stage.null = first_null
