@@ -48,16 +48,6 @@ def median(a) -> float:
     return float(a[h]) if n % 2 else float((a[h - 1] + a[h]) / 2.0)
 
 
-def _median_finite(a: np.ndarray) -> float:
-    """:func:`median` of a 1-D float array without NaN (the same number) by partition: 1-2 us a
-    call where a sort takes 4 and ``np.median`` 8, at the 64 links of the count's fit."""
-    h = a.size // 2
-    if a.size % 2:
-        return float(np.partition(a, h)[h])
-    p = np.partition(a, (h - 1, h))
-    return float((p[h - 1] + p[h]) / 2.0)
-
-
 def _median_sorted(a: list) -> float:
     """:func:`median` of a sorted non-empty list of floats without NaN (the same number)."""
     n = len(a)

@@ -31,7 +31,7 @@ _WARMED: list = []
 @jit
 def _median(a):
     """The median of a 1-D float array (no NaN): the middle order statistic, or the two middle
-    ones' sum halved (``clocks._median_finite``'s number)."""
+    ones' sum halved (``clocks.median``'s number)."""
     b = np.sort(a)
     h = b.size // 2
     if b.size % 2:
