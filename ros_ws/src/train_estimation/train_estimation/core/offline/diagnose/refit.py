@@ -27,7 +27,7 @@ if TYPE_CHECKING:  # the search's state (search.py imports this module)
     from .search import _Search
 
 
-def refit_given_others(sr: _Search, noise) -> bool:
+def refit_given_others(sr: _Search, noise) -> None:
     """Where two or more motion causes are accepted and none of them is linear (so that
     :func:`joint_refit` has nothing to refit), each one that is not profiled (a delay, a
     section, slips) fitted again on the model of all the others at ``noise``, the noise of the
@@ -38,10 +38,10 @@ def refit_given_others(sr: _Search, noise) -> bool:
     its effect, too small, was contradicted by its phase split (needed x1.34 in traction);
     fitted again so, 1.92 +- 0.05 s. A profiled cause keeps its fit (a subtle power limit
     refitted beside a brake delay below resolution was contradicted by its split by command
-    level). Returns whether the null was rebuilt from the accepted causes."""
+    level). The null is rebuilt from the accepted causes."""
     motion = [a for a in sr.accepted if BY_NAME[a.cause].in_motion_model]
     if len(motion) < 2 or any(BY_NAME[a.cause].linear for a in motion):
-        return False
+        return
     shift = sr.null.shift
     for a in motion:
         if BY_NAME[a.cause].profiled:
@@ -51,7 +51,6 @@ def refit_given_others(sr: _Search, noise) -> bool:
         _, _, a.parameters, a.std_errors, extra = BY_NAME[a.cause].fit(st)
         a.extra = {**a.extra, **extra}
     sr.null = _null_of(sr.mo, shift, sr.accepted)
-    return True
 
 
 def joint_refit(mo: Motion, null: Null, accepted: list, cfg: DiagConfig, noise,
