@@ -26,11 +26,18 @@ class GainContext:
     own: dict
 
 
-def extended_model(cause, params: dict, mo: Motion):
+def replayed_model(mo: Motion, eff: Effects):
     """(train, line, the other effects as train_core.motion.replay takes them) of the believed
-    model extended by the fitted cause, through the effect the simulator runs."""
-    eff = Effects(**{cause.effect_field: cause.effect(params, max(mo.run.duration, 1e-9))})
+    model extended by the effects ``eff``, as the simulator runs them (the held-out gain's and
+    the replay plot's extended model)."""
     return true_train(mo.train, eff), true_line(mo.line, eff), replay_effects(eff)
+
+
+def extended_model(cause, params: dict, mo: Motion):
+    """:func:`replayed_model` of the believed model extended by the fitted cause, through the
+    effect the simulator runs."""
+    return replayed_model(mo, Effects(**{cause.effect_field: cause.effect(
+        params, max(mo.run.duration, 1e-9))}))
 
 
 def gain_motion(cause, ctx: GainContext) -> dict:

@@ -84,11 +84,13 @@ def replay_series(mo: Motion, accepted: list) -> dict:
     """The recorded commands replayed open loop through the believed and the extended model
     (the simulator's physics, train_core.motion), restarted from the measured state at the
     start of every gain block (cfg.gain_block s), against the odometer speed averaged over 1 s:
-    the before/after picture of the held-out gain, over the whole run. The extended model runs
-    every effect the simulator would (``train_core.effects.replay_effects``, as the held-out gain
-    does: the delays, the braking-rate schedule, a power limit and a low-adhesion section)."""
-    from train_core.effects import Effects, replay_effects, true_line, true_train
+    the before/after picture of the held-out gain, over the whole run. The extended model is
+    the held-out gain's (:func:`.gain.replayed_model`: every effect the simulator would run, the
+    delays, the braking-rate schedule, a power limit and a low-adhesion section)."""
+    from train_core.effects import Effects
     from train_core.motion import replay
+
+    from .gain import replayed_model
 
     run, cfg = mo.run, mo.cfg
     fields = {}
@@ -98,8 +100,7 @@ def replay_series(mo: Motion, accepted: list) -> dict:
             fields[cause.effect_field] = cause.effect(a.parameters, max(run.duration, 1e-9))
     if not fields:
         return {}
-    eff = Effects(**fields)
-    train, line, effects = true_train(mo.train, eff), true_line(mo.line, eff), replay_effects(eff)
+    train, line, effects = replayed_model(mo, Effects(**fields))
     shift = _null_of(mo, accepted).shift
     period = float(np.median(np.diff(run.odo_t))) if run.odo_t.size > 1 else 1.0
     t_all = run.odo_t[::max(1, int(round(0.5 / max(period, 1e-3))))]  # ~2 Hz: for a plot
