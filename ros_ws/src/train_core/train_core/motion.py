@@ -156,7 +156,33 @@ class Motion:
         return dyn.kappa * act.a
 
 
-def warm_actuator(train: TrainParams, t_cmd, a_cmd, t0: float, warmup: float = 30.0,
+WARMUP = 30.0  # s, the actuator's warm-up before a replay's start (warm_actuator's default)
+
+
+def _actuator(train: TrainParams, warmup: float, brake_delay: float | None,
+              traction_delay: float | None) -> Actuator:
+    """The actuator a replay starts from, ``warmup`` s before its start (the two chains'
+    delays: the train's where None)."""
+    return Actuator(train.brake.time_constant,
+                    train.brake.delay if traction_delay is None else traction_delay, t0=-warmup,
+                    brake_delay=train.brake.delay if brake_delay is None else brake_delay)
+
+
+def _warm_commands(t_cmd: np.ndarray, a_cmd: np.ndarray, t0: float, warmup: float) -> tuple:
+    """The commands issued before ``t0`` that the warm-up visits, times relative to ``t0``: of
+    a run of consecutive commands long before (earlier than ``warmup`` s), only its last one
+    leaves a trace (each overwrites the parts in force), so the others are left out (a replay
+    late in a long run would walk every earlier command); the state is the same."""
+    before = t_cmd < t0
+    t_b, a_b = t_cmd[before] - t0, a_cmd[before]
+    early = t_b < -warmup
+    keep = ~early
+    keep[:-1] |= early[:-1] & ~early[1:]
+    keep[-1:] |= early[-1:]
+    return t_b[keep], a_b[keep]
+
+
+def warm_actuator(train: TrainParams, t_cmd, a_cmd, t0: float, warmup: float = WARMUP,
                   brake_delay: float | None = None,
                   braking_rate_of_t: Callable[[float], float] | None = None,
                   traction_delay: float | None = None) -> Actuator:
@@ -165,22 +191,11 @@ def warm_actuator(train: TrainParams, t_cmd, a_cmd, t0: float, warmup: float = 3
     exp(-warmup / tau)). Times in the returned actuator are shifted so that t0 -> 0.
     ``brake_delay``/``traction_delay``: the two chains' delays (default: the train's delay)."""
     f_of = braking_rate_of_t or (lambda t: train.brake.braking_rate)
-    act = Actuator(train.brake.time_constant,
-                   train.brake.delay if traction_delay is None else traction_delay, t0=-warmup,
-                   brake_delay=train.brake.delay if brake_delay is None else brake_delay)
+    act = _actuator(train, warmup, brake_delay, traction_delay)
     act.track_br = True  # the braking part too, for a Motion with drive effects
-    t_cmd = np.asarray(t_cmd, dtype=float)
-    a_cmd = np.asarray(a_cmd, dtype=float)
-    before = t_cmd < t0
-    t_b, a_b = t_cmd[before] - t0, a_cmd[before]
-    # of a run of consecutive commands long before, only its last one leaves a trace (each
-    # overwrites the parts in force): the others are not visited (a replay late in a long run
-    # would walk every earlier command), the state is the same
-    early = t_b < -warmup
-    keep = ~early
-    keep[:-1] |= early[:-1] & ~early[1:]
-    keep[-1:] |= early[-1:]
-    for t_i, a_i in zip(t_b[keep], a_b[keep]):
+    t_w, a_w = _warm_commands(np.asarray(t_cmd, dtype=float), np.asarray(a_cmd, dtype=float),
+                              t0, warmup)
+    for t_i, a_i in zip(t_w, a_w):
         if t_i >= -warmup:
             act.advance(t_i, f_of(t_i + t0))
             act.command(t_i, a_i)
@@ -249,8 +264,6 @@ def _replay_python(line, train, t_cmd, a_cmd, t0, t_out, x0, v0, believed, brake
     return xs, vs
 
 
-WARMUP = 30.0  # s, warm_actuator's default, as replay uses it
-
 
 def _replay_compiled(line, train, t_cmd, a_cmd, t0, t_out, x0, v0, believed, brake_delay,
                      max_step, traction_delay, p_spec, adhesion):
@@ -264,19 +277,11 @@ def _replay_compiled(line, train, t_cmd, a_cmd, t0, t_out, x0, v0, believed, bra
     if kern is None:
         return None
     try:
-        act = Actuator(train.brake.time_constant,
-                       train.brake.delay if traction_delay is None else traction_delay,
-                       t0=-WARMUP,
-                       brake_delay=train.brake.delay if brake_delay is None else brake_delay)
+        act = _actuator(train, WARMUP, brake_delay, traction_delay)
         dyn = Dynamics(train, line, believed or train, p_spec, adhesion)
     except ValueError:
         return None
-    before = t_cmd < t0  # warm_actuator's commands: of a run long before, only its last one
-    t_b, a_b = t_cmd[before] - t0, a_cmd[before]
-    early = t_b < -WARMUP
-    keep = ~early
-    keep[:-1] |= early[:-1] & ~early[1:]
-    keep[-1:] |= early[-1:]
+    t_w, a_w = _warm_commands(t_cmd, a_cmd, t0, WARMUP)  # warm_actuator's commands
     after = t_cmd >= t0
     t_rel = np.asarray(t_out, dtype=float) - t0
     ad = dyn.adhesion
@@ -285,7 +290,7 @@ def _replay_compiled(line, train, t_cmd, a_cmd, t0, t_out, x0, v0, believed, bra
                   *(ad if ad is not None else (0.0, 0.0, 0.0)), float(ad is not None)])
     xs, vs = np.empty(t_rel.size), np.empty(t_rel.size)
     c = np.ascontiguousarray
-    rc = kern(c(t_b[keep]), c(a_b[keep]), c(t_cmd[after] - t0), c(a_cmd[after]), c(t_rel),
+    rc = kern(c(t_w), c(a_w), c(t_cmd[after] - t0), c(a_cmd[after]), c(t_rel),
               float(x0), float(v0), float(train.brake.braking_rate), act.tau, act.delay,
               act.brake_delay, WARMUP, D, np.array(dyn.grad.bounds, dtype=float),
               np.array(dyn.grad.values, dtype=float), float(max_step), xs, vs)
