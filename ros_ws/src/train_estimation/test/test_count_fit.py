@@ -4,12 +4,19 @@ it replaced (kept here as the oracle), and its own interpreted form."""
 from __future__ import annotations
 
 import math
+import sys
 
 import numpy as np
 import pytest
 
 from train_estimation.core.numerics import count_fit as cf
-from train_estimation.core.numerics.clocks import COUNT_LEARN, _count_fit
+from train_estimation.core.numerics.clocks import (
+    COUNT_ACCEL_SPAN,
+    COUNT_LEARN,
+    Rows,
+    _accel,
+    _count_fit,
+)
 
 
 def _median(a):
@@ -180,3 +187,50 @@ def test_the_level_scan_is_the_numpy_forms(step):
             assert a[3] == 12, (seed, a)
         for x, y in zip(a[:3] + a[4:], b[:3] + b[4:]):
             assert x == y or _rel(x, y) <= 1e-9, (seed, a, b)
+
+
+def python_accel(links, span):
+    """The acceleration's slope as the runner computed it in Python before the compiled call
+    (``clocks._accel``), kept as the oracle: the newest links first, Python's ``sum``."""
+    ts, vs, t = [], [], 0.0
+    for r, dt, _, v in reversed(links):
+        ts.append(t)
+        vs.append(v)
+        t -= r + dt
+        if -t > span:
+            break
+    n = len(ts)
+    if n < 3:
+        return 0.0
+    tm, vm = sum(ts) / n, sum(vs) / n
+    sxx = sum((x - tm) ** 2 for x in ts)
+    return sum((x - tm) * (y - vm) for x, y in zip(ts, vs)) / sxx if sxx > 0.0 else 0.0
+
+
+@pytest.mark.skipif(sys.version_info >= (3, 12), reason="Python 3.12's sum() compensates")
+def test_the_compiled_acceleration_is_pythons_to_the_bit():
+    """``count_fit.accel`` (the train's acceleration over the count's last 2 s of links, which
+    decides whether the level test runs) gives the bits of the Python form it replaced over
+    120 windows cruising, braking and accelerating, whole and cut to 1-3 links, and so does its
+    interpreted form; through :class:`~.clocks.Rows` (the runner's buffer, past its length,
+    one row rewritten) as through a list."""
+    for seed, kind, _ in CASES[::2]:
+        links = _window(np.random.default_rng(seed), kind)
+        for part in (links, links[:1], links[:2], links[:3]):
+            want = python_accel(part, COUNT_ACCEL_SPAN)
+            q = np.array(part, float).reshape(-1, 4)
+            assert cf.accel(q, COUNT_ACCEL_SPAN) == want, (seed, kind, len(part))
+            assert cf.accel.py_func(q, COUNT_ACCEL_SPAN) == want, (seed, kind, len(part))
+            assert _accel(part, COUNT_ACCEL_SPAN) == want
+        rows = Rows(4, 32)
+        for row in links:
+            rows.append(row)
+        rows[-3] = links[0]
+        kept = list(links[-32:])
+        kept[-3] = links[0]
+        assert list(rows) == kept and len(rows) == len(kept)
+        assert np.array_equal(rows.array(), np.array(kept, float))
+        assert _accel(rows, COUNT_ACCEL_SPAN) == python_accel(kept, COUNT_ACCEL_SPAN)
+        assert _count_fit(rows, None) == _count_fit(kept, None)
+        rows.clear()
+        assert len(rows) == 0 and rows.array().shape == (0, 4)

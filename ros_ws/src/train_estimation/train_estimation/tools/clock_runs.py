@@ -24,6 +24,7 @@ SPEED = 20.0  # m/s, the train's constant speed
 FLOOR = F.LATENCY  # s, the link's least latency (faults.LATENCY)
 STEP_AT = 600.0  # s, true time of a step
 WANDER_AT = 120.0  # s, true time at which a wandering latency starts to rise
+COVARIANCE = tuple(np.eye(4).ravel() * 0.01)  # the Recorder's fixed estimate's covariance
 
 
 class Recorder:
@@ -54,7 +55,7 @@ class Recorder:
         return ""
 
     def output(self, t: float) -> Output:
-        return Output(t, SPEED * t, SPEED, 0.0, math.nan, tuple(np.eye(4).ravel() * 0.01), True)
+        return Output(t, SPEED * t, SPEED, 0.0, math.nan, COVARIANCE, True)
 
 
 def cruise(duration: float, rate: float, loss: float, counter: bool,

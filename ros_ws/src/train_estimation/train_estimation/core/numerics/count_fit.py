@@ -184,6 +184,39 @@ def level_scan(q, lag, rate, m_max):
     return vmin, S[n - 1] - S[0], S[n - 1] - S[n - m_max - 1], best_m, best_d, best_den, best_z
 
 
+@jit
+def accel(q, span):
+    """m/s^2, ``clocks._accel``'s slope: the least squares slope of the latest links' speeds
+    (``q[:, 3]``, rows oldest first as in :func:`_fit`) against their times, newest first
+    back to the first beyond ``span`` s; 0 with fewer than 3. Summed in order, as Python's
+    ``sum`` (3.11) sums its generator there."""
+    m = q.shape[0]
+    ts, vs = np.empty(m), np.empty(m)
+    t = 0.0
+    n = 0
+    for i in range(m - 1, -1, -1):
+        ts[n] = t
+        vs[n] = q[i, 3]
+        n += 1
+        t -= q[i, 0] + q[i, 1]
+        if -t > span:
+            break
+    if n < 3:
+        return 0.0
+    st = sv = 0.0
+    for i in range(n):
+        st += ts[i]
+    for i in range(n):
+        sv += vs[i]
+    tm, vm = st / n, sv / n
+    sxx = sxy = 0.0
+    for i in range(n):
+        sxx += (ts[i] - tm) ** 2
+    for i in range(n):
+        sxy += (ts[i] - tm) * (vs[i] - vm)
+    return sxy / sxx if sxx > 0.0 else 0.0
+
+
 def warm_up() -> None:
     """Compile (first run after a change of this file) or load from numba's cache the fit and
     the level's scan for their one signature, once per process, and forbid numba to compile
@@ -194,15 +227,18 @@ def warm_up() -> None:
     for kernel in (_fit, level_scan):
         kernel.compile("(float64[:, ::1], float64, float64, int64)")
         kernel.disable_compile()
+    accel.compile("(float64[:, ::1], float64)")
+    accel.disable_compile()
     _WARMED.append(True)
 
 
 def count_fit(links, lag_prior: tuple | None, half: int) -> tuple[float, float, tuple, float]:
     """``(rate, lag s, covariance of (rate, lag), sd m)`` of the count's clock from recent
     fused pairs' links ``(r s, count's time dt s, mean speed m/s, the later sample's speed
-    m/s)`` (``clocks._count_link``): one linear model of the cumulative residual ``R`` (the inner
-    counts cancel in it), ``R = rate D - lag ln v + c`` with ``D`` the count's time, fitted
-    against the stamps' time and ``ln v`` (below).
+    m/s)`` (``clocks._count_link``; tuples, or their (n, 4) float64 C-contiguous array): one
+    linear model of the cumulative residual ``R`` (the inner counts cancel in it), ``R = rate
+    D - lag ln v + c`` with ``D`` the count's time, fitted against the stamps' time and ``ln
+    v`` (below).
 
     - ``rate``, the stamps' seconds per count second less one, holds the train clock's rate and
       the speed field's scale against the count (a speed from a radar or a second axle reads a
@@ -230,7 +266,8 @@ def count_fit(links, lag_prior: tuple | None, half: int) -> tuple[float, float, 
     then ``rate = a / (1 - a)`` and ``lag = b / (1 - a)`` (the count's time is ``(S + lag L) /
     (1 + rate)``). A count that does not move while its speed reads on (frozen, ``a`` = 1) gives
     its samples no time at all, so it is no clock: unknown, as before any fit."""
-    q = np.fromiter(itertools.chain.from_iterable(links), float, count=4 * len(links))
+    q = links if isinstance(links, np.ndarray) else \
+        np.fromiter(itertools.chain.from_iterable(links), float, count=4 * len(links))
     pm, pv = lag_prior if lag_prior is not None else (math.nan, math.nan)
     rate, lag, c_rr, c_rl, c_ll, sd = _fit(q.reshape(-1, 4), float(pm), float(pv), int(half))
     return rate, lag, (c_rr, c_rl, c_ll), sd
