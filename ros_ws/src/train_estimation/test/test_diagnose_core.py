@@ -491,3 +491,35 @@ def test_the_replay_plot_runs_the_effects_the_held_out_gain_runs(monkeypatch, ca
     want = extended_model(BY_NAME[cause], params, mo)[2]
     for kw in extended:
         assert {k: v for k, v in kw.items() if k not in ("believed", "max_step")} == want, kw
+
+
+def test_drive_candidates_without_information_on_the_offset_are_finite():
+    """The drive causes' candidate quadratic forms (``causes.drive.Candidates``) profile the
+    speed offset s0 out (w_uu - w_u1^2 / w_11); on events that carry no information on it (w_11
+    = 0, so its whole row is 0 in a PSD W: a fold without speeds updated) nothing is profiled
+    out: w_uu, finite, as ``Stage`` takes it, where 0 / 0 gave NaN and ``argmax`` then chose
+    the first NaN's candidate."""
+    import warnings
+
+    from train_estimation.core.offline.diagnose.causes.drive import Candidates
+
+    rng = np.random.default_rng(3)
+    A = rng.normal(size=(6, 5))
+    W = A.T @ A
+    W[1, :] = W[:, 1] = 0.0
+    cand = Candidates.__new__(Candidates)
+    cand.W, cand.k = W, 3
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        q = cand.quads_each()
+        u = np.array([1.0, 0.0, 0.0, 1.0, 0.0])
+        assert cand.quad_fixed(u) == pytest.approx(float(u @ W @ u), rel=1e-12)
+    for i in range(3):
+        u = np.zeros(5)
+        u[0], u[2 + i] = 1.0, 1.0
+        assert q[i] == pytest.approx(float(u @ W @ u), rel=1e-12)
+    W2 = A.T @ A  # with information on s0: profiled
+    cand.W = W2
+    u = np.array([1.0, 0.0, 1.0, 0.0, 0.0])
+    assert cand.quads_each()[0] == pytest.approx(
+        float(u @ W2 @ u - (u @ W2[:, 1]) ** 2 / W2[1, 1]), rel=1e-12)

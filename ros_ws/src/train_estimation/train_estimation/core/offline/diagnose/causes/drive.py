@@ -45,19 +45,23 @@ class Candidates:
 
     def quad_fixed(self, u: np.ndarray) -> float:
         """The quadratic form of the fixed combination ``u`` (over [fixed, s0, columns]), s0
-        profiled: w_uu - w_u1^2 / w_11."""
+        profiled: w_uu - w_u1^2 / w_11; w_uu where the events carry no information on s0
+        (w_11 = 0: no speed updated, as on a fold without odometer speeds), as the stage's
+        own profile (``Stage``) takes it."""
         W = self.W
         wu1 = u @ W[:, 1]
-        return float(u @ W @ u - wu1 * wu1 / W[1, 1])
+        uwu = float(u @ W @ u)
+        return uwu - float(wu1 * wu1 / W[1, 1]) if W[1, 1] > 0 else uwu
 
     def quads_each(self) -> np.ndarray:
-        """The quadratic form of the null plus each candidate column alone (coefficient 1)."""
+        """The quadratic form of the null plus each candidate column alone (coefficient 1), s0
+        profiled as in :meth:`quad_fixed`."""
         W = self.W
         j = np.arange(2, self.k + 2)
         w00, w01, w11 = W[0, 0], W[0, 1], W[1, 1]
         wuu = w00 + 2 * W[0, j] + W[j, j]
         wu1 = w01 + W[j, 1]
-        return wuu - wu1 * wu1 / w11
+        return wuu - wu1 * wu1 / w11 if w11 > 0 else wuu
 
     def column(self, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The drift increments (Bv, Bs) of a combination of the candidate columns (what the
