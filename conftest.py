@@ -19,7 +19,9 @@ Fixtures:
 
 from __future__ import annotations
 
+import contextlib
 import os
+import pickle
 import random
 import shutil
 import subprocess
@@ -87,6 +89,32 @@ def executable(pkg: str, exe: str) -> str:
     if path is None:
         raise FileNotFoundError(f"{pkg}/{exe} is not an installed executable (is ros_ws built?)")
     return path
+
+
+_SIMULATED: dict[bytes, bytes] = {}
+
+
+@contextlib.contextmanager
+def simulations_shared():
+    """Inside it, ``train_sim.world.simulate`` runs once per (scenario, seed, duration) in this
+    test process: a later call with the same arguments (the same pickled bytes) gets a fresh
+    copy of the first run's result, unpickled, bit for bit what a run gives (simulate is pure
+    and deterministic given the seed). For the pilot runs of the drawn cases
+    (``train_sim.cases.make_case``, ``train_sim.unlisted_cases.unlisted_case``), which draw
+    the same nominal case again for every kind at one seed; outside it simulate is as it is."""
+    from train_sim import world
+
+    simulate = world.simulate
+
+    def shared(scenario, seed=None, duration=None):
+        key = pickle.dumps((scenario, seed, duration))
+        if key not in _SIMULATED:
+            _SIMULATED[key] = pickle.dumps(simulate(scenario, seed, duration))
+        return pickle.loads(_SIMULATED[key])
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(world, "simulate", shared)
+        yield
 
 
 class Launcher:

@@ -222,10 +222,14 @@ def _report(paths: dict, tmp_path) -> dict:
 
 def _unlisted_bag(kind: str, seed, tmp_path):
     """An unlisted case (train_sim.unlisted_cases) of ``kind`` at ``seed``, written and
-    simulated into ``tmp_path/bag``: (the case, its files)."""
+    simulated into ``tmp_path/bag``: (the case, its files). The case's pilot runs are shared
+    within the worker (conftest.simulations_shared): each seed draws its nominal case again for
+    every kind."""
+    from conftest import simulations_shared
     from train_sim.unlisted_cases import unlisted_case
 
-    uc = unlisted_case(np.random.default_rng(seed), kind)
+    with simulations_shared():
+        uc = unlisted_case(np.random.default_rng(seed), kind)
     paths = uc.write(tmp_path / "case")
     generate(uc.scenario, tmp_path / "bag", measured=True)
     return uc, paths

@@ -20,6 +20,17 @@ TRAIN = {"mass": 300000.0, "rotary_allowance": 0.1, "davis": {"a": 3000.0, "b": 
          "performance": {"max_traction": 0.8, "service_brake": 0.8}}
 
 
+@pytest.fixture(autouse=True)
+def _pilots_shared():
+    """bench_foreign draws each seed's line and train with train_sim.cases.make_case, whose
+    pilot run of the same case these tests repeat: run once per worker
+    (conftest.simulations_shared, a bit-identical copy each time)."""
+    from conftest import simulations_shared
+
+    with simulations_shared():
+        yield
+
+
 def test_it_shares_no_physics_with_ours():
     src = open(FS.__file__).read()
     mods = {n.module or "" for n in ast.walk(ast.parse(src)) if isinstance(n, ast.ImportFrom)}

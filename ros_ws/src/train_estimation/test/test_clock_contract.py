@@ -2,6 +2,7 @@
 (``tools.clock_runs``: a cruising train through the integrity campaign's link, no filter).
 ``./run bench clocks`` prints the same figures over an hour per link and every step."""
 
+import functools
 import math
 
 import numpy as np
@@ -294,6 +295,18 @@ def test_no_false_step_nor_hold_on_a_jittery_sampling_phase(rate, count_clock):
         assert r["false_steps_per_h"] == 0 and r["refused"] == 0 and r["doubted"] == 0, (seed, r)
 
 
+@functools.cache
+def _count_link_run(rate: float, jitter: float, step: float | None) -> dict:
+    return run_link(STEP_AT + 100.0 if rate == 10.0 else 900.0, rate, False, jitter, 0.05,
+                    step, seed=0, noise=(0.5, 0.1), count_clock=True)
+
+
+def _count_link(rate: float, jitter: float, step: float | None) -> dict:
+    """The link of the test below, ``step`` at STEP_AT (None: none), run once per worker (a
+    copy of its figures each call)."""
+    return dict(_count_link_run(rate, jitter, step))
+
+
 @pytest.mark.parametrize("rate, jitter, step", [(10.0, 0.2, -0.3), (10.0, 0.2, -1.0),
                                                 (10.0, 0.2, 0.5), (10.0, 0.05, -0.3),
                                                 (1.0, 0.2, -1.0)])
@@ -306,14 +319,12 @@ def test_without_a_counter_the_count_times_the_samples_a_jittery_link_hides(rate
     after min_judged (9) readings and measured exactly (the count the whole periods, the
     stamps' phase the rest); a step below one chain's resolution (-0.1 s here, 2 m against
     0.7 m of noise per pair of counts) is the count's level test's (the test below)."""
-    def run(count_clock, step=step):
-        return run_link(STEP_AT + 100.0 if rate == 10.0 else 900.0, rate, False, jitter, 0.05,
-                        step, seed=0, noise=(0.5, 0.1), count_clock=count_clock)
-    r = run(True)
+    r = _count_link(rate, jitter, step)
     assert r["decided_readings"] == 9 and r["refused"] == 0, r
     assert abs(r["shift_err_ms"]) < 1e-3 and r["time_err_all_ms"] < 1e-3, r
-    # and a clean link with the same noise: no step, nothing refused
-    clean = run(True, None)
+    # and a clean link with the same noise: no step, nothing refused (one run for the steps
+    # that share the rate and the jitter)
+    clean = _count_link(rate, jitter, None)
     assert clean["false_steps_per_h"] == 0 and clean["refused"] == 0, clean
     assert clean["time_err_all_ms"] < 1e-3, clean
 
