@@ -1199,6 +1199,19 @@ def test_a_power_limit_is_profiled_again_for_each_cause_scored_after_it(tmp_path
         check_parameters(c, by[c]["parameters"], truth[c], rep["evidence"], case.v_ref)
 
 
+def _both_confirmed(seed: list, causes: tuple, tmp_path) -> None:
+    """The pair case ``make_case(default_rng(seed), causes)`` diagnosed: its two causes ranked
+    first and second, both confirmed, each with its parameters within check_parameters'
+    bounds."""
+    case = make_case(np.random.default_rng(seed), causes, "plain")
+    rep, truth = _diagnosed(case, tmp_path)
+    by = {r["cause"]: r for r in rep["ranking"]}
+    assert {r["cause"] for r in rep["ranking"][:2]} == set(causes), rep["ranking"][:3]
+    for c in causes:
+        assert by[c]["status"] == "confirmed", (c, by[c].get("why"))
+        check_parameters(c, by[c]["parameters"], truth[c], rep["evidence"], case.v_ref)
+
+
 @pytest.mark.slow
 def test_a_traction_delay_beside_a_power_limit_is_fitted_again_on_the_final_model(tmp_path):
     """A pair the benchmark missed (seed 0, bag 53: a metro line, a power limit of 6.30 m^2/s^3
@@ -1207,14 +1220,7 @@ def test_a_traction_delay_beside_a_power_limit_is_fitted_again_on_the_final_mode
     fits gave 1.86 and 1.91 s, and its effect, too small, was contradicted by its phase split.
     With no linear cause the joint refit had nothing to refit; each cause is now fitted again
     on the model of the others at the final noise, as the folds fit it: both confirmed."""
-    case = make_case(np.random.default_rng([0, 53]), ("power_limit", "traction_delay"), "plain")
-    rep, truth = _diagnosed(case, tmp_path)
-    by = {r["cause"]: r for r in rep["ranking"]}
-    assert {r["cause"] for r in rep["ranking"][:2]} == {"power_limit", "traction_delay"}, \
-        rep["ranking"][:3]
-    for c in ("power_limit", "traction_delay"):
-        assert by[c]["status"] == "confirmed", (c, by[c].get("why"))
-        check_parameters(c, by[c]["parameters"], truth[c], rep["evidence"], case.v_ref)
+    _both_confirmed([0, 53], ("power_limit", "traction_delay"), tmp_path)
 
 
 @pytest.mark.slow
@@ -1302,15 +1308,7 @@ def test_a_brake_delay_and_a_low_adhesion_section_are_one_braking_chain(tmp_path
     1.04 s and its split needed it x0.39 over the braking that held the section (not
     confirmed). The section now scales the braking delayed by the brake delay, and the delay
     is profiled with the section's part delayed with it."""
-    case = make_case(np.random.default_rng([31, 7]), ("brake_delay", "adhesion_section"),
-                     "plain")
-    rep, truth = _diagnosed(case, tmp_path)
-    by = {r["cause"]: r for r in rep["ranking"]}
-    assert {r["cause"] for r in rep["ranking"][:2]} == {"brake_delay", "adhesion_section"}, \
-        rep["ranking"][:3]
-    for c in ("brake_delay", "adhesion_section"):
-        assert by[c]["status"] == "confirmed", (c, by[c].get("why"))
-        check_parameters(c, by[c]["parameters"], truth[c], rep["evidence"], case.v_ref)
+    _both_confirmed([31, 7], ("brake_delay", "adhesion_section"), tmp_path)
 
 
 def test_the_brake_delay_profile_with_a_section_is_the_likelihood_of_each_model(metro, tmp_path):
