@@ -126,7 +126,8 @@ def test_a_warming_resistance_leaves_no_section_on_its_braking_stretch(tmp_path)
     speed): it is not reported as a braking effect on its stretch, and the remainder's first
     entry is in every phase, as a warm-up acts. (Before the place causes' halves test, the
     section was contradicted only once judged again without the two others: held out at Z
-    -0.46.)"""
+    -0.46.) With each fold's fit on the filter of every reading, the section fails its held-out
+    check first (a held-out gain below 0): either way it is not confirmed."""
     rep, _ = _diagnose_foreign(tmp_path, 2, "warmup")
     assert rep["cause"] == "unexplained", rep["cause"]
     st = {r["cause"]: r for r in rep["ranking"]}
@@ -134,7 +135,7 @@ def test_a_warming_resistance_leaves_no_section_on_its_braking_stretch(tmp_path)
         st["gradient"]
     sec = st["adhesion_section"]
     assert sec["status"] == "not confirmed" and \
-        sec["why"].startswith("contradicted by the phase split"), sec
+        sec["why"].startswith(("contradicted by the phase split", "held-out check failed")), sec
     assert rep["unexplained"][0]["phase"] == "all", rep["unexplained"]
     assert not [u for u in rep["unexplained"]
                 if (u.get("best_listed") or {}).get("cause") == "adhesion_section"]

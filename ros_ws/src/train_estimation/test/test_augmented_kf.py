@@ -134,6 +134,50 @@ def test_two_pass_filter_equals_the_step_by_step_filter(seed, balises, held, upd
             np.testing.assert_array_equal(a, b)
 
 
+@pytest.mark.parametrize("blocks", [False, True])
+def test_a_fold_of_the_innovations_on_the_filter_of_every_reading(blocks):
+    """``use``: the filter's state is updated by every reading, the normal equations, log det
+    and count take the marked events' innovations only. So the innovations of the marked
+    events are those of the filter without ``use`` (the same numbers), the others NaN, and the
+    two folds' normal equations add up to the whole run's (to rounding: two sums of products
+    instead of one). All marked: the whole run's W bit for bit."""
+    rng = np.random.default_rng(5)
+    n, p1 = 60, 5
+    ev = _events(rng, n, [9, 31, 50], [])
+    Bv, Bs = rng.normal(size=(n, p1)) * 0.1, rng.normal(size=(n, p1)) * 0.05
+    Md, Mv = rng.normal(size=(n, p1)) * 0.2, rng.normal(size=(n, p1)) * 0.1
+    Mb = np.zeros((n, p1))
+    Mb[:, 1] = 1.0
+    if blocks:  # the blocks form, with column 0 as the fixed part and 2..4 as drift columns
+        fixed = (Bv[:, 0], Bs[:, 0], Md[:, 0], Mv[:, 0], Mb[:, 0])
+        Bv[:, 1] = Bs[:, 1] = Md[:, 1] = Mv[:, 1] = 0.0
+        Md[:, 2:] = Mv[:, 2:] = 0.0
+
+        def run(**kw):
+            return A.augmented_kf_blocks(ev, 0.02, 0.3, fixed, drift=(Bv[:, 2:], Bs[:, 2:]),
+                                         q_held=2.0, keep_innov=True, **kw)
+    else:
+        def run(**kw):
+            return augmented_kf(ev, 0.02, 0.3, Bv, Bs, Md, Mv, Mb, 2.0, keep_innov=True, **kw)
+    whole = run()
+    fold = (np.floor(ev.t / 1.0).astype(int) % 2) == 0
+    a, b = run(use=fold), run(use=~fold)
+    np.testing.assert_array_equal(run(use=np.ones(n, bool)).W, whole.W)
+    upd = np.arange(n) > 0  # the events that updated the filter (all but the first)
+    for kf, mask in ((a, fold), (b, ~fold)):
+        np.testing.assert_array_equal(kf.E0[mask & upd], whole.E0[mask & upd])
+        np.testing.assert_array_equal(kf.E1[mask & upd], whole.E1[mask & upd])
+        np.testing.assert_array_equal(kf.S_v[mask], whole.S_v[mask])
+        assert np.isnan(kf.E0[~mask & upd]).all() and np.isnan(kf.S_v[~mask]).all()
+    np.testing.assert_allclose(a.W + b.W, whole.W, rtol=1e-12, atol=1e-12)
+    assert a.m + b.m == whole.m and 0 < a.m < whole.m
+    assert a.logdet + b.logdet == pytest.approx(whole.logdet, rel=1e-12, abs=1e-9)
+    assert a.Z_bal.shape[0] + b.Z_bal.shape[0] == whole.Z_bal.shape[0]
+    # not the filter that skips the other fold's readings: its innovations differ
+    skip = run(update=fold)
+    assert not np.allclose(skip.E0[fold & upd, 0], whole.E0[fold & upd, 0])
+
+
 def test_compiled_loops_equal_the_interpreted_ones():
     """The loops as they run (compiled ahead of time, train_core.aot, or by numba's jit,
     numerics.jit) give what the same Python gives, bit for bit (no fast-math: the same IEEE

@@ -67,7 +67,8 @@ class KFResult:
 
 def augmented_kf(ev: Events, q: float, r_s: float, Bv, Bs, Md, Mv, Mb, q_held: float,
                  keep_innov: bool = False, update: np.ndarray | None = None,
-                 q_per_event: np.ndarray | None = None) -> KFResult:
+                 q_per_event: np.ndarray | None = None,
+                 use: np.ndarray | None = None) -> KFResult:
     """One Kalman filter run on x = (s, v) carrying p + 1 columns (column 0: the data with the
     fixed part of the model; columns 1..p: the parameters' sensitivities).
 
@@ -77,7 +78,9 @@ def augmented_kf(ev: Events, q: float, r_s: float, Bv, Bs, Md, Mv, Mb, q_held: f
     interval ending at event k when given. The
     innovation at theta is E_k [1, theta]; W = sum E_k^T S_k^-1 E_k, accumulated as Z^T Z of the
     whitened innovations (Cholesky of each S_k). ``update[k]`` False skips event k's measurement
-    (held-out data).
+    (held-out data). ``use[k]`` False keeps event k's measurement in the filter's state but its
+    innovation out of W, ``logdet`` and ``m`` (and its E0, E1, S_v NaN): the normal equations
+    of one fold of the data, on a filter that has seen every reading (:func:`_result`).
 
     Two passes: the covariances and gains (scalars, the same for every column:
     :func:`_gain_pass`, shared by the calls at the same noise), then the columns and their
@@ -105,24 +108,44 @@ def augmented_kf(ev: Events, q: float, r_s: float, Bv, Bs, Md, Mv, Mb, q_held: f
         Z[gp.row[odo]] = z0
         Z[gp.row[odo] + 1] = (E[odo, 1] - L[odo, 1, None] * z0) / L[odo, 2, None]
         Z[gp.row[bal]] = E[bal, 0] / L[bal, 0, None]
-    return _result(gp, Z, E, keep_innov)
+    return _result(gp, Z, E, keep_innov, use)
 
 
-def _result(gp, Z: np.ndarray, E: np.ndarray, keep_innov: bool) -> KFResult:
+def _result(gp, Z: np.ndarray, E: np.ndarray, keep_innov: bool,
+            use: np.ndarray | None = None) -> KFResult:
     """The run's KFResult from its gains, whitened innovations ``Z`` and innovations ``E``
-    (those of columns 0 and 1 read when ``keep_innov``)."""
+    (those of columns 0 and 1 read when ``keep_innov``); with ``use``, of the events it marks
+    only (the filter's state still updated by every reading: a fold's normal equations whose
+    innovations are white against the other fold's, where a filter that skipped the other
+    fold's readings carried their state error into its own later innovations)."""
+    odo, bal = gp.odo, gp.bal
+    logdet, m = gp.logdet, gp.m
+    if use is not None:
+        use = np.asarray(use, bool)
+        odo, bal = odo[use[odo]], bal[use[bal]]
+        rows = np.sort(np.concatenate([gp.row[odo], gp.row[odo] + 1, gp.row[bal]]))
+        Z = Z[rows]
+        L = gp.L  # log det S_k from its Cholesky factor: 2 log(l00 l11), a balise's 2 log l0
+        logdet = float(np.sum(2.0 * (np.log(L[odo, 0]) + np.log(L[odo, 2])))
+                       + np.sum(2.0 * np.log(L[bal, 0])))
+        m = int(rows.size)
+    W = Z.T @ Z
     if not keep_innov:
-        return KFResult(W=Z.T @ Z, logdet=gp.logdet, m=gp.m)
-    n, odo, bal = gp.h.size, gp.odo, gp.bal
+        return KFResult(W=W, logdet=logdet, m=m)
+    n = gp.h.size
     E0, E1 = np.zeros((n, 2)), np.zeros((n, 2))
+    if use is not None:  # the readings out of the fold: no innovation of its
+        out = np.setdiff1d(np.concatenate([gp.odo, gp.bal]), np.concatenate([odo, bal]))
+        E0[out] = E1[out] = np.nan
     E0[odo] = E[odo, ::-1, 0]  # (speed, distance)
     E1[odo] = E[odo, ::-1, 1]
     E0[bal, 0] = E1[bal, 0] = np.nan
     E0[bal, 1], E1[bal, 1] = E[bal, 0, 0], E[bal, 0, 1]
     S_v = np.full(n, np.nan)
     S_v[odo] = gp.S_v[odo]
-    return KFResult(W=Z.T @ Z, logdet=gp.logdet, m=gp.m, E0=E0, E1=E1, S_v=S_v,
-                    Z_bal=Z[gp.row[bal], :2].copy())
+    z_bal = Z[gp.row[bal], :2].copy() if use is None else \
+        Z[np.searchsorted(rows, gp.row[bal]), :2].copy()
+    return KFResult(W=W, logdet=logdet, m=m, E0=E0, E1=E1, S_v=S_v, Z_bal=z_bal)
 
 
 def _step(first, c, xs, xv, hk, bs, bv, md, mv, mb, ydk, yvk, k00, k10, k01, k11, l0, l1, l2):
@@ -214,7 +237,8 @@ def _column_pass(h, code, Bs, Bv, Md, Mv, Mb, yd, yv, K, L, row, Z, E, keep):
 
 def augmented_kf_blocks(ev: Events, q: float, r_s: float, fixed, drift=None, meas=None,
                         bal=None, q_held: float = 0.0, keep_innov: bool = False,
-                        update: np.ndarray | None = None) -> KFResult:
+                        update: np.ndarray | None = None,
+                        use: np.ndarray | None = None) -> KFResult:
     """:func:`augmented_kf` over the columns [fixed part, s0, drift columns..., measurement
     columns..., balise columns...] given as blocks instead of five (n_ev, p+1) matrices that
     are zero but for them: ``fixed = (fv, fs, md, mv, mb)`` column 0's drift increments (speed,
@@ -242,7 +266,7 @@ def augmented_kf_blocks(ev: Events, q: float, r_s: float, fixed, drift=None, mea
         Md[:, a + 2:a + b + 2], Mv[:, a + 2:a + b + 2] = Mdb, Mvb
         Mb[:, a + b + 2:] = Mbb
         return augmented_kf(ev, q, r_s, Bv, Bs, Md, Mv, Mb, q_held, keep_innov=keep_innov,
-                            update=update)
+                            update=update, use=use)
     gp = _gain_pass(ev, q, r_s, q_held, update, None)
     p1 = 2 + Dv.shape[1] + Mdb.shape[1] + Mbb.shape[1]
     Z = np.empty((gp.m, p1))
@@ -253,7 +277,7 @@ def augmented_kf_blocks(ev: Events, q: float, r_s: float, fixed, drift=None, mea
                         F, Ds, Dv, Mdb, Mvb, Mbb, np.ascontiguousarray(ev.y_d, f8),
                         np.ascontiguousarray(ev.y_v, f8), np.ascontiguousarray(gp.K), gp.L,
                         gp.row, Z, E, keep_innov)
-    return _result(gp, Z, E, keep_innov)
+    return _result(gp, Z, E, keep_innov, use)
 
 
 def _column_pass_blocks(h, code, F, Ds, Dv, Mdb, Mvb, Mbb, yd, yv, K, L, row, Z, E, keep):

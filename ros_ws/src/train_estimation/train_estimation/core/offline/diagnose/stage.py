@@ -74,7 +74,7 @@ class Stage:
     augmented filter over [fixed, s0, every elementary drift column, scale] (``kf``)."""
 
     def __init__(self, mo: Motion, null: Null, cfg: DiagConfig, noise=None, update=None,
-                 big=True):
+                 big=True, fit_on=None):
         self.mo, self.null, self.cfg = mo, null, cfg
         # fixed part of drift and measurement (column 0)
         fv, fs = mo.base_v.copy(), mo.base_s.copy()
@@ -106,6 +106,9 @@ class Stage:
         # than it states, as the structure test found it (balise_rounds.scatter_round)
         self.bal_scale = 1.0
         self.update = update  # events whose measurement the filter uses (None: all)
+        # events whose innovations the fits take (None: all updated): one fold of the data for
+        # the held-out check, on a filter that still uses every reading (augmented_kf's ``use``)
+        self.fit_on = fit_on
         # The search meets the same null more than once (the next stage's null is the last
         # refit's extended null; a stage rebuilt at the same noise): its noise fit and big
         # filter, deterministic functions of these inputs, are computed once per run.
@@ -120,7 +123,7 @@ class Stage:
             return
         # the big run: [fixed, s0, elementary drift columns..., scale]
         self.p = mo.Dv.shape[1]
-        kkey = ("big", key, digest(self.q, self.r_s, update))
+        kkey = ("big", key, digest(self.q, self.r_s, update, fit_on))
         if kkey not in memo:
             memo[kkey] = self.augmented(fv, fs, drift=(mo.Dv, mo.Ds),
                                         meas=(mo.sc_d[:, None], mo.sc_v[:, None]),
@@ -133,7 +136,9 @@ class Stage:
         """One augmented filter at this stage's noise over the columns [fixed part (drift fv,
         fs; the null's measurement part), s0, drift columns ``drift = (Dv, Ds)``...,
         measurement columns ``meas = (Md, Mv)``..., balise measurement columns ``bal``...]
-        (each pair (n_ev, k), ``bal`` (n_ev, k), or None)."""
+        (each pair (n_ev, k), ``bal`` (n_ev, k), or None); the innovations of :attr:`fit_on`
+        only, unless ``use`` is given."""
+        kw.setdefault("use", self.fit_on)
         return augmented_kf_blocks(self.events(), self.q, self.r_s,
                                    (fv, fs, self.md, self.mv, self.mb), drift=drift, meas=meas,
                                    bal=bal, q_held=self.cfg.standstill_q, **kw)
