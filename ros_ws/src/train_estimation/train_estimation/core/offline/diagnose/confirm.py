@@ -12,9 +12,9 @@ reported ``confirmed`` only when the checks below pass, the same for every cause
    the model without the cause and e1_k = e0_k - d_k of the model with the fit from the other
    blocks (S_k the innovation variance), the held-out log-likelihood gain is
    D = sum (e0 d / S - d^2 / 2S) over the held-out events of both folds. Without the effect,
-   e0_k ~ N(0, S_k) independently of d (fitted elsewhere), so Z = sum (e0 d / S) /
-   sqrt(sum d^2 / S) is standard normal (a score test on held-out data; a local effect in
-   one block counts at its own noise). Confirmed when D > 0 and Z > ``heldout_z``.
+   e0_k ~ N(0, S_k) independently of d (fitted on the other fold's innovations, heldout.py),
+   so Z = sum (e0 d / S) / sqrt(sum d^2 / S) is standard normal (a local effect in one block
+   at its own noise). Confirmed when D > 0 and Z > ``heldout_z``.
    Causes with a likelihood of their own (clock, link) use their own held-out gain. Slip
    episodes are then held out one by one (:func:`heldout_episodes`): an episode that the
    other samples do not confirm, or whose readings on their own reject its step or do not
