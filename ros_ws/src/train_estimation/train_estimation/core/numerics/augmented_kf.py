@@ -119,23 +119,24 @@ def _result(gp, Z: np.ndarray, E: np.ndarray, keep_innov: bool,
     innovations are white against the other fold's, where a filter that skipped the other
     fold's readings carried their state error into its own later innovations)."""
     odo, bal = gp.odo, gp.bal
-    logdet, m = gp.logdet, gp.m
+    logdet, m, Zu = gp.logdet, gp.m, Z
     if use is not None:
         use = np.asarray(use, bool)
         odo, bal = odo[use[odo]], bal[use[bal]]
         rows = np.sort(np.concatenate([gp.row[odo], gp.row[odo] + 1, gp.row[bal]]))
-        Z = Z[rows]
+        Zu = Z[rows]
         L = gp.L  # log det S_k from its Cholesky factor: 2 log(l00 l11), a balise's 2 log l0
         logdet = float(np.sum(2.0 * (np.log(L[odo, 0]) + np.log(L[odo, 2])))
                        + np.sum(2.0 * np.log(L[bal, 0])))
         m = int(rows.size)
-    W = Z.T @ Z
+    W = Zu.T @ Zu
     if not keep_innov:
         return KFResult(W=W, logdet=logdet, m=m)
     n = gp.h.size
     E0, E1 = np.zeros((n, 2)), np.zeros((n, 2))
-    if use is not None:  # the readings out of the fold: no innovation of its
-        out = np.setdiff1d(np.concatenate([gp.odo, gp.bal]), np.concatenate([odo, bal]))
+    if use is not None:  # the updated readings out of the fold: no innovation of theirs
+        upd = np.concatenate([gp.odo, gp.bal])
+        out = upd[~use[upd]]
         E0[out] = E1[out] = np.nan
     E0[odo] = E[odo, ::-1, 0]  # (speed, distance)
     E1[odo] = E[odo, ::-1, 1]
@@ -143,9 +144,8 @@ def _result(gp, Z: np.ndarray, E: np.ndarray, keep_innov: bool,
     E0[bal, 1], E1[bal, 1] = E[bal, 0, 0], E[bal, 0, 1]
     S_v = np.full(n, np.nan)
     S_v[odo] = gp.S_v[odo]
-    z_bal = Z[gp.row[bal], :2].copy() if use is None else \
-        Z[np.searchsorted(rows, gp.row[bal]), :2].copy()
-    return KFResult(W=W, logdet=logdet, m=m, E0=E0, E1=E1, S_v=S_v, Z_bal=z_bal)
+    return KFResult(W=W, logdet=logdet, m=m, E0=E0, E1=E1, S_v=S_v,
+                    Z_bal=Z[gp.row[bal], :2].copy())
 
 
 def _step(first, c, xs, xv, hk, bs, bv, md, mv, mb, ydk, yvk, k00, k10, k01, k11, l0, l1, l2):
