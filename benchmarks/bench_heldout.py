@@ -263,10 +263,13 @@ def _by_recording(ok: list[dict]) -> list[str]:
     every other command change 0.1 s late, and a score whose SD is not 1 shows it
     (docs/benchmarks.md, "The delays' excess")."""
     groups: dict = {}
+    counts: dict = {}  # bags per recording
     for r in ok:
         if r["causes"] or not r.get("recording"):
             continue
-        g = groups.setdefault(tuple(r["recording"]), {c: [] for c in BY_RECORDING})
+        key = tuple(r["recording"])
+        g = groups.setdefault(key, {c: [] for c in BY_RECORDING})
+        counts[key] = counts.get(key, 0) + 1
         for c in BY_RECORDING:
             z = (r["held"].get(c) or {}).get("z")
             if z is not None:
@@ -279,8 +282,7 @@ def _by_recording(ok: list[dict]) -> list[str]:
           "|---|---|" + "---|" * len(BY_RECORDING)]
     for key in sorted(groups):
         g = groups[key]
-        n = max(len(v) for v in g.values())
-        md.append(f"| {key[0]:g}, {key[1]:g} | {n} | " + " | ".join(
+        md.append(f"| {key[0]:g}, {key[1]:g} | {counts[key]} | " + " | ".join(
             f"{np.mean(v):+.2f}, {np.std(v):.2f}, {sum(z > 2 for z in v)}" if v else "-"
             for v in g.values()) + " |")
     return md
